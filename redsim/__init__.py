@@ -1,0 +1,25 @@
+"""redsim: data-free neural reduced-order simulation and control of physical systems.
+
+Scenes are differentiable potential energies built from declared effects
+(:mod:`redsim.scenes`, :mod:`redsim.effects`); a full-space implicit-Euler reference
+simulator (:mod:`redsim.integrators`) is the ground truth that reduced models are measured
+against.
+"""
+
+from redsim import effects, scenes
+from redsim.points import PointSet
+from redsim.scene import ConditionSpace, Handle, Scene, SceneBuilder, Surface
+
+__version__ = "0.1.0"
+
+__all__ = [
+    "ConditionSpace",
+    "Handle",
+    "PointSet",
+    "Scene",
+    "SceneBuilder",
+    "Surface",
+    "__version__",
+    "effects",
+    "scenes",
+]

@@ -1,0 +1,102 @@
+"""The one interface every energy term implements.
+
+An effect is a sum over independent *elements* (a tet, a triangle, a hinge edge, a joint, a
+contact point). Each element reads a fixed set of entries of the full configuration x,
+``element_dofs`` [T, k], and :meth:`Effect.element_energy` returns one energy per element.
+The total is their sum. The same two members give the batched energy used by fitting and
+envs and the per-element Hessians the full-space Newton solver assembles, so there is one
+definition of each physical term.
+"""
+
+from __future__ import annotations
+
+import copy
+import dataclasses
+from typing import Any, ClassVar
+
+import torch
+from torch import Tensor
+
+from redsim.points import PointSet
+
+
+class Effect:
+    """Base class of energy terms. Subclasses set ``element_dofs`` and implement ``element_energy``.
+
+    Attributes:
+        name: Unique name of this term within a scene (e.g. ``"gravity"``, ``"joints"``).
+        element_dofs: Full-configuration indices read by each element, shape [T, k], int64.
+        uses_loads: True for terms that read the per-step loads (external forces).
+        uses_condition: True for terms that read the condition vector c.
+    """
+
+    kind: ClassVar[str] = "effect"
+    uses_loads: ClassVar[bool] = False
+    uses_condition: ClassVar[bool] = False
+
+    name: str
+    element_dofs: Tensor
+
+    @property
+    def element_count(self) -> int:
+        return int(self.element_dofs.shape[0])
+
+    def element_energy(self, xe: Tensor, cond: Tensor | None = None, loads: Tensor | None = None) -> Tensor:
+        """Energy of every element [J], shape [B, T], from xe = x[:, element_dofs], shape [B, T, k].
+
+        Args:
+            xe: Gathered configuration entries.
+            cond: Condition vectors, shape [B, m], for terms with ``uses_condition``.
+            loads: Loads, shape [B, H, D] (force [N] per handle), for terms with ``uses_loads``.
+        """
+        raise NotImplementedError
+
+    def energy(self, x: Tensor, cond: Tensor | None = None, loads: Tensor | None = None) -> Tensor:
+        """Total energy [J], shape [B], of full configurations x, shape [B, N]."""
+        return self.element_energy(x[:, self.element_dofs], cond, loads).sum(-1)
+
+    def describe(self) -> dict[str, Any]:
+        """Name, kind and element count, for `redsim scenes`."""
+        return {"name": self.name, "kind": self.kind, "elements": self.element_count}
+
+    def to(self, device: torch.device | str | None = None, dtype: torch.dtype | None = None) -> Effect:
+        """A copy with floating tensors cast to ``dtype`` and every tensor moved to ``device``."""
+        out = copy.copy(self)
+        for key, value in vars(self).items():
+            setattr(out, key, _convert(value, device, dtype))
+        return out
+
+    def __repr__(self) -> str:
+        return f"{type(self).__name__}(name={self.name!r}, elements={self.element_count})"
+
+
+def _convert(value: Any, device: torch.device | str | None, dtype: torch.dtype | None) -> Any:
+    if isinstance(value, Tensor):
+        if value.is_floating_point():
+            return value.to(device=device, dtype=dtype)
+        return value.to(device=device)
+    if isinstance(value, PointSet):
+        return value.to(device, dtype)
+    if dataclasses.is_dataclass(value) and not isinstance(value, type):
+        changes = {f.name: _convert(getattr(value, f.name), device, dtype) for f in dataclasses.fields(value)}
+        return dataclasses.replace(value, **changes)
+    if isinstance(value, tuple):
+        return tuple(_convert(v, device, dtype) for v in value)
+    return value
+
+
+def point_dofs(*point_sets: PointSet) -> Tensor:
+    """Element dofs for elements made of one point from each set, shape [P, sum(D*K)]."""
+    counts = {s.count for s in point_sets}
+    if len(counts) != 1:
+        raise ValueError(f"point sets must have equal counts, got {sorted(counts)}")
+    return torch.cat([s.local_dofs() for s in point_sets], dim=1)
+
+
+def split_points(xe: Tensor, *point_sets: PointSet) -> list[Tensor]:
+    """Positions [B, P, D] of each set from element entries built by :func:`point_dofs`."""
+    out, start = [], 0
+    for s in point_sets:
+        out.append(s.local_positions(xe[..., start : start + s.local_size]))
+        start += s.local_size
+    return out

@@ -1,0 +1,232 @@
+"""Elastic energies of meshes: stable neo-Hookean FEM, StVK cloth membrane, discrete-shell bending."""
+
+from __future__ import annotations
+
+from typing import Literal
+
+import torch
+from torch import Tensor
+
+from redsim.effects.base import Effect
+from redsim.materials import lame_from_young_poisson
+
+
+def _per_element(value: float | Tensor, count: int, what: str) -> Tensor:
+    out = torch.as_tensor(value, dtype=torch.float64)
+    out = out.expand(count).clone() if out.ndim == 0 else out.clone()
+    if out.shape != (count,):
+        raise ValueError(f"{what} must be a scalar or have shape [{count}], got {tuple(out.shape)}")
+    return out
+
+
+def _edge_matrix(v: Tensor) -> Tensor:
+    """Columns v[j+1] - v[0]: [..., D+1, D] -> [..., D, D]."""
+    return (v[..., 1:, :] - v[..., :1, :]).transpose(-1, -2)
+
+
+class NeoHookean(Effect):
+    """Stable neo-Hookean FEM on linear triangles (2D) or tetrahedra (3D) [Smith et al. 2018].
+
+    psi(F) = mu/2 (tr F^T F - D) + lam'/2 (det F - alpha)^2 - mu^2 / (2 lam'), with
+    lam' = lam + mu and alpha = 1 + mu / lam'. It is a polynomial in F, so it is finite and
+    smooth for inverted elements, and psi(R) = 0 with zero stress for every rotation R.
+
+    Args:
+        name: Term name.
+        vertex_dofs: Full-configuration index of each element vertex coordinate,
+            shape [T, D+1, D], int64.
+        rest: Rest positions [m], shape [T, D+1, D].
+        young: Young's modulus [Pa], scalar or shape [T] (heterogeneous materials).
+        poisson: Poisson ratio, scalar or shape [T].
+        thickness: Out-of-plane thickness [m] of 2D elements (ignored in 3D).
+        plane: Plane model of 2D elements, "strain" or "stress".
+        condition_scale: Optional (condition index i, element mask [T] bool): masked elements
+            have their modulus multiplied by c[i] (conditional stiffness ratio).
+
+    Raises:
+        ValueError: on an inverted or degenerate rest element (its index is named).
+    """
+
+    kind = "neo_hookean"
+
+    def __init__(
+        self,
+        name: str,
+        vertex_dofs: Tensor,
+        rest: Tensor,
+        young: float | Tensor,
+        poisson: float | Tensor,
+        *,
+        thickness: float = 1.0,
+        plane: Literal["strain", "stress"] = "strain",
+        condition_scale: tuple[int, Tensor] | None = None,
+    ) -> None:
+        rest = torch.as_tensor(rest, dtype=torch.float64)
+        T, nv, D = rest.shape
+        if nv != D + 1 or D not in (2, 3):
+            raise ValueError(f"rest must have shape [T, D+1, D] with D in (2, 3), got {tuple(rest.shape)}")
+        rest_edges = _edge_matrix(rest)
+        det = torch.linalg.det(rest_edges)
+        volume = det / (2.0 if D == 2 else 6.0)
+        scale = rest_edges.abs().amax(dim=(-1, -2)).clamp_min(1e-300) ** D
+        bad = torch.nonzero(det <= 1e-12 * scale).reshape(-1)
+        if bad.numel():
+            i = int(bad[0])
+            kind = "inverted" if det[i] < 0 else "degenerate"
+            raise ValueError(
+                f"element {i} of {name!r} is {kind} (rest volume {float(volume[i]):.3g}); "
+                f"{bad.numel()} bad element(s) in all"
+            )
+        mu, lam = lame_from_young_poisson(
+            _per_element(young, T, "young"), _per_element(poisson, T, "poisson"), plane=plane if D == 2 else None
+        )
+        self.name = name
+        self.dim = D
+        self.element_dofs = torch.as_tensor(vertex_dofs, dtype=torch.int64).reshape(T, -1)
+        self.rest_inverse = torch.linalg.inv(rest_edges)
+        self.rest_volume = volume * (thickness if D == 2 else 1.0)
+        self.mu = mu
+        self.lam = lam
+        self.condition_scale = None
+        if condition_scale is not None:
+            index, mask = condition_scale
+            self.condition_scale = (int(index), torch.as_tensor(mask, dtype=torch.bool).reshape(T))
+            self.uses_condition = True
+
+    def element_energy(self, xe: Tensor, cond: Tensor | None = None, loads: Tensor | None = None) -> Tensor:
+        B, T, _ = xe.shape
+        D = self.dim
+        F = _edge_matrix(xe.reshape(B, T, D + 1, D)) @ self.rest_inverse
+        mu, lam = self.mu, self.lam
+        if self.condition_scale is not None:
+            if cond is None:
+                raise ValueError(f"effect {self.name!r} needs a condition vector")
+            index, mask = self.condition_scale
+            factor = torch.where(mask, cond[:, index : index + 1], torch.ones_like(mu))
+            mu, lam = mu * factor, lam * factor
+        lam_s = lam + mu
+        alpha = 1.0 + mu / lam_s
+        psi = 0.5 * mu * ((F * F).sum((-1, -2)) - D) + 0.5 * lam_s * (torch.linalg.det(F) - alpha) ** 2
+        psi = psi - 0.5 * mu * mu / lam_s
+        return psi * self.rest_volume
+
+
+def _triangle_frame(rest: Tensor) -> Tensor:
+    """2x2 rest edge matrices of 3D triangles [T, 3, 3] in each triangle's own plane."""
+    e1 = rest[:, 1] - rest[:, 0]
+    e2 = rest[:, 2] - rest[:, 0]
+    u = e1 / e1.norm(dim=-1, keepdim=True)
+    n = torch.linalg.cross(e1, e2)
+    v = torch.linalg.cross(n, u)
+    v = v / v.norm(dim=-1, keepdim=True).clamp_min(1e-300)
+    row0 = torch.stack([(e1 * u).sum(-1), (e2 * u).sum(-1)], dim=-1)
+    row1 = torch.stack([(e1 * v).sum(-1), (e2 * v).sum(-1)], dim=-1)
+    return torch.stack([row0, row1], dim=-2)
+
+
+class StVKMembrane(Effect):
+    """Constant-strain Saint Venant-Kirchhoff membrane on 3D triangles (cloth stretching).
+
+    psi = mu tr(E^2) + lam/2 tr(E)^2 with Green strain E = (F^T F - I)/2 and plane-stress
+    Lamé parameters; energy = thickness * rest area * psi.
+
+    Args:
+        name: Term name.
+        vertex_dofs: Index of each triangle vertex coordinate, shape [T, 3, 3], int64.
+        rest: Rest positions [m], shape [T, 3, 3].
+        young: Young's modulus [Pa], scalar or [T].
+        poisson: Poisson ratio, scalar or [T].
+        thickness: Sheet thickness [m].
+    """
+
+    kind = "stvk_membrane"
+
+    def __init__(
+        self,
+        name: str,
+        vertex_dofs: Tensor,
+        rest: Tensor,
+        young: float | Tensor,
+        poisson: float | Tensor,
+        *,
+        thickness: float = 1e-3,
+    ) -> None:
+        rest = torch.as_tensor(rest, dtype=torch.float64)
+        T = rest.shape[0]
+        if rest.shape != (T, 3, 3):
+            raise ValueError(f"rest must have shape [T, 3, 3], got {tuple(rest.shape)}")
+        frame = _triangle_frame(rest)
+        area = 0.5 * torch.linalg.det(frame)
+        bad = torch.nonzero(area <= 1e-12 * frame.abs().amax(dim=(-1, -2)) ** 2).reshape(-1)
+        if bad.numel():
+            raise ValueError(f"triangle {int(bad[0])} of {name!r} is degenerate (rest area {float(area[bad[0]]):.3g})")
+        mu, lam = lame_from_young_poisson(
+            _per_element(young, T, "young"), _per_element(poisson, T, "poisson"), plane="stress"
+        )
+        self.name = name
+        self.element_dofs = torch.as_tensor(vertex_dofs, dtype=torch.int64).reshape(T, 9)
+        self.rest_inverse = torch.linalg.inv(frame)
+        self.rest_area = area
+        self.mu = mu * thickness
+        self.lam = lam * thickness
+
+    def element_energy(self, xe: Tensor, cond: Tensor | None = None, loads: Tensor | None = None) -> Tensor:
+        B, T, _ = xe.shape
+        F = _edge_matrix(xe.reshape(B, T, 3, 3)) @ self.rest_inverse  # [B, T, 3, 2]
+        eye = torch.eye(2, dtype=xe.dtype, device=xe.device)
+        strain = 0.5 * (F.transpose(-1, -2) @ F - eye)
+        trace = strain.diagonal(dim1=-2, dim2=-1).sum(-1)
+        psi = self.mu * (strain * strain).sum((-1, -2)) + 0.5 * self.lam * trace**2
+        return psi * self.rest_area
+
+
+def _dihedral(v: Tensor, length_eps: Tensor | float) -> Tensor:
+    """Signed dihedral angles [rad] of hinges v = (x0, x1, x2, x3) with shared edge x0-x1, shape [..., 4, 3]."""
+    x0, x1, x2, x3 = v.unbind(-2)
+    e = x1 - x0
+    n_a = torch.linalg.cross(e, x2 - x0)
+    n_b = torch.linalg.cross(x3 - x0, e)
+    e_len = torch.sqrt((e * e).sum(-1) + length_eps)
+    sin = (torch.linalg.cross(n_a, n_b) * e).sum(-1) / e_len
+    cos = (n_a * n_b).sum(-1)
+    return torch.atan2(sin, cos)
+
+
+class DiscreteShellBending(Effect):
+    """Discrete-shell bending on interior edges [Grinspun et al. 2003].
+
+    E = stiffness * 3 |e|^2 / (A_a + A_b) * (theta - theta_rest)^2 per hinge, with rest edge
+    length |e| and the rest areas of its two triangles; theta is the signed dihedral angle.
+    It is zero at rest and invariant under rigid motions.
+
+    Args:
+        name: Term name.
+        vertex_dofs: Index of each hinge vertex coordinate, shape [E, 4, 3], int64, ordered
+            (edge start, edge end, apex of the triangle (x0, x1, x2), apex of (x1, x0, x3)).
+        rest: Rest positions [m], shape [E, 4, 3].
+        stiffness: Bending stiffness [J], scalar or [E].
+    """
+
+    kind = "discrete_shell_bending"
+
+    def __init__(self, name: str, vertex_dofs: Tensor, rest: Tensor, stiffness: float | Tensor) -> None:
+        rest = torch.as_tensor(rest, dtype=torch.float64)
+        count = rest.shape[0]
+        if rest.shape != (count, 4, 3):
+            raise ValueError(f"rest must have shape [E, 4, 3], got {tuple(rest.shape)}")
+        e = rest[:, 1] - rest[:, 0]
+        area_a = 0.5 * torch.linalg.cross(e, rest[:, 2] - rest[:, 0]).norm(dim=-1)
+        area_b = 0.5 * torch.linalg.cross(rest[:, 3] - rest[:, 0], e).norm(dim=-1)
+        edge_sq = (e * e).sum(-1)
+        if bool(torch.any(area_a + area_b <= 0)):
+            raise ValueError(f"hinge {int(torch.argmin(area_a + area_b))} of {name!r} has zero rest area")
+        self.name = name
+        self.element_dofs = torch.as_tensor(vertex_dofs, dtype=torch.int64).reshape(count, 12)
+        self.length_eps = float(edge_sq.min()) * 1e-12
+        self.rest_angle = _dihedral(rest, self.length_eps)
+        self.weight = _per_element(stiffness, count, "stiffness") * 3.0 * edge_sq / (area_a + area_b)
+
+    def element_energy(self, xe: Tensor, cond: Tensor | None = None, loads: Tensor | None = None) -> Tensor:
+        B, E, _ = xe.shape
+        theta = _dihedral(xe.reshape(B, E, 4, 3), self.length_eps)
+        return self.weight * (theta - self.rest_angle) ** 2

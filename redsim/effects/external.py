@@ -1,0 +1,64 @@
+"""Linear potentials: gravity and external loads on handles."""
+
+from __future__ import annotations
+
+import torch
+from torch import Tensor
+
+from redsim.effects.base import Effect
+from redsim.points import PointSet
+
+
+class Gravity(Effect):
+    """E = -sum_i m_i g . p_i over particles and rigid-body centres of mass.
+
+    Args:
+        name: Term name.
+        points: Where the masses sit (vertices, body centroids), P of them.
+        masses: Mass [kg] of each point, shape [P].
+        acceleration: Gravitational acceleration [m/s^2], shape [D] (e.g. (0, -9.81, 0)).
+    """
+
+    kind = "gravity"
+
+    def __init__(self, name: str, points: PointSet, masses: Tensor, acceleration: Tensor) -> None:
+        self.name = name
+        self.points = points
+        self.element_dofs = points.local_dofs()
+        self.masses = torch.as_tensor(masses, dtype=torch.float64).reshape(points.count)
+        self.acceleration = torch.as_tensor(acceleration, dtype=torch.float64).reshape(points.dim)
+
+    def element_energy(self, xe: Tensor, cond: Tensor | None = None, loads: Tensor | None = None) -> Tensor:
+        return -self.masses * (self.points.local_positions(xe) * self.acceleration).sum(-1)
+
+
+class ExternalLoad(Effect):
+    """E = -sum_i w_i F_h(i) . p_i: a force F_h [N] per handle, spread over the handle's points.
+
+    Loads arrive per step as a tensor [B, H, D] (H handles in scene order); without loads
+    the term is zero.
+
+    Args:
+        name: Term name.
+        points: All handle points, P of them.
+        handle_index: Handle of each point, shape [P], int64.
+        weights: Share of the handle's force on each point, shape [P] (each handle sums to 1).
+        handle_count: Number of handles H.
+    """
+
+    kind = "external_load"
+    uses_loads = True
+
+    def __init__(self, name: str, points: PointSet, handle_index: Tensor, weights: Tensor, handle_count: int) -> None:
+        self.name = name
+        self.points = points
+        self.element_dofs = points.local_dofs()
+        self.handle_index = torch.as_tensor(handle_index, dtype=torch.int64).reshape(points.count)
+        self.weights = torch.as_tensor(weights, dtype=torch.float64).reshape(points.count)
+        self.handle_count = int(handle_count)
+
+    def element_energy(self, xe: Tensor, cond: Tensor | None = None, loads: Tensor | None = None) -> Tensor:
+        if loads is None:
+            return xe.new_zeros(xe.shape[:2])
+        force = loads[:, self.handle_index]  # [B, P, D]
+        return -self.weights * (self.points.local_positions(xe) * force).sum(-1)

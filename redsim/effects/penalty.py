@@ -1,0 +1,180 @@
+"""Penalty terms (paper eq. "penalty"): w_eq |C_eq|^2 for joints and pins, w_ineq |min(C_ineq, 0)|^2
+for contact. All are finite for any input, because fitting samples violate constraints."""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import torch
+from torch import Tensor
+
+from redsim.effects.base import Effect, point_dofs, split_points
+from redsim.effects.elastic import _per_element
+from redsim.effects.sdf import Box, Capsule, Plane, Sphere, Torus
+from redsim.points import PointSet
+
+
+class PointPairPenalty(Effect):
+    """E = stiffness/2 * |a_i - b_i|^2 for matched points a_i, b_i.
+
+    One class covers revolute/ball joints (a point on each body, or a body and the world),
+    hinge-axis alignment (directions fixed in each body: ``PointSet.body_points(direction=True)``)
+    and pins by penalty (a point and a fixed world point).
+
+    Args:
+        name: Term name.
+        a: First points, P of them.
+        b: Second points, P of them.
+        stiffness: Penalty weight [N/m], scalar or [P].
+        kind: Label shown by `redsim scenes` (e.g. "joint", "hinge_axis", "pin").
+    """
+
+    def __init__(self, name: str, a: PointSet, b: PointSet, stiffness: float | Tensor, *, kind: str = "joint") -> None:
+        if a.dim != b.dim:
+            raise ValueError(f"point sets of {name!r} differ in dimension ({a.dim} vs {b.dim})")
+        self.name = name
+        self.kind = kind
+        self.a, self.b = a, b
+        self.element_dofs = point_dofs(a, b)
+        self.stiffness = _per_element(stiffness, a.count, "stiffness")
+
+    def element_energy(self, xe: Tensor, cond: Tensor | None = None, loads: Tensor | None = None) -> Tensor:
+        pa, pb = split_points(xe, self.a, self.b)
+        d = pa - pb
+        return 0.5 * self.stiffness * (d * d).sum(-1)
+
+
+class ConditionalPin(Effect):
+    """Pins whose strength follows a condition: a movable support (conditional subspaces, §3.5).
+
+    E = stiffness/2 * exp(-((location_i - c_j) / width)^2 / 2) * |p_i - target_i|^2.
+
+    Args:
+        name: Term name.
+        points: The pinned points.
+        targets: Where each point is held [m], shape [P, D].
+        locations: Coordinate of each point along the support's range, shape [P].
+        condition_index: Which entry j of the condition vector is the support location.
+        width: Width of the support [same unit as locations].
+        stiffness: Penalty weight [N/m].
+    """
+
+    kind = "conditional_pin"
+    uses_condition = True
+
+    def __init__(
+        self,
+        name: str,
+        points: PointSet,
+        targets: Tensor,
+        locations: Tensor,
+        condition_index: int,
+        width: float,
+        stiffness: float,
+    ) -> None:
+        if not width > 0:
+            raise ValueError(f"width must be > 0, got {width}")
+        self.name = name
+        self.points = points
+        self.element_dofs = points.local_dofs()
+        self.targets = torch.as_tensor(targets, dtype=torch.float64).reshape(points.count, points.dim)
+        self.locations = torch.as_tensor(locations, dtype=torch.float64).reshape(points.count)
+        self.condition_index = int(condition_index)
+        self.width = float(width)
+        self.stiffness = float(stiffness)
+
+    def element_energy(self, xe: Tensor, cond: Tensor | None = None, loads: Tensor | None = None) -> Tensor:
+        if cond is None:
+            raise ValueError(f"effect {self.name!r} needs a condition vector")
+        d = self.points.local_positions(xe) - self.targets
+        centre = cond[:, self.condition_index : self.condition_index + 1]
+        weight = torch.exp(-0.5 * ((self.locations - centre) / self.width) ** 2)
+        return 0.5 * self.stiffness * weight * (d * d).sum(-1)
+
+
+@dataclass(frozen=True)
+class FrameSet:
+    """Affine frames ``[R | t]`` (row-major 12 numbers) read linearly from x, one per element.
+
+    frame = x[dofs] * weights + offset; a rigid body has weights 1 and offset 0, the world
+    has weights 0 and a fixed offset.
+
+    Attributes:
+        dofs: Indices, shape [P, 12], int64.
+        weights: shape [P, 12].
+        offset: shape [P, 12].
+    """
+
+    dofs: Tensor
+    weights: Tensor
+    offset: Tensor
+
+    @staticmethod
+    def body(body_dofs: Tensor, count: int) -> FrameSet:
+        dofs = torch.as_tensor(body_dofs, dtype=torch.int64).reshape(1, 12).expand(count, 12).clone()
+        return FrameSet(dofs, torch.ones(count, 12, dtype=torch.float64), torch.zeros(count, 12, dtype=torch.float64))
+
+    @staticmethod
+    def world(transform: Tensor, count: int) -> FrameSet:
+        """A fixed frame; ``transform`` is a 3x4 ``[R | t]``."""
+        flat = torch.as_tensor(transform, dtype=torch.float64).reshape(1, 12).expand(count, 12).clone()
+        return FrameSet(torch.zeros(count, 12, dtype=torch.int64), torch.zeros(count, 12, dtype=torch.float64), flat)
+
+    @staticmethod
+    def cat(frames: list[FrameSet]) -> FrameSet:
+        return FrameSet(*(torch.cat([getattr(f, k) for f in frames]) for k in ("dofs", "weights", "offset")))
+
+
+class SDFContact(Effect):
+    """Contact penalty between points and an analytic signed distance carried by a frame.
+
+    E = stiffness/2 * min(sdf(R^T (p - t)) - margin, 0)^2 for each (point, frame) pair the
+    scene declares; no other pairs are evaluated. R^T stands in for R^-1 (R is kept
+    orthogonal by :class:`~redsim.effects.rigid.RigidOrthogonality`), so the term stays finite
+    for any x.
+
+    Args:
+        name: Term name.
+        points: Points that must stay outside the shape (3D), P of them.
+        frames: The frame carrying the shape, one per point.
+        shape: A shape from :mod:`redsim.effects.sdf`.
+        stiffness: Penalty weight [N/m].
+        margin: Distance [m] kept from the surface.
+    """
+
+    kind = "sdf_contact"
+
+    def __init__(
+        self,
+        name: str,
+        points: PointSet,
+        frames: FrameSet,
+        shape: Sphere | Plane | Box | Capsule | Torus,
+        stiffness: float,
+        *,
+        margin: float = 0.0,
+    ) -> None:
+        if points.dim != 3:
+            raise ValueError(f"contact points must be 3D, got {points.dim}D")
+        if frames.dofs.shape != (points.count, 12):
+            raise ValueError(f"need one frame per point: {points.count} points, frames {tuple(frames.dofs.shape)}")
+        self.name = name
+        self.kind = f"sdf_contact:{type(shape).__name__.lower()}"
+        self.points = points
+        self.frames = frames
+        self.shape = shape
+        self.stiffness = float(stiffness)
+        self.margin = float(margin)
+        self.element_dofs = torch.cat([points.local_dofs(), frames.dofs], dim=1)
+
+    def signed_distance(self, xe: Tensor) -> Tensor:
+        """Signed distance [m] of each point, shape [B, P], from element entries [B, P, k]."""
+        (p,) = split_points(xe, self.points)
+        frame = xe[..., self.points.local_size :] * self.frames.weights + self.frames.offset
+        frame = frame.reshape(*frame.shape[:-1], 3, 4)
+        local = (frame[..., :3].transpose(-1, -2) @ (p - frame[..., 3]).unsqueeze(-1)).squeeze(-1)
+        return self.shape.distance(local)
+
+    def element_energy(self, xe: Tensor, cond: Tensor | None = None, loads: Tensor | None = None) -> Tensor:
+        gap = (self.signed_distance(xe) - self.margin).clamp_max(0.0)
+        return 0.5 * self.stiffness * gap * gap

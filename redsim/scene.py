@@ -1,0 +1,539 @@
+"""Scenes: the static description of a physical system, and the builder that makes them.
+
+A :class:`Scene` holds what never changes during a simulation: the layout of the
+configuration (free DOFs; pinned ones are removed and re-inserted by
+:meth:`Scene.full_positions`), the mass matrix M, the seed state, the effects whose sum is
+the potential energy, the handles where loads act, an optional condition space, and the
+surfaces to draw. Dynamic data (states, loads, conditions) is passed in per call.
+
+Configuration layout: the full vector x concatenates, in the order they were added,
+particle blocks (D numbers per vertex) and rigid bodies (12 numbers each, the row-major
+affine map ``[R | t]`` taking body-frame points v to ``R v + t``; body frames are centred on
+the centre of mass).
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import hashlib
+import json
+from collections.abc import Mapping, Sequence
+from dataclasses import dataclass, field
+from typing import Any
+
+import torch
+from torch import Tensor
+
+from redsim.dofs import DofMap
+from redsim.effects.base import Effect
+from redsim.effects.external import ExternalLoad, Gravity
+from redsim.points import PointSet
+
+
+@dataclass(frozen=True)
+class Handle:
+    """A place where an external load (later: an action) acts.
+
+    Attributes:
+        name: Handle name, unique in the scene.
+        points: The points the load is spread over.
+        weights: Share of the force on each point, shape [P], summing to 1.
+    """
+
+    name: str
+    points: PointSet
+    weights: Tensor
+
+    def position(self, x: Tensor) -> Tensor:
+        """Weighted mean position [m] of the handle, shape [B, D]."""
+        return (self.points.positions(x) * self.weights[:, None]).sum(-2)
+
+
+@dataclass(frozen=True)
+class Surface:
+    """Something to draw: a triangle mesh whose vertices are points of the configuration.
+
+    Attributes:
+        name: Surface name.
+        points: Mesh vertices, P of them, 2D or 3D.
+        faces: Triangles, shape [F, 3], int64 indices into the points.
+    """
+
+    name: str
+    points: PointSet
+    faces: Tensor
+
+
+@dataclass(frozen=True)
+class ConditionSpace:
+    """Named scene parameters c with box ranges, for conditional subspaces (paper §3.5).
+
+    Attributes:
+        names: Parameter names, m of them.
+        low: Lower bounds, shape [m].
+        high: Upper bounds, shape [m].
+        default: Value used when no condition is given, shape [m].
+    """
+
+    names: tuple[str, ...]
+    low: Tensor
+    high: Tensor
+    default: Tensor
+
+    @property
+    def dim(self) -> int:
+        return len(self.names)
+
+    def sample(self, count: int, generator: torch.Generator | None = None) -> Tensor:
+        """Uniform samples, shape [count, m]."""
+        u = torch.rand(count, self.dim, generator=generator, dtype=self.low.dtype, device=self.low.device)
+        return self.low + u * (self.high - self.low)
+
+
+LoadsLike = Tensor | Mapping[str, Sequence[float] | Tensor] | None
+
+
+@dataclass(frozen=True)
+class Scene:
+    """A static physical system. Build one with :func:`redsim.scenes.build` or :class:`SceneBuilder`.
+
+    Attributes:
+        name: Scene name (the catalog key, or a user's name).
+        params: Build parameters (JSON-serializable); with ``name`` they define :meth:`fingerprint`.
+        dim: Spatial dimension D (2 or 3).
+        dof_map: Free/pinned layout; n = ``dof_map.free_dof_count``.
+        mass_matrix: M over free DOFs [kg], sparse COO (coalesced), shape [n, n].
+        q_seed: Seed (initial) configuration, shape [n].
+        effects: The energy terms; the energy is exactly their sum.
+        handles: Where loads act, in load order.
+        surfaces: What to draw.
+        condition_space: Optional condition parameters.
+        description: One line on what the scene is, with its units.
+    """
+
+    name: str
+    params: dict[str, Any]
+    dim: int
+    dof_map: DofMap
+    mass_matrix: Tensor
+    q_seed: Tensor
+    effects: tuple[Effect, ...]
+    handles: tuple[Handle, ...] = ()
+    surfaces: tuple[Surface, ...] = ()
+    condition_space: ConditionSpace | None = None
+    description: str = ""
+    _effect_index: dict[str, int] = field(default_factory=dict, repr=False, compare=False)
+
+    def __post_init__(self) -> None:
+        names = [e.name for e in self.effects]
+        if len(set(names)) != len(names):
+            raise ValueError(f"effect names must be unique, got {names}")
+        self._effect_index.update({n: i for i, n in enumerate(names)})
+
+    # -- layout ---------------------------------------------------------------------------
+    @property
+    def free_dof_count(self) -> int:
+        """n, the size of q."""
+        return self.dof_map.free_dof_count
+
+    @property
+    def full_dof_count(self) -> int:
+        """N, the size of x (pinned entries included)."""
+        return self.dof_map.full_dof_count
+
+    @property
+    def dtype(self) -> torch.dtype:
+        return self.q_seed.dtype
+
+    @property
+    def device(self) -> torch.device:
+        return self.q_seed.device
+
+    @property
+    def handle_names(self) -> tuple[str, ...]:
+        return tuple(h.name for h in self.handles)
+
+    @property
+    def condition_dim(self) -> int:
+        return 0 if self.condition_space is None else self.condition_space.dim
+
+    def full_positions(self, q: Tensor) -> Tensor:
+        """Full configurations [B, N] from free ones [B, n]."""
+        return self.dof_map.expand(q)
+
+    def effect(self, name: str) -> Effect:
+        """The effect called ``name``; a KeyError lists the scene's effects."""
+        if name not in self._effect_index:
+            raise KeyError(f"scene {self.name!r} has no effect {name!r}; it has {list(self._effect_index)}")
+        return self.effects[self._effect_index[name]]
+
+    # -- energy ---------------------------------------------------------------------------
+    def energy(self, q: Tensor, loads: LoadsLike = None, cond: Tensor | None = None) -> Tensor:
+        """Potential energy [J], shape [B], of free configurations q, shape [B, n] ([n] gives a scalar)."""
+        return sum(self.energy_terms(q, loads, cond).values())  # type: ignore[return-value]
+
+    def energy_terms(self, q: Tensor, loads: LoadsLike = None, cond: Tensor | None = None) -> dict[str, Tensor]:
+        """Energy [J] of each declared effect, by name; each shape [B] ([] for q of shape [n])."""
+        single = q.ndim == 1
+        if single:
+            q = q.unsqueeze(0)
+        if q.ndim != 2 or q.shape[1] != self.free_dof_count:
+            raise ValueError(
+                f"scene {self.name!r} expects q of shape [B, {self.free_dof_count}], got {tuple(q.shape)}"
+            )
+        x = self.full_positions(q)
+        loads_t = self.pack_loads(loads, q.shape[0], q)
+        cond_t = self.pack_condition(cond, q.shape[0], q)
+        terms = {e.name: e.energy(x, cond_t, loads_t) for e in self.effects}
+        return {k: v[0] for k, v in terms.items()} if single else terms
+
+    def pack_loads(self, loads: LoadsLike, batch: int, like: Tensor | None = None) -> Tensor | None:
+        """Loads as a tensor [B, H, D] in handle order from a tensor or a {handle: force} mapping.
+
+        Raises:
+            ValueError: on an unknown handle name or a wrong shape.
+        """
+        if loads is None:
+            return None
+        dtype = like.dtype if like is not None else self.dtype
+        device = like.device if like is not None else self.device
+        H, D = len(self.handles), self.dim
+        if isinstance(loads, Mapping):
+            unknown = sorted(set(loads) - set(self.handle_names))
+            if unknown:
+                raise ValueError(
+                    f"scene {self.name!r} has no handle(s) {unknown}; valid handles: {list(self.handle_names)}"
+                )
+            out = torch.zeros(batch, H, D, dtype=dtype, device=device)
+            for i, h in enumerate(self.handle_names):
+                if h in loads:
+                    f = torch.as_tensor(loads[h], dtype=dtype, device=device)
+                    if f.shape[-1] != D:
+                        raise ValueError(f"load on handle {h!r} must have {D} components, got {tuple(f.shape)}")
+                    out[:, i] = f
+            return out
+        loads = torch.as_tensor(loads, dtype=dtype, device=device)
+        if loads.ndim == 2:
+            loads = loads.unsqueeze(0).expand(batch, -1, -1)
+        if loads.shape != (batch, H, D):
+            raise ValueError(f"loads must have shape [{batch}, {H}, {D}] (handles {list(self.handle_names)}), "
+                             f"got {tuple(loads.shape)}")
+        return loads
+
+    def pack_condition(self, cond: Tensor | None, batch: int, like: Tensor | None = None) -> Tensor | None:
+        """Condition vectors [B, m]; the space's default when ``cond`` is None."""
+        space = self.condition_space
+        if space is None:
+            if cond is not None:
+                raise ValueError(f"scene {self.name!r} has no condition space, but a condition was given")
+            return None
+        dtype = like.dtype if like is not None else self.dtype
+        device = like.device if like is not None else self.device
+        c = space.default if cond is None else torch.as_tensor(cond)
+        c = c.to(dtype=dtype, device=device)
+        if c.ndim == 1:
+            c = c.unsqueeze(0).expand(batch, -1)
+        if c.shape != (batch, space.dim):
+            raise ValueError(f"condition must have shape [{batch}, {space.dim}] ({list(space.names)}), "
+                             f"got {tuple(c.shape)}")
+        return c
+
+    # -- mass -----------------------------------------------------------------------------
+    def mass_matvec(self, v: Tensor) -> Tensor:
+        """M v for v of shape [B, n] (or [n]); differentiable in v."""
+        if v.ndim == 1:
+            return self.mass_matvec(v.unsqueeze(0))[0]
+        return torch.sparse.mm(self.mass_matrix, v.T.to(self.mass_matrix.dtype)).T.to(v.dtype)
+
+    def mass_matrix_scipy(self) -> Any:
+        """M as a ``scipy.sparse.csr_matrix`` (float64)."""
+        import scipy.sparse
+
+        M = self.mass_matrix.cpu().to(torch.float64).coalesce()
+        rows, cols = M.indices().numpy()
+        return scipy.sparse.csr_matrix((M.values().numpy(), (rows, cols)), shape=tuple(M.shape))
+
+    # -- bookkeeping ----------------------------------------------------------------------
+    def fingerprint(self) -> str:
+        """Hash of the scene name and build parameters (checkpoints refuse other scenes)."""
+        blob = json.dumps({"name": self.name, "params": self.params}, sort_keys=True, default=str)
+        return hashlib.sha256(blob.encode()).hexdigest()[:16]
+
+    def to(self, device: torch.device | str | None = None, dtype: torch.dtype | None = None) -> Scene:
+        """A copy on ``device`` with floating data in ``dtype`` (energies in float64 are the reference)."""
+        from redsim.effects.base import _convert
+
+        mass = self.mass_matrix.to(device=device)
+        if dtype is not None:
+            mass = mass.to(dtype)
+        return dataclasses.replace(
+            self,
+            dof_map=self.dof_map.to(device, dtype),
+            mass_matrix=mass,
+            q_seed=self.q_seed.to(device=device, dtype=dtype),
+            effects=tuple(e.to(device, dtype) for e in self.effects),
+            handles=_convert(self.handles, device, dtype),
+            surfaces=_convert(self.surfaces, device, dtype),
+            condition_space=_convert(self.condition_space, device, dtype),
+            _effect_index={},
+        )
+
+    def describe(self) -> dict[str, Any]:
+        """Summary for `redsim scenes`: n, effects, handles, conditions."""
+        return {
+            "name": self.name,
+            "description": self.description,
+            "dim": self.dim,
+            "n": self.free_dof_count,
+            "full_dofs": self.full_dof_count,
+            "effects": [e.describe() for e in self.effects],
+            "handles": list(self.handle_names),
+            "conditions": [] if self.condition_space is None else list(self.condition_space.names),
+            "params": self.params,
+            "fingerprint": self.fingerprint(),
+        }
+
+
+class SceneBuilder:
+    """Collects particles, rigid bodies, pins, effects, handles and surfaces; :meth:`finalize` makes a Scene.
+
+    Example::
+
+        b = SceneBuilder(dim=3)
+        ids = b.add_particles(vertices, masses)
+        b.pin_particles(ids[:4])
+        b.add_effect(NeoHookean("elastic", b.particle_dofs(tets), vertices[tets], young=1e5, poisson=0.4))
+        b.add_gravity((0.0, -9.81, 0.0))
+        scene = b.finalize("my_scene", params={...})
+    """
+
+    default_rigid_stiffness = 5000.0
+
+    def __init__(self, dim: int) -> None:
+        if dim not in (2, 3):
+            raise ValueError(f"dim must be 2 or 3, got {dim}")
+        self.dim = dim
+        self._dof_count = 0
+        self._seed: list[Tensor] = []
+        self._particle_first_dof: list[Tensor] = []
+        self._particle_mass: list[Tensor] = []
+        self._body_first_dof: list[int] = []
+        self._body_mass_block: list[Tensor] = []
+        self._pinned: list[Tensor] = []
+        self._pinned_values: list[Tensor] = []
+        self._effects: list[Effect] = []
+        self._handles: list[tuple[str, PointSet, Tensor]] = []
+        self._surfaces: list[Surface] = []
+        self._conditions: list[tuple[str, float, float, float]] = []
+
+    # -- content --------------------------------------------------------------------------
+    @property
+    def particle_count(self) -> int:
+        return sum(int(t.numel()) for t in self._particle_first_dof)
+
+    @property
+    def body_count(self) -> int:
+        return len(self._body_first_dof)
+
+    def add_particles(self, positions: Tensor, masses: Tensor) -> Tensor:
+        """Add V particles at ``positions`` [m] ([V, D], the seed state) with lumped ``masses`` [kg] ([V]).
+
+        Returns:
+            Their particle ids, shape [V], int64.
+        """
+        positions = torch.as_tensor(positions, dtype=torch.float64)
+        masses = torch.as_tensor(masses, dtype=torch.float64).reshape(-1)
+        if positions.ndim != 2 or positions.shape[1] != self.dim or masses.shape[0] != positions.shape[0]:
+            raise ValueError(
+                f"positions must be [V, {self.dim}] and masses [V]; got {tuple(positions.shape)}, {tuple(masses.shape)}"
+            )
+        if not bool(torch.isfinite(positions).all()) or bool((masses < 0).any()) or not bool(torch.isfinite(masses).all()):
+            raise ValueError("particle positions must be finite and masses finite and >= 0")
+        first = self.particle_count
+        V = positions.shape[0]
+        self._particle_first_dof.append(self._dof_count + self.dim * torch.arange(V))
+        self._particle_mass.append(masses)
+        self._seed.append(positions.reshape(-1))
+        self._dof_count += V * self.dim
+        return torch.arange(first, first + V)
+
+    def particle_dofs(self, ids: Tensor) -> Tensor:
+        """Full-configuration index of each coordinate of particles ``ids`` (any shape S) -> [*S, D]."""
+        ids = torch.as_tensor(ids, dtype=torch.int64)
+        first = torch.cat(self._particle_first_dof) if self._particle_first_dof else torch.zeros(0, dtype=torch.int64)
+        if ids.numel() and (int(ids.min()) < 0 or int(ids.max()) >= first.numel()):
+            raise ValueError(f"particle id out of range [0, {first.numel()})")
+        return first[ids].unsqueeze(-1) + torch.arange(self.dim)
+
+    def particle_points(self, ids: Tensor) -> PointSet:
+        return PointSet.particles(self.particle_dofs(torch.as_tensor(ids).reshape(-1)))
+
+    def particle_positions(self, ids: Tensor) -> Tensor:
+        """Seed positions [m] of particles ``ids``, shape [*S, D]."""
+        seed = torch.cat(self._seed)
+        return seed[self.particle_dofs(ids)]
+
+    def add_body(self, mass_block: Tensor, transform: Tensor | None = None) -> int:
+        """Add an affine rigid body (3D only).
+
+        Args:
+            mass_block: The 4x4 matrix sum_v m_v [v;1][v;1]^T over the body-frame mass
+                distribution [kg, kg m, kg m^2] (see :func:`redsim.meshes.affine_mass_block`).
+            transform: Seed 3x4 ``[R | t]``; identity rotation at the origin by default.
+
+        Returns:
+            The body id.
+        """
+        if self.dim != 3:
+            raise ValueError("rigid bodies need a 3D scene")
+        mass_block = torch.as_tensor(mass_block, dtype=torch.float64)
+        if mass_block.shape != (4, 4) or not bool(torch.isfinite(mass_block).all()) or not mass_block[3, 3] > 0:
+            raise ValueError("mass_block must be a finite 4x4 matrix with positive mass at [3, 3]")
+        transform = torch.eye(3, 4, dtype=torch.float64) if transform is None else torch.as_tensor(transform, dtype=torch.float64)
+        if transform.shape != (3, 4):
+            raise ValueError(f"transform must be 3x4, got {tuple(transform.shape)}")
+        self._body_first_dof.append(self._dof_count)
+        self._body_mass_block.append(mass_block)
+        self._seed.append(transform.reshape(-1))
+        self._dof_count += 12
+        return self.body_count - 1
+
+    def body_dofs(self, body: int) -> Tensor:
+        """The 12 full-configuration indices of body ``body`` (row-major ``[R | t]``)."""
+        if not 0 <= body < self.body_count:
+            raise ValueError(f"body id {body} out of range [0, {self.body_count})")
+        return self._body_first_dof[body] + torch.arange(12)
+
+    def body_points(self, body: int, local: Tensor, *, direction: bool = False) -> PointSet:
+        return PointSet.body_points(self.body_dofs(body), local, direction=direction)
+
+    def pin_particles(self, ids: Tensor, positions: Tensor | None = None) -> None:
+        """Remove particles ``ids`` from q, holding them at ``positions`` [m] (default: their seed)."""
+        dofs = self.particle_dofs(torch.as_tensor(ids, dtype=torch.int64).reshape(-1))
+        values = self.particle_positions(torch.as_tensor(ids).reshape(-1)) if positions is None else torch.as_tensor(
+            positions, dtype=torch.float64
+        )
+        self._pinned.append(dofs.reshape(-1))
+        self._pinned_values.append(values.reshape(-1))
+
+    def add_effect(self, effect: Effect) -> Effect:
+        self._effects.append(effect)
+        return effect
+
+    def add_gravity(self, acceleration: Sequence[float]) -> Gravity:
+        """Gravity on every particle and on every body's centre of mass."""
+        sets, masses = [], []
+        if self._particle_first_dof:
+            sets.append(self.particle_points(torch.arange(self.particle_count)))
+            masses.append(torch.cat(self._particle_mass))
+        if self._body_first_dof:
+            origin = torch.zeros(1, 3, dtype=torch.float64)
+            sets.extend(self.body_points(b, origin) for b in range(self.body_count))
+            masses.append(torch.stack([m[3, 3] for m in self._body_mass_block]))
+        if not sets:
+            raise ValueError("add particles or bodies before gravity")
+        gravity = Gravity("gravity", PointSet.cat(sets), torch.cat(masses), torch.as_tensor(acceleration))
+        self.add_effect(gravity)
+        return gravity
+
+    def add_handle(self, name: str, points: PointSet, weights: Tensor | None = None) -> None:
+        """A named place where loads act; ``weights`` (default uniform) are normalised to sum to 1."""
+        if any(h[0] == name for h in self._handles):
+            raise ValueError(f"handle {name!r} already exists")
+        w = torch.ones(points.count, dtype=torch.float64) if weights is None else torch.as_tensor(weights, dtype=torch.float64)
+        if w.shape != (points.count,) or not float(w.sum()) > 0:
+            raise ValueError(f"handle {name!r} needs {points.count} positive weights")
+        self._handles.append((name, points, w / w.sum()))
+
+    def add_surface(self, name: str, points: PointSet, faces: Tensor) -> None:
+        self._surfaces.append(Surface(name, points, torch.as_tensor(faces, dtype=torch.int64)))
+
+    def add_condition(self, name: str, low: float, high: float, default: float | None = None) -> int:
+        """Declare a condition parameter; returns its index in c."""
+        if not low < high:
+            raise ValueError(f"condition {name!r} needs low < high, got [{low}, {high}]")
+        default = 0.5 * (low + high) if default is None else default
+        self._conditions.append((name, float(low), float(high), float(default)))
+        return len(self._conditions) - 1
+
+    # -- finalize -------------------------------------------------------------------------
+    def finalize(
+        self,
+        name: str,
+        params: dict[str, Any] | None = None,
+        *,
+        description: str = "",
+        dtype: torch.dtype = torch.float64,
+        device: torch.device | str | None = None,
+    ) -> Scene:
+        """Freeze everything into a :class:`Scene` (adds the ``external_load`` term when there are handles)."""
+        N = self._dof_count
+        if N == 0:
+            raise ValueError("the scene is empty")
+        seed = torch.cat(self._seed)
+        pinned = torch.cat(self._pinned) if self._pinned else torch.zeros(0, dtype=torch.int64)
+        if pinned.numel():
+            seed[pinned] = torch.cat(self._pinned_values)
+        free_mask = torch.ones(N, dtype=torch.bool)
+        free_mask[pinned] = False
+        free_index = torch.nonzero(free_mask).reshape(-1)
+        if free_index.numel() == 0:
+            raise ValueError("every DOF is pinned")
+        dof_map = DofMap(free_index, seed)
+
+        effects = list(self._effects)
+        if self._handles:
+            points = PointSet.cat([h[1] for h in self._handles])
+            index = torch.cat([torch.full((h[1].count,), i, dtype=torch.int64) for i, h in enumerate(self._handles)])
+            weights = torch.cat([h[2] for h in self._handles])
+            effects.append(ExternalLoad("external_load", points, index, weights, len(self._handles)))
+        handles = tuple(Handle(n, p, w) for n, p, w in self._handles)
+        space = None
+        if self._conditions:
+            names, low, high, default = zip(*self._conditions, strict=True)
+            space = ConditionSpace(
+                tuple(names), torch.tensor(low, dtype=torch.float64), torch.tensor(high, dtype=torch.float64),
+                torch.tensor(default, dtype=torch.float64),
+            )
+        scene = Scene(
+            name=name,
+            params=dict(params or {}),
+            dim=self.dim,
+            dof_map=dof_map,
+            mass_matrix=self._mass_matrix(dof_map),
+            q_seed=seed[free_index].clone(),
+            effects=tuple(effects),
+            handles=handles,
+            surfaces=tuple(self._surfaces),
+            condition_space=space,
+            description=description,
+        )
+        return scene.to(device, dtype) if (device is not None or dtype != torch.float64) else scene
+
+    def _mass_matrix(self, dof_map: DofMap) -> Tensor:
+        rows, cols, vals = [], [], []
+        if self._particle_first_dof:
+            first = torch.cat(self._particle_first_dof)
+            mass = torch.cat(self._particle_mass)
+            dofs = (first.unsqueeze(-1) + torch.arange(self.dim)).reshape(-1)
+            rows.append(dofs)
+            cols.append(dofs)
+            vals.append(mass.repeat_interleave(self.dim))
+        for first, block in zip(self._body_first_dof, self._body_mass_block, strict=True):
+            base = first + 4 * torch.arange(3).reshape(3, 1, 1)
+            r = (base + torch.arange(4).reshape(1, 4, 1)).expand(3, 4, 4)
+            c = (base + torch.arange(4).reshape(1, 1, 4)).expand(3, 4, 4)
+            rows.append(r.reshape(-1))
+            cols.append(c.reshape(-1))
+            vals.append(block.expand(3, 4, 4).reshape(-1))
+        full_to_free = dof_map.full_to_free()
+        r, c, v = full_to_free[torch.cat(rows)], full_to_free[torch.cat(cols)], torch.cat(vals)
+        keep = (r >= 0) & (c >= 0)
+        n = dof_map.free_dof_count
+        M = torch.sparse_coo_tensor(
+            torch.stack([r[keep], c[keep]]), v[keep], (n, n), check_invariants=True
+        ).coalesce()
+        diag = torch.zeros(n, dtype=torch.float64).index_add_(0, r[keep][r[keep] == c[keep]], v[keep][r[keep] == c[keep]])
+        if bool((diag <= 0).any()):
+            raise ValueError(f"{int((diag <= 0).sum())} free DOF(s) have no mass (massless particles must be pinned)")
+        return M
