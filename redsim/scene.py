@@ -172,7 +172,9 @@ class Scene:
         """Potential energy [J], shape [B], of free configurations q, shape [B, n] ([n] gives a scalar)."""
         return sum(self.energy_terms(q, loads, cond).values())  # type: ignore[return-value]
 
-    def energy_terms(self, q: Tensor, loads: LoadsLike = None, cond: Tensor | None = None) -> dict[str, Tensor]:
+    def energy_terms(
+        self, q: Tensor, loads: LoadsLike = None, cond: Tensor | None = None
+    ) -> dict[str, Tensor]:
         """Energy [J] of each declared effect, by name; each shape [B] ([] for q of shape [n])."""
         single = q.ndim == 1
         if single:
@@ -209,15 +211,19 @@ class Scene:
                 if h in loads:
                     f = torch.as_tensor(loads[h], dtype=dtype, device=device)
                     if f.shape[-1] != D:
-                        raise ValueError(f"load on handle {h!r} must have {D} components, got {tuple(f.shape)}")
+                        raise ValueError(
+                            f"load on handle {h!r} must have {D} components, got {tuple(f.shape)}"
+                        )
                     out[:, i] = f
             return out
         loads = torch.as_tensor(loads, dtype=dtype, device=device)
         if loads.ndim == 2:
             loads = loads.unsqueeze(0).expand(batch, -1, -1)
         if loads.shape != (batch, H, D):
-            raise ValueError(f"loads must have shape [{batch}, {H}, {D}] (handles {list(self.handle_names)}), "
-                             f"got {tuple(loads.shape)}")
+            raise ValueError(
+                f"loads must have shape [{batch}, {H}, {D}] (handles {list(self.handle_names)}), "
+                f"got {tuple(loads.shape)}"
+            )
         return loads
 
     def pack_condition(self, cond: Tensor | None, batch: int, like: Tensor | None = None) -> Tensor | None:
@@ -234,8 +240,10 @@ class Scene:
         if c.ndim == 1:
             c = c.unsqueeze(0).expand(batch, -1)
         if c.shape != (batch, space.dim):
-            raise ValueError(f"condition must have shape [{batch}, {space.dim}] ({list(space.names)}), "
-                             f"got {tuple(c.shape)}")
+            raise ValueError(
+                f"condition must have shape [{batch}, {space.dim}] ({list(space.names)}), "
+                f"got {tuple(c.shape)}"
+            )
         return c
 
     # -- mass -----------------------------------------------------------------------------
@@ -347,7 +355,11 @@ class SceneBuilder:
             raise ValueError(
                 f"positions must be [V, {self.dim}] and masses [V]; got {tuple(positions.shape)}, {tuple(masses.shape)}"
             )
-        if not bool(torch.isfinite(positions).all()) or bool((masses < 0).any()) or not bool(torch.isfinite(masses).all()):
+        if (
+            not bool(torch.isfinite(positions).all())
+            or bool((masses < 0).any())
+            or not bool(torch.isfinite(masses).all())
+        ):
             raise ValueError("particle positions must be finite and masses finite and >= 0")
         first = self.particle_count
         V = positions.shape[0]
@@ -360,7 +372,11 @@ class SceneBuilder:
     def particle_dofs(self, ids: Tensor) -> Tensor:
         """Full-configuration index of each coordinate of particles ``ids`` (any shape S) -> [*S, D]."""
         ids = torch.as_tensor(ids, dtype=torch.int64)
-        first = torch.cat(self._particle_first_dof) if self._particle_first_dof else torch.zeros(0, dtype=torch.int64)
+        first = (
+            torch.cat(self._particle_first_dof)
+            if self._particle_first_dof
+            else torch.zeros(0, dtype=torch.int64)
+        )
         if ids.numel() and (int(ids.min()) < 0 or int(ids.max()) >= first.numel()):
             raise ValueError(f"particle id out of range [0, {first.numel()})")
         return first[ids].unsqueeze(-1) + torch.arange(self.dim)
@@ -387,9 +403,17 @@ class SceneBuilder:
         if self.dim != 3:
             raise ValueError("rigid bodies need a 3D scene")
         mass_block = torch.as_tensor(mass_block, dtype=torch.float64)
-        if mass_block.shape != (4, 4) or not bool(torch.isfinite(mass_block).all()) or not mass_block[3, 3] > 0:
+        if (
+            mass_block.shape != (4, 4)
+            or not bool(torch.isfinite(mass_block).all())
+            or not mass_block[3, 3] > 0
+        ):
             raise ValueError("mass_block must be a finite 4x4 matrix with positive mass at [3, 3]")
-        transform = torch.eye(3, 4, dtype=torch.float64) if transform is None else torch.as_tensor(transform, dtype=torch.float64)
+        transform = (
+            torch.eye(3, 4, dtype=torch.float64)
+            if transform is None
+            else torch.as_tensor(transform, dtype=torch.float64)
+        )
         if transform.shape != (3, 4):
             raise ValueError(f"transform must be 3x4, got {tuple(transform.shape)}")
         self._body_first_dof.append(self._dof_count)
@@ -410,8 +434,10 @@ class SceneBuilder:
     def pin_particles(self, ids: Tensor, positions: Tensor | None = None) -> None:
         """Remove particles ``ids`` from q, holding them at ``positions`` [m] (default: their seed)."""
         dofs = self.particle_dofs(torch.as_tensor(ids, dtype=torch.int64).reshape(-1))
-        values = self.particle_positions(torch.as_tensor(ids).reshape(-1)) if positions is None else torch.as_tensor(
-            positions, dtype=torch.float64
+        values = (
+            self.particle_positions(torch.as_tensor(ids).reshape(-1))
+            if positions is None
+            else torch.as_tensor(positions, dtype=torch.float64)
         )
         self._pinned.append(dofs.reshape(-1))
         self._pinned_values.append(values.reshape(-1))
@@ -440,7 +466,11 @@ class SceneBuilder:
         """A named place where loads act; ``weights`` (default uniform) are normalised to sum to 1."""
         if any(h[0] == name for h in self._handles):
             raise ValueError(f"handle {name!r} already exists")
-        w = torch.ones(points.count, dtype=torch.float64) if weights is None else torch.as_tensor(weights, dtype=torch.float64)
+        w = (
+            torch.ones(points.count, dtype=torch.float64)
+            if weights is None
+            else torch.as_tensor(weights, dtype=torch.float64)
+        )
         if w.shape != (points.count,) or not float(w.sum()) > 0:
             raise ValueError(f"handle {name!r} needs {points.count} positive weights")
         self._handles.append((name, points, w / w.sum()))
@@ -484,7 +514,9 @@ class SceneBuilder:
         effects = list(self._effects)
         if self._handles:
             points = PointSet.cat([h[1] for h in self._handles])
-            index = torch.cat([torch.full((h[1].count,), i, dtype=torch.int64) for i, h in enumerate(self._handles)])
+            index = torch.cat(
+                [torch.full((h[1].count,), i, dtype=torch.int64) for i, h in enumerate(self._handles)]
+            )
             weights = torch.cat([h[2] for h in self._handles])
             effects.append(ExternalLoad("external_load", points, index, weights, len(self._handles)))
         handles = tuple(Handle(n, p, w) for n, p, w in self._handles)
@@ -492,7 +524,9 @@ class SceneBuilder:
         if self._conditions:
             names, low, high, default = zip(*self._conditions, strict=True)
             space = ConditionSpace(
-                tuple(names), torch.tensor(low, dtype=torch.float64), torch.tensor(high, dtype=torch.float64),
+                tuple(names),
+                torch.tensor(low, dtype=torch.float64),
+                torch.tensor(high, dtype=torch.float64),
                 torch.tensor(default, dtype=torch.float64),
             )
         scene = Scene(
@@ -533,7 +567,11 @@ class SceneBuilder:
         M = torch.sparse_coo_tensor(
             torch.stack([r[keep], c[keep]]), v[keep], (n, n), check_invariants=True
         ).coalesce()
-        diag = torch.zeros(n, dtype=torch.float64).index_add_(0, r[keep][r[keep] == c[keep]], v[keep][r[keep] == c[keep]])
+        diag = torch.zeros(n, dtype=torch.float64).index_add_(
+            0, r[keep][r[keep] == c[keep]], v[keep][r[keep] == c[keep]]
+        )
         if bool((diag <= 0).any()):
-            raise ValueError(f"{int((diag <= 0).sum())} free DOF(s) have no mass (massless particles must be pinned)")
+            raise ValueError(
+                f"{int((diag <= 0).sum())} free DOF(s) have no mass (massless particles must be pinned)"
+            )
         return M

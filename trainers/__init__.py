@@ -1,1 +1,5 @@
-"""Subspace fitting and agent training helpers; they build on the engine in :mod:`redsim`."""
+"""Fitting: the data-free subspace fitter (the paper's loss and schedule)."""
+
+from redsim.trainers.fit import FitConfig, FitResult, fit_subspace, subspace_loss
+
+__all__ = ["FitConfig", "FitResult", "fit_subspace", "subspace_loss"]

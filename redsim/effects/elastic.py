@@ -78,7 +78,9 @@ class NeoHookean(Effect):
                 f"{bad.numel()} bad element(s) in all"
             )
         mu, lam = lame_from_young_poisson(
-            _per_element(young, T, "young"), _per_element(poisson, T, "poisson"), plane=plane if D == 2 else None
+            _per_element(young, T, "young"),
+            _per_element(poisson, T, "poisson"),
+            plane=plane if D == 2 else None,
         )
         self.name = name
         self.dim = D
@@ -159,7 +161,9 @@ class StVKMembrane(Effect):
         area = 0.5 * torch.linalg.det(frame)
         bad = torch.nonzero(area <= 1e-12 * frame.abs().amax(dim=(-1, -2)) ** 2).reshape(-1)
         if bad.numel():
-            raise ValueError(f"triangle {int(bad[0])} of {name!r} is degenerate (rest area {float(area[bad[0]]):.3g})")
+            raise ValueError(
+                f"triangle {int(bad[0])} of {name!r} is degenerate (rest area {float(area[bad[0]]):.3g})"
+            )
         mu, lam = lame_from_young_poisson(
             _per_element(young, T, "young"), _per_element(poisson, T, "poisson"), plane="stress"
         )

@@ -49,7 +49,9 @@ class ExternalLoad(Effect):
     kind = "external_load"
     uses_loads = True
 
-    def __init__(self, name: str, points: PointSet, handle_index: Tensor, weights: Tensor, handle_count: int) -> None:
+    def __init__(
+        self, name: str, points: PointSet, handle_index: Tensor, weights: Tensor, handle_count: int
+    ) -> None:
         self.name = name
         self.points = points
         self.element_dofs = points.local_dofs()

@@ -1,0 +1,210 @@
+"""Subspace maps f(z[, c]) -> q and their checkpoints.
+
+A :class:`SubspaceMap` is an ordinary ELU MLP from latent coordinates z [..., d] (and an
+optional condition c [..., m]) to free configurations q [..., n] of one scene. The seeded
+exploration schedule of the paper lives in the fitter (:mod:`redsim.trainers.fit`), never
+here. A saved subspace is ``STEM.pt`` (state dict) plus ``STEM.json`` (config, scene
+fingerprint, hyperparameters, metrics and the command that reproduces it); nothing is
+pickled.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import json
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any
+
+import torch
+from torch import Tensor, nn
+
+from redsim.scene import Scene
+
+FORMAT_VERSION = 1
+ACTIVATIONS = {"elu": nn.ELU, "tanh": nn.Tanh, "relu": nn.ReLU, "silu": nn.SiLU}
+
+
+@dataclass(frozen=True)
+class SubspaceConfig:
+    """Architecture of a subspace map; every count means what it says.
+
+    Attributes:
+        latent_dim: d, the size of z.
+        output_dim: n, the scene's free DOF count.
+        condition_dim: m, the size of the condition vector (0 for none).
+        hidden_width: Units per hidden layer.
+        hidden_layers: Number of hidden layers (the output layer is not counted).
+        activation: One of ``ACTIVATIONS``.
+        periodic: Latent indices entered as (cos z_i, sin z_i), so that z_i is an angle
+            (e.g. a crank that turns all the way round).
+    """
+
+    latent_dim: int
+    output_dim: int
+    condition_dim: int = 0
+    hidden_width: int = 128
+    hidden_layers: int = 5
+    activation: str = "elu"
+    periodic: tuple[int, ...] = ()
+
+    def __post_init__(self) -> None:
+        if self.latent_dim < 1 or self.output_dim < 1 or self.condition_dim < 0:
+            raise ValueError(
+                f"bad dimensions: latent {self.latent_dim}, output {self.output_dim}, "
+                f"condition {self.condition_dim}"
+            )
+        if self.hidden_width < 1 or self.hidden_layers < 1:
+            raise ValueError(
+                f"need hidden_width >= 1 and hidden_layers >= 1, got {self.hidden_width}, {self.hidden_layers}"
+            )
+        if self.activation not in ACTIVATIONS:
+            raise ValueError(f"unknown activation {self.activation!r}; valid: {sorted(ACTIVATIONS)}")
+        if any(not 0 <= i < self.latent_dim for i in self.periodic) or len(set(self.periodic)) != len(
+            self.periodic
+        ):
+            raise ValueError(
+                f"periodic indices {self.periodic} must be distinct and in [0, {self.latent_dim})"
+            )
+
+
+class SubspaceMap(nn.Module):
+    """ELU MLP f(z[, c]) -> q.
+
+    Attributes:
+        config: The architecture.
+        metadata: Scene fingerprint, hyperparameters, metrics and reproduce command (JSON-able).
+    """
+
+    def __init__(self, config: SubspaceConfig, metadata: dict[str, Any] | None = None) -> None:
+        super().__init__()
+        self.config = config
+        self.metadata: dict[str, Any] = dict(metadata or {})
+        act = ACTIVATIONS[config.activation]
+        width = config.hidden_width
+        layers: list[nn.Module] = [
+            nn.Linear(config.latent_dim + len(config.periodic) + config.condition_dim, width),
+            act(),
+        ]
+        for _ in range(config.hidden_layers - 1):
+            layers += [nn.Linear(width, width), act()]
+        layers.append(nn.Linear(width, config.output_dim))
+        self.mlp = nn.Sequential(*layers)
+        periodic = torch.zeros(config.latent_dim, dtype=torch.bool)
+        periodic[list(config.periodic)] = True
+        self.register_buffer("periodic_mask", periodic, persistent=False)
+
+    @property
+    def latent_dim(self) -> int:
+        return self.config.latent_dim
+
+    def features(self, z: Tensor, cond: Tensor | None = None) -> Tensor:
+        """MLP input: z with periodic entries replaced by (cos, sin), then c."""
+        if z.shape[-1] != self.config.latent_dim:
+            raise ValueError(
+                f"z must have {self.config.latent_dim} entries in its last dim, got {tuple(z.shape)}"
+            )
+        parts = [z]
+        if self.config.periodic:
+            angles = z[..., self.periodic_mask]
+            parts = [torch.where(self.periodic_mask, torch.cos(z), z), torch.sin(angles)]
+        if self.config.condition_dim:
+            if cond is None or cond.shape[-1] != self.config.condition_dim:
+                raise ValueError(f"this subspace needs a condition of size {self.config.condition_dim}")
+            parts.append(cond.expand(*z.shape[:-1], -1))
+        elif cond is not None:
+            raise ValueError("this subspace takes no condition")
+        return torch.cat(parts, dim=-1)
+
+    def forward(self, z: Tensor, cond: Tensor | None = None) -> Tensor:
+        """Configurations q [..., n] from latents z [..., d] (and conditions c [..., m])."""
+        return self.mlp(self.features(z, cond))
+
+    def save(self, stem: str | Path) -> tuple[Path, Path]:
+        """Write ``stem.pt`` (weights) and ``stem.json`` (config and metadata); returns both paths."""
+        stem = Path(stem)
+        if stem.suffix in (".pt", ".json"):
+            stem = stem.with_suffix("")
+        stem.parent.mkdir(parents=True, exist_ok=True)
+        weights, meta = stem.with_suffix(".pt"), stem.with_suffix(".json")
+        torch.save(self.state_dict(), weights)
+        doc = {"format_version": FORMAT_VERSION, "config": dataclasses.asdict(self.config), **self.metadata}
+        meta.write_text(json.dumps(doc, indent=2, sort_keys=True, default=_json_default))
+        return weights, meta
+
+
+def _json_default(value: Any) -> Any:
+    if isinstance(value, Tensor):
+        return value.tolist()
+    if isinstance(value, Path):
+        return str(value)
+    raise TypeError(f"not JSON-serializable: {type(value).__name__}")
+
+
+class CheckpointError(ValueError):
+    """A checkpoint that is missing, corrupt, or made for another scene."""
+
+    def __init__(self, message: str, path: str = "") -> None:
+        super().__init__(f"{path}: {message}" if path else message)
+        self.path = path
+
+
+def read_metadata(path: str | Path) -> dict[str, Any]:
+    """The JSON beside a checkpoint (``X.pt`` or ``X.json`` or the stem ``X``)."""
+    meta = Path(path).with_suffix(".json")
+    if not meta.is_file():
+        raise CheckpointError("no metadata file (expected a .json beside the .pt)", str(meta))
+    try:
+        doc = json.loads(meta.read_text())
+    except (json.JSONDecodeError, UnicodeDecodeError) as err:
+        raise CheckpointError(f"metadata is not valid JSON ({err})", str(meta)) from None
+    if doc.get("format_version") != FORMAT_VERSION:
+        raise CheckpointError(
+            f"unsupported format_version {doc.get('format_version')!r} (this redsim reads {FORMAT_VERSION})",
+            str(meta),
+        )
+    return doc
+
+
+def load_subspace(
+    path: str | Path, scene: Scene | None = None, *, device: str | torch.device = "cpu"
+) -> SubspaceMap:
+    """Load a saved subspace; with ``scene``, refuse one fitted to a different scene.
+
+    Raises:
+        CheckpointError: missing or corrupt files, or a scene whose name, fingerprint or n differ.
+    """
+    weights = Path(path).with_suffix(".pt")
+    doc = read_metadata(path)
+    if scene is not None:
+        mine = (doc.get("scene"), doc.get("scene_fingerprint"))
+        theirs = (scene.name, scene.fingerprint())
+        if mine != theirs:
+            raise CheckpointError(
+                f"fitted to scene {mine[0]!r} (fingerprint {mine[1]}), not to scene {theirs[0]!r} "
+                f"(fingerprint {theirs[1]}); build the scene with the parameters in the .json",
+                str(weights),
+            )
+    try:
+        config = SubspaceConfig(**{**doc["config"], "periodic": tuple(doc["config"].get("periodic", ()))})
+    except (KeyError, TypeError, ValueError) as err:
+        raise CheckpointError(f"bad config in metadata ({err})", str(weights)) from None
+    if scene is not None and config.output_dim != scene.free_dof_count:
+        raise CheckpointError(
+            f"maps to n={config.output_dim}, scene has n={scene.free_dof_count}", str(weights)
+        )
+    if not weights.is_file():
+        raise CheckpointError("weights file is missing", str(weights))
+    try:
+        state = torch.load(weights, map_location=device, weights_only=True)
+    except Exception as err:  # torch raises several types for truncated/corrupt zips
+        raise CheckpointError(
+            f"weights are corrupt or truncated ({type(err).__name__}: {err})", str(weights)
+        ) from None
+    metadata = {k: v for k, v in doc.items() if k not in ("format_version", "config")}
+    model = SubspaceMap(config, metadata)
+    try:
+        model.load_state_dict(state)
+    except (RuntimeError, KeyError) as err:
+        raise CheckpointError(f"weights do not match the config ({err})", str(weights)) from None
+    return model.to(device)

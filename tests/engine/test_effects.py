@@ -1,0 +1,429 @@
+"""Contracts of every energy term: float64 central-difference gradients, values at rest,
+rigid-motion invariance, finiteness on bad input, and the declared-effects-only rule."""
+
+from __future__ import annotations
+
+import math
+
+import pytest
+import torch
+
+import redsim
+from redsim import PointSet, SceneBuilder
+from redsim.effects import (
+    Box,
+    Capsule,
+    ConditionalPin,
+    DiscreteShellBending,
+    Effect,
+    ExternalLoad,
+    FrameSet,
+    Gravity,
+    NeoHookean,
+    Plane,
+    PointPairPenalty,
+    RigidOrthogonality,
+    SDFContact,
+    Sphere,
+    StVKMembrane,
+    Torus,
+)
+from redsim.materials import lame_from_young_poisson
+
+torch.manual_seed(0)
+
+
+def _rotation(seed: int = 0) -> torch.Tensor:
+    g = torch.Generator().manual_seed(seed)
+    q, r = torch.linalg.qr(torch.randn(3, 3, generator=g, dtype=torch.float64))
+    q = q * torch.sign(torch.diagonal(r))
+    return q if torch.det(q) > 0 else -q
+
+
+def _energy(effect: Effect, x: torch.Tensor, **kw) -> torch.Tensor:
+    return effect.energy(x.unsqueeze(0), **kw)[0]
+
+
+def _gradcheck(effect: Effect, x: torch.Tensor, **kw) -> None:
+    x = x.clone().requires_grad_(True)
+    assert torch.autograd.gradcheck(
+        lambda v: effect.energy(v.unsqueeze(0), **kw), (x,), eps=1e-6, atol=1e-5, rtol=1e-4
+    )
+
+
+# -- materials -------------------------------------------------------------------------------
+def test_lame_parameters_hand_computed() -> None:
+    mu, lam = lame_from_young_poisson(1000.0, 0.25)
+    assert mu == pytest.approx(400.0)
+    assert lam == pytest.approx(400.0)  # 1000*0.25 / (1.25*0.5)
+    _, lam_stress = lame_from_young_poisson(1000.0, 0.25, plane="stress")
+    assert lam_stress == pytest.approx(2 * 400 * 400 / (400 + 800))
+    with pytest.raises(ValueError, match="Poisson"):
+        lame_from_young_poisson(1.0, 0.5)
+    with pytest.raises(ValueError, match="Young"):
+        lame_from_young_poisson(-1.0, 0.3)
+
+
+# -- neo-Hookean ---------------------------------------------------------------------------------
+TET = torch.tensor([[0.0, 0, 0], [1, 0, 0], [0, 1, 0], [0, 0, 1]], dtype=torch.float64)
+TRI = torch.tensor([[0.0, 0], [1, 0], [0, 1]], dtype=torch.float64)
+
+
+def _tet_effect(**kw) -> NeoHookean:
+    return NeoHookean("elastic", torch.arange(12).reshape(1, 4, 3), TET[None], young=1e3, poisson=0.3, **kw)
+
+
+def test_neo_hookean_zero_at_rest_and_rigid_invariant() -> None:
+    tet = _tet_effect()
+    x = TET.reshape(-1)
+    assert abs(float(_energy(tet, x))) < 1e-9
+    x_req = x.clone().requires_grad_(True)
+    (grad,) = torch.autograd.grad(_energy(tet, x_req), x_req)
+    assert float(grad.abs().max()) < 1e-9
+    deformed = TET + 0.1 * torch.randn(4, 3, dtype=torch.float64)
+    moved = deformed @ _rotation(1).T + torch.tensor([0.3, -2.0, 5.0], dtype=torch.float64)
+    assert float(_energy(tet, moved.reshape(-1))) == pytest.approx(
+        float(_energy(tet, deformed.reshape(-1))), rel=1e-10
+    )
+    assert float(_energy(tet, (TET @ _rotation(2).T).reshape(-1))) == pytest.approx(0.0, abs=1e-9)
+
+
+def test_neo_hookean_small_strain_matches_linear_elasticity() -> None:
+    young, poisson = 1e3, 0.3
+    tet = NeoHookean("elastic", torch.arange(12).reshape(1, 4, 3), TET[None], young=young, poisson=poisson)
+    mu, lam = lame_from_young_poisson(young, poisson)
+    eps = 1e-4 * torch.tensor([[1.0, 0.2, 0.0], [0.2, -0.5, 0.1], [0.0, 0.1, 0.3]], dtype=torch.float64)
+    x = TET @ (torch.eye(3, dtype=torch.float64) + eps).T
+    linear = (mu * (eps * eps).sum() + 0.5 * lam * torch.trace(eps) ** 2) / 6.0
+    assert float(_energy(tet, x.reshape(-1))) == pytest.approx(float(linear), rel=1e-3)
+
+
+def test_neo_hookean_finite_for_inverted_and_collapsed_elements() -> None:
+    tet = _tet_effect()
+    for x in (TET * torch.tensor([1.0, 1.0, -1.0]), torch.zeros(4, 3), 1e6 * torch.randn(4, 3)):
+        xr = x.to(torch.float64).reshape(-1).requires_grad_(True)
+        e = _energy(tet, xr)
+        (g,) = torch.autograd.grad(e, xr)
+        assert torch.isfinite(e) and torch.isfinite(g).all()
+    inverted = TET * torch.tensor([1.0, 1.0, -1.0], dtype=torch.float64)
+    assert float(_energy(tet, inverted.reshape(-1))) > 0
+
+
+def test_neo_hookean_rejects_inverted_rest_element() -> None:
+    flipped = TET[[0, 2, 1, 3]][None]
+    with pytest.raises(ValueError, match=r"element 0 .* inverted"):
+        NeoHookean("elastic", torch.arange(12).reshape(1, 4, 3), flipped, young=1e3, poisson=0.3)
+
+
+def test_neo_hookean_2d_and_conditional_scale() -> None:
+    mask = torch.tensor([True])
+    tri = NeoHookean(
+        "elastic",
+        torch.arange(6).reshape(1, 3, 2),
+        TRI[None],
+        young=1e3,
+        poisson=0.3,
+        condition_scale=(0, mask),
+    )
+    x = (TRI * torch.tensor([1.2, 0.9], dtype=torch.float64)).reshape(1, -1)
+    e1 = tri.energy(x, cond=torch.tensor([[1.0]], dtype=torch.float64))
+    e3 = tri.energy(x, cond=torch.tensor([[3.0]], dtype=torch.float64))
+    assert float(e3) == pytest.approx(3 * float(e1), rel=1e-12)
+    with pytest.raises(ValueError, match="condition"):
+        tri.energy(x)
+
+
+# -- cloth -------------------------------------------------------------------------------------------
+def test_stvk_membrane_uniaxial_stretch_by_hand() -> None:
+    rest = torch.tensor([[0.0, 0, 0], [1, 0, 0], [0, 1, 0]], dtype=torch.float64)
+    membrane = StVKMembrane(
+        "stretch", torch.arange(9).reshape(1, 3, 3), rest[None], young=1e3, poisson=0.3, thickness=0.01
+    )
+    s = 1.1
+    x = rest * torch.tensor([s, 1.0, 1.0], dtype=torch.float64)
+    mu, lam = lame_from_young_poisson(1e3, 0.3, plane="stress")
+    e11 = 0.5 * (s * s - 1)
+    expected = 0.01 * 0.5 * (mu * e11**2 + 0.5 * lam * e11**2)
+    assert float(_energy(membrane, x.reshape(-1))) == pytest.approx(expected, rel=1e-12)
+    moved = x @ _rotation(3).T + 1.0
+    assert float(_energy(membrane, moved.reshape(-1))) == pytest.approx(expected, rel=1e-10)
+    assert float(_energy(membrane, (rest @ _rotation(4).T).reshape(-1))) == pytest.approx(0.0, abs=1e-12)
+
+
+def _hinge(fold: float) -> torch.Tensor:
+    """Two unit right triangles sharing the x axis edge; the second folded by ``fold`` radians."""
+    apex_b = torch.tensor([0.5, -math.cos(fold), math.sin(fold)], dtype=torch.float64)
+    return torch.stack(
+        [
+            torch.tensor([0.0, 0, 0], dtype=torch.float64),
+            torch.tensor([1.0, 0, 0], dtype=torch.float64),
+            torch.tensor([0.5, 1.0, 0], dtype=torch.float64),
+            apex_b,
+        ]
+    )
+
+
+def test_bending_fold_angle_by_hand_and_invariance() -> None:
+    rest = _hinge(0.0)
+    bend = DiscreteShellBending("bending", torch.arange(12).reshape(1, 4, 3), rest[None], stiffness=2.0)
+    assert float(_energy(bend, rest.reshape(-1))) == pytest.approx(0.0, abs=1e-14)
+    fold = 0.3
+    weight = 2.0 * 3 * 1.0 / (0.5 + 0.5)
+    assert float(_energy(bend, _hinge(fold).reshape(-1))) == pytest.approx(weight * fold**2, rel=1e-10)
+    moved = _hinge(fold) @ _rotation(5).T - 3.0
+    assert float(_energy(bend, moved.reshape(-1))) == pytest.approx(weight * fold**2, rel=1e-10)
+    curved_rest = DiscreteShellBending(
+        "bending", torch.arange(12).reshape(1, 4, 3), _hinge(0.7)[None], stiffness=2.0
+    )
+    assert float(_energy(curved_rest, (_hinge(0.7) @ _rotation(6).T).reshape(-1))) == pytest.approx(
+        0.0, abs=1e-12
+    )
+
+
+# -- rigid, joints, pins, loads, gravity ------------------------------------------------------------
+def _affine(R: torch.Tensor, t: torch.Tensor) -> torch.Tensor:
+    return torch.cat([R, t.reshape(3, 1)], dim=1).reshape(-1)
+
+
+def test_rigid_orthogonality_zero_for_rotations_positive_for_shear() -> None:
+    rigid = RigidOrthogonality("rigid", torch.arange(12).reshape(1, 12), stiffness=10.0)
+    assert float(_energy(rigid, _affine(_rotation(7), torch.ones(3)))) == pytest.approx(0.0, abs=1e-12)
+    shear = torch.eye(3, dtype=torch.float64)
+    shear[0, 1] = 0.1
+    # R^T R - I has entries 0.1, 0.1 and 0.01 -> squared Frobenius 0.0201
+    assert float(_energy(rigid, _affine(shear, torch.zeros(3)))) == pytest.approx(10.0 * 0.0201, rel=1e-12)
+
+
+def test_joint_penalty_body_to_world_and_hinge_axis() -> None:
+    local = torch.tensor([[0.0, 0.5, 0.0]], dtype=torch.float64)
+    body_dofs = torch.arange(12)
+    joint = PointPairPenalty(
+        "joint",
+        PointSet.body_points(body_dofs, local),
+        PointSet.world(torch.tensor([[0.0, 2.0, 0.0]]), k=4),
+        100.0,
+    )
+    x = _affine(torch.eye(3, dtype=torch.float64), torch.tensor([0.0, 1.0, 0.0]))
+    assert float(_energy(joint, x)) == pytest.approx(0.5 * 100.0 * 0.25)
+    axis = torch.tensor([[0.0, 0.0, 1.0]], dtype=torch.float64)
+    hinge = PointPairPenalty(
+        "hinge",
+        PointSet.body_points(body_dofs, axis, direction=True),
+        PointSet.world(axis, k=4),
+        10.0,
+        kind="hinge_axis",
+    )
+    R = torch.tensor(
+        [[1.0, 0, 0], [0, math.cos(0.2), -math.sin(0.2)], [0, math.sin(0.2), math.cos(0.2)]],
+        dtype=torch.float64,
+    )
+    # translation never affects an axis; rotation about x tilts z by 0.2 rad: |Rz - z|^2 = 2 - 2 cos 0.2
+    assert float(_energy(hinge, _affine(R, torch.tensor([5.0, 5, 5])))) == pytest.approx(
+        5.0 * (2 - 2 * math.cos(0.2))
+    )
+
+
+def test_conditional_pin_follows_condition() -> None:
+    pts = PointSet.particles(torch.arange(4).reshape(2, 2))
+    pin = ConditionalPin(
+        "support",
+        pts,
+        targets=torch.zeros(2, 2),
+        locations=torch.tensor([0.0, 1.0]),
+        condition_index=0,
+        width=0.1,
+        stiffness=2.0,
+    )
+    x = torch.tensor([[1.0, 0.0, 1.0, 0.0]], dtype=torch.float64)
+    at_first = pin.energy(x, cond=torch.tensor([[0.0]], dtype=torch.float64))
+    assert float(at_first) == pytest.approx(1.0 + math.exp(-50.0), rel=1e-12)
+    at_second = pin.energy(x, cond=torch.tensor([[1.0]], dtype=torch.float64))
+    assert float(at_second) == pytest.approx(float(at_first), rel=1e-12)
+
+
+def test_external_load_and_gravity_are_linear_potentials() -> None:
+    pts = PointSet.particles(torch.arange(6).reshape(2, 3))
+    load = ExternalLoad(
+        "external_load", pts, torch.tensor([0, 0]), torch.tensor([0.25, 0.75]), handle_count=1
+    )
+    x = torch.tensor([[1.0, 2, 3, 4, 5, 6]], dtype=torch.float64, requires_grad=True)
+    force = torch.tensor([[[0.0, 0.0, 10.0]]], dtype=torch.float64)
+    e = load.energy(x, loads=force)
+    assert float(e.detach()) == pytest.approx(-(0.25 * 3 + 0.75 * 6) * 10.0)
+    (g,) = torch.autograd.grad(e.sum(), x)
+    assert torch.allclose(g, torch.tensor([[0, 0, -2.5, 0, 0, -7.5]], dtype=torch.float64))
+    assert float(load.energy(x)) == 0.0
+    gravity = Gravity("gravity", pts, torch.tensor([1.0, 2.0]), torch.tensor([0.0, -9.81, 0.0]))
+    assert float(gravity.energy(x)) == pytest.approx(9.81 * (1 * 2 + 2 * 5))
+
+
+# -- signed distances and contact --------------------------------------------------------------
+@pytest.mark.parametrize(
+    ("shape", "point", "expected"),
+    [
+        (Sphere(1.0), (2.0, 0.0, 0.0), 1.0),
+        (Sphere(1.0), (0.0, 0.5, 0.0), -0.5),
+        (Plane((0.0, 1.0, 0.0), 0.5), (3.0, 0.2, 1.0), -0.3),
+        (Box((1.0, 2.0, 3.0)), (3.0, 0.0, 0.0), 2.0),
+        (Box((1.0, 2.0, 3.0)), (0.5, 0.0, 0.0), -0.5),
+        (Box((1.0, 1.0, 1.0)), (4.0, 5.0, 1.0), 5.0),
+        (Capsule(1.0, 0.5), (0.0, 2.0, 0.5), 1.5),
+        (Capsule(1.0, 0.5), (0.0, 0.0, 3.0), 1.5),
+        (Torus(2.0, 0.5), (2.0, 0.0, 0.0), -0.5),
+        (Torus(2.0, 0.5), (0.0, 0.0, 0.0), 1.5),
+        (Torus(2.0, 0.5), (0.0, 2.0, 1.0), 0.5),
+    ],
+)
+def test_signed_distances_by_hand(shape, point, expected) -> None:
+    d = shape.distance(torch.tensor(point, dtype=torch.float64))
+    assert float(d) == pytest.approx(expected, abs=1e-5)
+
+
+def test_contact_penalty_finite_everywhere_including_singular_points() -> None:
+    for shape in (
+        Sphere(0.3),
+        Plane((0.0, 0.0, 1.0)),
+        Box((0.2, 0.3, 0.4)),
+        Capsule(0.5, 0.1),
+        Torus(0.5, 0.1),
+    ):
+        points = PointSet.body_points(torch.arange(12), torch.zeros(3, 3))
+        contact = SDFContact("contact", points, FrameSet.body(torch.arange(12, 24), 3), shape, stiffness=1e4)
+        for scale in (0.0, 1e-8, 1.0, 1e8):
+            x = (scale * torch.randn(1, 24, dtype=torch.float64)).requires_grad_(True)
+            e = contact.energy(x)
+            (g,) = torch.autograd.grad(e.sum(), x)
+            assert torch.isfinite(e).all() and torch.isfinite(g).all(), (shape, scale)
+
+
+def test_contact_only_penalises_penetration_and_follows_the_frame() -> None:
+    points = PointSet.world(torch.tensor([[0.0, 0.0, 0.1], [0.0, 0.0, 3.0]]), k=4)
+    ball = SDFContact(
+        "ball_contact", points, FrameSet.body(torch.arange(12), 2), Sphere(0.5), stiffness=100.0
+    )
+    x = _affine(torch.eye(3, dtype=torch.float64), torch.zeros(3))
+    assert float(_energy(ball, x)) == pytest.approx(0.5 * 100.0 * 0.4**2)
+    x_far = _affine(torch.eye(3, dtype=torch.float64), torch.tensor([5.0, 0.0, 0.0]))
+    assert float(_energy(ball, x_far)) == 0.0
+
+
+# -- gradients of every effect of every scene ------------------------------------------------------
+def _small_scene_names() -> list[str]:
+    return redsim.scenes.names()
+
+
+def _random_state(scene: redsim.Scene, scale: float, seed: int) -> torch.Tensor:
+    g = torch.Generator().manual_seed(seed)
+    span = float(scene.q_seed.abs().max().clamp_min(1.0))
+    return scene.q_seed + scale * span * torch.randn(scene.free_dof_count, generator=g, dtype=torch.float64)
+
+
+def _directional_fd_check(scene: redsim.Scene, effect: Effect, q: torch.Tensor, cond, seed: int) -> None:
+    """Directional central difference of one effect vs its autograd gradient, at a few directions."""
+    g_ = torch.Generator().manual_seed(seed)
+    loads = None
+    if scene.handles:
+        loads = torch.randn(1, len(scene.handles), scene.dim, generator=g_, dtype=torch.float64)
+    cond_t = scene.pack_condition(cond, 1)
+
+    def energy(qv: torch.Tensor) -> torch.Tensor:
+        return effect.energy(scene.full_positions(qv.unsqueeze(0)), cond_t, loads)[0]
+
+    qr = q.clone().requires_grad_(True)
+    (grad,) = torch.autograd.grad(energy(qr), qr)
+    assert torch.isfinite(grad).all(), effect.name
+    for _ in range(3):
+        d = torch.randn(q.shape, generator=g_, dtype=torch.float64)
+        d = d / d.norm()
+        h = 1e-6 * float(q.abs().max().clamp_min(1.0))
+        fd = (energy(q + h * d) - energy(q - h * d)) / (2 * h)
+        exact = (grad * d).sum()
+        tol = 1e-5 * (grad.norm() + 1e-8) + 1e-7 * (abs(float(energy(q))) / h) * 1e-3
+        assert abs(float(fd - exact)) <= float(tol), (scene.name, effect.name, float(fd), float(exact))
+
+
+@pytest.mark.parametrize("name", _small_scene_names())
+def test_every_effect_gradient_matches_central_differences(name: str) -> None:
+    scene = redsim.scenes.build(name)
+    for seed, scale in ((1, 1e-3), (2, 2e-2)):
+        q = _random_state(scene, scale, seed)
+        cond = (
+            None
+            if scene.condition_space is None
+            else scene.condition_space.sample(1, torch.Generator().manual_seed(seed))
+        )
+        for effect in scene.effects:
+            _directional_fd_check(scene, effect, q, cond, seed)
+
+
+def test_tiny_effects_pass_torch_gradcheck() -> None:
+    torch.manual_seed(1)
+    _gradcheck(_tet_effect(), TET.reshape(-1) + 0.1 * torch.randn(12, dtype=torch.float64))
+    rest = _hinge(0.2)
+    _gradcheck(
+        DiscreteShellBending("b", torch.arange(12).reshape(1, 4, 3), rest[None], 1.0),
+        (_hinge(0.5) + 0.05).reshape(-1),
+    )
+    tri = torch.tensor([[0.0, 0, 0], [1, 0, 0], [0, 1, 0]], dtype=torch.float64)
+    _gradcheck(
+        StVKMembrane("m", torch.arange(9).reshape(1, 3, 3), tri[None], 1e3, 0.3),
+        (tri * 1.1 + 0.01).reshape(-1),
+    )
+    _gradcheck(
+        RigidOrthogonality("r", torch.arange(12).reshape(1, 12), 5.0), torch.randn(12, dtype=torch.float64)
+    )
+    points = PointSet.body_points(torch.arange(12), 0.3 * torch.randn(5, 3))
+    contact = SDFContact("c", points, FrameSet.body(torch.arange(12, 24), 5), Torus(0.3, 0.1), 100.0)
+    _gradcheck(contact, 0.3 * torch.randn(24, dtype=torch.float64))
+
+
+# -- the declared-effects-only rule ----------------------------------------------------------------
+@pytest.mark.parametrize("name", _small_scene_names())
+def test_scene_energy_runs_exactly_its_declared_effects(name: str, monkeypatch: pytest.MonkeyPatch) -> None:
+    scene = redsim.scenes.build(name)
+    called: list[int] = []
+    classes = {type(e) for e in scene.effects} | set(_all_effect_classes())
+    for cls in classes:
+        original = cls.element_energy
+
+        def spy(self, xe, cond=None, loads=None, _original=original):
+            called.append(id(self))
+            return _original(self, xe, cond, loads)
+
+        monkeypatch.setattr(cls, "element_energy", spy)
+    q = scene.q_seed.unsqueeze(0)
+    total = scene.energy(q)
+    assert sorted(called) == sorted(id(e) for e in scene.effects)
+    terms = scene.energy_terms(q)
+    assert list(terms) == [e.name for e in scene.effects]
+    assert torch.allclose(total, sum(terms.values()))
+
+
+def _all_effect_classes() -> list[type[Effect]]:
+    out, stack = [], [Effect]
+    while stack:
+        cls = stack.pop()
+        for sub in cls.__subclasses__():
+            out.append(sub)
+            stack.append(sub)
+    return out
+
+
+def test_builder_gravity_flag_adds_or_omits_the_term() -> None:
+    def build(gravity: bool) -> redsim.Scene:
+        b = SceneBuilder(3)
+        ids = b.add_particles(TET, torch.full((4,), 0.25))
+        b.pin_particles(ids[:3])
+        b.add_effect(
+            NeoHookean("elastic", b.particle_dofs(torch.tensor([[0, 1, 2, 3]])), TET[None], 1e3, 0.3)
+        )
+        if gravity:
+            b.add_gravity((0.0, 0.0, -9.81))
+        return b.finalize("tet", params={"gravity": gravity})
+
+    with_g, without_g = build(True), build(False)
+    q = with_g.q_seed + 0.01
+    assert [e.name for e in without_g.effects] == ["elastic"]
+    diff = with_g.energy(q) - without_g.energy(q)
+    assert float(diff) == pytest.approx(float(with_g.energy_terms(q)["gravity"]), rel=1e-12)
+    assert with_g.fingerprint() != without_g.fingerprint()

@@ -1,0 +1,419 @@
+"""The data-free subspace fitter of Sharp et al. 2023, "Data-Free Learning of Reduced-Order Kinematics".
+
+Loss (paper eq. "subspace_loss"), estimated on one batch z_1..z_B ~ N(0, I):
+
+    mean_i E_pot(f(z_i)) + lam * mean_{i<j} ( log( |f(z_i) - f(z_j)|_M / (rho sigma |z_i - z_j|) ) )^2
+
+with seeded exploration (§4.1): during fitting f(z) = rho MLP(z) + (1 - rho) q_seed, rho rising
+linearly from 0 to 1. Because f(z_i) - f(z_j) = rho (MLP(z_i) - MLP(z_j)), the pair ratio equals
+|MLP(z_i) - MLP(z_j)|_M / (sigma |z_i - z_j|) exactly, which is how it is computed (finite at
+rho = 0). M-norm distances come from the B x B Gram matrix of the batch (never a B x B x n
+tensor), after centring the batch so float32 keeps the small differences.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import logging
+import os
+import shlex
+import time
+from collections.abc import Callable, Sequence
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any, NamedTuple
+
+import torch
+from torch import Tensor
+
+import redsim
+from redsim.scene import Scene
+from redsim.subspace import CheckpointError, SubspaceConfig, SubspaceMap
+
+log = logging.getLogger(__name__)
+
+DTYPES = {"float32": torch.float32, "float64": torch.float64}
+
+
+@dataclass(frozen=True)
+class FitConfig:
+    """Hyperparameters of one fit. Every field has a default; Table 1 values come per scene.
+
+    Attributes:
+        latent_dim: d.
+        sigma: Target Lipschitz scale of the map [the unit of |q|_M per unit z] (paper σ).
+        lam: Weight of the pair term (paper λ).
+        steps: Adam steps.
+        batch_size: Latent samples per step; the pair term uses all B(B-1)/2 pairs.
+        learning_rate: Initial Adam learning rate; halved after each quarter of the steps.
+        hidden_width: MLP width.
+        hidden_layers: MLP hidden layers.
+        periodic: Latent indices treated as angles.
+        conditional: Fit f(z, c) over the scene's condition space (else the default condition).
+        exploration_fraction: rho reaches 1 after this fraction of the steps (paper: 1.0).
+        checkpoint_every: Steps between resumable checkpoints (0: only at the end / on interrupt).
+        dtype: "float32" (default) or "float64".
+        device: Torch device for fitting.
+    """
+
+    latent_dim: int = 8
+    sigma: float = 1.0
+    lam: float = 1.0
+    steps: int = 10_000
+    batch_size: int = 32
+    learning_rate: float = 1e-3
+    hidden_width: int = 128
+    hidden_layers: int = 5
+    periodic: tuple[int, ...] = ()
+    conditional: bool = False
+    exploration_fraction: float = 1.0
+    checkpoint_every: int = 1000
+    dtype: str = "float32"
+    device: str = "cpu"
+
+    def __post_init__(self) -> None:
+        checks = {
+            "sigma": self.sigma > 0,
+            "lam": self.lam >= 0,
+            "steps": self.steps >= 1,
+            "batch_size": self.batch_size >= 2,
+            "learning_rate": self.learning_rate > 0,
+            "exploration_fraction": 0 < self.exploration_fraction <= 1,
+            "checkpoint_every": self.checkpoint_every >= 0,
+            "dtype": self.dtype in DTYPES,
+        }
+        bad = [k for k, ok in checks.items() if not ok]
+        if bad:
+            raise ValueError(f"invalid FitConfig field(s) {bad}: {self}")
+
+
+class FitResult(NamedTuple):
+    """What :func:`fit_subspace` returns."""
+
+    subspace: SubspaceMap
+    history: list[dict[str, float]]
+    fit_seconds: float
+
+
+def pair_log_ratios(y: Tensor, z: Tensor, scene: Scene, sigma: float) -> Tensor:
+    """log(|y_i - y_j|_M / (sigma |z_i - z_j|)) for all pairs i < j, shape [B(B-1)/2].
+
+    Args:
+        y: Map outputs, shape [B, n].
+        z: Latents, shape [B, d].
+        scene: Supplies the mass matrix.
+        sigma: Scale σ.
+    """
+    y = y - y.mean(0, keepdim=True)
+    gram = y @ scene.mass_matvec(y).T
+    sq = gram.diagonal()
+    i, j = torch.triu_indices(y.shape[0], y.shape[0], offset=1, device=y.device)
+    dq2 = (sq[i] + sq[j] - 2.0 * gram[i, j]).clamp_min(torch.finfo(y.dtype).tiny)
+    dz2 = ((z[i] - z[j]) ** 2).sum(-1)
+    return 0.5 * (torch.log(dq2) - torch.log(dz2)) - torch.log(torch.as_tensor(sigma, dtype=y.dtype))
+
+
+def subspace_loss(
+    scene: Scene, model: SubspaceMap, z: Tensor, cond: Tensor | None, rho: float, config: FitConfig
+) -> tuple[Tensor, dict[str, float]]:
+    """The fitting loss on one batch, and its terms (mean energy [J], pair term, mean metric stretch)."""
+    y = model(z, cond if config.conditional else None)
+    q = rho * y + (1.0 - rho) * scene.q_seed
+    energy = scene.energy(q, cond=cond).mean()
+    log_ratio = pair_log_ratios(y, z, scene, config.sigma)
+    pair = (log_ratio**2).mean()
+    total = energy + config.lam * pair
+    terms = {
+        "energy": float(energy.detach()),
+        "pair": float(pair.detach()),
+        "stretch": float(torch.exp(log_ratio.detach()).mean()),
+    }
+    return total, terms
+
+
+def rho_at(step: int, config: FitConfig) -> float:
+    """Seeded-exploration weight rho after ``step`` completed steps."""
+    return min(1.0, (step + 1) / (config.exploration_fraction * config.steps))
+
+
+Callback = Callable[[int, dict[str, float]], None]
+
+
+def fit_subspace(
+    scene: Scene,
+    config: FitConfig | None = None,
+    *,
+    seed: int = 0,
+    out: str | Path | None = None,
+    resume: bool = False,
+    callbacks: Sequence[Callback] = (),
+    progress: bool = True,
+    command: str | None = None,
+    **overrides: Any,
+) -> FitResult:
+    """Fit a neural subspace to ``scene`` from its energy alone.
+
+    Args:
+        scene: The system; its energy is evaluated in ``config.dtype`` on ``config.device``.
+        config: Hyperparameters (defaults: :class:`FitConfig`).
+        seed: Seeds the MLP initialisation and every latent sample; the same seed reproduces a fit.
+        out: Checkpoint stem. With it, ``STEM.fit.pt`` holds resumable training state (written
+            every ``checkpoint_every`` steps and on Ctrl-C) and the final map is saved to
+            ``STEM.pt`` + ``STEM.json``.
+        resume: Continue from ``STEM.fit.pt`` (same scene and config required).
+        callbacks: Called as ``cb(step, terms)`` after every step.
+        progress: Show a tqdm bar with the energy, pair and stretch terms.
+        command: The command line recorded in the metadata (default: a `redsim fit` line).
+        **overrides: FitConfig fields replacing those of ``config`` (``dim`` is an alias of
+            ``latent_dim``), e.g. ``fit_subspace(scene, dim=8, sigma=1.0, lam=1.0, steps=2000)``.
+
+    Raises:
+        ValueError: bad config, a conditional fit on a scene without conditions, or
+            ``resume`` with no matching checkpoint.
+    """
+    if "dim" in overrides:
+        overrides["latent_dim"] = overrides.pop("dim")
+    unknown = sorted(set(overrides) - {f.name for f in dataclasses.fields(FitConfig)})
+    if unknown:
+        raise ValueError(
+            f"unknown fit option(s) {unknown}; valid: {[f.name for f in dataclasses.fields(FitConfig)]}"
+        )
+    config = dataclasses.replace(config or FitConfig(), **overrides)
+    if config.conditional and scene.condition_space is None:
+        raise ValueError(f"scene {scene.name!r} has no condition space; fit without conditional")
+    dtype = DTYPES[config.dtype]
+    work = scene.to(device=config.device, dtype=dtype)
+    arch = SubspaceConfig(
+        latent_dim=config.latent_dim,
+        output_dim=scene.free_dof_count,
+        condition_dim=scene.condition_dim if config.conditional else 0,
+        hidden_width=config.hidden_width,
+        hidden_layers=config.hidden_layers,
+        periodic=tuple(config.periodic),
+    )
+    with torch.random.fork_rng(devices=[]):
+        torch.manual_seed(seed)
+        model = SubspaceMap(arch).to(device=config.device, dtype=dtype)
+    optimizer = torch.optim.Adam(model.parameters(), lr=config.learning_rate)
+    scheduler = torch.optim.lr_scheduler.StepLR(optimizer, step_size=max(1, config.steps // 4), gamma=0.5)
+    generator = torch.Generator(device=config.device).manual_seed(seed)
+    history: list[dict[str, float]] = []
+    start_step, elapsed = 0, 0.0
+    state_path = None if out is None else Path(out).with_suffix(".fit.pt")
+    if resume:
+        if state_path is None or not state_path.is_file():
+            raise ValueError(f"nothing to resume: {state_path} does not exist")
+        start_step, elapsed, history = _load_training_state(
+            state_path, scene, config, model, optimizer, scheduler, generator
+        )
+        log.info("resuming %s at step %d", state_path, start_step)
+
+    bar = None
+    if progress:
+        from tqdm.auto import tqdm
+
+        bar = tqdm(total=config.steps, initial=start_step, desc=f"fit {scene.name}", dynamic_ncols=True)
+    step = start_step
+    clock = time.perf_counter()
+    try:
+        for step in range(start_step, config.steps):
+            z = torch.randn(
+                config.batch_size, config.latent_dim, generator=generator, device=config.device, dtype=dtype
+            )
+            cond = None
+            if work.condition_space is not None:
+                cond = (
+                    work.condition_space.sample(config.batch_size, generator)
+                    if config.conditional
+                    else work.pack_condition(None, config.batch_size)
+                )
+            rho = rho_at(step, config)
+            loss, terms = subspace_loss(work, model, z, cond, rho, config)
+            if not torch.isfinite(loss):
+                raise FloatingPointError(
+                    f"loss became {float(loss)} at step {step} (terms {terms}); "
+                    f"lower the learning rate or sigma"
+                )
+            optimizer.zero_grad(set_to_none=True)
+            loss.backward()
+            optimizer.step()
+            scheduler.step()
+            terms = {"step": step + 1, "loss": float(loss), "rho": rho, **terms}
+            history.append(terms)
+            for cb in callbacks:
+                cb(step + 1, terms)
+            if bar is not None:
+                bar.update(1)
+                bar.set_postfix(
+                    E=f"{terms['energy']:.3g}", pair=f"{terms['pair']:.3g}", stretch=f"{terms['stretch']:.3f}"
+                )
+            if (
+                state_path is not None
+                and config.checkpoint_every
+                and (step + 1) % config.checkpoint_every == 0
+            ):
+                _save_training_state(
+                    state_path,
+                    step + 1,
+                    elapsed + time.perf_counter() - clock,
+                    history,
+                    scene,
+                    config,
+                    model,
+                    optimizer,
+                    scheduler,
+                    generator,
+                )
+        step = config.steps
+    except KeyboardInterrupt:
+        if state_path is not None:
+            _save_training_state(
+                state_path,
+                step,
+                elapsed + time.perf_counter() - clock,
+                history,
+                scene,
+                config,
+                model,
+                optimizer,
+                scheduler,
+                generator,
+            )
+            log.warning(
+                "interrupted at step %d; resume with the same command plus --resume (%s)", step, state_path
+            )
+        raise
+    finally:
+        if bar is not None:
+            bar.close()
+    fit_seconds = elapsed + time.perf_counter() - clock
+    tail = history[-min(len(history), 100) :]
+    model.metadata = {
+        "scene": scene.name,
+        "scene_fingerprint": scene.fingerprint(),
+        "scene_params": scene.params,
+        "conditions": _condition_doc(scene) if config.conditional else [],
+        "fit": dataclasses.asdict(config),
+        "seed": seed,
+        "fit_seconds": fit_seconds,
+        "final": {k: sum(h[k] for h in tail) / len(tail) for k in ("energy", "pair", "stretch")},
+        "redsim_version": redsim.__version__,
+        "command": command or fit_command(scene, config, seed, out),
+    }
+    model = model.cpu()
+    if out is not None:
+        model.save(out)
+    return FitResult(model, history, fit_seconds)
+
+
+def _condition_doc(scene: Scene) -> list[dict[str, Any]]:
+    space = scene.condition_space
+    assert space is not None  # guarded by the caller's config.conditional check
+    return [
+        {"name": n, "low": float(lo), "high": float(hi)}
+        for n, lo, hi in zip(space.names, space.low, space.high, strict=True)
+    ]
+
+
+def fit_command(scene: Scene, config: FitConfig, seed: int, out: str | Path | None) -> str:
+    """The `redsim fit` command line that reproduces this fit."""
+    parts = ["redsim", "fit", scene.name]
+    for key, value in sorted(scene.params.items()):
+        parts += ["--param", f"{key}={_json_literal(value)}"]
+    parts += [
+        "--dim",
+        str(config.latent_dim),
+        "--sigma",
+        repr(config.sigma),
+        "--lam",
+        repr(config.lam),
+        "--steps",
+        str(config.steps),
+        "--batch",
+        str(config.batch_size),
+        "--lr",
+        repr(config.learning_rate),
+        "--width",
+        str(config.hidden_width),
+        "--layers",
+        str(config.hidden_layers),
+        "--seed",
+        str(seed),
+    ]
+    if config.periodic:
+        parts += ["--periodic", ",".join(map(str, config.periodic))]
+    if config.conditional:
+        parts.append("--cond")
+    if config.exploration_fraction != 1.0:
+        parts += ["--explore", repr(config.exploration_fraction)]
+    if out is not None:
+        parts += ["--out", os.fspath(out)]
+    return shlex.join(parts)
+
+
+def _json_literal(value: Any) -> str:
+    import json
+
+    return json.dumps(value)
+
+
+def _save_training_state(
+    path: Path,
+    step: int,
+    elapsed: float,
+    history: list[dict[str, float]],
+    scene: Scene,
+    config: FitConfig,
+    model: SubspaceMap,
+    optimizer: torch.optim.Optimizer,
+    scheduler: Any,
+    generator: torch.Generator,
+) -> None:
+    path.parent.mkdir(parents=True, exist_ok=True)
+    tmp = path.with_suffix(".tmp")
+    torch.save(
+        {
+            "step": step,
+            "elapsed": elapsed,
+            "history": history,
+            "scene_fingerprint": scene.fingerprint(),
+            "config": dataclasses.asdict(config),
+            "model": model.state_dict(),
+            "optimizer": optimizer.state_dict(),
+            "scheduler": scheduler.state_dict(),
+            "generator": generator.get_state(),
+        },
+        tmp,
+    )
+    os.replace(tmp, path)
+
+
+def _load_training_state(
+    path: Path,
+    scene: Scene,
+    config: FitConfig,
+    model: SubspaceMap,
+    optimizer: torch.optim.Optimizer,
+    scheduler: Any,
+    generator: torch.Generator,
+) -> tuple[int, float, list[dict[str, float]]]:
+    try:
+        state = torch.load(path, map_location="cpu", weights_only=True)
+    except Exception as err:
+        raise CheckpointError(f"training state is corrupt ({type(err).__name__}: {err})", str(path)) from None
+    if state["scene_fingerprint"] != scene.fingerprint():
+        raise CheckpointError(
+            f"training state is for another scene (fingerprint {state['scene_fingerprint']}, "
+            f"this scene {scene.fingerprint()})",
+            str(path),
+        )
+    mine = dataclasses.asdict(config)
+    saved = {**state["config"], "periodic": tuple(state["config"]["periodic"])}
+    if saved != mine:
+        diff = sorted(k for k in mine if saved.get(k) != mine[k])
+        raise CheckpointError(f"training state was made with different settings {diff}", str(path))
+    model.load_state_dict(state["model"])
+    optimizer.load_state_dict(state["optimizer"])
+    scheduler.load_state_dict(state["scheduler"])
+    generator.set_state(state["generator"])
+    return int(state["step"]), float(state["elapsed"]), list(state["history"])
