@@ -175,9 +175,7 @@ def fit_subspace(
         overrides["latent_dim"] = overrides.pop("dim")
     unknown = sorted(set(overrides) - {f.name for f in dataclasses.fields(FitConfig)})
     if unknown:
-        raise ValueError(
-            f"unknown fit option(s) {unknown}; valid: {[f.name for f in dataclasses.fields(FitConfig)]}"
-        )
+        raise ValueError(f"unknown fit option(s) {unknown}; valid: {[f.name for f in dataclasses.fields(FitConfig)]}")
     config = dataclasses.replace(config or FitConfig(), **overrides)
     if config.conditional and scene.condition_space is None:
         raise ValueError(f"scene {scene.name!r} has no condition space; fit without conditional")
@@ -213,8 +211,26 @@ def fit_subspace(
         from tqdm.auto import tqdm
 
         bar = tqdm(total=config.steps, initial=start_step, desc=f"fit {scene.name}", dynamic_ncols=True)
-    step = start_step
+    completed, generator_state = start_step, generator.get_state()
     clock = time.perf_counter()
+
+    def save_state() -> None:
+        if state_path is not None:
+            _save_training_state(
+                state_path,
+                {
+                    "step": completed,
+                    "elapsed": elapsed + time.perf_counter() - clock,
+                    "history": history,
+                    "scene_fingerprint": scene.fingerprint(),
+                    "config": dataclasses.asdict(config),
+                    "model": model.state_dict(),
+                    "optimizer": optimizer.state_dict(),
+                    "scheduler": scheduler.state_dict(),
+                    "generator": generator_state,
+                },
+            )
+
     try:
         for step in range(start_step, config.steps):
             z = torch.randn(
@@ -231,57 +247,28 @@ def fit_subspace(
             loss, terms = subspace_loss(work, model, z, cond, rho, config)
             if not torch.isfinite(loss):
                 raise FloatingPointError(
-                    f"loss became {float(loss)} at step {step} (terms {terms}); "
-                    f"lower the learning rate or sigma"
+                    f"loss became {float(loss)} at step {step} (terms {terms}); lower the learning rate or sigma"
                 )
             optimizer.zero_grad(set_to_none=True)
             loss.backward()
             optimizer.step()
             scheduler.step()
-            terms = {"step": step + 1, "loss": float(loss), "rho": rho, **terms}
+            terms = {"step": step + 1, "loss": float(loss.detach()), "rho": rho, **terms}
             history.append(terms)
+            completed, generator_state = step + 1, generator.get_state()
             for cb in callbacks:
-                cb(step + 1, terms)
+                cb(completed, terms)
             if bar is not None:
                 bar.update(1)
                 bar.set_postfix(
                     E=f"{terms['energy']:.3g}", pair=f"{terms['pair']:.3g}", stretch=f"{terms['stretch']:.3f}"
                 )
-            if (
-                state_path is not None
-                and config.checkpoint_every
-                and (step + 1) % config.checkpoint_every == 0
-            ):
-                _save_training_state(
-                    state_path,
-                    step + 1,
-                    elapsed + time.perf_counter() - clock,
-                    history,
-                    scene,
-                    config,
-                    model,
-                    optimizer,
-                    scheduler,
-                    generator,
-                )
-        step = config.steps
+            if config.checkpoint_every and completed % config.checkpoint_every == 0:
+                save_state()
     except KeyboardInterrupt:
+        save_state()
         if state_path is not None:
-            _save_training_state(
-                state_path,
-                step,
-                elapsed + time.perf_counter() - clock,
-                history,
-                scene,
-                config,
-                model,
-                optimizer,
-                scheduler,
-                generator,
-            )
-            log.warning(
-                "interrupted at step %d; resume with the same command plus --resume (%s)", step, state_path
-            )
+            log.warning("interrupted after step %d; rerun with --resume to continue (%s)", completed, state_path)
         raise
     finally:
         if bar is not None:
@@ -357,34 +344,11 @@ def _json_literal(value: Any) -> str:
     return json.dumps(value)
 
 
-def _save_training_state(
-    path: Path,
-    step: int,
-    elapsed: float,
-    history: list[dict[str, float]],
-    scene: Scene,
-    config: FitConfig,
-    model: SubspaceMap,
-    optimizer: torch.optim.Optimizer,
-    scheduler: Any,
-    generator: torch.Generator,
-) -> None:
+def _save_training_state(path: Path, state: dict[str, Any]) -> None:
+    """Write resumable training state atomically (a crash mid-write keeps the previous file)."""
     path.parent.mkdir(parents=True, exist_ok=True)
     tmp = path.with_suffix(".tmp")
-    torch.save(
-        {
-            "step": step,
-            "elapsed": elapsed,
-            "history": history,
-            "scene_fingerprint": scene.fingerprint(),
-            "config": dataclasses.asdict(config),
-            "model": model.state_dict(),
-            "optimizer": optimizer.state_dict(),
-            "scheduler": scheduler.state_dict(),
-            "generator": generator.get_state(),
-        },
-        tmp,
-    )
+    torch.save(state, tmp)
     os.replace(tmp, path)
 
 
