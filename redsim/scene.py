@@ -172,17 +172,13 @@ class Scene:
         """Potential energy [J], shape [B], of free configurations q, shape [B, n] ([n] gives a scalar)."""
         return sum(self.energy_terms(q, loads, cond).values())  # type: ignore[return-value]
 
-    def energy_terms(
-        self, q: Tensor, loads: LoadsLike = None, cond: Tensor | None = None
-    ) -> dict[str, Tensor]:
+    def energy_terms(self, q: Tensor, loads: LoadsLike = None, cond: Tensor | None = None) -> dict[str, Tensor]:
         """Energy [J] of each declared effect, by name; each shape [B] ([] for q of shape [n])."""
         single = q.ndim == 1
         if single:
             q = q.unsqueeze(0)
         if q.ndim != 2 or q.shape[1] != self.free_dof_count:
-            raise ValueError(
-                f"scene {self.name!r} expects q of shape [B, {self.free_dof_count}], got {tuple(q.shape)}"
-            )
+            raise ValueError(f"scene {self.name!r} expects q of shape [B, {self.free_dof_count}], got {tuple(q.shape)}")
         x = self.full_positions(q)
         loads_t = self.pack_loads(loads, q.shape[0], q)
         cond_t = self.pack_condition(cond, q.shape[0], q)
@@ -211,9 +207,7 @@ class Scene:
                 if h in loads:
                     f = torch.as_tensor(loads[h], dtype=dtype, device=device)
                     if f.shape[-1] != D:
-                        raise ValueError(
-                            f"load on handle {h!r} must have {D} components, got {tuple(f.shape)}"
-                        )
+                        raise ValueError(f"load on handle {h!r} must have {D} components, got {tuple(f.shape)}")
                     out[:, i] = f
             return out
         loads = torch.as_tensor(loads, dtype=dtype, device=device)
@@ -235,14 +229,13 @@ class Scene:
             return None
         dtype = like.dtype if like is not None else self.dtype
         device = like.device if like is not None else self.device
-        c = space.default if cond is None else torch.as_tensor(cond)
+        c = space.default if cond is None else torch.as_tensor(cond, dtype=dtype)
         c = c.to(dtype=dtype, device=device)
         if c.ndim == 1:
             c = c.unsqueeze(0).expand(batch, -1)
         if c.shape != (batch, space.dim):
             raise ValueError(
-                f"condition must have shape [{batch}, {space.dim}] ({list(space.names)}), "
-                f"got {tuple(c.shape)}"
+                f"condition must have shape [{batch}, {space.dim}] ({list(space.names)}), got {tuple(c.shape)}"
             )
         return c
 
@@ -372,11 +365,7 @@ class SceneBuilder:
     def particle_dofs(self, ids: Tensor) -> Tensor:
         """Full-configuration index of each coordinate of particles ``ids`` (any shape S) -> [*S, D]."""
         ids = torch.as_tensor(ids, dtype=torch.int64)
-        first = (
-            torch.cat(self._particle_first_dof)
-            if self._particle_first_dof
-            else torch.zeros(0, dtype=torch.int64)
-        )
+        first = torch.cat(self._particle_first_dof) if self._particle_first_dof else torch.zeros(0, dtype=torch.int64)
         if ids.numel() and (int(ids.min()) < 0 or int(ids.max()) >= first.numel()):
             raise ValueError(f"particle id out of range [0, {first.numel()})")
         return first[ids].unsqueeze(-1) + torch.arange(self.dim)
@@ -403,11 +392,7 @@ class SceneBuilder:
         if self.dim != 3:
             raise ValueError("rigid bodies need a 3D scene")
         mass_block = torch.as_tensor(mass_block, dtype=torch.float64)
-        if (
-            mass_block.shape != (4, 4)
-            or not bool(torch.isfinite(mass_block).all())
-            or not mass_block[3, 3] > 0
-        ):
+        if mass_block.shape != (4, 4) or not bool(torch.isfinite(mass_block).all()) or not mass_block[3, 3] > 0:
             raise ValueError("mass_block must be a finite 4x4 matrix with positive mass at [3, 3]")
         transform = (
             torch.eye(3, 4, dtype=torch.float64)
@@ -458,7 +443,9 @@ class SceneBuilder:
             masses.append(torch.stack([m[3, 3] for m in self._body_mass_block]))
         if not sets:
             raise ValueError("add particles or bodies before gravity")
-        gravity = Gravity("gravity", PointSet.cat(sets), torch.cat(masses), torch.as_tensor(acceleration))
+        gravity = Gravity(
+            "gravity", PointSet.cat(sets), torch.cat(masses), torch.as_tensor(acceleration, dtype=torch.float64)
+        )
         self.add_effect(gravity)
         return gravity
 
@@ -514,9 +501,7 @@ class SceneBuilder:
         effects = list(self._effects)
         if self._handles:
             points = PointSet.cat([h[1] for h in self._handles])
-            index = torch.cat(
-                [torch.full((h[1].count,), i, dtype=torch.int64) for i, h in enumerate(self._handles)]
-            )
+            index = torch.cat([torch.full((h[1].count,), i, dtype=torch.int64) for i, h in enumerate(self._handles)])
             weights = torch.cat([h[2] for h in self._handles])
             effects.append(ExternalLoad("external_load", points, index, weights, len(self._handles)))
         handles = tuple(Handle(n, p, w) for n, p, w in self._handles)
@@ -564,14 +549,10 @@ class SceneBuilder:
         r, c, v = full_to_free[torch.cat(rows)], full_to_free[torch.cat(cols)], torch.cat(vals)
         keep = (r >= 0) & (c >= 0)
         n = dof_map.free_dof_count
-        M = torch.sparse_coo_tensor(
-            torch.stack([r[keep], c[keep]]), v[keep], (n, n), check_invariants=True
-        ).coalesce()
+        M = torch.sparse_coo_tensor(torch.stack([r[keep], c[keep]]), v[keep], (n, n), check_invariants=True).coalesce()
         diag = torch.zeros(n, dtype=torch.float64).index_add_(
             0, r[keep][r[keep] == c[keep]], v[keep][r[keep] == c[keep]]
         )
         if bool((diag <= 0).any()):
-            raise ValueError(
-                f"{int((diag <= 0).sum())} free DOF(s) have no mass (massless particles must be pinned)"
-            )
+            raise ValueError(f"{int((diag <= 0).sum())} free DOF(s) have no mass (massless particles must be pinned)")
         return M
