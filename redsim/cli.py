@@ -1,0 +1,466 @@
+"""The ``redsim`` command line: ``scenes``, ``simulate`` and ``bench``.
+
+Every subcommand has ``--help`` and ``--json`` (one JSON document on stdout; human-readable
+text otherwise). Bad input is reported as a single ``redsim: error: ...`` line on stderr with
+exit status 2, never as a traceback.
+
+Exit status: 0 success; 1 a scene failed to build (``scenes``); 2 bad input; 3 a simulation
+produced NaN or inf.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import logging
+import math
+import re
+import sys
+import time
+from collections.abc import Sequence
+from pathlib import Path
+from typing import Any, NoReturn
+
+import torch
+
+import redsim
+from redsim.scene import Scene
+
+EXIT_OK = 0
+EXIT_SCENE_FAILED = 1
+EXIT_USAGE = 2
+EXIT_NAN = 3
+
+_DTYPES = {"float64": torch.float64, "float32": torch.float32}
+
+
+class CliError(Exception):
+    """Bad command-line input: reported as one line on stderr with exit status ``code``."""
+
+    def __init__(self, message: str, code: int = EXIT_USAGE) -> None:
+        super().__init__(message)
+        self.code = code
+
+
+class _Parser(argparse.ArgumentParser):
+    """An ArgumentParser whose usage errors become :class:`CliError` (one line, exit status 2)."""
+
+    def error(self, message: str) -> NoReturn:
+        raise CliError(f"{message} (see `{self.prog} --help`)")
+
+
+# -- output ---------------------------------------------------------------------------------
+def _out(text: str = "") -> None:
+    print(text, flush=True)
+
+
+def _finite_or_none(obj: Any) -> Any:
+    """``obj`` with NaN and inf floats replaced by None, so the output is strict JSON."""
+    if isinstance(obj, float):
+        return obj if math.isfinite(obj) else None
+    if isinstance(obj, dict):
+        return {k: _finite_or_none(v) for k, v in obj.items()}
+    if isinstance(obj, (list, tuple)):
+        return [_finite_or_none(v) for v in obj]
+    return obj
+
+
+def _json_out(obj: Any) -> None:
+    print(json.dumps(_finite_or_none(obj), indent=2, default=str, allow_nan=False), flush=True)
+
+
+def _warn(text: str) -> None:
+    print(f"redsim: warning: {text}", file=sys.stderr, flush=True)
+
+
+def _error(text: str) -> None:
+    print(f"redsim: error: {text}", file=sys.stderr, flush=True)
+
+
+# -- input ----------------------------------------------------------------------------------
+def _catalog_names() -> list[str]:
+    return list(redsim.scenes.names())
+
+
+def _check_scene_name(name: str) -> None:
+    names = _catalog_names()
+    if name not in names:
+        raise CliError(f"unknown scene {name!r}; valid scenes: {', '.join(names)}")
+
+
+def _build_scene(name: str, params: dict[str, Any] | None = None) -> Scene:
+    """Build catalog scene ``name``; unknown names and rejected parameters become CliErrors."""
+    _check_scene_name(name)
+    params = params or {}
+    try:
+        return redsim.scenes.build(name, **params)
+    except (TypeError, ValueError, KeyError) as err:
+        shown = ", ".join(f"{k}={json.dumps(v)}" for k, v in params.items()) or "no parameters"
+        message = str(err.args[0]) if isinstance(err, KeyError) and err.args else str(err)
+        raise CliError(f"cannot build scene {name!r} with {shown}: {message}") from err
+
+
+def _parse_params(items: Sequence[str]) -> dict[str, Any]:
+    """``KEY=VALUE`` pairs with VALUE a JSON literal (``3``, ``0.5``, ``false``, ``"text"``)."""
+    params: dict[str, Any] = {}
+    for item in items:
+        key, sep, value = item.partition("=")
+        key = key.strip()
+        if not sep or not key.isidentifier():
+            raise CliError(f"malformed --param {item!r}: expected KEY=VALUE, e.g. --param links=3")
+        try:
+            params[key] = json.loads(value)
+        except json.JSONDecodeError as err:
+            raise CliError(
+                f"bad --param {item!r}: VALUE must be a JSON literal such as 3, 0.5, false, [1, 2] "
+                f"or '\"text\"' (quotes included)"
+            ) from err
+    return params
+
+
+def _parse_loads(items: Sequence[str], scene: Scene) -> dict[str, list[float]] | None:
+    """``HANDLE=FX,FY[,FZ]`` forces [N] on the scene's handles; None when there are none."""
+    if not items:
+        return None
+    example = "HANDLE=FX,FY" + (",FZ" if scene.dim == 3 else "")
+    loads: dict[str, list[float]] = {}
+    for item in items:
+        handle, sep, value = item.partition("=")
+        handle = handle.strip()
+        try:
+            force = [float(c) for c in value.split(",")] if sep and handle else None
+        except ValueError:
+            force = None
+        if force is None or not all(math.isfinite(f) for f in force):
+            raise CliError(f"malformed --load {item!r}: expected {example} with finite numbers")
+        if handle not in scene.handle_names:
+            valid = ", ".join(scene.handle_names) if scene.handles else "none (this scene has no handles)"
+            raise CliError(
+                f"unknown handle {handle!r} in --load for scene {scene.name!r}; valid handles: {valid}"
+            )
+        if len(force) != scene.dim:
+            raise CliError(
+                f"--load {item!r} has {len(force)} component(s), but scene {scene.name!r} is {scene.dim}D: "
+                f"expected {example}"
+            )
+        if handle in loads:
+            raise CliError(f"--load gives handle {handle!r} twice")
+        loads[handle] = force
+    return loads
+
+
+def _parse_list(text: str, what: str) -> list[str]:
+    items = [s.strip() for s in text.split(",") if s.strip()]
+    if not items:
+        raise CliError(f"{what} must be a comma-separated list, got {text!r}")
+    return items
+
+
+def _file_name(name: str) -> str:
+    return re.sub(r"[^A-Za-z0-9_.-]+", "_", name)
+
+
+# -- scenes ---------------------------------------------------------------------------------
+def _cmd_scenes(args: argparse.Namespace) -> int:
+    rows: list[dict[str, Any]] = []
+    for name in _catalog_names():
+        if name.startswith("toy_") and not args.all:
+            continue
+        try:
+            scene = redsim.scenes.build(name)
+        except Exception as err:  # one broken scene must not hide the others
+            rows.append({"name": name, "error": f"{type(err).__name__}: {err}"})
+            continue
+        rows.append({**scene.describe(), "name": name})
+    failed = [r["name"] for r in rows if "error" in r]
+    if args.json:
+        _json_out(rows)
+    else:
+        for row in rows:
+            if "error" in row:
+                _out(f"{row['name']}  FAILED TO BUILD: {row['error']}")
+                continue
+            _out(f"{row['name']}  ({row['dim']}D, n={row['n']})  {row['description']}")
+            _out("  effects:    " + ", ".join(f"{e['name']}:{e['kind']}" for e in row["effects"]))
+            _out("  handles:    " + (", ".join(row["handles"]) or "-"))
+            _out("  conditions: " + (", ".join(row["conditions"]) or "-"))
+    if failed:
+        _warn(f"{len(failed)} scene(s) failed to build: {', '.join(failed)}")
+        return EXIT_SCENE_FAILED
+    return EXIT_OK
+
+
+# -- simulate -------------------------------------------------------------------------------
+def _step_line(rec: dict[str, Any], steps: int) -> str:
+    status = "converged" if rec["converged"] else "NOT converged"
+    return (
+        f"step {rec['step']:>{len(str(steps))}}/{steps}  t={rec['time']:.4g} s  {status:<13}  "
+        f"iters {rec['iterations']:>3}  |grad| {rec['grad_norm']:.2e}  E {rec['potential_energy']:.6g} J"
+    )
+
+
+def _cmd_simulate(args: argparse.Namespace) -> int:
+    if args.steps < 1:
+        raise CliError(f"--steps must be >= 1, got {args.steps}")
+    if not (math.isfinite(args.dt) and args.dt > 0):
+        raise CliError(f"--dt must be a finite number > 0, got {args.dt}")
+    if args.meshes and args.out is None:
+        raise CliError("--meshes needs --out DIR")
+    params = _parse_params(args.param)
+    scene = _build_scene(args.scene, params)
+    loads = _parse_loads(args.load, scene)
+
+    from redsim.integrators import FullSpace, ImplicitEuler
+
+    try:
+        integ = ImplicitEuler(
+            FullSpace(scene), args.dt, minimizer=args.minimizer, tol=args.tol, max_iter=args.max_iter,
+            strict=False,
+        )
+    except ValueError as err:  # bad --tol or --max-iter
+        raise CliError(f"bad solver setting (--tol, --max-iter): {err}") from err
+    out = Path(args.out) if args.out is not None else None
+    frames = out / "frames" if out is not None else None
+    mesh_paths: list[Path] = []
+
+    def potential(q: torch.Tensor) -> float:
+        with torch.no_grad():
+            return float(scene.energy(q, loads))
+
+    state = integ.initial_state()
+    q_start = state.q.detach().clone()
+    energy_start = potential(q_start)
+    if args.meshes:
+        from redsim.render import export_meshes
+
+        mesh_paths += export_meshes(scene, q_start, frames, 0)
+    if not args.json:
+        _out(f"simulating {args.scene} (n={scene.free_dof_count}, {args.steps} steps of dt={args.dt:g} s, "
+             f"{args.minimizer}); E {energy_start:.6g} J at t=0")
+    records: list[dict[str, Any]] = []
+    q_last = q_start
+    wall = 0.0
+    nan_step = None
+    for step in range(1, args.steps + 1):
+        start = time.perf_counter()
+        state, info = integ.step(state, loads=loads)
+        wall += time.perf_counter() - start
+        finite = bool(torch.isfinite(state.q).all())
+        rec = {
+            "step": step,
+            "time": float(state.time),
+            "converged": bool(info.converged),
+            "iterations": int(info.iterations),
+            "grad_norm": float(info.grad_norm),
+            "objective": float(info.energy),
+            "potential_energy": potential(state.q) if finite else math.nan,
+            "message": info.message,
+        }
+        records.append(rec)
+        if not args.json:
+            _out(_step_line(rec, args.steps))
+        if not finite or not math.isfinite(rec["grad_norm"]):
+            nan_step = step
+            break
+        q_last = state.q.detach().clone()
+        if args.meshes:
+            mesh_paths += export_meshes(scene, q_last, frames, step)
+
+    png = None
+    if out is not None:
+        if scene.surfaces:
+            from redsim.render import draw_states
+
+            last = records[-1] if nan_step is None else (records[-2] if len(records) > 1 else None)
+            end_title = f"t={last['time']:.4g} s (step {last['step']})" if last is not None else "t=0"
+            png = draw_states(
+                scene, [q_start, q_last], [f"{args.scene}: t=0", end_title],
+                out / f"{_file_name(args.scene)}_start_end.png",
+            )
+        else:
+            _warn(f"scene {args.scene!r} has no surfaces; no picture written")
+
+    not_converged = [r["step"] for r in records if not r["converged"]]
+    summary = {
+        "scene": args.scene,
+        "params": params,
+        "n": scene.free_dof_count,
+        "dt": args.dt,
+        "steps": args.steps,
+        "steps_run": len(records),
+        "minimizer": args.minimizer,
+        "loads": loads or {},
+        "converged_steps": len(records) - len(not_converged),
+        "not_converged_steps": not_converged,
+        "max_iterations": max(r["iterations"] for r in records),
+        "final_grad_norm": records[-1]["grad_norm"],
+        "energy_start": energy_start,
+        "energy_end": records[-1]["potential_energy"],
+        "wall_time_s": wall,
+        "nan_step": nan_step,
+        "png": str(png) if png is not None else None,
+        "meshes": [str(p) for p in mesh_paths],
+        "per_step": records,
+    }
+    if args.json:
+        _json_out(summary)
+    else:
+        _out(f"{summary['converged_steps']}/{len(records)} steps converged, max {summary['max_iterations']} "
+             f"iterations, final |grad| {summary['final_grad_norm']:.2e}, {wall:.3g} s")
+        _out(f"energy {energy_start:.6g} J -> {summary['energy_end']:.6g} J")
+        if png is not None:
+            _out(f"wrote {png}")
+        if mesh_paths:
+            _out(f"wrote {len(mesh_paths)} meshes to {frames}")
+    if not_converged:
+        first = records[not_converged[0] - 1]
+        _warn(f"{len(not_converged)} of {len(records)} step(s) did not converge "
+              f"(first: step {first['step']}: {first['message']})")
+    if nan_step is not None:
+        _warn(f"step {nan_step} produced NaN or inf; stopped there")
+        return EXIT_NAN
+    return EXIT_OK
+
+
+# -- bench ----------------------------------------------------------------------------------
+def _cmd_bench_energy(args: argparse.Namespace) -> int:
+    from redsim.bench import bench_energy, machine_info
+
+    if args.scenes is None:
+        names = [n for n in _catalog_names() if not n.startswith("toy_")]
+    else:
+        names = _parse_list(args.scenes, "--scenes")
+        for name in names:
+            _check_scene_name(name)
+    if args.repeats < 1:
+        raise CliError(f"--repeats must be >= 1, got {args.repeats}")
+    try:
+        batches = [int(b) for b in _parse_list(args.batches, "--batches")]
+    except ValueError as err:
+        raise CliError(f"--batches must be comma-separated integers, got {args.batches!r}") from err
+    if min(batches) < 1:
+        raise CliError(f"--batches must be >= 1, got {args.batches!r}")
+    dtypes = _parse_list(args.dtypes, "--dtypes")
+    unknown = [d for d in dtypes if d not in _DTYPES]
+    if unknown:
+        raise CliError(f"unknown dtype(s) {unknown}; valid: {', '.join(_DTYPES)}")
+    if args.device.startswith("cuda") and not torch.cuda.is_available():
+        raise CliError("--device cuda requested but torch sees no CUDA device")
+
+    machine = machine_info()
+    columns = [(d, b) for d in dtypes for b in batches]
+    if not args.json:
+        _out(f"energy + gradient wall time, median over up to {args.repeats} repeats (ms)")
+        load = machine["load_average_1min"]
+        cpu = machine["processor"]
+        cpu = cpu if cpu == machine["machine"] else f"{cpu} ({machine['machine']})"
+        _out(f"machine: {cpu}, {machine['cpu_count']} CPUs"
+             + (f" (load {load:.2f})" if load is not None else "")
+             + f", torch {machine['torch']}, {machine['torch_threads']} threads, device {args.device}"
+             + (f" ({machine['cuda_device']})" if args.device.startswith("cuda") else ""))
+        header = f"{'scene':<24} {'n':>8} " + " ".join(f"{f'f{d[5:]} B={b}':>12}" for d, b in columns)
+        _out(header + "  repeats")
+        _out("-" * (len(header) + 9))
+    results = []
+    for name in names:
+        base = _build_scene(name)
+        row = []
+        for dtype, batch in columns:
+            scene = base.to(args.device, _DTYPES[dtype])
+            row.append(bench_energy(scene, batch, args.repeats, time_budget=args.budget))
+        results += row
+        if not args.json:
+            cells = " ".join(f"{1e3 * r['median_s']:>12.3g}" for r in row)
+            _out(f"{name:<24} {base.free_dof_count:>8} {cells}  {min(r['repeats'] for r in row)}")
+    if args.json:
+        _json_out({"machine": machine, "device": args.device, "repeats": args.repeats, "results": results})
+    return EXIT_OK
+
+
+# -- parser ---------------------------------------------------------------------------------
+def build_parser() -> argparse.ArgumentParser:
+    """The ``redsim`` argument parser with its subcommands."""
+    parser = _Parser(
+        prog="redsim",
+        description="Data-free neural reduced-order simulation and control of physical systems.",
+    )
+    parser.add_argument("--version", action="version", version=f"redsim {redsim.__version__}")
+    parser.add_argument("-v", "--verbose", action="store_true", help="log progress (INFO) to stderr")
+    sub = parser.add_subparsers(dest="command", metavar="COMMAND", required=True)
+
+    p = sub.add_parser("scenes", help="list the scene catalog", description=(
+        "List every scene of the catalog with its size n, effects (name:kind), handles and condition "
+        "names. Test scenes (toy_*) are listed with --all."))
+    p.add_argument("--all", action="store_true", help="include the toy_* test scenes")
+    p.add_argument("--json", action="store_true", help="print one JSON list on stdout")
+    p.set_defaults(func=_cmd_scenes)
+
+    p = sub.add_parser("simulate", help="run full-space implicit Euler on a scene", description=(
+        "Run implicit Euler in the full space from the scene's seed state and report solver statistics. "
+        "With --out, write OUT/SCENE_start_end.png (first and last state) and, with --meshes, "
+        "OUT/frames/frame_XXXX_<surface>.ply for every frame."),
+        epilog="Exit status: 0 done (non-converged steps are warned about), 2 bad input, 3 NaN or inf.")
+    p.add_argument("scene", help="catalog name (see `redsim scenes --all`)")
+    p.add_argument("--steps", type=int, default=20, help="number of time steps (default 20)")
+    p.add_argument("--dt", type=float, default=0.01, help="time step [s] (default 0.01)")
+    p.add_argument("--load", action="append", default=[], metavar="HANDLE=FX,FY[,FZ]",
+                   help="constant force [N] on a handle, repeatable")
+    p.add_argument("--param", action="append", default=[], metavar="KEY=VALUE",
+                   help="scene build parameter, VALUE a JSON literal (e.g. links=3, gravity=false); "
+                   "repeatable")
+    p.add_argument("--minimizer", choices=("newton", "lbfgs"), default="newton", help="default newton")
+    p.add_argument("--tol", type=float, default=1e-8, help="solver gradient tolerance (default 1e-8)")
+    p.add_argument("--max-iter", type=int, default=50, help="solver iterations per step (default 50)")
+    p.add_argument("--out", metavar="DIR",
+                   help="folder for the picture and meshes (nothing is written without it)")
+    p.add_argument("--meshes", action="store_true", help="write per-frame .ply meshes to OUT/frames")
+    p.add_argument("--json", action="store_true",
+                   help="print one JSON summary (with per-step stats) on stdout")
+    p.set_defaults(func=_cmd_simulate)
+
+    p = sub.add_parser("bench", help="benchmarks",
+                       description="Benchmarks; each prints the machine it ran on.")
+    bench = p.add_subparsers(dest="bench_command", metavar="BENCH", required=True)
+    p = bench.add_parser("energy", help="time energy + gradient per scene", description=(
+        "Median wall time of scene.energy plus its gradient (backward) on random perturbations of the "
+        "seed, per scene, dtype and batch size, after warm-up."))
+    p.add_argument("--scenes", metavar="A,B,...",
+                   help="comma-separated scene names (default: all non-toy scenes)")
+    p.add_argument("--repeats", type=int, default=20, help="timed calls per measurement (default 20)")
+    p.add_argument("--batches", default="1,32", metavar="B1,B2", help="batch sizes (default 1,32)")
+    p.add_argument("--dtypes", default="float64,float32", metavar="D1,D2",
+                   help="float64 and/or float32 (default both)")
+    p.add_argument("--budget", type=float, default=2.0, metavar="SECONDS",
+                   help="time per measurement; slow scenes get fewer repeats, at least 3 (default 2)")
+    p.add_argument("--device", default="cpu", help="torch device (default cpu)")
+    p.add_argument("--json", action="store_true", help="print one JSON document on stdout")
+    p.set_defaults(func=_cmd_bench_energy)
+    return parser
+
+
+def main(argv: Sequence[str] | None = None) -> int:
+    """Run the ``redsim`` command line.
+
+    Args:
+        argv: Arguments without the program name (default: ``sys.argv[1:]``).
+
+    Returns:
+        The exit status (0 ok, 1 a scene failed to build, 2 bad input, 3 NaN in a simulation).
+    """
+    parser = build_parser()
+    try:
+        args = parser.parse_args(argv)
+    except SystemExit as done:  # --help and --version
+        return int(done.code or 0)
+    except CliError as err:
+        _error(str(err))
+        return err.code
+    logging.basicConfig(
+        level=logging.INFO if args.verbose else logging.WARNING,
+        format="redsim: %(levelname)s: %(name)s: %(message)s",
+    )
+    try:
+        return int(args.func(args))
+    except CliError as err:
+        _error(str(err))
+        return err.code

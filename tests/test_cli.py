@@ -1,0 +1,168 @@
+"""The `redsim` command line: help, scene listing, simulate outputs, input errors, the energy bench.
+
+Commands run in-process through :func:`redsim.cli.main` (one subprocess checks ``python -m
+redsim``), on the two-tet toy scene, a few steps each.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import json
+import subprocess
+import sys
+
+import pytest
+import torch
+
+import redsim
+from redsim.cli import main
+
+TOY = "toy_two_tets"
+
+
+def run(capsys: pytest.CaptureFixture[str], *argv: str) -> tuple[int, str, str]:
+    code = main(list(argv))
+    out, err = capsys.readouterr()
+    return code, out, err
+
+
+@pytest.fixture(scope="module")
+def toy() -> redsim.Scene:
+    return redsim.scenes.build(TOY)
+
+
+@pytest.mark.parametrize(
+    "argv", [[], ["scenes"], ["simulate"], ["bench"], ["bench", "energy"]], ids=lambda a: " ".join(a) or "top"
+)
+def test_help_exits_zero(capsys: pytest.CaptureFixture[str], argv: list[str]) -> None:
+    code, out, _ = run(capsys, *argv, "--help")
+    assert code == 0
+    assert out.startswith("usage: redsim")
+
+
+def test_python_m_redsim_help() -> None:
+    done = subprocess.run([sys.executable, "-m", "redsim", "--help"], capture_output=True, text=True, timeout=120)
+    assert done.returncode == 0, done.stderr
+    for command in ("scenes", "simulate", "bench"):
+        assert command in done.stdout
+
+
+def test_scenes_json(capsys: pytest.CaptureFixture[str], toy: redsim.Scene) -> None:
+    code, out, _ = run(capsys, "scenes", "--all", "--json")
+    assert code == 0
+    rows = {row["name"]: row for row in json.loads(out)}
+    assert set(rows) == set(redsim.scenes.names())
+    assert rows[TOY]["n"] == toy.free_dof_count
+    assert {e["name"] for e in rows[TOY]["effects"]} == {e.name for e in toy.effects}
+    assert all(isinstance(row["n"], int) and row["n"] > 0 for row in rows.values())
+
+
+def test_scenes_hides_toys_without_all(capsys: pytest.CaptureFixture[str], monkeypatch: pytest.MonkeyPatch) -> None:
+    monkeypatch.setattr(redsim.scenes, "names", lambda: [TOY])
+    code, out, _ = run(capsys, "scenes", "--json")
+    assert code == 0
+    assert json.loads(out) == []
+
+
+def test_simulate_writes_picture_and_meshes(capsys: pytest.CaptureFixture[str], tmp_path, toy: redsim.Scene) -> None:
+    code, out, err = run(capsys, "simulate", TOY, "--steps", "2", "--dt", "0.01", "--out", str(tmp_path),
+                         "--meshes", "--json")
+    assert code == 0, err
+    summary = json.loads(out)
+    assert summary["steps_run"] == 2
+    assert summary["converged_steps"] == 2 and summary["not_converged_steps"] == []
+
+    png = tmp_path / f"{TOY}_start_end.png"
+    assert summary["png"] == str(png)
+    assert png.read_bytes()[:8] == b"\x89PNG\r\n\x1a\n"
+    plys = sorted((tmp_path / "frames").glob("frame_*.ply"))
+    assert len(plys) == 3 * len(toy.surfaces) > 0  # frames 0, 1, 2
+    assert (tmp_path / "frames" / f"frame_0002_{toy.surfaces[0].name}.ply") in plys
+
+
+def test_simulate_human_output_with_load(capsys: pytest.CaptureFixture[str], toy: redsim.Scene) -> None:
+    if not toy.handles:
+        pytest.skip(f"{TOY} has no handles")
+    force = ",".join(["1.0"] * toy.dim)
+    code, out, err = run(capsys, "simulate", TOY, "--steps", "1", "--dt", "0.01", "--load",
+                         f"{toy.handle_names[0]}={force}")
+    assert code == 0, err
+    assert "step 1/1" in out and "1/1 steps converged" in out
+
+
+def test_simulate_nan_exits_3(capsys: pytest.CaptureFixture[str], monkeypatch: pytest.MonkeyPatch) -> None:
+    from redsim.integrators import ImplicitEuler
+
+    step = ImplicitEuler.step
+
+    def nan_step(self, state, loads=None, cond=None):  # type: ignore[no-untyped-def]
+        state, info = step(self, state, loads, cond)
+        return dataclasses.replace(state, q=state.q * float("nan")), info
+
+    monkeypatch.setattr(ImplicitEuler, "step", nan_step)
+    code, out, err = run(capsys, "simulate", TOY, "--steps", "3", "--dt", "0.01", "--json")
+    assert code == 3
+    assert "step 1 produced NaN" in err
+    summary = json.loads(out)  # strict JSON: NaN is written as null
+    assert summary["nan_step"] == 1 and summary["steps_run"] == 1 and summary["energy_end"] is None
+
+
+@pytest.mark.parametrize(
+    ("argv", "expected"),
+    [
+        (["simulate", "no_such_scene"], TOY),  # the message lists the valid scenes
+        (["simulate", TOY, "--load", "no_such_handle=1,2,3"], "valid handles"),
+        (["simulate", TOY, "--load", "nonsense"], "malformed --load"),
+        (["simulate", TOY, "--dt", "0"], "--dt must be"),
+        (["simulate", TOY, "--dt", "-0.1"], "--dt must be"),
+        (["simulate", TOY, "--steps", "0"], "--steps must be"),
+        (["simulate", TOY, "--param", "young=soft"], "JSON literal"),
+        (["simulate", TOY, "--param", "no_such_param=1"], "cannot build scene"),
+        (["simulate", TOY, "--dt", "fast"], "invalid float value"),
+        (["simulate", TOY, "--max-iter", "0"], "max_iter"),
+        (["bench", "energy", "--scenes", "no_such_scene"], TOY),
+    ],
+    ids=["scene", "handle", "load", "dt0", "dt<0", "steps", "param", "param-key", "dt-text", "max-iter", "bench-scene"],
+)
+def test_bad_input_is_one_line_exit_2(capsys: pytest.CaptureFixture[str], argv: list[str], expected: str) -> None:
+    code, out, err = run(capsys, *argv)
+    assert code == 2
+    assert out == ""
+    assert err.count("\n") == 1 and err.startswith("redsim: error: ")
+    assert expected in err
+
+
+def test_bench_energy_json(capsys: pytest.CaptureFixture[str]) -> None:
+    code, out, err = run(capsys, "bench", "energy", "--scenes", TOY, "--repeats", "2", "--json")
+    assert code == 0, err
+    report = json.loads(out)
+    assert report["machine"]["torch"] == torch.__version__
+    results = report["results"]
+    assert {(r["dtype"], r["batch"]) for r in results} == {(d, b) for d in ("float64", "float32") for b in (1, 32)}
+    assert all(r["scene"] == TOY and r["median_s"] > 0 for r in results)
+
+
+def test_render_2d_scene(tmp_path) -> None:
+    from redsim.effects import NeoHookean
+    from redsim.render import draw_states, export_meshes
+
+    vertices = torch.tensor([[0.0, 0.0], [1.0, 0.0], [0.0, 1.0], [1.0, 1.0]], dtype=torch.float64)
+    tris = torch.tensor([[0, 1, 2], [1, 3, 2]])
+    builder = redsim.SceneBuilder(dim=2)
+    ids = builder.add_particles(vertices, torch.ones(4))
+    builder.pin_particles(ids[:2])
+    builder.add_effect(NeoHookean("elastic", builder.particle_dofs(tris), vertices[tris], young=1e3, poisson=0.3))
+    builder.add_surface("sheet", builder.particle_points(ids), tris)
+    scene = builder.finalize("two_tris")
+
+    moved = scene.q_seed + 0.1
+    png = draw_states(scene, [scene.q_seed, moved], ["seed", "moved"], tmp_path / "two.png")
+    assert png.read_bytes()[:4] == b"\x89PNG"
+    (ply,) = export_meshes(scene, moved, tmp_path, 7)
+    assert ply.name == "frame_0007_sheet.ply"
+    import trimesh
+
+    mesh = trimesh.load(ply, process=False)
+    assert mesh.vertices.shape == (4, 3) and mesh.faces.shape == (2, 3)
+    assert abs(mesh.vertices[:, 2]).max() == 0.0
+    assert mesh.vertices[3].tolist()[:2] == pytest.approx([1.1, 1.1])
