@@ -136,6 +136,8 @@ class PotentialObjective:
             error by about tol * L (the Hessian is >= M/h^2), and static solves are converged
             relative to the forces acting (a relative force-balance error of tol).
         gradient_noise: NOISE_FACTOR * |diag(metric)| L: the gradient round-off of float64.
+        value_noise: NOISE_FACTOR * force_scale * L: the round-off of Phi, a sum of terms of
+            size up to force_scale * L [J].
 
     Args:
         space: The coordinates to minimize over.
@@ -173,6 +175,7 @@ class PotentialObjective:
         length = _length_scale(self.scene)
         self.force_scale = self._force_scale(reference, mass, length)
         self.gradient_noise = NOISE_FACTOR * _vector_norm(self._metric_q.diagonal()) * length
+        self.value_noise = NOISE_FACTOR * self.force_scale * length
 
     def _force_scale(self, reference: Tensor, mass: Any, length: float) -> float:
         q = reference.detach().reshape(1, -1).clone().requires_grad_(True)

@@ -82,10 +82,13 @@ class Objective(Protocol):
     Attributes:
         force_scale: Characteristic gradient magnitude (>= 0) of the problem, see the module doc.
         gradient_noise: Gradient norm (>= 0) at which float64 round-off dominates.
+        value_noise: Objective change [J] (>= 0) below which float64 round-off of the value dominates
+            (the value is a sum of much larger terms, e.g. load work and elastic energy).
     """
 
     force_scale: float
     gradient_noise: float
+    value_noise: float
 
     def value_and_grad(self, u: Tensor) -> tuple[float, Tensor]:
         """Objective value [J] and gradient, shape [m], at u [m]."""
@@ -143,7 +146,7 @@ def _line_search(objective: Objective, point: _Point, direction: Tensor) -> _Poi
         if trial.finite:
             if trial.value <= point.value + ARMIJO_C * alpha * slope:
                 return trial
-            noise = ROUNDOFF_DECREASE * max(abs(point.value), abs(trial.value))
+            noise = max(ROUNDOFF_DECREASE * max(abs(point.value), abs(trial.value)), objective.value_noise)
             if trial.value - point.value <= noise and trial.grad_norm < point.grad_norm:
                 return trial
         alpha *= 0.5

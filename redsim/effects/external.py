@@ -27,9 +27,21 @@ class Gravity(Effect):
         self.element_dofs = points.local_dofs()
         self.masses = torch.as_tensor(masses, dtype=torch.float64).reshape(points.count)
         self.acceleration = torch.as_tensor(acceleration, dtype=torch.float64).reshape(points.dim)
+        # E is linear in x: E = -(x . coefficients + constant); precomputed for the hot path.
+        weight = -self.masses[:, None, None] * self.acceleration[None, :, None] * points.weights[:, None, :]
+        size = int(points.dofs.max()) + 1 if points.count else 0
+        self.coefficients = torch.zeros(size, dtype=torch.float64).index_add_(
+            0, points.dofs.reshape(-1), weight.reshape(-1)
+        )
+        self.constant = -(self.masses[:, None] * self.acceleration * points.offset).sum()
 
     def element_energy(self, xe: Tensor, cond: Tensor | None = None, loads: Tensor | None = None) -> Tensor:
         return -self.masses * (self.points.local_positions(xe) * self.acceleration).sum(-1)
+
+    def energy(self, x: Tensor, cond: Tensor | None = None, loads: Tensor | None = None) -> Tensor:
+        """The element sum, computed as one dot product (it is linear in x)."""
+        size = self.coefficients.shape[0]
+        return x[:, :size] @ self.coefficients + self.constant
 
 
 class ExternalLoad(Effect):
@@ -49,9 +61,7 @@ class ExternalLoad(Effect):
     kind = "external_load"
     uses_loads = True
 
-    def __init__(
-        self, name: str, points: PointSet, handle_index: Tensor, weights: Tensor, handle_count: int
-    ) -> None:
+    def __init__(self, name: str, points: PointSet, handle_index: Tensor, weights: Tensor, handle_count: int) -> None:
         self.name = name
         self.points = points
         self.element_dofs = points.local_dofs()

@@ -29,9 +29,7 @@ class PointPairPenalty(Effect):
         kind: Label shown by `redsim scenes` (e.g. "joint", "hinge_axis", "pin").
     """
 
-    def __init__(
-        self, name: str, a: PointSet, b: PointSet, stiffness: float | Tensor, *, kind: str = "joint"
-    ) -> None:
+    def __init__(self, name: str, a: PointSet, b: PointSet, stiffness: float | Tensor, *, kind: str = "joint") -> None:
         if a.dim != b.dim:
             raise ValueError(f"point sets of {name!r} differ in dimension ({a.dim} vs {b.dim})")
         self.name = name
@@ -114,17 +112,13 @@ class FrameSet:
     @staticmethod
     def body(body_dofs: Tensor, count: int) -> FrameSet:
         dofs = torch.as_tensor(body_dofs, dtype=torch.int64).reshape(1, 12).expand(count, 12).clone()
-        return FrameSet(
-            dofs, torch.ones(count, 12, dtype=torch.float64), torch.zeros(count, 12, dtype=torch.float64)
-        )
+        return FrameSet(dofs, torch.ones(count, 12, dtype=torch.float64), torch.zeros(count, 12, dtype=torch.float64))
 
     @staticmethod
     def world(transform: Tensor, count: int) -> FrameSet:
         """A fixed frame; ``transform`` is a 3x4 ``[R | t]``."""
         flat = torch.as_tensor(transform, dtype=torch.float64).reshape(1, 12).expand(count, 12).clone()
-        return FrameSet(
-            torch.zeros(count, 12, dtype=torch.int64), torch.zeros(count, 12, dtype=torch.float64), flat
-        )
+        return FrameSet(torch.zeros(count, 12, dtype=torch.int64), torch.zeros(count, 12, dtype=torch.float64), flat)
 
     @staticmethod
     def cat(frames: list[FrameSet]) -> FrameSet:
@@ -163,9 +157,7 @@ class SDFContact(Effect):
         if points.dim != 3:
             raise ValueError(f"contact points must be 3D, got {points.dim}D")
         if frames.dofs.shape != (points.count, 12):
-            raise ValueError(
-                f"need one frame per point: {points.count} points, frames {tuple(frames.dofs.shape)}"
-            )
+            raise ValueError(f"need one frame per point: {points.count} points, frames {tuple(frames.dofs.shape)}")
         self.name = name
         self.kind = f"sdf_contact:{type(shape).__name__.lower()}"
         self.points = points
