@@ -24,10 +24,17 @@ def _edge_matrix(v: Tensor) -> Tensor:
     return (v[..., 1:, :] - v[..., :1, :]).transpose(-1, -2)
 
 
-def _small_matmul(a: Tensor, b: Tensor) -> Tensor:
-    """a @ b for many tiny matrices ([..., i, j] @ [..., j, k]) as broadcast products, much faster
-    than batched matmul on the CPU at these sizes."""
-    return (a.unsqueeze(-1) * b.unsqueeze(-3)).sum(-2)
+def _shape_gradients(rest_inverse: Tensor) -> Tensor:
+    """Gradients of the linear shape functions, shape [T, D+1, D'] from D_m^-1 [T, D, D'].
+
+    F = D_s D_m^-1 = sum_v x_v (x) G_v, so F comes from one einsum over the element's vertices.
+    """
+    return torch.cat([-rest_inverse.sum(-2, keepdim=True), rest_inverse], dim=-2)
+
+
+def _deformation_gradient(vertices: Tensor, shape_gradients: Tensor) -> Tensor:
+    """F [B, T, D, D'] from element vertices [B, T, D+1, D] and shape gradients [T, D+1, D']."""
+    return torch.einsum("btvi,tvj->btij", vertices, shape_gradients)
 
 
 def _det(F: Tensor) -> Tensor:
@@ -105,7 +112,7 @@ class NeoHookean(Effect):
         self.name = name
         self.dim = D
         self.element_dofs = torch.as_tensor(vertex_dofs, dtype=torch.int64).reshape(T, -1)
-        self.rest_inverse = torch.linalg.inv(rest_edges)
+        self.shape_gradients = _shape_gradients(torch.linalg.inv(rest_edges))
         self.rest_volume = volume * (thickness if D == 2 else 1.0)
         self.mu = mu
         self.lam = lam
@@ -118,7 +125,7 @@ class NeoHookean(Effect):
     def element_energy(self, xe: Tensor, cond: Tensor | None = None, loads: Tensor | None = None) -> Tensor:
         B, T, _ = xe.shape
         D = self.dim
-        F = _small_matmul(_edge_matrix(xe.reshape(B, T, D + 1, D)), self.rest_inverse)
+        F = _deformation_gradient(xe.reshape(B, T, D + 1, D), self.shape_gradients)
         mu, lam = self.mu, self.lam
         if self.condition_scale is not None:
             if cond is None:
@@ -187,16 +194,16 @@ class StVKMembrane(Effect):
         )
         self.name = name
         self.element_dofs = torch.as_tensor(vertex_dofs, dtype=torch.int64).reshape(T, 9)
-        self.rest_inverse = torch.linalg.inv(frame)
+        self.shape_gradients = _shape_gradients(torch.linalg.inv(frame))
         self.rest_area = area
         self.mu = mu * thickness
         self.lam = lam * thickness
 
     def element_energy(self, xe: Tensor, cond: Tensor | None = None, loads: Tensor | None = None) -> Tensor:
         B, T, _ = xe.shape
-        F = _small_matmul(_edge_matrix(xe.reshape(B, T, 3, 3)), self.rest_inverse)  # [B, T, 3, 2]
+        F = _deformation_gradient(xe.reshape(B, T, 3, 3), self.shape_gradients)  # [B, T, 3, 2]
         eye = torch.eye(2, dtype=xe.dtype, device=xe.device)
-        strain = 0.5 * (_small_matmul(F.transpose(-1, -2), F) - eye)
+        strain = 0.5 * (F.transpose(-1, -2) @ F - eye)
         trace = strain.diagonal(dim1=-2, dim2=-1).sum(-1)
         psi = self.mu * (strain * strain).sum((-1, -2)) + 0.5 * self.lam * trace**2
         return psi * self.rest_area
