@@ -65,8 +65,9 @@ def test_scenes_hides_toys_without_all(capsys: pytest.CaptureFixture[str], monke
 
 
 def test_simulate_writes_picture_and_meshes(capsys: pytest.CaptureFixture[str], tmp_path, toy: redsim.Scene) -> None:
-    code, out, err = run(capsys, "simulate", TOY, "--steps", "2", "--dt", "0.01", "--out", str(tmp_path),
-                         "--meshes", "--json")
+    code, out, err = run(
+        capsys, "simulate", TOY, "--steps", "2", "--dt", "0.01", "--out", str(tmp_path), "--meshes", "--json"
+    )
     assert code == 0, err
     summary = json.loads(out)
     assert summary["steps_run"] == 2
@@ -84,8 +85,9 @@ def test_simulate_human_output_with_load(capsys: pytest.CaptureFixture[str], toy
     if not toy.handles:
         pytest.skip(f"{TOY} has no handles")
     force = ",".join(["1.0"] * toy.dim)
-    code, out, err = run(capsys, "simulate", TOY, "--steps", "1", "--dt", "0.01", "--load",
-                         f"{toy.handle_names[0]}={force}")
+    code, out, err = run(
+        capsys, "simulate", TOY, "--steps", "1", "--dt", "0.01", "--load", f"{toy.handle_names[0]}={force}"
+    )
     assert code == 0, err
     assert "step 1/1" in out and "1/1 steps converged" in out
 

@@ -81,8 +81,9 @@ def _pendulum(angle: float, *, mass: float, moment: tuple[float, float, float], 
     t = -(R @ pivot_local[0])
     body = b.add_body(_mass_block(mass, moment), torch.cat([R, t[:, None]], dim=1))
     b.add_effect(RigidOrthogonality("rigid", b.body_dofs(body)[None], 5000.0))
-    b.add_effect(PointPairPenalty("joint", b.body_points(body, pivot_local), PointSet.world(torch.zeros(1, 3), k=4),
-                                  joint))
+    b.add_effect(
+        PointPairPenalty("joint", b.body_points(body, pivot_local), PointSet.world(torch.zeros(1, 3), k=4), joint)
+    )
     b.add_gravity(GRAVITY)
     return b.finalize("pendulum")
 
@@ -91,8 +92,9 @@ def _pendulum(angle: float, *, mass: float, moment: tuple[float, float, float], 
 def _mixed_scene() -> Scene:
     """Two tets (one vertex pinned), a rigid body jointed to a vertex, sphere contact on the body, gravity."""
     b = SceneBuilder(dim=3)
-    verts = torch.tensor([[0.3, 0.1, 0.0], [1.0, 0.0, 0.0], [0.2, 1.0, 0.1], [0.1, 0.2, 1.0], [1.0, 1.0, 1.0]],
-                         dtype=torch.float64)
+    verts = torch.tensor(
+        [[0.3, 0.1, 0.0], [1.0, 0.0, 0.0], [0.2, 1.0, 0.1], [0.1, 0.2, 1.0], [1.0, 1.0, 1.0]], dtype=torch.float64
+    )
     b.add_particles(verts, torch.ones(5))
     tets = torch.tensor([[0, 1, 2, 3], [1, 2, 3, 4]])
     rest = verts[tets]
@@ -102,10 +104,16 @@ def _mixed_scene() -> Scene:
     b.pin_particles(torch.tensor([4]))
     body = b.add_body(_mass_block(2.0, (0.1, 0.2, 0.3)))
     b.add_effect(RigidOrthogonality("rigid", b.body_dofs(body)[None], 50.0))
-    b.add_effect(PointPairPenalty("joint", b.body_points(body, torch.tensor([[0.2, 0.0, 0.0]])),
-                                  b.particle_points(torch.tensor([0])), 300.0))
-    b.add_effect(SDFContact("contact", b.particle_points(torch.arange(4)),
-                            FrameSet.body(b.body_dofs(body), 4), Sphere(0.9), 200.0))
+    b.add_effect(
+        PointPairPenalty(
+            "joint", b.body_points(body, torch.tensor([[0.2, 0.0, 0.0]])), b.particle_points(torch.tensor([0])), 300.0
+        )
+    )
+    b.add_effect(
+        SDFContact(
+            "contact", b.particle_points(torch.arange(4)), FrameSet.body(b.body_dofs(body), 4), Sphere(0.9), 200.0
+        )
+    )
     b.add_gravity(GRAVITY)
     return b.finalize("mixed")
 
