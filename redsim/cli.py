@@ -1,4 +1,4 @@
-"""The ``redsim`` command line: ``scenes``, ``simulate`` and ``bench``.
+"""The ``redsim`` command line: ``scenes``, ``simulate``, ``fit``, ``inspect``, ``sample``, ``animate``, ``bench``.
 
 Every subcommand has ``--help`` and ``--json`` (one JSON document on stdout; human-readable
 text otherwise). Bad input is reported as a single ``redsim: error: ...`` line on stderr with
@@ -30,6 +30,7 @@ EXIT_OK = 0
 EXIT_SCENE_FAILED = 1
 EXIT_USAGE = 2
 EXIT_NAN = 3
+EXIT_INTERRUPTED = 130
 
 _DTYPES = {"float64": torch.float64, "float32": torch.float32}
 
@@ -135,9 +136,7 @@ def _parse_loads(items: Sequence[str], scene: Scene) -> dict[str, list[float]] |
             raise CliError(f"malformed --load {item!r}: expected {example} with finite numbers")
         if handle not in scene.handle_names:
             valid = ", ".join(scene.handle_names) if scene.handles else "none (this scene has no handles)"
-            raise CliError(
-                f"unknown handle {handle!r} in --load for scene {scene.name!r}; valid handles: {valid}"
-            )
+            raise CliError(f"unknown handle {handle!r} in --load for scene {scene.name!r}; valid handles: {valid}")
         if len(force) != scene.dim:
             raise CliError(
                 f"--load {item!r} has {len(force)} component(s), but scene {scene.name!r} is {scene.dim}D: "
@@ -214,7 +213,11 @@ def _cmd_simulate(args: argparse.Namespace) -> int:
 
     try:
         integ = ImplicitEuler(
-            FullSpace(scene), args.dt, minimizer=args.minimizer, tol=args.tol, max_iter=args.max_iter,
+            FullSpace(scene),
+            args.dt,
+            minimizer=args.minimizer,
+            tol=args.tol,
+            max_iter=args.max_iter,
             strict=False,
         )
     except ValueError as err:  # bad --tol or --max-iter
@@ -235,8 +238,10 @@ def _cmd_simulate(args: argparse.Namespace) -> int:
 
         mesh_paths += export_meshes(scene, q_start, frames, 0)
     if not args.json:
-        _out(f"simulating {args.scene} (n={scene.free_dof_count}, {args.steps} steps of dt={args.dt:g} s, "
-             f"{args.minimizer}); E {energy_start:.6g} J at t=0")
+        _out(
+            f"simulating {args.scene} (n={scene.free_dof_count}, {args.steps} steps of dt={args.dt:g} s, "
+            f"{args.minimizer}); E {energy_start:.6g} J at t=0"
+        )
     records: list[dict[str, Any]] = []
     q_last = q_start
     wall = 0.0
@@ -274,7 +279,9 @@ def _cmd_simulate(args: argparse.Namespace) -> int:
             last = records[-1] if nan_step is None else (records[-2] if len(records) > 1 else None)
             end_title = f"t={last['time']:.4g} s (step {last['step']})" if last is not None else "t=0"
             png = draw_states(
-                scene, [q_start, q_last], [f"{args.scene}: t=0", end_title],
+                scene,
+                [q_start, q_last],
+                [f"{args.scene}: t=0", end_title],
                 out / f"{_file_name(args.scene)}_start_end.png",
             )
         else:
@@ -305,8 +312,10 @@ def _cmd_simulate(args: argparse.Namespace) -> int:
     if args.json:
         _json_out(summary)
     else:
-        _out(f"{summary['converged_steps']}/{len(records)} steps converged, max {summary['max_iterations']} "
-             f"iterations, final |grad| {summary['final_grad_norm']:.2e}, {wall:.3g} s")
+        _out(
+            f"{summary['converged_steps']}/{len(records)} steps converged, max {summary['max_iterations']} "
+            f"iterations, final |grad| {summary['final_grad_norm']:.2e}, {wall:.3g} s"
+        )
         _out(f"energy {energy_start:.6g} J -> {summary['energy_end']:.6g} J")
         if png is not None:
             _out(f"wrote {png}")
@@ -314,8 +323,10 @@ def _cmd_simulate(args: argparse.Namespace) -> int:
             _out(f"wrote {len(mesh_paths)} meshes to {frames}")
     if not_converged:
         first = records[not_converged[0] - 1]
-        _warn(f"{len(not_converged)} of {len(records)} step(s) did not converge "
-              f"(first: step {first['step']}: {first['message']})")
+        _warn(
+            f"{len(not_converged)} of {len(records)} step(s) did not converge "
+            f"(first: step {first['step']}: {first['message']})"
+        )
     if nan_step is not None:
         _warn(f"step {nan_step} produced NaN or inf; stopped there")
         return EXIT_NAN
@@ -354,10 +365,12 @@ def _cmd_bench_energy(args: argparse.Namespace) -> int:
         load = machine["load_average_1min"]
         cpu = machine["processor"]
         cpu = cpu if cpu == machine["machine"] else f"{cpu} ({machine['machine']})"
-        _out(f"machine: {cpu}, {machine['cpu_count']} CPUs"
-             + (f" (load {load:.2f})" if load is not None else "")
-             + f", torch {machine['torch']}, {machine['torch_threads']} threads, device {args.device}"
-             + (f" ({machine['cuda_device']})" if args.device.startswith("cuda") else ""))
+        _out(
+            f"machine: {cpu}, {machine['cpu_count']} CPUs"
+            + (f" (load {load:.2f})" if load is not None else "")
+            + f", torch {machine['torch']}, {machine['torch_threads']} threads, device {args.device}"
+            + (f" ({machine['cuda_device']})" if args.device.startswith("cuda") else "")
+        )
         header = f"{'scene':<24} {'n':>8} " + " ".join(f"{f'f{d[5:]} B={b}':>12}" for d, b in columns)
         _out(header + "  repeats")
         _out("-" * (len(header) + 9))
@@ -377,6 +390,178 @@ def _cmd_bench_energy(args: argparse.Namespace) -> int:
     return EXIT_OK
 
 
+# -- fitting and checkpoints -----------------------------------------------------------------
+# (flag, FitConfig field, type, help); the flags of `redsim fit` are generated from this table.
+_FIT_FLAGS: tuple[tuple[str, str, Any, str], ...] = (
+    ("--dim", "latent_dim", int, "latent dimension d"),
+    ("--sigma", "sigma", float, "target Lipschitz scale σ [sqrt(kg) m per unit z]"),
+    ("--lam", "lam", float, "weight λ of the pair term"),
+    ("--steps", "steps", int, "Adam steps"),
+    ("--batch", "batch_size", int, "latent samples per step"),
+    ("--lr", "learning_rate", float, "initial learning rate (halved after each quarter)"),
+    ("--width", "hidden_width", int, "MLP hidden width"),
+    ("--layers", "hidden_layers", int, "MLP hidden layers"),
+    ("--explore", "exploration_fraction", float, "fraction of the steps over which ρ rises 0 -> 1"),
+    ("--checkpoint-every", "checkpoint_every", int, "steps between resumable checkpoints"),
+    ("--dtype", "dtype", str, "float32 or float64"),
+    ("--device", "device", str, "torch device"),
+)
+
+
+def _fit_config(args: argparse.Namespace, scene_name: str) -> Any:
+    from redsim.trainers import FitConfig
+    from redsim.trainers.presets import preset
+
+    fields = preset(scene_name)
+    for _flag, field, _kind, _help in _FIT_FLAGS:
+        value = getattr(args, field)
+        if value is not None:
+            fields[field] = value
+    if args.periodic is not None:
+        fields["periodic"] = tuple(int(i) for i in _parse_list(args.periodic, "--periodic"))
+    if args.cond:
+        fields["conditional"] = True
+    try:
+        return FitConfig(**fields)
+    except (TypeError, ValueError) as err:
+        raise CliError(str(err)) from err
+
+
+def _cmd_fit(args: argparse.Namespace) -> int:
+    from redsim.trainers import fit_subspace
+    from redsim.trainers.fit import fit_command
+
+    params = _parse_params(args.param)
+    scene = _build_scene(args.scene, params)
+    config = _fit_config(args, scene.name)
+    out = Path(args.out) if args.out else Path(f"{scene.name}_d{config.latent_dim}")
+    command = fit_command(scene, config, args.seed, out)
+    try:
+        result = fit_subspace(
+            scene, config, seed=args.seed, out=out, resume=args.resume, progress=not args.json, command=command
+        )
+    except KeyboardInterrupt:
+        _warn(f"interrupted; the state is in {out.with_suffix('.fit.pt')}; continue with: {command} --resume")
+        return EXIT_INTERRUPTED
+    except FloatingPointError as err:
+        _error(str(err))
+        return EXIT_NAN
+    except ValueError as err:  # bad resume state, conditional fit without conditions, ...
+        raise CliError(str(err)) from err
+    meta = result.subspace.metadata
+    summary = {"checkpoint": str(out.with_suffix(".pt")), "metadata": str(out.with_suffix(".json")), **meta}
+    if args.json:
+        _json_out(summary)
+    else:
+        final = meta["final"]
+        _out(f"fitted {scene.name} (n={scene.free_dof_count}, d={config.latent_dim}) in {result.fit_seconds:.1f} s")
+        _out(
+            f"final energy {final['energy']:.4g} J, pair term {final['pair']:.4g}, "
+            f"mean metric stretch {final['stretch']:.4f}"
+        )
+        _out(f"wrote {summary['checkpoint']} and {summary['metadata']}")
+    return EXIT_OK
+
+
+def _load_checkpoint(path: str) -> tuple[Scene, Any]:
+    """The scene a checkpoint was fitted to (rebuilt from its JSON) and the subspace."""
+    from redsim.subspace import CheckpointError, load_subspace, read_metadata
+
+    try:
+        doc = read_metadata(path)
+        scene_name = doc.get("scene")
+        if not isinstance(scene_name, str):
+            raise CheckpointError("metadata names no scene", path)
+        scene = _build_scene(scene_name, doc.get("scene_params") or {})
+        return scene, load_subspace(path, scene=scene)
+    except CheckpointError as err:
+        raise CliError(str(err)) from err
+
+
+def _cmd_inspect(args: argparse.Namespace) -> int:
+    scene, sub = _load_checkpoint(args.checkpoint)
+    meta = {"checkpoint": args.checkpoint, "n": scene.free_dof_count, "latent_dim": sub.latent_dim, **sub.metadata}
+    if args.json:
+        _json_out(meta)
+        return EXIT_OK
+    _out(f"{args.checkpoint}: scene {scene.name} (n={scene.free_dof_count}), d={sub.latent_dim}")
+    fit = meta.get("fit", {})
+    _out(
+        f"  fit: sigma={fit.get('sigma')} lam={fit.get('lam')} steps={fit.get('steps')} seed={meta.get('seed')} "
+        f"width={fit.get('hidden_width')} layers={fit.get('hidden_layers')} in {meta.get('fit_seconds', 0):.1f} s"
+    )
+    for key, value in (meta.get("final") or {}).items():
+        _out(f"  final {key}: {value:.5g}")
+    for key, value in (meta.get("metrics") or {}).items():
+        if isinstance(value, (int, float)):
+            _out(f"  metric {key}: {value:.5g}")
+    _out(f"  reproduce: {meta.get('command')}")
+    return EXIT_OK
+
+
+def _latent_samples(sub: Any, scene: Scene, count: int, seed: int) -> tuple[torch.Tensor, torch.Tensor | None]:
+    generator = torch.Generator().manual_seed(seed)
+    z = torch.randn(count, sub.latent_dim, generator=generator)
+    cond = None
+    if getattr(getattr(sub, "config", None), "condition_dim", 0):
+        assert scene.condition_space is not None  # a conditional map was fitted to a conditional scene
+        cond = scene.condition_space.sample(count, generator).float()
+    return z, cond
+
+
+def _cmd_sample(args: argparse.Namespace) -> int:
+    import numpy as np
+
+    if args.n < 1:
+        raise CliError(f"-n must be >= 1, got {args.n}")
+    scene, sub = _load_checkpoint(args.checkpoint)
+    z, cond = _latent_samples(sub, scene, args.n, args.seed)
+    with torch.no_grad():
+        q = sub(z, cond).double()
+        x = scene.full_positions(q)
+    out = Path(args.out)
+    out.parent.mkdir(parents=True, exist_ok=True)
+    arrays = {"z": z.numpy(), "q": q.numpy(), "x": x.numpy()}
+    if cond is not None:
+        arrays["cond"] = cond.numpy()
+    np.savez_compressed(out, scene=scene.name, scene_fingerprint=scene.fingerprint(), **arrays)
+    finite = bool(torch.isfinite(q).all())
+    summary = {"out": str(out), "count": args.n, "n": scene.free_dof_count, "finite": finite}
+    if args.json:
+        _json_out(summary)
+    else:
+        _out(f"wrote {args.n} states of {scene.name} (q: [{args.n}, {scene.free_dof_count}], full x too) to {out}")
+    return EXIT_OK if finite else EXIT_NAN
+
+
+def catmull_rom_loop(keys: torch.Tensor, frames: int) -> torch.Tensor:
+    """A closed uniform Catmull-Rom spline through ``keys`` [K, d], sampled at ``frames`` points [frames, d]."""
+    K = keys.shape[0]
+    t = torch.arange(frames, dtype=keys.dtype) * K / frames
+    i = t.floor().long()
+    u = (t - i).unsqueeze(-1)
+    p0, p1, p2, p3 = (keys[(i + k) % K] for k in (-1, 0, 1, 2))
+    return 0.5 * (2 * p1 + (p2 - p0) * u + (2 * p0 - 5 * p1 + 4 * p2 - p3) * u**2 + (3 * p1 - p0 - 3 * p2 + p3) * u**3)
+
+
+def _cmd_animate(args: argparse.Namespace) -> int:
+    from redsim.render import animate_states
+
+    if args.keys < 2 or args.frames < args.keys:
+        raise CliError(f"need --keys >= 2 and --frames >= --keys, got {args.keys} and {args.frames}")
+    scene, sub = _load_checkpoint(args.checkpoint)
+    keys, cond = _latent_samples(sub, scene, args.keys, args.seed)
+    z = catmull_rom_loop(keys, args.frames)
+    with torch.no_grad():
+        q = sub(z, None if cond is None else cond[:1].expand(args.frames, -1)).double()
+    path = animate_states(scene, list(q), args.out, fps=args.fps)
+    if args.json:
+        _json_out({"out": str(path), "frames": args.frames, "keys": keys.tolist()})
+    else:
+        _out(f"wrote {args.frames} frames through {args.keys} latent keyframes to {path}")
+    return EXIT_OK
+
+
 # -- parser ---------------------------------------------------------------------------------
 def build_parser() -> argparse.ArgumentParser:
     """The ``redsim`` argument parser with its subcommands."""
@@ -388,50 +573,119 @@ def build_parser() -> argparse.ArgumentParser:
     parser.add_argument("-v", "--verbose", action="store_true", help="log progress (INFO) to stderr")
     sub = parser.add_subparsers(dest="command", metavar="COMMAND", required=True)
 
-    p = sub.add_parser("scenes", help="list the scene catalog", description=(
-        "List every scene of the catalog with its size n, effects (name:kind), handles and condition "
-        "names. Test scenes (toy_*) are listed with --all."))
+    p = sub.add_parser(
+        "scenes",
+        help="list the scene catalog",
+        description=(
+            "List every scene of the catalog with its size n, effects (name:kind), handles and condition "
+            "names. Test scenes (toy_*) are listed with --all."
+        ),
+    )
     p.add_argument("--all", action="store_true", help="include the toy_* test scenes")
     p.add_argument("--json", action="store_true", help="print one JSON list on stdout")
     p.set_defaults(func=_cmd_scenes)
 
-    p = sub.add_parser("simulate", help="run full-space implicit Euler on a scene", description=(
-        "Run implicit Euler in the full space from the scene's seed state and report solver statistics. "
-        "With --out, write OUT/SCENE_start_end.png (first and last state) and, with --meshes, "
-        "OUT/frames/frame_XXXX_<surface>.ply for every frame."),
-        epilog="Exit status: 0 done (non-converged steps are warned about), 2 bad input, 3 NaN or inf.")
+    p = sub.add_parser(
+        "simulate",
+        help="run full-space implicit Euler on a scene",
+        description=(
+            "Run implicit Euler in the full space from the scene's seed state and report solver statistics. "
+            "With --out, write OUT/SCENE_start_end.png (first and last state) and, with --meshes, "
+            "OUT/frames/frame_XXXX_<surface>.ply for every frame."
+        ),
+        epilog="Exit status: 0 done (non-converged steps are warned about), 2 bad input, 3 NaN or inf.",
+    )
     p.add_argument("scene", help="catalog name (see `redsim scenes --all`)")
     p.add_argument("--steps", type=int, default=20, help="number of time steps (default 20)")
     p.add_argument("--dt", type=float, default=0.01, help="time step [s] (default 0.01)")
-    p.add_argument("--load", action="append", default=[], metavar="HANDLE=FX,FY[,FZ]",
-                   help="constant force [N] on a handle, repeatable")
-    p.add_argument("--param", action="append", default=[], metavar="KEY=VALUE",
-                   help="scene build parameter, VALUE a JSON literal (e.g. links=3, gravity=false); "
-                   "repeatable")
+    p.add_argument(
+        "--load",
+        action="append",
+        default=[],
+        metavar="HANDLE=FX,FY[,FZ]",
+        help="constant force [N] on a handle, repeatable",
+    )
+    p.add_argument(
+        "--param",
+        action="append",
+        default=[],
+        metavar="KEY=VALUE",
+        help="scene build parameter, VALUE a JSON literal (e.g. links=3, gravity=false); repeatable",
+    )
     p.add_argument("--minimizer", choices=("newton", "lbfgs"), default="newton", help="default newton")
     p.add_argument("--tol", type=float, default=1e-8, help="solver gradient tolerance (default 1e-8)")
     p.add_argument("--max-iter", type=int, default=50, help="solver iterations per step (default 50)")
-    p.add_argument("--out", metavar="DIR",
-                   help="folder for the picture and meshes (nothing is written without it)")
+    p.add_argument("--out", metavar="DIR", help="folder for the picture and meshes (nothing is written without it)")
     p.add_argument("--meshes", action="store_true", help="write per-frame .ply meshes to OUT/frames")
-    p.add_argument("--json", action="store_true",
-                   help="print one JSON summary (with per-step stats) on stdout")
+    p.add_argument("--json", action="store_true", help="print one JSON summary (with per-step stats) on stdout")
     p.set_defaults(func=_cmd_simulate)
 
-    p = sub.add_parser("bench", help="benchmarks",
-                       description="Benchmarks; each prints the machine it ran on.")
+    p = sub.add_parser(
+        "fit",
+        help="fit a neural subspace to a scene (data-free)",
+        description=(
+            "Fit f(z) -> q by the paper's loss from the scene's energy alone. Defaults per scene come from "
+            "Table 1 (redsim.trainers.presets); flags override them. Writes OUT.pt + OUT.json (and OUT.fit.pt, "
+            "the resumable training state). Ctrl-C saves the state; rerun with --resume to continue."
+        ),
+        epilog="Exit status: 0 done, 2 bad input, 3 the loss became NaN/inf, 130 interrupted (resumable).",
+    )
+    p.add_argument("scene", help="catalog name")
+    p.add_argument("--param", action="append", default=[], metavar="KEY=VALUE", help="scene build parameter")
+    for flag, field, kind, text in _FIT_FLAGS:
+        p.add_argument(flag, dest=field, type=kind, default=None, help=f"{text} (default: scene preset)")
+    p.add_argument("--periodic", default=None, metavar="I,J", help="latent indices that are angles")
+    p.add_argument("--cond", action="store_true", help="fit a conditional subspace over the scene's conditions")
+    p.add_argument("--seed", type=int, default=0, help="seed of the initialisation and sampling (default 0)")
+    p.add_argument("--out", default=None, metavar="STEM", help="checkpoint stem (default SCENE_dD)")
+    p.add_argument("--resume", action="store_true", help="continue from STEM.fit.pt")
+    p.add_argument("--json", action="store_true", help="print the metadata as JSON (no progress bar)")
+    p.set_defaults(func=_cmd_fit)
+
+    p = sub.add_parser("inspect", help="print a checkpoint's metadata and metrics")
+    p.add_argument("checkpoint", help="path to X.pt (X.json beside it)")
+    p.add_argument("--json", action="store_true", help="print one JSON document")
+    p.set_defaults(func=_cmd_inspect)
+
+    p = sub.add_parser("sample", help="export states sampled from a subspace (z ~ N(0, I))")
+    p.add_argument("checkpoint", help="path to X.pt")
+    p.add_argument("-n", type=int, default=1000, help="number of states (default 1000)")
+    p.add_argument("--seed", type=int, default=0, help="sampling seed (default 0)")
+    p.add_argument("--out", default="states.npz", help="output .npz with z, q, x (default states.npz)")
+    p.add_argument("--json", action="store_true", help="print one JSON summary")
+    p.set_defaults(func=_cmd_sample)
+
+    p = sub.add_parser("animate", help="GIF of a cyclic Catmull-Rom keyframe loop in latent space")
+    p.add_argument("checkpoint", help="path to X.pt")
+    p.add_argument("--keys", type=int, default=4, help="number of random latent keyframes (default 4)")
+    p.add_argument("--frames", type=int, default=48, help="frames in the loop (default 48)")
+    p.add_argument("--fps", type=float, default=16.0, help="frames per second (default 16)")
+    p.add_argument("--seed", type=int, default=0, help="keyframe seed (default 0)")
+    p.add_argument("--out", default="anim.gif", help="output GIF (default anim.gif)")
+    p.add_argument("--json", action="store_true", help="print one JSON summary")
+    p.set_defaults(func=_cmd_animate)
+
+    p = sub.add_parser("bench", help="benchmarks", description="Benchmarks; each prints the machine it ran on.")
     bench = p.add_subparsers(dest="bench_command", metavar="BENCH", required=True)
-    p = bench.add_parser("energy", help="time energy + gradient per scene", description=(
-        "Median wall time of scene.energy plus its gradient (backward) on random perturbations of the "
-        "seed, per scene, dtype and batch size, after warm-up."))
-    p.add_argument("--scenes", metavar="A,B,...",
-                   help="comma-separated scene names (default: all non-toy scenes)")
+    p = bench.add_parser(
+        "energy",
+        help="time energy + gradient per scene",
+        description=(
+            "Median wall time of scene.energy plus its gradient (backward) on random perturbations of the "
+            "seed, per scene, dtype and batch size, after warm-up."
+        ),
+    )
+    p.add_argument("--scenes", metavar="A,B,...", help="comma-separated scene names (default: all non-toy scenes)")
     p.add_argument("--repeats", type=int, default=20, help="timed calls per measurement (default 20)")
     p.add_argument("--batches", default="1,32", metavar="B1,B2", help="batch sizes (default 1,32)")
-    p.add_argument("--dtypes", default="float64,float32", metavar="D1,D2",
-                   help="float64 and/or float32 (default both)")
-    p.add_argument("--budget", type=float, default=2.0, metavar="SECONDS",
-                   help="time per measurement; slow scenes get fewer repeats, at least 3 (default 2)")
+    p.add_argument("--dtypes", default="float64,float32", metavar="D1,D2", help="float64 and/or float32 (default both)")
+    p.add_argument(
+        "--budget",
+        type=float,
+        default=2.0,
+        metavar="SECONDS",
+        help="time per measurement; slow scenes get fewer repeats, at least 3 (default 2)",
+    )
     p.add_argument("--device", default="cpu", help="torch device (default cpu)")
     p.add_argument("--json", action="store_true", help="print one JSON document on stdout")
     p.set_defaults(func=_cmd_bench_energy)

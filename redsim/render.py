@@ -40,8 +40,7 @@ def _require(module: str) -> Any:
     except ImportError as err:
         top = module.split(".")[0]
         raise DependencyNotInstalled(
-            f"{top} is not installed; it is a dependency of redsim: run `pip install redsim` "
-            f"(or `pip install {top}`)"
+            f"{top} is not installed; it is a dependency of redsim: run `pip install redsim` (or `pip install {top}`)"
         ) from err
 
 
@@ -53,9 +52,7 @@ def surface_vertices(scene: Scene, q: Tensor) -> list[np.ndarray]:
     """
     q = torch.as_tensor(q).detach()
     if q.shape != (scene.free_dof_count,):
-        raise ValueError(
-            f"scene {scene.name!r} expects q of shape [{scene.free_dof_count}], got {tuple(q.shape)}"
-        )
+        raise ValueError(f"scene {scene.name!r} expects q of shape [{scene.free_dof_count}], got {tuple(q.shape)}")
     x = scene.full_positions(q.to(device=scene.device, dtype=scene.dtype).unsqueeze(0))
     return [s.points.positions(x)[0].cpu().to(torch.float64).numpy() for s in scene.surfaces]
 
@@ -116,9 +113,64 @@ def draw_states(
         raise ValueError(f"got {len(qs)} states but {len(titles)} titles")
     _require("matplotlib")
     from matplotlib.backends.backend_agg import FigureCanvasAgg
-    from matplotlib.collections import PolyCollection
     from matplotlib.figure import Figure
 
+    verts, faces, center, half = _layout(scene, qs)
+    import matplotlib as mpl
+
+    palette = mpl.colormaps["tab10"]
+    fig = Figure(figsize=(4.0 * len(qs), 4.0), layout="constrained")
+    FigureCanvasAgg(fig)
+    for i, (state, title) in enumerate(zip(verts, titles, strict=True)):
+        _draw_panel(fig, (1, len(qs), i + 1), scene.dim, state, faces, center, half, palette, title)
+    path = Path(path)
+    path.parent.mkdir(parents=True, exist_ok=True)
+    fig.savefig(path, dpi=dpi, bbox_inches="tight", pad_inches=0.1)
+    return path
+
+
+def animate_states(
+    scene: Scene, qs: Sequence[Tensor], path: str | Path = "anim.gif", *, fps: float = 20.0, dpi: int = 80
+) -> Path:
+    """Write configurations of ``scene`` as the frames of a looping GIF (shared axis limits).
+
+    Args:
+        scene: The scene (must have surfaces).
+        qs: Free configurations, each of shape [n], one per frame.
+        path: Output .gif file; parent folders are created.
+        fps: Frames per second.
+        dpi: Resolution.
+
+    Returns:
+        The path written.
+    """
+    if not scene.surfaces:
+        raise ValueError(f"scene {scene.name!r} has no surfaces to draw")
+    if not qs:
+        raise ValueError("animate_states needs at least one state")
+    _require("matplotlib")
+    import matplotlib as mpl
+    from matplotlib.backends.backend_agg import FigureCanvasAgg
+    from matplotlib.figure import Figure
+    from PIL import Image
+
+    verts, faces, center, half = _layout(scene, qs)
+    palette = mpl.colormaps["tab10"]
+    images = []
+    for i, state in enumerate(verts):
+        fig = Figure(figsize=(4.0, 4.0), dpi=dpi, layout="constrained")
+        canvas = FigureCanvasAgg(fig)
+        _draw_panel(fig, (1, 1, 1), scene.dim, state, faces, center, half, palette, f"{scene.name}  frame {i}")
+        canvas.draw()
+        images.append(Image.fromarray(np.asarray(canvas.buffer_rgba())).convert("P", palette=Image.ADAPTIVE))
+    path = Path(path)
+    path.parent.mkdir(parents=True, exist_ok=True)
+    images[0].save(path, save_all=True, append_images=images[1:], duration=int(1000 / fps), loop=0)
+    return path
+
+
+def _layout(scene: Scene, qs: Sequence[Tensor]) -> tuple[list[list[np.ndarray]], list[np.ndarray], np.ndarray, float]:
+    """Plot-frame vertices per state and surface, (decimated) faces, and shared limits (centre, half-width)."""
     verts = [surface_vertices(scene, q) for q in qs]
     if scene.dim == 3:
         verts = [[_to_plot_frame(v) for v in state] for state in verts]
@@ -128,62 +180,65 @@ def draw_states(
     if stride > 1:
         logger.info("drawing every %d-th of %d faces", stride, total)
         faces = [f[::stride] for f in faces]
-
     stacked = np.concatenate([v for state in verts for v in state])
     low, high = stacked.min(axis=0), stacked.max(axis=0)
     center, half = 0.5 * (low + high), 0.5 * float((high - low).max()) * 1.05
-    half = half if half > 0 else 1.0
+    return verts, faces, center, (half if half > 0 else 1.0)
 
-    import matplotlib as mpl
 
-    palette = mpl.colormaps["tab10"]
-    fig = Figure(figsize=(4.0 * len(qs), 4.0), layout="constrained")
-    FigureCanvasAgg(fig)
-    for i, (state, title) in enumerate(zip(verts, titles, strict=True)):
-        if scene.dim == 2:
-            ax = fig.add_subplot(1, len(qs), i + 1)
-            for k, (v, f) in enumerate(zip(state, faces, strict=True)):
-                color = palette(k % 10)
-                if len(f):
-                    fill = PolyCollection(v[f], facecolors=[(*color[:3], 0.35)], edgecolors="none")
-                    ax.add_collection(fill)
-                    ax.triplot(v[:, 0], v[:, 1], f, color=color, linewidth=0.5)
-                else:
-                    ax.plot(v[:, 0], v[:, 1], "o", color=color, markersize=2)
-            ax.set_xlim(center[0] - half, center[0] + half)
-            ax.set_ylim(center[1] - half, center[1] + half)
-            ax.set_aspect("equal")
-            ax.set_xlabel("x [m]")
-            ax.set_ylabel("y [m]")
-        else:
-            from mpl_toolkits.mplot3d.art3d import Poly3DCollection
+def _draw_panel(
+    fig: Any,
+    grid: tuple[int, int, int],
+    dim: int,
+    state: list[np.ndarray],
+    faces: list[np.ndarray],
+    center: np.ndarray,
+    half: float,
+    palette: Any,
+    title: str,
+) -> None:
+    """Draw one state's surfaces into a new subplot of ``fig`` at ``grid`` (rows, cols, index)."""
+    if dim == 2:
+        from matplotlib.collections import PolyCollection
 
-            ax = fig.add_subplot(1, len(qs), i + 1, projection="3d")
-            # One collection for all surfaces: mplot3d depth-sorts faces within a collection only.
-            tris, colors = [], []
-            for k, (v, f) in enumerate(zip(state, faces, strict=True)):
-                rgb = np.asarray(palette(k % 10))
-                if len(f):
-                    tris.append(v[f])
-                    colors.append(_shade(v[f], rgb))
-                else:
-                    ax.scatter(v[:, 0], v[:, 1], v[:, 2], color=rgb, s=2)
-            if tris:
-                ax.add_collection3d(
-                    Poly3DCollection(np.concatenate(tris), facecolors=np.concatenate(colors), edgecolors="none")
-                )
-            ax.set_xlim(center[0] - half, center[0] + half)
-            ax.set_ylim(center[1] - half, center[1] + half)
-            ax.set_zlim(center[2] - half, center[2] + half)
-            ax.set_box_aspect((1.0, 1.0, 1.0))
-            ax.set_xlabel("x [m]")
-            ax.set_ylabel("-z [m]")
-            ax.set_zlabel("y [m]")
-        ax.set_title(title)
-    path = Path(path)
-    path.parent.mkdir(parents=True, exist_ok=True)
-    fig.savefig(path, dpi=dpi, bbox_inches="tight", pad_inches=0.1)
-    return path
+        ax = fig.add_subplot(*grid)
+        for k, (v, f) in enumerate(zip(state, faces, strict=True)):
+            color = palette(k % 10)
+            if len(f):
+                ax.add_collection(PolyCollection(v[f], facecolors=[(*color[:3], 0.35)], edgecolors="none"))
+                ax.triplot(v[:, 0], v[:, 1], f, color=color, linewidth=0.5)
+            else:
+                ax.plot(v[:, 0], v[:, 1], "o", color=color, markersize=2)
+        ax.set_xlim(center[0] - half, center[0] + half)
+        ax.set_ylim(center[1] - half, center[1] + half)
+        ax.set_aspect("equal")
+        ax.set_xlabel("x [m]")
+        ax.set_ylabel("y [m]")
+    else:
+        from mpl_toolkits.mplot3d.art3d import Poly3DCollection
+
+        ax = fig.add_subplot(*grid, projection="3d")
+        # One collection for all surfaces: mplot3d depth-sorts faces within a collection only.
+        tris, colors = [], []
+        for k, (v, f) in enumerate(zip(state, faces, strict=True)):
+            rgb = np.asarray(palette(k % 10))
+            if len(f):
+                tris.append(v[f])
+                colors.append(_shade(v[f], rgb))
+            else:
+                ax.scatter(v[:, 0], v[:, 1], v[:, 2], color=rgb, s=2)
+        if tris:
+            ax.add_collection3d(
+                Poly3DCollection(np.concatenate(tris), facecolors=np.concatenate(colors), edgecolors="none")
+            )
+        ax.set_xlim(center[0] - half, center[0] + half)
+        ax.set_ylim(center[1] - half, center[1] + half)
+        ax.set_zlim(center[2] - half, center[2] + half)
+        ax.set_box_aspect((1.0, 1.0, 1.0))
+        ax.set_xlabel("x [m]")
+        ax.set_ylabel("-z [m]")
+        ax.set_zlabel("y [m]")
+    ax.set_title(title)
 
 
 def _safe_name(name: str) -> str:

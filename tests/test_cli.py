@@ -32,7 +32,9 @@ def toy() -> redsim.Scene:
 
 
 @pytest.mark.parametrize(
-    "argv", [[], ["scenes"], ["simulate"], ["bench"], ["bench", "energy"]], ids=lambda a: " ".join(a) or "top"
+    "argv",
+    [[], ["scenes"], ["simulate"], ["fit"], ["inspect"], ["sample"], ["animate"], ["bench"], ["bench", "energy"]],
+    ids=lambda a: " ".join(a) or "top",
 )
 def test_help_exits_zero(capsys: pytest.CaptureFixture[str], argv: list[str]) -> None:
     code, out, _ = run(capsys, *argv, "--help")
