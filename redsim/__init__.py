@@ -9,6 +9,7 @@ against.
 from redsim import effects, scenes
 from redsim.points import PointSet
 from redsim.scene import ConditionSpace, Handle, Scene, SceneBuilder, Surface
+from redsim.subspace import SubspaceConfig, SubspaceMap, load_subspace
 
 __version__ = "0.1.0"
 
@@ -18,8 +19,11 @@ __all__ = [
     "PointSet",
     "Scene",
     "SceneBuilder",
+    "SubspaceConfig",
+    "SubspaceMap",
     "Surface",
     "__version__",
     "effects",
+    "load_subspace",
     "scenes",
 ]

@@ -111,3 +111,50 @@ def bench_energy(
         "max_s": max(times),
         "per_state_s": median / batch,
     }
+
+
+def compare_subspaces(
+    scene: Scene,
+    neural: torch.nn.Module,
+    *,
+    sigma: float,
+    loads_count: int = 8,
+    samples: int = 256,
+    seed: int = 0,
+) -> dict[str, dict[str, Any]]:
+    """Metrics of a fitted neural map next to linear modes and modal derivatives of the same d and σ.
+
+    The baselines are built here (their wall time is reported as ``build_seconds``); all three
+    are evaluated by :func:`redsim.metrics.evaluate_subspace` on the same seeded samples and
+    loads, so the full-space reference solves are shared.
+
+    Args:
+        scene: The scene.
+        neural: The fitted map (``latent_dim`` gives d).
+        sigma: σ of the fit, also the scale of the baselines' modes.
+        loads_count: Loads of the load-response error.
+        samples: Latent samples of the energy, stretch and strain statistics.
+        seed: Seed of samples and loads.
+
+    Returns:
+        ``{"neural": ..., "modes": ..., "modal_derivatives": ...}``, each an evaluate_subspace dict.
+    """
+    from redsim.baselines import modal_analysis, modal_derivatives
+    from redsim.metrics import evaluate_subspace
+
+    dim = int(neural.latent_dim)
+    start = time.perf_counter()
+    modes = modal_analysis(scene, dim, sigma=sigma)
+    modes_seconds = time.perf_counter() - start
+    start = time.perf_counter()
+    derivatives = modal_derivatives(scene, dim, sigma=sigma, rest=modes.offset)
+    derivatives_seconds = modes_seconds + time.perf_counter() - start
+    out: dict[str, dict[str, Any]] = {}
+    for name, subspace, seconds in (
+        ("neural", neural, float(getattr(neural, "metadata", {}).get("fit_seconds", float("nan")))),
+        ("modes", modes, modes_seconds),
+        ("modal_derivatives", derivatives, derivatives_seconds),
+    ):
+        result = evaluate_subspace(scene, subspace, sigma=sigma, loads_count=loads_count, samples=samples, seed=seed)
+        out[name] = {**result, "build_seconds": seconds}
+    return out

@@ -334,6 +334,94 @@ def _cmd_simulate(args: argparse.Namespace) -> int:
 
 
 # -- bench ----------------------------------------------------------------------------------
+TABLE1_SCENES = (
+    "cloth_ball",
+    "klann",
+    "stewart",
+    "bistable_bar",
+    "hanging_sheet",
+    "conditional_bar",
+    "chain",
+    "mini_chain",
+    "stiff_body",
+    "cantilever",
+    "elephant",
+)
+
+
+def _cmd_bench_subspace(args: argparse.Namespace) -> int:
+    from redsim.bench import compare_subspaces, machine_info
+    from redsim.subspace import CheckpointError, load_subspace
+    from redsim.trainers import FitConfig, fit_subspace
+    from redsim.trainers.fit import fit_command
+    from redsim.trainers.presets import preset
+
+    names = _parse_list(args.scenes, "--scenes") if args.scenes else list(TABLE1_SCENES)
+    for name in names:
+        _check_scene_name(name)
+    folder = Path(args.checkpoints)
+    rows = []
+    for name in names:
+        scene = _build_scene(name)
+        config = FitConfig(**{**preset(name), "steps": args.steps})
+        stem = folder / f"{name}_d{config.latent_dim}_s{args.steps}"
+        neural = None
+        if stem.with_suffix(".pt").is_file() and not args.refit:
+            try:
+                neural = load_subspace(stem.with_suffix(".pt"), scene=scene)
+            except CheckpointError as err:
+                _warn(f"refitting {name}: {err}")
+        if neural is None:
+            result = fit_subspace(
+                scene,
+                config,
+                seed=args.seed,
+                out=stem,
+                progress=not args.json,
+                command=fit_command(scene, config, args.seed, stem),
+            )
+            neural = result.subspace
+        metrics = compare_subspaces(
+            scene, neural, sigma=config.sigma, loads_count=args.loads, samples=args.samples, seed=args.seed
+        )
+        row = {
+            "scene": name,
+            "n": scene.free_dof_count,
+            "d": config.latent_dim,
+            "steps": args.steps,
+            "fit_seconds": neural.metadata.get("fit_seconds"),
+            "checkpoint": str(stem.with_suffix(".pt")),
+            "methods": metrics,
+        }
+        rows.append(row)
+        if not args.json:
+            _out(_subspace_row(row))
+    if args.json:
+        _json_out({"machine": machine_info(), "rows": rows})
+    return EXIT_OK
+
+
+def _metric(result: dict[str, Any], *path: str) -> float:
+    value: Any = result
+    for key in path:
+        if not isinstance(value, dict) or key not in value:
+            return float("nan")
+        value = value[key]
+    return float(value) if isinstance(value, (int, float)) else float("nan")
+
+
+def _subspace_row(row: dict[str, Any]) -> str:
+    lines = [f"{row['scene']}  n={row['n']}  d={row['d']}  steps={row['steps']}  fit {row['fit_seconds']:.0f} s"]
+    for method, result in row["methods"].items():
+        lines.append(
+            f"  {method:18s} energy/seed {_metric(result, 'energy', 'relative_energy'):9.3g}  "
+            f"stretch {_metric(result, 'stretch', 'mean'):7.3f}  "
+            f"load error {_metric(result, 'load_response', 'mean'):7.3f}  "
+            f"strain {_metric(result, 'nonrigid_strain', 'mean'):8.3g}"
+        )
+    return "\n".join(lines)
+
+
 def _cmd_bench_energy(args: argparse.Namespace) -> int:
     from redsim.bench import bench_energy, machine_info
 
@@ -689,6 +777,26 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--device", default="cpu", help="torch device (default cpu)")
     p.add_argument("--json", action="store_true", help="print one JSON document on stdout")
     p.set_defaults(func=_cmd_bench_energy)
+
+    p = bench.add_parser(
+        "subspace",
+        help="neural subspace vs linear modes vs modal derivatives",
+        description=(
+            "For each scene: fit a neural subspace with the scene's preset (or reuse DIR/SCENE_dD_sSTEPS.pt), "
+            "build linear modes and modal derivatives of the same d and sigma, and print for each the energy of "
+            "samples relative to the seed's, the metric stretch, the load-response error and (FEM) the non-rigid "
+            "strain."
+        ),
+    )
+    p.add_argument("--scenes", metavar="A,B,...", help="comma-separated scenes (default: the eleven of Table 1)")
+    p.add_argument("--steps", type=int, default=10_000, help="fitting steps (default 10000)")
+    p.add_argument("--checkpoints", default="subspaces", metavar="DIR", help="where fits are kept (default subspaces)")
+    p.add_argument("--refit", action="store_true", help="fit even if a checkpoint exists")
+    p.add_argument("--loads", type=int, default=8, help="loads of the load-response error (default 8)")
+    p.add_argument("--samples", type=int, default=256, help="latent samples per statistic (default 256)")
+    p.add_argument("--seed", type=int, default=0, help="seed of fits, samples and loads (default 0)")
+    p.add_argument("--json", action="store_true", help="print one JSON document")
+    p.set_defaults(func=_cmd_bench_subspace)
     return parser
 
 

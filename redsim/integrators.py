@@ -7,15 +7,19 @@ One step solves
 which is backward Euler on M q'' = -dE/dq with the velocity (q_t - q_{t-1}) / h folded into
 the state. The objective (:class:`PotentialObjective`) is written once over the coordinates
 u of a *space*: q = space.configuration(u). :class:`FullSpace` is the identity (u = q, the
-float64 reference); a reduced space only has to provide the map and the pull-back of
-q-space matrices (J^T A J) to reuse the same objective, minimizers and integrator.
+float64 reference); :class:`LatentSpace` solves over the latent z of a subspace map
+q = f(z) (paper §3.4), providing only the map, the pull-back of q-space matrices (J^T A J)
+and how q-space force scales read in z, so both use the same objective, minimizers and
+integrator. In a latent space the state holds z and the inertial target stays in q:
+qbar = 2 f(z_t) - f(z_{t-1}).
 
 Static equilibria minimize E(q; loads, cond) - f . q with the same objective, without the
-inertia term.
+inertia term (:func:`static_equilibrium` over q, :func:`latent_equilibrium` over z).
 """
 
 from __future__ import annotations
 
+import itertools
 import logging
 import math
 from collections.abc import Callable
@@ -34,25 +38,54 @@ logger = logging.getLogger(__name__)
 
 NOISE_FACTOR = 100.0 * float(np.finfo(np.float64).eps)
 """Relative round-off of a gradient: gradient_noise = NOISE_FACTOR * |diag(metric)| * L."""
+ROUNDOFF_SAFETY = 10.0
+"""Margin on the measured gradient change caused by a map's round-off (see :class:`PotentialObjective`)."""
 
 LoadSchedule = Callable[[int, "FullState"], LoadsLike]
 """Loads as a function of (step index, state before the step)."""
 
 
 class Space(Protocol):
-    """Coordinates u [m] the integrator solves for, mapped to free configurations q [n]."""
+    """Coordinates u [m] the integrator solves for, mapped to free configurations q [n].
+
+    The objective's scales are measured in q and read in u through :meth:`gradient_scale`
+    (forces) and :meth:`metric_norm` (float64 round-off), plus :attr:`roundoff`.
+    """
 
     @property
     def scene(self) -> Scene:
         """The (float64) scene whose energy is minimized."""
         ...
 
+    @property
+    def roundoff(self) -> float:
+        """Relative round-off of the configurations q beyond float64's (0; a float32 map's unit round-off)."""
+        ...
+
+    @property
+    def size(self) -> int:
+        """m, the number of coordinates."""
+        ...
+
+    @property
+    def origin(self) -> Tensor:
+        """Default coordinates [m] (float64): where states and static solves start by default."""
+        ...
+
     def configuration(self, u: Tensor) -> Tensor:
-        """Free configurations q [B, n] from coordinates u [B, m] (differentiable)."""
+        """Free configurations q [B, n] (float64) from coordinates u [B, m] (differentiable)."""
         ...
 
     def pullback(self, u: Tensor, matrix: Any) -> Any:
         """A q-space matrix A [n, n] seen in coordinates u [m] (J^T A J), shape [m, m]."""
+        ...
+
+    def gradient_scale(self, u: Tensor) -> float:
+        """|J(u)|_2 = |dq/du|_2 at u [m]: the largest factor by which a q-space force grows in u (1 for u = q)."""
+        ...
+
+    def metric_norm(self, u: Tensor, matrix: Any) -> float:
+        """Size of a q-space metric A [n, n] acting on round-off of q, seen in u: gradient noise / (NOISE_FACTOR L)."""
         ...
 
 
@@ -64,7 +97,11 @@ class FullSpace:
     """
 
     def __init__(self, scene: Scene) -> None:
-        self._scene = scene if scene.dtype == torch.float64 else scene.to(dtype=torch.float64)
+        self._scene = _float64(scene)
+
+    @property
+    def roundoff(self) -> float:
+        return 0.0
 
     @property
     def scene(self) -> Scene:
@@ -75,11 +112,184 @@ class FullSpace:
         """m = n, the number of free DOFs."""
         return self._scene.free_dof_count
 
+    @property
+    def origin(self) -> Tensor:
+        """The scene's seed q_seed [n]."""
+        return self._scene.q_seed
+
     def configuration(self, u: Tensor) -> Tensor:
         return u
 
     def pullback(self, u: Tensor, matrix: Any) -> Any:
         return matrix
+
+    def gradient_scale(self, u: Tensor) -> float:
+        return 1.0
+
+    def metric_norm(self, u: Tensor, matrix: Any) -> float:
+        """|diag A|_2."""
+        return _vector_norm(matrix.diagonal())
+
+
+class LatentSpace:
+    """The latent coordinates z [d] of a subspace map q = f(z[, c]) (paper §3.4).
+
+    The map runs in its own dtype and device (a float32 :class:`redsim.subspace.SubspaceMap`
+    stays float32); z is cast to it on the way in and q back to the scene's float64 on the way
+    out, differentiably. The Jacobian J = dq/dz [n, d] comes from two reverse-mode passes over a
+    batch of d copies of z (J e_k = d/dp_k (e_k . J^T p_k), the double-backward form of a
+    Jacobian-vector product, so any map with double-backward support works) and is cached for
+    the last z.
+
+    What the shared objective then means in z:
+
+    - Newton's Hessian is J^T H_q J with the projected q-space Hessian H_q: Gauss-Newton, the
+      map's own curvature (second derivatives of f) is dropped. It is PSD, so steps descend,
+      but convergence is linear where the q-space force f(z*) leaves unbalanced is large;
+      "lbfgs" (the paper's choice) sees the exact gradient J^T g_q only.
+    - Convergence: the q-space force scale F of :class:`PotentialObjective` is multiplied by
+      |J(z_ref)|_2, the most a q-space force can grow when read in z (|J^T g| <= |J|_2 |g|), so
+      ``tol`` keeps its meaning: a latent residual of tol times the forces acting, as seen
+      through the map. Scaling z by a constant leaves the rule unchanged.
+    - Round-off: a float32 map rounds q, which moves the gradient; :class:`PotentialObjective`
+      measures how much (its ``gradient_noise``), so solves over a float32 map stop at float32
+      resolution instead of failing to converge.
+
+    The map must not change (weights, dtype) while the space is in use: the Jacobian is cached.
+
+    Args:
+        scene: The scene; it is cast to float64 if it is not already.
+        subspace: A callable z [..., d] -> q [..., n] (an ``nn.Module`` such as
+            :class:`redsim.subspace.SubspaceMap`) with a ``latent_dim`` attribute; a conditional
+            map (``config.condition_dim > 0``) is called as ``subspace(z, c)``.
+        cond: Condition c [k] of a conditional map (default: the scene's default condition).
+            It only feeds the map: give solves over this space the same c as their energy
+            condition (:func:`latent_equilibrium` does so by default).
+
+    Raises:
+        ValueError: a map without ``latent_dim``, whose output does not have n entries, a
+            condition for an unconditional map, or a conditional map without one.
+    """
+
+    def __init__(self, scene: Scene, subspace: Callable[..., Tensor], *, cond: Tensor | None = None) -> None:
+        self._scene = _float64(scene)
+        latent_dim = getattr(subspace, "latent_dim", None)
+        if not isinstance(latent_dim, int) or latent_dim < 1:
+            raise ValueError(f"the subspace must have an integer latent_dim >= 1, got {latent_dim!r}")
+        self.subspace = subspace
+        self.latent_dim = latent_dim
+        condition_dim = map_condition_dim(subspace)
+        self.condition: Tensor | None = None
+        if condition_dim:
+            packed = self._scene.pack_condition(cond, 1, self._scene.q_seed)
+            if packed is None:
+                raise ValueError(
+                    f"the subspace is conditional (size {condition_dim}) and scene "
+                    f"{self._scene.name!r} has no condition space; give cond"
+                )
+            self.condition = packed[0].detach().clone()
+            if self.condition.shape != (condition_dim,):
+                raise ValueError(
+                    f"the subspace needs a condition of size {condition_dim}, got {tuple(self.condition.shape)}"
+                )
+        elif cond is not None:
+            raise ValueError("this subspace takes no condition")
+        self._origin = torch.zeros(latent_dim, dtype=torch.float64, device=self._scene.device)
+        self._jacobian_at: tuple[Tensor, np.ndarray] | None = None
+        with torch.no_grad():
+            q0 = self.configuration(self._origin.unsqueeze(0))
+        if q0.shape != (1, self._scene.free_dof_count):
+            raise ValueError(
+                f"the subspace maps z [1, {latent_dim}] to {tuple(q0.shape)}; "
+                f"scene {self._scene.name!r} needs [1, {self._scene.free_dof_count}]"
+            )
+
+    @property
+    def scene(self) -> Scene:
+        return self._scene
+
+    @property
+    def size(self) -> int:
+        """m = d, the latent dimension."""
+        return self.latent_dim
+
+    @property
+    def origin(self) -> Tensor:
+        """z = 0 [d]."""
+        return self._origin
+
+    @property
+    def map_dtype(self) -> torch.dtype:
+        """The dtype the map runs in: that of its first floating parameter or buffer (float64 if none)."""
+        like = _map_tensor(self.subspace)
+        return torch.float64 if like is None else like.dtype
+
+    @property
+    def roundoff(self) -> float:
+        """The unit round-off of the map's dtype (1.2e-7 for float32); 0 for a float64 map."""
+        dtype = self.map_dtype
+        return 0.0 if dtype == torch.float64 else float(torch.finfo(dtype).eps)
+
+    def configuration(self, u: Tensor) -> Tensor:
+        like = _map_tensor(self.subspace)
+        z, cond = (u, self.condition) if like is None else (u.to(like), _to(self.condition, like))
+        q = self.subspace(z) if cond is None else self.subspace(z, cond)
+        return q.to(device=self._scene.device, dtype=torch.float64)
+
+    def jacobian(self, u: Tensor) -> np.ndarray:
+        """J = dq/dz [n, d] at z = u [d] (float64 numpy; the last one is cached)."""
+        u = u.detach()
+        if self._jacobian_at is not None and torch.equal(self._jacobian_at[0], u):
+            return self._jacobian_at[1]
+        z = u.expand(self.latent_dim, -1).clone().requires_grad_(True)  # one copy of u per column
+        with torch.enable_grad():
+            q = self.configuration(z)  # [d, n]
+            probe = torch.zeros_like(q, requires_grad=True)
+            pulled = None  # stays None for a map that ignores z
+            if q.requires_grad:
+                (pulled,) = torch.autograd.grad(q, z, probe, create_graph=True, allow_unused=True)  # row k: J^T p_k
+            columns = None
+            if pulled is not None and pulled.requires_grad:
+                (columns,) = torch.autograd.grad(pulled.diagonal().sum(), probe, allow_unused=True)  # row k: J e_k
+        jac = torch.zeros_like(q) if columns is None else columns
+        matrix = jac.detach().T.cpu().numpy().astype(np.float64)
+        self._jacobian_at = (u.clone(), matrix)
+        return matrix
+
+    def pullback(self, u: Tensor, matrix: Any) -> np.ndarray:
+        """J^T A J [d, d] (dense, symmetrized) for a q-space matrix A [n, n] (dense or scipy sparse)."""
+        jac = self.jacobian(u)
+        out = jac.T @ np.asarray(matrix @ jac)
+        return 0.5 * (out + out.T)
+
+    def gradient_scale(self, u: Tensor) -> float:
+        return float(np.linalg.norm(self.jacobian(u), 2))
+
+    def metric_norm(self, u: Tensor, matrix: Any) -> float:
+        """|A J|_F."""
+        return float(np.linalg.norm(np.asarray(matrix @ self.jacobian(u))))
+
+
+def map_condition_dim(subspace: Any) -> int:
+    """Size of the condition c a map takes: ``subspace.config.condition_dim`` if it has one, else 0."""
+    return int(getattr(getattr(subspace, "config", None), "condition_dim", 0))
+
+
+def _float64(scene: Scene) -> Scene:
+    return scene if scene.dtype == torch.float64 else scene.to(dtype=torch.float64)
+
+
+def _map_tensor(subspace: Any) -> Tensor | None:
+    """A map's first floating parameter or buffer (its dtype and device), or None (inputs are left as they are)."""
+    if isinstance(subspace, torch.nn.Module):
+        for tensor in itertools.chain(subspace.parameters(), subspace.buffers()):
+            if tensor.is_floating_point():
+                return tensor
+    return None
+
+
+def _to(value: Tensor | None, like: Tensor) -> Tensor | None:
+    return None if value is None else value.to(like)
 
 
 @dataclass(frozen=True)
@@ -114,7 +324,7 @@ class FullState:
         return (self.q - self.q_prev) / dt
 
 
-def _length_scale(scene: Scene) -> float:
+def length_scale(scene: Scene) -> float:
     """Size L [m] of the scene: the larger of the seed's extent and magnitude, 1 for an all-zero seed."""
     x = scene.full_positions(scene.q_seed.detach().unsqueeze(0))[0]
     scale = max(float(x.max() - x.min()), float(x.abs().max()))
@@ -129,15 +339,19 @@ class PotentialObjective:
     """Phi(u) = [1/(2 h^2) |q - qbar|_M^2] + E(q; loads, cond) - f . q with q = space.configuration(u).
 
     Attributes:
-        force_scale: Characteristic force [N] of the problem (see :mod:`redsim.solvers`):
-            sum over effects of |dE_e/dq| at the reference configuration, plus |f|, plus for a
-            time step |M (qbar - q_ref)| / h^2 and |diag M| L / h^2, the force that moves every
-            DOF by the scene size L in one step. With it, tol bounds the per-step position
-            error by about tol * L (the Hessian is >= M/h^2), and static solves are converged
-            relative to the forces acting (a relative force-balance error of tol).
-        gradient_noise: NOISE_FACTOR * |diag(metric)| L: the gradient round-off of float64.
-        value_noise: NOISE_FACTOR * force_scale * L: the round-off of Phi, a sum of terms of
-            size up to force_scale * L [J].
+        force_scale: Characteristic force of the problem (see :mod:`redsim.solvers`), in the unit
+            of dPhi/du: F |J(u_ref)|_2 (:meth:`Space.gradient_scale`, 1 in the full space), where
+            F [N] is the sum over effects of |dE_e/dq| at q_ref, plus |f|, plus for a time step
+            |M (qbar - q_ref)| / h^2 and |diag M| L / h^2, the force that moves every DOF by the
+            scene size L in one step. With it, tol bounds the per-step position error by about
+            tol * L (the Hessian is >= M/h^2), and static solves are converged relative to the
+            forces acting (a relative force-balance error of tol, as seen through the map).
+        gradient_noise: The gradient round-off: NOISE_FACTOR * :meth:`Space.metric_norm` (|diag
+            metric_q|_2 in the full space) * L for float64, plus, for a space with
+            :attr:`Space.roundoff` r > 0 (a float32 map), ROUNDOFF_SAFETY times the change of
+            dPhi/du when q_ref is perturbed by r max(|q_i|, rms q) with seeded random signs: the
+            sensitivity to the map's rounding, stiffness and inertia included.
+        value_noise: (NOISE_FACTOR + r) * F * L: the round-off of Phi, a sum of terms of size up to F L [J].
 
     Args:
         space: The coordinates to minimize over.
@@ -145,8 +359,8 @@ class PotentialObjective:
         cond: Packed condition, shape [1, m], or None.
         inertia: The inertia term of a time step, or None for a static problem.
         force: Constant generalized force f, shape [n], or None.
-        reference: Configuration q_ref [n] where the force scale is measured (q_t for a step,
-            the initial guess for a static solve).
+        reference: Coordinates u_ref [m] where the scales are measured, at q_ref =
+            space.configuration(u_ref) (u_t for a step, the initial guess for a static solve).
     """
 
     def __init__(
@@ -165,17 +379,22 @@ class PotentialObjective:
         self.cond = cond
         self.inertia = inertia
         self.force = force
+        with torch.no_grad():
+            q_ref = space.configuration(reference.detach().unsqueeze(0))[0]
         mass = self.scene.mass_matrix_scipy().tocsr()
         if inertia is not None:
             self._metric_q = mass * (1.0 / inertia.dt**2)
         else:
-            stiffness = energy_hessian(self.scene, reference, loads, cond, project=True)
+            stiffness = energy_hessian(self.scene, q_ref, loads, cond, project=True)
             ratio = _vector_norm(stiffness.diagonal()) / _vector_norm(mass.diagonal())
             self._metric_q = mass * (ratio if ratio > 0.0 else 1.0)
-        length = _length_scale(self.scene)
-        self.force_scale = self._force_scale(reference, mass, length)
-        self.gradient_noise = NOISE_FACTOR * _vector_norm(self._metric_q.diagonal()) * length
-        self.value_noise = NOISE_FACTOR * self.force_scale * length
+        length = length_scale(self.scene)
+        q_force_scale = self._force_scale(q_ref, mass, length)
+        self.force_scale = q_force_scale * space.gradient_scale(reference)
+        self.gradient_noise = NOISE_FACTOR * space.metric_norm(reference, self._metric_q) * length
+        if space.roundoff > 0.0:
+            self.gradient_noise += self._roundoff_noise(reference, q_ref)
+        self.value_noise = (NOISE_FACTOR + space.roundoff) * q_force_scale * length
 
     def _force_scale(self, reference: Tensor, mass: Any, length: float) -> float:
         q = reference.detach().reshape(1, -1).clone().requires_grad_(True)
@@ -193,6 +412,20 @@ class PotentialObjective:
             total += float(np.linalg.norm(mass @ drift)) / self.inertia.dt**2
             total += _vector_norm(mass.diagonal()) * length / self.inertia.dt**2
         return total
+
+    def _roundoff_noise(self, reference: Tensor, q_ref: Tensor) -> float:
+        """ROUNDOFF_SAFETY |J^T (g_q(q_ref + delta) - g_q(q_ref))| for a round-off-sized delta (see gradient_noise)."""
+        generator = torch.Generator().manual_seed(0)
+        signs = torch.randint(0, 2, tuple(q_ref.shape), generator=generator).to(q_ref) * 2.0 - 1.0
+        size = torch.maximum(q_ref.abs(), q_ref.square().mean().sqrt())
+        grads = []
+        with torch.enable_grad():
+            for q in (q_ref, q_ref + self.space.roundoff * size * signs):
+                q = q.detach().unsqueeze(0).requires_grad_(True)
+                grads.append(torch.autograd.grad(self._value(q).sum(), q)[0][0])
+            u = reference.detach().clone().requires_grad_(True)
+            (change,) = torch.autograd.grad(self.space.configuration(u.unsqueeze(0))[0] @ (grads[1] - grads[0]), u)
+        return ROUNDOFF_SAFETY * float(torch.linalg.vector_norm(change))
 
     def _value(self, q: Tensor) -> Tensor:
         """Phi [J], shape [B], of configurations q [B, n]."""
@@ -250,7 +483,8 @@ class ImplicitEuler:
     """Two-state implicit Euler over a space (module doc), each step solved by a named minimizer.
 
     Args:
-        space: The coordinates solved for (:class:`FullSpace` for the reference).
+        space: The coordinates solved for (:class:`FullSpace` for the reference, :class:`LatentSpace`
+            for a subspace; the state then holds z).
         dt: Time step h [s], finite and > 0.
         minimizer: A key of :data:`redsim.solvers.MINIMIZERS` ("newton" or "lbfgs").
         tol: Relative gradient tolerance (see :class:`PotentialObjective` for what it bounds).
@@ -292,14 +526,16 @@ class ImplicitEuler:
         return self.space.scene
 
     def initial_state(self, q: Tensor | None = None, velocity: Tensor | None = None) -> FullState:
-        """A state at time 0 with coordinates q (default: the scene's seed) and velocity [m/s] (default 0).
+        """A state at time 0 with coordinates q (default: the space's origin) and velocity (default 0).
 
-        The previous coordinates are q - dt * velocity. Inputs are copied, never aliased.
+        The coordinates are the space's: q [n] (default the seed) for :class:`FullSpace`, z [d]
+        (default 0) for :class:`LatentSpace`, with velocity in their unit per second. The
+        previous coordinates are q - dt * velocity. Inputs are copied, never aliased.
         """
-        seed = self.scene.q_seed
-        size = int(seed.shape[0])
-        q_t = seed.detach().clone() if q is None else _vector(q, size, "q", seed)
-        v = torch.zeros_like(q_t) if velocity is None else _vector(velocity, size, "velocity", seed)
+        origin = self.space.origin
+        size = self.space.size
+        q_t = origin.detach().clone() if q is None else _vector(q, size, "q", origin)
+        v = torch.zeros_like(q_t) if velocity is None else _vector(velocity, size, "velocity", origin)
         return FullState(q_t, q_t - self.dt * v, 0.0)
 
     def step(
@@ -319,17 +555,16 @@ class ImplicitEuler:
             ValueError: on non-finite loads, condition or state.
             ConvergenceError: with ``strict=True``, when the step did not converge.
         """
-        seed = self.scene.q_seed
-        size = int(seed.shape[0])
-        u_t = _vector(state.q, size, "state.q", seed)
-        u_prev = _vector(state.q_prev, size, "state.q_prev", seed)
+        origin = self.space.origin
+        u_t = _vector(state.q, self.space.size, "state.q", origin)
+        u_prev = _vector(state.q_prev, self.space.size, "state.q_prev", origin)
         loads_t, cond_t = _packed_inputs(self.scene, loads, cond)
         with torch.no_grad():
             configurations = self.space.configuration(torch.stack([u_t, u_prev]))
         q_t = configurations[0]
         target = 2.0 * q_t - configurations[1]
         objective = PotentialObjective(
-            self.space, loads=loads_t, cond=cond_t, inertia=Inertia(target, self.dt), force=None, reference=q_t
+            self.space, loads=loads_t, cond=cond_t, inertia=Inertia(target, self.dt), force=None, reference=u_t
         )
         u_next, info = self._minimize(objective, 2.0 * u_t - u_prev, tol=self.tol, max_iter=self.max_iter)
         if not info.converged:
@@ -400,15 +635,64 @@ def static_equilibrium(
     Returns:
         The configuration [n] (float64) and the :class:`SolveInfo`.
     """
+    return _static_solve(FullSpace(scene), loads, cond, q0, "q0", force, minimizer, tol, max_iter)
+
+
+def latent_equilibrium(
+    space: LatentSpace,
+    loads: LoadsLike = None,
+    cond: Tensor | None = None,
+    *,
+    z0: Tensor | None = None,
+    force: Tensor | None = None,
+    minimizer: str = "newton",
+    tol: float = 1e-8,
+    max_iter: int = 200,
+) -> tuple[Tensor, SolveInfo]:
+    """A local minimizer over z of E(f(z); loads, cond) - force . f(z), starting from z0.
+
+    The same objective and minimizers as :func:`static_equilibrium`, over the latent space (see
+    :class:`LatentSpace` for what Newton and the convergence rule mean there).
+
+    Args:
+        space: The latent space (the map and its condition).
+        loads: Loads on the handles [N].
+        cond: Condition vector [m] of the energy (default: the space's map condition, else the
+            scene's default).
+        z0: Initial guess, shape [d] (default: z = 0).
+        force: Constant generalized force [N], shape [n], or None.
+        minimizer: A key of :data:`redsim.solvers.MINIMIZERS`.
+        tol: Relative gradient tolerance (as in :func:`static_equilibrium`, scaled by |J(z0)|_2).
+        max_iter: Most iterations.
+
+    Returns:
+        The latent coordinates z [d] (float64; q = space.configuration(z[None])[0]) and the
+        :class:`SolveInfo`.
+    """
+    cond = space.condition if cond is None else cond
+    return _static_solve(space, loads, cond, z0, "z0", force, minimizer, tol, max_iter)
+
+
+def _static_solve(
+    space: Space,
+    loads: LoadsLike,
+    cond: Tensor | None,
+    u0: Tensor | None,
+    name: str,
+    force: Tensor | None,
+    minimizer: str,
+    tol: float,
+    max_iter: int,
+) -> tuple[Tensor, SolveInfo]:
+    """Minimize the static potential over ``space`` from u0 (default: the space's origin)."""
     minimize = get_minimizer(minimizer)
-    space = FullSpace(scene)
+    origin = space.origin
+    u_start = origin.detach().clone() if u0 is None else _vector(u0, space.size, name, origin)
     seed = space.scene.q_seed
-    n = int(seed.shape[0])
-    q_start = seed.detach().clone() if q0 is None else _vector(q0, n, "q0", seed)
-    force_t = None if force is None else _vector(force, n, "force", seed)
+    force_t = None if force is None else _vector(force, int(seed.shape[0]), "force", seed)
     loads_t, cond_t = _packed_inputs(space.scene, loads, cond)
-    objective = PotentialObjective(space, loads=loads_t, cond=cond_t, inertia=None, force=force_t, reference=q_start)
-    return minimize(objective, q_start, tol=tol, max_iter=max_iter)
+    objective = PotentialObjective(space, loads=loads_t, cond=cond_t, inertia=None, force=force_t, reference=u_start)
+    return minimize(objective, u_start, tol=tol, max_iter=max_iter)
 
 
 __all__ = [
@@ -416,7 +700,11 @@ __all__ = [
     "FullState",
     "ImplicitEuler",
     "Inertia",
+    "LatentSpace",
     "PotentialObjective",
     "Space",
+    "latent_equilibrium",
+    "length_scale",
+    "map_condition_dim",
     "static_equilibrium",
 ]

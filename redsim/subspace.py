@@ -51,8 +51,7 @@ class SubspaceConfig:
     def __post_init__(self) -> None:
         if self.latent_dim < 1 or self.output_dim < 1 or self.condition_dim < 0:
             raise ValueError(
-                f"bad dimensions: latent {self.latent_dim}, output {self.output_dim}, "
-                f"condition {self.condition_dim}"
+                f"bad dimensions: latent {self.latent_dim}, output {self.output_dim}, condition {self.condition_dim}"
             )
         if self.hidden_width < 1 or self.hidden_layers < 1:
             raise ValueError(
@@ -60,12 +59,8 @@ class SubspaceConfig:
             )
         if self.activation not in ACTIVATIONS:
             raise ValueError(f"unknown activation {self.activation!r}; valid: {sorted(ACTIVATIONS)}")
-        if any(not 0 <= i < self.latent_dim for i in self.periodic) or len(set(self.periodic)) != len(
-            self.periodic
-        ):
-            raise ValueError(
-                f"periodic indices {self.periodic} must be distinct and in [0, {self.latent_dim})"
-            )
+        if any(not 0 <= i < self.latent_dim for i in self.periodic) or len(set(self.periodic)) != len(self.periodic):
+            raise ValueError(f"periodic indices {self.periodic} must be distinct and in [0, {self.latent_dim})")
 
 
 class SubspaceMap(nn.Module):
@@ -101,9 +96,7 @@ class SubspaceMap(nn.Module):
     def features(self, z: Tensor, cond: Tensor | None = None) -> Tensor:
         """MLP input: z with periodic entries replaced by (cos, sin), then c."""
         if z.shape[-1] != self.config.latent_dim:
-            raise ValueError(
-                f"z must have {self.config.latent_dim} entries in its last dim, got {tuple(z.shape)}"
-            )
+            raise ValueError(f"z must have {self.config.latent_dim} entries in its last dim, got {tuple(z.shape)}")
         parts = [z]
         if self.config.periodic:
             angles = z[..., self.periodic_mask]
@@ -166,43 +159,58 @@ def read_metadata(path: str | Path) -> dict[str, Any]:
     return doc
 
 
-def load_subspace(
-    path: str | Path, scene: Scene | None = None, *, device: str | torch.device = "cpu"
-) -> SubspaceMap:
-    """Load a saved subspace; with ``scene``, refuse one fitted to a different scene.
+def check_scene(doc: dict[str, Any], scene: Scene, path: str) -> None:
+    """Refuse a checkpoint whose metadata ``doc`` names another scene (name, fingerprint or n)."""
+    mine = (doc.get("scene"), doc.get("scene_fingerprint"), (doc.get("config") or {}).get("output_dim"))
+    theirs = (scene.name, scene.fingerprint(), scene.free_dof_count)
+    if mine != theirs:
+        raise CheckpointError(
+            f"fitted to scene {mine[0]!r} (fingerprint {mine[1]}, n={mine[2]}), not to scene {theirs[0]!r} "
+            f"(fingerprint {theirs[1]}, n={theirs[2]}); build the scene with the parameters in the .json",
+            path,
+        )
+
+
+def load_subspace(path: str | Path, scene: Scene | None = None, *, device: str | torch.device = "cpu") -> nn.Module:
+    """Load any saved subspace: a neural map, or a baseline of :mod:`redsim.baselines` (by its ``kind``).
+
+    Args:
+        path: ``STEM.pt``, ``STEM.json`` or ``STEM``.
+        scene: With it, refuse a checkpoint made for another scene.
+        device: Where to put the weights.
 
     Raises:
-        CheckpointError: missing or corrupt files, or a scene whose name, fingerprint or n differ.
+        CheckpointError: missing or corrupt files, an unknown kind, or a scene whose name,
+            fingerprint or n differ.
     """
     weights = Path(path).with_suffix(".pt")
     doc = read_metadata(path)
     if scene is not None:
-        mine = (doc.get("scene"), doc.get("scene_fingerprint"))
-        theirs = (scene.name, scene.fingerprint())
-        if mine != theirs:
-            raise CheckpointError(
-                f"fitted to scene {mine[0]!r} (fingerprint {mine[1]}), not to scene {theirs[0]!r} "
-                f"(fingerprint {theirs[1]}); build the scene with the parameters in the .json",
-                str(weights),
-            )
+        check_scene(doc, scene, str(weights))
+    metadata = {k: v for k, v in doc.items() if k not in ("format_version", "config")}
+    kind = doc.get("kind", "neural")
     try:
-        config = SubspaceConfig(**{**doc["config"], "periodic": tuple(doc["config"].get("periodic", ()))})
-    except (KeyError, TypeError, ValueError) as err:
-        raise CheckpointError(f"bad config in metadata ({err})", str(weights)) from None
-    if scene is not None and config.output_dim != scene.free_dof_count:
-        raise CheckpointError(
-            f"maps to n={config.output_dim}, scene has n={scene.free_dof_count}", str(weights)
-        )
+        if kind == "neural":
+            config = SubspaceConfig(**{**doc["config"], "periodic": tuple(doc["config"].get("periodic", ()))})
+            model: nn.Module = SubspaceMap(config, metadata)
+        else:
+            from redsim.baselines import BASELINES
+
+            if kind not in BASELINES:
+                raise CheckpointError(
+                    f"unknown kind {kind!r}; valid: neural, {', '.join(sorted(BASELINES))}", str(weights)
+                )
+            model = BASELINES[kind].from_shapes(doc["config"], metadata)
+    except (KeyError, TypeError, ValueError, AttributeError) as err:
+        if isinstance(err, CheckpointError):
+            raise
+        raise CheckpointError(f"bad config in metadata ({err!r})", str(weights)) from None
     if not weights.is_file():
         raise CheckpointError("weights file is missing", str(weights))
     try:
         state = torch.load(weights, map_location=device, weights_only=True)
     except Exception as err:  # torch raises several types for truncated/corrupt zips
-        raise CheckpointError(
-            f"weights are corrupt or truncated ({type(err).__name__}: {err})", str(weights)
-        ) from None
-    metadata = {k: v for k, v in doc.items() if k not in ("format_version", "config")}
-    model = SubspaceMap(config, metadata)
+        raise CheckpointError(f"weights are corrupt or truncated ({type(err).__name__}: {err})", str(weights)) from None
     try:
         model.load_state_dict(state)
     except (RuntimeError, KeyError) as err:

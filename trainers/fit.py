@@ -27,6 +27,7 @@ import torch
 from torch import Tensor
 
 import redsim
+from redsim.metrics import pair_log_ratios
 from redsim.scene import Scene
 from redsim.subspace import CheckpointError, SubspaceConfig, SubspaceMap
 
@@ -93,24 +94,6 @@ class FitResult(NamedTuple):
     subspace: SubspaceMap
     history: list[dict[str, float]]
     fit_seconds: float
-
-
-def pair_log_ratios(y: Tensor, z: Tensor, scene: Scene, sigma: float) -> Tensor:
-    """log(|y_i - y_j|_M / (sigma |z_i - z_j|)) for all pairs i < j, shape [B(B-1)/2].
-
-    Args:
-        y: Map outputs, shape [B, n].
-        z: Latents, shape [B, d].
-        scene: Supplies the mass matrix.
-        sigma: Scale σ.
-    """
-    y = y - y.mean(0, keepdim=True)
-    gram = y @ scene.mass_matvec(y).T
-    sq = gram.diagonal()
-    i, j = torch.triu_indices(y.shape[0], y.shape[0], offset=1, device=y.device)
-    dq2 = (sq[i] + sq[j] - 2.0 * gram[i, j]).clamp_min(torch.finfo(y.dtype).tiny)
-    dz2 = ((z[i] - z[j]) ** 2).sum(-1)
-    return 0.5 * (torch.log(dq2) - torch.log(dz2)) - torch.log(torch.as_tensor(sigma, dtype=y.dtype))
 
 
 def subspace_loss(
