@@ -147,8 +147,9 @@ def energy_hessian(
     n = scene.free_dof_count
     q = q.reshape(1, -1) if q.ndim == 1 else q
     if q.shape != (1, n):
-        raise ValueError(f"scene {scene.name!r} expects one configuration of shape [{n}] or [1, {n}], "
-                         f"got {tuple(q.shape)}")
+        raise ValueError(
+            f"scene {scene.name!r} expects one configuration of shape [{n}] or [1, {n}], got {tuple(q.shape)}"
+        )
     if max_pass_entries < 1:
         raise ValueError(f"max_pass_entries must be >= 1, got {max_pass_entries}")
     with torch.no_grad():
@@ -171,9 +172,7 @@ def energy_hessian(
         rows.append(r[keep])
         cols.append(c[keep])
         values.append(block_np[keep])
-    coo = scipy.sparse.coo_matrix(
-        (np.concatenate(values), (np.concatenate(rows), np.concatenate(cols))), shape=(n, n)
-    )
+    coo = scipy.sparse.coo_matrix((np.concatenate(values), (np.concatenate(rows), np.concatenate(cols))), shape=(n, n))
     return coo.tocsr()
 
 

@@ -36,6 +36,9 @@ from redsim.solvers import ConvergenceError, SolveInfo, get_minimizer
 
 logger = logging.getLogger(__name__)
 
+STATIC_MAX_STEP = 0.05
+"""Newton trust radius of static full-space solves, as a fraction of the scene's extent."""
+
 NOISE_FACTOR = 100.0 * float(np.finfo(np.float64).eps)
 """Relative round-off of a gradient: gradient_noise = NOISE_FACTOR * |diag(metric)| * L."""
 ROUNDOFF_SAFETY = 10.0
@@ -352,6 +355,12 @@ class PotentialObjective:
             dPhi/du when q_ref is perturbed by r max(|q_i|, rms q) with seeded random signs: the
             sensitivity to the map's rounding, stiffness and inertia included.
         value_noise: (NOISE_FACTOR + r) * F * L: the round-off of Phi, a sum of terms of size up to F L [J].
+        max_step: Newton trust radius of a static full-space solve [m per entry]: the smaller of
+            STATIC_MAX_STEP * scene.extent() and half of scene.feature_size() (the thinnest contact
+            shape). A start that feels little restoring force (a chain held only by contact, hanging
+            out of contact) would otherwise take one long Levenberg step through its constraints,
+            where penalty potentials are bounded. Time steps (the inertia term bounds the move)
+            and latent spaces have none.
 
     Args:
         space: The coordinates to minimize over.
@@ -395,6 +404,9 @@ class PotentialObjective:
         if space.roundoff > 0.0:
             self.gradient_noise += self._roundoff_noise(reference, q_ref)
         self.value_noise = (NOISE_FACTOR + space.roundoff) * q_force_scale * length
+        static_full = inertia is None and isinstance(space, FullSpace)
+        radius = min(STATIC_MAX_STEP * self.scene.extent(), 0.5 * self.scene.feature_size())
+        self.max_step = radius if static_full else math.inf
 
     def _force_scale(self, reference: Tensor, mass: Any, length: float) -> float:
         q = reference.detach().reshape(1, -1).clone().requires_grad_(True)

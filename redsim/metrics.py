@@ -48,7 +48,6 @@ from redsim.integrators import (
     LatentSpace,
     PotentialObjective,
     latent_equilibrium,
-    length_scale,
     map_condition_dim,
     static_equilibrium,
 )
@@ -69,7 +68,7 @@ FULL_TOL = 1e-5
 Contact penalties are only C1: the 24-link chain's gradient stalls near 1e-6 of its forces, so
 1e-5 is what every catalog scene reaches; error metrics need far less (1e-3).
 """
-NEWTON_ITER = 50
+NEWTON_ITER = 300
 """Newton iterations of the first attempt at a full-space equilibrium (relaxation takes over after them)."""
 RELAX_STEPS = 200
 """Most proximal steps of a relaxation."""
@@ -295,7 +294,7 @@ def load_response_error(
         if not load_list:
             raise ValueError("loads must not be empty")
     mass = scene64.mass_matrix_scipy()
-    size = math.sqrt(float(mass.diagonal().sum())) * _size(scene64)
+    size = math.sqrt(float(mass.diagonal().sum())) * scene64.extent()
     starts = [
         space.origin,
         *(torch.randn(space.latent_dim, generator=generator, dtype=torch.float64) for _ in range(restarts)),
@@ -542,7 +541,7 @@ def _handle_magnitudes(scene: Scene, rest: Tensor, cond: Tensor | None) -> np.nd
             f"scene {scene.name!r}: handle compliances {largest.tolist()} are not finite and > 0; "
             "give the load magnitude"
         )
-    return RESPONSE_FRACTION * _size(scene) / largest
+    return RESPONSE_FRACTION * scene.extent() / largest
 
 
 def _rest_equilibrium(scene: Scene, cond: Tensor | None) -> tuple[Tensor, bool, float]:
@@ -571,20 +570,6 @@ def _full_equilibrium(
     while len(_CACHE) > CACHE_SIZE:
         _CACHE.popitem(last=False)
     return _CACHE[key]
-
-
-def _size(scene: Scene) -> float:
-    """Physical size L [m] of a scene: the largest extent of its surfaces' vertices at the seed.
-
-    Unlike :func:`redsim.integrators.length_scale` it ignores the dimensionless rotation
-    entries of rigid bodies; scenes without surfaces fall back to that length scale.
-    """
-    if not scene.surfaces:
-        return length_scale(scene)
-    x = scene.full_positions(scene.q_seed.unsqueeze(0))
-    points = torch.cat([s.points.positions(x)[0] for s in scene.surfaces])
-    extent = float((points.max(0).values - points.min(0).values).max())
-    return extent if extent > 0.0 else length_scale(scene)
 
 
 def _solve_full(scene: Scene, load: Tensor | None, cond: Tensor | None, start: Tensor) -> tuple[Tensor, bool, float]:
@@ -617,7 +602,7 @@ def _solve_full(scene: Scene, load: Tensor | None, cond: Tensor | None, start: T
     energy, grad = objective.value_and_grad(start)
     threshold = convergence_threshold(objective, FULL_TOL, float(torch.linalg.vector_norm(grad)))
     accel = scipy.sparse.linalg.spsolve(scene.mass_matrix_scipy().tocsc(), grad.numpy())
-    limit = RELAX_MOVE * _size(scene)
+    limit = RELAX_MOVE * scene.extent()
     dt = math.sqrt(limit / max(float(np.abs(accel).max()), 1e-300))
     q = start.detach().clone()
     for _ in range(RELAX_STEPS):

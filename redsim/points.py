@@ -100,9 +100,7 @@ class PointSet:
         local = torch.as_tensor(local, dtype=torch.float64)
         P = local.shape[0]
         dofs = torch.as_tensor(body_dofs, dtype=torch.int64).reshape(1, 3, 4).expand(P, 3, 4).clone()
-        homogeneous = (
-            torch.zeros(P, 1, dtype=local.dtype) if direction else torch.ones(P, 1, dtype=local.dtype)
-        )
+        homogeneous = torch.zeros(P, 1, dtype=local.dtype) if direction else torch.ones(P, 1, dtype=local.dtype)
         weights = torch.cat([local, homogeneous], dim=1)
         return PointSet(dofs, weights, torch.zeros(P, 3, dtype=local.dtype))
 
@@ -126,8 +124,6 @@ class PointSet:
         dofs, weights = [], []
         for s in sets:
             pad = K - s.dofs.shape[2]
-            dofs.append(
-                torch.nn.functional.pad(s.dofs, (0, pad), value=int(s.dofs.reshape(-1)[0]) if s.count else 0)
-            )
+            dofs.append(torch.nn.functional.pad(s.dofs, (0, pad), value=int(s.dofs.reshape(-1)[0]) if s.count else 0))
             weights.append(torch.nn.functional.pad(s.weights, (0, pad)))
         return PointSet(torch.cat(dofs), torch.cat(weights), torch.cat([s.offset for s in sets]))

@@ -17,6 +17,7 @@ from __future__ import annotations
 import dataclasses
 import hashlib
 import json
+import math
 from collections.abc import Mapping, Sequence
 from dataclasses import dataclass, field
 from typing import Any
@@ -160,6 +161,21 @@ class Scene:
     def full_positions(self, q: Tensor) -> Tensor:
         """Full configurations [B, N] from free ones [B, n]."""
         return self.dof_map.expand(q)
+
+    def extent(self) -> float:
+        """Physical size [m]: the largest side of the bounding box of the surfaces at the seed.
+
+        Unlike the spread of raw x entries it ignores the unitless rotation entries of rigid
+        bodies. Scenes without surfaces use the spread of all full-configuration entries.
+        """
+        x = self.full_positions(self.q_seed.detach().unsqueeze(0))
+        points = torch.cat([s.points.positions(x)[0] for s in self.surfaces]) if self.surfaces else x.reshape(-1, 1)
+        size = float((points.max(0).values - points.min(0).values).max())
+        return size if size > 0.0 else 1.0
+
+    def feature_size(self) -> float:
+        """Thinnest feature [m] any effect resolves (e.g. a contact tube radius); inf without one."""
+        return min((e.feature_size for e in self.effects), default=math.inf)
 
     def effect(self, name: str) -> Effect:
         """The effect called ``name``; a KeyError lists the scene's effects."""

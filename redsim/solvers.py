@@ -84,11 +84,13 @@ class Objective(Protocol):
         gradient_noise: Gradient norm (>= 0) at which float64 round-off dominates.
         value_noise: Objective change [J] (>= 0) below which float64 round-off of the value dominates
             (the value is a sum of much larger terms, e.g. load work and elastic energy).
+        max_step: Largest entry of one Newton step (a trust radius; ``math.inf`` for none).
     """
 
     force_scale: float
     gradient_noise: float
     value_noise: float
+    max_step: float
 
     def value_and_grad(self, u: Tensor) -> tuple[float, Tensor]:
         """Objective value [J] and gradient, shape [m], at u [m]."""
@@ -206,6 +208,10 @@ class _Levenberg:
             matrix = hessian if self.shift == 0.0 else hessian + self.shift * self.metric
             factor = _factorize(matrix)
             direction = None if factor is None else _solve(factor, -point.grad)
+            if direction is not None:
+                longest = float(direction.abs().max())
+                if longest > objective.max_step:
+                    direction = direction * (objective.max_step / longest)
             trial = None if direction is None else _line_search(objective, point, direction)
             if trial is not None:
                 self.shift = 0.0 if self.shift <= self.floor else max(self.shift / 10.0, self.floor)
@@ -247,19 +253,26 @@ def newton(objective: Objective, u0: Tensor, *, tol: float = 1e-8, max_iter: int
     regularizer = _Levenberg()
     for iteration in range(max_iter):
         if point.grad_norm <= threshold:
-            return point.u, _result(point, True, iteration, history,
-                                    f"converged: |g| = {point.grad_norm:.3g} <= {threshold:.3g}")
+            return point.u, _result(
+                point, True, iteration, history, f"converged: |g| = {point.grad_norm:.3g} <= {threshold:.3g}"
+            )
         trial = regularizer.step(objective, point, objective.hessian(point.u))
         if trial is None:
-            return point.u, _result(point, False, iteration, history,
-                                    f"no descent step found after {MAX_SHIFTS} Levenberg shifts "
-                                    f"(|g| = {point.grad_norm:.3g} > {threshold:.3g})")
+            return point.u, _result(
+                point,
+                False,
+                iteration,
+                history,
+                f"no descent step found after {MAX_SHIFTS} Levenberg shifts "
+                f"(|g| = {point.grad_norm:.3g} > {threshold:.3g})",
+            )
         point = trial
         history.append(point.value)
     converged = point.grad_norm <= threshold
     verdict = "converged" if converged else f"not converged after max_iter = {max_iter}"
-    return point.u, _result(point, converged, max_iter, history,
-                            f"{verdict}: |g| = {point.grad_norm:.3g}, threshold {threshold:.3g}")
+    return point.u, _result(
+        point, converged, max_iter, history, f"{verdict}: |g| = {point.grad_norm:.3g}, threshold {threshold:.3g}"
+    )
 
 
 def lbfgs(
@@ -295,15 +308,17 @@ def lbfgs(
     pairs: deque[tuple[Tensor, Tensor, float]] = deque(maxlen=memory)
     for iteration in range(max_iter):
         if point.grad_norm <= threshold:
-            return point.u, _result(point, True, iteration, history,
-                                    f"converged: |g| = {point.grad_norm:.3g} <= {threshold:.3g}")
+            return point.u, _result(
+                point, True, iteration, history, f"converged: |g| = {point.grad_norm:.3g} <= {threshold:.3g}"
+            )
         trial = _line_search(objective, point, _two_loop(point.grad, pairs, factor))
         if trial is None and pairs:
             pairs.clear()
             trial = _line_search(objective, point, _two_loop(point.grad, pairs, factor))
         if trial is None:
-            return point.u, _result(point, False, iteration, history,
-                                    f"line search failed (|g| = {point.grad_norm:.3g} > {threshold:.3g})")
+            return point.u, _result(
+                point, False, iteration, history, f"line search failed (|g| = {point.grad_norm:.3g} > {threshold:.3g})"
+            )
         s, y = trial.u - point.u, trial.grad - point.grad
         sy = float(s @ y)
         if sy > float(np.finfo(np.float64).eps) * float(torch.linalg.vector_norm(s) * torch.linalg.vector_norm(y)):
@@ -312,8 +327,9 @@ def lbfgs(
         history.append(point.value)
     converged = point.grad_norm <= threshold
     verdict = "converged" if converged else f"not converged after max_iter = {max_iter}"
-    return point.u, _result(point, converged, max_iter, history,
-                            f"{verdict}: |g| = {point.grad_norm:.3g}, threshold {threshold:.3g}")
+    return point.u, _result(
+        point, converged, max_iter, history, f"{verdict}: |g| = {point.grad_norm:.3g}, threshold {threshold:.3g}"
+    )
 
 
 def _two_loop(grad: Tensor, pairs: deque[tuple[Tensor, Tensor, float]], factor: scipy.sparse.linalg.SuperLU) -> Tensor:

@@ -12,6 +12,7 @@ from __future__ import annotations
 
 import copy
 import dataclasses
+import math
 from typing import Any, ClassVar
 
 import torch
@@ -31,6 +32,8 @@ class Effect:
     """
 
     kind: ClassVar[str] = "effect"
+    feature_size: float = math.inf
+    """Thinnest feature [m] this term resolves (contact shapes); solvers keep steps below it."""
     uses_loads: ClassVar[bool] = False
     uses_condition: ClassVar[bool] = False
 

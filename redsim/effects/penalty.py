@@ -166,6 +166,7 @@ class SDFContact(Effect):
         self.stiffness = float(stiffness)
         self.margin = float(margin)
         self.element_dofs = torch.cat([points.local_dofs(), frames.dofs], dim=1)
+        self.feature_size = shape.feature_size + 2.0 * self.margin
 
     def signed_distance(self, xe: Tensor) -> Tensor:
         """Signed distance [m] of each point, shape [B, P], from element entries [B, P, k]."""

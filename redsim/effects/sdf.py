@@ -24,6 +24,11 @@ class Sphere:
 
     radius: float
 
+    @property
+    def feature_size(self) -> float:
+        """Thinnest part [m]: a point moving further than this in one step may pass through."""
+        return float(self.radius)
+
     def distance(self, p: Tensor) -> Tensor:
         return _norm(p) - self.radius
 
@@ -35,6 +40,11 @@ class Plane:
     normal: tuple[float, float, float]
     height: float = 0.0
 
+    @property
+    def feature_size(self) -> float:
+        """A half-space has no thin part."""
+        return float("inf")
+
     def distance(self, p: Tensor) -> Tensor:
         n = torch.as_tensor(self.normal, dtype=p.dtype, device=p.device)
         return (p * n).sum(-1) - self.height
@@ -45,6 +55,11 @@ class Box:
     """Axis-aligned box with ``half_extents`` [m] centred at the origin."""
 
     half_extents: tuple[float, float, float]
+
+    @property
+    def feature_size(self) -> float:
+        """Thinnest part [m]: a point moving further than this in one step may pass through."""
+        return float(min(self.half_extents))
 
     def distance(self, p: Tensor) -> Tensor:
         h = torch.as_tensor(self.half_extents, dtype=p.dtype, device=p.device)
@@ -61,6 +76,11 @@ class Capsule:
     half_length: float
     radius: float
 
+    @property
+    def feature_size(self) -> float:
+        """Thinnest part [m]: a point moving further than this in one step may pass through."""
+        return float(self.radius)
+
     def distance(self, p: Tensor) -> Tensor:
         z = p[..., 2].clamp(-self.half_length, self.half_length)
         closest = torch.stack([torch.zeros_like(z), torch.zeros_like(z), z], dim=-1)
@@ -73,6 +93,11 @@ class Torus:
 
     major: float
     minor: float
+
+    @property
+    def feature_size(self) -> float:
+        """Thinnest part [m]: a point moving further than this in one step may pass through."""
+        return float(self.minor)
 
     def distance(self, p: Tensor) -> Tensor:
         ring = _norm(p[..., :2]) - self.major
