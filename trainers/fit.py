@@ -62,7 +62,7 @@ class FitConfig:
     lam: float = 1.0
     steps: int = 10_000
     batch_size: int = 32
-    learning_rate: float = 1e-3
+    learning_rate: float = 3e-4
     hidden_width: int = 128
     hidden_layers: int = 5
     periodic: tuple[int, ...] = ()
