@@ -414,9 +414,9 @@ def _subspace_row(row: dict[str, Any]) -> str:
     lines = [f"{row['scene']}  n={row['n']}  d={row['d']}  steps={row['steps']}  fit {row['fit_seconds']:.0f} s"]
     for method, result in row["methods"].items():
         lines.append(
-            f"  {method:18s} energy/seed {_metric(result, 'energy', 'relative_energy'):9.3g}  "
-            f"stretch {_metric(result, 'stretch', 'mean'):7.3f}  "
-            f"load error {_metric(result, 'load_response', 'mean'):7.3f}  "
+            f"  {method:18s} excess energy {_metric(result, 'energy', 'excess_energy'):9.3g} J  "
+            f"stretch {_metric(result, 'stretch', 'mean'):7.3g}  "
+            f"load error {_metric(result, 'load_response', 'mean_error'):7.3g}  "
             f"strain {_metric(result, 'nonrigid_strain', 'mean'):8.3g}"
         )
     return "\n".join(lines)

@@ -119,3 +119,44 @@ def test_inspect_refuses_a_checkpoint_of_changed_scene(
     (tmp_path / "m.pt").write_bytes(open(fitted, "rb").read())
     code, _, err = run(capsys, "inspect", str(tmp_path / "m.pt"))
     assert code == 2 and "not to scene" in err
+
+
+def test_bench_subspace_compares_neural_modes_and_derivatives(capsys: pytest.CaptureFixture[str], tmp_path) -> None:
+    code, out, _ = run(
+        capsys,
+        "bench",
+        "subspace",
+        "--scenes",
+        "toy_tiny_bar_2d",
+        "--steps",
+        "30",
+        "--loads",
+        "2",
+        "--samples",
+        "16",
+        "--checkpoints",
+        str(tmp_path),
+        "--json",
+    )
+    assert code == 0
+    row = json.loads(out)["rows"][0]
+    assert set(row["methods"]) == {"neural", "modes", "modal_derivatives"}
+    for result in row["methods"].values():
+        assert result["stretch"]["mean"] > 0 and len(result["load_response"]["errors"]) == 2
+    assert (tmp_path / "toy_tiny_bar_2d_d8_s30.pt").is_file()
+    code, out, _ = run(
+        capsys,
+        "bench",
+        "subspace",
+        "--scenes",
+        "toy_tiny_bar_2d",
+        "--steps",
+        "30",
+        "--loads",
+        "2",
+        "--samples",
+        "16",
+        "--checkpoints",
+        str(tmp_path),
+    )
+    assert code == 0 and "modal_derivatives" in out and "load error" in out
