@@ -24,7 +24,6 @@ fingerprint, shapes, metadata) and loads with :func:`redsim.subspace.load_subspa
 
 from __future__ import annotations
 
-import json
 import logging
 import math
 from pathlib import Path
@@ -41,10 +40,9 @@ from redsim.hessian import energy_hessian
 from redsim.integrators import FullSpace, FullState, ImplicitEuler, static_equilibrium
 from redsim.scene import Scene
 from redsim.subspace import (
-    FORMAT_VERSION,
     SubspaceConfig,
     SubspaceMap,
-    _json_default,
+    write_checkpoint,
 )
 
 logger = logging.getLogger(__name__)
@@ -88,15 +86,7 @@ class _Baseline(nn.Module):
 
     def save(self, stem: str | Path) -> tuple[Path, Path]:
         """Write ``stem.pt`` (state dict) and ``stem.json`` (kind, shapes, metadata); returns both paths."""
-        stem = Path(stem)
-        if stem.suffix in (".pt", ".json"):
-            stem = stem.with_suffix("")
-        stem.parent.mkdir(parents=True, exist_ok=True)
-        weights, meta = stem.with_suffix(".pt"), stem.with_suffix(".json")
-        torch.save(self.state_dict(), weights)
-        doc = {**self.metadata, "format_version": FORMAT_VERSION, "config": self.shapes()}
-        meta.write_text(json.dumps(doc, indent=2, sort_keys=True, default=_json_default))
-        return weights, meta
+        return write_checkpoint(self, stem, self.shapes())
 
 
 def _check_latent(z: Tensor, d: int, cond: Tensor | None) -> None:

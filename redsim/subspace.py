@@ -115,15 +115,21 @@ class SubspaceMap(nn.Module):
 
     def save(self, stem: str | Path) -> tuple[Path, Path]:
         """Write ``stem.pt`` (weights) and ``stem.json`` (config and metadata); returns both paths."""
-        stem = Path(stem)
-        if stem.suffix in (".pt", ".json"):
-            stem = stem.with_suffix("")
-        stem.parent.mkdir(parents=True, exist_ok=True)
-        weights, meta = stem.with_suffix(".pt"), stem.with_suffix(".json")
-        torch.save(self.state_dict(), weights)
-        doc = {"format_version": FORMAT_VERSION, "config": dataclasses.asdict(self.config), **self.metadata}
-        meta.write_text(json.dumps(doc, indent=2, sort_keys=True, default=_json_default))
-        return weights, meta
+        return write_checkpoint(self, stem, dataclasses.asdict(self.config))
+
+
+def write_checkpoint(module: nn.Module, stem: str | Path, config: dict[str, Any]) -> tuple[Path, Path]:
+    """Write ``stem.pt`` (the module's state dict) and ``stem.json`` (format version, ``config`` and the
+    module's ``metadata``); returns both paths. Shared by every kind of subspace."""
+    stem = Path(stem)
+    if stem.suffix in (".pt", ".json"):
+        stem = stem.with_suffix("")
+    stem.parent.mkdir(parents=True, exist_ok=True)
+    weights, meta = stem.with_suffix(".pt"), stem.with_suffix(".json")
+    torch.save(module.state_dict(), weights)
+    doc = {**getattr(module, "metadata", {}), "format_version": FORMAT_VERSION, "config": config}
+    meta.write_text(json.dumps(doc, indent=2, sort_keys=True, default=_json_default))
+    return weights, meta
 
 
 def _json_default(value: Any) -> Any:

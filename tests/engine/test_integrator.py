@@ -8,7 +8,6 @@ by the discretization error they name (O(h), O(strain), penalty compliance).
 from __future__ import annotations
 
 import math
-from collections.abc import Iterator
 
 import numpy as np
 import pytest
@@ -30,15 +29,6 @@ TOP = [2, 3, 6, 7]  # y = 1, pinned
 BOTTOM = [0, 1, 4, 5]  # y = 0, loaded
 # Consistent nodal shares of a uniform traction on the bottom face, triangulated (0, 1, 5) + (0, 4, 5).
 BOTTOM_SHARES = [1 / 3, 1 / 6, 1 / 6, 1 / 3]
-
-
-@pytest.fixture(autouse=True, scope="module")
-def _one_thread() -> Iterator[None]:
-    """One intra-op thread: on a busy shared CPU, multi-threaded tiny matmuls stall for a scheduler tick each."""
-    threads = torch.get_num_threads()
-    torch.set_num_threads(1)
-    yield
-    torch.set_num_threads(threads)
 
 
 def _oriented_tets() -> torch.Tensor:

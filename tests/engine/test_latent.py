@@ -8,14 +8,13 @@ at float32 resolution.
 
 from __future__ import annotations
 
-from collections.abc import Iterator
-
 import numpy as np
 import pytest
 import torch
-from torch import Tensor, nn
+from torch import Tensor
 
 from redsim import Scene, SceneBuilder, scenes
+from redsim.baselines import LinearSubspace
 from redsim.effects import NeoHookean
 from redsim.hessian import energy_hessian
 from redsim.integrators import (
@@ -30,25 +29,9 @@ from redsim.subspace import SubspaceConfig, SubspaceMap
 LOAD = {"top": [1.0, 2.0, -0.5]}  # [N] on toy_two_tets' free top vertex
 
 
-@pytest.fixture(autouse=True, scope="module")
-def _one_thread() -> Iterator[None]:
-    threads = torch.get_num_threads()
-    torch.set_num_threads(1)
-    yield
-    torch.set_num_threads(threads)
-
-
-class Affine(nn.Module):
-    """f(z) = b + A z: the test stand-in for a linear subspace (A [n, d], b [n])."""
-
-    def __init__(self, b: Tensor, A: Tensor) -> None:
-        super().__init__()
-        self.register_buffer("b", b.clone())
-        self.register_buffer("A", A.clone())
-        self.latent_dim = int(A.shape[1])
-
-    def forward(self, z: Tensor) -> Tensor:
-        return self.b + z @ self.A.T
+def Affine(b: Tensor, A: Tensor) -> LinearSubspace:
+    """f(z) = b + A z (A [n, d], b [n]): the linear baseline serves as the test map."""
+    return LinearSubspace(A, b)
 
 
 def _tets() -> Scene:
@@ -96,7 +79,7 @@ def test_invertible_affine_reparametrization_matches_full_space() -> None:
     assert info.converged, info.message
     scale = float((q_star - scene.q_seed).abs().max())
     torch.testing.assert_close(f(z_star), q_star, rtol=0.0, atol=1e-7 * scale)
-    state = torch.linalg.solve(f.A, torch.full((scene.free_dof_count,), 1e-3, dtype=torch.float64))
+    state = torch.linalg.solve(f.basis, torch.full((scene.free_dof_count,), 1e-3, dtype=torch.float64))
     full = ImplicitEuler(FullSpace(scene), 0.02, tol=1e-10)
     latent = ImplicitEuler(space, 0.02, tol=1e-10)
     q_next, _ = full.step(full.initial_state(f(state)), LOAD)

@@ -10,7 +10,6 @@ from __future__ import annotations
 
 import json
 import math
-from collections.abc import Iterator
 from typing import Any
 
 import pytest
@@ -18,6 +17,7 @@ import torch
 from torch import Tensor, nn
 
 from redsim import Scene, SceneBuilder, metrics, scenes
+from redsim.baselines import LinearSubspace
 from redsim.effects import NeoHookean
 from redsim.integrators import static_equilibrium
 from redsim.subspace import SubspaceConfig, SubspaceMap
@@ -25,25 +25,9 @@ from redsim.subspace import SubspaceConfig, SubspaceMap
 TET = torch.tensor([[0.0, 0, 0], [1, 0, 0], [0, 1, 0], [0, 0, 1]], dtype=torch.float64)
 
 
-@pytest.fixture(autouse=True, scope="module")
-def _one_thread() -> Iterator[None]:
-    threads = torch.get_num_threads()
-    torch.set_num_threads(1)
-    yield
-    torch.set_num_threads(threads)
-
-
-class Affine(nn.Module):
-    """f(z) = b + A z (A [n, d], b [n])."""
-
-    def __init__(self, b: Tensor, A: Tensor) -> None:
-        super().__init__()
-        self.register_buffer("b", b.clone())
-        self.register_buffer("A", A.clone())
-        self.latent_dim = int(A.shape[1])
-
-    def forward(self, z: Tensor) -> Tensor:
-        return self.b + z @ self.A.T
+def Affine(b: Tensor, A: Tensor) -> LinearSubspace:
+    """f(z) = b + A z (A [n, d], b [n]): the linear baseline serves as the test map."""
+    return LinearSubspace(A, b)
 
 
 class Rotation(nn.Module):
