@@ -25,6 +25,7 @@ import torch
 
 import redsim
 from redsim.scene import Scene
+from redsim.subspace import checkpoint_path
 
 EXIT_OK = 0
 EXIT_SCENE_FAILED = 1
@@ -366,9 +367,9 @@ def _cmd_bench_subspace(args: argparse.Namespace) -> int:
         config = FitConfig(**{**preset(name), "steps": args.steps})
         stem = folder / f"{name}_d{config.latent_dim}_s{args.steps}"
         neural = None
-        if stem.with_suffix(".pt").is_file() and not args.refit:
+        if checkpoint_path(stem, ".pt").is_file() and not args.refit:
             try:
-                neural = load_subspace(stem.with_suffix(".pt"), scene=scene)
+                neural = load_subspace(checkpoint_path(stem, ".pt"), scene=scene)
             except CheckpointError as err:
                 _warn(f"refitting {name}: {err}")
         if neural is None:
@@ -390,7 +391,7 @@ def _cmd_bench_subspace(args: argparse.Namespace) -> int:
             "d": config.latent_dim,
             "steps": args.steps,
             "fit_seconds": neural.metadata.get("fit_seconds"),
-            "checkpoint": str(stem.with_suffix(".pt")),
+            "checkpoint": str(checkpoint_path(stem, ".pt")),
             "methods": metrics,
         }
         rows.append(row)
@@ -529,7 +530,7 @@ def _cmd_fit(args: argparse.Namespace) -> int:
             scene, config, seed=args.seed, out=out, resume=args.resume, progress=not args.json, command=command
         )
     except KeyboardInterrupt:
-        _warn(f"interrupted; the state is in {out.with_suffix('.fit.pt')}; continue with: {command} --resume")
+        _warn(f"interrupted; the state is in {checkpoint_path(out, '.fit.pt')}; continue with: {command} --resume")
         return EXIT_INTERRUPTED
     except FloatingPointError as err:
         _error(str(err))
@@ -537,7 +538,7 @@ def _cmd_fit(args: argparse.Namespace) -> int:
     except ValueError as err:  # bad resume state, conditional fit without conditions, ...
         raise CliError(str(err)) from err
     meta = result.subspace.metadata
-    summary = {"checkpoint": str(out.with_suffix(".pt")), "metadata": str(out.with_suffix(".json")), **meta}
+    summary = {"checkpoint": str(checkpoint_path(out, ".pt")), "metadata": str(checkpoint_path(out, ".json")), **meta}
     if args.json:
         _json_out(summary)
     else:

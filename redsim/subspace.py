@@ -118,14 +118,21 @@ class SubspaceMap(nn.Module):
         return write_checkpoint(self, stem, dataclasses.asdict(self.config))
 
 
+def checkpoint_path(path: str | Path, suffix: str) -> Path:
+    """``STEM + suffix`` for a checkpoint given as ``STEM``, ``STEM.pt`` or ``STEM.json``.
+
+    Suffixes are appended, never swapped, so stems with dots ("bar_sigma0.3") stay whole.
+    """
+    path = Path(path)
+    stem = path.with_suffix("") if path.suffix in (".pt", ".json") else path
+    return stem.with_name(stem.name + suffix)
+
+
 def write_checkpoint(module: nn.Module, stem: str | Path, config: dict[str, Any]) -> tuple[Path, Path]:
     """Write ``stem.pt`` (the module's state dict) and ``stem.json`` (format version, ``config`` and the
     module's ``metadata``); returns both paths. Shared by every kind of subspace."""
-    stem = Path(stem)
-    if stem.suffix in (".pt", ".json"):
-        stem = stem.with_suffix("")
-    stem.parent.mkdir(parents=True, exist_ok=True)
-    weights, meta = stem.with_suffix(".pt"), stem.with_suffix(".json")
+    weights, meta = checkpoint_path(stem, ".pt"), checkpoint_path(stem, ".json")
+    weights.parent.mkdir(parents=True, exist_ok=True)
     torch.save(module.state_dict(), weights)
     doc = {**getattr(module, "metadata", {}), "format_version": FORMAT_VERSION, "config": config}
     meta.write_text(json.dumps(doc, indent=2, sort_keys=True, default=_json_default))
@@ -150,7 +157,7 @@ class CheckpointError(ValueError):
 
 def read_metadata(path: str | Path) -> dict[str, Any]:
     """The JSON beside a checkpoint (``X.pt`` or ``X.json`` or the stem ``X``)."""
-    meta = Path(path).with_suffix(".json")
+    meta = checkpoint_path(path, ".json")
     if not meta.is_file():
         raise CheckpointError("no metadata file (expected a .json beside the .pt)", str(meta))
     try:
@@ -189,7 +196,7 @@ def load_subspace(path: str | Path, scene: Scene | None = None, *, device: str |
         CheckpointError: missing or corrupt files, an unknown kind, or a scene whose name,
             fingerprint or n differ.
     """
-    weights = Path(path).with_suffix(".pt")
+    weights = checkpoint_path(path, ".pt")
     doc = read_metadata(path)
     if scene is not None:
         check_scene(doc, scene, str(weights))

@@ -29,7 +29,7 @@ from torch import Tensor
 import redsim
 from redsim.metrics import pair_log_ratios
 from redsim.scene import Scene
-from redsim.subspace import CheckpointError, SubspaceConfig, SubspaceMap
+from redsim.subspace import CheckpointError, SubspaceConfig, SubspaceMap, checkpoint_path
 
 log = logging.getLogger(__name__)
 
@@ -180,7 +180,7 @@ def fit_subspace(
     generator = torch.Generator(device=config.device).manual_seed(seed)
     history: list[dict[str, float]] = []
     start_step, elapsed = 0, 0.0
-    state_path = None if out is None else Path(out).with_suffix(".fit.pt")
+    state_path = None if out is None else checkpoint_path(out, ".fit.pt")
     if resume:
         if state_path is None or not state_path.is_file():
             raise ValueError(f"nothing to resume: {state_path} does not exist")
@@ -330,7 +330,7 @@ def _json_literal(value: Any) -> str:
 def _save_training_state(path: Path, state: dict[str, Any]) -> None:
     """Write resumable training state atomically (a crash mid-write keeps the previous file)."""
     path.parent.mkdir(parents=True, exist_ok=True)
-    tmp = path.with_suffix(".tmp")
+    tmp = path.with_name(path.name + ".tmp")
     torch.save(state, tmp)
     os.replace(tmp, path)
 

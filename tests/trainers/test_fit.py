@@ -153,3 +153,11 @@ def test_periodic_latents_wrap_around() -> None:
     z = torch.tensor([[0.3, 0.1]])
     shifted = z + torch.tensor([[2 * math.pi, 0.0]])
     assert torch.allclose(model(z), model(shifted), atol=1e-5)
+
+
+def test_checkpoint_stems_with_dots_stay_whole(tmp_path) -> None:
+    scene = _tet_scene()
+    fit_subspace(scene, dim=2, steps=3, hidden_width=8, progress=False, out=tmp_path / "tet_sigma0.05_v1.2")
+    assert {p.name for p in tmp_path.iterdir()} == {"tet_sigma0.05_v1.2.json", "tet_sigma0.05_v1.2.pt"}
+    assert load_subspace(tmp_path / "tet_sigma0.05_v1.2.pt", scene=scene).latent_dim == 2
+    assert load_subspace(tmp_path / "tet_sigma0.05_v1.2", scene=scene).latent_dim == 2
