@@ -16,7 +16,7 @@ PRESETS: dict[str, dict[str, Any]] = {
     "cloth_ball": {"latent_dim": 3, "hidden_width": 128, "lam": 1.0, "sigma": 0.1},  # ~0.2 m of 1 m cloth
     "klann": {"latent_dim": 1, "hidden_width": 64, "lam": 1.0, "sigma": 0.05, "periodic": (0,)},  # crank angle
     "stewart": {"latent_dim": 6, "hidden_width": 128, "lam": 0.5, "sigma": 0.05},  # ~0.1 m platform travel
-    "bistable_bar": {"latent_dim": 8, "hidden_width": 128, "lam": 0.5, "sigma": 0.01},  # small, as the paper's 1e-3
+    "bistable_bar": {"latent_dim": 8, "hidden_width": 128, "lam": 10.0, "sigma": 0.3},  # spans both buckled states
     "hanging_sheet": {"latent_dim": 8, "hidden_width": 128, "lam": 0.1, "sigma": 0.03},  # ~0.3 m swing
     "conditional_bar": {"latent_dim": 8, "hidden_width": 128, "lam": 1.0, "sigma": 0.05, "conditional": True},
     "chain": {"latent_dim": 8, "hidden_width": 128, "lam": 1.0, "sigma": 0.5},  # ~0.5 m of a 1.9 m chain
