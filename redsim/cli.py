@@ -703,7 +703,7 @@ def build_parser() -> argparse.ArgumentParser:
     )
     p.add_argument("--minimizer", choices=("newton", "lbfgs"), default="newton", help="default newton")
     p.add_argument("--tol", type=float, default=1e-8, help="solver gradient tolerance (default 1e-8)")
-    p.add_argument("--max-iter", type=int, default=50, help="solver iterations per step (default 50)")
+    p.add_argument("--max-iter", type=int, default=100, help="solver iterations per step (default 100)")
     p.add_argument("--out", metavar="DIR", help="folder for the picture and meshes (nothing is written without it)")
     p.add_argument("--meshes", action="store_true", help="write per-frame .ply meshes to OUT/frames")
     p.add_argument("--json", action="store_true", help="print one JSON summary (with per-step stats) on stdout")
