@@ -1,4 +1,4 @@
-"""Benchmarks behind `redsim bench`: wall times of scene energies and gradients.
+"""Benchmarks behind `redsim bench`: wall times of scene energies and gradients and of fitting steps.
 
 Timings are medians over repeated calls after warm-up, measured in one process side by side;
 they are reported together with :func:`machine_info` so every number names the machine it came
@@ -7,6 +7,7 @@ from.
 
 from __future__ import annotations
 
+import dataclasses
 import os
 import platform
 import statistics
@@ -113,6 +114,133 @@ def bench_energy(
     }
 
 
+FIT_VARIANTS: dict[str, dict[str, bool]] = {
+    "eager": {"compile": False, "fused_adam": False},
+    "fused": {"compile": False, "fused_adam": True},
+    "compiled_fused": {"compile": True, "fused_adam": True},
+}
+"""The fitter settings `redsim bench fit` compares: FitConfig ``compile`` and ``fused_adam`` values by name."""
+
+
+def bench_fit(scene: Scene, config: Any, *, steps: int = 20, warmup: int = 3, seed: int = 0) -> dict[str, Any]:
+    """Median wall time of one step of :func:`redsim.trainers.fit_subspace` with ``config``.
+
+    The real fit runs for ``warmup + steps`` steps (no checkpoints, no progress bar); a callback
+    stamps the end of every step, and the timed steps are the last ``steps``. A step is the latent
+    sample, the loss (MLP forward, scene energy, pair term), its backward and the Adam step.
+
+    Args:
+        scene: The scene (fitted in ``config.dtype`` on ``config.device``).
+        config: A :class:`redsim.trainers.FitConfig`; ``steps`` and ``checkpoint_every`` are replaced.
+        steps: Timed steps.
+        warmup: Untimed steps first (at least 1; a compiled fit compiles in its first step).
+        seed: Seed of the fit.
+
+    Returns:
+        ``scene``, ``n``, ``d``, ``batch``, ``dtype``, ``device``, ``compile``, ``fused_adam``,
+        ``steps``, ``warmup``, ``times_s`` (each timed step), ``median_s``, ``min_s``, ``max_s``,
+        ``first_step_s`` (call to end of step 1: setup, compilation and one step), ``startup_s``
+        (``first_step_s - median_s``: the one-off cost, mostly compilation), ``final_loss`` and
+        ``graphs_compiled_timed`` (torch.compile graphs compiled during the timed steps; 0 unless
+        something recompiles per step).
+
+    Raises:
+        ValueError: if ``steps`` or ``warmup`` is below 1.
+    """
+    from torch._dynamo.utils import counters
+
+    from redsim.trainers import fit_subspace
+
+    if steps < 1 or warmup < 1:
+        raise ValueError(f"steps and warmup must be >= 1, got steps={steps}, warmup={warmup}")
+    config = dataclasses.replace(config, steps=warmup + steps, checkpoint_every=0)
+    device = torch.device(config.device)
+    stamps: list[float] = []
+    graphs: list[int] = []
+
+    def stamp(_step: int, _terms: dict[str, float]) -> None:
+        _sync(device)
+        stamps.append(time.perf_counter())
+        graphs.append(counters["stats"]["unique_graphs"])
+
+    start = time.perf_counter()
+    result = fit_subspace(scene, config, seed=seed, progress=False, callbacks=[stamp])
+    times = [b - a for a, b in zip(stamps[warmup - 1 : -1], stamps[warmup:], strict=True)]
+    median = statistics.median(times)
+    return {
+        "scene": scene.name,
+        "n": scene.free_dof_count,
+        "d": config.latent_dim,
+        "batch": config.batch_size,
+        "dtype": config.dtype,
+        "device": config.device,
+        "compile": config.compile,
+        "fused_adam": config.fused_adam,
+        "steps": steps,
+        "warmup": warmup,
+        "times_s": times,
+        "median_s": median,
+        "min_s": min(times),
+        "max_s": max(times),
+        "first_step_s": stamps[0] - start,
+        "startup_s": stamps[0] - start - median,
+        "final_loss": result.history[-1]["loss"],
+        "graphs_compiled_timed": graphs[-1] - graphs[warmup - 1],
+    }
+
+
+def bench_fit_variants(
+    scene: Scene,
+    config: Any,
+    *,
+    variants: dict[str, dict[str, Any]] = FIT_VARIANTS,
+    steps: int = 20,
+    warmup: int = 3,
+    rounds: int = 2,
+    seed: int = 0,
+) -> dict[str, dict[str, Any]]:
+    """:func:`bench_fit` of several settings of ``config``, interleaved so that load changes hit all alike.
+
+    Each of ``rounds`` rounds runs every variant (in reverse order every other round) for
+    ``ceil(steps / rounds)`` timed steps after ``warmup`` untimed ones; the timed steps of all
+    rounds are pooled. Compilation happens in the first round; later rounds reuse the compiled code.
+
+    Args:
+        scene: The scene.
+        config: The :class:`redsim.trainers.FitConfig` the variants modify.
+        variants: Name -> FitConfig fields replaced (default :data:`FIT_VARIANTS`).
+        steps: Timed steps per variant, over all rounds.
+        warmup: Untimed steps at the start of every round.
+        rounds: Rounds (at least 1).
+        seed: Seed of the fits.
+
+    Returns:
+        Name -> the first round's :func:`bench_fit` result (its ``first_step_s`` and ``startup_s``
+        hold the compile) with ``steps``, ``times_s``, ``median_s``, ``min_s``, ``max_s`` and
+        ``graphs_compiled_timed`` over all rounds, and ``rounds``.
+    """
+    if rounds < 1:
+        raise ValueError(f"rounds must be >= 1, got {rounds}")
+    per_round = -(-steps // rounds)
+    names = list(variants)
+    results: dict[str, dict[str, Any]] = {}
+    for r in range(rounds):
+        for name in names if r % 2 == 0 else names[::-1]:
+            run = bench_fit(
+                scene, dataclasses.replace(config, **variants[name]), steps=per_round, warmup=warmup, seed=seed
+            )
+            if name not in results:
+                results[name] = {**run, "rounds": rounds}
+                continue
+            pooled = results[name]
+            pooled["times_s"] = pooled["times_s"] + run["times_s"]
+            pooled["graphs_compiled_timed"] += run["graphs_compiled_timed"]
+    for pooled in results.values():
+        times = pooled["times_s"]
+        pooled.update(steps=len(times), median_s=statistics.median(times), min_s=min(times), max_s=max(times))
+    return results
+
+
 def compare_subspaces(
     scene: Scene,
     neural: torch.nn.Module,
@@ -136,11 +264,14 @@ def compare_subspaces(
         samples: Latent samples of the energy, stretch and strain statistics.
         seed: Seed of samples and loads.
 
+    Scenes with known reference states (the bistable bar's two buckled equilibria,
+    :func:`redsim.metrics.buckled_states`) also get :func:`redsim.metrics.reach_error` for each method, under ``"reach"``.
+
     Returns:
         ``{"neural": ..., "modes": ..., "modal_derivatives": ...}``, each an evaluate_subspace dict.
     """
     from redsim.baselines import modal_analysis, modal_derivatives
-    from redsim.metrics import evaluate_subspace
+    from redsim.metrics import evaluate_subspace, reach_error
 
     dim = int(neural.latent_dim)
     start = time.perf_counter()
@@ -149,6 +280,7 @@ def compare_subspaces(
     start = time.perf_counter()
     derivatives = modal_derivatives(scene, dim, sigma=sigma, rest=modes.offset)
     derivatives_seconds = modes_seconds + time.perf_counter() - start
+    targets = _reference_states(scene)
     out: dict[str, dict[str, Any]] = {}
     for name, subspace, seconds in (
         ("neural", neural, float(getattr(neural, "metadata", {}).get("fit_seconds", float("nan")))),
@@ -156,5 +288,15 @@ def compare_subspaces(
         ("modal_derivatives", derivatives, derivatives_seconds),
     ):
         result = evaluate_subspace(scene, subspace, sigma=sigma, loads_count=loads_count, samples=samples, seed=seed)
+        if targets is not None:
+            result["reach"] = reach_error(scene, subspace, targets, seed=seed)
         out[name] = {**result, "build_seconds": seconds}
     return out
+
+
+def _reference_states(scene: Scene) -> list[torch.Tensor] | None:
+    """States a subspace of this scene should contain (bistable_bar: both buckled equilibria), or None."""
+    from redsim import metrics
+
+    builder = {"bistable_bar": metrics.buckled_states}.get(scene.name)
+    return None if builder is None else builder(scene)

@@ -11,6 +11,7 @@ produced NaN or inf.
 from __future__ import annotations
 
 import argparse
+import dataclasses
 import json
 import logging
 import math
@@ -25,7 +26,7 @@ import torch
 
 import redsim
 from redsim.scene import Scene
-from redsim.subspace import checkpoint_path
+from redsim.subspace import checkpoint_path, periodic_latents, sample_latents
 
 EXIT_OK = 0
 EXIT_SCENE_FAILED = 1
@@ -351,6 +352,7 @@ TABLE1_SCENES = (
 
 
 def _cmd_bench_subspace(args: argparse.Namespace) -> int:
+    from redsim import pretrained
     from redsim.bench import compare_subspaces, machine_info
     from redsim.subspace import CheckpointError, load_subspace
     from redsim.trainers import FitConfig, fit_subspace
@@ -364,14 +366,20 @@ def _cmd_bench_subspace(args: argparse.Namespace) -> int:
     rows = []
     for name in names:
         scene = _build_scene(name)
-        config = FitConfig(**{**preset(name), "steps": args.steps})
-        stem = folder / f"{name}_d{config.latent_dim}_s{args.steps}"
-        neural = None
-        if checkpoint_path(stem, ".pt").is_file() and not args.refit:
-            try:
-                neural = load_subspace(checkpoint_path(stem, ".pt"), scene=scene)
-            except CheckpointError as err:
-                _warn(f"refitting {name}: {err}")
+        overrides = {} if args.steps is None else {"steps": args.steps}
+        config = FitConfig(**{**preset(name), **overrides})
+        stem = folder / (name if args.steps is None else f"{name}_s{args.steps}")
+        candidates = [checkpoint_path(stem, ".pt")]
+        if args.steps is None and name in pretrained.names():
+            candidates.append(pretrained.path(name))
+        neural, source = None, str(candidates[0])
+        for path in candidates if not args.refit else []:
+            if path.is_file():
+                try:
+                    neural, source = load_subspace(path, scene=scene), str(path)
+                    break
+                except CheckpointError as err:
+                    _warn(f"not using {path}: {err}")
         if neural is None:
             result = fit_subspace(
                 scene,
@@ -382,16 +390,19 @@ def _cmd_bench_subspace(args: argparse.Namespace) -> int:
                 command=fit_command(scene, config, args.seed, stem),
             )
             neural = result.subspace
+        fit = neural.metadata["fit"]
         metrics = compare_subspaces(
-            scene, neural, sigma=config.sigma, loads_count=args.loads, samples=args.samples, seed=args.seed
+            scene, neural, sigma=fit["sigma"], loads_count=args.loads, samples=args.samples, seed=args.seed
         )
         row = {
             "scene": name,
             "n": scene.free_dof_count,
-            "d": config.latent_dim,
-            "steps": args.steps,
+            "d": int(neural.latent_dim),
+            "steps": fit["steps"],
+            "sigma": fit["sigma"],
+            "lam": fit["lam"],
             "fit_seconds": neural.metadata.get("fit_seconds"),
-            "checkpoint": str(checkpoint_path(stem, ".pt")),
+            "checkpoint": source,
             "methods": metrics,
         }
         rows.append(row)
@@ -412,15 +423,34 @@ def _metric(result: dict[str, Any], *path: str) -> float:
 
 
 def _subspace_row(row: dict[str, Any]) -> str:
-    lines = [f"{row['scene']}  n={row['n']}  d={row['d']}  steps={row['steps']}  fit {row['fit_seconds']:.0f} s"]
+    lines = [
+        f"{row['scene']}  n={row['n']}  d={row['d']}  sigma={row['sigma']:g}  lam={row['lam']:g}  "
+        f"steps={row['steps']}  fit {row['fit_seconds']:.0f} s  ({row['checkpoint']})"
+    ]
     for method, result in row["methods"].items():
-        lines.append(
-            f"  {method:18s} excess energy {_metric(result, 'energy', 'excess_energy'):9.3g} J  "
-            f"stretch {_metric(result, 'stretch', 'mean'):7.3g}  "
+        line = (
+            f"  {method:18s} rel. energy {_metric(result, 'energy', 'relative_energy'):8.3g}  "
+            f"excess {_metric(result, 'energy', 'excess_energy'):9.3g} J  "
+            f"stretch {_metric(result, 'stretch', 'mean'):8.3g}  "
             f"load error {_metric(result, 'load_response', 'mean_error'):7.3g}  "
             f"strain {_metric(result, 'nonrigid_strain', 'mean'):8.3g}"
         )
+        if "reach" in result:
+            line += "  reach " + "/".join(f"{e:.3g}" for e in result["reach"]["errors"])
+        lines.append(line)
     return "\n".join(lines)
+
+
+def _machine_line(machine: dict[str, Any], device: str) -> str:
+    load = machine["load_average_1min"]
+    cpu = machine["processor"]
+    cpu = cpu if cpu == machine["machine"] else f"{cpu} ({machine['machine']})"
+    return (
+        f"machine: {cpu}, {machine['cpu_count']} CPUs"
+        + (f" (load {load:.2f})" if load is not None else "")
+        + f", torch {machine['torch']}, {machine['torch_threads']} threads, device {device}"
+        + (f" ({machine['cuda_device']})" if device.startswith("cuda") else "")
+    )
 
 
 def _cmd_bench_energy(args: argparse.Namespace) -> int:
@@ -451,15 +481,7 @@ def _cmd_bench_energy(args: argparse.Namespace) -> int:
     columns = [(d, b) for d in dtypes for b in batches]
     if not args.json:
         _out(f"energy + gradient wall time, median over up to {args.repeats} repeats (ms)")
-        load = machine["load_average_1min"]
-        cpu = machine["processor"]
-        cpu = cpu if cpu == machine["machine"] else f"{cpu} ({machine['machine']})"
-        _out(
-            f"machine: {cpu}, {machine['cpu_count']} CPUs"
-            + (f" (load {load:.2f})" if load is not None else "")
-            + f", torch {machine['torch']}, {machine['torch_threads']} threads, device {args.device}"
-            + (f" ({machine['cuda_device']})" if args.device.startswith("cuda") else "")
-        )
+        _out(_machine_line(machine, args.device))
         header = f"{'scene':<24} {'n':>8} " + " ".join(f"{f'f{d[5:]} B={b}':>12}" for d, b in columns)
         _out(header + "  repeats")
         _out("-" * (len(header) + 9))
@@ -479,6 +501,62 @@ def _cmd_bench_energy(args: argparse.Namespace) -> int:
     return EXIT_OK
 
 
+BENCH_FIT_SCENES = ("mini_chain", "chain", "bistable_bar", "cloth_ball", "stiff_body")
+
+
+def _cmd_bench_fit(args: argparse.Namespace) -> int:
+    from redsim.bench import bench_fit_variants, machine_info
+    from redsim.trainers import FitConfig
+    from redsim.trainers.presets import preset
+
+    names = _parse_list(args.scenes, "--scenes") if args.scenes else list(BENCH_FIT_SCENES)
+    for name in names:
+        _check_scene_name(name)
+    for flag in ("steps", "warmup", "rounds", "threads"):
+        if getattr(args, flag) < 1:
+            raise CliError(f"--{flag} must be >= 1, got {getattr(args, flag)}")
+    if args.batch < 2:
+        raise CliError(f"--batch must be >= 2, got {args.batch}")
+    if args.device.startswith("cuda") and not torch.cuda.is_available():
+        raise CliError("--device cuda requested but torch sees no CUDA device")
+    torch.set_num_threads(args.threads)
+    machine = machine_info()
+    if not args.json:
+        _out(
+            f"fit step wall time (ms), median of {args.steps} steps in {args.rounds} interleaved rounds, after "
+            f"{args.warmup} warm-up steps each; batch {args.batch}, {FitConfig().dtype}, scene presets"
+        )
+        _out(_machine_line(machine, args.device))
+        width = max(14, *(len(name) for name in names))
+        header = f"{'scene':<{width}} {'n':>6} {'eager':>8} {'fused':>8} {'x':>5} {'compiled':>9} {'x':>5}"
+        header += f" {'compile s':>10}"
+        _out(header)
+        _out("-" * len(header))
+    rows = []
+    for name in names:
+        scene = _build_scene(name)
+        config = FitConfig(**{**preset(name), "batch_size": args.batch, "device": args.device})
+        row = bench_fit_variants(scene, config, steps=args.steps, warmup=args.warmup, rounds=args.rounds)
+        rows.append({"scene": name, "n": scene.free_dof_count, "variants": row})
+        if not args.json:
+            eager, fused, compiled = (1e3 * row[v]["median_s"] for v in ("eager", "fused", "compiled_fused"))
+            _out(
+                f"{name:<{width}} {scene.free_dof_count:>6} {eager:>8.3g} {fused:>8.3g} {eager / fused:>5.2f} "
+                f"{compiled:>9.3g} {eager / compiled:>5.2f} {row['compiled_fused']['startup_s']:>10.1f}"
+            )
+        recompiled = row["compiled_fused"]["graphs_compiled_timed"]
+        if recompiled:
+            _warn(f"{name}: {recompiled} graph(s) were compiled during the timed steps (recompilation)")
+    if args.json:
+        _json_out({"machine": machine, "device": args.device, "rows": rows})
+    else:
+        _out(
+            "x: speed-up over eager (plain Adam); compile s: first compiled step minus a warm one "
+            "(the first compiled scene also pays torch.compile's start-up)"
+        )
+    return EXIT_OK
+
+
 # -- fitting and checkpoints -----------------------------------------------------------------
 # (flag, FitConfig field, type, help); the flags of `redsim fit` are generated from this table.
 _FIT_FLAGS: tuple[tuple[str, str, Any, str], ...] = (
@@ -494,7 +572,15 @@ _FIT_FLAGS: tuple[tuple[str, str, Any, str], ...] = (
     ("--checkpoint-every", "checkpoint_every", int, "steps between resumable checkpoints"),
     ("--dtype", "dtype", str, "float32 or float64"),
     ("--device", "device", str, "torch device"),
+    ("--fused-adam", "fused_adam", bool, "fused Adam (--no-fused-adam: plain Adam)"),
+    ("--compile", "compile", bool, "torch.compile the loss: faster steps after a compile of tens of seconds"),
 )
+
+
+def _fit_defaults() -> dict[str, Any]:
+    from redsim.trainers import FitConfig
+
+    return dataclasses.asdict(FitConfig())
 
 
 def _fit_config(args: argparse.Namespace, scene_name: str) -> Any:
@@ -590,7 +676,7 @@ def _cmd_inspect(args: argparse.Namespace) -> int:
 
 def _latent_samples(sub: Any, scene: Scene, count: int, seed: int) -> tuple[torch.Tensor, torch.Tensor | None]:
     generator = torch.Generator().manual_seed(seed)
-    z = torch.randn(count, sub.latent_dim, generator=generator)
+    z = sample_latents(count, sub.latent_dim, periodic_latents(sub), generator=generator)
     cond = None
     if getattr(getattr(sub, "config", None), "condition_dim", 0):
         assert scene.condition_space is not None  # a conditional map was fitted to a conditional scene
@@ -721,8 +807,13 @@ def build_parser() -> argparse.ArgumentParser:
     )
     p.add_argument("scene", help="catalog name")
     p.add_argument("--param", action="append", default=[], metavar="KEY=VALUE", help="scene build parameter")
+    fit_defaults = _fit_defaults()
     for flag, field, kind, text in _FIT_FLAGS:
-        p.add_argument(flag, dest=field, type=kind, default=None, help=f"{text} (default: scene preset)")
+        if kind is bool:
+            default = "on" if fit_defaults[field] else "off"
+            p.add_argument(flag, dest=field, action=argparse.BooleanOptionalAction, help=f"{text} (default: {default})")
+        else:
+            p.add_argument(flag, dest=field, type=kind, default=None, help=f"{text} (default: scene preset)")
     p.add_argument("--periodic", default=None, metavar="I,J", help="latent indices that are angles")
     p.add_argument("--cond", action="store_true", help="fit a conditional subspace over the scene's conditions")
     p.add_argument("--seed", type=int, default=0, help="seed of the initialisation and sampling (default 0)")
@@ -783,21 +874,43 @@ def build_parser() -> argparse.ArgumentParser:
         "subspace",
         help="neural subspace vs linear modes vs modal derivatives",
         description=(
-            "For each scene: fit a neural subspace with the scene's preset (or reuse DIR/SCENE_dD_sSTEPS.pt), "
-            "build linear modes and modal derivatives of the same d and sigma, and print for each the energy of "
-            "samples relative to the seed's, the metric stretch, the load-response error and (FEM) the non-rigid "
-            "strain."
+            "For each scene, take a neural subspace: DIR/SCENE.pt if it exists, else the one shipped with redsim "
+            "(environment scenes), else fit one with the scene's preset into DIR/SCENE; with --steps N, "
+            "DIR/SCENE_sN.pt or a fit of N steps. Build linear modes and modal derivatives of the same d and sigma, "
+            "and print for each the energy of samples relative to the seed's (0: rest, 1: seed) and in J above the "
+            "rest state, the metric stretch, the load-response error, (FEM) the non-rigid strain and (bistable_bar) "
+            "how close the subspace comes to each buckled state."
         ),
     )
     p.add_argument("--scenes", metavar="A,B,...", help="comma-separated scenes (default: the eleven of Table 1)")
-    p.add_argument("--steps", type=int, default=10_000, help="fitting steps (default 10000)")
+    p.add_argument("--steps", type=int, help="fit (or reuse) N-step subspaces instead (default: the presets')")
     p.add_argument("--checkpoints", default="subspaces", metavar="DIR", help="where fits are kept (default subspaces)")
-    p.add_argument("--refit", action="store_true", help="fit even if a checkpoint exists")
+    p.add_argument("--refit", action="store_true", help="fit even if a checkpoint exists (shipped ones included)")
     p.add_argument("--loads", type=int, default=8, help="loads of the load-response error (default 8)")
     p.add_argument("--samples", type=int, default=256, help="latent samples per statistic (default 256)")
     p.add_argument("--seed", type=int, default=0, help="seed of fits, samples and loads (default 0)")
     p.add_argument("--json", action="store_true", help="print one JSON document")
     p.set_defaults(func=_cmd_bench_subspace)
+
+    p = bench.add_parser(
+        "fit",
+        help="time fitting steps: eager vs fused Adam vs torch.compile",
+        description=(
+            "For each scene, with its preset: the median wall time of a fitting step (latent sample, loss, "
+            "backward, Adam step) of the real fit loop, for eager + plain Adam, eager + fused Adam and compiled "
+            "+ fused Adam, side by side in one process (interleaved rounds, so that other load on the machine hits "
+            "all three alike), and the one-off compile time."
+        ),
+    )
+    p.add_argument("--scenes", metavar="A,B,...", help=f"comma-separated (default: {','.join(BENCH_FIT_SCENES)})")
+    p.add_argument("--steps", type=int, default=20, help="timed steps per variant, over all rounds (default 20)")
+    p.add_argument("--warmup", type=int, default=3, help="untimed steps per round, the compile included (default 3)")
+    p.add_argument("--rounds", type=int, default=2, help="interleaved rounds of all variants (default 2)")
+    p.add_argument("--batch", type=int, default=32, help="latent samples per step (default 32)")
+    p.add_argument("--threads", type=int, default=1, help="torch intra-op threads (default 1)")
+    p.add_argument("--device", default="cpu", help="torch device (default cpu)")
+    p.add_argument("--json", action="store_true", help="print one JSON document on stdout")
+    p.set_defaults(func=_cmd_bench_fit)
     return parser
 
 

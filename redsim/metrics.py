@@ -18,7 +18,9 @@ map with ``config.condition_dim > 0`` is evaluated at ``cond``) and evaluates it
 - :func:`evaluate_subspace`: all of the above as one JSON-serializable dict.
 
 Full-space equilibria are the expensive part; they are cached per scene content, condition
-and loads (:func:`clear_cache`), so comparing several subspaces of one scene solves the full
+and loads (:func:`clear_cache`), in memory and on disk (:func:`cache_directory`: under
+``$REDSIM_CACHE``, by default ``~/.cache/redsim``; ``REDSIM_CACHE=0`` turns the disk cache off),
+so comparing several subspaces of one scene, in one process or across runs, solves the full
 space once.
 """
 
@@ -28,9 +30,12 @@ import dataclasses
 import hashlib
 import logging
 import math
+import os
+import tempfile
 import time
 from collections import OrderedDict
 from collections.abc import Callable, Mapping, Sequence
+from pathlib import Path
 from typing import Any
 
 import numpy as np
@@ -39,12 +44,12 @@ import scipy.sparse.linalg
 import torch
 from torch import Tensor
 
-from redsim.effects.elastic import NeoHookean
+import redsim
+from redsim.effects.elastic import NeoHookean, deformation_gradient
 from redsim.hessian import energy_hessian
 from redsim.integrators import (
     FullSpace,
-    FullState,
-    ImplicitEuler,
+    Inertia,
     LatentSpace,
     PotentialObjective,
     latent_equilibrium,
@@ -52,7 +57,8 @@ from redsim.integrators import (
     static_equilibrium,
 )
 from redsim.scene import LoadsLike, Scene
-from redsim.solvers import SHIFT_FLOOR, SolveInfo, convergence_threshold
+from redsim.solvers import SHIFT_FLOOR, SolveInfo, convergence_threshold, newton
+from redsim.subspace import periodic_latents, sample_latents
 
 logger = logging.getLogger(__name__)
 
@@ -70,43 +76,89 @@ Contact penalties are only C1: the 24-link chain's gradient stalls near 1e-6 of 
 """
 NEWTON_ITER = 300
 """Newton iterations of the first attempt at a full-space equilibrium (relaxation takes over after them)."""
+NEWTON_REUSE = 20
+"""Most chord steps per Newton iteration of the full-space solves (``reuse`` of :func:`redsim.solvers.newton`)."""
 RELAX_STEPS = 200
 """Most proximal steps of a relaxation."""
+ESCAPES = 3
+"""Most escapes from saddle points per full-space equilibrium (see :func:`_solve_full`)."""
 RELAX_MOVE = 0.01
 """Proximal steps move the fastest DOF about this fraction of the scene size (4x more is rejected)."""
 CHUNK = 256
 """Latent samples mapped and evaluated per batch (bounds memory on large scenes)."""
 CACHE_SIZE = 256
-"""Full-space equilibria kept in the cache (least recently used dropped first)."""
+"""Full-space equilibria kept in the in-memory cache (least recently used dropped first)."""
+CACHE_ENV = "REDSIM_CACHE"
+"""Environment variable naming redsim's cache folder; "0", "off", "false", "no" or "" turn the disk cache off."""
+DISK_CACHE_VERSION = 1
+"""Part of every disk cache key (with redsim's version): bump it when the full-space solver or an
+energy changes what the solves return without changing the scene's data (the digest covers data, not code)."""
 
 Subspace = Callable[..., Tensor]
 _CACHE: OrderedDict[tuple[str, ...], tuple[Tensor, bool, float]] = OrderedDict()
 
 
-def pair_log_ratios(y: Tensor, z: Tensor, scene: Scene, sigma: float) -> Tensor:
+def pair_log_ratios(y: Tensor, z: Tensor, scene: Scene, sigma: float, periodic: Sequence[int] = ()) -> Tensor:
     """log(|y_i - y_j|_M / (sigma |z_i - z_j|)) for all pairs i < j, shape [B(B-1)/2].
 
     M-norm distances come from the B x B Gram matrix of the centred batch (never a B x B x n
-    tensor; centring keeps small differences in float32).
+    tensor; centring keeps small differences in float32). Periodic latents are angles: their
+    difference is wrapped into [-pi, pi) (the distance along the circle), so two samples
+    2 pi apart count as the same point.
 
     Args:
         y: Map outputs, shape [B, n].
         z: Latents, shape [B, d].
         scene: Supplies the mass matrix (in y's dtype).
         sigma: Scale σ [the unit of |q|_M per unit z].
+        periodic: Indices of the latents that are angles.
     """
     y = y - y.mean(0, keepdim=True)
     gram = y @ scene.mass_matvec(y).T
-    sq = gram.diagonal()
+    diag = torch.arange(y.shape[0], device=y.device)
+    sq = gram[diag, diag]  # not gram.diagonal(): its torch.compile lowering warns in torch 2.13
     i, j = torch.triu_indices(y.shape[0], y.shape[0], offset=1, device=y.device)
     dq2 = (sq[i] + sq[j] - 2.0 * gram[i, j]).clamp_min(torch.finfo(y.dtype).tiny)
-    dz2 = ((z[i] - z[j]) ** 2).sum(-1)
-    return 0.5 * (torch.log(dq2) - torch.log(dz2)) - torch.log(torch.as_tensor(sigma, dtype=y.dtype))
+    dz = z[i] - z[j]
+    if periodic:
+        angle = torch.zeros(z.shape[-1], dtype=torch.bool, device=z.device)
+        angle[list(periodic)] = True
+        dz = torch.where(angle, torch.remainder(dz + math.pi, 2.0 * math.pi) - math.pi, dz)
+    dz2 = (dz**2).sum(-1).clamp_min(torch.finfo(z.dtype).tiny)  # equal samples do occur (d = 1, float32)
+    return 0.5 * (torch.log(dq2) - torch.log(dz2)) - math.log(sigma)
 
 
-def clear_cache() -> None:
-    """Forget the cached full-space equilibria."""
+def clear_cache(*, disk: bool = False) -> None:
+    """Forget the cached full-space equilibria: in memory, and with ``disk=True`` also on disk."""
     _CACHE.clear()
+    directory = cache_directory() if disk else None
+    if directory is not None and directory.is_dir():
+        for path in directory.glob("*.npz"):
+            path.unlink(missing_ok=True)
+
+
+def cache_directory() -> Path | None:
+    """The folder of the disk cache of full-space equilibria, or None when it is off.
+
+    ``$REDSIM_CACHE/equilibria`` when the variable names a folder; off when it is "0", "off",
+    "false", "no" or empty; by default ``$XDG_CACHE_HOME/redsim/equilibria``, else
+    ``~/.cache/redsim/equilibria``. Read at every use, so tests can point it elsewhere.
+
+    Entries are keyed like the in-memory cache (scene content digest, condition, load) plus
+    redsim's version and the solver settings (DISK_CACHE_VERSION, FULL_TOL, NEWTON_ITER,
+    NEWTON_REUSE, RELAX_STEPS, RELAX_MOVE, ESCAPES), one ``.npz`` file each, written atomically;
+    unreadable or mismatched files are ignored with a warning and solved again. Non-converged
+    results are kept too (they say so). The digest covers the scene's data, not the code of its
+    energies: after changing an energy's code, bump DISK_CACHE_VERSION or call
+    ``clear_cache(disk=True)``.
+    """
+    value = os.environ.get(CACHE_ENV)
+    if value is not None:
+        if value.strip().lower() in ("", "0", "off", "false", "no"):
+            return None
+        return Path(value).expanduser() / "equilibria"
+    base = os.environ.get("XDG_CACHE_HOME") or os.path.join(os.path.expanduser("~"), ".cache")
+    return Path(base) / "redsim" / "equilibria"
 
 
 def energy_stats(
@@ -117,7 +169,7 @@ def energy_stats(
     Energies carry arbitrary constants (gravity's zero level), so only differences mean
     anything. The reference points are the seed q_seed and the rest equilibrium q_rest, the
     full-space static equilibrium without loads reached from the seed (Newton, with the
-    relaxation fallback of :func:`load_response_error`; cached):
+    relaxation fallback and saddle escapes of :func:`load_response_error`; cached):
 
     - ``excess_energy`` = mean E(f(z)) - E(q_rest) [J], >= 0 unless a sample finds a lower basin;
     - ``relative_energy`` = excess_energy / (E(q_seed) - E(q_rest)), unit-free: 0 when the states
@@ -141,7 +193,7 @@ def energy_stats(
     _check_count("samples", samples, 1)
     space = _latent_space(scene, subspace, cond)
     scene64 = space.scene
-    z = _latents(samples, space.latent_dim, seed)
+    z = _latents(samples, space, seed)
     energies = torch.cat([scene64.energy(q, cond=cond) for q in _configurations(space, z)])
     seed_energy = float(scene64.energy(scene64.q_seed.unsqueeze(0), cond=cond)[0])
     rest, rest_converged, _ = _rest_equilibrium(scene64, cond)
@@ -189,9 +241,9 @@ def stretch_stats(
     if not (math.isfinite(sigma) and sigma > 0.0):
         raise ValueError(f"sigma must be finite and > 0, got {sigma!r}")
     space = _latent_space(scene, subspace, cond)
-    z = _latents(samples, space.latent_dim, seed)
+    z = _latents(samples, space, seed)
     y = torch.cat(list(_configurations(space, z)))
-    log_ratio = pair_log_ratios(y, z, space.scene, sigma)
+    log_ratio = pair_log_ratios(y, z, space.scene, sigma, periodic_latents(space.subspace))
     stretch = torch.exp(log_ratio)
     return {
         "samples": samples,
@@ -225,7 +277,8 @@ def load_response_error(
 
     For each load l: the full-space equilibrium q*_l (from the rest equilibrium q_rest, the
     unloaded equilibrium reached from the seed; both cached, both by Newton with a proximal
-    relaxation fallback, to a relative force balance of FULL_TOL) and the subspace equilibrium
+    relaxation fallback, to a relative force balance of FULL_TOL, and left again where the
+    energy curves down, so saddles do not count as equilibria) and the subspace equilibrium
     f(z*_l) (:func:`redsim.integrators.latent_equilibrium` from z = 0 and from ``restarts``
     seeded z ~ N(0, I), keeping the lowest potential E(f(z); l)). The error is relative to the
     load's own response:
@@ -294,7 +347,7 @@ def load_response_error(
         if not load_list:
             raise ValueError("loads must not be empty")
     mass = scene64.mass_matrix_scipy()
-    size = math.sqrt(float(mass.diagonal().sum())) * scene64.extent()
+    size = _scene_size(scene64, mass)
     starts = [
         space.origin,
         *(torch.randn(space.latent_dim, generator=generator, dtype=torch.float64) for _ in range(restarts)),
@@ -381,7 +434,7 @@ def nonrigid_strain(
         raise ValueError(
             f"scene {scene.name!r} has no neo-Hookean (FEM) effects; its effects are {[e.name for e in scene.effects]}"
         )
-    z = _latents(samples, space.latent_dim, seed)
+    z = _latents(samples, space, seed)
     strain = torch.cat([_mean_strain(scene64, fem, q) for q in _configurations(space, z)])
     seed_strain = float(_mean_strain(scene64, fem, scene64.q_seed.unsqueeze(0))[0])
     return {
@@ -392,6 +445,99 @@ def nonrigid_strain(
         "max": float(strain.max()),
         "seed_strain": seed_strain,
     }
+
+
+def reach_error(
+    scene: Scene,
+    subspace: Subspace,
+    targets: Sequence[Tensor],
+    *,
+    samples: int = 4096,
+    refine: int = 4,
+    seed: int = 0,
+    cond: Tensor | None = None,
+) -> dict[str, Any]:
+    """How close the subspace comes to given configurations: min_z |f(z) - q_t|_M per target.
+
+    The search samples z ~ N(0, 4 I) (``samples`` of them, wider than the fitting distribution
+    so tails count), then refines the ``refine`` nearest by L-BFGS over z. The error is relative
+    to the target's distance from the seed, |q_t - q_seed|_M: 0 means the subspace contains
+    q_t, 1 is what a subspace that only holds the seed scores.
+
+    Args:
+        scene: The scene.
+        subspace: The map (module doc).
+        targets: Configurations q_t [n] (float64 or castable).
+        samples: Latent samples of the coarse search (>= 1).
+        refine: Nearest samples refined by L-BFGS (>= 1).
+        seed: Seed of the samples.
+        cond: Condition of a conditional map; default: the scene's.
+
+    Returns:
+        ``errors`` (relative, per target), ``distances`` (|f(z*) - q_t|_M [kg^1/2 m]),
+        ``latents`` (z* per target), ``samples``, ``seed``.
+    """
+    _check_count("samples", samples, 1)
+    _check_count("refine", refine, 1)
+    space = _latent_space(scene, subspace, cond)
+    scene64 = space.scene
+    mass = scene64.mass_matrix_scipy()
+    z = 2.0 * _latents(samples, space, seed)
+    states = torch.cat(_configurations(space, z))
+    rows = []
+    for target in targets:
+        target = target.detach().to(states)
+        gaps = (states - target).numpy()
+        coarse = np.einsum("bi,bi->b", gaps, (mass @ gaps.T).T)
+        best: tuple[float, Tensor] = (math.inf, z[0])
+        for start in z[np.argsort(coarse)[:refine]]:
+            best = min(best, _nearest_latent(space, mass, target, start), key=lambda pair: pair[0])
+        scale = _m_norm(mass, target - scene64.q_seed)
+        rows.append((best[0], best[0] / max(scale, DISPLACEMENT_FLOOR * _scene_size(scene64, mass)), best[1]))
+    return {
+        "errors": [r[1] for r in rows],
+        "distances": [r[0] for r in rows],
+        "latents": [r[2].tolist() for r in rows],
+        "samples": samples,
+        "seed": seed,
+    }
+
+
+def buckled_states(scene: Scene, *, bump: float = 0.01, cond: Tensor | None = None) -> list[Tensor]:
+    """The two buckled equilibria of a compressed bar (``bistable_bar``): arched up and down.
+
+    Each is the full-space static equilibrium (tolerance FULL_TOL) reached from the seed with
+    every free DOF along the scene's last axis (y) moved by +-bump * extent * sin(pi s), s in
+    [0, 1] the particle's position along x between the pins.
+
+    Args:
+        scene: A 2D or 3D scene whose seed is a straight compressed bar along x.
+        bump: Size of the initial arch, relative to the scene's extent.
+        cond: Condition of the energy; default: the scene's.
+
+    Returns:
+        [q_up, q_down], each [n] float64.
+
+    Raises:
+        RuntimeError: a solve did not converge, or both starts reached the same state.
+    """
+    scene64 = scene if scene.dtype == torch.float64 else scene.to(dtype=torch.float64)
+    positions = scene64.full_positions(scene64.q_seed.unsqueeze(0))[0].reshape(-1, scene64.dim)
+    x = positions[:, 0]
+    s = (x - x.min()) / (x.max() - x.min())
+    shape = torch.zeros_like(positions)
+    shape[:, -1] = torch.sin(math.pi * s)
+    direction = scene64.dof_map.restrict(shape.reshape(1, -1))[0] * bump * scene64.extent()
+    states = []
+    for sign in (1.0, -1.0):
+        q, info = static_equilibrium(scene64, None, cond, q0=scene64.q_seed + sign * direction, tol=FULL_TOL)
+        if not info.converged:
+            raise RuntimeError(f"buckled state of {scene.name!r} did not converge: {info.message}")
+        states.append(q.detach())
+    mass = scene64.mass_matrix_scipy()
+    if _m_norm(mass, states[0] - states[1]) < _m_norm(mass, direction):  # closer than the two starts were
+        raise RuntimeError(f"scene {scene.name!r}: both bumps reached the same equilibrium (not bistable)")
+    return states
 
 
 def evaluate_subspace(
@@ -463,10 +609,12 @@ def _latent_space(scene: Scene, subspace: Subspace, cond: Tensor | None) -> Late
     return LatentSpace(scene, subspace, cond=cond if map_condition_dim(subspace) else None)
 
 
-def _latents(samples: int, latent_dim: int, seed: int) -> Tensor:
-    """z ~ N(0, I), shape [samples, d], float64, from a generator seeded with ``seed``."""
+def _latents(samples: int, space: LatentSpace, seed: int) -> Tensor:
+    """Latent samples [samples, d] of the space's map (:func:`redsim.subspace.sample_latents`), float64, seeded."""
     generator = torch.Generator().manual_seed(seed)
-    return torch.randn(samples, latent_dim, generator=generator, dtype=torch.float64)
+    return sample_latents(
+        samples, space.latent_dim, periodic_latents(space.subspace), generator=generator, dtype=torch.float64
+    )
 
 
 def _configurations(space: LatentSpace, z: Tensor) -> list[Tensor]:
@@ -489,11 +637,34 @@ def _mean_strain(scene: Scene, effects: list[NeoHookean], q: Tensor) -> Tensor:
     for effect in effects:
         D = effect.dim
         xe = x[:, effect.element_dofs].reshape(q.shape[0], -1, D + 1, D)
-        F = torch.einsum("btvi,tvj->btij", xe, effect.shape_gradients)  # F = sum_v x_v (x) G_v
+        F = deformation_gradient(xe, effect.shape_gradients)
         strain = torch.linalg.matrix_norm(F.transpose(-1, -2) @ F - torch.eye(D, dtype=F.dtype)) / 2.0
         total = total + strain @ effect.rest_volume
         volume += float(effect.rest_volume.sum())
     return total / volume
+
+
+def _scene_size(scene: Scene, mass: Any) -> float:
+    """S = sqrt(sum diag M) L [kg^1/2 m], the M-norm size of the scene (L its largest extent)."""
+    return math.sqrt(float(mass.diagonal().sum())) * scene.extent()
+
+
+def _nearest_latent(space: LatentSpace, mass: Any, target: Tensor, start: Tensor) -> tuple[float, Tensor]:
+    """Local minimum of |f(z) - target|_M over z from ``start``: (distance [kg^1/2 m], z [d])."""
+    z = start.detach().clone().requires_grad_(True)
+    optimizer = torch.optim.LBFGS([z], max_iter=200, line_search_fn="strong_wolfe")
+
+    def closure() -> Tensor:
+        optimizer.zero_grad()
+        gap = space.configuration(z.unsqueeze(0)) - target
+        value = (gap * space.scene.mass_matvec(gap)).sum()
+        value.backward()
+        return value
+
+    optimizer.step(closure)
+    with torch.no_grad():
+        q = space.configuration(z.unsqueeze(0))[0]
+    return _m_norm(mass, q - target), z.detach()
 
 
 def _packed(scene: Scene, load: LoadsLike) -> Tensor:
@@ -555,7 +726,8 @@ def _full_equilibrium(
     """Full-space static equilibrium under ``load`` [H, D] from ``start`` (None: the seed), cached.
 
     The key is the scene's content, the condition and the load (loaded solves always start at
-    the rest equilibrium, itself a function of the scene and condition).
+    the rest equilibrium, itself a function of the scene and condition). Misses of the
+    in-memory cache look in the disk cache (:func:`cache_directory`) before solving.
     """
     packed_cond = scene.pack_condition(cond, 1, scene.q_seed)
     key = (
@@ -566,48 +738,155 @@ def _full_equilibrium(
     if key in _CACHE:
         _CACHE.move_to_end(key)
         return _CACHE[key]
-    _CACHE[key] = _solve_full(scene, load, cond, scene.q_seed if start is None else start)
+    settings = (
+        redsim.__version__,
+        DISK_CACHE_VERSION,
+        FULL_TOL,
+        NEWTON_ITER,
+        NEWTON_REUSE,
+        RELAX_STEPS,
+        RELAX_MOVE,
+        ESCAPES,
+    )
+    disk_key = "|".join([*map(repr, settings), *key])
+    directory = cache_directory()
+    path = None if directory is None else directory / f"{hashlib.sha256(disk_key.encode()).hexdigest()}.npz"
+    result = None if path is None else _read_entry(path, disk_key, scene.free_dof_count)
+    if result is None:
+        result = _solve_full(scene, load, cond, scene.q_seed if start is None else start)
+        if path is not None:
+            _write_entry(path, disk_key, result)
+    _CACHE[key] = result
     while len(_CACHE) > CACHE_SIZE:
         _CACHE.popitem(last=False)
-    return _CACHE[key]
+    return result
+
+
+def _read_entry(path: Path, key: str, n: int) -> tuple[Tensor, bool, float] | None:
+    """A disk cache entry (q [n], converged, energy), or None if there is none or it is unusable (warned)."""
+    if not path.is_file():
+        return None
+    try:
+        with np.load(path, allow_pickle=False) as data:
+            stored_key, q = str(data["key"]), np.array(data["q"], dtype=np.float64)
+            converged, energy = bool(data["converged"]), float(data["energy"])
+        if stored_key != key:
+            raise ValueError("the file belongs to another key")
+        if q.shape != (n,) or not np.all(np.isfinite(q)):
+            raise ValueError(f"q has shape {q.shape} or is not finite; expected [{n}]")
+    except Exception as error:  # any damage (truncated, not a zip, missing fields) means: solve again
+        logger.warning("ignoring unreadable equilibrium cache file %s (%s); solving again", path, error)
+        return None
+    logger.debug("full-space equilibrium from the disk cache %s", path)
+    return torch.from_numpy(q), converged, energy
+
+
+def _write_entry(path: Path, key: str, result: tuple[Tensor, bool, float]) -> None:
+    """Store a result atomically (temporary file, then rename); failures are warned, never raised."""
+    q, converged, energy = result
+    temporary: Path | None = None
+    try:
+        path.parent.mkdir(parents=True, exist_ok=True)
+        with tempfile.NamedTemporaryFile(dir=path.parent, prefix=".", suffix=".npz.tmp", delete=False) as file:
+            temporary = Path(file.name)
+            np.savez(
+                file,
+                key=np.array(key),
+                q=q.detach().cpu().numpy().astype(np.float64),
+                converged=np.array(bool(converged)),
+                energy=np.array(float(energy)),
+            )
+        temporary.chmod(0o644)  # a temporary file is private; the cache is not
+        os.replace(temporary, path)
+    except OSError as error:
+        logger.warning("could not write the equilibrium cache file %s (%s)", path, error)
+        if temporary is not None:
+            temporary.unlink(missing_ok=True)
 
 
 def _solve_full(scene: Scene, load: Tensor | None, cond: Tensor | None, start: Tensor) -> tuple[Tensor, bool, float]:
-    """Newton from ``start``; if it fails, proximal-point relaxation from ``start``.
+    """A stable full-space equilibrium under ``load`` reached from ``start``: (q [n], converged, E(q; load) [J]).
 
-    Newton can run away where the start feels little restoring force: a chain held only by
-    contact starts out of contact (or swings under a load), a Levenberg step is long, and the
-    links pass through each other and fall. The fallback relaxes by proximal steps
-    q <- argmin E(q) + |q - q_k|_M^2 / (2 h^2) (implicit Euler with the velocity zeroed), whose
-    move is bounded by h^2 times the net force: h starts where the fastest DOF moves
-    RELAX_MOVE L, doubles after a shorter move (near equilibrium the steps become Newton
-    steps) and halves, rejecting the step, after a move over 4 RELAX_MOVE L.
+    Converged means |dE/dq| <= FULL_TOL * max(|g(start)|, F), the rule of
+    :func:`static_equilibrium` (F: the summed force norms at ``start``), reached by
+    :func:`_descend` (Newton, then relaxation). A force balance can also hold near a saddle: the
+    24-link chain falling from its seed came to rest 1 J above its hanging minimum, balanced
+    with all links turned 7.5 degrees, where the unprojected Hessian had eigenvalues (over M) of
+    -1.7e4 1/s^2; the two-link chain's rest from its seed is such a saddle too. So a converged
+    point whose unprojected Hessian K has a direction of negative curvature (K + s M not
+    positive definite, s = SHIFT_FLOOR times the ratio of their diagonals, the shift of
+    :func:`_handle_magnitudes`) is left along that direction, to the side and distance (at most
+    the trust radius, halved until the energy drops) of lower energy, and solved again; at most
+    ESCAPES times. A point that still has negative curvature then is returned as converged
+    (the force balance holds) with a warning.
+    """
+    space = FullSpace(scene)
+    loads = scene.pack_loads(load, 1, scene.q_seed)
+    packed_cond = scene.pack_condition(cond, 1, scene.q_seed)
+    start = start.detach().clone()
+    objective = PotentialObjective(space, loads=loads, cond=packed_cond, inertia=None, force=None, reference=start)
+    threshold = convergence_threshold(
+        objective, FULL_TOL, float(torch.linalg.vector_norm(objective.value_and_grad(start)[1]))
+    )
+    q = start
+    for escape in range(ESCAPES + 1):
+        q, converged, energy = _descend(objective, q, threshold)
+        if not converged:
+            return q, False, energy
+        direction = _negative_curvature(scene, q, loads, packed_cond)
+        if direction is None:
+            return q, True, energy
+        if escape == ESCAPES:
+            break
+        lower = _lower_along(objective, q, energy, direction)
+        if lower is None:
+            logger.warning(
+                "full-space equilibrium of %s has negative curvature but no lower point along it", scene.name
+            )
+            return q, True, energy
+        logger.info("full-space equilibrium of %s is a saddle (E = %.10g J); leaving it", scene.name, energy)
+        q = lower
+    logger.warning("full-space equilibrium of %s is still a saddle after %d escapes", scene.name, ESCAPES)
+    return q, True, energy
+
+
+def _descend(objective: PotentialObjective, start: Tensor, threshold: float) -> tuple[Tensor, bool, float]:
+    """Newton from ``start`` to |g| <= threshold; if it fails, proximal-point relaxation from where Newton stopped.
+
+    Newton is :func:`redsim.solvers.newton` on the static potential (what
+    :func:`static_equilibrium` solves) with up to NEWTON_REUSE chord steps per Hessian, and
+    tol chosen so that its threshold is ``threshold``. It converges slowly where the projected
+    Hessian is much stiffer than the energy along soft modes (a chain's links twisting about
+    the vertical) and can stall. The fallback relaxes by proximal steps
+    q <- argmin E(q) + |q - q_k|_M^2 / (2 h^2) (implicit Euler with the velocity zeroed; each
+    step solved by Newton to 0.01 FULL_TOL), whose move is bounded by h^2 times the net force:
+    h starts where the fastest DOF moves RELAX_MOVE L, doubles after a shorter move (near
+    equilibrium the steps become Newton steps) and halves, rejecting the step, after a move
+    over 4 RELAX_MOVE L. It starts from Newton's last point, which is lower in energy than
+    ``start`` (descent only; the trust radius of static full-space solves keeps contact-held
+    links from passing through each other).
 
     Returns:
-        q [n]; converged (|dE/dq| <= FULL_TOL * F, the rule of :func:`static_equilibrium`); E(q; load) [J].
+        q [n]; converged (|dE/dq| <= threshold); E(q; load) [J].
     """
-    q, info = static_equilibrium(scene, load, cond, q0=start, tol=FULL_TOL, max_iter=NEWTON_ITER)
+    scene, space = objective.scene, objective.space
+    scale = max(float(torch.linalg.vector_norm(objective.value_and_grad(start)[1])), objective.force_scale)
+    tol = threshold / scale if scale > 0.0 else FULL_TOL
+    q, info = newton(objective, start, tol=tol, max_iter=NEWTON_ITER, reuse=NEWTON_REUSE)
     if info.converged:
         return q.detach().clone(), True, info.energy
     logger.info("full-space Newton on %s did not converge (%s); relaxing", scene.name, info.message)
-    space = FullSpace(scene)
-    objective = PotentialObjective(
-        space,
-        loads=scene.pack_loads(load, 1, scene.q_seed),
-        cond=scene.pack_condition(cond, 1, scene.q_seed),
-        inertia=None,
-        force=None,
-        reference=start,
-    )
-    energy, grad = objective.value_and_grad(start)
-    threshold = convergence_threshold(objective, FULL_TOL, float(torch.linalg.vector_norm(grad)))
+    q = q.detach().clone()
+    energy, grad = objective.value_and_grad(q)
     accel = scipy.sparse.linalg.spsolve(scene.mass_matrix_scipy().tocsc(), grad.numpy())
     limit = RELAX_MOVE * scene.extent()
     dt = math.sqrt(limit / max(float(np.abs(accel).max()), 1e-300))
-    q = start.detach().clone()
     for _ in range(RELAX_STEPS):
-        step = ImplicitEuler(space, dt, tol=0.01 * FULL_TOL)  # tighter than the outer test, or that stalls
-        trial = step.step(FullState(q, q, 0.0), load, cond)[0].q
+        step = PotentialObjective(
+            space, loads=objective.loads, cond=objective.cond, inertia=Inertia(q, dt), force=None, reference=q
+        )
+        # solved tighter than the outer test, or that stalls; the step is taken even if not converged
+        trial = newton(step, q, tol=0.01 * FULL_TOL, max_iter=50, reuse=NEWTON_REUSE)[0].detach()
         move = float((trial - q).abs().max())
         if move > 4.0 * limit:
             dt *= 0.5
@@ -625,6 +904,56 @@ def _solve_full(scene: Scene, load: Tensor | None, cond: Tensor | None, start: T
         threshold,
     )
     return q, False, energy
+
+
+def _negative_curvature(scene: Scene, q: Tensor, loads: Tensor | None, cond: Tensor | None) -> Tensor | None:
+    """A direction v [n] (largest entry 1) with v^T K v < -s v^T M v, or None if K + s M is positive definite.
+
+    K is the unprojected energy Hessian at q and s = SHIFT_FLOOR * |diag K| / |diag M| (round-off
+    and exact null modes stay above -s). The test is the inertia of a symmetric sparse LU with
+    diagonal pivots (K + s M = P^T U^T D^-1 U P): a negative pivot d_i gives v = P^T U^-1 e_i
+    with v^T (K + s M) v = 1 / d_i < 0. None also when the factorization is singular or not
+    symmetric (no verdict).
+    """
+    stiffness = energy_hessian(scene, q, loads, cond, project=False)
+    mass = scene.mass_matrix_scipy()
+    ratio = float(np.linalg.norm(stiffness.diagonal()) / np.linalg.norm(mass.diagonal()))
+    shift = SHIFT_FLOOR * (ratio if ratio > 0.0 else 1.0)
+    matrix = scipy.sparse.csc_matrix(0.5 * (stiffness + stiffness.T) + shift * mass)
+    try:
+        factor = scipy.sparse.linalg.splu(
+            matrix, permc_spec="MMD_AT_PLUS_A", diag_pivot_thresh=0.0, options={"SymmetricMode": True}
+        )
+    except RuntimeError:
+        return None
+    pivots = factor.U.diagonal()
+    negative = np.flatnonzero(pivots < 0.0)
+    if not np.array_equal(factor.perm_r, factor.perm_c) or negative.size == 0:
+        return None
+    upper = factor.U.tocsr()
+    for i in negative[np.argsort(pivots[negative])][:8]:
+        unit = np.zeros(matrix.shape[0])
+        unit[i] = 1.0
+        v = scipy.sparse.linalg.spsolve_triangular(upper, unit, lower=False)[factor.perm_c]
+        if np.all(np.isfinite(v)) and v @ (matrix @ v) < 0.0:
+            return torch.from_numpy(v / np.abs(v).max())
+    return None
+
+
+def _lower_along(objective: PotentialObjective, q: Tensor, energy: float, direction: Tensor) -> Tensor | None:
+    """The lowest q + t direction below ``energy`` over both signs of t (from the trust radius, halved), or None."""
+    best: tuple[float, Tensor] | None = None
+    for sign in (1.0, -1.0):
+        t = objective.max_step if math.isfinite(objective.max_step) else RELAX_MOVE * objective.scene.extent()
+        for _ in range(40):
+            trial = q + sign * t * direction
+            value = objective.value_and_grad(trial)[0]
+            if value < energy - objective.value_noise:
+                if best is None or value < best[0]:
+                    best = (value, trial)
+                break
+            t *= 0.5
+    return None if best is None else best[1].detach().clone()
 
 
 def _scene_digest(scene: Scene) -> str:
@@ -661,6 +990,7 @@ def _feed(digest: Any, value: Any) -> None:
 
 
 __all__ = [
+    "cache_directory",
     "clear_cache",
     "energy_stats",
     "evaluate_subspace",

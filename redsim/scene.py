@@ -124,12 +124,16 @@ class Scene:
     condition_space: ConditionSpace | None = None
     description: str = ""
     _effect_index: dict[str, int] = field(default_factory=dict, repr=False, compare=False)
+    _mass_entries: tuple[Tensor, Tensor, Tensor] = field(init=False, repr=False, compare=False)
 
     def __post_init__(self) -> None:
         names = [e.name for e in self.effects]
         if len(set(names)) != len(names):
             raise ValueError(f"effect names must be unique, got {names}")
         self._effect_index.update({n: i for i, n in enumerate(names)})
+        mass = self.mass_matrix.coalesce()
+        rows, cols = mass.indices().clone()  # plain copies: torch.compile cannot trace sparse storage
+        object.__setattr__(self, "_mass_entries", (rows, cols, mass.values().clone()))
 
     # -- layout ---------------------------------------------------------------------------
     @property
@@ -257,10 +261,16 @@ class Scene:
 
     # -- mass -----------------------------------------------------------------------------
     def mass_matvec(self, v: Tensor) -> Tensor:
-        """M v for v of shape [B, n] (or [n]); differentiable in v."""
+        """M v for v of shape [B, n] (or [n]); differentiable in v.
+
+        A gather and an ``index_add`` over M's stored entries (in M's dtype): the same sums as a
+        sparse product, and traceable by ``torch.compile`` (a fit's compiled loss uses it).
+        """
         if v.ndim == 1:
             return self.mass_matvec(v.unsqueeze(0))[0]
-        return torch.sparse.mm(self.mass_matrix, v.T.to(self.mass_matrix.dtype)).T.to(v.dtype)
+        rows, cols, values = self._mass_entries
+        out = torch.zeros(v.shape, dtype=values.dtype, device=v.device)
+        return out.index_add_(-1, rows, v.to(values.dtype)[:, cols] * values).to(v.dtype)
 
     def mass_matrix_scipy(self) -> Any:
         """M as a ``scipy.sparse.csr_matrix`` (float64)."""

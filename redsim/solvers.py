@@ -195,26 +195,28 @@ def _start(objective: Objective, u0: Tensor, tol: float, max_iter: int) -> tuple
 
 
 class _Levenberg:
-    """Newton directions from H + shift * metric, raising the shift until a step is accepted."""
+    """Newton directions from H + shift * metric, raising the shift until a step is accepted.
+
+    ``factor`` holds the factorization behind the last accepted step (None before one), for
+    chord steps that reuse it.
+    """
 
     def __init__(self) -> None:
         self.shift = 0.0
         self.floor = 0.0
         self.metric: Any = None
+        self.factor: scipy.sparse.linalg.SuperLU | None = None
 
     def step(self, objective: Objective, point: _Point, hessian: Any) -> _Point | None:
         hessian = scipy.sparse.csc_matrix(hessian)
         for _ in range(MAX_SHIFTS):
             matrix = hessian if self.shift == 0.0 else hessian + self.shift * self.metric
             factor = _factorize(matrix)
-            direction = None if factor is None else _solve(factor, -point.grad)
-            if direction is not None:
-                longest = float(direction.abs().max())
-                if longest > objective.max_step:
-                    direction = direction * (objective.max_step / longest)
+            direction = None if factor is None else _clipped(objective, _solve(factor, -point.grad))
             trial = None if direction is None else _line_search(objective, point, direction)
             if trial is not None:
                 self.shift = 0.0 if self.shift <= self.floor else max(self.shift / 10.0, self.floor)
+                self.factor = factor
                 return trial
             self._raise(objective, point, hessian)
         return None
@@ -229,7 +231,9 @@ class _Levenberg:
         logger.debug("Levenberg shift raised to %.3g", self.shift)
 
 
-def newton(objective: Objective, u0: Tensor, *, tol: float = 1e-8, max_iter: int = 50) -> tuple[Tensor, SolveInfo]:
+def newton(
+    objective: Objective, u0: Tensor, *, tol: float = 1e-8, max_iter: int = 50, reuse: int = 0
+) -> tuple[Tensor, SolveInfo]:
     """Projected Newton with Armijo backtracking and Levenberg regularization.
 
     Each iteration factorizes the objective's PSD Hessian (sparse LU). If that fails (singular),
@@ -237,42 +241,106 @@ def newton(objective: Objective, u0: Tensor, *, tol: float = 1e-8, max_iter: int
     acceptable step, the shift ``lambda`` of ``H + lambda * metric`` is raised (first to
     1e-8 x the diagonal ratio, then x10); after an accepted step it is lowered x10 again.
 
+    With ``reuse`` > 0, each Newton step is followed by up to ``reuse`` chord steps: directions
+    from the same factorization at the new points (one gradient and one back-substitution each,
+    no Hessian), taken while the full step stays within the trust radius ``max_step`` and meets
+    the Armijo condition, until the convergence rule is met. Where the Hessian is expensive and
+    the convergence linear (soft modes that the projected Hessian over-stiffens, e.g. a chain of
+    contact-held links), this cuts the Hessians per solve several-fold; it never changes the
+    convergence rule.
+
     Args:
         objective: The objective.
         u0: Initial guess, shape [m].
         tol: Relative gradient tolerance of the convergence rule (module doc).
-        max_iter: Most Newton iterations.
+        max_iter: Most Newton iterations (Hessian evaluations; chord steps come on top).
+        reuse: Most chord steps per Newton iteration (>= 0).
 
     Returns:
-        The last accepted point [m] and its :class:`SolveInfo`.
+        The last accepted point [m] and its :class:`SolveInfo` (``iterations`` counts Newton
+        iterations and chord steps alike; the message gives the number of chord steps).
     """
+    if int(reuse) != reuse or reuse < 0:
+        raise ValueError(f"reuse must be an integer >= 0, got {reuse}")
     point, threshold = _start(objective, u0, tol, max_iter)
     history = [point.value]
     if not point.finite:
         return point.u, _result(point, False, 0, history, "objective or gradient is not finite at the initial guess")
     regularizer = _Levenberg()
-    for iteration in range(max_iter):
+    chords = 0
+
+    def message(text: str) -> str:
+        return f"{text} ({chords} chord steps)" if reuse else text
+
+    for _ in range(max_iter):
         if point.grad_norm <= threshold:
             return point.u, _result(
-                point, True, iteration, history, f"converged: |g| = {point.grad_norm:.3g} <= {threshold:.3g}"
+                point,
+                True,
+                len(history) - 1,
+                history,
+                message(f"converged: |g| = {point.grad_norm:.3g} <= {threshold:.3g}"),
             )
         trial = regularizer.step(objective, point, objective.hessian(point.u))
         if trial is None:
             return point.u, _result(
                 point,
                 False,
-                iteration,
+                len(history) - 1,
                 history,
-                f"no descent step found after {MAX_SHIFTS} Levenberg shifts "
-                f"(|g| = {point.grad_norm:.3g} > {threshold:.3g})",
+                message(
+                    f"no descent step found after {MAX_SHIFTS} Levenberg shifts "
+                    f"(|g| = {point.grad_norm:.3g} > {threshold:.3g})"
+                ),
             )
         point = trial
         history.append(point.value)
+        for _ in range(int(reuse)):
+            if point.grad_norm <= threshold or regularizer.factor is None:
+                break
+            chord = _chord_step(objective, point, regularizer.factor)
+            if chord is None:
+                break
+            point = chord
+            chords += 1
+            history.append(point.value)
     converged = point.grad_norm <= threshold
     verdict = "converged" if converged else f"not converged after max_iter = {max_iter}"
     return point.u, _result(
-        point, converged, max_iter, history, f"{verdict}: |g| = {point.grad_norm:.3g}, threshold {threshold:.3g}"
+        point,
+        converged,
+        len(history) - 1,
+        history,
+        message(f"{verdict}: |g| = {point.grad_norm:.3g}, threshold {threshold:.3g}"),
     )
+
+
+def _clipped(objective: Objective, direction: Tensor | None) -> Tensor | None:
+    """The direction scaled down so its largest entry is at most ``objective.max_step``."""
+    if direction is not None:
+        longest = float(direction.abs().max())
+        if longest > objective.max_step:
+            direction = direction * (objective.max_step / longest)
+    return direction
+
+
+def _chord_step(objective: Objective, point: _Point, factor: scipy.sparse.linalg.SuperLU) -> _Point | None:
+    """The full step along -A^-1 g (A: a previous iteration's matrix), or None.
+
+    None unless the step is finite, within the trust radius (a chord step that would need
+    clipping is outside where the old model holds: a mechanism falling along null modes) and
+    meets the Armijo condition.
+    """
+    direction = _solve(factor, -point.grad)
+    if direction is None or float(direction.abs().max()) > objective.max_step:
+        return None
+    slope = float(point.grad @ direction)
+    if not slope < 0.0:
+        return None
+    trial = _evaluate(objective, point.u + direction)
+    if trial.finite and trial.value <= point.value + ARMIJO_C * slope:
+        return trial
+    return None
 
 
 def lbfgs(

@@ -12,6 +12,7 @@ from __future__ import annotations
 
 import dataclasses
 import json
+import math
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
@@ -24,6 +25,32 @@ from redsim.scene import Scene
 FORMAT_VERSION = 1
 ACTIVATIONS = {"elu": nn.ELU, "tanh": nn.Tanh, "relu": nn.ReLU, "silu": nn.SiLU}
 
+
+
+def periodic_latents(subspace: Any) -> tuple[int, ...]:
+    """Indices of a map's latents that are angles (``subspace.config.periodic``; () for other maps)."""
+    return tuple(getattr(getattr(subspace, "config", None), "periodic", ()))
+
+
+def sample_latents(
+    count: int,
+    latent_dim: int,
+    periodic: tuple[int, ...] = (),
+    *,
+    generator: torch.Generator | None = None,
+    dtype: torch.dtype = torch.float32,
+    device: torch.device | str = "cpu",
+) -> Tensor:
+    """Latent samples [count, d]: z ~ N(0, 1) per entry, angles (``periodic``) uniform in [-pi, pi).
+
+    Angles are uniform so that every point of the loop they parameterize is sampled alike (a
+    normal angle would leave the far side of the circle, near +-pi, almost unseen).
+    """
+    z = torch.randn(count, latent_dim, generator=generator, dtype=dtype, device=device)
+    if periodic:
+        angles = torch.rand(count, len(periodic), generator=generator, dtype=dtype, device=device)
+        z[:, list(periodic)] = (2.0 * angles - 1.0) * math.pi
+    return z
 
 @dataclass(frozen=True)
 class SubspaceConfig:

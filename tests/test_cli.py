@@ -33,7 +33,18 @@ def toy() -> redsim.Scene:
 
 @pytest.mark.parametrize(
     "argv",
-    [[], ["scenes"], ["simulate"], ["fit"], ["inspect"], ["sample"], ["animate"], ["bench"], ["bench", "energy"]],
+    [
+        [],
+        ["scenes"],
+        ["simulate"],
+        ["fit"],
+        ["inspect"],
+        ["sample"],
+        ["animate"],
+        ["bench"],
+        ["bench", "energy"],
+        ["bench", "fit"],
+    ],
     ids=lambda a: " ".join(a) or "top",
 )
 def test_help_exits_zero(capsys: pytest.CaptureFixture[str], argv: list[str]) -> None:

@@ -8,7 +8,9 @@ import numpy as np
 import pytest
 import torch
 
+from redsim import pretrained
 from redsim.cli import catmull_rom_loop, main
+from redsim.subspace import read_metadata
 
 
 def run(capsys: pytest.CaptureFixture[str], *argv: str) -> tuple[int, str, str]:
@@ -100,6 +102,8 @@ def test_catmull_rom_loop_passes_through_keys_and_closes() -> None:
         (["fit", "toy_two_tets", "--resume", "--out", "/nonexistent/x"], "nothing to resume"),
         (["inspect", "/nonexistent/model.pt"], "no metadata"),
         (["sample", "/nonexistent/model.pt"], "no metadata"),
+        (["bench", "fit", "--scenes", "nope"], "unknown scene"),
+        (["bench", "fit", "--steps", "0"], "--steps must be >= 1"),
     ],
 )
 def test_fit_family_errors_are_one_line_exit_2(
@@ -143,7 +147,7 @@ def test_bench_subspace_compares_neural_modes_and_derivatives(capsys: pytest.Cap
     assert set(row["methods"]) == {"neural", "modes", "modal_derivatives"}
     for result in row["methods"].values():
         assert result["stretch"]["mean"] > 0 and len(result["load_response"]["errors"]) == 2
-    assert (tmp_path / "toy_tiny_bar_2d_d8_s30.pt").is_file()
+    assert (tmp_path / "toy_tiny_bar_2d_s30.pt").is_file() and row["steps"] == 30
     code, out, _ = run(
         capsys,
         "bench",
@@ -160,3 +164,61 @@ def test_bench_subspace_compares_neural_modes_and_derivatives(capsys: pytest.Cap
         str(tmp_path),
     )
     assert code == 0 and "modal_derivatives" in out and "load error" in out
+    assert "toy_tiny_bar_2d_s30.pt" in out  # reused, not refitted
+
+
+def test_bench_subspace_uses_the_shipped_subspace(capsys: pytest.CaptureFixture[str], tmp_path) -> None:
+    argv = ["bench", "subspace", "--scenes", "mini_chain", "--loads", "1", "--samples", "8"]
+    code, out, err = run(capsys, *argv, "--checkpoints", str(tmp_path), "--json")
+    assert code == 0, err
+    row = json.loads(out)["rows"][0]
+    assert row["checkpoint"] == str(pretrained.path("mini_chain")) and not list(tmp_path.iterdir())
+    assert row["steps"] == read_metadata(pretrained.path("mini_chain"))["fit"]["steps"]
+
+
+def test_speed_switches_are_recorded_and_do_not_block_resume(capsys: pytest.CaptureFixture[str], tmp_path) -> None:
+    stem = str(tmp_path / "sw")
+    argv = ["fit", "toy_two_tets", "--steps", "6", "--dim", "2", "--width", "8", "--layers", "1", "--out", stem]
+    code, out, err = run(capsys, *argv, "--checkpoint-every", "3", "--no-fused-adam", "--json")
+    assert code == 0, err
+    meta = json.loads(out)
+    assert meta["fit"]["fused_adam"] is False and meta["fit"]["compile"] is False
+    assert meta["command"].endswith("--no-fused-adam --out " + stem)
+    code, out, err = run(capsys, *argv, "--checkpoint-every", "3", "--fused-adam", "--resume", "--json")
+    assert code == 0, err
+    assert json.loads(out)["fit"]["fused_adam"] is True
+
+
+def test_bench_fit_times_the_real_fit_loop_in_interleaved_rounds() -> None:
+    from redsim.bench import bench_fit, bench_fit_variants
+    from redsim.scenes import build
+    from redsim.trainers import FitConfig
+
+    scene, config = build("toy_two_tets"), FitConfig(latent_dim=2, hidden_width=8, steps=10_000)
+    result = bench_fit(scene, config, steps=3, warmup=2)
+    assert result["steps"] == 3 and result["warmup"] == 2 and result["fused_adam"] and not result["compile"]
+    assert len(result["times_s"]) == 3 and 0 < result["min_s"] <= result["median_s"] <= result["max_s"]
+    assert result["graphs_compiled_timed"] == 0 and result["n"] == 6
+    variants = {"plain": {"fused_adam": False}, "fused": {"fused_adam": True}}
+    rows = bench_fit_variants(scene, config, variants=variants, steps=3, warmup=1, rounds=2)
+    assert list(rows) == ["plain", "fused"] and [r["fused_adam"] for r in rows.values()] == [False, True]
+    assert all(r["steps"] == len(r["times_s"]) == 4 and r["rounds"] == 2 for r in rows.values())
+
+
+@pytest.mark.slow
+def test_bench_fit_compares_eager_fused_and_compiled(capsys: pytest.CaptureFixture[str]) -> None:
+    argv = ["bench", "fit", "--scenes", "toy_two_tets", "--steps", "3", "--warmup", "1"]
+    code, out, err = run(capsys, *argv, "--json")
+    assert code == 0, err
+    report = json.loads(out)
+    assert report["machine"]["torch_threads"] == 1
+    (row,) = report["rows"]
+    variants = row["variants"]
+    assert set(variants) == {"eager", "fused", "compiled_fused"}
+    assert [(v["compile"], v["fused_adam"]) for v in variants.values()] == [(False, False), (False, True), (True, True)]
+    assert all(v["median_s"] > 0 and v["graphs_compiled_timed"] == 0 for v in variants.values())
+    losses = [v["final_loss"] for v in variants.values()]
+    assert losses == pytest.approx([losses[0]] * 3, rel=1e-3)
+    code, out, err = run(capsys, *argv)
+    assert code == 0, err
+    assert "toy_two_tets" in out and "machine:" in out and "compiled" in out

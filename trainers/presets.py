@@ -19,12 +19,12 @@ PRESETS: dict[str, dict[str, Any]] = {
     "cloth_ball": {"latent_dim": 3, "hidden_width": 128, "lam": 10.0, "sigma": 0.1, "steps": 4000},  # ~0.2 m
     "klann": {"latent_dim": 1, "hidden_width": 64, "lam": 30.0, "sigma": 0.05, "periodic": (0,)},  # crank angle
     "stewart": {"latent_dim": 6, "hidden_width": 128, "lam": 50.0, "sigma": 0.05},  # ~0.1 m platform travel
-    "bistable_bar": {"latent_dim": 8, "hidden_width": 128, "lam": 300.0, "sigma": 0.3},  # spans both buckled states
+    "bistable_bar": {"latent_dim": 8, "hidden_width": 128, "lam": 100.0, "sigma": 0.1},  # ~ the two arches apart
     "hanging_sheet": {"latent_dim": 8, "hidden_width": 128, "lam": 10.0, "sigma": 0.03, "steps": 4000},  # ~0.3 m
     "conditional_bar": {"latent_dim": 8, "hidden_width": 128, "lam": 100.0, "sigma": 0.05, "conditional": True},
     "chain": {"latent_dim": 8, "hidden_width": 128, "lam": 100.0, "sigma": 0.5},  # ~0.5 m of a 1.9 m chain
     "mini_chain": {"latent_dim": 4, "hidden_width": 128, "lam": 10.0, "sigma": 0.04},  # ~0.1 m swing
-    "stiff_body": {"latent_dim": 3, "hidden_width": 128, "lam": 50.0, "sigma": 0.6, "steps": 3000},  # ~0.25 m swing
+    "stiff_body": {"latent_dim": 3, "hidden_width": 128, "lam": 50.0, "sigma": 0.6, "steps": 2000},  # ~0.25 m swing
     "cantilever": {"latent_dim": 2, "hidden_width": 128, "lam": 30.0, "sigma": 0.3},  # ~0.1 m tip motion
     "elephant": {"latent_dim": 8, "hidden_width": 64, "lam": 100.0, "sigma": 0.1},  # small, as the paper's 1e-4
     "hetero_beam": {"latent_dim": 8, "hidden_width": 128, "lam": 1.0, "sigma": 0.3},  # not in Table 1

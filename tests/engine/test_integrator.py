@@ -16,8 +16,16 @@ import torch
 from redsim import PointSet, Scene, SceneBuilder
 from redsim.effects import FrameSet, NeoHookean, PointPairPenalty, RigidOrthogonality, SDFContact, Sphere
 from redsim.hessian import element_hessians, energy_hessian
-from redsim.integrators import FullSpace, FullState, ImplicitEuler, static_equilibrium
-from redsim.solvers import MINIMIZERS, ConvergenceError
+from redsim.integrators import (
+    FullSpace,
+    FullState,
+    ImplicitEuler,
+    Inertia,
+    PotentialObjective,
+    SceneConstants,
+    static_equilibrium,
+)
+from redsim.solvers import MINIMIZERS, ConvergenceError, newton
 
 G = 9.81  # [m/s^2]
 GRAVITY = torch.tensor([0.0, -G, 0.0], dtype=torch.float64)  # float64, so -9.81 is not rounded to float32
@@ -274,6 +282,34 @@ def test_newton_and_lbfgs_agree_on_a_step() -> None:
     displacement = float((results["newton"] - scene.q_seed).abs().max())
     assert displacement > 1e-3
     torch.testing.assert_close(results["lbfgs"], results["newton"], rtol=0.0, atol=1e-6 * displacement)
+
+
+def test_steps_with_cached_scene_constants_match_fresh_objectives() -> None:
+    """ImplicitEuler builds the scene's constants once; every step's objective and result stay those of a fresh one."""
+    scene = _cube(1e4, 0.3, gravity=True)
+    space = FullSpace(scene)
+    loads = {"bottom": [50.0, -200.0, 0.0]}
+    sim = ImplicitEuler(space, 0.05, strict=True)
+    state = sim.initial_state(velocity=torch.full((scene.free_dof_count,), 0.1))
+    trajectory, _ = sim.rollout(state, 5, loads)
+    packed = scene.pack_loads(loads, 1, scene.q_seed)
+    q, q_prev = state.q, state.q_prev
+    for step in range(5):
+        inertia = Inertia(2.0 * q - q_prev, 0.05)
+        fresh = PotentialObjective(space, loads=packed, cond=None, inertia=inertia, force=None, reference=q)
+        cached = PotentialObjective(
+            space,
+            loads=packed,
+            cond=None,
+            inertia=inertia,
+            force=None,
+            reference=q,
+            constants=SceneConstants.of(scene),
+        )
+        for name in ("force_scale", "gradient_noise", "value_noise", "max_step"):
+            assert getattr(cached, name) == getattr(fresh, name), name
+        q, q_prev = newton(fresh, 2.0 * q - q_prev, tol=sim.tol, max_iter=sim.max_iter)[0], q
+        torch.testing.assert_close(trajectory[step + 1], q, rtol=0.0, atol=1e-14)
 
 
 def test_bad_inputs_raise_value_error() -> None:

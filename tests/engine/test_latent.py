@@ -18,9 +18,12 @@ from redsim.baselines import LinearSubspace
 from redsim.effects import NeoHookean
 from redsim.hessian import energy_hessian
 from redsim.integrators import (
+    HESSIAN_FLOOR,
     FullSpace,
     ImplicitEuler,
+    Inertia,
     LatentSpace,
+    PotentialObjective,
     latent_equilibrium,
     static_equilibrium,
 )
@@ -104,6 +107,54 @@ def test_pullback_is_dense_jtaj_of_the_autograd_jacobian() -> None:
     assert isinstance(got, np.ndarray) and got.shape == (3, 3)
     np.testing.assert_allclose(got, want, rtol=1e-12, atol=1e-12 * np.abs(want).max())
     assert space.gradient_scale(z) == pytest.approx(np.linalg.norm(J, 2), rel=1e-12)
+
+
+def test_newton_hessian_is_the_exact_latent_hessian_with_absolute_eigenvalues() -> None:
+    """Map curvature included; negative curvature is flipped (here at a z where the exact Hessian is indefinite)."""
+    scene = scenes.build("toy_tiny_bar_2d")
+    torch.manual_seed(0)
+    model = SubspaceMap(
+        SubspaceConfig(latent_dim=3, output_dim=scene.free_dof_count, hidden_width=16, hidden_layers=2, periodic=(1,))
+    ).double()
+    space = LatentSpace(scene, model)
+    loads = scene.pack_loads({"tip": [0.0, -2.0]}, 1, scene.q_seed)
+    mass = torch.from_numpy(scene.mass_matrix_scipy().toarray())
+    dt = 0.02
+    for z in ([0.3, -1.2, 0.7], [0.0, 0.0, 0.0]):
+        z = torch.tensor(z, dtype=torch.float64)
+        target = model(z).detach() + 0.01
+        for inertia in (None, Inertia(target, dt)):
+
+            def phi(v: Tensor, inertia: Inertia | None = inertia) -> Tensor:
+                q = model(v)
+                value = scene.energy(q[None], loads)[0]
+                if inertia is not None:
+                    value = value + 0.5 / dt**2 * (q - inertia.target) @ mass @ (q - inertia.target)
+                return value
+
+            objective = PotentialObjective(space, loads=loads, cond=None, inertia=inertia, force=None, reference=z)
+            w, V = np.linalg.eigh(torch.autograd.functional.hessian(phi, z).numpy())
+            if inertia is None and float(z.abs().max()) > 0.0:
+                assert w.min() < 0.0  # the case the absolute value is for
+            want = (V * np.maximum(np.abs(w), HESSIAN_FLOOR * np.abs(w).max())) @ V.T
+            np.testing.assert_allclose(objective.hessian(z), want, rtol=1e-10, atol=1e-10 * np.abs(w).max())
+
+
+def test_latent_newton_and_lbfgs_agree_on_a_nonlinear_map() -> None:
+    """Newton's Hessian only shapes the path: both minimizers reach the same steps to solver tolerance."""
+    scene = scenes.build("toy_tiny_bar_2d")
+    torch.manual_seed(1)
+    model = SubspaceMap(SubspaceConfig(latent_dim=3, output_dim=scene.free_dof_count, hidden_width=16)).double()
+    space = LatentSpace(scene, model)
+    loads = {"tip": [0.5, -2.0]}
+    trajectories = {}
+    for name, max_iter in (("newton", 50), ("lbfgs", 1000)):
+        sim = ImplicitEuler(space, 0.02, minimizer=name, tol=1e-10, max_iter=max_iter, strict=True)
+        z_traj, _ = sim.rollout(sim.initial_state(), 6, loads)
+        trajectories[name] = model(z_traj).detach()
+    motion = float((trajectories["newton"] - trajectories["newton"][0]).abs().max())
+    assert motion > 1e-3
+    torch.testing.assert_close(trajectories["lbfgs"], trajectories["newton"], rtol=0.0, atol=1e-6 * motion)
 
 
 def test_float32_map_runs_in_float32_and_solves_at_its_resolution() -> None:

@@ -7,11 +7,12 @@ import math
 import pytest
 import torch
 
-from redsim import SceneBuilder
+from redsim import SceneBuilder, metrics
 from redsim.effects import NeoHookean
-from redsim.subspace import CheckpointError, SubspaceConfig, SubspaceMap, load_subspace
+from redsim.subspace import CheckpointError, SubspaceConfig, SubspaceMap, load_subspace, sample_latents
 from redsim.trainers import FitConfig, fit_subspace
-from redsim.trainers.fit import pair_log_ratios, rho_at, subspace_loss
+from redsim.trainers import fit as fit_module
+from redsim.trainers.fit import fit_command, rho_at, subspace_loss
 
 TET = torch.tensor([[0.0, 0, 0], [1, 0, 0], [0, 1, 0], [0, 0, 1]], dtype=torch.float64)
 
@@ -30,7 +31,9 @@ def test_gram_pair_distances_match_the_direct_formula() -> None:
     g = torch.Generator().manual_seed(0)
     y = 100.0 + torch.randn(6, 3, generator=g, dtype=torch.float64)  # far from 0: centring must save precision
     z = torch.randn(6, 2, generator=g, dtype=torch.float64)
-    got = pair_log_ratios(y, z, scene, sigma=0.5)
+    got = metrics.pair_log_ratios(y, z, scene, sigma=0.5)
+    sparse = scene.mass_matrix.to_dense()
+    torch.testing.assert_close(scene.mass_matvec(y), y @ sparse.T, rtol=1e-15, atol=0.0)
     M = torch.diag(torch.tensor([2.0, 2.0, 2.0], dtype=torch.float64))
     want = []
     for i in range(6):
@@ -38,8 +41,30 @@ def test_gram_pair_distances_match_the_direct_formula() -> None:
             dq = y[i] - y[j]
             want.append(math.log(math.sqrt(float(dq @ M @ dq)) / (0.5 * float((z[i] - z[j]).norm()))))
     assert torch.allclose(got, torch.tensor(want, dtype=torch.float64), atol=1e-10)
-    got32 = pair_log_ratios(y.float(), z.float(), scene.to(dtype=torch.float32), sigma=0.5)
+    got32 = metrics.pair_log_ratios(y.float(), z.float(), scene.to(dtype=torch.float32), sigma=0.5)
     assert torch.allclose(got32.double(), got, atol=1e-4)
+
+
+def test_periodic_latent_differences_wrap_around_the_circle() -> None:
+    """Angles 2 pi - 0.1 and 0.1 apart are 0.2 apart on the circle; ordinary latents do not wrap."""
+    scene = _tet_scene()
+    y = torch.tensor([[0.0, 0.0, 0.0], [0.0, 0.0, 1.0]], dtype=torch.float64)
+    z = torch.tensor([[0.1, 0.1], [2 * math.pi - 0.1, 2 * math.pi - 0.1]], dtype=torch.float64)
+    dq = math.sqrt(2.0)  # mass 2 on the free vertex
+    (plain,) = metrics.pair_log_ratios(y, z, scene, sigma=1.0).tolist()
+    (wrapped,) = metrics.pair_log_ratios(y, z, scene, sigma=1.0, periodic=(0,)).tolist()
+    assert plain == pytest.approx(math.log(dq / math.hypot(2 * math.pi - 0.2, 2 * math.pi - 0.2)))
+    assert wrapped == pytest.approx(math.log(dq / math.hypot(0.2, 2 * math.pi - 0.2)))
+    same = torch.zeros(2, 2, dtype=torch.float32)  # equal samples (float32 d = 1 fits draw some): finite
+    assert torch.isfinite(metrics.pair_log_ratios(y.float(), same, scene.to(dtype=torch.float32), 1.0)).all()
+
+
+def test_periodic_latents_are_sampled_uniformly_on_the_circle() -> None:
+    z = sample_latents(20000, 3, (1,), generator=torch.Generator().manual_seed(0), dtype=torch.float64)
+    angles = z[:, 1]
+    assert float(angles.min()) >= -math.pi and float(angles.max()) < math.pi
+    assert float((angles.abs() > 2.5).double().mean()) == pytest.approx((math.pi - 2.5) / math.pi, abs=0.02)
+    assert float(z[:, 0].std()) == pytest.approx(1.0, abs=0.03)
 
 
 def test_loss_terms_by_hand_on_an_affine_map() -> None:
@@ -161,3 +186,87 @@ def test_checkpoint_stems_with_dots_stay_whole(tmp_path) -> None:
     assert {p.name for p in tmp_path.iterdir()} == {"tet_sigma0.05_v1.2.json", "tet_sigma0.05_v1.2.pt"}
     assert load_subspace(tmp_path / "tet_sigma0.05_v1.2.pt", scene=scene).latent_dim == 2
     assert load_subspace(tmp_path / "tet_sigma0.05_v1.2", scene=scene).latent_dim == 2
+
+
+def _speed_config(**fields) -> FitConfig:
+    """A short fit whose loss falls after step 10 (rho reaches 1 at step 6)."""
+    return FitConfig(
+        latent_dim=2,
+        sigma=0.05,
+        steps=60,
+        checkpoint_every=10,
+        hidden_width=16,
+        exploration_fraction=0.1,
+        learning_rate=1e-3,
+        **fields,
+    )
+
+
+def _falls(losses: list[float]) -> bool:
+    return all(math.isfinite(v) for v in losses) and sum(losses[-10:]) < sum(losses[10:20])
+
+
+def _interrupted_then_resumed(tmp_path, scene, config: FitConfig, stop_after: int, **changes) -> torch.nn.Module:
+    """Fit ``config``, stop after ``stop_after`` steps, resume with ``changes``; the final map."""
+
+    def interrupt(step: int, _terms: dict) -> None:
+        if step == stop_after:
+            raise KeyboardInterrupt
+
+    with pytest.raises(KeyboardInterrupt):
+        fit_subspace(scene, config, seed=1, progress=False, out=tmp_path / "s", callbacks=[interrupt])
+    resumed = fit_subspace(scene, config, seed=1, progress=False, out=tmp_path / "s", resume=True, **changes)
+    assert len(resumed.history) == config.steps
+    return resumed.subspace
+
+
+def test_fused_adam_matches_plain_adam_and_resume_may_switch_it(tmp_path) -> None:
+    scene = _tet_scene()
+    config = _speed_config(fused_adam=False)
+    plain = fit_subspace(scene, config, seed=1, progress=False)
+    fused = fit_subspace(scene, config, seed=1, progress=False, fused_adam=True)
+    losses = [h["loss"] for h in fused.history]
+    assert _falls(losses)
+    assert losses == pytest.approx([h["loss"] for h in plain.history], rel=1e-4)
+    z = torch.randn(8, 2)
+    assert torch.allclose(fused.subspace(z), plain.subspace(z), atol=1e-5)
+    switched = _interrupted_then_resumed(tmp_path, scene, config, 25, fused_adam=True)
+    assert torch.allclose(switched(z), plain.subspace(z), atol=1e-5)
+    assert switched.metadata["fit"]["fused_adam"] is True
+
+
+def test_fused_adam_falls_back_with_a_warning(monkeypatch, caplog) -> None:
+    assert fit_module._fused_adam_error("cpu", torch.float32) is None
+    monkeypatch.setattr(fit_module, "_fused_adam_error", lambda device, dtype: "no kernel")
+    with caplog.at_level("WARNING", logger="redsim.trainers.fit"):
+        result = fit_subspace(_tet_scene(), dim=2, steps=3, hidden_width=8, progress=False)
+    assert "fused Adam is unavailable" in caplog.text and "no kernel" in caplog.text
+    assert len(result.history) == 3
+
+
+def test_fit_command_records_speed_switches_only_when_not_default() -> None:
+    scene = _tet_scene()
+    assert "fused" not in fit_command(scene, FitConfig(), 0, None)
+    assert "compile" not in fit_command(scene, FitConfig(), 0, None)
+    assert "--no-fused-adam --compile" in fit_command(scene, FitConfig(fused_adam=False, compile=True), 0, None)
+
+
+@pytest.mark.slow
+def test_compiled_fit_matches_eager_without_recompiling_and_resumes_eagerly(tmp_path) -> None:
+    from torch._dynamo.utils import counters
+
+    scene = _tet_scene()
+    config = _speed_config(compile=True)
+    graphs: list[int] = []
+    compiled = fit_subspace(
+        scene, config, seed=1, progress=False, callbacks=[lambda *_: graphs.append(counters["stats"]["unique_graphs"])]
+    )
+    assert graphs[0] >= 1 and graphs[-1] == graphs[0]  # compiled in step 1, never again (rho changes each step)
+    eager = fit_subspace(scene, config, seed=1, progress=False, compile=False)
+    losses = [h["loss"] for h in compiled.history]
+    assert _falls(losses)
+    assert losses == pytest.approx([h["loss"] for h in eager.history], rel=1e-4)
+    z = torch.randn(8, 2)
+    assert torch.allclose(compiled.subspace(z), eager.subspace(z), atol=1e-5)
+    switched = _interrupted_then_resumed(tmp_path, scene, config, 25, compile=False, fused_adam=False)
+    assert torch.allclose(switched(z), eager.subspace(z), atol=1e-5)

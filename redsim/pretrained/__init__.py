@@ -1,0 +1,71 @@
+"""Fitted subspaces shipped with redsim, one per scene the Gymnasium environments use.
+
+Each is ``SCENE.pt`` + ``SCENE.json`` in this folder, written by ``redsim fit`` for the scene
+with its default parameters; the JSON's ``command`` is the exact command line that reproduces
+it (run it in an empty folder: it writes ``SCENE.pt`` + ``SCENE.json`` there).
+
+    >>> from redsim import pretrained
+    >>> f = pretrained.load("mini_chain")   # a SubspaceMap, checked against scenes.build("mini_chain")
+"""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import torch
+from torch import nn
+
+from redsim.scene import Scene
+
+FOLDER = Path(__file__).resolve().parent
+ENV_SCENES = (
+    "chain",
+    "mini_chain",
+    "klann",
+    "stewart",
+    "cloth_ball",
+    "hanging_sheet",
+    "bistable_bar",
+    "conditional_bar",
+)
+"""The scenes the environments run on; each has a shipped subspace."""
+
+
+def names() -> list[str]:
+    """Scenes with a shipped subspace, sorted."""
+    return sorted(p.stem for p in FOLDER.glob("*.json"))
+
+
+def path(scene_name: str) -> Path:
+    """The shipped checkpoint ``SCENE.pt`` of ``scene_name``.
+
+    Raises:
+        KeyError: no subspace is shipped for this scene (the message lists those that are).
+    """
+    weights = FOLDER / f"{scene_name}.pt"
+    if not (weights.is_file() and weights.with_suffix(".json").is_file()):
+        raise KeyError(f"no shipped subspace for scene {scene_name!r}; shipped: {', '.join(names()) or 'none'}")
+    return weights
+
+
+def load(scene_name: str, scene: Scene | None = None, *, device: str | torch.device = "cpu") -> nn.Module:
+    """The shipped subspace of ``scene_name``, checked against ``scene``.
+
+    Args:
+        scene_name: Catalog name.
+        scene: The scene it will run on (default: ``redsim.scenes.build(scene_name)``). A scene
+            built with other parameters is refused: the subspace was fitted to the defaults.
+        device: Where to put the weights.
+
+    Raises:
+        KeyError: no subspace is shipped for this scene.
+        redsim.subspace.CheckpointError: the scene differs from the one the subspace was fitted to.
+    """
+    from redsim import scenes
+    from redsim.subspace import load_subspace
+
+    weights = path(scene_name)
+    return load_subspace(weights, scene=scenes.build(scene_name) if scene is None else scene, device=device)
+
+
+__all__ = ["ENV_SCENES", "FOLDER", "load", "names", "path"]

@@ -1,0 +1,57 @@
+"""The shipped subspaces: one per environment scene, loadable, finite, and reproducible from their JSON."""
+
+from __future__ import annotations
+
+import json
+import shlex
+
+import pytest
+import torch
+
+from redsim import pretrained, scenes
+from redsim.cli import build_parser, main
+from redsim.subspace import CheckpointError, read_metadata
+
+
+def test_every_environment_scene_has_a_shipped_subspace() -> None:
+    assert set(pretrained.ENV_SCENES) <= set(pretrained.names())
+
+
+@pytest.mark.parametrize("name", pretrained.ENV_SCENES)
+def test_shipped_subspace_matches_the_scene_and_its_command(name: str) -> None:
+    scene = scenes.build(name)
+    subspace = pretrained.load(name, scene)
+    doc = read_metadata(pretrained.path(name))
+    assert doc["scene_fingerprint"] == scene.fingerprint()
+    with torch.no_grad():
+        z = torch.randn(16, subspace.latent_dim, generator=torch.Generator().manual_seed(0))
+        cond = scene.pack_condition(None, 16, scene.q_seed) if subspace.config.condition_dim else None
+        q = subspace(z.to(torch.float32), cond.to(torch.float32) if cond is not None else None)
+    assert q.shape == (16, scene.free_dof_count) and torch.isfinite(q).all()
+    # The recorded command parses to exactly the recorded fit settings.
+    argv = shlex.split(doc["command"])
+    assert argv[:3] == ["redsim", "fit", name]
+    args = build_parser().parse_args(argv[1:])
+    recorded = doc["fit"]
+    assert args.steps == recorded["steps"] and args.lam == recorded["lam"] and args.sigma == recorded["sigma"]
+    assert args.latent_dim == recorded["latent_dim"] and args.seed == doc["seed"]
+    assert args.out == name  # reproduces SCENE.pt + SCENE.json in the folder it runs in
+
+
+def test_unknown_scene_and_other_parameters_are_clear_errors() -> None:
+    with pytest.raises(KeyError, match="no shipped subspace for scene 'no_such'.*shipped: "):
+        pretrained.path("no_such")
+    with pytest.raises(CheckpointError):
+        pretrained.load("mini_chain", scenes.build("mini_chain", density=7000.0))
+
+
+@pytest.mark.slow
+def test_mini_chain_subspace_is_reproduced_by_its_command(tmp_path, monkeypatch) -> None:
+    doc = json.loads(pretrained.path("mini_chain").with_suffix(".json").read_text())
+    monkeypatch.chdir(tmp_path)
+    assert main([*shlex.split(doc["command"])[1:], "--json"]) == 0
+    shipped = torch.load(pretrained.path("mini_chain"), weights_only=True)
+    again = torch.load(tmp_path / "mini_chain.pt", weights_only=True)
+    assert shipped.keys() == again.keys()
+    for key in shipped:
+        torch.testing.assert_close(again[key], shipped[key], rtol=1e-4, atol=1e-5)
