@@ -307,7 +307,7 @@ def load_response_error(
         seed: Seed of the load directions and of the latent restarts.
         cond: Condition [m] of the energy (and of a conditional map); default: the scene's.
         restarts: Random latent starts besides z = 0 (>= 0).
-        minimizer: Minimizer of the latent solves ("lbfgs", the paper's, or "newton", Gauss-Newton there).
+        minimizer: Minimizer of the latent solves ("lbfgs", the paper's, or "newton").
         tol: Relative gradient tolerance of the latent solves (the full-space ones use FULL_TOL).
         max_iter: Most iterations per latent solve.
 

@@ -15,3 +15,9 @@ def _one_torch_thread() -> Iterator[None]:
     torch.set_num_threads(1)
     yield
     torch.set_num_threads(threads)
+
+
+@pytest.fixture(autouse=True)
+def _no_user_cache(monkeypatch: pytest.MonkeyPatch) -> None:
+    """Tests never read or write the user's disk cache of full-space equilibria (REDSIM_CACHE=0)."""
+    monkeypatch.setenv("REDSIM_CACHE", "0")
