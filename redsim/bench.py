@@ -265,7 +265,8 @@ def compare_subspaces(
         seed: Seed of samples and loads.
 
     Scenes with known reference states (the bistable bar's two buckled equilibria,
-    :func:`redsim.metrics.buckled_states`) also get :func:`redsim.metrics.reach_error` for each method, under ``"reach"``.
+    :func:`redsim.metrics.buckled_states`) also get :func:`redsim.metrics.reach_error` for each
+    method, under ``"reach"``.
 
     Returns:
         ``{"neural": ..., "modes": ..., "modal_derivatives": ...}``, each an evaluate_subspace dict.

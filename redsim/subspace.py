@@ -26,7 +26,6 @@ FORMAT_VERSION = 1
 ACTIVATIONS = {"elu": nn.ELU, "tanh": nn.Tanh, "relu": nn.ReLU, "silu": nn.SiLU}
 
 
-
 def periodic_latents(subspace: Any) -> tuple[int, ...]:
     """Indices of a map's latents that are angles (``subspace.config.periodic``; () for other maps)."""
     return tuple(getattr(getattr(subspace, "config", None), "periodic", ()))
@@ -51,6 +50,7 @@ def sample_latents(
         angles = torch.rand(count, len(periodic), generator=generator, dtype=dtype, device=device)
         z[:, list(periodic)] = (2.0 * angles - 1.0) * math.pi
     return z
+
 
 @dataclass(frozen=True)
 class SubspaceConfig:

@@ -39,7 +39,7 @@ def test_shipped_subspace_matches_the_scene_and_its_command(name: str) -> None:
 
 
 def test_unknown_scene_and_other_parameters_are_clear_errors() -> None:
-    with pytest.raises(KeyError, match="no shipped subspace for scene 'no_such'.*shipped: "):
+    with pytest.raises(KeyError, match=r"no shipped subspace for scene 'no_such'.*shipped: "):
         pretrained.path("no_such")
     with pytest.raises(CheckpointError):
         pretrained.load("mini_chain", scenes.build("mini_chain", density=7000.0))
