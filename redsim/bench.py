@@ -247,6 +247,7 @@ def compare_subspaces(
     *,
     sigma: float,
     loads_count: int = 8,
+    response_fraction: float = 0.1,
     samples: int = 256,
     seed: int = 0,
 ) -> dict[str, dict[str, Any]]:
@@ -261,6 +262,8 @@ def compare_subspaces(
         neural: The fitted map (``latent_dim`` gives d).
         sigma: σ of the fit, also the scale of the baselines' modes.
         loads_count: Loads of the load-response error.
+        response_fraction: Their size: the linear response along each handle's softest
+            direction, as a fraction of the scene size (:func:`redsim.metrics.load_response_error`).
         samples: Latent samples of the energy, stretch and strain statistics.
         seed: Seed of samples and loads.
 
@@ -288,7 +291,15 @@ def compare_subspaces(
         ("modes", modes, modes_seconds),
         ("modal_derivatives", derivatives, derivatives_seconds),
     ):
-        result = evaluate_subspace(scene, subspace, sigma=sigma, loads_count=loads_count, samples=samples, seed=seed)
+        result = evaluate_subspace(
+            scene,
+            subspace,
+            sigma=sigma,
+            loads_count=loads_count,
+            response_fraction=response_fraction,
+            samples=samples,
+            seed=seed,
+        )
         if targets is not None:
             result["reach"] = reach_error(scene, subspace, targets, seed=seed)
         out[name] = {**result, "build_seconds": seconds}

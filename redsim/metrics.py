@@ -266,6 +266,7 @@ def load_response_error(
     loads: Sequence[LoadsLike] | None = None,
     count: int = 8,
     magnitude: float | None = None,
+    response_fraction: float = RESPONSE_FRACTION,
     seed: int = 0,
     cond: Tensor | None = None,
     restarts: int = 2,
@@ -289,13 +290,18 @@ def load_response_error(
     0 means the subspace reproduces the response exactly; 1 is what a subspace that does not
     move at all (f(z*) = q_rest) scores.
 
+    The response error measures the same displacement from the subspace's own unloaded
+    equilibrium f(z*_0) instead, so that a fixed offset of f(z*_0) from q_rest does not count:
+
+        response_error_l = |(f(z*_l) - f(z*_0)) - (q*_l - q_rest)|_M / (the same denominator).
+
     Default loads: ``count`` loads, load i a force on handle i mod H only (handles in scene
-    order), in a uniformly random direction (seeded), of magnitude RESPONSE_FRACTION * L / c_h,
+    order), in a uniformly random direction (seeded), of magnitude response_fraction * L / c_h,
     where c_h [m/N] is the largest eigenvalue of handle h's linearized compliance G_h^T K^-1 G_h
     at q_rest (K the projected energy Hessian, shifted by SHIFT_FLOOR times its diagonal ratio
     to M so null modes stay finite; G_h [n, D] the generalized forces of unit handle forces):
-    the linear response along the handle's softest direction is 10% of the scene size,
-    whatever the units, stiffness or weight. The loads used are returned.
+    the linear response along the handle's softest direction is 10% (by default) of the scene
+    size, whatever the units, stiffness or weight. The loads used are returned.
 
     Args:
         scene: The scene; it needs handles.
@@ -304,6 +310,8 @@ def load_response_error(
             {handle: force} mapping) [N]; replaces ``count`` and ``magnitude``.
         count: Number of generated loads (>= 1).
         magnitude: Force per loaded handle [N] instead of the compliance rule.
+        response_fraction: Linear response of the compliance rule, as a fraction of L (> 0);
+            larger loads probe the nonlinear range.
         seed: Seed of the load directions and of the latent restarts.
         cond: Condition [m] of the energy (and of a conditional map); default: the scene's.
         restarts: Random latent starts besides z = 0 (>= 0).
@@ -313,6 +321,7 @@ def load_response_error(
 
     Returns:
         ``errors`` (per load), ``mean_error``, ``median_error``, ``max_error``,
+        ``response_errors`` (per load) and ``mean_response_error``,
         ``absolute_errors`` and ``displacements`` (|q*_l - q_rest|_M) [kg^1/2 m],
         ``energy_gaps`` E(f(z*_l); l) - E(q*_l; l) [J] (>= 0 when both are in one basin),
         ``full_converged``, ``latent_converged`` (per load), ``rest_converged``, ``rest_error``
@@ -334,7 +343,9 @@ def load_response_error(
     magnitudes: dict[str, float] | None = None
     if loads is None:
         _check_count("count", count, 1)
-        per_handle = _handle_magnitudes(scene64, rest, cond) if magnitude is None else None
+        if not (math.isfinite(response_fraction) and response_fraction > 0.0):
+            raise ValueError(f"response_fraction must be finite and > 0, got {response_fraction!r}")
+        per_handle = _handle_magnitudes(scene64, rest, cond, response_fraction) if magnitude is None else None
         if magnitude is not None and not (math.isfinite(magnitude) and magnitude > 0.0):
             raise ValueError(f"magnitude must be finite and > 0 [N], got {magnitude!r}")
         magnitudes = {
@@ -370,9 +381,11 @@ def load_response_error(
         q, info = subspace_equilibrium(load)
         error = _m_norm(mass, q - target)
         displacement = _m_norm(mass, target - rest)
+        scale = max(displacement, DISPLACEMENT_FLOOR * size)
         rows.append(
             {
-                "error": error / max(displacement, DISPLACEMENT_FLOOR * size),
+                "error": error / scale,
+                "response": _m_norm(mass, (q - q_sub_rest) - (target - rest)) / scale,
                 "absolute": error,
                 "displacement": displacement,
                 "gap": info.energy - full_energy,
@@ -386,6 +399,8 @@ def load_response_error(
         "mean_error": float(errors.mean()),
         "median_error": float(np.median(errors)),
         "max_error": float(errors.max()),
+        "response_errors": [r["response"] for r in rows],
+        "mean_response_error": float(np.mean([r["response"] for r in rows])),
         "absolute_errors": [r["absolute"] for r in rows],
         "displacements": [r["displacement"] for r in rows],
         "energy_gaps": [r["gap"] for r in rows],
@@ -397,6 +412,7 @@ def load_response_error(
         "loads": [load.tolist() for load in load_list],
         "handles": list(scene64.handle_names),
         "magnitudes": magnitudes,
+        "response_fraction": response_fraction if loads is None and magnitude is None else None,
         "seed": seed,
         "restarts": restarts,
         "minimizer": minimizer,
@@ -546,6 +562,7 @@ def evaluate_subspace(
     *,
     sigma: float | None = None,
     loads_count: int = 8,
+    response_fraction: float = RESPONSE_FRACTION,
     samples: int = 256,
     seed: int = 0,
     cond: Tensor | None = None,
@@ -557,6 +574,7 @@ def evaluate_subspace(
         subspace: The map (module doc).
         sigma: σ of the stretch; default: the fitted one in ``subspace.metadata["fit"]["sigma"]``.
         loads_count: Loads of :func:`load_response_error` (0, or a scene without handles, skips it).
+        response_fraction: Their size (:func:`load_response_error`).
         samples: Latent samples of the energy, stretch and strain statistics.
         seed: Seed of every sample and load.
         cond: Condition [m] of the energy and of a conditional map; default: the scene's.
@@ -580,7 +598,9 @@ def evaluate_subspace(
         "stretch": lambda: stretch_stats(scene, subspace, float(sigma), samples=samples, seed=seed, cond=cond),
     }
     if loads_count and scene.handles:
-        parts["load_response"] = lambda: load_response_error(scene, subspace, count=loads_count, seed=seed, cond=cond)
+        parts["load_response"] = lambda: load_response_error(
+            scene, subspace, count=loads_count, response_fraction=response_fraction, seed=seed, cond=cond
+        )
     if any(isinstance(e, NeoHookean) for e in scene.effects):
         parts["nonrigid_strain"] = lambda: nonrigid_strain(scene, subspace, samples=samples, seed=seed, cond=cond)
     out: dict[str, Any] = {
@@ -687,8 +707,8 @@ def _random_loads(scene: Scene, magnitudes: list[float], count: int, generator: 
     return out
 
 
-def _handle_magnitudes(scene: Scene, rest: Tensor, cond: Tensor | None) -> np.ndarray:
-    """RESPONSE_FRACTION * L / c_h [N] per handle (see :func:`load_response_error`), shape [H]."""
+def _handle_magnitudes(scene: Scene, rest: Tensor, cond: Tensor | None, fraction: float) -> np.ndarray:
+    """fraction * L / c_h [N] per handle (see :func:`load_response_error`), shape [H]."""
     H, D = len(scene.handles), scene.dim
     stiffness = energy_hessian(scene, rest, None, cond, project=True)
     mass = scene.mass_matrix_scipy()
@@ -712,7 +732,7 @@ def _handle_magnitudes(scene: Scene, rest: Tensor, cond: Tensor | None) -> np.nd
             f"scene {scene.name!r}: handle compliances {largest.tolist()} are not finite and > 0; "
             "give the load magnitude"
         )
-    return RESPONSE_FRACTION * scene.extent() / largest
+    return fraction * scene.extent() / largest
 
 
 def _rest_equilibrium(scene: Scene, cond: Tensor | None) -> tuple[Tensor, bool, float]:

@@ -371,8 +371,8 @@ def lbfgs(
     if not point.finite:
         return point.u, _result(point, False, 0, history, "objective or gradient is not finite at the initial guess")
     factor = _factorize(objective.metric(point.u))
-    if factor is None:
-        raise ValueError("the objective's metric is singular; L-BFGS needs an SPD metric")
+    if factor is None:  # e.g. a latent metric J^T M J of a map that explodes at u0
+        return point.u, _result(point, False, 0, history, "the metric is singular at the initial guess")
     pairs: deque[tuple[Tensor, Tensor, float]] = deque(maxlen=memory)
     for iteration in range(max_iter):
         if point.grad_norm <= threshold:

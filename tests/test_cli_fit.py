@@ -174,6 +174,10 @@ def test_bench_subspace_uses_the_shipped_subspace(capsys: pytest.CaptureFixture[
     row = json.loads(out)["rows"][0]
     assert row["checkpoint"] == str(pretrained.path("mini_chain")) and not list(tmp_path.iterdir())
     assert row["steps"] == read_metadata(pretrained.path("mini_chain"))["fit"]["steps"]
+    response = row["methods"]["neural"]["load_response"]
+    assert response["response_fraction"] == 0.1 and len(response["response_errors"]) == 1
+    code, out, err = run(capsys, *argv, "--load-size", "0", "--checkpoints", str(tmp_path))
+    assert code == 2 and "--load-size" in err
 
 
 def test_speed_switches_are_recorded_and_do_not_block_resume(capsys: pytest.CaptureFixture[str], tmp_path) -> None:

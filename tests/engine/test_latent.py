@@ -218,3 +218,12 @@ def test_conditional_map_gets_its_condition_and_bad_maps_raise() -> None:
         LatentSpace(tets, identity, cond=torch.tensor([1.0]))
     with pytest.raises(ValueError, match="z0"):
         latent_equilibrium(LatentSpace(tets, identity), z0=torch.zeros(3))
+
+
+def test_lbfgs_reports_a_singular_latent_metric_instead_of_raising() -> None:
+    """A map with a dead latent direction has a singular metric J^T M J: a failed solve, not an exception."""
+    scene = scenes.build("toy_two_tets")
+    basis = torch.zeros(scene.free_dof_count, 2, dtype=torch.float64)
+    basis[0, 0] = 1.0  # latent 1 moves nothing
+    z, info = latent_equilibrium(LatentSpace(scene, Affine(scene.q_seed, basis)), LOAD, minimizer="lbfgs")
+    assert not info.converged and "singular" in info.message and torch.equal(z, torch.zeros(2, dtype=torch.float64))

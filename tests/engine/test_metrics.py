@@ -97,6 +97,7 @@ def test_load_response_is_zero_for_the_identity_and_large_for_a_bad_map(monkeypa
     assert len(calls) == 5  # the rest equilibrium and one per load
     # Both sides stop at a force balance of FULL_TOL = 1e-5 of F (the summed force norms, ~10x the load's).
     assert exact["max_error"] < 1e-3 and exact["rest_error"] < 1e-3 * min(exact["displacements"])
+    assert max(exact["response_errors"]) < 2e-3 and exact["mean_response_error"] < 2e-3
     assert all(exact["full_converged"]) and all(exact["latent_converged"]) and exact["rest_converged"]
     loads = torch.tensor(exact["loads"], dtype=torch.float64)
     assert loads.shape == (4, 1, 3)
@@ -106,9 +107,14 @@ def test_load_response_is_zero_for_the_identity_and_large_for_a_bad_map(monkeypa
     one_direction[0] = 0.01  # x of the top vertex only
     bad = metrics.load_response_error(scene, Affine(scene.q_seed, one_direction), count=4)
     assert len(calls) == 5  # the full-space equilibria came from the cache
-    assert bad["loads"] == exact["loads"] and bad["mean_error"] > 0.3
+    assert bad["loads"] == exact["loads"] and bad["mean_error"] > 0.3 and bad["mean_response_error"] > 0.3
     assert all(g > 0.0 for g in bad["energy_gaps"])  # the subspace equilibrium is higher in energy
 
+    bigger = metrics.load_response_error(scene, _identity(scene), count=4, response_fraction=0.3)
+    assert bigger["magnitudes"]["top"] == pytest.approx(3.0 * exact["magnitudes"]["top"])
+    assert bigger["response_fraction"] == 0.3 and bigger["max_error"] < 1e-3
+    with pytest.raises(ValueError, match="response_fraction"):
+        metrics.load_response_error(scene, _identity(scene), response_fraction=-1.0)
     other = metrics.load_response_error(scene, _identity(scene), count=2, seed=1, magnitude=2.0)
     assert other["loads"][0] != exact["loads"][0] and other["magnitudes"] == {"top": 2.0}
     explicit = metrics.load_response_error(scene, _identity(scene), loads=[{"top": [0.0, -3.0, 0.0]}], restarts=0)
