@@ -16,6 +16,7 @@ map with ``config.condition_dim > 0`` is evaluated at ``cond``) and evaluates it
 - :func:`nonrigid_strain`: the mean Green strain of subspace states of FEM scenes (figure
   "rigidity": linear subspaces shear where they should rotate).
 - :func:`evaluate_subspace`: all of the above as one JSON-serializable dict.
+- :func:`rest_state`: the full-space rest equilibrium all of them measure around.
 
 Full-space equilibria are the expensive part; they are cached per scene content, condition
 and loads (:func:`clear_cache`), in memory and on disk (:func:`cache_directory`: under
@@ -735,6 +736,19 @@ def _handle_magnitudes(scene: Scene, rest: Tensor, cond: Tensor | None, fraction
     return fraction * scene.extent() / largest
 
 
+def rest_state(scene: Scene, cond: Tensor | None = None) -> tuple[Tensor, bool]:
+    """The unloaded full-space equilibrium that load errors are measured around (cached).
+
+    Newton from the seed, with the relaxation fallback and saddle escapes of
+    :func:`load_response_error`, in float64. Baselines built here share its reference.
+
+    Returns:
+        q_rest [n] (float64) and whether the solve converged.
+    """
+    q, converged, _ = _rest_equilibrium(scene.to(dtype=torch.float64), cond)
+    return q, converged
+
+
 def _rest_equilibrium(scene: Scene, cond: Tensor | None) -> tuple[Tensor, bool, float]:
     """The unloaded full-space equilibrium reached by Newton from the seed (cached): q [n], converged, energy [J]."""
     return _full_equilibrium(scene, None, cond, None)
@@ -1017,5 +1031,6 @@ __all__ = [
     "load_response_error",
     "nonrigid_strain",
     "pair_log_ratios",
+    "rest_state",
     "stretch_stats",
 ]

@@ -93,8 +93,12 @@ def _identity(scene: Scene) -> Affine:
 def test_load_response_is_zero_for_the_identity_and_large_for_a_bad_map(monkeypatch: pytest.MonkeyPatch) -> None:
     scene = scenes.build("toy_two_tets")
     calls = _count_solves(monkeypatch)
+    rest, converged = metrics.rest_state(scene)
     exact = metrics.load_response_error(scene, _identity(scene), count=4)
-    assert len(calls) == 5  # the rest equilibrium and one per load
+    assert len(calls) == 5  # the rest equilibrium (shared with rest_state) and one per load
+    q = rest.unsqueeze(0).requires_grad_(True)
+    (gradient,) = torch.autograd.grad(scene.to(dtype=torch.float64).energy(q).sum(), q)
+    assert converged and rest.dtype == torch.float64 and float(gradient.norm()) < 1e-6
     # Both sides stop at a force balance of FULL_TOL = 1e-5 of F (the summed force norms, ~10x the load's).
     assert exact["max_error"] < 1e-3 and exact["rest_error"] < 1e-3 * min(exact["displacements"])
     assert max(exact["response_errors"]) < 2e-3 and exact["mean_response_error"] < 2e-3
