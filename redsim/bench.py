@@ -17,6 +17,7 @@ from typing import Any
 import torch
 
 from redsim.scene import Scene
+from redsim.scenes.catalog import KLANN_JOINTS
 
 
 def machine_info() -> dict[str, Any]:
@@ -271,13 +272,15 @@ def compare_subspaces(
 
     Scenes with known reference states (the bistable bar's two buckled equilibria,
     :func:`redsim.metrics.buckled_states`) also get :func:`redsim.metrics.reach_error` for each
-    method, under ``"reach"``.
+    method, under ``"reach"``. Scenes with a crank (klann) get, for maps with a periodic latent,
+    :func:`redsim.metrics.handle_winding` of the crank pin about its ground joint, under ``"loop"``.
 
     Returns:
         ``{"neural": ..., "modes": ..., "modal_derivatives": ...}``, each an evaluate_subspace dict.
     """
     from redsim.baselines import modal_analysis, modal_derivatives
-    from redsim.metrics import evaluate_subspace, reach_error, rest_state
+    from redsim.metrics import evaluate_subspace, handle_winding, reach_error, rest_state
+    from redsim.subspace import periodic_latents
 
     dim = int(neural.latent_dim)
     rest, _ = rest_state(scene)
@@ -305,8 +308,14 @@ def compare_subspaces(
         )
         if targets is not None:
             result["reach"] = reach_error(scene, subspace, targets, seed=seed)
+        if scene.name in _CRANKS and periodic_latents(subspace):
+            result["loop"] = handle_winding(scene, subspace, *_CRANKS[scene.name], latent=periodic_latents(subspace)[0])
         out[name] = {**result, "build_seconds": seconds}
     return out
+
+
+_CRANKS = {"klann": ("crank_pin", KLANN_JOINTS["crank_ground"])}
+"""Scene: (crank handle, its pivot (x, y) [m]) for the loop check of :func:`compare_subspaces`."""
 
 
 def _reference_states(scene: Scene) -> list[torch.Tensor] | None:

@@ -446,6 +446,8 @@ def _subspace_row(row: dict[str, Any]) -> str:
         )
         if "reach" in result:
             line += "  reach " + "/".join(f"{e:.3g}" for e in result["reach"]["errors"])
+        if "loop" in result:
+            line += f"  crank turn {result['loop']['turn_degrees']:.0f} deg (winding {result['loop']['winding']})"
         lines.append(line)
     return "\n".join(lines)
 

@@ -520,6 +520,64 @@ def reach_error(
     }
 
 
+def handle_winding(
+    scene: Scene,
+    subspace: Subspace,
+    handle: str,
+    center: Sequence[float],
+    *,
+    latent: int = 0,
+    samples: int = 360,
+    cond: Tensor | None = None,
+) -> dict[str, Any]:
+    """How far a handle turns about a point as one periodic latent goes once round the circle.
+
+    Latent ``latent`` sweeps [-pi, pi] in ``samples`` equal steps (the others stay 0); the
+    handle's position, projected on the x-y plane, is followed about ``center`` with its angle
+    unwrapped. A crank whose map closes the loop turns 360 degrees (winding +-1); a map that
+    swings it back and forth turns less and winds 0.
+
+    Args:
+        scene: The scene.
+        subspace: A map whose latent ``latent`` is periodic (``config.periodic``).
+        handle: Handle name.
+        center: Pivot (x, y) [m].
+        latent: Index of the periodic latent.
+        samples: Steps round the circle (>= 8).
+        cond: Condition of a conditional map; default: the scene's.
+
+    Returns:
+        ``winding`` (whole turns, signed), ``turn_degrees`` (range of the unwrapped angle),
+        ``energy_min``/``energy_max`` [J] along the sweep, ``seed_energy`` [J], ``samples``.
+
+    Raises:
+        ValueError: an unknown handle, a latent that is not periodic, or too few samples.
+    """
+    _check_count("samples", samples, 8)
+    if latent not in periodic_latents(subspace):
+        raise ValueError(f"latent {latent} is not periodic (periodic: {list(periodic_latents(subspace))})")
+    if handle not in scene.handle_names:
+        raise ValueError(f"scene {scene.name!r} has no handle {handle!r}; valid handles: {list(scene.handle_names)}")
+    space = _latent_space(scene, subspace, cond)
+    scene64 = space.scene
+    z = torch.zeros(samples + 1, space.latent_dim, dtype=torch.float64)
+    z[:, latent] = torch.linspace(-math.pi, math.pi, samples + 1, dtype=torch.float64)
+    q = torch.cat(_configurations(space, z))
+    with torch.no_grad():
+        position = scene64.handles[scene64.handle_names.index(handle)].position(scene64.dof_map.expand(q))
+        energy = scene64.energy(q, cond=cond)
+    offset = (position[:, :2] - torch.as_tensor(center, dtype=torch.float64)[:2]).numpy()
+    angle = np.unwrap(np.arctan2(offset[:, 1], offset[:, 0]))
+    return {
+        "winding": round(float(angle[-1] - angle[0]) / (2.0 * math.pi)),
+        "turn_degrees": float(np.degrees(angle.max() - angle.min())),
+        "energy_min": float(energy.min()),
+        "energy_max": float(energy.max()),
+        "seed_energy": float(scene64.energy(scene64.q_seed.unsqueeze(0), cond=cond)[0]),
+        "samples": samples,
+    }
+
+
 def buckled_states(scene: Scene, *, bump: float = 0.01, cond: Tensor | None = None) -> list[Tensor]:
     """The two buckled equilibria of a compressed bar (``bistable_bar``): arched up and down.
 
@@ -1028,6 +1086,7 @@ __all__ = [
     "clear_cache",
     "energy_stats",
     "evaluate_subspace",
+    "handle_winding",
     "load_response_error",
     "nonrigid_strain",
     "pair_log_ratios",

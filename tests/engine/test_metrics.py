@@ -13,6 +13,7 @@ import logging
 import math
 from collections.abc import Iterator
 from pathlib import Path
+from types import SimpleNamespace
 from typing import Any
 
 import pytest
@@ -271,3 +272,36 @@ def test_full_equilibria_leave_saddles() -> None:
     rest, converged, energy = metrics._rest_equilibrium(scene, None)
     assert converged and energy < info.energy - 1e-3
     assert metrics._negative_curvature(scene, rest, None, None) is None
+
+
+class _HandleOrbit(torch.nn.Module):
+    """f(z): toy_two_tets' free top vertex on a circle of radius 0.1 m about (0, 1) at angle swing(z)."""
+
+    latent_dim = 1
+
+    def __init__(self, seed: Tensor, swing: Any) -> None:
+        super().__init__()
+        self.config = SimpleNamespace(periodic=(0,), condition_dim=0)
+        self.register_buffer("seed", seed.clone())
+        self.swing = swing
+
+    def forward(self, z: Tensor) -> Tensor:
+        angle = self.swing(z[..., 0])
+        q = self.seed.expand(*z.shape[:-1], -1).clone()
+        q[..., 0], q[..., 1] = 0.1 * torch.cos(angle), 1.0 + 0.1 * torch.sin(angle)
+        return q
+
+
+def test_handle_winding_tells_a_closed_loop_from_a_swing() -> None:
+    scene = scenes.build("toy_two_tets")
+    loop = metrics.handle_winding(scene, _HandleOrbit(scene.q_seed, lambda z: z), "top", (0.0, 1.0), samples=90)
+    assert loop["winding"] == 1 and loop["turn_degrees"] == pytest.approx(360.0)
+    backwards = metrics.handle_winding(scene, _HandleOrbit(scene.q_seed, lambda z: -z), "top", (0.0, 1.0))
+    assert backwards["winding"] == -1
+    swing = metrics.handle_winding(scene, _HandleOrbit(scene.q_seed, lambda z: 0.3 * torch.sin(z)), "top", (0, 1))
+    assert swing["winding"] == 0 and swing["turn_degrees"] == pytest.approx(2 * math.degrees(0.3), rel=1e-3)
+    assert swing["energy_min"] <= swing["energy_max"] and math.isfinite(swing["seed_energy"])
+    with pytest.raises(ValueError, match="handle"):
+        metrics.handle_winding(scene, _HandleOrbit(scene.q_seed, lambda z: z), "nope", (0.0, 1.0))
+    with pytest.raises(ValueError, match="periodic"):
+        metrics.handle_winding(scene, _identity(scene), "top", (0.0, 1.0))
