@@ -580,6 +580,7 @@ _FIT_FLAGS: tuple[tuple[str, str, Any, str], ...] = (
     ("--width", "hidden_width", int, "MLP hidden width"),
     ("--layers", "hidden_layers", int, "MLP hidden layers"),
     ("--explore", "exploration_fraction", float, "fraction of the steps over which ρ rises 0 -> 1"),
+    ("--seed-bias", "seed_bias", bool, "start the output bias at the seed state (stiff meshes)"),
     ("--checkpoint-every", "checkpoint_every", int, "steps between resumable checkpoints"),
     ("--dtype", "dtype", str, "float32 or float64"),
     ("--device", "device", str, "torch device"),
@@ -822,7 +823,12 @@ def build_parser() -> argparse.ArgumentParser:
     for flag, field, kind, text in _FIT_FLAGS:
         if kind is bool:
             default = "on" if fit_defaults[field] else "off"
-            p.add_argument(flag, dest=field, action=argparse.BooleanOptionalAction, help=f"{text} (default: {default})")
+            p.add_argument(
+                flag,
+                dest=field,
+                action=argparse.BooleanOptionalAction,
+                help=f"{text} (default: preset, else {default})",
+            )
         else:
             p.add_argument(flag, dest=field, type=kind, default=None, help=f"{text} (default: scene preset)")
     p.add_argument("--periodic", default=None, metavar="I,J", help="latent indices that are angles")

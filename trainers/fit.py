@@ -56,6 +56,9 @@ class FitConfig:
         periodic: Latent indices treated as angles.
         conditional: Fit f(z, c) over the scene's condition space (else the default condition).
         exploration_fraction: rho reaches 1 after this fraction of the steps (paper: 1.0).
+        seed_bias: Start the output layer's bias at q_seed, so the MLP starts near the seed shape
+            instead of near 0 (the map still has no seed term). Stiff meshes need it: from a zero
+            output they spend their steps rebuilding the shape against a large elastic energy.
         checkpoint_every: Steps between resumable checkpoints (0: only at the end / on interrupt).
         dtype: "float32" (default) or "float64".
         device: Torch device for fitting.
@@ -94,6 +97,7 @@ class FitConfig:
     periodic: tuple[int, ...] = ()
     conditional: bool = False
     exploration_fraction: float = 1.0
+    seed_bias: bool = False
     checkpoint_every: int = 1000
     dtype: str = "float32"
     device: str = "cpu"
@@ -223,6 +227,9 @@ def fit_subspace(
     with torch.random.fork_rng(devices=[]):
         torch.manual_seed(seed)
         model = SubspaceMap(arch).to(device=config.device, dtype=dtype)
+    if config.seed_bias:
+        with torch.no_grad():
+            model.mlp[-1].bias.copy_(work.q_seed)
     fused = config.fused_adam
     if fused and (why := _fused_adam_error(config.device, dtype)) is not None:
         log.warning("fused Adam is unavailable on %s in %s (%s); using plain Adam", config.device, dtype, why)
@@ -404,6 +411,8 @@ def fit_command(scene: Scene, config: FitConfig, seed: int, out: str | Path | No
         parts.append("--cond")
     if config.exploration_fraction != 1.0:
         parts += ["--explore", repr(config.exploration_fraction)]
+    if config.seed_bias:
+        parts.append("--seed-bias")
     default = FitConfig()
     for field in _ROUND_OFF_ONLY:  # switches, recorded only when not at their defaults
         value, flag = getattr(config, field), field.replace("_", "-")
@@ -450,6 +459,7 @@ def _load_training_state(
     mine = {k: v for k, v in dataclasses.asdict(config).items() if k not in _ROUND_OFF_ONLY}
     saved = {k: v for k, v in state["config"].items() if k not in _ROUND_OFF_ONLY}
     saved["periodic"] = tuple(saved["periodic"])
+    saved.setdefault("seed_bias", False)  # states written before the option existed
     if saved != mine:
         diff = sorted(k for k in mine if saved.get(k) != mine[k])
         raise CheckpointError(f"training state was made with different settings {diff}", str(path))

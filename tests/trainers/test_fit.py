@@ -113,6 +113,16 @@ def test_short_fit_lowers_loss_saves_and_loads(tmp_path) -> None:
     assert torch.isfinite(loaded(10 * torch.randn(100, 2))).all()
 
 
+def test_seed_bias_starts_the_map_at_the_seed_shape_and_is_recorded() -> None:
+    scene = _tet_scene()
+    kwargs = {"dim": 2, "steps": 1, "hidden_width": 8, "learning_rate": 1e-9, "progress": False}
+    biased = fit_subspace(scene, seed_bias=True, **kwargs).subspace
+    torch.testing.assert_close(biased.mlp[-1].bias.detach(), scene.q_seed.float(), atol=1e-6, rtol=0.0)
+    plain = fit_subspace(scene, **kwargs).subspace
+    assert float((plain.mlp[-1].bias.detach() - scene.q_seed.float()).abs().max()) > 0.1
+    assert "--seed-bias" in biased.metadata["command"] and "--seed-bias" not in plain.metadata["command"]
+
+
 def test_fixed_seed_reproduces_and_resume_continues_the_same_run(tmp_path) -> None:
     scene = _tet_scene()
     config = FitConfig(latent_dim=2, sigma=0.05, steps=40, checkpoint_every=20, hidden_width=16)
