@@ -1,1 +1,74 @@
-"""Gymnasium environments over latent subspaces (`RedSim/...-v0`); they arrive with the subspace fitter."""
+"""Gymnasium environments over latent subspaces: the ``RedSim/...-v0`` suite, registered lazily.
+
+``import redsim`` registers every id (string entry points: nothing heavy is imported, no
+checkpoint is loaded until an env is made), so these all work::
+
+    import gymnasium as gym, redsim
+    env = gym.make("RedSim/Chain-v0", render_mode="rgb_array")
+    venv = gym.make_vec("RedSim/Chain-v0", num_envs=64, vectorization_mode="vector_entry_point")
+    env = gym.make("redsim:RedSim/Chain-v0")      # without importing redsim first
+
+:func:`make` turns any scene + subspace + task into an env (a user's own mesh included).
+"""
+
+from __future__ import annotations
+
+from typing import Any
+
+import gymnasium as gym
+
+ENVS: dict[str, tuple[str, str, int]] = {
+    "RedSim/Chain-v0": ("chain", "ChainEnv", 300),
+    "RedSim/MiniChain-v0": ("mini_chain", "MiniChainEnv", 200),
+    "RedSim/ClothBall-v0": ("cloth_ball", "ClothBallEnv", 200),
+    "RedSim/HangingCloth-v0": ("hanging_cloth", "HangingClothEnv", 200),
+    "RedSim/ConditionalBar-v0": ("conditional_bar", "ConditionalBarEnv", 200),
+}
+"""id -> (module in redsim.envs, class, max_episode_steps)."""
+
+
+def register_envs() -> None:
+    """Register every id of :data:`ENVS` with Gymnasium (idempotent)."""
+    for env_id, (module, cls, steps) in ENVS.items():
+        if env_id in gym.registry:
+            continue
+        gym.register(
+            id=env_id,
+            entry_point=f"redsim.envs.{module}:{cls}",
+            vector_entry_point=f"redsim.envs.{module}:make_vec",
+            max_episode_steps=steps,
+        )
+
+
+def ids() -> list[str]:
+    """The registered ``RedSim/...-v0`` ids."""
+    return list(ENVS)
+
+
+def make(
+    scene: Any, subspace: Any = None, task: Any = "reach", *, max_episode_steps: int | None = 200, **kwargs: Any
+) -> gym.Env:
+    """An env from any scene, subspace and task.
+
+    Args:
+        scene: A :class:`redsim.Scene`, or a catalog name.
+        subspace: Its map (an ``nn.Module``), a checkpoint path, or None for the shipped one
+            (catalog scenes at their default parameters only).
+        task: A :class:`redsim.envs.base.Task`, or ``"reach"``: push the scene's first handle
+            to targets drawn from the subspace (:class:`redsim.envs.reach.HandleReach`);
+            give its arguments as ``task_options``.
+        max_episode_steps: Wrap in ``TimeLimit`` (None: no limit).
+        **kwargs: :class:`redsim.envs.base.LatentEnv` arguments, plus ``task_options`` (dict).
+
+    Raises:
+        ValueError: an unknown task name, scene or handle, or a subspace of the wrong size.
+        redsim.subspace.CheckpointError: the subspace was fitted to another scene.
+    """
+    from redsim.envs.factory import build
+
+    return build(scene, subspace, task, max_episode_steps=max_episode_steps, **kwargs)
+
+
+register_envs()
+
+__all__ = ["ENVS", "ids", "make", "register_envs"]

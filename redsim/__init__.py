@@ -13,6 +13,10 @@ from redsim.subspace import SubspaceConfig, SubspaceMap, load_subspace
 
 __version__ = "0.1.0"
 
+# Register the Gymnasium ids ("RedSim/Chain-v0", ...): string entry points only, nothing heavy is
+# imported until an env is made (the engine never imports env code itself).
+import redsim.envs  # noqa: F401
+
 __all__ = [
     "ConditionSpace",
     "Handle",

@@ -1,0 +1,648 @@
+"""The base latent environment: a scene, a subspace map, the latent stepper and a task.
+
+The state of every copy is the latent pair (z_t, z_{t-1}) of the runtime's two-state implicit
+Euler; a step turns the action into loads on the scene's handles (the task), advances all
+copies with one batched :meth:`redsim.runtime.LatentStepper.step` per substep, and asks the
+task for the observation extras, the reward (each term) and the termination. The same batched
+core (:class:`LatentSim`) serves the single env (:class:`LatentEnv`, batch 1) and the native
+vector env (:class:`redsim.envs.vector.LatentVectorEnv`, batch N), so they share one code path.
+
+Gymnasium's template-method style: seeding, the step loop, ``info``, rendering and state
+access live here; a task (:class:`Task`, e.g. :class:`redsim.envs.reach.HandleReach`) holds
+what differs: its reset distribution, action -> load map, observation extras, reward and
+termination. Observations are ``concat(z, z_dot, task extras[, condition])``, float32, clipped
+into finite bounds; actions are float32 in [-1, 1] (values outside are clipped, non-finite
+values raise ValueError).
+"""
+
+from __future__ import annotations
+
+import importlib.util
+from collections.abc import Mapping
+from typing import Any, ClassVar
+
+import gymnasium as gym
+import numpy as np
+import torch
+from gymnasium import spaces
+from torch import Tensor, nn
+
+from redsim.scene import Scene
+from redsim.subspace import CheckpointError
+
+LATENT_BOUND = 10.0
+"""Observation bound of each latent coordinate (maps are fitted on z ~ N(0, I)); z_dot gets 2 LATENT_BOUND / dt."""
+DTYPES = {"float32": torch.float32, "float64": torch.float64}
+RENDER_MODES = ["rgb_array"] + (["human"] if importlib.util.find_spec("pygame") is not None else [])
+"""Headless "rgb_array" always; "human" (a pygame window) where pygame is installed."""
+
+
+class Task:
+    """What an environment asks of its scene; every method is batched over B copies.
+
+    Per-copy task parameters (a target, ...) are a dict of tensors [B, ...] drawn by
+    :meth:`sample` from each copy's own generator, so copy i of a vector env and a single env
+    seeded alike draw the same episode.
+
+    Attributes:
+        name: Task name (used by :func:`redsim.envs.make`).
+        action_size: A, the size of the action vector.
+        reward_terms: Names of the reward terms; ``info["reward_<term>"]`` holds each.
+    """
+
+    name: ClassVar[str] = "task"
+    action_size: int
+    reward_terms: tuple[str, ...] = ()
+
+    def bind(self, sim: LatentSim) -> None:
+        """Check the task against ``sim.scene`` and precompute what it needs (called once)."""
+
+    def extras_bounds(self) -> tuple[np.ndarray, np.ndarray]:
+        """Finite (low, high) bounds of the observation extras, each shape [k]."""
+        raise NotImplementedError
+
+    def observation_structure(self) -> dict[str, int]:
+        """Name -> size of each block of the extras, in order."""
+        raise NotImplementedError
+
+    def sample(
+        self, rng: np.random.Generator, sim: LatentSim, z_rest: Tensor, cond: Tensor | None
+    ) -> dict[str, Tensor]:
+        """Parameters of one new episode (each shape [...], no batch dim) drawn from ``rng``."""
+        return {}
+
+    def loads(self, action: Tensor, params: Mapping[str, Tensor]) -> Tensor:
+        """Loads [B, H, D] [N] from actions [B, A] in [-1, 1]."""
+        raise NotImplementedError
+
+    def extras(self, x: Tensor, x_prev: Tensor, params: Mapping[str, Tensor]) -> Tensor:
+        """Observation extras [B, k] from full configurations x [B, N] (and the previous ones)."""
+        raise NotImplementedError
+
+    def reward(self, x: Tensor, action: Tensor, params: Mapping[str, Tensor]) -> tuple[Tensor, dict[str, Tensor]]:
+        """Reward [B] and its terms {name: [B]} (they sum to the reward)."""
+        raise NotImplementedError
+
+    def terminated(self, x: Tensor, params: Mapping[str, Tensor]) -> Tensor:
+        """Task termination [B] (bool); divergence ends an episode on its own."""
+        return torch.zeros(x.shape[0], dtype=torch.bool, device=x.device)
+
+    def metrics(self, x: Tensor, params: Mapping[str, Tensor]) -> dict[str, Tensor]:
+        """Extra [B] values for ``info`` (e.g. ``distance``, ``is_success``)."""
+        return {}
+
+    def controller(self, sim: LatentSim) -> np.ndarray:
+        """A scripted action [B, A] for the current states (demos and the did-it-reach tests)."""
+        raise NotImplementedError
+
+    def overlay(self, sim: LatentSim, row: int) -> tuple[list[Any], list[Any]]:
+        """(markers, arrows) of :mod:`redsim.raster` to draw on copy ``row``."""
+        return [], []
+
+
+def check_subspace(scene: Scene, subspace: nn.Module) -> None:
+    """Refuse a map fitted to another scene (by its metadata) or with the wrong output size.
+
+    Raises:
+        CheckpointError: the map's metadata names another scene or fingerprint.
+        ValueError: the map has no ``latent_dim`` or does not map to q [n].
+    """
+    meta = getattr(subspace, "metadata", None) or {}
+    fitted = (meta.get("scene"), meta.get("scene_fingerprint"))
+    if fitted[1] is not None and fitted != (scene.name, scene.fingerprint()):
+        raise CheckpointError(
+            f"the subspace was fitted to scene {fitted[0]!r} (fingerprint {fitted[1]}), not to scene "
+            f"{scene.name!r} (fingerprint {scene.fingerprint()}); build the scene with the parameters it was fitted to"
+        )
+    d = getattr(subspace, "latent_dim", None)
+    if not isinstance(d, int) or d < 1:
+        raise ValueError(f"the subspace must have an integer latent_dim >= 1, got {d!r}")
+    out = getattr(getattr(subspace, "config", None), "output_dim", None)
+    if out is not None and out != scene.free_dof_count:
+        raise ValueError(f"the subspace maps to {out} DOFs; scene {scene.name!r} has n = {scene.free_dof_count}")
+
+
+class LatentSim:
+    """B copies of one scene in latent space: the batched core of the single and vector envs.
+
+    Args:
+        scene: The scene (any dtype; a copy in ``dtype`` is used for positions and invariants).
+        subspace: Its map f(z[, c]) -> q.
+        task: The task (bound to this sim here).
+        batch: B, the number of copies.
+        dt: Stepper time step [s].
+        frame_skip: Stepper steps per env step (the env's dt is ``dt * frame_skip``).
+        dtype: "float32" or "float64", the stepper's dtype.
+        device: Torch device of the stepper.
+        randomize_condition: Draw the condition c uniformly from the scene's condition space per
+            episode (a conditional map is needed) and append it to the observation.
+        include_q: Put the full free configuration q [n] in ``info["q"]``.
+        stepper_options: Extra keyword arguments of :class:`redsim.runtime.LatentStepper`.
+    """
+
+    def __init__(
+        self,
+        scene: Scene,
+        subspace: nn.Module,
+        task: Task,
+        *,
+        batch: int = 1,
+        dt: float = 0.02,
+        frame_skip: int = 1,
+        dtype: str = "float32",
+        device: str = "cpu",
+        randomize_condition: bool = False,
+        include_q: bool = False,
+        stepper_options: Mapping[str, Any] | None = None,
+    ) -> None:
+        from redsim.envs.invariants import Invariants
+        from redsim.runtime import LatentStepper
+
+        if int(batch) != batch or batch < 1:
+            raise ValueError(f"batch must be an integer >= 1, got {batch!r}")
+        if int(frame_skip) != frame_skip or frame_skip < 1:
+            raise ValueError(f"frame_skip must be an integer >= 1, got {frame_skip!r}")
+        if dtype not in DTYPES:
+            raise ValueError(f"dtype must be one of {sorted(DTYPES)}, got {dtype!r}")
+        check_subspace(scene, subspace)
+        conditional = int(getattr(getattr(subspace, "config", None), "condition_dim", 0)) > 0
+        if randomize_condition and not (conditional and scene.condition_space is not None):
+            raise ValueError("randomize_condition needs a scene with a condition space and a conditional subspace")
+        self.options = {
+            "dt": float(dt),
+            "frame_skip": int(frame_skip),
+            "dtype": dtype,
+            "device": device,
+            "randomize_condition": bool(randomize_condition),
+            "include_q": bool(include_q),
+            "stepper_options": dict(stepper_options or {}),
+        }
+        self.source_scene = scene
+        self.torch_dtype = DTYPES[dtype]
+        self.device = torch.device(device)
+        self.scene = scene.to(self.device, self.torch_dtype)
+        self.subspace = subspace.to(self.device)
+        self.batch = int(batch)
+        self.frame_skip = int(frame_skip)
+        self.randomize_condition = bool(randomize_condition)
+        self.conditional = conditional
+        self.include_q = bool(include_q)
+        self.stepper = LatentStepper(
+            scene, self.subspace, dt, dtype=self.torch_dtype, device=self.device, **dict(stepper_options or {})
+        )
+        self.latent_dim = int(self.stepper.latent_dim)
+        self.dt = float(dt) * self.frame_skip
+        self.invariants = Invariants(self.scene)
+        self.task = task
+        space = scene.condition_space
+        self._cond_low = None if space is None else space.low.to(self.device, self.torch_dtype)
+        self._cond_high = None if space is None else space.high.to(self.device, self.torch_dtype)
+        self.default_cond = self.scene.pack_condition(None, 1, self.scene.q_seed) if conditional else None
+        self._rest: Tensor | None = None if self.randomize_condition else self._rest_latent(self.default_cond)
+        d, B = self.latent_dim, self.batch
+        zeros = torch.zeros(B, d, dtype=self.torch_dtype, device=self.device)
+        self.z, self.z_prev = zeros.clone(), zeros.clone()
+        self.cond: Tensor | None = None if not conditional else self.default_cond.expand(B, -1).clone()
+        self.params: dict[str, Tensor] = {}
+        self.action = torch.zeros(B, 1, dtype=self.torch_dtype, device=self.device)
+        self.loads = torch.zeros(B, len(scene.handles), scene.dim, dtype=self.torch_dtype, device=self.device)
+        task.bind(self)
+        self.x = self.x_prev = self.full_positions(self.z)
+
+    def clone(self, batch: int, task: Task | None = None) -> LatentSim:
+        """A new sim of ``batch`` copies with this scene, map and settings (and ``task``, default this one)."""
+        return LatentSim(
+            self.source_scene, self.subspace, self.task if task is None else task, batch=batch, **self.options
+        )
+
+    # -- configurations -------------------------------------------------------------------
+    def _rest_latent(self, cond: Tensor | None) -> Tensor:
+        return self.stepper.rest_latent(cond).reshape(-1, self.latent_dim)[0].detach().clone()
+
+    def positions(self, z: Tensor, cond: Tensor | None = None) -> Tensor:
+        """Free configurations q [B, n] of latents z [B, d] (the copies' conditions by default)."""
+        return self.stepper.positions(z, cond if cond is not None or not self.conditional else self.cond)
+
+    def full_positions(self, z: Tensor, cond: Tensor | None = None) -> Tensor:
+        """Full configurations x [B, N] of latents z [B, d]."""
+        return self.scene.full_positions(self.positions(z, cond).to(self.torch_dtype))
+
+    # -- episodes -------------------------------------------------------------------------
+    def reset_rows(self, rows: list[int], rngs: list[np.random.Generator]) -> None:
+        """Start a new episode in copies ``rows`` (at rest), each drawing from its own generator."""
+        for row, rng in zip(rows, rngs, strict=True):
+            cond = None
+            if self.randomize_condition:
+                u = torch.as_tensor(rng.random(self._cond_low.shape[0]), dtype=self.torch_dtype, device=self.device)
+                cond = (self._cond_low + u * (self._cond_high - self._cond_low)).unsqueeze(0)
+                self.cond[row] = cond[0]
+                z_rest = self._rest_latent(cond)
+            else:
+                cond = None if self.cond is None else self.cond[row : row + 1]
+                z_rest = self._rest
+            self.z[row] = z_rest
+            self.z_prev[row] = z_rest
+            for key, value in self.task.sample(rng, self, z_rest, cond).items():
+                if key not in self.params:
+                    self.params[key] = torch.zeros((self.batch, *value.shape), dtype=value.dtype, device=self.device)
+                self.params[key][row] = value
+        self.loads[rows] = 0.0
+        x = self.full_positions(self.z[rows], None if self.cond is None else self.cond[rows])
+        self.x = self.x.clone()
+        self.x_prev = self.x_prev.clone()
+        self.x[rows] = x
+        self.x_prev[rows] = x
+
+    def observe(self) -> np.ndarray:
+        """Observations [B, obs] (float32, clipped to :meth:`observation_bounds`)."""
+        parts = [self.z, (self.z - self.z_prev) / self.dt, self.task.extras(self.x, self.x_prev, self.params)]
+        if self.randomize_condition:
+            parts.append(self.cond)
+        obs = torch.cat([p.to(self.torch_dtype) for p in parts], dim=1).cpu().numpy().astype(np.float32)
+        low, high = self.observation_bounds()
+        return np.clip(obs, low, high)
+
+    def observation_bounds(self) -> tuple[np.ndarray, np.ndarray]:
+        """(low, high) of one observation, float32 [obs]."""
+        d = self.latent_dim
+        low_e, high_e = self.task.extras_bounds()
+        low = [np.full(d, -LATENT_BOUND), np.full(d, -2.0 * LATENT_BOUND / self.dt), low_e]
+        high = [np.full(d, LATENT_BOUND), np.full(d, 2.0 * LATENT_BOUND / self.dt), high_e]
+        if self.randomize_condition:
+            low.append(self._cond_low.cpu().numpy())
+            high.append(self._cond_high.cpu().numpy())
+        return np.concatenate(low).astype(np.float32), np.concatenate(high).astype(np.float32)
+
+    def observation_structure(self) -> dict[str, int]:
+        """Name -> size of each observation block, in order."""
+        d = self.latent_dim
+        out = {"z": d, "z_dot": d, **self.task.observation_structure()}
+        if self.randomize_condition:
+            out["condition"] = self.cond.shape[1]
+        return out
+
+    # -- stepping -------------------------------------------------------------------------
+    def step(self, action: np.ndarray) -> tuple[np.ndarray, np.ndarray, dict[str, np.ndarray]]:
+        """Advance every copy by one env step with actions [B, A] (already checked and clipped).
+
+        Returns:
+            reward [B] (float64), terminated [B] (bool), info {key: [B] array} (see :class:`LatentEnv`).
+        """
+        act = torch.as_tensor(action, dtype=self.torch_dtype, device=self.device)
+        self.action = act
+        self.loads = self.task.loads(act, self.params).to(self.torch_dtype)
+        diverged = torch.zeros(self.batch, dtype=torch.bool, device=self.device)
+        out_of_range = torch.zeros_like(diverged)
+        iterations = torch.zeros(self.batch, dtype=torch.int64, device=self.device)
+        converged = torch.ones_like(diverged)
+        for _ in range(self.frame_skip):
+            z_next, stats = self.stepper.step(self.z, self.z_prev, self.loads, self.cond)
+            self.z_prev, self.z = self.z, z_next.detach()
+            diverged |= stats.diverged.to(self.device)
+            out_of_range |= stats.out_of_range.to(self.device)
+            converged &= stats.converged.to(self.device)
+            iterations += stats.iterations.to(self.device).to(torch.int64)
+        diverged |= ~torch.isfinite(self.z).all(dim=1)
+        self.x_prev, self.x = self.x, self.full_positions(self.z)
+        reward, terms = self.task.reward(self.x, act, self.params)
+        terminated = self.task.terminated(self.x, self.params) | diverged
+        info: dict[str, Tensor] = {
+            "converged": converged,
+            "iterations": iterations,
+            "residual": stats.residual,
+            "energy": stats.energy,
+            "out_of_range": out_of_range,
+            "diverged": diverged,
+            **{f"reward_{k}": v for k, v in terms.items()},
+            **self.task.metrics(self.x, self.params),
+            **self.invariants(self.x),
+        }
+        out = {k: v.detach().cpu().numpy() for k, v in info.items()}
+        if self.include_q:
+            out["q"] = self.positions(self.z).detach().cpu().numpy()
+        return reward.detach().cpu().numpy().astype(np.float64), terminated.cpu().numpy(), out
+
+    # -- state ----------------------------------------------------------------------------
+    def get_state(self) -> dict[str, Any]:
+        """Copies of the dynamic state: z, z_prev [B, d], cond [B, m] or None, task params {k: [B, ...]}."""
+        return {
+            "z": self.z.cpu().numpy().copy(),
+            "z_prev": self.z_prev.cpu().numpy().copy(),
+            "cond": None if self.cond is None else self.cond.cpu().numpy().copy(),
+            "params": {k: v.cpu().numpy().copy() for k, v in self.params.items()},
+        }
+
+    def set_state(self, state: Mapping[str, Any]) -> None:
+        """Restore a state from :meth:`get_state` (shapes are checked).
+
+        Raises:
+            ValueError: on a missing key, a wrong shape or non-finite values.
+        """
+        d, B = self.latent_dim, self.batch
+
+        def tensor(value: Any, shape: tuple[int, ...], what: str) -> Tensor:
+            t = torch.as_tensor(np.asarray(value), dtype=self.torch_dtype, device=self.device)
+            if tuple(t.shape) != shape:
+                raise ValueError(f"state[{what!r}] must have shape {list(shape)}, got {list(t.shape)}")
+            if not bool(torch.isfinite(t).all()):
+                raise ValueError(f"state[{what!r}] must be finite")
+            return t.clone()
+
+        missing = {"z", "z_prev", "cond", "params"} - set(state)
+        if missing:
+            raise ValueError(f"state is missing {sorted(missing)}")
+        self.z = tensor(state["z"], (B, d), "z")
+        self.z_prev = tensor(state["z_prev"], (B, d), "z_prev")
+        if self.cond is not None:
+            self.cond = tensor(state["cond"], tuple(self.cond.shape), "cond")
+        params = state["params"]
+        if set(params) != set(self.params):
+            raise ValueError(f"state['params'] must have keys {sorted(self.params)}, got {sorted(params)}")
+        self.params = {k: tensor(v, tuple(self.params[k].shape), f"params.{k}") for k, v in params.items()}
+        self.x_prev = self.full_positions(self.z_prev)
+        self.x = self.full_positions(self.z)
+
+    # -- drawing --------------------------------------------------------------------------
+    def view(self, width: int, height: int, camera: Mapping[str, float] | None) -> Any:
+        """A :class:`redsim.raster.SceneView` framed on the rest state and the task's overlay."""
+        from redsim.raster import SceneView
+
+        q = self.positions(self.z[:1])[0]
+        markers, _ = self.task.overlay(self, 0)
+        extra = np.array([m.position for m in markers]) if markers else None
+        return SceneView(self.scene, q, width=width, height=height, extra_points=extra, **dict(camera or {}))
+
+    def draw(self, view: Any, row: int) -> np.ndarray:
+        """RGB picture [H, W, 3] of copy ``row``."""
+        markers, arrows = self.task.overlay(self, row)
+        return view.draw(
+            self.positions(self.z[row : row + 1], None if self.cond is None else self.cond[row : row + 1])[0],
+            markers=markers,
+            arrows=arrows,
+        )
+
+
+def shipped(
+    scene_name: str, scene_params: Mapping[str, Any] | None = None, subspace: str | nn.Module | None = None
+) -> tuple[Scene, nn.Module]:
+    """A catalog scene and its subspace: the shipped one (default), a checkpoint path, or a map.
+
+    Raises:
+        ValueError: an unknown scene or parameter.
+        redsim.subspace.CheckpointError: the subspace was fitted to other scene parameters (the
+            shipped ones cover only the defaults) or the checkpoint is missing or corrupt.
+    """
+    from redsim import pretrained, scenes
+    from redsim.subspace import load_subspace
+
+    scene = scenes.build(scene_name, **dict(scene_params or {}))
+    if subspace is None:
+        if scene_params:
+            default = scenes.build(scene_name)
+            if default.fingerprint() != scene.fingerprint():
+                raise CheckpointError(
+                    f"no shipped subspace covers scene {scene_name!r} with parameters {dict(scene_params)}; the "
+                    f"shipped one is fitted to the defaults. Fit one (`redsim fit {scene_name} --param ...`) and "
+                    "pass subspace=PATH"
+                )
+        return scene, pretrained.load(scene_name, scene)
+    if isinstance(subspace, nn.Module):
+        return scene, subspace
+    return scene, load_subspace(subspace, scene=scene)
+
+
+class LatentEnv(gym.Env[np.ndarray, np.ndarray]):
+    """A Gymnasium env whose state is the latent (z, z_dot) of a subspace, advanced by the latent stepper.
+
+    The registered ``RedSim/...-v0`` envs subclass it with a scene, its shipped subspace and a
+    task; :func:`redsim.envs.make` builds one from any scene, subspace and task.
+
+    ``info`` after each step: ``converged``, ``iterations``, ``residual`` (the stepper's solver
+    statistics), ``energy`` [J], ``out_of_range`` (z left the region the map was fitted on),
+    ``diverged``, ``reward_<term>`` for each reward term, the task's metrics (``distance``,
+    ``is_success``), the scene's invariants (:mod:`redsim.envs.invariants`) and, with
+    ``include_q=True``, ``q`` [n]. A step the stepper cannot make finite ends the episode
+    (``terminated=True``, ``info["diverged"]=True``).
+
+    Args:
+        scene: The scene.
+        subspace: Its map (fitted to this scene: another scene's map raises CheckpointError).
+        task: The task.
+        render_mode: None, "rgb_array" (headless) or "human" (listed in ``metadata`` where pygame is
+            installed; it opens a window).
+        dt: Stepper time step [s].
+        frame_skip: Stepper steps per env step.
+        dtype: Stepper dtype, "float32" or "float64".
+        device: Torch device.
+        randomize_condition: Draw the scene's condition per episode (conditional maps).
+        include_q: Put q in ``info``.
+        width: Render width [px].
+        height: Render height [px].
+        camera: ``azimuth``/``elevation``/``margin`` of :class:`redsim.raster.SceneView`.
+        stepper_options: Extra keyword arguments of :class:`redsim.runtime.LatentStepper`.
+    """
+
+    metadata: ClassVar[dict[str, Any]] = {"render_modes": RENDER_MODES, "render_fps": 50}
+
+    def __new__(cls, *args: Any, **kwargs: Any) -> LatentEnv:
+        env = super().__new__(cls)
+        env._init_args = (args, dict(kwargs))  # for pickling: rebuilt from the same arguments
+        return env
+
+    def __init__(
+        self,
+        scene: Scene,
+        subspace: nn.Module,
+        task: Task,
+        *,
+        render_mode: str | None = None,
+        dt: float = 0.02,
+        frame_skip: int = 1,
+        dtype: str = "float32",
+        device: str = "cpu",
+        randomize_condition: bool = False,
+        include_q: bool = False,
+        width: int = 480,
+        height: int = 480,
+        camera: Mapping[str, float] | None = None,
+        stepper_options: Mapping[str, Any] | None = None,
+    ) -> None:
+        if render_mode is not None and render_mode not in self.metadata["render_modes"]:
+            raise ValueError(f"render_mode must be None or one of {self.metadata['render_modes']}, got {render_mode!r}")
+        self.sim = LatentSim(
+            scene,
+            subspace,
+            task,
+            batch=1,
+            dt=dt,
+            frame_skip=frame_skip,
+            dtype=dtype,
+            device=device,
+            randomize_condition=randomize_condition,
+            include_q=include_q,
+            stepper_options=stepper_options,
+        )
+        self.task = task
+        self.render_mode = render_mode
+        self.dt = self.sim.dt
+        self.metadata = {**type(self).metadata, "render_fps": round(1.0 / self.dt)}
+        self.action_space = spaces.Box(-1.0, 1.0, (task.action_size,), np.float32)
+        low, high = self.sim.observation_bounds()
+        self.observation_space = spaces.Box(low, high, dtype=np.float32)
+        self.observation_structure = self.sim.observation_structure()
+        self._render_size = (int(width), int(height))
+        self._camera = dict(camera or {})
+        self._view: Any = None
+        self._window: Any = None
+        self._reset_done = False
+
+    @property
+    def scene(self) -> Scene:
+        return self.sim.scene
+
+    # -- Gymnasium API --------------------------------------------------------------------
+    def reset(self, *, seed: int | None = None, options: dict[str, Any] | None = None) -> tuple[np.ndarray, dict]:
+        """Start at the rest state (z = the map's unloaded equilibrium, z_dot = 0) with a new task draw."""
+        super().reset(seed=seed)
+        self.sim.reset_rows([0], [self.np_random])
+        self._reset_done = True
+        if self.render_mode == "human":
+            self.render()
+        return self.sim.observe()[0], {}
+
+    def step(self, action: np.ndarray) -> tuple[np.ndarray, float, bool, bool, dict[str, Any]]:
+        """One env step (``frame_skip`` stepper steps) with the action held.
+
+        Raises:
+            ValueError: a wrong action shape (both shapes are named) or non-finite entries.
+        """
+        if not self._reset_done:
+            raise gym.error.ResetNeeded("call reset() before step()")
+        act = check_action(action, self.action_space.shape)
+        reward, terminated, info = self.sim.step(act[None])
+        info_row = {k: (v[0].item() if v.ndim == 1 else v[0]) for k, v in info.items()}
+        if self.render_mode == "human":
+            self.render()
+        return self.sim.observe()[0], float(reward[0]), bool(terminated[0]), False, info_row
+
+    def render(self) -> np.ndarray | None:
+        """The current picture: an RGB array [H, W, 3] ("rgb_array"), or a window update ("human")."""
+        if self.render_mode is None:
+            gym.logger.warn("render() called without a render_mode; pass render_mode='rgb_array' to gym.make")
+            return None
+        if self._view is None:
+            self._view = self.sim.view(*self._render_size, self._camera)
+        frame = self.sim.draw(self._view, 0)
+        if self.render_mode == "rgb_array":
+            return frame
+        self._show(frame)
+        return None
+
+    def _show(self, frame: np.ndarray) -> None:
+        try:
+            import pygame
+        except ImportError as err:
+            raise gym.error.DependencyNotInstalled(
+                'pygame is not installed; run `pip install pygame` for render_mode="human"'
+            ) from err
+        if self._window is None:
+            pygame.init()
+            self._window = pygame.display.set_mode(frame.shape[1::-1])
+            self._clock = pygame.time.Clock()
+        pygame.event.pump()
+        self._window.blit(pygame.surfarray.make_surface(frame.swapaxes(0, 1)), (0, 0))
+        pygame.display.flip()
+        self._clock.tick(self.metadata["render_fps"])
+
+    def close(self) -> None:
+        if self._window is not None:
+            import pygame
+
+            pygame.display.quit()
+            pygame.quit()
+            self._window = None
+
+    # -- state and export -----------------------------------------------------------------
+    def get_state(self) -> dict[str, Any]:
+        """The dynamic state (numpy copies): z, z_prev [d], cond [m] or None, task params."""
+        return _unbatch(self.sim.get_state())
+
+    def set_state(self, state: Mapping[str, Any]) -> None:
+        """Restore :meth:`get_state`'s state; the next step continues exactly from it."""
+        self.sim.set_state(_batch(state))
+        self._reset_done = True
+
+    def configuration(self) -> np.ndarray:
+        """The free configuration q [n] of the current state (float of the stepper's dtype)."""
+        return self.sim.positions(self.sim.z)[0].detach().cpu().numpy()
+
+    def trimeshes(self) -> list[Any]:
+        """The scene's surfaces at the current state as ``trimesh.Trimesh`` objects (3D scenes)."""
+        import trimesh
+
+        from redsim.render import surface_vertices
+
+        q = self.sim.positions(self.sim.z)[0].detach().to(self.sim.scene.dtype)
+        verts = surface_vertices(self.sim.scene, q)
+        if self.sim.scene.dim != 3:
+            verts = [np.concatenate([v, np.zeros((len(v), 1))], axis=1) for v in verts]
+        return [
+            trimesh.Trimesh(v, s.faces.cpu().numpy(), process=False)
+            for v, s in zip(verts, self.sim.scene.surfaces, strict=True)
+        ]
+
+    def __getstate__(self) -> dict[str, Any]:
+        state = {"init": self._init_args, "sim": self.get_state() if self._reset_done else None}
+        state["rng"] = None if self._np_random is None else self._np_random.bit_generator.state
+        return state
+
+    def __setstate__(self, state: dict[str, Any]) -> None:
+        args, kwargs = state["init"]
+        self._init_args = (args, kwargs)
+        self.__init__(*args, **kwargs)  # type: ignore[misc]
+        if state["rng"] is not None:
+            self._np_random = np.random.Generator(np.random.PCG64())
+            self._np_random.bit_generator.state = state["rng"]
+        if state["sim"] is not None:
+            self.set_state(state["sim"])
+
+
+def check_action(action: Any, shape: tuple[int, ...]) -> np.ndarray:
+    """The action as float32 of ``shape``, clipped to [-1, 1].
+
+    Raises:
+        ValueError: a wrong shape (both named) or non-finite entries.
+    """
+    act = np.asarray(action, dtype=np.float32)
+    if act.shape != tuple(shape):
+        raise ValueError(f"action must have shape {tuple(shape)}, got {act.shape}")
+    if not np.all(np.isfinite(act)):
+        raise ValueError(f"action must be finite, got {act.tolist()}")
+    return np.clip(act, -1.0, 1.0)
+
+
+def _unbatch(state: Mapping[str, Any]) -> dict[str, Any]:
+    return {
+        "z": state["z"][0],
+        "z_prev": state["z_prev"][0],
+        "cond": None if state["cond"] is None else state["cond"][0],
+        "params": {k: v[0] for k, v in state["params"].items()},
+    }
+
+
+def _batch(state: Mapping[str, Any]) -> dict[str, Any]:
+    def row(value: Any) -> Any:
+        return None if value is None else np.asarray(value)[None]
+
+    missing = {"z", "z_prev", "cond", "params"} - set(state)
+    if missing:
+        raise ValueError(f"state is missing {sorted(missing)}")
+    return {
+        "z": row(state["z"]),
+        "z_prev": row(state["z_prev"]),
+        "cond": row(state["cond"]),
+        "params": {k: row(v) for k, v in dict(state["params"]).items()},
+    }
+
+
+__all__ = ["LATENT_BOUND", "LatentEnv", "LatentSim", "Task", "check_action", "check_subspace", "shipped"]

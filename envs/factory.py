@@ -1,0 +1,65 @@
+"""Build an env from any scene, subspace and task (the body of :func:`redsim.envs.make`)."""
+
+from __future__ import annotations
+
+from collections.abc import Mapping
+from typing import Any
+
+import gymnasium as gym
+from gymnasium.wrappers import TimeLimit
+
+from redsim.envs.base import LatentEnv, Task
+from redsim.envs.reach import HandleReach
+from redsim.scene import Scene
+
+TASKS: dict[str, type[Task]] = {"reach": HandleReach}
+"""Task names accepted by :func:`redsim.envs.make`."""
+
+DEFAULT_FORCE_FRACTION = 0.5
+"""A reach task on a user's scene gets max_force = this fraction of the scene's weight [N] (1 N without gravity)."""
+
+
+def build(
+    scene: Scene | str,
+    subspace: Any,
+    task: Task | str,
+    *,
+    max_episode_steps: int | None = 200,
+    task_options: Mapping[str, Any] | None = None,
+    **kwargs: Any,
+) -> gym.Env:
+    """See :func:`redsim.envs.make`."""
+    from redsim import pretrained, scenes
+    from redsim.subspace import load_subspace
+
+    if isinstance(scene, str):
+        name = scene
+        scene = scenes.build(name)
+        if subspace is None:
+            subspace = pretrained.load(name, scene)
+    if subspace is None:
+        raise ValueError(f"scene {scene.name!r} is not a catalog name: give its subspace (a map or a checkpoint path)")
+    if not hasattr(subspace, "latent_dim"):
+        subspace = load_subspace(subspace, scene=scene)
+    if isinstance(task, str):
+        if task not in TASKS:
+            raise ValueError(f"unknown task {task!r}; valid tasks: {sorted(TASKS)}")
+        if not scene.handles:
+            raise ValueError(f"scene {scene.name!r} has no handles for a {task!r} task")
+        options = {"goal_handle": scene.handle_names[0], "max_force": _default_force(scene), **dict(task_options or {})}
+        task = TASKS[task](**options)
+    elif task_options:
+        raise ValueError("task_options only apply to a task given by name")
+    env: gym.Env = LatentEnv(scene, subspace, task, **kwargs)
+    return env if max_episode_steps is None else TimeLimit(env, max_episode_steps)
+
+
+def _default_force(scene: Scene) -> float:
+    gravity = next((e for e in scene.effects if e.name == "gravity"), None)
+    if gravity is None:
+        return 1.0
+    weight = float(gravity.masses.sum()) * float(gravity.acceleration.norm())
+    return DEFAULT_FORCE_FRACTION * weight if weight > 0.0 else 1.0
+
+
+__all__ = ["TASKS", "build"]

@@ -1,0 +1,90 @@
+"""Physical invariants a user watches in ``info``: one small batched check per kind of effect.
+
+For every effect of a scene that has a check (rigid orthogonality, point-pair joints and pins,
+FEM, cloth membranes, signed-distance contact), :class:`Invariants` returns named [B] tensors,
+prefixed by the effect's name:
+
+- ``<rigid>_orthogonality_error``: max over bodies of |R^T R - I|_F (0 for exact rotations);
+- ``<joints>_max_gap`` [m]: max distance between the two points of a joint / pin / hinge axis;
+- ``<elastic>_min_det_f`` and ``<elastic>_inverted`` (count of elements with det F <= 0);
+- ``<membrane>_max_strain``: max principal stretch - 1 over the cloth triangles (0: unstretched);
+- ``<contact>_penetration`` [m]: max depth of a contact point inside its shape's margin.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Callable
+
+import torch
+from torch import Tensor
+
+from redsim.effects import NeoHookean, PointPairPenalty, RigidOrthogonality, SDFContact, StVKMembrane
+from redsim.effects.base import Effect, split_points
+from redsim.effects.elastic import deformation_gradient
+from redsim.scene import Scene
+
+
+def _orthogonality(effect: RigidOrthogonality, xe: Tensor) -> dict[str, Tensor]:
+    B, T, _ = xe.shape
+    R = xe.reshape(B, T, 3, 4)[..., :3]
+    defect = R.transpose(-1, -2) @ R - torch.eye(3, dtype=xe.dtype, device=xe.device)
+    return {"orthogonality_error": defect.flatten(-2).norm(dim=-1).amax(-1)}
+
+
+def _gap(effect: PointPairPenalty, xe: Tensor) -> dict[str, Tensor]:
+    a, b = split_points(xe, effect.a, effect.b)
+    return {"max_gap": (a - b).norm(dim=-1).amax(-1)}
+
+
+def _fem(effect: NeoHookean, xe: Tensor) -> dict[str, Tensor]:
+    B, T, _ = xe.shape
+    D = effect.dim
+    det = torch.linalg.det(deformation_gradient(xe.reshape(B, T, D + 1, D), effect.shape_gradients))
+    return {"min_det_f": det.amin(-1), "inverted": (det <= 0.0).sum(-1).to(xe.dtype)}
+
+
+def _membrane(effect: StVKMembrane, xe: Tensor) -> dict[str, Tensor]:
+    B, T, _ = xe.shape
+    F = deformation_gradient(xe.reshape(B, T, 3, 3), effect.shape_gradients)  # [B, T, 3, 2]
+    largest = torch.linalg.eigvalsh(F.transpose(-1, -2) @ F)[..., -1]  # squared principal stretch
+    return {"max_strain": largest.clamp_min(0.0).sqrt().amax(-1) - 1.0}
+
+
+def _contact(effect: SDFContact, xe: Tensor) -> dict[str, Tensor]:
+    depth = (effect.margin - effect.signed_distance(xe)).clamp_min(0.0)
+    return {"penetration": depth.amax(-1)}
+
+
+CHECKS: dict[type, Callable[..., dict[str, Tensor]]] = {
+    RigidOrthogonality: _orthogonality,
+    PointPairPenalty: _gap,
+    NeoHookean: _fem,
+    StVKMembrane: _membrane,
+    SDFContact: _contact,
+}
+"""The check of each effect class; effects of other classes (gravity, loads, bending) have none."""
+
+
+class Invariants:
+    """The invariants of one scene (module doc), evaluated on full configurations x [B, N].
+
+    Args:
+        scene: The scene, in the dtype and device the configurations come in.
+    """
+
+    def __init__(self, scene: Scene) -> None:
+        self._checks: list[tuple[Effect, Callable[..., dict[str, Tensor]]]] = [
+            (effect, CHECKS[type(effect)]) for effect in scene.effects if type(effect) in CHECKS
+        ]
+
+    @torch.no_grad()
+    def __call__(self, x: Tensor) -> dict[str, Tensor]:
+        """Every invariant of the scene, each shape [B]."""
+        out: dict[str, Tensor] = {}
+        for effect, check in self._checks:
+            for key, value in check(effect, x[:, effect.element_dofs]).items():
+                out[f"{effect.name}_{key}"] = value
+        return out
+
+
+__all__ = ["CHECKS", "Invariants"]

@@ -1,0 +1,220 @@
+"""The reach task: push a handle of the scene to a target point with a bounded force.
+
+Targets are handle positions of the subspace itself: at reset, z_target = z_rest + s * eps with
+eps ~ N(0, I) from the env's generator (s = ``target_spread``), and the target is the goal
+handle's position in f(z_target[, c]) along the goal axes. Every target is therefore a state the
+map contains, at a distance the spread sets, whatever the scene. The action is a force on the
+actuated handle along the force axes, ``max_force * action`` [N].
+
+Reward per step, with d the distance [m] from the goal handle to the target along the goal axes
+and L = ``distance_scale`` [m]:
+
+    reward = -d / L  -  control_weight * mean(action^2)  +  success_bonus * [d < success_radius]
+
+reported as ``reward_distance``, ``reward_control`` and ``reward_success``.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Mapping, Sequence
+from typing import TYPE_CHECKING, Any
+
+import numpy as np
+import torch
+from torch import Tensor
+
+from redsim.envs.base import Task
+
+if TYPE_CHECKING:
+    from redsim.envs.base import LatentSim
+
+SCALE_SAMPLES = 64
+"""Fixed latent samples (seed 0) that set the default distance scale of a reach task."""
+
+
+class HandleReach(Task):
+    """Bring handle ``goal_handle`` to a target with a force on handle ``actuated`` (module doc).
+
+    Args:
+        goal_handle: Handle whose position must reach the target.
+        max_force: Force [N] of a unit action on each force axis.
+        actuated: Handle the force acts on (default: the goal handle).
+        force_axes: Spatial axes of the force (default: all D).
+        goal_axes: Spatial axes the distance is measured along (default: all D).
+        target_spread: s, the latent spread of targets around the rest state.
+        distance_scale: L [m] of the reward (default: the RMS target distance over
+            SCALE_SAMPLES fixed targets).
+        success_radius: Distance [m] under which the task counts as done (default 0.2 L).
+        control_weight: Weight of the control cost.
+        success_bonus: Reward per step spent within the success radius.
+        controller_gain: Scripted controller gain [N/m] (default ``max_force / L``).
+        controller_time: Scripted controller integral time [s].
+
+    Raises:
+        ValueError: an unknown handle or axis, or a bad number.
+    """
+
+    name = "reach"
+    reward_terms = ("distance", "control", "success")
+
+    def __init__(
+        self,
+        goal_handle: str,
+        *,
+        max_force: float,
+        actuated: str | None = None,
+        force_axes: Sequence[int] | None = None,
+        goal_axes: Sequence[int] | None = None,
+        target_spread: float = 0.5,
+        distance_scale: float | None = None,
+        success_radius: float | None = None,
+        control_weight: float = 0.05,
+        success_bonus: float = 1.0,
+        controller_gain: float | None = None,
+        controller_time: float = 0.5,
+    ) -> None:
+        for key, value in (("max_force", max_force), ("target_spread", target_spread)):
+            if not (np.isfinite(value) and value > 0.0):
+                raise ValueError(f"{key} must be finite and > 0, got {value!r}")
+        for key, value in (("control_weight", control_weight), ("success_bonus", success_bonus)):
+            if not (np.isfinite(value) and value >= 0.0):
+                raise ValueError(f"{key} must be finite and >= 0, got {value!r}")
+        for key, value in (
+            ("distance_scale", distance_scale),
+            ("success_radius", success_radius),
+            ("controller_gain", controller_gain),
+            ("controller_time", controller_time),
+        ):
+            if value is not None and not (np.isfinite(value) and value > 0.0):
+                raise ValueError(f"{key} must be None or finite and > 0, got {value!r}")
+        self.goal_handle = goal_handle
+        self.actuated = goal_handle if actuated is None else actuated
+        self.max_force = float(max_force)
+        self._force_axes = None if force_axes is None else tuple(int(a) for a in force_axes)
+        self._goal_axes = None if goal_axes is None else tuple(int(a) for a in goal_axes)
+        self.target_spread = float(target_spread)
+        self._distance_scale = distance_scale
+        self._success_radius = success_radius
+        self.control_weight = float(control_weight)
+        self.success_bonus = float(success_bonus)
+        self._gain = controller_gain
+        self.controller_time = float(controller_time)
+        self.action_size = 0 if self._force_axes is None else len(self._force_axes)
+
+    # -- binding --------------------------------------------------------------------------
+    def bind(self, sim: LatentSim) -> None:
+        scene = sim.scene
+        names = list(scene.handle_names)
+        for handle in (self.goal_handle, self.actuated):
+            if handle not in names:
+                raise ValueError(f"scene {scene.name!r} has no handle {handle!r}; valid handles: {names}")
+        D = scene.dim
+        self.force_axes = tuple(range(D)) if self._force_axes is None else self._force_axes
+        self.goal_axes = tuple(range(D)) if self._goal_axes is None else self._goal_axes
+        for what, axes in (("force_axes", self.force_axes), ("goal_axes", self.goal_axes)):
+            if not axes or len(set(axes)) != len(axes) or any(not 0 <= a < D for a in axes):
+                raise ValueError(f"{what} must be distinct axes in [0, {D}), got {list(axes)}")
+        self.action_size = len(self.force_axes)
+        self._goal = scene.handles[names.index(self.goal_handle)]
+        self._actuated_index = names.index(self.actuated)
+        self._goal_index = torch.tensor(self.goal_axes, device=sim.device)
+        self._force_index = torch.tensor(self.force_axes, device=sim.device)
+        self._handles = len(names)
+        self._dim = D
+        rest_x = sim.full_positions(sim._rest_latent(sim.default_cond).unsqueeze(0), sim.default_cond)
+        self._rest_goal = self._goal.position(rest_x)[0, self._goal_index]
+        if self._distance_scale is None:
+            generator = torch.Generator().manual_seed(0)
+            eps = torch.randn(SCALE_SAMPLES, sim.latent_dim, generator=generator).to(sim.device, sim.torch_dtype)
+            z = sim._rest_latent(sim.default_cond).unsqueeze(0) + self.target_spread * eps
+            cond = None if sim.default_cond is None else sim.default_cond.expand(SCALE_SAMPLES, -1)
+            targets = self._goal.position(sim.full_positions(z, cond))[:, self._goal_index]
+            rms = float((targets - self._rest_goal).pow(2).sum(-1).mean().sqrt())
+            self.distance_scale = rms if rms > 0.0 else scene.extent()
+        else:
+            self.distance_scale = float(self._distance_scale)
+        self.success_radius = 0.2 * self.distance_scale if self._success_radius is None else self._success_radius
+        self.gain = self.max_force / self.distance_scale if self._gain is None else self._gain
+        extent = scene.extent()
+        self._bound = float(self._rest_goal.abs().max()) + 2.0 * extent
+
+    # -- episodes -------------------------------------------------------------------------
+    def sample(
+        self, rng: np.random.Generator, sim: LatentSim, z_rest: Tensor, cond: Tensor | None
+    ) -> dict[str, Tensor]:
+        eps = torch.as_tensor(rng.standard_normal(sim.latent_dim), dtype=sim.torch_dtype, device=sim.device)
+        z = (z_rest + self.target_spread * eps).unsqueeze(0)
+        target = self._goal.position(sim.full_positions(z, cond))[0, self._goal_index]
+        return {"target": target}
+
+    def loads(self, action: Tensor, params: Mapping[str, Tensor]) -> Tensor:
+        loads = torch.zeros(action.shape[0], self._handles, self._dim, dtype=action.dtype, device=action.device)
+        loads[:, self._actuated_index, self._force_index] = self.max_force * action
+        return loads
+
+    def _goal_position(self, x: Tensor) -> Tensor:
+        return self._goal.position(x)[:, self._goal_index]
+
+    def extras_bounds(self) -> tuple[np.ndarray, np.ndarray]:
+        k = len(self.goal_axes)
+        high = np.full(2 * k, self._bound)
+        return -high, high
+
+    def observation_structure(self) -> dict[str, int]:
+        k = len(self.goal_axes)
+        return {"handle_position": k, "target_offset": k}
+
+    def extras(self, x: Tensor, x_prev: Tensor, params: Mapping[str, Tensor]) -> Tensor:
+        p = self._goal_position(x)
+        return torch.cat([p, params["target"] - p], dim=1)
+
+    def _distance(self, x: Tensor, params: Mapping[str, Tensor]) -> Tensor:
+        return (self._goal_position(x) - params["target"]).norm(dim=1)
+
+    def reward(self, x: Tensor, action: Tensor, params: Mapping[str, Tensor]) -> tuple[Tensor, dict[str, Tensor]]:
+        distance = self._distance(x, params)
+        terms = {
+            "distance": -distance / self.distance_scale,
+            "control": -self.control_weight * action.pow(2).mean(dim=1),
+            "success": self.success_bonus * (distance < self.success_radius).to(distance.dtype),
+        }
+        return terms["distance"] + terms["control"] + terms["success"], terms
+
+    def metrics(self, x: Tensor, params: Mapping[str, Tensor]) -> dict[str, Tensor]:
+        distance = self._distance(x, params)
+        return {"distance": distance, "is_success": distance < self.success_radius}
+
+    # -- scripted control and drawing -----------------------------------------------------
+    def controller(self, sim: LatentSim) -> np.ndarray:
+        """A PI controller on the goal handle, in velocity form (its state is the load last applied).
+
+        F_t = F_{t-1} + k dt / T e_t + k (e_t - e_{t-1}) along the force axes, clipped to ``max_force``,
+        with e the offset to the target, k = ``controller_gain`` and T = ``controller_time``.
+        """
+        p, p_prev = self._goal.position(sim.x), self._goal.position(sim.x_prev)
+        error = torch.zeros_like(p)
+        error[:, self._goal_index] = sim.params["target"] - p[:, self._goal_index]
+        change = torch.zeros_like(p)
+        change[:, self._goal_index] = (p_prev - p)[:, self._goal_index]
+        force = sim.loads[:, self._actuated_index] + self.gain * (sim.dt / self.controller_time * error + change)
+        action = force[:, self._force_index] / self.max_force
+        return action.clamp(-1.0, 1.0).cpu().numpy().astype(np.float32)
+
+    def overlay(self, sim: LatentSim, row: int) -> tuple[list[Any], list[Any]]:
+        from redsim.raster import Arrow, Marker
+
+        x = sim.x[row : row + 1]
+        goal = self._goal.position(x)[0].clone()
+        target = goal.clone()
+        if "target" in sim.params:
+            target[self._goal_index] = sim.params["target"][row]
+        pushed = sim.scene.handles[self._actuated_index].position(x)[0]
+        force = sim.loads[row, self._actuated_index]
+        scale = 0.25 * sim.scene.extent() / self.max_force
+        return (
+            [Marker(target.cpu().numpy(), (220, 40, 40), 7), Marker(goal.cpu().numpy(), (40, 40, 40), 4)],
+            [Arrow(pushed.cpu().numpy(), force.cpu().numpy(), scale)],
+        )
+
+
+__all__ = ["HandleReach"]

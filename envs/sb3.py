@@ -1,0 +1,99 @@
+"""A stable-baselines3 ``VecEnv`` over the native vector env (one batched step for all copies).
+
+    >>> from stable_baselines3 import PPO
+    >>> from redsim.envs.sb3 import SB3VecEnv
+    >>> venv = SB3VecEnv.make("RedSim/MiniChain-v0", num_envs=16)
+    >>> PPO("MlpPolicy", venv).learn(10_000)
+
+SB3 resets a finished copy in the same step and expects its last observation in
+``infos[i]["terminal_observation"]`` and ``infos[i]["TimeLimit.truncated"]``; the adapter runs the
+vector env with ``AutoresetMode.SAME_STEP`` and translates.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Sequence
+from typing import Any
+
+import gymnasium as gym
+import numpy as np
+from gymnasium.vector import AutoresetMode
+from stable_baselines3.common.vec_env import VecEnv
+
+from redsim.envs.vector import LatentVectorEnv
+
+
+class SB3VecEnv(VecEnv):
+    """SB3's VecEnv interface over a :class:`LatentVectorEnv` (which must use ``AutoresetMode.SAME_STEP``).
+
+    Args:
+        venv: The vector env.
+
+    Raises:
+        ValueError: a vector env in another autoreset mode.
+    """
+
+    def __init__(self, venv: LatentVectorEnv) -> None:
+        if venv.metadata["autoreset_mode"] != AutoresetMode.SAME_STEP:
+            raise ValueError("SB3VecEnv needs a LatentVectorEnv with autoreset_mode=AutoresetMode.SAME_STEP")
+        self.venv = venv
+        super().__init__(venv.num_envs, venv.single_observation_space, venv.single_action_space)
+        self.render_mode = venv.render_mode
+        self._actions: np.ndarray | None = None
+
+    @classmethod
+    def make(cls, env_id: str, num_envs: int, **kwargs: Any) -> SB3VecEnv:
+        """``gymnasium.make_vec(env_id, num_envs, vectorization_mode="vector_entry_point", SAME_STEP)`` wrapped."""
+        venv = gym.make_vec(
+            env_id,
+            num_envs=num_envs,
+            vectorization_mode="vector_entry_point",
+            autoreset_mode=AutoresetMode.SAME_STEP,
+            **kwargs,
+        )
+        return cls(venv)  # type: ignore[arg-type]
+
+    def reset(self) -> np.ndarray:
+        seed = self._seeds[0] if all(s is not None for s in self._seeds) else None
+        obs, _ = self.venv.reset(seed=seed)
+        self.reset_infos = [{} for _ in range(self.num_envs)]
+        self._reset_seeds()
+        self._reset_options()
+        return obs
+
+    def step_async(self, actions: np.ndarray) -> None:
+        self._actions = np.asarray(actions)
+
+    def step_wait(self) -> tuple[np.ndarray, np.ndarray, np.ndarray, list[dict[str, Any]]]:
+        obs, reward, terminated, truncated, info = self.venv.step(self._actions)
+        done = terminated | truncated
+        infos: list[dict[str, Any]] = []
+        for i in range(self.num_envs):
+            row = {k: v[i] for k, v in info.items() if not k.startswith("_") and k not in ("final_obs", "final_info")}
+            if done[i]:
+                row["terminal_observation"] = info["final_obs"][i]
+                row["TimeLimit.truncated"] = bool(truncated[i] and not terminated[i])
+            infos.append(row)
+        return obs, reward.astype(np.float32), done, infos
+
+    def close(self) -> None:
+        self.venv.close()
+
+    def get_images(self) -> Sequence[np.ndarray | None]:
+        frames = self.venv.render()
+        return [None] * self.num_envs if frames is None else list(frames)
+
+    def get_attr(self, attr_name: str, indices: Any = None) -> list[Any]:
+        return [getattr(self.venv.template, attr_name) for _ in self._get_indices(indices)]
+
+    def set_attr(self, attr_name: str, value: Any, indices: Any = None) -> None:
+        raise AttributeError("the copies of a SB3VecEnv share one simulation; set attributes on the env instead")
+
+    def env_method(self, method_name: str, *method_args: Any, indices: Any = None, **method_kwargs: Any) -> list[Any]:
+        raise AttributeError("the copies of a SB3VecEnv share one simulation and have no per-copy methods")
+
+    def env_is_wrapped(self, wrapper_class: type[gym.Wrapper], indices: Any = None) -> list[bool]:
+        return [False for _ in self._get_indices(indices)]
+
+
+__all__ = ["SB3VecEnv"]

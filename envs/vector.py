@@ -1,0 +1,187 @@
+"""The native vector env: N copies of a latent env advanced by one batched stepper call per substep.
+
+``gymnasium.make_vec("RedSim/Chain-v0", num_envs=N, vectorization_mode="vector_entry_point")``
+builds a :class:`LatentVectorEnv`. Copy i draws its episodes from its own generator, seeded
+``seed + i`` by ``reset(seed=seed)`` exactly as a single env seeded ``seed + i``, so the
+vector env equals N single envs step for step. Autoreset follows Gymnasium: by default
+``AutoresetMode.NEXT_STEP`` (the step after a copy ends resets it and ignores its action;
+reward 0, not terminated); ``AutoresetMode.SAME_STEP`` resets in the same step and puts the
+last observation and info in ``info["final_obs"]`` / ``info["final_info"]``.
+For stable-baselines3 use :class:`redsim.envs.sb3.SB3VecEnv`.
+"""
+
+from __future__ import annotations
+
+import copy
+from collections.abc import Callable, Sequence
+from typing import TYPE_CHECKING, Any
+
+import numpy as np
+from gymnasium.utils import seeding
+from gymnasium.vector import AutoresetMode, VectorEnv
+from gymnasium.vector.utils import batch_space
+
+from redsim.envs.base import check_action
+
+if TYPE_CHECKING:
+    from redsim.envs.base import LatentEnv
+
+
+class LatentVectorEnv(VectorEnv):
+    """N copies of a latent env in one batched simulation.
+
+    Args:
+        env: A single env whose scene, subspace, task and settings every copy uses.
+        num_envs: N.
+        max_episode_steps: Truncate each copy's episode after this many steps (None: never).
+        autoreset_mode: ``AutoresetMode.NEXT_STEP`` (Gymnasium's default) or ``SAME_STEP``.
+
+    Raises:
+        ValueError: a bad count or autoreset mode, and (in :meth:`step`) a bad action batch.
+    """
+
+    def __init__(
+        self,
+        env: LatentEnv,
+        num_envs: int,
+        *,
+        max_episode_steps: int | None = None,
+        autoreset_mode: AutoresetMode | str = AutoresetMode.NEXT_STEP,
+    ) -> None:
+        if int(num_envs) != num_envs or num_envs < 1:
+            raise ValueError(f"num_envs must be an integer >= 1, got {num_envs!r}")
+        mode = AutoresetMode(autoreset_mode)
+        if mode not in (AutoresetMode.NEXT_STEP, AutoresetMode.SAME_STEP):
+            raise ValueError(f"autoreset_mode must be NEXT_STEP or SAME_STEP, got {mode}")
+        if max_episode_steps is not None and (int(max_episode_steps) != max_episode_steps or max_episode_steps < 1):
+            raise ValueError(f"max_episode_steps must be None or an integer >= 1, got {max_episode_steps!r}")
+        self.num_envs = int(num_envs)
+        self.sim = env.sim.clone(self.num_envs, copy.deepcopy(env.task))
+        self.template = env
+        self.render_mode = env.render_mode
+        self.metadata = {**env.metadata, "autoreset_mode": mode}
+        self.single_action_space = env.action_space
+        self.single_observation_space = env.observation_space
+        self.action_space = batch_space(self.single_action_space, self.num_envs)
+        self.observation_space = batch_space(self.single_observation_space, self.num_envs)
+        self.observation_structure = env.observation_structure
+        self.max_episode_steps = None if max_episode_steps is None else int(max_episode_steps)
+        self.dt = env.dt
+        self._rngs: list[np.random.Generator] = [seeding.np_random()[0] for _ in range(self.num_envs)]
+        self._elapsed = np.zeros(self.num_envs, dtype=np.int64)
+        self._autoreset = np.zeros(self.num_envs, dtype=bool)
+        self._started = False
+        self._view: Any = None
+
+    def reset(
+        self, *, seed: int | Sequence[int | None] | None = None, options: dict[str, Any] | None = None
+    ) -> tuple[np.ndarray, dict[str, Any]]:
+        """Reset all copies, or those of ``options["reset_mask"]`` (bool [N]); seed copy i with ``seed + i``."""
+        super().reset(seed=seed if isinstance(seed, int) or seed is None else None)
+        mask = (
+            np.ones(self.num_envs, dtype=bool)
+            if not options or "reset_mask" not in options
+            else np.asarray(options["reset_mask"], dtype=bool)
+        )
+        if mask.shape != (self.num_envs,):
+            raise ValueError(f"options['reset_mask'] must have shape ({self.num_envs},), got {mask.shape}")
+        if seed is not None:
+            seeds = [seed + i for i in range(self.num_envs)] if isinstance(seed, int) else list(seed)
+            if len(seeds) != self.num_envs:
+                raise ValueError(f"need {self.num_envs} seeds, got {len(seeds)}")
+            for i in np.nonzero(mask)[0]:
+                self._rngs[i] = seeding.np_random(seeds[i])[0]
+        rows = [int(i) for i in np.nonzero(mask)[0]]
+        self.sim.reset_rows(rows, [self._rngs[i] for i in rows])
+        self._elapsed[mask] = 0
+        self._autoreset[mask] = False
+        self._started = True
+        return self.sim.observe(), {}
+
+    def step(self, actions: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray, dict[str, Any]]:
+        """Step every copy with actions [N, A] in one batched simulation step (module doc for autoreset)."""
+        if not self._started:
+            raise RuntimeError("call reset() before step()")
+        act = check_action(actions, self.action_space.shape)
+        reward, terminated, info = self.sim.step(act)
+        self._elapsed += 1
+        truncated = np.zeros(self.num_envs, dtype=bool)
+        if self.max_episode_steps is not None:
+            truncated = self._elapsed >= self.max_episode_steps
+        mode = self.metadata["autoreset_mode"]
+        if mode == AutoresetMode.NEXT_STEP:
+            restart = self._autoreset.copy()
+            if restart.any():
+                rows = [int(i) for i in np.nonzero(restart)[0]]
+                self.sim.reset_rows(rows, [self._rngs[i] for i in rows])
+                reward[restart], terminated[restart], truncated[restart] = 0.0, False, False
+                self._elapsed[restart] = 0
+            obs = self.sim.observe()
+            infos = _with_masks(info, ~restart)
+        else:
+            done = terminated | truncated
+            infos = _with_masks(info, np.ones(self.num_envs, dtype=bool))
+            obs = self.sim.observe()
+            if done.any():
+                rows = [int(i) for i in np.nonzero(done)[0]]
+                final_obs = np.empty(self.num_envs, dtype=object)
+                final_info = np.empty(self.num_envs, dtype=object)
+                for i in rows:
+                    final_obs[i] = obs[i].copy()
+                    final_info[i] = {k: v[i] for k, v in info.items()}
+                self.sim.reset_rows(rows, [self._rngs[i] for i in rows])
+                self._elapsed[done] = 0
+                obs = self.sim.observe()
+                infos.update(
+                    final_obs=final_obs, _final_obs=done.copy(), final_info=final_info, _final_info=done.copy()
+                )
+        self._autoreset = (terminated | truncated) if mode == AutoresetMode.NEXT_STEP else self._autoreset
+        return obs, reward, terminated, truncated, infos
+
+    def render(self) -> tuple[np.ndarray, ...] | None:
+        """One RGB frame [H, W, 3] per copy ("rgb_array"), else None."""
+        if self.render_mode != "rgb_array":
+            return None
+        if self._view is None:
+            self._view = self.sim.view(*self.template._render_size, self.template._camera)
+        return tuple(self.sim.draw(self._view, i) for i in range(self.num_envs))
+
+    def get_state(self) -> dict[str, Any]:
+        """The batched dynamic state (see :meth:`redsim.envs.base.LatentSim.get_state`)."""
+        return self.sim.get_state()
+
+    def set_state(self, state: dict[str, Any]) -> None:
+        self.sim.set_state(state)
+        self._started = True
+
+    def close_extras(self, **kwargs: Any) -> None:
+        self.template.close()
+
+
+def _with_masks(info: dict[str, np.ndarray], mask: np.ndarray) -> dict[str, Any]:
+    out: dict[str, Any] = {}
+    for key, value in info.items():
+        out[key] = value
+        out[f"_{key}"] = mask.copy()
+    return out
+
+
+def vector_entry(env_class: type[LatentEnv]) -> Callable[..., LatentVectorEnv]:
+    """The ``vector_entry_point`` of a registered env class (Gymnasium passes ``num_envs`` and the spec's kwargs)."""
+
+    def make_vec(
+        num_envs: int = 1,
+        *,
+        max_episode_steps: int | None = None,
+        autoreset_mode: AutoresetMode | str = AutoresetMode.NEXT_STEP,
+        **kwargs: Any,
+    ) -> LatentVectorEnv:
+        return LatentVectorEnv(
+            env_class(**kwargs), num_envs, max_episode_steps=max_episode_steps, autoreset_mode=autoreset_mode
+        )
+
+    make_vec.__doc__ = f"A :class:`LatentVectorEnv` of ``num_envs`` copies of :class:`{env_class.__name__}`."
+    return make_vec
+
+
+__all__ = ["LatentVectorEnv", "vector_entry"]

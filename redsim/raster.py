@@ -1,0 +1,193 @@
+"""A fast headless rasterizer for scene states: flat-shaded triangles, markers and arrows into RGB arrays.
+
+Triangles are projected orthographically, sorted back to front and filled by Pillow's C polygon
+fill (the painter's algorithm), so a 4000-triangle cloth draws at 480x480 in about 15 ms on
+one CPU core, with no display and no plotting library. 3D scenes use the builders' y-up
+convention: the camera turns about the y axis (``azimuth``) and then tilts down (``elevation``).
+
+    >>> view = SceneView(scene, q_rest, width=480, height=480)
+    >>> image = view.draw(q, markers=[Marker(target, (220, 40, 40))], arrows=[Arrow(p, force)])  # [480, 480, 3]
+"""
+
+from __future__ import annotations
+
+import math
+from collections.abc import Sequence
+from dataclasses import dataclass
+
+import numpy as np
+import torch
+from torch import Tensor
+
+from redsim.scene import Scene
+
+BACKGROUND = (250, 250, 247)
+SURFACE_COLOURS = ((86, 126, 196), (214, 138, 64), (120, 170, 110), (170, 110, 170), (200, 190, 90))
+"""Surface colours, cycled in ``scene.surfaces`` order."""
+LIGHT = np.array([0.35, 0.8, 0.5]) / np.linalg.norm([0.35, 0.8, 0.5])
+"""Light direction in camera space (two-sided Lambert)."""
+
+
+@dataclass(frozen=True)
+class Marker:
+    """A filled disc at a scene point.
+
+    Attributes:
+        position: Point [m], shape [D].
+        colour: RGB.
+        radius: Radius in pixels.
+    """
+
+    position: np.ndarray
+    colour: tuple[int, int, int] = (220, 40, 40)
+    radius: int = 6
+
+
+@dataclass(frozen=True)
+class Arrow:
+    """An arrow from a scene point along a vector given in pixels per unit.
+
+    Attributes:
+        origin: Start point [m], shape [D].
+        vector: Direction and length, shape [D], drawn ``scale`` metres per unit.
+        scale: Metres of arrow per unit of ``vector`` (e.g. m/N for a force).
+        colour: RGB.
+    """
+
+    origin: np.ndarray
+    vector: np.ndarray
+    scale: float
+    colour: tuple[int, int, int] = (30, 160, 60)
+
+
+def _require_pillow():
+    try:
+        from PIL import Image, ImageDraw
+    except ImportError as err:  # pragma: no cover - Pillow comes with matplotlib, a dependency
+        from redsim.render import DependencyNotInstalled
+
+        raise DependencyNotInstalled("Pillow is not installed; run `pip install pillow`") from err
+    return Image, ImageDraw
+
+
+class SceneView:
+    """A fixed orthographic camera on one scene, framed on a reference state.
+
+    Args:
+        scene: The scene; its ``surfaces`` are what is drawn.
+        q_frame: Free configuration [n] whose surfaces (grown by ``margin``) fill the picture.
+        width: Image width [px].
+        height: Image height [px].
+        azimuth: Camera turn about +y [deg] (3D only; 0 looks along -z).
+        elevation: Camera tilt down [deg] (3D only).
+        margin: Extra frame around ``q_frame``, as a fraction of its size.
+        extra_points: More points [P, D] [m] the frame must contain (e.g. every target).
+
+    Raises:
+        ValueError: a scene without surfaces or a bad image size.
+    """
+
+    def __init__(
+        self,
+        scene: Scene,
+        q_frame: Tensor,
+        *,
+        width: int = 480,
+        height: int = 480,
+        azimuth: float = 30.0,
+        elevation: float = 20.0,
+        margin: float = 0.25,
+        extra_points: np.ndarray | None = None,
+    ) -> None:
+        if not scene.surfaces:
+            raise ValueError(f"scene {scene.name!r} has no surfaces to draw")
+        if int(width) < 8 or int(height) < 8:
+            raise ValueError(f"image size must be at least 8 x 8 px, got {width} x {height}")
+        self.scene = scene
+        self.width, self.height = int(width), int(height)
+        self.dim = scene.dim
+        self._faces = [s.faces.cpu().numpy() for s in scene.surfaces]
+        self._colours = [
+            np.array(SURFACE_COLOURS[i % len(SURFACE_COLOURS)], dtype=np.float64) for i in range(len(scene.surfaces))
+        ]
+        if self.dim == 3:
+            a, e = math.radians(azimuth), math.radians(elevation)
+            turn = np.array([[math.cos(a), 0.0, -math.sin(a)], [0.0, 1.0, 0.0], [math.sin(a), 0.0, math.cos(a)]])
+            tilt = np.array([[1.0, 0.0, 0.0], [0.0, math.cos(e), -math.sin(e)], [0.0, math.sin(e), math.cos(e)]])
+            self._rotation = tilt @ turn  # world -> camera (x right, y up, z towards the viewer)
+        else:
+            self._rotation = np.eye(2)
+        points = np.concatenate(self.surface_points(q_frame))
+        if extra_points is not None and len(extra_points):
+            points = np.concatenate([points, np.asarray(extra_points, dtype=np.float64).reshape(-1, self.dim)])
+        cam = points @ self._rotation.T
+        low, high = cam[:, :2].min(0), cam[:, :2].max(0)
+        size = float(max((high - low).max(), 1e-6)) * (1.0 + 2.0 * margin)
+        self._centre = 0.5 * (low + high)
+        self._pixels_per_metre = min(self.width, self.height) / size
+
+    def surface_points(self, q: Tensor) -> list[np.ndarray]:
+        """Vertex positions [m] of every surface at free configuration q ([n]), float64."""
+        q = torch.as_tensor(q).detach()
+        x = self.scene.full_positions(q.reshape(1, -1).to(device=self.scene.device, dtype=self.scene.dtype))
+        return [s.points.positions(x)[0].cpu().to(torch.float64).numpy() for s in self.scene.surfaces]
+
+    def project(self, points: np.ndarray) -> np.ndarray:
+        """Pixel coordinates [P, 2] (x right, y down) and depth [P] (larger is nearer) as [P, 3]."""
+        cam = np.asarray(points, dtype=np.float64).reshape(-1, self.dim) @ self._rotation.T
+        px = (cam[:, 0] - self._centre[0]) * self._pixels_per_metre + 0.5 * self.width
+        py = 0.5 * self.height - (cam[:, 1] - self._centre[1]) * self._pixels_per_metre
+        depth = cam[:, 2] if self.dim == 3 else np.zeros(len(cam))
+        return np.stack([px, py, depth], axis=1)
+
+    def draw(self, q: Tensor, *, markers: Sequence[Marker] = (), arrows: Sequence[Arrow] = ()) -> np.ndarray:
+        """The picture of state q ([n]) with markers and arrows on top, uint8 [height, width, 3]."""
+        Image, ImageDraw = _require_pillow()
+        image = Image.new("RGB", (self.width, self.height), BACKGROUND)
+        pen = ImageDraw.Draw(image)
+        polygons, colours, depths = [], [], []
+        for verts, faces, rgb in zip(self.surface_points(q), self._faces, self._colours, strict=True):
+            tri = verts[faces]  # [F, 3, D]
+            cam = tri.reshape(-1, self.dim) @ self._rotation.T
+            pix = self.project(tri.reshape(-1, self.dim))[:, :2].reshape(-1, 6)
+            if self.dim == 3:
+                cam = cam.reshape(-1, 3, 3)
+                normal = np.cross(cam[:, 1] - cam[:, 0], cam[:, 2] - cam[:, 0])
+                length = np.linalg.norm(normal, axis=1, keepdims=True)
+                normal = normal / np.where(length > 0.0, length, 1.0)
+                shade = 0.35 + 0.65 * np.abs(normal @ LIGHT)
+                depths.append(cam[:, :, 2].mean(1))
+            else:
+                shade = np.full(len(tri), 0.9)
+                depths.append(np.zeros(len(tri)))
+            colours.append(np.clip(rgb[None] * shade[:, None], 0, 255).astype(np.int64))
+            polygons.append(pix)
+        order = np.argsort(np.concatenate(depths), kind="stable")  # far (small depth) first
+        pix_all = np.concatenate(polygons)[order].tolist()
+        col_all = [tuple(c) for c in np.concatenate(colours)[order].tolist()]
+        for poly, colour in zip(pix_all, col_all, strict=True):
+            pen.polygon(poly, fill=colour)
+        for arrow in arrows:
+            self._arrow(pen, arrow)
+        for marker in markers:
+            x, y, _ = self.project(np.asarray(marker.position))[0]
+            r = marker.radius
+            pen.ellipse((x - r, y - r, x + r, y + r), fill=marker.colour, outline=(40, 40, 40))
+        return np.asarray(image, dtype=np.uint8).copy()
+
+    def _arrow(self, pen: object, arrow: Arrow) -> None:
+        start = np.asarray(arrow.origin, dtype=np.float64)
+        end = start + arrow.scale * np.asarray(arrow.vector, dtype=np.float64)
+        (x0, y0, _), (x1, y1, _) = self.project(np.stack([start, end]))
+        length = math.hypot(x1 - x0, y1 - y0)
+        if length < 1.0:
+            return
+        pen.line((x0, y0, x1, y1), fill=arrow.colour, width=3)  # type: ignore[attr-defined]
+        ux, uy = (x1 - x0) / length, (y1 - y0) / length
+        head = min(10.0, 0.5 * length)
+        left = (x1 - head * (ux - 0.5 * uy), y1 - head * (uy + 0.5 * ux))
+        right = (x1 - head * (ux + 0.5 * uy), y1 - head * (uy - 0.5 * ux))
+        pen.polygon([(x1, y1), left, right], fill=arrow.colour)  # type: ignore[attr-defined]
+
+
+__all__ = ["Arrow", "Marker", "SceneView"]
