@@ -356,9 +356,12 @@ class LatentSim:
         if self.cond is not None:
             self.cond = tensor(state["cond"], tuple(self.cond.shape), "cond")
         params = state["params"]
-        if set(params) != set(self.params):
+        if self.params and set(params) != set(self.params):
             raise ValueError(f"state['params'] must have keys {sorted(self.params)}, got {sorted(params)}")
-        self.params = {k: tensor(v, tuple(self.params[k].shape), f"params.{k}") for k, v in params.items()}
+        self.params = {
+            k: tensor(v, tuple(self.params[k].shape) if k in self.params else (B, *np.shape(v)[1:]), f"params.{k}")
+            for k, v in params.items()
+        }
         self.x_prev = self.full_positions(self.z_prev)
         self.x = self.full_positions(self.z)
 

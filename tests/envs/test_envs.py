@@ -1,0 +1,326 @@
+"""The RedSim Gymnasium suite against the Gymnasium and SB3 contracts, by what users rely on.
+
+The small envs (MiniChain, ConditionalBar) run every check in the default suite; the big ones
+(Chain, and the two 6000-DOF cloths, whose construction alone takes seconds on a busy CPU)
+run the same checks under ``-m slow``. Float tolerances: the stepper runs in float32.
+"""
+
+from __future__ import annotations
+
+import pickle
+import warnings
+
+import gymnasium as gym
+import numpy as np
+import pytest
+from gymnasium.utils.env_checker import check_env
+from gymnasium.vector import AutoresetMode
+
+import redsim
+from redsim import pretrained, scenes
+from redsim.envs.base import LatentEnv
+from redsim.envs.reach import HandleReach
+from redsim.subspace import CheckpointError
+
+FAST = ("RedSim/MiniChain-v0", "RedSim/ConditionalBar-v0")
+SLOW = ("RedSim/Chain-v0", "RedSim/ClothBall-v0", "RedSim/HangingCloth-v0")
+ALL_IDS = [*FAST, *(pytest.param(i, marks=pytest.mark.slow) for i in SLOW)]
+
+
+@pytest.fixture(scope="module")
+def mini() -> gym.Env:
+    return gym.make("RedSim/MiniChain-v0", render_mode="rgb_array")
+
+
+def _rollout(env: gym.Env, seed: int, actions: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    obs, _ = env.reset(seed=seed)
+    observations, rewards = [obs], []
+    for a in actions:
+        obs, reward, terminated, truncated, _ = env.step(a)
+        observations.append(obs)
+        rewards.append(reward)
+        if terminated or truncated:
+            obs, _ = env.reset()
+    return np.array(observations), np.array(rewards)
+
+
+def test_registry_lists_the_suite() -> None:
+    assert set(redsim.envs.ids()) == set(FAST) | set(SLOW)
+    for env_id in redsim.envs.ids():
+        spec = gym.spec(env_id)
+        assert spec.max_episode_steps and spec.vector_entry_point
+        assert spec.entry_point.startswith("redsim.envs.")
+
+
+@pytest.mark.parametrize("env_id", ALL_IDS)
+def test_gymnasium_and_sb3_check_env_without_warnings(env_id: str) -> None:
+    from stable_baselines3.common.env_checker import check_env as sb3_check_env
+
+    env = gym.make(env_id, render_mode="rgb_array")
+    with warnings.catch_warnings(record=True) as caught:
+        warnings.simplefilter("always")
+        check_env(env.unwrapped)  # render check included
+        sb3_check_env(env.unwrapped, warn=True)
+    assert [str(w.message) for w in caught] == []
+    frame = env.unwrapped.render()
+    assert frame.shape == (480, 480, 3) and frame.dtype == np.uint8
+    drawn = np.any(frame != frame[0, 0], axis=-1).mean()
+    assert 0.01 < drawn < 0.9, drawn  # a picture of the shape, not a blank or flooded canvas
+    env.close()
+
+
+def test_make_with_package_prefix_needs_no_import() -> None:
+    env = gym.make("redsim:RedSim/MiniChain-v0")
+    assert env.spec.id == "RedSim/MiniChain-v0"
+
+
+@pytest.mark.parametrize("env_id", ALL_IDS)
+def test_it_moves_and_the_scripted_controller_gets_closer(env_id: str) -> None:
+    """A frozen simulation cannot pass: a held push moves the handle, and PI control shrinks the distance."""
+    env = gym.make(env_id).unwrapped
+    env.reset(seed=3)
+    start = env.sim.task._goal_position(env.sim.x).clone()
+    for _ in range(25):
+        _, _, terminated, _, info = env.step(np.ones(env.action_space.shape, np.float32))
+        assert not terminated
+    moved = float((env.sim.task._goal_position(env.sim.x) - start).norm())
+    assert moved > 0.2 * env.task.distance_scale, (moved, env.task.distance_scale)
+    _, info = env.reset(seed=3)
+    first = None
+    distances = []
+    for _ in range(120):
+        _, _, terminated, _, info = env.step(env.task.controller(env.sim)[0])
+        first = info["distance"] if first is None else first
+        distances.append(info["distance"])
+        assert not terminated
+    assert min(distances[-20:]) < 0.6 * first, (first, distances[-20:])
+
+
+def test_vector_env_equals_single_envs_step_for_step() -> None:
+    """Same seeds, same actions, same autoresets. Solved in float64 to a tight tolerance, so that what is
+    compared is the env logic (seeding, targets, autoreset), not the solver's round-off: a float32 solve stops
+    at a relative force balance of 1e-5, and another batch composition lands elsewhere inside it."""
+    n, steps, seed = 3, 12, 7
+    tight = {"dtype": "float64", "stepper_options": {"tol": 1e-10, "max_iter": 60}}
+    venv = gym.make_vec(
+        "RedSim/MiniChain-v0", num_envs=n, vectorization_mode="vector_entry_point", max_episode_steps=5, **tight
+    )
+    assert venv.metadata["autoreset_mode"] == AutoresetMode.NEXT_STEP
+    rng = np.random.default_rng(0)
+    actions = rng.uniform(-1, 1, (steps, n, 3)).astype(np.float32)
+    obs, _ = venv.reset(seed=seed)
+    vec_obs, vec_rew, vec_done = [obs], [], []
+    for a in actions:
+        obs, reward, terminated, truncated, _ = venv.step(a)
+        vec_obs.append(obs)
+        vec_rew.append(reward)
+        vec_done.append(terminated | truncated)
+    for i in range(n):
+        env = gym.make("RedSim/MiniChain-v0", max_episode_steps=5, **tight)
+        obs, _ = env.reset(seed=seed + i)
+        single_obs, single_rew, autoreset = [obs], [], False
+        for a in actions[:, i]:
+            if autoreset:  # Gymnasium's NEXT_STEP: this step resets and ignores the action
+                obs, _ = env.reset()
+                reward, autoreset = 0.0, False
+            else:
+                obs, reward, terminated, truncated, _ = env.step(a)
+                autoreset = terminated or truncated
+            single_obs.append(obs)
+            single_rew.append(reward)
+        np.testing.assert_allclose(np.array(vec_obs)[:, i], np.array(single_obs), rtol=1e-6, atol=1e-7)
+        np.testing.assert_allclose(np.array(vec_rew)[:, i], np.array(single_rew), rtol=1e-6, atol=1e-7)
+    assert np.array(vec_done)[4].all()  # truncated at max_episode_steps = 5
+
+
+def test_same_step_autoreset_reports_the_final_observation() -> None:
+    venv = gym.make_vec(
+        "RedSim/MiniChain-v0",
+        num_envs=2,
+        vectorization_mode="vector_entry_point",
+        max_episode_steps=2,
+        autoreset_mode=AutoresetMode.SAME_STEP,
+    )
+    venv.reset(seed=0)
+    venv.step(np.zeros((2, 3), np.float32))
+    obs, _, _, truncated, info = venv.step(np.zeros((2, 3), np.float32))
+    assert truncated.all() and info["_final_obs"].all()
+    assert not np.array_equal(info["final_obs"][0], obs[0])  # obs is already the next episode's
+
+
+@pytest.mark.parametrize("steps", [100, pytest.param(1000, marks=pytest.mark.slow)])
+def test_fixed_seed_and_actions_give_bitwise_equal_trajectories(steps: int) -> None:
+    actions = np.random.default_rng(1).uniform(-1, 1, (steps, 3)).astype(np.float32)
+    a = _rollout(gym.make("RedSim/MiniChain-v0"), 11, actions)
+    b = _rollout(gym.make("RedSim/MiniChain-v0"), 11, actions)
+    assert np.array_equal(a[0], b[0]) and np.array_equal(a[1], b[1])
+    c = _rollout(gym.make("RedSim/MiniChain-v0"), 12, actions[:5])
+    assert not np.array_equal(a[0][:6], c[0])  # another seed, another target
+
+
+def test_bad_actions_are_clear_errors(mini: gym.Env) -> None:
+    mini.reset(seed=0)
+    with pytest.raises(ValueError, match="finite"):
+        mini.step(np.array([np.nan, 0.0, 0.0], np.float32))
+    with pytest.raises(ValueError, match=r"shape \(3,\)"):
+        mini.step(np.zeros(2, np.float32))
+    obs, *_ = mini.step(np.array([50.0, -50.0, 0.0], np.float32))  # clipped, not an error
+    assert mini.observation_space.contains(obs)
+
+
+def test_a_subspace_of_another_scene_is_a_clear_error() -> None:
+    scene = scenes.build("mini_chain")
+    with pytest.raises(CheckpointError, match="fitted to scene 'chain'"):
+        LatentEnv(scene, pretrained.load("chain"), HandleReach("bottom", max_force=5.0))
+    with pytest.raises(CheckpointError, match="no shipped subspace covers"):
+        gym.make("RedSim/MiniChain-v0", scene_params={"density": 1000.0})
+    with pytest.raises(ValueError, match="no handle 'tip'"):
+        LatentEnv(scene, pretrained.load("mini_chain"), HandleReach("tip", max_force=5.0))
+
+
+def test_get_state_set_state_round_trip_exactly(mini: gym.Env) -> None:
+    env = mini.unwrapped
+    env.reset(seed=5)
+    for _ in range(3):
+        env.step(np.full(3, 0.5, np.float32))
+    state = env.get_state()
+    after = [env.step(np.full(3, -0.3, np.float32))[0] for _ in range(3)]
+    env.set_state(state)
+    again = [env.step(np.full(3, -0.3, np.float32))[0] for _ in range(3)]
+    assert np.array_equal(np.array(after), np.array(again))
+    env.set_state(state)
+    round_trip = env.get_state()
+    assert np.array_equal(round_trip["z"], state["z"]) and np.array_equal(round_trip["z_prev"], state["z_prev"])
+    with pytest.raises(ValueError, match="shape"):
+        env.set_state({**state, "z": state["z"][:2]})
+
+
+def test_envs_pickle_and_continue_exactly(mini: gym.Env) -> None:
+    env = mini.unwrapped
+    env.reset(seed=2)
+    env.step(np.full(3, 0.2, np.float32))
+    clone = pickle.loads(pickle.dumps(env))
+    a = env.step(np.full(3, 0.7, np.float32))[0]
+    b = clone.step(np.full(3, 0.7, np.float32))[0]
+    assert np.array_equal(a, b)
+    assert np.array_equal(env.reset()[0], clone.reset()[0])  # the generator travels too
+
+
+def test_info_reports_solver_flags_invariants_rewards_and_q() -> None:
+    env = gym.make("RedSim/MiniChain-v0", include_q=True)
+    env.reset(seed=0)
+    _, reward, _, _, info = env.step(np.zeros(3, np.float32))
+    for key in (
+        "converged",
+        "iterations",
+        "residual",
+        "energy",
+        "out_of_range",
+        "diverged",
+        "rigid_orthogonality_error",
+        "contact_penetration",
+        "distance",
+        "is_success",
+    ):
+        assert key in info, key
+    terms = [info[f"reward_{t}"] for t in ("distance", "control", "success")]
+    assert reward == pytest.approx(sum(terms), rel=1e-5, abs=1e-6)
+    assert info["q"].shape == (24,)
+    assert info["rigid_orthogonality_error"] < 0.05 and info["contact_penetration"] < 0.01
+
+
+def test_bang_bang_soak_stays_finite(mini: gym.Env) -> None:
+    env = mini.unwrapped
+    env.reset(seed=9)
+    rng = np.random.default_rng(9)
+    energies = []
+    for i in range(150):
+        action = np.sign(rng.uniform(-1, 1, 3)).astype(np.float32) if i % 30 < 15 else rng.uniform(-1, 1, 3)
+        obs, reward, _terminated, _, info = env.step(action.astype(np.float32))
+        assert np.all(np.isfinite(obs)) and np.isfinite(reward) and not info["diverged"]
+        energies.append(info["energy"])
+    assert np.all(np.isfinite(energies)) and np.ptp(energies) < 100.0  # J; the chain weighs 1.4 kg
+
+
+@pytest.mark.slow
+@pytest.mark.parametrize("env_id", [*FAST, *SLOW])
+def test_random_and_bang_bang_soak_over_every_env(env_id: str) -> None:
+    venv = gym.make_vec(env_id, num_envs=8, vectorization_mode="vector_entry_point")
+    venv.reset(seed=0)
+    rng = np.random.default_rng(0)
+    for i in range(250):  # 2000 env steps
+        shape = venv.action_space.shape
+        actions = np.sign(rng.uniform(-1, 1, shape)) if i % 50 < 25 else rng.uniform(-1, 1, shape)
+        obs, reward, _, _, info = venv.step(actions.astype(np.float32))
+        assert np.all(np.isfinite(obs)) and np.all(np.isfinite(reward)) and np.all(np.isfinite(info["energy"]))
+
+
+def test_make_builds_an_env_from_any_scene_and_subspace() -> None:
+    scene = scenes.build("mini_chain")
+    env = redsim.envs.make(scene, pretrained.load("mini_chain", scene), "reach", max_episode_steps=10)
+    obs, _ = env.reset(seed=0)
+    assert env.observation_space.contains(obs) and env.action_space.shape == (3,)
+    with pytest.raises(ValueError, match="unknown task"):
+        redsim.envs.make("mini_chain", task="balance")
+    with pytest.raises(ValueError, match="give its subspace"):
+        redsim.envs.make(scenes.build("mini_chain", density=1000.0))
+
+
+def test_conditional_bar_draws_its_condition_per_episode() -> None:
+    env = gym.make("RedSim/ConditionalBar-v0").unwrapped
+    conditions = {tuple(env.reset(seed=s)[0][-2:].round(4)) for s in range(3)}
+    assert len(conditions) == 3
+    space = env.sim.scene.condition_space
+    for c in conditions:
+        assert np.all(np.array(c) >= space.low.numpy() - 1e-6) and np.all(np.array(c) <= space.high.numpy() + 1e-6)
+
+
+@pytest.mark.parametrize("env_id", ALL_IDS)
+def test_sb3_ppo_and_sac_run_a_few_hundred_steps(env_id: str) -> None:
+    from stable_baselines3 import PPO, SAC
+
+    from redsim.envs.sb3 import SB3VecEnv
+
+    venv = SB3VecEnv.make(env_id, num_envs=4)
+    PPO("MlpPolicy", venv, n_steps=32, batch_size=64, n_epochs=1, seed=0, policy_kwargs={"net_arch": [16]}).learn(256)
+    env = gym.make(env_id)
+    SAC("MlpPolicy", env, learning_starts=50, batch_size=32, seed=0, policy_kwargs={"net_arch": [16]}).learn(150)
+
+
+@pytest.mark.slow
+def test_subproc_vec_env_with_spawn_runs_the_envs() -> None:
+    from stable_baselines3.common.env_util import make_vec_env
+    from stable_baselines3.common.vec_env import SubprocVecEnv
+
+    venv = make_vec_env(
+        "RedSim/MiniChain-v0", n_envs=2, vec_env_cls=SubprocVecEnv, vec_env_kwargs={"start_method": "spawn"}
+    )
+    venv.reset()
+    obs, reward, _done, _ = venv.step(np.zeros((2, 3), np.float32))
+    assert obs.shape == (2, 14) and np.all(np.isfinite(reward))
+    venv.close()
+
+
+def test_trimesh_export_of_the_current_state(mini: gym.Env) -> None:
+    mini.reset(seed=0)
+    meshes = mini.unwrapped.trimeshes()
+    assert len(meshes) == len(mini.unwrapped.scene.surfaces)
+    assert all(m.vertices.shape[1] == 3 and len(m.faces) for m in meshes)
+
+
+def test_rendering_is_fast_enough_for_video_at_480() -> None:
+    """rgb_array stays a real-time rasterizer on the cloth (the README quotes `redsim bench envs` for speed)."""
+    import time
+
+    scene = scenes.build("hanging_sheet")
+    from redsim.raster import Marker, SceneView
+
+    q = scene.q_seed
+    view = SceneView(scene, q)
+    view.draw(q)
+    start = time.perf_counter()
+    for _ in range(5):
+        frame = view.draw(q, markers=[Marker(np.zeros(3))])
+    per_frame = (time.perf_counter() - start) / 5
+    assert frame.shape == (480, 480, 3)
+    assert per_frame < 0.5  # generous: a busy 2-core machine; measured 20-40 ms when idle
