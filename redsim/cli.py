@@ -935,6 +935,10 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--device", default="cpu", help="torch device (default cpu)")
     p.add_argument("--json", action="store_true", help="print one JSON document on stdout")
     p.set_defaults(func=_cmd_bench_fit)
+
+    from redsim.cli_envs import add_commands
+
+    add_commands(sub, bench)
     return parser
 
 
