@@ -224,6 +224,8 @@ def load_subspace(path: str | Path, scene: Scene | None = None, *, device: str |
             fingerprint or n differ.
     """
     weights = checkpoint_path(path, ".pt")
+    if not weights.is_file():
+        raise CheckpointError("the weights file is missing", str(weights))
     doc = read_metadata(path)
     if scene is not None:
         check_scene(doc, scene, str(weights))
@@ -245,14 +247,32 @@ def load_subspace(path: str | Path, scene: Scene | None = None, *, device: str |
         if isinstance(err, CheckpointError):
             raise
         raise CheckpointError(f"bad config in metadata ({err!r})", str(weights)) from None
-    if not weights.is_file():
-        raise CheckpointError("weights file is missing", str(weights))
     try:
         state = torch.load(weights, map_location=device, weights_only=True)
     except Exception as err:  # torch raises several types for truncated/corrupt zips
         raise CheckpointError(f"weights are corrupt or truncated ({type(err).__name__}: {err})", str(weights)) from None
+    mismatch = _state_mismatch(model.state_dict(), state)
+    if mismatch:
+        raise CheckpointError(f"the weights do not fit the .json beside them: {mismatch}", str(weights))
     try:
         model.load_state_dict(state)
     except (RuntimeError, KeyError) as err:
         raise CheckpointError(f"weights do not match the config ({err})", str(weights)) from None
     return model.to(device)
+
+
+def _state_mismatch(expected: dict[str, Tensor], saved: dict[str, Any]) -> str:
+    """One line on how a saved state dict differs from the one a config builds ("" when they fit)."""
+    missing = sorted(set(expected) - set(saved))
+    extra = sorted(set(saved) - set(expected))
+    if missing or extra:
+        return f"the .pt lacks {missing or 'nothing'} and has extra {extra or 'nothing'}"
+    for key, want in expected.items():
+        got = saved[key]
+        if not isinstance(got, Tensor) or tuple(got.shape) != tuple(want.shape):
+            shape = tuple(got.shape) if isinstance(got, Tensor) else type(got).__name__
+            return (
+                f"{key} has shape {list(shape) if isinstance(shape, tuple) else shape} in the .pt but "
+                f"{list(want.shape)} by the .json (weights of another scene or fit?)"
+            )
+    return ""

@@ -3,7 +3,8 @@
 Catalog scenes (:mod:`redsim.scenes.catalog`) reproduce the systems of the paper's Table 1
 plus a heterogeneous beam; toy scenes (:mod:`redsim.scenes.testing`, names starting with
 ``toy_``) are tiny systems for fast tests. Scenes from your own meshes come from
-:func:`fem_scene_from_mesh` and :func:`cloth_scene_from_mesh`.
+:func:`fem_scene_from_mesh` and :func:`cloth_scene_from_mesh`; :func:`scene_from_spec` rebuilds any
+of them from the record a checkpoint keeps (:mod:`redsim.scenes.spec`).
 
 Example::
 
@@ -21,6 +22,7 @@ from typing import Any
 from redsim.scene import Scene
 from redsim.scenes.catalog import CATALOG
 from redsim.scenes.from_mesh import cloth_scene_from_mesh, fem_scene_from_mesh
+from redsim.scenes.spec import SceneSpecError, mesh_scene, scene_from_spec, scene_spec
 from redsim.scenes.testing import TOYS
 
 SCENES: dict[str, Callable[..., Scene]] = {**CATALOG, **TOYS}
@@ -59,4 +61,15 @@ def _builder(name: str) -> Callable[..., Scene]:
     return SCENES[name]
 
 
-__all__ = ["SCENES", "build", "cloth_scene_from_mesh", "fem_scene_from_mesh", "names", "parameters"]
+__all__ = [
+    "SCENES",
+    "SceneSpecError",
+    "build",
+    "cloth_scene_from_mesh",
+    "fem_scene_from_mesh",
+    "mesh_scene",
+    "names",
+    "parameters",
+    "scene_from_spec",
+    "scene_spec",
+]

@@ -365,7 +365,7 @@ def _mesh_input(mesh_or_path: trimesh.Trimesh | str | os.PathLike[str]) -> tuple
             raise ValueError("the mesh has no faces")
         return mesh, "<trimesh>"
     if isinstance(mesh_or_path, str | os.PathLike):
-        return meshes.load_mesh(mesh_or_path), os.fspath(mesh_or_path)
+        return meshes.load_mesh(mesh_or_path), os.path.abspath(os.fspath(mesh_or_path))
     raise ValueError(f"expected a trimesh.Trimesh or a file path, got {type(mesh_or_path).__name__}")
 
 
@@ -443,7 +443,9 @@ def fem_scene_from_mesh(
     if gravity:
         add_gravity(b)
     params = {
+        "builder": "fem",
         "source": source,
+        "mesh_sha256": None if source == "<trimesh>" else meshes.file_sha256(source),
         "mesh_digest": _digest(np.asarray(mesh.vertices), np.asarray(mesh.faces)),
         "voxel_pitch": pitch,
         "young": young,
@@ -524,7 +526,9 @@ def cloth_scene_from_mesh(
     if gravity:
         add_gravity(b)
     params = {
+        "builder": "cloth",
         "source": source,
+        "mesh_sha256": None if source == "<trimesh>" else meshes.file_sha256(source),
         "mesh_digest": _digest(vertices, triangles),
         "young": young,
         "poisson": poisson,

@@ -169,8 +169,11 @@ def test_loading_against_another_scene_or_a_broken_file_is_a_clear_error(tmp_pat
     (tmp_path / "m.json").write_text("{not json")
     with pytest.raises(CheckpointError, match="not valid JSON"):
         load_subspace(tmp_path / "m.pt")
-    with pytest.raises(CheckpointError, match="no metadata"):
+    with pytest.raises(CheckpointError, match=r"missing\.pt: the weights file is missing"):
         load_subspace(tmp_path / "missing.pt")
+    (tmp_path / "m.json").unlink()
+    with pytest.raises(CheckpointError, match="no metadata"):
+        load_subspace(tmp_path / "m.pt")
 
 
 def test_bad_fit_options_are_clear_errors() -> None:
@@ -193,7 +196,8 @@ def test_periodic_latents_wrap_around() -> None:
 def test_checkpoint_stems_with_dots_stay_whole(tmp_path) -> None:
     scene = _tet_scene()
     fit_subspace(scene, dim=2, steps=3, hidden_width=8, progress=False, out=tmp_path / "tet_sigma0.05_v1.2")
-    assert {p.name for p in tmp_path.iterdir()} == {"tet_sigma0.05_v1.2.json", "tet_sigma0.05_v1.2.pt"}
+    names = {p.name for p in tmp_path.iterdir()}
+    assert names == {"tet_sigma0.05_v1.2.json", "tet_sigma0.05_v1.2.pt", "tet_sigma0.05_v1.2.fit.pt"}
     assert load_subspace(tmp_path / "tet_sigma0.05_v1.2.pt", scene=scene).latent_dim == 2
     assert load_subspace(tmp_path / "tet_sigma0.05_v1.2", scene=scene).latent_dim == 2
 
