@@ -463,9 +463,9 @@ def _condition_doc(scene: Scene) -> list[dict[str, Any]]:
 
 def fit_command(scene: Scene, config: FitConfig, seed: int, out: str | Path | None) -> str:
     """The `redsim fit` command line that reproduces this fit."""
-    parts = ["redsim", "fit", scene.name]
-    for key, value in sorted(scene.params.items()):
-        parts += ["--param", f"{key}={_json_literal(value)}"]
+    from redsim.scenes.spec import scene_arguments
+
+    parts = ["redsim", "fit", *scene_arguments(scene)]
     parts += [
         "--dim",
         str(config.latent_dim),
@@ -502,12 +502,6 @@ def fit_command(scene: Scene, config: FitConfig, seed: int, out: str | Path | No
     if out is not None:
         parts += ["--out", os.fspath(out)]
     return shlex.join(parts)
-
-
-def _json_literal(value: Any) -> str:
-    import json
-
-    return json.dumps(value)
 
 
 def _save_training_state(path: Path, state: dict[str, Any]) -> None:

@@ -15,6 +15,7 @@ Example::
 
 from __future__ import annotations
 
+import json
 import os
 from collections.abc import Callable, Mapping
 from typing import Any
@@ -37,6 +38,22 @@ class SceneSpecError(ValueError):
 def scene_spec(scene: Scene) -> dict[str, Any]:
     """The spec that rebuilds ``scene`` (see the module doc)."""
     return {"scene": scene.name, "scene_params": dict(scene.params)}
+
+
+def scene_arguments(scene: Scene) -> list[str]:
+    """The ``redsim`` command-line arguments that build ``scene``: ``NAME --param K=V ...`` for a catalog
+    scene, ``--mesh PATH --kind KIND --param K=V ...`` for a scene from a mesh file."""
+    params = dict(scene.params)
+    kind = params.get("builder")
+    if kind is None:
+        parts = [scene.name]
+    else:
+        parts = ["--mesh", str(params.get("source")), "--kind", str(kind)]
+        params = {k: v for k, v in params.items() if k not in _RECORD_ONLY}
+        params["name"] = scene.name
+    for key, value in sorted(params.items()):
+        parts += ["--param", f"{key}={json.dumps(value)}"]
+    return parts
 
 
 def mesh_scene(kind: str, path: str | os.PathLike[str], **params: Any) -> Scene:
@@ -96,4 +113,4 @@ def scene_from_spec(doc: Mapping[str, Any]) -> Scene:
     return MESH_BUILDERS[kind](source, name=name, **args)
 
 
-__all__ = ["MESH_BUILDERS", "SceneSpecError", "mesh_scene", "scene_from_spec", "scene_spec"]
+__all__ = ["MESH_BUILDERS", "SceneSpecError", "mesh_scene", "scene_arguments", "scene_from_spec", "scene_spec"]
