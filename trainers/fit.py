@@ -131,8 +131,10 @@ _FIELD_RULES: tuple[tuple[str, str, Callable[[FitConfig, Any], bool]], ...] = (
     (
         "periodic",
         "distinct latent indices in [0, latent_dim)",
-        lambda c, v: all(_is_int(i) and 0 <= i < (c.latent_dim if _is_int(c.latent_dim) else 0) for i in v)
-        and len(set(v)) == len(v),
+        lambda c, v: (
+            all(_is_int(i) and 0 <= i < (c.latent_dim if _is_int(c.latent_dim) else 0) for i in v)
+            and len(set(v)) == len(v)
+        ),
     ),
     ("conditional", "true or false", lambda c, v: isinstance(v, bool)),
     ("exploration_fraction", "a number in (0, 1]", lambda c, v: _is_number(v) and 0 < v <= 1),
