@@ -5,41 +5,34 @@ from __future__ import annotations
 import json
 import subprocess
 import sys
+from collections.abc import Callable
 from pathlib import Path
 
 import pytest
 import torch
 
 import redsim
-from redsim.cli import build_parser, main
+from redsim.cli import build_parser
 from redsim.subspace import CheckpointError, load_subspace
 from redsim.trainers import FitConfig
 
+Cli = Callable[..., tuple[int, str, str]]
 SMALL = ["--dim", "2", "--width", "8", "--layers", "1"]
 
 
-def run(capsys: pytest.CaptureFixture[str], *argv: str) -> tuple[int, str, str]:
-    code = main(list(argv))
-    out, err = capsys.readouterr()
-    return code, out, err
-
-
-def test_version(capsys: pytest.CaptureFixture[str]) -> None:
-    code, out, _ = run(capsys, "--version")
+def test_version(cli: Cli) -> None:
+    code, out, _ = cli("--version")
     assert code == 0 and out.strip() == f"redsim {redsim.__version__}"
     done = subprocess.run([sys.executable, "-m", "redsim", "--version"], capture_output=True, text=True, timeout=120)
     assert done.returncode == 0 and done.stdout.strip() == f"redsim {redsim.__version__}"
 
 
-def test_weights_of_another_scene_are_one_line_naming_both_shapes(
-    capsys: pytest.CaptureFixture[str], tmp_path: Path
-) -> None:
+def test_weights_of_another_scene_are_one_line_naming_both_shapes(cli: Cli, tmp_path: Path) -> None:
     for scene in ("toy_two_tets", "toy_three_link_chain"):
-        assert main(["fit", scene, "--steps", "2", *SMALL, "--out", str(tmp_path / scene), "--json"]) == 0
-        capsys.readouterr()
+        assert cli("fit", scene, "--steps", "2", *SMALL, "--out", str(tmp_path / scene), "--json")[0] == 0
     (tmp_path / "mixed.json").write_bytes((tmp_path / "toy_two_tets.json").read_bytes())
     (tmp_path / "mixed.pt").write_bytes((tmp_path / "toy_three_link_chain.pt").read_bytes())
-    code, out, err = run(capsys, "inspect", str(tmp_path / "mixed.pt"))
+    code, out, err = cli("inspect", str(tmp_path / "mixed.pt"))
     assert code == 2 and out == "" and err.count("\n") == 1
     assert "mlp.2.weight has shape [36, 8] in the .pt but [6, 8] by the .json" in err
     assert "size mismatch" not in err
@@ -67,10 +60,8 @@ def test_weights_of_another_scene_are_one_line_naming_both_shapes(
         (["--periodic", "x"], "--periodic must be comma-separated integers"),
     ],
 )
-def test_fit_config_errors_name_the_flag_and_the_rule(
-    capsys: pytest.CaptureFixture[str], flags: list[str], expected: str
-) -> None:
-    code, out, err = run(capsys, "fit", "toy_two_tets", *flags)
+def test_fit_config_errors_name_the_flag_and_the_rule(cli: Cli, flags: list[str], expected: str) -> None:
+    code, out, err = cli("fit", "toy_two_tets", *flags)
     assert code == 2 and out == "" and err.count("\n") == 1
     assert expected in err and "FitConfig(" not in err
 
@@ -83,14 +74,14 @@ def test_fit_config_errors_in_python_name_the_field() -> None:
         FitConfig(latent_dim=2.5)  # type: ignore[arg-type]
 
 
-def test_resume_with_more_steps_extends_the_fit(capsys: pytest.CaptureFixture[str], tmp_path: Path) -> None:
+def test_resume_with_more_steps_extends_the_fit(cli: Cli, tmp_path: Path) -> None:
     stem = str(tmp_path / "ext")
     argv = ["fit", "toy_two_tets", *SMALL, "--lr", "0.01", "--out", stem, "--json"]
-    code, out, err = run(capsys, *argv, "--steps", "8")
+    code, out, err = cli(*argv, "--steps", "8")
     assert code == 0, err
     first = json.loads(out)
     assert first["schedule"] == {"lr_halved_every": 2, "rho_ramp_steps": 8, "extensions": []}
-    code, out, err = run(capsys, *argv, "--steps", "20", "--resume")
+    code, out, err = cli(*argv, "--steps", "20", "--resume")
     assert code == 0, err
     meta = json.loads(out)
     assert meta["fit"]["steps"] == 20
@@ -105,20 +96,20 @@ def test_resume_with_more_steps_extends_the_fit(capsys: pytest.CaptureFixture[st
     assert [h["step"] for h in state["history"]] == list(range(1, 21))
     assert state["history"][-1]["rho"] == 1.0
     assert state["optimizer"]["param_groups"][0]["lr"] == pytest.approx(0.01 * 0.5**4)  # 20 steps, halved every 5
-    code, out, err = run(capsys, *argv, "--steps", "10", "--resume")
+    code, out, err = cli(*argv, "--steps", "10", "--resume")
     assert code == 2 and "steps must be >= the 20 steps already done" in err
 
 
-def test_absurd_load_fails_the_step(capsys: pytest.CaptureFixture[str]) -> None:
-    code, out, err = run(capsys, "simulate", "toy_two_tets", "--steps", "3", "--load", "top=1e30,0,0", "--json")
+def test_absurd_load_fails_the_step(cli: Cli) -> None:
+    code, out, err = cli("simulate", "toy_two_tets", "--steps", "3", "--load", "top=1e30,0,0", "--json")
     assert code == 4
     summary = json.loads(out)
     assert summary["failed_step"] == 1 and summary["steps_run"] == 1 and summary["converged_steps"] == 0
     assert "far beyond what this scene can take" in summary["failure"]
     assert "step 1 failed" in err and "10x the scene's size" in err
-    code, out, err = run(capsys, "simulate", "toy_two_tets", "--steps", "1", "--load", "top=1,0,0")
+    code, out, err = cli("simulate", "toy_two_tets", "--steps", "1", "--load", "top=1,0,0")
     assert code == 0 and "converged" in out
-    code, out, _ = run(capsys, "simulate", "--help")
+    code, out, _ = cli("simulate", "--help")
     assert "relative gradient tolerance" in " ".join(out.split())
 
 
@@ -139,17 +130,17 @@ def test_every_computing_command_takes_threads(argv: list[str]) -> None:
     assert build_parser().parse_args([*argv, "--threads", "3"]).threads == 3
 
 
-def test_threads_are_applied_and_restored(capsys: pytest.CaptureFixture[str], monkeypatch: pytest.MonkeyPatch) -> None:
+def test_threads_are_applied_and_restored(cli: Cli, monkeypatch: pytest.MonkeyPatch) -> None:
     from redsim.cli import scenes
 
     seen = []
     simulate = scenes.cmd_simulate
     monkeypatch.setattr(scenes, "cmd_simulate", lambda args: seen.append(torch.get_num_threads()) or simulate(args))
     before = torch.get_num_threads()
-    code, _, err = run(capsys, "simulate", "toy_two_tets", "--steps", "1", "--threads", "2")
+    code, _, err = cli("simulate", "toy_two_tets", "--steps", "1", "--threads", "2")
     assert code == 0, err
     assert seen == [2] and torch.get_num_threads() == before
-    code, _, err = run(capsys, "simulate", "toy_two_tets", "--threads", "0")
+    code, _, err = cli("simulate", "toy_two_tets", "--threads", "0")
     assert code == 2 and "--threads must be an integer >= 1" in err
 
 

@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import json
 import shlex
+from collections.abc import Callable
 from pathlib import Path
 
 import numpy as np
@@ -14,13 +15,8 @@ import redsim
 from redsim.cli import main
 from redsim.scenes.spec import SceneSpecError, scene_from_spec, scene_spec
 
+Cli = Callable[..., tuple[int, str, str]]
 MESH_ARGS = ["--kind", "fem", "--param", "voxel_pitch=0.05", "--param", "young=2e4"]
-
-
-def run(capsys: pytest.CaptureFixture[str], *argv: str) -> tuple[int, str, str]:
-    code = main(list(argv))
-    out, err = capsys.readouterr()
-    return code, out, err
 
 
 @pytest.fixture(scope="module")
@@ -51,19 +47,17 @@ def test_the_checkpoint_records_how_to_rebuild_the_mesh_scene(fitted: Path, box:
     assert scene_spec(scene) == {"scene": "mesh_fem", "scene_params": params}
 
 
-def test_inspect_sample_animate_work_on_a_mesh_checkpoint(
-    capsys: pytest.CaptureFixture[str], fitted: Path, tmp_path: Path
-) -> None:
-    code, out, err = run(capsys, "inspect", str(fitted), "--json")
+def test_inspect_sample_animate_work_on_a_mesh_checkpoint(cli: Cli, fitted: Path, tmp_path: Path) -> None:
+    code, out, err = cli("inspect", str(fitted), "--json")
     assert code == 0, err
     doc = json.loads(out)
     n = doc["n"]
     assert doc["scene"] == "mesh_fem" and doc["latent_dim"] == 2
-    code, out, err = run(capsys, "sample", str(fitted), "-n", "5", "--out", str(tmp_path / "s.npz"), "--json")
+    code, out, err = cli("sample", str(fitted), "-n", "5", "--out", str(tmp_path / "s.npz"), "--json")
     assert code == 0, err
     assert np.load(tmp_path / "s.npz")["q"].shape == (5, n)
     gif = tmp_path / "a.gif"
-    code, _, err = run(capsys, "animate", str(fitted), "--keys", "2", "--frames", "2", "--out", str(gif))
+    code, _, err = cli("animate", str(fitted), "--keys", "2", "--frames", "2", "--out", str(gif))
     assert code == 0, err
     assert gif.read_bytes()[:3] == b"GIF"
 
@@ -76,24 +70,22 @@ def test_refit_from_the_recorded_command(fitted: Path, tmp_path: Path) -> None:
     assert json.loads((tmp_path / "again.json").read_text())["scene_fingerprint"] == meta["scene_fingerprint"]
 
 
-def test_simulate_a_mesh_and_a_cloth(capsys: pytest.CaptureFixture[str], box: Path, tmp_path: Path) -> None:
-    code, out, err = run(capsys, "simulate", "--mesh", str(box), *MESH_ARGS, "--steps", "1", "--json")
+def test_simulate_a_mesh_and_a_cloth(cli: Cli, box: Path, tmp_path: Path) -> None:
+    code, out, err = cli("simulate", "--mesh", str(box), *MESH_ARGS, "--steps", "1", "--json")
     assert code == 0, err
     assert json.loads(out)["scene"] == "mesh_fem"
     vertices, triangles = redsim.meshes.cloth_grid(0.2, 0.2, (3, 3), origin=(0.0, -0.2, 0.0))
     sheet = tmp_path / "sheet.obj"
     trimesh.Trimesh(vertices, triangles).export(sheet)
     argv = ["simulate", "--mesh", str(sheet), "--kind", "cloth", "--steps", "1", "--load", "cloth=0,0,0.1"]
-    code, out, err = run(capsys, *argv, "--out", str(tmp_path), "--json")
+    code, out, err = cli(*argv, "--out", str(tmp_path), "--json")
     assert code == 0, err
     summary = json.loads(out)
     assert summary["scene"] == "mesh_cloth" and summary["params"]["builder"] == "cloth"
     assert Path(summary["png"]).read_bytes()[:4] == b"\x89PNG"
 
 
-def test_a_changed_mesh_file_is_a_clear_error(
-    capsys: pytest.CaptureFixture[str], fitted: Path, box: Path, tmp_path: Path
-) -> None:
+def test_a_changed_mesh_file_is_a_clear_error(cli: Cli, fitted: Path, box: Path, tmp_path: Path) -> None:
     meta = json.loads(fitted.with_suffix(".json").read_text())
     moved = tmp_path / "box.obj"
     moved.write_bytes(box.read_bytes())
@@ -101,11 +93,11 @@ def test_a_changed_mesh_file_is_a_clear_error(
     (tmp_path / "m.json").write_text(json.dumps(meta))
     (tmp_path / "m.pt").write_bytes(fitted.read_bytes())
     trimesh.creation.box(extents=(0.1, 0.25, 0.1)).export(moved)
-    code, _, err = run(capsys, "inspect", str(tmp_path / "m.pt"))
+    code, _, err = cli("inspect", str(tmp_path / "m.pt"))
     assert code == 2 and err.count("\n") == 1
     assert "changed since" in err and meta["scene_params"]["mesh_sha256"] in err
     moved.unlink()
-    code, _, err = run(capsys, "sample", str(tmp_path / "m.pt"))
+    code, _, err = cli("sample", str(tmp_path / "m.pt"))
     assert code == 2 and "is missing" in err and "box.obj" in err
 
 
@@ -131,7 +123,7 @@ def test_specs_that_cannot_be_rebuilt() -> None:
         (["simulate", "--mesh", "/nonexistent/x.obj", "--kind", "plate"], "invalid choice"),
     ],
 )
-def test_mesh_argument_errors(capsys: pytest.CaptureFixture[str], argv: list[str], expected: str) -> None:
-    code, out, err = run(capsys, *argv)
+def test_mesh_argument_errors(cli: Cli, argv: list[str], expected: str) -> None:
+    code, out, err = cli(*argv)
     assert code == 2 and out == "" and err.count("\n") == 1
     assert expected in err

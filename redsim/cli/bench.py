@@ -13,10 +13,10 @@ from redsim.cli.common import (
     DTYPES,
     EXIT_OK,
     CliError,
-    add_threads,
     build_scene,
     catalog_names,
     check_scene_name,
+    finish_command,
     json_out,
     out,
     parse_list,
@@ -279,9 +279,7 @@ def add_commands(sub: Any) -> None:
         help="time per measurement; slow scenes get fewer repeats, at least 3 (default 2)",
     )
     p.add_argument("--device", default="cpu", help="torch device (default cpu)")
-    add_threads(p)
-    p.add_argument("--json", action="store_true", help="print one JSON document on stdout")
-    p.set_defaults(func=cmd_bench_energy)
+    finish_command(p, cmd_bench_energy, "print one JSON document on stdout")
 
     p = bench.add_parser(
         "subspace",
@@ -309,9 +307,7 @@ def add_commands(sub: Any) -> None:
     )
     p.add_argument("--samples", type=int, default=256, help="latent samples per statistic (default 256)")
     p.add_argument("--seed", type=int, default=0, help="seed of fits, samples and loads (default 0)")
-    add_threads(p)
-    p.add_argument("--json", action="store_true", help="print one JSON document")
-    p.set_defaults(func=cmd_bench_subspace)
+    finish_command(p, cmd_bench_subspace, "print one JSON document")
 
     p = bench.add_parser(
         "fit",
@@ -328,7 +324,5 @@ def add_commands(sub: Any) -> None:
     p.add_argument("--warmup", type=int, default=3, help="untimed steps per round, the compile included (default 3)")
     p.add_argument("--rounds", type=int, default=2, help="interleaved rounds of all variants (default 2)")
     p.add_argument("--batch", type=int, default=32, help="latent samples per step (default 32)")
-    add_threads(p, default=1)
     p.add_argument("--device", default="cpu", help="torch device (default cpu)")
-    p.add_argument("--json", action="store_true", help="print one JSON document on stdout")
-    p.set_defaults(func=cmd_bench_fit)
+    finish_command(p, cmd_bench_fit, "print one JSON document on stdout", default_threads=1)

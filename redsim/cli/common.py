@@ -162,6 +162,21 @@ def add_threads(parser: argparse.ArgumentParser, default: int | None = None) -> 
     )
 
 
+def finish_command(
+    parser: argparse.ArgumentParser,
+    func: Any,
+    json_help: str,
+    *,
+    threads: bool = True,
+    default_threads: int | None = None,
+) -> None:
+    """End a command's options: ``--threads`` (commands that compute), ``--json``, and the function it runs."""
+    if threads:
+        add_threads(parser, default_threads)
+    parser.add_argument("--json", action="store_true", help=json_help)
+    parser.set_defaults(func=func)
+
+
 def apply_threads(args: argparse.Namespace) -> None:
     """Set torch's intra-op threads from ``--threads`` (nothing when the command has none or it is unset)."""
     threads = getattr(args, "threads", None)

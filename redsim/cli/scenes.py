@@ -18,9 +18,9 @@ from redsim.cli.common import (
     EXIT_SCENE_FAILED,
     CliError,
     add_scene_args,
-    add_threads,
     catalog_names,
     file_name,
+    finish_command,
     json_out,
     out,
     parse_loads,
@@ -226,8 +226,7 @@ def add_commands(sub: Any) -> None:
         ),
     )
     p.add_argument("--all", action="store_true", help="include the toy_* test scenes")
-    p.add_argument("--json", action="store_true", help="print one JSON list on stdout")
-    p.set_defaults(func=cmd_scenes)
+    finish_command(p, cmd_scenes, "print one JSON list on stdout", threads=False)
 
     p = sub.add_parser(
         "simulate",
@@ -264,6 +263,4 @@ def add_commands(sub: Any) -> None:
     p.add_argument("--max-iter", type=int, default=100, help="solver iterations per step (default 100)")
     p.add_argument("--out", metavar="DIR", help="folder for the picture and meshes (nothing is written without it)")
     p.add_argument("--meshes", action="store_true", help="write per-frame .ply meshes to OUT/frames")
-    add_threads(p)
-    p.add_argument("--json", action="store_true", help="print one JSON summary (with per-step stats) on stdout")
-    p.set_defaults(func=cmd_simulate)
+    finish_command(p, cmd_simulate, "print one JSON summary (with per-step stats) on stdout")

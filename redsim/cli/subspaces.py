@@ -15,8 +15,8 @@ from redsim.cli.common import (
     EXIT_OK,
     CliError,
     add_scene_args,
-    add_threads,
     error,
+    finish_command,
     json_out,
     load_checkpoint,
     out,
@@ -222,9 +222,7 @@ def add_commands(sub: Any) -> None:
     p.add_argument("--seed", type=int, default=0, help="seed of the initialisation and sampling (default 0)")
     p.add_argument("--out", default=None, metavar="STEM", help="checkpoint stem (default SCENE_dD)")
     p.add_argument("--resume", action="store_true", help="continue from STEM.fit.pt")
-    add_threads(p)
-    p.add_argument("--json", action="store_true", help="print the metadata as JSON (no progress bar)")
-    p.set_defaults(func=cmd_fit)
+    finish_command(p, cmd_fit, "print the metadata as JSON (no progress bar)")
 
     p = sub.add_parser(
         "inspect",
@@ -232,17 +230,14 @@ def add_commands(sub: Any) -> None:
         description="Print a checkpoint's metadata; its scene (catalog or your mesh) is rebuilt from the .json.",
     )
     p.add_argument("checkpoint", help="path to X.pt (X.json beside it)")
-    p.add_argument("--json", action="store_true", help="print one JSON document")
-    p.set_defaults(func=cmd_inspect)
+    finish_command(p, cmd_inspect, "print one JSON document", threads=False)
 
     p = sub.add_parser("sample", help="export states sampled from a subspace (z ~ N(0, I))")
     p.add_argument("checkpoint", help="path to X.pt")
     p.add_argument("-n", type=int, default=1000, help="number of states (default 1000)")
     p.add_argument("--seed", type=int, default=0, help="sampling seed (default 0)")
     p.add_argument("--out", default="states.npz", help="output .npz with z, q, x (default states.npz)")
-    add_threads(p)
-    p.add_argument("--json", action="store_true", help="print one JSON summary")
-    p.set_defaults(func=cmd_sample)
+    finish_command(p, cmd_sample, "print one JSON summary")
 
     p = sub.add_parser("animate", help="GIF of a cyclic Catmull-Rom keyframe loop in latent space")
     p.add_argument("checkpoint", help="path to X.pt")
@@ -251,6 +246,4 @@ def add_commands(sub: Any) -> None:
     p.add_argument("--fps", type=float, default=16.0, help="frames per second (default 16)")
     p.add_argument("--seed", type=int, default=0, help="keyframe seed (default 0)")
     p.add_argument("--out", default="anim.gif", help="output GIF (default anim.gif)")
-    add_threads(p)
-    p.add_argument("--json", action="store_true", help="print one JSON summary")
-    p.set_defaults(func=cmd_animate)
+    finish_command(p, cmd_animate, "print one JSON summary")
