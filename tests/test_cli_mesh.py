@@ -85,6 +85,35 @@ def test_simulate_a_mesh_and_a_cloth(cli: Cli, box: Path, tmp_path: Path) -> Non
     assert Path(summary["png"]).read_bytes()[:4] == b"\x89PNG"
 
 
+def test_a_checkpoint_json_is_a_scene_spec(cli: Cli, fitted: Path, box: Path, tmp_path: Path) -> None:
+    meta = json.loads(fitted.with_suffix(".json").read_text())
+    code, out, err = cli("simulate", "--spec", str(fitted.with_suffix(".json")), "--steps", "1", "--json")
+    assert code == 0, err
+    assert json.loads(out)["params"] == meta["scene_params"]
+    spec = tmp_path / "chain.json"
+    spec.write_text(json.dumps({"scene": "toy_three_link_chain", "scene_params": {"gravity": False}}))
+    code, out, err = cli("simulate", "--spec", str(spec), "--steps", "1", "--json")
+    assert code == 0, err
+    assert json.loads(out)["params"]["gravity"] is False
+    code, _, err = cli("simulate", "--spec", str(spec), "--param", "gravity=true")
+    assert code == 2 and "--param does not apply to --spec" in err
+    code, _, err = cli("simulate", "toy_two_tets", "--spec", str(spec))
+    assert code == 2 and "not a scene name and --spec" in err
+
+
+def test_bench_energy_on_a_mesh(cli: Cli, box: Path) -> None:
+    code, out, err = cli(
+        "bench", "energy", "--mesh", str(box), *MESH_ARGS, "--repeats", "1", "--batches", "1", "--json"
+    )
+    assert code == 0, err
+    results = json.loads(out)["results"]
+    assert {r["scene"] for r in results} == {"mesh_fem"} and len(results) == 2
+    code, _, err = cli("bench", "energy", "--scenes", "toy_two_tets", "--mesh", str(box), *MESH_ARGS)
+    assert code == 2 and "either --scenes or --mesh" in err
+    code, _, err = cli("bench", "fit", "--param", "young=1")
+    assert code == 2 and "go with --mesh" in err
+
+
 def test_a_changed_mesh_file_is_a_clear_error(cli: Cli, fitted: Path, box: Path, tmp_path: Path) -> None:
     meta = json.loads(fitted.with_suffix(".json").read_text())
     moved = tmp_path / "box.obj"
@@ -115,10 +144,10 @@ def test_specs_that_cannot_be_rebuilt() -> None:
 @pytest.mark.parametrize(
     ("argv", "expected"),
     [
-        (["simulate"], "give a scene name, or a mesh"),
+        (["simulate"], "give a scene name, a mesh with --mesh PATH"),
         (["simulate", "--mesh", "x.obj"], "--mesh needs --kind"),
         (["simulate", "toy_two_tets", "--kind", "fem"], "--kind needs --mesh"),
-        (["fit", "toy_two_tets", "--mesh", "x.obj", "--kind", "fem"], "not both"),
+        (["fit", "toy_two_tets", "--mesh", "x.obj", "--kind", "fem"], "not a scene name and --mesh"),
         (["fit", "--mesh", "/nonexistent/x.obj", "--kind", "fem"], "x.obj"),
         (["simulate", "--mesh", "/nonexistent/x.obj", "--kind", "plate"], "invalid choice"),
     ],

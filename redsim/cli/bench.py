@@ -13,9 +13,9 @@ from redsim.cli.common import (
     DTYPES,
     EXIT_OK,
     CliError,
-    build_scene,
+    add_bench_scene_args,
+    bench_scenes,
     catalog_names,
-    check_scene_name,
     finish_command,
     json_out,
     out,
@@ -47,15 +47,13 @@ def cmd_bench_subspace(args: argparse.Namespace) -> int:
     from redsim.trainers.fit import fit_command
     from redsim.trainers.presets import preset
 
-    names = parse_list(args.scenes, "--scenes") if args.scenes else list(TABLE1_SCENES)
-    for name in names:
-        check_scene_name(name)
+    scenes = bench_scenes(args, TABLE1_SCENES)
     if not (math.isfinite(args.load_size) and args.load_size > 0.0):
         raise CliError(f"--load-size must be finite and > 0, got {args.load_size}")
     folder = Path(args.checkpoints)
     rows = []
-    for name in names:
-        scene = build_scene(name)
+    for name, make in scenes:
+        scene = make()
         overrides = {} if args.steps is None else {"steps": args.steps}
         config = FitConfig(**{**preset(name), **overrides})
         stem = folder / (name if args.steps is None else f"{name}_s{args.steps}")
@@ -155,12 +153,7 @@ def _machine_line(machine: dict[str, Any], device: str) -> str:
 def cmd_bench_energy(args: argparse.Namespace) -> int:
     from redsim.bench import bench_energy, machine_info
 
-    if args.scenes is None:
-        names = [n for n in catalog_names() if not n.startswith("toy_")]
-    else:
-        names = parse_list(args.scenes, "--scenes")
-        for name in names:
-            check_scene_name(name)
+    scenes = bench_scenes(args, [n for n in catalog_names() if not n.startswith("toy_")])
     if args.repeats < 1:
         raise CliError(f"--repeats must be >= 1, got {args.repeats}")
     try:
@@ -185,8 +178,8 @@ def cmd_bench_energy(args: argparse.Namespace) -> int:
         out(header + "  repeats")
         out("-" * (len(header) + 9))
     results = []
-    for name in names:
-        base = build_scene(name)
+    for name, make in scenes:
+        base = make()
         row = []
         for dtype, batch in columns:
             scene = base.to(args.device, DTYPES[dtype])
@@ -208,9 +201,7 @@ def cmd_bench_fit(args: argparse.Namespace) -> int:
     from redsim.trainers import FitConfig
     from redsim.trainers.presets import preset
 
-    names = parse_list(args.scenes, "--scenes") if args.scenes else list(BENCH_FIT_SCENES)
-    for name in names:
-        check_scene_name(name)
+    scenes = bench_scenes(args, BENCH_FIT_SCENES)
     for flag in ("steps", "warmup", "rounds"):
         if getattr(args, flag) < 1:
             raise CliError(f"--{flag} must be >= 1, got {getattr(args, flag)}")
@@ -225,14 +216,14 @@ def cmd_bench_fit(args: argparse.Namespace) -> int:
             f"{args.warmup} warm-up steps each; batch {args.batch}, {FitConfig().dtype}, scene presets"
         )
         out(_machine_line(machine, args.device))
-        width = max(14, *(len(name) for name in names))
+        width = max(14, *(len(name) for name, _make in scenes))
         header = f"{'scene':<{width}} {'n':>6} {'eager':>8} {'fused':>8} {'x':>5} {'compiled':>9} {'x':>5}"
         header += f" {'compile s':>10}"
         out(header)
         out("-" * len(header))
     rows = []
-    for name in names:
-        scene = build_scene(name)
+    for name, make in scenes:
+        scene = make()
         config = FitConfig(**{**preset(name), "batch_size": args.batch, "device": args.device})
         row = bench_fit_variants(scene, config, steps=args.steps, warmup=args.warmup, rounds=args.rounds)
         rows.append({"scene": name, "n": scene.free_dof_count, "variants": row})
@@ -267,7 +258,7 @@ def add_commands(sub: Any) -> None:
             "seed, per scene, dtype and batch size, after warm-up."
         ),
     )
-    p.add_argument("--scenes", metavar="A,B,...", help="comma-separated scene names (default: all non-toy scenes)")
+    add_bench_scene_args(p, "all non-toy scenes")
     p.add_argument("--repeats", type=int, default=20, help="timed calls per measurement (default 20)")
     p.add_argument("--batches", default="1,32", metavar="B1,B2", help="batch sizes (default 1,32)")
     p.add_argument("--dtypes", default="float64,float32", metavar="D1,D2", help="float64 and/or float32 (default both)")
@@ -293,7 +284,7 @@ def add_commands(sub: Any) -> None:
             "how close the subspace comes to each buckled state."
         ),
     )
-    p.add_argument("--scenes", metavar="A,B,...", help="comma-separated scenes (default: the eleven of Table 1)")
+    add_bench_scene_args(p, "the eleven of Table 1")
     p.add_argument("--steps", type=int, help="fit (or reuse) N-step subspaces instead (default: the presets')")
     p.add_argument("--checkpoints", default="subspaces", metavar="DIR", help="where fits are kept (default subspaces)")
     p.add_argument("--refit", action="store_true", help="fit even if a checkpoint exists (shipped ones included)")
@@ -319,7 +310,7 @@ def add_commands(sub: Any) -> None:
             "all three alike), and the one-off compile time."
         ),
     )
-    p.add_argument("--scenes", metavar="A,B,...", help=f"comma-separated (default: {','.join(BENCH_FIT_SCENES)})")
+    add_bench_scene_args(p, ",".join(BENCH_FIT_SCENES))
     p.add_argument("--steps", type=int, default=20, help="timed steps per variant, over all rounds (default 20)")
     p.add_argument("--warmup", type=int, default=3, help="untimed steps per round, the compile included (default 3)")
     p.add_argument("--rounds", type=int, default=2, help="interleaved rounds of all variants (default 2)")

@@ -11,7 +11,7 @@ import json
 import math
 import re
 import sys
-from collections.abc import Sequence
+from collections.abc import Callable, Sequence
 from typing import Any, NoReturn
 
 import torch
@@ -189,8 +189,19 @@ def apply_threads(args: argparse.Namespace) -> None:
 
 # -- scene arguments ------------------------------------------------------------------------
 def add_scene_args(parser: argparse.ArgumentParser) -> None:
-    """A catalog scene name, or ``--mesh PATH --kind fem|cloth``; builder parameters with ``--param``."""
-    parser.add_argument("scene", nargs="?", help="catalog name (see `redsim scenes --all`); or give --mesh instead")
+    """A catalog scene name, ``--mesh PATH --kind fem|cloth`` or ``--spec FILE``; builder params with ``--param``."""
+    parser.add_argument(
+        "scene", nargs="?", help="catalog name (see `redsim scenes --all`); or give --mesh or --spec instead"
+    )
+    parser.add_argument(
+        "--spec",
+        metavar="FILE",
+        help='a scene spec JSON, {"scene": NAME, "scene_params": {...}}; a checkpoint\'s .json is one',
+    )
+    _add_mesh_args(parser)
+
+
+def _add_mesh_args(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--mesh", metavar="PATH", help="build the scene from your own mesh file (needs --kind)")
     parser.add_argument(
         "--kind",
@@ -213,20 +224,67 @@ def scene_from_args(args: argparse.Namespace) -> Scene:
     from redsim.scenes.spec import mesh_scene
 
     params = parse_params(args.param)
+    spec = getattr(args, "spec", None)
+    given = [
+        what
+        for what, value in (("a scene name", getattr(args, "scene", None)), ("--mesh", args.mesh), ("--spec", spec))
+        if value is not None
+    ]
+    if len(given) > 1:
+        raise CliError(f"give one of a scene name, --mesh or --spec, not {' and '.join(given)}")
+    if spec is not None:
+        return _scene_from_spec_file(spec, params)
     if args.mesh is None:
         if args.kind is not None:
             raise CliError("--kind needs --mesh PATH")
-        if args.scene is None:
-            raise CliError("give a scene name, or a mesh with --mesh PATH --kind fem|cloth")
+        if getattr(args, "scene", None) is None:
+            raise CliError("give a scene name, a mesh with --mesh PATH --kind fem|cloth, or --spec FILE")
         return build_scene(args.scene, params)
-    if args.scene is not None:
-        raise CliError(f"give either a scene name ({args.scene!r}) or --mesh, not both")
     if args.kind is None:
         raise CliError("--mesh needs --kind fem|cloth")
     try:
         return mesh_scene(args.kind, args.mesh, **params)
     except (FileNotFoundError, TypeError, ValueError) as err:
         raise CliError(f"cannot build a {args.kind} scene from {args.mesh}: {err}") from err
+
+
+def _scene_from_spec_file(path: str, params: dict[str, Any]) -> Scene:
+    from redsim.scenes.spec import SceneSpecError, scene_from_spec
+
+    if params:
+        raise CliError("--param does not apply to --spec: the spec holds the scene's parameters")
+    try:
+        with open(path) as handle:
+            doc = json.load(handle)
+    except (OSError, json.JSONDecodeError, UnicodeDecodeError) as err:
+        raise CliError(f"cannot read the scene spec {path}: {err}") from err
+    if not isinstance(doc, dict):
+        raise CliError(f"the scene spec {path} is not a JSON object")
+    try:
+        return scene_from_spec(doc)
+    except (SceneSpecError, TypeError, ValueError) as err:
+        raise CliError(f"cannot build the scene of {path}: {err}") from err
+
+
+def add_bench_scene_args(parser: argparse.ArgumentParser, default: str) -> None:
+    """``--scenes A,B,...`` (default: ``default``), or one scene from ``--mesh PATH --kind fem|cloth``."""
+    parser.add_argument("--scenes", metavar="A,B,...", help=f"comma-separated scene names (default: {default})")
+    _add_mesh_args(parser)
+
+
+def bench_scenes(args: argparse.Namespace, default: Sequence[str]) -> list[tuple[str, Callable[[], Scene]]]:
+    """(name, builder) of each scene a bench runs on: the ``--mesh`` scene, or ``--scenes`` (checked up front)."""
+    if args.mesh is not None:
+        if args.scenes:
+            raise CliError("give either --scenes or --mesh, not both")
+        scene = scene_from_args(args)
+        return [(scene.name, lambda: scene)]
+    if args.kind is not None or args.param:
+        raise CliError("--kind and --param go with --mesh (the --scenes are built with their defaults)")
+    names = parse_list(args.scenes, "--scenes") if args.scenes else list(default)
+    for name in names:
+        check_scene_name(name)
+    return [(name, lambda name=name: build_scene(name)) for name in names]
 
 
 def load_checkpoint(path: str) -> tuple[Scene, Any]:
