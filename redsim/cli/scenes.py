@@ -116,6 +116,7 @@ def cmd_simulate(args: argparse.Namespace) -> int:
     wall = 0.0
     nan_step = failed_step = None
     for step in range(1, args.steps + 1):
+        q_inertial = 2.0 * state.q - state.q_prev
         start = time.perf_counter()
         state, info = integ.step(state, loads=loads)
         wall += time.perf_counter() - start
@@ -133,7 +134,7 @@ def cmd_simulate(args: argparse.Namespace) -> int:
         if not finite or not math.isfinite(rec["grad_norm"]):
             nan_step = step
         else:
-            rec["failure"] = step_failure(scene, q_last, state.q, rec["grad_norm"], rec["potential_energy"])
+            rec["failure"] = step_failure(scene, q_inertial, state.q, rec["grad_norm"], rec["potential_energy"])
             failed_step = step if rec["failure"] else None
         if rec.get("failure"):
             rec["converged"] = False
@@ -238,7 +239,8 @@ def add_commands(sub: Any) -> None:
         ),
         epilog=(
             "Exit status: 0 done (non-converged steps are warned about), 2 bad input, 3 NaN or inf, 4 a step "
-            "failed (a coordinate moved more than 10 scene sizes in one step: loads or dt far beyond the scene)."
+            "failed (its forces moved a coordinate more than 10 scene sizes in one step: loads or dt far beyond "
+            "the scene)."
         ),
     )
     add_scene_args(p)
