@@ -7,16 +7,8 @@ from typing import Literal
 import torch
 from torch import Tensor
 
-from redsim.effects.base import Effect
+from redsim.effects.base import Effect, per_element
 from redsim.materials import lame_from_young_poisson
-
-
-def _per_element(value: float | Tensor, count: int, what: str) -> Tensor:
-    out = torch.as_tensor(value, dtype=torch.float64)
-    out = out.expand(count).clone() if out.ndim == 0 else out.clone()
-    if out.shape != (count,):
-        raise ValueError(f"{what} must be a scalar or have shape [{count}], got {tuple(out.shape)}")
-    return out
 
 
 def _edge_matrix(v: Tensor) -> Tensor:
@@ -109,8 +101,8 @@ class NeoHookean(Effect):
                 f"{bad.numel()} bad element(s) in all"
             )
         mu, lam = lame_from_young_poisson(
-            _per_element(young, T, "young"),
-            _per_element(poisson, T, "poisson"),
+            per_element(young, T, "young"),
+            per_element(poisson, T, "poisson"),
             plane=plane if D == 2 else None,
         )
         self.name = name
@@ -194,7 +186,7 @@ class StVKMembrane(Effect):
         if bad.numel():
             raise ValueError(f"triangle {int(bad[0])} of {name!r} is degenerate (rest area {float(area[bad[0]]):.3g})")
         mu, lam = lame_from_young_poisson(
-            _per_element(young, T, "young"), _per_element(poisson, T, "poisson"), plane="stress"
+            per_element(young, T, "young"), per_element(poisson, T, "poisson"), plane="stress"
         )
         self.name = name
         self.element_dofs = torch.as_tensor(vertex_dofs, dtype=torch.int64).reshape(T, 9)
@@ -257,7 +249,7 @@ class DiscreteShellBending(Effect):
         self.element_dofs = torch.as_tensor(vertex_dofs, dtype=torch.int64).reshape(count, 12)
         self.length_eps = float(edge_sq.min()) * 1e-12
         self.rest_angle = _dihedral(rest, self.length_eps)
-        self.weight = _per_element(stiffness, count, "stiffness") * 3.0 * edge_sq / (area_a + area_b)
+        self.weight = per_element(stiffness, count, "stiffness") * 3.0 * edge_sq / (area_a + area_b)
 
     def element_energy(self, xe: Tensor, cond: Tensor | None = None, loads: Tensor | None = None) -> Tensor:
         B, E, _ = xe.shape
