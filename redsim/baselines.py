@@ -26,7 +26,7 @@ from __future__ import annotations
 
 import logging
 import math
-from typing import Any
+from typing import Any, NamedTuple
 
 import numpy as np
 import scipy.linalg
@@ -98,10 +98,32 @@ def _lowest_modes(
     return values, vectors, "shift-invert"
 
 
-def _modes(
-    scene: Scene, dim: int, rest: Tensor | None
-) -> tuple[Tensor, scipy.sparse.csr_matrix, scipy.sparse.csr_matrix, np.ndarray, np.ndarray, dict[str, Any]]:
-    """Rest state b [n], H(b), M, the ``dim`` lowest eigenpairs, and metadata (see :func:`modal_analysis`)."""
+class _Modes(NamedTuple):
+    """The lowest modes of a scene at its rest state (see :func:`modal_analysis`)."""
+
+    scene: Scene
+    """The float64 scene."""
+    rest: Tensor
+    """b [n]."""
+    hessian: scipy.sparse.csr_matrix
+    """H(b), symmetrized, unprojected."""
+    mass: scipy.sparse.csr_matrix
+    """M."""
+    values: np.ndarray
+    """The ``dim`` lowest generalized eigenvalues [1/s^2], ascending."""
+    vectors: np.ndarray
+    """Their M-orthonormal eigenvectors, [n, dim]."""
+    basis: Tensor
+    """sigma times the eigenvectors, [n, dim] (float64)."""
+    meta: dict[str, Any]
+    """Scene, eigenvalues, eigensolver, stiffness scale, null-mode count, equilibrium solve."""
+
+
+def _modes(scene: Scene, dim: int, sigma: float, rest: Tensor | None) -> _Modes:
+    """The ``dim`` lowest modes at b (``rest``, default the static equilibrium), columns scaled by sigma."""
+    if not (math.isfinite(sigma) and sigma > 0.0):
+        raise ValueError(f"sigma must be finite and > 0, got {sigma!r}")
+    scene = as_float64(scene)
     n = scene.free_dof_count
     _check_dim(dim, n, f"n = {n}")
     if rest is None:
@@ -133,7 +155,8 @@ def _modes(
         "null_modes": int(np.sum(np.abs(values) <= NULL_TOLERANCE * scale)),
         "equilibrium": equilibrium,
     }
-    return b, H, M, values, vectors, meta
+    basis = sigma * torch.as_tensor(vectors, dtype=torch.float64)
+    return _Modes(scene, b, H, M, values, vectors, basis, meta)
 
 
 def modal_analysis(scene: Scene, dim: int, *, sigma: float = 1.0, rest: Tensor | None = None) -> LinearSubspace:
@@ -163,12 +186,8 @@ def modal_analysis(scene: Scene, dim: int, *, sigma: float = 1.0, rest: Tensor |
     Raises:
         ValueError: on a bad dim, sigma or rest.
     """
-    if not (math.isfinite(sigma) and sigma > 0.0):
-        raise ValueError(f"sigma must be finite and > 0, got {sigma!r}")
-    scene = as_float64(scene)
-    b, _, _, _, vectors, meta = _modes(scene, dim, rest)
-    basis = sigma * torch.as_tensor(vectors, dtype=torch.float64)
-    return LinearSubspace(basis, b, {**meta, "method": "modal_analysis", "sigma": float(sigma)})
+    modes = _modes(scene, dim, sigma, rest)
+    return LinearSubspace(modes.basis, modes.rest, {**modes.meta, "method": "modal_analysis", "sigma": float(sigma)})
 
 
 def hessian_directional_derivative(scene: Scene, q: Tensor, u: Tensor, v: Tensor) -> Tensor:
@@ -237,11 +256,7 @@ def modal_derivatives(scene: Scene, dim: int, *, sigma: float = 1.0, rest: Tenso
     Raises:
         ValueError: on a bad dim, sigma or rest.
     """
-    if not (math.isfinite(sigma) and sigma > 0.0):
-        raise ValueError(f"sigma must be finite and > 0, got {sigma!r}")
-    scene = as_float64(scene)
-    b, H, M, values, vectors, meta = _modes(scene, dim, rest)
-    basis = sigma * torch.as_tensor(vectors, dtype=torch.float64)
+    scene, b, H, M, values, vectors, basis, meta = _modes(scene, dim, sigma, rest)
     i, j = torch.triu_indices(basis.shape[1], basis.shape[1])
     rhs = -hessian_directional_derivative(scene, b, basis[:, i].T, basis[:, j].T).T.cpu().numpy()  # [n, P]
     threshold = NULL_TOLERANCE * meta["stiffness_scale"]
