@@ -7,16 +7,8 @@ import json
 import pytest
 import torch
 
-from redsim import scenes
-from redsim.subspace import (
-    KINDS,
-    CheckpointError,
-    LinearSubspace,
-    QuadraticSubspace,
-    SubspaceConfig,
-    SubspaceMap,
-    load_subspace,
-)
+from redsim import scenes, subspace
+from redsim.subspace import KINDS, LinearSubspace, QuadraticSubspace, SubspaceMap
 
 
 def _maps(n: int) -> list[torch.nn.Module]:
@@ -24,7 +16,7 @@ def _maps(n: int) -> list[torch.nn.Module]:
     basis = torch.randn(n, 2, generator=g, dtype=torch.float64)
     offset = torch.randn(n, generator=g, dtype=torch.float64)
     return [
-        SubspaceMap(SubspaceConfig(latent_dim=2, output_dim=n, hidden_width=4, hidden_layers=1, periodic=(1,))),
+        SubspaceMap(subspace.SubspaceConfig(2, n, hidden_width=4, hidden_layers=1, periodic=(1,))),
         LinearSubspace(basis, offset),
         QuadraticSubspace(basis, offset, torch.randn(n, 3, generator=g, dtype=torch.float64)),
     ]
@@ -36,7 +28,7 @@ def test_every_kind_round_trips_through_the_registry(tmp_path) -> None:
     for sub in _maps(scene.free_dof_count):
         sub.metadata.update({"scene": scene.name, "scene_fingerprint": scene.fingerprint()})
         weights, _ = sub.save(tmp_path / sub.kind)
-        loaded = load_subspace(weights, scene=scene)
+        loaded = subspace.load_subspace(weights, scene=scene)
         assert type(loaded) is KINDS[sub.kind] is type(sub)
         zz = z.to(next(iter(sub.state_dict().values())).dtype)
         with torch.no_grad():
@@ -50,5 +42,6 @@ def test_an_unknown_kind_names_the_valid_ones(tmp_path) -> None:
     )
     doc = json.loads(meta.read_text())
     meta.write_text(json.dumps({**doc, "kind": "spline"}))
-    with pytest.raises(CheckpointError, match="unknown kind 'spline'; valid: neural, autoencoder, linear, quadratic"):
-        load_subspace(tmp_path / "map.pt")
+    valid = "neural, autoencoder, linear, quadratic"
+    with pytest.raises(subspace.CheckpointError, match=f"unknown kind 'spline'; valid: {valid}"):
+        subspace.load_subspace(tmp_path / "map.pt")
