@@ -7,6 +7,7 @@ SI units (m, kg, s, Pa, N, J); rubber-like materials, E = 1e5..1e7 Pa, density 1
 from __future__ import annotations
 
 import math
+from collections.abc import Callable
 from typing import Any
 
 import numpy as np
@@ -318,6 +319,31 @@ def hetero_beam(
     )
 
 
+def _voxel_solid(
+    parts: Callable[[], list[trimesh.Trimesh]], params: dict[str, Any], *, max_pitch: float
+) -> tuple[SceneBuilder, np.ndarray, np.ndarray, torch.Tensor, float]:
+    """One neo-Hookean body voxel-tetrahedralized from the union of ``parts()``, in a new 3D builder.
+
+    Args:
+        parts: Makes the primitive meshes [m] (called after the checks).
+        params: The builder's arguments: ``voxel_pitch`` [m], ``young``, ``poisson``, ``density``.
+        max_pitch: Largest voxel side [m] that still resolves the thinnest parts (the legs).
+
+    Returns:
+        (builder, vertices [V, 3] [m], tets [T, 4], particle ids [V], voxel pitch [m]).
+    """
+    pitch = toolkit.check_positive("voxel_pitch", params["voxel_pitch"])
+    _check_solid(params)
+    if pitch > max_pitch:
+        raise ValueError(f"voxel_pitch must be <= {max_pitch:g} m to resolve the legs, got {pitch}")
+    vertices, tets = meshes.voxel_tet_mesh(parts(), pitch)
+    b = SceneBuilder(dim=3)
+    ids = toolkit.add_fem(
+        b, vertices, tets, young=params["young"], poisson=params["poisson"], density=params["density"]
+    )
+    return b, vertices, tets, ids, pitch
+
+
 def _cow_parts() -> list[trimesh.Trimesh]:
     """A cow-like body about 0.7 m long, 0.6 m tall, feet on y = 0 [m]."""
     torso = trimesh.creation.capsule(height=0.36, radius=0.12, count=[16, 16])
@@ -358,16 +384,9 @@ def stiff_body(
     front of the head). Surface: "elastic".
     """
     params = toolkit.builder_params(locals())
-    pitch = toolkit.check_positive("voxel_pitch", voxel_pitch)
     toolkit.check_positive("pin_radius", pin_radius, allow_zero=True)
-    _check_solid(params)
     gravity = toolkit.check_bool("gravity", gravity)
-    if pitch > 0.06:
-        raise ValueError(f"voxel_pitch must be <= 0.06 m to resolve the legs, got {pitch}")
-
-    vertices, tets = meshes.voxel_tet_mesh(_cow_parts(), pitch)
-    b = SceneBuilder(dim=3)
-    ids = toolkit.add_fem(b, vertices, tets, young=young, poisson=poisson, density=density)
+    b, vertices, tets, ids, _ = _voxel_solid(_cow_parts, params, max_pitch=0.06)
     torso = np.abs(vertices[:, 0]) <= 0.18
     top = np.nonzero(torso & (vertices[:, 1] >= vertices[torso, 1].max() - 1e-9))[0]
     anchor = vertices[top[np.argmin(np.linalg.norm(vertices[top][:, [0, 2]], axis=1))]]
@@ -419,15 +438,8 @@ def elephant(
     vertices), "back" (the top of the body). Surface: "elastic".
     """
     params = toolkit.builder_params(locals())
-    pitch = toolkit.check_positive("voxel_pitch", voxel_pitch)
-    _check_solid(params)
     gravity = toolkit.check_bool("gravity", gravity)
-    if pitch > 0.15:
-        raise ValueError(f"voxel_pitch must be <= 0.15 m to resolve the legs, got {pitch}")
-
-    vertices, tets = meshes.voxel_tet_mesh(_elephant_parts(), pitch)
-    b = SceneBuilder(dim=3)
-    ids = toolkit.add_fem(b, vertices, tets, young=young, poisson=poisson, density=density)
+    b, vertices, tets, ids, pitch = _voxel_solid(_elephant_parts, params, max_pitch=0.15)
     y = vertices[:, 1]
     b.pin_particles(ids[torch.as_tensor(np.nonzero(y <= y.min() + 0.25 * pitch)[0])])
     if gravity:
