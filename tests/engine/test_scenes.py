@@ -95,6 +95,7 @@ def test_hetero_beam_alternates_materials() -> None:
 def test_scene_contract(name: str) -> None:
     scene = built(name)
     d = scene.describe()
+    assert scene.name == name  # the registry entry and the scene agree on the name
     assert d["n"] == scene.free_dof_count == scene.q_seed.shape[0]
     assert len(scene.handles) >= 1 and len(scene.surfaces) >= 1
     assert set(scene.params) == set(redsim.scenes.parameters(name))
