@@ -46,3 +46,27 @@ def test_declared_reference_states_resolve() -> None:
 
 def test_a_subspace_ships_exactly_for_the_environment_scenes() -> None:
     assert set(pretrained.names()) == set(redsim.scenes.names("env"))
+
+
+def _tiny_fit(scene: redsim.Scene, **config: object) -> object:
+    from redsim.trainers import FitConfig, fit_subspace
+
+    return fit_subspace(scene, FitConfig(steps=5, hidden_width=16, hidden_layers=1, **config), progress=False).subspace
+
+
+@pytest.mark.slow
+def test_the_bench_loop_check_uses_the_declared_crank() -> None:
+    from redsim.bench import compare_subspaces
+
+    scene = redsim.scenes.build("klann")
+    out = compare_subspaces(scene, _tiny_fit(scene, latent_dim=1, periodic=(0,)), sigma=0.05, loads_count=1, samples=8)
+    assert out["neural"]["loop"]["samples"] == 360 and "loop" not in out["modes"]  # modes have no periodic latent
+    assert all("reach" not in result for result in out.values())
+
+
+def test_the_bench_reach_check_uses_the_declared_reference_states() -> None:
+    from redsim.bench import compare_subspaces
+
+    scene = redsim.scenes.build("bistable_bar", cells_x=12, cells_y=2)
+    out = compare_subspaces(scene, _tiny_fit(scene, latent_dim=2), sigma=0.05, loads_count=1, samples=8)
+    assert all(len(result["reach"]["errors"]) == 2 and "loop" not in result for result in out.values())
