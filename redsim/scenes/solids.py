@@ -201,6 +201,35 @@ def _face_ids(vertices: np.ndarray, axis: int, value: float, tolerance: float) -
     return torch.as_tensor(np.nonzero(np.abs(vertices[:, axis] - value) <= tolerance)[0])
 
 
+def _beam_mesh(length: float, width: float, cells_x: int, cells_yz: int) -> tuple[np.ndarray, np.ndarray]:
+    """Tets of the beam [0, length] x [-width/2, width/2]^2 [m]: vertices [V, 3], tets [T, 4]."""
+    return meshes.box_tet_grid(
+        (length, width, width), (cells_x, cells_yz, cells_yz), origin=(0.0, -0.5 * width, -0.5 * width)
+    )
+
+
+def _clamped_body(
+    vertices: np.ndarray,
+    tets: np.ndarray,
+    young: float | np.ndarray,
+    poisson: float,
+    density: float,
+    gravity: bool,
+) -> tuple[SceneBuilder, torch.Tensor, float]:
+    """A new 3D builder holding a beam mesh as one neo-Hookean body, its x = 0 face pinned, with gravity if asked.
+
+    Returns:
+        (builder, particle ids [V], the distance [m] within which a vertex counts as on a face).
+    """
+    b = SceneBuilder(dim=3)
+    ids = toolkit.add_fem(b, vertices, tets, young=young, poisson=poisson, density=density)
+    tol = 1e-9 * float(vertices[:, 0].max())
+    b.pin_particles(ids[_face_ids(vertices, 0, 0.0, tol)])
+    if gravity:
+        toolkit.add_gravity(b)
+    return b, ids, tol
+
+
 def cantilever(
     *,
     cells_x: int = 20,
@@ -237,15 +266,8 @@ def cantilever(
     _check_solid(params)
     gravity = toolkit.check_bool("gravity", gravity)
 
-    vertices, tets = meshes.box_tet_grid(
-        (length, width, width), (cells_x, cells_yz, cells_yz), origin=(0.0, -0.5 * width, -0.5 * width)
-    )
-    b = SceneBuilder(dim=3)
-    ids = toolkit.add_fem(b, vertices, tets, young=young, poisson=poisson, density=density)
-    tol = 1e-9 * length
-    b.pin_particles(ids[_face_ids(vertices, 0, 0.0, tol)])
-    if gravity:
-        toolkit.add_gravity(b)
+    vertices, tets = _beam_mesh(length, width, cells_x, cells_yz)
+    b, ids, tol = _clamped_body(vertices, tets, young, poisson, density, gravity)
     b.add_handle("tip", b.particle_points(ids[_face_ids(vertices, 0, length, tol)]))
     return b.finalize(
         "cantilever", params=params, description=f"{length:g} m beam, {width:g} m square section, clamped at x = 0"
@@ -295,18 +317,11 @@ def hetero_beam(
     toolkit.check_poisson(poisson)
     gravity = toolkit.check_bool("gravity", gravity)
 
-    vertices, tets = meshes.box_tet_grid(
-        (length, width, width), (cells_x, cells_yz, cells_yz), origin=(0.0, -0.5 * width, -0.5 * width)
-    )
+    vertices, tets = _beam_mesh(length, width, cells_x, cells_yz)
     centroid_x = vertices[tets, 0].mean(axis=1)
     segment = np.minimum((centroid_x / length * segments).astype(np.int64), segments - 1)
     young = np.where(segment % 2 == 0, young_stiff, young_soft)
-    b = SceneBuilder(dim=3)
-    ids = toolkit.add_fem(b, vertices, tets, young=young, poisson=poisson, density=density)
-    tol = 1e-9 * length
-    b.pin_particles(ids[_face_ids(vertices, 0, 0.0, tol)])
-    if gravity:
-        toolkit.add_gravity(b)
+    b, ids, tol = _clamped_body(vertices, tets, young, poisson, density, gravity)
     xs = np.unique(vertices[:, 0])
     middle = xs[np.argmin(np.abs(xs - 0.5 * length))]
     b.add_handle("middle", b.particle_points(ids[_face_ids(vertices, 0, middle, tol)]))
