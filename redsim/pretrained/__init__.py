@@ -15,20 +15,12 @@ from pathlib import Path
 import torch
 from torch import nn
 
+from redsim import scenes
 from redsim.scene import Scene
 
 FOLDER = Path(__file__).resolve().parent
-ENV_SCENES = (
-    "chain",
-    "mini_chain",
-    "klann",
-    "stewart",
-    "cloth_ball",
-    "hanging_sheet",
-    "bistable_bar",
-    "conditional_bar",
-)
-"""The scenes the environments run on; each has a shipped subspace."""
+ENV_SCENES = tuple(scenes.names("env"))
+"""The scenes the environments run on (registry tag "env"); each has a shipped subspace."""
 
 
 def names() -> list[str]:
@@ -61,7 +53,6 @@ def load(scene_name: str, scene: Scene | None = None, *, device: str | torch.dev
         KeyError: no subspace is shipped for this scene.
         redsim.subspace.CheckpointError: the scene differs from the one the subspace was fitted to.
     """
-    from redsim import scenes
     from redsim.subspace import load_subspace
 
     weights = path(scene_name)
