@@ -32,9 +32,15 @@ import torch
 from torch import Tensor
 
 import redsim
-from redsim.metrics import pair_log_ratios
 from redsim.scene import Scene
-from redsim.subspace import CheckpointError, SubspaceConfig, SubspaceMap, checkpoint_path, sample_latents
+from redsim.subspace import (
+    CheckpointError,
+    SubspaceConfig,
+    SubspaceMap,
+    checkpoint_path,
+    pair_log_ratios,
+    sample_latents,
+)
 
 log = logging.getLogger(__name__)
 

@@ -9,6 +9,7 @@ from typing import Any
 
 import torch
 
+import redsim
 from redsim.cli.common import (
     DTYPES,
     EXIT_OK,
@@ -24,20 +25,6 @@ from redsim.cli.common import (
 )
 from redsim.subspace import checkpoint_path
 
-TABLE1_SCENES = (
-    "cloth_ball",
-    "klann",
-    "stewart",
-    "bistable_bar",
-    "hanging_sheet",
-    "conditional_bar",
-    "chain",
-    "mini_chain",
-    "stiff_body",
-    "cantilever",
-    "elephant",
-)
-
 
 def cmd_bench_subspace(args: argparse.Namespace) -> int:
     from redsim import pretrained
@@ -47,7 +34,7 @@ def cmd_bench_subspace(args: argparse.Namespace) -> int:
     from redsim.trainers.fit import fit_command
     from redsim.trainers.presets import preset
 
-    scenes = bench_scenes(args, TABLE1_SCENES)
+    scenes = bench_scenes(args, redsim.scenes.names("table1"))
     if not (math.isfinite(args.load_size) and args.load_size > 0.0):
         raise CliError(f"--load-size must be finite and > 0, got {args.load_size}")
     folder = Path(args.checkpoints)
@@ -153,7 +140,7 @@ def _machine_line(machine: dict[str, Any], device: str) -> str:
 def cmd_bench_energy(args: argparse.Namespace) -> int:
     from redsim.bench import bench_energy, machine_info
 
-    scenes = bench_scenes(args, [n for n in catalog_names() if not n.startswith("toy_")])
+    scenes = bench_scenes(args, [n for n in catalog_names() if n not in redsim.scenes.names("toy")])
     if args.repeats < 1:
         raise CliError(f"--repeats must be >= 1, got {args.repeats}")
     try:
@@ -193,15 +180,12 @@ def cmd_bench_energy(args: argparse.Namespace) -> int:
     return EXIT_OK
 
 
-BENCH_FIT_SCENES = ("mini_chain", "chain", "bistable_bar", "cloth_ball", "stiff_body")
-
-
 def cmd_bench_fit(args: argparse.Namespace) -> int:
     from redsim.bench import bench_fit_variants, machine_info
     from redsim.trainers import FitConfig
     from redsim.trainers.presets import preset
 
-    scenes = bench_scenes(args, BENCH_FIT_SCENES)
+    scenes = bench_scenes(args, redsim.scenes.names("bench-fit"))
     for flag in ("steps", "warmup", "rounds"):
         if getattr(args, flag) < 1:
             raise CliError(f"--{flag} must be >= 1, got {getattr(args, flag)}")
@@ -209,6 +193,9 @@ def cmd_bench_fit(args: argparse.Namespace) -> int:
         raise CliError(f"--batch must be >= 2, got {args.batch}")
     if args.device.startswith("cuda") and not torch.cuda.is_available():
         raise CliError("--device cuda requested but torch sees no CUDA device")
+    built = [(name, make()) for name, make in scenes]
+    if not args.scenes and args.mesh is None:  # smallest first: the first compiled scene also pays the start-up
+        built.sort(key=lambda item: item[1].free_dof_count)
     machine = machine_info()
     if not args.json:
         out(
@@ -216,14 +203,13 @@ def cmd_bench_fit(args: argparse.Namespace) -> int:
             f"{args.warmup} warm-up steps each; batch {args.batch}, {FitConfig().dtype}, scene presets"
         )
         out(_machine_line(machine, args.device))
-        width = max(14, *(len(name) for name, _make in scenes))
+        width = max(14, *(len(name) for name, _scene in built))
         header = f"{'scene':<{width}} {'n':>6} {'eager':>8} {'fused':>8} {'x':>5} {'compiled':>9} {'x':>5}"
         header += f" {'compile s':>10}"
         out(header)
         out("-" * len(header))
     rows = []
-    for name, make in scenes:
-        scene = make()
+    for name, scene in built:
         config = FitConfig(**{**preset(name), "batch_size": args.batch, "device": args.device})
         row = bench_fit_variants(scene, config, steps=args.steps, warmup=args.warmup, rounds=args.rounds)
         rows.append({"scene": name, "n": scene.free_dof_count, "variants": row})
@@ -310,7 +296,7 @@ def add_commands(sub: Any) -> None:
             "all three alike), and the one-off compile time."
         ),
     )
-    add_bench_scene_args(p, ",".join(BENCH_FIT_SCENES))
+    add_bench_scene_args(p, f"{','.join(redsim.scenes.names('bench-fit'))}, smallest first")
     p.add_argument("--steps", type=int, default=20, help="timed steps per variant, over all rounds (default 20)")
     p.add_argument("--warmup", type=int, default=3, help="untimed steps per round, the compile included (default 3)")
     p.add_argument("--rounds", type=int, default=2, help="interleaved rounds of all variants (default 2)")

@@ -31,8 +31,9 @@ from redsim.cli.common import (
 
 def cmd_scenes(args: argparse.Namespace) -> int:
     rows: list[dict[str, Any]] = []
+    toys = redsim.scenes.names("toy")
     for name in catalog_names():
-        if name.startswith("toy_") and not args.all:
+        if name in toys and not args.all:
             continue
         try:
             scene = redsim.scenes.build(name)

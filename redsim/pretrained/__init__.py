@@ -15,20 +15,12 @@ from pathlib import Path
 import torch
 from torch import nn
 
+from redsim import scenes
 from redsim.scene import Scene
 
 FOLDER = Path(__file__).resolve().parent
-ENV_SCENES = (
-    "chain",
-    "mini_chain",
-    "klann",
-    "stewart",
-    "cloth_ball",
-    "hanging_sheet",
-    "bistable_bar",
-    "conditional_bar",
-)
-"""The scenes the environments run on; each has a shipped subspace."""
+ENV_SCENES = tuple(scenes.names("env"))
+"""The scenes the environments run on (registry tag "env"); each has a shipped subspace."""
 
 
 def names() -> list[str]:
@@ -54,7 +46,7 @@ def load(scene_name: str, scene: Scene | None = None, *, device: str | torch.dev
     Args:
         scene_name: Catalog name.
         scene: The scene it will run on (default: rebuilt from the checkpoint's record,
-            :func:`redsim.scenes.scene_from_spec`). A scene built with other parameters is refused:
+            :func:`redsim.scenes.spec.scene_from_spec`). A scene built with other parameters is refused:
             the subspace was fitted to the defaults.
         device: Where to put the weights.
 
