@@ -43,8 +43,8 @@ HESSIANS = ("exact", "gauss_newton", "bfgs", "lagged")
 class BatchObjective(Protocol):
     """Phi_b(z) for the states of one step; ``index`` [k] (int64) picks which states z [k, d] belong to."""
 
-    def value_and_grad(self, z: Tensor, index: Tensor) -> tuple[Tensor, Tensor]:
-        """Phi [k] and dPhi/dz [k, d] (detached; non-finite where the objective is)."""
+    def value_and_grad(self, z: Tensor, index: Tensor) -> tuple[Tensor, Tensor, Tensor]:
+        """Phi [k], dPhi/dz [k, d] and the potential energy E [k] (detached; non-finite where Phi is)."""
         ...
 
     def exact_hessian(self, z: Tensor, index: Tensor) -> Tensor:
@@ -67,6 +67,7 @@ class BatchResult:
     Attributes:
         z: Last accepted iterate (finite wherever the start was).
         value: Phi at z [J].
+        energy: The potential energy E at z [J] (the objective's third output).
         grad_norm: |dPhi/dz| at z.
         iterations: Accepted iterations, int64.
         converged: grad_norm <= tol * scale.
@@ -76,6 +77,7 @@ class BatchResult:
 
     z: Tensor
     value: Tensor
+    energy: Tensor
     grad_norm: Tensor
     iterations: Tensor
     converged: Tensor
@@ -130,6 +132,15 @@ def _model(objective: BatchObjective, method: str, z: Tensor, index: Tensor) -> 
     return objective.metric(z, index)
 
 
+def _backtrack(alpha: Tensor, slope: Tensor, rise: Tensor) -> Tensor:
+    """Next trial step after a rejected one: the minimizer of the quadratic through Phi(0), Phi'(0) and
+    Phi(alpha) (``rise`` = Phi(alpha) - Phi(0)), kept in [alpha / 10, alpha / 2]; alpha / 2 if not finite."""
+    curvature = rise - slope * alpha
+    guess = -slope * alpha * alpha / (2.0 * curvature)
+    guess = torch.where(torch.isfinite(guess) & (curvature > 0), guess, 0.5 * alpha)
+    return torch.minimum(torch.maximum(guess, 0.1 * alpha), 0.5 * alpha)
+
+
 def minimize(
     objective: BatchObjective,
     z0: Tensor,
@@ -138,7 +149,9 @@ def minimize(
     *,
     tol: float,
     max_iter: int,
-    hessian: str = "lagged",
+    hessian: str = "bfgs",
+    start: tuple[Tensor, Tensor, Tensor] | None = None,
+    secant: tuple[Tensor, Tensor] | None = None,
 ) -> BatchResult:
     """Minimize Phi_b over z_b for every state b from z0 [B, d].
 
@@ -150,6 +163,9 @@ def minimize(
         tol: Relative gradient tolerance.
         max_iter: Most accepted iterations per state.
         hessian: One of :data:`HESSIANS`.
+        start: (Phi, dPhi/dz, E) at z0 if the caller has them (else they are evaluated).
+        secant: (z_s, dPhi/dz at z_s) [B, d] of another point: the quasi-Newton models ("bfgs",
+            "lagged") take one BFGS update from it (s = z0 - z_s) before the first step.
 
     Returns:
         The :class:`BatchResult`.
@@ -159,10 +175,11 @@ def minimize(
     batch = z0.shape[0]
     all_index = torch.arange(batch, device=z0.device)
     z = z0.clone()
-    value, grad = objective.value_and_grad(z, all_index)
+    value, grad, energy = objective.value_and_grad(z, all_index) if start is None else start
     finite = torch.isfinite(value) & torch.isfinite(grad).all(-1)
     value = torch.where(finite, value, torch.zeros_like(value))
     grad = torch.where(finite[:, None], grad, torch.zeros_like(grad))
+    energy = torch.where(finite, energy, torch.zeros_like(energy))
     threshold = tol * scale
     eps = torch.finfo(z.dtype).eps
     iterations = torch.zeros(batch, dtype=torch.int64, device=z0.device)
@@ -175,7 +192,13 @@ def minimize(
             break
         if model is None:
             model = torch.zeros(batch, z.shape[1], z.shape[1], dtype=z.dtype, device=z.device)
-            model[index] = _model(objective, hessian, z[index], index)
+            first = _model(objective, hessian, z[index], index)
+            if secant is not None and hessian in ("bfgs", "lagged"):
+                z_s, g_s = secant[0][index], secant[1][index]
+                usable = torch.isfinite(g_s).all(-1)
+                g_s = torch.where(usable[:, None], g_s, grad[index])
+                first = _bfgs_update(first, z[index] - z_s, grad[index] - g_s)
+            model[index] = first
         elif hessian in ("exact", "gauss_newton"):
             model[index] = _model(objective, hessian, z[index], index)
         z_a, v_a, g_a, h_a = z[index], value[index], grad[index], model[index]
@@ -184,12 +207,12 @@ def minimize(
         step = torch.where((slope < 0)[:, None], step, -g_a)
         slope = (g_a * step).sum(-1)
         accepted = torch.zeros_like(index, dtype=torch.bool)
-        new_z, new_v, new_g = z_a.clone(), v_a.clone(), g_a.clone()
+        new_z, new_v, new_g, new_e = z_a.clone(), v_a.clone(), g_a.clone(), energy[index]
         pending = torch.arange(index.numel(), device=z.device)
         alpha = torch.ones(index.numel(), dtype=z.dtype, device=z.device)
         for _ in range(MAX_BACKTRACKS):
             trial = z_a[pending] + alpha[pending, None] * step[pending]
-            v_t, g_t = objective.value_and_grad(trial, index[pending])
+            v_t, g_t, e_t = objective.value_and_grad(trial, index[pending])
             ok_finite = torch.isfinite(v_t) & torch.isfinite(g_t).all(-1)
             v_old = v_a[pending]
             armijo = v_t <= v_old + ARMIJO_C * alpha[pending] * slope[pending]
@@ -197,21 +220,22 @@ def minimize(
             lower = torch.linalg.vector_norm(g_t, dim=-1) < torch.linalg.vector_norm(g_a[pending], dim=-1)
             ok = ok_finite & (armijo | (noise & lower))
             take = pending[ok]
-            new_z[take], new_v[take], new_g[take] = trial[ok], v_t[ok], g_t[ok]
+            new_z[take], new_v[take], new_g[take], new_e[take] = trial[ok], v_t[ok], g_t[ok], e_t[ok]
             accepted[take] = True
+            rise = torch.where(ok_finite, v_t - v_old, torch.full_like(v_t, torch.inf))[~ok]
             pending = pending[~ok]
             if pending.numel() == 0:
                 break
-            alpha[pending] = 0.5 * alpha[pending]
+            alpha[pending] = _backtrack(alpha[pending], slope[pending], rise)
         if hessian in ("bfgs", "lagged"):
             h_a = torch.where(accepted[:, None, None], _bfgs_update(h_a, new_z - z_a, new_g - g_a), h_a)
             model[index] = h_a
-        z[index], value[index], grad[index] = new_z, new_v, new_g
+        z[index], value[index], grad[index], energy[index] = new_z, new_v, new_g, new_e
         iterations[index] += accepted.to(torch.int64)
         stalled[index] = ~accepted
     grad_norm = torch.linalg.vector_norm(grad, dim=-1)
     converged = finite & (grad_norm <= threshold)
-    return BatchResult(z, value, grad_norm, iterations, converged, stalled & ~converged, finite)
+    return BatchResult(z, value, energy, grad_norm, iterations, converged, stalled & ~converged, finite)
 
 
 __all__ = ["HESSIANS", "BatchObjective", "BatchResult", "minimize"]
