@@ -185,6 +185,7 @@ def minimize(
     iterations = torch.zeros(batch, dtype=torch.int64, device=z0.device)
     stalled = torch.zeros(batch, dtype=torch.bool, device=z0.device)
     model = None  # [B, d, d], built on the first iteration that needs it
+    quasi_newton = hessian in ("bfgs", "lagged")
     for _ in range(max_iter):
         active = finite & ~stalled & (torch.linalg.vector_norm(grad, dim=-1) > threshold)
         index = torch.nonzero(active).squeeze(-1)
@@ -210,6 +211,7 @@ def minimize(
         new_z, new_v, new_g, new_e = z_a.clone(), v_a.clone(), g_a.clone(), energy[index]
         pending = torch.arange(index.numel(), device=z.device)
         alpha = torch.ones(index.numel(), dtype=z.dtype, device=z.device)
+        alpha_used = alpha.clone()
         for _ in range(MAX_BACKTRACKS):
             trial = z_a[pending] + alpha[pending, None] * step[pending]
             v_t, g_t, e_t = objective.value_and_grad(trial, index[pending])
@@ -223,11 +225,26 @@ def minimize(
             new_z[take], new_v[take], new_g[take], new_e[take] = trial[ok], v_t[ok], g_t[ok], e_t[ok]
             accepted[take] = True
             rise = torch.where(ok_finite, v_t - v_old, torch.full_like(v_t, torch.inf))[~ok]
+            learn = (ok_finite & ~ok)[~ok]
+            rejected_g = g_t[~ok]
             pending = pending[~ok]
             if pending.numel() == 0:
                 break
             alpha[pending] = _backtrack(alpha[pending], slope[pending], rise)
-        if hessian in ("bfgs", "lagged"):
+            if quasi_newton:
+                # a rejected but finite trial still measured the curvature along its step: update the
+                # model with it and solve again from the same point (a shorter, turned step)
+                redo = pending[learn]
+                h_new = _bfgs_update(h_a[redo], alpha_used[redo, None] * step[redo], rejected_g[learn] - g_a[redo])
+                h_a[redo] = h_new
+                fresh = _direction(h_new, g_a[redo], h_new)
+                fresh_slope = (g_a[redo] * fresh).sum(-1)
+                good = fresh_slope < 0
+                step[redo[good]] = fresh[good]
+                slope[redo[good]] = fresh_slope[good]
+                alpha[redo[good]] = 1.0
+            alpha_used[pending] = alpha[pending]
+        if quasi_newton:
             h_a = torch.where(accepted[:, None, None], _bfgs_update(h_a, new_z - z_a, new_g - g_a), h_a)
             model[index] = h_a
         z[index], value[index], grad[index], energy[index] = new_z, new_v, new_g, new_e
