@@ -53,7 +53,7 @@ def _reference_steps(name: str, steps: int, load: float, hessian: str):
 
 
 @pytest.mark.parametrize(("name", "steps", "load"), CASES)
-@pytest.mark.parametrize("hessian", ["exact", "gauss_newton", "bfgs", "lagged"])
+@pytest.mark.parametrize("hessian", ["exact", "gauss_newton", "bfgs", "lagged", "lagged_fd"])
 def test_matches_reference_step_for_step(name: str, steps: int, load: float, hessian: str) -> None:
     """Every step from the reference's own state: "exact" is the reference's Newton and must land on its
     minimizer; the other models must land on it too, or (the mini chain's folded map has several
