@@ -17,7 +17,6 @@ from typing import Any
 import torch
 
 from redsim.scene import Scene
-from redsim.scenes.catalog import KLANN_JOINTS
 
 
 def machine_info() -> dict[str, Any]:
@@ -272,8 +271,9 @@ def compare_subspaces(
 
     Scenes with known reference states (the bistable bar's two buckled equilibria,
     :func:`redsim.metrics.buckled_states`) also get :func:`redsim.metrics.reach_error` for each
-    method, under ``"reach"``. Scenes with a crank (klann) get, for maps with a periodic latent,
-    :func:`redsim.metrics.handle_winding` of the crank pin about its ground joint, under ``"loop"``.
+    method, under ``"reach"``. Scenes with a crank driver (:class:`redsim.scene.Driver`, klann) get,
+    for maps whose driver latent is periodic, :func:`redsim.metrics.handle_winding` of the driven
+    handle about the driver's centre, under ``"loop"``.
 
     Returns:
         ``{"neural": ..., "modes": ..., "modal_derivatives": ...}``, each an evaluate_subspace dict.
@@ -308,14 +308,12 @@ def compare_subspaces(
         )
         if targets is not None:
             result["reach"] = reach_error(scene, subspace, targets, seed=seed)
-        if scene.name in _CRANKS and periodic_latents(subspace):
-            result["loop"] = handle_winding(scene, subspace, *_CRANKS[scene.name], latent=periodic_latents(subspace)[0])
+        for driver in scene.drivers[:1]:
+            if driver.latent in periodic_latents(subspace):
+                center = driver.center[:2].tolist()
+                result["loop"] = handle_winding(scene, subspace, driver.handle, center, latent=driver.latent)
         out[name] = {**result, "build_seconds": seconds}
     return out
-
-
-_CRANKS = {"klann": ("crank_pin", KLANN_JOINTS["crank_ground"])}
-"""Scene: (crank handle, its pivot (x, y) [m]) for the loop check of :func:`compare_subspaces`."""
 
 
 def _reference_states(scene: Scene) -> list[torch.Tensor] | None:

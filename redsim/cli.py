@@ -581,6 +581,10 @@ _FIT_FLAGS: tuple[tuple[str, str, Any, str], ...] = (
     ("--layers", "hidden_layers", int, "MLP hidden layers"),
     ("--explore", "exploration_fraction", float, "fraction of the steps over which ρ rises 0 -> 1"),
     ("--seed-bias", "seed_bias", bool, "start the output bias at the seed state (stiff meshes)"),
+    ("--drive", "drive", float, "start stiffness [N/m] of the scene's fitting drivers (cranks); 0: off"),
+    ("--drive-fraction", "drive_fraction", float, "--drive holds for half this fraction of the steps, then falls to 0"),
+    ("--soften-from", "soften_from", float, "initial weight of the --soften effects"),
+    ("--soften-fraction", "soften_fraction", float, "fraction of the steps over which that weight rises to 1"),
     ("--checkpoint-every", "checkpoint_every", int, "steps between resumable checkpoints"),
     ("--dtype", "dtype", str, "float32 or float64"),
     ("--device", "device", str, "torch device"),
@@ -606,6 +610,8 @@ def _fit_config(args: argparse.Namespace, scene_name: str) -> Any:
             fields[field] = value
     if args.periodic is not None:
         fields["periodic"] = tuple(int(i) for i in _parse_list(args.periodic, "--periodic"))
+    if args.soften is not None:
+        fields["soften"] = tuple(_parse_list(args.soften, "--soften"))
     if args.cond:
         fields["conditional"] = True
     try:
@@ -832,6 +838,9 @@ def build_parser() -> argparse.ArgumentParser:
         else:
             p.add_argument(flag, dest=field, type=kind, default=None, help=f"{text} (default: scene preset)")
     p.add_argument("--periodic", default=None, metavar="I,J", help="latent indices that are angles")
+    p.add_argument(
+        "--soften", default=None, metavar="A,B", help="scene effects whose energy rises from --soften-from to full"
+    )
     p.add_argument("--cond", action="store_true", help="fit a conditional subspace over the scene's conditions")
     p.add_argument("--seed", type=int, default=0, help="seed of the initialisation and sampling (default 0)")
     p.add_argument("--out", default=None, metavar="STEM", help="checkpoint stem (default SCENE_dD)")
