@@ -16,6 +16,7 @@ from typing import Any
 
 import torch
 
+from redsim import scenes
 from redsim.scene import Scene
 
 
@@ -269,11 +270,11 @@ def compare_subspaces(
         samples: Latent samples of the energy, stretch and strain statistics.
         seed: Seed of samples and loads.
 
-    Scenes with known reference states (the bistable bar's two buckled equilibria,
-    :func:`redsim.metrics.buckled_states`) also get :func:`redsim.metrics.reach_error` for each
-    method, under ``"reach"``. Scenes with a crank driver (:class:`redsim.scene.Driver`, klann) get,
-    for maps whose driver latent is periodic, :func:`redsim.metrics.handle_winding` of the driven
-    handle about the driver's centre, under ``"loop"``.
+    What a scene's registry entry (:class:`redsim.scenes.SceneEntry`) declares adds checks:
+    ``reference_states`` (the bistable bar's two buckled equilibria) add
+    :func:`redsim.metrics.reach_error` for each method, under ``"reach"``; a ``crank`` (klann)
+    adds, for maps with a periodic latent, :func:`redsim.metrics.handle_winding` of the crank
+    handle about its pivot, under ``"loop"``.
 
     Returns:
         ``{"neural": ..., "modes": ..., "modal_derivatives": ...}``, each an evaluate_subspace dict.
@@ -290,7 +291,9 @@ def compare_subspaces(
     start = time.perf_counter()
     derivatives = modal_derivatives(scene, dim, sigma=sigma, rest=modes.offset)
     derivatives_seconds = modes_seconds + time.perf_counter() - start
-    targets = _reference_states(scene)
+    declared = scenes.ENTRIES.get(scene.name)
+    targets = None if declared is None else declared.compute_reference_states(scene)
+    crank = None if declared is None else declared.crank
     out: dict[str, dict[str, Any]] = {}
     for name, subspace, seconds in (
         ("neural", neural, float(getattr(neural, "metadata", {}).get("fit_seconds", float("nan")))),
@@ -308,17 +311,7 @@ def compare_subspaces(
         )
         if targets is not None:
             result["reach"] = reach_error(scene, subspace, targets, seed=seed)
-        for driver in scene.drivers[:1]:
-            if driver.latent in periodic_latents(subspace):
-                center = driver.center[:2].tolist()
-                result["loop"] = handle_winding(scene, subspace, driver.handle, center, latent=driver.latent)
+        if crank is not None and periodic_latents(subspace):
+            result["loop"] = handle_winding(scene, subspace, *crank, latent=periodic_latents(subspace)[0])
         out[name] = {**result, "build_seconds": seconds}
     return out
-
-
-def _reference_states(scene: Scene) -> list[torch.Tensor] | None:
-    """States a subspace of this scene should contain (bistable_bar: both buckled equilibria), or None."""
-    from redsim import metrics
-
-    builder = {"bistable_bar": metrics.buckled_states}.get(scene.name)
-    return None if builder is None else builder(scene)

@@ -9,7 +9,8 @@ import pytest
 import torch
 
 from redsim import pretrained
-from redsim.cli import catmull_rom_loop, main
+from redsim.cli import main
+from redsim.keyframes import catmull_rom_loop
 from redsim.subspace import read_metadata
 
 
@@ -103,9 +104,10 @@ def test_catmull_rom_loop_passes_through_keys_and_closes() -> None:
         (["fit", "toy_two_tets", "--drive", "10", "--out", "/nonexistent/x"], "declares no driver"),
         (["fit", "toy_crank", "--drive", "10", "--out", "/nonexistent/x"], "not periodic (periodic []; --periodic)"),
         (["fit", "toy_crank", "--soften", "rigid,nope", "--out", "/nonexistent/x"], "no effect(s) ['nope']"),
-        (["fit", "toy_crank", "--soften-from", "0"], "soften_from"),
-        (["inspect", "/nonexistent/model.pt"], "no metadata"),
-        (["sample", "/nonexistent/model.pt"], "no metadata"),
+        (["fit", "toy_crank", "--soften-from", "0"], "--soften-from must be a number in (0, 1]"),
+        (["inspect", "/nonexistent/model.pt"], "model.pt: the weights file is missing"),
+        (["sample", "/nonexistent/model.pt"], "model.pt: the weights file is missing"),
+        (["animate", "/nonexistent/model.pt"], "model.pt: the weights file is missing"),
         (["bench", "fit", "--scenes", "nope"], "unknown scene"),
         (["bench", "fit", "--steps", "0"], "--steps must be >= 1"),
     ],
