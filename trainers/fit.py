@@ -317,15 +317,19 @@ def _lr_step_size(steps: int) -> int:
     return max(1, steps // 4)
 
 
-def drive_at(step: int, config: FitConfig) -> float:
-    """Driver stiffness [N/m] in step ``step`` (0-based): ``drive``, then falling linearly to 0."""
-    progress = step / (config.drive_fraction * config.steps)
+def drive_at(step: int, config: FitConfig, ramp_steps: int | None = None) -> float:
+    """Driver stiffness [N/m] in step ``step`` (0-based): ``drive``, then falling linearly to 0.
+
+    Like rho, it follows the length ``ramp_steps`` the fit was planned for (default ``config.steps``).
+    """
+    progress = step / (config.drive_fraction * (ramp_steps or config.steps))
     return config.drive * min(1.0, max(0.0, 2.0 * (1.0 - progress)))
 
 
-def soften_at(step: int, config: FitConfig) -> float:
-    """Weight of the ``soften`` effects in step ``step`` (0-based): geometric from ``soften_from`` to 1."""
-    progress = min(1.0, step / (config.soften_fraction * config.steps))
+def soften_at(step: int, config: FitConfig, ramp_steps: int | None = None) -> float:
+    """Weight of the ``soften`` effects in step ``step`` (0-based): geometric from ``soften_from`` to 1 (planned
+    over ``ramp_steps``, default ``config.steps``, as rho)."""
+    progress = min(1.0, step / (config.soften_fraction * (ramp_steps or config.steps)))
     return config.soften_from ** (1.0 - progress) if config.soften else 1.0
 
 
@@ -472,8 +476,8 @@ def fit_subspace(
                 )
             rho = rho_at(step, config, ramp_steps)
             rho_t = torch.tensor(rho, dtype=dtype, device=config.device)
-            drive_t = torch.tensor(drive_at(step, config), dtype=dtype, device=config.device)
-            soften_t = torch.tensor(soften_at(step, config), dtype=dtype, device=config.device)
+            drive_t = torch.tensor(drive_at(step, config, ramp_steps), dtype=dtype, device=config.device)
+            soften_t = torch.tensor(soften_at(step, config, ramp_steps), dtype=dtype, device=config.device)
             loss, *parts = loss_fn(work, model, z, cond, rho_t, drive_t, soften_t, config)
             terms = _terms(*parts)
             if not torch.isfinite(loss):
