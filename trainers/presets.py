@@ -31,7 +31,7 @@ PRESETS: dict[str, dict[str, Any]] = {
     "klann": {  # crank angle; see the note above
         "latent_dim": 1,
         "hidden_width": 64,
-        "lam": 30.0,
+        "lam": 10.0,  # 30: 0.88-1.98 J round the loop; 10: 0.83-1.51 J (the loop itself: 0.65-0.88 J)
         "sigma": 0.04,  # the loop's M-length is 0.255 = 2 pi 0.0405
         "periodic": (0,),
         "learning_rate": 1e-3,

@@ -78,7 +78,8 @@ def test_shipped_klann_map_goes_once_round_the_crank_loop() -> None:
     driver = scene.driver("crank")
     loop = metrics.handle_winding(scene, pretrained.load("klann", scene), driver.handle, driver.center[:2].tolist())
     assert abs(loop["winding"]) == 1, loop
-    assert loop["energy_max"] < 3.0 * loop["seed_energy"], loop  # the seed sits on the loop (0.69 J)
+    # within 2x the loop's highest energy (0.88 J, 1.27 x the seed's 0.69 J; the seed is on the loop)
+    assert loop["energy_max"] < 2.0 * 1.27 * loop["seed_energy"], loop
 
 
 def test_shipped_stewart_map_moves_the_plate_and_keeps_its_joints() -> None:
