@@ -1,0 +1,455 @@
+"""The batched latent stepper: implicit Euler in z for B states at once (the runtime under the envs).
+
+One call advances every state b of a batch by one step of length h:
+
+    z_b' = argmin_z  1/(2 h^2) |f(z) - qbar_b|_M^2 + E(f(z); c_b) - F_b . p(f(z)),   qbar_b = 2 f(z_b) - f(z_b^prev),
+
+the objective of :class:`redsim.integrators.ImplicitEuler` over :class:`redsim.integrators.LatentSpace`
+(the reference, which stays the ground truth), solved by :func:`redsim.runtime.solver.minimize` in
+the map's dtype and device. Constants (mass operator, handle matrix, force scales) are built once
+here; a step only evaluates the energy.
+"""
+
+from __future__ import annotations
+
+import math
+from typing import NamedTuple
+
+import torch
+from torch import Tensor, nn
+
+from redsim.integrators import LatentSpace, latent_equilibrium, length_scale
+from redsim.runtime.energy import LatentEnergy, MapEnergy
+from redsim.runtime.flags import diverged_states, out_of_range_states
+from redsim.runtime.solver import HESSIANS, minimize
+from redsim.scene import Scene
+
+DEFAULT_TOL = {torch.float32: 1e-6, torch.float64: 1e-9}
+"""Default relative gradient tolerance per dtype.
+
+Measured (README, "Latent runtime"): 1e-5 in float32 left one-step errors of 8-16% of the motion
+against the reference on chain and bistable_bar, 1e-6 0.2-2.5%."""
+DEFAULT_MAX_ITER = 50
+"""Default most iterations per step."""
+FD_STEP = {torch.float32: 1e-3, torch.float64: 1e-6}
+"""Forward-difference step of the "lagged_fd" Hessian, relative to 1 + max|z| (about sqrt(eps) of each dtype)."""
+DEFAULT_HESSIAN = "lagged_fd"
+"""Default Hessian model of the solver (see the README's "Latent runtime" measurements)."""
+
+
+class StepStats(NamedTuple):
+    """What one step did, per state; every field has shape [B].
+
+    Attributes:
+        converged: The relative gradient norm met ``tol`` (bool).
+        iterations: Accepted solver iterations (int64).
+        residual: |dPhi/dz| / (|J_0|_2 F_b), the relative gradient norm ``tol`` bounds (see :class:`LatentStepper`).
+        energy: Potential energy E(f(z_next)) [J] (the load work not included).
+        out_of_range: z or z_next (or the condition) is outside the region the map was fitted on (bool).
+        diverged: The step is not trustworthy: non-finite, or it added more energy than it could have (bool).
+    """
+
+    converged: Tensor
+    iterations: Tensor
+    residual: Tensor
+    energy: Tensor
+    out_of_range: Tensor
+    diverged: Tensor
+
+
+class _StepObjective:
+    """Phi_b(z) of one step for the solver (:class:`redsim.runtime.solver.BatchObjective`)."""
+
+    def __init__(
+        self, stepper: LatentStepper, qbar: Tensor, loads: Tensor | None, cond: Tensor | None, pad: Tensor
+    ) -> None:
+        self.s = stepper
+        self.qbar = qbar
+        self.loads = loads
+        self.cond = cond
+        self.pad = pad  # [B, d]: finite latents for the rows a compiled call does not need
+
+    def _cond(self, index: Tensor, repeat: int = 1) -> Tensor | None:
+        if self.cond is None:
+            return None
+        c = self.cond[index]
+        return c.repeat(repeat, 1) if repeat > 1 else c
+
+    def phi(self, z: Tensor, index: Tensor, repeat: int = 1) -> tuple[Tensor, Tensor]:
+        """Phi [k * repeat] of z [k * repeat, d] (``repeat`` copies of the states ``index``) and E."""
+        qbar = self.qbar[index]
+        loads = None if self.loads is None else self.loads[index]
+        cond = self._cond(index)
+        if repeat > 1:
+            qbar = qbar.repeat(repeat, 1)
+            loads = None if loads is None else loads.repeat(repeat, 1)
+            cond = None if cond is None else cond.repeat(repeat, 1)
+        return self.s._phi(z, qbar, loads, cond)
+
+    def value_and_grad(self, z: Tensor, index: Tensor) -> tuple[Tensor, Tensor, Tensor]:
+        if self.s.compiled:  # one static shape [B]: the other rows are evaluated at the start and dropped
+            full = self.pad.index_copy(0, index, z)
+            value, grad, energy = self._value_and_grad(full, self.qbar, self.loads, self.cond)
+            return value[index], grad[index], energy[index]
+        loads = None if self.loads is None else self.loads[index]
+        return self._value_and_grad(z, self.qbar[index], loads, self._cond(index))
+
+    def _value_and_grad(
+        self, z: Tensor, qbar: Tensor, loads: Tensor | None, cond: Tensor | None
+    ) -> tuple[Tensor, Tensor, Tensor]:
+        z = z.detach().requires_grad_(True)
+        with torch.enable_grad():
+            value, energy = self.s._phi_fast(z, qbar, loads, cond)
+            (grad,) = torch.autograd.grad(value.sum(), z)
+        return value.detach(), grad, energy.detach()
+
+    def exact_hessian(self, z: Tensor, index: Tensor) -> Tensor:
+        k, d = z.shape
+        eye = torch.eye(d, dtype=z.dtype, device=z.device)
+        tangents = eye.repeat_interleave(k, 0)  # copy j of every state probes direction e_j
+        zr = z.detach().repeat(d, 1).requires_grad_(True)
+        with torch.enable_grad():
+            value, _ = self.phi(zr, index, d)
+            (grad,) = torch.autograd.grad(value.sum(), zr, create_graph=True)
+            (rows,) = torch.autograd.grad((grad * tangents).sum(), zr)
+        return rows.reshape(d, k, d).transpose(0, 1)
+
+    def difference_hessian(self, z: Tensor, index: Tensor, grad: Tensor) -> Tensor:
+        k, d = z.shape
+        step = FD_STEP[z.dtype] * (1.0 + z.abs().amax(-1, keepdim=True))  # [k, 1]
+        eye = torch.eye(d, dtype=z.dtype, device=z.device)
+        shifted = (z.unsqueeze(0) + step.unsqueeze(0) * eye.unsqueeze(1)).reshape(d * k, d)  # copy j: z + h e_j
+        _, grads, _ = (
+            self.value_and_grad(shifted, index.repeat(d)) if not self.s.compiled else self._shifted(shifted, index)
+        )
+        columns = (grads.reshape(d, k, d) - grad.unsqueeze(0)) / step.unsqueeze(0)  # [j, k, :] = H e_j
+        return columns.transpose(0, 1)
+
+    def _shifted(self, shifted: Tensor, index: Tensor) -> tuple[Tensor, Tensor, Tensor]:
+        """Gradients at the d shifted copies [d * k, d] of states ``index`` with one static-shape call [d * B]."""
+        d = shifted.shape[0] // index.numel()
+        batch = self.qbar.shape[0]
+        full = self.pad.repeat(d, 1)
+        rows = (index.unsqueeze(0) + batch * torch.arange(d, device=index.device).unsqueeze(1)).reshape(-1)
+        full = full.index_copy(0, rows, shifted)
+        loads = None if self.loads is None else self.loads.repeat(d, 1)
+        cond = None if self.cond is None else self.cond.repeat(d, 1)
+        value, grads, energy = self._value_and_grad(full, self.qbar.repeat(d, 1), loads, cond)
+        return value[rows], grads[rows], energy[rows]
+
+    def _jacobian(self, z: Tensor, index: Tensor) -> Tensor:
+        """J^T as [d, k, n]: dq/dz_j of every state, by forward mode through the map."""
+        k, d = z.shape
+        tangents = torch.eye(d, dtype=z.dtype, device=z.device).repeat_interleave(k, 0)
+        cond = self._cond(index, d)
+        _, columns = torch.func.jvp(lambda u: self.s.energy.positions(u, cond), (z.detach().repeat(d, 1),), (tangents,))
+        return columns.reshape(d, k, -1)
+
+    def metric(self, z: Tensor, index: Tensor) -> Tensor:
+        columns = self._jacobian(z, index)
+        d, k, n = columns.shape
+        mj = self.s.scene.mass_matvec(columns.reshape(d * k, n)).reshape(d, k, n)
+        return torch.einsum("akn,bkn->kab", columns, mj) / self.s.dt**2
+
+    def gauss_newton(self, z: Tensor, index: Tensor) -> Tensor:
+        q_energy = getattr(self.s.energy, "q_energy", None)
+        if q_energy is None:
+            raise ValueError("the gauss_newton Hessian needs an energy with q_energy(q, cond) (e.g. MapEnergy)")
+        columns = self._jacobian(z, index)
+        d, k, n = columns.shape
+        with torch.no_grad():
+            q = self.s.energy.positions(z, self._cond(index))
+        qr = q.repeat(d, 1).requires_grad_(True)
+        flat = columns.reshape(d * k, n)
+        with torch.enable_grad():
+            (grad,) = torch.autograd.grad(q_energy(qr, self._cond(index, d)).sum(), qr, create_graph=True)
+            (hv,) = torch.autograd.grad((grad * flat).sum(), qr)
+        hv = hv + self.s.scene.mass_matvec(flat) / self.s.dt**2
+        out = torch.einsum("akn,bkn->kab", columns, hv.reshape(d, k, n))
+        return 0.5 * (out + out.transpose(-1, -2))
+
+
+class LatentStepper:
+    """Implicit Euler over the latent z of a subspace map, B states per call (module doc).
+
+    Convergence: a state is converged when |dPhi/dz| <= tol * |J_0|_2 * F_b, where |J_0|_2 is the
+    spectral norm of dq/dz at z = 0 and F_b [N] = the effects' force norms at f(0) (summed) + |diag M| L / h^2
+    + |M (q_t - q_{t-1})| / h^2 + |F_b loads|: the reference's rule (:class:`redsim.integrators.PotentialObjective`)
+    with its scales measured once per scene and map instead of per step. ``residual`` is that ratio.
+
+    Args:
+        scene: The scene.
+        subspace: The map f(z[, c]) -> q (a :class:`redsim.subspace.SubspaceMap` or a baseline); copied.
+        dt: Time step h [s].
+        dtype: Floating dtype of the solve (float32 by default; float64 on request).
+        device: Where it runs ("cpu", "cuda", ...).
+        energy: A :class:`redsim.runtime.energy.LatentEnergy`; None means :class:`MapEnergy` (scene.energy o f).
+        max_iter: Most solver iterations per step.
+        tol: Relative gradient tolerance (default :data:`DEFAULT_TOL` of the dtype).
+        hessian: The solver's Hessian model, one of :data:`redsim.runtime.solver.HESSIANS`.
+        compile: Evaluate the objective's value and gradient through ``torch.compile`` (the first
+            steps pay the compilation, tens of seconds; results equal eager within dtype round-off).
+
+    Raises:
+        ValueError: a bad dt, tol, max_iter or hessian, or a map that does not fit the scene.
+    """
+
+    def __init__(
+        self,
+        scene: Scene,
+        subspace: nn.Module,
+        dt: float = 0.02,
+        *,
+        dtype: torch.dtype = torch.float32,
+        device: str | torch.device = "cpu",
+        energy: LatentEnergy | None = None,
+        max_iter: int = DEFAULT_MAX_ITER,
+        tol: float | None = None,
+        hessian: str = DEFAULT_HESSIAN,
+        compile: bool = False,
+    ) -> None:
+        if not (isinstance(dt, (int, float)) and math.isfinite(dt) and dt > 0.0):
+            raise ValueError(f"dt must be a finite number > 0 [s], got {dt!r}")
+        if dtype not in DEFAULT_TOL:
+            raise ValueError(f"dtype must be torch.float32 or torch.float64, got {dtype}")
+        tol = DEFAULT_TOL[dtype] if tol is None else tol
+        if not (isinstance(tol, (int, float)) and math.isfinite(tol) and tol > 0.0):
+            raise ValueError(f"tol must be finite and > 0, got {tol!r}")
+        if int(max_iter) != max_iter or max_iter < 1:
+            raise ValueError(f"max_iter must be an integer >= 1, got {max_iter!r}")
+        if hessian not in HESSIANS:
+            raise ValueError(f"unknown hessian {hessian!r}; valid: {list(HESSIANS)}")
+        self.dt = float(dt)
+        self.dtype = dtype
+        self.device = torch.device(device)
+        self.tol = float(tol)
+        self.max_iter = int(max_iter)
+        self.hessian = hessian
+        self.source_scene = scene
+        self.subspace = subspace
+        self.scene = scene.to(device=self.device, dtype=dtype)
+        self.energy: LatentEnergy = (
+            MapEnergy(scene, subspace, dtype=dtype, device=self.device) if energy is None else energy
+        )
+        self.latent_dim = int(self.energy.latent_dim)
+        self._rest: Tensor | None = None
+        self._build_constants()
+        self._phi = self._phi_eager
+        # value and gradient through torch.compile (AOTAutograd compiles the backward too); the
+        # exact Hessian's double backward stays eager (compiled graphs do not support it)
+        self._phi_fast = torch.compile(self._phi_eager, dynamic=False) if compile else self._phi_eager
+        self.compiled = bool(compile)
+
+    # -- constants, once per scene and map --------------------------------------------------
+    def _build_constants(self) -> None:
+        scene, dtype, device = self.scene, self.dtype, self.device
+        n = scene.free_dof_count
+        # handle positions p = A q + p0 (linear in q): rows of A by one backward each
+        q0 = torch.zeros(1, n, dtype=dtype, device=device, requires_grad=True)
+        rows = []
+        with torch.enable_grad():
+            p = torch.cat([h.position(scene.full_positions(q0)) for h in scene.handles], -1) if scene.handles else None
+            if p is not None:
+                for j in range(p.shape[1]):
+                    (row,) = torch.autograd.grad(p[0, j], q0, retain_graph=True)
+                    rows.append(row[0])
+        self._handle_matrix = torch.stack(rows) if rows else torch.zeros(0, n, dtype=dtype, device=device)
+        self._handle_offset = p[0].detach() if p is not None else torch.zeros(0, dtype=dtype, device=device)
+        # force scale pieces, measured at f(0) in float64
+        scene64 = self.source_scene.to(device=device, dtype=torch.float64)
+        cond0 = self._default_cond(1, torch.float64)
+        with torch.no_grad():
+            q_ref = self.energy.positions(
+                torch.zeros(1, self.latent_dim, dtype=dtype, device=device), None if cond0 is None else cond0.to(dtype)
+            ).to(torch.float64)
+        q_ref.requires_grad_(True)
+        force = 0.0
+        with torch.enable_grad():
+            for term in scene64.energy_terms(q_ref, None, cond0).values():
+                if term.requires_grad:
+                    (g,) = torch.autograd.grad(term.sum(), q_ref, retain_graph=True, allow_unused=True)
+                    force += 0.0 if g is None else float(torch.linalg.vector_norm(g))
+        self.length = length_scale(scene64)
+        mass = scene64.mass_matrix.coalesce()
+        rows_m, cols_m = mass.indices()
+        mass_diagonal = torch.linalg.vector_norm(mass.values()[rows_m == cols_m])
+        self.base_force = force + float(mass_diagonal) * self.length / self.dt**2
+        z0 = torch.zeros(1, self.latent_dim, dtype=dtype, device=device)
+        objective = _StepObjective(self, torch.zeros(1, n, dtype=dtype, device=device), None, self._default_cond(1), z0)
+        columns = objective._jacobian(z0, torch.zeros(1, dtype=torch.int64, device=device))[:, 0].to(torch.float64)
+        self.jacobian_norm = float(torch.linalg.matrix_norm(columns, 2)) or 1.0
+        self._eps = float(torch.finfo(dtype).eps)
+
+    def _default_cond(self, batch: int, dtype: torch.dtype | None = None) -> Tensor | None:
+        space = self.scene.condition_space
+        if space is None:
+            return None
+        return space.default.to(device=self.device, dtype=dtype or self.dtype).unsqueeze(0).expand(batch, -1)
+
+    def _phi_eager(self, z: Tensor, qbar: Tensor, loads: Tensor | None, cond: Tensor | None) -> tuple[Tensor, Tensor]:
+        """Phi [k] and E [k] of z [k, d] with inertial targets qbar [k, n], loads [k, H*D] and cond [k, m]."""
+        energy, q = self.energy.energy(z, cond)
+        if q is None:
+            q = self.energy.positions(z, cond)
+        d = q - qbar
+        value = energy + (0.5 / self.dt**2) * (d * self.scene.mass_matvec(d)).sum(-1)
+        if loads is not None:
+            value = value - (loads * self.handle_positions(q)).sum(-1)
+        return value, energy
+
+    def handle_positions(self, q: Tensor) -> Tensor:
+        """Handle positions [B, H*D] [m] of free configurations q [B, n] (linear in q)."""
+        return q @ self._handle_matrix.T + self._handle_offset
+
+    # -- inputs -----------------------------------------------------------------------------
+    def _latents(self, z: Tensor, what: str) -> Tensor:
+        z = torch.as_tensor(z, device=self.device)
+        if z.ndim != 2 or z.shape[1] != self.latent_dim:
+            raise ValueError(f"{what} must have shape [B, {self.latent_dim}], got {tuple(z.shape)}")
+        if not bool(torch.isfinite(z).all()):
+            raise ValueError(f"{what} must be finite")
+        return z.to(self.dtype)
+
+    def _cond(self, cond: Tensor | None, batch: int) -> Tensor | None:
+        space = self.scene.condition_space
+        if space is None:
+            if cond is not None:
+                raise ValueError(f"scene {self.scene.name!r} has no condition space, but a condition was given")
+            return None
+        if cond is None:
+            return self._default_cond(batch)
+        cond = torch.as_tensor(cond, device=self.device)
+        if cond.shape != (batch, space.dim):
+            raise ValueError(
+                f"cond must have shape [{batch}, {space.dim}] ({list(space.names)}), got {tuple(cond.shape)}"
+            )
+        if not bool(torch.isfinite(cond).all()):
+            raise ValueError("cond must be finite")
+        return cond.to(self.dtype)
+
+    def _loads(self, loads: Tensor | None, batch: int) -> Tensor | None:
+        if loads is None:
+            return None
+        H, D = len(self.scene.handles), self.scene.dim
+        loads = torch.as_tensor(loads, device=self.device)
+        if loads.shape != (batch, H, D):
+            raise ValueError(
+                f"loads must have shape [{batch}, {H}, {D}] (handles {list(self.scene.handle_names)}), "
+                f"got {tuple(loads.shape)}"
+            )
+        if not bool(torch.isfinite(loads).all()):
+            raise ValueError("loads must be finite")
+        return loads.to(self.dtype).reshape(batch, H * D)
+
+    # -- public -----------------------------------------------------------------------------
+    def positions(self, z: Tensor, cond: Tensor | None = None) -> Tensor:
+        """Free DOFs q = f(z) [B, n] of latents z [B, d] (``scene.full_positions(q)`` draws them)."""
+        z = self._latents(z, "z")
+        with torch.no_grad():
+            return self.energy.positions(z, self._cond(cond, z.shape[0]))
+
+    def step(
+        self, z: Tensor, z_prev: Tensor, loads: Tensor | None = None, cond: Tensor | None = None
+    ) -> tuple[Tensor, StepStats]:
+        """One implicit-Euler step of every state.
+
+        Args:
+            z: Latents at time t, [B, d].
+            z_prev: Latents at time t - h, [B, d].
+            loads: Forces [N] on the scene's handles, [B, H, D] (held during the step), or None.
+            cond: Scene conditions [B, m] (default: the scene's default condition), or None.
+
+        Returns:
+            z_next [B, d] (never NaN: a state that failed keeps its best finite iterate) and the
+            :class:`StepStats`.
+
+        Raises:
+            ValueError: a wrong shape or a non-finite z, z_prev, loads or cond (nothing is stepped).
+        """
+        z = self._latents(z, "z")
+        z_prev = self._latents(z_prev, "z_prev")
+        batch = z.shape[0]
+        if z_prev.shape[0] != batch:
+            raise ValueError(f"z and z_prev must have the same batch size, got {batch} and {z_prev.shape[0]}")
+        loads_t = self._loads(loads, batch)
+        cond_t = self._cond(cond, batch)
+        with torch.no_grad():
+            both = self.energy.positions(torch.cat([z, z_prev]), None if cond_t is None else cond_t.repeat(2, 1))
+            q_t, q_prev = both[:batch], both[batch:]
+            velocity = q_t - q_prev
+            qbar = q_t + velocity
+            m_v = self.scene.mass_matvec(velocity)
+            force = self.base_force + torch.linalg.vector_norm(m_v, dim=-1) / self.dt**2
+            if loads_t is not None:
+                force = force + torch.linalg.vector_norm(loads_t, dim=-1)
+            z0 = 2.0 * z - z_prev
+            objective = _StepObjective(self, qbar, loads_t, cond_t, z0)
+            # Phi at the extrapolated start and at z_t: the start of the solve, a secant pair for
+            # the quasi-Newton models, and Phi(z_t) for the diverged flag (one call in eager mode)
+            index = torch.arange(batch, device=self.device)
+            if self.compiled:
+                parts = [objective.value_and_grad(u, index) for u in (z0, z)]
+                value, grad, energy = (torch.cat(pair) for pair in zip(*parts, strict=True))
+            else:
+                value, grad, energy = objective.value_and_grad(torch.cat([z0, z]), torch.cat([index, index]))
+            noise = 100.0 * self._eps * force * self.length
+            result = minimize(
+                objective,
+                z0,
+                self.jacobian_norm * force,
+                noise,
+                tol=self.tol,
+                max_iter=self.max_iter,
+                hessian=self.hessian,
+                start=(value[:batch], grad[:batch], energy[:batch]),
+                secant=(z, grad[batch:]),
+            )
+            z_next = torch.where(result.finite[:, None], result.z, z)
+            q_next = self.energy.positions(z_next, cond_t)
+            step_velocity = q_next - q_t
+            kinetic_next = 0.5 * (step_velocity * self.scene.mass_matvec(step_velocity)).sum(-1) / self.dt**2
+            offset = q_next - qbar
+            diverged = ~result.finite | diverged_states(
+                value[batch:],
+                result.value,
+                0.5 * (velocity * m_v).sum(-1) / self.dt**2,
+                kinetic_next,
+                0.5 * (offset * self.scene.mass_matvec(offset)).sum(-1) / self.dt**2,
+                force * self.length,
+                noise + self.tol * force * self.length,
+            )
+        stats = StepStats(
+            converged=result.converged,
+            iterations=result.iterations,
+            residual=result.grad_norm / (self.jacobian_norm * force),
+            energy=result.energy,
+            out_of_range=out_of_range_states(
+                torch.stack([z, z_next], 1), self.energy.periodic, cond_t, self.scene.condition_space
+            ),
+            diverged=diverged,
+        )
+        return z_next, stats
+
+    def rest_latent(self, cond: Tensor | None = None) -> Tensor:
+        """The latent static equilibrium under zero load near z = 0: [1, d] (cond None) or [B, d] (cond [B, m]).
+
+        Solved once per condition by the reference :func:`redsim.integrators.latent_equilibrium`
+        (float64 Newton from z = 0) and cached for the default condition.
+        """
+        if cond is None and self._rest is not None:
+            return self._rest.clone()
+        conds = [None] if cond is None else list(self._cond(cond, torch.as_tensor(cond).shape[0]).to(torch.float64))
+        out = []
+        for c in conds:
+            space = LatentSpace(
+                self.source_scene, self.subspace, cond=None if c is None or not self.energy.condition_dim else c
+            )
+            z, _ = latent_equilibrium(space, None, c)
+            out.append(z.to(device=self.device, dtype=self.dtype))
+        rest = torch.stack(out)
+        if cond is None:
+            self._rest = rest
+        return rest.clone()
+
+
+__all__ = ["DEFAULT_HESSIAN", "DEFAULT_MAX_ITER", "DEFAULT_TOL", "LatentStepper", "StepStats"]
