@@ -23,6 +23,8 @@ ENVS: dict[str, tuple[str, str, int]] = {
     "RedSim/ClothBall-v0": ("cloth_ball", "ClothBallEnv", 200),
     "RedSim/HangingCloth-v0": ("hanging_cloth", "HangingClothEnv", 200),
     "RedSim/ConditionalBar-v0": ("conditional_bar", "ConditionalBarEnv", 200),
+    "RedSim/Klann-v0": ("klann", "KlannEnv", 300),
+    "RedSim/Stewart-v0": ("stewart", "StewartEnv", 200),
 }
 """id -> (module in redsim.envs, class, max_episode_steps)."""
 

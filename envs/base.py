@@ -18,6 +18,7 @@ values raise ValueError).
 from __future__ import annotations
 
 import importlib.util
+import math
 from collections.abc import Mapping
 from typing import Any, ClassVar
 
@@ -28,7 +29,7 @@ from gymnasium import spaces
 from torch import Tensor, nn
 
 from redsim.scene import Scene
-from redsim.subspace import CheckpointError
+from redsim.subspace import CheckpointError, periodic_latents
 
 LATENT_BOUND = 10.0
 """Observation bound of each latent coordinate (maps are fitted on z ~ N(0, I)); z_dot gets 2 LATENT_BOUND / dt."""
@@ -191,6 +192,7 @@ class LatentSim:
             scene, self.subspace, dt, dtype=self.torch_dtype, device=self.device, **dict(stepper_options or {})
         )
         self.latent_dim = int(self.stepper.latent_dim)
+        self.periodic = list(periodic_latents(subspace))
         self.dt = float(dt) * self.frame_skip
         self.invariants = Invariants(self.scene)
         self.task = task
@@ -281,6 +283,19 @@ class LatentSim:
         return out
 
     # -- stepping -------------------------------------------------------------------------
+    def _nearest_turn(self, z: Tensor, near: Tensor) -> Tensor:
+        """z [B, d] with its periodic latents moved by whole turns to within pi of ``near`` [B, d].
+
+        The map does not see whole turns, and the solve may land any number of them away (a
+        quasi-Newton step on an angle), which would read as a huge z_dot.
+        """
+        if not self.periodic:
+            return z
+        turns = torch.zeros_like(z)
+        gap = z[:, self.periodic] - near[:, self.periodic]
+        turns[:, self.periodic] = 2.0 * math.pi * torch.round(gap / (2.0 * math.pi))
+        return z - turns
+
     def step(self, action: np.ndarray) -> tuple[np.ndarray, np.ndarray, dict[str, np.ndarray]]:
         """Advance every copy by one env step with actions [B, A] (already checked and clipped).
 
@@ -295,12 +310,15 @@ class LatentSim:
         converged = torch.ones_like(diverged)
         for _ in range(self.frame_skip):
             z_next, stats = self.stepper.step(self.z, self.z_prev, self.loads, self.cond)
-            self.z_prev, self.z = self.z, z_next.detach()
+            self.z_prev, self.z = self.z, self._nearest_turn(z_next.detach(), self.z)
             diverged |= stats.diverged.to(self.device)
             out_of_range |= stats.out_of_range.to(self.device)
             converged &= stats.converged.to(self.device)
             iterations += stats.iterations.to(self.device).to(torch.int64)
         diverged |= ~torch.isfinite(self.z).all(dim=1)
+        if self.periodic:  # angles stay in [-pi, pi): z and z_prev shift by the same whole turns
+            turns = self.z - self._nearest_turn(self.z, torch.zeros_like(self.z))
+            self.z, self.z_prev = self.z - turns, self.z_prev - turns
         self.x_prev, self.x = self.x, self.full_positions(self.z)
         reward, terms = self.task.reward(self.x, act, self.params)
         terminated = self.task.terminated(self.x, self.params) | diverged

@@ -25,6 +25,9 @@ from redsim.subspace import CheckpointError
 FAST = ("RedSim/MiniChain-v0", "RedSim/ConditionalBar-v0")
 SLOW = ("RedSim/Chain-v0", "RedSim/ClothBall-v0", "RedSim/HangingCloth-v0")
 ALL_IDS = [*FAST, *(pytest.param(i, marks=pytest.mark.slow) for i in SLOW)]
+LINKAGES = ("RedSim/Klann-v0", "RedSim/Stewart-v0")
+"""Not reach tasks: their task checks are in test_linkage_envs.py; the contract checks run here under -m slow."""
+CONTRACT_IDS = [*ALL_IDS, *(pytest.param(i, marks=pytest.mark.slow) for i in LINKAGES)]
 
 
 @pytest.fixture(scope="module")
@@ -45,14 +48,14 @@ def _rollout(env: gym.Env, seed: int, actions: np.ndarray) -> tuple[np.ndarray, 
 
 
 def test_registry_lists_the_suite() -> None:
-    assert set(redsim.envs.ids()) == set(FAST) | set(SLOW)
+    assert set(redsim.envs.ids()) == set(FAST) | set(SLOW) | set(LINKAGES)
     for env_id in redsim.envs.ids():
         spec = gym.spec(env_id)
         assert spec.max_episode_steps and spec.vector_entry_point
         assert spec.entry_point.startswith("redsim.envs.")
 
 
-@pytest.mark.parametrize("env_id", ALL_IDS)
+@pytest.mark.parametrize("env_id", CONTRACT_IDS)
 def test_gymnasium_and_sb3_check_env_without_warnings(env_id: str) -> None:
     from stable_baselines3.common.env_checker import check_env as sb3_check_env
 
@@ -243,7 +246,7 @@ def test_bang_bang_soak_stays_finite(mini: gym.Env) -> None:
 
 
 @pytest.mark.slow
-@pytest.mark.parametrize("env_id", [*FAST, *SLOW])
+@pytest.mark.parametrize("env_id", [*FAST, *SLOW, *LINKAGES])
 def test_random_and_bang_bang_soak_over_every_env(env_id: str) -> None:
     venv = gym.make_vec(env_id, num_envs=8, vectorization_mode="vector_entry_point")
     venv.reset(seed=0)
@@ -275,7 +278,7 @@ def test_conditional_bar_draws_its_condition_per_episode() -> None:
         assert np.all(np.array(c) >= space.low.numpy() - 1e-6) and np.all(np.array(c) <= space.high.numpy() + 1e-6)
 
 
-@pytest.mark.parametrize("env_id", ALL_IDS)
+@pytest.mark.parametrize("env_id", CONTRACT_IDS)
 def test_sb3_ppo_and_sac_run_a_few_hundred_steps(env_id: str) -> None:
     from stable_baselines3 import PPO, SAC
 

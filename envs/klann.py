@@ -1,0 +1,288 @@
+"""`RedSim/Klann-v0`: turn the Klann leg's crank at a commanded speed with a bounded crank torque.
+
+The crank angle theta [rad] is the angle of the crank pin about the crank-ground joint in the
+x-y plane (counter-clockwise positive); the crank speed omega [rad/s] is its wrapped change
+over one env step divided by the env's dt. The action is a tangential force on the crank pin,
+``max_force * action`` [N] (a crank torque of ``max_force * r`` [N m], r = 0.05 m the crank
+radius), perpendicular to the crank at the state the step starts from.
+
+Reward per step, with omega* the commanded speed of the episode and W = ``speed_scale``:
+
+    reward = -|omega - omega*| / W  -  control_weight * action^2  +  success_bonus * [|omega - omega*| < tol omega*]
+
+reported as ``reward_speed``, ``reward_control`` and ``reward_success``.
+"""
+
+from __future__ import annotations
+
+import math
+from collections.abc import Mapping
+from typing import TYPE_CHECKING, Any, ClassVar
+
+import numpy as np
+import torch
+from torch import Tensor, nn
+
+from redsim.envs.base import LatentEnv, Task, shipped
+from redsim.envs.vector import vector_entry
+
+if TYPE_CHECKING:
+    from redsim.envs.base import LatentSim
+
+
+class CrankSpeed(Task):
+    """Track a commanded crank speed with a tangential force on a crank handle (module doc).
+
+    Args:
+        handle: The crank pin's handle.
+        pivot: (x, y) [m] of the fixed joint the crank turns about.
+        max_force: Tangential force [N] of a unit action.
+        speed_range: (low, high) [rad/s] of the commanded speed, drawn uniformly per episode.
+        speed_scale: W [rad/s] of the reward (default: the top of ``speed_range``).
+        tolerance: Relative speed error under which a step counts as a success.
+        control_weight: Weight of the control cost.
+        success_bonus: Reward per step within the tolerance.
+        controller_gain: Scripted PI controller's gain [N s/rad].
+        controller_time: Scripted PI controller's integral time [s].
+
+    Raises:
+        ValueError: a bad number or range, or (at bind) an unknown handle.
+    """
+
+    name = "crank_speed"
+    reward_terms = ("speed", "control", "success")
+    action_size = 1
+
+    def __init__(
+        self,
+        handle: str,
+        pivot: tuple[float, float],
+        *,
+        max_force: float,
+        speed_range: tuple[float, float] = (4.0, 12.0),
+        speed_scale: float | None = None,
+        tolerance: float = 0.2,
+        control_weight: float = 0.05,
+        success_bonus: float = 0.5,
+        controller_gain: float = 2.0,
+        controller_time: float = 0.2,
+    ) -> None:
+        low, high = (float(v) for v in speed_range)
+        if not (np.isfinite(low) and np.isfinite(high) and 0.0 < low <= high):
+            raise ValueError(f"speed_range must be finite with 0 < low <= high, got {speed_range!r}")
+        for key, value in (
+            ("max_force", max_force),
+            ("tolerance", tolerance),
+            ("controller_gain", controller_gain),
+            ("controller_time", controller_time),
+        ):
+            if not (np.isfinite(value) and value > 0.0):
+                raise ValueError(f"{key} must be finite and > 0, got {value!r}")
+        for key, value in (("control_weight", control_weight), ("success_bonus", success_bonus)):
+            if not (np.isfinite(value) and value >= 0.0):
+                raise ValueError(f"{key} must be finite and >= 0, got {value!r}")
+        if speed_scale is not None and not (np.isfinite(speed_scale) and speed_scale > 0.0):
+            raise ValueError(f"speed_scale must be None or finite and > 0, got {speed_scale!r}")
+        self.handle = handle
+        self.pivot = (float(pivot[0]), float(pivot[1]))
+        self.max_force = float(max_force)
+        self.speed_range = (low, high)
+        self.speed_scale = high if speed_scale is None else float(speed_scale)
+        self.tolerance = float(tolerance)
+        self.control_weight = float(control_weight)
+        self.success_bonus = float(success_bonus)
+        self.gain = float(controller_gain)
+        self.controller_time = float(controller_time)
+
+    def __getstate__(self) -> dict[str, Any]:
+        # The bound sim is not part of the task: a copy (the vector env's) is bound to its own sim.
+        return {k: v for k, v in self.__dict__.items() if k != "_sim"}
+
+    # -- binding --------------------------------------------------------------------------
+    def bind(self, sim: LatentSim) -> None:
+        names = list(sim.scene.handle_names)
+        if self.handle not in names:
+            raise ValueError(f"scene {sim.scene.name!r} has no handle {self.handle!r}; valid handles: {names}")
+        self._sim = sim
+        self._index = names.index(self.handle)
+        self._pin = sim.scene.handles[self._index]
+        self._handles = len(names)
+        self._dim = sim.scene.dim
+        self._pivot = torch.tensor(self.pivot, dtype=sim.torch_dtype, device=sim.device)
+        self._max_speed = math.pi / sim.dt
+
+    def _arm(self, x: Tensor) -> Tensor:
+        """Crank vector [B, 2] [m] from the pivot to the pin."""
+        return self._pin.position(x)[:, :2] - self._pivot
+
+    def angle(self, x: Tensor) -> Tensor:
+        """Crank angle theta [B] [rad] in (-pi, pi]."""
+        arm = self._arm(x)
+        return torch.atan2(arm[:, 1], arm[:, 0])
+
+    def speed(self, x: Tensor, x_prev: Tensor) -> Tensor:
+        """Crank speed omega [B] [rad/s] over one env step."""
+        turn = torch.remainder(self.angle(x) - self.angle(x_prev) + math.pi, 2.0 * math.pi) - math.pi
+        return turn / self._sim.dt
+
+    # -- episodes -------------------------------------------------------------------------
+    def sample(
+        self, rng: np.random.Generator, sim: LatentSim, z_rest: Tensor, cond: Tensor | None
+    ) -> dict[str, Tensor]:
+        low, high = self.speed_range
+        speed = torch.tensor(low + (high - low) * rng.random(), dtype=sim.torch_dtype, device=sim.device)
+        return {"speed": speed, "integral": torch.zeros((), dtype=sim.torch_dtype, device=sim.device)}
+
+    def loads(self, action: Tensor, params: Mapping[str, Tensor]) -> Tensor:
+        arm = self._arm(self._sim.x).to(action.dtype)
+        tangent = torch.stack([-arm[:, 1], arm[:, 0]], dim=1) / arm.norm(dim=1, keepdim=True)
+        loads = torch.zeros(action.shape[0], self._handles, self._dim, dtype=action.dtype, device=action.device)
+        loads[:, self._index, :2] = self.max_force * action[:, :1] * tangent
+        return loads
+
+    def extras_bounds(self) -> tuple[np.ndarray, np.ndarray]:
+        high = np.array([1.0, 1.0, self._max_speed, self.speed_range[1]])
+        return np.array([-1.0, -1.0, -self._max_speed, 0.0]), high
+
+    def observation_structure(self) -> dict[str, int]:
+        return {"crank_cos": 1, "crank_sin": 1, "crank_speed": 1, "commanded_speed": 1}
+
+    def extras(self, x: Tensor, x_prev: Tensor, params: Mapping[str, Tensor]) -> Tensor:
+        theta = self.angle(x)
+        return torch.stack([theta.cos(), theta.sin(), self.speed(x, x_prev), params["speed"]], dim=1)
+
+    def _error(self, x: Tensor, params: Mapping[str, Tensor]) -> Tensor:
+        return self.speed(x, self._sim.x_prev) - params["speed"]
+
+    def reward(self, x: Tensor, action: Tensor, params: Mapping[str, Tensor]) -> tuple[Tensor, dict[str, Tensor]]:
+        error = self._error(x, params).abs()
+        terms = {
+            "speed": -error / self.speed_scale,
+            "control": -self.control_weight * action.pow(2).mean(dim=1),
+            "success": self.success_bonus * (error < self.tolerance * params["speed"]).to(error.dtype),
+        }
+        return terms["speed"] + terms["control"] + terms["success"], terms
+
+    def metrics(self, x: Tensor, params: Mapping[str, Tensor]) -> dict[str, Tensor]:
+        error = self._error(x, params)
+        return {
+            "crank_angle": self.angle(x),
+            "crank_speed": error + params["speed"],
+            "speed_error": error,
+            "is_success": error.abs() < self.tolerance * params["speed"],
+        }
+
+    # -- scripted control and drawing -----------------------------------------------------
+    def controller(self, sim: LatentSim) -> np.ndarray:
+        """A PI controller on the crank speed: F = k (e + I / T), I += e dt, e = omega* - omega.
+
+        Its integral I [rad] (the angle the crank lags the command by) rides in the episode's
+        parameters (``params["integral"]``), so it restarts with every episode.
+        """
+        error = sim.params["speed"] - self.speed(sim.x, sim.x_prev)
+        sim.params["integral"] = sim.params["integral"] + error * sim.dt
+        force = self.gain * (error + sim.params["integral"] / self.controller_time)
+        action = (force / self.max_force).clamp(-1.0, 1.0)
+        return action.unsqueeze(1).cpu().numpy().astype(np.float32)
+
+    def overlay(self, sim: LatentSim, row: int) -> tuple[list[Any], list[Any]]:
+        from redsim.raster import Arrow, Marker
+
+        x = sim.x[row : row + 1]
+        pin = self._pin.position(x)[0].cpu().numpy()
+        pivot = np.array([*self.pivot, float(pin[2])])
+        force = sim.loads[row, self._index].cpu().numpy()
+        scale = 0.25 * sim.scene.extent() / self.max_force
+        return [Marker(pivot, (40, 40, 40), 4), Marker(pin, (220, 40, 40), 5)], [Arrow(pin, force, scale)]
+
+
+class KlannEnv(LatentEnv):
+    """The planar Klann walking linkage driven through its crank; turn the crank at a commanded speed.
+
+    ## Description
+    The scene `klann` (n = 60: five affine rigid bars, seven penalty revolute joints, gravity) runs in its
+    shipped 1-d periodic neural subspace, whose latent is an angle that takes the linkage once round its
+    crank loop (winding 1). A tangential force on the crank pin (handle `crank_pin`), a crank torque, must
+    keep the crank turning at the commanded speed omega*, through full turns and over the gravity hump of
+    the leg (the pin needs about 18 N to get over it from rest).
+
+    ## Action Space
+    The action space is a `Box(-1, 1, (1,), float32)`: the tangential force on handle `crank_pin`, scaled to
+    ±`max_force` [N] (counter-clockwise positive).
+
+    | Num | Action | Control Min | Control Max | Unit |
+    |---|---|---|---|---|
+    | 0 | tangential force on the crank pin (a crank torque of F × 0.05 m) | -1 | 1 | `max_force` N (40 N) |
+
+    ## Observation Space
+    `obs = concat(z, z_dot, cos theta, sin theta, omega, omega*)`, a `Box(low, high, (6,), float32)` with finite
+    bounds (values are clipped into them); the latent angle z is kept in [-pi, pi) (z and z_prev shift together
+    by whole turns, which the periodic map does not see):
+
+    | Num | Observation | Min | Max | Unit |
+    |---|---|---|---|---|
+    | 0 | latent z (an angle) | -10 | 10 | rad |
+    | 1 | latent velocity z_dot | -1000 | 1000 | rad/s |
+    | 2 | cos theta of the crank angle | -1 | 1 | unitless |
+    | 3 | sin theta of the crank angle | -1 | 1 | unitless |
+    | 4 | crank speed omega | -pi/dt | pi/dt | rad/s |
+    | 5 | commanded speed omega* | 0 | 12 | rad/s |
+
+    ## Rewards
+    `reward = -|omega - omega*| / W - 0.05 action^2 + 0.5 [|omega - omega*| < 0.2 omega*]` with W = 12 rad/s (the
+    top of the command range), reported as `info["reward_speed"]`, `info["reward_control"]` and
+    `info["reward_success"]`. `info` also holds `crank_angle` [rad], `crank_speed` [rad/s], `speed_error`
+    [rad/s] and `is_success`.
+
+    ## Starting State
+    At rest (z: the map's unloaded equilibrium, z_dot = 0, the crank hanging at theta = 2.8 rad). The commanded
+    speed omega* is drawn uniformly from `speed_range` (4-12 rad/s, 0.6-1.9 turns/s) by `self.np_random`.
+
+    ## Episode End
+    Termination: the stepper could not make a step finite (`info["diverged"]`). Truncation: 300 steps (6 s).
+
+    ## Arguments
+    | Argument | Default | Meaning |
+    |---|---|---|
+    | `render_mode` | None | None, "rgb_array" or "human" |
+    | `max_force` | 40.0 | tangential force [N] of a unit action |
+    | `speed_range` | (4.0, 12.0) | range [rad/s] of the commanded speed |
+    | `dt` | 0.02 | stepper time step [s] |
+    | `frame_skip` | 1 | stepper steps per env step |
+    | `subspace` | None | the shipped map, a checkpoint path or a map |
+    | `scene_params` | None | scene build parameters (the shipped map covers only the defaults) |
+    | `include_q` | False | put q [n] in `info["q"]` |
+    | `**kwargs` | | more :class:`LatentEnv` arguments (`dtype`, `device`, `width`, `height`, `camera`, ...) |
+
+    ## Version History
+    - v0: first version.
+    """
+
+    camera: ClassVar[dict[str, float]] = {"azimuth": 0.0, "elevation": 0.0}
+
+    def __init__(
+        self,
+        render_mode: str | None = None,
+        *,
+        max_force: float = 40.0,
+        speed_range: tuple[float, float] = (4.0, 12.0),
+        dt: float = 0.02,
+        frame_skip: int = 1,
+        subspace: str | nn.Module | None = None,
+        scene_params: dict[str, Any] | None = None,
+        include_q: bool = False,
+        **kwargs: Any,
+    ) -> None:
+        from redsim.scenes.linkages import KLANN_CRANK
+
+        scene, sub = shipped("klann", scene_params, subspace)
+        task = CrankSpeed(KLANN_CRANK.handle, KLANN_CRANK.pivot, max_force=max_force, speed_range=speed_range)
+        kwargs.setdefault("camera", dict(self.camera))
+        super().__init__(
+            scene, sub, task, render_mode=render_mode, dt=dt, frame_skip=frame_skip, include_q=include_q, **kwargs
+        )
+
+
+make_vec = vector_entry(KlannEnv)
+
+__all__ = ["CrankSpeed", "KlannEnv", "make_vec"]

@@ -1,0 +1,304 @@
+"""`RedSim/Stewart-v0`: bring the top plate of the rotary Stewart platform to a target pose with six arm torques.
+
+Targets are poses the servos can hold inside the subspace: at reset an action u is drawn
+uniformly from [-s, s]^A by the env's generator (s = ``target_spread``), and z* is the latent
+static equilibrium under its loads (:func:`redsim.integrators.latent_equilibrium`, float64
+Newton from the rest latent); the target is the plate's centre p* and rotation R* in f(z*).
+The action drives the six servos: a force ``max_force * action_i`` [N] along y at arm tip i,
+a hinge torque of that force times the 0.08 m arm.
+
+Reward per step, with d = |p - p*| [m], theta the angle [rad] of R* R^T, and the scales
+L_p = ``position_scale`` [m], L_a = ``angle_scale`` [rad]:
+
+    reward = -d / L_p  -  theta / L_a  -  control_weight * mean(action^2)
+             +  success_bonus * [d < 0.2 L_p and theta < 0.2 L_a]
+
+reported as ``reward_position``, ``reward_orientation``, ``reward_control`` and ``reward_success``.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Mapping
+from typing import TYPE_CHECKING, Any
+
+import numpy as np
+import torch
+from torch import Tensor, nn
+
+from redsim.envs.base import LatentEnv, Task, shipped
+from redsim.envs.vector import vector_entry
+
+if TYPE_CHECKING:
+    from redsim.envs.base import LatentSim
+
+MINIMIZER = "lbfgs"
+"""Minimizer of the target's static solve: a descent method, so it stops at a stable pose (Newton may stop at a saddle)."""
+
+
+def _axial(m: Tensor) -> Tensor:
+    """Axial vector [B, 3] of the skew part of m [B, 3, 3] (sin(theta) times the axis for a rotation)."""
+    return 0.5 * torch.stack([m[:, 2, 1] - m[:, 1, 2], m[:, 0, 2] - m[:, 2, 0], m[:, 1, 0] - m[:, 0, 1]], dim=1)
+
+
+class PlatePose(Task):
+    """Bring a rigid body (the plate) to a target pose with y forces on six arm-tip handles (module doc).
+
+    Args:
+        body_handle: A one-point handle fixed in the body whose pose is controlled (its 12 ``[R | t]``
+            entries give the pose; the point is its frame's origin).
+        actuated: Handles that the action pushes along y, one per action entry.
+        max_force: Force [N] of a unit action.
+        target_spread: s, the largest |action| entry of the held action that sets a target.
+        position_scale: L_p [m] of the reward.
+        angle_scale: L_a [rad] of the reward.
+        control_weight: Weight of the control cost.
+        success_bonus: Reward per step within both success radii.
+
+    Raises:
+        ValueError: a bad number, or (at bind) an unknown handle or one that is not a body's origin.
+    """
+
+    name = "plate_pose"
+    reward_terms = ("position", "orientation", "control", "success")
+
+    def __init__(
+        self,
+        body_handle: str,
+        actuated: tuple[str, ...],
+        *,
+        max_force: float,
+        target_spread: float = 0.5,
+        position_scale: float = 0.02,
+        angle_scale: float = 0.1,
+        control_weight: float = 0.05,
+        success_bonus: float = 1.0,
+    ) -> None:
+        for key, value in (
+            ("max_force", max_force),
+            ("target_spread", target_spread),
+            ("position_scale", position_scale),
+            ("angle_scale", angle_scale),
+        ):
+            if not (np.isfinite(value) and value > 0.0):
+                raise ValueError(f"{key} must be finite and > 0, got {value!r}")
+        for key, value in (("control_weight", control_weight), ("success_bonus", success_bonus)):
+            if not (np.isfinite(value) and value >= 0.0):
+                raise ValueError(f"{key} must be finite and >= 0, got {value!r}")
+        self.body_handle = body_handle
+        self.actuated = tuple(actuated)
+        self.action_size = len(self.actuated)
+        self.max_force = float(max_force)
+        self.target_spread = float(target_spread)
+        self.position_scale = float(position_scale)
+        self.angle_scale = float(angle_scale)
+        self.control_weight = float(control_weight)
+        self.success_bonus = float(success_bonus)
+
+    def __getstate__(self) -> dict[str, Any]:
+        # The bound sim is not part of the task: a copy (the vector env's) is bound to its own sim.
+        return {k: v for k, v in self.__dict__.items() if k not in ("_sim", "_space")}
+
+    # -- binding --------------------------------------------------------------------------
+    def bind(self, sim: LatentSim) -> None:
+        scene = sim.scene
+        names = list(scene.handle_names)
+        for handle in (self.body_handle, *self.actuated):
+            if handle not in names:
+                raise ValueError(f"scene {scene.name!r} has no handle {handle!r}; valid handles: {names}")
+        self._sim = sim
+        points = scene.handles[names.index(self.body_handle)].points
+        if tuple(points.dofs.shape) != (1, 3, 4) or bool(points.weights[0, :3].abs().max() > 0.0):
+            raise ValueError(f"handle {self.body_handle!r} is not the origin of a rigid body")
+        self._dofs = points.dofs[0].reshape(12).to(sim.device)
+        self._actuated = torch.tensor([names.index(h) for h in self.actuated], device=sim.device)
+        self._handles = len(names)
+        self._dim = scene.dim
+        from redsim.integrators import LatentSpace
+
+        self._space = LatentSpace(sim.source_scene, sim.subspace)
+        rest = sim._rest_latent(sim.default_cond).unsqueeze(0)
+        self._bound = float(self.pose(sim.full_positions(rest))[0].abs().max()) + 2.0 * scene.extent()
+
+    def pose(self, x: Tensor) -> tuple[Tensor, Tensor]:
+        """The body's centre [B, 3] [m] and rotation [B, 3, 3] in configurations x [B, N]."""
+        block = x[:, self._dofs].reshape(-1, 3, 4)
+        return block[:, :, 3], block[:, :, :3]
+
+    @staticmethod
+    def _angle(r: Tensor, target: Tensor) -> Tensor:
+        m = target @ r.transpose(1, 2)
+        cos = 0.5 * (m.diagonal(dim1=1, dim2=2).sum(-1) - 1.0)
+        return torch.atan2(_axial(m).norm(dim=1), cos)
+
+    def errors(self, x: Tensor, params: Mapping[str, Tensor]) -> tuple[Tensor, Tensor]:
+        """Position error [B] [m] and orientation error [B] [rad] of the plate against the target."""
+        p, r = self.pose(x)
+        target = params["target_rotation"]
+        return (p - params["target_position"]).norm(dim=1), self._angle(r, target)
+
+    # -- episodes -------------------------------------------------------------------------
+    def sample(
+        self, rng: np.random.Generator, sim: LatentSim, z_rest: Tensor, cond: Tensor | None
+    ) -> dict[str, Tensor]:
+        from redsim.integrators import latent_equilibrium
+
+        held = torch.as_tensor(self.target_spread * rng.uniform(-1.0, 1.0, self.action_size)).unsqueeze(0)
+        loads = self.loads(held.to(torch.float64), {})[0].cpu()
+        z, _ = latent_equilibrium(
+            self._space, loads, z0=z_rest.detach().cpu().to(torch.float64), minimizer=MINIMIZER
+        )
+        z = z.to(sim.device, sim.torch_dtype).unsqueeze(0)
+        p, r = self.pose(sim.full_positions(z, cond))
+        return {
+            "target_position": p[0],
+            "target_rotation": r[0],
+            "held_action": held[0].to(sim.device, sim.torch_dtype),
+        }
+
+    def loads(self, action: Tensor, params: Mapping[str, Tensor]) -> Tensor:
+        loads = torch.zeros(action.shape[0], self._handles, self._dim, dtype=action.dtype, device=action.device)
+        loads[:, self._actuated, 1] = self.max_force * action
+        return loads
+
+    def extras_bounds(self) -> tuple[np.ndarray, np.ndarray]:
+        high = np.concatenate([np.full(6, self._bound), np.ones(3)])
+        return -high, high
+
+    def observation_structure(self) -> dict[str, int]:
+        return {"plate_position": 3, "target_offset": 3, "orientation_error": 3}
+
+    def extras(self, x: Tensor, x_prev: Tensor, params: Mapping[str, Tensor]) -> Tensor:
+        p, r = self.pose(x)
+        turn = _axial(params["target_rotation"] @ r.transpose(1, 2))
+        return torch.cat([p, params["target_position"] - p, turn], dim=1)
+
+    def _success(self, distance: Tensor, angle: Tensor) -> Tensor:
+        return (distance < 0.2 * self.position_scale) & (angle < 0.2 * self.angle_scale)
+
+    def reward(self, x: Tensor, action: Tensor, params: Mapping[str, Tensor]) -> tuple[Tensor, dict[str, Tensor]]:
+        distance, angle = self.errors(x, params)
+        terms = {
+            "position": -distance / self.position_scale,
+            "orientation": -angle / self.angle_scale,
+            "control": -self.control_weight * action.pow(2).mean(dim=1),
+            "success": self.success_bonus * self._success(distance, angle).to(distance.dtype),
+        }
+        return sum(terms.values()), terms  # type: ignore[return-value]
+
+    def metrics(self, x: Tensor, params: Mapping[str, Tensor]) -> dict[str, Tensor]:
+        distance, angle = self.errors(x, params)
+        return {"distance": distance, "angle": angle, "is_success": self._success(distance, angle)}
+
+    # -- scripted control and drawing -----------------------------------------------------
+    def controller(self, sim: LatentSim) -> np.ndarray:
+        """Open loop: hold the action whose static equilibrium is the target (``params["held_action"]``).
+
+        It shows that a bounded action reaches every target; the solve's damping settles the plate.
+        """
+        return sim.params["held_action"].cpu().numpy().astype(np.float32)
+
+    def overlay(self, sim: LatentSim, row: int) -> tuple[list[Any], list[Any]]:
+        from redsim.raster import Arrow, Marker
+
+        x = sim.x[row : row + 1]
+        p, _ = self.pose(x)
+        markers = [Marker(p[0].cpu().numpy(), (40, 40, 40), 4)]
+        if "target_position" in sim.params:
+            markers.insert(0, Marker(sim.params["target_position"][row].cpu().numpy(), (220, 40, 40), 7))
+        scale = 0.25 * sim.scene.extent() / self.max_force
+        arrows = [
+            Arrow(sim.scene.handles[int(i)].position(x)[0].cpu().numpy(), sim.loads[row, int(i)].cpu().numpy(), scale)
+            for i in self._actuated
+        ]
+        return markers, arrows
+
+
+class StewartEnv(LatentEnv):
+    """A rotary Stewart platform: six servo-held arms, six struts and a top plate; bring the plate to a target pose.
+
+    ## Description
+    The scene `stewart` (n = 156: 13 affine rigid bodies, penalty hinge and ball joints, servo springs that
+    hold the arms, gravity) runs in its shipped 6-d neural subspace. Six torques on the arm hinges (forces
+    along y at the arm tips, handles `arm_0`..`arm_5`) must bring the top plate to a target position and
+    orientation.
+
+    ## Action Space
+    The action space is a `Box(-1, 1, (6,), float32)`: the forces along y at the six arm tips, scaled to
+    ±`max_force` [N] (a hinge torque of F × 0.08 m against the servo's 20 N m/rad).
+
+    | Num | Action | Control Min | Control Max | Unit |
+    |---|---|---|---|---|
+    | 0-5 | force along y (up) at the tip of arm i | -1 | 1 | `max_force` N (60 N, 4.8 N m) |
+
+    ## Observation Space
+    `obs = concat(z, z_dot, p, p* - p, e)`, a `Box(low, high, (21,), float32)` with finite bounds (values are
+    clipped into them):
+
+    | Num | Observation | Min | Max | Unit |
+    |---|---|---|---|---|
+    | 0-5 | latent z | -10 | 10 | unitless |
+    | 6-11 | latent velocity z_dot | -1000 | 1000 | 1/s |
+    | 12-14 | plate centre p | -(r + 2L) | r + 2L | m (r = 0.25 m, L = the scene's extent) |
+    | 15-17 | target offset p* - p | -(r + 2L) | r + 2L | m |
+    | 18-20 | orientation error e: axial vector of R* R^T (sin of the angle times the axis) | -1 | 1 | unitless |
+
+    ## Rewards
+    `reward = -d / L_p - theta / L_a - 0.05 mean(action^2) + 1[d < 0.2 L_p and theta < 0.2 L_a]` with d the
+    plate's distance [m] and theta its angle [rad] from the target pose, L_p = 0.02 m and L_a = 0.1 rad,
+    reported as `info["reward_position"]`, `info["reward_orientation"]`, `info["reward_control"]` and
+    `info["reward_success"]`; `info` also holds `distance` [m], `angle` [rad] and `is_success`.
+
+    ## Starting State
+    At rest (z: the map's unloaded equilibrium, z_dot = 0). The target is a pose the servos can hold: the
+    plate's pose in the latent static equilibrium under a held action drawn uniformly from
+    [-`target_spread`, `target_spread`]^6 by `self.np_random` (a float64 Newton solve at each reset, about 1 s).
+
+    ## Episode End
+    Termination: the stepper could not make a step finite (`info["diverged"]`). Truncation: 200 steps (4 s).
+
+    ## Arguments
+    | Argument | Default | Meaning |
+    |---|---|---|
+    | `render_mode` | None | None, "rgb_array" or "human" |
+    | `max_force` | 60.0 | force [N] of a unit action at each arm tip |
+    | `target_spread` | 0.5 | largest entry of the held action that sets a target |
+    | `dt` | 0.02 | stepper time step [s] |
+    | `frame_skip` | 1 | stepper steps per env step |
+    | `subspace` | None | the shipped map, a checkpoint path or a map |
+    | `scene_params` | None | scene build parameters (the shipped map covers only the defaults) |
+    | `include_q` | False | put q [n] in `info["q"]` |
+    | `**kwargs` | | more :class:`LatentEnv` arguments (`dtype`, `device`, `width`, `height`, `camera`, ...) |
+
+    ## Version History
+    - v0: first version.
+    """
+
+    def __init__(
+        self,
+        render_mode: str | None = None,
+        *,
+        max_force: float = 60.0,
+        target_spread: float = 0.5,
+        dt: float = 0.02,
+        frame_skip: int = 1,
+        subspace: str | nn.Module | None = None,
+        scene_params: dict[str, Any] | None = None,
+        include_q: bool = False,
+        **kwargs: Any,
+    ) -> None:
+        scene, sub = shipped("stewart", scene_params, subspace)
+        task = PlatePose(
+            "top_plate",
+            tuple(f"arm_{i}" for i in range(6)),
+            max_force=max_force,
+            target_spread=target_spread,
+        )
+        kwargs.setdefault("camera", {"azimuth": 30.0, "elevation": 20.0})
+        super().__init__(
+            scene, sub, task, render_mode=render_mode, dt=dt, frame_skip=frame_skip, include_q=include_q, **kwargs
+        )
+
+
+make_vec = vector_entry(StewartEnv)
+
+__all__ = ["PlatePose", "StewartEnv", "make_vec"]
