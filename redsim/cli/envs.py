@@ -28,10 +28,11 @@ def cmd_demo(args: argparse.Namespace) -> int:
     if args.json:
         json_out(result)
         return EXIT_OK
+    distance = result["final_distance"]  # None for a task without a target point (Klann's crank speed)
     out(
         f"{args.env_id} ({SCRIPTED}, seed {args.seed}): return {result['return']:.1f} over {result['steps']} steps, "
-        f"final distance {result['final_distance']:.3g} m, {100 * result['success_fraction']:.0f}% of steps within "
-        "the success radius"
+        + ("" if distance is None else f"final distance {distance:.3g} m, ")
+        + f"{100 * result['success_fraction']:.0f}% of steps within the task's success tolerance"
     )
     out(f"speed: {result['env_steps_per_s']:.0f} env steps/s, {result['sim_s_per_wall_s']:.2f} simulated s per wall s")
     out(f"wrote {result['gif']} and {result['png']}")

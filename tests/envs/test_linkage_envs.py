@@ -83,8 +83,9 @@ def test_linkage_tasks_reject_bad_arguments() -> None:
 
 @pytest.mark.slow
 def test_stewart_targets_are_held_poses_and_the_held_action_reaches_most() -> None:
-    """Each target is a static equilibrium under a bounded action; holding that action from rest reaches it
-    in most copies (measured 5 of 8: in the others the plate swings into a neighbouring basin of the map)."""
+    """Each target is a static equilibrium under a bounded action; holding that action from rest reaches it in
+    most copies (measured: 13 of 16, seed 0; in the others the plate swings into a neighbouring basin of the map).
+    """
     venv = gym.make_vec("RedSim/Stewart-v0", num_envs=8, vectorization_mode="vector_entry_point")
     venv.reset(seed=0)
     sim = venv.unwrapped.sim
