@@ -11,6 +11,7 @@ definition of each physical term.
 from __future__ import annotations
 
 import copy
+import dataclasses
 import math
 from typing import Any, ClassVar
 
@@ -69,8 +70,36 @@ class Effect:
             setattr(out, key, cast_tensors(value, device, dtype))
         return out
 
+    def subset(self, index: Tensor) -> Effect:
+        """A copy of this term over the elements ``index`` [K] only (int64, each in [0, T)).
+
+        Every per-element field (a tensor, or a dataclass such as a :class:`PointSet`, whose leading
+        dimension is T) is selected; other fields are shared. A cubature evaluates the subset's
+        ``element_energy`` on ``gather_elements(x, subset.element_dofs)``.
+        """
+        index = torch.as_tensor(index, dtype=torch.int64, device=self.element_dofs.device)
+        count = self.element_count
+        if index.ndim != 1 or (index.numel() and (int(index.min()) < 0 or int(index.max()) >= count)):
+            raise ValueError(f"element indices must be a 1-D tensor in [0, {count}) for {self.name!r}")
+        out = copy.copy(self)
+        for key, value in vars(self).items():
+            setattr(out, key, _select_elements(value, index, count))
+        return out
+
     def __repr__(self) -> str:
         return f"{type(self).__name__}(name={self.name!r}, elements={self.element_count})"
+
+
+def _select_elements(value: Any, index: Tensor, count: int) -> Any:
+    """``value`` with the rows ``index`` of every tensor whose leading dimension is ``count`` (recursing)."""
+    if isinstance(value, Tensor):
+        return value.index_select(0, index) if value.ndim and value.shape[0] == count else value
+    if dataclasses.is_dataclass(value) and not isinstance(value, type):
+        changes = {f.name: _select_elements(getattr(value, f.name), index, count) for f in dataclasses.fields(value)}
+        return dataclasses.replace(value, **changes)
+    if isinstance(value, tuple):
+        return tuple(_select_elements(v, index, count) for v in value)
+    return value
 
 
 def gather_elements(x: Tensor, element_dofs: Tensor) -> Tensor:
