@@ -37,6 +37,8 @@ RARE_KINDS = ("sdf_contact",)
 """Effect kinds kept whole by default: penalties that switch on rarely, which a subset would miss."""
 CANDIDATE_FLOOR = 1e-3
 """Elements whose column norm is below this fraction of the mean are never selected."""
+ROUND_OFF = 1e-12
+"""Training error at which the greedy selection stops whatever the budget (the fit is exact)."""
 LINEAR_KINDS = ("gravity",)
 """Effect kinds that are linear in x: reduced exactly to r . c + e0."""
 
@@ -261,7 +263,7 @@ def greedy_nnls(
         history.append((len(kept), error, held))
         if progress is not None:
             progress(len(kept), held)
-        if tol is not None and error <= tol:
+        if error <= ROUND_OFF or (tol is not None and error <= tol):
             break
     return torch.tensor(kept, dtype=torch.int64), weights, history
 
