@@ -10,6 +10,7 @@ from typing import Any
 import torch
 
 import redsim
+from redsim.cli import cubature
 from redsim.cli.common import (
     DTYPES,
     EXIT_OK,
@@ -303,3 +304,4 @@ def add_commands(sub: Any) -> None:
     p.add_argument("--batch", type=int, default=32, help="latent samples per step (default 32)")
     p.add_argument("--device", default="cpu", help="torch device (default cpu)")
     finish_command(p, cmd_bench_fit, "print one JSON document on stdout", default_threads=1)
+    cubature.add_bench_command(bench)

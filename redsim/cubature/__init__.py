@@ -6,6 +6,9 @@
 >>> cub = build_cubature(scene, f, CubatureConfig(elements=8, samples=32, episodes=0))
 >>> energy = CubatureEnergy(scene, f, cub)   # LatentStepper(scene, f, energy=energy)
 
+The shipped cubatures (``redsim/pretrained/SCENE.cubature.json``) are chosen with one option:
+``LatentStepper(scene, pretrained.load(name), energy="cubature")``.
+
 - :mod:`~redsim.cubature.output`: the map's affine output layer and its slice to the kept DOFs.
 - :mod:`~redsim.cubature.fit`: training states from the subspace, per-element reduced forces, greedy + NNLS.
 - :mod:`~redsim.cubature.energy`: the stored rules (``STEM.cubature.json``) and :class:`CubatureEnergy`.
@@ -17,6 +20,7 @@ from redsim.cubature.energy import (
     Cubature,
     CubatureEnergy,
     build_cubature,
+    cubature_energy,
     cubature_path,
     load_cubature,
     map_fingerprint,
@@ -31,6 +35,7 @@ __all__ = [
     "CubatureEnergy",
     "EffectRule",
     "build_cubature",
+    "cubature_energy",
     "cubature_path",
     "load_cubature",
     "map_fingerprint",

@@ -201,6 +201,26 @@ def load_cubature(path: str | Path, scene: Scene, subspace: nn.Module) -> Cubatu
     return cub
 
 
+def cubature_energy(
+    scene: Scene,
+    subspace: nn.Module,
+    source: str | Path | None = None,
+    *,
+    dtype: torch.dtype = torch.float32,
+    device: str | torch.device = "cpu",
+) -> CubatureEnergy:
+    """The :class:`CubatureEnergy` stored beside ``source`` (a checkpoint or cubature path).
+
+    ``source`` None means the cubature shipped in :mod:`redsim.pretrained` for ``scene.name``, which is
+    refused (:class:`CheckpointError`) unless ``subspace`` is the shipped map of that scene.
+    """
+    if source is None:
+        from redsim import pretrained
+
+        source = pretrained.FOLDER / scene.name
+    return CubatureEnergy(scene, subspace, load_cubature(source, scene, subspace), dtype=dtype, device=device)
+
+
 class CubatureEnergy:
     """The latent energy of a cubature (module doc): a :class:`redsim.runtime.LatentEnergy` with reduced inertia.
 
@@ -342,6 +362,7 @@ __all__ = [
     "Cubature",
     "CubatureEnergy",
     "build_cubature",
+    "cubature_energy",
     "cubature_path",
     "load_cubature",
     "map_fingerprint",

@@ -185,3 +185,63 @@ def test_cubature_in_the_runtime_stays_finite_and_flags_divergence(mini_chain) -
     z_next, stats = wild.step(z, z)
     assert bool(stats.diverged.all())
     assert bool(torch.isfinite(z_next).all())
+
+
+def test_cli_writes_the_cubature_beside_the_checkpoint(cli, tmp_path) -> None:
+    import json
+    import shutil
+
+    for suffix in (".pt", ".json"):
+        shutil.copy(pretrained.path("mini_chain").with_suffix(suffix), tmp_path / f"chain{suffix}")
+    code, out, err = cli(
+        "cubature",
+        str(tmp_path / "chain.pt"),
+        "--elements",
+        "8",
+        "--samples",
+        "32",
+        "--episodes",
+        "1",
+        "--rollout-steps",
+        "5",
+        "--json",
+    )
+    assert code == 0, err
+    doc = json.loads(out)
+    assert doc["path"].endswith("chain.cubature.json")
+    assert {e["effect"] for e in doc["effects"]} == {"rigid", "contact", "gravity"}
+    scene = scenes.build("mini_chain")
+    cub = load_cubature(tmp_path / "chain", scene, pretrained.load("mini_chain", scene))
+    assert cub.command.startswith("redsim cubature ") and "--elements 8" in cub.command
+
+
+def test_cli_bad_input_exits_with_a_message(cli, tmp_path) -> None:
+    code, _, err = cli("cubature", str(tmp_path / "nothing.pt"), "--elements", "8")
+    assert code == 2 and "missing" in err
+    code, _, err = cli("cubature", str(pretrained.path("mini_chain")), "--elements", "0")
+    assert code == 2 and "elements" in err
+    code, _, err = cli("cubature", str(pretrained.path("mini_chain")), "--elements", "4", "--tol", "0.1")
+    assert code == 2 and "not allowed" in err
+    code, _, err = cli("bench", "cubature", "no_such_scene")
+    assert code == 2 and "no shipped subspace" in err
+
+
+@pytest.mark.parametrize("name", ["hanging_sheet", "cloth_ball"])
+def test_shipped_cubatures_are_chosen_with_one_option(name: str) -> None:
+    scene = scenes.build(name)
+    f = pretrained.load(name, scene)
+    stepper = LatentStepper(scene, f, 0.02, energy="cubature")
+    assert isinstance(stepper.energy, CubatureEnergy) and stepper.reduced
+    kept = stepper.energy.describe()
+    assert kept["kept_elements"]["membrane"] < scene.effect("membrane").element_count
+    z = torch.zeros(2, f.latent_dim)
+    z_next, stats = stepper.step(z, z)
+    assert bool(torch.isfinite(z_next).all()) and not bool(stats.diverged.any())
+
+
+def test_the_energy_option_refuses_what_it_cannot_use(mini_chain) -> None:
+    scene, f = mini_chain
+    with pytest.raises(CheckpointError, match="no cubature file"):
+        LatentStepper(scene, f, 0.02, energy="cubature")  # none is shipped for the mini chain
+    with pytest.raises(ValueError, match="'cubature'"):
+        LatentStepper(scene, f, 0.02, energy="fast")
