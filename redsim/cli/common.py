@@ -154,6 +154,17 @@ def parse_list(text: str, what: str) -> list[str]:
 
 
 # -- shared options -------------------------------------------------------------------------
+def parse_ints(text: str, what: str) -> list[int]:
+    """Comma-separated integers >= 1 (``what`` names the option in the error)."""
+    try:
+        values = [int(v) for v in parse_list(text, what)]
+    except ValueError as err:
+        raise CliError(f"{what} must be comma-separated integers, got {text!r}") from err
+    if min(values) < 1:
+        raise CliError(f"{what} must be >= 1, got {text!r}")
+    return values
+
+
 def add_threads(parser: argparse.ArgumentParser, default: int | None = None) -> None:
     """``--threads N``: torch's intra-op threads for the command."""
     shown = "torch's default: all cores" if default is None else str(default)

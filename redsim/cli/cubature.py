@@ -4,9 +4,10 @@ from __future__ import annotations
 
 import argparse
 import shlex
+from pathlib import Path
 from typing import Any
 
-from redsim.cli.common import EXIT_OK, CliError, finish_command, json_out, load_checkpoint, out, parse_list
+from redsim.cli.common import EXIT_OK, CliError, finish_command, json_out, load_checkpoint, out, parse_ints, parse_list
 
 TOL_ELEMENTS = 1000
 """Most elements per effect with ``--tol``."""
@@ -89,12 +90,9 @@ def cmd_bench_cubature(args: argparse.Namespace) -> int:
     if args.sweep:
         return _sweep(args)
     names = parse_list(args.scenes, "SCENES")
-    try:
-        batches = tuple(int(b) for b in parse_list(args.batches, "--batches"))
-    except ValueError as err:
-        raise CliError(f"--batches must be comma-separated integers, got {args.batches!r}") from err
-    if min(batches) < 1 or args.steps < 1 or args.timed_steps < 2:
-        raise CliError("--batches and --steps must be >= 1, --timed-steps >= 2")
+    batches = tuple(parse_ints(args.batches, "--batches"))
+    if args.steps < 1 or args.timed_steps < 2:
+        raise CliError("--steps must be >= 1 and --timed-steps >= 2")
     machine = machine_info()
     results = []
     if not args.json:
@@ -104,8 +102,9 @@ def cmd_bench_cubature(args: argparse.Namespace) -> int:
         )
         out(f"machine: {machine}")
     for name in names:
+        mine = Path(args.checkpoints) / f"{name}.pt" if args.checkpoints else None
         try:
-            weights = pretrained.path(name)
+            weights = mine if mine is not None and mine.is_file() else pretrained.path(name)
         except KeyError as err:
             raise CliError(str(err)) from err
         scene, subspace = load_checkpoint(str(weights))
@@ -137,13 +136,8 @@ def _sweep(args: argparse.Namespace) -> int:
     from redsim.bench import machine_info
     from redsim.cubature.bench import mesh_sweep
 
-    try:
-        cells = tuple(int(c) for c in parse_list(args.sweep, "--sweep"))
-        batches = tuple(int(b) for b in parse_list(args.batches, "--batches"))
-    except ValueError as err:
-        raise CliError(f"--sweep and --batches must be comma-separated integers ({err})") from err
-    if min(cells) < 1 or min(batches) < 1:
-        raise CliError("--sweep cells and --batches must be >= 1")
+    cells = tuple(parse_ints(args.sweep, "--sweep"))
+    batches = tuple(parse_ints(args.batches, "--batches"))
     rows = mesh_sweep(cells, elements=args.elements, batches=batches, timed_steps=args.timed_steps)
     if args.json:
         json_out({"machine": machine_info(), "sweep": rows})
@@ -188,9 +182,9 @@ def add_bench_command(bench: Any) -> None:
         "cubature",
         help="cubature energy vs the all-element latent step",
         description=(
-            "For each scene's shipped subspace and the cubature beside it (built with --elements if none is "
-            "shipped): elements kept, held-out force error, trajectory deviation from the all-element step under "
-            "the same seeded loads, contact penetration of both, and step time per batch size side by side."
+            "For each scene's shipped subspace (or DIR/SCENE.pt) and the cubature beside it (built with --elements "
+            "if there is none): elements kept, held-out force error, trajectory deviation from the all-element "
+            "step under the same seeded loads, contact penetration of both, and step time per batch size side by side."
         ),
     )
     p.add_argument("scenes", nargs="?", default="cloth_ball,hanging_sheet", help="comma-separated scene names")
@@ -198,6 +192,11 @@ def add_bench_command(bench: Any) -> None:
     p.add_argument("--timed-steps", type=int, default=10, help="timed steps per batch size (default 10)")
     p.add_argument("--batches", default="1,64", metavar="B1,B2", help="batch sizes timed (default 1,64)")
     p.add_argument("--elements", type=int, default=200, help="elements per effect when none is shipped (200)")
+    p.add_argument(
+        "--checkpoints",
+        metavar="DIR",
+        help="use DIR/SCENE.pt and the cubature beside it where they exist (default: the shipped ones)",
+    )
     p.add_argument(
         "--sweep",
         metavar="C1,C2",

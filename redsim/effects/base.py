@@ -11,7 +11,6 @@ definition of each physical term.
 from __future__ import annotations
 
 import copy
-import dataclasses
 import math
 from typing import Any, ClassVar
 
@@ -19,7 +18,7 @@ import torch
 from torch import Tensor
 
 from redsim.points import PointSet
-from redsim.tensors import cast_tensors
+from redsim.tensors import cast_tensors, map_tensors
 
 
 class Effect:
@@ -81,25 +80,17 @@ class Effect:
         count = self.element_count
         if index.ndim != 1 or (index.numel() and (int(index.min()) < 0 or int(index.max()) >= count)):
             raise ValueError(f"element indices must be a 1-D tensor in [0, {count}) for {self.name!r}")
+
+        def select(t: Tensor) -> Tensor:
+            return t.index_select(0, index) if t.ndim and t.shape[0] == count else t
+
         out = copy.copy(self)
         for key, value in vars(self).items():
-            setattr(out, key, _select_elements(value, index, count))
+            setattr(out, key, map_tensors(value, select))
         return out
 
     def __repr__(self) -> str:
         return f"{type(self).__name__}(name={self.name!r}, elements={self.element_count})"
-
-
-def _select_elements(value: Any, index: Tensor, count: int) -> Any:
-    """``value`` with the rows ``index`` of every tensor whose leading dimension is ``count`` (recursing)."""
-    if isinstance(value, Tensor):
-        return value.index_select(0, index) if value.ndim and value.shape[0] == count else value
-    if dataclasses.is_dataclass(value) and not isinstance(value, type):
-        changes = {f.name: _select_elements(getattr(value, f.name), index, count) for f in dataclasses.fields(value)}
-        return dataclasses.replace(value, **changes)
-    if isinstance(value, tuple):
-        return tuple(_select_elements(v, index, count) for v in value)
-    return value
 
 
 def gather_elements(x: Tensor, element_dofs: Tensor) -> Tensor:
