@@ -282,6 +282,7 @@ class CubatureEnergy:
         self.kept_dofs = kept.to(device)
         self.slice_weight, self.slice_bias = sliced_layer(self.output, self.scene, self.kept_dofs)
         self.terms = self._terms(self.scene)
+        self._full_values = self.scene.dof_map.full_values
         # linear effects: E = r . c + e0 exactly (c, e0 by one backward through the float64 output layer)
         output64 = AffineOutput(subspace).to(device=device, dtype=torch.float64)
         scene64 = scene.to(device=device, dtype=torch.float64)
@@ -318,10 +319,7 @@ class CubatureEnergy:
         w_s, b_s = sliced_layer(output64, scene64, self.kept_dofs)
         x_s = r @ w_s.T + b_s
         total = r @ self.linear_coef.to(torch.float64) + self.linear_constant
-        for effect, local, weights in self._terms(scene64):
-            e = effect.element_energy(gather_elements(x_s, local), cond)
-            total = total + (e.sum(-1) if weights is None else e @ weights)
-        return total
+        return self._sum(total, x_s, cond, self._terms(scene64), scene64.dof_map.full_values)
 
     # -- the LatentEnergy protocol ------------------------------------------------------------
     def features(self, z: Tensor, cond: Tensor | None) -> Tensor:
@@ -333,10 +331,30 @@ class CubatureEnergy:
         r = self.features(z, cond)
         x_s = r @ self.slice_weight.T + self.slice_bias
         total = r @ self.linear_coef + (self.linear_constant + self.offset)
-        for effect, local, weights in self.terms:
-            e = effect.element_energy(gather_elements(x_s, local), cond)
-            total = total + (e.sum(-1) if weights is None else e @ weights)
-        return total, r
+        return self._sum(total, x_s, cond, self.terms, self._full_values), r
+
+    def _sum(
+        self,
+        total: Tensor,
+        x_s: Tensor,
+        cond: Tensor | None,
+        terms: list[tuple[Effect, Tensor, Tensor | None]],
+        full_values: Tensor,
+    ) -> Tensor:
+        """total + every term at the kept DOFs x_s [B, s]: weighted kept elements, or a whole effect's energy.
+
+        A whole effect (weights None) is evaluated by its own ``energy`` (e.g. contact's per-pair path) on x
+        with the kept DOFs scattered in (every DOF it reads is kept; the others hold the pinned/seed values).
+        """
+        x_full = None
+        for effect, local, weights in terms:
+            if weights is None:
+                if x_full is None:
+                    x_full = full_values.to(x_s.dtype).expand(x_s.shape[0], -1).index_copy(1, self.kept_dofs, x_s)
+                total = total + effect.energy(x_full, cond)
+            else:
+                total = total + effect.element_energy(gather_elements(x_s, local), cond) @ weights
+        return total
 
     def energy(self, z: Tensor, cond: Tensor | None) -> tuple[Tensor, None]:
         """E_cub [B] [J] (q is not computed: only the kept DOFs are)."""
