@@ -26,6 +26,9 @@ from redsim.cli.common import (
     parse_list,
     warn,
 )
+from redsim.cli.common import (
+    machine_line as _machine_line,
+)
 from redsim.subspace import checkpoint_path
 
 
@@ -126,18 +129,6 @@ def _subspace_row(row: dict[str, Any]) -> str:
             line += f"  crank turn {result['loop']['turn_degrees']:.0f} deg (winding {result['loop']['winding']})"
         lines.append(line)
     return "\n".join(lines)
-
-
-def _machine_line(machine: dict[str, Any], device: str) -> str:
-    load = machine["load_average_1min"]
-    cpu = machine["processor"]
-    cpu = cpu if cpu == machine["machine"] else f"{cpu} ({machine['machine']})"
-    return (
-        f"machine: {cpu}, {machine['cpu_count']} CPUs"
-        + (f" (load {load:.2f})" if load is not None else "")
-        + f", torch {machine['torch']}, {machine['torch_threads']} threads, device {device}"
-        + (f" ({machine['cuda_device']})" if device.startswith("cuda") else "")
-    )
 
 
 def cmd_bench_energy(args: argparse.Namespace) -> int:

@@ -7,7 +7,17 @@ import shlex
 from pathlib import Path
 from typing import Any
 
-from redsim.cli.common import EXIT_OK, CliError, finish_command, json_out, load_checkpoint, out, parse_ints, parse_list
+from redsim.cli.common import (
+    EXIT_OK,
+    CliError,
+    finish_command,
+    json_out,
+    load_checkpoint,
+    machine_line,
+    out,
+    parse_ints,
+    parse_list,
+)
 
 TOL_ELEMENTS = 1000
 """Most elements per effect with ``--tol``."""
@@ -82,7 +92,6 @@ def cmd_cubature(args: argparse.Namespace) -> int:
 def cmd_bench_cubature(args: argparse.Namespace) -> int:
     from redsim import pretrained
     from redsim.bench import machine_info
-    from redsim.cli.bench import _machine_line  # loaded by now (the parser imports it)
     from redsim.cubature import CubatureConfig, build_cubature, load_cubature
     from redsim.cubature.bench import bench_cubature
     from redsim.cubature.energy import cubature_path
@@ -101,7 +110,7 @@ def cmd_bench_cubature(args: argparse.Namespace) -> int:
             "cubature vs all-element latent step (float32, CPU); deviation over "
             f"{args.steps} steps, step time median (ms)"
         )
-        out(_machine_line(machine, "cpu"))
+        out(machine_line(machine, "cpu"))
     for name in names:
         mine = Path(args.checkpoints) / f"{name}.pt" if args.checkpoints else None
         try:
@@ -135,7 +144,6 @@ def cmd_bench_cubature(args: argparse.Namespace) -> int:
 
 def _sweep(args: argparse.Namespace) -> int:
     from redsim.bench import machine_info
-    from redsim.cli.bench import _machine_line
     from redsim.cubature.bench import mesh_sweep
 
     cells = tuple(parse_ints(args.sweep, "--sweep"))
@@ -145,7 +153,7 @@ def _sweep(args: argparse.Namespace) -> int:
         json_out({"machine": machine_info(), "sweep": rows})
         return EXIT_OK
     out("hanging_sheet meshed c x c, unfitted d=8 map near the seed: median step (ms), all elements -> cubature")
-    out(_machine_line(machine_info(), "cpu"))
+    out(machine_line(machine_info(), "cpu"))
     for row in rows:
         times = "  ".join(
             f"B={b}: {1e3 * t['all_s']:.3g} -> {1e3 * t['cubature_s']:.3g}" for b, t in row["timing"].items()

@@ -7,7 +7,7 @@
 >>> energy = CubatureEnergy(scene, f, cub)   # LatentStepper(scene, f, energy=energy)
 
 The shipped cubatures (``redsim/pretrained/SCENE.cubature.json``) are chosen with one option:
-``LatentStepper(scene, pretrained.load(name), energy="cubature")``.
+``LatentStepper(scene, pretrained.load(name), energy=cubature_energy)``.
 
 - :mod:`~redsim.cubature.output`: the map's affine output layer and its slice to the kept DOFs.
 - :mod:`~redsim.cubature.fit`: training states from the subspace, per-element reduced forces, greedy + NNLS.

@@ -190,8 +190,9 @@ class LatentStepper:
         energy: A :class:`redsim.runtime.energy.LatentEnergy`; None means :class:`MapEnergy` (scene.energy o f).
             One that also implements :class:`redsim.runtime.energy.ReducedInertia` (e.g. a cubature energy)
             has the inertia and load terms evaluated in its features r (q = r W^T + b) with the
-            precomputed W^T M W: exact, and no per-iteration cost that grows with n. ``"cubature"``: the
-            cubature shipped for the scene's map (:func:`redsim.cubature.cubature_energy`).
+            precomputed W^T M W: exact, and no per-iteration cost that grows with n. A callable is a
+            factory ``energy(scene, subspace, dtype=, device=)``, e.g. :func:`redsim.cubature.cubature_energy`
+            (the cubature shipped for the scene's map).
         max_iter: Most solver iterations per step.
         tol: Relative gradient tolerance (default :data:`DEFAULT_TOL` of the dtype).
         hessian: The solver's Hessian model, one of :data:`redsim.runtime.solver.HESSIANS`.
@@ -210,7 +211,7 @@ class LatentStepper:
         *,
         dtype: torch.dtype = torch.float32,
         device: str | torch.device = "cpu",
-        energy: LatentEnergy | str | None = None,
+        energy: LatentEnergy | Callable[..., LatentEnergy] | None = None,
         max_iter: int = DEFAULT_MAX_ITER,
         tol: float | None = None,
         hessian: str = DEFAULT_HESSIAN,
@@ -236,12 +237,10 @@ class LatentStepper:
         self.source_scene = scene
         self.subspace = subspace
         self.scene = scene.to(device=self.device, dtype=dtype)
-        if energy == "cubature":  # the cubature shipped beside the scene's map (redsim.pretrained)
-            from redsim.cubature import cubature_energy
-
-            energy = cubature_energy(scene, subspace, dtype=dtype, device=self.device)
-        elif isinstance(energy, str):
-            raise ValueError(f"energy must be a LatentEnergy, None or 'cubature', got {energy!r}")
+        if callable(energy) and not isinstance(energy, LatentEnergy):  # a factory, e.g. cubature_energy
+            energy = energy(scene, subspace, dtype=dtype, device=self.device)
+        if energy is not None and not isinstance(energy, LatentEnergy):
+            raise ValueError(f"energy must be a LatentEnergy, a factory of one, or None; got {energy!r}")
         self.energy: LatentEnergy = (
             MapEnergy(scene, subspace, dtype=dtype, device=self.device) if energy is None else energy
         )
