@@ -232,6 +232,41 @@ def cmd_bench_fit(args: argparse.Namespace) -> int:
     return EXIT_OK
 
 
+def cmd_bench_accuracy(args: argparse.Namespace) -> int:
+    from redsim import pretrained
+    from redsim.bench import machine_info
+    from redsim.benches import accuracy
+
+    if args.scene not in accuracy.PLANS:
+        raise CliError(f"bench accuracy runs on {', '.join(accuracy.PLANS)}; got {args.scene!r}")
+    scenarios = tuple(parse_list(args.scenarios, "--scenarios"))
+    unknown = [s for s in scenarios if s not in accuracy.SCENARIOS]
+    if unknown or args.steps < 10:
+        raise CliError(f"--scenarios must be from {', '.join(accuracy.SCENARIOS)} and --steps >= 10")
+    scene = redsim.scenes.build(args.scene)
+    result = accuracy.bench_accuracy(
+        scene,
+        pretrained.load(args.scene, scene),
+        steps=args.steps,
+        scenarios=scenarios,
+        seed=args.seed,
+        full=not args.no_full,
+        study=not args.no_study,
+        progress=None if args.json else warn,
+    )
+    machine = machine_info()
+    result["machine"] = machine
+    line = _machine_line(machine, "cpu")
+    paths = accuracy.write_outputs(result, Path(args.out), line) if args.out else []
+    if args.json:
+        json_out(result)
+    else:
+        out(accuracy.report(result, line))
+        if paths:
+            out("wrote " + ", ".join(str(p) for p in paths))
+    return EXIT_OK
+
+
 def add_commands(sub: Any) -> None:
     """Add ``bench`` and its subcommands to the subcommands ``sub``."""
     p = sub.add_parser("bench", help="benchmarks", description="Benchmarks; each prints the machine it ran on.")
@@ -303,3 +338,23 @@ def add_commands(sub: Any) -> None:
     p.add_argument("--batch", type=int, default=32, help="latent samples per step (default 32)")
     p.add_argument("--device", default="cpu", help="torch device (default cpu)")
     finish_command(p, cmd_bench_fit, "print one JSON document on stdout", default_threads=1)
+
+    p = bench.add_parser(
+        "accuracy",
+        help="trajectory error vs time per step against a converged full-space reference",
+        description=(
+            "Seeded load scenarios (env-style actions on the scene's handle) from the full-space rest; the "
+            "float64 full-space trajectory is the reference. Per configuration (full space loosened; the shipped "
+            "neural subspace, linear modes and modal derivatives of its d from their own rest; runtime options): "
+            "median wall time per step and the relative M-norm and handle (cm) trajectory errors. See "
+            "redsim.benches.accuracy."
+        ),
+    )
+    p.add_argument("scene", help="one of mini_chain, chain, bistable_bar, hanging_sheet")
+    p.add_argument("--steps", type=int, default=100, help="steps per scenario (default 100)")
+    p.add_argument("--scenarios", default="push,actions", help="push and/or actions (default both)")
+    p.add_argument("--seed", type=int, default=0, help="seed of the actions scenario (default 0)")
+    p.add_argument("--no-full", action="store_true", help="skip the loosened full-space configurations")
+    p.add_argument("--no-study", action="store_true", help="skip the start study (push scenario)")
+    p.add_argument("--out", metavar="DIR", help="write DIR/accuracy_SCENE.md, .csv and .png")
+    finish_command(p, cmd_bench_accuracy, "print one JSON document on stdout", default_threads=1)
