@@ -300,6 +300,16 @@ def projection_floor(
     return statistics.fmean(errors) if errors else math.nan
 
 
+FULL_VARIANTS: dict[str, tuple[str, dict[str, Any]]] = {
+    "tol": ("full tol 1e-3", {"tol": 1e-3}),
+    "newton1": ("full 1 Newton iteration", {"max_iter": 1}),
+    "newton3": ("full 3 Newton iterations", {"max_iter": 3}),
+    "dt2": ("full dt x2", {"stride": 2}),
+    "dt5": ("full dt x5", {"stride": 5}),
+}
+"""The loosened full-space configurations: key -> (label, :func:`run_full` options)."""
+
+
 @dataclass(frozen=True)
 class Config:
     """One row of the bench: a label, its family (for the plot), and how to run it."""
@@ -329,22 +339,22 @@ def configurations(
     *,
     dt: float = DT,
     reference_tol: float = 1e-8,
-    full: bool = True,
+    full: tuple[str, ...] = tuple(FULL_VARIANTS),
 ) -> list[Config]:
     """The configurations of the bench (module doc), in table order; ``rests`` holds each map's z*.
 
-    The larger-dt full-space runs keep the reference's tolerance, so only the time step differs.
+    ``full`` picks keys of :data:`FULL_VARIANTS`; the larger-dt runs keep the reference's tolerance,
+    so only the time step differs.
     """
     q_rest, _ = rest_state(scene)
     configs: list[Config] = []
-    full_variants = [
-        ("full tol 1e-3", {"tol": 1e-3}),
-        ("full 1 Newton iteration", {"max_iter": 1}),
-        ("full 3 Newton iterations", {"max_iter": 3}),
-        ("full dt x2", {"stride": 2, "tol": reference_tol, "max_iter": 100}),
-        ("full dt x5", {"stride": 5, "tol": reference_tol, "max_iter": 100}),
-    ]
-    for label, options in full_variants if full else []:
+    for key in full:
+        if key not in FULL_VARIANTS:
+            raise ValueError(f"unknown full-space variant {key!r}; valid: {list(FULL_VARIANTS)}")
+    for key in full:
+        label, options = FULL_VARIANTS[key]
+        if "stride" in options:
+            options = {**options, "tol": reference_tol, "max_iter": 100}
         configs.append(Config(label, "full space", lambda loads, o=options: run_full(scene, q_rest, loads, dt=dt, **o)))
     runtime_variants = {
         "neural": [
@@ -428,7 +438,7 @@ def bench_accuracy(
     scenarios: tuple[str, ...] = SCENARIOS,
     seed: int = 0,
     dt: float = DT,
-    full: bool = True,
+    full: tuple[str, ...] = tuple(FULL_VARIANTS),
     study: bool = True,
     study_steps: int = 50,
     progress: Callable[[str], None] | None = None,
@@ -442,7 +452,7 @@ def bench_accuracy(
         scenarios: Names from :data:`SCENARIOS`.
         seed: Seed of the ``actions`` scenario.
         dt: Reference time step [s].
-        full: Include the loosened full-space configurations.
+        full: Keys of the loosened full-space configurations to run (:data:`FULL_VARIANTS`).
         study: Run :func:`start_study` on the ``push`` loads (``study_steps`` steps).
         progress: Called with one line per finished configuration.
 
@@ -658,6 +668,7 @@ def write_outputs(result: dict[str, Any], folder: Path, machine: str) -> list[Pa
 
 __all__ = [
     "DT",
+    "FULL_VARIANTS",
     "PLANS",
     "SCENARIOS",
     "Plan",

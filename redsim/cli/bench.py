@@ -241,8 +241,13 @@ def cmd_bench_accuracy(args: argparse.Namespace) -> int:
         raise CliError(f"bench accuracy runs on {', '.join(accuracy.PLANS)}; got {args.scene!r}")
     scenarios = tuple(parse_list(args.scenarios, "--scenarios"))
     unknown = [s for s in scenarios if s not in accuracy.SCENARIOS]
+    full = tuple(parse_list(args.full, "--full")) if args.full != "none" else ()
+    unknown += [k for k in full if k not in accuracy.FULL_VARIANTS]
     if unknown or args.steps < 10:
-        raise CliError(f"--scenarios must be from {', '.join(accuracy.SCENARIOS)} and --steps >= 10")
+        raise CliError(
+            f"--scenarios must be from {', '.join(accuracy.SCENARIOS)}, --full from "
+            f"{', '.join(accuracy.FULL_VARIANTS)} (or none), --steps >= 10; got {unknown or args.steps}"
+        )
     scene = redsim.scenes.build(args.scene)
     result = accuracy.bench_accuracy(
         scene,
@@ -250,7 +255,7 @@ def cmd_bench_accuracy(args: argparse.Namespace) -> int:
         steps=args.steps,
         scenarios=scenarios,
         seed=args.seed,
-        full=not args.no_full,
+        full=full,
         study=not args.no_study,
         progress=None if args.json else warn,
     )
@@ -354,7 +359,11 @@ def add_commands(sub: Any) -> None:
     p.add_argument("--steps", type=int, default=100, help="steps per scenario (default 100)")
     p.add_argument("--scenarios", default="push,actions", help="push and/or actions (default both)")
     p.add_argument("--seed", type=int, default=0, help="seed of the actions scenario (default 0)")
-    p.add_argument("--no-full", action="store_true", help="skip the loosened full-space configurations")
+    p.add_argument(
+        "--full",
+        default="tol,newton1,newton3,dt2,dt5",
+        help="loosened full-space runs: tol (1e-3), newton1, newton3 (iterations), dt2, dt5 (time step), or none",
+    )
     p.add_argument("--no-study", action="store_true", help="skip the start study (push scenario)")
     p.add_argument("--out", metavar="DIR", help="write DIR/accuracy_SCENE.md, .csv and .png")
     finish_command(p, cmd_bench_accuracy, "print one JSON document on stdout", default_threads=1)
