@@ -272,6 +272,37 @@ def cmd_bench_accuracy(args: argparse.Namespace) -> int:
     return EXIT_OK
 
 
+def cmd_bench_scaling(args: argparse.Namespace) -> int:
+    from redsim.bench import machine_info
+    from redsim.benches import scaling
+
+    try:
+        sizes = tuple(int(k) for k in parse_list(args.sizes, "--sizes"))
+    except ValueError as err:
+        raise CliError(f"--sizes must be comma-separated integers, got {args.sizes!r}") from err
+    if min(sizes) < 1 or args.fit_steps < 1 or args.latent_steps < 1:
+        raise CliError("--sizes, --fit-steps and --latent-steps must be >= 1")
+    threads = args.threads or 1
+    result = scaling.bench_scaling(
+        sizes, threads=threads, fit_steps=args.fit_steps, latent_steps=args.latent_steps, full=not args.no_full
+    )
+    machine = machine_info()
+    result["machine"] = machine
+    line = _machine_line({**machine, "torch_threads": threads}, "cpu")
+    if args.out:
+        folder = Path(args.out)
+        folder.mkdir(parents=True, exist_ok=True)
+        (folder / "scaling.md").write_text(f"{line}\n\n{scaling.markdown_table(result)}\n")
+        scaling.scaling_png(result, folder / "scaling.png", line)
+    if args.json:
+        json_out(result)
+    else:
+        out("bench scaling: cantilever beam (cells_x = 5k, cells_yz = k), 5 x 128 MLP, each size in its own process")
+        out(line)
+        out(scaling.markdown_table(result))
+    return EXIT_OK
+
+
 def add_commands(sub: Any) -> None:
     """Add ``bench`` and its subcommands to the subcommands ``sub``."""
     p = sub.add_parser("bench", help="benchmarks", description="Benchmarks; each prints the machine it ran on.")
@@ -367,3 +398,20 @@ def add_commands(sub: Any) -> None:
     p.add_argument("--no-study", action="store_true", help="skip the start study (push scenario)")
     p.add_argument("--out", metavar="DIR", help="write DIR/accuracy_SCENE.md, .csv and .png")
     finish_command(p, cmd_bench_accuracy, "print one JSON document on stdout", default_threads=1)
+
+    p = bench.add_parser(
+        "scaling",
+        help="fit, forward, latent and full-space step time and memory against mesh size",
+        description=(
+            "The cantilever beam meshed at several resolutions, the same 5 x 128 MLP: fit time per 1000 steps "
+            "(a few timed steps, scaled), forward-pass time, latent step time, full-space step time and peak "
+            "memory per size (each size in its own process), and the growth exponent of each curve. See "
+            "redsim.benches.scaling."
+        ),
+    )
+    p.add_argument("--sizes", default="4,6,8,11", help="cross-section cells k per mesh (default 4,6,8,11)")
+    p.add_argument("--fit-steps", type=int, default=5, help="timed fit steps per size (default 5)")
+    p.add_argument("--latent-steps", type=int, default=5, help="timed latent steps per size (default 5)")
+    p.add_argument("--no-full", action="store_true", help="skip the full-space step")
+    p.add_argument("--out", metavar="DIR", help="write DIR/scaling.md and DIR/scaling.png")
+    finish_command(p, cmd_bench_scaling, "print one JSON document on stdout", default_threads=1)
