@@ -46,6 +46,7 @@ from torch import Tensor, nn
 from redsim.integrators import FullSpace, FullState, ImplicitEuler, LatentSpace, latent_equilibrium
 from redsim.integrators.reference import rest_state
 from redsim.runtime import LatentStepper
+from redsim.runtime.stepper import DEFAULT_HESSIAN, DEFAULT_MAX_ITER
 from redsim.scene import Scene
 
 SCENARIOS = ("push", "actions")
@@ -356,17 +357,18 @@ def configurations(
         if "stride" in options:
             options = {**options, "tol": reference_tol, "max_iter": 100}
         configs.append(Config(label, "full space", lambda loads, o=options: run_full(scene, q_rest, loads, dt=dt, **o)))
+    default = f"runtime f32 {DEFAULT_HESSIAN} {DEFAULT_MAX_ITER} it (default)"
     runtime_variants = {
         "neural": [
-            ("runtime f32 bfgs 20 it (default)", {}),
-            ("runtime f64 bfgs 20 it", {"dtype": torch.float64}),
+            (default, {}),
+            (f"runtime f64 {DEFAULT_HESSIAN} {DEFAULT_MAX_ITER} it", {"dtype": torch.float64}),
+            ("runtime f32 bfgs", {"hessian": "bfgs"}),
             ("runtime f32 exact Hessian", {"hessian": "exact"}),
-            ("runtime f32 gauss_newton", {"hessian": "gauss_newton"}),
-            ("runtime f32 bfgs 3 it", {"max_iter": 3}),
-            ("runtime f32 bfgs 1 it", {"max_iter": 1}),
+            ("runtime f32 3 it", {"max_iter": 3}),
+            ("runtime f32 1 it", {"max_iter": 1}),
         ],
-        "modes": [("runtime f32 bfgs 20 it (default)", {})],
-        "modal_derivatives": [("runtime f32 bfgs 20 it (default)", {})],
+        "modes": [(default, {})],
+        "modal_derivatives": [(default, {})],
     }
     for kind, subspace in subspaces.items():
         z0 = rests[kind]

@@ -196,6 +196,41 @@ def run_mujoco_chain(*, integrator: str, timestep: float, steps: int) -> dict[st
     }
 
 
+def _motion_norm(stepper: LatentStepper, z: Tensor) -> Tensor:
+    """f(z) [K, n] (float64, CPU) of latents z [K, d]."""
+    return stepper.positions(z.to(device=stepper.device, dtype=stepper.dtype)).to(torch.float64).cpu()
+
+
+def _m_norm(scene: Scene, v: Tensor) -> Tensor:
+    return (v * scene.to(dtype=torch.float64).mass_matvec(v)).sum(-1).clamp_min(0.0).sqrt()
+
+
+def one_step_error(stepper: LatentStepper, reference: Tensor, loads: Tensor) -> float:
+    """Largest |f(z_mine) - f(z_ref)|_M over the steps of a reference trajectory, relative to the largest
+    step |f(z_ref) - f(z_t)|_M.
+
+    Every reference step (z_t, z_{t-1}, loads_t) -> z_{t+1} is taken again by ``stepper`` from the
+    same state, all steps as one batch, so the error is one solve's, not an accumulated drift.
+    """
+    z_t = reference[:-1]
+    z_prev = torch.cat([reference[:1], reference[:-2]])
+    dtype, device = stepper.dtype, stepper.device
+    mine, _ = stepper.step(z_t.to(device, dtype), z_prev.to(device, dtype), loads.to(device, dtype))
+    q_mine, q_ref, q_t = (_motion_norm(stepper, u) for u in (mine, reference[1:], z_t))
+    scene = stepper.source_scene
+    motion = _m_norm(scene, q_ref - q_t)
+    return float(_m_norm(scene, q_mine - q_ref).max() / motion.max().clamp_min(1e-300))
+
+
+def _rollout_error(stepper: LatentStepper, reference: Tensor, mine: Tensor) -> float:
+    """Largest |f(z_mine) - f(z_ref)|_M over a rollout relative to the largest |f(z_ref) - f(z_0)|_M."""
+    count = reference.shape[0]
+    q_mine, q_ref = _motion_norm(stepper, mine[:count]), _motion_norm(stepper, reference)
+    scene = stepper.source_scene
+    motion = float(_m_norm(scene, q_ref - q_ref[:1]).max())
+    return float(_m_norm(scene, q_mine - q_ref).max()) / motion if motion > 0 else math.nan
+
+
 def compare_hessians(
     scene: Scene,
     subspace: nn.Module,
@@ -256,6 +291,7 @@ def bench_step(
         "eager": {},
         "compiled": {},
     }
+    row["step_error"] = one_step_error(stepper, reference["trajectory"], loads[:reference_steps, 0])
     variants = [("eager", stepper)]
     if compiled:
         variants.append(("compiled", LatentStepper(scene, subspace, dt, device=device, compile=True)))
@@ -264,10 +300,7 @@ def bench_step(
             result = run_stepper(runner, z_rest.expand(b, -1).clone(), loads[:, :b])
             trajectory = result.pop("trajectory")
             if b == 1 and label == "eager":
-                ref = reference["trajectory"].to(trajectory.dtype)
-                mine = trajectory[: ref.shape[0], 0]
-                motion = float((ref - ref[0]).abs().max())
-                row["trajectory_error"] = float((mine - ref).abs().max()) / motion if motion > 0 else math.nan
+                row["trajectory_error"] = _rollout_error(runner, reference["trajectory"], trajectory[:, 0])
             row[label][str(b)] = result
     row["speedup"] = {
         label: {b: r["env_steps_per_s"] / reference["env_steps_per_s"] for b, r in row[label].items()}
@@ -277,15 +310,78 @@ def bench_step(
     return row
 
 
+STEP_SCENES = ("mini_chain", "chain", "klann", "bistable_bar", "hanging_sheet", "cloth_ball")
+"""The scenes of `redsim bench step` by default."""
+
+
+def mujoco_rows(*, steps: int = 5000) -> list[dict[str, Any]] | None:
+    """The MuJoCo chain with RK4 at dt 0.01 and Euler at dt 0.002 (None without mujoco)."""
+    rows = [
+        run_mujoco_chain(integrator="RK4", timestep=0.01, steps=steps),
+        run_mujoco_chain(integrator="Euler", timestep=0.002, steps=steps),
+    ]
+    return None if rows[0] is None else [r for r in rows if r is not None]
+
+
+def step_table(rows: list[dict[str, Any]], mujoco: list[dict[str, Any]] | None, dt: float) -> list[str]:
+    """The human-readable lines of `redsim bench step` for ``rows`` of :func:`bench_step`."""
+    lines = []
+    batches = list(rows[0]["eager"]) if rows else []
+    head = f"{'scene':<14} {'n':>6} {'d':>2} {'path':<9} " + " ".join(f"{'B=' + b:>9}" for b in batches)
+    lines.append("env-steps/s (iterations/step, converged %) per batch size B; reference and full space at B = 1")
+    lines.append(head + "   its  conv%")
+    lines.append("-" * (len(head) + 13))
+    for row in rows:
+        ref, full = row["reference"], row["full_space"]
+        lead = f"{row['scene']:<14} {row['n']:>6} {row['d']:>2}"
+        cells = " ".join(f"{ref['env_steps_per_s']:>9.3g}" for _ in batches)
+        its, conv = ref["iterations_per_step"], 100 * ref["converged_fraction"]
+        lines.append(f"{lead} {'reference':<9} {cells}  {its:>4.1f} {conv:>6.1f}")
+        for label in ("eager", "compiled"):
+            if not row[label]:
+                continue
+            results = row[label]
+            cells = " ".join(f"{results[b]['env_steps_per_s']:>9.3g}" for b in batches)
+            its = statistics.fmean(r["iterations_per_step"] for r in results.values())
+            conv = min(r["converged_fraction"] for r in results.values())
+            lines.append(f"{'':<23} {label:<9} {cells}  {its:>4.1f} {100 * conv:>6.1f}")
+            speed = " ".join(f"{row['speedup'][label][b]:>8.3g}x" for b in batches)
+            lines.append(f"{'':<23} {'speedup':<9} {speed}")
+        lines.append(
+            f"{'':<23} {'full':<9} {full['env_steps_per_s']:>9.3g} (B = 1, {full['iterations_per_step']:.1f} its); "
+            f"vs reference: one step {row['step_error']:.2g}, "
+            f"rollout {row.get('trajectory_error', math.nan):.2g} of the motion"
+        )
+    if mujoco is None:
+        lines.append("mujoco is not installed (pip install 'redsim[bench]'): MuJoCo chain skipped")
+    else:
+        chain = next((r for r in rows if r["scene"] == "chain"), None)
+        for m in mujoco:
+            lines.append(
+                f"MuJoCo chain nv={m['nv']} {m['integrator']} dt={m['timestep']}: {m['steps_per_s']:.3g} steps/s, "
+                f"{m['sim_s_per_wall_s']:.3g} sim-s/s"
+            )
+            if chain is not None:
+                for label in ("eager", "compiled"):
+                    for b, r in chain[label].items():
+                        ratio = r["env_steps_per_s"] * dt / m["sim_s_per_wall_s"]
+                        lines.append(f"    latent chain {label} B={b}: {ratio:.3g}x MuJoCo's sim-s/s")
+    return lines
+
+
 __all__ = [
     "LOAD_EVERY",
     "LOAD_FRACTION",
+    "STEP_SCENES",
     "bench_step",
     "compare_hessians",
     "load_magnitudes",
     "load_sequence",
     "mujoco_chain_xml",
+    "mujoco_rows",
+    "one_step_error",
     "run_mujoco_chain",
     "run_reference",
     "run_stepper",
+    "step_table",
 ]
