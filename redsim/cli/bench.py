@@ -21,6 +21,7 @@ from redsim.cli.common import (
     check_scene_name,
     finish_command,
     json_out,
+    note,
     out,
     parse_list,
     warn,
@@ -347,7 +348,7 @@ def cmd_bench_accuracy(args: argparse.Namespace) -> int:
         seed=args.seed,
         full=full,
         study=not args.no_study,
-        progress=None if args.json else warn,
+        progress=None if args.json else note,
     )
     machine = machine_info()
     result["machine"] = machine
