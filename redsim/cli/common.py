@@ -68,6 +68,11 @@ def warn(text: str) -> None:
     print(f"redsim: warning: {text}", file=sys.stderr, flush=True)
 
 
+def note(text: str) -> None:
+    """A progress line on stderr (stdout stays the command's result)."""
+    print(text, file=sys.stderr, flush=True)
+
+
 def error(text: str) -> None:
     print(f"redsim: error: {text}", file=sys.stderr, flush=True)
 
