@@ -13,7 +13,7 @@ from pathlib import Path
 
 ROOT = Path(__file__).resolve().parents[1]
 FOLDERS = {"redsim": ROOT / "redsim", "redsim.envs": ROOT / "envs", "redsim.trainers": ROOT / "trainers"}
-TOP = ("redsim.cli", "redsim.bench", "redsim.__main__")
+TOP = ("redsim.cli", "redsim.bench", "redsim.benches", "redsim.__main__")
 """The command line (and ``python -m redsim``) and the benchmarks sit on top: nothing else imports them."""
 UPPER = ("redsim.envs", "redsim.trainers", *TOP)
 """What the engine never imports."""

@@ -10,6 +10,7 @@ from typing import Any
 import torch
 
 import redsim
+from redsim.cli import cubature
 from redsim.cli.common import (
     DTYPES,
     EXIT_OK,
@@ -21,9 +22,13 @@ from redsim.cli.common import (
     check_scene_name,
     finish_command,
     json_out,
+    note,
     out,
     parse_list,
     warn,
+)
+from redsim.cli.common import (
+    machine_line as _machine_line,
 )
 from redsim.subspace import checkpoint_path
 
@@ -125,18 +130,6 @@ def _subspace_row(row: dict[str, Any]) -> str:
             line += f"  crank turn {result['loop']['turn_degrees']:.0f} deg (winding {result['loop']['winding']})"
         lines.append(line)
     return "\n".join(lines)
-
-
-def _machine_line(machine: dict[str, Any], device: str) -> str:
-    load = machine["load_average_1min"]
-    cpu = machine["processor"]
-    cpu = cpu if cpu == machine["machine"] else f"{cpu} ({machine['machine']})"
-    return (
-        f"machine: {cpu}, {machine['cpu_count']} CPUs"
-        + (f" (load {load:.2f})" if load is not None else "")
-        + f", torch {machine['torch']}, {machine['torch_threads']} threads, device {device}"
-        + (f" ({machine['cuda_device']})" if device.startswith("cuda") else "")
-    )
 
 
 def cmd_bench_energy(args: argparse.Namespace) -> int:
@@ -322,6 +315,77 @@ def cmd_bench_fit(args: argparse.Namespace) -> int:
     return EXIT_OK
 
 
+def cmd_bench_accuracy(args: argparse.Namespace) -> int:
+    from redsim import pretrained
+    from redsim.bench import machine_info
+    from redsim.benches import accuracy
+
+    if args.scene not in accuracy.PLANS:
+        raise CliError(f"bench accuracy runs on {', '.join(accuracy.PLANS)}; got {args.scene!r}")
+    scenarios = tuple(parse_list(args.scenarios, "--scenarios"))
+    unknown = [s for s in scenarios if s not in accuracy.SCENARIOS]
+    full = tuple(parse_list(args.full, "--full")) if args.full != "none" else ()
+    unknown += [k for k in full if k not in accuracy.FULL_VARIANTS]
+    if unknown or args.steps < 10:
+        raise CliError(
+            f"--scenarios must be from {', '.join(accuracy.SCENARIOS)}, --full from "
+            f"{', '.join(accuracy.FULL_VARIANTS)} (or none), --steps >= 10; got {unknown or args.steps}"
+        )
+    scene = redsim.scenes.build(args.scene)
+    result = accuracy.bench_accuracy(
+        scene,
+        pretrained.load(args.scene, scene),
+        steps=args.steps,
+        scenarios=scenarios,
+        seed=args.seed,
+        full=full,
+        study=not args.no_study,
+        progress=None if args.json else note,
+    )
+    machine = machine_info()
+    result["machine"] = machine
+    line = _machine_line(machine, "cpu")
+    paths = accuracy.write_outputs(result, Path(args.out), line) if args.out else []
+    if args.json:
+        json_out(result)
+    else:
+        out(accuracy.report(result, line))
+        if paths:
+            out("wrote " + ", ".join(str(p) for p in paths))
+    return EXIT_OK
+
+
+def cmd_bench_scaling(args: argparse.Namespace) -> int:
+    from redsim.bench import machine_info
+    from redsim.benches import scaling
+
+    try:
+        sizes = tuple(int(k) for k in parse_list(args.sizes, "--sizes"))
+    except ValueError as err:
+        raise CliError(f"--sizes must be comma-separated integers, got {args.sizes!r}") from err
+    if min(sizes) < 1 or args.fit_steps < 1 or args.latent_steps < 1:
+        raise CliError("--sizes, --fit-steps and --latent-steps must be >= 1")
+    threads = args.threads or 1
+    result = scaling.bench_scaling(
+        sizes, threads=threads, fit_steps=args.fit_steps, latent_steps=args.latent_steps, full=not args.no_full
+    )
+    machine = machine_info()
+    result["machine"] = machine
+    line = _machine_line({**machine, "torch_threads": threads}, "cpu")
+    if args.out:
+        folder = Path(args.out)
+        folder.mkdir(parents=True, exist_ok=True)
+        (folder / "scaling.md").write_text(f"{line}\n\n{scaling.markdown_table(result)}\n")
+        scaling.scaling_png(result, folder / "scaling.png", line)
+    if args.json:
+        json_out(result)
+    else:
+        out("bench scaling: cantilever beam (cells_x = 5k, cells_yz = k), 5 x 128 MLP, each size in its own process")
+        out(line)
+        out(scaling.markdown_table(result))
+    return EXIT_OK
+
+
 def add_commands(sub: Any) -> Any:
     """Add ``bench`` and its subcommands to the subcommands ``sub``; returns the ``bench`` subcommands."""
     p = sub.add_parser("bench", help="benchmarks", description="Benchmarks; each prints the machine it ran on.")
@@ -422,4 +486,46 @@ def add_commands(sub: Any) -> Any:
     p.add_argument("--device", default="cpu", help="torch device of the stepper (default cpu)")
     p.add_argument("--seed", type=int, default=0, help="seed of the load sequences (default 0)")
     finish_command(p, cmd_bench_step, "print one JSON document on stdout", default_threads=1)
+
+    p = bench.add_parser(
+        "accuracy",
+        help="trajectory error vs time per step against a converged full-space reference",
+        description=(
+            "Seeded load scenarios (env-style actions on the scene's handle) from the full-space rest; the "
+            "float64 full-space trajectory is the reference. Per configuration (full space loosened; the shipped "
+            "neural subspace, linear modes and modal derivatives of its d from their own rest; runtime options): "
+            "median wall time per step and the relative M-norm and handle (cm) trajectory errors. See "
+            "redsim.benches.accuracy."
+        ),
+    )
+    p.add_argument("scene", help="one of mini_chain, chain, bistable_bar, hanging_sheet")
+    p.add_argument("--steps", type=int, default=100, help="steps per scenario (default 100)")
+    p.add_argument("--scenarios", default="push,actions", help="push and/or actions (default both)")
+    p.add_argument("--seed", type=int, default=0, help="seed of the actions scenario (default 0)")
+    p.add_argument(
+        "--full",
+        default="tol,newton1,newton3,dt2,dt5",
+        help="loosened full-space runs: tol (1e-3), newton1, newton3 (iterations), dt2, dt5 (time step), or none",
+    )
+    p.add_argument("--no-study", action="store_true", help="skip the start study (push scenario)")
+    p.add_argument("--out", metavar="DIR", help="write DIR/accuracy_SCENE.md, .csv and .png")
+    finish_command(p, cmd_bench_accuracy, "print one JSON document on stdout", default_threads=1)
+
+    p = bench.add_parser(
+        "scaling",
+        help="fit, forward, latent and full-space step time and memory against mesh size",
+        description=(
+            "The cantilever beam meshed at several resolutions, the same 5 x 128 MLP: fit time per 1000 steps "
+            "(a few timed steps, scaled), forward-pass time, latent step time, full-space step time and peak "
+            "memory per size (each size in its own process), and the growth exponent of each curve. See "
+            "redsim.benches.scaling."
+        ),
+    )
+    p.add_argument("--sizes", default="4,6,8,11", help="cross-section cells k per mesh (default 4,6,8,11)")
+    p.add_argument("--fit-steps", type=int, default=5, help="timed fit steps per size (default 5)")
+    p.add_argument("--latent-steps", type=int, default=5, help="timed latent steps per size (default 5)")
+    p.add_argument("--no-full", action="store_true", help="skip the full-space step")
+    p.add_argument("--out", metavar="DIR", help="write DIR/scaling.md and DIR/scaling.png")
+    finish_command(p, cmd_bench_scaling, "print one JSON document on stdout", default_threads=1)
+    cubature.add_bench_command(bench)
     return bench

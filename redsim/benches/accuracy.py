@@ -1,0 +1,694 @@
+"""`redsim bench accuracy SCENE`: what accuracy costs in time, against a converged full-space reference.
+
+For each seeded scenario of a scene (loads on one handle as the environments apply them: an
+action in [-1, 1]^D times the env's ``max_force``, :data:`PLANS`), the reference is float64
+full-space implicit Euler (:class:`redsim.integrators.ImplicitEuler` over :class:`FullSpace`,
+Newton, converged to ``PLANS[scene].reference_tol``) started from the full-space rest
+equilibrium (:func:`redsim.integrators.reference.rest_state`). Every configuration runs the same
+loads side by side in one process:
+
+- full space, loosened: a looser tolerance, a fixed small number of Newton iterations, a larger
+  time step (compared at the reference's times it lands on);
+- subspaces of the same d: the shipped neural map, linear modes and modal derivatives (both
+  built at the full rest state, σ of the neural fit), each stepped by the runtime
+  (:class:`redsim.runtime.LatentStepper`, B = 1, float32 or float64, its Hessian models and
+  iteration budgets) and by the converged latent reference (``ImplicitEuler(LatentSpace)``,
+  float64 Newton), which separates the subspace's error from the solver's.
+
+A latent run starts from the subspace's own rest (its unloaded equilibrium z*), so a subspace
+whose rest is not a full-space equilibrium does not count its fall as error; the offset between
+the two rests is reported on its own (``rest offset``). Errors compare displacements from each
+run's own start:
+
+    e(t) = |(q(t) - q(0)) - (q_ref(t) - q_ref(0))|_M / max_s |q_ref(s) - q_ref(0)|_M,
+
+its mean over the steps, and the same for the handle's position in cm (``handle cm``: mean of
+|Δp(t) - Δp_ref(t)|). ``projection`` is the floor no latent solver can beat: the mean over every
+10th step of min_z |(f(z) - f(z*)) - (q_ref(t) - q_ref(0))|_M, relative as e(t).
+"""
+
+from __future__ import annotations
+
+import contextlib
+import csv
+import logging
+import math
+import statistics
+import time
+from collections.abc import Callable, Iterator
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any
+
+import torch
+from torch import Tensor, nn
+
+from redsim.integrators import FullSpace, FullState, ImplicitEuler, LatentSpace, latent_equilibrium
+from redsim.integrators.reference import rest_state
+from redsim.runtime import LatentStepper
+from redsim.runtime.stepper import DEFAULT_HESSIAN, DEFAULT_MAX_ITER
+from redsim.scene import Scene
+
+SCENARIOS = ("push", "actions")
+"""``push``: a constant unit action along +x (the issue's sideways load); ``actions``: seeded uniform
+random actions in [-1, 1]^D, each held for :data:`HOLD_STEPS` steps."""
+HOLD_STEPS = 10
+"""Steps an action of the ``actions`` scenario is held (dt multiples of the coarse runs divide it)."""
+DT = 0.02
+"""Time step of the reference and of the envs [s]."""
+PROJECTION_EVERY = 10
+"""Reference steps between the states the projection floor is measured on."""
+
+
+@dataclass(frozen=True)
+class Plan:
+    """What the accuracy bench does on one scene.
+
+    Attributes:
+        handle: The handle the actions push (the env's).
+        max_force: Force [N] of a unit action (the env's ``max_force``).
+        reference_tol: Relative gradient tolerance of the full-space reference steps.
+        note: Why, in one line.
+    """
+
+    handle: str
+    max_force: float
+    reference_tol: float = 1e-8
+    note: str = ""
+
+
+PLANS: dict[str, Plan] = {
+    "mini_chain": Plan("bottom", 15.0, note="RedSim/MiniChain-v0's handle and max_force"),
+    "chain": Plan("bottom", 40.0, note="RedSim/Chain-v0's handle and max_force"),
+    "hanging_sheet": Plan(
+        "bottom_left",
+        2.0,
+        reference_tol=1e-4,
+        note="RedSim/HangingCloth-v0's corner and max_force; the sheet's Newton stalls near 3e-5 of its "
+        "forces (tol 1e-5 and 1e-6 steps end unconverged at |g| ~ 1e-3 N), so 1e-4 is the converged reference",
+    ),
+    "bistable_bar": Plan(
+        "middle",
+        200.0,
+        note="no env yet: 200 N on the middle column moves it ~1/3 of the bar's height against the arch",
+    ),
+}
+"""The scenes the bench knows, with their handle and load scale."""
+
+
+def plan(scene_name: str) -> Plan:
+    """The :class:`Plan` of a scene (ValueError listing the known ones)."""
+    if scene_name not in PLANS:
+        raise ValueError(f"bench accuracy knows scenes {sorted(PLANS)}, not {scene_name!r}")
+    return PLANS[scene_name]
+
+
+def scenario_loads(scene: Scene, scenario: str, steps: int, *, seed: int = 0) -> Tensor:
+    """Loads [steps, H, D] [N] (float64) of a seeded scenario on the scene's :data:`PLANS` handle."""
+    if scenario not in SCENARIOS:
+        raise ValueError(f"unknown scenario {scenario!r}; valid: {list(SCENARIOS)}")
+    if int(steps) != steps or steps < 1:
+        raise ValueError(f"steps must be an integer >= 1, got {steps!r}")
+    p = plan(scene.name)
+    if p.handle not in scene.handle_names:
+        raise ValueError(f"scene {scene.name!r} has no handle {p.handle!r}; valid: {list(scene.handle_names)}")
+    h = scene.handle_names.index(p.handle)
+    loads = torch.zeros(steps, len(scene.handles), scene.dim, dtype=torch.float64)
+    if scenario == "push":
+        loads[:, h, 0] = p.max_force
+        return loads
+    g = torch.Generator().manual_seed(seed)
+    for start in range(0, steps, HOLD_STEPS):
+        action = 2.0 * torch.rand(scene.dim, generator=g, dtype=torch.float64) - 1.0
+        loads[start : start + HOLD_STEPS, h] = action * p.max_force
+    return loads
+
+
+@contextlib.contextmanager
+def _quiet(name: str = "redsim.integrators.implicit_euler") -> Iterator[None]:
+    """Silence the per-step non-convergence warnings (the bench counts them instead)."""
+    logger = logging.getLogger(name)
+    level = logger.level
+    logger.setLevel(logging.ERROR)
+    try:
+        yield
+    finally:
+        logger.setLevel(level)
+
+
+@dataclass
+class Run:
+    """One configuration's trajectory and cost.
+
+    Attributes:
+        q: Free configurations [T + 1, n] (float64) at the reference's times ``times`` (step indices).
+        times: Reference step index of each row of q, int64 [T + 1].
+        step_s: Wall time of each step [s].
+        stride: Reference steps per step (the dt multiple).
+        failed: Steps the solver reported as not converged.
+        flagged: Steps the runtime flagged ``diverged`` (latent runs).
+        out_of_range: Steps flagged ``out_of_range`` (latent runs).
+        nonfinite: Steps whose state was not finite (must be 0).
+    """
+
+    q: Tensor
+    times: Tensor
+    step_s: list[float]
+    stride: int = 1
+    failed: int = 0
+    flagged: int = 0
+    out_of_range: int = 0
+    nonfinite: int = 0
+
+
+def run_full(
+    scene: Scene, q0: Tensor, loads: Tensor, *, dt: float = DT, stride: int = 1, tol: float = 1e-8, max_iter: int = 50
+) -> Run:
+    """Full-space float64 implicit Euler from rest q0 [n] through loads [T, H, D] every ``stride`` steps."""
+    scene64 = scene.to(dtype=torch.float64)
+    integrator = ImplicitEuler(FullSpace(scene64), dt * stride, tol=tol, max_iter=max_iter)
+    state = FullState(q0.clone(), q0.clone(), 0.0)
+    qs, times, failed, nonfinite = [q0.clone()], [], 0, 0
+    with _quiet():
+        for i in range(0, loads.shape[0] - stride + 1, stride):
+            start = time.perf_counter()
+            state, info = integrator.step(state, loads[i])
+            times.append(time.perf_counter() - start)
+            failed += not info.converged
+            nonfinite += not bool(torch.isfinite(state.q).all())
+            qs.append(state.q.clone())
+    index = torch.arange(len(qs), dtype=torch.int64) * stride
+    return Run(torch.stack(qs), index, times, stride, failed, 0, 0, nonfinite)
+
+
+def run_latent_reference(scene: Scene, subspace: nn.Module, z0: Tensor, loads: Tensor, *, dt: float = DT) -> Run:
+    """The converged latent solve: ``ImplicitEuler(LatentSpace(scene, f))`` (float64 Newton, tol 1e-8) from z0 [d]."""
+    space = LatentSpace(scene.to(dtype=torch.float64), subspace)
+    integrator = ImplicitEuler(space, dt)
+    state = FullState(z0.clone(), z0.clone(), 0.0)
+    zs, times, failed = [z0.clone()], [], 0
+    with _quiet():
+        for i in range(loads.shape[0]):
+            start = time.perf_counter()
+            state, info = integrator.step(state, loads[i])
+            times.append(time.perf_counter() - start)
+            failed += not info.converged
+            zs.append(state.q.clone())
+    with torch.no_grad():
+        q = space.configuration(torch.stack(zs))
+    nonfinite = int((~torch.isfinite(q).all(-1)).sum())
+    return Run(q, torch.arange(q.shape[0]), times, 1, failed, 0, 0, nonfinite)
+
+
+def run_runtime(stepper: LatentStepper, z0: Tensor, loads: Tensor) -> Run:
+    """The runtime (B = 1) from rest z0 [d] through loads [T, H, D]; q = f(z) in float64 afterwards."""
+    z = z0.to(stepper.dtype).reshape(1, -1)
+    stepper.step(z, z, loads[0:1].to(stepper.dtype))  # warm-up: first-call allocations stay out of the times
+    z_prev = z.clone()
+    zs, times = [z.clone()], []
+    failed = flagged = out_of_range = 0
+    for i in range(loads.shape[0]):
+        start = time.perf_counter()
+        z_next, stats = stepper.step(z, z_prev, loads[i : i + 1])
+        times.append(time.perf_counter() - start)
+        failed += int((~stats.converged).sum())
+        flagged += int(stats.diverged.sum())
+        out_of_range += int(stats.out_of_range.sum())
+        z_prev, z = z, z_next
+        zs.append(z.clone())
+    space = LatentSpace(stepper.source_scene.to(dtype=torch.float64), stepper.subspace)
+    with torch.no_grad():
+        q = space.configuration(torch.cat(zs).to(torch.float64))
+    nonfinite = int((~torch.isfinite(q).all(-1)).sum())
+    return Run(q, torch.arange(q.shape[0]), times, 1, failed, flagged, out_of_range, nonfinite)
+
+
+def _m_norm(scene64: Scene, v: Tensor) -> Tensor:
+    """|v|_M [kg^1/2 m] of rows v [T, n]."""
+    return (v * scene64.mass_matvec(v)).sum(-1).clamp_min(0.0).sqrt()
+
+
+def handle_positions(scene64: Scene, q: Tensor, handle: str) -> Tensor:
+    """Position [T, D] [m] of a handle at free configurations q [T, n]."""
+    h = scene64.handles[scene64.handle_names.index(handle)]
+    return h.position(scene64.full_positions(q))
+
+
+def trajectory_errors(scene64: Scene, run: Run, reference: Run, handle: str) -> dict[str, float]:
+    """Errors of a run against the reference (module doc): rel. M error (mean, final), handle cm, rest offset."""
+    ref_q = reference.q[run.times]
+    ref_d = ref_q - reference.q[0]
+    scale = float(_m_norm(scene64, reference.q - reference.q[0]).max()) or 1.0
+    d = run.q - run.q[0]
+    rel = _m_norm(scene64, d - ref_d) / scale
+    p, p_ref = handle_positions(scene64, run.q, handle), handle_positions(scene64, ref_q, handle)
+    cm = 100.0 * torch.linalg.vector_norm((p - p[0]) - (p_ref - p_ref[0]), dim=-1)
+    raw = _m_norm(scene64, run.q - ref_q) / scale
+    return {
+        "rel_error_mean": float(rel[1:].mean()),
+        "rel_error_final": float(rel[-1]),
+        "handle_cm_mean": float(cm[1:].mean()),
+        "handle_cm_max": float(cm.max()),
+        "raw_error_final": float(raw[-1]),
+        "rest_offset": float(raw[0]),
+        "rest_offset_cm": 100.0 * float(torch.linalg.vector_norm(p[0] - p_ref[0])),
+        "motion_scale": scale,
+        "handle_motion_cm": 100.0 * float(torch.linalg.vector_norm(p_ref - p_ref[0], dim=-1).max()),
+    }
+
+
+def project(
+    scene64: Scene, subspace: nn.Module, z_rest: Tensor, displacement: Tensor, z_start: Tensor
+) -> tuple[float, Tensor]:
+    """min_z |(f(z) - f(z*)) - displacement|_M [kg^1/2 m] over z by L-BFGS (strong Wolfe, float64) from z_start [d].
+
+    Returns:
+        The smallest M-norm found and its z [d].
+    """
+    space = LatentSpace(scene64, subspace)
+    with torch.no_grad():
+        target = space.configuration(z_rest.reshape(1, -1))[0] + displacement
+    size = float(_m_norm(scene64, displacement.unsqueeze(0))[0]) or 1.0
+    z = z_start.detach().clone().reshape(1, -1).requires_grad_(True)
+    optimizer = torch.optim.LBFGS([z], max_iter=200, line_search_fn="strong_wolfe", tolerance_grad=1e-12)
+
+    def closure() -> Tensor:
+        optimizer.zero_grad()
+        r = space.configuration(z) - target
+        loss = 0.5 * (r * scene64.mass_matvec(r)).sum() / size**2
+        loss.backward()
+        return loss
+
+    with torch.enable_grad():
+        optimizer.step(closure)
+    with torch.no_grad():
+        r = space.configuration(z) - target
+    return float(_m_norm(scene64, r)[0]), z.detach()[0]
+
+
+def projection_floor(
+    scene64: Scene, subspace: nn.Module, z_rest: Tensor, reference: Run, *, every: int = PROJECTION_EVERY
+) -> float:
+    """Mean over every ``every``-th reference step of :func:`project` of Δq_ref(t), relative as e(t) (module doc).
+
+    Each minimization is warm-started from the last one's z.
+    """
+    scale = float(_m_norm(scene64, reference.q - reference.q[0]).max()) or 1.0
+    z, errors = z_rest.clone(), []
+    for t in range(every, reference.q.shape[0], every):
+        error, z = project(scene64, subspace, z_rest, reference.q[t] - reference.q[0], z)
+        errors.append(error / scale)
+    return statistics.fmean(errors) if errors else math.nan
+
+
+FULL_VARIANTS: dict[str, tuple[str, dict[str, Any]]] = {
+    "tol": ("full tol 1e-3", {"tol": 1e-3}),
+    "newton1": ("full 1 Newton iteration", {"max_iter": 1}),
+    "newton3": ("full 3 Newton iterations", {"max_iter": 3}),
+    "dt2": ("full dt x2", {"stride": 2}),
+    "dt5": ("full dt x5", {"stride": 5}),
+}
+"""The loosened full-space configurations: key -> (label, :func:`run_full` options)."""
+
+
+@dataclass(frozen=True)
+class Config:
+    """One row of the bench: a label, its family (for the plot), and how to run it."""
+
+    label: str
+    family: str
+    run: Callable[[Tensor], Run]
+    subspace: str | None = None
+
+
+def _subspaces(scene: Scene, neural: nn.Module) -> dict[str, nn.Module]:
+    """The shipped neural map and linear modes / modal derivatives of its d and σ at the full rest state."""
+    from redsim.baselines import modal_analysis, modal_derivatives
+
+    dim = int(neural.latent_dim)
+    sigma = float(neural.metadata["fit"]["sigma"]) if hasattr(neural, "metadata") else 1.0
+    rest, _ = rest_state(scene)
+    modes = modal_analysis(scene, dim, sigma=sigma, rest=rest)
+    derivatives = modal_derivatives(scene, dim, sigma=sigma, rest=modes.offset)
+    return {"neural": neural, "modes": modes, "modal_derivatives": derivatives}
+
+
+def configurations(
+    scene: Scene,
+    subspaces: dict[str, nn.Module],
+    rests: dict[str, Tensor],
+    *,
+    dt: float = DT,
+    reference_tol: float = 1e-8,
+    full: tuple[str, ...] = tuple(FULL_VARIANTS),
+) -> list[Config]:
+    """The configurations of the bench (module doc), in table order; ``rests`` holds each map's z*.
+
+    ``full`` picks keys of :data:`FULL_VARIANTS`; the larger-dt runs keep the reference's tolerance,
+    so only the time step differs.
+    """
+    q_rest, _ = rest_state(scene)
+    configs: list[Config] = []
+    for key in full:
+        if key not in FULL_VARIANTS:
+            raise ValueError(f"unknown full-space variant {key!r}; valid: {list(FULL_VARIANTS)}")
+    for key in full:
+        label, options = FULL_VARIANTS[key]
+        if "stride" in options:
+            options = {**options, "tol": reference_tol, "max_iter": 100}
+        configs.append(Config(label, "full space", lambda loads, o=options: run_full(scene, q_rest, loads, dt=dt, **o)))
+    default = f"runtime f32 {DEFAULT_HESSIAN} {DEFAULT_MAX_ITER} it (default)"
+    runtime_variants = {
+        "neural": [
+            (default, {}),
+            (f"runtime f64 {DEFAULT_HESSIAN} {DEFAULT_MAX_ITER} it", {"dtype": torch.float64}),
+            ("runtime f32 bfgs", {"hessian": "bfgs"}),
+            ("runtime f32 exact Hessian", {"hessian": "exact"}),
+            ("runtime f32 3 it", {"max_iter": 3}),
+            ("runtime f32 1 it", {"max_iter": 1}),
+        ],
+        "modes": [(default, {})],
+        "modal_derivatives": [(default, {})],
+    }
+    for kind, subspace in subspaces.items():
+        z0 = rests[kind]
+        configs.append(
+            Config(
+                f"{kind}: latent reference f64 Newton",
+                kind,
+                lambda loads, s=subspace, z=z0: run_latent_reference(scene, s, z, loads, dt=dt),
+                kind,
+            )
+        )
+        for label, options in runtime_variants.get(kind, []):
+            configs.append(
+                Config(
+                    f"{kind}: {label}",
+                    kind,
+                    lambda loads, s=subspace, z=z0, o=options: run_runtime(LatentStepper(scene, s, dt, **o), z, loads),
+                    kind,
+                )
+            )
+    return configs
+
+
+def start_study(
+    scene: Scene, neural: nn.Module, z_rest: Tensor, loads: Tensor, reference: Run, *, dt: float = DT
+) -> dict[str, float]:
+    """The issue's comparison, taken apart, at the last step of ``loads`` (the ``push`` scenario).
+
+    - ``same_start``: runtime latent run and full-space run both from f(z*) (not a full-space
+      equilibrium): |q_lat(T) - q_full'(T)|_M / |q_full'(T) - q_full'(0)|_M (the measured 0.99);
+    - ``own_rests``: the runtime run from z* against the reference from the full rest, displacements
+      compared: |Δq_lat(T) - Δq_ref(T)|_M / |Δq_ref(T)|_M;
+    - ``own_rests_converged``: the same with the converged latent solve;
+    - ``projection``: min_z |(f(z) - f(z*)) - Δq_ref(T)|_M / |Δq_ref(T)|_M, the subspace's floor;
+    - ``full_fall``: how far the full-space run from f(z*) moves without any load being needed
+      (|q_full'(T) - q_full'(0)|_M against the reference's |Δq_ref(T)|_M).
+    """
+    scene64 = scene.to(dtype=torch.float64)
+    space = LatentSpace(scene64, neural)
+    with torch.no_grad():
+        q_start = space.configuration(z_rest.reshape(1, -1))[0]
+    fallen = run_full(scene, q_start, loads, dt=dt)
+    latent = run_runtime(LatentStepper(scene, neural, dt), z_rest, loads)
+    converged = run_latent_reference(scene, neural, z_rest, loads, dt=dt)
+    ref_d = reference.q[-1] - reference.q[0]
+    size = float(_m_norm(scene64, ref_d.unsqueeze(0))[0]) or 1.0
+
+    def norm(v: Tensor) -> float:
+        return float(_m_norm(scene64, v.unsqueeze(0))[0])
+
+    fall = norm(fallen.q[-1] - fallen.q[0])
+    floor, _ = project(scene64, neural, z_rest, ref_d, z_rest)
+    return {
+        "steps": int(loads.shape[0]),
+        "same_start": norm(latent.q[-1] - fallen.q[-1]) / (fall or 1.0),
+        "own_rests": norm((latent.q[-1] - latent.q[0]) - ref_d) / size,
+        "own_rests_converged": norm((converged.q[-1] - converged.q[0]) - ref_d) / size,
+        "projection": floor / size,
+        "full_fall": fall / size,
+        "latent_motion": norm(latent.q[-1] - latent.q[0]) / size,
+    }
+
+
+def bench_accuracy(
+    scene: Scene,
+    neural: nn.Module,
+    *,
+    steps: int = 100,
+    scenarios: tuple[str, ...] = SCENARIOS,
+    seed: int = 0,
+    dt: float = DT,
+    full: tuple[str, ...] = tuple(FULL_VARIANTS),
+    study: bool = True,
+    study_steps: int = 50,
+    progress: Callable[[str], None] | None = None,
+) -> dict[str, Any]:
+    """All rows of one scene (module doc).
+
+    Args:
+        scene: A scene of :data:`PLANS`.
+        neural: Its fitted neural map (the shipped one in the CLI).
+        steps: Steps per scenario (>= 10).
+        scenarios: Names from :data:`SCENARIOS`.
+        seed: Seed of the ``actions`` scenario.
+        dt: Reference time step [s].
+        full: Keys of the loosened full-space configurations to run (:data:`FULL_VARIANTS`).
+        study: Run :func:`start_study` on the ``push`` loads (``study_steps`` steps).
+        progress: Called with one line per finished configuration.
+
+    Returns:
+        ``scene``, ``n``, ``d``, ``plan``, ``rows`` (one dict per scenario and configuration, the
+        reference included) and ``study``.
+
+    Raises:
+        ValueError: an unknown scene, scenario or a bad count.
+    """
+    p = plan(scene.name)
+    if int(steps) != steps or steps < 10:
+        raise ValueError(f"steps must be an integer >= 10, got {steps!r}")
+    for name in scenarios:
+        if name not in SCENARIOS:
+            raise ValueError(f"unknown scenario {name!r}; valid: {list(SCENARIOS)}")
+    scene64 = scene.to(dtype=torch.float64)
+    q_rest, rest_converged = rest_state(scene)
+    subspaces = _subspaces(scene, neural)
+    rests = {}
+    for kind, subspace in subspaces.items():
+        z, _ = latent_equilibrium(LatentSpace(scene64, subspace), None)
+        rests[kind] = z
+    configs = configurations(scene, subspaces, rests, dt=dt, reference_tol=p.reference_tol, full=full)
+    rows: list[dict[str, Any]] = []
+    out: dict[str, Any] = {
+        "scene": scene.name,
+        "n": scene.free_dof_count,
+        "d": int(neural.latent_dim),
+        "dt": dt,
+        "steps": steps,
+        "plan": {"handle": p.handle, "max_force": p.max_force, "reference_tol": p.reference_tol, "note": p.note},
+        "rest_converged": bool(rest_converged),
+        "rows": rows,
+    }
+    for scenario in scenarios:
+        loads = scenario_loads(scene, scenario, steps, seed=seed)
+        reference = run_full(scene, q_rest, loads, dt=dt, tol=p.reference_tol, max_iter=100)
+        ref_median = statistics.median(reference.step_s)
+        rows.append(_row(scenario, "full reference", "reference", reference, reference, scene64, p.handle, ref_median))
+        if progress:
+            progress(_progress_line(rows[-1]))
+        for config in configs:
+            run = config.run(loads)
+            row = _row(scenario, config.label, config.family, run, reference, scene64, p.handle, ref_median)
+            kind = config.subspace
+            if kind is not None and config.label.endswith("latent reference f64 Newton"):
+                row["projection"] = projection_floor(scene64, subspaces[kind], rests[kind], reference)
+            rows.append(row)
+            if progress:
+                progress(_progress_line(row))
+        if study and scenario == "push":
+            head = _prefix(reference, study_steps)
+            out["study"] = start_study(scene, neural, rests["neural"], loads[:study_steps], head, dt=dt)
+    return out
+
+
+def _prefix(run: Run, steps: int) -> Run:
+    return Run(run.q[: steps + 1], run.times[: steps + 1], run.step_s[:steps], run.stride)
+
+
+def _row(
+    scenario: str, label: str, family: str, run: Run, reference: Run, scene64: Scene, handle: str, ref_median: float
+) -> dict[str, Any]:
+    median = statistics.median(run.step_s) / run.stride  # per reference step (per dt of simulated time)
+    return {
+        "scenario": scenario,
+        "config": label,
+        "family": family,
+        "ms_per_step": 1e3 * median,
+        "speedup": ref_median / median if median > 0 else math.nan,
+        **trajectory_errors(scene64, run, reference, handle),
+        "projection": math.nan,
+        "steps_run": len(run.step_s),
+        "failed": run.failed,
+        "flagged_diverged": run.flagged,
+        "out_of_range": run.out_of_range,
+        "nonfinite": run.nonfinite,
+    }
+
+
+def _progress_line(row: dict[str, Any]) -> str:
+    return (
+        f"{row['scenario']:8s} {row['config']:48s} {row['ms_per_step']:9.3g} ms  rel {row['rel_error_mean']:8.3g}  "
+        f"{row['handle_cm_mean']:8.3g} cm"
+    )
+
+
+COLUMNS = (
+    ("config", "configuration", "{}"),
+    ("ms_per_step", "ms/step", "{:.3g}"),
+    ("speedup", "x ref", "{:.3g}"),
+    ("rel_error_mean", "rel. M error", "{:.3g}"),
+    ("rel_error_final", "final", "{:.3g}"),
+    ("handle_cm_mean", "handle cm", "{:.3g}"),
+    ("rest_offset", "rest offset", "{:.3g}"),
+    ("rest_offset_cm", "offset cm", "{:.3g}"),
+    ("projection", "projection", "{:.3g}"),
+    ("failed", "unconverged", "{}"),
+    ("flagged_diverged", "diverged", "{}"),
+    ("out_of_range", "out of range", "{}"),
+)
+"""Markdown table columns: key, header, format."""
+
+
+def markdown_table(result: dict[str, Any], scenario: str) -> str:
+    """The rows of one scenario as a markdown table (NaN cells print as –)."""
+    lines = ["| " + " | ".join(h for _k, h, _f in COLUMNS) + " |", "|" + "---|" * len(COLUMNS)]
+    for row in result["rows"]:
+        if row["scenario"] != scenario:
+            continue
+        cells = []
+        for key, _header, fmt in COLUMNS:
+            value = row[key]
+            cells.append("–" if isinstance(value, float) and not math.isfinite(value) else fmt.format(value))
+        lines.append("| " + " | ".join(cells) + " |")
+    return "\n".join(lines)
+
+
+def write_csv(result: dict[str, Any], path: Path) -> None:
+    """All rows to a CSV file (one row per scenario and configuration)."""
+    rows = result["rows"]
+    with path.open("w", newline="") as handle:
+        writer = csv.DictWriter(handle, fieldnames=["scene", *rows[0].keys()])
+        writer.writeheader()
+        for row in rows:
+            writer.writerow({"scene": result["scene"], **row})
+
+
+FAMILY_STYLE = {
+    "reference": ("black", "*"),
+    "full space": ("tab:gray", "s"),
+    "neural": ("tab:red", "o"),
+    "modes": ("tab:blue", "^"),
+    "modal_derivatives": ("tab:green", "v"),
+}
+
+
+def pareto_png(result: dict[str, Any], path: Path, machine: str) -> None:
+    """Log-log plot of ms/step against the mean relative M error, one panel per scenario."""
+    from matplotlib.backends.backend_agg import FigureCanvasAgg
+    from matplotlib.figure import Figure
+
+    scenarios = list(dict.fromkeys(r["scenario"] for r in result["rows"]))
+    fig = Figure(figsize=(6.5 * len(scenarios), 5.5))
+    FigureCanvasAgg(fig)
+    floor = 1e-6  # the reference's own error (0) is drawn at this level
+    for i, scenario in enumerate(scenarios):
+        ax = fig.add_subplot(1, len(scenarios), i + 1)
+        seen = set()
+        for row in result["rows"]:
+            if row["scenario"] != scenario or not math.isfinite(row["rel_error_mean"]):
+                continue
+            color, marker = FAMILY_STYLE.get(row["family"], ("tab:purple", "x"))
+            label = row["family"] if row["family"] not in seen else None
+            seen.add(row["family"])
+            ax.scatter(max(row["rel_error_mean"], floor), row["ms_per_step"], c=color, marker=marker, label=label)
+            short = row["config"].split(": ")[-1].replace("runtime ", "")
+            ax.annotate(short, (max(row["rel_error_mean"], floor), row["ms_per_step"]), fontsize=6, alpha=0.8)
+        ax.set_xscale("log")
+        ax.set_yscale("log")
+        ax.set_xlabel("mean relative M-norm trajectory error (reference drawn at 1e-6)")
+        ax.set_ylabel("median wall time per 0.02 s step [ms]")
+        ax.set_title(f"{result['scene']} (n={result['n']}, d={result['d']}), {scenario}", fontsize=10)
+        ax.grid(True, which="both", alpha=0.3)
+        ax.legend(fontsize=7)
+    fig.suptitle(machine, fontsize=7)
+    fig.tight_layout()
+    fig.savefig(path, dpi=120)
+
+
+def report(result: dict[str, Any], machine: str) -> str:
+    """The human-readable output: the machine line, per scenario its markdown table, and the start study."""
+    p = result["plan"]
+    lines = [
+        f"bench accuracy {result['scene']}  n={result['n']}  d={result['d']}  dt={result['dt']} s  "
+        f"{result['steps']} steps per scenario  handle {p['handle']}, unit action = {p['max_force']:g} N  "
+        f"reference: float64 full-space Newton, tol {p['reference_tol']:g}",
+        machine,
+    ]
+    for scenario in dict.fromkeys(r["scenario"] for r in result["rows"]):
+        ref = next(r for r in result["rows"] if r["scenario"] == scenario)
+        lines += [
+            "",
+            f"scenario {scenario}: the reference's handle moves up to {ref['handle_motion_cm']:.3g} cm; "
+            f"errors relative to its largest displacement {ref['motion_scale']:.3g} kg^1/2 m",
+            "",
+            markdown_table(result, scenario),
+        ]
+    study = result.get("study")
+    if study:
+        lines += [
+            "",
+            f"start study (push, {study['steps']} steps, neural map, runtime default unless said): "
+            f"same start f(z*) {study['same_start']:.3g} | own rests {study['own_rests']:.3g} | "
+            f"own rests, converged latent solve {study['own_rests_converged']:.3g} | "
+            f"projection floor {study['projection']:.3g} | full run from f(z*) moves {study['full_fall']:.3g} "
+            f"(latent run {study['latent_motion']:.3g}) of the reference's displacement",
+        ]
+    return "\n".join(lines)
+
+
+def write_outputs(result: dict[str, Any], folder: Path, machine: str) -> list[Path]:
+    """``accuracy_SCENE.md`` (the :func:`report`), ``.csv`` and ``.png`` (:func:`pareto_png`) in ``folder``."""
+    folder.mkdir(parents=True, exist_ok=True)
+    stem = folder / f"accuracy_{result['scene']}"
+    paths = [stem.with_suffix(".md"), stem.with_suffix(".csv"), stem.with_suffix(".png")]
+    paths[0].write_text(report(result, machine) + "\n")
+    write_csv(result, paths[1])
+    pareto_png(result, paths[2], machine)
+    return paths
+
+
+__all__ = [
+    "DT",
+    "FULL_VARIANTS",
+    "PLANS",
+    "SCENARIOS",
+    "Plan",
+    "Run",
+    "bench_accuracy",
+    "handle_positions",
+    "markdown_table",
+    "pareto_png",
+    "plan",
+    "project",
+    "projection_floor",
+    "report",
+    "run_full",
+    "run_latent_reference",
+    "run_runtime",
+    "scenario_loads",
+    "start_study",
+    "trajectory_errors",
+    "write_csv",
+    "write_outputs",
+]
