@@ -626,6 +626,20 @@ class LatentEnv(gym.Env[np.ndarray, np.ndarray]):
             self.set_state(state["sim"])
 
 
+def check_numbers(positive: Mapping[str, float], nonnegative: Mapping[str, float] | None = None) -> None:
+    """Check task arguments by name: each of ``positive`` finite and > 0, each of ``nonnegative`` finite and >= 0.
+
+    Raises:
+        ValueError: naming the first bad argument and its value.
+    """
+    for key, value in positive.items():
+        if not (np.isfinite(value) and value > 0.0):
+            raise ValueError(f"{key} must be finite and > 0, got {value!r}")
+    for key, value in dict(nonnegative or {}).items():
+        if not (np.isfinite(value) and value >= 0.0):
+            raise ValueError(f"{key} must be finite and >= 0, got {value!r}")
+
+
 def check_action(action: Any, shape: tuple[int, ...]) -> np.ndarray:
     """The action as float32 of ``shape``, clipped to [-1, 1].
 
@@ -664,4 +678,13 @@ def _batch(state: Mapping[str, Any]) -> dict[str, Any]:
     }
 
 
-__all__ = ["LATENT_BOUND", "LatentEnv", "LatentSim", "Task", "check_action", "check_subspace", "shipped"]
+__all__ = [
+    "LATENT_BOUND",
+    "LatentEnv",
+    "LatentSim",
+    "Task",
+    "check_action",
+    "check_numbers",
+    "check_subspace",
+    "shipped",
+]

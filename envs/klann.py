@@ -23,7 +23,7 @@ import numpy as np
 import torch
 from torch import Tensor, nn
 
-from redsim.envs.base import LatentEnv, Task, shipped
+from redsim.envs.base import LatentEnv, Task, check_numbers, shipped
 from redsim.envs.vector import vector_entry
 
 if TYPE_CHECKING:
@@ -70,17 +70,15 @@ class CrankSpeed(Task):
         low, high = (float(v) for v in speed_range)
         if not (np.isfinite(low) and np.isfinite(high) and 0.0 < low <= high):
             raise ValueError(f"speed_range must be finite with 0 < low <= high, got {speed_range!r}")
-        for key, value in (
-            ("max_force", max_force),
-            ("tolerance", tolerance),
-            ("controller_gain", controller_gain),
-            ("controller_time", controller_time),
-        ):
-            if not (np.isfinite(value) and value > 0.0):
-                raise ValueError(f"{key} must be finite and > 0, got {value!r}")
-        for key, value in (("control_weight", control_weight), ("success_bonus", success_bonus)):
-            if not (np.isfinite(value) and value >= 0.0):
-                raise ValueError(f"{key} must be finite and >= 0, got {value!r}")
+        check_numbers(
+            {
+                "max_force": max_force,
+                "tolerance": tolerance,
+                "controller_gain": controller_gain,
+                "controller_time": controller_time,
+            },
+            {"control_weight": control_weight, "success_bonus": success_bonus},
+        )
         if speed_scale is not None and not (np.isfinite(speed_scale) and speed_scale > 0.0):
             raise ValueError(f"speed_scale must be None or finite and > 0, got {speed_scale!r}")
         self.handle = handle

@@ -25,7 +25,7 @@ import numpy as np
 import torch
 from torch import Tensor, nn
 
-from redsim.envs.base import LatentEnv, Task, shipped
+from redsim.envs.base import LatentEnv, Task, check_numbers, shipped
 from redsim.envs.vector import vector_entry
 
 if TYPE_CHECKING:
@@ -73,17 +73,15 @@ class PlatePose(Task):
         control_weight: float = 0.05,
         success_bonus: float = 1.0,
     ) -> None:
-        for key, value in (
-            ("max_force", max_force),
-            ("target_spread", target_spread),
-            ("position_scale", position_scale),
-            ("angle_scale", angle_scale),
-        ):
-            if not (np.isfinite(value) and value > 0.0):
-                raise ValueError(f"{key} must be finite and > 0, got {value!r}")
-        for key, value in (("control_weight", control_weight), ("success_bonus", success_bonus)):
-            if not (np.isfinite(value) and value >= 0.0):
-                raise ValueError(f"{key} must be finite and >= 0, got {value!r}")
+        check_numbers(
+            {
+                "max_force": max_force,
+                "target_spread": target_spread,
+                "position_scale": position_scale,
+                "angle_scale": angle_scale,
+            },
+            {"control_weight": control_weight, "success_bonus": success_bonus},
+        )
         self.body_handle = body_handle
         self.actuated = tuple(actuated)
         self.action_size = len(self.actuated)
@@ -144,9 +142,7 @@ class PlatePose(Task):
 
         held = torch.as_tensor(self.target_spread * rng.uniform(-1.0, 1.0, self.action_size)).unsqueeze(0)
         loads = self.loads(held.to(torch.float64), {})[0].cpu()
-        z, _ = latent_equilibrium(
-            self._space, loads, z0=z_rest.detach().cpu().to(torch.float64), minimizer=MINIMIZER
-        )
+        z, _ = latent_equilibrium(self._space, loads, z0=z_rest.detach().cpu().to(torch.float64), minimizer=MINIMIZER)
         z = z.to(sim.device, sim.torch_dtype).unsqueeze(0)
         p, r = self.pose(sim.full_positions(z, cond))
         return {
