@@ -21,8 +21,6 @@ import gymnasium as gym
 import numpy as np
 import torch
 
-from redsim.bench import machine_info
-
 DEFAULT_BATCHES = (16, 64, 256)
 
 
@@ -159,13 +157,4 @@ def mujoco_anchors(steps: int = 200) -> dict[str, Any]:
     }
 
 
-def bench_envs(env_ids: Sequence[str], **options: Any) -> dict[str, Any]:
-    """:func:`bench_env` for each id, the MuJoCo anchors and the machine."""
-    return {
-        "machine": machine_info(),
-        "results": [bench_env(env_id, **options) for env_id in env_ids],
-        "mujoco": mujoco_anchors(),
-    }
-
-
-__all__ = ["DEFAULT_BATCHES", "bench_env", "bench_envs", "mujoco_anchors"]
+__all__ = ["DEFAULT_BATCHES", "bench_env", "mujoco_anchors"]

@@ -12,10 +12,11 @@ from redsim.scene import ConditionSpace, Handle, Scene, SceneBuilder, Surface
 from redsim.subspace import SubspaceConfig, SubspaceMap, load_subspace
 
 __version__ = "0.1.0"
+"""The package version; the one place it is written (pyproject.toml reads it: ``dynamic = ["version"]``)."""
 
 # Register the Gymnasium ids ("RedSim/Chain-v0", ...): string entry points only, nothing heavy is
 # imported until an env is made (the engine never imports env code itself).
-import redsim.envs  # noqa: F401
+import redsim.envs  # noqa: E402, F401
 
 __all__ = [
     "ConditionSpace",

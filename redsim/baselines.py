@@ -1,9 +1,9 @@
-"""Classical and supervised subspaces: the baselines the data-free neural map is compared against.
+"""Builders of the classical and supervised subspaces the data-free neural map is compared against.
 
-Every baseline is a ``torch.nn.Module`` with the interface of :class:`redsim.subspace.SubspaceMap`
-(``latent_dim``, a JSON-able ``metadata`` dict, ``__call__(z [..., d], cond=None) -> q [..., n]``),
-so integrators, environments and metrics take it in place of the neural map, and ``.to(dtype)``
-casts it.
+The maps they return live in :mod:`redsim.subspace` (and are re-exported here):
+:class:`LinearSubspace`, :class:`QuadraticSubspace`, :class:`AutoencoderSubspace`, with the
+interface of :class:`redsim.subspace.SubspaceMap`, so integrators, environments and metrics take
+them in place of the neural map.
 
 - :func:`modal_analysis` -> :class:`LinearSubspace` f(z) = b + A z: b the static equilibrium, A
   sigma times the d lowest generalized eigenvectors of (H(b), M), M-orthonormal. This is the
@@ -26,24 +26,20 @@ from __future__ import annotations
 
 import logging
 import math
-from pathlib import Path
-from typing import Any, ClassVar
+from typing import Any, NamedTuple
 
 import numpy as np
 import scipy.linalg
 import scipy.sparse
 import scipy.sparse.linalg
 import torch
-from torch import Tensor, nn
+from torch import Tensor
 
 from redsim.hessian import energy_hessian
-from redsim.integrators import FullSpace, FullState, ImplicitEuler, static_equilibrium
+from redsim.integrators import FullSpace, FullState, ImplicitEuler, as_float64, static_equilibrium
 from redsim.scene import Scene
-from redsim.subspace import (
-    SubspaceConfig,
-    SubspaceMap,
-    write_checkpoint,
-)
+from redsim.subspace import AutoencoderSubspace, LinearSubspace, QuadraticSubspace
+from redsim.subspace.autoencoder import autoencoder_maps
 
 logger = logging.getLogger(__name__)
 
@@ -61,229 +57,7 @@ SHIFT_FRACTION = 1e-6
 """Shift-invert eigensolves use the shift -SHIFT_FRACTION times the stiffness scale."""
 
 
-class _Baseline(nn.Module):
-    """Shared metadata, save and shape bookkeeping of the baselines."""
-
-    kind: ClassVar[str]
-
-    def __init__(self, metadata: dict[str, Any] | None) -> None:
-        super().__init__()
-        self.metadata: dict[str, Any] = {**dict(metadata or {}), "kind": self.kind}
-
-    @property
-    def latent_dim(self) -> int:
-        """d, the size of z."""
-        raise NotImplementedError
-
-    def shapes(self) -> dict[str, Any]:
-        """What :meth:`from_shapes` needs to rebuild an empty module of this shape (JSON-able)."""
-        raise NotImplementedError
-
-    @classmethod
-    def from_shapes(cls, shapes: dict[str, Any], metadata: dict[str, Any]) -> _Baseline:
-        """An instance with the given shapes and placeholder values (for loading a state dict)."""
-        raise NotImplementedError
-
-    def save(self, stem: str | Path) -> tuple[Path, Path]:
-        """Write ``stem.pt`` (state dict) and ``stem.json`` (kind, shapes, metadata); returns both paths."""
-        return write_checkpoint(self, stem, self.shapes())
-
-
-def _check_latent(z: Tensor, d: int, cond: Tensor | None) -> None:
-    if z.shape[-1] != d:
-        raise ValueError(f"z must have {d} entries in its last dim, got {tuple(z.shape)}")
-    if cond is not None:
-        raise ValueError("this subspace takes no condition (it was built at the scene's default condition)")
-
-
-def _dtype_name(dtype: torch.dtype) -> str:
-    return str(dtype).removeprefix("torch.")
-
-
-class LinearSubspace(_Baseline):
-    """The affine map f(z) = b + A z (modal analysis, PCA).
-
-    Args:
-        basis: A [configuration unit per unit z], shape [n, d].
-        offset: b [configuration unit], shape [n].
-        metadata: JSON-able description (scene, fingerprint, method parameters).
-    """
-
-    kind = "linear"
-
-    def __init__(self, basis: Tensor, offset: Tensor, metadata: dict[str, Any] | None = None) -> None:
-        super().__init__(metadata)
-        if basis.ndim != 2 or offset.shape != (basis.shape[0],):
-            raise ValueError(f"basis must be [n, d] and offset [n], got {tuple(basis.shape)}, {tuple(offset.shape)}")
-        self.register_buffer("basis", basis.detach().clone())
-        self.register_buffer("offset", offset.detach().clone().to(basis.dtype))
-
-    @property
-    def latent_dim(self) -> int:
-        return int(self.basis.shape[1])
-
-    def forward(self, z: Tensor, cond: Tensor | None = None) -> Tensor:
-        """Configurations q [..., n] from latents z [..., d]."""
-        _check_latent(z, self.latent_dim, cond)
-        return self.offset + z @ self.basis.T
-
-    def shapes(self) -> dict[str, Any]:
-        n, d = self.basis.shape
-        return {"latent_dim": int(d), "output_dim": int(n), "dtype": _dtype_name(self.basis.dtype)}
-
-    @classmethod
-    def from_shapes(cls, shapes: dict[str, Any], metadata: dict[str, Any]) -> LinearSubspace:
-        dtype = getattr(torch, shapes["dtype"])
-        n, d = int(shapes["output_dim"]), int(shapes["latent_dim"])
-        return cls(torch.zeros(n, d, dtype=dtype), torch.zeros(n, dtype=dtype), metadata)
-
-
-class QuadraticSubspace(_Baseline):
-    """The quadratic map f(z) = b + A z + 1/2 sum_{i<=j} c_ij z_i z_j Psi_ij (modal derivatives).
-
-    c_ij is the multiplicity of the pair in the symmetric double sum (1 for i = j, 2 for i < j),
-    so f is the second-order Taylor polynomial with d^2 f / dz_i dz_j = Psi_ij (Barbič & James 2005).
-
-    Args:
-        basis: A, shape [n, d].
-        offset: b, shape [n].
-        quadratic: The Psi_ij as columns, shape [n, d(d+1)/2], pairs (i, j), i <= j, in row-major
-            order (``torch.triu_indices(d, d)``).
-        metadata: JSON-able description.
-    """
-
-    kind = "quadratic"
-
-    def __init__(
-        self, basis: Tensor, offset: Tensor, quadratic: Tensor, metadata: dict[str, Any] | None = None
-    ) -> None:
-        super().__init__(metadata)
-        if basis.ndim != 2 or offset.shape != (basis.shape[0],):
-            raise ValueError(f"basis must be [n, d] and offset [n], got {tuple(basis.shape)}, {tuple(offset.shape)}")
-        n, d = basis.shape
-        if quadratic.shape != (n, d * (d + 1) // 2):
-            raise ValueError(f"quadratic must have shape [{n}, {d * (d + 1) // 2}], got {tuple(quadratic.shape)}")
-        self.register_buffer("basis", basis.detach().clone())
-        self.register_buffer("offset", offset.detach().clone().to(basis.dtype))
-        self.register_buffer("quadratic", quadratic.detach().clone().to(basis.dtype))
-        pairs = torch.triu_indices(d, d)
-        self.register_buffer("pairs", pairs, persistent=False)
-        self.register_buffer("pair_weight", torch.where(pairs[0] == pairs[1], 0.5, 1.0).to(basis.dtype), False)
-
-    @property
-    def latent_dim(self) -> int:
-        return int(self.basis.shape[1])
-
-    def monomials(self, z: Tensor) -> Tensor:
-        """The weights 1/2 c_ij z_i z_j of the Psi_ij, shape [..., d(d+1)/2]."""
-        return self.pair_weight * z[..., self.pairs[0]] * z[..., self.pairs[1]]
-
-    def forward(self, z: Tensor, cond: Tensor | None = None) -> Tensor:
-        """Configurations q [..., n] from latents z [..., d]."""
-        _check_latent(z, self.latent_dim, cond)
-        return self.offset + z @ self.basis.T + self.monomials(z) @ self.quadratic.T
-
-    def shapes(self) -> dict[str, Any]:
-        n, d = self.basis.shape
-        return {"latent_dim": int(d), "output_dim": int(n), "dtype": _dtype_name(self.basis.dtype)}
-
-    @classmethod
-    def from_shapes(cls, shapes: dict[str, Any], metadata: dict[str, Any]) -> QuadraticSubspace:
-        dtype = getattr(torch, shapes["dtype"])
-        n, d = int(shapes["output_dim"]), int(shapes["latent_dim"])
-        zeros = torch.zeros(n, d * (d + 1) // 2, dtype=dtype)
-        return cls(torch.zeros(n, d, dtype=dtype), torch.zeros(n, dtype=dtype), zeros, metadata)
-
-
-class AutoencoderSubspace(_Baseline):
-    """An autoencoder whose decoder is the subspace map (paper supplement B.2).
-
-    Calling the module decodes; :meth:`encode` maps configurations to latents. The encoder reads
-    (q - input_mean) / input_scale.
-
-    Args:
-        encoder: MLP from n normalized coordinates to d latents (a :class:`SubspaceMap` with
-            ``latent_dim = n``, ``output_dim = d``).
-        decoder: MLP from d latents to q, the same architecture as the neural subspace map.
-        input_mean: Mean state [configuration unit], shape [n].
-        input_scale: Standard deviation of the states' entries about the mean, shape [].
-        metadata: JSON-able description.
-    """
-
-    kind = "autoencoder"
-
-    def __init__(
-        self,
-        encoder: SubspaceMap,
-        decoder: SubspaceMap,
-        input_mean: Tensor,
-        input_scale: Tensor,
-        metadata: dict[str, Any] | None = None,
-    ) -> None:
-        super().__init__(metadata)
-        n, d = decoder.config.output_dim, decoder.config.latent_dim
-        if (encoder.config.latent_dim, encoder.config.output_dim) != (n, d) or input_mean.shape != (n,):
-            raise ValueError(
-                f"encoder must map {n} -> {d} and input_mean have shape [{n}], got encoder "
-                f"{encoder.config.latent_dim} -> {encoder.config.output_dim}, input_mean {tuple(input_mean.shape)}"
-            )
-        self.encoder = encoder
-        self.decoder = decoder
-        self.register_buffer("input_mean", input_mean.detach().clone())
-        self.register_buffer("input_scale", torch.as_tensor(input_scale, dtype=input_mean.dtype).detach().clone())
-
-    @property
-    def latent_dim(self) -> int:
-        return self.decoder.latent_dim
-
-    def encode(self, q: Tensor) -> Tensor:
-        """Latents z [..., d] of configurations q [..., n]."""
-        return self.encoder((q - self.input_mean) / self.input_scale)
-
-    def forward(self, z: Tensor, cond: Tensor | None = None) -> Tensor:
-        """Configurations q [..., n] decoded from latents z [..., d]."""
-        _check_latent(z, self.latent_dim, cond)
-        return self.decoder(z)
-
-    def reconstruction_error(self, states: Tensor, scene: Scene) -> float:
-        """Relative M-norm reconstruction error sqrt(sum |f(g(q)) - q|_M^2 / sum |q - mean|_M^2) over states [S, n]."""
-        with torch.no_grad():
-            states = states.to(self.input_mean.dtype)
-            residual = self(self.encode(states)) - states
-            spread = states - states.mean(0)
-            return math.sqrt(float(_m_norm_sq(scene, residual).sum() / _m_norm_sq(scene, spread).sum()))
-
-    def shapes(self) -> dict[str, Any]:
-        config = self.decoder.config
-        return {
-            "latent_dim": config.latent_dim,
-            "output_dim": config.output_dim,
-            "hidden_width": config.hidden_width,
-            "hidden_layers": config.hidden_layers,
-            "dtype": _dtype_name(self.input_mean.dtype),
-        }
-
-    @classmethod
-    def from_shapes(cls, shapes: dict[str, Any], metadata: dict[str, Any]) -> AutoencoderSubspace:
-        dtype = getattr(torch, shapes["dtype"])
-        n, d = int(shapes["output_dim"]), int(shapes["latent_dim"])
-        encoder, decoder = _autoencoder_maps(n, d, int(shapes["hidden_width"]), int(shapes["hidden_layers"]))
-        return cls(
-            encoder.to(dtype), decoder.to(dtype), torch.zeros(n, dtype=dtype), torch.ones((), dtype=dtype), metadata
-        )
-
-
-BASELINES: dict[str, type[_Baseline]] = {
-    cls.kind: cls for cls in (LinearSubspace, QuadraticSubspace, AutoencoderSubspace)
-}
-"""Baseline classes by ``kind``, the key stored in their checkpoints."""
-
-
 # -- modal analysis and modal derivatives ---------------------------------------------------------
-
-
-def _float64(scene: Scene) -> Scene:
-    return scene if scene.dtype == torch.float64 else scene.to(dtype=torch.float64)
 
 
 def _check_dim(dim: int, limit: int, what: str) -> None:
@@ -324,10 +98,32 @@ def _lowest_modes(
     return values, vectors, "shift-invert"
 
 
-def _modes(
-    scene: Scene, dim: int, rest: Tensor | None
-) -> tuple[Tensor, scipy.sparse.csr_matrix, scipy.sparse.csr_matrix, np.ndarray, np.ndarray, dict[str, Any]]:
-    """Rest state b [n], H(b), M, the ``dim`` lowest eigenpairs, and metadata (see :func:`modal_analysis`)."""
+class _Modes(NamedTuple):
+    """The lowest modes of a scene at its rest state (see :func:`modal_analysis`)."""
+
+    scene: Scene
+    """The float64 scene."""
+    rest: Tensor
+    """b [n]."""
+    hessian: scipy.sparse.csr_matrix
+    """H(b), symmetrized, unprojected."""
+    mass: scipy.sparse.csr_matrix
+    """M."""
+    values: np.ndarray
+    """The ``dim`` lowest generalized eigenvalues [1/s^2], ascending."""
+    vectors: np.ndarray
+    """Their M-orthonormal eigenvectors, [n, dim]."""
+    basis: Tensor
+    """sigma times the eigenvectors, [n, dim] (float64)."""
+    meta: dict[str, Any]
+    """Scene, eigenvalues, eigensolver, stiffness scale, null-mode count, equilibrium solve."""
+
+
+def _modes(scene: Scene, dim: int, sigma: float, rest: Tensor | None) -> _Modes:
+    """The ``dim`` lowest modes at b (``rest``, default the static equilibrium), columns scaled by sigma."""
+    if not (math.isfinite(sigma) and sigma > 0.0):
+        raise ValueError(f"sigma must be finite and > 0, got {sigma!r}")
+    scene = as_float64(scene)
     n = scene.free_dof_count
     _check_dim(dim, n, f"n = {n}")
     if rest is None:
@@ -359,7 +155,8 @@ def _modes(
         "null_modes": int(np.sum(np.abs(values) <= NULL_TOLERANCE * scale)),
         "equilibrium": equilibrium,
     }
-    return b, H, M, values, vectors, meta
+    basis = sigma * torch.as_tensor(vectors, dtype=torch.float64)
+    return _Modes(scene, b, H, M, values, vectors, basis, meta)
 
 
 def modal_analysis(scene: Scene, dim: int, *, sigma: float = 1.0, rest: Tensor | None = None) -> LinearSubspace:
@@ -389,12 +186,8 @@ def modal_analysis(scene: Scene, dim: int, *, sigma: float = 1.0, rest: Tensor |
     Raises:
         ValueError: on a bad dim, sigma or rest.
     """
-    if not (math.isfinite(sigma) and sigma > 0.0):
-        raise ValueError(f"sigma must be finite and > 0, got {sigma!r}")
-    scene = _float64(scene)
-    b, _, _, _, vectors, meta = _modes(scene, dim, rest)
-    basis = sigma * torch.as_tensor(vectors, dtype=torch.float64)
-    return LinearSubspace(basis, b, {**meta, "method": "modal_analysis", "sigma": float(sigma)})
+    modes = _modes(scene, dim, sigma, rest)
+    return LinearSubspace(modes.basis, modes.rest, {**modes.meta, "method": "modal_analysis", "sigma": float(sigma)})
 
 
 def hessian_directional_derivative(scene: Scene, q: Tensor, u: Tensor, v: Tensor) -> Tensor:
@@ -463,11 +256,7 @@ def modal_derivatives(scene: Scene, dim: int, *, sigma: float = 1.0, rest: Tenso
     Raises:
         ValueError: on a bad dim, sigma or rest.
     """
-    if not (math.isfinite(sigma) and sigma > 0.0):
-        raise ValueError(f"sigma must be finite and > 0, got {sigma!r}")
-    scene = _float64(scene)
-    b, H, M, values, vectors, meta = _modes(scene, dim, rest)
-    basis = sigma * torch.as_tensor(vectors, dtype=torch.float64)
+    scene, b, H, M, values, vectors, basis, meta = _modes(scene, dim, sigma, rest)
     i, j = torch.triu_indices(basis.shape[1], basis.shape[1])
     rhs = -hessian_directional_derivative(scene, b, basis[:, i].T, basis[:, j].T).T.cpu().numpy()  # [n, P]
     threshold = NULL_TOLERANCE * meta["stiffness_scale"]
@@ -489,11 +278,6 @@ def modal_derivatives(scene: Scene, dim: int, *, sigma: float = 1.0, rest: Tenso
 
 
 # -- snapshot methods -----------------------------------------------------------------------------
-
-
-def _m_norm_sq(scene: Scene, v: Tensor) -> Tensor:
-    """|v_s|_M^2 for rows v [S, n], shape [S]."""
-    return (v * scene.mass_matvec(v)).sum(-1)
 
 
 def _check_states(scene: Scene, states: Tensor) -> Tensor:
@@ -528,7 +312,7 @@ def pca_subspace(states: Tensor, dim: int, *, scene: Scene) -> LinearSubspace:
     Raises:
         ValueError: on a bad shape, non-finite states, or a bad dim.
     """
-    scene = _float64(scene)
+    scene = as_float64(scene)
     states = _check_states(scene, states).to(device=scene.device, dtype=torch.float64)
     S, n = states.shape
     _check_dim(dim, min(n, S - 1), f"n = {n}, S - 1 = {S - 1}")
@@ -547,7 +331,7 @@ def pca_subspace(states: Tensor, dim: int, *, scene: Scene) -> LinearSubspace:
         mu, U = torch.as_tensor(values[order]), torch.as_tensor(vectors[:, order])
     basis = X.T @ U / math.sqrt(S - 1)
     variance = mu.clamp_min(0.0) / (S - 1)
-    total = float(_m_norm_sq(scene, X).sum()) / (S - 1)
+    total = float(scene.mass_norm_sq(X).sum()) / (S - 1)
     meta = {
         **_scene_metadata(scene),
         "method": "pca",
@@ -611,12 +395,6 @@ def simulated_states(
     return torch.cat(out)
 
 
-def _autoencoder_maps(n: int, dim: int, hidden_width: int, hidden_layers: int) -> tuple[SubspaceMap, SubspaceMap]:
-    encoder = SubspaceMap(SubspaceConfig(n, dim, hidden_width=hidden_width, hidden_layers=hidden_layers))
-    decoder = SubspaceMap(SubspaceConfig(dim, n, hidden_width=hidden_width, hidden_layers=hidden_layers))
-    return encoder, decoder
-
-
 def train_autoencoder(
     scene: Scene,
     states: Tensor,
@@ -674,13 +452,13 @@ def train_autoencoder(
     work = scene.to(device=device, dtype=torch.float32)
     data = states.to(device=device, dtype=torch.float32)
     mean = data.mean(0)
-    spread = float(_m_norm_sq(work, data - mean).mean())
+    spread = float(work.mass_norm_sq(data - mean).mean())
     scale = (data - mean).std()
     if not spread > 0.0:
         raise ValueError("states are all equal; there is nothing to encode")
     with torch.random.fork_rng(devices=[]):
         torch.manual_seed(seed)
-        encoder, decoder = _autoencoder_maps(n, int(dim), hidden_width, hidden_layers)
+        encoder, decoder = autoencoder_maps(n, int(dim), hidden_width, hidden_layers)
     with torch.no_grad():
         decoder.mlp[-1].bias.copy_(mean.cpu())
     model = AutoencoderSubspace(encoder, decoder, mean, scale).to(device)
@@ -691,7 +469,7 @@ def train_autoencoder(
     for _ in range(int(steps)):
         q = data[torch.randint(S, (batch,), generator=generator, device=device)]
         z = model.encode(q)
-        loss = _m_norm_sq(work, model(z) - q).mean() / spread + latent_weight * (z**2).sum(-1).mean()
+        loss = work.mass_norm_sq(model(z) - q).mean() / spread + latent_weight * (z**2).sum(-1).mean()
         optimizer.zero_grad(set_to_none=True)
         loss.backward()
         optimizer.step()
@@ -727,11 +505,7 @@ def _standardize_latents(model: AutoencoderSubspace, data: Tensor) -> None:
         first.weight.mul_(stretch)
 
 
-# -- checkpoints ----------------------------------------------------------------------------------
-
-
 __all__ = [
-    "BASELINES",
     "AutoencoderSubspace",
     "LinearSubspace",
     "QuadraticSubspace",

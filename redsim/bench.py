@@ -16,8 +16,8 @@ from typing import Any
 
 import torch
 
+from redsim import scenes
 from redsim.scene import Scene
-from redsim.scenes.catalog import KLANN_JOINTS
 
 
 def machine_info() -> dict[str, Any]:
@@ -270,10 +270,11 @@ def compare_subspaces(
         samples: Latent samples of the energy, stretch and strain statistics.
         seed: Seed of samples and loads.
 
-    Scenes with known reference states (the bistable bar's two buckled equilibria,
-    :func:`redsim.metrics.buckled_states`) also get :func:`redsim.metrics.reach_error` for each
-    method, under ``"reach"``. Scenes with a crank (klann) get, for maps with a periodic latent,
-    :func:`redsim.metrics.handle_winding` of the crank pin about its ground joint, under ``"loop"``.
+    What a scene's registry entry (:class:`redsim.scenes.SceneEntry`) declares adds checks:
+    ``reference_states`` (the bistable bar's two buckled equilibria) add
+    :func:`redsim.metrics.reach_error` for each method, under ``"reach"``; a ``crank`` (klann)
+    adds, for maps with a periodic latent, :func:`redsim.metrics.handle_winding` of the crank
+    handle about its pivot, under ``"loop"``.
 
     Returns:
         ``{"neural": ..., "modes": ..., "modal_derivatives": ...}``, each an evaluate_subspace dict.
@@ -290,7 +291,9 @@ def compare_subspaces(
     start = time.perf_counter()
     derivatives = modal_derivatives(scene, dim, sigma=sigma, rest=modes.offset)
     derivatives_seconds = modes_seconds + time.perf_counter() - start
-    targets = _reference_states(scene)
+    declared = scenes.ENTRIES.get(scene.name)
+    targets = None if declared is None else declared.compute_reference_states(scene)
+    crank = None if declared is None else declared.crank
     out: dict[str, dict[str, Any]] = {}
     for name, subspace, seconds in (
         ("neural", neural, float(getattr(neural, "metadata", {}).get("fit_seconds", float("nan")))),
@@ -308,19 +311,7 @@ def compare_subspaces(
         )
         if targets is not None:
             result["reach"] = reach_error(scene, subspace, targets, seed=seed)
-        if scene.name in _CRANKS and periodic_latents(subspace):
-            result["loop"] = handle_winding(scene, subspace, *_CRANKS[scene.name], latent=periodic_latents(subspace)[0])
+        if crank is not None and periodic_latents(subspace):
+            result["loop"] = handle_winding(scene, subspace, *crank, latent=periodic_latents(subspace)[0])
         out[name] = {**result, "build_seconds": seconds}
     return out
-
-
-_CRANKS = {"klann": ("crank_pin", KLANN_JOINTS["crank_ground"])}
-"""Scene: (crank handle, its pivot (x, y) [m]) for the loop check of :func:`compare_subspaces`."""
-
-
-def _reference_states(scene: Scene) -> list[torch.Tensor] | None:
-    """States a subspace of this scene should contain (bistable_bar: both buckled equilibria), or None."""
-    from redsim import metrics
-
-    builder = {"bistable_bar": metrics.buckled_states}.get(scene.name)
-    return None if builder is None else builder(scene)

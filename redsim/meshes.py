@@ -12,6 +12,7 @@ Everything here is plain numpy at build time (scenes convert to torch once). Con
 
 from __future__ import annotations
 
+import hashlib
 import math
 import os
 from collections.abc import Sequence
@@ -364,6 +365,15 @@ def recentered(mesh: trimesh.Trimesh, centre: np.ndarray) -> np.ndarray:
 
 
 # -- loading ---------------------------------------------------------------------------------
+def file_sha256(path: str | os.PathLike[str]) -> str:
+    """SHA-256 hex digest of a file's bytes (how a scene records the mesh file it was built from)."""
+    digest = hashlib.sha256()
+    with open(path, "rb") as handle:
+        for block in iter(lambda: handle.read(1 << 20), b""):
+            digest.update(block)
+    return digest.hexdigest()
+
+
 def load_mesh(path: str | os.PathLike[str]) -> trimesh.Trimesh:
     """Load a triangle mesh from a file (any format trimesh reads: .obj, .stl, .ply, .off, .glb, ...).
 

@@ -25,6 +25,10 @@ logger = logging.getLogger(__name__)
 
 MAX_DRAWN_FACES = 20_000
 """Faces drawn per panel; larger meshes are decimated (every k-th face) to keep drawing fast."""
+FIXED_RGB = (0.45, 0.45, 0.45)
+"""Colour of fixed bodies and pinned vertices (points no free DOF moves)."""
+LOAD_RGB = (0.85, 0.1, 0.1)
+"""Colour of the arrows of applied loads."""
 
 
 class DependencyNotInstalled(ImportError):
@@ -81,20 +85,24 @@ def draw_states(
     titles: Sequence[str] | None = None,
     path: str | Path = "states.png",
     *,
+    loads: dict[str, Sequence[float]] | None = None,
     dpi: int = 100,
 ) -> Path:
     """Draw configurations of ``scene`` side by side, one panel per state, into a PNG.
 
     2D scenes are drawn as filled triangles with ``triplot`` edges per surface, 3D scenes with a
-    ``Poly3DCollection`` per surface. All panels share axis limits and an equal aspect, so
-    motion between states is visible. Meshes with more than :data:`MAX_DRAWN_FACES` faces per
-    panel are decimated.
+    ``Poly3DCollection`` per surface. Faces that do not move (fixed bodies) and pinned vertices
+    are drawn in :data:`FIXED_RGB`; each load is an arrow at its handle in :data:`LOAD_RGB`,
+    of a fixed length on screen and labelled with its size [N]. All panels share axis limits and
+    an equal aspect, so motion between states is visible. Meshes with more than
+    :data:`MAX_DRAWN_FACES` faces per panel are decimated.
 
     Args:
         scene: The scene (must have at least one surface).
         qs: Free configurations, each of shape [n].
         titles: One title per state (default: ``state 0``, ``state 1``, ...).
         path: Output file; parent folders are created.
+        loads: Forces [N] by handle name (as for :meth:`Scene.pack_loads`), drawn on every panel.
         dpi: Resolution of the PNG.
 
     Returns:
@@ -118,11 +126,13 @@ def draw_states(
     verts, faces, center, half = _layout(scene, qs)
     import matplotlib as mpl
 
+    fixed = fixed_points(scene)
     palette = mpl.colormaps["tab10"]
     fig = Figure(figsize=(4.0 * len(qs), 4.0), layout="constrained")
     FigureCanvasAgg(fig)
-    for i, (state, title) in enumerate(zip(verts, titles, strict=True)):
-        _draw_panel(fig, (1, len(qs), i + 1), scene.dim, state, faces, center, half, palette, title)
+    for i, (q, state, title) in enumerate(zip(qs, verts, titles, strict=True)):
+        ax = _draw_panel(fig, (1, len(qs), i + 1), scene.dim, state, faces, center, half, palette, title, fixed)
+        _draw_loads(ax, scene, q, loads or {}, half)
     path = Path(path)
     path.parent.mkdir(parents=True, exist_ok=True)
     fig.savefig(path, dpi=dpi, bbox_inches="tight", pad_inches=0.1)
@@ -155,18 +165,62 @@ def animate_states(
     from PIL import Image
 
     verts, faces, center, half = _layout(scene, qs)
+    fixed = fixed_points(scene)
     palette = mpl.colormaps["tab10"]
     images = []
     for i, state in enumerate(verts):
         fig = Figure(figsize=(4.0, 4.0), dpi=dpi, layout="constrained")
         canvas = FigureCanvasAgg(fig)
-        _draw_panel(fig, (1, 1, 1), scene.dim, state, faces, center, half, palette, f"{scene.name}  frame {i}")
+        title = f"{scene.name}  frame {i}"
+        _draw_panel(fig, (1, 1, 1), scene.dim, state, faces, center, half, palette, title, fixed)
         canvas.draw()
         images.append(Image.fromarray(np.asarray(canvas.buffer_rgba())).convert("P", palette=Image.ADAPTIVE))
     path = Path(path)
     path.parent.mkdir(parents=True, exist_ok=True)
     images[0].save(path, save_all=True, append_images=images[1:], duration=int(1000 / fps), loop=0)
     return path
+
+
+def fixed_points(scene: Scene) -> list[np.ndarray]:
+    """Per surface, a boolean mask [P] of the points no free DOF moves (pinned vertices, fixed bodies).
+
+    Surface points are linear in the configuration, so a point is fixed exactly when a random
+    change of every free DOF leaves it where it is.
+    """
+    q = scene.q_seed.detach().cpu().to(torch.float64)
+    generator = torch.Generator().manual_seed(0)
+    moved = q + torch.randn(q.shape, generator=generator, dtype=q.dtype)
+    before, after = surface_vertices(scene, q), surface_vertices(scene, moved)
+    return [np.all(np.abs(a - b) <= 1e-9 * (1.0 + np.abs(b)), axis=1) for a, b in zip(before, after, strict=True)]
+
+
+def _draw_loads(ax: Any, scene: Scene, q: Tensor, loads: dict[str, Sequence[float]], half: float) -> None:
+    """Arrows for the forces [N] in ``loads`` at their handles' positions in configuration ``q``."""
+    if not loads:
+        return
+    x = scene.full_positions(torch.as_tensor(q).detach().to(scene.device, scene.dtype).unsqueeze(0))
+    by_name = {h.name: h for h in scene.handles}
+    for name, force in loads.items():
+        f = np.asarray(force, dtype=np.float64)
+        size = float(np.linalg.norm(f))
+        if size == 0.0 or not math.isfinite(size):
+            continue
+        at = by_name[name].position(x)[0].cpu().to(torch.float64).numpy()
+        direction = 0.35 * half * f / size
+        label = f"{name}: {size:.3g} N"
+        if scene.dim == 2:
+            ax.annotate(
+                "",
+                xy=tuple(at + direction),
+                xytext=tuple(at),
+                arrowprops={"arrowstyle": "-|>", "color": LOAD_RGB, "linewidth": 2.0, "mutation_scale": 15},
+            )
+            ax.text(*(at + 1.1 * direction), label, color=LOAD_RGB, fontsize=8)
+        else:
+            at, tip = _to_plot_frame(at[None])[0], _to_plot_frame((at + direction)[None])[0]
+            d = tip - at
+            ax.quiver(*at, *d, color=LOAD_RGB, linewidth=2.0, arrow_length_ratio=0.25)
+            ax.text(*(at + 1.1 * d), label, color=LOAD_RGB, fontsize=8)
 
 
 def _layout(scene: Scene, qs: Sequence[Tensor]) -> tuple[list[list[np.ndarray]], list[np.ndarray], np.ndarray, float]:
@@ -196,19 +250,30 @@ def _draw_panel(
     half: float,
     palette: Any,
     title: str,
-) -> None:
-    """Draw one state's surfaces into a new subplot of ``fig`` at ``grid`` (rows, cols, index)."""
+    fixed: list[np.ndarray] | None = None,
+) -> Any:
+    """Draw one state's surfaces into a new subplot of ``fig`` at ``grid`` (rows, cols, index); returns its axes.
+
+    ``fixed`` (per surface, a mask of fixed points, see :func:`fixed_points`) draws fixed faces and
+    pinned vertices in :data:`FIXED_RGB`.
+    """
+    fixed = fixed if fixed is not None else [np.zeros(len(v), dtype=bool) for v in state]
     if dim == 2:
         from matplotlib.collections import PolyCollection
 
         ax = fig.add_subplot(*grid)
-        for k, (v, f) in enumerate(zip(state, faces, strict=True)):
-            color = palette(k % 10)
+        for k, (v, f, still) in enumerate(zip(state, faces, fixed, strict=True)):
+            color = FIXED_RGB if still.all() else palette(k % 10)
             if len(f):
-                ax.add_collection(PolyCollection(v[f], facecolors=[(*color[:3], 0.35)], edgecolors="none"))
+                face_rgb = np.where(still[f].all(axis=1)[:, None], FIXED_RGB, np.asarray(color[:3])[None])
+                ax.add_collection(
+                    PolyCollection(v[f], facecolors=np.c_[face_rgb, np.full(len(f), 0.35)], edgecolors="none")
+                )
                 ax.triplot(v[:, 0], v[:, 1], f, color=color, linewidth=0.5)
             else:
                 ax.plot(v[:, 0], v[:, 1], "o", color=color, markersize=2)
+            if still.any() and not still.all():
+                ax.plot(v[still, 0], v[still, 1], "s", color=FIXED_RGB, markersize=3)
         ax.set_xlim(center[0] - half, center[0] + half)
         ax.set_ylim(center[1] - half, center[1] + half)
         ax.set_aspect("equal")
@@ -220,13 +285,18 @@ def _draw_panel(
         ax = fig.add_subplot(*grid, projection="3d")
         # One collection for all surfaces: mplot3d depth-sorts faces within a collection only.
         tris, colors = [], []
-        for k, (v, f) in enumerate(zip(state, faces, strict=True)):
+        for k, (v, f, still) in enumerate(zip(state, faces, fixed, strict=True)):
             rgb = np.asarray(palette(k % 10))
             if len(f):
                 tris.append(v[f])
-                colors.append(_shade(v[f], rgb))
+                shaded = _shade(v[f], rgb)
+                still_faces = still[f].all(axis=1)
+                shaded[still_faces] = _shade(v[f][still_faces], np.asarray(FIXED_RGB))
+                colors.append(shaded)
             else:
-                ax.scatter(v[:, 0], v[:, 1], v[:, 2], color=rgb, s=2)
+                ax.scatter(v[:, 0], v[:, 1], v[:, 2], color=FIXED_RGB if still.all() else rgb, s=2)
+            if still.any() and not still.all():
+                ax.scatter(v[still, 0], v[still, 1], v[still, 2], color=FIXED_RGB, marker="s", s=6)
         if tris:
             ax.add_collection3d(
                 Poly3DCollection(np.concatenate(tris), facecolors=np.concatenate(colors), edgecolors="none")
@@ -239,6 +309,7 @@ def _draw_panel(
         ax.set_ylabel("-z [m]")
         ax.set_zlabel("y [m]")
     ax.set_title(title)
+    return ax
 
 
 def _safe_name(name: str) -> str:

@@ -29,6 +29,7 @@ from redsim.dofs import DofMap
 from redsim.effects.base import Effect
 from redsim.effects.external import ExternalLoad, Gravity
 from redsim.points import PointSet
+from redsim.tensors import cast_tensors
 
 
 @dataclass(frozen=True)
@@ -272,6 +273,10 @@ class Scene:
         out = torch.zeros(v.shape, dtype=values.dtype, device=v.device)
         return out.index_add_(-1, rows, v.to(values.dtype)[:, cols] * values).to(v.dtype)
 
+    def mass_norm_sq(self, v: Tensor) -> Tensor:
+        """|v_s|_M^2 [kg x configuration unit^2] of rows v [S, n], shape [S] (differentiable)."""
+        return (v * self.mass_matvec(v)).sum(-1)
+
     def mass_matrix_scipy(self) -> Any:
         """M as a ``scipy.sparse.csr_matrix`` (float64)."""
         import scipy.sparse
@@ -288,8 +293,6 @@ class Scene:
 
     def to(self, device: torch.device | str | None = None, dtype: torch.dtype | None = None) -> Scene:
         """A copy on ``device`` with floating data in ``dtype`` (energies in float64 are the reference)."""
-        from redsim.effects.base import _convert
-
         mass = self.mass_matrix.to(device=device)
         if dtype is not None:
             mass = mass.to(dtype)
@@ -299,9 +302,9 @@ class Scene:
             mass_matrix=mass,
             q_seed=self.q_seed.to(device=device, dtype=dtype),
             effects=tuple(e.to(device, dtype) for e in self.effects),
-            handles=_convert(self.handles, device, dtype),
-            surfaces=_convert(self.surfaces, device, dtype),
-            condition_space=_convert(self.condition_space, device, dtype),
+            handles=cast_tensors(self.handles, device, dtype),
+            surfaces=cast_tensors(self.surfaces, device, dtype),
+            condition_space=cast_tensors(self.condition_space, device, dtype),
             _effect_index={},
         )
 

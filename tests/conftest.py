@@ -2,7 +2,7 @@
 
 from __future__ import annotations
 
-from collections.abc import Iterator
+from collections.abc import Callable, Iterator
 
 import pytest
 import torch
@@ -21,3 +21,16 @@ def _one_torch_thread() -> Iterator[None]:
 def _no_user_cache(monkeypatch: pytest.MonkeyPatch) -> None:
     """Tests never read or write the user's disk cache of full-space equilibria (REDSIM_CACHE=0)."""
     monkeypatch.setenv("REDSIM_CACHE", "0")
+
+
+@pytest.fixture
+def cli(capsys: pytest.CaptureFixture[str]) -> Callable[..., tuple[int, str, str]]:
+    """Run ``redsim ARGV...`` in-process: ``cli("simulate", ...) -> (exit status, stdout, stderr)``."""
+    from redsim.cli import main
+
+    def run(*argv: str) -> tuple[int, str, str]:
+        code = main(list(argv))
+        out, err = capsys.readouterr()
+        return code, out, err
+
+    return run

@@ -71,7 +71,7 @@ def test_scenes_json(capsys: pytest.CaptureFixture[str], toy: redsim.Scene) -> N
 
 
 def test_scenes_hides_toys_without_all(capsys: pytest.CaptureFixture[str], monkeypatch: pytest.MonkeyPatch) -> None:
-    monkeypatch.setattr(redsim.scenes, "names", lambda: [TOY])
+    monkeypatch.setattr(redsim.scenes, "names", lambda tag=None: [TOY])
     code, out, _ = run(capsys, "scenes", "--json")
     assert code == 0
     assert json.loads(out) == []

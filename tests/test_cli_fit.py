@@ -9,7 +9,8 @@ import pytest
 import torch
 
 from redsim import pretrained
-from redsim.cli import catmull_rom_loop, main
+from redsim.cli import main
+from redsim.keyframes import catmull_rom_loop
 from redsim.subspace import read_metadata
 
 
@@ -100,8 +101,9 @@ def test_catmull_rom_loop_passes_through_keys_and_closes() -> None:
         (["fit", "toy_two_tets", "--sigma", "-1"], "sigma"),
         (["fit", "toy_two_tets", "--cond"], "no condition space"),
         (["fit", "toy_two_tets", "--resume", "--out", "/nonexistent/x"], "nothing to resume"),
-        (["inspect", "/nonexistent/model.pt"], "no metadata"),
-        (["sample", "/nonexistent/model.pt"], "no metadata"),
+        (["inspect", "/nonexistent/model.pt"], "model.pt: the weights file is missing"),
+        (["sample", "/nonexistent/model.pt"], "model.pt: the weights file is missing"),
+        (["animate", "/nonexistent/model.pt"], "model.pt: the weights file is missing"),
         (["bench", "fit", "--scenes", "nope"], "unknown scene"),
         (["bench", "fit", "--steps", "0"], "--steps must be >= 1"),
     ],

@@ -19,6 +19,7 @@ from __future__ import annotations
 import dataclasses
 import functools
 import logging
+import math
 import os
 import shlex
 import time
@@ -31,9 +32,15 @@ import torch
 from torch import Tensor
 
 import redsim
-from redsim.metrics import pair_log_ratios
 from redsim.scene import Scene
-from redsim.subspace import CheckpointError, SubspaceConfig, SubspaceMap, checkpoint_path, sample_latents
+from redsim.subspace import (
+    CheckpointError,
+    SubspaceConfig,
+    SubspaceMap,
+    checkpoint_path,
+    pair_log_ratios,
+    sample_latents,
+)
 
 log = logging.getLogger(__name__)
 
@@ -105,19 +112,73 @@ class FitConfig:
     compile: bool = False
 
     def __post_init__(self) -> None:
-        checks = {
-            "sigma": self.sigma > 0,
-            "lam": self.lam >= 0,
-            "steps": self.steps >= 1,
-            "batch_size": self.batch_size >= 2,
-            "learning_rate": self.learning_rate > 0,
-            "exploration_fraction": 0 < self.exploration_fraction <= 1,
-            "checkpoint_every": self.checkpoint_every >= 0,
-            "dtype": self.dtype in DTYPES,
-        }
-        bad = [k for k, ok in checks.items() if not ok]
+        bad = [(f, rule) for f, rule, ok in _FIELD_RULES if not ok(self, getattr(self, f))]
         if bad:
-            raise ValueError(f"invalid FitConfig field(s) {bad}: {self}")
+            raise FitConfigError(bad, self)
+
+
+def _is_int(value: Any) -> bool:
+    return isinstance(value, int) and not isinstance(value, bool)
+
+
+def _is_number(value: Any) -> bool:
+    return isinstance(value, (int, float)) and not isinstance(value, bool) and math.isfinite(value)
+
+
+_FIELD_RULES: tuple[tuple[str, str, Callable[[FitConfig, Any], bool]], ...] = (
+    ("latent_dim", "an integer >= 1", lambda c, v: _is_int(v) and v >= 1),
+    ("sigma", "a finite number > 0", lambda c, v: _is_number(v) and v > 0),
+    ("lam", "a finite number >= 0", lambda c, v: _is_number(v) and v >= 0),
+    ("steps", "an integer >= 1", lambda c, v: _is_int(v) and v >= 1),
+    ("batch_size", "an integer >= 2", lambda c, v: _is_int(v) and v >= 2),
+    ("learning_rate", "a finite number > 0", lambda c, v: _is_number(v) and v > 0),
+    ("hidden_width", "an integer >= 1", lambda c, v: _is_int(v) and v >= 1),
+    ("hidden_layers", "an integer >= 1", lambda c, v: _is_int(v) and v >= 1),
+    (
+        "periodic",
+        "distinct latent indices in [0, latent_dim)",
+        lambda c, v: (
+            all(_is_int(i) and 0 <= i < (c.latent_dim if _is_int(c.latent_dim) else 0) for i in v)
+            and len(set(v)) == len(v)
+        ),
+    ),
+    ("conditional", "true or false", lambda c, v: isinstance(v, bool)),
+    ("exploration_fraction", "a number in (0, 1]", lambda c, v: _is_number(v) and 0 < v <= 1),
+    ("seed_bias", "true or false", lambda c, v: isinstance(v, bool)),
+    ("checkpoint_every", "an integer >= 0", lambda c, v: _is_int(v) and v >= 0),
+    ("dtype", f"one of {', '.join(DTYPES)}", lambda c, v: v in DTYPES),
+    ("device", "a torch device such as cpu or cuda", lambda c, v: isinstance(v, str) and _is_device(v)),
+    ("fused_adam", "true or false", lambda c, v: isinstance(v, bool)),
+    ("compile", "true or false", lambda c, v: isinstance(v, bool)),
+)
+"""(field, rule, check) for every FitConfig field; the messages state the rule."""
+
+
+def _is_device(name: str) -> bool:
+    try:
+        torch.device(name)
+    except RuntimeError:
+        return False
+    return True
+
+
+class FitConfigError(ValueError):
+    """Invalid :class:`FitConfig` fields.
+
+    Attributes:
+        problems: (field, rule) per invalid field, e.g. ("steps", "an integer >= 1").
+        values: The offending values, by field.
+    """
+
+    def __init__(self, problems: list[tuple[str, str]], config: FitConfig) -> None:
+        self.problems = problems
+        self.values = {f: getattr(config, f) for f, _ in problems}
+        super().__init__(self.describe())
+
+    def describe(self, names: dict[str, str] | None = None) -> str:
+        """One line naming each field (or its alias in ``names``, e.g. a CLI flag), its rule and its value."""
+        names = names or {}
+        return "; ".join(f"{names.get(f, f)} must be {rule}, got {self.values[f]!r}" for f, rule in self.problems)
 
 
 _ROUND_OFF_ONLY = ("fused_adam", "compile")
@@ -166,9 +227,18 @@ def subspace_loss(
     return total, _terms(energy, pair, stretch)
 
 
-def rho_at(step: int, config: FitConfig) -> float:
-    """Seeded-exploration weight rho after ``step`` completed steps."""
-    return min(1.0, (step + 1) / (config.exploration_fraction * config.steps))
+def rho_at(step: int, config: FitConfig, ramp_steps: int | None = None) -> float:
+    """Seeded-exploration weight rho after ``step`` completed steps.
+
+    rho rises over ``exploration_fraction * ramp_steps`` steps, ``ramp_steps`` being the length of
+    the fit the ramp was planned for (default ``config.steps``; an extended fit keeps its first length).
+    """
+    return min(1.0, (step + 1) / (config.exploration_fraction * (ramp_steps or config.steps)))
+
+
+def _lr_step_size(steps: int) -> int:
+    """Steps between halvings of the learning rate: a quarter of the run."""
+    return max(1, steps // 4)
 
 
 Callback = Callable[[int, dict[str, float]], None]
@@ -195,7 +265,9 @@ def fit_subspace(
         out: Checkpoint stem. With it, ``STEM.fit.pt`` holds resumable training state (written
             every ``checkpoint_every`` steps and on Ctrl-C) and the final map is saved to
             ``STEM.pt`` + ``STEM.json``.
-        resume: Continue from ``STEM.fit.pt`` (same scene and config required).
+        resume: Continue from ``STEM.fit.pt`` (same scene and config required, except ``steps``:
+            a larger value extends a fit, with the learning-rate schedule recomputed for the new
+            length from the step reached on; rho keeps the ramp of the first length).
         callbacks: Called as ``cb(step, terms)`` after every step.
         progress: Show a tqdm bar with the energy, pair and stretch terms.
         command: The command line recorded in the metadata (default: a `redsim fit` line).
@@ -235,19 +307,27 @@ def fit_subspace(
         log.warning("fused Adam is unavailable on %s in %s (%s); using plain Adam", config.device, dtype, why)
         fused = False
     optimizer = torch.optim.Adam(model.parameters(), lr=config.learning_rate, fused=fused)
-    scheduler = torch.optim.lr_scheduler.StepLR(optimizer, step_size=max(1, config.steps // 4), gamma=0.5)
+    scheduler = torch.optim.lr_scheduler.StepLR(optimizer, step_size=_lr_step_size(config.steps), gamma=0.5)
     generator = torch.Generator(device=config.device).manual_seed(seed)
     history: list[dict[str, float]] = []
     start_step, elapsed = 0, 0.0
+    command = command or fit_command(scene, config, seed, out)
+    ramp_steps, extensions = config.steps, []
     state_path = None if out is None else checkpoint_path(out, ".fit.pt")
     if resume:
         if state_path is None or not state_path.is_file():
             raise ValueError(f"nothing to resume: {state_path} does not exist")
-        start_step, elapsed, history = _load_training_state(
-            state_path, scene, config, model, optimizer, scheduler, generator
-        )
+        saved = _load_training_state(state_path, scene, config, model, optimizer, scheduler, generator)
+        start_step, elapsed, history = saved["step"], saved["elapsed"], saved["history"]
+        ramp_steps, extensions = saved["ramp_steps"], saved["extensions"]
+        if saved["steps"] != config.steps:
+            _reschedule(optimizer, scheduler, config, start_step)
+            extensions.append({"at_step": start_step, "from_steps": saved["steps"], "to_steps": config.steps})
+            command = f"{saved['command']} && {command} --resume" if saved["command"] else command
+        else:
+            command = saved["command"]
         _set_fused(optimizer, fused)
-        log.info("resuming %s at step %d", state_path, start_step)
+        log.info("resuming %s at step %d of %d", state_path, start_step, config.steps)
 
     bar = None
     if progress:
@@ -272,6 +352,9 @@ def fit_subspace(
                     "optimizer": optimizer.state_dict(),
                     "scheduler": scheduler.state_dict(),
                     "generator": generator_state,
+                    "ramp_steps": ramp_steps,
+                    "extensions": extensions,
+                    "command": command,
                 },
             )
 
@@ -292,7 +375,7 @@ def fit_subspace(
                     if config.conditional
                     else work.pack_condition(None, config.batch_size)
                 )
-            rho = rho_at(step, config)
+            rho = rho_at(step, config, ramp_steps)
             rho_t = torch.tensor(rho, dtype=dtype, device=config.device)
             loss, energy, pair, stretch = loss_fn(work, model, z, cond, rho_t, config)
             terms = _terms(energy, pair, stretch)
@@ -324,6 +407,7 @@ def fit_subspace(
     finally:
         if bar is not None:
             bar.close()
+    save_state()  # the end state too, so that a finished fit can be extended (--resume with more --steps)
     fit_seconds = elapsed + time.perf_counter() - clock
     tail = history[-min(len(history), 100) :]
     model.metadata = {
@@ -336,7 +420,12 @@ def fit_subspace(
         "fit_seconds": fit_seconds,
         "final": {k: sum(h[k] for h in tail) / len(tail) for k in ("energy", "pair", "stretch")},
         "redsim_version": redsim.__version__,
-        "command": command or fit_command(scene, config, seed, out),
+        "schedule": {
+            "lr_halved_every": _lr_step_size(config.steps),
+            "rho_ramp_steps": ramp_steps,
+            "extensions": extensions,
+        },
+        "command": command,
     }
     model = model.cpu()
     if out is not None:
@@ -382,9 +471,9 @@ def _condition_doc(scene: Scene) -> list[dict[str, Any]]:
 
 def fit_command(scene: Scene, config: FitConfig, seed: int, out: str | Path | None) -> str:
     """The `redsim fit` command line that reproduces this fit."""
-    parts = ["redsim", "fit", scene.name]
-    for key, value in sorted(scene.params.items()):
-        parts += ["--param", f"{key}={_json_literal(value)}"]
+    from redsim.scenes.spec import scene_arguments
+
+    parts = ["redsim", "fit", *scene_arguments(scene)]
     parts += [
         "--dim",
         str(config.latent_dim),
@@ -423,12 +512,6 @@ def fit_command(scene: Scene, config: FitConfig, seed: int, out: str | Path | No
     return shlex.join(parts)
 
 
-def _json_literal(value: Any) -> str:
-    import json
-
-    return json.dumps(value)
-
-
 def _save_training_state(path: Path, state: dict[str, Any]) -> None:
     """Write resumable training state atomically (a crash mid-write keeps the previous file)."""
     path.parent.mkdir(parents=True, exist_ok=True)
@@ -445,7 +528,12 @@ def _load_training_state(
     optimizer: torch.optim.Optimizer,
     scheduler: Any,
     generator: torch.Generator,
-) -> tuple[int, float, list[dict[str, float]]]:
+) -> dict[str, Any]:
+    """Restore the training state at ``path`` into the model, optimizer, scheduler and generator.
+
+    Returns:
+        ``step``, ``elapsed``, ``history``, the saved ``steps``, ``ramp_steps``, ``extensions`` and ``command``.
+    """
     try:
         state = torch.load(path, map_location="cpu", weights_only=True)
     except Exception as err:
@@ -456,15 +544,42 @@ def _load_training_state(
             f"this scene {scene.fingerprint()})",
             str(path),
         )
-    mine = {k: v for k, v in dataclasses.asdict(config).items() if k not in _ROUND_OFF_ONLY}
-    saved = {k: v for k, v in state["config"].items() if k not in _ROUND_OFF_ONLY}
+    free = (*_ROUND_OFF_ONLY, "steps")
+    mine = {k: v for k, v in dataclasses.asdict(config).items() if k not in free}
+    saved = {k: v for k, v in state["config"].items() if k not in free}
     saved["periodic"] = tuple(saved["periodic"])
     saved.setdefault("seed_bias", False)  # states written before the option existed
     if saved != mine:
         diff = sorted(k for k in mine if saved.get(k) != mine[k])
         raise CheckpointError(f"training state was made with different settings {diff}", str(path))
+    step = int(state["step"])
+    if config.steps < step:
+        raise CheckpointError(
+            f"steps must be >= the {step} steps already done to resume, got {config.steps}", str(path)
+        )
     model.load_state_dict(state["model"])
     optimizer.load_state_dict(state["optimizer"])
     scheduler.load_state_dict(state["scheduler"])
     generator.set_state(state["generator"])
-    return int(state["step"]), float(state["elapsed"]), list(state["history"])
+    saved_steps = int(state["config"]["steps"])
+    return {
+        "step": step,
+        "elapsed": float(state["elapsed"]),
+        "history": list(state["history"]),
+        "steps": saved_steps,
+        "ramp_steps": int(state.get("ramp_steps", saved_steps)),
+        "extensions": list(state.get("extensions", [])),
+        "command": state.get("command", ""),
+    }
+
+
+def _reschedule(optimizer: torch.optim.Optimizer, scheduler: Any, config: FitConfig, step: int) -> None:
+    """Recompute the step-halving learning rate for a run of ``config.steps`` steps, at ``step`` done."""
+    size = _lr_step_size(config.steps)
+    scheduler.step_size = size
+    scheduler.last_epoch = step
+    lr = config.learning_rate * scheduler.gamma ** (step // size)
+    for group in optimizer.param_groups:
+        group["lr"] = lr
+        group["initial_lr"] = config.learning_rate
+    scheduler._last_lr = [lr for _ in optimizer.param_groups]

@@ -5,6 +5,11 @@ follows supplement A.1 ("σ sets the extent of the subspace"): typical sample pa
 sigma * sqrt(2 d) apart in the M-norm, i.e. an RMS displacement of about
 sigma * sqrt(2 d / m_total) for a scene of total mass m_total. Each preset notes the RMS
 displacement it aims for; `redsim fit --sigma` overrides it.
+
+The presets are keyed by the scene registry's names (:func:`redsim.scenes.names`), one per
+catalog scene (a test checks it). They live here, not in the registry entries, because they are
+:class:`~redsim.trainers.FitConfig` fields: the fitter owns them, and the engine does not import
+the trainers.
 """
 
 from __future__ import annotations

@@ -11,7 +11,6 @@ definition of each physical term.
 from __future__ import annotations
 
 import copy
-import dataclasses
 import math
 from typing import Any, ClassVar
 
@@ -19,6 +18,7 @@ import torch
 from torch import Tensor
 
 from redsim.points import PointSet
+from redsim.tensors import cast_tensors
 
 
 class Effect:
@@ -66,26 +66,24 @@ class Effect:
         """A copy with floating tensors cast to ``dtype`` and every tensor moved to ``device``."""
         out = copy.copy(self)
         for key, value in vars(self).items():
-            setattr(out, key, _convert(value, device, dtype))
+            setattr(out, key, cast_tensors(value, device, dtype))
         return out
 
     def __repr__(self) -> str:
         return f"{type(self).__name__}(name={self.name!r}, elements={self.element_count})"
 
 
-def _convert(value: Any, device: torch.device | str | None, dtype: torch.dtype | None) -> Any:
-    if isinstance(value, Tensor):
-        if value.is_floating_point():
-            return value.to(device=device, dtype=dtype)
-        return value.to(device=device)
-    if isinstance(value, PointSet):
-        return value.to(device, dtype)
-    if dataclasses.is_dataclass(value) and not isinstance(value, type):
-        changes = {f.name: _convert(getattr(value, f.name), device, dtype) for f in dataclasses.fields(value)}
-        return dataclasses.replace(value, **changes)
-    if isinstance(value, tuple):
-        return tuple(_convert(v, device, dtype) for v in value)
-    return value
+def per_element(value: float | Tensor, count: int, what: str) -> Tensor:
+    """A per-element parameter (stiffness, modulus) as float64 [count]: a scalar is broadcast.
+
+    Raises:
+        ValueError: ``value`` is neither a scalar nor of shape [count] (``what`` names it).
+    """
+    out = torch.as_tensor(value, dtype=torch.float64)
+    out = out.expand(count).clone() if out.ndim == 0 else out.clone()
+    if out.shape != (count,):
+        raise ValueError(f"{what} must be a scalar or have shape [{count}], got {tuple(out.shape)}")
+    return out
 
 
 def point_dofs(*point_sets: PointSet) -> Tensor:

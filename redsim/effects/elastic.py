@@ -7,16 +7,16 @@ from typing import Literal
 import torch
 from torch import Tensor
 
-from redsim.effects.base import Effect
+from redsim.effects.base import Effect, per_element
 from redsim.materials import lame_from_young_poisson
 
 
-def _per_element(value: float | Tensor, count: int, what: str) -> Tensor:
-    out = torch.as_tensor(value, dtype=torch.float64)
-    out = out.expand(count).clone() if out.ndim == 0 else out.clone()
-    if out.shape != (count,):
-        raise ValueError(f"{what} must be a scalar or have shape [{count}], got {tuple(out.shape)}")
-    return out
+def _lame(
+    young: float | Tensor, poisson: float | Tensor, count: int, plane: Literal["strain", "stress"] | None
+) -> tuple[Tensor, Tensor]:
+    """Lamé parameters (mu, lambda) [Pa], each [count], of per-element (scalar or [count]) young [Pa] and poisson."""
+    young_t, poisson_t = per_element(young, count, "young"), per_element(poisson, count, "poisson")
+    return lame_from_young_poisson(young_t, poisson_t, plane=plane)
 
 
 def _edge_matrix(v: Tensor) -> Tensor:
@@ -108,11 +108,7 @@ class NeoHookean(Effect):
                 f"element {i} of {name!r} is {kind} (rest volume {float(volume[i]):.3g}); "
                 f"{bad.numel()} bad element(s) in all"
             )
-        mu, lam = lame_from_young_poisson(
-            _per_element(young, T, "young"),
-            _per_element(poisson, T, "poisson"),
-            plane=plane if D == 2 else None,
-        )
+        mu, lam = _lame(young, poisson, T, plane if D == 2 else None)
         self.name = name
         self.dim = D
         self.element_dofs = torch.as_tensor(vertex_dofs, dtype=torch.int64).reshape(T, -1)
@@ -193,9 +189,7 @@ class StVKMembrane(Effect):
         bad = torch.nonzero(area <= 1e-12 * frame.abs().amax(dim=(-1, -2)) ** 2).reshape(-1)
         if bad.numel():
             raise ValueError(f"triangle {int(bad[0])} of {name!r} is degenerate (rest area {float(area[bad[0]]):.3g})")
-        mu, lam = lame_from_young_poisson(
-            _per_element(young, T, "young"), _per_element(poisson, T, "poisson"), plane="stress"
-        )
+        mu, lam = _lame(young, poisson, T, "stress")
         self.name = name
         self.element_dofs = torch.as_tensor(vertex_dofs, dtype=torch.int64).reshape(T, 9)
         self.shape_gradients = _shape_gradients(torch.linalg.inv(frame))
@@ -257,7 +251,7 @@ class DiscreteShellBending(Effect):
         self.element_dofs = torch.as_tensor(vertex_dofs, dtype=torch.int64).reshape(count, 12)
         self.length_eps = float(edge_sq.min()) * 1e-12
         self.rest_angle = _dihedral(rest, self.length_eps)
-        self.weight = _per_element(stiffness, count, "stiffness") * 3.0 * edge_sq / (area_a + area_b)
+        self.weight = per_element(stiffness, count, "stiffness") * 3.0 * edge_sq / (area_a + area_b)
 
     def element_energy(self, xe: Tensor, cond: Tensor | None = None, loads: Tensor | None = None) -> Tensor:
         B, E, _ = xe.shape

@@ -8,8 +8,7 @@ from dataclasses import dataclass
 import torch
 from torch import Tensor
 
-from redsim.effects.base import Effect, point_dofs, split_points
-from redsim.effects.elastic import _per_element
+from redsim.effects.base import Effect, per_element, point_dofs, split_points
 from redsim.effects.sdf import Box, Capsule, Plane, Sphere, Torus
 from redsim.points import PointSet
 
@@ -36,7 +35,7 @@ class PointPairPenalty(Effect):
         self.kind = kind
         self.a, self.b = a, b
         self.element_dofs = point_dofs(a, b)
-        self.stiffness = _per_element(stiffness, a.count, "stiffness")
+        self.stiffness = per_element(stiffness, a.count, "stiffness")
 
     def element_energy(self, xe: Tensor, cond: Tensor | None = None, loads: Tensor | None = None) -> Tensor:
         pa, pb = split_points(xe, self.a, self.b)

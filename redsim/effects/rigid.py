@@ -5,8 +5,7 @@ from __future__ import annotations
 import torch
 from torch import Tensor
 
-from redsim.effects.base import Effect
-from redsim.effects.elastic import _per_element
+from redsim.effects.base import Effect, per_element
 
 
 class RigidOrthogonality(Effect):
@@ -26,7 +25,7 @@ class RigidOrthogonality(Effect):
             raise ValueError(f"body_dofs must have shape [bodies, 12], got {tuple(body_dofs.shape)}")
         self.name = name
         self.element_dofs = body_dofs
-        self.stiffness = _per_element(stiffness, body_dofs.shape[0], "stiffness")
+        self.stiffness = per_element(stiffness, body_dofs.shape[0], "stiffness")
 
     def element_energy(self, xe: Tensor, cond: Tensor | None = None, loads: Tensor | None = None) -> Tensor:
         B, T, _ = xe.shape

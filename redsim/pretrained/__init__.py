@@ -15,20 +15,12 @@ from pathlib import Path
 import torch
 from torch import nn
 
+from redsim import scenes
 from redsim.scene import Scene
 
 FOLDER = Path(__file__).resolve().parent
-ENV_SCENES = (
-    "chain",
-    "mini_chain",
-    "klann",
-    "stewart",
-    "cloth_ball",
-    "hanging_sheet",
-    "bistable_bar",
-    "conditional_bar",
-)
-"""The scenes the environments run on; each has a shipped subspace."""
+ENV_SCENES = tuple(scenes.names("env"))
+"""The scenes the environments run on (registry tag "env"); each has a shipped subspace."""
 
 
 def names() -> list[str]:
@@ -53,19 +45,21 @@ def load(scene_name: str, scene: Scene | None = None, *, device: str | torch.dev
 
     Args:
         scene_name: Catalog name.
-        scene: The scene it will run on (default: ``redsim.scenes.build(scene_name)``). A scene
-            built with other parameters is refused: the subspace was fitted to the defaults.
+        scene: The scene it will run on (default: rebuilt from the checkpoint's record,
+            :func:`redsim.scenes.spec.scene_from_spec`). A scene built with other parameters is refused:
+            the subspace was fitted to the defaults.
         device: Where to put the weights.
 
     Raises:
         KeyError: no subspace is shipped for this scene.
         redsim.subspace.CheckpointError: the scene differs from the one the subspace was fitted to.
     """
-    from redsim import scenes
-    from redsim.subspace import load_subspace
+    from redsim.scenes.spec import scene_from_spec
+    from redsim.subspace import load_subspace, read_metadata
 
     weights = path(scene_name)
-    return load_subspace(weights, scene=scenes.build(scene_name) if scene is None else scene, device=device)
+    scene = scene_from_spec(read_metadata(weights)) if scene is None else scene
+    return load_subspace(weights, scene=scene, device=device)
 
 
 __all__ = ["ENV_SCENES", "FOLDER", "load", "names", "path"]

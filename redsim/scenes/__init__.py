@@ -1,15 +1,19 @@
-"""The scene catalog: ``names()`` lists the scenes, ``build(name, **params)`` makes one.
+"""The scene registry: ``names()`` lists the scenes, ``build(name, **params)`` makes one.
 
 Catalog scenes (:mod:`redsim.scenes.catalog`) reproduce the systems of the paper's Table 1
 plus a heterogeneous beam; toy scenes (:mod:`redsim.scenes.testing`, names starting with
-``toy_``) are tiny systems for fast tests. Scenes from your own meshes come from
-:func:`fem_scene_from_mesh` and :func:`cloth_scene_from_mesh`.
+``toy_``) are tiny systems for fast tests. Each has a :class:`SceneEntry` in :data:`ENTRIES`
+saying what the rest of redsim needs to know about it (tags, a crank, reference states).
+Scenes from your own meshes come from :func:`fem_scene_from_mesh` and
+:func:`cloth_scene_from_mesh`; :func:`redsim.scenes.spec.scene_from_spec` rebuilds any scene from
+the record a checkpoint keeps.
 
 Example::
 
     import redsim
     scene = redsim.scenes.build("chain", links=12, gravity=False)
     scene.describe()["n"]    # 144
+    redsim.scenes.names("env")    # the scenes the environments run on
 """
 
 from __future__ import annotations
@@ -21,20 +25,43 @@ from typing import Any
 from redsim.scene import Scene
 from redsim.scenes.catalog import CATALOG
 from redsim.scenes.from_mesh import cloth_scene_from_mesh, fem_scene_from_mesh
+from redsim.scenes.registry import TAGS, Crank, SceneEntry
 from redsim.scenes.testing import TOYS
 
-SCENES: dict[str, Callable[..., Scene]] = {**CATALOG, **TOYS}
+ENTRIES: dict[str, SceneEntry] = {e.name: e for e in (*CATALOG, *TOYS)}
+"""Every named scene (catalog first, in Table 1 order, then the toys)."""
+
+SCENES: dict[str, Callable[..., Scene]] = {name: e.builder for name, e in ENTRIES.items()}
 """Every named scene builder; each is keyword-only and every argument has a default."""
 
 
-def names() -> list[str]:
-    """Names of all registered scenes (catalog first, then toys)."""
-    return list(SCENES)
+def names(tag: str | None = None) -> list[str]:
+    """Names of all registered scenes (catalog first, then toys), or of those tagged ``tag``.
+
+    Raises:
+        ValueError: ``tag`` is not one of :data:`TAGS` (the message lists them).
+    """
+    if tag is None:
+        return list(ENTRIES)
+    if tag not in TAGS:
+        raise ValueError(f"unknown scene tag {tag!r}; valid tags: {list(TAGS)}")
+    return [name for name, e in ENTRIES.items() if tag in e.tags]
+
+
+def entry(name: str) -> SceneEntry:
+    """The registry entry of scene ``name``.
+
+    Raises:
+        ValueError: on an unknown name (the message lists the valid names).
+    """
+    if name not in ENTRIES:
+        raise ValueError(f"unknown scene {name!r}; valid scenes: {names()}")
+    return ENTRIES[name]
 
 
 def parameters(name: str) -> dict[str, Any]:
     """The parameters of scene ``name`` with their defaults."""
-    builder = _builder(name)
+    builder = entry(name).builder
     return {k: p.default for k, p in inspect.signature(builder).parameters.items()}
 
 
@@ -45,7 +72,7 @@ def build(name: str, **params: Any) -> Scene:
         ValueError: on an unknown name (the message lists the valid names), an unknown
             parameter (it lists the scene's parameters) or a bad parameter value.
     """
-    builder = _builder(name)
+    builder = entry(name).builder
     valid = list(inspect.signature(builder).parameters)
     unknown = sorted(set(params) - set(valid))
     if unknown:
@@ -53,10 +80,16 @@ def build(name: str, **params: Any) -> Scene:
     return builder(**params)
 
 
-def _builder(name: str) -> Callable[..., Scene]:
-    if name not in SCENES:
-        raise ValueError(f"unknown scene {name!r}; valid scenes: {names()}")
-    return SCENES[name]
-
-
-__all__ = ["SCENES", "build", "cloth_scene_from_mesh", "fem_scene_from_mesh", "names", "parameters"]
+__all__ = [
+    "ENTRIES",
+    "SCENES",
+    "TAGS",
+    "Crank",
+    "SceneEntry",
+    "build",
+    "cloth_scene_from_mesh",
+    "entry",
+    "fem_scene_from_mesh",
+    "names",
+    "parameters",
+]

@@ -12,18 +12,8 @@ import trimesh
 
 from redsim import meshes
 from redsim.scene import Scene, SceneBuilder
-from redsim.scenes.from_mesh import (
-    Joints,
-    add_cloth,
-    add_fem,
-    add_gravity,
-    add_rigid_body,
-    add_rigidity,
-    builder_params,
-    check_bool,
-    check_poisson,
-    check_positive,
-)
+from redsim.scenes import toolkit
+from redsim.scenes.registry import SceneEntry
 
 
 def two_tets(*, young: float = 1e4, poisson: float = 0.4, density: float = 1000.0, gravity: bool = True) -> Scene:
@@ -39,18 +29,18 @@ def two_tets(*, young: float = 1e4, poisson: float = 0.4, density: float = 1000.
 
     Effects: elastic, [gravity], external_load. Handle: "top" (v3). Surface: "elastic".
     """
-    params = builder_params(locals())
-    check_positive("young", young)
-    check_poisson(poisson)
-    check_positive("density", density)
-    gravity = check_bool("gravity", gravity)
+    params = toolkit.builder_params(locals())
+    toolkit.check_positive("young", young)
+    toolkit.check_poisson(poisson)
+    toolkit.check_positive("density", density)
+    gravity = toolkit.check_bool("gravity", gravity)
     vertices = np.array([[0.0, 0.0, 0.0], [0.1, 0.0, 0.0], [0.0, 0.0, 0.1], [0.03, 0.1, 0.03], [0.03, -0.1, 0.03]])
     tets = meshes.orient_tets(vertices, np.array([[0, 1, 2, 3], [0, 1, 2, 4]]))
     b = SceneBuilder(dim=3)
-    ids = add_fem(b, vertices, tets, young=young, poisson=poisson, density=density)
+    ids = toolkit.add_fem(b, vertices, tets, young=young, poisson=poisson, density=density)
     b.pin_particles(ids[:3])
     if gravity:
-        add_gravity(b)
+        toolkit.add_gravity(b)
     b.add_handle("top", b.particle_points(ids[3:4]))
     return b.finalize("toy_two_tets", params=params, description="two tets, shared face pinned (m, kg, s)")
 
@@ -75,18 +65,18 @@ def three_link_chain(
     Effects: rigid, joints, joint_axes, [gravity], external_load. Handle: "tip" (the free end
     of the last bar). Surfaces: "link_0".."link_2".
     """
-    params = builder_params(locals())
+    params = toolkit.builder_params(locals())
     for key in ("joint_stiffness", "axis_stiffness", "rigid_stiffness", "density"):
-        check_positive(key, params[key])
-    gravity = check_bool("gravity", gravity)
+        toolkit.check_positive(key, params[key])
+    gravity = toolkit.check_bool("gravity", gravity)
     b = SceneBuilder(dim=3)
     ends = [np.array([0.0, -0.2 * k, 0.0]) for k in range(4)]
     bodies = []
     for k in range(3):
         box = trimesh.creation.box(extents=(0.02, 0.22, 0.02)).apply_translation(0.5 * (ends[k] + ends[k + 1]))
-        bodies.append(add_rigid_body(b, box, density=density, surface=f"link_{k}"))
-    add_rigidity(b, bodies, rigid_stiffness)
-    joints = Joints(b)
+        bodies.append(toolkit.add_rigid_body(b, box, density=density, surface=f"link_{k}"))
+    toolkit.add_rigidity(b, bodies, rigid_stiffness)
+    joints = toolkit.Joints(b)
     z = np.array([0.0, 0.0, 1.0])
     for k in range(3):
         parent = bodies[k - 1] if k else None
@@ -94,7 +84,7 @@ def three_link_chain(
         joints.align(bodies[k], parent, z, axis_stiffness)
     joints.finish(joint_stiffness)
     if gravity:
-        add_gravity(b)
+        toolkit.add_gravity(b)
     b.add_handle("tip", b.body_points(bodies[2].body, torch.as_tensor(bodies[2].to_local(ends[3]))))
     return b.finalize("toy_three_link_chain", params=params, description="planar triple pendulum of 0.2 m bars")
 
@@ -120,20 +110,20 @@ def small_cloth(
 
     Effects: membrane, bending, [gravity], external_load. Handle: "bottom_corner". Surface: "cloth".
     """
-    params = builder_params(locals())
+    params = toolkit.builder_params(locals())
     for key in ("young", "thickness", "density"):
-        check_positive(key, params[key])
-    check_poisson(poisson)
-    check_positive("bending", bending, allow_zero=True)
-    gravity = check_bool("gravity", gravity)
+        toolkit.check_positive(key, params[key])
+    toolkit.check_poisson(poisson)
+    toolkit.check_positive("bending", bending, allow_zero=True)
+    gravity = toolkit.check_bool("gravity", gravity)
     vertices, triangles = meshes.cloth_grid(0.3, 0.3, (3, 3), origin=(0.0, -0.3, 0.0))
     b = SceneBuilder(dim=3)
-    ids = add_cloth(
+    ids = toolkit.add_cloth(
         b, vertices, triangles, young=young, poisson=poisson, thickness=thickness, density=density, bending=bending
     )
     b.pin_particles(ids[torch.tensor([12, 15])])
     if gravity:
-        add_gravity(b)
+        toolkit.add_gravity(b)
     b.add_handle("bottom_corner", b.particle_points(ids[:1]))
     return b.finalize("toy_small_cloth", params=params, description="0.3 m 4x4-vertex cloth hanging from two corners")
 
@@ -152,25 +142,25 @@ def tiny_bar_2d(
 
     Effects: elastic, [gravity], external_load. Handle: "tip" (the right end). Surface: "elastic".
     """
-    params = builder_params(locals())
+    params = toolkit.builder_params(locals())
     for key in ("young", "density", "thickness"):
-        check_positive(key, params[key])
-    check_poisson(poisson)
-    gravity = check_bool("gravity", gravity)
+        toolkit.check_positive(key, params[key])
+    toolkit.check_poisson(poisson)
+    gravity = toolkit.check_bool("gravity", gravity)
     vertices, triangles = meshes.rectangle_grid(0.4, 0.1, (4, 1))
     b = SceneBuilder(dim=2)
-    ids = add_fem(b, vertices, triangles, young=young, poisson=poisson, density=density, thickness=thickness)
+    ids = toolkit.add_fem(b, vertices, triangles, young=young, poisson=poisson, density=density, thickness=thickness)
     b.pin_particles(ids[torch.tensor([0, 5])])
     if gravity:
-        add_gravity(b)
+        toolkit.add_gravity(b)
     b.add_handle("tip", b.particle_points(ids[torch.tensor([4, 9])]))
     return b.finalize("toy_tiny_bar_2d", params=params, description="2D bar 0.4 x 0.1 m, left end pinned")
 
 
-TOYS = {
-    "toy_two_tets": two_tets,
-    "toy_three_link_chain": three_link_chain,
-    "toy_small_cloth": small_cloth,
-    "toy_tiny_bar_2d": tiny_bar_2d,
-}
-"""The toy scenes by catalog name."""
+TOYS: tuple[SceneEntry, ...] = (
+    SceneEntry("toy_two_tets", two_tets, tags=("toy",)),
+    SceneEntry("toy_three_link_chain", three_link_chain, tags=("toy",)),
+    SceneEntry("toy_small_cloth", small_cloth, tags=("toy",)),
+    SceneEntry("toy_tiny_bar_2d", tiny_bar_2d, tags=("toy",)),
+)
+"""The toy scenes (tag "toy")."""

@@ -20,9 +20,6 @@ import torch
 import redsim.baselines as baselines
 from redsim import Scene, SceneBuilder, scenes
 from redsim.baselines import (
-    AutoencoderSubspace,
-    LinearSubspace,
-    QuadraticSubspace,
     hessian_directional_derivative,
     modal_analysis,
     modal_derivatives,
@@ -33,7 +30,15 @@ from redsim.baselines import (
 from redsim.effects import NeoHookean
 from redsim.hessian import energy_hessian
 from redsim.integrators import LatentSpace, latent_equilibrium, static_equilibrium
-from redsim.subspace import CheckpointError, SubspaceConfig, SubspaceMap, load_subspace
+from redsim.subspace import (
+    AutoencoderSubspace,
+    CheckpointError,
+    LinearSubspace,
+    QuadraticSubspace,
+    SubspaceConfig,
+    SubspaceMap,
+    load_subspace,
+)
 from redsim.trainers import fit_subspace
 
 TET = torch.tensor([[0.0, 0, 0], [1, 0, 0], [0, 1, 0], [0, 0, 1]], dtype=torch.float64)

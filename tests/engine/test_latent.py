@@ -14,11 +14,9 @@ import torch
 from torch import Tensor
 
 from redsim import Scene, SceneBuilder, scenes
-from redsim.baselines import LinearSubspace
 from redsim.effects import NeoHookean
 from redsim.hessian import energy_hessian
 from redsim.integrators import (
-    HESSIAN_FLOOR,
     FullSpace,
     ImplicitEuler,
     Inertia,
@@ -27,7 +25,8 @@ from redsim.integrators import (
     latent_equilibrium,
     static_equilibrium,
 )
-from redsim.subspace import SubspaceConfig, SubspaceMap
+from redsim.integrators.spaces import HESSIAN_FLOOR
+from redsim.subspace import LinearSubspace, SubspaceConfig, SubspaceMap
 
 LOAD = {"top": [1.0, 2.0, -0.5]}  # [N] on toy_two_tets' free top vertex
 

@@ -9,10 +9,8 @@ sqrt(2 s^2 + s^4) / 2.
 from __future__ import annotations
 
 import json
-import logging
 import math
-from collections.abc import Iterator
-from pathlib import Path
+from collections.abc import Callable
 from types import SimpleNamespace
 from typing import Any
 
@@ -21,33 +19,11 @@ import torch
 from torch import Tensor, nn
 
 from redsim import Scene, SceneBuilder, metrics, scenes
-from redsim.baselines import LinearSubspace
 from redsim.effects import NeoHookean
 from redsim.integrators import static_equilibrium
-from redsim.subspace import SubspaceConfig, SubspaceMap
+from redsim.subspace import LinearSubspace, SubspaceConfig, SubspaceMap
 
-
-@pytest.fixture(autouse=True)
-def _disk_cache(tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> Iterator[Path]:
-    """Every test gets its own empty disk cache (never the user's) and an empty memory cache."""
-    monkeypatch.setenv(metrics.CACHE_ENV, str(tmp_path / "cache"))
-    metrics.clear_cache()
-    yield tmp_path / "cache" / "equilibria"
-    metrics.clear_cache()
-
-
-def _count_solves(monkeypatch: pytest.MonkeyPatch) -> list[int]:
-    """Count the full-space solves (cache misses of memory and disk)."""
-    calls: list[int] = []
-    solve = metrics._solve_full
-
-    def counted(*args: Any, **kwargs: Any) -> Any:
-        calls.append(1)
-        return solve(*args, **kwargs)
-
-    monkeypatch.setattr(metrics, "_solve_full", counted)
-    return calls
-
+pytestmark = pytest.mark.usefixtures("equilibrium_cache")
 
 TET = torch.tensor([[0.0, 0, 0], [1, 0, 0], [0, 1, 0], [0, 0, 1]], dtype=torch.float64)
 
@@ -91,9 +67,9 @@ def _identity(scene: Scene) -> Affine:
     return Affine(scene.q_seed, torch.eye(scene.free_dof_count, dtype=torch.float64))
 
 
-def test_load_response_is_zero_for_the_identity_and_large_for_a_bad_map(monkeypatch: pytest.MonkeyPatch) -> None:
+def test_load_response_is_zero_for_the_identity_and_large_for_a_bad_map(count_solves: Callable[[], list[int]]) -> None:
     scene = scenes.build("toy_two_tets")
-    calls = _count_solves(monkeypatch)
+    calls = count_solves()
     rest, converged = metrics.rest_state(scene)
     exact = metrics.load_response_error(scene, _identity(scene), count=4)
     assert len(calls) == 5  # the rest equilibrium (shared with rest_state) and one per load
@@ -202,76 +178,6 @@ def test_evaluate_subspace_bundles_the_metrics_as_json() -> None:
     free = _free_tet()
     no_loads = metrics.evaluate_subspace(free, Rotation(free.q_seed), sigma=1.0, samples=8)
     assert "load_response" not in no_loads and no_loads["nonrigid_strain"]["max"] < 1e-12
-
-
-def test_full_equilibria_are_kept_on_disk(monkeypatch: pytest.MonkeyPatch, _disk_cache: Path) -> None:
-    scene = scenes.build("toy_two_tets")
-    calls = _count_solves(monkeypatch)
-    first = metrics.load_response_error(scene, _identity(scene), count=2, restarts=0)
-    assert len(calls) == 3 and len(list(_disk_cache.glob("*.npz"))) == 3  # the rest equilibrium and 2 loads
-    metrics.clear_cache()  # a new process: only the disk cache is left
-    again = metrics.load_response_error(scene, _identity(scene), count=2, restarts=0)
-    assert len(calls) == 3 and again == first
-    rest = metrics._rest_equilibrium(scene, None)
-    assert rest[1] and rest[0].dtype == torch.float64 and rest[0].shape == (scene.free_dof_count,)
-    other = scenes.build("toy_two_tets", gravity=False)  # other content, other key
-    metrics.load_response_error(other, _identity(other), count=1, restarts=0)
-    assert len(calls) == 5
-    metrics.clear_cache(disk=True)
-    assert not list(_disk_cache.glob("*.npz"))
-
-
-def test_a_damaged_disk_cache_entry_is_solved_again(
-    monkeypatch: pytest.MonkeyPatch, caplog: pytest.LogCaptureFixture, _disk_cache: Path
-) -> None:
-    scene = scenes.build("toy_two_tets")
-    q, converged, energy = metrics._rest_equilibrium(scene, None)
-    (path,) = _disk_cache.glob("*.npz")
-    calls = _count_solves(monkeypatch)
-    for damage in (b"not a zip file", path.read_bytes()[:100], b""):
-        path.write_bytes(damage)
-        metrics.clear_cache()
-        with caplog.at_level(logging.WARNING, logger="redsim.metrics"):
-            again = metrics._rest_equilibrium(scene, None)
-        assert "ignoring unreadable equilibrium cache file" in caplog.text
-        caplog.clear()
-        torch.testing.assert_close(again[0], q, rtol=0.0, atol=0.0)
-        assert again[1:] == (converged, energy)
-    assert len(calls) == 3
-    metrics.clear_cache()
-    metrics._rest_equilibrium(scene, None)  # the rewritten entry is good again
-    assert len(calls) == 3 and not caplog.records
-
-
-def test_the_disk_cache_can_be_turned_off_and_never_breaks_a_run(
-    monkeypatch: pytest.MonkeyPatch, caplog: pytest.LogCaptureFixture, tmp_path: Path
-) -> None:
-    scene = scenes.build("toy_two_tets")
-    for off in ("0", "off", ""):
-        monkeypatch.setenv(metrics.CACHE_ENV, off)
-        assert metrics.cache_directory() is None
-    monkeypatch.setenv(metrics.CACHE_ENV, "0")
-    metrics._rest_equilibrium(scene, None)
-    assert not any(tmp_path.rglob("*.npz"))
-    monkeypatch.delenv(metrics.CACHE_ENV)
-    monkeypatch.setenv("XDG_CACHE_HOME", str(tmp_path / "xdg"))
-    assert metrics.cache_directory() == tmp_path / "xdg" / "redsim" / "equilibria"
-    blocker = tmp_path / "file"
-    blocker.write_text("a file where the cache folder should be")
-    monkeypatch.setenv(metrics.CACHE_ENV, str(blocker))
-    metrics.clear_cache()
-    with caplog.at_level(logging.WARNING, logger="redsim.metrics"):
-        _, converged, _ = metrics._rest_equilibrium(scene, None)
-    assert converged and "could not write the equilibrium cache file" in caplog.text
-
-
-def test_full_equilibria_leave_saddles() -> None:
-    scene = scenes.build("mini_chain").to(dtype=torch.float64)
-    saddle, info = static_equilibrium(scene, tol=metrics.FULL_TOL)  # Newton from the seed stops at a saddle
-    assert info.converged and metrics._negative_curvature(scene, saddle, None, None) is not None
-    rest, converged, energy = metrics._rest_equilibrium(scene, None)
-    assert converged and energy < info.energy - 1e-3
-    assert metrics._negative_curvature(scene, rest, None, None) is None
 
 
 class _HandleOrbit(torch.nn.Module):

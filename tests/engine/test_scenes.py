@@ -17,8 +17,7 @@ import trimesh
 import redsim
 from redsim import meshes
 from redsim.scene import Scene
-from redsim.scenes import catalog
-from redsim.scenes.catalog import KLANN_JOINTS
+from redsim.scenes.linkages import KLANN_CRANK
 
 # Table 1 of the paper: full dimension n per system.
 TABLE_1 = {
@@ -58,7 +57,8 @@ def perturbed(scene: Scene, scale: float, seed: int = 0, batch: int = 2) -> torc
 
 def test_catalog_lists_table_1_and_toys() -> None:
     names = redsim.scenes.names()
-    assert set(TABLE_1) | {"hetero_beam"} == set(catalog.CATALOG)
+    assert set(TABLE_1) == set(redsim.scenes.names("table1"))
+    assert set(TABLE_1) | {"hetero_beam"} == set(names) - set(redsim.scenes.names("toy"))
     assert {"toy_two_tets", "toy_three_link_chain", "toy_small_cloth", "toy_tiny_bar_2d"} <= set(names)
     assert set(redsim.scenes.SCENES) == set(names)
 
@@ -95,6 +95,7 @@ def test_hetero_beam_alternates_materials() -> None:
 def test_scene_contract(name: str) -> None:
     scene = built(name)
     d = scene.describe()
+    assert scene.name == name  # the registry entry and the scene agree on the name
     assert d["n"] == scene.free_dof_count == scene.q_seed.shape[0]
     assert len(scene.handles) >= 1 and len(scene.surfaces) >= 1
     assert set(scene.params) == set(redsim.scenes.parameters(name))
@@ -297,7 +298,7 @@ def test_klann_crank_turns_a_full_revolution() -> None:
     """
     scene = built("klann", False)
     joints, axes, rigid = scene.effect("joints"), scene.effect("joint_axes"), scene.effect("rigid")
-    pivot = torch.tensor([*KLANN_JOINTS["crank_ground"], 0.0], dtype=torch.float64)
+    pivot = torch.tensor([*KLANN_CRANK.pivot, 0.0], dtype=torch.float64)
     eye = torch.eye(3, dtype=torch.float64)
 
     def residuals(rest: torch.Tensor, crank: torch.Tensor) -> torch.Tensor:
@@ -332,6 +333,19 @@ def test_klann_crank_turns_a_full_revolution() -> None:
         moved = (x[0, :12] - scene.q_seed[:12]).abs().max()
         assert angle > 6.2 or float(moved) > 1e-3
     torch.testing.assert_close(q, scene.q_seed, atol=1e-9, rtol=0)
+
+
+def test_klann_declares_its_crank() -> None:
+    """The registry's crank: its handle sits on the crank body and turns with it about the declared pivot."""
+    assert redsim.scenes.entry("klann").crank == KLANN_CRANK
+    scene = built("klann", False)
+    handle = next(h for h in scene.handles if h.name == KLANN_CRANK.handle)
+    pivot = torch.tensor([*KLANN_CRANK.pivot, 0.0], dtype=torch.float64)
+    turned = scene.q_seed.clone()
+    turned[:12] = _rotate_about_z(scene.q_seed[:12], pivot, 0.5 * math.pi)
+    before, after = (handle.position(scene.full_positions(q[None]))[0] - pivot for q in (scene.q_seed, turned))
+    assert float(before[:2].norm()) > 0.03  # the crank is 5 cm long
+    assert torch.allclose(after, torch.stack([-before[1], before[0], before[2]]), atol=1e-12)
 
 
 def test_stewart_has_six_dofs_plus_strut_spins() -> None:

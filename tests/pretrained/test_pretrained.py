@@ -14,11 +14,12 @@ from redsim.subspace import CheckpointError, load_subspace, read_metadata
 
 
 def test_every_environment_scene_has_a_shipped_subspace() -> None:
-    assert set(pretrained.ENV_SCENES) <= set(pretrained.names())
+    assert set(pretrained.ENV_SCENES) <= set(pretrained.names()) <= set(scenes.names())
 
 
-@pytest.mark.parametrize("name", pretrained.ENV_SCENES)
+@pytest.mark.parametrize("name", pretrained.names())
 def test_shipped_subspace_matches_the_scene_and_its_command(name: str) -> None:
+    """Every shipped subspace's scene fingerprint is that of the registry's scene with its defaults."""
     scene = scenes.build(name)
     subspace = pretrained.load(name, scene)
     doc = read_metadata(pretrained.path(name))

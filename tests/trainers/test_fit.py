@@ -7,9 +7,16 @@ import math
 import pytest
 import torch
 
-from redsim import SceneBuilder, metrics
+from redsim import SceneBuilder
 from redsim.effects import NeoHookean
-from redsim.subspace import CheckpointError, SubspaceConfig, SubspaceMap, load_subspace, sample_latents
+from redsim.subspace import (
+    CheckpointError,
+    SubspaceConfig,
+    SubspaceMap,
+    load_subspace,
+    pair_log_ratios,
+    sample_latents,
+)
 from redsim.trainers import FitConfig, fit_subspace
 from redsim.trainers import fit as fit_module
 from redsim.trainers.fit import fit_command, rho_at, subspace_loss
@@ -31,7 +38,7 @@ def test_gram_pair_distances_match_the_direct_formula() -> None:
     g = torch.Generator().manual_seed(0)
     y = 100.0 + torch.randn(6, 3, generator=g, dtype=torch.float64)  # far from 0: centring must save precision
     z = torch.randn(6, 2, generator=g, dtype=torch.float64)
-    got = metrics.pair_log_ratios(y, z, scene, sigma=0.5)
+    got = pair_log_ratios(y, z, scene, sigma=0.5)
     sparse = scene.mass_matrix.to_dense()
     torch.testing.assert_close(scene.mass_matvec(y), y @ sparse.T, rtol=1e-15, atol=0.0)
     M = torch.diag(torch.tensor([2.0, 2.0, 2.0], dtype=torch.float64))
@@ -41,7 +48,7 @@ def test_gram_pair_distances_match_the_direct_formula() -> None:
             dq = y[i] - y[j]
             want.append(math.log(math.sqrt(float(dq @ M @ dq)) / (0.5 * float((z[i] - z[j]).norm()))))
     assert torch.allclose(got, torch.tensor(want, dtype=torch.float64), atol=1e-10)
-    got32 = metrics.pair_log_ratios(y.float(), z.float(), scene.to(dtype=torch.float32), sigma=0.5)
+    got32 = pair_log_ratios(y.float(), z.float(), scene.to(dtype=torch.float32), sigma=0.5)
     assert torch.allclose(got32.double(), got, atol=1e-4)
 
 
@@ -51,12 +58,12 @@ def test_periodic_latent_differences_wrap_around_the_circle() -> None:
     y = torch.tensor([[0.0, 0.0, 0.0], [0.0, 0.0, 1.0]], dtype=torch.float64)
     z = torch.tensor([[0.1, 0.1], [2 * math.pi - 0.1, 2 * math.pi - 0.1]], dtype=torch.float64)
     dq = math.sqrt(2.0)  # mass 2 on the free vertex
-    (plain,) = metrics.pair_log_ratios(y, z, scene, sigma=1.0).tolist()
-    (wrapped,) = metrics.pair_log_ratios(y, z, scene, sigma=1.0, periodic=(0,)).tolist()
+    (plain,) = pair_log_ratios(y, z, scene, sigma=1.0).tolist()
+    (wrapped,) = pair_log_ratios(y, z, scene, sigma=1.0, periodic=(0,)).tolist()
     assert plain == pytest.approx(math.log(dq / math.hypot(2 * math.pi - 0.2, 2 * math.pi - 0.2)))
     assert wrapped == pytest.approx(math.log(dq / math.hypot(0.2, 2 * math.pi - 0.2)))
     same = torch.zeros(2, 2, dtype=torch.float32)  # equal samples (float32 d = 1 fits draw some): finite
-    assert torch.isfinite(metrics.pair_log_ratios(y.float(), same, scene.to(dtype=torch.float32), 1.0)).all()
+    assert torch.isfinite(pair_log_ratios(y.float(), same, scene.to(dtype=torch.float32), 1.0)).all()
 
 
 def test_periodic_latents_are_sampled_uniformly_on_the_circle() -> None:
@@ -169,8 +176,11 @@ def test_loading_against_another_scene_or_a_broken_file_is_a_clear_error(tmp_pat
     (tmp_path / "m.json").write_text("{not json")
     with pytest.raises(CheckpointError, match="not valid JSON"):
         load_subspace(tmp_path / "m.pt")
-    with pytest.raises(CheckpointError, match="no metadata"):
+    with pytest.raises(CheckpointError, match=r"missing\.pt: the weights file is missing"):
         load_subspace(tmp_path / "missing.pt")
+    (tmp_path / "m.json").unlink()
+    with pytest.raises(CheckpointError, match="no metadata"):
+        load_subspace(tmp_path / "m.pt")
 
 
 def test_bad_fit_options_are_clear_errors() -> None:
@@ -193,7 +203,8 @@ def test_periodic_latents_wrap_around() -> None:
 def test_checkpoint_stems_with_dots_stay_whole(tmp_path) -> None:
     scene = _tet_scene()
     fit_subspace(scene, dim=2, steps=3, hidden_width=8, progress=False, out=tmp_path / "tet_sigma0.05_v1.2")
-    assert {p.name for p in tmp_path.iterdir()} == {"tet_sigma0.05_v1.2.json", "tet_sigma0.05_v1.2.pt"}
+    names = {p.name for p in tmp_path.iterdir()}
+    assert names == {"tet_sigma0.05_v1.2.json", "tet_sigma0.05_v1.2.pt", "tet_sigma0.05_v1.2.fit.pt"}
     assert load_subspace(tmp_path / "tet_sigma0.05_v1.2.pt", scene=scene).latent_dim == 2
     assert load_subspace(tmp_path / "tet_sigma0.05_v1.2", scene=scene).latent_dim == 2
 

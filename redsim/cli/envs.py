@@ -1,4 +1,4 @@
-"""The env commands of the CLI: ``redsim demo ENV_ID`` and ``redsim bench envs`` (logic in redsim.envs)."""
+"""``redsim demo ENV_ID`` and ``redsim bench envs`` (logic in redsim.envs)."""
 
 from __future__ import annotations
 

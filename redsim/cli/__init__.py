@@ -1,0 +1,23 @@
+"""The ``redsim`` command line: ``scenes``, ``simulate``, ``fit``, ``inspect``, ``sample``, ``animate``, ``bench``.
+
+Every subcommand has ``--help`` and ``--json`` (one JSON document on stdout; human-readable
+text otherwise). Bad input is reported as a single ``redsim: error: ...`` line on stderr with
+exit status 2, never as a traceback. Commands that take a scene take a catalog name or a
+user's mesh (``--mesh PATH --kind fem|cloth``); commands that take a checkpoint rebuild its
+scene from the checkpoint's ``.json`` (:func:`redsim.scenes.spec.scene_from_spec`).
+
+Modules: :mod:`~redsim.cli.parser` (the parser and :func:`main`), :mod:`~redsim.cli.common`
+(errors, output, shared options), and one per command group: :mod:`~redsim.cli.scenes`
+(scenes, simulate), :mod:`~redsim.cli.subspaces` (fit, inspect, sample, animate),
+:mod:`~redsim.cli.bench` (bench).
+
+Exit status: 0 success; 1 a scene failed to build (``scenes``); 2 bad input; 3 NaN or inf;
+4 a simulation step failed (implausible for its scene); 130 interrupted.
+"""
+
+from __future__ import annotations
+
+from redsim.cli.common import CliError
+from redsim.cli.parser import build_parser, main
+
+__all__ = ["CliError", "build_parser", "main"]

@@ -1,0 +1,306 @@
+"""``redsim bench energy | subspace | fit``: benchmarks; each prints the machine it ran on."""
+
+from __future__ import annotations
+
+import argparse
+import math
+from pathlib import Path
+from typing import Any
+
+import torch
+
+import redsim
+from redsim.cli.common import (
+    DTYPES,
+    EXIT_OK,
+    CliError,
+    add_bench_scene_args,
+    bench_scenes,
+    catalog_names,
+    finish_command,
+    json_out,
+    out,
+    parse_list,
+    warn,
+)
+from redsim.subspace import checkpoint_path
+
+
+def cmd_bench_subspace(args: argparse.Namespace) -> int:
+    from redsim import pretrained
+    from redsim.bench import compare_subspaces, machine_info
+    from redsim.subspace import CheckpointError, load_subspace
+    from redsim.trainers import FitConfig, fit_subspace
+    from redsim.trainers.fit import fit_command
+    from redsim.trainers.presets import preset
+
+    scenes = bench_scenes(args, redsim.scenes.names("table1"))
+    if not (math.isfinite(args.load_size) and args.load_size > 0.0):
+        raise CliError(f"--load-size must be finite and > 0, got {args.load_size}")
+    folder = Path(args.checkpoints)
+    rows = []
+    for name, make in scenes:
+        scene = make()
+        overrides = {} if args.steps is None else {"steps": args.steps}
+        config = FitConfig(**{**preset(name), **overrides})
+        stem = folder / (name if args.steps is None else f"{name}_s{args.steps}")
+        candidates = [checkpoint_path(stem, ".pt")]
+        if args.steps is None and name in pretrained.names():
+            candidates.append(pretrained.path(name))
+        neural, source = None, str(candidates[0])
+        for path in candidates if not args.refit else []:
+            if path.is_file():
+                try:
+                    neural, source = load_subspace(path, scene=scene), str(path)
+                    break
+                except CheckpointError as err:
+                    warn(f"not using {path}: {err}")
+        if neural is None:
+            result = fit_subspace(
+                scene,
+                config,
+                seed=args.seed,
+                out=stem,
+                progress=not args.json,
+                command=fit_command(scene, config, args.seed, stem),
+            )
+            neural = result.subspace
+        fit = neural.metadata["fit"]
+        metrics = compare_subspaces(
+            scene,
+            neural,
+            sigma=fit["sigma"],
+            loads_count=args.loads,
+            response_fraction=args.load_size,
+            samples=args.samples,
+            seed=args.seed,
+        )
+        row = {
+            "scene": name,
+            "n": scene.free_dof_count,
+            "d": int(neural.latent_dim),
+            "steps": fit["steps"],
+            "sigma": fit["sigma"],
+            "lam": fit["lam"],
+            "fit_seconds": neural.metadata.get("fit_seconds"),
+            "checkpoint": source,
+            "methods": metrics,
+        }
+        rows.append(row)
+        if not args.json:
+            out(_subspace_row(row))
+    if args.json:
+        json_out({"machine": machine_info(), "rows": rows})
+    return EXIT_OK
+
+
+def _metric(result: dict[str, Any], *path: str) -> float:
+    value: Any = result
+    for key in path:
+        if not isinstance(value, dict) or key not in value:
+            return float("nan")
+        value = value[key]
+    return float(value) if isinstance(value, (int, float)) else float("nan")
+
+
+def _subspace_row(row: dict[str, Any]) -> str:
+    lines = [
+        f"{row['scene']}  n={row['n']}  d={row['d']}  sigma={row['sigma']:g}  lam={row['lam']:g}  "
+        f"steps={row['steps']}  fit {row['fit_seconds']:.0f} s  ({row['checkpoint']})"
+    ]
+    for method, result in row["methods"].items():
+        line = (
+            f"  {method:18s} rel. energy {_metric(result, 'energy', 'relative_energy'):8.3g}  "
+            f"excess {_metric(result, 'energy', 'excess_energy'):9.3g} J  "
+            f"stretch {_metric(result, 'stretch', 'mean'):8.3g}  "
+            f"load error {_metric(result, 'load_response', 'mean_error'):7.3g}  "
+            f"response {_metric(result, 'load_response', 'mean_response_error'):7.3g}  "
+            f"strain {_metric(result, 'nonrigid_strain', 'mean'):8.3g}"
+        )
+        if "reach" in result:
+            line += "  reach " + "/".join(f"{e:.3g}" for e in result["reach"]["errors"])
+        if "loop" in result:
+            line += f"  crank turn {result['loop']['turn_degrees']:.0f} deg (winding {result['loop']['winding']})"
+        lines.append(line)
+    return "\n".join(lines)
+
+
+def _machine_line(machine: dict[str, Any], device: str) -> str:
+    load = machine["load_average_1min"]
+    cpu = machine["processor"]
+    cpu = cpu if cpu == machine["machine"] else f"{cpu} ({machine['machine']})"
+    return (
+        f"machine: {cpu}, {machine['cpu_count']} CPUs"
+        + (f" (load {load:.2f})" if load is not None else "")
+        + f", torch {machine['torch']}, {machine['torch_threads']} threads, device {device}"
+        + (f" ({machine['cuda_device']})" if device.startswith("cuda") else "")
+    )
+
+
+def cmd_bench_energy(args: argparse.Namespace) -> int:
+    from redsim.bench import bench_energy, machine_info
+
+    scenes = bench_scenes(args, [n for n in catalog_names() if n not in redsim.scenes.names("toy")])
+    if args.repeats < 1:
+        raise CliError(f"--repeats must be >= 1, got {args.repeats}")
+    try:
+        batches = [int(b) for b in parse_list(args.batches, "--batches")]
+    except ValueError as err:
+        raise CliError(f"--batches must be comma-separated integers, got {args.batches!r}") from err
+    if min(batches) < 1:
+        raise CliError(f"--batches must be >= 1, got {args.batches!r}")
+    dtypes = parse_list(args.dtypes, "--dtypes")
+    unknown = [d for d in dtypes if d not in DTYPES]
+    if unknown:
+        raise CliError(f"unknown dtype(s) {unknown}; valid: {', '.join(DTYPES)}")
+    if args.device.startswith("cuda") and not torch.cuda.is_available():
+        raise CliError("--device cuda requested but torch sees no CUDA device")
+
+    machine = machine_info()
+    columns = [(d, b) for d in dtypes for b in batches]
+    if not args.json:
+        out(f"energy + gradient wall time, median over up to {args.repeats} repeats (ms)")
+        out(_machine_line(machine, args.device))
+        header = f"{'scene':<24} {'n':>8} " + " ".join(f"{f'f{d[5:]} B={b}':>12}" for d, b in columns)
+        out(header + "  repeats")
+        out("-" * (len(header) + 9))
+    results = []
+    for name, make in scenes:
+        base = make()
+        row = []
+        for dtype, batch in columns:
+            scene = base.to(args.device, DTYPES[dtype])
+            row.append(bench_energy(scene, batch, args.repeats, time_budget=args.budget))
+        results += row
+        if not args.json:
+            cells = " ".join(f"{1e3 * r['median_s']:>12.3g}" for r in row)
+            out(f"{name:<24} {base.free_dof_count:>8} {cells}  {min(r['repeats'] for r in row)}")
+    if args.json:
+        json_out({"machine": machine, "device": args.device, "repeats": args.repeats, "results": results})
+    return EXIT_OK
+
+
+def cmd_bench_fit(args: argparse.Namespace) -> int:
+    from redsim.bench import bench_fit_variants, machine_info
+    from redsim.trainers import FitConfig
+    from redsim.trainers.presets import preset
+
+    scenes = bench_scenes(args, redsim.scenes.names("bench-fit"))
+    for flag in ("steps", "warmup", "rounds"):
+        if getattr(args, flag) < 1:
+            raise CliError(f"--{flag} must be >= 1, got {getattr(args, flag)}")
+    if args.batch < 2:
+        raise CliError(f"--batch must be >= 2, got {args.batch}")
+    if args.device.startswith("cuda") and not torch.cuda.is_available():
+        raise CliError("--device cuda requested but torch sees no CUDA device")
+    built = [(name, make()) for name, make in scenes]
+    if not args.scenes and args.mesh is None:  # smallest first: the first compiled scene also pays the start-up
+        built.sort(key=lambda item: item[1].free_dof_count)
+    machine = machine_info()
+    if not args.json:
+        out(
+            f"fit step wall time (ms), median of {args.steps} steps in {args.rounds} interleaved rounds, after "
+            f"{args.warmup} warm-up steps each; batch {args.batch}, {FitConfig().dtype}, scene presets"
+        )
+        out(_machine_line(machine, args.device))
+        width = max(14, *(len(name) for name, _scene in built))
+        header = f"{'scene':<{width}} {'n':>6} {'eager':>8} {'fused':>8} {'x':>5} {'compiled':>9} {'x':>5}"
+        header += f" {'compile s':>10}"
+        out(header)
+        out("-" * len(header))
+    rows = []
+    for name, scene in built:
+        config = FitConfig(**{**preset(name), "batch_size": args.batch, "device": args.device})
+        row = bench_fit_variants(scene, config, steps=args.steps, warmup=args.warmup, rounds=args.rounds)
+        rows.append({"scene": name, "n": scene.free_dof_count, "variants": row})
+        if not args.json:
+            eager, fused, compiled = (1e3 * row[v]["median_s"] for v in ("eager", "fused", "compiled_fused"))
+            out(
+                f"{name:<{width}} {scene.free_dof_count:>6} {eager:>8.3g} {fused:>8.3g} {eager / fused:>5.2f} "
+                f"{compiled:>9.3g} {eager / compiled:>5.2f} {row['compiled_fused']['startup_s']:>10.1f}"
+            )
+        recompiled = row["compiled_fused"]["graphs_compiled_timed"]
+        if recompiled:
+            warn(f"{name}: {recompiled} graph(s) were compiled during the timed steps (recompilation)")
+    if args.json:
+        json_out({"machine": machine, "device": args.device, "rows": rows})
+    else:
+        out(
+            "x: speed-up over eager (plain Adam); compile s: first compiled step minus a warm one "
+            "(the first compiled scene also pays torch.compile's start-up)"
+        )
+    return EXIT_OK
+
+
+def add_commands(sub: Any) -> Any:
+    """Add ``bench`` and its subcommands to the subcommands ``sub``; returns the ``bench`` subcommands."""
+    p = sub.add_parser("bench", help="benchmarks", description="Benchmarks; each prints the machine it ran on.")
+    bench = p.add_subparsers(dest="bench_command", metavar="BENCH", required=True)
+    p = bench.add_parser(
+        "energy",
+        help="time energy + gradient per scene",
+        description=(
+            "Median wall time of scene.energy plus its gradient (backward) on random perturbations of the "
+            "seed, per scene, dtype and batch size, after warm-up."
+        ),
+    )
+    add_bench_scene_args(p, "all non-toy scenes")
+    p.add_argument("--repeats", type=int, default=20, help="timed calls per measurement (default 20)")
+    p.add_argument("--batches", default="1,32", metavar="B1,B2", help="batch sizes (default 1,32)")
+    p.add_argument("--dtypes", default="float64,float32", metavar="D1,D2", help="float64 and/or float32 (default both)")
+    p.add_argument(
+        "--budget",
+        type=float,
+        default=2.0,
+        metavar="SECONDS",
+        help="time per measurement; slow scenes get fewer repeats, at least 3 (default 2)",
+    )
+    p.add_argument("--device", default="cpu", help="torch device (default cpu)")
+    finish_command(p, cmd_bench_energy, "print one JSON document on stdout")
+
+    p = bench.add_parser(
+        "subspace",
+        help="neural subspace vs linear modes vs modal derivatives",
+        description=(
+            "For each scene, take a neural subspace: DIR/SCENE.pt if it exists, else the one shipped with redsim "
+            "(environment scenes), else fit one with the scene's preset into DIR/SCENE; with --steps N, "
+            "DIR/SCENE_sN.pt or a fit of N steps. Build linear modes and modal derivatives of the same d and sigma, "
+            "and print for each the energy of samples relative to the seed's (0: rest, 1: seed) and in J above the "
+            "rest state, the metric stretch, the load-response error, (FEM) the non-rigid strain and (bistable_bar) "
+            "how close the subspace comes to each buckled state."
+        ),
+    )
+    add_bench_scene_args(p, "the eleven of Table 1")
+    p.add_argument("--steps", type=int, help="fit (or reuse) N-step subspaces instead (default: the presets')")
+    p.add_argument("--checkpoints", default="subspaces", metavar="DIR", help="where fits are kept (default subspaces)")
+    p.add_argument("--refit", action="store_true", help="fit even if a checkpoint exists (shipped ones included)")
+    p.add_argument("--loads", type=int, default=8, help="loads of the load-response error (default 8)")
+    p.add_argument(
+        "--load-size",
+        type=float,
+        default=0.1,
+        help="size of each load: its linear response along the handle's softest direction, as a fraction of the "
+        "scene size (default 0.1; larger probes the nonlinear range)",
+    )
+    p.add_argument("--samples", type=int, default=256, help="latent samples per statistic (default 256)")
+    p.add_argument("--seed", type=int, default=0, help="seed of fits, samples and loads (default 0)")
+    finish_command(p, cmd_bench_subspace, "print one JSON document")
+
+    p = bench.add_parser(
+        "fit",
+        help="time fitting steps: eager vs fused Adam vs torch.compile",
+        description=(
+            "For each scene, with its preset: the median wall time of a fitting step (latent sample, loss, "
+            "backward, Adam step) of the real fit loop, for eager + plain Adam, eager + fused Adam and compiled "
+            "+ fused Adam, side by side in one process (interleaved rounds, so that other load on the machine hits "
+            "all three alike), and the one-off compile time."
+        ),
+    )
+    add_bench_scene_args(p, f"{','.join(redsim.scenes.names('bench-fit'))}, smallest first")
+    p.add_argument("--steps", type=int, default=20, help="timed steps per variant, over all rounds (default 20)")
+    p.add_argument("--warmup", type=int, default=3, help="untimed steps per round, the compile included (default 3)")
+    p.add_argument("--rounds", type=int, default=2, help="interleaved rounds of all variants (default 2)")
+    p.add_argument("--batch", type=int, default=32, help="latent samples per step (default 32)")
+    p.add_argument("--device", default="cpu", help="torch device (default cpu)")
+    finish_command(p, cmd_bench_fit, "print one JSON document on stdout", default_threads=1)
+    return bench

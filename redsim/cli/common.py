@@ -1,0 +1,306 @@
+"""What every ``redsim`` command shares: errors, output, input parsing, scene arguments, threads.
+
+Bad input is a :class:`CliError`, reported by :func:`redsim.cli.main` as one
+``redsim: error: ...`` line on stderr with its exit status.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import math
+import re
+import sys
+from collections.abc import Callable, Sequence
+from typing import Any, NoReturn
+
+import torch
+
+import redsim
+from redsim.scene import Scene
+
+EXIT_OK = 0
+EXIT_SCENE_FAILED = 1
+EXIT_USAGE = 2
+EXIT_NAN = 3
+EXIT_FAILED_STEP = 4
+EXIT_INTERRUPTED = 130
+
+DTYPES = {"float64": torch.float64, "float32": torch.float32}
+
+
+class CliError(Exception):
+    """Bad command-line input: reported as one line on stderr with exit status ``code``."""
+
+    def __init__(self, message: str, code: int = EXIT_USAGE) -> None:
+        super().__init__(message)
+        self.code = code
+
+
+class Parser(argparse.ArgumentParser):
+    """An ArgumentParser whose usage errors become :class:`CliError` (one line, exit status 2)."""
+
+    def error(self, message: str) -> NoReturn:
+        raise CliError(f"{message} (see `{self.prog} --help`)")
+
+
+# -- output ---------------------------------------------------------------------------------
+def out(text: str = "") -> None:
+    print(text, flush=True)
+
+
+def _finite_or_none(obj: Any) -> Any:
+    """``obj`` with NaN and inf floats replaced by None, so the output is strict JSON."""
+    if isinstance(obj, float):
+        return obj if math.isfinite(obj) else None
+    if isinstance(obj, dict):
+        return {k: _finite_or_none(v) for k, v in obj.items()}
+    if isinstance(obj, (list, tuple)):
+        return [_finite_or_none(v) for v in obj]
+    return obj
+
+
+def json_out(obj: Any) -> None:
+    print(json.dumps(_finite_or_none(obj), indent=2, default=str, allow_nan=False), flush=True)
+
+
+def warn(text: str) -> None:
+    print(f"redsim: warning: {text}", file=sys.stderr, flush=True)
+
+
+def error(text: str) -> None:
+    print(f"redsim: error: {text}", file=sys.stderr, flush=True)
+
+
+def file_name(name: str) -> str:
+    return re.sub(r"[^A-Za-z0-9_.-]+", "_", name)
+
+
+# -- input ----------------------------------------------------------------------------------
+def catalog_names() -> list[str]:
+    return list(redsim.scenes.names())
+
+
+def check_scene_name(name: str) -> None:
+    names = catalog_names()
+    if name not in names:
+        raise CliError(f"unknown scene {name!r}; valid scenes: {', '.join(names)}")
+
+
+def build_scene(name: str, params: dict[str, Any] | None = None) -> Scene:
+    """Build catalog scene ``name``; unknown names and rejected parameters become CliErrors."""
+    check_scene_name(name)
+    params = params or {}
+    try:
+        return redsim.scenes.build(name, **params)
+    except (TypeError, ValueError, KeyError) as err:
+        shown = ", ".join(f"{k}={json.dumps(v)}" for k, v in params.items()) or "no parameters"
+        message = str(err.args[0]) if isinstance(err, KeyError) and err.args else str(err)
+        raise CliError(f"cannot build scene {name!r} with {shown}: {message}") from err
+
+
+def parse_params(items: Sequence[str]) -> dict[str, Any]:
+    """``KEY=VALUE`` pairs with VALUE a JSON literal (``3``, ``0.5``, ``false``, ``"text"``)."""
+    params: dict[str, Any] = {}
+    for item in items:
+        key, sep, value = item.partition("=")
+        key = key.strip()
+        if not sep or not key.isidentifier():
+            raise CliError(f"malformed --param {item!r}: expected KEY=VALUE, e.g. --param links=3")
+        try:
+            params[key] = json.loads(value)
+        except json.JSONDecodeError as err:
+            raise CliError(
+                f"bad --param {item!r}: VALUE must be a JSON literal such as 3, 0.5, false, [1, 2] "
+                f"or '\"text\"' (quotes included)"
+            ) from err
+    return params
+
+
+def parse_loads(items: Sequence[str], scene: Scene) -> dict[str, list[float]] | None:
+    """``HANDLE=FX,FY[,FZ]`` forces [N] on the scene's handles; None when there are none."""
+    if not items:
+        return None
+    example = "HANDLE=FX,FY" + (",FZ" if scene.dim == 3 else "")
+    loads: dict[str, list[float]] = {}
+    for item in items:
+        handle, sep, value = item.partition("=")
+        handle = handle.strip()
+        try:
+            force = [float(c) for c in value.split(",")] if sep and handle else None
+        except ValueError:
+            force = None
+        if force is None or not all(math.isfinite(f) for f in force):
+            raise CliError(f"malformed --load {item!r}: expected {example} with finite numbers")
+        if handle not in scene.handle_names:
+            valid = ", ".join(scene.handle_names) if scene.handles else "none (this scene has no handles)"
+            raise CliError(f"unknown handle {handle!r} in --load for scene {scene.name!r}; valid handles: {valid}")
+        if len(force) != scene.dim:
+            raise CliError(
+                f"--load {item!r} has {len(force)} component(s), but scene {scene.name!r} is {scene.dim}D: "
+                f"expected {example}"
+            )
+        if handle in loads:
+            raise CliError(f"--load gives handle {handle!r} twice")
+        loads[handle] = force
+    return loads
+
+
+def parse_list(text: str, what: str) -> list[str]:
+    items = [s.strip() for s in text.split(",") if s.strip()]
+    if not items:
+        raise CliError(f"{what} must be a comma-separated list, got {text!r}")
+    return items
+
+
+# -- shared options -------------------------------------------------------------------------
+def add_threads(parser: argparse.ArgumentParser, default: int | None = None) -> None:
+    """``--threads N``: torch's intra-op threads for the command."""
+    shown = "torch's default: all cores" if default is None else str(default)
+    parser.add_argument(
+        "--threads", type=int, default=default, metavar="N", help=f"torch intra-op threads (default {shown})"
+    )
+
+
+def finish_command(
+    parser: argparse.ArgumentParser,
+    func: Any,
+    json_help: str,
+    *,
+    threads: bool = True,
+    default_threads: int | None = None,
+) -> None:
+    """End a command's options: ``--threads`` (commands that compute), ``--json``, and the function it runs."""
+    if threads:
+        add_threads(parser, default_threads)
+    parser.add_argument("--json", action="store_true", help=json_help)
+    parser.set_defaults(func=func)
+
+
+def apply_threads(args: argparse.Namespace) -> None:
+    """Set torch's intra-op threads from ``--threads`` (nothing when the command has none or it is unset)."""
+    threads = getattr(args, "threads", None)
+    if threads is None:
+        return
+    if threads < 1:
+        raise CliError(f"--threads must be an integer >= 1, got {threads}")
+    torch.set_num_threads(threads)
+
+
+# -- scene arguments ------------------------------------------------------------------------
+def add_scene_args(parser: argparse.ArgumentParser) -> None:
+    """A catalog scene name, ``--mesh PATH --kind fem|cloth`` or ``--spec FILE``; builder params with ``--param``."""
+    parser.add_argument(
+        "scene", nargs="?", help="catalog name (see `redsim scenes --all`); or give --mesh or --spec instead"
+    )
+    parser.add_argument(
+        "--spec",
+        metavar="FILE",
+        help='a scene spec JSON, {"scene": NAME, "scene_params": {...}}; a checkpoint\'s .json is one',
+    )
+    _add_mesh_args(parser)
+
+
+def _add_mesh_args(parser: argparse.ArgumentParser) -> None:
+    parser.add_argument("--mesh", metavar="PATH", help="build the scene from your own mesh file (needs --kind)")
+    parser.add_argument(
+        "--kind",
+        choices=("fem", "cloth"),
+        help="builder for --mesh: fem (a watertight mesh, voxelized into a neo-Hookean solid) or cloth (its "
+        "triangles as cloth); its arguments come with --param (e.g. young=2e5, pin='\"min_y\"', voxel_pitch=0.05, "
+        "name='\"bunny\"')",
+    )
+    parser.add_argument(
+        "--param",
+        action="append",
+        default=[],
+        metavar="KEY=VALUE",
+        help="scene build parameter, VALUE a JSON literal (e.g. links=3, gravity=false); repeatable",
+    )
+
+
+def scene_from_args(args: argparse.Namespace) -> Scene:
+    """The scene named by ``args.scene`` or built from ``args.mesh`` with ``args.kind`` (see :func:`add_scene_args`)."""
+    from redsim.scenes.spec import mesh_scene
+
+    params = parse_params(args.param)
+    spec = getattr(args, "spec", None)
+    given = [
+        what
+        for what, value in (("a scene name", getattr(args, "scene", None)), ("--mesh", args.mesh), ("--spec", spec))
+        if value is not None
+    ]
+    if len(given) > 1:
+        raise CliError(f"give one of a scene name, --mesh or --spec, not {' and '.join(given)}")
+    if spec is not None:
+        return _scene_from_spec_file(spec, params)
+    if args.mesh is None:
+        if args.kind is not None:
+            raise CliError("--kind needs --mesh PATH")
+        if getattr(args, "scene", None) is None:
+            raise CliError("give a scene name, a mesh with --mesh PATH --kind fem|cloth, or --spec FILE")
+        return build_scene(args.scene, params)
+    if args.kind is None:
+        raise CliError("--mesh needs --kind fem|cloth")
+    try:
+        return mesh_scene(args.kind, args.mesh, **params)
+    except (FileNotFoundError, TypeError, ValueError) as err:
+        raise CliError(f"cannot build a {args.kind} scene from {args.mesh}: {err}") from err
+
+
+def _scene_from_spec_file(path: str, params: dict[str, Any]) -> Scene:
+    from redsim.scenes.spec import SceneSpecError, scene_from_spec
+
+    if params:
+        raise CliError("--param does not apply to --spec: the spec holds the scene's parameters")
+    try:
+        with open(path) as handle:
+            doc = json.load(handle)
+    except (OSError, json.JSONDecodeError, UnicodeDecodeError) as err:
+        raise CliError(f"cannot read the scene spec {path}: {err}") from err
+    if not isinstance(doc, dict):
+        raise CliError(f"the scene spec {path} is not a JSON object")
+    try:
+        return scene_from_spec(doc)
+    except (SceneSpecError, TypeError, ValueError) as err:
+        raise CliError(f"cannot build the scene of {path}: {err}") from err
+
+
+def add_bench_scene_args(parser: argparse.ArgumentParser, default: str) -> None:
+    """``--scenes A,B,...`` (default: ``default``), or one scene from ``--mesh PATH --kind fem|cloth``."""
+    parser.add_argument("--scenes", metavar="A,B,...", help=f"comma-separated scene names (default: {default})")
+    _add_mesh_args(parser)
+
+
+def bench_scenes(args: argparse.Namespace, default: Sequence[str]) -> list[tuple[str, Callable[[], Scene]]]:
+    """(name, builder) of each scene a bench runs on: the ``--mesh`` scene, or ``--scenes`` (checked up front)."""
+    if args.mesh is not None:
+        if args.scenes:
+            raise CliError("give either --scenes or --mesh, not both")
+        scene = scene_from_args(args)
+        return [(scene.name, lambda: scene)]
+    if args.kind is not None or args.param:
+        raise CliError("--kind and --param go with --mesh (the --scenes are built with their defaults)")
+    names = parse_list(args.scenes, "--scenes") if args.scenes else list(default)
+    for name in names:
+        check_scene_name(name)
+    return [(name, lambda name=name: build_scene(name)) for name in names]
+
+
+def load_checkpoint(path: str) -> tuple[Scene, Any]:
+    """The scene a checkpoint was fitted to (rebuilt from its JSON, a user's mesh included) and the subspace."""
+    from redsim.scenes.spec import SceneSpecError, scene_from_spec
+    from redsim.subspace import CheckpointError, checkpoint_path, load_subspace, read_metadata
+
+    weights = checkpoint_path(path, ".pt")
+    try:
+        if not weights.is_file():
+            raise CheckpointError("the weights file is missing", str(weights))
+        doc = read_metadata(path)
+        try:
+            scene = scene_from_spec(doc)
+        except (SceneSpecError, TypeError, ValueError) as err:
+            raise CheckpointError(f"cannot rebuild the checkpoint's scene: {err}", str(weights)) from err
+        return scene, load_subspace(path, scene=scene)
+    except CheckpointError as err:
+        raise CliError(str(err)) from err

@@ -1,0 +1,249 @@
+"""``redsim fit``, ``inspect``, ``sample`` and ``animate``: fitting a subspace and using its checkpoint."""
+
+from __future__ import annotations
+
+import argparse
+import dataclasses
+from pathlib import Path
+from typing import Any
+
+import torch
+
+from redsim.cli.common import (
+    EXIT_INTERRUPTED,
+    EXIT_NAN,
+    EXIT_OK,
+    CliError,
+    add_scene_args,
+    error,
+    finish_command,
+    json_out,
+    load_checkpoint,
+    out,
+    parse_list,
+    scene_from_args,
+    warn,
+)
+from redsim.scene import Scene
+from redsim.subspace import checkpoint_path, periodic_latents, sample_latents
+
+# (flag, FitConfig field, type, help); the flags of `redsim fit` are generated from this table.
+FIT_FLAGS: tuple[tuple[str, str, Any, str], ...] = (
+    ("--dim", "latent_dim", int, "latent dimension d"),
+    ("--sigma", "sigma", float, "target Lipschitz scale σ [sqrt(kg) m per unit z]"),
+    ("--lam", "lam", float, "weight λ of the pair term"),
+    ("--steps", "steps", int, "Adam steps (with --resume, a larger N extends a finished or interrupted fit)"),
+    ("--batch", "batch_size", int, "latent samples per step"),
+    ("--lr", "learning_rate", float, "initial learning rate (halved after each quarter)"),
+    ("--width", "hidden_width", int, "MLP hidden width"),
+    ("--layers", "hidden_layers", int, "MLP hidden layers"),
+    ("--explore", "exploration_fraction", float, "fraction of the steps over which ρ rises 0 -> 1"),
+    ("--seed-bias", "seed_bias", bool, "start the output bias at the seed state (stiff meshes)"),
+    ("--checkpoint-every", "checkpoint_every", int, "steps between resumable checkpoints"),
+    ("--dtype", "dtype", str, "float32 or float64"),
+    ("--device", "device", str, "torch device"),
+    ("--fused-adam", "fused_adam", bool, "fused Adam (--no-fused-adam: plain Adam)"),
+    ("--compile", "compile", bool, "torch.compile the loss: faster steps after a compile of tens of seconds"),
+)
+FIELD_FLAGS = {field: flag for flag, field, _kind, _help in FIT_FLAGS} | {
+    "periodic": "--periodic",
+    "conditional": "--cond",
+}
+"""The `redsim fit` flag of every FitConfig field (validation messages name the flag)."""
+
+
+def _fit_config(args: argparse.Namespace, scene_name: str) -> Any:
+    from redsim.trainers.fit import FitConfig, FitConfigError
+    from redsim.trainers.presets import preset
+
+    fields = preset(scene_name)
+    for _flag, field, _kind, _help in FIT_FLAGS:
+        value = getattr(args, field)
+        if value is not None:
+            fields[field] = value
+    if args.periodic is not None:
+        try:
+            fields["periodic"] = tuple(int(i) for i in parse_list(args.periodic, "--periodic"))
+        except ValueError as err:
+            raise CliError(f"--periodic must be comma-separated integers, got {args.periodic!r}") from err
+    if args.cond:
+        fields["conditional"] = True
+    try:
+        return FitConfig(**fields)
+    except FitConfigError as err:
+        raise CliError(err.describe(FIELD_FLAGS)) from err
+
+
+def cmd_fit(args: argparse.Namespace) -> int:
+    from redsim.trainers import fit_subspace
+    from redsim.trainers.fit import fit_command
+
+    scene = scene_from_args(args)
+    config = _fit_config(args, scene.name)
+    stem = Path(args.out) if args.out else Path(f"{scene.name}_d{config.latent_dim}")
+    command = fit_command(scene, config, args.seed, stem)
+    try:
+        result = fit_subspace(
+            scene, config, seed=args.seed, out=stem, resume=args.resume, progress=not args.json, command=command
+        )
+    except KeyboardInterrupt:
+        warn(f"interrupted; the state is in {checkpoint_path(stem, '.fit.pt')}; continue with: {command} --resume")
+        return EXIT_INTERRUPTED
+    except FloatingPointError as err:
+        error(str(err))
+        return EXIT_NAN
+    except ValueError as err:  # bad resume state, conditional fit without conditions, ...
+        raise CliError(str(err)) from err
+    meta = result.subspace.metadata
+    summary = {"checkpoint": str(checkpoint_path(stem, ".pt")), "metadata": str(checkpoint_path(stem, ".json")), **meta}
+    if args.json:
+        json_out(summary)
+    else:
+        final = meta["final"]
+        out(f"fitted {scene.name} (n={scene.free_dof_count}, d={config.latent_dim}) in {result.fit_seconds:.1f} s")
+        out(
+            f"final energy {final['energy']:.4g} J, pair term {final['pair']:.4g}, "
+            f"mean metric stretch {final['stretch']:.4f}"
+        )
+        out(f"wrote {summary['checkpoint']} and {summary['metadata']}")
+    return EXIT_OK
+
+
+def cmd_inspect(args: argparse.Namespace) -> int:
+    scene, sub = load_checkpoint(args.checkpoint)
+    meta = {"checkpoint": args.checkpoint, "n": scene.free_dof_count, "latent_dim": sub.latent_dim, **sub.metadata}
+    if args.json:
+        json_out(meta)
+        return EXIT_OK
+    out(f"{args.checkpoint}: scene {scene.name} (n={scene.free_dof_count}), d={sub.latent_dim}")
+    fit = meta.get("fit", {})
+    out(
+        f"  fit: sigma={fit.get('sigma')} lam={fit.get('lam')} steps={fit.get('steps')} seed={meta.get('seed')} "
+        f"width={fit.get('hidden_width')} layers={fit.get('hidden_layers')} in {meta.get('fit_seconds', 0):.1f} s"
+    )
+    for key, value in (meta.get("final") or {}).items():
+        out(f"  final {key}: {value:.5g}")
+    for key, value in (meta.get("metrics") or {}).items():
+        if isinstance(value, (int, float)):
+            out(f"  metric {key}: {value:.5g}")
+    out(f"  reproduce: {meta.get('command')}")
+    return EXIT_OK
+
+
+def _latent_samples(sub: Any, scene: Scene, count: int, seed: int) -> tuple[torch.Tensor, torch.Tensor | None]:
+    generator = torch.Generator().manual_seed(seed)
+    z = sample_latents(count, sub.latent_dim, periodic_latents(sub), generator=generator)
+    cond = None
+    if getattr(getattr(sub, "config", None), "condition_dim", 0):
+        assert scene.condition_space is not None  # a conditional map was fitted to a conditional scene
+        cond = scene.condition_space.sample(count, generator).float()
+    return z, cond
+
+
+def cmd_sample(args: argparse.Namespace) -> int:
+    import numpy as np
+
+    if args.n < 1:
+        raise CliError(f"-n must be an integer >= 1, got {args.n}")
+    scene, sub = load_checkpoint(args.checkpoint)
+    z, cond = _latent_samples(sub, scene, args.n, args.seed)
+    with torch.no_grad():
+        q = sub(z, cond).double()
+        x = scene.full_positions(q)
+    path = Path(args.out)
+    path.parent.mkdir(parents=True, exist_ok=True)
+    arrays = {"z": z.numpy(), "q": q.numpy(), "x": x.numpy()}
+    if cond is not None:
+        arrays["cond"] = cond.numpy()
+    np.savez_compressed(path, scene=scene.name, scene_fingerprint=scene.fingerprint(), **arrays)
+    finite = bool(torch.isfinite(q).all())
+    summary = {"out": str(path), "count": args.n, "n": scene.free_dof_count, "finite": finite}
+    if args.json:
+        json_out(summary)
+    else:
+        out(f"wrote {args.n} states of {scene.name} (q: [{args.n}, {scene.free_dof_count}], full x too) to {path}")
+    return EXIT_OK if finite else EXIT_NAN
+
+
+def cmd_animate(args: argparse.Namespace) -> int:
+    from redsim.keyframes import catmull_rom_loop
+    from redsim.render import animate_states
+
+    if args.keys < 2 or args.frames < args.keys:
+        raise CliError(f"need --keys >= 2 and --frames >= --keys, got {args.keys} and {args.frames}")
+    scene, sub = load_checkpoint(args.checkpoint)
+    keys, cond = _latent_samples(sub, scene, args.keys, args.seed)
+    z = catmull_rom_loop(keys, args.frames)
+    with torch.no_grad():
+        q = sub(z, None if cond is None else cond[:1].expand(args.frames, -1)).double()
+    path = animate_states(scene, list(q), args.out, fps=args.fps)
+    if args.json:
+        json_out({"out": str(path), "frames": args.frames, "keys": keys.tolist()})
+    else:
+        out(f"wrote {args.frames} frames through {args.keys} latent keyframes to {path}")
+    return EXIT_OK
+
+
+def _fit_defaults() -> dict[str, Any]:
+    from redsim.trainers import FitConfig
+
+    return dataclasses.asdict(FitConfig())
+
+
+def add_commands(sub: Any) -> None:
+    """Add ``fit``, ``inspect``, ``sample`` and ``animate`` to the subcommands ``sub``."""
+    p = sub.add_parser(
+        "fit",
+        help="fit a neural subspace to a scene (data-free)",
+        description=(
+            "Fit f(z) -> q by the paper's loss from the scene's energy alone. Defaults per scene come from "
+            "Table 1 (redsim.trainers.presets); flags override them. Writes OUT.pt + OUT.json (and OUT.fit.pt, "
+            "the resumable training state). Ctrl-C saves the state; rerun with --resume to continue, or with "
+            "--resume and a larger --steps to extend a fit (the learning-rate schedule is recomputed for the new "
+            "length and recorded in the .json)."
+        ),
+        epilog="Exit status: 0 done, 2 bad input, 3 the loss became NaN/inf, 130 interrupted (resumable).",
+    )
+    add_scene_args(p)
+    fit_defaults = _fit_defaults()
+    for flag, field, kind, text in FIT_FLAGS:
+        if kind is bool:
+            default = "on" if fit_defaults[field] else "off"
+            p.add_argument(
+                flag,
+                dest=field,
+                action=argparse.BooleanOptionalAction,
+                help=f"{text} (default: preset, else {default})",
+            )
+        else:
+            p.add_argument(flag, dest=field, type=kind, default=None, help=f"{text} (default: scene preset)")
+    p.add_argument("--periodic", default=None, metavar="I,J", help="latent indices that are angles")
+    p.add_argument("--cond", action="store_true", help="fit a conditional subspace over the scene's conditions")
+    p.add_argument("--seed", type=int, default=0, help="seed of the initialisation and sampling (default 0)")
+    p.add_argument("--out", default=None, metavar="STEM", help="checkpoint stem (default SCENE_dD)")
+    p.add_argument("--resume", action="store_true", help="continue from STEM.fit.pt")
+    finish_command(p, cmd_fit, "print the metadata as JSON (no progress bar)")
+
+    p = sub.add_parser(
+        "inspect",
+        help="print a checkpoint's metadata and metrics",
+        description="Print a checkpoint's metadata; its scene (catalog or your mesh) is rebuilt from the .json.",
+    )
+    p.add_argument("checkpoint", help="path to X.pt (X.json beside it)")
+    finish_command(p, cmd_inspect, "print one JSON document", threads=False)
+
+    p = sub.add_parser("sample", help="export states sampled from a subspace (z ~ N(0, I))")
+    p.add_argument("checkpoint", help="path to X.pt")
+    p.add_argument("-n", type=int, default=1000, help="number of states (default 1000)")
+    p.add_argument("--seed", type=int, default=0, help="sampling seed (default 0)")
+    p.add_argument("--out", default="states.npz", help="output .npz with z, q, x (default states.npz)")
+    finish_command(p, cmd_sample, "print one JSON summary")
+
+    p = sub.add_parser("animate", help="GIF of a cyclic Catmull-Rom keyframe loop in latent space")
+    p.add_argument("checkpoint", help="path to X.pt")
+    p.add_argument("--keys", type=int, default=4, help="number of random latent keyframes (default 4)")
+    p.add_argument("--frames", type=int, default=48, help="frames in the loop (default 48)")
+    p.add_argument("--fps", type=float, default=16.0, help="frames per second (default 16)")
+    p.add_argument("--seed", type=int, default=0, help="keyframe seed (default 0)")
+    p.add_argument("--out", default="anim.gif", help="output GIF (default anim.gif)")
+    finish_command(p, cmd_animate, "print one JSON summary")

@@ -1,0 +1,181 @@
+"""Implicit Euler in the two-state form of the paper.
+
+One step solves
+
+    q_{t+1} = argmin_q  1/(2 h^2) |q - qbar|_M^2 + E(q; loads, cond),   qbar = 2 q_t - q_{t-1},
+
+which is backward Euler on M q'' = -dE/dq with the velocity (q_t - q_{t-1}) / h folded into
+the state, over the coordinates of a space (:mod:`redsim.integrators.spaces`). In a latent space
+the state holds z and the inertial target stays in q: qbar = 2 f(z_t) - f(z_{t-1}).
+"""
+
+from __future__ import annotations
+
+import logging
+import math
+from collections.abc import Callable
+from dataclasses import dataclass
+
+import torch
+from torch import Tensor
+
+from redsim.integrators.objective import Inertia, PotentialObjective, SceneConstants, checked_vector, pack_inputs
+from redsim.integrators.spaces import Space
+from redsim.scene import LoadsLike, Scene
+from redsim.solvers import ConvergenceError, SolveInfo, get_minimizer
+
+logger = logging.getLogger(__name__)
+
+LoadSchedule = Callable[[int, "FullState"], LoadsLike]
+"""Loads as a function of (step index, state before the step)."""
+
+
+@dataclass(frozen=True)
+class FullState:
+    """A state of the two-state integrator.
+
+    Attributes:
+        q: Coordinates of the space at time t (the free configuration q for :class:`FullSpace`), shape [n].
+        q_prev: The same at time t - h, shape [n].
+        time: t [s].
+    """
+
+    q: Tensor
+    q_prev: Tensor
+    time: float
+
+    def velocity(self, dt: float) -> Tensor:
+        """Backward-difference velocity (q - q_prev) / dt [m/s], shape [n]."""
+        return (self.q - self.q_prev) / dt
+
+
+class ImplicitEuler:
+    """Two-state implicit Euler over a space (module doc), each step solved by a named minimizer.
+
+    Args:
+        space: The coordinates solved for (:class:`FullSpace` for the reference, :class:`LatentSpace`
+            for a subspace; the state then holds z).
+        dt: Time step h [s], finite and > 0.
+        minimizer: A key of :data:`redsim.solvers.MINIMIZERS` ("newton" or "lbfgs").
+        tol: Relative gradient tolerance (see :class:`PotentialObjective` for what it bounds).
+        max_iter: Most iterations of the minimizer per step.
+        strict: Raise :class:`redsim.solvers.ConvergenceError` (a RuntimeError carrying the
+            SolveInfo) when a step does not converge; otherwise the step returns the last
+            iterate with ``converged=False`` and logs a warning.
+
+    Raises:
+        ValueError: on a bad dt, tol, max_iter or an unknown minimizer.
+    """
+
+    def __init__(
+        self,
+        space: Space,
+        dt: float,
+        *,
+        minimizer: str = "newton",
+        tol: float = 1e-8,
+        max_iter: int = 50,
+        strict: bool = False,
+    ) -> None:
+        if not (isinstance(dt, (int, float)) and math.isfinite(dt) and dt > 0.0):
+            raise ValueError(f"dt must be a finite number > 0 [s], got {dt!r}")
+        if not (math.isfinite(tol) and tol > 0.0):
+            raise ValueError(f"tol must be finite and > 0, got {tol!r}")
+        if int(max_iter) != max_iter or max_iter < 1:
+            raise ValueError(f"max_iter must be an integer >= 1, got {max_iter!r}")
+        self.space = space
+        self.dt = float(dt)
+        self.minimizer = minimizer
+        self._minimize = get_minimizer(minimizer)
+        self.tol = float(tol)
+        self.max_iter = int(max_iter)
+        self.strict = bool(strict)
+        self._constants = SceneConstants.of(space.scene)
+
+    @property
+    def scene(self) -> Scene:
+        return self.space.scene
+
+    def initial_state(self, q: Tensor | None = None, velocity: Tensor | None = None) -> FullState:
+        """A state at time 0 with coordinates q (default: the space's origin) and velocity (default 0).
+
+        The coordinates are the space's: q [n] (default the seed) for :class:`FullSpace`, z [d]
+        (default 0) for :class:`LatentSpace`, with velocity in their unit per second. The
+        previous coordinates are q - dt * velocity. Inputs are copied, never aliased.
+        """
+        origin = self.space.origin
+        size = self.space.size
+        q_t = origin.detach().clone() if q is None else checked_vector(q, size, "q", origin)
+        v = torch.zeros_like(q_t) if velocity is None else checked_vector(velocity, size, "velocity", origin)
+        return FullState(q_t, q_t - self.dt * v, 0.0)
+
+    def step(
+        self, state: FullState, loads: LoadsLike = None, cond: Tensor | None = None
+    ) -> tuple[FullState, SolveInfo]:
+        """Advance one step of length dt.
+
+        Args:
+            state: The current state.
+            loads: Loads on the scene's handles [N] (see :meth:`Scene.pack_loads`), held during the step.
+            cond: Condition vector [m] for conditional scenes.
+
+        Returns:
+            The new state (time + dt) and the minimizer's :class:`SolveInfo`.
+
+        Raises:
+            ValueError: on non-finite loads, condition or state.
+            ConvergenceError: with ``strict=True``, when the step did not converge.
+        """
+        origin = self.space.origin
+        u_t = checked_vector(state.q, self.space.size, "state.q", origin)
+        u_prev = checked_vector(state.q_prev, self.space.size, "state.q_prev", origin)
+        loads_t, cond_t = pack_inputs(self.scene, loads, cond)
+        with torch.no_grad():
+            configurations = self.space.configuration(torch.stack([u_t, u_prev]))
+        q_t = configurations[0]
+        target = 2.0 * q_t - configurations[1]
+        objective = PotentialObjective(
+            self.space,
+            loads=loads_t,
+            cond=cond_t,
+            inertia=Inertia(target, self.dt),
+            force=None,
+            reference=u_t,
+            constants=self._constants,
+        )
+        u_next, info = self._minimize(objective, 2.0 * u_t - u_prev, tol=self.tol, max_iter=self.max_iter)
+        if not info.converged:
+            if self.strict:
+                raise ConvergenceError(info)
+            logger.warning("implicit Euler step at t = %.6g s did not converge: %s", state.time, info.message)
+        return FullState(u_next.detach().clone(), u_t, state.time + self.dt), info
+
+    def rollout(
+        self,
+        state: FullState,
+        steps: int,
+        loads: LoadsLike | LoadSchedule = None,
+        cond: Tensor | None = None,
+    ) -> tuple[Tensor, list[SolveInfo]]:
+        """Run ``steps`` steps from ``state``.
+
+        Args:
+            state: The initial state.
+            steps: Number of steps (>= 0).
+            loads: Loads held for every step, or a function (step index, state) -> loads.
+            cond: Condition vector, held for every step.
+
+        Returns:
+            The coordinates at every time, shape [steps + 1, n] (the initial ones first), and
+            one SolveInfo per step.
+        """
+        if int(steps) != steps or steps < 0:
+            raise ValueError(f"steps must be an integer >= 0, got {steps!r}")
+        schedule: LoadSchedule = loads if callable(loads) else (lambda _i, _s: loads)
+        trajectory = [state.q.detach().clone()]
+        infos = []
+        for index in range(int(steps)):
+            state, info = self.step(state, schedule(index, state), cond)
+            trajectory.append(state.q)
+            infos.append(info)
+        return torch.stack(trajectory), infos

@@ -1,0 +1,116 @@
+"""Scene specs: the JSON-able record of how to rebuild a scene, and the one function that rebuilds it.
+
+A spec is ``{"scene": NAME, "scene_params": {...}}``, the two keys a checkpoint's ``.json``
+holds, so a checkpoint's metadata is itself a spec. For a catalog scene the params are its
+builder arguments. For a scene from a user's mesh (:func:`fem_scene_from_mesh`,
+:func:`cloth_scene_from_mesh`) they also hold ``builder`` ("fem" or "cloth"), ``source`` (the
+mesh file's absolute path) and ``mesh_sha256`` (the file's hash): the file is re-read and
+must be unchanged.
+
+Example::
+
+    spec = scene_spec(scene)            # {"scene": "mesh_fem", "scene_params": {"builder": "fem", ...}}
+    again = scene_from_spec(spec)       # same fingerprint
+"""
+
+from __future__ import annotations
+
+import json
+import os
+from collections.abc import Callable, Mapping
+from typing import Any
+
+from redsim.meshes import file_sha256
+from redsim.scene import Scene
+from redsim.scenes.from_mesh import cloth_scene_from_mesh, fem_scene_from_mesh
+
+MESH_BUILDERS: dict[str, Callable[..., Scene]] = {"fem": fem_scene_from_mesh, "cloth": cloth_scene_from_mesh}
+"""Builders of scenes from a user's mesh file, by ``--kind``."""
+
+_RECORD_ONLY = ("builder", "source", "mesh_sha256", "mesh_digest")
+"""Mesh-scene params that describe the input rather than being builder arguments."""
+
+
+class SceneSpecError(ValueError):
+    """A spec that cannot be turned back into its scene (unknown scene, missing or changed mesh file, ...)."""
+
+
+def scene_spec(scene: Scene) -> dict[str, Any]:
+    """The spec that rebuilds ``scene`` (see the module doc)."""
+    return {"scene": scene.name, "scene_params": dict(scene.params)}
+
+
+def scene_arguments(scene: Scene) -> list[str]:
+    """The ``redsim`` command-line arguments that build ``scene``: ``NAME --param K=V ...`` for a catalog
+    scene, ``--mesh PATH --kind KIND --param K=V ...`` for a scene from a mesh file."""
+    params = dict(scene.params)
+    kind = params.get("builder")
+    if kind is None:
+        parts = [scene.name]
+    else:
+        parts = ["--mesh", str(params.get("source")), "--kind", str(kind)]
+        params = {k: v for k, v in params.items() if k not in _RECORD_ONLY}
+        params["name"] = scene.name
+    for key, value in sorted(params.items()):
+        parts += ["--param", f"{key}={json.dumps(value)}"]
+    return parts
+
+
+def mesh_scene(kind: str, path: str | os.PathLike[str], **params: Any) -> Scene:
+    """A scene from the mesh file at ``path`` with builder ``kind`` ("fem" or "cloth") and its arguments.
+
+    Raises:
+        SceneSpecError: an unknown kind.
+        FileNotFoundError, ValueError: from the builder (missing file, bad mesh or argument).
+    """
+    if kind not in MESH_BUILDERS:
+        raise SceneSpecError(f"unknown mesh builder kind {kind!r}; valid: {', '.join(MESH_BUILDERS)}")
+    return MESH_BUILDERS[kind](path, **params)
+
+
+def scene_from_spec(doc: Mapping[str, Any]) -> Scene:
+    """Rebuild the scene a spec (or a checkpoint's metadata) describes.
+
+    Raises:
+        SceneSpecError: no scene name, an unknown catalog scene, a mesh scene built from an
+            in-memory mesh or an explicit vertex selection, or a mesh file that is missing or
+            whose SHA-256 differs from the recorded one (both hashes are named).
+        ValueError: parameters the builder rejects.
+    """
+    from redsim import scenes
+
+    name = doc.get("scene")
+    if not isinstance(name, str):
+        raise SceneSpecError("the spec names no scene (expected a 'scene' string)")
+    params = dict(doc.get("scene_params") or {})
+    kind = params.get("builder")
+    if kind is None:
+        if name not in scenes.names():
+            raise SceneSpecError(
+                f"unknown scene {name!r} (not in the catalog and not built from a mesh file; "
+                f"a scene built in Python must be passed in as an object)"
+            )
+        return scenes.build(name, **params)
+    if kind not in MESH_BUILDERS:
+        raise SceneSpecError(f"scene {name!r}: unknown mesh builder {kind!r}; valid: {', '.join(MESH_BUILDERS)}")
+    source, recorded = params.get("source"), params.get("mesh_sha256")
+    if not isinstance(source, str) or recorded is None:
+        raise SceneSpecError(f"scene {name!r} was built from an in-memory mesh; save the mesh to a file to rebuild it")
+    if not os.path.isfile(source):
+        raise SceneSpecError(f"scene {name!r}: mesh file {source!r} is missing")
+    now = file_sha256(source)
+    if now != recorded:
+        raise SceneSpecError(
+            f"scene {name!r}: mesh file {source!r} changed since the scene was recorded "
+            f"(sha256 {recorded} recorded, {now} now)"
+        )
+    args = {k: v for k, v in params.items() if k not in _RECORD_ONLY}
+    if str(args.get("pin", "")).startswith("ids:"):
+        raise SceneSpecError(
+            f"scene {name!r} pinned an explicit vertex selection ({args['pin']}), which is not recorded; "
+            "rebuild it in Python"
+        )
+    return MESH_BUILDERS[kind](source, name=name, **args)
+
+
+__all__ = ["MESH_BUILDERS", "SceneSpecError", "mesh_scene", "scene_arguments", "scene_from_spec", "scene_spec"]

@@ -1,0 +1,86 @@
+"""The checkpoint format shared by every kind of subspace map: ``STEM.pt`` + ``STEM.json``.
+
+``STEM.pt`` is the module's state dict; ``STEM.json`` holds the format version, the map's
+``config`` (what its kind needs to rebuild an empty module of the right shape) and its
+``metadata`` (scene name and fingerprint, hyperparameters, metrics, the reproducing command).
+Nothing is pickled. Which class a checkpoint rebuilds is decided by :mod:`redsim.subspace.kinds`.
+"""
+
+from __future__ import annotations
+
+import json
+from pathlib import Path
+from typing import Any
+
+import torch
+from torch import Tensor, nn
+
+from redsim.scene import Scene
+
+FORMAT_VERSION = 1
+
+
+class CheckpointError(ValueError):
+    """A checkpoint that is missing, corrupt, or made for another scene."""
+
+    def __init__(self, message: str, path: str = "") -> None:
+        super().__init__(f"{path}: {message}" if path else message)
+        self.path = path
+
+
+def checkpoint_path(path: str | Path, suffix: str) -> Path:
+    """``STEM + suffix`` for a checkpoint given as ``STEM``, ``STEM.pt`` or ``STEM.json``.
+
+    Suffixes are appended, never swapped, so stems with dots ("bar_sigma0.3") stay whole.
+    """
+    path = Path(path)
+    stem = path.with_suffix("") if path.suffix in (".pt", ".json") else path
+    return stem.with_name(stem.name + suffix)
+
+
+def write_checkpoint(module: nn.Module, stem: str | Path, config: dict[str, Any]) -> tuple[Path, Path]:
+    """Write ``stem.pt`` (the module's state dict) and ``stem.json`` (format version, ``config`` and the
+    module's ``metadata``); returns both paths. Shared by every kind of subspace."""
+    weights, meta = checkpoint_path(stem, ".pt"), checkpoint_path(stem, ".json")
+    weights.parent.mkdir(parents=True, exist_ok=True)
+    torch.save(module.state_dict(), weights)
+    doc = {**getattr(module, "metadata", {}), "format_version": FORMAT_VERSION, "config": config}
+    meta.write_text(json.dumps(doc, indent=2, sort_keys=True, default=_json_default))
+    return weights, meta
+
+
+def _json_default(value: Any) -> Any:
+    if isinstance(value, Tensor):
+        return value.tolist()
+    if isinstance(value, Path):
+        return str(value)
+    raise TypeError(f"not JSON-serializable: {type(value).__name__}")
+
+
+def read_metadata(path: str | Path) -> dict[str, Any]:
+    """The JSON beside a checkpoint (``X.pt`` or ``X.json`` or the stem ``X``)."""
+    meta = checkpoint_path(path, ".json")
+    if not meta.is_file():
+        raise CheckpointError("no metadata file (expected a .json beside the .pt)", str(meta))
+    try:
+        doc = json.loads(meta.read_text())
+    except (json.JSONDecodeError, UnicodeDecodeError) as err:
+        raise CheckpointError(f"metadata is not valid JSON ({err})", str(meta)) from None
+    if doc.get("format_version") != FORMAT_VERSION:
+        raise CheckpointError(
+            f"unsupported format_version {doc.get('format_version')!r} (this redsim reads {FORMAT_VERSION})",
+            str(meta),
+        )
+    return doc
+
+
+def check_scene(doc: dict[str, Any], scene: Scene, path: str) -> None:
+    """Refuse a checkpoint whose metadata ``doc`` names another scene (name, fingerprint or n)."""
+    mine = (doc.get("scene"), doc.get("scene_fingerprint"), (doc.get("config") or {}).get("output_dim"))
+    theirs = (scene.name, scene.fingerprint(), scene.free_dof_count)
+    if mine != theirs:
+        raise CheckpointError(
+            f"fitted to scene {mine[0]!r} (fingerprint {mine[1]}, n={mine[2]}), not to scene {theirs[0]!r} "
+            f"(fingerprint {theirs[1]}, n={theirs[2]}); build the scene with the parameters in the .json",
+            path,
+        )

@@ -1,0 +1,91 @@
+"""The kind registry: which class a checkpoint's ``kind`` rebuilds, and :func:`load_subspace`.
+
+A checkpoint without a ``kind`` holds a neural map (the format before baselines existed).
+"""
+
+from __future__ import annotations
+
+from pathlib import Path
+from typing import Any, Protocol
+
+import torch
+from torch import Tensor, nn
+
+from redsim.scene import Scene
+from redsim.subspace.autoencoder import AutoencoderSubspace
+from redsim.subspace.checkpoint import CheckpointError, check_scene, checkpoint_path, read_metadata
+from redsim.subspace.linear import LinearSubspace, QuadraticSubspace
+from redsim.subspace.neural import SubspaceMap
+
+
+class MapKind(Protocol):
+    """A map class a checkpoint can hold: rebuilt empty from its ``config`` and metadata, then loaded."""
+
+    kind: str
+
+    @classmethod
+    def from_shapes(cls, shapes: dict[str, Any], metadata: dict[str, Any]) -> nn.Module: ...
+
+
+KINDS: dict[str, type[MapKind]] = {
+    cls.kind: cls for cls in (SubspaceMap, LinearSubspace, QuadraticSubspace, AutoencoderSubspace)
+}
+"""Map classes by ``kind``, the key stored in their checkpoints ("neural" when absent)."""
+
+
+def load_subspace(path: str | Path, scene: Scene | None = None, *, device: str | torch.device = "cpu") -> nn.Module:
+    """Load any saved subspace: a neural map, or a baseline of :mod:`redsim.baselines` (by its ``kind``).
+
+    Args:
+        path: ``STEM.pt``, ``STEM.json`` or ``STEM``.
+        scene: With it, refuse a checkpoint made for another scene.
+        device: Where to put the weights.
+
+    Raises:
+        CheckpointError: missing or corrupt files, an unknown kind, or a scene whose name,
+            fingerprint or n differ.
+    """
+    weights = checkpoint_path(path, ".pt")
+    if not weights.is_file():
+        raise CheckpointError("the weights file is missing", str(weights))
+    doc = read_metadata(path)
+    if scene is not None:
+        check_scene(doc, scene, str(weights))
+    metadata = {k: v for k, v in doc.items() if k not in ("format_version", "config")}
+    kind = doc.get("kind", SubspaceMap.kind)
+    if kind not in KINDS:
+        valid = [SubspaceMap.kind, *sorted(k for k in KINDS if k != SubspaceMap.kind)]
+        raise CheckpointError(f"unknown kind {kind!r}; valid: {', '.join(valid)}", str(weights))
+    try:
+        model = KINDS[kind].from_shapes(doc["config"], metadata)
+    except (KeyError, TypeError, ValueError, AttributeError) as err:
+        raise CheckpointError(f"bad config in metadata ({err!r})", str(weights)) from None
+    try:
+        state = torch.load(weights, map_location=device, weights_only=True)
+    except Exception as err:  # torch raises several types for truncated/corrupt zips
+        raise CheckpointError(f"weights are corrupt or truncated ({type(err).__name__}: {err})", str(weights)) from None
+    mismatch = _state_mismatch(model.state_dict(), state)
+    if mismatch:
+        raise CheckpointError(f"the weights do not fit the .json beside them: {mismatch}", str(weights))
+    try:
+        model.load_state_dict(state)
+    except (RuntimeError, KeyError) as err:
+        raise CheckpointError(f"weights do not match the config ({err})", str(weights)) from None
+    return model.to(device)
+
+
+def _state_mismatch(expected: dict[str, Tensor], saved: dict[str, Any]) -> str:
+    """One line on how a saved state dict differs from the one a config builds ("" when they fit)."""
+    missing = sorted(set(expected) - set(saved))
+    extra = sorted(set(saved) - set(expected))
+    if missing or extra:
+        return f"the .pt lacks {missing or 'nothing'} and has extra {extra or 'nothing'}"
+    for key, want in expected.items():
+        got = saved[key]
+        if not isinstance(got, Tensor) or tuple(got.shape) != tuple(want.shape):
+            shape = list(got.shape) if isinstance(got, Tensor) else type(got).__name__
+            return (
+                f"{key} has shape {shape} in the .pt but {list(want.shape)} by the .json "
+                "(weights of another scene or fit?)"
+            )
+    return ""

@@ -1,0 +1,162 @@
+"""The CLI's answers to a new user's mistakes, and the options every computing command shares."""
+
+from __future__ import annotations
+
+import json
+import subprocess
+import sys
+from collections.abc import Callable
+from pathlib import Path
+
+import pytest
+import torch
+
+import redsim
+from redsim.cli import build_parser
+from redsim.subspace import CheckpointError, load_subspace
+from redsim.trainers import FitConfig
+
+Cli = Callable[..., tuple[int, str, str]]
+SMALL = ["--dim", "2", "--width", "8", "--layers", "1"]
+
+
+def test_version(cli: Cli) -> None:
+    code, out, _ = cli("--version")
+    assert code == 0 and out.strip() == f"redsim {redsim.__version__}"
+    done = subprocess.run([sys.executable, "-m", "redsim", "--version"], capture_output=True, text=True, timeout=120)
+    assert done.returncode == 0 and done.stdout.strip() == f"redsim {redsim.__version__}"
+
+
+def test_weights_of_another_scene_are_one_line_naming_both_shapes(cli: Cli, tmp_path: Path) -> None:
+    for scene in ("toy_two_tets", "toy_three_link_chain"):
+        assert cli("fit", scene, "--steps", "2", *SMALL, "--out", str(tmp_path / scene), "--json")[0] == 0
+    (tmp_path / "mixed.json").write_bytes((tmp_path / "toy_two_tets.json").read_bytes())
+    (tmp_path / "mixed.pt").write_bytes((tmp_path / "toy_three_link_chain.pt").read_bytes())
+    code, out, err = cli("inspect", str(tmp_path / "mixed.pt"))
+    assert code == 2 and out == "" and err.count("\n") == 1
+    assert "mlp.2.weight has shape [36, 8] in the .pt but [6, 8] by the .json" in err
+    assert "size mismatch" not in err
+    with pytest.raises(CheckpointError, match=r"\[36, 8\] in the \.pt but \[6, 8\]"):
+        load_subspace(tmp_path / "mixed.pt", scene=redsim.scenes.build("toy_two_tets"))
+
+
+@pytest.mark.parametrize(
+    ("flags", "expected"),
+    [
+        (["--steps", "0"], "--steps must be an integer >= 1, got 0"),
+        (["--dim", "0"], "--dim must be an integer >= 1, got 0"),
+        (["--sigma", "0"], "--sigma must be a finite number > 0, got 0.0"),
+        (["--sigma", "nan"], "--sigma must be a finite number > 0, got nan"),
+        (["--lam", "-1"], "--lam must be a finite number >= 0, got -1.0"),
+        (["--batch", "1"], "--batch must be an integer >= 2, got 1"),
+        (["--lr", "0"], "--lr must be a finite number > 0, got 0.0"),
+        (["--width", "0"], "--width must be an integer >= 1, got 0"),
+        (["--layers", "0"], "--layers must be an integer >= 1, got 0"),
+        (["--explore", "1.5"], "--explore must be a number in (0, 1], got 1.5"),
+        (["--checkpoint-every", "-1"], "--checkpoint-every must be an integer >= 0, got -1"),
+        (["--dtype", "float16"], "--dtype must be one of float32, float64, got 'float16'"),
+        (["--device", "abacus"], "--device must be a torch device such as cpu or cuda, got 'abacus'"),
+        (["--dim", "2", "--periodic", "5"], "--periodic must be distinct latent indices in [0, latent_dim), got (5,)"),
+        (["--periodic", "x"], "--periodic must be comma-separated integers"),
+    ],
+)
+def test_fit_config_errors_name_the_flag_and_the_rule(cli: Cli, flags: list[str], expected: str) -> None:
+    code, out, err = cli("fit", "toy_two_tets", *flags)
+    assert code == 2 and out == "" and err.count("\n") == 1
+    assert expected in err and "FitConfig(" not in err
+
+
+def test_fit_config_errors_in_python_name_the_field() -> None:
+    with pytest.raises(ValueError) as caught:
+        FitConfig(steps=0, lam=-1.0)
+    assert str(caught.value) == "lam must be a finite number >= 0, got -1.0; steps must be an integer >= 1, got 0"
+    with pytest.raises(ValueError, match=r"latent_dim must be an integer >= 1, got 2\.5"):
+        FitConfig(latent_dim=2.5)  # type: ignore[arg-type]
+
+
+def test_resume_with_more_steps_extends_the_fit(cli: Cli, tmp_path: Path) -> None:
+    stem = str(tmp_path / "ext")
+    argv = ["fit", "toy_two_tets", *SMALL, "--lr", "0.01", "--out", stem, "--json"]
+    code, out, err = cli(*argv, "--steps", "8")
+    assert code == 0, err
+    first = json.loads(out)
+    assert first["schedule"] == {"lr_halved_every": 2, "rho_ramp_steps": 8, "extensions": []}
+    code, out, err = cli(*argv, "--steps", "20", "--resume")
+    assert code == 0, err
+    meta = json.loads(out)
+    assert meta["fit"]["steps"] == 20
+    assert meta["schedule"] == {
+        "lr_halved_every": 5,
+        "rho_ramp_steps": 8,
+        "extensions": [{"at_step": 8, "from_steps": 8, "to_steps": 20}],
+    }
+    assert meta["command"] == f"{first['command']} && {first['command'].replace('--steps 8', '--steps 20')} --resume"
+    state = torch.load(stem + ".fit.pt", weights_only=True)
+    assert state["step"] == 20 and len(state["history"]) == 20
+    assert [h["step"] for h in state["history"]] == list(range(1, 21))
+    assert state["history"][-1]["rho"] == 1.0
+    assert state["optimizer"]["param_groups"][0]["lr"] == pytest.approx(0.01 * 0.5**4)  # 20 steps, halved every 5
+    code, out, err = cli(*argv, "--steps", "10", "--resume")
+    assert code == 2 and "steps must be >= the 20 steps already done" in err
+
+
+def test_absurd_load_fails_the_step(cli: Cli) -> None:
+    code, out, err = cli("simulate", "toy_two_tets", "--steps", "3", "--load", "top=1e30,0,0", "--json")
+    assert code == 4
+    summary = json.loads(out)
+    assert summary["failed_step"] == 1 and summary["steps_run"] == 1 and summary["converged_steps"] == 0
+    assert "far beyond what this scene can take" in summary["failure"]
+    assert "step 1 failed" in err and "10x the scene's size" in err
+    code, out, err = cli("simulate", "toy_two_tets", "--steps", "1", "--load", "top=1,0,0")
+    assert code == 0 and "converged" in out
+    code, out, _ = cli("simulate", "--help")
+    assert "relative gradient tolerance" in " ".join(out.split())
+
+
+@pytest.mark.parametrize(
+    "argv",
+    [
+        ["simulate", "toy_two_tets"],
+        ["fit", "toy_two_tets"],
+        ["sample", "x.pt"],
+        ["animate", "x.pt"],
+        ["bench", "energy"],
+        ["bench", "subspace"],
+        ["bench", "fit"],
+    ],
+    ids=lambda a: " ".join(a[:2]),
+)
+def test_every_computing_command_takes_threads(argv: list[str]) -> None:
+    assert build_parser().parse_args([*argv, "--threads", "3"]).threads == 3
+
+
+def test_threads_are_applied_and_restored(cli: Cli, monkeypatch: pytest.MonkeyPatch) -> None:
+    from redsim.cli import scenes
+
+    seen = []
+    simulate = scenes.cmd_simulate
+    monkeypatch.setattr(scenes, "cmd_simulate", lambda args: seen.append(torch.get_num_threads()) or simulate(args))
+    before = torch.get_num_threads()
+    code, _, err = cli("simulate", "toy_two_tets", "--steps", "1", "--threads", "2")
+    assert code == 0, err
+    assert seen == [2] and torch.get_num_threads() == before
+    code, _, err = cli("simulate", "toy_two_tets", "--threads", "0")
+    assert code == 2 and "--threads must be an integer >= 1" in err
+
+
+def test_simulate_picture_shows_loads_and_fixed_parts(tmp_path: Path) -> None:
+    from redsim.render import draw_states, fixed_points
+
+    scene = redsim.scenes.build("toy_two_tets")
+    (mask,) = fixed_points(scene)
+    pinned = scene.full_dof_count - scene.free_dof_count
+    assert mask.sum() == pinned // 3 and 0 < mask.sum() < len(mask)
+    plain = draw_states(scene, [scene.q_seed], path=tmp_path / "plain.png")
+    loaded = draw_states(scene, [scene.q_seed], path=tmp_path / "load.png", loads={"top": [0.0, 5.0, 0.0]})
+    import matplotlib.image
+
+    red = [
+        ((img[..., 0] > 0.7) & (img[..., 1] < 0.3) & (img[..., 2] < 0.3)).sum()
+        for img in map(matplotlib.image.imread, (plain, loaded))
+    ]
+    assert red[0] == 0 and red[1] > 50  # the arrow (and its label) in the load colour

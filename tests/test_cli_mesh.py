@@ -1,0 +1,158 @@
+"""The whole CLI on a user's own mesh: fit, inspect, sample, animate, simulate, and a changed mesh file."""
+
+from __future__ import annotations
+
+import json
+import shlex
+from collections.abc import Callable
+from pathlib import Path
+
+import numpy as np
+import pytest
+import trimesh
+
+import redsim
+from redsim.cli import main
+from redsim.scenes.spec import SceneSpecError, scene_from_spec, scene_spec
+
+Cli = Callable[..., tuple[int, str, str]]
+MESH_ARGS = ["--kind", "fem", "--param", "voxel_pitch=0.05", "--param", "young=2e4"]
+
+
+@pytest.fixture(scope="module")
+def box(tmp_path_factory: pytest.TempPathFactory) -> Path:
+    """A 0.1 x 0.2 x 0.1 m box: 2 x 4 x 2 voxels at pitch 0.05."""
+    path = tmp_path_factory.mktemp("mesh") / "box.obj"
+    trimesh.creation.box(extents=(0.1, 0.2, 0.1)).export(path)
+    return path
+
+
+@pytest.fixture(scope="module")
+def fitted(box: Path, tmp_path_factory: pytest.TempPathFactory) -> Path:
+    stem = tmp_path_factory.mktemp("fit") / "box"
+    argv = ["fit", "--mesh", str(box), *MESH_ARGS, "--steps", "20", "--dim", "2", "--width", "8", "--layers", "1"]
+    assert main([*argv, "--sigma", "0.01", "--out", str(stem), "--json"]) == 0
+    return stem.with_name("box.pt")
+
+
+def test_the_checkpoint_records_how_to_rebuild_the_mesh_scene(fitted: Path, box: Path) -> None:
+    meta = json.loads(fitted.with_suffix(".json").read_text())
+    params = meta["scene_params"]
+    assert meta["scene"] == "mesh_fem" and params["builder"] == "fem"
+    assert params["source"] == str(box.resolve()) and params["voxel_pitch"] == 0.05 and params["young"] == 2e4
+    assert len(params["mesh_sha256"]) == 64
+    assert meta["command"].startswith(f"redsim fit --mesh {box.resolve()} --kind fem ")
+    scene = scene_from_spec(meta)
+    assert scene.fingerprint() == meta["scene_fingerprint"]
+    assert scene_spec(scene) == {"scene": "mesh_fem", "scene_params": params}
+
+
+def test_inspect_sample_animate_work_on_a_mesh_checkpoint(cli: Cli, fitted: Path, tmp_path: Path) -> None:
+    code, out, err = cli("inspect", str(fitted), "--json")
+    assert code == 0, err
+    doc = json.loads(out)
+    n = doc["n"]
+    assert doc["scene"] == "mesh_fem" and doc["latent_dim"] == 2
+    code, out, err = cli("sample", str(fitted), "-n", "5", "--out", str(tmp_path / "s.npz"), "--json")
+    assert code == 0, err
+    assert np.load(tmp_path / "s.npz")["q"].shape == (5, n)
+    gif = tmp_path / "a.gif"
+    code, _, err = cli("animate", str(fitted), "--keys", "2", "--frames", "2", "--out", str(gif))
+    assert code == 0, err
+    assert gif.read_bytes()[:3] == b"GIF"
+
+
+def test_refit_from_the_recorded_command(fitted: Path, tmp_path: Path) -> None:
+    meta = json.loads(fitted.with_suffix(".json").read_text())
+    argv = shlex.split(meta["command"])[1:]
+    argv[argv.index("--out") + 1] = str(tmp_path / "again")
+    assert main([*argv, "--json"]) == 0
+    assert json.loads((tmp_path / "again.json").read_text())["scene_fingerprint"] == meta["scene_fingerprint"]
+
+
+def test_simulate_a_mesh_and_a_cloth(cli: Cli, box: Path, tmp_path: Path) -> None:
+    code, out, err = cli("simulate", "--mesh", str(box), *MESH_ARGS, "--steps", "1", "--json")
+    assert code == 0, err
+    assert json.loads(out)["scene"] == "mesh_fem"
+    vertices, triangles = redsim.meshes.cloth_grid(0.2, 0.2, (3, 3), origin=(0.0, -0.2, 0.0))
+    sheet = tmp_path / "sheet.obj"
+    trimesh.Trimesh(vertices, triangles).export(sheet)
+    argv = ["simulate", "--mesh", str(sheet), "--kind", "cloth", "--steps", "1", "--load", "cloth=0,0,0.1"]
+    code, out, err = cli(*argv, "--out", str(tmp_path), "--json")
+    assert code == 0, err
+    summary = json.loads(out)
+    assert summary["scene"] == "mesh_cloth" and summary["params"]["builder"] == "cloth"
+    assert Path(summary["png"]).read_bytes()[:4] == b"\x89PNG"
+
+
+def test_a_checkpoint_json_is_a_scene_spec(cli: Cli, fitted: Path, box: Path, tmp_path: Path) -> None:
+    meta = json.loads(fitted.with_suffix(".json").read_text())
+    code, out, err = cli("simulate", "--spec", str(fitted.with_suffix(".json")), "--steps", "1", "--json")
+    assert code == 0, err
+    assert json.loads(out)["params"] == meta["scene_params"]
+    spec = tmp_path / "chain.json"
+    spec.write_text(json.dumps({"scene": "toy_three_link_chain", "scene_params": {"gravity": False}}))
+    code, out, err = cli("simulate", "--spec", str(spec), "--steps", "1", "--json")
+    assert code == 0, err
+    assert json.loads(out)["params"]["gravity"] is False
+    code, _, err = cli("simulate", "--spec", str(spec), "--param", "gravity=true")
+    assert code == 2 and "--param does not apply to --spec" in err
+    code, _, err = cli("simulate", "toy_two_tets", "--spec", str(spec))
+    assert code == 2 and "not a scene name and --spec" in err
+
+
+def test_bench_energy_on_a_mesh(cli: Cli, box: Path) -> None:
+    code, out, err = cli(
+        "bench", "energy", "--mesh", str(box), *MESH_ARGS, "--repeats", "1", "--batches", "1", "--json"
+    )
+    assert code == 0, err
+    results = json.loads(out)["results"]
+    assert {r["scene"] for r in results} == {"mesh_fem"} and len(results) == 2
+    code, _, err = cli("bench", "energy", "--scenes", "toy_two_tets", "--mesh", str(box), *MESH_ARGS)
+    assert code == 2 and "either --scenes or --mesh" in err
+    code, _, err = cli("bench", "fit", "--param", "young=1")
+    assert code == 2 and "go with --mesh" in err
+
+
+def test_a_changed_mesh_file_is_a_clear_error(cli: Cli, fitted: Path, box: Path, tmp_path: Path) -> None:
+    meta = json.loads(fitted.with_suffix(".json").read_text())
+    moved = tmp_path / "box.obj"
+    moved.write_bytes(box.read_bytes())
+    meta["scene_params"]["source"] = str(moved)
+    (tmp_path / "m.json").write_text(json.dumps(meta))
+    (tmp_path / "m.pt").write_bytes(fitted.read_bytes())
+    trimesh.creation.box(extents=(0.1, 0.25, 0.1)).export(moved)
+    code, _, err = cli("inspect", str(tmp_path / "m.pt"))
+    assert code == 2 and err.count("\n") == 1
+    assert "changed since" in err and meta["scene_params"]["mesh_sha256"] in err
+    moved.unlink()
+    code, _, err = cli("sample", str(tmp_path / "m.pt"))
+    assert code == 2 and "is missing" in err and "box.obj" in err
+
+
+def test_specs_that_cannot_be_rebuilt() -> None:
+    with pytest.raises(SceneSpecError, match="names no scene"):
+        scene_from_spec({})
+    with pytest.raises(SceneSpecError, match="unknown scene 'mine'"):
+        scene_from_spec({"scene": "mine", "scene_params": {}})
+    in_memory = redsim.scenes.cloth_scene_from_mesh(trimesh.creation.icosphere(subdivisions=1))
+    with pytest.raises(SceneSpecError, match="in-memory mesh"):
+        scene_from_spec(scene_spec(in_memory))
+    assert scene_from_spec(scene_spec(redsim.scenes.build("toy_two_tets"))).name == "toy_two_tets"
+
+
+@pytest.mark.parametrize(
+    ("argv", "expected"),
+    [
+        (["simulate"], "give a scene name, a mesh with --mesh PATH"),
+        (["simulate", "--mesh", "x.obj"], "--mesh needs --kind"),
+        (["simulate", "toy_two_tets", "--kind", "fem"], "--kind needs --mesh"),
+        (["fit", "toy_two_tets", "--mesh", "x.obj", "--kind", "fem"], "not a scene name and --mesh"),
+        (["fit", "--mesh", "/nonexistent/x.obj", "--kind", "fem"], "x.obj"),
+        (["simulate", "--mesh", "/nonexistent/x.obj", "--kind", "plate"], "invalid choice"),
+    ],
+)
+def test_mesh_argument_errors(cli: Cli, argv: list[str], expected: str) -> None:
+    code, out, err = cli(*argv)
+    assert code == 2 and out == "" and err.count("\n") == 1
+    assert expected in err
