@@ -204,7 +204,6 @@ class LatentSim:
         self.z, self.z_prev = zeros.clone(), zeros.clone()
         self.cond: Tensor | None = None if not conditional else self.default_cond.expand(B, -1).clone()
         self.params: dict[str, Tensor] = {}
-        self.action = torch.zeros(B, 1, dtype=self.torch_dtype, device=self.device)
         self.loads = torch.zeros(B, len(scene.handles), scene.dim, dtype=self.torch_dtype, device=self.device)
         task.bind(self)
         self.x = self.x_prev = self.full_positions(self.z)
@@ -289,7 +288,6 @@ class LatentSim:
             reward [B] (float64), terminated [B] (bool), info {key: [B] array} (see :class:`LatentEnv`).
         """
         act = torch.as_tensor(action, dtype=self.torch_dtype, device=self.device)
-        self.action = act
         self.loads = self.task.loads(act, self.params).to(self.torch_dtype)
         diverged = torch.zeros(self.batch, dtype=torch.bool, device=self.device)
         out_of_range = torch.zeros_like(diverged)

@@ -1,4 +1,4 @@
-"""`redsim bench envs`: env steps per second, single and vectorized, against the full-space step.
+"""What `redsim bench envs` measures: env steps per second, single and vectorized, against the full-space step.
 
 For each env id, in one process, side by side: construction time, then the median wall time of
 an env step of the single env (random actions) and of the native vector env at each batch size,

@@ -2,16 +2,13 @@
 
 from __future__ import annotations
 
-from typing import Any
+from typing import ClassVar
 
-from torch import nn
-
-from redsim.envs.base import LatentEnv, shipped
-from redsim.envs.reach import HandleReach
+from redsim.envs.reach import ReachEnv
 from redsim.envs.vector import vector_entry
 
 
-class ChainEnv(LatentEnv):
+class ChainEnv(ReachEnv):
     """A 1.9 m chain of 24 steel torus links, held by contact only; bring its free end to a target.
 
     ## Description
@@ -40,9 +37,9 @@ class ChainEnv(LatentEnv):
     | 19-21 | target - p | -(r + 2L) | r + 2L | m |
 
     ## Rewards
-    With d the distance [m] from p to the target and L_d the task's distance scale (the RMS distance of targets
-    from the rest position): `reward = -d / L_d - 0.05 mean(action^2) + 1[d < success_radius]`, reported as
-    `info["reward_distance"]`, `info["reward_control"]`, `info["reward_success"]`.
+    Dense: -d / L_d with d the distance [m] from the end link's centre to the target,
+    a control cost and a bonus within the success radius, each in `info["reward_<term>"]`
+    (formula: :class:`redsim.envs.reach.ReachEnv`).
 
     ## Starting State
     At rest (z: the map's unloaded equilibrium, z_dot = 0). The target is the end link's centre in the subspace
@@ -52,41 +49,17 @@ class ChainEnv(LatentEnv):
     Termination: the stepper could not make a step finite (`info["diverged"]`). Truncation: 300 steps (6 s).
 
     ## Arguments
-    | Argument | Default | Meaning |
-    |---|---|---|
-    | `render_mode` | None | None, "rgb_array" or "human" |
-    | `max_force` | 40.0 | force [N] of a unit action |
-    | `target_spread` | 0.5 | latent spread of the targets |
-    | `dt` | 0.02 | stepper time step [s] |
-    | `frame_skip` | 1 | stepper steps per env step |
-    | `subspace` | None | the shipped map, a checkpoint path or a map |
-    | `scene_params` | None | `chain` build parameters (a shipped map covers only the defaults) |
-    | `include_q` | False | put q [288] in `info["q"]` |
-    | `**kwargs` | | more `LatentEnv` arguments (`dtype`, `device`, `width`, `height`, `camera`, ...) |
+    As :class:`redsim.envs.reach.ReachEnv`; `max_force` and `target_spread` default to 40 N, spread 0.5.
 
     ## Version History
     - v0: first version.
     """
 
-    def __init__(
-        self,
-        render_mode: str | None = None,
-        *,
-        max_force: float = 40.0,
-        target_spread: float = 0.5,
-        dt: float = 0.02,
-        frame_skip: int = 1,
-        subspace: str | nn.Module | None = None,
-        scene_params: dict[str, Any] | None = None,
-        include_q: bool = False,
-        **kwargs: Any,
-    ) -> None:
-        scene, sub = shipped("chain", scene_params, subspace)
-        task = HandleReach("bottom", max_force=max_force, target_spread=target_spread)
-        kwargs.setdefault("camera", {"azimuth": 30.0, "elevation": 15.0})
-        super().__init__(
-            scene, sub, task, render_mode=render_mode, dt=dt, frame_skip=frame_skip, include_q=include_q, **kwargs
-        )
+    scene_name: ClassVar[str] = "chain"
+    goal_handle: ClassVar[str] = "bottom"
+    default_max_force: ClassVar[float] = 40.0
+    default_target_spread: ClassVar[float] = 0.5
+    camera: ClassVar[dict[str, float]] = {"azimuth": 30.0, "elevation": 15.0}
 
 
 make_vec = vector_entry(ChainEnv)

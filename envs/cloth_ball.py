@@ -2,16 +2,13 @@
 
 from __future__ import annotations
 
-from typing import Any
+from typing import ClassVar
 
-from torch import nn
-
-from redsim.envs.base import LatentEnv, shipped
-from redsim.envs.reach import HandleReach
+from redsim.envs.reach import ReachEnv
 from redsim.envs.vector import vector_entry
 
 
-class ClothBallEnv(LatentEnv):
+class ClothBallEnv(ReachEnv):
     """A 1 kg ball on a 1 m cloth pinned at its corners; roll it to a target spot by pushing it sideways.
 
     ## Description
@@ -39,9 +36,9 @@ class ClothBallEnv(LatentEnv):
     | 8-9 | target - ball centre, (x, z) | -(r + 2) | r + 2 | m |
 
     ## Rewards
-    With d the horizontal distance [m] from the ball to the target and L_d the task's distance scale (the RMS
-    distance of targets from the rest spot): `reward = -d / L_d - 0.05 mean(action^2) + 1[d < success_radius]`,
-    reported as `info["reward_distance"]`, `info["reward_control"]`, `info["reward_success"]`.
+    Dense: -d / L_d with d the distance [m] from the ball to the target spot, horizontally,
+    a control cost and a bonus within the success radius, each in `info["reward_<term>"]`
+    (formula: :class:`redsim.envs.reach.ReachEnv`).
 
     ## Starting State
     At rest (z: the map's unloaded equilibrium, the ball in the cloth's hollow; z_dot = 0). The target is the
@@ -51,43 +48,19 @@ class ClothBallEnv(LatentEnv):
     Termination: the stepper could not make a step finite (`info["diverged"]`). Truncation: 200 steps (4 s).
 
     ## Arguments
-    | Argument | Default | Meaning |
-    |---|---|---|
-    | `render_mode` | None | None, "rgb_array" or "human" |
-    | `max_force` | 8.0 | force [N] of a unit action |
-    | `target_spread` | 0.8 | latent spread of the targets |
-    | `dt` | 0.02 | stepper time step [s] |
-    | `frame_skip` | 1 | stepper steps per env step |
-    | `subspace` | None | the shipped map, a checkpoint path or a map |
-    | `scene_params` | None | `cloth_ball` build parameters (a shipped map covers only the defaults) |
-    | `include_q` | False | put q [6075] in `info["q"]` |
-    | `**kwargs` | | more `LatentEnv` arguments (`dtype`, `device`, `width`, `height`, `camera`, ...) |
+    As :class:`redsim.envs.reach.ReachEnv`; `max_force` and `target_spread` default to 8 N, spread 0.8.
 
     ## Version History
     - v0: first version.
     """
 
-    def __init__(
-        self,
-        render_mode: str | None = None,
-        *,
-        max_force: float = 8.0,
-        target_spread: float = 0.8,
-        dt: float = 0.02,
-        frame_skip: int = 1,
-        subspace: str | nn.Module | None = None,
-        scene_params: dict[str, Any] | None = None,
-        include_q: bool = False,
-        **kwargs: Any,
-    ) -> None:
-        scene, sub = shipped("cloth_ball", scene_params, subspace)
-        task = HandleReach(
-            "ball", max_force=max_force, force_axes=(0, 2), goal_axes=(0, 2), target_spread=target_spread
-        )
-        kwargs.setdefault("camera", {"azimuth": 20.0, "elevation": 40.0, "margin": 0.05})
-        super().__init__(
-            scene, sub, task, render_mode=render_mode, dt=dt, frame_skip=frame_skip, include_q=include_q, **kwargs
-        )
+    scene_name: ClassVar[str] = "cloth_ball"
+    goal_handle: ClassVar[str] = "ball"
+    default_max_force: ClassVar[float] = 8.0
+    default_target_spread: ClassVar[float] = 0.8
+    force_axes: ClassVar[tuple[int, ...] | None] = (0, 2)
+    goal_axes: ClassVar[tuple[int, ...] | None] = (0, 2)
+    camera: ClassVar[dict[str, float]] = {"azimuth": 20.0, "elevation": 40.0, "margin": 0.05}
 
 
 make_vec = vector_entry(ClothBallEnv)

@@ -2,16 +2,13 @@
 
 from __future__ import annotations
 
-from typing import Any
+from typing import ClassVar
 
-from torch import nn
-
-from redsim.envs.base import LatentEnv, shipped
-from redsim.envs.reach import HandleReach
+from redsim.envs.reach import ReachEnv
 from redsim.envs.vector import vector_entry
 
 
-class ConditionalBarEnv(LatentEnv):
+class ConditionalBarEnv(ReachEnv):
     """A 2D neo-Hookean cantilever with a random stiffness ratio and support location; steer its tip.
 
     ## Description
@@ -43,9 +40,9 @@ class ConditionalBarEnv(LatentEnv):
     | 21 | support location c[1] | 0.3 | 1.0 | m |
 
     ## Rewards
-    With d the distance [m] from the tip to the target and L_d the task's distance scale (the RMS distance of
-    targets from the rest tip at the default condition): `reward = -d / L_d - 0.05 mean(action^2) +
-    1[d < success_radius]`, reported as `info["reward_distance"]`, `info["reward_control"]`, `info["reward_success"]`.
+    Dense: -d / L_d with d the distance [m] from the tip to the target,
+    a control cost and a bonus within the success radius, each in `info["reward_<term>"]`
+    (formula: :class:`redsim.envs.reach.ReachEnv`).
 
     ## Starting State
     c uniform in its box; z the map's unloaded equilibrium under c, z_dot = 0. The target is the tip in the
@@ -55,41 +52,17 @@ class ConditionalBarEnv(LatentEnv):
     Termination: the stepper could not make a step finite (`info["diverged"]`). Truncation: 200 steps (4 s).
 
     ## Arguments
-    | Argument | Default | Meaning |
-    |---|---|---|
-    | `render_mode` | None | None, "rgb_array" or "human" |
-    | `max_force` | 300.0 | force [N] of a unit action |
-    | `target_spread` | 0.5 | latent spread of the targets |
-    | `dt` | 0.02 | stepper time step [s] |
-    | `frame_skip` | 1 | stepper steps per env step |
-    | `subspace` | None | the shipped map, a checkpoint path or a map |
-    | `scene_params` | None | `conditional_bar` build parameters (a shipped map covers only the defaults) |
-    | `include_q` | False | put q [940] in `info["q"]` |
-    | `**kwargs` | | more `LatentEnv` arguments (`dtype`, `device`, `width`, `height`, `camera`, ...) |
+    As :class:`redsim.envs.reach.ReachEnv`; `max_force` and `target_spread` default to 300 N, spread 0.5.
 
     ## Version History
     - v0: first version.
     """
 
-    def __init__(
-        self,
-        render_mode: str | None = None,
-        *,
-        max_force: float = 300.0,
-        target_spread: float = 0.5,
-        dt: float = 0.02,
-        frame_skip: int = 1,
-        subspace: str | nn.Module | None = None,
-        scene_params: dict[str, Any] | None = None,
-        include_q: bool = False,
-        **kwargs: Any,
-    ) -> None:
-        scene, sub = shipped("conditional_bar", scene_params, subspace)
-        task = HandleReach("tip", max_force=max_force, target_spread=target_spread)
-        kwargs.setdefault("randomize_condition", True)
-        super().__init__(
-            scene, sub, task, render_mode=render_mode, dt=dt, frame_skip=frame_skip, include_q=include_q, **kwargs
-        )
+    scene_name: ClassVar[str] = "conditional_bar"
+    goal_handle: ClassVar[str] = "tip"
+    default_max_force: ClassVar[float] = 300.0
+    default_target_spread: ClassVar[float] = 0.5
+    randomize_condition: ClassVar[bool] = True
 
 
 make_vec = vector_entry(ConditionalBarEnv)

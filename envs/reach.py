@@ -17,13 +17,13 @@ reported as ``reward_distance``, ``reward_control`` and ``reward_success``.
 from __future__ import annotations
 
 from collections.abc import Mapping, Sequence
-from typing import TYPE_CHECKING, Any
+from typing import TYPE_CHECKING, Any, ClassVar
 
 import numpy as np
 import torch
-from torch import Tensor
+from torch import Tensor, nn
 
-from redsim.envs.base import Task
+from redsim.envs.base import LatentEnv, Task, shipped
 
 if TYPE_CHECKING:
     from redsim.envs.base import LatentSim
@@ -217,4 +217,66 @@ class HandleReach(Task):
         )
 
 
-__all__ = ["HandleReach"]
+class ReachEnv(LatentEnv):
+    """A catalog scene in its shipped subspace with a :class:`HandleReach` task: the base of the registered ids.
+
+    A subclass names its scene, goal handle, force and goal axes, default force and target spread,
+    and camera (class attributes); everything else is shared.
+
+    ## Rewards
+    `reward = -d / L_d - 0.05 mean(action^2) + 1[d < r]` with d the distance [m] from the goal handle to the
+    target along the goal axes, L_d the RMS distance of targets from the rest position and r = 0.2 L_d,
+    reported as `info["reward_distance"]`, `info["reward_control"]` and `info["reward_success"]`.
+
+    ## Arguments
+    | Argument | Default | Meaning |
+    |---|---|---|
+    | `render_mode` | None | None, "rgb_array" or "human" |
+    | `max_force` | the env's | force [N] of a unit action |
+    | `target_spread` | the env's | latent spread s of the targets |
+    | `dt` | 0.02 | stepper time step [s] |
+    | `frame_skip` | 1 | stepper steps per env step |
+    | `subspace` | None | the shipped map, a checkpoint path or a map |
+    | `scene_params` | None | scene build parameters (a shipped map covers only the defaults) |
+    | `include_q` | False | put q [n] in `info["q"]` |
+    | `**kwargs` | | more :class:`LatentEnv` arguments (`dtype`, `device`, `width`, `height`, `camera`, ...) |
+    """
+
+    scene_name: ClassVar[str]
+    goal_handle: ClassVar[str]
+    default_max_force: ClassVar[float]
+    default_target_spread: ClassVar[float] = 0.5
+    force_axes: ClassVar[tuple[int, ...] | None] = None
+    goal_axes: ClassVar[tuple[int, ...] | None] = None
+    camera: ClassVar[dict[str, float]] = {}
+    randomize_condition: ClassVar[bool] = False
+
+    def __init__(
+        self,
+        render_mode: str | None = None,
+        *,
+        max_force: float | None = None,
+        target_spread: float | None = None,
+        dt: float = 0.02,
+        frame_skip: int = 1,
+        subspace: str | nn.Module | None = None,
+        scene_params: dict[str, Any] | None = None,
+        include_q: bool = False,
+        **kwargs: Any,
+    ) -> None:
+        scene, sub = shipped(self.scene_name, scene_params, subspace)
+        task = HandleReach(
+            self.goal_handle,
+            max_force=self.default_max_force if max_force is None else max_force,
+            target_spread=self.default_target_spread if target_spread is None else target_spread,
+            force_axes=self.force_axes,
+            goal_axes=self.goal_axes,
+        )
+        kwargs.setdefault("camera", dict(self.camera))
+        kwargs.setdefault("randomize_condition", self.randomize_condition)
+        super().__init__(
+            scene, sub, task, render_mode=render_mode, dt=dt, frame_skip=frame_skip, include_q=include_q, **kwargs
+        )
+
+
+__all__ = ["HandleReach", "ReachEnv"]

@@ -6,17 +6,15 @@ simulator (:mod:`redsim.integrators`) is the ground truth that reduced models ar
 against.
 """
 
-from redsim import effects, scenes
+# redsim.envs registers the Gymnasium ids ("RedSim/Chain-v0", ...) with string entry points: nothing
+# heavy is imported and no checkpoint is loaded until an env is made.
+from redsim import effects, envs, scenes
 from redsim.points import PointSet
 from redsim.scene import ConditionSpace, Handle, Scene, SceneBuilder, Surface
 from redsim.subspace import SubspaceConfig, SubspaceMap, load_subspace
 
 __version__ = "0.1.0"
 """The package version; the one place it is written (pyproject.toml reads it: ``dynamic = ["version"]``)."""
-
-# Register the Gymnasium ids ("RedSim/Chain-v0", ...): string entry points only, nothing heavy is
-# imported until an env is made (the engine never imports env code itself).
-import redsim.envs  # noqa: E402, F401
 
 __all__ = [
     "ConditionSpace",
@@ -29,6 +27,7 @@ __all__ = [
     "Surface",
     "__version__",
     "effects",
+    "envs",
     "load_subspace",
     "scenes",
 ]

@@ -1,4 +1,4 @@
-"""``redsim bench energy | subspace | fit``: benchmarks; each prints the machine it ran on."""
+"""``redsim bench energy | subspace | fit | step``: benchmarks; each prints the machine it ran on."""
 
 from __future__ import annotations
 
@@ -16,7 +16,9 @@ from redsim.cli.common import (
     CliError,
     add_bench_scene_args,
     bench_scenes,
+    build_scene,
     catalog_names,
+    check_scene_name,
     finish_command,
     json_out,
     out,
@@ -180,6 +182,94 @@ def cmd_bench_energy(args: argparse.Namespace) -> int:
     return EXIT_OK
 
 
+def cmd_bench_step(args: argparse.Namespace) -> int:
+    from redsim import pretrained
+    from redsim.bench import machine_info
+    from redsim.runtime.bench import STEP_SCENES, bench_step, mujoco_rows, step_table
+
+    names = list(STEP_SCENES) if args.scenes is None else parse_list(args.scenes, "--scenes")
+    for name in names:
+        check_scene_name(name)
+        if name not in pretrained.names():
+            raise CliError(f"no shipped subspace for {name!r}; shipped: {', '.join(pretrained.names())}")
+    try:
+        batches = tuple(int(b) for b in parse_list(args.batches, "--batches"))
+    except ValueError as err:
+        raise CliError(f"--batches must be comma-separated integers, got {args.batches!r}") from err
+    if min(batches) < 1 or args.steps < 1 or args.reference_steps < 1:
+        raise CliError("--batches, --steps and --reference-steps must be >= 1")
+    if args.device.startswith("cuda") and not torch.cuda.is_available():
+        raise CliError("--device cuda requested but torch sees no CUDA device")
+    machine = machine_info()
+    if args.hessians is not None:
+        return _bench_step_hessians(args, names, batches, machine)
+    rows = []
+    for name in names:
+        scene = build_scene(name)
+        rows.append(
+            bench_step(
+                scene,
+                pretrained.load(name, scene),
+                dt=args.dt,
+                batches=batches,
+                steps=args.steps,
+                reference_steps=min(args.reference_steps, args.steps),
+                compiled=not args.no_compile,
+                device=args.device,
+                seed=args.seed,
+            )
+        )
+        if not args.json:
+            out(f"{name}: done")
+    mujoco = mujoco_rows()
+    if args.json:
+        json_out({"machine": machine, "dt": args.dt, "rows": rows, "mujoco": mujoco})
+    else:
+        out(_machine_line(machine, args.device))
+        for line in step_table(rows, mujoco, args.dt):
+            out(line)
+    return EXIT_OK
+
+
+def _bench_step_hessians(
+    args: argparse.Namespace, names: list[str], batches: tuple[int, ...], machine: dict[str, Any]
+) -> int:
+    from redsim import pretrained
+    from redsim.runtime.bench import compare_hessians
+    from redsim.runtime.solver import HESSIANS
+
+    hessians = tuple(parse_list(args.hessians, "--hessians"))
+    unknown = [h for h in hessians if h not in HESSIANS]
+    if unknown:
+        raise CliError(f"unknown Hessian model(s) {unknown}; valid: {', '.join(HESSIANS)}")
+    rows = []
+    if not args.json:
+        out(_machine_line(machine, args.device))
+        out(f"{'scene':<14} {'hessian':<13} {'B':>4} {'its/step':>9} {'ms/step':>9} {'env-steps/s':>12} {'conv%':>6}")
+    for name in names:
+        scene = build_scene(name)
+        for batch in batches:
+            for row in compare_hessians(
+                scene,
+                pretrained.load(name, scene),
+                dt=args.dt,
+                batch=batch,
+                steps=args.steps,
+                hessians=hessians,
+                seed=args.seed,
+            ):
+                rows.append(row)
+                if not args.json:
+                    out(
+                        f"{name:<14} {row['hessian']:<13} {batch:>4} {row['iterations_per_step']:>9.2f} "
+                        f"{1e3 * row['median_step_s']:>9.1f} {row['env_steps_per_s']:>12.3g} "
+                        f"{100 * row['converged_fraction']:>6.1f}"
+                    )
+    if args.json:
+        json_out({"machine": machine, "dt": args.dt, "rows": rows})
+    return EXIT_OK
+
+
 def cmd_bench_fit(args: argparse.Namespace) -> int:
     from redsim.bench import bench_fit_variants, machine_info
     from redsim.trainers import FitConfig
@@ -303,4 +393,33 @@ def add_commands(sub: Any) -> Any:
     p.add_argument("--batch", type=int, default=32, help="latent samples per step (default 32)")
     p.add_argument("--device", default="cpu", help="torch device (default cpu)")
     finish_command(p, cmd_bench_fit, "print one JSON document on stdout", default_threads=1)
+
+    p = bench.add_parser(
+        "step",
+        help="env-steps/s of the batched latent stepper vs today's reference path",
+        description=(
+            "For each scene with a shipped subspace: env-steps/s of ImplicitEuler(LatentSpace) (one state at a time), "
+            "the batched LatentStepper eager and compiled at each batch size B, on the same seeded load sequences "
+            "(changing every 5 steps, inside the subspace's range), iterations per step, converged fraction, the "
+            "full-space step at B = 1, and with mujoco installed a MuJoCo chain of 24 capsules for scale."
+        ),
+    )
+    p.add_argument(
+        "--scenes",
+        metavar="A,B,...",
+        help="comma-separated (default: mini_chain,chain,klann,bistable_bar,hanging_sheet,cloth_ball)",
+    )
+    p.add_argument("--batches", default="1,16,64,256", metavar="B1,B2", help="batch sizes (default 1,16,64,256)")
+    p.add_argument("--steps", type=int, default=20, help="timed steps per batch size (default 20)")
+    p.add_argument("--reference-steps", type=int, default=10, help="steps of the reference path (default 10)")
+    p.add_argument("--dt", type=float, default=0.02, help="time step [s] (default 0.02)")
+    p.add_argument("--no-compile", action="store_true", help="skip the torch.compile variant")
+    p.add_argument(
+        "--hessians",
+        metavar="H1,H2",
+        help="instead: compare the solver's Hessian models (exact,gauss_newton,bfgs,lagged) on the same loads",
+    )
+    p.add_argument("--device", default="cpu", help="torch device of the stepper (default cpu)")
+    p.add_argument("--seed", type=int, default=0, help="seed of the load sequences (default 0)")
+    finish_command(p, cmd_bench_step, "print one JSON document on stdout", default_threads=1)
     return bench

@@ -1,100 +1,78 @@
-"""``redsim demo ENV_ID`` and ``redsim bench envs`` (logic in redsim.envs)."""
+"""The env commands: ``redsim demo ENV_ID`` and ``redsim bench envs`` (their logic lives in redsim.envs)."""
 
 from __future__ import annotations
 
 import argparse
-import json
 from typing import Any
+
+from redsim.cli.bench import _machine_line
+from redsim.cli.common import EXIT_OK, CliError, finish_command, json_out, out, parse_list
 
 SCRIPTED = "scripted controller"
 
 
-def _error(message: str) -> int:
-    import sys
-
-    print(f"redsim: error: {message}", file=sys.stderr, flush=True)
-    return 2
-
-
-def _check_id(env_id: str) -> str | None:
+def _check_id(env_id: str) -> None:
     import redsim
 
-    return None if env_id in redsim.envs.ids() else f"unknown env {env_id!r}; valid: {', '.join(redsim.envs.ids())}"
+    if env_id not in redsim.envs.ids():
+        raise CliError(f"unknown env {env_id!r}; valid: {', '.join(redsim.envs.ids())}")
 
 
-def _cmd_demo(args: argparse.Namespace) -> int:
+def cmd_demo(args: argparse.Namespace) -> int:
     from redsim.envs.demo import run_demo
 
-    problem = _check_id(args.env_id)
-    if problem:
-        return _error(problem)
+    _check_id(args.env_id)
     if args.steps is not None and args.steps < 1:
-        return _error(f"--steps must be >= 1, got {args.steps}")
-    import torch
-
-    torch.set_num_threads(args.threads)
+        raise CliError(f"--steps must be >= 1, got {args.steps}")
     result = run_demo(args.env_id, args.out, seed=args.seed, steps=args.steps)
     if args.json:
-        print(json.dumps(result), flush=True)
-        return 0
-    distance = result["final_distance"]
-    print(
+        json_out(result)
+        return EXIT_OK
+    out(
         f"{args.env_id} ({SCRIPTED}, seed {args.seed}): return {result['return']:.1f} over {result['steps']} steps, "
-        f"final distance {distance:.3g} m, {100 * result['success_fraction']:.0f}% of steps within the success radius",
-        flush=True,
+        f"final distance {result['final_distance']:.3g} m, {100 * result['success_fraction']:.0f}% of steps within "
+        "the success radius"
     )
-    print(
-        f"speed: {result['env_steps_per_s']:.0f} env steps/s, {result['sim_s_per_wall_s']:.2f} simulated s per wall s",
-        flush=True,
-    )
-    print(f"wrote {result['gif']} and {result['png']}", flush=True)
-    return 0
+    out(f"speed: {result['env_steps_per_s']:.0f} env steps/s, {result['sim_s_per_wall_s']:.2f} simulated s per wall s")
+    out(f"wrote {result['gif']} and {result['png']}")
+    return EXIT_OK
 
 
 def _row_line(row: dict[str, Any], batches: list[int]) -> str:
     cells = " ".join(f"{row['vector'][b]['env_steps_per_s']:>9.0f}" for b in batches)
-    best = max(batches, key=lambda b: row["vector"][b]["sim_s_per_wall_s"]) if batches else None
-    sim = f"{row['vector'][best]['sim_s_per_wall_s']:>9.1f}" if best is not None else f"{'-':>9}"
+    best = max((row["vector"][b]["sim_s_per_wall_s"] for b in batches), default=None)
     full = row["full_space"]
-    full_text = f"{full['sim_s_per_wall_s']:>9.3f}" if full else f"{'-':>9}"
     return (
         f"{row['id']:<26} {row['n']:>6} {row['d']:>3} {row['action_size']:>4} {row['observation_size']:>4} "
-        f"{row['single']['env_steps_per_s']:>8.0f} {cells} {row['single']['sim_s_per_wall_s']:>9.2f} {sim} "
-        f"{full_text}"
+        f"{row['single']['env_steps_per_s']:>8.0f} {cells} {row['single']['sim_s_per_wall_s']:>9.2f} "
+        + (f"{best:>10.1f} " if best is not None else f"{'-':>10} ")
+        + (f"{full['sim_s_per_wall_s']:>10.3g}" if full else f"{'-':>10}")
     )
 
 
-def _cmd_bench_envs(args: argparse.Namespace) -> int:
+def cmd_bench_envs(args: argparse.Namespace) -> int:
     import redsim
     from redsim.bench import machine_info
     from redsim.envs.bench import bench_env, mujoco_anchors
 
-    ids = redsim.envs.ids() if args.envs is None else [e.strip() for e in args.envs.split(",") if e.strip()]
+    ids = redsim.envs.ids() if args.envs is None else parse_list(args.envs, "--envs")
     for env_id in ids:
-        problem = _check_id(env_id)
-        if problem:
-            return _error(problem)
+        _check_id(env_id)
     try:
-        batches = [int(b) for b in args.batches.split(",") if b.strip()]
-    except ValueError:
-        return _error(f"--batches must be comma-separated integers, got {args.batches!r}")
-    if any(b < 1 for b in batches) or args.steps < 1:
-        return _error("--batches and --steps must be >= 1")
-    import torch
-
-    torch.set_num_threads(args.threads)
+        batches = [int(b) for b in parse_list(args.batches, "--batches")]
+    except ValueError as err:
+        raise CliError(f"--batches must be comma-separated integers, got {args.batches!r}") from err
+    if min(batches) < 1 or args.steps < 1:
+        raise CliError("--batches and --steps must be >= 1")
     machine = machine_info()
     if not args.json:
-        print("env steps/s (median over timed steps), simulated s per wall s; full space: float64 Newton step")
-        load = machine["load_average_1min"]
-        print(
-            f"machine: {machine['processor']}, {machine['cpu_count']} CPUs (load {load:.2f}), torch {machine['torch']},"
-            f" {machine['torch_threads']} threads, device {args.device}"
-        )
+        out("env steps/s (median over timed steps); simulated s per wall s of the single env, of the best batch,")
+        out("and of the scene's float64 full-space implicit-Euler step (Newton) under the same kind of load")
+        out(_machine_line(machine, args.device))
         vec = " ".join(f"{f'N={b}':>9}" for b in batches)
-        print(
+        out(
             f"{'env':<26} {'n':>6} {'d':>3} {'act':>4} {'obs':>4} {'single':>8} {vec} {'sim/wall':>9} "
-            f"{'sim/wall N':>9} {'full sim/wall':>9}"
+            f"{'best N':>10} {'full space':>10}"
         )
     rows = []
     for env_id in ids:
@@ -108,23 +86,23 @@ def _cmd_bench_envs(args: argparse.Namespace) -> int:
         )
         rows.append(row)
         if not args.json:
-            print(_row_line(row, batches), flush=True)
+            out(_row_line(row, batches))
     anchors = mujoco_anchors()
     if args.json:
-        print(json.dumps({"machine": machine, "results": rows, "mujoco": anchors}, default=str), flush=True)
+        json_out({"machine": machine, "results": rows, "mujoco": anchors})
     elif anchors["available"]:
         cheetah = anchors["HalfCheetah-v5"]
-        print(
+        out(
             f"MuJoCo HalfCheetah-v5 (single): {cheetah['env_steps_per_s']:.0f} env steps/s, "
             f"{cheetah['sim_s_per_wall_s']:.1f} sim s per wall s"
         )
     else:
-        print(f"MuJoCo anchors: {anchors['reason']}")
-    return 0
+        out(f"MuJoCo anchors: {anchors['reason']}")
+    return EXIT_OK
 
 
 def add_commands(sub: Any, bench: Any) -> None:
-    """Add ``demo`` to the top-level subparsers ``sub`` and ``envs`` to the ``bench`` subparsers."""
+    """Add ``demo`` to the top-level subcommands ``sub`` and ``envs`` to the ``bench`` subcommands."""
     p = sub.add_parser(
         "demo",
         help="run an env with its scripted controller; print return and speed, write a GIF and a picture",
@@ -134,9 +112,7 @@ def add_commands(sub: Any, bench: Any) -> None:
     p.add_argument("--out", default="out", help="output folder (default out)")
     p.add_argument("--seed", type=int, default=0, help="reset seed (default 0)")
     p.add_argument("--steps", type=int, help="episode length (default: the env's max_episode_steps)")
-    p.add_argument("--threads", type=int, default=1, help="torch intra-op threads (default 1)")
-    p.add_argument("--json", action="store_true", help="print one JSON summary")
-    p.set_defaults(func=_cmd_demo)
+    finish_command(p, cmd_demo, "print one JSON summary", default_threads=1)
 
     p = bench.add_parser(
         "envs",
@@ -151,11 +127,9 @@ def add_commands(sub: Any, bench: Any) -> None:
     p.add_argument("--batches", default="16,64,256", help="vector env sizes (default 16,64,256)")
     p.add_argument("--steps", type=int, default=20, help="timed steps per configuration (default 20)")
     p.add_argument("--budget", type=float, default=20.0, help="seconds of timing per configuration (default 20)")
-    p.add_argument("--threads", type=int, default=1, help="torch intra-op threads (default 1)")
     p.add_argument("--device", default="cpu", help="torch device (default cpu)")
     p.add_argument("--no-full-space", action="store_true", help="skip the full-space step")
-    p.add_argument("--json", action="store_true", help="print one JSON document")
-    p.set_defaults(func=_cmd_bench_envs)
+    finish_command(p, cmd_bench_envs, "print one JSON document", default_threads=1)
 
 
 __all__ = ["add_commands"]

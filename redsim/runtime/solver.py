@@ -11,6 +11,8 @@ one call of the objective. The d x d model Hessian comes from one of :data:`HESS
   and the q-space Hessian applied to J's columns (double backward over q), map curvature dropped.
 - ``"bfgs"``: a damped BFGS update of the Hessian, started from J^T M J / h^2 (forward-mode J).
 - ``"lagged"``: the exact Hessian at the first iterate of a step, then BFGS updates of it.
+- ``"lagged_fd"``: as "lagged", with the first Hessian from forward differences of the gradient
+  (d gradients at z + eps e_k in one call: no double backward, so it also runs compiled).
 
 The line search is Armijo backtracking per state: a trial with a non-finite value or gradient is
 rejected like an uphill one; a trial whose value change is at round-off level is accepted if it
@@ -36,15 +38,15 @@ BFGS_DAMPING = 0.2
 """Powell damping: the update keeps s.y >= BFGS_DAMPING s.H s, so the Hessian stays positive definite."""
 NOISE_FACTOR = 100.0
 """Value changes below NOISE_FACTOR * eps * (|Phi| + force_scale * L) count as round-off."""
-HESSIANS = ("exact", "gauss_newton", "bfgs", "lagged")
+HESSIANS = ("exact", "gauss_newton", "bfgs", "lagged", "lagged_fd")
 """The d x d Hessian models (module doc)."""
 
 
 class BatchObjective(Protocol):
     """Phi_b(z) for the states of one step; ``index`` [k] (int64) picks which states z [k, d] belong to."""
 
-    def value_and_grad(self, z: Tensor, index: Tensor) -> tuple[Tensor, Tensor]:
-        """Phi [k] and dPhi/dz [k, d] (detached; non-finite where the objective is)."""
+    def value_and_grad(self, z: Tensor, index: Tensor) -> tuple[Tensor, Tensor, Tensor]:
+        """Phi [k], dPhi/dz [k, d] and the potential energy E [k] (detached; non-finite where Phi is)."""
         ...
 
     def exact_hessian(self, z: Tensor, index: Tensor) -> Tensor:
@@ -59,6 +61,10 @@ class BatchObjective(Protocol):
         """J^T M J / h^2 [k, d, d], positive definite where J has full rank."""
         ...
 
+    def difference_hessian(self, z: Tensor, index: Tensor, grad: Tensor) -> Tensor:
+        """(dPhi/dz(z + eps e_j) - grad) / eps per column j [k, d, d], from the gradient ``grad`` [k, d] at z."""
+        ...
+
 
 @dataclass(frozen=True)
 class BatchResult:
@@ -67,6 +73,7 @@ class BatchResult:
     Attributes:
         z: Last accepted iterate (finite wherever the start was).
         value: Phi at z [J].
+        energy: The potential energy E at z [J] (the objective's third output).
         grad_norm: |dPhi/dz| at z.
         iterations: Accepted iterations, int64.
         converged: grad_norm <= tol * scale.
@@ -76,6 +83,7 @@ class BatchResult:
 
     z: Tensor
     value: Tensor
+    energy: Tensor
     grad_norm: Tensor
     iterations: Tensor
     converged: Tensor
@@ -122,12 +130,23 @@ def _bfgs_update(hessian: Tensor, s: Tensor, y: Tensor) -> Tensor:
     return torch.where(ok[:, None, None], updated, hessian)
 
 
-def _model(objective: BatchObjective, method: str, z: Tensor, index: Tensor) -> Tensor:
+def _model(objective: BatchObjective, method: str, z: Tensor, index: Tensor, grad: Tensor) -> Tensor:
     if method in ("exact", "lagged"):
         return _pd_exact(objective.exact_hessian(z, index))
+    if method == "lagged_fd":
+        return _pd_exact(objective.difference_hessian(z, index, grad))
     if method == "gauss_newton":
         return objective.gauss_newton(z, index)
     return objective.metric(z, index)
+
+
+def _backtrack(alpha: Tensor, slope: Tensor, rise: Tensor) -> Tensor:
+    """Next trial step after a rejected one: the minimizer of the quadratic through Phi(0), Phi'(0) and
+    Phi(alpha) (``rise`` = Phi(alpha) - Phi(0)), kept in [alpha / 10, alpha / 2]; alpha / 2 if not finite."""
+    curvature = rise - slope * alpha
+    guess = -slope * alpha * alpha / (2.0 * curvature)
+    guess = torch.where(torch.isfinite(guess) & (curvature > 0), guess, 0.5 * alpha)
+    return torch.minimum(torch.maximum(guess, 0.1 * alpha), 0.5 * alpha)
 
 
 def minimize(
@@ -138,7 +157,9 @@ def minimize(
     *,
     tol: float,
     max_iter: int,
-    hessian: str = "lagged",
+    hessian: str = "bfgs",
+    start: tuple[Tensor, Tensor, Tensor] | None = None,
+    secant: tuple[Tensor, Tensor] | None = None,
 ) -> BatchResult:
     """Minimize Phi_b over z_b for every state b from z0 [B, d].
 
@@ -150,6 +171,9 @@ def minimize(
         tol: Relative gradient tolerance.
         max_iter: Most accepted iterations per state.
         hessian: One of :data:`HESSIANS`.
+        start: (Phi, dPhi/dz, E) at z0 if the caller has them (else they are evaluated).
+        secant: (z_s, dPhi/dz at z_s) [B, d] of another point: the quasi-Newton models ("bfgs",
+            "lagged") take one BFGS update from it (s = z0 - z_s) before the first step.
 
     Returns:
         The :class:`BatchResult`.
@@ -159,15 +183,17 @@ def minimize(
     batch = z0.shape[0]
     all_index = torch.arange(batch, device=z0.device)
     z = z0.clone()
-    value, grad = objective.value_and_grad(z, all_index)
+    value, grad, energy = objective.value_and_grad(z, all_index) if start is None else start
     finite = torch.isfinite(value) & torch.isfinite(grad).all(-1)
     value = torch.where(finite, value, torch.zeros_like(value))
     grad = torch.where(finite[:, None], grad, torch.zeros_like(grad))
+    energy = torch.where(finite, energy, torch.zeros_like(energy))
     threshold = tol * scale
     eps = torch.finfo(z.dtype).eps
     iterations = torch.zeros(batch, dtype=torch.int64, device=z0.device)
     stalled = torch.zeros(batch, dtype=torch.bool, device=z0.device)
     model = None  # [B, d, d], built on the first iteration that needs it
+    quasi_newton = hessian in ("bfgs", "lagged", "lagged_fd")
     for _ in range(max_iter):
         active = finite & ~stalled & (torch.linalg.vector_norm(grad, dim=-1) > threshold)
         index = torch.nonzero(active).squeeze(-1)
@@ -175,21 +201,28 @@ def minimize(
             break
         if model is None:
             model = torch.zeros(batch, z.shape[1], z.shape[1], dtype=z.dtype, device=z.device)
-            model[index] = _model(objective, hessian, z[index], index)
+            first = _model(objective, hessian, z[index], index, grad[index])
+            if secant is not None and hessian == "bfgs":
+                z_s, g_s = secant[0][index], secant[1][index]
+                usable = torch.isfinite(g_s).all(-1)
+                g_s = torch.where(usable[:, None], g_s, grad[index])
+                first = _bfgs_update(first, z[index] - z_s, grad[index] - g_s)
+            model[index] = first
         elif hessian in ("exact", "gauss_newton"):
-            model[index] = _model(objective, hessian, z[index], index)
+            model[index] = _model(objective, hessian, z[index], index, grad[index])
         z_a, v_a, g_a, h_a = z[index], value[index], grad[index], model[index]
         step = _direction(h_a, g_a, objective.metric(z_a, index) if hessian == "gauss_newton" else h_a)
         slope = (g_a * step).sum(-1)
         step = torch.where((slope < 0)[:, None], step, -g_a)
         slope = (g_a * step).sum(-1)
         accepted = torch.zeros_like(index, dtype=torch.bool)
-        new_z, new_v, new_g = z_a.clone(), v_a.clone(), g_a.clone()
+        new_z, new_v, new_g, new_e = z_a.clone(), v_a.clone(), g_a.clone(), energy[index]
         pending = torch.arange(index.numel(), device=z.device)
         alpha = torch.ones(index.numel(), dtype=z.dtype, device=z.device)
+        alpha_used = alpha.clone()
         for _ in range(MAX_BACKTRACKS):
             trial = z_a[pending] + alpha[pending, None] * step[pending]
-            v_t, g_t = objective.value_and_grad(trial, index[pending])
+            v_t, g_t, e_t = objective.value_and_grad(trial, index[pending])
             ok_finite = torch.isfinite(v_t) & torch.isfinite(g_t).all(-1)
             v_old = v_a[pending]
             armijo = v_t <= v_old + ARMIJO_C * alpha[pending] * slope[pending]
@@ -197,21 +230,37 @@ def minimize(
             lower = torch.linalg.vector_norm(g_t, dim=-1) < torch.linalg.vector_norm(g_a[pending], dim=-1)
             ok = ok_finite & (armijo | (noise & lower))
             take = pending[ok]
-            new_z[take], new_v[take], new_g[take] = trial[ok], v_t[ok], g_t[ok]
+            new_z[take], new_v[take], new_g[take], new_e[take] = trial[ok], v_t[ok], g_t[ok], e_t[ok]
             accepted[take] = True
+            rise = torch.where(ok_finite, v_t - v_old, torch.full_like(v_t, torch.inf))[~ok]
+            learn = (ok_finite & ~ok)[~ok]
+            rejected_g = g_t[~ok]
             pending = pending[~ok]
             if pending.numel() == 0:
                 break
-            alpha[pending] = 0.5 * alpha[pending]
-        if hessian in ("bfgs", "lagged"):
+            alpha[pending] = _backtrack(alpha[pending], slope[pending], rise)
+            if quasi_newton:
+                # a rejected but finite trial still measured the curvature along its step: update the
+                # model with it and solve again from the same point (a shorter, turned step)
+                redo = pending[learn]
+                h_new = _bfgs_update(h_a[redo], alpha_used[redo, None] * step[redo], rejected_g[learn] - g_a[redo])
+                h_a[redo] = h_new
+                fresh = _direction(h_new, g_a[redo], h_new)
+                fresh_slope = (g_a[redo] * fresh).sum(-1)
+                good = fresh_slope < 0
+                step[redo[good]] = fresh[good]
+                slope[redo[good]] = fresh_slope[good]
+                alpha[redo[good]] = 1.0
+            alpha_used[pending] = alpha[pending]
+        if quasi_newton:
             h_a = torch.where(accepted[:, None, None], _bfgs_update(h_a, new_z - z_a, new_g - g_a), h_a)
             model[index] = h_a
-        z[index], value[index], grad[index] = new_z, new_v, new_g
+        z[index], value[index], grad[index], energy[index] = new_z, new_v, new_g, new_e
         iterations[index] += accepted.to(torch.int64)
         stalled[index] = ~accepted
     grad_norm = torch.linalg.vector_norm(grad, dim=-1)
     converged = finite & (grad_norm <= threshold)
-    return BatchResult(z, value, grad_norm, iterations, converged, stalled & ~converged, finite)
+    return BatchResult(z, value, energy, grad_norm, iterations, converged, stalled & ~converged, finite)
 
 
 __all__ = ["HESSIANS", "BatchObjective", "BatchResult", "minimize"]

@@ -13,6 +13,7 @@ import torch
 from redsim import pretrained, scenes
 from redsim.integrators import FullState, ImplicitEuler, LatentSpace
 from redsim.runtime import LatentStepper, MapEnergy, StepStats
+from redsim.runtime.stepper import _StepObjective
 
 DT = 0.02
 
@@ -29,12 +30,11 @@ def mini_chain():
     return scene, f
 
 
-@pytest.mark.parametrize("hessian", ["exact", "lagged", "bfgs"])
-@pytest.mark.parametrize(
-    ("name", "steps", "load"), [("mini_chain", 3, 5.0), ("bistable_bar", 3, 20.0), ("chain", 2, 20.0)]
-)
-def test_matches_reference_step_for_step(name: str, steps: int, load: float, hessian: str) -> None:
-    """ "exact" is the reference's own Newton; the quasi-Newton models must reach the same minimizer."""
+CASES = [("mini_chain", 3, 5.0), ("bistable_bar", 3, 20.0), ("chain", 2, 20.0)]
+
+
+def _reference_steps(name: str, steps: int, load: float, hessian: str):
+    """(stepper, [(z, z_prev, loads, reference z_next, stepper z_next, stats)]) along the reference's path."""
     scene = scenes.build(name)
     f = pretrained.load(name).double()
     stepper = LatentStepper(scene, f, DT, dtype=torch.float64, tol=1e-12, max_iter=60, hessian=hessian)
@@ -42,17 +42,41 @@ def test_matches_reference_step_for_step(name: str, steps: int, load: float, hes
     z = stepper.rest_latent()
     z_prev = z.clone()
     loads = _loads(scene, 1, 0, load)
+    out = []
     for _ in range(steps):
         ref_state, info = reference.step(FullState(z[0], z_prev[0], 0.0), loads[0])
+        assert info.converged, info.message
         z_next, stats = stepper.step(z, z_prev, loads)
-        assert info.converged and bool(stats.converged[0]), (info.message, stats)
-        motion = float((ref_state.q - z[0]).abs().max())
+        out.append((z, z_prev, loads, ref_state.q.unsqueeze(0), z_next, stats))
+        z_prev, z = z, ref_state.q.unsqueeze(0)
+    return stepper, out
+
+
+@pytest.mark.parametrize(("name", "steps", "load"), CASES)
+@pytest.mark.parametrize("hessian", ["exact", "gauss_newton", "bfgs", "lagged", "lagged_fd"])
+def test_matches_reference_step_for_step(name: str, steps: int, load: float, hessian: str) -> None:
+    """Every step from the reference's own state: "exact" is the reference's Newton and must land on its
+    minimizer; the other models must land on it too, or (the mini chain's folded map has several
+    minima within one step) on a minimizer with a lower objective."""
+    if hessian == "gauss_newton" and name == "mini_chain":
+        pytest.skip("Gauss-Newton drops the map's curvature and converges linearly here: no 1e-12 in 60 iterations")
+    stepper, rows = _reference_steps(name, steps, load, hessian)
+    for z, z_prev, loads, want, got, stats in rows:
+        assert bool(stats.converged[0]), stats
+        motion = float((want - z).abs().max())
         assert motion > 1e-4
-        torch.testing.assert_close(z_next[0], ref_state.q, rtol=0.0, atol=1e-6 * motion)
-        z_prev, z = z, z_next
+        if hessian == "exact" or name != "mini_chain":
+            torch.testing.assert_close(got, want, rtol=0.0, atol=1e-6 * motion)
+        else:
+            q = stepper.positions(torch.cat([z, z_prev]))
+            objective = _StepObjective(stepper, 2.0 * q[:1] - q[1:], loads.reshape(1, -1), None, z)
+            index = torch.zeros(1, dtype=torch.int64)
+            phi_got, phi_want = (objective.value_and_grad(u, index)[0] for u in (got, want))
+            same = bool(torch.allclose(got, want, rtol=0.0, atol=1e-6 * motion))
+            assert same or float(phi_got) < float(phi_want), (got, want, phi_got, phi_want)
 
 
-def test_batched_equals_single_calls_and_is_deterministic(mini_chain) -> None:
+def test_same_inputs_give_bitwise_equal_outputs(mini_chain) -> None:
     scene, f = mini_chain
     stepper = LatentStepper(scene, f, DT)
     g = torch.Generator().manual_seed(1)
@@ -60,14 +84,27 @@ def test_batched_equals_single_calls_and_is_deterministic(mini_chain) -> None:
     z_prev = z + 0.01 * torch.randn(5, stepper.latent_dim, generator=g)
     loads = _loads(scene, 5, 2, 20.0, torch.float32)
     z_next, stats = stepper.step(z, z_prev, loads)
-    again, stats_again = stepper.step(z.clone(), z_prev.clone(), loads.clone())
-    assert torch.equal(z_next, again)  # same inputs, bitwise equal outputs on the CPU
+    again, stats_again = LatentStepper(scene, f, DT).step(z.clone(), z_prev.clone(), loads.clone())
+    assert torch.equal(z_next, again)
     assert all(torch.equal(a, b) for a, b in zip(stats, stats_again, strict=True))
+    assert bool(stats.converged.all())
+
+
+def test_batched_equals_single_calls(mini_chain) -> None:
+    """Float64, tol 1e-12: one batch and five single calls reach the same minimizers."""
+    scene, f = mini_chain
+    stepper = LatentStepper(scene, f, DT, dtype=torch.float64, tol=1e-12, max_iter=60)
+    g = torch.Generator().manual_seed(1)
+    z = 0.5 * torch.randn(5, stepper.latent_dim, generator=g, dtype=torch.float64)
+    z_prev = z + 0.01 * torch.randn(5, stepper.latent_dim, generator=g, dtype=torch.float64)
+    loads = _loads(scene, 5, 2, 20.0)
+    z_next, stats = stepper.step(z, z_prev, loads)
     assert bool(stats.converged.all())
     for b in range(5):
         single, single_stats = stepper.step(z[b : b + 1], z_prev[b : b + 1], loads[b : b + 1])
-        torch.testing.assert_close(single[0], z_next[b], rtol=0.0, atol=1e-4)
+        torch.testing.assert_close(single[0], z_next[b], rtol=0.0, atol=1e-9)
         assert bool(single_stats.converged[0])
+        assert int(single_stats.iterations[0]) == int(stats.iterations[b])
 
 
 def test_stats_shapes_and_types(mini_chain) -> None:
@@ -215,3 +252,32 @@ def test_non_finite_trials_are_rejected(mini_chain) -> None:
     z_next, _ = stepper.step(z, z_prev)
     assert bool(torch.isfinite(z_next).all())
     assert float(torch.linalg.vector_norm(z_next)) <= 1.0 + 1e-6
+
+
+@pytest.mark.slow
+def test_compiled_step_equals_eager_within_float32_round_off(mini_chain) -> None:
+    scene, f = mini_chain
+    eager = LatentStepper(scene, f, DT)
+    compiled = LatentStepper(scene, f, DT, compile=True)
+    z = eager.rest_latent().expand(3, -1).clone()
+    loads = _loads(scene, 3, 5, 10.0, torch.float32)
+    want, want_stats = eager.step(z, z, loads)
+    got, got_stats = compiled.step(z, z, loads)
+    assert bool(want_stats.converged.all()) and bool(got_stats.converged.all())
+    q_want, q_got = eager.positions(want), eager.positions(got)
+    motion = float((q_want - eager.positions(z)).abs().max())
+    torch.testing.assert_close(q_got, q_want, rtol=0.0, atol=1e-3 * motion)
+
+
+@pytest.mark.gpu
+@pytest.mark.skipif(not torch.cuda.is_available(), reason="needs a CUDA device")
+def test_runs_on_cuda_like_on_the_cpu(mini_chain) -> None:
+    scene, f = mini_chain
+    cpu = LatentStepper(scene, f, DT, dtype=torch.float64)
+    gpu = LatentStepper(scene, f, DT, dtype=torch.float64, device="cuda")
+    z = cpu.rest_latent().expand(4, -1).clone()
+    loads = _loads(scene, 4, 6, 10.0)
+    want, _ = cpu.step(z, z, loads)
+    got, stats = gpu.step(z.cuda(), z.cuda(), loads.cuda())
+    assert got.device.type == "cuda" and stats.converged.device.type == "cuda"
+    torch.testing.assert_close(got.cpu(), want, rtol=0.0, atol=1e-6)

@@ -1,0 +1,387 @@
+"""`redsim bench step`: env-steps per second of the latent stepper against today's reference path.
+
+Every row is measured side by side in one process on the same seeded load sequences: the
+reference ``ImplicitEuler(LatentSpace(scene, f))`` (one state at a time, so its env-steps/s do
+not grow with B), the :class:`~redsim.runtime.LatentStepper` in eager mode and compiled, and the
+full-space reference step at B = 1 for scale. With ``mujoco`` installed the same run times a
+MuJoCo chain of 24 capsules on ball joints (nv = 72) and prints simulated seconds per wall second.
+"""
+
+from __future__ import annotations
+
+import math
+import statistics
+import time
+from typing import Any
+
+import torch
+from torch import Tensor, nn
+
+from redsim.integrators import FullSpace, FullState, ImplicitEuler, LatentSpace
+from redsim.runtime.solver import HESSIANS
+from redsim.runtime.stepper import LatentStepper
+from redsim.scene import Scene
+
+LOAD_FRACTION = 0.1
+"""Load size: each handle's linear response in the subspace is up to this fraction of the scene size L."""
+LOAD_EVERY = 5
+"""The loads change every this many steps."""
+
+
+def _sync(device: torch.device) -> None:
+    if device.type == "cuda":
+        torch.cuda.synchronize(device)
+
+
+def load_magnitudes(stepper: LatentStepper, fraction: float = LOAD_FRACTION) -> Tensor:
+    """Force [N] per handle, shape [H]: the subspace's static response to it is ``fraction`` * L.
+
+    The compliance of handle h at the rest latent z* is the largest eigenvalue of
+    G_h J H^-1 J^T G_h^T (J = dq/dz, H the latent energy Hessian made positive definite by absolute
+    eigenvalues, G_h the handle's position map), so the loads stay inside the range the map covers.
+    """
+    z_rest = stepper.rest_latent()[0].to(torch.float64)
+    energy = stepper.energy
+    cond = stepper._default_cond(1, torch.float64)
+    scene64 = stepper.source_scene.to(device=stepper.device, dtype=torch.float64)
+
+    def potential(z: Tensor) -> Tensor:
+        e, _ = energy.energy(z.to(stepper.dtype).unsqueeze(0), None if cond is None else cond.to(stepper.dtype))
+        return e[0].to(torch.float64)
+
+    hessian = torch.autograd.functional.hessian(potential, z_rest)
+    w, v = torch.linalg.eigh(0.5 * (hessian + hessian.T))
+    w = w.abs().clamp_min(1e-12 * float(w.abs().max()))
+    jac = torch.autograd.functional.jacobian(
+        lambda z: energy.positions(z.to(stepper.dtype).unsqueeze(0), cond if cond is None else cond.to(stepper.dtype))[
+            0
+        ].to(torch.float64),
+        z_rest,
+    )
+    handles = stepper._handle_matrix.to(torch.float64) @ jac  # [H*D, d]
+    compliance = handles @ (v / w) @ v.T @ handles.T
+    H, D = len(scene64.handles), scene64.dim
+    out = []
+    for h in range(H):
+        block = compliance[h * D : (h + 1) * D, h * D : (h + 1) * D]
+        c = float(torch.linalg.eigvalsh(0.5 * (block + block.T)).max())
+        out.append(fraction * stepper.length / c if c > 0 else 1.0)
+    return torch.tensor(out, dtype=torch.float64)
+
+
+def load_sequence(
+    scene: Scene, magnitudes: Tensor, steps: int, batch: int, *, every: int = LOAD_EVERY, seed: int = 0
+) -> Tensor:
+    """Loads [steps, B, H, D] [N]: every ``every`` steps each state draws, per handle, a uniformly random
+    direction and a magnitude uniform in [0, magnitudes[h]] (seeded)."""
+    g = torch.Generator().manual_seed(seed)
+    H, D = len(scene.handles), scene.dim
+    out = torch.zeros(steps, batch, H, D, dtype=torch.float64)
+    for start in range(0, steps, every):
+        direction = torch.randn(batch, H, D, generator=g, dtype=torch.float64)
+        direction = direction / torch.linalg.vector_norm(direction, dim=-1, keepdim=True)
+        size = torch.rand(batch, H, 1, generator=g, dtype=torch.float64) * magnitudes.reshape(1, H, 1)
+        out[start : start + every] = direction * size
+    return out
+
+
+def run_stepper(stepper: LatentStepper, z0: Tensor, loads: Tensor, *, warmup: int = 2) -> dict[str, Any]:
+    """Step B states from rest (z = z_prev = z0 [B, d]) through ``loads`` [steps, B, H, D].
+
+    Returns env_steps_per_s (B * steps / wall time of the timed steps, after ``warmup`` untimed ones
+    from the same start), per-step medians, iterations per step (mean over states and steps),
+    converged fraction, flagged fractions and the trajectory [steps + 1, B, d].
+    """
+    device = stepper.device
+    loads = loads.to(device=device, dtype=stepper.dtype)
+    z = z0.to(device=device, dtype=stepper.dtype)
+    for i in range(min(warmup, loads.shape[0])):
+        stepper.step(z, z, loads[i])
+    _sync(device)
+    z_prev = z.clone()
+    trajectory = [z.clone()]
+    times, iterations, converged, out_of_range, diverged = [], [], [], [], []
+    for i in range(loads.shape[0]):
+        start = time.perf_counter()
+        z_next, stats = stepper.step(z, z_prev, loads[i])
+        _sync(device)
+        times.append(time.perf_counter() - start)
+        z_prev, z = z, z_next
+        trajectory.append(z.clone())
+        iterations.append(stats.iterations.to(torch.float64).mean().item())
+        converged.append(stats.converged.to(torch.float64).mean().item())
+        out_of_range.append(stats.out_of_range.to(torch.float64).mean().item())
+        diverged.append(stats.diverged.to(torch.float64).mean().item())
+    batch = z0.shape[0]
+    return {
+        "env_steps_per_s": batch * len(times) / sum(times),
+        "median_step_s": statistics.median(times),
+        "iterations_per_step": statistics.fmean(iterations),
+        "converged_fraction": statistics.fmean(converged),
+        "out_of_range_fraction": statistics.fmean(out_of_range),
+        "diverged_fraction": statistics.fmean(diverged),
+        "trajectory": torch.stack(trajectory).cpu(),
+    }
+
+
+def run_reference(
+    scene: Scene, subspace: nn.Module, dt: float, z0: Tensor, loads: Tensor, *, space: str = "latent"
+) -> dict[str, Any]:
+    """Today's path, one state: ``ImplicitEuler(LatentSpace(scene, f), dt)`` (or ``FullSpace`` from f(z0))
+    through ``loads`` [steps, H, D]; env-steps/s, iterations, converged fraction, trajectory."""
+    if space == "latent":
+        integrator = ImplicitEuler(LatentSpace(scene, subspace), dt)
+        u0 = z0.to(torch.float64)
+    else:
+        integrator = ImplicitEuler(FullSpace(scene), dt)
+        with torch.no_grad():
+            u0 = LatentSpace(scene, subspace).configuration(z0.to(torch.float64).unsqueeze(0))[0]
+    state = FullState(u0.clone(), u0.clone(), 0.0)
+    times, iterations, converged, trajectory = [], [], [], [u0.clone()]
+    for i in range(loads.shape[0]):
+        start = time.perf_counter()
+        state, info = integrator.step(state, loads[i])
+        times.append(time.perf_counter() - start)
+        iterations.append(info.iterations)
+        converged.append(float(info.converged))
+        trajectory.append(state.q.clone())
+    return {
+        "env_steps_per_s": len(times) / sum(times),
+        "median_step_s": statistics.median(times),
+        "iterations_per_step": statistics.fmean(iterations),
+        "converged_fraction": statistics.fmean(converged),
+        "trajectory": torch.stack(trajectory),
+    }
+
+
+MUJOCO_CHAIN_LINKS = 24
+
+
+def mujoco_chain_xml(links: int = MUJOCO_CHAIN_LINKS, *, integrator: str = "RK4", timestep: float = 0.01) -> str:
+    """MJCF of a hanging chain of ``links`` capsules (radius 0.01 m, length 0.1 m, steel) on ball joints."""
+    body = ""
+    for i in reversed(range(links)):
+        pos = "0 0 0" if i == 0 else "0 0 -0.1"
+        body = (
+            f'<body name="link{i}" pos="{pos}"><joint type="ball"/>'
+            f'<geom type="capsule" fromto="0 0 0 0 0 -0.1" size="0.01" density="7800"/>{body}</body>'
+        )
+    return (
+        f'<mujoco><option timestep="{timestep}" integrator="{integrator}" gravity="0 0 -9.81"/>'
+        f'<worldbody><body name="hook" pos="0 0 3">{body}</body></worldbody></mujoco>'
+    )
+
+
+def run_mujoco_chain(*, integrator: str, timestep: float, steps: int) -> dict[str, Any] | None:
+    """Steps/s and simulated seconds per wall second of the MuJoCo chain (None without mujoco)."""
+    try:
+        import mujoco
+    except ImportError:
+        return None
+    model = mujoco.MjModel.from_xml_string(mujoco_chain_xml(integrator=integrator, timestep=timestep))
+    data = mujoco.MjData(model)
+    data.qvel[:] = 0.1  # start swinging
+    for _ in range(100):
+        mujoco.mj_step(model, data)
+    start = time.perf_counter()
+    for _ in range(steps):
+        mujoco.mj_step(model, data)
+    wall = time.perf_counter() - start
+    return {
+        "integrator": integrator,
+        "timestep": timestep,
+        "nv": int(model.nv),
+        "steps_per_s": steps / wall,
+        "sim_s_per_wall_s": steps * timestep / wall,
+    }
+
+
+def _motion_norm(stepper: LatentStepper, z: Tensor) -> Tensor:
+    """f(z) [K, n] (float64, CPU) of latents z [K, d]."""
+    return stepper.positions(z.to(device=stepper.device, dtype=stepper.dtype)).to(torch.float64).cpu()
+
+
+def _m_norm(scene: Scene, v: Tensor) -> Tensor:
+    return (v * scene.to(dtype=torch.float64).mass_matvec(v)).sum(-1).clamp_min(0.0).sqrt()
+
+
+def one_step_error(stepper: LatentStepper, reference: Tensor, loads: Tensor) -> float:
+    """Largest |f(z_mine) - f(z_ref)|_M over the steps of a reference trajectory, relative to the largest
+    step |f(z_ref) - f(z_t)|_M.
+
+    Every reference step (z_t, z_{t-1}, loads_t) -> z_{t+1} is taken again by ``stepper`` from the
+    same state, all steps as one batch, so the error is one solve's, not an accumulated drift.
+    """
+    z_t = reference[:-1]
+    z_prev = torch.cat([reference[:1], reference[:-2]])
+    dtype, device = stepper.dtype, stepper.device
+    mine, _ = stepper.step(z_t.to(device, dtype), z_prev.to(device, dtype), loads.to(device, dtype))
+    q_mine, q_ref, q_t = (_motion_norm(stepper, u) for u in (mine, reference[1:], z_t))
+    scene = stepper.source_scene
+    motion = _m_norm(scene, q_ref - q_t)
+    return float(_m_norm(scene, q_mine - q_ref).max() / motion.max().clamp_min(1e-300))
+
+
+def _rollout_error(stepper: LatentStepper, reference: Tensor, mine: Tensor) -> float:
+    """Largest |f(z_mine) - f(z_ref)|_M over a rollout relative to the largest |f(z_ref) - f(z_0)|_M."""
+    count = reference.shape[0]
+    q_mine, q_ref = _motion_norm(stepper, mine[:count]), _motion_norm(stepper, reference)
+    scene = stepper.source_scene
+    motion = float(_m_norm(scene, q_ref - q_ref[:1]).max())
+    return float(_m_norm(scene, q_mine - q_ref).max()) / motion if motion > 0 else math.nan
+
+
+def compare_hessians(
+    scene: Scene,
+    subspace: nn.Module,
+    *,
+    dt: float = 0.02,
+    batch: int = 16,
+    steps: int = 20,
+    hessians: tuple[str, ...] = HESSIANS,
+    seed: int = 0,
+) -> list[dict[str, Any]]:
+    """Iterations/step, time/step and converged fraction of each solver Hessian model, same loads."""
+    rows = []
+    loads = None
+    for hessian in hessians:
+        stepper = LatentStepper(scene, subspace, dt, hessian=hessian)
+        if loads is None:
+            loads = load_sequence(scene, load_magnitudes(stepper), steps, batch, seed=seed)
+            z0 = stepper.rest_latent().expand(batch, -1).clone()
+        result = run_stepper(stepper, z0, loads)
+        result.pop("trajectory")
+        rows.append({"scene": scene.name, "hessian": hessian, "batch": batch, **result})
+    return rows
+
+
+def bench_step(
+    scene: Scene,
+    subspace: nn.Module,
+    *,
+    dt: float = 0.02,
+    batches: tuple[int, ...] = (1, 16, 64, 256),
+    steps: int = 20,
+    reference_steps: int = 10,
+    compiled: bool = True,
+    device: str = "cpu",
+    seed: int = 0,
+) -> dict[str, Any]:
+    """One scene's row of `redsim bench step` (module doc).
+
+    Returns:
+        ``scene``, ``n``, ``d``, ``reference`` and ``full_space`` (B = 1), ``eager`` and ``compiled``
+        (per B: env_steps_per_s, iterations_per_step, converged_fraction, ...), ``speedup`` of eager
+        and compiled over the reference per B, and ``trajectory_error``: the largest |z - z_ref| over
+        the B = 1 eager run's first ``reference_steps`` steps relative to the largest motion |z - z0|.
+    """
+    stepper = LatentStepper(scene, subspace, dt, device=device)
+    magnitudes = load_magnitudes(stepper)
+    z_rest = stepper.rest_latent().cpu()
+    loads = load_sequence(scene, magnitudes, steps, max(batches), seed=seed)
+    reference = run_reference(scene, subspace, dt, z_rest[0], loads[:reference_steps, 0])
+    full = run_reference(scene, subspace, dt, z_rest[0], loads[: min(3, reference_steps), 0], space="full")
+    row: dict[str, Any] = {
+        "scene": scene.name,
+        "n": scene.free_dof_count,
+        "d": stepper.latent_dim,
+        "load_magnitudes": magnitudes.tolist(),
+        "reference": {k: v for k, v in reference.items() if k != "trajectory"},
+        "full_space": {k: v for k, v in full.items() if k != "trajectory"},
+        "eager": {},
+        "compiled": {},
+    }
+    row["step_error"] = one_step_error(stepper, reference["trajectory"], loads[:reference_steps, 0])
+    variants = [("eager", stepper)]
+    if compiled:
+        variants.append(("compiled", LatentStepper(scene, subspace, dt, device=device, compile=True)))
+    for label, runner in variants:
+        for b in batches:
+            result = run_stepper(runner, z_rest.expand(b, -1).clone(), loads[:, :b])
+            trajectory = result.pop("trajectory")
+            if b == 1 and label == "eager":
+                row["trajectory_error"] = _rollout_error(runner, reference["trajectory"], trajectory[:, 0])
+            row[label][str(b)] = result
+    row["speedup"] = {
+        label: {b: r["env_steps_per_s"] / reference["env_steps_per_s"] for b, r in row[label].items()}
+        for label in ("eager", "compiled")
+        if row[label]
+    }
+    return row
+
+
+STEP_SCENES = ("mini_chain", "chain", "klann", "bistable_bar", "hanging_sheet", "cloth_ball")
+"""The scenes of `redsim bench step` by default."""
+
+
+def mujoco_rows(*, steps: int = 5000) -> list[dict[str, Any]] | None:
+    """The MuJoCo chain with RK4 at dt 0.01 and Euler at dt 0.002 (None without mujoco)."""
+    rows = [
+        run_mujoco_chain(integrator="RK4", timestep=0.01, steps=steps),
+        run_mujoco_chain(integrator="Euler", timestep=0.002, steps=steps),
+    ]
+    return None if rows[0] is None else [r for r in rows if r is not None]
+
+
+def step_table(rows: list[dict[str, Any]], mujoco: list[dict[str, Any]] | None, dt: float) -> list[str]:
+    """The human-readable lines of `redsim bench step` for ``rows`` of :func:`bench_step`."""
+    lines = []
+    batches = list(rows[0]["eager"]) if rows else []
+    head = f"{'scene':<14} {'n':>6} {'d':>2} {'path':<9} " + " ".join(f"{'B=' + b:>9}" for b in batches)
+    lines.append("env-steps/s (iterations/step, converged %) per batch size B; reference and full space at B = 1")
+    lines.append(head + "   its  conv%")
+    lines.append("-" * (len(head) + 13))
+    for row in rows:
+        ref, full = row["reference"], row["full_space"]
+        lead = f"{row['scene']:<14} {row['n']:>6} {row['d']:>2}"
+        cells = " ".join(f"{ref['env_steps_per_s']:>9.3g}" for _ in batches)
+        its, conv = ref["iterations_per_step"], 100 * ref["converged_fraction"]
+        lines.append(f"{lead} {'reference':<9} {cells}  {its:>4.1f} {conv:>6.1f}")
+        for label in ("eager", "compiled"):
+            if not row[label]:
+                continue
+            results = row[label]
+            cells = " ".join(f"{results[b]['env_steps_per_s']:>9.3g}" for b in batches)
+            its = statistics.fmean(r["iterations_per_step"] for r in results.values())
+            conv = min(r["converged_fraction"] for r in results.values())
+            lines.append(f"{'':<23} {label:<9} {cells}  {its:>4.1f} {100 * conv:>6.1f}")
+            speed = " ".join(f"{row['speedup'][label][b]:>8.3g}x" for b in batches)
+            lines.append(f"{'':<23} {'speedup':<9} {speed}")
+        lines.append(
+            f"{'':<23} {'full':<9} {full['env_steps_per_s']:>9.3g} (B = 1, {full['iterations_per_step']:.1f} its); "
+            f"vs reference: one step {row['step_error']:.2g}, "
+            f"rollout {row.get('trajectory_error', math.nan):.2g} of the motion"
+        )
+    if mujoco is None:
+        lines.append("mujoco is not installed (pip install 'redsim[bench]'): MuJoCo chain skipped")
+    else:
+        chain = next((r for r in rows if r["scene"] == "chain"), None)
+        for m in mujoco:
+            lines.append(
+                f"MuJoCo chain nv={m['nv']} {m['integrator']} dt={m['timestep']}: {m['steps_per_s']:.3g} steps/s, "
+                f"{m['sim_s_per_wall_s']:.3g} sim-s/s"
+            )
+            if chain is not None:
+                for label in ("eager", "compiled"):
+                    for b, r in chain[label].items():
+                        ratio = r["env_steps_per_s"] * dt / m["sim_s_per_wall_s"]
+                        lines.append(f"    latent chain {label} B={b}: {ratio:.3g}x MuJoCo's sim-s/s")
+    return lines
+
+
+__all__ = [
+    "LOAD_EVERY",
+    "LOAD_FRACTION",
+    "STEP_SCENES",
+    "bench_step",
+    "compare_hessians",
+    "load_magnitudes",
+    "load_sequence",
+    "mujoco_chain_xml",
+    "mujoco_rows",
+    "one_step_error",
+    "run_mujoco_chain",
+    "run_reference",
+    "run_stepper",
+    "step_table",
+]

@@ -1,0 +1,65 @@
+"""`redsim bench step`: the JSON report, bad input, the seeded load sequences and the MuJoCo chain model."""
+
+from __future__ import annotations
+
+import json
+
+import pytest
+import torch
+
+from redsim import pretrained, scenes
+from redsim.cli import main
+from redsim.runtime import LatentStepper
+from redsim.runtime.bench import load_magnitudes, load_sequence, mujoco_chain_xml
+
+
+def test_bench_step_json(capsys: pytest.CaptureFixture[str]) -> None:
+    argv = ["bench", "step", "--scenes", "mini_chain", "--batches", "1,2", "--steps", "2", "--reference-steps", "2"]
+    code = main([*argv, "--no-compile", "--json"])
+    out, err = capsys.readouterr()
+    assert code == 0, err
+    report = json.loads(out)
+    (row,) = report["rows"]
+    assert row["scene"] == "mini_chain" and row["d"] == 4
+    assert set(row["eager"]) == {"1", "2"} and row["compiled"] == {}
+    assert all(r["env_steps_per_s"] > 0 and 0.0 <= r["converged_fraction"] <= 1.0 for r in row["eager"].values())
+    assert row["reference"]["converged_fraction"] == 1.0
+    # one step from the reference's states; not small here: from rest the quasi-Newton solve of the mini
+    # chain's first step lands in another (lower) local minimum than the reference's Newton
+    assert row["step_error"] >= 0.0
+    assert report["mujoco"] is None or report["mujoco"][0]["nv"] == 72
+
+
+@pytest.mark.parametrize(
+    ("argv", "expected"),
+    [
+        (["--scenes", "no_such_scene"], "no_such_scene"),
+        (["--scenes", "toy_two_tets"], "no shipped subspace"),
+        (["--batches", "0"], ">= 1"),
+        (["--batches", "x"], "comma-separated integers"),
+        (["--hessians", "magic"], "unknown Hessian"),
+    ],
+)
+def test_bench_step_bad_input_exits_2(capsys: pytest.CaptureFixture[str], argv: list[str], expected: str) -> None:
+    code = main(["bench", "step", *argv])
+    _, err = capsys.readouterr()
+    assert code == 2
+    assert expected in err
+
+
+def test_load_sequences_are_seeded_and_change_every_few_steps() -> None:
+    scene = scenes.build("mini_chain")
+    stepper = LatentStepper(scene, pretrained.load("mini_chain"))
+    magnitudes = load_magnitudes(stepper)
+    assert magnitudes.shape == (1,) and float(magnitudes[0]) > 0
+    a = load_sequence(scene, magnitudes, 12, 3, every=5, seed=4)
+    assert a.shape == (12, 3, 1, 3)
+    assert torch.equal(a, load_sequence(scene, magnitudes, 12, 3, every=5, seed=4))
+    assert torch.equal(a[0], a[4]) and not torch.equal(a[4], a[5])
+    assert float(torch.linalg.vector_norm(a, dim=-1).max()) <= float(magnitudes[0]) + 1e-12
+
+
+def test_mujoco_chain_has_24_ball_joints() -> None:
+    mujoco = pytest.importorskip("mujoco")
+    model = mujoco.MjModel.from_xml_string(mujoco_chain_xml())
+    assert model.nv == 72 and model.nbody == 26  # world, hook, 24 links
