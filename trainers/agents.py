@@ -348,11 +348,11 @@ def _resume_from(out: Path) -> Path | None:
     return max(found, key=lambda p: p.stat().st_mtime_ns) if found else None
 
 
-def _read_curve(path: Path) -> list[dict[str, float]]:
+def _read_curve(path: Path) -> list[dict[str, Any]]:
     if not path.is_file():
         return []
     with path.open() as handle:
-        return [{k: float(v) for k, v in row.items()} for row in csv.DictReader(handle)]
+        return [{k: int(v) if k == "env_steps" else float(v) for k, v in row.items()} for row in csv.DictReader(handle)]
 
 
 def _write_curve(path: Path, curve: list[dict[str, float]]) -> None:
