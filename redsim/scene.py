@@ -3,8 +3,9 @@
 A :class:`Scene` holds what never changes during a simulation: the layout of the
 configuration (free DOFs; pinned ones are removed and re-inserted by
 :meth:`Scene.full_positions`), the mass matrix M, the seed state, the effects whose sum is
-the potential energy, the handles where loads act, an optional condition space, and the
-surfaces to draw. Dynamic data (states, loads, conditions) is passed in per call.
+the potential energy, the handles where loads act, an optional condition space, the
+surfaces to draw, and drivers (guides that only fitting uses, never part of the energy).
+Dynamic data (states, loads, conditions) is passed in per call.
 
 Configuration layout: the full vector x concatenates, in the order they were added,
 particle blocks (D numbers per vertex) and rigid bodies (12 numbers each, the row-major
@@ -92,6 +93,44 @@ class ConditionSpace:
         return self.low + u * (self.high - self.low)
 
 
+@dataclass(frozen=True)
+class Driver:
+    """A guide for fitting only: a handle pulled round a circle as one periodic latent turns.
+
+    A mechanism whose motion is a loop far from its seed (a crank) declares one, so that
+    ``FitConfig.drive`` can pull a periodic latent's map onto that loop: at angle ``z[latent]``
+    the handle's target is ``center + radius (cos(z + phase) axes[0] + sin(z + phase) axes[1])``.
+    It is never part of :meth:`Scene.energy`.
+
+    Attributes:
+        name: Driver name, unique in the scene.
+        handle: The handle it pulls (one of the scene's).
+        latent: Index of the periodic latent that turns it.
+        center: Centre of the circle [m], shape [D].
+        axes: Two orthonormal directions spanning the circle's plane, shape [2, D].
+        radius: Radius [m]: the handle's seed distance from ``center`` in that plane.
+        phase: Angle [rad] of the handle's seed position, so z = 0 targets the seed.
+    """
+
+    name: str
+    handle: str
+    latent: int
+    center: Tensor
+    axes: Tensor
+    radius: float
+    phase: float
+
+    def target(self, angle: Tensor) -> Tensor:
+        """Target positions [m], shape [B, D], for latent angles [rad] of shape [B]."""
+        turn = (angle + self.phase).unsqueeze(-1)
+        return self.center + self.radius * (torch.cos(turn) * self.axes[0] + torch.sin(turn) * self.axes[1])
+
+    def angle(self, position: Tensor) -> Tensor:
+        """Angle [rad] in (-pi, pi] of positions [B, D] about the centre, in the plane of ``axes``."""
+        offset = position - self.center
+        return torch.atan2(offset @ self.axes[1], offset @ self.axes[0])
+
+
 LoadsLike = Tensor | Mapping[str, Sequence[float] | Tensor] | None
 
 
@@ -111,6 +150,7 @@ class Scene:
         surfaces: What to draw.
         condition_space: Optional condition parameters.
         description: One line on what the scene is, with its units.
+        drivers: Fitting-only guides (:class:`Driver`); not part of the energy.
     """
 
     name: str
@@ -124,6 +164,7 @@ class Scene:
     surfaces: tuple[Surface, ...] = ()
     condition_space: ConditionSpace | None = None
     description: str = ""
+    drivers: tuple[Driver, ...] = ()
     _effect_index: dict[str, int] = field(default_factory=dict, repr=False, compare=False)
     _mass_entries: tuple[Tensor, Tensor, Tensor] = field(init=False, repr=False, compare=False)
 
@@ -181,6 +222,19 @@ class Scene:
     def feature_size(self) -> float:
         """Thinnest feature [m] any effect resolves (e.g. a contact tube radius); inf without one."""
         return min((e.feature_size for e in self.effects), default=math.inf)
+
+    def driver(self, name: str) -> Driver:
+        """The driver called ``name``; a KeyError lists the scene's drivers."""
+        for d in self.drivers:
+            if d.name == name:
+                return d
+        raise KeyError(f"scene {self.name!r} has no driver {name!r}; it has {[d.name for d in self.drivers]}")
+
+    def handle(self, name: str) -> Handle:
+        """The handle called ``name``; a KeyError lists the scene's handles."""
+        if name not in self.handle_names:
+            raise KeyError(f"scene {self.name!r} has no handle {name!r}; it has {list(self.handle_names)}")
+        return self.handles[self.handle_names.index(name)]
 
     def effect(self, name: str) -> Effect:
         """The effect called ``name``; a KeyError lists the scene's effects."""
@@ -305,6 +359,7 @@ class Scene:
             handles=cast_tensors(self.handles, device, dtype),
             surfaces=cast_tensors(self.surfaces, device, dtype),
             condition_space=cast_tensors(self.condition_space, device, dtype),
+            drivers=cast_tensors(self.drivers, device, dtype),
             _effect_index={},
         )
 
@@ -319,6 +374,7 @@ class Scene:
             "effects": [e.describe() for e in self.effects],
             "handles": list(self.handle_names),
             "conditions": [] if self.condition_space is None else list(self.condition_space.names),
+            "drivers": [d.name for d in self.drivers],
             "params": self.params,
             "fingerprint": self.fingerprint(),
         }
@@ -355,6 +411,7 @@ class SceneBuilder:
         self._handles: list[tuple[str, PointSet, Tensor]] = []
         self._surfaces: list[Surface] = []
         self._conditions: list[tuple[str, float, float, float]] = []
+        self._drivers: list[tuple[str, str, int, Tensor, Tensor]] = []
 
     # -- content --------------------------------------------------------------------------
     @property
@@ -494,6 +551,30 @@ class SceneBuilder:
     def add_surface(self, name: str, points: PointSet, faces: Tensor) -> None:
         self._surfaces.append(Surface(name, points, torch.as_tensor(faces, dtype=torch.int64)))
 
+    def add_driver(
+        self, name: str, handle: str, center: Sequence[float], axes: Sequence[Sequence[float]], *, latent: int = 0
+    ) -> None:
+        """Declare a fitting-only :class:`Driver` pulling handle ``handle`` round ``center`` [m].
+
+        ``axes`` (two non-parallel directions, orthonormalized here) span the circle's plane; the
+        radius and phase come from the handle's seed position at :meth:`finalize`.
+        """
+        if any(d[0] == name for d in self._drivers):
+            raise ValueError(f"driver {name!r} already exists")
+        if not any(h[0] == handle for h in self._handles):
+            raise ValueError(f"driver {name!r}: no handle {handle!r} (add the handle first)")
+        if latent < 0:
+            raise ValueError(f"driver {name!r}: latent must be >= 0, got {latent}")
+        c = torch.as_tensor(center, dtype=torch.float64)
+        a = torch.as_tensor(axes, dtype=torch.float64)
+        if c.shape != (self.dim,) or a.shape != (2, self.dim):
+            raise ValueError(f"driver {name!r}: center must be [{self.dim}] and axes [2, {self.dim}]")
+        u = a[0] / a[0].norm()
+        v = a[1] - (a[1] @ u) * u
+        if not float(v.norm()) > 1e-9 * float(a[1].norm()) or not float(a[0].norm()) > 0:
+            raise ValueError(f"driver {name!r}: axes must be two non-parallel, non-zero directions")
+        self._drivers.append((name, handle, latent, c, torch.stack([u, v / v.norm()])))
+
     def add_condition(self, name: str, low: float, high: float, default: float | None = None) -> int:
         """Declare a condition parameter; returns its index in c."""
         if not low < high:
@@ -543,6 +624,16 @@ class SceneBuilder:
                 torch.tensor(high, dtype=torch.float64),
                 torch.tensor(default, dtype=torch.float64),
             )
+        drivers = []
+        seed_x = dof_map.expand(seed[free_index].unsqueeze(0))
+        for driver, handle, latent, center, axes in self._drivers:
+            points, weights = next((p, w) for n, p, w in self._handles if n == handle)
+            offset = (points.positions(seed_x)[0] * weights[:, None]).sum(0) - center
+            radius = float((offset @ axes.T).norm())
+            if not radius > 0.0:
+                raise ValueError(f"driver {driver!r}: handle {handle!r} sits on the centre (radius 0)")
+            phase = math.atan2(float(offset @ axes[1]), float(offset @ axes[0]))
+            drivers.append(Driver(driver, handle, latent, center, axes, radius, phase))
         scene = Scene(
             name=name,
             params=dict(params or {}),
@@ -555,6 +646,7 @@ class SceneBuilder:
             surfaces=tuple(self._surfaces),
             condition_space=space,
             description=description,
+            drivers=tuple(drivers),
         )
         return scene.to(device, dtype) if (device is not None or dtype != torch.float64) else scene
 

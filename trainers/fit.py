@@ -10,6 +10,25 @@ linearly from 0 to 1. Because f(z_i) - f(z_j) = rho (MLP(z_i) - MLP(z_j)), the p
 rho = 0). M-norm distances come from the B x B Gram matrix of the batch (never a B x B x n
 tensor), after centring the batch so float32 keeps the small differences.
 
+Drivers (``FitConfig.drive``, not in the paper): a mechanism whose motion is a loop far from its
+seed (the Klann crank) declares a :class:`redsim.scene.Driver`, a handle to be pulled round a
+circle by a periodic latent. With ``drive > 0`` the loss gains the penalty
+
+    mean_i  k(t)/2 |h(MLP(z_i)) - target(z_i)|^2
+
+on the MLP's own output (like the pair term, so it acts from the first step whatever rho is);
+k(t) is ``drive`` for the first half of ``drive_fraction`` of the steps, then falls linearly to 0
+at ``drive_fraction``. It needs no simulation data: it only says where the handle goes round.
+
+Softening (``FitConfig.soften``, not in the paper): the energies of the named effects are
+weighted by w(t) = soften_from^(1 - t / (soften_fraction T)) (geometric, up to 1 at
+``soften_fraction``). An affine body whose orthogonality penalty ("rigid") is soft can shear its
+way round while the joints hold; as w reaches 1 it turns into the rotation (a driven map of
+a rigid crank otherwise translates the bar off its hinge, a local minimum it does not leave).
+The reported ``energy`` term is always the true, unweighted energy. It needs no simulation data: it
+only says which way round the loop goes; the rest of the fit (rho at 1, driver off) is the paper's
+loss, which keeps a map that is on the loop there.
+
 Speed options (:class:`FitConfig`): ``fused_adam`` (one fused Adam kernel per step) and ``compile``
 (the loss, forward and backward, through ``torch.compile``; ``redsim bench fit`` measures both).
 """
@@ -66,6 +85,15 @@ class FitConfig:
         seed_bias: Start the output layer's bias at q_seed, so the MLP starts near the seed shape
             instead of near 0 (the map still has no seed term). Stiff meshes need it: from a zero
             output they spend their steps rebuilding the shape against a large elastic energy.
+        drive: Initial stiffness [N/m] of the scene's drivers (:class:`redsim.scene.Driver`), a
+            fitting-only pull of a handle round a circle by a periodic latent (0: off). Needs a
+            scene that declares drivers, each turned by a latent in ``periodic``.
+        drive_fraction: The driver is held at ``drive`` for half of this fraction of the steps,
+            then falls linearly to 0 at it.
+        soften: Names of scene effects (e.g. "rigid") whose energy is weighted by a factor rising
+            from ``soften_from`` to 1 during fitting (empty: off).
+        soften_from: Initial weight of the ``soften`` effects.
+        soften_fraction: Their weight rises geometrically to 1 over this fraction of the steps.
         checkpoint_every: Steps between resumable checkpoints (0: only at the end / on interrupt).
         dtype: "float32" (default) or "float64".
         device: Torch device for fitting.
@@ -105,6 +133,11 @@ class FitConfig:
     conditional: bool = False
     exploration_fraction: float = 1.0
     seed_bias: bool = False
+    drive: float = 0.0
+    drive_fraction: float = 0.5
+    soften: tuple[str, ...] = ()
+    soften_from: float = 1e-3
+    soften_fraction: float = 0.5
     checkpoint_every: int = 1000
     dtype: str = "float32"
     device: str = "cpu"
@@ -145,6 +178,11 @@ _FIELD_RULES: tuple[tuple[str, str, Callable[[FitConfig, Any], bool]], ...] = (
     ("conditional", "true or false", lambda c, v: isinstance(v, bool)),
     ("exploration_fraction", "a number in (0, 1]", lambda c, v: _is_number(v) and 0 < v <= 1),
     ("seed_bias", "true or false", lambda c, v: isinstance(v, bool)),
+    ("drive", "a finite number >= 0", lambda c, v: _is_number(v) and v >= 0),
+    ("drive_fraction", "a number in (0, 1]", lambda c, v: _is_number(v) and 0 < v <= 1),
+    ("soften", "effect names", lambda c, v: isinstance(v, tuple) and all(isinstance(n, str) and n for n in v)),
+    ("soften_from", "a number in (0, 1]", lambda c, v: _is_number(v) and 0 < v <= 1),
+    ("soften_fraction", "a number in (0, 1]", lambda c, v: _is_number(v) and 0 < v <= 1),
     ("checkpoint_every", "an integer >= 0", lambda c, v: _is_int(v) and v >= 0),
     ("dtype", f"one of {', '.join(DTYPES)}", lambda c, v: v in DTYPES),
     ("device", "a torch device such as cpu or cuda", lambda c, v: isinstance(v, str) and _is_device(v)),
@@ -199,32 +237,70 @@ def _loss_tensors(
     z: Tensor,
     cond: Tensor | None,
     rho: Tensor,
+    drive: Tensor,
+    soften: Tensor,
     config: FitConfig,
-) -> tuple[Tensor, Tensor, Tensor, Tensor]:
-    """The loss and its terms as 0-dim tensors: total, mean energy [J], pair term, mean metric stretch.
+) -> tuple[Tensor, Tensor, Tensor, Tensor, Tensor]:
+    """The loss and its terms as 0-dim tensors: total, mean energy [J], pair term, mean metric stretch, driver [J].
 
-    ``rho`` is a 0-dim tensor, so a compiled copy takes each step's value as an input instead of
-    specialising (and recompiling) on it.
+    ``rho``, ``drive`` (the driver stiffness now [N/m]) and ``soften`` (the weight of the
+    ``config.soften`` effects now) are 0-dim tensors, so a compiled copy takes each step's values
+    as inputs instead of specialising (and recompiling) on them.
     """
     y = model(z, cond if config.conditional else None)
     q = rho * y + (1.0 - rho) * scene.q_seed
-    energy = scene.energy(q, cond=cond).mean()
+    if config.soften:
+        terms = scene.energy_terms(q, cond=cond)
+        energy = sum(terms.values()).mean()
+        weighted = energy - (1.0 - soften) * sum(terms[name] for name in config.soften).mean()
+    else:
+        energy = weighted = scene.energy(q, cond=cond).mean()
     log_ratio = pair_log_ratios(y, z, scene, config.sigma, config.periodic)
     pair = (log_ratio**2).mean()
-    return energy + config.lam * pair, energy, pair, torch.exp(log_ratio.detach()).mean()
+    total = weighted + config.lam * pair
+    pull = drive_energy(scene, y, z, drive) if config.drive > 0 else torch.zeros_like(energy)
+    return total + pull, energy, pair, torch.exp(log_ratio.detach()).mean(), pull
 
 
-def _terms(energy: Tensor, pair: Tensor, stretch: Tensor) -> dict[str, float]:
-    return {"energy": float(energy.detach()), "pair": float(pair.detach()), "stretch": float(stretch)}
+def drive_energy(scene: Scene, q: Tensor, z: Tensor, stiffness: Tensor | float) -> Tensor:
+    """Mean over the batch of the drivers' penalty stiffness/2 sum_d |h_d(q) - target_d(z)|^2 [J].
+
+    Args:
+        scene: Declares the drivers (:class:`redsim.scene.Driver`).
+        q: Free configurations, shape [B, n].
+        z: Latents, shape [B, d]; driver k turns with ``z[:, driver.latent]``.
+        stiffness: Penalty stiffness [N/m].
+    """
+    x = scene.full_positions(q)
+    gap2 = torch.zeros_like(q[:, 0])
+    for driver in scene.drivers:
+        gap = scene.handle(driver.handle).position(x) - driver.target(z[:, driver.latent])
+        gap2 = gap2 + (gap**2).sum(-1)
+    return 0.5 * stiffness * gap2.mean()
+
+
+def _terms(energy: Tensor, pair: Tensor, stretch: Tensor, pull: Tensor) -> dict[str, float]:
+    return {
+        "energy": float(energy.detach()),
+        "pair": float(pair.detach()),
+        "stretch": float(stretch),
+        "drive": float(pull.detach()),
+    }
 
 
 def subspace_loss(
-    scene: Scene, model: SubspaceMap, z: Tensor, cond: Tensor | None, rho: float, config: FitConfig
+    scene: Scene, model: SubspaceMap, z: Tensor, cond: Tensor | None, rho: float, config: FitConfig, step: int = 0
 ) -> tuple[Tensor, dict[str, float]]:
-    """The fitting loss on one batch, and its terms (mean energy [J], pair term, mean metric stretch)."""
-    rho_t = torch.as_tensor(rho, dtype=z.dtype, device=z.device)
-    total, energy, pair, stretch = _loss_tensors(scene, model, z, cond, rho_t, config)
-    return total, _terms(energy, pair, stretch)
+    """The fitting loss on one batch, and its terms (mean energy [J], pair term, mean metric stretch, driver [J]).
+
+    ``step`` (0-based) sets the driver stiffness (:func:`drive_at`) and softening (:func:`soften_at`).
+    """
+    rho_t, drive_t, soften_t = (
+        torch.as_tensor(v, dtype=z.dtype, device=z.device)
+        for v in (rho, drive_at(step, config), soften_at(step, config))
+    )
+    total, *terms = _loss_tensors(scene, model, z, cond, rho_t, drive_t, soften_t, config)
+    return total, _terms(*terms)
 
 
 def rho_at(step: int, config: FitConfig, ramp_steps: int | None = None) -> float:
@@ -239,6 +315,22 @@ def rho_at(step: int, config: FitConfig, ramp_steps: int | None = None) -> float
 def _lr_step_size(steps: int) -> int:
     """Steps between halvings of the learning rate: a quarter of the run."""
     return max(1, steps // 4)
+
+
+def drive_at(step: int, config: FitConfig, ramp_steps: int | None = None) -> float:
+    """Driver stiffness [N/m] in step ``step`` (0-based): ``drive``, then falling linearly to 0.
+
+    Like rho, it follows the length ``ramp_steps`` the fit was planned for (default ``config.steps``).
+    """
+    progress = step / (config.drive_fraction * (ramp_steps or config.steps))
+    return config.drive * min(1.0, max(0.0, 2.0 * (1.0 - progress)))
+
+
+def soften_at(step: int, config: FitConfig, ramp_steps: int | None = None) -> float:
+    """Weight of the ``soften`` effects in step ``step`` (0-based): geometric from ``soften_from`` to 1 (planned
+    over ``ramp_steps``, default ``config.steps``, as rho)."""
+    progress = min(1.0, step / (config.soften_fraction * (ramp_steps or config.steps)))
+    return config.soften_from ** (1.0 - progress) if config.soften else 1.0
 
 
 Callback = Callable[[int, dict[str, float]], None]
@@ -286,6 +378,13 @@ def fit_subspace(
     config = dataclasses.replace(config or FitConfig(), **overrides)
     if config.conditional and scene.condition_space is None:
         raise ValueError(f"scene {scene.name!r} has no condition space; fit without conditional")
+    if config.drive > 0:
+        _check_drivers(scene, config)
+    unknown_effects = sorted(set(config.soften) - {e.name for e in scene.effects})
+    if unknown_effects:
+        raise ValueError(
+            f"soften: scene {scene.name!r} has no effect(s) {unknown_effects}; it has {[e.name for e in scene.effects]}"
+        )
     dtype = DTYPES[config.dtype]
     work = scene.to(device=config.device, dtype=dtype)
     arch = SubspaceConfig(
@@ -377,8 +476,10 @@ def fit_subspace(
                 )
             rho = rho_at(step, config, ramp_steps)
             rho_t = torch.tensor(rho, dtype=dtype, device=config.device)
-            loss, energy, pair, stretch = loss_fn(work, model, z, cond, rho_t, config)
-            terms = _terms(energy, pair, stretch)
+            drive_t = torch.tensor(drive_at(step, config, ramp_steps), dtype=dtype, device=config.device)
+            soften_t = torch.tensor(soften_at(step, config, ramp_steps), dtype=dtype, device=config.device)
+            loss, *parts = loss_fn(work, model, z, cond, rho_t, drive_t, soften_t, config)
+            terms = _terms(*parts)
             if not torch.isfinite(loss):
                 raise FloatingPointError(
                     f"loss became {float(loss)} at step {step} (terms {terms}); lower the learning rate or sigma"
@@ -431,6 +532,18 @@ def fit_subspace(
     if out is not None:
         model.save(out)
     return FitResult(model, history, fit_seconds)
+
+
+def _check_drivers(scene: Scene, config: FitConfig) -> None:
+    """Raise ValueError unless ``scene`` declares drivers, each turned by a periodic latent of ``config``."""
+    if not scene.drivers:
+        raise ValueError(f"scene {scene.name!r} declares no driver; fit without drive (--drive)")
+    for driver in scene.drivers:
+        if driver.latent not in config.periodic:
+            raise ValueError(
+                f"driver {driver.name!r} of scene {scene.name!r} turns with latent {driver.latent}, which is not "
+                f"periodic (periodic {list(config.periodic)}; --periodic)"
+            )
 
 
 @functools.cache
@@ -502,6 +615,11 @@ def fit_command(scene: Scene, config: FitConfig, seed: int, out: str | Path | No
         parts += ["--explore", repr(config.exploration_fraction)]
     if config.seed_bias:
         parts.append("--seed-bias")
+    if config.drive > 0:
+        parts += ["--drive", repr(config.drive), "--drive-fraction", repr(config.drive_fraction)]
+    if config.soften:
+        parts += ["--soften", ",".join(config.soften), "--soften-from", repr(config.soften_from)]
+        parts += ["--soften-fraction", repr(config.soften_fraction)]
     default = FitConfig()
     for field in _ROUND_OFF_ONLY:  # switches, recorded only when not at their defaults
         value, flag = getattr(config, field), field.replace("_", "-")
@@ -548,7 +666,9 @@ def _load_training_state(
     mine = {k: v for k, v in dataclasses.asdict(config).items() if k not in free}
     saved = {k: v for k, v in state["config"].items() if k not in free}
     saved["periodic"] = tuple(saved["periodic"])
-    saved.setdefault("seed_bias", False)  # states written before the option existed
+    for key in ("seed_bias", "drive", "drive_fraction", "soften", "soften_from", "soften_fraction"):
+        saved.setdefault(key, getattr(FitConfig(), key))  # states written before the options existed
+    saved["soften"] = tuple(saved["soften"])
     if saved != mine:
         diff = sorted(k for k in mine if saved.get(k) != mine[k])
         raise CheckpointError(f"training state was made with different settings {diff}", str(path))

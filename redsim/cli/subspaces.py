@@ -39,6 +39,10 @@ FIT_FLAGS: tuple[tuple[str, str, Any, str], ...] = (
     ("--layers", "hidden_layers", int, "MLP hidden layers"),
     ("--explore", "exploration_fraction", float, "fraction of the steps over which ρ rises 0 -> 1"),
     ("--seed-bias", "seed_bias", bool, "start the output bias at the seed state (stiff meshes)"),
+    ("--drive", "drive", float, "start stiffness [N/m] of the scene's fitting drivers (cranks); 0: off"),
+    ("--drive-fraction", "drive_fraction", float, "--drive holds for half this fraction of the steps, then falls to 0"),
+    ("--soften-from", "soften_from", float, "initial weight of the --soften effects"),
+    ("--soften-fraction", "soften_fraction", float, "fraction of the steps over which that weight rises to 1"),
     ("--checkpoint-every", "checkpoint_every", int, "steps between resumable checkpoints"),
     ("--dtype", "dtype", str, "float32 or float64"),
     ("--device", "device", str, "torch device"),
@@ -48,6 +52,7 @@ FIT_FLAGS: tuple[tuple[str, str, Any, str], ...] = (
 FIELD_FLAGS = {field: flag for flag, field, _kind, _help in FIT_FLAGS} | {
     "periodic": "--periodic",
     "conditional": "--cond",
+    "soften": "--soften",
 }
 """The `redsim fit` flag of every FitConfig field (validation messages name the flag)."""
 
@@ -66,6 +71,8 @@ def _fit_config(args: argparse.Namespace, scene_name: str) -> Any:
             fields["periodic"] = tuple(int(i) for i in parse_list(args.periodic, "--periodic"))
         except ValueError as err:
             raise CliError(f"--periodic must be comma-separated integers, got {args.periodic!r}") from err
+    if args.soften is not None:
+        fields["soften"] = tuple(parse_list(args.soften, "--soften"))
     if args.cond:
         fields["conditional"] = True
     try:
@@ -218,6 +225,9 @@ def add_commands(sub: Any) -> None:
         else:
             p.add_argument(flag, dest=field, type=kind, default=None, help=f"{text} (default: scene preset)")
     p.add_argument("--periodic", default=None, metavar="I,J", help="latent indices that are angles")
+    p.add_argument(
+        "--soften", default=None, metavar="A,B", help="scene effects whose energy rises from --soften-from to full"
+    )
     p.add_argument("--cond", action="store_true", help="fit a conditional subspace over the scene's conditions")
     p.add_argument("--seed", type=int, default=0, help="seed of the initialisation and sampling (default 0)")
     p.add_argument("--out", default=None, metavar="STEM", help="checkpoint stem (default SCENE_dD)")

@@ -10,6 +10,8 @@ import math
 import numpy as np
 import torch
 
+from redsim.effects import PointPairPenalty
+from redsim.points import PointSet
 from redsim.scene import Scene, SceneBuilder
 from redsim.scenes import shapes, toolkit
 from redsim.scenes.registry import Crank
@@ -67,6 +69,8 @@ def klann(
 
     Effects: rigid, joints, joint_axes, gravity, external_load. Handles: "crank_pin" (the
     crank-coupler joint on the crank), "foot" (the end of the leg). Surfaces: one per body.
+    Driver (fitting only, ``redsim fit --drive``): "crank", the crank pin round the crank-ground
+    joint in the x-y plane, turned by latent 0.
     """
     params = toolkit.builder_params(locals())
     for key in ("bar_width", "bar_thickness", "density", "joint_stiffness", "axis_stiffness", "rigid_stiffness"):
@@ -110,6 +114,7 @@ def klann(
     crank, leg = bodies["crank"], bodies["leg"]
     b.add_handle("crank_pin", b.body_points(crank.body, torch.as_tensor(crank.to_local(J["crank_coupler"]))))
     b.add_handle("foot", b.body_points(leg.body, torch.as_tensor(leg.to_local(foot))))
+    b.add_driver("crank", "crank_pin", J["crank_ground"], ((1.0, 0.0, 0.0), (0.0, 1.0, 0.0)))
     return b.finalize(
         "klann", params=params, description="planar Klann linkage, 0.5 m across, 5 rigid bars + 7 revolute joints"
     )
@@ -126,9 +131,10 @@ def stewart(
     axis_stiffness: float = 100.0,
     ball_axis_stiffness: float = 1.0,
     rigid_stiffness: float = 5000.0,
+    servo_stiffness: float = 20.0,
     gravity: bool = True,
 ) -> Scene:
-    """A rotary Stewart platform: 6 hinged arms, 6 struts, a top plate (13 rigid bodies, 6 DOF).
+    """A rotary Stewart platform: 6 servo-held arms, 6 struts, a top plate (13 rigid bodies, 6 DOF).
 
     Base pivots sit on a circle of ``base_radius`` in y = 0 at 120k +- 20 degrees; each arm is
     hinged to the (fixed) world about its radial axis and points tangentially (away from its
@@ -137,6 +143,14 @@ def stewart(
     hinges (point + strong axis), arm-strut near-ball joints (point + weak alignment of the
     radial axis, which only fixes the strut's spin), strut-plate ball joints. At the seed all
     bodies are unrotated and every joint is exactly satisfied.
+
+    Actuation, as in a real rotary Stewart platform: each arm is driven about its hinge by a
+    servo. Holding (zero action) is the "servos" term, a torsional spring of
+    ``servo_stiffness`` [N m/rad] per arm towards its seed angle (energy servo_stiffness/2 |a - a0|^2
+    for the arm's direction a, ~ servo_stiffness/2 theta^2), stiff enough that the seed pose holds
+    under gravity (the plate sags 3 mm, mostly the joints' give). Driving is a torque on the hinge:
+    the handles "arm_0".."arm_5" sit at the arm tips, where a force F along y (the tip's swing
+    direction at the seed) is a hinge torque F ``arm_length`` [N m].
 
     Body order: 6 arms, 6 struts, the plate (x entries 12 i .. 12 i + 11). n = 156 (13 bodies);
     Table 1 lists 168 (14 bodies, its base being a body).
@@ -151,10 +165,11 @@ def stewart(
         axis_stiffness: Arm hinge-axis alignment weight [J].
         ball_axis_stiffness: Weak arm-strut axis alignment weight [J].
         rigid_stiffness: Orthogonality penalty per body [J].
+        servo_stiffness: Torsional stiffness of each arm's servo about its seed angle [N m/rad].
         gravity: Add gravity (9.81 m/s^2 along -y).
 
-    Effects: rigid, joints, joint_axes, gravity, external_load. Handle: "top_plate" (the plate
-    centre). Surfaces: "arm_i", "strut_i", "plate".
+    Effects: rigid, joints, joint_axes, servos, gravity, external_load. Handles: "top_plate"
+    (the plate centre), "arm_0".."arm_5" (the arm tips). Surfaces: "arm_i", "strut_i", "plate".
     """
     params = toolkit.builder_params(locals())
     for key in (
@@ -167,6 +182,7 @@ def stewart(
         "axis_stiffness",
         "ball_axis_stiffness",
         "rigid_stiffness",
+        "servo_stiffness",
     ):
         toolkit.check_positive(key, params[key])
     gravity = toolkit.check_bool("gravity", gravity)
@@ -208,9 +224,26 @@ def stewart(
         joints.align(struts[i], arms[i], radial[i], ball_axis_stiffness)
         joints.pin(plate, struts[i], tops[i])
     joints.finish(joint_stiffness)
+    swing = [s * t for s, t in zip(signs, tangent, strict=True)]  # arm directions, pivot to tip
+    b.add_effect(
+        PointPairPenalty(
+            "servos",
+            PointSet.cat(
+                [
+                    b.body_points(arm.body, torch.as_tensor(d @ arm.rotation).reshape(1, 3), direction=True)
+                    for arm, d in zip(arms, swing, strict=True)
+                ]
+            ),
+            PointSet.world(torch.as_tensor(np.stack(swing)), k=4),
+            servo_stiffness,
+            kind="servo",
+        )
+    )
     if gravity:
         toolkit.add_gravity(b)
     b.add_handle("top_plate", b.body_points(plate.body, torch.zeros(1, 3)))
+    for i, (arm, tip) in enumerate(zip(arms, tips, strict=True)):
+        b.add_handle(f"arm_{i}", b.body_points(arm.body, torch.as_tensor(arm.to_local(tip))))
     return b.finalize(
         "stewart",
         params=params,

@@ -13,7 +13,7 @@ import trimesh
 from redsim import meshes
 from redsim.scene import Scene, SceneBuilder
 from redsim.scenes import toolkit
-from redsim.scenes.registry import SceneEntry
+from redsim.scenes.registry import Crank, SceneEntry
 
 
 def two_tets(*, young: float = 1e4, poisson: float = 0.4, density: float = 1000.0, gravity: bool = True) -> Scene:
@@ -157,10 +157,56 @@ def tiny_bar_2d(
     return b.finalize("toy_tiny_bar_2d", params=params, description="2D bar 0.4 x 0.1 m, left end pinned")
 
 
+def crank(
+    *,
+    joint_stiffness: float = 1e4,
+    axis_stiffness: float = 100.0,
+    rigid_stiffness: float = 5000.0,
+    density: float = 1000.0,
+    gravity: bool = False,
+) -> Scene:
+    """One 0.2 m bar hinged to the world at one end (z axis), free to turn all the way round; n = 12.
+
+    The smallest mechanism whose motion is a loop: its crank angle. Without gravity (the default)
+    every angle has zero energy.
+
+    Args:
+        joint_stiffness: Hinge point penalty weight [N/m].
+        axis_stiffness: Hinge-axis alignment weight [J].
+        rigid_stiffness: Orthogonality penalty [J].
+        density: Bar density [kg/m^3] (a 0.02 x 0.22 x 0.02 m box, 0.088 kg by default).
+        gravity: Add gravity (9.81 m/s^2 along -y).
+
+    Effects: rigid, joints, joint_axes, [gravity], external_load. Handle: "pin" (the free end). Driver
+    (fitting only): "crank", the pin round the hinge in the x-y plane, turned by latent 0.
+    Surface: "bar".
+    """
+    params = toolkit.builder_params(locals())
+    for key in ("joint_stiffness", "axis_stiffness", "rigid_stiffness", "density"):
+        toolkit.check_positive(key, params[key])
+    gravity = toolkit.check_bool("gravity", gravity)
+    b = SceneBuilder(dim=3)
+    hinge, end = np.zeros(3), np.array([0.2, 0.0, 0.0])
+    bar = toolkit.add_rigid_body(
+        b, trimesh.creation.box(extents=(0.22, 0.02, 0.02)).apply_translation(0.5 * end), density=density, surface="bar"
+    )
+    toolkit.add_rigidity(b, [bar], rigid_stiffness)
+    joints = toolkit.Joints(b)
+    joints.pin(bar, None, hinge)
+    joints.align(bar, None, np.array([0.0, 0.0, 1.0]), axis_stiffness)
+    joints.finish(joint_stiffness)
+    if gravity:
+        toolkit.add_gravity(b)
+    b.add_handle("pin", b.body_points(bar.body, torch.as_tensor(bar.to_local(end))))
+    b.add_driver("crank", "pin", hinge, ((1.0, 0.0, 0.0), (0.0, 1.0, 0.0)))
+    return b.finalize("toy_crank", params=params, description="one 0.2 m bar hinged at one end (m, kg, s)")
+
+
 TOYS: tuple[SceneEntry, ...] = (
     SceneEntry("toy_two_tets", two_tets, tags=("toy",)),
     SceneEntry("toy_three_link_chain", three_link_chain, tags=("toy",)),
     SceneEntry("toy_small_cloth", small_cloth, tags=("toy",)),
     SceneEntry("toy_tiny_bar_2d", tiny_bar_2d, tags=("toy",)),
+    SceneEntry("toy_crank", crank, tags=("toy",), crank=Crank("pin", (0.0, 0.0))),
 )
 """The toy scenes (tag "toy")."""

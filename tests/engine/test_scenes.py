@@ -16,6 +16,7 @@ import trimesh
 
 import redsim
 from redsim import meshes
+from redsim.integrators import static_equilibrium
 from redsim.scene import Scene
 from redsim.scenes.linkages import KLANN_CRANK
 
@@ -349,16 +350,47 @@ def test_klann_declares_its_crank() -> None:
 
 
 def test_stewart_has_six_dofs_plus_strut_spins() -> None:
-    """Without the weak strut-axis term: 6 platform DOFs + 6 strut spins are the only zero modes."""
-    scene = redsim.scenes.build("stewart", gravity=False, ball_axis_stiffness=1e-12)
+    """Without servos and the weak strut-axis term: 6 platform DOFs + 6 strut spins are the only zero modes."""
+    scene = redsim.scenes.build("stewart", gravity=False, ball_axis_stiffness=1e-12, servo_stiffness=1e-12)
     H = torch.autograd.functional.hessian(lambda q: scene.energy(q), scene.q_seed)
     eigenvalues = torch.linalg.eigvalsh(H)
     assert int((eigenvalues.abs() < 1e-8 * eigenvalues[-1]).sum()) == 12
     weak = built("stewart", False)
     H = torch.autograd.functional.hessian(lambda q: weak.energy(q), weak.q_seed)
     eigenvalues = torch.linalg.eigvalsh(H)
-    # The weak alignment (1 J) only stiffens those twelve slightly: a clear gap above them.
-    assert float(eigenvalues[11]) <= 1.0 and float(eigenvalues[12]) >= 5.0 * float(eigenvalues[11])
+    # The servos (20 N m/rad) and the weak alignment (1 J) make the seed a strict minimum; the soft modes they
+    # hold (platform motions, strut spins) stay well below the joint and orthogonality penalties.
+    assert float(eigenvalues[0]) > 0.0
+    soft = int((eigenvalues < 25.0).sum())
+    assert 12 <= soft <= 18 and float(eigenvalues[soft]) >= 2.0 * float(eigenvalues[soft - 1])
+
+
+def test_stewart_rest_pose_holds_under_gravity_with_zero_action() -> None:
+    """The servos hold the seed: the full-space static solve with zero load moves the plate < 1 cm."""
+    scene = built("stewart", True)
+    q, info = static_equilibrium(scene, {f"arm_{i}": [0.0, 0.0, 0.0] for i in range(6)})
+    assert info.converged
+    plate = scene.handle("top_plate")
+    moved = plate.position(scene.full_positions(q[None])) - plate.position(scene.full_positions(scene.q_seed[None]))
+    assert float(moved.norm()) < 0.01
+    # unheld (servos ~ 0), the same solve lets the platform fall
+    loose = redsim.scenes.build("stewart", servo_stiffness=1e-6)
+    q, _ = static_equilibrium(loose)
+    fall = plate.position(loose.full_positions(q[None])) - plate.position(loose.full_positions(loose.q_seed[None]))
+    assert float(fall[0, 1]) < -0.1
+
+
+def test_stewart_arm_handles_are_hinge_torques() -> None:
+    """An upward force F on an arm tip does work F * arm_length per radian the arm turns about its hinge."""
+    scene = built("stewart", True)
+    assert scene.handle_names == ("top_plate", *(f"arm_{i}" for i in range(6)))
+    x = scene.full_positions(scene.q_seed[None])
+    angles = [math.radians(120.0 * k + 20.0 * side) for k in range(3) for side in (-1.0, 1.0)]
+    for i, a in enumerate(angles):
+        tip = scene.handle(f"arm_{i}").position(x)[0]
+        pivot = torch.tensor([0.25 * math.cos(a), 0.0, 0.25 * math.sin(a)], dtype=torch.float64)
+        assert float((tip - pivot).norm()) == pytest.approx(0.08, rel=1e-9)
+        assert float((tip - pivot)[1]) == pytest.approx(0.0, abs=1e-12)  # the tip swings along y
 
 
 @pytest.mark.parametrize("name", ["chain", "mini_chain"])

@@ -60,7 +60,8 @@ def test_mini_chain_subspace_is_reproduced_by_its_command(tmp_path, monkeypatch)
     scene = scenes.build("mini_chain")
     shipped, again = pretrained.load("mini_chain"), load_subspace(tmp_path / "mini_chain.pt", scene=scene)
     fit = again.metadata["fit"]
-    assert again.metadata["command"] == doc["command"] and not fit.pop("seed_bias")  # made before the option
+    assert again.metadata["command"] == doc["command"] and not fit.pop("seed_bias")  # made before the options
+    assert (fit.pop("drive"), fit.pop("drive_fraction"), fit.pop("drive_ratio")) == (0.0, 0.5, 1e-3)
     assert fit == shipped.metadata["fit"]
     for name, sub in (("shipped", shipped), ("again", again)):
         energy = metrics.energy_stats(scene, sub)
@@ -69,3 +70,41 @@ def test_mini_chain_subspace_is_reproduced_by_its_command(tmp_path, monkeypatch)
             reference = (energy["excess_energy"], stretch)
     assert stretch == pytest.approx(reference[1], rel=0.02)
     assert energy["excess_energy"] == pytest.approx(reference[0], rel=0.2)  # 0.96 J above rest
+
+
+def test_shipped_klann_map_goes_once_round_the_crank_loop() -> None:
+    """As its latent goes round, the crank pin turns once about the crank's ground joint (winding +-1)."""
+    scene = scenes.build("klann")
+    driver = scene.driver("crank")
+    loop = metrics.handle_winding(scene, pretrained.load("klann", scene), driver.handle, driver.center[:2].tolist())
+    assert abs(loop["winding"]) == 1, loop
+    # within 2x the loop's highest energy (0.88 J, 1.27 x the seed's 0.69 J; the seed is on the loop)
+    assert loop["energy_max"] < 2.0 * 1.27 * loop["seed_energy"], loop
+
+
+def test_shipped_stewart_map_moves_the_plate_and_keeps_its_joints() -> None:
+    """Samples z ~ N(0, I) move the plate centimetres and turn it degrees, with joint gaps of millimetres."""
+    scene = scenes.build("stewart")
+    subspace = pretrained.load("stewart", scene)
+    z = torch.randn(256, subspace.latent_dim, generator=torch.Generator().manual_seed(0))
+    with torch.no_grad():
+        x = scene.full_positions(subspace(z).double())
+    seed = scene.full_positions(scene.q_seed[None])
+    plate = scene.handle("top_plate")
+    moved = (plate.position(x) - plate.position(seed)).norm(dim=-1)
+    joints = scene.effect("joints")
+    gaps = (joints.a.positions(x) - joints.b.positions(x)).norm(dim=-1)
+    assert float(moved.median()) > 0.02 and float(gaps.median()) < 0.01
+
+
+@pytest.mark.slow
+def test_klann_preset_reaches_the_crank_loop_from_a_cold_start(tmp_path) -> None:
+    """The preset's driver and softening take a freshly initialised map once round the crank loop."""
+    from redsim.trainers import FitConfig, fit_subspace
+    from redsim.trainers.presets import preset
+
+    scene = scenes.build("klann")
+    result = fit_subspace(scene, FitConfig(**preset("klann")), seed=1, progress=False)
+    driver = scene.driver("crank")
+    loop = metrics.handle_winding(scene, result.subspace, driver.handle, driver.center[:2].tolist())
+    assert abs(loop["winding"]) == 1, loop
