@@ -10,6 +10,7 @@ from typing import Any
 import torch
 
 import redsim
+from redsim.cli import cubature
 from redsim.cli.common import (
     DTYPES,
     EXIT_OK,
@@ -24,6 +25,9 @@ from redsim.cli.common import (
     out,
     parse_list,
     warn,
+)
+from redsim.cli.common import (
+    machine_line as _machine_line,
 )
 from redsim.subspace import checkpoint_path
 
@@ -125,18 +129,6 @@ def _subspace_row(row: dict[str, Any]) -> str:
             line += f"  crank turn {result['loop']['turn_degrees']:.0f} deg (winding {result['loop']['winding']})"
         lines.append(line)
     return "\n".join(lines)
-
-
-def _machine_line(machine: dict[str, Any], device: str) -> str:
-    load = machine["load_average_1min"]
-    cpu = machine["processor"]
-    cpu = cpu if cpu == machine["machine"] else f"{cpu} ({machine['machine']})"
-    return (
-        f"machine: {cpu}, {machine['cpu_count']} CPUs"
-        + (f" (load {load:.2f})" if load is not None else "")
-        + f", torch {machine['torch']}, {machine['torch_threads']} threads, device {device}"
-        + (f" ({machine['cuda_device']})" if device.startswith("cuda") else "")
-    )
 
 
 def cmd_bench_energy(args: argparse.Namespace) -> int:
@@ -422,4 +414,5 @@ def add_commands(sub: Any) -> Any:
     p.add_argument("--device", default="cpu", help="torch device of the stepper (default cpu)")
     p.add_argument("--seed", type=int, default=0, help="seed of the load sequences (default 0)")
     finish_command(p, cmd_bench_step, "print one JSON document on stdout", default_threads=1)
+    cubature.add_bench_command(bench)
     return bench

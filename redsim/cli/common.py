@@ -154,6 +154,30 @@ def parse_list(text: str, what: str) -> list[str]:
 
 
 # -- shared options -------------------------------------------------------------------------
+def machine_line(machine: dict[str, Any], device: str) -> str:
+    """One line on the machine a benchmark ran on (from :func:`redsim.bench.machine_info`)."""
+    load = machine["load_average_1min"]
+    cpu = machine["processor"]
+    cpu = cpu if cpu == machine["machine"] else f"{cpu} ({machine['machine']})"
+    return (
+        f"machine: {cpu}, {machine['cpu_count']} CPUs"
+        + (f" (load {load:.2f})" if load is not None else "")
+        + f", torch {machine['torch']}, {machine['torch_threads']} threads, device {device}"
+        + (f" ({machine['cuda_device']})" if device.startswith("cuda") else "")
+    )
+
+
+def parse_ints(text: str, what: str) -> list[int]:
+    """Comma-separated integers >= 1 (``what`` names the option in the error)."""
+    try:
+        values = [int(v) for v in parse_list(text, what)]
+    except ValueError as err:
+        raise CliError(f"{what} must be comma-separated integers, got {text!r}") from err
+    if min(values) < 1:
+        raise CliError(f"{what} must be >= 1, got {text!r}")
+    return values
+
+
 def add_threads(parser: argparse.ArgumentParser, default: int | None = None) -> None:
     """``--threads N``: torch's intra-op threads for the command."""
     shown = "torch's default: all cores" if default is None else str(default)

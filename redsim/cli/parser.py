@@ -9,7 +9,7 @@ from collections.abc import Sequence
 import torch
 
 import redsim
-from redsim.cli import agents, bench, envs, scenes, subspaces
+from redsim.cli import agents, bench, cubature, envs, scenes, subspaces
 from redsim.cli.common import CliError, Parser, apply_threads, error
 
 
@@ -24,6 +24,7 @@ def build_parser() -> argparse.ArgumentParser:
     sub = parser.add_subparsers(dest="command", metavar="COMMAND", required=True)
     scenes.add_commands(sub)
     subspaces.add_commands(sub)
+    cubature.add_commands(sub)
     envs.add_commands(sub, bench.add_commands(sub))
     agents.add_commands(sub)
     return parser

@@ -18,7 +18,7 @@ import torch
 from torch import Tensor
 
 from redsim.points import PointSet
-from redsim.tensors import cast_tensors
+from redsim.tensors import cast_tensors, map_tensors
 
 
 class Effect:
@@ -67,6 +67,26 @@ class Effect:
         out = copy.copy(self)
         for key, value in vars(self).items():
             setattr(out, key, cast_tensors(value, device, dtype))
+        return out
+
+    def subset(self, index: Tensor) -> Effect:
+        """A copy of this term over the elements ``index`` [K] only (int64, each in [0, T)).
+
+        Every per-element field (a tensor, or a dataclass such as a :class:`PointSet`, whose leading
+        dimension is T) is selected; other fields are shared. A cubature evaluates the subset's
+        ``element_energy`` on ``gather_elements(x, subset.element_dofs)``.
+        """
+        index = torch.as_tensor(index, dtype=torch.int64, device=self.element_dofs.device)
+        count = self.element_count
+        if index.ndim != 1 or (index.numel() and (int(index.min()) < 0 or int(index.max()) >= count)):
+            raise ValueError(f"element indices must be a 1-D tensor in [0, {count}) for {self.name!r}")
+
+        def select(t: Tensor) -> Tensor:
+            return t.index_select(0, index) if t.ndim and t.shape[0] == count else t
+
+        out = copy.copy(self)
+        for key, value in vars(self).items():
+            setattr(out, key, map_tensors(value, select))
         return out
 
     def __repr__(self) -> str:

@@ -205,6 +205,12 @@ class SDFContact(Effect):
         self.pair_offsets = offsets if bool(offsets.any()) else None  # [pairs, D, S]
         self.pair_mask = mask  # [pairs, S]
 
+    def subset(self, index: Tensor) -> SDFContact:
+        """The contact of the points ``index`` only (its pair tables rebuilt)."""
+        out: SDFContact = super().subset(index)  # type: ignore[assignment]
+        out._build_pairs()
+        return out
+
     def signed_distance(self, xe: Tensor) -> Tensor:
         """Signed distance [m] of each point, shape [B, P], from element entries [B, P, k]."""
         (p,) = split_points(xe, self.points)

@@ -2,7 +2,9 @@
 
 Each is ``SCENE.pt`` + ``SCENE.json`` in this folder, written by ``redsim fit`` for the scene
 with its default parameters; the JSON's ``command`` is the exact command line that reproduces
-it (run it in an empty folder: it writes ``SCENE.pt`` + ``SCENE.json`` there).
+it (run it in an empty folder: it writes ``SCENE.pt`` + ``SCENE.json`` there). Some scenes also
+ship ``SCENE.cubature.json``, a cubature energy for that map (:mod:`redsim.cubature`; its
+``command`` rebuilds it).
 
     >>> from redsim import pretrained
     >>> f = pretrained.load("mini_chain")   # a SubspaceMap, checked against scenes.build("mini_chain")
@@ -25,7 +27,7 @@ ENV_SCENES = tuple(scenes.names("env"))
 
 def names() -> list[str]:
     """Scenes with a shipped subspace, sorted."""
-    return sorted(p.stem for p in FOLDER.glob("*.json"))
+    return sorted(p.stem for p in FOLDER.glob("*.json") if not p.name.endswith(".cubature.json"))
 
 
 def path(scene_name: str) -> Path:

@@ -9,7 +9,7 @@
 
 from __future__ import annotations
 
-from redsim.runtime.energy import LatentEnergy, MapEnergy
+from redsim.runtime.energy import LatentEnergy, MapEnergy, ReducedInertia
 from redsim.runtime.stepper import LatentStepper, StepStats
 
-__all__ = ["LatentEnergy", "LatentStepper", "MapEnergy", "StepStats"]
+__all__ = ["LatentEnergy", "LatentStepper", "MapEnergy", "ReducedInertia", "StepStats"]

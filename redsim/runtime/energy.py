@@ -7,7 +7,9 @@ The stepper minimizes, per state b,
 where q(z) are the free DOFs the map gives, p(q) the handle positions (linear in q) and F_b the
 loads. The stepper owns the inertia and load terms (they only need q); the energy object owns
 E(z; c) and the map. :class:`MapEnergy` is today's E: ``scene.energy`` composed with the map,
-every effect except the load term. A cubature energy drops in by implementing the same protocol.
+every effect except the load term. A cubature energy drops in by implementing the same protocol,
+plus the optional :class:`ReducedInertia` (its features r with q = r W^T + b) so that the stepper's
+inertia and load terms need no pass over all of q either.
 """
 
 from __future__ import annotations
@@ -47,6 +49,32 @@ class LatentEnergy(Protocol):
 
     def positions(self, z: Tensor, cond: Tensor | None) -> Tensor:
         """Free configurations q [B, n] of latents z [B, d] (differentiable in z)."""
+        ...
+
+
+@runtime_checkable
+class ReducedInertia(Protocol):
+    """Optional extension of :class:`LatentEnergy`: q(z) = r(z) W^T + b with few features r.
+
+    An energy that also implements this lets the stepper evaluate the inertia term
+    1/(2h^2)|q - qbar|_M^2 = 1/(2h^2)(r - rbar)^T (W^T M W)(r - rbar) and the load term in r, exactly
+    and at a cost that does not grow with n (W^T M W [w, w] is computed once). Energies without it
+    (:class:`MapEnergy`) are stepped over all of q, as before.
+
+    Attributes:
+        output_weight: W, shape [n, w].
+        output_bias: b, shape [n].
+    """
+
+    output_weight: Tensor
+    output_bias: Tensor
+
+    def features(self, z: Tensor, cond: Tensor | None) -> Tensor:
+        """r [B, w] of latents z [B, d] (differentiable in z)."""
+        ...
+
+    def energy_features(self, z: Tensor, cond: Tensor | None) -> tuple[Tensor, Tensor]:
+        """E [B] [J] and the features r [B, w] it computed on the way."""
         ...
 
 
@@ -114,4 +142,4 @@ class MapEnergy:
         return self.q_energy(q, cond), q
 
 
-__all__ = ["LatentEnergy", "MapEnergy"]
+__all__ = ["LatentEnergy", "MapEnergy", "ReducedInertia"]

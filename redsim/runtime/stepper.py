@@ -13,13 +13,14 @@ here; a step only evaluates the energy.
 from __future__ import annotations
 
 import math
+from collections.abc import Callable
 from typing import NamedTuple
 
 import torch
 from torch import Tensor, nn
 
 from redsim.integrators import LatentSpace, latent_equilibrium, length_scale
-from redsim.runtime.energy import LatentEnergy, MapEnergy
+from redsim.runtime.energy import LatentEnergy, MapEnergy, ReducedInertia
 from redsim.runtime.flags import diverged_states, out_of_range_states
 from redsim.runtime.solver import HESSIANS, minimize
 from redsim.scene import Scene
@@ -137,18 +138,21 @@ class _StepObjective:
         value, grads, energy = self._value_and_grad(full, self.qbar.repeat(d, 1), loads, cond)
         return value[rows], grads[rows], energy[rows]
 
-    def _jacobian(self, z: Tensor, index: Tensor) -> Tensor:
-        """J^T as [d, k, n]: dq/dz_j of every state, by forward mode through the map."""
+    def _jacobian(
+        self, z: Tensor, index: Tensor, coords: Callable[[Tensor, Tensor | None], Tensor] | None = None
+    ) -> Tensor:
+        """J^T as [d, k, n]: dy/dz_j of every state (y = the stepper's coordinates), by forward mode."""
         k, d = z.shape
         tangents = torch.eye(d, dtype=z.dtype, device=z.device).repeat_interleave(k, 0)
         cond = self._cond(index, d)
-        _, columns = torch.func.jvp(lambda u: self.s.energy.positions(u, cond), (z.detach().repeat(d, 1),), (tangents,))
+        coords = self.s._coords if coords is None else coords
+        _, columns = torch.func.jvp(lambda u: coords(u, cond), (z.detach().repeat(d, 1),), (tangents,))
         return columns.reshape(d, k, -1)
 
     def metric(self, z: Tensor, index: Tensor) -> Tensor:
         columns = self._jacobian(z, index)
         d, k, n = columns.shape
-        mj = self.s.scene.mass_matvec(columns.reshape(d * k, n)).reshape(d, k, n)
+        mj = self.s._mass(columns.reshape(d * k, n)).reshape(d, k, n)
         return torch.einsum("akn,bkn->kab", columns, mj) / self.s.dt**2
 
     def gauss_newton(self, z: Tensor, index: Tensor) -> Tensor:
@@ -184,6 +188,11 @@ class LatentStepper:
         dtype: Floating dtype of the solve (float32 by default; float64 on request).
         device: Where it runs ("cpu", "cuda", ...).
         energy: A :class:`redsim.runtime.energy.LatentEnergy`; None means :class:`MapEnergy` (scene.energy o f).
+            One that also implements :class:`redsim.runtime.energy.ReducedInertia` (e.g. a cubature energy)
+            has the inertia and load terms evaluated in its features r (q = r W^T + b) with the
+            precomputed W^T M W: exact, and no per-iteration cost that grows with n. A callable is a
+            factory ``energy(scene, subspace, dtype=, device=)``, e.g. :func:`redsim.cubature.cubature_energy`
+            (the cubature shipped for the scene's map).
         max_iter: Most solver iterations per step.
         tol: Relative gradient tolerance (default :data:`DEFAULT_TOL` of the dtype).
         hessian: The solver's Hessian model, one of :data:`redsim.runtime.solver.HESSIANS`.
@@ -202,7 +211,7 @@ class LatentStepper:
         *,
         dtype: torch.dtype = torch.float32,
         device: str | torch.device = "cpu",
-        energy: LatentEnergy | None = None,
+        energy: LatentEnergy | Callable[..., LatentEnergy] | None = None,
         max_iter: int = DEFAULT_MAX_ITER,
         tol: float | None = None,
         hessian: str = DEFAULT_HESSIAN,
@@ -228,10 +237,15 @@ class LatentStepper:
         self.source_scene = scene
         self.subspace = subspace
         self.scene = scene.to(device=self.device, dtype=dtype)
+        if callable(energy) and not isinstance(energy, LatentEnergy):  # a factory, e.g. cubature_energy
+            energy = energy(scene, subspace, dtype=dtype, device=self.device)
+        if energy is not None and not isinstance(energy, LatentEnergy):
+            raise ValueError(f"energy must be a LatentEnergy, a factory of one, or None; got {energy!r}")
         self.energy: LatentEnergy = (
             MapEnergy(scene, subspace, dtype=dtype, device=self.device) if energy is None else energy
         )
         self.latent_dim = int(self.energy.latent_dim)
+        self.reduced = isinstance(self.energy, ReducedInertia)
         self._rest: Tensor | None = None
         self._build_constants()
         self._phi = self._phi_eager
@@ -255,6 +269,11 @@ class LatentStepper:
                     rows.append(row[0])
         self._handle_matrix = torch.stack(rows) if rows else torch.zeros(0, n, dtype=dtype, device=device)
         self._handle_offset = p[0].detach() if p is not None else torch.zeros(0, dtype=dtype, device=device)
+        self._coords = self.energy.positions
+        self._mass = scene.mass_matvec
+        self._handles = self.handle_positions
+        if self.reduced:
+            self._reduce_inertia()
         # force scale pieces, measured at f(0) in float64
         scene64 = self.source_scene.to(device=device, dtype=torch.float64)
         cond0 = self._default_cond(1, torch.float64)
@@ -276,9 +295,30 @@ class LatentStepper:
         self.base_force = force + float(mass_diagonal) * self.length / self.dt**2
         z0 = torch.zeros(1, self.latent_dim, dtype=dtype, device=device)
         objective = _StepObjective(self, torch.zeros(1, n, dtype=dtype, device=device), None, self._default_cond(1), z0)
-        columns = objective._jacobian(z0, torch.zeros(1, dtype=torch.int64, device=device))[:, 0].to(torch.float64)
+        index0 = torch.zeros(1, dtype=torch.int64, device=device)
+        columns = objective._jacobian(z0, index0, self.energy.positions)[:, 0].to(torch.float64)
         self.jacobian_norm = float(torch.linalg.matrix_norm(columns, 2)) or 1.0
         self._eps = float(torch.finfo(dtype).eps)
+
+    def _reduce_inertia(self) -> None:
+        """Coordinates r with q = r W^T + b: mass W^T M W, |M v| by W^T M^2 W, handles A W r + (A b + p0)."""
+        energy: ReducedInertia = self.energy  # type: ignore[assignment]
+        weight = energy.output_weight.to(device=self.device, dtype=torch.float64)
+        bias = energy.output_bias.to(device=self.device, dtype=torch.float64)
+        mass_w = self.source_scene.to(device=self.device, dtype=torch.float64).mass_matvec(weight.T)  # (M W)^T [w, n]
+        gram = (mass_w @ weight).to(self.dtype)
+        gram_sq = (mass_w @ mass_w.T).to(self.dtype)
+        handles = self._handle_matrix.to(torch.float64)
+        handle_matrix = (handles @ weight).to(self.dtype)
+        handle_offset = (handles @ bias).to(self.dtype) + self._handle_offset
+        self._coords = energy.features
+        self._mass = lambda y: y @ gram
+        self._mass_norm = lambda v, _mv: (v * (v @ gram_sq)).sum(-1).clamp_min(0.0).sqrt()
+        self._handles = lambda y: y @ handle_matrix.T + handle_offset
+
+    def _mass_norm(self, v: Tensor, mv: Tensor) -> Tensor:
+        """|M v| [B] of coordinate velocities v [B, n], given mv = self._mass(v)."""
+        return torch.linalg.vector_norm(mv, dim=-1)
 
     def _default_cond(self, batch: int, dtype: torch.dtype | None = None) -> Tensor | None:
         space = self.scene.condition_space
@@ -287,14 +327,20 @@ class LatentStepper:
         return space.default.to(device=self.device, dtype=dtype or self.dtype).unsqueeze(0).expand(batch, -1)
 
     def _phi_eager(self, z: Tensor, qbar: Tensor, loads: Tensor | None, cond: Tensor | None) -> tuple[Tensor, Tensor]:
-        """Phi [k] and E [k] of z [k, d] with inertial targets qbar [k, n], loads [k, H*D] and cond [k, m]."""
-        energy, q = self.energy.energy(z, cond)
-        if q is None:
-            q = self.energy.positions(z, cond)
+        """Phi [k] and E [k] of z [k, d] with inertial targets qbar [k, n], loads [k, H*D] and cond [k, m].
+
+        q and qbar are the stepper's coordinates: the free DOFs, or an energy's features r (reduced inertia).
+        """
+        if self.reduced:
+            energy, q = self.energy.energy_features(z, cond)  # type: ignore[attr-defined]
+        else:
+            energy, q = self.energy.energy(z, cond)
+            if q is None:
+                q = self.energy.positions(z, cond)
         d = q - qbar
-        value = energy + (0.5 / self.dt**2) * (d * self.scene.mass_matvec(d)).sum(-1)
+        value = energy + (0.5 / self.dt**2) * (d * self._mass(d)).sum(-1)
         if loads is not None:
-            value = value - (loads * self.handle_positions(q)).sum(-1)
+            value = value - (loads * self._handles(q)).sum(-1)
         return value, energy
 
     def handle_positions(self, q: Tensor) -> Tensor:
@@ -374,12 +420,12 @@ class LatentStepper:
         loads_t = self._loads(loads, batch)
         cond_t = self._cond(cond, batch)
         with torch.no_grad():
-            both = self.energy.positions(torch.cat([z, z_prev]), None if cond_t is None else cond_t.repeat(2, 1))
+            both = self._coords(torch.cat([z, z_prev]), None if cond_t is None else cond_t.repeat(2, 1))
             q_t, q_prev = both[:batch], both[batch:]
             velocity = q_t - q_prev
             qbar = q_t + velocity
-            m_v = self.scene.mass_matvec(velocity)
-            force = self.base_force + torch.linalg.vector_norm(m_v, dim=-1) / self.dt**2
+            m_v = self._mass(velocity)
+            force = self.base_force + self._mass_norm(velocity, m_v) / self.dt**2
             if loads_t is not None:
                 force = force + torch.linalg.vector_norm(loads_t, dim=-1)
             z0 = 2.0 * z - z_prev
@@ -405,16 +451,16 @@ class LatentStepper:
                 secant=(z, grad[batch:]),
             )
             z_next = torch.where(result.finite[:, None], result.z, z)
-            q_next = self.energy.positions(z_next, cond_t)
+            q_next = self._coords(z_next, cond_t)
             step_velocity = q_next - q_t
-            kinetic_next = 0.5 * (step_velocity * self.scene.mass_matvec(step_velocity)).sum(-1) / self.dt**2
+            kinetic_next = 0.5 * (step_velocity * self._mass(step_velocity)).sum(-1) / self.dt**2
             offset = q_next - qbar
             diverged = ~result.finite | diverged_states(
                 value[batch:],
                 result.value,
                 0.5 * (velocity * m_v).sum(-1) / self.dt**2,
                 kinetic_next,
-                0.5 * (offset * self.scene.mass_matvec(offset)).sum(-1) / self.dt**2,
+                0.5 * (offset * self._mass(offset)).sum(-1) / self.dt**2,
                 force * self.length,
                 noise + self.tol * force * self.length,
             )

@@ -292,8 +292,8 @@ def test_subproc_vec_env_with_spawn_runs_the_envs() -> None:
     from stable_baselines3.common.env_util import make_vec_env
     from stable_baselines3.common.vec_env import SubprocVecEnv
 
-    venv = make_vec_env(
-        "RedSim/MiniChain-v0", n_envs=2, vec_env_cls=SubprocVecEnv, vec_env_kwargs={"start_method": "spawn"}
+    venv = make_vec_env(  # a spawned worker has not imported redsim: the "redsim:" prefix imports it there
+        "redsim:RedSim/MiniChain-v0", n_envs=2, vec_env_cls=SubprocVecEnv, vec_env_kwargs={"start_method": "spawn"}
     )
     venv.reset()
     obs, reward, _done, _ = venv.step(np.zeros((2, 3), np.float32))

@@ -1,0 +1,215 @@
+"""``redsim cubature CHECKPOINT`` and ``redsim bench cubature``: argparse wiring (the work is in redsim.cubature)."""
+
+from __future__ import annotations
+
+import argparse
+import shlex
+from pathlib import Path
+from typing import Any
+
+from redsim.cli.common import (
+    EXIT_OK,
+    CliError,
+    finish_command,
+    json_out,
+    load_checkpoint,
+    machine_line,
+    out,
+    parse_ints,
+    parse_list,
+)
+
+TOL_ELEMENTS = 1000
+"""Most elements per effect with ``--tol``."""
+
+
+def _command(args: argparse.Namespace) -> str:
+    """The command line that rebuilds this cubature."""
+    parts = ["redsim", "cubature", args.checkpoint]
+    parts += ["--elements", str(args.elements)] if args.elements is not None else ["--tol", repr(args.tol)]
+    parts += ["--samples", str(args.samples), "--episodes", str(args.episodes)]
+    parts += ["--rollout-steps", str(args.rollout_steps), "--seed", str(args.seed)]
+    parts += ["--full", args.full] if args.full is not None else []
+    parts += ["--subsample", args.subsample] if args.subsample else []
+    return " ".join(shlex.quote(p) for p in parts)
+
+
+def _config(args: argparse.Namespace) -> Any:
+    from redsim.cubature import CubatureConfig
+
+    try:
+        return CubatureConfig(
+            elements=TOL_ELEMENTS if args.elements is None else args.elements,
+            tol=args.tol,
+            samples=args.samples,
+            episodes=args.episodes,
+            steps=args.rollout_steps,
+            full=None if args.full is None else tuple(parse_list(args.full, "--full")),
+            subsample=tuple(parse_list(args.subsample, "--subsample")) if args.subsample else (),
+            seed=args.seed,
+        )
+    except ValueError as err:
+        raise CliError(str(err)) from err
+
+
+def cmd_cubature(args: argparse.Namespace) -> int:
+    from redsim.cubature import build_cubature
+
+    scene, subspace = load_checkpoint(args.checkpoint)
+    command = _command(args)
+    try:
+        cub = build_cubature(scene, subspace, _config(args), progress=not args.json, command=command)
+    except ValueError as err:
+        raise CliError(str(err)) from err
+    path = cub.save(args.checkpoint)
+    rows = [
+        {
+            "effect": r.name,
+            "mode": r.mode,
+            "kept": int(r.indices.numel()),
+            "of": r.element_count,
+            "held_out_error": r.held_out_error,
+        }
+        for r in cub.rules
+    ]
+    if args.json:
+        json_out({"path": str(path), "summary": cub.summary, "effects": rows})
+        return EXIT_OK
+    out(f"wrote {path}")
+    for row in rows:
+        out(
+            f"  {row['effect']:<16} {row['mode']:<9} {row['kept']:>6} of {row['of']:<7} "
+            f"held-out error {row['held_out_error']:.3g}"
+        )
+    s = cub.summary
+    out(
+        f"  {s['states']} states ({s['sampled_states']} sampled, {s['rollout_states']} from rollouts), "
+        f"held-out force error {s['held_out_force_error']:.3g}, force+energy {s['held_out_error']:.3g}"
+    )
+    return EXIT_OK
+
+
+def cmd_bench_cubature(args: argparse.Namespace) -> int:
+    from redsim import pretrained
+    from redsim.bench import machine_info
+    from redsim.cubature import CubatureConfig, build_cubature, load_cubature
+    from redsim.cubature.bench import bench_cubature
+    from redsim.cubature.energy import cubature_path
+    from redsim.subspace import CheckpointError
+
+    if args.sweep:
+        return _sweep(args)
+    names = parse_list(args.scenes, "SCENES")
+    batches = tuple(parse_ints(args.batches, "--batches"))
+    if args.steps < 1 or args.timed_steps < 2:
+        raise CliError("--steps must be >= 1 and --timed-steps >= 2")
+    machine = machine_info()
+    results = []
+    if not args.json:
+        out(
+            "cubature vs all-element latent step (float32, CPU); deviation over "
+            f"{args.steps} steps, step time median (ms)"
+        )
+        out(machine_line(machine, "cpu"))
+    for name in names:
+        mine = Path(args.checkpoints) / f"{name}.pt" if args.checkpoints else None
+        try:
+            weights = mine if mine is not None and mine.is_file() else pretrained.path(name)
+        except KeyError as err:
+            raise CliError(str(err)) from err
+        scene, subspace = load_checkpoint(str(weights))
+        try:
+            cub = load_cubature(weights, scene, subspace) if cubature_path(weights).is_file() else None
+        except CheckpointError as err:
+            raise CliError(str(err)) from err
+        if cub is None:
+            cub = build_cubature(scene, subspace, CubatureConfig(elements=args.elements))
+        result = bench_cubature(scene, subspace, cub, steps=args.steps, batches=batches, timed_steps=args.timed_steps)
+        results.append(result)
+        if not args.json:
+            kept = ", ".join(f"{k} {v}/{result['element_counts'][k]}" for k, v in result["elements"].items())
+            times = "  ".join(
+                f"B={b}: {1e3 * t['all_s']:.3g} -> {1e3 * t['cubature_s']:.3g} ({t['all_s'] / t['cubature_s']:.1f}x)"
+                for b, t in result["timing"].items()
+            )
+            out(
+                f"{name}: n={result['n']}, kept {kept}; held-out force error {result['held_out_force_error']:.3g}; "
+                f"trajectory deviation {result['trajectory_deviation']:.3g}; penetration "
+                f"{result['penetration_all_m']:.2g} -> {result['penetration_cubature_m']:.2g} m; {times}"
+            )
+    if args.json:
+        json_out({"machine": machine, "results": results})
+    return EXIT_OK
+
+
+def _sweep(args: argparse.Namespace) -> int:
+    from redsim.bench import machine_info
+    from redsim.cubature.bench import mesh_sweep
+
+    cells = tuple(parse_ints(args.sweep, "--sweep"))
+    batches = tuple(parse_ints(args.batches, "--batches"))
+    rows = mesh_sweep(cells, elements=args.elements, batches=batches, timed_steps=args.timed_steps)
+    if args.json:
+        json_out({"machine": machine_info(), "sweep": rows})
+        return EXIT_OK
+    out("hanging_sheet meshed c x c, unfitted d=8 map near the seed: median step (ms), all elements -> cubature")
+    out(machine_line(machine_info(), "cpu"))
+    for row in rows:
+        times = "  ".join(
+            f"B={b}: {1e3 * t['all_s']:.3g} -> {1e3 * t['cubature_s']:.3g}" for b, t in row["timing"].items()
+        )
+        out(f"cells {row['cells']:>4}  n {row['n']:>7}  kept {row['kept']:>5}  {times}")
+    return EXIT_OK
+
+
+def add_commands(sub: Any) -> None:
+    """``redsim cubature``."""
+    p = sub.add_parser(
+        "cubature",
+        help="fit a cubature energy for a subspace checkpoint",
+        description=(
+            "Choose a few elements per effect with non-negative weights (greedy + NNLS) so that the reduced forces "
+            "and energy match the full energy's on states sampled from the subspace (z ~ N(0, I)) and visited by "
+            "latent rollouts under random loads; write CHECKPOINT.cubature.json beside the checkpoint."
+        ),
+    )
+    p.add_argument("checkpoint", help="the subspace checkpoint (STEM, STEM.pt or STEM.json)")
+    size = p.add_mutually_exclusive_group(required=True)
+    size.add_argument("--elements", type=int, help="most elements kept per subsampled effect")
+    size.add_argument("--tol", type=float, help="target training force error (at most 1000 elements per effect)")
+    p.add_argument("--samples", type=int, default=256, help="states z ~ N(0, I) (default 256)")
+    p.add_argument("--episodes", type=int, default=4, help="latent rollouts under random loads (default 4)")
+    p.add_argument("--rollout-steps", type=int, default=40, help="steps per rollout (default 40)")
+    p.add_argument("--full", metavar="E1,E2", help="effects kept whole (default: contact effects)")
+    p.add_argument("--subsample", metavar="E1,E2", help="effects subsampled even if they are contact")
+    p.add_argument("--seed", type=int, default=0, help="seed of samples, loads and split (default 0)")
+    finish_command(p, cmd_cubature, "print one JSON document on stdout (no progress bar)")
+
+
+def add_bench_command(bench: Any) -> None:
+    """``redsim bench cubature`` under the ``bench`` subcommands ``bench``."""
+    p = bench.add_parser(
+        "cubature",
+        help="cubature energy vs the all-element latent step",
+        description=(
+            "For each scene's shipped subspace (or DIR/SCENE.pt) and the cubature beside it (built with --elements "
+            "if there is none): elements kept, held-out force error, trajectory deviation from the all-element "
+            "step under the same seeded loads, contact penetration of both, and step time per batch size side by side."
+        ),
+    )
+    p.add_argument("scenes", nargs="?", default="cloth_ball,hanging_sheet", help="comma-separated scene names")
+    p.add_argument("--steps", type=int, default=100, help="steps of the accuracy rollouts (default 100)")
+    p.add_argument("--timed-steps", type=int, default=10, help="timed steps per batch size (default 10)")
+    p.add_argument("--batches", default="1,64", metavar="B1,B2", help="batch sizes timed (default 1,64)")
+    p.add_argument("--elements", type=int, default=200, help="elements per effect when none is shipped (200)")
+    p.add_argument(
+        "--checkpoints",
+        metavar="DIR",
+        help="use DIR/SCENE.pt and the cubature beside it where they exist (default: the shipped ones)",
+    )
+    p.add_argument(
+        "--sweep",
+        metavar="C1,C2",
+        help="instead: the mesh sweep, hanging_sheet with C x C cells each (step time only, unfitted maps)",
+    )
+    finish_command(p, cmd_bench_cubature, "print one JSON document on stdout", default_threads=1)

@@ -1,0 +1,167 @@
+"""``redsim bench cubature``: a cubature energy against the all-element latent step, side by side in one run.
+
+Per scene: elements kept, held-out reduced-force error, trajectory deviation from the all-element
+step over seeded load sequences, contact penetration of both, and step time at each batch size.
+"""
+
+from __future__ import annotations
+
+import statistics
+import time
+from typing import Any
+
+import torch
+from torch import Tensor, nn
+
+from redsim.cubature.energy import Cubature, CubatureEnergy
+from redsim.cubature.fit import default_load_scale
+from redsim.effects.base import gather_elements
+from redsim.effects.penalty import SDFContact
+from redsim.runtime import LatentStepper
+from redsim.scene import Scene
+
+
+def _loads(scene: Scene, steps: int, batch: int, hold: int, scale: float, seed: int) -> Tensor:
+    """Seeded piecewise-constant loads [steps, B, H, D]: N(0, scale^2) per component, redrawn every ``hold`` steps."""
+    generator = torch.Generator().manual_seed(seed)
+    segments = -(-steps // hold)
+    draws = scale * torch.randn(segments, batch, len(scene.handles), scene.dim, generator=generator)
+    return draws.repeat_interleave(hold, 0)[:steps]
+
+
+def _rollout(stepper: LatentStepper, z0: Tensor, loads: Tensor | None, steps: int) -> tuple[Tensor, list[float]]:
+    """Latents [steps + 1, B, d] of a rollout and the wall time of each step [s]."""
+    z, z_prev, out, times = z0, z0, [z0], []
+    for t in range(steps):
+        start = time.perf_counter()
+        z_next, _ = stepper.step(z, z_prev, None if loads is None else loads[t])
+        times.append(time.perf_counter() - start)
+        z_prev, z = z, z_next
+        out.append(z)
+    return torch.stack(out), times
+
+
+def penetration(scene: Scene, q: Tensor) -> float:
+    """Deepest contact penetration [m] (below the margin) over configurations q [S, n] (0 without contact)."""
+    x = scene.full_positions(q)
+    depth = 0.0
+    for effect in scene.effects:
+        if isinstance(effect, SDFContact):
+            gap = effect.signed_distance(gather_elements(x, effect.element_dofs)) - effect.margin
+            depth = max(depth, float((-gap).clamp_min(0.0).max()))
+    return depth
+
+
+def bench_cubature(
+    scene: Scene,
+    subspace: nn.Module,
+    cubature: Cubature,
+    *,
+    dt: float = 0.02,
+    steps: int = 100,
+    batches: tuple[int, ...] = (1, 64),
+    timed_steps: int = 10,
+    hold: int = 10,
+    load_scale: float | None = None,
+    seed: int = 0,
+) -> dict[str, Any]:
+    """Compare the cubature energy with the all-element step (float32, CPU, the stepper's defaults).
+
+    Accuracy: ``min(batches[-1], 8)`` states from the rest latent under the same seeded loads, ``steps`` steps
+    with each energy; the deviation of a state is max_t |q_cub(t) - q_all(t)|_M / max_t |q_all(t) - q_all(0)|_M
+    (the median over states is reported), the penetration the deepest contact over all states and steps.
+    Time: the median step [s] over ``timed_steps`` steps per batch size, the two energies interleaved.
+    """
+    scale = default_load_scale(scene) if load_scale is None else load_scale
+    all_elements = LatentStepper(scene, subspace, dt)
+    energy = CubatureEnergy(scene, subspace, cubature)
+    reduced = LatentStepper(scene, subspace, dt, energy=energy)
+    rest = all_elements.rest_latent()
+    count = min(max(batches), 8)
+    loads = _loads(scene, steps, count, hold, scale, seed) if scene.handles else None
+    z_all, _ = _rollout(all_elements, rest.expand(count, -1), loads, steps)
+    z_cub, _ = _rollout(reduced, rest.expand(count, -1), loads, steps)
+    with torch.no_grad():
+        q_all = all_elements.positions(z_all.reshape(-1, z_all.shape[-1])).reshape(steps + 1, count, -1)
+        q_cub = all_elements.positions(z_cub.reshape(-1, z_cub.shape[-1])).reshape(steps + 1, count, -1)
+        mass = all_elements.scene.mass_norm_sq
+        gap = mass((q_cub - q_all).reshape(-1, q_all.shape[-1])).reshape(steps + 1, count).sqrt().amax(0)
+        motion = mass((q_all - q_all[:1]).reshape(-1, q_all.shape[-1])).reshape(steps + 1, count).sqrt().amax(0)
+        deviation = (gap / motion.clamp_min(1e-30)).median()
+        scene32 = all_elements.scene
+        pen_all = penetration(scene32, q_all.reshape(-1, q_all.shape[-1]))
+        pen_cub = penetration(scene32, q_cub.reshape(-1, q_cub.shape[-1]))
+    timing = {}
+    for batch in batches:
+        z0 = rest.expand(batch, -1)
+        batch_loads = _loads(scene, timed_steps + 2, batch, hold, scale, seed + 1) if scene.handles else None
+        times_all, times_cub = [], []
+        for _ in range(2):  # interleaved halves, so other load on the machine hits both alike
+            _, t = _rollout(all_elements, z0, batch_loads, timed_steps // 2 + 1)
+            times_all += t[1:]
+            _, t = _rollout(reduced, z0, batch_loads, timed_steps // 2 + 1)
+            times_cub += t[1:]
+        timing[batch] = {"all_s": statistics.median(times_all), "cubature_s": statistics.median(times_cub)}
+    return {
+        "scene": scene.name,
+        "n": scene.free_dof_count,
+        "elements": {r.name: int(r.indices.numel()) for r in cubature.rules},
+        "element_counts": {r.name: r.element_count for r in cubature.rules},
+        "modes": {r.name: r.mode for r in cubature.rules},
+        "kept_dofs": int(energy.kept_dofs.numel()),
+        "held_out_error": cubature.summary.get("held_out_error"),
+        "held_out_force_error": cubature.summary.get("held_out_force_error"),
+        "trajectory_deviation": float(deviation),
+        "steps": steps,
+        "load_scale": scale,
+        "penetration_all_m": pen_all,
+        "penetration_cubature_m": pen_cub,
+        "timing": timing,
+    }
+
+
+def mesh_sweep(
+    cells: tuple[int, ...],
+    *,
+    elements: int = 200,
+    batches: tuple[int, ...] = (1,),
+    timed_steps: int = 4,
+    dt: float = 0.02,
+    seed: int = 0,
+) -> list[dict[str, Any]]:
+    """Step time of the same sheet meshed ever finer: all-element latent step vs cubature.
+
+    For each c in ``cells``: ``hanging_sheet`` with c x c cells, a d = 8 neural map of the shipped
+    architecture made near the seed state (output bias = the seed, small random output weights: not
+    fitted, it measures cost, not accuracy), a cubature of ``elements`` elements per effect on 64
+    sampled states, and the median step [s] of both steppers from the seed latent under a constant
+    load, per batch size.
+    """
+    from redsim import scenes
+    from redsim.cubature.energy import build_cubature
+    from redsim.cubature.fit import CubatureConfig
+    from redsim.subspace import SubspaceConfig, SubspaceMap
+
+    rows = []
+    for c in cells:
+        scene = scenes.build("hanging_sheet", cells_x=int(c), cells_y=int(c))
+        torch.manual_seed(seed)
+        f = SubspaceMap(SubspaceConfig(latent_dim=8, output_dim=scene.free_dof_count))
+        with torch.no_grad():
+            f.mlp[-1].weight.mul_(0.01)
+            f.mlp[-1].bias.copy_(scene.q_seed.to(torch.float32))
+        cub = build_cubature(scene, f, CubatureConfig(elements=elements, samples=64, episodes=0, seed=seed))
+        all_elements = LatentStepper(scene, f, dt)
+        reduced = LatentStepper(scene, f, dt, energy=CubatureEnergy(scene, f, cub))
+        row: dict[str, Any] = {"cells": int(c), "n": scene.free_dof_count, "kept": cub.kept, "timing": {}}
+        for batch in batches:
+            z0 = torch.zeros(batch, 8)
+            loads = 0.1 * torch.ones(timed_steps + 1, batch, len(scene.handles), scene.dim)
+            _, t_all = _rollout(all_elements, z0, loads, timed_steps + 1)
+            _, t_cub = _rollout(reduced, z0, loads, timed_steps + 1)
+            row["timing"][batch] = {"all_s": statistics.median(t_all[1:]), "cubature_s": statistics.median(t_cub[1:])}
+        rows.append(row)
+    return rows
+
+
+__all__ = ["bench_cubature", "mesh_sweep", "penetration"]

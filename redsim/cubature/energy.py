@@ -1,0 +1,387 @@
+"""A cubature: its rules per effect, stored beside the map it belongs to, and the latent energy it gives.
+
+``STEM.cubature.json`` sits beside the map's ``STEM.pt`` + ``STEM.json``. It records the scene's name
+and fingerprint and a hash of the map's weights, so it is refused for another scene or another map.
+
+:class:`CubatureEnergy` is a :class:`redsim.runtime.LatentEnergy` whose cost does not grow with n:
+
+    E_cub(z) = sum_effects sum_{e kept} w_e E_e(x_S(z)) + sum_linear (r(z) . c + e0) + offset,
+
+where x_S = r(z) W_S^T + b_S are only the full DOFs the kept elements read (a sliced output layer) and
+r(z) the map's last features. It also offers the runtime's reduced-inertia extension (``features``,
+``energy_features`` and the output layer), with which the stepper evaluates 1/(2h^2)|f(z) - qbar|_M^2
+exactly as (r - rbar)^T (W^T M W) (r - rbar) / (2h^2), a w x w form.
+"""
+
+from __future__ import annotations
+
+import hashlib
+import json
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any
+
+import torch
+from torch import Tensor, nn
+
+from redsim.cubature.fit import MODES, CubatureConfig, EffectRule, fit_rules
+from redsim.cubature.output import AffineOutput, sliced_layer
+from redsim.effects.base import Effect, gather_elements
+from redsim.scene import Scene
+from redsim.subspace import CheckpointError, checkpoint_path, periodic_latents
+
+FORMAT_VERSION = 1
+SUFFIX = ".cubature.json"
+
+
+def map_fingerprint(subspace: nn.Module) -> str:
+    """Hash of a map's weights (as float32, so a float64 copy of the same map matches)."""
+    digest = hashlib.sha256()
+    for key, value in sorted(subspace.state_dict().items()):
+        digest.update(key.encode())
+        if value.is_floating_point():
+            value = value.to(torch.float32)
+        digest.update(value.detach().cpu().contiguous().numpy().tobytes())
+    return digest.hexdigest()[:16]
+
+
+def cubature_path(path: str | Path) -> Path:
+    """``STEM.cubature.json`` for a map given as ``STEM``, ``STEM.pt``, ``STEM.json`` or the cubature itself."""
+    path = Path(path)
+    if path.name.endswith(SUFFIX):
+        return path
+    return checkpoint_path(path, SUFFIX)
+
+
+@dataclass
+class Cubature:
+    """The rules of every effect of one scene's energy, for one map.
+
+    Attributes:
+        scene: Scene name.
+        scene_fingerprint: :meth:`redsim.scene.Scene.fingerprint` of the scene it was built for.
+        map_fingerprint: :func:`map_fingerprint` of the map.
+        rules: One :class:`EffectRule` per effect (load terms excluded).
+        summary: State counts and total errors (relative force + energy error on training and held-out states).
+        config: The :class:`CubatureConfig` fields.
+        command: The ``redsim cubature ...`` command line that made it ("" when built in Python).
+    """
+
+    scene: str
+    scene_fingerprint: str
+    map_fingerprint: str
+    rules: list[EffectRule]
+    summary: dict[str, Any] = field(default_factory=dict)
+    config: dict[str, Any] = field(default_factory=dict)
+    command: str = ""
+
+    @property
+    def kept(self) -> int:
+        """Elements evaluated per state (subsampled and whole effects)."""
+        return sum(int(r.indices.numel()) for r in self.rules)
+
+    def save(self, path: str | Path) -> Path:
+        """Write ``STEM.cubature.json`` beside the map ``path`` (``STEM``/``STEM.pt``); returns its path."""
+        out = cubature_path(path)
+        rules = [
+            {
+                "name": r.name,
+                "mode": r.mode,
+                "element_count": r.element_count,
+                "indices": r.indices.tolist() if r.mode == "cubature" else None,
+                "weights": r.weights.tolist() if r.mode == "cubature" else None,
+                "train_error": r.train_error,
+                "held_out_error": r.held_out_error,
+                "history": r.history,
+            }
+            for r in self.rules
+        ]
+        doc = {
+            "format_version": FORMAT_VERSION,
+            "scene": self.scene,
+            "scene_fingerprint": self.scene_fingerprint,
+            "map_fingerprint": self.map_fingerprint,
+            "summary": self.summary,
+            "config": self.config,
+            "command": self.command,
+            "rules": rules,
+        }
+        out.parent.mkdir(parents=True, exist_ok=True)
+        out.write_text(json.dumps(doc, indent=1, sort_keys=True) + "\n")
+        return out
+
+    @classmethod
+    def load(cls, path: str | Path) -> Cubature:
+        """Read ``STEM.cubature.json`` (given as the map's stem or path, or the file itself).
+
+        Raises:
+            CheckpointError: a missing or corrupt file, or an unsupported format version.
+        """
+        src = cubature_path(path)
+        if not src.is_file():
+            raise CheckpointError("no cubature file (make one with `redsim cubature`)", str(src))
+        try:
+            doc = json.loads(src.read_text())
+            if doc.get("format_version") != FORMAT_VERSION:
+                raise CheckpointError(f"unsupported format_version {doc.get('format_version')!r}", str(src))
+            rules = []
+            for r in doc["rules"]:
+                if r["mode"] not in MODES:
+                    raise CheckpointError(f"unknown mode {r['mode']!r}; valid: {list(MODES)}", str(src))
+                count = int(r["element_count"])
+                if r["mode"] == "cubature":
+                    index = torch.tensor(r["indices"], dtype=torch.int64)
+                    weights = torch.tensor(r["weights"], dtype=torch.float64)
+                else:
+                    index = torch.arange(count) if r["mode"] == "full" else torch.zeros(0, dtype=torch.int64)
+                    weights = torch.ones(index.shape[0], dtype=torch.float64)
+                if index.shape != weights.shape or bool((weights < 0).any()):
+                    raise CheckpointError(f"effect {r['name']!r}: indices and weights (>= 0) must match", str(src))
+                history = [tuple(h) for h in r.get("history", [])]
+                rules.append(
+                    EffectRule(
+                        r["name"], r["mode"], count, index, weights, r["train_error"], r["held_out_error"], history
+                    )
+                )
+            return cls(
+                doc["scene"],
+                doc["scene_fingerprint"],
+                doc["map_fingerprint"],
+                rules,
+                doc.get("summary", {}),
+                doc.get("config", {}),
+                doc.get("command", ""),
+            )
+        except (json.JSONDecodeError, KeyError, TypeError, ValueError) as err:
+            if isinstance(err, CheckpointError):
+                raise
+            raise CheckpointError(f"corrupt cubature file ({type(err).__name__}: {err})", str(src)) from None
+
+    def check(self, scene: Scene, subspace: nn.Module, where: str = "") -> None:
+        """Refuse another scene or another map (:class:`CheckpointError`)."""
+        if (self.scene, self.scene_fingerprint) != (scene.name, scene.fingerprint()):
+            raise CheckpointError(
+                f"cubature built for scene {self.scene!r} (fingerprint {self.scene_fingerprint}), "
+                f"not for scene {scene.name!r} (fingerprint {scene.fingerprint()})",
+                where,
+            )
+        mine = map_fingerprint(subspace)
+        if mine != self.map_fingerprint:
+            raise CheckpointError(
+                f"cubature built for another map (weights hash {self.map_fingerprint}, this map {mine}); "
+                "rebuild it with `redsim cubature` for this checkpoint",
+                where,
+            )
+        names = {e.name: e.element_count for e in scene.effects if not e.uses_loads}
+        theirs = {r.name: r.element_count for r in self.rules}
+        if names != theirs:
+            raise CheckpointError(f"cubature effects {theirs} differ from the scene's {names}", where)
+
+
+def build_cubature(
+    scene: Scene,
+    subspace: nn.Module,
+    config: CubatureConfig | None = None,
+    *,
+    progress: bool = False,
+    command: str = "",
+) -> Cubature:
+    """Fit a cubature of ``scene``'s energy for ``subspace`` (see :mod:`redsim.cubature.fit`)."""
+    config = CubatureConfig() if config is None else config
+    AffineOutput(subspace)  # refuse a map without an affine output layer before any work
+    rules, summary = fit_rules(scene, subspace, config, progress=progress)
+    fields = {k: (list(v) if isinstance(v, tuple) else v) for k, v in vars(config).items()}
+    return Cubature(scene.name, scene.fingerprint(), map_fingerprint(subspace), rules, summary, fields, command)
+
+
+def load_cubature(path: str | Path, scene: Scene, subspace: nn.Module) -> Cubature:
+    """Read the cubature beside ``path`` and check it against ``scene`` and ``subspace``."""
+    cub = Cubature.load(path)
+    cub.check(scene, subspace, str(cubature_path(path)))
+    return cub
+
+
+def cubature_energy(
+    scene: Scene,
+    subspace: nn.Module,
+    source: str | Path | None = None,
+    *,
+    dtype: torch.dtype = torch.float32,
+    device: str | torch.device = "cpu",
+) -> CubatureEnergy:
+    """The :class:`CubatureEnergy` stored beside ``source`` (a checkpoint or cubature path).
+
+    ``source`` None means the cubature shipped in :mod:`redsim.pretrained` for ``scene.name``, which is
+    refused (:class:`CheckpointError`) unless ``subspace`` is the shipped map of that scene.
+    """
+    if source is None:
+        from redsim import pretrained
+
+        source = pretrained.FOLDER / scene.name
+    return CubatureEnergy(scene, subspace, load_cubature(source, scene, subspace), dtype=dtype, device=device)
+
+
+class CubatureEnergy:
+    """The latent energy of a cubature (module doc): a :class:`redsim.runtime.LatentEnergy` with reduced inertia.
+
+    Args:
+        scene: The scene.
+        subspace: The map the cubature was built for (copied).
+        cubature: The rules (checked against scene and map).
+        dtype: Floating dtype of every evaluation.
+        device: Where the evaluations run.
+
+    Attributes:
+        output_weight: W [n, w] of q = r W^T + b.
+        output_bias: b [n].
+        kept_dofs: The full DOFs the kept elements read, [s], int64 (s does not grow with n).
+
+    Raises:
+        CheckpointError: the cubature belongs to another scene or map.
+        ValueError: a map without an affine output layer.
+    """
+
+    def __init__(
+        self,
+        scene: Scene,
+        subspace: nn.Module,
+        cubature: Cubature,
+        *,
+        dtype: torch.dtype = torch.float32,
+        device: str | torch.device = "cpu",
+    ) -> None:
+        cubature.check(scene, subspace)
+        self.cubature = cubature
+        self.latent_dim = int(subspace.latent_dim)
+        self.condition_dim = int(getattr(getattr(subspace, "config", None), "condition_dim", 0))
+        self.periodic = periodic_latents(subspace)
+        self.scene = scene.to(device=device, dtype=dtype)
+        self.output = AffineOutput(subspace).to(device=device, dtype=dtype)
+        self.output_weight = self.output.weight
+        self.output_bias = self.output.bias
+        self._build(scene, subspace, dtype, torch.device(device))
+
+    def _terms(self, scene: Scene) -> list[tuple[Effect, Tensor, Tensor | None]]:
+        """(the kept elements as an effect, their DOFs in the kept slice, weights or None for all) per effect."""
+        rules = {r.name: r for r in self.cubature.rules}
+        out = []
+        for effect in scene.effects:
+            rule = rules.get(effect.name)
+            if rule is None or rule.mode == "linear":
+                continue
+            kept = effect if rule.mode == "full" else effect.subset(rule.indices.to(scene.device))
+            weights = None if rule.mode == "full" else rule.weights.to(device=scene.device, dtype=scene.dtype)
+            out.append((kept, torch.searchsorted(self.kept_dofs, kept.element_dofs), weights))
+        return out
+
+    def _build(self, scene: Scene, subspace: nn.Module, dtype: torch.dtype, device: torch.device) -> None:
+        rules = {r.name: r for r in self.cubature.rules}
+        sampled = [e for e in self.scene.effects if e.name in rules and rules[e.name].mode != "linear"]
+        dofs = [e.element_dofs.index_select(0, rules[e.name].indices.to(device)).reshape(-1) for e in sampled]
+        kept = torch.unique(torch.cat(dofs)) if dofs else torch.zeros(0, dtype=torch.int64, device=device)
+        self.kept_dofs = kept.to(device)
+        self.slice_weight, self.slice_bias = sliced_layer(self.output, self.scene, self.kept_dofs)
+        self.terms = self._terms(self.scene)
+        self._full_values = self.scene.dof_map.full_values
+        # linear effects: E = r . c + e0 exactly (c, e0 by one backward through the float64 output layer)
+        output64 = AffineOutput(subspace).to(device=device, dtype=torch.float64)
+        scene64 = scene.to(device=device, dtype=torch.float64)
+        w = output64.feature_dim
+        r0 = torch.zeros(1, w, dtype=torch.float64, device=device, requires_grad=True)
+        linear = 0.0
+        with torch.enable_grad():
+            x0 = scene64.full_positions(r0 @ output64.weight.T + output64.bias)
+            for effect in scene64.effects:
+                if effect.name in rules and rules[effect.name].mode == "linear":
+                    linear = linear + effect.energy(x0, self._cond64(scene64, device))
+            if isinstance(linear, Tensor):
+                (coef,) = torch.autograd.grad(linear.sum(), r0)
+            else:
+                coef = torch.zeros(1, w, dtype=torch.float64, device=device)
+        self.linear_coef = coef[0].to(dtype)
+        self.linear_constant = float(linear.detach()) if isinstance(linear, Tensor) else 0.0
+        # offset: E_cub = the all-element energy at z = 0
+        z0 = torch.zeros(1, self.latent_dim, dtype=torch.float64, device=device)
+        cond0 = self._cond64(scene64, device)
+        with torch.no_grad():
+            q0 = output64(z0, cond0 if self.condition_dim else None)
+            full = sum(e.energy(scene64.full_positions(q0), cond0) for e in scene64.effects if e.name in rules)
+            approx = self._energy64(output64, scene64, z0, cond0)
+        self.offset = float(full) - float(approx)
+
+    def _cond64(self, scene64: Scene, device: torch.device) -> Tensor | None:
+        space = scene64.condition_space
+        return None if space is None else space.default.to(device=device, dtype=torch.float64)[None]
+
+    def _energy64(self, output64: AffineOutput, scene64: Scene, z: Tensor, cond: Tensor | None) -> Tensor:
+        """The cubature energy in float64 (for the offset), without the offset."""
+        r = output64.features(z, cond if self.condition_dim else None)
+        w_s, b_s = sliced_layer(output64, scene64, self.kept_dofs)
+        x_s = r @ w_s.T + b_s
+        total = r @ self.linear_coef.to(torch.float64) + self.linear_constant
+        return self._sum(total, x_s, cond, self._terms(scene64), scene64.dof_map.full_values)
+
+    # -- the LatentEnergy protocol ------------------------------------------------------------
+    def features(self, z: Tensor, cond: Tensor | None) -> Tensor:
+        """r(z[, c]) [B, w], the map's last features (q = r W^T + b)."""
+        return self.output.features(z, cond if self.condition_dim else None)
+
+    def energy_features(self, z: Tensor, cond: Tensor | None) -> tuple[Tensor, Tensor]:
+        """E_cub [B] [J] of latents z [B, d] and the features r [B, w] it computed."""
+        r = self.features(z, cond)
+        x_s = r @ self.slice_weight.T + self.slice_bias
+        total = r @ self.linear_coef + (self.linear_constant + self.offset)
+        return self._sum(total, x_s, cond, self.terms, self._full_values), r
+
+    def _sum(
+        self,
+        total: Tensor,
+        x_s: Tensor,
+        cond: Tensor | None,
+        terms: list[tuple[Effect, Tensor, Tensor | None]],
+        full_values: Tensor,
+    ) -> Tensor:
+        """total + every term at the kept DOFs x_s [B, s]: weighted kept elements, or a whole effect's energy.
+
+        A whole effect (weights None) is evaluated by its own ``energy`` (e.g. contact's per-pair path) on x
+        with the kept DOFs scattered in (every DOF it reads is kept; the others hold the pinned/seed values).
+        """
+        x_full = None
+        for effect, local, weights in terms:
+            if weights is None:
+                if x_full is None:
+                    x_full = full_values.to(x_s.dtype).expand(x_s.shape[0], -1).index_copy(1, self.kept_dofs, x_s)
+                total = total + effect.energy(x_full, cond)
+            else:
+                total = total + effect.element_energy(gather_elements(x_s, local), cond) @ weights
+        return total
+
+    def energy(self, z: Tensor, cond: Tensor | None) -> tuple[Tensor, None]:
+        """E_cub [B] [J] (q is not computed: only the kept DOFs are)."""
+        return self.energy_features(z, cond)[0], None
+
+    def positions(self, z: Tensor, cond: Tensor | None) -> Tensor:
+        """All of q = f(z[, c]) [B, n] (for drawing and the stepper's constants; not used per iteration)."""
+        return self.output(z, cond if self.condition_dim else None)
+
+    def describe(self) -> dict[str, Any]:
+        """Kept elements per effect, kept DOFs and n."""
+        return {
+            "kept_elements": {r.name: int(r.indices.numel()) for r in self.cubature.rules},
+            "kept_dofs": int(self.kept_dofs.numel()),
+            "free_dofs": int(self.output_weight.shape[0]),
+            "features": int(self.output_weight.shape[1]),
+        }
+
+
+__all__ = [
+    "FORMAT_VERSION",
+    "SUFFIX",
+    "Cubature",
+    "CubatureEnergy",
+    "build_cubature",
+    "cubature_energy",
+    "cubature_path",
+    "load_cubature",
+    "map_fingerprint",
+]

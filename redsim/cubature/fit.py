@@ -1,0 +1,395 @@
+"""Optimized cubature for one subspace map (An, Kim & James 2008), per effect, from the subspace itself.
+
+For each effect with elements e = 1..T, the reduced force of a state z is g(z) = J^T grad_x E(f(z)) =
+sum_e g_e(z) (J = dx/dz, [N, d]). A cubature keeps a few elements with weights w_e >= 0 such that
+sum_e w_e g_e(z) ~ g(z), and sum_e w_e (E_e(z) - E_e(0)) ~ E(z) - E(0), on training states:
+
+- z ~ N(0, I) (angles uniform), the sampler the map was fitted with (no simulation data), and
+- the states latent rollouts visit under random piecewise-constant handle loads (the all-element
+  :class:`redsim.runtime.LatentStepper`).
+
+Selection is greedy: the element whose per-state-normalized columns correlate best with the residual
+joins, then non-negative least squares (``scipy.optimize.nnls``) refits all kept weights; it stops at
+``elements`` kept or when the training error is below ``tol``. The error reported is measured on
+held-out states. Linear effects (gravity) stay exact, effects that switch on rarely (contact) keep all
+their elements by default, and the load term belongs to the stepper (exact).
+"""
+
+from __future__ import annotations
+
+import math
+from collections.abc import Callable
+from dataclasses import dataclass, field
+
+import numpy as np
+import scipy.optimize
+import torch
+from torch import Tensor, nn
+
+from redsim.cubature.output import AffineOutput
+from redsim.effects.base import Effect, gather_elements
+from redsim.scene import Scene
+from redsim.subspace import periodic_latents, sample_latents
+
+MODES = ("cubature", "full", "linear")
+"""How a cubature treats an effect: a weighted subset of its elements, all of them, or exactly as a linear term."""
+RARE_KINDS = ("sdf_contact",)
+"""Effect kinds kept whole by default: penalties that switch on rarely, which a subset would miss."""
+CANDIDATE_FLOOR = 1e-3
+"""Elements whose column norm is below this fraction of the mean are never selected."""
+ROUND_OFF = 1e-12
+"""Training error at which the greedy selection stops whatever the budget (the fit is exact)."""
+LINEAR_KINDS = ("gravity",)
+"""Effect kinds that are linear in x: reduced exactly to r . c + e0."""
+
+
+@dataclass(frozen=True)
+class CubatureConfig:
+    """How to build a cubature.
+
+    Attributes:
+        elements: Most elements kept per subsampled effect (>= 1).
+        tol: Stop an effect earlier once its training force error (relative to the total reduced force) is
+            below tol / sqrt(number of subsampled effects); None: keep ``elements``.
+        samples: States z ~ N(0, I) (>= 2).
+        episodes: Latent rollouts under random loads (>= 0).
+        steps: Steps per rollout.
+        hold: Steps each rollout load is held.
+        load_scale: Std of each load component [N]; None: the scene's weight per handle (trace(M)/D * 9.81 / H).
+        dt: Rollout time step [s].
+        held_out: Fraction of the states kept out of the fit for the reported error (0 < f < 1).
+        full: Effects kept whole; None: those of :data:`RARE_KINDS` (and any with at most ``elements`` elements).
+        subsample: Effects subsampled even if their kind is in :data:`RARE_KINDS`.
+        seed: Seeds the samples, loads and split.
+    """
+
+    elements: int = 200
+    tol: float | None = None
+    samples: int = 256
+    episodes: int = 4
+    steps: int = 40
+    hold: int = 8
+    load_scale: float | None = None
+    dt: float = 0.02
+    held_out: float = 0.25
+    full: tuple[str, ...] | None = None
+    subsample: tuple[str, ...] = ()
+    seed: int = 0
+
+    def __post_init__(self) -> None:
+        counts = {"elements": self.elements, "samples": self.samples, "steps": self.steps, "hold": self.hold}
+        bad = {k: v for k, v in counts.items() if int(v) != v or v < 1}
+        if bad or self.samples < 2:
+            raise ValueError(f"{sorted(bad) or ['samples']} must be integers >= 1 (samples >= 2), got {counts}")
+        if int(self.episodes) != self.episodes or self.episodes < 0:
+            raise ValueError(f"episodes must be an integer >= 0, got {self.episodes!r}")
+        if self.tol is not None and not (math.isfinite(self.tol) and self.tol > 0.0):
+            raise ValueError(f"tol must be finite and > 0, got {self.tol!r}")
+        if self.load_scale is not None and not (math.isfinite(self.load_scale) and self.load_scale >= 0.0):
+            raise ValueError(f"load_scale must be finite and >= 0 [N], got {self.load_scale!r}")
+        if not (math.isfinite(self.dt) and self.dt > 0.0):
+            raise ValueError(f"dt must be finite and > 0 [s], got {self.dt!r}")
+        if not 0.0 < self.held_out < 1.0:
+            raise ValueError(f"held_out must be in (0, 1), got {self.held_out!r}")
+
+
+@dataclass
+class EffectRule:
+    """What a cubature does with one effect.
+
+    Attributes:
+        name: The effect's name in the scene.
+        mode: One of :data:`MODES`.
+        element_count: The effect's number of elements T.
+        indices: Kept elements (``mode == "cubature"``), shape [K], int64; all for "full"; none for "linear".
+        weights: Their weights (>= 0), shape [K].
+        train_error: Relative force error on the training states (cubature only; else 0).
+        held_out_error: The same on held-out states.
+    """
+
+    name: str
+    mode: str
+    element_count: int
+    indices: Tensor
+    weights: Tensor
+    train_error: float = 0.0
+    held_out_error: float = 0.0
+    history: list[tuple[int, float, float]] = field(default_factory=list)
+    """(kept, train error, held-out error) after each greedy round."""
+
+
+def default_load_scale(scene: Scene) -> float:
+    """Std of each rollout load component [N]: the scene's weight per handle, trace(M)/D * 9.81 / H."""
+    if not scene.handles:
+        return 0.0
+    mass = scene.mass_matrix.coalesce()
+    rows, cols = mass.indices()
+    trace = float(mass.values()[rows == cols].sum())
+    return trace / scene.dim * 9.81 / len(scene.handles)
+
+
+def training_states(scene: Scene, subspace: nn.Module, config: CubatureConfig) -> tuple[Tensor, Tensor | None]:
+    """Latents [S, d] (float64) and conditions [S, m] (or None) of the training and held-out states.
+
+    ``config.samples`` draws of z ~ N(0, I) (conditions uniform in their ranges), then every state of
+    ``config.episodes`` latent rollouts of ``config.steps`` steps from the rest latent under loads redrawn
+    from N(0, load_scale^2 I) every ``config.hold`` steps (the scene's default condition).
+    """
+    from redsim.runtime import LatentStepper  # the runtime imports nothing of this package
+
+    generator = torch.Generator().manual_seed(config.seed)
+    d = int(subspace.latent_dim)
+    z = sample_latents(config.samples, d, periodic_latents(subspace), generator=generator, dtype=torch.float64)
+    space = scene.condition_space
+    cond = space.sample(config.samples, generator).to(torch.float64) if space is not None else None
+    if not config.episodes or not scene.handles:
+        return z, cond
+    scale = default_load_scale(scene) if config.load_scale is None else config.load_scale
+    stepper = LatentStepper(scene, subspace, config.dt)
+    B = int(config.episodes)
+    segments = -(-int(config.steps) // int(config.hold))
+    loads = scale * torch.randn(segments, B, len(scene.handles), scene.dim, generator=generator)
+    current = stepper.rest_latent().expand(B, -1)
+    previous = current
+    visited = []
+    for step in range(int(config.steps)):
+        nxt, stats = stepper.step(current, previous, loads[step // int(config.hold)].to(stepper.dtype))
+        keep = ~(stats.diverged | stats.out_of_range)
+        previous, current = current, torch.where(keep[:, None], nxt, current)
+        visited.append(current[keep].to(torch.float64))
+    rollout = torch.cat(visited)
+    z = torch.cat([z, rollout])
+    if space is not None:
+        cond = torch.cat([cond, space.default.to(torch.float64).expand(rollout.shape[0], -1)])
+    return z, cond
+
+
+def element_columns(
+    scene: Scene, output: AffineOutput, effect: Effect, z: Tensor, cond: Tensor | None, chunk: int = 16
+) -> tuple[Tensor, Tensor]:
+    """Per-element reduced forces and energies of states z [S, d] (float64 scene and output).
+
+    Returns g [S, T, d] = J^T grad_x E_e(f(z_s)) [J per unit z] and E [S, T] [J].
+    """
+    free = scene.dof_map.free_index
+    forces, energies = [], []
+    d = z.shape[1]
+    for start in range(0, z.shape[0], chunk):
+        zs = z[start : start + chunk]
+        cs = None if cond is None else cond[start : start + chunk]
+        k = zs.shape[0]
+        tangents = torch.eye(d, dtype=z.dtype).repeat_interleave(k, 0)
+        with torch.no_grad():
+            q, dq = torch.func.jvp(
+                lambda u, cs=cs: output(u, None if cs is None else cs.repeat(d, 1)), (zs.repeat(d, 1),), (tangents,)
+            )
+        x = scene.full_positions(q[:k])
+        jx = torch.zeros(d * k, scene.full_dof_count, dtype=z.dtype).index_copy(1, free, dq)
+        xe = gather_elements(x, effect.element_dofs).requires_grad_(True)
+        with torch.enable_grad():
+            e = effect.element_energy(xe, cs)
+            (grad,) = torch.autograd.grad(e.sum(), xe)
+        je = gather_elements(jx, effect.element_dofs).reshape(d, k, *effect.element_dofs.shape)
+        forces.append(torch.einsum("tek,jtek->tej", grad, je))
+        energies.append(e.detach())
+    return torch.cat(forces), torch.cat(energies)
+
+
+def _columns(forces: Tensor, energies: Tensor, reference: Tensor, scale: Tensor) -> Tensor:
+    """Least-squares matrix [S * (d + 1), T]: each state's d force rows and one energy row over ``scale`` [S]."""
+    rows = torch.cat([forces, (energies - reference).unsqueeze(-1)], -1) / scale[:, None, None]
+    return rows.permute(0, 2, 1).reshape(-1, rows.shape[1])
+
+
+def _relative_error(a: Tensor, weights: Tensor, index: Tensor, target: Tensor, norm: float) -> float:
+    approx = a[:, index] @ weights if index.numel() else torch.zeros_like(target)
+    return float(torch.linalg.vector_norm(approx - target)) / norm
+
+
+def greedy_nnls(
+    train: Tensor,
+    test: Tensor,
+    train_norm: float,
+    test_norm: float,
+    *,
+    elements: int,
+    tol: float | None,
+    progress: Callable[[int, float], None] | None = None,
+) -> tuple[Tensor, Tensor, list[tuple[int, float, float]]]:
+    """Greedy element selection + NNLS: columns ``train`` [R, T] must sum (with weights) to their row sum.
+
+    Each round adds the candidates whose normalized columns correlate best with the residual
+    (max(1, kept/8) of them), then refits every kept weight by NNLS. Errors are |A w - A 1| / norm.
+
+    Returns kept indices [K], weights [K] (>= 0) and the (kept, train, held-out error) history.
+    """
+    target = train.sum(1, dtype=torch.float64)
+    test_target = test.sum(1, dtype=torch.float64)
+    norms = torch.linalg.vector_norm(train, dim=0)
+    # an element that does (almost) nothing on the training states could only help with a huge weight,
+    # which the states between them would pay for: it is never a candidate
+    banned = norms < CANDIDATE_FLOOR * norms.mean()
+    norms = norms.clamp_min(1e-300)
+    kept: list[int] = []
+    weights = torch.zeros(0, dtype=torch.float64)
+    residual = target.clone()
+    history: list[tuple[int, float, float]] = []
+    count = train.shape[1]
+    rounds = 0
+    while len(kept) < min(elements, count) and rounds < 4 * elements:
+        rounds += 1
+        score = (residual @ train) / norms
+        score[banned] = -math.inf
+        if kept:
+            score[torch.tensor(kept)] = -math.inf
+        add = min(max(1, len(kept) // 8), elements - len(kept))
+        best = torch.topk(score, add).indices
+        best = best[score[best] > 0.0]
+        if not best.numel():
+            break
+        kept += best.tolist()
+        index = torch.tensor(kept)
+        columns = train[:, index].numpy()
+        solution, _ = scipy.optimize.nnls(columns, target.numpy(), maxiter=50 * len(kept))
+        weights = torch.from_numpy(np.asarray(solution))
+        nonzero = weights > 0.0
+        banned[index[~nonzero]] = True  # dropped by NNLS: not proposed again
+        kept = index[nonzero].tolist()
+        weights = weights[nonzero]
+        index = torch.tensor(kept, dtype=torch.int64)
+        residual = target - train[:, index] @ weights
+        error = float(torch.linalg.vector_norm(residual)) / train_norm
+        held = _relative_error(test, weights, index, test_target, test_norm)
+        history.append((len(kept), error, held))
+        if progress is not None:
+            progress(len(kept), held)
+        if error <= ROUND_OFF or (tol is not None and error <= tol):
+            break
+    return torch.tensor(kept, dtype=torch.int64), weights, history
+
+
+def effect_modes(scene: Scene, config: CubatureConfig) -> dict[str, str]:
+    """The mode of each effect but the load terms (see :data:`MODES`)."""
+    names = {e.name for e in scene.effects}
+    unknown = sorted((set(config.full or ()) | set(config.subsample)) - names)
+    if unknown:
+        raise ValueError(f"scene {scene.name!r} has no effect(s) {unknown}; it has {sorted(names)}")
+    modes = {}
+    for effect in scene.effects:
+        if effect.uses_loads:
+            continue
+        rare = effect.kind.split(":")[0] in RARE_KINDS and effect.name not in config.subsample
+        whole = effect.name in config.full if config.full is not None else rare
+        if effect.kind in LINEAR_KINDS:
+            modes[effect.name] = "linear"
+        elif whole or effect.element_count <= config.elements:
+            modes[effect.name] = "full"
+        else:
+            modes[effect.name] = "cubature"
+    return modes
+
+
+def fit_rules(
+    scene: Scene, subspace: nn.Module, config: CubatureConfig, *, progress: bool = False
+) -> tuple[list[EffectRule], dict[str, float]]:
+    """Build every effect's rule (module doc); also returns the summary (state counts, total errors).
+
+    Args:
+        scene: The scene the map was fitted to.
+        subspace: The map (neural, linear or quadratic).
+        config: Sizes and options.
+        progress: Show a tqdm bar per subsampled effect (kept elements and held-out error).
+    """
+    modes = effect_modes(scene, config)
+    z, cond = training_states(scene, subspace, config)
+    scene64 = scene.to(dtype=torch.float64)
+    output = AffineOutput(subspace).to(torch.float64)
+    generator = torch.Generator().manual_seed(config.seed + 1)
+    order = torch.randperm(z.shape[0], generator=generator)
+    n_test = max(1, round(config.held_out * z.shape[0]))
+    test_index, train_index = order[:n_test], order[n_test:]
+    d1 = z.shape[1] + 1  # rows per state: d force components and the energy
+    train_rows = (train_index[:, None] * d1 + torch.arange(d1)).reshape(-1)
+    test_rows = (test_index[:, None] * d1 + torch.arange(d1)).reshape(-1)
+    z0 = torch.zeros(1, z.shape[1], dtype=torch.float64)
+    c0 = None if scene.condition_space is None else scene.condition_space.default.to(torch.float64)[None]
+    # the total reduced force and energy per state (all non-load effects), for the per-state scale
+    columns = {}
+    for effect in scene64.effects:
+        if effect.name in modes:
+            forces, energies = element_columns(scene64, output, effect, z, cond)
+            _, ref = element_columns(scene64, output, effect, z0, c0)
+            columns[effect.name] = (forces, energies, ref[0])
+    total_force = sum(f.sum(1) for f, _, _ in columns.values())
+    total_energy = sum((e - r).sum(1) for _, e, r in columns.values())
+    scale = torch.sqrt((total_force**2).sum(-1) + total_energy**2).clamp_min(1e-30)
+    whole = torch.cat([total_force, total_energy[:, None]], -1) / scale[:, None]
+    train_norm = float(torch.linalg.vector_norm(whole[train_index]))
+    test_norm = float(torch.linalg.vector_norm(whole[test_index]))
+    subsampled = [name for name, mode in modes.items() if mode == "cubature"]
+    per_tol = None if config.tol is None else config.tol / math.sqrt(max(1, len(subsampled)))
+    rules = []
+    train_residual = torch.zeros_like(whole[train_index])
+    test_residual = torch.zeros_like(whole[test_index])
+    for effect in scene64.effects:
+        if effect.name not in modes:
+            continue
+        mode = modes[effect.name]
+        T = effect.element_count
+        if mode != "cubature":
+            index = torch.arange(T) if mode == "full" else torch.zeros(0, dtype=torch.int64)
+            rules.append(EffectRule(effect.name, mode, T, index, torch.ones(index.shape[0], dtype=torch.float64)))
+            continue
+        forces, energies, ref = columns[effect.name]
+        a = _columns(forces, energies, ref, scale)
+        train, test = a[train_rows], a[test_rows]
+        bar = None
+        if progress:
+            from tqdm.auto import tqdm
+
+            bar = tqdm(total=config.elements, desc=f"cubature {effect.name}", dynamic_ncols=True)
+
+        def report(kept: int, held: float, bar: object = bar) -> None:
+            if bar is not None:
+                bar.n = kept  # type: ignore[attr-defined]
+                bar.set_postfix(held_out_error=f"{held:.3g}")  # type: ignore[attr-defined]
+
+        index, weights, history = greedy_nnls(
+            train, test, train_norm, test_norm, elements=config.elements, tol=per_tol, progress=report
+        )
+        if bar is not None:
+            bar.close()  # type: ignore[attr-defined]
+        train_residual += (train[:, index] @ weights - train.sum(1, dtype=torch.float64)).reshape(-1, d1)
+        test_residual += (test[:, index].to(torch.float64) @ weights - test.sum(1, dtype=torch.float64)).reshape(-1, d1)
+        last = history[-1] if history else (0, 1.0, 1.0)
+        rules.append(EffectRule(effect.name, mode, T, index, weights, last[1], last[2], history))
+    summary = {
+        "states": int(z.shape[0]),
+        "sampled_states": int(config.samples),
+        "rollout_states": int(z.shape[0] - config.samples),
+        "held_out_states": int(n_test),
+        "train_error": float(torch.linalg.vector_norm(train_residual)) / train_norm,
+        "held_out_error": float(torch.linalg.vector_norm(test_residual)) / test_norm,
+        "held_out_force_error": _force_error(test_residual, whole[test_index]),
+    }
+    return rules, summary
+
+
+def _force_error(residual: Tensor, whole: Tensor) -> float:
+    """|force residual| / |force| over states (the energy row left out)."""
+    return float(torch.linalg.vector_norm(residual[:, :-1]) / torch.linalg.vector_norm(whole[:, :-1]).clamp_min(1e-300))
+
+
+__all__ = [
+    "LINEAR_KINDS",
+    "MODES",
+    "RARE_KINDS",
+    "CubatureConfig",
+    "EffectRule",
+    "default_load_scale",
+    "effect_modes",
+    "element_columns",
+    "fit_rules",
+    "greedy_nnls",
+    "training_states",
+]

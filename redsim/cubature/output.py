@@ -1,0 +1,87 @@
+"""A map's affine output layer, q = r(z[, c]) W^T + b, and its slice to a few DOFs.
+
+Every map kind redsim ships ends in an affine layer: the neural map's last ``nn.Linear`` (r = the
+last hidden activation, width w = 64..128), the linear map (r = z) and the quadratic map
+(r = [z, 1/2 c_ij z_i z_j]). A cubature energy evaluates r once per state and then only the rows of
+W its kept elements read (a sliced output layer), and the step's inertia term exactly in r with the
+precomputed w x w Gram W^T M W (see :class:`redsim.cubature.energy.CubatureEnergy`).
+"""
+
+from __future__ import annotations
+
+import copy
+
+import torch
+from torch import Tensor, nn
+
+from redsim.scene import Scene
+from redsim.subspace import LinearSubspace, QuadraticSubspace, SubspaceMap
+from redsim.subspace.base import check_latent
+
+
+class AffineOutput(nn.Module):
+    """q = r(z[, c]) @ weight.T + bias for one map (copied, gradients off).
+
+    Attributes:
+        weight: W, shape [n, w], in the map's units per feature.
+        bias: b, shape [n].
+        feature_dim: w.
+
+    Raises:
+        ValueError: a map kind without an affine output layer (the autoencoder baseline).
+    """
+
+    def __init__(self, subspace: nn.Module) -> None:
+        super().__init__()
+        self.map = copy.deepcopy(subspace)
+        if isinstance(subspace, SubspaceMap):
+            weight, bias = subspace.mlp[-1].weight, subspace.mlp[-1].bias
+        elif isinstance(subspace, QuadraticSubspace):
+            weight, bias = torch.cat([subspace.basis, subspace.quadratic], 1), subspace.offset
+        elif isinstance(subspace, LinearSubspace):
+            weight, bias = subspace.basis, subspace.offset
+        else:
+            raise ValueError(
+                "a cubature needs a map with an affine output layer (neural, linear or quadratic), "
+                f"got {type(subspace).__name__}"
+            )
+        self.register_buffer("weight", weight.detach().clone())
+        self.register_buffer("bias", bias.detach().clone())
+        self.requires_grad_(False)
+
+    @property
+    def feature_dim(self) -> int:
+        return int(self.weight.shape[1])
+
+    def features(self, z: Tensor, cond: Tensor | None) -> Tensor:
+        """r [B, w] of latents z [B, d] (and conditions [B, m])."""
+        f = self.map
+        if isinstance(f, SubspaceMap):
+            hidden = f.features(z, cond)
+            for layer in list(f.mlp)[:-1]:
+                hidden = layer(hidden)
+            return hidden
+        check_latent(z, f.latent_dim, cond)
+        return torch.cat([z, f.monomials(z)], -1) if isinstance(f, QuadraticSubspace) else z
+
+    def forward(self, z: Tensor, cond: Tensor | None = None) -> Tensor:
+        """All of q [B, n] (the unsliced map)."""
+        return self.features(z, cond) @ self.weight.T + self.bias
+
+
+def sliced_layer(output: AffineOutput, scene: Scene, full_index: Tensor) -> tuple[Tensor, Tensor]:
+    """The rows of the output layer that give x[:, full_index] (full DOFs, pinned ones included).
+
+    Returns W_S [s, w] and b_S [s] with x_S = r @ W_S.T + b_S: a free DOF's row of W and b, a pinned
+    DOF's zero row and its pinned value.
+    """
+    free_of = scene.dof_map.full_to_free().to(full_index.device)[full_index]
+    free = free_of >= 0
+    rows = free_of.clamp_min(0)
+    weight = output.weight.index_select(0, rows) * free[:, None].to(output.weight.dtype)
+    pinned = scene.dof_map.full_values.to(output.bias)[full_index]
+    bias = torch.where(free, output.bias.index_select(0, rows), pinned)
+    return weight, bias
+
+
+__all__ = ["AffineOutput", "sliced_layer"]

@@ -1,0 +1,248 @@
+"""Cubature: weights, exactness on identical elements, error vs elements, refusal of other maps, runtime use."""
+
+from __future__ import annotations
+
+import pytest
+import torch
+
+from redsim import pretrained, scenes
+from redsim.cubature import (
+    AffineOutput,
+    Cubature,
+    CubatureConfig,
+    CubatureEnergy,
+    build_cubature,
+    cubature_energy,
+    load_cubature,
+)
+from redsim.effects.elastic import StVKMembrane
+from redsim.runtime import LatentStepper, MapEnergy, ReducedInertia
+from redsim.scene import SceneBuilder
+from redsim.subspace import CheckpointError, LinearSubspace, SubspaceConfig, SubspaceMap
+
+QUICK = {"samples": 48, "episodes": 0}
+
+
+def _identical_triangles(count: int = 12):
+    """``count`` disjoint copies of one triangle (one StVK element each) and a linear map moving all alike."""
+    rest = torch.tensor([[0.0, 0.0, 0.0], [0.1, 0.0, 0.0], [0.0, 0.1, 0.0]], dtype=torch.float64)
+    b = SceneBuilder(dim=3)
+    shift = torch.arange(count, dtype=torch.float64)[:, None, None] * torch.tensor([0.5, 0.0, 0.0])
+    ids = b.add_particles((rest + shift).reshape(-1, 3), torch.full((3 * count,), 0.01))
+    dofs = b.particle_dofs(ids).reshape(count, 3, 3)
+    b.add_effect(StVKMembrane("membrane", dofs, (rest + shift), 1e4, 0.3))
+    scene = b.finalize("identical_triangles", params={"count": count})
+    pattern = 0.02 * torch.randn(9, 3, generator=torch.Generator().manual_seed(1), dtype=torch.float64)
+    f = LinearSubspace(pattern.repeat(count, 1), scene.q_seed.clone())
+    return scene, f
+
+
+def _toy_cloth_map(seed: int = 0):
+    scene = scenes.build("toy_small_cloth")
+    torch.manual_seed(seed)
+    f = SubspaceMap(SubspaceConfig(latent_dim=3, output_dim=scene.free_dof_count, hidden_width=32, hidden_layers=2))
+    with torch.no_grad():
+        f.mlp[-1].weight.mul_(0.05)
+        f.mlp[-1].bias.copy_(scene.q_seed.to(torch.float32))
+    return scene, f
+
+
+def test_weights_are_non_negative_and_the_file_round_trips(tmp_path) -> None:
+    scene, f = _toy_cloth_map()
+    cub = build_cubature(scene, f, CubatureConfig(elements=6, **QUICK))
+    modes = {r.name: r.mode for r in cub.rules}
+    assert modes == {"membrane": "cubature", "bending": "cubature", "gravity": "linear"}
+    for rule in cub.rules:
+        assert bool((rule.weights >= 0).all())
+        assert rule.indices.numel() <= (6 if rule.mode == "cubature" else rule.element_count)
+    path = cub.save(tmp_path / "cloth")
+    assert path.name == "cloth.cubature.json"
+    back = load_cubature(tmp_path / "cloth.pt", scene, f)
+    assert [r.indices.tolist() for r in back.rules] == [r.indices.tolist() for r in cub.rules]
+    assert [r.weights.tolist() for r in back.rules] == [r.weights.tolist() for r in cub.rules]
+
+
+def test_exact_on_identical_elements_in_identical_states() -> None:
+    scene, f = _identical_triangles(12)
+    cub = build_cubature(scene, f, CubatureConfig(elements=4, **QUICK))
+    (rule,) = cub.rules
+    assert rule.mode == "cubature"
+    # one element stands for all twelve (the fit is exact, so the selection stops there); weights all equal
+    assert rule.indices.numel() == 1
+    assert torch.allclose(rule.weights, torch.full_like(rule.weights, 12.0 / rule.weights.numel()), rtol=1e-9)
+    assert cub.summary["held_out_error"] < 1e-9
+    energy = CubatureEnergy(scene, f, cub, dtype=torch.float64)
+    z = torch.randn(5, 3, dtype=torch.float64, generator=torch.Generator().manual_seed(3))
+    full, _ = MapEnergy(scene, f, dtype=torch.float64).energy(z, None)
+    approx, _ = energy.energy(z, None)
+    assert torch.allclose(approx, full, rtol=1e-10, atol=1e-12)
+
+
+def test_error_falls_as_elements_are_added() -> None:
+    scene, f = _toy_cloth_map()
+    errors = []
+    for k in (1, 4, 16):
+        cub = build_cubature(scene, f, CubatureConfig(elements=k, full=(), **QUICK))
+        errors.append(cub.summary["train_error"])
+        history = [h[1] for r in cub.rules for h in r.history[-1:]]
+        assert all(e >= 0 for e in history)
+    assert errors[0] > errors[1] > errors[2]
+    assert errors[2] < 0.5 * errors[0]
+
+
+def test_a_cubature_for_another_map_or_scene_is_refused(tmp_path) -> None:
+    scene, f = _toy_cloth_map(0)
+    cub = build_cubature(scene, f, CubatureConfig(elements=4, **QUICK))
+    cub.save(tmp_path / "cloth")
+    _, other = _toy_cloth_map(1)
+    with pytest.raises(CheckpointError, match="another map"):
+        load_cubature(tmp_path / "cloth", scene, other)
+    with pytest.raises(CheckpointError, match="another map"):
+        CubatureEnergy(scene, other, cub)
+    stiffer = scenes.build("toy_small_cloth", young=2e5)
+    with pytest.raises(CheckpointError, match="scene"):
+        load_cubature(tmp_path / "cloth", stiffer, f)
+    # the same map in float64 is the same map
+    CubatureEnergy(scene, f.to(torch.float64), cub)
+
+
+def test_bad_input_is_a_clear_error(tmp_path) -> None:
+    scene, f = _toy_cloth_map()
+    with pytest.raises(ValueError, match="elements"):
+        CubatureConfig(elements=0)
+    with pytest.raises(ValueError, match="tol"):
+        CubatureConfig(tol=-1.0)
+    with pytest.raises(ValueError, match="held_out"):
+        CubatureConfig(held_out=1.0)
+    with pytest.raises(ValueError, match="no effect"):
+        build_cubature(scene, f, CubatureConfig(full=("nope",), **QUICK))
+    with pytest.raises(ValueError, match="affine output"):
+        AffineOutput(torch.nn.Linear(3, 3))
+    with pytest.raises(CheckpointError, match="no cubature file"):
+        Cubature.load(tmp_path / "missing")
+    (tmp_path / "bad.cubature.json").write_text("{not json")
+    with pytest.raises(CheckpointError, match="corrupt"):
+        Cubature.load(tmp_path / "bad")
+
+
+@pytest.fixture(scope="module")
+def mini_chain():
+    scene = scenes.build("mini_chain")
+    f = pretrained.load("mini_chain", scene)
+    return scene, f
+
+
+def test_all_element_cubature_steps_like_the_map_energy(mini_chain) -> None:
+    """Every effect kept whole: the reduced inertia (W^T M W in r) must give the same steps as all of q."""
+    scene, f = mini_chain
+    cub = build_cubature(scene, f, CubatureConfig(elements=1000, **QUICK))
+    assert {r.mode for r in cub.rules} <= {"full", "linear"}
+    energy = CubatureEnergy(scene, f, cub, dtype=torch.float64)
+    assert isinstance(energy, ReducedInertia) and not isinstance(MapEnergy(scene, f), ReducedInertia)
+    reduced = LatentStepper(scene, f, 0.02, dtype=torch.float64, energy=energy)
+    full = LatentStepper(scene, f, 0.02, dtype=torch.float64)
+    z = reduced.rest_latent().expand(3, -1).clone()
+    loads = 0.5 * torch.randn(3, len(scene.handles), scene.dim, generator=torch.Generator().manual_seed(0))
+    a = b = c = d = z
+    for _ in range(8):
+        (na, sa), (nc, sc) = full.step(a, b, loads.double()), reduced.step(c, d, loads.double())
+        a, b, c, d = na, a, nc, c
+        assert bool(sa.converged.all()) and bool(sc.converged.all())
+        assert torch.allclose(sa.energy, sc.energy, rtol=1e-8, atol=1e-10)
+    assert float((a - c).abs().max()) < 1e-5 * float((a - z).abs().max())
+
+
+class _Repulsive:
+    """A cubature energy with a huge outward push: any step from it blows up (the runtime's test, reused)."""
+
+    def __init__(self, inner: CubatureEnergy, push: float) -> None:
+        self.inner, self.push = inner, push
+        self.latent_dim, self.condition_dim, self.periodic = inner.latent_dim, inner.condition_dim, inner.periodic
+        self.output_weight, self.output_bias = inner.output_weight, inner.output_bias
+
+    def features(self, z, cond):
+        return self.inner.features(z, cond)
+
+    def positions(self, z, cond):
+        return self.inner.positions(z, cond)
+
+    def energy_features(self, z, cond):
+        e, r = self.inner.energy_features(z, cond)
+        return e - self.push * (z * z).sum(-1), r
+
+    def energy(self, z, cond):
+        return self.energy_features(z, cond)[0], None
+
+
+def test_cubature_in_the_runtime_stays_finite_and_flags_divergence(mini_chain) -> None:
+    scene, f = mini_chain
+    cub = build_cubature(scene, f, CubatureConfig(elements=1000, **QUICK))
+    energy = CubatureEnergy(scene, f, cub)
+    z = 0.1 * torch.ones(2, f.latent_dim)
+    calm = LatentStepper(scene, f, 0.02, energy=energy)
+    z_next, stats = calm.step(z, z)
+    assert bool(torch.isfinite(z_next).all()) and not bool(stats.diverged.any())
+    wild = LatentStepper(scene, f, 0.02, energy=_Repulsive(energy, 1e4))
+    z_next, stats = wild.step(z, z)
+    assert bool(stats.diverged.all())
+    assert bool(torch.isfinite(z_next).all())
+
+
+def test_cli_writes_the_cubature_beside_the_checkpoint(cli, tmp_path) -> None:
+    import json
+    import shutil
+
+    for suffix in (".pt", ".json"):
+        shutil.copy(pretrained.path("mini_chain").with_suffix(suffix), tmp_path / f"chain{suffix}")
+    code, out, err = cli(
+        "cubature",
+        str(tmp_path / "chain.pt"),
+        "--elements",
+        "8",
+        "--samples",
+        "32",
+        "--episodes",
+        "1",
+        "--rollout-steps",
+        "5",
+        "--json",
+    )
+    assert code == 0, err
+    doc = json.loads(out)
+    assert doc["path"].endswith("chain.cubature.json")
+    assert {e["effect"] for e in doc["effects"]} == {"rigid", "contact", "gravity"}
+    scene = scenes.build("mini_chain")
+    cub = load_cubature(tmp_path / "chain", scene, pretrained.load("mini_chain", scene))
+    assert cub.command.startswith("redsim cubature ") and "--elements 8" in cub.command
+
+
+def test_cli_bad_input_exits_with_a_message(cli, tmp_path) -> None:
+    code, _, err = cli("cubature", str(tmp_path / "nothing.pt"), "--elements", "8")
+    assert code == 2 and "missing" in err
+    code, _, err = cli("cubature", str(pretrained.path("mini_chain")), "--elements", "0")
+    assert code == 2 and "elements" in err
+    code, _, err = cli("cubature", str(pretrained.path("mini_chain")), "--elements", "4", "--tol", "0.1")
+    assert code == 2 and "not allowed" in err
+    code, _, err = cli("bench", "cubature", "no_such_scene")
+    assert code == 2 and "no shipped subspace" in err
+
+
+@pytest.mark.parametrize("name", ["hanging_sheet", "cloth_ball"])
+def test_shipped_cubatures_are_chosen_with_one_option(name: str) -> None:
+    scene = scenes.build(name)
+    f = pretrained.load(name, scene)
+    stepper = LatentStepper(scene, f, 0.02, energy=cubature_energy)
+    assert isinstance(stepper.energy, CubatureEnergy) and stepper.reduced
+    kept = stepper.energy.describe()
+    assert kept["kept_elements"]["membrane"] < scene.effect("membrane").element_count
+    z = torch.zeros(2, f.latent_dim)
+    z_next, stats = stepper.step(z, z)
+    assert bool(torch.isfinite(z_next).all()) and not bool(stats.diverged.any())
+
+
+def test_the_energy_option_refuses_what_it_cannot_use(mini_chain) -> None:
+    scene, f = mini_chain
+    with pytest.raises(CheckpointError, match="no cubature file"):
+        LatentStepper(scene, f, 0.02, energy=cubature_energy)  # none is shipped for the mini chain
+    with pytest.raises(ValueError, match="factory"):
+        LatentStepper(scene, f, 0.02, energy="fast")
