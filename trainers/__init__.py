@@ -1,4 +1,4 @@
-"""Fitting: the data-free subspace fitter (the paper's loss and schedule)."""
+"""Fitting: the data-free subspace fitter (the paper's loss and schedule); SB3 agents on the envs (:mod:`.agents`)."""
 
 from redsim.trainers.fit import FitConfig, FitResult, fit_subspace, subspace_loss
 

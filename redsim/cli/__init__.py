@@ -1,4 +1,5 @@
-"""The ``redsim`` command line: ``scenes``, ``simulate``, ``fit``, ``inspect``, ``sample``, ``animate``, ``bench``.
+"""The ``redsim`` command line: ``scenes``, ``simulate``, ``fit``, ``inspect``, ``sample``, ``animate``, ``bench``,
+``demo``, ``train-agent``, ``eval-agent``.
 
 Every subcommand has ``--help`` and ``--json`` (one JSON document on stdout; human-readable
 text otherwise). Bad input is reported as a single ``redsim: error: ...`` line on stderr with
@@ -9,7 +10,8 @@ scene from the checkpoint's ``.json`` (:func:`redsim.scenes.spec.scene_from_spec
 Modules: :mod:`~redsim.cli.parser` (the parser and :func:`main`), :mod:`~redsim.cli.common`
 (errors, output, shared options), and one per command group: :mod:`~redsim.cli.scenes`
 (scenes, simulate), :mod:`~redsim.cli.subspaces` (fit, inspect, sample, animate),
-:mod:`~redsim.cli.bench` (bench).
+:mod:`~redsim.cli.bench` (bench), :mod:`~redsim.cli.envs` (demo, bench envs), :mod:`~redsim.cli.agents`
+(train-agent, eval-agent).
 
 Exit status: 0 success; 1 a scene failed to build (``scenes``); 2 bad input; 3 NaN or inf;
 4 a simulation step failed (implausible for its scene); 130 interrupted.

@@ -9,7 +9,7 @@ from collections.abc import Sequence
 import torch
 
 import redsim
-from redsim.cli import bench, cubature, envs, scenes, subspaces
+from redsim.cli import agents, bench, cubature, envs, scenes, subspaces
 from redsim.cli.common import CliError, Parser, apply_threads, error
 
 
@@ -26,6 +26,7 @@ def build_parser() -> argparse.ArgumentParser:
     subspaces.add_commands(sub)
     cubature.add_commands(sub)
     envs.add_commands(sub, bench.add_commands(sub))
+    agents.add_commands(sub)
     return parser
 
 

@@ -1,0 +1,159 @@
+"""``redsim train-agent ENV_ID`` and ``redsim eval-agent MODEL ENV_ID`` (logic in redsim.trainers.agents)."""
+
+from __future__ import annotations
+
+import argparse
+from pathlib import Path
+from typing import Any
+
+from redsim.cli.common import EXIT_OK, CliError, finish_command, json_out, out
+
+
+def _check_env(env_id: str) -> None:
+    from redsim.trainers.agents import check_env_id
+
+    try:
+        check_env_id(env_id)
+    except ValueError as err:
+        raise CliError(str(err)) from err
+
+
+def _positive(value: int | None, flag: str) -> None:
+    if value is not None and value < 1:
+        raise CliError(f"{flag} must be >= 1, got {value}")
+
+
+def _env_kwargs(args: argparse.Namespace) -> dict[str, Any]:
+    _positive(args.episode_steps, "--episode-steps")
+    return {} if args.episode_steps is None else {"max_episode_steps": args.episode_steps}
+
+
+def _add_episode_steps(parser: argparse.ArgumentParser) -> None:
+    parser.add_argument(
+        "--episode-steps", type=int, metavar="N", help="truncate episodes at N steps (default: the id's)"
+    )
+
+
+def _line(name: str, result: dict[str, Any]) -> str:
+    return (
+        f"{name:<9} return {result['mean_return']:9.2f} ± {result['std_return']:7.2f}   "
+        f"success {100 * result['success_rate']:5.1f}%   ({result['episodes']} episodes from seed {result['seed']})"
+    )
+
+
+def cmd_train_agent(args: argparse.Namespace) -> int:
+    from redsim.trainers.agents import train_agent
+
+    _check_env(args.env_id)
+    for value, flag in ((args.steps, "--steps"), (args.n_envs, "--n-envs"), (args.eval_episodes, "--eval-episodes")):
+        _positive(value, flag)
+    try:
+        result = train_agent(
+            args.env_id,
+            args.out,
+            algo=args.algo,
+            steps=args.steps,
+            seed=args.seed,
+            n_envs=args.n_envs,
+            eval_every=args.eval_every,
+            eval_episodes=args.eval_episodes,
+            final_episodes=args.final_episodes,
+            resume=args.resume,
+            progress_bar=not args.json and not args.no_progress,
+            video=not args.no_video,
+            env_kwargs=_env_kwargs(args),
+        )
+    except (ValueError, FileNotFoundError) as err:
+        raise CliError(str(err)) from err
+    final = result.evaluation.as_dict()
+    files = sorted(str(p) for p in Path(args.out).iterdir() if p.is_file())
+    if args.json:
+        json_out(
+            {
+                "env_id": args.env_id,
+                "algo": args.algo,
+                "steps": result.steps,
+                "wall_s": result.wall_s,
+                "model": str(result.model_path),
+                "final_evaluation": final,
+                "files": files,
+            }
+        )
+        return EXIT_OK
+    out(f"{args.env_id}: {args.algo.upper()} trained {result.steps} env steps in {result.wall_s:.0f} s")
+    out(_line("agent", final))
+    out(f"wrote {', '.join(Path(f).name for f in files)} in {args.out}")
+    return EXIT_OK
+
+
+def cmd_eval_agent(args: argparse.Namespace) -> int:
+    from redsim.trainers.agents import evaluate, load_agent
+
+    _check_env(args.env_id)
+    _positive(args.episodes, "--episodes")
+    try:
+        model = load_agent(args.model, env_id=args.env_id)
+    except (ValueError, FileNotFoundError) as err:
+        raise CliError(str(err)) from err
+    policies = {"agent": model, **({"random": "random", "scripted": "scripted"} if args.baselines else {})}
+    rows = {
+        name: evaluate(
+            args.env_id, policy, episodes=args.episodes, seed=args.seed, env_kwargs=_env_kwargs(args)
+        ).as_dict()
+        for name, policy in policies.items()
+    }
+    if args.json:
+        json_out({"env_id": args.env_id, "model": args.model, **rows})
+        return EXIT_OK
+    out(f"{args.env_id}, {args.model}:")
+    for name, row in rows.items():
+        out(_line(name, row))
+    return EXIT_OK
+
+
+def add_commands(sub: Any) -> None:
+    """Add ``train-agent`` and ``eval-agent`` to the subcommands ``sub``."""
+    from redsim.trainers.agents import ALGOS
+
+    p = sub.add_parser(
+        "train-agent",
+        help="train a stable-baselines3 agent on a RedSim env",
+        description=(
+            "Train an SB3 algorithm on ENV_ID through the native vector env, with the settings of "
+            "redsim.trainers.agents.HYPERPARAMS. Writes OUT/model.zip, best_model.zip, checkpoints/, curve.csv, "
+            "curve.png (evaluation return vs env steps and wall time), policy.gif and agent.json."
+        ),
+    )
+    p.add_argument("env_id", metavar="ENV_ID", help="a RedSim env id, e.g. RedSim/MiniChain-v0")
+    p.add_argument("--algo", choices=ALGOS, default="sac", help="algorithm (default sac)")
+    p.add_argument("--steps", type=int, default=20_000, help="total env steps (default 20000)")
+    p.add_argument("--out", default="agent", metavar="DIR", help="output folder (default agent)")
+    p.add_argument("--seed", type=int, default=0, help="seed of the algorithm and the envs (default 0)")
+    p.add_argument("--n-envs", type=int, help="vector env copies (default: the table's)")
+    p.add_argument("--eval-every", type=int, metavar="STEPS", help="env steps between evaluations (default steps/10)")
+    p.add_argument("--eval-episodes", type=int, default=10, help="episodes per evaluation (default 10)")
+    p.add_argument("--final-episodes", type=int, default=20, help="seeded episodes of the final evaluation")
+    p.add_argument("--resume", action="store_true", help="continue the run in DIR up to --steps in all")
+    _add_episode_steps(p)
+    p.add_argument("--no-video", action="store_true", help="skip policy.gif")
+    p.add_argument("--no-progress", action="store_true", help="no progress bar")
+    finish_command(p, cmd_train_agent, "print one JSON summary", default_threads=1)
+
+    p = sub.add_parser(
+        "eval-agent",
+        help="mean return ± std and success rate of a trained agent",
+        description=(
+            "Run seeded episodes (seeds SEED .. SEED+EPISODES-1) of a model written by train-agent on ENV_ID; "
+            "with --baselines, the same episodes with a random policy and with the task's scripted controller."
+        ),
+    )
+    p.add_argument("model", metavar="MODEL", help="a model .zip written by redsim train-agent")
+    p.add_argument("env_id", metavar="ENV_ID", help="the env id the model was trained on")
+    p.add_argument("--episodes", type=int, default=20, help="episodes (default 20)")
+    p.add_argument("--seed", type=int, default=0, help="first episode seed (default 0)")
+    p.add_argument("--baselines", action="store_true", help="also a random policy and the scripted controller")
+    _add_episode_steps(p)
+    finish_command(p, cmd_eval_agent, "print one JSON document", default_threads=1)
+
+
+__all__ = ["add_commands"]

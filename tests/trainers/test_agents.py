@@ -1,0 +1,148 @@
+"""SB3 agents on the RedSim envs: train a few hundred steps, resume, evaluate; the CLI and its errors."""
+
+from __future__ import annotations
+
+import csv
+import json
+import zipfile
+from collections.abc import Callable
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from redsim.trainers.agents import ALGOS, HYPERPARAMS, evaluate, hyperparams, load_agent, model_record
+
+MINI = "RedSim/MiniChain-v0"
+SHORT = {"max_episode_steps": 20}
+"""Episodes of 20 steps keep the default suite fast."""
+TINY = [
+    "--episode-steps",
+    "20",
+    "--n-envs",
+    "4",
+    "--eval-every",
+    "100",
+    "--eval-episodes",
+    "2",
+    "--final-episodes",
+    "2",
+    "--no-progress",
+]
+
+
+def test_the_table_covers_every_id_and_algorithm() -> None:
+    import redsim.envs
+
+    assert set(redsim.envs.ids()) <= set(HYPERPARAMS)
+    for env_id in redsim.envs.ids():
+        for algo in ALGOS:
+            settings = hyperparams(env_id, algo)
+            assert settings["n_envs"] >= 1
+    hyperparams(MINI, "sac")["policy_kwargs"]["net_arch"].append(1)  # a copy: the table is not changed
+    assert HYPERPARAMS["default"]["sac"]["policy_kwargs"]["net_arch"] == [64, 64]
+    with pytest.raises(ValueError, match="unknown algorithm 'a2c'"):
+        hyperparams(MINI, "a2c")
+
+
+def test_evaluation_is_seeded_and_the_scripted_controller_beats_random() -> None:
+    first = evaluate(MINI, "random", episodes=3, seed=5, env_kwargs={"max_episode_steps": 40})
+    again = evaluate(MINI, "random", episodes=3, seed=5, env_kwargs={"max_episode_steps": 40})
+    np.testing.assert_array_equal(first.returns, again.returns)
+    scripted = evaluate(MINI, "scripted", episodes=3, seed=5, env_kwargs={"max_episode_steps": 40})
+    assert scripted.lengths.tolist() == [40, 40, 40]
+    assert scripted.mean > first.mean + 20.0  # the PI controller reaches; random forces flail
+    with pytest.raises(ValueError, match="policy must be"):
+        evaluate(MINI, "greedy", episodes=2)
+    with pytest.raises(ValueError, match="unknown env"):
+        evaluate("RedSim/Nope-v0", "random", episodes=2)
+
+
+def test_train_resume_and_evaluate_through_the_cli(cli: Callable[..., tuple[int, str, str]], tmp_path: Path) -> None:
+    out = tmp_path / "run"
+    code, stdout, err = cli("train-agent", MINI, "--algo", "sac", "--steps", "200", "--out", str(out), *TINY, "--json")
+    assert code == 0, err
+    summary = json.loads(stdout)
+    assert summary["steps"] == 200 and summary["final_evaluation"]["episodes"] == 2
+    for name in ("model.zip", "best_model.zip", "curve.csv", "curve.png", "policy.gif", "agent.json"):
+        assert (out / name).stat().st_size > 0, name
+    assert model_record(out / "model.zip") == {"env_id": MINI, "algo": "sac"}
+    assert (out / "model.zip").stat().st_size < 1_000_000
+
+    code, stdout, err = cli(
+        "train-agent", MINI, "--algo", "sac", "--steps", "300", "--out", str(out), *TINY, "--resume", "--no-video"
+    )
+    assert code == 0, err
+    assert load_agent(out / "model.zip", MINI).num_timesteps == 300
+    with (out / "curve.csv").open() as handle:
+        steps = [float(row["env_steps"]) for row in csv.DictReader(handle)]
+    assert steps == sorted(steps) and steps[-1] == 300 and steps[0] <= 200  # the first run's rows are kept
+
+    code, stdout, err = cli(
+        "eval-agent", str(out / "model.zip"), MINI, "--episodes", "2", "--episode-steps", "20", "--json"
+    )
+    assert code == 0, err
+    agent = json.loads(stdout)["agent"]
+    assert agent["episodes"] == 2 and np.isfinite(agent["mean_return"]) and 0.0 <= agent["success_rate"] <= 1.0
+
+    code, _, err = cli("eval-agent", str(out / "model.zip"), "RedSim/Chain-v0", "--episodes", "2")
+    assert code == 2 and "was trained on RedSim/MiniChain-v0, not on RedSim/Chain-v0" in err
+    code, _, err = cli("train-agent", "RedSim/Chain-v0", "--steps", "10", "--out", str(out), "--resume", *TINY)
+    assert code == 2 and "cannot resume" in err
+
+
+def test_ppo_trains_a_few_hundred_steps(tmp_path: Path) -> None:
+    from redsim.trainers.agents import train_agent
+
+    result = train_agent(
+        MINI,
+        tmp_path,
+        algo="ppo",
+        steps=256,
+        n_envs=4,
+        eval_every=128,
+        eval_episodes=2,
+        final_episodes=2,
+        video=False,
+        env_kwargs=SHORT,
+        overrides={"n_steps": 64, "batch_size": 64, "n_epochs": 2},
+    )
+    assert result.steps == 256 and np.isfinite(result.evaluation.mean)
+    assert model_record(result.model_path)["algo"] == "ppo"
+
+
+def test_bad_input_is_a_clear_cli_error(cli: Callable[..., tuple[int, str, str]], tmp_path: Path) -> None:
+    code, _, err = cli("train-agent", "RedSim/Nope-v0", "--out", str(tmp_path))
+    assert code == 2 and "unknown env 'RedSim/Nope-v0'; valid: RedSim/Chain-v0" in err
+    code, _, err = cli("train-agent", MINI, "--steps", "0", "--out", str(tmp_path))
+    assert code == 2 and "--steps must be >= 1" in err
+    code, _, err = cli("eval-agent", str(tmp_path / "missing.zip"), MINI)
+    assert code == 2 and "no model file" in err
+    junk = tmp_path / "junk.zip"
+    junk.write_text("not a zip")
+    code, _, err = cli("eval-agent", str(junk), MINI)
+    assert code == 2 and "is not a stable-baselines3 model file" in err
+    code, _, err = cli("eval-agent", str(_foreign_model(tmp_path)), MINI)
+    assert code == 2 and "not one trained by redsim" in err
+    code, _, err = cli("eval-agent", str(junk), MINI, "--episodes", "0")
+    assert code == 2 and "--episodes must be >= 1" in err
+
+
+def _foreign_model(folder: Path) -> Path:
+    """An SB3 model of another project's env (saved untrained)."""
+    import gymnasium as gym
+    from stable_baselines3 import SAC
+
+    path = folder / "pendulum.zip"
+    SAC("MlpPolicy", gym.make("Pendulum-v1"), learning_starts=0, buffer_size=10).save(path)
+    assert zipfile.is_zipfile(path)
+    return path
+
+
+@pytest.mark.slow
+def test_sac_learns_mini_chain_clearly_above_random(tmp_path: Path) -> None:
+    from redsim.trainers.agents import train_agent
+
+    result = train_agent(MINI, tmp_path, algo="sac", steps=20_000, eval_every=5_000, video=False)
+    random = evaluate(MINI, "random", episodes=20, seed=20_000)
+    assert result.evaluation.mean > random.mean + 3 * random.std

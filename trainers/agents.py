@@ -1,0 +1,583 @@
+"""Train and evaluate stable-baselines3 agents on the RedSim envs.
+
+Training runs through the native vector env (:class:`redsim.envs.sb3.SB3VecEnv`: one batched
+latent step for all copies), with hyperparameters per env and algorithm in one table
+(:data:`HYPERPARAMS`, the rl-zoo layout), SB3's ``EvalCallback`` and ``CheckpointCallback``, a
+progress bar, and resumable runs. :func:`train_agent` writes into its output folder:
+
+- ``model.zip``: the final SB3 model (it records the env id and the algorithm it was trained with);
+- ``best_model.zip``: the best model by evaluation return (``EvalCallback``);
+- ``replay_buffer.pkl`` (SAC, TD3): the replay buffer, so a resumed run goes on with it;
+- ``checkpoints/``: periodic models (an interrupted run resumes from the newest, with an empty buffer);
+- ``curve.csv`` and ``curve.png``: evaluation return vs env steps and vs wall time;
+- ``policy.gif``: one episode of the trained policy;
+- ``agent.json``: what ran (env, algorithm, steps, wall time, hyperparameters, last evaluation).
+
+:func:`evaluate` runs seeded episodes of a trained model, a random policy or the task's
+scripted controller (:meth:`redsim.envs.base.Task.controller`) the same way, one episode per
+copy of a vector env whose copy i is seeded ``seed + i`` (equal to single envs seeded alike).
+An episode succeeds when ``info["is_success"]`` holds at its last step.
+"""
+
+from __future__ import annotations
+
+import copy
+import csv
+import json
+import logging
+import time
+from collections.abc import Mapping
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any
+
+import gymnasium as gym
+import numpy as np
+
+log = logging.getLogger(__name__)
+
+BUFFER = "replay_buffer.pkl"
+"""The off-policy replay buffer beside ``model.zip`` (a resumed run goes on with it)."""
+ALGOS = ("ppo", "sac", "td3")
+"""The stable-baselines3 algorithms the table covers."""
+
+_OFF_POLICY = {"learning_starts": 1000, "buffer_size": 200_000, "batch_size": 256, "train_freq": 1}
+
+HYPERPARAMS: dict[str, dict[str, dict[str, Any]]] = {
+    "default": {
+        "sac": {
+            "n_envs": 8,
+            **_OFF_POLICY,
+            "learning_rate": 1e-3,
+            "gamma": 0.98,
+            "tau": 0.02,
+            "gradient_steps": 2,
+            "policy_kwargs": {"net_arch": [64, 64]},
+        },
+        "td3": {
+            "n_envs": 8,
+            **_OFF_POLICY,
+            "learning_rate": 1e-3,
+            "gamma": 0.98,
+            "gradient_steps": 2,
+            "action_noise_std": 0.2,
+            "policy_kwargs": {"net_arch": [64, 64]},
+        },
+        "ppo": {
+            "n_envs": 16,
+            "n_steps": 128,
+            "batch_size": 256,
+            "n_epochs": 10,
+            "learning_rate": 3e-4,
+            "gamma": 0.98,
+            "gae_lambda": 0.95,
+            "policy_kwargs": {"net_arch": [64, 64], "log_std_init": -0.5},
+        },
+    },
+    "RedSim/MiniChain-v0": {"sac": {"n_envs": 16, "gradient_steps": 8}},
+    "RedSim/Chain-v0": {},
+    "RedSim/ClothBall-v0": {},
+    "RedSim/HangingCloth-v0": {},
+    "RedSim/ConditionalBar-v0": {},
+}
+"""env id -> algorithm -> settings; each env's entries override ``"default"`` key by key.
+
+``n_envs`` is the number of copies of the vector env; ``action_noise_std`` (TD3) the std of
+Gaussian exploration noise in units of the action bound; every other key is a keyword argument of
+the SB3 algorithm.
+"""
+
+
+def hyperparams(env_id: str | None, algo: str) -> dict[str, Any]:
+    """The settings of ``algo`` on ``env_id`` (None: a user's env; the defaults).
+
+    Raises:
+        ValueError: an unknown algorithm.
+    """
+    if algo not in ALGOS:
+        raise ValueError(f"unknown algorithm {algo!r}; valid: {', '.join(ALGOS)}")
+    settings = copy.deepcopy(HYPERPARAMS["default"][algo])
+    settings.update(copy.deepcopy(HYPERPARAMS.get(env_id or "", {}).get(algo, {})))
+    return settings
+
+
+def check_env_id(env_id: str) -> None:
+    """Raise ValueError naming the valid ids when ``env_id`` is not a RedSim id."""
+    import redsim.envs
+
+    if env_id not in redsim.envs.ids():
+        raise ValueError(f"unknown env {env_id!r}; valid: {', '.join(redsim.envs.ids())}")
+
+
+def _algo_class(algo: str) -> Any:
+    from stable_baselines3 import PPO, SAC, TD3
+
+    return {"ppo": PPO, "sac": SAC, "td3": TD3}[algo]
+
+
+def _base_env(env: gym.Env) -> tuple[Any, int | None]:
+    """The :class:`LatentEnv` under ``env`` and its episode limit (the ``TimeLimit``'s, if any)."""
+    limit = env.spec.max_episode_steps if env.spec is not None else None
+    inner: Any = env
+    while isinstance(inner, gym.Wrapper):
+        limit = getattr(inner, "_max_episode_steps", limit)
+        inner = inner.env
+    return inner, limit
+
+
+def vector_env(
+    env: str | gym.Env, num_envs: int, autoreset_mode: Any = None, env_kwargs: Mapping[str, Any] | None = None
+) -> Any:
+    """A :class:`LatentVectorEnv` of ``num_envs`` copies of an id (made with ``env_kwargs``) or of a user's env."""
+    from gymnasium.vector import AutoresetMode
+
+    from redsim.envs.vector import LatentVectorEnv
+
+    mode = AutoresetMode.NEXT_STEP if autoreset_mode is None else autoreset_mode
+    if isinstance(env, str):
+        check_env_id(env)
+        return gym.make_vec(
+            env,
+            num_envs=num_envs,
+            vectorization_mode="vector_entry_point",
+            autoreset_mode=mode,
+            **dict(env_kwargs or {}),
+        )
+    base, limit = _base_env(env)
+    return LatentVectorEnv(base, num_envs, max_episode_steps=limit, autoreset_mode=mode)
+
+
+def _sb3_env(env: str | gym.Env, num_envs: int, seed: int, env_kwargs: Mapping[str, Any] | None) -> Any:
+    from gymnasium.vector import AutoresetMode
+    from stable_baselines3.common.vec_env import VecMonitor
+
+    from redsim.envs.sb3 import SB3VecEnv
+
+    venv = VecMonitor(SB3VecEnv(vector_env(env, num_envs, AutoresetMode.SAME_STEP, env_kwargs)))
+    venv.seed(seed)
+    return venv
+
+
+def _env_label(env: str | gym.Env) -> str:
+    if isinstance(env, str):
+        return env
+    return f"custom:{_base_env(env)[0].sim.scene.name}"
+
+
+# -- evaluation -------------------------------------------------------------------------------
+@dataclass(frozen=True)
+class Evaluation:
+    """Returns of seeded episodes, one per seed ``seed .. seed + episodes - 1``.
+
+    Attributes:
+        policy: What acted ("agent", "random", "scripted").
+        returns: Undiscounted return of each episode, shape [episodes].
+        successes: Whether each episode ended within the success radius, shape [episodes].
+        lengths: Steps of each episode, shape [episodes].
+        seed: The first seed.
+    """
+
+    policy: str
+    returns: np.ndarray
+    successes: np.ndarray
+    lengths: np.ndarray
+    seed: int
+
+    @property
+    def mean(self) -> float:
+        return float(np.mean(self.returns))
+
+    @property
+    def std(self) -> float:
+        return float(np.std(self.returns))
+
+    @property
+    def success_rate(self) -> float:
+        return float(np.mean(self.successes))
+
+    def as_dict(self) -> dict[str, Any]:
+        return {
+            "policy": self.policy,
+            "episodes": len(self.returns),
+            "seed": self.seed,
+            "mean_return": self.mean,
+            "std_return": self.std,
+            "success_rate": self.success_rate,
+            "mean_length": float(np.mean(self.lengths)),
+            "returns": [float(r) for r in self.returns],
+        }
+
+
+def evaluate(
+    env: str | gym.Env,
+    policy: Any = "scripted",
+    *,
+    episodes: int = 20,
+    seed: int = 0,
+    deterministic: bool = True,
+    env_kwargs: Mapping[str, Any] | None = None,
+) -> Evaluation:
+    """Run ``episodes`` seeded episodes at once (one per copy of a vector env) and collect their returns.
+
+    Args:
+        env: A registered id or a user's env (from :func:`redsim.envs.make`).
+        policy: An SB3 model (anything with ``predict``), ``"random"`` (uniform actions drawn from
+            ``seed``) or ``"scripted"`` (the task's controller).
+        episodes: Number of episodes (copies).
+        seed: Copy i resets with seed ``seed + i``.
+        deterministic: Passed to the model's ``predict``.
+        env_kwargs: Keyword arguments of the id's env (e.g. ``max_episode_steps``).
+
+    Raises:
+        ValueError: an unknown id or policy name, or fewer than one episode.
+    """
+    if int(episodes) != episodes or episodes < 1:
+        raise ValueError(f"episodes must be an integer >= 1, got {episodes!r}")
+    if isinstance(policy, str) and policy not in ("random", "scripted"):
+        raise ValueError(f"policy must be a model, 'random' or 'scripted', got {policy!r}")
+    venv = vector_env(env, int(episodes), env_kwargs=env_kwargs)
+    if venv.max_episode_steps is None:
+        raise ValueError("evaluation needs an env with an episode limit (max_episode_steps)")
+    rng = np.random.default_rng(seed)
+    obs, _ = venv.reset(seed=seed)
+    returns = np.zeros(venv.num_envs)
+    lengths = np.zeros(venv.num_envs, dtype=np.int64)
+    successes = np.zeros(venv.num_envs, dtype=bool)
+    running = np.ones(venv.num_envs, dtype=bool)
+    while running.any():
+        if policy == "random":
+            action = rng.uniform(-1.0, 1.0, venv.action_space.shape).astype(np.float32)
+        elif policy == "scripted":
+            action = np.asarray(venv.sim.task.controller(venv.sim), dtype=np.float32)
+        else:
+            action = policy.predict(obs, deterministic=deterministic)[0]
+        obs, reward, terminated, truncated, info = venv.step(action)
+        returns[running] += reward[running]
+        lengths[running] += 1
+        done = running & (terminated | truncated)
+        if "is_success" in info:
+            successes[done] = np.asarray(info["is_success"], dtype=bool)[done]
+        running &= ~done
+    venv.close()
+    name = policy if isinstance(policy, str) else "agent"
+    return Evaluation(name, returns, successes, lengths, int(seed))
+
+
+# -- model files ------------------------------------------------------------------------------
+def model_record(path: str | Path) -> dict[str, Any]:
+    """The env id and algorithm a model file of :func:`train_agent` was trained with.
+
+    Raises:
+        FileNotFoundError: no such file.
+        ValueError: the file is not an SB3 model, or not one written by :func:`train_agent`.
+    """
+    from stable_baselines3.common.save_util import load_from_zip_file
+
+    path = Path(path)
+    if not path.is_file():
+        raise FileNotFoundError(f"no model file {path}")
+    try:
+        data, _, _ = load_from_zip_file(path, load_data=True, device="cpu")
+    except Exception as err:  # SB3 raises whatever zipfile/json raise on a bad archive
+        raise ValueError(f"{path} is not a stable-baselines3 model file: {err}") from err
+    if not data or "redsim_env_id" not in data or data.get("redsim_algo") not in ALGOS:
+        raise ValueError(f"{path} is an SB3 model, but not one trained by redsim (no env id recorded)")
+    return {"env_id": data["redsim_env_id"], "algo": data["redsim_algo"]}
+
+
+def load_agent(path: str | Path, env_id: str | None = None) -> Any:
+    """Load a model of :func:`train_agent`; with ``env_id``, refuse a model trained on another env.
+
+    Raises:
+        FileNotFoundError: no such file.
+        ValueError: not a redsim model, or a model of another env.
+    """
+    record = model_record(path)
+    if env_id is not None and record["env_id"] != env_id:
+        raise ValueError(f"the model {path} was trained on {record['env_id']}, not on {env_id}")
+    return _algo_class(record["algo"]).load(path, device="cpu")
+
+
+# -- training ---------------------------------------------------------------------------------
+@dataclass(frozen=True)
+class TrainResult:
+    """What :func:`train_agent` did.
+
+    Attributes:
+        model_path: The final ``model.zip``.
+        steps: Env steps the model has been trained for in all (resumed runs included).
+        wall_s: Wall time of all training runs into this folder [s] (evaluations included).
+        evaluation: The final seeded evaluation of the model.
+        out: The output folder.
+    """
+
+    model_path: Path
+    steps: int
+    wall_s: float
+    evaluation: Evaluation
+    out: Path
+
+
+def _curve_callback(curve: list[dict[str, float]], wall_offset: float, start: float) -> Any:
+    from stable_baselines3.common.callbacks import BaseCallback
+
+    class CurveRecorder(BaseCallback):
+        """After each evaluation: one row (env steps, wall s, mean/std return, success rate) of the curve."""
+
+        def _on_step(self) -> bool:
+            parent = self.parent
+            results = np.asarray(parent.evaluations_results[-1])
+            success = parent.evaluations_successes[-1] if parent.evaluations_successes else []
+            curve.append(
+                {
+                    "env_steps": int(parent.num_timesteps),
+                    "wall_s": wall_offset + time.perf_counter() - start,
+                    "mean_return": float(results.mean()),
+                    "std_return": float(results.std()),
+                    "success_rate": float(np.mean(success)) if len(success) else float("nan"),
+                }
+            )
+            return True
+
+    return CurveRecorder()
+
+
+def _resume_from(out: Path) -> Path | None:
+    """The newest of ``out/model.zip`` and the checkpoints (None: nothing to resume from)."""
+    found = [p for p in [out / "model.zip", *(out / "checkpoints").glob("rl_model_*_steps.zip")] if p.is_file()]
+    return max(found, key=lambda p: p.stat().st_mtime_ns) if found else None
+
+
+def _read_curve(path: Path) -> list[dict[str, Any]]:
+    if not path.is_file():
+        return []
+    with path.open() as handle:
+        return [{k: int(v) if k == "env_steps" else float(v) for k, v in row.items()} for row in csv.DictReader(handle)]
+
+
+def _write_curve(path: Path, curve: list[dict[str, float]]) -> None:
+    with path.open("w", newline="") as handle:
+        writer = csv.DictWriter(handle, fieldnames=["env_steps", "wall_s", "mean_return", "std_return", "success_rate"])
+        writer.writeheader()
+        writer.writerows(curve)
+
+
+def plot_curve(curve: list[dict[str, float]], path: Path, title: str) -> None:
+    """Evaluation return (mean ± std) vs env steps and vs wall time, side by side, as a PNG."""
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    fig, axes = plt.subplots(1, 2, figsize=(9, 3.4), sharey=True)
+    mean = np.array([r["mean_return"] for r in curve])
+    std = np.array([r["std_return"] for r in curve])
+    for ax, key, label in ((axes[0], "env_steps", "env steps"), (axes[1], "wall_s", "wall time [s]")):
+        x = np.array([r[key] for r in curve])
+        ax.plot(x, mean, marker="o", ms=3)
+        ax.fill_between(x, mean - std, mean + std, alpha=0.25)
+        ax.set_xlabel(label)
+        ax.grid(alpha=0.3)
+    axes[0].set_ylabel("evaluation return")
+    fig.suptitle(title)
+    fig.tight_layout()
+    fig.savefig(path, dpi=100)
+    plt.close(fig)
+
+
+def record_gif(
+    env: str | gym.Env,
+    model: Any,
+    path: Path,
+    *,
+    seed: int = 0,
+    size: int = 240,
+    every: int = 2,
+    env_kwargs: Mapping[str, Any] | None = None,
+) -> int:
+    """One deterministic episode of ``model`` drawn every ``every`` steps into a GIF; returns the frame count."""
+    from PIL import Image
+
+    if isinstance(env, str):
+        single = gym.make(env, render_mode="rgb_array", width=size, height=size, **dict(env_kwargs or {}))
+    elif env.render_mode == "rgb_array":
+        single = env
+    else:
+        raise ValueError("record_gif needs a registered id or an env made with render_mode='rgb_array'")
+    obs, _ = single.reset(seed=seed)
+    frames = [single.render()]
+    for step in range(1, 100_000):
+        obs, _, terminated, truncated, _ = single.step(model.predict(obs, deterministic=True)[0])
+        if step % every == 0:
+            frames.append(single.render())
+        if terminated or truncated:
+            break
+    dt = float(single.unwrapped.dt)
+    if single is not env:
+        single.close()
+    images = [Image.fromarray(f) for f in frames]
+    images[0].save(path, save_all=True, append_images=images[1:], duration=round(1000 * dt * every), loop=0)
+    return len(images)
+
+
+def train_agent(
+    env: str | gym.Env,
+    out: str | Path,
+    *,
+    algo: str = "sac",
+    steps: int = 20_000,
+    seed: int = 0,
+    n_envs: int | None = None,
+    eval_every: int | None = None,
+    eval_episodes: int = 10,
+    final_episodes: int = 20,
+    checkpoint_every: int | None = None,
+    resume: bool = False,
+    progress_bar: bool = False,
+    video: bool = True,
+    overrides: Mapping[str, Any] | None = None,
+    env_kwargs: Mapping[str, Any] | None = None,
+) -> TrainResult:
+    """Train ``algo`` on ``env`` for ``steps`` env steps in all, writing the files of the module doc to ``out``.
+
+    Args:
+        env: A registered id (``"RedSim/MiniChain-v0"``) or a user's env (:func:`redsim.envs.make`).
+        out: Output folder (created).
+        algo: "sac", "td3" or "ppo".
+        steps: Total env steps (over all copies); with ``resume``, the run continues up to this many.
+        seed: Seed of the algorithm and of the env copies.
+        n_envs: Vector env copies (default: the table's).
+        eval_every: Env steps between evaluations (default: ``steps / 10``).
+        eval_episodes: Episodes per evaluation during training.
+        final_episodes: Seeded episodes of the final evaluation (in ``agent.json``).
+        checkpoint_every: Env steps between checkpoints (default: ``steps / 4``).
+        resume: Continue from the newest of ``out/model.zip`` and ``out/checkpoints/*.zip``.
+        progress_bar: Show SB3's progress bar (needs ``rich``).
+        video: Write ``policy.gif`` (a user's env only when made with ``render_mode="rgb_array"``).
+        overrides: Settings that replace the table's (e.g. ``{"learning_rate": 3e-4}``).
+        env_kwargs: Keyword arguments of the id's env (e.g. ``{"max_episode_steps": 50}``).
+
+    Raises:
+        ValueError: an unknown id or algorithm, bad counts, or (resume) a model of another env or algorithm.
+    """
+    from stable_baselines3.common.callbacks import CallbackList, CheckpointCallback, EvalCallback
+    from stable_baselines3.common.noise import NormalActionNoise
+
+    if int(steps) != steps or steps < 1:
+        raise ValueError(f"steps must be an integer >= 1, got {steps!r}")
+    env_id = env if isinstance(env, str) else None
+    if env_id is not None:
+        check_env_id(env_id)
+    label = _env_label(env)
+    settings = hyperparams(env_id, algo)
+    settings.update(overrides or {})
+    copies = int(n_envs or settings.pop("n_envs"))
+    settings.pop("n_envs", None)
+    if copies < 1:
+        raise ValueError(f"n_envs must be >= 1, got {copies}")
+    out = Path(out)
+    (out / "checkpoints").mkdir(parents=True, exist_ok=True)
+    venv = _sb3_env(env, copies, seed, env_kwargs)
+    eval_env = _sb3_env(env, min(eval_episodes, 10), seed + 10_000, env_kwargs)
+    noise_std = settings.pop("action_noise_std", None)
+    if noise_std is not None:
+        shape = venv.action_space.shape
+        settings["action_noise"] = NormalActionNoise(np.zeros(shape), noise_std * np.ones(shape))
+
+    cls = _algo_class(algo)
+    previous = _resume_from(out) if resume else None
+    record = json.loads((out / "agent.json").read_text()) if resume and (out / "agent.json").is_file() else {}
+    if previous is not None:
+        found = model_record(previous)
+        if (found["env_id"], found["algo"]) != (label, algo):
+            raise ValueError(
+                f"cannot resume: {previous} is {found['algo']} on {found['env_id']}, not {algo} on {label}"
+            )
+        model = cls.load(previous, env=venv, device="cpu")
+        if hasattr(model, "load_replay_buffer") and previous == out / "model.zip" and (out / BUFFER).is_file():
+            model.load_replay_buffer(out / BUFFER)
+        log.info("resuming %s from %s at %d steps", label, previous, model.num_timesteps)
+    else:
+        model = cls("MlpPolicy", venv, seed=seed, device="cpu", verbose=0, **settings)
+    model.redsim_env_id = label
+    model.redsim_algo = algo
+
+    wall_offset = float(record.get("wall_s", 0.0)) if previous is not None else 0.0
+    curve = _read_curve(out / "curve.csv") if previous is not None else []
+    curve = [row for row in curve if row["env_steps"] <= model.num_timesteps]
+    start = time.perf_counter()
+    every = max(int(eval_every or steps // 10) // copies, 1)
+    evaluation_cb = EvalCallback(
+        eval_env,
+        n_eval_episodes=eval_episodes,
+        eval_freq=every,
+        best_model_save_path=str(out),
+        log_path=str(out),
+        callback_after_eval=_curve_callback(curve, wall_offset, start),
+        verbose=0,
+    )
+    checkpoint_cb = CheckpointCallback(
+        save_freq=max(int(checkpoint_every or steps // 4) // copies, 1),
+        save_path=str(out / "checkpoints"),
+    )
+    remaining = int(steps) - int(model.num_timesteps)
+    if remaining > 0:
+        model.learn(
+            remaining,
+            callback=CallbackList([evaluation_cb, checkpoint_cb]),
+            reset_num_timesteps=previous is None,
+            progress_bar=progress_bar,
+        )
+    wall = wall_offset + time.perf_counter() - start
+    model_path = out / "model.zip"
+    model.save(model_path)
+    if hasattr(model, "save_replay_buffer"):
+        model.save_replay_buffer(out / BUFFER)
+    venv.close()
+    eval_env.close()
+
+    final = evaluate(env, model, episodes=final_episodes, seed=seed + 20_000, env_kwargs=env_kwargs)
+    if not curve or curve[-1]["env_steps"] < model.num_timesteps:
+        curve.append(
+            {
+                "env_steps": int(model.num_timesteps),
+                "wall_s": wall,
+                "mean_return": final.mean,
+                "std_return": final.std,
+                "success_rate": final.success_rate,
+            }
+        )
+    _write_curve(out / "curve.csv", curve)
+    plot_curve(curve, out / "curve.png", f"{label}: {algo.upper()}")
+    if video and (isinstance(env, str) or env.render_mode == "rgb_array"):
+        record_gif(env, model, out / "policy.gif", seed=seed, env_kwargs=env_kwargs)
+    summary = {
+        "env_id": label,
+        "algo": algo,
+        "steps": int(model.num_timesteps),
+        "wall_s": wall,
+        "n_envs": copies,
+        "seed": seed,
+        "env_kwargs": dict(env_kwargs or {}),
+        "hyperparams": {k: v for k, v in settings.items() if k != "action_noise"} | {"action_noise_std": noise_std},
+        "final_evaluation": final.as_dict(),
+    }
+    (out / "agent.json").write_text(json.dumps(summary, indent=2, default=str))
+    return TrainResult(model_path, int(model.num_timesteps), wall, final, out)
+
+
+__all__ = [
+    "ALGOS",
+    "HYPERPARAMS",
+    "Evaluation",
+    "TrainResult",
+    "check_env_id",
+    "evaluate",
+    "hyperparams",
+    "load_agent",
+    "model_record",
+    "plot_curve",
+    "record_gif",
+    "train_agent",
+    "vector_env",
+]
