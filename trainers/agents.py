@@ -79,6 +79,8 @@ HYPERPARAMS: dict[str, dict[str, dict[str, Any]]] = {
     "RedSim/ClothBall-v0": {},
     "RedSim/HangingCloth-v0": {},
     "RedSim/ConditionalBar-v0": {},
+    "RedSim/Klann-v0": {},  # defaults, not tuned
+    "RedSim/Stewart-v0": {},  # defaults, not tuned
 }
 """env id -> algorithm -> settings; each env's entries override ``"default"`` key by key.
 
