@@ -43,6 +43,10 @@ from typing import Any
 import torch
 from torch import Tensor, nn
 
+from redsim.envs.chain import ChainEnv
+from redsim.envs.hanging_cloth import HangingClothEnv
+from redsim.envs.mini_chain import MiniChainEnv
+from redsim.envs.reach import ReachEnv
 from redsim.integrators import FullSpace, FullState, ImplicitEuler, LatentSpace, latent_equilibrium
 from redsim.integrators.reference import rest_state
 from redsim.runtime import LatentStepper
@@ -77,15 +81,20 @@ class Plan:
     note: str = ""
 
 
+def _env_plan(env: type[ReachEnv], reference_tol: float = 1e-8, why: str = "") -> Plan:
+    """The plan of an env's scene: the env's handle and ``max_force``, so bench and env cannot drift apart."""
+    note = f"{env.__name__}'s handle and max_force" + (f"; {why}" if why else "")
+    return Plan(env.goal_handle, env.default_max_force, reference_tol=reference_tol, note=note)
+
+
 PLANS: dict[str, Plan] = {
-    "mini_chain": Plan("bottom", 15.0, note="RedSim/MiniChain-v0's handle and max_force"),
-    "chain": Plan("bottom", 40.0, note="RedSim/Chain-v0's handle and max_force"),
-    "hanging_sheet": Plan(
-        "bottom_left",
-        2.0,
+    "mini_chain": _env_plan(MiniChainEnv),
+    "chain": _env_plan(ChainEnv),
+    "hanging_sheet": _env_plan(
+        HangingClothEnv,
         reference_tol=1e-4,
-        note="RedSim/HangingCloth-v0's corner and max_force; the sheet's Newton stalls near 3e-5 of its "
-        "forces (tol 1e-5 and 1e-6 steps end unconverged at |g| ~ 1e-3 N), so 1e-4 is the converged reference",
+        why="the sheet's Newton stalls near 3e-5 of its forces (tol 1e-5 and 1e-6 steps end unconverged at "
+        "|g| ~ 1e-3 N), so 1e-4 is the converged reference",
     ),
     "bistable_bar": Plan(
         "middle",
