@@ -228,7 +228,18 @@ class SDFContact(Effect):
         return 0.5 * self.stiffness * gap * gap
 
     def energy(self, x: Tensor, cond: Tensor | None = None, loads: Tensor | None = None) -> Tensor:
-        """The element sum, evaluated per (point source, frame) pair (see :meth:`_build_pairs`).
+        """The element sum, evaluated per (point source, frame) pair (:meth:`pair_distances`)."""
+        gap = (self.pair_distances(x) - self.margin).clamp_max(0.0)
+        return 0.5 * self.stiffness * (gap * gap * self.pair_mask).sum((-1, -2))
+
+    def penetration(self, x: Tensor) -> Tensor:
+        """Deepest penetration [m] past the margin, shape [B], of full configurations x [B, N]."""
+        depth = ((self.margin - self.pair_distances(x)) * self.pair_mask).clamp_min(0.0)
+        return depth.flatten(1).amax(-1)
+
+    def pair_distances(self, x: Tensor) -> Tensor:
+        """Signed distance [m] of every point, by (point source, frame) pair: [B, pairs, S] (see
+        :meth:`_build_pairs`; unused slots, ``pair_mask`` 0, hold the frame origin's distance).
 
         local = R_f^T (X_g w + o - t_f) for the points (weights w, offsets o) of source g in frame f:
         A = [R_f^T X_g | R_f^T | -R_f^T t_f] once per pair, then one contraction with the pair's
@@ -251,5 +262,4 @@ class SDFContact(Effect):
             parts.append(rotation_p)
         parts.append(-origin.index_select(1, self.pair_frame))
         local = torch.einsum("bpik,pks->ibps", torch.cat(parts, -1), self.pair_lift)  # [3, B, pairs, S]
-        gap = (self.shape.distance(local.permute(1, 2, 3, 0)) - self.margin).clamp_max(0.0)
-        return 0.5 * self.stiffness * (gap * gap * self.pair_mask).sum((-1, -2))
+        return self.shape.distance(local.permute(1, 2, 3, 0))
