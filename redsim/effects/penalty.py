@@ -243,9 +243,9 @@ class SDFContact(Effect):
 
         local = R_f^T (X_g w + o - t_f) for the points (weights w, offsets o) of source g in frame f:
         A = [R_f^T X_g | R_f^T | -R_f^T t_f] once per pair, then one contraction with the pair's
-        ``pair_lift``, batched over pairs (each a [B*3, K+D+1] x [K+D+1, S] matmul), written
-        component-major so the distance works on contiguous x, y, z (2-3x faster than per-(state,
-        pair) 3x3 matmuls on the chain; README "Latent runtime").
+        ``pair_lift``, batched over pairs (each a [B*3, K+D+1] x [K+D+1, S] matmul), whose output
+        keeps x, y and z contiguous for the distance (2-3x faster than per-(state, pair) 3x3
+        matmuls on the chain at B = 64; README "Latent runtime").
         """
         B = x.shape[0]
         G, DK = self.pair_source_dofs.shape
@@ -261,5 +261,7 @@ class SDFContact(Effect):
         if self.pair_offsets is not None:
             parts.append(rotation_p)
         parts.append(-origin.index_select(1, self.pair_frame))
-        local = torch.einsum("bpik,pks->ibps", torch.cat(parts, -1), self.pair_lift)  # [3, B, pairs, S]
-        return self.shape.distance(local.permute(1, 2, 3, 0))
+        lifted = torch.cat(parts, -1).transpose(0, 1)  # [pairs, B, 3, K (+D) + 1]
+        pairs = lifted.shape[0]
+        local = torch.bmm(lifted.reshape(pairs, B * 3, -1), self.pair_lift)  # [pairs, B * 3, S]
+        return self.shape.distance(local.view(pairs, B, 3, -1).permute(1, 0, 3, 2))  # local [B, pairs, S, 3]
