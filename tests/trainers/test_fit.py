@@ -360,3 +360,59 @@ def test_softened_rigidity_keeps_the_driven_crank_wound_after_the_driver_is_off(
     assert abs(loop["winding"]) == 1 and loop["energy_max"] < 5.0, loop
     command = result.subspace.metadata["command"]
     assert "--drive 3000.0 --drive-fraction 0.8 --soften rigid --soften-from 0.001 --soften-fraction 0.6" in command
+
+
+def _small_bar():
+    return scenes.build("bistable_bar", cells_x=8, cells_y=2)  # even cells_y: the mirror is exact
+
+
+def test_mirror_penalty_by_hand_and_antithetic_batches() -> None:
+    """The mirror term is mean |y(-z) - P y(z)|^2_M on an antithetic batch [z; -z]; 0 for an equivariant map."""
+    scene = _small_bar()
+    g = torch.Generator().manual_seed(0)
+    y = scene.q_seed + 0.01 * torch.randn(3, scene.free_dof_count, generator=g, dtype=torch.float64)
+    assert float(fit_module.mirror_gap(scene, torch.cat([y, scene.mirror.apply(y)]))) == pytest.approx(0.0, abs=1e-24)
+    other = y + 0.02
+    gap = other - scene.mirror.apply(y)
+    want = float((gap * scene.mass_matvec(gap)).sum(-1).mean())
+    assert float(fit_module.mirror_gap(scene, torch.cat([y, other]))) == pytest.approx(want, rel=1e-12)
+    config = FitConfig(latent_dim=2, batch_size=6, mirror=300.0)
+    z = fit_module.batch_latents(config, torch.Generator().manual_seed(1), torch.float64)
+    assert z.shape == (6, 2) and torch.equal(z[3:], -z[:3])
+    plain = dataclasses.replace(config, mirror=0.0)
+    assert torch.equal(  # without the option the samples are the usual ones
+        fit_module.batch_latents(plain, torch.Generator().manual_seed(1), torch.float64),
+        sample_latents(6, 2, generator=torch.Generator().manual_seed(1), dtype=torch.float64),
+    )
+    model = SubspaceMap(SubspaceConfig(latent_dim=2, output_dim=scene.free_dof_count)).double()
+    total, terms = subspace_loss(scene, model, z, None, 1.0, config)
+    _, without = subspace_loss(scene, model, z, None, 1.0, plain)
+    assert terms["mirror"] == pytest.approx(300.0 * float(fit_module.mirror_gap(scene, model(z).detach())), rel=1e-9)
+    assert without["mirror"] == 0.0 and terms["mirror"] > 0.0
+    assert float(total.detach()) == pytest.approx(without["energy"] + config.lam * without["pair"] + terms["mirror"])
+
+
+def test_mirror_needs_a_declared_mirror_and_an_even_batch() -> None:
+    with pytest.raises(ValueError, match="declares no mirror"):
+        fit_subspace(_tet_scene(), steps=1, mirror=1.0, progress=False)
+    for bad in ({"mirror": -1.0}, {"mirror": math.inf}, {"mirror": 1.0, "batch_size": 5}):
+        with pytest.raises(ValueError, match="mirror must be"):
+            FitConfig(**bad)
+    assert FitConfig(batch_size=5).mirror == 0.0  # odd batches stay fine without it
+    command = fit_command(_small_bar(), FitConfig(mirror=300.0), 0, "bar")
+    assert "--mirror 300.0 --out bar" in command
+    assert "--mirror" not in fit_command(_small_bar(), FitConfig(), 0, None)
+
+
+def test_mirror_fit_makes_the_map_equivariant() -> None:
+    """150 steps on a small bar: with the mirror term |f(-z) - P f(z)|_M ends 10x smaller than without it."""
+    scene = _small_bar()
+    z = torch.randn(64, 2, generator=torch.Generator().manual_seed(3))
+    gaps = {}
+    for weight in (0.0, 300.0):
+        result = fit_subspace(scene, dim=2, sigma=0.1, lam=100.0, steps=150, mirror=weight, progress=False)
+        with torch.no_grad():
+            y = result.subspace(torch.cat([z, -z]))
+        gaps[weight] = float(fit_module.mirror_gap(scene.to(dtype=torch.float32), y)) ** 0.5
+        assert result.subspace.metadata["fit"]["mirror"] == weight
+    assert gaps[300.0] < 0.1 * gaps[0.0], gaps
