@@ -43,6 +43,8 @@ FIT_FLAGS: tuple[tuple[str, str, Any, str], ...] = (
     ("--drive-fraction", "drive_fraction", float, "--drive holds for half this fraction of the steps, then falls to 0"),
     ("--soften-from", "soften_from", float, "initial weight of the --soften effects"),
     ("--soften-fraction", "soften_fraction", float, "fraction of the steps over which that weight rises to 1"),
+    ("--anchor", "anchor", float, "start stiffness [1/s^2] of the pull through the scene's reference states; 0: off"),
+    ("--anchor-fraction", "anchor_fraction", float, "--anchor holds for half this fraction of the steps, then ends"),
     ("--mirror", "mirror", float, "weight [1/s^2] of the map's equivariance under the scene's mirror; 0: off"),
     ("--checkpoint-every", "checkpoint_every", int, "steps between resumable checkpoints"),
     ("--dtype", "dtype", str, "float32 or float64"),
