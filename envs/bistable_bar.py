@@ -80,17 +80,13 @@ class SnapThrough(Task):
         self.success_bonus = float(success_bonus)
         self.release = float(release)
 
-    def __getstate__(self) -> dict[str, Any]:
-        # The bound sim is not part of the task: a copy (the vector env's) is bound to its own sim.
-        return {k: v for k, v in self.__dict__.items() if k != "_sim"}
-
     # -- binding --------------------------------------------------------------------------
     def bind(self, sim: LatentSim) -> None:
         scene = sim.scene
         names = list(scene.handle_names)
         if self.handle not in names:
             raise ValueError(f"scene {scene.name!r} has no handle {self.handle!r}; valid handles: {names}")
-        self._sim = sim
+        self._dt = sim.dt
         self._index = names.index(self.handle)
         self._point = scene.handles[self._index]
         self._handles = len(names)
@@ -154,7 +150,7 @@ class SnapThrough(Task):
         return loads
 
     def extras_bounds(self) -> tuple[np.ndarray, np.ndarray]:
-        high = np.array([self._bound, self._bound, 2.0 * self._bound / self._sim.dt])
+        high = np.array([self._bound, self._bound, 2.0 * self._bound / self._dt])
         return -high, high
 
     def observation_structure(self) -> dict[str, int]:
@@ -162,7 +158,7 @@ class SnapThrough(Task):
 
     def extras(self, x: Tensor, x_prev: Tensor, params: Mapping[str, Tensor]) -> Tensor:
         h = self.height(x)
-        return torch.stack([h, params["goal_height"] - h, (h - self.height(x_prev)) / self._sim.dt], dim=1)
+        return torch.stack([h, params["goal_height"] - h, (h - self.height(x_prev)) / self._dt], dim=1)
 
     def _error(self, x: Tensor, params: Mapping[str, Tensor]) -> tuple[Tensor, Tensor]:
         """|h - h*| [B] [m] and the success radius tolerance |h* - h0| [B] [m]."""
