@@ -72,6 +72,10 @@ class Task:
         """Parameters of one new episode (each shape [...], no batch dim) drawn from ``rng``."""
         return {}
 
+    def start(self, sim: LatentSim, row: int, z_rest: Tensor) -> Tensor:
+        """The latent [d] copy ``row`` starts its episode from, after :meth:`sample` (default: at rest, z_rest)."""
+        return z_rest
+
     def loads(self, action: Tensor, params: Mapping[str, Tensor]) -> Tensor:
         """Loads [B, H, D] [N] from actions [B, A] in [-1, 1]."""
         raise NotImplementedError
@@ -232,7 +236,8 @@ class LatentSim:
 
     # -- episodes -------------------------------------------------------------------------
     def reset_rows(self, rows: list[int], rngs: list[np.random.Generator]) -> None:
-        """Start a new episode in copies ``rows`` (at rest), each drawing from its own generator."""
+        """Start a new episode in copies ``rows`` (at rest, or where the task starts it), each drawing from its own
+        generator."""
         for row, rng in zip(rows, rngs, strict=True):
             cond = None
             if self.randomize_condition:
@@ -243,12 +248,13 @@ class LatentSim:
             else:
                 cond = None if self.cond is None else self.cond[row : row + 1]
                 z_rest = self._rest
-            self.z[row] = z_rest
-            self.z_prev[row] = z_rest
             for key, value in self.task.sample(rng, self, z_rest, cond).items():
                 if key not in self.params:
                     self.params[key] = torch.zeros((self.batch, *value.shape), dtype=value.dtype, device=self.device)
                 self.params[key][row] = value
+            start = self.task.start(self, row, z_rest)
+            self.z[row] = start
+            self.z_prev[row] = start
         self.loads[rows] = 0.0
         self.model[rows] = torch.nan
         x = self.full_positions(self.z[rows], None if self.cond is None else self.cond[rows])

@@ -81,6 +81,7 @@ HYPERPARAMS: dict[str, dict[str, dict[str, Any]]] = {
     "RedSim/ConditionalBar-v0": {},
     "RedSim/Klann-v0": {},  # defaults, not tuned
     "RedSim/Stewart-v0": {},  # defaults, not tuned
+    "RedSim/BistableBar-v0": {},  # defaults, not tuned
 }
 """env id -> algorithm -> settings; each env's entries override ``"default"`` key by key.
 
