@@ -238,6 +238,8 @@ class ReachEnv(LatentEnv):
     | `frame_skip` | 1 | stepper steps per env step |
     | `subspace` | None | the shipped map, a checkpoint path or a map |
     | `scene_params` | None | scene build parameters (a shipped map covers only the defaults) |
+    | `fit_if_missing` | False | fit a map for `scene_params` no shipped map covers into the user cache |
+    | `fit_options` | None | FitConfig fields over the scene's preset for that fit |
     | `include_q` | False | put q [n] in `info["q"]` |
     | `**kwargs` | | more :class:`LatentEnv` arguments (`dtype`, `device`, `width`, `height`, `camera`, ...) |
     """
@@ -261,10 +263,14 @@ class ReachEnv(LatentEnv):
         frame_skip: int = 1,
         subspace: str | nn.Module | None = None,
         scene_params: dict[str, Any] | None = None,
+        fit_if_missing: bool = False,
+        fit_options: dict[str, Any] | None = None,
         include_q: bool = False,
         **kwargs: Any,
     ) -> None:
-        scene, sub = shipped(self.scene_name, scene_params, subspace)
+        scene, sub = shipped(
+            self.scene_name, scene_params, subspace, fit_if_missing=fit_if_missing, fit_options=fit_options
+        )
         task = HandleReach(
             self.goal_handle,
             max_force=self.default_max_force if max_force is None else max_force,
