@@ -666,18 +666,26 @@ class LatentEnv(gym.Env[np.ndarray, np.ndarray]):
             self.set_state(state["sim"])
 
 
-def check_numbers(positive: Mapping[str, float], nonnegative: Mapping[str, float] | None = None) -> None:
-    """Check task arguments by name: each of ``positive`` finite and > 0, each of ``nonnegative`` finite and >= 0.
+def check_numbers(
+    positive: Mapping[str, Any],
+    nonnegative: Mapping[str, Any] | None = None,
+    optional: Mapping[str, Any] | None = None,
+) -> None:
+    """Check task arguments by name: ``positive`` finite and > 0, ``nonnegative`` finite and >= 0,
+    ``optional`` None or finite and > 0 (:func:`redsim.scenes.toolkit.check_positive` for each).
 
     Raises:
-        ValueError: naming the first bad argument and its value.
+        ValueError: naming the first bad argument and its value (a non-number included).
     """
+    from redsim.scenes.toolkit import check_positive
+
     for key, value in positive.items():
-        if not (np.isfinite(value) and value > 0.0):
-            raise ValueError(f"{key} must be finite and > 0, got {value!r}")
+        check_positive(key, value)
     for key, value in dict(nonnegative or {}).items():
-        if not (np.isfinite(value) and value >= 0.0):
-            raise ValueError(f"{key} must be finite and >= 0, got {value!r}")
+        check_positive(key, value, allow_zero=True)
+    for key, value in dict(optional or {}).items():
+        if value is not None:
+            check_positive(key, value)
 
 
 def check_action(action: Any, shape: tuple[int, ...]) -> np.ndarray:

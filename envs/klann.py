@@ -78,9 +78,8 @@ class CrankSpeed(Task):
                 "controller_time": controller_time,
             },
             {"control_weight": control_weight, "success_bonus": success_bonus},
+            {"speed_scale": speed_scale},
         )
-        if speed_scale is not None and not (np.isfinite(speed_scale) and speed_scale > 0.0):
-            raise ValueError(f"speed_scale must be None or finite and > 0, got {speed_scale!r}")
         self.handle = handle
         self.pivot = (float(pivot[0]), float(pivot[1]))
         self.max_force = float(max_force)

@@ -23,7 +23,7 @@ import numpy as np
 import torch
 from torch import Tensor, nn
 
-from redsim.envs.base import LatentEnv, Task, shipped
+from redsim.envs.base import LatentEnv, Task, check_numbers, shipped
 
 if TYPE_CHECKING:
     from redsim.envs.base import LatentSim
@@ -73,20 +73,11 @@ class HandleReach(Task):
         controller_gain: float | None = None,
         controller_time: float = 0.5,
     ) -> None:
-        for key, value in (("max_force", max_force), ("target_spread", target_spread)):
-            if not (np.isfinite(value) and value > 0.0):
-                raise ValueError(f"{key} must be finite and > 0, got {value!r}")
-        for key, value in (("control_weight", control_weight), ("success_bonus", success_bonus)):
-            if not (np.isfinite(value) and value >= 0.0):
-                raise ValueError(f"{key} must be finite and >= 0, got {value!r}")
-        for key, value in (
-            ("distance_scale", distance_scale),
-            ("success_radius", success_radius),
-            ("controller_gain", controller_gain),
-            ("controller_time", controller_time),
-        ):
-            if value is not None and not (np.isfinite(value) and value > 0.0):
-                raise ValueError(f"{key} must be None or finite and > 0, got {value!r}")
+        check_numbers(
+            {"max_force": max_force, "target_spread": target_spread, "controller_time": controller_time},
+            {"control_weight": control_weight, "success_bonus": success_bonus},
+            {"distance_scale": distance_scale, "success_radius": success_radius, "controller_gain": controller_gain},
+        )
         self.goal_handle = goal_handle
         self.actuated = goal_handle if actuated is None else actuated
         self.max_force = float(max_force)

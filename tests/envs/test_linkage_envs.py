@@ -14,6 +14,7 @@ import pytest
 import redsim  # noqa: F401  (registers the ids)
 from redsim.envs.base import LatentEnv, shipped
 from redsim.envs.klann import CrankSpeed
+from redsim.envs.reach import HandleReach
 from redsim.envs.stewart import PlatePose
 
 
@@ -79,6 +80,22 @@ def test_linkage_tasks_reject_bad_arguments() -> None:
     with pytest.raises(ValueError, match="not the origin of a rigid body"):
         scene, sub = shipped("stewart")
         LatentEnv(scene, sub, PlatePose("arm_0", ("arm_1",), max_force=10.0))
+
+
+@pytest.mark.parametrize(
+    ("make", "name"),
+    [
+        (lambda: HandleReach("tip", max_force=-1.0), "max_force"),
+        (lambda: HandleReach("tip", max_force=1.0, control_weight=-0.1), "control_weight"),
+        (lambda: HandleReach("tip", max_force=1.0, distance_scale=float("inf")), "distance_scale"),
+        (lambda: HandleReach("tip", max_force="strong"), "max_force"),
+        (lambda: CrankSpeed("crank_pin", (0.0, 0.08), max_force=40.0, speed_scale=0.0), "speed_scale"),
+    ],
+)
+def test_task_arguments_go_through_the_shared_checker(make, name: str) -> None:
+    """Reach and crank tasks name the bad argument (a non-number too), through check_numbers."""
+    with pytest.raises(ValueError, match=f"^{name} must"):
+        make()
 
 
 @pytest.mark.slow
