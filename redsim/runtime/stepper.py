@@ -538,7 +538,7 @@ class LatentStepper:
         )
         take = worse & retry.finite & (retry.value < result.value)
         fields = {
-            name: torch.where(take if old.ndim == 1 else take[:, None], getattr(retry, name), old)
+            name: torch.where(take.view(-1, *[1] * (old.ndim - 1)), getattr(retry, name), old)
             for name, old in vars(result).items()
         }
         fields["iterations"] = result.iterations + torch.where(worse, retry.iterations, 0)
