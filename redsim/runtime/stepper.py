@@ -415,8 +415,9 @@ class LatentStepper:
             cond: Scene conditions [B, m] (default: the scene's default condition), or None.
             warm: The previous step's ``stats.model`` [B, d, d] of the same states, or None. With it
                 the quasi-Newton models start from it instead of building a Hessian (the default
-                "lagged_fd" saves d gradient evaluations a step; rows with a NaN build their own).
-                The result is the same solve, to the tolerance.
+                "lagged_fd" saves d gradient evaluations a step; rows with a NaN build their own),
+                and the solve starts at z_t instead of the extrapolated 2 z_t - z_prev (one
+                evaluation fewer). The result is the same solve, to the tolerance.
 
         Returns:
             z_next [B, d] (never NaN: a state that failed keeps its best finite iterate) and the
@@ -451,28 +452,37 @@ class LatentStepper:
                 force = force + torch.linalg.vector_norm(loads_t, dim=-1)
             z0 = 2.0 * z - z_prev
             objective = _StepObjective(self, qbar, loads_t, cond_t, z0)
-            # Phi at the extrapolated start and at z_t: the start of the solve, a secant pair for
-            # the quasi-Newton models, and Phi(z_t) for the diverged flag (one call in eager mode)
             index = torch.arange(batch, device=self.device)
-            if self.compiled:
-                parts = [objective.value_and_grad(u, index) for u in (z0, z)]
-                value, grad, energy = (torch.cat(pair) for pair in zip(*parts, strict=True))
-            else:
-                value, grad, energy = objective.value_and_grad(torch.cat([z0, z]), torch.cat([index, index]))
             noise = 100.0 * self._eps * force * self.length
+            if warm is not None:
+                # a warm model's quasi-Newton step from z_t needs no extrapolated start: one row a
+                # state fewer (measured: 15-19% fewer evaluations on the chain; README "Latent runtime")
+                value, grad, energy = objective.value_and_grad(z, index)
+                value = torch.cat([value, value])  # Phi(z_t) also for the diverged flag below
+                start_z, start, secant = z, (value[:batch], grad, energy), None
+                at_z = start  # the solve starts at z_t: it cannot end above it (no restart)
+            else:
+                # Phi at the extrapolated start and at z_t: the start of the solve, a secant pair for
+                # the quasi-Newton models, and Phi(z_t) for the diverged flag (one call in eager mode)
+                if self.compiled:
+                    parts = [objective.value_and_grad(u, index) for u in (z0, z)]
+                    value, grad, energy = (torch.cat(pair) for pair in zip(*parts, strict=True))
+                else:
+                    value, grad, energy = objective.value_and_grad(torch.cat([z0, z]), torch.cat([index, index]))
+                start_z, start, secant = z0, (value[:batch], grad[:batch], energy[:batch]), (z, grad[batch:])
+                at_z = (value[batch:], grad[batch:], energy[batch:])
             result = minimize(
                 objective,
-                z0,
+                start_z,
                 self.jacobian_norm * force,
                 noise,
                 tol=self.tol,
                 max_iter=self.max_iter,
                 hessian=self.hessian,
-                start=(value[:batch], grad[:batch], energy[:batch]),
-                secant=(z, grad[batch:]),
+                start=start,
+                secant=secant,
                 warm=warm,
             )
-            at_z = (value[batch:], grad[batch:], energy[batch:])
             result = self._restart_worse(objective, result, z, at_z, force, noise)
             z_next = torch.where(result.finite[:, None], result.z, z)
             q_next = self._coords(z_next, cond_t)
@@ -543,6 +553,26 @@ class LatentStepper:
         }
         fields["iterations"] = result.iterations + torch.where(worse, retry.iterations, 0)
         return BatchResult(**fields)
+
+    def objective(
+        self, candidate: Tensor, z: Tensor, z_prev: Tensor, loads: Tensor | None = None, cond: Tensor | None = None
+    ) -> Tensor:
+        """Phi_b [J] of candidate next latents [B, d] for the step from (z, z_prev) [B, d] under ``loads``
+        [B, H, D] (what :meth:`step` minimizes, module doc): compare two answers to one step.
+
+        Raises:
+            ValueError: as :meth:`step`.
+        """
+        candidate, z, z_prev = (
+            self._latents(u, what) for u, what in ((candidate, "candidate"), (z, "z"), (z_prev, "z_prev"))
+        )
+        batch = z.shape[0]
+        loads_t, cond_t = self._loads(loads, batch), self._cond(cond, batch)
+        with torch.no_grad():
+            q_t = self._coords(z, cond_t)
+            qbar = 2.0 * q_t - self._coords(z_prev, cond_t)
+            value, _ = self._phi(candidate, qbar, loads_t, cond_t)
+        return value
 
     def rest_latent(self, cond: Tensor | None = None) -> Tensor:
         """The latent static equilibrium under zero load near z = 0: [1, d] (cond None) or [B, d] (cond [B, m]).
