@@ -415,9 +415,8 @@ class LatentStepper:
             cond: Scene conditions [B, m] (default: the scene's default condition), or None.
             warm: The previous step's ``stats.model`` [B, d, d] of the same states, or None. With it
                 the quasi-Newton models start from it instead of building a Hessian (the default
-                "lagged_fd" saves d gradient evaluations a step; rows with a NaN build their own),
-                and the solve starts at z_t instead of the extrapolated 2 z_t - z_prev (one
-                evaluation fewer). The result is the same solve, to the tolerance.
+                "lagged_fd" saves d gradient evaluations a step; rows with a NaN build their own).
+                The result is the same solve, to the tolerance.
 
         Returns:
             z_next [B, d] (never NaN: a state that failed keeps its best finite iterate) and the
@@ -452,35 +451,26 @@ class LatentStepper:
                 force = force + torch.linalg.vector_norm(loads_t, dim=-1)
             z0 = 2.0 * z - z_prev
             objective = _StepObjective(self, qbar, loads_t, cond_t, z0)
+            # Phi at the extrapolated start and at z_t: the start of the solve, a secant pair for
+            # the quasi-Newton models, and Phi(z_t) for the diverged flag (one call in eager mode)
             index = torch.arange(batch, device=self.device)
-            noise = 100.0 * self._eps * force * self.length
-            if warm is not None:
-                # a warm model's quasi-Newton step from z_t needs no extrapolated start: one row a
-                # state fewer (measured: 15-19% fewer evaluations on the chain; README "Latent runtime")
-                value, grad, energy = objective.value_and_grad(z, index)
-                value = torch.cat([value, value])  # Phi(z_t) also for the diverged flag below
-                start_z, start, secant = z, (value[:batch], grad, energy), None
-                at_z = start  # the solve starts at z_t: it cannot end above it (no restart)
+            if self.compiled:
+                parts = [objective.value_and_grad(u, index) for u in (z0, z)]
+                value, grad, energy = (torch.cat(pair) for pair in zip(*parts, strict=True))
             else:
-                # Phi at the extrapolated start and at z_t: the start of the solve, a secant pair for
-                # the quasi-Newton models, and Phi(z_t) for the diverged flag (one call in eager mode)
-                if self.compiled:
-                    parts = [objective.value_and_grad(u, index) for u in (z0, z)]
-                    value, grad, energy = (torch.cat(pair) for pair in zip(*parts, strict=True))
-                else:
-                    value, grad, energy = objective.value_and_grad(torch.cat([z0, z]), torch.cat([index, index]))
-                start_z, start, secant = z0, (value[:batch], grad[:batch], energy[:batch]), (z, grad[batch:])
-                at_z = (value[batch:], grad[batch:], energy[batch:])
+                value, grad, energy = objective.value_and_grad(torch.cat([z0, z]), torch.cat([index, index]))
+            noise = 100.0 * self._eps * force * self.length
+            at_z = (value[batch:], grad[batch:], energy[batch:])
             result = minimize(
                 objective,
-                start_z,
+                z0,
                 self.jacobian_norm * force,
                 noise,
                 tol=self.tol,
                 max_iter=self.max_iter,
                 hessian=self.hessian,
-                start=start,
-                secant=secant,
+                start=(value[:batch], grad[:batch], energy[:batch]),
+                secant=(z, grad[batch:]),
                 warm=warm,
             )
             result = self._restart_worse(objective, result, z, at_z, force, noise)

@@ -111,23 +111,7 @@ def _load(env_id: str) -> dict[str, np.ndarray]:
         return {k: data[k] for k in data.files}
 
 
-KNOWN_FAILURES = {
-    "RedSim/MiniChain-v0": (
-        "the warm-started step (main 1a380bb: it starts at z_t) ends step 27 in a minimum of Phi 0.0036 J above "
-        "the one the cold solve and this file have (-1.44946 J against -1.45306 J); the runtime's to fix"
-    ),
-}
-"""Ids whose golden check fails for a known runtime reason (strict: the test says so once it passes)."""
-
-
-def _param(env_id: str) -> Any:
-    marks = [pytest.mark.slow] if env_id in SLOW else []
-    if env_id in KNOWN_FAILURES:
-        marks.append(pytest.mark.xfail(strict=True, reason=KNOWN_FAILURES[env_id]))
-    return pytest.param(env_id, marks=marks)
-
-
-IDS = [_param(i) for i in redsim.envs.ids()]
+IDS = [pytest.param(i, marks=pytest.mark.slow) if i in SLOW else i for i in redsim.envs.ids()]
 
 
 def test_every_id_has_a_golden_file() -> None:
