@@ -76,7 +76,6 @@ from typing import Any, NamedTuple
 import torch
 from torch import Tensor
 
-import redsim
 from redsim.scene import Scene
 from redsim.subspace import (
     CheckpointError,
@@ -86,6 +85,7 @@ from redsim.subspace import (
     pair_log_ratios,
     sample_latents,
 )
+from redsim.version import __version__
 
 log = logging.getLogger(__name__)
 
@@ -641,7 +641,7 @@ def fit_subspace(
         "seed": seed,
         "fit_seconds": fit_seconds,
         "final": {k: sum(h[k] for h in tail) / len(tail) for k in ("energy", "pair", "stretch")},
-        "redsim_version": redsim.__version__,
+        "redsim_version": __version__,
         "schedule": {
             "lr_halved_every": _lr_step_size(config.steps),
             "rho_ramp_steps": ramp_steps,
