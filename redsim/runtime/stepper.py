@@ -201,6 +201,10 @@ class LatentStepper:
         hessian: The solver's Hessian model, one of :data:`redsim.runtime.solver.HESSIANS`.
         compile: Evaluate the objective's value and gradient through ``torch.compile`` (the first
             steps pay the compilation, tens of seconds; results equal eager within dtype round-off).
+        warm_start: Use the ``warm`` model :meth:`step` is given (default). False ignores it: every
+            step builds its own model, as the reference does. Where a step's objective has several
+            nearby minima (the mini chain's folded map under full-range actions) the two can
+            converge to different ones, and a chaotic rollout then splits (README "Latent runtime").
 
     Raises:
         ValueError: a bad dt, tol, max_iter or hessian, or a map that does not fit the scene.
@@ -219,6 +223,7 @@ class LatentStepper:
         tol: float | None = None,
         hessian: str = DEFAULT_HESSIAN,
         compile: bool = False,
+        warm_start: bool = True,
     ) -> None:
         if not (isinstance(dt, (int, float)) and math.isfinite(dt) and dt > 0.0):
             raise ValueError(f"dt must be a finite number > 0 [s], got {dt!r}")
@@ -256,6 +261,7 @@ class LatentStepper:
         # exact Hessian's double backward stays eager (compiled graphs do not support it)
         self._phi_fast = torch.compile(self._phi_eager, dynamic=False) if compile else self._phi_eager
         self.compiled = bool(compile)
+        self.warm_start = bool(warm_start)
 
     # -- constants, once per scene and map --------------------------------------------------
     def _build_constants(self) -> None:
@@ -433,6 +439,8 @@ class LatentStepper:
         loads_t = self._loads(loads, batch)
         cond_t = self._cond(cond, batch)
         d = self.latent_dim
+        if not self.warm_start:
+            warm = None
         if warm is not None:
             warm = torch.as_tensor(warm, device=self.device)
             if warm.shape != (batch, d, d):

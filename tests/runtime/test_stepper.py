@@ -142,6 +142,13 @@ def test_warm_start_is_the_same_solve_with_fewer_evaluations() -> None:
     assert torch.isfinite(stats.model).all() and stats.model.shape == (2, 8, 8)
     with pytest.raises(ValueError, match="warm must have shape"):
         stepper.step(z, z_prev, loads, warm=torch.zeros(2, 3, 3))
+    # warm_start=False ignores the model: the cold solve, bitwise
+    cold_stepper = LatentStepper(
+        scene, pretrained.load("chain").double(), DT, dtype=torch.float64, tol=1e-10, warm_start=False
+    )
+    a, _ = cold_stepper.step(z, z_prev, loads, warm=stats.model)
+    b, _ = cold_stepper.step(z, z_prev, loads)
+    assert torch.equal(a, b)
 
 
 def test_stats_shapes_and_types(mini_chain) -> None:
