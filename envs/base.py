@@ -352,7 +352,8 @@ class LatentSim:
         """Restore a state from :meth:`get_state` (shapes are checked).
 
         Raises:
-            ValueError: on a missing key, a wrong shape or non-finite values.
+            ValueError: on a missing key, a wrong shape, non-finite values or a condition outside
+                the scene's condition space.
         """
         d, B = self.latent_dim, self.batch
 
@@ -370,7 +371,15 @@ class LatentSim:
         self.z = tensor(state["z"], (B, d), "z")
         self.z_prev = tensor(state["z_prev"], (B, d), "z_prev")
         if self.cond is not None:
-            self.cond = tensor(state["cond"], tuple(self.cond.shape), "cond")
+            cond = tensor(state["cond"], tuple(self.cond.shape), "cond")
+            if bool(((cond < self._cond_low) | (cond > self._cond_high)).any()):
+                space = self.scene.condition_space
+                ranges = ", ".join(
+                    f"{name} in [{lo:g}, {hi:g}]"
+                    for name, lo, hi in zip(space.names, space.low.tolist(), space.high.tolist(), strict=True)
+                )
+                raise ValueError(f"state['cond'] must lie in the condition space ({ranges}), got {cond.tolist()}")
+            self.cond = cond
         params = state["params"]
         if self.params and set(params) != set(self.params):
             raise ValueError(f"state['params'] must have keys {sorted(self.params)}, got {sorted(params)}")
