@@ -419,8 +419,9 @@ def condition_edge_cases(long: int) -> list[dict[str, Any]]:
     rows = []
     for cond, label in [*((c, "condition_edge") for c in corners), (beyond, "condition_beyond")]:
         run = runtime_rollout(scene, f, plan_loads(scene, max(2, long // 10), 1), DT, cond=cond)
-        row = run.row(scene, "conditional_bar", label, "latent", RISE_SLACK)
-        row["condition"] = [round(float(v), 4) for v in cond]
+        values = ", ".join(f"{float(v):.3g}" for v in cond)
+        row = run.row(scene, "conditional_bar", f"{label} ({values})", "latent", RISE_SLACK)
+        row["condition"] = [float(v) for v in cond]
         rows.append(row)
     return rows
 
