@@ -31,10 +31,11 @@ def _loads(scene: Scene, steps: int, batch: int, hold: int, scale: float, seed: 
 
 def _rollout(stepper: LatentStepper, z0: Tensor, loads: Tensor | None, steps: int) -> tuple[Tensor, list[float]]:
     """Latents [steps + 1, B, d] of a rollout and the wall time of each step [s]."""
-    z, z_prev, out, times = z0, z0, [z0], []
+    z, z_prev, out, times, model = z0, z0, [z0], [], None
     for t in range(steps):
         start = time.perf_counter()
-        z_next, _ = stepper.step(z, z_prev, None if loads is None else loads[t])
+        z_next, stats = stepper.step(z, z_prev, None if loads is None else loads[t], warm=model)
+        model = stats.model
         times.append(time.perf_counter() - start)
         z_prev, z = z, z_next
         out.append(z)

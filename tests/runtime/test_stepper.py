@@ -107,6 +107,42 @@ def test_batched_equals_single_calls(mini_chain) -> None:
         assert int(single_stats.iterations[0]) == int(stats.iterations[b])
 
 
+def test_warm_start_is_the_same_solve_with_fewer_evaluations() -> None:
+    """Carrying stats.model from step to step (as the envs do) lands on the same minimizers as building
+    the Hessian every step, for a fraction of the energy evaluations; a wrong-shape warm is refused."""
+    scene = scenes.build("chain")
+    stepper = LatentStepper(scene, pretrained.load("chain").double(), DT, dtype=torch.float64, tol=1e-10)
+    rows = [0]
+    energy = stepper.energy.energy
+
+    def counted(z, cond):
+        rows[0] += z.shape[0]
+        return energy(z, cond)
+
+    stepper.energy.energy = counted
+    loads = _loads(scene, 2, 3, 20.0)
+    runs = {}
+    for warm in (False, True):
+        rows[0] = 0
+        z = stepper.rest_latent().expand(2, -1).clone()
+        z_prev, model, path = z.clone(), None, [z]
+        for _ in range(8):
+            z_next, stats = stepper.step(z, z_prev, loads, warm=model)
+            assert bool(stats.converged.all())
+            model = stats.model if warm else None
+            z_prev, z = z, z_next
+            path.append(z)
+        runs[warm] = (torch.stack(path), rows[0])
+    (cold, cold_rows), (hot, hot_rows) = runs[False], runs[True]
+    motion = float((cold - cold[0]).abs().max())
+    assert motion > 1e-3  # it moved
+    assert float((hot - cold).abs().max()) <= 1e-5 * motion  # tol 1e-10 of the force scale, over 8 steps
+    assert hot_rows < 0.7 * cold_rows  # measured 150 vs 250 rows
+    assert torch.isfinite(stats.model).all() and stats.model.shape == (2, 8, 8)
+    with pytest.raises(ValueError, match="warm must have shape"):
+        stepper.step(z, z_prev, loads, warm=torch.zeros(2, 3, 3))
+
+
 def test_stats_shapes_and_types(mini_chain) -> None:
     scene, f = mini_chain
     stepper = LatentStepper(scene, f, DT)
@@ -116,7 +152,7 @@ def test_stats_shapes_and_types(mini_chain) -> None:
     assert z_next.shape == (3, stepper.latent_dim) and z_next.dtype == torch.float32
     assert stats.converged.dtype == torch.bool and stats.out_of_range.dtype == torch.bool
     assert stats.diverged.dtype == torch.bool and stats.iterations.dtype == torch.int64
-    assert all(t.shape == (3,) for t in stats)
+    assert all(t.shape == (3,) for t in stats[:-1]) and stats.model.shape == (3, stepper.latent_dim, stepper.latent_dim)
     assert stepper.positions(z).shape == (3, scene.free_dof_count)
     # at rest without load nothing moves, nothing is flagged
     torch.testing.assert_close(z_next, z, rtol=0.0, atol=1e-3)
