@@ -189,10 +189,11 @@ def runtime_rollout(
     c = None if cond is None else cond.reshape(1, -1).to(stepper.dtype)
     z = stepper.rest_latent(c) if z0 is None else z0.reshape(1, -1).to(stepper.dtype)
     zp = z.clone() if z_prev is None else z_prev.reshape(1, -1).to(stepper.dtype)
-    zs, reported, nonfinite = [zp, z], [], 0
+    zs, reported, nonfinite, model = [zp, z], [], 0, None
     flags = {"unconverged": 0, "diverged": 0, "out_of_range": 0}
     for i in range(loads.shape[0]):
-        z_next, stats = stepper.step(z, zp, loads[i : i + 1], c)
+        z_next, stats = stepper.step(z, zp, loads[i : i + 1], c, warm=model)  # warm-started as the envs do
+        model = stats.model
         if not (bool(torch.isfinite(z_next).all()) and bool(torch.isfinite(stats.energy).all())):
             nonfinite += 1
             z_next = torch.where(torch.isfinite(z_next), z_next, z)
