@@ -721,7 +721,7 @@ def redsim_chain_cases(
             row = run.row(scene, "chain", label, space, slack)
             row["free_energy_J"] = row["start_energy_J"] - rest
             growth = row["max_energy_J"] > ENERGY_GROWTH * row["free_energy_J"]
-            row["blew_up"] = bool(row["nan"] or row["unreported"] or growth)
+            row["blew_up"] = bool(row["nan"] or growth)
             rows.append({"scenario": label, **row})
     return rows
 
@@ -775,7 +775,9 @@ def chain_table(chain: dict[str, Any]) -> list[str]:
                 cells.append("-")
                 continue
             state = "blew up" if r["blew_up"] else "ok"
-            cells.append(f"{state} ({r['steps']} steps, {r['failures_detected']} flagged)")
+            cells.append(
+                f"{state} ({r['steps']} steps, {r['failures_detected']} flagged, {r['unreported']} unreported gains)"
+            )
         lines.append("| " + " | ".join(cells) + " |")
     if mujoco is None:
         lines.append("")
