@@ -15,7 +15,6 @@ from torch import Tensor, nn
 
 from redsim.cubature.energy import Cubature, CubatureEnergy
 from redsim.cubature.fit import default_load_scale
-from redsim.effects.base import gather_elements
 from redsim.effects.penalty import SDFContact
 from redsim.runtime import LatentStepper
 from redsim.scene import Scene
@@ -48,8 +47,7 @@ def penetration(scene: Scene, q: Tensor) -> float:
     depth = 0.0
     for effect in scene.effects:
         if isinstance(effect, SDFContact):
-            gap = effect.signed_distance(gather_elements(x, effect.element_dofs)) - effect.margin
-            depth = max(depth, float((-gap).clamp_min(0.0).max()))
+            depth = max(depth, float(effect.penetration(x).max()))
     return depth
 
 

@@ -499,6 +499,26 @@ class LatentStepper:
         )
         return z_next, stats
 
+    def objective(
+        self, candidate: Tensor, z: Tensor, z_prev: Tensor, loads: Tensor | None = None, cond: Tensor | None = None
+    ) -> Tensor:
+        """Phi_b [J] of candidate next latents [B, d] for the step from (z, z_prev) [B, d] under ``loads``
+        [B, H, D] (what :meth:`step` minimizes, module doc): compare two answers to one step.
+
+        Raises:
+            ValueError: as :meth:`step`.
+        """
+        candidate, z, z_prev = (
+            self._latents(u, what) for u, what in ((candidate, "candidate"), (z, "z"), (z_prev, "z_prev"))
+        )
+        batch = z.shape[0]
+        loads_t, cond_t = self._loads(loads, batch), self._cond(cond, batch)
+        with torch.no_grad():
+            q_t = self._coords(z, cond_t)
+            qbar = 2.0 * q_t - self._coords(z_prev, cond_t)
+            value, _ = self._phi(candidate, qbar, loads_t, cond_t)
+        return value
+
     def rest_latent(self, cond: Tensor | None = None) -> Tensor:
         """The latent static equilibrium under zero load near z = 0: [1, d] (cond None) or [B, d] (cond [B, m]).
 
