@@ -388,7 +388,8 @@ class LatentSim:
         builds its solver model afresh: the same solve, to the tolerance).
 
         Raises:
-            ValueError: on a missing key, a wrong shape or non-finite values.
+            ValueError: on a missing key, a wrong shape, non-finite values or a condition outside
+                the scene's condition space.
         """
         d, B = self.latent_dim, self.batch
 
@@ -403,6 +404,7 @@ class LatentSim:
         missing = {"z", "z_prev", "cond", "params"} - set(state)
         if missing:
             raise ValueError(f"state is missing {sorted(missing)}")
+        cond = None if self.cond is None else self._checked_cond(tensor(state["cond"], tuple(self.cond.shape), "cond"))
         self.z = tensor(state["z"], (B, d), "z")
         self.z_prev = tensor(state["z_prev"], (B, d), "z_prev")
         self.model = torch.full((B, d, d), torch.nan, dtype=self.torch_dtype, device=self.device)
@@ -411,8 +413,8 @@ class LatentSim:
             if tuple(model.shape) != (B, d, d):
                 raise ValueError(f"state['model'] must have shape {[B, d, d]}, got {list(model.shape)}")
             self.model = model.clone()
-        if self.cond is not None:
-            self.cond = tensor(state["cond"], tuple(self.cond.shape), "cond")
+        if cond is not None:
+            self.cond = cond
         params = state["params"]
         if self.params and set(params) != set(self.params):
             raise ValueError(f"state['params'] must have keys {sorted(self.params)}, got {sorted(params)}")
@@ -422,6 +424,17 @@ class LatentSim:
         }
         self.x_prev = self.full_positions(self.z_prev)
         self.x = self.full_positions(self.z)
+
+    def _checked_cond(self, cond: Tensor) -> Tensor:
+        """``cond`` [B, m], refused (ValueError naming the ranges) where it leaves the condition space."""
+        if bool(((cond < self._cond_low) | (cond > self._cond_high)).any()):
+            space = self.scene.condition_space
+            ranges = ", ".join(
+                f"{name} in [{lo:g}, {hi:g}]"
+                for name, lo, hi in zip(space.names, space.low.tolist(), space.high.tolist(), strict=True)
+            )
+            raise ValueError(f"state['cond'] must lie in the condition space ({ranges}), got {cond.tolist()}")
+        return cond
 
     # -- drawing --------------------------------------------------------------------------
     def view(self, width: int, height: int, camera: Mapping[str, float] | None) -> Any:

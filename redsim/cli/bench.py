@@ -386,6 +386,58 @@ def cmd_bench_scaling(args: argparse.Namespace) -> int:
     return EXIT_OK
 
 
+def cmd_bench_stability(args: argparse.Namespace) -> int:
+    from redsim.bench import machine_info
+    from redsim.benches import stability
+
+    regimes = list(stability.REGIMES) if args.regimes is None else parse_list(args.regimes, "--regimes")
+    unknown = [r for r in regimes if r not in stability.REGIMES and r not in ("fuzz", "mujoco")]
+    if unknown:
+        raise CliError(f"unknown regime(s) {unknown}; valid: {', '.join([*stability.REGIMES, 'fuzz', 'mujoco'])}")
+    if args.regimes is None:
+        regimes += ["fuzz", "mujoco"]
+    env_ids = list(redsim.envs.ids()) if args.envs is None else parse_list(args.envs, "--envs")
+    bad = [e for e in env_ids if e not in redsim.envs.ids()]
+    if bad:
+        raise CliError(f"unknown env id(s) {bad}; valid: {', '.join(redsim.envs.ids())}")
+    for flag in ("steps", "long_steps", "chain_steps"):
+        if getattr(args, flag) < 1:
+            raise CliError(f"--{flag.replace('_', '-')} must be >= 1, got {getattr(args, flag)}")
+    progress = None if args.json else note
+    machine = machine_info()
+    rows = []
+    for name in regimes:
+        if name in stability.REGIMES:
+            if progress:
+                progress(f"regime {name}")
+            rows += stability.REGIMES[name](args.long_steps)
+    if "fuzz" in regimes and env_ids:
+        rows += list(stability.fuzz_envs(env_ids, args.steps, seed=args.seed, progress=progress))
+    chain = None
+    if "mujoco" in regimes:
+        if progress:
+            progress("chain scenarios: MuJoCo and redsim")
+        mujoco = stability.mujoco_chain_cases(args.chain_steps)
+        broken = None if mujoco is None else sorted({r["scenario"] for r in mujoco if r["blew_up"]})
+        chain = {
+            "dt": 0.01,
+            "steps": args.chain_steps,
+            "full_steps": args.chain_full_steps,
+            "mujoco": mujoco,
+            "redsim": stability.redsim_chain_cases(
+                args.chain_steps, full_steps=args.chain_full_steps, scenarios=broken
+            ),
+        }
+    result = {"machine": machine, "long_steps": args.long_steps, "fuzz_steps": args.steps, "rows": rows, "chain": chain}
+    if args.json:
+        json_out(result)
+    else:
+        out(_machine_line(machine, "cpu"))
+        for line in stability.report(result):
+            out(line)
+    return EXIT_OK
+
+
 def add_commands(sub: Any) -> Any:
     """Add ``bench`` and its subcommands to the subcommands ``sub``; returns the ``bench`` subcommands."""
     p = sub.add_parser("bench", help="benchmarks", description="Benchmarks; each prints the machine it ran on.")
@@ -527,5 +579,34 @@ def add_commands(sub: Any) -> Any:
     p.add_argument("--no-full", action="store_true", help="skip the full-space step")
     p.add_argument("--out", metavar="DIR", help="write DIR/scaling.md and DIR/scaling.png")
     finish_command(p, cmd_bench_scaling, "print one JSON document on stdout", default_threads=1)
+
+    p = bench.add_parser(
+        "stability",
+        help="hard cases: stiff, big steps, far latents, actions at bounds, impacts, fuzzed env steps",
+        description=(
+            "Drive scenes and envs into the regimes that break simulators (stiffness x1000, dt 0.1 and 0.5 s, "
+            "|z| = 10, bang-bang and alternating actions, high-speed impacts into contact, starts near element "
+            "inversion, condition range edges, fuzzed env steps) and print per run: steps, failures detected and "
+            "recovered, nan count (must be 0), unreported energy gains (must be 0), the largest energy above the "
+            "start and the largest work of the loads. With mujoco installed: kicked and dropped 24-capsule chains "
+            "under MuJoCo's integrators at dt 0.01, and redsim's chain under the scenarios that blew MuJoCo up "
+            "(all of them without mujoco). See redsim.benches.stability."
+        ),
+    )
+    p.add_argument("--steps", type=int, default=10_000, help="fuzzed env steps over all envs (default 10000)")
+    p.add_argument("--envs", metavar="ID1,ID2", help="env ids to fuzz (default: all registered)")
+    p.add_argument(
+        "--regimes",
+        metavar="R1,R2",
+        help="only these, from stiff, big_dt, far_latent, action_bounds, impact, near_inversion, condition_edges, "
+        "fuzz, mujoco (default all)",
+    )
+    p.add_argument("--long-steps", type=int, default=2000, help="steps of the bang-bang runs (default 2000)")
+    p.add_argument("--chain-steps", type=int, default=300, help="steps of the chain scenarios (default 300)")
+    p.add_argument(
+        "--chain-full-steps", type=int, default=50, help="steps of redsim's full-space chain runs (default 50)"
+    )
+    p.add_argument("--seed", type=int, default=0, help="seed of the fuzzed actions and resets (default 0)")
+    finish_command(p, cmd_bench_stability, "print one JSON document on stdout", default_threads=1)
     cubature.add_bench_command(bench)
     return bench

@@ -1,0 +1,849 @@
+"""`redsim bench stability`: hard cases stay numerically stable, measured (tests call the same code, small).
+
+Each case drives one scene or env into a regime that breaks simulators and records, per run:
+steps run, failures detected (a step the solver reported: not converged or ``diverged``), failures
+recovered (a detected failure followed, later in the same run and copy, by a converged step),
+``nan`` (non-finite states, energies or observations: must be 0), steps whose energy rose by more
+than its loads put in without being reported (``unreported``: must be 0), the largest mechanical
+energy above the start and the largest work the loads did (the bound the inputs allow).
+
+The energy ledger is H_t = K_t + E(q_t) - W_t with K_t = |q_t - q_{t-1}|_M^2 / (2 h^2) and
+W_t = sum_{i<t} F_i . (p(q_{i+1}) - p(q_i)) the work of the (per-step constant) handle loads F.
+A converged implicit-Euler step of a convex energy never raises H (backward Euler is
+dissipative); the scenes are not convex, so a rise of :data:`RISE_SLACK` (float32 runtime) or
+:data:`FULL_SLACK` (float64 reference) of max |H| is allowed without a flag.
+
+Regimes (:data:`REGIMES`): stiffness x1000, time steps 0.1 and 0.5 s, a latent start at |z| = 10,
+actions at their bounds held (``bang_bang``) and flipped every step (``alternating``), high-speed
+impacts into contact, starts near element inversion, conditions at the edges of their range, and
+fuzzed env steps (random actions, many at the bounds, and random resets) over every env, the
+step count split in proportion to each env's measured speed. With ``mujoco`` installed,
+:func:`mujoco_chain_cases` runs kicked and dropped 24-capsule chains under MuJoCo's integrators at
+dt 0.01 beside redsim's chain under the same kicks (:func:`redsim_chain_cases`).
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import math
+import time
+from collections.abc import Callable, Iterator, Sequence
+from typing import Any
+
+import numpy as np
+import torch
+from torch import Tensor, nn
+
+from redsim import pretrained, scenes
+from redsim.benches.accuracy import PLANS, Plan
+from redsim.envs.cloth_ball import ClothBallEnv
+from redsim.envs.conditional_bar import ConditionalBarEnv
+from redsim.integrators import FullSpace, ImplicitEuler
+from redsim.integrators.reference import rest_state
+from redsim.runtime import LatentStepper
+from redsim.scene import Scene
+
+RISE_SLACK = 1e-3
+"""Energy rise per step [fraction of max |H|] a float32 latent step may show without a flag."""
+FULL_SLACK = 1e-6
+"""The same for converged float64 full-space steps."""
+DT = 0.02
+"""The envs' time step [s]."""
+LOADS: dict[str, Plan] = {
+    **PLANS,
+    "cloth_ball": Plan(ClothBallEnv.goal_handle, ClothBallEnv.default_max_force),
+    "conditional_bar": Plan(ConditionalBarEnv.goal_handle, ConditionalBarEnv.default_max_force),
+}
+"""Handle and force of a unit action per scene (the envs' ``goal_handle`` and ``default_max_force``)."""
+BANG_BANG_HOLD = 50
+"""Steps a ``bang_bang`` action is held at one bound before it flips."""
+FUZZ_COPIES = {"RedSim/ClothBall-v0": 8, "RedSim/HangingCloth-v0": 8}
+"""Vector env copies of the fuzzed envs (default 64): the cloths take seconds per 64-copy step."""
+
+
+# -- the energy ledger --------------------------------------------------------------------------
+def handle_positions(scene: Scene, q: Tensor) -> Tensor:
+    """Handle positions [B, H*D] [m] of free configurations q [B, n]."""
+    x = scene.full_positions(q)
+    return torch.cat([h.position(x) for h in scene.handles], -1)
+
+
+def energy_account(
+    scene: Scene, q: Tensor, loads: Tensor, dt: float, q_prev: Tensor | None = None, cond: Tensor | None = None
+) -> tuple[Tensor, Tensor]:
+    """(K_t + E(q_t) [T + 1], W_t [T + 1]) [J] of free configurations q [T + 1, n] under loads [T, H, D].
+
+    ``q_prev`` [n] is the state before q[0] (default q[0]: starting at rest); ``cond`` [m] the condition.
+    """
+    s = scene.to(dtype=torch.float64)
+    q = q.to(torch.float64)
+    before = q[:1] if q_prev is None else q_prev.reshape(1, -1).to(torch.float64)
+    v = torch.diff(torch.cat([before, q]), dim=0)
+    kinetic = 0.5 * (v * s.mass_matvec(v)).sum(-1) / dt**2
+    c = None if cond is None else cond.to(torch.float64).reshape(1, -1).expand(q.shape[0], -1)
+    with torch.no_grad():
+        mechanical = kinetic + s.energy(q, None, c)
+    if not s.handles:
+        return mechanical, torch.zeros_like(mechanical)
+    p = handle_positions(s, q)
+    power = (loads.reshape(loads.shape[0], -1).to(torch.float64) * (p[1:] - p[:-1])).sum(-1)
+    return mechanical, torch.cat([torch.zeros(1, dtype=torch.float64), torch.cumsum(power, 0)])
+
+
+def ledger(
+    scene: Scene, q: Tensor, loads: Tensor, dt: float, q_prev: Tensor | None = None, cond: Tensor | None = None
+) -> Tensor:
+    """H_t = K_t + E(q_t) - W_t [T + 1] [J] (module doc; arguments as :func:`energy_account`)."""
+    mechanical, work = energy_account(scene, q, loads, dt, q_prev, cond)
+    return mechanical - work
+
+
+def unreported_rises(h: Tensor, reported: Tensor, slack: float) -> list[int]:
+    """Steps t whose H [T + 1] rose by more than ``slack`` max|H| without being reported (reported: [T] bool)."""
+    rise = h[1:] - h[:-1]
+    limit = slack * float(h[torch.isfinite(h)].abs().max().clamp_min(1.0)) if bool(torch.isfinite(h).any()) else 0.0
+    bad = ~torch.isfinite(rise) | (rise > limit)
+    return [int(t) for t in torch.nonzero(bad & ~reported.to(torch.bool)).flatten()]
+
+
+def recovered(reported: Sequence[bool]) -> int:
+    """How many reported steps are followed, later in the run, by a step that was not reported."""
+    count, pending = 0, 0
+    for bad in reported:
+        if bad:
+            pending += 1
+        else:
+            count, pending = count + pending, 0
+    return count
+
+
+# -- rollouts -----------------------------------------------------------------------------------
+@dataclasses.dataclass
+class Rollout:
+    """One run of one state: configurations, what each step reported, and what it cost.
+
+    Attributes:
+        q: Free configurations [T + 1, n] (float64), q[0] the start.
+        q_prev: The state one step before q[0] [n].
+        loads: The loads of each step [T, H, D] [N].
+        dt: Time step [s].
+        reported: [T] bool: the step said it failed (not converged or diverged).
+        nonfinite: Non-finite states or energies met (never stepped on).
+        flags: Counts of ``unconverged``, ``diverged`` and ``out_of_range`` steps.
+        seconds: Wall time [s].
+        cond: The condition [m] of a conditional scene, or None.
+    """
+
+    q: Tensor
+    q_prev: Tensor
+    loads: Tensor
+    dt: float
+    reported: Tensor
+    nonfinite: int
+    flags: dict[str, int]
+    seconds: float
+    cond: Tensor | None = None
+
+    def energy_rises(self, scene: Scene, slack: float) -> list[int]:
+        """Steps whose ledger rose by more than ``slack`` without being reported."""
+        return unreported_rises(
+            ledger(scene, self.q, self.loads, self.dt, self.q_prev, self.cond), self.reported, slack
+        )
+
+    def row(self, scene: Scene, target: str, regime: str, space: str, slack: float) -> dict[str, Any]:
+        """The bench row of this run (module doc)."""
+        mechanical, work = energy_account(scene, self.q, self.loads, self.dt, self.q_prev, self.cond)
+        h = mechanical - work
+        reported = [bool(r) for r in self.reported]
+        return {
+            "target": target,
+            "regime": regime,
+            "space": space,
+            "steps": len(reported),
+            "failures_detected": sum(reported),
+            "failures_recovered": recovered(reported),
+            "nan": self.nonfinite + int((~torch.isfinite(self.q)).any(-1).sum()),
+            "unreported": len(unreported_rises(h, self.reported, slack)),
+            "start_energy_J": float(mechanical[0]),
+            "max_energy_J": float((mechanical - mechanical[0]).max()),
+            "input_work_J": float(work.max()),
+            "out_of_range": self.flags.get("out_of_range", 0),
+            "seconds": self.seconds,
+        }
+
+
+def runtime_rollout(
+    scene: Scene,
+    f: nn.Module,
+    loads: Tensor,
+    dt: float,
+    *,
+    z0: Tensor | None = None,
+    z_prev: Tensor | None = None,
+    cond: Tensor | None = None,
+    **options: Any,
+) -> Rollout:
+    """A B = 1 latent-runtime run from rest (or z0, z_prev [d]) under loads [T, H, D] (condition cond [m])."""
+    start = time.perf_counter()
+    stepper = LatentStepper(scene, f, dt, **options)
+    c = None if cond is None else cond.reshape(1, -1).to(stepper.dtype)
+    z = stepper.rest_latent(c) if z0 is None else z0.reshape(1, -1).to(stepper.dtype)
+    zp = z.clone() if z_prev is None else z_prev.reshape(1, -1).to(stepper.dtype)
+    zs, reported, nonfinite, model = [zp, z], [], 0, None
+    flags = {"unconverged": 0, "diverged": 0, "out_of_range": 0}
+    for i in range(loads.shape[0]):
+        z_next, stats = stepper.step(z, zp, loads[i : i + 1], c, warm=model)  # warm-started as the envs do
+        model = stats.model
+        if not (bool(torch.isfinite(z_next).all()) and bool(torch.isfinite(stats.energy).all())):
+            nonfinite += 1
+            z_next = torch.where(torch.isfinite(z_next), z_next, z)
+        flags["unconverged"] += int((~stats.converged).sum())
+        flags["diverged"] += int(stats.diverged.sum())
+        flags["out_of_range"] += int(stats.out_of_range.sum())
+        reported.append(bool(stats.diverged[0]) or not bool(stats.converged[0]))
+        zp, z = z, z_next
+        zs.append(z)
+    q = stepper.positions(torch.cat(zs), None if c is None else c.expand(len(zs), -1)).to(torch.float64)
+    seconds = time.perf_counter() - start
+    return Rollout(q[1:], q[0], loads, dt, torch.tensor(reported, dtype=torch.bool), nonfinite, flags, seconds, cond)
+
+
+def full_rollout(
+    scene: Scene,
+    loads: Tensor,
+    dt: float,
+    *,
+    q0: Tensor | None = None,
+    velocity: Tensor | None = None,
+    max_iter: int = 50,
+) -> Rollout:
+    """A float64 full-space run from q0 [n] (default the seed) with an initial velocity [n] [m/s]."""
+    start = time.perf_counter()
+    integrator = ImplicitEuler(FullSpace(scene.to(dtype=torch.float64)), dt, max_iter=max_iter)
+    state = integrator.initial_state(q0, velocity)
+    qs, reported, nonfinite = [state.q_prev, state.q], [], 0
+    for i in range(loads.shape[0]):
+        state, info = integrator.step(state, loads[i])
+        if not bool(torch.isfinite(state.q).all()):
+            nonfinite += 1
+        reported.append(not info.converged)
+        qs.append(state.q)
+    seconds = time.perf_counter() - start
+    flags = {"unconverged": int(sum(reported))}
+    return Rollout(
+        torch.stack(qs[1:]), qs[0], loads, dt, torch.tensor(reported, dtype=torch.bool), nonfinite, flags, seconds
+    )
+
+
+def bang_bang(scene: Scene, steps: int, force: float, handle: int = 0, axis: int = 0, hold: int = 1) -> Tensor:
+    """Loads [steps, H, D] [N]: +force for ``hold`` steps, then -force, ... on one handle axis."""
+    loads = torch.zeros(steps, len(scene.handles), scene.dim, dtype=torch.float64)
+    sign = 1.0 - 2.0 * ((torch.arange(steps) // hold) % 2).to(torch.float64)
+    loads[:, handle, axis] = force * sign
+    return loads
+
+
+def plan_loads(scene: Scene, steps: int, hold: int, scale: float = 1.0) -> Tensor:
+    """:func:`bang_bang` on the scene's :data:`LOADS` handle at ``scale`` x its unit-action force, along x."""
+    plan = LOADS[scene.name]
+    return bang_bang(scene, steps, scale * plan.max_force, scene.handle_names.index(plan.handle), 0, hold)
+
+
+def latent_velocity(stepper: LatentStepper, z: Tensor, velocity: Tensor) -> Tensor:
+    """The latent velocity [d] whose image J v_z is M-closest to a free-DOF velocity [n] at z [1, d]."""
+    f = stepper.energy.positions
+    z64 = z.detach().to(stepper.dtype)
+    columns = torch.func.jacfwd(lambda u: f(u.unsqueeze(0), None)[0])(z64[0]).to(torch.float64)  # [n, d]
+    s = stepper.source_scene.to(dtype=torch.float64)
+    mj = s.mass_matvec(columns.T)  # [d, n]
+    return torch.linalg.solve(mj @ columns, mj @ velocity.to(torch.float64))
+
+
+def project_latent(stepper: LatentStepper, q: Tensor, z0: Tensor, iterations: int = 100) -> Tensor:
+    """argmin_z |f(z) - q|_M [1, d] from z0 [1, d] (L-BFGS): a configuration [n] as the map can show it."""
+    s = stepper.scene
+    target = q.to(stepper.dtype).reshape(1, -1)
+    z = z0.detach().clone().to(stepper.dtype).requires_grad_(True)
+    optimizer = torch.optim.LBFGS([z], max_iter=iterations, line_search_fn="strong_wolfe")
+
+    def closure() -> Tensor:
+        optimizer.zero_grad()
+        d = stepper.energy.positions(z, None) - target
+        value = (d * s.mass_matvec(d)).sum()
+        value.backward()
+        return value
+
+    with torch.enable_grad():
+        optimizer.step(closure)
+    return z.detach()
+
+
+# -- rigid motions of the chains ----------------------------------------------------------------
+def rotated_chain(scene: Scene, angle: float) -> Tensor:
+    """The chain's seed q [n] turned by ``angle`` [rad] about the x axis (its hook's axis: the hook still holds)."""
+    c, s = math.cos(angle), math.sin(angle)
+    rot = torch.tensor([[1.0, 0.0, 0.0], [0.0, c, -s], [0.0, s, c]], dtype=torch.float64)
+    x = scene.full_positions(scene.q_seed.to(torch.float64).unsqueeze(0))[0].reshape(-1, 3, 4)
+    return scene.dof_map.restrict((rot @ x).reshape(1, -1))[0]
+
+
+def swing_velocity(scene: Scene, q: Tensor, tip_speed: float) -> Tensor:
+    """Free-DOF velocity [n] [m/s] of the chain q [n] turning rigidly about the z axis through the hook.
+
+    The angular speed makes the farthest link centre move at ``tip_speed`` [m/s] (a kick).
+    """
+    x = scene.full_positions(q.to(torch.float64).unsqueeze(0))[0].reshape(-1, 3, 4)
+    reach = float(torch.linalg.vector_norm(x[:, :, 3], dim=-1).max())
+    omega = tip_speed / reach
+    skew = torch.tensor([[0.0, -omega, 0.0], [omega, 0.0, 0.0], [0.0, 0.0, 0.0]], dtype=torch.float64)
+    return scene.dof_map.restrict((skew @ x).reshape(1, -1))[0]
+
+
+# -- the regimes --------------------------------------------------------------------------------
+Case = Callable[[int], list[dict[str, Any]]]
+"""A case: run it with a step budget (``long``: the length of the long runs) and get its rows."""
+
+
+def _shipped(name: str, **params: Any) -> tuple[Scene, nn.Module]:
+    scene = scenes.build(name, **params)
+    return scene, pretrained.load(name, scenes.build(name) if params else scene)
+
+
+def _zero_loads(scene: Scene, steps: int) -> Tensor:
+    return torch.zeros(steps, len(scene.handles), scene.dim, dtype=torch.float64)
+
+
+def stiff_cases(long: int) -> list[dict[str, Any]]:
+    """Stiffness x1000 driven by the soft shipped map: bistable bar (Young's modulus), chain (contact)."""
+    rows = []
+    for name, params in (("bistable_bar", {"young": 1e8}), ("chain", {"contact_stiffness": 1e8})):
+        stiff, f = _shipped(name, **params)
+        loads = plan_loads(stiff, max(2, long // 10), 1, 1000.0)
+        run = runtime_rollout(stiff, f, loads, DT)
+        rows.append(run.row(stiff, name, "stiff_x1000", "latent", RISE_SLACK))
+        full = full_rollout(stiff, loads[:2], DT)
+        rows.append(full.row(stiff, name, "stiff_x1000", "full", FULL_SLACK))
+    return rows
+
+
+def big_dt_cases(long: int) -> list[dict[str, Any]]:
+    """Time steps of 0.1 and 0.5 s under actions at their bounds flipping every step."""
+    rows = []
+    for name in ("mini_chain", "chain", "bistable_bar"):
+        scene, f = _shipped(name)
+        for dt in (0.1, 0.5):
+            loads = plan_loads(scene, max(2, long // 20), 1)
+            rows.append(runtime_rollout(scene, f, loads, dt).row(scene, name, f"dt_{dt:g}", "latent", RISE_SLACK))
+            full = full_rollout(scene, loads[:3], dt)
+            rows.append(full.row(scene, name, f"dt_{dt:g}", "full", FULL_SLACK))
+    return rows
+
+
+def far_latent_cases(long: int) -> list[dict[str, Any]]:
+    """Starts at |z| = 10 (far outside z ~ N(0, I) the maps were fitted on), released unloaded."""
+    rows = []
+    for name in pretrained.names():
+        scene, f = _shipped(name)
+        d = int(f.latent_dim)
+        z0 = torch.full((d,), 10.0 / math.sqrt(d))
+        run = runtime_rollout(scene, f, _zero_loads(scene, max(2, long // 40)), DT, z0=z0)
+        rows.append(run.row(scene, name, "far_latent", "latent", RISE_SLACK))
+    return rows
+
+
+def action_bound_cases(long: int) -> list[dict[str, Any]]:
+    """Actions at their bounds for ``long`` steps, held BANG_BANG_HOLD steps (``bang_bang``) or flipped each step."""
+    rows = []
+    for name in ("mini_chain", "chain", "bistable_bar", "conditional_bar", "cloth_ball", "hanging_sheet"):
+        scene, f = _shipped(name)
+        for regime, hold in (("bang_bang", BANG_BANG_HOLD), ("alternating", 1)):
+            run = runtime_rollout(scene, f, plan_loads(scene, long, hold), DT)
+            rows.append(run.row(scene, name, regime, "latent", RISE_SLACK))
+    return rows
+
+
+def impact_cases(long: int) -> list[dict[str, Any]]:
+    """High-speed impacts into contact: chains thrown up into their hook, the ball thrown down onto the cloth.
+
+    Full space starts from the seed (contact-free), the runtime from its rest z* (a state the
+    full-space energy need not be at rest in: its first converged step can drop into contact).
+    """
+    rows = []
+    steps = max(2, long // 100)
+    for name in ("mini_chain", "chain", "cloth_ball"):
+        scene, f = _shipped(name)
+        stepper = LatentStepper(scene, f, DT)
+        z = stepper.rest_latent()
+        for speed in (10.0, 100.0):
+            x_dot = torch.zeros(scene.full_dof_count, dtype=torch.float64)
+            if name == "cloth_ball":
+                x_dot[-12 + 7] = -speed  # t_y of the ball (the last body's row-major [R | t])
+            else:
+                x_dot[7::12] = speed  # t_y of every link
+            v = scene.dof_map.restrict(x_dot.unsqueeze(0))[0]
+            loads = _zero_loads(scene, steps)
+            regime = f"impact_{speed:g}"
+            full = full_rollout(scene, loads[: 3 if name == "cloth_ball" else steps], DT, velocity=v)
+            rows.append(full.row(scene, name, regime, "full", FULL_SLACK))
+            kick = DT * latent_velocity(stepper, z, v).to(z)
+            run = runtime_rollout(scene, f, loads, DT, z0=z[0], z_prev=z[0] - kick)
+            rows.append(run.row(scene, name, regime, "latent", RISE_SLACK))
+    return rows
+
+
+def squashed_column(scene: Scene, column: int = 10, ratio: float = 0.05) -> Tensor:
+    """Free q [n]: a 2D bar's seed, vertex column ``column`` pushed to ``ratio`` of its gap to the next (J ~ ratio)."""
+    x = scene.full_positions(scene.q_seed.to(torch.float64).unsqueeze(0))[0].reshape(-1, 2).clone()
+    xs = x[:, 0].unique()
+    chosen = torch.isclose(x[:, 0], xs[column])
+    x[chosen, 0] = xs[column + 1] - ratio * (xs[column + 1] - x[chosen, 0])
+    return scene.dof_map.restrict(x.reshape(1, -1))[0]
+
+
+def near_inversion_cases(long: int) -> list[dict[str, Any]]:
+    """FEM bars released from a state with one column of elements squashed to 5% of their width."""
+    rows = []
+    for name in ("bistable_bar", "conditional_bar"):
+        scene = scenes.build(name)
+        loads = _zero_loads(scene, max(2, min(5, long // 100)))
+        rows.append(
+            full_rollout(scene, loads, DT, q0=squashed_column(scene)).row(
+                scene, name, "near_inversion", "full", FULL_SLACK
+            )
+        )
+    return rows
+
+
+def condition_edge_cases(long: int) -> list[dict[str, Any]]:
+    """The conditional bar at the four corners of its condition range (and 20% beyond one), actions at the bounds."""
+    scene, f = _shipped("conditional_bar")
+    space = scene.condition_space
+    low, high = space.low.to(torch.float64), space.high.to(torch.float64)
+    corners = [torch.stack([a, b]) for a in (low[0], high[0]) for b in (low[1], high[1])]
+    beyond = high + 0.2 * (high - low)
+    rows = []
+    for cond, label in [*((c, "condition_edge") for c in corners), (beyond, "condition_beyond")]:
+        run = runtime_rollout(scene, f, plan_loads(scene, max(2, long // 10), 1), DT, cond=cond)
+        values = ", ".join(f"{float(v):.3g}" for v in cond)
+        row = run.row(scene, "conditional_bar", f"{label} ({values})", "latent", RISE_SLACK)
+        row["condition"] = [float(v) for v in cond]
+        rows.append(row)
+    return rows
+
+
+REGIMES: dict[str, Case] = {
+    "stiff": stiff_cases,
+    "big_dt": big_dt_cases,
+    "far_latent": far_latent_cases,
+    "action_bounds": action_bound_cases,
+    "impact": impact_cases,
+    "near_inversion": near_inversion_cases,
+    "condition_edges": condition_edge_cases,
+}
+"""Regime groups of the scene cases, by name (the env fuzz is :func:`fuzz_envs`)."""
+
+
+# -- fuzzed env steps ---------------------------------------------------------------------------
+def fuzz_actions(rng: np.random.Generator, shape: tuple[int, ...], step: int) -> np.ndarray:
+    """Actions [N, A]; copy i mod 4: 0 uniform in [-1, 1], 1 at a random bound, 2 +-1 flipping, 3 x3 (clipped)."""
+    actions = rng.uniform(-1.0, 1.0, shape)
+    kind = np.arange(shape[0]) % 4
+    actions[kind == 1] = np.sign(actions[kind == 1])
+    actions[kind == 2] = 1.0 if step % 2 == 0 else -1.0
+    actions[kind == 3] *= 3.0
+    return actions.astype(np.float32)
+
+
+class _EnvLedger:
+    """Per-copy energy bookkeeping of a vector env between resets (module doc's ledger, step by step)."""
+
+    def __init__(self, sim: Any) -> None:
+        self.sim = sim
+        self.scene = sim.source_scene.to(dtype=torch.float64)
+        self.dt = float(sim.stepper.dt)
+        q = self.positions()
+        self.q_prev, self.q = q.clone(), q
+        self.start = self.mechanical(q, q)
+        self.work = torch.zeros_like(self.start)
+        self.max_energy = 0.0
+        self.max_work = 0.0
+
+    def positions(self) -> Tensor:
+        return self.sim.positions(self.sim.z).to(torch.float64)
+
+    def mechanical(self, q: Tensor, q_prev: Tensor) -> Tensor:
+        v = q - q_prev
+        cond = None if self.sim.cond is None else self.sim.cond.to(torch.float64)
+        with torch.no_grad():
+            return 0.5 * (v * self.scene.mass_matvec(v)).sum(-1) / self.dt**2 + self.scene.energy(q, None, cond)
+
+    def step(self, reported: Tensor) -> tuple[int, int]:
+        """Account for one step of every copy; returns (unreported rises, non-finite copies)."""
+        q_next = self.positions()
+        loads = self.sim.loads.to(torch.float64).reshape(q_next.shape[0], -1)
+        before = self.mechanical(self.q, self.q_prev)
+        after = self.mechanical(q_next, self.q)
+        if self.scene.handles:
+            power = (loads * (handle_positions(self.scene, q_next) - handle_positions(self.scene, self.q))).sum(-1)
+        else:
+            power = torch.zeros_like(after)
+        rise = after - before - power
+        limit = RISE_SLACK * torch.maximum(torch.maximum(before.abs(), after.abs()), torch.ones_like(after))
+        finite = torch.isfinite(after) & torch.isfinite(q_next).all(-1)
+        unreported = int(((rise > limit) & ~reported).sum())
+        self.work = self.work + power
+        if bool(finite.any()):
+            self.max_energy = max(self.max_energy, float((after - self.start)[finite].max()))
+            self.max_work = max(self.max_work, float(self.work[finite].max()))
+        self.q_prev, self.q = self.q, q_next
+        return unreported, int((~finite).sum())
+
+    def reset(self, rows: np.ndarray) -> None:
+        """Copies ``rows`` restarted at rest."""
+        if not rows.any():
+            return
+        q = self.positions()
+        index = torch.as_tensor(np.nonzero(rows)[0])
+        self.q[index] = q[index]
+        self.q_prev[index] = q[index]
+        self.start[index] = self.mechanical(q, q)[index]
+        self.work[index] = 0.0
+
+
+def fuzz_env(
+    env_id: str, steps: int, *, num_envs: int | None = None, seed: int = 0, reset_probability: float = 0.01
+) -> dict[str, Any]:
+    """About ``steps`` env steps (copies x vector steps) of one env under :func:`fuzz_actions` and random resets.
+
+    Each copy is also reset when its episode ends (terminated, or the id's ``max_episode_steps``).
+    Returns the bench row (module doc); ``steps`` is what actually ran.
+    """
+    import gymnasium as gym
+
+    start = time.perf_counter()
+    copies = int(num_envs or FUZZ_COPIES.get(env_id, 64))
+    venv = gym.make_vec(env_id, num_envs=copies, vectorization_mode="vector_entry_point")
+    limit = gym.spec(env_id).max_episode_steps or 10**9
+    rng = np.random.default_rng(seed)
+    venv.reset(seed=seed)
+    account = _EnvLedger(venv.unwrapped.sim)
+    elapsed = np.zeros(copies, dtype=np.int64)
+    pending = np.zeros(copies, dtype=np.int64)
+    counts = {"steps": 0, "failures": 0, "recovered": 0, "nan": 0, "unreported": 0, "out_of_range": 0, "resets": 0}
+    vector_steps = max(1, math.ceil(steps / copies))
+    for i in range(vector_steps):
+        obs, reward, terminated, truncated, info = venv.step(fuzz_actions(rng, venv.action_space.shape, i))
+        bad = ~np.asarray(info["converged"], dtype=bool) | np.asarray(info["diverged"], dtype=bool)
+        unreported, nonfinite = account.step(torch.as_tensor(bad))
+        counts["nan"] += nonfinite + int((~np.isfinite(obs)).any(-1).sum() + (~np.isfinite(reward)).sum())
+        counts["nan"] += int((~np.isfinite(info["energy"])).sum())
+        counts["unreported"] += unreported
+        counts["out_of_range"] += int(np.asarray(info["out_of_range"]).sum())
+        counts["failures"] += int(bad.sum())
+        counts["recovered"] += int(pending[~bad].sum())
+        pending[~bad] = 0
+        pending[bad] += 1
+        counts["steps"] += copies
+        elapsed += 1
+        done = terminated | truncated | (elapsed >= limit) | (rng.random(copies) < reset_probability)
+        if done.any():
+            venv.reset(options={"reset_mask": done})
+            account.reset(done)
+            elapsed[done] = 0
+            counts["resets"] += int(done.sum())
+    venv.close()
+    return {
+        "target": env_id,
+        "regime": "fuzz",
+        "space": "latent",
+        "steps": counts["steps"],
+        "failures_detected": counts["failures"],
+        "failures_recovered": counts["recovered"],
+        "nan": counts["nan"],
+        "unreported": counts["unreported"],
+        "max_energy_J": account.max_energy,
+        "input_work_J": account.max_work,
+        "out_of_range": counts["out_of_range"],
+        "copies": copies,
+        "resets": counts["resets"],
+        "seconds": time.perf_counter() - start,
+    }
+
+
+def env_speeds(env_ids: Sequence[str], *, probe_steps: int = 3, seed: int = 0) -> dict[str, float]:
+    """Env steps/s of each id under :func:`fuzz_env` (a few vector steps after one warm-up step)."""
+    speeds = {}
+    for env_id in env_ids:
+        copies = FUZZ_COPIES.get(env_id, 64)
+        fuzz_env(env_id, copies, seed=seed)  # warm-up: construction, first steps
+        row = fuzz_env(env_id, probe_steps * copies, seed=seed)
+        speeds[env_id] = row["steps"] / row["seconds"]
+    return speeds
+
+
+def split_steps(total: int, speeds: dict[str, float]) -> dict[str, int]:
+    """``total`` env steps split in proportion to each env's speed (equal wall time per env), each >= 1."""
+    if int(total) != total or total < 1:
+        raise ValueError(f"steps must be an integer >= 1, got {total!r}")
+    rate = sum(speeds.values())
+    return {k: max(1, round(total * v / rate)) for k, v in speeds.items()}
+
+
+def fuzz_envs(
+    env_ids: Sequence[str], total: int, *, seed: int = 0, progress: Callable[[str], None] | None = None
+) -> Iterator[dict[str, Any]]:
+    """Rows of :func:`fuzz_env` over ``env_ids``, ``total`` env steps split by :func:`split_steps`."""
+    shares = split_steps(total, env_speeds(env_ids, seed=seed)) if len(env_ids) > 1 else {env_ids[0]: total}
+    for env_id, share in shares.items():
+        if progress is not None:
+            progress(f"fuzz {env_id}: {share} env steps")
+        yield fuzz_env(env_id, share, seed=seed)
+
+
+# -- the chain beside MuJoCo --------------------------------------------------------------------
+MUJOCO_INTEGRATORS = ("Euler", "implicit", "implicitfast", "RK4")
+"""MuJoCo's built-in integrators (Euler is its default)."""
+CHAIN_KICKS = (1.0, 3.0, 10.0, 30.0, 100.0)
+"""Tip speeds [m/s] of the kicked-chain scenarios (a rigid swing about the hook)."""
+CHAIN_DROPS = (90.0, 135.0, 170.0)
+"""Angles [deg] the chain is lifted to, about the hook's axis, before the dropped-chain scenarios release it."""
+ENERGY_GROWTH = 0.1
+"""A chain run blew up when its total energy rose above the start by this fraction of the start's free energy
+(its energy above the hanging rest): MuJoCo's stable runs stay within 2% at dt 0.01, its unstable ones gain 100x+."""
+
+
+def chain_scenarios() -> list[tuple[str, float, float]]:
+    """(label, lift angle [rad], tip speed [m/s]) of the kicked and dropped chain scenarios."""
+    return [(f"kick_{v:g}", 0.0, v) for v in CHAIN_KICKS] + [(f"drop_{a:g}", math.radians(a), 0.0) for a in CHAIN_DROPS]
+
+
+def mujoco_chain_run(
+    integrator: str, angle: float, tip_speed: float, *, steps: int, dt: float = 0.01
+) -> dict[str, Any]:
+    """One scenario of :func:`redsim.runtime.bench.mujoco_chain_xml` (24 capsules) under ``integrator``.
+
+    Lifted by ``angle`` about the hook's x axis and swung about z so the tip moves at ``tip_speed``.
+    Returns ``blew_up`` and why: NaN states, MuJoCo warnings (bad acceleration, instability, ...) or
+    total energy growth past :data:`ENERGY_GROWTH`.
+    """
+    import mujoco
+
+    from redsim.runtime.bench import MUJOCO_CHAIN_LINKS, mujoco_chain_xml
+
+    xml = mujoco_chain_xml(integrator=integrator, timestep=dt)
+    xml = xml.replace('-9.81"/>', '-9.81"><flag energy="enable"/></option>', 1)
+    model = mujoco.MjModel.from_xml_string(xml)
+    data = mujoco.MjData(model)
+    mujoco.mj_forward(model, data)
+    rest = float(data.energy.sum())
+    data.qpos[0:4] = [math.cos(angle / 2), math.sin(angle / 2), 0.0, 0.0]
+    omega = tip_speed / (0.1 * MUJOCO_CHAIN_LINKS)
+    local = np.array([0.0, omega, 0.0])  # about the horizontal y axis (MuJoCo's z is up): the tip moves along x
+    rot = np.array([[1.0, 0.0, 0.0], [0.0, math.cos(angle), -math.sin(angle)], [0.0, math.sin(angle), math.cos(angle)]])
+    data.qvel[0:3] = rot.T @ local  # a ball joint's velocity is in its child's frame
+    mujoco.mj_forward(model, data)
+    e0 = float(data.energy.sum())
+    allowance = ENERGY_GROWTH * (e0 - rest)
+    reason, at = "", steps
+    previous = mujoco.get_mju_user_warning()
+    mujoco.set_mju_user_warning(lambda _text: None)  # counted through data.warning instead of printed
+    try:
+        reason, at = _mujoco_steps(mujoco, model, data, steps, e0 + allowance)
+    finally:
+        mujoco.set_mju_user_warning(previous)
+    return {
+        "integrator": integrator,
+        "blew_up": bool(reason),
+        "reason": reason or None,
+        "at_step": at,
+        "free_energy_J": e0 - rest,
+    }
+
+
+def _mujoco_steps(mujoco: Any, model: Any, data: Any, steps: int, ceiling: float) -> tuple[str, int]:
+    """Step until NaN, a MuJoCo warning or total energy above ``ceiling`` [J]: (reason or "", steps run)."""
+    for i in range(steps):
+        mujoco.mj_step(model, data)
+        if not (np.isfinite(data.qpos).all() and np.isfinite(data.qvel).all()):
+            return "nan", i + 1
+        if any(w.number for w in data.warning):
+            return "warning", i + 1
+        if float(data.energy.sum()) > ceiling:
+            return "energy", i + 1
+    return "", steps
+
+
+def mujoco_chain_cases(steps: int = 300, dt: float = 0.01) -> list[dict[str, Any]] | None:
+    """Every :func:`chain_scenarios` entry under every MuJoCo integrator (None without mujoco)."""
+    try:
+        import mujoco  # noqa: F401
+    except ImportError:
+        return None
+    rows = []
+    for label, angle, speed in chain_scenarios():
+        for integrator in MUJOCO_INTEGRATORS:
+            rows.append({"scenario": label, **mujoco_chain_run(integrator, angle, speed, steps=steps, dt=dt)})
+    return rows
+
+
+def redsim_chain_cases(
+    steps: int = 300, dt: float = 0.01, *, full_steps: int | None = None, scenarios: Sequence[str] | None = None
+) -> list[dict[str, Any]]:
+    """The same scenarios on redsim's 24-link chain at ``dt``: the latent runtime and the full-space reference.
+
+    Each space starts from its own rest (kicks: the full-space equilibrium and the latent z*) or
+    from the seed lifted by the scenario's angle (drops); latent runs take it as the map can show
+    it (:func:`project_latent`, :func:`latent_velocity`). A run survives when it has no NaN and no
+    unreported energy gain; ``blew_up`` is its opposite. ``full_steps`` (default ``steps``)
+    shortens the full-space runs (0.3-1 s a step).
+    """
+    scene, f = _shipped("chain")
+    stepper = LatentStepper(scene, f, dt)
+    z_rest = stepper.rest_latent()
+    s64 = scene.to(dtype=torch.float64)
+    latent_rest = float(s64.energy(stepper.positions(z_rest).to(torch.float64))[0])
+    q_rest = rest_state(scene)[0]
+    full_rest = float(s64.energy(q_rest.unsqueeze(0))[0])
+    rows = []
+    for label, angle, speed in chain_scenarios():
+        if scenarios is not None and label not in scenarios:
+            continue
+        q0 = rotated_chain(scene, angle) if angle else q_rest
+        z0 = project_latent(stepper, q0, z_rest) if angle else z_rest
+        kick = dt * latent_velocity(stepper, z0, swing_velocity(scene, stepper.positions(z0)[0], speed)).to(z0)
+        latent = runtime_rollout(scene, f, _zero_loads(scene, steps), dt, z0=z0[0], z_prev=z0[0] - kick)
+        velocity = swing_velocity(scene, q0, speed)
+        full = full_rollout(scene, _zero_loads(scene, full_steps or steps), dt, q0=q0, velocity=velocity)
+        for space, run, slack, rest in (
+            ("latent", latent, RISE_SLACK, latent_rest),
+            ("full", full, FULL_SLACK, full_rest),
+        ):
+            row = run.row(scene, "chain", label, space, slack)
+            row["free_energy_J"] = row["start_energy_J"] - rest
+            growth = row["max_energy_J"] > ENERGY_GROWTH * row["free_energy_J"]
+            row["blew_up"] = bool(row["nan"] or growth)
+            rows.append({"scenario": label, **row})
+    return rows
+
+
+# -- output -------------------------------------------------------------------------------------
+ROW_COLUMNS = (
+    ("target", "scene / env"),
+    ("regime", "regime"),
+    ("space", "space"),
+    ("steps", "steps"),
+    ("failures_detected", "failures detected"),
+    ("failures_recovered", "recovered"),
+    ("nan", "nan"),
+    ("unreported", "unreported gains"),
+    ("max_energy_J", "max energy above start [J]"),
+    ("input_work_J", "max load work [J]"),
+    ("out_of_range", "out of range"),
+)
+"""Columns of :func:`markdown_rows`: (row key, header)."""
+
+
+def _cell(value: Any) -> str:
+    if isinstance(value, float):
+        return f"{value:.3g}"
+    return str(value)
+
+
+def markdown_rows(rows: Sequence[dict[str, Any]]) -> list[str]:
+    """The rows as a markdown table (:data:`ROW_COLUMNS`)."""
+    lines = ["| " + " | ".join(h for _, h in ROW_COLUMNS) + " |", "|" + "---|" * len(ROW_COLUMNS)]
+    lines += ["| " + " | ".join(_cell(r.get(k, "")) for k, _ in ROW_COLUMNS) + " |" for r in rows]
+    return lines
+
+
+def chain_table(chain: dict[str, Any]) -> list[str]:
+    """Per chain scenario: which MuJoCo integrators blew up (and why), and whether redsim's chains survived."""
+    mujoco = chain["mujoco"]
+    redsim_rows = {(r["scenario"], r["space"]): r for r in chain["redsim"]}
+    labels = [label for label, _, _ in chain_scenarios()]
+    integrators = list(MUJOCO_INTEGRATORS) if mujoco is not None else []
+    head = ["scenario", *(f"MuJoCo {i}" for i in integrators), "redsim latent", "redsim full"]
+    lines = ["| " + " | ".join(head) + " |", "|" + "---|" * len(head)]
+    for label in labels:
+        cells = [label]
+        for integrator in integrators:
+            m = next(r for r in mujoco if r["scenario"] == label and r["integrator"] == integrator)
+            cells.append(f"blew up ({m['reason']}, step {m['at_step']})" if m["blew_up"] else "ok")
+        for space in ("latent", "full"):
+            r = redsim_rows.get((label, space))
+            if r is None:
+                cells.append("-")
+                continue
+            state = "blew up" if r["blew_up"] else "ok"
+            cells.append(
+                f"{state} ({r['steps']} steps, {r['failures_detected']} flagged, {r['unreported']} unreported gains)"
+            )
+        lines.append("| " + " | ".join(cells) + " |")
+    if mujoco is None:
+        lines.append("")
+        lines.append("mujoco is not installed (pip install 'redsim[bench]'): the MuJoCo columns are skipped")
+    else:
+        survived = {
+            space: sum(
+                1
+                for label in labels
+                if any(r["blew_up"] for r in mujoco if r["scenario"] == label)
+                and (label, space) in redsim_rows
+                and not redsim_rows[(label, space)]["blew_up"]
+            )
+            for space in ("latent", "full")
+        }
+        broken = sum(1 for label in labels if any(r["blew_up"] for r in mujoco if r["scenario"] == label))
+        lines.append("")
+        lines.append(
+            f"{broken} of {len(labels)} scenarios blow up at least one MuJoCo integrator at dt {chain['dt']:g}; "
+            f"of those, redsim's latent chain survives {survived['latent']} and its full-space chain "
+            f"{survived['full']}"
+        )
+    return lines
+
+
+def report(result: dict[str, Any]) -> list[str]:
+    """Human-readable lines of a :mod:`redsim bench stability <redsim.benches.stability>` result."""
+    rows = result["rows"]
+    lines = markdown_rows(rows)
+    fuzz = [r for r in rows if r["regime"] == "fuzz"]
+    if fuzz:
+        lines.append("")
+        lines.append(
+            f"fuzzed env steps run: {sum(r['steps'] for r in fuzz)} of {result['fuzz_steps']} asked "
+            "(split by measured env speed)"
+        )
+    totals = {k: sum(int(r[k]) for r in rows) for k in ("nan", "unreported")}
+    lines.append(f"total nan: {totals['nan']}, unreported energy gains: {totals['unreported']} (both must be 0)")
+    if result.get("chain") is not None:
+        lines.append("")
+        lines += chain_table(result["chain"])
+    return lines
+
+
+__all__ = [
+    "BANG_BANG_HOLD",
+    "FULL_SLACK",
+    "LOADS",
+    "REGIMES",
+    "RISE_SLACK",
+    "Rollout",
+    "bang_bang",
+    "chain_scenarios",
+    "chain_table",
+    "energy_account",
+    "full_rollout",
+    "fuzz_env",
+    "fuzz_envs",
+    "ledger",
+    "markdown_rows",
+    "mujoco_chain_cases",
+    "plan_loads",
+    "recovered",
+    "redsim_chain_cases",
+    "report",
+    "runtime_rollout",
+    "split_steps",
+    "unreported_rises",
+]

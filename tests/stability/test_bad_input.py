@@ -1,0 +1,115 @@
+"""Bad input gets a clear error: corrupt checkpoints through the CLI, malformed bench options, out-of-range conditions.
+
+What other files already cover is not repeated here: CLI flag checks of fit/simulate
+(tests/test_cli.py, tests/test_cli_errors.py), load_subspace on truncated, non-JSON, missing and
+other-scene checkpoints (tests/trainers/test_fit.py), env ids and model files (tests/envs,
+tests/trainers/test_agents.py), non-finite actions and loads (test_stability.py, tests/envs).
+"""
+
+from __future__ import annotations
+
+from collections.abc import Callable
+from pathlib import Path
+
+import gymnasium as gym
+import numpy as np
+import pytest
+import torch
+
+import redsim  # noqa: F401  (registers the ids)
+from redsim import pretrained, scenes
+from redsim.runtime import LatentStepper
+
+Cli = Callable[..., tuple[int, str, str]]
+
+
+@pytest.fixture(scope="module")
+def checkpoint(tmp_path_factory: pytest.TempPathFactory) -> Path:
+    """A copy of the shipped mini-chain checkpoint (.pt and .json)."""
+    folder = tmp_path_factory.mktemp("ckpt")
+    source = pretrained.path("mini_chain")
+    for suffix in (".pt", ".json"):
+        (folder / f"mini{suffix}").write_bytes(source.with_suffix(suffix).read_bytes())
+    return folder / "mini.pt"
+
+
+def _broken(checkpoint: Path, folder: Path, how: str) -> Path:
+    """A broken copy of ``checkpoint`` in ``folder``: ``truncated`` .pt, ``json`` not valid, ``no_pt``."""
+    stem = folder / how
+    pt, meta = checkpoint.read_bytes(), checkpoint.with_suffix(".json").read_text()
+    if how == "truncated":
+        stem.with_suffix(".pt").write_bytes(pt[: len(pt) // 3])
+        stem.with_suffix(".json").write_text(meta)
+    elif how == "json":
+        stem.with_suffix(".pt").write_bytes(pt)
+        stem.with_suffix(".json").write_text(meta[: len(meta) // 2])
+    elif how == "other_scene":  # the mini chain's weights under the chain scene's metadata
+        stem.with_suffix(".pt").write_bytes(pt)
+        stem.with_suffix(".json").write_text(pretrained.path("chain").with_suffix(".json").read_text())
+    else:
+        stem.with_suffix(".json").write_text(meta)
+    return stem.with_suffix(".pt")
+
+
+@pytest.mark.parametrize("command", ["inspect", "sample", "animate"])
+@pytest.mark.parametrize(
+    ("how", "expected"),
+    [
+        ("truncated", "corrupt or truncated"),
+        ("json", "not valid JSON"),
+        ("no_pt", "the weights file is missing"),
+        ("other_scene", "in the .pt but"),
+    ],
+)
+def test_broken_checkpoints_are_one_line_exit_2(
+    cli: Cli, checkpoint: Path, tmp_path: Path, command: str, how: str, expected: str
+) -> None:
+    path = _broken(checkpoint, tmp_path, how)
+    extra = ["--out", str(tmp_path / "out")] if command != "inspect" else []
+    code, out, err = cli(command, str(path), *extra)
+    assert code == 2 and out == "", err
+    assert err.count("\n") == 1 and err.startswith("redsim: error: ") and expected in err
+    assert "Traceback" not in err
+
+
+def test_the_intact_copy_loads(cli: Cli, checkpoint: Path) -> None:
+    code, out, err = cli("inspect", str(checkpoint))
+    assert code == 0 and "mini_chain" in out, err
+
+
+@pytest.mark.parametrize(
+    ("argv", "expected"),
+    [
+        (["--steps", "0"], "--steps must be >= 1, got 0"),
+        (["--long-steps", "-3"], "--long-steps must be >= 1, got -3"),
+        (["--steps", "many"], "invalid int value"),
+        (["--envs", "RedSim/Nope-v0"], "unknown env id(s) ['RedSim/Nope-v0']"),
+        (["--regimes", "stiff,wobbly"], "unknown regime(s) ['wobbly']"),
+        (["--regimes", ""], "--regimes"),
+    ],
+)
+def test_bench_stability_options_are_checked(cli: Cli, argv: list[str], expected: str) -> None:
+    code, out, err = cli("bench", "stability", *argv)
+    assert code == 2 and out == "" and expected in err, err
+
+
+def test_condition_outside_its_range_is_flagged_by_the_stepper_and_refused_by_set_state() -> None:
+    scene = scenes.build("conditional_bar")
+    stepper = LatentStepper(scene, pretrained.load("conditional_bar", scene), 0.02)
+    space = scene.condition_space
+    inside = space.default.reshape(1, -1).float()
+    outside = (space.high + 0.2 * (space.high - space.low)).reshape(1, -1).float()
+    z = stepper.rest_latent(inside)
+    for cond, flagged in ((inside, False), (outside, True)):
+        z_next, stats = stepper.step(z, z, None, cond)
+        assert bool(stats.out_of_range[0]) is flagged and bool(torch.isfinite(z_next).all())
+    with pytest.raises(ValueError, match="cond must be finite"):
+        stepper.step(z, z, None, torch.full_like(inside, float("nan")))
+    env = gym.make("RedSim/ConditionalBar-v0").unwrapped
+    env.reset(seed=0)
+    state = env.get_state()
+    env.set_state(state)
+    low, high = space.low.numpy(), space.high.numpy()
+    for bad in (high + 0.2 * (high - low), low - 0.1 * (high - low)):
+        with pytest.raises(ValueError, match=r"state\['cond'\] must lie in the condition space"):
+            env.set_state({**state, "cond": bad.astype(np.float32)})

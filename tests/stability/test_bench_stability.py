@@ -1,0 +1,139 @@
+"""`redsim bench stability`: its pieces, each regime at a tiny size, and the MuJoCo chain beside redsim's.
+
+The regime functions are the bench's own (:mod:`redsim.benches.stability`); every row must have
+no NaN and no unreported energy gain, and failures must be counted where they are provoked.
+"""
+
+from __future__ import annotations
+
+import json
+import math
+from collections.abc import Callable
+
+import numpy as np
+import pytest
+import torch
+
+from redsim import scenes
+from redsim.benches import stability
+
+Cli = Callable[..., tuple[int, str, str]]
+
+
+def _assert_sound(rows: list[dict]) -> None:
+    for row in rows:
+        assert row["nan"] == 0, row
+        assert row["unreported"] == 0, row
+        assert row["steps"] >= 1 and 0 <= row["failures_recovered"] <= row["failures_detected"] <= row["steps"], row
+        assert math.isfinite(row["max_energy_J"]) and math.isfinite(row["input_work_J"]), row
+
+
+def test_recovered_counts_failures_followed_by_a_good_step() -> None:
+    assert stability.recovered([False, True, True, False, True]) == 2
+    assert stability.recovered([]) == 0 and stability.recovered([True]) == 0
+
+
+def test_split_steps_follows_speed_and_rejects_bad_totals() -> None:
+    shares = stability.split_steps(1000, {"fast": 900.0, "slow": 100.0, "cloth": 0.01})
+    assert shares == {"fast": 900, "slow": 100, "cloth": 1}
+    with pytest.raises(ValueError, match="steps must be an integer >= 1"):
+        stability.split_steps(0, {"a": 1.0})
+
+
+def test_ledger_of_an_unloaded_full_space_run_never_rises() -> None:
+    """The mini chain pushed down at 1 m/s, unloaded: K + E never rises (backward Euler dissipates)."""
+    scene = scenes.build("mini_chain")
+    up = torch.zeros(scene.free_dof_count, dtype=torch.float64)
+    up[7::12] = -1.0
+    run = stability.full_rollout(scene, torch.zeros(3, 1, 3, dtype=torch.float64), 0.02, velocity=up)
+    mechanical, work = stability.energy_account(scene, run.q, run.loads, run.dt, run.q_prev)
+    assert torch.all(work == 0.0)
+    assert float((mechanical[1:] - mechanical[:-1]).max()) <= stability.FULL_SLACK * float(mechanical.abs().max())
+    row = run.row(scene, "mini_chain", "fall", "full", stability.FULL_SLACK)
+    assert row["steps"] == 3 and row["nan"] == 0 and row["unreported"] == 0 and row["failures_detected"] == 0
+
+
+def test_bang_bang_holds_and_flips() -> None:
+    scene = scenes.build("mini_chain")
+    loads = stability.bang_bang(scene, 6, 2.0, hold=2)
+    assert loads[:, 0, 0].tolist() == [2.0, 2.0, -2.0, -2.0, 2.0, 2.0]
+    assert float(loads[:, :, 1:].abs().sum()) == 0.0
+
+
+@pytest.mark.slow
+def test_condition_edges_at_a_tiny_size() -> None:
+    rows = stability.condition_edge_cases(20)
+    _assert_sound(rows)
+    edges = [r for r in rows if r["regime"].startswith("condition_edge")]
+    (beyond,) = [r for r in rows if r["regime"].startswith("condition_beyond")]
+    assert len(edges) == 4 and beyond["out_of_range"] == beyond["steps"]
+
+
+def test_fuzzed_mini_chain_steps_are_counted_and_finite() -> None:
+    row = stability.fuzz_env("RedSim/MiniChain-v0", 64, num_envs=8, reset_probability=0.2)
+    assert row["nan"] == 0 and row["failures_recovered"] <= row["failures_detected"]
+    assert row["steps"] == 64 and row["copies"] == 8 and row["resets"] > 0
+
+
+@pytest.mark.slow
+@pytest.mark.xfail(
+    strict=True,
+    reason="found by the fuzz (README, Hard cases): converged latent steps under random actions gain up to "
+    "~15% of K + E without a diverged flag (the flag's margin is the force scale times the scene size)",
+)
+def test_fuzzed_latent_steps_never_gain_energy_unreported() -> None:
+    row = stability.fuzz_env("RedSim/MiniChain-v0", 64 * 40, num_envs=64)
+    assert row["nan"] == 0
+    assert row["unreported"] == 0
+
+
+def test_fuzz_actions_cover_bounds_flips_and_clipping() -> None:
+    a0 = stability.fuzz_actions(np.random.default_rng(0), (8, 3), 0)
+    a1 = stability.fuzz_actions(np.random.default_rng(0), (8, 3), 1)
+    assert np.all(np.abs(a0[1::4]) == 1.0) and np.all(a0[2::4] == 1.0) and np.all(a1[2::4] == -1.0)
+    assert np.abs(a0[3::4]).max() > 1.0 and np.abs(a0[0::4]).max() <= 1.0
+
+
+@pytest.mark.slow
+@pytest.mark.parametrize("regime", list(stability.REGIMES))
+def test_every_regime_at_a_small_size(regime: str) -> None:
+    rows = stability.REGIMES[regime](40)
+    _assert_sound(rows)
+    assert {r["space"] for r in rows} <= {"latent", "full"}
+
+
+@pytest.mark.slow
+def test_fuzz_over_every_env_splits_by_speed() -> None:
+    import redsim
+
+    rows = list(stability.fuzz_envs(redsim.envs.ids(), 2000))
+    assert all(r["nan"] == 0 for r in rows), rows  # unreported gains: see the xfail test above
+    assert {r["target"] for r in rows} == set(redsim.envs.ids())
+
+
+def test_mujoco_chain_survives_a_calm_kick_and_blows_up_under_a_hard_one() -> None:
+    pytest.importorskip("mujoco")
+    calm = stability.mujoco_chain_run("RK4", 0.0, 1.0, steps=100)
+    hard = stability.mujoco_chain_run("Euler", 0.0, 100.0, steps=100)
+    assert not calm["blew_up"] and calm["at_step"] == 100
+    assert hard["blew_up"] and hard["reason"] in ("nan", "warning", "energy") and hard["at_step"] < 100
+
+
+@pytest.mark.slow
+def test_redsim_chain_under_the_hardest_kick() -> None:
+    rows = stability.redsim_chain_cases(20, full_steps=3, scenarios=["kick_100"])
+    _assert_sound(rows)
+    assert {r["space"] for r in rows} == {"latent", "full"}
+
+
+def test_cli_bench_stability_json(cli: Cli) -> None:
+    code, out, err = cli(
+        "bench", "stability", "--regimes", "fuzz", "--envs", "RedSim/MiniChain-v0", "--steps", "64", "--json"
+    )
+    assert code == 0, err
+    doc = json.loads(out)
+    (row,) = doc["rows"]
+    assert row["target"] == "RedSim/MiniChain-v0" and row["steps"] == 64 and row["nan"] == 0
+    assert doc["chain"] is None and "machine" in doc
+    code, out, err = cli("bench", "stability", "--regimes", "fuzz", "--envs", "RedSim/MiniChain-v0", "--steps", "64")
+    assert code == 0 and "| RedSim/MiniChain-v0 | fuzz | latent | 64 |" in out and "total nan: 0" in out
