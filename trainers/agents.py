@@ -90,7 +90,7 @@ HYPERPARAMS: dict[str, dict[str, dict[str, Any]]] = {
         },
     },
     "RedSim/MiniChain-v0": {"sac": {"n_envs": 16, "gradient_steps": 8}},
-    "RedSim/Chain-v0": {},
+    "RedSim/Chain-v0": {"sac": {"n_envs": 16, "gradient_steps": 8}},
     "RedSim/ClothBall-v0": {},
     "RedSim/HangingCloth-v0": {},
     "RedSim/ConditionalBar-v0": {},
@@ -238,8 +238,8 @@ def evaluate(
 
     Args:
         env: A registered id or a user's env (from :func:`redsim.envs.make`).
-        policy: An :class:`Agent` or SB3 model (anything with ``predict(obs, deterministic=...)``), ``"random"`` (uniform actions drawn from
-            ``seed``) or ``"scripted"`` (the task's controller).
+        policy: An :class:`Agent` or SB3 model (anything with ``predict(obs, deterministic=...)``),
+            ``"random"`` (uniform actions drawn from ``seed``) or ``"scripted"`` (the task's controller).
         episodes: Number of episodes (copies).
         seed: Copy i resets with seed ``seed + i``.
         deterministic: Passed to the model's ``predict``.
@@ -382,6 +382,37 @@ def load_agent(path: str | Path, env_id: str | None = None) -> Agent:
         raise ValueError(f"the model {path} was trained on {record['env_id']}, not on {env_id}")
     model = _algo_class(record["algo"]).load(path, device="cpu")
     return Agent(model, load_normalizer(normalizer_path(path)) if record["normalized"] else None)
+
+
+def _policies_folder() -> Path:
+    from redsim import pretrained
+
+    return pretrained.FOLDER / "policies"
+
+
+def shipped_policies() -> dict[str, Path]:
+    """Env id -> the model file of the trained policy shipped with redsim for it (see :func:`shipped_policy`)."""
+    found = {}
+    for record in sorted(_policies_folder().glob("*.json")):
+        model = record.with_suffix(".zip")
+        if model.is_file():
+            found[json.loads(record.read_text())["env_id"]] = model
+    return found
+
+
+def shipped_policy(env_id: str) -> Path:
+    """The shipped policy of ``env_id``: ``redsim/pretrained/policies/NAME.zip`` (``RedSim/NAME``).
+
+    Beside it: ``NAME_vecnormalize.pkl`` (its observation statistics) and ``NAME.json`` (the command
+    that trained it and its seeded evaluation against the baselines). Load it with :func:`load_agent`.
+
+    Raises:
+        KeyError: no policy is shipped for ``env_id`` (the message lists those that are).
+    """
+    found = shipped_policies()
+    if env_id not in found:
+        raise KeyError(f"no shipped policy for {env_id!r}; shipped: {', '.join(found) or 'none'}")
+    return found[env_id]
 
 
 # -- training ---------------------------------------------------------------------------------
@@ -699,6 +730,8 @@ __all__ = [
     "normalizer_path",
     "plot_curve",
     "record_gif",
+    "shipped_policies",
+    "shipped_policy",
     "train_agent",
     "vector_env",
 ]

@@ -19,6 +19,8 @@ from redsim.trainers.agents import (
     load_agent,
     model_record,
     normalizer_path,
+    shipped_policies,
+    shipped_policy,
 )
 
 MINI = "RedSim/MiniChain-v0"
@@ -121,6 +123,23 @@ def test_normalizer_files_sit_beside_their_models() -> None:
     assert normalizer_path(checkpoint) == Path("run/checkpoints/rl_model_vecnormalize_1200_steps.pkl")
 
 
+def test_the_shipped_policies_load_and_the_mini_chain_one_beats_random() -> None:
+    shipped = shipped_policies()
+    assert MINI in shipped
+    for env_id, path in shipped.items():
+        assert path.stat().st_size + normalizer_path(path).stat().st_size < 500_000, "small enough to ship"
+        agent = load_agent(path, env_id)
+        assert agent.normalizer is not None and agent.num_timesteps > 0
+        record = json.loads(path.with_suffix(".json").read_text())
+        assert record["command"].startswith(f"redsim train-agent {env_id} ")
+    agent = load_agent(shipped_policy(MINI), MINI)
+    mine = evaluate(MINI, agent, episodes=2, seed=0)
+    random = evaluate(MINI, "random", episodes=2, seed=0)
+    assert mine.mean > random.mean + 300.0 and mine.success_rate == 1.0
+    with pytest.raises(KeyError, match="no shipped policy for 'RedSim/Nope-v0'; shipped: .*MiniChain"):
+        shipped_policy("RedSim/Nope-v0")
+
+
 def test_ppo_trains_a_few_hundred_steps(tmp_path: Path) -> None:
     from redsim.trainers.agents import train_agent
 
@@ -167,6 +186,16 @@ def _foreign_model(folder: Path) -> Path:
     SAC("MlpPolicy", gym.make("Pendulum-v1"), learning_starts=0, buffer_size=10).save(path)
     assert zipfile.is_zipfile(path)
     return path
+
+
+@pytest.mark.slow
+@pytest.mark.parametrize("env_id", sorted(shipped_policies()))
+def test_each_shipped_policy_beats_random_and_scripted_over_20_episodes(env_id: str) -> None:
+    agent = evaluate(env_id, load_agent(shipped_policy(env_id), env_id), episodes=20, seed=0)
+    for baseline in ("random", "scripted"):
+        other = evaluate(env_id, baseline, episodes=20, seed=0)
+        assert agent.mean > other.mean + 0.5 * other.std, baseline
+        assert agent.success_rate > other.success_rate, baseline
 
 
 @pytest.mark.slow
