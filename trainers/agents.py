@@ -95,7 +95,7 @@ HYPERPARAMS: dict[str, dict[str, dict[str, Any]]] = {
     "RedSim/HangingCloth-v0": {},
     "RedSim/ConditionalBar-v0": {},
     "RedSim/Klann-v0": {"sac": {"n_envs": 16, "gradient_steps": 8}},
-    "RedSim/Stewart-v0": {},  # defaults, not tuned
+    "RedSim/Stewart-v0": {"sac": {"n_envs": 16, "gradient_steps": 8}},
 }
 """env id -> algorithm -> settings; each env's entries override ``"default"`` key by key.
 
@@ -196,6 +196,8 @@ class Evaluation:
         returns: Undiscounted return of each episode, shape [episodes].
         successes: Whether each episode ended within the success radius, shape [episodes].
         lengths: Steps of each episode, shape [episodes].
+        success_steps: Fraction of each episode's steps that met the success test, shape [episodes]
+            (what a tracking task, Klann's crank speed, is judged by along the way).
         seed: The first seed.
     """
 
@@ -204,6 +206,7 @@ class Evaluation:
     successes: np.ndarray
     lengths: np.ndarray
     seed: int
+    success_steps: np.ndarray
 
     @property
     def mean(self) -> float:
@@ -226,6 +229,7 @@ class Evaluation:
             "std_return": self.std,
             "success_rate": self.success_rate,
             "mean_length": float(np.mean(self.lengths)),
+            "success_steps": float(np.mean(self.success_steps)),
             "returns": [float(r) for r in self.returns],
         }
 
@@ -265,6 +269,7 @@ def evaluate(
     returns = np.zeros(venv.num_envs)
     lengths = np.zeros(venv.num_envs, dtype=np.int64)
     successes = np.zeros(venv.num_envs, dtype=bool)
+    success_steps = np.zeros(venv.num_envs)
     running = np.ones(venv.num_envs, dtype=bool)
     while running.any():
         if policy == "random":
@@ -278,11 +283,13 @@ def evaluate(
         lengths[running] += 1
         done = running & (terminated | truncated)
         if "is_success" in info:
-            successes[done] = np.asarray(info["is_success"], dtype=bool)[done]
+            hit = np.asarray(info["is_success"], dtype=bool)
+            successes[done] = hit[done]
+            success_steps[running] += hit[running]
         running &= ~done
     venv.close()
     name = policy if isinstance(policy, str) else "agent"
-    return Evaluation(name, returns, successes, lengths, int(seed))
+    return Evaluation(name, returns, successes, lengths, int(seed), success_steps / lengths)
 
 
 # -- model files ------------------------------------------------------------------------------

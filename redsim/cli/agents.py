@@ -37,7 +37,8 @@ def _add_episode_steps(parser: argparse.ArgumentParser) -> None:
 def _line(name: str, result: dict[str, Any]) -> str:
     return (
         f"{name:<9} return {result['mean_return']:9.2f} ± {result['std_return']:7.2f}   "
-        f"success {100 * result['success_rate']:5.1f}%   ({result['episodes']} episodes from seed {result['seed']})"
+        f"success {100 * result['success_rate']:5.1f}% (of steps {100 * result['success_steps']:5.1f}%)   "
+        f"({result['episodes']} episodes from seed {result['seed']})"
     )
 
 
