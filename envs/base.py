@@ -207,6 +207,8 @@ class LatentSim:
         self.cond: Tensor | None = None if not conditional else self.default_cond.expand(B, -1).clone()
         self.params: dict[str, Tensor] = {}
         self.loads = torch.zeros(B, len(scene.handles), scene.dim, dtype=self.torch_dtype, device=self.device)
+        # the solver's d x d model of each copy, carried from step to step (NaN: build one)
+        self.model = torch.full((B, d, d), torch.nan, dtype=self.torch_dtype, device=self.device)
         task.bind(self)
         self.x = self.x_prev = self.full_positions(self.z)
 
@@ -248,6 +250,7 @@ class LatentSim:
                     self.params[key] = torch.zeros((self.batch, *value.shape), dtype=value.dtype, device=self.device)
                 self.params[key][row] = value
         self.loads[rows] = 0.0
+        self.model[rows] = torch.nan
         x = self.full_positions(self.z[rows], None if self.cond is None else self.cond[rows])
         self.x = self.x.clone()
         self.x_prev = self.x_prev.clone()
@@ -309,7 +312,8 @@ class LatentSim:
         iterations = torch.zeros(self.batch, dtype=torch.int64, device=self.device)
         converged = torch.ones_like(diverged)
         for _ in range(self.frame_skip):
-            z_next, stats = self.stepper.step(self.z, self.z_prev, self.loads, self.cond)
+            z_next, stats = self.stepper.step(self.z, self.z_prev, self.loads, self.cond, warm=self.model)
+            self.model = stats.model
             self.z_prev, self.z = self.z, self._nearest_turn(z_next.detach(), self.z)
             diverged |= stats.diverged.to(self.device)
             out_of_range |= stats.out_of_range.to(self.device)
@@ -340,16 +344,19 @@ class LatentSim:
 
     # -- state ----------------------------------------------------------------------------
     def get_state(self) -> dict[str, Any]:
-        """Copies of the dynamic state: z, z_prev [B, d], cond [B, m] or None, task params {k: [B, ...]}."""
+        """Copies of the dynamic state: z, z_prev [B, d], cond [B, m] or None, task params {k: [B, ...]},
+        and the solver's warm start ``model`` [B, d, d] (so a restored state steps bitwise alike)."""
         return {
             "z": self.z.cpu().numpy().copy(),
             "z_prev": self.z_prev.cpu().numpy().copy(),
+            "model": self.model.cpu().numpy().copy(),
             "cond": None if self.cond is None else self.cond.cpu().numpy().copy(),
             "params": {k: v.cpu().numpy().copy() for k, v in self.params.items()},
         }
 
     def set_state(self, state: Mapping[str, Any]) -> None:
-        """Restore a state from :meth:`get_state` (shapes are checked).
+        """Restore a state from :meth:`get_state` (shapes are checked; without ``model`` the next step
+        builds its solver model afresh: the same solve, to the tolerance).
 
         Raises:
             ValueError: on a missing key, a wrong shape or non-finite values.
@@ -369,6 +376,12 @@ class LatentSim:
             raise ValueError(f"state is missing {sorted(missing)}")
         self.z = tensor(state["z"], (B, d), "z")
         self.z_prev = tensor(state["z_prev"], (B, d), "z_prev")
+        self.model = torch.full((B, d, d), torch.nan, dtype=self.torch_dtype, device=self.device)
+        if state.get("model") is not None:
+            model = torch.as_tensor(np.asarray(state["model"]), dtype=self.torch_dtype, device=self.device)
+            if tuple(model.shape) != (B, d, d):
+                raise ValueError(f"state['model'] must have shape {[B, d, d]}, got {list(model.shape)}")
+            self.model = model.clone()
         if self.cond is not None:
             self.cond = tensor(state["cond"], tuple(self.cond.shape), "cond")
         params = state["params"]
@@ -658,6 +671,7 @@ def _unbatch(state: Mapping[str, Any]) -> dict[str, Any]:
     return {
         "z": state["z"][0],
         "z_prev": state["z_prev"][0],
+        "model": state["model"][0],
         "cond": None if state["cond"] is None else state["cond"][0],
         "params": {k: v[0] for k, v in state["params"].items()},
     }
@@ -673,6 +687,7 @@ def _batch(state: Mapping[str, Any]) -> dict[str, Any]:
     return {
         "z": row(state["z"]),
         "z_prev": row(state["z_prev"]),
+        "model": row(state.get("model")),
         "cond": row(state["cond"]),
         "params": {k: row(v) for k, v in dict(state["params"]).items()},
     }

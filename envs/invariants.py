@@ -19,40 +19,43 @@ import torch
 from torch import Tensor
 
 from redsim.effects import NeoHookean, PointPairPenalty, RigidOrthogonality, SDFContact, StVKMembrane
-from redsim.effects.base import Effect, split_points
+from redsim.effects.base import Effect, gather_elements, split_points
 from redsim.effects.elastic import deformation_gradient
 from redsim.scene import Scene
 
 
-def _orthogonality(effect: RigidOrthogonality, xe: Tensor) -> dict[str, Tensor]:
+def _orthogonality(effect: RigidOrthogonality, x: Tensor) -> dict[str, Tensor]:
+    xe = gather_elements(x, effect.element_dofs)
     B, T, _ = xe.shape
     R = xe.reshape(B, T, 3, 4)[..., :3]
     defect = R.transpose(-1, -2) @ R - torch.eye(3, dtype=xe.dtype, device=xe.device)
     return {"orthogonality_error": defect.flatten(-2).norm(dim=-1).amax(-1)}
 
 
-def _gap(effect: PointPairPenalty, xe: Tensor) -> dict[str, Tensor]:
+def _gap(effect: PointPairPenalty, x: Tensor) -> dict[str, Tensor]:
+    xe = gather_elements(x, effect.element_dofs)
     a, b = split_points(xe, effect.a, effect.b)
     return {"max_gap": (a - b).norm(dim=-1).amax(-1)}
 
 
-def _fem(effect: NeoHookean, xe: Tensor) -> dict[str, Tensor]:
+def _fem(effect: NeoHookean, x: Tensor) -> dict[str, Tensor]:
+    xe = gather_elements(x, effect.element_dofs)
     B, T, _ = xe.shape
     D = effect.dim
     det = torch.linalg.det(deformation_gradient(xe.reshape(B, T, D + 1, D), effect.shape_gradients))
     return {"min_det_f": det.amin(-1), "inverted": (det <= 0.0).sum(-1).to(xe.dtype)}
 
 
-def _membrane(effect: StVKMembrane, xe: Tensor) -> dict[str, Tensor]:
+def _membrane(effect: StVKMembrane, x: Tensor) -> dict[str, Tensor]:
+    xe = gather_elements(x, effect.element_dofs)
     B, T, _ = xe.shape
     F = deformation_gradient(xe.reshape(B, T, 3, 3), effect.shape_gradients)  # [B, T, 3, 2]
     largest = torch.linalg.eigvalsh(F.transpose(-1, -2) @ F)[..., -1]  # squared principal stretch
     return {"max_strain": largest.clamp_min(0.0).sqrt().amax(-1) - 1.0}
 
 
-def _contact(effect: SDFContact, xe: Tensor) -> dict[str, Tensor]:
-    depth = (effect.margin - effect.signed_distance(xe)).clamp_min(0.0)
-    return {"penetration": depth.amax(-1)}
+def _contact(effect: SDFContact, x: Tensor) -> dict[str, Tensor]:
+    return {"penetration": effect.penetration(x)}
 
 
 CHECKS: dict[type, Callable[..., dict[str, Tensor]]] = {
@@ -62,7 +65,8 @@ CHECKS: dict[type, Callable[..., dict[str, Tensor]]] = {
     StVKMembrane: _membrane,
     SDFContact: _contact,
 }
-"""The check of each effect class; effects of other classes (gravity, loads, bending) have none."""
+"""The check of each effect class, called with full configurations x [B, N]; effects of other classes
+(gravity, loads, bending) have none."""
 
 
 class Invariants:
@@ -82,7 +86,7 @@ class Invariants:
         """Every invariant of the scene, each shape [B]."""
         out: dict[str, Tensor] = {}
         for effect, check in self._checks:
-            for key, value in check(effect, x[:, effect.element_dofs]).items():
+            for key, value in check(effect, x).items():
                 out[f"{effect.name}_{key}"] = value
         return out
 

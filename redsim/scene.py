@@ -318,14 +318,15 @@ class Scene:
     def mass_matvec(self, v: Tensor) -> Tensor:
         """M v for v of shape [B, n] (or [n]); differentiable in v.
 
-        A gather and an ``index_add`` over M's stored entries (in M's dtype): the same sums as a
-        sparse product, and traceable by ``torch.compile`` (a fit's compiled loss uses it).
+        A gather (``index_select``, whose backward is an ``index_add``, not a sorting ``index_put_``)
+        and an ``index_add`` over M's stored entries (in M's dtype): the same sums as a sparse
+        product, and traceable by ``torch.compile`` (a fit's compiled loss uses it).
         """
         if v.ndim == 1:
             return self.mass_matvec(v.unsqueeze(0))[0]
         rows, cols, values = self._mass_entries
         out = torch.zeros(v.shape, dtype=values.dtype, device=v.device)
-        return out.index_add_(-1, rows, v.to(values.dtype)[:, cols] * values).to(v.dtype)
+        return out.index_add_(-1, rows, v.to(values.dtype).index_select(-1, cols) * values).to(v.dtype)
 
     def mass_norm_sq(self, v: Tensor) -> Tensor:
         """|v_s|_M^2 [kg x configuration unit^2] of rows v [S, n], shape [S] (differentiable)."""

@@ -216,9 +216,11 @@ def run_runtime(stepper: LatentStepper, z0: Tensor, loads: Tensor) -> Run:
     z_prev = z.clone()
     zs, times = [z.clone()], []
     failed = flagged = out_of_range = 0
+    model = None
     for i in range(loads.shape[0]):
         start = time.perf_counter()
-        z_next, stats = stepper.step(z, z_prev, loads[i : i + 1])
+        z_next, stats = stepper.step(z, z_prev, loads[i : i + 1], warm=model)
+        model = stats.model
         times.append(time.perf_counter() - start)
         failed += int((~stats.converged).sum())
         flagged += int(stats.diverged.sum())

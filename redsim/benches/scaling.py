@@ -72,10 +72,11 @@ def measure(
     stepper = LatentStepper(scene, f, DT)
     z = torch.zeros(1, config.latent_dim)
     z_prev = z.clone()
-    times, iterations = [], []
+    times, iterations, model = [], [], None
     for _ in range(latent_steps + 1):
         start = time.perf_counter()
-        z_next, stats = stepper.step(z, z_prev)
+        z_next, stats = stepper.step(z, z_prev, warm=model)
+        model = stats.model
         times.append(time.perf_counter() - start)
         iterations.append(float(stats.iterations.float().mean()))
         z_prev, z = z, z_next

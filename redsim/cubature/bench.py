@@ -15,7 +15,6 @@ from torch import Tensor, nn
 
 from redsim.cubature.energy import Cubature, CubatureEnergy
 from redsim.cubature.fit import default_load_scale
-from redsim.effects.base import gather_elements
 from redsim.effects.penalty import SDFContact
 from redsim.runtime import LatentStepper
 from redsim.scene import Scene
@@ -31,10 +30,11 @@ def _loads(scene: Scene, steps: int, batch: int, hold: int, scale: float, seed: 
 
 def _rollout(stepper: LatentStepper, z0: Tensor, loads: Tensor | None, steps: int) -> tuple[Tensor, list[float]]:
     """Latents [steps + 1, B, d] of a rollout and the wall time of each step [s]."""
-    z, z_prev, out, times = z0, z0, [z0], []
+    z, z_prev, out, times, model = z0, z0, [z0], [], None
     for t in range(steps):
         start = time.perf_counter()
-        z_next, _ = stepper.step(z, z_prev, None if loads is None else loads[t])
+        z_next, stats = stepper.step(z, z_prev, None if loads is None else loads[t], warm=model)
+        model = stats.model
         times.append(time.perf_counter() - start)
         z_prev, z = z, z_next
         out.append(z)
@@ -47,8 +47,7 @@ def penetration(scene: Scene, q: Tensor) -> float:
     depth = 0.0
     for effect in scene.effects:
         if isinstance(effect, SDFContact):
-            gap = effect.signed_distance(gather_elements(x, effect.element_dofs)) - effect.margin
-            depth = max(depth, float((-gap).clamp_min(0.0).max()))
+            depth = max(depth, float(effect.penetration(x).max()))
     return depth
 
 

@@ -151,9 +151,10 @@ def training_states(scene: Scene, subspace: nn.Module, config: CubatureConfig) -
     loads = scale * torch.randn(segments, B, len(scene.handles), scene.dim, generator=generator)
     current = stepper.rest_latent().expand(B, -1)
     previous = current
-    visited = []
+    visited, model = [], None
     for step in range(int(config.steps)):
-        nxt, stats = stepper.step(current, previous, loads[step // int(config.hold)].to(stepper.dtype))
+        nxt, stats = stepper.step(current, previous, loads[step // int(config.hold)].to(stepper.dtype), warm=model)
+        model = stats.model
         keep = ~(stats.diverged | stats.out_of_range)
         previous, current = current, torch.where(keep[:, None], nxt, current)
         visited.append(current[keep].to(torch.float64))

@@ -174,7 +174,9 @@ class SDFContact(Effect):
         A point source is one row of point dofs (all points fixed in one body share it; a particle
         is its own); a frame is one (dofs, weights, offset) row. Each pair gets S slots (the largest
         pair's count, unused slots masked), so a body-body contact is two small matmuls per pair
-        instead of a 24-entry gather per point.
+        instead of a 24-entry gather per point. ``pair_lift`` [pairs, K (+D) + 1, S] stacks the
+        point weights, offsets and a row of ones, so that one contraction per pair maps
+        [R^T X | R^T | -R^T t] to the local points.
         """
         P, D, K = self.points.dofs.shape
         sources, source_index = torch.unique(self.points.dofs.reshape(P, D * K), dim=0, return_inverse=True)
@@ -204,6 +206,8 @@ class SDFContact(Effect):
         self.pair_weights = weights  # [pairs, K, S]
         self.pair_offsets = offsets if bool(offsets.any()) else None  # [pairs, D, S]
         self.pair_mask = mask  # [pairs, S]
+        lift = [weights] + ([] if self.pair_offsets is None else [offsets]) + [torch.ones_like(mask).unsqueeze(1)]
+        self.pair_lift = torch.cat(lift, 1)  # [pairs, K (+D) + 1, S]
 
     def subset(self, index: Tensor) -> SDFContact:
         """The contact of the points ``index`` only (its pair tables rebuilt)."""
@@ -224,10 +228,24 @@ class SDFContact(Effect):
         return 0.5 * self.stiffness * gap * gap
 
     def energy(self, x: Tensor, cond: Tensor | None = None, loads: Tensor | None = None) -> Tensor:
-        """The element sum, evaluated per (point source, frame) pair (see :meth:`_build_pairs`).
+        """The element sum, evaluated per (point source, frame) pair (:meth:`pair_distances`)."""
+        gap = (self.pair_distances(x) - self.margin).clamp_max(0.0)
+        return 0.5 * self.stiffness * (gap * gap * self.pair_mask).sum((-1, -2))
+
+    def penetration(self, x: Tensor) -> Tensor:
+        """Deepest penetration [m] past the margin, shape [B], of full configurations x [B, N]."""
+        depth = ((self.margin - self.pair_distances(x)) * self.pair_mask).clamp_min(0.0)
+        return depth.flatten(1).amax(-1)
+
+    def pair_distances(self, x: Tensor) -> Tensor:
+        """Signed distance [m] of every point, by (point source, frame) pair: [B, pairs, S] (see
+        :meth:`_build_pairs`; unused slots, ``pair_mask`` 0, hold the frame origin's distance).
 
         local = R_f^T (X_g w + o - t_f) for the points (weights w, offsets o) of source g in frame f:
-        R_f^T X_g and R_f^T t_f once per pair, then one matmul with the pair's stacked weights.
+        A = [R_f^T X_g | R_f^T | -R_f^T t_f] once per pair, then one contraction with the pair's
+        ``pair_lift``, batched over pairs (each a [B*3, K+D+1] x [K+D+1, S] matmul), whose output
+        keeps x, y and z contiguous for the distance (2-3x faster than per-(state, pair) 3x3
+        matmuls on the chain at B = 64; README "Latent runtime").
         """
         B = x.shape[0]
         G, DK = self.pair_source_dofs.shape
@@ -236,11 +254,14 @@ class SDFContact(Effect):
         F = self.pair_frame_dofs.shape[0]
         frames = x.index_select(1, self.pair_frame_dofs.reshape(-1)).reshape(B, F, 12)
         frames = (frames * self.pair_frame_weights + self.pair_frame_offset).reshape(B, F, 3, 4)
-        rotation_t = frames[..., :3].transpose(-1, -2).index_select(1, self.pair_frame)  # [B, pairs, 3, 3]
-        origin = frames[..., 3:].index_select(1, self.pair_frame)  # [B, pairs, 3, 1]
-        linear = rotation_t @ sources.index_select(1, self.pair_source)  # [B, pairs, 3, K]
-        local = linear @ self.pair_weights - rotation_t @ origin  # [B, pairs, 3, S]
+        rotation_t = frames[..., :3].transpose(-1, -2)  # [B, F, 3, 3]
+        origin = rotation_t @ frames[..., 3:]  # R_f^T t_f [B, F, 3, 1]
+        rotation_p = rotation_t.index_select(1, self.pair_frame)  # [B, pairs, 3, 3]
+        parts = [rotation_p @ sources.index_select(1, self.pair_source)]  # [B, pairs, 3, K]
         if self.pair_offsets is not None:
-            local = local + rotation_t @ self.pair_offsets
-        gap = (self.shape.distance(local.transpose(-1, -2)) - self.margin).clamp_max(0.0)
-        return 0.5 * self.stiffness * (gap * gap * self.pair_mask).sum((-1, -2))
+            parts.append(rotation_p)
+        parts.append(-origin.index_select(1, self.pair_frame))
+        lifted = torch.cat(parts, -1).transpose(0, 1)  # [pairs, B, 3, K (+D) + 1]
+        pairs = lifted.shape[0]
+        local = torch.bmm(lifted.reshape(pairs, B * 3, -1), self.pair_lift)  # [pairs, B * 3, S]
+        return self.shape.distance(local.view(pairs, B, 3, -1).permute(1, 0, 3, 2))  # local [B, pairs, S, 3]

@@ -1,7 +1,9 @@
 """Analytic signed distances [m] in a shape's own frame; negative inside.
 
 Each shape maps local points [..., 3] to distances [...]. Square roots carry a tiny
-``smoothing`` so gradients stay finite on axes and at centres.
+``smoothing`` so gradients stay finite on axes and at centres. The formulas work on the three
+components (``p.unbind(-1)``), so a caller may pass a view whose components are each contiguous
+(:class:`redsim.effects.penalty.SDFContact` does): no gather of the last axis, no temporaries of [..., 3].
 """
 
 from __future__ import annotations
@@ -14,8 +16,12 @@ from torch import Tensor
 _SMOOTHING = 1e-12  # [m^2]
 
 
-def _norm(v: Tensor) -> Tensor:
-    return torch.sqrt((v * v).sum(-1) + _SMOOTHING)
+def _norm(*components: Tensor) -> Tensor:
+    """sqrt(sum of squares + smoothing) of equally shaped components."""
+    total = components[0] * components[0]
+    for c in components[1:]:
+        total = total + c * c
+    return torch.sqrt(total + _SMOOTHING)
 
 
 @dataclass(frozen=True)
@@ -30,7 +36,7 @@ class Sphere:
         return float(self.radius)
 
     def distance(self, p: Tensor) -> Tensor:
-        return _norm(p) - self.radius
+        return _norm(*p.unbind(-1)) - self.radius
 
 
 @dataclass(frozen=True)
@@ -46,8 +52,9 @@ class Plane:
         return float("inf")
 
     def distance(self, p: Tensor) -> Tensor:
-        n = torch.as_tensor(self.normal, dtype=p.dtype, device=p.device)
-        return (p * n).sum(-1) - self.height
+        x, y, z = p.unbind(-1)
+        nx, ny, nz = (float(v) for v in self.normal)
+        return nx * x + ny * y + nz * z - self.height
 
 
 @dataclass(frozen=True)
@@ -62,10 +69,9 @@ class Box:
         return float(min(self.half_extents))
 
     def distance(self, p: Tensor) -> Tensor:
-        h = torch.as_tensor(self.half_extents, dtype=p.dtype, device=p.device)
-        q = p.abs() - h
-        outside = _norm(q.clamp_min(0.0)) - _SMOOTHING**0.5
-        inside = q.amax(-1).clamp_max(0.0)
+        qx, qy, qz = (c.abs() - float(h) for c, h in zip(p.unbind(-1), self.half_extents, strict=True))
+        outside = _norm(qx.clamp_min(0.0), qy.clamp_min(0.0), qz.clamp_min(0.0)) - _SMOOTHING**0.5
+        inside = torch.maximum(torch.maximum(qx, qy), qz).clamp_max(0.0)
         return outside + inside
 
 
@@ -82,9 +88,8 @@ class Capsule:
         return float(self.radius)
 
     def distance(self, p: Tensor) -> Tensor:
-        z = p[..., 2].clamp(-self.half_length, self.half_length)
-        closest = torch.stack([torch.zeros_like(z), torch.zeros_like(z), z], dim=-1)
-        return _norm(p - closest) - self.radius
+        x, y, z = p.unbind(-1)
+        return _norm(x, y, z - z.clamp(-self.half_length, self.half_length)) - self.radius
 
 
 @dataclass(frozen=True)
@@ -100,8 +105,8 @@ class Torus:
         return float(self.minor)
 
     def distance(self, p: Tensor) -> Tensor:
-        ring = _norm(p[..., :2]) - self.major
-        return torch.sqrt(ring * ring + p[..., 2] ** 2 + _SMOOTHING) - self.minor
+        x, y, z = p.unbind(-1)
+        return _norm(_norm(x, y) - self.major, z) - self.minor
 
 
 SHAPES = {"sphere": Sphere, "plane": Plane, "box": Box, "capsule": Capsule, "torus": Torus}

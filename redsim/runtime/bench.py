@@ -85,8 +85,12 @@ def load_sequence(
     return out
 
 
-def run_stepper(stepper: LatentStepper, z0: Tensor, loads: Tensor, *, warmup: int = 2) -> dict[str, Any]:
+def run_stepper(
+    stepper: LatentStepper, z0: Tensor, loads: Tensor, *, warmup: int = 2, warm: bool = True
+) -> dict[str, Any]:
     """Step B states from rest (z = z_prev = z0 [B, d]) through ``loads`` [steps, B, H, D].
+
+    With ``warm`` each step starts its solver from the last step's model (``stats.model``), as the envs do.
 
     Returns env_steps_per_s (B * steps / wall time of the timed steps, after ``warmup`` untimed ones
     from the same start), per-step medians, iterations per step (mean over states and steps),
@@ -101,9 +105,11 @@ def run_stepper(stepper: LatentStepper, z0: Tensor, loads: Tensor, *, warmup: in
     z_prev = z.clone()
     trajectory = [z.clone()]
     times, iterations, converged, out_of_range, diverged = [], [], [], [], []
+    model = None
     for i in range(loads.shape[0]):
         start = time.perf_counter()
-        z_next, stats = stepper.step(z, z_prev, loads[i])
+        z_next, stats = stepper.step(z, z_prev, loads[i], warm=model)
+        model = stats.model if warm else None
         _sync(device)
         times.append(time.perf_counter() - start)
         z_prev, z = z, z_next
@@ -270,9 +276,10 @@ def bench_step(
     """One scene's row of `redsim bench step` (module doc).
 
     Returns:
-        ``scene``, ``n``, ``d``, ``reference`` and ``full_space`` (B = 1), ``eager`` and ``compiled``
-        (per B: env_steps_per_s, iterations_per_step, converged_fraction, ...), ``speedup`` of eager
-        and compiled over the reference per B, and ``trajectory_error``: the largest |z - z_ref| over
+        ``scene``, ``n``, ``d``, ``reference`` and ``full_space`` (B = 1), ``eager``, ``cold`` (eager
+        without the warm start from the last step's solver model) and ``compiled`` (per B:
+        env_steps_per_s, iterations_per_step, converged_fraction, ...), ``speedup`` of each over the
+        reference per B, and ``trajectory_error``: the largest |z - z_ref| over
         the B = 1 eager run's first ``reference_steps`` steps relative to the largest motion |z - z0|.
     """
     stepper = LatentStepper(scene, subspace, dt, device=device)
@@ -289,22 +296,23 @@ def bench_step(
         "reference": {k: v for k, v in reference.items() if k != "trajectory"},
         "full_space": {k: v for k, v in full.items() if k != "trajectory"},
         "eager": {},
+        "cold": {},
         "compiled": {},
     }
     row["step_error"] = one_step_error(stepper, reference["trajectory"], loads[:reference_steps, 0])
-    variants = [("eager", stepper)]
+    variants = [("eager", stepper, True), ("cold", stepper, False)]
     if compiled:
-        variants.append(("compiled", LatentStepper(scene, subspace, dt, device=device, compile=True)))
-    for label, runner in variants:
+        variants.append(("compiled", LatentStepper(scene, subspace, dt, device=device, compile=True), True))
+    for label, runner, warm in variants:
         for b in batches:
-            result = run_stepper(runner, z_rest.expand(b, -1).clone(), loads[:, :b])
+            result = run_stepper(runner, z_rest.expand(b, -1).clone(), loads[:, :b], warm=warm)
             trajectory = result.pop("trajectory")
             if b == 1 and label == "eager":
                 row["trajectory_error"] = _rollout_error(runner, reference["trajectory"], trajectory[:, 0])
             row[label][str(b)] = result
     row["speedup"] = {
         label: {b: r["env_steps_per_s"] / reference["env_steps_per_s"] for b, r in row[label].items()}
-        for label in ("eager", "compiled")
+        for label in ("eager", "cold", "compiled")
         if row[label]
     }
     return row
@@ -337,7 +345,7 @@ def step_table(rows: list[dict[str, Any]], mujoco: list[dict[str, Any]] | None, 
         cells = " ".join(f"{ref['env_steps_per_s']:>9.3g}" for _ in batches)
         its, conv = ref["iterations_per_step"], 100 * ref["converged_fraction"]
         lines.append(f"{lead} {'reference':<9} {cells}  {its:>4.1f} {conv:>6.1f}")
-        for label in ("eager", "compiled"):
+        for label in ("eager", "cold", "compiled"):
             if not row[label]:
                 continue
             results = row[label]

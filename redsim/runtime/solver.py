@@ -14,6 +14,12 @@ one call of the objective. The d x d model Hessian comes from one of :data:`HESS
 - ``"lagged_fd"``: as "lagged", with the first Hessian from forward differences of the gradient
   (d gradients at z + eps e_k in one call: no double backward, so it also runs compiled).
 
+The quasi-Newton models ("bfgs", "lagged", "lagged_fd") may start from a ``warm`` model, e.g. the
+last step's final model (what :class:`redsim.runtime.LatentStepper` carries from step to step, as
+MuJoCo's solver carries ``qacc_warmstart``): the step then costs no Hessian evaluation unless a
+state is still unconverged after :data:`WARM_ITERATIONS` iterations or backtracks from it, which
+recomputes its model at the current iterate once.
+
 The line search is Armijo backtracking per state: a trial with a non-finite value or gradient is
 rejected like an uphill one; a trial whose value change is at round-off level is accepted if it
 lowers |g|. A state whose line search fails keeps its last accepted (finite) iterate and stops
@@ -38,6 +44,8 @@ BFGS_DAMPING = 0.2
 """Powell damping: the update keeps s.y >= BFGS_DAMPING s.H s, so the Hessian stays positive definite."""
 NOISE_FACTOR = 100.0
 """Value changes below NOISE_FACTOR * eps * (|Phi| + force_scale * L) count as round-off."""
+WARM_ITERATIONS = 8
+"""Iterations a state may take from a warm model before its model is recomputed."""
 HESSIANS = ("exact", "gauss_newton", "bfgs", "lagged", "lagged_fd")
 """The d x d Hessian models (module doc)."""
 
@@ -79,6 +87,8 @@ class BatchResult:
         converged: grad_norm <= tol * scale.
         stalled: The line search found no acceptable step before convergence.
         finite: Phi and its gradient were finite at the start (else z is the start, unchanged).
+        model: The final d x d model Hessian [B, d, d] (a warm start for the next solve; NaN where
+            none was built).
     """
 
     z: Tensor
@@ -89,6 +99,7 @@ class BatchResult:
     converged: Tensor
     stalled: Tensor
     finite: Tensor
+    model: Tensor
 
 
 def _pd_exact(hessian: Tensor) -> Tensor:
@@ -160,6 +171,7 @@ def minimize(
     hessian: str = "bfgs",
     start: tuple[Tensor, Tensor, Tensor] | None = None,
     secant: tuple[Tensor, Tensor] | None = None,
+    warm: Tensor | None = None,
 ) -> BatchResult:
     """Minimize Phi_b over z_b for every state b from z0 [B, d].
 
@@ -172,8 +184,10 @@ def minimize(
         max_iter: Most accepted iterations per state.
         hessian: One of :data:`HESSIANS`.
         start: (Phi, dPhi/dz, E) at z0 if the caller has them (else they are evaluated).
-        secant: (z_s, dPhi/dz at z_s) [B, d] of another point: the quasi-Newton models ("bfgs",
-            "lagged") take one BFGS update from it (s = z0 - z_s) before the first step.
+        secant: (z_s, dPhi/dz at z_s) [B, d] of another point: the quasi-Newton models take one BFGS
+            update from it (s = z0 - z_s) before the first step, of a warm model or of "bfgs"'s J^T M J / h^2.
+        warm: A starting model [B, d, d] for the quasi-Newton models (rows with a non-finite entry
+            build their own); ignored by "exact" and "gauss_newton".
 
     Returns:
         The :class:`BatchResult`.
@@ -192,24 +206,42 @@ def minimize(
     eps = torch.finfo(z.dtype).eps
     iterations = torch.zeros(batch, dtype=torch.int64, device=z0.device)
     stalled = torch.zeros(batch, dtype=torch.bool, device=z0.device)
-    model = None  # [B, d, d], built on the first iteration that needs it
     quasi_newton = hessian in ("bfgs", "lagged", "lagged_fd")
+    d = z.shape[1]
+    model = torch.full((batch, d, d), torch.nan, dtype=z.dtype, device=z.device)
+    # built: the model of this row was made in this solve (else it is warm or not there yet)
+    built = torch.zeros(batch, dtype=torch.bool, device=z0.device)
+    if warm is not None and quasi_newton:
+        model = torch.where(torch.isfinite(warm).all(-1).all(-1)[:, None, None], warm.to(z.dtype), model)
+        if secant is not None:
+            usable = torch.isfinite(secant[1]).all(-1)
+            g_s = torch.where(usable[:, None], secant[1], grad)
+            model = _bfgs_update(model, z - secant[0], grad - g_s)  # NaN rows stay NaN
+    backtracked = torch.zeros(batch, dtype=torch.bool, device=z0.device)
     for _ in range(max_iter):
         active = finite & ~stalled & (torch.linalg.vector_norm(grad, dim=-1) > threshold)
         index = torch.nonzero(active).squeeze(-1)
         if index.numel() == 0:  # the early exit (one host sync per iteration)
             break
-        if model is None:
-            model = torch.zeros(batch, z.shape[1], z.shape[1], dtype=z.dtype, device=z.device)
-            first = _model(objective, hessian, z[index], index, grad[index])
-            if secant is not None and hessian == "bfgs":
-                z_s, g_s = secant[0][index], secant[1][index]
-                usable = torch.isfinite(g_s).all(-1)
-                g_s = torch.where(usable[:, None], g_s, grad[index])
-                first = _bfgs_update(first, z[index] - z_s, grad[index] - g_s)
-            model[index] = first
-        elif hessian in ("exact", "gauss_newton"):
+        if hessian in ("exact", "gauss_newton"):
             model[index] = _model(objective, hessian, z[index], index, grad[index])
+        else:
+            missing = ~torch.isfinite(model).all(-1).all(-1)
+            stale = ~built & ((iterations >= WARM_ITERATIONS) | backtracked)
+            rebuild = index[(missing | stale)[index]]
+            if rebuild.numel():
+                fresh = _model(objective, hessian, z[rebuild], rebuild, grad[rebuild])
+                if secant is not None and hessian == "bfgs":  # J^T M J / h^2 built at the start: the secant
+                    z_s, g_s = secant[0][rebuild], secant[1][rebuild]
+                    usable = torch.isfinite(g_s).all(-1)
+                    g_s = torch.where(usable[:, None], g_s, grad[rebuild])
+                    fresh = torch.where(
+                        (iterations[rebuild] == 0)[:, None, None],
+                        _bfgs_update(fresh, z[rebuild] - z_s, grad[rebuild] - g_s),
+                        fresh,
+                    )
+                model[rebuild] = fresh
+                built[rebuild] = True
         z_a, v_a, g_a, h_a = z[index], value[index], grad[index], model[index]
         step = _direction(h_a, g_a, objective.metric(z_a, index) if hessian == "gauss_newton" else h_a)
         slope = (g_a * step).sum(-1)
@@ -238,6 +270,7 @@ def minimize(
             pending = pending[~ok]
             if pending.numel() == 0:
                 break
+            backtracked[index[pending]] = True
             alpha[pending] = _backtrack(alpha[pending], slope[pending], rise)
             if quasi_newton:
                 # a rejected but finite trial still measured the curvature along its step: update the
@@ -260,7 +293,7 @@ def minimize(
         stalled[index] = ~accepted
     grad_norm = torch.linalg.vector_norm(grad, dim=-1)
     converged = finite & (grad_norm <= threshold)
-    return BatchResult(z, value, energy, grad_norm, iterations, converged, stalled & ~converged, finite)
+    return BatchResult(z, value, energy, grad_norm, iterations, converged, stalled & ~converged, finite, model)
 
 
-__all__ = ["HESSIANS", "BatchObjective", "BatchResult", "minimize"]
+__all__ = ["HESSIANS", "WARM_ITERATIONS", "BatchObjective", "BatchResult", "minimize"]

@@ -39,7 +39,7 @@ DEFAULT_HESSIAN = "lagged_fd"
 
 
 class StepStats(NamedTuple):
-    """What one step did, per state; every field has shape [B].
+    """What one step did, per state; every field has shape [B], except ``model`` [B, d, d].
 
     Attributes:
         converged: The relative gradient norm met ``tol`` (bool).
@@ -48,6 +48,8 @@ class StepStats(NamedTuple):
         energy: Potential energy E(f(z_next)) [J] (the load work not included).
         out_of_range: z or z_next (or the condition) is outside the region the map was fitted on (bool).
         diverged: The step is not trustworthy: non-finite, or it added more energy than it could have (bool).
+        model: The solver's final d x d Hessian model [B, d, d]: pass it as ``warm`` to the next step
+            of the same states (NaN rows: none was built).
     """
 
     converged: Tensor
@@ -56,6 +58,7 @@ class StepStats(NamedTuple):
     energy: Tensor
     out_of_range: Tensor
     diverged: Tensor
+    model: Tensor
 
 
 class _StepObjective:
@@ -395,7 +398,13 @@ class LatentStepper:
             return self.energy.positions(z, self._cond(cond, z.shape[0]))
 
     def step(
-        self, z: Tensor, z_prev: Tensor, loads: Tensor | None = None, cond: Tensor | None = None
+        self,
+        z: Tensor,
+        z_prev: Tensor,
+        loads: Tensor | None = None,
+        cond: Tensor | None = None,
+        *,
+        warm: Tensor | None = None,
     ) -> tuple[Tensor, StepStats]:
         """One implicit-Euler step of every state.
 
@@ -404,6 +413,10 @@ class LatentStepper:
             z_prev: Latents at time t - h, [B, d].
             loads: Forces [N] on the scene's handles, [B, H, D] (held during the step), or None.
             cond: Scene conditions [B, m] (default: the scene's default condition), or None.
+            warm: The previous step's ``stats.model`` [B, d, d] of the same states, or None. With it
+                the quasi-Newton models start from it instead of building a Hessian (the default
+                "lagged_fd" saves d gradient evaluations a step; rows with a NaN build their own).
+                The result is the same solve, to the tolerance.
 
         Returns:
             z_next [B, d] (never NaN: a state that failed keeps its best finite iterate) and the
@@ -419,6 +432,14 @@ class LatentStepper:
             raise ValueError(f"z and z_prev must have the same batch size, got {batch} and {z_prev.shape[0]}")
         loads_t = self._loads(loads, batch)
         cond_t = self._cond(cond, batch)
+        d = self.latent_dim
+        if warm is not None:
+            warm = torch.as_tensor(warm, device=self.device)
+            if warm.shape != (batch, d, d):
+                raise ValueError(
+                    f"warm must have shape [{batch}, {d}, {d}] (a step's stats.model), got {tuple(warm.shape)}"
+                )
+            warm = warm.to(self.dtype)
         with torch.no_grad():
             both = self._coords(torch.cat([z, z_prev]), None if cond_t is None else cond_t.repeat(2, 1))
             q_t, q_prev = both[:batch], both[batch:]
@@ -449,6 +470,7 @@ class LatentStepper:
                 hessian=self.hessian,
                 start=(value[:batch], grad[:batch], energy[:batch]),
                 secant=(z, grad[batch:]),
+                warm=warm,
             )
             z_next = torch.where(result.finite[:, None], result.z, z)
             q_next = self._coords(z_next, cond_t)
@@ -473,8 +495,29 @@ class LatentStepper:
                 torch.stack([z, z_next], 1), self.energy.periodic, cond_t, self.scene.condition_space
             ),
             diverged=diverged,
+            model=result.model,
         )
         return z_next, stats
+
+    def objective(
+        self, candidate: Tensor, z: Tensor, z_prev: Tensor, loads: Tensor | None = None, cond: Tensor | None = None
+    ) -> Tensor:
+        """Phi_b [J] of candidate next latents [B, d] for the step from (z, z_prev) [B, d] under ``loads``
+        [B, H, D] (what :meth:`step` minimizes, module doc): compare two answers to one step.
+
+        Raises:
+            ValueError: as :meth:`step`.
+        """
+        candidate, z, z_prev = (
+            self._latents(u, what) for u, what in ((candidate, "candidate"), (z, "z"), (z_prev, "z_prev"))
+        )
+        batch = z.shape[0]
+        loads_t, cond_t = self._loads(loads, batch), self._cond(cond, batch)
+        with torch.no_grad():
+            q_t = self._coords(z, cond_t)
+            qbar = 2.0 * q_t - self._coords(z_prev, cond_t)
+            value, _ = self._phi(candidate, qbar, loads_t, cond_t)
+        return value
 
     def rest_latent(self, cond: Tensor | None = None) -> Tensor:
         """The latent static equilibrium under zero load near z = 0: [1, d] (cond None) or [B, d] (cond [B, m]).

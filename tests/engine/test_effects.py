@@ -9,7 +9,7 @@ import pytest
 import torch
 
 import redsim
-from redsim import PointSet, SceneBuilder
+from redsim import PointSet, SceneBuilder, scenes
 from redsim.effects import (
     Box,
     Capsule,
@@ -28,6 +28,7 @@ from redsim.effects import (
     StVKMembrane,
     Torus,
 )
+from redsim.effects.base import gather_elements
 from redsim.materials import lame_from_young_poisson
 
 torch.manual_seed(0)
@@ -437,3 +438,16 @@ def test_contact_pair_path_equals_its_element_sum(name: str) -> None:
     xf = x.detach().clone().requires_grad_(True)
     (grad_fast,) = torch.autograd.grad(contact.energy(xf).sum(), xf)
     torch.testing.assert_close(grad_fast, grad_ref, rtol=1e-10, atol=1e-10)
+
+
+def test_contact_penetration_matches_the_per_point_distances() -> None:
+    """SDFContact.penetration (the pair kernel) equals the deepest per-point signed distance below the margin."""
+    scene = scenes.build("chain")
+    contact = scene.effect("contact")
+    g = torch.Generator().manual_seed(1)
+    q = scene.q_seed + 0.02 * torch.randn(3, scene.free_dof_count, generator=g, dtype=scene.q_seed.dtype)
+    x = scene.full_positions(q)
+    per_point = contact.signed_distance(gather_elements(x, contact.element_dofs))
+    expected = (contact.margin - per_point).clamp_min(0.0).amax(-1)
+    assert float(expected.max()) > 0.0  # the perturbation made some points penetrate
+    torch.testing.assert_close(contact.penetration(x), expected, rtol=1e-10, atol=1e-12)

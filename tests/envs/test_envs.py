@@ -196,6 +196,17 @@ def test_get_state_set_state_round_trip_exactly(mini: gym.Env) -> None:
     assert np.array_equal(round_trip["z"], state["z"]) and np.array_equal(round_trip["z_prev"], state["z_prev"])
     with pytest.raises(ValueError, match="shape"):
         env.set_state({**state, "z": state["z"][:2]})
+    # the solver's warm start travels with the state; without it the next step builds its own
+    assert state["model"].shape == (len(state["z"]),) * 2 and np.isfinite(state["model"]).all()
+    with pytest.raises(ValueError, match="model"):
+        env.set_state({**state, "model": state["model"][:2]})
+    env.set_state({k: v for k, v in state.items() if k != "model"})
+    cold = [env.step(np.full(3, -0.3, np.float32))[0] for _ in range(3)]
+    d = len(state["z"])  # z within 1e-3, so z_dot = dz / dt within 1e-3 / dt: the float32 solve tolerance
+    np.testing.assert_allclose(np.array(cold)[:, :d], np.array(after)[:, :d], rtol=0, atol=1e-3)
+    np.testing.assert_allclose(
+        np.array(cold)[:, d : 2 * d], np.array(after)[:, d : 2 * d], rtol=0, atol=1e-3 / env.sim.dt
+    )
 
 
 def test_envs_pickle_and_continue_exactly(mini: gym.Env) -> None:

@@ -13,7 +13,6 @@ import torch
 from redsim import pretrained, scenes
 from redsim.integrators import FullState, ImplicitEuler, LatentSpace
 from redsim.runtime import LatentStepper, MapEnergy, StepStats
-from redsim.runtime.stepper import _StepObjective
 
 DT = 0.02
 
@@ -68,10 +67,7 @@ def test_matches_reference_step_for_step(name: str, steps: int, load: float, hes
         if hessian == "exact" or name != "mini_chain":
             torch.testing.assert_close(got, want, rtol=0.0, atol=1e-6 * motion)
         else:
-            q = stepper.positions(torch.cat([z, z_prev]))
-            objective = _StepObjective(stepper, 2.0 * q[:1] - q[1:], loads.reshape(1, -1), None, z)
-            index = torch.zeros(1, dtype=torch.int64)
-            phi_got, phi_want = (objective.value_and_grad(u, index)[0] for u in (got, want))
+            phi_got, phi_want = (stepper.objective(u, z, z_prev, loads) for u in (got, want))
             same = bool(torch.allclose(got, want, rtol=0.0, atol=1e-6 * motion))
             assert same or float(phi_got) < float(phi_want), (got, want, phi_got, phi_want)
 
@@ -107,6 +103,42 @@ def test_batched_equals_single_calls(mini_chain) -> None:
         assert int(single_stats.iterations[0]) == int(stats.iterations[b])
 
 
+def test_warm_start_is_the_same_solve_with_fewer_evaluations() -> None:
+    """Carrying stats.model from step to step (as the envs do) lands on the same minimizers as building
+    the Hessian every step, for a fraction of the energy evaluations; a wrong-shape warm is refused."""
+    scene = scenes.build("chain")
+    stepper = LatentStepper(scene, pretrained.load("chain").double(), DT, dtype=torch.float64, tol=1e-10)
+    rows = [0]
+    energy = stepper.energy.energy
+
+    def counted(z, cond):
+        rows[0] += z.shape[0]
+        return energy(z, cond)
+
+    stepper.energy.energy = counted
+    loads = _loads(scene, 2, 3, 20.0)
+    runs = {}
+    for warm in (False, True):
+        rows[0] = 0
+        z = stepper.rest_latent().expand(2, -1).clone()
+        z_prev, model, path = z.clone(), None, [z]
+        for _ in range(8):
+            z_next, stats = stepper.step(z, z_prev, loads, warm=model)
+            assert bool(stats.converged.all())
+            model = stats.model if warm else None
+            z_prev, z = z, z_next
+            path.append(z)
+        runs[warm] = (torch.stack(path), rows[0])
+    (cold, cold_rows), (hot, hot_rows) = runs[False], runs[True]
+    motion = float((cold - cold[0]).abs().max())
+    assert motion > 1e-3  # it moved
+    assert float((hot - cold).abs().max()) <= 1e-5 * motion  # tol 1e-10 of the force scale, over 8 steps
+    assert hot_rows < 0.7 * cold_rows  # measured 150 vs 250 rows
+    assert torch.isfinite(stats.model).all() and stats.model.shape == (2, 8, 8)
+    with pytest.raises(ValueError, match="warm must have shape"):
+        stepper.step(z, z_prev, loads, warm=torch.zeros(2, 3, 3))
+
+
 def test_stats_shapes_and_types(mini_chain) -> None:
     scene, f = mini_chain
     stepper = LatentStepper(scene, f, DT)
@@ -116,7 +148,7 @@ def test_stats_shapes_and_types(mini_chain) -> None:
     assert z_next.shape == (3, stepper.latent_dim) and z_next.dtype == torch.float32
     assert stats.converged.dtype == torch.bool and stats.out_of_range.dtype == torch.bool
     assert stats.diverged.dtype == torch.bool and stats.iterations.dtype == torch.int64
-    assert all(t.shape == (3,) for t in stats)
+    assert all(t.shape == (3,) for t in stats[:-1]) and stats.model.shape == (3, stepper.latent_dim, stepper.latent_dim)
     assert stepper.positions(z).shape == (3, scene.free_dof_count)
     # at rest without load nothing moves, nothing is flagged
     torch.testing.assert_close(z_next, z, rtol=0.0, atol=1e-3)
@@ -283,3 +315,18 @@ def test_runs_on_cuda_like_on_the_cpu(mini_chain) -> None:
     got, stats = gpu.step(z.cuda(), z.cuda(), loads.cuda())
     assert got.device.type == "cuda" and stats.converged.device.type == "cuda"
     torch.testing.assert_close(got.cpu(), want, rtol=0.0, atol=1e-6)
+
+
+def test_objective_is_what_the_step_minimizes(mini_chain) -> None:
+    """stepper.objective at the step's answer is below its value at the start and at nearby latents."""
+    scene, f = mini_chain
+    stepper = LatentStepper(scene, f, DT, dtype=torch.float64, tol=1e-10)
+    z = stepper.rest_latent()
+    loads = _loads(scene, 1, 4, 5.0)
+    z_next, stats = stepper.step(z, z, loads)
+    assert bool(stats.converged.all())
+    best = stepper.objective(z_next, z, z, loads)
+    g = torch.Generator().manual_seed(0)
+    nearby = z_next + 1e-3 * torch.randn(8, stepper.latent_dim, generator=g, dtype=torch.float64)
+    others = stepper.objective(nearby, z.expand(8, -1), z.expand(8, -1), loads.expand(8, -1, -1))
+    assert float(best) < float(stepper.objective(z, z, z, loads)) and bool((best < others).all())
