@@ -25,6 +25,7 @@ ENVS: dict[str, tuple[str, str, int]] = {
     "RedSim/ConditionalBar-v0": ("conditional_bar", "ConditionalBarEnv", 200),
     "RedSim/Klann-v0": ("klann", "KlannEnv", 300),
     "RedSim/Stewart-v0": ("stewart", "StewartEnv", 200),
+    "RedSim/BistableBar-v0": ("bistable_bar", "BistableBarEnv", 200),
 }
 """id -> (module in redsim.envs, class, max_episode_steps)."""
 

@@ -19,6 +19,8 @@ from __future__ import annotations
 
 import importlib.util
 import math
+import os
+import sys
 from collections.abc import Mapping
 from typing import Any, ClassVar
 
@@ -34,8 +36,29 @@ from redsim.subspace import CheckpointError, periodic_latents
 LATENT_BOUND = 10.0
 """Observation bound of each latent coordinate (maps are fitted on z ~ N(0, I)); z_dot gets 2 LATENT_BOUND / dt."""
 DTYPES = {"float32": torch.float32, "float64": torch.float64}
-RENDER_MODES = ["rgb_array"] + (["human"] if importlib.util.find_spec("pygame") is not None else [])
-"""Headless "rgb_array" always; "human" (a pygame window) where pygame is installed."""
+DISPLAY_VARIABLES = ("DISPLAY", "WAYLAND_DISPLAY", "SDL_VIDEODRIVER")
+"""On Linux a window needs one of these set (SDL_VIDEODRIVER=dummy gives a window that shows nothing)."""
+
+
+def human_unavailable() -> str | None:
+    """Why ``render_mode="human"`` cannot open a window on this machine, or None where it can.
+
+    It needs pygame (the ``render`` extra) and, on Linux, a display (:data:`DISPLAY_VARIABLES`).
+    """
+    if importlib.util.find_spec("pygame") is None:
+        return 'pygame is not installed; run `pip install "redsim[render]"` (or `pip install pygame`)'
+    if sys.platform.startswith("linux") and not any(os.environ.get(k) for k in DISPLAY_VARIABLES):
+        return f"there is no display ({', '.join(DISPLAY_VARIABLES)} are unset); use render_mode='rgb_array'"
+    return None
+
+
+RENDER_MODES = ["rgb_array", "human"]
+"""Headless "rgb_array" everywhere; "human", a pygame window, where :func:`human_unavailable` is None.
+
+The class's ``metadata`` declares both, so ``gym.make(..., render_mode="human")`` reaches the env and
+its clear error where no window can open (Gymnasium would otherwise wrap the env in its own
+HumanRendering); an instance's ``metadata`` lists "human" only where it works, so
+``check_env`` renders every mode it lists."""
 
 
 class Task:
@@ -71,6 +94,10 @@ class Task:
     ) -> dict[str, Tensor]:
         """Parameters of one new episode (each shape [...], no batch dim) drawn from ``rng``."""
         return {}
+
+    def start(self, sim: LatentSim, row: int, z_rest: Tensor) -> Tensor:
+        """The latent [d] copy ``row`` starts its episode from, after :meth:`sample` (default: at rest, z_rest)."""
+        return z_rest
 
     def loads(self, action: Tensor, params: Mapping[str, Tensor]) -> Tensor:
         """Loads [B, H, D] [N] from actions [B, A] in [-1, 1]."""
@@ -232,7 +259,8 @@ class LatentSim:
 
     # -- episodes -------------------------------------------------------------------------
     def reset_rows(self, rows: list[int], rngs: list[np.random.Generator]) -> None:
-        """Start a new episode in copies ``rows`` (at rest), each drawing from its own generator."""
+        """Start a new episode in copies ``rows`` (at rest, or where the task starts it), each drawing from its own
+        generator."""
         for row, rng in zip(rows, rngs, strict=True):
             cond = None
             if self.randomize_condition:
@@ -243,12 +271,13 @@ class LatentSim:
             else:
                 cond = None if self.cond is None else self.cond[row : row + 1]
                 z_rest = self._rest
-            self.z[row] = z_rest
-            self.z_prev[row] = z_rest
             for key, value in self.task.sample(rng, self, z_rest, cond).items():
                 if key not in self.params:
                     self.params[key] = torch.zeros((self.batch, *value.shape), dtype=value.dtype, device=self.device)
                 self.params[key][row] = value
+            start = self.task.start(self, row, z_rest)
+            self.z[row] = start
+            self.z_prev[row] = start
         self.loads[rows] = 0.0
         self.model[rows] = torch.nan
         x = self.full_positions(self.z[rows], None if self.cond is None else self.cond[rows])
@@ -415,28 +444,45 @@ class LatentSim:
 
 
 def shipped(
-    scene_name: str, scene_params: Mapping[str, Any] | None = None, subspace: str | nn.Module | None = None
+    scene_name: str,
+    scene_params: Mapping[str, Any] | None = None,
+    subspace: str | nn.Module | None = None,
+    *,
+    fit_if_missing: bool = False,
+    fit_options: Mapping[str, Any] | None = None,
 ) -> tuple[Scene, nn.Module]:
     """A catalog scene and its subspace: the shipped one (default), a checkpoint path, or a map.
 
+    Args:
+        scene_name: Catalog name.
+        scene_params: Build parameters (the shipped map covers only the defaults).
+        subspace: None (shipped), a checkpoint path or a map.
+        fit_if_missing: With ``subspace=None`` and parameters no shipped map covers, fit one into
+            the user cache (or load it from there): :func:`redsim.envs.fitted.cached_subspace`.
+        fit_options: FitConfig fields over the scene's preset for that fit (e.g. ``{"steps": 2000}``).
+
     Raises:
-        ValueError: an unknown scene or parameter.
-        redsim.subspace.CheckpointError: the subspace was fitted to other scene parameters (the
-            shipped ones cover only the defaults) or the checkpoint is missing or corrupt.
+        ValueError: an unknown scene or parameter, or a bad fit option.
+        redsim.subspace.CheckpointError: no shipped subspace covers ``scene_params`` (and
+            ``fit_if_missing`` is False), or the checkpoint is missing or corrupt.
     """
     from redsim import pretrained, scenes
     from redsim.subspace import load_subspace
 
     scene = scenes.build(scene_name, **dict(scene_params or {}))
+    if fit_options is not None and not fit_if_missing:
+        raise ValueError("fit_options only apply with fit_if_missing=True")
     if subspace is None:
-        if scene_params:
-            default = scenes.build(scene_name)
-            if default.fingerprint() != scene.fingerprint():
-                raise CheckpointError(
-                    f"no shipped subspace covers scene {scene_name!r} with parameters {dict(scene_params)}; the "
-                    f"shipped one is fitted to the defaults. Fit one (`redsim fit {scene_name} --param ...`) and "
-                    "pass subspace=PATH"
-                )
+        if scene_params and scenes.build(scene_name).fingerprint() != scene.fingerprint():
+            if fit_if_missing:
+                from redsim.envs.fitted import cached_subspace
+
+                return scene, cached_subspace(scene_name, scene, fit_options)
+            raise CheckpointError(
+                f"no shipped subspace covers scene {scene_name!r} with parameters {dict(scene_params)}; the "
+                "shipped one is fitted to the defaults. Pass fit_if_missing=True to fit one into the user cache "
+                f"(minutes), or fit one yourself (`redsim fit {scene_name} --param ...`) and pass subspace=PATH"
+            )
         return scene, pretrained.load(scene_name, scene)
     if isinstance(subspace, nn.Module):
         return scene, subspace
@@ -460,8 +506,8 @@ class LatentEnv(gym.Env[np.ndarray, np.ndarray]):
         scene: The scene.
         subspace: Its map (fitted to this scene: another scene's map raises CheckpointError).
         task: The task.
-        render_mode: None, "rgb_array" (headless) or "human" (listed in ``metadata`` where pygame is
-            installed; it opens a window).
+        render_mode: None, "rgb_array" (headless) or "human" (a pygame window; listed in ``metadata``
+            where pygame and a display exist, else a clear error: :func:`human_unavailable`).
         dt: Stepper time step [s].
         frame_skip: Stepper steps per env step.
         dtype: Stepper dtype, "float32" or "float64".
@@ -499,8 +545,11 @@ class LatentEnv(gym.Env[np.ndarray, np.ndarray]):
         camera: Mapping[str, float] | None = None,
         stepper_options: Mapping[str, Any] | None = None,
     ) -> None:
-        if render_mode is not None and render_mode not in self.metadata["render_modes"]:
-            raise ValueError(f"render_mode must be None or one of {self.metadata['render_modes']}, got {render_mode!r}")
+        if render_mode not in (None, "rgb_array", "human"):
+            raise ValueError(f"render_mode must be None, 'rgb_array' or 'human', got {render_mode!r}")
+        if render_mode == "human" and (reason := human_unavailable()) is not None:
+            error = ValueError if importlib.util.find_spec("pygame") else gym.error.DependencyNotInstalled
+            raise error(f'render_mode="human" needs a window: {reason}')
         self.sim = LatentSim(
             scene,
             subspace,
@@ -517,7 +566,8 @@ class LatentEnv(gym.Env[np.ndarray, np.ndarray]):
         self.task = task
         self.render_mode = render_mode
         self.dt = self.sim.dt
-        self.metadata = {**type(self).metadata, "render_fps": round(1.0 / self.dt)}
+        modes = [m for m in RENDER_MODES if m != "human" or human_unavailable() is None]
+        self.metadata = {**type(self).metadata, "render_modes": modes, "render_fps": round(1.0 / self.dt)}
         self.action_space = spaces.Box(-1.0, 1.0, (task.action_size,), np.float32)
         low, high = self.sim.observation_bounds()
         self.observation_space = spaces.Box(low, high, dtype=np.float32)
@@ -571,14 +621,10 @@ class LatentEnv(gym.Env[np.ndarray, np.ndarray]):
         return None
 
     def _show(self, frame: np.ndarray) -> None:
-        try:
-            import pygame
-        except ImportError as err:
-            raise gym.error.DependencyNotInstalled(
-                'pygame is not installed; run `pip install pygame` for render_mode="human"'
-            ) from err
+        import pygame  # present: checked with the render mode in __init__
+
         if self._window is None:
-            pygame.init()
+            pygame.display.init()
             self._window = pygame.display.set_mode(frame.shape[1::-1])
             self._clock = pygame.time.Clock()
         pygame.event.pump()
@@ -639,18 +685,26 @@ class LatentEnv(gym.Env[np.ndarray, np.ndarray]):
             self.set_state(state["sim"])
 
 
-def check_numbers(positive: Mapping[str, float], nonnegative: Mapping[str, float] | None = None) -> None:
-    """Check task arguments by name: each of ``positive`` finite and > 0, each of ``nonnegative`` finite and >= 0.
+def check_numbers(
+    positive: Mapping[str, Any],
+    nonnegative: Mapping[str, Any] | None = None,
+    optional: Mapping[str, Any] | None = None,
+) -> None:
+    """Check task arguments by name: ``positive`` finite and > 0, ``nonnegative`` finite and >= 0,
+    ``optional`` None or finite and > 0 (:func:`redsim.scenes.toolkit.check_positive` for each).
 
     Raises:
-        ValueError: naming the first bad argument and its value.
+        ValueError: naming the first bad argument and its value (a non-number included).
     """
+    from redsim.scenes.toolkit import check_positive
+
     for key, value in positive.items():
-        if not (np.isfinite(value) and value > 0.0):
-            raise ValueError(f"{key} must be finite and > 0, got {value!r}")
+        check_positive(key, value)
     for key, value in dict(nonnegative or {}).items():
-        if not (np.isfinite(value) and value >= 0.0):
-            raise ValueError(f"{key} must be finite and >= 0, got {value!r}")
+        check_positive(key, value, allow_zero=True)
+    for key, value in dict(optional or {}).items():
+        if value is not None:
+            check_positive(key, value)
 
 
 def check_action(action: Any, shape: tuple[int, ...]) -> np.ndarray:
@@ -701,5 +755,6 @@ __all__ = [
     "check_action",
     "check_numbers",
     "check_subspace",
+    "human_unavailable",
     "shipped",
 ]

@@ -5,8 +5,9 @@ an env step of the single env (random actions) and of the native vector env at e
 as env steps/s (copies x steps / s) and simulated seconds per wall second (env steps/s x the
 env's dt). For scale, the same scene's float64 full-space implicit-Euler step
 (:class:`redsim.integrators.ImplicitEuler` over :class:`FullSpace`, Newton, under a random load of
-the env's force size) is timed too. With ``mujoco`` installed the MuJoCo anchors RL users know
-are added; without it they are reported as not installed.
+the env's force size) is timed too. With ``mujoco`` installed the same run times the MuJoCo
+anchors RL users know (:func:`mujoco_anchors`: MuJoCo's 24-capsule chain and ``HalfCheetah-v5``);
+without it they are skipped with the reason.
 """
 
 from __future__ import annotations
@@ -139,22 +140,68 @@ def bench_env(
     return row
 
 
-def mujoco_anchors(steps: int = 200) -> dict[str, Any]:
-    """Env steps/s of MuJoCo's ``HalfCheetah-v5`` (single env) where ``mujoco`` is installed, else a reason."""
+MUJOCO_MISSING = "mujoco is not installed (pip install 'redsim[bench]')"
+ANCHOR_STEPS = 2000
+"""Timed steps of each MuJoCo anchor (after 100 untimed ones)."""
+
+
+def mujoco_anchors(steps: int = ANCHOR_STEPS) -> dict[str, Any]:
+    """Speed of the MuJoCo anchors RL users know, where ``mujoco`` is installed, else the reason.
+
+    Two anchors, each as steps/s and simulated seconds per wall second: MuJoCo's hanging chain of
+    24 capsules on ball joints (:func:`redsim.runtime.bench.run_mujoco_chain`, RK4 at dt 0.01 s,
+    the same model as ``redsim bench step``; a bare ``mj_step`` loop) and Gymnasium's
+    ``HalfCheetah-v5`` (single env, random actions; its env step is 5 MuJoCo steps, dt 0.05 s),
+    median over ``steps`` steps.
+
+    Returns:
+        ``{"available": False, "reason": ...}``, or ``available`` with ``chain`` (``steps_per_s``,
+        ``sim_s_per_wall_s``, ``nv``, ``integrator``, ``timestep``) and ``HalfCheetah-v5``
+        (``env_steps_per_s``, ``sim_s_per_wall_s``, ``dt``), the latter a ``reason`` where
+        Gymnasium's MuJoCo envs cannot be made.
+    """
     if importlib.util.find_spec("mujoco") is None:
-        return {"available": False, "reason": "mujoco is not installed (pip install mujoco)"}
-    env = gym.make("HalfCheetah-v5")
+        return {"available": False, "reason": MUJOCO_MISSING}
+    from redsim.runtime.bench import run_mujoco_chain
+
+    chain = run_mujoco_chain(integrator="RK4", timestep=0.01, steps=steps)
+    try:
+        env = gym.make("HalfCheetah-v5")
+    except (gym.error.Error, ImportError) as err:
+        return {"available": True, "chain": chain, "HalfCheetah-v5": {"reason": f"HalfCheetah-v5: {err}"}}
     env.reset(seed=0)
-    start = time.perf_counter()
-    for _ in range(steps):
-        env.step(env.action_space.sample())
-    seconds = (time.perf_counter() - start) / steps
+    env.action_space.seed(0)
+
+    def cheetah_step() -> None:
+        _, _, terminated, truncated, _ = env.step(env.action_space.sample())
+        if terminated or truncated:
+            env.reset()
+
+    for _ in range(100):
+        cheetah_step()
+    seconds, _ = _median_time(cheetah_step, steps, budget=float("inf"))
     dt = float(env.unwrapped.dt)
     env.close()
-    return {
-        "available": True,
-        "HalfCheetah-v5": {"env_steps_per_s": 1.0 / seconds, "sim_s_per_wall_s": dt / seconds},
-    }
+    cheetah = {"env_steps_per_s": 1.0 / seconds, "sim_s_per_wall_s": dt / seconds, "dt": dt}
+    return {"available": True, "chain": chain, "HalfCheetah-v5": cheetah}
 
 
-__all__ = ["DEFAULT_BATCHES", "bench_env", "mujoco_anchors"]
+def anchor_lines(anchors: dict[str, Any]) -> list[str]:
+    """The anchors of :func:`mujoco_anchors` as printed lines."""
+    if not anchors["available"]:
+        return [f"MuJoCo anchors skipped: {anchors['reason']}"]
+    chain, cheetah = anchors["chain"], anchors["HalfCheetah-v5"]
+    lines = [
+        f"MuJoCo chain (24 capsules, nv {chain['nv']}, {chain['integrator']} dt {chain['timestep']} s): "
+        f"{chain['steps_per_s']:.0f} steps/s, {chain['sim_s_per_wall_s']:.1f} sim s per wall s"
+    ]
+    if "reason" in cheetah:
+        return [*lines, f"MuJoCo HalfCheetah-v5 skipped: {cheetah['reason']}"]
+    return [
+        *lines,
+        f"MuJoCo HalfCheetah-v5 (single env, dt {cheetah['dt']} s): {cheetah['env_steps_per_s']:.0f} env steps/s, "
+        f"{cheetah['sim_s_per_wall_s']:.1f} sim s per wall s",
+    ]
+
+
+__all__ = ["ANCHOR_STEPS", "DEFAULT_BATCHES", "MUJOCO_MISSING", "anchor_lines", "bench_env", "mujoco_anchors"]

@@ -78,9 +78,8 @@ class CrankSpeed(Task):
                 "controller_time": controller_time,
             },
             {"control_weight": control_weight, "success_bonus": success_bonus},
+            {"speed_scale": speed_scale},
         )
-        if speed_scale is not None and not (np.isfinite(speed_scale) and speed_scale > 0.0):
-            raise ValueError(f"speed_scale must be None or finite and > 0, got {speed_scale!r}")
         self.handle = handle
         self.pivot = (float(pivot[0]), float(pivot[1]))
         self.max_force = float(max_force)
@@ -249,6 +248,8 @@ class KlannEnv(LatentEnv):
     | `frame_skip` | 1 | stepper steps per env step |
     | `subspace` | None | the shipped map, a checkpoint path or a map |
     | `scene_params` | None | scene build parameters (the shipped map covers only the defaults) |
+    | `fit_if_missing` | False | fit a map for `scene_params` no shipped map covers into the user cache |
+    | `fit_options` | None | FitConfig fields over the scene's preset for that fit |
     | `include_q` | False | put q [n] in `info["q"]` |
     | `**kwargs` | | more :class:`LatentEnv` arguments (`dtype`, `device`, `width`, `height`, `camera`, ...) |
 
@@ -268,12 +269,14 @@ class KlannEnv(LatentEnv):
         frame_skip: int = 1,
         subspace: str | nn.Module | None = None,
         scene_params: dict[str, Any] | None = None,
+        fit_if_missing: bool = False,
+        fit_options: dict[str, Any] | None = None,
         include_q: bool = False,
         **kwargs: Any,
     ) -> None:
         from redsim.scenes.linkages import KLANN_CRANK
 
-        scene, sub = shipped("klann", scene_params, subspace)
+        scene, sub = shipped("klann", scene_params, subspace, fit_if_missing=fit_if_missing, fit_options=fit_options)
         task = CrankSpeed(KLANN_CRANK.handle, KLANN_CRANK.pivot, max_force=max_force, speed_range=speed_range)
         kwargs.setdefault("camera", dict(self.camera))
         super().__init__(

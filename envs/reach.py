@@ -23,7 +23,7 @@ import numpy as np
 import torch
 from torch import Tensor, nn
 
-from redsim.envs.base import LatentEnv, Task, shipped
+from redsim.envs.base import LatentEnv, Task, check_numbers, shipped
 
 if TYPE_CHECKING:
     from redsim.envs.base import LatentSim
@@ -73,20 +73,11 @@ class HandleReach(Task):
         controller_gain: float | None = None,
         controller_time: float = 0.5,
     ) -> None:
-        for key, value in (("max_force", max_force), ("target_spread", target_spread)):
-            if not (np.isfinite(value) and value > 0.0):
-                raise ValueError(f"{key} must be finite and > 0, got {value!r}")
-        for key, value in (("control_weight", control_weight), ("success_bonus", success_bonus)):
-            if not (np.isfinite(value) and value >= 0.0):
-                raise ValueError(f"{key} must be finite and >= 0, got {value!r}")
-        for key, value in (
-            ("distance_scale", distance_scale),
-            ("success_radius", success_radius),
-            ("controller_gain", controller_gain),
-            ("controller_time", controller_time),
-        ):
-            if value is not None and not (np.isfinite(value) and value > 0.0):
-                raise ValueError(f"{key} must be None or finite and > 0, got {value!r}")
+        check_numbers(
+            {"max_force": max_force, "target_spread": target_spread, "controller_time": controller_time},
+            {"control_weight": control_weight, "success_bonus": success_bonus},
+            {"distance_scale": distance_scale, "success_radius": success_radius, "controller_gain": controller_gain},
+        )
         self.goal_handle = goal_handle
         self.actuated = goal_handle if actuated is None else actuated
         self.max_force = float(max_force)
@@ -238,6 +229,8 @@ class ReachEnv(LatentEnv):
     | `frame_skip` | 1 | stepper steps per env step |
     | `subspace` | None | the shipped map, a checkpoint path or a map |
     | `scene_params` | None | scene build parameters (a shipped map covers only the defaults) |
+    | `fit_if_missing` | False | fit a map for `scene_params` no shipped map covers into the user cache |
+    | `fit_options` | None | FitConfig fields over the scene's preset for that fit |
     | `include_q` | False | put q [n] in `info["q"]` |
     | `**kwargs` | | more :class:`LatentEnv` arguments (`dtype`, `device`, `width`, `height`, `camera`, ...) |
     """
@@ -261,10 +254,14 @@ class ReachEnv(LatentEnv):
         frame_skip: int = 1,
         subspace: str | nn.Module | None = None,
         scene_params: dict[str, Any] | None = None,
+        fit_if_missing: bool = False,
+        fit_options: dict[str, Any] | None = None,
         include_q: bool = False,
         **kwargs: Any,
     ) -> None:
-        scene, sub = shipped(self.scene_name, scene_params, subspace)
+        scene, sub = shipped(
+            self.scene_name, scene_params, subspace, fit_if_missing=fit_if_missing, fit_options=fit_options
+        )
         task = HandleReach(
             self.goal_handle,
             max_force=self.default_max_force if max_force is None else max_force,

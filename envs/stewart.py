@@ -262,6 +262,8 @@ class StewartEnv(LatentEnv):
     | `frame_skip` | 1 | stepper steps per env step |
     | `subspace` | None | the shipped map, a checkpoint path or a map |
     | `scene_params` | None | scene build parameters (the shipped map covers only the defaults) |
+    | `fit_if_missing` | False | fit a map for `scene_params` no shipped map covers into the user cache |
+    | `fit_options` | None | FitConfig fields over the scene's preset for that fit |
     | `include_q` | False | put q [n] in `info["q"]` |
     | `**kwargs` | | more :class:`LatentEnv` arguments (`dtype`, `device`, `width`, `height`, `camera`, ...) |
 
@@ -279,10 +281,12 @@ class StewartEnv(LatentEnv):
         frame_skip: int = 1,
         subspace: str | nn.Module | None = None,
         scene_params: dict[str, Any] | None = None,
+        fit_if_missing: bool = False,
+        fit_options: dict[str, Any] | None = None,
         include_q: bool = False,
         **kwargs: Any,
     ) -> None:
-        scene, sub = shipped("stewart", scene_params, subspace)
+        scene, sub = shipped("stewart", scene_params, subspace, fit_if_missing=fit_if_missing, fit_options=fit_options)
         task = PlatePose(
             "top_plate",
             tuple(f"arm_{i}" for i in range(6)),

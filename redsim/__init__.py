@@ -12,9 +12,7 @@ from redsim import effects, envs, scenes
 from redsim.points import PointSet
 from redsim.scene import ConditionSpace, Handle, Scene, SceneBuilder, Surface
 from redsim.subspace import SubspaceConfig, SubspaceMap, load_subspace
-
-__version__ = "0.1.0"
-"""The package version; the one place it is written (pyproject.toml reads it: ``dynamic = ["version"]``)."""
+from redsim.version import __version__
 
 __all__ = [
     "ConditionSpace",

@@ -4,7 +4,7 @@ A :class:`Scene` holds what never changes during a simulation: the layout of the
 configuration (free DOFs; pinned ones are removed and re-inserted by
 :meth:`Scene.full_positions`), the mass matrix M, the seed state, the effects whose sum is
 the potential energy, the handles where loads act, an optional condition space, the
-surfaces to draw, and drivers (guides that only fitting uses, never part of the energy).
+surfaces to draw, drivers and a mirror (guides that only fitting uses, never part of the energy).
 Dynamic data (states, loads, conditions) is passed in per call.
 
 Configuration layout: the full vector x concatenates, in the order they were added,
@@ -131,6 +131,30 @@ class Driver:
         return torch.atan2(offset @ self.axes[1], offset @ self.axes[0])
 
 
+@dataclass(frozen=True)
+class Mirror:
+    """A reflection that maps the scene onto itself, for fitting only: P(q) = sign * q[index] + offset.
+
+    A scene whose energy is (nearly) unchanged by a reflection, E(P q) = E(q), declares one (the
+    bistable bar: up-down across its centre line, so its two buckled states are each other's
+    image); ``FitConfig.mirror`` then asks the map to be equivariant, f(-z) = P f(z). P is an
+    affine involution of the free configuration (P(P(q)) = q, checked when the scene is built).
+
+    Attributes:
+        index: Free DOF whose value lands on each free DOF, shape [n], int64.
+        sign: +1 or -1 per free DOF, shape [n].
+        offset: Added after the sign [m], shape [n].
+    """
+
+    index: Tensor
+    sign: Tensor
+    offset: Tensor
+
+    def apply(self, q: Tensor) -> Tensor:
+        """P(q) for free configurations q, shape [B, n] -> [B, n]."""
+        return self.sign.to(q.dtype) * q[:, self.index] + self.offset.to(q.dtype)
+
+
 LoadsLike = Tensor | Mapping[str, Sequence[float] | Tensor] | None
 
 
@@ -151,6 +175,7 @@ class Scene:
         condition_space: Optional condition parameters.
         description: One line on what the scene is, with its units.
         drivers: Fitting-only guides (:class:`Driver`); not part of the energy.
+        mirror: Fitting-only reflection symmetry (:class:`Mirror`), or None.
     """
 
     name: str
@@ -165,6 +190,7 @@ class Scene:
     condition_space: ConditionSpace | None = None
     description: str = ""
     drivers: tuple[Driver, ...] = ()
+    mirror: Mirror | None = None
     _effect_index: dict[str, int] = field(default_factory=dict, repr=False, compare=False)
     _mass_entries: tuple[Tensor, Tensor, Tensor] = field(init=False, repr=False, compare=False)
 
@@ -361,6 +387,7 @@ class Scene:
             surfaces=cast_tensors(self.surfaces, device, dtype),
             condition_space=cast_tensors(self.condition_space, device, dtype),
             drivers=cast_tensors(self.drivers, device, dtype),
+            mirror=cast_tensors(self.mirror, device, dtype),
             _effect_index={},
         )
 
@@ -376,6 +403,7 @@ class Scene:
             "handles": list(self.handle_names),
             "conditions": [] if self.condition_space is None else list(self.condition_space.names),
             "drivers": [d.name for d in self.drivers],
+            "mirror": self.mirror is not None,
             "params": self.params,
             "fingerprint": self.fingerprint(),
         }
@@ -413,6 +441,7 @@ class SceneBuilder:
         self._surfaces: list[Surface] = []
         self._conditions: list[tuple[str, float, float, float]] = []
         self._drivers: list[tuple[str, str, int, Tensor, Tensor]] = []
+        self._mirror: tuple[Tensor, int, float] | None = None
 
     # -- content --------------------------------------------------------------------------
     @property
@@ -576,6 +605,29 @@ class SceneBuilder:
             raise ValueError(f"driver {name!r}: axes must be two non-parallel, non-zero directions")
         self._drivers.append((name, handle, latent, c, torch.stack([u, v / v.norm()])))
 
+    def mirror_particles(self, partner: Tensor, axis: int, plane: float) -> None:
+        """Declare a fitting-only :class:`Mirror`: reflect coordinate ``axis`` about ``plane`` [m] and swap particles.
+
+        Particle i lands on particle ``partner[i]`` with x_axis -> 2 plane - x_axis (the other
+        coordinates unchanged). ``partner`` [particle_count] must be an involution; pinned
+        particles must map to pinned ones at mirrored positions (checked at :meth:`finalize`).
+        Scenes with rigid bodies cannot declare one.
+        """
+        partner = torch.as_tensor(partner, dtype=torch.int64)
+        if self._body_first_dof:
+            raise ValueError("mirror_particles: the scene has rigid bodies (only particle scenes can be mirrored)")
+        if partner.shape != (self.particle_count,):
+            raise ValueError(
+                f"mirror_particles: partner must have shape [{self.particle_count}], got {list(partner.shape)}"
+            )
+        if not 0 <= axis < self.dim:
+            raise ValueError(f"mirror_particles: axis must be in [0, {self.dim}), got {axis}")
+        if bool((partner < 0).any() or (partner >= self.particle_count).any()) or not torch.equal(
+            partner[partner], torch.arange(self.particle_count)
+        ):
+            raise ValueError("mirror_particles: partner must be an involution of the particle ids")
+        self._mirror = (partner, int(axis), float(plane))
+
     def add_condition(self, name: str, low: float, high: float, default: float | None = None) -> int:
         """Declare a condition parameter; returns its index in c."""
         if not low < high:
@@ -635,6 +687,7 @@ class SceneBuilder:
                 raise ValueError(f"driver {driver!r}: handle {handle!r} sits on the centre (radius 0)")
             phase = math.atan2(float(offset @ axes[1]), float(offset @ axes[0]))
             drivers.append(Driver(driver, handle, latent, center, axes, radius, phase))
+        mirror = self._finalize_mirror(dof_map, seed, free_mask)
         scene = Scene(
             name=name,
             params=dict(params or {}),
@@ -648,8 +701,31 @@ class SceneBuilder:
             condition_space=space,
             description=description,
             drivers=tuple(drivers),
+            mirror=mirror,
         )
         return scene.to(device, dtype) if (device is not None or dtype != torch.float64) else scene
+
+    def _finalize_mirror(self, dof_map: DofMap, seed: Tensor, free_mask: Tensor) -> Mirror | None:
+        """The free-DOF :class:`Mirror` of :meth:`mirror_particles` (None without one)."""
+        if self._mirror is None:
+            return None
+        partner, axis, plane = self._mirror
+        ids = torch.arange(self.particle_count)
+        index = torch.empty(self._dof_count, dtype=torch.int64)
+        index[self.particle_dofs(ids).reshape(-1)] = self.particle_dofs(partner).reshape(-1)
+        sign = torch.ones(self._dof_count, dtype=torch.float64)
+        offset = torch.zeros(self._dof_count, dtype=torch.float64)
+        flipped = self.particle_dofs(ids)[:, axis]
+        sign[flipped], offset[flipped] = -1.0, 2.0 * plane
+        mirrored = sign * seed[index] + offset
+        if not torch.equal(free_mask[index], free_mask) or not torch.allclose(
+            mirrored[~free_mask], seed[~free_mask], atol=1e-9
+        ):
+            raise ValueError("mirror_particles: pinned particles must map to pinned particles at mirrored positions")
+        free_index = dof_map.free_index
+        position = torch.full((self._dof_count,), -1, dtype=torch.int64)
+        position[free_index] = torch.arange(free_index.numel())
+        return Mirror(position[index[free_index]], sign[free_index], offset[free_index])
 
     def _mass_matrix(self, dof_map: DofMap) -> Tensor:
         rows, cols, vals = [], [], []

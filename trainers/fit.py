@@ -29,6 +29,32 @@ The reported ``energy`` term is always the true, unweighted energy. It needs no 
 only says which way round the loop goes; the rest of the fit (rho at 1, driver off) is the paper's
 loss, which keeps a map that is on the loop there.
 
+Mirror (``FitConfig.mirror``, not in the paper): a scene whose energy a reflection P leaves
+(nearly) unchanged declares it (:class:`redsim.scene.Mirror`; the bistable bar's up-down flip,
+which swaps its two buckled states). With ``mirror > 0`` each batch is antithetic (z and -z) and
+the loss gains
+
+    mirror * mean_i |MLP(-z_i) - P(MLP(z_i))|^2_M
+
+so the map becomes equivariant, f(-z) = P f(z): whatever state it reaches, it reaches the mirror
+image too, at -z (the loss alone fills one well and leaves the other out). The origin maps to a
+symmetric state (the straight seed of the bar), and exploration grows from it both ways. It needs
+no simulation data: only the symmetry.
+
+Anchors (``FitConfig.anchor``, not in the paper): a scene whose registry entry declares reference
+states (:attr:`redsim.scenes.registry.SceneEntry.reference_states`: states found from its energy
+alone, the bistable bar's two buckled equilibria) can have the fit pull the map through them. State
+k gets the latent a_k = (-1)^k (|q_k - q_seed|_M / sigma) e_{k // 2} (a pair of states on opposite
+ends of one axis, as far out as the pair term's scale puts them), and the loss gains
+
+    mean_k  k(t)/2 |MLP(a_k) - q_k|^2_M
+
+on the MLP's own output, with k(t) held at ``anchor`` for half of ``anchor_fraction`` of the steps,
+then falling linearly to 0 (the driver's schedule). The paper's loss alone fills one well and
+leaves the other out; the anchors only decide the topology (a map through both wells), and once
+they are off the energy keeps each well in the map. It needs no simulation data: the states are
+static equilibria of the energy.
+
 Speed options (:class:`FitConfig`): ``fused_adam`` (one fused Adam kernel per step) and ``compile``
 (the loss, forward and backward, through ``torch.compile``; ``redsim bench fit`` measures both).
 """
@@ -50,7 +76,6 @@ from typing import Any, NamedTuple
 import torch
 from torch import Tensor
 
-import redsim
 from redsim.scene import Scene
 from redsim.subspace import (
     CheckpointError,
@@ -60,6 +85,7 @@ from redsim.subspace import (
     pair_log_ratios,
     sample_latents,
 )
+from redsim.version import __version__
 
 log = logging.getLogger(__name__)
 
@@ -94,6 +120,13 @@ class FitConfig:
             from ``soften_from`` to 1 during fitting (empty: off).
         soften_from: Initial weight of the ``soften`` effects.
         soften_fraction: Their weight rises geometrically to 1 over this fraction of the steps.
+        anchor: Initial stiffness [1/s^2] of the pull of the map through the scene's reference states
+            (module doc; 0: off). Needs a catalog scene whose registry entry declares them.
+        anchor_fraction: The anchor pull is held for half of this fraction of the steps, then falls
+            linearly to 0 at it.
+        mirror: Weight [1/s^2] of the equivariance penalty mean |MLP(-z) - P MLP(z)|^2_M [kg m^2]
+            for the scene's mirror P (:class:`redsim.scene.Mirror`; 0: off). Needs a scene that
+            declares one and an even ``batch_size`` (the batch is z and -z).
         checkpoint_every: Steps between resumable checkpoints (0: only at the end / on interrupt).
         dtype: "float32" (default) or "float64".
         device: Torch device for fitting.
@@ -138,6 +171,9 @@ class FitConfig:
     soften: tuple[str, ...] = ()
     soften_from: float = 1e-3
     soften_fraction: float = 0.5
+    anchor: float = 0.0
+    anchor_fraction: float = 0.5
+    mirror: float = 0.0
     checkpoint_every: int = 1000
     dtype: str = "float32"
     device: str = "cpu"
@@ -183,6 +219,13 @@ _FIELD_RULES: tuple[tuple[str, str, Callable[[FitConfig, Any], bool]], ...] = (
     ("soften", "effect names", lambda c, v: isinstance(v, tuple) and all(isinstance(n, str) and n for n in v)),
     ("soften_from", "a number in (0, 1]", lambda c, v: _is_number(v) and 0 < v <= 1),
     ("soften_fraction", "a number in (0, 1]", lambda c, v: _is_number(v) and 0 < v <= 1),
+    ("anchor", "a finite number >= 0", lambda c, v: _is_number(v) and v >= 0),
+    ("anchor_fraction", "a number in (0, 1]", lambda c, v: _is_number(v) and 0 < v <= 1),
+    (
+        "mirror",
+        "a finite number >= 0 (> 0 needs an even batch_size)",
+        lambda c, v: _is_number(v) and v >= 0 and (v == 0 or (_is_int(c.batch_size) and c.batch_size % 2 == 0)),
+    ),
     ("checkpoint_every", "an integer >= 0", lambda c, v: _is_int(v) and v >= 0),
     ("dtype", f"one of {', '.join(DTYPES)}", lambda c, v: v in DTYPES),
     ("device", "a torch device such as cpu or cuda", lambda c, v: isinstance(v, str) and _is_device(v)),
@@ -240,8 +283,9 @@ def _loss_tensors(
     drive: Tensor,
     soften: Tensor,
     config: FitConfig,
-) -> tuple[Tensor, Tensor, Tensor, Tensor, Tensor]:
-    """The loss and its terms as 0-dim tensors: total, mean energy [J], pair term, mean metric stretch, driver [J].
+) -> tuple[Tensor, Tensor, Tensor, Tensor, Tensor, Tensor]:
+    """The loss and its terms as 0-dim tensors: total, mean energy [J], pair term, mean metric stretch, driver [J],
+    mirror penalty [J].
 
     ``rho``, ``drive`` (the driver stiffness now [N/m]) and ``soften`` (the weight of the
     ``config.soften`` effects now) are 0-dim tensors, so a compiled copy takes each step's values
@@ -259,7 +303,65 @@ def _loss_tensors(
     pair = (log_ratio**2).mean()
     total = weighted + config.lam * pair
     pull = drive_energy(scene, y, z, drive) if config.drive > 0 else torch.zeros_like(energy)
-    return total + pull, energy, pair, torch.exp(log_ratio.detach()).mean(), pull
+    flip = config.mirror * mirror_gap(scene, y) if config.mirror > 0 else torch.zeros_like(energy)
+    return total + pull + flip, energy, pair, torch.exp(log_ratio.detach()).mean(), pull, flip
+
+
+def mirror_gap(scene: Scene, y: Tensor) -> Tensor:
+    """Mean over pairs of |y(-z_i) - P y(z_i)|^2_M [kg m^2] for an antithetic batch y = [y(z); y(-z)], shape [2B, n].
+
+    P is the scene's :class:`redsim.scene.Mirror`; 0 for a map with f(-z) = P f(z).
+    """
+    assert scene.mirror is not None  # checked by fit_subspace
+    half = y.shape[0] // 2
+    gap = y[half:] - scene.mirror.apply(y[:half])
+    return (gap * scene.mass_matvec(gap)).sum(-1).mean()
+
+
+def anchor_states(scene: Scene, config: FitConfig) -> tuple[Tensor, Tensor]:
+    """The anchors of ``scene``: latents a_k [K, d] and reference states q_k [K, n] (module doc), in the scene's dtype.
+
+    Raises:
+        ValueError: the scene is not in the catalog, or its entry declares no reference states, or it
+            declares more than 2 d of them.
+    """
+    from redsim import scenes
+
+    declared = scenes.entry(scene.name).reference_states if scene.name in scenes.names() else None
+    if declared is None:
+        raise ValueError(f"scene {scene.name!r} declares no reference states; fit without anchor (--anchor)")
+    states = [q.to(scene.q_seed) for q in scenes.entry(scene.name).compute_reference_states(scene)]
+    if len(states) > 2 * config.latent_dim:
+        raise ValueError(f"{len(states)} reference states need latent_dim >= {(len(states) + 1) // 2}")
+    latents = torch.zeros(len(states), config.latent_dim, dtype=scene.q_seed.dtype)
+    for k, q in enumerate(states):
+        gap = (q - scene.q_seed).unsqueeze(0)
+        distance = float((gap * scene.mass_matvec(gap)).sum().sqrt())
+        latents[k, k // 2] = (-1.0) ** k * distance / config.sigma
+    return latents, torch.stack(states)
+
+
+def anchor_energy(scene: Scene, model: SubspaceMap, anchors: tuple[Tensor, Tensor], stiffness: float) -> Tensor:
+    """mean_k stiffness/2 |MLP(a_k) - q_k|^2_M [J] for anchors (a [K, d], q [K, n]) (:func:`anchor_states`)."""
+    latents, states = anchors
+    gap = model(latents) - states
+    return 0.5 * stiffness * (gap * scene.mass_matvec(gap)).sum(-1).mean()
+
+
+def anchor_at(step: int, config: FitConfig, ramp_steps: int | None = None) -> float:
+    """Anchor stiffness [1/s^2] in step ``step`` (0-based): ``anchor``, then falling linearly to 0 (as the driver)."""
+    progress = step / (config.anchor_fraction * (ramp_steps or config.steps))
+    return config.anchor * min(1.0, max(0.0, 2.0 * (1.0 - progress)))
+
+
+def batch_latents(config: FitConfig, generator: torch.Generator, dtype: torch.dtype) -> Tensor:
+    """One step's latents [B, d]: :func:`redsim.subspace.sample_latents`, antithetic ([z; -z]) with ``mirror``."""
+    antithetic = config.mirror > 0
+    count = config.batch_size // 2 if antithetic else config.batch_size
+    z = sample_latents(
+        count, config.latent_dim, config.periodic, generator=generator, dtype=dtype, device=config.device
+    )
+    return torch.cat([z, -z]) if antithetic else z
 
 
 def drive_energy(scene: Scene, q: Tensor, z: Tensor, stiffness: Tensor | float) -> Tensor:
@@ -279,28 +381,43 @@ def drive_energy(scene: Scene, q: Tensor, z: Tensor, stiffness: Tensor | float) 
     return 0.5 * stiffness * gap2.mean()
 
 
-def _terms(energy: Tensor, pair: Tensor, stretch: Tensor, pull: Tensor) -> dict[str, float]:
+def _terms(energy: Tensor, pair: Tensor, stretch: Tensor, pull: Tensor, flip: Tensor) -> dict[str, float]:
     return {
         "energy": float(energy.detach()),
         "pair": float(pair.detach()),
         "stretch": float(stretch),
         "drive": float(pull.detach()),
+        "mirror": float(flip.detach()),
     }
 
 
 def subspace_loss(
-    scene: Scene, model: SubspaceMap, z: Tensor, cond: Tensor | None, rho: float, config: FitConfig, step: int = 0
+    scene: Scene,
+    model: SubspaceMap,
+    z: Tensor,
+    cond: Tensor | None,
+    rho: float,
+    config: FitConfig,
+    step: int = 0,
+    anchors: tuple[Tensor, Tensor] | None = None,
 ) -> tuple[Tensor, dict[str, float]]:
-    """The fitting loss on one batch, and its terms (mean energy [J], pair term, mean metric stretch, driver [J]).
+    """The fitting loss on one batch, and its terms (mean energy [J], pair term, mean metric stretch, driver [J],
+    mirror penalty [J], anchor pull [J]; ``z`` must be antithetic, [z; -z], when ``config.mirror > 0``).
 
-    ``step`` (0-based) sets the driver stiffness (:func:`drive_at`) and softening (:func:`soften_at`).
+    ``step`` (0-based) sets the driver stiffness (:func:`drive_at`), softening (:func:`soften_at`) and the
+    anchor stiffness (:func:`anchor_at`; ``anchors`` from :func:`anchor_states`, needed when ``config.anchor > 0``).
     """
     rho_t, drive_t, soften_t = (
         torch.as_tensor(v, dtype=z.dtype, device=z.device)
         for v in (rho, drive_at(step, config), soften_at(step, config))
     )
     total, *terms = _loss_tensors(scene, model, z, cond, rho_t, drive_t, soften_t, config)
-    return total, _terms(*terms)
+    pull = torch.zeros_like(total)
+    if config.anchor > 0:
+        if anchors is None:
+            raise ValueError("config.anchor > 0 needs the anchors (anchor_states)")
+        pull = anchor_energy(scene, model, anchors, anchor_at(step, config))
+    return total + pull, {**_terms(*terms), "anchor": float(pull.detach())}
 
 
 def rho_at(step: int, config: FitConfig, ramp_steps: int | None = None) -> float:
@@ -380,6 +497,10 @@ def fit_subspace(
         raise ValueError(f"scene {scene.name!r} has no condition space; fit without conditional")
     if config.drive > 0:
         _check_drivers(scene, config)
+    if config.mirror > 0 and scene.mirror is None:
+        raise ValueError(f"scene {scene.name!r} declares no mirror; fit without mirror (--mirror)")
+    if config.anchor > 0 and config.conditional:
+        raise ValueError("anchor: conditional fits cannot be anchored (the reference states are for one condition)")
     unknown_effects = sorted(set(config.soften) - {e.name for e in scene.effects})
     if unknown_effects:
         raise ValueError(
@@ -387,6 +508,9 @@ def fit_subspace(
         )
     dtype = DTYPES[config.dtype]
     work = scene.to(device=config.device, dtype=dtype)
+    anchors = None
+    if config.anchor > 0:
+        anchors = tuple(t.to(device=config.device, dtype=dtype) for t in anchor_states(scene, config))
     arch = SubspaceConfig(
         latent_dim=config.latent_dim,
         output_dim=scene.free_dof_count,
@@ -459,14 +583,7 @@ def fit_subspace(
 
     try:
         for step in range(start_step, config.steps):
-            z = sample_latents(
-                config.batch_size,
-                config.latent_dim,
-                config.periodic,
-                generator=generator,
-                dtype=dtype,
-                device=config.device,
-            )
+            z = batch_latents(config, generator, dtype)
             cond = None
             if work.condition_space is not None:
                 cond = (
@@ -480,6 +597,10 @@ def fit_subspace(
             soften_t = torch.tensor(soften_at(step, config, ramp_steps), dtype=dtype, device=config.device)
             loss, *parts = loss_fn(work, model, z, cond, rho_t, drive_t, soften_t, config)
             terms = _terms(*parts)
+            if anchors is not None:
+                pull = anchor_energy(work, model, anchors, anchor_at(step, config, ramp_steps))  # type: ignore[arg-type]
+                loss = loss + pull
+                terms["anchor"] = float(pull.detach())
             if not torch.isfinite(loss):
                 raise FloatingPointError(
                     f"loss became {float(loss)} at step {step} (terms {terms}); lower the learning rate or sigma"
@@ -520,7 +641,7 @@ def fit_subspace(
         "seed": seed,
         "fit_seconds": fit_seconds,
         "final": {k: sum(h[k] for h in tail) / len(tail) for k in ("energy", "pair", "stretch")},
-        "redsim_version": redsim.__version__,
+        "redsim_version": __version__,
         "schedule": {
             "lr_halved_every": _lr_step_size(config.steps),
             "rho_ramp_steps": ramp_steps,
@@ -620,6 +741,10 @@ def fit_command(scene: Scene, config: FitConfig, seed: int, out: str | Path | No
     if config.soften:
         parts += ["--soften", ",".join(config.soften), "--soften-from", repr(config.soften_from)]
         parts += ["--soften-fraction", repr(config.soften_fraction)]
+    if config.anchor > 0:
+        parts += ["--anchor", repr(config.anchor), "--anchor-fraction", repr(config.anchor_fraction)]
+    if config.mirror > 0:
+        parts += ["--mirror", repr(config.mirror)]
     default = FitConfig()
     for field in _ROUND_OFF_ONLY:  # switches, recorded only when not at their defaults
         value, flag = getattr(config, field), field.replace("_", "-")
@@ -666,7 +791,8 @@ def _load_training_state(
     mine = {k: v for k, v in dataclasses.asdict(config).items() if k not in free}
     saved = {k: v for k, v in state["config"].items() if k not in free}
     saved["periodic"] = tuple(saved["periodic"])
-    for key in ("seed_bias", "drive", "drive_fraction", "soften", "soften_from", "soften_fraction"):
+    added = ("seed_bias", "drive", "drive_fraction", "soften", "soften_from", "soften_fraction")
+    for key in (*added, "anchor", "anchor_fraction", "mirror"):
         saved.setdefault(key, getattr(FitConfig(), key))  # states written before the options existed
     saved["soften"] = tuple(saved["soften"])
     if saved != mine:

@@ -23,15 +23,15 @@ import numpy as np
 import torch
 from torch import Tensor
 
-import redsim
 from redsim.scene import Scene
+from redsim.usercache import CACHE_ENV as CACHE_ENV  # re-exported: redsim.metrics and the tests name it here
+from redsim.usercache import cache_root
+from redsim.version import __version__
 
 logger = logging.getLogger(__name__)
 
 CACHE_SIZE = 256
 """Full-space equilibria kept in the in-memory cache (least recently used dropped first)."""
-CACHE_ENV = "REDSIM_CACHE"
-"""Environment variable naming redsim's cache folder; "0", "off", "false", "no" or "" turn the disk cache off."""
 DISK_CACHE_VERSION = 1
 """Part of every disk cache key (with redsim's version): bump it when the full-space solver or an
 energy changes what the solves return without changing the scene's data (the digest covers data, not code)."""
@@ -67,13 +67,8 @@ def cache_directory() -> Path | None:
     energies: after changing an energy's code, bump DISK_CACHE_VERSION or call
     ``clear_cache(disk=True)``.
     """
-    value = os.environ.get(CACHE_ENV)
-    if value is not None:
-        if value.strip().lower() in ("", "0", "off", "false", "no"):
-            return None
-        return Path(value).expanduser() / "equilibria"
-    base = os.environ.get("XDG_CACHE_HOME") or os.path.join(os.path.expanduser("~"), ".cache")
-    return Path(base) / "redsim" / "equilibria"
+    root = cache_root()
+    return None if root is None else root / "equilibria"
 
 
 def lookup(
@@ -98,7 +93,7 @@ def lookup(
     if key in _CACHE:
         _CACHE.move_to_end(key)
         return _CACHE[key]
-    disk_key = "|".join([*map(repr, (redsim.__version__, DISK_CACHE_VERSION, *settings)), *key])
+    disk_key = "|".join([*map(repr, (__version__, DISK_CACHE_VERSION, *settings)), *key])
     directory = cache_directory()
     path = None if directory is None else directory / f"{hashlib.sha256(disk_key.encode()).hexdigest()}.npz"
     result = None if path is None else _read_entry(path, disk_key, scene.free_dof_count)

@@ -22,7 +22,7 @@ from torch import Tensor, nn
 from redsim.integrators import LatentSpace, latent_equilibrium, length_scale
 from redsim.runtime.energy import LatentEnergy, MapEnergy, ReducedInertia
 from redsim.runtime.flags import diverged_states, out_of_range_states
-from redsim.runtime.solver import HESSIANS, minimize
+from redsim.runtime.solver import HESSIANS, BatchResult, minimize
 from redsim.scene import Scene
 
 DEFAULT_TOL = {torch.float32: 1e-6, torch.float64: 1e-9}
@@ -460,6 +460,7 @@ class LatentStepper:
             else:
                 value, grad, energy = objective.value_and_grad(torch.cat([z0, z]), torch.cat([index, index]))
             noise = 100.0 * self._eps * force * self.length
+            at_z = (value[batch:], grad[batch:], energy[batch:])
             result = minimize(
                 objective,
                 z0,
@@ -472,6 +473,7 @@ class LatentStepper:
                 secant=(z, grad[batch:]),
                 warm=warm,
             )
+            result = self._restart_worse(objective, result, z, at_z, force, noise)
             z_next = torch.where(result.finite[:, None], result.z, z)
             q_next = self._coords(z_next, cond_t)
             step_velocity = q_next - q_t
@@ -498,6 +500,49 @@ class LatentStepper:
             model=result.model,
         )
         return z_next, stats
+
+    def _restart_worse(
+        self,
+        objective: _StepObjective,
+        result: BatchResult,
+        z: Tensor,
+        at_z: tuple[Tensor, Tensor, Tensor],
+        force: Tensor,
+        noise: Tensor,
+    ) -> BatchResult:
+        """Solve again from z_t [B, d] the states whose solve ended above Phi(z_t); each keeps the lower minimum.
+
+        Phi is not convex in z (a neural map, contact), so the extrapolated start 2 z_t - z_{t-1} can
+        lie in a basin whose minimum is above Phi(z_t), a point every step can reach; a descent from
+        z_t ends at or below it. ``at_z`` is (Phi, dPhi/dz, E) at z_t [B], [B, d], [B].
+        """
+        value, grad, energy = at_z
+        worse = result.finite & (result.value > value + noise + self.tol * force * self.length)
+        if not bool(worse.any()):
+            return result
+        rows = worse[:, None]
+        retry = minimize(
+            objective,
+            torch.where(rows, z, result.z),
+            self.jacobian_norm * force,
+            noise,
+            tol=self.tol,
+            max_iter=self.max_iter,
+            hessian=self.hessian,
+            # the other states start with a zero gradient: converged at once, their result is kept below
+            start=(
+                torch.where(worse, value, result.value),
+                torch.where(rows, grad, torch.zeros_like(grad)),
+                torch.where(worse, energy, result.energy),
+            ),
+        )
+        take = worse & retry.finite & (retry.value < result.value)
+        fields = {
+            name: torch.where(take.view(-1, *[1] * (old.ndim - 1)), getattr(retry, name), old)
+            for name, old in vars(result).items()
+        }
+        fields["iterations"] = result.iterations + torch.where(worse, retry.iterations, 0)
+        return BatchResult(**fields)
 
     def objective(
         self, candidate: Tensor, z: Tensor, z_prev: Tensor, loads: Tensor | None = None, cond: Tensor | None = None

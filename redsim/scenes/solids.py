@@ -63,6 +63,10 @@ def bistable_bar(
 
     Effects: elastic, [gravity], external_load. Handle: "middle" (the vertices of the middle
     column when cells_x is even, else the column just left of it). Surface: "elastic".
+    Mirror (fitting only, ``redsim fit --mirror``): up-down across the centre line y = height / 2,
+    which swaps the two buckled states. Without gravity it leaves the energy unchanged up to the
+    checkerboard diagonals, which it maps onto themselves only for even ``cells_y`` (default 9:
+    the mirrored up state lies 0.4% of its distance from the seed away from the down state).
     """
     params = toolkit.builder_params(locals())
     cells_x = toolkit.check_int("cells_x", cells_x, 2)
@@ -83,6 +87,8 @@ def bistable_bar(
     if gravity:
         toolkit.add_gravity(b)
     b.add_handle("middle", b.particle_points(ids[columns == cells_x // 2]))
+    rows = torch.arange(rest.shape[0]) // (cells_x + 1)
+    b.mirror_particles(ids[(cells_y - rows) * (cells_x + 1) + columns], axis=1, plane=0.5 * height)
     return b.finalize(
         "bistable_bar",
         params=params,

@@ -476,3 +476,40 @@ def test_affine_mass_block_of_a_box() -> None:
     m = 12.0
     np.testing.assert_allclose(np.diag(block), [m / 12, 4 * m / 12, 9 * m / 12, m], rtol=1e-12)
     np.testing.assert_allclose(block - np.diag(np.diag(block)), 0.0, atol=1e-12)
+
+
+def test_bistable_mirror_swaps_up_and_down_and_keeps_the_energy() -> None:
+    """P flips y about the centre line and swaps rows: an involution that keeps the seed and the energy of a
+    smooth shape (exactly for even cells_y; odd ones mirror the checkerboard diagonals onto the other kind)."""
+    for cells_y, tol in ((2, 1e-12), (9, 0.05)):
+        scene = redsim.scenes.build("bistable_bar", cells_x=12, cells_y=cells_y)
+        mirror = scene.mirror
+        x = scene.full_positions(scene.q_seed.unsqueeze(0)).reshape(1, -1, 2)
+        s = (x[..., 0] - x[..., 0].min()) / (x[..., 0].max() - x[..., 0].min())
+        amplitude = torch.tensor([[0.05], [0.02], [-0.03]], dtype=torch.float64)
+        bent = x.expand(3, -1, -1).clone()
+        bent[..., 1] += amplitude * torch.sin(math.pi * s) + 0.03 * torch.sin(2 * math.pi * s)
+        q = scene.dof_map.restrict(bent.reshape(3, -1))
+        assert torch.allclose(mirror.apply(mirror.apply(q)), q, atol=1e-15)
+        assert torch.allclose(mirror.apply(scene.q_seed.unsqueeze(0))[0], scene.q_seed, atol=1e-15)
+        y = scene.full_positions(q).reshape(3, -1, 2)[..., 1]
+        y_mirrored = scene.full_positions(mirror.apply(q)).reshape(3, -1, 2)[..., 1]
+        assert torch.allclose(y_mirrored.mean(1), 0.1 - y.mean(1), atol=1e-12)  # height 0.1
+        energy, energy_mirrored = scene.energy(q), scene.energy(mirror.apply(q))
+        assert torch.allclose(energy_mirrored, energy, rtol=tol, atol=0.0), (cells_y, energy, energy_mirrored)
+    assert redsim.scenes.build("cantilever").mirror is None
+
+
+def test_mirror_particles_rejects_bad_partners() -> None:
+    b = redsim.SceneBuilder(dim=2)
+    ids = b.add_particles(torch.tensor([[0.0, 0.0], [0.0, 1.0], [1.0, 0.0]]), torch.ones(3))
+    with pytest.raises(ValueError, match="involution"):
+        b.mirror_particles(torch.tensor([1, 2, 0]), axis=1, plane=0.5)
+    with pytest.raises(ValueError, match="shape"):
+        b.mirror_particles(torch.tensor([1, 0]), axis=1, plane=0.5)
+    with pytest.raises(ValueError, match="axis"):
+        b.mirror_particles(torch.tensor([1, 0, 2]), axis=2, plane=0.5)
+    b.pin_particles(ids[:1])
+    b.mirror_particles(torch.tensor([1, 0, 2]), axis=1, plane=0.5)  # pinned particle 0 lands on free particle 1
+    with pytest.raises(ValueError, match="pinned particles"):
+        b.finalize("bad_mirror")

@@ -23,13 +23,41 @@ def test_demo_prints_return_and_speed_and_writes_gif_and_picture(
 
 
 def test_bench_envs_json(capsys: pytest.CaptureFixture[str]) -> None:
-    args = ["bench", "envs", "--envs", "RedSim/MiniChain-v0", "--batches", "2", "--steps", "2", "--json"]
+    args = ["bench", "envs", "--envs", "RedSim/MiniChain-v0", "--batches", "2", "--steps", "2", "--anchor-steps", "20"]
+    args.append("--json")
     assert main(args) == 0
     doc = json.loads(capsys.readouterr().out)
     (row,) = doc["results"]
     assert row["n"] == 24 and row["d"] == 4 and row["action_size"] == 3 and row["observation_size"] == 14
     assert row["vector"]["2"]["env_steps_per_s"] > 0 and row["full_space"]["step_s"] > 0
     assert "machine" in doc and "available" in doc["mujoco"]
+
+
+def test_bench_envs_times_the_mujoco_chain_and_half_cheetah_in_the_same_run(capsys: pytest.CaptureFixture[str]) -> None:
+    pytest.importorskip("mujoco")
+    args = ["bench", "envs", "--envs", "RedSim/MiniChain-v0", "--batches", "2", "--steps", "2", "--anchor-steps", "20"]
+    assert main([*args, "--no-full-space"]) == 0
+    text = capsys.readouterr().out
+    assert "RedSim/MiniChain-v0" in text
+    assert "MuJoCo chain (24 capsules, nv 72" in text and "MuJoCo HalfCheetah-v5 (single env, dt 0.05 s)" in text
+    assert main([*args, "--no-full-space", "--json"]) == 0
+    anchors = json.loads(capsys.readouterr().out)["mujoco"]
+    assert anchors["chain"]["sim_s_per_wall_s"] > 0 and anchors["chain"]["nv"] == 72
+    assert anchors["HalfCheetah-v5"]["env_steps_per_s"] > 0 and anchors["HalfCheetah-v5"]["dt"] == 0.05
+
+
+def test_bench_envs_without_mujoco_skips_the_anchors_with_the_reason(
+    monkeypatch: pytest.MonkeyPatch, capsys: pytest.CaptureFixture[str]
+) -> None:
+    from redsim.envs import bench
+
+    real = bench.importlib.util.find_spec
+    monkeypatch.setattr(bench.importlib.util, "find_spec", lambda name: None if name == "mujoco" else real(name))
+    args = ["bench", "envs", "--envs", "RedSim/MiniChain-v0", "--batches", "2", "--steps", "2", "--no-full-space"]
+    assert main(args) == 0
+    assert "MuJoCo anchors skipped: mujoco is not installed (pip install 'redsim[bench]')" in capsys.readouterr().out
+    assert main([*args, "--json"]) == 0
+    assert json.loads(capsys.readouterr().out)["mujoco"] == {"available": False, "reason": bench.MUJOCO_MISSING}
 
 
 @pytest.mark.parametrize("argv", [["demo", "RedSim/Nope-v0"], ["bench", "envs", "--envs", "Nope"]])

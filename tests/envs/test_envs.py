@@ -27,7 +27,9 @@ SLOW = ("RedSim/Chain-v0", "RedSim/ClothBall-v0", "RedSim/HangingCloth-v0")
 ALL_IDS = [*FAST, *(pytest.param(i, marks=pytest.mark.slow) for i in SLOW)]
 LINKAGES = ("RedSim/Klann-v0", "RedSim/Stewart-v0")
 """Not reach tasks: their task checks are in test_linkage_envs.py; the contract checks run here under -m slow."""
-CONTRACT_IDS = [*ALL_IDS, *(pytest.param(i, marks=pytest.mark.slow) for i in LINKAGES)]
+SNAP = ("RedSim/BistableBar-v0",)
+"""Not a reach task either: its task checks are in test_bistable_env.py; the contract checks run here under -m slow."""
+CONTRACT_IDS = [*ALL_IDS, *(pytest.param(i, marks=pytest.mark.slow) for i in (*LINKAGES, *SNAP))]
 
 
 @pytest.fixture(scope="module")
@@ -48,7 +50,7 @@ def _rollout(env: gym.Env, seed: int, actions: np.ndarray) -> tuple[np.ndarray, 
 
 
 def test_registry_lists_the_suite() -> None:
-    assert set(redsim.envs.ids()) == set(FAST) | set(SLOW) | set(LINKAGES)
+    assert set(redsim.envs.ids()) == set(FAST) | set(SLOW) | set(LINKAGES) | set(SNAP)
     for env_id in redsim.envs.ids():
         spec = gym.spec(env_id)
         assert spec.max_episode_steps and spec.vector_entry_point
@@ -257,7 +259,7 @@ def test_bang_bang_soak_stays_finite(mini: gym.Env) -> None:
 
 
 @pytest.mark.slow
-@pytest.mark.parametrize("env_id", [*FAST, *SLOW, *LINKAGES])
+@pytest.mark.parametrize("env_id", [*FAST, *SLOW, *LINKAGES, *SNAP])
 def test_random_and_bang_bang_soak_over_every_env(env_id: str) -> None:
     venv = gym.make_vec(env_id, num_envs=8, vectorization_mode="vector_entry_point")
     venv.reset(seed=0)

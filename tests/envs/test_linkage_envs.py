@@ -14,6 +14,7 @@ import pytest
 import redsim  # noqa: F401  (registers the ids)
 from redsim.envs.base import LatentEnv, shipped
 from redsim.envs.klann import CrankSpeed
+from redsim.envs.reach import HandleReach
 from redsim.envs.stewart import PlatePose
 
 
@@ -35,8 +36,8 @@ def test_klann_pi_controller_tracks_the_commanded_speed_on_average() -> None:
     """Eight copies under the scripted PI: the mean speed over the last 1.5 s matches the command.
 
     The crank speeds up and slows over the leg's gravity hump (about +-6 rad/s at 9 rad/s), so the
-    check is on the mean over several turns. The runtime flags a few Klann steps as diverged
-    (3 of 2400 measured), which ends those episodes; the median copy must still track.
+    check is on the mean over several turns. No step is flagged diverged: the few that were (3 of
+    2400, a solve that ended above Phi(z_t)) are now solved again from z_t by the stepper.
     """
     venv = gym.make_vec("RedSim/Klann-v0", num_envs=8, vectorization_mode="vector_entry_point")
     venv.reset(seed=0)
@@ -50,7 +51,7 @@ def test_klann_pi_controller_tracks_the_commanded_speed_on_average() -> None:
     late = np.array(speeds[75:])
     assert np.median(np.abs(late.mean(0) - command) / command) < 0.1, (late.mean(0), command)
     assert np.median(late.sum(0)) * sim.dt > 2.0 * math.pi  # full turns, not a rocking crank
-    assert diverged <= 0.01 * 8 * 150
+    assert diverged == 0
 
 
 def test_stewart_arm_torques_move_the_plate() -> None:
@@ -79,6 +80,22 @@ def test_linkage_tasks_reject_bad_arguments() -> None:
     with pytest.raises(ValueError, match="not the origin of a rigid body"):
         scene, sub = shipped("stewart")
         LatentEnv(scene, sub, PlatePose("arm_0", ("arm_1",), max_force=10.0))
+
+
+@pytest.mark.parametrize(
+    ("make", "name"),
+    [
+        (lambda: HandleReach("tip", max_force=-1.0), "max_force"),
+        (lambda: HandleReach("tip", max_force=1.0, control_weight=-0.1), "control_weight"),
+        (lambda: HandleReach("tip", max_force=1.0, distance_scale=float("inf")), "distance_scale"),
+        (lambda: HandleReach("tip", max_force="strong"), "max_force"),
+        (lambda: CrankSpeed("crank_pin", (0.0, 0.08), max_force=40.0, speed_scale=0.0), "speed_scale"),
+    ],
+)
+def test_task_arguments_go_through_the_shared_checker(make, name: str) -> None:
+    """Reach and crank tasks name the bad argument (a non-number too), through check_numbers."""
+    with pytest.raises(ValueError, match=f"^{name} must"):
+        make()
 
 
 @pytest.mark.slow

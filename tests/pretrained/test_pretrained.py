@@ -108,3 +108,15 @@ def test_klann_preset_reaches_the_crank_loop_from_a_cold_start(tmp_path) -> None
     driver = scene.driver("crank")
     loop = metrics.handle_winding(scene, result.subspace, driver.handle, driver.center[:2].tolist())
     assert abs(loop["winding"]) == 1, loop
+
+
+def test_shipped_bistable_map_reaches_both_buckled_states() -> None:
+    """Both buckled equilibria (the registry's reference states) lie in the shipped map: reach <= 0.05 each, at
+    latents inside the region it was fitted on, |z| <= 3 sqrt(d)."""
+    scene = scenes.build("bistable_bar")
+    states = scenes.entry("bistable_bar").compute_reference_states(scene)
+    subspace = pretrained.load("bistable_bar", scene)
+    result = metrics.reach_error(scene, subspace, states)
+    assert len(result["errors"]) == 2 and max(result["errors"]) <= 0.05, result["errors"]
+    bound = 3.0 * subspace.latent_dim**0.5
+    assert all(float(torch.tensor(z).norm()) <= bound for z in result["latents"]), result["latents"]

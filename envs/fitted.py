@@ -1,0 +1,74 @@
+"""Subspaces for scene parameters that no shipped map covers, fitted on request into the user cache.
+
+The shipped maps (:mod:`redsim.pretrained`) are fitted to each catalog scene's default
+parameters. An env built with other ``scene_params`` and ``fit_if_missing=True`` gets a map
+fitted by :func:`redsim.trainers.fit_subspace` (the scene's preset, :mod:`redsim.trainers.presets`,
+updated by ``fit_options``; a tqdm progress bar), saved under
+``cache_root()/subspaces`` (:func:`redsim.usercache.cache_root`: ``$REDSIM_CACHE`` or
+``~/.cache/redsim``) and loaded from there the next time. With the cache off
+(``REDSIM_CACHE=0``) the map is fitted and kept in memory only. An interrupted fit resumes
+from its training state (``STEM.fit.pt``) on the next call.
+
+Import direction: the trainers are imported inside :func:`cached_subspace` (envs may import
+trainers; nothing below the envs does).
+"""
+
+from __future__ import annotations
+
+import hashlib
+import json
+import logging
+from collections.abc import Mapping
+from pathlib import Path
+from typing import Any
+
+from torch import nn
+
+from redsim.scene import Scene
+from redsim.usercache import cache_root
+
+log = logging.getLogger(__name__)
+
+FOLDER = "subspaces"
+"""Folder of the fitted maps inside redsim's user cache."""
+
+
+def cache_stem(scene_name: str, scene: Scene, options: Mapping[str, Any]) -> Path | None:
+    """``cache_root()/subspaces/SCENE-FINGERPRINT-OPTIONS`` (no suffix), or None with the cache off."""
+    root = cache_root()
+    if root is None:
+        return None
+    digest = hashlib.sha256(json.dumps(dict(options), sort_keys=True, default=str).encode()).hexdigest()[:12]
+    return root / FOLDER / f"{scene_name}-{scene.fingerprint()}-{digest}"
+
+
+def cached_subspace(
+    scene_name: str, scene: Scene, fit_options: Mapping[str, Any] | None = None, *, progress: bool = True
+) -> nn.Module:
+    """The user-cache map of ``scene`` (catalog scene ``scene_name`` built with non-default parameters).
+
+    Loaded when the cache has it; otherwise fitted (the scene's preset updated by ``fit_options``,
+    with a progress bar unless ``progress=False``), saved to the cache and returned.
+
+    Raises:
+        ValueError: an unknown or bad fit option (from the fitter, before any step).
+        redsim.subspace.CheckpointError: a corrupt cached checkpoint (delete it to fit again).
+    """
+    from redsim.subspace import checkpoint_path, load_subspace
+    from redsim.trainers.fit import fit_subspace
+    from redsim.trainers.presets import preset
+
+    options = {**preset(scene_name), **dict(fit_options or {})}
+    stem = cache_stem(scene_name, scene, options)
+    if stem is not None and checkpoint_path(stem, ".pt").is_file() and checkpoint_path(stem, ".json").is_file():
+        return load_subspace(stem, scene=scene)
+    state = None if stem is None else checkpoint_path(stem, ".fit.pt")
+    resume = state is not None and state.is_file()
+    log.info("fitting a subspace for %s (%s) into %s", scene_name, scene.fingerprint(), stem or "memory (cache off)")
+    result = fit_subspace(scene, out=stem, resume=resume, progress=progress, **options)
+    if state is not None:
+        state.unlink(missing_ok=True)
+    return result.subspace
+
+
+__all__ = ["FOLDER", "cache_stem", "cached_subspace"]

@@ -1,0 +1,66 @@
+"""Scene parameters no shipped subspace covers: a clear error, or a fit into the user cache (fit_if_missing)."""
+
+from __future__ import annotations
+
+import gymnasium as gym
+import numpy as np
+import pytest
+
+import redsim  # noqa: F401  (registers the ids)
+from redsim.envs import fitted
+from redsim.subspace import CheckpointError
+
+PARAMS = {"density": 8000.0}
+"""mini_chain with heavier links (the shipped map is fitted to 7800 kg/m^3)."""
+TINY = {"steps": 20, "hidden_width": 16}
+"""A fit that takes a second: the test checks the plumbing, not the map's quality."""
+
+
+def test_uncovered_scene_parameters_are_a_clear_error() -> None:
+    with pytest.raises(CheckpointError, match=r"no shipped subspace covers.*fit_if_missing=True"):
+        gym.make("RedSim/MiniChain-v0", scene_params=PARAMS)
+
+
+def test_default_parameters_use_the_shipped_map_without_fitting(monkeypatch: pytest.MonkeyPatch) -> None:
+    monkeypatch.setattr(fitted, "cached_subspace", lambda *a, **k: pytest.fail("fitted a covered scene"))
+    env = gym.make("RedSim/MiniChain-v0", scene_params={"density": 7800.0}, fit_if_missing=True)
+    assert env.unwrapped.sim.subspace.metadata["scene_fingerprint"] == env.unwrapped.scene.fingerprint()
+
+
+def test_fit_options_without_fit_if_missing_are_refused() -> None:
+    with pytest.raises(ValueError, match="fit_if_missing=True"):
+        gym.make("RedSim/MiniChain-v0", fit_options=TINY)
+
+
+def test_bad_fit_options_are_a_clear_error(tmp_path, monkeypatch: pytest.MonkeyPatch) -> None:
+    monkeypatch.setenv("REDSIM_CACHE", str(tmp_path))
+    with pytest.raises(ValueError, match="unknown fit option"):
+        gym.make("RedSim/MiniChain-v0", scene_params=PARAMS, fit_if_missing=True, fit_options={"stepz": 3})
+
+
+def test_fit_if_missing_fits_into_the_user_cache_with_a_progress_bar_then_reuses_it(
+    tmp_path, monkeypatch: pytest.MonkeyPatch, capsys: pytest.CaptureFixture[str]
+) -> None:
+    monkeypatch.setenv("REDSIM_CACHE", str(tmp_path))
+    env = gym.make("RedSim/MiniChain-v0", scene_params=PARAMS, fit_if_missing=True, fit_options=TINY)
+    assert "fit mini_chain" in capsys.readouterr().err  # tqdm's bar
+    scene = env.unwrapped.scene
+    saved = sorted(p.name for p in (tmp_path / fitted.FOLDER).iterdir())
+    assert len(saved) == 2 and saved[0].endswith(".json") and saved[1].endswith(".pt")  # no training state left
+    assert scene.fingerprint() in saved[0]
+    assert env.unwrapped.sim.subspace.metadata["scene_fingerprint"] == scene.fingerprint()
+    env.reset(seed=0)
+    obs, _, _, _, info = env.step(np.ones(3, np.float32))
+    assert np.all(np.isfinite(obs)) and np.isfinite(info["energy"])
+
+    monkeypatch.setattr("redsim.trainers.fit.fit_subspace", lambda *a, **k: pytest.fail("fitted again"))
+    again = gym.make("RedSim/MiniChain-v0", scene_params=PARAMS, fit_if_missing=True, fit_options=TINY)
+    assert again.unwrapped.sim.subspace.metadata["scene_fingerprint"] == scene.fingerprint()
+
+
+def test_with_the_cache_off_the_fit_stays_in_memory(tmp_path, monkeypatch: pytest.MonkeyPatch) -> None:
+    monkeypatch.setenv("REDSIM_CACHE", "0")
+    monkeypatch.chdir(tmp_path)
+    env = gym.make("RedSim/MiniChain-v0", scene_params=PARAMS, fit_if_missing=True, fit_options=TINY)
+    env.reset(seed=0)
+    assert not list(tmp_path.iterdir())
