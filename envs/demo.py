@@ -1,8 +1,9 @@
-"""`redsim demo ENV_ID --out DIR`: one episode with the task's scripted controller, a GIF and a picture.
+"""`redsim demo ENV_ID --out DIR`: one episode with a trained policy or the task's scripted controller.
 
 The scripted controller is :meth:`redsim.envs.base.Task.controller` (for the reach tasks a PI
-controller on the goal handle). The speed reported is that of the env steps alone; drawing the
-frames is timed apart.
+controller on the goal handle); a policy is anything with SB3's ``predict(obs, deterministic=True)``
+(the command line passes the policy shipped for the id, :func:`redsim.trainers.agents.shipped_policy`).
+The speed reported is that of the env steps alone; drawing the frames is timed apart.
 """
 
 from __future__ import annotations
@@ -24,6 +25,7 @@ def run_demo(
     frame_every: int = 2,
     width: int = 320,
     height: int = 320,
+    policy: Any = None,
     **env_kwargs: Any,
 ) -> dict[str, Any]:
     """Run one scripted episode of ``env_id``, writing ``OUT/<name>.gif`` and ``OUT/<name>.png``.
@@ -36,6 +38,8 @@ def run_demo(
         frame_every: Keep every k-th frame in the GIF.
         width: Frame width [px].
         height: Frame height [px].
+        policy: What acts: an object with ``predict(obs, deterministic=True) -> (action, state)``,
+            or None for the task's scripted controller.
         **env_kwargs: Passed to ``gym.make``.
 
     Returns:
@@ -54,14 +58,17 @@ def run_demo(
     steps = int(env.spec.max_episode_steps or 200) if steps is None else int(steps)
     if steps < 1:
         raise ValueError(f"steps must be >= 1, got {steps}")
-    env.reset(seed=seed)
+    obs, _ = env.reset(seed=seed)
     frames = [env.render()]
     total, stepped, success, step_time = 0.0, 0, 0, 0.0
     info: dict[str, Any] = {}
     for i in range(steps):
-        action = core.task.controller(core.sim)[0]
+        if policy is None:
+            action = core.task.controller(core.sim)[0]
+        else:
+            action = policy.predict(obs, deterministic=True)[0]
         start = time.perf_counter()
-        _, reward, terminated, truncated, info = env.step(action)
+        obs, reward, terminated, truncated, info = env.step(action)
         step_time += time.perf_counter() - start
         total += reward
         stepped += 1

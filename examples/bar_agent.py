@@ -15,6 +15,7 @@ from pathlib import Path
 import gymnasium as gym
 import numpy as np
 from stable_baselines3 import PPO
+from stable_baselines3.common.vec_env import VecNormalize
 
 import redsim  # noqa: F401  (registers the RedSim ids)
 from redsim.envs.sb3 import SB3VecEnv
@@ -29,7 +30,9 @@ def main(out: Path | None = None, steps: int = 128, episodes: int = 2, episode_s
     if steps < 1000:  # the test budget: one short rollout
         n_envs, settings["n_steps"], settings["batch_size"], settings["n_epochs"] = 4, 32, 64, 2
     venv = SB3VecEnv.make(ENV_ID, num_envs=n_envs, max_episode_steps=episode_steps)
+    venv = VecNormalize(venv, gamma=settings["gamma"], **settings.pop("normalize"))  # running obs/return mean, std
     model = PPO("MlpPolicy", venv, seed=0, **settings).learn(total_timesteps=steps)
+    venv.training = False
     if out is not None:
         model.save(out / "bar_ppo.zip")
 
@@ -41,7 +44,8 @@ def main(out: Path | None = None, steps: int = 128, episodes: int = 2, episode_s
         conditions.append(obs[-2:].copy())
         total, done = 0.0, False
         while not done:
-            obs, reward, terminated, truncated, info = env.step(model.predict(obs, deterministic=True)[0])
+            action = model.predict(venv.normalize_obs(obs), deterministic=True)[0]  # the policy sees normalized obs
+            obs, reward, terminated, truncated, info = env.step(action)
             total += float(reward)
             done = terminated or truncated
         distances.append(info["distance"])

@@ -10,9 +10,10 @@ import argparse
 from pathlib import Path
 
 from stable_baselines3 import SAC
+from stable_baselines3.common.vec_env import VecNormalize
 
 from redsim.envs.sb3 import SB3VecEnv
-from redsim.trainers.agents import evaluate, hyperparams
+from redsim.trainers.agents import Agent, evaluate, hyperparams
 
 
 def main(
@@ -24,6 +25,7 @@ def main(
 ) -> dict[str, float]:
     settings = hyperparams(env_id, "sac")  # the rl-zoo style table of redsim.trainers.agents
     venv = SB3VecEnv.make(env_id, num_envs=settings.pop("n_envs"))  # one batched latent step for all copies
+    venv = VecNormalize(venv, gamma=settings["gamma"], **settings.pop("normalize"))  # running obs mean/std
     settings["learning_starts"] = min(settings["learning_starts"], steps // 2)
     model = SAC("MlpPolicy", venv, seed=0, **settings)
     model.learn(total_timesteps=steps)
@@ -31,7 +33,8 @@ def main(
         model.save(out / "chain_sac.zip")
 
     limit = {} if episode_steps is None else {"max_episode_steps": episode_steps}
-    policies = {"agent": model, "random": "random", "scripted": "scripted"}
+    venv.training = False
+    policies = {"agent": Agent(model, venv), "random": "random", "scripted": "scripted"}  # Agent: obs normalized
     results = {name: evaluate(env_id, p, episodes=episodes, env_kwargs=limit) for name, p in policies.items()}
     for name, r in results.items():
         print(f"{name:<9} return {r.mean:8.2f} ± {r.std:6.2f}   success {100 * r.success_rate:.0f}%")

@@ -6,9 +6,13 @@ latent step for all copies), with hyperparameters per env and algorithm in one t
 progress bar, and resumable runs. :func:`train_agent` writes into its output folder:
 
 - ``model.zip``: the final SB3 model (it records the env id and the algorithm it was trained with);
-- ``best_model.zip``: the best model by evaluation return (``EvalCallback``);
+- ``model_vecnormalize.pkl``: the observation (and reward) normalization statistics of SB3's
+  ``VecNormalize`` the policy acts through (settings with ``"normalize"``; :func:`load_agent` applies
+  them, :func:`normalizer_path` names the file beside any model);
+- ``best_model.zip`` (+ ``best_model_vecnormalize.pkl``): the best model by evaluation return (``EvalCallback``);
 - ``replay_buffer.pkl`` (SAC, TD3): the replay buffer, so a resumed run goes on with it;
-- ``checkpoints/``: periodic models (an interrupted run resumes from the newest, with an empty buffer);
+- ``checkpoints/``: periodic models and their statistics (an interrupted run resumes from the newest,
+  with an empty buffer);
 - ``curve.csv`` and ``curve.png``: evaluation return vs env steps and vs wall time;
 - ``policy.gif``: one episode of the trained policy;
 - ``agent.json``: what ran (env, algorithm, steps, wall time, hyperparameters, last evaluation).
@@ -25,6 +29,8 @@ import copy
 import csv
 import json
 import logging
+import pickle
+import re
 import time
 from collections.abc import Mapping
 from dataclasses import dataclass
@@ -38,10 +44,18 @@ log = logging.getLogger(__name__)
 
 BUFFER = "replay_buffer.pkl"
 """The off-policy replay buffer beside ``model.zip`` (a resumed run goes on with it)."""
+NORMALIZER = "_vecnormalize.pkl"
+"""Suffix of the ``VecNormalize`` statistics beside a model (``model.zip`` -> ``model_vecnormalize.pkl``)."""
 ALGOS = ("ppo", "sac", "td3")
 """The stable-baselines3 algorithms the table covers."""
 
-_OFF_POLICY = {"learning_starts": 1000, "buffer_size": 200_000, "batch_size": 256, "train_freq": 1}
+_OFF_POLICY = {
+    "learning_starts": 1000,
+    "buffer_size": 200_000,
+    "batch_size": 256,
+    "train_freq": 1,
+    "normalize": {"norm_obs": True, "norm_reward": False},
+}
 
 HYPERPARAMS: dict[str, dict[str, dict[str, Any]]] = {
     "default": {
@@ -64,6 +78,7 @@ HYPERPARAMS: dict[str, dict[str, dict[str, Any]]] = {
             "policy_kwargs": {"net_arch": [64, 64]},
         },
         "ppo": {
+            "normalize": {"norm_obs": True, "norm_reward": True},
             "n_envs": 16,
             "n_steps": 128,
             "batch_size": 256,
@@ -75,19 +90,24 @@ HYPERPARAMS: dict[str, dict[str, dict[str, Any]]] = {
         },
     },
     "RedSim/MiniChain-v0": {"sac": {"n_envs": 16, "gradient_steps": 8}},
-    "RedSim/Chain-v0": {},
+    "RedSim/Chain-v0": {"sac": {"n_envs": 16, "gradient_steps": 8}},
     "RedSim/ClothBall-v0": {},
     "RedSim/HangingCloth-v0": {},
     "RedSim/ConditionalBar-v0": {},
-    "RedSim/Klann-v0": {},  # defaults, not tuned
-    "RedSim/Stewart-v0": {},  # defaults, not tuned
+    "RedSim/Klann-v0": {"sac": {"n_envs": 16, "gradient_steps": 8}},
+    "RedSim/Stewart-v0": {"sac": {"n_envs": 16, "gradient_steps": 8}},
     "RedSim/BistableBar-v0": {},  # defaults, not tuned
 }
 """env id -> algorithm -> settings; each env's entries override ``"default"`` key by key.
 
 ``n_envs`` is the number of copies of the vector env; ``action_noise_std`` (TD3) the std of
-Gaussian exploration noise in units of the action bound; every other key is a keyword argument of
-the SB3 algorithm.
+Gaussian exploration noise in units of the action bound; ``normalize`` the keyword arguments of
+SB3's ``VecNormalize`` around the training env (running mean/std of the observations, and for PPO
+of the returns; false: raw observations); every other key is a keyword argument of the SB3 algorithm.
+
+Normalization is what made the reach tasks learnable: their raw observations mix latent velocities
+of std ~7 1/s with target offsets of std ~0.04 m (MiniChain), and SAC without it stayed below the
+scripted controller after 45k steps; with it, 12k steps beat it (README, Agents).
 """
 
 
@@ -177,6 +197,8 @@ class Evaluation:
         returns: Undiscounted return of each episode, shape [episodes].
         successes: Whether each episode ended within the success radius, shape [episodes].
         lengths: Steps of each episode, shape [episodes].
+        success_steps: Fraction of each episode's steps that met the success test, shape [episodes]
+            (what a tracking task, Klann's crank speed, is judged by along the way).
         seed: The first seed.
     """
 
@@ -185,6 +207,7 @@ class Evaluation:
     successes: np.ndarray
     lengths: np.ndarray
     seed: int
+    success_steps: np.ndarray
 
     @property
     def mean(self) -> float:
@@ -207,6 +230,7 @@ class Evaluation:
             "std_return": self.std,
             "success_rate": self.success_rate,
             "mean_length": float(np.mean(self.lengths)),
+            "success_steps": float(np.mean(self.success_steps)),
             "returns": [float(r) for r in self.returns],
         }
 
@@ -224,8 +248,8 @@ def evaluate(
 
     Args:
         env: A registered id or a user's env (from :func:`redsim.envs.make`).
-        policy: An SB3 model (anything with ``predict``), ``"random"`` (uniform actions drawn from
-            ``seed``) or ``"scripted"`` (the task's controller).
+        policy: An :class:`Agent` or SB3 model (anything with ``predict(obs, deterministic=...)``),
+            ``"random"`` (uniform actions drawn from ``seed``) or ``"scripted"`` (the task's controller).
         episodes: Number of episodes (copies).
         seed: Copy i resets with seed ``seed + i``.
         deterministic: Passed to the model's ``predict``.
@@ -246,6 +270,7 @@ def evaluate(
     returns = np.zeros(venv.num_envs)
     lengths = np.zeros(venv.num_envs, dtype=np.int64)
     successes = np.zeros(venv.num_envs, dtype=bool)
+    success_steps = np.zeros(venv.num_envs)
     running = np.ones(venv.num_envs, dtype=bool)
     while running.any():
         if policy == "random":
@@ -259,16 +284,19 @@ def evaluate(
         lengths[running] += 1
         done = running & (terminated | truncated)
         if "is_success" in info:
-            successes[done] = np.asarray(info["is_success"], dtype=bool)[done]
+            hit = np.asarray(info["is_success"], dtype=bool)
+            successes[done] = hit[done]
+            success_steps[running] += hit[running]
         running &= ~done
     venv.close()
     name = policy if isinstance(policy, str) else "agent"
-    return Evaluation(name, returns, successes, lengths, int(seed))
+    return Evaluation(name, returns, successes, lengths, int(seed), success_steps / lengths)
 
 
 # -- model files ------------------------------------------------------------------------------
 def model_record(path: str | Path) -> dict[str, Any]:
-    """The env id and algorithm a model file of :func:`train_agent` was trained with.
+    """The env id and algorithm a model file of :func:`train_agent` was trained with, and whether it acts
+    through normalized observations (``"env_id"``, ``"algo"``, ``"normalized"``).
 
     Raises:
         FileNotFoundError: no such file.
@@ -285,20 +313,119 @@ def model_record(path: str | Path) -> dict[str, Any]:
         raise ValueError(f"{path} is not a stable-baselines3 model file: {err}") from err
     if not data or "redsim_env_id" not in data or data.get("redsim_algo") not in ALGOS:
         raise ValueError(f"{path} is an SB3 model, but not one trained by redsim (no env id recorded)")
-    return {"env_id": data["redsim_env_id"], "algo": data["redsim_algo"]}
+    return {
+        "env_id": data["redsim_env_id"],
+        "algo": data["redsim_algo"],
+        "normalized": bool(data.get("redsim_normalized", False)),
+    }
 
 
-def load_agent(path: str | Path, env_id: str | None = None) -> Any:
-    """Load a model of :func:`train_agent`; with ``env_id``, refuse a model trained on another env.
+def normalizer_path(model_path: str | Path) -> Path:
+    """The ``VecNormalize`` statistics file beside a model file.
+
+    ``NAME.zip`` -> ``NAME_vecnormalize.pkl``; SB3's checkpoint ``rl_model_N_steps.zip`` ->
+    ``rl_model_vecnormalize_N_steps.pkl`` (``CheckpointCallback``'s name).
+    """
+    path = Path(model_path)
+    match = re.fullmatch(r"(.+)_(\d+_steps)", path.stem)
+    if match is not None:
+        return path.with_name(f"{match[1]}_vecnormalize_{match[2]}.pkl")
+    return path.with_name(path.stem + NORMALIZER)
+
+
+def load_normalizer(path: str | Path) -> Any:
+    """A ``VecNormalize`` saved by SB3 (no env attached: only :meth:`normalize_obs` is used), frozen.
 
     Raises:
         FileNotFoundError: no such file.
+        ValueError: the file holds something else.
+    """
+    from stable_baselines3.common.vec_env import VecNormalize
+
+    path = Path(path)
+    if not path.is_file():
+        raise FileNotFoundError(f"no normalization statistics {path}")
+    with path.open("rb") as handle:
+        try:
+            normalizer = pickle.load(handle)
+        except Exception as err:  # whatever unpickling a damaged file raises
+            raise ValueError(f"{path} is not a VecNormalize file: {err}") from err
+    if not isinstance(normalizer, VecNormalize):
+        raise ValueError(f"{path} is not a VecNormalize file (holds a {type(normalizer).__name__})")
+    normalizer.training = False
+    return normalizer
+
+
+@dataclass(frozen=True)
+class Agent:
+    """A trained SB3 model and the observation normalization it acts through.
+
+    Attributes:
+        model: The SB3 model (PPO, SAC or TD3).
+        normalizer: The ``VecNormalize`` whose statistics map raw observations to the model's
+            inputs (None: the model takes raw observations).
+    """
+
+    model: Any
+    normalizer: Any = None
+
+    @property
+    def num_timesteps(self) -> int:
+        return int(self.model.num_timesteps)
+
+    def predict(self, obs: np.ndarray, deterministic: bool = True) -> tuple[np.ndarray, Any]:
+        """Actions [B, A] (or [A]) for raw observations [B, obs] (or [obs]), as SB3's ``predict``."""
+        if self.normalizer is not None:
+            obs = self.normalizer.normalize_obs(obs)
+        return self.model.predict(obs, deterministic=deterministic)
+
+
+def load_agent(path: str | Path, env_id: str | None = None) -> Agent:
+    """Load a model of :func:`train_agent` and its normalization statistics (:func:`normalizer_path`).
+
+    With ``env_id``, refuse a model trained on another env.
+
+    Raises:
+        FileNotFoundError: no such model file, or a model trained with normalization whose
+            statistics file is missing.
         ValueError: not a redsim model, or a model of another env.
     """
     record = model_record(path)
     if env_id is not None and record["env_id"] != env_id:
         raise ValueError(f"the model {path} was trained on {record['env_id']}, not on {env_id}")
-    return _algo_class(record["algo"]).load(path, device="cpu")
+    model = _algo_class(record["algo"]).load(path, device="cpu")
+    return Agent(model, load_normalizer(normalizer_path(path)) if record["normalized"] else None)
+
+
+def _policies_folder() -> Path:
+    from redsim import pretrained
+
+    return pretrained.FOLDER / "policies"
+
+
+def shipped_policies() -> dict[str, Path]:
+    """Env id -> the model file of the trained policy shipped with redsim for it (see :func:`shipped_policy`)."""
+    found = {}
+    for record in sorted(_policies_folder().glob("*.json")):
+        model = record.with_suffix(".zip")
+        if model.is_file():
+            found[json.loads(record.read_text())["env_id"]] = model
+    return found
+
+
+def shipped_policy(env_id: str) -> Path:
+    """The shipped policy of ``env_id``: ``redsim/pretrained/policies/NAME.zip`` (``RedSim/NAME``).
+
+    Beside it: ``NAME_vecnormalize.pkl`` (its observation statistics) and ``NAME.json`` (the command
+    that trained it and its seeded evaluation against the baselines). Load it with :func:`load_agent`.
+
+    Raises:
+        KeyError: no policy is shipped for ``env_id`` (the message lists those that are).
+    """
+    found = shipped_policies()
+    if env_id not in found:
+        raise KeyError(f"no shipped policy for {env_id!r}; shipped: {', '.join(found) or 'none'}")
+    return found[env_id]
 
 
 # -- training ---------------------------------------------------------------------------------
@@ -343,6 +470,21 @@ def _curve_callback(curve: list[dict[str, float]], wall_offset: float, start: fl
             return True
 
     return CurveRecorder()
+
+
+def _normalizer_saver(path: Path) -> Any:
+    from stable_baselines3.common.callbacks import BaseCallback
+
+    class NormalizerSaver(BaseCallback):
+        """On a new best model: its ``VecNormalize`` statistics beside it (none without normalization)."""
+
+        def _on_step(self) -> bool:
+            normalizer = self.model.get_vec_normalize_env()
+            if normalizer is not None:
+                normalizer.save(str(path))
+            return True
+
+    return NormalizerSaver()
 
 
 def _resume_from(out: Path) -> Path | None:
@@ -465,6 +607,7 @@ def train_agent(
     """
     from stable_baselines3.common.callbacks import CallbackList, CheckpointCallback, EvalCallback
     from stable_baselines3.common.noise import NormalActionNoise
+    from stable_baselines3.common.vec_env import VecNormalize
 
     if int(steps) != steps or steps < 1:
         raise ValueError(f"steps must be an integer >= 1, got {steps!r}")
@@ -478,6 +621,7 @@ def train_agent(
     settings.pop("n_envs", None)
     if copies < 1:
         raise ValueError(f"n_envs must be >= 1, got {copies}")
+    normalize = settings.pop("normalize", None)
     out = Path(out)
     (out / "checkpoints").mkdir(parents=True, exist_ok=True)
     venv = _sb3_env(env, copies, seed, env_kwargs)
@@ -496,14 +640,22 @@ def train_agent(
             raise ValueError(
                 f"cannot resume: {previous} is {found['algo']} on {found['env_id']}, not {algo} on {label}"
             )
+        if found["normalized"]:
+            venv = VecNormalize.load(str(normalizer_path(previous)), venv)
+            eval_env = VecNormalize(eval_env, training=False, norm_reward=False)
         model = cls.load(previous, env=venv, device="cpu")
         if hasattr(model, "load_replay_buffer") and previous == out / "model.zip" and (out / BUFFER).is_file():
             model.load_replay_buffer(out / BUFFER)
         log.info("resuming %s from %s at %d steps", label, previous, model.num_timesteps)
     else:
+        if normalize:
+            options = {"norm_reward": False, "gamma": settings.get("gamma", 0.99), **dict(normalize)}
+            venv = VecNormalize(venv, **options)
+            eval_env = VecNormalize(eval_env, training=False, norm_reward=False)
         model = cls("MlpPolicy", venv, seed=seed, device="cpu", verbose=0, **settings)
     model.redsim_env_id = label
     model.redsim_algo = algo
+    model.redsim_normalized = isinstance(venv, VecNormalize)
 
     wall_offset = float(record.get("wall_s", 0.0)) if previous is not None else 0.0
     curve = _read_curve(out / "curve.csv") if previous is not None else []
@@ -517,11 +669,13 @@ def train_agent(
         best_model_save_path=str(out),
         log_path=str(out),
         callback_after_eval=_curve_callback(curve, wall_offset, start),
+        callback_on_new_best=_normalizer_saver(normalizer_path(out / "best_model.zip")),
         verbose=0,
     )
     checkpoint_cb = CheckpointCallback(
         save_freq=max(int(checkpoint_every or steps // 4) // copies, 1),
         save_path=str(out / "checkpoints"),
+        save_vecnormalize=True,
     )
     remaining = int(steps) - int(model.num_timesteps)
     if remaining > 0:
@@ -536,10 +690,14 @@ def train_agent(
     model.save(model_path)
     if hasattr(model, "save_replay_buffer"):
         model.save_replay_buffer(out / BUFFER)
+    agent = Agent(model)
+    if isinstance(venv, VecNormalize):
+        venv.save(str(normalizer_path(model_path)))
+        agent = Agent(model, load_normalizer(normalizer_path(model_path)))
     venv.close()
     eval_env.close()
 
-    final = evaluate(env, model, episodes=final_episodes, seed=seed + 20_000, env_kwargs=env_kwargs)
+    final = evaluate(env, agent, episodes=final_episodes, seed=seed + 20_000, env_kwargs=env_kwargs)
     if not curve or curve[-1]["env_steps"] < model.num_timesteps:
         curve.append(
             {
@@ -553,7 +711,7 @@ def train_agent(
     _write_curve(out / "curve.csv", curve)
     plot_curve(curve, out / "curve.png", f"{label}: {algo.upper()}")
     if video and (isinstance(env, str) or env.render_mode == "rgb_array"):
-        record_gif(env, model, out / "policy.gif", seed=seed, env_kwargs=env_kwargs)
+        record_gif(env, agent, out / "policy.gif", seed=seed, env_kwargs=env_kwargs)
     summary = {
         "env_id": label,
         "algo": algo,
@@ -562,7 +720,8 @@ def train_agent(
         "n_envs": copies,
         "seed": seed,
         "env_kwargs": dict(env_kwargs or {}),
-        "hyperparams": {k: v for k, v in settings.items() if k != "action_noise"} | {"action_noise_std": noise_std},
+        "hyperparams": {k: v for k, v in settings.items() if k != "action_noise"}
+        | {"action_noise_std": noise_std, "normalize": normalize},
         "final_evaluation": final.as_dict(),
     }
     (out / "agent.json").write_text(json.dumps(summary, indent=2, default=str))
@@ -572,15 +731,20 @@ def train_agent(
 __all__ = [
     "ALGOS",
     "HYPERPARAMS",
+    "Agent",
     "Evaluation",
     "TrainResult",
     "check_env_id",
     "evaluate",
     "hyperparams",
     "load_agent",
+    "load_normalizer",
     "model_record",
+    "normalizer_path",
     "plot_curve",
     "record_gif",
+    "shipped_policies",
+    "shipped_policy",
     "train_agent",
     "vector_env",
 ]

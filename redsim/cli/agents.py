@@ -37,7 +37,8 @@ def _add_episode_steps(parser: argparse.ArgumentParser) -> None:
 def _line(name: str, result: dict[str, Any]) -> str:
     return (
         f"{name:<9} return {result['mean_return']:9.2f} ± {result['std_return']:7.2f}   "
-        f"success {100 * result['success_rate']:5.1f}%   ({result['episodes']} episodes from seed {result['seed']})"
+        f"success {100 * result['success_rate']:5.1f}% (of steps {100 * result['success_steps']:5.1f}%)   "
+        f"({result['episodes']} episodes from seed {result['seed']})"
     )
 
 
@@ -87,12 +88,15 @@ def cmd_train_agent(args: argparse.Namespace) -> int:
 
 
 def cmd_eval_agent(args: argparse.Namespace) -> int:
-    from redsim.trainers.agents import evaluate, load_agent
+    from redsim.trainers.agents import evaluate, load_agent, shipped_policy
 
     _check_env(args.env_id)
     _positive(args.episodes, "--episodes")
     try:
-        model = load_agent(args.model, env_id=args.env_id)
+        path = shipped_policy(args.env_id) if args.model == "shipped" else args.model
+        model = load_agent(path, env_id=args.env_id)
+    except KeyError as err:
+        raise CliError(err.args[0]) from err
     except (ValueError, FileNotFoundError) as err:
         raise CliError(str(err)) from err
     policies = {"agent": model, **({"random": "random", "scripted": "scripted"} if args.baselines else {})}
@@ -143,11 +147,14 @@ def add_commands(sub: Any) -> None:
         "eval-agent",
         help="mean return ± std and success rate of a trained agent",
         description=(
-            "Run seeded episodes (seeds SEED .. SEED+EPISODES-1) of a model written by train-agent on ENV_ID; "
+            "Run seeded episodes (seeds SEED .. SEED+EPISODES-1) of a model written by train-agent on ENV_ID "
+            "(MODEL 'shipped': the policy shipped with redsim for ENV_ID); "
             "with --baselines, the same episodes with a random policy and with the task's scripted controller."
         ),
     )
-    p.add_argument("model", metavar="MODEL", help="a model .zip written by redsim train-agent")
+    p.add_argument(
+        "model", metavar="MODEL", help="a model .zip written by redsim train-agent, or 'shipped' (redsim's own)"
+    )
     p.add_argument("env_id", metavar="ENV_ID", help="the env id the model was trained on")
     p.add_argument("--episodes", type=int, default=20, help="episodes (default 20)")
     p.add_argument("--seed", type=int, default=0, help="first episode seed (default 0)")

@@ -24,13 +24,21 @@ def cmd_demo(args: argparse.Namespace) -> int:
     _check_id(args.env_id)
     if args.steps is not None and args.steps < 1:
         raise CliError(f"--steps must be >= 1, got {args.steps}")
-    result = run_demo(args.env_id, args.out, seed=args.seed, steps=args.steps)
+    policy, name = None, SCRIPTED
+    if not args.scripted:
+        from redsim.trainers.agents import load_agent, shipped_policies
+
+        path = shipped_policies().get(args.env_id)
+        if path is not None:
+            policy, name = load_agent(path, env_id=args.env_id), f"shipped policy {path.name}"
+    result = run_demo(args.env_id, args.out, seed=args.seed, steps=args.steps, policy=policy)
+    result["policy"] = name
     if args.json:
         json_out(result)
         return EXIT_OK
     distance = result["final_distance"]  # None for a task without a target point (Klann's crank speed)
     out(
-        f"{args.env_id} ({SCRIPTED}, seed {args.seed}): return {result['return']:.1f} over {result['steps']} steps, "
+        f"{args.env_id} ({name}, seed {args.seed}): return {result['return']:.1f} over {result['steps']} steps, "
         + ("" if distance is None else f"final distance {distance:.3g} m, ")
         + f"{100 * result['success_fraction']:.0f}% of steps within the task's success tolerance"
     )
@@ -101,13 +109,17 @@ def add_commands(sub: Any, bench: Any) -> None:
     """Add ``demo`` to the top-level subcommands ``sub`` and ``envs`` to the ``bench`` subcommands."""
     p = sub.add_parser(
         "demo",
-        help="run an env with its scripted controller; print return and speed, write a GIF and a picture",
-        description="One episode of ENV_ID (e.g. RedSim/Chain-v0) driven by the task's scripted controller.",
+        help="run an env with its shipped policy or scripted controller; print return and speed, write a GIF",
+        description=(
+            "One episode of ENV_ID (e.g. RedSim/Chain-v0) driven by the trained policy shipped for it "
+            "(redsim/pretrained/policies) or, where none is shipped or with --scripted, the task's scripted controller."
+        ),
     )
     p.add_argument("env_id", metavar="ENV_ID", help="a RedSim env id")
     p.add_argument("--out", default="out", help="output folder (default out)")
     p.add_argument("--seed", type=int, default=0, help="reset seed (default 0)")
     p.add_argument("--steps", type=int, help="episode length (default: the env's max_episode_steps)")
+    p.add_argument("--scripted", action="store_true", help="use the scripted controller even where a policy is shipped")
     finish_command(p, cmd_demo, "print one JSON summary", default_threads=1)
 
     p = bench.add_parser(

@@ -16,7 +16,10 @@ def test_demo_prints_return_and_speed_and_writes_gif_and_picture(
     assert main(["demo", "RedSim/MiniChain-v0", "--steps", "6", "--out", str(tmp_path)]) == 0
     text = capsys.readouterr().out
     assert "return" in text and "env steps/s" in text
+    assert "(shipped policy MiniChain-v0.zip, seed 0)" in text  # a policy is shipped for the mini chain
     assert (tmp_path / "minichain.gif").stat().st_size > 0 and (tmp_path / "minichain.png").stat().st_size > 0
+    assert main(["demo", "RedSim/MiniChain-v0", "--steps", "6", "--out", str(tmp_path), "--scripted"]) == 0
+    assert "(scripted controller, seed 0)" in capsys.readouterr().out
 
 
 def test_bench_envs_json(capsys: pytest.CaptureFixture[str]) -> None:

@@ -11,7 +11,17 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from redsim.trainers.agents import ALGOS, HYPERPARAMS, evaluate, hyperparams, load_agent, model_record
+from redsim.trainers.agents import (
+    ALGOS,
+    HYPERPARAMS,
+    evaluate,
+    hyperparams,
+    load_agent,
+    model_record,
+    normalizer_path,
+    shipped_policies,
+    shipped_policy,
+)
 
 MINI = "RedSim/MiniChain-v0"
 SHORT = {"max_episode_steps": 20}
@@ -66,7 +76,7 @@ def test_train_resume_and_evaluate_through_the_cli(cli: Callable[..., tuple[int,
     assert summary["steps"] == 200 and summary["final_evaluation"]["episodes"] == 2
     for name in ("model.zip", "best_model.zip", "curve.csv", "curve.png", "policy.gif", "agent.json"):
         assert (out / name).stat().st_size > 0, name
-    assert model_record(out / "model.zip") == {"env_id": MINI, "algo": "sac"}
+    assert model_record(out / "model.zip") == {"env_id": MINI, "algo": "sac", "normalized": True}
     assert (out / "model.zip").stat().st_size < 1_000_000
 
     code, stdout, err = cli(
@@ -85,10 +95,49 @@ def test_train_resume_and_evaluate_through_the_cli(cli: Callable[..., tuple[int,
     agent = json.loads(stdout)["agent"]
     assert agent["episodes"] == 2 and np.isfinite(agent["mean_return"]) and 0.0 <= agent["success_rate"] <= 1.0
 
+    agent = load_agent(out / "model.zip", MINI)  # acts through the saved VecNormalize statistics
+    obs = np.random.default_rng(0).normal(size=(3, 14)).astype(np.float32)
+    np.testing.assert_array_equal(
+        agent.predict(obs)[0], agent.model.predict(agent.normalizer.normalize_obs(obs), deterministic=True)[0]
+    )
+    assert not np.allclose(agent.normalizer.obs_rms.var, 1.0)  # statistics of the run, not the initial ones
+    assert sorted(p.name for p in (out / "checkpoints").glob("*vecnormalize*")), "checkpoints keep their stats"
+    (out / "model_vecnormalize.pkl").rename(out / "moved.pkl")
+    code, _, err = cli("eval-agent", str(out / "model.zip"), MINI, "--episodes", "2")
+    assert code == 2 and "no normalization statistics" in err
+    (out / "moved.pkl").write_bytes(b"junk")
+    (out / "moved.pkl").rename(out / "model_vecnormalize.pkl")
+    code, _, err = cli("eval-agent", str(out / "model.zip"), MINI, "--episodes", "2")
+    assert code == 2 and "is not a VecNormalize file" in err
+
     code, _, err = cli("eval-agent", str(out / "model.zip"), "RedSim/Chain-v0", "--episodes", "2")
     assert code == 2 and "was trained on RedSim/MiniChain-v0, not on RedSim/Chain-v0" in err
     code, _, err = cli("train-agent", "RedSim/Chain-v0", "--steps", "10", "--out", str(out), "--resume", *TINY)
     assert code == 2 and "cannot resume" in err
+
+
+def test_normalizer_files_sit_beside_their_models() -> None:
+    assert normalizer_path(Path("run/model.zip")) == Path("run/model_vecnormalize.pkl")
+    assert normalizer_path(Path("run/best_model.zip")) == Path("run/best_model_vecnormalize.pkl")
+    checkpoint = Path("run/checkpoints/rl_model_1200_steps.zip")
+    assert normalizer_path(checkpoint) == Path("run/checkpoints/rl_model_vecnormalize_1200_steps.pkl")
+
+
+def test_the_shipped_policies_load_and_the_mini_chain_one_beats_random() -> None:
+    shipped = shipped_policies()
+    assert MINI in shipped
+    for env_id, path in shipped.items():
+        assert path.stat().st_size + normalizer_path(path).stat().st_size < 500_000, "small enough to ship"
+        agent = load_agent(path, env_id)
+        assert agent.normalizer is not None and agent.num_timesteps > 0
+        record = json.loads(path.with_suffix(".json").read_text())
+        assert record["command"].startswith(f"redsim train-agent {env_id} ")
+    agent = load_agent(shipped_policy(MINI), MINI)
+    mine = evaluate(MINI, agent, episodes=2, seed=0)
+    random = evaluate(MINI, "random", episodes=2, seed=0)
+    assert mine.mean > random.mean + 300.0 and mine.success_rate == 1.0
+    with pytest.raises(KeyError, match=r"no shipped policy for 'RedSim/Nope-v0'; shipped: .*MiniChain"):
+        shipped_policy("RedSim/Nope-v0")
 
 
 def test_ppo_trains_a_few_hundred_steps(tmp_path: Path) -> None:
@@ -140,9 +189,21 @@ def _foreign_model(folder: Path) -> Path:
 
 
 @pytest.mark.slow
+@pytest.mark.parametrize("env_id", sorted(shipped_policies()))
+def test_each_shipped_policy_beats_random_and_scripted_over_20_episodes(env_id: str) -> None:
+    agent = evaluate(env_id, load_agent(shipped_policy(env_id), env_id), episodes=20, seed=0)
+    for baseline in ("random", "scripted"):
+        other = evaluate(env_id, baseline, episodes=20, seed=0)
+        assert agent.mean > other.mean + 0.5 * other.std, baseline
+        assert agent.success_rate > other.success_rate, baseline
+
+
+@pytest.mark.slow
 def test_sac_learns_mini_chain_clearly_above_random(tmp_path: Path) -> None:
     from redsim.trainers.agents import train_agent
 
     result = train_agent(MINI, tmp_path, algo="sac", steps=20_000, eval_every=5_000, video=False)
-    random = evaluate(MINI, "random", episodes=20, seed=20_000)
+    random = evaluate(MINI, "random", episodes=20, seed=20_000)  # the final evaluation's seeds
+    scripted = evaluate(MINI, "scripted", episodes=20, seed=20_000)
     assert result.evaluation.mean > random.mean + 3 * random.std
+    assert result.evaluation.mean > scripted.mean  # the table's settings beat the PI controller in 20k steps
