@@ -257,6 +257,8 @@ class BistableBarEnv(LatentEnv):
     | `frame_skip` | 1 | stepper steps per env step |
     | `subspace` | None | the shipped map, a checkpoint path or a map (it must hold both states) |
     | `scene_params` | None | scene build parameters (the shipped map covers only the defaults) |
+    | `fit_if_missing` | False | fit a map for `scene_params` no shipped map covers into the user cache |
+    | `fit_options` | None | FitConfig fields over the scene's preset for that fit |
     | `include_q` | False | put q [n] in `info["q"]` |
     | `**kwargs` | | more :class:`LatentEnv` arguments (`dtype`, `device`, `width`, `height`, `camera`, ...) |
 
@@ -273,10 +275,14 @@ class BistableBarEnv(LatentEnv):
         frame_skip: int = 1,
         subspace: str | nn.Module | None = None,
         scene_params: dict[str, Any] | None = None,
+        fit_if_missing: bool = False,
+        fit_options: dict[str, Any] | None = None,
         include_q: bool = False,
         **kwargs: Any,
     ) -> None:
-        scene, sub = shipped("bistable_bar", scene_params, subspace)
+        scene, sub = shipped(
+            "bistable_bar", scene_params, subspace, fit_if_missing=fit_if_missing, fit_options=fit_options
+        )
         task = SnapThrough("middle", max_force=max_force)
         super().__init__(
             scene, sub, task, render_mode=render_mode, dt=dt, frame_skip=frame_skip, include_q=include_q, **kwargs

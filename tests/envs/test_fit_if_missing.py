@@ -16,9 +16,12 @@ TINY = {"steps": 20, "hidden_width": 16}
 """A fit that takes a second: the test checks the plumbing, not the map's quality."""
 
 
-def test_uncovered_scene_parameters_are_a_clear_error() -> None:
+@pytest.mark.parametrize(
+    ("env_id", "params"), [("RedSim/MiniChain-v0", PARAMS), ("RedSim/BistableBar-v0", {"young": 2e5})]
+)
+def test_uncovered_scene_parameters_are_a_clear_error(env_id: str, params: dict) -> None:
     with pytest.raises(CheckpointError, match=r"no shipped subspace covers.*fit_if_missing=True"):
-        gym.make("RedSim/MiniChain-v0", scene_params=PARAMS)
+        gym.make(env_id, scene_params=params)
 
 
 def test_default_parameters_use_the_shipped_map_without_fitting(monkeypatch: pytest.MonkeyPatch) -> None:
