@@ -12,7 +12,7 @@ import torch
 from redsim import metrics, pretrained, scenes
 from redsim.cli import build_parser, main
 from redsim.subspace import CheckpointError, load_subspace, read_metadata
-from trainers.fit import FitConfig
+from redsim.trainers import FitConfig
 
 
 def test_every_environment_scene_has_a_shipped_subspace() -> None:
