@@ -338,6 +338,7 @@ class LatentSim:
         self.loads = self.task.loads(act, self.params).to(self.torch_dtype)
         diverged = torch.zeros(self.batch, dtype=torch.bool, device=self.device)
         out_of_range = torch.zeros_like(diverged)
+        energy_gain = torch.zeros_like(diverged)
         iterations = torch.zeros(self.batch, dtype=torch.int64, device=self.device)
         converged = torch.ones_like(diverged)
         for _ in range(self.frame_skip):
@@ -346,6 +347,7 @@ class LatentSim:
             self.z_prev, self.z = self.z, self._nearest_turn(z_next.detach(), self.z)
             diverged |= stats.diverged.to(self.device)
             out_of_range |= stats.out_of_range.to(self.device)
+            energy_gain |= stats.energy_gain.to(self.device)
             converged &= stats.converged.to(self.device)
             iterations += stats.iterations.to(self.device).to(torch.int64)
         diverged |= ~torch.isfinite(self.z).all(dim=1)
@@ -362,6 +364,7 @@ class LatentSim:
             "energy": stats.energy,
             "out_of_range": out_of_range,
             "diverged": diverged,
+            "energy_gain": energy_gain,
             **{f"reward_{k}": v for k, v in terms.items()},
             **self.task.metrics(self.x, self.params),
             **self.invariants(self.x),
@@ -510,8 +513,10 @@ class LatentEnv(gym.Env[np.ndarray, np.ndarray]):
 
     ``info`` after each step: ``converged``, ``iterations``, ``residual`` (the stepper's solver
     statistics), ``energy`` [J], ``out_of_range`` (z left the region the map was fitted on),
-    ``diverged``, ``reward_<term>`` for each reward term, the task's metrics (``distance``,
-    ``is_success``), the scene's invariants (:mod:`redsim.envs.invariants`) and, with
+    ``diverged``, ``energy_gain`` (a step raised K + E by more than the action's work: an artefact
+    of the map or the solve, reported like MuJoCo's warnings and never ending the episode; see
+    :func:`redsim.runtime.flags.energy_gain_states`), ``reward_<term>`` for each reward term, the
+    task's metrics (``distance``, ``is_success``), the scene's invariants (:mod:`redsim.envs.invariants`) and, with
     ``include_q=True``, ``q`` [n]. A step the stepper cannot make finite ends the episode
     (``terminated=True``, ``info["diverged"]=True``).
 

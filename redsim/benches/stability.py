@@ -3,9 +3,11 @@
 Each case drives one scene or env into a regime that breaks simulators and records, per run:
 steps run, failures detected (a step the solver reported: not converged or ``diverged``), failures
 recovered (a detected failure followed, later in the same run and copy, by a converged step),
-``nan`` (non-finite states, energies or observations: must be 0), steps whose energy rose by more
-than its loads put in without being reported (``unreported``: must be 0), the largest mechanical
-energy above the start and the largest work the loads did (the bound the inputs allow).
+``energy_gains`` (steps the runtime flagged ``energy_gain``: K + E rose by more than the loads' work,
+:func:`redsim.runtime.flags.energy_gain_states`; information, not a failure), ``nan`` (non-finite
+states, energies or observations: must be 0), steps whose energy rose by more than its loads put
+in without any of those flags (``unreported``: must be 0), the largest mechanical energy above the
+start and the largest work the loads did (the bound the inputs allow).
 
 The energy ledger is H_t = K_t + E(q_t) - W_t with K_t = |q_t - q_{t-1}|_M^2 / (2 h^2) and
 W_t = sum_{i<t} F_i . (p(q_{i+1}) - p(q_i)) the work of the (per-step constant) handle loads F.
@@ -132,6 +134,7 @@ class Rollout:
         flags: Counts of ``unconverged``, ``diverged`` and ``out_of_range`` steps.
         seconds: Wall time [s].
         cond: The condition [m] of a conditional scene, or None.
+        gains: [T] bool: the step was flagged ``energy_gain`` (runtime runs; None: no such flag).
     """
 
     q: Tensor
@@ -143,11 +146,16 @@ class Rollout:
     flags: dict[str, int]
     seconds: float
     cond: Tensor | None = None
+    gains: Tensor | None = None
+
+    def flagged(self) -> Tensor:
+        """[T] bool: the step reported a failure or an energy gain."""
+        return self.reported if self.gains is None else self.reported | self.gains
 
     def energy_rises(self, scene: Scene, slack: float) -> list[int]:
-        """Steps whose ledger rose by more than ``slack`` without being reported."""
+        """Steps whose ledger rose by more than ``slack`` without being reported (a failure or an energy gain)."""
         return unreported_rises(
-            ledger(scene, self.q, self.loads, self.dt, self.q_prev, self.cond), self.reported, slack
+            ledger(scene, self.q, self.loads, self.dt, self.q_prev, self.cond), self.flagged(), slack
         )
 
     def row(self, scene: Scene, target: str, regime: str, space: str, slack: float) -> dict[str, Any]:
@@ -162,8 +170,9 @@ class Rollout:
             "steps": len(reported),
             "failures_detected": sum(reported),
             "failures_recovered": recovered(reported),
+            "energy_gains": 0 if self.gains is None else int(self.gains.sum()),
             "nan": self.nonfinite + int((~torch.isfinite(self.q)).any(-1).sum()),
-            "unreported": len(unreported_rises(h, self.reported, slack)),
+            "unreported": len(unreported_rises(h, self.flagged(), slack)),
             "start_energy_J": float(mechanical[0]),
             "max_energy_J": float((mechanical - mechanical[0]).max()),
             "input_work_J": float(work.max()),
@@ -189,7 +198,7 @@ def runtime_rollout(
     c = None if cond is None else cond.reshape(1, -1).to(stepper.dtype)
     z = stepper.rest_latent(c) if z0 is None else z0.reshape(1, -1).to(stepper.dtype)
     zp = z.clone() if z_prev is None else z_prev.reshape(1, -1).to(stepper.dtype)
-    zs, reported, nonfinite, model = [zp, z], [], 0, None
+    zs, reported, gains, nonfinite, model = [zp, z], [], [], 0, None
     flags = {"unconverged": 0, "diverged": 0, "out_of_range": 0}
     for i in range(loads.shape[0]):
         z_next, stats = stepper.step(z, zp, loads[i : i + 1], c, warm=model)  # warm-started as the envs do
@@ -201,11 +210,15 @@ def runtime_rollout(
         flags["diverged"] += int(stats.diverged.sum())
         flags["out_of_range"] += int(stats.out_of_range.sum())
         reported.append(bool(stats.diverged[0]) or not bool(stats.converged[0]))
+        gains.append(bool(stats.energy_gain[0]))
         zp, z = z, z_next
         zs.append(z)
     q = stepper.positions(torch.cat(zs), None if c is None else c.expand(len(zs), -1)).to(torch.float64)
     seconds = time.perf_counter() - start
-    return Rollout(q[1:], q[0], loads, dt, torch.tensor(reported, dtype=torch.bool), nonfinite, flags, seconds, cond)
+    flagged = torch.tensor(reported, dtype=torch.bool)
+    return Rollout(
+        q[1:], q[0], loads, dt, flagged, nonfinite, flags, seconds, cond, torch.tensor(gains, dtype=torch.bool)
+    )
 
 
 def full_rollout(
@@ -529,12 +542,16 @@ def fuzz_env(
     account = _EnvLedger(venv.unwrapped.sim)
     elapsed = np.zeros(copies, dtype=np.int64)
     pending = np.zeros(copies, dtype=np.int64)
-    counts = {"steps": 0, "failures": 0, "recovered": 0, "nan": 0, "unreported": 0, "out_of_range": 0, "resets": 0}
+    counts = dict.fromkeys(
+        ("steps", "failures", "recovered", "gains", "nan", "unreported", "out_of_range", "resets"), 0
+    )
     vector_steps = max(1, math.ceil(steps / copies))
     for i in range(vector_steps):
         obs, reward, terminated, truncated, info = venv.step(fuzz_actions(rng, venv.action_space.shape, i))
         bad = ~np.asarray(info["converged"], dtype=bool) | np.asarray(info["diverged"], dtype=bool)
-        unreported, nonfinite = account.step(torch.as_tensor(bad))
+        gain = np.asarray(info["energy_gain"], dtype=bool)
+        unreported, nonfinite = account.step(torch.as_tensor(bad | gain))
+        counts["gains"] += int(gain.sum())
         counts["nan"] += nonfinite + int((~np.isfinite(obs)).any(-1).sum() + (~np.isfinite(reward)).sum())
         counts["nan"] += int((~np.isfinite(info["energy"])).sum())
         counts["unreported"] += unreported
@@ -559,6 +576,7 @@ def fuzz_env(
         "steps": counts["steps"],
         "failures_detected": counts["failures"],
         "failures_recovered": counts["recovered"],
+        "energy_gains": counts["gains"],
         "nan": counts["nan"],
         "unreported": counts["unreported"],
         "max_energy_J": account.max_energy,
@@ -734,6 +752,7 @@ ROW_COLUMNS = (
     ("steps", "steps"),
     ("failures_detected", "failures detected"),
     ("failures_recovered", "recovered"),
+    ("energy_gains", "energy gains flagged"),
     ("nan", "nan"),
     ("unreported", "unreported gains"),
     ("max_energy_J", "max energy above start [J]"),
@@ -814,8 +833,9 @@ def report(result: dict[str, Any]) -> list[str]:
             f"fuzzed env steps run: {sum(r['steps'] for r in fuzz)} of {result['fuzz_steps']} asked "
             "(split by measured env speed)"
         )
-    totals = {k: sum(int(r[k]) for r in rows) for k in ("nan", "unreported")}
+    totals = {k: sum(int(r.get(k, 0)) for r in rows) for k in ("nan", "unreported", "energy_gains", "steps")}
     lines.append(f"total nan: {totals['nan']}, unreported energy gains: {totals['unreported']} (both must be 0)")
+    lines.append(f"steps flagged energy_gain: {totals['energy_gains']} of {totals['steps']} (not failures)")
     if result.get("chain") is not None:
         lines.append("")
         lines += chain_table(result["chain"])

@@ -21,7 +21,7 @@ from torch import Tensor, nn
 
 from redsim.integrators import LatentSpace, latent_equilibrium, length_scale
 from redsim.runtime.energy import LatentEnergy, MapEnergy, ReducedInertia
-from redsim.runtime.flags import diverged_states, out_of_range_states
+from redsim.runtime.flags import diverged_states, energy_gain_states, out_of_range_states
 from redsim.runtime.solver import HESSIANS, BatchResult, minimize
 from redsim.scene import Scene
 
@@ -48,6 +48,8 @@ class StepStats(NamedTuple):
         energy: Potential energy E(f(z_next)) [J] (the load work not included).
         out_of_range: z or z_next (or the condition) is outside the region the map was fitted on (bool).
         diverged: The step is not trustworthy: non-finite, or it added more energy than it could have (bool).
+        energy_gain: K + E rose by more than the loads' work plus round-off (bool): an artefact of
+            the map or the solve, reported as information (:func:`redsim.runtime.flags.energy_gain_states`).
         model: The solver's final d x d Hessian model [B, d, d]: pass it as ``warm`` to the next step
             of the same states (NaN rows: none was built).
     """
@@ -58,6 +60,7 @@ class StepStats(NamedTuple):
     energy: Tensor
     out_of_range: Tensor
     diverged: Tensor
+    energy_gain: Tensor
     model: Tensor
 
 
@@ -487,14 +490,25 @@ class LatentStepper:
             step_velocity = q_next - q_t
             kinetic_next = 0.5 * (step_velocity * self._mass(step_velocity)).sum(-1) / self.dt**2
             offset = q_next - qbar
+            kinetic_now = 0.5 * (velocity * m_v).sum(-1) / self.dt**2
             diverged = ~result.finite | diverged_states(
                 value[batch:],
                 result.value,
-                0.5 * (velocity * m_v).sum(-1) / self.dt**2,
+                kinetic_now,
                 kinetic_next,
                 0.5 * (offset * self._mass(offset)).sum(-1) / self.dt**2,
                 force * self.length,
                 noise + self.tol * force * self.length,
+            )
+            work = torch.zeros_like(kinetic_now)  # of the loads over the step [J]
+            if loads_t is not None:
+                work = (loads_t * (self._handles(q_next) - self._handles(q_t))).sum(-1)
+            energy_gain = energy_gain_states(
+                kinetic_now + energy[batch:],
+                kinetic_next + torch.where(result.finite, result.energy, energy[batch:]),
+                work,
+                result.grad_norm * torch.linalg.vector_norm(z_next - z, dim=-1),
+                self._eps,
             )
         stats = StepStats(
             converged=result.converged,
@@ -505,6 +519,7 @@ class LatentStepper:
                 torch.stack([z, z_next], 1), self.energy.periodic, cond_t, self.scene.condition_space
             ),
             diverged=diverged,
+            energy_gain=energy_gain,
             model=result.model,
         )
         return z_next, stats

@@ -233,6 +233,7 @@ def test_info_reports_solver_flags_invariants_rewards_and_q() -> None:
         "energy",
         "out_of_range",
         "diverged",
+        "energy_gain",
         "rigid_orthogonality_error",
         "contact_penetration",
         "distance",
