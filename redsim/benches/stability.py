@@ -60,7 +60,9 @@ LOADS: dict[str, Plan] = {
 BANG_BANG_HOLD = 50
 """Steps a ``bang_bang`` action is held at one bound before it flips."""
 FUZZ_COPIES = {"RedSim/ClothBall-v0": 8, "RedSim/HangingCloth-v0": 8}
-"""Vector env copies of the fuzzed envs (default 64): the cloths take seconds per 64-copy step."""
+"""Vector env copies of the fuzzed cloth envs: they take seconds per 64-copy step."""
+DEFAULT_FUZZ_COPIES = 256
+"""Vector env copies of the other fuzzed envs (Klann and MiniChain run about 2x the env steps/s of 64 copies)."""
 
 
 # -- the energy ledger --------------------------------------------------------------------------
@@ -181,7 +183,7 @@ class Rollout:
         }
 
 
-def runtime_rollout(
+def runtime_rollouts(
     scene: Scene,
     f: nn.Module,
     loads: Tensor,
@@ -190,35 +192,65 @@ def runtime_rollout(
     z0: Tensor | None = None,
     z_prev: Tensor | None = None,
     cond: Tensor | None = None,
+    seconds: float | None = None,
     **options: Any,
-) -> Rollout:
-    """A B = 1 latent-runtime run from rest (or z0, z_prev [d]) under loads [T, H, D] (condition cond [m])."""
+) -> list[Rollout]:
+    """B latent-runtime runs in one batch under loads [T, B, H, D], all from rest (or z0, z_prev [d]).
+
+    ``cond`` [m] is the condition of every copy; with ``seconds`` [s] the runs stop after the step
+    that used up that wall time (each Rollout then holds the steps that ran). ``options`` go to
+    :class:`LatentStepper`. Each Rollout's ``seconds`` is the batch's wall time.
+    """
     start = time.perf_counter()
+    steps, batch = loads.shape[0], loads.shape[1]
     stepper = LatentStepper(scene, f, dt, **options)
-    c = None if cond is None else cond.reshape(1, -1).to(stepper.dtype)
-    z = stepper.rest_latent(c) if z0 is None else z0.reshape(1, -1).to(stepper.dtype)
-    zp = z.clone() if z_prev is None else z_prev.reshape(1, -1).to(stepper.dtype)
-    zs, reported, gains, nonfinite, model = [zp, z], [], [], 0, None
-    flags = {"unconverged": 0, "diverged": 0, "out_of_range": 0}
-    for i in range(loads.shape[0]):
-        z_next, stats = stepper.step(z, zp, loads[i : i + 1], c, warm=model)  # warm-started as the envs do
+    c = None if cond is None else cond.reshape(1, -1).to(stepper.dtype).expand(batch, -1)
+    z = stepper.rest_latent(None if c is None else c[:1]) if z0 is None else z0.reshape(1, -1).to(stepper.dtype)
+    z = z.expand(batch, -1).clone()
+    zp = z.clone() if z_prev is None else z_prev.reshape(1, -1).to(stepper.dtype).expand(batch, -1).clone()
+    zs, reported, gains, model = [zp, z], [], [], None
+    nonfinite = torch.zeros(batch, dtype=torch.int64)
+    flags = {k: torch.zeros(batch, dtype=torch.int64) for k in ("unconverged", "diverged", "out_of_range")}
+    for i in range(steps):
+        z_next, stats = stepper.step(z, zp, loads[i], c, warm=model)  # warm-started as the envs do
         model = stats.model
-        if not (bool(torch.isfinite(z_next).all()) and bool(torch.isfinite(stats.energy).all())):
-            nonfinite += 1
-            z_next = torch.where(torch.isfinite(z_next), z_next, z)
-        flags["unconverged"] += int((~stats.converged).sum())
-        flags["diverged"] += int(stats.diverged.sum())
-        flags["out_of_range"] += int(stats.out_of_range.sum())
-        reported.append(bool(stats.diverged[0]) or not bool(stats.converged[0]))
-        gains.append(bool(stats.energy_gain[0]))
+        bad = ~(torch.isfinite(z_next).all(-1) & torch.isfinite(stats.energy))
+        nonfinite += bad.cpu()
+        z_next = torch.where(torch.isfinite(z_next), z_next, z)
+        flags["unconverged"] += (~stats.converged).cpu()
+        flags["diverged"] += stats.diverged.cpu()
+        flags["out_of_range"] += stats.out_of_range.cpu()
+        reported.append((stats.diverged | ~stats.converged).cpu())
+        gains.append(stats.energy_gain.cpu())
         zp, z = z, z_next
         zs.append(z)
-    q = stepper.positions(torch.cat(zs), None if c is None else c.expand(len(zs), -1)).to(torch.float64)
-    seconds = time.perf_counter() - start
-    flagged = torch.tensor(reported, dtype=torch.bool)
-    return Rollout(
-        q[1:], q[0], loads, dt, flagged, nonfinite, flags, seconds, cond, torch.tensor(gains, dtype=torch.bool)
-    )
+        if seconds is not None and time.perf_counter() - start >= seconds:
+            break
+    ran = len(reported)
+    q = stepper.positions(torch.cat(zs), None if c is None else c[:1].expand(len(zs) * batch, -1))
+    q = q.to(torch.float64).reshape(len(zs), batch, -1)
+    seconds_used = time.perf_counter() - start
+    reported_t, gains_t = torch.stack(reported), torch.stack(gains)
+    return [
+        Rollout(
+            q[1:, b],
+            q[0, b],
+            loads[:ran, b],
+            dt,
+            reported_t[:, b],
+            int(nonfinite[b]),
+            {k: int(v[b]) for k, v in flags.items()},
+            seconds_used,
+            cond,
+            gains_t[:, b],
+        )
+        for b in range(batch)
+    ]
+
+
+def runtime_rollout(scene: Scene, f: nn.Module, loads: Tensor, dt: float, **options: Any) -> Rollout:
+    """One latent-runtime run (B = 1) under loads [T, H, D]; the options of :func:`runtime_rollouts`."""
+    return runtime_rollouts(scene, f, loads.unsqueeze(1), dt, **options)[0]
 
 
 def full_rollout(
@@ -313,8 +345,9 @@ def swing_velocity(scene: Scene, q: Tensor, tip_speed: float) -> Tensor:
 
 
 # -- the regimes --------------------------------------------------------------------------------
-Case = Callable[[int], list[dict[str, Any]]]
-"""A case: run it with a step budget (``long``: the length of the long runs) and get its rows."""
+Case = Callable[[int, float | None], list[dict[str, Any]]]
+"""A case: run it with a step budget (``long``: the length of the long runs) and a wall-time budget [s] (None: none;
+only the long runs of ``action_bounds`` use it) and get its rows."""
 
 
 def _shipped(name: str, **params: Any) -> tuple[Scene, nn.Module]:
@@ -326,7 +359,7 @@ def _zero_loads(scene: Scene, steps: int) -> Tensor:
     return torch.zeros(steps, len(scene.handles), scene.dim, dtype=torch.float64)
 
 
-def stiff_cases(long: int) -> list[dict[str, Any]]:
+def stiff_cases(long: int, budget: float | None = None) -> list[dict[str, Any]]:
     """Stiffness x1000 driven by the soft shipped map: bistable bar (Young's modulus), chain (contact)."""
     rows = []
     for name, params in (("bistable_bar", {"young": 1e8}), ("chain", {"contact_stiffness": 1e8})):
@@ -339,7 +372,7 @@ def stiff_cases(long: int) -> list[dict[str, Any]]:
     return rows
 
 
-def big_dt_cases(long: int) -> list[dict[str, Any]]:
+def big_dt_cases(long: int, budget: float | None = None) -> list[dict[str, Any]]:
     """Time steps of 0.1 and 0.5 s under actions at their bounds flipping every step."""
     rows = []
     for name in ("mini_chain", "chain", "bistable_bar"):
@@ -352,7 +385,7 @@ def big_dt_cases(long: int) -> list[dict[str, Any]]:
     return rows
 
 
-def far_latent_cases(long: int) -> list[dict[str, Any]]:
+def far_latent_cases(long: int, budget: float | None = None) -> list[dict[str, Any]]:
     """Starts at |z| = 10 (far outside z ~ N(0, I) the maps were fitted on), released unloaded."""
     rows = []
     for name in pretrained.names():
@@ -364,18 +397,24 @@ def far_latent_cases(long: int) -> list[dict[str, Any]]:
     return rows
 
 
-def action_bound_cases(long: int) -> list[dict[str, Any]]:
-    """Actions at their bounds for ``long`` steps, held BANG_BANG_HOLD steps (``bang_bang``) or flipped each step."""
+def action_bound_cases(long: int, budget: float | None = None) -> list[dict[str, Any]]:
+    """Actions at their bounds for ``long`` steps, held BANG_BANG_HOLD steps (``bang_bang``) or flipped each step.
+
+    Both runs of a scene are one batch of the runtime (B = 2); ``budget`` [s] caps each scene's
+    wall time (its rows then report the steps that ran).
+    """
     rows = []
+    regimes = (("bang_bang", BANG_BANG_HOLD), ("alternating", 1))
     for name in ("mini_chain", "chain", "bistable_bar", "conditional_bar", "cloth_ball", "hanging_sheet"):
         scene, f = _shipped(name)
-        for regime, hold in (("bang_bang", BANG_BANG_HOLD), ("alternating", 1)):
-            run = runtime_rollout(scene, f, plan_loads(scene, long, hold), DT)
+        loads = torch.stack([plan_loads(scene, long, hold) for _, hold in regimes], 1)
+        runs = runtime_rollouts(scene, f, loads, DT, seconds=budget)
+        for (regime, _), run in zip(regimes, runs, strict=True):
             rows.append(run.row(scene, name, regime, "latent", RISE_SLACK))
     return rows
 
 
-def impact_cases(long: int) -> list[dict[str, Any]]:
+def impact_cases(long: int, budget: float | None = None) -> list[dict[str, Any]]:
     """High-speed impacts into contact: chains thrown up into their hook, the ball thrown down onto the cloth.
 
     Full space starts from the seed (contact-free), the runtime from its rest z* (a state the
@@ -413,7 +452,7 @@ def squashed_column(scene: Scene, column: int = 10, ratio: float = 0.05) -> Tens
     return scene.dof_map.restrict(x.reshape(1, -1))[0]
 
 
-def near_inversion_cases(long: int) -> list[dict[str, Any]]:
+def near_inversion_cases(long: int, budget: float | None = None) -> list[dict[str, Any]]:
     """FEM bars released from a state with one column of elements squashed to 5% of their width."""
     rows = []
     for name in ("bistable_bar", "conditional_bar"):
@@ -427,7 +466,7 @@ def near_inversion_cases(long: int) -> list[dict[str, Any]]:
     return rows
 
 
-def condition_edge_cases(long: int) -> list[dict[str, Any]]:
+def condition_edge_cases(long: int, budget: float | None = None) -> list[dict[str, Any]]:
     """The conditional bar at the four corners of its condition range (and 20% beyond one), actions at the bounds."""
     scene, f = _shipped("conditional_bar")
     space = scene.condition_space
@@ -523,18 +562,32 @@ class _EnvLedger:
         self.work[index] = 0.0
 
 
+def fuzz_copies(env_id: str, copies: int | None = None) -> int:
+    """Vector env copies the fuzz runs ``env_id`` with: :data:`FUZZ_COPIES` for the cloths, else ``copies``
+    (default :data:`DEFAULT_FUZZ_COPIES`)."""
+    return FUZZ_COPIES.get(env_id, copies or DEFAULT_FUZZ_COPIES)
+
+
 def fuzz_env(
-    env_id: str, steps: int, *, num_envs: int | None = None, seed: int = 0, reset_probability: float = 0.01
+    env_id: str,
+    steps: int,
+    *,
+    num_envs: int | None = None,
+    seed: int = 0,
+    reset_probability: float = 0.01,
+    seconds: float | None = None,
 ) -> dict[str, Any]:
     """About ``steps`` env steps (copies x vector steps) of one env under :func:`fuzz_actions` and random resets.
 
     Each copy is also reset when its episode ends (terminated, or the id's ``max_episode_steps``).
-    Returns the bench row (module doc); ``steps`` is what actually ran.
+    ``num_envs`` copies (default :func:`fuzz_copies`); with ``seconds`` [s] it stops after the vector
+    step that used up that wall time. Returns the bench row (module doc); ``steps`` is what actually
+    ran, ``steps_asked`` what was asked.
     """
     import gymnasium as gym
 
     start = time.perf_counter()
-    copies = int(num_envs or FUZZ_COPIES.get(env_id, 64))
+    copies = int(num_envs or fuzz_copies(env_id))
     venv = gym.make_vec(env_id, num_envs=copies, vectorization_mode="vector_entry_point")
     limit = gym.spec(env_id).max_episode_steps or 10**9
     rng = np.random.default_rng(seed)
@@ -568,12 +621,15 @@ def fuzz_env(
             account.reset(done)
             elapsed[done] = 0
             counts["resets"] += int(done.sum())
+        if seconds is not None and time.perf_counter() - start >= seconds:
+            break
     venv.close()
     return {
         "target": env_id,
         "regime": "fuzz",
         "space": "latent",
         "steps": counts["steps"],
+        "steps_asked": vector_steps * copies,
         "failures_detected": counts["failures"],
         "failures_recovered": counts["recovered"],
         "energy_gains": counts["gains"],
@@ -588,13 +644,15 @@ def fuzz_env(
     }
 
 
-def env_speeds(env_ids: Sequence[str], *, probe_steps: int = 3, seed: int = 0) -> dict[str, float]:
+def env_speeds(
+    env_ids: Sequence[str], *, probe_steps: int = 3, seed: int = 0, copies: int | None = None
+) -> dict[str, float]:
     """Env steps/s of each id under :func:`fuzz_env` (a few vector steps after one warm-up step)."""
     speeds = {}
     for env_id in env_ids:
-        copies = FUZZ_COPIES.get(env_id, 64)
-        fuzz_env(env_id, copies, seed=seed)  # warm-up: construction, first steps
-        row = fuzz_env(env_id, probe_steps * copies, seed=seed)
+        n = fuzz_copies(env_id, copies)
+        fuzz_env(env_id, n, num_envs=n, seed=seed)  # warm-up: construction, first steps
+        row = fuzz_env(env_id, probe_steps * n, num_envs=n, seed=seed)
         speeds[env_id] = row["steps"] / row["seconds"]
     return speeds
 
@@ -608,14 +666,26 @@ def split_steps(total: int, speeds: dict[str, float]) -> dict[str, int]:
 
 
 def fuzz_envs(
-    env_ids: Sequence[str], total: int, *, seed: int = 0, progress: Callable[[str], None] | None = None
+    env_ids: Sequence[str],
+    total: int,
+    *,
+    seed: int = 0,
+    copies: int | None = None,
+    seconds: float | None = None,
+    progress: Callable[[str], None] | None = None,
 ) -> Iterator[dict[str, Any]]:
-    """Rows of :func:`fuzz_env` over ``env_ids``, ``total`` env steps split by :func:`split_steps`."""
-    shares = split_steps(total, env_speeds(env_ids, seed=seed)) if len(env_ids) > 1 else {env_ids[0]: total}
+    """Rows of :func:`fuzz_env` over ``env_ids``, ``total`` env steps split by :func:`split_steps`.
+
+    ``copies``: see :func:`fuzz_copies`; ``seconds`` [s]: the wall-time budget of each env's run.
+    """
+    if len(env_ids) > 1:
+        shares = split_steps(total, env_speeds(env_ids, seed=seed, copies=copies))
+    else:
+        shares = {env_ids[0]: total}
     for env_id, share in shares.items():
         if progress is not None:
             progress(f"fuzz {env_id}: {share} env steps")
-        yield fuzz_env(env_id, share, seed=seed)
+        yield fuzz_env(env_id, share, num_envs=fuzz_copies(env_id, copies), seed=seed, seconds=seconds)
 
 
 # -- the chain beside MuJoCo --------------------------------------------------------------------
@@ -844,6 +914,7 @@ def report(result: dict[str, Any]) -> list[str]:
 
 __all__ = [
     "BANG_BANG_HOLD",
+    "DEFAULT_FUZZ_COPIES",
     "FULL_SLACK",
     "LOADS",
     "REGIMES",
@@ -854,6 +925,7 @@ __all__ = [
     "chain_table",
     "energy_account",
     "full_rollout",
+    "fuzz_copies",
     "fuzz_env",
     "fuzz_envs",
     "ledger",
@@ -864,6 +936,7 @@ __all__ = [
     "redsim_chain_cases",
     "report",
     "runtime_rollout",
+    "runtime_rollouts",
     "split_steps",
     "unreported_rises",
 ]

@@ -403,6 +403,10 @@ def cmd_bench_stability(args: argparse.Namespace) -> int:
     for flag in ("steps", "long_steps", "chain_steps"):
         if getattr(args, flag) < 1:
             raise CliError(f"--{flag.replace('_', '-')} must be >= 1, got {getattr(args, flag)}")
+    if args.copies is not None and args.copies < 1:
+        raise CliError(f"--copies must be >= 1, got {args.copies}")
+    if args.budget is not None and not (math.isfinite(args.budget) and args.budget > 0):
+        raise CliError(f"--budget must be a number of seconds > 0, got {args.budget}")
     progress = None if args.json else note
     machine = machine_info()
     rows = []
@@ -410,9 +414,13 @@ def cmd_bench_stability(args: argparse.Namespace) -> int:
         if name in stability.REGIMES:
             if progress:
                 progress(f"regime {name}")
-            rows += stability.REGIMES[name](args.long_steps)
+            rows += stability.REGIMES[name](args.long_steps, args.budget)
     if "fuzz" in regimes and env_ids:
-        rows += list(stability.fuzz_envs(env_ids, args.steps, seed=args.seed, progress=progress))
+        rows += list(
+            stability.fuzz_envs(
+                env_ids, args.steps, seed=args.seed, copies=args.copies, seconds=args.budget, progress=progress
+            )
+        )
     chain = None
     if "mujoco" in regimes:
         if progress:
@@ -428,7 +436,14 @@ def cmd_bench_stability(args: argparse.Namespace) -> int:
                 args.chain_steps, full_steps=args.chain_full_steps, scenarios=broken
             ),
         }
-    result = {"machine": machine, "long_steps": args.long_steps, "fuzz_steps": args.steps, "rows": rows, "chain": chain}
+    result = {
+        "machine": machine,
+        "long_steps": args.long_steps,
+        "fuzz_steps": args.steps,
+        "budget_s": args.budget,
+        "rows": rows,
+        "chain": chain,
+    }
     if args.json:
         json_out(result)
     else:
@@ -605,6 +620,18 @@ def add_commands(sub: Any) -> Any:
     p.add_argument("--chain-steps", type=int, default=300, help="steps of the chain scenarios (default 300)")
     p.add_argument(
         "--chain-full-steps", type=int, default=50, help="steps of redsim's full-space chain runs (default 50)"
+    )
+    p.add_argument(
+        "--copies",
+        type=int,
+        help="vector env copies of the fuzzed envs other than the cloths (default 256; the cloths run 8)",
+    )
+    p.add_argument(
+        "--budget",
+        type=float,
+        metavar="SECONDS",
+        help="wall-time budget of each fuzzed env and of each scene's long runs: they stop there and report "
+        "the steps they ran (default none)",
     )
     p.add_argument("--seed", type=int, default=0, help="seed of the fuzzed actions and resets (default 0)")
     finish_command(p, cmd_bench_stability, "print one JSON document on stdout", default_threads=1)

@@ -14,7 +14,7 @@ import numpy as np
 import pytest
 import torch
 
-from redsim import scenes
+from redsim import pretrained, scenes
 from redsim.benches import stability
 
 Cli = Callable[..., tuple[int, str, str]]
@@ -51,6 +51,29 @@ def test_ledger_of_an_unloaded_full_space_run_never_rises() -> None:
     assert float((mechanical[1:] - mechanical[:-1]).max()) <= stability.FULL_SLACK * float(mechanical.abs().max())
     row = run.row(scene, "mini_chain", "fall", "full", stability.FULL_SLACK)
     assert row["steps"] == 3 and row["nan"] == 0 and row["unreported"] == 0 and row["failures_detected"] == 0
+
+
+def test_batched_rollouts_match_single_runs_and_stop_at_their_budget() -> None:
+    """The action_bounds runs are one batch: each copy is the B = 1 run of its loads; a budget cuts them short."""
+    scene = scenes.build("mini_chain")
+    f = pretrained.load("mini_chain", scene)
+    loads = torch.stack([stability.plan_loads(scene, 8, hold) for hold in (4, 1)], 1)  # [8, 2, H, D]
+    runs = stability.runtime_rollouts(scene, f, loads, 0.02)
+    for b, run in enumerate(runs):
+        single = stability.runtime_rollout(scene, f, loads[:, b], 0.02)
+        assert run.q.shape == single.q.shape == (9, scene.free_dof_count)  # the start and 8 steps
+        assert torch.allclose(run.q, single.q, atol=1e-4)
+        assert run.gains.shape == run.reported.shape == (8,)
+        assert run.row(scene, "mini_chain", "x", "latent", stability.RISE_SLACK)["unreported"] == 0
+    (cut, _) = stability.runtime_rollouts(scene, f, loads, 0.02, seconds=1e-9)
+    assert cut.q.shape[0] == 2 and cut.loads.shape[0] == 1 and cut.row(scene, "m", "x", "latent", 1e-3)["steps"] == 1
+
+
+def test_fuzz_stops_at_its_budget() -> None:
+    row = stability.fuzz_env("RedSim/MiniChain-v0", 64 * 50, num_envs=8, seconds=1e-9)
+    assert row["steps"] == 8 and row["steps_asked"] == 64 * 50
+    assert stability.fuzz_copies("RedSim/HangingCloth-v0", 512) == 8
+    assert stability.fuzz_copies("RedSim/Klann-v0") == stability.DEFAULT_FUZZ_COPIES
 
 
 def test_bang_bang_holds_and_flips() -> None:
@@ -94,7 +117,7 @@ def test_fuzz_actions_cover_bounds_flips_and_clipping() -> None:
 @pytest.mark.slow
 @pytest.mark.parametrize("regime", list(stability.REGIMES))
 def test_every_regime_at_a_small_size(regime: str) -> None:
-    rows = stability.REGIMES[regime](40)
+    rows = stability.REGIMES[regime](40, None)
     _assert_sound(rows)
     assert {r["space"] for r in rows} <= {"latent", "full"}
 
@@ -124,13 +147,14 @@ def test_redsim_chain_under_the_hardest_kick() -> None:
 
 
 def test_cli_bench_stability_json(cli: Cli) -> None:
-    code, out, err = cli(
-        "bench", "stability", "--regimes", "fuzz", "--envs", "RedSim/MiniChain-v0", "--steps", "64", "--json"
-    )
+    fuzz = ("bench", "stability", "--regimes", "fuzz", "--envs", "RedSim/MiniChain-v0", "--steps", "64")
+    code, out, err = cli(*fuzz, "--copies", "8", "--json")
     assert code == 0, err
     doc = json.loads(out)
     (row,) = doc["rows"]
     assert row["target"] == "RedSim/MiniChain-v0" and row["steps"] == 64 and row["nan"] == 0
+    assert row["copies"] == 8 and row["energy_gains"] >= 0 and doc["budget_s"] is None
     assert doc["chain"] is None and "machine" in doc
-    code, out, err = cli("bench", "stability", "--regimes", "fuzz", "--envs", "RedSim/MiniChain-v0", "--steps", "64")
+    code, out, err = cli(*fuzz, "--copies", "8")
     assert code == 0 and "| RedSim/MiniChain-v0 | fuzz | latent | 64 |" in out and "total nan: 0" in out
+    assert "steps flagged energy_gain:" in out
