@@ -48,8 +48,9 @@ class StepStats(NamedTuple):
         energy: Potential energy E(f(z_next)) [J] (the load work not included).
         out_of_range: z or z_next (or the condition) is outside the region the map was fitted on (bool).
         diverged: The step is not trustworthy: non-finite, or it added more energy than it could have (bool).
-        energy_gain: K + E rose by more than the loads' work plus round-off (bool): an artefact of
-            the map or the solve, reported as information (:func:`redsim.runtime.flags.energy_gain_states`).
+        energy_gain: K + E rose by more than the loads' work, beyond round-off and the solve's
+            tolerance (bool): an artefact of the map, reported as information
+            (:func:`redsim.runtime.flags.energy_gain_states`).
         model: The solver's final d x d Hessian model [B, d, d]: pass it as ``warm`` to the next step
             of the same states (NaN rows: none was built).
     """
