@@ -50,7 +50,10 @@ def _membrane(effect: StVKMembrane, x: Tensor) -> dict[str, Tensor]:
     xe = gather_elements(x, effect.element_dofs)
     B, T, _ = xe.shape
     F = deformation_gradient(xe.reshape(B, T, 3, 3), effect.shape_gradients)  # [B, T, 3, 2]
-    largest = torch.linalg.eigvalsh(F.transpose(-1, -2) @ F)[..., -1]  # squared principal stretch
+    a, b = F[..., 0], F[..., 1]
+    caa, cbb, cab = (a * a).sum(-1), (b * b).sum(-1), (a * b).sum(-1)  # C = F^T F = [[caa, cab], [cab, cbb]]
+    # its larger eigenvalue in closed form (the squared principal stretch; eigvalsh cost 10x more)
+    largest = 0.5 * (caa + cbb) + torch.sqrt(0.25 * (caa - cbb) ** 2 + cab**2)
     return {"max_strain": largest.clamp_min(0.0).sqrt().amax(-1) - 1.0}
 
 
