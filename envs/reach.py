@@ -233,7 +233,7 @@ class ReachEnv(LatentEnv):
     | `fit_if_missing` | False | fit a map for `scene_params` no shipped map covers into the user cache |
     | `fit_options` | None | FitConfig fields over the scene's preset for that fit |
     | `include_q` | False | put q [n] in `info["q"]` |
-    | `cubature` | None | None: the shipped cubature where it meets the accuracy bar (the env's doc); True: require it (a clear error where none exists); False: every element; a path: the cubature beside that checkpoint |
+    | `cubature` | None | None: the shipped cubature where it meets the bar; True: required; False: none; a path |
     | `**kwargs` | | more :class:`LatentEnv` arguments (`dtype`, `device`, `width`, `height`, `camera`, ...) |
     """
 
