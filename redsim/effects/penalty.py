@@ -275,15 +275,19 @@ class SDFContact(Effect):
         A point farther than the margin adds exactly zero energy and force, so a screen without
         gradients keeps the points with |p - t| < (bounding radius + margin) / sigma_min(R) (a
         superset of those within the margin: |R^T d| >= sigma_min |d|), and only those (a few per
-        state, e.g. the cloth under a ball) are evaluated with autograd. The result and its
-        derivatives equal the all-point sum.
+        state, e.g. the cloth under a ball) are evaluated with autograd; sigma_min is bounded from below by
+        Gershgorin's circles of R^T R (where that bound is not positive, every point is kept). The result
+        and its derivatives equal the all-point sum.
         """
         B = x.shape[0]
         with torch.no_grad():
             p, frame = self._points_and_frame(x)
             reach = self.shape.bounding_radius + self.margin
-            sigma = torch.linalg.svdvals(frame[..., :3]).amin(-1)  # [B]
-            bound = torch.where(sigma > 0.0, (reach * (1.0 + 1e-3) + 1e-6) / sigma, torch.inf)
+            gram = frame[..., :3].transpose(1, 2) @ frame[..., :3]  # R^T R [B, 3, 3]
+            diagonal = gram.diagonal(dim1=1, dim2=2)
+            # Gershgorin: sigma_min(R)^2 = lambda_min(R^T R) >= min_i (G_ii - sum_{j != i} |G_ij|)
+            low = (2.0 * diagonal - gram.abs().sum(-1)).amin(-1)  # [B]
+            bound = torch.where(low > 0.0, (reach * (1.0 + 1e-3) + 1e-6) / low.clamp_min(1e-30).sqrt(), torch.inf)
             near = ((p - frame[:, None, :, 3]).square().sum(-1) < bound.square()[:, None]).nonzero()
         if not near.shape[0]:
             return 0.0 * x[:, 0]  # zero, still a function of x (callers differentiate it)
