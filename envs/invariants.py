@@ -20,7 +20,7 @@ from torch import Tensor
 
 from redsim.effects import NeoHookean, PointPairPenalty, RigidOrthogonality, SDFContact, StVKMembrane
 from redsim.effects.base import Effect, gather_elements, split_points
-from redsim.effects.elastic import deformation_gradient
+from redsim.effects.elastic import deformation_gradient, membrane_metric
 from redsim.scene import Scene
 
 
@@ -47,18 +47,8 @@ def _fem(effect: NeoHookean, x: Tensor) -> dict[str, Tensor]:
 
 
 def _membrane(effect: StVKMembrane, x: Tensor) -> dict[str, Tensor]:
-    xe = gather_elements(x, effect.element_dofs)
-    B, T, _ = xe.shape
-    v = xe.view(B, T, 3, 3)
-    e1, e2 = v[:, :, 1] - v[:, :, 0], v[:, :, 2] - v[:, :, 0]  # D_s = [e1 e2]
-    s11, s12, s22 = (e1 * e1).sum(-1), (e1 * e2).sum(-1), (e2 * e2).sum(-1)
-    m = effect.shape_gradients[:, 1:, :]  # D_m^-1 [T, 2, 2]
-    m00, m01, m10, m11 = m[:, 0, 0], m[:, 0, 1], m[:, 1, 0], m[:, 1, 1]
-    # C = F^T F = D_m^-T (D_s^T D_s) D_m^-1, entry by entry (no [B, T, 3, 2] F, no batched 2x2 solves)
-    caa = m00 * m00 * s11 + 2.0 * m00 * m10 * s12 + m10 * m10 * s22
-    cbb = m01 * m01 * s11 + 2.0 * m01 * m11 * s12 + m11 * m11 * s22
-    cab = m00 * m01 * s11 + (m00 * m11 + m10 * m01) * s12 + m10 * m11 * s22
-    # its larger eigenvalue in closed form: the squared principal stretch
+    caa, cbb, cab = membrane_metric(gather_elements(x, effect.element_dofs), effect.shape_gradients)
+    # the larger eigenvalue of C = F^T F in closed form: the squared principal stretch
     largest = 0.5 * (caa + cbb) + torch.sqrt(0.25 * (caa - cbb) ** 2 + cab**2)
     return {"max_strain": largest.amax(-1).clamp_min(0.0).sqrt() - 1.0}
 
