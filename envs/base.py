@@ -150,10 +150,11 @@ def check_subspace(scene: Scene, subspace: nn.Module) -> None:
         raise ValueError(f"the subspace maps to {out} DOFs; scene {scene.name!r} has n = {scene.free_dof_count}")
 
 
-CUBATURE_DEFAULT: dict[str, bool] = {"cloth_ball": True, "hanging_sheet": True}
+CUBATURE_DEFAULT: dict[str, bool] = {"cloth_ball": True, "hanging_sheet": False}
 """Catalog scenes whose shipped cubature (``redsim/pretrained/SCENE.cubature.json``) an env uses by default:
 those that meet the accuracy bar (held-out force error and 100-step trajectory deviation <= 5%,
-``redsim bench cubature``, README "Cubature"). The others step every element unless ``cubature=True``."""
+``redsim bench cubature``, README "Cubature"). hanging_sheet's measured 4.7% and 7.2% in two runs that differ
+only by float32 round-off, so it stays off. The others step every element unless ``cubature=True``."""
 
 
 def env_energy(
