@@ -124,6 +124,14 @@ class FrameSet:
         return FrameSet(*(torch.cat([getattr(f, k) for f in frames]) for k in ("dofs", "weights", "offset")))
 
 
+NEAR_SLACK = 1e-5
+"""[m] Points this far past the margin still get an energy graph in :meth:`SDFContact.energy` (a
+round-off guard: the selecting distances and the differentiated ones are computed in another order)."""
+SPARSE_FRACTION = 0.25
+"""Above this fraction of near points, :meth:`SDFContact.energy` differentiates all points (the per-point
+gathers of the sparse form then cost more: measured on cloth_ball, README "Latent runtime")."""
+
+
 class SDFContact(Effect):
     """Contact penalty between points and an analytic signed distance carried by a frame.
 
@@ -197,12 +205,12 @@ class SDFContact(Effect):
         weights[pair_index[order], :, slot] = self.points.weights[order]
         offsets[pair_index[order], :, slot] = self.points.offset[order]
         mask[pair_index[order], slot] = 1.0
-        self.pair_source_dofs = sources  # [G, D*K]
-        self.pair_frame_dofs = frame_keys[:, :12].to(torch.int64)  # [F, 12]
-        self.pair_frame_weights = frame_keys[:, 12:24]
-        self.pair_frame_offset = frame_keys[:, 24:]
-        self.pair_source = pair_keys[:, 0].contiguous()  # [pairs]
-        self.pair_frame = pair_keys[:, 1].contiguous()
+        frame_dofs = frame_keys[:, :12].to(torch.int64)  # [F, 12]
+        # per pair, the entries of x it reads: its source's point dofs and its frame's 12 dofs
+        self.pair_source_index = sources[pair_keys[:, 0]].reshape(-1).contiguous()  # [pairs * D * K]
+        self.pair_frame_index = frame_dofs[pair_keys[:, 1]].reshape(-1).contiguous()  # [pairs * 12]
+        self.pair_frame_weights = frame_keys[pair_keys[:, 1], 12:24]  # [pairs, 12]
+        self.pair_frame_offset = frame_keys[pair_keys[:, 1], 24:]
         self.pair_weights = weights  # [pairs, K, S]
         self.pair_offsets = offsets if bool(offsets.any()) else None  # [pairs, D, S]
         self.pair_mask = mask  # [pairs, S]
@@ -228,40 +236,68 @@ class SDFContact(Effect):
         return 0.5 * self.stiffness * gap * gap
 
     def energy(self, x: Tensor, cond: Tensor | None = None, loads: Tensor | None = None) -> Tensor:
-        """The element sum, evaluated per (point source, frame) pair (:meth:`pair_distances`)."""
-        gap = (self.pair_distances(x) - self.margin).clamp_max(0.0)
-        return 0.5 * self.stiffness * (gap * gap * self.pair_mask).sum((-1, -2))
+        """The element sum [B]: every distance without autograd, then the energy (and its graph) only of
+        the points within :data:`NEAR_SLACK` of the margin; the others contribute exactly 0 (value and
+        every derivative). Dense (all points in the graph) under ``torch.compile`` (no data-dependent
+        shapes) and where more than :data:`SPARSE_FRACTION` of the points are near."""
+        if not torch.compiler.is_compiling():
+            with torch.no_grad():
+                near = (self._pair_distances(x) < self.margin + NEAR_SLACK) & (self.pair_mask.unsqueeze(1) > 0)
+            pair, state, slot = near.nonzero(as_tuple=True)  # sorted by pair, then state, then slot
+            if pair.numel() <= SPARSE_FRACTION * x.shape[0] * self.element_count:
+                gap = (self._point_distances(x, pair, state, slot) - self.margin).clamp_max(0.0)
+                return x.new_zeros(x.shape[0]).index_add(0, state, 0.5 * self.stiffness * gap * gap)
+        gap = (self._pair_distances(x) - self.margin).clamp_max(0.0)  # [pairs, B, S]
+        return 0.5 * self.stiffness * (gap * gap * self.pair_mask.unsqueeze(1)).sum((0, 2))
+
+    def _point_distances(self, x: Tensor, pair: Tensor, state: Tensor, slot: Tensor) -> Tensor:
+        """Signed distance [m] of single points [A], point ``slot`` of pair ``pair`` in state ``state`` (each [A])."""
+        pairs, K = self.pair_weights.shape[:2]
+        dofs = torch.cat([self.pair_source_index.view(pairs, -1), self.pair_frame_index.view(pairs, 12)], 1)[pair]
+        # one gather from x (one index_add_ into x in the backward): [A, 3 K + 12]
+        entries = x.reshape(-1).index_select(0, (dofs + (state * x.shape[1]).unsqueeze(1)).reshape(-1))
+        entries = entries.view(pair.shape[0], dofs.shape[1])
+        sources, frames = entries[:, : 3 * K], entries[:, 3 * K :]
+        frames = (frames * self.pair_frame_weights[pair] + self.pair_frame_offset[pair]).view(-1, 3, 4)
+        point = (sources.view(-1, 3, K) @ self.pair_weights[pair, :, slot].unsqueeze(-1)).squeeze(-1)  # [A, 3]
+        if self.pair_offsets is not None:
+            point = point + self.pair_offsets[pair, :, slot]
+        local = (frames[..., :3].transpose(-1, -2) @ (point - frames[..., 3]).unsqueeze(-1)).squeeze(-1)
+        return self.shape.distance(local)
 
     def penetration(self, x: Tensor) -> Tensor:
         """Deepest penetration [m] past the margin, shape [B], of full configurations x [B, N]."""
-        depth = ((self.margin - self.pair_distances(x)) * self.pair_mask).clamp_min(0.0)
-        return depth.flatten(1).amax(-1)
+        depth = ((self.margin - self._pair_distances(x)) * self.pair_mask.unsqueeze(1)).clamp_min(0.0)
+        return depth.transpose(0, 1).flatten(1).amax(-1)
 
     def pair_distances(self, x: Tensor) -> Tensor:
         """Signed distance [m] of every point, by (point source, frame) pair: [B, pairs, S] (see
-        :meth:`_build_pairs`; unused slots, ``pair_mask`` 0, hold the frame origin's distance).
+        :meth:`_build_pairs`; unused slots, ``pair_mask`` 0, hold the frame origin's distance)."""
+        return self._pair_distances(x).transpose(0, 1)
+
+    def _pair_distances(self, x: Tensor) -> Tensor:
+        """:meth:`pair_distances` in the layout it is computed in, [pairs, B, S].
 
         local = R_f^T (X_g w + o - t_f) for the points (weights w, offsets o) of source g in frame f:
         A = [R_f^T X_g | R_f^T | -R_f^T t_f] once per pair, then one contraction with the pair's
-        ``pair_lift``, batched over pairs (each a [B*3, K+D+1] x [K+D+1, S] matmul), whose output
+        ``pair_lift``, batched over pairs (each a [3*B, K+D+1] x [K+D+1, S] matmul), whose output
         keeps x, y and z contiguous for the distance (2-3x faster than per-(state, pair) 3x3
         matmuls on the chain at B = 64; README "Latent runtime").
         """
         B = x.shape[0]
-        G, DK = self.pair_source_dofs.shape
-        K = self.pair_weights.shape[1]
-        sources = x.index_select(1, self.pair_source_dofs.reshape(-1)).reshape(B, G, DK // K, K)
-        F = self.pair_frame_dofs.shape[0]
-        frames = x.index_select(1, self.pair_frame_dofs.reshape(-1)).reshape(B, F, 12)
-        frames = (frames * self.pair_frame_weights + self.pair_frame_offset).reshape(B, F, 3, 4)
-        rotation_t = frames[..., :3].transpose(-1, -2)  # [B, F, 3, 3]
-        origin = rotation_t @ frames[..., 3:]  # R_f^T t_f [B, F, 3, 1]
-        rotation_p = rotation_t.index_select(1, self.pair_frame)  # [B, pairs, 3, 3]
-        parts = [rotation_p @ sources.index_select(1, self.pair_source)]  # [B, pairs, 3, K]
+        pairs, K = self.pair_weights.shape[:2]
+        # gathers from x [B, N] only: their backward is one index_add_ into x (on a [B, pairs, ...]
+        # tensor it is one slice-add per index, 10-40x slower at B = 1)
+        sources = x.index_select(1, self.pair_source_index).reshape(B, pairs, -1, K)  # [B, pairs, 3, K]
+        frames = x.index_select(1, self.pair_frame_index).reshape(B, pairs, 12)
+        frames = (frames * self.pair_frame_weights + self.pair_frame_offset).reshape(B, pairs, 3, 4)
+        rotation_t = frames[..., :3].transpose(-1, -2)  # [B, pairs, 3, 3]
+        parts = [rotation_t @ sources]  # [B, pairs, 3, K]
         if self.pair_offsets is not None:
-            parts.append(rotation_p)
-        parts.append(-origin.index_select(1, self.pair_frame))
-        lifted = torch.cat(parts, -1).transpose(0, 1)  # [pairs, B, 3, K (+D) + 1]
-        pairs = lifted.shape[0]
-        local = torch.bmm(lifted.reshape(pairs, B * 3, -1), self.pair_lift)  # [pairs, B * 3, S]
-        return self.shape.distance(local.view(pairs, B, 3, -1).permute(1, 0, 3, 2))  # local [B, pairs, S, 3]
+            parts.append(rotation_t)
+        parts.append(-(rotation_t @ frames[..., 3:]))  # -R_f^T t_f
+        # [pairs, 3, B, K (+D) + 1]: the contraction's output [pairs, 3 * B, S] then holds each
+        # component of a pair's points in one contiguous block of B * S
+        lifted = torch.cat(parts, -1).permute(1, 2, 0, 3)
+        local = torch.bmm(lifted.reshape(pairs, 3 * B, -1), self.pair_lift)  # [pairs, 3 * B, S]
+        return self.shape.distance(local.view(pairs, 3, B, -1).permute(0, 2, 3, 1))  # local [pairs, B, S, 3]

@@ -218,79 +218,91 @@ def minimize(
             g_s = torch.where(usable[:, None], secant[1], grad)
             model = _bfgs_update(model, z - secant[0], grad - g_s)  # NaN rows stay NaN
     backtracked = torch.zeros(batch, dtype=torch.bool, device=z0.device)
-    for _ in range(max_iter):
-        active = finite & ~stalled & (torch.linalg.vector_norm(grad, dim=-1) > threshold)
+    # the line search of every state runs on its own clock: each call of the objective evaluates one
+    # trial of every active state, whether it is the first of an iteration or a backtrack (so a state
+    # backtracking does not hold the others' next iterations back)
+    searching = torch.zeros(batch, dtype=torch.bool, device=z0.device)  # has a direction and a trial pending
+    step = torch.zeros_like(z)
+    slope = torch.zeros_like(value)
+    alpha = torch.ones_like(value)
+    alpha_used = torch.ones_like(value)  # the step length of the last rejected trial
+    tries = torch.zeros(batch, dtype=torch.int64, device=z0.device)
+    for _ in range(max_iter * (MAX_BACKTRACKS + 1)):
+        active = finite & ~stalled & (iterations < max_iter) & (torch.linalg.vector_norm(grad, dim=-1) > threshold)
         index = torch.nonzero(active).squeeze(-1)
-        if index.numel() == 0:  # the early exit (one host sync per iteration)
+        if index.numel() == 0:  # the early exit (one host sync per call of the objective)
             break
-        if hessian in ("exact", "gauss_newton"):
-            model[index] = _model(objective, hessian, z[index], index, grad[index])
-        else:
-            missing = ~torch.isfinite(model).all(-1).all(-1)
-            stale = ~built & ((iterations >= WARM_ITERATIONS) | backtracked)
-            rebuild = index[(missing | stale)[index]]
-            if rebuild.numel():
-                fresh = _model(objective, hessian, z[rebuild], rebuild, grad[rebuild])
-                if secant is not None and hessian == "bfgs":  # J^T M J / h^2 built at the start: the secant
-                    z_s, g_s = secant[0][rebuild], secant[1][rebuild]
-                    usable = torch.isfinite(g_s).all(-1)
-                    g_s = torch.where(usable[:, None], g_s, grad[rebuild])
-                    fresh = torch.where(
-                        (iterations[rebuild] == 0)[:, None, None],
-                        _bfgs_update(fresh, z[rebuild] - z_s, grad[rebuild] - g_s),
-                        fresh,
-                    )
-                model[rebuild] = fresh
-                built[rebuild] = True
-        z_a, v_a, g_a, h_a = z[index], value[index], grad[index], model[index]
-        step = _direction(h_a, g_a, objective.metric(z_a, index) if hessian == "gauss_newton" else h_a)
-        slope = (g_a * step).sum(-1)
-        step = torch.where((slope < 0)[:, None], step, -g_a)
-        slope = (g_a * step).sum(-1)
-        accepted = torch.zeros_like(index, dtype=torch.bool)
-        new_z, new_v, new_g, new_e = z_a.clone(), v_a.clone(), g_a.clone(), energy[index]
-        pending = torch.arange(index.numel(), device=z.device)
-        alpha = torch.ones(index.numel(), dtype=z.dtype, device=z.device)
-        alpha_used = alpha.clone()
-        for _ in range(MAX_BACKTRACKS):
-            trial = z_a[pending] + alpha[pending, None] * step[pending]
-            v_t, g_t, e_t = objective.value_and_grad(trial, index[pending])
-            ok_finite = torch.isfinite(v_t) & torch.isfinite(g_t).all(-1)
-            v_old = v_a[pending]
-            armijo = v_t <= v_old + ARMIJO_C * alpha[pending] * slope[pending]
-            noise = (v_t - v_old) <= value_noise[index[pending]] + NOISE_FACTOR * eps * v_old.abs()
-            lower = torch.linalg.vector_norm(g_t, dim=-1) < torch.linalg.vector_norm(g_a[pending], dim=-1)
-            ok = ok_finite & (armijo | (noise & lower))
-            take = pending[ok]
-            new_z[take], new_v[take], new_g[take], new_e[take] = trial[ok], v_t[ok], g_t[ok], e_t[ok]
-            accepted[take] = True
-            rise = torch.where(ok_finite, v_t - v_old, torch.full_like(v_t, torch.inf))[~ok]
-            learn = (ok_finite & ~ok)[~ok]
-            rejected_g = g_t[~ok]
-            pending = pending[~ok]
-            if pending.numel() == 0:
-                break
-            backtracked[index[pending]] = True
-            alpha[pending] = _backtrack(alpha[pending], slope[pending], rise)
-            if quasi_newton:
-                # a rejected but finite trial still measured the curvature along its step: update the
-                # model with it and solve again from the same point (a shorter, turned step)
-                redo = pending[learn]
-                h_new = _bfgs_update(h_a[redo], alpha_used[redo, None] * step[redo], rejected_g[learn] - g_a[redo])
-                h_a[redo] = h_new
-                fresh = _direction(h_new, g_a[redo], h_new)
-                fresh_slope = (g_a[redo] * fresh).sum(-1)
-                good = fresh_slope < 0
-                step[redo[good]] = fresh[good]
-                slope[redo[good]] = fresh_slope[good]
-                alpha[redo[good]] = 1.0
-            alpha_used[pending] = alpha[pending]
+        start_rows = index[~searching[index]]  # states starting an iteration: their model and direction
+        if start_rows.numel():
+            if hessian in ("exact", "gauss_newton"):
+                model[start_rows] = _model(objective, hessian, z[start_rows], start_rows, grad[start_rows])
+            else:
+                missing = ~torch.isfinite(model[start_rows]).all(-1).all(-1)
+                stale = ~built[start_rows] & ((iterations[start_rows] >= WARM_ITERATIONS) | backtracked[start_rows])
+                rebuild = start_rows[missing | stale]
+                if rebuild.numel():
+                    fresh = _model(objective, hessian, z[rebuild], rebuild, grad[rebuild])
+                    if secant is not None and hessian == "bfgs":  # J^T M J / h^2 built at the start: the secant
+                        z_s, g_s = secant[0][rebuild], secant[1][rebuild]
+                        usable = torch.isfinite(g_s).all(-1)
+                        g_s = torch.where(usable[:, None], g_s, grad[rebuild])
+                        fresh = torch.where(
+                            (iterations[rebuild] == 0)[:, None, None],
+                            _bfgs_update(fresh, z[rebuild] - z_s, grad[rebuild] - g_s),
+                            fresh,
+                        )
+                    model[rebuild] = fresh
+                    built[rebuild] = True
+            z_r, g_r = z[start_rows], grad[start_rows]
+            fallback = objective.metric(z_r, start_rows) if hessian == "gauss_newton" else model[start_rows]
+            direction = _direction(model[start_rows], g_r, fallback)
+            direction = torch.where(((g_r * direction).sum(-1) < 0)[:, None], direction, -g_r)
+            step[start_rows] = direction
+            slope[start_rows] = (g_r * direction).sum(-1)
+            alpha[start_rows] = 1.0
+            alpha_used[start_rows] = 1.0
+            tries[start_rows] = 0
+            searching[start_rows] = True
+        z_a, v_a, g_a = z[index], value[index], grad[index]
+        trial = z_a + alpha[index, None] * step[index]
+        v_t, g_t, e_t = objective.value_and_grad(trial, index)
+        ok_finite = torch.isfinite(v_t) & torch.isfinite(g_t).all(-1)
+        armijo = v_t <= v_a + ARMIJO_C * alpha[index] * slope[index]
+        noise = (v_t - v_a) <= value_noise[index] + NOISE_FACTOR * eps * v_a.abs()
+        lower = torch.linalg.vector_norm(g_t, dim=-1) < torch.linalg.vector_norm(g_a, dim=-1)
+        ok = ok_finite & (armijo | (noise & lower))
+        take = index[ok]
         if quasi_newton:
-            h_a = torch.where(accepted[:, None, None], _bfgs_update(h_a, new_z - z_a, new_g - g_a), h_a)
-            model[index] = h_a
-        z[index], value[index], grad[index], energy[index] = new_z, new_v, new_g, new_e
-        iterations[index] += accepted.to(torch.int64)
-        stalled[index] = ~accepted
+            model[take] = _bfgs_update(model[take], trial[ok] - z_a[ok], g_t[ok] - g_a[ok])
+        z[take], value[take], grad[take], energy[take] = trial[ok], v_t[ok], g_t[ok], e_t[ok]
+        iterations[take] += 1
+        searching[take] = False
+        # rejected trials: back off, or give up after MAX_BACKTRACKS trials of one iteration
+        rejected = ~ok
+        rows = index[rejected]
+        tries[rows] += 1
+        more = tries[rows] < MAX_BACKTRACKS
+        stalled[rows[~more]] = True
+        searching[rows[~more]] = False
+        rows = rows[more]
+        backtracked[rows] = True
+        rise = torch.where(ok_finite, v_t - v_a, torch.full_like(v_t, torch.inf))[rejected][more]
+        alpha[rows] = _backtrack(alpha[rows], slope[rows], rise)
+        if quasi_newton:
+            # a rejected but finite trial still measured the curvature along its step: update the
+            # model with it and solve again from the same point (a shorter, turned step)
+            learn = (ok_finite & ~ok)[rejected][more]
+            redo = rows[learn]
+            change = g_t[rejected][more][learn] - grad[redo]
+            h_new = _bfgs_update(model[redo], alpha_used[redo, None] * step[redo], change)
+            model[redo] = h_new
+            fresh = _direction(h_new, grad[redo], h_new)
+            fresh_slope = (grad[redo] * fresh).sum(-1)
+            good = redo[fresh_slope < 0]
+            step[good] = fresh[fresh_slope < 0]
+            slope[good] = fresh_slope[fresh_slope < 0]
+            alpha[good] = 1.0
+        alpha_used[rows] = alpha[rows]
     grad_norm = torch.linalg.vector_norm(grad, dim=-1)
     converged = finite & (grad_norm <= threshold)
     return BatchResult(z, value, energy, grad_norm, iterations, converged, stalled & ~converged, finite, model)
