@@ -150,6 +150,64 @@ def check_subspace(scene: Scene, subspace: nn.Module) -> None:
         raise ValueError(f"the subspace maps to {out} DOFs; scene {scene.name!r} has n = {scene.free_dof_count}")
 
 
+CUBATURE_DEFAULT: dict[str, bool] = {"cloth_ball": True, "hanging_sheet": False}
+"""Catalog scenes whose shipped cubature (``redsim/pretrained/SCENE.cubature.json``) an env uses by default:
+those that meet the accuracy bar (held-out force error and 100-step trajectory deviation <= 5%,
+``redsim bench cubature``, README "Cubature"). hanging_sheet's measured 4.7% and 7.2% in two runs that differ
+only by float32 round-off, so it stays off. The others step every element unless ``cubature=True``."""
+
+
+def env_energy(
+    scene: Scene,
+    subspace: nn.Module,
+    cubature: bool | str | os.PathLike[str] | None,
+    *,
+    dtype: torch.dtype,
+    device: str | torch.device,
+) -> Any:
+    """The latent energy an env steps: a :class:`redsim.cubature.CubatureEnergy`, or None (every element).
+
+    Args:
+        scene: The scene.
+        subspace: Its map.
+        cubature: None: the shipped cubature of the scene where :data:`CUBATURE_DEFAULT` turns it on and it
+            belongs to this very map, else every element. True: the shipped cubature, which must belong to
+            this map. False: every element. A path: the cubature beside that checkpoint (or the
+            ``.cubature.json`` itself).
+        dtype: The stepper's dtype.
+        device: The stepper's device.
+
+    Raises:
+        redsim.subspace.CheckpointError: a cubature was asked for and none exists for this scene and map.
+        ValueError: ``cubature`` of another type.
+    """
+    from redsim import pretrained
+    from redsim.cubature import CubatureEnergy, cubature_path, load_cubature
+
+    if cubature is False:
+        return None
+    if cubature is None or cubature is True:
+        source = pretrained.FOLDER / scene.name
+        if cubature is None:
+            if not CUBATURE_DEFAULT.get(scene.name, False) or not cubature_path(source).is_file():
+                return None
+            try:
+                cub = load_cubature(source, scene, subspace)
+            except CheckpointError:  # another map or scene parameters: the shipped cubature is not this map's
+                return None
+            return CubatureEnergy(scene, subspace, cub, dtype=dtype, device=device)
+        if not cubature_path(source).is_file():
+            raise CheckpointError(
+                f"no cubature is shipped for scene {scene.name!r}; make one for your map with "
+                "`redsim cubature CHECKPOINT --elements K` and pass cubature=CHECKPOINT"
+            )
+    elif isinstance(cubature, (str, os.PathLike)):
+        source = cubature
+    else:
+        raise ValueError(f"cubature must be None, True, False or a checkpoint path, got {cubature!r}")
+    return CubatureEnergy(scene, subspace, load_cubature(source, scene, subspace), dtype=dtype, device=device)
+
+
 class LatentSim:
     """B copies of one scene in latent space: the batched core of the single and vector envs.
 
@@ -166,6 +224,12 @@ class LatentSim:
             episode (a conditional map is needed) and append it to the observation.
         include_q: Put the full free configuration q [n] in ``info["q"]``.
         stepper_options: Extra keyword arguments of :class:`redsim.runtime.LatentStepper`.
+        cubature: Step a cubature energy instead of every element (:func:`env_energy`): None (default)
+            the shipped one where :data:`CUBATURE_DEFAULT` turns it on, True, False, or a checkpoint path.
+
+    Raises:
+        ValueError: a bad number or option, or both ``cubature`` and ``stepper_options["energy"]``.
+        redsim.subspace.CheckpointError: another scene's map, or a cubature asked for that does not exist.
     """
 
     def __init__(
@@ -182,7 +246,9 @@ class LatentSim:
         randomize_condition: bool = False,
         include_q: bool = False,
         stepper_options: Mapping[str, Any] | None = None,
+        cubature: bool | str | os.PathLike[str] | None = None,
     ) -> None:
+        from redsim.cubature import CubatureEnergy
         from redsim.envs.invariants import Invariants
         from redsim.runtime import LatentStepper
 
@@ -204,6 +270,7 @@ class LatentSim:
             "randomize_condition": bool(randomize_condition),
             "include_q": bool(include_q),
             "stepper_options": dict(stepper_options or {}),
+            "cubature": cubature,
         }
         self.source_scene = scene
         self.torch_dtype = DTYPES[dtype]
@@ -215,9 +282,14 @@ class LatentSim:
         self.randomize_condition = bool(randomize_condition)
         self.conditional = conditional
         self.include_q = bool(include_q)
-        self.stepper = LatentStepper(
-            scene, self.subspace, dt, dtype=self.torch_dtype, device=self.device, **dict(stepper_options or {})
-        )
+        options = dict(stepper_options or {})
+        if "energy" in options and cubature:
+            raise ValueError("give either cubature or stepper_options['energy'], not both")
+        if "energy" not in options:
+            options["energy"] = env_energy(scene, self.subspace, cubature, dtype=self.torch_dtype, device=self.device)
+        self.stepper = LatentStepper(scene, self.subspace, dt, dtype=self.torch_dtype, device=self.device, **options)
+        self.cubature = isinstance(self.stepper.energy, CubatureEnergy)
+        """Whether the stepper evaluates a cubature energy (else every element)."""
         self.latent_dim = int(self.stepper.latent_dim)
         self.periodic = list(periodic_latents(subspace))
         self.dt = float(dt) * self.frame_skip
@@ -531,6 +603,8 @@ class LatentEnv(gym.Env[np.ndarray, np.ndarray]):
         height: Render height [px].
         camera: ``azimuth``/``elevation``/``margin`` of :class:`redsim.raster.SceneView`.
         stepper_options: Extra keyword arguments of :class:`redsim.runtime.LatentStepper`.
+        cubature: Step a cubature energy (:func:`env_energy`): None (the shipped one where
+            :data:`CUBATURE_DEFAULT` turns it on), True (required), False (every element) or a checkpoint path.
     """
 
     metadata: ClassVar[dict[str, Any]] = {"render_modes": RENDER_MODES, "render_fps": 50}
@@ -557,6 +631,7 @@ class LatentEnv(gym.Env[np.ndarray, np.ndarray]):
         height: int = 480,
         camera: Mapping[str, float] | None = None,
         stepper_options: Mapping[str, Any] | None = None,
+        cubature: bool | str | os.PathLike[str] | None = None,
     ) -> None:
         if render_mode not in (None, "rgb_array", "human"):
             raise ValueError(f"render_mode must be None, 'rgb_array' or 'human', got {render_mode!r}")
@@ -575,6 +650,7 @@ class LatentEnv(gym.Env[np.ndarray, np.ndarray]):
             randomize_condition=randomize_condition,
             include_q=include_q,
             stepper_options=stepper_options,
+            cubature=cubature,
         )
         self.task = task
         self.render_mode = render_mode

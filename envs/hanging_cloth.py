@@ -51,6 +51,10 @@ class HangingClothEnv(ReachEnv):
     ## Arguments
     As :class:`redsim.envs.reach.ReachEnv`; `max_force` and `target_spread` default to 2 N, spread 0.5.
 
+    | Argument | Default | Meaning |
+    |---|---|---|
+    | `cubature` | None: off | `True`: the shipped cubature (force error 3.1%, deviation 4.7-7.2%: not within the bar) |
+
     ## Version History
     - v0: first version.
     """

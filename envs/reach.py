@@ -16,6 +16,7 @@ reported as ``reward_distance``, ``reward_control`` and ``reward_success``.
 
 from __future__ import annotations
 
+import os
 from collections.abc import Mapping, Sequence
 from typing import TYPE_CHECKING, Any, ClassVar
 
@@ -232,6 +233,7 @@ class ReachEnv(LatentEnv):
     | `fit_if_missing` | False | fit a map for `scene_params` no shipped map covers into the user cache |
     | `fit_options` | None | FitConfig fields over the scene's preset for that fit |
     | `include_q` | False | put q [n] in `info["q"]` |
+    | `cubature` | None | None: the shipped cubature where it meets the bar; True: required; False: none; a path |
     | `**kwargs` | | more :class:`LatentEnv` arguments (`dtype`, `device`, `width`, `height`, `camera`, ...) |
     """
 
@@ -257,8 +259,11 @@ class ReachEnv(LatentEnv):
         fit_if_missing: bool = False,
         fit_options: dict[str, Any] | None = None,
         include_q: bool = False,
+        cubature: bool | str | None = None,
         **kwargs: Any,
     ) -> None:
+        if cubature is True and isinstance(subspace, (str, os.PathLike)):
+            cubature = str(subspace)  # the cubature beside the checkpoint the map comes from
         scene, sub = shipped(
             self.scene_name, scene_params, subspace, fit_if_missing=fit_if_missing, fit_options=fit_options
         )
@@ -272,7 +277,15 @@ class ReachEnv(LatentEnv):
         kwargs.setdefault("camera", dict(self.camera))
         kwargs.setdefault("randomize_condition", self.randomize_condition)
         super().__init__(
-            scene, sub, task, render_mode=render_mode, dt=dt, frame_skip=frame_skip, include_q=include_q, **kwargs
+            scene,
+            sub,
+            task,
+            render_mode=render_mode,
+            dt=dt,
+            frame_skip=frame_skip,
+            include_q=include_q,
+            cubature=cubature,
+            **kwargs,
         )
 
 

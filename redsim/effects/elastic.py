@@ -198,13 +198,30 @@ class StVKMembrane(Effect):
         self.lam = lam * thickness
 
     def element_energy(self, xe: Tensor, cond: Tensor | None = None, loads: Tensor | None = None) -> Tensor:
-        B, T, _ = xe.shape
-        F = deformation_gradient(xe.reshape(B, T, 3, 3), self.shape_gradients)  # [B, T, 3, 2]
-        eye = torch.eye(2, dtype=xe.dtype, device=xe.device)
-        strain = 0.5 * (F.transpose(-1, -2) @ F - eye)
-        trace = strain.diagonal(dim1=-2, dim2=-1).sum(-1)
-        psi = self.mu * (strain * strain).sum((-1, -2)) + 0.5 * self.lam * trace**2
+        caa, cbb, cab = membrane_metric(xe, self.shape_gradients)
+        e00, e11, e01 = 0.5 * (caa - 1.0), 0.5 * (cbb - 1.0), 0.5 * cab  # Green strain E = (C - I) / 2
+        trace = e00 + e11
+        psi = self.mu * (e00 * e00 + e11 * e11 + 2.0 * e01 * e01) + 0.5 * self.lam * trace * trace
         return psi * self.rest_area
+
+
+def membrane_metric(xe: Tensor, shape_gradients: Tensor) -> tuple[Tensor, Tensor, Tensor]:
+    """The entries (C_00, C_11, C_01), each [B, T], of C = F^T F of triangles xe [B, T, 9] in 3D.
+
+    C = D_m^-T (D_s^T D_s) D_m^-1 with D_s = [x1 - x0, x2 - x0] and D_m^-1 = ``shape_gradients[:, 1:]``
+    [T, 2, 2], entry by entry: elementwise [B, T] products instead of a [B, T, 3, 2] F from batched
+    3x3 by 3x2 matmuls (those cost 5-10x more on the CPU, forward and backward).
+    """
+    B, T, _ = xe.shape
+    v = xe.view(B, T, 3, 3)
+    e1, e2 = v[:, :, 1] - v[:, :, 0], v[:, :, 2] - v[:, :, 0]
+    s11, s12, s22 = (e1 * e1).sum(-1), (e1 * e2).sum(-1), (e2 * e2).sum(-1)
+    m = shape_gradients[:, 1:, :]
+    m00, m01, m10, m11 = m[:, 0, 0], m[:, 0, 1], m[:, 1, 0], m[:, 1, 1]
+    caa = m00 * m00 * s11 + 2.0 * m00 * m10 * s12 + m10 * m10 * s22
+    cbb = m01 * m01 * s11 + 2.0 * m01 * m11 * s12 + m11 * m11 * s22
+    cab = m00 * m01 * s11 + (m00 * m11 + m10 * m01) * s12 + m10 * m11 * s22
+    return caa, cbb, cab
 
 
 def _dihedral(v: Tensor, length_eps: Tensor | float) -> Tensor:

@@ -132,6 +132,12 @@ SPARSE_FRACTION = 0.25
 gathers of the sparse form then cost more: measured on cloth_ball, README "Latent runtime")."""
 
 
+def _to_local(frame: Tensor, p: Tensor) -> Tensor:
+    """R^T (p - t) [B, P, 3] of points p [B, P, 3] in frames [B, 3, 4] = [R | t] (components contiguous)."""
+    local = torch.bmm(frame[..., :3].transpose(1, 2), (p - frame[:, None, :, 3]).transpose(1, 2))  # [B, 3, P]
+    return local.transpose(1, 2)
+
+
 class SDFContact(Effect):
     """Contact penalty between points and an analytic signed distance carried by a frame.
 
@@ -216,6 +222,12 @@ class SDFContact(Effect):
         self.pair_mask = mask  # [pairs, S]
         lift = [weights] + ([] if self.pair_offsets is None else [offsets]) + [torch.ones_like(mask).unsqueeze(1)]
         self.pair_lift = torch.cat(lift, 1)  # [pairs, K (+D) + 1, S]
+        # one frame for every point (particles against one body, e.g. a cloth and a ball): the
+        # per-point form of :meth:`distances` (the pair tables would hold one point per pair)
+        self.single_frame = bool(frame_keys.shape[0] == 1)
+        plain = bool(K == 1 and (self.points.weights == 1.0).all() and not self.points.offset.any())
+        self.point_weights = None if plain else self.points.weights  # [P, K]
+        self.point_offset = None if plain else self.points.offset  # [P, D]
 
     def subset(self, index: Tensor) -> SDFContact:
         """The contact of the points ``index`` only (its pair tables rebuilt)."""
@@ -238,9 +250,12 @@ class SDFContact(Effect):
     def energy(self, x: Tensor, cond: Tensor | None = None, loads: Tensor | None = None) -> Tensor:
         """The element sum [B]: every distance without autograd, then the energy (and its graph) only of
         the points within :data:`NEAR_SLACK` of the margin; the others contribute exactly 0 (value and
-        every derivative). Dense (all points in the graph) under ``torch.compile`` (no data-dependent
-        shapes) and where more than :data:`SPARSE_FRACTION` of the points are near."""
+        every derivative). With one frame for every point, :meth:`near_energy` (a cheaper screen). Dense
+        (all points in the graph) under ``torch.compile`` (no data-dependent shapes) and where more than
+        :data:`SPARSE_FRACTION` of the points are near."""
         if not torch.compiler.is_compiling():
+            if self.single_frame:
+                return self.near_energy(x)
             with torch.no_grad():
                 near = (self._pair_distances(x) < self.margin + NEAR_SLACK) & (self.pair_mask.unsqueeze(1) > 0)
             pair, state, slot = near.nonzero(as_tuple=True)  # sorted by pair, then state, then slot
@@ -249,6 +264,57 @@ class SDFContact(Effect):
                 return x.new_zeros(x.shape[0]).index_add(0, state, 0.5 * self.stiffness * gap * gap)
         gap = (self._pair_distances(x) - self.margin).clamp_max(0.0)  # [pairs, B, S]
         return 0.5 * self.stiffness * (gap * gap * self.pair_mask.unsqueeze(1)).sum((0, 2))
+
+    def _points_and_frame(self, x: Tensor) -> tuple[Tensor, Tensor]:
+        """Every point p [B, P, 3] and the one frame [B, 3, 4] (single-frame contact)."""
+        B = x.shape[0]
+        P, D, K = self.points.dofs.shape
+        gathered = x.index_select(1, self.points.dofs.reshape(-1))
+        if self.point_weights is None:
+            p = gathered.view(B, P, D)
+        else:
+            p = (gathered.view(B, P, D, K) * self.point_weights[:, None, :]).sum(-1) + self.point_offset
+        frame = x.index_select(1, self.pair_frame_index[:12]) * self.pair_frame_weights[0] + self.pair_frame_offset[0]
+        return p, frame.view(B, 3, 4)
+
+    def near_energy(self, x: Tensor) -> Tensor:
+        """The exact energy [B] of single-frame contact, differentiated through the points near the shape only.
+
+        A point farther than the margin adds exactly zero energy and force, so a screen without
+        gradients keeps the points with |p - t| < (bounding radius + margin) / sigma_min(R) (a
+        superset of those within the margin: |R^T d| >= sigma_min |d|), and only those (a few per
+        state, e.g. the cloth under a ball) are evaluated with autograd; sigma_min is bounded from below by
+        Gershgorin's circles of R^T R (where that bound is not positive, every point is kept). The result
+        and its derivatives equal the all-point sum.
+        """
+        B = x.shape[0]
+        with torch.no_grad():
+            p, frame = self._points_and_frame(x)
+            reach = self.shape.bounding_radius + self.margin
+            gram = frame[..., :3].transpose(1, 2) @ frame[..., :3]  # R^T R [B, 3, 3]
+            diagonal = gram.diagonal(dim1=1, dim2=2)
+            # Gershgorin: sigma_min(R)^2 = lambda_min(R^T R) >= min_i (G_ii - sum_{j != i} |G_ij|)
+            low = (2.0 * diagonal - gram.abs().sum(-1)).amin(-1)  # [B]
+            bound = torch.where(low > 0.0, (reach * (1.0 + 1e-3) + 1e-6) / low.clamp_min(1e-30).sqrt(), torch.inf)
+            near = ((p - frame[:, None, :, 3]).square().sum(-1) < bound.square()[:, None]).nonzero()
+        if not near.shape[0]:
+            return 0.0 * x[:, 0]  # zero, still a function of x (callers differentiate it)
+        rows, cols = near.unbind(1)
+        P, D, K = self.points.dofs.shape
+        dofs = self.points.dofs.reshape(P, D * K).index_select(0, cols)  # [A, D*K]
+        flat = (rows[:, None] * x.shape[1] + dofs).reshape(-1)
+        gathered = x.reshape(-1).index_select(0, flat).view(-1, D, K)
+        if self.point_weights is None:
+            q = gathered[..., 0]
+        else:
+            q = (gathered * self.point_weights.index_select(0, cols)[:, None, :]).sum(-1)
+            q = q + self.point_offset.index_select(0, cols)
+        frames = (
+            x.index_select(1, self.pair_frame_index[:12]) * self.pair_frame_weights[0] + self.pair_frame_offset[0]
+        ).view(B, 3, 4)
+        local = _to_local(frames.index_select(0, rows), q.unsqueeze(1))[:, 0]  # [A, 3]
+        gap = (self.shape.distance(local) - self.margin).clamp_max(0.0)
+        return x.new_zeros(B).index_add(0, rows, 0.5 * self.stiffness * gap * gap)
 
     def _point_distances(self, x: Tensor, pair: Tensor, state: Tensor, slot: Tensor) -> Tensor:
         """Signed distance [m] of single points [A], point ``slot`` of pair ``pair`` in state ``state`` (each [A])."""
@@ -267,6 +333,11 @@ class SDFContact(Effect):
 
     def penetration(self, x: Tensor) -> Tensor:
         """Deepest penetration [m] past the margin, shape [B], of full configurations x [B, N]."""
+        if self.single_frame:
+            with torch.no_grad():
+                p, frame = self._points_and_frame(x)
+                depth = self.margin - self.shape.distance(_to_local(frame, p))
+            return depth.clamp_min(0.0).amax(-1) if depth.shape[-1] else x.new_zeros(x.shape[0])
         depth = ((self.margin - self._pair_distances(x)) * self.pair_mask.unsqueeze(1)).clamp_min(0.0)
         return depth.transpose(0, 1).flatten(1).amax(-1)
 

@@ -8,6 +8,7 @@ components (``p.unbind(-1)``), so a caller may pass a view whose components are 
 
 from __future__ import annotations
 
+import math
 from dataclasses import dataclass
 
 import torch
@@ -35,6 +36,11 @@ class Sphere:
         """Thinnest part [m]: a point moving further than this in one step may pass through."""
         return float(self.radius)
 
+    @property
+    def bounding_radius(self) -> float:
+        """Radius [m] of a ball about the origin that holds the whole shape (inf: unbounded)."""
+        return float(self.radius)
+
     def distance(self, p: Tensor) -> Tensor:
         return _norm(*p.unbind(-1)) - self.radius
 
@@ -49,6 +55,11 @@ class Plane:
     @property
     def feature_size(self) -> float:
         """A half-space has no thin part."""
+        return float("inf")
+
+    @property
+    def bounding_radius(self) -> float:
+        """Radius [m] of a ball about the origin that holds the whole shape (inf: unbounded)."""
         return float("inf")
 
     def distance(self, p: Tensor) -> Tensor:
@@ -67,6 +78,11 @@ class Box:
     def feature_size(self) -> float:
         """Thinnest part [m]: a point moving further than this in one step may pass through."""
         return float(min(self.half_extents))
+
+    @property
+    def bounding_radius(self) -> float:
+        """Radius [m] of a ball about the origin that holds the whole shape (inf: unbounded)."""
+        return math.sqrt(sum(float(h) ** 2 for h in self.half_extents))
 
     def distance(self, p: Tensor) -> Tensor:
         qx, qy, qz = (c.abs() - float(h) for c, h in zip(p.unbind(-1), self.half_extents, strict=True))
@@ -87,6 +103,11 @@ class Capsule:
         """Thinnest part [m]: a point moving further than this in one step may pass through."""
         return float(self.radius)
 
+    @property
+    def bounding_radius(self) -> float:
+        """Radius [m] of a ball about the origin that holds the whole shape (inf: unbounded)."""
+        return float(self.half_length + self.radius)
+
     def distance(self, p: Tensor) -> Tensor:
         x, y, z = p.unbind(-1)
         return _norm(x, y, z - z.clamp(-self.half_length, self.half_length)) - self.radius
@@ -103,6 +124,11 @@ class Torus:
     def feature_size(self) -> float:
         """Thinnest part [m]: a point moving further than this in one step may pass through."""
         return float(self.minor)
+
+    @property
+    def bounding_radius(self) -> float:
+        """Radius [m] of a ball about the origin that holds the whole shape (inf: unbounded)."""
+        return float(self.major + self.minor)
 
     def distance(self, p: Tensor) -> Tensor:
         x, y, z = p.unbind(-1)

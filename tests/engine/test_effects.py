@@ -451,3 +451,43 @@ def test_contact_penetration_matches_the_per_point_distances() -> None:
     expected = (contact.margin - per_point).clamp_min(0.0).amax(-1)
     assert float(expected.max()) > 0.0  # the perturbation made some points penetrate
     torch.testing.assert_close(contact.penetration(x), expected, rtol=1e-10, atol=1e-12)
+
+
+@pytest.mark.parametrize(
+    "shape", [Sphere(0.4), Box((0.3, 0.2, 0.5)), Capsule(0.3, 0.2), Torus(0.5, 0.15), Plane((0.0, 0.0, 1.0), 0.1)]
+)
+@pytest.mark.parametrize("kind", ["particles", "body_points"])
+def test_single_frame_contact_near_points_equal_the_element_sum(shape: object, kind: str) -> None:
+    """One frame for all points (a cloth and its ball): the near-point path (a screen, then autograd on the
+    points near the shape) gives the element sum and its gradient, also for a sheared, scaled frame."""
+    g = torch.Generator().manual_seed(3)
+    P = 400
+    local = 1.2 * (2.0 * torch.rand(P, 3, generator=g, dtype=torch.float64) - 1.0)
+    frame_dofs = torch.arange(12)
+    if kind == "particles":
+        points = PointSet.particles(12 + torch.arange(3 * P).reshape(P, 3))
+        extra = local.reshape(-1)
+    else:  # points fixed in a second body (weights on its 12 entries, an offset on none)
+        points = PointSet.body_points(12 + torch.arange(12), local)
+        extra = _affine(_rotation(2), torch.tensor([0.05, -0.02, 0.01]))
+    contact = SDFContact("c", points, FrameSet.body(frame_dofs, P), shape, stiffness=50.0, margin=0.02)
+    assert contact.single_frame
+    shear = torch.eye(3, dtype=torch.float64) * 1.1
+    shear[0, 1] = 0.2
+    frames = [_affine(_rotation(0), torch.zeros(3)), _affine(shear @ _rotation(5), torch.tensor([0.1, 0.0, -0.1]))]
+    x = torch.stack([torch.cat([f, extra]) for f in frames]).requires_grad_(True)
+    by_elements = contact.element_energy(x[:, contact.element_dofs])
+    assert float(by_elements.detach().sum(-1).min()) > 0.0 and int((by_elements == 0.0).sum()) > 0
+    (grad_ref,) = torch.autograd.grad(by_elements.sum(), x)
+    energy = contact.energy(x)
+    (grad,) = torch.autograd.grad(energy.sum(), x)
+    torch.testing.assert_close(energy, by_elements.sum(-1), rtol=1e-12, atol=1e-12)
+    torch.testing.assert_close(grad, grad_ref, rtol=1e-12, atol=1e-12)
+    if math.isinf(shape.bounding_radius):  # type: ignore[attr-defined]
+        return  # a half-space is never far
+    far = x.detach().clone()
+    far[:, [3, 7, 11]] += 100.0  # the frame moved away: no point near, zero energy, still differentiable
+    far.requires_grad_(True)
+    zero = contact.energy(far)
+    assert torch.equal(zero, torch.zeros(2, dtype=torch.float64)) and zero.requires_grad
+    assert torch.equal(contact.penetration(far.detach()), torch.zeros(2, dtype=torch.float64))

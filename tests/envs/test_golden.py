@@ -40,13 +40,15 @@ SPREAD_LIMIT = 0.3 * Z_TOLERANCE
 ACTION_SCALE = 0.5
 """Half the action range: under full random pushes MiniChain's step objective often has two nearby minima
 (3 of 4 rollouts measured), and which one a solve lands in depends on its start, not on the physics."""
-SLOW = ("RedSim/Chain-v0", "RedSim/ClothBall-v0", "RedSim/HangingCloth-v0", "RedSim/Stewart-v0")
-"""Ids whose construction or float64 steps take seconds: checked under ``-m slow``."""
+SLOW = ("RedSim/Chain-v0", "RedSim/HangingCloth-v0", "RedSim/Stewart-v0")
+"""Ids whose construction or float64 steps take seconds: checked under ``-m slow`` (ClothBall-v0, on its
+cubature and near-point contact, runs its 50 float64 steps in ~5 s under load: default suite)."""
 
 
 PENDING = {
-    "RedSim/ClothBall-v0": "not generated yet: three float64 rollouts of the 6000-DOF cloth outran the session",
-    "RedSim/HangingCloth-v0": "not generated yet: three float64 rollouts of the 6000-DOF cloth outran the session",
+    "RedSim/HangingCloth-v0": "refused by --update with cubature=True: its 50-step rollout has a solver spread of 0.33 "
+    "(default tol vs 100x tighter or cold), far above 3e-4 (the swinging sheet is ill-conditioned); the all-element "
+    "default was not retried",
 }
 """Ids without a golden file yet, and why; ``--update ID`` writes one (then drop the id from here)."""
 

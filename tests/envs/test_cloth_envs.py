@@ -1,0 +1,121 @@
+"""The cloth envs' cubature option (``cubature=None/True/False/PATH``) and their fast contract checks.
+
+The full contract (check_env, the PI controller) of the cloth ids also runs under ``-m slow`` in
+test_envs.py; here a few steps each, on the stepper the env chooses by default. Float tolerances:
+the stepper runs in float32 unless a test says float64.
+"""
+
+from __future__ import annotations
+
+import warnings
+
+import gymnasium as gym
+import numpy as np
+import pytest
+import torch
+from gymnasium.utils.env_checker import check_env
+
+import redsim
+from redsim.cubature import CubatureEnergy
+from redsim.envs.base import CUBATURE_DEFAULT
+from redsim.subspace import CheckpointError
+
+CLOTH_BALL = "RedSim/ClothBall-v0"
+
+
+def _rollout(env: gym.Env, actions: np.ndarray, seed: int) -> np.ndarray:
+    env.reset(seed=seed)
+    ball = []
+    for a in actions:
+        _, _, terminated, _, info = env.step(a)
+        assert not terminated and not info["diverged"]
+        ball.append(env.unwrapped.sim.task._goal_position(env.unwrapped.sim.x)[0].numpy().copy())
+    return np.array(ball)
+
+
+def test_cloth_ball_steps_its_shipped_cubature_by_default_and_follows_the_all_element_step() -> None:
+    """Default on where CUBATURE_DEFAULT says the shipped cubature meets the bar; the ball's path under the
+    same pushes stays within 5% of its travel of the all-element step's over 25 steps."""
+    assert CUBATURE_DEFAULT["cloth_ball"] and not CUBATURE_DEFAULT["hanging_sheet"]
+    env = gym.make(CLOTH_BALL)
+    assert env.unwrapped.sim.cubature and isinstance(env.unwrapped.sim.stepper.energy, CubatureEnergy)
+    full = gym.make(CLOTH_BALL, cubature=False)
+    assert not full.unwrapped.sim.cubature
+    actions = np.tile(np.array([[1.0, -0.6]], np.float32), (25, 1))
+    actions[12:] *= -1.0
+    cub_path, full_path = _rollout(env, actions, 4), _rollout(full, actions, 4)
+    travel = np.linalg.norm(full_path - full_path[0], axis=1).max()
+    assert travel > 0.05  # m: the pushes moved the ball
+    assert np.linalg.norm(cub_path - full_path, axis=1).max() < 0.05 * travel
+
+
+def test_cubature_true_loads_the_shipped_one_and_refuses_where_none_exists() -> None:
+    assert not gym.make("RedSim/HangingCloth-v0").unwrapped.sim.cubature  # shipped, not within the bar: off
+    assert gym.make("RedSim/HangingCloth-v0", cubature=True).unwrapped.sim.cubature
+    with pytest.raises(CheckpointError, match="redsim cubature"):
+        gym.make("RedSim/MiniChain-v0", cubature=True)
+    with pytest.raises(ValueError, match="cubature must be"):
+        gym.make(CLOTH_BALL, cubature=3)
+    with pytest.raises(ValueError, match="not both"):
+        gym.make(CLOTH_BALL, cubature=True, stepper_options={"energy": None})
+
+
+def test_a_cubature_of_another_map_is_refused(tmp_path) -> None:
+    """A map refitted or perturbed is another map: the shipped cubature does not follow it (None falls back to
+    every element; True and a path are errors)."""
+    scene = redsim.scenes.build("cloth_ball")
+    sub = redsim.pretrained.load("cloth_ball", scene)
+    with torch.no_grad():
+        sub.mlp[-1].bias.add_(1e-3)
+    assert not redsim.envs.make(scene, sub, cubature=None).unwrapped.sim.cubature
+    with pytest.raises(CheckpointError, match="another map"):
+        redsim.envs.make(scene, sub, cubature=True)
+    with pytest.raises(CheckpointError, match="another map"):
+        redsim.envs.make(scene, sub, cubature=str(redsim.pretrained.FOLDER / "cloth_ball"))
+    with pytest.raises(CheckpointError, match="no cubature file"):
+        redsim.envs.make(scene, sub, cubature=str(tmp_path / "missing"))
+
+
+def test_cloth_ball_check_env_vector_equals_single_and_state_round_trip() -> None:
+    env = gym.make(CLOTH_BALL, render_mode="rgb_array")
+    with warnings.catch_warnings(record=True) as caught:
+        warnings.simplefilter("always")
+        check_env(env.unwrapped)
+    assert [str(w.message) for w in caught] == []
+    n, steps, seed = 3, 6, 11
+    rng = np.random.default_rng(1)
+    actions = rng.uniform(-1, 1, (steps, n, 2)).astype(np.float32)
+    tight = {"dtype": "float64", "stepper_options": {"tol": 1e-10, "max_iter": 60}}
+    venv = gym.make_vec(CLOTH_BALL, num_envs=n, vectorization_mode="vector_entry_point", **tight)
+    assert venv.sim.cubature
+    obs, _ = venv.reset(seed=seed)
+    vec = [obs] + [venv.step(a)[0] for a in actions]
+    for i in range(n):
+        single = gym.make(CLOTH_BALL, **tight)
+        obs, _ = single.reset(seed=seed + i)
+        one = [obs] + [single.step(a)[0] for a in actions[:, i]]
+        np.testing.assert_allclose(np.array(vec)[:, i], np.array(one), rtol=1e-6, atol=1e-7)
+    single.reset(seed=2)
+    single.step(actions[0, 0])
+    state = single.unwrapped.get_state()
+    after = [single.step(a)[0] for a in actions[1:, 0]]
+    single.unwrapped.set_state(state)
+    again = [single.step(a)[0] for a in actions[1:, 0]]
+    assert np.array_equal(np.array(after), np.array(again))
+
+
+def test_cloth_strain_invariant_is_the_largest_principal_stretch() -> None:
+    from redsim.effects.base import gather_elements
+    from redsim.effects.elastic import deformation_gradient
+    from redsim.envs.invariants import Invariants
+
+    scene = redsim.scenes.build("hanging_sheet")
+    g = torch.Generator().manual_seed(0)
+    q = scene.q_seed + 0.01 * torch.randn(3, scene.free_dof_count, generator=g, dtype=scene.q_seed.dtype)
+    x = scene.full_positions(q)
+    membrane = scene.effect("membrane")
+    F = deformation_gradient(gather_elements(x, membrane.element_dofs).reshape(3, -1, 3, 3), membrane.shape_gradients)
+    expected = torch.linalg.eigvalsh(F.transpose(-1, -2) @ F)[..., -1].sqrt().amax(-1) - 1.0
+    got = Invariants(scene)(x)["membrane_max_strain"]
+    assert float(expected.min()) > 0.01  # stretched
+    torch.testing.assert_close(got, expected, rtol=1e-10, atol=1e-12)
