@@ -11,6 +11,14 @@ Reward per step, with omega* the commanded speed of the episode and W = ``speed_
     reward = -|omega - omega*| / W  -  control_weight * action^2  +  success_bonus * [|omega - omega*| < tol omega*]
 
 reported as ``reward_speed``, ``reward_control`` and ``reward_success``.
+
+Success (``info["is_success"]``) is judged over a window, not one step: the crank speed swings
+over each turn (the leg's gravity hump), so "within the tolerance at the last step" is a coin
+flip even for a good tracker. A step succeeds when the speed was within the tolerance on at
+least ``hold_fraction`` of the last ``hold_steps`` env steps (default: half of the last 100
+steps, 2 s, more than one full turn at every commanded speed); steps before the episode's
+first count as misses. The window rides in the episode's parameters (``params["held"]``,
+[B, hold_steps], newest first), written once per step by :meth:`CrankSpeed.reward`.
 """
 
 from __future__ import annotations
@@ -44,6 +52,8 @@ class CrankSpeed(Task):
         success_bonus: Reward per step within the tolerance.
         controller_gain: Scripted PI controller's gain [N s/rad].
         controller_time: Scripted PI controller's integral time [s].
+        hold_steps: Length K [env steps] of the success window (module doc).
+        hold_fraction: Fraction of the window's steps within the tolerance that makes a success.
 
     Raises:
         ValueError: a bad number or range, or (at bind) an unknown handle.
@@ -66,6 +76,8 @@ class CrankSpeed(Task):
         success_bonus: float = 0.5,
         controller_gain: float = 2.0,
         controller_time: float = 0.2,
+        hold_steps: int = 100,
+        hold_fraction: float = 0.5,
     ) -> None:
         low, high = (float(v) for v in speed_range)
         if not (np.isfinite(low) and np.isfinite(high) and 0.0 < low <= high):
@@ -76,10 +88,15 @@ class CrankSpeed(Task):
                 "tolerance": tolerance,
                 "controller_gain": controller_gain,
                 "controller_time": controller_time,
+                "hold_fraction": hold_fraction,
             },
             {"control_weight": control_weight, "success_bonus": success_bonus},
             {"speed_scale": speed_scale},
         )
+        if isinstance(hold_steps, bool) or not isinstance(hold_steps, (int, np.integer)) or hold_steps < 1:
+            raise ValueError(f"hold_steps must be an integer >= 1, got {hold_steps!r}")
+        if hold_fraction > 1.0:
+            raise ValueError(f"hold_fraction must be in (0, 1], got {hold_fraction!r}")
         self.handle = handle
         self.pivot = (float(pivot[0]), float(pivot[1]))
         self.max_force = float(max_force)
@@ -90,6 +107,8 @@ class CrankSpeed(Task):
         self.success_bonus = float(success_bonus)
         self.gain = float(controller_gain)
         self.controller_time = float(controller_time)
+        self.hold_steps = int(hold_steps)
+        self.hold_fraction = float(hold_fraction)
 
     def __getstate__(self) -> dict[str, Any]:
         # The bound sim is not part of the task: a copy (the vector env's) is bound to its own sim.
@@ -128,7 +147,9 @@ class CrankSpeed(Task):
     ) -> dict[str, Tensor]:
         low, high = self.speed_range
         speed = torch.tensor(low + (high - low) * rng.random(), dtype=sim.torch_dtype, device=sim.device)
-        return {"speed": speed, "integral": torch.zeros((), dtype=sim.torch_dtype, device=sim.device)}
+        zero = torch.zeros((), dtype=sim.torch_dtype, device=sim.device)
+        held = torch.zeros(self.hold_steps, dtype=sim.torch_dtype, device=sim.device)
+        return {"speed": speed, "integral": zero, "held": held}
 
     def loads(self, action: Tensor, params: Mapping[str, Tensor]) -> Tensor:
         arm = self._arm(self._sim.x).to(action.dtype)
@@ -152,21 +173,30 @@ class CrankSpeed(Task):
         return self.speed(x, self._sim.x_prev) - params["speed"]
 
     def reward(self, x: Tensor, action: Tensor, params: Mapping[str, Tensor]) -> tuple[Tensor, dict[str, Tensor]]:
+        """Reward [B] and its terms; also pushes this step's in-tolerance flag into ``params["held"]``."""
         error = self._error(x, params).abs()
+        within = (error < self.tolerance * params["speed"]).to(error.dtype)
+        held = params["held"]
+        held.copy_(torch.roll(held, 1, dims=1))
+        held[:, 0] = within.to(held.dtype)
         terms = {
             "speed": -error / self.speed_scale,
             "control": -self.control_weight * action.pow(2).mean(dim=1),
-            "success": self.success_bonus * (error < self.tolerance * params["speed"]).to(error.dtype),
+            "success": self.success_bonus * within,
         }
         return terms["speed"] + terms["control"] + terms["success"], terms
 
     def metrics(self, x: Tensor, params: Mapping[str, Tensor]) -> dict[str, Tensor]:
+        """``speed_within``: this step within the tolerance; ``held_fraction``: of the window; ``is_success``."""
         error = self._error(x, params)
+        held = params["held"].mean(dim=1)
         return {
             "crank_angle": self.angle(x),
             "crank_speed": error + params["speed"],
             "speed_error": error,
-            "is_success": error.abs() < self.tolerance * params["speed"],
+            "speed_within": error.abs() < self.tolerance * params["speed"],
+            "held_fraction": held,
+            "is_success": held >= self.hold_fraction,
         }
 
     # -- scripted control and drawing -----------------------------------------------------
@@ -229,7 +259,13 @@ class KlannEnv(LatentEnv):
     `reward = -|omega - omega*| / W - 0.05 action^2 + 0.5 [|omega - omega*| < 0.2 omega*]` with W = 12 rad/s (the
     top of the command range), reported as `info["reward_speed"]`, `info["reward_control"]` and
     `info["reward_success"]`. `info` also holds `crank_angle` [rad], `crank_speed` [rad/s], `speed_error`
-    [rad/s] and `is_success`.
+    [rad/s], `speed_within` (this step within the 20% tolerance), `held_fraction` (of the last 100 steps
+    within it) and `is_success`.
+
+    ## Success
+    `info["is_success"]`: the crank speed was within the tolerance on at least half of the last 100 env steps
+    (2 s: more than one full turn at every commanded speed; steps before the episode's first count as misses).
+    The speed swings over each turn (the gravity hump), so one step's error says little about the tracking.
 
     ## Starting State
     At rest (z: the map's unloaded equilibrium, z_dot = 0, the crank hanging at theta = 2.8 rad). The commanded
@@ -246,6 +282,8 @@ class KlannEnv(LatentEnv):
     | `speed_range` | (4.0, 12.0) | range [rad/s] of the commanded speed |
     | `dt` | 0.02 | stepper time step [s] |
     | `frame_skip` | 1 | stepper steps per env step |
+    | `hold_steps` | 100 | env steps of the success window |
+    | `hold_fraction` | 0.5 | fraction of the window within the tolerance that makes a success |
     | `subspace` | None | the shipped map, a checkpoint path or a map |
     | `scene_params` | None | scene build parameters (the shipped map covers only the defaults) |
     | `fit_if_missing` | False | fit a map for `scene_params` no shipped map covers into the user cache |
@@ -254,7 +292,9 @@ class KlannEnv(LatentEnv):
     | `**kwargs` | | more :class:`LatentEnv` arguments (`dtype`, `device`, `width`, `height`, `camera`, ...) |
 
     ## Version History
-    - v0: first version.
+    - v0: first version. Later in v0 (dynamics, observation and reward unchanged): `is_success` is judged over
+      the last 100 steps (## Success) instead of at one step, and `info` gained `speed_within` and
+      `held_fraction`.
     """
 
     camera: ClassVar[dict[str, float]] = {"azimuth": 0.0, "elevation": 0.0}
@@ -267,6 +307,8 @@ class KlannEnv(LatentEnv):
         speed_range: tuple[float, float] = (4.0, 12.0),
         dt: float = 0.02,
         frame_skip: int = 1,
+        hold_steps: int = 100,
+        hold_fraction: float = 0.5,
         subspace: str | nn.Module | None = None,
         scene_params: dict[str, Any] | None = None,
         fit_if_missing: bool = False,
@@ -277,7 +319,14 @@ class KlannEnv(LatentEnv):
         from redsim.scenes.linkages import KLANN_CRANK
 
         scene, sub = shipped("klann", scene_params, subspace, fit_if_missing=fit_if_missing, fit_options=fit_options)
-        task = CrankSpeed(KLANN_CRANK.handle, KLANN_CRANK.pivot, max_force=max_force, speed_range=speed_range)
+        task = CrankSpeed(
+            KLANN_CRANK.handle,
+            KLANN_CRANK.pivot,
+            max_force=max_force,
+            speed_range=speed_range,
+            hold_steps=hold_steps,
+            hold_fraction=hold_fraction,
+        )
         kwargs.setdefault("camera", dict(self.camera))
         super().__init__(
             scene, sub, task, render_mode=render_mode, dt=dt, frame_skip=frame_skip, include_q=include_q, **kwargs

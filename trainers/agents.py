@@ -93,10 +93,10 @@ HYPERPARAMS: dict[str, dict[str, dict[str, Any]]] = {
     "RedSim/Chain-v0": {"sac": {"n_envs": 16, "gradient_steps": 8}},
     "RedSim/ClothBall-v0": {},
     "RedSim/HangingCloth-v0": {},
-    "RedSim/ConditionalBar-v0": {},
+    "RedSim/ConditionalBar-v0": {"sac": {"n_envs": 16, "gradient_steps": 8}},
     "RedSim/Klann-v0": {"sac": {"n_envs": 16, "gradient_steps": 8}},
     "RedSim/Stewart-v0": {"sac": {"n_envs": 16, "gradient_steps": 8}},
-    "RedSim/BistableBar-v0": {},  # defaults, not tuned
+    "RedSim/BistableBar-v0": {"sac": {"n_envs": 16, "gradient_steps": 8}},
 }
 """env id -> algorithm -> settings; each env's entries override ``"default"`` key by key.
 

@@ -31,6 +31,43 @@ def test_klann_turns_full_turns_and_its_angle_latent_stays_wrapped() -> None:
     assert angle > 2.0 * 2.0 * math.pi, angle  # more than two full turns in 0.8 s at 40 N
 
 
+def test_klann_success_is_the_fraction_of_the_last_steps_within_tolerance() -> None:
+    """is_success holds when at least hold_fraction of the last hold_steps steps were within the tolerance.
+
+    A short window (10 steps, 30%) under the PI controller for 40 steps: held_fraction is the mean of
+    speed_within over the last 10 steps (the first steps' misses included), is_success follows it (seed 0
+    has both outcomes), and the window restarts with the next episode.
+    """
+    env = gym.make("RedSim/Klann-v0", hold_steps=10, hold_fraction=0.3).unwrapped
+    for seed in (0, 1):
+        env.reset(seed=seed)
+        within, success = [], []
+        for step in range(40):
+            _, _, _, _, info = env.step(env.task.controller(env.sim)[0])
+            within.append(bool(info["speed_within"]))
+            success.append(bool(info["is_success"]))
+            window = within[-10:]
+            assert info["held_fraction"] == pytest.approx(sum(window) / 10.0), step
+            assert success[-1] == (sum(window) >= 3), step
+            assert within[-1] == (abs(info["speed_error"]) < 0.2 * env.sim.params["speed"][0])
+        if seed == 0:
+            assert any(success) and not all(success)
+
+
+@pytest.mark.parametrize(
+    ("kwargs", "match"),
+    [
+        ({"hold_steps": 0}, "hold_steps must be an integer >= 1"),
+        ({"hold_steps": 2.5}, "hold_steps must be an integer >= 1"),
+        ({"hold_fraction": 1.5}, r"hold_fraction must be in \(0, 1\]"),
+        ({"hold_fraction": 0.0}, "hold_fraction must"),
+    ],
+)
+def test_klann_success_window_arguments_are_checked(kwargs: dict, match: str) -> None:
+    with pytest.raises(ValueError, match=match):
+        CrankSpeed("crank_pin", (0.0, 0.08), max_force=40.0, **kwargs)
+
+
 @pytest.mark.slow
 def test_klann_pi_controller_tracks_the_commanded_speed_on_average() -> None:
     """Eight copies under the scripted PI: the mean speed over the last 1.5 s matches the command.
