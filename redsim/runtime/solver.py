@@ -272,7 +272,7 @@ def minimize(
         lower = torch.linalg.vector_norm(g_t, dim=-1) < torch.linalg.vector_norm(g_a, dim=-1)
         ok = ok_finite & (armijo | (noise & lower))
         take = index[ok]
-        if quasi_newton:
+        if quasi_newton and take.numel():  # (sizes of index tensors are known on the host: no sync)
             model[take] = _bfgs_update(model[take], trial[ok] - z_a[ok], g_t[ok] - g_a[ok])
         z[take], value[take], grad[take], energy[take] = trial[ok], v_t[ok], g_t[ok], e_t[ok]
         iterations[take] += 1
@@ -280,6 +280,8 @@ def minimize(
         # rejected trials: back off, or give up after MAX_BACKTRACKS trials of one iteration
         rejected = ~ok
         rows = index[rejected]
+        if rows.numel() == 0:
+            continue
         tries[rows] += 1
         more = tries[rows] < MAX_BACKTRACKS
         stalled[rows[~more]] = True
@@ -288,11 +290,11 @@ def minimize(
         backtracked[rows] = True
         rise = torch.where(ok_finite, v_t - v_a, torch.full_like(v_t, torch.inf))[rejected][more]
         alpha[rows] = _backtrack(alpha[rows], slope[rows], rise)
-        if quasi_newton:
-            # a rejected but finite trial still measured the curvature along its step: update the
-            # model with it and solve again from the same point (a shorter, turned step)
-            learn = (ok_finite & ~ok)[rejected][more]
-            redo = rows[learn]
+        # a rejected but finite trial still measured the curvature along its step (quasi-Newton): update
+        # the model with it and solve again from the same point (a shorter, turned step)
+        learn = (ok_finite & ~ok)[rejected][more] & quasi_newton
+        redo = rows[learn]
+        if redo.numel():
             change = g_t[rejected][more][learn] - grad[redo]
             h_new = _bfgs_update(model[redo], alpha_used[redo, None] * step[redo], change)
             model[redo] = h_new
