@@ -104,7 +104,10 @@ def test_it_moves_and_the_scripted_controller_gets_closer(env_id: str) -> None:
 def test_vector_env_equals_single_envs_step_for_step() -> None:
     """Same seeds, same actions, same autoresets. Solved in float64 to a tight tolerance, so that what is
     compared is the env logic (seeding, targets, autoreset), not the solver's round-off: a float32 solve stops
-    at a relative force balance of 1e-5, and another batch composition lands elsewhere inside it."""
+    at a relative force balance of 1e-5, and another batch composition lands elsewhere inside it. Even at
+    1e-10 the contact-held steps do: copy 1's step 8 stops at residual 6.4e-11 alone and 1.5e-11 in the batch
+    (same 17 iterations), and ż = Δz/dt carries that to 7e-7 over the next steps (measured on this CPU; an
+    earlier CPU showed none). A wrong seed, target or autoreset differs by 1e-2 or more."""
     n, steps, seed = 3, 12, 7
     tight = {"dtype": "float64", "stepper_options": {"tol": 1e-10, "max_iter": 60}}
     venv = gym.make_vec(
@@ -133,8 +136,8 @@ def test_vector_env_equals_single_envs_step_for_step() -> None:
                 autoreset = terminated or truncated
             single_obs.append(obs)
             single_rew.append(reward)
-        np.testing.assert_allclose(np.array(vec_obs)[:, i], np.array(single_obs), rtol=1e-6, atol=1e-7)
-        np.testing.assert_allclose(np.array(vec_rew)[:, i], np.array(single_rew), rtol=1e-6, atol=1e-7)
+        np.testing.assert_allclose(np.array(vec_obs)[:, i], np.array(single_obs), rtol=1e-5, atol=1e-5)
+        np.testing.assert_allclose(np.array(vec_rew)[:, i], np.array(single_rew), rtol=1e-5, atol=1e-5)
     assert np.array(vec_done)[4].all()  # truncated at max_episode_steps = 5
 
 
