@@ -234,6 +234,11 @@ class Scene:
         """Full configurations [B, N] from free ones [B, n]."""
         return self.dof_map.expand(q)
 
+    def handle_positions(self, q: Tensor) -> Tensor:
+        """Positions [B, H*D] [m] of the handles, in handle order, at free configurations q [B, n]."""
+        x = self.full_positions(q)
+        return torch.cat([h.position(x) for h in self.handles], -1)
+
     def extent(self) -> float:
         """Physical size [m]: the largest side of the bounding box of the surfaces at the seed.
 

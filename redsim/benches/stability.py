@@ -3,11 +3,12 @@
 Each case drives one scene or env into a regime that breaks simulators and records, per run:
 steps run, failures detected (a step the solver reported: not converged or ``diverged``), failures
 recovered (a detected failure followed, later in the same run and copy, by a converged step),
-``energy_gains`` (steps the runtime flagged ``energy_gain``: K + E rose by more than the loads' work,
-:func:`redsim.runtime.flags.energy_gain_states`; information, not a failure), ``nan`` (non-finite
-states, energies or observations: must be 0), steps whose energy rose by more than its loads put
-in without any of those flags (``unreported``: must be 0), the largest mechanical energy above the
-start and the largest work the loads did (the bound the inputs allow).
+``energy_gains`` (steps flagged ``energy_gain`` by the runtime's StepStats or the reference's
+StepInfo: K + E rose by more than the loads' work, :mod:`redsim.integrators.energy_gain`;
+information, not a failure), ``nan`` (non-finite states, energies or observations: must be 0),
+steps whose energy rose by more than its loads put in without any of those flags (``unreported``:
+must be 0), the largest mechanical energy above the start and the largest work the loads did (the
+bound the inputs allow).
 
 The energy ledger is H_t = K_t + E(q_t) - W_t with K_t = |q_t - q_{t-1}|_M^2 / (2 h^2) and
 W_t = sum_{i<t} F_i . (p(q_{i+1}) - p(q_i)) the work of the (per-step constant) handle loads F.
@@ -66,12 +67,6 @@ DEFAULT_FUZZ_COPIES = 256
 
 
 # -- the energy ledger --------------------------------------------------------------------------
-def handle_positions(scene: Scene, q: Tensor) -> Tensor:
-    """Handle positions [B, H*D] [m] of free configurations q [B, n]."""
-    x = scene.full_positions(q)
-    return torch.cat([h.position(x) for h in scene.handles], -1)
-
-
 def energy_account(
     scene: Scene, q: Tensor, loads: Tensor, dt: float, q_prev: Tensor | None = None, cond: Tensor | None = None
 ) -> tuple[Tensor, Tensor]:
@@ -89,7 +84,7 @@ def energy_account(
         mechanical = kinetic + s.energy(q, None, c)
     if not s.handles:
         return mechanical, torch.zeros_like(mechanical)
-    p = handle_positions(s, q)
+    p = s.handle_positions(q)
     power = (loads.reshape(loads.shape[0], -1).to(torch.float64) * (p[1:] - p[:-1])).sum(-1)
     return mechanical, torch.cat([torch.zeros(1, dtype=torch.float64), torch.cumsum(power, 0)])
 
@@ -136,7 +131,7 @@ class Rollout:
         flags: Counts of ``unconverged``, ``diverged`` and ``out_of_range`` steps.
         seconds: Wall time [s].
         cond: The condition [m] of a conditional scene, or None.
-        gains: [T] bool: the step was flagged ``energy_gain`` (runtime runs; None: no such flag).
+        gains: [T] bool: the step was flagged ``energy_gain`` (None: no such flag).
     """
 
     q: Tensor
@@ -266,17 +261,19 @@ def full_rollout(
     start = time.perf_counter()
     integrator = ImplicitEuler(FullSpace(scene.to(dtype=torch.float64)), dt, max_iter=max_iter)
     state = integrator.initial_state(q0, velocity)
-    qs, reported, nonfinite = [state.q_prev, state.q], [], 0
+    qs, reported, gains, nonfinite = [state.q_prev, state.q], [], [], 0
     for i in range(loads.shape[0]):
         state, info = integrator.step(state, loads[i])
         if not bool(torch.isfinite(state.q).all()):
             nonfinite += 1
         reported.append(not info.converged)
+        gains.append(info.energy_gain)
         qs.append(state.q)
     seconds = time.perf_counter() - start
     flags = {"unconverged": int(sum(reported))}
+    as_mask = lambda values: torch.tensor(values, dtype=torch.bool)  # noqa: E731
     return Rollout(
-        torch.stack(qs[1:]), qs[0], loads, dt, torch.tensor(reported, dtype=torch.bool), nonfinite, flags, seconds
+        torch.stack(qs[1:]), qs[0], loads, dt, as_mask(reported), nonfinite, flags, seconds, gains=as_mask(gains)
     )
 
 
@@ -536,7 +533,7 @@ class _EnvLedger:
         before = self.mechanical(self.q, self.q_prev)
         after = self.mechanical(q_next, self.q)
         if self.scene.handles:
-            power = (loads * (handle_positions(self.scene, q_next) - handle_positions(self.scene, self.q))).sum(-1)
+            power = (loads * (self.scene.handle_positions(q_next) - self.scene.handle_positions(self.q))).sum(-1)
         else:
             power = torch.zeros_like(after)
         rise = after - before - power

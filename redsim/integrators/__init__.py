@@ -5,7 +5,8 @@
 - :mod:`~redsim.integrators.objective`: :class:`PotentialObjective`, the inertia term, the
   per-scene constants, and the scales the convergence test reads.
 - :mod:`~redsim.integrators.implicit_euler`: :class:`ImplicitEuler`, the two-state implicit
-  Euler of the paper, and its :class:`FullState`.
+  Euler of the paper, its :class:`FullState` and per-step :class:`StepInfo`;
+  :mod:`~redsim.integrators.energy_gain`: the test that a step's K + E rose by more than its loads' work.
 - :mod:`~redsim.integrators.equilibrium`: :func:`static_equilibrium` (over q) and
   :func:`latent_equilibrium` (over z).
 - :mod:`~redsim.integrators.reference`: the robust full-space equilibria metrics measure
@@ -16,7 +17,7 @@
 from __future__ import annotations
 
 from redsim.integrators.equilibrium import latent_equilibrium, static_equilibrium
-from redsim.integrators.implicit_euler import FullState, ImplicitEuler, LoadSchedule
+from redsim.integrators.implicit_euler import FullState, ImplicitEuler, LoadSchedule, StepInfo
 from redsim.integrators.objective import Inertia, PotentialObjective, SceneConstants, length_scale
 from redsim.integrators.spaces import FullSpace, LatentSpace, Space, as_float64, map_condition_dim
 
@@ -30,6 +31,7 @@ __all__ = [
     "PotentialObjective",
     "SceneConstants",
     "Space",
+    "StepInfo",
     "as_float64",
     "latent_equilibrium",
     "length_scale",

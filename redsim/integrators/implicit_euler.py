@@ -11,6 +11,7 @@ the state holds z and the inertial target stays in q: qbar = 2 f(z_t) - f(z_{t-1
 
 from __future__ import annotations
 
+import dataclasses
 import logging
 import math
 from collections.abc import Callable
@@ -19,6 +20,7 @@ from dataclasses import dataclass
 import torch
 from torch import Tensor
 
+from redsim.integrators.energy_gain import energy_gain_states
 from redsim.integrators.objective import Inertia, PotentialObjective, SceneConstants, checked_vector, pack_inputs
 from redsim.integrators.spaces import Space
 from redsim.scene import LoadsLike, Scene
@@ -47,6 +49,22 @@ class FullState:
     def velocity(self, dt: float) -> Tensor:
         """Backward-difference velocity (q - q_prev) / dt [m/s], shape [n]."""
         return (self.q - self.q_prev) / dt
+
+
+@dataclass(frozen=True)
+class StepInfo(SolveInfo):
+    """A step's :class:`SolveInfo` and its energy balance.
+
+    Attributes:
+        energy_gain: K + E rose by more than the loads' work, beyond round-off and what the solve's
+            leftover gradient allows (:mod:`redsim.integrators.energy_gain`). Reported, never acted on:
+            the state is finite and usable, and nothing is logged.
+        mechanical_gain: K_{t+1} + E(q_{t+1}) - K_t - E(q_t) - W_t [J], with W_t the loads' work over
+            the step; <= 0 on a dissipative step.
+    """
+
+    energy_gain: bool = False
+    mechanical_gain: float = 0.0
 
 
 class ImplicitEuler:
@@ -109,9 +127,7 @@ class ImplicitEuler:
         v = torch.zeros_like(q_t) if velocity is None else checked_vector(velocity, size, "velocity", origin)
         return FullState(q_t, q_t - self.dt * v, 0.0)
 
-    def step(
-        self, state: FullState, loads: LoadsLike = None, cond: Tensor | None = None
-    ) -> tuple[FullState, SolveInfo]:
+    def step(self, state: FullState, loads: LoadsLike = None, cond: Tensor | None = None) -> tuple[FullState, StepInfo]:
         """Advance one step of length dt.
 
         Args:
@@ -120,7 +136,8 @@ class ImplicitEuler:
             cond: Condition vector [m] for conditional scenes.
 
         Returns:
-            The new state (time + dt) and the minimizer's :class:`SolveInfo`.
+            The new state (time + dt) and the minimizer's :class:`SolveInfo` with the step's energy
+            balance (:class:`StepInfo`).
 
         Raises:
             ValueError: on non-finite loads, condition or state.
@@ -148,7 +165,38 @@ class ImplicitEuler:
             if self.strict:
                 raise ConvergenceError(info)
             logger.warning("implicit Euler step at t = %.6g s did not converge: %s", state.time, info.message)
+        info = self._energy_balance(info, configurations, u_t, u_next.detach(), loads_t, cond_t)
         return FullState(u_next.detach().clone(), u_t, state.time + self.dt), info
+
+    def _energy_balance(
+        self,
+        info: SolveInfo,
+        configurations: Tensor,
+        u_t: Tensor,
+        u_next: Tensor,
+        loads: Tensor | None,
+        cond: Tensor | None,
+    ) -> StepInfo:
+        """``info`` with the step's energy balance (:class:`StepInfo`); configurations [2, n]: q_t, q_{t-1}."""
+        scene = self.scene
+        with torch.no_grad():
+            q_next = self.space.configuration(u_next.unsqueeze(0))
+            q = torch.cat([configurations[1:], configurations[:1], q_next])  # q_{t-1}, q_t, q_{t+1}
+            v = q[1:] - q[:-1]
+            kinetic = 0.5 * (v * scene.mass_matvec(v)).sum(-1) / self.dt**2
+            c = None if cond is None else cond.expand(2, -1)
+            mechanical = kinetic + scene.energy(q[1:], None, c)
+            work = torch.zeros((), dtype=q.dtype, device=q.device)
+            if loads is not None and scene.handles:
+                p = scene.handle_positions(q[1:])
+                work = (loads.reshape(-1) * (p[1] - p[0])).sum()
+        inexact = info.grad_norm * float(torch.linalg.vector_norm(u_next - u_t))
+        eps = max(float(torch.finfo(q.dtype).eps), self.space.roundoff)
+        gained = energy_gain_states(
+            mechanical[:1], mechanical[1:], work.reshape(1), torch.tensor([inexact], dtype=q.dtype), eps
+        )
+        change = float(mechanical[1] - mechanical[0] - work)
+        return StepInfo(**dataclasses.asdict(info), energy_gain=bool(gained[0]), mechanical_gain=change)
 
     def rollout(
         self,
@@ -156,7 +204,7 @@ class ImplicitEuler:
         steps: int,
         loads: LoadsLike | LoadSchedule = None,
         cond: Tensor | None = None,
-    ) -> tuple[Tensor, list[SolveInfo]]:
+    ) -> tuple[Tensor, list[StepInfo]]:
         """Run ``steps`` steps from ``state``.
 
         Args:
@@ -167,7 +215,7 @@ class ImplicitEuler:
 
         Returns:
             The coordinates at every time, shape [steps + 1, n] (the initial ones first), and
-            one SolveInfo per step.
+            one StepInfo per step.
         """
         if int(steps) != steps or steps < 0:
             raise ValueError(f"steps must be an integer >= 0, got {steps!r}")

@@ -1,5 +1,7 @@
 """The per-state flags of a latent step a user can act on: ``out_of_range``, ``diverged`` and ``energy_gain``.
 
+``energy_gain`` is the reference integrator's test too (:mod:`redsim.integrators.energy_gain`), re-exported here.
+
 Neither is hidden and neither is printed: they come back as [B] bool tensors in
 :class:`redsim.runtime.stepper.StepStats`.
 """
@@ -11,12 +13,11 @@ import math
 import torch
 from torch import Tensor
 
+from redsim.integrators.energy_gain import ENERGY_ROUNDOFF, energy_gain_states
 from redsim.scene import ConditionSpace
 
 LATENT_RANGE = 4.0
 """A map was fitted on z ~ N(0, I): |z| beyond LATENT_RANGE * sqrt(d) (periodic latents left out) is out of range."""
-ENERGY_ROUNDOFF = 1000.0
-"""Round-off allowance of the ``energy_gain`` flag, in eps of the dtype times the energies summed [J]."""
 DIVERGENCE_MARGIN = 1.0
 """A step diverged when its potential or kinetic energy changed by more than DIVERGENCE_MARGIN * F L (see below)."""
 
@@ -72,33 +73,6 @@ def diverged_states(
     released = ((phi_next - inertia_next) - (phi_now - kinetic_now)).abs() > DIVERGENCE_MARGIN * allowance
     faster = kinetic_next - kinetic_now > DIVERGENCE_MARGIN * allowance
     return ~finite | worse | released | faster
-
-
-def energy_gain_states(
-    mechanical_now: Tensor, mechanical_next: Tensor, work: Tensor, inexact: Tensor, eps: float
-) -> Tensor:
-    """States [B] (bool) whose step raised K + E by more than the loads' work on it, beyond round-off.
-
-    Implicit Euler dissipates: a converged step of a convex energy satisfies
-    K_{t+1} + E_{t+1} - (K_t + E_t) <= W_t - |v_{t+1} - v_t|_M^2 / 2, with W_t = F . (p_{t+1} - p_t)
-    the work of the step's (constant) handle loads. A rise beyond W_t is an artefact: the map's
-    curvature (the minimum over f(z) is not one over q), a non-convex region the step jumped
-    across, or an inexact solve. It is reported, not acted on: the state is finite and usable.
-
-    The tolerance [J] is ``inexact`` (|dPhi/dz| |z_{t+1} - z_t|: what the solve's leftover gradient
-    can put into the balance; an exact minimum has none) plus ENERGY_ROUNDOFF ``eps`` (|K_t + E_t| +
-    |K_{t+1} + E_{t+1}| + |W_t|), the round-off of the sums. A non-finite gain counts as a gain.
-
-    Args:
-        mechanical_now: K_t + E(q_t) [B] [J].
-        mechanical_next: K_{t+1} + E(q_{t+1}) [B] [J].
-        work: W_t [B] [J].
-        inexact: [B] [J], see above.
-        eps: Machine epsilon of the dtype the energies were computed in.
-    """
-    gain = mechanical_next - mechanical_now - work
-    roundoff = ENERGY_ROUNDOFF * eps * (mechanical_now.abs() + mechanical_next.abs() + work.abs())
-    return ~torch.isfinite(gain) | (gain > inexact + roundoff)
 
 
 __all__ = [

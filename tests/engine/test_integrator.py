@@ -271,6 +271,25 @@ def test_newton_energy_decreases_and_large_steps_stay_finite() -> None:
     assert all(i.converged for i in infos), [i.message for i in infos]
 
 
+def test_step_info_holds_the_energy_balance_and_a_dissipative_run_flags_no_gain() -> None:
+    """mechanical_gain is K + E - W's change, as the stability bench's float64 ledger counts it; backward Euler on
+    a loaded, kicked elastic cube only loses energy, so no step is flagged (the firing case, the cloth hit by its
+    ball at 10 m/s, is the slow impact regime of tests/stability/test_bench_stability.py)."""
+    from redsim.benches.stability import ledger
+
+    scene = _cube(1e4, 0.45, gravity=True)
+    sim = ImplicitEuler(FullSpace(scene), 0.02)
+    kick = torch.linspace(-2.0, 2.0, scene.free_dof_count, dtype=torch.float64)
+    start = sim.initial_state(velocity=kick)
+    loads = torch.tensor([[[50.0 * (-1) ** t, -80.0, 20.0]] for t in range(12)], dtype=torch.float64)
+    traj, infos = sim.rollout(start, 12, lambda t, _s: loads[t])
+    h = ledger(scene, traj, loads, 0.02, start.q_prev)
+    gains = torch.tensor([i.mechanical_gain for i in infos], dtype=torch.float64)
+    assert torch.allclose(gains, h[1:] - h[:-1], rtol=1e-9, atol=1e-9 * float(h.abs().max()))
+    assert bool((gains < 0).all()) and not any(i.energy_gain for i in infos)
+    assert all(i.converged for i in infos)
+
+
 def test_newton_and_lbfgs_agree_on_a_step() -> None:
     scene = _cube(1e4, 0.3, gravity=True)
     loads = {"bottom": [50.0, -200.0, 0.0]}
