@@ -17,22 +17,23 @@ from typing import Any
 
 import gymnasium as gym
 
-ENVS: dict[str, tuple[str, str, int]] = {
-    "RedSim/Chain-v0": ("chain", "ChainEnv", 300),
-    "RedSim/MiniChain-v0": ("mini_chain", "MiniChainEnv", 200),
-    "RedSim/ClothBall-v0": ("cloth_ball", "ClothBallEnv", 200),
-    "RedSim/HangingCloth-v0": ("hanging_cloth", "HangingClothEnv", 200),
-    "RedSim/ConditionalBar-v0": ("conditional_bar", "ConditionalBarEnv", 200),
-    "RedSim/Klann-v0": ("klann", "KlannEnv", 300),
-    "RedSim/Stewart-v0": ("stewart", "StewartEnv", 200),
-    "RedSim/BistableBar-v0": ("bistable_bar", "BistableBarEnv", 200),
+ENVS: dict[str, tuple[str, str, int, dict[str, Any]]] = {
+    "RedSim/Chain-v0": ("chain", "ChainEnv", 300, {}),
+    "RedSim/MiniChain-v0": ("mini_chain", "MiniChainEnv", 200, {}),
+    "RedSim/ClothBall-v0": ("cloth_ball", "ClothBallEnv", 200, {}),
+    "RedSim/HangingCloth-v0": ("hanging_cloth", "HangingClothEnv", 200, {}),
+    "RedSim/ConditionalBar-v0": ("conditional_bar", "ConditionalBarEnv", 200, {}),
+    "RedSim/Klann-v0": ("klann", "KlannEnv", 300, {}),
+    "RedSim/Stewart-v0": ("stewart", "StewartEnv", 200, {}),
+    "RedSim/BistableBar-v0": ("bistable_bar", "BistableBarEnv", 200, {}),
+    "RedSim/BistableBar-v1": ("bistable_bar", "BistableBarEnv", 200, {"max_force": 40.0}),
 }
-"""id -> (module in redsim.envs, class, max_episode_steps)."""
+"""id -> (module in redsim.envs, class, max_episode_steps, the id's keyword arguments of the class)."""
 
 
 def register_envs() -> None:
     """Register every id of :data:`ENVS` with Gymnasium (idempotent)."""
-    for env_id, (module, cls, steps) in ENVS.items():
+    for env_id, (module, cls, steps, kwargs) in ENVS.items():
         if env_id in gym.registry:
             continue
         gym.register(
@@ -40,11 +41,12 @@ def register_envs() -> None:
             entry_point=f"redsim.envs.{module}:{cls}",
             vector_entry_point=f"redsim.envs.{module}:make_vec",
             max_episode_steps=steps,
+            kwargs=dict(kwargs),
         )
 
 
 def ids() -> list[str]:
-    """The registered ``RedSim/...-v0`` ids."""
+    """The registered ``RedSim/...`` ids."""
     return list(ENVS)
 
 

@@ -1,4 +1,4 @@
-"""`RedSim/BistableBar-v0`: snap the compressed bar from one buckled state to the other with a bounded force.
+"""`RedSim/BistableBar-v0` and `-v1`: snap the compressed bar from one buckled state to the other with a bounded force.
 
 The bar (`bistable_bar`, its ends pinned closer than its rest length) has two stable states, arched up
 and arched down. Each episode starts at rest in one of them (drawn by the env's generator) and the
@@ -213,7 +213,10 @@ class BistableBarEnv(LatentEnv):
     mirror option makes the map equivariant under the up-down flip). The bar starts at rest arched up or down;
     a vertical force on its middle column (handle `middle`) must snap it over into the other arch. The force is
     bounded: a push only just above the snap-through load carries it over, a weaker one bends it and it springs
-    back.
+    back. The full-space bar snaps under a static middle load of 46-47 N. v0 allows 60 N, so a push towards the
+    goal (the scripted controller) snaps it in every episode; v1 allows 40 N, below the static load: the same
+    push carries it over only in some episodes (its momentum), while pushing along the middle's motion pumps in
+    energy and snaps it every time (tests), so a policy must learn to swing the bar.
 
     ## Action Space
     The action space is a `Box(-1, 1, (1,), float32)`: the force along y on the middle column, scaled to
@@ -221,7 +224,7 @@ class BistableBarEnv(LatentEnv):
 
     | Num | Action | Control Min | Control Max | Unit |
     |---|---|---|---|---|
-    | 0 | force along y (up) on the middle column | -1 | 1 | `max_force` N (default 60 N) |
+    | 0 | force along y (up) on the middle column | -1 | 1 | `max_force` N (60 N in v0, 40 N in v1) |
 
     ## Observation Space
     `obs = concat(z, z_dot, h, h* - h, h_dot)`, a `Box(low, high, (19,), float32)` with finite bounds (values are
@@ -252,7 +255,7 @@ class BistableBarEnv(LatentEnv):
     | Argument | Default | Meaning |
     |---|---|---|
     | `render_mode` | None | None, "rgb_array" or "human" |
-    | `max_force` | 60.0 | force [N] of a unit action on the middle column |
+    | `max_force` | 60.0 | force [N] of a unit action on the middle column (v1 registers 40.0) |
     | `dt` | 0.02 | stepper time step [s] |
     | `frame_skip` | 1 | stepper steps per env step |
     | `subspace` | None | the shipped map, a checkpoint path or a map (it must hold both states) |
@@ -263,6 +266,7 @@ class BistableBarEnv(LatentEnv):
     | `**kwargs` | | more :class:`LatentEnv` arguments (`dtype`, `device`, `width`, `height`, `camera`, ...) |
 
     ## Version History
+    - v1: `max_force` 40 N (v0: 60 N), below the static snap-through load; nothing else changed.
     - v0: first version.
     """
 

@@ -97,6 +97,7 @@ HYPERPARAMS: dict[str, dict[str, dict[str, Any]]] = {
     "RedSim/Klann-v0": {"sac": {"n_envs": 16, "gradient_steps": 8}},
     "RedSim/Stewart-v0": {"sac": {"n_envs": 16, "gradient_steps": 8}},
     "RedSim/BistableBar-v0": {"sac": {"n_envs": 16, "gradient_steps": 8}},
+    "RedSim/BistableBar-v1": {"sac": {"n_envs": 16, "gradient_steps": 8}},
 }
 """env id -> algorithm -> settings; each env's entries override ``"default"`` key by key.
 

@@ -1,4 +1,4 @@
-"""`RedSim/BistableBar-v0`: snap the compressed bar from one buckled state to the other.
+"""`RedSim/BistableBar-v0` and `-v1`: snap the compressed bar from one buckled state to the other.
 
 The registry-wide contract checks (check_env, SB3, soak) run in test_envs.py under ``-m slow``.
 """
@@ -14,6 +14,8 @@ from redsim.envs.base import LatentEnv, shipped
 from redsim.envs.bistable_bar import SnapThrough
 
 ID = "RedSim/BistableBar-v0"
+WEAK = "RedSim/BistableBar-v1"
+"""40 N, below the bar's static snap-through load (46-47 N)."""
 
 
 @pytest.fixture(scope="module")
@@ -61,6 +63,34 @@ def test_a_weak_push_only_bends_the_arch(env: LatentEnv) -> None:
     for _ in range(100):
         _, _, _, _, info = env.step(np.zeros(1, np.float32))
     assert not info["is_success"] and info["height"] == pytest.approx(start, abs=0.1 * abs(goal - start))
+
+
+def _pump(obs: np.ndarray) -> np.ndarray:
+    """Push along the middle's velocity (towards the goal when at rest) until it is 60% of the way over, then let go.
+
+    obs [B, 19]: h, h* - h and h_dot are its last three entries; the start is the goal's mirror image."""
+    h, offset, speed = obs[:, -3], obs[:, -2], obs[:, -1]
+    goal = h + offset
+    push = np.where(np.abs(speed) > 1e-3, np.sign(speed), np.sign(offset))
+    return np.where((h + goal) / (2.0 * goal) > 0.6, 0.0, push)[:, None].astype(np.float32)
+
+
+def test_v1_force_is_below_the_snap_load_yet_pumping_snaps_it() -> None:
+    """v1 (40 N): the scripted push towards the goal fails in some of 8 seeded episodes, swinging the bar by pushing
+    along its motion snaps every one of them, so the task is reachable but needs more than a push."""
+    venv = gym.make_vec(WEAK, num_envs=8, vectorization_mode="vector_entry_point")
+    assert venv.sim.task.max_force == 40.0
+    results = {}
+    for name in ("push", "pump"):
+        obs, _ = venv.reset(seed=0)
+        for _ in range(200):
+            action = venv.sim.task.controller(venv.sim) if name == "push" else _pump(obs)
+            obs, _, terminated, truncated, info = venv.step(np.asarray(action, np.float32))
+            assert not terminated.any()
+        assert truncated.all()
+        results[name] = info["is_success"].copy()
+    assert results["pump"].all(), results
+    assert not results["push"].all(), results
 
 
 def test_vector_env_equals_single_envs_and_seeds_repeat() -> None:

@@ -27,7 +27,7 @@ SLOW = ("RedSim/Chain-v0", "RedSim/ClothBall-v0", "RedSim/HangingCloth-v0")
 ALL_IDS = [*FAST, *(pytest.param(i, marks=pytest.mark.slow) for i in SLOW)]
 LINKAGES = ("RedSim/Klann-v0", "RedSim/Stewart-v0")
 """Not reach tasks: their task checks are in test_linkage_envs.py; the contract checks run here under -m slow."""
-SNAP = ("RedSim/BistableBar-v0",)
+SNAP = ("RedSim/BistableBar-v0", "RedSim/BistableBar-v1")
 """Not a reach task either: its task checks are in test_bistable_env.py; the contract checks run here under -m slow."""
 CONTRACT_IDS = [*ALL_IDS, *(pytest.param(i, marks=pytest.mark.slow) for i in (*LINKAGES, *SNAP))]
 
