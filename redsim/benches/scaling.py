@@ -12,9 +12,10 @@ memory is that size's):
   ``cubature_elements`` elastic elements, from ``cubature_samples`` states z ~ N(0, I) (no rollouts:
   they would need the all-element step); its build time and held-out force error;
 - latent step: the runtime (:class:`redsim.runtime.LatentStepper`, float32) on that map from z = 0
-  under gravity, with all elements and with the cubature, median of ``latent_steps`` steps (the
-  mean iteration count too), at B = 1 and at B = ``batch`` (the all-element step at B = ``batch``
-  only up to ``batch_max_n`` free DOFs: past that one such step takes minutes);
+  under gravity and a sideways tip load of ± the beam's weight, its sign flipped every step (so
+  every step solves), with all elements and with the cubature, median of ``latent_steps`` steps
+  (the mean iteration count too), at B = 1 and at B = ``batch`` (the all-element step at
+  B = ``batch`` only up to ``batch_max_n`` free DOFs: past that one such step takes minutes);
 - full-space step: float64 Newton implicit Euler (tol 1e-6) from the seed under gravity, median of
   ``full_steps`` steps, up to ``full_max_n`` free DOFs;
 - peak resident memory of the process [MiB].
@@ -56,13 +57,20 @@ CURVES = (
 DT = 0.02
 
 
-def _step_times(stepper: Any, batch: int, steps: int) -> tuple[float, float]:
-    """Median wall time [ms] of ``steps`` steps (after one untimed) from z = 0, and the mean iteration count."""
+def _step_times(stepper: Any, batch: int, steps: int, load: float) -> tuple[float, float]:
+    """Median wall time [ms] of ``steps`` steps (after one untimed) from z = 0, and the mean iteration count.
+
+    The tip is pushed sideways (+z) by ``load`` [N] and pulled back by it on alternate steps, so every
+    step has to solve (from rest under gravity alone a briefly fitted map barely moves and most steps
+    take no iteration).
+    """
     z = torch.zeros(batch, stepper.latent_dim)
+    push = torch.zeros(batch, 1, 3)
+    push[..., 2] = load
     z_prev, model, times, iterations = z.clone(), None, [], []
-    for _ in range(steps + 1):
+    for step in range(steps + 1):
         start = time.perf_counter()
-        z_next, stats = stepper.step(z, z_prev, warm=model)
+        z_next, stats = stepper.step(z, z_prev, push if step % 2 == 0 else -push, warm=model)
         times.append(time.perf_counter() - start)
         iterations.append(float(stats.iterations.float().mean()))
         model, z_prev, z = stats.model, z, z_next
@@ -89,6 +97,7 @@ def measure(
     """
     from redsim import scenes
     from redsim.cubature import CubatureConfig, CubatureEnergy, build_cubature
+    from redsim.cubature.fit import default_load_scale
     from redsim.integrators import FullSpace, ImplicitEuler
     from redsim.runtime import LatentStepper
     from redsim.trainers import FitConfig, fit_subspace
@@ -126,14 +135,15 @@ def measure(
     row["cubature_force_error"] = cubature.summary["held_out_force_error"]
     all_elements = LatentStepper(scene, f, DT)
     reduced = LatentStepper(scene, f, DT, energy=CubatureEnergy(scene, f, cubature))
-    row["latent_step_ms"], row["latent_iterations"] = _step_times(all_elements, 1, latent_steps)
-    row["cubature_step_ms"], row["cubature_iterations"] = _step_times(reduced, 1, latent_steps)
+    load = default_load_scale(scene)
+    row["latent_step_ms"], row["latent_iterations"] = _step_times(all_elements, 1, latent_steps, load)
+    row["cubature_step_ms"], row["cubature_iterations"] = _step_times(reduced, 1, latent_steps, load)
     row["batch"] = batch
     row["latent_batch_ms"] = row["cubature_batch_ms"] = None
     if batch:
-        row["cubature_batch_ms"] = _step_times(reduced, batch, latent_steps)[0]
+        row["cubature_batch_ms"] = _step_times(reduced, batch, latent_steps, load)[0]
         if batch_max_n is None or n <= batch_max_n:
-            row["latent_batch_ms"] = _step_times(all_elements, batch, latent_steps)[0]
+            row["latent_batch_ms"] = _step_times(all_elements, batch, latent_steps, load)[0]
     row["full_step_ms"] = row["full_iterations"] = None
     if full_max_n is None or n <= full_max_n:
         integrator = ImplicitEuler(FullSpace(scene.to(dtype=torch.float64)), DT, tol=1e-6)
