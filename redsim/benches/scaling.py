@@ -11,11 +11,14 @@ memory is that size's):
 - cubature: a :class:`redsim.cubature.Cubature` of the briefly fitted map with at most
   ``cubature_elements`` elastic elements, from ``cubature_samples`` states z ~ N(0, I) (no rollouts:
   they would need the all-element step); its build time and held-out force error;
+- latent energy: one evaluation of E(z) and dE/dz at B = 1 (the work of a solver iteration), with
+  all elements (the runtime's map energy) and with the cubature, median of 20;
 - latent step: the runtime (:class:`redsim.runtime.LatentStepper`, float32) on that map from z = 0
-  under gravity and a sideways tip load of ± the beam's weight, its sign flipped every step (so
-  every step solves), with all elements and with the cubature, median of ``latent_steps`` steps
-  (the mean iteration count too), at B = 1 and at B = ``batch`` (the all-element step at
-  B = ``batch`` only up to ``batch_max_n`` free DOFs: past that one such step takes minutes);
+  under gravity and a sideways tip load of ± the beam's weight, its sign flipped every step, with
+  all elements and with the cubature, median of ``latent_steps`` steps (the mean iteration count
+  too: many steps of a briefly fitted map converge at their start, so this is a per-step floor),
+  at B = 1 and at B = ``batch`` (the all-element step at B = ``batch`` only up to ``batch_max_n``
+  free DOFs: past that one such step takes minutes);
 - full-space step: float64 Newton implicit Euler (tol 1e-6) from the seed under gravity, median of
   ``full_steps`` steps, up to ``full_max_n`` free DOFs;
 - peak resident memory of the process [MiB].
@@ -45,6 +48,8 @@ CURVES = (
     "fit_s_per_1000",
     "forward_b1_ms",
     "forward_b32_ms",
+    "latent_eval_ms",
+    "cubature_eval_ms",
     "latent_step_ms",
     "cubature_step_ms",
     "latent_batch_ms",
@@ -60,9 +65,9 @@ DT = 0.02
 def _step_times(stepper: Any, batch: int, steps: int, load: float) -> tuple[float, float]:
     """Median wall time [ms] of ``steps`` steps (after one untimed) from z = 0, and the mean iteration count.
 
-    The tip is pushed sideways (+z) by ``load`` [N] and pulled back by it on alternate steps, so every
-    step has to solve (from rest under gravity alone a briefly fitted map barely moves and most steps
-    take no iteration).
+    The tip is pushed sideways (+z) by ``load`` [N] and pulled back by it on alternate steps. A briefly
+    fitted map barely moves the tip, so many steps still meet the tolerance at their start (no
+    iteration): their time is the two energy evaluations every step makes and the solver's overhead.
     """
     z = torch.zeros(batch, stepper.latent_dim)
     push = torch.zeros(batch, 1, 3)
@@ -75,6 +80,18 @@ def _step_times(stepper: Any, batch: int, steps: int, load: float) -> tuple[floa
         iterations.append(float(stats.iterations.float().mean()))
         model, z_prev, z = stats.model, z, z_next
     return 1e3 * statistics.median(times[1:]), statistics.fmean(iterations[1:])
+
+
+def _eval_ms(energy: Any, latent_dim: int, repeats: int = 20) -> float:
+    """Median wall time [ms] of one latent energy and its gradient dE/dz at B = 1 (z ~ N(0, I), seeded)."""
+    z = torch.randn(1, latent_dim, generator=torch.Generator().manual_seed(0)).requires_grad_(True)
+    times = []
+    for _ in range(repeats + 1):
+        start = time.perf_counter()
+        value, _ = energy.energy(z, None)
+        torch.autograd.grad(value.sum(), z)
+        times.append(time.perf_counter() - start)
+    return 1e3 * statistics.median(times[1:])
 
 
 def measure(
@@ -135,6 +152,8 @@ def measure(
     row["cubature_force_error"] = cubature.summary["held_out_force_error"]
     all_elements = LatentStepper(scene, f, DT)
     reduced = LatentStepper(scene, f, DT, energy=CubatureEnergy(scene, f, cubature))
+    row["latent_eval_ms"] = _eval_ms(all_elements.energy, config.latent_dim)
+    row["cubature_eval_ms"] = _eval_ms(reduced.energy, config.latent_dim)
     load = default_load_scale(scene)
     row["latent_step_ms"], row["latent_iterations"] = _step_times(all_elements, 1, latent_steps, load)
     row["cubature_step_ms"], row["cubature_iterations"] = _step_times(reduced, 1, latent_steps, load)
@@ -221,6 +240,8 @@ HEADERS = {
     "fit_s_per_1000": "fit s / 1000 steps",
     "forward_b1_ms": "forward B=1 ms",
     "forward_b32_ms": "forward B=32 ms",
+    "latent_eval_ms": "latent E+grad ms",
+    "cubature_eval_ms": "cubature E+grad ms",
     "latent_step_ms": "latent step ms",
     "latent_iterations": "latent its",
     "cubature_step_ms": "cubature step ms",
