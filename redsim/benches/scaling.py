@@ -290,27 +290,29 @@ def markdown_table(result: dict[str, Any]) -> str:
 
 def scaling_png(result: dict[str, Any], path: Path, machine: str) -> None:
     """Log-log plot of every curve against n (cubature dashed), with its exponent in the legend."""
+    import matplotlib
     from matplotlib.backends.backend_agg import FigureCanvasAgg
     from matplotlib.figure import Figure
 
     fig = Figure(figsize=(7, 5))
     FigureCanvasAgg(fig)
     ax = fig.add_subplot(1, 1, 1)
-    for key in CURVES:
+    palette = matplotlib.colormaps["tab20"]
+    for i, key in enumerate(CURVES):
         points = _points(result["rows"], key)
         if not points:
             continue
         n, value = zip(*points, strict=True)
         style = "--" if key.startswith("cubature") else "-"
         label = f"{_header(key, result)} (n^{result['exponents'][key]:.2f})"
-        ax.plot(n, value, style, marker="o", label=label)
+        ax.plot(n, value, style, marker="o", color=palette(2 * i % 20 + (2 * i >= 20)), label=label)
     ax.set_xscale("log")
     ax.set_yscale("log")
     ax.set_xlabel("free DOFs n")
     ax.set_ylabel("time [ms; s for fit and cubature build] / memory [MiB]")
     ax.set_title("cantilever beam, 5 x 128 MLP", fontsize=10)
     ax.grid(True, which="both", alpha=0.3)
-    ax.legend(fontsize=7)
+    ax.legend(fontsize=6, loc="upper left", ncol=2)
     fig.suptitle(machine, fontsize=7)
     fig.tight_layout()
     fig.savefig(path, dpi=120)
