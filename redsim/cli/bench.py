@@ -599,12 +599,13 @@ def add_commands(sub: Any) -> Any:
 
     p = bench.add_parser(
         "scaling",
-        help="fit, forward, latent and full-space step time and memory against mesh size",
+        help="fit, forward, latent (all elements and cubature) and full-space step time and memory against mesh size",
         description=(
             "The cantilever beam meshed at several resolutions, the same 5 x 128 MLP: fit time per 1000 steps "
-            "(a few timed steps, scaled), forward-pass time, latent step time, full-space step time and peak "
-            "memory per size (each size in its own process), and the growth exponent of each curve. See "
-            "redsim.benches.scaling."
+            "(a few timed steps, scaled), forward-pass time, a cubature of the briefly fitted map (build time, "
+            "error), latent energy evaluation and step time with all elements and with the cubature (B = 1 and "
+            "batched), full-space step time and peak memory per size (each size in its own process), and the "
+            "growth exponent of each curve. See redsim.benches.scaling."
         ),
     )
     p.add_argument("--sizes", default="4,6,8,11", help="cross-section cells k per mesh (default 4,6,8,11)")
