@@ -8,13 +8,24 @@ memory is that size's):
 - fit time per 1000 steps: the median of ``fit_steps`` timed steps of the real fit loop (after
   ``warmup``) times 1000;
 - forward pass: f(z) for B = 1 and B = 32 (float32, no grad), median of 20;
-- latent step: the runtime (:class:`redsim.runtime.LatentStepper`, float32, B = 1) on the briefly
-  fitted map from z = 0 under gravity, median of ``latent_steps`` steps (the iteration count too);
+- cubature: a :class:`redsim.cubature.Cubature` of the briefly fitted map with at most
+  ``cubature_elements`` elastic elements, from ``cubature_samples`` states z ~ N(0, I) (no rollouts:
+  they would need the all-element step); its build time and held-out force error;
+- latent energy: one evaluation of E(z) and dE/dz at B = 1 (the work of a solver iteration), with
+  all elements (the runtime's map energy) and with the cubature, median of 20;
+- latent step: the runtime (:class:`redsim.runtime.LatentStepper`, float32) on that map from z = 0
+  under gravity and a sideways tip load of ± the beam's weight, its sign flipped every step, with
+  all elements and with the cubature, median of ``latent_steps`` steps (the mean iteration count
+  too: many steps of a briefly fitted map converge at their start, so this is a per-step floor),
+  at B = 1 and at B = ``batch`` (the all-element step at B = ``batch`` only up to ``batch_max_n``
+  free DOFs: past that one such step takes minutes);
 - full-space step: float64 Newton implicit Euler (tol 1e-6) from the seed under gravity, median of
-  ``full_steps`` steps;
+  ``full_steps`` steps, up to ``full_max_n`` free DOFs;
 - peak resident memory of the process [MiB].
 
-Each curve's growth exponent is the least-squares slope of log(time) against log(n).
+A value that was not measured (above its size limit) is None, shown as "not run". Each curve's
+growth exponent is the least-squares slope of log(value) against log(n) over the sizes where it
+was measured.
 """
 
 from __future__ import annotations
@@ -24,6 +35,7 @@ import multiprocessing
 import resource
 import statistics
 import time
+from collections.abc import Callable
 from pathlib import Path
 from typing import Any
 
@@ -32,22 +44,84 @@ import torch
 
 SIZES = (4, 6, 8, 11)
 """Cross-section cells k of the measured meshes (n = 1500, 4410, 9720, 23760)."""
-CURVES = ("fit_s_per_1000", "forward_b1_ms", "forward_b32_ms", "latent_step_ms", "full_step_ms", "peak_mib")
+CURVES = (
+    "fit_s_per_1000",
+    "forward_b1_ms",
+    "forward_b32_ms",
+    "latent_eval_ms",
+    "cubature_eval_ms",
+    "latent_step_ms",
+    "cubature_step_ms",
+    "latent_batch_ms",
+    "cubature_batch_ms",
+    "full_step_ms",
+    "cubature_build_s",
+    "peak_mib",
+)
 """The measured columns whose growth exponents are fitted."""
 DT = 0.02
 
 
+def _step_times(stepper: Any, batch: int, steps: int, load: float) -> tuple[float, float]:
+    """Median wall time [ms] of ``steps`` steps (after one untimed) from z = 0, and the mean iteration count.
+
+    The tip is pushed sideways (+z) by ``load`` [N] and pulled back by it on alternate steps. A briefly
+    fitted map barely moves the tip, so many steps still meet the tolerance at their start (no
+    iteration): their time is the two energy evaluations every step makes and the solver's overhead.
+    """
+    z = torch.zeros(batch, stepper.latent_dim)
+    push = torch.zeros(batch, 1, 3)
+    push[..., 2] = load
+    z_prev, model, times, iterations = z.clone(), None, [], []
+    for step in range(steps + 1):
+        start = time.perf_counter()
+        z_next, stats = stepper.step(z, z_prev, push if step % 2 == 0 else -push, warm=model)
+        times.append(time.perf_counter() - start)
+        iterations.append(float(stats.iterations.float().mean()))
+        model, z_prev, z = stats.model, z, z_next
+    return 1e3 * statistics.median(times[1:]), statistics.fmean(iterations[1:])
+
+
+def _eval_ms(energy: Any, latent_dim: int, repeats: int = 20) -> float:
+    """Median wall time [ms] of one latent energy and its gradient dE/dz at B = 1 (z ~ N(0, I), seeded)."""
+    z = torch.randn(1, latent_dim, generator=torch.Generator().manual_seed(0)).requires_grad_(True)
+    times = []
+    for _ in range(repeats + 1):
+        start = time.perf_counter()
+        value, _ = energy.energy(z, None)
+        torch.autograd.grad(value.sum(), z)
+        times.append(time.perf_counter() - start)
+    return 1e3 * statistics.median(times[1:])
+
+
 def measure(
-    cells: int, *, fit_steps: int = 5, warmup: int = 2, latent_steps: int = 5, full_steps: int = 1, full: bool = True
+    cells: int,
+    *,
+    fit_steps: int = 5,
+    warmup: int = 2,
+    latent_steps: int = 5,
+    full_steps: int = 1,
+    full_max_n: int | None = None,
+    cubature_elements: int = 200,
+    cubature_samples: int = 64,
+    batch: int = 64,
+    batch_max_n: int | None = None,
 ) -> dict[str, Any]:
-    """One row (module doc) for cross-section cells k = ``cells``, in this process."""
+    """One row (module doc) for cross-section cells k = ``cells``, in this process.
+
+    ``full_max_n`` / ``batch_max_n``: the largest n at which the full-space step / the all-element
+    step at B = ``batch`` is run (None: every n); ``batch`` 0 skips the batched steps.
+    """
     from redsim import scenes
+    from redsim.cubature import CubatureConfig, CubatureEnergy, build_cubature
+    from redsim.cubature.fit import default_load_scale
     from redsim.integrators import FullSpace, ImplicitEuler
     from redsim.runtime import LatentStepper
     from redsim.trainers import FitConfig, fit_subspace
     from redsim.trainers.presets import preset
 
     scene = scenes.build("cantilever", cells_x=5 * cells, cells_yz=cells)
+    n = scene.free_dof_count
     config = FitConfig(
         **{**preset("cantilever"), "hidden_width": 128, "hidden_layers": 5},
         steps=warmup + fit_steps,
@@ -57,10 +131,10 @@ def measure(
     result = fit_subspace(scene, config, progress=False, callbacks=[lambda _s, _t: stamps.append(time.perf_counter())])
     fit_step = statistics.median(b - a for a, b in zip(stamps[warmup - 1 : -1], stamps[warmup:], strict=True))
     f = result.subspace
-    row: dict[str, Any] = {"cells": cells, "n": scene.free_dof_count, "d": config.latent_dim}
+    row: dict[str, Any] = {"cells": cells, "n": n, "d": config.latent_dim}
     row["fit_s_per_1000"] = 1000.0 * fit_step
-    for batch in (1, 32):
-        z = torch.randn(batch, config.latent_dim)
+    for size in (1, 32):
+        z = torch.randn(size, config.latent_dim)
         times = []
         with torch.no_grad():
             f(z)
@@ -68,23 +142,29 @@ def measure(
                 start = time.perf_counter()
                 f(z)
                 times.append(time.perf_counter() - start)
-        row[f"forward_b{batch}_ms"] = 1e3 * statistics.median(times)
-    stepper = LatentStepper(scene, f, DT)
-    z = torch.zeros(1, config.latent_dim)
-    z_prev = z.clone()
-    times, iterations, model = [], [], None
-    for _ in range(latent_steps + 1):
-        start = time.perf_counter()
-        z_next, stats = stepper.step(z, z_prev, warm=model)
-        model = stats.model
-        times.append(time.perf_counter() - start)
-        iterations.append(float(stats.iterations.float().mean()))
-        z_prev, z = z, z_next
-    row["latent_step_ms"] = 1e3 * statistics.median(times[1:])
-    row["latent_iterations"] = statistics.fmean(iterations[1:])
-    row["full_step_ms"] = math.nan
-    row["full_iterations"] = math.nan
-    if full:
+        row[f"forward_b{size}_ms"] = 1e3 * statistics.median(times)
+    start = time.perf_counter()
+    cubature = build_cubature(
+        scene, f, CubatureConfig(elements=cubature_elements, samples=cubature_samples, episodes=0, seed=0)
+    )
+    row["cubature_build_s"] = time.perf_counter() - start
+    row["cubature_kept"] = cubature.kept
+    row["cubature_force_error"] = cubature.summary["held_out_force_error"]
+    all_elements = LatentStepper(scene, f, DT)
+    reduced = LatentStepper(scene, f, DT, energy=CubatureEnergy(scene, f, cubature))
+    row["latent_eval_ms"] = _eval_ms(all_elements.energy, config.latent_dim)
+    row["cubature_eval_ms"] = _eval_ms(reduced.energy, config.latent_dim)
+    load = default_load_scale(scene)
+    row["latent_step_ms"], row["latent_iterations"] = _step_times(all_elements, 1, latent_steps, load)
+    row["cubature_step_ms"], row["cubature_iterations"] = _step_times(reduced, 1, latent_steps, load)
+    row["batch"] = batch
+    row["latent_batch_ms"] = row["cubature_batch_ms"] = None
+    if batch:
+        row["cubature_batch_ms"] = _step_times(reduced, batch, latent_steps, load)[0]
+        if batch_max_n is None or n <= batch_max_n:
+            row["latent_batch_ms"] = _step_times(all_elements, batch, latent_steps, load)[0]
+    row["full_step_ms"] = row["full_iterations"] = None
+    if full_max_n is None or n <= full_max_n:
         integrator = ImplicitEuler(FullSpace(scene.to(dtype=torch.float64)), DT, tol=1e-6)
         state = integrator.initial_state()
         times, iterations = [], []
@@ -105,8 +185,17 @@ def _child(args: tuple[int, dict[str, Any], int]) -> dict[str, Any]:
     return measure(cells, **options)
 
 
-def bench_scaling(sizes: tuple[int, ...] = SIZES, *, threads: int = 1, **options: Any) -> dict[str, Any]:
+def bench_scaling(
+    sizes: tuple[int, ...] = SIZES,
+    *,
+    threads: int = 1,
+    on_row: Callable[[dict[str, Any]], None] | None = None,
+    **options: Any,
+) -> dict[str, Any]:
     """Rows of :func:`measure` for each size, each in a fresh process, and the growth exponents.
+
+    ``on_row`` gets the result so far (rows and exponents) after each size, so a long run's
+    finished sizes can be written out before the next one starts.
 
     Raises:
         ValueError: a size below 1.
@@ -114,18 +203,30 @@ def bench_scaling(sizes: tuple[int, ...] = SIZES, *, threads: int = 1, **options
     if any(int(k) != k or k < 1 for k in sizes):
         raise ValueError(f"sizes must be integers >= 1, got {sizes}")
     context = multiprocessing.get_context("spawn")
-    rows = []
+    rows: list[dict[str, Any]] = []
     for cells in sizes:
         with context.Pool(1) as pool:
             rows.append(pool.map(_child, [(int(cells), options, threads)])[0])
+        if on_row is not None:
+            on_row({"rows": rows, "exponents": growth_exponents(rows)})
     return {"rows": rows, "exponents": growth_exponents(rows)}
 
 
+def _points(rows: list[dict[str, Any]], key: str) -> list[tuple[int, float]]:
+    """(n, value) of the rows where ``key`` was measured (a finite value > 0; None is "not run")."""
+    out = []
+    for row in rows:
+        value = row.get(key)
+        if isinstance(value, (int, float)) and math.isfinite(value) and value > 0:
+            out.append((row["n"], float(value)))
+    return out
+
+
 def growth_exponents(rows: list[dict[str, Any]]) -> dict[str, float]:
-    """Slope of log(value) against log(n) per curve of :data:`CURVES` (NaN with fewer than 2 finite points)."""
+    """Slope of log(value) against log(n) per curve of :data:`CURVES` (NaN with fewer than 2 measured points)."""
     out = {}
     for key in CURVES:
-        points = [(r["n"], r[key]) for r in rows if math.isfinite(r.get(key, math.nan)) and r[key] > 0]
+        points = _points(rows, key)
         if len(points) < 2:
             out[key] = math.nan
             continue
@@ -139,26 +240,45 @@ HEADERS = {
     "fit_s_per_1000": "fit s / 1000 steps",
     "forward_b1_ms": "forward B=1 ms",
     "forward_b32_ms": "forward B=32 ms",
+    "latent_eval_ms": "latent E+grad ms",
+    "cubature_eval_ms": "cubature E+grad ms",
     "latent_step_ms": "latent step ms",
     "latent_iterations": "latent its",
+    "cubature_step_ms": "cubature step ms",
+    "cubature_iterations": "cubature its",
+    "latent_batch_ms": "latent step B=64 ms",
+    "cubature_batch_ms": "cubature step B=64 ms",
     "full_step_ms": "full step ms",
     "full_iterations": "full its",
+    "cubature_build_s": "cubature build s",
+    "cubature_kept": "cubature elements",
+    "cubature_force_error": "cubature force error",
     "peak_mib": "peak MiB",
 }
+"""Table columns (the B=64 headers name the default batch; the row's ``batch`` is the one run)."""
+
+
+def _header(key: str, result: dict[str, Any]) -> str:
+    """The column name of ``key``, with the batch size the rows ran."""
+    batch = next((r["batch"] for r in result["rows"] if r.get("batch")), 64)
+    return HEADERS[key].replace("B=64", f"B={batch}")
 
 
 def markdown_table(result: dict[str, Any]) -> str:
     """The rows and, last, the growth exponents, as a markdown table."""
     keys = list(HEADERS)
-    lines = ["| " + " | ".join(HEADERS[k] for k in keys) + " |", "|" + "---|" * len(keys)]
+    names = [_header(k, result) for k in keys]
+    lines = ["| " + " | ".join(names) + " |", "|" + "---|" * len(keys)]
 
     def cell(value: Any) -> str:
+        if value is None:
+            return "not run"
         if isinstance(value, float):
             return "–" if not math.isfinite(value) else f"{value:.3g}"
         return str(value)
 
     for row in result["rows"]:
-        lines.append("| " + " | ".join(cell(row[k]) for k in keys) + " |")
+        lines.append("| " + " | ".join(cell(row.get(k)) for k in keys) + " |")
     exponents = result["exponents"]
     lines.append(
         "| growth exponent | "
@@ -169,26 +289,30 @@ def markdown_table(result: dict[str, Any]) -> str:
 
 
 def scaling_png(result: dict[str, Any], path: Path, machine: str) -> None:
-    """Log-log plot of every curve against n, with its exponent in the legend."""
+    """Log-log plot of every curve against n (cubature dashed), with its exponent in the legend."""
+    import matplotlib
     from matplotlib.backends.backend_agg import FigureCanvasAgg
     from matplotlib.figure import Figure
 
     fig = Figure(figsize=(7, 5))
     FigureCanvasAgg(fig)
     ax = fig.add_subplot(1, 1, 1)
-    for key in CURVES:
-        points = [(r["n"], r[key]) for r in result["rows"] if math.isfinite(r[key])]
+    palette = matplotlib.colormaps["tab20"]
+    for i, key in enumerate(CURVES):
+        points = _points(result["rows"], key)
         if not points:
             continue
         n, value = zip(*points, strict=True)
-        ax.plot(n, value, marker="o", label=f"{HEADERS[key]} (n^{result['exponents'][key]:.2f})")
+        style = "--" if key.startswith("cubature") else "-"
+        label = f"{_header(key, result)} (n^{result['exponents'][key]:.2f})"
+        ax.plot(n, value, style, marker="o", color=palette(2 * i % 20 + (2 * i >= 20)), label=label)
     ax.set_xscale("log")
     ax.set_yscale("log")
     ax.set_xlabel("free DOFs n")
-    ax.set_ylabel("time [ms, s for the fit] / memory [MiB]")
+    ax.set_ylabel("time [ms; s for fit and cubature build] / memory [MiB]")
     ax.set_title("cantilever beam, 5 x 128 MLP", fontsize=10)
     ax.grid(True, which="both", alpha=0.3)
-    ax.legend(fontsize=7)
+    ax.legend(fontsize=6, loc="upper left", ncol=2)
     fig.suptitle(machine, fontsize=7)
     fig.tight_layout()
     fig.savefig(path, dpi=120)

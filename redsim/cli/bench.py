@@ -363,20 +363,39 @@ def cmd_bench_scaling(args: argparse.Namespace) -> int:
         sizes = tuple(int(k) for k in parse_list(args.sizes, "--sizes"))
     except ValueError as err:
         raise CliError(f"--sizes must be comma-separated integers, got {args.sizes!r}") from err
-    if min(sizes) < 1 or args.fit_steps < 1 or args.latent_steps < 1:
-        raise CliError("--sizes, --fit-steps and --latent-steps must be >= 1")
+    counts = (min(sizes), args.fit_steps, args.fit_warmup, args.latent_steps, args.cubature_elements)
+    if min(counts) < 1:
+        raise CliError("--sizes, --fit-steps, --fit-warmup, --latent-steps and --cubature-elements must be >= 1")
+    if args.batch < 0 or min(v for v in (args.full_max_n, args.batch_max_n, 0) if v is not None) < 0:
+        raise CliError("--batch, --full-max-n and --batch-max-n must be >= 0")
     threads = args.threads or 1
+    folder = Path(args.out) if args.out else None
+
+    def write(partial: dict) -> None:
+        if folder is None:
+            return
+        folder.mkdir(parents=True, exist_ok=True)
+        line = _machine_line({**machine_info(), "torch_threads": threads}, "cpu")
+        (folder / "scaling.md").write_text(f"{line}\n\n{scaling.markdown_table(partial)}\n")
+        scaling.scaling_png(partial, folder / "scaling.png", line)
+        if not args.json:
+            note(f"bench scaling: n = {partial['rows'][-1]['n']} done, wrote {folder}/scaling.md and scaling.png")
+
     result = scaling.bench_scaling(
-        sizes, threads=threads, fit_steps=args.fit_steps, latent_steps=args.latent_steps, full=not args.no_full
+        sizes,
+        threads=threads,
+        on_row=write,
+        fit_steps=args.fit_steps,
+        warmup=args.fit_warmup,
+        latent_steps=args.latent_steps,
+        full_max_n=0 if args.no_full else args.full_max_n,
+        cubature_elements=args.cubature_elements,
+        batch=args.batch,
+        batch_max_n=args.batch_max_n,
     )
     machine = machine_info()
     result["machine"] = machine
     line = _machine_line({**machine, "torch_threads": threads}, "cpu")
-    if args.out:
-        folder = Path(args.out)
-        folder.mkdir(parents=True, exist_ok=True)
-        (folder / "scaling.md").write_text(f"{line}\n\n{scaling.markdown_table(result)}\n")
-        scaling.scaling_png(result, folder / "scaling.png", line)
     if args.json:
         json_out(result)
     else:
@@ -580,19 +599,33 @@ def add_commands(sub: Any) -> Any:
 
     p = bench.add_parser(
         "scaling",
-        help="fit, forward, latent and full-space step time and memory against mesh size",
+        help="fit, forward, latent (all elements and cubature) and full-space step time and memory against mesh size",
         description=(
             "The cantilever beam meshed at several resolutions, the same 5 x 128 MLP: fit time per 1000 steps "
-            "(a few timed steps, scaled), forward-pass time, latent step time, full-space step time and peak "
-            "memory per size (each size in its own process), and the growth exponent of each curve. See "
-            "redsim.benches.scaling."
+            "(a few timed steps, scaled), forward-pass time, a cubature of the briefly fitted map (build time, "
+            "error), latent energy evaluation and step time with all elements and with the cubature (B = 1 and "
+            "batched), full-space step time and peak memory per size (each size in its own process), and the "
+            "growth exponent of each curve. See redsim.benches.scaling."
         ),
     )
     p.add_argument("--sizes", default="4,6,8,11", help="cross-section cells k per mesh (default 4,6,8,11)")
     p.add_argument("--fit-steps", type=int, default=5, help="timed fit steps per size (default 5)")
+    p.add_argument("--fit-warmup", type=int, default=2, help="untimed fit steps before them (default 2)")
     p.add_argument("--latent-steps", type=int, default=5, help="timed latent steps per size (default 5)")
-    p.add_argument("--no-full", action="store_true", help="skip the full-space step")
-    p.add_argument("--out", metavar="DIR", help="write DIR/scaling.md and DIR/scaling.png")
+    p.add_argument(
+        "--cubature-elements", type=int, default=200, help="most elastic elements of each size's cubature (default 200)"
+    )
+    p.add_argument("--batch", type=int, default=64, help="batch of the batched latent steps, 0 for none (default 64)")
+    p.add_argument(
+        "--batch-max-n",
+        type=int,
+        help="run the all-element batched step only up to this many free DOFs (default: every size)",
+    )
+    p.add_argument(
+        "--full-max-n", type=int, help="run the full-space step only up to this many free DOFs (default: every size)"
+    )
+    p.add_argument("--no-full", action="store_true", help="skip the full-space step at every size")
+    p.add_argument("--out", metavar="DIR", help="write DIR/scaling.md and DIR/scaling.png (rewritten after each size)")
     finish_command(p, cmd_bench_scaling, "print one JSON document on stdout", default_threads=1)
 
     p = bench.add_parser(

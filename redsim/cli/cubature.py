@@ -148,7 +148,11 @@ def _sweep(args: argparse.Namespace) -> int:
 
     cells = tuple(parse_ints(args.sweep, "--sweep"))
     batches = tuple(parse_ints(args.batches, "--batches"))
-    rows = mesh_sweep(cells, elements=args.elements, batches=batches, timed_steps=args.timed_steps)
+    if args.batch_max_n is not None and args.batch_max_n < 0:
+        raise CliError(f"--batch-max-n must be >= 0, got {args.batch_max_n}")
+    rows = mesh_sweep(
+        cells, elements=args.elements, batches=batches, timed_steps=args.timed_steps, batch_max_n=args.batch_max_n
+    )
     if args.json:
         json_out({"machine": machine_info(), "sweep": rows})
         return EXIT_OK
@@ -156,7 +160,9 @@ def _sweep(args: argparse.Namespace) -> int:
     out(machine_line(machine_info(), "cpu"))
     for row in rows:
         times = "  ".join(
-            f"B={b}: {1e3 * t['all_s']:.3g} -> {1e3 * t['cubature_s']:.3g}" for b, t in row["timing"].items()
+            f"B={b}: {'not run' if t['all_s'] is None else format(1e3 * t['all_s'], '.3g')} -> "
+            f"{1e3 * t['cubature_s']:.3g}"
+            for b, t in row["timing"].items()
         )
         out(f"cells {row['cells']:>4}  n {row['n']:>7}  kept {row['kept']:>5}  {times}")
     return EXIT_OK
@@ -211,5 +217,10 @@ def add_bench_command(bench: Any) -> None:
         "--sweep",
         metavar="C1,C2",
         help="instead: the mesh sweep, hanging_sheet with C x C cells each (step time only, unfitted maps)",
+    )
+    p.add_argument(
+        "--batch-max-n",
+        type=int,
+        help="sweep: time the all-element step at batches > 1 only up to this many free DOFs (default: always)",
     )
     finish_command(p, cmd_bench_cubature, "print one JSON document on stdout", default_threads=1)

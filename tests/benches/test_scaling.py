@@ -1,4 +1,4 @@
-"""`redsim bench scaling`: growth exponents, the table, bad input, and (slow) one small size measured."""
+"""`redsim bench scaling`: growth exponents, the table, sizes left out, bad input, the smallest mesh measured."""
 
 from __future__ import annotations
 
@@ -12,7 +12,8 @@ from redsim.benches import scaling
 def _rows(exponent: float) -> list[dict]:
     rows = []
     for n in (1000, 4000, 16000):
-        row = {"cells": 1, "n": n, "latent_iterations": 3.0, "full_iterations": 2.0}
+        row = {"cells": 1, "n": n, "batch": 64, "latent_iterations": 3.0, "cubature_iterations": 3.0}
+        row.update({"full_iterations": 2.0, "cubature_kept": 200, "cubature_force_error": 0.01})
         row.update({key: 2.0 * n**exponent for key in scaling.CURVES})
         rows.append(row)
     return rows
@@ -35,13 +36,38 @@ def test_table_has_a_row_per_size_and_the_exponents() -> None:
     assert "–" in lines[2]
 
 
+def test_a_step_not_run_is_shown_as_such_and_left_out_of_its_exponent() -> None:
+    rows = _rows(1.0)
+    rows[-1]["full_step_ms"] = None  # above --full-max-n
+    rows[-1]["full_iterations"] = None
+    exponents = scaling.growth_exponents(rows)
+    assert exponents["full_step_ms"] == pytest.approx(1.0)
+    last = scaling.markdown_table({"rows": rows, "exponents": exponents}).splitlines()[-2]
+    assert last.count("not run") == 2
+    only_one = [dict(r, full_step_ms=None) for r in rows[1:]] + rows[:1]
+    assert math.isnan(scaling.growth_exponents(only_one)["full_step_ms"])
+
+
 def test_bad_sizes_are_refused(cli) -> None:
     code, _, err = cli("bench", "scaling", "--sizes", "4,x")
     assert code == 2 and "--sizes" in err
     code, _, err = cli("bench", "scaling", "--sizes", "0")
     assert code == 2 and ">= 1" in err
+    code, _, err = cli("bench", "scaling", "--full-max-n", "-1")
+    assert code == 2 and "--full-max-n" in err
+    code, _, err = cli("bench", "scaling", "--cubature-elements", "0")
+    assert code == 2 and "--cubature-elements" in err
     with pytest.raises(ValueError, match="sizes"):
         scaling.bench_scaling((0,))
+
+
+def test_the_smallest_mesh_has_a_finite_cubature_step_and_no_full_step_above_its_limit() -> None:
+    row = scaling.measure(1, fit_steps=1, warmup=1, latent_steps=1, cubature_elements=8, batch=2, full_max_n=10)
+    assert row["n"] > 10 and row["cubature_kept"] == 8  # of the beam's 30 tets
+    for key in ("cubature_eval_ms", "cubature_step_ms", "cubature_batch_ms", "latent_batch_ms", "cubature_build_s"):
+        assert math.isfinite(row[key]) and row[key] > 0, key
+    assert 0.0 <= row["cubature_force_error"] < 1.0
+    assert row["full_step_ms"] is None and row["full_iterations"] is None
 
 
 @pytest.mark.slow

@@ -246,3 +246,14 @@ def test_the_energy_option_refuses_what_it_cannot_use(mini_chain) -> None:
         LatentStepper(scene, f, 0.02, energy=cubature_energy)  # none is shipped for the mini chain
     with pytest.raises(ValueError, match="factory"):
         LatentStepper(scene, f, 0.02, energy="fast")
+
+
+def test_mesh_sweep_leaves_the_batched_all_element_step_out_above_its_limit(cli) -> None:
+    from redsim.cubature.bench import mesh_sweep
+
+    small, big = mesh_sweep((3, 5), elements=8, batches=(1, 2), timed_steps=1, batch_max_n=50)
+    assert small["n"] <= 50 < big["n"]
+    assert small["timing"][2]["all_s"] > 0 and big["timing"][2]["all_s"] is None
+    assert all(row["timing"][1]["all_s"] > 0 and row["timing"][2]["cubature_s"] > 0 for row in (small, big))
+    code, _, err = cli("bench", "cubature", "--sweep", "3", "--batch-max-n", "-1")
+    assert code == 2 and "--batch-max-n" in err
