@@ -97,7 +97,16 @@ HYPERPARAMS: dict[str, dict[str, dict[str, Any]]] = {
     "RedSim/Klann-v0": {"sac": {"n_envs": 16, "gradient_steps": 8}},
     "RedSim/Stewart-v0": {"sac": {"n_envs": 16, "gradient_steps": 8}},
     "RedSim/BistableBar-v0": {"sac": {"n_envs": 16, "gradient_steps": 8}},
-    "RedSim/BistableBar-v1": {"sac": {"n_envs": 16, "gradient_steps": 8}},
+    "RedSim/BistableBar-v1": {
+        "sac": {"n_envs": 16, "gradient_steps": 8, "gamma": 0.99},
+        "ppo": {
+            "n_envs": 64,
+            "n_steps": 64,
+            "batch_size": 512,
+            "gamma": 0.99,
+            "policy_kwargs": {"net_arch": [64, 64], "log_std_init": 0.0},
+        },
+    },
 }
 """env id -> algorithm -> settings; each env's entries override ``"default"`` key by key.
 
