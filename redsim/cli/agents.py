@@ -6,7 +6,7 @@ import argparse
 from pathlib import Path
 from typing import Any
 
-from redsim.cli.common import EXIT_OK, CliError, finish_command, json_out, out
+from redsim.cli.common import EXIT_OK, CliError, finish_command, json_out, out, parse_params
 
 
 def _check_env(env_id: str) -> None:
@@ -24,13 +24,33 @@ def _positive(value: int | None, flag: str) -> None:
 
 
 def _env_kwargs(args: argparse.Namespace) -> dict[str, Any]:
+    """The env's keyword arguments: ``--env-arg KEY=VALUE`` pairs and ``--episode-steps``."""
     _positive(args.episode_steps, "--episode-steps")
-    return {} if args.episode_steps is None else {"max_episode_steps": args.episode_steps}
+    kwargs = parse_params(args.env_arg, "--env-arg", "cubature=true")
+    if kwargs:
+        import gymnasium as gym
+
+        try:  # one env, so that a bad argument is one line here rather than a traceback from the vector env
+            gym.make(args.env_id, **kwargs).close()
+        except (TypeError, ValueError) as err:
+            raise CliError(f"cannot make {args.env_id} with --env-arg {' '.join(args.env_arg)}: {err}") from err
+    if args.episode_steps is not None:
+        if "max_episode_steps" in kwargs:
+            raise CliError("give the episode length once: --episode-steps or --env-arg max_episode_steps=N")
+        kwargs["max_episode_steps"] = args.episode_steps
+    return kwargs
 
 
-def _add_episode_steps(parser: argparse.ArgumentParser) -> None:
+def _add_env_args(parser: argparse.ArgumentParser) -> None:
     parser.add_argument(
         "--episode-steps", type=int, metavar="N", help="truncate episodes at N steps (default: the id's)"
+    )
+    parser.add_argument(
+        "--env-arg",
+        action="append",
+        default=[],
+        metavar="KEY=VALUE",
+        help="keyword argument of the env, VALUE a JSON literal (e.g. cubature=true, max_force=4.0); repeatable",
     )
 
 
@@ -100,10 +120,9 @@ def cmd_eval_agent(args: argparse.Namespace) -> int:
     except (ValueError, FileNotFoundError) as err:
         raise CliError(str(err)) from err
     policies = {"agent": model, **({"random": "random", "scripted": "scripted"} if args.baselines else {})}
+    env_kwargs = _env_kwargs(args)
     rows = {
-        name: evaluate(
-            args.env_id, policy, episodes=args.episodes, seed=args.seed, env_kwargs=_env_kwargs(args)
-        ).as_dict()
+        name: evaluate(args.env_id, policy, episodes=args.episodes, seed=args.seed, env_kwargs=env_kwargs).as_dict()
         for name, policy in policies.items()
     }
     if args.json:
@@ -138,7 +157,7 @@ def add_commands(sub: Any) -> None:
     p.add_argument("--eval-episodes", type=int, default=10, help="episodes per evaluation (default 10)")
     p.add_argument("--final-episodes", type=int, default=20, help="seeded episodes of the final evaluation")
     p.add_argument("--resume", action="store_true", help="continue the run in DIR up to --steps in all")
-    _add_episode_steps(p)
+    _add_env_args(p)
     p.add_argument("--no-video", action="store_true", help="skip policy.gif")
     p.add_argument("--no-progress", action="store_true", help="no progress bar")
     finish_command(p, cmd_train_agent, "print one JSON summary", default_threads=1)
@@ -159,7 +178,7 @@ def add_commands(sub: Any) -> None:
     p.add_argument("--episodes", type=int, default=20, help="episodes (default 20)")
     p.add_argument("--seed", type=int, default=0, help="first episode seed (default 0)")
     p.add_argument("--baselines", action="store_true", help="also a random policy and the scripted controller")
-    _add_episode_steps(p)
+    _add_env_args(p)
     finish_command(p, cmd_eval_agent, "print one JSON document", default_threads=1)
 
 

@@ -104,19 +104,19 @@ def build_scene(name: str, params: dict[str, Any] | None = None) -> Scene:
         raise CliError(f"cannot build scene {name!r} with {shown}: {message}") from err
 
 
-def parse_params(items: Sequence[str]) -> dict[str, Any]:
-    """``KEY=VALUE`` pairs with VALUE a JSON literal (``3``, ``0.5``, ``false``, ``"text"``)."""
+def parse_params(items: Sequence[str], flag: str = "--param", example: str = "links=3") -> dict[str, Any]:
+    """``KEY=VALUE`` pairs (given with ``flag``) with VALUE a JSON literal (``3``, ``0.5``, ``false``, ``"text"``)."""
     params: dict[str, Any] = {}
     for item in items:
         key, sep, value = item.partition("=")
         key = key.strip()
         if not sep or not key.isidentifier():
-            raise CliError(f"malformed --param {item!r}: expected KEY=VALUE, e.g. --param links=3")
+            raise CliError(f"malformed {flag} {item!r}: expected KEY=VALUE, e.g. {flag} {example}")
         try:
             params[key] = json.loads(value)
         except json.JSONDecodeError as err:
             raise CliError(
-                f"bad --param {item!r}: VALUE must be a JSON literal such as 3, 0.5, false, [1, 2] "
+                f"bad {flag} {item!r}: VALUE must be a JSON literal such as 3, 0.5, false, [1, 2] "
                 f"or '\"text\"' (quotes included)"
             ) from err
     return params

@@ -70,9 +70,23 @@ def test_evaluation_is_seeded_and_the_scripted_controller_beats_random() -> None
 
 def test_train_resume_and_evaluate_through_the_cli(cli: Callable[..., tuple[int, str, str]], tmp_path: Path) -> None:
     out = tmp_path / "run"
-    code, stdout, err = cli("train-agent", MINI, "--algo", "sac", "--steps", "200", "--out", str(out), *TINY, "--json")
+    code, stdout, err = cli(
+        "train-agent",
+        MINI,
+        "--algo",
+        "sac",
+        "--steps",
+        "200",
+        "--out",
+        str(out),
+        *TINY,
+        "--env-arg",
+        "max_force=3.0",
+        "--json",
+    )
     assert code == 0, err
     summary = json.loads(stdout)
+    assert json.loads((out / "agent.json").read_text())["env_kwargs"] == {"max_force": 3.0, "max_episode_steps": 20}
     assert summary["steps"] == 200 and summary["final_evaluation"]["episodes"] == 2
     for name in ("model.zip", "best_model.zip", "curve.csv", "curve.png", "policy.gif", "agent.json"):
         assert (out / name).stat().st_size > 0, name
@@ -175,6 +189,14 @@ def test_bad_input_is_a_clear_cli_error(cli: Callable[..., tuple[int, str, str]]
     assert code == 2 and "not one trained by redsim" in err
     code, _, err = cli("eval-agent", str(junk), MINI, "--episodes", "0")
     assert code == 2 and "--episodes must be >= 1" in err
+    code, _, err = cli("train-agent", MINI, "--env-arg", "max_force", "--out", str(tmp_path))
+    assert code == 2 and "malformed --env-arg 'max_force': expected KEY=VALUE" in err
+    code, _, err = cli("train-agent", MINI, "--env-arg", "bogus=1", "--out", str(tmp_path))
+    assert code == 2 and "cannot make RedSim/MiniChain-v0 with --env-arg bogus=1" in err and "'bogus'" in err
+    code, _, err = cli(
+        "train-agent", MINI, "--env-arg", "max_episode_steps=5", "--episode-steps", "5", "--out", str(tmp_path)
+    )
+    assert code == 2 and "give the episode length once" in err
 
 
 def _foreign_model(folder: Path) -> Path:
