@@ -629,8 +629,8 @@ def add_commands(sub: Any) -> Any:
     p.add_argument(
         "--dims",
         metavar="D1,D2",
-        help="compare the three subspaces at each of these d (e.g. 1,2,4,8,16): the shipped neural map at its d, "
-        "else DIR/SCENE_dD.pt, fitted with the scene's preset into --checkpoints when missing",
+        help="compare the three subspaces at each of these d (e.g. 1,2,4,8,16) and the shipped map's d: the shipped "
+        "neural map at its d, else DIR/SCENE_dD.pt, fitted with the scene's preset into --checkpoints when missing",
     )
     p.add_argument(
         "--checkpoints", default="subspaces", metavar="DIR", help="where --dims fits are kept (default subspaces)"
