@@ -29,7 +29,8 @@ run's own start:
 
 its mean over the steps, and the same for the handle's position in cm (``handle cm``: mean of
 |Δp(t) - Δp_ref(t)|). ``projection`` is the floor no latent solver can beat: the mean over every
-10th step of min_z |(f(z) - f(z*)) - (q_ref(t) - q_ref(0))|_M, relative as e(t).
+10th step of min_z |(f(z) - f(z*)) - (q_ref(t) - q_ref(0))|_M, relative as e(t). The row
+:data:`NO_MOTION` scores a run that stays at its start: the error of ignoring the loads.
 """
 
 from __future__ import annotations
@@ -575,8 +576,9 @@ def bench_accuracy(
         reference = run_full(scene, q_rest, loads, dt=dt, tol=p.reference_tol, max_iter=100)
         ref_median = statistics.median(reference.step_s)
         rows.append(_row(scenario, "full reference", "reference", reference, reference, scene64, p.handle, ref_median))
+        rows.append(_row(scenario, NO_MOTION, "reference", _still(reference), reference, scene64, p.handle, ref_median))
         if progress:
-            progress(_progress_line(rows[-1]))
+            progress(_progress_line(rows[-2]))
         for config in configs:
             run = config.run(loads)
             row = _row(scenario, config.label, config.family, run, reference, scene64, p.handle, ref_median)
@@ -603,6 +605,16 @@ def _map_info(dim: int, neural: nn.Module, cubature: Cubature | None) -> dict[st
         "fit_seconds": metadata.get("fit_seconds"),
         "cubature_elements": None if cubature is None else cubature.kept,
     }
+
+
+NO_MOTION = "no motion (stays at its start)"
+"""The row of a run that never moves: the error of ignoring the loads (time per step: none, printed –)."""
+
+
+def _still(reference: Run) -> Run:
+    """A run that stays at the reference's start, at its times (no time per step: NaN)."""
+    q = reference.q[:1].expand_as(reference.q).clone()
+    return Run(q, reference.times, [math.nan] * len(reference.step_s), reference.stride)
 
 
 def _prefix(run: Run, steps: int) -> Run:
@@ -700,7 +712,7 @@ def pareto_png(result: dict[str, Any], path: Path, machine: str) -> None:
         ax = fig.add_subplot(1, len(scenarios), i + 1)
         seen = set()
         for row in result["rows"]:
-            if row["scenario"] != scenario or not math.isfinite(row["rel_error_mean"]):
+            if row["scenario"] != scenario or not (math.isfinite(row["rel_error_mean"]) and row["ms_per_step"] > 0):
                 continue
             color, marker = FAMILY_STYLE.get(row["family"], ("tab:purple", "x"))
             label = row["family"] if row["family"] not in seen else None
@@ -793,6 +805,7 @@ __all__ = [
     "DT",
     "FULL_VARIANTS",
     "KINDS",
+    "NO_MOTION",
     "PLANS",
     "SCENARIOS",
     "Plan",

@@ -83,7 +83,9 @@ def test_a_short_run_writes_table_csv_and_png(cli, tmp_path) -> None:
     assert "| full reference |" in out and "machine:" in out
     rows = list(csv.DictReader((tmp_path / "accuracy_mini_chain.csv").open()))
     labels = [r["config"] for r in rows]
-    assert labels[0] == "full reference" and "full 1 Newton iteration" in labels
+    assert labels[:2] == ["full reference", accuracy.NO_MOTION] and "full 1 Newton iteration" in labels
+    still = rows[1]
+    assert still["ms_per_step"] == "nan" and 0.0 < float(still["rel_error_mean"]) <= 1.0
     assert any(label.startswith("modal_derivatives:") for label in labels)
     assert all(int(r["nonfinite"]) == 0 for r in rows)
     assert (tmp_path / "accuracy_mini_chain.png").stat().st_size > 1000
@@ -124,13 +126,14 @@ def test_dims_build_three_subspaces_per_d_and_a_cubature_row(mini_chain, tiny_ma
     )  # fmt: skip
     assert result["dims"] == [1, 2] and [m["cubature_elements"] for m in result["maps"]] == [None, cubature.kept]
     labels = [row["config"] for row in result["rows"]]
-    prefixes = [label.split(":")[0] for label in labels[1:]]
+    assert labels[:2] == ["full reference", accuracy.NO_MOTION]
+    prefixes = [label.split(":")[0] for label in labels[2:]]
     assert list(dict.fromkeys(prefixes)) == [f"{k} d={d}" for k in accuracy.KINDS for d in (1, 2)]
     assert sum(label.startswith("neural d=1: runtime") for label in labels) == 6  # every option for `neural`
     assert sum(label.startswith("neural d=2: runtime") for label in labels) == 2  # default + cubature
     (row,) = [r for r in result["rows"] if r["config"].endswith(f"+ cubature ({cubature.kept} elements)")]
     assert row["d"] == 2 and row["nonfinite"] == 0 and row["steps_run"] == 10
-    assert all(r["d"] == int(r["config"].split(" d=")[1][0]) for r in result["rows"][1:])
+    assert all(r["d"] == int(r["config"].split(" d=")[1][0]) for r in result["rows"][2:])
     assert "neural maps: d=1: 5 fit steps" in accuracy.report(result, "machine: test")
 
 
