@@ -314,11 +314,11 @@ def cmd_bench_accuracy(args: argparse.Namespace) -> int:
         )
     scene = redsim.scenes.build(args.scene)
     dims = _accuracy_dims(args, scene.free_dof_count)
-    shipped_path = pretrained.path(args.scene)
     neural = pretrained.load(args.scene, scene)
-    sources = {int(neural.latent_dim): f"shipped {shipped_path}"}
-    maps = None if dims is None else _accuracy_maps(args, scene, neural, dims, sources)
-    cubatures = _accuracy_cubatures(scene, {int(neural.latent_dim): neural, **(maps or {})}, sources, shipped_path)
+    shipped_dim = int(neural.latent_dim)
+    paths = {shipped_dim: pretrained.path(args.scene)}
+    maps = None if dims is None else _accuracy_maps(args, scene, neural, dims, paths)
+    cubatures = _accuracy_cubatures(scene, {shipped_dim: neural, **(maps or {})}, paths)
     result = accuracy.bench_accuracy(
         scene,
         neural,
@@ -332,7 +332,7 @@ def cmd_bench_accuracy(args: argparse.Namespace) -> int:
         progress=None if args.json else note,
     )
     for info in result["maps"]:
-        info["source"] = sources[info["d"]]
+        info["source"] = ("shipped " if info["d"] == shipped_dim else "") + str(paths[info["d"]])
     machine = machine_info()
     result["machine"] = machine
     line = _machine_line(machine, "cpu")
@@ -364,9 +364,12 @@ def _accuracy_dims(args: argparse.Namespace, n: int) -> tuple[int, ...] | None:
 
 
 def _accuracy_maps(
-    args: argparse.Namespace, scene: Any, shipped: Any, dims: tuple[int, ...], sources: dict[int, str]
+    args: argparse.Namespace, scene: Any, shipped: Any, dims: tuple[int, ...], paths: dict[int, Path]
 ) -> dict[int, Any]:
-    """The neural map of each d: the shipped one at its d, else DIR/SCENE_dD[_sN] (a preset fit if missing)."""
+    """The neural map of each d: the shipped one at its d, else DIR/SCENE_dD[_sN] (a preset fit if missing).
+
+    Adds the checkpoint of each map it loads or fits to ``paths``.
+    """
     from redsim.trainers import FitConfig
     from redsim.trainers.cache import fitted_subspace
     from redsim.trainers.presets import preset
@@ -383,24 +386,21 @@ def _accuracy_maps(
         if not args.json:
             note(f"neural map d={dim}: {stem}.pt, or a fit of the {scene.name} preset ({config.steps} steps)")
         maps[dim], source = fitted_subspace(scene, config, stem, progress=not args.json, warn=warn)
-        sources[dim] = source
+        paths[dim] = Path(source)
     return maps
 
 
-def _accuracy_cubatures(
-    scene: Any, maps: dict[int, Any], sources: dict[int, str], shipped_path: Path
-) -> dict[int, Any]:
-    """The cubature stored beside each map that has one (``STEM.cubature.json``); one for another map is skipped."""
+def _accuracy_cubatures(scene: Any, maps: dict[int, Any], paths: dict[int, Path]) -> dict[int, Any]:
+    """The cubature stored beside each map's checkpoint (``STEM.cubature.json``); one for another map is skipped."""
     from redsim.cubature import cubature_path, load_cubature
     from redsim.subspace import CheckpointError
 
     cubatures = {}
     for dim, subspace in maps.items():
-        path = shipped_path if sources[dim].startswith("shipped") else Path(sources[dim])
-        if not cubature_path(path).is_file():
+        if not cubature_path(paths[dim]).is_file():
             continue
         try:
-            cubatures[dim] = load_cubature(path, scene, subspace)
+            cubatures[dim] = load_cubature(paths[dim], scene, subspace)
         except CheckpointError as err:
             warn(f"not using the cubature of d={dim}: {err}")
     return cubatures
