@@ -13,7 +13,12 @@ loads side by side in one process:
   built at the full rest state, σ of the neural fit), each stepped by the runtime
   (:class:`redsim.runtime.LatentStepper`, B = 1, float32 or float64, its Hessian models and
   iteration budgets) and by the converged latent reference (``ImplicitEuler(LatentSpace)``,
-  float64 Newton), which separates the subspace's error from the solver's.
+  float64 Newton), which separates the subspace's error from the solver's;
+- with ``maps`` (neural maps of several d, e.g. fitted with the scene's preset): the three
+  subspaces at each of those d, labelled ``KIND d=D`` (the runtime's other options only for the
+  map given as ``neural``);
+- a neural map with a cubature (``cubatures``): also the runtime with the cubature energy
+  (:class:`redsim.cubature.CubatureEnergy`) instead of the map's full energy.
 
 A latent run starts from the subspace's own rest (its unloaded equilibrium z*), so a subspace
 whose rest is not a full-space equilibrium does not count its fall as error; the offset between
@@ -24,7 +29,8 @@ run's own start:
 
 its mean over the steps, and the same for the handle's position in cm (``handle cm``: mean of
 |Δp(t) - Δp_ref(t)|). ``projection`` is the floor no latent solver can beat: the mean over every
-10th step of min_z |(f(z) - f(z*)) - (q_ref(t) - q_ref(0))|_M, relative as e(t).
+10th step of min_z |(f(z) - f(z*)) - (q_ref(t) - q_ref(0))|_M, relative as e(t). The row
+:data:`NO_MOTION` scores a run that stays at its start: the error of ignoring the loads.
 """
 
 from __future__ import annotations
@@ -35,7 +41,7 @@ import logging
 import math
 import statistics
 import time
-from collections.abc import Callable, Iterator
+from collections.abc import Callable, Iterator, Mapping
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
@@ -43,6 +49,7 @@ from typing import Any
 import torch
 from torch import Tensor, nn
 
+from redsim.cubature import Cubature, CubatureEnergy
 from redsim.envs.chain import ChainEnv
 from redsim.envs.hanging_cloth import HangingClothEnv
 from redsim.envs.mini_chain import MiniChainEnv
@@ -324,24 +331,40 @@ FULL_VARIANTS: dict[str, tuple[str, dict[str, Any]]] = {
 
 @dataclass(frozen=True)
 class Config:
-    """One row of the bench: a label, its family (for the plot), and how to run it."""
+    """One row of the bench: a label, its family (for the plot), how to run it, and its subspace's key and d."""
 
     label: str
     family: str
     run: Callable[[Tensor], Run]
     subspace: str | None = None
+    dim: int | None = None
 
 
-def _subspaces(scene: Scene, neural: nn.Module) -> dict[str, nn.Module]:
-    """The shipped neural map and linear modes / modal derivatives of its d and σ at the full rest state."""
+KINDS = ("neural", "modes", "modal_derivatives")
+"""The subspace families, in table order."""
+
+
+def _subspaces(scene: Scene, maps: Mapping[int, nn.Module], *, with_dims: bool) -> dict[str, nn.Module]:
+    """Per neural map of ``maps`` (by d): it, linear modes and modal derivatives of its d and σ at the full rest.
+
+    Keys are the kinds of :data:`KINDS` (``"KIND d=D"`` when ``with_dims``), grouped by kind, d ascending.
+    """
     from redsim.baselines import modal_analysis, modal_derivatives
 
-    dim = int(neural.latent_dim)
-    sigma = float(neural.metadata["fit"]["sigma"]) if hasattr(neural, "metadata") else 1.0
     rest, _ = rest_state(scene)
-    modes = modal_analysis(scene, dim, sigma=sigma, rest=rest)
-    derivatives = modal_derivatives(scene, dim, sigma=sigma, rest=modes.offset)
-    return {"neural": neural, "modes": modes, "modal_derivatives": derivatives}
+    built: dict[str, dict[int, nn.Module]] = {kind: {} for kind in KINDS}
+    for dim in sorted(maps):
+        neural = maps[dim]
+        sigma = float(neural.metadata["fit"]["sigma"]) if hasattr(neural, "metadata") else 1.0
+        modes = modal_analysis(scene, dim, sigma=sigma, rest=rest)
+        built["neural"][dim] = neural
+        built["modes"][dim] = modes
+        built["modal_derivatives"][dim] = modal_derivatives(scene, dim, sigma=sigma, rest=modes.offset)
+    return {_key(kind, dim, with_dims): m for kind, by_dim in built.items() for dim, m in by_dim.items()}
+
+
+def _key(kind: str, dim: int, with_dims: bool) -> str:
+    return f"{kind} d={dim}" if with_dims else kind
 
 
 def configurations(
@@ -352,11 +375,14 @@ def configurations(
     dt: float = DT,
     reference_tol: float = 1e-8,
     full: tuple[str, ...] = tuple(FULL_VARIANTS),
+    variants: str = "neural",
+    cubatures: Mapping[str, Cubature] | None = None,
 ) -> list[Config]:
     """The configurations of the bench (module doc), in table order; ``rests`` holds each map's z*.
 
     ``full`` picks keys of :data:`FULL_VARIANTS`; the larger-dt runs keep the reference's tolerance,
-    so only the time step differs.
+    so only the time step differs. The subspace keyed ``variants`` gets every runtime option, the
+    others the runtime's default; each neural map keyed in ``cubatures`` also runs with its cubature.
     """
     q_rest, _ = rest_state(scene)
     configs: list[Config] = []
@@ -368,39 +394,53 @@ def configurations(
         if "stride" in options:
             options = {**options, "tol": reference_tol, "max_iter": 100}
         configs.append(Config(label, "full space", lambda loads, o=options: run_full(scene, q_rest, loads, dt=dt, **o)))
-    default = f"runtime f32 {DEFAULT_HESSIAN} {DEFAULT_MAX_ITER} it (default)"
-    runtime_variants = {
-        "neural": [
-            (default, {}),
-            (f"runtime f64 {DEFAULT_HESSIAN} {DEFAULT_MAX_ITER} it", {"dtype": torch.float64}),
-            ("runtime f32 bfgs", {"hessian": "bfgs"}),
-            ("runtime f32 exact Hessian", {"hessian": "exact"}),
-            ("runtime f32 3 it", {"max_iter": 3}),
-            ("runtime f32 1 it", {"max_iter": 1}),
-        ],
-        "modes": [(default, {})],
-        "modal_derivatives": [(default, {})],
-    }
-    for kind, subspace in subspaces.items():
-        z0 = rests[kind]
+    base = f"runtime f32 {DEFAULT_HESSIAN} {DEFAULT_MAX_ITER} it"
+    default = f"{base} (default)"
+    all_options: list[tuple[str, dict[str, Any]]] = [
+        (default, {}),
+        (f"runtime f64 {DEFAULT_HESSIAN} {DEFAULT_MAX_ITER} it", {"dtype": torch.float64}),
+        ("runtime f32 bfgs", {"hessian": "bfgs"}),
+        ("runtime f32 exact Hessian", {"hessian": "exact"}),
+        ("runtime f32 3 it", {"max_iter": 3}),
+        ("runtime f32 1 it", {"max_iter": 1}),
+    ]
+    for key, subspace in subspaces.items():
+        z0, family, dim = rests[key], key.split(" ")[0], int(subspace.latent_dim)
+        options = all_options if key == variants else all_options[:1]
+        cubature = (cubatures or {}).get(key)
+        if cubature is not None:
+            options = [*options, (f"{base} + cubature ({cubature.kept} elements)", {"cubature": cubature})]
         configs.append(
             Config(
-                f"{kind}: latent reference f64 Newton",
-                kind,
+                f"{key}: latent reference f64 Newton",
+                family,
                 lambda loads, s=subspace, z=z0: run_latent_reference(scene, s, z, loads, dt=dt),
-                kind,
+                key,
+                dim,
             )
         )
-        for label, options in runtime_variants.get(kind, []):
+        for label, o in options:
             configs.append(
                 Config(
-                    f"{kind}: {label}",
-                    kind,
-                    lambda loads, s=subspace, z=z0, o=options: run_runtime(LatentStepper(scene, s, dt, **o), z, loads),
-                    kind,
+                    f"{key}: {label}",
+                    family,
+                    lambda loads, s=subspace, z=z0, o=o: run_runtime(_stepper(scene, s, dt, **o), z, loads),
+                    key,
+                    dim,
                 )
             )
     return configs
+
+
+def _stepper(scene: Scene, subspace: nn.Module, dt: float, *, cubature: Cubature | None = None, **options: Any):
+    """A :class:`LatentStepper` with ``options``, on the cubature's energy when one is given."""
+    if cubature is None:
+        return LatentStepper(scene, subspace, dt, **options)
+
+    def energy(scene: Scene, subspace: nn.Module, *, dtype: torch.dtype, device: torch.device) -> CubatureEnergy:
+        return CubatureEnergy(scene, subspace, cubature, dtype=dtype, device=device)
+
+    return LatentStepper(scene, subspace, dt, energy=energy, **options)
 
 
 def start_study(
@@ -454,27 +494,34 @@ def bench_accuracy(
     full: tuple[str, ...] = tuple(FULL_VARIANTS),
     study: bool = True,
     study_steps: int = 50,
+    maps: Mapping[int, nn.Module] | None = None,
+    cubatures: Mapping[int, Cubature] | None = None,
     progress: Callable[[str], None] | None = None,
 ) -> dict[str, Any]:
     """All rows of one scene (module doc).
 
     Args:
         scene: A scene of :data:`PLANS`.
-        neural: Its fitted neural map (the shipped one in the CLI).
+        neural: Its fitted neural map (the shipped one in the CLI); it alone gets every runtime option.
         steps: Steps per scenario (>= 10).
         scenarios: Names from :data:`SCENARIOS`.
         seed: Seed of the ``actions`` scenario.
         dt: Reference time step [s].
         full: Keys of the loosened full-space configurations to run (:data:`FULL_VARIANTS`).
         study: Run :func:`start_study` on the ``push`` loads (``study_steps`` steps).
+        maps: Neural maps by d to compare (``neural`` is added at its d); with it, linear modes and
+            modal derivatives are built at each of these d and every subspace label carries its d.
+        cubatures: Cubatures by d of the neural maps that have one (each checked against its map).
         progress: Called with one line per finished configuration.
 
     Returns:
-        ``scene``, ``n``, ``d``, ``plan``, ``rows`` (one dict per scenario and configuration, the
-        reference included) and ``study``.
+        ``scene``, ``n``, ``d``, ``dims``, ``maps`` (per neural map: d, fit steps, fit seconds, cubature
+        elements), ``plan``, ``rows`` (one dict per scenario and configuration, the reference included)
+        and ``study``.
 
     Raises:
-        ValueError: an unknown scene, scenario or a bad count.
+        ValueError: an unknown scene, scenario or a bad count; ``maps`` holding another map at
+            ``neural``'s d; a cubature for a d without a map, or for another map.
     """
     p = plan(scene.name)
     if int(steps) != steps or steps < 10:
@@ -482,19 +529,42 @@ def bench_accuracy(
     for name in scenarios:
         if name not in SCENARIOS:
             raise ValueError(f"unknown scenario {name!r}; valid: {list(SCENARIOS)}")
+    dim = int(neural.latent_dim)
+    with_dims = maps is not None
+    all_maps = dict(maps or {})
+    if all_maps.setdefault(dim, neural) is not neural:
+        raise ValueError(f"maps holds another map at d={dim}, the d of the neural map given")
+    for d, subspace in all_maps.items():
+        if int(subspace.latent_dim) != d:
+            raise ValueError(f"maps[{d}] has d={int(subspace.latent_dim)}")
+    for d, cubature in (cubatures or {}).items():
+        if d not in all_maps:
+            raise ValueError(f"a cubature for d={d}, but no neural map of that d; maps: {sorted(all_maps)}")
+        cubature.check(scene, all_maps[d], f"cubature of d={d}")
     scene64 = scene.to(dtype=torch.float64)
     q_rest, rest_converged = rest_state(scene)
-    subspaces = _subspaces(scene, neural)
+    subspaces = _subspaces(scene, all_maps, with_dims=with_dims)
     rests = {}
-    for kind, subspace in subspaces.items():
+    for key, subspace in subspaces.items():
         z, _ = latent_equilibrium(LatentSpace(scene64, subspace), None)
-        rests[kind] = z
-    configs = configurations(scene, subspaces, rests, dt=dt, reference_tol=p.reference_tol, full=full)
+        rests[key] = z
+    configs = configurations(
+        scene,
+        subspaces,
+        rests,
+        dt=dt,
+        reference_tol=p.reference_tol,
+        full=full,
+        variants=_key("neural", dim, with_dims),
+        cubatures={_key("neural", d, with_dims): c for d, c in (cubatures or {}).items()},
+    )
     rows: list[dict[str, Any]] = []
     out: dict[str, Any] = {
         "scene": scene.name,
         "n": scene.free_dof_count,
-        "d": int(neural.latent_dim),
+        "d": dim,
+        "dims": sorted(all_maps),
+        "maps": [_map_info(d, all_maps[d], (cubatures or {}).get(d)) for d in sorted(all_maps)],
         "dt": dt,
         "steps": steps,
         "plan": {"handle": p.handle, "max_force": p.max_force, "reference_tol": p.reference_tol, "note": p.note},
@@ -506,21 +576,45 @@ def bench_accuracy(
         reference = run_full(scene, q_rest, loads, dt=dt, tol=p.reference_tol, max_iter=100)
         ref_median = statistics.median(reference.step_s)
         rows.append(_row(scenario, "full reference", "reference", reference, reference, scene64, p.handle, ref_median))
+        rows.append(_row(scenario, NO_MOTION, "reference", _still(reference), reference, scene64, p.handle, ref_median))
         if progress:
-            progress(_progress_line(rows[-1]))
+            progress(_progress_line(rows[-2]))
         for config in configs:
             run = config.run(loads)
             row = _row(scenario, config.label, config.family, run, reference, scene64, p.handle, ref_median)
-            kind = config.subspace
-            if kind is not None and config.label.endswith("latent reference f64 Newton"):
-                row["projection"] = projection_floor(scene64, subspaces[kind], rests[kind], reference)
+            row["d"] = config.dim
+            key = config.subspace
+            if key is not None and config.label.endswith("latent reference f64 Newton"):
+                row["projection"] = projection_floor(scene64, subspaces[key], rests[key], reference)
             rows.append(row)
             if progress:
                 progress(_progress_line(row))
         if study and scenario == "push":
             head = _prefix(reference, study_steps)
-            out["study"] = start_study(scene, neural, rests["neural"], loads[:study_steps], head, dt=dt)
+            key = _key("neural", dim, with_dims)
+            out["study"] = start_study(scene, neural, rests[key], loads[:study_steps], head, dt=dt)
     return out
+
+
+def _map_info(dim: int, neural: nn.Module, cubature: Cubature | None) -> dict[str, Any]:
+    """What the report says of one neural map: its d, fit steps and seconds, and its cubature's size."""
+    metadata = getattr(neural, "metadata", {})
+    return {
+        "d": dim,
+        "fit_steps": metadata.get("fit", {}).get("steps"),
+        "fit_seconds": metadata.get("fit_seconds"),
+        "cubature_elements": None if cubature is None else cubature.kept,
+    }
+
+
+NO_MOTION = "no motion (stays at its start)"
+"""The row of a run that never moves: the error of ignoring the loads (time per step: none, printed –)."""
+
+
+def _still(reference: Run) -> Run:
+    """A run that stays at the reference's start, at its times (no time per step: NaN)."""
+    q = reference.q[:1].expand_as(reference.q).clone()
+    return Run(q, reference.times, [math.nan] * len(reference.step_s), reference.stride)
 
 
 def _prefix(run: Run, steps: int) -> Run:
@@ -535,6 +629,7 @@ def _row(
         "scenario": scenario,
         "config": label,
         "family": family,
+        "d": None,
         "ms_per_step": 1e3 * median,
         "speedup": ref_median / median if median > 0 else math.nan,
         **trajectory_errors(scene64, run, reference, handle),
@@ -617,19 +712,28 @@ def pareto_png(result: dict[str, Any], path: Path, machine: str) -> None:
         ax = fig.add_subplot(1, len(scenarios), i + 1)
         seen = set()
         for row in result["rows"]:
-            if row["scenario"] != scenario or not math.isfinite(row["rel_error_mean"]):
+            if row["scenario"] != scenario or not (math.isfinite(row["rel_error_mean"]) and row["ms_per_step"] > 0):
                 continue
             color, marker = FAMILY_STYLE.get(row["family"], ("tab:purple", "x"))
             label = row["family"] if row["family"] not in seen else None
             seen.add(row["family"])
             ax.scatter(max(row["rel_error_mean"], floor), row["ms_per_step"], c=color, marker=marker, label=label)
             short = row["config"].split(": ")[-1].replace("runtime ", "")
+            short = short if row.get("d") is None or len(result["dims"]) < 2 else f"d={row['d']} {short}"
             ax.annotate(short, (max(row["rel_error_mean"], floor), row["ms_per_step"]), fontsize=6, alpha=0.8)
+        for family in KINDS:  # the runtime's default across d, one line per family
+            line = sorted(
+                (r["d"], max(r["rel_error_mean"], floor), r["ms_per_step"])
+                for r in result["rows"]
+                if r["scenario"] == scenario and r["family"] == family and r["config"].endswith("(default)")
+            )
+            if len(line) > 1:
+                ax.plot([x for _d, x, _y in line], [y for _d, _x, y in line], c=FAMILY_STYLE[family][0], alpha=0.4)
         ax.set_xscale("log")
         ax.set_yscale("log")
         ax.set_xlabel("mean relative M-norm trajectory error (reference drawn at 1e-6)")
         ax.set_ylabel("median wall time per 0.02 s step [ms]")
-        ax.set_title(f"{result['scene']} (n={result['n']}, d={result['d']}), {scenario}", fontsize=10)
+        ax.set_title(f"{result['scene']} (n={result['n']}, d={_dims(result)}), {scenario}", fontsize=10)
         ax.grid(True, which="both", alpha=0.3)
         ax.legend(fontsize=7)
     fig.suptitle(machine, fontsize=7)
@@ -641,11 +745,13 @@ def report(result: dict[str, Any], machine: str) -> str:
     """The human-readable output: the machine line, per scenario its markdown table, and the start study."""
     p = result["plan"]
     lines = [
-        f"bench accuracy {result['scene']}  n={result['n']}  d={result['d']}  dt={result['dt']} s  "
+        f"bench accuracy {result['scene']}  n={result['n']}  d={_dims(result)}  dt={result['dt']} s  "
         f"{result['steps']} steps per scenario  handle {p['handle']}, unit action = {p['max_force']:g} N  "
         f"reference: float64 full-space Newton, tol {p['reference_tol']:g}",
         machine,
     ]
+    if len(result.get("dims", ())) > 1 or any(m["cubature_elements"] for m in result.get("maps", ())):
+        lines.append("neural maps: " + "; ".join(_map_line(m) for m in result["maps"]))
     for scenario in dict.fromkeys(r["scenario"] for r in result["rows"]):
         ref = next(r for r in result["rows"] if r["scenario"] == scenario)
         lines += [
@@ -668,6 +774,22 @@ def report(result: dict[str, Any], machine: str) -> str:
     return "\n".join(lines)
 
 
+def _dims(result: dict[str, Any]) -> str:
+    return ",".join(str(d) for d in result.get("dims", [result["d"]]))
+
+
+def _map_line(info: dict[str, Any]) -> str:
+    """``d=D: N fit steps (S s), SOURCE, cubature K elements`` of one entry of ``result["maps"]``."""
+    text = f"d={info['d']}: {info['fit_steps']} fit steps"
+    if info.get("fit_seconds") is not None:
+        text += f" ({info['fit_seconds']:.0f} s)"
+    if info.get("source"):
+        text += f", {info['source']}"
+    if info["cubature_elements"]:
+        text += f", cubature {info['cubature_elements']} elements"
+    return text
+
+
 def write_outputs(result: dict[str, Any], folder: Path, machine: str) -> list[Path]:
     """``accuracy_SCENE.md`` (the :func:`report`), ``.csv`` and ``.png`` (:func:`pareto_png`) in ``folder``."""
     folder.mkdir(parents=True, exist_ok=True)
@@ -682,6 +804,8 @@ def write_outputs(result: dict[str, Any], folder: Path, machine: str) -> list[Pa
 __all__ = [
     "DT",
     "FULL_VARIANTS",
+    "KINDS",
+    "NO_MOTION",
     "PLANS",
     "SCENARIOS",
     "Plan",

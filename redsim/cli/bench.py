@@ -30,15 +30,13 @@ from redsim.cli.common import (
 from redsim.cli.common import (
     machine_line as _machine_line,
 )
-from redsim.subspace import checkpoint_path
 
 
 def cmd_bench_subspace(args: argparse.Namespace) -> int:
     from redsim import pretrained
     from redsim.bench import compare_subspaces, machine_info
-    from redsim.subspace import CheckpointError, load_subspace
-    from redsim.trainers import FitConfig, fit_subspace
-    from redsim.trainers.fit import fit_command
+    from redsim.trainers import FitConfig
+    from redsim.trainers.cache import fitted_subspace
     from redsim.trainers.presets import preset
 
     scenes = bench_scenes(args, redsim.scenes.names("table1"))
@@ -51,27 +49,10 @@ def cmd_bench_subspace(args: argparse.Namespace) -> int:
         overrides = {} if args.steps is None else {"steps": args.steps}
         config = FitConfig(**{**preset(name), **overrides})
         stem = folder / (name if args.steps is None else f"{name}_s{args.steps}")
-        candidates = [checkpoint_path(stem, ".pt")]
-        if args.steps is None and name in pretrained.names():
-            candidates.append(pretrained.path(name))
-        neural, source = None, str(candidates[0])
-        for path in candidates if not args.refit else []:
-            if path.is_file():
-                try:
-                    neural, source = load_subspace(path, scene=scene), str(path)
-                    break
-                except CheckpointError as err:
-                    warn(f"not using {path}: {err}")
-        if neural is None:
-            result = fit_subspace(
-                scene,
-                config,
-                seed=args.seed,
-                out=stem,
-                progress=not args.json,
-                command=fit_command(scene, config, args.seed, stem),
-            )
-            neural = result.subspace
+        shipped = [pretrained.path(name)] if args.steps is None and name in pretrained.names() else []
+        neural, source = fitted_subspace(
+            scene, config, stem, seed=args.seed, also=shipped, refit=args.refit, progress=not args.json, warn=warn
+        )
         fit = neural.metadata["fit"]
         metrics = compare_subspaces(
             scene,
@@ -332,16 +313,26 @@ def cmd_bench_accuracy(args: argparse.Namespace) -> int:
             f"{', '.join(accuracy.FULL_VARIANTS)} (or none), --steps >= 10; got {unknown or args.steps}"
         )
     scene = redsim.scenes.build(args.scene)
+    dims = _accuracy_dims(args, scene.free_dof_count)
+    neural = pretrained.load(args.scene, scene)
+    shipped_dim = int(neural.latent_dim)
+    paths = {shipped_dim: pretrained.path(args.scene)}
+    maps = None if dims is None else _accuracy_maps(args, scene, neural, dims, paths)
+    cubatures = _accuracy_cubatures(scene, {shipped_dim: neural, **(maps or {})}, paths)
     result = accuracy.bench_accuracy(
         scene,
-        pretrained.load(args.scene, scene),
+        neural,
         steps=args.steps,
         scenarios=scenarios,
         seed=args.seed,
         full=full,
         study=not args.no_study,
+        maps=maps,
+        cubatures=cubatures,
         progress=None if args.json else note,
     )
+    for info in result["maps"]:
+        info["source"] = ("shipped " if info["d"] == shipped_dim else "") + str(paths[info["d"]])
     machine = machine_info()
     result["machine"] = machine
     line = _machine_line(machine, "cpu")
@@ -353,6 +344,66 @@ def cmd_bench_accuracy(args: argparse.Namespace) -> int:
         if paths:
             out("wrote " + ", ".join(str(p) for p in paths))
     return EXIT_OK
+
+
+def _accuracy_dims(args: argparse.Namespace, n: int) -> tuple[int, ...] | None:
+    """The checked ``--dims`` (None without it); ``--fit-steps`` needs it."""
+    if args.dims is None:
+        if args.fit_steps is not None:
+            raise CliError("--fit-steps needs --dims (it sets the steps of the maps --dims fits)")
+        return None
+    try:
+        dims = tuple(sorted({int(d) for d in parse_list(args.dims, "--dims")}))
+    except ValueError as err:
+        raise CliError(f"--dims must be comma-separated integers, got {args.dims!r}") from err
+    if dims[0] < 1 or dims[-1] > n:
+        raise CliError(f"--dims must be between 1 and the scene's n = {n}, got {args.dims!r}")
+    if args.fit_steps is not None and args.fit_steps < 1:
+        raise CliError(f"--fit-steps must be >= 1, got {args.fit_steps}")
+    return dims
+
+
+def _accuracy_maps(
+    args: argparse.Namespace, scene: Any, shipped: Any, dims: tuple[int, ...], paths: dict[int, Path]
+) -> dict[int, Any]:
+    """The neural map of each d: the shipped one at its d, else DIR/SCENE_dD[_sN] (a preset fit if missing).
+
+    Adds the checkpoint of each map it loads or fits to ``paths``.
+    """
+    from redsim.trainers import FitConfig
+    from redsim.trainers.cache import fitted_subspace
+    from redsim.trainers.presets import preset
+
+    overrides = {} if args.fit_steps is None else {"steps": args.fit_steps}
+    suffix = "" if args.fit_steps is None else f"_s{args.fit_steps}"
+    maps = {}
+    for dim in dims:
+        if dim == int(shipped.latent_dim):
+            maps[dim] = shipped
+            continue
+        config = FitConfig(**{**preset(scene.name), **overrides, "latent_dim": dim})
+        stem = Path(args.checkpoints) / f"{scene.name}_d{dim}{suffix}"
+        if not args.json:
+            note(f"neural map d={dim}: {stem}.pt, or a fit of the {scene.name} preset ({config.steps} steps)")
+        maps[dim], source = fitted_subspace(scene, config, stem, progress=not args.json, warn=warn)
+        paths[dim] = Path(source)
+    return maps
+
+
+def _accuracy_cubatures(scene: Any, maps: dict[int, Any], paths: dict[int, Path]) -> dict[int, Any]:
+    """The cubature stored beside each map's checkpoint (``STEM.cubature.json``); one for another map is skipped."""
+    from redsim.cubature import cubature_path, load_cubature
+    from redsim.subspace import CheckpointError
+
+    cubatures = {}
+    for dim, subspace in maps.items():
+        if not cubature_path(paths[dim]).is_file():
+            continue
+        try:
+            cubatures[dim] = load_cubature(paths[dim], scene, subspace)
+        except CheckpointError as err:
+            warn(f"not using the cubature of d={dim}: {err}")
+    return cubatures
 
 
 def cmd_bench_scaling(args: argparse.Namespace) -> int:
@@ -594,6 +645,21 @@ def add_commands(sub: Any) -> Any:
         help="loosened full-space runs: tol (1e-3), newton1, newton3 (iterations), dt2, dt5 (time step), or none",
     )
     p.add_argument("--no-study", action="store_true", help="skip the start study (push scenario)")
+    p.add_argument(
+        "--dims",
+        metavar="D1,D2",
+        help="compare the three subspaces at each of these d (e.g. 1,2,4,8,16) and the shipped map's d: the shipped "
+        "neural map at its d, else DIR/SCENE_dD.pt, fitted with the scene's preset into --checkpoints when missing",
+    )
+    p.add_argument(
+        "--checkpoints", default="subspaces", metavar="DIR", help="where --dims fits are kept (default subspaces)"
+    )
+    p.add_argument(
+        "--fit-steps",
+        type=int,
+        metavar="N",
+        help="fit (or reuse, DIR/SCENE_dD_sN.pt) the --dims maps with N steps instead of the preset's",
+    )
     p.add_argument("--out", metavar="DIR", help="write DIR/accuracy_SCENE.md, .csv and .png")
     finish_command(p, cmd_bench_accuracy, "print one JSON document on stdout", default_threads=1)
 

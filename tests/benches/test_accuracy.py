@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import csv
+import json
 
 import pytest
 import torch
@@ -82,7 +83,83 @@ def test_a_short_run_writes_table_csv_and_png(cli, tmp_path) -> None:
     assert "| full reference |" in out and "machine:" in out
     rows = list(csv.DictReader((tmp_path / "accuracy_mini_chain.csv").open()))
     labels = [r["config"] for r in rows]
-    assert labels[0] == "full reference" and "full 1 Newton iteration" in labels
+    assert labels[:2] == ["full reference", accuracy.NO_MOTION] and "full 1 Newton iteration" in labels
+    still = rows[1]
+    assert still["ms_per_step"] == "nan" and 0.0 < float(still["rel_error_mean"]) <= 1.0
     assert any(label.startswith("modal_derivatives:") for label in labels)
     assert all(int(r["nonfinite"]) == 0 for r in rows)
     assert (tmp_path / "accuracy_mini_chain.png").stat().st_size > 1000
+
+
+def test_cli_refuses_bad_dims(cli) -> None:
+    for dims, message in (("1,x", "comma-separated integers"), ("0,4", "between 1 and"), ("4,25", "n = 24")):
+        code, _, err = cli("bench", "accuracy", "mini_chain", "--dims", dims)
+        assert code == 2 and message in err, (dims, err)
+    code, _, err = cli("bench", "accuracy", "mini_chain", "--fit-steps", "5")
+    assert code == 2 and "--fit-steps needs --dims" in err
+    code, _, err = cli("bench", "accuracy", "mini_chain", "--dims", "1", "--fit-steps", "0")
+    assert code == 2 and "--fit-steps must be >= 1" in err
+
+
+@pytest.fixture(scope="module")
+def tiny_maps(mini_chain):
+    """Neural maps of d = 1 and 2 of the mini chain (5 preset steps each) and a small cubature of the d = 2 one."""
+    from redsim.cubature import CubatureConfig, build_cubature
+    from redsim.trainers import FitConfig, fit_subspace
+    from redsim.trainers.presets import preset
+
+    maps = {
+        d: fit_subspace(mini_chain, FitConfig(**{**preset("mini_chain"), "latent_dim": d, "steps": 5}), progress=False)
+        for d in (1, 2)
+    }
+    maps = {d: result.subspace for d, result in maps.items()}
+    cubature = build_cubature(mini_chain, maps[2], CubatureConfig(elements=4, samples=16, episodes=0))
+    return maps, cubature
+
+
+@pytest.mark.slow
+def test_dims_build_three_subspaces_per_d_and_a_cubature_row(mini_chain, tiny_maps) -> None:
+    maps, cubature = tiny_maps
+    result = accuracy.bench_accuracy(
+        mini_chain, maps[1], steps=10, scenarios=("push",), full=(), study=False, maps={2: maps[2]},
+        cubatures={2: cubature},
+    )  # fmt: skip
+    assert result["dims"] == [1, 2] and [m["cubature_elements"] for m in result["maps"]] == [None, cubature.kept]
+    labels = [row["config"] for row in result["rows"]]
+    assert labels[:2] == ["full reference", accuracy.NO_MOTION]
+    prefixes = [label.split(":")[0] for label in labels[2:]]
+    assert list(dict.fromkeys(prefixes)) == [f"{k} d={d}" for k in accuracy.KINDS for d in (1, 2)]
+    assert sum(label.startswith("neural d=1: runtime") for label in labels) == 6  # every option for `neural`
+    assert sum(label.startswith("neural d=2: runtime") for label in labels) == 2  # default + cubature
+    (row,) = [r for r in result["rows"] if r["config"].endswith(f"+ cubature ({cubature.kept} elements)")]
+    assert row["d"] == 2 and row["nonfinite"] == 0 and row["steps_run"] == 10
+    assert all(r["d"] == int(r["config"].split(" d=")[1][0]) for r in result["rows"][2:])
+    assert "neural maps: d=1: 5 fit steps" in accuracy.report(result, "machine: test")
+
+
+def test_maps_and_cubatures_that_do_not_belong_are_refused(mini_chain, tiny_maps) -> None:
+    maps, cubature = tiny_maps
+    with pytest.raises(ValueError, match="another map at d=1"):
+        accuracy.bench_accuracy(mini_chain, maps[1], maps={1: maps[2]})
+    with pytest.raises(ValueError, match="no neural map of that d"):
+        accuracy.bench_accuracy(mini_chain, maps[1], cubatures={2: cubature})
+    with pytest.raises(ValueError, match=r"maps\[2\] has d=1"):
+        accuracy.bench_accuracy(mini_chain, maps[1], maps={2: maps[1]})
+    with pytest.raises(ValueError, match="cubature built for another map"):
+        accuracy.bench_accuracy(mini_chain, maps[1], cubatures={1: cubature})  # built for the d = 2 map
+
+
+@pytest.mark.slow
+def test_cli_dims_fit_what_is_missing_once(cli, tmp_path) -> None:
+    argv = ["bench", "accuracy", "mini_chain", "--steps", "10", "--scenarios", "push", "--full", "none", "--no-study"]
+    argv += ["--dims", "1,4", "--fit-steps", "3", "--checkpoints", str(tmp_path), "--json"]
+    code, out, err = cli(*argv)
+    assert code == 0, err
+    result = json.loads(out)
+    fitted = tmp_path / "mini_chain_d1_s3.pt"
+    assert [(m["d"], m["fit_steps"]) for m in result["maps"]] == [(1, 3), (4, 10_000)]
+    assert result["maps"][0]["source"] == str(fitted) and result["maps"][1]["source"].startswith("shipped ")
+    stamp = fitted.stat().st_mtime_ns
+    code, out, err = cli(*argv[:-1])
+    assert code == 0 and fitted.stat().st_mtime_ns == stamp  # reused
+    assert "d=1: 3 fit steps" in out and "| neural d=1: runtime f32" in out

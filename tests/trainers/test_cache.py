@@ -1,0 +1,27 @@
+"""`fitted_subspace`: fits what is missing once, reuses it after, and skips checkpoints that do not qualify."""
+
+from __future__ import annotations
+
+from redsim.scenes import build
+from redsim.trainers import FitConfig
+from redsim.trainers.cache import fitted_subspace
+
+TINY = {"latent_dim": 2, "hidden_width": 8, "hidden_layers": 1, "steps": 4}
+
+
+def test_fits_once_then_reuses_and_skips_another_d_or_scene(tmp_path) -> None:
+    scene, skipped = build("toy_two_tets"), []
+    stem = tmp_path / "two"
+    first, source = fitted_subspace(scene, FitConfig(**TINY), stem, progress=False, warn=skipped.append)
+    assert source == str(stem) + ".pt" and (tmp_path / "two.json").is_file() and not skipped
+    stamp = (tmp_path / "two.pt").stat().st_mtime_ns
+    again, _ = fitted_subspace(scene, FitConfig(**TINY), stem, progress=False, warn=skipped.append)
+    assert (tmp_path / "two.pt").stat().st_mtime_ns == stamp and not skipped  # reused, not refitted
+    assert all((a == b).all() for a, b in zip(first.state_dict().values(), again.state_dict().values(), strict=True))
+
+    wider, _ = fitted_subspace(scene, FitConfig(**{**TINY, "latent_dim": 3}), stem, progress=False, warn=skipped.append)
+    assert int(wider.latent_dim) == 3 and "records d, steps = (2, 4), not (3, 4)" in skipped[-1]
+
+    other = build("toy_tiny_bar_2d")
+    fitted_subspace(other, FitConfig(**TINY), tmp_path / "bar", also=[stem], progress=False, warn=skipped.append)
+    assert str(stem) + ".pt" in skipped[-1]  # the two-tets map was offered for the bar and refused

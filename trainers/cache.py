@@ -1,0 +1,71 @@
+"""Fit what is missing: a subspace for a scene and a :class:`FitConfig`, reused from a checkpoint stem if one is there.
+
+The benches that compare fitted maps (``redsim bench subspace``, ``redsim bench accuracy --dims``)
+keep their fits under a folder the user names; a second run reuses them instead of fitting again.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Callable, Sequence
+from pathlib import Path
+
+from torch import nn
+
+from redsim.scene import Scene
+from redsim.subspace import CheckpointError, checkpoint_path, load_subspace
+from redsim.trainers.fit import FitConfig, fit_command, fit_subspace
+
+
+def fitted_subspace(
+    scene: Scene,
+    config: FitConfig,
+    stem: str | Path,
+    *,
+    seed: int = 0,
+    also: Sequence[str | Path] = (),
+    refit: bool = False,
+    progress: bool = True,
+    warn: Callable[[str], None] | None = None,
+) -> tuple[nn.Module, str]:
+    """The map saved at ``STEM.pt`` (or at the first of ``also`` that loads), else a fit of ``config`` saved to STEM.
+
+    A checkpoint is used only if it loads for ``scene`` and records the config's d and step count;
+    one that exists but does not qualify is reported through ``warn`` and skipped.
+
+    Args:
+        scene: The scene.
+        config: The fit to reuse or run (a scene preset, possibly with other d or steps).
+        stem: Where the fit is kept (``STEM.pt`` + ``STEM.json``).
+        seed: Seed of a new fit.
+        also: Further checkpoints tried after ``STEM.pt`` (e.g. the shipped map).
+        refit: Fit even if a checkpoint qualifies.
+        progress: Show the fit's progress bar.
+        warn: Called with one line per checkpoint skipped.
+
+    Returns:
+        The map and where it came from (the checkpoint's path).
+    """
+    candidates = [checkpoint_path(stem, ".pt"), *(Path(p) for p in also)]
+    for path in [] if refit else candidates:
+        if not path.is_file():
+            continue
+        try:
+            subspace = load_subspace(path, scene=scene)
+        except CheckpointError as err:
+            if warn:
+                warn(f"not using {path}: {err}")
+            continue
+        fit = getattr(subspace, "metadata", {}).get("fit", {})
+        recorded = (fit.get("latent_dim", int(subspace.latent_dim)), fit.get("steps"))
+        if recorded != (config.latent_dim, config.steps):
+            if warn:
+                warn(f"not using {path}: it records d, steps = {recorded}, not {(config.latent_dim, config.steps)}")
+            continue
+        return subspace, str(path)
+    result = fit_subspace(
+        scene, config, seed=seed, out=stem, progress=progress, command=fit_command(scene, config, seed, stem)
+    )
+    return result.subspace, str(candidates[0])
+
+
+__all__ = ["fitted_subspace"]
