@@ -67,6 +67,10 @@ class StepInfo(SolveInfo):
     mechanical_gain: float = 0.0
 
 
+def _same(a: Tensor | None, b: Tensor | None) -> bool:
+    return a is b or (a is not None and b is not None and torch.equal(a, b))
+
+
 class ImplicitEuler:
     """Two-state implicit Euler over a space (module doc), each step solved by a named minimizer.
 
@@ -109,6 +113,7 @@ class ImplicitEuler:
         self.max_iter = int(max_iter)
         self.strict = bool(strict)
         self._constants = SceneConstants.of(space.scene)
+        self._last_potential: tuple[Tensor, Tensor | None, Tensor] | None = None
 
     @property
     def scene(self) -> Scene:
@@ -184,8 +189,13 @@ class ImplicitEuler:
             q = torch.cat([configurations[1:], configurations[:1], q_next])  # q_{t-1}, q_t, q_{t+1}
             v = q[1:] - q[:-1]
             kinetic = 0.5 * (v * scene.mass_matvec(v)).sum(-1) / self.dt**2
-            c = None if cond is None else cond.expand(2, -1)
-            mechanical = kinetic + scene.energy(q[1:], None, c)
+            last = self._last_potential  # E(q_t) when the last step ended at u_t under this condition
+            if last is not None and torch.equal(last[0], u_t) and _same(last[1], cond):
+                potential = torch.cat([last[2], scene.energy(q[2:], None, cond)])
+            else:
+                potential = scene.energy(q[1:], None, None if cond is None else cond.expand(2, -1))
+            self._last_potential = (u_next.clone(), cond, potential[1:])
+            mechanical = kinetic + potential
             work = torch.zeros((), dtype=q.dtype, device=q.device)
             if loads is not None and scene.handles:
                 p = scene.handle_positions(q[1:])
