@@ -102,6 +102,19 @@ class _StepObjective:
         loads = None if self.loads is None else self.loads[index]
         return self._value_and_grad(z, self.qbar[index], loads, self._cond(index))
 
+    def start(self, z0: Tensor, z: Tensor) -> tuple[Tensor, Tensor, Tensor]:
+        """Phi, dPhi/dz and E at the start z0 and at z_t (both [B, d]) of every state, in one call: [2B], [2B, d], [2B].
+
+        Compiled, this is its own static shape [2B] (one more graph, one call fewer per step than two [B] calls).
+        """
+        both = torch.cat([z0, z])
+        if not self.s.compiled:
+            index = torch.arange(z.shape[0], device=z.device)
+            return self.value_and_grad(both, torch.cat([index, index]))
+        loads = None if self.loads is None else self.loads.repeat(2, 1)
+        cond = None if self.cond is None else self.cond.repeat(2, 1)
+        return self._value_and_grad(both, self.qbar.repeat(2, 1), loads, cond)
+
     def _value_and_grad(
         self, z: Tensor, qbar: Tensor, loads: Tensor | None, cond: Tensor | None
     ) -> tuple[Tensor, Tensor, Tensor]:
@@ -464,13 +477,8 @@ class LatentStepper:
             z0 = 2.0 * z - z_prev
             objective = _StepObjective(self, qbar, loads_t, cond_t, z0)
             # Phi at the extrapolated start and at z_t: the start of the solve, a secant pair for
-            # the quasi-Newton models, and Phi(z_t) for the diverged flag (one call in eager mode)
-            index = torch.arange(batch, device=self.device)
-            if self.compiled:
-                parts = [objective.value_and_grad(u, index) for u in (z0, z)]
-                value, grad, energy = (torch.cat(pair) for pair in zip(*parts, strict=True))
-            else:
-                value, grad, energy = objective.value_and_grad(torch.cat([z0, z]), torch.cat([index, index]))
+            # the quasi-Newton models, and Phi(z_t) for the diverged flag (one call)
+            value, grad, energy = objective.start(z0, z)
             noise = 100.0 * self._eps * force * self.length
             at_z = (value[batch:], grad[batch:], energy[batch:])
             result = minimize(
