@@ -170,8 +170,8 @@ def cmd_bench_step(args: argparse.Namespace) -> int:
         batches = tuple(int(b) for b in parse_list(args.batches, "--batches"))
     except ValueError as err:
         raise CliError(f"--batches must be comma-separated integers, got {args.batches!r}") from err
-    if min(batches) < 1 or args.steps < 1 or args.reference_steps < 1:
-        raise CliError("--batches, --steps and --reference-steps must be >= 1")
+    if min(batches) < 1 or args.steps < 1 or args.reference_steps < 1 or args.rounds < 1:
+        raise CliError("--batches, --steps, --reference-steps and --rounds must be >= 1")
     if args.device.startswith("cuda") and not torch.cuda.is_available():
         raise CliError("--device cuda requested but torch sees no CUDA device")
     machine = machine_info()
@@ -191,6 +191,7 @@ def cmd_bench_step(args: argparse.Namespace) -> int:
                 compiled=not args.no_compile,
                 device=args.device,
                 seed=args.seed,
+                rounds=args.rounds,
             )
         )
         if not args.json:
@@ -622,6 +623,13 @@ def add_commands(sub: Any) -> Any:
     )
     p.add_argument("--device", default="cpu", help="torch device of the stepper (default cpu)")
     p.add_argument("--seed", type=int, default=0, help="seed of the load sequences (default 0)")
+    p.add_argument(
+        "--rounds",
+        type=int,
+        default=1,
+        help="run the reference and every path this many times, interleaved; rates are medians over the rounds, "
+        "speedups medians of per-round ratios (default 1)",
+    )
     finish_command(p, cmd_bench_step, "print one JSON document on stdout", default_threads=1)
 
     p = bench.add_parser(

@@ -272,8 +272,14 @@ def bench_step(
     compiled: bool = True,
     device: str = "cpu",
     seed: int = 0,
+    rounds: int = 1,
 ) -> dict[str, Any]:
     """One scene's row of `redsim bench step` (module doc).
+
+    With ``rounds`` > 1 the reference and every (path, B) run again on the same loads in each round (in
+    reverse order every other round, so that a change of the machine's load hits all alike): a rate is
+    the median over the rounds (each round's list under ``rounds_env_steps_per_s``), and a speedup the
+    median of the per-round ratios to that round's reference.
 
     Returns:
         ``scene``, ``n``, ``d``, ``reference`` and ``full_space`` (B = 1), ``eager``, ``cold`` (eager
@@ -282,11 +288,14 @@ def bench_step(
         reference per B, and ``trajectory_error``: the largest |z - z_ref| over
         the B = 1 eager run's first ``reference_steps`` steps relative to the largest motion |z - z0|.
     """
+    if rounds < 1:
+        raise ValueError(f"rounds must be >= 1, got {rounds}")
     stepper = LatentStepper(scene, subspace, dt, device=device)
     magnitudes = load_magnitudes(stepper)
     z_rest = stepper.rest_latent().cpu()
     loads = load_sequence(scene, magnitudes, steps, max(batches), seed=seed)
     reference = run_reference(scene, subspace, dt, z_rest[0], loads[:reference_steps, 0])
+    reference_rates = [reference["env_steps_per_s"]]
     full = run_reference(scene, subspace, dt, z_rest[0], loads[: min(3, reference_steps), 0], space="full")
     row: dict[str, Any] = {
         "scene": scene.name,
@@ -303,18 +312,31 @@ def bench_step(
     variants = [("eager", stepper, True), ("cold", stepper, False)]
     if compiled:
         variants.append(("compiled", LatentStepper(scene, subspace, dt, device=device, compile=True), True))
-    for label, runner, warm in variants:
-        for b in batches:
+    runs = [(label, runner, warm, b) for label, runner, warm in variants for b in batches]
+    rates: dict[tuple[str, int], list[float]] = {}
+    for r in range(rounds):
+        if r:
+            reference_rates.append(
+                run_reference(scene, subspace, dt, z_rest[0], loads[:reference_steps, 0])["env_steps_per_s"]
+            )
+        for label, runner, warm, b in runs if r % 2 == 0 else runs[::-1]:
             result = run_stepper(runner, z_rest.expand(b, -1).clone(), loads[:, :b], warm=warm)
             trajectory = result.pop("trajectory")
-            if b == 1 and label == "eager":
-                row["trajectory_error"] = _rollout_error(runner, reference["trajectory"], trajectory[:, 0])
-            row[label][str(b)] = result
-    row["speedup"] = {
-        label: {b: r["env_steps_per_s"] / reference["env_steps_per_s"] for b, r in row[label].items()}
-        for label in ("eager", "cold", "compiled")
-        if row[label]
-    }
+            rates.setdefault((label, b), []).append(result["env_steps_per_s"])
+            if r == 0:
+                if b == 1 and label == "eager":
+                    row["trajectory_error"] = _rollout_error(runner, reference["trajectory"], trajectory[:, 0])
+                row[label][str(b)] = result
+    row["rounds"] = rounds
+    row["reference"]["rounds_env_steps_per_s"] = reference_rates
+    row["reference"]["env_steps_per_s"] = statistics.median(reference_rates)
+    row["speedup"] = {}
+    for (label, b), per_round in rates.items():
+        result = row[label][str(b)]
+        result["rounds_env_steps_per_s"] = per_round
+        result["env_steps_per_s"] = statistics.median(per_round)
+        ratios = [mine / ref for mine, ref in zip(per_round, reference_rates, strict=True)]
+        row["speedup"].setdefault(label, {})[str(b)] = statistics.median(ratios)
     return row
 
 

@@ -15,7 +15,7 @@ from redsim.runtime.bench import load_magnitudes, load_sequence, mujoco_chain_xm
 
 def test_bench_step_json(capsys: pytest.CaptureFixture[str]) -> None:
     argv = ["bench", "step", "--scenes", "mini_chain", "--batches", "1,2", "--steps", "2", "--reference-steps", "2"]
-    code = main([*argv, "--no-compile", "--json"])
+    code = main([*argv, "--no-compile", "--rounds", "2", "--json"])
     out, err = capsys.readouterr()
     assert code == 0, err
     report = json.loads(out)
@@ -24,6 +24,12 @@ def test_bench_step_json(capsys: pytest.CaptureFixture[str]) -> None:
     assert set(row["eager"]) == {"1", "2"} and row["compiled"] == {}
     assert all(r["env_steps_per_s"] > 0 and 0.0 <= r["converged_fraction"] <= 1.0 for r in row["eager"].values())
     assert row["reference"]["converged_fraction"] == 1.0
+    # two interleaved rounds: a rate is the median of its rounds, a speedup the median of per-round ratios
+    assert row["rounds"] == 2 and len(row["reference"]["rounds_env_steps_per_s"]) == 2
+    for b, r in row["eager"].items():
+        mine, ref = r["rounds_env_steps_per_s"], row["reference"]["rounds_env_steps_per_s"]
+        assert r["env_steps_per_s"] == pytest.approx(sum(mine) / 2)
+        assert row["speedup"]["eager"][b] == pytest.approx((mine[0] / ref[0] + mine[1] / ref[1]) / 2)
     # one step from the reference's states; not small here: from rest the quasi-Newton solve of the mini
     # chain's first step lands in another (lower) local minimum than the reference's Newton
     assert row["step_error"] >= 0.0
@@ -37,6 +43,7 @@ def test_bench_step_json(capsys: pytest.CaptureFixture[str]) -> None:
         (["--scenes", "toy_two_tets"], "no shipped subspace"),
         (["--batches", "0"], ">= 1"),
         (["--batches", "x"], "comma-separated integers"),
+        (["--rounds", "0"], ">= 1"),
         (["--hessians", "magic"], "unknown Hessian"),
     ],
 )
