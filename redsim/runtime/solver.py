@@ -111,14 +111,17 @@ def _pd_exact(hessian: Tensor) -> Tensor:
     return (v * w.unsqueeze(-2)) @ v.transpose(-1, -2)
 
 
-def _direction(hessian: Tensor, grad: Tensor, fallback: Tensor) -> Tensor:
-    """-H^-1 g by Cholesky; states whose H is not positive definite use ``fallback`` [k, d, d] instead."""
+def _direction(hessian: Tensor, grad: Tensor, fallback: Tensor | None = None) -> Tensor:
+    """-H^-1 g by Cholesky; states whose H is not positive definite use ``fallback`` [k, d, d] instead
+    (None: none), and -g where that is not positive definite either."""
     chol, info = torch.linalg.cholesky_ex(hessian)
-    bad = info != 0
-    chol2, info2 = torch.linalg.cholesky_ex(torch.where(bad[:, None, None], fallback, hessian))
-    chol = torch.where(bad[:, None, None], chol2, chol)
+    usable = info == 0
+    if fallback is not None:
+        bad = ~usable
+        chol2, info2 = torch.linalg.cholesky_ex(torch.where(bad[:, None, None], fallback, hessian))
+        chol = torch.where(bad[:, None, None], chol2, chol)
+        usable = usable | (info2 == 0)
     step = -torch.cholesky_solve(grad.unsqueeze(-1), chol).squeeze(-1)
-    usable = (info2 == 0) | ~bad
     return torch.where(usable[:, None] & torch.isfinite(step), step, -grad)
 
 
@@ -127,18 +130,14 @@ def _bfgs_update(hessian: Tensor, s: Tensor, y: Tensor) -> Tensor:
     hs = (hessian @ s.unsqueeze(-1)).squeeze(-1)
     shs = (s * hs).sum(-1)
     sy = (s * y).sum(-1)
-    theta = torch.where(sy >= BFGS_DAMPING * shs, torch.ones_like(sy), (1.0 - BFGS_DAMPING) * shs / (shs - sy))
-    r = theta.unsqueeze(-1) * y + (1.0 - theta).unsqueeze(-1) * hs
+    theta = torch.where(sy >= BFGS_DAMPING * shs, 1.0, (1.0 - BFGS_DAMPING) * shs / (shs - sy))
+    r = hs + theta.unsqueeze(-1) * (y - hs)
     sr = (s * r).sum(-1)
     ok = (shs > 0) & (sr > 0) & torch.isfinite(sr) & torch.isfinite(shs)
-    shs_safe = torch.where(ok, shs, torch.ones_like(shs))
-    sr_safe = torch.where(ok, sr, torch.ones_like(sr))
-    updated = (
-        hessian
-        - hs.unsqueeze(-1) * hs.unsqueeze(-2) / shs_safe[:, None, None]
-        + r.unsqueeze(-1) * r.unsqueeze(-2) / sr_safe[:, None, None]
-    )
-    return torch.where(ok[:, None, None], updated, hessian)
+    # H - hs hs^T / s.Hs + r r^T / s.r as one batched product [k, d, 2] x [k, 2, d] (rows not ok: unused)
+    left = torch.stack([hs, r], -1)
+    right = torch.stack([hs / -shs.unsqueeze(-1), r / sr.unsqueeze(-1)], -2)
+    return torch.where(ok[:, None, None], torch.baddbmm(hessian, left, right), hessian)
 
 
 def _model(objective: BatchObjective, method: str, z: Tensor, index: Tensor, grad: Tensor) -> Tensor:
@@ -254,7 +253,7 @@ def minimize(
                     model[rebuild] = fresh
                     built[rebuild] = True
             z_r, g_r = z[start_rows], grad[start_rows]
-            fallback = objective.metric(z_r, start_rows) if hessian == "gauss_newton" else model[start_rows]
+            fallback = objective.metric(z_r, start_rows) if hessian == "gauss_newton" else None
             direction = _direction(model[start_rows], g_r, fallback)
             direction = torch.where(((g_r * direction).sum(-1) < 0)[:, None], direction, -g_r)
             step[start_rows] = direction
@@ -298,7 +297,7 @@ def minimize(
             change = g_t[rejected][more][learn] - grad[redo]
             h_new = _bfgs_update(model[redo], alpha_used[redo, None] * step[redo], change)
             model[redo] = h_new
-            fresh = _direction(h_new, grad[redo], h_new)
+            fresh = _direction(h_new, grad[redo])
             fresh_slope = (grad[redo] * fresh).sum(-1)
             good = redo[fresh_slope < 0]
             step[good] = fresh[fresh_slope < 0]
