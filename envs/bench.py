@@ -22,6 +22,8 @@ import gymnasium as gym
 import numpy as np
 import torch
 
+from redsim.runtime import Evaluations
+
 DEFAULT_BATCHES = (16, 64, 256)
 
 
@@ -83,7 +85,10 @@ def bench_env(
 
     Returns:
         ``id``, ``n``, ``d``, ``action_size``, ``observation_size``, ``dt`` [s], ``make_s``,
-        ``single`` and ``vector`` (per batch) with ``env_steps_per_s`` and ``sim_s_per_wall_s``,
+        ``single`` and ``vector`` (per batch) with ``env_steps_per_s`` and ``sim_s_per_wall_s`` (and for
+        ``vector`` the solver's work per timed vector step: ``iterations_per_step``, the mean over copies of
+        ``info["iterations"]``; ``calls_per_step``, the stepper's value-and-gradient calls; ``rows_per_copy_step``,
+        the latent states those calls evaluated per copy),
         ``full_space`` (``step_s``, ``sim_s_per_wall_s``) or None.
     """
     rng = np.random.default_rng(seed)
@@ -118,17 +123,25 @@ def bench_env(
         venv.reset(seed=seed)
         actions = rng.uniform(-1.0, 1.0, (max(steps, 1) + warmup, *venv.action_space.shape)).astype(np.float32)
         cursor = iter(actions)
+        iterations: list[float] = []
 
-        def vector_step(venv: Any = venv, cursor: Any = cursor) -> None:
-            venv.step(next(cursor))
+        def vector_step(venv: Any = venv, cursor: Any = cursor, iterations: list[float] = iterations) -> None:
+            _, _, _, _, info = venv.step(next(cursor))
+            iterations.append(float(np.mean(info["iterations"])))
 
         for _ in range(warmup):
             vector_step()
+        iterations.clear()
+        stepper = venv.unwrapped.sim.stepper
+        stepper.evaluations = Evaluations()
         seconds, count = _median_time(vector_step, steps, budget)
         row["vector"][int(batch)] = {
             "env_steps_per_s": batch / seconds,
             "sim_s_per_wall_s": batch * dt / seconds,
             "repeats": count,
+            "iterations_per_step": statistics.fmean(iterations),
+            "calls_per_step": stepper.evaluations.calls / count,
+            "rows_per_copy_step": stepper.evaluations.rows / (count * batch),
         }
         venv.close()
     row["full_space"] = None

@@ -10,6 +10,6 @@
 from __future__ import annotations
 
 from redsim.runtime.energy import LatentEnergy, MapEnergy, ReducedInertia
-from redsim.runtime.stepper import LatentStepper, StepStats
+from redsim.runtime.stepper import Evaluations, LatentStepper, StepStats
 
-__all__ = ["LatentEnergy", "LatentStepper", "MapEnergy", "ReducedInertia", "StepStats"]
+__all__ = ["Evaluations", "LatentEnergy", "LatentStepper", "MapEnergy", "ReducedInertia", "StepStats"]

@@ -14,6 +14,7 @@ from __future__ import annotations
 
 import math
 from collections.abc import Callable
+from dataclasses import dataclass
 from typing import NamedTuple
 
 import torch
@@ -63,6 +64,20 @@ class StepStats(NamedTuple):
     diverged: Tensor
     energy_gain: Tensor
     model: Tensor
+
+
+@dataclass
+class Evaluations:
+    """Running count of the objective's value-and-gradient evaluations of a :class:`LatentStepper`.
+
+    Attributes:
+        calls: Calls (each one batched energy + gradient pass; a call's fixed cost is what a small batch pays).
+        rows: Latent states evaluated over those calls (a compiled stepper evaluates its whole static batch).
+    The exact and Gauss-Newton Hessians' double backward passes are not counted.
+    """
+
+    calls: int = 0
+    rows: int = 0
 
 
 class _StepObjective:
@@ -118,6 +133,8 @@ class _StepObjective:
     def _value_and_grad(
         self, z: Tensor, qbar: Tensor, loads: Tensor | None, cond: Tensor | None
     ) -> tuple[Tensor, Tensor, Tensor]:
+        self.s.evaluations.calls += 1
+        self.s.evaluations.rows += z.shape[0]
         z = z.detach().requires_grad_(True)
         with torch.enable_grad():
             value, energy = self.s._phi_fast(z, qbar, loads, cond)
@@ -279,6 +296,8 @@ class LatentStepper:
         self._phi_fast = torch.compile(self._phi_eager, dynamic=False) if compile else self._phi_eager
         self.compiled = bool(compile)
         self.warm_start = bool(warm_start)
+        self.evaluations = Evaluations()
+        """Value-and-gradient calls and rows so far (:class:`Evaluations`; assign a new one to restart the count)."""
 
     # -- constants, once per scene and map --------------------------------------------------
     def _build_constants(self) -> None:
@@ -618,4 +637,4 @@ class LatentStepper:
         return rest.clone()
 
 
-__all__ = ["DEFAULT_HESSIAN", "DEFAULT_MAX_ITER", "DEFAULT_TOL", "LatentStepper", "StepStats"]
+__all__ = ["DEFAULT_HESSIAN", "DEFAULT_MAX_ITER", "DEFAULT_TOL", "Evaluations", "LatentStepper", "StepStats"]

@@ -30,6 +30,8 @@ def test_bench_envs_json(capsys: pytest.CaptureFixture[str]) -> None:
     (row,) = doc["results"]
     assert row["n"] == 24 and row["d"] == 4 and row["action_size"] == 3 and row["observation_size"] == 14
     assert row["vector"]["2"]["env_steps_per_s"] > 0 and row["full_space"]["step_s"] > 0
+    work = row["vector"]["2"]  # each step evaluates at least the start and z_t of every copy, in one call
+    assert work["iterations_per_step"] >= 0 and work["calls_per_step"] >= 1 and work["rows_per_copy_step"] >= 2
     assert "machine" in doc and "available" in doc["mujoco"]
 
 
@@ -38,7 +40,7 @@ def test_bench_envs_times_the_mujoco_chain_and_half_cheetah_in_the_same_run(caps
     args = ["bench", "envs", "--envs", "RedSim/MiniChain-v0", "--batches", "2", "--steps", "2", "--anchor-steps", "20"]
     assert main([*args, "--no-full-space"]) == 0
     text = capsys.readouterr().out
-    assert "RedSim/MiniChain-v0" in text
+    assert "RedSim/MiniChain-v0" in text and "solver work per vector step" in text
     assert "MuJoCo chain (24 capsules, nv 72" in text and "MuJoCo HalfCheetah-v5 (single env, dt 0.05 s)" in text
     assert main([*args, "--no-full-space", "--json"]) == 0
     anchors = json.loads(capsys.readouterr().out)["mujoco"]

@@ -12,7 +12,7 @@ import torch
 
 from redsim import pretrained, scenes
 from redsim.integrators import FullState, ImplicitEuler, LatentSpace
-from redsim.runtime import LatentStepper, MapEnergy, StepStats
+from redsim.runtime import Evaluations, LatentStepper, MapEnergy, StepStats
 
 DT = 0.02
 
@@ -110,7 +110,8 @@ def test_batched_equals_single_calls(mini_chain) -> None:
 
 def test_warm_start_is_the_same_solve_with_fewer_evaluations() -> None:
     """Carrying stats.model from step to step (as the envs do) lands on the same minimizers as building
-    the Hessian every step, for a fraction of the energy evaluations; a wrong-shape warm is refused."""
+    the Hessian every step, for a fraction of the energy evaluations (``stepper.evaluations`` counts them);
+    a wrong-shape warm is refused."""
     scene = scenes.build("chain")
     stepper = LatentStepper(scene, pretrained.load("chain").double(), DT, dtype=torch.float64, tol=1e-10)
     rows = [0]
@@ -125,6 +126,7 @@ def test_warm_start_is_the_same_solve_with_fewer_evaluations() -> None:
     runs = {}
     for warm in (False, True):
         rows[0] = 0
+        stepper.evaluations = Evaluations()
         z = stepper.rest_latent().expand(2, -1).clone()
         z_prev, model, path = z.clone(), None, [z]
         for _ in range(8):
@@ -134,6 +136,8 @@ def test_warm_start_is_the_same_solve_with_fewer_evaluations() -> None:
             z_prev, z = z, z_next
             path.append(z)
         runs[warm] = (torch.stack(path), rows[0])
+        # the stepper's own count: every energy evaluation went through a counted value-and-gradient call
+        assert stepper.evaluations.rows == rows[0] and 8 <= stepper.evaluations.calls < rows[0]
     (cold, cold_rows), (hot, hot_rows) = runs[False], runs[True]
     motion = float((cold - cold[0]).abs().max())
     assert motion > 1e-3  # it moved
