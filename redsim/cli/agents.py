@@ -6,7 +6,7 @@ import argparse
 from pathlib import Path
 from typing import Any
 
-from redsim.cli.common import EXIT_OK, CliError, finish_command, json_out, out, parse_params
+from redsim.cli.common import EXIT_OK, CliError, finish_command, json_out, out, parse_env_args
 
 
 def _check_env(env_id: str) -> None:
@@ -26,14 +26,7 @@ def _positive(value: int | None, flag: str) -> None:
 def _env_kwargs(args: argparse.Namespace) -> dict[str, Any]:
     """The env's keyword arguments: ``--env-arg KEY=VALUE`` pairs and ``--episode-steps``."""
     _positive(args.episode_steps, "--episode-steps")
-    kwargs = parse_params(args.env_arg, "--env-arg", "cubature=true")
-    if kwargs:
-        import gymnasium as gym
-
-        try:  # one env, so that a bad argument is one line here rather than a traceback from the vector env
-            gym.make(args.env_id, **kwargs).close()
-        except (TypeError, ValueError) as err:
-            raise CliError(f"cannot make {args.env_id} with --env-arg {' '.join(args.env_arg)}: {err}") from err
+    kwargs = parse_env_args(args.env_arg, [args.env_id])
     if args.episode_steps is not None:
         if "max_episode_steps" in kwargs:
             raise CliError("give the episode length once: --episode-steps or --env-arg max_episode_steps=N")

@@ -122,6 +122,21 @@ def parse_params(items: Sequence[str], flag: str = "--param", example: str = "li
     return params
 
 
+def parse_env_args(items: Sequence[str], env_ids: Sequence[str]) -> dict[str, Any]:
+    """Env keyword arguments from ``--env-arg KEY=VALUE`` pairs (VALUE a JSON literal), checked by making each
+    of ``env_ids`` once with them, so that a bad one is a one-line :class:`CliError` rather than a traceback."""
+    kwargs = parse_params(items, "--env-arg", "cubature=true")
+    if kwargs:
+        import gymnasium as gym
+
+        for env_id in env_ids:
+            try:
+                gym.make(env_id, **kwargs).close()
+            except (TypeError, ValueError) as err:
+                raise CliError(f"cannot make {env_id} with --env-arg {' '.join(items)}: {err}") from err
+    return kwargs
+
+
 def parse_loads(items: Sequence[str], scene: Scene) -> dict[str, list[float]] | None:
     """``HANDLE=FX,FY[,FZ]`` forces [N] on the scene's handles; None when there are none."""
     if not items:

@@ -6,7 +6,7 @@ import argparse
 from typing import Any
 
 from redsim.cli.bench import _machine_line
-from redsim.cli.common import EXIT_OK, CliError, finish_command, json_out, out, parse_list
+from redsim.cli.common import EXIT_OK, CliError, finish_command, json_out, out, parse_env_args, parse_list
 
 SCRIPTED = "scripted controller"
 
@@ -73,6 +73,9 @@ def cmd_bench_envs(args: argparse.Namespace) -> int:
         raise CliError(f"--batches must be comma-separated integers, got {args.batches!r}") from err
     if min(batches) < 1 or args.steps < 1 or args.anchor_steps < 1:
         raise CliError("--batches, --steps and --anchor-steps must be >= 1")
+    env_kwargs = parse_env_args(args.env_arg, ids)
+    if "device" in env_kwargs:
+        raise CliError("give the device with --device, not --env-arg device=...")
     machine = machine_info()
     if not args.json:
         out("env steps/s (median over timed steps); simulated s per wall s of the single env, of the best batch,")
@@ -92,6 +95,7 @@ def cmd_bench_envs(args: argparse.Namespace) -> int:
             budget=args.budget,
             device=args.device,
             full_space=not args.no_full_space,
+            **env_kwargs,
         )
         rows.append(row)
         if not args.json:
@@ -107,7 +111,7 @@ def cmd_bench_envs(args: argparse.Namespace) -> int:
             out(f"{row['id']:<26} " + " ".join(f"{c:>16}" for c in cells))
     anchors = mujoco_anchors(args.anchor_steps)
     if args.json:
-        json_out({"machine": machine, "results": rows, "mujoco": anchors})
+        json_out({"machine": machine, "env_args": env_kwargs, "results": rows, "mujoco": anchors})
     else:
         for line in anchor_lines(anchors):
             out(line)
@@ -147,6 +151,14 @@ def add_commands(sub: Any, bench: Any) -> None:
     p.add_argument("--device", default="cpu", help="torch device (default cpu)")
     p.add_argument("--no-full-space", action="store_true", help="skip the full-space step")
     p.add_argument("--anchor-steps", type=int, default=2000, help="timed steps of each MuJoCo anchor (default 2000)")
+    p.add_argument(
+        "--env-arg",
+        action="append",
+        default=[],
+        metavar="KEY=VALUE",
+        help="keyword argument of every env, VALUE a JSON literal (e.g. cubature=true, "
+        "stepper_options='{\"tol\": 1e-5}'); repeatable",
+    )
     finish_command(p, cmd_bench_envs, "print one JSON document", default_threads=1)
 
 

@@ -24,9 +24,10 @@ def test_demo_prints_return_and_speed_and_writes_gif_and_picture(
 
 def test_bench_envs_json(capsys: pytest.CaptureFixture[str]) -> None:
     args = ["bench", "envs", "--envs", "RedSim/MiniChain-v0", "--batches", "2", "--steps", "2", "--anchor-steps", "20"]
-    args.append("--json")
+    args += ["--env-arg", 'stepper_options={"tol": 1e-5}', "--json"]
     assert main(args) == 0
     doc = json.loads(capsys.readouterr().out)
+    assert doc["env_args"] == {"stepper_options": {"tol": 1e-5}}
     (row,) = doc["results"]
     assert row["n"] == 24 and row["d"] == 4 and row["action_size"] == 3 and row["observation_size"] == 14
     assert row["vector"]["2"]["env_steps_per_s"] > 0 and row["full_space"]["step_s"] > 0
@@ -66,3 +67,14 @@ def test_bench_envs_without_mujoco_skips_the_anchors_with_the_reason(
 def test_unknown_env_id_is_a_usage_error(argv: list[str], capsys: pytest.CaptureFixture[str]) -> None:
     assert main(argv) == 2
     assert "unknown env" in capsys.readouterr().err
+
+
+@pytest.mark.parametrize(
+    ("env_arg", "expected"),
+    [("no_such_option=1", "cannot make RedSim/MiniChain-v0 with --env-arg"), ('device="cpu"', "--device")],
+)
+def test_bench_envs_bad_env_arg_is_a_usage_error(
+    env_arg: str, expected: str, capsys: pytest.CaptureFixture[str]
+) -> None:
+    assert main(["bench", "envs", "--envs", "RedSim/MiniChain-v0", "--env-arg", env_arg]) == 2
+    assert expected in capsys.readouterr().err
