@@ -23,7 +23,9 @@ recomputes its model at the current iterate once.
 The line search is Armijo backtracking per state: a trial with a non-finite value or gradient is
 rejected like an uphill one; a trial whose value change is at round-off level is accepted if it
 lowers |g|. A state whose line search fails keeps its last accepted (finite) iterate and stops
-(``stalled``). Nothing here syncs with the host except the early exit when no state is active.
+(``stalled``). Only the active states are evaluated, which is what a CPU wants; the price is that choosing
+them (``nonzero``, boolean selections of rows) waits for the device once per selection on a GPU, where
+a dense masked iteration would not.
 """
 
 from __future__ import annotations
@@ -271,7 +273,7 @@ def minimize(
         lower = torch.linalg.vector_norm(g_t, dim=-1) < torch.linalg.vector_norm(g_a, dim=-1)
         ok = ok_finite & (armijo | (noise & lower))
         take = index[ok]
-        if quasi_newton and take.numel():  # (sizes of index tensors are known on the host: no sync)
+        if quasi_newton and take.numel():
             model[take] = _bfgs_update(model[take], trial[ok] - z_a[ok], g_t[ok] - g_a[ok])
         z[take], value[take], grad[take], energy[take] = trial[ok], v_t[ok], g_t[ok], e_t[ok]
         iterations[take] += 1
