@@ -295,6 +295,8 @@ def test_held_targets_are_the_static_positions_under_held_actions() -> None:
         assert float((reference - task.held_targets[i]).norm()) < 0.1 * task.success_radius
     with pytest.raises(ValueError, match="targets must be one of"):
         gym.make("RedSim/MiniChain-v0", targets="pushed")
+    with pytest.raises(ValueError, match="needs one condition for all episodes"):
+        gym.make("RedSim/ConditionalBar-v0", targets="held")
 
 
 def test_make_builds_an_env_from_any_scene_and_subspace() -> None:
