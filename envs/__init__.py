@@ -22,6 +22,12 @@ ENVS: dict[str, tuple[str, str, int, dict[str, Any]]] = {
     "RedSim/MiniChain-v0": ("mini_chain", "MiniChainEnv", 200, {}),
     "RedSim/ClothBall-v0": ("cloth_ball", "ClothBallEnv", 200, {}),
     "RedSim/HangingCloth-v0": ("hanging_cloth", "HangingClothEnv", 200, {}),
+    "RedSim/HangingCloth-v1": (
+        "hanging_cloth",
+        "HangingClothEnv",
+        200,
+        {"targets": "held", "target_spread": 0.8, "cubature": True},
+    ),
     "RedSim/ConditionalBar-v0": ("conditional_bar", "ConditionalBarEnv", 200, {}),
     "RedSim/Klann-v0": ("klann", "KlannEnv", 300, {}),
     "RedSim/Stewart-v0": ("stewart", "StewartEnv", 200, {}),

@@ -6,6 +6,13 @@ handle's position in f(z_target[, c]) along the goal axes. Every target is there
 map contains, at a distance the spread sets, whatever the scene. The action is a force on the
 actuated handle along the force axes, ``max_force * action`` [N].
 
+With ``targets="held"`` the targets are instead places a held action brings the goal handle to:
+at bind, HELD_SAMPLES actions u ~ U[-s, s]^A (fixed seed 0) are each held on one copy of a batched
+stepper with the env's own energy, SETTLE_STEPS implicit-Euler steps of SETTLE_DT (a strongly
+damped walk to the static equilibrium under those loads), and the goal handle's positions there
+form the table a reset draws from (``rng.integers``). Every such target is reachable by holding
+an action no larger than s.
+
 Reward per step, with d the distance [m] from the goal handle to the target along the goal axes
 and L = ``distance_scale`` [m]:
 
@@ -31,6 +38,14 @@ if TYPE_CHECKING:
 
 SCALE_SAMPLES = 64
 """Fixed latent samples (seed 0) that set the default distance scale of a reach task."""
+HELD_SAMPLES = 256
+"""Held actions (seed 0) whose static goal-handle positions are the targets of ``targets="held"``."""
+SETTLE_DT = 1.0
+"""Time step [s] of the settling steps that find those positions (implicit Euler: strongly damped)."""
+SETTLE_STEPS = 20
+"""Settling steps per held action (the hanging sheet moves < 3e-4 m in its 10th step)."""
+TARGETS = ("latent", "held")
+"""Target distributions of :class:`HandleReach` (module doc)."""
 
 
 class HandleReach(Task):
@@ -42,7 +57,10 @@ class HandleReach(Task):
         actuated: Handle the force acts on (default: the goal handle).
         force_axes: Spatial axes of the force (default: all D).
         goal_axes: Spatial axes the distance is measured along (default: all D).
-        target_spread: s, the latent spread of targets around the rest state.
+        target_spread: s, the latent spread of targets around the rest state (``targets="latent"``), or the
+            largest |entry| of the held actions that set them (``"held"``).
+        targets: ``"latent"``: handle positions of latent samples; ``"held"``: where held actions bring the
+            handle (module doc).
         distance_scale: L [m] of the reward (default: the RMS target distance over
             SCALE_SAMPLES fixed targets).
         success_radius: Distance [m] under which the task counts as done (default 0.2 L).
@@ -52,7 +70,8 @@ class HandleReach(Task):
         controller_time: Scripted controller integral time [s].
 
     Raises:
-        ValueError: an unknown handle or axis, or a bad number.
+        ValueError: an unknown handle, axis or target distribution, a bad number, or (at bind) held targets
+            with a condition drawn per episode.
     """
 
     name = "reach"
@@ -73,7 +92,10 @@ class HandleReach(Task):
         success_bonus: float = 1.0,
         controller_gain: float | None = None,
         controller_time: float = 0.5,
+        targets: str = "latent",
     ) -> None:
+        if targets not in TARGETS:
+            raise ValueError(f"targets must be one of {list(TARGETS)}, got {targets!r}")
         check_numbers(
             {"max_force": max_force, "target_spread": target_spread, "controller_time": controller_time},
             {"control_weight": control_weight, "success_bonus": success_bonus},
@@ -85,6 +107,7 @@ class HandleReach(Task):
         self._force_axes = None if force_axes is None else tuple(int(a) for a in force_axes)
         self._goal_axes = None if goal_axes is None else tuple(int(a) for a in goal_axes)
         self.target_spread = float(target_spread)
+        self.targets = targets
         self._distance_scale = distance_scale
         self._success_radius = success_radius
         self.control_weight = float(control_weight)
@@ -115,12 +138,16 @@ class HandleReach(Task):
         self._dim = D
         rest_x = sim.full_positions(sim._rest_latent(sim.default_cond).unsqueeze(0), sim.default_cond)
         self._rest_goal = self._goal.position(rest_x)[0, self._goal_index]
+        self.held_actions, self.held_targets = self._held(sim) if self.targets == "held" else (None, None)
         if self._distance_scale is None:
-            generator = torch.Generator().manual_seed(0)
-            eps = torch.randn(SCALE_SAMPLES, sim.latent_dim, generator=generator).to(sim.device, sim.torch_dtype)
-            z = sim._rest_latent(sim.default_cond).unsqueeze(0) + self.target_spread * eps
-            cond = None if sim.default_cond is None else sim.default_cond.expand(SCALE_SAMPLES, -1)
-            targets = self._goal.position(sim.full_positions(z, cond))[:, self._goal_index]
+            if self.held_targets is None:
+                generator = torch.Generator().manual_seed(0)
+                eps = torch.randn(SCALE_SAMPLES, sim.latent_dim, generator=generator).to(sim.device, sim.torch_dtype)
+                z = sim._rest_latent(sim.default_cond).unsqueeze(0) + self.target_spread * eps
+                cond = None if sim.default_cond is None else sim.default_cond.expand(SCALE_SAMPLES, -1)
+                targets = self._goal.position(sim.full_positions(z, cond))[:, self._goal_index]
+            else:
+                targets = self.held_targets
             rms = float((targets - self._rest_goal).pow(2).sum(-1).mean().sqrt())
             self.distance_scale = rms if rms > 0.0 else scene.extent()
         else:
@@ -130,10 +157,40 @@ class HandleReach(Task):
         extent = scene.extent()
         self._bound = float(self._rest_goal.abs().max()) + 2.0 * extent
 
+    def _held(self, sim: LatentSim) -> tuple[Tensor, Tensor]:
+        """Held actions [HELD_SAMPLES, A] and the goal handle's positions [HELD_SAMPLES, k] [m] at rest under them
+        (module doc)."""
+        from redsim.runtime import LatentStepper
+
+        if sim.randomize_condition:
+            raise ValueError("targets='held' needs one condition for all episodes (randomize_condition is on)")
+        generator = torch.Generator().manual_seed(0)
+        held = self.target_spread * (2.0 * torch.rand(HELD_SAMPLES, self.action_size, generator=generator) - 1.0)
+        loads = self.loads(held.to(sim.device, sim.torch_dtype), {})
+        stepper = LatentStepper(
+            sim.source_scene,
+            sim.subspace,
+            SETTLE_DT,
+            dtype=sim.torch_dtype,
+            device=sim.device,
+            energy=sim.stepper.energy,
+        )
+        cond = None if sim.default_cond is None else sim.default_cond.expand(HELD_SAMPLES, -1)
+        z = sim._rest_latent(sim.default_cond).expand(HELD_SAMPLES, -1).clone()
+        z_prev, model = z.clone(), None
+        for _ in range(SETTLE_STEPS):
+            z_next, stats = stepper.step(z, z_prev, loads, cond, warm=model)
+            if bool(stats.diverged.any()):
+                raise ValueError(f"a held action of at most {self.target_spread} diverged while settling")
+            z_prev, z, model = z, z_next.detach(), stats.model
+        return held, self._goal_position(sim.full_positions(z, cond)).detach()
+
     # -- episodes -------------------------------------------------------------------------
     def sample(
         self, rng: np.random.Generator, sim: LatentSim, z_rest: Tensor, cond: Tensor | None
     ) -> dict[str, Tensor]:
+        if self.held_targets is not None:
+            return {"target": self.held_targets[int(rng.integers(HELD_SAMPLES))].clone()}
         eps = torch.as_tensor(rng.standard_normal(sim.latent_dim), dtype=sim.torch_dtype, device=sim.device)
         z = (z_rest + self.target_spread * eps).unsqueeze(0)
         target = self._goal.position(sim.full_positions(z, cond))[0, self._goal_index]
@@ -225,7 +282,8 @@ class ReachEnv(LatentEnv):
     |---|---|---|
     | `render_mode` | None | None, "rgb_array" or "human" |
     | `max_force` | the env's | force [N] of a unit action |
-    | `target_spread` | the env's | latent spread s of the targets |
+    | `target_spread` | the env's | latent spread s of the targets (held targets: largest held action entry) |
+    | `targets` | the env's | "latent" or "held" (:class:`HandleReach`) |
     | `dt` | 0.02 | stepper time step [s] |
     | `frame_skip` | 1 | stepper steps per env step |
     | `subspace` | None | the shipped map, a checkpoint path or a map |
@@ -241,6 +299,7 @@ class ReachEnv(LatentEnv):
     goal_handle: ClassVar[str]
     default_max_force: ClassVar[float]
     default_target_spread: ClassVar[float] = 0.5
+    default_targets: ClassVar[str] = "latent"
     force_axes: ClassVar[tuple[int, ...] | None] = None
     goal_axes: ClassVar[tuple[int, ...] | None] = None
     camera: ClassVar[dict[str, float]] = {}
@@ -252,6 +311,7 @@ class ReachEnv(LatentEnv):
         *,
         max_force: float | None = None,
         target_spread: float | None = None,
+        targets: str | None = None,
         dt: float = 0.02,
         frame_skip: int = 1,
         subspace: str | nn.Module | None = None,
@@ -271,6 +331,7 @@ class ReachEnv(LatentEnv):
             self.goal_handle,
             max_force=self.default_max_force if max_force is None else max_force,
             target_spread=self.default_target_spread if target_spread is None else target_spread,
+            targets=self.default_targets if targets is None else targets,
             force_axes=self.force_axes,
             goal_axes=self.goal_axes,
         )

@@ -57,6 +57,15 @@ _OFF_POLICY = {
     "normalize": {"norm_obs": True, "norm_reward": False},
 }
 
+_PPO_WIDE = {
+    "n_envs": 64,
+    "n_steps": 64,
+    "batch_size": 512,
+    "gamma": 0.99,
+    "policy_kwargs": {"net_arch": [64, 64], "log_std_init": 0.0},
+}
+"""PPO over many copies with a wide initial exploration (std e^0 = 1 of the unit action): what learnt BistableBar-v1."""
+
 HYPERPARAMS: dict[str, dict[str, dict[str, Any]]] = {
     "default": {
         "sac": {
@@ -93,19 +102,14 @@ HYPERPARAMS: dict[str, dict[str, dict[str, Any]]] = {
     "RedSim/Chain-v0": {"sac": {"n_envs": 16, "gradient_steps": 8}},
     "RedSim/ClothBall-v0": {"sac": {"n_envs": 16, "gradient_steps": 8}},
     "RedSim/HangingCloth-v0": {"sac": {"n_envs": 16, "gradient_steps": 8}},
+    "RedSim/HangingCloth-v1": {"ppo": _PPO_WIDE},
     "RedSim/ConditionalBar-v0": {"sac": {"n_envs": 16, "gradient_steps": 8}},
     "RedSim/Klann-v0": {"sac": {"n_envs": 16, "gradient_steps": 8}},
     "RedSim/Stewart-v0": {"sac": {"n_envs": 16, "gradient_steps": 8}},
     "RedSim/BistableBar-v0": {"sac": {"n_envs": 16, "gradient_steps": 8}},
     "RedSim/BistableBar-v1": {
         "sac": {"n_envs": 16, "gradient_steps": 8, "gamma": 0.99},
-        "ppo": {
-            "n_envs": 64,
-            "n_steps": 64,
-            "batch_size": 512,
-            "gamma": 0.99,
-            "policy_kwargs": {"net_arch": [64, 64], "log_std_init": 0.0},
-        },
+        "ppo": _PPO_WIDE,
     },
 }
 """env id -> algorithm -> settings; each env's entries override ``"default"`` key by key.

@@ -13,6 +13,7 @@ import warnings
 import gymnasium as gym
 import numpy as np
 import pytest
+import torch
 from gymnasium.utils.env_checker import check_env
 from gymnasium.vector import AutoresetMode
 
@@ -23,7 +24,7 @@ from redsim.envs.reach import HandleReach
 from redsim.subspace import CheckpointError
 
 FAST = ("RedSim/MiniChain-v0", "RedSim/ConditionalBar-v0")
-SLOW = ("RedSim/Chain-v0", "RedSim/ClothBall-v0", "RedSim/HangingCloth-v0")
+SLOW = ("RedSim/Chain-v0", "RedSim/ClothBall-v0", "RedSim/HangingCloth-v0", "RedSim/HangingCloth-v1")
 ALL_IDS = [*FAST, *(pytest.param(i, marks=pytest.mark.slow) for i in SLOW)]
 LINKAGES = ("RedSim/Klann-v0", "RedSim/Stewart-v0")
 """Not reach tasks: their task checks are in test_linkage_envs.py; the contract checks run here under -m slow."""
@@ -273,6 +274,29 @@ def test_random_and_bang_bang_soak_over_every_env(env_id: str) -> None:
         actions = np.sign(rng.uniform(-1, 1, shape)) if i % 50 < 25 else rng.uniform(-1, 1, shape)
         obs, reward, _, _, info = venv.step(actions.astype(np.float32))
         assert np.all(np.isfinite(obs)) and np.all(np.isfinite(reward)) and np.all(np.isfinite(info["energy"]))
+
+
+def test_held_targets_are_the_static_positions_under_held_actions() -> None:
+    """targets="held" (HangingCloth-v1's targets) on MiniChain: a reset draws from the table, and each entry is the
+    handle's position at the float64 latent static equilibrium under its held action (the reference solve)."""
+    from redsim.integrators import LatentSpace, latent_equilibrium
+
+    env = gym.make("RedSim/MiniChain-v0", targets="held").unwrapped
+    sim, task = env.sim, env.task
+    assert task.held_actions.shape == (256, 3) and float(task.held_actions.abs().max()) <= task.target_spread
+    env.reset(seed=5)
+    assert any(torch.equal(sim.params["target"][0], t) for t in task.held_targets)
+    space = LatentSpace(sim.source_scene, sim.subspace)
+    for i in range(3):
+        loads = task.loads(task.held_actions[i : i + 1].to(torch.float64), {})[0]
+        z, info = latent_equilibrium(space, loads, z0=sim._rest_latent(None).to(torch.float64))
+        assert info.converged
+        reference = task._goal_position(sim.full_positions(z.to(sim.torch_dtype).unsqueeze(0)))[0]
+        assert float((reference - task.held_targets[i]).norm()) < 0.1 * task.success_radius
+    with pytest.raises(ValueError, match="targets must be one of"):
+        gym.make("RedSim/MiniChain-v0", targets="pushed")
+    with pytest.raises(ValueError, match="needs one condition for all episodes"):
+        gym.make("RedSim/ConditionalBar-v0", targets="held")
 
 
 def test_make_builds_an_env_from_any_scene_and_subspace() -> None:

@@ -217,7 +217,8 @@ def test_each_shipped_policy_beats_random_and_scripted_over_20_episodes(env_id: 
     for baseline in ("random", "scripted"):
         other = evaluate(env_id, baseline, episodes=20, seed=0)
         assert agent.mean > other.mean + 0.5 * other.std, baseline
-        assert agent.success_rate > other.success_rate, baseline
+        # a baseline that succeeds in every episode can only be matched (HangingCloth-v1's PI controller)
+        assert agent.success_rate > other.success_rate or agent.success_rate == other.success_rate == 1.0, baseline
 
 
 @pytest.mark.slow
