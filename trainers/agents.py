@@ -220,6 +220,10 @@ class Evaluation:
         success_steps: Fraction of each episode's steps that met the success test, shape [episodes]
             (what a tracking task, Klann's crank speed, is judged by along the way).
         seed: The first seed.
+        saturated_steps: Fraction of each episode's steps with some action component at its bound
+            (|a| >= 0.999), shape [episodes].
+        final_distance: ``info["distance"]`` at each episode's last step [m] (reach tasks), shape
+            [episodes]; None where the env reports no distance.
     """
 
     policy: str
@@ -228,6 +232,8 @@ class Evaluation:
     lengths: np.ndarray
     seed: int
     success_steps: np.ndarray
+    saturated_steps: np.ndarray
+    final_distance: np.ndarray | None = None
 
     @property
     def mean(self) -> float:
@@ -252,6 +258,9 @@ class Evaluation:
             "mean_length": float(np.mean(self.lengths)),
             "success_steps": float(np.mean(self.success_steps)),
             "returns": [float(r) for r in self.returns],
+            "successes": [bool(h) for h in self.successes],
+            "saturated_steps": [float(f) for f in self.saturated_steps],
+            **({} if self.final_distance is None else {"final_distance": [float(d) for d in self.final_distance]}),
         }
 
 
@@ -291,6 +300,8 @@ def evaluate(
     lengths = np.zeros(venv.num_envs, dtype=np.int64)
     successes = np.zeros(venv.num_envs, dtype=bool)
     success_steps = np.zeros(venv.num_envs)
+    saturated = np.zeros(venv.num_envs)
+    distance = None
     running = np.ones(venv.num_envs, dtype=bool)
     while running.any():
         if policy == "random":
@@ -301,16 +312,21 @@ def evaluate(
             action = policy.predict(obs, deterministic=deterministic)[0]
         obs, reward, terminated, truncated, info = venv.step(action)
         returns[running] += reward[running]
+        saturated[running] += (np.abs(action) >= 0.999).any(axis=1)[running]
         lengths[running] += 1
         done = running & (terminated | truncated)
         if "is_success" in info:
             hit = np.asarray(info["is_success"], dtype=bool)
             successes[done] = hit[done]
             success_steps[running] += hit[running]
+        if "distance" in info:
+            distance = np.full(venv.num_envs, np.nan) if distance is None else distance
+            distance[done] = np.asarray(info["distance"], dtype=float)[done]
         running &= ~done
     venv.close()
     name = policy if isinstance(policy, str) else "agent"
-    return Evaluation(name, returns, successes, lengths, int(seed), success_steps / lengths)
+    steps = dict(success_steps=success_steps / lengths, saturated_steps=saturated / lengths)
+    return Evaluation(name, returns, successes, lengths, int(seed), **steps, final_distance=distance)
 
 
 # -- model files ------------------------------------------------------------------------------

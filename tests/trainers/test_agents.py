@@ -8,6 +8,7 @@ import zipfile
 from collections.abc import Callable
 from pathlib import Path
 
+import gymnasium as gym
 import numpy as np
 import pytest
 
@@ -62,6 +63,10 @@ def test_evaluation_is_seeded_and_the_scripted_controller_beats_random() -> None
     scripted = evaluate(MINI, "scripted", episodes=3, seed=5, env_kwargs={"max_episode_steps": 40})
     assert scripted.lengths.tolist() == [40, 40, 40]
     assert scripted.mean > first.mean + 20.0  # the PI controller reaches; random forces flail
+    radius = gym.make(MINI).unwrapped.sim.task.success_radius
+    np.testing.assert_array_equal(scripted.final_distance < radius, scripted.successes)  # [m], the last step's
+    assert first.saturated_steps.shape == (3,) and np.all(first.saturated_steps < 0.05)  # uniform actions
+    assert first.as_dict()["successes"] == first.successes.tolist()
     with pytest.raises(ValueError, match="policy must be"):
         evaluate(MINI, "greedy", episodes=2)
     with pytest.raises(ValueError, match="unknown env"):
@@ -201,7 +206,6 @@ def test_bad_input_is_a_clear_cli_error(cli: Callable[..., tuple[int, str, str]]
 
 def _foreign_model(folder: Path) -> Path:
     """An SB3 model of another project's env (saved untrained)."""
-    import gymnasium as gym
     from stable_baselines3 import SAC
 
     path = folder / "pendulum.zip"
