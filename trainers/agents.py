@@ -222,8 +222,8 @@ class Evaluation:
         seed: The first seed.
         saturated_steps: Fraction of each episode's steps with some action component at its bound
             (|a| >= 0.999), shape [episodes].
-        final_distance: ``info["distance"]`` at each episode's last step [m] (reach tasks), shape
-            [episodes]; None where the env reports no distance.
+        final_distance: ``info["distance"]`` at each episode's last step [m] (the reach tasks, Stewart),
+            shape [episodes]; None where the env reports no distance.
     """
 
     policy: str
