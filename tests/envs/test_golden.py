@@ -45,11 +45,7 @@ SLOW = ("RedSim/Chain-v0", "RedSim/HangingCloth-v0", "RedSim/HangingCloth-v1", "
 cubature and near-point contact, runs its 50 float64 steps in ~5 s under load: default suite)."""
 
 
-PENDING = {
-    "RedSim/HangingCloth-v0": "refused by --update with cubature=True: its 50-step rollout has a solver spread of 0.33 "
-    "(default tol vs 100x tighter or cold), far above 3e-4 (the swinging sheet is ill-conditioned); the all-element "
-    "default was not retried",
-}
+PENDING: dict[str, str] = {}
 """Ids without a golden file yet, and why; ``--update ID`` writes one (then drop the id from here)."""
 
 
