@@ -3,9 +3,10 @@
 Prop. 1 of the paper: as sigma -> 0 the loss's minimiser is f(z) = b + sigma Phi z, b the static
 equilibrium and Phi the d lowest generalized eigenvectors of (H(b), M): the map holds the small
 linear responses to loads by construction. At the sigma a scene needs for its large motions nothing
-forces this, and a 10^4-step fit neither passes through b nor has the lowest modes as its tangent
-there (issue 12: response errors near 1). With ``modal > 0`` the loss gains, over a few conditions
-c_k (the default one; for a conditional fit also seeded samples of the condition space),
+forces this: a 3000-step cantilever fit's unloaded equilibrium sits 13 J above b and its Jacobian
+there is nearly orthogonal to the two lowest modes (issue 12: response errors near 1). With
+``modal > 0`` the loss gains, over a few conditions c_k (the default one; for a conditional fit also
+seeded samples of the condition space),
 
     w(t)/2 mean_k ( |MLP(0, c_k) - b_k|^2_A + |J_k - sigma Phi_k R_k|^2_A ),   A = H(b_k) + lambda_d M,
 
@@ -16,10 +17,12 @@ eigenvalue; w(t) (unitless) follows the anchor schedule (:func:`redsim.trainers.
 The norm is the energy's own: |x|^2_H / 2 is the elastic energy a small error x costs, so an error
 along a stiff element-level direction counts as much as it lifts the map's energy (an M-norm pull
 left f(0) 0.007 kg^1/2 m from b on the cantilever, yet 37 J above it); lambda_d M keeps the lowest
-modes (and null modes) weighted at least as the d-th. In that norm a map that starts as MLPs do (output near 0,
-random Jacobian) begins 10^8 J off, so the fit starts from a flat map at b instead (:func:`start_at_rest`).
-It needs no simulation data: b_k, H and Phi_k
-come from the energy alone (its static equilibrium and Hessian, the inputs of linear modal analysis).
+modes (and null modes) weighted at least as the d-th. In that norm a map that starts as MLPs do
+(output near 0, random Jacobian) begins 10^8 J off, so the fit starts from a flat map at b instead
+(:func:`start_at_rest`). It needs no simulation data: b_k, H and Phi_k come from the energy alone
+(its static equilibrium and Hessian, the inputs of linear modal analysis). Measured (README, "Small
+responses"): the cantilever's response error falls from 0.98 to 0.30, the conditional bar's only to
+0.83.
 """
 
 from __future__ import annotations

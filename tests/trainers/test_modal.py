@@ -53,6 +53,11 @@ def test_conditional_targets_cover_the_default_and_sampled_conditions() -> None:
     assert targets.modes.shape == (MODAL_CONDITIONS, scene.free_dof_count, 2)
     space = scene.condition_space
     assert bool(((targets.cond >= space.low) & (targets.cond <= space.high)).all())
+    result = fit_subspace(
+        scene, dim=2, sigma=0.05, lam=10.0, steps=3, conditional=True, modal=10.0, modal_fraction=2.0, progress=False
+    )
+    assert all(math.isfinite(h["modal"]) and h["modal"] > 0 for h in result.history)
+    assert "--cond" in result.subspace.metadata["command"] and "--modal 10.0" in result.subspace.metadata["command"]
 
 
 def test_gap_by_hand_is_zero_for_the_modal_map_in_any_rotation() -> None:
