@@ -119,15 +119,18 @@ class _Modes(NamedTuple):
     """Scene, eigenvalues, eigensolver, stiffness scale, null-mode count, equilibrium solve."""
 
 
-def _modes(scene: Scene, dim: int, sigma: float, rest: Tensor | None) -> _Modes:
-    """The ``dim`` lowest modes at b (``rest``, default the static equilibrium), columns scaled by sigma."""
+def _modes(scene: Scene, dim: int, sigma: float, rest: Tensor | None, cond: Tensor | None = None) -> _Modes:
+    """The ``dim`` lowest modes at b (``rest``, default the static equilibrium), columns scaled by sigma.
+
+    ``cond`` [m]: the condition of the energy (None: the scene's default).
+    """
     if not (math.isfinite(sigma) and sigma > 0.0):
         raise ValueError(f"sigma must be finite and > 0, got {sigma!r}")
     scene = as_float64(scene)
     n = scene.free_dof_count
     _check_dim(dim, n, f"n = {n}")
     if rest is None:
-        b, info = static_equilibrium(scene)
+        b, info = static_equilibrium(scene, None, cond)
         if not info.converged:
             logger.warning(
                 "static equilibrium of %r did not converge (%s); modes are taken there", scene.name, info.message
@@ -138,7 +141,7 @@ def _modes(scene: Scene, dim: int, sigma: float, rest: Tensor | None) -> _Modes:
         if b.shape != (n,) or not bool(torch.isfinite(b).all()):
             raise ValueError(f"rest must be a finite configuration of shape [{n}], got {tuple(b.shape)}")
         equilibrium = None
-    H = energy_hessian(scene, b, project=False)
+    H = energy_hessian(scene, b, None, cond, project=False)
     H = (0.5 * (H + H.T)).tocsr()
     M = scene.mass_matrix_scipy()
     values, vectors, solver = _lowest_modes(H, M, int(dim))
@@ -159,7 +162,9 @@ def _modes(scene: Scene, dim: int, sigma: float, rest: Tensor | None) -> _Modes:
     return _Modes(scene, b, H, M, values, vectors, basis, meta)
 
 
-def modal_analysis(scene: Scene, dim: int, *, sigma: float = 1.0, rest: Tensor | None = None) -> LinearSubspace:
+def modal_analysis(
+    scene: Scene, dim: int, *, sigma: float = 1.0, rest: Tensor | None = None, cond: Tensor | None = None
+) -> LinearSubspace:
     """Linear modal analysis: f(z) = b + sigma * Phi z (the limit of the paper's Prop. 1).
 
     b is the static equilibrium reached from the seed (at the default condition of a conditional
@@ -178,6 +183,8 @@ def modal_analysis(scene: Scene, dim: int, *, sigma: float = 1.0, rest: Tensor |
         dim: d, the number of modes, 1 <= d <= n.
         sigma: Scale of the columns [configuration unit x kg^(1/2) per unit z], the paper's σ.
         rest: The rest state b [n]; default: :func:`redsim.integrators.static_equilibrium` from the seed.
+        cond: Condition [m] of the energy (equilibrium and Hessian) for a conditional scene; default:
+            the scene's default condition. The returned map itself is not conditional.
 
     Returns:
         The float64 subspace; metadata holds sigma, the eigenvalues, the eigensolver, and the
@@ -186,7 +193,7 @@ def modal_analysis(scene: Scene, dim: int, *, sigma: float = 1.0, rest: Tensor |
     Raises:
         ValueError: on a bad dim, sigma or rest.
     """
-    modes = _modes(scene, dim, sigma, rest)
+    modes = _modes(scene, dim, sigma, rest, cond)
     return LinearSubspace(modes.basis, modes.rest, {**modes.meta, "method": "modal_analysis", "sigma": float(sigma)})
 
 

@@ -55,6 +55,10 @@ leaves the other out; the anchors only decide the topology (a map through both w
 they are off the energy keeps each well in the map. It needs no simulation data: the states are
 static equilibria of the energy.
 
+Modal pull (``FitConfig.modal``, not in the paper): the map's value and Jacobian at z = 0 are pulled to
+the static equilibrium and sigma times the lowest modes there, Prop. 1's small-sigma limit, so that the
+map holds the small linear responses to loads (:mod:`redsim.trainers.modal`).
+
 Speed options (:class:`FitConfig`): ``fused_adam`` (one fused Adam kernel per step) and ``compile``
 (the loss, forward and backward, through ``torch.compile``; ``redsim bench fit`` measures both).
 """
@@ -85,6 +89,7 @@ from redsim.subspace import (
     pair_log_ratios,
     sample_latents,
 )
+from redsim.trainers.modal import ModalTargets, modal_gap, modal_targets, start_at_rest
 from redsim.version import __version__
 
 log = logging.getLogger(__name__)
@@ -124,6 +129,11 @@ class FitConfig:
             (module doc; 0: off). Needs a catalog scene whose registry entry declares them.
         anchor_fraction: The anchor pull is held for half of this fraction of the steps, then falls
             linearly to 0 at it.
+        modal: Initial weight (unitless) of the modal pull (:mod:`redsim.trainers.modal`; 0: off): the map's
+            value and Jacobian at z = 0 towards the static equilibrium and sigma times the lowest modes, in
+            the energy norm (w/2 |x|^2_H is w times the elastic energy an error x costs).
+        modal_fraction: The modal pull is held for half of this fraction of the steps, then falls
+            linearly to 0 at it (the anchor schedule; 2: held to the end).
         mirror: Weight [1/s^2] of the equivariance penalty mean |MLP(-z) - P MLP(z)|^2_M [kg m^2]
             for the scene's mirror P (:class:`redsim.scene.Mirror`; 0: off). Needs a scene that
             declares one and an even ``batch_size`` (the batch is z and -z).
@@ -173,6 +183,8 @@ class FitConfig:
     soften_fraction: float = 0.5
     anchor: float = 0.0
     anchor_fraction: float = 0.5
+    modal: float = 0.0
+    modal_fraction: float = 0.5
     mirror: float = 0.0
     checkpoint_every: int = 1000
     dtype: str = "float32"
@@ -221,6 +233,8 @@ _FIELD_RULES: tuple[tuple[str, str, Callable[[FitConfig, Any], bool]], ...] = (
     ("soften_fraction", "a number in (0, 1]", lambda c, v: _is_number(v) and 0 < v <= 1),
     ("anchor", "a finite number >= 0", lambda c, v: _is_number(v) and v >= 0),
     ("anchor_fraction", "a number in (0, 1]", lambda c, v: _is_number(v) and 0 < v <= 1),
+    ("modal", "a finite number >= 0", lambda c, v: _is_number(v) and v >= 0),
+    ("modal_fraction", "a number in (0, 2]", lambda c, v: _is_number(v) and 0 < v <= 2),
     (
         "mirror",
         "a finite number >= 0 (> 0 needs an even batch_size)",
@@ -350,8 +364,18 @@ def anchor_energy(scene: Scene, model: SubspaceMap, anchors: tuple[Tensor, Tenso
 
 def anchor_at(step: int, config: FitConfig, ramp_steps: int | None = None) -> float:
     """Anchor stiffness [1/s^2] in step ``step`` (0-based): ``anchor``, then falling linearly to 0 (as the driver)."""
-    progress = step / (config.anchor_fraction * (ramp_steps or config.steps))
-    return config.anchor * min(1.0, max(0.0, 2.0 * (1.0 - progress)))
+    return _held_then_falling(config.anchor, config.anchor_fraction, step, ramp_steps or config.steps)
+
+
+def modal_at(step: int, config: FitConfig, ramp_steps: int | None = None) -> float:
+    """Modal pull weight in step ``step`` (0-based): ``modal``, then falling linearly to 0 (as the anchor)."""
+    return _held_then_falling(config.modal, config.modal_fraction, step, ramp_steps or config.steps)
+
+
+def _held_then_falling(value: float, fraction: float, step: int, steps: int) -> float:
+    """``value`` for the first half of ``fraction`` of ``steps`` steps, then linearly down to 0 at ``fraction``."""
+    progress = step / (fraction * steps)
+    return value * min(1.0, max(0.0, 2.0 * (1.0 - progress)))
 
 
 def batch_latents(config: FitConfig, generator: torch.Generator, dtype: torch.dtype) -> Tensor:
@@ -400,12 +424,15 @@ def subspace_loss(
     config: FitConfig,
     step: int = 0,
     anchors: tuple[Tensor, Tensor] | None = None,
+    modal: ModalTargets | None = None,
 ) -> tuple[Tensor, dict[str, float]]:
     """The fitting loss on one batch, and its terms (mean energy [J], pair term, mean metric stretch, driver [J],
-    mirror penalty [J], anchor pull [J]; ``z`` must be antithetic, [z; -z], when ``config.mirror > 0``).
+    mirror penalty [J], anchor pull [J], modal pull [J]; ``z`` must be antithetic, [z; -z], when ``config.mirror > 0``).
 
-    ``step`` (0-based) sets the driver stiffness (:func:`drive_at`), softening (:func:`soften_at`) and the
-    anchor stiffness (:func:`anchor_at`; ``anchors`` from :func:`anchor_states`, needed when ``config.anchor > 0``).
+    ``step`` (0-based) sets the driver stiffness (:func:`drive_at`), softening (:func:`soften_at`), the
+    anchor stiffness (:func:`anchor_at`; ``anchors`` from :func:`anchor_states`, needed when ``config.anchor > 0``)
+    and the modal pull's (:func:`modal_at`; ``modal`` from :func:`redsim.trainers.modal.modal_targets`, needed
+    when ``config.modal > 0``).
     """
     rho_t, drive_t, soften_t = (
         torch.as_tensor(v, dtype=z.dtype, device=z.device)
@@ -417,7 +444,12 @@ def subspace_loss(
         if anchors is None:
             raise ValueError("config.anchor > 0 needs the anchors (anchor_states)")
         pull = anchor_energy(scene, model, anchors, anchor_at(step, config))
-    return total + pull, {**_terms(*terms), "anchor": float(pull.detach())}
+    hold = torch.zeros_like(total)
+    if config.modal > 0:
+        if modal is None:
+            raise ValueError("config.modal > 0 needs the modal targets (redsim.trainers.modal.modal_targets)")
+        hold = 0.5 * modal_at(step, config) * modal_gap(scene, model, modal, config.sigma)
+    return total + pull + hold, {**_terms(*terms), "anchor": float(pull.detach()), "modal": float(hold.detach())}
 
 
 def rho_at(step: int, config: FitConfig, ramp_steps: int | None = None) -> float:
@@ -439,8 +471,7 @@ def drive_at(step: int, config: FitConfig, ramp_steps: int | None = None) -> flo
 
     Like rho, it follows the length ``ramp_steps`` the fit was planned for (default ``config.steps``).
     """
-    progress = step / (config.drive_fraction * (ramp_steps or config.steps))
-    return config.drive * min(1.0, max(0.0, 2.0 * (1.0 - progress)))
+    return _held_then_falling(config.drive, config.drive_fraction, step, ramp_steps or config.steps)
 
 
 def soften_at(step: int, config: FitConfig, ramp_steps: int | None = None) -> float:
@@ -511,6 +542,10 @@ def fit_subspace(
     anchors = None
     if config.anchor > 0:
         anchors = tuple(t.to(device=config.device, dtype=dtype) for t in anchor_states(scene, config))
+    targets = None
+    if config.modal > 0:
+        found = modal_targets(scene, config.latent_dim, config.conditional, seed)
+        targets = found.to(config.device, dtype)
     arch = SubspaceConfig(
         latent_dim=config.latent_dim,
         output_dim=scene.free_dof_count,
@@ -525,6 +560,8 @@ def fit_subspace(
     if config.seed_bias:
         with torch.no_grad():
             model.mlp[-1].bias.copy_(work.q_seed)
+    if targets is not None:
+        start_at_rest(model, targets)
     fused = config.fused_adam
     if fused and (why := _fused_adam_error(config.device, dtype)) is not None:
         log.warning("fused Adam is unavailable on %s in %s (%s); using plain Adam", config.device, dtype, why)
@@ -601,6 +638,10 @@ def fit_subspace(
                 pull = anchor_energy(work, model, anchors, anchor_at(step, config, ramp_steps))  # type: ignore[arg-type]
                 loss = loss + pull
                 terms["anchor"] = float(pull.detach())
+            if targets is not None:
+                hold = 0.5 * modal_at(step, config, ramp_steps) * modal_gap(work, model, targets, config.sigma)
+                loss = loss + hold
+                terms["modal"] = float(hold.detach())
             if not torch.isfinite(loss):
                 raise FloatingPointError(
                     f"loss became {float(loss)} at step {step} (terms {terms}); lower the learning rate or sigma"
@@ -743,6 +784,8 @@ def fit_command(scene: Scene, config: FitConfig, seed: int, out: str | Path | No
         parts += ["--soften-fraction", repr(config.soften_fraction)]
     if config.anchor > 0:
         parts += ["--anchor", repr(config.anchor), "--anchor-fraction", repr(config.anchor_fraction)]
+    if config.modal > 0:
+        parts += ["--modal", repr(config.modal), "--modal-fraction", repr(config.modal_fraction)]
     if config.mirror > 0:
         parts += ["--mirror", repr(config.mirror)]
     default = FitConfig()
@@ -792,7 +835,7 @@ def _load_training_state(
     saved = {k: v for k, v in state["config"].items() if k not in free}
     saved["periodic"] = tuple(saved["periodic"])
     added = ("seed_bias", "drive", "drive_fraction", "soften", "soften_from", "soften_fraction")
-    for key in (*added, "anchor", "anchor_fraction", "mirror"):
+    for key in (*added, "anchor", "anchor_fraction", "modal", "modal_fraction", "mirror"):
         saved.setdefault(key, getattr(FitConfig(), key))  # states written before the options existed
     saved["soften"] = tuple(saved["soften"])
     if saved != mine:

@@ -45,6 +45,8 @@ FIT_FLAGS: tuple[tuple[str, str, Any, str], ...] = (
     ("--soften-fraction", "soften_fraction", float, "fraction of the steps over which that weight rises to 1"),
     ("--anchor", "anchor", float, "start stiffness [1/s^2] of the pull through the scene's reference states; 0: off"),
     ("--anchor-fraction", "anchor_fraction", float, "--anchor holds for half this fraction of the steps, then ends"),
+    ("--modal", "modal", float, "start weight of the pull of the map's rest and tangent to the lowest modes; 0: off"),
+    ("--modal-fraction", "modal_fraction", float, "--modal holds for half this fraction of the steps, then ends"),
     ("--mirror", "mirror", float, "weight [1/s^2] of the map's equivariance under the scene's mirror; 0: off"),
     ("--checkpoint-every", "checkpoint_every", int, "steps between resumable checkpoints"),
     ("--dtype", "dtype", str, "float32 or float64"),
