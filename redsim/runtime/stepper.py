@@ -70,10 +70,11 @@ class StepStats(NamedTuple):
 class Evaluations:
     """Running count of the objective's value-and-gradient evaluations of a :class:`LatentStepper`.
 
+    The exact and Gauss-Newton Hessians' double backward passes are not counted.
+
     Attributes:
         calls: Calls (each one batched energy + gradient pass; a call's fixed cost is what a small batch pays).
         rows: Latent states evaluated over those calls (a compiled stepper evaluates its whole static batch).
-    The exact and Gauss-Newton Hessians' double backward passes are not counted.
     """
 
     calls: int = 0
