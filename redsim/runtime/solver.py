@@ -478,6 +478,12 @@ def _minimize_dense(
         it.alpha_used = torch.where(back, it.alpha, it.alpha_used)
 
 
+def check_sync_every(sync_every: int | None) -> None:
+    """Raise ValueError unless ``sync_every`` (the dense loop's calls between early exits) is None or an int >= 1."""
+    if sync_every is not None and (isinstance(sync_every, bool) or int(sync_every) != sync_every or sync_every < 1):
+        raise ValueError(f"sync_every must be None or an integer >= 1, got {sync_every!r}")
+
+
 def minimize(
     objective: BatchObjective,
     z0: Tensor,
@@ -522,8 +528,7 @@ def minimize(
     """
     if hessian not in HESSIANS:
         raise ValueError(f"unknown hessian {hessian!r}; valid: {list(HESSIANS)}")
-    if sync_every is not None and (isinstance(sync_every, bool) or int(sync_every) != sync_every or sync_every < 1):
-        raise ValueError(f"sync_every must be None or an integer >= 1, got {sync_every!r}")
+    check_sync_every(sync_every)
     it = _start(objective, z0, hessian, start, secant, warm)
     threshold = tol * scale
     if dense:
@@ -545,4 +550,4 @@ def minimize(
     return BatchResult(it.z, it.value, it.energy, grad_norm, it.iterations, converged, stalled, it.finite, it.model)
 
 
-__all__ = ["HESSIANS", "WARM_ITERATIONS", "BatchObjective", "BatchResult", "minimize"]
+__all__ = ["HESSIANS", "WARM_ITERATIONS", "BatchObjective", "BatchResult", "check_sync_every", "minimize"]
