@@ -23,9 +23,18 @@ recomputes its model at the current iterate once.
 The line search is Armijo backtracking per state: a trial with a non-finite value or gradient is
 rejected like an uphill one; a trial whose value change is at round-off level is accepted if it
 lowers |g|. A state whose line search fails keeps its last accepted (finite) iterate and stops
-(``stalled``). Only the active states are evaluated, which is what a CPU wants; the price is that choosing
-them (``nonzero``, boolean selections of rows) waits for the device once per selection on a GPU, where
-a dense masked iteration would not.
+(``stalled``).
+
+Two loops compute the same iterates of every state (to round-off): the row-selected one (the default)
+evaluates only the active states in each call, which is what a CPU wants; choosing them (``nonzero``,
+boolean selections of rows, several per call) waits for the device on a GPU. The dense one
+(``dense=True``) evaluates all B states in every call and updates every per-state quantity by
+``torch.where`` on masks: nothing in it reads a tensor on the host except the early-exit poll every
+``sync_every`` calls (one read of two flags), and a state that needs a model between polls waits for the
+next one. Its model builds evaluate every state (kept where one is needed), and what still waits for a
+GPU is outside the loop's bookkeeping: the eigenvalue fix of an exact or difference Hessian
+(``torch.linalg.eigh`` synchronises on CUDA, torch documents it), once per call that builds models,
+and whatever the objective itself does (the effects' eager paths select rows; compiled they are dense).
 """
 
 from __future__ import annotations

@@ -78,11 +78,16 @@ def test_fewer_early_exit_checks_do_not_change_a_state_s_iterates() -> None:
             assert torch.equal(got_stats.converged, want_stats.converged)
 
 
-class _Watch(TorchDispatchMode):
-    """Counts the aten ops that select by data (a host read or a data-dependent shape), except inside :meth:`away`."""
+SELECTING = frozenset(
+    {"aten::nonzero", "aten::masked_select", "aten::_local_scalar_dense", "aten::is_nonzero", "aten::equal"}
+)
+"""Ops that read a tensor on the host or return a data-dependent shape."""
+INDEXING = frozenset({"aten::index", "aten::index_put", "aten::index_put_", "aten::_index_put_impl_"})
+"""Ops that select by data when an index is a boolean mask."""
 
-    SELECTING = {"aten::nonzero", "aten::masked_select", "aten::_local_scalar_dense", "aten::is_nonzero", "aten::equal"}
-    INDEXING = {"aten::index", "aten::index_put", "aten::index_put_", "aten::_index_put_impl_"}
+
+class _Watch(TorchDispatchMode):
+    """Counts the aten ops that select by data (SELECTING; INDEXING with a mask), except inside :meth:`away`."""
 
     def __init__(self) -> None:
         super().__init__()
@@ -100,9 +105,9 @@ class _Watch(TorchDispatchMode):
     def __torch_dispatch__(self, func, types, args=(), kwargs=None):
         name = func._schema.name
         if not self.paused:
-            if name in self.SELECTING:
+            if name in SELECTING:
                 self.seen[name] += 1
-            elif name in self.INDEXING:
+            elif name in INDEXING:
                 masks = [t for t in args[1] if isinstance(t, torch.Tensor) and t.dtype == torch.bool]
                 self.seen[name + " (bool mask)"] += len(masks) > 0
         return func(*args, **(kwargs or {}))
