@@ -419,10 +419,11 @@ def _minimize_dense(
     is a ``torch.where`` on masks, so nothing waits for the device except :func:`_poll` every
     ``sync_every`` calls (None: never; the loop then runs its whole bound).
 
-    A call builds models (of every state, kept where one is needed) only when the last poll saw a state
-    that needs one; a state that comes to need one between polls waits for the next poll (its own
-    sequence of iterates is unchanged: only the call it happens in moves). With ``sync_every`` 1 the
-    calls are the row-selected loop's.
+    Models are built (for every state, kept where one is needed) in the calls after a poll that saw a
+    state needing one: every such call for "exact" and "gauss_newton", the first for the quasi-Newton
+    models (every call without polls). A state that comes to need one when no call builds waits for the
+    next poll (its own sequence of iterates is unchanged: only the call it happens in moves). With
+    ``sync_every`` 1 the calls are the row-selected loop's.
     """
     quasi_newton = hessian in _QUASI_NEWTON
     index = torch.arange(it.z.shape[0], device=it.z.device)
@@ -437,12 +438,16 @@ def _minimize_dense(
             running, building = _poll(active, need)
             if not running:  # the early exit
                 break
-        if building:
+        build = building
+        if build:
             fresh = _fresh_model(objective, hessian, it.z, index, it.grad, it.iterations, secant, keep=need)
             it.model = torch.where(need[:, None, None], fresh, it.model)
             it.built = it.built | need
-        go = starting if building else starting & ~need
-        if building or quasi_newton:  # (exact, Gauss-Newton: no state goes without a model)
+            # exact and Gauss-Newton need a model every iteration; a quasi-Newton state rarely (a cold
+            # start, a warm model gone stale), so until the next poll asks again, the calls build none
+            building = sync_every is None or not quasi_newton
+        go = starting if build else starting & ~need
+        if build or quasi_newton:  # (exact, Gauss-Newton: no state goes without a model)
             direction, slope = _descent(objective, hessian, it.model, it.z, it.grad, index)
             it.step = torch.where(go[:, None], direction, it.step)
             it.slope = torch.where(go, slope, it.slope)

@@ -30,7 +30,8 @@ def _loads(scene, batch: int, seed: int, size: float, dtype: torch.dtype) -> tor
 
 
 def _step_pairs(name: str, dtype: torch.dtype, steps: int, batch: int = 4, size: float = 10.0, **dense_options):
-    """[(row-selected z_next, stats, dense z_next, stats, z)] along the row-selected rollout (warm carried)."""
+    """[(row-selected z_next, stats, dense z_next, stats, z)] along the row-selected rollout (warm carried),
+    and the two steppers' objective calls."""
     scene = scenes.build(name)
     f = pretrained.load(name).to(dtype)
     rows = LatentStepper(scene, f, DT, dtype=dtype, dense=False)
@@ -43,7 +44,7 @@ def _step_pairs(name: str, dtype: torch.dtype, steps: int, batch: int = 4, size:
         got, got_stats = dense.step(z, z_prev, loads, warm=model)
         out.append((want, want_stats, got, got_stats, z))
         z_prev, z, model = z, want, want_stats.model
-    return out
+    return out, (rows.evaluations.calls, dense.evaluations.calls)
 
 
 FLAGS = ("converged", "diverged", "out_of_range", "energy_gain")
@@ -51,10 +52,12 @@ FLAGS = ("converged", "diverged", "out_of_range", "energy_gain")
 
 @pytest.mark.parametrize("name", ["mini_chain", "chain", "bistable_bar"])
 def test_dense_equals_row_selected_step_for_step(name: str) -> None:
-    """Float64: the same iterations, flags and minimizers to round-off; float32: the same flags and
+    """Float64: the same iterations, calls, flags and minimizers to round-off; float32: the same flags and
     minimizers to the solve tolerance (two float32 solves stopped by tol 1e-6 at different round-off)."""
     for dtype, atol, same_iterations in ((torch.float64, 1e-8, True), (torch.float32, 2e-2, False)):
-        for want, want_stats, got, got_stats, z in _step_pairs(name, dtype, steps=3):
+        pairs, (calls, dense_calls) = _step_pairs(name, dtype, steps=3)
+        assert dense_calls == calls or not same_iterations
+        for want, want_stats, got, got_stats, z in pairs:
             assert bool(want_stats.converged.all())
             for flag in FLAGS:
                 assert torch.equal(getattr(want_stats, flag), getattr(got_stats, flag)), (dtype, flag)
@@ -68,10 +71,10 @@ def test_dense_equals_row_selected_step_for_step(name: str) -> None:
 def test_fewer_early_exit_checks_do_not_change_a_state_s_iterates() -> None:
     """sync_every 3: a state that needs a model between checks waits for the next one, so only the call its
     iterations happen in moves; never checking builds models every call and runs the loop's whole bound."""
-    base = _step_pairs("mini_chain", torch.float64, steps=2)
+    base, _ = _step_pairs("mini_chain", torch.float64, steps=2)
     for options in ({"sync_every": 3}, {"sync_every": None, "max_iter": 50}):
         for (_, _, want, want_stats, _), (_, _, got, got_stats, _) in zip(
-            base, _step_pairs("mini_chain", torch.float64, steps=2, **options), strict=True
+            base, _step_pairs("mini_chain", torch.float64, steps=2, **options)[0], strict=True
         ):
             torch.testing.assert_close(got, want, rtol=0.0, atol=1e-12)
             assert torch.equal(got_stats.iterations, want_stats.iterations)
