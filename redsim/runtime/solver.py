@@ -326,20 +326,24 @@ def _start(
     )
 
 
-def _minimize_rows(
-    objective: BatchObjective,
-    it: _Iterates,
-    threshold: Tensor,
-    noise: Tensor,
-    *,
-    max_iter: int,
-    hessian: str,
-    secant: tuple[Tensor, Tensor] | None,
-) -> None:
+@dataclass(frozen=True)
+class _Problem:
+    """What one solve is given (:func:`minimize`'s arguments): ``threshold`` = tol * scale [B], ``noise`` [B]."""
+
+    objective: BatchObjective
+    threshold: Tensor
+    noise: Tensor
+    max_iter: int
+    hessian: str
+    secant: tuple[Tensor, Tensor] | None
+
+
+def _minimize_rows(problem: _Problem, it: _Iterates) -> None:
     """The row-selected iteration (updates ``it``): each call gathers the active states only."""
+    objective, hessian, secant, max_iter = problem.objective, problem.hessian, problem.secant, problem.max_iter
     quasi_newton = hessian in _QUASI_NEWTON
     for _ in range(max_iter * (MAX_BACKTRACKS + 1)):
-        index = torch.nonzero(it.active(threshold, max_iter)).squeeze(-1)
+        index = torch.nonzero(it.active(problem.threshold, max_iter)).squeeze(-1)
         if index.numel() == 0:  # the early exit
             break
         start_rows = index[~it.searching[index]]  # states starting an iteration: their model and direction
@@ -365,7 +369,7 @@ def _minimize_rows(
         z_a, v_a, g_a = it.z[index], it.value[index], it.grad[index]
         trial = z_a + it.alpha[index, None] * it.step[index]
         v_t, g_t, e_t = objective.value_and_grad(trial, index)
-        ok_finite, ok = _judge((v_t, g_t), (v_a, g_a), it.alpha[index], it.slope[index], noise[index])
+        ok_finite, ok = _judge((v_t, g_t), (v_a, g_a), it.alpha[index], it.slope[index], problem.noise[index])
         take = index[ok]
         if quasi_newton and take.numel():
             it.model[take] = _bfgs_update(it.model[take], trial[ok] - z_a[ok], g_t[ok] - g_a[ok])
@@ -404,17 +408,7 @@ def _poll(active: Tensor, waiting: Tensor) -> tuple[bool, bool]:
     return running, building
 
 
-def _minimize_dense(
-    objective: BatchObjective,
-    it: _Iterates,
-    threshold: Tensor,
-    noise: Tensor,
-    *,
-    max_iter: int,
-    hessian: str,
-    secant: tuple[Tensor, Tensor] | None,
-    sync_every: int | None,
-) -> None:
+def _minimize_dense(problem: _Problem, it: _Iterates, sync_every: int | None) -> None:
     """The dense masked iteration (updates ``it``): every call evaluates all B states and every update
     is a ``torch.where`` on masks, so nothing waits for the device except :func:`_poll` every
     ``sync_every`` calls (None: never; the loop then runs its whole bound).
@@ -425,11 +419,12 @@ def _minimize_dense(
     next poll (its own sequence of iterates is unchanged: only the call it happens in moves). With
     ``sync_every`` 1 the calls are the row-selected loop's.
     """
+    objective, hessian, secant, max_iter = problem.objective, problem.hessian, problem.secant, problem.max_iter
     quasi_newton = hessian in _QUASI_NEWTON
     index = torch.arange(it.z.shape[0], device=it.z.device)
     building = True
     for call in range(max_iter * (MAX_BACKTRACKS + 1) * (sync_every or 1)):
-        active = it.active(threshold, max_iter)
+        active = it.active(problem.threshold, max_iter)
         starting = active & ~it.searching
         need = starting
         if quasi_newton:
@@ -458,7 +453,7 @@ def _minimize_dense(
         trying = active & it.searching
         trial = torch.where(trying[:, None], it.z + it.alpha[:, None] * it.step, it.z)
         v_t, g_t, e_t = objective.value_and_grad(trial, index)
-        ok_finite, ok = _judge((v_t, g_t), (it.value, it.grad), it.alpha, it.slope, noise)
+        ok_finite, ok = _judge((v_t, g_t), (it.value, it.grad), it.alpha, it.slope, problem.noise)
         take = trying & ok
         if quasi_newton:
             updated = _bfgs_update(it.model, trial - it.z, g_t - it.grad)
@@ -544,22 +539,13 @@ def minimize(
         raise ValueError(f"unknown hessian {hessian!r}; valid: {list(HESSIANS)}")
     check_sync_every(sync_every)
     it = _start(objective, z0, hessian, start, secant, warm)
-    threshold = tol * scale
+    problem = _Problem(objective, tol * scale, value_noise, max_iter, hessian, secant)
     if dense:
-        _minimize_dense(
-            objective,
-            it,
-            threshold,
-            value_noise,
-            max_iter=max_iter,
-            hessian=hessian,
-            secant=secant,
-            sync_every=sync_every,
-        )
+        _minimize_dense(problem, it, sync_every)
     else:
-        _minimize_rows(objective, it, threshold, value_noise, max_iter=max_iter, hessian=hessian, secant=secant)
+        _minimize_rows(problem, it)
     grad_norm = torch.linalg.vector_norm(it.grad, dim=-1)
-    converged = it.finite & (grad_norm <= threshold)
+    converged = it.finite & (grad_norm <= problem.threshold)
     stalled = it.stalled & ~converged
     return BatchResult(it.z, it.value, it.energy, grad_norm, it.iterations, converged, stalled, it.finite, it.model)
 
