@@ -1,8 +1,8 @@
 """Batched minimization over latent states: Newton-type directions in z (d x d) and a masked line search.
 
-Every state b of a batch [B, d] is minimized on its own; they share only the calls. Each iteration
-works on the states that are still active (neither converged nor stalled) and gathers them into
-one call of the objective. The d x d model Hessian comes from one of :data:`HESSIANS`:
+Every state b of a batch [B, d] is minimized on its own; they share only the calls: each call of the
+objective evaluates one trial of every state still active (neither converged nor stalled). The d x d
+model Hessian comes from one of :data:`HESSIANS`:
 
 - ``"exact"``: the exact Hessian of Phi in z (map curvature included) by double backward over d
   copies of each state, eigenvalues replaced by their absolute value (floored), as the reference

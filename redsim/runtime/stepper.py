@@ -241,10 +241,11 @@ class LatentStepper:
             nearby minima (the mini chain's folded map under full-range actions) the two can
             converge to different ones, and a chaotic rollout then splits (README "Latent runtime").
         dense: Solve with the dense masked iteration (:func:`redsim.runtime.solver.minimize`): every
-            call evaluates all B states and nothing waits for the device within a solve except the
-            early exit every ``sync_every`` calls (and the eigen fix of "lagged_fd"'s model builds). None
-            (default): dense exactly on a CUDA device; on the CPU the row-selected iteration, which
-            evaluates only the active states, is faster (README "Latent runtime").
+            call evaluates all B states, and the solver's loop waits for the device only at the early
+            exit every ``sync_every`` calls (the energy's own eager paths and the eigenvalue fix of the
+            exact and difference Hessians still synchronise). None (default): dense exactly on a CUDA
+            device; on the CPU the row-selected iteration, which evaluates only the active states, is
+            as fast or faster (README "Latent runtime").
         sync_every: With ``dense``, calls between early-exit checks (None: never; see ``minimize``).
 
     Raises:
