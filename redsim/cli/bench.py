@@ -192,6 +192,7 @@ def cmd_bench_step(args: argparse.Namespace) -> int:
                 device=args.device,
                 seed=args.seed,
                 rounds=args.rounds,
+                dense=args.dense,
             )
         )
         if not args.json:
@@ -616,6 +617,12 @@ def add_commands(sub: Any) -> Any:
     p.add_argument("--reference-steps", type=int, default=10, help="steps of the reference path (default 10)")
     p.add_argument("--dt", type=float, default=0.02, help="time step [s] (default 0.02)")
     p.add_argument("--no-compile", action="store_true", help="skip the torch.compile variant")
+    p.add_argument(
+        "--dense",
+        action="store_true",
+        help="also run the solver's dense masked iteration (dense, and compiled: dense-cmp) next to the "
+        "row-selected one (eager, cold, compiled)",
+    )
     p.add_argument(
         "--hessians",
         metavar="H1,H2",

@@ -93,8 +93,9 @@ def run_stepper(
     With ``warm`` each step starts its solver from the last step's model (``stats.model``), as the envs do.
 
     Returns env_steps_per_s (B * steps / wall time of the timed steps, after ``warmup`` untimed ones
-    from the same start), per-step medians, iterations per step (mean over states and steps),
-    converged fraction, flagged fractions and the trajectory [steps + 1, B, d].
+    from the same start), per-step medians (wall and this process's CPU time), iterations per step (mean
+    over states and steps), the objective's calls and evaluated rows per step, converged fraction,
+    flagged fractions and the trajectory [steps + 1, B, d].
     """
     device = stepper.device
     loads = loads.to(device=device, dtype=stepper.dtype)
@@ -104,14 +105,16 @@ def run_stepper(
     _sync(device)
     z_prev = z.clone()
     trajectory = [z.clone()]
-    times, iterations, converged, out_of_range, diverged = [], [], [], [], []
+    times, cpu_times, iterations, converged, out_of_range, diverged = [], [], [], [], [], []
     model = None
+    calls, rows = stepper.evaluations.calls, stepper.evaluations.rows
     for i in range(loads.shape[0]):
-        start = time.perf_counter()
+        start, cpu_start = time.perf_counter(), time.process_time()
         z_next, stats = stepper.step(z, z_prev, loads[i], warm=model)
         model = stats.model if warm else None
         _sync(device)
         times.append(time.perf_counter() - start)
+        cpu_times.append(time.process_time() - cpu_start)
         z_prev, z = z, z_next
         trajectory.append(z.clone())
         iterations.append(stats.iterations.to(torch.float64).mean().item())
@@ -122,7 +125,10 @@ def run_stepper(
     return {
         "env_steps_per_s": batch * len(times) / sum(times),
         "median_step_s": statistics.median(times),
+        "median_step_cpu_s": statistics.median(cpu_times),
         "iterations_per_step": statistics.fmean(iterations),
+        "calls_per_step": (stepper.evaluations.calls - calls) / len(times),
+        "rows_per_step": (stepper.evaluations.rows - rows) / len(times),
         "converged_fraction": statistics.fmean(converged),
         "out_of_range_fraction": statistics.fmean(out_of_range),
         "diverged_fraction": statistics.fmean(diverged),
@@ -273,24 +279,32 @@ def bench_step(
     device: str = "cpu",
     seed: int = 0,
     rounds: int = 1,
+    dense: bool = False,
 ) -> dict[str, Any]:
     """One scene's row of `redsim bench step` (module doc).
 
+    With ``dense`` the eager, cold and compiled steppers use the row-selected solver iteration and the
+    same run adds ``dense`` and ``dense-cmp`` (compiled): the dense masked iteration (else all use the
+    stepper's default, dense exactly on CUDA).
+
     With ``rounds`` > 1 the reference and every (path, B) run again on the same loads in each round (in
     reverse order every other round, so that a change of the machine's load hits all alike): a rate is
-    the median over the rounds (each round's list under ``rounds_env_steps_per_s``), and a speedup the
-    median of the per-round ratios to that round's reference.
+    the median over the rounds (each round's list under ``rounds_env_steps_per_s``), as is a median
+    step's CPU time (``rounds_median_step_cpu_s``), and a speedup the median of the per-round ratios to
+    that round's reference.
 
     Returns:
         ``scene``, ``n``, ``d``, ``reference`` and ``full_space`` (B = 1), ``eager``, ``cold`` (eager
-        without the warm start from the last step's solver model) and ``compiled`` (per B:
+        without the warm start from the last step's solver model), ``compiled`` (and with ``dense``,
+        ``dense`` and ``dense-cmp``) (per B:
         env_steps_per_s, iterations_per_step, converged_fraction, ...), ``speedup`` of each over the
         reference per B, and ``trajectory_error``: the largest |z - z_ref| over
         the B = 1 eager run's first ``reference_steps`` steps relative to the largest motion |z - z0|.
     """
     if rounds < 1:
         raise ValueError(f"rounds must be >= 1, got {rounds}")
-    stepper = LatentStepper(scene, subspace, dt, device=device)
+    rows_option = False if dense else None  # dense= of the eager, cold and compiled steppers
+    stepper = LatentStepper(scene, subspace, dt, device=device, dense=rows_option)
     magnitudes = load_magnitudes(stepper)
     z_rest = stepper.rest_latent().cpu()
     loads = load_sequence(scene, magnitudes, steps, max(batches), seed=seed)
@@ -307,13 +321,19 @@ def bench_step(
         "eager": {},
         "cold": {},
         "compiled": {},
+        **({"dense": {}, "dense-cmp": {}} if dense else {}),
     }
     row["step_error"] = one_step_error(stepper, reference["trajectory"], loads[:reference_steps, 0])
     variants = [("eager", stepper, True), ("cold", stepper, False)]
+    if dense:
+        variants.append(("dense", LatentStepper(scene, subspace, dt, device=device, dense=True), True))
     if compiled:
-        variants.append(("compiled", LatentStepper(scene, subspace, dt, device=device, compile=True), True))
+        for label, option in [("compiled", rows_option)] + [("dense-cmp", True)] * dense:
+            runner = LatentStepper(scene, subspace, dt, device=device, compile=True, dense=option)
+            variants.append((label, runner, True))
     runs = [(label, runner, warm, b) for label, runner, warm in variants for b in batches]
     rates: dict[tuple[str, int], list[float]] = {}
+    cpu: dict[tuple[str, int], list[float]] = {}
     for r in range(rounds):
         if r:
             reference_rates.append(
@@ -323,6 +343,7 @@ def bench_step(
             result = run_stepper(runner, z_rest.expand(b, -1).clone(), loads[:, :b], warm=warm)
             trajectory = result.pop("trajectory")
             rates.setdefault((label, b), []).append(result["env_steps_per_s"])
+            cpu.setdefault((label, b), []).append(result["median_step_cpu_s"])
             if r == 0:
                 if b == 1 and label == "eager":
                     row["trajectory_error"] = _rollout_error(runner, reference["trajectory"], trajectory[:, 0])
@@ -335,6 +356,8 @@ def bench_step(
         result = row[label][str(b)]
         result["rounds_env_steps_per_s"] = per_round
         result["env_steps_per_s"] = statistics.median(per_round)
+        result["rounds_median_step_cpu_s"] = cpu[label, b]
+        result["median_step_cpu_s"] = statistics.median(cpu[label, b])
         ratios = [mine / ref for mine, ref in zip(per_round, reference_rates, strict=True)]
         row["speedup"].setdefault(label, {})[str(b)] = statistics.median(ratios)
     return row
@@ -367,8 +390,8 @@ def step_table(rows: list[dict[str, Any]], mujoco: list[dict[str, Any]] | None, 
         cells = " ".join(f"{ref['env_steps_per_s']:>9.3g}" for _ in batches)
         its, conv = ref["iterations_per_step"], 100 * ref["converged_fraction"]
         lines.append(f"{lead} {'reference':<9} {cells}  {its:>4.1f} {conv:>6.1f}")
-        for label in ("eager", "cold", "compiled"):
-            if not row[label]:
+        for label in ("eager", "cold", "compiled", "dense", "dense-cmp"):
+            if not row.get(label):
                 continue
             results = row[label]
             cells = " ".join(f"{results[b]['env_steps_per_s']:>9.3g}" for b in batches)

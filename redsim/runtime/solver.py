@@ -1,8 +1,8 @@
 """Batched minimization over latent states: Newton-type directions in z (d x d) and a masked line search.
 
-Every state b of a batch [B, d] is minimized on its own; they share only the calls. Each iteration
-works on the states that are still active (neither converged nor stalled) and gathers them into
-one call of the objective. The d x d model Hessian comes from one of :data:`HESSIANS`:
+Every state b of a batch [B, d] is minimized on its own; they share only the calls: each call of the
+objective evaluates one trial of every state still active (neither converged nor stalled). The d x d
+model Hessian comes from one of :data:`HESSIANS`:
 
 - ``"exact"``: the exact Hessian of Phi in z (map curvature included) by double backward over d
   copies of each state, eigenvalues replaced by their absolute value (floored), as the reference
@@ -23,9 +23,18 @@ recomputes its model at the current iterate once.
 The line search is Armijo backtracking per state: a trial with a non-finite value or gradient is
 rejected like an uphill one; a trial whose value change is at round-off level is accepted if it
 lowers |g|. A state whose line search fails keeps its last accepted (finite) iterate and stops
-(``stalled``). Only the active states are evaluated, which is what a CPU wants; the price is that choosing
-them (``nonzero``, boolean selections of rows) waits for the device once per selection on a GPU, where
-a dense masked iteration would not.
+(``stalled``).
+
+Two loops compute the same iterates of every state (to round-off): the row-selected one (the default)
+evaluates only the active states in each call, which is what a CPU wants; choosing them (``nonzero``,
+boolean selections of rows, several per call) waits for the device on a GPU. The dense one
+(``dense=True``) evaluates all B states in every call and updates every per-state quantity by
+``torch.where`` on masks: nothing in it reads a tensor on the host except the early-exit poll every
+``sync_every`` calls (one read of two flags), and a state that needs a model between polls waits for the
+next one. Its model builds evaluate every state (kept where one is needed), and what still waits for a
+GPU is outside the loop's bookkeeping: the eigenvalue fix of an exact or difference Hessian
+(``torch.linalg.eigh`` synchronises on CUDA, torch documents it), once per call that builds models,
+and whatever the objective itself does (the effects' eager paths select rows; compiled they are dense).
 """
 
 from __future__ import annotations
@@ -142,16 +151,6 @@ def _bfgs_update(hessian: Tensor, s: Tensor, y: Tensor) -> Tensor:
     return torch.where(ok[:, None, None], torch.baddbmm(hessian, left, right), hessian)
 
 
-def _model(objective: BatchObjective, method: str, z: Tensor, index: Tensor, grad: Tensor) -> Tensor:
-    if method in ("exact", "lagged"):
-        return _pd_exact(objective.exact_hessian(z, index))
-    if method == "lagged_fd":
-        return _pd_exact(objective.difference_hessian(z, index, grad))
-    if method == "gauss_newton":
-        return objective.gauss_newton(z, index)
-    return objective.metric(z, index)
-
-
 def _backtrack(alpha: Tensor, slope: Tensor, rise: Tensor) -> Tensor:
     """Next trial step after a rejected one: the minimizer of the quadratic through Phi(0), Phi'(0) and
     Phi(alpha) (``rise`` = Phi(alpha) - Phi(0)), kept in [alpha / 10, alpha / 2]; alpha / 2 if not finite."""
@@ -159,6 +158,339 @@ def _backtrack(alpha: Tensor, slope: Tensor, rise: Tensor) -> Tensor:
     guess = -slope * alpha * alpha / (2.0 * curvature)
     guess = torch.where(torch.isfinite(guess) & (curvature > 0), guess, 0.5 * alpha)
     return torch.minimum(torch.maximum(guess, 0.1 * alpha), 0.5 * alpha)
+
+
+_QUASI_NEWTON = ("bfgs", "lagged", "lagged_fd")
+
+
+def _model(
+    objective: BatchObjective, method: str, z: Tensor, index: Tensor, grad: Tensor, keep: Tensor | None = None
+) -> Tensor:
+    """The d x d model [k, d, d] of ``method`` at z [k, d] (gradient ``grad`` [k, d]) of the states ``index``.
+
+    ``keep`` [k] (bool, or None: all): the rows that will be used; the others enter the eigenvalue fix as
+    the identity (a dense build evaluates every row, and the eigensolver may refuse a non-finite one).
+    """
+    if method in ("exact", "lagged", "lagged_fd"):
+        if method == "lagged_fd":
+            raw = objective.difference_hessian(z, index, grad)
+        else:
+            raw = objective.exact_hessian(z, index)
+        if keep is not None:
+            raw = torch.where(keep[:, None, None], raw, torch.eye(z.shape[1], dtype=z.dtype, device=z.device))
+        return _pd_exact(raw)
+    if method == "gauss_newton":
+        return objective.gauss_newton(z, index)
+    return objective.metric(z, index)
+
+
+def _fresh_model(
+    objective: BatchObjective,
+    method: str,
+    z: Tensor,
+    index: Tensor,
+    grad: Tensor,
+    iterations: Tensor,
+    secant: tuple[Tensor, Tensor] | None,
+    keep: Tensor | None = None,
+) -> Tensor:
+    """:func:`_model` of the states ``index`` at z [k, d]; "bfgs"'s J^T M J / h^2 of a state at its first
+    iteration (``iterations`` [k]) also takes the secant update from ``secant`` [B, d] (see :func:`minimize`)."""
+    fresh = _model(objective, method, z, index, grad, keep)
+    if secant is not None and method == "bfgs":
+        z_s, g_s = secant[0][index], secant[1][index]
+        usable = torch.isfinite(g_s).all(-1)
+        g_s = torch.where(usable[:, None], g_s, grad)
+        fresh = torch.where((iterations == 0)[:, None, None], _bfgs_update(fresh, z - z_s, grad - g_s), fresh)
+    return fresh
+
+
+def _stale(model: Tensor, built: Tensor, iterations: Tensor, backtracked: Tensor) -> Tensor:
+    """Which states [k] need a quasi-Newton model built before their next iteration: none there (a NaN
+    model [k, d, d]), or a warm one (not ``built`` in this solve) that has taken WARM_ITERATIONS
+    ``iterations`` or ``backtracked``."""
+    missing = ~torch.isfinite(model).all(-1).all(-1)
+    return missing | (~built & ((iterations >= WARM_ITERATIONS) | backtracked))
+
+
+def _descent(
+    objective: BatchObjective, method: str, model: Tensor, z: Tensor, grad: Tensor, index: Tensor
+) -> tuple[Tensor, Tensor]:
+    """The first step [k, d] of an iteration from z [k, d] with the model [k, d, d] (-grad where that is
+    not downhill) and its slope grad . step [k]; Gauss-Newton falls back on the metric."""
+    fallback = objective.metric(z, index) if method == "gauss_newton" else None
+    direction = _direction(model, grad, fallback)
+    direction = torch.where(((grad * direction).sum(-1) < 0)[:, None], direction, -grad)
+    return direction, (grad * direction).sum(-1)
+
+
+def _judge(
+    trial: tuple[Tensor, Tensor], here: tuple[Tensor, Tensor], alpha: Tensor, slope: Tensor, noise: Tensor
+) -> tuple[Tensor, Tensor]:
+    """(finite, accepted) [k] of trials with (Phi, dPhi/dz) ``trial`` from the iterates ``here``, step
+    lengths ``alpha``, slopes and value round-off ``noise`` [k]: Armijo, or a round-off change that lowers |g|."""
+    v_t, g_t = trial
+    v_a, g_a = here
+    eps = torch.finfo(v_t.dtype).eps
+    finite = torch.isfinite(v_t) & torch.isfinite(g_t).all(-1)
+    armijo = v_t <= v_a + ARMIJO_C * alpha * slope
+    flat = (v_t - v_a) <= noise + NOISE_FACTOR * eps * v_a.abs()
+    lower = torch.linalg.vector_norm(g_t, dim=-1) < torch.linalg.vector_norm(g_a, dim=-1)
+    return finite, finite & (armijo | (flat & lower))
+
+
+def _relearn(model: Tensor, step: Tensor, change: Tensor, grad: Tensor) -> tuple[Tensor, Tensor, Tensor]:
+    """A rejected but finite trial still measured the curvature along its ``step`` [k, d] (gradient
+    ``change`` [k, d]): the BFGS-updated model [k, d, d], and the direction from it at the iterate's
+    gradient ``grad`` [k, d] (a shorter, turned step) with its slope [k]."""
+    updated = _bfgs_update(model, step, change)
+    fresh = _direction(updated, grad)
+    return updated, fresh, (grad * fresh).sum(-1)
+
+
+@dataclass
+class _Iterates:
+    """What the solver carries per state; [B] (z, grad, step [B, d], model [B, d, d]).
+
+    ``built``: the model was made in this solve (else it is warm, or not there yet); ``searching``: the
+    state has a direction and a trial pending; ``alpha_used``: the step length of the last rejected trial.
+    The line search of every state runs on its own clock: each call of the objective evaluates one trial of
+    every active state, whether it is the first of an iteration or a backtrack (so a state backtracking
+    does not hold the others' next iterations back).
+    """
+
+    finite: Tensor
+    z: Tensor
+    value: Tensor
+    grad: Tensor
+    energy: Tensor
+    iterations: Tensor
+    stalled: Tensor
+    model: Tensor
+    built: Tensor
+    backtracked: Tensor
+    searching: Tensor
+    step: Tensor
+    slope: Tensor
+    alpha: Tensor
+    alpha_used: Tensor
+    tries: Tensor
+
+    def active(self, threshold: Tensor, max_iter: int) -> Tensor:
+        """The states [B] still iterating: finite, not stalled, under max_iter and above the tolerance."""
+        norm = torch.linalg.vector_norm(self.grad, dim=-1)
+        return self.finite & ~self.stalled & (self.iterations < max_iter) & (norm > threshold)
+
+
+def _start(
+    objective: BatchObjective,
+    z0: Tensor,
+    hessian: str,
+    start: tuple[Tensor, Tensor, Tensor] | None,
+    secant: tuple[Tensor, Tensor] | None,
+    warm: Tensor | None,
+) -> _Iterates:
+    """The iterates at z0 [B, d] (non-finite starts zeroed, flagged), with the warm model (secant-updated)."""
+    batch, d = z0.shape
+    z = z0.clone()
+    value, grad, energy = objective.value_and_grad(z, torch.arange(batch, device=z0.device)) if start is None else start
+    finite = torch.isfinite(value) & torch.isfinite(grad).all(-1)
+    value = torch.where(finite, value, torch.zeros_like(value))
+    grad = torch.where(finite[:, None], grad, torch.zeros_like(grad))
+    model = torch.full((batch, d, d), torch.nan, dtype=z.dtype, device=z.device)
+    if warm is not None and hessian in _QUASI_NEWTON:
+        model = torch.where(torch.isfinite(warm).all(-1).all(-1)[:, None, None], warm.to(z.dtype), model)
+        if secant is not None:
+            usable = torch.isfinite(secant[1]).all(-1)
+            g_s = torch.where(usable[:, None], secant[1], grad)
+            model = _bfgs_update(model, z - secant[0], grad - g_s)  # NaN rows stay NaN
+    flags = torch.zeros(batch, dtype=torch.bool, device=z0.device)
+    counts = torch.zeros(batch, dtype=torch.int64, device=z0.device)
+    return _Iterates(
+        finite=finite,
+        z=z,
+        value=value,
+        grad=grad,
+        energy=torch.where(finite, energy, torch.zeros_like(energy)),
+        iterations=counts.clone(),
+        stalled=flags.clone(),
+        model=model,
+        built=flags.clone(),
+        backtracked=flags.clone(),
+        searching=flags.clone(),
+        step=torch.zeros_like(z),
+        slope=torch.zeros_like(value),
+        alpha=torch.ones_like(value),
+        alpha_used=torch.ones_like(value),
+        tries=counts.clone(),
+    )
+
+
+@dataclass(frozen=True)
+class _Problem:
+    """What one solve is given (:func:`minimize`'s arguments): ``threshold`` = tol * scale [B], ``noise`` [B]."""
+
+    objective: BatchObjective
+    threshold: Tensor
+    noise: Tensor
+    max_iter: int
+    hessian: str
+    secant: tuple[Tensor, Tensor] | None
+
+
+def _minimize_rows(problem: _Problem, it: _Iterates) -> None:
+    """The row-selected iteration (updates ``it``): each call gathers the active states only."""
+    objective, hessian, secant, max_iter = problem.objective, problem.hessian, problem.secant, problem.max_iter
+    quasi_newton = hessian in _QUASI_NEWTON
+    for _ in range(max_iter * (MAX_BACKTRACKS + 1)):
+        index = torch.nonzero(it.active(problem.threshold, max_iter)).squeeze(-1)
+        if index.numel() == 0:  # the early exit
+            break
+        start_rows = index[~it.searching[index]]  # states starting an iteration: their model and direction
+        if start_rows.numel():
+            need = start_rows
+            if quasi_newton:
+                rows = start_rows
+                need = rows[_stale(it.model[rows], it.built[rows], it.iterations[rows], it.backtracked[rows])]
+            if need.numel():
+                it.model[need] = _fresh_model(
+                    objective, hessian, it.z[need], need, it.grad[need], it.iterations[need], secant
+                )
+                it.built[need] = True
+            direction, slope = _descent(
+                objective, hessian, it.model[start_rows], it.z[start_rows], it.grad[start_rows], start_rows
+            )
+            it.step[start_rows] = direction
+            it.slope[start_rows] = slope
+            it.alpha[start_rows] = 1.0
+            it.alpha_used[start_rows] = 1.0
+            it.tries[start_rows] = 0
+            it.searching[start_rows] = True
+        z_a, v_a, g_a = it.z[index], it.value[index], it.grad[index]
+        trial = z_a + it.alpha[index, None] * it.step[index]
+        v_t, g_t, e_t = objective.value_and_grad(trial, index)
+        ok_finite, ok = _judge((v_t, g_t), (v_a, g_a), it.alpha[index], it.slope[index], problem.noise[index])
+        take = index[ok]
+        if quasi_newton and take.numel():
+            it.model[take] = _bfgs_update(it.model[take], trial[ok] - z_a[ok], g_t[ok] - g_a[ok])
+        it.z[take], it.value[take], it.grad[take], it.energy[take] = trial[ok], v_t[ok], g_t[ok], e_t[ok]
+        it.iterations[take] += 1
+        it.searching[take] = False
+        # rejected trials: back off, or give up after MAX_BACKTRACKS trials of one iteration
+        rejected = ~ok
+        rows = index[rejected]
+        if rows.numel() == 0:
+            continue
+        it.tries[rows] += 1
+        more = it.tries[rows] < MAX_BACKTRACKS
+        it.stalled[rows[~more]] = True
+        it.searching[rows[~more]] = False
+        rows = rows[more]
+        it.backtracked[rows] = True
+        rise = torch.where(ok_finite, v_t - v_a, torch.full_like(v_t, torch.inf))[rejected][more]
+        it.alpha[rows] = _backtrack(it.alpha[rows], it.slope[rows], rise)
+        learn = (ok_finite & ~ok)[rejected][more] & quasi_newton
+        redo = rows[learn]
+        if redo.numel():
+            change = g_t[rejected][more][learn] - it.grad[redo]
+            step = it.alpha_used[redo, None] * it.step[redo]
+            it.model[redo], fresh, fresh_slope = _relearn(it.model[redo], step, change, it.grad[redo])
+            good = redo[fresh_slope < 0]
+            it.step[good] = fresh[fresh_slope < 0]
+            it.slope[good] = fresh_slope[fresh_slope < 0]
+            it.alpha[good] = 1.0
+        it.alpha_used[rows] = it.alpha[rows]
+
+
+def _poll(active: Tensor, waiting: Tensor) -> tuple[bool, bool]:
+    """The dense loop's one host read: (is any state active, is any waiting for a model) of masks [B]."""
+    running, building = torch.stack([active.any(), waiting.any()]).tolist()
+    return running, building
+
+
+def _minimize_dense(problem: _Problem, it: _Iterates, sync_every: int | None) -> None:
+    """The dense masked iteration (updates ``it``): every call evaluates all B states and every update
+    is a ``torch.where`` on masks, so nothing waits for the device except :func:`_poll` every
+    ``sync_every`` calls (None: never; the loop then runs its whole bound).
+
+    Models are built (for every state, kept where one is needed) in the calls after a poll that saw a
+    state needing one: every such call for "exact" and "gauss_newton", the first for the quasi-Newton
+    models (every call without polls). A state that comes to need one when no call builds waits for the
+    next poll (its own sequence of iterates is unchanged: only the call it happens in moves). With
+    ``sync_every`` 1 the calls are the row-selected loop's.
+    """
+    objective, hessian, secant, max_iter = problem.objective, problem.hessian, problem.secant, problem.max_iter
+    quasi_newton = hessian in _QUASI_NEWTON
+    index = torch.arange(it.z.shape[0], device=it.z.device)
+    building = True
+    for call in range(max_iter * (MAX_BACKTRACKS + 1) * (sync_every or 1)):
+        active = it.active(problem.threshold, max_iter)
+        starting = active & ~it.searching
+        need = starting
+        if quasi_newton:
+            need = starting & _stale(it.model, it.built, it.iterations, it.backtracked)
+        if sync_every is not None and call % sync_every == 0:
+            running, building = _poll(active, need)
+            if not running:  # the early exit
+                break
+        build = building
+        if build:
+            fresh = _fresh_model(objective, hessian, it.z, index, it.grad, it.iterations, secant, keep=need)
+            it.model = torch.where(need[:, None, None], fresh, it.model)
+            it.built = it.built | need
+            # exact and Gauss-Newton need a model every iteration; a quasi-Newton state rarely (a cold
+            # start, a warm model gone stale), so until the next poll asks again, the calls build none
+            building = sync_every is None or not quasi_newton
+        go = starting if build else starting & ~need
+        if build or quasi_newton:  # (exact, Gauss-Newton: no state goes without a model)
+            direction, slope = _descent(objective, hessian, it.model, it.z, it.grad, index)
+            it.step = torch.where(go[:, None], direction, it.step)
+            it.slope = torch.where(go, slope, it.slope)
+            it.alpha = torch.where(go, 1.0, it.alpha)
+            it.alpha_used = torch.where(go, 1.0, it.alpha_used)
+            it.tries = torch.where(go, 0, it.tries)
+            it.searching = it.searching | go
+        trying = active & it.searching
+        trial = torch.where(trying[:, None], it.z + it.alpha[:, None] * it.step, it.z)
+        v_t, g_t, e_t = objective.value_and_grad(trial, index)
+        ok_finite, ok = _judge((v_t, g_t), (it.value, it.grad), it.alpha, it.slope, problem.noise)
+        take = trying & ok
+        if quasi_newton:
+            updated = _bfgs_update(it.model, trial - it.z, g_t - it.grad)
+            it.model = torch.where(take[:, None, None], updated, it.model)
+        rise = torch.where(ok_finite, v_t - it.value, torch.full_like(v_t, torch.inf))
+        change = g_t - it.grad
+        it.z = torch.where(take[:, None], trial, it.z)
+        it.value = torch.where(take, v_t, it.value)
+        it.grad = torch.where(take[:, None], g_t, it.grad)
+        it.energy = torch.where(take, e_t, it.energy)
+        it.iterations = it.iterations + take
+        it.searching = it.searching & ~take
+        # rejected trials: back off, or give up after MAX_BACKTRACKS trials of one iteration
+        rejected = trying & ~ok
+        it.tries = it.tries + rejected
+        give_up = rejected & (it.tries >= MAX_BACKTRACKS)
+        it.stalled = it.stalled | give_up
+        it.searching = it.searching & ~give_up
+        back = rejected & ~give_up
+        it.backtracked = it.backtracked | back
+        it.alpha = torch.where(back, _backtrack(it.alpha, it.slope, rise), it.alpha)
+        if quasi_newton:
+            learn = back & ok_finite
+            step = it.alpha_used[:, None] * it.step
+            updated, fresh, fresh_slope = _relearn(it.model, step, change, it.grad)
+            it.model = torch.where(learn[:, None, None], updated, it.model)
+            good = learn & (fresh_slope < 0)
+            it.step = torch.where(good[:, None], fresh, it.step)
+            it.slope = torch.where(good, fresh_slope, it.slope)
+            it.alpha = torch.where(good, 1.0, it.alpha)
+        it.alpha_used = torch.where(back, it.alpha, it.alpha_used)
+
+
+def check_sync_every(sync_every: int | None) -> None:
+    """Raise ValueError unless ``sync_every`` (the dense loop's calls between early exits) is None or an int >= 1."""
+    if sync_every is not None and (isinstance(sync_every, bool) or int(sync_every) != sync_every or sync_every < 1):
+        raise ValueError(f"sync_every must be None or an integer >= 1, got {sync_every!r}")
 
 
 def minimize(
@@ -173,6 +505,8 @@ def minimize(
     start: tuple[Tensor, Tensor, Tensor] | None = None,
     secant: tuple[Tensor, Tensor] | None = None,
     warm: Tensor | None = None,
+    dense: bool = False,
+    sync_every: int | None = 1,
 ) -> BatchResult:
     """Minimize Phi_b over z_b for every state b from z0 [B, d].
 
@@ -189,126 +523,31 @@ def minimize(
             update from it (s = z0 - z_s) before the first step, of a warm model or of "bfgs"'s J^T M J / h^2.
         warm: A starting model [B, d, d] for the quasi-Newton models (rows with a non-finite entry
             build their own); ignored by "exact" and "gauss_newton".
+        dense: Iterate densely (module doc): every call evaluates all B states, no per-call row
+            selection; the same per-state iterates as the row-selected loop, to round-off.
+        sync_every: With ``dense``: check for the early exit (one host read) every this many calls;
+            None: never (every call also builds the models of the states that need one, and the loop
+            runs all max_iter * (MAX_BACKTRACKS + 1) calls). Ignored without ``dense``.
 
     Returns:
         The :class:`BatchResult`.
+
+    Raises:
+        ValueError: an unknown ``hessian`` or a ``sync_every`` that is not None or an integer >= 1.
     """
     if hessian not in HESSIANS:
         raise ValueError(f"unknown hessian {hessian!r}; valid: {list(HESSIANS)}")
-    batch = z0.shape[0]
-    all_index = torch.arange(batch, device=z0.device)
-    z = z0.clone()
-    value, grad, energy = objective.value_and_grad(z, all_index) if start is None else start
-    finite = torch.isfinite(value) & torch.isfinite(grad).all(-1)
-    value = torch.where(finite, value, torch.zeros_like(value))
-    grad = torch.where(finite[:, None], grad, torch.zeros_like(grad))
-    energy = torch.where(finite, energy, torch.zeros_like(energy))
-    threshold = tol * scale
-    eps = torch.finfo(z.dtype).eps
-    iterations = torch.zeros(batch, dtype=torch.int64, device=z0.device)
-    stalled = torch.zeros(batch, dtype=torch.bool, device=z0.device)
-    quasi_newton = hessian in ("bfgs", "lagged", "lagged_fd")
-    d = z.shape[1]
-    model = torch.full((batch, d, d), torch.nan, dtype=z.dtype, device=z.device)
-    # built: the model of this row was made in this solve (else it is warm or not there yet)
-    built = torch.zeros(batch, dtype=torch.bool, device=z0.device)
-    if warm is not None and quasi_newton:
-        model = torch.where(torch.isfinite(warm).all(-1).all(-1)[:, None, None], warm.to(z.dtype), model)
-        if secant is not None:
-            usable = torch.isfinite(secant[1]).all(-1)
-            g_s = torch.where(usable[:, None], secant[1], grad)
-            model = _bfgs_update(model, z - secant[0], grad - g_s)  # NaN rows stay NaN
-    backtracked = torch.zeros(batch, dtype=torch.bool, device=z0.device)
-    # the line search of every state runs on its own clock: each call of the objective evaluates one
-    # trial of every active state, whether it is the first of an iteration or a backtrack (so a state
-    # backtracking does not hold the others' next iterations back)
-    searching = torch.zeros(batch, dtype=torch.bool, device=z0.device)  # has a direction and a trial pending
-    step = torch.zeros_like(z)
-    slope = torch.zeros_like(value)
-    alpha = torch.ones_like(value)
-    alpha_used = torch.ones_like(value)  # the step length of the last rejected trial
-    tries = torch.zeros(batch, dtype=torch.int64, device=z0.device)
-    for _ in range(max_iter * (MAX_BACKTRACKS + 1)):
-        active = finite & ~stalled & (iterations < max_iter) & (torch.linalg.vector_norm(grad, dim=-1) > threshold)
-        index = torch.nonzero(active).squeeze(-1)
-        if index.numel() == 0:  # the early exit (one host sync per call of the objective)
-            break
-        start_rows = index[~searching[index]]  # states starting an iteration: their model and direction
-        if start_rows.numel():
-            if hessian in ("exact", "gauss_newton"):
-                model[start_rows] = _model(objective, hessian, z[start_rows], start_rows, grad[start_rows])
-            else:
-                missing = ~torch.isfinite(model[start_rows]).all(-1).all(-1)
-                stale = ~built[start_rows] & ((iterations[start_rows] >= WARM_ITERATIONS) | backtracked[start_rows])
-                rebuild = start_rows[missing | stale]
-                if rebuild.numel():
-                    fresh = _model(objective, hessian, z[rebuild], rebuild, grad[rebuild])
-                    if secant is not None and hessian == "bfgs":  # J^T M J / h^2 built at the start: the secant
-                        z_s, g_s = secant[0][rebuild], secant[1][rebuild]
-                        usable = torch.isfinite(g_s).all(-1)
-                        g_s = torch.where(usable[:, None], g_s, grad[rebuild])
-                        fresh = torch.where(
-                            (iterations[rebuild] == 0)[:, None, None],
-                            _bfgs_update(fresh, z[rebuild] - z_s, grad[rebuild] - g_s),
-                            fresh,
-                        )
-                    model[rebuild] = fresh
-                    built[rebuild] = True
-            z_r, g_r = z[start_rows], grad[start_rows]
-            fallback = objective.metric(z_r, start_rows) if hessian == "gauss_newton" else None
-            direction = _direction(model[start_rows], g_r, fallback)
-            direction = torch.where(((g_r * direction).sum(-1) < 0)[:, None], direction, -g_r)
-            step[start_rows] = direction
-            slope[start_rows] = (g_r * direction).sum(-1)
-            alpha[start_rows] = 1.0
-            alpha_used[start_rows] = 1.0
-            tries[start_rows] = 0
-            searching[start_rows] = True
-        z_a, v_a, g_a = z[index], value[index], grad[index]
-        trial = z_a + alpha[index, None] * step[index]
-        v_t, g_t, e_t = objective.value_and_grad(trial, index)
-        ok_finite = torch.isfinite(v_t) & torch.isfinite(g_t).all(-1)
-        armijo = v_t <= v_a + ARMIJO_C * alpha[index] * slope[index]
-        noise = (v_t - v_a) <= value_noise[index] + NOISE_FACTOR * eps * v_a.abs()
-        lower = torch.linalg.vector_norm(g_t, dim=-1) < torch.linalg.vector_norm(g_a, dim=-1)
-        ok = ok_finite & (armijo | (noise & lower))
-        take = index[ok]
-        if quasi_newton and take.numel():
-            model[take] = _bfgs_update(model[take], trial[ok] - z_a[ok], g_t[ok] - g_a[ok])
-        z[take], value[take], grad[take], energy[take] = trial[ok], v_t[ok], g_t[ok], e_t[ok]
-        iterations[take] += 1
-        searching[take] = False
-        # rejected trials: back off, or give up after MAX_BACKTRACKS trials of one iteration
-        rejected = ~ok
-        rows = index[rejected]
-        if rows.numel() == 0:
-            continue
-        tries[rows] += 1
-        more = tries[rows] < MAX_BACKTRACKS
-        stalled[rows[~more]] = True
-        searching[rows[~more]] = False
-        rows = rows[more]
-        backtracked[rows] = True
-        rise = torch.where(ok_finite, v_t - v_a, torch.full_like(v_t, torch.inf))[rejected][more]
-        alpha[rows] = _backtrack(alpha[rows], slope[rows], rise)
-        # a rejected but finite trial still measured the curvature along its step (quasi-Newton): update
-        # the model with it and solve again from the same point (a shorter, turned step)
-        learn = (ok_finite & ~ok)[rejected][more] & quasi_newton
-        redo = rows[learn]
-        if redo.numel():
-            change = g_t[rejected][more][learn] - grad[redo]
-            h_new = _bfgs_update(model[redo], alpha_used[redo, None] * step[redo], change)
-            model[redo] = h_new
-            fresh = _direction(h_new, grad[redo])
-            fresh_slope = (grad[redo] * fresh).sum(-1)
-            good = redo[fresh_slope < 0]
-            step[good] = fresh[fresh_slope < 0]
-            slope[good] = fresh_slope[fresh_slope < 0]
-            alpha[good] = 1.0
-        alpha_used[rows] = alpha[rows]
-    grad_norm = torch.linalg.vector_norm(grad, dim=-1)
-    converged = finite & (grad_norm <= threshold)
-    return BatchResult(z, value, energy, grad_norm, iterations, converged, stalled & ~converged, finite, model)
+    check_sync_every(sync_every)
+    it = _start(objective, z0, hessian, start, secant, warm)
+    problem = _Problem(objective, tol * scale, value_noise, max_iter, hessian, secant)
+    if dense:
+        _minimize_dense(problem, it, sync_every)
+    else:
+        _minimize_rows(problem, it)
+    grad_norm = torch.linalg.vector_norm(it.grad, dim=-1)
+    converged = it.finite & (grad_norm <= problem.threshold)
+    stalled = it.stalled & ~converged
+    return BatchResult(it.z, it.value, it.energy, grad_norm, it.iterations, converged, stalled, it.finite, it.model)
 
 
-__all__ = ["HESSIANS", "WARM_ITERATIONS", "BatchObjective", "BatchResult", "minimize"]
+__all__ = ["HESSIANS", "WARM_ITERATIONS", "BatchObjective", "BatchResult", "check_sync_every", "minimize"]

@@ -23,7 +23,7 @@ from torch import Tensor, nn
 from redsim.integrators import LatentSpace, latent_equilibrium, length_scale
 from redsim.runtime.energy import LatentEnergy, MapEnergy, ReducedInertia
 from redsim.runtime.flags import diverged_states, energy_gain_states, out_of_range_states
-from redsim.runtime.solver import HESSIANS, BatchResult, minimize
+from redsim.runtime.solver import HESSIANS, BatchResult, check_sync_every, minimize
 from redsim.scene import Scene
 
 DEFAULT_TOL = {torch.float32: 1e-6, torch.float64: 1e-9}
@@ -74,7 +74,7 @@ class Evaluations:
 
     Attributes:
         calls: Calls (each one batched energy + gradient pass; a call's fixed cost is what a small batch pays).
-        rows: Latent states evaluated over those calls (a compiled stepper evaluates its whole static batch).
+        rows: Latent states evaluated over those calls (a compiled or dense stepper evaluates its whole batch).
     """
 
     calls: int = 0
@@ -240,9 +240,16 @@ class LatentStepper:
             step builds its own model, as the reference does. Where a step's objective has several
             nearby minima (the mini chain's folded map under full-range actions) the two can
             converge to different ones, and a chaotic rollout then splits (README "Latent runtime").
+        dense: Solve with the dense masked iteration (:func:`redsim.runtime.solver.minimize`): every
+            call evaluates all B states, and the solver's loop waits for the device only at the early
+            exit every ``sync_every`` calls (the energy's own eager paths and the eigenvalue fix of the
+            exact and difference Hessians still synchronise). None (default): dense exactly on a CUDA
+            device; on the CPU the row-selected iteration, which evaluates only the active states, is
+            as fast or faster (README "Latent runtime").
+        sync_every: With ``dense``, calls between early-exit checks (None: never; see ``minimize``).
 
     Raises:
-        ValueError: a bad dt, tol, max_iter or hessian, or a map that does not fit the scene.
+        ValueError: a bad dt, tol, max_iter, hessian or sync_every, or a map that does not fit the scene.
     """
 
     def __init__(
@@ -259,6 +266,8 @@ class LatentStepper:
         hessian: str = DEFAULT_HESSIAN,
         compile: bool = False,
         warm_start: bool = True,
+        dense: bool | None = None,
+        sync_every: int | None = 1,
     ) -> None:
         if not (isinstance(dt, (int, float)) and math.isfinite(dt) and dt > 0.0):
             raise ValueError(f"dt must be a finite number > 0 [s], got {dt!r}")
@@ -271,12 +280,15 @@ class LatentStepper:
             raise ValueError(f"max_iter must be an integer >= 1, got {max_iter!r}")
         if hessian not in HESSIANS:
             raise ValueError(f"unknown hessian {hessian!r}; valid: {list(HESSIANS)}")
+        check_sync_every(sync_every)
         self.dt = float(dt)
         self.dtype = dtype
         self.device = torch.device(device)
         self.tol = float(tol)
         self.max_iter = int(max_iter)
         self.hessian = hessian
+        self.dense = self.device.type == "cuda" if dense is None else bool(dense)
+        self.sync_every = sync_every
         self.source_scene = scene
         self.subspace = subspace
         self.scene = scene.to(device=self.device, dtype=dtype)
@@ -509,6 +521,8 @@ class LatentStepper:
                 tol=self.tol,
                 max_iter=self.max_iter,
                 hessian=self.hessian,
+                dense=self.dense,
+                sync_every=self.sync_every,
                 start=(value[:batch], grad[:batch], energy[:batch]),
                 secant=(z, grad[batch:]),
                 warm=warm,
@@ -581,6 +595,8 @@ class LatentStepper:
             tol=self.tol,
             max_iter=self.max_iter,
             hessian=self.hessian,
+            dense=self.dense,
+            sync_every=self.sync_every,
             # the other states start with a zero gradient: converged at once, their result is kept below
             start=(
                 torch.where(worse, value, result.value),

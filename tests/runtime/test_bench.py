@@ -36,6 +36,18 @@ def test_bench_step_json(capsys: pytest.CaptureFixture[str]) -> None:
     assert report["mujoco"] is None or report["mujoco"][0]["nv"] == 72
 
 
+def test_bench_step_dense_runs_both_iterations(capsys: pytest.CaptureFixture[str]) -> None:
+    argv = ["bench", "step", "--scenes", "mini_chain", "--batches", "2", "--steps", "2", "--reference-steps", "2"]
+    code = main([*argv, "--no-compile", "--dense", "--json"])
+    out, err = capsys.readouterr()
+    assert code == 0, err
+    (row,) = json.loads(out)["rows"]
+    assert row["dense-cmp"] == {} and set(row["speedup"]) == {"eager", "cold", "dense"}
+    rows, dense = row["eager"]["2"], row["dense"]["2"]
+    assert dense["rows_per_step"] >= 2 * dense["calls_per_step"] > 0  # every dense call evaluates the whole batch
+    assert dense["converged_fraction"] == rows["converged_fraction"] == 1.0
+
+
 @pytest.mark.parametrize(
     ("argv", "expected"),
     [

@@ -9,13 +9,16 @@ from __future__ import annotations
 
 import gymnasium as gym
 import numpy as np
+import pytest
 
 import redsim  # noqa: F401  (registers the ids)
 
 
-def test_mini_chain_random_actions_in_float64_never_diverge() -> None:
-    """Step 5 of this rollout ended at Phi = 0.355 J above Phi(z_t) = 0.315 J; now it takes the lower minimum."""
-    env = gym.make("RedSim/MiniChain-v0", dtype="float64").unwrapped
+@pytest.mark.parametrize("dense", [False, True])
+def test_mini_chain_random_actions_in_float64_never_diverge(dense: bool) -> None:
+    """Step 5 of this rollout ended at Phi = 0.355 J above Phi(z_t) = 0.315 J; now it takes the lower minimum
+    (also with the solver's dense iteration)."""
+    env = gym.make("RedSim/MiniChain-v0", dtype="float64", stepper_options={"dense": dense}).unwrapped
     actions = np.random.default_rng(0).uniform(-1, 1, (8, 3)).astype(np.float32)
     env.reset(seed=0)
     for action in actions:

@@ -77,15 +77,16 @@ def test_matches_reference_step_for_step(name: str, steps: int, load: float, hes
             assert same or float(phi_got) < float(phi_want), (got, want, phi_got, phi_want)
 
 
-def test_same_inputs_give_bitwise_equal_outputs(mini_chain) -> None:
+@pytest.mark.parametrize("dense", [False, True])
+def test_same_inputs_give_bitwise_equal_outputs(mini_chain, dense: bool) -> None:
     scene, f = mini_chain
-    stepper = LatentStepper(scene, f, DT)
+    stepper = LatentStepper(scene, f, DT, dense=dense)
     g = torch.Generator().manual_seed(1)
     z = 0.5 * torch.randn(5, stepper.latent_dim, generator=g)
     z_prev = z + 0.01 * torch.randn(5, stepper.latent_dim, generator=g)
     loads = _loads(scene, 5, 2, 20.0, torch.float32)
     z_next, stats = stepper.step(z, z_prev, loads)
-    again, stats_again = LatentStepper(scene, f, DT).step(z.clone(), z_prev.clone(), loads.clone())
+    again, stats_again = LatentStepper(scene, f, DT, dense=dense).step(z.clone(), z_prev.clone(), loads.clone())
     assert torch.equal(z_next, again)
     assert all(torch.equal(a, b) for a, b in zip(stats, stats_again, strict=True))
     assert bool(stats.converged.all())
@@ -232,6 +233,9 @@ def test_bad_settings_raise(mini_chain) -> None:
         LatentStepper(scene, f, DT, hessian="magic")
     with pytest.raises(ValueError, match="dtype"):
         LatentStepper(scene, f, DT, dtype=torch.float16)
+    for sync_every in (0, 1.5, True):
+        with pytest.raises(ValueError, match="sync_every"):
+            LatentStepper(scene, f, DT, sync_every=sync_every)
     with pytest.raises(ValueError, match="maps z"):
         LatentStepper(scenes.build("chain"), f, DT)
 
@@ -277,22 +281,24 @@ class _NaNAway:
         return torch.where(torch.linalg.vector_norm(z, dim=-1) > 1.0, torch.nan, e), q
 
 
-def test_forced_blow_up_is_flagged_diverged_and_stays_finite(mini_chain) -> None:
+@pytest.mark.parametrize("dense", [False, True])
+def test_forced_blow_up_is_flagged_diverged_and_stays_finite(mini_chain, dense: bool) -> None:
     scene, f = mini_chain
     inner = MapEnergy(scene, f)
-    stepper = LatentStepper(scene, f, DT, energy=_Repulsive(inner, 1e4))
+    stepper = LatentStepper(scene, f, DT, energy=_Repulsive(inner, 1e4), dense=dense)
     z = 0.1 * torch.ones(2, stepper.latent_dim)
     z_next, stats = stepper.step(z, z)
     assert bool(stats.diverged.all())
     assert bool(torch.isfinite(z_next).all())
-    calm = LatentStepper(scene, f, DT)  # the same start under the real energy is fine
+    calm = LatentStepper(scene, f, DT, dense=dense)  # the same start under the real energy is fine
     _, stats = calm.step(z, z)
     assert not bool(stats.diverged.any())
 
 
-def test_non_finite_trials_are_rejected(mini_chain) -> None:
+@pytest.mark.parametrize("dense", [False, True])
+def test_non_finite_trials_are_rejected(mini_chain, dense: bool) -> None:
     scene, f = mini_chain
-    stepper = LatentStepper(scene, f, DT, energy=_NaNAway(MapEnergy(scene, f)))
+    stepper = LatentStepper(scene, f, DT, energy=_NaNAway(MapEnergy(scene, f)), dense=dense)
     z = torch.zeros(1, stepper.latent_dim)
     z[0, 0] = 0.9
     z_prev = z.clone()
