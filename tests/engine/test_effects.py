@@ -132,7 +132,8 @@ def test_neo_hookean_2d_and_conditional_scale() -> None:
 
 @pytest.mark.parametrize("name", ["conditional_bar", "bistable_bar"])
 def test_neo_hookean_2d_fast_path_equals_the_matrix_form(name: str) -> None:
-    """NeoHookean.energy (entry-wise, per-coordinate gathers) and element_energy agree with psi of F = D_s D_m^-1."""
+    """NeoHookean.energy and .invariants (entry-wise, per-coordinate gathers) and element_energy agree with
+    psi, tr(F^T F) and det F of F = D_s D_m^-1 by matmul."""
     scene = redsim.scenes.build(name)
     fem = scene.effect("elastic")
     x = scene.full_positions(_random_state(scene, 0.05, 0).unsqueeze(0).repeat(3, 1))
@@ -153,6 +154,9 @@ def test_neo_hookean_2d_fast_path_equals_the_matrix_form(name: str) -> None:
     assert torch.allclose(fem.energy(x, cond), expected, rtol=1e-10, atol=1e-12)
     by_elements = fem.element_energy(x[:, fem.element_dofs], cond).sum(-1)
     assert torch.allclose(by_elements, expected, rtol=1e-10, atol=1e-12)
+    trace, det = fem.invariants(x)
+    assert torch.allclose(trace, (F * F).sum((-1, -2)), rtol=1e-12)
+    assert torch.allclose(det, torch.linalg.det(F), rtol=1e-10)
 
 
 # -- cloth -------------------------------------------------------------------------------------------
