@@ -125,7 +125,7 @@ class NeoHookean(Effect):
 
     def element_energy(self, xe: Tensor, cond: Tensor | None = None, loads: Tensor | None = None) -> Tensor:
         if self.dim == 2:
-            trace, det = plane_invariants(xe.unbind(-1), self.shape_gradients)
+            trace, det = _plane_invariants(xe.unbind(-1), self.shape_gradients)
         else:
             trace, det = _solid_invariants(xe, self.shape_gradients)
         return self._energy_density(trace, det, cond) * self.rest_volume
@@ -145,7 +145,7 @@ class NeoHookean(Effect):
         """
         if self.dim == 2:
             coords = [x.index_select(1, dofs) for dofs in self.element_dofs.T.contiguous()]
-            return plane_invariants(coords, self.shape_gradients)
+            return _plane_invariants(coords, self.shape_gradients)
         return _solid_invariants(gather_elements(x, self.element_dofs), self.shape_gradients)
 
     def _energy_density(self, trace: Tensor, det: Tensor, cond: Tensor | None) -> Tensor:
@@ -169,7 +169,7 @@ def _solid_invariants(xe: Tensor, shape_gradients: Tensor) -> tuple[Tensor, Tens
     return (F * F).sum((-1, -2)), _det(F)
 
 
-def plane_invariants(coords: Sequence[Tensor], shape_gradients: Tensor) -> tuple[Tensor, Tensor]:
+def _plane_invariants(coords: Sequence[Tensor], shape_gradients: Tensor) -> tuple[Tensor, Tensor]:
     """tr(F^T F) and det F, each [B, T], of 2D triangles from their vertex coordinates (x0, y0, x1, y1, x2, y2).
 
     Each coordinate is [B, T]; ``shape_gradients`` [T, 3, 2]. F = D_s D_m^-1 with D_s = [x1 - x0, x2 - x0]
