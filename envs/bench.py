@@ -87,8 +87,9 @@ def bench_env(
         ``id``, ``n``, ``d``, ``action_size``, ``observation_size``, ``dt`` [s], ``make_s``,
         ``single`` and ``vector`` (per batch) with ``env_steps_per_s`` and ``sim_s_per_wall_s`` (and for
         ``vector`` the solver's work per timed vector step: ``iterations_per_step``, the mean over copies of
-        ``info["iterations"]``; ``calls_per_step``, the stepper's value-and-gradient calls; ``rows_per_copy_step``,
-        the latent states those calls evaluated per copy),
+        ``info["iterations"]``; ``slowest_iterations_per_step``, the mean over steps of the slowest copy's
+        iterations (a vector step makes at least that many objective calls); ``calls_per_step``, the stepper's
+        value-and-gradient calls; ``rows_per_copy_step``, the latent states those calls evaluated per copy),
         ``full_space`` (``step_s``, ``sim_s_per_wall_s``) or None.
     """
     rng = np.random.default_rng(seed)
@@ -124,14 +125,19 @@ def bench_env(
         actions = rng.uniform(-1.0, 1.0, (max(steps, 1) + warmup, *venv.action_space.shape)).astype(np.float32)
         cursor = iter(actions)
         iterations: list[float] = []
+        slowest: list[float] = []
 
-        def vector_step(venv: Any = venv, cursor: Any = cursor, iterations: list[float] = iterations) -> None:
+        def vector_step(
+            venv: Any = venv, cursor: Any = cursor, iterations: list[float] = iterations, slowest: list[float] = slowest
+        ) -> None:
             _, _, _, _, info = venv.step(next(cursor))
             iterations.append(float(np.mean(info["iterations"])))
+            slowest.append(float(np.max(info["iterations"])))
 
         for _ in range(warmup):
             vector_step()
         iterations.clear()
+        slowest.clear()
         stepper = venv.unwrapped.sim.stepper
         stepper.evaluations = Evaluations()
         seconds, count = _median_time(vector_step, steps, budget)
@@ -140,6 +146,7 @@ def bench_env(
             "sim_s_per_wall_s": batch * dt / seconds,
             "repeats": count,
             "iterations_per_step": statistics.fmean(iterations),
+            "slowest_iterations_per_step": statistics.fmean(slowest),
             "calls_per_step": stepper.evaluations.calls / count,
             "rows_per_copy_step": stepper.evaluations.rows / (count * batch),
         }

@@ -20,7 +20,7 @@ from torch import Tensor
 
 from redsim.effects import NeoHookean, PointPairPenalty, RigidOrthogonality, SDFContact, StVKMembrane
 from redsim.effects.base import Effect, gather_elements, split_points
-from redsim.effects.elastic import deformation_gradient, membrane_metric
+from redsim.effects.elastic import membrane_metric
 from redsim.scene import Scene
 
 
@@ -39,11 +39,8 @@ def _gap(effect: PointPairPenalty, x: Tensor) -> dict[str, Tensor]:
 
 
 def _fem(effect: NeoHookean, x: Tensor) -> dict[str, Tensor]:
-    xe = gather_elements(x, effect.element_dofs)
-    B, T, _ = xe.shape
-    D = effect.dim
-    det = torch.linalg.det(deformation_gradient(xe.reshape(B, T, D + 1, D), effect.shape_gradients))
-    return {"min_det_f": det.amin(-1), "inverted": (det <= 0.0).sum(-1).to(xe.dtype)}
+    _, det = effect.invariants(x)
+    return {"min_det_f": det.amin(-1), "inverted": (det <= 0.0).sum(-1).to(x.dtype)}
 
 
 def _membrane(effect: StVKMembrane, x: Tensor) -> dict[str, Tensor]:

@@ -101,14 +101,18 @@ def cmd_bench_envs(args: argparse.Namespace) -> int:
         if not args.json:
             out(_row_line(row, batches))
     if not args.json:
-        out("solver work per vector step: iterations per copy / value-and-gradient calls / rows per copy")
-        out(f"{'env':<26} " + " ".join(f"{f'N={b}':>20}" for b in batches))
+        out(
+            "solver work per vector step: iterations per copy (of the slowest copy) / value-and-gradient calls "
+            "/ rows per copy"
+        )
+        out(f"{'env':<26} " + " ".join(f"{f'N={b}':>27}" for b in batches))
         for row in rows:
             cells = (
-                f"{r['iterations_per_step']:.1f} / {r['calls_per_step']:.1f} / {r['rows_per_copy_step']:.1f}"
+                f"{r['iterations_per_step']:.1f} ({r['slowest_iterations_per_step']:.1f}) / "
+                f"{r['calls_per_step']:.1f} / {r['rows_per_copy_step']:.1f}"
                 for r in (row["vector"][b] for b in batches)
             )
-            out(f"{row['id']:<26} " + " ".join(f"{c:>20}" for c in cells))
+            out(f"{row['id']:<26} " + " ".join(f"{c:>27}" for c in cells))
     anchors = mujoco_anchors(args.anchor_steps)
     if args.json:
         json_out({"machine": machine, "env_args": env_kwargs, "results": rows, "mujoco": anchors})

@@ -2,12 +2,13 @@
 
 from __future__ import annotations
 
+from collections.abc import Sequence
 from typing import Literal
 
 import torch
 from torch import Tensor
 
-from redsim.effects.base import Effect, per_element
+from redsim.effects.base import Effect, gather_elements, per_element
 from redsim.materials import lame_from_young_poisson
 
 
@@ -123,21 +124,65 @@ class NeoHookean(Effect):
             self.uses_condition = True
 
     def element_energy(self, xe: Tensor, cond: Tensor | None = None, loads: Tensor | None = None) -> Tensor:
-        B, T, _ = xe.shape
-        D = self.dim
-        F = deformation_gradient(xe.reshape(B, T, D + 1, D), self.shape_gradients)
+        if self.dim == 2:
+            trace, det = _plane_invariants(xe.unbind(-1), self.shape_gradients)
+        else:
+            trace, det = _solid_invariants(xe, self.shape_gradients)
+        return self._energy_density(trace, det, cond) * self.rest_volume
+
+    def energy(self, x: Tensor, cond: Tensor | None = None, loads: Tensor | None = None) -> Tensor:
+        """Total energy [J], shape [B], of full configurations x [B, N] (by :meth:`invariants`)."""
+        trace, det = self.invariants(x)
+        return (self._energy_density(trace, det, cond) * self.rest_volume).sum(-1)
+
+    def invariants(self, x: Tensor) -> tuple[Tensor, Tensor]:
+        """tr(F^T F) and det F of every element, each [B, T], at full configurations x [B, N].
+
+        In 2D each of the six vertex coordinates is gathered as its own contiguous [B, T] tensor (the
+        elementwise kernel then reads no strided views, and its backward stacks nothing). Against F from
+        batched matmuls of xe [B, T, 6]: 2.6x less CPU time for the energy and its gradient at B = 64 and 3.3x
+        at B = 256, 0.95x at B = 1 (conditional_bar, float32; README "Env speed").
+        """
+        if self.dim == 2:
+            coords = [x.index_select(1, dofs) for dofs in self.element_dofs.T.contiguous()]
+            return _plane_invariants(coords, self.shape_gradients)
+        return _solid_invariants(gather_elements(x, self.element_dofs), self.shape_gradients)
+
+    def _energy_density(self, trace: Tensor, det: Tensor, cond: Tensor | None) -> Tensor:
+        """psi [Pa], [B, T], from tr(F^T F) and det F [B, T] (class doc)."""
         mu, lam = self.mu, self.lam
-        if self.condition_scale is not None:
-            if cond is None:
-                raise ValueError(f"effect {self.name!r} needs a condition vector")
-            index, mask = self.condition_scale
-            factor = torch.where(mask, cond[:, index : index + 1], torch.ones_like(mu))
-            mu, lam = mu * factor, lam * factor
         lam_s = lam + mu
-        alpha = 1.0 + mu / lam_s
-        psi = 0.5 * mu * ((F * F).sum((-1, -2)) - D) + 0.5 * lam_s * (_det(F) - alpha) ** 2
-        psi = psi - 0.5 * mu * mu / lam_s
-        return psi * self.rest_volume
+        alpha = 1.0 + mu / lam_s  # a modulus factor scales mu and lam alike: alpha stays, psi scales with it
+        psi = 0.5 * mu * (trace - self.dim) + 0.5 * lam_s * (det - alpha) ** 2 - 0.5 * mu * mu / lam_s
+        if self.condition_scale is None:
+            return psi
+        if cond is None:
+            raise ValueError(f"effect {self.name!r} needs a condition vector")
+        index, mask = self.condition_scale
+        return psi * torch.where(mask, cond[:, index : index + 1], torch.ones_like(mu))
+
+
+def _solid_invariants(xe: Tensor, shape_gradients: Tensor) -> tuple[Tensor, Tensor]:
+    """tr(F^T F) and det F, each [B, T], of tetrahedra xe [B, T, 12] (shape gradients [T, 4, 3])."""
+    B, T, _ = xe.shape
+    F = deformation_gradient(xe.reshape(B, T, 4, 3), shape_gradients)
+    return (F * F).sum((-1, -2)), _det(F)
+
+
+def _plane_invariants(coords: Sequence[Tensor], shape_gradients: Tensor) -> tuple[Tensor, Tensor]:
+    """tr(F^T F) and det F, each [B, T], of 2D triangles from their vertex coordinates (x0, y0, x1, y1, x2, y2).
+
+    Each coordinate is [B, T]; ``shape_gradients`` [T, 3, 2]. F = D_s D_m^-1 with D_s = [x1 - x0, x2 - x0]
+    and D_m^-1 = ``shape_gradients[:, 1:]``, entry by entry: elementwise [B, T] products instead of batched
+    2x3 by 3x2 matmuls (those cost several times more on the CPU, forward and backward).
+    """
+    x0, y0, x1, y1, x2, y2 = coords
+    a, b, c, d = x1 - x0, x2 - x0, y1 - y0, y2 - y0  # D_s = [[a, b], [c, d]]
+    m = shape_gradients[:, 1:, :]
+    m00, m01, m10, m11 = m[:, 0, 0], m[:, 0, 1], m[:, 1, 0], m[:, 1, 1]
+    f00, f01 = a * m00 + b * m10, a * m01 + b * m11
+    f10, f11 = c * m00 + d * m10, c * m01 + d * m11
+    return f00 * f00 + f01 * f01 + f10 * f10 + f11 * f11, f00 * f11 - f01 * f10
 
 
 def _triangle_frame(rest: Tensor) -> Tensor:

@@ -130,6 +130,35 @@ def test_neo_hookean_2d_and_conditional_scale() -> None:
         tri.energy(x)
 
 
+@pytest.mark.parametrize("name", ["conditional_bar", "bistable_bar"])
+def test_neo_hookean_2d_fast_path_equals_the_matrix_form(name: str) -> None:
+    """NeoHookean.energy and .invariants (entry-wise, per-coordinate gathers) and element_energy agree with
+    psi, tr(F^T F) and det F of F = D_s D_m^-1 by matmul."""
+    scene = redsim.scenes.build(name)
+    fem = scene.effect("elastic")
+    x = scene.full_positions(_random_state(scene, 0.05, 0).unsqueeze(0).repeat(3, 1))
+    cond = scene.pack_condition(None, 3, x) if scene.condition_space is not None else None
+    if cond is not None:
+        cond = cond.clone()
+        cond[:, 0] = torch.tensor([0.5, 1.0, 4.0], dtype=cond.dtype)
+    B, T = x.shape[0], fem.element_count
+    F = x[:, fem.element_dofs].reshape(B, T, 3, 2).transpose(-1, -2) @ fem.shape_gradients
+    mu, lam = fem.mu, fem.lam
+    if fem.condition_scale is not None:
+        index, mask = fem.condition_scale
+        factor = torch.where(mask, cond[:, index : index + 1], torch.ones_like(mu))
+        mu, lam = mu * factor, lam * factor
+    lam_s = lam + mu
+    psi = 0.5 * mu * ((F * F).sum((-1, -2)) - 2) + 0.5 * lam_s * (torch.linalg.det(F) - 1 - mu / lam_s) ** 2
+    expected = ((psi - 0.5 * mu * mu / lam_s) * fem.rest_volume).sum(-1)
+    assert torch.allclose(fem.energy(x, cond), expected, rtol=1e-10, atol=1e-12)
+    by_elements = fem.element_energy(x[:, fem.element_dofs], cond).sum(-1)
+    assert torch.allclose(by_elements, expected, rtol=1e-10, atol=1e-12)
+    trace, det = fem.invariants(x)
+    assert torch.allclose(trace, (F * F).sum((-1, -2)), rtol=1e-12)
+    assert torch.allclose(det, torch.linalg.det(F), rtol=1e-10)
+
+
 # -- cloth -------------------------------------------------------------------------------------------
 def test_stvk_membrane_uniaxial_stretch_by_hand() -> None:
     rest = torch.tensor([[0.0, 0, 0], [1, 0, 0], [0, 1, 0]], dtype=torch.float64)

@@ -33,6 +33,8 @@ def test_bench_envs_json(capsys: pytest.CaptureFixture[str]) -> None:
     assert row["vector"]["2"]["env_steps_per_s"] > 0 and row["full_space"]["step_s"] > 0
     work = row["vector"]["2"]  # each step evaluates at least the start and z_t of every copy, in one call
     assert work["iterations_per_step"] >= 0 and work["calls_per_step"] >= 1 and work["rows_per_copy_step"] >= 2
+    # a vector step calls the objective at least once per iteration of its slowest copy, after the start call
+    assert work["iterations_per_step"] <= work["slowest_iterations_per_step"] <= work["calls_per_step"] - 1
     assert "machine" in doc and "available" in doc["mujoco"]
 
 
