@@ -613,6 +613,8 @@ class LatentEnv(gym.Env[np.ndarray, np.ndarray]):
     """
 
     metadata: ClassVar[dict[str, Any]] = {"render_modes": RENDER_MODES, "render_fps": 50}
+    stepper_defaults: ClassVar[dict[str, Any]] = {}
+    """The env's own defaults of ``stepper_options`` (a user's options override them key by key)."""
 
     def __new__(cls, *args: Any, **kwargs: Any) -> LatentEnv:
         env = super().__new__(cls)
@@ -654,7 +656,7 @@ class LatentEnv(gym.Env[np.ndarray, np.ndarray]):
             device=device,
             randomize_condition=randomize_condition,
             include_q=include_q,
-            stepper_options=stepper_options,
+            stepper_options={**self.stepper_defaults, **(stepper_options or {})},
             cubature=cubature,
         )
         self.task = task

@@ -2,7 +2,7 @@
 
 from __future__ import annotations
 
-from typing import ClassVar
+from typing import Any, ClassVar
 
 from redsim.envs.reach import ReachEnv
 from redsim.envs.vector import vector_entry
@@ -49,11 +49,17 @@ class MiniChainEnv(ReachEnv):
     Termination: the stepper could not make a step finite (`info["diverged"]`). Truncation: 200 steps (4 s).
 
     ## Arguments
-    As :class:`redsim.envs.reach.ReachEnv`; `max_force` and `target_spread` default to 15 N, spread 0.6.
+    As :class:`redsim.envs.reach.ReachEnv`; `max_force` and `target_spread` default to 15 N, spread 0.6, and
+    `stepper_options` to `{"warm_start": False}` (each step's solve starts from a fresh Hessian model: 1.2x
+    faster at 16-64 envs here; `{"warm_start": True}` carries the last step's model, as the other ids do).
 
     ## Version History
-    - v0: first version.
+    - v0: first version. Its solver starts cold again (`stepper_defaults`), as when v0 was released and its
+      shipped policy trained; the runtime's warm start, on for a while in between, lands within the solve's
+      tolerance of the same steps (the golden rollout agrees either way).
     """
+
+    stepper_defaults: ClassVar[dict[str, Any]] = {"warm_start": False}
 
     scene_name: ClassVar[str] = "mini_chain"
     goal_handle: ClassVar[str] = "bottom"

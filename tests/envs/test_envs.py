@@ -167,6 +167,17 @@ def test_fixed_seed_and_actions_give_bitwise_equal_trajectories(steps: int) -> N
     assert not np.array_equal(a[0][:6], c[0])  # another seed, another target
 
 
+def test_an_env_s_stepper_defaults_yield_to_the_user_s_options_key_by_key() -> None:
+    """MiniChain-v0 solves cold by default (its ``stepper_defaults``), single and vector; a user's option wins."""
+    assert gym.make("RedSim/MiniChain-v0").unwrapped.sim.stepper.warm_start is False
+    venv = gym.make_vec("RedSim/MiniChain-v0", num_envs=2, vectorization_mode="vector_entry_point")
+    assert venv.unwrapped.sim.stepper.warm_start is False
+    loose = gym.make("RedSim/MiniChain-v0", stepper_options={"tol": 1e-5}).unwrapped.sim.stepper
+    assert (loose.warm_start, loose.tol) == (False, 1e-5)
+    assert gym.make("RedSim/MiniChain-v0", stepper_options={"warm_start": True}).unwrapped.sim.stepper.warm_start
+    assert gym.make("RedSim/ConditionalBar-v0").unwrapped.sim.stepper.warm_start  # the other ids start warm
+
+
 def test_bad_actions_are_clear_errors(mini: gym.Env) -> None:
     mini.reset(seed=0)
     with pytest.raises(ValueError, match="finite"):
