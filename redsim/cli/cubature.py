@@ -116,7 +116,11 @@ def cmd_bench_cubature(args: argparse.Namespace) -> int:
         try:
             weights = mine if mine is not None and mine.is_file() else pretrained.path(name)
         except KeyError as err:
-            raise CliError(str(err)) from err
+            where = f"no {mine}" if mine is not None else "no --checkpoints DIR given"
+            raise CliError(
+                f"{err.args[0]}; {where} (fit one with `redsim fit {name} --out DIR/{name}`, "
+                "then pass --checkpoints DIR)"
+            ) from err
         scene, subspace = load_checkpoint(str(weights))
         try:
             cub = load_cubature(weights, scene, subspace) if cubature_path(weights).is_file() else None
