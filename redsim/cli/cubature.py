@@ -10,6 +10,7 @@ from typing import Any
 from redsim.cli.common import (
     EXIT_OK,
     CliError,
+    check_scene_name,
     finish_command,
     json_out,
     load_checkpoint,
@@ -100,6 +101,8 @@ def cmd_bench_cubature(args: argparse.Namespace) -> int:
     if args.sweep:
         return _sweep(args)
     names = parse_list(args.scenes, "SCENES")
+    for name in names:
+        check_scene_name(name)
     batches = tuple(parse_ints(args.batches, "--batches"))
     if args.steps < 1 or args.timed_steps < 2:
         raise CliError("--steps must be >= 1 and --timed-steps >= 2")

@@ -223,7 +223,9 @@ def test_cli_bad_input_exits_with_a_message(cli, tmp_path) -> None:
     assert code == 2 and "elements" in err
     code, _, err = cli("cubature", str(pretrained.path("mini_chain")), "--elements", "4", "--tol", "0.1")
     assert code == 2 and "not allowed" in err
-    code, _, err = cli("bench", "cubature", "no_such_scene")
+    code, out, err = cli("bench", "cubature", "no_such_scene")
+    assert code == 2 and "unknown scene 'no_such_scene'" in err and "redsim fit" not in err and not out
+    code, _, err = cli("bench", "cubature", "stiff_body")
     assert code == 2 and "no shipped subspace" in err and "--checkpoints DIR" in err
     code, _, err = cli("bench", "cubature", "stiff_body", "--checkpoints", str(tmp_path))
     assert code == 2 and str(tmp_path / "stiff_body.pt") in err and "redsim fit stiff_body" in err
