@@ -20,7 +20,6 @@ from torch import Tensor
 
 from redsim.effects import NeoHookean, PointPairPenalty, RigidOrthogonality, SDFContact, StVKMembrane
 from redsim.effects.base import Effect, gather_elements, split_points
-from redsim.effects.elastic import membrane_metric
 from redsim.scene import Scene
 
 
@@ -44,7 +43,7 @@ def _fem(effect: NeoHookean, x: Tensor) -> dict[str, Tensor]:
 
 
 def _membrane(effect: StVKMembrane, x: Tensor) -> dict[str, Tensor]:
-    caa, cbb, cab = membrane_metric(gather_elements(x, effect.element_dofs), effect.shape_gradients)
+    caa, cbb, cab = effect.metric(x)
     # the larger eigenvalue of C = F^T F in closed form: the squared principal stretch
     largest = 0.5 * (caa + cbb) + torch.sqrt(0.25 * (caa - cbb) ** 2 + cab**2)
     return {"max_strain": largest.amax(-1).clamp_min(0.0).sqrt() - 1.0}

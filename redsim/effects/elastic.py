@@ -243,24 +243,41 @@ class StVKMembrane(Effect):
         self.lam = lam * thickness
 
     def element_energy(self, xe: Tensor, cond: Tensor | None = None, loads: Tensor | None = None) -> Tensor:
-        caa, cbb, cab = membrane_metric(xe, self.shape_gradients)
+        return self._energy_density(membrane_metric(xe.unbind(-1), self.shape_gradients)) * self.rest_area
+
+    def energy(self, x: Tensor, cond: Tensor | None = None, loads: Tensor | None = None) -> Tensor:
+        """Total energy [J], shape [B], of full configurations x [B, N] (by :meth:`metric`)."""
+        return (self._energy_density(self.metric(x)) * self.rest_area).sum(-1)
+
+    def metric(self, x: Tensor) -> tuple[Tensor, Tensor, Tensor]:
+        """(C_00, C_11, C_01) of C = F^T F of every triangle, each [B, T], at full configurations x [B, N].
+
+        Each of the nine vertex coordinates is gathered as its own contiguous [B, T] tensor, as
+        :meth:`NeoHookean.invariants` does in 2D: the elementwise kernel then reads no strided views.
+        """
+        return membrane_metric(
+            [x.index_select(1, dofs) for dofs in self.element_dofs.T.contiguous()], self.shape_gradients
+        )
+
+    def _energy_density(self, metric: tuple[Tensor, Tensor, Tensor]) -> Tensor:
+        """psi [J/m^2] (thickness included), [B, T], from the entries of C (:func:`membrane_metric`)."""
+        caa, cbb, cab = metric
         e00, e11, e01 = 0.5 * (caa - 1.0), 0.5 * (cbb - 1.0), 0.5 * cab  # Green strain E = (C - I) / 2
         trace = e00 + e11
-        psi = self.mu * (e00 * e00 + e11 * e11 + 2.0 * e01 * e01) + 0.5 * self.lam * trace * trace
-        return psi * self.rest_area
+        return self.mu * (e00 * e00 + e11 * e11 + 2.0 * e01 * e01) + 0.5 * self.lam * trace * trace
 
 
-def membrane_metric(xe: Tensor, shape_gradients: Tensor) -> tuple[Tensor, Tensor, Tensor]:
-    """The entries (C_00, C_11, C_01), each [B, T], of C = F^T F of triangles xe [B, T, 9] in 3D.
+def membrane_metric(coords: Sequence[Tensor], shape_gradients: Tensor) -> tuple[Tensor, Tensor, Tensor]:
+    """The entries (C_00, C_11, C_01), each [B, T], of C = F^T F of 3D triangles from their vertex coordinates.
 
+    ``coords`` = (x0, y0, z0, x1, y1, z1, x2, y2, z2), each [B, T]; ``shape_gradients`` [T, 3, 2].
     C = D_m^-T (D_s^T D_s) D_m^-1 with D_s = [x1 - x0, x2 - x0] and D_m^-1 = ``shape_gradients[:, 1:]``
     [T, 2, 2], entry by entry: elementwise [B, T] products instead of a [B, T, 3, 2] F from batched
     3x3 by 3x2 matmuls (those cost 5-10x more on the CPU, forward and backward).
     """
-    B, T, _ = xe.shape
-    v = xe.view(B, T, 3, 3)
-    e1, e2 = v[:, :, 1] - v[:, :, 0], v[:, :, 2] - v[:, :, 0]
-    s11, s12, s22 = (e1 * e1).sum(-1), (e1 * e2).sum(-1), (e2 * e2).sum(-1)
+    x0, y0, z0, x1, y1, z1, x2, y2, z2 = coords
+    ax, ay, az, bx, by, bz = x1 - x0, y1 - y0, z1 - z0, x2 - x0, y2 - y0, z2 - z0
+    s11, s12, s22 = ax * ax + ay * ay + az * az, ax * bx + ay * by + az * bz, bx * bx + by * by + bz * bz
     m = shape_gradients[:, 1:, :]
     m00, m01, m10, m11 = m[:, 0, 0], m[:, 0, 1], m[:, 1, 0], m[:, 1, 1]
     caa = m00 * m00 * s11 + 2.0 * m00 * m10 * s12 + m10 * m10 * s22
