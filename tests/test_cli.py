@@ -181,3 +181,15 @@ def test_render_2d_scene(tmp_path) -> None:
     assert mesh.vertices.shape == (4, 3) and mesh.faces.shape == (2, 3)
     assert abs(mesh.vertices[:, 2]).max() == 0.0
     assert mesh.vertices[3].tolist()[:2] == pytest.approx([1.1, 1.1])
+
+
+def test_shown_path_is_machine_independent(tmp_path, monkeypatch: pytest.MonkeyPatch) -> None:
+    """Reports print shipped checkpoints package-relative and local ones relative to the working folder."""
+    from redsim import pretrained
+    from redsim.cli.common import shown_path
+
+    assert shown_path(pretrained.path("chain")) == "redsim/pretrained/chain.pt"
+    monkeypatch.chdir(tmp_path)
+    assert shown_path(tmp_path / "subspaces" / "chain.pt") == "subspaces/chain.pt"
+    elsewhere = tmp_path.parent / "other.pt"
+    assert shown_path(elsewhere) == str(elsewhere)

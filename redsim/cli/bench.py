@@ -25,6 +25,7 @@ from redsim.cli.common import (
     note,
     out,
     parse_list,
+    shown_path,
     warn,
 )
 from redsim.cli.common import (
@@ -71,7 +72,7 @@ def cmd_bench_subspace(args: argparse.Namespace) -> int:
             "sigma": fit["sigma"],
             "lam": fit["lam"],
             "fit_seconds": neural.metadata.get("fit_seconds"),
-            "checkpoint": source,
+            "checkpoint": shown_path(source),
             "methods": metrics,
         }
         rows.append(row)
@@ -334,7 +335,7 @@ def cmd_bench_accuracy(args: argparse.Namespace) -> int:
         progress=None if args.json else note,
     )
     for info in result["maps"]:
-        info["source"] = ("shipped " if info["d"] == shipped_dim else "") + str(paths[info["d"]])
+        info["source"] = ("shipped " if info["d"] == shipped_dim else "") + shown_path(paths[info["d"]])
     machine = machine_info()
     result["machine"] = machine
     line = _machine_line(machine, "cpu")

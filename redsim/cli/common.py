@@ -12,6 +12,7 @@ import math
 import re
 import sys
 from collections.abc import Callable, Sequence
+from pathlib import Path
 from typing import Any, NoReturn
 
 import torch
@@ -79,6 +80,18 @@ def error(text: str) -> None:
 
 def file_name(name: str) -> str:
     return re.sub(r"[^A-Za-z0-9_.-]+", "_", name)
+
+
+def shown_path(path: str | Path) -> str:
+    """``path`` as a report prints it: inside the installed package as ``redsim/...`` (the same on every
+    machine), else relative to the working folder where it lies below it, else as given."""
+    path = Path(path)
+    resolved = path.resolve()
+    package = Path(redsim.__file__).resolve().parent
+    for base, prefix in ((package, Path("redsim")), (Path.cwd().resolve(), Path())):
+        if resolved.is_relative_to(base):
+            return str(prefix / resolved.relative_to(base))
+    return str(path)
 
 
 # -- input ----------------------------------------------------------------------------------
