@@ -339,11 +339,11 @@ class SDFContact(Effect):
         entries = x.reshape(-1).index_select(0, rows.reshape(-1)).view(A, rows.shape[1])
         frames = entries[:, 3 * K :]
         if not self.body_frames:
-            frames = frames * self.pair_frame_weights.index_select(0, pair) + self.pair_frame_offset.index_select(0, pair)
+            frames = frames * self.pair_frame_weights.index_select(0, pair)
+            frames = frames + self.pair_frame_offset.index_select(0, pair)
         frames = frames.view(A, 3, 4)
         flat = pair * self.pair_weights.shape[2] + slot
-        weights = self.slot_weights.index_select(0, flat).unsqueeze(-1)  # [A, K, 1]
-        point = entries[:, : 3 * K].view(A, 3, K) @ weights  # [A, 3, 1]
+        point = entries[:, : 3 * K].view(A, 3, K) @ self.slot_weights.index_select(0, flat).unsqueeze(-1)  # [A, 3, 1]
         if self.slot_offsets is not None:
             point = point + self.slot_offsets.index_select(0, flat).unsqueeze(-1)
         local = frames[..., :3].transpose(-1, -2) @ (point - frames[..., 3:])  # R^T (p - t) [A, 3, 1]
