@@ -148,13 +148,16 @@ def test_bad_input_is_one_line_exit_2(capsys: pytest.CaptureFixture[str], argv: 
 
 
 def test_bench_energy_json(capsys: pytest.CaptureFixture[str]) -> None:
-    code, out, err = run(capsys, "bench", "energy", "--scenes", TOY, "--repeats", "2", "--json")
+    code, out, err = run(
+        capsys, "bench", "energy", "--scenes", TOY, "--repeats", "2", "--perturbation", "3e-3", "--json"
+    )
     assert code == 0, err
     report = json.loads(out)
     assert report["machine"]["torch"] == torch.__version__
     results = report["results"]
     assert {(r["dtype"], r["batch"]) for r in results} == {(d, b) for d in ("float64", "float32") for b in (1, 32)}
     assert all(r["scene"] == TOY and r["median_s"] > 0 for r in results)
+    assert report["perturbation"] == 3e-3
 
 
 def test_render_2d_scene(tmp_path) -> None:

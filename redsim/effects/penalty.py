@@ -222,6 +222,14 @@ class SDFContact(Effect):
         self.pair_mask = mask  # [pairs, S]
         lift = [weights] + ([] if self.pair_offsets is None else [offsets]) + [torch.ones_like(mask).unsqueeze(1)]
         self.pair_lift = torch.cat(lift, 1)  # [pairs, K (+D) + 1, S]
+        self.partial_slots = not bool(mask.all())  # False: every slot holds a point, no mask to apply
+        # for :meth:`_point_distances`: the entries of x each pair reads (its source's D * K, then its frame's 12),
+        # and each point's weights and offset by flat slot (pair * S + slot)
+        self.pair_dofs = torch.cat([sources[pair_keys[:, 0]], frame_dofs[pair_keys[:, 1]]], 1)  # [pairs, D*K + 12]
+        self.slot_weights = weights.transpose(1, 2).reshape(pairs * slots, K)
+        self.slot_offsets = None if self.pair_offsets is None else offsets.transpose(1, 2).reshape(pairs * slots, D)
+        # every frame a body's own 12 entries (weights 1, no offset): no affine map of the frame entries
+        self.body_frames = bool((self.pair_frame_weights == 1.0).all() and not self.pair_frame_offset.any())
         # one frame for every point (particles against one body, e.g. a cloth and a ball): the
         # per-point form of :meth:`distances` (the pair tables would hold one point per pair)
         self.single_frame = bool(frame_keys.shape[0] == 1)
@@ -257,7 +265,9 @@ class SDFContact(Effect):
             if self.single_frame:
                 return self.near_energy(x)
             with torch.no_grad():
-                near = (self._pair_distances(x) < self.margin + NEAR_SLACK) & (self.pair_mask.unsqueeze(1) > 0)
+                near = self._pair_distances(x) < self.margin + NEAR_SLACK
+                if self.partial_slots:
+                    near &= self.pair_mask.unsqueeze(1) > 0
             pair, state, slot = near.nonzero(as_tuple=True)  # sorted by pair, then state, then slot
             if pair.numel() <= SPARSE_FRACTION * x.shape[0] * self.element_count:
                 gap = (self._point_distances(x, pair, state, slot) - self.margin).clamp_max(0.0)
@@ -317,19 +327,27 @@ class SDFContact(Effect):
         return x.new_zeros(B).index_add(0, rows, 0.5 * self.stiffness * gap * gap)
 
     def _point_distances(self, x: Tensor, pair: Tensor, state: Tensor, slot: Tensor) -> Tensor:
-        """Signed distance [m] of single points [A], point ``slot`` of pair ``pair`` in state ``state`` (each [A])."""
-        pairs, K = self.pair_weights.shape[:2]
-        dofs = torch.cat([self.pair_source_index.view(pairs, -1), self.pair_frame_index.view(pairs, 12)], 1)[pair]
-        # one gather from x (one index_add_ into x in the backward): [A, 3 K + 12]
-        entries = x.reshape(-1).index_select(0, (dofs + (state * x.shape[1]).unsqueeze(1)).reshape(-1))
-        entries = entries.view(pair.shape[0], dofs.shape[1])
-        sources, frames = entries[:, : 3 * K], entries[:, 3 * K :]
-        frames = (frames * self.pair_frame_weights[pair] + self.pair_frame_offset[pair]).view(-1, 3, 4)
-        point = (sources.view(-1, 3, K) @ self.pair_weights[pair, :, slot].unsqueeze(-1)).squeeze(-1)  # [A, 3]
-        if self.pair_offsets is not None:
-            point = point + self.pair_offsets[pair, :, slot]
-        local = (frames[..., :3].transpose(-1, -2) @ (point - frames[..., 3]).unsqueeze(-1)).squeeze(-1)
-        return self.shape.distance(local)
+        """Signed distance [m] of single points [A], point ``slot`` of pair ``pair`` in state ``state`` (each [A]).
+
+        One gather of each point's entries of x (one ``index_add_`` into x in the backward) through the
+        precomputed per-pair index table, then two batched matvecs (~3x faster on the CPU than products
+        and sums over the size-3 and size-4 axes at A = 2,000-20,000).
+        """
+        A = pair.shape[0]
+        K = self.pair_weights.shape[1]
+        rows = self.pair_dofs.index_select(0, pair) + (state * x.shape[1]).unsqueeze(1)  # [A, 3 K + 12]
+        entries = x.reshape(-1).index_select(0, rows.reshape(-1)).view(A, rows.shape[1])
+        frames = entries[:, 3 * K :]
+        if not self.body_frames:
+            frames = frames * self.pair_frame_weights.index_select(0, pair)
+            frames = frames + self.pair_frame_offset.index_select(0, pair)
+        frames = frames.view(A, 3, 4)
+        flat = pair * self.pair_weights.shape[2] + slot
+        point = entries[:, : 3 * K].view(A, 3, K) @ self.slot_weights.index_select(0, flat).unsqueeze(-1)  # [A, 3, 1]
+        if self.slot_offsets is not None:
+            point = point + self.slot_offsets.index_select(0, flat).unsqueeze(-1)
+        local = frames[..., :3].transpose(-1, -2) @ (point - frames[..., 3:])  # R^T (p - t) [A, 3, 1]
+        return self.shape.distance(local.squeeze(-1))
 
     def penetration(self, x: Tensor) -> Tensor:
         """Deepest penetration [m] past the margin, shape [B], of full configurations x [B, N]."""
