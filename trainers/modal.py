@@ -33,7 +33,7 @@ import numpy as np
 import torch
 from torch import Tensor
 
-from redsim.baselines import modal_analysis
+from redsim.baselines import modal_analysis, modal_derivatives
 from redsim.hessian import energy_hessian
 from redsim.integrators.reference import full_equilibrium
 from redsim.scene import Scene
@@ -41,6 +41,9 @@ from redsim.subspace import SubspaceMap
 
 MODAL_CONDITIONS = 8
 """Conditions a conditional fit holds the modes at: the default one and this many minus one seeded samples."""
+
+MODAL_SAMPLES = 8
+"""Latents per step at which ``FitConfig.modal_radius`` pulls the map to the modal-derivative map."""
 
 MODAL_STEP = 1e-2
 """Latent step of the central differences that give the map's Jacobian at z = 0."""
@@ -60,17 +63,25 @@ class ModalTargets(NamedTuple):
     """The d lowest generalized eigenvectors of (H(b_k), M), M-orthonormal, [K, n, d]."""
     metric: tuple[Tensor, ...]
     """A_k = H(b_k) + lambda_d M, sparse [n, n] [1/s^2 x kg], one per condition."""
+    derivatives: Tensor | None = None
+    """Modal derivatives Psi_k of the unit modes (:func:`redsim.baselines.modal_derivatives`, sigma = 1), pairs
+    i <= j in ``torch.triu_indices(d, d)`` order, [K, n, d(d+1)/2]; None unless asked for."""
 
     def to(self, device: str | torch.device, dtype: torch.dtype) -> ModalTargets:
         """The same targets on ``device`` in ``dtype``."""
         cond = None if self.cond is None else self.cond.to(device=device, dtype=dtype)
         move = [t.to(device=device, dtype=dtype) for t in (self.rest, self.modes)]
-        return ModalTargets(cond, *move, tuple(a.to(device=device, dtype=dtype) for a in self.metric))
+        metric = tuple(a.to(device=device, dtype=dtype) for a in self.metric)
+        psi = None if self.derivatives is None else self.derivatives.to(device=device, dtype=dtype)
+        return ModalTargets(cond, *move, metric, psi)
 
 
-def modal_targets(scene: Scene, latent_dim: int, conditional: bool, seed: int) -> ModalTargets:
+def modal_targets(
+    scene: Scene, latent_dim: int, conditional: bool, seed: int, derivatives: bool = False
+) -> ModalTargets:
     """Rest states and lowest modes (float64) at the default condition and, if ``conditional``, at
-    MODAL_CONDITIONS - 1 conditions sampled from the scene's space with a generator seeded by ``seed``.
+    MODAL_CONDITIONS - 1 conditions sampled from the scene's space with a generator seeded by ``seed``;
+    with ``derivatives`` also the modal derivatives there.
 
     The rest states are :func:`redsim.integrators.reference.full_equilibrium` (the load errors'
     reference, cached).
@@ -82,10 +93,13 @@ def modal_targets(scene: Scene, latent_dim: int, conditional: bool, seed: int) -
         generator = torch.Generator().manual_seed(seed)
         conds += list(scene64.condition_space.sample(MODAL_CONDITIONS - 1, generator).to(torch.float64))
     mass = scene64.mass_matrix_scipy()
-    rests, modes, metrics = [], [], []
+    rests, modes, metrics, psis = [], [], [], []
     for cond in conds:
         rest, _, _ = full_equilibrium(scene64, None, cond)
-        linear = modal_analysis(scene64, latent_dim, sigma=1.0, rest=rest, cond=cond)
+        build = modal_derivatives if derivatives else modal_analysis
+        linear = build(scene64, latent_dim, sigma=1.0, rest=rest, cond=cond)
+        if derivatives:
+            psis.append(linear.quadratic)
         stiffness = energy_hessian(scene64, rest, None, cond, project=True)
         metric = (stiffness + max(linear.metadata["eigenvalues"][-1], 0.0) * mass).tocoo()
         indices = torch.from_numpy(np.vstack([metric.row, metric.col]).astype(np.int64))
@@ -96,29 +110,48 @@ def modal_targets(scene: Scene, latent_dim: int, conditional: bool, seed: int) -
     packed = None
     if conditional:
         packed = torch.stack([scene64.pack_condition(c, 1)[0] for c in conds])  # type: ignore[index]
-    return ModalTargets(packed, torch.stack(rests), torch.stack(modes), tuple(metrics))
+    psi = torch.stack(psis) if derivatives else None
+    return ModalTargets(packed, torch.stack(rests), torch.stack(modes), tuple(metrics), psi)
 
 
-def modal_gap(scene: Scene, model: SubspaceMap, targets: ModalTargets, sigma: float) -> Tensor:
-    """mean_k |MLP(0, c_k) - b_k|^2_A + |J_k - sigma Phi_k R_k|^2_A [J] (module doc), a 0-dim tensor.
+def modal_gap(
+    scene: Scene, model: SubspaceMap, targets: ModalTargets, sigma: float, samples: Tensor | None = None
+) -> Tensor:
+    """mean_k |MLP(0, c_k) - b_k|^2_A + |J_k - sigma Phi_k R_k|^2_A [J] (module doc), a 0-dim tensor; with
+    ``samples`` z_s [S, d] also + mean_s |MLP(z_s, c_k) - Q_k(R_k z_s)|^2_A, Q_k the modal-derivative map.
 
-    ``targets`` must be in the model's dtype and device.
+    ``targets`` must be in the model's dtype and device (with ``derivatives`` when ``samples`` are given).
     """
     K, n, d = targets.modes.shape
     steps = MODAL_STEP * torch.eye(d, dtype=targets.rest.dtype, device=targets.rest.device)
-    z = torch.cat([torch.zeros_like(steps[:1]), steps, -steps])  # [1 + 2d, d]
+    z = torch.cat([torch.zeros_like(steps[:1]), steps, -steps, *([] if samples is None else [samples])])
     cond = None
     if targets.cond is not None:
         cond = targets.cond.repeat_interleave(len(z), 0)
     y = model(z.repeat(K, 1), cond).reshape(K, len(z), n)
     offset = y[:, 0] - targets.rest  # [K, n]
-    jacobian = ((y[:, 1 : d + 1] - y[:, d + 1 :]) / (2 * MODAL_STEP)).transpose(1, 2)  # [K, n, d]
+    jacobian = ((y[:, 1 : d + 1] - y[:, d + 1 : 2 * d + 1]) / (2 * MODAL_STEP)).transpose(1, 2)  # [K, n, d]
     mass_jac = scene.mass_matvec(jacobian.transpose(1, 2)).transpose(1, 2)  # M J, [K, n, d]
     with torch.no_grad():
         u, _, vh = torch.linalg.svd(targets.modes.transpose(1, 2) @ mass_jac)  # Phi^T M J = U S V^T
         rotation = u @ vh
     gap = torch.cat([offset.unsqueeze(-1), jacobian - sigma * targets.modes @ rotation], -1)  # [K, n, 1 + d]
+    if samples is not None:
+        if targets.derivatives is None:
+            raise ValueError("samples need targets with the modal derivatives (modal_targets(derivatives=True))")
+        far = y[:, 2 * d + 1 :] - quadratic_map(targets, sigma, samples @ rotation.transpose(1, 2))  # [K, S, n]
+        gap = torch.cat([gap, far.transpose(1, 2) / len(samples) ** 0.5], -1)
     return torch.stack([(g * torch.sparse.mm(a, g)).sum() for g, a in zip(gap, targets.metric, strict=True)]).mean()
+
+
+def quadratic_map(targets: ModalTargets, sigma: float, w: Tensor) -> Tensor:
+    """Q_k(w) = b_k + sigma Phi_k w + sigma^2/2 sum_ij w_i w_j Psi_k,ij [K, S, n] at modal coordinates w [K, S, d]
+    (the modal-derivative map of :func:`redsim.baselines.modal_derivatives`, condition k)."""
+    assert targets.derivatives is not None  # checked by the caller
+    i, j = torch.triu_indices(w.shape[-1], w.shape[-1], device=w.device)
+    monomials = torch.where(i == j, 0.5, 1.0).to(w.dtype) * w[..., i] * w[..., j]  # [K, S, P]
+    linear = sigma * w @ targets.modes.transpose(1, 2)
+    return targets.rest.unsqueeze(1) + linear + sigma**2 * monomials @ targets.derivatives.transpose(1, 2)
 
 
 def start_at_rest(model: SubspaceMap, targets: ModalTargets) -> None:
