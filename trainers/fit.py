@@ -94,6 +94,7 @@ from redsim.trainers.modal import (
     ModalTargets,
     modal_gap,
     modal_targets,
+    start_at_quadratic,
     start_at_rest,
 )
 from redsim.version import __version__
@@ -580,7 +581,9 @@ def fit_subspace(
     if config.seed_bias:
         with torch.no_grad():
             model.mlp[-1].bias.copy_(work.q_seed)
-    if targets is not None:
+    if targets is not None and config.modal_radius > 0:
+        start_at_quadratic(model, targets, config.sigma, config.modal_radius, seed)
+    elif targets is not None:
         start_at_rest(model, targets)
     fused = config.fused_adam
     if fused and (why := _fused_adam_error(config.device, dtype)) is not None:

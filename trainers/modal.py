@@ -27,6 +27,7 @@ responses"): the cantilever's response error falls from 0.98 to 0.30, the condit
 
 from __future__ import annotations
 
+import copy
 from typing import NamedTuple
 
 import numpy as np
@@ -44,6 +45,9 @@ MODAL_CONDITIONS = 8
 
 MODAL_SAMPLES = 8
 """Latents per step at which ``FitConfig.modal_radius`` pulls the map to the modal-derivative map."""
+
+START_SAMPLES = 2048
+"""Latents of the least-squares start on the modal-derivative map (:func:`start_at_quadratic`), all conditions."""
 
 MODAL_STEP = 1e-2
 """Latent step of the central differences that give the map's Jacobian at z = 0."""
@@ -152,6 +156,30 @@ def quadratic_map(targets: ModalTargets, sigma: float, w: Tensor) -> Tensor:
     monomials = torch.where(i == j, 0.5, 1.0).to(w.dtype) * w[..., i] * w[..., j]  # [K, S, P]
     linear = sigma * w @ targets.modes.transpose(1, 2)
     return targets.rest.unsqueeze(1) + linear + sigma**2 * monomials @ targets.derivatives.transpose(1, 2)
+
+
+def start_at_quadratic(model: SubspaceMap, targets: ModalTargets, sigma: float, radius: float, seed: int) -> None:
+    """Start the map on the modal-derivative maps Q_k: the output layer solves the least-squares fit
+    MLP(z_s, c_k) = Q_k(z_s) (float64) over START_SAMPLES latents z_s ~ N(0, radius^2 I) split over the conditions.
+
+    The hidden layers keep their random start; their features at small |z| are smooth functions whose
+    Taylor terms span the constant, linear and quadratic monomials of z, so the fit holds Q_k to third order.
+    The least-squares solution is the same in every norm (each output is fitted on the same features), so
+    it is the A-norm fit too. ``targets`` must hold the modal derivatives.
+    """
+    K, n, d = targets.modes.shape
+    generator = torch.Generator().manual_seed(seed)
+    per = -(-START_SAMPLES // K)
+    z = radius * torch.randn(K, per, d, generator=generator, dtype=torch.float64)
+    work = copy.deepcopy(model).to(device="cpu", dtype=torch.float64)
+    cpu = targets.to("cpu", torch.float64)
+    cond = None if cpu.cond is None else cpu.cond.repeat_interleave(per, 0)
+    with torch.no_grad():
+        hidden = work.mlp[:-1](work.features(z.reshape(K * per, d), cond))  # [K per, width]
+        design = torch.cat([hidden, torch.ones_like(hidden[:, :1])], 1)
+        solution = torch.linalg.lstsq(design, quadratic_map(cpu, sigma, z).reshape(K * per, n)).solution
+        model.mlp[-1].weight.copy_(solution[:-1].T)
+        model.mlp[-1].bias.copy_(solution[-1])
 
 
 def start_at_rest(model: SubspaceMap, targets: ModalTargets) -> None:
