@@ -197,7 +197,7 @@ def modal_analysis(
     return LinearSubspace(modes.basis, modes.rest, {**modes.meta, "method": "modal_analysis", "sigma": float(sigma)})
 
 
-def hessian_directional_derivative(scene: Scene, q: Tensor, u: Tensor, v: Tensor, cond: Tensor | None = None) -> Tensor:
+def hessian_directional_derivative(scene: Scene, q: Tensor, u: Tensor, v: Tensor) -> Tensor:
     """Third-derivative contractions d/dq (u_p^T H(q) v_p) = (dH/dq[v_p]) u_p, batched over rows p.
 
     Computed by three reverse passes through ``scene.energy`` on a batch of P copies of q (each
@@ -208,7 +208,6 @@ def hessian_directional_derivative(scene: Scene, q: Tensor, u: Tensor, v: Tensor
         q: Configuration, shape [n].
         u: Directions, shape [P, n].
         v: Directions, shape [P, n].
-        cond: Condition [m] of the energy (None: the scene's default).
 
     Returns:
         The contractions [energy unit per configuration unit^3 x u x v], shape [P, n]; symmetric in u, v.
@@ -218,7 +217,7 @@ def hessian_directional_derivative(scene: Scene, q: Tensor, u: Tensor, v: Tensor
     batch = q.detach().reshape(1, -1).expand(u.shape[0], -1).clone().requires_grad_(True)
     zero = torch.zeros_like(batch)
     with torch.enable_grad():
-        energy = scene.energy(batch, None, cond)
+        energy = scene.energy(batch)
         if not energy.requires_grad:
             return zero
         (grad,) = torch.autograd.grad(energy.sum(), batch, create_graph=True)
@@ -231,9 +230,7 @@ def hessian_directional_derivative(scene: Scene, q: Tensor, u: Tensor, v: Tensor
     return zero if out is None else out.detach()
 
 
-def modal_derivatives(
-    scene: Scene, dim: int, *, sigma: float = 1.0, rest: Tensor | None = None, cond: Tensor | None = None
-) -> QuadraticSubspace:
+def modal_derivatives(scene: Scene, dim: int, *, sigma: float = 1.0, rest: Tensor | None = None) -> QuadraticSubspace:
     """Linear modes plus static modal derivatives (Barbič & James 2005) as a quadratic map.
 
     With the modes a_i = sigma phi_i of :func:`modal_analysis`, the modal derivative of the pair
@@ -259,7 +256,6 @@ def modal_derivatives(
         dim: d, 1 <= d <= n; the map has d(d+1)/2 modal derivatives.
         sigma: Scale of the linear columns (the paper's σ), as in :func:`modal_analysis`.
         rest: The rest state b [n]; default: the static equilibrium from the seed.
-        cond: Condition [m] of the energy (None: the scene's default).
 
     Returns:
         The float64 quadratic subspace; metadata as :func:`modal_analysis` plus ``regularization`` (delta).
@@ -267,9 +263,9 @@ def modal_derivatives(
     Raises:
         ValueError: on a bad dim, sigma or rest.
     """
-    scene, b, H, M, values, vectors, basis, meta = _modes(scene, dim, sigma, rest, cond)
+    scene, b, H, M, values, vectors, basis, meta = _modes(scene, dim, sigma, rest)
     i, j = torch.triu_indices(basis.shape[1], basis.shape[1])
-    rhs = -hessian_directional_derivative(scene, b, basis[:, i].T, basis[:, j].T, cond).T.cpu().numpy()  # [n, P]
+    rhs = -hessian_directional_derivative(scene, b, basis[:, i].T, basis[:, j].T).T.cpu().numpy()  # [n, P]
     threshold = NULL_TOLERANCE * meta["stiffness_scale"]
     null = vectors[:, np.abs(values) <= threshold]  # [n, k], M-orthonormal
     delta = threshold if null.shape[1] else 0.0

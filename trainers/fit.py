@@ -89,14 +89,7 @@ from redsim.subspace import (
     pair_log_ratios,
     sample_latents,
 )
-from redsim.trainers.modal import (
-    MODAL_SAMPLES,
-    ModalTargets,
-    modal_gap,
-    modal_targets,
-    start_at_quadratic,
-    start_at_rest,
-)
+from redsim.trainers.modal import ModalTargets, modal_gap, modal_targets, start_at_rest
 from redsim.version import __version__
 
 log = logging.getLogger(__name__)
@@ -141,10 +134,6 @@ class FitConfig:
             the energy norm (w/2 |x|^2_H is w times the elastic energy an error x costs).
         modal_fraction: The modal pull is held for half of this fraction of the steps, then falls
             linearly to 0 at it (the anchor schedule; 2: held to the end).
-        modal_radius: Latent radius r of the modal pull's second part (0: off; needs ``modal``): each step
-            it also pulls the map at MODAL_SAMPLES latents z ~ N(0, r^2 I) to the modal-derivative map
-            b + sigma Phi z + sigma^2/2 Psi[z, z] (:mod:`redsim.trainers.modal`), the quadratic part of the
-            static responses.
         mirror: Weight [1/s^2] of the equivariance penalty mean |MLP(-z) - P MLP(z)|^2_M [kg m^2]
             for the scene's mirror P (:class:`redsim.scene.Mirror`; 0: off). Needs a scene that
             declares one and an even ``batch_size`` (the batch is z and -z).
@@ -196,7 +185,6 @@ class FitConfig:
     anchor_fraction: float = 0.5
     modal: float = 0.0
     modal_fraction: float = 0.5
-    modal_radius: float = 0.0
     mirror: float = 0.0
     checkpoint_every: int = 1000
     dtype: str = "float32"
@@ -247,11 +235,6 @@ _FIELD_RULES: tuple[tuple[str, str, Callable[[FitConfig, Any], bool]], ...] = (
     ("anchor_fraction", "a number in (0, 1]", lambda c, v: _is_number(v) and 0 < v <= 1),
     ("modal", "a finite number >= 0", lambda c, v: _is_number(v) and v >= 0),
     ("modal_fraction", "a number in (0, 2]", lambda c, v: _is_number(v) and 0 < v <= 2),
-    (
-        "modal_radius",
-        "a finite number >= 0 (> 0 needs modal > 0)",
-        lambda c, v: _is_number(v) and v >= 0 and (v == 0 or (_is_number(c.modal) and c.modal > 0)),
-    ),
     (
         "mirror",
         "a finite number >= 0 (> 0 needs an even batch_size)",
@@ -442,7 +425,6 @@ def subspace_loss(
     step: int = 0,
     anchors: tuple[Tensor, Tensor] | None = None,
     modal: ModalTargets | None = None,
-    modal_samples: Tensor | None = None,
 ) -> tuple[Tensor, dict[str, float]]:
     """The fitting loss on one batch, and its terms (mean energy [J], pair term, mean metric stretch, driver [J],
     mirror penalty [J], anchor pull [J], modal pull [J]; ``z`` must be antithetic, [z; -z], when ``config.mirror > 0``).
@@ -450,8 +432,7 @@ def subspace_loss(
     ``step`` (0-based) sets the driver stiffness (:func:`drive_at`), softening (:func:`soften_at`), the
     anchor stiffness (:func:`anchor_at`; ``anchors`` from :func:`anchor_states`, needed when ``config.anchor > 0``)
     and the modal pull's (:func:`modal_at`; ``modal`` from :func:`redsim.trainers.modal.modal_targets`, needed
-    when ``config.modal > 0``; ``modal_samples`` [S, d], the latents of its quadratic part, when
-    ``config.modal_radius > 0``).
+    when ``config.modal > 0``).
     """
     rho_t, drive_t, soften_t = (
         torch.as_tensor(v, dtype=z.dtype, device=z.device)
@@ -467,9 +448,7 @@ def subspace_loss(
     if config.modal > 0:
         if modal is None:
             raise ValueError("config.modal > 0 needs the modal targets (redsim.trainers.modal.modal_targets)")
-        if (config.modal_radius > 0) != (modal_samples is not None):
-            raise ValueError("config.modal_radius > 0 needs modal_samples, and only then")
-        hold = 0.5 * modal_at(step, config) * modal_gap(scene, model, modal, config.sigma, modal_samples)
+        hold = 0.5 * modal_at(step, config) * modal_gap(scene, model, modal, config.sigma)
     return total + pull + hold, {**_terms(*terms), "anchor": float(pull.detach()), "modal": float(hold.detach())}
 
 
@@ -565,7 +544,7 @@ def fit_subspace(
         anchors = tuple(t.to(device=config.device, dtype=dtype) for t in anchor_states(scene, config))
     targets = None
     if config.modal > 0:
-        found = modal_targets(scene, config.latent_dim, config.conditional, seed, config.modal_radius > 0)
+        found = modal_targets(scene, config.latent_dim, config.conditional, seed)
         targets = found.to(config.device, dtype)
     arch = SubspaceConfig(
         latent_dim=config.latent_dim,
@@ -581,9 +560,7 @@ def fit_subspace(
     if config.seed_bias:
         with torch.no_grad():
             model.mlp[-1].bias.copy_(work.q_seed)
-    if targets is not None and config.modal_radius > 0:
-        start_at_quadratic(model, targets, config.sigma, config.modal_radius, seed)
-    elif targets is not None:
+    if targets is not None:
         start_at_rest(model, targets)
     fused = config.fused_adam
     if fused and (why := _fused_adam_error(config.device, dtype)) is not None:
@@ -662,13 +639,7 @@ def fit_subspace(
                 loss = loss + pull
                 terms["anchor"] = float(pull.detach())
             if targets is not None:
-                samples = None
-                if config.modal_radius > 0:
-                    shape = (MODAL_SAMPLES, config.latent_dim)
-                    samples = config.modal_radius * torch.randn(
-                        shape, generator=generator, dtype=dtype, device=config.device
-                    )
-                hold = 0.5 * modal_at(step, config, ramp_steps) * modal_gap(work, model, targets, config.sigma, samples)
+                hold = 0.5 * modal_at(step, config, ramp_steps) * modal_gap(work, model, targets, config.sigma)
                 loss = loss + hold
                 terms["modal"] = float(hold.detach())
             if not torch.isfinite(loss):
@@ -815,8 +786,6 @@ def fit_command(scene: Scene, config: FitConfig, seed: int, out: str | Path | No
         parts += ["--anchor", repr(config.anchor), "--anchor-fraction", repr(config.anchor_fraction)]
     if config.modal > 0:
         parts += ["--modal", repr(config.modal), "--modal-fraction", repr(config.modal_fraction)]
-        if config.modal_radius > 0:
-            parts += ["--modal-radius", repr(config.modal_radius)]
     if config.mirror > 0:
         parts += ["--mirror", repr(config.mirror)]
     default = FitConfig()
@@ -866,7 +835,7 @@ def _load_training_state(
     saved = {k: v for k, v in state["config"].items() if k not in free}
     saved["periodic"] = tuple(saved["periodic"])
     added = ("seed_bias", "drive", "drive_fraction", "soften", "soften_from", "soften_fraction")
-    for key in (*added, "anchor", "anchor_fraction", "modal", "modal_fraction", "modal_radius", "mirror"):
+    for key in (*added, "anchor", "anchor_fraction", "modal", "modal_fraction", "mirror"):
         saved.setdefault(key, getattr(FitConfig(), key))  # states written before the options existed
     saved["soften"] = tuple(saved["soften"])
     if saved != mine:

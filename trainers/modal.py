@@ -27,14 +27,13 @@ responses"): the cantilever's response error falls from 0.98 to 0.30, the condit
 
 from __future__ import annotations
 
-import copy
 from typing import NamedTuple
 
 import numpy as np
 import torch
 from torch import Tensor
 
-from redsim.baselines import modal_analysis, modal_derivatives
+from redsim.baselines import modal_analysis
 from redsim.hessian import energy_hessian
 from redsim.integrators.reference import full_equilibrium
 from redsim.scene import Scene
@@ -42,12 +41,6 @@ from redsim.subspace import SubspaceMap
 
 MODAL_CONDITIONS = 8
 """Conditions a conditional fit holds the modes at: the default one and this many minus one seeded samples."""
-
-MODAL_SAMPLES = 8
-"""Latents per step at which ``FitConfig.modal_radius`` pulls the map to the modal-derivative map."""
-
-START_SAMPLES = 2048
-"""Latents of the least-squares start on the modal-derivative map (:func:`start_at_quadratic`), all conditions."""
 
 MODAL_STEP = 1e-2
 """Latent step of the central differences that give the map's Jacobian at z = 0."""
@@ -67,25 +60,17 @@ class ModalTargets(NamedTuple):
     """The d lowest generalized eigenvectors of (H(b_k), M), M-orthonormal, [K, n, d]."""
     metric: tuple[Tensor, ...]
     """A_k = H(b_k) + lambda_d M, sparse [n, n] [1/s^2 x kg], one per condition."""
-    derivatives: Tensor | None = None
-    """Modal derivatives Psi_k of the unit modes (:func:`redsim.baselines.modal_derivatives`, sigma = 1), pairs
-    i <= j in ``torch.triu_indices(d, d)`` order, [K, n, d(d+1)/2]; None unless asked for."""
 
     def to(self, device: str | torch.device, dtype: torch.dtype) -> ModalTargets:
         """The same targets on ``device`` in ``dtype``."""
         cond = None if self.cond is None else self.cond.to(device=device, dtype=dtype)
         move = [t.to(device=device, dtype=dtype) for t in (self.rest, self.modes)]
-        metric = tuple(a.to(device=device, dtype=dtype) for a in self.metric)
-        psi = None if self.derivatives is None else self.derivatives.to(device=device, dtype=dtype)
-        return ModalTargets(cond, *move, metric, psi)
+        return ModalTargets(cond, *move, tuple(a.to(device=device, dtype=dtype) for a in self.metric))
 
 
-def modal_targets(
-    scene: Scene, latent_dim: int, conditional: bool, seed: int, derivatives: bool = False
-) -> ModalTargets:
+def modal_targets(scene: Scene, latent_dim: int, conditional: bool, seed: int) -> ModalTargets:
     """Rest states and lowest modes (float64) at the default condition and, if ``conditional``, at
-    MODAL_CONDITIONS - 1 conditions sampled from the scene's space with a generator seeded by ``seed``;
-    with ``derivatives`` also the modal derivatives there.
+    MODAL_CONDITIONS - 1 conditions sampled from the scene's space with a generator seeded by ``seed``.
 
     The rest states are :func:`redsim.integrators.reference.full_equilibrium` (the load errors'
     reference, cached).
@@ -97,13 +82,10 @@ def modal_targets(
         generator = torch.Generator().manual_seed(seed)
         conds += list(scene64.condition_space.sample(MODAL_CONDITIONS - 1, generator).to(torch.float64))
     mass = scene64.mass_matrix_scipy()
-    rests, modes, metrics, psis = [], [], [], []
+    rests, modes, metrics = [], [], []
     for cond in conds:
         rest, _, _ = full_equilibrium(scene64, None, cond)
-        build = modal_derivatives if derivatives else modal_analysis
-        linear = build(scene64, latent_dim, sigma=1.0, rest=rest, cond=cond)
-        if derivatives:
-            psis.append(linear.quadratic)
+        linear = modal_analysis(scene64, latent_dim, sigma=1.0, rest=rest, cond=cond)
         stiffness = energy_hessian(scene64, rest, None, cond, project=True)
         metric = (stiffness + max(linear.metadata["eigenvalues"][-1], 0.0) * mass).tocoo()
         indices = torch.from_numpy(np.vstack([metric.row, metric.col]).astype(np.int64))
@@ -114,72 +96,29 @@ def modal_targets(
     packed = None
     if conditional:
         packed = torch.stack([scene64.pack_condition(c, 1)[0] for c in conds])  # type: ignore[index]
-    psi = torch.stack(psis) if derivatives else None
-    return ModalTargets(packed, torch.stack(rests), torch.stack(modes), tuple(metrics), psi)
+    return ModalTargets(packed, torch.stack(rests), torch.stack(modes), tuple(metrics))
 
 
-def modal_gap(
-    scene: Scene, model: SubspaceMap, targets: ModalTargets, sigma: float, samples: Tensor | None = None
-) -> Tensor:
-    """mean_k |MLP(0, c_k) - b_k|^2_A + |J_k - sigma Phi_k R_k|^2_A [J] (module doc), a 0-dim tensor; with
-    ``samples`` z_s [S, d] also + mean_s |MLP(z_s, c_k) - Q_k(R_k z_s)|^2_A, Q_k the modal-derivative map.
+def modal_gap(scene: Scene, model: SubspaceMap, targets: ModalTargets, sigma: float) -> Tensor:
+    """mean_k |MLP(0, c_k) - b_k|^2_A + |J_k - sigma Phi_k R_k|^2_A [J] (module doc), a 0-dim tensor.
 
-    ``targets`` must be in the model's dtype and device (with ``derivatives`` when ``samples`` are given).
+    ``targets`` must be in the model's dtype and device.
     """
     K, n, d = targets.modes.shape
     steps = MODAL_STEP * torch.eye(d, dtype=targets.rest.dtype, device=targets.rest.device)
-    z = torch.cat([torch.zeros_like(steps[:1]), steps, -steps, *([] if samples is None else [samples])])
+    z = torch.cat([torch.zeros_like(steps[:1]), steps, -steps])  # [1 + 2d, d]
     cond = None
     if targets.cond is not None:
         cond = targets.cond.repeat_interleave(len(z), 0)
     y = model(z.repeat(K, 1), cond).reshape(K, len(z), n)
     offset = y[:, 0] - targets.rest  # [K, n]
-    jacobian = ((y[:, 1 : d + 1] - y[:, d + 1 : 2 * d + 1]) / (2 * MODAL_STEP)).transpose(1, 2)  # [K, n, d]
+    jacobian = ((y[:, 1 : d + 1] - y[:, d + 1 :]) / (2 * MODAL_STEP)).transpose(1, 2)  # [K, n, d]
     mass_jac = scene.mass_matvec(jacobian.transpose(1, 2)).transpose(1, 2)  # M J, [K, n, d]
     with torch.no_grad():
         u, _, vh = torch.linalg.svd(targets.modes.transpose(1, 2) @ mass_jac)  # Phi^T M J = U S V^T
         rotation = u @ vh
     gap = torch.cat([offset.unsqueeze(-1), jacobian - sigma * targets.modes @ rotation], -1)  # [K, n, 1 + d]
-    if samples is not None:
-        if targets.derivatives is None:
-            raise ValueError("samples need targets with the modal derivatives (modal_targets(derivatives=True))")
-        far = y[:, 2 * d + 1 :] - quadratic_map(targets, sigma, samples @ rotation.transpose(1, 2))  # [K, S, n]
-        gap = torch.cat([gap, far.transpose(1, 2) / len(samples) ** 0.5], -1)
     return torch.stack([(g * torch.sparse.mm(a, g)).sum() for g, a in zip(gap, targets.metric, strict=True)]).mean()
-
-
-def quadratic_map(targets: ModalTargets, sigma: float, w: Tensor) -> Tensor:
-    """Q_k(w) = b_k + sigma Phi_k w + sigma^2/2 sum_ij w_i w_j Psi_k,ij [K, S, n] at modal coordinates w [K, S, d]
-    (the modal-derivative map of :func:`redsim.baselines.modal_derivatives`, condition k)."""
-    assert targets.derivatives is not None  # checked by the caller
-    i, j = torch.triu_indices(w.shape[-1], w.shape[-1], device=w.device)
-    monomials = torch.where(i == j, 0.5, 1.0).to(w.dtype) * w[..., i] * w[..., j]  # [K, S, P]
-    linear = sigma * w @ targets.modes.transpose(1, 2)
-    return targets.rest.unsqueeze(1) + linear + sigma**2 * monomials @ targets.derivatives.transpose(1, 2)
-
-
-def start_at_quadratic(model: SubspaceMap, targets: ModalTargets, sigma: float, radius: float, seed: int) -> None:
-    """Start the map on the modal-derivative maps Q_k: the output layer solves the least-squares fit
-    MLP(z_s, c_k) = Q_k(z_s) (float64) over START_SAMPLES latents z_s ~ N(0, radius^2 I) split over the conditions.
-
-    The hidden layers keep their random start; their features at small |z| are smooth functions whose
-    Taylor terms span the constant, linear and quadratic monomials of z, so the fit holds Q_k to third order.
-    The least-squares solution is the same in every norm (each output is fitted on the same features), so
-    it is the A-norm fit too. ``targets`` must hold the modal derivatives.
-    """
-    K, n, d = targets.modes.shape
-    generator = torch.Generator().manual_seed(seed)
-    per = -(-START_SAMPLES // K)
-    z = radius * torch.randn(K, per, d, generator=generator, dtype=torch.float64)
-    work = copy.deepcopy(model).to(device="cpu", dtype=torch.float64)
-    cpu = targets.to("cpu", torch.float64)
-    cond = None if cpu.cond is None else cpu.cond.repeat_interleave(per, 0)
-    with torch.no_grad():
-        hidden = work.mlp[:-1](work.features(z.reshape(K * per, d), cond))  # [K per, width]
-        design = torch.cat([hidden, torch.ones_like(hidden[:, :1])], 1)
-        solution = torch.linalg.lstsq(design, quadratic_map(cpu, sigma, z).reshape(K * per, n)).solution
-        model.mlp[-1].weight.copy_(solution[:-1].T)
-        model.mlp[-1].bias.copy_(solution[-1])
 
 
 def start_at_rest(model: SubspaceMap, targets: ModalTargets) -> None:
