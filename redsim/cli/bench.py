@@ -175,6 +175,7 @@ def cmd_bench_energy(args: argparse.Namespace) -> int:
 def cmd_bench_step(args: argparse.Namespace) -> int:
     from redsim import pretrained
     from redsim.bench import machine_info
+    from redsim.runtime.baseline import check_source
     from redsim.runtime.bench import STEP_SCENES, bench_step, mujoco_rows, step_table
 
     names = list(STEP_SCENES) if args.scenes is None else parse_list(args.scenes, "--scenes")
@@ -190,6 +191,14 @@ def cmd_bench_step(args: argparse.Namespace) -> int:
         raise CliError("--batches, --steps, --reference-steps and --rounds must be >= 1")
     if args.device.startswith("cuda") and not torch.cuda.is_available():
         raise CliError("--device cuda requested but torch sees no CUDA device")
+    baseline = None
+    if args.baseline is not None:
+        if args.hessians is not None:
+            raise CliError("--baseline times the reference path; --hessians compares solver models: use one")
+        try:
+            baseline = check_source(Path(args.baseline))
+        except ValueError as err:
+            raise CliError(f"--baseline: {err}") from err
     machine = machine_info()
     if args.hessians is not None:
         return _bench_step_hessians(args, names, batches, machine)
@@ -209,6 +218,7 @@ def cmd_bench_step(args: argparse.Namespace) -> int:
                 seed=args.seed,
                 rounds=args.rounds,
                 dense=args.dense,
+                baseline=baseline,
             )
         )
         if not args.json:
@@ -659,6 +669,13 @@ def add_commands(sub: Any) -> Any:
         default=1,
         help="run the reference and every path this many times, interleaved; rates are medians over the rounds, "
         "speedups medians of per-round ratios (default 1)",
+    )
+    p.add_argument(
+        "--baseline",
+        metavar="DIR",
+        help="also time the reference path of the redsim in this source tree (another version, e.g. a "
+        "`git worktree add --detach DIR COMMIT`) in each round, on the same loads, start and map, and print "
+        "every path's speedup over it",
     )
     finish_command(p, cmd_bench_step, "print one JSON document on stdout", default_threads=1)
 

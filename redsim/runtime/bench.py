@@ -12,12 +12,14 @@ from __future__ import annotations
 import math
 import statistics
 import time
+from pathlib import Path
 from typing import Any
 
 import torch
 from torch import Tensor, nn
 
 from redsim.integrators import FullSpace, FullState, ImplicitEuler, LatentSpace
+from redsim.runtime.baseline import run_baseline
 from redsim.runtime.solver import HESSIANS
 from redsim.runtime.stepper import LatentStepper
 from redsim.scene import Scene
@@ -280,8 +282,13 @@ def bench_step(
     seed: int = 0,
     rounds: int = 1,
     dense: bool = False,
+    baseline: Path | None = None,
 ) -> dict[str, Any]:
     """One scene's row of `redsim bench step` (module doc).
+
+    With ``baseline`` (a source tree of another redsim version) each round also times that version's
+    reference path on the same loads and start (:func:`redsim.runtime.baseline.run_baseline`), right
+    after this version's: ``baseline`` in the row, and ``speedup_baseline`` of every path and B over it.
 
     With ``dense`` the eager, cold and compiled steppers use the row-selected solver iteration and the
     same run adds ``dense`` and ``dense-cmp`` (compiled): the dense masked iteration (else all use the
@@ -310,6 +317,12 @@ def bench_step(
     loads = load_sequence(scene, magnitudes, steps, max(batches), seed=seed)
     reference = run_reference(scene, subspace, dt, z_rest[0], loads[:reference_steps, 0])
     reference_rates = [reference["env_steps_per_s"]]
+
+    def time_baseline() -> dict[str, Any]:
+        assert baseline is not None
+        return run_baseline(baseline, scene.name, subspace, dt, z_rest[0], loads[:reference_steps, 0])
+
+    baselines = [time_baseline()] if baseline is not None else []
     full = run_reference(scene, subspace, dt, z_rest[0], loads[: min(3, reference_steps), 0], space="full")
     row: dict[str, Any] = {
         "scene": scene.name,
@@ -339,6 +352,8 @@ def bench_step(
             reference_rates.append(
                 run_reference(scene, subspace, dt, z_rest[0], loads[:reference_steps, 0])["env_steps_per_s"]
             )
+            if baseline is not None:
+                baselines.append(time_baseline())
         for label, runner, warm, b in runs if r % 2 == 0 else runs[::-1]:
             result = run_stepper(runner, z_rest.expand(b, -1).clone(), loads[:, :b], warm=warm)
             trajectory = result.pop("trajectory")
@@ -360,6 +375,16 @@ def bench_step(
         result["median_step_cpu_s"] = statistics.median(cpu[label, b])
         ratios = [mine / ref for mine, ref in zip(per_round, reference_rates, strict=True)]
         row["speedup"].setdefault(label, {})[str(b)] = statistics.median(ratios)
+        if baselines:
+            ratios = [mine / base["env_steps_per_s"] for mine, base in zip(per_round, baselines, strict=True)]
+            row.setdefault("speedup_baseline", {}).setdefault(label, {})[str(b)] = statistics.median(ratios)
+    if baselines:
+        row["baseline"] = {
+            **baselines[0],
+            "rounds_env_steps_per_s": [base["env_steps_per_s"] for base in baselines],
+            "env_steps_per_s": statistics.median(base["env_steps_per_s"] for base in baselines),
+            "same_weights": all(base["same_weights"] for base in baselines),
+        }
     return row
 
 
@@ -390,6 +415,11 @@ def step_table(rows: list[dict[str, Any]], mujoco: list[dict[str, Any]] | None, 
         cells = " ".join(f"{ref['env_steps_per_s']:>9.3g}" for _ in batches)
         its, conv = ref["iterations_per_step"], 100 * ref["converged_fraction"]
         lines.append(f"{lead} {'reference':<9} {cells}  {its:>4.1f} {conv:>6.1f}")
+        base = row.get("baseline")
+        if base is not None:
+            cells = " ".join(f"{base['env_steps_per_s']:>9.3g}" for _ in batches)
+            same = "same map" if base["same_weights"] else "its OWN shipped map, not this one"
+            lines.append(f"{'':<23} {'baseline':<9} {cells}  {base['iterations_per_step']:>4.1f}  ({same})")
         for label in ("eager", "cold", "compiled", "dense", "dense-cmp"):
             if not row.get(label):
                 continue
@@ -400,11 +430,16 @@ def step_table(rows: list[dict[str, Any]], mujoco: list[dict[str, Any]] | None, 
             lines.append(f"{'':<23} {label:<9} {cells}  {its:>4.1f} {100 * conv:>6.1f}")
             speed = " ".join(f"{row['speedup'][label][b]:>8.3g}x" for b in batches)
             lines.append(f"{'':<23} {'speedup':<9} {speed}")
+            if base is not None:
+                speed = " ".join(f"{row['speedup_baseline'][label][b]:>8.3g}x" for b in batches)
+                lines.append(f"{'':<23} {'vs base':<9} {speed}")
         lines.append(
             f"{'':<23} {'full':<9} {full['env_steps_per_s']:>9.3g} (B = 1, {full['iterations_per_step']:.1f} its); "
             f"vs reference: one step {row['step_error']:.2g}, "
             f"rollout {row.get('trajectory_error', math.nan):.2g} of the motion"
         )
+    sources = sorted({row["baseline"]["redsim_file"] for row in rows if "baseline" in row})
+    lines.extend(f"baseline: the reference path (B = 1) of {source}; vs base: speedup over it" for source in sources)
     if mujoco is None:
         lines.append("mujoco is not installed (pip install 'redsim[bench]'): MuJoCo chain skipped")
     else:

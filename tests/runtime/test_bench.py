@@ -3,14 +3,20 @@
 from __future__ import annotations
 
 import json
+from pathlib import Path
 
 import pytest
 import torch
 
+import redsim
 from redsim import pretrained, scenes
 from redsim.cli import main
 from redsim.runtime import LatentStepper
-from redsim.runtime.bench import load_magnitudes, load_sequence, mujoco_chain_xml
+from redsim.runtime.baseline import check_source, run_baseline, weights_digest
+from redsim.runtime.bench import load_magnitudes, load_sequence, mujoco_chain_xml, run_reference
+
+SOURCE = Path(redsim.__file__).resolve().parent.parent
+"""The source tree this redsim runs from: a baseline that must step exactly like this checkout's reference."""
 
 
 def test_bench_step_json(capsys: pytest.CaptureFixture[str]) -> None:
@@ -57,6 +63,7 @@ def test_bench_step_dense_runs_both_iterations(capsys: pytest.CaptureFixture[str
         (["--batches", "x"], "comma-separated integers"),
         (["--rounds", "0"], ">= 1"),
         (["--hessians", "magic"], "unknown Hessian"),
+        (["--baseline", "/"], "holds no redsim package"),
     ],
 )
 def test_bench_step_bad_input_exits_2(capsys: pytest.CaptureFixture[str], argv: list[str], expected: str) -> None:
@@ -82,3 +89,26 @@ def test_mujoco_chain_has_24_ball_joints() -> None:
     mujoco = pytest.importorskip("mujoco")
     model = mujoco.MjModel.from_xml_string(mujoco_chain_xml())
     assert model.nv == 72 and model.nbody == 26  # world, hook, 24 links
+
+
+def test_baseline_runs_another_trees_reference_on_the_same_loads() -> None:
+    """The baseline subprocess imports redsim from the tree it is given and steps the same computation: given
+    this checkout, its reference takes the in-process reference's iterations on the same map, loads and start."""
+    scene = scenes.build("mini_chain")
+    subspace = pretrained.load("mini_chain", scene)
+    stepper = LatentStepper(scene, subspace, 0.02)
+    loads = load_sequence(scene, load_magnitudes(stepper), 3, 1, seed=0)[:, 0]
+    z0 = stepper.rest_latent()[0]
+    base = run_baseline(SOURCE, "mini_chain", subspace, 0.02, z0, loads)
+    mine = run_reference(scene, subspace, 0.02, z0, loads)
+    assert Path(base["redsim_file"]).resolve() == Path(redsim.__file__).resolve()
+    assert base["same_weights"] and base["env_steps_per_s"] > 0
+    assert base["iterations_per_step"] == mine["iterations_per_step"]
+    other = pretrained.load("klann")
+    assert weights_digest(other) != weights_digest(subspace)
+    assert not run_baseline(SOURCE, "mini_chain", other, 0.02, z0, loads)["same_weights"]
+
+
+def test_baseline_needs_a_redsim_source_tree(tmp_path: Path) -> None:
+    with pytest.raises(ValueError, match="holds no redsim package"):
+        check_source(tmp_path)
