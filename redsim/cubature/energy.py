@@ -332,7 +332,7 @@ class CubatureEnergy:
     def energy_features(self, z: Tensor, cond: Tensor | None) -> tuple[Tensor, Tensor]:
         """E_cub [B] [J] of latents z [B, d] and the features r [B, w] it computed."""
         r = self.features(z, cond)
-        x_s = r @ self.slice_weight.T + self.slice_bias
+        x_s = torch.addmm(self.slice_bias, r, self.slice_weight.T)
         total = r @ self.linear_coef + (self.linear_constant + self.offset)
         return self._sum(total, x_s, cond, self.terms, self._full_values), r
 

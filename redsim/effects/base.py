@@ -12,6 +12,7 @@ from __future__ import annotations
 
 import copy
 import math
+from collections.abc import Sequence
 from typing import Any, ClassVar
 
 import torch
@@ -123,13 +124,21 @@ def gather_elements(x: Tensor, element_dofs: Tensor) -> Tensor:
     return x.index_select(1, element_dofs.reshape(-1)).reshape(x.shape[0], *element_dofs.shape)
 
 
-def gather_coordinates(x: Tensor, element_dofs: Tensor) -> list[Tensor]:
-    """x[:, element_dofs[:, j]] for each j: k contiguous tensors [B, T] from x [B, N] and element_dofs [T, k].
+def gather_coordinates(x: Tensor, element_dofs: Tensor) -> Sequence[Tensor]:
+    """x[:, element_dofs[:, j]] for each j: k tensors [B, T] from x [B, N] and element_dofs [T, k].
 
-    For elementwise kernels that work coordinate by coordinate: unlike the columns of
-    :func:`gather_elements`' [B, T, k], each is contiguous, and their backward stacks nothing.
+    For elementwise kernels that work coordinate by coordinate (unlike the columns of
+    :func:`gather_elements`' [B, T, k], each is contiguous within its rows). Where the elements
+    cover most of x (T >= N / 2, a whole mesh) each coordinate is its own ``index_select``;
+    where they are few against x (a cubature's kept elements in its slice) one ``index_select``
+    in coordinate-major order gives all k, since the backward of each separate one fills a
+    zero [B, N] gradient: 1.2-1.6x less CPU time for a cloth cubature's energy and gradient
+    (B = 1 to 256; README "Cubature").
     """
-    return [x.index_select(1, dofs) for dofs in element_dofs.T.contiguous()]
+    count, k = element_dofs.shape
+    if 2 * count >= x.shape[1]:
+        return [x.index_select(1, dofs) for dofs in element_dofs.T.contiguous()]
+    return x.index_select(1, element_dofs.T.reshape(-1)).view(x.shape[0], k, count).unbind(1)
 
 
 def per_element(value: float | Tensor, count: int, what: str) -> Tensor:
