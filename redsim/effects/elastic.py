@@ -138,8 +138,8 @@ class NeoHookean(Effect):
     def invariants(self, x: Tensor) -> tuple[Tensor, Tensor]:
         """tr(F^T F) and det F of every element, each [B, T], at full configurations x [B, N].
 
-        In 2D each of the six vertex coordinates is gathered as its own contiguous [B, T] tensor (the
-        elementwise kernel then reads no strided views, and its backward stacks nothing). Against F from
+        In 2D the six vertex coordinates are gathered as [B, T] tensors (:func:`gather_coordinates`; over a
+        whole mesh each its own contiguous one: the elementwise kernel then reads no strided views). Against F from
         batched matmuls of xe [B, T, 6]: 2.6x less CPU time for the energy and its gradient at B = 64 and 3.3x
         at B = 256, 0.95x at B = 1 (conditional_bar, float32; README "Env speed").
         """
@@ -251,7 +251,7 @@ class StVKMembrane(Effect):
     def metric(self, x: Tensor) -> tuple[Tensor, Tensor, Tensor]:
         """(C_00, C_11, C_01) of C = F^T F of every triangle, each [B, T], at full configurations x [B, N].
 
-        Each of the nine vertex coordinates is gathered as its own contiguous [B, T] tensor, as
+        The nine vertex coordinates are gathered as [B, T] tensors (:func:`gather_coordinates`), as
         :meth:`NeoHookean.invariants` does in 2D: the elementwise kernel then reads no strided views.
         """
         return membrane_metric(gather_coordinates(x, self.element_dofs), self.shape_gradients)
@@ -290,8 +290,8 @@ def hinge_angles(coords: Sequence[Tensor], length_eps: float) -> Tensor:
     triangles (x0, x1, x2) and (x1, x0, x3). With e = x1 - x0, a = x2 - x0, b = x3 - x0 and the normals
     n_a = e x a, n_b = b x e: cos ~ n_a . n_b and sin ~ (n_a x n_b) . e / |e| = -|e|^2 (n_a . b) / |e|
     ((e x a) x (b x e) = -((e x a) . b) e), entry by entry: elementwise products of the coordinates
-    instead of [..., 3] cross products (their stacks and strided views cost ~3x more on the CPU,
-    forward and backward). ``length_eps`` [m^2] keeps |e| = sqrt(e . e + eps) positive.
+    instead of [..., 3] cross products (their stacks and strided views cost 2.6-3.3x more CPU time at
+    B >= 16, forward and backward). ``length_eps`` [m^2] keeps |e| = sqrt(e . e + eps) positive.
     """
     x0, y0, z0, x1, y1, z1, x2, y2, z2, x3, y3, z3 = coords
     ex, ey, ez = x1 - x0, y1 - y0, z1 - z0
@@ -343,10 +343,11 @@ class DiscreteShellBending(Effect):
         return self._energy(hinge_angles(xe.unbind(-1), self.length_eps))
 
     def element_energies(self, x: Tensor, cond: Tensor | None = None, loads: Tensor | None = None) -> Tensor:
-        """Energy of every hinge [J], [B, E], at x [B, N]: each of the twelve vertex coordinates gathered as its
-        own contiguous [B, E] tensor (as :meth:`StVKMembrane.metric`). Against the gathered [B, E, 12] and
-        [..., 3] cross products: 2.6-3.3x less CPU time for the energy and its gradient at B = 16 to 256 and
-        1.5x at B = 1 (hanging_sheet and cloth_ball, float32, an interleaved A/B; README "Cubature")."""
+        """Energy of every hinge [J], [B, E], at x [B, N]: the twelve vertex coordinates gathered as [B, E]
+        tensors (:func:`gather_coordinates`, as :meth:`StVKMembrane.metric`). Against the gathered [B, E, 12]
+        and [..., 3] cross products: 2.6-3.3x less CPU time for the term's energy and gradient at B = 16 to 256
+        and 1.5x at B = 1 (hanging_sheet and cloth_ball, float32, an interleaved development A/B; the scenes'
+        energies before and after in README "Cubature")."""
         return self._energy(hinge_angles(gather_coordinates(x, self.element_dofs), self.length_eps))
 
     def _energy(self, theta: Tensor) -> Tensor:
