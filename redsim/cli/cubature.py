@@ -32,7 +32,6 @@ def _command(args: argparse.Namespace) -> str:
     parts += ["--rollout-steps", str(args.rollout_steps), "--seed", str(args.seed)]
     parts += ["--full", args.full] if args.full is not None else []
     parts += ["--subsample", args.subsample] if args.subsample else []
-    parts += ["--share", repr(args.share)] if args.share else []
     return " ".join(shlex.quote(p) for p in parts)
 
 
@@ -48,7 +47,6 @@ def _config(args: argparse.Namespace) -> Any:
             steps=args.rollout_steps,
             full=None if args.full is None else tuple(parse_list(args.full, "--full")),
             subsample=tuple(parse_list(args.subsample, "--subsample")) if args.subsample else (),
-            share=args.share,
             seed=args.seed,
         )
     except ValueError as err:
@@ -197,12 +195,6 @@ def add_commands(sub: Any) -> None:
     p.add_argument("--rollout-steps", type=int, default=40, help="steps per rollout (default 40)")
     p.add_argument("--full", metavar="E1,E2", help="effects kept whole (default: contact effects)")
     p.add_argument("--subsample", metavar="E1,E2", help="effects subsampled even if they are contact")
-    p.add_argument(
-        "--share",
-        type=float,
-        default=0.0,
-        help="prefer elements whose DOFs are already kept: score x (1 + SHARE x kept fraction); fewer DOFs (default 0)",
-    )
     p.add_argument("--seed", type=int, default=0, help="seed of samples, loads and split (default 0)")
     finish_command(p, cmd_cubature, "print one JSON document on stdout (no progress bar)")
 

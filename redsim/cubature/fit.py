@@ -60,9 +60,6 @@ class CubatureConfig:
         held_out: Fraction of the states kept out of the fit for the reported error (0 < f < 1).
         full: Effects kept whole; None: those of :data:`RARE_KINDS` (and any with at most ``elements`` elements).
         subsample: Effects subsampled even if their kind is in :data:`RARE_KINDS`.
-        share: Preference for elements whose DOFs are already kept (by this effect or an earlier one): a
-            candidate's greedy score is multiplied by 1 + share * (the fraction of its DOFs kept). 0: plain
-            greedy; larger values keep fewer DOFs, so the sliced output layer costs less.
         seed: Seeds the samples, loads and split.
     """
 
@@ -77,7 +74,6 @@ class CubatureConfig:
     held_out: float = 0.25
     full: tuple[str, ...] | None = None
     subsample: tuple[str, ...] = ()
-    share: float = 0.0
     seed: int = 0
 
     def __post_init__(self) -> None:
@@ -95,8 +91,6 @@ class CubatureConfig:
             raise ValueError(f"dt must be finite and > 0 [s], got {self.dt!r}")
         if not 0.0 < self.held_out < 1.0:
             raise ValueError(f"held_out must be in (0, 1), got {self.held_out!r}")
-        if not (math.isfinite(self.share) and self.share >= 0.0):
-            raise ValueError(f"share must be finite and >= 0, got {self.share!r}")
 
 
 @dataclass
@@ -222,16 +216,11 @@ def greedy_nnls(
     elements: int,
     tol: float | None,
     progress: Callable[[int, float], None] | None = None,
-    share: float = 0.0,
-    element_dofs: Tensor | None = None,
-    kept_dofs: Tensor | None = None,
 ) -> tuple[Tensor, Tensor, list[tuple[int, float, float]]]:
     """Greedy element selection + NNLS: columns ``train`` [R, T] must sum (with weights) to their row sum.
 
     Each round adds the candidates whose normalized columns correlate best with the residual
     (max(1, kept/8) of them), then refits every kept weight by NNLS. Errors are |A w - A 1| / norm.
-    With ``share`` > 0, a positive score is multiplied by 1 + share * (the fraction of the element's DOFs,
-    ``element_dofs`` [T, k], that are kept: in ``kept_dofs`` [N] bool, or read by an element kept here).
 
     Returns kept indices [K], weights [K] (>= 0) and the (kept, train, held-out error) history.
     """
@@ -251,11 +240,6 @@ def greedy_nnls(
     while len(kept) < min(elements, count) and rounds < 4 * elements:
         rounds += 1
         score = (residual @ train) / norms
-        if share > 0.0 and element_dofs is not None and kept_dofs is not None:
-            covered = kept_dofs.clone()
-            if kept:
-                covered[element_dofs[torch.tensor(kept)].reshape(-1)] = True
-            score = torch.where(score > 0.0, score * (1.0 + share * covered[element_dofs].double().mean(1)), score)
         score[banned] = -math.inf
         if kept:
             score[torch.tensor(kept)] = -math.inf
@@ -346,7 +330,6 @@ def fit_rules(
     subsampled = [name for name, mode in modes.items() if mode == "cubature"]
     per_tol = None if config.tol is None else config.tol / math.sqrt(max(1, len(subsampled)))
     rules = []
-    kept_dofs = torch.zeros(scene64.full_dof_count, dtype=torch.bool)  # DOFs the rules so far read (for share)
     train_residual = torch.zeros_like(whole[train_index])
     test_residual = torch.zeros_like(whole[test_index])
     for effect in scene64.effects:
@@ -357,7 +340,6 @@ def fit_rules(
         if mode != "cubature":
             index = torch.arange(T) if mode == "full" else torch.zeros(0, dtype=torch.int64)
             rules.append(EffectRule(effect.name, mode, T, index, torch.ones(index.shape[0], dtype=torch.float64)))
-            kept_dofs[effect.element_dofs[index].reshape(-1)] = True
             continue
         forces, energies, ref = columns[effect.name]
         a = _columns(forces, energies, ref, scale)
@@ -374,18 +356,8 @@ def fit_rules(
                 bar.set_postfix(held_out_error=f"{held:.3g}")  # type: ignore[attr-defined]
 
         index, weights, history = greedy_nnls(
-            train,
-            test,
-            train_norm,
-            test_norm,
-            elements=config.elements,
-            tol=per_tol,
-            progress=report,
-            share=config.share,
-            element_dofs=effect.element_dofs,
-            kept_dofs=kept_dofs,
+            train, test, train_norm, test_norm, elements=config.elements, tol=per_tol, progress=report
         )
-        kept_dofs[effect.element_dofs[index].reshape(-1)] = True
         if bar is not None:
             bar.close()  # type: ignore[attr-defined]
         train_residual += (train[:, index] @ weights - train.sum(1, dtype=torch.float64)).reshape(-1, d1)

@@ -15,7 +15,6 @@ from redsim.cubature import (
     cubature_energy,
     load_cubature,
 )
-from redsim.cubature.fit import greedy_nnls
 from redsim.effects.elastic import StVKMembrane
 from redsim.runtime import LatentStepper, MapEnergy, ReducedInertia
 from redsim.scene import SceneBuilder
@@ -91,22 +90,6 @@ def test_error_falls_as_elements_are_added() -> None:
     assert errors[2] < 0.5 * errors[0]
 
 
-def test_share_prefers_elements_whose_dofs_are_kept() -> None:
-    """Scores 0.8, 1.0, 0.9 (orthogonal columns); with DOF 0 kept, share 1 lifts elements 0 and 2 (half their DOFs
-    kept) to 1.2 and 1.35, so the first pick moves from element 1 to element 2."""
-    train = torch.diag(torch.tensor([0.8, 1.0, 0.9], dtype=torch.float64))
-    element_dofs = torch.tensor([[0, 1], [2, 3], [0, 4]])
-    kept_dofs = torch.tensor([True, False, False, False, False])
-    picks = {}
-    for share in (0.0, 1.0):
-        index, weights, _ = greedy_nnls(
-            train, train, 1.0, 1.0, elements=1, tol=None, share=share, element_dofs=element_dofs, kept_dofs=kept_dofs
-        )
-        assert bool((weights >= 0).all())
-        picks[share] = index.tolist()
-    assert picks == {0.0: [1], 1.0: [2]}
-
-
 def test_a_cubature_for_another_map_or_scene_is_refused(tmp_path) -> None:
     scene, f = _toy_cloth_map(0)
     cub = build_cubature(scene, f, CubatureConfig(elements=4, **QUICK))
@@ -131,8 +114,6 @@ def test_bad_input_is_a_clear_error(tmp_path) -> None:
         CubatureConfig(tol=-1.0)
     with pytest.raises(ValueError, match="held_out"):
         CubatureConfig(held_out=1.0)
-    with pytest.raises(ValueError, match="share"):
-        CubatureConfig(share=-1.0)
     with pytest.raises(ValueError, match="no effect"):
         build_cubature(scene, f, CubatureConfig(full=("nope",), **QUICK))
     with pytest.raises(ValueError, match="affine output"):
