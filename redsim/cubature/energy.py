@@ -26,7 +26,7 @@ from torch import Tensor, nn
 
 from redsim.cubature.fit import MODES, CubatureConfig, EffectRule, fit_rules
 from redsim.cubature.output import AffineOutput, sliced_layer
-from redsim.effects.base import Effect, gather_elements
+from redsim.effects.base import Effect
 from redsim.scene import Scene
 from redsim.subspace import CheckpointError, checkpoint_path, periodic_latents
 
@@ -261,17 +261,20 @@ class CubatureEnergy:
         self.output_bias = self.output.bias
         self._build(scene, subspace, dtype, torch.device(device))
 
-    def _terms(self, scene: Scene) -> list[tuple[Effect, Tensor, Tensor | None]]:
-        """(the kept elements as an effect, their DOFs in the kept slice, weights or None for all) per effect."""
+    def _terms(self, scene: Scene) -> list[tuple[Effect, Tensor | None]]:
+        """Per effect: (a whole effect, None), or (its kept elements reading the kept slice x_s, their weights)."""
         rules = {r.name: r for r in self.cubature.rules}
-        out = []
+        out: list[tuple[Effect, Tensor | None]] = []
         for effect in scene.effects:
             rule = rules.get(effect.name)
             if rule is None or rule.mode == "linear":
                 continue
-            kept = effect if rule.mode == "full" else effect.subset(rule.indices.to(scene.device))
-            weights = None if rule.mode == "full" else rule.weights.to(device=scene.device, dtype=scene.dtype)
-            out.append((kept, torch.searchsorted(self.kept_dofs, kept.element_dofs), weights))
+            if rule.mode == "full":
+                out.append((effect, None))
+                continue
+            kept = effect.subset(rule.indices.to(scene.device))
+            local = kept.reindexed(torch.searchsorted(self.kept_dofs, kept.element_dofs))
+            out.append((local, rule.weights.to(device=scene.device, dtype=scene.dtype)))
         return out
 
     def _build(self, scene: Scene, subspace: nn.Module, dtype: torch.dtype, device: torch.device) -> None:
@@ -329,7 +332,7 @@ class CubatureEnergy:
     def energy_features(self, z: Tensor, cond: Tensor | None) -> tuple[Tensor, Tensor]:
         """E_cub [B] [J] of latents z [B, d] and the features r [B, w] it computed."""
         r = self.features(z, cond)
-        x_s = r @ self.slice_weight.T + self.slice_bias
+        x_s = torch.addmm(self.slice_bias, r, self.slice_weight.T)
         total = r @ self.linear_coef + (self.linear_constant + self.offset)
         return self._sum(total, x_s, cond, self.terms, self._full_values), r
 
@@ -338,22 +341,23 @@ class CubatureEnergy:
         total: Tensor,
         x_s: Tensor,
         cond: Tensor | None,
-        terms: list[tuple[Effect, Tensor, Tensor | None]],
+        terms: list[tuple[Effect, Tensor | None]],
         full_values: Tensor,
     ) -> Tensor:
         """total + every term at the kept DOFs x_s [B, s]: weighted kept elements, or a whole effect's energy.
 
-        A whole effect (weights None) is evaluated by its own ``energy`` (e.g. contact's per-pair path) on x
-        with the kept DOFs scattered in (every DOF it reads is kept; the others hold the pinned/seed values).
+        Kept elements read x_s directly (their ``element_dofs`` index the slice). A whole effect (weights None)
+        is evaluated by its own ``energy`` (e.g. contact's per-pair path) on x with the kept DOFs scattered in
+        (every DOF it reads is kept; the others hold the pinned/seed values).
         """
         x_full = None
-        for effect, local, weights in terms:
+        for effect, weights in terms:
             if weights is None:
                 if x_full is None:
                     x_full = full_values.to(x_s.dtype).expand(x_s.shape[0], -1).index_copy(1, self.kept_dofs, x_s)
                 total = total + effect.energy(x_full, cond)
             else:
-                total = total + effect.element_energy(gather_elements(x_s, local), cond) @ weights
+                total = total + effect.element_energies(x_s, cond) @ weights
         return total
 
     def energy(self, z: Tensor, cond: Tensor | None) -> tuple[Tensor, None]:

@@ -12,6 +12,7 @@ from __future__ import annotations
 
 import copy
 import math
+from collections.abc import Sequence
 from typing import Any, ClassVar
 
 import torch
@@ -54,9 +55,16 @@ class Effect:
         """
         raise NotImplementedError
 
+    def element_energies(self, x: Tensor, cond: Tensor | None = None, loads: Tensor | None = None) -> Tensor:
+        """Energy of every element [J], shape [B, T], at configurations x [B, N], read at ``element_dofs`` only.
+
+        :meth:`element_energy` of the gathered entries; kernels that gather each coordinate on its own override it.
+        """
+        return self.element_energy(gather_elements(x, self.element_dofs), cond, loads)
+
     def energy(self, x: Tensor, cond: Tensor | None = None, loads: Tensor | None = None) -> Tensor:
         """Total energy [J], shape [B], of full configurations x, shape [B, N]."""
-        return self.element_energy(gather_elements(x, self.element_dofs), cond, loads).sum(-1)
+        return self.element_energies(x, cond, loads).sum(-1)
 
     def describe(self) -> dict[str, Any]:
         """Name, kind and element count, for `redsim scenes`."""
@@ -89,6 +97,19 @@ class Effect:
             setattr(out, key, map_tensors(value, select))
         return out
 
+    def reindexed(self, element_dofs: Tensor) -> Effect:
+        """A copy whose elements read x at ``element_dofs`` [T, k] instead (e.g. positions in a slice of x).
+
+        Only :meth:`element_energy` and :meth:`element_energies` hold for the copy (:meth:`energy` of an effect
+        with its own index tables, such as contact's, does not).
+        """
+        element_dofs = torch.as_tensor(element_dofs, dtype=torch.int64, device=self.element_dofs.device)
+        if element_dofs.shape != self.element_dofs.shape:
+            raise ValueError(f"element_dofs must have shape {tuple(self.element_dofs.shape)} for {self.name!r}")
+        out = copy.copy(self)
+        out.element_dofs = element_dofs
+        return out
+
     def __repr__(self) -> str:
         return f"{type(self).__name__}(name={self.name!r}, elements={self.element_count})"
 
@@ -101,6 +122,23 @@ def gather_elements(x: Tensor, element_dofs: Tensor) -> Tensor:
     faster on the CPU for the thousands of repeated indices of a mesh).
     """
     return x.index_select(1, element_dofs.reshape(-1)).reshape(x.shape[0], *element_dofs.shape)
+
+
+def gather_coordinates(x: Tensor, element_dofs: Tensor) -> Sequence[Tensor]:
+    """x[:, element_dofs[:, j]] for each j: k tensors [B, T] from x [B, N] and element_dofs [T, k].
+
+    For elementwise kernels that work coordinate by coordinate (unlike the columns of
+    :func:`gather_elements`' [B, T, k], each is contiguous within its rows). Where the elements
+    cover most of x (T >= N / 2, a whole mesh) each coordinate is its own ``index_select``;
+    where they are few against x (a cubature's kept elements in its slice) one ``index_select``
+    in coordinate-major order gives all k, since the backward of each separate one fills a
+    zero [B, N] gradient: 1.2-1.6x less CPU time for a cloth cubature's energy and gradient
+    (B = 1 to 256, an interleaved A/B; README "Cubature").
+    """
+    count, k = element_dofs.shape
+    if 2 * count >= x.shape[1]:
+        return [x.index_select(1, dofs) for dofs in element_dofs.T.contiguous()]
+    return x.index_select(1, element_dofs.T.reshape(-1)).view(x.shape[0], k, count).unbind(1)
 
 
 def per_element(value: float | Tensor, count: int, what: str) -> Tensor:

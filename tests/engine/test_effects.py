@@ -220,6 +220,50 @@ def test_bending_fold_angle_by_hand_and_invariance() -> None:
     assert float(_energy(curved_rest, (_hinge(0.7) @ _rotation(6).T).reshape(-1))) == pytest.approx(0.0, abs=1e-12)
 
 
+@pytest.mark.parametrize("name", ["hanging_sheet", "cloth_ball"])
+def test_bending_fast_path_equals_the_cross_product_form(name: str) -> None:
+    """DiscreteShellBending.energy (per-coordinate gathers, the triple-product sine), element_energies and
+    element_energy agree with the dihedral angle atan2((n_a x n_b) . e / |e|, n_a . n_b) from cross products."""
+    scene = redsim.scenes.build(name)
+    bend = next(e for e in scene.effects if isinstance(e, DiscreteShellBending))
+    x = scene.full_positions(_random_state(scene, 0.05, 0).unsqueeze(0).repeat(3, 1))
+    B, E = x.shape[0], bend.element_count
+    x0, x1, x2, x3 = x[:, bend.element_dofs].reshape(B, E, 4, 3).unbind(-2)
+    e = x1 - x0
+    n_a, n_b = torch.linalg.cross(e, x2 - x0), torch.linalg.cross(x3 - x0, e)
+    sin = (torch.linalg.cross(n_a, n_b) * e).sum(-1) / torch.sqrt((e * e).sum(-1) + bend.length_eps)
+    theta = torch.atan2(sin, (n_a * n_b).sum(-1))
+    assert float((theta - bend.rest_angle).abs().amax()) > 1e-3  # the state is bent
+    expected = bend.weight * (theta - bend.rest_angle) ** 2
+    assert torch.allclose(bend.element_energies(x), expected, rtol=1e-9, atol=1e-18)
+    assert torch.allclose(bend.element_energy(x[:, bend.element_dofs]), expected, rtol=1e-9, atol=1e-18)
+    assert torch.allclose(bend.energy(x), expected.sum(-1), rtol=1e-10)
+
+
+@pytest.mark.parametrize(
+    ("name", "effect_name"), [("hanging_sheet", "membrane"), ("cloth_ball", "bending"), ("bistable_bar", "elastic")]
+)
+def test_reindexed_elements_on_a_slice_equal_the_elements_on_x(name: str, effect_name: str) -> None:
+    """A subset reindexed into the slice of x it reads gives the same element energies and gradients, whether its
+    coordinates are gathered one by one (most of the slice) or in one coordinate-major gather (a few elements)."""
+    scene = redsim.scenes.build(name)
+    effect = scene.effect(effect_name)
+    x = scene.full_positions(_random_state(scene, 0.02, 1).unsqueeze(0).repeat(2, 1))
+    for count in (effect.element_count, 7):
+        kept = effect.subset(torch.randperm(effect.element_count, generator=torch.Generator().manual_seed(2))[:count])
+        dofs = torch.unique(kept.element_dofs)
+        local = kept.reindexed(torch.searchsorted(dofs, kept.element_dofs))
+        x_s = x[:, dofs].clone().requires_grad_(True)
+        x_full = x.clone().requires_grad_(True)
+        on_slice, on_x = local.element_energies(x_s), kept.element_energies(x_full)
+        assert torch.allclose(on_slice, on_x, rtol=1e-12, atol=1e-18)
+        (g_s,) = torch.autograd.grad(on_slice.sum(), x_s)
+        (g_x,) = torch.autograd.grad(on_x.sum(), x_full)
+        assert torch.allclose(g_s, g_x[:, dofs], rtol=1e-10, atol=1e-14)
+    with pytest.raises(ValueError, match="shape"):
+        effect.reindexed(effect.element_dofs[:1])
+
+
 # -- rigid, joints, pins, loads, gravity ------------------------------------------------------------
 def _affine(R: torch.Tensor, t: torch.Tensor) -> torch.Tensor:
     return torch.cat([R, t.reshape(3, 1)], dim=1).reshape(-1)
