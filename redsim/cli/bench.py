@@ -72,7 +72,7 @@ def cmd_bench_subspace(args: argparse.Namespace) -> int:
             "sigma": fit["sigma"],
             "lam": fit["lam"],
             "fit_seconds": neural.metadata.get("fit_seconds"),
-            "checkpoint": shown_path(source),
+            "checkpoint": str(source),
             "methods": metrics,
         }
         rows.append(row)
@@ -95,7 +95,7 @@ def _metric(result: dict[str, Any], *path: str) -> float:
 def _subspace_row(row: dict[str, Any]) -> str:
     lines = [
         f"{row['scene']}  n={row['n']}  d={row['d']}  sigma={row['sigma']:g}  lam={row['lam']:g}  "
-        f"steps={row['steps']}  fit {row['fit_seconds']:.0f} s  ({row['checkpoint']})"
+        f"steps={row['steps']}  fit {row['fit_seconds']:.0f} s  ({shown_path(row['checkpoint'])})"
     ]
     for method, result in row["methods"].items():
         line = (
