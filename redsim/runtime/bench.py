@@ -28,6 +28,8 @@ LOAD_FRACTION = 0.1
 """Load size: each handle's linear response in the subspace is up to this fraction of the scene size L."""
 LOAD_EVERY = 5
 """The loads change every this many steps."""
+REFERENCE_WARMUP = 2
+"""Untimed steps before a reference path's timed ones (its own and a baseline's), as the stepper's runs have."""
 
 
 def _sync(device: torch.device) -> None:
@@ -139,10 +141,20 @@ def run_stepper(
 
 
 def run_reference(
-    scene: Scene, subspace: nn.Module, dt: float, z0: Tensor, loads: Tensor, *, space: str = "latent"
+    scene: Scene,
+    subspace: nn.Module,
+    dt: float,
+    z0: Tensor,
+    loads: Tensor,
+    *,
+    space: str = "latent",
+    warmup: int = REFERENCE_WARMUP,
 ) -> dict[str, Any]:
     """Today's path, one state: ``ImplicitEuler(LatentSpace(scene, f), dt)`` (or ``FullSpace`` from f(z0))
-    through ``loads`` [steps, H, D]; env-steps/s, iterations, converged fraction, trajectory."""
+    through ``loads`` [steps, H, D]; env-steps/s, iterations, converged fraction, trajectory.
+
+    The first ``warmup`` steps run once untimed from the same start (first-call costs), as in :func:`run_stepper`.
+    """
     if space == "latent":
         integrator = ImplicitEuler(LatentSpace(scene, subspace), dt)
         u0 = z0.to(torch.float64)
@@ -150,6 +162,9 @@ def run_reference(
         integrator = ImplicitEuler(FullSpace(scene), dt)
         with torch.no_grad():
             u0 = LatentSpace(scene, subspace).configuration(z0.to(torch.float64).unsqueeze(0))[0]
+    state = FullState(u0.clone(), u0.clone(), 0.0)
+    for i in range(min(warmup, loads.shape[0])):
+        state, _ = integrator.step(state, loads[i])
     state = FullState(u0.clone(), u0.clone(), 0.0)
     times, iterations, converged, trajectory = [], [], [], [u0.clone()]
     for i in range(loads.shape[0]):
@@ -320,10 +335,12 @@ def bench_step(
 
     def time_baseline() -> dict[str, Any]:
         assert baseline is not None
-        return run_baseline(baseline, scene.name, subspace, dt, z_rest[0], loads[:reference_steps, 0])
+        return run_baseline(
+            baseline, scene.name, subspace, dt, z_rest[0], loads[:reference_steps, 0], warmup=REFERENCE_WARMUP
+        )
 
     baselines = [time_baseline()] if baseline is not None else []
-    full = run_reference(scene, subspace, dt, z_rest[0], loads[: min(3, reference_steps), 0], space="full")
+    full = run_reference(scene, subspace, dt, z_rest[0], loads[: min(3, reference_steps), 0], space="full", warmup=0)
     row: dict[str, Any] = {
         "scene": scene.name,
         "n": scene.free_dof_count,
