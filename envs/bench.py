@@ -5,7 +5,9 @@ an env step of the single env (random actions) and of the native vector env at e
 as env steps/s (copies x steps / s) and simulated seconds per wall second (env steps/s x the
 env's dt). For scale, the same scene's float64 full-space implicit-Euler step
 (:class:`redsim.integrators.ImplicitEuler` over :class:`FullSpace`, Newton, under a random load of
-the env's force size) is timed too. With ``mujoco`` installed the same run times the MuJoCo
+the env's force size) is timed too, and so is drawing the single env's picture at 480 x 480
+(``render_mode="rgb_array"``'s frame, :mod:`redsim.raster`), as frames per second. With ``mujoco``
+installed the same run times the MuJoCo
 anchors RL users know (:func:`mujoco_anchors`: MuJoCo's 24-capsule chain and ``HalfCheetah-v5``);
 without it they are skipped with the reason.
 """
@@ -25,6 +27,8 @@ import torch
 from redsim.runtime import Evaluations
 
 DEFAULT_BATCHES = (16, 64, 256)
+RENDER_SIZE = (480, 480)
+"""Width and height [px] of the timed frame (Gymnasium's and the envs' default)."""
 
 
 def _median_time(call: Callable[[], Any], repeats: int, budget: float) -> tuple[float, int]:
@@ -90,7 +94,8 @@ def bench_env(
         ``info["iterations"]``; ``slowest_iterations_per_step``, the mean over steps of the slowest copy's
         iterations (a vector step makes at least that many objective calls); ``calls_per_step``, the stepper's
         value-and-gradient calls; ``rows_per_copy_step``, the latent states those calls evaluated per copy),
-        ``full_space`` (``step_s``, ``sim_s_per_wall_s``) or None.
+        ``full_space`` (``step_s``, ``sim_s_per_wall_s``) or None, ``render`` (``frames_per_s`` of the single
+        env's ``rgb_array`` frame at :data:`RENDER_SIZE`, the map's full configuration included).
     """
     rng = np.random.default_rng(seed)
     start = time.perf_counter()
@@ -119,6 +124,10 @@ def bench_env(
         "single": {"env_steps_per_s": 1.0 / seconds, "sim_s_per_wall_s": dt / seconds, "repeats": count},
         "vector": {},
     }
+    view = env.sim.view(*RENDER_SIZE, None)  # what render() draws, framed once as render() frames it
+    env.sim.draw(view, 0)
+    frame_s, frames = _median_time(lambda: env.sim.draw(view, 0), steps, budget)
+    row["render"] = {"frames_per_s": 1.0 / frame_s, "size": list(RENDER_SIZE), "repeats": frames}
     for batch in batches:
         venv = gym.make_vec(env_id, num_envs=int(batch), vectorization_mode="vector_entry_point", **env_kwargs)
         venv.reset(seed=seed)
@@ -224,4 +233,12 @@ def anchor_lines(anchors: dict[str, Any]) -> list[str]:
     ]
 
 
-__all__ = ["ANCHOR_STEPS", "DEFAULT_BATCHES", "MUJOCO_MISSING", "anchor_lines", "bench_env", "mujoco_anchors"]
+__all__ = [
+    "ANCHOR_STEPS",
+    "DEFAULT_BATCHES",
+    "MUJOCO_MISSING",
+    "RENDER_SIZE",
+    "anchor_lines",
+    "bench_env",
+    "mujoco_anchors",
+]

@@ -56,6 +56,7 @@ def _row_line(row: dict[str, Any], batches: list[int]) -> str:
         f"{row['single']['env_steps_per_s']:>8.0f} {cells} {row['single']['sim_s_per_wall_s']:>9.2f} "
         + (f"{best:>10.1f} " if best is not None else f"{'-':>10} ")
         + (f"{full['sim_s_per_wall_s']:>10.3g}" if full else f"{'-':>10}")
+        + f" {row['render']['frames_per_s']:>8.0f}"
     )
 
 
@@ -79,12 +80,13 @@ def cmd_bench_envs(args: argparse.Namespace) -> int:
     machine = machine_info()
     if not args.json:
         out("env steps/s (median over timed steps); simulated s per wall s of the single env, of the best batch,")
-        out("and of the scene's float64 full-space implicit-Euler step (Newton) under the same kind of load")
+        out("and of the scene's float64 full-space implicit-Euler step (Newton) under the same kind of load;")
+        out("render/s: frames per second of the single env's rgb_array picture at 480 x 480")
         out(_machine_line(machine, args.device))
         vec = " ".join(f"{f'N={b}':>9}" for b in batches)
         out(
             f"{'env':<26} {'n':>6} {'d':>3} {'act':>4} {'obs':>4} {'single':>8} {vec} {'sim/wall':>9} "
-            f"{'best N':>10} {'full space':>10}"
+            f"{'best N':>10} {'full space':>10} {'render/s':>8}"
         )
     rows = []
     for env_id in ids:

@@ -36,6 +36,7 @@ def test_bench_envs_json(capsys: pytest.CaptureFixture[str]) -> None:
     # a vector step calls the objective at least once per iteration of its slowest copy, after the start call
     assert work["iterations_per_step"] <= work["slowest_iterations_per_step"] <= work["calls_per_step"] - 1
     assert "machine" in doc and "available" in doc["mujoco"]
+    assert row["render"]["size"] == [480, 480] and row["render"]["frames_per_s"] > 0
 
 
 def test_bench_envs_times_the_mujoco_chain_and_half_cheetah_in_the_same_run(capsys: pytest.CaptureFixture[str]) -> None:

@@ -364,7 +364,7 @@ def test_trimesh_export_of_the_current_state(mini: gym.Env) -> None:
 
 
 def test_rendering_is_fast_enough_for_video_at_480() -> None:
-    """rgb_array stays a real-time rasterizer on the cloth (the README quotes `redsim bench envs` for speed)."""
+    """rgb_array stays a real-time rasterizer on the cloth (`redsim bench envs` prints frames/s; README quotes it)."""
     import time
 
     scene = scenes.build("hanging_sheet")

@@ -1,0 +1,56 @@
+"""The headless rasterizer: back-face culling on closed surfaces, two-sided open ones, GC left as found."""
+
+from __future__ import annotations
+
+import dataclasses
+import gc
+
+import numpy as np
+import pytest
+
+from redsim import scenes
+from redsim.raster import SceneView
+
+
+def _unculled(view: SceneView) -> SceneView:
+    """The same camera drawing every triangle (no surface counted as closed)."""
+    other = object.__new__(SceneView)
+    other.__dict__.update(view.__dict__)
+    other._outward = [0] * len(view._outward)
+    return other
+
+
+@pytest.mark.parametrize(("name", "closed"), [("mini_chain", True), ("stewart", True), ("hanging_sheet", False)])
+def test_closed_surfaces_are_culled_and_look_the_same(name: str, closed: bool) -> None:
+    """Links and plates are closed and outward-wound (+1), the sheet open (0); culling moves silhouette pixels only."""
+    scene = scenes.build(name)
+    view = SceneView(scene, scene.q_seed, width=240, height=240)
+    assert all(sign == (1 if closed else 0) for sign in view._outward)
+    culled, full = view.draw(scene.q_seed), _unculled(view).draw(scene.q_seed)
+    differ = np.abs(culled.astype(int) - full.astype(int)).sum(-1) > 0
+    assert differ.mean() < 0.005  # one-pixel seams where a back face peeked past the silhouette
+    assert (culled != culled[0, 0]).any(-1).mean() > 0.01  # something was drawn
+
+
+def test_inward_wound_surfaces_cull_the_other_side() -> None:
+    """Flipping every triangle's winding flips the sign, and the picture stays the same."""
+    scene = scenes.build("mini_chain")
+    flipped = dataclasses.replace(
+        scene, surfaces=tuple(dataclasses.replace(s, faces=s.faces[:, [0, 2, 1]]) for s in scene.surfaces)
+    )
+    view, inward = SceneView(scene, scene.q_seed), SceneView(flipped, scene.q_seed)
+    assert inward._outward == [-1] * len(scene.surfaces)
+    assert np.array_equal(view.draw(scene.q_seed), inward.draw(scene.q_seed))
+
+
+@pytest.mark.parametrize("enabled", [True, False])
+def test_drawing_leaves_the_garbage_collector_as_it_found_it(enabled: bool) -> None:
+    scene = scenes.build("mini_chain")
+    view = SceneView(scene, scene.q_seed, width=64, height=64)
+    was = gc.isenabled()
+    try:
+        gc.enable() if enabled else gc.disable()
+        view.draw(scene.q_seed)
+        assert gc.isenabled() == enabled
+    finally:
+        gc.enable() if was else gc.disable()
