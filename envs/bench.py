@@ -7,9 +7,8 @@ env's dt). For scale, the same scene's float64 full-space implicit-Euler step
 (:class:`redsim.integrators.ImplicitEuler` over :class:`FullSpace`, Newton, under a random load of
 the env's force size) is timed too, and so is drawing the single env's picture at 480 x 480
 (``render_mode="rgb_array"``'s frame, :mod:`redsim.raster`), as frames per second. With ``mujoco``
-installed the same run times the MuJoCo
-anchors RL users know (:func:`mujoco_anchors`: MuJoCo's 24-capsule chain and ``HalfCheetah-v5``);
-without it they are skipped with the reason.
+installed the same run times the MuJoCo anchors RL users know (:func:`mujoco_anchors`: MuJoCo's
+24-capsule chain and ``HalfCheetah-v5``); without it they are skipped with the reason.
 """
 
 from __future__ import annotations
