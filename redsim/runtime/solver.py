@@ -18,7 +18,9 @@ The quasi-Newton models ("bfgs", "lagged", "lagged_fd") may start from a ``warm`
 last step's final model (what :class:`redsim.runtime.LatentStepper` carries from step to step, as
 MuJoCo's solver carries ``qacc_warmstart``): the step then costs no Hessian evaluation unless a
 state is still unconverged after :data:`WARM_ITERATIONS` iterations or backtracks from it, which
-recomputes its model at the current iterate once.
+recomputes its model at the current iterate once (``warm_refresh=False``: never; the BFGS updates repair it).
+``max_step`` caps the length |dz| of every step the solver tries (a trust radius in latent units): where the map
+barely moves along some latent direction a Newton-type step along it can be far too long (README "Env speed").
 
 The line search is Armijo backtracking per state: a trial with a non-finite value or gradient is
 rejected like an uphill one; a trial whose value change is at round-off level is accepted if it
