@@ -2,7 +2,7 @@
 
 from __future__ import annotations
 
-from typing import ClassVar
+from typing import Any, ClassVar
 
 from redsim.envs.reach import ReachEnv
 from redsim.envs.vector import vector_entry
@@ -49,11 +49,20 @@ class ChainEnv(ReachEnv):
     Termination: the stepper could not make a step finite (`info["diverged"]`). Truncation: 300 steps (6 s).
 
     ## Arguments
-    As :class:`redsim.envs.reach.ReachEnv`; `max_force` and `target_spread` default to 40 N, spread 0.5.
+    As :class:`redsim.envs.reach.ReachEnv`; `max_force` and `target_spread` default to 40 N, spread 0.5, and
+    `stepper_options` to `{"max_step": 1.0, "warm_refresh": False, "start": "lower"}`: no solver trial moves z by
+    more than 1 latent unit, the warm model is BFGS-updated from step to step and never rebuilt, and each solve
+    starts at the lower of the extrapolated state and the current one (1.37x faster at 64 envs here: 18 instead
+    of 27 value-and-gradient calls per vector step; README "Env speed"). `{"max_step": None, "warm_refresh":
+    True, "start": "extrapolated"}` gives the solver's general defaults.
 
     ## Version History
-    - v0: first version.
+    - v0: first version. Its solver defaults (`stepper_defaults`) later changed the path of each solve, not its
+      minimum: one step from the same states moves by as much as a 10x tighter tolerance moves it, the golden
+      rollout passes either way, and the shipped policy scores alike (README "Env speed").
     """
+
+    stepper_defaults: ClassVar[dict[str, Any]] = {"max_step": 1.0, "warm_refresh": False, "start": "lower"}
 
     scene_name: ClassVar[str] = "chain"
     goal_handle: ClassVar[str] = "bottom"

@@ -2,7 +2,7 @@
 
 from __future__ import annotations
 
-from typing import ClassVar
+from typing import Any, ClassVar
 
 from redsim.envs.reach import ReachEnv
 from redsim.envs.vector import vector_entry
@@ -52,11 +52,18 @@ class ConditionalBarEnv(ReachEnv):
     Termination: the stepper could not make a step finite (`info["diverged"]`). Truncation: 200 steps (4 s).
 
     ## Arguments
-    As :class:`redsim.envs.reach.ReachEnv`; `max_force` and `target_spread` default to 300 N, spread 0.5.
+    As :class:`redsim.envs.reach.ReachEnv`; `max_force` and `target_spread` default to 300 N, spread 0.5, and
+    `stepper_options` to `{"max_step": 2.0, "warm_refresh": False}`: no solver trial moves z by more than 2
+    latent units, and the warm model is BFGS-updated from step to step, never rebuilt (1.4x faster at 64 envs
+    here: 28 instead of 39 value-and-gradient calls per vector step; README "Env speed"). `{"max_step": None,
+    "warm_refresh": True}` gives the solver's general defaults.
 
     ## Version History
-    - v0: first version.
+    - v0: first version. Its solver defaults (`stepper_defaults`) later limited trial steps and kept the warm
+      model: the same steps to the solve's tolerance (its golden rollout passes either way), 1.4x faster.
     """
+
+    stepper_defaults: ClassVar[dict[str, Any]] = {"max_step": 2.0, "warm_refresh": False, "start": "lower"}
 
     scene_name: ClassVar[str] = "conditional_bar"
     goal_handle: ClassVar[str] = "tip"

@@ -18,7 +18,9 @@ The quasi-Newton models ("bfgs", "lagged", "lagged_fd") may start from a ``warm`
 last step's final model (what :class:`redsim.runtime.LatentStepper` carries from step to step, as
 MuJoCo's solver carries ``qacc_warmstart``): the step then costs no Hessian evaluation unless a
 state is still unconverged after :data:`WARM_ITERATIONS` iterations or backtracks from it, which
-recomputes its model at the current iterate once.
+recomputes its model at the current iterate once (``warm_refresh=False``: never; the BFGS updates repair it).
+``max_step`` caps the length |dz| of every step the solver tries (a trust radius in latent units): where the map
+barely moves along some latent direction a Newton-type step along it can be far too long (README "Env speed").
 
 The line search is Armijo backtracking per state: a trial with a non-finite value or gradient is
 rejected like an uphill one; a trial whose value change is at round-off level is accepted if it
@@ -39,6 +41,7 @@ and whatever the objective itself does (the effects' eager paths select rows; co
 
 from __future__ import annotations
 
+import math
 from dataclasses import dataclass
 from typing import Protocol
 
@@ -136,6 +139,14 @@ def _direction(hessian: Tensor, grad: Tensor, fallback: Tensor | None = None) ->
     return torch.where(usable[:, None] & torch.isfinite(step), step, -grad)
 
 
+def _limit(step: Tensor, max_step: float | None) -> Tensor:
+    """Steps [k, d] scaled down to length ``max_step`` where longer (None: unchanged)."""
+    if max_step is None:
+        return step
+    length = torch.linalg.vector_norm(step, dim=-1, keepdim=True)
+    return step * (max_step / length).clamp(max=1.0)
+
+
 def _bfgs_update(hessian: Tensor, s: Tensor, y: Tensor) -> Tensor:
     """Damped (Powell) BFGS update of Hessians [k, d, d] with steps s [k, d] and gradient changes y [k, d]."""
     hs = (hessian @ s.unsqueeze(-1)).squeeze(-1)
@@ -205,22 +216,31 @@ def _fresh_model(
     return fresh
 
 
-def _stale(model: Tensor, built: Tensor, iterations: Tensor, backtracked: Tensor) -> Tensor:
+def _stale(model: Tensor, built: Tensor, iterations: Tensor, backtracked: Tensor, warm_refresh: bool = True) -> Tensor:
     """Which states [k] need a quasi-Newton model built before their next iteration: none there (a NaN
-    model [k, d, d]), or a warm one (not ``built`` in this solve) that has taken WARM_ITERATIONS
-    ``iterations`` or ``backtracked``."""
+    model [k, d, d]), or, with ``warm_refresh``, a warm one (not ``built`` in this solve) that has taken
+    WARM_ITERATIONS ``iterations`` or ``backtracked``."""
     missing = ~torch.isfinite(model).all(-1).all(-1)
+    if not warm_refresh:
+        return missing
     return missing | (~built & ((iterations >= WARM_ITERATIONS) | backtracked))
 
 
 def _descent(
-    objective: BatchObjective, method: str, model: Tensor, z: Tensor, grad: Tensor, index: Tensor
+    objective: BatchObjective,
+    method: str,
+    model: Tensor,
+    z: Tensor,
+    grad: Tensor,
+    index: Tensor,
+    max_step: float | None = None,
 ) -> tuple[Tensor, Tensor]:
     """The first step [k, d] of an iteration from z [k, d] with the model [k, d, d] (-grad where that is
-    not downhill) and its slope grad . step [k]; Gauss-Newton falls back on the metric."""
+    not downhill), at most ``max_step`` long, and its slope grad . step [k]; Gauss-Newton falls back on
+    the metric."""
     fallback = objective.metric(z, index) if method == "gauss_newton" else None
     direction = _direction(model, grad, fallback)
-    direction = torch.where(((grad * direction).sum(-1) < 0)[:, None], direction, -grad)
+    direction = _limit(torch.where(((grad * direction).sum(-1) < 0)[:, None], direction, -grad), max_step)
     return direction, (grad * direction).sum(-1)
 
 
@@ -239,12 +259,14 @@ def _judge(
     return finite, finite & (armijo | (flat & lower))
 
 
-def _relearn(model: Tensor, step: Tensor, change: Tensor, grad: Tensor) -> tuple[Tensor, Tensor, Tensor]:
+def _relearn(
+    model: Tensor, step: Tensor, change: Tensor, grad: Tensor, max_step: float | None = None
+) -> tuple[Tensor, Tensor, Tensor]:
     """A rejected but finite trial still measured the curvature along its ``step`` [k, d] (gradient
     ``change`` [k, d]): the BFGS-updated model [k, d, d], and the direction from it at the iterate's
-    gradient ``grad`` [k, d] (a shorter, turned step) with its slope [k]."""
+    gradient ``grad`` [k, d] (a shorter, turned step, at most ``max_step`` long) with its slope [k]."""
     updated = _bfgs_update(model, step, change)
-    fresh = _direction(updated, grad)
+    fresh = _limit(_direction(updated, grad), max_step)
     return updated, fresh, (grad * fresh).sum(-1)
 
 
@@ -336,11 +358,14 @@ class _Problem:
     max_iter: int
     hessian: str
     secant: tuple[Tensor, Tensor] | None
+    max_step: float | None = None
+    warm_refresh: bool = True
 
 
 def _minimize_rows(problem: _Problem, it: _Iterates) -> None:
     """The row-selected iteration (updates ``it``): each call gathers the active states only."""
     objective, hessian, secant, max_iter = problem.objective, problem.hessian, problem.secant, problem.max_iter
+    max_step, warm_refresh = problem.max_step, problem.warm_refresh
     quasi_newton = hessian in _QUASI_NEWTON
     for _ in range(max_iter * (MAX_BACKTRACKS + 1)):
         index = torch.nonzero(it.active(problem.threshold, max_iter)).squeeze(-1)
@@ -351,14 +376,15 @@ def _minimize_rows(problem: _Problem, it: _Iterates) -> None:
             need = start_rows
             if quasi_newton:
                 rows = start_rows
-                need = rows[_stale(it.model[rows], it.built[rows], it.iterations[rows], it.backtracked[rows])]
+                stale = _stale(it.model[rows], it.built[rows], it.iterations[rows], it.backtracked[rows], warm_refresh)
+                need = rows[stale]
             if need.numel():
                 it.model[need] = _fresh_model(
                     objective, hessian, it.z[need], need, it.grad[need], it.iterations[need], secant
                 )
                 it.built[need] = True
             direction, slope = _descent(
-                objective, hessian, it.model[start_rows], it.z[start_rows], it.grad[start_rows], start_rows
+                objective, hessian, it.model[start_rows], it.z[start_rows], it.grad[start_rows], start_rows, max_step
             )
             it.step[start_rows] = direction
             it.slope[start_rows] = slope
@@ -394,7 +420,7 @@ def _minimize_rows(problem: _Problem, it: _Iterates) -> None:
         if redo.numel():
             change = g_t[rejected][more][learn] - it.grad[redo]
             step = it.alpha_used[redo, None] * it.step[redo]
-            it.model[redo], fresh, fresh_slope = _relearn(it.model[redo], step, change, it.grad[redo])
+            it.model[redo], fresh, fresh_slope = _relearn(it.model[redo], step, change, it.grad[redo], max_step)
             good = redo[fresh_slope < 0]
             it.step[good] = fresh[fresh_slope < 0]
             it.slope[good] = fresh_slope[fresh_slope < 0]
@@ -420,6 +446,7 @@ def _minimize_dense(problem: _Problem, it: _Iterates, sync_every: int | None) ->
     ``sync_every`` 1 the calls are the row-selected loop's.
     """
     objective, hessian, secant, max_iter = problem.objective, problem.hessian, problem.secant, problem.max_iter
+    max_step, warm_refresh = problem.max_step, problem.warm_refresh
     quasi_newton = hessian in _QUASI_NEWTON
     index = torch.arange(it.z.shape[0], device=it.z.device)
     building = True
@@ -428,7 +455,7 @@ def _minimize_dense(problem: _Problem, it: _Iterates, sync_every: int | None) ->
         starting = active & ~it.searching
         need = starting
         if quasi_newton:
-            need = starting & _stale(it.model, it.built, it.iterations, it.backtracked)
+            need = starting & _stale(it.model, it.built, it.iterations, it.backtracked, warm_refresh)
         if sync_every is not None and call % sync_every == 0:
             running, building = _poll(active, need)
             if not running:  # the early exit
@@ -443,7 +470,7 @@ def _minimize_dense(problem: _Problem, it: _Iterates, sync_every: int | None) ->
             building = sync_every is None or not quasi_newton
         go = starting if build else starting & ~need
         if build or quasi_newton:  # (exact, Gauss-Newton: no state goes without a model)
-            direction, slope = _descent(objective, hessian, it.model, it.z, it.grad, index)
+            direction, slope = _descent(objective, hessian, it.model, it.z, it.grad, index, max_step)
             it.step = torch.where(go[:, None], direction, it.step)
             it.slope = torch.where(go, slope, it.slope)
             it.alpha = torch.where(go, 1.0, it.alpha)
@@ -478,7 +505,7 @@ def _minimize_dense(problem: _Problem, it: _Iterates, sync_every: int | None) ->
         if quasi_newton:
             learn = back & ok_finite
             step = it.alpha_used[:, None] * it.step
-            updated, fresh, fresh_slope = _relearn(it.model, step, change, it.grad)
+            updated, fresh, fresh_slope = _relearn(it.model, step, change, it.grad, max_step)
             it.model = torch.where(learn[:, None, None], updated, it.model)
             good = learn & (fresh_slope < 0)
             it.step = torch.where(good[:, None], fresh, it.step)
@@ -491,6 +518,15 @@ def check_sync_every(sync_every: int | None) -> None:
     """Raise ValueError unless ``sync_every`` (the dense loop's calls between early exits) is None or an int >= 1."""
     if sync_every is not None and (isinstance(sync_every, bool) or int(sync_every) != sync_every or sync_every < 1):
         raise ValueError(f"sync_every must be None or an integer >= 1, got {sync_every!r}")
+
+
+def check_max_step(max_step: float | None) -> None:
+    """Raise ValueError unless ``max_step`` (the longest latent step of a trial) is None or a finite number > 0."""
+    if max_step is None:
+        return
+    number = isinstance(max_step, (int, float)) and not isinstance(max_step, bool)
+    if not (number and math.isfinite(max_step) and max_step > 0):
+        raise ValueError(f"max_step must be None or a finite number > 0 (latent units), got {max_step!r}")
 
 
 def minimize(
@@ -507,6 +543,8 @@ def minimize(
     warm: Tensor | None = None,
     dense: bool = False,
     sync_every: int | None = 1,
+    max_step: float | None = None,
+    warm_refresh: bool = True,
 ) -> BatchResult:
     """Minimize Phi_b over z_b for every state b from z0 [B, d].
 
@@ -528,18 +566,24 @@ def minimize(
         sync_every: With ``dense``: check for the early exit (one host read) every this many calls;
             None: never (every call also builds the models of the states that need one, and the loop
             runs all max_iter * (MAX_BACKTRACKS + 1) calls). Ignored without ``dense``.
+        max_step: The longest step |dz| an iteration's first trial (and a turned one after a rejection)
+            may take: longer directions are scaled down to it (a trust radius in latent units; None: no limit).
+        warm_refresh: Rebuild a ``warm`` model after WARM_ITERATIONS iterations or a backtrack (default);
+            False keeps BFGS-updating it (a model is still built where none is given).
 
     Returns:
         The :class:`BatchResult`.
 
     Raises:
-        ValueError: an unknown ``hessian`` or a ``sync_every`` that is not None or an integer >= 1.
+        ValueError: an unknown ``hessian``, a ``sync_every`` that is not None or an integer >= 1, or a
+            ``max_step`` that is not None or a finite number > 0.
     """
     if hessian not in HESSIANS:
         raise ValueError(f"unknown hessian {hessian!r}; valid: {list(HESSIANS)}")
     check_sync_every(sync_every)
+    check_max_step(max_step)
     it = _start(objective, z0, hessian, start, secant, warm)
-    problem = _Problem(objective, tol * scale, value_noise, max_iter, hessian, secant)
+    problem = _Problem(objective, tol * scale, value_noise, max_iter, hessian, secant, max_step, bool(warm_refresh))
     if dense:
         _minimize_dense(problem, it, sync_every)
     else:
@@ -550,4 +594,12 @@ def minimize(
     return BatchResult(it.z, it.value, it.energy, grad_norm, it.iterations, converged, stalled, it.finite, it.model)
 
 
-__all__ = ["HESSIANS", "WARM_ITERATIONS", "BatchObjective", "BatchResult", "check_sync_every", "minimize"]
+__all__ = [
+    "HESSIANS",
+    "WARM_ITERATIONS",
+    "BatchObjective",
+    "BatchResult",
+    "check_max_step",
+    "check_sync_every",
+    "minimize",
+]

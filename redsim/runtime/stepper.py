@@ -23,7 +23,7 @@ from torch import Tensor, nn
 from redsim.integrators import LatentSpace, latent_equilibrium, length_scale
 from redsim.runtime.energy import LatentEnergy, MapEnergy, ReducedInertia
 from redsim.runtime.flags import diverged_states, energy_gain_states, out_of_range_states
-from redsim.runtime.solver import HESSIANS, BatchResult, check_sync_every, minimize
+from redsim.runtime.solver import HESSIANS, BatchResult, check_max_step, check_sync_every, minimize
 from redsim.scene import Scene
 
 DEFAULT_TOL = {torch.float32: 1e-6, torch.float64: 1e-9}
@@ -37,6 +37,8 @@ FD_STEP = {torch.float32: 1e-3, torch.float64: 1e-6}
 """Forward-difference step of the "lagged_fd" Hessian, relative to 1 + max|z| (about sqrt(eps) of each dtype)."""
 DEFAULT_HESSIAN = "lagged_fd"
 """Default Hessian model of the solver (see the README's "Latent runtime" measurements)."""
+STARTS = ("extrapolated", "lower")
+"""Where a step's solve starts: 2 z_t - z_{t-1}, or whichever of that and z_t has the lower Phi (both are evaluated)."""
 
 
 class StepStats(NamedTuple):
@@ -247,9 +249,18 @@ class LatentStepper:
             device; on the CPU the row-selected iteration, which evaluates only the active states, is
             as fast or faster (README "Latent runtime").
         sync_every: With ``dense``, calls between early-exit checks (None: never; see ``minimize``).
+        max_step: The longest latent step |dz| a solver trial takes (longer directions are scaled down to it);
+            None (default): no limit. Guards against Newton-type steps along a direction the map barely
+            moves, which overshoot (README "Env speed", ConditionalBar-v0).
+        warm_refresh: Rebuild a ``warm`` model when a step backtracks from it or is still unconverged after
+            :data:`redsim.runtime.solver.WARM_ITERATIONS` iterations (default); False keeps BFGS-updating it.
+        start: Where each solve starts (:data:`STARTS`): "extrapolated" (default), 2 z_t - z_{t-1}; "lower",
+            whichever of that and z_t has the lower Phi (the step evaluates both anyway). The same minimum
+            where the step's objective has one (README "Env speed", ConditionalBar-v0).
 
     Raises:
-        ValueError: a bad dt, tol, max_iter, hessian or sync_every, or a map that does not fit the scene.
+        ValueError: a bad dt, tol, max_iter, hessian, sync_every, max_step or start, or a map that does not fit
+            the scene.
     """
 
     def __init__(
@@ -268,6 +279,9 @@ class LatentStepper:
         warm_start: bool = True,
         dense: bool | None = None,
         sync_every: int | None = 1,
+        max_step: float | None = None,
+        warm_refresh: bool = True,
+        start: str = "extrapolated",
     ) -> None:
         if not (isinstance(dt, (int, float)) and math.isfinite(dt) and dt > 0.0):
             raise ValueError(f"dt must be a finite number > 0 [s], got {dt!r}")
@@ -281,6 +295,12 @@ class LatentStepper:
         if hessian not in HESSIANS:
             raise ValueError(f"unknown hessian {hessian!r}; valid: {list(HESSIANS)}")
         check_sync_every(sync_every)
+        check_max_step(max_step)
+        if start not in STARTS:
+            raise ValueError(f"unknown start {start!r}; valid: {list(STARTS)}")
+        self.start = start
+        self.max_step = None if max_step is None else float(max_step)
+        self.warm_refresh = bool(warm_refresh)
         self.dt = float(dt)
         self.dtype = dtype
         self.device = torch.device(device)
@@ -513,6 +533,15 @@ class LatentStepper:
             value, grad, energy = objective.start(z0, z)
             noise = 100.0 * self._eps * force * self.length
             at_z = (value[batch:], grad[batch:], energy[batch:])
+            first = (value[:batch], grad[:batch], energy[:batch])
+            if self.start == "lower":  # (from z_t the secant pair is empty: the solver skips its update)
+                lower = at_z[0] < first[0]
+                z0 = torch.where(lower[:, None], z, z0)
+                first = (
+                    torch.where(lower, at_z[0], first[0]),
+                    torch.where(lower[:, None], at_z[1], first[1]),
+                    torch.where(lower, at_z[2], first[2]),
+                )
             result = minimize(
                 objective,
                 z0,
@@ -523,7 +552,9 @@ class LatentStepper:
                 hessian=self.hessian,
                 dense=self.dense,
                 sync_every=self.sync_every,
-                start=(value[:batch], grad[:batch], energy[:batch]),
+                max_step=self.max_step,
+                warm_refresh=self.warm_refresh,
+                start=first,
                 secant=(z, grad[batch:]),
                 warm=warm,
             )
@@ -597,6 +628,8 @@ class LatentStepper:
             hessian=self.hessian,
             dense=self.dense,
             sync_every=self.sync_every,
+            max_step=self.max_step,
+            warm_refresh=self.warm_refresh,
             # the other states start with a zero gradient: converged at once, their result is kept below
             start=(
                 torch.where(worse, value, result.value),
@@ -654,4 +687,4 @@ class LatentStepper:
         return rest.clone()
 
 
-__all__ = ["DEFAULT_HESSIAN", "DEFAULT_MAX_ITER", "DEFAULT_TOL", "Evaluations", "LatentStepper", "StepStats"]
+__all__ = ["DEFAULT_HESSIAN", "DEFAULT_MAX_ITER", "DEFAULT_TOL", "STARTS", "Evaluations", "LatentStepper", "StepStats"]

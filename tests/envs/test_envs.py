@@ -176,6 +176,9 @@ def test_an_env_s_stepper_defaults_yield_to_the_user_s_options_key_by_key() -> N
     assert (loose.warm_start, loose.tol) == (False, 1e-5)
     assert gym.make("RedSim/MiniChain-v0", stepper_options={"warm_start": True}).unwrapped.sim.stepper.warm_start
     assert gym.make("RedSim/ConditionalBar-v0").unwrapped.sim.stepper.warm_start  # the other ids start warm
+    # ConditionalBar-v0 limits and keeps its solver models and starts low; one key of the user's replaces one
+    bar = gym.make("RedSim/ConditionalBar-v0", stepper_options={"start": "extrapolated"}).unwrapped.sim.stepper
+    assert (bar.max_step, bar.warm_refresh, bar.start) == (2.0, False, "extrapolated")
 
 
 def test_bad_actions_are_clear_errors(mini: gym.Env) -> None:

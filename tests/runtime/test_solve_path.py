@@ -1,0 +1,199 @@
+"""Options that change a step's path to its minimum, not the minimum: the solver's trust radius
+(``max_step``), kept warm models (``warm_refresh=False``) and the lower of two starts (``start="lower"``).
+
+Checked against the reference
+ImplicitEuler(LatentSpace) in float64 (both converged to 1e-12), with the warm model carried as the envs
+carry it, and against the dense loop. On a quadratic toy objective (a solver unit test) the trials are
+measured directly: none is longer than ``max_step``, and a kept warm model builds no Hessian.
+"""
+
+from __future__ import annotations
+
+import math
+
+import pytest
+import torch
+
+import redsim.runtime.solver as solver
+import redsim.runtime.stepper as stepper_module
+from redsim import pretrained, scenes
+from redsim.integrators import FullState, ImplicitEuler, LatentSpace
+from redsim.runtime import LatentStepper
+from redsim.runtime.solver import minimize
+
+DT = 0.02
+OPTIONS = {"max_step": 0.5, "warm_refresh": False, "start": "lower"}
+
+
+def _loads(scene, seed: int, size: float) -> torch.Tensor:
+    g = torch.Generator().manual_seed(seed)
+    return size * torch.randn(1, len(scene.handles), scene.dim, generator=g, dtype=torch.float64)
+
+
+@pytest.mark.parametrize(("name", "steps", "load"), [("bistable_bar", 4, 20.0), ("chain", 3, 20.0)])
+def test_same_minimum_as_the_reference_with_the_warm_model_carried(name: str, steps: int, load: float) -> None:
+    scene = scenes.build(name)
+    f = pretrained.load(name).double()
+    stepper = LatentStepper(scene, f, DT, dtype=torch.float64, tol=1e-12, max_iter=60, **OPTIONS)
+    reference = ImplicitEuler(LatentSpace(scene, f), DT, tol=1e-12, max_iter=100)
+    z = stepper.rest_latent()
+    z_prev, model = z.clone(), None
+    for i in range(steps):
+        loads = _loads(scene, i, load)
+        ref_state, info = reference.step(FullState(z[0], z_prev[0], 0.0), loads[0])
+        assert info.converged, info.message
+        got, stats = stepper.step(z, z_prev, loads, warm=model)
+        want = ref_state.q.unsqueeze(0)
+        assert bool(stats.converged[0]), stats
+        motion = float((want - z).abs().max())
+        assert motion > 1e-4
+        torch.testing.assert_close(got, want, rtol=0.0, atol=1e-6 * motion)
+        z_prev, z, model = z, want, stats.model
+
+
+def test_dense_loop_takes_the_same_limited_steps() -> None:
+    """Float64: the dense masked loop gives every state the row-selected loop's iterations and minimizer."""
+    scene = scenes.build("bistable_bar")
+    f = pretrained.load("bistable_bar").double()
+    rows = LatentStepper(scene, f, DT, dtype=torch.float64, dense=False, **OPTIONS)
+    dense = LatentStepper(scene, f, DT, dtype=torch.float64, dense=True, **OPTIONS)
+    g = torch.Generator().manual_seed(4)
+    z = rows.rest_latent().expand(4, -1).clone()
+    z_prev, model = z.clone(), None
+    for _ in range(3):
+        loads = 20.0 * torch.randn(4, len(scene.handles), scene.dim, generator=g, dtype=torch.float64)
+        want, want_stats = rows.step(z, z_prev, loads, warm=model)
+        got, got_stats = dense.step(z, z_prev, loads, warm=model)
+        assert bool(want_stats.converged.all())
+        assert torch.equal(want_stats.iterations, got_stats.iterations)
+        motion = float((want - z).abs().max())
+        assert motion > 1e-4
+        torch.testing.assert_close(got, want, rtol=0.0, atol=1e-8 * motion)
+        z_prev, z, model = z, want, want_stats.model
+
+
+class _Quartic:
+    """Phi(z) = 1/2 z^T A z - b^T z + c/4 |z|^4 per state (a solver unit test), counting what it evaluates."""
+
+    def __init__(self, a: torch.Tensor, b: torch.Tensor, c: float) -> None:
+        self.a, self.b, self.c = a, b, c
+        self.trials: list[torch.Tensor] = []
+        self.builds = 0
+
+    def value_and_grad(self, z, index):
+        self.trials.append(z.clone())
+        r2 = (z * z).sum(-1)
+        value = 0.5 * (z * (z @ self.a)).sum(-1) - (z * self.b[index]).sum(-1) + 0.25 * self.c * r2 * r2
+        grad = z @ self.a - self.b[index] + self.c * r2[:, None] * z
+        return value, grad, value
+
+    def difference_hessian(self, z, index, grad):
+        self.builds += 1
+        r2 = (z * z).sum(-1)
+        eye = torch.eye(z.shape[1], dtype=z.dtype)
+        return self.a + self.c * (r2[:, None, None] * eye + 2.0 * z[:, :, None] * z[:, None, :])
+
+
+def _solve(objective: _Quartic, z0: torch.Tensor, warm: torch.Tensor | None, **options):
+    batch = z0.shape[0]
+    ones = torch.ones(batch, dtype=torch.float64)
+    return minimize(
+        objective, z0, ones, 1e-14 * ones, tol=1e-10, max_iter=200, hessian="lagged_fd", warm=warm, **options
+    )
+
+
+def test_no_step_is_longer_than_max_step_and_the_minimum_is_the_same(monkeypatch) -> None:
+    """Every trial is z + alpha * step with alpha <= 1, so the limit holds when every step the solver
+    makes (an iteration's first, or a turned one after a rejection) is at most ``max_step`` long."""
+    lengths: list[float] = []
+    for name in ("_descent", "_relearn"):
+        original = getattr(solver, name)
+
+        def recorded(*args, _original=original, **kwargs):
+            out = _original(*args, **kwargs)
+            step = out[0] if len(out) == 2 else out[1]
+            lengths.extend(torch.linalg.vector_norm(step, dim=-1).tolist())
+            return out
+
+        monkeypatch.setattr(solver, name, recorded)
+    g = torch.Generator().manual_seed(0)
+    a = torch.diag(torch.tensor([1e-3, 1.0, 10.0], dtype=torch.float64))  # one soft direction
+    b = torch.randn(5, 3, generator=g, dtype=torch.float64)
+    z0 = torch.zeros(5, 3, dtype=torch.float64)
+    want = _solve(_Quartic(a, b, 0.1), z0, None)
+    assert max(lengths) > 1.0  # without the limit the Newton steps run far along the soft direction
+    lengths.clear()
+    got = _solve(_Quartic(a, b, 0.1), z0, None, max_step=0.25)
+    assert 0.25 * (1 - 1e-9) < max(lengths) <= 0.25 * (1 + 1e-12)
+    assert bool(want.converged.all()) and bool(got.converged.all())
+    torch.testing.assert_close(got.z, want.z, rtol=0.0, atol=1e-8)
+
+
+def test_a_kept_warm_model_builds_no_hessian() -> None:
+    """A poor warm model (10x too soft) backtracks: refreshed, it is rebuilt from differences; kept, the
+    BFGS updates repair it and no Hessian is built. Both reach the same minimum."""
+    a = torch.diag(torch.tensor([2.0, 1.0, 10.0], dtype=torch.float64))
+    b = torch.tensor([[1.0, -2.0, 0.5]], dtype=torch.float64)
+    warm = 0.1 * a.unsqueeze(0)
+    z0 = torch.zeros(1, 3, dtype=torch.float64)
+    results = {}
+    for refresh in (True, False):
+        objective = _Quartic(a, b, 0.5)
+        results[refresh] = (_solve(objective, z0, warm, warm_refresh=refresh), objective.builds)
+    (fresh, fresh_builds), (kept, kept_builds) = results[True], results[False]
+    assert fresh_builds >= 1 and kept_builds == 0
+    assert bool(fresh.converged.all()) and bool(kept.converged.all())
+    torch.testing.assert_close(kept.z, fresh.z, rtol=0.0, atol=1e-8)
+
+
+@pytest.mark.parametrize("max_step", [0.0, -1.0, math.nan, math.inf, True, "2"])
+def test_bad_max_step_raises(max_step) -> None:
+    with pytest.raises(ValueError, match="max_step"):
+        LatentStepper(scenes.build("mini_chain"), pretrained.load("mini_chain"), DT, max_step=max_step)
+
+
+def test_lower_start_starts_where_phi_is_lower(monkeypatch) -> None:
+    """With ``start="lower"`` each state's solve starts at whichever of 2 z_t - z_{t-1} and z_t has the lower
+    Phi (here z_t for the copy whose previous state is far off, the extrapolation for the others); the
+    minimizers are the extrapolated start's to the tolerance (float64, 1e-12)."""
+    scene = scenes.build("bistable_bar")
+    f = pretrained.load("bistable_bar").double()
+    starts = []
+    original = stepper_module.minimize
+
+    def recorded(objective, z0, *args, **kwargs):
+        starts.append(z0.clone())
+        return original(objective, z0, *args, **kwargs)
+
+    monkeypatch.setattr(stepper_module, "minimize", recorded)
+    steppers = {
+        start: LatentStepper(scene, f, DT, dtype=torch.float64, tol=1e-12, max_iter=60, start=start)
+        for start in ("extrapolated", "lower")
+    }
+    z = steppers["lower"].rest_latent().expand(3, -1).clone()
+    z_prev = z.clone()
+    z_prev[0] += 1.0  # copy 0 extrapolates 1.0 per latent past z_t
+    z_prev[1] -= 1e-3  # copy 1 moves slowly: its extrapolated start is the better one
+    loads = _loads(scene, 1, 20.0).expand(3, -1, -1)
+    results = {}
+    for start, stepper in steppers.items():
+        starts.clear()
+        results[start] = stepper.step(z, z_prev, loads)
+        phi_z = stepper.objective(z, z, z_prev, loads)
+        phi_extrapolated = stepper.objective(2.0 * z - z_prev, z, z_prev, loads)
+        lower = phi_z < phi_extrapolated
+        if start == "lower":
+            assert bool(lower[0]) and not bool(lower[1])
+            want = torch.where(lower[:, None], z, 2.0 * z - z_prev)
+        else:
+            want = 2.0 * z - z_prev
+        assert torch.equal(starts[0], want)
+    (got, got_stats), (ref, ref_stats) = results["lower"], results["extrapolated"]
+    assert bool(got_stats.converged.all()) and bool(ref_stats.converged.all())
+    motion = float((ref - z).abs().max())
+    torch.testing.assert_close(got, ref, rtol=0.0, atol=1e-6 * motion)
+
+
+def test_unknown_start_raises() -> None:
+    with pytest.raises(ValueError, match="start"):
+        LatentStepper(scenes.build("mini_chain"), pretrained.load("mini_chain"), DT, start="zero")
