@@ -663,14 +663,22 @@ def cloth_ratio_lines(ratios: dict[str, float]) -> list[str]:
     return [f"cloth envs' best batch over MuJoCo's flex cloth, sim s per wall s (goal >= {CLOTH_GOAL:g}x): {cells}"]
 
 
-SWING_RUNS: tuple[tuple[str, float], ...] = (("discrete", CLOTH_TIMESTEP), ("discrete", 0.02), ("Euler", 1e-4))
-"""MuJoCo runs of :func:`swing_check`: the anchor, ``discrete`` at the envs' dt and explicit Euler at a small step."""
+SWING_RUNS: tuple[tuple[str, float], ...] = (
+    ("discrete", CLOTH_TIMESTEP),
+    ("discrete", 0.02),
+    ("discrete", 0.01),
+    ("discrete", 0.005),
+    ("Euler", 1e-4),
+)
+"""MuJoCo runs of :func:`swing_check`: the anchor, ``discrete`` at the envs' dt and below, and explicit Euler at a
+small step (MuJoCo's most accurate run of the sweep)."""
 SWING_HANDLE = "bottom_middle"
 """The handle whose path :func:`swing_check` compares (the middle of the free edge)."""
 
 
 def _swing_metrics(times: np.ndarray, path: np.ndarray, pivot: np.ndarray, gravity: np.ndarray) -> dict[str, Any]:
-    """Passes of a path [K, 3] (at ``times`` [K] s) through the vertical below ``pivot``, and its lowest point."""
+    """Passes of a path [K, 3] (at ``times`` [K] s) through the vertical below ``pivot``, its lowest point and how far
+    it swings out on the far side after the first pass."""
     down = gravity / np.linalg.norm(gravity)
     side = path[0] - pivot - ((path[0] - pivot) @ down) * down  # where the swing starts, across the vertical
     side /= np.linalg.norm(side)
@@ -680,19 +688,32 @@ def _swing_metrics(times: np.ndarray, path: np.ndarray, pivot: np.ndarray, gravi
         for k in range(len(times) - 1)
         if across[k] > 0 >= across[k + 1] or across[k] < 0 <= across[k + 1]
     ]
-    return {"passes_s": passes, "lowest_m": float(((path - pivot) @ down).max())}
+    after = times > passes[0] if passes else np.zeros(len(times), dtype=bool)
+    return {
+        "passes_s": passes,
+        "lowest_m": float(((path - pivot) @ down).max()),
+        "far_side_m": float(-across[after].min()) if after.any() else 0.0,
+    }
 
 
-def swing_check(scene: Scene, *, seconds: float = SWEEP_SECONDS, redsim_dt: float = 0.02) -> dict[str, Any]:
-    """The dropped sheet's swing (:func:`dropped_positions`), MuJoCo's runs of :data:`SWING_RUNS` against redsim.
+def swing_check(
+    scene: Scene,
+    *,
+    seconds: float = SWEEP_SECONDS,
+    redsim_dt: float = 0.02,
+    runs: tuple[tuple[str, float], ...] = SWING_RUNS,
+) -> dict[str, Any]:
+    """The dropped sheet's swing (:func:`dropped_positions`), MuJoCo's ``runs`` (integrator, dt [s]) against redsim.
 
     redsim's reference is the float64 full-space implicit Euler (Newton, tol 1e-8) at ``redsim_dt`` from the
     same start. Compared per run: the path of :data:`SWING_HANDLE`, sampled at every step: when it passes the
-    vertical below the pinned edge (the first pass is a quarter swing), how far below the edge it reaches,
-    and its RMS distance [m] from redsim's path at redsim's sample times (linear interpolation).
+    vertical below the pinned edge (the first pass is a quarter swing), how far below the edge it reaches, how
+    far it swings out on the far side after the first pass (what an integrator's damping takes away), and its
+    RMS distance [m] from redsim's path at redsim's sample times (linear interpolation).
 
     Returns:
-        ``runs``: list of ``{"name", "timestep", "passes_s", "lowest_m", "rms_gap_m", "cpu_s"}`` (redsim's first).
+        ``runs``: list of ``{"name", "timestep", "passes_s", "lowest_m", "far_side_m", "rms_gap_m", "cpu_s"}``
+        (redsim's first).
     """
     from redsim.integrators import FullSpace, ImplicitEuler
 
@@ -717,7 +738,7 @@ def swing_check(scene: Scene, *, seconds: float = SWEEP_SECONDS, redsim_dt: floa
         path.append(point(scene64.full_positions(state.q[None])[0].reshape(-1, 3).numpy()))
     reference_times = redsim_dt * np.arange(steps + 1)
     reference = np.array(path)
-    runs = [
+    results = [
         {
             "name": f"redsim full space, implicit Euler dt {redsim_dt:g} s",
             "timestep": redsim_dt,
@@ -727,7 +748,7 @@ def swing_check(scene: Scene, *, seconds: float = SWEEP_SECONDS, redsim_dt: floa
         }
     ]
     match = matched_shell(scene64)
-    for name, dt in SWING_RUNS:
+    for name, dt in runs:
         sheet = flex_sheet(scene64, integrator=name, timestep=dt, match=match)
         sheet.set_positions(start)
         count = max(1, round(seconds / dt))
@@ -738,7 +759,7 @@ def swing_check(scene: Scene, *, seconds: float = SWEEP_SECONDS, redsim_dt: floa
             path.append(point(sheet.positions()))
         times, mine = dt * np.arange(count + 1), np.array(path)
         sampled = np.stack([np.interp(reference_times, times, mine[:, k]) for k in range(3)], 1)
-        runs.append(
+        results.append(
             {
                 "name": f"MuJoCo {name} dt {dt:g} s",
                 "timestep": dt,
@@ -747,7 +768,7 @@ def swing_check(scene: Scene, *, seconds: float = SWEEP_SECONDS, redsim_dt: floa
                 "cpu_s": time.process_time() - clock,
             }
         )
-    return {"handle": SWING_HANDLE, "seconds": seconds, "runs": runs}
+    return {"handle": SWING_HANDLE, "seconds": seconds, "runs": results}
 
 
 __all__ = [

@@ -190,8 +190,8 @@ def cmd_bench_mujoco_cloth(args: argparse.Namespace) -> int:
     )
     if rows:
         out(
-            f"time-step sweep: {args.seconds:g} s from rest per scenario (hang: the scene's gravity; drop: gravity "
-            f"along the sheet's normal); blew up: NaN, MuJoCo warning, edge strain > {mujoco_cloth.MAX_EDGE_STRAIN:g}, "
+            f"time-step sweep: {args.seconds:g} s from rest per scenario (hang: from the seed; drop: turned level "
+            f"about the pinned edge); blew up: NaN, MuJoCo warning, edge strain > {mujoco_cloth.MAX_EDGE_STRAIN:g}, "
             f"or energy gain > {mujoco_cloth.ENERGY_GROWTH:g} m g L"
         )
         out(f"{'integrator':<11} {'dt [s]':>8} {'hang':>24} {'drop':>24} {'CPU ms/step':>12} {'sim s/CPU s':>12}")
@@ -229,13 +229,14 @@ def cmd_bench_mujoco_cloth(args: argparse.Namespace) -> int:
     if swing is not None:
         out(
             f"swing: the sheet dropped from level, {swing['seconds']:g} s; path of {swing['handle']}: its passes "
-            "through the vertical below the pinned edge, lowest point, RMS distance from redsim's path"
+            "through the vertical below the pinned edge, lowest point, swing out on the far side, RMS distance from "
+            "redsim's path"
         )
         for run in swing["runs"]:
             passes = ", ".join(f"{t:.3f}" for t in run["passes_s"]) or "none"
             out(
-                f"  {run['name']:<44} passes [s] {passes:<26} lowest {1e3 * run['lowest_m']:7.1f} mm  "
-                f"RMS gap {1e3 * run['rms_gap_m']:6.1f} mm  CPU {run['cpu_s']:.1f} s"
+                f"  {run['name']:<44} passes [s] {passes:<20} lowest {1e3 * run['lowest_m']:6.1f} mm  far side "
+                f"{1e3 * run['far_side_m']:6.1f} mm  RMS gap {1e3 * run['rms_gap_m']:5.1f} mm  CPU {run['cpu_s']:.1f} s"
             )
     return EXIT_OK
 

@@ -144,3 +144,15 @@ def test_bench_mujoco_cloth_prints_the_match_and_a_tiny_sweep(capsys: pytest.Cap
     assert doc["match"]["mujoco_bending_j"] == pytest.approx(doc["match"]["scene_bending_j"], rel=1e-9)
     assert main(["bench", "mujoco-cloth", "--timesteps", "RK5:0.1"]) == 2
     assert main(["bench", "mujoco-cloth", "--seconds", "0"]) == 2
+
+
+def test_the_dropped_sheet_starts_in_free_fall_in_both_simulators(scene) -> None:
+    seconds = 0.06  # three redsim steps: the free edge falls before the cloth pulls on it
+    swing = mujoco_cloth.swing_check(scene, seconds=seconds, runs=(("discrete", 0.02), ("Euler", 1e-4)))
+    runs = {run["name"]: run for run in swing["runs"]}
+    g, h = 9.81, 0.02
+    implicit = g * h**2 * 3 * 4 / 2  # implicit Euler from rest: g h^2 n (n + 1) / 2 after n = 3 steps
+    assert runs["redsim full space, implicit Euler dt 0.02 s"]["lowest_m"] == pytest.approx(implicit, rel=1e-3)
+    assert runs["MuJoCo discrete dt 0.02 s"]["lowest_m"] == pytest.approx(implicit, rel=1e-3)
+    assert runs["MuJoCo Euler dt 0.0001 s"]["lowest_m"] == pytest.approx(0.5 * g * seconds**2, rel=1e-2)
+    assert all(run["passes_s"] == [] for run in swing["runs"])  # far from the vertical yet
