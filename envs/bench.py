@@ -8,13 +8,15 @@ env's dt). For scale, the same scene's float64 full-space implicit-Euler step
 the env's force size) is timed too, and so is drawing the single env's picture at 480 x 480
 (``render_mode="rgb_array"``'s frame, :mod:`redsim.raster`), as frames per second. With ``mujoco``
 installed the same run times the MuJoCo anchors RL users know (:func:`mujoco_anchors`: MuJoCo's
-24-capsule chain and ``HalfCheetah-v5``); without it they are skipped with the reason.
+24-capsule chain and ``HalfCheetah-v5``; ``redsim bench envs`` adds MuJoCo's flex cloth,
+:mod:`redsim.benches.mujoco_cloth`); without it they are skipped with the reason.
 """
 
 from __future__ import annotations
 
 import importlib.util
 import statistics
+import sys
 import time
 from collections.abc import Callable, Sequence
 from typing import Any
@@ -87,7 +89,7 @@ def bench_env(
         **env_kwargs: Passed to ``gym.make``/``gym.make_vec``.
 
     Returns:
-        ``id``, ``n``, ``d``, ``action_size``, ``observation_size``, ``dt`` [s], ``make_s``,
+        ``id``, ``scene`` (its name), ``n``, ``d``, ``action_size``, ``observation_size``, ``dt`` [s], ``make_s``,
         ``single`` and ``vector`` (per batch) with ``env_steps_per_s`` and ``sim_s_per_wall_s`` (and for
         ``vector`` the solver's work per timed vector step: ``iterations_per_step``, the mean over copies of
         ``info["iterations"]``; ``slowest_iterations_per_step``, the mean over steps of the slowest copy's
@@ -118,6 +120,7 @@ def bench_env(
         "d": env.sim.latent_dim,
         "action_size": int(env.action_space.shape[0]),
         "observation_size": int(env.observation_space.shape[0]),
+        "scene": env.sim.scene.name,
         "dt": dt,
         "make_s": make_s,
         "single": {"env_steps_per_s": 1.0 / seconds, "sim_s_per_wall_s": dt / seconds, "repeats": count},
@@ -180,7 +183,8 @@ def mujoco_anchors(steps: int = ANCHOR_STEPS) -> dict[str, Any]:
     24 capsules on ball joints (:func:`redsim.runtime.bench.run_mujoco_chain`, RK4 at dt 0.01 s,
     the same model as ``redsim bench step``; a bare ``mj_step`` loop) and Gymnasium's
     ``HalfCheetah-v5`` (single env, random actions; its env step is 5 MuJoCo steps, dt 0.05 s),
-    median over ``steps`` steps.
+    median over ``steps`` steps. (``redsim bench envs`` adds the flex cloth of
+    :mod:`redsim.benches.mujoco_cloth`, a benchmark module above this one.)
 
     Returns:
         ``{"available": False, "reason": ...}``, or ``available`` with ``chain`` (``steps_per_s``,
@@ -193,10 +197,15 @@ def mujoco_anchors(steps: int = ANCHOR_STEPS) -> dict[str, Any]:
     from redsim.runtime.bench import run_mujoco_chain
 
     chain = run_mujoco_chain(integrator="RK4", timestep=0.01, steps=steps)
+    return {"available": True, "chain": chain, "HalfCheetah-v5": _cheetah_anchor(steps)}
+
+
+def _cheetah_anchor(steps: int) -> dict[str, Any]:
+    """``HalfCheetah-v5``'s env steps/s (:func:`mujoco_anchors`), or a ``reason``."""
     try:
-        env = gym.make("HalfCheetah-v5")
+        env = _quiet_settotalmass(lambda: gym.make("HalfCheetah-v5"))
     except (gym.error.Error, ImportError) as err:
-        return {"available": True, "chain": chain, "HalfCheetah-v5": {"reason": f"HalfCheetah-v5: {err}"}}
+        return {"reason": f"HalfCheetah-v5: {err}"}
     env.reset(seed=0)
     env.action_space.seed(0)
 
@@ -210,8 +219,29 @@ def mujoco_anchors(steps: int = ANCHOR_STEPS) -> dict[str, Any]:
     seconds, _ = _median_time(cheetah_step, steps, budget=float("inf"))
     dt = float(env.unwrapped.dt)
     env.close()
-    cheetah = {"env_steps_per_s": 1.0 / seconds, "sim_s_per_wall_s": dt / seconds, "dt": dt}
-    return {"available": True, "chain": chain, "HalfCheetah-v5": cheetah}
+    return {"env_steps_per_s": 1.0 / seconds, "sim_s_per_wall_s": dt / seconds, "dt": dt}
+
+
+def _quiet_settotalmass(make: Callable[[], Any]) -> Any:
+    """``make()`` without MuJoCo's deprecation warning on Gymnasium's ``settotalmass`` (half_cheetah.xml);
+    every other MuJoCo warning passes through to the handler before (MuJoCo's own: stderr)."""
+    import mujoco
+
+    previous = mujoco.get_mju_user_warning()
+
+    def forward(text: str) -> None:
+        if "settotalmass" in text:
+            return
+        if previous is not None:
+            previous(text)
+        else:
+            print(f"WARNING: {text}", file=sys.stderr)
+
+    mujoco.set_mju_user_warning(forward)
+    try:
+        return make()
+    finally:
+        mujoco.set_mju_user_warning(previous)
 
 
 def anchor_lines(anchors: dict[str, Any]) -> list[str]:

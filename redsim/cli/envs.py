@@ -1,8 +1,9 @@
-"""The env commands: ``redsim demo ENV_ID`` and ``redsim bench envs`` (their logic lives in redsim.envs)."""
+"""The env commands: ``redsim demo ENV_ID``, ``redsim bench envs`` and its cloth anchor, ``bench mujoco-cloth``."""
 
 from __future__ import annotations
 
 import argparse
+import dataclasses
 from typing import Any
 
 from redsim.cli.bench import _machine_line
@@ -63,6 +64,7 @@ def _row_line(row: dict[str, Any], batches: list[int]) -> str:
 def cmd_bench_envs(args: argparse.Namespace) -> int:
     import redsim
     from redsim.bench import machine_info
+    from redsim.benches.mujoco_cloth import cloth_anchor, cloth_anchor_line, cloth_ratio_lines, cloth_ratios
     from redsim.envs.bench import anchor_lines, bench_env, mujoco_anchors
 
     ids = redsim.envs.ids() if args.envs is None else parse_list(args.envs, "--envs")
@@ -116,11 +118,128 @@ def cmd_bench_envs(args: argparse.Namespace) -> int:
             )
             out(f"{row['id']:<26} " + " ".join(f"{c:>27}" for c in cells))
     anchors = mujoco_anchors(args.anchor_steps)
+    lines = anchor_lines(anchors)
+    ratios: dict[str, float] = {}
+    if anchors["available"]:
+        anchors["cloth"] = cloth_anchor(args.anchor_steps, args.budget)
+        ratios = cloth_ratios(rows, anchors["cloth"])
+        lines += [cloth_anchor_line(anchors["cloth"]), *cloth_ratio_lines(ratios)]
     if args.json:
-        json_out({"machine": machine, "env_args": env_kwargs, "results": rows, "mujoco": anchors})
+        json_out(
+            {"machine": machine, "env_args": env_kwargs, "results": rows, "mujoco": anchors, "cloth_ratios": ratios}
+        )
     else:
-        for line in anchor_lines(anchors):
+        for line in lines:
             out(line)
+    return EXIT_OK
+
+
+def cmd_bench_mujoco_cloth(args: argparse.Namespace) -> int:
+    import importlib.util
+
+    import redsim
+    from redsim.bench import machine_info
+    from redsim.benches import mujoco_cloth
+
+    if importlib.util.find_spec("mujoco") is None:
+        raise CliError("mujoco is not installed (pip install 'redsim[bench]')")
+    if not args.seconds > 0 or not args.settle > 0:
+        raise CliError("--seconds and --settle must be > 0")
+    sweep = mujoco_cloth.SWEEP_TIMESTEPS
+    if args.timesteps is not None:
+        integrator, _, values = args.timesteps.partition(":")
+        try:
+            sweep = {integrator: tuple(float(v) for v in parse_list(values, "--timesteps"))}
+        except ValueError as err:
+            raise CliError(f"--timesteps must be INTEGRATOR:DT,DT,..., got {args.timesteps!r}") from err
+        if integrator not in ("discrete", "Euler", "RK4") or min(sweep[integrator]) <= 0:
+            raise CliError(f"--timesteps: integrator discrete, Euler or RK4 and time steps > 0, got {args.timesteps!r}")
+    machine = machine_info()
+    scene = redsim.scenes.build(mujoco_cloth.CLOTH_SCENE)
+    mesh = mujoco_cloth.sheet_mesh(scene)
+    match = mujoco_cloth.matched_shell(scene)
+    rows = [] if args.no_sweep else mujoco_cloth.timestep_sweep(scene, sweep, seconds=args.seconds)
+    sag = None if args.no_sag else mujoco_cloth.rest_sag(scene, settle_s=args.settle)
+    swing = None if args.no_swing else mujoco_cloth.swing_check(scene, seconds=args.seconds)
+    result = {
+        "machine": machine,
+        "scene": mujoco_cloth.CLOTH_SCENE,
+        "vertices": int(mesh.vertices.shape[0]),
+        "triangles": int(mesh.triangles.shape[0]),
+        "pinned": int(mesh.pinned.size),
+        "free_mass_kg": mesh.free_mass,
+        "match": dataclasses.asdict(match),
+        "sweep": rows,
+        "largest_stable": mujoco_cloth.largest_stable(rows) if rows else {},
+        "anchor": {"integrator": mujoco_cloth.CLOTH_INTEGRATOR, "timestep": mujoco_cloth.CLOTH_TIMESTEP},
+        "rest": sag,
+        "swing": swing,
+    }
+    if args.json:
+        json_out(result)
+        return EXIT_OK
+    out(_machine_line(machine, "cpu"))
+    out(
+        f"MuJoCo flex cloth of {mujoco_cloth.CLOTH_SCENE}: {result['vertices']} vertices ({result['pinned']} pinned), "
+        f"{result['triangles']} triangles, moving mass {mesh.free_mass:.4f} kg, the scene's lumped masses and gravity"
+    )
+    out(
+        f"shell: E t {match.stretch_stiffness:.4g} N/m and poisson {match.poisson:.3g} as the scene's membrane; "
+        f"MuJoCo young {match.young:.4g} Pa, thickness {1e3 * match.thickness:.3f} mm, "
+        f"D {match.bending_rigidity:.4g} J; "
+        f"bending energy on a cylinder of curvature {mujoco_cloth.BEND_CURVATURE:g} 1/m: scene "
+        f"{match.scene_bending_j:.5g} J, MuJoCo {match.mujoco_bending_j:.5g} J"
+    )
+    if rows:
+        out(
+            f"time-step sweep: {args.seconds:g} s from rest per scenario (hang: from the seed; drop: turned level "
+            f"about the pinned edge); blew up: NaN, MuJoCo warning, edge strain > {mujoco_cloth.MAX_EDGE_STRAIN:g}, "
+            f"or energy gain > {mujoco_cloth.ENERGY_GROWTH:g} m g L"
+        )
+        out(f"{'integrator':<11} {'dt [s]':>8} {'hang':>24} {'drop':>24} {'CPU ms/step':>12} {'sim s/CPU s':>12}")
+        for integrator, steps in sweep.items():
+            for dt in steps:
+                cells = []
+                mine = [r for r in rows if r["integrator"] == integrator and r["timestep"] == dt]
+                for r in mine:
+                    cells.append(
+                        f"{r['reason']} at {r['at_s']:.2f} s" if r["blew_up"] else f"ok (strain {r['max_strain']:.2%})"
+                    )
+                cpu = sum(r["cpu_s_per_step"] for r in mine) / len(mine)
+                out(
+                    f"{integrator:<11} {dt:>8g} "
+                    + " ".join(f"{c:>24}" for c in cells)
+                    + f" {1e3 * cpu:>12.2f} {dt / cpu:>12.3g}"
+                )
+        stable = ", ".join(f"{k} {'none' if v is None else f'{v:g} s'}" for k, v in result["largest_stable"].items())
+        out(f"largest stable dt: {stable}")
+    out(
+        f"anchor of `redsim bench envs`: {mujoco_cloth.CLOTH_INTEGRATOR} at dt {mujoco_cloth.CLOTH_TIMESTEP:g} s "
+        "(the largest time step of the sweep at which it stayed stable)"
+    )
+    if sag is not None:
+        out(
+            f"rest under gravity, displacement from the seed [mm] (MuJoCo: {args.settle:g} s of "
+            f"{mujoco_cloth.CLOTH_INTEGRATOR} steps, largest speed left {1e3 * sag['mujoco_speed_m_s']:.2g} mm/s; "
+            f"redsim: full-space Newton rest, converged {sag['redsim_converged']})"
+        )
+        for name, h in sag["handles"].items():
+            mj = ", ".join(f"{1e3 * v:.3f}" for v in h["mujoco_m"])
+            rs = ", ".join(f"{1e3 * v:.3f}" for v in h["redsim_m"])
+            out(f"  {name:<14} MuJoCo ({mj})  redsim ({rs})")
+        out(f"  largest vertex distance between the two rests: {1e3 * sag['max_vertex_gap_m']:.3f} mm")
+    if swing is not None:
+        out(
+            f"swing: the sheet dropped from level, {swing['seconds']:g} s; path of {swing['handle']}: its passes "
+            "through the vertical below the pinned edge, lowest point, swing out on the far side, RMS distance from "
+            "redsim's path"
+        )
+        for run in swing["runs"]:
+            passes = ", ".join(f"{t:.3f}" for t in run["passes_s"]) or "none"
+            out(
+                f"  {run['name']:<44} passes [s] {passes:<20} lowest {1e3 * run['lowest_m']:6.1f} mm  far side "
+                f"{1e3 * run['far_side_m']:6.1f} mm  RMS gap {1e3 * run['rms_gap_m']:5.1f} mm  CPU {run['cpu_s']:.1f} s"
+            )
     return EXIT_OK
 
 
@@ -147,16 +266,27 @@ def add_commands(sub: Any, bench: Any) -> None:
         description=(
             "For each env id: n, d, action and observation sizes, env steps/s of the single env and of the native "
             "vector env per batch size, simulated seconds per wall second, and the same scene's float64 full-space "
-            "implicit-Euler step; with mujoco installed, MuJoCo's 24-capsule chain and HalfCheetah-v5 in the same run."
+            "implicit-Euler step; with mujoco installed, MuJoCo's 24-capsule chain, HalfCheetah-v5 and a flex cloth "
+            "of the hanging sheet in the same run, and the cloth envs' best batch against that cloth."
         ),
     )
     p.add_argument("--envs", metavar="A,B,...", help="comma-separated ids (default: all)")
     p.add_argument("--batches", default="16,64,256", help="vector env sizes (default 16,64,256)")
     p.add_argument("--steps", type=int, default=20, help="timed steps per configuration (default 20)")
-    p.add_argument("--budget", type=float, default=20.0, help="seconds of timing per configuration (default 20)")
+    p.add_argument(
+        "--budget",
+        type=float,
+        default=20.0,
+        help="seconds of timing per configuration and of the flex cloth (default 20)",
+    )
     p.add_argument("--device", default="cpu", help="torch device (default cpu)")
     p.add_argument("--no-full-space", action="store_true", help="skip the full-space step")
-    p.add_argument("--anchor-steps", type=int, default=2000, help="timed steps of each MuJoCo anchor (default 2000)")
+    p.add_argument(
+        "--anchor-steps",
+        type=int,
+        default=2000,
+        help="timed steps of each MuJoCo anchor (default 2000; the flex cloth stops after --budget seconds)",
+    )
     p.add_argument(
         "--env-arg",
         action="append",
@@ -166,6 +296,24 @@ def add_commands(sub: Any, bench: Any) -> None:
         "stepper_options='{\"tol\": 1e-5}'); repeatable",
     )
     finish_command(p, cmd_bench_envs, "print one JSON document", default_threads=1)
+
+    p = bench.add_parser(
+        "mujoco-cloth",
+        help="the flex cloth anchor of `bench envs`: its match to the hanging sheet, time-step sweep and rest",
+        description=(
+            "MuJoCo's flex cloth of the hanging_sheet scene (needs mujoco): the shell parameters matched to the "
+            "scene's membrane and bending, a time-step sweep of 'discrete' and 'Euler' (which steps stay stable "
+            "hanging and dropped), the rest under gravity against redsim's full-space rest and the dropped sheet's "
+            "swing against redsim's full-space implicit Euler."
+        ),
+    )
+    p.add_argument("--seconds", type=float, default=2.0, help="simulated seconds per sweep and swing run (default 2)")
+    p.add_argument("--timesteps", metavar="INTEGRATOR:DT,...", help="sweep only these (e.g. discrete:0.02,0.01)")
+    p.add_argument("--settle", type=float, default=20.0, help="simulated seconds MuJoCo settles for (default 20)")
+    p.add_argument("--no-sweep", action="store_true", help="skip the time-step sweep")
+    p.add_argument("--no-sag", action="store_true", help="skip the rest comparison")
+    p.add_argument("--no-swing", action="store_true", help="skip the swing comparison (redsim's full space: minutes)")
+    finish_command(p, cmd_bench_mujoco_cloth, "print one JSON document", default_threads=1)
 
 
 __all__ = ["add_commands"]
