@@ -1,0 +1,208 @@
+"""The anchored map: a fixed polynomial map plus an MLP that only adds terms of order |z|^3 and higher.
+
+    f(z[, c]) = W r(z, c) + A z + Q m(z) + b,
+    r(z, c)   = h(z, c) - h(0, c*) - Jh(0, c*) z - 1/2 Hh(0, c*)[z, z],
+
+with b + A z + Q m(z) a :class:`redsim.subspace.QuadraticSubspace` (modal derivatives, Barbič & James
+2005: b the rest state, A = sigma Phi, Q = the sigma^2 Psi_ij, m(z) its monomials 1/2 c_ij z_i z_j),
+h [..., w] the MLP's last hidden layer (the architecture of :class:`redsim.subspace.SubspaceMap`) and W
+[n, w] its output weights (no output bias). r is h minus its Taylor polynomial at z = 0 (of ``order``
+1 or 2), so near z = 0 the map is the polynomial map to that order, exactly, whatever the MLP's
+weights: the MLP only adds what the fit's loss asks for further out. c* is c itself (``anchor_cond``
+None: the Taylor polynomial is taken at (0, c) for each condition) or one fixed condition (then at other
+conditions h(0, c) - h(0, c*) lets the map move its rest state). The Taylor coefficients come from a
+second-order jet pushed through the hidden layers (:func:`hidden_jet`), differentiable in the weights.
+
+f stays affine in the features [r, z, m(z)] with output weight [W, A, Q] and bias b
+(:meth:`AnchoredSubspace.affine_features`), which is what :class:`redsim.cubature.output.AffineOutput` needs.
+Checkpoints have kind "anchored".
+"""
+
+from __future__ import annotations
+
+import dataclasses
+from pathlib import Path
+from typing import Any, ClassVar
+
+import torch
+from torch import Tensor, nn
+
+from redsim.subspace.base import dtype_name
+from redsim.subspace.checkpoint import write_checkpoint
+from redsim.subspace.linear import QuadraticSubspace
+from redsim.subspace.neural import SubspaceConfig, SubspaceMap
+
+ORDERS = (1, 2)
+"""Orders of the Taylor polynomial the MLP's hidden layer is stripped of."""
+
+
+def _activation_derivatives(act: nn.Module, v: Tensor) -> tuple[Tensor, Tensor]:
+    """sigma'(v) and sigma''(v) of one of the activations of :data:`redsim.subspace.ACTIVATIONS`, elementwise."""
+    if isinstance(act, nn.ELU):
+        neg = act.alpha * torch.exp(torch.clamp(v, max=0.0))
+        return torch.where(v > 0, torch.ones_like(v), neg), torch.where(v > 0, torch.zeros_like(v), neg)
+    if isinstance(act, nn.Tanh):
+        t = torch.tanh(v)
+        return 1 - t**2, -2 * t * (1 - t**2)
+    if isinstance(act, nn.SiLU):
+        s = torch.sigmoid(v)
+        return s * (1 + v * (1 - s)), s * (1 - s) * (2 + v * (1 - 2 * s))
+    if isinstance(act, nn.ReLU):
+        return (v > 0).to(v), torch.zeros_like(v)
+    raise ValueError(f"no derivatives for activation {type(act).__name__}")
+
+
+def hidden_jet(net: SubspaceMap, cond: Tensor | None) -> tuple[Tensor, Tensor, Tensor]:
+    """Value, Jacobian and Hessian in z of the last hidden layer h(z, c) at z = 0.
+
+    Args:
+        net: A map without periodic latents.
+        cond: Conditions [K, m] (None for a map without condition input: K = 1).
+
+    Returns:
+        h [K, w], dh/dz [K, w, d], d^2h/dz^2 [K, w, d, d] (differentiable in the weights).
+    """
+    layers = list(net.mlp)[:-1]
+    d = net.latent_dim
+    first = layers[0]
+    z = torch.zeros(1 if cond is None else cond.shape[0], d, dtype=first.weight.dtype, device=first.weight.device)
+    value = first(net.features(z, cond))
+    jac = first.weight[:, :d].expand(z.shape[0], -1, -1)  # [K, w, d]
+    hess = torch.zeros(*jac.shape, d, dtype=jac.dtype, device=jac.device)
+    for index in range(1, len(layers), 2):
+        act, linear = layers[index], layers[index + 1] if index + 1 < len(layers) else None
+        slope, curve = _activation_derivatives(act, value)
+        hess = slope[..., None, None] * hess + curve[..., None, None] * jac[..., :, None] * jac[..., None, :]
+        jac = slope[..., None] * jac
+        value = act(value)
+        if linear is not None:
+            value = linear(value)
+            jac = torch.einsum("ow,kwd->kod", linear.weight, jac)
+            hess = torch.einsum("ow,kwde->kode", linear.weight, hess)
+    return value, jac, hess
+
+
+class AnchoredSubspace(nn.Module):
+    """f(z[, c]) = W r(z, c) + A z + Q m(z) + b (module doc).
+
+    Args:
+        config: The MLP's architecture (no periodic latents; ``output_dim`` n, ``latent_dim`` d as the polynomial's).
+        polynomial: The fixed map b + A z + Q m(z) (copied into buffers).
+        order: 2: r has no terms below |z|^3 (f is the polynomial map to second order at z = 0); 1: below |z|^2
+            (f is its affine part to first order; the MLP supplies the quadratic term).
+        anchor_cond: The condition c* [m] the Taylor polynomial is taken at, or None for c itself (conditional
+            maps only; ignored without a condition input).
+        metadata: JSON-able description.
+
+    Attributes:
+        net: The MLP (its output layer's bias is 0 and frozen: b is the map's only constant).
+        polynomial: The fixed quadratic (or, with a zero Q, affine) map.
+    """
+
+    kind: ClassVar[str] = "anchored"
+
+    def __init__(
+        self,
+        config: SubspaceConfig,
+        polynomial: QuadraticSubspace,
+        order: int = 2,
+        anchor_cond: Tensor | None = None,
+        metadata: dict[str, Any] | None = None,
+    ) -> None:
+        super().__init__()
+        if config.periodic:
+            raise ValueError("an anchored map takes no periodic latents (its Taylor polynomial is in z)")
+        if order not in ORDERS:
+            raise ValueError(f"order must be one of {ORDERS}, got {order!r}")
+        n, d = polynomial.basis.shape
+        if (config.output_dim, config.latent_dim) != (n, d):
+            raise ValueError(
+                f"the MLP maps d = {config.latent_dim} to n = {config.output_dim}, the polynomial d = {d} to n = {n}"
+            )
+        if anchor_cond is not None and anchor_cond.shape != (config.condition_dim,):
+            raise ValueError(f"anchor_cond must have shape [{config.condition_dim}], got {tuple(anchor_cond.shape)}")
+        self.config = config
+        self.order = int(order)
+        self.net = SubspaceMap(config)
+        with torch.no_grad():
+            self.net.mlp[-1].bias.zero_()
+        self.net.mlp[-1].bias.requires_grad_(False)
+        self.polynomial = QuadraticSubspace(polynomial.basis, polynomial.offset, polynomial.quadratic)
+        self.register_buffer("anchor_cond", None if anchor_cond is None else anchor_cond.detach().clone())
+        self.metadata: dict[str, Any] = {**dict(metadata or {}), "kind": self.kind}
+
+    @property
+    def latent_dim(self) -> int:
+        return self.config.latent_dim
+
+    @property
+    def output_weight(self) -> Tensor:
+        """W [n, w]: the MLP's output weights."""
+        return self.net.mlp[-1].weight
+
+    def hidden(self, z: Tensor, cond: Tensor | None = None) -> Tensor:
+        """h(z, c) [..., w], the MLP's last hidden layer."""
+        hidden = self.net.features(z, cond)
+        for layer in list(self.net.mlp)[:-1]:
+            hidden = layer(hidden)
+        return hidden
+
+    def remainder(self, z: Tensor, cond: Tensor | None = None) -> Tensor:
+        """r(z, c) [B, w] for latents z [B, d] (and conditions [B, m]): h minus its Taylor polynomial at z = 0."""
+        if z.ndim != 2:
+            raise ValueError(f"z must have shape [B, {self.latent_dim}], got {tuple(z.shape)}")
+        hidden = self.hidden(z, cond)
+        at = cond
+        if cond is not None:
+            at = cond.expand(z.shape[0], -1) if self.anchor_cond is None else self.anchor_cond[None]
+        value, jac, hess = hidden_jet(self.net, at)  # K = 1 (one anchor) or B (one per row)
+        if len(value) == 1:
+            taylor = value + z @ jac[0].T
+            if self.order == 2:
+                taylor = taylor + 0.5 * torch.einsum("wde,bd,be->bw", hess[0], z, z)
+        else:
+            taylor = value + torch.einsum("bwd,bd->bw", jac, z)
+            if self.order == 2:
+                taylor = taylor + 0.5 * torch.einsum("bwde,bd,be->bw", hess, z, z)
+        return hidden - taylor
+
+    def affine_features(self, z: Tensor, cond: Tensor | None = None) -> Tensor:
+        """[r(z, c), z, m(z)] [B, w + d + d(d+1)/2]: f = features @ :meth:`affine_weight`.T + b."""
+        return torch.cat([self.remainder(z, cond), z, self.polynomial.monomials(z)], -1)
+
+    def affine_weight(self) -> Tensor:
+        """[W, A, Q] [n, w + d + d(d+1)/2]."""
+        return torch.cat([self.output_weight, self.polynomial.basis, self.polynomial.quadratic], 1)
+
+    def forward(self, z: Tensor, cond: Tensor | None = None) -> Tensor:
+        """Configurations q [..., n] from latents z [..., d] (and conditions c [..., m])."""
+        flat = z.reshape(-1, z.shape[-1])
+        flat_cond = None if cond is None else cond.expand(*z.shape[:-1], -1).reshape(flat.shape[0], -1)
+        remainder = self.remainder(flat, flat_cond)
+        q = remainder @ self.output_weight.T + self.polynomial(flat)
+        return q.reshape(*z.shape[:-1], -1)
+
+    def shapes(self) -> dict[str, Any]:
+        """What :meth:`from_shapes` needs: the MLP's config, the order, whether it has an anchor condition, and the
+        dtype (of the polynomial; a fit casts the whole map to one)."""
+        return {
+            **dataclasses.asdict(self.config),
+            "order": self.order,
+            "anchor_cond": self.anchor_cond is not None,
+            "dtype": dtype_name(self.polynomial.basis.dtype),
+        }
+
+    @classmethod
+    def from_shapes(cls, shapes: dict[str, Any], metadata: dict[str, Any]) -> AnchoredSubspace:
+        """An untrained map of these shapes (a checkpoint's ``config``), for loading a state dict."""
+        fields = {f.name for f in dataclasses.fields(SubspaceConfig)}
+        config = SubspaceConfig(**{k: v for k, v in shapes.items() if k in fields})
+        dtype = getattr(torch, shapes["dtype"])
+        zeros = QuadraticSubspace.zeros(config.output_dim, config.latent_dim, dtype, {})
+        cond = torch.zeros(config.condition_dim, dtype=dtype) if shapes["anchor_cond"] else None
+        return cls(config, zeros, int(shapes["order"]), cond, metadata).to(dtype)
+
+    def save(self, stem: str | Path) -> tuple[Path, Path]:
+        """Write ``stem.pt`` (weights and polynomial) and ``stem.json`` (shapes and metadata); returns both paths."""
+        self.metadata["kind"] = self.kind
+        return write_checkpoint(self, stem, self.shapes())
