@@ -64,7 +64,8 @@ def anchored_map(scene: Scene, arch: SubspaceConfig, config: FitConfig) -> Ancho
     anchor_cond = None
     if config.conditional and config.anchor_map_cond == "default":
         anchor_cond = scene.pack_condition(None, 1)[0].to(torch.float64)
-    model = AnchoredSubspace(arch, polynomial, 2 if config.anchor_map == "md" else 1, anchor_cond)
+    order = 2 if config.anchor_map == "md" else 1
+    model = AnchoredSubspace(arch, polynomial, order, anchor_cond, config.anchor_radius)
     with torch.no_grad():
         model.output_weight.mul_(WEIGHT_SCALE)
     return model

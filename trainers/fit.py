@@ -148,6 +148,8 @@ class FitConfig:
         anchor_map_cond: For a conditional ``anchor_map`` fit: "each" takes the MLP's Taylor polynomial at
             (0, c) for every condition c (f(0, c) is the default condition's rest state for every c), "default"
             only at the default condition (elsewhere the MLP moves the map freely).
+        anchor_radius: R > 0 fades the ``anchor_map`` polynomial out beyond |z| ~ R (the factor exp(-|z|^2 / 2R^2),
+            which keeps the map's Taylor polynomial to second order at z = 0); 0: no taper.
         mirror: Weight [1/s^2] of the equivariance penalty mean |MLP(-z) - P MLP(z)|^2_M [kg m^2]
             for the scene's mirror P (:class:`redsim.scene.Mirror`; 0: off). Needs a scene that
             declares one and an even ``batch_size`` (the batch is z and -z).
@@ -201,6 +203,7 @@ class FitConfig:
     modal_fraction: float = 0.5
     anchor_map: str = "none"
     anchor_map_cond: str = "default"
+    anchor_radius: float = 0.0
     mirror: float = 0.0
     checkpoint_every: int = 1000
     dtype: str = "float32"
@@ -257,6 +260,7 @@ _FIELD_RULES: tuple[tuple[str, str, Callable[[FitConfig, Any], bool]], ...] = (
         lambda c, v: v in ANCHOR_MAPS and (v == "none" or not (c.modal or c.seed_bias or c.periodic)),
     ),
     ("anchor_map_cond", f"one of {', '.join(ANCHOR_MAP_CONDS)}", lambda c, v: v in ANCHOR_MAP_CONDS),
+    ("anchor_radius", "a finite number >= 0 (0: no taper)", lambda c, v: _is_number(v) and v >= 0),
     (
         "mirror",
         "a finite number >= 0 (> 0 needs an even batch_size)",
@@ -813,6 +817,8 @@ def fit_command(scene: Scene, config: FitConfig, seed: int, out: str | Path | No
         parts += ["--anchor-map", config.anchor_map]
         if config.conditional:
             parts += ["--anchor-map-cond", config.anchor_map_cond]
+        if config.anchor_radius > 0:
+            parts += ["--anchor-radius", repr(config.anchor_radius)]
     if config.mirror > 0:
         parts += ["--mirror", repr(config.mirror)]
     default = FitConfig()
@@ -870,6 +876,7 @@ def _load_training_state(
         "modal_fraction",
         "anchor_map",
         "anchor_map_cond",
+        "anchor_radius",
         "mirror",
     ):
         saved.setdefault(key, getattr(FitConfig(), key))  # states written before the options existed

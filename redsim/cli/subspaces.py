@@ -60,6 +60,7 @@ FIT_FLAGS: tuple[tuple[str, str, Any, str], ...] = (
         str,
         "conditional --anchor-map: each or default (where the MLP's Taylor polynomial is taken)",
     ),
+    ("--anchor-radius", "anchor_radius", float, "R > 0: the --anchor-map polynomial fades out beyond |z| ~ R"),
     ("--mirror", "mirror", float, "weight [1/s^2] of the map's equivariance under the scene's mirror; 0: off"),
     ("--checkpoint-every", "checkpoint_every", int, "steps between resumable checkpoints"),
     ("--dtype", "dtype", str, "float32 or float64"),

@@ -13,7 +13,12 @@ None: the Taylor polynomial is taken at (0, c) for each condition) or one fixed 
 conditions h(0, c) - h(0, c*) lets the map move its rest state). The Taylor coefficients come from a
 second-order jet pushed through the hidden layers (:func:`hidden_jet`), differentiable in the weights.
 
-f stays affine in the features [r, z, m(z)] with output weight [W, A, Q] and bias b
+With a ``radius`` R > 0 the polynomial's terms fade out beyond R: A z + Q m(z) becomes (A z + Q m(z)) g(z),
+g(z) = exp(-|z|^2 / (2 R^2)) = 1 - |z|^2 / (2 R^2) + ..., which leaves the map's Taylor polynomial to second order
+unchanged (the cubic term changes) and lets the MLP alone shape the map far out, where the polynomial's large
+motions cost much energy (modal derivatives stretch cloth and bars by orders of magnitude at the sigma of a fit).
+
+f stays affine in the features [r, z g(z), m(z) g(z)] with output weight [W, A, Q] and bias b
 (:meth:`AnchoredSubspace.affine_features`), which is what :class:`redsim.cubature.output.AffineOutput` needs.
 Checkpoints have kind "anchored".
 """
@@ -21,6 +26,7 @@ Checkpoints have kind "anchored".
 from __future__ import annotations
 
 import dataclasses
+import math
 from pathlib import Path
 from typing import Any, ClassVar
 
@@ -92,6 +98,7 @@ class AnchoredSubspace(nn.Module):
             (f is its affine part to first order; the MLP supplies the quadratic term).
         anchor_cond: The condition c* [m] the Taylor polynomial is taken at, or None for c itself (conditional
             maps only; ignored without a condition input).
+        radius: R of the taper g (module doc), in units of z; 0: no taper (g = 1).
         metadata: JSON-able description.
 
     Attributes:
@@ -107,6 +114,7 @@ class AnchoredSubspace(nn.Module):
         polynomial: QuadraticSubspace,
         order: int = 2,
         anchor_cond: Tensor | None = None,
+        radius: float = 0.0,
         metadata: dict[str, Any] | None = None,
     ) -> None:
         super().__init__()
@@ -119,10 +127,13 @@ class AnchoredSubspace(nn.Module):
             raise ValueError(
                 f"the MLP maps d = {config.latent_dim} to n = {config.output_dim}, the polynomial d = {d} to n = {n}"
             )
+        if not (math.isfinite(radius) and radius >= 0.0):
+            raise ValueError(f"radius must be finite and >= 0 (0: no taper), got {radius!r}")
         if anchor_cond is not None and anchor_cond.shape != (config.condition_dim,):
             raise ValueError(f"anchor_cond must have shape [{config.condition_dim}], got {tuple(anchor_cond.shape)}")
         self.config = config
         self.order = int(order)
+        self.radius = float(radius)
         self.net = SubspaceMap(config)
         with torch.no_grad():
             self.net.mlp[-1].bias.zero_()
@@ -166,9 +177,16 @@ class AnchoredSubspace(nn.Module):
                 taylor = taylor + 0.5 * torch.einsum("bwde,bd,be->bw", hess, z, z)
         return hidden - taylor
 
+    def taper(self, z: Tensor) -> Tensor:
+        """g(z) [B, 1] (module doc): 1 without a radius."""
+        if not self.radius:
+            return torch.ones_like(z[..., :1])
+        return torch.exp(-0.5 * (z * z).sum(-1, keepdim=True) / self.radius**2)
+
     def affine_features(self, z: Tensor, cond: Tensor | None = None) -> Tensor:
-        """[r(z, c), z, m(z)] [B, w + d + d(d+1)/2]: f = features @ :meth:`affine_weight`.T + b."""
-        return torch.cat([self.remainder(z, cond), z, self.polynomial.monomials(z)], -1)
+        """[r(z, c), z g(z), m(z) g(z)] [B, w + d + d(d+1)/2]: f = features @ :meth:`affine_weight`.T + b."""
+        taper = self.taper(z)
+        return torch.cat([self.remainder(z, cond), z * taper, self.polynomial.monomials(z) * taper], -1)
 
     def affine_weight(self) -> Tensor:
         """[W, A, Q] [n, w + d + d(d+1)/2]."""
@@ -178,8 +196,7 @@ class AnchoredSubspace(nn.Module):
         """Configurations q [..., n] from latents z [..., d] (and conditions c [..., m])."""
         flat = z.reshape(-1, z.shape[-1])
         flat_cond = None if cond is None else cond.expand(*z.shape[:-1], -1).reshape(flat.shape[0], -1)
-        remainder = self.remainder(flat, flat_cond)
-        q = remainder @ self.output_weight.T + self.polynomial(flat)
+        q = self.affine_features(flat, flat_cond) @ self.affine_weight().T + self.polynomial.offset
         return q.reshape(*z.shape[:-1], -1)
 
     def shapes(self) -> dict[str, Any]:
@@ -188,6 +205,7 @@ class AnchoredSubspace(nn.Module):
         return {
             **dataclasses.asdict(self.config),
             "order": self.order,
+            "radius": self.radius,
             "anchor_cond": self.anchor_cond is not None,
             "dtype": dtype_name(self.polynomial.basis.dtype),
         }
@@ -200,7 +218,8 @@ class AnchoredSubspace(nn.Module):
         dtype = getattr(torch, shapes["dtype"])
         zeros = QuadraticSubspace.zeros(config.output_dim, config.latent_dim, dtype, {})
         cond = torch.zeros(config.condition_dim, dtype=dtype) if shapes["anchor_cond"] else None
-        return cls(config, zeros, int(shapes["order"]), cond, metadata).to(dtype)
+        radius = float(shapes.get("radius", 0.0))
+        return cls(config, zeros, int(shapes["order"]), cond, radius, metadata).to(dtype)
 
     def save(self, stem: str | Path) -> tuple[Path, Path]:
         """Write ``stem.pt`` (weights and polynomial) and ``stem.json`` (shapes and metadata); returns both paths."""
