@@ -18,7 +18,15 @@ from redsim.trainers.anchored import anchor_polynomial
 from redsim.trainers.fit import fit_command
 
 
-def _random_map(act: str = "elu", *, order: int = 2, condition_dim: int = 0, anchor: bool = False, seed: int = 0):
+def _random_map(
+    act: str = "elu",
+    *,
+    order: int = 2,
+    condition_dim: int = 0,
+    anchor: bool = False,
+    radius: float = 0.0,
+    seed: int = 0,
+):
     """An anchored map with random weights (output weights not scaled down) and a random polynomial, float64."""
     generator = torch.Generator().manual_seed(seed)
     n, d = 7, 3
@@ -30,7 +38,7 @@ def _random_map(act: str = "elu", *, order: int = 2, condition_dim: int = 0, anc
     )
     cond = torch.randn(condition_dim, generator=generator, dtype=torch.float64) if anchor else None
     torch.manual_seed(seed)
-    return AnchoredSubspace(config, poly, order, cond).double(), poly
+    return AnchoredSubspace(config, poly, order, cond, radius).double(), poly
 
 
 @pytest.mark.parametrize("act", ["elu", "tanh", "silu"])
@@ -49,19 +57,22 @@ def test_the_jet_is_the_hidden_layers_value_jacobian_and_hessian(act: str) -> No
 
 
 @pytest.mark.parametrize("order", [1, 2])
-@pytest.mark.parametrize("case", ["plain", "each", "default"])
+@pytest.mark.parametrize("case", ["plain", "each", "default", "taper"])
 def test_the_map_is_the_polynomial_to_its_order_at_z0(order: int, case: str) -> None:
     """|f(e u) - P(e u)| shrinks as e^(order + 1) (finite differences): halving e divides it by ~2^(order + 1).
 
     For a conditional map this holds at every condition with the Taylor polynomial taken per condition ("each"),
-    and only at the anchor condition with "default" (elsewhere f(0, c) moves with c). tanh, because an ELU's
+    and only at the anchor condition with "default" (elsewhere f(0, c) moves with c); the taper of a radius keeps
+    it. tanh, because an ELU's
     second derivative jumps where a unit's input crosses 0, so the e^3 rate needs e below the nearest crossing.
     """
-    f, poly = _random_map("tanh", order=order, condition_dim=0 if case == "plain" else 2, anchor=case == "default")
+    conditional = case in ("each", "default")
+    radius = 0.5 if case == "taper" else 0.0
+    f, poly = _random_map("tanh", order=order, condition_dim=2 * conditional, anchor=case == "default", radius=radius)
     generator = torch.Generator().manual_seed(1)
     u = torch.randn(5, 3, generator=generator, dtype=torch.float64)
     cond = None
-    if case != "plain":
+    if conditional:
         cond = f.anchor_cond.expand(5, -1) if case == "default" else torch.randn(5, 2, generator=generator).double()
     base = poly(u) if order == 2 else poly.affine(u, None)
     target = poly if order == 2 else (lambda z: poly.affine(z, None))
@@ -76,11 +87,11 @@ def test_the_map_is_the_polynomial_to_its_order_at_z0(order: int, case: str) -> 
 
 
 def test_save_load_round_trip_and_the_affine_output(tmp_path) -> None:
-    f, _ = _random_map(condition_dim=2, anchor=True)
+    f, _ = _random_map(condition_dim=2, anchor=True, radius=0.7)
     f.metadata["scene"] = "toy"
     f.save(tmp_path / "anchored")
     g = load_subspace(tmp_path / "anchored.pt")
-    assert isinstance(g, AnchoredSubspace) and g.metadata["kind"] == "anchored" and g.order == 2
+    assert isinstance(g, AnchoredSubspace) and g.metadata["kind"] == "anchored" and (g.order, g.radius) == (2, 0.7)
     z = torch.randn(4, 3, dtype=torch.float64)
     c = torch.randn(4, 2, dtype=torch.float64)
     torch.testing.assert_close(g(z, c), f(z, c))
