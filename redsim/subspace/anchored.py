@@ -141,6 +141,7 @@ class AnchoredSubspace(nn.Module):
         self.polynomial = QuadraticSubspace(polynomial.basis, polynomial.offset, polynomial.quadratic)
         self.register_buffer("anchor_cond", None if anchor_cond is None else anchor_cond.detach().clone())
         self.metadata: dict[str, Any] = {**dict(metadata or {}), "kind": self.kind}
+        self._jet_cache: tuple[tuple[Any, ...], tuple[Tensor, Tensor, Tensor]] | None = None
 
     @property
     def latent_dim(self) -> int:
@@ -163,19 +164,39 @@ class AnchoredSubspace(nn.Module):
         if z.ndim != 2:
             raise ValueError(f"z must have shape [B, {self.latent_dim}], got {tuple(z.shape)}")
         hidden = self.hidden(z, cond)
-        at = cond
-        if cond is not None:
-            at = cond.expand(z.shape[0], -1) if self.anchor_cond is None else self.anchor_cond[None]
-        value, jac, hess = hidden_jet(self.net, at)  # K = 1 (one anchor) or B (one per row)
+        value, jac, pairs = self._taylor(cond, z.shape[0])
         if len(value) == 1:
             taylor = value + z @ jac[0].T
             if self.order == 2:
-                taylor = taylor + 0.5 * torch.einsum("wde,bd,be->bw", hess[0], z, z)
+                taylor = taylor + self.polynomial.monomials(z) @ pairs[0].T
         else:
             taylor = value + torch.einsum("bwd,bd->bw", jac, z)
             if self.order == 2:
-                taylor = taylor + 0.5 * torch.einsum("bwde,bd,be->bw", hess, z, z)
+                taylor = taylor + torch.einsum("bwp,bp->bw", pairs, self.polynomial.monomials(z))
         return hidden - taylor
+
+    def _taylor(self, cond: Tensor | None, rows: int) -> tuple[Tensor, Tensor, Tensor]:
+        """h, dh/dz [K, w, d] and the Hessian's pairs d^2h/dz_i dz_j, i <= j [K, w, d(d+1)/2] at z = 0: K = 1 (no
+        condition, or the anchor condition) or ``rows`` (one per condition).
+
+        Without gradients to the weights (a map in use, not in a fit) a single-point jet is kept until a weight
+        changes (in-place updates bump a tensor's version; a cast or a move changes its storage).
+        """
+        if cond is not None and self.anchor_cond is None:
+            return self._pair_jet(cond.expand(rows, -1))
+        at = None if cond is None else self.anchor_cond[None]
+        params = list(self.net.parameters())
+        if torch.is_grad_enabled() and any(p.requires_grad for p in params):
+            return self._pair_jet(at)
+        tensors = [*params, *([] if at is None else [self.anchor_cond])]
+        key = tuple((id(t), t._version, t.data_ptr(), t.dtype) for t in tensors)
+        if self._jet_cache is None or self._jet_cache[0] != key:
+            self._jet_cache = (key, tuple(t.detach() for t in self._pair_jet(at)))
+        return self._jet_cache[1]
+
+    def _pair_jet(self, at: Tensor | None) -> tuple[Tensor, Tensor, Tensor]:
+        value, jac, hess = hidden_jet(self.net, at)
+        return value, jac, hess[..., self.polynomial.pairs[0], self.polynomial.pairs[1]]
 
     def taper(self, z: Tensor) -> Tensor:
         """g(z) [B, 1] (module doc): 1 without a radius."""
@@ -196,7 +217,9 @@ class AnchoredSubspace(nn.Module):
         """Configurations q [..., n] from latents z [..., d] (and conditions c [..., m])."""
         flat = z.reshape(-1, z.shape[-1])
         flat_cond = None if cond is None else cond.expand(*z.shape[:-1], -1).reshape(flat.shape[0], -1)
-        q = self.affine_features(flat, flat_cond) @ self.affine_weight().T + self.polynomial.offset
+        poly = self.polynomial
+        near = (flat @ poly.basis.T + poly.monomials(flat) @ poly.quadratic.T) * self.taper(flat)
+        q = self.remainder(flat, flat_cond) @ self.output_weight.T + near + poly.offset
         return q.reshape(*z.shape[:-1], -1)
 
     def shapes(self) -> dict[str, Any]:

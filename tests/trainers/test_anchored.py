@@ -182,3 +182,19 @@ def test_conditional_fit_anchors_the_default_condition(where: str) -> None:
     with torch.no_grad():
         other = f(origin, torch.stack([space.low, space.high], 1).mean(1)[None].double() + 0.1)[0]
     assert (float((other - rest.float().double()).abs().max()) < 1e-12) == (where == "each")
+
+
+def test_the_kept_jet_follows_weight_updates_and_casts() -> None:
+    """A map in use keeps its jet at z = 0; an in-place weight update or a cast must not reuse a stale one."""
+    f, _ = _random_map(radius=0.0)
+    f.requires_grad_(False)
+    z = torch.randn(3, 3, dtype=torch.float64)
+    before = f(z)
+    with torch.no_grad():
+        f.net.mlp[0].weight.mul_(1.5)
+    fresh, _ = _random_map(radius=0.0)
+    with torch.no_grad():
+        fresh.net.mlp[0].weight.mul_(1.5)
+    torch.testing.assert_close(f(z), fresh(z))
+    assert not torch.allclose(f(z), before)
+    torch.testing.assert_close(f.float()(z.float()), fresh.float()(z.float()))
