@@ -93,7 +93,7 @@ class AnchoredSubspace(nn.Module):
 
     Args:
         config: The MLP's architecture (no periodic latents; ``output_dim`` n, ``latent_dim`` d as the polynomial's).
-        polynomial: The fixed map b + A z + Q m(z) (copied into buffers).
+        polynomial: The fixed map b + A z + Q m(z) (copied into buffers); its dtype is the map's.
         order: 2: r has no terms below |z|^3 (f is the polynomial map to second order at z = 0); 1: below |z|^2
             (f is its affine part to first order; the MLP supplies the quadratic term).
         anchor_cond: The condition c* [m] the Taylor polynomial is taken at, or None for c itself (conditional
@@ -134,7 +134,7 @@ class AnchoredSubspace(nn.Module):
         self.config = config
         self.order = int(order)
         self.radius = float(radius)
-        self.net = SubspaceMap(config)
+        self.net = SubspaceMap(config).to(polynomial.basis.dtype)
         with torch.no_grad():
             self.net.mlp[-1].bias.zero_()
         self.net.mlp[-1].bias.requires_grad_(False)
