@@ -59,6 +59,12 @@ Modal pull (``FitConfig.modal``, not in the paper): the map's value and Jacobian
 the static equilibrium and sigma times the lowest modes there, Prop. 1's small-sigma limit, so that the
 map holds the small linear responses to loads (:mod:`redsim.trainers.modal`).
 
+Anchored map (``FitConfig.anchor_map``, not in the paper): instead of an MLP the fit trains
+:class:`redsim.subspace.AnchoredSubspace`, a fixed polynomial map (modal derivatives, ``"md"``, or linear
+modes, ``"modes"``, of the fit's sigma at the rest state) plus the MLP stripped of its Taylor polynomial at
+z = 0, so the map holds the small responses by construction and the paper's loss shapes only what lies
+further out (:mod:`redsim.trainers.anchored`).
+
 Speed options (:class:`FitConfig`): ``fused_adam`` (one fused Adam kernel per step) and ``compile``
 (the loss, forward and backward, through ``torch.compile``; ``redsim bench fit`` measures both).
 """
@@ -82,6 +88,7 @@ from torch import Tensor
 
 from redsim.scene import Scene
 from redsim.subspace import (
+    AnchoredSubspace,
     CheckpointError,
     SubspaceConfig,
     SubspaceMap,
@@ -89,6 +96,7 @@ from redsim.subspace import (
     pair_log_ratios,
     sample_latents,
 )
+from redsim.trainers.anchored import ANCHOR_MAP_CONDS, ANCHOR_MAPS, anchored_map
 from redsim.trainers.modal import ModalTargets, modal_gap, modal_targets, start_at_rest
 from redsim.version import __version__
 
@@ -134,6 +142,14 @@ class FitConfig:
             the energy norm (w/2 |x|^2_H is w times the elastic energy an error x costs).
         modal_fraction: The modal pull is held for half of this fraction of the steps, then falls
             linearly to 0 at it (the anchor schedule; 2: held to the end).
+        anchor_map: "none" (the paper's MLP), "md" or "modes": fit an :class:`redsim.subspace.AnchoredSubspace`
+            that equals modal derivatives to second order (or linear modes to first order) at z = 0
+            (:mod:`redsim.trainers.anchored`). Not with ``modal``, ``seed_bias`` or ``periodic``.
+        anchor_map_cond: For a conditional ``anchor_map`` fit: "each" takes the MLP's Taylor polynomial at
+            (0, c) for every condition c (f(0, c) is the default condition's rest state for every c), "default"
+            only at the default condition (elsewhere the MLP moves the map freely).
+        anchor_radius: R > 0 fades the ``anchor_map`` polynomial out beyond |z| ~ R (the factor exp(-|z|^2 / 2R^2),
+            which keeps the map's Taylor polynomial to second order at z = 0); 0: no taper.
         mirror: Weight [1/s^2] of the equivariance penalty mean |MLP(-z) - P MLP(z)|^2_M [kg m^2]
             for the scene's mirror P (:class:`redsim.scene.Mirror`; 0: off). Needs a scene that
             declares one and an even ``batch_size`` (the batch is z and -z).
@@ -185,6 +201,9 @@ class FitConfig:
     anchor_fraction: float = 0.5
     modal: float = 0.0
     modal_fraction: float = 0.5
+    anchor_map: str = "none"
+    anchor_map_cond: str = "default"
+    anchor_radius: float = 0.0
     mirror: float = 0.0
     checkpoint_every: int = 1000
     dtype: str = "float32"
@@ -236,6 +255,13 @@ _FIELD_RULES: tuple[tuple[str, str, Callable[[FitConfig, Any], bool]], ...] = (
     ("modal", "a finite number >= 0", lambda c, v: _is_number(v) and v >= 0),
     ("modal_fraction", "a number in (0, 2]", lambda c, v: _is_number(v) and 0 < v <= 2),
     (
+        "anchor_map",
+        f"one of {', '.join(ANCHOR_MAPS)} (not with modal, seed_bias or periodic latents)",
+        lambda c, v: v in ANCHOR_MAPS and (v == "none" or not (c.modal or c.seed_bias or c.periodic)),
+    ),
+    ("anchor_map_cond", f"one of {', '.join(ANCHOR_MAP_CONDS)}", lambda c, v: v in ANCHOR_MAP_CONDS),
+    ("anchor_radius", "a finite number >= 0 (0: no taper)", lambda c, v: _is_number(v) and v >= 0),
+    (
         "mirror",
         "a finite number >= 0 (> 0 needs an even batch_size)",
         lambda c, v: _is_number(v) and v >= 0 and (v == 0 or (_is_int(c.batch_size) and c.batch_size % 2 == 0)),
@@ -283,7 +309,7 @@ _ROUND_OFF_ONLY = ("fused_adam", "compile")
 class FitResult(NamedTuple):
     """What :func:`fit_subspace` returns."""
 
-    subspace: SubspaceMap
+    subspace: SubspaceMap | AnchoredSubspace
     history: list[dict[str, float]]
     fit_seconds: float
 
@@ -556,7 +582,8 @@ def fit_subspace(
     )
     with torch.random.fork_rng(devices=[]):
         torch.manual_seed(seed)
-        model = SubspaceMap(arch).to(device=config.device, dtype=dtype)
+        model = SubspaceMap(arch) if config.anchor_map == "none" else anchored_map(scene, arch, config)
+        model = model.to(device=config.device, dtype=dtype)
     if config.seed_bias:
         with torch.no_grad():
             model.mlp[-1].bias.copy_(work.q_seed)
@@ -786,6 +813,12 @@ def fit_command(scene: Scene, config: FitConfig, seed: int, out: str | Path | No
         parts += ["--anchor", repr(config.anchor), "--anchor-fraction", repr(config.anchor_fraction)]
     if config.modal > 0:
         parts += ["--modal", repr(config.modal), "--modal-fraction", repr(config.modal_fraction)]
+    if config.anchor_map != "none":
+        parts += ["--anchor-map", config.anchor_map]
+        if config.conditional:
+            parts += ["--anchor-map-cond", config.anchor_map_cond]
+        if config.anchor_radius > 0:
+            parts += ["--anchor-radius", repr(config.anchor_radius)]
     if config.mirror > 0:
         parts += ["--mirror", repr(config.mirror)]
     default = FitConfig()
@@ -835,7 +868,17 @@ def _load_training_state(
     saved = {k: v for k, v in state["config"].items() if k not in free}
     saved["periodic"] = tuple(saved["periodic"])
     added = ("seed_bias", "drive", "drive_fraction", "soften", "soften_from", "soften_fraction")
-    for key in (*added, "anchor", "anchor_fraction", "modal", "modal_fraction", "mirror"):
+    for key in (
+        *added,
+        "anchor",
+        "anchor_fraction",
+        "modal",
+        "modal_fraction",
+        "anchor_map",
+        "anchor_map_cond",
+        "anchor_radius",
+        "mirror",
+    ):
         saved.setdefault(key, getattr(FitConfig(), key))  # states written before the options existed
     saved["soften"] = tuple(saved["soften"])
     if saved != mine:

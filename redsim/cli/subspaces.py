@@ -47,6 +47,20 @@ FIT_FLAGS: tuple[tuple[str, str, Any, str], ...] = (
     ("--anchor-fraction", "anchor_fraction", float, "--anchor holds for half this fraction of the steps, then ends"),
     ("--modal", "modal", float, "start weight of the pull of the map's rest and tangent to the lowest modes; 0: off"),
     ("--modal-fraction", "modal_fraction", float, "--modal holds for half this fraction of the steps, then ends"),
+    (
+        "--anchor-map",
+        "anchor_map",
+        str,
+        "none, md or modes: a fixed modal-derivative (or linear-mode) map plus an MLP "
+        "stripped of its Taylor polynomial at z = 0",
+    ),
+    (
+        "--anchor-map-cond",
+        "anchor_map_cond",
+        str,
+        "conditional --anchor-map: each or default (where the MLP's Taylor polynomial is taken)",
+    ),
+    ("--anchor-radius", "anchor_radius", float, "R > 0: the --anchor-map polynomial fades out beyond |z| ~ R"),
     ("--mirror", "mirror", float, "weight [1/s^2] of the map's equivariance under the scene's mirror; 0: off"),
     ("--checkpoint-every", "checkpoint_every", int, "steps between resumable checkpoints"),
     ("--dtype", "dtype", str, "float32 or float64"),

@@ -2,7 +2,8 @@
 
 Every map kind redsim ships ends in an affine layer: the neural map's last ``nn.Linear`` (r = the
 last hidden activation, width w = 64..128), the linear map (r = z) and the quadratic map
-(r = [z, 1/2 c_ij z_i z_j]). A cubature energy evaluates r once per state and then only the rows of
+(r = [z, 1/2 c_ij z_i z_j]) and the anchored map (r = [MLP remainder, z, 1/2 c_ij z_i z_j], see
+:class:`redsim.subspace.AnchoredSubspace`). A cubature energy evaluates r once per state and then only the rows of
 W its kept elements read (a sliced output layer), and the step's inertia term exactly in r with the
 precomputed w x w Gram W^T M W (see :class:`redsim.cubature.energy.CubatureEnergy`).
 """
@@ -15,7 +16,7 @@ import torch
 from torch import Tensor, nn
 
 from redsim.scene import Scene
-from redsim.subspace import LinearSubspace, QuadraticSubspace, SubspaceMap
+from redsim.subspace import AnchoredSubspace, LinearSubspace, QuadraticSubspace, SubspaceMap
 from redsim.subspace.base import check_latent
 
 
@@ -36,13 +37,15 @@ class AffineOutput(nn.Module):
         self.map = copy.deepcopy(subspace)
         if isinstance(subspace, SubspaceMap):
             weight, bias = subspace.mlp[-1].weight, subspace.mlp[-1].bias
+        elif isinstance(subspace, AnchoredSubspace):
+            weight, bias = subspace.affine_weight(), subspace.polynomial.offset
         elif isinstance(subspace, QuadraticSubspace):
             weight, bias = torch.cat([subspace.basis, subspace.quadratic], 1), subspace.offset
         elif isinstance(subspace, LinearSubspace):
             weight, bias = subspace.basis, subspace.offset
         else:
             raise ValueError(
-                "a cubature needs a map with an affine output layer (neural, linear or quadratic), "
+                "a cubature needs a map with an affine output layer (neural, anchored, linear or quadratic), "
                 f"got {type(subspace).__name__}"
             )
         self.register_buffer("weight", weight.detach().clone())
@@ -61,6 +64,8 @@ class AffineOutput(nn.Module):
             for layer in list(f.mlp)[:-1]:
                 hidden = layer(hidden)
             return hidden
+        if isinstance(f, AnchoredSubspace):
+            return f.affine_features(z, cond)
         check_latent(z, f.latent_dim, cond)
         return torch.cat([z, f.monomials(z)], -1) if isinstance(f, QuadraticSubspace) else z
 

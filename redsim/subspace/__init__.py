@@ -5,6 +5,8 @@
 - :mod:`~redsim.subspace.linear`: :class:`LinearSubspace` (modal analysis, PCA) and
   :class:`QuadraticSubspace` (modal derivatives); :mod:`~redsim.subspace.autoencoder`:
   :class:`AutoencoderSubspace` (the supervised baseline). Their builders are in :mod:`redsim.baselines`.
+- :mod:`~redsim.subspace.anchored`: :class:`AnchoredSubspace`, modal derivatives plus an MLP stripped of its
+  Taylor polynomial at z = 0 (the map is the polynomial one to second order there).
 - :mod:`~redsim.subspace.latents`: latent sampling, periodic latents, the pair term of the fitting loss.
 - :mod:`~redsim.subspace.checkpoint`: ``STEM.pt`` + ``STEM.json``, written and read;
   :mod:`~redsim.subspace.kinds`: :func:`load_subspace`, which rebuilds a checkpoint by its ``kind``.
@@ -14,6 +16,7 @@ Nothing here imports the solvers, integrators, baselines or metrics.
 
 from __future__ import annotations
 
+from redsim.subspace.anchored import AnchoredSubspace
 from redsim.subspace.autoencoder import AutoencoderSubspace
 from redsim.subspace.base import MapModule
 from redsim.subspace.checkpoint import (
@@ -33,6 +36,7 @@ __all__ = [
     "ACTIVATIONS",
     "FORMAT_VERSION",
     "KINDS",
+    "AnchoredSubspace",
     "AutoencoderSubspace",
     "CheckpointError",
     "LinearSubspace",

@@ -12,6 +12,7 @@ import torch
 from torch import Tensor, nn
 
 from redsim.scene import Scene
+from redsim.subspace.anchored import AnchoredSubspace
 from redsim.subspace.autoencoder import AutoencoderSubspace
 from redsim.subspace.checkpoint import CheckpointError, check_scene, checkpoint_path, read_metadata
 from redsim.subspace.linear import LinearSubspace, QuadraticSubspace
@@ -28,7 +29,7 @@ class MapKind(Protocol):
 
 
 KINDS: dict[str, type[MapKind]] = {
-    cls.kind: cls for cls in (SubspaceMap, LinearSubspace, QuadraticSubspace, AutoencoderSubspace)
+    cls.kind: cls for cls in (SubspaceMap, LinearSubspace, QuadraticSubspace, AutoencoderSubspace, AnchoredSubspace)
 }
 """Map classes by ``kind``, the key stored in their checkpoints ("neural" when absent)."""
 

@@ -8,17 +8,19 @@ import pytest
 import torch
 
 from redsim import scenes, subspace
-from redsim.subspace import KINDS, LinearSubspace, QuadraticSubspace, SubspaceMap
+from redsim.subspace import KINDS, AnchoredSubspace, LinearSubspace, QuadraticSubspace, SubspaceMap
 
 
 def _maps(n: int) -> list[torch.nn.Module]:
     g = torch.Generator().manual_seed(0)
     basis = torch.randn(n, 2, generator=g, dtype=torch.float64)
     offset = torch.randn(n, generator=g, dtype=torch.float64)
+    quadratic = QuadraticSubspace(basis, offset, torch.randn(n, 3, generator=g, dtype=torch.float64))
     return [
         SubspaceMap(subspace.SubspaceConfig(2, n, hidden_width=4, hidden_layers=1, periodic=(1,))),
         LinearSubspace(basis, offset),
-        QuadraticSubspace(basis, offset, torch.randn(n, 3, generator=g, dtype=torch.float64)),
+        quadratic,
+        AnchoredSubspace(subspace.SubspaceConfig(2, n, hidden_width=4, hidden_layers=2), quadratic, radius=1.0),
     ]
 
 
@@ -33,7 +35,7 @@ def test_every_kind_round_trips_through_the_registry(tmp_path) -> None:
         zz = z.to(next(iter(sub.state_dict().values())).dtype)
         with torch.no_grad():
             torch.testing.assert_close(loaded(zz), sub(zz), rtol=0, atol=0)
-    assert set(KINDS) == {"neural", "linear", "quadratic", "autoencoder"}
+    assert set(KINDS) == {"neural", "linear", "quadratic", "autoencoder", "anchored"}
 
 
 def test_an_unknown_kind_names_the_valid_ones(tmp_path) -> None:
@@ -42,6 +44,6 @@ def test_an_unknown_kind_names_the_valid_ones(tmp_path) -> None:
     )
     doc = json.loads(meta.read_text())
     meta.write_text(json.dumps({**doc, "kind": "spline"}))
-    valid = "neural, autoencoder, linear, quadratic"
+    valid = "neural, anchored, autoencoder, linear, quadratic"
     with pytest.raises(subspace.CheckpointError, match=f"unknown kind 'spline'; valid: {valid}"):
         subspace.load_subspace(tmp_path / "map.pt")
