@@ -25,23 +25,12 @@ import gymnasium as gym
 import numpy as np
 import torch
 
+from redsim.bench import median_time
 from redsim.runtime import Evaluations
 
 DEFAULT_BATCHES = (16, 64, 256)
 RENDER_SIZE = (480, 480)
 """Width and height [px] of the timed frame (Gymnasium's and the envs' default)."""
-
-
-def _median_time(call: Callable[[], Any], repeats: int, budget: float) -> tuple[float, int]:
-    """Median wall time [s] of ``call`` over up to ``repeats`` calls (fewer once ``budget`` seconds are spent)."""
-    times: list[float] = []
-    spent = 0.0
-    while len(times) < repeats and (not times or spent < budget):
-        start = time.perf_counter()
-        call()
-        times.append(time.perf_counter() - start)
-        spent += times[-1]
-    return statistics.median(times), len(times)
 
 
 def _full_space_step(env: Any, repeats: int, budget: float, rng: np.random.Generator) -> dict[str, Any]:
@@ -61,7 +50,7 @@ def _full_space_step(env: Any, repeats: int, budget: float, rng: np.random.Gener
         holder["state"], info = integrator.step(holder["state"], loads.cpu())
         holder["converged"] = holder["converged"] and info.converged
 
-    seconds, count = _median_time(call, repeats, budget)
+    seconds, count = median_time(call, repeats, budget)
     return {"step_s": seconds * sim.frame_skip, "repeats": count, "converged": holder["converged"]}
 
 
@@ -113,7 +102,7 @@ def bench_env(
     env.action_space.seed(seed)
     for _ in range(warmup):
         single_step()
-    seconds, count = _median_time(single_step, steps, budget)
+    seconds, count = median_time(single_step, steps, budget)
     row: dict[str, Any] = {
         "id": env_id,
         "n": env.sim.scene.free_dof_count,
@@ -128,7 +117,7 @@ def bench_env(
     }
     view = env.sim.view(*RENDER_SIZE, None)  # what render() draws, framed once as render() frames it
     env.sim.draw(view, 0)
-    frame_s, frames = _median_time(lambda: env.sim.draw(view, 0), steps, budget)
+    frame_s, frames = median_time(lambda: env.sim.draw(view, 0), steps, budget)
     row["render"] = {"frames_per_s": 1.0 / frame_s, "size": list(RENDER_SIZE), "repeats": frames}
     for batch in batches:
         venv = gym.make_vec(env_id, num_envs=int(batch), vectorization_mode="vector_entry_point", **env_kwargs)
@@ -151,7 +140,7 @@ def bench_env(
         slowest.clear()
         stepper = venv.unwrapped.sim.stepper
         stepper.evaluations = Evaluations()
-        seconds, count = _median_time(vector_step, steps, budget)
+        seconds, count = median_time(vector_step, steps, budget)
         row["vector"][int(batch)] = {
             "env_steps_per_s": batch / seconds,
             "sim_s_per_wall_s": batch * dt / seconds,
@@ -216,7 +205,7 @@ def _cheetah_anchor(steps: int) -> dict[str, Any]:
 
     for _ in range(100):
         cheetah_step()
-    seconds, _ = _median_time(cheetah_step, steps, budget=float("inf"))
+    seconds, _ = median_time(cheetah_step, steps, budget=float("inf"))
     dt = float(env.unwrapped.dt)
     env.close()
     return {"env_steps_per_s": 1.0 / seconds, "sim_s_per_wall_s": dt / seconds, "dt": dt}

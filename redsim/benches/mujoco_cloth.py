@@ -29,7 +29,6 @@ envs`` prints (``redsim bench mujoco-cloth`` prints the rest).
 from __future__ import annotations
 
 import math
-import statistics
 import time
 from dataclasses import dataclass
 from typing import Any
@@ -37,6 +36,7 @@ from typing import Any
 import numpy as np
 import torch
 
+from redsim.bench import median_time
 from redsim.scene import Scene
 
 CLOTH_SCENE = "hanging_sheet"
@@ -551,21 +551,14 @@ def time_flex_cloth(
 
     for _ in range(warmup):
         call()
-    times: list[float] = []
-    spent = 0.0
-    while len(times) < steps and (not times or spent < budget):
-        start = time.perf_counter()
-        call()
-        times.append(time.perf_counter() - start)
-        spent += times[-1]
-    seconds = statistics.median(times)
+    seconds, count = median_time(call, steps, budget)
     return {
         "vertices": sheet.vertex_count,
         "pinned": int(sheet.mesh.pinned.size),
         "nv": int(sheet.model.nv),
         "integrator": integrator,
         "timestep": timestep,
-        "steps": len(times),
+        "steps": count,
         "steps_per_s": 1.0 / seconds,
         "sim_s_per_wall_s": timestep / seconds,
         "young": match.young,
