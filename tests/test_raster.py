@@ -12,6 +12,18 @@ from redsim import scenes
 from redsim.raster import SceneView
 
 
+def _filled(view: SceneView, q, monkeypatch: pytest.MonkeyPatch) -> tuple[np.ndarray, int]:
+    """The picture of q and the number of triangles Pillow filled for it."""
+    from PIL import ImageDraw
+
+    calls = []
+    original = ImageDraw.ImageDraw.polygon
+    monkeypatch.setattr(ImageDraw.ImageDraw, "polygon", lambda pen, *a, **k: calls.append(1) or original(pen, *a, **k))
+    picture = view.draw(q)
+    monkeypatch.setattr(ImageDraw.ImageDraw, "polygon", original)
+    return picture, len(calls)
+
+
 def _unculled(view: SceneView) -> SceneView:
     """The same camera drawing every triangle (no surface counted as closed)."""
     other = object.__new__(SceneView)
@@ -21,26 +33,36 @@ def _unculled(view: SceneView) -> SceneView:
 
 
 @pytest.mark.parametrize(("name", "closed"), [("mini_chain", True), ("stewart", True), ("hanging_sheet", False)])
-def test_closed_surfaces_are_culled_and_look_the_same(name: str, closed: bool) -> None:
+def test_closed_surfaces_are_culled_and_look_the_same(name: str, closed: bool, monkeypatch) -> None:
     """Links and plates are closed and outward-wound (+1), the sheet open (0); culling moves silhouette pixels only."""
     scene = scenes.build(name)
     view = SceneView(scene, scene.q_seed, width=240, height=240)
     assert all(sign == (1 if closed else 0) for sign in view._outward)
-    culled, full = view.draw(scene.q_seed), _unculled(view).draw(scene.q_seed)
+    (culled, kept), (full, every) = (
+        _filled(view, scene.q_seed, monkeypatch),
+        _filled(_unculled(view), scene.q_seed, monkeypatch),
+    )
+    assert every == sum(len(f) for f in view._faces)
+    if closed:  # about half of a closed surface faces away from the camera
+        assert 0.3 * every < kept < 0.7 * every
+    else:
+        assert kept == every
     differ = np.abs(culled.astype(int) - full.astype(int)).sum(-1) > 0
     assert differ.mean() < 0.005  # one-pixel seams where a back face peeked past the silhouette
     assert (culled != culled[0, 0]).any(-1).mean() > 0.01  # something was drawn
 
 
-def test_inward_wound_surfaces_cull_the_other_side() -> None:
-    """Flipping every triangle's winding flips the sign, and the picture stays the same."""
+def test_inward_wound_surfaces_cull_the_other_side(monkeypatch) -> None:
+    """Flipping every triangle's winding flips the sign: the same faces are culled and the picture stays the same."""
     scene = scenes.build("mini_chain")
     flipped = dataclasses.replace(
         scene, surfaces=tuple(dataclasses.replace(s, faces=s.faces[:, [0, 2, 1]]) for s in scene.surfaces)
     )
     view, inward = SceneView(scene, scene.q_seed), SceneView(flipped, scene.q_seed)
     assert inward._outward == [-1] * len(scene.surfaces)
-    assert np.array_equal(view.draw(scene.q_seed), inward.draw(scene.q_seed))
+    (picture, kept), (inward_picture, inward_kept) = (_filled(v, scene.q_seed, monkeypatch) for v in (view, inward))
+    assert kept == inward_kept < 0.7 * sum(len(f) for f in view._faces)
+    assert np.array_equal(picture, inward_picture)
 
 
 @pytest.mark.parametrize("enabled", [True, False])

@@ -259,8 +259,16 @@ _FIELD_RULES: tuple[tuple[str, str, Callable[[FitConfig, Any], bool]], ...] = (
         f"one of {', '.join(ANCHOR_MAPS)} (not with modal, seed_bias or periodic latents)",
         lambda c, v: v in ANCHOR_MAPS and (v == "none" or not (c.modal or c.seed_bias or c.periodic)),
     ),
-    ("anchor_map_cond", f"one of {', '.join(ANCHOR_MAP_CONDS)}", lambda c, v: v in ANCHOR_MAP_CONDS),
-    ("anchor_radius", "a finite number >= 0 (0: no taper)", lambda c, v: _is_number(v) and v >= 0),
+    (
+        "anchor_map_cond",
+        f"one of {', '.join(ANCHOR_MAP_CONDS)} ('default' without anchor_map)",
+        lambda c, v: v in ANCHOR_MAP_CONDS and (v == "default" or c.anchor_map != "none"),
+    ),
+    (
+        "anchor_radius",
+        "a finite number >= 0 (0: no taper; 0 without anchor_map)",
+        lambda c, v: _is_number(v) and v >= 0 and (v == 0 or c.anchor_map != "none"),
+    ),
     (
         "mirror",
         "a finite number >= 0 (> 0 needs an even batch_size)",

@@ -205,6 +205,7 @@ def matched_shell(scene: Scene) -> ShellMatch:
     curvature of a flat sheet and MuJoCo's scales with t^2 at fixed E t, so one measurement of each on
     :func:`bent_cylinder` (curvature :data:`BEND_CURVATURE`, pins released in MuJoCo) fixes t.
     """
+    scene = scene.to(device="cpu", dtype=torch.float64)  # NumPy probes and MuJoCo run on the CPU
     mesh = sheet_mesh(scene)
     stretch, poisson = _membrane_parameters(scene)
     cylinder = bent_cylinder(mesh.vertices, BEND_CURVATURE)
@@ -484,9 +485,11 @@ def timestep_sweep(
     *,
     seconds: float = SWEEP_SECONDS,
     scenarios: tuple[str, ...] = ("hang", "drop"),
+    match: ShellMatch | None = None,
 ) -> list[dict[str, Any]]:
-    """:func:`drop_run` of every scenario at every time step of every integrator (default :data:`SWEEP_TIMESTEPS`)."""
-    match = matched_shell(scene)
+    """:func:`drop_run` of every scenario at every time step of every integrator (default :data:`SWEEP_TIMESTEPS`);
+    ``match`` (default :func:`matched_shell`) saves its two model compiles where the caller has one."""
+    match = matched_shell(scene) if match is None else match
     rows = []
     for integrator, steps in (SWEEP_TIMESTEPS if timesteps is None else timesteps).items():
         for dt in steps:
@@ -573,6 +576,7 @@ def rest_sag(
     integrator: str = CLOTH_INTEGRATOR,
     timestep: float = CLOTH_TIMESTEP,
     settle_s: float = 20.0,
+    match: ShellMatch | None = None,
 ) -> dict[str, Any]:
     """The sheet's rest under gravity, MuJoCo against redsim's full-space rest (:func:`rest_state`).
 
@@ -588,7 +592,7 @@ def rest_sag(
     from redsim.integrators.reference import rest_state
 
     scene64 = scene.to(device="cpu", dtype=torch.float64)
-    sheet = flex_sheet(scene64, integrator=integrator, timestep=timestep)
+    sheet = flex_sheet(scene64, integrator=integrator, timestep=timestep, match=match)
     for _ in range(max(1, round(settle_s / timestep))):
         sheet.step()
     mujoco_rest = sheet.positions()
@@ -611,15 +615,28 @@ def rest_sag(
     }
 
 
+def flex_cloth_unavailable() -> str | None:
+    """Why this Python cannot build the anchor (mujoco missing, or older than 3.13: no ``discrete`` integrator
+    or ``MjSpec``), or None where it can."""
+    import importlib.util
+
+    if importlib.util.find_spec("mujoco") is None:
+        return "mujoco is not installed (pip install 'redsim[bench]')"
+    import mujoco
+
+    if not hasattr(mujoco.mjtIntegrator, "mjINT_DISCRETE") or not hasattr(mujoco, "MjSpec"):
+        return f"mujoco {mujoco.__version__} has no 'discrete' integrator for flex elasticity (needs mujoco >= 3.13)"
+    return None
+
+
 def cloth_anchor(steps: int, budget: float = ANCHOR_BUDGET) -> dict[str, Any]:
     """The flex cloth anchor of ``redsim bench envs``: :func:`time_flex_cloth` of :data:`CLOTH_SCENE`, or a
     ``reason`` where mujoco is missing or refuses the model (an older one without the ``discrete`` integrator)."""
-    import importlib.util
-
     import redsim
 
-    if importlib.util.find_spec("mujoco") is None:
-        return {"reason": "mujoco is not installed (pip install 'redsim[bench]')"}
+    reason = flex_cloth_unavailable()
+    if reason is not None:
+        return {"reason": reason}
     try:
         return time_flex_cloth(redsim.scenes.build(CLOTH_SCENE), steps=steps, budget=budget)
     except ValueError as err:
@@ -696,6 +713,7 @@ def swing_check(
     seconds: float = SWEEP_SECONDS,
     redsim_dt: float = 0.02,
     runs: tuple[tuple[str, float], ...] = SWING_RUNS,
+    match: ShellMatch | None = None,
 ) -> dict[str, Any]:
     """The dropped sheet's swing (:func:`dropped_positions`), MuJoCo's ``runs`` (integrator, dt [s]) against redsim.
 
@@ -741,7 +759,7 @@ def swing_check(
             "cpu_s": time.process_time() - clock,
         }
     ]
-    match = matched_shell(scene64)
+    match = matched_shell(scene64) if match is None else match
     for name, dt in runs:
         sheet = flex_sheet(scene64, integrator=name, timestep=dt, match=match)
         sheet.set_positions(start)
@@ -784,6 +802,7 @@ __all__ = [
     "cloth_ratios",
     "drop_run",
     "dropped_positions",
+    "flex_cloth_unavailable",
     "flex_sheet",
     "force_probe",
     "largest_stable",

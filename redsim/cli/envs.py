@@ -135,16 +135,17 @@ def cmd_bench_envs(args: argparse.Namespace) -> int:
 
 
 def cmd_bench_mujoco_cloth(args: argparse.Namespace) -> int:
-    import importlib.util
+    import math
 
     import redsim
     from redsim.bench import machine_info
     from redsim.benches import mujoco_cloth
 
-    if importlib.util.find_spec("mujoco") is None:
-        raise CliError("mujoco is not installed (pip install 'redsim[bench]')")
-    if not args.seconds > 0 or not args.settle > 0:
-        raise CliError("--seconds and --settle must be > 0")
+    reason = mujoco_cloth.flex_cloth_unavailable()
+    if reason is not None:
+        raise CliError(reason)
+    if not (math.isfinite(args.seconds) and args.seconds > 0 and math.isfinite(args.settle) and args.settle > 0):
+        raise CliError(f"--seconds and --settle must be finite and > 0, got {args.seconds} and {args.settle}")
     sweep = mujoco_cloth.SWEEP_TIMESTEPS
     if args.timesteps is not None:
         integrator, _, values = args.timesteps.partition(":")
@@ -152,15 +153,19 @@ def cmd_bench_mujoco_cloth(args: argparse.Namespace) -> int:
             sweep = {integrator: tuple(float(v) for v in parse_list(values, "--timesteps"))}
         except ValueError as err:
             raise CliError(f"--timesteps must be INTEGRATOR:DT,DT,..., got {args.timesteps!r}") from err
-        if integrator not in ("discrete", "Euler", "RK4") or min(sweep[integrator]) <= 0:
-            raise CliError(f"--timesteps: integrator discrete, Euler or RK4 and time steps > 0, got {args.timesteps!r}")
+        steps_ok = all(math.isfinite(dt) and dt > 0 for dt in sweep[integrator])
+        if integrator not in mujoco_cloth.SWEEP_TIMESTEPS or not steps_ok:
+            raise CliError(
+                f"--timesteps: integrator {' or '.join(mujoco_cloth.SWEEP_TIMESTEPS)} (the two that integrate flex "
+                f"elasticity) and finite time steps > 0, got {args.timesteps!r}"
+            )
     machine = machine_info()
     scene = redsim.scenes.build(mujoco_cloth.CLOTH_SCENE)
     mesh = mujoco_cloth.sheet_mesh(scene)
     match = mujoco_cloth.matched_shell(scene)
-    rows = [] if args.no_sweep else mujoco_cloth.timestep_sweep(scene, sweep, seconds=args.seconds)
-    sag = None if args.no_sag else mujoco_cloth.rest_sag(scene, settle_s=args.settle)
-    swing = None if args.no_swing else mujoco_cloth.swing_check(scene, seconds=args.seconds)
+    rows = [] if args.no_sweep else mujoco_cloth.timestep_sweep(scene, sweep, seconds=args.seconds, match=match)
+    sag = None if args.no_sag else mujoco_cloth.rest_sag(scene, settle_s=args.settle, match=match)
+    swing = None if args.no_swing else mujoco_cloth.swing_check(scene, seconds=args.seconds, match=match)
     result = {
         "machine": machine,
         "scene": mujoco_cloth.CLOTH_SCENE,
@@ -213,10 +218,14 @@ def cmd_bench_mujoco_cloth(args: argparse.Namespace) -> int:
                 )
         stable = ", ".join(f"{k} {'none' if v is None else f'{v:g} s'}" for k, v in result["largest_stable"].items())
         out(f"largest stable dt: {stable}")
-    out(
-        f"anchor of `redsim bench envs`: {mujoco_cloth.CLOTH_INTEGRATOR} at dt {mujoco_cloth.CLOTH_TIMESTEP:g} s "
-        "(the largest time step of the sweep at which it stayed stable)"
-    )
+    anchor = f"anchor of `redsim bench envs`: {mujoco_cloth.CLOTH_INTEGRATOR} at dt {mujoco_cloth.CLOTH_TIMESTEP:g} s"
+    if mujoco_cloth.CLOTH_INTEGRATOR not in result["largest_stable"]:
+        out(f"{anchor} (the default sweep's largest stable time step; not swept in this run)")
+    elif result["largest_stable"][mujoco_cloth.CLOTH_INTEGRATOR] == mujoco_cloth.CLOTH_TIMESTEP:
+        out(f"{anchor} (the largest time step of this sweep at which it stayed stable)")
+    else:
+        found = result["largest_stable"][mujoco_cloth.CLOTH_INTEGRATOR]
+        out(f"{anchor}; this sweep's largest stable time step under it: {'none' if found is None else f'{found:g} s'}")
     if sag is not None:
         out(
             f"rest under gravity, displacement from the seed [mm] (MuJoCo: {args.settle:g} s of "

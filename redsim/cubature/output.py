@@ -60,10 +60,7 @@ class AffineOutput(nn.Module):
         """r [B, w] of latents z [B, d] (and conditions [B, m])."""
         f = self.map
         if isinstance(f, SubspaceMap):
-            hidden = f.features(z, cond)
-            for layer in list(f.mlp)[:-1]:
-                hidden = layer(hidden)
-            return hidden
+            return f.hidden(z, cond)
         if isinstance(f, AnchoredSubspace):
             return f.affine_features(z, cond)
         check_latent(z, f.latent_dim, cond)

@@ -256,11 +256,12 @@ class LatentStepper:
             :data:`redsim.runtime.solver.WARM_ITERATIONS` iterations (default); False keeps BFGS-updating it.
         start: Where each solve starts (:data:`STARTS`): "extrapolated" (default), 2 z_t - z_{t-1}; "lower",
             whichever of that and z_t has the lower Phi (the step evaluates both anyway). The same minimum
-            where the step's objective has one (README "Env speed", ConditionalBar-v0).
+            where the step's objective has one (README "Env speed", ConditionalBar-v0). Either way a copy whose
+            extrapolated start has a non-finite Phi or gradient starts from z_t.
 
     Raises:
-        ValueError: a bad dt, tol, max_iter, hessian, sync_every, max_step or start, or a map that does not fit
-            the scene.
+        ValueError: a bad dt, tol, max_iter, hessian, sync_every, max_step, warm_refresh or start, or a map that
+            does not fit the scene.
     """
 
     def __init__(
@@ -300,7 +301,9 @@ class LatentStepper:
             raise ValueError(f"unknown start {start!r}; valid: {list(STARTS)}")
         self.start = start
         self.max_step = None if max_step is None else float(max_step)
-        self.warm_refresh = bool(warm_refresh)
+        if not isinstance(warm_refresh, bool):
+            raise ValueError(f"warm_refresh must be True or False, got {warm_refresh!r}")
+        self.warm_refresh = warm_refresh
         self.dt = float(dt)
         self.dtype = dtype
         self.device = torch.device(device)
@@ -534,14 +537,17 @@ class LatentStepper:
             noise = 100.0 * self._eps * force * self.length
             at_z = (value[batch:], grad[batch:], energy[batch:])
             first = (value[:batch], grad[:batch], energy[:batch])
-            if self.start == "lower":  # (from z_t the secant pair is empty: the solver skips its update)
-                lower = at_z[0] < first[0]
-                z0 = torch.where(lower[:, None], z, z0)
-                first = (
-                    torch.where(lower, at_z[0], first[0]),
-                    torch.where(lower[:, None], at_z[1], first[1]),
-                    torch.where(lower, at_z[2], first[2]),
-                )
+            # from z_t where the extrapolated start is not finite (a finite step may still exist), and with
+            # start "lower" where Phi(z_t) is lower (from z_t the secant pair is empty: the solver skips its update)
+            lower = ~(torch.isfinite(first[0]) & torch.isfinite(first[1]).all(-1))
+            if self.start == "lower":
+                lower = lower | (at_z[0] < first[0])
+            z0 = torch.where(lower[:, None], z, z0)
+            first = (
+                torch.where(lower, at_z[0], first[0]),
+                torch.where(lower[:, None], at_z[1], first[1]),
+                torch.where(lower, at_z[2], first[2]),
+            )
             result = minimize(
                 objective,
                 z0,

@@ -154,10 +154,7 @@ class AnchoredSubspace(nn.Module):
 
     def hidden(self, z: Tensor, cond: Tensor | None = None) -> Tensor:
         """h(z, c) [..., w], the MLP's last hidden layer."""
-        hidden = self.net.features(z, cond)
-        for layer in list(self.net.mlp)[:-1]:
-            hidden = layer(hidden)
-        return hidden
+        return self.net.hidden(z, cond)
 
     def remainder(self, z: Tensor, cond: Tensor | None = None) -> Tensor:
         """r(z, c) [B, w] for latents z [B, d] (and conditions [B, m]): h minus its Taylor polynomial at z = 0."""

@@ -111,6 +111,13 @@ class SubspaceMap(nn.Module):
         """Configurations q [..., n] from latents z [..., d] (and conditions c [..., m])."""
         return self.mlp(self.features(z, cond))
 
+    def hidden(self, z: Tensor, cond: Tensor | None = None) -> Tensor:
+        """The last hidden layer h(z, c) [..., w] (q = the output layer's affine map of it)."""
+        hidden = self.features(z, cond)
+        for layer in list(self.mlp)[:-1]:
+            hidden = layer(hidden)
+        return hidden
+
     def save(self, stem: str | Path) -> tuple[Path, Path]:
         """Write ``stem.pt`` (weights) and ``stem.json`` (config and metadata); returns both paths."""
         return write_checkpoint(self, stem, dataclasses.asdict(self.config))

@@ -142,8 +142,19 @@ def test_bench_mujoco_cloth_prints_the_match_and_a_tiny_sweep(capsys: pytest.Cap
     doc = json.loads(capsys.readouterr().out)
     assert [(r["scenario"], r["blew_up"]) for r in doc["sweep"]] == [("hang", False), ("drop", False)]
     assert doc["match"]["mujoco_bending_j"] == pytest.approx(doc["match"]["scene_bending_j"], rel=1e-9)
-    assert main(["bench", "mujoco-cloth", "--timesteps", "RK5:0.1"]) == 2
-    assert main(["bench", "mujoco-cloth", "--seconds", "0"]) == 2
+    assert "the largest time step of this sweep at which it stayed stable" in text
+    for bad in (["--timesteps", "RK5:0.1"], ["--timesteps", "RK4:0.01"], ["--timesteps", "discrete:nan"]):
+        assert main(["bench", "mujoco-cloth", *bad]) == 2
+        assert "--timesteps: integrator discrete or Euler" in capsys.readouterr().err
+    for bad in (["--seconds", "0"], ["--seconds", "inf"], ["--settle", "nan"]):
+        assert main(["bench", "mujoco-cloth", *bad]) == 2
+        assert "must be finite and > 0" in capsys.readouterr().err
+
+
+def test_an_old_mujoco_is_named_not_a_traceback(monkeypatch: pytest.MonkeyPatch) -> None:
+    monkeypatch.delattr(mujoco.mjtIntegrator, "mjINT_DISCRETE")
+    assert "needs mujoco >= 3.13" in mujoco_cloth.flex_cloth_unavailable()
+    assert "needs mujoco >= 3.13" in mujoco_cloth.cloth_anchor(steps=1)["reason"]
 
 
 def test_the_dropped_sheet_starts_in_free_fall_in_both_simulators(scene) -> None:

@@ -197,3 +197,10 @@ def test_lower_start_starts_where_phi_is_lower(monkeypatch) -> None:
 def test_unknown_start_raises() -> None:
     with pytest.raises(ValueError, match="start"):
         LatentStepper(scenes.build("mini_chain"), pretrained.load("mini_chain"), DT, start="zero")
+
+
+@pytest.mark.parametrize("warm_refresh", ["false", 0, None])
+def test_warm_refresh_must_be_a_bool(warm_refresh) -> None:
+    """A JSON string such as "false" would otherwise read as True."""
+    with pytest.raises(ValueError, match="warm_refresh must be True or False"):
+        LatentStepper(scenes.build("mini_chain"), pretrained.load("mini_chain"), DT, warm_refresh=warm_refresh)

@@ -295,17 +295,23 @@ def test_forced_blow_up_is_flagged_diverged_and_stays_finite(mini_chain, dense: 
     assert not bool(stats.diverged.any())
 
 
+@pytest.mark.parametrize("start", ["extrapolated", "lower"])
 @pytest.mark.parametrize("dense", [False, True])
-def test_non_finite_trials_are_rejected(mini_chain, dense: bool) -> None:
+def test_non_finite_trials_are_rejected(mini_chain, dense: bool, start: str) -> None:
+    """A NaN extrapolated start solves from z_t instead: a finite step, not a diverged one that stays put."""
     scene, f = mini_chain
-    stepper = LatentStepper(scene, f, DT, energy=_NaNAway(MapEnergy(scene, f)), dense=dense)
+    stepper = LatentStepper(scene, f, DT, energy=_NaNAway(MapEnergy(scene, f)), dense=dense, start=start)
     z = torch.zeros(1, stepper.latent_dim)
     z[0, 0] = 0.9
     z_prev = z.clone()
     z_prev[0, 0] = 0.6  # moving outward fast: the extrapolated start (1.2) is NaN
-    z_next, _ = stepper.step(z, z_prev)
+    z_next, stats = stepper.step(z, z_prev)
     assert bool(torch.isfinite(z_next).all())
     assert float(torch.linalg.vector_norm(z_next)) <= 1.0 + 1e-6
+    # the minimum lies past the NaN wall, so the solve ends against it unconverged, but it is not flagged
+    # diverged and it moved (a non-finite start used to leave z_t in place, flagged diverged)
+    assert not bool(stats.diverged.any()), stats
+    assert float((z_next - z).abs().max()) > 1e-2
 
 
 @pytest.mark.slow

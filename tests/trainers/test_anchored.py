@@ -148,6 +148,12 @@ def test_modes_anchor_is_linear_modes_and_bad_settings_are_refused() -> None:
         FitConfig(latent_dim=1, periodic=(0,), anchor_map="md")
     with pytest.raises(ValueError, match="anchor_map_cond"):
         FitConfig(anchor_map_cond="all")
+    # options of the anchored map without it would do nothing (and leave the recorded command)
+    with pytest.raises(ValueError, match=r"anchor_map_cond must be .*'default' without anchor_map"):
+        FitConfig(anchor_map_cond="each")
+    with pytest.raises(ValueError, match=r"anchor_radius must be .*0 without anchor_map"):
+        FitConfig(anchor_radius=1.5)
+    FitConfig(anchor_map="md", anchor_map_cond="each", anchor_radius=1.5)
     config = FitConfig(latent_dim=2, anchor_map="modes")
     assert "--anchor-map modes" in fit_command(scene, config, 0, None)
     assert "--anchor-map" not in fit_command(scene, dataclasses.replace(config, anchor_map="none"), 0, None)
