@@ -217,10 +217,17 @@ def _foreign_model(folder: Path) -> Path:
 @pytest.mark.slow
 @pytest.mark.parametrize("env_id", sorted(shipped_policies()))
 def test_each_shipped_policy_beats_random_and_scripted_over_20_episodes(env_id: str) -> None:
+    """On the same 20 episodes (seeds 0-19) the agent's returns are above each baseline's by a paired one-sided
+    t-test at 5%, and it succeeds more often. Paired, because both run the same episodes: an unpaired margin of
+    half the baseline's spread asked Stewart-v0 for 197.3 of at most 200 per episode, the scripted controller's
+    spread coming from 3 episodes it never settles in (README "Agents")."""
+    from scipy import stats
+
     agent = evaluate(env_id, load_agent(shipped_policy(env_id), env_id), episodes=20, seed=0)
     for baseline in ("random", "scripted"):
         other = evaluate(env_id, baseline, episodes=20, seed=0)
-        assert agent.mean > other.mean + 0.5 * other.std, baseline
+        p_value = stats.ttest_rel(agent.returns, other.returns, alternative="greater").pvalue
+        assert p_value < 0.05, (baseline, p_value)
         # a baseline that succeeds in every episode can only be matched (HangingCloth-v1's PI controller)
         assert agent.success_rate > other.success_rate or agent.success_rate == other.success_rate == 1.0, baseline
 
