@@ -207,16 +207,15 @@ def cmd_bench_env_ab(args: argparse.Namespace) -> int:
     width = max(10, *(len(row["name"]) for row in rows))
     out(
         f"{'setting':<{width}} {'CPU ms/step':>11} {'steps/CPU s':>11} {'its (slowest)':>14} {'calls':>6} "
-        f"{'rows/copy':>9} {'converged':>9} {'out_of_range':>12} {'diverged':>8}  {f'vs {first}: median (range)'}"
+        f"{'rows/copy':>9} {'converged':>9} {'out_of_range':>12} {'diverged':>8}  vs {first}: median (range)"
     )
     for row in rows:
         ratio = row["ratio"]
         its = f"{row['iterations_per_step']:.2f} ({row['slowest_iterations_per_step']:.1f})"
         out(
             f"{row['name']:<{width}} {row['cpu_ms_per_step']:>11.1f} {row['env_steps_per_cpu_s']:>11.0f} "
-            f"{its:>14} "
-            f"{row['calls_per_step']:>6.1f} {row['rows_per_copy_step']:>9.1f} {row['converged_fraction']:>9.3f} "
-            f"{row['out_of_range']:>12} {row['diverged']:>8}  "
+            f"{its:>14} {row['calls_per_step']:>6.1f} {row['rows_per_copy_step']:>9.1f} "
+            f"{row['converged_fraction']:>9.3f} {row['out_of_range']:>12} {row['diverged']:>8}  "
             f"{ratio['median']:.2f}x ({ratio['min']:.2f}-{ratio['max']:.2f})"
         )
     out(f"per-round CPU ratio vs {first} ({first}'s time over the setting's: > 1 is faster):")
