@@ -10,7 +10,7 @@ scene from the checkpoint's ``.json`` (:func:`redsim.scenes.spec.scene_from_spec
 Modules: :mod:`~redsim.cli.parser` (the parser and :func:`main`), :mod:`~redsim.cli.common`
 (errors, output, shared options), and one per command group: :mod:`~redsim.cli.scenes`
 (scenes, simulate), :mod:`~redsim.cli.subspaces` (fit, inspect, sample, animate),
-:mod:`~redsim.cli.bench` (bench), :mod:`~redsim.cli.envs` (demo, bench envs), :mod:`~redsim.cli.agents`
+:mod:`~redsim.cli.bench` (bench), :mod:`~redsim.cli.envs` (demo, bench envs, bench env-ab), :mod:`~redsim.cli.agents`
 (train-agent, eval-agent).
 
 Exit status: 0 success; 1 a scene failed to build (``scenes``); 2 bad input; 3 NaN or inf;

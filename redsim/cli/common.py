@@ -135,10 +135,12 @@ def parse_params(items: Sequence[str], flag: str = "--param", example: str = "li
     return params
 
 
-def parse_env_args(items: Sequence[str], env_ids: Sequence[str]) -> dict[str, Any]:
-    """Env keyword arguments from ``--env-arg KEY=VALUE`` pairs (VALUE a JSON literal), checked by making each
-    of ``env_ids`` once with them, so that a bad one is a one-line :class:`CliError` rather than a traceback."""
-    kwargs = parse_params(items, "--env-arg", "cubature=true")
+def parse_env_args(
+    items: Sequence[str], env_ids: Sequence[str], flag: str = "--env-arg", example: str = "cubature=true"
+) -> dict[str, Any]:
+    """Env keyword arguments from ``KEY=VALUE`` pairs (VALUE a JSON literal; given with ``flag``), checked by making
+    each of ``env_ids`` once with them, so that a bad one is a one-line :class:`CliError` rather than a traceback."""
+    kwargs = parse_params(items, flag, example)
     if kwargs:
         import gymnasium as gym
 
@@ -146,7 +148,7 @@ def parse_env_args(items: Sequence[str], env_ids: Sequence[str]) -> dict[str, An
             try:
                 gym.make(env_id, **kwargs).close()
             except (TypeError, ValueError) as err:
-                raise CliError(f"cannot make {env_id} with --env-arg {' '.join(items)}: {err}") from err
+                raise CliError(f"cannot make {env_id} with {flag} {' '.join(items)}: {err}") from err
     return kwargs
 
 

@@ -1,9 +1,11 @@
-"""The env commands: ``redsim demo ENV_ID``, ``redsim bench envs`` and its cloth anchor, ``bench mujoco-cloth``."""
+"""The env commands: ``redsim demo ENV_ID``, ``redsim bench envs`` and its cloth anchor, ``bench mujoco-cloth``,
+and ``redsim bench env-ab ENV_ID`` (an interleaved A/B of env settings)."""
 
 from __future__ import annotations
 
 import argparse
 import dataclasses
+import json
 from typing import Any
 
 from redsim.cli.bench import _machine_line
@@ -131,6 +133,97 @@ def cmd_bench_envs(args: argparse.Namespace) -> int:
     else:
         for line in lines:
             out(line)
+    return EXIT_OK
+
+
+def _parse_settings(items: list[str], env_id: str) -> dict[str, dict[str, Any]]:
+    """``--setting NAME[:KEY=VALUE]`` items -> name -> env keyword arguments, in the order the names first appear
+    (a repeated NAME adds its KEY=VALUE to that setting; a bare NAME is the env's defaults)."""
+    groups: dict[str, list[str]] = {}
+    for item in items:
+        name, _, pair = item.partition(":")
+        name = name.strip()
+        if not name or "=" in name:
+            raise CliError(
+                f"malformed --setting {item!r}: expected NAME or NAME:KEY=VALUE, e.g. --setting default "
+                "--setting tight:stepper_options='{\"tol\": 1e-7}'"
+            )
+        groups.setdefault(name, [])
+        if pair:
+            groups[name].append(pair)
+    if len(groups) < 2:
+        raise CliError(f"give at least two settings (--setting NAME[:KEY=VALUE], repeated), got {list(groups)}")
+    settings = {}
+    for name, pairs in groups.items():
+        try:
+            settings[name] = parse_env_args(pairs, [env_id], "--setting", f"{name}:cubature=true")
+        except CliError as err:
+            raise CliError(f"setting {name!r}: {err}") from err
+        if "device" in settings[name]:
+            raise CliError(f"setting {name!r}: env-ab measures CPU time on the CPU; drop device=...")
+    return settings
+
+
+def cmd_bench_env_ab(args: argparse.Namespace) -> int:
+    from redsim.bench import machine_info
+    from redsim.envs.bench_ab import bench_env_ab
+
+    _check_id(args.env_id)
+    for flag, value, least in (
+        ("--num-envs", args.num_envs, 1),
+        ("--rounds", args.rounds, 1),
+        ("--steps-per-round", args.steps_per_round, 1),
+        ("--warmup", args.warmup, 0),
+    ):
+        if value < least:
+            raise CliError(f"{flag} must be an integer >= {least}, got {value}")
+    settings = _parse_settings(args.setting, args.env_id)
+    machine = machine_info()
+    result = bench_env_ab(
+        args.env_id,
+        settings,
+        num_envs=args.num_envs,
+        rounds=args.rounds,
+        steps_per_round=args.steps_per_round,
+        warmup=args.warmup,
+        seed=args.seed,
+    )
+    result["machine"] = machine
+    result["load_average_1min_end"] = machine_info()["load_average_1min"]
+    if args.json:
+        json_out(result)
+        return EXIT_OK
+    rows = result["settings"]
+    first = rows[0]["name"]
+    out(
+        f"interleaved A/B of {args.env_id}: {args.num_envs} envs, {args.rounds} rounds of {args.steps_per_round} "
+        f"vector steps per setting after {args.warmup} untimed (order reversed every other round), the same "
+        f"random actions (seed {args.seed}); CPU time of this process"
+    )
+    out(_machine_line(machine, "cpu"))
+    for row in rows:
+        shown = " ".join(f"{k}={json.dumps(v)}" for k, v in row["env_args"].items()) or "the env's defaults"
+        out(f"  {row['name']}: {shown}")
+    width = max(10, *(len(row["name"]) for row in rows))
+    out(
+        f"{'setting':<{width}} {'CPU ms/step':>11} {'steps/CPU s':>11} {'its (slowest)':>14} {'calls':>6} "
+        f"{'rows/copy':>9} {'converged':>9} {'out_of_range':>12} {'diverged':>8}  vs {first}: median (range)"
+    )
+    for row in rows:
+        ratio = row["ratio"]
+        its = f"{row['iterations_per_step']:.2f} ({row['slowest_iterations_per_step']:.1f})"
+        out(
+            f"{row['name']:<{width}} {row['cpu_ms_per_step']:>11.1f} {row['env_steps_per_cpu_s']:>11.0f} "
+            f"{its:>14} {row['calls_per_step']:>6.1f} {row['rows_per_copy_step']:>9.1f} "
+            f"{row['converged_fraction']:>9.3f} {row['out_of_range']:>12} {row['diverged']:>8}  "
+            f"{ratio['median']:.2f}x ({ratio['min']:.2f}-{ratio['max']:.2f})"
+        )
+    out(f"per-round CPU ratio vs {first} ({first}'s time over the setting's: > 1 is faster):")
+    for row in rows[1:]:
+        out(f"  {row['name']}: " + " ".join(f"{r:.2f}" for r in row["ratio"]["rounds"]))
+    end = result["load_average_1min_end"]
+    if end is not None:
+        out(f"load at the end: {end:.2f}")
     return EXIT_OK
 
 
@@ -305,6 +398,36 @@ def add_commands(sub: Any, bench: Any) -> None:
         "stepper_options='{\"tol\": 1e-5}'); repeatable",
     )
     finish_command(p, cmd_bench_envs, "print one JSON document", default_threads=1)
+
+    p = bench.add_parser(
+        "env-ab",
+        help="interleaved A/B of env settings by CPU time: speed and solver work per setting",
+        description=(
+            "One native vector env of ENV_ID per --setting, in one process, reset with the same seed and fed the "
+            "same uniform random actions; after --warmup untimed steps, --rounds rounds of --steps-per-round vector "
+            "steps of every setting (order reversed every other round), each round timed by this process's CPU "
+            "time. Prints per setting the median CPU ms per vector step, env steps per CPU second, the solver's "
+            "iterations per copy (of the slowest copy), value-and-gradient calls per step and rows per copy, the "
+            "converged fraction and the out_of_range / diverged copy-steps; then each setting's per-round CPU "
+            "ratio against the first setting."
+        ),
+    )
+    p.add_argument("env_id", metavar="ENV_ID", help="a RedSim env id")
+    p.add_argument(
+        "--setting",
+        action="append",
+        default=[],
+        metavar="NAME[:KEY=VALUE]",
+        help="a setting to compare: a name and one keyword argument of the env, VALUE a JSON literal as in "
+        "`bench envs --env-arg` (e.g. old:stepper_options='{\"warm_refresh\": true}'); a bare NAME is the env's "
+        "defaults; repeat NAME to add arguments to it; at least two settings, the first the ratios' reference",
+    )
+    p.add_argument("--num-envs", type=int, default=64, help="copies per vector env (default 64)")
+    p.add_argument("--rounds", type=int, default=4, help="timed rounds (default 4)")
+    p.add_argument("--steps-per-round", type=int, default=10, help="vector steps per setting and round (default 10)")
+    p.add_argument("--warmup", type=int, default=3, help="untimed vector steps of each setting first (default 3)")
+    p.add_argument("--seed", type=int, default=0, help="seed of the resets and the actions (default 0)")
+    finish_command(p, cmd_bench_env_ab, "print one JSON document", default_threads=1)
 
     p = bench.add_parser(
         "mujoco-cloth",

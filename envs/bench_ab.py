@@ -1,0 +1,161 @@
+"""What `redsim bench env-ab` measures: an interleaved A/B of env settings by CPU time.
+
+On a shared machine a speed difference between two settings of one env (solver options, another
+subspace, the cubature) is only trustworthy when the settings run side by side under the same load.
+So :func:`bench_env_ab` builds one native vector env per setting (``gym.make_vec(..., vectorization_mode=
+"vector_entry_point")``) in one process, resets them all with the same seed, feeds every setting the
+same uniform random actions, and after a few untimed steps alternates rounds of timed steps, the settings
+in order in even rounds and in reverse order in odd ones (ABBA...), timing each round with
+``time.process_time()`` (this process's CPU time, which other processes' load does not add to). Per
+setting it reports the median CPU time of a vector step, the solver's work (iterations per copy,
+value-and-gradient calls and the latent rows they evaluated, :class:`redsim.runtime.Evaluations`, as
+``redsim bench envs`` counts them) and what the solves said (converged, out of range, diverged), and the
+per-round CPU ratio of each setting against the first: the first's time over the setting's in the same
+round, so a ratio above 1 means the setting is faster.
+"""
+
+from __future__ import annotations
+
+import statistics
+import time
+from collections.abc import Mapping
+from typing import Any
+
+import gymnasium as gym
+import numpy as np
+
+from redsim.runtime import Evaluations
+
+
+def bench_env_ab(
+    env_id: str,
+    settings: Mapping[str, Mapping[str, Any]],
+    *,
+    num_envs: int = 64,
+    rounds: int = 4,
+    steps_per_round: int = 10,
+    warmup: int = 3,
+    seed: int = 0,
+) -> dict[str, Any]:
+    """CPU time and solver work of ``env_id``'s native vector env under each of ``settings``, interleaved.
+
+    Args:
+        env_id: A registered id.
+        settings: Name -> keyword arguments of ``gym.make_vec`` (``{}``: the env's defaults), in the order
+            run; the first is the reference of the ratios. At least one.
+        num_envs: Copies per vector env, N.
+        rounds: Timed rounds; each runs ``steps_per_round`` vector steps of every setting.
+        steps_per_round: Vector steps per setting and round.
+        warmup: Untimed vector steps of each setting first (their actions are not reused).
+        seed: Seeds the resets (copy i: ``seed + i``) and the actions.
+
+    Returns:
+        ``env_id``, ``num_envs``, ``rounds``, ``steps_per_round``, ``warmup``, ``seed`` and ``settings``, a list in
+        the order given, each with ``name``, ``env_args``, ``round_cpu_s`` (CPU seconds per vector step, per round),
+        ``cpu_ms_per_step`` (their median [ms]), ``env_steps_per_cpu_s`` (N over that median), and over the timed
+        steps: ``iterations_per_step`` (mean over steps and copies of ``info["iterations"]``),
+        ``slowest_iterations_per_step`` (mean over steps of the slowest copy's), ``calls_per_step`` (the stepper's
+        value-and-gradient calls per vector step), ``rows_per_copy_step`` (latent states those calls evaluated,
+        per copy and step), ``converged_fraction`` (of copy-steps), ``out_of_range`` and ``diverged`` (copy-steps
+        flagged), and ``ratio`` against the first setting: ``rounds`` (its time over this one's, per round),
+        ``median``, ``min``, ``max``.
+
+    Raises:
+        ValueError: no setting, a count < 1 (``warmup`` < 0), or settings whose action spaces differ.
+    """
+    if not settings:
+        raise ValueError("give at least one setting")
+    for name, value in (("num_envs", num_envs), ("rounds", rounds), ("steps_per_round", steps_per_round)):
+        if value < 1:
+            raise ValueError(f"{name} must be >= 1, got {value}")
+    if warmup < 0:
+        raise ValueError(f"warmup must be >= 0, got {warmup}")
+    venvs = {
+        name: gym.make_vec(env_id, num_envs=num_envs, vectorization_mode="vector_entry_point", **kwargs)
+        for name, kwargs in settings.items()
+    }
+    try:
+        shapes = {name: venv.action_space.shape for name, venv in venvs.items()}
+        if len(set(shapes.values())) > 1:
+            raise ValueError(f"the settings' action spaces differ: {shapes}")
+        (shape,) = set(shapes.values())
+        rng = np.random.default_rng(seed)
+        actions = rng.uniform(-1.0, 1.0, (warmup + rounds * steps_per_round, *shape)).astype(np.float32)
+        work = {name: _Work() for name in venvs}
+        for venv in venvs.values():
+            venv.reset(seed=seed)
+            for action in actions[:warmup]:
+                venv.step(action)
+            venv.unwrapped.sim.stepper.evaluations = Evaluations()
+        names = list(venvs)
+        for r in range(rounds):
+            block = actions[warmup + r * steps_per_round : warmup + (r + 1) * steps_per_round]
+            for name in names if r % 2 == 0 else names[::-1]:
+                work[name].run_round(venvs[name], block)
+        results = [_summary(name, settings[name], work[name], work[names[0]], venvs[name], num_envs) for name in names]
+    finally:
+        for venv in venvs.values():
+            venv.close()
+    return {
+        "env_id": env_id,
+        "num_envs": num_envs,
+        "rounds": rounds,
+        "steps_per_round": steps_per_round,
+        "warmup": warmup,
+        "seed": seed,
+        "settings": results,
+    }
+
+
+class _Work:
+    """One setting's timed rounds: CPU seconds per vector step and what each step's ``info`` said."""
+
+    def __init__(self) -> None:
+        self.round_cpu_s: list[float] = []
+        self.iterations: list[float] = []
+        self.slowest: list[float] = []
+        self.converged: list[float] = []
+        self.out_of_range = 0
+        self.diverged = 0
+
+    def run_round(self, venv: Any, actions: np.ndarray) -> None:
+        """Step ``venv`` once per action [N, A] and record the round's CPU time per step [s]."""
+        infos = []
+        start = time.process_time()
+        for action in actions:
+            infos.append(venv.step(action)[4])
+        self.round_cpu_s.append((time.process_time() - start) / len(actions))
+        for info in infos:
+            self.iterations.append(float(np.mean(info["iterations"])))
+            self.slowest.append(float(np.max(info["iterations"])))
+            self.converged.append(float(np.mean(info["converged"])))
+            self.out_of_range += int(np.sum(info["out_of_range"]))
+            self.diverged += int(np.sum(info["diverged"]))
+
+
+def _summary(
+    name: str, env_args: Mapping[str, Any], work: _Work, first: _Work, venv: Any, num_envs: int
+) -> dict[str, Any]:
+    """One setting's row of :func:`bench_env_ab`."""
+    steps = len(work.iterations)
+    evaluations = venv.unwrapped.sim.stepper.evaluations
+    median_s = statistics.median(work.round_cpu_s)
+    ratios = [a / b for a, b in zip(first.round_cpu_s, work.round_cpu_s, strict=True)]
+    return {
+        "name": name,
+        "env_args": dict(env_args),
+        "round_cpu_s": work.round_cpu_s,
+        "cpu_ms_per_step": 1e3 * median_s,
+        "env_steps_per_cpu_s": num_envs / median_s,
+        "iterations_per_step": statistics.fmean(work.iterations),
+        "slowest_iterations_per_step": statistics.fmean(work.slowest),
+        "calls_per_step": evaluations.calls / steps,
+        "rows_per_copy_step": evaluations.rows / (steps * num_envs),
+        "converged_fraction": statistics.fmean(work.converged),
+        "out_of_range": work.out_of_range,
+        "diverged": work.diverged,
+        "ratio": {"rounds": ratios, "median": statistics.median(ratios), "min": min(ratios), "max": max(ratios)},
+    }
+
+
+__all__ = ["bench_env_ab"]

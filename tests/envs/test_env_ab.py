@@ -1,0 +1,98 @@
+"""`redsim bench env-ab` (:mod:`redsim.envs.bench_ab`) on the mini chain, with tiny rounds."""
+
+from __future__ import annotations
+
+import json
+
+import pytest
+
+from redsim.cli import main
+from redsim.envs.bench_ab import bench_env_ab
+
+TINY = ["--num-envs", "3", "--rounds", "2", "--steps-per-round", "2", "--warmup", "1"]
+WORK = ("iterations_per_step", "slowest_iterations_per_step", "calls_per_step", "rows_per_copy_step")
+
+
+def test_env_ab_json_counts_the_work_and_the_same_setting_twice_does_the_same_work(
+    capsys: pytest.CaptureFixture[str],
+) -> None:
+    args = ["bench", "env-ab", "RedSim/MiniChain-v0", "--setting", "a", "--setting", "again"]
+    args += ["--setting", 'loose:stepper_options={"tol": 1e-4}', "--setting", "loose:include_q=false"]
+    assert main([*args, *TINY, "--json"]) == 0
+    doc = json.loads(capsys.readouterr().out)
+    assert doc["env_id"] == "RedSim/MiniChain-v0" and doc["num_envs"] == 3 and doc["rounds"] == 2
+    assert doc["steps_per_round"] == 2 and doc["warmup"] == 1 and doc["seed"] == 0
+    assert "load_average_1min" in doc["machine"] and "load_average_1min_end" in doc
+    a, again, loose = doc["settings"]
+    assert [a["name"], again["name"], loose["name"]] == ["a", "again", "loose"]
+    assert a["env_args"] == again["env_args"] == {}
+    assert loose["env_args"] == {"stepper_options": {"tol": 1e-4}, "include_q": False}  # a repeated NAME adds
+    for row in (a, again, loose):
+        assert len(row["round_cpu_s"]) == 2 and min(row["round_cpu_s"]) > 0
+        assert row["cpu_ms_per_step"] > 0 and row["env_steps_per_cpu_s"] > 0
+        # every vector step evaluates the start and z_t of each copy, then one call per iteration of the slowest
+        assert row["calls_per_step"] >= 1 and row["rows_per_copy_step"] >= 2
+        assert 0 < row["iterations_per_step"] <= row["slowest_iterations_per_step"] <= row["calls_per_step"] - 1
+        assert 0.0 <= row["converged_fraction"] <= 1.0 and row["out_of_range"] >= 0 and row["diverged"] >= 0
+        ratio = row["ratio"]
+        assert len(ratio["rounds"]) == 2 and ratio["min"] <= ratio["median"] <= ratio["max"]
+    assert a["ratio"]["rounds"] == [1.0, 1.0]
+    for key in (*WORK, "converged_fraction", "out_of_range", "diverged"):  # same seed, same actions: same solves
+        assert a[key] == again[key], key
+    assert loose["iterations_per_step"] < a["iterations_per_step"]  # a 100x looser tolerance stops sooner
+
+
+def test_env_ab_prints_a_row_per_setting_and_the_ratios(capsys: pytest.CaptureFixture[str]) -> None:
+    args = ["bench", "env-ab", "RedSim/MiniChain-v0", "--setting", "cold"]
+    assert main([*args, "--setting", 'warm:stepper_options={"warm_start": true}', *TINY]) == 0
+    text = capsys.readouterr().out
+    assert "interleaved A/B of RedSim/MiniChain-v0: 3 envs, 2 rounds of 2 vector steps" in text
+    assert "  cold: the env's defaults" in text and '  warm: stepper_options={"warm_start": true}' in text
+    lines = text.splitlines()
+    assert any(line.startswith("cold ") and "1.00x (1.00-1.00)" in line for line in lines)
+    assert any(line.startswith("warm ") and line.endswith(")") for line in lines)
+    assert "per-round CPU ratio vs cold" in text and "machine:" in text
+
+
+@pytest.mark.parametrize(
+    ("extra", "expected"),
+    [
+        (["RedSim/Nope-v0", "--setting", "a", "--setting", "b"], "unknown env 'RedSim/Nope-v0'"),
+        (["RedSim/MiniChain-v0", "--setting", "a"], "give at least two settings"),
+        (["RedSim/MiniChain-v0", "--setting", "a", "--setting", "a:tol=1"], "give at least two settings"),
+        (["RedSim/MiniChain-v0", "--setting", "a", "--setting", ":tol=1"], "malformed --setting ':tol=1'"),
+        (["RedSim/MiniChain-v0", "--setting", "a", "--setting", "tol=1"], "malformed --setting 'tol=1'"),
+        (["RedSim/MiniChain-v0", "--setting", "a", "--setting", "b:tol"], "setting 'b': malformed --setting 'tol'"),
+        (["RedSim/MiniChain-v0", "--setting", "a", "--setting", "b:dtype=float64"], "VALUE must be a JSON literal"),
+        (
+            ["RedSim/MiniChain-v0", "--setting", "a", "--setting", "b:no_such_option=1"],
+            "setting 'b': cannot make RedSim/MiniChain-v0 with --setting no_such_option=1",
+        ),
+        (["RedSim/MiniChain-v0", "--setting", "a", "--setting", 'b:device="cpu"'], "drop device="),
+        (["RedSim/MiniChain-v0", "--setting", "a", "--setting", "b", "--num-envs", "0"], "--num-envs must be"),
+        (["RedSim/MiniChain-v0", "--setting", "a", "--setting", "b", "--rounds", "0"], "--rounds must be"),
+        (["RedSim/MiniChain-v0", "--setting", "a", "--setting", "b", "--steps-per-round", "0"], "--steps-per-round"),
+        (["RedSim/MiniChain-v0", "--setting", "a", "--setting", "b", "--warmup", "-1"], "--warmup must be"),
+        (["RedSim/MiniChain-v0", "--setting", "a", "--setting", "b", "--rounds", "two"], "invalid int value"),
+    ],
+)
+def test_env_ab_bad_input_is_a_usage_error(extra: list[str], expected: str, capsys: pytest.CaptureFixture[str]) -> None:
+    assert main(["bench", "env-ab", *extra]) == 2
+    err = capsys.readouterr().err
+    assert err.startswith("redsim: error: ") and expected in err and "Traceback" not in err
+
+
+@pytest.mark.parametrize(
+    ("kwargs", "expected"),
+    [
+        ({"settings": {}}, "at least one setting"),
+        ({"num_envs": 0}, "num_envs must be >= 1"),
+        ({"rounds": 0}, "rounds must be >= 1"),
+        ({"steps_per_round": 0}, "steps_per_round must be >= 1"),
+        ({"warmup": -1}, "warmup must be >= 0"),
+    ],
+)
+def test_bench_env_ab_rejects_bad_counts_before_making_envs(kwargs: dict, expected: str) -> None:
+    call = {"settings": {"a": {}}, **kwargs}
+    with pytest.raises(ValueError, match=expected):
+        bench_env_ab("RedSim/MiniChain-v0", **call)
