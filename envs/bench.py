@@ -25,12 +25,27 @@ import gymnasium as gym
 import numpy as np
 import torch
 
-from redsim.bench import median_time
 from redsim.runtime import Evaluations
 
 DEFAULT_BATCHES = (16, 64, 256)
 RENDER_SIZE = (480, 480)
 """Width and height [px] of the timed frame (Gymnasium's and the envs' default)."""
+
+
+def median_time(call: Callable[[], Any], repeats: int, budget: float) -> tuple[float, int]:
+    """Median wall time [s] of ``call`` over up to ``repeats`` calls (fewer once ``budget`` seconds are spent).
+
+    Returns:
+        The median and the number of calls timed (at least one).
+    """
+    times: list[float] = []
+    spent = 0.0
+    while len(times) < repeats and (not times or spent < budget):
+        start = time.perf_counter()
+        call()
+        times.append(time.perf_counter() - start)
+        spent += times[-1]
+    return statistics.median(times), len(times)
 
 
 def _full_space_step(env: Any, repeats: int, budget: float, rng: np.random.Generator) -> dict[str, Any]:
@@ -258,5 +273,6 @@ __all__ = [
     "RENDER_SIZE",
     "anchor_lines",
     "bench_env",
+    "median_time",
     "mujoco_anchors",
 ]

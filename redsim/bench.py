@@ -12,7 +12,6 @@ import os
 import platform
 import statistics
 import time
-from collections.abc import Callable
 from typing import Any
 
 import torch
@@ -38,22 +37,6 @@ def machine_info() -> dict[str, Any]:
         "torch_threads": torch.get_num_threads(),
         "cuda_device": torch.cuda.get_device_name(0) if torch.cuda.is_available() else None,
     }
-
-
-def median_time(call: Callable[[], Any], repeats: int, budget: float) -> tuple[float, int]:
-    """Median wall time [s] of ``call`` over up to ``repeats`` calls (fewer once ``budget`` seconds are spent).
-
-    Returns:
-        The median and the number of calls timed (at least one).
-    """
-    times: list[float] = []
-    spent = 0.0
-    while len(times) < repeats and (not times or spent < budget):
-        start = time.perf_counter()
-        call()
-        times.append(time.perf_counter() - start)
-        spent += times[-1]
-    return statistics.median(times), len(times)
 
 
 def _sync(device: torch.device) -> None:

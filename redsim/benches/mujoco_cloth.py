@@ -36,7 +36,7 @@ from typing import Any
 import numpy as np
 import torch
 
-from redsim.bench import median_time
+from redsim.envs.bench import median_time
 from redsim.scene import Scene
 
 CLOTH_SCENE = "hanging_sheet"
