@@ -19,7 +19,7 @@ reported as ``reward_position``, ``reward_orientation``, ``reward_control`` and 
 from __future__ import annotations
 
 from collections.abc import Mapping
-from typing import TYPE_CHECKING, Any
+from typing import TYPE_CHECKING, Any, ClassVar
 
 import numpy as np
 import torch
@@ -265,11 +265,21 @@ class StewartEnv(LatentEnv):
     | `fit_if_missing` | False | fit a map for `scene_params` no shipped map covers into the user cache |
     | `fit_options` | None | FitConfig fields over the scene's preset for that fit |
     | `include_q` | False | put q [n] in `info["q"]` |
+    | `stepper_options` | `{"max_step": 2.0, "warm_refresh": False, "start": "lower"}` | solver options over these |
     | `**kwargs` | | more :class:`LatentEnv` arguments (`dtype`, `device`, `width`, `height`, `camera`, ...) |
 
+    `stepper_options` (a :class:`LatentEnv` argument): no solver trial moves z by more than 2 latent units, the
+    warm model is BFGS-updated from step to step and never rebuilt, and each solve starts at the lower of the
+    extrapolated state and the current one (1.14x faster at 64 envs: 11.8 instead of 13.9 value-and-gradient calls
+    per vector step; README "Env speed"). `{"max_step": None, "warm_refresh": True, "start": "extrapolated"}` gives
+    the solver's general defaults.
+
     ## Version History
-    - v0: first version.
+    - v0: first version. Its solver defaults (`stepper_defaults`) later changed the path of each solve, not its
+      minimum: the golden rollout passes either way and the shipped policy scores alike (README "Env speed").
     """
+
+    stepper_defaults: ClassVar[dict[str, Any]] = {"max_step": 2.0, "warm_refresh": False, "start": "lower"}
 
     def __init__(
         self,
