@@ -247,6 +247,28 @@ class Evaluation:
     def success_rate(self) -> float:
         return float(np.mean(self.successes))
 
+    def above(self, other: Evaluation) -> tuple[float, int]:
+        """How clearly these returns lie above ``other``'s on the same episodes (same seed and count).
+
+        Returns:
+            The p-value of a paired one-sided t-test (mean of self - other > 0) and the number of episodes
+            in which self returned more.
+
+        Raises:
+            ValueError: ``other`` ran other episodes.
+        """
+        from scipy import stats
+
+        if other.seed != self.seed or len(other.returns) != len(self.returns):
+            raise ValueError(
+                f"a paired comparison needs the same episodes: seeds {self.seed} and {other.seed}, "
+                f"{len(self.returns)} and {len(other.returns)} episodes"
+            )
+        if np.array_equal(self.returns, other.returns):
+            return 1.0, 0
+        p_value = float(stats.ttest_rel(self.returns, other.returns, alternative="greater").pvalue)
+        return p_value, int(np.sum(self.returns > other.returns))
+
     def as_dict(self) -> dict[str, Any]:
         return {
             "policy": self.policy,

@@ -114,16 +114,24 @@ def cmd_eval_agent(args: argparse.Namespace) -> int:
         raise CliError(str(err)) from err
     policies = {"agent": model, **({"random": "random", "scripted": "scripted"} if args.baselines else {})}
     env_kwargs = _env_kwargs(args)
-    rows = {
-        name: evaluate(args.env_id, policy, episodes=args.episodes, seed=args.seed, env_kwargs=env_kwargs).as_dict()
+    runs = {
+        name: evaluate(args.env_id, policy, episodes=args.episodes, seed=args.seed, env_kwargs=env_kwargs)
         for name, policy in policies.items()
     }
+    rows = {name: run.as_dict() for name, run in runs.items()}
+    for name in rows.keys() - {"agent"}:
+        rows[name]["agent_above_p"], rows[name]["agent_better_episodes"] = runs["agent"].above(runs[name])
     if args.json:
         json_out({"env_id": args.env_id, "model": args.model, **rows})
         return EXIT_OK
     out(f"{args.env_id}, {args.model}:")
     for name, row in rows.items():
         out(_line(name, row))
+        if name != "agent":
+            out(
+                f"{'':<9} agent above {name}: paired one-sided t-test p = {row['agent_above_p']:.2g}, "
+                f"better in {row['agent_better_episodes']} of {row['episodes']} episodes"
+            )
     return EXIT_OK
 
 

@@ -67,6 +67,11 @@ def test_evaluation_is_seeded_and_the_scripted_controller_beats_random() -> None
     np.testing.assert_array_equal(scripted.final_distance < radius, scripted.successes)  # [m], the last step's
     assert first.saturated_steps.shape == (3,) and np.all(first.saturated_steps < 0.05)  # uniform actions
     assert first.as_dict()["successes"] == first.successes.tolist()
+    p_value, better = scripted.above(first)  # paired over the same three episodes
+    assert p_value < 0.05 and better == 3
+    assert first.above(scripted)[0] > 0.95 and first.above(first) == (1.0, 0)
+    with pytest.raises(ValueError, match="the same episodes"):
+        scripted.above(evaluate(MINI, "random", episodes=3, seed=6, env_kwargs={"max_episode_steps": 40}))
     with pytest.raises(ValueError, match="policy must be"):
         evaluate(MINI, "greedy", episodes=2)
     with pytest.raises(ValueError, match="unknown env"):
@@ -108,11 +113,18 @@ def test_train_resume_and_evaluate_through_the_cli(cli: Callable[..., tuple[int,
     assert steps == sorted(steps) and steps[-1] == 300 and steps[0] <= 200  # the first run's rows are kept
 
     code, stdout, err = cli(
-        "eval-agent", str(out / "model.zip"), MINI, "--episodes", "2", "--episode-steps", "20", "--json"
+        "eval-agent", str(out / "model.zip"), MINI, "--episodes", "2", "--episode-steps", "20", "--json", "--baselines"
     )
     assert code == 0, err
-    agent = json.loads(stdout)["agent"]
+    doc = json.loads(stdout)
+    agent = doc["agent"]
     assert agent["episodes"] == 2 and np.isfinite(agent["mean_return"]) and 0.0 <= agent["success_rate"] <= 1.0
+    for name in ("random", "scripted"):
+        assert 0.0 <= doc[name]["agent_above_p"] <= 1.0 and 0 <= doc[name]["agent_better_episodes"] <= 2
+    code, stdout, err = cli(
+        "eval-agent", str(out / "model.zip"), MINI, "--episodes", "2", "--episode-steps", "20", "--baselines"
+    )
+    assert code == 0 and "agent above scripted: paired one-sided t-test p = " in stdout, err
 
     agent = load_agent(out / "model.zip", MINI)  # acts through the saved VecNormalize statistics
     obs = np.random.default_rng(0).normal(size=(3, 14)).astype(np.float32)
@@ -221,12 +233,10 @@ def test_each_shipped_policy_beats_random_and_scripted_over_20_episodes(env_id: 
     t-test at 5%, and it succeeds more often. Paired, because both run the same episodes: an unpaired margin of
     half the baseline's spread asked Stewart-v0 for 197.3 of at most 200 per episode, the scripted controller's
     spread coming from 3 episodes it never settles in (README "Agents")."""
-    from scipy import stats
-
     agent = evaluate(env_id, load_agent(shipped_policy(env_id), env_id), episodes=20, seed=0)
     for baseline in ("random", "scripted"):
         other = evaluate(env_id, baseline, episodes=20, seed=0)
-        p_value = stats.ttest_rel(agent.returns, other.returns, alternative="greater").pvalue
+        p_value, _ = agent.above(other)
         assert p_value < 0.05, (baseline, p_value)
         # a baseline that succeeds in every episode can only be matched (HangingCloth-v1's PI controller)
         assert agent.success_rate > other.success_rate or agent.success_rate == other.success_rate == 1.0, baseline
