@@ -133,11 +133,25 @@ def test_simulate_nan_exits_3(capsys: pytest.CaptureFixture[str], monkeypatch: p
         (["simulate", TOY, "--steps", "0"], "--steps must be"),
         (["simulate", TOY, "--param", "young=soft"], "JSON literal"),
         (["simulate", TOY, "--param", "no_such_param=1"], "cannot build scene"),
+        (["simulate", TOY, "--param", "young=1e4", "--param", "young=2e4"], "--param young given twice"),
         (["simulate", TOY, "--dt", "fast"], "invalid float value"),
         (["simulate", TOY, "--max-iter", "0"], "max_iter"),
         (["bench", "energy", "--scenes", "no_such_scene"], TOY),
     ],
-    ids=["scene", "handle", "load", "dt0", "dt<0", "steps", "param", "param-key", "dt-text", "max-iter", "bench-scene"],
+    ids=[
+        "scene",
+        "handle",
+        "load",
+        "dt0",
+        "dt<0",
+        "steps",
+        "param",
+        "param-key",
+        "param-twice",
+        "dt-text",
+        "max-iter",
+        "bench-scene",
+    ],
 )
 def test_bad_input_is_one_line_exit_2(capsys: pytest.CaptureFixture[str], argv: list[str], expected: str) -> None:
     code, out, err = run(capsys, *argv)

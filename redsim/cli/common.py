@@ -118,13 +118,16 @@ def build_scene(name: str, params: dict[str, Any] | None = None) -> Scene:
 
 
 def parse_params(items: Sequence[str], flag: str = "--param", example: str = "links=3") -> dict[str, Any]:
-    """``KEY=VALUE`` pairs (given with ``flag``) with VALUE a JSON literal (``3``, ``0.5``, ``false``, ``"text"``)."""
+    """``KEY=VALUE`` pairs (given with ``flag``) with VALUE a JSON literal (``3``, ``0.5``, ``false``, ``"text"``);
+    a KEY given twice is an error (the second would silently win)."""
     params: dict[str, Any] = {}
     for item in items:
         key, sep, value = item.partition("=")
         key = key.strip()
         if not sep or not key.isidentifier():
             raise CliError(f"malformed {flag} {item!r}: expected KEY=VALUE, e.g. {flag} {example}")
+        if key in params:
+            raise CliError(f"{flag} {key} given twice; give each KEY once")
         try:
             params[key] = json.loads(value)
         except json.JSONDecodeError as err:

@@ -89,3 +89,6 @@ def test_bench_envs_bad_env_arg_is_a_usage_error(
 ) -> None:
     assert main(["bench", "envs", "--envs", "RedSim/MiniChain-v0", "--env-arg", env_arg]) == 2
     assert expected in capsys.readouterr().err
+    twice = ["--env-arg", "max_force=1.0", "--env-arg", "max_force=2.0"]
+    assert main(["bench", "envs", "--envs", "RedSim/MiniChain-v0", *twice]) == 2
+    assert "--env-arg max_force given twice" in capsys.readouterr().err
