@@ -29,6 +29,7 @@ ENVS: dict[str, tuple[str, str, int, dict[str, Any]]] = {
         {"targets": "held", "target_spread": 0.8, "cubature": True},
     ),
     "RedSim/ConditionalBar-v0": ("conditional_bar", "ConditionalBarEnv", 200, {}),
+    "RedSim/ConditionalBar-v1": ("conditional_bar", "ConditionalBarEnv", 200, {"cubature": True}),
     "RedSim/Klann-v0": ("klann", "KlannEnv", 300, {}),
     "RedSim/Stewart-v0": ("stewart", "StewartEnv", 200, {}),
     "RedSim/BistableBar-v0": ("bistable_bar", "BistableBarEnv", 200, {}),

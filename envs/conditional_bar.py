@@ -1,4 +1,4 @@
-"""`RedSim/ConditionalBar-v0`: steer the tip of a bar whose stiffness and support move per episode."""
+"""`RedSim/ConditionalBar-v0` and `-v1`: steer the tip of a bar whose stiffness and support move per episode."""
 
 from __future__ import annotations
 
@@ -59,7 +59,14 @@ class ConditionalBarEnv(ReachEnv):
     of 39 value-and-gradient calls per vector step; README "Env speed"). `{"max_step": None, "warm_refresh":
     True, "start": "extrapolated"}` gives the solver's general defaults.
 
+    | Argument | Default | Meaning |
+    |---|---|---|
+    | `cubature` | None: off (v1: True) | `True`: the shipped cubature, 200 of 846 elastic elements (error 1.9%) |
+
     ## Version History
+    - v1: v0 on the shipped cubature (`cubature=True`; held-out force error 1.9%, 100-step trajectory deviation
+      1.6%, README "Cubature"): 1.34x faster at 64 envs by CPU time (README "Env speed"); the same task,
+      observation and reward.
     - v0: first version. Its solver defaults (`stepper_defaults`) later limited trial steps, kept the warm
       model and started from the lower of two points: the same steps to the solve's tolerance (its golden rollout
       passes either way), 1.6x faster.

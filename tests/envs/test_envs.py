@@ -24,7 +24,13 @@ from redsim.envs.reach import HandleReach
 from redsim.subspace import CheckpointError
 
 FAST = ("RedSim/MiniChain-v0", "RedSim/ConditionalBar-v0")
-SLOW = ("RedSim/Chain-v0", "RedSim/ClothBall-v0", "RedSim/HangingCloth-v0", "RedSim/HangingCloth-v1")
+SLOW = (
+    "RedSim/Chain-v0",
+    "RedSim/ClothBall-v0",
+    "RedSim/HangingCloth-v0",
+    "RedSim/HangingCloth-v1",
+    "RedSim/ConditionalBar-v1",
+)
 ALL_IDS = [*FAST, *(pytest.param(i, marks=pytest.mark.slow) for i in SLOW)]
 LINKAGES = ("RedSim/Klann-v0", "RedSim/Stewart-v0")
 """Not reach tasks: their task checks are in test_linkage_envs.py; the contract checks run here under -m slow."""
