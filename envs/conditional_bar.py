@@ -55,7 +55,7 @@ class ConditionalBarEnv(ReachEnv):
     As :class:`redsim.envs.reach.ReachEnv`; `max_force` and `target_spread` default to 300 N, spread 0.5, and
     `stepper_options` to `{"max_step": 2.0, "warm_refresh": False, "start": "lower"}`: no solver trial moves z by
     more than 2 latent units, the warm model is BFGS-updated from step to step and never rebuilt, and each solve
-    starts at the lower of the extrapolated state and the current one (1.6x faster at 64 envs here: 23 instead
+    starts at the lower of the extrapolated state and the current one (1.56x faster at 64 envs here: 23 instead
     of 39 value-and-gradient calls per vector step; README "Env speed"). `{"max_step": None, "warm_refresh":
     True, "start": "extrapolated"}` gives the solver's general defaults.
 
@@ -65,8 +65,8 @@ class ConditionalBarEnv(ReachEnv):
 
     ## Version History
     - v1: v0 on the shipped cubature (`cubature=True`; held-out force error 1.9%, 100-step trajectory deviation
-      1.6%, README "Cubature"): 1.34x faster at 64 envs by CPU time (README "Env speed"); the same task,
-      observation and reward.
+      1.6%, README "Cubature"): 1.40x faster at 64 envs by CPU time (`redsim bench env-ab`, README "Gymnasium
+      environments"); the same task, observation and reward.
     - v0: first version. Its solver defaults (`stepper_defaults`) later limited trial steps, kept the warm
       model and started from the lower of two points: the same steps to the solve's tolerance (its golden rollout
       passes either way), 1.6x faster.
