@@ -139,10 +139,18 @@ class _StepObjective:
         self.s.evaluations.calls += 1
         self.s.evaluations.rows += z.shape[0]
         z = z.detach().requires_grad_(True)
+        if self.s.compiled:
+            with torch.enable_grad():
+                value, energy = self.s._phi_fast(z, qbar, loads, cond)
+                (grad,) = torch.autograd.grad(value.sum(), z)
+            return value.detach(), grad, energy.detach()
+        # eager: autograd through E and q only; the inertia and load terms' gradient in q is closed form
+        # (fewer graph nodes per call: 1.06x at 64 envs on ConditionalBar-v1 and Chain-v0, README "Env speed")
         with torch.enable_grad():
-            value, energy = self.s._phi_fast(z, qbar, loads, cond)
-            (grad,) = torch.autograd.grad(value.sum(), z)
-        return value.detach(), grad, energy.detach()
+            energy, q = self.s._energy_coords(z, cond)
+        value, force = self.s._inertia_loads(energy.detach(), q.detach(), qbar, loads)
+        (grad,) = torch.autograd.grad((energy, q), z, (torch.ones_like(energy), force))
+        return value, grad, energy.detach()
 
     def exact_hessian(self, z: Tensor, index: Tensor) -> Tensor:
         k, d = z.shape
@@ -353,6 +361,7 @@ class LatentStepper:
         self._coords = self.energy.positions
         self._mass = scene.mass_matvec
         self._handles = self.handle_positions
+        self._handle_rows = self._handle_matrix
         if self.reduced:
             self._reduce_inertia()
         # force scale pieces, measured at f(0) in float64
@@ -396,6 +405,7 @@ class LatentStepper:
         self._mass = lambda y: y @ gram
         self._mass_norm = lambda v, _mv: (v * (v @ gram_sq)).sum(-1).clamp_min(0.0).sqrt()
         self._handles = lambda y: y @ handle_matrix.T + handle_offset
+        self._handle_rows = handle_matrix
 
     def _mass_norm(self, v: Tensor, mv: Tensor) -> Tensor:
         """|M v| [B] of coordinate velocities v [B, n], given mv = self._mass(v)."""
@@ -407,22 +417,31 @@ class LatentStepper:
             return None
         return space.default.to(device=self.device, dtype=dtype or self.dtype).unsqueeze(0).expand(batch, -1)
 
-    def _phi_eager(self, z: Tensor, qbar: Tensor, loads: Tensor | None, cond: Tensor | None) -> tuple[Tensor, Tensor]:
-        """Phi [k] and E [k] of z [k, d] with inertial targets qbar [k, n], loads [k, H*D] and cond [k, m].
-
-        q and qbar are the stepper's coordinates: the free DOFs, or an energy's features r (reduced inertia).
-        """
+    def _energy_coords(self, z: Tensor, cond: Tensor | None) -> tuple[Tensor, Tensor]:
+        """E [k] and the stepper's coordinates q [k, n] of z [k, d]: the free DOFs, or an energy's features r
+        (reduced inertia)."""
         if self.reduced:
-            energy, q = self.energy.energy_features(z, cond)  # type: ignore[attr-defined]
-        else:
-            energy, q = self.energy.energy(z, cond)
-            if q is None:
-                q = self.energy.positions(z, cond)
+            return self.energy.energy_features(z, cond)  # type: ignore[attr-defined]
+        energy, q = self.energy.energy(z, cond)
+        return energy, self.energy.positions(z, cond) if q is None else q
+
+    def _inertia_loads(self, energy: Tensor, q: Tensor, qbar: Tensor, loads: Tensor | None) -> tuple[Tensor, Tensor]:
+        """Phi [k] = E + |q - qbar|^2_M / (2 h^2) - loads . p(q) from E [k] and q [k, n], and dPhi/dq - dE/dq
+        [k, n] = M (q - qbar) / h^2 - A^T loads in closed form (M symmetric, the handles p = A q + p0 affine)."""
         d = q - qbar
-        value = energy + (0.5 / self.dt**2) * (d * self._mass(d)).sum(-1)
+        md = self._mass(d)
+        value = energy + (0.5 / self.dt**2) * (d * md).sum(-1)
+        force = md * (1.0 / self.dt**2)
         if loads is not None:
             value = value - (loads * self._handles(q)).sum(-1)
-        return value, energy
+            force = force - loads @ self._handle_rows
+        return value, force
+
+    def _phi_eager(self, z: Tensor, qbar: Tensor, loads: Tensor | None, cond: Tensor | None) -> tuple[Tensor, Tensor]:
+        """Phi [k] and E [k] of z [k, d] with inertial targets qbar [k, n], loads [k, H*D] and cond [k, m]
+        (differentiable in z to any order; :meth:`_StepObjective._value_and_grad` takes a shorter way)."""
+        energy, q = self._energy_coords(z, cond)
+        return self._inertia_loads(energy, q, qbar, loads)[0], energy
 
     def handle_positions(self, q: Tensor) -> Tensor:
         """Handle positions [B, H*D] [m] of free configurations q [B, n] (linear in q)."""

@@ -11,8 +11,10 @@ import pytest
 import torch
 
 from redsim import pretrained, scenes
+from redsim.cubature import cubature_energy
 from redsim.integrators import FullState, ImplicitEuler, LatentSpace
 from redsim.runtime import Evaluations, LatentStepper, MapEnergy, StepStats
+from redsim.runtime.stepper import _StepObjective
 
 DT = 0.02
 
@@ -358,3 +360,27 @@ def test_objective_is_what_the_step_minimizes(mini_chain) -> None:
     nearby = z_next + 1e-3 * torch.randn(8, stepper.latent_dim, generator=g, dtype=torch.float64)
     others = stepper.objective(nearby, z.expand(8, -1), z.expand(8, -1), loads.expand(8, -1, -1))
     assert float(best) < float(stepper.objective(z, z, z, loads)) and bool((best < others).all())
+
+
+@pytest.mark.parametrize(("name", "cubature"), [("mini_chain", False), ("conditional_bar", True)])
+def test_closed_form_inertia_gradient_equals_autograd(name: str, cubature: bool) -> None:
+    """The solver's value and gradient (autograd through E and q, the inertia and load terms in closed form)
+    equal autograd through the whole objective, in the free DOFs and in a cubature's features (float64)."""
+    scene = scenes.build(name)
+    f = pretrained.load(name)
+    stepper = LatentStepper(scene, f, DT, dtype=torch.float64, energy=cubature_energy if cubature else None)
+    assert stepper.reduced == cubature
+    g = torch.Generator().manual_seed(0)
+    z = 0.5 * torch.randn(3, stepper.latent_dim, generator=g, dtype=torch.float64)
+    cond = stepper._default_cond(3)
+    with torch.no_grad():
+        qbar = stepper._energy_coords(z + 0.2 * torch.randn(z.shape, generator=g, dtype=torch.float64), cond)[1]
+    loads = _loads(scene, 3, 1, 5.0).reshape(3, -1)
+    objective = _StepObjective(stepper, qbar, loads, cond, z)
+    value, grad, energy = objective._value_and_grad(z, qbar, loads, cond)
+    zr = z.clone().requires_grad_(True)
+    expected, expected_energy = stepper._phi_eager(zr, qbar, loads, cond)
+    (expected_grad,) = torch.autograd.grad(expected.sum(), zr)
+    torch.testing.assert_close(value, expected.detach(), rtol=1e-12, atol=0.0)
+    torch.testing.assert_close(energy, expected_energy.detach(), rtol=0.0, atol=0.0)
+    torch.testing.assert_close(grad, expected_grad, rtol=1e-9, atol=1e-9 * float(expected_grad.abs().max()))
