@@ -78,6 +78,7 @@ def bench_env(
     budget: float = 20.0,
     full_space: bool = True,
     seed: int = 0,
+    shards: int = 1,
     **env_kwargs: Any,
 ) -> dict[str, Any]:
     """Timings of one env id (module doc).
@@ -90,6 +91,8 @@ def bench_env(
         budget: Seconds of timing per configuration.
         full_space: Also time the scene's full-space step.
         seed: Seeds resets and actions.
+        shards: Worker processes of each vector env (1: the native vector env in this process; P > 1: a
+            :class:`redsim.envs.sharded.ShardedVectorEnv`, whose solver calls and rows are not counted: None).
         **env_kwargs: Passed to ``gym.make``/``gym.make_vec``.
 
     Returns:
@@ -135,7 +138,10 @@ def bench_env(
     frame_s, frames = median_time(lambda: env.sim.draw(view, 0), steps, budget)
     row["render"] = {"frames_per_s": 1.0 / frame_s, "size": list(RENDER_SIZE), "repeats": frames}
     for batch in batches:
-        venv = gym.make_vec(env_id, num_envs=int(batch), vectorization_mode="vector_entry_point", **env_kwargs)
+        sharding = {"shards": shards} if shards != 1 else {}
+        venv = gym.make_vec(
+            env_id, num_envs=int(batch), vectorization_mode="vector_entry_point", **sharding, **env_kwargs
+        )
         venv.reset(seed=seed)
         actions = rng.uniform(-1.0, 1.0, (max(steps, 1) + warmup, *venv.action_space.shape)).astype(np.float32)
         cursor = iter(actions)
@@ -153,8 +159,9 @@ def bench_env(
             vector_step()
         iterations.clear()
         slowest.clear()
-        stepper = venv.unwrapped.sim.stepper
-        stepper.evaluations = Evaluations()
+        stepper = None if shards != 1 else venv.unwrapped.sim.stepper
+        if stepper is not None:
+            stepper.evaluations = Evaluations()
         seconds, count = median_time(vector_step, steps, budget)
         row["vector"][int(batch)] = {
             "env_steps_per_s": batch / seconds,
@@ -162,8 +169,9 @@ def bench_env(
             "repeats": count,
             "iterations_per_step": statistics.fmean(iterations),
             "slowest_iterations_per_step": statistics.fmean(slowest),
-            "calls_per_step": stepper.evaluations.calls / count,
-            "rows_per_copy_step": stepper.evaluations.rows / (count * batch),
+            "calls_per_step": None if stepper is None else stepper.evaluations.calls / count,
+            "rows_per_copy_step": None if stepper is None else stepper.evaluations.rows / (count * batch),
+            "shards": shards,
         }
         venv.close()
     row["full_space"] = None

@@ -7,7 +7,8 @@
 
 SB3 resets a finished copy in the same step and expects its last observation in
 ``infos[i]["terminal_observation"]`` and ``infos[i]["TimeLimit.truncated"]``; the adapter runs the
-vector env with ``AutoresetMode.SAME_STEP`` and translates.
+vector env with ``AutoresetMode.SAME_STEP`` and translates. ``SB3VecEnv.make(id, num_envs=64, shards=2)``
+steps the copies in 2 worker processes (:mod:`redsim.envs.sharded`).
 """
 
 from __future__ import annotations
@@ -20,11 +21,13 @@ import numpy as np
 from gymnasium.vector import AutoresetMode
 from stable_baselines3.common.vec_env import VecEnv
 
+from redsim.envs.sharded import ShardedVectorEnv
 from redsim.envs.vector import LatentVectorEnv
 
 
 class SB3VecEnv(VecEnv):
-    """SB3's VecEnv interface over a :class:`LatentVectorEnv` (which must use ``AutoresetMode.SAME_STEP``).
+    """SB3's VecEnv interface over a :class:`LatentVectorEnv` or :class:`ShardedVectorEnv` (which must use
+    ``AutoresetMode.SAME_STEP``).
 
     Args:
         venv: The vector env.
@@ -33,7 +36,7 @@ class SB3VecEnv(VecEnv):
         ValueError: a vector env in another autoreset mode.
     """
 
-    def __init__(self, venv: LatentVectorEnv) -> None:
+    def __init__(self, venv: LatentVectorEnv | ShardedVectorEnv) -> None:
         if venv.metadata["autoreset_mode"] != AutoresetMode.SAME_STEP:
             raise ValueError("SB3VecEnv needs a LatentVectorEnv with autoreset_mode=AutoresetMode.SAME_STEP")
         self.venv = venv

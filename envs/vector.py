@@ -13,6 +13,7 @@ For stable-baselines3 use :class:`redsim.envs.sb3.SB3VecEnv`.
 from __future__ import annotations
 
 import copy
+import functools
 from collections.abc import Callable, Sequence
 from typing import TYPE_CHECKING, Any
 
@@ -22,6 +23,7 @@ from gymnasium.vector import AutoresetMode, VectorEnv
 from gymnasium.vector.utils import batch_space
 
 from redsim.envs.base import check_action
+from redsim.envs.sharded import ShardedVectorEnv
 
 if TYPE_CHECKING:
     from redsim.envs.base import LatentEnv
@@ -166,7 +168,21 @@ def _with_masks(info: dict[str, np.ndarray], mask: np.ndarray) -> dict[str, Any]
     return out
 
 
-def vector_entry(env_class: type[LatentEnv]) -> Callable[..., LatentVectorEnv]:
+def _native(
+    env_class: type[LatentEnv],
+    kwargs: dict[str, Any],
+    max_episode_steps: int | None,
+    autoreset_mode: AutoresetMode | str,
+    num_envs: int,
+) -> LatentVectorEnv:
+    """A :class:`LatentVectorEnv` of ``num_envs`` copies of ``env_class(**kwargs)`` (module level: a shard's
+    worker process unpickles it)."""
+    return LatentVectorEnv(
+        env_class(**kwargs), num_envs, max_episode_steps=max_episode_steps, autoreset_mode=autoreset_mode
+    )
+
+
+def vector_entry(env_class: type[LatentEnv]) -> Callable[..., LatentVectorEnv | ShardedVectorEnv]:
     """The ``vector_entry_point`` of a registered env class (Gymnasium passes ``num_envs`` and the spec's kwargs)."""
 
     def make_vec(
@@ -174,13 +190,18 @@ def vector_entry(env_class: type[LatentEnv]) -> Callable[..., LatentVectorEnv]:
         *,
         max_episode_steps: int | None = None,
         autoreset_mode: AutoresetMode | str = AutoresetMode.NEXT_STEP,
+        shards: int = 1,
         **kwargs: Any,
-    ) -> LatentVectorEnv:
-        return LatentVectorEnv(
-            env_class(**kwargs), num_envs, max_episode_steps=max_episode_steps, autoreset_mode=autoreset_mode
-        )
+    ) -> LatentVectorEnv | ShardedVectorEnv:
+        build = functools.partial(_native, env_class, kwargs, max_episode_steps, autoreset_mode)
+        if shards != 1:
+            return ShardedVectorEnv(build, env_class(**kwargs), num_envs, shards, autoreset_mode=autoreset_mode)
+        return build(num_envs)
 
-    make_vec.__doc__ = f"A :class:`LatentVectorEnv` of ``num_envs`` copies of :class:`{env_class.__name__}`."
+    make_vec.__doc__ = (
+        f"A :class:`LatentVectorEnv` of ``num_envs`` copies of :class:`{env_class.__name__}`; with ``shards`` P > 1,"
+        " a :class:`redsim.envs.sharded.ShardedVectorEnv` of them in P worker processes."
+    )
     return make_vec
 
 

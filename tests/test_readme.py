@@ -49,7 +49,7 @@ def test_readme_has_the_blocks_this_test_reads() -> None:
 def test_python_block_runs_on_its_own(index: int, tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> None:
     monkeypatch.chdir(tmp_path)
     code = blocks("python")[index]
-    exec(compile(code, f"README.md python block {index}", "exec"), {"__name__": "__readme__"})
+    exec(compile(code, f"README.md python block {index}", "exec"), {"__name__": "__main__"})  # as a script runs it
 
 
 @pytest.mark.parametrize("argv", redsim_commands(), ids=lambda a: " ".join(a)[:60])

@@ -78,6 +78,8 @@ def cmd_bench_envs(args: argparse.Namespace) -> int:
         raise CliError(f"--batches must be comma-separated integers, got {args.batches!r}") from err
     if min(batches) < 1 or args.steps < 1 or args.anchor_steps < 1:
         raise CliError("--batches, --steps and --anchor-steps must be >= 1")
+    if args.shards < 1 or args.shards > min(batches):
+        raise CliError(f"--shards must be in [1, the smallest batch {min(batches)}], got {args.shards}")
     env_kwargs = parse_env_args(args.env_arg, ids)
     if "device" in env_kwargs:
         raise CliError("give the device with --device, not --env-arg device=...")
@@ -87,6 +89,8 @@ def cmd_bench_envs(args: argparse.Namespace) -> int:
         out("and of the scene's float64 full-space implicit-Euler step (Newton) under the same kind of load;")
         out("render/s: frames per second of the single env's rgb_array picture at 480 x 480")
         out(_machine_line(machine, args.device))
+        if args.shards > 1:
+            out(f"vector envs: {args.shards} shards (worker processes of redsim.envs.sharded), own torch threads")
         vec = " ".join(f"{f'N={b}':>9}" for b in batches)
         out(
             f"{'env':<26} {'n':>6} {'d':>3} {'act':>4} {'obs':>4} {'single':>8} {vec} {'sim/wall':>9} "
@@ -101,6 +105,7 @@ def cmd_bench_envs(args: argparse.Namespace) -> int:
             budget=args.budget,
             device=args.device,
             full_space=not args.no_full_space,
+            shards=args.shards,
             **env_kwargs,
         )
         rows.append(row)
@@ -115,7 +120,11 @@ def cmd_bench_envs(args: argparse.Namespace) -> int:
         for row in rows:
             cells = (
                 f"{r['iterations_per_step']:.1f} ({r['slowest_iterations_per_step']:.1f}) / "
-                f"{r['calls_per_step']:.1f} / {r['rows_per_copy_step']:.1f}"
+                + (
+                    "- / -"  # a sharded env's workers keep their own counts
+                    if r["calls_per_step"] is None
+                    else f"{r['calls_per_step']:.1f} / {r['rows_per_copy_step']:.1f}"
+                )
                 for r in (row["vector"][b] for b in batches)
             )
             out(f"{row['id']:<26} " + " ".join(f"{c:>27}" for c in cells))
@@ -383,6 +392,13 @@ def add_commands(sub: Any, bench: Any) -> None:
     )
     p.add_argument("--device", default="cpu", help="torch device (default cpu)")
     p.add_argument("--no-full-space", action="store_true", help="skip the full-space step")
+    p.add_argument(
+        "--shards",
+        type=int,
+        default=1,
+        help="worker processes per vector env (default 1: the native vector env; P > 1: redsim.envs.sharded, "
+        "each worker a block of the copies on CPU count / P torch threads; its solver calls are not counted)",
+    )
     p.add_argument(
         "--anchor-steps",
         type=int,

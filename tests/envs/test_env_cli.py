@@ -92,3 +92,13 @@ def test_bench_envs_bad_env_arg_is_a_usage_error(
     twice = ["--env-arg", "max_force=1.0", "--env-arg", "max_force=2.0"]
     assert main(["bench", "envs", "--envs", "RedSim/MiniChain-v0", *twice]) == 2
     assert "--env-arg max_force given twice" in capsys.readouterr().err
+
+
+def test_bench_envs_sharded(capsys: pytest.CaptureFixture[str]) -> None:
+    args = ["bench", "envs", "--envs", "RedSim/MiniChain-v0", "--batches", "2", "--steps", "2", "--no-full-space"]
+    assert main([*args, "--anchor-steps", "20", "--shards", "2", "--json"]) == 0
+    work = json.loads(capsys.readouterr().out)["results"][0]["vector"]["2"]
+    assert work["shards"] == 2 and work["env_steps_per_s"] > 0 and work["iterations_per_step"] >= 0
+    assert work["calls_per_step"] is None and work["rows_per_copy_step"] is None  # the workers keep their counts
+    assert main([*args, "--shards", "3"]) == 2
+    assert "--shards must be in [1, the smallest batch 2]" in capsys.readouterr().err
