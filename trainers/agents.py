@@ -173,9 +173,14 @@ def _base_env(env: gym.Env) -> tuple[Any, int | None]:
 
 
 def vector_env(
-    env: str | gym.Env, num_envs: int, autoreset_mode: Any = None, env_kwargs: Mapping[str, Any] | None = None
+    env: str | gym.Env,
+    num_envs: int,
+    autoreset_mode: Any = None,
+    env_kwargs: Mapping[str, Any] | None = None,
+    shards: int = 1,
 ) -> Any:
-    """A :class:`LatentVectorEnv` of ``num_envs`` copies of an id (made with ``env_kwargs``) or of a user's env."""
+    """A :class:`LatentVectorEnv` of ``num_envs`` copies of an id (made with ``env_kwargs``) or of a user's env;
+    with ``shards`` P > 1 (ids only), a :class:`redsim.envs.sharded.ShardedVectorEnv` of them in P processes."""
     from gymnasium.vector import AutoresetMode
 
     from redsim.envs.vector import LatentVectorEnv
@@ -183,24 +188,30 @@ def vector_env(
     mode = AutoresetMode.NEXT_STEP if autoreset_mode is None else autoreset_mode
     if isinstance(env, str):
         check_env_id(env)
+        sharding = {"shards": shards} if shards != 1 else {}
         return gym.make_vec(
             env,
             num_envs=num_envs,
             vectorization_mode="vector_entry_point",
             autoreset_mode=mode,
+            **sharding,
             **dict(env_kwargs or {}),
         )
+    if shards != 1:
+        raise ValueError("shards > 1 needs a registered env id (a worker process builds its copies from it)")
     base, limit = _base_env(env)
     return LatentVectorEnv(base, num_envs, max_episode_steps=limit, autoreset_mode=mode)
 
 
-def _sb3_env(env: str | gym.Env, num_envs: int, seed: int, env_kwargs: Mapping[str, Any] | None) -> Any:
+def _sb3_env(
+    env: str | gym.Env, num_envs: int, seed: int, env_kwargs: Mapping[str, Any] | None, shards: int = 1
+) -> Any:
     from gymnasium.vector import AutoresetMode
     from stable_baselines3.common.vec_env import VecMonitor
 
     from redsim.envs.sb3 import SB3VecEnv
 
-    venv = VecMonitor(SB3VecEnv(vector_env(env, num_envs, AutoresetMode.SAME_STEP, env_kwargs)))
+    venv = VecMonitor(SB3VecEnv(vector_env(env, num_envs, AutoresetMode.SAME_STEP, env_kwargs, shards)))
     venv.seed(seed)
     return venv
 
@@ -644,6 +655,7 @@ def train_agent(
     video: bool = True,
     overrides: Mapping[str, Any] | None = None,
     env_kwargs: Mapping[str, Any] | None = None,
+    shards: int = 1,
 ) -> TrainResult:
     """Train ``algo`` on ``env`` for ``steps`` env steps in all, writing the files of the module doc to ``out``.
 
@@ -663,6 +675,8 @@ def train_agent(
         video: Write ``policy.gif`` (a user's env only when made with ``render_mode="rgb_array"``).
         overrides: Settings that replace the table's (e.g. ``{"learning_rate": 3e-4}``).
         env_kwargs: Keyword arguments of the id's env (e.g. ``{"max_episode_steps": 50}``).
+        shards: Worker processes of the training env (:mod:`redsim.envs.sharded`; ids only; the same env, its
+            copies stepped on P cores). The evaluation env stays one process.
 
     Raises:
         ValueError: an unknown id or algorithm, bad counts, or (resume) a model of another env or algorithm.
@@ -686,7 +700,7 @@ def train_agent(
     normalize = settings.pop("normalize", None)
     out = Path(out)
     (out / "checkpoints").mkdir(parents=True, exist_ok=True)
-    venv = _sb3_env(env, copies, seed, env_kwargs)
+    venv = _sb3_env(env, copies, seed, env_kwargs, shards)
     eval_env = _sb3_env(env, min(eval_episodes, 10), seed + 10_000, env_kwargs)
     noise_std = settings.pop("action_noise_std", None)
     if noise_std is not None:

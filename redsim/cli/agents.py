@@ -76,6 +76,7 @@ def cmd_train_agent(args: argparse.Namespace) -> int:
             progress_bar=not args.json and not args.no_progress,
             video=not args.no_video,
             env_kwargs=_env_kwargs(args),
+            shards=args.shards,
         )
     except (ValueError, FileNotFoundError) as err:
         raise CliError(str(err)) from err
@@ -154,6 +155,12 @@ def add_commands(sub: Any) -> None:
     p.add_argument("--out", default="agent", metavar="DIR", help="output folder (default agent)")
     p.add_argument("--seed", type=int, default=0, help="seed of the algorithm and the envs (default 0)")
     p.add_argument("--n-envs", type=int, help="vector env copies (default: the table's)")
+    p.add_argument(
+        "--shards",
+        type=int,
+        default=1,
+        help="worker processes stepping the training copies (default 1; redsim.envs.sharded: the same env on P cores)",
+    )
     p.add_argument("--eval-every", type=int, metavar="STEPS", help="env steps between evaluations (default steps/10)")
     p.add_argument("--eval-episodes", type=int, default=10, help="episodes per evaluation (default 10)")
     p.add_argument("--final-episodes", type=int, default=20, help="seeded episodes of the final evaluation")

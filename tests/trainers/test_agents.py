@@ -171,7 +171,8 @@ def test_the_shipped_policies_load_and_the_mini_chain_one_beats_random() -> None
         shipped_policy("RedSim/Nope-v0")
 
 
-def test_ppo_trains_a_few_hundred_steps(tmp_path: Path) -> None:
+@pytest.mark.parametrize("shards", [1, 2])
+def test_ppo_trains_a_few_hundred_steps(tmp_path: Path, shards: int) -> None:
     from redsim.trainers.agents import train_agent
 
     result = train_agent(
@@ -186,6 +187,7 @@ def test_ppo_trains_a_few_hundred_steps(tmp_path: Path) -> None:
         video=False,
         env_kwargs=SHORT,
         overrides={"n_steps": 64, "batch_size": 64, "n_epochs": 2},
+        shards=shards,
     )
     assert result.steps == 256 and np.isfinite(result.evaluation.mean)
     assert model_record(result.model_path)["algo"] == "ppo"
@@ -214,6 +216,8 @@ def test_bad_input_is_a_clear_cli_error(cli: Callable[..., tuple[int, str, str]]
         "train-agent", MINI, "--env-arg", "max_episode_steps=5", "--episode-steps", "5", "--out", str(tmp_path)
     )
     assert code == 2 and "give the episode length once" in err
+    code, _, err = cli("train-agent", MINI, "--n-envs", "2", "--shards", "3", "--out", str(tmp_path))
+    assert code == 2 and "shards must be an integer in [1, num_envs = 2], got 3" in err
 
 
 def _foreign_model(folder: Path) -> Path:
