@@ -9,6 +9,7 @@ import torch
 from torch import Tensor
 
 from redsim.effects.base import Effect, gather_coordinates, gather_elements, per_element
+from redsim.effects.plane_gradients import PlaneNeoHookeanEnergy, plane_constants
 from redsim.materials import lame_from_young_poisson
 
 
@@ -117,6 +118,8 @@ class NeoHookean(Effect):
         self.rest_volume = volume * (thickness if D == 2 else 1.0)
         self.mu = mu
         self.lam = lam
+        if D == 2:  # per-element constants of the closed-form kernel, each [T]
+            self.plane_constants = plane_constants(self.shape_gradients, mu, lam, self.rest_volume)
         self.condition_scale = None
         if condition_scale is not None:
             index, mask = condition_scale
@@ -125,13 +128,19 @@ class NeoHookean(Effect):
 
     def element_energy(self, xe: Tensor, cond: Tensor | None = None, loads: Tensor | None = None) -> Tensor:
         if self.dim == 2:
-            trace, det = _plane_invariants(xe.unbind(-1), self.shape_gradients)
-        else:
-            trace, det = _solid_invariants(xe, self.shape_gradients)
+            return self._plane_energies(xe.unbind(-1), cond)
+        trace, det = _solid_invariants(xe, self.shape_gradients)
         return self._energy_density(trace, det, cond) * self.rest_volume
 
     def element_energies(self, x: Tensor, cond: Tensor | None = None, loads: Tensor | None = None) -> Tensor:
-        """Energy of every element [J], shape [B, T], at full configurations x [B, N] (by :meth:`invariants`)."""
+        """Energy of every element [J], shape [B, T], at full configurations x [B, N].
+
+        In 2D the six vertex coordinates are gathered as [B, T] tensors (:func:`gather_coordinates`, as
+        :meth:`invariants`) into :class:`redsim.effects.plane_gradients.PlaneNeoHookeanEnergy`, whose gradient
+        is closed form; in 3D psi of :meth:`invariants`.
+        """
+        if self.dim == 2:
+            return self._plane_energies(gather_coordinates(x, self.element_dofs), cond)
         trace, det = self.invariants(x)
         return self._energy_density(trace, det, cond) * self.rest_volume
 
@@ -147,18 +156,30 @@ class NeoHookean(Effect):
             return _plane_invariants(gather_coordinates(x, self.element_dofs), self.shape_gradients)
         return _solid_invariants(gather_elements(x, self.element_dofs), self.shape_gradients)
 
+    def _plane_energies(self, coords: Sequence[Tensor], cond: Tensor | None) -> Tensor:
+        """Energies [J], [B, T], of triangles from their six vertex coordinates, each [B, T]."""
+        return PlaneNeoHookeanEnergy.apply(self.plane_constants, self._scale(cond), *coords)
+
     def _energy_density(self, trace: Tensor, det: Tensor, cond: Tensor | None) -> Tensor:
         """psi [Pa], [B, T], from tr(F^T F) and det F [B, T] (class doc)."""
         mu, lam = self.mu, self.lam
         lam_s = lam + mu
-        alpha = 1.0 + mu / lam_s  # a modulus factor scales mu and lam alike: alpha stays, psi scales with it
+        alpha = 1.0 + mu / lam_s
         psi = 0.5 * mu * (trace - self.dim) + 0.5 * lam_s * (det - alpha) ** 2 - 0.5 * mu * mu / lam_s
+        scale = self._scale(cond)
+        return psi if scale is None else psi * scale
+
+    def _scale(self, cond: Tensor | None) -> Tensor | None:
+        """The modulus factor [B, T] of ``condition_scale`` (c[i] on masked elements, else 1), or None without one.
+
+        A factor scales mu and lam alike, so alpha stays and psi scales with it.
+        """
         if self.condition_scale is None:
-            return psi
+            return None
         if cond is None:
             raise ValueError(f"effect {self.name!r} needs a condition vector")
         index, mask = self.condition_scale
-        return psi * torch.where(mask, cond[:, index : index + 1], torch.ones_like(mu))
+        return torch.where(mask, cond[:, index : index + 1], 1.0)
 
 
 def _solid_invariants(xe: Tensor, shape_gradients: Tensor) -> tuple[Tensor, Tensor]:

@@ -1,0 +1,114 @@
+"""The closed-form 2D neo-Hookean gradient (:mod:`redsim.effects.plane_gradients`) against autograd through the
+plain formulas (:func:`redsim.effects.elastic._plane_invariants` and psi) and against central differences, to second
+and third order, with and without the conditional modulus factor."""
+
+from __future__ import annotations
+
+import pytest
+import torch
+
+import redsim
+from redsim.effects import NeoHookean
+from redsim.effects.base import gather_coordinates
+from redsim.effects.elastic import _plane_invariants
+
+
+def _plain_energies(fem: NeoHookean, x: torch.Tensor, cond: torch.Tensor | None) -> torch.Tensor:
+    """Element energies [B, T] by autograd-traceable formulas (the kernel before its closed-form gradient)."""
+    trace, det = _plane_invariants(gather_coordinates(x, fem.element_dofs), fem.shape_gradients)
+    mu, lam = fem.mu, fem.lam
+    lam_s = lam + mu
+    psi = 0.5 * mu * (trace - 2) + 0.5 * lam_s * (det - 1 - mu / lam_s) ** 2 - 0.5 * mu * mu / lam_s
+    if fem.condition_scale is not None:
+        index, mask = fem.condition_scale
+        psi = psi * torch.where(mask, cond[:, index : index + 1], torch.ones_like(mu))
+    return psi * fem.rest_volume
+
+
+def _case(
+    name: str, batch: int, scale: float, dtype: torch.dtype
+) -> tuple[NeoHookean, torch.Tensor, torch.Tensor | None]:
+    """The scene's elastic term, full positions [B, N] near the seed and conditions [B, m] (None without)."""
+    scene = redsim.scenes.build(name).to(dtype=dtype)
+    g = torch.Generator().manual_seed(0)
+    q = scene.q_seed + scale * torch.randn(batch, scene.free_dof_count, generator=g, dtype=dtype)
+    x = scene.full_positions(q)
+    cond = None
+    if scene.condition_space is not None:
+        cond = scene.pack_condition(None, batch, x).clone()
+        cond[:, 0] = torch.linspace(0.5, 4.0, batch, dtype=dtype)
+    return scene.effect("elastic"), x, cond
+
+
+def _derivatives(energies, x: torch.Tensor, u: torch.Tensor, v: torch.Tensor) -> list[torch.Tensor]:
+    """Energies, gradient, Hessian . u and third derivative . (u, v) of the summed energies at x."""
+    x = x.detach().requires_grad_(True)
+    e = energies(x)
+    (g,) = torch.autograd.grad(e.sum(), x, create_graph=True)
+    (hu,) = torch.autograd.grad((g * u).sum(), x, create_graph=True)
+    (tuv,) = torch.autograd.grad((hu * v).sum(), x)
+    return [t.detach() for t in (e, g, hu, tuv)]
+
+
+@pytest.mark.parametrize("name", ["conditional_bar", "bistable_bar"])  # with and without the condition scale
+def test_closed_form_derivatives_equal_autograd_of_the_plain_formulas(name: str) -> None:
+    """float64: values, gradients, Hessian-vector products and third derivatives (backward under create_graph)."""
+    fem, x, cond = _case(name, 3, 0.05, torch.float64)
+    assert (fem.condition_scale is not None) == (name == "conditional_bar")
+    g = torch.Generator().manual_seed(1)
+    u, v = (torch.randn(x.shape, generator=g, dtype=torch.float64) for _ in range(2))
+    fast = _derivatives(lambda y: fem.element_energies(y, cond), x, u, v)
+    plain = _derivatives(lambda y: _plain_energies(fem, y, cond), x, u, v)
+    for a, b in zip(fast, plain, strict=True):
+        assert torch.allclose(a, b, rtol=1e-9, atol=1e-12 * float(b.abs().max()))
+
+
+def test_float32_gradients_match_float64_like_autograd() -> None:
+    """float32: the closed-form gradient is as close to the float64 one as float32 autograd is (within 5x)."""
+    fem, x, cond = _case("conditional_bar", 2, 0.01, torch.float64)
+    fem32, x32, cond32 = fem.to(dtype=torch.float32), x.float(), cond.float()
+    zero = torch.zeros_like(x)
+
+    def gradient(energies, y: torch.Tensor) -> torch.Tensor:
+        return _derivatives(energies, y, zero.to(y.dtype), zero.to(y.dtype))[1].double()
+
+    reference = gradient(lambda y: fem.element_energies(y, cond), x)
+    fast = gradient(lambda y: fem32.element_energies(y, cond32), x32)
+    plain = gradient(lambda y: _plain_energies(fem32, y, cond32), x32)
+    scale = float(reference.abs().max())
+    assert float((fast - reference).abs().max()) <= 5.0 * float((plain - reference).abs().max()) + 1e-6 * scale
+
+
+@pytest.mark.parametrize("name", ["conditional_bar", "bistable_bar"])
+def test_closed_form_gradients_pass_gradcheck_and_gradgradcheck(name: str) -> None:
+    """Central differences (float64) of the energies and of their gradients, on a few elements read from the slice
+    of x they use (as a cubature's), and on the gathered path (Hessians, cubature fit)."""
+    fem, x, cond = _case(name, 2, 0.05, torch.float64)
+    subset = fem.subset(torch.arange(0, fem.element_count, fem.element_count // 5))
+    kept = torch.unique(subset.element_dofs)
+    local = subset.reindexed(torch.searchsorted(kept, subset.element_dofs))
+    xs = x[:, kept].requires_grad_(True)
+    assert torch.autograd.gradcheck(lambda y: local.element_energies(y, cond), (xs,))
+    assert torch.autograd.gradgradcheck(lambda y: local.element_energies(y, cond), (xs,))
+    xe = xs.detach()[:, local.element_dofs].requires_grad_(True)
+    assert torch.autograd.gradgradcheck(lambda y: local.element_energy(y, cond), (xe,))
+
+
+def test_gradient_with_respect_to_the_condition() -> None:
+    """The modulus factor is differentiable (first and second order) like the plain formulas."""
+    fem, x, cond = _case("conditional_bar", 3, 0.05, torch.float64)
+    x = x.requires_grad_(True)
+    subset = fem.subset(torch.arange(0, fem.element_count, 50))
+    c = cond.clone().requires_grad_(True)
+    assert torch.autograd.gradcheck(lambda y, k: subset.element_energies(y, k), (x, c))
+    assert torch.autograd.gradgradcheck(lambda y, k: subset.element_energies(y, k), (x, c))
+    (fast,) = torch.autograd.grad(fem.element_energies(x, c).sum(), c)
+    (plain,) = torch.autograd.grad(_plain_energies(fem, x, c).sum(), c)
+    assert torch.allclose(fast, plain, rtol=1e-10, atol=1e-12 * float(plain.abs().max()))
+
+
+def test_constants_with_gradients_are_refused() -> None:
+    fem, x, cond = _case("conditional_bar", 1, 0.01, torch.float64)
+    fem.plane_constants = tuple(c.clone().requires_grad_(True) for c in fem.plane_constants)
+    with pytest.raises(ValueError, match="material constants"):
+        fem.element_energies(x, cond)
