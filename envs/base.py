@@ -21,7 +21,7 @@ import importlib.util
 import math
 import os
 import sys
-from collections.abc import Mapping
+from collections.abc import Mapping, Sequence
 from typing import Any, ClassVar
 
 import gymnasium as gym
@@ -815,6 +815,26 @@ def check_action(action: Any, shape: tuple[int, ...]) -> np.ndarray:
     if not np.all(np.isfinite(act)):
         raise ValueError(f"action must be finite, got {act.tolist()}")
     return np.clip(act, -1.0, 1.0)
+
+
+def copy_seeds(seed: int | Sequence[int | None] | None, count: int) -> tuple[int | None, list[Any] | None]:
+    """A vector env's reset seed: (its own seed, or None; the seed of each of ``count`` copies, or None).
+
+    An int (NumPy's too) seeds copy i with ``seed + i``; a sequence gives each copy its own.
+
+    Raises:
+        ValueError: a sequence of another length.
+    """
+    if isinstance(seed, np.integer):
+        seed = int(seed)
+    if seed is None:
+        return None, None
+    if isinstance(seed, int):
+        return seed, [seed + i for i in range(count)]
+    seeds = list(seed)
+    if len(seeds) != count:
+        raise ValueError(f"need {count} seeds, got {len(seeds)}")
+    return None, seeds
 
 
 def _unbatch(state: Mapping[str, Any]) -> dict[str, Any]:

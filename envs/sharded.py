@@ -7,13 +7,17 @@ tensor ops do not spread over cores (torch's intra-op threads do not help them).
 of the N copies (sizes differ by at most one), stepped in parallel. Copy i is seeded ``seed + i`` as
 in the native vector env, so the two are the same env (equal step for step where the solve is tight
 enough that the batch composition does not move it; see ``tests/envs/test_sharded.py``). A worker
-that fails raises in the caller (:class:`ShardError`, with the worker's traceback), and the env is closed.
+that fails raises in the caller (its own exception, or :class:`ShardError`, with the worker's traceback), and
+the env is closed, as it is when the caller is interrupted in the middle of a request.
 """
 
 from __future__ import annotations
 
 import multiprocessing as mp
 import os
+import pickle
+import sys
+import time
 import traceback
 from collections.abc import Callable, Sequence
 from multiprocessing.connection import Connection
@@ -23,13 +27,19 @@ import numpy as np
 from gymnasium.vector import AutoresetMode, VectorEnv
 from gymnasium.vector.utils import batch_space
 
-from redsim.envs.base import check_action
+from redsim.envs.base import check_action, copy_seeds
 
 if TYPE_CHECKING:
     from redsim.envs.base import LatentEnv
 
 JOIN_TIMEOUT_S = 10.0
-"""Seconds :meth:`ShardedVectorEnv.close` waits for a worker to exit before terminating it."""
+"""Seconds :meth:`ShardedVectorEnv.close` waits for its workers to exit before terminating them."""
+STARTUP_HINT = (
+    '; its stderr says why. A script must make a sharded env under `if __name__ == "__main__":` (each worker'
+    " re-imports the main module), and the env class and its arguments must be importable by the worker"
+    " (not defined in a notebook or in the main module)"
+)
+"""What a worker that exits while starting most often means (added to the :class:`ShardError`)."""
 
 
 class ShardError(RuntimeError):
@@ -48,41 +58,60 @@ def shard_sizes(num_envs: int, shards: int) -> list[int]:
     return [base + (i < extra) for i in range(int(shards))]
 
 
-def _worker(pipe: Connection, build: Callable[[int], VectorEnv], num_envs: int, threads: int) -> None:
-    """Serve one shard: ``build(num_envs)``, its native vector env, then answer (command, payload) requests
-    until "close"."""
+def _worker(pipe: Connection, build: bytes, num_envs: int, threads: int) -> None:
+    """Serve one shard: build its native vector env (``build``: a pickled ``build(n)``), then answer (command,
+    payload) requests until "close". A request that raises is answered ("error", (the exception pickled, or None
+    where it does not pickle, and its traceback)), and the worker goes on serving."""
     import torch
 
     torch.set_num_threads(threads)
     venv = None
     try:
-        venv = build(num_envs)
+        try:
+            venv = pickle.loads(build)(num_envs)
+        except Exception:
+            pipe.send(("error", _failure()))
+            return
         pipe.send(("ok", None))
         while True:
             command, payload = pipe.recv()
             if command == "close":
                 break
-            if command == "step":
-                result: Any = venv.step(payload)
-            elif command == "reset":
-                result = venv.reset(seed=payload[0], options=payload[1])
-            elif command == "render":
-                result = venv.render()
-            elif command == "get_state":
-                result = venv.get_state()
-            elif command == "set_state":
-                result = venv.set_state(payload)
-            else:
-                raise ValueError(f"unknown command {command!r}")
-            pipe.send(("ok", result))
-    except (KeyboardInterrupt, EOFError):
+            try:
+                pipe.send(("ok", _serve(venv, command, payload)))
+            except Exception:
+                pipe.send(("error", _failure()))
+    except (KeyboardInterrupt, EOFError, BrokenPipeError):
         pass
-    except Exception:  # the caller raises it (ShardError): nothing is lost in the worker
-        pipe.send(("error", traceback.format_exc()))
     finally:
         if venv is not None:
             venv.close()
         pipe.close()
+
+
+def _serve(venv: VectorEnv, command: str, payload: Any) -> Any:
+    """The answer of a native vector env to one request."""
+    if command == "step":
+        return venv.step(payload)
+    if command == "reset":
+        return venv.reset(seed=payload[0], options=payload[1])
+    if command == "render":
+        return venv.render()
+    if command == "get_state":
+        return venv.get_state()  # type: ignore[attr-defined]
+    if command == "set_state":
+        return venv.set_state(payload)  # type: ignore[attr-defined]
+    raise ValueError(f"unknown command {command!r}")
+
+
+def _failure() -> tuple[bytes | None, str]:
+    """The exception being handled, pickled (None where it does not pickle), and its traceback."""
+    error = sys.exc_info()[1]
+    try:
+        pickled: bytes | None = pickle.dumps(error)
+    except Exception:
+        pickled = None
+    return pickled, traceback.format_exc()
 
 
 class ShardedVectorEnv(VectorEnv):
@@ -98,6 +127,7 @@ class ShardedVectorEnv(VectorEnv):
         context: The multiprocessing start method (None: "forkserver" where available, else "spawn";
             "fork" is refused: torch's thread pools do not survive it).
         autoreset_mode: The mode ``build`` makes the native envs with (for ``metadata``).
+        max_episode_steps: The episode length ``build`` gives them (an attribute, as the native env's).
     """
 
     def __init__(
@@ -110,12 +140,13 @@ class ShardedVectorEnv(VectorEnv):
         threads: int | None = None,
         context: str | None = None,
         autoreset_mode: AutoresetMode | str = AutoresetMode.NEXT_STEP,
+        max_episode_steps: int | None = None,
     ) -> None:
         if int(num_envs) != num_envs or num_envs < 1:
             raise ValueError(f"num_envs must be an integer >= 1, got {num_envs!r}")
         self.sizes = shard_sizes(int(num_envs), shards)
         if threads is None:
-            threads = max(1, (os.cpu_count() or 1) // len(self.sizes))
+            threads = max(1, _cpu_count() // len(self.sizes))
         if isinstance(threads, bool) or int(threads) != threads or threads < 1:
             raise ValueError(f"threads must be an integer >= 1, got {threads!r}")
         if context is None:
@@ -124,6 +155,8 @@ class ShardedVectorEnv(VectorEnv):
             raise ValueError("context 'fork' is not supported (torch's thread pools do not survive it): use 'spawn'")
         mode = AutoresetMode(autoreset_mode)
         self.template = template
+        self.observation_structure = template.observation_structure
+        self.max_episode_steps = max_episode_steps
         self.num_envs = int(num_envs)
         self.render_mode = self.template.render_mode
         self.metadata = {**self.template.metadata, "autoreset_mode": mode}
@@ -135,19 +168,21 @@ class ShardedVectorEnv(VectorEnv):
         self.starts = np.cumsum([0, *self.sizes])[:-1].tolist()
         self._pipes: list[Connection] = []
         self._processes: list[Any] = []
+        self._started = False
         self.closed = False
         ctx = mp.get_context(context)
+        payload = pickle.dumps(build)  # here, so that a build that does not pickle fails in the caller
         try:
             for size in self.sizes:
                 parent, child = ctx.Pipe()
-                process = ctx.Process(target=_worker, args=(child, build, size, int(threads)), daemon=True)
+                process = ctx.Process(target=_worker, args=(child, payload, size, int(threads)), daemon=True)
                 process.start()
                 child.close()
                 self._pipes.append(parent)
                 self._processes.append(process)
-            self._gather()  # each worker's "ok" once its env is built
+            self._gather(STARTUP_HINT)  # each worker's "ok" once its env is built
         except BaseException:
-            self.close()
+            self._abort()
             raise
 
     # -- the VectorEnv API ----------------------------------------------------------------------
@@ -155,29 +190,27 @@ class ShardedVectorEnv(VectorEnv):
         self, *, seed: int | Sequence[int | None] | None = None, options: dict[str, Any] | None = None
     ) -> tuple[np.ndarray, dict[str, Any]]:
         """Reset all copies, or those of ``options["reset_mask"]`` (bool [N]); seed copy i with ``seed + i``."""
-        super().reset(seed=seed if isinstance(seed, int) or seed is None else None)
-        seeds: list[Any] | None = None
-        if seed is not None:
-            seeds = [seed + i for i in range(self.num_envs)] if isinstance(seed, int) else list(seed)
-            if len(seeds) != self.num_envs:
-                raise ValueError(f"need {self.num_envs} seeds, got {len(seeds)}")
+        own, seeds = copy_seeds(seed, self.num_envs)
+        super().reset(seed=own)
         mask = None if not options or "reset_mask" not in options else np.asarray(options["reset_mask"], dtype=bool)
         if mask is not None and mask.shape != (self.num_envs,):
             raise ValueError(f"options['reset_mask'] must have shape ({self.num_envs},), got {mask.shape}")
-        for i, block in enumerate(self._blocks()):
+        requests = []
+        for block in self._blocks():
             shard_options = None if options is None else {**options}
             if mask is not None:
                 shard_options["reset_mask"] = mask[block]  # type: ignore[index]
-            self._send(i, "reset", (None if seeds is None else seeds[block], shard_options))
-        results = self._gather()
+            requests.append(("reset", (None if seeds is None else seeds[block], shard_options)))
+        results = self._call(requests)
+        self._started = True
         return np.concatenate([obs for obs, _ in results]), _merge_infos([info for _, info in results], self.sizes)
 
     def step(self, actions: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray, dict[str, Any]]:
         """Step every copy with actions [N, A]: each shard its block, in parallel."""
+        if not self._started:
+            raise RuntimeError("call reset() before step()")
         act = check_action(actions, self.action_space.shape)
-        for i, block in enumerate(self._blocks()):
-            self._send(i, "step", act[block])
-        results = self._gather()
+        results = self._call([("step", act[block]) for block in self._blocks()])
         obs, reward, terminated, truncated = (np.concatenate([r[k] for r in results]) for k in range(4))
         return obs, reward, terminated, truncated, _merge_infos([r[4] for r in results], self.sizes)
 
@@ -185,23 +218,18 @@ class ShardedVectorEnv(VectorEnv):
         """One RGB frame [H, W, 3] per copy ("rgb_array"), else None."""
         if self.render_mode != "rgb_array":
             return None
-        for i in range(len(self.sizes)):
-            self._send(i, "render", None)
-        return tuple(frame for frames in self._gather() for frame in frames)
+        return tuple(frame for frames in self._call([("render", None)] * len(self.sizes)) for frame in frames)
 
     def get_state(self) -> list[dict[str, Any]]:
-        """The dynamic state of each shard (its native vector env's :meth:`LatentVectorEnv.get_state`)."""
-        for i in range(len(self.sizes)):
-            self._send(i, "get_state", None)
-        return self._gather()
+        """The dynamic state of each shard (its native vector env's :meth:`LatentVectorEnv.get_state`), a list."""
+        return self._call([("get_state", None)] * len(self.sizes))
 
     def set_state(self, state: Sequence[dict[str, Any]]) -> None:
-        """Restore what :meth:`get_state` returned (one state per shard)."""
-        if len(state) != len(self.sizes):
-            raise ValueError(f"need one state per shard ({len(self.sizes)}), got {len(state)}")
-        for i, part in enumerate(state):
-            self._send(i, "set_state", part)
-        self._gather()
+        """Restore what :meth:`get_state` returned (a list: one state per shard)."""
+        if isinstance(state, dict) or len(state) != len(self.sizes):
+            raise ValueError(f"need a list of one state per shard ({len(self.sizes)}), as get_state() returns")
+        self._call([("set_state", part) for part in state])
+        self._started = True
 
     def close_extras(self, **kwargs: Any) -> None:
         for pipe in self._pipes:
@@ -209,44 +237,92 @@ class ShardedVectorEnv(VectorEnv):
                 pipe.send(("close", None))
             except (BrokenPipeError, OSError):
                 pass
-        for process in self._processes:
-            process.join(JOIN_TIMEOUT_S)
-            if process.is_alive():
-                process.terminate()
-                process.join(JOIN_TIMEOUT_S)
-        for pipe in self._pipes:
-            pipe.close()
-        self._pipes, self._processes = [], []
+        self._stop(JOIN_TIMEOUT_S)
         self.template.close()
 
     # -- internals --------------------------------------------------------------------------------
     def _blocks(self) -> list[slice]:
         return [slice(start, start + size) for start, size in zip(self.starts, self.sizes, strict=True)]
 
-    def _send(self, shard: int, command: str, payload: Any) -> None:
+    def _call(self, requests: Sequence[tuple[str, Any]]) -> list[Any]:
+        """Send request i to shard i, then gather every answer, in order.
+
+        Anything that interrupts this (an exception in this process, a worker gone) leaves answers unread in
+        the pipes, so the env is closed and its workers stopped before it propagates; a worker's own error
+        closes the env too (its shards may now differ) and is raised here (:meth:`_gather`).
+        """
         if self.closed or not self._pipes:
             raise RuntimeError("this ShardedVectorEnv is closed")
         try:
-            self._pipes[shard].send((command, payload))
-        except (BrokenPipeError, OSError) as error:
-            self.close()
-            raise ShardError(f"shard {shard} is gone ({error!r}); the env is closed") from error
+            for shard, request in enumerate(requests):
+                try:
+                    self._pipes[shard].send(request)
+                except (BrokenPipeError, OSError) as error:
+                    code = self._processes[shard].exitcode
+                    raise ShardError(
+                        f"shard {shard}: the worker process exited (exit code {code}, {error!r}); the env is closed"
+                    ) from error
+            return self._gather()
+        except BaseException:
+            self._abort()
+            raise
 
-    def _gather(self) -> list[Any]:
-        """Every shard's answer, in order; raise :class:`ShardError` (and close) if any failed."""
-        answers, failures = [], []
+    def _gather(self, hint: str = "") -> list[Any]:
+        """Every shard's answer, in order. A worker's error is raised as itself (its traceback in a note; a
+        :class:`ShardError` where it does not unpickle), a worker gone as :class:`ShardError` (with ``hint``)."""
+        answers, failures, first = [], [], None
         for shard, pipe in enumerate(self._pipes):
             try:
                 status, payload = pipe.recv()
             except (EOFError, OSError) as error:
-                status, payload = "error", f"the worker process exited ({error!r})"
+                code = self._processes[shard].exitcode if shard < len(self._processes) else None
+                failures.append(f"shard {shard}: the worker process exited (exit code {code}, {error!r}){hint}")
+                answers.append(None)
+                continue
             if status != "ok":
-                failures.append(f"shard {shard}:\n{payload}")
+                pickled, trace = payload
+                failures.append(f"shard {shard}:\n{trace}")
+                if first is None and pickled is not None:
+                    try:
+                        first = pickle.loads(pickled)
+                    except Exception:
+                        first = None
             answers.append(payload)
         if failures:
-            self.close()
-            raise ShardError("a worker of the sharded env failed; the env is closed\n" + "\n".join(failures))
+            self._abort()
+            report = "a worker of the sharded env failed; the env is closed\n" + "\n".join(failures)
+            if isinstance(first, Exception):
+                first.add_note(report)
+                raise first
+            raise ShardError(report)
         return answers
+
+    def _abort(self) -> None:
+        """Stop the workers now (answers may be unread) and mark the env closed."""
+        self._stop(0.0)
+        self.closed = True
+        self.template.close()
+
+    def _stop(self, timeout: float) -> None:
+        """Join the workers within ``timeout`` seconds in all, terminate those still alive, close the pipes."""
+        deadline = time.monotonic() + timeout
+        for process in self._processes:
+            process.join(max(0.0, deadline - time.monotonic()))
+        for process in self._processes:
+            if process.is_alive():
+                process.terminate()
+                process.join(JOIN_TIMEOUT_S)
+        for pipe in self._pipes:
+            pipe.close()
+        self._pipes, self._processes = [], []
+
+
+def _cpu_count() -> int:
+    """CPUs this process may run on (its affinity, where the OS tells it), at least 1."""
+    try:
+        return max(1, len(os.sched_getaffinity(0)))
+    except AttributeError:
+        return max(1, os.cpu_count() or 1)
 
 
 def _merge_infos(infos: Sequence[dict[str, Any]], sizes: Sequence[int]) -> dict[str, Any]:

@@ -22,8 +22,8 @@ from gymnasium.utils import seeding
 from gymnasium.vector import AutoresetMode, VectorEnv
 from gymnasium.vector.utils import batch_space
 
-from redsim.envs.base import check_action
-from redsim.envs.sharded import ShardedVectorEnv
+from redsim.envs.base import check_action, copy_seeds
+from redsim.envs.sharded import ShardedVectorEnv, shard_sizes
 
 if TYPE_CHECKING:
     from redsim.envs.base import LatentEnv
@@ -50,13 +50,7 @@ class LatentVectorEnv(VectorEnv):
         max_episode_steps: int | None = None,
         autoreset_mode: AutoresetMode | str = AutoresetMode.NEXT_STEP,
     ) -> None:
-        if int(num_envs) != num_envs or num_envs < 1:
-            raise ValueError(f"num_envs must be an integer >= 1, got {num_envs!r}")
-        mode = AutoresetMode(autoreset_mode)
-        if mode not in (AutoresetMode.NEXT_STEP, AutoresetMode.SAME_STEP):
-            raise ValueError(f"autoreset_mode must be NEXT_STEP or SAME_STEP, got {mode}")
-        if max_episode_steps is not None and (int(max_episode_steps) != max_episode_steps or max_episode_steps < 1):
-            raise ValueError(f"max_episode_steps must be None or an integer >= 1, got {max_episode_steps!r}")
+        mode = check_vector_args(num_envs, max_episode_steps, autoreset_mode)
         self.num_envs = int(num_envs)
         self.sim = env.sim.clone(self.num_envs, copy.deepcopy(env.task))
         self.template = env
@@ -79,7 +73,8 @@ class LatentVectorEnv(VectorEnv):
         self, *, seed: int | Sequence[int | None] | None = None, options: dict[str, Any] | None = None
     ) -> tuple[np.ndarray, dict[str, Any]]:
         """Reset all copies, or those of ``options["reset_mask"]`` (bool [N]); seed copy i with ``seed + i``."""
-        super().reset(seed=seed if isinstance(seed, int) or seed is None else None)
+        own, seeds = copy_seeds(seed, self.num_envs)
+        super().reset(seed=own)
         mask = (
             np.ones(self.num_envs, dtype=bool)
             if not options or "reset_mask" not in options
@@ -87,10 +82,7 @@ class LatentVectorEnv(VectorEnv):
         )
         if mask.shape != (self.num_envs,):
             raise ValueError(f"options['reset_mask'] must have shape ({self.num_envs},), got {mask.shape}")
-        if seed is not None:
-            seeds = [seed + i for i in range(self.num_envs)] if isinstance(seed, int) else list(seed)
-            if len(seeds) != self.num_envs:
-                raise ValueError(f"need {self.num_envs} seeds, got {len(seeds)}")
+        if seeds is not None:
             for i in np.nonzero(mask)[0]:
                 self._rngs[i] = seeding.np_random(seeds[i])[0]
         rows = [int(i) for i in np.nonzero(mask)[0]]
@@ -160,6 +152,24 @@ class LatentVectorEnv(VectorEnv):
         self.template.close()
 
 
+def check_vector_args(
+    num_envs: int, max_episode_steps: int | None, autoreset_mode: AutoresetMode | str
+) -> AutoresetMode:
+    """The autoreset mode, after checking a vector env's arguments.
+
+    Raises:
+        ValueError: a bad copy count, episode length or autoreset mode (NEXT_STEP and SAME_STEP only).
+    """
+    if int(num_envs) != num_envs or num_envs < 1:
+        raise ValueError(f"num_envs must be an integer >= 1, got {num_envs!r}")
+    mode = AutoresetMode(autoreset_mode)
+    if mode not in (AutoresetMode.NEXT_STEP, AutoresetMode.SAME_STEP):
+        raise ValueError(f"autoreset_mode must be NEXT_STEP or SAME_STEP, got {mode}")
+    if max_episode_steps is not None and (int(max_episode_steps) != max_episode_steps or max_episode_steps < 1):
+        raise ValueError(f"max_episode_steps must be None or an integer >= 1, got {max_episode_steps!r}")
+    return mode
+
+
 def _with_masks(info: dict[str, np.ndarray], mask: np.ndarray) -> dict[str, Any]:
     out: dict[str, Any] = {}
     for key, value in info.items():
@@ -194,9 +204,13 @@ def vector_entry(env_class: type[LatentEnv]) -> Callable[..., LatentVectorEnv | 
         **kwargs: Any,
     ) -> LatentVectorEnv | ShardedVectorEnv:
         build = functools.partial(_native, env_class, kwargs, max_episode_steps, autoreset_mode)
-        if shards != 1:
-            return ShardedVectorEnv(build, env_class(**kwargs), num_envs, shards, autoreset_mode=autoreset_mode)
-        return build(num_envs)
+        if shards == 1:
+            return build(num_envs)
+        mode = check_vector_args(num_envs, max_episode_steps, autoreset_mode)  # before any env or worker is made
+        shard_sizes(num_envs, shards)
+        return ShardedVectorEnv(
+            build, env_class(**kwargs), num_envs, shards, autoreset_mode=mode, max_episode_steps=max_episode_steps
+        )
 
     make_vec.__doc__ = (
         f"A :class:`LatentVectorEnv` of ``num_envs`` copies of :class:`{env_class.__name__}`; with ``shards`` P > 1,"
@@ -205,4 +219,4 @@ def vector_entry(env_class: type[LatentEnv]) -> Callable[..., LatentVectorEnv | 
     return make_vec
 
 
-__all__ = ["LatentVectorEnv", "vector_entry"]
+__all__ = ["LatentVectorEnv", "check_vector_args", "vector_entry"]

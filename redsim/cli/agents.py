@@ -56,6 +56,7 @@ def _line(name: str, result: dict[str, Any]) -> str:
 
 
 def cmd_train_agent(args: argparse.Namespace) -> int:
+    from redsim.envs.sharded import ShardError
     from redsim.trainers.agents import train_agent
 
     _check_env(args.env_id)
@@ -78,7 +79,7 @@ def cmd_train_agent(args: argparse.Namespace) -> int:
             env_kwargs=_env_kwargs(args),
             shards=args.shards,
         )
-    except (ValueError, FileNotFoundError) as err:
+    except (ValueError, FileNotFoundError, ShardError) as err:
         raise CliError(str(err)) from err
     final = result.evaluation.as_dict()
     files = sorted(str(p) for p in Path(args.out).iterdir() if p.is_file())

@@ -26,7 +26,7 @@ from torch import Tensor
 
 
 def plane_constants(shape_gradients: Tensor, mu: Tensor, lam: Tensor, volume: Tensor) -> tuple[Tensor, ...]:
-    """(K_00, K_01, K_11, -beta, A, 2A, 2B, -C), each [T] and contiguous (module doc for the symbols).
+    """(K_00, K_01, K_11, -beta, A, 2A, B, -C), each [T] and contiguous (module doc for the symbols).
 
     From the shape gradients [T, 3, 2] (D_m^-1 = ``shape_gradients[:, 1:]``), Lamé parameters mu and lam [Pa] and
     rest volumes V [m^3] (area times thickness), each [T].
@@ -53,13 +53,13 @@ def plane_constants(shape_gradients: Tensor, mu: Tensor, lam: Tensor, volume: Te
 def _terms(coords: Sequence[Tensor], constants: Sequence[Tensor]) -> tuple[Tensor, ...]:
     """Energies E [J] and what the gradient reads: (E, a, b, c, d, (D_s K)_00, _01, _10, _11, B (det D_s - beta))."""
     x0, y0, x1, y1, x2, y2 = coords
-    k00, k01, k11, neg_beta, shear, _, bulk2, neg_offset = constants
+    k00, k01, k11, neg_beta, shear, _, bulk, neg_offset = constants
     a, b, c, d = x1 - x0, x2 - x0, y1 - y0, y2 - y0
     u00, u01 = torch.addcmul(a * k00, b, k01), torch.addcmul(a * k01, b, k11)
     u10, u11 = torch.addcmul(c * k00, d, k01), torch.addcmul(c * k01, d, k11)
     stretch = torch.addcmul(torch.addcmul(torch.addcmul(a * u00 - 2.0, b, u01), c, u10), d, u11)  # tr F^T F - 2
     volume = torch.addcmul(torch.addcmul(neg_beta, a, d), b, c, value=-1.0)  # det D_s - beta
-    q = bulk2 * volume
+    q = bulk * volume
     energy = torch.addcmul(torch.addcmul(neg_offset, shear, stretch), q, volume, value=0.5)
     return energy, a, b, c, d, u00, u01, u10, u11, q
 

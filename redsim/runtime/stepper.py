@@ -149,8 +149,12 @@ class _StepObjective:
         with torch.enable_grad():
             energy, q = self.s._energy_coords(z, cond)
         value, force = self.s._inertia_loads(energy.detach(), q.detach(), qbar, loads)
-        (grad,) = torch.autograd.grad((energy, q), z, (torch.ones_like(energy), force))
-        return value, grad, energy.detach()
+        pairs = [(t, g) for t, g in ((energy, torch.ones_like(energy)), (q, force)) if t.requires_grad]
+        if not pairs:  # neither depends on z
+            return value, torch.zeros_like(z), energy.detach()
+        outputs, seeds = zip(*pairs, strict=True)
+        (grad,) = torch.autograd.grad(outputs, z, seeds, allow_unused=True)
+        return value, torch.zeros_like(z) if grad is None else grad, energy.detach()
 
     def exact_hessian(self, z: Tensor, index: Tensor) -> Tensor:
         k, d = z.shape

@@ -76,35 +76,98 @@ def test_reset_mask_state_round_trip_render_and_close() -> None:
 
 
 def test_bad_input_is_a_clear_error_and_a_failing_worker_raises_in_the_caller() -> None:
+    make = lambda **kw: gym.make_vec(  # noqa: E731
+        "RedSim/MiniChain-v0", num_envs=2, vectorization_mode="vector_entry_point", **kw
+    )
     with pytest.raises(ValueError, match="shards must be an integer in"):
         shard_sizes(2, 3)
     with pytest.raises(ValueError, match="shards must be an integer in"):
-        gym.make_vec("RedSim/MiniChain-v0", num_envs=2, vectorization_mode="vector_entry_point", shards=0)
+        make(shards=0)
+    with pytest.raises(ValueError, match="autoreset_mode must be NEXT_STEP or SAME_STEP"):
+        make(shards=2, autoreset_mode=AutoresetMode.DISABLED)
     with pytest.raises(ValueError, match="unknown hessian"):  # raised here, before any worker starts
-        gym.make_vec(
-            "RedSim/MiniChain-v0",
-            num_envs=2,
-            vectorization_mode="vector_entry_point",
-            shards=2,
-            stepper_options={"hessian": "unknown"},
-        )
-    venv = gym.make_vec("RedSim/MiniChain-v0", num_envs=2, vectorization_mode="vector_entry_point", shards=2)
+        make(shards=2, stepper_options={"hessian": "unknown"})
+    venv = make(shards=2)
+    assert venv.max_episode_steps == 200  # the id's, as the native env's
+    with pytest.raises(RuntimeError, match="call reset"):  # as the native env, and the env stays usable
+        venv.step(np.zeros((2, 3), np.float32))
     venv.reset(seed=0)
-    with pytest.raises(ShardError, match=r"(?s)shard 0.*state is missing"):  # a worker's own error, with its traceback
+    with pytest.raises(ValueError, match="finite"):
+        venv.step(np.full((2, 3), np.nan, np.float32))
+    with pytest.raises(ValueError, match="one state per shard"):
+        venv.set_state({"z": None})
+    assert not venv.closed
+    with pytest.raises(ValueError, match="state is missing") as raised:  # a worker's own error, as itself
         venv.set_state([{}, {}])
+    assert "shard 0:" in "\n".join(raised.value.__notes__)  # with the worker's traceback
     assert venv.closed
-    venv = gym.make_vec("RedSim/MiniChain-v0", num_envs=2, vectorization_mode="vector_entry_point", shards=2)
+    venv = make(shards=2)
     try:
         venv.reset(seed=0)
-        with pytest.raises(ValueError, match="finite"):
-            venv.step(np.full((2, 3), np.nan, np.float32))
         venv._processes[1].kill()
         venv._processes[1].join()
-        with pytest.raises(ShardError, match="shard 1"):
+        with pytest.raises(ShardError, match="shard 1: the worker process exited"):
             venv.step(np.zeros((2, 3), np.float32))
         assert venv.closed
     finally:
         venv.close()
+
+
+class _Interrupting:
+    """A pipe end whose recv is interrupted (as by Ctrl-C while a step is in flight)."""
+
+    def __init__(self, pipe) -> None:
+        self.pipe = pipe
+
+    def send(self, message) -> None:
+        self.pipe.send(message)
+
+    def recv(self):
+        raise KeyboardInterrupt
+
+    def close(self) -> None:
+        self.pipe.close()
+
+
+def test_an_interrupted_request_closes_the_env_instead_of_leaving_answers_unread() -> None:
+    venv = gym.make_vec("RedSim/MiniChain-v0", num_envs=2, vectorization_mode="vector_entry_point", shards=2)
+    processes = list(venv._processes)
+    venv.reset(seed=0)
+    venv._pipes[1] = _Interrupting(venv._pipes[1])
+    with pytest.raises(KeyboardInterrupt):
+        venv.step(np.zeros((2, 3), np.float32))
+    assert venv.closed and all(not p.is_alive() for p in processes)
+    with pytest.raises(RuntimeError, match="closed"):
+        venv.reset(seed=0)
+
+
+def test_a_key_only_some_shards_report_is_merged_as_the_native_env_reports_it() -> None:
+    """SAME_STEP: copies 2 and 3 (shard 1) restart a step later, so at step 3 only shard 0 reports final_obs."""
+    kwargs = {"max_episode_steps": 3, "autoreset_mode": AutoresetMode.SAME_STEP, **TIGHT}
+    envs = [
+        gym.make_vec("RedSim/MiniChain-v0", num_envs=4, vectorization_mode="vector_entry_point", **kwargs),
+        gym.make_vec("RedSim/MiniChain-v0", num_envs=4, vectorization_mode="vector_entry_point", shards=2, **kwargs),
+    ]
+    actions = np.random.default_rng(1).uniform(-1, 1, (4, 4, 3)).astype(np.float32)
+    infos = []
+    try:
+        for venv in envs:
+            venv.reset(seed=[5, 6, 7, 8])
+            venv.step(actions[0])
+            venv.reset(options={"reset_mask": np.array([False, False, True, True])})
+            steps = [venv.step(a) for a in actions[1:]]
+            infos.append(steps[1][4])  # step 3: copies 0 and 1 truncate, 2 and 3 do not
+    finally:
+        for venv in envs:
+            venv.close()
+    native, sharded = infos
+    assert set(sharded) == set(native)
+    np.testing.assert_array_equal(sharded["_final_obs"], [True, True, False, False])
+    np.testing.assert_array_equal(sharded["_final_obs"], native["_final_obs"])
+    for i in (0, 1):
+        np.testing.assert_allclose(sharded["final_obs"][i], native["final_obs"][i], rtol=1e-6, atol=1e-6)
+        assert sharded["final_info"][i].keys() == native["final_info"][i].keys()
+    assert sharded["final_obs"][2] is None and sharded["final_obs"][3] is None
 
 
 def test_sb3_adapter_runs_on_shards() -> None:
