@@ -275,7 +275,9 @@ class ShardedVectorEnv(VectorEnv):
             try:
                 status, payload = pipe.recv()
             except (EOFError, OSError) as error:
-                code = self._processes[shard].exitcode if shard < len(self._processes) else None
+                process = self._processes[shard]
+                process.join(1.0)  # a worker that just exited: its exit code
+                code = process.exitcode
                 failures.append(f"shard {shard}: the worker process exited (exit code {code}, {error!r}){hint}")
                 answers.append(None)
                 continue
