@@ -1,4 +1,4 @@
-"""README.md's code blocks run as written: every ```python block on its own, top to bottom, in an
+"""README.md's and docs/*.md's code blocks run as written: every ```python block on its own, top to bottom, in an
 empty folder; every `redsim ...` command line of the ```bash blocks parses, and the cheap ones run.
 
 The commands that take minutes (fits with presets, `bench`, `simulate` of real scenes) are only
@@ -17,20 +17,32 @@ import pytest
 from redsim import pretrained
 from redsim.cli import build_parser, main
 
-README = Path(__file__).resolve().parents[1] / "README.md"
-FENCE = re.compile(r"^```(\w*)\n(.*?)^```", re.S | re.M)
+ROOT = Path(__file__).resolve().parents[1]
+README = ROOT / "README.md"
+DOCS = sorted((ROOT / "docs").glob("*.md"))
+"""The history and detail moved out of the README; their blocks are held to the same checks."""
+FILES = [README, *DOCS]
+FENCE = re.compile(r"^( *)```(\w*)\n(.*?)^ *```", re.S | re.M)
+"""A fenced block, also one indented in a list item (its body is dedented by the fence's indent)."""
 CHEAP = ("scenes", "inspect", "sample", "animate")
 """Commands that run in seconds (`inspect`/`sample`/`animate` on the shipped mini chain map)."""
 
 
-def blocks(language: str) -> list[str]:
-    return [body for lang, body in FENCE.findall(README.read_text()) if lang == language]
+def name(path: Path) -> str:
+    """The file as the test ids show it: README.md, docs/env-speed.md, ..."""
+    return path.relative_to(ROOT).as_posix()
 
 
-def redsim_commands() -> list[list[str]]:
+def blocks(language: str, path: Path = README) -> list[str]:
+    return [
+        re.sub(f"(?m)^{indent}", "", body) for indent, lang, body in FENCE.findall(path.read_text()) if lang == language
+    ]
+
+
+def redsim_commands(path: Path = README) -> list[list[str]]:
     """Every `redsim ...` command of the bash blocks (split at `&&`, comments dropped), as argv lists."""
     commands = []
-    for block in blocks("bash"):
+    for block in blocks("bash", path):
         for line in block.splitlines():
             for part in line.split("&&"):
                 argv = shlex.split(part, comments=True)
@@ -39,20 +51,48 @@ def redsim_commands() -> list[list[str]]:
     return commands
 
 
+def python_blocks() -> list:
+    return [
+        pytest.param(path, index, id=f"{name(path)} python block {index}")
+        for path in FILES
+        for index in range(len(blocks("python", path)))
+    ]
+
+
+def command_params(kinds: tuple[str, ...] | None = None) -> list:
+    """Every `redsim` command of FILES as argv (of `kinds` only, if given), with the file in its test id."""
+    return [
+        pytest.param(argv, id=f"{name(path)}: {' '.join(argv)}"[:140])
+        for path in FILES
+        for argv in redsim_commands(path)
+        if kinds is None or (argv[0] in kinds and not any(p.startswith("subspaces/part") for p in argv))
+    ]
+
+
 def test_readme_has_the_blocks_this_test_reads() -> None:
     assert len(blocks("python")) >= 2
     commands = [argv[0] for argv in redsim_commands()]
     assert {"scenes", "simulate", "fit", "inspect", "sample", "animate"} <= set(commands)
 
 
-@pytest.mark.parametrize("index", range(len(blocks("python"))))
-def test_python_block_runs_on_its_own(index: int, tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> None:
+def test_docs_are_linked_from_the_readme() -> None:
+    """Every docs/*.md file is linked from the README, and every docs/ file the README names exists."""
+    assert DOCS, "docs/ holds the history moved out of the README"
+    readme = README.read_text()
+    for path in DOCS:
+        assert f"({name(path)})" in readme, f"README.md does not link {name(path)}"
+    for named in set(re.findall(r"docs/[\w.-]+\.md", readme)):
+        assert (ROOT / named).is_file(), f"README.md names {named}, which does not exist"
+
+
+@pytest.mark.parametrize(("path", "index"), python_blocks())
+def test_python_block_runs_on_its_own(path: Path, index: int, tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> None:
     monkeypatch.chdir(tmp_path)
-    code = blocks("python")[index]
-    exec(compile(code, f"README.md python block {index}", "exec"), {"__name__": "__main__"})  # as a script runs it
+    code = blocks("python", path)[index]
+    exec(compile(code, f"{name(path)} python block {index}", "exec"), {"__name__": "__main__"})  # as a script runs it
 
 
-@pytest.mark.parametrize("argv", redsim_commands(), ids=lambda a: " ".join(a)[:60])
+@pytest.mark.parametrize("argv", command_params())
 def test_redsim_command_parses(argv: list[str]) -> None:
     args = build_parser().parse_args(argv)
     assert callable(args.func)
@@ -66,11 +106,7 @@ def _shipped_mini_chain(folder: Path) -> None:
         shutil.copy(pretrained.path("mini_chain").with_suffix(suffix), target / f"mini_chain{suffix}")
 
 
-def _runnable(kinds: tuple[str, ...]) -> list[list[str]]:
-    return [a for a in redsim_commands() if a[0] in kinds and not any(p.startswith("subspaces/part") for p in a)]
-
-
-@pytest.mark.parametrize("argv", _runnable(CHEAP), ids=lambda a: " ".join(a)[:60])
+@pytest.mark.parametrize("argv", command_params(CHEAP))
 def test_cheap_redsim_command_runs(argv: list[str], tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> None:
     monkeypatch.chdir(tmp_path)
     _shipped_mini_chain(tmp_path)
@@ -78,7 +114,7 @@ def test_cheap_redsim_command_runs(argv: list[str], tmp_path: Path, monkeypatch:
 
 
 @pytest.mark.slow
-@pytest.mark.parametrize("argv", _runnable(("simulate",)), ids=lambda a: " ".join(a)[:60])
+@pytest.mark.parametrize("argv", command_params(("simulate",)))
 def test_simulate_command_runs(argv: list[str], tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> None:
     if "--mesh" in argv:
         pytest.skip("needs the user's own mesh file")
