@@ -9,6 +9,7 @@ import torch
 from torch import Tensor
 
 from redsim.effects.base import Effect, gather_coordinates, gather_elements, per_element
+from redsim.effects.cloth_gradients import MembraneEnergy, membrane_coefficients
 from redsim.effects.plane_gradients import PlaneNeoHookeanEnergy, plane_constants
 from redsim.materials import lame_from_young_poisson
 
@@ -258,16 +259,26 @@ class StVKMembrane(Effect):
         self.name = name
         self.element_dofs = torch.as_tensor(vertex_dofs, dtype=torch.int64).reshape(T, 9)
         self.shape_gradients = _shape_gradients(torch.linalg.inv(frame))
+        self.metric_coefficients = membrane_coefficients(self.shape_gradients)
         self.rest_area = area
         self.mu = mu * thickness
         self.lam = lam * thickness
 
     def element_energy(self, xe: Tensor, cond: Tensor | None = None, loads: Tensor | None = None) -> Tensor:
-        return self._energy_density(membrane_metric(xe.unbind(-1), self.shape_gradients)) * self.rest_area
+        return self._energies(xe.unbind(-1))
 
     def element_energies(self, x: Tensor, cond: Tensor | None = None, loads: Tensor | None = None) -> Tensor:
-        """Energy of every triangle [J], shape [B, T], at full configurations x [B, N] (by :meth:`metric`)."""
-        return self._energy_density(self.metric(x)) * self.rest_area
+        """Energy of every triangle [J], shape [B, T], at full configurations x [B, N].
+
+        The nine vertex coordinates are gathered as [B, T] tensors (:func:`gather_coordinates`, as :meth:`metric`).
+        """
+        return self._energies(gather_coordinates(x, self.element_dofs))
+
+    def _energies(self, coords: Sequence[Tensor]) -> Tensor:
+        """Energies [J], [B, T], of the nine vertex coordinates, each [B, T], with the closed-form gradient of
+        :class:`redsim.effects.cloth_gradients.MembraneEnergy`."""
+        coefficients = self.metric_coefficients.T.contiguous()
+        return MembraneEnergy.apply(coefficients, self.mu, self.lam, self.rest_area, *coords)
 
     def metric(self, x: Tensor) -> tuple[Tensor, Tensor, Tensor]:
         """(C_00, C_11, C_01) of C = F^T F of every triangle, each [B, T], at full configurations x [B, N].
@@ -276,13 +287,6 @@ class StVKMembrane(Effect):
         :meth:`NeoHookean.invariants` does in 2D: the elementwise kernel then reads no strided views.
         """
         return membrane_metric(gather_coordinates(x, self.element_dofs), self.shape_gradients)
-
-    def _energy_density(self, metric: tuple[Tensor, Tensor, Tensor]) -> Tensor:
-        """psi [J/m^2] (thickness included), [B, T], from the entries of C (:func:`membrane_metric`)."""
-        caa, cbb, cab = metric
-        e00, e11, e01 = 0.5 * (caa - 1.0), 0.5 * (cbb - 1.0), 0.5 * cab  # Green strain E = (C - I) / 2
-        trace = e00 + e11
-        return self.mu * (e00 * e00 + e11 * e11 + 2.0 * e01 * e01) + 0.5 * self.lam * trace * trace
 
 
 def membrane_metric(coords: Sequence[Tensor], shape_gradients: Tensor) -> tuple[Tensor, Tensor, Tensor]:
