@@ -3,7 +3,7 @@
 Prop. 1 of the paper says the loss's small-sigma limit is linear modes, which hold the small linear
 responses to loads; at the sigma a scene needs for its large motions the paper's MLP misses them (issue
 12: response errors near 1). Pulling the MLP towards modes or modal derivatives by a penalty did not hold
-them (README, "Small responses"): Adam does not keep a quadratic map's small stiff part, which an MLP can
+them (docs/fitting.md, "Small responses"): Adam does not keep a quadratic map's small stiff part, which an MLP can
 only express with large, finely cancelling output weights. Here the polynomial map is a fixed part of
 :class:`redsim.subspace.AnchoredSubspace` and the MLP enters only through its Taylor remainder at z = 0, so
 nothing has to hold it: near z = 0 the map is the polynomial map exactly (to second order for "md", to
