@@ -1,4 +1,5 @@
-"""Fixtures of the engine tests: a private equilibrium cache and a counter of full-space solves."""
+"""Fixtures of the engine tests: a private equilibrium cache, a counter of full-space solves and the derivatives
+of an energy to third order (for the closed-form kernels against autograd)."""
 
 from __future__ import annotations
 
@@ -7,6 +8,7 @@ from pathlib import Path
 from typing import Any
 
 import pytest
+import torch
 
 from redsim.integrators import cache, reference
 
@@ -36,3 +38,21 @@ def count_solves(monkeypatch: pytest.MonkeyPatch) -> Callable[[], list[int]]:
         return calls
 
     return start
+
+
+def _derivatives(
+    energies: Callable[[torch.Tensor], torch.Tensor], x: torch.Tensor, u: torch.Tensor, v: torch.Tensor
+) -> list[torch.Tensor]:
+    """Energies, gradient, Hessian . u and third derivative . (u, v) of the summed energies at x (all detached)."""
+    x = x.detach().requires_grad_(True)
+    e = energies(x)
+    (g,) = torch.autograd.grad(e.sum(), x, create_graph=True)
+    (hu,) = torch.autograd.grad((g * u).sum(), x, create_graph=True)
+    (tuv,) = torch.autograd.grad((hu * v).sum(), x)
+    return [t.detach() for t in (e, g, hu, tuv)]
+
+
+@pytest.fixture
+def derivatives() -> Callable[..., list[torch.Tensor]]:
+    """The function of :func:`_derivatives`: an energy's derivatives to third order, to compare two kernels."""
+    return _derivatives

@@ -3,6 +3,8 @@ formula (:func:`membrane_metric`) and against central differences, to second and
 
 from __future__ import annotations
 
+from collections.abc import Callable
+
 import pytest
 import torch
 
@@ -27,31 +29,23 @@ def _state(scene: redsim.Scene, batch: int, scale: float, dtype: torch.dtype) ->
     return scene.to(dtype=dtype).full_positions(q)
 
 
-def _derivatives(energies, x: torch.Tensor, u: torch.Tensor, v: torch.Tensor) -> list[torch.Tensor]:
-    """Energies, gradient, Hessian . u and third derivative . (u, v) of the summed energies at x."""
-    x = x.detach().requires_grad_(True)
-    e = energies(x)
-    (g,) = torch.autograd.grad(e.sum(), x, create_graph=True)
-    (hu,) = torch.autograd.grad((g * u).sum(), x, create_graph=True)
-    (tuv,) = torch.autograd.grad((hu * v).sum(), x)
-    return [t.detach() for t in (e, g, hu, tuv)]
-
-
 @pytest.mark.parametrize("scene_name", ["hanging_sheet", "cloth_ball"])
-def test_closed_form_derivatives_equal_autograd_of_the_plain_formulas(scene_name: str) -> None:
+def test_closed_form_derivatives_equal_autograd_of_the_plain_formulas(
+    scene_name: str, derivatives: Callable[..., list[torch.Tensor]]
+) -> None:
     """float64: values, gradients, Hessian-vector products and third derivatives (backward under create_graph)."""
     scene = redsim.scenes.build(scene_name)
     effect = scene.effect("membrane")
     x = _state(scene, 3, 0.05, torch.float64)
     g = torch.Generator().manual_seed(1)
     u, v = (torch.randn(x.shape, generator=g, dtype=torch.float64) for _ in range(2))
-    fast = _derivatives(effect.element_energies, x, u, v)
-    plain = _derivatives(lambda y: _plain_energies(effect, y), x, u, v)
+    fast = derivatives(effect.element_energies, x, u, v)
+    plain = derivatives(lambda y: _plain_energies(effect, y), x, u, v)
     for a, b in zip(fast, plain, strict=True):
         assert torch.allclose(a, b, rtol=1e-9, atol=1e-12 * float(b.abs().max()))
 
 
-def test_float32_gradients_match_float64_like_autograd() -> None:
+def test_float32_gradients_match_float64_like_autograd(derivatives: Callable[..., list[torch.Tensor]]) -> None:
     """float32: the closed-form gradient is as close to the float64 one as float32 autograd is (within 5x)."""
     scene = redsim.scenes.build("hanging_sheet")
     effect, effect32 = scene.effect("membrane"), scene.to(dtype=torch.float32).effect("membrane")
@@ -59,7 +53,7 @@ def test_float32_gradients_match_float64_like_autograd() -> None:
     zero = torch.zeros_like(x)
 
     def gradient(energies, y: torch.Tensor) -> torch.Tensor:
-        return _derivatives(energies, y, zero, zero)[1].double()
+        return derivatives(energies, y, zero, zero)[1].double()
 
     reference = gradient(effect.element_energies, x)
     fast = gradient(effect32.element_energies, x.float())

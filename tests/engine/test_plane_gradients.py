@@ -4,6 +4,8 @@ and third order, with and without the conditional modulus factor."""
 
 from __future__ import annotations
 
+from collections.abc import Callable
+
 import pytest
 import torch
 
@@ -40,37 +42,29 @@ def _case(
     return scene.effect("elastic"), x, cond
 
 
-def _derivatives(energies, x: torch.Tensor, u: torch.Tensor, v: torch.Tensor) -> list[torch.Tensor]:
-    """Energies, gradient, Hessian . u and third derivative . (u, v) of the summed energies at x."""
-    x = x.detach().requires_grad_(True)
-    e = energies(x)
-    (g,) = torch.autograd.grad(e.sum(), x, create_graph=True)
-    (hu,) = torch.autograd.grad((g * u).sum(), x, create_graph=True)
-    (tuv,) = torch.autograd.grad((hu * v).sum(), x)
-    return [t.detach() for t in (e, g, hu, tuv)]
-
-
 @pytest.mark.parametrize("name", ["conditional_bar", "bistable_bar"])  # with and without the condition scale
-def test_closed_form_derivatives_equal_autograd_of_the_plain_formulas(name: str) -> None:
+def test_closed_form_derivatives_equal_autograd_of_the_plain_formulas(
+    name: str, derivatives: Callable[..., list[torch.Tensor]]
+) -> None:
     """float64: values, gradients, Hessian-vector products and third derivatives (backward under create_graph)."""
     fem, x, cond = _case(name, 3, 0.05, torch.float64)
     assert (fem.condition_scale is not None) == (name == "conditional_bar")
     g = torch.Generator().manual_seed(1)
     u, v = (torch.randn(x.shape, generator=g, dtype=torch.float64) for _ in range(2))
-    fast = _derivatives(lambda y: fem.element_energies(y, cond), x, u, v)
-    plain = _derivatives(lambda y: _plain_energies(fem, y, cond), x, u, v)
+    fast = derivatives(lambda y: fem.element_energies(y, cond), x, u, v)
+    plain = derivatives(lambda y: _plain_energies(fem, y, cond), x, u, v)
     for a, b in zip(fast, plain, strict=True):
         assert torch.allclose(a, b, rtol=1e-9, atol=1e-12 * float(b.abs().max()))
 
 
-def test_float32_gradients_match_float64_like_autograd() -> None:
+def test_float32_gradients_match_float64_like_autograd(derivatives: Callable[..., list[torch.Tensor]]) -> None:
     """float32: the closed-form gradient is as close to the float64 one as float32 autograd is (within 5x)."""
     fem, x, cond = _case("conditional_bar", 2, 0.01, torch.float64)
     fem32, x32, cond32 = fem.to(dtype=torch.float32), x.float(), cond.float()
     zero = torch.zeros_like(x)
 
     def gradient(energies, y: torch.Tensor) -> torch.Tensor:
-        return _derivatives(energies, y, zero.to(y.dtype), zero.to(y.dtype))[1].double()
+        return derivatives(energies, y, zero.to(y.dtype), zero.to(y.dtype))[1].double()
 
     reference = gradient(lambda y: fem.element_energies(y, cond), x)
     fast = gradient(lambda y: fem32.element_energies(y, cond32), x32)
