@@ -7,8 +7,9 @@ against.
 """
 
 # redsim.envs registers the Gymnasium ids ("RedSim/Chain-v0", ...) with string entry points: nothing
-# heavy is imported and no checkpoint is loaded until an env is made.
-from redsim import effects, envs, scenes
+# heavy is imported and no checkpoint is loaded until an env is made. redsim.fork_safety: a process forked
+# from this one runs torch on one thread (OpenMP's pool does not survive fork).
+from redsim import effects, envs, fork_safety, scenes
 from redsim.points import PointSet
 from redsim.scene import ConditionSpace, Handle, Scene, SceneBuilder, Surface
 from redsim.subspace import SubspaceConfig, SubspaceMap, load_subspace
@@ -26,6 +27,7 @@ __all__ = [
     "__version__",
     "effects",
     "envs",
+    "fork_safety",
     "load_subspace",
     "scenes",
 ]

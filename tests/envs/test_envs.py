@@ -365,6 +365,29 @@ def test_subproc_vec_env_with_spawn_runs_the_envs() -> None:
     venv.close()
 
 
+ASYNC_SCRIPT = """
+import gymnasium as gym, numpy as np, torch, redsim
+torch.set_num_threads(2)
+torch.randn(512, 512) @ torch.randn(512, 512)  # the parent has run a parallel region before it forks
+venv = gym.make_vec("RedSim/MiniChain-v0", num_envs=2, vectorization_mode="async")  # fork on Linux
+venv.reset(seed=0)
+obs, reward, terminated, truncated, info = venv.step(np.zeros((2, 3), np.float32))
+assert obs.shape == (2, 14) and np.all(np.isfinite(reward))
+venv.close()
+print("ok")
+"""
+
+
+def test_async_vector_env_with_fork_does_not_hang() -> None:
+    """Gymnasium's AsyncVectorEnv forks its workers after building an env in the parent; OpenMP's pool does not
+    survive fork, so without :mod:`redsim.fork_safety` the workers hung (run in a subprocess: a hang fails here)."""
+    import subprocess
+    import sys
+
+    done = subprocess.run([sys.executable, "-c", ASYNC_SCRIPT], capture_output=True, text=True, timeout=240)
+    assert done.returncode == 0 and done.stdout.strip().endswith("ok"), done.stderr[-2000:]
+
+
 def test_trimesh_export_of_the_current_state(mini: gym.Env) -> None:
     mini.reset(seed=0)
     meshes = mini.unwrapped.trimeshes()
