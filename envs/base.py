@@ -766,17 +766,20 @@ class LatentEnv(gym.Env[np.ndarray, np.ndarray]):
         ]
 
     def __getstate__(self) -> dict[str, Any]:
-        state = {"init": self._init_args, "sim": self.get_state() if self._reset_done else None}
+        state = {"init": self._init_args, "sim": self.get_state() if self._reset_done else None, "spec": self.spec}
         state["rng"] = None if self._np_random is None else self._np_random.bit_generator.state
+        state["seed"] = self._np_random_seed  # without it, reading np_random_seed would replace the generator
         return state
 
     def __setstate__(self, state: dict[str, Any]) -> None:
         args, kwargs = state["init"]
         self._init_args = (args, kwargs)
         self.__init__(*args, **kwargs)  # type: ignore[misc]
+        self.spec = state["spec"]
         if state["rng"] is not None:
             self._np_random = np.random.Generator(np.random.PCG64())
             self._np_random.bit_generator.state = state["rng"]
+            self._np_random_seed = state["seed"]
         if state["sim"] is not None:
             self.set_state(state["sim"])
 

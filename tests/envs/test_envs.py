@@ -7,6 +7,7 @@ run the same checks under ``-m slow``. Float tolerances: the stepper runs in flo
 
 from __future__ import annotations
 
+import copy
 import pickle
 import warnings
 
@@ -244,6 +245,19 @@ def test_envs_pickle_and_continue_exactly(mini: gym.Env) -> None:
     b = clone.step(np.full(3, 0.7, np.float32))[0]
     assert np.array_equal(a, b)
     assert np.array_equal(env.reset()[0], clone.reset()[0])  # the generator travels too
+
+
+def test_a_copy_keeps_the_seed_and_spec_so_reading_the_seed_keeps_the_generator() -> None:
+    """Gymnasium's ``np_random_seed`` draws a fresh generator where the seed is unset; a copy that dropped it
+    would lose its seeded stream on the first read."""
+    env = gym.make("RedSim/MiniChain-v0", max_episode_steps=50)
+    env.reset(seed=5)
+    next_obs = env.unwrapped.reset()[0]
+    env.reset(seed=5)
+    for clone in (copy.deepcopy(env), pickle.loads(pickle.dumps(env))):
+        assert clone.unwrapped.np_random_seed == 5
+        assert clone.unwrapped.spec == env.unwrapped.spec
+        assert np.array_equal(clone.reset()[0], next_obs)
 
 
 def test_info_reports_solver_flags_invariants_rewards_and_q() -> None:
