@@ -807,17 +807,18 @@ def check_numbers(
 
 
 def check_action(action: Any, shape: tuple[int, ...]) -> np.ndarray:
-    """The action as float32 of ``shape``, clipped to [-1, 1].
+    """The action as float32 of ``shape``, clipped to [-1, 1] (checked and clipped in float64, so a finite
+    value beyond float32's range is clipped too, not refused as infinite).
 
     Raises:
         ValueError: a wrong shape (both named) or non-finite entries.
     """
-    act = np.asarray(action, dtype=np.float32)
+    act = np.asarray(action, dtype=np.float64)
     if act.shape != tuple(shape):
         raise ValueError(f"action must have shape {tuple(shape)}, got {act.shape}")
     if not np.all(np.isfinite(act)):
         raise ValueError(f"action must be finite, got {act.tolist()}")
-    return np.clip(act, -1.0, 1.0)
+    return np.clip(act, -1.0, 1.0).astype(np.float32)
 
 
 def copy_seeds(seed: int | Sequence[int | None] | None, count: int) -> tuple[int | None, list[Any] | None]:

@@ -196,6 +196,10 @@ def test_bad_actions_are_clear_errors(mini: gym.Env) -> None:
         mini.step(np.zeros(2, np.float32))
     obs, *_ = mini.step(np.array([50.0, -50.0, 0.0], np.float32))  # clipped, not an error
     assert mini.observation_space.contains(obs)
+    state = mini.unwrapped.get_state()  # finite but beyond float32's range: clipped too, not "not finite"
+    huge = mini.step(np.array([1e39, -1e39, 0.0]))[0]
+    mini.unwrapped.set_state(state)
+    assert np.array_equal(huge, mini.step(np.array([1.0, -1.0, 0.0], np.float32))[0])
 
 
 def test_a_subspace_of_another_scene_is_a_clear_error() -> None:
