@@ -824,7 +824,8 @@ def check_action(action: Any, shape: tuple[int, ...]) -> np.ndarray:
 def copy_seeds(seed: int | Sequence[int | None] | None, count: int) -> tuple[int | None, list[Any] | None]:
     """A vector env's reset seed: (its own seed, or None; the seed of each of ``count`` copies, or None).
 
-    An int (NumPy's too) seeds copy i with ``seed + i``; a sequence gives each copy its own.
+    An int (NumPy's too) seeds copy i with ``seed + i``; a sequence gives each copy its own (None: the copy keeps
+    its generator, as Gymnasium's sync and async vector envs do).
 
     Raises:
         ValueError: a sequence of another length.

@@ -72,7 +72,8 @@ class LatentVectorEnv(VectorEnv):
     def reset(
         self, *, seed: int | Sequence[int | None] | None = None, options: dict[str, Any] | None = None
     ) -> tuple[np.ndarray, dict[str, Any]]:
-        """Reset all copies, or those of ``options["reset_mask"]`` (bool [N]); seed copy i with ``seed + i``."""
+        """Reset all copies, or those of ``options["reset_mask"]`` (bool [N]); seed copy i with ``seed + i``, or with
+        ``seed[i]`` for a sequence (None: copy i keeps its generator, as in Gymnasium's sync vector env)."""
         own, seeds = copy_seeds(seed, self.num_envs)
         super().reset(seed=own)
         mask = (
@@ -84,7 +85,8 @@ class LatentVectorEnv(VectorEnv):
             raise ValueError(f"options['reset_mask'] must have shape ({self.num_envs},), got {mask.shape}")
         if seeds is not None:
             for i in np.nonzero(mask)[0]:
-                self._rngs[i] = seeding.np_random(seeds[i])[0]
+                if seeds[i] is not None:
+                    self._rngs[i] = seeding.np_random(seeds[i])[0]
         rows = [int(i) for i in np.nonzero(mask)[0]]
         self.sim.reset_rows(rows, [self._rngs[i] for i in rows])
         self._elapsed[mask] = 0

@@ -149,6 +149,17 @@ def test_vector_env_equals_single_envs_step_for_step() -> None:
     assert np.array(vec_done)[4].all()  # truncated at max_episode_steps = 5
 
 
+def test_a_none_seed_in_a_vector_reset_keeps_that_copy_s_generator() -> None:
+    """As Gymnasium's sync vector env (and a single env's ``reset(seed=None)``): copy 1 continues its stream."""
+    venv = gym.make_vec("RedSim/MiniChain-v0", num_envs=2, vectorization_mode="vector_entry_point")
+    venv.reset(seed=[1, 2])
+    obs, _ = venv.reset(seed=[5, None])
+    env = gym.make("RedSim/MiniChain-v0")
+    env.reset(seed=2)
+    np.testing.assert_allclose(obs[1], env.reset()[0], rtol=0, atol=1e-6)
+    np.testing.assert_allclose(obs[0], env.reset(seed=5)[0], rtol=0, atol=1e-6)
+
+
 def test_same_step_autoreset_reports_the_final_observation() -> None:
     venv = gym.make_vec(
         "RedSim/MiniChain-v0",
