@@ -60,6 +60,14 @@ its clear error where no window can open (Gymnasium would otherwise wrap the env
 HumanRendering); an instance's ``metadata`` lists "human" only where it works, so
 ``check_env`` renders every mode it lists."""
 
+VECTOR_RENDER_MODES = ["rgb_array"]
+"""The vector envs (native and sharded) draw one RGB frame per copy; "human", a window, is a single env's."""
+NO_HUMAN = (
+    'render_mode="human" is a single env\'s window; a vector env draws render_mode="rgb_array" frames (one per '
+    "copy, venv.render()), which gymnasium.wrappers.vector.HumanRendering shows in a window"
+)
+"""Why a vector env refuses ``render_mode="human"`` (it would draw nothing)."""
+
 
 class Task:
     """What an environment asks of its scene; every method is batched over B copies.
@@ -870,6 +878,8 @@ def _batch(state: Mapping[str, Any]) -> dict[str, Any]:
 
 __all__ = [
     "LATENT_BOUND",
+    "NO_HUMAN",
+    "VECTOR_RENDER_MODES",
     "LatentEnv",
     "LatentSim",
     "Task",

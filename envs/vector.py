@@ -22,7 +22,7 @@ from gymnasium.utils import seeding
 from gymnasium.vector import AutoresetMode, VectorEnv
 from gymnasium.vector.utils import batch_space
 
-from redsim.envs.base import check_action, copy_seeds
+from redsim.envs.base import NO_HUMAN, VECTOR_RENDER_MODES, check_action, copy_seeds
 from redsim.envs.sharded import ShardedVectorEnv, shard_sizes
 
 if TYPE_CHECKING:
@@ -39,7 +39,8 @@ class LatentVectorEnv(VectorEnv):
         autoreset_mode: ``AutoresetMode.NEXT_STEP`` (Gymnasium's default) or ``SAME_STEP``.
 
     Raises:
-        ValueError: a bad count or autoreset mode, and (in :meth:`step`) a bad action batch.
+        ValueError: a bad count or autoreset mode, an env with ``render_mode="human"``
+            (:data:`redsim.envs.base.NO_HUMAN`), and (in :meth:`step`) a bad action batch.
     """
 
     def __init__(
@@ -51,11 +52,13 @@ class LatentVectorEnv(VectorEnv):
         autoreset_mode: AutoresetMode | str = AutoresetMode.NEXT_STEP,
     ) -> None:
         mode = check_vector_args(num_envs, max_episode_steps, autoreset_mode)
+        if env.render_mode == "human":
+            raise ValueError(NO_HUMAN)
         self.num_envs = int(num_envs)
         self.sim = env.sim.clone(self.num_envs, copy.deepcopy(env.task))
         self.template = env
         self.render_mode = env.render_mode
-        self.metadata = {**env.metadata, "autoreset_mode": mode}
+        self.metadata = {**env.metadata, "render_modes": list(VECTOR_RENDER_MODES), "autoreset_mode": mode}
         self.single_action_space = env.action_space
         self.single_observation_space = env.observation_space
         self.action_space = batch_space(self.single_action_space, self.num_envs)
@@ -205,6 +208,8 @@ def vector_entry(env_class: type[LatentEnv]) -> Callable[..., LatentVectorEnv | 
         shards: int = 1,
         **kwargs: Any,
     ) -> LatentVectorEnv | ShardedVectorEnv:
+        if kwargs.get("render_mode") == "human":  # before any env or worker is made (or a display is asked for)
+            raise ValueError(NO_HUMAN)
         build = functools.partial(_native, env_class, kwargs, max_episode_steps, autoreset_mode)
         if shards == 1:
             return build(num_envs)
