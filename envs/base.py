@@ -60,6 +60,14 @@ its clear error where no window can open (Gymnasium would otherwise wrap the env
 HumanRendering); an instance's ``metadata`` lists "human" only where it works, so
 ``check_env`` renders every mode it lists."""
 
+VECTOR_RENDER_MODES = ["rgb_array"]
+"""The vector envs (native and sharded) draw one RGB frame per copy; "human", a window, is a single env's."""
+NO_HUMAN = (
+    'render_mode="human" is a single env\'s window; a vector env draws render_mode="rgb_array" frames (one per '
+    "copy, venv.render()), which gymnasium.wrappers.vector.HumanRendering shows in a window"
+)
+"""Why a vector env refuses ``render_mode="human"`` (it would draw nothing)."""
+
 
 class Task:
     """What an environment asks of its scene; every method is batched over B copies.
@@ -766,17 +774,20 @@ class LatentEnv(gym.Env[np.ndarray, np.ndarray]):
         ]
 
     def __getstate__(self) -> dict[str, Any]:
-        state = {"init": self._init_args, "sim": self.get_state() if self._reset_done else None}
+        state = {"init": self._init_args, "sim": self.get_state() if self._reset_done else None, "spec": self.spec}
         state["rng"] = None if self._np_random is None else self._np_random.bit_generator.state
+        state["seed"] = self._np_random_seed  # without it, reading np_random_seed would replace the generator
         return state
 
     def __setstate__(self, state: dict[str, Any]) -> None:
         args, kwargs = state["init"]
         self._init_args = (args, kwargs)
         self.__init__(*args, **kwargs)  # type: ignore[misc]
+        self.spec = state["spec"]
         if state["rng"] is not None:
             self._np_random = np.random.Generator(np.random.PCG64())
             self._np_random.bit_generator.state = state["rng"]
+            self._np_random_seed = state["seed"]
         if state["sim"] is not None:
             self.set_state(state["sim"])
 
@@ -804,23 +815,25 @@ def check_numbers(
 
 
 def check_action(action: Any, shape: tuple[int, ...]) -> np.ndarray:
-    """The action as float32 of ``shape``, clipped to [-1, 1].
+    """The action as float32 of ``shape``, clipped to [-1, 1] (checked and clipped in float64, so a finite
+    value beyond float32's range is clipped too, not refused as infinite).
 
     Raises:
         ValueError: a wrong shape (both named) or non-finite entries.
     """
-    act = np.asarray(action, dtype=np.float32)
+    act = np.asarray(action, dtype=np.float64)
     if act.shape != tuple(shape):
         raise ValueError(f"action must have shape {tuple(shape)}, got {act.shape}")
     if not np.all(np.isfinite(act)):
         raise ValueError(f"action must be finite, got {act.tolist()}")
-    return np.clip(act, -1.0, 1.0)
+    return np.clip(act, -1.0, 1.0).astype(np.float32)
 
 
 def copy_seeds(seed: int | Sequence[int | None] | None, count: int) -> tuple[int | None, list[Any] | None]:
     """A vector env's reset seed: (its own seed, or None; the seed of each of ``count`` copies, or None).
 
-    An int (NumPy's too) seeds copy i with ``seed + i``; a sequence gives each copy its own.
+    An int (NumPy's too) seeds copy i with ``seed + i``; a sequence gives each copy its own (None: the copy keeps
+    its generator, as Gymnasium's sync and async vector envs do).
 
     Raises:
         ValueError: a sequence of another length.
@@ -865,6 +878,8 @@ def _batch(state: Mapping[str, Any]) -> dict[str, Any]:
 
 __all__ = [
     "LATENT_BOUND",
+    "NO_HUMAN",
+    "VECTOR_RENDER_MODES",
     "LatentEnv",
     "LatentSim",
     "Task",

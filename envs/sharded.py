@@ -27,7 +27,7 @@ import numpy as np
 from gymnasium.vector import AutoresetMode, VectorEnv
 from gymnasium.vector.utils import batch_space
 
-from redsim.envs.base import check_action, copy_seeds
+from redsim.envs.base import NO_HUMAN, VECTOR_RENDER_MODES, check_action, copy_seeds
 
 if TYPE_CHECKING:
     from redsim.envs.base import LatentEnv
@@ -120,7 +120,7 @@ class ShardedVectorEnv(VectorEnv):
     Args:
         build: ``build(n)`` makes a native vector env of n copies (picklable: each worker gets a copy).
         template: One env of the same id and arguments, in this process, for spaces, metadata and attributes
-            (it is never stepped).
+            (it is never stepped; not in render_mode "human": a ValueError, :data:`redsim.envs.base.NO_HUMAN`).
         num_envs: N.
         shards: P, in [1, N].
         threads: torch intra-op threads per worker (None: the CPU count over P, at least 1).
@@ -154,12 +154,14 @@ class ShardedVectorEnv(VectorEnv):
         if context == "fork":
             raise ValueError("context 'fork' is not supported (torch's thread pools do not survive it): use 'spawn'")
         mode = AutoresetMode(autoreset_mode)
+        if template.render_mode == "human":
+            raise ValueError(NO_HUMAN)
         self.template = template
         self.observation_structure = template.observation_structure
         self.max_episode_steps = max_episode_steps
         self.num_envs = int(num_envs)
         self.render_mode = self.template.render_mode
-        self.metadata = {**self.template.metadata, "autoreset_mode": mode}
+        self.metadata = {**self.template.metadata, "render_modes": list(VECTOR_RENDER_MODES), "autoreset_mode": mode}
         self.single_action_space = self.template.action_space
         self.single_observation_space = self.template.observation_space
         self.action_space = batch_space(self.single_action_space, self.num_envs)

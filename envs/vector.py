@@ -3,7 +3,9 @@
 ``gymnasium.make_vec("RedSim/Chain-v0", num_envs=N, vectorization_mode="vector_entry_point")``
 builds a :class:`LatentVectorEnv`. Copy i draws its episodes from its own generator, seeded
 ``seed + i`` by ``reset(seed=seed)`` exactly as a single env seeded ``seed + i``, so the
-vector env equals N single envs step for step. Autoreset follows Gymnasium: by default
+vector env equals N single envs step for step, to the solve's tolerance (a float32 solve stops at a
+relative force balance of 1e-5, and another batch composition lands elsewhere inside it: ~5e-4 in z
+after a step, carried on by the dynamics; docs/envs.md). Autoreset follows Gymnasium: by default
 ``AutoresetMode.NEXT_STEP`` (the step after a copy ends resets it and ignores its action;
 reward 0, not terminated); ``AutoresetMode.SAME_STEP`` resets in the same step and puts the
 last observation and info in ``info["final_obs"]`` / ``info["final_info"]``.
@@ -22,7 +24,7 @@ from gymnasium.utils import seeding
 from gymnasium.vector import AutoresetMode, VectorEnv
 from gymnasium.vector.utils import batch_space
 
-from redsim.envs.base import check_action, copy_seeds
+from redsim.envs.base import NO_HUMAN, VECTOR_RENDER_MODES, check_action, copy_seeds
 from redsim.envs.sharded import ShardedVectorEnv, shard_sizes
 
 if TYPE_CHECKING:
@@ -39,7 +41,8 @@ class LatentVectorEnv(VectorEnv):
         autoreset_mode: ``AutoresetMode.NEXT_STEP`` (Gymnasium's default) or ``SAME_STEP``.
 
     Raises:
-        ValueError: a bad count or autoreset mode, and (in :meth:`step`) a bad action batch.
+        ValueError: a bad count or autoreset mode, an env with ``render_mode="human"``
+            (:data:`redsim.envs.base.NO_HUMAN`), and (in :meth:`step`) a bad action batch.
     """
 
     def __init__(
@@ -51,11 +54,13 @@ class LatentVectorEnv(VectorEnv):
         autoreset_mode: AutoresetMode | str = AutoresetMode.NEXT_STEP,
     ) -> None:
         mode = check_vector_args(num_envs, max_episode_steps, autoreset_mode)
+        if env.render_mode == "human":
+            raise ValueError(NO_HUMAN)
         self.num_envs = int(num_envs)
         self.sim = env.sim.clone(self.num_envs, copy.deepcopy(env.task))
         self.template = env
         self.render_mode = env.render_mode
-        self.metadata = {**env.metadata, "autoreset_mode": mode}
+        self.metadata = {**env.metadata, "render_modes": list(VECTOR_RENDER_MODES), "autoreset_mode": mode}
         self.single_action_space = env.action_space
         self.single_observation_space = env.observation_space
         self.action_space = batch_space(self.single_action_space, self.num_envs)
@@ -72,7 +77,8 @@ class LatentVectorEnv(VectorEnv):
     def reset(
         self, *, seed: int | Sequence[int | None] | None = None, options: dict[str, Any] | None = None
     ) -> tuple[np.ndarray, dict[str, Any]]:
-        """Reset all copies, or those of ``options["reset_mask"]`` (bool [N]); seed copy i with ``seed + i``."""
+        """Reset all copies, or those of ``options["reset_mask"]`` (bool [N]); seed copy i with ``seed + i``, or with
+        ``seed[i]`` for a sequence (None: copy i keeps its generator, as in Gymnasium's sync vector env)."""
         own, seeds = copy_seeds(seed, self.num_envs)
         super().reset(seed=own)
         mask = (
@@ -84,7 +90,8 @@ class LatentVectorEnv(VectorEnv):
             raise ValueError(f"options['reset_mask'] must have shape ({self.num_envs},), got {mask.shape}")
         if seeds is not None:
             for i in np.nonzero(mask)[0]:
-                self._rngs[i] = seeding.np_random(seeds[i])[0]
+                if seeds[i] is not None:
+                    self._rngs[i] = seeding.np_random(seeds[i])[0]
         rows = [int(i) for i in np.nonzero(mask)[0]]
         self.sim.reset_rows(rows, [self._rngs[i] for i in rows])
         self._elapsed[mask] = 0
@@ -203,6 +210,8 @@ def vector_entry(env_class: type[LatentEnv]) -> Callable[..., LatentVectorEnv | 
         shards: int = 1,
         **kwargs: Any,
     ) -> LatentVectorEnv | ShardedVectorEnv:
+        if kwargs.get("render_mode") == "human":  # before any env or worker is made (or a display is asked for)
+            raise ValueError(NO_HUMAN)
         build = functools.partial(_native, env_class, kwargs, max_episode_steps, autoreset_mode)
         if shards == 1:
             return build(num_envs)

@@ -7,6 +7,7 @@ run the same checks under ``-m slow``. Float tolerances: the stepper runs in flo
 
 from __future__ import annotations
 
+import copy
 import pickle
 import warnings
 
@@ -148,6 +149,17 @@ def test_vector_env_equals_single_envs_step_for_step() -> None:
     assert np.array(vec_done)[4].all()  # truncated at max_episode_steps = 5
 
 
+def test_a_none_seed_in_a_vector_reset_keeps_that_copy_s_generator() -> None:
+    """As Gymnasium's sync vector env (and a single env's ``reset(seed=None)``): copy 1 continues its stream."""
+    venv = gym.make_vec("RedSim/MiniChain-v0", num_envs=2, vectorization_mode="vector_entry_point")
+    venv.reset(seed=[1, 2])
+    obs, _ = venv.reset(seed=[5, None])
+    env = gym.make("RedSim/MiniChain-v0")
+    env.reset(seed=2)
+    np.testing.assert_allclose(obs[1], env.reset()[0], rtol=0, atol=1e-6)
+    np.testing.assert_allclose(obs[0], env.reset(seed=5)[0], rtol=0, atol=1e-6)
+
+
 def test_same_step_autoreset_reports_the_final_observation() -> None:
     venv = gym.make_vec(
         "RedSim/MiniChain-v0",
@@ -195,6 +207,10 @@ def test_bad_actions_are_clear_errors(mini: gym.Env) -> None:
         mini.step(np.zeros(2, np.float32))
     obs, *_ = mini.step(np.array([50.0, -50.0, 0.0], np.float32))  # clipped, not an error
     assert mini.observation_space.contains(obs)
+    state = mini.unwrapped.get_state()  # finite but beyond float32's range: clipped too, not "not finite"
+    huge = mini.step(np.array([1e39, -1e39, 0.0]))[0]
+    mini.unwrapped.set_state(state)
+    assert np.array_equal(huge, mini.step(np.array([1.0, -1.0, 0.0], np.float32))[0])
 
 
 def test_a_subspace_of_another_scene_is_a_clear_error() -> None:
@@ -244,6 +260,19 @@ def test_envs_pickle_and_continue_exactly(mini: gym.Env) -> None:
     b = clone.step(np.full(3, 0.7, np.float32))[0]
     assert np.array_equal(a, b)
     assert np.array_equal(env.reset()[0], clone.reset()[0])  # the generator travels too
+
+
+def test_a_copy_keeps_the_seed_and_spec_so_reading_the_seed_keeps_the_generator() -> None:
+    """Gymnasium's ``np_random_seed`` draws a fresh generator where the seed is unset; a copy that dropped it
+    would lose its seeded stream on the first read."""
+    env = gym.make("RedSim/MiniChain-v0", max_episode_steps=50)
+    env.reset(seed=5)
+    next_obs = env.unwrapped.reset()[0]
+    env.reset(seed=5)
+    for clone in (copy.deepcopy(env), pickle.loads(pickle.dumps(env))):
+        assert clone.unwrapped.np_random_seed == 5
+        assert clone.unwrapped.spec == env.unwrapped.spec
+        assert np.array_equal(clone.reset()[0], next_obs)
 
 
 def test_info_reports_solver_flags_invariants_rewards_and_q() -> None:

@@ -9,6 +9,7 @@ import trimesh
 
 import redsim  # noqa: F401  (registers the ids)
 from redsim.envs import base
+from redsim.envs.vector import LatentVectorEnv
 
 SIZE = 160
 """Render size [px] of these tests (a multiple of 16, the video codec's block)."""
@@ -67,6 +68,21 @@ def test_human_mode_opens_a_window_where_a_display_exists(monkeypatch: pytest.Mo
     assert pygame.surfarray.array3d(window).max() > 0  # the frame was drawn into it
     env.close()
     assert not pygame.display.get_init()
+
+
+def test_a_vector_env_refuses_human_mode_and_draws_a_frame_per_copy(monkeypatch: pytest.MonkeyPatch) -> None:
+    """A vector env would open no window in "human" mode; it says so, before it makes an env or a worker."""
+    for shards in (1, 2):
+        with pytest.raises(ValueError, match="HumanRendering"):
+            gym.make_vec("RedSim/MiniChain-v0", num_envs=2, render_mode="human", shards=shards)
+    venv = gym.make_vec("RedSim/MiniChain-v0", num_envs=2, render_mode="rgb_array", width=SIZE, height=SIZE)
+    assert venv.metadata["render_modes"] == ["rgb_array"]
+    venv.reset(seed=0)
+    assert [frame.shape for frame in venv.render()] == [(SIZE, SIZE, 3)] * 2
+    pytest.importorskip("pygame")
+    monkeypatch.setenv("SDL_VIDEODRIVER", "dummy")
+    with pytest.raises(ValueError, match="HumanRendering"):
+        LatentVectorEnv(gym.make("RedSim/MiniChain-v0", render_mode="human").unwrapped, 2)
 
 
 def test_trimesh_export_of_the_full_mesh_per_frame(tmp_path) -> None:
