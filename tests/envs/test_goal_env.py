@@ -1,0 +1,125 @@
+"""GoalObservation: the reach envs as goal-conditioned envs (Gymnasium-Robotics' dict convention, SB3's HER)."""
+
+from __future__ import annotations
+
+import warnings
+
+import gymnasium as gym
+import numpy as np
+import pytest
+from gymnasium.utils.env_checker import check_env
+
+import redsim  # noqa: F401  (registers the ids)
+from redsim.envs.goal import GoalObservation
+
+REACH = ("RedSim/MiniChain-v0", "RedSim/ConditionalBar-v0")
+"""Small reach envs; ConditionalBar's observation has a block (the condition) after the goal's."""
+
+
+@pytest.fixture(scope="module", params=REACH)
+def pair(request: pytest.FixtureRequest) -> tuple[gym.Env, GoalObservation]:
+    """The same id plain and wrapped."""
+    return gym.make(request.param), GoalObservation(gym.make(request.param))
+
+
+def _blocks(env: gym.Env) -> dict[str, slice]:
+    out, start = {}, 0
+    for name, size in env.unwrapped.observation_structure.items():
+        out[name] = slice(start, start + size)
+        start += size
+    return out
+
+
+def test_the_dict_observation_is_the_flat_one_split_at_the_goal(pair: tuple[gym.Env, GoalObservation]) -> None:
+    plain, goal = pair
+    flat, _ = plain.reset(seed=3)
+    obs, _ = goal.reset(seed=3)
+    action = np.full(plain.action_space.shape, 0.7, dtype=np.float32)
+    for _ in range(3):
+        flat, *_ = plain.step(action)
+        obs, *_ = goal.step(action)
+    assert goal.observation_space.contains(obs)
+    blocks = _blocks(plain)
+    kept = np.concatenate([flat[s] for name, s in blocks.items() if name != "target_offset"])
+    np.testing.assert_array_equal(obs["observation"], kept)
+    np.testing.assert_array_equal(obs["achieved_goal"], flat[blocks["handle_position"]])
+    target = flat[blocks["handle_position"]] + flat[blocks["target_offset"]]
+    np.testing.assert_allclose(obs["desired_goal"], target, atol=1e-6)
+    assert obs["observation"].size == flat.size - obs["desired_goal"].size
+
+
+@pytest.mark.parametrize("control_cost", [False, True])
+def test_compute_reward_is_the_step_reward_for_its_own_goals_and_relabels_others(control_cost: bool) -> None:
+    env = GoalObservation(gym.make("RedSim/MiniChain-v0"), control_cost=control_cost)
+    env.reset(seed=1)
+    rng = np.random.default_rng(0)
+    rewards, achieved, desired, infos = [], [], [], []
+    for _ in range(20):
+        obs, reward, *_, info = env.step(rng.uniform(-1, 1, env.action_space.shape).astype(np.float32))
+        rewards.append(reward)
+        achieved.append(obs["achieved_goal"])
+        desired.append(obs["desired_goal"])
+        infos.append(info)
+    terms = np.array([[i["reward_distance"], i["reward_control"], i["reward_success"]] for i in infos])
+    task_reward = terms.sum(1) if control_cost else terms[:, 0] + terms[:, 2]  # the env's own terms
+    np.testing.assert_allclose(rewards, task_reward, atol=1e-6)
+    for a, d, info, reward in zip(achieved, desired, infos, rewards, strict=True):
+        assert env.compute_reward(a, d, info) == pytest.approx(reward, abs=1e-6)
+    batched = env.compute_reward(np.stack(achieved), np.stack(desired), np.array(infos))
+    assert batched.shape == (20,) and batched.dtype == np.float32
+    np.testing.assert_allclose(batched, rewards, atol=1e-6)
+    # HER's relabelling: the goal it reached earns the success bonus and no distance cost
+    hit = env.compute_reward(np.stack(achieved), np.stack(achieved), infos)
+    np.testing.assert_allclose(hit, env.unwrapped.task.success_bonus + (terms[:, 1] if control_cost else 0), atol=1e-6)
+    empty = [{} for _ in infos]  # what SB3's HerReplayBuffer passes unless copy_info_dict=True
+    if control_cost:
+        with pytest.raises(KeyError, match="copy_info_dict"):
+            env.compute_reward(np.stack(achieved), np.stack(desired), empty)
+    else:
+        np.testing.assert_array_equal(env.compute_reward(np.stack(achieved), np.stack(desired), empty), batched)
+    assert env.compute_terminated(np.stack(achieved), np.stack(desired), infos).shape == (20,)
+    assert not env.compute_truncated(np.stack(achieved), np.stack(desired), infos).any()
+
+
+def test_the_wrapped_env_passes_both_checkers_and_remakes_from_its_spec() -> None:
+    from stable_baselines3.common.env_checker import check_env as sb3_check_env
+
+    env = GoalObservation(gym.make("RedSim/MiniChain-v0"))
+    with warnings.catch_warnings(record=True) as caught:
+        warnings.simplefilter("always")
+        check_env(env, skip_render_check=True)
+        sb3_check_env(env, warn=True)
+    # Gymnasium's checker only remarks that it was given a wrapped env, which is the point here
+    assert [str(w.message) for w in caught if "different from the unwrapped" not in str(w.message)] == []
+    again = gym.make(env.spec)
+    assert isinstance(again, GoalObservation) and again.observation_space == env.observation_space
+
+
+def test_an_env_without_a_goal_is_a_clear_error() -> None:
+    with pytest.raises(TypeError, match="needs a reach env"):
+        GoalObservation(gym.make("RedSim/Klann-v0"))
+
+
+def test_sb3_sac_with_hindsight_replay_learns_on_it() -> None:
+    from stable_baselines3 import SAC, HerReplayBuffer
+    from stable_baselines3.common.env_util import make_vec_env
+
+    venv = make_vec_env(
+        "RedSim/MiniChain-v0", n_envs=1, seed=0, wrapper_class=GoalObservation, env_kwargs={"max_episode_steps": 40}
+    )
+    model = SAC(
+        "MultiInputPolicy",
+        venv,
+        replay_buffer_class=HerReplayBuffer,
+        replay_buffer_kwargs={"n_sampled_goal": 4, "goal_selection_strategy": "future"},
+        learning_starts=50,
+        batch_size=32,
+        seed=0,
+    )
+    model.learn(120)
+    batch = model.replay_buffer.sample(64, env=None)  # half of the goals relabelled, rewards from compute_reward
+    rewards = batch.rewards.numpy().ravel()
+    assert np.isfinite(rewards).all() and (rewards > 0.5).any()  # some relabelled goals earn the success bonus
+    obs = venv.reset()
+    action, _ = model.predict(obs, deterministic=True)
+    assert venv.action_space.contains(action[0])
