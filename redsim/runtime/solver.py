@@ -24,8 +24,11 @@ barely moves along some latent direction a Newton-type step along it can be far 
 
 The line search is Armijo backtracking per state: a trial with a non-finite value or gradient is
 rejected like an uphill one; a trial whose value change is at round-off level is accepted if it
-lowers |g|. A state whose line search fails keeps its last accepted (finite) iterate and stops
-(``stalled``).
+lowers |g|. A quasi-Newton state whose line search fails (MAX_BACKTRACKS rejected trials) restarts it once
+from a model built afresh at the same iterate: a model that BFGS updates have bent far from the curvature
+gives directions no step length along which lowers Phi enough, while the state is far from converged. A
+state whose restarted line search fails too (or an "exact" or "gauss_newton" one, whose model is fresh
+already) keeps its last accepted (finite) iterate and stops (``stalled``).
 
 Two loops compute the same iterates of every state (to round-off): the row-selected one (the default)
 evaluates only the active states in each call, which is what a CPU wants; choosing them (``nonzero``,
@@ -278,7 +281,8 @@ class _Iterates:
     state has a direction and a trial pending; ``alpha_used``: the step length of the last rejected trial.
     The line search of every state runs on its own clock: each call of the objective evaluates one trial of
     every active state, whether it is the first of an iteration or a backtrack (so a state backtracking
-    does not hold the others' next iterations back).
+    does not hold the others' next iterations back). ``restarted``: the state's line search from its current
+    iterate already failed once and restarted from a fresh model (module doc).
     """
 
     finite: Tensor
@@ -297,6 +301,7 @@ class _Iterates:
     alpha: Tensor
     alpha_used: Tensor
     tries: Tensor
+    restarted: Tensor
 
     def active(self, threshold: Tensor, max_iter: int) -> Tensor:
         """The states [B] still iterating: finite, not stalled, under max_iter and above the tolerance."""
@@ -345,6 +350,7 @@ def _start(
         alpha=torch.ones_like(value),
         alpha_used=torch.ones_like(value),
         tries=counts.clone(),
+        restarted=flags.clone(),
     )
 
 
@@ -402,15 +408,19 @@ def _minimize_rows(problem: _Problem, it: _Iterates) -> None:
         it.z[take], it.value[take], it.grad[take], it.energy[take] = trial[ok], v_t[ok], g_t[ok], e_t[ok]
         it.iterations[take] += 1
         it.searching[take] = False
-        # rejected trials: back off, or give up after MAX_BACKTRACKS trials of one iteration
+        it.restarted[take] = False
+        # rejected trials: back off, or after MAX_BACKTRACKS trials of one iteration restart once, then give up
         rejected = ~ok
         rows = index[rejected]
         if rows.numel() == 0:
             continue
         it.tries[rows] += 1
         more = it.tries[rows] < MAX_BACKTRACKS
-        it.stalled[rows[~more]] = True
-        it.searching[rows[~more]] = False
+        failed = rows[~more]
+        first = ~it.restarted[failed] & quasi_newton  # a first failure from this iterate restarts
+        _restart(it, failed[first])
+        it.stalled[failed[~first]] = True
+        it.searching[failed] = False
         rows = rows[more]
         it.backtracked[rows] = True
         rise = torch.where(ok_finite, v_t - v_a, torch.full_like(v_t, torch.inf))[rejected][more]
@@ -426,6 +436,13 @@ def _minimize_rows(problem: _Problem, it: _Iterates) -> None:
             it.slope[good] = fresh_slope[fresh_slope < 0]
             it.alpha[good] = 1.0
         it.alpha_used[rows] = it.alpha[rows]
+
+
+def _restart(it: _Iterates, rows: Tensor) -> None:
+    """States ``rows`` start their line search again at the same iterate from a model built afresh (module doc)."""
+    it.model[rows] = torch.nan
+    it.tries[rows] = 0
+    it.restarted[rows] = True
 
 
 def _poll(active: Tensor, waiting: Tensor) -> tuple[bool, bool]:
@@ -493,11 +510,16 @@ def _minimize_dense(problem: _Problem, it: _Iterates, sync_every: int | None) ->
         it.energy = torch.where(take, e_t, it.energy)
         it.iterations = it.iterations + take
         it.searching = it.searching & ~take
-        # rejected trials: back off, or give up after MAX_BACKTRACKS trials of one iteration
+        it.restarted = it.restarted & ~take
+        # rejected trials: back off, or after MAX_BACKTRACKS trials of one iteration restart once, then give up
         rejected = trying & ~ok
         it.tries = it.tries + rejected
         give_up = rejected & (it.tries >= MAX_BACKTRACKS)
-        it.stalled = it.stalled | give_up
+        again = give_up & ~it.restarted & quasi_newton
+        it.model = torch.where(again[:, None, None], torch.nan, it.model)
+        it.tries = torch.where(again, 0, it.tries)
+        it.restarted = it.restarted | again
+        it.stalled = it.stalled | (give_up & ~again)
         it.searching = it.searching & ~give_up
         back = rejected & ~give_up
         it.backtracked = it.backtracked | back

@@ -4,7 +4,8 @@
 Checked against the reference
 ImplicitEuler(LatentSpace) in float64 (both converged to 1e-12), with the warm model carried as the envs
 carry it, and against the dense loop. On a quadratic toy objective (a solver unit test) the trials are
-measured directly: none is longer than ``max_step``, and a kept warm model builds no Hessian.
+measured directly: none is longer than ``max_step``, a kept warm model builds no Hessian, and a line search
+that fails restarts once from a fresh model before the state stalls.
 """
 
 from __future__ import annotations
@@ -144,6 +145,37 @@ def test_a_kept_warm_model_builds_no_hessian() -> None:
     assert fresh_builds >= 1 and kept_builds == 0
     assert bool(fresh.converged.all()) and bool(kept.converged.all())
     torch.testing.assert_close(kept.z, fresh.z, rtol=0.0, atol=1e-8)
+
+
+class _FlatAway(_Quartic):
+    """The quartic at its first point, NaN at every other: no line search from there can succeed."""
+
+    def value_and_grad(self, z, index):
+        value, grad, energy = super().value_and_grad(z, index)
+        if len(self.trials) > 1:
+            value = torch.full_like(value, torch.nan)
+        return value, grad, energy
+
+
+@pytest.mark.parametrize("dense", [False, True])
+def test_a_failed_line_search_restarts_once_from_a_fresh_model_then_stalls(monkeypatch, dense: bool) -> None:
+    """With one trial per line search, a poor warm model's first rejection used to stall the state far from its
+    minimum; it now restarts from a difference Hessian at the same iterate and converges. Where the restarted
+    search fails too, the state stalls at its last accepted iterate after exactly one rebuild."""
+    monkeypatch.setattr(solver, "MAX_BACKTRACKS", 1)
+    a = torch.diag(torch.tensor([2.0, 1.0, 10.0], dtype=torch.float64))
+    b = torch.tensor([[1.0, -2.0, 0.5]], dtype=torch.float64)
+    warm = 0.1 * a.unsqueeze(0)  # 10x too soft: its first step overshoots and is rejected
+    z0 = torch.zeros(1, 3, dtype=torch.float64)
+    objective = _Quartic(a, b, 0.5)
+    result = _solve(objective, z0, warm, warm_refresh=False, dense=dense)
+    assert objective.builds >= 1 and bool(result.converged.all()) and not bool(result.stalled.any())
+    expected = _solve(_Quartic(a, b, 0.5), z0, None)  # the same minimum from scratch
+    torch.testing.assert_close(result.z, expected.z, rtol=0.0, atol=1e-8)
+    hopeless = _FlatAway(a, b, 0.5)
+    result = _solve(hopeless, z0, warm, warm_refresh=False, dense=dense)
+    assert hopeless.builds == 1 and bool(result.stalled.all()) and not bool(result.converged.any())
+    torch.testing.assert_close(result.z, z0, rtol=0.0, atol=0.0)
 
 
 @pytest.mark.parametrize("max_step", [0.0, -1.0, math.nan, math.inf, True, "2"])
