@@ -47,7 +47,8 @@ class GoalObservation(gym.ObservationWrapper, gym.utils.RecordConstructorArgs):
             ``info``); default: the reward depends on the goals alone.
 
     Raises:
-        TypeError: the env's task is not a reach task (its observation has no goal to relabel).
+        TypeError: the env's task is not a reach task (its observation has no goal to relabel), or a wrapper
+            inside this one changes the observation (put observation wrappers outside GoalObservation).
     """
 
     def __init__(self, env: gym.Env, control_cost: bool = False) -> None:
@@ -61,15 +62,23 @@ class GoalObservation(gym.ObservationWrapper, gym.utils.RecordConstructorArgs):
                 f"GoalObservation needs a reach env (task HandleReach), got task {type(task).__name__} of "
                 f"{type(base).__name__}; reach envs: MiniChain, Chain, ClothBall, HangingCloth, ConditionalBar"
             )
-        self.task = task
+        inner = env
+        while isinstance(inner, gym.Wrapper):  # the split below reads the env's own observation
+            if isinstance(inner, (gym.ObservationWrapper, gym.wrappers.NormalizeObservation)):
+                raise TypeError(
+                    f"GoalObservation must wrap the env's own observation, but {type(inner).__name__} changes it; "
+                    "put observation wrappers outside GoalObservation"
+                )
+            inner = inner.env
+        if env.observation_space != base.observation_space:
+            raise TypeError("GoalObservation needs the env's own flat Box observation")
         blocks, start = {}, 0
         for name, size in base.observation_structure.items():
             blocks[name] = slice(start, start + size)
             start += size
         self._achieved = blocks["handle_position"]
         self._keep = np.concatenate([np.arange(s.start, s.stop) for n, s in blocks.items() if n != GOAL_BLOCK])
-        flat = env.observation_space
-        assert isinstance(flat, spaces.Box)
+        flat = base.observation_space
         goal = spaces.Box(flat.low[self._achieved], flat.high[self._achieved], dtype=np.float32)
         self.observation_space = spaces.Dict(
             {
@@ -78,6 +87,11 @@ class GoalObservation(gym.ObservationWrapper, gym.utils.RecordConstructorArgs):
                 "desired_goal": goal,
             }
         )
+
+    @property
+    def task(self) -> HandleReach:
+        """The env's reach task (its distance scale, success radius and bonus set the reward)."""
+        return self.env.unwrapped.task
 
     def step(self, action: Any) -> tuple[dict[str, np.ndarray], float, bool, bool, dict[str, Any]]:
         obs, _, terminated, truncated, info = super().step(action)
@@ -121,7 +135,8 @@ class GoalObservation(gym.ObservationWrapper, gym.utils.RecordConstructorArgs):
                 "control_cost=True needs each transition's info['reward_control'] (with SB3's HerReplayBuffer: "
                 "replay_buffer_kwargs={'copy_info_dict': True})"
             )
-        return np.array([item["reward_control"] for item in items], dtype=np.float64).reshape(shape)
+        values = np.array([item["reward_control"] for item in items], dtype=np.float64)
+        return np.broadcast_to(values[0], shape) if isinstance(info, Mapping) else values.reshape(shape)
 
     def compute_terminated(
         self, achieved_goal: np.ndarray, desired_goal: np.ndarray, info: Mapping[str, Any] | Sequence[Any]

@@ -18,7 +18,8 @@ The quasi-Newton models ("bfgs", "lagged", "lagged_fd") may start from a ``warm`
 last step's final model (what :class:`redsim.runtime.LatentStepper` carries from step to step, as
 MuJoCo's solver carries ``qacc_warmstart``): the step then costs no Hessian evaluation unless a
 state is still unconverged after :data:`WARM_ITERATIONS` iterations or backtracks from it, which
-recomputes its model at the current iterate once (``warm_refresh=False``: never; the BFGS updates repair it).
+recomputes its model at the current iterate once (``warm_refresh=False``: only where its line search fails,
+the restart below; otherwise the BFGS updates repair it).
 ``max_step`` caps the length |dz| of every step the solver tries (a trust radius in latent units): where the map
 barely moves along some latent direction a Newton-type step along it can be far too long (README "Env speed").
 
@@ -27,8 +28,10 @@ rejected like an uphill one; a trial whose value change is at round-off level is
 lowers |g|. A quasi-Newton state whose line search fails (MAX_BACKTRACKS rejected trials) restarts it once
 from a model built afresh at the same iterate: a model that BFGS updates have bent far from the curvature
 gives directions no step length along which lowers Phi enough, while the state is far from converged. A
-state whose restarted line search fails too (or an "exact" or "gauss_newton" one, whose model is fresh
-already) keeps its last accepted (finite) iterate and stops (``stalled``).
+state whose restarted line search fails too, or whose model was built at this iterate already (a restart
+would replay the same trials), or an "exact" or "gauss_newton" one (its model is always fresh), keeps its
+last accepted (finite) iterate and stops (``stalled``). So one iteration takes at most
+2 MAX_BACKTRACKS + 1 calls of the objective, and the loops allow max_iter times that.
 
 Two loops compute the same iterates of every state (to round-off): the row-selected one (the default)
 evaluates only the active states in each call, which is what a CPU wants; choosing them (``nonzero``,
@@ -282,7 +285,8 @@ class _Iterates:
     The line search of every state runs on its own clock: each call of the objective evaluates one trial of
     every active state, whether it is the first of an iteration or a backtrack (so a state backtracking
     does not hold the others' next iterations back). ``restarted``: the state's line search from its current
-    iterate already failed once and restarted from a fresh model (module doc).
+    iterate already failed once and restarted from a fresh model, or its model was built at this iterate
+    (a restart would replay the same trials; module doc).
     """
 
     finite: Tensor
@@ -373,7 +377,7 @@ def _minimize_rows(problem: _Problem, it: _Iterates) -> None:
     objective, hessian, secant, max_iter = problem.objective, problem.hessian, problem.secant, problem.max_iter
     max_step, warm_refresh = problem.max_step, problem.warm_refresh
     quasi_newton = hessian in _QUASI_NEWTON
-    for _ in range(max_iter * (MAX_BACKTRACKS + 1)):
+    for _ in range(_call_bound(max_iter)):
         index = torch.nonzero(it.active(problem.threshold, max_iter)).squeeze(-1)
         if index.numel() == 0:  # the early exit
             break
@@ -389,6 +393,7 @@ def _minimize_rows(problem: _Problem, it: _Iterates) -> None:
                     objective, hessian, it.z[need], need, it.grad[need], it.iterations[need], secant
                 )
                 it.built[need] = True
+                it.restarted[need] = True  # built at this iterate: a restart would replay its search
             direction, slope = _descent(
                 objective, hessian, it.model[start_rows], it.z[start_rows], it.grad[start_rows], start_rows, max_step
             )
@@ -438,6 +443,12 @@ def _minimize_rows(problem: _Problem, it: _Iterates) -> None:
         it.alpha_used[rows] = it.alpha[rows]
 
 
+def _call_bound(max_iter: int) -> int:
+    """Most objective calls a solve needs: max_iter iterations of a failed line search, its restart's and the
+    accepted trial (2 MAX_BACKTRACKS + 1 calls each; module doc)."""
+    return max_iter * (2 * MAX_BACKTRACKS + 1)
+
+
 def _restart(it: _Iterates, rows: Tensor) -> None:
     """States ``rows`` start their line search again at the same iterate from a model built afresh (module doc)."""
     it.model[rows] = torch.nan
@@ -467,7 +478,7 @@ def _minimize_dense(problem: _Problem, it: _Iterates, sync_every: int | None) ->
     quasi_newton = hessian in _QUASI_NEWTON
     index = torch.arange(it.z.shape[0], device=it.z.device)
     building = True
-    for call in range(max_iter * (MAX_BACKTRACKS + 1) * (sync_every or 1)):
+    for call in range(_call_bound(max_iter) * (sync_every or 1)):
         active = it.active(problem.threshold, max_iter)
         starting = active & ~it.searching
         need = starting
@@ -482,6 +493,7 @@ def _minimize_dense(problem: _Problem, it: _Iterates, sync_every: int | None) ->
             fresh = _fresh_model(objective, hessian, it.z, index, it.grad, it.iterations, secant, keep=need)
             it.model = torch.where(need[:, None, None], fresh, it.model)
             it.built = it.built | need
+            it.restarted = it.restarted | need  # built at this iterate: a restart would replay its search
             # exact and Gauss-Newton need a model every iteration; a quasi-Newton state rarely (a cold
             # start, a warm model gone stale), so until the next poll asks again, the calls build none
             building = sync_every is None or not quasi_newton
@@ -587,11 +599,12 @@ def minimize(
             selection; the same per-state iterates as the row-selected loop, to round-off.
         sync_every: With ``dense``: check for the early exit (one host read) every this many calls;
             None: never (every call also builds the models of the states that need one, and the loop
-            runs all max_iter * (MAX_BACKTRACKS + 1) calls). Ignored without ``dense``.
+            runs all max_iter * (2 * MAX_BACKTRACKS + 1) calls). Ignored without ``dense``.
         max_step: The longest step |dz| an iteration's first trial (and a turned one after a rejection)
             may take: longer directions are scaled down to it (a trust radius in latent units; None: no limit).
         warm_refresh: Rebuild a ``warm`` model after WARM_ITERATIONS iterations or a backtrack (default);
-            False keeps BFGS-updating it (a model is still built where none is given).
+            False keeps BFGS-updating it (a model is still built where none is given, and where a line search
+            fails: the restart, module doc).
 
     Returns:
         The :class:`BatchResult`.

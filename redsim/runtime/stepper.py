@@ -265,7 +265,8 @@ class LatentStepper:
             None (default): no limit. Guards against Newton-type steps along a direction the map barely
             moves, which overshoot (README "Env speed", ConditionalBar-v0).
         warm_refresh: Rebuild a ``warm`` model when a step backtracks from it or is still unconverged after
-            :data:`redsim.runtime.solver.WARM_ITERATIONS` iterations (default); False keeps BFGS-updating it.
+            :data:`redsim.runtime.solver.WARM_ITERATIONS` iterations (default); False keeps BFGS-updating it
+            (rebuilt only where a line search fails: the solver's restart).
         start: Where each solve starts (:data:`STARTS`): "extrapolated" (default), 2 z_t - z_{t-1}; "lower",
             whichever of that and z_t has the lower Phi (the step evaluates both anyway). The same minimum
             where the step's objective has one (README "Env speed", ConditionalBar-v0). Either way a copy whose

@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import copy
 import warnings
 
 import gymnasium as gym
@@ -95,9 +96,25 @@ def test_the_wrapped_env_passes_both_checkers_and_remakes_from_its_spec() -> Non
     assert isinstance(again, GoalObservation) and again.observation_space == env.observation_space
 
 
-def test_an_env_without_a_goal_is_a_clear_error() -> None:
+def test_an_env_without_a_goal_or_with_a_changed_observation_is_a_clear_error() -> None:
     with pytest.raises(TypeError, match="needs a reach env"):
         GoalObservation(gym.make("RedSim/Klann-v0"))
+    with pytest.raises(TypeError, match="outside GoalObservation"):  # the goals would be in other units
+        GoalObservation(gym.wrappers.NormalizeObservation(gym.make("RedSim/MiniChain-v0")))
+    outside = gym.wrappers.FlattenObservation(GoalObservation(gym.make("RedSim/MiniChain-v0")))
+    obs, _ = outside.reset(seed=0)
+    assert outside.observation_space.contains(obs)
+
+
+def test_one_info_for_a_batch_of_goals_and_the_task_is_the_env_s() -> None:
+    env = GoalObservation(gym.make("RedSim/MiniChain-v0"), control_cost=True)
+    obs, _ = env.reset(seed=2)
+    obs, reward, *_, info = env.step(env.action_space.sample())
+    goals = np.stack([obs["achieved_goal"]] * 4)
+    batched = env.compute_reward(goals, np.stack([obs["desired_goal"]] * 4), info)
+    np.testing.assert_allclose(batched, np.full(4, reward), atol=1e-6)
+    clone = copy.deepcopy(env)
+    assert clone.task is clone.unwrapped.task
 
 
 def test_sb3_sac_with_hindsight_replay_learns_on_it() -> None:

@@ -176,6 +176,34 @@ def test_a_failed_line_search_restarts_once_from_a_fresh_model_then_stalls(monke
     result = _solve(hopeless, z0, warm, warm_refresh=False, dense=dense)
     assert hopeless.builds == 1 and bool(result.stalled.all()) and not bool(result.converged.any())
     torch.testing.assert_close(result.z, z0, rtol=0.0, atol=0.0)
+    cold = _FlatAway(a, b, 0.5)  # a model built at this iterate: a restart would replay the same trials
+    result = _solve(cold, z0, None, warm_refresh=False, dense=dense)
+    assert cold.builds == 1 and bool(result.stalled.all())
+
+
+@pytest.mark.parametrize("dense", [False, True])
+def test_every_state_ends_converged_or_stalled_when_each_line_search_fails_twice(dense: bool) -> None:
+    """With the real MAX_BACKTRACKS, an iteration whose search fails, restarts and fails again still fits the
+    loop's bound of calls: no state comes back neither converged nor stalled."""
+    a = torch.diag(torch.tensor([2.0, 1.0, 10.0], dtype=torch.float64))
+    b = torch.tensor([[1.0, -2.0, 0.5], [0.5, 1.0, -1.0]], dtype=torch.float64)
+    warm = 0.1 * a.expand(2, -1, -1)
+    z0 = torch.zeros(2, 3, dtype=torch.float64)
+    ones = torch.ones(2, dtype=torch.float64)
+    objective = _FlatAway(a, b, 0.5)
+    result = minimize(
+        objective,
+        z0,
+        ones,
+        1e-14 * ones,
+        tol=1e-10,
+        max_iter=1,
+        hessian="lagged_fd",
+        warm=warm,
+        warm_refresh=False,
+        dense=dense,
+    )
+    assert bool(result.stalled.all()) and objective.builds == 1
 
 
 @pytest.mark.parametrize("max_step", [0.0, -1.0, math.nan, math.inf, True, "2"])
