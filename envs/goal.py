@@ -21,6 +21,13 @@ leaves out the task's control cost (still reported in ``info["reward_control"]``
 ``step`` too. ``GoalObservation(env, control_cost=True)`` keeps it: the reward is then the env's own, and
 ``compute_reward`` reads the control term from the ``info`` of each transition (SB3:
 ``replay_buffer_kwargs={"copy_info_dict": True}``).
+
+:class:`GoalVectorObservation` does the same for the native vector env, in both autoreset modes, so HER trains
+on one batched simulation of all copies (stable-baselines3 through :class:`redsim.envs.sb3.SB3VecEnv`, whose
+``env_method("compute_reward", ...)`` it answers)::
+
+    venv = SB3VecEnv.make("RedSim/MiniChain-v0", num_envs=8, goal=True)
+    SAC("MultiInputPolicy", venv, replay_buffer_class=HerReplayBuffer).learn(10_000)
 """
 
 from __future__ import annotations
@@ -31,80 +38,93 @@ from typing import Any
 import gymnasium as gym
 import numpy as np
 from gymnasium import spaces
+from gymnasium.vector import VectorEnv, VectorObservationWrapper, VectorWrapper
+from gymnasium.vector.utils import batch_space
 
 from redsim.envs.reach import HandleReach
+from redsim.envs.vector import LatentVectorEnv
 
 GOAL_BLOCK = "target_offset"
 """The observation block that depends on the desired goal: left out of ``"observation"``."""
 
+REACH_ENVS = "MiniChain, Chain, ClothBall, HangingCloth, ConditionalBar"
 
-class GoalObservation(gym.ObservationWrapper, gym.utils.RecordConstructorArgs):
-    """Dict observations {observation, achieved_goal, desired_goal} and a batched ``compute_reward`` (module doc).
 
-    Args:
-        env: A redsim env (wrapped or not) whose task is a :class:`HandleReach`.
-        control_cost: Keep the task's control cost in the reward (then ``compute_reward`` needs each transition's
-            ``info``); default: the reward depends on the goals alone.
+def _reach_task(task: Any, owner: str, wrapper: str) -> HandleReach:
+    """``task``, checked to be a reach task (``owner``: the env's class name, for the error).
 
     Raises:
-        TypeError: the env's task is not a reach task (its observation has no goal to relabel), or a wrapper
-            inside this one changes the observation (put observation wrappers outside GoalObservation).
+        TypeError: another task (its observation has no goal to relabel).
+    """
+    if not isinstance(task, HandleReach):
+        raise TypeError(
+            f"{wrapper} needs a reach env (task HandleReach), got task {type(task).__name__} of {owner}; "
+            f"reach envs: {REACH_ENVS}"
+        )
+    return task
+
+
+def _check_own_observation(env: Any, layers: type, changing: tuple[type, ...], own: bool, wrapper: str) -> None:
+    """Check that ``env`` gives its base env's own observation: no wrapper among its ``layers`` is one of
+    ``changing``, and ``own`` (its observation space is the base env's).
+
+    Raises:
+        TypeError: a wrapper inside ``wrapper`` that changes the observation (the goals would be in other units).
+    """
+    inner = env
+    while isinstance(inner, layers):
+        if isinstance(inner, changing):
+            raise TypeError(
+                f"{wrapper} must wrap the env's own observation, but {type(inner).__name__} changes it; "
+                f"put observation wrappers outside {wrapper}"
+            )
+        inner = inner.env
+    if not own:
+        raise TypeError(f"{wrapper} needs the env's own flat Box observation")
+
+
+class _GoalSplit:
+    """Where a reach env's flat observation holds the goals, and its dict observation space.
+
+    Args:
+        structure: The env's observation blocks (name -> size, in order).
+        flat: The env's flat observation space (one copy).
     """
 
-    def __init__(self, env: gym.Env, control_cost: bool = False) -> None:
-        gym.utils.RecordConstructorArgs.__init__(self, control_cost=control_cost)  # env.spec remakes the wrapped env
-        gym.ObservationWrapper.__init__(self, env)
-        self.control_cost = bool(control_cost)
-        base = env.unwrapped
-        task = getattr(base, "task", None)
-        if not isinstance(task, HandleReach):
-            raise TypeError(
-                f"GoalObservation needs a reach env (task HandleReach), got task {type(task).__name__} of "
-                f"{type(base).__name__}; reach envs: MiniChain, Chain, ClothBall, HangingCloth, ConditionalBar"
-            )
-        inner = env
-        while isinstance(inner, gym.Wrapper):  # the split below reads the env's own observation
-            if isinstance(inner, (gym.ObservationWrapper, gym.wrappers.NormalizeObservation)):
-                raise TypeError(
-                    f"GoalObservation must wrap the env's own observation, but {type(inner).__name__} changes it; "
-                    "put observation wrappers outside GoalObservation"
-                )
-            inner = inner.env
-        if env.observation_space != base.observation_space:
-            raise TypeError("GoalObservation needs the env's own flat Box observation")
+    def __init__(self, structure: Mapping[str, int], flat: spaces.Box) -> None:
         blocks, start = {}, 0
-        for name, size in base.observation_structure.items():
+        for name, size in structure.items():
             blocks[name] = slice(start, start + size)
             start += size
-        self._achieved = blocks["handle_position"]
-        self._keep = np.concatenate([np.arange(s.start, s.stop) for n, s in blocks.items() if n != GOAL_BLOCK])
-        flat = base.observation_space
-        goal = spaces.Box(flat.low[self._achieved], flat.high[self._achieved], dtype=np.float32)
-        self.observation_space = spaces.Dict(
+        self.achieved = blocks["handle_position"]
+        self.keep = np.concatenate([np.arange(s.start, s.stop) for n, s in blocks.items() if n != GOAL_BLOCK])
+        goal = spaces.Box(flat.low[self.achieved], flat.high[self.achieved], dtype=np.float32)
+        self.space = spaces.Dict(
             {
-                "observation": spaces.Box(flat.low[self._keep], flat.high[self._keep], dtype=np.float32),
+                "observation": spaces.Box(flat.low[self.keep], flat.high[self.keep], dtype=np.float32),
                 "achieved_goal": goal,
                 "desired_goal": goal,
             }
         )
 
+    def __call__(self, flat: np.ndarray, desired: np.ndarray) -> dict[str, np.ndarray]:
+        """The dict observation of flat observations [..., obs] whose targets are ``desired`` [..., k] [m]."""
+        return {
+            "observation": flat[..., self.keep],
+            "achieved_goal": flat[..., self.achieved],
+            "desired_goal": np.array(desired, dtype=np.float32),  # a copy: never a view of the simulation
+        }
+
+
+class _GoalReward:
+    """``compute_reward`` / ``compute_terminated`` / ``compute_truncated`` of a reach task (module doc)."""
+
+    control_cost: bool
+
     @property
     def task(self) -> HandleReach:
         """The env's reach task (its distance scale, success radius and bonus set the reward)."""
-        return self.env.unwrapped.task
-
-    def step(self, action: Any) -> tuple[dict[str, np.ndarray], float, bool, bool, dict[str, Any]]:
-        obs, _, terminated, truncated, info = super().step(action)
-        reward = float(self.compute_reward(obs["achieved_goal"], obs["desired_goal"], info))
-        return obs, reward, terminated, truncated, info
-
-    def observation(self, observation: np.ndarray) -> dict[str, np.ndarray]:
-        target = self.env.unwrapped.sim.params["target"][0]
-        return {
-            "observation": observation[self._keep],
-            "achieved_goal": observation[self._achieved],
-            "desired_goal": target.detach().cpu().numpy().astype(np.float32),
-        }
+        raise NotImplementedError
 
     def compute_reward(
         self, achieved_goal: np.ndarray, desired_goal: np.ndarray, info: Mapping[str, Any] | Sequence[Mapping[str, Any]]
@@ -151,4 +171,113 @@ class GoalObservation(gym.ObservationWrapper, gym.utils.RecordConstructorArgs):
         return np.zeros(np.shape(achieved_goal)[:-1], dtype=bool)
 
 
-__all__ = ["GOAL_BLOCK", "GoalObservation"]
+class GoalObservation(_GoalReward, gym.ObservationWrapper, gym.utils.RecordConstructorArgs):
+    """Dict observations {observation, achieved_goal, desired_goal} and a batched ``compute_reward`` (module doc).
+
+    Args:
+        env: A redsim env (wrapped or not) whose task is a :class:`HandleReach`.
+        control_cost: Keep the task's control cost in the reward (then ``compute_reward`` needs each transition's
+            ``info``); default: the reward depends on the goals alone.
+
+    Raises:
+        TypeError: the env's task is not a reach task (its observation has no goal to relabel), or a wrapper
+            inside this one changes the observation (put observation wrappers outside GoalObservation).
+    """
+
+    def __init__(self, env: gym.Env, control_cost: bool = False) -> None:
+        gym.utils.RecordConstructorArgs.__init__(self, control_cost=control_cost)  # env.spec remakes the wrapped env
+        gym.ObservationWrapper.__init__(self, env)
+        self.control_cost = bool(control_cost)
+        base = env.unwrapped
+        _reach_task(getattr(base, "task", None), type(base).__name__, "GoalObservation")
+        changing = (gym.ObservationWrapper, gym.wrappers.NormalizeObservation)
+        own = env.observation_space == base.observation_space
+        _check_own_observation(env, gym.Wrapper, changing, own, "GoalObservation")
+        self._split = _GoalSplit(base.observation_structure, base.observation_space)
+        self.observation_space = self._split.space
+
+    @property
+    def task(self) -> HandleReach:
+        """The env's reach task (its distance scale, success radius and bonus set the reward)."""
+        return self.env.unwrapped.task
+
+    def step(self, action: Any) -> tuple[dict[str, np.ndarray], float, bool, bool, dict[str, Any]]:
+        obs, _, terminated, truncated, info = super().step(action)
+        reward = float(self.compute_reward(obs["achieved_goal"], obs["desired_goal"], info))
+        return obs, reward, terminated, truncated, info
+
+    def observation(self, observation: np.ndarray) -> dict[str, np.ndarray]:
+        return self._split(observation, self.env.unwrapped.sim.params["target"][0].detach().cpu().numpy())
+
+
+class GoalVectorObservation(_GoalReward, VectorWrapper):
+    """:class:`GoalObservation` for the native vector env: dict observations [N, ...] and ``compute_reward``.
+
+    Each copy's observation, reward and ``info`` are those of a :class:`GoalObservation` over that copy, in
+    either autoreset mode: with ``AutoresetMode.SAME_STEP`` the entries of ``info["final_obs"]`` are dicts with
+    the ended episode's goal, and an ended copy's reward is its last step's; with ``NEXT_STEP`` a copy's reset
+    step earns 0.
+
+    Args:
+        env: A :class:`redsim.envs.vector.LatentVectorEnv` of a reach env (``gymnasium.make_vec(id, N,
+            vectorization_mode="vector_entry_point")``), wrapped or not.
+        control_cost: As for :class:`GoalObservation`.
+
+    Raises:
+        TypeError: not the native vector env (a sharded one keeps its targets in its workers), a task that is
+            not a reach task, or a vector wrapper inside this one that changes the observation.
+    """
+
+    def __init__(self, env: VectorEnv, control_cost: bool = False) -> None:
+        VectorWrapper.__init__(self, env)
+        self.control_cost = bool(control_cost)
+        base = env.unwrapped
+        if not isinstance(base, LatentVectorEnv):
+            raise TypeError(
+                f"GoalVectorObservation needs the native vector env (LatentVectorEnv, one process), got "
+                f"{type(base).__name__}"
+            )
+        _reach_task(base.sim.task, type(base.template).__name__, "GoalVectorObservation")
+        own = env.single_observation_space == base.single_observation_space
+        _check_own_observation(env, VectorWrapper, (VectorObservationWrapper,), own, "GoalVectorObservation")
+        self._split = _GoalSplit(base.observation_structure, base.single_observation_space)
+        self.single_observation_space = self._split.space
+        self.observation_space = batch_space(self._split.space, self.num_envs)
+
+    @property
+    def task(self) -> HandleReach:
+        """The vector env's reach task (its distance scale, success radius and bonus set the reward)."""
+        return self.env.unwrapped.sim.task
+
+    def _targets(self) -> np.ndarray:
+        """Every copy's target [N, k] [m] now."""
+        return self.env.unwrapped.sim.params["target"].detach().cpu().numpy().copy()
+
+    def reset(
+        self, *, seed: int | Sequence[int | None] | None = None, options: dict[str, Any] | None = None
+    ) -> tuple[dict[str, np.ndarray], dict[str, Any]]:
+        obs, info = self.env.reset(seed=seed, options=options)
+        return self._split(obs, self._targets()), info
+
+    def step(self, actions: np.ndarray) -> tuple[dict[str, np.ndarray], np.ndarray, np.ndarray, np.ndarray, dict]:
+        base = self.env.unwrapped
+        targets = self._targets()  # the goals of the episodes this step continues
+        restart = base.autoresetting  # NEXT_STEP: copies this step resets (reward 0)
+        obs, reward, terminated, truncated, info = self.env.step(actions)
+        ended_obs = obs
+        if "final_obs" in info:  # SAME_STEP: the ended copies' last observations, with their episodes' goals
+            ended = np.nonzero(info["_final_obs"])[0]
+            ended_obs = obs.copy()
+            final = info["final_obs"].copy()
+            for i in ended:
+                ended_obs[i] = final[i]
+                final[i] = self._split(final[i], targets[i])
+            info = {**info, "final_obs": final}
+        if not self.control_cost:
+            goal = self._split(ended_obs, targets)
+            reward = self.compute_reward(goal["achieved_goal"], goal["desired_goal"], {}).astype(reward.dtype)
+            reward[restart] = 0.0
+        return self._split(obs, self._targets()), reward, terminated, truncated, info
+
+
+__all__ = ["GOAL_BLOCK", "GoalObservation", "GoalVectorObservation"]

@@ -8,7 +8,9 @@
 SB3 resets a finished copy in the same step and expects its last observation in
 ``infos[i]["terminal_observation"]`` and ``infos[i]["TimeLimit.truncated"]``; the adapter runs the
 vector env with ``AutoresetMode.SAME_STEP`` and translates. ``SB3VecEnv.make(id, num_envs=64, shards=2)``
-steps the copies in 2 worker processes (:mod:`redsim.envs.sharded`).
+steps the copies in 2 worker processes (:mod:`redsim.envs.sharded`). ``SB3VecEnv.make(id, num_envs=8, goal=True)``
+gives the goal-conditioned env (:class:`redsim.envs.goal.GoalVectorObservation`) that SB3's ``HerReplayBuffer``
+relabels through ``env_method("compute_reward", ...)``.
 """
 
 from __future__ import annotations
@@ -21,13 +23,20 @@ import numpy as np
 from gymnasium.vector import AutoresetMode
 from stable_baselines3.common.vec_env import VecEnv
 
+from redsim.envs.goal import GoalVectorObservation
 from redsim.envs.sharded import ShardedVectorEnv
 from redsim.envs.vector import LatentVectorEnv
 
+SHARED_METHODS = ("compute_reward", "compute_terminated", "compute_truncated")
+"""Methods that ``env_method`` answers: pure functions of their arguments, the same for every copy (a goal env's)."""
+
 
 class SB3VecEnv(VecEnv):
-    """SB3's VecEnv interface over a :class:`LatentVectorEnv` or :class:`ShardedVectorEnv` (which must use
-    ``AutoresetMode.SAME_STEP``).
+    """SB3's VecEnv interface over a :class:`LatentVectorEnv` or :class:`ShardedVectorEnv`, or a Gymnasium vector
+    wrapper of one (e.g. :class:`GoalVectorObservation`), in ``AutoresetMode.SAME_STEP``.
+
+    The copies share one simulation: ``get_attr`` reads the env's (the same for every copy), ``set_attr`` and
+    per-copy methods are refused, and ``env_method`` answers only :data:`SHARED_METHODS` the vector env defines.
 
     Args:
         venv: The vector env.
@@ -36,7 +45,7 @@ class SB3VecEnv(VecEnv):
         ValueError: a vector env in another autoreset mode.
     """
 
-    def __init__(self, venv: LatentVectorEnv | ShardedVectorEnv) -> None:
+    def __init__(self, venv: LatentVectorEnv | ShardedVectorEnv | gym.vector.VectorWrapper) -> None:
         if venv.metadata["autoreset_mode"] != AutoresetMode.SAME_STEP:
             raise ValueError("SB3VecEnv needs a LatentVectorEnv with autoreset_mode=AutoresetMode.SAME_STEP")
         self.venv = venv
@@ -45,8 +54,9 @@ class SB3VecEnv(VecEnv):
         self._actions: np.ndarray | None = None
 
     @classmethod
-    def make(cls, env_id: str, num_envs: int, **kwargs: Any) -> SB3VecEnv:
-        """``gymnasium.make_vec(env_id, num_envs, vectorization_mode="vector_entry_point", SAME_STEP)`` wrapped."""
+    def make(cls, env_id: str, num_envs: int, *, goal: bool = False, **kwargs: Any) -> SB3VecEnv:
+        """``gymnasium.make_vec(env_id, num_envs, vectorization_mode="vector_entry_point", SAME_STEP)`` wrapped;
+        ``goal``: in :class:`GoalVectorObservation` (a reach env's dict observations, for HER)."""
         venv = gym.make_vec(
             env_id,
             num_envs=num_envs,
@@ -54,7 +64,7 @@ class SB3VecEnv(VecEnv):
             autoreset_mode=AutoresetMode.SAME_STEP,
             **kwargs,
         )
-        return cls(venv)  # type: ignore[arg-type]
+        return cls(GoalVectorObservation(venv) if goal else venv)  # type: ignore[arg-type]
 
     def reset(self) -> np.ndarray:
         seed = self._seeds[0] if all(s is not None for s in self._seeds) else None
@@ -87,16 +97,29 @@ class SB3VecEnv(VecEnv):
         return [None] * self.num_envs if frames is None else list(frames)
 
     def get_attr(self, attr_name: str, indices: Any = None) -> list[Any]:
-        return [getattr(self.venv.template, attr_name) for _ in self._get_indices(indices)]
+        return [getattr(self.venv.unwrapped.template, attr_name) for _ in self._get_indices(indices)]
 
     def set_attr(self, attr_name: str, value: Any, indices: Any = None) -> None:
         raise AttributeError("the copies of a SB3VecEnv share one simulation; set attributes on the env instead")
 
     def env_method(self, method_name: str, *method_args: Any, indices: Any = None, **method_kwargs: Any) -> list[Any]:
-        raise AttributeError("the copies of a SB3VecEnv share one simulation and have no per-copy methods")
+        """``method_name(*method_args, **method_kwargs)`` of the vector env, once, as every listed copy's answer.
+
+        Raises:
+            AttributeError: not one of :data:`SHARED_METHODS` the vector env defines (the copies share one
+                simulation and have no per-copy methods).
+        """
+        method = getattr(self.venv, method_name, None) if method_name in SHARED_METHODS else None
+        if method is None:
+            raise AttributeError(
+                f"SB3VecEnv answers env_method only for {', '.join(SHARED_METHODS)} where the vector env defines "
+                f"them (the copies share one simulation and have no per-copy methods), not {method_name!r}"
+            )
+        result = method(*method_args, **method_kwargs)
+        return [result for _ in self._get_indices(indices)]
 
     def env_is_wrapped(self, wrapper_class: type[gym.Wrapper], indices: Any = None) -> list[bool]:
         return [False for _ in self._get_indices(indices)]
 
 
-__all__ = ["SB3VecEnv"]
+__all__ = ["SHARED_METHODS", "SB3VecEnv"]

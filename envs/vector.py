@@ -139,6 +139,12 @@ class LatentVectorEnv(VectorEnv):
         self._autoreset = (terminated | truncated) if mode == AutoresetMode.NEXT_STEP else self._autoreset
         return obs, reward, terminated, truncated, infos
 
+    @property
+    def autoresetting(self) -> np.ndarray:
+        """Copies [N] (bool) that the next step resets and whose action it ignores (``NEXT_STEP``: their episode
+        ended in the last step); all False with ``SAME_STEP``."""
+        return self._autoreset.copy()
+
     def render(self) -> tuple[np.ndarray, ...] | None:
         """One RGB frame [H, W, 3] per copy ("rgb_array"), else None."""
         if self.render_mode != "rgb_array":

@@ -1,10 +1,13 @@
 """SAC with hindsight experience replay on a reach env, against SAC alone with the same budget and settings.
 
 Run: python examples/her_agent.py [--env RedSim/MiniChain-v0] [--steps 10000] [--episodes 20] [--seed 0]
-(main()'s defaults are the tiny budget the test suite runs). Both agents see the goal-conditioned env
+[--num-envs 1] (main()'s defaults are the tiny budget the test suite runs). Both agents see the goal-conditioned env
 (:class:`redsim.envs.goal.GoalObservation`: dict observations, a reward from the goals alone); the only
-difference is the replay buffer. Each is then evaluated on the same seeded episodes: mean return (the
-wrapper's reward) and the success rate (``info["is_success"]`` at the last step).
+difference is the replay buffer. ``--num-envs N`` > 1 collects from N copies in the native vector env
+(:class:`redsim.envs.goal.GoalVectorObservation` through :class:`redsim.envs.sb3.SB3VecEnv`: one batched
+solve for all N) with N gradient steps per vector step, so that the updates per transition stay those of one
+env. Each is then evaluated on the same seeded episodes: mean return (the wrapper's reward) and the success rate
+(``info["is_success"]`` at the last step).
 """
 
 from __future__ import annotations
@@ -21,6 +24,7 @@ from stable_baselines3.common.env_util import make_vec_env
 
 import redsim  # noqa: F401  (registers the ids)
 from redsim.envs.goal import GoalObservation
+from redsim.envs.sb3 import SB3VecEnv
 
 SETTINGS: dict[str, Any] = {
     "learning_rate": 1e-3,
@@ -31,13 +35,27 @@ SETTINGS: dict[str, Any] = {
 """SAC's settings for both agents (those of redsim's SAC table, one env)."""
 
 
-def train(env_id: str, steps: int, her: bool, env_kwargs: dict[str, Any], seed: int = 0) -> tuple[SAC, float]:
-    """SAC (with HER, or with SB3's plain replay buffer) trained ``steps`` env steps; and its wall time [s]."""
-    venv = make_vec_env(env_id, n_envs=1, seed=seed, wrapper_class=GoalObservation, env_kwargs=env_kwargs)
+def train(
+    env_id: str, steps: int, her: bool, env_kwargs: dict[str, Any], seed: int = 0, num_envs: int = 1
+) -> tuple[SAC, float]:
+    """SAC (with HER, or with SB3's plain replay buffer) trained ``steps`` env steps over ``num_envs`` copies
+    (module doc); and its wall time [s]."""
+    if num_envs == 1:
+        venv = make_vec_env(env_id, n_envs=1, seed=seed, wrapper_class=GoalObservation, env_kwargs=env_kwargs)
+    else:
+        venv = SB3VecEnv.make(env_id, num_envs, goal=True, **env_kwargs)
     replay = {"replay_buffer_class": HerReplayBuffer, "replay_buffer_kwargs": {"n_sampled_goal": 4}} if her else {}
     episode = env_kwargs.get("max_episode_steps", gym.spec(env_id).max_episode_steps)
-    starts = min(max(1000, episode + 1), steps // 2)  # HER samples only after an episode has ended
-    model = SAC("MultiInputPolicy", venv, learning_starts=starts, seed=seed, **SETTINGS, **replay)
+    starts = min(max(1000, num_envs * (episode + 1)), steps // 2)  # HER samples only after an episode has ended
+    model = SAC(
+        "MultiInputPolicy",
+        venv,
+        learning_starts=starts,
+        gradient_steps=num_envs,
+        seed=seed,
+        **SETTINGS,
+        **replay,
+    )
     start = time.perf_counter()
     model.learn(total_timesteps=steps)
     return model, time.perf_counter() - start
@@ -67,11 +85,12 @@ def main(
     episodes: int = 2,
     episode_steps: int | None = 30,
     seed: int = 0,
+    num_envs: int = 1,
 ) -> dict[str, Any]:
     env_kwargs = {} if episode_steps is None else {"max_episode_steps": episode_steps}
-    result: dict[str, Any] = {"env": env_id, "steps": steps, "seed": seed}
+    result: dict[str, Any] = {"env": env_id, "steps": steps, "seed": seed, "num_envs": num_envs}
     for name, her in (("sac", False), ("sac_her", True)):
-        model, wall = train(env_id, steps, her, env_kwargs, seed)
+        model, wall = train(env_id, steps, her, env_kwargs, seed, num_envs)
         scores = evaluate(model, env_id, episodes, env_kwargs)
         result[name] = {**scores, "wall_s": wall, "timesteps": model.num_timesteps}
         if out is not None:
@@ -96,6 +115,7 @@ if __name__ == "__main__":
     parser.add_argument("--steps", type=int, default=10_000)
     parser.add_argument("--episodes", type=int, default=20)
     parser.add_argument("--seed", type=int, default=0, help="seeds both agents' networks, exploration and envs")
+    parser.add_argument("--num-envs", type=int, default=1, help="copies in the native vector env (module doc)")
     parser.add_argument("--out", type=Path)
     args = parser.parse_args()
-    main(args.out, args.env, args.steps, args.episodes, episode_steps=None, seed=args.seed)
+    main(args.out, args.env, args.steps, args.episodes, episode_steps=None, seed=args.seed, num_envs=args.num_envs)

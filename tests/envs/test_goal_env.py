@@ -3,15 +3,19 @@
 from __future__ import annotations
 
 import copy
+import functools
 import warnings
+from typing import Any
 
 import gymnasium as gym
 import numpy as np
 import pytest
 from gymnasium.utils.env_checker import check_env
+from gymnasium.vector import AutoresetMode
 
 import redsim  # noqa: F401  (registers the ids)
-from redsim.envs.goal import GoalObservation
+from redsim.envs.goal import GoalObservation, GoalVectorObservation
+from redsim.envs.sb3 import SB3VecEnv
 
 REACH = ("RedSim/MiniChain-v0", "RedSim/ConditionalBar-v0")
 """Small reach envs; ConditionalBar's observation has a block (the condition) after the goal's."""
@@ -140,3 +144,108 @@ def test_sb3_sac_with_hindsight_replay_learns_on_it() -> None:
     obs = venv.reset()
     action, _ = model.predict(obs, deterministic=True)
     assert venv.action_space.contains(action[0])
+
+
+TIGHT = {"dtype": "float64", "stepper_options": {"tol": 1e-10, "max_iter": 60}}
+"""A tight float64 solve, so that vector and single envs agree to round-off (test_envs.py's vector test)."""
+
+
+@pytest.mark.parametrize("mode", [AutoresetMode.NEXT_STEP, AutoresetMode.SAME_STEP])
+def test_the_vector_goal_env_equals_single_goal_envs_in_both_autoreset_modes(mode: AutoresetMode) -> None:
+    n, seed = 3, 7
+    venv = GoalVectorObservation(
+        gym.make_vec(
+            "RedSim/MiniChain-v0",
+            num_envs=n,
+            vectorization_mode="vector_entry_point",
+            max_episode_steps=4,
+            autoreset_mode=mode,
+            **TIGHT,
+        )
+    )
+    singles = [GoalObservation(gym.make("RedSim/MiniChain-v0", max_episode_steps=4, **TIGHT)) for _ in range(n)]
+    obs, _ = venv.reset(seed=seed)
+    expected = [env.reset(seed=seed + i)[0] for i, env in enumerate(singles)]
+    rng = np.random.default_rng(0)
+    autoreset, ended = np.zeros(n, dtype=bool), 0
+    for _ in range(10):
+        actions = rng.uniform(-1, 1, (n, 3)).astype(np.float32)
+        obs, reward, *_, info = venv.step(actions)
+        assert venv.observation_space.contains(obs)
+        for i, env in enumerate(singles):
+            if autoreset[i]:  # NEXT_STEP: this step resets the copy and earns 0
+                expected[i], _ = env.reset()
+                single_reward, autoreset[i] = 0.0, False
+            else:
+                expected[i], single_reward, term, trunc, _ = env.step(actions[i])
+                if (term or trunc) and mode == AutoresetMode.SAME_STEP:
+                    ended += 1
+                    assert info["_final_obs"][i]
+                    for key, value in expected[i].items():  # the ended episode's last observation and goal
+                        np.testing.assert_allclose(info["final_obs"][i][key], value, rtol=1e-5, atol=1e-5)
+                    expected[i], _ = env.reset()
+                else:
+                    autoreset[i] = term or trunc
+            assert reward[i] == pytest.approx(single_reward, abs=1e-5)
+            for key, value in expected[i].items():
+                np.testing.assert_allclose(obs[key][i], value, rtol=1e-5, atol=1e-5)
+    assert ended == (2 * n if mode == AutoresetMode.SAME_STEP else 0)  # truncated after steps 4 and 8
+    goals = (obs["achieved_goal"], obs["desired_goal"], {})
+    np.testing.assert_array_equal(venv.compute_reward(*goals), singles[0].compute_reward(*goals))
+
+
+def test_the_vector_goal_env_with_control_cost_keeps_the_env_s_reward() -> None:
+    make = functools.partial(
+        gym.make_vec, "RedSim/MiniChain-v0", num_envs=2, vectorization_mode="vector_entry_point", max_episode_steps=3
+    )
+    plain, goal = make(), GoalVectorObservation(make(), control_cost=True)
+    plain.reset(seed=1)
+    goal.reset(seed=1)
+    for _ in range(5):
+        action = np.full((2, 3), 0.5, dtype=np.float32)
+        _, expected, *_ = plain.step(action)
+        obs, reward, *_, info = goal.step(action)
+        np.testing.assert_array_equal(reward, expected)
+        infos = [{k: v[i] for k, v in info.items()} for i in range(2)]
+        stepped = info["_reward_control"]  # not the copies this step reset (reward 0)
+        relabel = goal.compute_reward(obs["achieved_goal"], obs["desired_goal"], infos)
+        np.testing.assert_allclose(relabel[stepped], reward[stepped], atol=1e-6)
+        assert (reward[~stepped] == 0.0).all()
+
+
+def test_the_vector_goal_env_refuses_what_it_cannot_split() -> None:
+    def make(env_id: str = "RedSim/MiniChain-v0", **kwargs: Any) -> gym.vector.VectorEnv:
+        return gym.make_vec(env_id, num_envs=2, vectorization_mode="vector_entry_point", **kwargs)
+
+    with pytest.raises(TypeError, match="needs a reach env"):
+        GoalVectorObservation(make("RedSim/Klann-v0"))
+    with pytest.raises(TypeError, match="outside GoalVectorObservation"):
+        GoalVectorObservation(gym.wrappers.vector.NormalizeObservation(make()))
+    with pytest.raises(TypeError, match="native vector env"):
+        GoalVectorObservation(gym.make_vec("RedSim/MiniChain-v0", num_envs=2, vectorization_mode="sync"))
+
+
+def test_sb3_her_trains_on_the_native_vector_env_through_env_method() -> None:
+    from stable_baselines3 import SAC, HerReplayBuffer
+    from stable_baselines3.common.vec_env import VecMonitor
+
+    venv = VecMonitor(SB3VecEnv.make("RedSim/MiniChain-v0", 4, goal=True, max_episode_steps=20))
+    obs = venv.reset()
+    goals = (obs["achieved_goal"], obs["desired_goal"], [{}] * 4)
+    rewards = venv.env_method("compute_reward", *goals, indices=[0, 2])
+    assert len(rewards) == 2 and rewards[0].shape == (4,)
+    with pytest.raises(AttributeError, match="compute_reward"):
+        venv.env_method("reset")
+    model = SAC(
+        "MultiInputPolicy",
+        venv,
+        replay_buffer_class=HerReplayBuffer,
+        replay_buffer_kwargs={"n_sampled_goal": 4},
+        learning_starts=100,
+        batch_size=32,
+        seed=0,
+    )
+    model.learn(160)
+    batch = model.replay_buffer.sample(64, env=None)
+    assert np.isfinite(batch.rewards.numpy()).all() and (batch.rewards.numpy() > 0.5).any()  # relabelled successes
+    assert model.replay_buffer.infos.shape[1] == 4
