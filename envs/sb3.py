@@ -56,7 +56,12 @@ class SB3VecEnv(VecEnv):
     @classmethod
     def make(cls, env_id: str, num_envs: int, *, goal: bool = False, **kwargs: Any) -> SB3VecEnv:
         """``gymnasium.make_vec(env_id, num_envs, vectorization_mode="vector_entry_point", SAME_STEP)`` wrapped;
-        ``goal``: in :class:`GoalVectorObservation` (a reach env's dict observations, for HER)."""
+        ``goal``: in :class:`GoalVectorObservation` (a reach env's dict observations, for HER).
+
+        Raises:
+            TypeError: ``goal`` with an env that is not a reach env, or with ``shards`` > 1 (the vector env is
+                closed first, workers included).
+        """
         venv = gym.make_vec(
             env_id,
             num_envs=num_envs,
@@ -64,7 +69,13 @@ class SB3VecEnv(VecEnv):
             autoreset_mode=AutoresetMode.SAME_STEP,
             **kwargs,
         )
-        return cls(GoalVectorObservation(venv) if goal else venv)  # type: ignore[arg-type]
+        if goal:
+            try:
+                venv = GoalVectorObservation(venv)
+            except TypeError:
+                venv.close()
+                raise
+        return cls(venv)  # type: ignore[arg-type]
 
     def reset(self) -> np.ndarray:
         seed = self._seeds[0] if all(s is not None for s in self._seeds) else None

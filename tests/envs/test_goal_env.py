@@ -249,3 +249,14 @@ def test_sb3_her_trains_on_the_native_vector_env_through_env_method() -> None:
     batch = model.replay_buffer.sample(64, env=None)
     assert np.isfinite(batch.rewards.numpy()).all() and (batch.rewards.numpy() > 0.5).any()  # relabelled successes
     assert model.replay_buffer.infos.shape[1] == 4
+
+
+def test_a_goal_env_that_cannot_be_made_closes_its_vector_env_first() -> None:
+    import multiprocessing
+
+    before = len(multiprocessing.active_children())
+    with pytest.raises(TypeError, match="native vector env"):
+        SB3VecEnv.make("RedSim/MiniChain-v0", 2, goal=True, shards=2)
+    assert len(multiprocessing.active_children()) == before  # the shards' workers are gone
+    with pytest.raises(TypeError, match="needs a reach env"):
+        SB3VecEnv.make("RedSim/Klann-v0", 2, goal=True)
