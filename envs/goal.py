@@ -12,7 +12,7 @@ and ``compute_reward(achieved_goal, desired_goal, info)`` gives the reward for a
 axes, which is what hindsight experience replay (HER) relabels with::
 
     from stable_baselines3 import SAC, HerReplayBuffer
-    env = GoalObservation(gym.make("RedSim/MiniChain-v0"))
+    env = GoalObservation(gym.make("RedSim/MiniChain-v0", max_episode_steps=50))
     SAC("MultiInputPolicy", env, replay_buffer_class=HerReplayBuffer).learn(10_000)
 
 The reward depends on the goals alone, -d / L + bonus [d < r] (:class:`HandleReach`'s distance and success terms),
@@ -26,8 +26,10 @@ leaves out the task's control cost (still reported in ``info["reward_control"]``
 on one batched simulation of all copies (stable-baselines3 through :class:`redsim.envs.sb3.SB3VecEnv`, whose
 ``env_method("compute_reward", ...)`` it answers)::
 
-    venv = SB3VecEnv.make("RedSim/MiniChain-v0", num_envs=8, goal=True)
-    SAC("MultiInputPolicy", venv, replay_buffer_class=HerReplayBuffer).learn(10_000)
+    venv = SB3VecEnv.make("RedSim/MiniChain-v0", num_envs=8, goal=True, max_episode_steps=50)
+    SAC("MultiInputPolicy", venv, replay_buffer_class=HerReplayBuffer, learning_starts=8 * 51).learn(10_000)
+
+(HER samples only once every copy has ended an episode: ``learning_starts`` counts the transitions of all copies.)
 """
 
 from __future__ import annotations
@@ -40,6 +42,7 @@ import numpy as np
 from gymnasium import spaces
 from gymnasium.vector import VectorEnv, VectorObservationWrapper, VectorWrapper
 from gymnasium.vector.utils import batch_space
+from gymnasium.wrappers.vector import DictInfoToList
 
 from redsim.envs.reach import HandleReach
 from redsim.envs.vector import LatentVectorEnv
@@ -65,18 +68,19 @@ def _reach_task(task: Any, owner: str, wrapper: str) -> HandleReach:
 
 
 def _check_own_observation(env: Any, layers: type, changing: tuple[type, ...], own: bool, wrapper: str) -> None:
-    """Check that ``env`` gives its base env's own observation: no wrapper among its ``layers`` is one of
+    """Check that ``env`` gives its base env's own observation and info: no wrapper among its ``layers`` is one of
     ``changing``, and ``own`` (its observation space is the base env's).
 
     Raises:
-        TypeError: a wrapper inside ``wrapper`` that changes the observation (the goals would be in other units).
+        TypeError: a wrapper inside ``wrapper`` that changes the observation (the goals would be in other units)
+            or, for a vector env, the info's layout (``final_obs`` is read from it).
     """
     inner = env
     while isinstance(inner, layers):
         if isinstance(inner, changing):
             raise TypeError(
-                f"{wrapper} must wrap the env's own observation, but {type(inner).__name__} changes it; "
-                f"put observation wrappers outside {wrapper}"
+                f"{wrapper} must wrap the env's own observation and info, but {type(inner).__name__} changes "
+                f"them; put it outside {wrapper}"
             )
         inner = inner.env
     if not own:
@@ -225,7 +229,8 @@ class GoalVectorObservation(_GoalReward, VectorWrapper):
 
     Raises:
         TypeError: not the native vector env (a sharded one keeps its targets in its workers), a task that is
-            not a reach task, or a vector wrapper inside this one that changes the observation.
+            not a reach task, or a vector wrapper inside this one that changes the observation or the info's
+            layout (``DictInfoToList``).
     """
 
     def __init__(self, env: VectorEnv, control_cost: bool = False) -> None:
@@ -239,7 +244,8 @@ class GoalVectorObservation(_GoalReward, VectorWrapper):
             )
         _reach_task(base.sim.task, type(base.template).__name__, "GoalVectorObservation")
         own = env.single_observation_space == base.single_observation_space
-        _check_own_observation(env, VectorWrapper, (VectorObservationWrapper,), own, "GoalVectorObservation")
+        changing = (VectorObservationWrapper, DictInfoToList)
+        _check_own_observation(env, VectorWrapper, changing, own, "GoalVectorObservation")
         self._split = _GoalSplit(base.observation_structure, base.single_observation_space)
         self.single_observation_space = self._split.space
         self.observation_space = batch_space(self._split.space, self.num_envs)

@@ -15,7 +15,7 @@ relabels through ``env_method("compute_reward", ...)``.
 
 from __future__ import annotations
 
-from collections.abc import Sequence
+from collections.abc import Mapping, Sequence
 from typing import Any
 
 import gymnasium as gym
@@ -54,9 +54,10 @@ class SB3VecEnv(VecEnv):
         self._actions: np.ndarray | None = None
 
     @classmethod
-    def make(cls, env_id: str, num_envs: int, *, goal: bool = False, **kwargs: Any) -> SB3VecEnv:
+    def make(cls, env_id: str, num_envs: int, *, goal: bool | Mapping[str, Any] = False, **kwargs: Any) -> SB3VecEnv:
         """``gymnasium.make_vec(env_id, num_envs, vectorization_mode="vector_entry_point", SAME_STEP)`` wrapped;
-        ``goal``: in :class:`GoalVectorObservation` (a reach env's dict observations, for HER).
+        ``goal``: in :class:`GoalVectorObservation` (a reach env's dict observations, for HER), a mapping: with
+        those arguments (``goal={"control_cost": True}``).
 
         Raises:
             TypeError: ``goal`` with an env that is not a reach env, or with ``shards`` > 1 (the vector env is
@@ -71,7 +72,7 @@ class SB3VecEnv(VecEnv):
         )
         if goal:
             try:
-                venv = GoalVectorObservation(venv)
+                venv = GoalVectorObservation(venv, **(goal if isinstance(goal, Mapping) else {}))
             except TypeError:
                 venv.close()
                 raise
@@ -93,7 +94,7 @@ class SB3VecEnv(VecEnv):
         done = terminated | truncated
         infos: list[dict[str, Any]] = []
         for i in range(self.num_envs):
-            row = {k: v[i] for k, v in info.items() if not k.startswith("_") and k not in ("final_obs", "final_info")}
+            row = _info_row(info, i)
             if done[i]:
                 row["terminal_observation"] = info["final_obs"][i]
                 row["TimeLimit.truncated"] = bool(truncated[i] and not terminated[i])
@@ -108,7 +109,15 @@ class SB3VecEnv(VecEnv):
         return [None] * self.num_envs if frames is None else list(frames)
 
     def get_attr(self, attr_name: str, indices: Any = None) -> list[Any]:
-        return [getattr(self.venv.unwrapped.template, attr_name) for _ in self._get_indices(indices)]
+        """A copy's ``observation_space`` / ``action_space`` (the vector env's single ones), a shared method
+        (:data:`SHARED_METHODS`), or else the attribute of the env every copy runs (``venv.unwrapped.template``)."""
+        if attr_name in ("observation_space", "action_space"):
+            value = getattr(self.venv, f"single_{attr_name}")
+        elif attr_name in SHARED_METHODS:
+            value = self._shared(attr_name)
+        else:
+            value = getattr(self.venv.unwrapped.template, attr_name)
+        return [value for _ in self._get_indices(indices)]
 
     def set_attr(self, attr_name: str, value: Any, indices: Any = None) -> None:
         raise AttributeError("the copies of a SB3VecEnv share one simulation; set attributes on the env instead")
@@ -120,17 +129,44 @@ class SB3VecEnv(VecEnv):
             AttributeError: not one of :data:`SHARED_METHODS` the vector env defines (the copies share one
                 simulation and have no per-copy methods).
         """
-        method = getattr(self.venv, method_name, None) if method_name in SHARED_METHODS else None
-        if method is None:
-            raise AttributeError(
-                f"SB3VecEnv answers env_method only for {', '.join(SHARED_METHODS)} where the vector env defines "
-                f"them (the copies share one simulation and have no per-copy methods), not {method_name!r}"
-            )
-        result = method(*method_args, **method_kwargs)
+        result = self._shared(method_name)(*method_args, **method_kwargs)
         return [result for _ in self._get_indices(indices)]
+
+    def _shared(self, name: str) -> Any:
+        """The shared method ``name`` of the vector env or of a vector wrapper inside it (the outermost).
+
+        Raises:
+            AttributeError: not one of :data:`SHARED_METHODS`, or none defines it.
+        """
+        layer = self.venv
+        while name in SHARED_METHODS:
+            method = getattr(layer, name, None)
+            if method is not None:
+                return method
+            if not isinstance(layer, gym.vector.VectorWrapper):
+                break
+            layer = layer.env
+        raise AttributeError(
+            f"SB3VecEnv answers only {', '.join(SHARED_METHODS)} where the vector env or a wrapper in it defines "
+            f"them (the copies share one simulation and have no per-copy methods), not {name!r}"
+        )
 
     def env_is_wrapped(self, wrapper_class: type[gym.Wrapper], indices: Any = None) -> list[bool]:
         return [False for _ in self._get_indices(indices)]
+
+
+def _info_row(info: Mapping[str, Any], i: int) -> dict[str, Any]:
+    """Copy i's entries of a Gymnasium vector info (the keys whose ``_key`` mask, if any, holds it; nested dicts,
+    such as a vector ``RecordEpisodeStatistics``'s ``"episode"``, row by row), without ``final_obs``/``final_info``."""
+    row: dict[str, Any] = {}
+    for key, value in info.items():
+        if key.startswith("_") or key in ("final_obs", "final_info"):
+            continue
+        mask = info.get(f"_{key}")
+        if mask is not None and not mask[i]:
+            continue
+        row[key] = _info_row(value, i) if isinstance(value, Mapping) else value[i]
+    return row
 
 
 __all__ = ["SHARED_METHODS", "SB3VecEnv"]

@@ -46,7 +46,10 @@ def train(
         venv = SB3VecEnv.make(env_id, num_envs, goal=True, **env_kwargs)
     replay = {"replay_buffer_class": HerReplayBuffer, "replay_buffer_kwargs": {"n_sampled_goal": 4}} if her else {}
     episode = env_kwargs.get("max_episode_steps", gym.spec(env_id).max_episode_steps)
-    starts = min(max(1000, num_envs * (episode + 1)), steps // 2)  # HER samples only after an episode has ended
+    ended = num_envs * (episode + 1)  # transitions until every copy has ended an episode: HER samples only then
+    if her and steps <= ended:
+        raise ValueError(f"{steps} steps end no episode of all {num_envs} copies (HER needs {ended + 1} or more)")
+    starts = max(min(max(1000, ended), steps // 2), ended)
     model = SAC(
         "MultiInputPolicy",
         venv,

@@ -260,3 +260,36 @@ def test_a_goal_env_that_cannot_be_made_closes_its_vector_env_first() -> None:
     assert len(multiprocessing.active_children()) == before  # the shards' workers are gone
     with pytest.raises(TypeError, match="needs a reach env"):
         SB3VecEnv.make("RedSim/Klann-v0", 2, goal=True)
+
+
+def test_sb3_reads_the_goal_env_through_outer_vector_wrappers() -> None:
+    """HER's env_method and get_attr find the goal env's methods under Gymnasium vector wrappers; a vector
+    RecordEpisodeStatistics outside gives SB3 each copy's episode at its end only."""
+    from gymnasium.wrappers.vector import RecordEpisodeStatistics, RescaleAction
+
+    inner = SB3VecEnv.make("RedSim/MiniChain-v0", 2, goal={"control_cost": True}, max_episode_steps=3).venv
+    assert inner.control_cost
+    venv = SB3VecEnv(RecordEpisodeStatistics(RescaleAction(inner, np.float32(-2.0), np.float32(2.0))))
+    obs = venv.reset()
+    assert venv.get_attr("observation_space")[0] == inner.single_observation_space
+    assert venv.get_attr("compute_reward")[1] == inner.compute_reward
+    goals = (obs["achieved_goal"], obs["desired_goal"], [{"reward_control": 0.0}] * 2)
+    np.testing.assert_array_equal(venv.env_method("compute_reward", *goals)[0], inner.compute_reward(*goals))
+    ended = []
+    for _ in range(3):
+        venv.step_async(np.zeros((2, 3), dtype=np.float32))
+        *_, done, infos = venv.step_wait()
+        ended.append(["episode" in info for info in infos])
+        assert all(("terminal_observation" in info) == d for info, d in zip(infos, done, strict=True))
+    assert ended == [[False, False], [False, False], [True, True]]
+    assert infos[0]["episode"]["l"] == 3
+
+
+def test_an_info_layout_change_inside_the_vector_goal_env_is_refused() -> None:
+    from gymnasium.wrappers.vector import DictInfoToList
+
+    venv = gym.make_vec(
+        "RedSim/MiniChain-v0", num_envs=2, vectorization_mode="vector_entry_point", autoreset_mode="SameStep"
+    )
+    with pytest.raises(TypeError, match="outside GoalVectorObservation"):  # final_obs would stay flat
+        GoalVectorObservation(DictInfoToList(venv))
