@@ -6,14 +6,19 @@ keep their fits under a folder the user names; a second run reuses them instead 
 
 from __future__ import annotations
 
+import dataclasses
 from collections.abc import Callable, Sequence
 from pathlib import Path
+from typing import Any
 
 from torch import nn
 
 from redsim.scene import Scene
 from redsim.subspace import CheckpointError, checkpoint_path, load_subspace
 from redsim.trainers.fit import FitConfig, fit_command, fit_subspace
+
+RUNTIME_FIELDS = ("checkpoint_every", "device", "fused_adam", "compile")
+"""FitConfig fields that say how a fit runs, not what it fits: a checkpoint may differ in them."""
 
 
 def fitted_subspace(
@@ -29,8 +34,9 @@ def fitted_subspace(
 ) -> tuple[nn.Module, str]:
     """The map saved at ``STEM.pt`` (or at the first of ``also`` that loads), else a fit of ``config`` saved to STEM.
 
-    A checkpoint is used only if it loads for ``scene`` and records the config's d and step count;
-    one that exists but does not qualify is reported through ``warn`` and skipped.
+    A checkpoint is used only if it loads for ``scene`` and records the config's fit: every field but
+    :data:`RUNTIME_FIELDS` (a field recorded before it existed counts as its default); one that exists but does
+    not qualify is reported through ``warn`` and skipped.
 
     Args:
         scene: The scene.
@@ -55,11 +61,11 @@ def fitted_subspace(
             if warn:
                 warn(f"not using {path}: {err}")
             continue
-        fit = getattr(subspace, "metadata", {}).get("fit", {})
-        recorded = (fit.get("latent_dim", int(subspace.latent_dim)), fit.get("steps"))
-        if recorded != (config.latent_dim, config.steps):
+        fit = {"latent_dim": int(subspace.latent_dim), **getattr(subspace, "metadata", {}).get("fit", {})}
+        differs = _differences(fit, config)
+        if differs:
             if warn:
-                warn(f"not using {path}: it records d, steps = {recorded}, not {(config.latent_dim, config.steps)}")
+                warn(f"not using {path}: it records {', '.join(differs)}")
             continue
         return subspace, str(path)
     result = fit_subspace(
@@ -68,4 +74,20 @@ def fitted_subspace(
     return result.subspace, str(candidates[0])
 
 
-__all__ = ["fitted_subspace"]
+def _differences(recorded: dict[str, Any], config: FitConfig) -> list[str]:
+    """``"field = recorded, not wanted"`` for each field of ``config`` (but :data:`RUNTIME_FIELDS`) that a
+    checkpoint's recorded fit differs in (a field it does not record: FitConfig's default)."""
+    out = []
+    for field in dataclasses.fields(config):
+        if field.name in RUNTIME_FIELDS:
+            continue
+        wanted = getattr(config, field.name)
+        value = recorded.get(field.name, field.default)
+        if (list(value) if isinstance(value, (list, tuple)) else value) != (
+            list(wanted) if isinstance(wanted, tuple) else wanted
+        ):
+            out.append(f"{field.name} = {value!r}, not {wanted!r}")
+    return out
+
+
+__all__ = ["RUNTIME_FIELDS", "fitted_subspace"]

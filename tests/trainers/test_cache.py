@@ -20,7 +20,14 @@ def test_fits_once_then_reuses_and_skips_another_d_or_scene(tmp_path) -> None:
     assert all((a == b).all() for a, b in zip(first.state_dict().values(), again.state_dict().values(), strict=True))
 
     wider, _ = fitted_subspace(scene, FitConfig(**{**TINY, "latent_dim": 3}), stem, progress=False, warn=skipped.append)
-    assert int(wider.latent_dim) == 3 and "records d, steps = (2, 4), not (3, 4)" in skipped[-1]
+    assert int(wider.latent_dim) == 3 and "latent_dim = 2, not 3" in skipped[-1]
+    anchored = FitConfig(**{**TINY, "lam": 3.0})  # any other option of the fit, e.g. after a preset changed
+    fitted_subspace(scene, anchored, stem, progress=False, warn=skipped.append)
+    assert "lam = 1.0, not 3.0" in skipped[-1]
+    fitted_subspace(
+        scene, FitConfig(**{**TINY, "lam": 3.0, "checkpoint_every": 7}), stem, progress=False, warn=skipped.append
+    )
+    assert len(skipped) == 2  # how a fit runs (checkpoints, device) is not what it fits: reused
 
     other = build("toy_tiny_bar_2d")
     fitted_subspace(other, FitConfig(**TINY), tmp_path / "bar", also=[stem], progress=False, warn=skipped.append)
