@@ -87,23 +87,28 @@ def _check_own_observation(env: Any, layers: type, changing: tuple[type, ...], o
         raise TypeError(f"{wrapper} needs the env's own flat Box observation")
 
 
-class _GoalSplit:
-    """Where a reach env's flat observation holds the goals, and its dict observation space.
+class GoalSplit:
+    """Where a reach env's flat observation holds the goals: its dict observation and dict observation space.
 
     Args:
-        structure: The env's observation blocks (name -> size, in order).
-        flat: The env's flat observation space (one copy).
+        structure: The env's observation blocks (name -> size, in order; ``observation_structure``).
     """
 
-    def __init__(self, structure: Mapping[str, int], flat: spaces.Box) -> None:
+    def __init__(self, structure: Mapping[str, int]) -> None:
         blocks, start = {}, 0
         for name, size in structure.items():
             blocks[name] = slice(start, start + size)
             start += size
+        if "handle_position" not in blocks or GOAL_BLOCK not in blocks:
+            raise TypeError(f"not a reach env's observation (blocks {', '.join(blocks)}): no goal to split off")
         self.achieved = blocks["handle_position"]
+        self.offset = blocks[GOAL_BLOCK]
         self.keep = np.concatenate([np.arange(s.start, s.stop) for n, s in blocks.items() if n != GOAL_BLOCK])
+
+    def space(self, flat: spaces.Box) -> spaces.Dict:
+        """The dict observation space of the flat observation space ``flat`` (one copy)."""
         goal = spaces.Box(flat.low[self.achieved], flat.high[self.achieved], dtype=np.float32)
-        self.space = spaces.Dict(
+        return spaces.Dict(
             {
                 "observation": spaces.Box(flat.low[self.keep], flat.high[self.keep], dtype=np.float32),
                 "achieved_goal": goal,
@@ -111,8 +116,12 @@ class _GoalSplit:
             }
         )
 
-    def __call__(self, flat: np.ndarray, desired: np.ndarray) -> dict[str, np.ndarray]:
-        """The dict observation of flat observations [..., obs] whose targets are ``desired`` [..., k] [m]."""
+    def __call__(self, flat: np.ndarray, desired: np.ndarray | None = None) -> dict[str, np.ndarray]:
+        """The dict observation of flat observations [..., obs] whose targets are ``desired`` [..., k] [m] (None:
+        read from the flat observation, the goal handle's position plus its target offset, to float32 round-off;
+        how a goal-conditioned agent acts on the flat env, :class:`redsim.trainers.agents.Agent`)."""
+        if desired is None:
+            desired = flat[..., self.achieved] + flat[..., self.offset]
         return {
             "observation": flat[..., self.keep],
             "achieved_goal": flat[..., self.achieved],
@@ -197,8 +206,8 @@ class GoalObservation(_GoalReward, gym.ObservationWrapper, gym.utils.RecordConst
         changing = (gym.ObservationWrapper, gym.wrappers.NormalizeObservation)
         own = env.observation_space == base.observation_space
         _check_own_observation(env, gym.Wrapper, changing, own, "GoalObservation")
-        self._split = _GoalSplit(base.observation_structure, base.observation_space)
-        self.observation_space = self._split.space
+        self._split = GoalSplit(base.observation_structure)
+        self.observation_space = self._split.space(base.observation_space)
 
     @property
     def task(self) -> HandleReach:
@@ -246,9 +255,9 @@ class GoalVectorObservation(_GoalReward, VectorWrapper):
         own = env.single_observation_space == base.single_observation_space
         changing = (VectorObservationWrapper, DictInfoToList)
         _check_own_observation(env, VectorWrapper, changing, own, "GoalVectorObservation")
-        self._split = _GoalSplit(base.observation_structure, base.single_observation_space)
-        self.single_observation_space = self._split.space
-        self.observation_space = batch_space(self._split.space, self.num_envs)
+        self._split = GoalSplit(base.observation_structure)
+        self.single_observation_space = self._split.space(base.single_observation_space)
+        self.observation_space = batch_space(self.single_observation_space, self.num_envs)
 
     @property
     def task(self) -> HandleReach:
@@ -286,4 +295,4 @@ class GoalVectorObservation(_GoalReward, VectorWrapper):
         return self._split(obs, self._targets()), reward, terminated, truncated, info
 
 
-__all__ = ["GOAL_BLOCK", "GoalObservation", "GoalVectorObservation"]
+__all__ = ["GOAL_BLOCK", "GoalObservation", "GoalSplit", "GoalVectorObservation"]

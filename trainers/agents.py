@@ -17,6 +17,12 @@ progress bar, and resumable runs. :func:`train_agent` writes into its output fol
 - ``policy.gif``: one episode of the trained policy;
 - ``agent.json``: what ran (env, algorithm, steps, wall time, hyperparameters, last evaluation).
 
+``her=True`` (SAC, TD3; the reach envs) trains with hindsight experience replay: on the goal-conditioned
+env (:class:`redsim.envs.goal.GoalVectorObservation`, dict observations, the reward of the goals alone) with
+SB3's ``HerReplayBuffer``. The evaluations still score the env's own reward, and the saved model acts on the
+env's flat observations (:class:`Agent` splits them into goals), so it is evaluated, compared and drawn as
+any other.
+
 :func:`evaluate` runs seeded episodes of a trained model, a random policy or the task's
 scripted controller (:meth:`redsim.envs.base.Task.controller`) the same way, one episode per
 copy of a vector env whose copy i is seeded ``seed + i`` (equal to single envs seeded alike).
@@ -204,16 +210,42 @@ def vector_env(
 
 
 def _sb3_env(
-    env: str | gym.Env, num_envs: int, seed: int, env_kwargs: Mapping[str, Any] | None, shards: int = 1
+    env: str | gym.Env,
+    num_envs: int,
+    seed: int,
+    env_kwargs: Mapping[str, Any] | None,
+    shards: int = 1,
+    goal: Mapping[str, Any] | None = None,
 ) -> Any:
+    """SB3's monitored VecEnv of ``num_envs`` copies; ``goal``: goal-conditioned, with these
+    :class:`redsim.envs.goal.GoalVectorObservation` arguments.
+
+    Raises:
+        ValueError: ``goal`` with an env that is not a reach env, or with ``shards`` > 1.
+    """
     from gymnasium.vector import AutoresetMode
     from stable_baselines3.common.vec_env import VecMonitor
 
+    from redsim.envs.goal import GoalVectorObservation
     from redsim.envs.sb3 import SB3VecEnv
 
-    venv = VecMonitor(SB3VecEnv(vector_env(env, num_envs, AutoresetMode.SAME_STEP, env_kwargs, shards)))
+    vector = vector_env(env, num_envs, AutoresetMode.SAME_STEP, env_kwargs, shards)
+    if goal is not None:
+        try:
+            vector = GoalVectorObservation(vector, **goal)
+        except TypeError as err:
+            vector.close()
+            raise ValueError(f"her: {err}") from err
+    venv = VecMonitor(SB3VecEnv(vector))
     venv.seed(seed)
     return venv
+
+
+def _episode_steps(env: str | gym.Env, env_kwargs: Mapping[str, Any] | None) -> int | None:
+    """The episode limit of an id (made with ``env_kwargs``) or of a user's env."""
+    if isinstance(env, str):
+        return dict(env_kwargs or {}).get("max_episode_steps", gym.spec(env).max_episode_steps)
+    return _base_env(env)[1]
 
 
 def _env_label(env: str | gym.Env) -> str:
@@ -368,8 +400,9 @@ def evaluate(
 
 # -- model files ------------------------------------------------------------------------------
 def model_record(path: str | Path) -> dict[str, Any]:
-    """The env id and algorithm a model file of :func:`train_agent` was trained with, and whether it acts
-    through normalized observations (``"env_id"``, ``"algo"``, ``"normalized"``).
+    """The env id and algorithm a model file of :func:`train_agent` was trained with, whether it acts
+    through normalized observations, and the observation blocks of a goal-conditioned (HER) model, else None
+    (``"env_id"``, ``"algo"``, ``"normalized"``, ``"goal"``).
 
     Raises:
         FileNotFoundError: no such file.
@@ -390,6 +423,7 @@ def model_record(path: str | Path) -> dict[str, Any]:
         "env_id": data["redsim_env_id"],
         "algo": data["redsim_algo"],
         "normalized": bool(data.get("redsim_normalized", False)),
+        "goal": data.get("redsim_goal"),
     }
 
 
@@ -437,10 +471,13 @@ class Agent:
         model: The SB3 model (PPO, SAC or TD3).
         normalizer: The ``VecNormalize`` whose statistics map raw observations to the model's
             inputs (None: the model takes raw observations).
+        goal: A goal-conditioned (HER) model's observation blocks: the flat observations it is given are split
+            into its dict observation first (:class:`redsim.envs.goal.GoalSplit`); None: the model takes them flat.
     """
 
     model: Any
     normalizer: Any = None
+    goal: Mapping[str, int] | None = None
 
     @property
     def num_timesteps(self) -> int:
@@ -448,6 +485,10 @@ class Agent:
 
     def predict(self, obs: np.ndarray, deterministic: bool = True) -> tuple[np.ndarray, Any]:
         """Actions [B, A] (or [A]) for raw observations [B, obs] (or [obs]), as SB3's ``predict``."""
+        if self.goal is not None:
+            from redsim.envs.goal import GoalSplit
+
+            obs = GoalSplit(self.goal)(obs)
         if self.normalizer is not None:
             obs = self.normalizer.normalize_obs(obs)
         return self.model.predict(obs, deterministic=deterministic)
@@ -466,8 +507,16 @@ def load_agent(path: str | Path, env_id: str | None = None) -> Agent:
     record = model_record(path)
     if env_id is not None and record["env_id"] != env_id:
         raise ValueError(f"the model {path} was trained on {record['env_id']}, not on {env_id}")
-    model = _algo_class(record["algo"]).load(path, device="cpu")
-    return Agent(model, load_normalizer(normalizer_path(path)) if record["normalized"] else None)
+    # a HER model's replay buffer needs its env to be built; an agent only acts, so it gets a plain one
+    plain = {"replay_buffer_class": _dict_buffer(), "replay_buffer_kwargs": {}} if record["goal"] else None
+    model = _algo_class(record["algo"]).load(path, device="cpu", custom_objects=plain)
+    return Agent(model, load_normalizer(normalizer_path(path)) if record["normalized"] else None, record["goal"])
+
+
+def _dict_buffer() -> Any:
+    from stable_baselines3.common.buffers import DictReplayBuffer
+
+    return DictReplayBuffer
 
 
 def _policies_folder() -> Path:
@@ -638,6 +687,31 @@ def record_gif(
     return len(images)
 
 
+def _her_settings(settings: dict[str, Any], algo: str, copies: int, episode: int | None, steps: int) -> None:
+    """Add SB3's ``HerReplayBuffer`` to an off-policy algorithm's ``settings`` (in place), with ``learning_starts``
+    at least the transitions until every copy has ended an episode (HER samples only then).
+
+    Raises:
+        ValueError: PPO, an env without an episode limit, or ``steps`` that end no episode of every copy.
+    """
+    from stable_baselines3 import HerReplayBuffer
+
+    if algo == "ppo":
+        raise ValueError("her needs an off-policy algorithm (sac or td3): HER relabels a replay buffer")
+    if episode is None:
+        raise ValueError("her needs an episode limit (max_episode_steps): HER relabels with the episode's goals")
+    ended = copies * (episode + 1)
+    if steps <= ended:
+        raise ValueError(f"her: {steps} steps end no episode of every one of {copies} copies ({ended + 1} or more do)")
+    settings["replay_buffer_class"] = HerReplayBuffer
+    settings["replay_buffer_kwargs"] = {
+        "n_sampled_goal": 4,
+        "goal_selection_strategy": "future",
+        **settings.get("replay_buffer_kwargs", {}),
+    }
+    settings["learning_starts"] = max(int(settings.get("learning_starts", 100)), ended)
+
+
 def train_agent(
     env: str | gym.Env,
     out: str | Path,
@@ -656,6 +730,7 @@ def train_agent(
     overrides: Mapping[str, Any] | None = None,
     env_kwargs: Mapping[str, Any] | None = None,
     shards: int = 1,
+    her: bool = False,
 ) -> TrainResult:
     """Train ``algo`` on ``env`` for ``steps`` env steps in all, writing the files of the module doc to ``out``.
 
@@ -677,9 +752,12 @@ def train_agent(
         env_kwargs: Keyword arguments of the id's env (e.g. ``{"max_episode_steps": 50}``).
         shards: Worker processes of the training env (:mod:`redsim.envs.sharded`; ids only; the same env, its
             copies stepped on P cores). The evaluation env stays one process.
+        her: Hindsight experience replay (module doc; SAC or TD3, a reach env, one process). ``learning_starts``
+            is raised to the transitions until every copy has ended an episode, where HER starts to sample.
 
     Raises:
-        ValueError: an unknown id or algorithm, bad counts, or (resume) a model of another env or algorithm.
+        ValueError: an unknown id or algorithm, bad counts, ``her`` with PPO, another task or shards, a budget
+            that ends no episode of every copy, or (resume) a model of another env, algorithm or replay.
     """
     from stable_baselines3.common.callbacks import CallbackList, CheckpointCallback, EvalCallback
     from stable_baselines3.common.noise import NormalActionNoise
@@ -698,10 +776,16 @@ def train_agent(
     if copies < 1:
         raise ValueError(f"n_envs must be >= 1, got {copies}")
     normalize = settings.pop("normalize", None)
+    if her:
+        _her_settings(settings, algo, copies, _episode_steps(env, env_kwargs), int(steps))
     out = Path(out)
     (out / "checkpoints").mkdir(parents=True, exist_ok=True)
-    venv = _sb3_env(env, copies, seed, env_kwargs, shards)
-    eval_env = _sb3_env(env, min(eval_episodes, 10), seed + 10_000, env_kwargs)
+    venv = _sb3_env(env, copies, seed, env_kwargs, shards, goal={} if her else None)
+    # evaluations score the env's own reward (the goal env with its control cost passes it through)
+    eval_env = _sb3_env(
+        env, min(eval_episodes, 10), seed + 10_000, env_kwargs, goal={"control_cost": True} if her else None
+    )
+    goal = dict(venv.get_attr("observation_structure")[0]) if her else None
     noise_std = settings.pop("action_noise_std", None)
     if noise_std is not None:
         shape = venv.action_space.shape
@@ -712,9 +796,11 @@ def train_agent(
     record = json.loads((out / "agent.json").read_text()) if resume and (out / "agent.json").is_file() else {}
     if previous is not None:
         found = model_record(previous)
-        if (found["env_id"], found["algo"]) != (label, algo):
+        if (found["env_id"], found["algo"], found["goal"] is not None) != (label, algo, her):
+            replay = {True: " with HER", False: ""}
             raise ValueError(
-                f"cannot resume: {previous} is {found['algo']} on {found['env_id']}, not {algo} on {label}"
+                f"cannot resume: {previous} is {found['algo']}{replay[found['goal'] is not None]} on "
+                f"{found['env_id']}, not {algo}{replay[her]} on {label}"
             )
         if found["normalized"]:
             venv = VecNormalize.load(str(normalizer_path(previous)), venv)
@@ -728,10 +814,12 @@ def train_agent(
             options = {"norm_reward": False, "gamma": settings.get("gamma", 0.99), **dict(normalize)}
             venv = VecNormalize(venv, **options)
             eval_env = VecNormalize(eval_env, training=False, norm_reward=False)
-        model = cls("MlpPolicy", venv, seed=seed, device="cpu", verbose=0, **settings)
+        policy = "MultiInputPolicy" if her else "MlpPolicy"
+        model = cls(policy, venv, seed=seed, device="cpu", verbose=0, **settings)
     model.redsim_env_id = label
     model.redsim_algo = algo
     model.redsim_normalized = isinstance(venv, VecNormalize)
+    model.redsim_goal = goal
 
     wall_offset = float(record.get("wall_s", 0.0)) if previous is not None else 0.0
     curve = _read_curve(out / "curve.csv") if previous is not None else []
@@ -766,10 +854,10 @@ def train_agent(
     model.save(model_path)
     if hasattr(model, "save_replay_buffer"):
         model.save_replay_buffer(out / BUFFER)
-    agent = Agent(model)
+    agent = Agent(model, goal=goal)
     if isinstance(venv, VecNormalize):
         venv.save(str(normalizer_path(model_path)))
-        agent = Agent(model, load_normalizer(normalizer_path(model_path)))
+        agent = Agent(model, load_normalizer(normalizer_path(model_path)), goal)
     venv.close()
     eval_env.close()
 
@@ -795,6 +883,7 @@ def train_agent(
         "wall_s": wall,
         "n_envs": copies,
         "seed": seed,
+        "her": her,
         "env_kwargs": dict(env_kwargs or {}),
         "hyperparams": {k: v for k, v in settings.items() if k != "action_noise"}
         | {"action_noise_std": noise_std, "normalize": normalize},

@@ -78,6 +78,7 @@ def cmd_train_agent(args: argparse.Namespace) -> int:
             video=not args.no_video,
             env_kwargs=_env_kwargs(args),
             shards=args.shards,
+            her=args.her,
         )
     except (ValueError, FileNotFoundError, ShardError) as err:
         raise CliError(str(err)) from err
@@ -88,6 +89,7 @@ def cmd_train_agent(args: argparse.Namespace) -> int:
             {
                 "env_id": args.env_id,
                 "algo": args.algo,
+                "her": args.her,
                 "steps": result.steps,
                 "wall_s": result.wall_s,
                 "model": str(result.model_path),
@@ -96,7 +98,8 @@ def cmd_train_agent(args: argparse.Namespace) -> int:
             }
         )
         return EXIT_OK
-    out(f"{args.env_id}: {args.algo.upper()} trained {result.steps} env steps in {result.wall_s:.0f} s")
+    replay = " with HER" if args.her else ""
+    out(f"{args.env_id}: {args.algo.upper()}{replay} trained {result.steps} env steps in {result.wall_s:.0f} s")
     out(_line("agent", final))
     out(f"wrote {', '.join(Path(f).name for f in files)} in {args.out}")
     return EXIT_OK
@@ -166,6 +169,12 @@ def add_commands(sub: Any) -> None:
     p.add_argument("--eval-episodes", type=int, default=10, help="episodes per evaluation (default 10)")
     p.add_argument("--final-episodes", type=int, default=20, help="seeded episodes of the final evaluation")
     p.add_argument("--resume", action="store_true", help="continue the run in DIR up to --steps in all")
+    p.add_argument(
+        "--her",
+        action="store_true",
+        help="hindsight experience replay (sac/td3, reach envs): train on the goal-conditioned env "
+        "(redsim.envs.goal); evaluations score the env's own reward",
+    )
     _add_env_args(p)
     p.add_argument("--no-video", action="store_true", help="skip policy.gif")
     p.add_argument("--no-progress", action="store_true", help="no progress bar")

@@ -100,7 +100,7 @@ def test_train_resume_and_evaluate_through_the_cli(cli: Callable[..., tuple[int,
     assert summary["steps"] == 200 and summary["final_evaluation"]["episodes"] == 2
     for name in ("model.zip", "best_model.zip", "curve.csv", "curve.png", "policy.gif", "agent.json"):
         assert (out / name).stat().st_size > 0, name
-    assert model_record(out / "model.zip") == {"env_id": MINI, "algo": "sac", "normalized": True}
+    assert model_record(out / "model.zip") == {"env_id": MINI, "algo": "sac", "normalized": True, "goal": None}
     assert (out / "model.zip").stat().st_size < 1_000_000
 
     code, stdout, err = cli(
@@ -255,3 +255,46 @@ def test_sac_learns_mini_chain_clearly_above_random(tmp_path: Path) -> None:
     scripted = evaluate(MINI, "scripted", episodes=20, seed=20_000)
     assert result.evaluation.mean > random.mean + 3 * random.std
     assert result.evaluation.mean > scripted.mean  # the table's settings beat the PI controller in 20k steps
+
+
+def test_her_trains_on_the_goal_env_and_its_agent_acts_on_the_flat_one(
+    cli: Callable[..., tuple[int, str, str]], tmp_path: Path
+) -> None:
+    from redsim.envs.goal import GoalSplit
+    from redsim.trainers.agents import train_agent
+
+    out = tmp_path / "her"
+    tiny = {"eval_every": 100, "eval_episodes": 2, "final_episodes": 2, "env_kwargs": SHORT, "n_envs": 4}
+    result = train_agent(MINI, out, steps=200, her=True, overrides={"learning_starts": 100, "batch_size": 32}, **tiny)
+    model = load_agent(result.model_path, MINI)
+    from stable_baselines3.common.save_util import load_from_pkl
+
+    buffer = load_from_pkl(out / "replay_buffer.pkl")
+    assert type(buffer).__name__ == "HerReplayBuffer" and buffer.pos == 50  # 200 steps over 4 copies
+    assert model.model._n_updates > 0  # it trained, sampling relabelled goals
+    goal = {"z": 4, "z_dot": 4, "handle_position": 3, "target_offset": 3}
+    assert model_record(result.model_path)["goal"] == goal == model.goal
+    assert json.loads((out / "agent.json").read_text())["her"] and np.isfinite(result.evaluation.mean)
+    obs = np.random.default_rng(0).normal(size=(3, 14)).astype(np.float32)  # the env's flat observations
+    split = model.normalizer.normalize_obs(GoalSplit(goal)(obs))
+    np.testing.assert_array_equal(model.predict(obs)[0], model.model.predict(split, deterministic=True)[0])
+
+    code, _, err = cli(
+        "train-agent", MINI, "--her", "--steps", "300", "--out", str(out), *TINY, "--resume", "--no-video"
+    )
+    assert code == 0, err
+    assert load_agent(out / "model.zip").num_timesteps == 300
+    code, _, err = cli("train-agent", MINI, "--steps", "400", "--out", str(out), *TINY, "--resume")
+    assert code == 2 and "cannot resume" in err and "sac with HER on RedSim/MiniChain-v0, not sac on" in err
+    code, stdout, err = cli("eval-agent", str(out / "model.zip"), MINI, "--episodes", "2", "--episode-steps", "20")
+    assert code == 0 and "agent" in stdout, err
+
+    for extra, message in (
+        (["--algo", "ppo"], "off-policy"),
+        (["--shards", "2"], "native vector env"),
+        (["--steps", "50"], "end no episode"),
+    ):
+        code, _, err = cli("train-agent", MINI, "--her", "--out", str(tmp_path / "x"), *TINY, *extra)
+        assert code == 2 and message in err, (extra, err)
+    code, _, err = cli("train-agent", "RedSim/Klann-v0", "--her", "--out", str(tmp_path / "k"), *TINY)
+    assert code == 2 and "needs a reach env" in err
