@@ -484,10 +484,19 @@ class Agent:
         return int(self.model.num_timesteps)
 
     def predict(self, obs: np.ndarray, deterministic: bool = True) -> tuple[np.ndarray, Any]:
-        """Actions [B, A] (or [A]) for raw observations [B, obs] (or [obs]), as SB3's ``predict``."""
+        """Actions [B, A] (or [A]) for raw observations [B, obs] (or [obs]), as SB3's ``predict``.
+
+        Raises:
+            ValueError: a goal-conditioned model given observations of another size.
+        """
         if self.goal is not None:
             from redsim.envs.goal import GoalSplit
 
+            size = sum(self.goal.values())
+            if np.shape(obs)[-1] != size:  # the split would cut any width into the right shapes
+                raise ValueError(
+                    f"the model acts on observations of size {size} ({', '.join(self.goal)}), got {np.shape(obs)}"
+                )
             obs = GoalSplit(self.goal)(obs)
         if self.normalizer is not None:
             obs = self.normalizer.normalize_obs(obs)
@@ -808,6 +817,9 @@ def train_agent(
         model = cls.load(previous, env=venv, device="cpu")
         if hasattr(model, "load_replay_buffer") and previous == out / "model.zip" and (out / BUFFER).is_file():
             model.load_replay_buffer(out / BUFFER)
+        elif her:  # from a checkpoint: an empty HER buffer samples only once every copy has ended an episode again
+            ended = copies * (int(_episode_steps(env, env_kwargs) or 0) + 1)
+            model.learning_starts = max(int(model.learning_starts), int(model.num_timesteps) + ended)
         log.info("resuming %s from %s at %d steps", label, previous, model.num_timesteps)
     else:
         if normalize:

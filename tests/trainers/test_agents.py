@@ -278,6 +278,16 @@ def test_her_trains_on_the_goal_env_and_its_agent_acts_on_the_flat_one(
     obs = np.random.default_rng(0).normal(size=(3, 14)).astype(np.float32)  # the env's flat observations
     split = model.normalizer.normalize_obs(GoalSplit(goal)(obs))
     np.testing.assert_array_equal(model.predict(obs)[0], model.model.predict(split, deterministic=True)[0])
+    with pytest.raises(ValueError, match="observations of size 14"):  # another env's: not silently cut
+        model.predict(obs[:, :12])
+
+    interrupted = tmp_path / "interrupted"  # killed after a checkpoint: no model.zip, no buffer
+    train_agent(
+        MINI, interrupted, steps=200, her=True, checkpoint_every=100, overrides={"learning_starts": 100}, **tiny
+    )
+    (interrupted / "model.zip").unlink()
+    resumed = train_agent(MINI, interrupted, steps=300, her=True, resume=True, video=False, **tiny)
+    assert resumed.steps == 300 and np.isfinite(resumed.evaluation.mean)
 
     code, _, err = cli(
         "train-agent", MINI, "--her", "--steps", "300", "--out", str(out), *TINY, "--resume", "--no-video"
