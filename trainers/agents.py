@@ -128,7 +128,8 @@ HYPERPARAMS: dict[str, dict[str, dict[str, Any]]] = {
 }
 """env id -> algorithm -> settings; each env's entries override ``"default"`` key by key.
 
-``n_envs`` is the number of copies of the vector env; ``action_noise_std`` (TD3) the std of
+``n_envs`` is the number of copies of the vector env; ``learning_starts`` (SAC, TD3) holds unless it is more than
+half a run's steps, then half (unless given as an override); ``action_noise_std`` (TD3) the std of
 Gaussian exploration noise in units of the action bound; ``normalize`` the keyword arguments of
 SB3's ``VecNormalize`` around the training env (running mean/std of the observations, and for PPO
 of the returns; false: raw observations); every other key is a keyword argument of the SB3 algorithm.
@@ -401,8 +402,8 @@ def evaluate(
 # -- model files ------------------------------------------------------------------------------
 def model_record(path: str | Path) -> dict[str, Any]:
     """The env id and algorithm a model file of :func:`train_agent` was trained with, whether it acts
-    through normalized observations, and the observation blocks of a goal-conditioned (HER) model, else None
-    (``"env_id"``, ``"algo"``, ``"normalized"``, ``"goal"``).
+    through normalized observations, the observation blocks of a goal-conditioned (HER) model (else None), and
+    the copies it was trained on (``"env_id"``, ``"algo"``, ``"normalized"``, ``"goal"``, ``"n_envs"``).
 
     Raises:
         FileNotFoundError: no such file.
@@ -424,6 +425,7 @@ def model_record(path: str | Path) -> dict[str, Any]:
         "algo": data["redsim_algo"],
         "normalized": bool(data.get("redsim_normalized", False)),
         "goal": data.get("redsim_goal"),
+        "n_envs": data.get("n_envs"),
     }
 
 
@@ -785,9 +787,28 @@ def train_agent(
     if copies < 1:
         raise ValueError(f"n_envs must be >= 1, got {copies}")
     normalize = settings.pop("normalize", None)
+    if algo != "ppo" and "learning_starts" not in (overrides or {}):
+        # the table's start would leave a short run untrained, silently: at most half the budget
+        settings["learning_starts"] = min(int(settings["learning_starts"]), int(steps) // 2)
     if her:
         _her_settings(settings, algo, copies, _episode_steps(env, env_kwargs), int(steps))
     out = Path(out)
+    cls = _algo_class(algo)
+    previous = _resume_from(out) if resume else None
+    buffer = previous is not None and previous == out / "model.zip" and algo != "ppo" and (out / BUFFER).is_file()
+    if previous is not None:
+        found = model_record(previous)
+        if (found["env_id"], found["algo"], found["goal"] is not None) != (label, algo, her):
+            replay = {True: " with HER", False: ""}
+            raise ValueError(
+                f"cannot resume: {previous} is {found['algo']}{replay[found['goal'] is not None]} on "
+                f"{found['env_id']}, not {algo}{replay[her]} on {label}"
+            )
+        if buffer and found["n_envs"] not in (None, copies):
+            raise ValueError(
+                f"cannot resume with {copies} copies: the run's replay buffer {out / BUFFER} holds "
+                f"{found['n_envs']} (give n_envs={found['n_envs']}, --n-envs {found['n_envs']})"
+            )
     (out / "checkpoints").mkdir(parents=True, exist_ok=True)
     venv = _sb3_env(env, copies, seed, env_kwargs, shards, goal={} if her else None)
     # evaluations score the env's own reward (the goal env with its control cost passes it through)
@@ -800,22 +821,13 @@ def train_agent(
         shape = venv.action_space.shape
         settings["action_noise"] = NormalActionNoise(np.zeros(shape), noise_std * np.ones(shape))
 
-    cls = _algo_class(algo)
-    previous = _resume_from(out) if resume else None
     record = json.loads((out / "agent.json").read_text()) if resume and (out / "agent.json").is_file() else {}
     if previous is not None:
-        found = model_record(previous)
-        if (found["env_id"], found["algo"], found["goal"] is not None) != (label, algo, her):
-            replay = {True: " with HER", False: ""}
-            raise ValueError(
-                f"cannot resume: {previous} is {found['algo']}{replay[found['goal'] is not None]} on "
-                f"{found['env_id']}, not {algo}{replay[her]} on {label}"
-            )
         if found["normalized"]:
             venv = VecNormalize.load(str(normalizer_path(previous)), venv)
             eval_env = VecNormalize(eval_env, training=False, norm_reward=False)
         model = cls.load(previous, env=venv, device="cpu")
-        if hasattr(model, "load_replay_buffer") and previous == out / "model.zip" and (out / BUFFER).is_file():
+        if buffer:
             model.load_replay_buffer(out / BUFFER)
         elif her:  # from a checkpoint: an empty HER buffer samples only once every copy has ended an episode again
             ended = copies * (int(_episode_steps(env, env_kwargs) or 0) + 1)

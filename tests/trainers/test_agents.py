@@ -100,7 +100,9 @@ def test_train_resume_and_evaluate_through_the_cli(cli: Callable[..., tuple[int,
     assert summary["steps"] == 200 and summary["final_evaluation"]["episodes"] == 2
     for name in ("model.zip", "best_model.zip", "curve.csv", "curve.png", "policy.gif", "agent.json"):
         assert (out / name).stat().st_size > 0, name
-    assert model_record(out / "model.zip") == {"env_id": MINI, "algo": "sac", "normalized": True, "goal": None}
+    record = {"env_id": MINI, "algo": "sac", "normalized": True, "goal": None, "n_envs": 4}
+    assert model_record(out / "model.zip") == record
+    assert load_agent(out / "model.zip").model._n_updates > 0  # a 200-step run starts learning halfway, not never
     assert (out / "model.zip").stat().st_size < 1_000_000
 
     code, stdout, err = cli(
@@ -145,6 +147,9 @@ def test_train_resume_and_evaluate_through_the_cli(cli: Callable[..., tuple[int,
     assert code == 2 and "was trained on RedSim/MiniChain-v0, not on RedSim/Chain-v0" in err
     code, _, err = cli("train-agent", "RedSim/Chain-v0", "--steps", "10", "--out", str(out), "--resume", *TINY)
     assert code == 2 and "cannot resume" in err
+    other = [arg if arg != "4" else "2" for arg in TINY]  # --n-envs 2
+    code, _, err = cli("train-agent", MINI, "--steps", "400", "--out", str(out), "--resume", *other)
+    assert code == 2 and "cannot resume with 2 copies" in err and "--n-envs 4" in err
 
 
 def test_normalizer_files_sit_beside_their_models() -> None:
