@@ -827,6 +827,7 @@ def train_agent(
             venv = VecNormalize.load(str(normalizer_path(previous)), venv)
             eval_env = VecNormalize(eval_env, training=False, norm_reward=False)
         model = cls.load(previous, env=venv, device="cpu")
+        venv.seed(seed + int(model.num_timesteps))  # new episodes, not a replay of the first run's
         if buffer:
             model.load_replay_buffer(out / BUFFER)
         elif her:  # from a checkpoint: an empty HER buffer samples only once every copy has ended an episode again

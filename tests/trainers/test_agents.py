@@ -313,3 +313,23 @@ def test_her_trains_on_the_goal_env_and_its_agent_acts_on_the_flat_one(
         assert code == 2 and message in err, (extra, err)
     code, _, err = cli("train-agent", "RedSim/Klann-v0", "--her", "--out", str(tmp_path / "k"), *TINY)
     assert code == 2 and "needs a reach env" in err
+
+
+def test_a_resumed_run_draws_new_episodes(tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> None:
+    from redsim.envs.sb3 import SB3VecEnv
+    from redsim.trainers.agents import train_agent
+
+    seeds: list[int | None] = []
+    reset = SB3VecEnv.reset
+
+    def recording(self: SB3VecEnv) -> np.ndarray:
+        seeds.append(self._seeds[0])
+        return reset(self)
+
+    monkeypatch.setattr(SB3VecEnv, "reset", recording)
+    tiny = {"n_envs": 2, "eval_episodes": 2, "final_episodes": 2, "env_kwargs": SHORT, "video": False}
+    train_agent(MINI, tmp_path, algo="sac", steps=40, seed=3, **tiny)
+    first = seeds[0]
+    seeds.clear()
+    train_agent(MINI, tmp_path, algo="sac", steps=80, seed=3, resume=True, **tiny)
+    assert first == 3 and seeds[0] == 3 + 40  # the training env's first reset of each run
