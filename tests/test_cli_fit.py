@@ -232,3 +232,15 @@ def test_bench_fit_compares_eager_fused_and_compiled(capsys: pytest.CaptureFixtu
     code, out, err = run(capsys, *argv)
     assert code == 0, err
     assert "toy_two_tets" in out and "machine:" in out and "compiled" in out
+
+
+def test_an_option_a_preset_s_anchored_map_cannot_take_replaces_it(
+    capsys: pytest.CaptureFixture[str], tmp_path
+) -> None:
+    """The cantilever preset fits the anchored map; --modal asks for the MLP (they cannot go together)."""
+    small = ["--steps", "2", "--width", "8", "--layers", "1", "--checkpoint-every", "0", "--json"]
+    assert main(["fit", "cantilever", "--modal", "10", *small, "--out", str(tmp_path / "m")]) == 0
+    assert "--modal replaces the cantilever preset's --anchor-map md" in capsys.readouterr().err
+    assert read_metadata(tmp_path / "m.pt")["fit"]["anchor_map"] == "none"
+    assert main(["fit", "cantilever", "--modal", "10", "--anchor-map", "md", *small, "--out", str(tmp_path / "x")]) == 2
+    assert "--anchor-map must be one of" in capsys.readouterr().err  # asked for both: refused, as before

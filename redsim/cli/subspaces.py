@@ -94,10 +94,31 @@ def _fit_config(args: argparse.Namespace, scene_name: str) -> Any:
         fields["soften"] = tuple(parse_list(args.soften, "--soften"))
     if args.cond:
         fields["conditional"] = True
+    _drop_preset_anchor_map(args, fields, scene_name)
     try:
         return FitConfig(**fields)
     except FitConfigError as err:
         raise CliError(err.describe(FIELD_FLAGS)) from err
+
+
+def _drop_preset_anchor_map(args: argparse.Namespace, fields: dict[str, Any], scene_name: str) -> None:
+    """A preset's anchored map gives way to the options it cannot go with (``--modal``, ``--seed-bias``,
+    ``--periodic``) when the user asks for one of them and not for ``--anchor-map``; says so on stderr."""
+    asked = [
+        flag
+        for flag, on in (
+            ("--modal", bool(args.modal)),
+            ("--seed-bias", bool(args.seed_bias)),
+            ("--periodic", args.periodic is not None),
+        )
+        if on
+    ]
+    if not asked or args.anchor_map is not None or fields.get("anchor_map", "none") == "none":
+        return
+    verb = "replaces" if len(asked) == 1 else "replace"
+    warn(f"{' and '.join(asked)} {verb} the {scene_name} preset's --anchor-map {fields['anchor_map']} (the MLP alone)")
+    fields["anchor_map"] = "none"
+    fields.pop("anchor_radius", None)
 
 
 def cmd_fit(args: argparse.Namespace) -> int:
