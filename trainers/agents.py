@@ -827,7 +827,10 @@ def train_agent(
             venv = VecNormalize.load(str(normalizer_path(previous)), venv)
             eval_env = VecNormalize(eval_env, training=False, norm_reward=False)
         model = cls.load(previous, env=venv, device="cpu")
-        venv.seed(seed + int(model.num_timesteps))  # new episodes, not a replay of the first run's
+        # new episodes, not a replay of the first run's, nor of the evaluations' (seed + 10_000, seed + 20_000)
+        venv.seed(int(np.random.SeedSequence([seed, int(model.num_timesteps)]).generate_state(1)[0]))
+        if "action_noise" in settings:  # TD3: the saved noise is vectorized over the saved run's copies
+            model.action_noise = settings["action_noise"]
         if buffer:
             model.load_replay_buffer(out / BUFFER)
         elif her:  # from a checkpoint: an empty HER buffer samples only once every copy has ended an episode again
@@ -911,6 +914,7 @@ def train_agent(
         "her": her,
         "env_kwargs": dict(env_kwargs or {}),
         "hyperparams": {k: v for k, v in settings.items() if k != "action_noise"}
+        | ({"learning_starts": int(model.learning_starts)} if hasattr(model, "learning_starts") else {})
         | {"action_noise_std": noise_std, "normalize": normalize},
         "final_evaluation": final.as_dict(),
     }

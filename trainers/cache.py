@@ -34,9 +34,9 @@ def fitted_subspace(
 ) -> tuple[nn.Module, str]:
     """The map saved at ``STEM.pt`` (or at the first of ``also`` that loads), else a fit of ``config`` saved to STEM.
 
-    A checkpoint is used only if it loads for ``scene`` and records the config's fit: every field but
-    :data:`RUNTIME_FIELDS` (a field recorded before it existed counts as its default); one that exists but does
-    not qualify is reported through ``warn`` and skipped.
+    A checkpoint is used only if it loads for ``scene`` and records the config's fit (every field but
+    :data:`RUNTIME_FIELDS`; a field recorded before it existed counts as its default) and ``seed``; one that
+    exists but does not qualify is reported through ``warn`` and skipped.
 
     Args:
         scene: The scene.
@@ -61,8 +61,11 @@ def fitted_subspace(
             if warn:
                 warn(f"not using {path}: {err}")
             continue
-        fit = {"latent_dim": int(subspace.latent_dim), **getattr(subspace, "metadata", {}).get("fit", {})}
+        metadata = getattr(subspace, "metadata", {})
+        fit = {"latent_dim": int(subspace.latent_dim), **metadata.get("fit", {})}
         differs = _differences(fit, config)
+        if metadata.get("seed", seed) != seed:
+            differs.append(f"seed = {metadata['seed']!r}, not {seed!r}")
         if differs:
             if warn:
                 warn(f"not using {path}: it records {', '.join(differs)}")

@@ -98,6 +98,7 @@ from redsim.subspace import (
 )
 from redsim.trainers.anchored import ANCHOR_MAP_CONDS, ANCHOR_MAPS, anchored_map
 from redsim.trainers.modal import ModalTargets, modal_gap, modal_targets, start_at_rest
+from redsim.trainers.presets import preset
 from redsim.version import __version__
 
 log = logging.getLogger(__name__)
@@ -821,8 +822,9 @@ def fit_command(scene: Scene, config: FitConfig, seed: int, out: str | Path | No
         parts += ["--anchor", repr(config.anchor), "--anchor-fraction", repr(config.anchor_fraction)]
     if config.modal > 0:
         parts += ["--modal", repr(config.modal), "--modal-fraction", repr(config.modal_fraction)]
+    if config.anchor_map != "none" or preset(scene.name).get("anchor_map", "none") != "none":
+        parts += ["--anchor-map", config.anchor_map]  # "none" too where the scene's preset anchors its map
     if config.anchor_map != "none":
-        parts += ["--anchor-map", config.anchor_map]
         if config.conditional:
             parts += ["--anchor-map-cond", config.anchor_map_cond]
         if config.anchor_radius > 0:
@@ -871,7 +873,7 @@ def _load_training_state(
             f"this scene {scene.fingerprint()})",
             str(path),
         )
-    free = (*_ROUND_OFF_ONLY, "steps")
+    free = (*_ROUND_OFF_ONLY, "steps", "checkpoint_every")  # checkpoint_every: how often it saves, not what
     mine = {k: v for k, v in dataclasses.asdict(config).items() if k not in free}
     saved = {k: v for k, v in state["config"].items() if k not in free}
     saved["periodic"] = tuple(saved["periodic"])

@@ -113,7 +113,8 @@ def _drop_preset_anchor_map(args: argparse.Namespace, fields: dict[str, Any], sc
         )
         if on
     ]
-    if not asked or args.anchor_map is not None or fields.get("anchor_map", "none") == "none":
+    anchored = (args.anchor_map, args.anchor_radius, args.anchor_map_cond)  # any of them asks for the anchored map
+    if not asked or any(a is not None for a in anchored) or fields.get("anchor_map", "none") == "none":
         return
     verb = "replaces" if len(asked) == 1 else "replace"
     warn(f"{' and '.join(asked)} {verb} the {scene_name} preset's --anchor-map {fields['anchor_map']} (the MLP alone)")

@@ -332,4 +332,19 @@ def test_a_resumed_run_draws_new_episodes(tmp_path: Path, monkeypatch: pytest.Mo
     first = seeds[0]
     seeds.clear()
     train_agent(MINI, tmp_path, algo="sac", steps=80, seed=3, resume=True, **tiny)
-    assert first == 3 and seeds[0] == 3 + 40  # the training env's first reset of each run
+    assert first == 3 and seeds[0] not in (3, 3 + 10_000, 3 + 20_000)  # not the first run's, nor the evaluations'
+    again = seeds[0]
+    seeds.clear()
+    train_agent(MINI, tmp_path, algo="sac", steps=120, seed=3, resume=True, **tiny)
+    assert seeds[0] not in (3, again, 3 + 10_000, 3 + 20_000)
+
+
+def test_td3_resumes_from_a_checkpoint_with_other_copies(tmp_path: Path) -> None:
+    """No replay buffer comes with a checkpoint, so the copies may change; the exploration noise follows them."""
+    from redsim.trainers.agents import train_agent
+
+    tiny = {"eval_episodes": 2, "final_episodes": 2, "env_kwargs": SHORT, "video": False}
+    train_agent(MINI, tmp_path, algo="td3", steps=40, n_envs=2, checkpoint_every=20, **tiny)
+    (tmp_path / "model.zip").unlink()  # interrupted after its checkpoints
+    result = train_agent(MINI, tmp_path, algo="td3", steps=80, n_envs=4, resume=True, **tiny)
+    assert result.steps == 80 and model_record(result.model_path)["n_envs"] == 4

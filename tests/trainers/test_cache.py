@@ -28,6 +28,8 @@ def test_fits_once_then_reuses_and_skips_another_d_or_scene(tmp_path) -> None:
         scene, FitConfig(**{**TINY, "lam": 3.0, "checkpoint_every": 7}), stem, progress=False, warn=skipped.append
     )
     assert len(skipped) == 2  # how a fit runs (checkpoints, device) is not what it fits: reused
+    fitted_subspace(scene, anchored, stem, seed=1, progress=False, warn=skipped.append)
+    assert "seed = 0, not 1" in skipped[-1]  # another seed is another fit
 
     other = build("toy_tiny_bar_2d")
     fitted_subspace(other, FitConfig(**TINY), tmp_path / "bar", also=[stem], progress=False, warn=skipped.append)
