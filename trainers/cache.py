@@ -35,7 +35,8 @@ def fitted_subspace(
     """The map saved at ``STEM.pt`` (or at the first of ``also`` that loads), else a fit of ``config`` saved to STEM.
 
     A checkpoint is used only if it loads for ``scene`` and records the config's fit (every field but
-    :data:`RUNTIME_FIELDS`; a field recorded before it existed counts as its default) and ``seed``; one that
+    :data:`RUNTIME_FIELDS`; a field recorded before it existed counts as its default) and ``seed``, and was not
+    extended by a resumed fit (its schedules were planned for fewer steps); one that
     exists but does not qualify is reported through ``warn`` and skipped.
 
     Args:
@@ -66,6 +67,8 @@ def fitted_subspace(
         differs = _differences(fit, config)
         if metadata.get("seed", seed) != seed:
             differs.append(f"seed = {metadata['seed']!r}, not {seed!r}")
+        for extension in metadata.get("schedule", {}).get("extensions", []):  # its schedule was planned for less
+            differs.append(f"extended from {extension['from_steps']} steps (--resume), not fitted for {config.steps}")
         if differs:
             if warn:
                 warn(f"not using {path}: it records {', '.join(differs)}")

@@ -3,7 +3,7 @@
 from __future__ import annotations
 
 from redsim.scenes import build
-from redsim.trainers import FitConfig
+from redsim.trainers import FitConfig, fit_subspace
 from redsim.trainers.cache import fitted_subspace
 
 TINY = {"latent_dim": 2, "hidden_width": 8, "hidden_layers": 1, "steps": 4}
@@ -31,6 +31,13 @@ def test_fits_once_then_reuses_and_skips_another_d_or_scene(tmp_path) -> None:
     fitted_subspace(scene, anchored, stem, seed=1, progress=False, warn=skipped.append)
     assert "seed = 0, not 1" in skipped[-1]  # another seed is another fit
 
+    short = tmp_path / "short"
+    fit_subspace(scene, FitConfig(**{**TINY, "steps": 2}), out=short, progress=False)
+    fit_subspace(scene, FitConfig(**TINY), out=short, resume=True, progress=False)  # extended 2 -> 4 steps
+    fitted_subspace(scene, FitConfig(**TINY), short, progress=False, warn=skipped.append)
+    assert "extended from 2 steps" in skipped[-1]  # its rho ramp ran over 2 steps: not a 4-step fit
+
     other = build("toy_tiny_bar_2d")
-    fitted_subspace(other, FitConfig(**TINY), tmp_path / "bar", also=[stem], progress=False, warn=skipped.append)
-    assert str(stem) + ".pt" in skipped[-1]  # the two-tets map was offered for the bar and refused
+    count, offered = len(skipped), str(stem) + ".pt"
+    fitted_subspace(other, FitConfig(**TINY), tmp_path / "bar", also=[offered], progress=False, warn=skipped.append)
+    assert len(skipped) == count + 1 and offered in skipped[-1]  # the two-tets map was offered for the bar, refused
