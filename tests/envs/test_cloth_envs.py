@@ -121,6 +121,25 @@ def test_cloth_strain_invariant_is_the_largest_principal_stretch() -> None:
     torch.testing.assert_close(got, expected, rtol=1e-10, atol=1e-12)
 
 
+@pytest.mark.parametrize("name", ["cloth_ball", "chain"])
+def test_invariants_in_row_blocks_equal_one_pass(name: str) -> None:
+    """Every invariant, computed over blocks of rows (the last one short), equals the one-pass value row for row."""
+    from redsim.envs.invariants import Invariants
+
+    scene = redsim.scenes.build(name)
+    g = torch.Generator().manual_seed(0)
+    q = scene.q_seed + 0.01 * torch.randn(7, scene.free_dof_count, generator=g, dtype=scene.q_seed.dtype)
+    x = scene.full_positions(q)
+    invariants = Invariants(scene)
+    one_pass = invariants(x)
+    invariants.block_rows = 3
+    blocks = invariants(x)
+    assert set(blocks) == set(one_pass) and len(one_pass) >= 2
+    for key, value in one_pass.items():
+        assert blocks[key].shape == (7,)
+        torch.testing.assert_close(blocks[key], value, rtol=0, atol=0)
+
+
 @pytest.mark.slow
 def test_hanging_cloth_v1_targets_are_reached_by_the_pi_controller_within_the_episode() -> None:
     """v1's targets are places a held push of at most 1.6 N per axis brings the corner to; its PI controller (forces
