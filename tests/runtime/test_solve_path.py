@@ -264,3 +264,30 @@ def test_warm_refresh_must_be_a_bool(warm_refresh) -> None:
     """A JSON string such as "false" would otherwise read as True."""
     with pytest.raises(ValueError, match="warm_refresh must be True or False"):
         LatentStepper(scenes.build("mini_chain"), pretrained.load("mini_chain"), DT, warm_refresh=warm_refresh)
+
+
+def test_row_blocks_give_the_same_values_gradients_and_steps() -> None:
+    """``row_block`` splits a call's rows into blocks: the same Phi, gradient and energy (float64, to round-off), the
+    call counted once, and steps that end at the same minimum (the iterates differ by round-off only)."""
+    scene = scenes.build("bistable_bar")
+    f = pretrained.load("bistable_bar").double()
+    g = torch.Generator()
+    z = 0.3 * torch.randn(7, 8, generator=g.manual_seed(1), dtype=torch.float64)
+    loads = 20.0 * torch.randn(7, len(scene.handles), scene.dim, generator=g.manual_seed(2), dtype=torch.float64)
+    calls, steps = {}, {}
+    for block in (None, 3):
+        stepper = LatentStepper(scene, f, DT, dtype=torch.float64, tol=1e-12, max_iter=60, row_block=block)
+        qbar = stepper.positions(z)
+        objective = stepper_module._StepObjective(stepper, qbar, loads.reshape(7, -1), None, z)
+        calls[block] = objective.value_and_grad(z, torch.arange(7))
+        assert (stepper.evaluations.calls, stepper.evaluations.rows) == (1, 7)
+        steps[block] = stepper.step(z, z, loads)[0]
+    for blocked, whole in zip(calls[3], calls[None], strict=True):
+        torch.testing.assert_close(blocked, whole, rtol=1e-13, atol=1e-11)
+    torch.testing.assert_close(steps[3], steps[None], rtol=0, atol=1e-8)
+
+
+@pytest.mark.parametrize("row_block", [0, -4, 2.5, True, "8"])
+def test_bad_row_block_raises(row_block) -> None:
+    with pytest.raises(ValueError, match="row_block"):
+        LatentStepper(scenes.build("mini_chain"), pretrained.load("mini_chain"), DT, row_block=row_block)
