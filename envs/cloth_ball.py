@@ -56,8 +56,9 @@ class ClothBallEnv(ReachEnv):
     | `cubature` | None: on | the shipped cubature (force error 2.9%, deviation 4.6%); `False`: every element |
 
     `stepper_options` (a :class:`LatentEnv` argument) defaults to `{"row_block": 256}`: a solver call of more than
-    256 rows (a step's first call at more than 128 envs) is evaluated in blocks of 256 rows, the same values to
-    round-off and 1.16x faster at 256 envs (:class:`redsim.runtime.LatentStepper`).
+    256 rows (a step's first call above 128 envs, a difference Hessian's d x k rows above 85 copies to build) is
+    evaluated in blocks of 256 rows, the same values to round-off and 1.16x faster at 256 envs
+    (:class:`redsim.runtime.LatentStepper`); `{"row_block": None}` evaluates every call in one pass.
 
     ## Version History
     - v0: first version; stepped with the shipped cubature by default since it was added (`cubature=False`

@@ -11,10 +11,9 @@ prefixed by the effect's name:
 - ``<contact>_penetration`` [m]: max depth of a contact point inside its shape's margin.
 
 The checks run over blocks of rows sized so that one block's per-element [rows, elements] tensors stay in the
-CPU's cache (:data:`BLOCK_ELEMENTS`): at 256 copies the cloth envs' checks took 3x less CPU time in blocks of
-66 rows than in one pass, whose elementwise ops each stream megabytes through memory; at 64 copies (one block
-either way) they are unchanged (docs/env-speed.md, "Stop 28").
-"""
+CPU's cache (:data:`BLOCK_ELEMENTS`; the values are the one pass's to round-off): at 256 copies the cloth envs'
+checks took 3x less CPU time in blocks of 66-67 rows than in one pass, whose elementwise ops each stream
+megabytes through memory; at 64 copies (one block either way) they are unchanged (docs/env-speed.md, "Stop 28")."""
 
 from __future__ import annotations
 

@@ -13,6 +13,7 @@ here; a step only evaluates the energy.
 from __future__ import annotations
 
 import math
+import numbers
 from collections.abc import Callable
 from dataclasses import dataclass
 from typing import NamedTuple
@@ -75,7 +76,8 @@ class Evaluations:
     The exact and Gauss-Newton Hessians' double backward passes are not counted.
 
     Attributes:
-        calls: Calls (each one batched energy + gradient pass; a call's fixed cost is what a small batch pays).
+        calls: Calls (each one batched energy + gradient pass, or several blocks of one with ``row_block``; a
+            call's fixed cost is what a small batch pays).
         rows: Latent states evaluated over those calls (a compiled or dense stepper evaluates its whole batch).
     """
 
@@ -290,10 +292,11 @@ class LatentStepper:
             where the step's objective has one (README "Env speed", ConditionalBar-v0). Either way a copy whose
             extrapolated start has a non-finite Phi or gradient starts from z_t.
         row_block: Most rows one value-and-gradient pass evaluates (eager only); a call with more is evaluated in
-            blocks of this many rows, the same values to round-off. None (default): one pass. Where one pass's
-            per-element tensors outgrow the CPU's cache it pays: ClothBall-v0 at 256 envs (its whole contact, 2025
-            points a row, in a step's first call of 512 rows) 1.16x by CPU time with 256; HangingCloth-v1 and
-            Chain-v0 gain nothing (docs/env-speed.md, "Stop 28").
+            blocks of this many rows, the same values to round-off (counted as one call). None (default): one pass.
+            Where one pass's per-element tensors outgrow the CPU's cache it pays: ClothBall-v0 at 256 envs (its whole
+            contact, 2025 points a row, in a step's first call of 512 rows and its d x k-row difference-Hessian
+            calls) 1.16x by CPU time with 256; HangingCloth-v1 and Chain-v0 gain nothing (docs/env-speed.md, "Stop
+            28"). The exact and Gauss-Newton Hessians' passes are not split.
 
     Raises:
         ValueError: a bad dt, tol, max_iter, hessian, sync_every, max_step, warm_refresh, start or row_block, or a
@@ -336,7 +339,9 @@ class LatentStepper:
         check_max_step(max_step)
         if start not in STARTS:
             raise ValueError(f"unknown start {start!r}; valid: {list(STARTS)}")
-        if row_block is not None and (isinstance(row_block, bool) or int(row_block) != row_block or row_block < 1):
+        if row_block is not None and (
+            isinstance(row_block, bool) or not isinstance(row_block, numbers.Integral) or row_block < 1
+        ):
             raise ValueError(f"row_block must be an integer >= 1 or None, got {row_block!r}")
         self.row_block = None if row_block is None else int(row_block)
         self.start = start

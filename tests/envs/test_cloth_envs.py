@@ -123,7 +123,8 @@ def test_cloth_strain_invariant_is_the_largest_principal_stretch() -> None:
 
 @pytest.mark.parametrize("name", ["cloth_ball", "chain"])
 def test_invariants_in_row_blocks_equal_one_pass(name: str) -> None:
-    """Every invariant, computed over blocks of rows (the last one short), equals the one-pass value row for row."""
+    """Every invariant, computed over blocks of rows (the last one short), equals the one-pass value row for row (to
+    float64 round-off: the contact's batched matmuls may sum in another order)."""
     from redsim.envs.invariants import Invariants
 
     scene = redsim.scenes.build(name)
@@ -137,7 +138,7 @@ def test_invariants_in_row_blocks_equal_one_pass(name: str) -> None:
     assert set(blocks) == set(one_pass) and len(one_pass) >= 2
     for key, value in one_pass.items():
         assert blocks[key].shape == (7,)
-        torch.testing.assert_close(blocks[key], value, rtol=0, atol=0)
+        torch.testing.assert_close(blocks[key], value, rtol=1e-12, atol=1e-14)
 
 
 @pytest.mark.slow

@@ -12,6 +12,7 @@ from __future__ import annotations
 
 import math
 
+import numpy as np
 import pytest
 import torch
 
@@ -287,7 +288,12 @@ def test_row_blocks_give_the_same_values_gradients_and_steps() -> None:
     torch.testing.assert_close(steps[3], steps[None], rtol=0, atol=1e-8)
 
 
-@pytest.mark.parametrize("row_block", [0, -4, 2.5, True, "8"])
+@pytest.mark.parametrize("row_block", [0, -4, 2.5, 4.0, math.inf, True, np.bool_(True), "8", [3]])
 def test_bad_row_block_raises(row_block) -> None:
     with pytest.raises(ValueError, match="row_block"):
         LatentStepper(scenes.build("mini_chain"), pretrained.load("mini_chain"), DT, row_block=row_block)
+
+
+def test_row_block_takes_numpy_integers() -> None:
+    stepper = LatentStepper(scenes.build("mini_chain"), pretrained.load("mini_chain"), DT, row_block=np.int64(4))
+    assert stepper.row_block == 4 and type(stepper.row_block) is int
