@@ -33,8 +33,12 @@ from torch import Tensor, nn
 from redsim.scene import Scene
 from redsim.subspace import CheckpointError, periodic_latents
 
+CAMERA_KEYS = ("azimuth", "elevation", "margin")
+"""The ``camera`` keys an env takes (keyword arguments of :class:`redsim.raster.SceneView`)."""
+
 LATENT_BOUND = 10.0
-"""Observation bound of each latent coordinate (maps are fitted on z ~ N(0, I)); z_dot gets 2 LATENT_BOUND / dt."""
+"""Observation bound of each latent coordinate (maps are fitted on z ~ N(0, I)); z_dot gets 2 LATENT_BOUND / h, h the
+stepper's step (the env's dt / frame_skip)."""
 DTYPES = {"float32": torch.float32, "float64": torch.float64}
 DISPLAY_VARIABLES = ("DISPLAY", "WAYLAND_DISPLAY", "SDL_VIDEODRIVER")
 """On Linux a window needs one of these set (SDL_VIDEODRIVER=dummy gives a window that shows nothing)."""
@@ -368,7 +372,8 @@ class LatentSim:
 
     def observe(self) -> np.ndarray:
         """Observations [B, obs] (float32, clipped to :meth:`observation_bounds`)."""
-        parts = [self.z, (self.z - self.z_prev) / self.dt, self.task.extras(self.x, self.x_prev, self.params)]
+        # z_dot of the state the stepper carries: z_prev is the last stepper step's, h (not the env's dt) before
+        parts = [self.z, (self.z - self.z_prev) / self.stepper.dt, self.task.extras(self.x, self.x_prev, self.params)]
         if self.randomize_condition:
             parts.append(self.cond)
         obs = torch.cat([p.to(self.torch_dtype) for p in parts], dim=1).cpu().numpy().astype(np.float32)
@@ -379,8 +384,8 @@ class LatentSim:
         """(low, high) of one observation, float32 [obs]."""
         d = self.latent_dim
         low_e, high_e = self.task.extras_bounds()
-        low = [np.full(d, -LATENT_BOUND), np.full(d, -2.0 * LATENT_BOUND / self.dt), low_e]
-        high = [np.full(d, LATENT_BOUND), np.full(d, 2.0 * LATENT_BOUND / self.dt), high_e]
+        low = [np.full(d, -LATENT_BOUND), np.full(d, -2.0 * LATENT_BOUND / self.stepper.dt), low_e]
+        high = [np.full(d, LATENT_BOUND), np.full(d, 2.0 * LATENT_BOUND / self.stepper.dt), high_e]
         if self.randomize_condition:
             low.append(self._cond_low.cpu().numpy())
             high.append(self._cond_high.cpu().numpy())
@@ -477,7 +482,15 @@ class LatentSim:
         d, B = self.latent_dim, self.batch
 
         def tensor(value: Any, shape: tuple[int, ...], what: str) -> Tensor:
-            t = torch.as_tensor(np.asarray(value), dtype=self.torch_dtype, device=self.device)
+            try:
+                if value is None:
+                    raise TypeError
+                t = torch.as_tensor(np.asarray(value, dtype=np.float64), dtype=self.torch_dtype, device=self.device)
+            except (TypeError, ValueError):
+                raise ValueError(
+                    f"state[{what!r}] must be a numeric array of shape {list(shape)}, got {value!r:.80} "
+                    "(a state of another env?)"
+                ) from None
             if tuple(t.shape) != shape:
                 raise ValueError(f"state[{what!r}] must have shape {list(shape)}, got {list(t.shape)}")
             if not bool(torch.isfinite(t).all()):
@@ -678,6 +691,9 @@ class LatentEnv(gym.Env[np.ndarray, np.ndarray]):
         self.observation_structure = self.sim.observation_structure()
         self._render_size = (int(width), int(height))
         self._camera = dict(camera or {})
+        unknown = sorted(set(self._camera) - set(CAMERA_KEYS))
+        if unknown:
+            raise ValueError(f"unknown camera keys {unknown}; valid: {list(CAMERA_KEYS)}")
         self._view: Any = None
         self._window: Any = None
         self._reset_done = False

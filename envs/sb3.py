@@ -95,7 +95,8 @@ class SB3VecEnv(VecEnv):
         infos: list[dict[str, Any]] = []
         for i in range(self.num_envs):
             row = _info_row(info, i)
-            if done[i]:
+            if done[i]:  # the step's own info (final_info), and what outer wrappers added (e.g. "episode")
+                row = {**_info_row(info["final_info"], i), **row}
                 row["terminal_observation"] = info["final_obs"][i]
                 row["TimeLimit.truncated"] = bool(truncated[i] and not terminated[i])
             infos.append(row)

@@ -19,7 +19,7 @@ import pickle
 import sys
 import time
 import traceback
-from collections.abc import Callable, Sequence
+from collections.abc import Callable, Mapping, Sequence
 from multiprocessing.connection import Connection
 from typing import TYPE_CHECKING, Any
 
@@ -333,12 +333,15 @@ def _merge_infos(infos: Sequence[dict[str, Any]], sizes: Sequence[int]) -> dict[
     """One vector info from the shards' (Gymnasium's layout: ``key`` [N] values and ``_key`` [N] masks).
 
     A key that only some shards report (e.g. ``final_obs`` where a copy ended) gets, in the others, an
-    empty entry of its kind and a False mask.
+    empty entry of its kind and a False mask; a nested info (``final_info``) is merged the same way.
     """
     keys = list(dict.fromkeys(key for info in infos for key in info))
     out: dict[str, Any] = {}
     for key in keys:
         example = next(info[key] for info in infos if key in info)
+        if isinstance(example, Mapping):
+            out[key] = _merge_infos([info.get(key, {}) for info in infos], sizes)
+            continue
         parts = []
         for info, size in zip(infos, sizes, strict=True):
             if key in info:

@@ -8,7 +8,10 @@ relative force balance of 1e-5, and another batch composition lands elsewhere in
 after a step, carried on by the dynamics; docs/envs.md). Autoreset follows Gymnasium: by default
 ``AutoresetMode.NEXT_STEP`` (the step after a copy ends resets it and ignores its action;
 reward 0, not terminated); ``AutoresetMode.SAME_STEP`` resets in the same step and puts the
-last observation and info in ``info["final_obs"]`` / ``info["final_info"]``.
+last observation and info in ``info["final_obs"]`` (an object array, None for the other copies) and
+``info["final_info"]`` (a dict of [N] arrays with ``_key`` masks), as Gymnasium's sync vector env: the ended
+copies' entries of the top-level keys are masked out (their ``_key`` False). In both modes a masked entry keeps
+the step's value (the benches count every copy's solver work), where the sync env holds zeros.
 For stable-baselines3 use :class:`redsim.envs.sb3.SB3VecEnv`.
 """
 
@@ -120,16 +123,16 @@ class LatentVectorEnv(VectorEnv):
             obs = self.sim.observe()
             infos = _with_masks(info, ~restart)
         else:
+            # as Gymnasium's sync vector env: an ended copy's step info only in ``final_info`` (batched, masked)
             done = terminated | truncated
-            infos = _with_masks(info, np.ones(self.num_envs, dtype=bool))
+            infos = _with_masks(info, ~done)
             obs = self.sim.observe()
             if done.any():
                 rows = [int(i) for i in np.nonzero(done)[0]]
-                final_obs = np.empty(self.num_envs, dtype=object)
-                final_info = np.empty(self.num_envs, dtype=object)
+                final_obs = np.full(self.num_envs, None, dtype=object)
                 for i in rows:
                     final_obs[i] = obs[i].copy()
-                    final_info[i] = {k: v[i] for k, v in info.items()}
+                final_info = _with_masks({k: v.copy() for k, v in info.items()}, done)
                 self.sim.reset_rows(rows, [self._rngs[i] for i in rows])
                 self._elapsed[done] = 0
                 obs = self.sim.observe()

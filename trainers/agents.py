@@ -242,6 +242,29 @@ def _sb3_env(
     return venv
 
 
+def _check_reach(env: str | gym.Env) -> None:
+    """Refuse ``her`` on an env whose task is not a reach (checked again, on the built env, by the goal wrapper).
+
+    Raises:
+        ValueError: another task, or an id whose entry point is not a :class:`redsim.envs.reach.ReachEnv`.
+    """
+    from gymnasium.envs.registration import load_env_creator
+
+    from redsim.envs.reach import HandleReach, ReachEnv
+
+    if isinstance(env, str):
+        entry = gym.spec(env).entry_point
+        creator = load_env_creator(entry) if isinstance(entry, str) else entry
+        reach = isinstance(creator, type) and issubclass(creator, ReachEnv)
+    else:
+        reach = isinstance(_base_env(env)[0].task, HandleReach)
+    if not reach:
+        raise ValueError(
+            f"her needs a reach env (MiniChain, Chain, ClothBall, HangingCloth, ConditionalBar, or one made with "
+            f'task="reach"): {_env_label(env)} has no goal to relabel'
+        )
+
+
 def _episode_steps(env: str | gym.Env, env_kwargs: Mapping[str, Any] | None) -> int | None:
     """The episode limit of an id (made with ``env_kwargs``) or of a user's env."""
     if isinstance(env, str):
@@ -698,6 +721,26 @@ def record_gif(
     return len(images)
 
 
+def _continue_evaluations(callback: Any, path: Path, until: int, episodes: int) -> None:
+    """A resumed run's ``EvalCallback`` starts from the run's earlier evaluations (``evaluations.npz``, those up
+    to ``until`` steps), which it rewrites after each evaluation, and replaces ``best_model.zip`` only with a better
+    mean return than theirs. Earlier evaluations of another episode count are not carried (one file, one shape)."""
+    if not path.is_file():
+        return
+    with np.load(path) as old:
+        keep = old["timesteps"] <= until
+        results = old["results"][keep]
+        if results.size:
+            callback.best_mean_reward = float(results.mean(axis=1).max())
+        if results.ndim != 2 or results.shape[1] != episodes:
+            return
+        callback.evaluations_timesteps = [int(t) for t in old["timesteps"][keep]]
+        callback.evaluations_results = [list(row) for row in results]
+        callback.evaluations_length = [list(row) for row in old["ep_lengths"][keep]]
+        if "successes" in old.files and len(old["successes"]) == len(keep):
+            callback.evaluations_successes = [list(row) for row in old["successes"][keep]]
+
+
 def _her_settings(settings: dict[str, Any], algo: str, copies: int, episode: int | None, steps: int) -> None:
     """Add SB3's ``HerReplayBuffer`` to an off-policy algorithm's ``settings`` (in place), with ``learning_starts``
     at least the transitions until every copy has ended an episode (HER samples only then).
@@ -791,6 +834,7 @@ def train_agent(
         # the table's start would leave a short run untrained, silently: at most half the budget
         settings["learning_starts"] = min(int(settings["learning_starts"]), int(steps) // 2)
     if her:
+        _check_reach(env)
         _her_settings(settings, algo, copies, _episode_steps(env, env_kwargs), int(steps))
     out = Path(out)
     cls = _algo_class(algo)
@@ -809,7 +853,6 @@ def train_agent(
                 f"cannot resume with {copies} copies: the run's replay buffer {out / BUFFER} holds "
                 f"{found['n_envs']} (give n_envs={found['n_envs']}, --n-envs {found['n_envs']})"
             )
-    (out / "checkpoints").mkdir(parents=True, exist_ok=True)
     venv = _sb3_env(env, copies, seed, env_kwargs, shards, goal={} if her else None)
     # evaluations score the env's own reward (the goal env with its control cost passes it through)
     eval_env = _sb3_env(
@@ -854,6 +897,7 @@ def train_agent(
     curve = [row for row in curve if row["env_steps"] <= model.num_timesteps]
     start = time.perf_counter()
     every = max(int(eval_every or steps // 10) // copies, 1)
+    (out / "checkpoints").mkdir(parents=True, exist_ok=True)  # once the envs are built: a refused run writes nothing
     evaluation_cb = EvalCallback(
         eval_env,
         n_eval_episodes=eval_episodes,
@@ -864,6 +908,8 @@ def train_agent(
         callback_on_new_best=_normalizer_saver(normalizer_path(out / "best_model.zip")),
         verbose=0,
     )
+    if previous is not None:
+        _continue_evaluations(evaluation_cb, out / "evaluations.npz", int(model.num_timesteps), eval_episodes)
     checkpoint_cb = CheckpointCallback(
         save_freq=max(int(checkpoint_every or steps // 4) // copies, 1),
         save_path=str(out / "checkpoints"),

@@ -102,3 +102,13 @@ def test_bench_envs_sharded(capsys: pytest.CaptureFixture[str]) -> None:
     assert work["calls_per_step"] is None and work["rows_per_copy_step"] is None  # the workers keep their counts
     assert main([*args, "--shards", "3"]) == 2
     assert "--shards must be in [1, the smallest batch 2]" in capsys.readouterr().err
+
+
+def test_demo_runs_the_steps_asked_for_past_the_ids_time_limit(tmp_path: Path) -> None:
+    import gymnasium as gym
+
+    from redsim.envs.demo import run_demo
+
+    limit = gym.spec("RedSim/MiniChain-v0").max_episode_steps
+    result = run_demo("RedSim/MiniChain-v0", tmp_path, steps=limit + 3, frame_every=10_000, width=64, height=64)
+    assert result["steps"] == limit + 3

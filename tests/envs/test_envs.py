@@ -175,6 +175,45 @@ def test_same_step_autoreset_reports_the_final_observation() -> None:
     assert not np.array_equal(info["final_obs"][0], obs[0])  # obs is already the next episode's
 
 
+def test_same_step_infos_have_the_sync_vector_envs_layout() -> None:
+    """SAME_STEP, float64 (native and sync equal to round-off): ``final_obs`` an object array (None where no copy
+    ended), ``final_info`` a dict of [N] arrays with ``_key`` masks, the ended copies' top-level entries masked out;
+    the same keys, masks and values as Gymnasium's sync vector env of the same env."""
+    mode = {"autoreset_mode": AutoresetMode.SAME_STEP}
+    native = gym.make_vec("RedSim/MiniChain-v0", 3, "vector_entry_point", max_episode_steps=3, dtype="float64", **mode)
+    sync = gym.make_vec("RedSim/MiniChain-v0", 3, "sync", vector_kwargs=mode, max_episode_steps=3, dtype="float64")
+    actions = np.random.default_rng(0).uniform(-1, 1, (5, 3, 3)).astype(np.float32)
+    infos = []
+    for venv in (native, sync):
+        venv.reset(seed=[0, 1, 2])
+        venv.step(actions[0])
+        venv.reset(options={"reset_mask": np.array([False, False, True])})  # copy 2 ends a step later
+        infos.append([venv.step(a)[4] for a in actions[1:]])
+        venv.close()
+    for step, (mine, theirs) in enumerate(zip(*infos, strict=True)):
+        assert set(mine) == set(theirs), step
+        for key, value in theirs.items():
+            if key == "final_obs":
+                for i, final in enumerate(value):
+                    if final is None:
+                        assert mine[key][i] is None
+                    else:
+                        np.testing.assert_allclose(mine[key][i], final, rtol=1e-6, atol=1e-8)
+            elif key == "final_info":
+                assert set(mine[key]) == set(value)
+                ended = value["_is_success"]
+                for k, v in value.items():
+                    got = mine[key][k]
+                    if k.startswith("_"):
+                        np.testing.assert_array_equal(got, v)
+                    else:
+                        np.testing.assert_allclose(got[ended], v[ended], rtol=1e-5, atol=1e-6, err_msg=k)
+            elif key.startswith("_"):
+                np.testing.assert_array_equal(mine[key], value, err_msg=key)
+    ended = [info["_final_obs"] for info in infos[0] if "_final_obs" in info]
+    assert [list(e) for e in ended] == [[True, True, False], [False, False, True]]
+
+
 @pytest.mark.parametrize("steps", [100, pytest.param(1000, marks=pytest.mark.slow)])
 def test_fixed_seed_and_actions_give_bitwise_equal_trajectories(steps: int) -> None:
     actions = np.random.default_rng(1).uniform(-1, 1, (steps, 3)).astype(np.float32)
@@ -249,6 +288,16 @@ def test_get_state_set_state_round_trip_exactly(mini: gym.Env) -> None:
     np.testing.assert_allclose(
         np.array(cold)[:, d : 2 * d], np.array(after)[:, d : 2 * d], rtol=0, atol=1e-3 / env.sim.dt
     )
+
+
+def test_a_state_of_another_env_and_an_unknown_camera_key_are_clear_errors(mini: gym.Env) -> None:
+    conditional = gym.make("RedSim/ConditionalBar-v1").unwrapped
+    conditional.reset(seed=0)
+    mini.unwrapped.reset(seed=0)
+    with pytest.raises(ValueError, match=r"state\['cond'\] must be a numeric array .*another env"):
+        conditional.set_state(mini.unwrapped.get_state())  # the mini chain has no condition (None)
+    with pytest.raises(ValueError, match=r"unknown camera keys \['bogus'\]; valid: \['azimuth'"):
+        gym.make("RedSim/MiniChain-v0", render_mode="rgb_array", camera={"bogus": 1, "azimuth": 10})
 
 
 def test_envs_pickle_and_continue_exactly(mini: gym.Env) -> None:
@@ -440,3 +489,16 @@ def test_rendering_is_fast_enough_for_video_at_480() -> None:
     per_frame = (time.perf_counter() - start) / 5
     assert frame.shape == (480, 480, 3)
     assert per_frame < 0.5  # generous: a busy 2-core machine; measured 20-40 ms when idle
+
+
+def test_frame_skip_observes_the_state_a_step_at_a_time_env_reaches() -> None:
+    """frame_skip=2 steps the stepper twice per env step: its observation (z_dot included: the velocity of the
+    stepper's last step) equals that of the env stepped twice with the same action (float64)."""
+    action = np.array([0.5, -0.3, 0.2], np.float32)
+    skipping = gym.make("RedSim/MiniChain-v0", frame_skip=2, dtype="float64")
+    single = gym.make("RedSim/MiniChain-v0", dtype="float64")
+    skipping.reset(seed=0)
+    single.reset(seed=0)
+    single.step(action)
+    np.testing.assert_allclose(skipping.step(action)[0], single.step(action)[0], rtol=1e-6, atol=1e-6)
+    assert skipping.observation_space == single.observation_space

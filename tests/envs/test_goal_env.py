@@ -283,6 +283,8 @@ def test_sb3_reads_the_goal_env_through_outer_vector_wrappers() -> None:
         assert all(("terminal_observation" in info) == d for info, d in zip(infos, done, strict=True))
     assert ended == [[False, False], [False, False], [True, True]]
     assert infos[0]["episode"]["l"] == 3
+    # the ended step's own info (from final_info): SB3's Monitor and EvalCallback read is_success there
+    assert all({"is_success", "distance", "iterations"} <= set(info) for info in infos)
 
 
 def test_an_info_layout_change_inside_the_vector_goal_env_is_refused() -> None:

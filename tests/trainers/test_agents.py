@@ -104,6 +104,10 @@ def test_train_resume_and_evaluate_through_the_cli(cli: Callable[..., tuple[int,
     assert model_record(out / "model.zip") == record
     assert load_agent(out / "model.zip").model._n_updates > 0  # a 200-step run starts learning halfway, not never
     assert (out / "model.zip").stat().st_size < 1_000_000
+    with np.load(out / "evaluations.npz") as first:
+        first_steps = list(first["timesteps"])
+        first_best = float(first["results"].mean(axis=1).max())
+    best_bytes = (out / "best_model.zip").read_bytes()
 
     code, stdout, err = cli(
         "train-agent", MINI, "--algo", "sac", "--steps", "300", "--out", str(out), *TINY, "--resume", "--no-video"
@@ -113,6 +117,11 @@ def test_train_resume_and_evaluate_through_the_cli(cli: Callable[..., tuple[int,
     with (out / "curve.csv").open() as handle:
         steps = [float(row["env_steps"]) for row in csv.DictReader(handle)]
     assert steps == sorted(steps) and steps[-1] == 300 and steps[0] <= 200  # the first run's rows are kept
+    with np.load(out / "evaluations.npz") as both:  # SB3's evaluation log keeps the first run's too
+        assert list(both["timesteps"][: len(first_steps)]) == first_steps and both["timesteps"][-1] == 300
+        resumed_best = float(both["results"][len(first_steps) :].mean(axis=1).max())
+    if resumed_best <= first_best:  # the best model is replaced only by a better mean return
+        assert (out / "best_model.zip").read_bytes() == best_bytes
 
     code, stdout, err = cli(
         "eval-agent", str(out / "model.zip"), MINI, "--episodes", "2", "--episode-steps", "20", "--json", "--baselines"
@@ -313,6 +322,10 @@ def test_her_trains_on_the_goal_env_and_its_agent_acts_on_the_flat_one(
         assert code == 2 and message in err, (extra, err)
     code, _, err = cli("train-agent", "RedSim/Klann-v0", "--her", "--out", str(tmp_path / "k"), *TINY)
     assert code == 2 and "needs a reach env" in err
+    # the task is refused first, whatever the budget; refused runs leave no folders behind
+    code, _, err = cli("train-agent", "RedSim/Klann-v0", "--her", "--out", str(tmp_path / "k"), *TINY, "--steps", "50")
+    assert code == 2 and "needs a reach env" in err and "RedSim/Klann-v0 has no goal" in err
+    assert not (tmp_path / "x").exists() and not (tmp_path / "k").exists()
 
 
 def test_a_resumed_run_draws_new_episodes(tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> None:
