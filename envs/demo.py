@@ -55,9 +55,9 @@ def run_demo(
 
     if steps is not None and int(steps) < 1:
         raise ValueError(f"steps must be >= 1, got {steps}")
-    # an episode of ``steps`` (longer than the id's own too: its time limit is replaced)
-    limit = {} if steps is None else {"max_episode_steps": int(steps)}
-    env = gym.make(env_id, render_mode="rgb_array", width=width, height=height, **limit, **env_kwargs)
+    if steps is not None:  # an episode of ``steps`` (longer than the id's own too: its time limit is replaced)
+        env_kwargs = {**env_kwargs, "max_episode_steps": int(steps)}
+    env = gym.make(env_id, render_mode="rgb_array", width=width, height=height, **env_kwargs)
     core = env.unwrapped
     steps = int(env.spec.max_episode_steps or 200) if steps is None else int(steps)
     obs, _ = env.reset(seed=seed)

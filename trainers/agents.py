@@ -724,14 +724,16 @@ def record_gif(
 def _continue_evaluations(callback: Any, path: Path, until: int, episodes: int) -> None:
     """A resumed run's ``EvalCallback`` starts from the run's earlier evaluations (``evaluations.npz``, those up
     to ``until`` steps), which it rewrites after each evaluation, and replaces ``best_model.zip`` only with a better
-    mean return than theirs. Earlier evaluations of another episode count are not carried (one file, one shape)."""
+    mean return than any earlier evaluation's (those past ``until`` included: a run resumed from a checkpoint may
+    have saved its best model later). Earlier evaluations of another episode count are not carried (one file, one
+    shape)."""
     if not path.is_file():
         return
     with np.load(path) as old:
+        if old["results"].size:
+            callback.best_mean_reward = float(old["results"].reshape(len(old["timesteps"]), -1).mean(axis=1).max())
         keep = old["timesteps"] <= until
         results = old["results"][keep]
-        if results.size:
-            callback.best_mean_reward = float(results.mean(axis=1).max())
         if results.ndim != 2 or results.shape[1] != episodes:
             return
         callback.evaluations_timesteps = [int(t) for t in old["timesteps"][keep]]

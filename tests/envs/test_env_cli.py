@@ -112,3 +112,6 @@ def test_demo_runs_the_steps_asked_for_past_the_ids_time_limit(tmp_path: Path) -
     limit = gym.spec("RedSim/MiniChain-v0").max_episode_steps
     result = run_demo("RedSim/MiniChain-v0", tmp_path, steps=limit + 3, frame_every=10_000, width=64, height=64)
     assert result["steps"] == limit + 3
+    small = {"frame_every": 10_000, "width": 64, "height": 64}
+    short = run_demo("RedSim/MiniChain-v0", tmp_path, steps=4, max_episode_steps=2, **small)
+    assert short["steps"] == 4  # steps sets the episode, over a max_episode_steps given with it

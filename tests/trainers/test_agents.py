@@ -361,3 +361,21 @@ def test_td3_resumes_from_a_checkpoint_with_other_copies(tmp_path: Path) -> None
     (tmp_path / "model.zip").unlink()  # interrupted after its checkpoints
     result = train_agent(MINI, tmp_path, algo="td3", steps=80, n_envs=4, resume=True, **tiny)
     assert result.steps == 80 and model_record(result.model_path)["n_envs"] == 4
+
+
+def test_a_resume_from_a_checkpoint_keeps_a_later_best_model(tmp_path: Path) -> None:
+    """Resumed at 200 steps from a checkpoint, the run's evaluations up to 200 are carried and the best mean to beat
+    is the best of all of them (the t = 300 evaluation saved best_model.zip)."""
+    from stable_baselines3.common.callbacks import EvalCallback
+
+    from redsim.trainers.agents import _continue_evaluations
+
+    path = tmp_path / "evaluations.npz"
+    results = np.array([[1.0, 1.0], [2.0, 2.0], [5.0, 5.0], [3.0, 3.0]])
+    np.savez(path, timesteps=[100, 200, 300, 400], results=results, ep_lengths=np.full((4, 2), 20))
+    callback = EvalCallback(gym.make("RedSim/MiniChain-v0"), n_eval_episodes=2)
+    _continue_evaluations(callback, path, until=200, episodes=2)
+    assert callback.best_mean_reward == 5.0 and callback.evaluations_timesteps == [100, 200]
+    other = EvalCallback(gym.make("RedSim/MiniChain-v0"), n_eval_episodes=5)
+    _continue_evaluations(other, path, until=200, episodes=5)  # another episode count: only the best is carried
+    assert other.best_mean_reward == 5.0 and other.evaluations_timesteps == []
