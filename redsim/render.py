@@ -158,6 +158,8 @@ def animate_states(
         raise ValueError(f"scene {scene.name!r} has no surfaces to draw")
     if not qs:
         raise ValueError("animate_states needs at least one state")
+    if Path(path).suffix.lower() != ".gif":
+        raise ValueError(f"animate_states writes a .gif, got {str(path)!r}")
     _require("matplotlib")
     import matplotlib as mpl
     from matplotlib.backends.backend_agg import FigureCanvasAgg

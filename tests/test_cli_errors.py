@@ -55,7 +55,7 @@ def test_weights_of_another_scene_are_one_line_naming_both_shapes(cli: Cli, tmp_
         (["--explore", "1.5"], "--explore must be a number in (0, 1], got 1.5"),
         (["--checkpoint-every", "-1"], "--checkpoint-every must be an integer >= 0, got -1"),
         (["--dtype", "float16"], "--dtype must be one of float32, float64, got 'float16'"),
-        (["--device", "abacus"], "--device must be a torch device such as cpu or cuda, got 'abacus'"),
+        (["--device", "abacus"], "--device must be a torch device this machine has, such as cpu or cuda, got 'abacus'"),
         (["--dim", "2", "--periodic", "5"], "--periodic must be distinct latent indices in [0, latent_dim), got (5,)"),
         (["--periodic", "x"], "--periodic must be comma-separated integers"),
     ],
@@ -160,3 +160,54 @@ def test_simulate_picture_shows_loads_and_fixed_parts(tmp_path: Path) -> None:
         for img in map(matplotlib.image.imread, (plain, loaded))
     ]
     assert red[0] == 0 and red[1] > 50  # the arrow (and its label) in the load colour
+
+
+@pytest.mark.skipif(torch.cuda.is_available(), reason="this machine has CUDA")
+def test_fit_on_cuda_without_cuda_is_one_line(cli: Cli) -> None:
+    code, _, err = cli("fit", "toy_two_tets", "--device", "cuda", "--steps", "2")
+    assert code == 2 and err.count("\n") == 1 and "--device must be a torch device this machine has" in err
+
+
+def test_an_out_that_cannot_be_written_is_refused_before_any_work(cli: Cli, tmp_path: Path) -> None:
+    (tmp_path / "file").write_text("")
+    for argv in (
+        ["fit", "toy_two_tets", *SMALL, "--steps", "2"],
+        ["bench", "accuracy", "mini_chain", "--steps", "2", "--scenarios", "push", "--full", "none", "--no-study"],
+    ):
+        code, out, err = cli(*argv, "--out", str(tmp_path / "file" / "x"))
+        assert code == 2 and out == "" and err.count("\n") == 1 and "cannot write --out" in err, (argv, err)
+
+
+def test_sample_names_the_file_it_writes_and_animate_refuses_a_non_gif(cli: Cli, tmp_path: Path) -> None:
+    from redsim import pretrained
+
+    checkpoint = str(pretrained.path("mini_chain"))
+    code, out, err = cli("sample", checkpoint, "-n", "2", "--out", str(tmp_path / "s.txt"))
+    assert code == 0 and (tmp_path / "s.txt.npz").is_file() and str(tmp_path / "s.txt.npz") in out, err
+    code, _, err = cli("animate", checkpoint, "--out", str(tmp_path / "a.mp4"))
+    assert code == 2 and "--out must name a .gif file" in err and not (tmp_path / "a.mp4").exists()
+
+
+def test_bench_step_refuses_a_bad_dt(cli: Cli) -> None:
+    code, _, err = cli("bench", "step", "--scenes", "mini_chain", "--dt", "0")
+    assert code == 2 and "--dt must be a finite number > 0" in err
+
+
+def test_a_fit_interrupted_before_its_first_step_says_nothing_was_saved(
+    cli: Cli, tmp_path: Path, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    import redsim.trainers
+
+    def interrupted(*args: object, **kwargs: object) -> None:
+        raise KeyboardInterrupt
+
+    monkeypatch.setattr(redsim.trainers, "fit_subspace", interrupted)
+    code, _, err = cli("fit", "toy_two_tets", *SMALL, "--steps", "2", "--out", str(tmp_path / "x"))
+    assert code == 130 and "nothing was saved, rerun: redsim fit toy_two_tets" in err and "--resume" not in err
+
+
+def test_a_closed_pipe_gives_no_traceback() -> None:
+    done = subprocess.run(
+        f"{sys.executable} -m redsim scenes | head -c 1", shell=True, capture_output=True, text=True, timeout=120
+    )
+    assert "Traceback" not in done.stderr and "BrokenPipeError" not in done.stderr, done.stderr

@@ -246,6 +246,7 @@ def test_an_option_a_preset_s_anchored_map_cannot_take_replaces_it(
     assert "--anchor-map must be one of" in capsys.readouterr().err  # asked for both: refused, as before
     taper = ["--modal", "10", "--anchor-radius", "1.0", *small, "--out", str(tmp_path / "t")]
     assert main(["fit", "cantilever", *taper]) == 2  # a taper asks for the anchored map too
+    assert "--modal cannot go with the cantilever preset's anchored map" in capsys.readouterr().err
     assert main(["fit", "cantilever", "--anchor-map", "none", *small, "--out", str(tmp_path / "n")]) == 0
     command = read_metadata(tmp_path / "n.pt")["command"]
     assert "--anchor-map none" in command  # reruns as the MLP, not as the preset's anchored map

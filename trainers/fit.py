@@ -277,7 +277,11 @@ _FIELD_RULES: tuple[tuple[str, str, Callable[[FitConfig, Any], bool]], ...] = (
     ),
     ("checkpoint_every", "an integer >= 0", lambda c, v: _is_int(v) and v >= 0),
     ("dtype", f"one of {', '.join(DTYPES)}", lambda c, v: v in DTYPES),
-    ("device", "a torch device such as cpu or cuda", lambda c, v: isinstance(v, str) and _is_device(v)),
+    (
+        "device",
+        "a torch device this machine has, such as cpu or cuda",
+        lambda c, v: isinstance(v, str) and _is_device(v),
+    ),
     ("fused_adam", "true or false", lambda c, v: isinstance(v, bool)),
     ("compile", "true or false", lambda c, v: isinstance(v, bool)),
 )
@@ -285,9 +289,12 @@ _FIELD_RULES: tuple[tuple[str, str, Callable[[FitConfig, Any], bool]], ...] = (
 
 
 def _is_device(name: str) -> bool:
+    """A device name torch parses and this torch can use (a CUDA device needs a CUDA build and a GPU)."""
     try:
-        torch.device(name)
+        device = torch.device(name)
     except RuntimeError:
+        return False
+    if device.type == "cuda" and not torch.cuda.is_available():
         return False
     return True
 
@@ -614,6 +621,8 @@ def fit_subspace(
         if state_path is None or not state_path.is_file():
             raise ValueError(f"nothing to resume: {state_path} does not exist")
         saved = _load_training_state(state_path, scene, config, model, optimizer, scheduler, generator)
+        if saved["seed"] is not None and saved["seed"] != seed:  # the seed set its samples: another seed is another fit
+            raise CheckpointError(f"training state was made with seed {saved['seed']}, not {seed}", str(state_path))
         start_step, elapsed, history = saved["step"], saved["elapsed"], saved["history"]
         ramp_steps, extensions = saved["ramp_steps"], saved["extensions"]
         if saved["steps"] != config.steps:
@@ -651,6 +660,7 @@ def fit_subspace(
                     "ramp_steps": ramp_steps,
                     "extensions": extensions,
                     "command": command,
+                    "seed": seed,
                 },
             )
 
@@ -861,7 +871,8 @@ def _load_training_state(
     """Restore the training state at ``path`` into the model, optimizer, scheduler and generator.
 
     Returns:
-        ``step``, ``elapsed``, ``history``, the saved ``steps``, ``ramp_steps``, ``extensions`` and ``command``.
+        ``step``, ``elapsed``, ``history``, the saved ``steps``, ``ramp_steps``, ``extensions``, ``command`` and
+        ``seed`` (None in states written before it was recorded).
     """
     try:
         state = torch.load(path, map_location="cpu", weights_only=True)
@@ -912,6 +923,7 @@ def _load_training_state(
         "ramp_steps": int(state.get("ramp_steps", saved_steps)),
         "extensions": list(state.get("extensions", [])),
         "command": state.get("command", ""),
+        "seed": state.get("seed"),
     }
 
 

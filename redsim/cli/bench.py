@@ -189,6 +189,8 @@ def cmd_bench_step(args: argparse.Namespace) -> int:
         raise CliError(f"--batches must be comma-separated integers, got {args.batches!r}") from err
     if min(batches) < 1 or args.steps < 1 or args.reference_steps < 1 or args.rounds < 1:
         raise CliError("--batches, --steps, --reference-steps and --rounds must be >= 1")
+    if not (math.isfinite(args.dt) and args.dt > 0):
+        raise CliError(f"--dt must be a finite number > 0, got {args.dt}")
     if args.device.startswith("cuda") and not torch.cuda.is_available():
         raise CliError("--device cuda requested but torch sees no CUDA device")
     baseline = None

@@ -4,7 +4,10 @@ from __future__ import annotations
 
 import argparse
 import logging
+import os
+import sys
 from collections.abc import Sequence
+from pathlib import Path
 
 import torch
 
@@ -55,9 +58,39 @@ def main(argv: Sequence[str] | None = None) -> int:
     threads = torch.get_num_threads()
     try:
         apply_threads(args)
-        return int(args.func(args))
+        _check_out(args)
+        status = int(args.func(args))
+        sys.stdout.flush()
+        return status
     except CliError as err:
         error(str(err))
         return err.code
+    except BrokenPipeError:  # stdout closed early (`redsim ... | head`): no traceback, and none at exit
+        _silence_stdout()
+        return 1
     finally:
         torch.set_num_threads(threads)  # in-process callers (tests, notebooks) keep their setting
+
+
+def _check_out(args: argparse.Namespace) -> None:
+    """Refuse an ``--out`` whose folder cannot be made or written before any work (a fit or a bench that ends
+    in a traceback loses its results)."""
+    out = getattr(args, "out", None)
+    if not out:
+        return
+    folder = Path(out).parent
+    try:
+        folder.mkdir(parents=True, exist_ok=True)
+    except OSError as err:
+        raise CliError(f"cannot write --out {out}: {err.strerror or err} ({err.filename or folder})") from None
+    if not os.access(folder, os.W_OK | os.X_OK):
+        raise CliError(f"cannot write --out {out}: {folder} is not writable")
+
+
+def _silence_stdout() -> None:
+    """Point stdout at the null device, so the interpreter's final flush does not raise again."""
+    try:
+        devnull = os.open(os.devnull, os.O_WRONLY)
+        os.dup2(devnull, sys.stdout.fileno())
+    except (OSError, ValueError, AttributeError):  # no file descriptor (a captured stdout)
+        pass

@@ -114,8 +114,14 @@ def _drop_preset_anchor_map(args: argparse.Namespace, fields: dict[str, Any], sc
         if on
     ]
     anchored = (args.anchor_map, args.anchor_radius, args.anchor_map_cond)  # any of them asks for the anchored map
-    if not asked or any(a is not None for a in anchored) or fields.get("anchor_map", "none") == "none":
+    if not asked or args.anchor_map is not None or fields.get("anchor_map", "none") == "none":
         return
+    if any(a is not None for a in anchored):
+        kept = " and ".join(f for f, a in (("--anchor-radius", anchored[1]), ("--anchor-map-cond", anchored[2])) if a)
+        raise CliError(
+            f"{' and '.join(asked)} cannot go with the {scene_name} preset's anchored map (--anchor-map "
+            f"{fields['anchor_map']}), which {kept} asks to keep: drop {kept}, or give --anchor-map none"
+        )
     verb = "replaces" if len(asked) == 1 else "replace"
     warn(f"{' and '.join(asked)} {verb} the {scene_name} preset's --anchor-map {fields['anchor_map']} (the MLP alone)")
     fields["anchor_map"] = "none"
@@ -135,7 +141,11 @@ def cmd_fit(args: argparse.Namespace) -> int:
             scene, config, seed=args.seed, out=stem, resume=args.resume, progress=not args.json, command=command
         )
     except KeyboardInterrupt:
-        warn(f"interrupted; the state is in {checkpoint_path(stem, '.fit.pt')}; continue with: {command} --resume")
+        state = checkpoint_path(stem, ".fit.pt")
+        if state.is_file():
+            warn(f"interrupted; the state is in {state}; continue with: {command} --resume")
+        else:  # before the first step: nothing was saved
+            warn(f"interrupted before the fit's first step; nothing was saved, rerun: {command}")
         return EXIT_INTERRUPTED
     except FloatingPointError as err:
         error(str(err))
@@ -199,6 +209,8 @@ def cmd_sample(args: argparse.Namespace) -> int:
         q = sub(z, cond).double()
         x = scene.full_positions(q)
     path = Path(args.out)
+    if path.suffix != ".npz":  # numpy's savez would add it
+        path = path.with_name(path.name + ".npz")
     path.parent.mkdir(parents=True, exist_ok=True)
     arrays = {"z": z.numpy(), "q": q.numpy(), "x": x.numpy()}
     if cond is not None:
@@ -219,6 +231,8 @@ def cmd_animate(args: argparse.Namespace) -> int:
 
     if args.keys < 2 or args.frames < args.keys:
         raise CliError(f"need --keys >= 2 and --frames >= --keys, got {args.keys} and {args.frames}")
+    if Path(args.out).suffix.lower() != ".gif":
+        raise CliError(f"--out must name a .gif file, got {args.out!r}")
     scene, sub = load_checkpoint(args.checkpoint)
     keys, cond = _latent_samples(sub, scene, args.keys, args.seed)
     z = catmull_rom_loop(keys, args.frames)

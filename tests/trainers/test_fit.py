@@ -161,6 +161,8 @@ def test_resume_refuses_other_settings_and_missing_state(tmp_path) -> None:
         fit_subspace(scene, config, progress=False, out=tmp_path / "r", resume=True, sigma=2.0)
     with pytest.raises(CheckpointError, match="another scene"):
         fit_subspace(_tet_scene(young=2e3), config, progress=False, out=tmp_path / "r", resume=True)
+    with pytest.raises(CheckpointError, match="made with seed 0, not 5"):
+        fit_subspace(scene, config, progress=False, out=tmp_path / "r", resume=True, seed=5)
     with pytest.raises(ValueError, match="nothing to resume"):
         fit_subspace(scene, config, progress=False, out=tmp_path / "none", resume=True)
 
