@@ -211,3 +211,16 @@ def test_a_closed_pipe_gives_no_traceback() -> None:
         f"{sys.executable} -m redsim scenes | head -c 1", shell=True, capture_output=True, text=True, timeout=120
     )
     assert "Traceback" not in done.stderr and "BrokenPipeError" not in done.stderr, done.stderr
+
+
+def test_a_fit_at_an_existing_stem_is_refused_without_resume_or_overwrite(cli: Cli, tmp_path: Path) -> None:
+    stem = str(tmp_path / "f")
+    argv = ["fit", "toy_two_tets", *SMALL, "--steps", "2", "--out", stem, "--json"]
+    assert cli(*argv)[0] == 0
+    before = (tmp_path / "f.pt").read_bytes()
+    code, _, err = cli(*argv, "--seed", "1")
+    assert code == 2 and "a fit exists at" in err and "--overwrite" in err
+    assert (tmp_path / "f.pt").read_bytes() == before  # untouched
+    assert cli(*argv, "--resume", "--overwrite")[0] == 2
+    code, _, err = cli(*argv, "--seed", "1", "--overwrite")
+    assert code == 0 and (tmp_path / "f.pt").read_bytes() != before, err

@@ -135,6 +135,14 @@ def cmd_fit(args: argparse.Namespace) -> int:
     scene = scene_from_args(args)
     config = _fit_config(args, scene.name)
     stem = Path(args.out) if args.out else Path(f"{scene.name}_d{config.latent_dim}")
+    if args.resume and args.overwrite:
+        raise CliError("give --resume (continue the fit at the stem) or --overwrite (replace it), not both")
+    existing = [p for p in (checkpoint_path(stem, ".pt"), checkpoint_path(stem, ".fit.pt")) if p.is_file()]
+    if existing and not (args.resume or args.overwrite):  # minutes to hours of work: not replaced silently
+        raise CliError(
+            f"a fit exists at {existing[0]}: continue it with --resume (a larger --steps extends it), or replace it "
+            "with --overwrite"
+        )
     command = fit_command(scene, config, args.seed, stem)
     try:
         result = fit_subspace(
@@ -260,7 +268,8 @@ def add_commands(sub: Any) -> None:
         description=(
             "Fit f(z) -> q by the paper's loss from the scene's energy alone. Defaults per scene come from "
             "Table 1 (redsim.trainers.presets); flags override them. Writes OUT.pt + OUT.json (and OUT.fit.pt, "
-            "the resumable training state). Ctrl-C saves the state; rerun with --resume to continue, or with "
+            "the resumable training state); an existing fit there is refused unless --resume or --overwrite. "
+            "Ctrl-C saves the state; rerun with --resume to continue, or with "
             "--resume and a larger --steps to extend a fit (the learning-rate schedule is recomputed for the new "
             "length and recorded in the .json)."
         ),
@@ -287,6 +296,9 @@ def add_commands(sub: Any) -> None:
     p.add_argument("--seed", type=int, default=0, help="seed of the initialisation and sampling (default 0)")
     p.add_argument("--out", default=None, metavar="STEM", help="checkpoint stem (default SCENE_dD)")
     p.add_argument("--resume", action="store_true", help="continue from STEM.fit.pt")
+    p.add_argument(
+        "--overwrite", action="store_true", help="replace an existing fit at STEM (without it, one is refused)"
+    )
     finish_command(p, cmd_fit, "print the metadata as JSON (no progress bar)")
 
     p = sub.add_parser(
