@@ -176,6 +176,14 @@ def test_an_out_that_cannot_be_written_is_refused_before_any_work(cli: Cli, tmp_
     ):
         code, out, err = cli(*argv, "--out", str(tmp_path / "file" / "x"))
         assert code == 2 and out == "" and err.count("\n") == 1 and "cannot write --out" in err, (argv, err)
+    # nothing is created on the way: a command that fails for another reason leaves no folders behind
+    code, _, err = cli("fit", "toy_two_tets", "--resume", "--out", str(tmp_path / "new" / "deeper" / "x"))
+    assert code == 2 and "nothing to resume" in err and not (tmp_path / "new").exists()
+    from redsim import pretrained
+
+    for argv in (["fit", "toy_two_tets", *SMALL, "--steps", "2"], ["sample", str(pretrained.path("mini_chain"))]):
+        code, _, err = cli(*argv, "--out", ".")
+        assert code == 2 and err.count("\n") == 1 and "--out must name" in err, err
 
 
 def test_sample_names_the_file_it_writes_and_animate_refuses_a_non_gif(cli: Cli, tmp_path: Path) -> None:
@@ -222,5 +230,7 @@ def test_a_fit_at_an_existing_stem_is_refused_without_resume_or_overwrite(cli: C
     assert code == 2 and "a fit exists at" in err and "--overwrite" in err
     assert (tmp_path / "f.pt").read_bytes() == before  # untouched
     assert cli(*argv, "--resume", "--overwrite")[0] == 2
+    stale = tmp_path / "f.fit.pt"
+    assert stale.is_file()
     code, _, err = cli(*argv, "--seed", "1", "--overwrite")
     assert code == 0 and (tmp_path / "f.pt").read_bytes() != before, err

@@ -100,10 +100,10 @@ def test_catmull_rom_loop_passes_through_keys_and_closes() -> None:
         (["fit", "nope"], "unknown scene"),
         (["fit", "toy_two_tets", "--sigma", "-1"], "sigma"),
         (["fit", "toy_two_tets", "--cond"], "no condition space"),
-        (["fit", "toy_two_tets", "--resume", "--out", "/nonexistent/x"], "nothing to resume"),
-        (["fit", "toy_two_tets", "--drive", "10", "--out", "/nonexistent/x"], "declares no driver"),
-        (["fit", "toy_crank", "--drive", "10", "--out", "/nonexistent/x"], "not periodic (periodic []; --periodic)"),
-        (["fit", "toy_crank", "--soften", "rigid,nope", "--out", "/nonexistent/x"], "no effect(s) ['nope']"),
+        (["fit", "toy_two_tets", "--resume", "--out", "no_such_dir/x"], "nothing to resume"),
+        (["fit", "toy_two_tets", "--drive", "10", "--out", "no_such_dir/x"], "declares no driver"),
+        (["fit", "toy_crank", "--drive", "10", "--out", "no_such_dir/x"], "not periodic (periodic []; --periodic)"),
+        (["fit", "toy_crank", "--soften", "rigid,nope", "--out", "no_such_dir/x"], "no effect(s) ['nope']"),
         (["fit", "toy_crank", "--soften-from", "0"], "--soften-from must be a number in (0, 1]"),
         (["inspect", "/nonexistent/model.pt"], "model.pt: the weights file is missing"),
         (["sample", "/nonexistent/model.pt"], "model.pt: the weights file is missing"),
@@ -247,6 +247,9 @@ def test_an_option_a_preset_s_anchored_map_cannot_take_replaces_it(
     taper = ["--modal", "10", "--anchor-radius", "1.0", *small, "--out", str(tmp_path / "t")]
     assert main(["fit", "cantilever", *taper]) == 2  # a taper asks for the anchored map too
     assert "--modal cannot go with the cantilever preset's anchored map" in capsys.readouterr().err
+    zero = ["--modal", "10", "--anchor-radius", "0", *small, "--out", str(tmp_path / "z")]
+    assert main(["fit", "cantilever", *zero]) == 2  # a zero taper is still given: named, with a fix that works
+    assert "which --anchor-radius asks to keep: drop --anchor-radius (the MLP alone)" in capsys.readouterr().err
     assert main(["fit", "cantilever", "--anchor-map", "none", *small, "--out", str(tmp_path / "n")]) == 0
     command = read_metadata(tmp_path / "n.pt")["command"]
     assert "--anchor-map none" in command  # reruns as the MLP, not as the preset's anchored map

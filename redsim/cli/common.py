@@ -46,8 +46,15 @@ class Parser(argparse.ArgumentParser):
 
 
 # -- output ---------------------------------------------------------------------------------
+class StdoutClosed(Exception):
+    """stdout's reader went away (``redsim ... | head``): :func:`redsim.cli.main` exits quietly."""
+
+
 def out(text: str = "") -> None:
-    print(text, flush=True)
+    try:
+        print(text, flush=True)
+    except BrokenPipeError:
+        raise StdoutClosed from None
 
 
 def _finite_or_none(obj: Any) -> Any:
@@ -62,7 +69,7 @@ def _finite_or_none(obj: Any) -> Any:
 
 
 def json_out(obj: Any) -> None:
-    print(json.dumps(_finite_or_none(obj), indent=2, default=str, allow_nan=False), flush=True)
+    out(json.dumps(_finite_or_none(obj), indent=2, default=str, allow_nan=False))
 
 
 def warn(text: str) -> None:

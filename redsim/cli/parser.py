@@ -13,7 +13,7 @@ import torch
 
 import redsim
 from redsim.cli import agents, bench, cubature, envs, scenes, subspaces
-from redsim.cli.common import CliError, Parser, apply_threads, error
+from redsim.cli.common import CliError, Parser, StdoutClosed, apply_threads, error
 
 
 def build_parser() -> argparse.ArgumentParser:
@@ -59,30 +59,30 @@ def main(argv: Sequence[str] | None = None) -> int:
     try:
         apply_threads(args)
         _check_out(args)
-        status = int(args.func(args))
-        sys.stdout.flush()
-        return status
+        return int(args.func(args))
     except CliError as err:
         error(str(err))
         return err.code
-    except BrokenPipeError:  # stdout closed early (`redsim ... | head`): no traceback, and none at exit
-        _silence_stdout()
+    except StdoutClosed:  # stdout's reader left (`redsim ... | head`): no traceback, and none at exit
+        if argv is None:  # the command line, not an in-process caller whose stdout this would close
+            _silence_stdout()
         return 1
     finally:
         torch.set_num_threads(threads)  # in-process callers (tests, notebooks) keep their setting
 
 
 def _check_out(args: argparse.Namespace) -> None:
-    """Refuse an ``--out`` whose folder cannot be made or written before any work (a fit or a bench that ends
-    in a traceback loses its results)."""
+    """Refuse an ``--out`` whose folder could not be made or written, before any work (a fit or a bench that ends
+    in a traceback loses its results). Nothing is created here: the nearest existing folder above it must be a
+    writable folder."""
     out = getattr(args, "out", None)
     if not out:
         return
-    folder = Path(out).parent
-    try:
-        folder.mkdir(parents=True, exist_ok=True)
-    except OSError as err:
-        raise CliError(f"cannot write --out {out}: {err.strerror or err} ({err.filename or folder})") from None
+    folder = Path(out).absolute().parent
+    while not folder.exists() and folder != folder.parent:
+        folder = folder.parent
+    if not folder.is_dir():
+        raise CliError(f"cannot write --out {out}: {folder} is a file, not a folder")
     if not os.access(folder, os.W_OK | os.X_OK):
         raise CliError(f"cannot write --out {out}: {folder} is not writable")
 

@@ -117,10 +117,12 @@ def _drop_preset_anchor_map(args: argparse.Namespace, fields: dict[str, Any], sc
     if not asked or args.anchor_map is not None or fields.get("anchor_map", "none") == "none":
         return
     if any(a is not None for a in anchored):
-        kept = " and ".join(f for f, a in (("--anchor-radius", anchored[1]), ("--anchor-map-cond", anchored[2])) if a)
+        options = (("--anchor-radius", anchored[1]), ("--anchor-map-cond", anchored[2]))
+        kept = " and ".join(flag for flag, value in options if value is not None)
         raise CliError(
             f"{' and '.join(asked)} cannot go with the {scene_name} preset's anchored map (--anchor-map "
-            f"{fields['anchor_map']}), which {kept} asks to keep: drop {kept}, or give --anchor-map none"
+            f"{fields['anchor_map']}), which {kept} asks to keep: drop {kept} (the MLP alone), or drop "
+            f"{' and '.join(asked)} (the anchored map)"
         )
     verb = "replaces" if len(asked) == 1 else "replace"
     warn(f"{' and '.join(asked)} {verb} the {scene_name} preset's --anchor-map {fields['anchor_map']} (the MLP alone)")
@@ -135,6 +137,8 @@ def cmd_fit(args: argparse.Namespace) -> int:
     scene = scene_from_args(args)
     config = _fit_config(args, scene.name)
     stem = Path(args.out) if args.out else Path(f"{scene.name}_d{config.latent_dim}")
+    if stem.name in ("", ".", ".."):
+        raise CliError(f"--out must name a checkpoint stem (e.g. DIR/NAME), got {args.out!r}")
     if args.resume and args.overwrite:
         raise CliError("give --resume (continue the fit at the stem) or --overwrite (replace it), not both")
     existing = [p for p in (checkpoint_path(stem, ".pt"), checkpoint_path(stem, ".fit.pt")) if p.is_file()]
@@ -143,6 +147,8 @@ def cmd_fit(args: argparse.Namespace) -> int:
             f"a fit exists at {existing[0]}: continue it with --resume (a larger --steps extends it), or replace it "
             "with --overwrite"
         )
+    if args.overwrite:  # the old training state must not be taken for the new fit's (an interrupt's advice)
+        checkpoint_path(stem, ".fit.pt").unlink(missing_ok=True)
     command = fit_command(scene, config, args.seed, stem)
     try:
         result = fit_subspace(
@@ -217,6 +223,8 @@ def cmd_sample(args: argparse.Namespace) -> int:
         q = sub(z, cond).double()
         x = scene.full_positions(q)
     path = Path(args.out)
+    if path.name in ("", ".", ".."):
+        raise CliError(f"--out must name a .npz file, got {args.out!r}")
     if path.suffix != ".npz":  # numpy's savez would add it
         path = path.with_name(path.name + ".npz")
     path.parent.mkdir(parents=True, exist_ok=True)
