@@ -247,9 +247,9 @@ def cmd_animate(args: argparse.Namespace) -> int:
 
     if args.keys < 2 or args.frames < args.keys:
         raise CliError(f"need --keys >= 2 and --frames >= --keys, got {args.keys} and {args.frames}")
-    if Path(args.out).suffix.lower() != ".gif":
-        raise CliError(f"--out must name a .gif file, got {args.out!r}")
     scene, sub = load_checkpoint(args.checkpoint)
+    if Path(args.out).suffix.lower() != ".gif":  # before the frames are drawn
+        raise CliError(f"--out must name a .gif file, got {args.out!r}")
     keys, cond = _latent_samples(sub, scene, args.keys, args.seed)
     z = catmull_rom_loop(keys, args.frames)
     with torch.no_grad():
