@@ -186,6 +186,20 @@ def test_an_out_that_cannot_be_written_is_refused_before_any_work(cli: Cli, tmp_
         assert code == 2 and err.count("\n") == 1 and "--out must name" in err, err
 
 
+def test_an_out_folder_that_is_a_file_is_refused_before_any_work(cli: Cli, tmp_path: Path) -> None:
+    existing = tmp_path / "file"
+    existing.write_text("kept")
+    for argv in (
+        ["demo", "RedSim/MiniChain-v0", "--steps", "2"],
+        ["train-agent", "RedSim/MiniChain-v0", "--steps", "10"],
+        ["simulate", "mini_chain", "--steps", "1"],
+        ["bench", "scaling"],
+    ):
+        code, out, err = cli(*argv, "--out", str(existing))
+        assert code == 2 and out == "" and err.count("\n") == 1 and "it is a file, not a folder" in err, (argv, err)
+    assert existing.read_text() == "kept"
+
+
 def test_sample_names_the_file_it_writes_and_animate_refuses_a_non_gif(cli: Cli, tmp_path: Path) -> None:
     from redsim import pretrained
 
@@ -234,3 +248,18 @@ def test_a_fit_at_an_existing_stem_is_refused_without_resume_or_overwrite(cli: C
     assert stale.is_file()
     code, _, err = cli(*argv, "--seed", "1", "--overwrite")
     assert code == 0 and (tmp_path / "f.pt").read_bytes() != before, err
+
+
+def test_cubature_flags_are_named_in_their_errors(cli: Cli, tmp_path: Path) -> None:
+    from redsim import pretrained
+
+    checkpoint = str(pretrained.path("mini_chain"))
+    for argv, expected in (
+        (["cubature", checkpoint, "--elements", "0"], "--elements must be an integer >= 1, got 0"),
+        (["cubature", checkpoint, "--elements", "3", "--rollout-steps", "0"], "--rollout-steps must be an integer"),
+        (["cubature", checkpoint, "--elements", "3", "--full", "contact", "--subsample", "contact"], "both in full"),
+        (["cubature", checkpoint, "--elements", "3", "--subsample", "gravity"], "cannot be subsampled"),
+        (["bench", "cubature", "mini_chain", "--elements", "0"], "--elements must be an integer >= 1, got 0"),
+    ):
+        code, out, err = cli(*argv)
+        assert code == 2 and out == "" and err.count("\n") == 1 and expected in err, (argv, err)

@@ -6,7 +6,7 @@ import argparse
 from pathlib import Path
 from typing import Any
 
-from redsim.cli.common import EXIT_OK, CliError, finish_command, json_out, out, parse_env_args
+from redsim.cli.common import EXIT_OK, CliError, add_out_folder, finish_command, json_out, out, parse_env_args
 
 
 def _check_env(env_id: str) -> None:
@@ -156,7 +156,7 @@ def add_commands(sub: Any) -> None:
     p.add_argument("env_id", metavar="ENV_ID", help="a RedSim env id, e.g. RedSim/MiniChain-v0")
     p.add_argument("--algo", choices=ALGOS, default="sac", help="algorithm (default sac)")
     p.add_argument("--steps", type=int, default=20_000, help="total env steps (default 20000)")
-    p.add_argument("--out", default="agent", metavar="DIR", help="output folder (default agent)")
+    add_out_folder(p, "output folder (default agent)", default="agent")
     p.add_argument("--seed", type=int, default=0, help="seed of the algorithm and the envs (default 0)")
     p.add_argument("--n-envs", type=int, help="vector env copies (default: the table's)")
     p.add_argument(

@@ -16,6 +16,7 @@ from redsim.cli.common import (
     EXIT_OK,
     CliError,
     add_bench_scene_args,
+    add_out_folder,
     bench_scenes,
     build_scene,
     catalog_names,
@@ -717,7 +718,7 @@ def add_commands(sub: Any) -> Any:
         metavar="N",
         help="fit (or reuse, DIR/SCENE_dD_sN.pt) the --dims maps with N steps instead of the preset's",
     )
-    p.add_argument("--out", metavar="DIR", help="write DIR/accuracy_SCENE.md, .csv and .png")
+    add_out_folder(p, "write DIR/accuracy_SCENE.md, .csv and .png")
     finish_command(p, cmd_bench_accuracy, "print one JSON document on stdout", default_threads=1)
 
     p = bench.add_parser(
@@ -748,7 +749,7 @@ def add_commands(sub: Any) -> Any:
         "--full-max-n", type=int, help="run the full-space step only up to this many free DOFs (default: every size)"
     )
     p.add_argument("--no-full", action="store_true", help="skip the full-space step at every size")
-    p.add_argument("--out", metavar="DIR", help="write DIR/scaling.md and DIR/scaling.png (rewritten after each size)")
+    add_out_folder(p, "write DIR/scaling.md and DIR/scaling.png (rewritten after each size)")
     finish_command(p, cmd_bench_scaling, "print one JSON document on stdout", default_threads=1)
 
     p = bench.add_parser(

@@ -231,6 +231,12 @@ def add_threads(parser: argparse.ArgumentParser, default: int | None = None) -> 
     )
 
 
+def add_out_folder(parser: argparse.ArgumentParser, help: str, default: str | None = None) -> None:
+    """``--out DIR``, a folder the command writes into (made if missing; an existing file there is refused up front)."""
+    parser.add_argument("--out", default=default, metavar="DIR", help=help)
+    parser.set_defaults(out_is_folder=True)
+
+
 def finish_command(
     parser: argparse.ArgumentParser,
     func: Any,

@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import argparse
+import os
 import shlex
 from pathlib import Path
 from typing import Any
@@ -22,6 +23,14 @@ from redsim.cli.common import (
 
 TOL_ELEMENTS = 1000
 """Most elements per effect with ``--tol``."""
+CONFIG_FLAGS = {
+    "elements": "--elements",
+    "samples": "--samples",
+    "episodes": "--episodes",
+    "steps": "--rollout-steps",
+    "tol": "--tol",
+}
+"""CubatureConfig's fields as the command's flags (for its error messages)."""
 
 
 def _command(args: argparse.Namespace) -> str:
@@ -50,13 +59,20 @@ def _config(args: argparse.Namespace) -> Any:
             seed=args.seed,
         )
     except ValueError as err:
-        raise CliError(str(err)) from err
+        name, _, rest = str(err).partition(" ")
+        raise CliError(f"{CONFIG_FLAGS.get(name, name)} {rest}") from err
 
 
 def cmd_cubature(args: argparse.Namespace) -> int:
     from redsim.cubature import build_cubature
+    from redsim.cubature.energy import cubature_path
 
     scene, subspace = load_checkpoint(args.checkpoint)
+    target = cubature_path(args.checkpoint)
+    if target.exists() and not args.overwrite:
+        raise CliError(f"{target} exists (the cubature the runtime uses for this map); --overwrite replaces it")
+    if not os.access(target.absolute().parent, os.W_OK | os.X_OK):
+        raise CliError(f"cannot write {target}: its folder is not writable (copy STEM.pt and STEM.json elsewhere)")
     command = _command(args)
     try:
         cub = build_cubature(scene, subspace, _config(args), progress=not args.json, command=command)
@@ -98,6 +114,8 @@ def cmd_bench_cubature(args: argparse.Namespace) -> int:
     from redsim.cubature.energy import cubature_path
     from redsim.subspace import CheckpointError
 
+    if args.elements < 1:
+        raise CliError(f"--elements must be an integer >= 1, got {args.elements}")
     if args.sweep:
         return _sweep(args)
     names = parse_list(args.scenes, "SCENES")
@@ -196,6 +214,7 @@ def add_commands(sub: Any) -> None:
     p.add_argument("--full", metavar="E1,E2", help="effects kept whole (default: contact effects)")
     p.add_argument("--subsample", metavar="E1,E2", help="effects subsampled even if they are contact")
     p.add_argument("--seed", type=int, default=0, help="seed of samples, loads and split (default 0)")
+    p.add_argument("--overwrite", action="store_true", help="replace an existing CHECKPOINT.cubature.json")
     finish_command(p, cmd_cubature, "print one JSON document on stdout (no progress bar)")
 
 

@@ -9,7 +9,16 @@ import json
 from typing import Any
 
 from redsim.cli.bench import _machine_line
-from redsim.cli.common import EXIT_OK, CliError, finish_command, json_out, out, parse_env_args, parse_list
+from redsim.cli.common import (
+    EXIT_OK,
+    CliError,
+    add_out_folder,
+    finish_command,
+    json_out,
+    out,
+    parse_env_args,
+    parse_list,
+)
 
 SCRIPTED = "scripted controller"
 
@@ -365,7 +374,7 @@ def add_commands(sub: Any, bench: Any) -> None:
         ),
     )
     p.add_argument("env_id", metavar="ENV_ID", help="a RedSim env id")
-    p.add_argument("--out", default="out", help="output folder (default out)")
+    add_out_folder(p, "output folder (default out)", default="out")
     p.add_argument("--seed", type=int, default=0, help="reset seed (default 0)")
     p.add_argument("--steps", type=int, help="episode length (default: the env's max_episode_steps)")
     p.add_argument("--scripted", action="store_true", help="use the scripted controller even where a policy is shipped")

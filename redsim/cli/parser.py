@@ -78,6 +78,8 @@ def _check_out(args: argparse.Namespace) -> None:
     out = getattr(args, "out", None)
     if not out:
         return
+    if getattr(args, "out_is_folder", False) and Path(out).exists() and not Path(out).is_dir():
+        raise CliError(f"cannot write into --out {out}: it is a file, not a folder")
     folder = Path(out).absolute().parent
     while not folder.exists() and folder != folder.parent:
         folder = folder.parent

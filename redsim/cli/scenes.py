@@ -17,6 +17,7 @@ from redsim.cli.common import (
     EXIT_OK,
     EXIT_SCENE_FAILED,
     CliError,
+    add_out_folder,
     add_scene_args,
     catalog_names,
     file_name,
@@ -264,6 +265,6 @@ def add_commands(sub: Any) -> None:
         "times the scene size; a huge load makes the bound huge too, so implausible steps are checked separately",
     )
     p.add_argument("--max-iter", type=int, default=100, help="solver iterations per step (default 100)")
-    p.add_argument("--out", metavar="DIR", help="folder for the picture and meshes (nothing is written without it)")
+    add_out_folder(p, "folder for the picture and meshes (nothing is written without it)")
     p.add_argument("--meshes", action="store_true", help="write per-frame .ply meshes to OUT/frames")
     finish_command(p, cmd_simulate, "print one JSON summary (with per-step stats) on stdout")

@@ -18,6 +18,7 @@ their elements by default, and the load term belongs to the stepper (exact).
 from __future__ import annotations
 
 import math
+import numbers
 from collections.abc import Callable
 from dataclasses import dataclass, field
 
@@ -77,12 +78,14 @@ class CubatureConfig:
     seed: int = 0
 
     def __post_init__(self) -> None:
-        counts = {"elements": self.elements, "samples": self.samples, "steps": self.steps, "hold": self.hold}
-        bad = {k: v for k, v in counts.items() if int(v) != v or v < 1}
-        if bad or self.samples < 2:
-            raise ValueError(f"{sorted(bad) or ['samples']} must be integers >= 1 (samples >= 2), got {counts}")
-        if int(self.episodes) != self.episodes or self.episodes < 0:
-            raise ValueError(f"episodes must be an integer >= 0, got {self.episodes!r}")
+        lowest = {"elements": 1, "samples": 2, "episodes": 0, "steps": 1, "hold": 1}
+        for name, low in lowest.items():
+            value = getattr(self, name)
+            if isinstance(value, bool) or not isinstance(value, numbers.Integral) or value < low:
+                raise ValueError(f"{name} must be an integer >= {low}, got {value!r}")
+        both = sorted(set(self.full or ()) & set(self.subsample))
+        if both:
+            raise ValueError(f"effect(s) {both} are both in full (kept whole) and in subsample; name each in one")
         if self.tol is not None and not (math.isfinite(self.tol) and self.tol > 0.0):
             raise ValueError(f"tol must be finite and > 0, got {self.tol!r}")
         if self.load_scale is not None and not (math.isfinite(self.load_scale) and self.load_scale >= 0.0):
@@ -282,6 +285,8 @@ def effect_modes(scene: Scene, config: CubatureConfig) -> dict[str, str]:
         rare = effect.kind.split(":")[0] in RARE_KINDS and effect.name not in config.subsample
         whole = effect.name in config.full if config.full is not None else rare
         if effect.kind in LINEAR_KINDS:
+            if effect.name in config.subsample:
+                raise ValueError(f"effect {effect.name!r} is linear: it stays exact and cannot be subsampled")
             modes[effect.name] = "linear"
         elif whole or effect.element_count <= config.elements:
             modes[effect.name] = "full"

@@ -15,6 +15,7 @@ from redsim.cubature import (
     cubature_energy,
     load_cubature,
 )
+from redsim.cubature.fit import LINEAR_KINDS
 from redsim.effects.elastic import StVKMembrane
 from redsim.runtime import LatentStepper, MapEnergy, ReducedInertia
 from redsim.scene import SceneBuilder
@@ -116,6 +117,11 @@ def test_bad_input_is_a_clear_error(tmp_path) -> None:
         CubatureConfig(held_out=1.0)
     with pytest.raises(ValueError, match="no effect"):
         build_cubature(scene, f, CubatureConfig(full=("nope",), **QUICK))
+    with pytest.raises(ValueError, match="both in full"):
+        CubatureConfig(full=("membrane",), subsample=("membrane",))
+    linear = next(e.name for e in scene.effects if e.kind in LINEAR_KINDS)
+    with pytest.raises(ValueError, match="linear"):
+        build_cubature(scene, f, CubatureConfig(subsample=(linear,), **QUICK))
     with pytest.raises(ValueError, match="affine output"):
         AffineOutput(torch.nn.Linear(3, 3))
     with pytest.raises(CheckpointError, match="no cubature file"):
@@ -214,6 +220,14 @@ def test_cli_writes_the_cubature_beside_the_checkpoint(cli, tmp_path) -> None:
     scene = scenes.build("mini_chain")
     cub = load_cubature(tmp_path / "chain", scene, pretrained.load("mini_chain", scene))
     assert cub.command.startswith("redsim cubature ") and "--elements 8" in cub.command
+    # a second run neither replaces the cubature silently nor loses it; --overwrite replaces it
+    before = (tmp_path / "chain.cubature.json").read_text()
+    again = ("cubature", str(tmp_path / "chain.pt"), "--elements", "4", "--samples", "32", "--episodes", "0")
+    code, _, err = cli(*again)
+    assert code == 2 and "--overwrite replaces it" in err and (tmp_path / "chain.cubature.json").read_text() == before
+    code, _, err = cli(*again, "--overwrite")
+    assert code == 0, err
+    assert "--elements 4" in load_cubature(tmp_path / "chain", scene, pretrained.load("mini_chain", scene)).command
 
 
 def test_cli_bad_input_exits_with_a_message(cli, tmp_path) -> None:
