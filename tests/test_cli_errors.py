@@ -263,3 +263,13 @@ def test_cubature_flags_are_named_in_their_errors(cli: Cli, tmp_path: Path) -> N
     ):
         code, out, err = cli(*argv)
         assert code == 2 and out == "" and err.count("\n") == 1 and expected in err, (argv, err)
+
+
+@pytest.mark.parametrize(
+    "argv",
+    [["bench", "energy", "--budget", "-1"], ["bench", "envs", "--budget", "inf"], ["bench", "energy", "--scenes", ""]],
+)
+def test_bench_budgets_and_empty_scene_lists_are_refused(cli: Cli, argv: list[str]) -> None:
+    code, out, err = cli(*argv)
+    assert code == 2 and out == "" and err.count("\n") == 1 and ("--budget" in err or "--scenes" in err), err
+

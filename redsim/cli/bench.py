@@ -26,6 +26,7 @@ from redsim.cli.common import (
     note,
     out,
     parse_list,
+    seconds,
     shown_path,
     warn,
 )
@@ -506,8 +507,6 @@ def cmd_bench_stability(args: argparse.Namespace) -> int:
             raise CliError(f"--{flag.replace('_', '-')} must be >= 1, got {getattr(args, flag)}")
     if args.copies is not None and args.copies < 1:
         raise CliError(f"--copies must be >= 1, got {args.copies}")
-    if args.budget is not None and not (math.isfinite(args.budget) and args.budget > 0):
-        raise CliError(f"--budget must be a number of seconds > 0, got {args.budget}")
     progress = None if args.json else note
     machine = machine_info()
     rows = []
@@ -572,7 +571,7 @@ def add_commands(sub: Any) -> Any:
     p.add_argument("--dtypes", default="float64,float32", metavar="D1,D2", help="float64 and/or float32 (default both)")
     p.add_argument(
         "--budget",
-        type=float,
+        type=seconds,
         default=2.0,
         metavar="SECONDS",
         help="time per measurement; slow scenes get fewer repeats, at least 3 (default 2)",
@@ -785,7 +784,7 @@ def add_commands(sub: Any) -> Any:
     )
     p.add_argument(
         "--budget",
-        type=float,
+        type=seconds,
         metavar="SECONDS",
         help="wall-time budget of each fuzzed env and of each scene's long runs: they stop there and report "
         "the steps they ran (default none)",

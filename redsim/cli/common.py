@@ -223,6 +223,17 @@ def parse_ints(text: str, what: str) -> list[int]:
     return values
 
 
+def seconds(text: str) -> float:
+    """argparse type of a time budget: a finite number of seconds > 0."""
+    try:
+        value = float(text)
+    except ValueError:
+        value = math.nan
+    if not (math.isfinite(value) and value > 0.0):
+        raise argparse.ArgumentTypeError(f"must be a number of seconds > 0, got {text!r}")
+    return value
+
+
 def add_threads(parser: argparse.ArgumentParser, default: int | None = None) -> None:
     """``--threads N``: torch's intra-op threads for the command."""
     shown = "torch's default: all cores" if default is None else str(default)
@@ -356,7 +367,7 @@ def bench_scenes(args: argparse.Namespace, default: Sequence[str]) -> list[tuple
         return [(scene.name, lambda: scene)]
     if args.kind is not None or args.param:
         raise CliError("--kind and --param go with --mesh (the --scenes are built with their defaults)")
-    names = parse_list(args.scenes, "--scenes") if args.scenes else list(default)
+    names = parse_list(args.scenes, "--scenes") if args.scenes is not None else list(default)
     for name in names:
         check_scene_name(name)
     return [(name, lambda name=name: build_scene(name)) for name in names]

@@ -18,6 +18,7 @@ from redsim.cli.common import (
     out,
     parse_env_args,
     parse_list,
+    seconds,
 )
 
 SCRIPTED = "scripted controller"
@@ -395,7 +396,7 @@ def add_commands(sub: Any, bench: Any) -> None:
     p.add_argument("--steps", type=int, default=20, help="timed steps per configuration (default 20)")
     p.add_argument(
         "--budget",
-        type=float,
+        type=seconds,
         default=20.0,
         help="seconds of timing per configuration and of the flex cloth (default 20)",
     )

@@ -87,8 +87,8 @@ def test_the_intact_copy_loads(cli: Cli, checkpoint: Path) -> None:
         (["--regimes", "stiff,wobbly"], "unknown regime(s) ['wobbly']"),
         (["--regimes", ""], "--regimes"),
         (["--copies", "0"], "--copies must be >= 1, got 0"),
-        (["--budget", "-5"], "--budget must be a number of seconds > 0, got -5.0"),
-        (["--budget", "nan"], "--budget must be a number of seconds > 0, got nan"),
+        (["--budget", "-5"], "--budget: must be a number of seconds > 0, got '-5'"),
+        (["--budget", "nan"], "--budget: must be a number of seconds > 0, got 'nan'"),
     ],
 )
 def test_bench_stability_options_are_checked(cli: Cli, argv: list[str], expected: str) -> None:
