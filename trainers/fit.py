@@ -95,6 +95,7 @@ from redsim.subspace import (
     checkpoint_path,
     pair_log_ratios,
     sample_latents,
+    write_atomically,
 )
 from redsim.trainers.anchored import ANCHOR_MAP_CONDS, ANCHOR_MAPS, anchored_map
 from redsim.trainers.modal import ModalTargets, modal_gap, modal_targets, start_at_rest
@@ -854,9 +855,7 @@ def fit_command(scene: Scene, config: FitConfig, seed: int, out: str | Path | No
 def _save_training_state(path: Path, state: dict[str, Any]) -> None:
     """Write resumable training state atomically (a crash mid-write keeps the previous file)."""
     path.parent.mkdir(parents=True, exist_ok=True)
-    tmp = path.with_name(path.name + ".tmp")
-    torch.save(state, tmp)
-    os.replace(tmp, path)
+    write_atomically(path, lambda tmp: torch.save(state, tmp))
 
 
 def _load_training_state(

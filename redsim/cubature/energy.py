@@ -28,7 +28,7 @@ from redsim.cubature.fit import MODES, CubatureConfig, EffectRule, fit_rules
 from redsim.cubature.output import AffineOutput, sliced_layer
 from redsim.effects.base import Effect
 from redsim.scene import Scene
-from redsim.subspace import CheckpointError, checkpoint_path, periodic_latents
+from redsim.subspace import CheckpointError, checkpoint_path, periodic_latents, write_atomically
 
 FORMAT_VERSION = 1
 SUFFIX = ".cubature.json"
@@ -107,7 +107,8 @@ class Cubature:
             "rules": rules,
         }
         out.parent.mkdir(parents=True, exist_ok=True)
-        out.write_text(json.dumps(doc, indent=1, sort_keys=True) + "\n")
+        text = json.dumps(doc, indent=1, sort_keys=True) + "\n"
+        write_atomically(out, lambda tmp: tmp.write_text(text))
         return out
 
     @classmethod

@@ -25,6 +25,7 @@ from redsim.subspace.checkpoint import (
     check_scene,
     checkpoint_path,
     read_metadata,
+    write_atomically,
     write_checkpoint,
 )
 from redsim.subspace.kinds import KINDS, load_subspace
@@ -51,5 +52,6 @@ __all__ = [
     "periodic_latents",
     "read_metadata",
     "sample_latents",
+    "write_atomically",
     "write_checkpoint",
 ]

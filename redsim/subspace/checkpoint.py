@@ -9,6 +9,8 @@ Nothing is pickled. Which class a checkpoint rebuilds is decided by :mod:`redsim
 from __future__ import annotations
 
 import json
+import os
+from collections.abc import Callable
 from pathlib import Path
 from typing import Any
 
@@ -38,14 +40,26 @@ def checkpoint_path(path: str | Path, suffix: str) -> Path:
     return stem.with_name(stem.name + suffix)
 
 
+def write_atomically(path: Path, write: Callable[[Path], Any]) -> None:
+    """Call ``write(tmp)`` on a temporary file beside ``path``, then move it onto ``path``: an interrupted write
+    leaves the previous file whole (and no partial one under its name)."""
+    tmp = path.with_name(path.name + ".tmp")
+    try:
+        write(tmp)
+        os.replace(tmp, path)
+    finally:
+        tmp.unlink(missing_ok=True)
+
+
 def write_checkpoint(module: nn.Module, stem: str | Path, config: dict[str, Any]) -> tuple[Path, Path]:
     """Write ``stem.pt`` (the module's state dict) and ``stem.json`` (format version, ``config`` and the
     module's ``metadata``); returns both paths. Shared by every kind of subspace."""
     weights, meta = checkpoint_path(stem, ".pt"), checkpoint_path(stem, ".json")
     weights.parent.mkdir(parents=True, exist_ok=True)
-    torch.save(module.state_dict(), weights)
     doc = {**getattr(module, "metadata", {}), "format_version": FORMAT_VERSION, "config": config}
-    meta.write_text(json.dumps(doc, indent=2, sort_keys=True, default=_json_default))
+    text = json.dumps(doc, indent=2, sort_keys=True, default=_json_default)  # fails before any file is touched
+    write_atomically(weights, lambda tmp: torch.save(module.state_dict(), tmp))
+    write_atomically(meta, lambda tmp: tmp.write_text(text))
     return weights, meta
 
 

@@ -47,3 +47,18 @@ def test_an_unknown_kind_names_the_valid_ones(tmp_path) -> None:
     valid = "neural, anchored, autoencoder, linear, quadratic"
     with pytest.raises(subspace.CheckpointError, match=f"unknown kind 'spline'; valid: {valid}"):
         subspace.load_subspace(tmp_path / "map.pt")
+
+
+def test_an_interrupted_write_keeps_the_previous_file_whole(tmp_path) -> None:
+    path = tmp_path / "map.pt"
+    path.write_text("previous")
+
+    def interrupted(tmp) -> None:
+        tmp.write_text("half")
+        raise KeyboardInterrupt
+
+    with pytest.raises(KeyboardInterrupt):
+        subspace.write_atomically(path, interrupted)
+    assert path.read_text() == "previous" and sorted(p.name for p in tmp_path.iterdir()) == ["map.pt"]
+    subspace.write_atomically(path, lambda tmp: tmp.write_text("next"))
+    assert path.read_text() == "next" and sorted(p.name for p in tmp_path.iterdir()) == ["map.pt"]
