@@ -684,7 +684,9 @@ class LatentEnv(gym.Env[np.ndarray, np.ndarray]):
         self.render_mode = render_mode
         self.dt = self.sim.dt
         modes = [m for m in RENDER_MODES if m != "human" or human_unavailable() is None]
-        self.metadata = {**type(self).metadata, "render_modes": modes, "render_fps": round(1.0 / self.dt)}
+        fps = 1.0 / self.dt  # frames per simulated second; a float where 1/dt is not whole (Gymnasium allows it)
+        fps = int(fps) if fps.is_integer() else fps
+        self.metadata = {**type(self).metadata, "render_modes": modes, "render_fps": fps}
         self.action_space = spaces.Box(-1.0, 1.0, (task.action_size,), np.float32)
         low, high = self.sim.observation_bounds()
         self.observation_space = spaces.Box(low, high, dtype=np.float32)
@@ -763,7 +765,7 @@ class LatentEnv(gym.Env[np.ndarray, np.ndarray]):
     # -- state and export -----------------------------------------------------------------
     def get_state(self) -> dict[str, Any]:
         """The dynamic state (numpy copies): z, z_prev [d], cond [m] or None, task params."""
-        return _unbatch(self.sim.get_state())
+        return state_row(self.sim.get_state())
 
     def set_state(self, state: Mapping[str, Any]) -> None:
         """Restore :meth:`get_state`'s state; the next step continues exactly from it."""
@@ -866,13 +868,14 @@ def copy_seeds(seed: int | Sequence[int | None] | None, count: int) -> tuple[int
     return None, seeds
 
 
-def _unbatch(state: Mapping[str, Any]) -> dict[str, Any]:
+def state_row(state: Mapping[str, Any], i: int = 0) -> dict[str, Any]:
+    """Copy i's state (as a single env's ``get_state``) from a batched :meth:`LatentSim.get_state`."""
     return {
-        "z": state["z"][0],
-        "z_prev": state["z_prev"][0],
-        "model": state["model"][0],
-        "cond": None if state["cond"] is None else state["cond"][0],
-        "params": {k: v[0] for k, v in state["params"].items()},
+        "z": state["z"][i],
+        "z_prev": state["z_prev"][i],
+        "model": state["model"][i],
+        "cond": None if state["cond"] is None else state["cond"][i],
+        "params": {k: v[i] for k, v in state["params"].items()},
     }
 
 

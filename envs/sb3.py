@@ -26,9 +26,7 @@ from stable_baselines3.common.vec_env import VecEnv
 from redsim.envs.goal import GoalVectorObservation
 from redsim.envs.sharded import ShardedVectorEnv
 from redsim.envs.vector import LatentVectorEnv
-
-SHARED_METHODS = ("compute_reward", "compute_terminated", "compute_truncated")
-"""Methods that ``env_method`` answers: pure functions of their arguments, the same for every copy (a goal env's)."""
+from redsim.envs.vector_api import SHARED_METHODS
 
 
 class SB3VecEnv(VecEnv):

@@ -28,6 +28,7 @@ from gymnasium.vector import AutoresetMode, VectorEnv
 from gymnasium.vector.utils import batch_space
 
 from redsim.envs.base import NO_HUMAN, VECTOR_RENDER_MODES, check_action, copy_seeds
+from redsim.envs.vector_api import SharedCopies, reset_mask
 
 if TYPE_CHECKING:
     from redsim.envs.base import LatentEnv
@@ -94,7 +95,11 @@ def _serve(venv: VectorEnv, command: str, payload: Any) -> Any:
     if command == "step":
         return venv.step(payload)
     if command == "reset":
+        if payload[1] and "reset_mask" in payload[1] and not payload[1]["reset_mask"].any():  # no copy of this shard
+            return venv.sim.observe(), {}  # type: ignore[attr-defined]
         return venv.reset(seed=payload[0], options=payload[1])
+    if command == "call":
+        return venv.call(payload)
     if command == "render":
         return venv.render()
     if command == "get_state":
@@ -114,7 +119,7 @@ def _failure() -> tuple[bytes | None, str]:
     return pickled, traceback.format_exc()
 
 
-class ShardedVectorEnv(VectorEnv):
+class ShardedVectorEnv(SharedCopies, VectorEnv):
     """N copies of a latent env in P worker processes, each a native vector env of its block (module doc).
 
     Args:
@@ -171,6 +176,7 @@ class ShardedVectorEnv(VectorEnv):
         self._pipes: list[Connection] = []
         self._processes: list[Any] = []
         self._started = False
+        self._ended = np.zeros(self.num_envs, dtype=bool)  # DISABLED: copies that ended and were not reset
         self.closed = False
         ctx = mp.get_context(context)
         payload = pickle.dumps(build)  # here, so that a build that does not pickle fails in the caller
@@ -192,11 +198,9 @@ class ShardedVectorEnv(VectorEnv):
         self, *, seed: int | Sequence[int | None] | None = None, options: dict[str, Any] | None = None
     ) -> tuple[np.ndarray, dict[str, Any]]:
         """Reset all copies, or those of ``options["reset_mask"]`` (bool [N]); seed copy i with ``seed + i``."""
+        mask = reset_mask(options, self.num_envs)
         own, seeds = copy_seeds(seed, self.num_envs)
         super().reset(seed=own)
-        mask = None if not options or "reset_mask" not in options else np.asarray(options["reset_mask"], dtype=bool)
-        if mask is not None and mask.shape != (self.num_envs,):
-            raise ValueError(f"options['reset_mask'] must have shape ({self.num_envs},), got {mask.shape}")
         requests = []
         for block in self._blocks():
             shard_options = None if options is None else {**options}
@@ -204,6 +208,7 @@ class ShardedVectorEnv(VectorEnv):
                 shard_options["reset_mask"] = mask[block]  # type: ignore[index]
             requests.append(("reset", (None if seeds is None else seeds[block], shard_options)))
         results = self._call(requests)
+        self._ended[slice(None) if mask is None else mask] = False
         self._started = True
         return np.concatenate([obs for obs, _ in results]), _merge_infos([info for _, info in results], self.sizes)
 
@@ -211,9 +216,16 @@ class ShardedVectorEnv(VectorEnv):
         """Step every copy with actions [N, A]: each shard its block, in parallel."""
         if not self._started:
             raise RuntimeError("call reset() before step()")
+        if self._ended.any():  # as the native env, here: a shard's error would close the env
+            raise RuntimeError(
+                f"copies {np.nonzero(self._ended)[0].tolist()} ended and autoreset_mode is DISABLED: reset them "
+                "with reset(options={'reset_mask': mask}) before the next step"
+            )
         act = check_action(actions, self.action_space.shape)
         results = self._call([("step", act[block]) for block in self._blocks()])
         obs, reward, terminated, truncated = (np.concatenate([r[k] for r in results]) for k in range(4))
+        if self.metadata["autoreset_mode"] == AutoresetMode.DISABLED:
+            self._ended = terminated | truncated
         return obs, reward, terminated, truncated, _merge_infos([r[4] for r in results], self.sizes)
 
     def render(self) -> tuple[np.ndarray, ...] | None:
@@ -231,7 +243,16 @@ class ShardedVectorEnv(VectorEnv):
         if isinstance(state, dict) or len(state) != len(self.sizes):
             raise ValueError(f"need a list of one state per shard ({len(self.sizes)}), as get_state() returns")
         self._call([("set_state", part) for part in state])
+        if self.metadata["autoreset_mode"] == AutoresetMode.DISABLED:
+            pending = [part.get("autoresetting", np.zeros(n, bool)) for part, n in zip(state, self.sizes, strict=True)]
+            self._ended = np.concatenate(pending).astype(bool)
         self._started = True
+
+    def _per_copy(self, name: str) -> tuple[Any, ...]:
+        if name == "render":
+            frames = self.render()
+            return frames if frames is not None else (None,) * self.num_envs
+        return tuple(answer for answers in self._call([("call", name)] * len(self.sizes)) for answer in answers)
 
     def close_extras(self, **kwargs: Any) -> None:
         for pipe in self._pipes:

@@ -27,14 +27,15 @@ from gymnasium.utils import seeding
 from gymnasium.vector import AutoresetMode, VectorEnv
 from gymnasium.vector.utils import batch_space
 
-from redsim.envs.base import NO_HUMAN, VECTOR_RENDER_MODES, check_action, copy_seeds
+from redsim.envs.base import NO_HUMAN, VECTOR_RENDER_MODES, check_action, copy_seeds, state_row
 from redsim.envs.sharded import ShardedVectorEnv, shard_sizes
+from redsim.envs.vector_api import SharedCopies, reset_mask
 
 if TYPE_CHECKING:
     from redsim.envs.base import LatentEnv
 
 
-class LatentVectorEnv(VectorEnv):
+class LatentVectorEnv(SharedCopies, VectorEnv):
     """N copies of a latent env in one batched simulation.
 
     Args:
@@ -82,15 +83,10 @@ class LatentVectorEnv(VectorEnv):
     ) -> tuple[np.ndarray, dict[str, Any]]:
         """Reset all copies, or those of ``options["reset_mask"]`` (bool [N]); seed copy i with ``seed + i``, or with
         ``seed[i]`` for a sequence (None: copy i keeps its generator, as in Gymnasium's sync vector env)."""
+        given = reset_mask(options, self.num_envs)
+        mask = np.ones(self.num_envs, dtype=bool) if given is None else given
         own, seeds = copy_seeds(seed, self.num_envs)
         super().reset(seed=own)
-        mask = (
-            np.ones(self.num_envs, dtype=bool)
-            if not options or "reset_mask" not in options
-            else np.asarray(options["reset_mask"], dtype=bool)
-        )
-        if mask.shape != (self.num_envs,):
-            raise ValueError(f"options['reset_mask'] must have shape ({self.num_envs},), got {mask.shape}")
         if seeds is not None:
             for i in np.nonzero(mask)[0]:
                 if seeds[i] is not None:
@@ -106,13 +102,21 @@ class LatentVectorEnv(VectorEnv):
         """Step every copy with actions [N, A] in one batched simulation step (module doc for autoreset)."""
         if not self._started:
             raise RuntimeError("call reset() before step()")
+        mode = self.metadata["autoreset_mode"]
+        if mode == AutoresetMode.DISABLED and self._autoreset.any():
+            raise RuntimeError(
+                f"copies {np.nonzero(self._autoreset)[0].tolist()} ended and autoreset_mode is DISABLED: reset them "
+                "with reset(options={'reset_mask': mask}) before the next step"
+            )
         act = check_action(actions, self.action_space.shape)
         reward, terminated, info = self.sim.step(act)
         self._elapsed += 1
         truncated = np.zeros(self.num_envs, dtype=bool)
         if self.max_episode_steps is not None:
             truncated = self._elapsed >= self.max_episode_steps
-        mode = self.metadata["autoreset_mode"]
+        if mode == AutoresetMode.DISABLED:  # the caller resets ended copies (reset with options["reset_mask"])
+            self._autoreset = terminated | truncated
+            return self.sim.observe(), reward, terminated, truncated, _with_masks(info, np.ones(self.num_envs, bool))
         if mode == AutoresetMode.NEXT_STEP:
             restart = self._autoreset.copy()
             if restart.any():
@@ -145,7 +149,8 @@ class LatentVectorEnv(VectorEnv):
     @property
     def autoresetting(self) -> np.ndarray:
         """Copies [N] (bool) that the next step resets and whose action it ignores (``NEXT_STEP``: their episode
-        ended in the last step); all False with ``SAME_STEP``."""
+        ended in the last step; ``DISABLED``: ended and not reset yet, so the next step raises); all False with
+        ``SAME_STEP``."""
         return self._autoreset.copy()
 
     def render(self) -> tuple[np.ndarray, ...] | None:
@@ -157,12 +162,40 @@ class LatentVectorEnv(VectorEnv):
         return tuple(self.sim.draw(self._view, i) for i in range(self.num_envs))
 
     def get_state(self) -> dict[str, Any]:
-        """The batched dynamic state (see :meth:`redsim.envs.base.LatentSim.get_state`)."""
-        return self.sim.get_state()
+        """The batched dynamic state (:meth:`redsim.envs.base.LatentSim.get_state`) and each copy's episode clock:
+        ``elapsed_steps`` [N] (int) and ``autoresetting`` [N] (bool), so a restored state steps exactly alike,
+        episode ends and autoresets included."""
+        clock = {"elapsed_steps": self._elapsed.copy(), "autoresetting": self._autoreset.copy()}
+        return {**self.sim.get_state(), **clock}
 
     def set_state(self, state: dict[str, Any]) -> None:
-        self.sim.set_state(state)
+        """Restore :meth:`get_state`'s state. Without the episode clock (a batched state of the simulation alone),
+        every copy's episode count starts at 0 and none is pending an autoreset.
+
+        Raises:
+            ValueError: a state of another env or batch, or a clock of another shape.
+        """
+        elapsed = np.asarray(state.get("elapsed_steps", np.zeros(self.num_envs)))
+        pending = np.asarray(state.get("autoresetting", np.zeros(self.num_envs, dtype=bool)))
+        if elapsed.shape != (self.num_envs,) or pending.shape != (self.num_envs,) or (elapsed < 0).any():
+            raise ValueError(
+                f"state['elapsed_steps'] and state['autoresetting'] must have shape ({self.num_envs},), "
+                f"the first >= 0; got {elapsed.shape} and {pending.shape}"
+            )
+        self.sim.set_state({k: v for k, v in state.items() if k not in ("elapsed_steps", "autoresetting")})
+        self._elapsed[:] = elapsed.astype(np.int64)
+        self._autoreset[:] = pending.astype(bool) & (self.metadata["autoreset_mode"] != AutoresetMode.SAME_STEP)
         self._started = True
+
+    def _per_copy(self, name: str) -> tuple[Any, ...]:
+        if name == "render":
+            frames = self.render()
+            return frames if frames is not None else (None,) * self.num_envs
+        if name == "get_state":
+            state = self.sim.get_state()
+            return tuple(state_row(state, i) for i in range(self.num_envs))
+        q = self.sim.positions(self.sim.z).detach().cpu().numpy()  # configuration
+        return tuple(q[i] for i in range(self.num_envs))
 
     def close_extras(self, **kwargs: Any) -> None:
         self.template.close()
@@ -174,13 +207,11 @@ def check_vector_args(
     """The autoreset mode, after checking a vector env's arguments.
 
     Raises:
-        ValueError: a bad copy count, episode length or autoreset mode (NEXT_STEP and SAME_STEP only).
+        ValueError: a bad copy count, episode length or autoreset mode.
     """
     if int(num_envs) != num_envs or num_envs < 1:
         raise ValueError(f"num_envs must be an integer >= 1, got {num_envs!r}")
     mode = AutoresetMode(autoreset_mode)
-    if mode not in (AutoresetMode.NEXT_STEP, AutoresetMode.SAME_STEP):
-        raise ValueError(f"autoreset_mode must be NEXT_STEP or SAME_STEP, got {mode}")
     if max_episode_steps is not None and (int(max_episode_steps) != max_episode_steps or max_episode_steps < 1):
         raise ValueError(f"max_episode_steps must be None or an integer >= 1, got {max_episode_steps!r}")
     return mode
@@ -208,6 +239,15 @@ def _native(
     )
 
 
+def registered_steps(env_class: type[LatentEnv]) -> int | None:
+    """The ``max_episode_steps`` of the registered ids of ``env_class`` (None: not registered, or ids disagree)."""
+    from redsim.envs import ENVS
+
+    module = env_class.__module__.rsplit(".", 1)[-1]
+    steps = {n for mod, cls, n, _ in ENVS.values() if (mod, cls) == (module, env_class.__name__)}
+    return steps.pop() if len(steps) == 1 else None
+
+
 def vector_entry(env_class: type[LatentEnv]) -> Callable[..., LatentVectorEnv | ShardedVectorEnv]:
     """The ``vector_entry_point`` of a registered env class (Gymnasium passes ``num_envs`` and the spec's kwargs)."""
 
@@ -221,6 +261,10 @@ def vector_entry(env_class: type[LatentEnv]) -> Callable[..., LatentVectorEnv | 
     ) -> LatentVectorEnv | ShardedVectorEnv:
         if kwargs.get("render_mode") == "human":  # before any env or worker is made (or a display is asked for)
             raise ValueError(NO_HUMAN)
+        if max_episode_steps is None:  # as gym.make: None is the id's episode length, -1 none
+            max_episode_steps = registered_steps(env_class)
+        elif max_episode_steps == -1:
+            max_episode_steps = None
         build = functools.partial(_native, env_class, kwargs, max_episode_steps, autoreset_mode)
         if shards == 1:
             return build(num_envs)
@@ -232,7 +276,8 @@ def vector_entry(env_class: type[LatentEnv]) -> Callable[..., LatentVectorEnv | 
 
     make_vec.__doc__ = (
         f"A :class:`LatentVectorEnv` of ``num_envs`` copies of :class:`{env_class.__name__}`; with ``shards`` P > 1,"
-        " a :class:`redsim.envs.sharded.ShardedVectorEnv` of them in P worker processes."
+        " a :class:`redsim.envs.sharded.ShardedVectorEnv` of them in P worker processes. ``max_episode_steps`` as"
+        " in ``gym.make``: None is the registered id's episode length, -1 no limit."
     )
     return make_vec
 

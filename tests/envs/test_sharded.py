@@ -83,8 +83,6 @@ def test_bad_input_is_a_clear_error_and_a_failing_worker_raises_in_the_caller() 
         shard_sizes(2, 3)
     with pytest.raises(ValueError, match="shards must be an integer in"):
         make(shards=0)
-    with pytest.raises(ValueError, match="autoreset_mode must be NEXT_STEP or SAME_STEP"):
-        make(shards=2, autoreset_mode=AutoresetMode.DISABLED)
     with pytest.raises(ValueError, match="unknown hessian"):  # raised here, before any worker starts
         make(shards=2, stepper_options={"hessian": "unknown"})
     venv = make(shards=2)

@@ -1,0 +1,108 @@
+"""Gymnasium's per-copy vector API (``get_attr``, ``set_attr``, ``call``, ``reset_mask``) for redsim's vector envs.
+
+The copies of a :class:`redsim.envs.vector.LatentVectorEnv` (or of a sharded one) are rows of one batched
+simulation built from one template env, so they share every setting: ``get_attr`` answers the template's value
+for each copy, ``set_attr`` is refused (make the vector env with the setting instead), and ``call`` answers the
+per-copy methods from the batched state (:data:`PER_COPY_CALLS`), a goal env's pure reward functions
+(:data:`SHARED_METHODS`) and plain attributes, as ``SyncVectorEnv.call`` does.
+"""
+
+from __future__ import annotations
+
+from typing import TYPE_CHECKING, Any
+
+import numpy as np
+
+if TYPE_CHECKING:
+    from redsim.envs.base import LatentEnv
+
+SHARED_METHODS = ("compute_reward", "compute_terminated", "compute_truncated")
+"""Methods answered for every copy by the template: pure functions of their arguments (a goal env's)."""
+
+PER_COPY_CALLS = ("get_state", "configuration", "render")
+"""Methods ``call`` answers copy by copy, from the batched simulation (no arguments)."""
+
+STATEFUL = ("sim", "np_random", "np_random_seed", "reset", "step", "set_state", "trimeshes", "close")
+"""The template's attributes that are not its copies' (its never-stepped state and generator, its own calls)."""
+
+
+class SharedCopies:
+    """``get_attr`` / ``set_attr`` / ``call`` of a vector env whose copies share ``template``'s settings."""
+
+    template: LatentEnv
+    num_envs: int
+    single_observation_space: Any
+    single_action_space: Any
+
+    def get_attr(self, name: str) -> tuple[Any, ...]:
+        """Each copy's ``name``: the single observation or action space, or the setting of the env every copy runs
+        (``dt``, ``metadata``, ``scene``, ``task`` settings, ...).
+
+        Raises:
+            AttributeError: an attribute that holds a copy's state (:data:`STATEFUL`, :data:`PER_COPY_CALLS`: use
+                ``call(name)``) or one the env does not have.
+        """
+        if name in ("observation_space", "action_space"):
+            value = getattr(self, f"single_{name}")
+        elif name in STATEFUL or name in PER_COPY_CALLS:
+            raise AttributeError(
+                f"{name!r} is not one value per copy here (the copies are rows of one batched simulation); "
+                f"call({name!r}) answers {list(PER_COPY_CALLS)} copy by copy, get_state() the whole batch"
+            )
+        else:
+            value = getattr(self.template, name)
+        return tuple(value for _ in range(self.num_envs))
+
+    def set_attr(self, name: str, values: Any) -> None:
+        raise AttributeError(
+            f"cannot set {name!r} per copy: the copies share one simulation and its settings; make the vector env "
+            "with the setting instead (gym.make_vec(ENV_ID, num_envs=N, KEY=VALUE))"
+        )
+
+    def call(self, name: str, *args: Any, **kwargs: Any) -> tuple[Any, ...]:
+        """Each copy's ``name(*args, **kwargs)`` (:data:`PER_COPY_CALLS`, :data:`SHARED_METHODS`), or its attribute.
+
+        Raises:
+            AttributeError: another method (the copies have no methods of their own), or a state attribute.
+            TypeError: arguments to a per-copy method.
+        """
+        if name in PER_COPY_CALLS:
+            if args or kwargs:
+                raise TypeError(f"call({name!r}) takes no arguments")
+            return self._per_copy(name)
+        value = self.get_attr(name)[0]
+        if not callable(value):
+            return tuple(value for _ in range(self.num_envs))
+        if name not in SHARED_METHODS:
+            raise AttributeError(
+                f"call({name!r}): the copies share one simulation and have no methods of their own; call answers "
+                f"{list(PER_COPY_CALLS + SHARED_METHODS)} and attributes"
+            )
+        result = value(*args, **kwargs)
+        return tuple(result for _ in range(self.num_envs))
+
+    def _per_copy(self, name: str) -> tuple[Any, ...]:
+        """The answer of copy 0 .. N-1 to the method ``name`` of :data:`PER_COPY_CALLS`."""
+        raise NotImplementedError
+
+
+def reset_mask(options: dict[str, Any] | None, num_envs: int) -> np.ndarray | None:
+    """``options["reset_mask"]`` checked as Gymnasium's sync vector env does (None: reset every copy).
+
+    Raises:
+        TypeError: not a NumPy bool array.
+        ValueError: not of shape [N], or no copy in it.
+    """
+    if not options or "reset_mask" not in options:
+        return None
+    mask = options["reset_mask"]
+    if not isinstance(mask, np.ndarray) or mask.dtype != np.bool_:
+        raise TypeError(f"options['reset_mask'] must be a numpy array of dtype np.bool_, got {mask!r:.80}")
+    if mask.shape != (num_envs,):
+        raise ValueError(f"options['reset_mask'] must have shape ({num_envs},), got {mask.shape}")
+    if not mask.any():
+        raise ValueError("options['reset_mask'] must reset at least one copy (all False)")
+    return mask
+
+
+__all__ = ["PER_COPY_CALLS", "SHARED_METHODS", "STATEFUL", "SharedCopies", "reset_mask"]

@@ -1,0 +1,113 @@
+"""Gymnasium's vector API on the native and the sharded vector env: get_attr / set_attr / call, reset masks,
+the autoreset modes, the episode clock in get_state, and max_episode_steps as gym.make reads it."""
+
+from __future__ import annotations
+
+import gymnasium as gym
+import numpy as np
+import pytest
+from gymnasium.vector import AutoresetMode
+
+import redsim  # noqa: F401  (registers the ids)
+
+ID = "RedSim/MiniChain-v0"
+PUSH = np.full((2, 3), 0.5, np.float32)
+
+
+def _vec(**kwargs):
+    return gym.make_vec(ID, num_envs=2, vectorization_mode="vector_entry_point", **kwargs)
+
+
+@pytest.mark.parametrize("shards", [1, 2])
+def test_get_attr_call_and_set_attr_as_the_sync_vector_env(shards: int) -> None:
+    venv, sync = _vec(shards=shards), gym.make_vec(ID, num_envs=2, vectorization_mode="sync")
+    try:
+        venv.reset(seed=0)
+        sync.reset(seed=0)
+        for name in ("dt", "observation_space", "action_space"):
+            assert venv.get_attr(name) == sync.get_attr(name), name
+        assert venv.call("dt") == sync.call("dt")
+        states = venv.call("get_state")
+        assert len(states) == 2 and set(states[1]) == set(sync.call("get_state")[1])
+        single = gym.make(ID)
+        single.reset(seed=1)
+        np.testing.assert_allclose(states[1]["z"], single.unwrapped.get_state()["z"], atol=1e-6)
+        venv.step(np.array([[1, 0, 0], [0, 1, 0]], np.float32))
+        sync.step(np.array([[1, 0, 0], [0, 1, 0]], np.float32))
+        q = venv.call("configuration")
+        assert len(q) == 2 and not np.array_equal(q[0], q[1])
+        np.testing.assert_allclose(np.stack(q), np.stack(sync.call("configuration")), atol=1e-4)
+        with pytest.raises(AttributeError, match="share one simulation"):
+            venv.set_attr("dt", [0.1, 0.1])
+        with pytest.raises(AttributeError, match="copy by copy"):
+            venv.get_attr("sim")
+        with pytest.raises(AttributeError, match="no methods of their own"):
+            venv.call("get_wrapper_attr", "dt")
+        with pytest.raises(TypeError, match="no arguments"):
+            venv.call("configuration", 1)
+    finally:
+        venv.close()
+        sync.close()
+
+
+def test_set_state_restores_the_episode_clock_after_an_episode_ended() -> None:
+    """A state saved mid-episode and restored after the episode ended steps as it did (no pending autoreset)."""
+    venv = _vec(max_episode_steps=3)
+    venv.reset(seed=0)
+    saved = venv.get_state()
+    expected, reward, *_ = venv.step(PUSH)
+    for _ in range(2):
+        venv.step(PUSH)
+    assert venv.autoresetting.all()
+    venv.set_state(saved)
+    obs, again, *_ = venv.step(PUSH)
+    np.testing.assert_array_equal(obs, expected)
+    np.testing.assert_array_equal(again, reward)
+    _, _, _, truncated, _ = venv.step(PUSH)
+    _, _, _, truncated, _ = venv.step(PUSH)
+    assert truncated.all()  # the restored clock: step 3 of the episode truncates
+    with pytest.raises(ValueError, match="elapsed_steps"):
+        venv.set_state({**saved, "elapsed_steps": np.zeros(3)})
+
+
+def test_reset_masks_are_checked_as_the_sync_vector_env_checks_them() -> None:
+    venv = _vec()
+    venv.reset(seed=0)
+    with pytest.raises(TypeError, match="dtype np"):
+        venv.reset(options={"reset_mask": np.array([0, 1])})
+    with pytest.raises(ValueError, match="at least one"):
+        venv.reset(options={"reset_mask": np.array([False, False])})
+    with pytest.raises(ValueError, match="shape"):
+        venv.reset(options={"reset_mask": np.array([True])})
+
+
+@pytest.mark.parametrize("shards", [1, 2])
+def test_disabled_autoreset_leaves_ended_copies_to_the_caller(shards: int) -> None:
+    venv = _vec(max_episode_steps=2, autoreset_mode=AutoresetMode.DISABLED, shards=shards)
+    sync = gym.make_vec(ID, 2, "sync", max_episode_steps=2, vector_kwargs={"autoreset_mode": AutoresetMode.DISABLED})
+    for env in (venv, sync):
+        env.reset(seed=0)
+    for _ in range(2):
+        obs, reward, _, truncated, _ = venv.step(PUSH)
+        sync_obs, sync_reward, _, sync_truncated, _ = sync.step(PUSH)
+        np.testing.assert_allclose(obs, sync_obs, atol=5e-3)  # float32 solves: equal to their tolerance
+        np.testing.assert_allclose(reward, sync_reward, atol=5e-3)
+        np.testing.assert_array_equal(truncated, sync_truncated)
+    assert truncated.all()
+    venv.reset(options={"reset_mask": np.array([True, False])})
+    with pytest.raises(RuntimeError, match=r"copies \[1\] ended"):  # sync asserts the same
+        venv.step(PUSH)
+    venv.reset(options={"reset_mask": np.array([False, True])})
+    _, _, _, truncated, _ = venv.step(PUSH)
+    assert not truncated.any()
+
+
+def test_max_episode_steps_none_is_the_ids_and_minus_one_is_none() -> None:
+    assert _vec(max_episode_steps=None).max_episode_steps == 200
+    assert _vec(max_episode_steps=-1).max_episode_steps is None
+    assert _vec().max_episode_steps == 200
+
+
+def test_render_fps_is_the_frame_rate_of_simulated_time() -> None:
+    assert gym.make(ID).metadata["render_fps"] == 50
+    assert gym.make(ID, frame_skip=3).metadata["render_fps"] == pytest.approx(50 / 3)
