@@ -19,6 +19,7 @@ from __future__ import annotations
 
 import importlib.util
 import math
+import numbers
 import os
 import sys
 from collections.abc import Mapping, Sequence
@@ -691,11 +692,8 @@ class LatentEnv(gym.Env[np.ndarray, np.ndarray]):
         low, high = self.sim.observation_bounds()
         self.observation_space = spaces.Box(low, high, dtype=np.float32)
         self.observation_structure = self.sim.observation_structure()
-        self._render_size = (int(width), int(height))
-        self._camera = dict(camera or {})
-        unknown = sorted(set(self._camera) - set(CAMERA_KEYS))
-        if unknown:
-            raise ValueError(f"unknown camera keys {unknown}; valid: {list(CAMERA_KEYS)}")
+        self._render_size = _image_size(width, height)
+        self._camera = _camera(camera)
         self._view: Any = None
         self._window: Any = None
         self._reset_done = False
@@ -845,6 +843,27 @@ def check_action(action: Any, shape: tuple[int, ...]) -> np.ndarray:
     if not np.all(np.isfinite(act)):
         raise ValueError(f"action must be finite, got {act.tolist()}")
     return np.clip(act, -1.0, 1.0).astype(np.float32)
+
+
+def _image_size(width: Any, height: Any) -> tuple[int, int]:
+    """(width, height) [px], checked here rather than at the first ``render()``."""
+    if any(isinstance(v, bool) or not isinstance(v, numbers.Integral) or v < 8 for v in (width, height)):
+        raise ValueError(f"width and height must be integers >= 8 [px], got {width!r} x {height!r}")
+    return int(width), int(height)
+
+
+def _camera(camera: Mapping[str, Any] | None) -> dict[str, float]:
+    """The ``camera`` settings, checked (:data:`CAMERA_KEYS`: finite numbers [deg], a margin >= 0)."""
+    camera = dict(camera or {})
+    unknown = sorted(set(camera) - set(CAMERA_KEYS))
+    if unknown:
+        raise ValueError(f"unknown camera keys {unknown}; valid: {list(CAMERA_KEYS)}")
+    for key, value in camera.items():
+        if isinstance(value, bool) or not isinstance(value, numbers.Real) or not math.isfinite(value):
+            raise ValueError(f"camera[{key!r}] must be a finite number, got {value!r}")
+    if camera.get("margin", 0.0) < 0.0:
+        raise ValueError(f"camera['margin'] must be >= 0 (a fraction of the frame), got {camera['margin']!r}")
+    return {k: float(v) for k, v in camera.items()}
 
 
 def copy_seeds(seed: int | Sequence[int | None] | None, count: int) -> tuple[int | None, list[Any] | None]:

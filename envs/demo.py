@@ -16,6 +16,16 @@ import gymnasium as gym
 import numpy as np
 
 
+def demo_name(env_id: str) -> str:
+    """The file stem of an id's demo: the task in lower case, with its version past v0 (``RedSim/Chain-v0`` ->
+    ``chain``, ``RedSim/BistableBar-v1`` -> ``bistablebar_v1``), so the versions of one task do not overwrite
+    each other."""
+    name, dash, version = env_id.split("/")[-1].rpartition("-")
+    if not dash:
+        return version.lower()
+    return name.lower() if version == "v0" else f"{name.lower()}_{version}"
+
+
 def run_demo(
     env_id: str,
     out: str | Path,
@@ -28,7 +38,8 @@ def run_demo(
     policy: Any = None,
     **env_kwargs: Any,
 ) -> dict[str, Any]:
-    """Run one scripted episode of ``env_id``, writing ``OUT/<name>.gif`` and ``OUT/<name>.png``.
+    """Run one scripted episode of ``env_id``, writing ``OUT/<name>.gif`` and ``OUT/<name>.png``
+    (:func:`demo_name`).
 
     Args:
         env_id: A registered id.
@@ -81,8 +92,7 @@ def run_demo(
             break
     out = Path(out)
     out.mkdir(parents=True, exist_ok=True)
-    name = env_id.split("/")[-1].split("-")[0].lower()
-    gif, png = out / f"{name}.gif", out / f"{name}.png"
+    gif, png = (out / f"{demo_name(env_id)}{suffix}" for suffix in (".gif", ".png"))
     images = [Image.fromarray(f) for f in frames]
     duration = round(1000.0 * core.dt * frame_every)
     images[0].save(gif, save_all=True, append_images=images[1:], duration=duration, loop=0)
@@ -101,4 +111,4 @@ def run_demo(
     }
 
 
-__all__ = ["run_demo"]
+__all__ = ["demo_name", "run_demo"]

@@ -32,6 +32,9 @@ from redsim.effects.external import ExternalLoad, Gravity
 from redsim.points import PointSet
 from redsim.tensors import cast_tensors
 
+SOURCE_PARAMS = ("source", "mesh_sha256")
+"""Build parameters that record where a mesh scene was read from, not what it is (left out of its fingerprint)."""
+
 
 @dataclass(frozen=True)
 class Handle:
@@ -372,9 +375,12 @@ class Scene:
         return scipy.sparse.csr_matrix((M.values().numpy(), (rows, cols)), shape=tuple(M.shape))
 
     # -- bookkeeping ----------------------------------------------------------------------
-    def fingerprint(self) -> str:
-        """Hash of the scene name and build parameters (checkpoints refuse other scenes)."""
-        blob = json.dumps({"name": self.name, "params": self.params}, sort_keys=True, default=str)
+    def fingerprint(self, *, with_source: bool = False) -> str:
+        """Hash of the scene name and build parameters (checkpoints refuse other scenes). Where a mesh was read
+        from (:data:`SOURCE_PARAMS`) is left out: its geometry is in ``mesh_digest``, so a project copied elsewhere
+        holds the same scene; ``with_source`` hashes them too (the fingerprint written before this rule)."""
+        params = self.params if with_source else {k: v for k, v in self.params.items() if k not in SOURCE_PARAMS}
+        blob = json.dumps({"name": self.name, "params": params}, sort_keys=True, default=str)
         return hashlib.sha256(blob.encode()).hexdigest()[:16]
 
     def to(self, device: torch.device | str | None = None, dtype: torch.dtype | None = None) -> Scene:

@@ -182,8 +182,12 @@ def test_an_out_that_cannot_be_written_is_refused_before_any_work(cli: Cli, tmp_
     from redsim import pretrained
 
     for argv in (["fit", "toy_two_tets", *SMALL, "--steps", "2"], ["sample", str(pretrained.path("mini_chain"))]):
-        code, _, err = cli(*argv, "--out", ".")
-        assert code == 2 and err.count("\n") == 1 and "--out must name" in err, err
+        for folder in (".", str(tmp_path) + "/", str(tmp_path / "new") + "/"):  # a folder, not a file in it
+            code, _, err = cli(*argv, "--out", folder)
+            assert code == 2 and err.count("\n") == 1 and "is a folder; name a file in it" in err, err
+    assert not (tmp_path / "new").exists() and not (tmp_path.parent / f"{tmp_path.name}.npz").exists()
+    code, _, err = cli("animate", str(pretrained.path("mini_chain")), "--fps", "0", "--out", str(tmp_path / "a.gif"))
+    assert code == 2 and "--fps must be" in err and not (tmp_path / "a.gif").exists()
 
 
 def test_an_out_folder_that_is_a_file_is_refused_before_any_work(cli: Cli, tmp_path: Path) -> None:

@@ -37,6 +37,7 @@ import json
 import logging
 import pickle
 import re
+import shutil
 import time
 from collections.abc import Mapping
 from dataclasses import dataclass
@@ -426,7 +427,8 @@ def evaluate(
 def model_record(path: str | Path) -> dict[str, Any]:
     """The env id and algorithm a model file of :func:`train_agent` was trained with, whether it acts
     through normalized observations, the observation blocks of a goal-conditioned (HER) model (else None), and
-    the copies it was trained on (``"env_id"``, ``"algo"``, ``"normalized"``, ``"goal"``, ``"n_envs"``).
+    the copies it was trained on, and the env's keyword arguments (``"env_id"``, ``"algo"``, ``"normalized"``,
+    ``"goal"``, ``"n_envs"``, ``"env_kwargs"``: None for a model that does not record them).
 
     Raises:
         FileNotFoundError: no such file.
@@ -449,6 +451,7 @@ def model_record(path: str | Path) -> dict[str, Any]:
         "normalized": bool(data.get("redsim_normalized", False)),
         "goal": data.get("redsim_goal"),
         "n_envs": data.get("n_envs"),
+        "env_kwargs": data.get("redsim_env_kwargs"),
     }
 
 
@@ -643,6 +646,42 @@ def _normalizer_saver(path: Path) -> Any:
     return NormalizerSaver()
 
 
+RUN_FILES = (
+    "model.zip",
+    "best_model.zip",
+    "replay_buffer.pkl",
+    "evaluations.npz",
+    "curve.csv",
+    "curve.png",
+    "policy.gif",
+    "agent.json",
+)
+"""The files of a run in its folder (module doc), with the normalizers beside the models and ``checkpoints/``."""
+
+
+def _check_run_folder(out: Path, resume: bool, overwrite: bool) -> None:
+    """Refuse to start a run where one is (unless ``overwrite``), or to resume and overwrite at once."""
+    if resume and overwrite:
+        raise ValueError("resume and overwrite exclude each other (--resume continues a run, --overwrite replaces it)")
+    if resume or overwrite:
+        return
+    found = sorted(p.name for p in map(out.joinpath, RUN_FILES) if p.is_file())
+    if found or any((out / "checkpoints").glob("rl_model_*")):
+        raise ValueError(
+            f"{out} holds a run ({', '.join(found) or 'checkpoints/'}): continue it with --resume (resume=True) or "
+            "replace it with --overwrite (overwrite=True), or give another --out"
+        )
+
+
+def _remove_run(out: Path) -> None:
+    """Delete a run's files from ``out`` (RUN_FILES, their normalizers, ``checkpoints/``); nothing else there."""
+    for name in RUN_FILES:
+        (out / name).unlink(missing_ok=True)
+        if name.endswith(".zip"):
+            normalizer_path(out / name).unlink(missing_ok=True)
+    shutil.rmtree(out / "checkpoints", ignore_errors=True)
+
+
 def _resume_from(out: Path) -> Path | None:
     """The newest of ``out/model.zip`` and the checkpoints (None: nothing to resume from)."""
     found = [p for p in [out / "model.zip", *(out / "checkpoints").glob("rl_model_*_steps.zip")] if p.is_file()]
@@ -781,6 +820,7 @@ def train_agent(
     final_episodes: int = 20,
     checkpoint_every: int | None = None,
     resume: bool = False,
+    overwrite: bool = False,
     progress_bar: bool = False,
     video: bool = True,
     overrides: Mapping[str, Any] | None = None,
@@ -801,7 +841,10 @@ def train_agent(
         eval_episodes: Episodes per evaluation during training.
         final_episodes: Seeded episodes of the final evaluation (in ``agent.json``).
         checkpoint_every: Env steps between checkpoints (default: ``steps / 4``).
-        resume: Continue from the newest of ``out/model.zip`` and ``out/checkpoints/*.zip``.
+        resume: Continue from the newest of ``out/model.zip`` and ``out/checkpoints/*.zip`` (with the same
+            ``env_kwargs``).
+        overwrite: Replace a run already in ``out`` (its files of the module doc); without it (or ``resume``) a
+            run there is refused, so that nothing is mixed or lost.
         progress_bar: Show SB3's progress bar (needs ``rich``).
         video: Write ``policy.gif`` (a user's env only when made with ``render_mode="rgb_array"``).
         overrides: Settings that replace the table's (e.g. ``{"learning_rate": 3e-4}``).
@@ -813,7 +856,8 @@ def train_agent(
 
     Raises:
         ValueError: an unknown id or algorithm, bad counts, ``her`` with PPO, another task or shards, a budget
-            that ends no episode of every copy, or (resume) a model of another env, algorithm or replay.
+            that ends no episode of every copy, a run already in ``out`` (neither ``resume`` nor ``overwrite``),
+            or (resume) a model of another env, algorithm, replay or ``env_kwargs``.
     """
     from stable_baselines3.common.callbacks import CallbackList, CheckpointCallback, EvalCallback
     from stable_baselines3.common.noise import NormalActionNoise
@@ -840,6 +884,7 @@ def train_agent(
         _her_settings(settings, algo, copies, _episode_steps(env, env_kwargs), int(steps))
     out = Path(out)
     cls = _algo_class(algo)
+    _check_run_folder(out, resume, overwrite)
     previous = _resume_from(out) if resume else None
     buffer = previous is not None and previous == out / "model.zip" and algo != "ppo" and (out / BUFFER).is_file()
     if previous is not None:
@@ -855,6 +900,14 @@ def train_agent(
                 f"cannot resume with {copies} copies: the run's replay buffer {out / BUFFER} holds "
                 f"{found['n_envs']} (give n_envs={found['n_envs']}, --n-envs {found['n_envs']})"
             )
+    kwargs_now = json.loads(json.dumps(dict(env_kwargs or {}), default=str))  # as the model file records them
+    if previous is not None and found["env_kwargs"] not in (None, kwargs_now):
+        raise ValueError(
+            f"cannot resume with env_kwargs {kwargs_now}: {previous} was trained with {found['env_kwargs']} "
+            "(give the same --env-arg and --episode-steps, or another --out)"
+        )
+    if overwrite:
+        _remove_run(out)
     venv = _sb3_env(env, copies, seed, env_kwargs, shards, goal={} if her else None)
     # evaluations score the env's own reward (the goal env with its control cost passes it through)
     eval_env = _sb3_env(
@@ -893,6 +946,7 @@ def train_agent(
     model.redsim_algo = algo
     model.redsim_normalized = isinstance(venv, VecNormalize)
     model.redsim_goal = goal
+    model.redsim_env_kwargs = kwargs_now
 
     wall_offset = float(record.get("wall_s", 0.0)) if previous is not None else 0.0
     curve = _read_curve(out / "curve.csv") if previous is not None else []

@@ -74,6 +74,7 @@ def cmd_train_agent(args: argparse.Namespace) -> int:
             eval_episodes=args.eval_episodes,
             final_episodes=args.final_episodes,
             resume=args.resume,
+            overwrite=args.overwrite,
             progress_bar=not args.json and not args.no_progress,
             video=not args.no_video,
             env_kwargs=_env_kwargs(args),
@@ -169,6 +170,9 @@ def add_commands(sub: Any) -> None:
     p.add_argument("--eval-episodes", type=int, default=10, help="episodes per evaluation (default 10)")
     p.add_argument("--final-episodes", type=int, default=20, help="seeded episodes of the final evaluation")
     p.add_argument("--resume", action="store_true", help="continue the run in DIR up to --steps in all")
+    p.add_argument(
+        "--overwrite", action="store_true", help="replace a run already in DIR (refused without it or --resume)"
+    )
     p.add_argument(
         "--her",
         action="store_true",

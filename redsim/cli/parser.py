@@ -78,8 +78,11 @@ def _check_out(args: argparse.Namespace) -> None:
     out = getattr(args, "out", None)
     if not out:
         return
-    if getattr(args, "out_is_folder", False) and Path(out).exists() and not Path(out).is_dir():
-        raise CliError(f"cannot write into --out {out}: it is a file, not a folder")
+    if getattr(args, "out_is_folder", False):
+        if Path(out).exists() and not Path(out).is_dir():
+            raise CliError(f"cannot write into --out {out}: it is a file, not a folder")
+    elif out.endswith(("/", os.sep)) or Path(out).is_dir():
+        raise CliError(f"--out {out} is a folder; name a file in it (e.g. {Path(out) / 'NAME'})")
     folder = Path(out).absolute().parent
     while not folder.exists() and folder != folder.parent:
         folder = folder.parent

@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import argparse
 import dataclasses
+import math
 from pathlib import Path
 from typing import Any
 
@@ -247,6 +248,8 @@ def cmd_animate(args: argparse.Namespace) -> int:
 
     if args.keys < 2 or args.frames < args.keys:
         raise CliError(f"need --keys >= 2 and --frames >= --keys, got {args.keys} and {args.frames}")
+    if not (math.isfinite(args.fps) and 0.0 < args.fps <= 100.0):  # a GIF's frame time is whole 10 ms
+        raise CliError(f"--fps must be a number of frames per second in (0, 100], got {args.fps}")
     scene, sub = load_checkpoint(args.checkpoint)
     if Path(args.out).suffix.lower() != ".gif":  # before the frames are drawn
         raise CliError(f"--out must name a .gif file, got {args.out!r}")

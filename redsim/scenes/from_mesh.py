@@ -13,6 +13,7 @@ import hashlib
 import os
 
 import numpy as np
+import scipy.spatial
 import torch
 import trimesh
 
@@ -40,6 +41,23 @@ def _mesh_input(mesh_or_path: trimesh.Trimesh | str | os.PathLike[str]) -> tuple
     if isinstance(mesh_or_path, str | os.PathLike):
         return meshes.load_mesh(mesh_or_path), os.path.abspath(os.fspath(mesh_or_path))
     raise ValueError(f"expected a trimesh.Trimesh or a file path, got {type(mesh_or_path).__name__}")
+
+
+def _weld(mesh: trimesh.Trimesh) -> None:
+    """Merge the vertices that share a position (in place). A file's UV seams and per-face normals (a textured or
+    flat-shaded export) split one vertex into several, which would cut cloth apart and open a closed surface."""
+    mesh.merge_vertices(merge_tex=True, merge_norm=True)
+
+
+def _pinned(given: np.ndarray, vertices: np.ndarray, pin: PinSpec, *, tolerance: float) -> np.ndarray:
+    """The indices into ``vertices`` (the welded, cleaned mesh) of the pin. A mask or index list counts the
+    vertices as given (``given`` [V0, D]): they are found again by position; names and callables see ``vertices``."""
+    if pin is None or isinstance(pin, str) or callable(pin):
+        return select_vertices(vertices, pin, tolerance=tolerance)
+    points = given[select_vertices(given, pin, tolerance=tolerance)]
+    distance, index = scipy.spatial.cKDTree(vertices).query(points)
+    scale = max(float(np.abs(vertices).max()), 1.0)
+    return np.unique(index[distance <= 1e-9 * scale])  # a given vertex no triangle uses is not in the cloth
 
 
 def _digest(*arrays: np.ndarray) -> str:
@@ -96,6 +114,7 @@ def fem_scene_from_mesh(
     density = check_positive("density", density)
     gravity = check_bool("gravity", gravity)
     mesh, source = _mesh_input(mesh_or_path)
+    _weld(mesh)
     if not mesh.is_watertight:
         raise ValueError(f"mesh {source!r} is not watertight; a solid needs a closed surface")
     if voxel_pitch is None:
@@ -174,6 +193,8 @@ def cloth_scene_from_mesh(
     density = check_positive("density", density)
     gravity = check_bool("gravity", gravity)
     mesh, source = _mesh_input(mesh_or_path)
+    given = np.asarray(mesh.vertices, dtype=np.float64).copy()
+    _weld(mesh)
     mesh.update_faces(mesh.nondegenerate_faces())
     mesh.remove_unreferenced_vertices()
     if not mesh.is_winding_consistent:
@@ -185,7 +206,7 @@ def cloth_scene_from_mesh(
     except ValueError as exc:
         raise ValueError(f"mesh {source!r} cannot be used as cloth: {exc}") from exc
     diagonal = float(np.linalg.norm(vertices.max(0) - vertices.min(0)))
-    pinned = select_vertices(vertices, pin, tolerance=1e-3 * diagonal)
+    pinned = _pinned(given, vertices, pin, tolerance=1e-3 * diagonal)
     if pinned.size == vertices.shape[0]:
         raise ValueError("pin selects every vertex; nothing would move")
     b = SceneBuilder(dim=3)

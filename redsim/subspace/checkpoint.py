@@ -92,7 +92,8 @@ def check_scene(doc: dict[str, Any], scene: Scene, path: str) -> None:
     """Refuse a checkpoint whose metadata ``doc`` names another scene (name, fingerprint or n)."""
     mine = (doc.get("scene"), doc.get("scene_fingerprint"), (doc.get("config") or {}).get("output_dim"))
     theirs = (scene.name, scene.fingerprint(), scene.free_dof_count)
-    if mine != theirs:
+    legacy = (scene.name, scene.fingerprint(with_source=True), scene.free_dof_count)  # a mesh fit made before
+    if mine not in (theirs, legacy):
         raise CheckpointError(
             f"fitted to scene {mine[0]!r} (fingerprint {mine[1]}, n={mine[2]}), not to scene {theirs[0]!r} "
             f"(fingerprint {theirs[1]}, n={theirs[2]}); build the scene with the parameters in the .json",

@@ -271,6 +271,50 @@ def test_cloth_scene_from_mesh(tmp_path) -> None:
         redsim.scenes.cloth_scene_from_mesh(path, young=0)
 
 
+def test_a_mesh_split_at_uv_seams_or_per_face_normals_is_welded_back(tmp_path) -> None:
+    """A flat-shaded or textured export repeats a vertex per face; the cloth and the solid are the welded mesh."""
+    vertices, triangles = meshes.cloth_grid(0.5, 0.5, (6, 6), origin=(0.0, -0.5, 0.0))
+    whole = redsim.scenes.cloth_scene_from_mesh(trimesh.Trimesh(vertices, triangles), name="sheet")
+    corners = vertices[triangles].reshape(-1, 3)  # each triangle's own three vertices
+    soup = trimesh.Trimesh(corners, np.arange(len(corners)).reshape(-1, 3), process=False)
+    path = tmp_path / "flat.obj"
+    soup.export(path, include_normals=True)
+    for source in (soup, path):
+        split = redsim.scenes.cloth_scene_from_mesh(source, name="sheet")
+        assert split.free_dof_count == whole.free_dof_count
+        assert {e.name: e.element_count for e in split.effects} == {e.name: e.element_count for e in whole.effects}
+    box = trimesh.creation.box(extents=(0.2, 0.1, 0.1))
+    faceted = trimesh.Trimesh(box.vertices[box.faces].reshape(-1, 3), np.arange(36).reshape(-1, 3), process=False)
+    assert redsim.scenes.fem_scene_from_mesh(faceted, voxel_pitch=0.05).free_dof_count > 0  # closed once welded
+
+
+def test_a_pin_index_list_counts_the_vertices_as_given(tmp_path) -> None:
+    vertices, triangles = meshes.cloth_grid(0.5, 0.5, (6, 6), origin=(0.0, 0.0, 0.0))
+    stray = np.vstack([[[5.0, 5.0, 5.0]], vertices])  # a vertex no triangle uses, first
+    bottom = np.nonzero(np.isclose(stray[:, 1], 0.0))[0]
+    scene = redsim.scenes.cloth_scene_from_mesh(trimesh.Trimesh(stray, triangles + 1, process=False), pin=bottom)
+    expected = redsim.scenes.cloth_scene_from_mesh(trimesh.Trimesh(vertices, triangles), pin="min_y")
+    assert scene.free_dof_count == expected.free_dof_count
+    torch.testing.assert_close(scene.q_seed, expected.q_seed)  # the same vertices are free
+
+
+def test_a_copied_mesh_file_is_the_same_scene_and_old_fingerprints_still_load(tmp_path) -> None:
+    vertices, triangles = meshes.cloth_grid(0.5, 0.5, (4, 4), origin=(0.0, -0.5, 0.0))
+    (tmp_path / "a").mkdir()
+    (tmp_path / "b").mkdir()
+    for folder in ("a", "b"):
+        trimesh.Trimesh(vertices, triangles).export(tmp_path / folder / "sheet.obj")
+    first, copy = (redsim.scenes.cloth_scene_from_mesh(tmp_path / f / "sheet.obj") for f in ("a", "b"))
+    assert first.params["source"] != copy.params["source"] and first.fingerprint() == copy.fingerprint()
+    from redsim.subspace import check_scene
+
+    doc = {"scene": first.name, "scene_fingerprint": first.fingerprint(with_source=True)}
+    doc["config"] = {"output_dim": first.free_dof_count}
+    check_scene(doc, first, "old.json")  # a fit written when the path was part of the fingerprint
+    with pytest.raises(redsim.subspace.CheckpointError, match="fitted to scene"):
+        check_scene({**doc, "scene_fingerprint": copy.fingerprint(with_source=True)}, first, "old.json")
+
+
 # -- mechanisms --------------------------------------------------------------------------------
 def _rotate_about_z(transform: torch.Tensor, pivot: torch.Tensor, angle: float) -> torch.Tensor:
     c, s = math.cos(angle), math.sin(angle)

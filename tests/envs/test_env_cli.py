@@ -115,3 +115,11 @@ def test_demo_runs_the_steps_asked_for_past_the_ids_time_limit(tmp_path: Path) -
     small = {"frame_every": 10_000, "width": 64, "height": 64}
     short = run_demo("RedSim/MiniChain-v0", tmp_path, steps=4, max_episode_steps=2, **small)
     assert short["steps"] == 4  # steps sets the episode, over a max_episode_steps given with it
+
+
+def test_demo_files_of_two_versions_do_not_overwrite_each_other() -> None:
+    from redsim.envs.demo import demo_name
+
+    assert demo_name("RedSim/Chain-v0") == "chain"
+    assert demo_name("RedSim/BistableBar-v1") == "bistablebar_v1" != demo_name("RedSim/BistableBar-v0")
+    assert demo_name("MyEnv") == "myenv"

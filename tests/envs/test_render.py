@@ -102,3 +102,19 @@ def test_trimesh_export_of_the_full_mesh_per_frame(tmp_path) -> None:
         frames.append(whole.vertices)
         env.step(np.ones(3, np.float32))
     assert np.abs(frames[2] - frames[0]).max() > 1e-3  # m: the chain swung between frames
+
+
+@pytest.mark.parametrize(
+    ("kwargs", "expected"),
+    [
+        ({"camera": {"margin": -0.5}}, "margin"),
+        ({"camera": {"azimuth": float("nan")}}, "finite number"),
+        ({"camera": {"azimuth": "abc"}}, "finite number"),
+        ({"camera": {"zoom": 2}}, "unknown camera keys"),
+        ({"width": 0}, "width and height"),
+        ({"height": 480.5}, "width and height"),
+    ],
+)
+def test_render_settings_are_checked_when_the_env_is_made(kwargs: dict, expected: str) -> None:
+    with pytest.raises(ValueError, match=expected):
+        gym.make("RedSim/MiniChain-v0", render_mode="rgb_array", **kwargs)

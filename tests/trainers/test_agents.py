@@ -101,6 +101,7 @@ def test_train_resume_and_evaluate_through_the_cli(cli: Callable[..., tuple[int,
     for name in ("model.zip", "best_model.zip", "curve.csv", "curve.png", "policy.gif", "agent.json"):
         assert (out / name).stat().st_size > 0, name
     record = {"env_id": MINI, "algo": "sac", "normalized": True, "goal": None, "n_envs": 4}
+    record["env_kwargs"] = {"max_force": 3.0, "max_episode_steps": 20}
     assert model_record(out / "model.zip") == record
     assert load_agent(out / "model.zip").model._n_updates > 0  # a 200-step run starts learning halfway, not never
     assert (out / "model.zip").stat().st_size < 1_000_000
@@ -109,9 +110,15 @@ def test_train_resume_and_evaluate_through_the_cli(cli: Callable[..., tuple[int,
         first_best = float(first["results"].mean(axis=1).max())
     best_bytes = (out / "best_model.zip").read_bytes()
 
-    code, stdout, err = cli(
-        "train-agent", MINI, "--algo", "sac", "--steps", "300", "--out", str(out), *TINY, "--resume", "--no-video"
-    )
+    # the same --out again: refused, not mixed into the run; a resume in another env: refused
+    again = ("train-agent", MINI, "--algo", "sac", "--steps", "300", "--out", str(out), *TINY)
+    code, _, err = cli(*again, "--env-arg", "max_force=3.0")
+    assert code == 2 and "holds a run" in err and "--overwrite" in err and (out / "best_model.zip").is_file()
+    code, _, err = cli(*again, "--resume", "--no-video")
+    assert code == 2 and "cannot resume with env_kwargs" in err and "'max_force': 3.0" in err
+    code, _, err = cli(*again, "--resume", "--overwrite")
+    assert code == 2 and "exclude each other" in err
+    code, stdout, err = cli(*again, "--env-arg", "max_force=3.0", "--resume", "--no-video")
     assert code == 0, err
     assert load_agent(out / "model.zip", MINI).num_timesteps == 300
     with (out / "curve.csv").open() as handle:
