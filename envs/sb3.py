@@ -15,6 +15,7 @@ relabels through ``env_method("compute_reward", ...)``.
 
 from __future__ import annotations
 
+import time
 from collections.abc import Mapping, Sequence
 from typing import Any
 
@@ -35,6 +36,9 @@ class SB3VecEnv(VecEnv):
 
     The copies share one simulation: ``get_attr`` reads the env's (the same for every copy), ``set_attr`` and
     per-copy methods are refused, and ``env_method`` answers only :data:`SHARED_METHODS` the vector env defines.
+    An ended copy's info carries SB3 ``Monitor``'s ``"episode"`` (``r`` return, ``l`` length, ``t`` seconds since
+    this env was made), so SB3 logs ``rollout/ep_rew_mean`` and its evaluations read returns as from a Monitor
+    (``env_is_wrapped(Monitor)`` is True); an ``"episode"`` from a wrapper inside is kept.
 
     Args:
         venv: The vector env.
@@ -50,6 +54,9 @@ class SB3VecEnv(VecEnv):
         super().__init__(venv.num_envs, venv.single_observation_space, venv.single_action_space)
         self.render_mode = venv.render_mode
         self._actions: np.ndarray | None = None
+        self._returns = np.zeros(self.num_envs)
+        self._lengths = np.zeros(self.num_envs, dtype=np.int64)
+        self._start = time.time()
 
     @classmethod
     def make(cls, env_id: str, num_envs: int, *, goal: bool | Mapping[str, Any] = False, **kwargs: Any) -> SB3VecEnv:
@@ -79,6 +86,7 @@ class SB3VecEnv(VecEnv):
     def reset(self) -> np.ndarray:
         seed = self._seeds[0] if all(s is not None for s in self._seeds) else None
         obs, _ = self.venv.reset(seed=seed)
+        self._returns[:], self._lengths[:] = 0.0, 0
         self.reset_infos = [{} for _ in range(self.num_envs)]
         self._reset_seeds()
         self._reset_options()
@@ -90,6 +98,8 @@ class SB3VecEnv(VecEnv):
     def step_wait(self) -> tuple[np.ndarray, np.ndarray, np.ndarray, list[dict[str, Any]]]:
         obs, reward, terminated, truncated, info = self.venv.step(self._actions)
         done = terminated | truncated
+        self._returns += reward
+        self._lengths += 1
         infos: list[dict[str, Any]] = []
         for i in range(self.num_envs):
             row = _info_row(info, i)
@@ -97,6 +107,9 @@ class SB3VecEnv(VecEnv):
                 row = {**_info_row(info["final_info"], i), **row}
                 row["terminal_observation"] = info["final_obs"][i]
                 row["TimeLimit.truncated"] = bool(truncated[i] and not terminated[i])
+                episode = {"r": float(self._returns[i]), "l": int(self._lengths[i]), "t": time.time() - self._start}
+                row.setdefault("episode", episode)
+                self._returns[i], self._lengths[i] = 0.0, 0
             infos.append(row)
         return obs, reward.astype(np.float32), done, infos
 
@@ -151,7 +164,10 @@ class SB3VecEnv(VecEnv):
         )
 
     def env_is_wrapped(self, wrapper_class: type[gym.Wrapper], indices: Any = None) -> list[bool]:
-        return [False for _ in self._get_indices(indices)]
+        """True for SB3's ``Monitor`` (the episode statistics come with the infos), else False."""
+        from stable_baselines3.common.monitor import Monitor
+
+        return [wrapper_class is Monitor for _ in self._get_indices(indices)]
 
 
 def _info_row(info: Mapping[str, Any], i: int) -> dict[str, Any]:

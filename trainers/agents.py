@@ -219,14 +219,13 @@ def _sb3_env(
     shards: int = 1,
     goal: Mapping[str, Any] | None = None,
 ) -> Any:
-    """SB3's monitored VecEnv of ``num_envs`` copies; ``goal``: goal-conditioned, with these
+    """SB3's VecEnv of ``num_envs`` copies (with Monitor's episode statistics); ``goal``: goal-conditioned, with these
     :class:`redsim.envs.goal.GoalVectorObservation` arguments.
 
     Raises:
         ValueError: ``goal`` with an env that is not a reach env, or with ``shards`` > 1.
     """
     from gymnasium.vector import AutoresetMode
-    from stable_baselines3.common.vec_env import VecMonitor
 
     from redsim.envs.goal import GoalVectorObservation
     from redsim.envs.sb3 import SB3VecEnv
@@ -238,7 +237,7 @@ def _sb3_env(
         except TypeError as err:
             vector.close()
             raise ValueError(f"her: {err}") from err
-    venv = VecMonitor(SB3VecEnv(vector))
+    venv = SB3VecEnv(vector)  # its infos carry Monitor's episode statistics
     venv.seed(seed)
     return venv
 

@@ -111,3 +111,28 @@ def test_max_episode_steps_none_is_the_ids_and_minus_one_is_none() -> None:
 def test_render_fps_is_the_frame_rate_of_simulated_time() -> None:
     assert gym.make(ID).metadata["render_fps"] == 50
     assert gym.make(ID, frame_skip=3).metadata["render_fps"] == pytest.approx(50 / 3)
+
+
+def test_the_sb3_adapter_reports_monitor_episode_statistics() -> None:
+    """SB3 logs ep_rew_mean from info["episode"]: the adapter gives it as VecMonitor would, return and length."""
+    from stable_baselines3.common.monitor import Monitor
+    from stable_baselines3.common.vec_env import VecMonitor
+
+    from redsim.envs.sb3 import SB3VecEnv
+
+    own = SB3VecEnv.make(ID, 2, max_episode_steps=3)
+    monitored = VecMonitor(SB3VecEnv.make(ID, 2, max_episode_steps=3))
+    assert own.env_is_wrapped(Monitor) == [True, True] and own.env_is_wrapped(gym.Wrapper) == [False, False]
+    for venv in (own, monitored):
+        venv.seed(0)
+        venv.reset()
+    total = np.zeros(2)
+    for step in range(3):
+        _, reward, done, infos = own.step(PUSH)
+        _, _, _, monitor_infos = monitored.step(PUSH)
+        total += reward
+        assert done.all() == (step == 2) and ("episode" in infos[0]) == (step == 2)
+    for info, monitor_info, expected in zip(infos, monitor_infos, total, strict=True):
+        assert info["episode"]["l"] == monitor_info["episode"]["l"] == 3
+        assert info["episode"]["r"] == pytest.approx(expected, rel=1e-5)
+        assert info["episode"]["r"] == pytest.approx(monitor_info["episode"]["r"], rel=1e-4, abs=1e-4)
