@@ -75,6 +75,7 @@ def make(
     Raises:
         ValueError: an unknown task name, scene or handle, or a subspace of the wrong size.
         redsim.subspace.CheckpointError: the subspace was fitted to another scene.
+        TypeError: a scene or task of another type.
     """
     from redsim.envs.factory import build
 

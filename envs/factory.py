@@ -32,6 +32,10 @@ def build(
     from redsim import pretrained, scenes
     from redsim.subspace import load_subspace
 
+    if not isinstance(scene, Scene | str):
+        raise TypeError(f"scene must be a redsim.Scene or a catalog name, got {type(scene).__name__}")
+    if not isinstance(task, Task | str):
+        raise TypeError(f"task must be a redsim.envs.base.Task or a task name {sorted(TASKS)}, got {task!r:.60}")
     if isinstance(scene, str):
         name = scene
         scene = scenes.build(name)

@@ -277,3 +277,19 @@ def test_bench_budgets_and_empty_scene_lists_are_refused(cli: Cli, argv: list[st
     code, out, err = cli(*argv)
     assert code == 2 and out == "" and err.count("\n") == 1 and ("--budget" in err or "--scenes" in err), err
 
+
+def test_inspect_prints_the_json_of_a_checkpoint_whose_scene_cannot_be_rebuilt(cli: Cli, tmp_path: Path) -> None:
+    """A fit of an in-memory mesh (Python API) records no file to rebuild its scene from; inspect still reads it."""
+    import json
+    import shutil
+
+    from redsim import pretrained
+
+    shutil.copy(pretrained.path("mini_chain"), tmp_path / "mine.pt")
+    doc = json.loads(pretrained.path("mini_chain").with_suffix(".json").read_text())
+    doc["scene_params"] = {"builder": "cloth", "source": "<trimesh>"}
+    (tmp_path / "mine.json").write_text(json.dumps(doc))
+    code, out, err = cli("inspect", str(tmp_path / "mine.pt"))
+    assert code == 0 and "n=24), d=4" in out and "cannot rebuild the checkpoint's scene" in err, err
+    code, _, err = cli("sample", str(tmp_path / "mine.pt"), "--out", str(tmp_path / "s.npz"))
+    assert code == 2 and "cannot rebuild the checkpoint's scene" in err

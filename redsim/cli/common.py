@@ -38,6 +38,10 @@ class CliError(Exception):
         self.code = code
 
 
+class SceneNotRebuilt(CliError):
+    """A checkpoint whose scene cannot be rebuilt from its ``.json`` (an in-memory mesh, a moved mesh file, ...)."""
+
+
 class Parser(argparse.ArgumentParser):
     """An ArgumentParser whose usage errors become :class:`CliError` (one line, exit status 2)."""
 
@@ -386,7 +390,7 @@ def load_checkpoint(path: str) -> tuple[Scene, Any]:
         try:
             scene = scene_from_spec(doc)
         except (SceneSpecError, TypeError, ValueError) as err:
-            raise CheckpointError(f"cannot rebuild the checkpoint's scene: {err}", str(weights)) from err
+            raise SceneNotRebuilt(f"{weights}: cannot rebuild the checkpoint's scene: {err}") from err
         return scene, load_subspace(path, scene=scene)
     except CheckpointError as err:
         raise CliError(str(err)) from err

@@ -15,6 +15,7 @@ from redsim.cli.common import (
     EXIT_NAN,
     EXIT_OK,
     CliError,
+    SceneNotRebuilt,
     add_scene_args,
     error,
     finish_command,
@@ -183,12 +184,21 @@ def cmd_fit(args: argparse.Namespace) -> int:
 
 
 def cmd_inspect(args: argparse.Namespace) -> int:
-    scene, sub = load_checkpoint(args.checkpoint)
-    meta = {"checkpoint": args.checkpoint, "n": scene.free_dof_count, "latent_dim": sub.latent_dim, **sub.metadata}
+    from redsim.subspace import read_metadata
+
+    try:
+        scene, sub = load_checkpoint(args.checkpoint)
+        meta = {"checkpoint": args.checkpoint, "n": scene.free_dof_count, "latent_dim": sub.latent_dim, **sub.metadata}
+    except SceneNotRebuilt as err:  # what inspect prints is in the .json: print it, and say what was not checked
+        doc = read_metadata(args.checkpoint)
+        config = doc.get("config") or {}
+        meta = {"checkpoint": args.checkpoint, "n": config.get("output_dim"), "latent_dim": config.get("latent_dim")}
+        meta |= {**doc, "scene_not_rebuilt": str(err)}
+        warn(f"{err}; the metadata below is the .json's, the weights were not loaded")
     if args.json:
         json_out(meta)
         return EXIT_OK
-    out(f"{args.checkpoint}: scene {scene.name} (n={scene.free_dof_count}), d={sub.latent_dim}")
+    out(f"{args.checkpoint}: scene {meta.get('scene')} (n={meta['n']}), d={meta['latent_dim']}")
     fit = meta.get("fit", {})
     out(
         f"  fit: sigma={fit.get('sigma')} lam={fit.get('lam')} steps={fit.get('steps')} seed={meta.get('seed')} "

@@ -502,3 +502,11 @@ def test_frame_skip_observes_the_state_a_step_at_a_time_env_reaches() -> None:
     single.step(action)
     np.testing.assert_allclose(skipping.step(action)[0], single.step(action)[0], rtol=1e-6, atol=1e-6)
     assert skipping.observation_space == single.observation_space
+
+
+def test_make_names_a_scene_or_task_of_the_wrong_type() -> None:
+    with pytest.raises(TypeError, match="scene must be a redsim"):
+        redsim.envs.make(None, "x.pt")
+    with pytest.raises(TypeError, match="task must be"):
+        redsim.envs.make("mini_chain", task=None)
+
