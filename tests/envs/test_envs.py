@@ -509,4 +509,3 @@ def test_make_names_a_scene_or_task_of_the_wrong_type() -> None:
         redsim.envs.make(None, "x.pt")
     with pytest.raises(TypeError, match="task must be"):
         redsim.envs.make("mini_chain", task=None)
-
