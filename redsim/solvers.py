@@ -120,7 +120,8 @@ class _Point:
 
     @property
     def finite(self) -> bool:
-        return math.isfinite(self.value) and bool(torch.isfinite(self.grad).all())
+        """Value, gradient and its norm finite (entries near the dtype's limit overflow the norm)."""
+        return math.isfinite(self.value) and bool(torch.isfinite(self.grad).all()) and math.isfinite(self.grad_norm)
 
 
 def convergence_threshold(objective: Objective, tol: float, initial_grad_norm: float) -> float:
@@ -191,7 +192,10 @@ def _start(objective: Objective, u0: Tensor, tol: float, max_iter: int) -> tuple
     if u0.ndim != 1:
         raise ValueError(f"u0 must have shape [m], got {tuple(u0.shape)}")
     point = _evaluate(objective, u0.detach().clone())
-    return point, convergence_threshold(objective, tol, point.grad_norm)
+    threshold = convergence_threshold(objective, tol, point.grad_norm)
+    if not math.isfinite(threshold):  # a force scale past the dtype's range (absurd loads): nothing can converge
+        threshold = -math.inf
+    return point, threshold
 
 
 class _Levenberg:

@@ -122,7 +122,9 @@ def test_a_changed_mesh_file_is_a_clear_error(cli: Cli, fitted: Path, box: Path,
     (tmp_path / "m.json").write_text(json.dumps(meta))
     (tmp_path / "m.pt").write_bytes(fitted.read_bytes())
     trimesh.creation.box(extents=(0.1, 0.25, 0.1)).export(moved)
-    code, _, err = cli("inspect", str(tmp_path / "m.pt"))
+    code, _, err = cli("inspect", str(tmp_path / "m.pt"))  # shows the .json, and says why nothing was loaded
+    assert code == 0 and "changed since" in err and meta["scene_params"]["mesh_sha256"] in err
+    code, _, err = cli("sample", str(tmp_path / "m.pt"), "--out", str(tmp_path / "s.npz"))
     assert code == 2 and err.count("\n") == 1
     assert "changed since" in err and meta["scene_params"]["mesh_sha256"] in err
     moved.unlink()

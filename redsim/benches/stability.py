@@ -30,7 +30,7 @@ from __future__ import annotations
 import dataclasses
 import math
 import time
-from collections.abc import Callable, Iterator, Sequence
+from collections.abc import Callable, Iterator, Mapping, Sequence
 from typing import Any
 
 import numpy as np
@@ -889,6 +889,11 @@ def chain_table(chain: dict[str, Any]) -> list[str]:
     return lines
 
 
+def row_totals(rows: Sequence[Mapping[str, Any]]) -> dict[str, int]:
+    """Sums over the table's rows of ``nan`` and ``unreported`` (both must be 0), ``energy_gains`` and ``steps``."""
+    return {k: sum(int(r.get(k, 0)) for r in rows) for k in ("nan", "unreported", "energy_gains", "steps")}
+
+
 def report(result: dict[str, Any]) -> list[str]:
     """Human-readable lines of a :mod:`redsim bench stability <redsim.benches.stability>` result."""
     rows = result["rows"]
@@ -900,7 +905,7 @@ def report(result: dict[str, Any]) -> list[str]:
             f"fuzzed env steps run: {sum(r['steps'] for r in fuzz)} of {result['fuzz_steps']} asked "
             "(split by measured env speed)"
         )
-    totals = {k: sum(int(r.get(k, 0)) for r in rows) for k in ("nan", "unreported", "energy_gains", "steps")}
+    totals = row_totals(rows)
     lines.append(f"total nan: {totals['nan']}, unreported energy gains: {totals['unreported']} (both must be 0)")
     lines.append(f"steps flagged energy_gain: {totals['energy_gains']} of {totals['steps']} (not failures)")
     if result.get("chain") is not None:
@@ -932,6 +937,7 @@ __all__ = [
     "recovered",
     "redsim_chain_cases",
     "report",
+    "row_totals",
     "runtime_rollout",
     "runtime_rollouts",
     "split_steps",

@@ -13,6 +13,8 @@ import redsim
 from redsim.cli import cubature
 from redsim.cli.common import (
     DTYPES,
+    EXIT_FAILED_STEP,
+    EXIT_NAN,
     EXIT_OK,
     CliError,
     add_bench_scene_args,
@@ -21,6 +23,7 @@ from redsim.cli.common import (
     build_scene,
     catalog_names,
     check_scene_name,
+    error,
     finish_command,
     json_out,
     note,
@@ -550,6 +553,10 @@ def cmd_bench_stability(args: argparse.Namespace) -> int:
         out(_machine_line(machine, "cpu"))
         for line in stability.report(result):
             out(line)
+    totals = stability.row_totals(rows)
+    if totals["nan"] or totals["unreported"]:  # the checks that must be 0 fail the command, for CI
+        error(f"{totals['nan']} non-finite and {totals['unreported']} unreported energy gains (both must be 0)")
+        return EXIT_NAN if totals["nan"] else EXIT_FAILED_STEP
     return EXIT_OK
 
 

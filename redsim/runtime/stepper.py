@@ -489,9 +489,10 @@ class LatentStepper:
         z = torch.as_tensor(z, device=self.device)
         if z.ndim != 2 or z.shape[1] != self.latent_dim:
             raise ValueError(f"{what} must have shape [B, {self.latent_dim}], got {tuple(z.shape)}")
+        z = z.to(self.dtype)  # checked after the cast
         if not bool(torch.isfinite(z).all()):
-            raise ValueError(f"{what} must be finite")
-        return z.to(self.dtype)
+            raise ValueError(f"{what} must be finite in the stepper's {self.dtype}")
+        return z
 
     def _cond(self, cond: Tensor | None, batch: int) -> Tensor | None:
         space = self.scene.condition_space
@@ -520,9 +521,10 @@ class LatentStepper:
                 f"loads must have shape [{batch}, {H}, {D}] (handles {list(self.scene.handle_names)}), "
                 f"got {tuple(loads.shape)}"
             )
+        loads = loads.to(self.dtype)  # checked after the cast: 1e100 is inf in float32
         if not bool(torch.isfinite(loads).all()):
-            raise ValueError("loads must be finite")
-        return loads.to(self.dtype).reshape(batch, H * D)
+            raise ValueError(f"loads must be finite in the stepper's {self.dtype} [N]")
+        return loads.reshape(batch, H * D)
 
     # -- public -----------------------------------------------------------------------------
     def positions(self, z: Tensor, cond: Tensor | None = None) -> Tensor:
@@ -646,15 +648,18 @@ class LatentStepper:
                 result.grad_norm * torch.linalg.vector_norm(z_next - z, dim=-1),
                 self._eps,
             )
+        # a force scale past the dtype's range (finite loads too large to square) makes every threshold inf:
+        # such a step proves nothing, so it is reported as not converged and diverged
+        unbounded = ~torch.isfinite(force)
         stats = StepStats(
-            converged=result.converged,
+            converged=result.converged & ~unbounded,
             iterations=result.iterations,
             residual=result.grad_norm / (self.jacobian_norm * force),
             energy=result.energy,
             out_of_range=out_of_range_states(
                 torch.stack([z, z_next], 1), self.energy.periodic, cond_t, self.scene.condition_space
             ),
-            diverged=diverged,
+            diverged=diverged | unbounded,
             energy_gain=energy_gain,
             model=result.model,
         )

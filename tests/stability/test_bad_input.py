@@ -116,3 +116,36 @@ def test_condition_outside_its_range_is_flagged_by_the_stepper_and_refused_by_se
     for bad in (high + 0.2 * (high - low), low - 0.1 * (high - low)):
         with pytest.raises(ValueError, match=r"state\['cond'\] must lie in the condition space"):
             env.set_state({**state, "cond": bad.astype(np.float32)})
+
+
+@pytest.mark.parametrize(("row", "code"), [({"nan": 2}, 3), ({"unreported": 1}, 4), ({"energy_gains": 5}, 0)])
+def test_bench_stability_fails_when_a_must_be_zero_count_is_not(
+    cli: Cli, monkeypatch: pytest.MonkeyPatch, row: dict, code: int
+) -> None:
+    """A CI job running the bench must see a NaN or an unreported energy gain in its exit status."""
+    from redsim.benches import stability
+
+    monkeypatch.setitem(stability.REGIMES, "canned", lambda steps, budget: [{"steps": 10, **row}])
+    monkeypatch.setattr(stability, "report", lambda result: [])
+    got, _, err = cli("bench", "stability", "--regimes", "canned")
+    assert got == code, err
+    assert ("must be 0" in err) == (code != 0)
+
+
+def test_a_load_too_large_for_the_dtype_is_never_converged() -> None:
+    """A finite load whose norm overflows makes every threshold inf; the step is flagged, not "converged"."""
+    from redsim.integrators import FullSpace, FullState, ImplicitEuler
+    from redsim.solvers import ConvergenceError
+
+    scene = scenes.build("mini_chain")
+    stepper = LatentStepper(scene, pretrained.load("mini_chain", scene), 0.02)
+    z = stepper.rest_latent()
+    for force in (1e20, 1e30):  # float32: the norm of the load overflows
+        _, stats = stepper.step(z, z, torch.tensor([[[force, 0.0, 0.0]]], dtype=torch.float64))
+        assert not bool(stats.converged) and bool(stats.diverged), force
+    with pytest.raises(ValueError, match="loads must be finite"):  # inf once cast to float32
+        stepper.step(z, z, torch.tensor([[[1e100, 0.0, 0.0]]], dtype=torch.float64))
+    q0 = scene.q_seed.double()
+    full = ImplicitEuler(FullSpace(scene), 0.02, strict=True)
+    with pytest.raises(ConvergenceError, match="not finite"):
+        full.step(FullState(q0.clone(), q0.clone(), 0.0), torch.tensor([[1e200, 0.0, 0.0]], dtype=torch.float64))
