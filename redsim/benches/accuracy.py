@@ -165,6 +165,9 @@ class Run:
         flagged: Steps the runtime flagged ``diverged`` (latent runs).
         out_of_range: Steps flagged ``out_of_range`` (latent runs).
         nonfinite: Steps whose state was not finite (must be 0).
+        idle: Steps under a load that the solver accepted without an iteration: the start was already within
+            its tolerance, so a loose ``tol`` can leave the scene where it was (the row is then not a faster
+            solve of the same motion).
     """
 
     q: Tensor
@@ -175,6 +178,7 @@ class Run:
     flagged: int = 0
     out_of_range: int = 0
     nonfinite: int = 0
+    idle: int = 0
 
 
 def run_full(
@@ -184,7 +188,7 @@ def run_full(
     scene64 = scene.to(dtype=torch.float64)
     integrator = ImplicitEuler(FullSpace(scene64), dt * stride, tol=tol, max_iter=max_iter)
     state = FullState(q0.clone(), q0.clone(), 0.0)
-    qs, times, failed, nonfinite = [q0.clone()], [], 0, 0
+    qs, times, failed, nonfinite, idle = [q0.clone()], [], 0, 0, 0
     with _quiet():
         for i in range(0, loads.shape[0] - stride + 1, stride):
             start = time.perf_counter()
@@ -192,9 +196,10 @@ def run_full(
             times.append(time.perf_counter() - start)
             failed += not info.converged
             nonfinite += not bool(torch.isfinite(state.q).all())
+            idle += info.iterations == 0 and bool(loads[i].any())
             qs.append(state.q.clone())
     index = torch.arange(len(qs), dtype=torch.int64) * stride
-    return Run(torch.stack(qs), index, times, stride, failed, 0, 0, nonfinite)
+    return Run(torch.stack(qs), index, times, stride, failed, 0, 0, nonfinite, idle)
 
 
 def run_latent_reference(scene: Scene, subspace: nn.Module, z0: Tensor, loads: Tensor, *, dt: float = DT) -> Run:
@@ -222,7 +227,7 @@ def run_runtime(stepper: LatentStepper, z0: Tensor, loads: Tensor) -> Run:
     stepper.step(z, z, loads[0:1].to(stepper.dtype))  # warm-up: first-call allocations stay out of the times
     z_prev = z.clone()
     zs, times = [z.clone()], []
-    failed = flagged = out_of_range = 0
+    failed = flagged = out_of_range = idle = 0
     model = None
     for i in range(loads.shape[0]):
         start = time.perf_counter()
@@ -230,6 +235,7 @@ def run_runtime(stepper: LatentStepper, z0: Tensor, loads: Tensor) -> Run:
         model = stats.model
         times.append(time.perf_counter() - start)
         failed += int((~stats.converged).sum())
+        idle += int(((stats.iterations == 0) & bool(loads[i].any())).sum())
         flagged += int(stats.diverged.sum())
         out_of_range += int(stats.out_of_range.sum())
         z_prev, z = z, z_next
@@ -238,7 +244,7 @@ def run_runtime(stepper: LatentStepper, z0: Tensor, loads: Tensor) -> Run:
     with torch.no_grad():
         q = space.configuration(torch.cat(zs).to(torch.float64))
     nonfinite = int((~torch.isfinite(q).all(-1)).sum())
-    return Run(q, torch.arange(q.shape[0]), times, 1, failed, flagged, out_of_range, nonfinite)
+    return Run(q, torch.arange(q.shape[0]), times, 1, failed, flagged, out_of_range, nonfinite, idle)
 
 
 def _m_norm(scene64: Scene, v: Tensor) -> Tensor:
@@ -639,6 +645,7 @@ def _row(
         "flagged_diverged": run.flagged,
         "out_of_range": run.out_of_range,
         "nonfinite": run.nonfinite,
+        "idle": run.idle,
     }
 
 
@@ -662,6 +669,8 @@ COLUMNS = (
     ("failed", "unconverged", "{}"),
     ("flagged_diverged", "diverged", "{}"),
     ("out_of_range", "out of range", "{}"),
+    ("nonfinite", "non-finite", "{}"),
+    ("idle", "idle", "{}"),
 )
 """Markdown table columns: key, header, format."""
 

@@ -163,3 +163,18 @@ def test_cli_dims_fit_what_is_missing_once(cli, tmp_path) -> None:
     code, out, err = cli(*argv[:-1])
     assert code == 0 and fitted.stat().st_mtime_ns == stamp  # reused
     assert "d=1: 3 fit steps" in out and "| neural d=1: runtime f32" in out
+
+
+def test_a_loose_full_space_solve_that_never_moves_is_counted_idle() -> None:
+    """At tol 1e-3 a small push stays within the tolerance of the rest state: no iteration, no motion; the
+    bench counts those steps (its "idle" column) instead of scoring them as a faster solve."""
+    from redsim.integrators import static_equilibrium
+
+    scene = scenes.build("mini_chain")
+    rest, _ = static_equilibrium(scene, {})
+    loads = torch.zeros(3, len(scene.handles), 3, dtype=torch.float64)
+    loads[:, -1, 0] = 0.01  # [N]
+    loose = accuracy.run_full(scene, rest.double(), loads, tol=1e-3)
+    tight = accuracy.run_full(scene, rest.double(), loads)
+    assert loose.idle == 3 and torch.equal(loose.q[-1], rest.double())
+    assert tight.idle == 0 and float((tight.q[-1] - rest.double()).abs().max()) > 1e-4
