@@ -357,7 +357,8 @@ def _zero_loads(scene: Scene, steps: int) -> Tensor:
 
 
 def stiff_cases(long: int, budget: float | None = None) -> list[dict[str, Any]]:
-    """Stiffness x1000 driven by the soft shipped map: bistable bar (Young's modulus), chain (contact)."""
+    """Stiffness x1000 driven by the soft shipped map: bistable bar (Young's modulus), chain (contact), under
+    bang-bang loads of 1000 x the env's largest force (the stiffer scene then moves about as much)."""
     rows = []
     for name, params in (("bistable_bar", {"young": 1e8}), ("chain", {"contact_stiffness": 1e8})):
         stiff, f = _shipped(name, **params)
