@@ -250,8 +250,11 @@ def test_a_fit_at_an_existing_stem_is_refused_without_resume_or_overwrite(cli: C
     assert cli(*argv, "--resume", "--overwrite")[0] == 2
     stale = tmp_path / "f.fit.pt"
     assert stale.is_file()
-    code, _, err = cli(*argv, "--seed", "1", "--overwrite")
+    (tmp_path / "f.cubature.json").write_text("{}")  # a cubature of the map being replaced
+    with pytest.warns(UserWarning, match="f.cubature.json: it was built for the map this fit replaced"):
+        code, _, err = cli(*argv, "--seed", "1", "--overwrite")
     assert code == 0 and (tmp_path / "f.pt").read_bytes() != before, err
+    assert not (tmp_path / "f.cubature.json").exists()
 
 
 def test_cubature_flags_are_named_in_their_errors(cli: Cli, tmp_path: Path) -> None:

@@ -78,6 +78,7 @@ import math
 import os
 import shlex
 import time
+import warnings
 from collections.abc import Callable, Sequence
 from dataclasses import dataclass
 from pathlib import Path
@@ -740,7 +741,21 @@ def fit_subspace(
     model = model.cpu()
     if out is not None:
         model.save(out)
+        _remove_stale_cubature(out)
     return FitResult(model, history, fit_seconds)
+
+
+def _remove_stale_cubature(stem: str | Path) -> None:
+    """Delete (saying so) the cubature beside ``stem`` made for the map this fit replaced: it would be refused."""
+    from redsim.cubature.energy import cubature_path
+
+    stale = cubature_path(stem)
+    if stale.is_file():
+        stale.unlink()
+        warnings.warn(
+            f"removed {stale}: it was built for the map this fit replaced (rebuild it: redsim cubature {stem})",
+            stacklevel=3,
+        )
 
 
 def _check_drivers(scene: Scene, config: FitConfig) -> None:
