@@ -380,8 +380,27 @@ class Scene:
         from (:data:`SOURCE_PARAMS`) is left out: its geometry is in ``mesh_digest``, so a project copied elsewhere
         holds the same scene; ``with_source`` hashes them too (the fingerprint written before this rule)."""
         params = self.params if with_source else {k: v for k, v in self.params.items() if k not in SOURCE_PARAMS}
+        if not params:  # a hand-built scene: no builder arguments say what it is, so its data does
+            params = {"data": self._data_digest()}
         blob = json.dumps({"name": self.name, "params": params}, sort_keys=True, default=str)
         return hashlib.sha256(blob.encode()).hexdigest()[:16]
+
+    def _data_digest(self) -> str:
+        """Hash of the seed state, the free DOFs and every effect's kind and tensors (materials, elements, pins);
+        floats as float32, so the scene's float32 and float64 copies agree."""
+
+        def data(t: Tensor) -> bytes:
+            t = t.detach().to("cpu")
+            return (t.to(torch.float32) if t.is_floating_point() else t).contiguous().numpy().tobytes()
+
+        h = hashlib.sha256(data(self.q_seed))
+        h.update(str((self.free_dof_count, self.full_dof_count, self.handle_names)).encode())
+        for effect in self.effects:
+            h.update(f"{effect.name}:{effect.kind}:{effect.element_count}".encode())
+            for key, value in sorted(vars(effect).items()):
+                if isinstance(value, Tensor):
+                    h.update(key.encode() + data(value))
+        return h.hexdigest()[:16]
 
     def to(self, device: torch.device | str | None = None, dtype: torch.dtype | None = None) -> Scene:
         """A copy on ``device`` with floating data in ``dtype`` (energies in float64 are the reference)."""
