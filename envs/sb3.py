@@ -84,8 +84,13 @@ class SB3VecEnv(VecEnv):
         return cls(venv)  # type: ignore[arg-type]
 
     def reset(self) -> np.ndarray:
+        """Reset every copy with the seed and options given by ``seed()`` / ``set_options()`` (one for all: the
+        copies are reset together; per-copy options that differ are refused)."""
         seed = self._seeds[0] if all(s is not None for s in self._seeds) else None
-        obs, _ = self.venv.reset(seed=seed)
+        options = [dict(o or {}) for o in self._options]
+        if any(o != options[0] for o in options):
+            raise ValueError("SB3VecEnv resets its copies together: give every copy the same options (set_options)")
+        obs, _ = self.venv.reset(seed=seed, options=options[0] or None)
         self._returns[:], self._lengths[:] = 0.0, 0
         self.reset_infos = [{} for _ in range(self.num_envs)]
         self._reset_seeds()

@@ -136,3 +136,19 @@ def test_the_sb3_adapter_reports_monitor_episode_statistics() -> None:
         assert info["episode"]["l"] == monitor_info["episode"]["l"] == 3
         assert info["episode"]["r"] == pytest.approx(expected, rel=1e-5)
         assert info["episode"]["r"] == pytest.approx(monitor_info["episode"]["r"], rel=1e-4, abs=1e-4)
+
+
+def test_the_sb3_adapter_passes_set_options_to_the_reset() -> None:
+    from redsim.envs.sb3 import SB3VecEnv
+
+    venv = SB3VecEnv.make(ID, 2)
+    venv.seed(0)
+    venv.reset()
+    moved = venv.step(PUSH)[0]
+    venv.set_options({"reset_mask": np.array([True, False])})  # reset copy 0 only: copy 1 keeps its state
+    again = venv.reset()
+    np.testing.assert_array_equal(again[1], moved[1])
+    assert not np.array_equal(again[0], moved[0])
+    venv.set_options([{}, {"reset_mask": np.array([True, False])}])
+    with pytest.raises(ValueError, match="same options"):
+        venv.reset()
