@@ -91,7 +91,8 @@ class SB3VecEnv(VecEnv):
         if any(o != options[0] for o in options):
             raise ValueError("SB3VecEnv resets its copies together: give every copy the same options (set_options)")
         obs, _ = self.venv.reset(seed=seed, options=options[0] or None)
-        self._returns[:], self._lengths[:] = 0.0, 0
+        restarted = options[0].get("reset_mask", slice(None))  # the copies that start a new episode
+        self._returns[restarted], self._lengths[restarted] = 0.0, 0
         self.reset_infos = [{} for _ in range(self.num_envs)]
         self._reset_seeds()
         self._reset_options()
