@@ -60,6 +60,8 @@ def cmd_bench_subspace(args: argparse.Namespace) -> int:
             scene, config, stem, seed=args.seed, also=shipped, refit=args.refit, progress=not args.json, warn=warn
         )
         fit = neural.metadata["fit"]
+        if not args.json:  # the full-space static responses can take minutes (a mechanism has none to find)
+            note(f"{name}: energy, stretch and the static responses to {args.loads} loads of each subspace")
         metrics = compare_subspaces(
             scene,
             neural,
