@@ -121,7 +121,8 @@ def test_the_sb3_adapter_reports_monitor_episode_statistics() -> None:
     from redsim.envs.sb3 import SB3VecEnv
 
     own = SB3VecEnv.make(ID, 2, max_episode_steps=3)
-    monitored = VecMonitor(SB3VecEnv.make(ID, 2, max_episode_steps=3))
+    with pytest.warns(UserWarning, match="already wrapped with a `Monitor`"):  # SB3's note: VecMonitor's stats win
+        monitored = VecMonitor(SB3VecEnv.make(ID, 2, max_episode_steps=3))
     assert own.env_is_wrapped(Monitor) == [True, True] and own.env_is_wrapped(gym.Wrapper) == [False, False]
     for venv in (own, monitored):
         venv.seed(0)
