@@ -28,7 +28,7 @@ from gymnasium.vector import AutoresetMode, VectorEnv
 from gymnasium.vector.utils import batch_space
 
 from redsim.envs.base import NO_HUMAN, VECTOR_RENDER_MODES, check_action, copy_seeds
-from redsim.envs.vector_api import SharedCopies, reset_mask
+from redsim.envs.vector_api import SharedCopies, check_started, reset_mask
 
 if TYPE_CHECKING:
     from redsim.envs.base import LatentEnv
@@ -96,6 +96,8 @@ def _serve(venv: VectorEnv, command: str, payload: Any) -> Any:
         return venv.step(payload)
     if command == "reset":
         if payload[1] and "reset_mask" in payload[1] and not payload[1]["reset_mask"].any():  # no copy of this shard
+            if venv._unreset.all():  # type: ignore[attr-defined]  # never reset: zeros, as SyncVectorEnv's
+                return np.zeros(venv.observation_space.shape, venv.observation_space.dtype), {}
             return venv.sim.observe(), {}  # type: ignore[attr-defined]
         return venv.reset(seed=payload[0], options=payload[1])
     if command == "call":
@@ -175,7 +177,7 @@ class ShardedVectorEnv(SharedCopies, VectorEnv):
         self.starts = np.cumsum([0, *self.sizes])[:-1].tolist()
         self._pipes: list[Connection] = []
         self._processes: list[Any] = []
-        self._started = False
+        self._unreset = np.ones(self.num_envs, dtype=bool)  # copies never reset (nor restored by set_state)
         self._ended = np.zeros(self.num_envs, dtype=bool)  # DISABLED: copies that ended and were not reset
         self.closed = False
         ctx = mp.get_context(context)
@@ -209,13 +211,12 @@ class ShardedVectorEnv(SharedCopies, VectorEnv):
             requests.append(("reset", (None if seeds is None else seeds[block], shard_options)))
         results = self._call(requests)
         self._ended[slice(None) if mask is None else mask] = False
-        self._started = True
+        self._unreset[slice(None) if mask is None else mask] = False
         return np.concatenate([obs for obs, _ in results]), _merge_infos([info for _, info in results], self.sizes)
 
     def step(self, actions: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray, dict[str, Any]]:
         """Step every copy with actions [N, A]: each shard its block, in parallel."""
-        if not self._started:
-            raise RuntimeError("call reset() before step()")
+        check_started(self._unreset)
         if self._ended.any():  # as the native env, here: a shard's error would close the env
             raise RuntimeError(
                 f"copies {np.nonzero(self._ended)[0].tolist()} ended and autoreset_mode is DISABLED: reset them "
@@ -246,7 +247,7 @@ class ShardedVectorEnv(SharedCopies, VectorEnv):
         if self.metadata["autoreset_mode"] == AutoresetMode.DISABLED:
             pending = [part.get("autoresetting", np.zeros(n, bool)) for part, n in zip(state, self.sizes, strict=True)]
             self._ended = np.concatenate(pending).astype(bool)
-        self._started = True
+        self._unreset[:] = False
 
     def _per_copy(self, name: str) -> tuple[Any, ...]:
         if name == "render":

@@ -29,7 +29,7 @@ from gymnasium.vector.utils import batch_space
 
 from redsim.envs.base import NO_HUMAN, VECTOR_RENDER_MODES, check_action, copy_seeds, state_row
 from redsim.envs.sharded import ShardedVectorEnv, shard_sizes
-from redsim.envs.vector_api import SharedCopies, reset_mask
+from redsim.envs.vector_api import SharedCopies, check_started, reset_mask
 
 if TYPE_CHECKING:
     from redsim.envs.base import LatentEnv
@@ -42,7 +42,8 @@ class LatentVectorEnv(SharedCopies, VectorEnv):
         env: A single env whose scene, subspace, task and settings every copy uses.
         num_envs: N.
         max_episode_steps: Truncate each copy's episode after this many steps (None: never).
-        autoreset_mode: ``AutoresetMode.NEXT_STEP`` (Gymnasium's default) or ``SAME_STEP``.
+        autoreset_mode: ``AutoresetMode.NEXT_STEP`` (Gymnasium's default), ``SAME_STEP`` or ``DISABLED`` (the caller
+            resets ended copies with ``options["reset_mask"]``).
 
     Raises:
         ValueError: a bad count or autoreset mode, an env with ``render_mode="human"``
@@ -75,7 +76,7 @@ class LatentVectorEnv(SharedCopies, VectorEnv):
         self._rngs: list[np.random.Generator] = [seeding.np_random()[0] for _ in range(self.num_envs)]
         self._elapsed = np.zeros(self.num_envs, dtype=np.int64)
         self._autoreset = np.zeros(self.num_envs, dtype=bool)
-        self._started = False
+        self._unreset = np.ones(self.num_envs, dtype=bool)  # copies never reset (nor restored by set_state)
         self._view: Any = None
 
     def reset(
@@ -95,13 +96,12 @@ class LatentVectorEnv(SharedCopies, VectorEnv):
         self.sim.reset_rows(rows, [self._rngs[i] for i in rows])
         self._elapsed[mask] = 0
         self._autoreset[mask] = False
-        self._started = True
+        self._unreset[mask] = False
         return self.sim.observe(), {}
 
     def step(self, actions: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray, dict[str, Any]]:
         """Step every copy with actions [N, A] in one batched simulation step (module doc for autoreset)."""
-        if not self._started:
-            raise RuntimeError("call reset() before step()")
+        check_started(self._unreset)
         mode = self.metadata["autoreset_mode"]
         if mode == AutoresetMode.DISABLED and self._autoreset.any():
             raise RuntimeError(
@@ -185,7 +185,7 @@ class LatentVectorEnv(SharedCopies, VectorEnv):
         self.sim.set_state({k: v for k, v in state.items() if k not in ("elapsed_steps", "autoresetting")})
         self._elapsed[:] = elapsed.astype(np.int64)
         self._autoreset[:] = pending.astype(bool) & (self.metadata["autoreset_mode"] != AutoresetMode.SAME_STEP)
-        self._started = True
+        self._unreset[:] = False
 
     def _per_copy(self, name: str) -> tuple[Any, ...]:
         if name == "render":

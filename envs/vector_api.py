@@ -86,6 +86,19 @@ class SharedCopies:
         raise NotImplementedError
 
 
+def check_started(unreset: np.ndarray) -> None:
+    """Refuse a step while copies [N] (bool) were never reset, as Gymnasium's sync env refuses one (a masked first
+    reset leaves the others unstarted).
+
+    Raises:
+        RuntimeError: naming the copies.
+    """
+    if unreset.all():
+        raise RuntimeError("call reset() before step()")
+    if unreset.any():
+        raise RuntimeError(f"call reset() before step(): copies {np.nonzero(unreset)[0].tolist()} were never reset")
+
+
 def reset_mask(options: dict[str, Any] | None, num_envs: int) -> np.ndarray | None:
     """``options["reset_mask"]`` checked as Gymnasium's sync vector env does (None: reset every copy).
 
@@ -105,4 +118,4 @@ def reset_mask(options: dict[str, Any] | None, num_envs: int) -> np.ndarray | No
     return mask
 
 
-__all__ = ["PER_COPY_CALLS", "SHARED_METHODS", "STATEFUL", "SharedCopies", "reset_mask"]
+__all__ = ["PER_COPY_CALLS", "SHARED_METHODS", "STATEFUL", "SharedCopies", "check_started", "reset_mask"]

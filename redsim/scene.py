@@ -375,31 +375,29 @@ class Scene:
         return scipy.sparse.csr_matrix((M.values().numpy(), (rows, cols)), shape=tuple(M.shape))
 
     # -- bookkeeping ----------------------------------------------------------------------
-    def fingerprint(self, *, with_source: bool = False) -> str:
+    def fingerprint(self) -> str:
         """Hash of the scene name and build parameters (checkpoints refuse other scenes). Where a mesh was read
         from (:data:`SOURCE_PARAMS`) is left out: its geometry is in ``mesh_digest``, so a project copied elsewhere
-        holds the same scene; ``with_source`` hashes them too (the fingerprint written before this rule)."""
-        params = self.params if with_source else {k: v for k, v in self.params.items() if k not in SOURCE_PARAMS}
-        if not params:  # a hand-built scene: no builder arguments say what it is, so its data does
+        holds the same scene. A hand-built scene (no builder arguments) is hashed by its data."""
+        params = {k: v for k, v in self.params.items() if k not in SOURCE_PARAMS}
+        if not params:
             params = {"data": self._data_digest()}
-        blob = json.dumps({"name": self.name, "params": params}, sort_keys=True, default=str)
-        return hashlib.sha256(blob.encode()).hexdigest()[:16]
+        return _hash({"name": self.name, "params": params})
+
+    def accepts(self, fingerprint: str | None) -> bool:
+        """Whether a checkpoint's recorded fingerprint names this scene: this one, or the one written before stop
+        29's rule (name and every parameter, a mesh's file path included; a hand-built scene's name alone)."""
+        return fingerprint in (self.fingerprint(), _hash({"name": self.name, "params": self.params}))
 
     def _data_digest(self) -> str:
-        """Hash of the seed state, the free DOFs and every effect's kind and tensors (materials, elements, pins);
-        floats as float32, so the scene's float32 and float64 copies agree."""
-
-        def data(t: Tensor) -> bytes:
-            t = t.detach().to("cpu")
-            return (t.to(torch.float32) if t.is_floating_point() else t).contiguous().numpy().tobytes()
-
-        h = hashlib.sha256(data(self.q_seed))
+        """Hash of the seed state, the free DOFs, the mass matrix and every effect's kind and data (tensors,
+        numbers, shapes: materials, elements, pins); floats as float32, so float32 and float64 copies agree."""
+        h = hashlib.sha256(_bytes(self.q_seed))
         h.update(str((self.free_dof_count, self.full_dof_count, self.handle_names)).encode())
+        h.update(_bytes(self.mass_matrix.to_dense() if self.mass_matrix.is_sparse else self.mass_matrix))
         for effect in self.effects:
             h.update(f"{effect.name}:{effect.kind}:{effect.element_count}".encode())
-            for key, value in sorted(vars(effect).items()):
-                if isinstance(value, Tensor):
-                    h.update(key.encode() + data(value))
+            _digest_fields(h, effect, depth=2)
         return h.hexdigest()[:16]
 
     def to(self, device: torch.device | str | None = None, dtype: torch.dtype | None = None) -> Scene:
@@ -784,3 +782,24 @@ class SceneBuilder:
         if bool((diag <= 0).any()):
             raise ValueError(f"{int((diag <= 0).sum())} free DOF(s) have no mass (massless particles must be pinned)")
         return M
+
+
+def _hash(doc: dict[str, Any]) -> str:
+    return hashlib.sha256(json.dumps(doc, sort_keys=True, default=str).encode()).hexdigest()[:16]
+
+
+def _bytes(t: Tensor) -> bytes:
+    t = t.detach().to("cpu")
+    return (t.to(torch.float32) if t.is_floating_point() else t).contiguous().numpy().tobytes()
+
+
+def _digest_fields(h: Any, obj: Any, depth: int) -> None:
+    """Feed ``h`` an object's tensors, numbers and strings, and those of the objects it holds (``depth`` levels)."""
+    for key, value in sorted(vars(obj).items()):
+        if isinstance(value, Tensor):
+            h.update(key.encode() + _bytes(value))
+        elif isinstance(value, bool | int | float | str) or value is None:
+            h.update(f"{key}={value!r}".encode())
+        elif depth > 0 and hasattr(value, "__dict__") and not callable(value):
+            h.update(f"{key}:{type(value).__name__}".encode())
+            _digest_fields(h, value, depth - 1)

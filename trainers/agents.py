@@ -905,8 +905,6 @@ def train_agent(
             f"cannot resume with env_kwargs {kwargs_now}: {previous} was trained with {found['env_kwargs']} "
             "(give the same --env-arg and --episode-steps, or another --out)"
         )
-    if overwrite:
-        _remove_run(out)
     venv = _sb3_env(env, copies, seed, env_kwargs, shards, goal={} if her else None)
     # evaluations score the env's own reward (the goal env with its control cost passes it through)
     eval_env = _sb3_env(
@@ -952,7 +950,9 @@ def train_agent(
     curve = [row for row in curve if row["env_steps"] <= model.num_timesteps]
     start = time.perf_counter()
     every = max(int(eval_every or steps // 10) // copies, 1)
-    (out / "checkpoints").mkdir(parents=True, exist_ok=True)  # once the envs are built: a refused run writes nothing
+    if overwrite:  # only now, with the envs and the model built: a refused run neither writes nor removes anything
+        _remove_run(out)
+    (out / "checkpoints").mkdir(parents=True, exist_ok=True)
     evaluation_cb = EvalCallback(
         eval_env,
         n_eval_episodes=eval_episodes,

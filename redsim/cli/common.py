@@ -365,7 +365,7 @@ def add_bench_scene_args(parser: argparse.ArgumentParser, default: str) -> None:
 def bench_scenes(args: argparse.Namespace, default: Sequence[str]) -> list[tuple[str, Callable[[], Scene]]]:
     """(name, builder) of each scene a bench runs on: the ``--mesh`` scene, or ``--scenes`` (checked up front)."""
     if args.mesh is not None:
-        if args.scenes:
+        if args.scenes is not None:
             raise CliError("give either --scenes or --mesh, not both")
         scene = scene_from_args(args)
         return [(scene.name, lambda: scene)]

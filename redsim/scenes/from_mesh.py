@@ -56,8 +56,8 @@ def _pinned(given: np.ndarray, vertices: np.ndarray, pin: PinSpec, *, tolerance:
         return select_vertices(vertices, pin, tolerance=tolerance)
     points = given[select_vertices(given, pin, tolerance=tolerance)]
     distance, index = scipy.spatial.cKDTree(vertices).query(points)
-    scale = max(float(np.abs(vertices).max()), 1.0)
-    return np.unique(index[distance <= 1e-9 * scale])  # a given vertex no triangle uses is not in the cloth
+    scale = max(float(np.abs(vertices).max()), 1.0)  # welding merges within ~1e-8: found within 1e-6 of the size
+    return np.unique(index[distance <= 1e-6 * scale])  # a given vertex no triangle uses is not in the cloth
 
 
 def _digest(*arrays: np.ndarray) -> str:

@@ -58,8 +58,16 @@ def write_checkpoint(module: nn.Module, stem: str | Path, config: dict[str, Any]
     weights.parent.mkdir(parents=True, exist_ok=True)
     doc = {**getattr(module, "metadata", {}), "format_version": FORMAT_VERSION, "config": config}
     text = json.dumps(doc, indent=2, sort_keys=True, default=_json_default)  # fails before any file is touched
-    write_atomically(weights, lambda tmp: torch.save(module.state_dict(), tmp))
-    write_atomically(meta, lambda tmp: tmp.write_text(text))
+    # both written in full before either replaces its file (an interruption while writing keeps the old pair)
+    tmp_weights, tmp_meta = (p.with_name(p.name + ".tmp") for p in (weights, meta))
+    try:
+        torch.save(module.state_dict(), tmp_weights)
+        tmp_meta.write_text(text)
+        os.replace(tmp_weights, weights)
+        os.replace(tmp_meta, meta)
+    finally:
+        tmp_weights.unlink(missing_ok=True)
+        tmp_meta.unlink(missing_ok=True)
     return weights, meta
 
 
@@ -92,8 +100,7 @@ def check_scene(doc: dict[str, Any], scene: Scene, path: str) -> None:
     """Refuse a checkpoint whose metadata ``doc`` names another scene (name, fingerprint or n)."""
     mine = (doc.get("scene"), doc.get("scene_fingerprint"), (doc.get("config") or {}).get("output_dim"))
     theirs = (scene.name, scene.fingerprint(), scene.free_dof_count)
-    legacy = (scene.name, scene.fingerprint(with_source=True), scene.free_dof_count)  # a mesh fit made before
-    if mine not in (theirs, legacy):
+    if (mine[0], mine[2]) != (theirs[0], theirs[2]) or not scene.accepts(mine[1]):
         raise CheckpointError(
             f"fitted to scene {mine[0]!r} (fingerprint {mine[1]}, n={mine[2]}), not to scene {theirs[0]!r} "
             f"(fingerprint {theirs[1]}, n={theirs[2]}); build the scene with the parameters in the .json",

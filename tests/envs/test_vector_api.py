@@ -153,3 +153,18 @@ def test_the_sb3_adapter_passes_set_options_to_the_reset() -> None:
     venv.set_options([{}, {"reset_mask": np.array([True, False])}])
     with pytest.raises(ValueError, match="same options"):
         venv.reset()
+
+
+@pytest.mark.parametrize("shards", [1, 2])
+def test_a_masked_first_reset_leaves_the_other_copies_unstarted(shards: int) -> None:
+    """As Gymnasium's sync env: stepping before every copy was reset is refused (the env stays usable)."""
+    venv = _vec(shards=shards)
+    try:
+        obs, _ = venv.reset(seed=0, options={"reset_mask": np.array([True, False])})
+        assert obs.shape == (2, 14)
+        with pytest.raises(RuntimeError, match=r"copies \[1\] were never reset"):
+            venv.step(PUSH)
+        venv.reset(options={"reset_mask": np.array([False, True])})
+        venv.step(PUSH)
+    finally:
+        venv.close()

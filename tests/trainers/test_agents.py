@@ -118,6 +118,8 @@ def test_train_resume_and_evaluate_through_the_cli(cli: Callable[..., tuple[int,
     assert code == 2 and "cannot resume with env_kwargs" in err and "'max_force': 3.0" in err
     code, _, err = cli(*again, "--resume", "--overwrite")
     assert code == 2 and "exclude each other" in err
+    code, _, err = cli(*again, "--env-arg", "bogus=1", "--overwrite")  # refused before anything is removed
+    assert code == 2 and (out / "best_model.zip").is_file() and (out / "agent.json").is_file()
     code, stdout, err = cli(*again, "--env-arg", "max_force=3.0", "--resume", "--no-video")
     assert code == 0, err
     assert load_agent(out / "model.zip", MINI).num_timesteps == 300
