@@ -444,6 +444,14 @@ class LatentStepper:
         self._handles = lambda y: y @ handle_matrix.T + handle_offset
         self._handle_rows = handle_matrix
 
+    def _kinetic_roundoff(self, q: Tensor, velocity: Tensor, m_velocity: Tensor, step_velocity: Tensor) -> Tensor:
+        """Round-off [B] [J] of K_t + K_{t+1}: each q carries eps |q|_M of it, and K = |dq|_M^2 / (2 h^2) divides
+        it by h^2 (at a tiny h, the size of any energy change)."""
+        delta = 2.0 * self._eps * torch.sqrt((q * self._mass(q)).sum(-1).clamp_min(0.0))  # |dq|_M's round-off
+        now = torch.sqrt((velocity * m_velocity).sum(-1).clamp_min(0.0))
+        after = torch.sqrt((step_velocity * self._mass(step_velocity)).sum(-1).clamp_min(0.0))
+        return delta * (now + after + delta) / self.dt**2
+
     def _mass_norm(self, v: Tensor, mv: Tensor) -> Tensor:
         """|M v| [B] of coordinate velocities v [B, n], given mv = self._mass(v)."""
         return torch.linalg.vector_norm(mv, dim=-1)
@@ -645,7 +653,8 @@ class LatentStepper:
                 kinetic_now + energy[batch:],
                 kinetic_next + torch.where(result.finite, result.energy, energy[batch:]),
                 work,
-                result.grad_norm * torch.linalg.vector_norm(z_next - z, dim=-1),
+                result.grad_norm * torch.linalg.vector_norm(z_next - z, dim=-1)
+                + self._kinetic_roundoff(q_t, velocity, m_v, step_velocity),
                 self._eps,
             )
         # a force scale past the dtype's range (finite loads too large to square) makes every threshold inf:
