@@ -79,7 +79,18 @@ class Task:
 
     Per-copy task parameters (a target, ...) are a dict of tensors [B, ...] drawn by
     :meth:`sample` from each copy's own generator, so copy i of a vector env and a single env
-    seeded alike draw the same episode.
+    seeded alike draw the same episode. They keep their dtypes through ``get_state``/``set_state`` and
+    pickling (a bool flag or an integer counter stays one), and :meth:`loads` may update them in place
+    (per-episode state, e.g. a clock).
+
+    A task of your own (``redsim.envs.make(scene, subspace, task=MyTask())``) implements ``action_size``,
+    :meth:`extras_bounds` (finite), :meth:`observation_structure` (block sizes adding up to the extras'),
+    :meth:`loads`, :meth:`extras` and :meth:`reward`; the others have defaults. ``x`` is the full configuration
+    [B, N]; a handle's position is ``sim.scene.handle(name).position(x)`` [B, D]; keep ``sim`` from :meth:`bind`
+    for anything else (``sim.x_prev``, ``sim.dt``). Every step checks what the task returns: ``reward``, each
+    reward term (named as ``reward_terms``, summing to the reward) and each metric are tensors [B], finite where
+    floating; ``terminated`` is a bool tensor [B]; a ValueError names the method otherwise. A vector env and an
+    unpickled env work on a copy of the task object (:meth:`bind` runs again for it).
 
     Attributes:
         name: Task name (used by :func:`redsim.envs.make`).
@@ -442,7 +453,19 @@ class LatentSim:
             self.z, self.z_prev = self.z - turns, self.z_prev - turns
         self.x_prev, self.x = self.x, self.full_positions(self.z)
         reward, terms = self.task.reward(self.x, act, self.params)
-        terminated = self.task.terminated(self.x, self.params) | diverged
+        _check_task_output("reward", reward, self.batch)
+        for key, value in terms.items():
+            _check_task_output(f"reward term {key!r}", value, self.batch)
+        if self.task.reward_terms and set(terms) != set(self.task.reward_terms):
+            raise ValueError(f"Task reward terms {sorted(terms)} are not reward_terms {list(self.task.reward_terms)}")
+        if terms and not torch.allclose(sum(terms.values()), reward, rtol=1e-4, atol=1e-5):
+            raise ValueError("Task reward terms must sum to the reward (each is reported as info['reward_<term>'])")
+        ended = self.task.terminated(self.x, self.params)
+        _check_task_output("terminated", ended, self.batch, dtype=torch.bool)
+        terminated = ended | diverged
+        metrics = self.task.metrics(self.x, self.params)
+        for key, value in metrics.items():
+            _check_task_output(f"metric {key!r}", value, self.batch, finite=False)
         info: dict[str, Tensor] = {
             "converged": converged,
             "iterations": iterations,
@@ -452,7 +475,7 @@ class LatentSim:
             "diverged": diverged,
             "energy_gain": energy_gain,
             **{f"reward_{k}": v for k, v in terms.items()},
-            **self.task.metrics(self.x, self.params),
+            **metrics,
             **self.invariants(self.x),
         }
         out = {k: v.detach().cpu().numpy() for k, v in info.items()}
@@ -482,11 +505,12 @@ class LatentSim:
         """
         d, B = self.latent_dim, self.batch
 
-        def tensor(value: Any, shape: tuple[int, ...], what: str) -> Tensor:
+        def tensor(value: Any, shape: tuple[int, ...], what: str, dtype: torch.dtype | None = None) -> Tensor:
             try:
                 if value is None:
                     raise TypeError
-                t = torch.as_tensor(np.asarray(value, dtype=np.float64), dtype=self.torch_dtype, device=self.device)
+                array = np.asarray(value, dtype=np.float64)
+                t = torch.as_tensor(array, dtype=dtype or self.torch_dtype, device=self.device)
             except (TypeError, ValueError):
                 raise ValueError(
                     f"state[{what!r}] must be a numeric array of shape {list(shape)}, got {value!r:.80} "
@@ -515,8 +539,13 @@ class LatentSim:
         params = state["params"]
         if self.params and set(params) != set(self.params):
             raise ValueError(f"state['params'] must have keys {sorted(self.params)}, got {sorted(params)}")
-        self.params = {
-            k: tensor(v, tuple(self.params[k].shape) if k in self.params else (B, *np.shape(v)[1:]), f"params.{k}")
+        self.params = {  # each keeps its dtype (a task's counters and flags stay integers and bools)
+            k: tensor(
+                v,
+                tuple(self.params[k].shape) if k in self.params else (B, *np.shape(v)[1:]),
+                f"params.{k}",
+                self.params[k].dtype if k in self.params else _param_dtype(v, self.torch_dtype),
+            )
             for k, v in params.items()
         }
         self.x_prev = self.full_positions(self.z_prev)
@@ -692,6 +721,11 @@ class LatentEnv(gym.Env[np.ndarray, np.ndarray]):
         low, high = self.sim.observation_bounds()
         self.observation_space = spaces.Box(low, high, dtype=np.float32)
         self.observation_structure = self.sim.observation_structure()
+        if not (np.isfinite(low).all() and np.isfinite(high).all()):
+            raise ValueError("Task.extras_bounds must be finite (observation bounds, as Gymnasium users expect)")
+        blocks, extras = task.observation_structure(), len(task.extras_bounds()[0])
+        if sum(blocks.values()) != extras:
+            raise ValueError(f"Task.observation_structure {blocks} does not add up to Task.extras_bounds' {extras}")
         self._render_size = _image_size(width, height)
         self._camera = _camera(camera)
         self._view: Any = None
@@ -843,6 +877,30 @@ def check_action(action: Any, shape: tuple[int, ...]) -> np.ndarray:
     if not np.all(np.isfinite(act)):
         raise ValueError(f"action must be finite, got {act.tolist()}")
     return np.clip(act, -1.0, 1.0).astype(np.float32)
+
+
+def _param_dtype(value: Any, floating: torch.dtype) -> torch.dtype:
+    """The dtype a restored task parameter takes: its own where it is bool or integer, else ``floating``."""
+    kind = np.asarray(value).dtype.kind
+    return torch.bool if kind == "b" else torch.int64 if kind in "iu" else floating
+
+
+def _check_task_output(
+    what: str, value: Any, batch: int, *, dtype: torch.dtype | None = None, finite: bool = True
+) -> None:
+    """Refuse a task's step output that is not a tensor of shape [B] (of ``dtype``; finite where asked): a bug in a
+    user's task would otherwise be broadcast over the copies silently (one copy's reward for all).
+
+    Raises:
+        ValueError: naming the Task method and the shape it returned.
+    """
+    if not isinstance(value, Tensor) or tuple(value.shape) != (batch,):
+        shape = list(value.shape) if isinstance(value, Tensor) else type(value).__name__
+        raise ValueError(f"Task {what} must be a torch tensor of shape [B] = [{batch}], got {shape}")
+    if dtype is not None and value.dtype != dtype:
+        raise ValueError(f"Task {what} must be a {dtype} tensor, got {value.dtype}")
+    if finite and value.is_floating_point() and not bool(torch.isfinite(value).all()):
+        raise ValueError(f"Task {what} is not finite: {value.tolist()}")
 
 
 def _image_size(width: Any, height: Any) -> tuple[int, int]:

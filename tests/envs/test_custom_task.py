@@ -1,0 +1,132 @@
+"""A user's own Task through redsim.envs.make: what it returns is checked, and its parameters keep their dtypes."""
+
+from __future__ import annotations
+
+import pickle
+
+import numpy as np
+import pytest
+import torch
+from gymnasium.utils.env_checker import check_env
+
+import redsim
+from redsim.envs.base import Task
+
+
+class HoldHeight(Task):
+    """Hold the mini chain's lower link at a height drawn per episode; counts its steps in an int parameter."""
+
+    name = "hold_height"
+    action_size = 3
+    reward_terms = ("height", "control")
+
+    def bind(self, sim) -> None:
+        self.handle = sim.scene.handle("bottom")
+        self.shape = (len(sim.scene.handles), sim.scene.dim)
+
+    def extras_bounds(self):
+        return np.full(2, -10.0), np.full(2, 10.0)
+
+    def observation_structure(self):
+        return {"height": 1, "height_error": 1}
+
+    def sample(self, rng, sim, z_rest, cond):
+        target = torch.tensor(rng.uniform(-0.2, 0.0), dtype=sim.torch_dtype)
+        return {"target": target, "clock": torch.tensor(0), "pushed": torch.tensor(False)}
+
+    def loads(self, action, params):
+        params["clock"] += 1
+        params["pushed"] |= params["clock"] >= 2
+        loads = torch.zeros(action.shape[0], *self.shape, dtype=action.dtype)
+        loads[:, 0] = 5.0 * action
+        return loads
+
+    def _height(self, x):
+        return self.handle.position(x)[:, 1]
+
+    def extras(self, x, x_prev, params):
+        height = self._height(x)
+        return torch.stack([height, params["target"] - height], 1)
+
+    def reward(self, x, action, params):
+        terms = {"height": -(self._height(x) - params["target"]).abs(), "control": -0.05 * action.pow(2).mean(1)}
+        return terms["height"] + terms["control"], terms
+
+
+def _env(task: Task):
+    return redsim.envs.make("mini_chain", task=task, max_episode_steps=20)
+
+
+def test_a_custom_task_passes_the_checkers_and_keeps_its_parameter_dtypes() -> None:
+    env = _env(HoldHeight())
+    check_env(env.unwrapped, skip_render_check=True)
+    env.reset(seed=0)
+    for _ in range(3):
+        env.step(env.action_space.sample())
+    state = env.unwrapped.get_state()
+    assert state["params"]["clock"].dtype == np.int64 and state["params"]["pushed"].dtype == np.bool_
+    env.unwrapped.set_state(state)
+    again = pickle.loads(pickle.dumps(env))
+    for restored in (env, again):
+        params = restored.unwrapped.sim.params
+        assert params["clock"].dtype == torch.int64 and params["pushed"].dtype == torch.bool
+        restored.step(np.zeros(3, np.float32))  # `|=` on a bool parameter works after the restore
+        assert int(restored.unwrapped.sim.params["clock"][0]) == 4
+
+
+class FirstRewardOnly(HoldHeight):
+    def reward(self, x, action, params):
+        reward, terms = super().reward(x, action, params)
+        return reward[:1], terms
+
+
+class ColumnTerminated(HoldHeight):
+    def terminated(self, x, params):
+        return torch.zeros(x.shape[0], 1, dtype=torch.bool)
+
+
+class NanReward(HoldHeight):
+    def reward(self, x, action, params):
+        reward, terms = super().reward(x, action, params)
+        return reward * float("nan"), {k: v * float("nan") for k, v in terms.items()}
+
+
+class OtherTerms(HoldHeight):
+    def reward(self, x, action, params):
+        reward, terms = super().reward(x, action, params)
+        return reward + 5.0, {"foo": terms["height"], "control": terms["control"]}
+
+
+@pytest.mark.parametrize(
+    ("task", "expected"),
+    [
+        (FirstRewardOnly(), r"Task reward must be a torch tensor of shape \[B\] = \[4\], got \[1\]"),
+        (ColumnTerminated(), r"Task terminated must be a torch tensor of shape \[B\]"),
+        (NanReward(), "not finite"),
+        (OtherTerms(), "are not reward_terms"),
+    ],
+)
+def test_what_a_task_returns_is_checked_at_every_step(task: Task, expected: str) -> None:
+    from redsim.envs.vector import LatentVectorEnv
+
+    venv = LatentVectorEnv(_env(task).unwrapped, 4)
+    venv.reset(seed=0)
+    with pytest.raises(ValueError, match=expected):
+        venv.step(np.zeros((4, 3), np.float32))
+
+
+class Unbounded(HoldHeight):
+    def extras_bounds(self):
+        return np.full(2, -np.inf), np.full(2, np.inf)
+
+
+class WrongBlocks(HoldHeight):
+    def observation_structure(self):
+        return {"height": 1, "height_error": 1, "ghost": 5}
+
+
+def test_a_task_s_observation_contract_is_checked_when_the_env_is_made() -> None:
+    with pytest.raises(ValueError, match="extras_bounds must be finite"):
+        _env(Unbounded())
+    with pytest.raises(ValueError, match="does not add up"):
+        _env(WrongBlocks())
