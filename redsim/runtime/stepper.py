@@ -444,13 +444,12 @@ class LatentStepper:
         self._handles = lambda y: y @ handle_matrix.T + handle_offset
         self._handle_rows = handle_matrix
 
-    def _kinetic_roundoff(self, q: Tensor, velocity: Tensor, m_velocity: Tensor, step_velocity: Tensor) -> Tensor:
-        """Round-off [B] [J] of K_t + K_{t+1}: each q carries eps |q|_M of it, and K = |dq|_M^2 / (2 h^2) divides
-        it by h^2 (at a tiny h, the size of any energy change)."""
+    def _kinetic_roundoff(self, q: Tensor, kinetic_now: Tensor, kinetic_next: Tensor) -> Tensor:
+        """Round-off [B] [J] of K_t + K_{t+1} (each [B] [J]): each q carries eps |q|_M of it, and K = |dq|_M^2 /
+        (2 h^2) divides it by h^2 (at a tiny h, the size of any energy change)."""
         delta = 2.0 * self._eps * torch.sqrt((q * self._mass(q)).sum(-1).clamp_min(0.0))  # |dq|_M's round-off
-        now = torch.sqrt((velocity * m_velocity).sum(-1).clamp_min(0.0))
-        after = torch.sqrt((step_velocity * self._mass(step_velocity)).sum(-1).clamp_min(0.0))
-        return delta * (now + after + delta) / self.dt**2
+        moved = (torch.sqrt(2.0 * kinetic_now.clamp_min(0.0)) + torch.sqrt(2.0 * kinetic_next.clamp_min(0.0))) * self.dt
+        return delta * (moved + delta) / self.dt**2
 
     def _mass_norm(self, v: Tensor, mv: Tensor) -> Tensor:
         """|M v| [B] of coordinate velocities v [B, n], given mv = self._mass(v)."""
@@ -654,7 +653,7 @@ class LatentStepper:
                 kinetic_next + torch.where(result.finite, result.energy, energy[batch:]),
                 work,
                 result.grad_norm * torch.linalg.vector_norm(z_next - z, dim=-1)
-                + self._kinetic_roundoff(q_t, velocity, m_v, step_velocity),
+                + self._kinetic_roundoff(q_t, kinetic_now, kinetic_next),
                 self._eps,
             )
         # a force scale past the dtype's range (finite loads too large to square) makes every threshold inf:
