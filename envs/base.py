@@ -453,9 +453,9 @@ class LatentSim:
             self.z, self.z_prev = self.z - turns, self.z_prev - turns
         self.x_prev, self.x = self.x, self.full_positions(self.z)
         reward, terms = self.task.reward(self.x, act, self.params)
-        _check_task_output("reward", reward, self.batch)
+        _check_task_output("reward", reward, self.batch, valid=~diverged)
         for key, value in terms.items():
-            _check_task_output(f"reward term {key!r}", value, self.batch)
+            _check_task_output(f"reward term {key!r}", value, self.batch, valid=~diverged)
         if self.task.reward_terms and set(terms) != set(self.task.reward_terms):
             raise ValueError(f"Task reward terms {sorted(terms)} are not reward_terms {list(self.task.reward_terms)}")
         if terms and not torch.allclose(sum(terms.values()), reward, rtol=1e-4, atol=1e-5):
@@ -886,10 +886,17 @@ def _param_dtype(value: Any, floating: torch.dtype) -> torch.dtype:
 
 
 def _check_task_output(
-    what: str, value: Any, batch: int, *, dtype: torch.dtype | None = None, finite: bool = True
+    what: str,
+    value: Any,
+    batch: int,
+    *,
+    dtype: torch.dtype | None = None,
+    finite: bool = True,
+    valid: Tensor | None = None,
 ) -> None:
-    """Refuse a task's step output that is not a tensor of shape [B] (of ``dtype``; finite where asked): a bug in a
-    user's task would otherwise be broadcast over the copies silently (one copy's reward for all).
+    """Refuse a task's step output that is not a tensor of shape [B] (of ``dtype``; finite where asked, in the
+    ``valid`` copies [B] (bool): a diverged copy's state may not be): a bug in a user's task would otherwise be
+    broadcast over the copies silently (one copy's reward for all).
 
     Raises:
         ValueError: naming the Task method and the shape it returned.
@@ -899,7 +906,8 @@ def _check_task_output(
         raise ValueError(f"Task {what} must be a torch tensor of shape [B] = [{batch}], got {shape}")
     if dtype is not None and value.dtype != dtype:
         raise ValueError(f"Task {what} must be a {dtype} tensor, got {value.dtype}")
-    if finite and value.is_floating_point() and not bool(torch.isfinite(value).all()):
+    checked = value if valid is None else value[valid]
+    if finite and value.is_floating_point() and not bool(torch.isfinite(checked).all()):
         raise ValueError(f"Task {what} is not finite: {value.tolist()}")
 
 
