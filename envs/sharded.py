@@ -235,18 +235,26 @@ class ShardedVectorEnv(SharedCopies, VectorEnv):
             return None
         return tuple(frame for frames in self._call([("render", None)] * len(self.sizes)) for frame in frames)
 
-    def get_state(self) -> list[dict[str, Any]]:
-        """The dynamic state of each shard (its native vector env's :meth:`LatentVectorEnv.get_state`), a list."""
-        return self._call([("get_state", None)] * len(self.sizes))
+    def get_state(self) -> dict[str, Any]:
+        """The batched state of all copies, as the native env's :meth:`LatentVectorEnv.get_state` (the shards'
+        states joined along the copies), so a state moves between sharded and native envs of the same copies."""
+        return _join_states(self._call([("get_state", None)] * len(self.sizes)))
 
-    def set_state(self, state: Sequence[dict[str, Any]]) -> None:
-        """Restore what :meth:`get_state` returned (a list: one state per shard)."""
-        if isinstance(state, dict) or len(state) != len(self.sizes):
-            raise ValueError(f"need a list of one state per shard ({len(self.sizes)}), as get_state() returns")
-        self._call([("set_state", part) for part in state])
+    def set_state(self, state: Mapping[str, Any]) -> None:
+        """Restore :meth:`get_state`'s state (or a native env's of as many copies).
+
+        Raises:
+            ValueError: a state of another env or copy count (from the workers, which check their blocks).
+        """
+        if not isinstance(state, Mapping):
+            raise ValueError(f"need the dict get_state() returns, got {type(state).__name__}")
+        z = np.asarray(state.get("z"))
+        if z.ndim != 2 or z.shape[0] != self.num_envs:
+            raise ValueError(f"state['z'] must have shape [{self.num_envs}, d] (one row per copy), got {z.shape}")
+        parts = [_state_rows(state, block) for block in self._blocks()]
+        self._call([("set_state", part) for part in parts])
         if self.metadata["autoreset_mode"] == AutoresetMode.DISABLED:
-            pending = [part.get("autoresetting", np.zeros(n, bool)) for part, n in zip(state, self.sizes, strict=True)]
-            self._ended = np.concatenate(pending).astype(bool)
+            self._ended = np.asarray(state.get("autoresetting", np.zeros(self.num_envs, bool)), dtype=bool).copy()
         self._unreset[:] = False
 
     def _per_copy(self, name: str) -> tuple[Any, ...]:
@@ -349,6 +357,31 @@ def _cpu_count() -> int:
         return max(1, len(os.sched_getaffinity(0)))
     except AttributeError:
         return max(1, os.cpu_count() or 1)
+
+
+def _join_states(parts: Sequence[Mapping[str, Any]]) -> dict[str, Any]:
+    """The shards' batched states joined along the copies (None stays None; nested dicts key by key)."""
+    joined: dict[str, Any] = {}
+    for key, first in parts[0].items():
+        if first is None:
+            joined[key] = None
+        elif isinstance(first, Mapping):
+            joined[key] = _join_states([part[key] for part in parts])
+        else:
+            joined[key] = np.concatenate([np.asarray(part[key]) for part in parts])
+    return joined
+
+
+def _state_rows(state: Mapping[str, Any], rows: slice) -> dict[str, Any]:
+    """A shard's block ``rows`` of a batched state."""
+    return {
+        key: None
+        if value is None
+        else _state_rows(value, rows)
+        if isinstance(value, Mapping)
+        else np.asarray(value)[rows]
+        for key, value in state.items()
+    }
 
 
 def _merge_infos(infos: Sequence[dict[str, Any]], sizes: Sequence[int]) -> dict[str, Any]:

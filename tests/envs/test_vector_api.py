@@ -11,6 +11,8 @@ from gymnasium.vector import AutoresetMode
 import redsim  # noqa: F401  (registers the ids)
 
 ID = "RedSim/MiniChain-v0"
+TIGHT = {"dtype": "float64", "stepper_options": {"tol": 1e-10, "max_iter": 60}}
+"""Solved tightly, so that another batch split does not move a copy's solve."""
 PUSH = np.full((2, 3), 0.5, np.float32)
 
 
@@ -168,3 +170,19 @@ def test_a_masked_first_reset_leaves_the_other_copies_unstarted(shards: int) -> 
         venv.step(PUSH)
     finally:
         venv.close()
+
+
+def test_a_state_moves_between_sharded_and_native_envs_of_the_same_copies() -> None:
+    sharded, native = _vec(shards=2, **TIGHT), _vec(**TIGHT)
+    try:
+        sharded.reset(seed=0)
+        native.reset(seed=5)
+        sharded.step(PUSH)
+        state = sharded.get_state()
+        assert state["z"].shape[0] == 2 and state["elapsed_steps"].tolist() == [1, 1]
+        native.set_state(state)
+        np.testing.assert_allclose(native.step(PUSH)[0], sharded.step(PUSH)[0], atol=1e-9)
+        sharded.set_state(native.get_state())
+        np.testing.assert_allclose(sharded.step(PUSH)[0], native.step(PUSH)[0], atol=1e-9)
+    finally:
+        sharded.close()
