@@ -367,7 +367,12 @@ class LatentSim:
             else:
                 cond = None if self.cond is None else self.cond[row : row + 1]
                 z_rest = self._rest
-            for key, value in self.task.sample(rng, self, z_rest, cond).items():
+            drawn = self.task.sample(rng, self, z_rest, cond)
+            if self.params and set(drawn) != set(self.params):
+                raise ValueError(f"Task.sample returned keys {sorted(drawn)}, another episode {sorted(self.params)}")
+            for key, value in drawn.items():
+                if not isinstance(value, Tensor):
+                    raise ValueError(f"Task.sample must return torch tensors, got {type(value).__name__} for {key!r}")
                 if key not in self.params:
                     self.params[key] = torch.zeros((self.batch, *value.shape), dtype=value.dtype, device=self.device)
                 self.params[key][row] = value

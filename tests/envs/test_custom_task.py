@@ -130,3 +130,23 @@ def test_a_task_s_observation_contract_is_checked_when_the_env_is_made() -> None
         _env(Unbounded())
     with pytest.raises(ValueError, match="does not add up"):
         _env(WrongBlocks())
+
+
+class FloatTarget(HoldHeight):
+    def sample(self, rng, sim, z_rest, cond):
+        return {**super().sample(rng, sim, z_rest, cond), "target": 0.1}
+
+
+class ChangingKeys(HoldHeight):
+    def sample(self, rng, sim, z_rest, cond):
+        drawn = super().sample(rng, sim, z_rest, cond)
+        return drawn if rng.random() < 0.5 else {**drawn, "extra": torch.tensor(1.0)}
+
+
+def test_what_a_task_samples_is_checked_at_reset() -> None:
+    with pytest.raises(ValueError, match="must return torch tensors, got float for 'target'"):
+        _env(FloatTarget()).reset(seed=0)
+    env = _env(ChangingKeys())
+    with pytest.raises(ValueError, match="another episode"):
+        for seed in range(20):
+            env.reset(seed=seed)
