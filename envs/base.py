@@ -463,7 +463,8 @@ class LatentSim:
             _check_task_output(f"reward term {key!r}", value, self.batch, valid=~diverged)
         if self.task.reward_terms and set(terms) != set(self.task.reward_terms):
             raise ValueError(f"Task reward terms {sorted(terms)} are not reward_terms {list(self.task.reward_terms)}")
-        if terms and not torch.allclose(sum(terms.values()), reward, rtol=1e-4, atol=1e-5):
+        total = sum(terms.values())
+        if terms and not torch.allclose(total.to(reward.dtype)[~diverged], reward[~diverged], rtol=1e-4, atol=1e-5):
             raise ValueError("Task reward terms must sum to the reward (each is reported as info['reward_<term>'])")
         ended = self.task.terminated(self.x, self.params)
         _check_task_output("terminated", ended, self.batch, dtype=torch.bool)
@@ -514,7 +515,8 @@ class LatentSim:
             try:
                 if value is None:
                     raise TypeError
-                array = np.asarray(value, dtype=np.float64)
+                exact = dtype in (torch.bool, torch.int64)  # integers and flags without a round trip through floats
+                array = np.asarray(value) if exact else np.asarray(value, dtype=np.float64)
                 t = torch.as_tensor(array, dtype=dtype or self.torch_dtype, device=self.device)
             except (TypeError, ValueError):
                 raise ValueError(

@@ -182,7 +182,7 @@ def test_an_out_that_cannot_be_written_is_refused_before_any_work(cli: Cli, tmp_
     from redsim import pretrained
 
     for argv in (["fit", "toy_two_tets", *SMALL, "--steps", "2"], ["sample", str(pretrained.path("mini_chain"))]):
-        for folder in (".", str(tmp_path) + "/", str(tmp_path / "new") + "/"):  # a folder, not a file in it
+        for folder in (".", str(tmp_path) + "/", str(tmp_path / "new") + "/", str(tmp_path) + "/."):  # folders
             code, _, err = cli(*argv, "--out", folder)
             assert code == 2 and err.count("\n") == 1 and "is a folder; name a file in it" in err, err
     assert not (tmp_path / "new").exists() and not (tmp_path.parent / f"{tmp_path.name}.npz").exists()

@@ -81,7 +81,7 @@ def _check_out(args: argparse.Namespace) -> None:
     if getattr(args, "out_is_folder", False):
         if Path(out).exists() and not Path(out).is_dir():
             raise CliError(f"cannot write into --out {out}: it is a file, not a folder")
-    elif out.endswith(("/", os.sep)) or Path(out).name in ("", ".", ".."):  # a stem may share a folder's name
+    elif out.endswith(("/", os.sep)) or os.path.basename(out) in ("", ".", ".."):  # a stem may share a folder's name
         raise CliError(f"--out {out} is a folder; name a file in it (e.g. {Path(out) / 'NAME'})")
     folder = Path(out).absolute().parent
     while not folder.exists() and folder != folder.parent:
