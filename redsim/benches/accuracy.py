@@ -675,8 +675,13 @@ COLUMNS = (
 """Markdown table columns: key, header, format."""
 
 
+NOT_APPLICABLE = ("ms_per_step", "speedup", "projection")
+"""Columns whose NaN means "does not apply" (a run that never steps; a configuration without a subspace): printed –.
+A NaN anywhere else is a measured value that is not finite (a run that diverged), printed nan."""
+
+
 def markdown_table(result: dict[str, Any], scenario: str) -> str:
-    """The rows of one scenario as a markdown table (NaN cells print as –)."""
+    """The rows of one scenario as a markdown table (:data:`NOT_APPLICABLE` NaN cells print as –, others as nan)."""
     lines = ["| " + " | ".join(h for _k, h, _f in COLUMNS) + " |", "|" + "---|" * len(COLUMNS)]
     for row in result["rows"]:
         if row["scenario"] != scenario:
@@ -684,7 +689,10 @@ def markdown_table(result: dict[str, Any], scenario: str) -> str:
         cells = []
         for key, _header, fmt in COLUMNS:
             value = row[key]
-            cells.append("–" if isinstance(value, float) and not math.isfinite(value) else fmt.format(value))
+            if isinstance(value, float) and math.isnan(value):
+                cells.append("–" if key in NOT_APPLICABLE else "nan")
+            else:
+                cells.append(fmt.format(value))
         lines.append("| " + " | ".join(cells) + " |")
     return "\n".join(lines)
 

@@ -178,3 +178,14 @@ def test_a_loose_full_space_solve_that_never_moves_is_counted_idle() -> None:
     tight = accuracy.run_full(scene, rest.double(), loads)
     assert loose.idle == 3 and torch.equal(loose.q[-1], rest.double())
     assert tight.idle == 0 and float((tight.q[-1] - rest.double()).abs().max()) > 1e-4
+
+
+def test_the_table_tells_a_non_finite_error_from_a_column_that_does_not_apply() -> None:
+    row = {key: 1.0 for key, _header, _fmt in accuracy.COLUMNS}
+    row.update(scenario="push", config="diverged run", failed=0, flagged_diverged=3, out_of_range=0)
+    row.update(nonfinite=2, idle=0)
+    row.update(rel_error_mean=float("nan"), projection=float("nan"))
+    table = accuracy.markdown_table({"rows": [row]}, "push")
+    cells = table.splitlines()[-1].split(" | ")
+    headers = [h for _k, h, _f in accuracy.COLUMNS]
+    assert cells[headers.index("rel. M error")] == "nan" and cells[headers.index("projection")] == "–"
