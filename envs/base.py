@@ -96,11 +96,14 @@ class Task:
         name: Task name (used by :func:`redsim.envs.make`).
         action_size: A, the size of the action vector.
         reward_terms: Names of the reward terms; ``info["reward_<term>"]`` holds each.
+        reset_options: Names of the parameters of :meth:`sample` that ``reset(options={name: value})`` sets
+            for the episode instead of drawing them (same shape as drawn; integer and bool ones integral).
     """
 
     name: ClassVar[str] = "task"
     action_size: int
     reward_terms: tuple[str, ...] = ()
+    reset_options: tuple[str, ...] = ()
 
     def bind(self, sim: LatentSim) -> None:
         """Check the task against ``sim.scene`` and precompute what it needs (called once)."""
@@ -118,6 +121,9 @@ class Task:
     ) -> dict[str, Tensor]:
         """Parameters of one new episode (each shape [...], no batch dim) drawn from ``rng``."""
         return {}
+
+    def check_options(self, chosen: Mapping[str, Tensor]) -> None:
+        """Raise ValueError for ``reset`` option values (named in :attr:`reset_options`) the task cannot start from."""
 
     def start(self, sim: LatentSim, row: int, z_rest: Tensor) -> Tensor:
         """The latent [d] copy ``row`` starts its episode from, after :meth:`sample` (default: at rest, z_rest)."""
@@ -354,20 +360,62 @@ class LatentSim:
         return self.scene.full_positions(self.positions(z, cond).to(self.torch_dtype))
 
     # -- episodes -------------------------------------------------------------------------
-    def reset_rows(self, rows: list[int], rngs: list[np.random.Generator]) -> None:
+    def episode_options(self, options: Mapping[str, Any] | None, vector: bool = False) -> dict[str, Tensor]:
+        """What ``reset(options=...)`` sets for the new episodes, checked before anything is reset.
+
+        Accepted keys: the task's :attr:`Task.reset_options`, ``"condition"`` (values [m] inside the condition
+        space) where the condition is drawn per episode, and ``"reset_mask"`` for a vector env (its own).
+
+        Raises:
+            ValueError: another key, a value that is not a finite number array (of the parameter's shape), one the
+                task refuses (:meth:`Task.check_options`), or a condition outside its space.
+        """
+        accepted = (*self.task.reset_options, *(("condition",) if self.randomize_condition else ()))
+        chosen = {k: v for k, v in (options or {}).items() if not (vector and k == "reset_mask")}
+        unknown = sorted(set(chosen) - set(accepted))
+        if unknown:
+            allowed = ", ".join(repr(k) for k in (*accepted, *(("reset_mask",) if vector else ()))) or "none"
+            raise ValueError(f"unknown reset option(s) {unknown}; this env accepts {allowed}")
+        out = {}
+        for key, value in chosen.items():
+            try:
+                array = np.asarray(value, dtype=np.float64)
+            except (TypeError, ValueError):
+                raise ValueError(f"options[{key!r}] must be a number array, got {value!r:.80}") from None
+            if not np.isfinite(array).all():
+                raise ValueError(f"options[{key!r}] must be finite, got {array.tolist()}")
+            out[key] = torch.as_tensor(array, device=self.device)
+            if key in self.params:  # the shape and dtype of an earlier draw (else checked at the draw)
+                out[key] = _chosen_param(key, out[key], self.params[key][0])
+        self.task.check_options({k: v for k, v in out.items() if k != "condition"})
+        if "condition" in out:
+            m = self._cond_low.shape[0]
+            if tuple(out["condition"].shape) != (m,):
+                raise ValueError(f"options['condition'] must have shape [{m}], got {list(out['condition'].shape)}")
+            cond = out["condition"].to(self.torch_dtype)[None]
+            out["condition"] = self._checked_cond(cond, "options['condition']")[0]
+        return out
+
+    def reset_rows(
+        self, rows: list[int], rngs: list[np.random.Generator], chosen: Mapping[str, Tensor] | None = None
+    ) -> None:
         """Start a new episode in copies ``rows`` (at rest, or where the task starts it), each drawing from its own
-        generator."""
+        generator; ``chosen`` (from :meth:`episode_options`) replaces the drawn parameters it names in every row."""
+        chosen = dict(chosen or {})
         for row, rng in zip(rows, rngs, strict=True):
             cond = None
             if self.randomize_condition:
                 u = torch.as_tensor(rng.random(self._cond_low.shape[0]), dtype=self.torch_dtype, device=self.device)
                 cond = (self._cond_low + u * (self._cond_high - self._cond_low)).unsqueeze(0)
+                if "condition" in chosen:
+                    cond = chosen["condition"].unsqueeze(0)
                 self.cond[row] = cond[0]
                 z_rest = self._rest_latent(cond)
             else:
                 cond = None if self.cond is None else self.cond[row : row + 1]
                 z_rest = self._rest
             drawn = self.task.sample(rng, self, z_rest, cond)
+            drawn.update({k: _chosen_param(k, v, drawn.get(k)) for k, v in chosen.items() if k != "condition"})
             if self.params and set(drawn) != set(self.params):
                 raise ValueError(f"Task.sample returned keys {sorted(drawn)}, another episode {sorted(self.params)}")
             for key, value in drawn.items():
@@ -558,15 +606,15 @@ class LatentSim:
         self.x_prev = self.full_positions(self.z_prev)
         self.x = self.full_positions(self.z)
 
-    def _checked_cond(self, cond: Tensor) -> Tensor:
-        """``cond`` [B, m], refused (ValueError naming the ranges) where it leaves the condition space."""
+    def _checked_cond(self, cond: Tensor, what: str = "state['cond']") -> Tensor:
+        """``cond`` [B, m], refused (ValueError naming ``what`` and the ranges) where it leaves the condition space."""
         if bool(((cond < self._cond_low) | (cond > self._cond_high)).any()):
             space = self.scene.condition_space
             ranges = ", ".join(
                 f"{name} in [{lo:g}, {hi:g}]"
                 for name, lo, hi in zip(space.names, space.low.tolist(), space.high.tolist(), strict=True)
             )
-            raise ValueError(f"state['cond'] must lie in the condition space ({ranges}), got {cond.tolist()}")
+            raise ValueError(f"{what} must lie in the condition space ({ranges}), got {cond.tolist()}")
         return cond
 
     # -- drawing --------------------------------------------------------------------------
@@ -745,9 +793,16 @@ class LatentEnv(gym.Env[np.ndarray, np.ndarray]):
 
     # -- Gymnasium API --------------------------------------------------------------------
     def reset(self, *, seed: int | None = None, options: dict[str, Any] | None = None) -> tuple[np.ndarray, dict]:
-        """Start at the rest state (z = the map's unloaded equilibrium, z_dot = 0) with a new task draw."""
+        """Start at the rest state (z = the map's unloaded equilibrium, z_dot = 0) with a new task draw.
+
+        ``options`` sets parts of the draw for this episode: the task's ``reset_options`` (e.g. ``{"target": [x, y,
+        z]}``, see the env's "Starting State") and ``"condition"`` where it is drawn per episode; another key is a
+        ValueError.
+        """
+        chosen = self.sim.episode_options(options)
         super().reset(seed=seed)
-        self.sim.reset_rows([0], [self.np_random])
+        self._reset_done = False  # until the draw succeeds (a task may refuse an option's value)
+        self.sim.reset_rows([0], [self.np_random], chosen)
         self._reset_done = True
         if self.render_mode == "human":
             self.render()
@@ -884,6 +939,17 @@ def check_action(action: Any, shape: tuple[int, ...]) -> np.ndarray:
     if not np.all(np.isfinite(act)):
         raise ValueError(f"action must be finite, got {act.tolist()}")
     return np.clip(act, -1.0, 1.0).astype(np.float32)
+
+
+def _chosen_param(key: str, value: Tensor, drawn: Tensor | None) -> Tensor:
+    """A reset option's value in the shape, dtype and device of the parameter ``drawn`` it replaces."""
+    if drawn is None:
+        raise ValueError(f"Task.reset_options names {key!r}, which Task.sample does not return")
+    if tuple(value.shape) != tuple(drawn.shape):
+        raise ValueError(f"options[{key!r}] must have shape {list(drawn.shape)}, got {list(value.shape)}")
+    if not drawn.is_floating_point() and not bool((value == value.round()).all()):
+        raise ValueError(f"options[{key!r}] must be integral (the task's is {drawn.dtype}), got {value.tolist()}")
+    return value.to(drawn.dtype).to(drawn.device)
 
 
 def _param_dtype(value: Any, floating: torch.dtype) -> torch.dtype:

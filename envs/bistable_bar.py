@@ -53,6 +53,7 @@ class SnapThrough(Task):
 
     name = "snap_through"
     reward_terms = ("height", "control", "success")
+    reset_options = ("start_side",)
     action_size = 1
 
     def __init__(
@@ -140,9 +141,19 @@ class SnapThrough(Task):
             "goal_height": self.heights[1 - side],
         }
 
+    def check_options(self, chosen: Mapping[str, Tensor]) -> None:
+        if "start_side" in chosen and not set(chosen["start_side"].flatten().tolist()) <= {0, 1}:
+            raise ValueError(f"options['start_side'] must be 0 (up) or 1 (down), got {chosen['start_side'].tolist()}")
+
     def start(self, sim: LatentSim, row: int, z_rest: Tensor) -> Tensor:
-        """The stable state the episode's draw names (not the rest latent: the map's z = 0 is the straight bar)."""
-        return self.states[int(sim.params["start_side"][row])]
+        """The stable state the episode's draw names (not the rest latent: the map's z = 0 is the straight bar).
+
+        The heights follow ``start_side`` here, so ``reset(options={"start_side": s})`` keeps them consistent.
+        """
+        side = int(sim.params["start_side"][row])
+        sim.params["start_height"][row] = self.heights[side]
+        sim.params["goal_height"][row] = self.heights[1 - side]
+        return self.states[side]
 
     def loads(self, action: Tensor, params: Mapping[str, Tensor]) -> Tensor:
         loads = torch.zeros(action.shape[0], self._handles, self._dim, dtype=action.dtype, device=action.device)
@@ -245,8 +256,8 @@ class BistableBarEnv(LatentEnv):
     invariants `elastic_min_det_f` and `elastic_inverted`.
 
     ## Starting State
-    At rest in one of the two stable states of the map (up or down with probability 1/2, from `self.np_random`),
-    z_dot = 0; the goal is the other one.
+    At rest in one of the two stable states of the map (up or down with probability 1/2, from `self.np_random`;
+    `reset(options={"start_side": 0})` starts up, 1 down), z_dot = 0; the goal is the other one.
 
     ## Episode End
     Termination: the stepper could not make a step finite (`info["diverged"]`). Truncation: 200 steps (4 s).

@@ -43,7 +43,8 @@ class ChainEnv(ReachEnv):
 
     ## Starting State
     At rest (z: the map's unloaded equilibrium, z_dot = 0). The target is the end link's centre in the subspace
-    state z_rest + `target_spread` * N(0, I), drawn from `self.np_random`.
+    state z_rest + `target_spread` * N(0, I), drawn from `self.np_random`. `reset(options={"target": [x, y, z]})`
+    sets the target [m] instead.
 
     ## Episode End
     Termination: the stepper could not make a step finite (`info["diverged"]`). Truncation: 300 steps (6 s).

@@ -44,6 +44,7 @@ class ClothBallEnv(ReachEnv):
     ## Starting State
     At rest (z: the map's unloaded equilibrium, the ball in the cloth's hollow; z_dot = 0). The target is the
     ball's (x, z) in the subspace state z_rest + `target_spread` * N(0, I), drawn from `self.np_random`.
+    `reset(options={"target": [x, z]})` sets it [m] instead.
 
     ## Episode End
     Termination: the stepper could not make a step finite (`info["diverged"]`). Truncation: 200 steps (4 s).

@@ -47,6 +47,7 @@ class ConditionalBarEnv(ReachEnv):
     ## Starting State
     c uniform in its box; z the map's unloaded equilibrium under c, z_dot = 0. The target is the tip in the
     subspace state f(z_rest + `target_spread` * N(0, I), c); all draws from `self.np_random`.
+    `reset(options={"target": [x, y], "condition": [ratio, location]})` sets either instead.
 
     ## Episode End
     Termination: the stepper could not make a step finite (`info["diverged"]`). Truncation: 200 steps (4 s).

@@ -46,6 +46,7 @@ class HangingClothEnv(ReachEnv):
     z_rest + `target_spread` * N(0, I), drawn from `self.np_random`. v1 (`targets="held"`): the target is drawn by
     `self.np_random` from 256 places the corner comes to rest at under a held action u ~ U[-0.8, 0.8]^3 (fixed
     seed; :class:`redsim.envs.reach.HandleReach`), each settled on the env's own energy at bind time (~10 s).
+    `reset(options={"target": [x, y, z]})` sets the target [m] instead.
 
     ## Episode End
     Termination: the stepper could not make a step finite (`info["diverged"]`). Truncation: 200 steps (4 s).

@@ -61,6 +61,7 @@ class CrankSpeed(Task):
 
     name = "crank_speed"
     reward_terms = ("speed", "control", "success")
+    reset_options = ("speed",)
     action_size = 1
 
     def __init__(
@@ -269,7 +270,8 @@ class KlannEnv(LatentEnv):
 
     ## Starting State
     At rest (z: the map's unloaded equilibrium, z_dot = 0, the crank hanging at theta = 2.8 rad). The commanded
-    speed omega* is drawn uniformly from `speed_range` (4-12 rad/s, 0.6-1.9 turns/s) by `self.np_random`.
+    speed omega* is drawn uniformly from `speed_range` (4-12 rad/s, 0.6-1.9 turns/s) by `self.np_random`;
+    `reset(options={"speed": omega})` sets it [rad/s] instead.
 
     ## Episode End
     Termination: the stepper could not make a step finite (`info["diverged"]`). Truncation: 300 steps (6 s).

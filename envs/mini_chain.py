@@ -44,6 +44,7 @@ class MiniChainEnv(ReachEnv):
     ## Starting State
     At rest: z is the map's unloaded equilibrium and z_dot = 0. The target is the lower link's centre in the
     subspace state z_rest + `target_spread` * N(0, I), drawn from `self.np_random`.
+    `reset(options={"target": [x, y, z]})` sets the target [m] instead.
 
     ## Episode End
     Termination: the stepper could not make a step finite (`info["diverged"]`). Truncation: 200 steps (4 s).

@@ -76,6 +76,7 @@ class HandleReach(Task):
 
     name = "reach"
     reward_terms = ("distance", "control", "success")
+    reset_options = ("target",)
 
     def __init__(
         self,

@@ -201,6 +201,9 @@ class ShardedVectorEnv(SharedCopies, VectorEnv):
     ) -> tuple[np.ndarray, dict[str, Any]]:
         """Reset all copies, or those of ``options["reset_mask"]`` (bool [N]); seed copy i with ``seed + i``."""
         mask = reset_mask(options, self.num_envs)
+        if set(options or ()) - {"reset_mask"} and not self.template.sim.params:
+            self.template.reset(seed=0)  # one draw, for the parameters' shapes (a refused option closes no shard)
+        self.template.sim.episode_options(options, vector=True)
         own, seeds = copy_seeds(seed, self.num_envs)
         super().reset(seed=own)
         requests = []

@@ -60,6 +60,7 @@ class PlatePose(Task):
 
     name = "plate_pose"
     reward_terms = ("position", "orientation", "control", "success")
+    reset_options = ("target_position", "target_rotation")
 
     def __init__(
         self,
@@ -248,6 +249,7 @@ class StewartEnv(LatentEnv):
     At rest (z: the map's unloaded equilibrium, z_dot = 0). The target is a pose the servos can hold: the
     plate's pose in the latent static equilibrium under a held action drawn uniformly from
     [-`target_spread`, `target_spread`]^6 by `self.np_random` (a float64 Newton solve at each reset, about 1 s).
+    `reset(options={"target_position": [x, y, z], "target_rotation": R})` sets either instead ([m]; R [3, 3]).
 
     ## Episode End
     Termination: the stepper could not make a step finite (`info["diverged"]`). Truncation: 200 steps (4 s).

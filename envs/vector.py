@@ -83,8 +83,10 @@ class LatentVectorEnv(SharedCopies, VectorEnv):
         self, *, seed: int | Sequence[int | None] | None = None, options: dict[str, Any] | None = None
     ) -> tuple[np.ndarray, dict[str, Any]]:
         """Reset all copies, or those of ``options["reset_mask"]`` (bool [N]); seed copy i with ``seed + i``, or with
-        ``seed[i]`` for a sequence (None: copy i keeps its generator, as in Gymnasium's sync vector env)."""
+        ``seed[i]`` for a sequence (None: copy i keeps its generator, as in Gymnasium's sync vector env). The other
+        options set parts of every reset copy's draw, as in the single env's ``reset`` (autoresets draw them)."""
         given = reset_mask(options, self.num_envs)
+        chosen = self.sim.episode_options(options, vector=True)
         mask = np.ones(self.num_envs, dtype=bool) if given is None else given
         own, seeds = copy_seeds(seed, self.num_envs)
         super().reset(seed=own)
@@ -93,7 +95,8 @@ class LatentVectorEnv(SharedCopies, VectorEnv):
                 if seeds[i] is not None:
                     self._rngs[i] = seeding.np_random(seeds[i])[0]
         rows = [int(i) for i in np.nonzero(mask)[0]]
-        self.sim.reset_rows(rows, [self._rngs[i] for i in rows])
+        self._unreset[mask] = True  # until the draws succeed (a task may refuse an option's value)
+        self.sim.reset_rows(rows, [self._rngs[i] for i in rows], chosen)
         self._elapsed[mask] = 0
         self._autoreset[mask] = False
         self._unreset[mask] = False

@@ -96,7 +96,10 @@ def check_started(unreset: np.ndarray) -> None:
     if unreset.all():
         raise RuntimeError("call reset() before step()")
     if unreset.any():
-        raise RuntimeError(f"call reset() before step(): copies {np.nonzero(unreset)[0].tolist()} were never reset")
+        raise RuntimeError(
+            f"call reset() before step(): copies {np.nonzero(unreset)[0].tolist()} were never reset "
+            "(or their reset failed)"
+        )
 
 
 def reset_mask(options: dict[str, Any] | None, num_envs: int) -> np.ndarray | None:

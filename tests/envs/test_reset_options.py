@@ -1,0 +1,119 @@
+"""``reset(options=...)`` sets parts of an episode's draw (the task's ``reset_options`` and a per-episode
+condition) on the single, native vector and sharded envs; a bad option is refused before anything changes."""
+
+from __future__ import annotations
+
+import gymnasium as gym
+import numpy as np
+import pytest
+
+import redsim  # noqa: F401  (registers the ids)
+
+ID = "RedSim/MiniChain-v0"
+TARGET = [0.05, -0.15, 0.0]
+
+
+def _target_offset(env: gym.Env, obs: np.ndarray) -> np.ndarray:
+    blocks = env.unwrapped.sim.observation_structure()
+    start = blocks["z"] + blocks["z_dot"] + blocks["handle_position"]
+    return obs[start : start + blocks["target_offset"]]
+
+
+def test_a_chosen_target_is_the_episode_target_and_leaves_the_random_stream_alone() -> None:
+    env, plain = gym.make(ID), gym.make(ID)
+    obs, _ = env.reset(seed=3, options={"target": TARGET})
+    sim = env.unwrapped.sim
+    np.testing.assert_allclose(sim.params["target"][0].numpy(), TARGET, atol=1e-7)
+    handle = sim.scene.handle("bottom").position(sim.x)[0].numpy()
+    np.testing.assert_allclose(_target_offset(env, obs), np.asarray(TARGET) - handle, atol=1e-6)
+    plain.reset(seed=3)
+    assert not np.allclose(plain.unwrapped.sim.params["target"][0].numpy(), TARGET)
+    # the target is still drawn (and replaced), so the next episodes draw what they would have
+    np.testing.assert_array_equal(env.reset()[0], plain.reset()[0])
+
+
+@pytest.mark.parametrize(
+    ("options", "match"),
+    [
+        ({"targt": TARGET}, r"unknown reset option\(s\) \['targt'\]; this env accepts 'target'"),
+        ({"target": [1.0, 2.0]}, r"options\['target'\] must have shape \[3\], got \[2\]"),
+        ({"target": [np.nan, 0.0, 0.0]}, r"options\['target'\] must be finite"),
+        ({"target": "up"}, r"options\['target'\] must be a number array"),
+        ({"reset_mask": np.ones(1, bool)}, r"unknown reset option"),  # a vector env's option
+    ],
+)
+def test_a_bad_option_is_refused_and_the_running_episode_goes_on(options: dict, match: str) -> None:
+    env = gym.make(ID)
+    env.reset(seed=0)
+    state = env.unwrapped.get_state()
+    with pytest.raises(ValueError, match=match):
+        env.reset(options=options)
+    for key in ("z", "params"):
+        np.testing.assert_equal(env.unwrapped.get_state()[key], state[key])
+    env.step(np.zeros(3, np.float32))
+
+
+def test_a_shape_refused_at_the_first_draw_needs_a_new_reset() -> None:
+    env = gym.make(ID).unwrapped  # (Gymnasium's env checker cannot follow a first reset that raised)
+    with pytest.raises(ValueError, match="must have shape"):
+        env.reset(seed=0, options={"target": [1.0]})
+    with pytest.raises(gym.error.ResetNeeded):
+        env.step(np.zeros(3, np.float32))
+    env.reset(seed=0)
+    env.step(np.zeros(3, np.float32))
+
+
+def test_bistable_start_side_starts_in_that_state_with_the_other_as_goal() -> None:
+    env = gym.make("RedSim/BistableBar-v0")
+    task = env.unwrapped.sim.task
+    for side in (0, 1, 1, 0):
+        env.reset(options={"start_side": side})
+        sim = env.unwrapped.sim
+        np.testing.assert_array_equal(sim.z[0].numpy(), task.states[side].numpy())
+        assert float(sim.params["start_height"][0]) == float(task.heights[side])
+        assert float(sim.params["goal_height"][0]) == float(task.heights[1 - side])
+    for bad, match in ((2, "must be 0 .up. or 1 .down."), (0.5, "must be integral")):
+        with pytest.raises(ValueError, match=match):
+            env.reset(options={"start_side": bad})
+
+
+def test_a_chosen_condition_is_observed_and_one_outside_its_space_is_refused() -> None:
+    env = gym.make("RedSim/ConditionalBar-v0")
+    space = env.unwrapped.scene.condition_space
+    cond = (0.5 * (space.low + space.high)).tolist()
+    obs, _ = env.reset(seed=0, options={"condition": cond, "target": [0.5, 0.0]})
+    np.testing.assert_allclose(obs[-len(cond) :], cond, rtol=1e-6)
+    with pytest.raises(ValueError, match=r"options\['condition'\] must lie in the condition space"):
+        env.reset(options={"condition": (space.high + 1.0).tolist()})
+    with pytest.raises(ValueError, match=r"this env accepts 'speed'$"):
+        gym.make("RedSim/Klann-v0").reset(options={"condition": cond})
+
+
+def test_the_vector_env_sets_the_option_in_the_copies_it_resets() -> None:
+    venv = gym.make_vec(ID, num_envs=3, vectorization_mode="vector_entry_point")
+    venv.reset(seed=0)
+    drawn = venv.get_state()["params"]["target"].copy()
+    venv.reset(options={"target": TARGET, "reset_mask": np.array([False, True, False])})
+    targets = venv.get_state()["params"]["target"]
+    np.testing.assert_allclose(targets[1], TARGET, atol=1e-7)
+    np.testing.assert_array_equal(targets[[0, 2]], drawn[[0, 2]])
+    with pytest.raises(ValueError, match="this env accepts 'target', 'reset_mask'"):
+        venv.reset(options={"speed": 1.0})
+    venv.step(np.zeros((3, 3), np.float32))
+    single = gym.make(ID)
+    obs, _ = single.reset(seed=1, options={"target": TARGET})
+    vobs, _ = venv.reset(seed=0, options={"target": TARGET})
+    np.testing.assert_allclose(vobs[1], obs, atol=1e-6)
+
+
+def test_a_refused_option_leaves_the_sharded_env_open() -> None:
+    venv = gym.make_vec(ID, num_envs=2, vectorization_mode="vector_entry_point", shards=2)
+    try:
+        venv.reset(seed=0, options={"target": TARGET})
+        np.testing.assert_allclose(venv.get_state()["params"]["target"], [TARGET, TARGET], atol=1e-7)
+        for bad in ({"target": [1.0, 2.0]}, {"bad": 1}):
+            with pytest.raises(ValueError):
+                venv.reset(options=bad)
+        venv.step(np.zeros((2, 3), np.float32))
+    finally:
+        venv.close()
