@@ -18,6 +18,7 @@ values raise ValueError).
 from __future__ import annotations
 
 import importlib.util
+import inspect
 import math
 import numbers
 import os
@@ -183,7 +184,7 @@ def check_subspace(scene: Scene, subspace: nn.Module) -> None:
 CUBATURE_DEFAULT: dict[str, bool] = {"cloth_ball": True, "hanging_sheet": False}
 """Catalog scenes whose shipped cubature (``redsim/pretrained/SCENE.cubature.json``) an env uses by default:
 those that meet the accuracy bar (held-out force error and 100-step trajectory deviation <= 5%,
-``redsim bench cubature``, README "Cubature"). hanging_sheet's measured 4.7% and 7.2% in two runs that differ
+``redsim bench cubature``, README "Cubature"). hanging_sheet's deviation measured 4.7-9.3% in runs that differ
 only by float32 round-off, so it stays off. The others step every element unless ``cubature=True``."""
 
 
@@ -284,8 +285,13 @@ class LatentSim:
 
         if int(batch) != batch or batch < 1:
             raise ValueError(f"batch must be an integer >= 1, got {batch!r}")
-        if int(frame_skip) != frame_skip or frame_skip < 1:
+        from redsim.integrators import check_time_step
+
+        dt = check_time_step(dt)
+        if isinstance(frame_skip, bool) or not isinstance(frame_skip, numbers.Integral) or frame_skip < 1:
             raise ValueError(f"frame_skip must be an integer >= 1, got {frame_skip!r}")
+        if not isinstance(include_q, (bool, np.bool_)):
+            raise ValueError(f"include_q must be True or False, got {include_q!r}")
         if dtype not in DTYPES:
             raise ValueError(f"dtype must be one of {sorted(DTYPES)}, got {dtype!r}")
         check_subspace(scene, subspace)
@@ -312,7 +318,12 @@ class LatentSim:
         self.randomize_condition = bool(randomize_condition)
         self.conditional = conditional
         self.include_q = bool(include_q)
+        if stepper_options is not None and not isinstance(stepper_options, Mapping):
+            raise ValueError(f"stepper_options must be a dict, got {stepper_options!r:.80}")
         options = dict(stepper_options or {})
+        valid = set(inspect.signature(LatentStepper).parameters) - {"scene", "subspace", "dt", "dtype", "device"}
+        if set(options) - valid:
+            raise ValueError(f"unknown stepper_options {sorted(set(options) - valid)}; valid: {sorted(valid)}")
         if "energy" in options and cubature:
             raise ValueError("give either cubature or stepper_options['energy'], not both")
         if "energy" not in options:
@@ -489,6 +500,7 @@ class LatentSim:
         diverged = torch.zeros(self.batch, dtype=torch.bool, device=self.device)
         out_of_range = torch.zeros_like(diverged)
         energy_gain = torch.zeros_like(diverged)
+        gain_tolerance = torch.zeros(self.batch, dtype=self.torch_dtype, device=self.device)
         iterations = torch.zeros(self.batch, dtype=torch.int64, device=self.device)
         converged = torch.ones_like(diverged)
         for _ in range(self.frame_skip):
@@ -498,6 +510,7 @@ class LatentSim:
             diverged |= stats.diverged.to(self.device)
             out_of_range |= stats.out_of_range.to(self.device)
             energy_gain |= stats.energy_gain.to(self.device)
+            gain_tolerance += stats.energy_gain_tolerance.to(self.device, self.torch_dtype)
             converged &= stats.converged.to(self.device)
             iterations += stats.iterations.to(self.device).to(torch.int64)
         diverged |= ~torch.isfinite(self.z).all(dim=1)
@@ -528,6 +541,7 @@ class LatentSim:
             "out_of_range": out_of_range,
             "diverged": diverged,
             "energy_gain": energy_gain,
+            "energy_gain_tolerance": gain_tolerance,
             **{f"reward_{k}": v for k, v in terms.items()},
             **metrics,
             **self.invariants(self.x),
@@ -618,14 +632,30 @@ class LatentSim:
         return cond
 
     # -- drawing --------------------------------------------------------------------------
-    def view(self, width: int, height: int, camera: Mapping[str, float] | None) -> Any:
-        """A :class:`redsim.raster.SceneView` framed on the rest state and the task's overlay."""
+    def view(self, width: int, height: int, camera: Mapping[str, float] | None, rows: Sequence[int] = (0,)) -> Any:
+        """A :class:`redsim.raster.SceneView` framed on copy 0's current shape and the overlay markers (targets,
+        handles) of copies ``rows``."""
         from redsim.raster import SceneView
 
-        q = self.positions(self.z[:1])[0]
-        markers, _ = self.task.overlay(self, 0)
-        extra = np.array([m.position for m in markers]) if markers else None
+        q = self.positions(self.z[:1], None if self.cond is None else self.cond[:1])[0]
+        extra = self._marker_points(rows)
         return SceneView(self.scene, q, width=width, height=height, extra_points=extra, **dict(camera or {}))
+
+    def _marker_points(self, rows: Sequence[int]) -> np.ndarray | None:
+        """Positions [P, D] of the overlay markers of copies ``rows`` (None: no marker)."""
+        points = [m.position for row in rows for m in self.task.overlay(self, row)[0]]
+        return np.array(points, dtype=np.float64).reshape(len(points), -1) if points else None
+
+    def framed_view(
+        self, view: Any, width: int, height: int, camera: Mapping[str, float] | None, rows: Sequence[int]
+    ) -> Any:
+        """``view`` while it shows every overlay marker of copies ``rows``, else a new :meth:`view` framed on them
+        all (a target drawn or chosen outside the frame, or a handle that left it; None: a first view)."""
+        if view is not None:
+            points = self._marker_points(rows)
+            if points is None or view.contains(points):
+                return view
+        return self.view(width, height, camera, rows)
 
     def draw(self, view: Any, row: int) -> np.ndarray:
         """RGB picture [H, W, 3] of copy ``row``."""
@@ -663,6 +693,8 @@ def shipped(
     from redsim import pretrained, scenes
     from redsim.subspace import load_subspace
 
+    if scene_params is not None and not isinstance(scene_params, Mapping):
+        raise ValueError(f"scene_params must be a dict of build parameters, got {scene_params!r:.80}")
     scene = scenes.build(scene_name, **dict(scene_params or {}))
     if fit_options is not None and not fit_if_missing:
         raise ValueError("fit_options only apply with fit_if_missing=True")
@@ -693,7 +725,8 @@ class LatentEnv(gym.Env[np.ndarray, np.ndarray]):
     statistics), ``energy`` [J], ``out_of_range`` (z left the region the map was fitted on),
     ``diverged``, ``energy_gain`` (a step raised K + E by more than the action's work: an artefact
     of the map or the solve, reported like MuJoCo's warnings and never ending the episode; see
-    :func:`redsim.runtime.flags.energy_gain_states`), ``reward_<term>`` for each reward term, the
+    :func:`redsim.runtime.flags.energy_gain_states`), ``energy_gain_tolerance`` [J] (the rise that flag allows: what
+    the solve's leftover gradient can put in, plus round-off), ``reward_<term>`` for each reward term, the
     task's metrics (``distance``, ``is_success``), the scene's invariants (:mod:`redsim.envs.invariants`) and, with
     ``include_q=True``, ``q`` [n]. A step the stepper cannot make finite ends the episode
     (``terminated=True``, ``info["diverged"]=True``).
@@ -712,7 +745,8 @@ class LatentEnv(gym.Env[np.ndarray, np.ndarray]):
         include_q: Put q in ``info``.
         width: Render width [px].
         height: Render height [px].
-        camera: ``azimuth``/``elevation``/``margin`` of :class:`redsim.raster.SceneView`.
+        camera: ``azimuth``/``elevation``/``margin`` of :class:`redsim.raster.SceneView`, over the env's own
+            :attr:`camera` key by key.
         stepper_options: Extra keyword arguments of :class:`redsim.runtime.LatentStepper`.
         cubature: Step a cubature energy (:func:`env_energy`): None (the shipped one where
             :data:`CUBATURE_DEFAULT` turns it on), True (required), False (every element) or a checkpoint path.
@@ -721,6 +755,8 @@ class LatentEnv(gym.Env[np.ndarray, np.ndarray]):
     metadata: ClassVar[dict[str, Any]] = {"render_modes": RENDER_MODES, "render_fps": 50}
     stepper_defaults: ClassVar[dict[str, Any]] = {}
     """The env's own defaults of ``stepper_options`` (a user's options override them key by key)."""
+    camera: ClassVar[dict[str, float]] = {}
+    """The env's own camera (a user's ``camera`` overrides it key by key)."""
 
     def __new__(cls, *args: Any, **kwargs: Any) -> LatentEnv:
         env = super().__new__(cls)
@@ -782,7 +818,7 @@ class LatentEnv(gym.Env[np.ndarray, np.ndarray]):
         if sum(blocks.values()) != extras:
             raise ValueError(f"Task.observation_structure {blocks} does not add up to Task.extras_bounds' {extras}")
         self._render_size = _image_size(width, height)
-        self._camera = _camera(camera)
+        self._camera = {**self.camera, **_camera(camera)}
         self._view: Any = None
         self._window: Any = None
         self._reset_done = False
@@ -828,8 +864,7 @@ class LatentEnv(gym.Env[np.ndarray, np.ndarray]):
         if self.render_mode is None:
             gym.logger.warn("render() called without a render_mode; pass render_mode='rgb_array' to gym.make")
             return None
-        if self._view is None:
-            self._view = self.sim.view(*self._render_size, self._camera)
+        self._view = self.sim.framed_view(self._view, *self._render_size, self._camera, (0,))
         frame = self.sim.draw(self._view, 0)
         if self.render_mode == "rgb_array":
             return frame
@@ -993,6 +1028,8 @@ def _image_size(width: Any, height: Any) -> tuple[int, int]:
 
 def _camera(camera: Mapping[str, Any] | None) -> dict[str, float]:
     """The ``camera`` settings, checked (:data:`CAMERA_KEYS`: finite numbers [deg], a margin >= 0)."""
+    if camera is not None and not isinstance(camera, Mapping):
+        raise ValueError(f"camera must be a dict of {list(CAMERA_KEYS)}, got {camera!r:.80}")
     camera = dict(camera or {})
     unknown = sorted(set(camera) - set(CAMERA_KEYS))
     if unknown:

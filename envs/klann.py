@@ -329,7 +329,6 @@ class KlannEnv(LatentEnv):
             hold_steps=hold_steps,
             hold_fraction=hold_fraction,
         )
-        kwargs.setdefault("camera", dict(self.camera))
         super().__init__(
             scene, sub, task, render_mode=render_mode, dt=dt, frame_skip=frame_skip, include_q=include_q, **kwargs
         )

@@ -150,6 +150,12 @@ class HandleReach(Task):
             else:
                 targets = self.held_targets
             rms = float((targets - self._rest_goal).pow(2).sum(-1).mean().sqrt())
+            bound = float(self._rest_goal.abs().max()) + 2.0 * scene.extent()
+            if not rms <= bound:  # NaN too: a latent spread far outside the map's range
+                raise ValueError(
+                    f"target_spread {self.target_spread:g} puts targets {rms:.3g} m from rest (RMS), beyond the "
+                    f"observation bound {bound:.3g} m: give a smaller target_spread (the map is fitted on z ~ N(0, I))"
+                )
             self.distance_scale = rms if rms > 0.0 else scene.extent()
         else:
             self.distance_scale = float(self._distance_scale)
@@ -204,6 +210,13 @@ class HandleReach(Task):
 
     def _goal_position(self, x: Tensor) -> Tensor:
         return self._goal.position(x)[:, self._goal_index]
+
+    def check_options(self, chosen: Mapping[str, Tensor]) -> None:
+        if "target" in chosen and not bool((chosen["target"].abs() <= self._bound).all()):
+            raise ValueError(
+                f"options['target'] must lie within the observation bound of {self._bound:.3g} m on each axis, "
+                f"got {chosen['target'].tolist()}"
+            )
 
     def extras_bounds(self) -> tuple[np.ndarray, np.ndarray]:
         k = len(self.goal_axes)
@@ -336,7 +349,6 @@ class ReachEnv(LatentEnv):
             force_axes=self.force_axes,
             goal_axes=self.goal_axes,
         )
-        kwargs.setdefault("camera", dict(self.camera))
         kwargs.setdefault("randomize_condition", self.randomize_condition)
         super().__init__(
             scene,

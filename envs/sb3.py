@@ -128,13 +128,14 @@ class SB3VecEnv(VecEnv):
 
     def get_attr(self, attr_name: str, indices: Any = None) -> list[Any]:
         """A copy's ``observation_space`` / ``action_space`` (the vector env's single ones), a shared method
-        (:data:`SHARED_METHODS`), or else the attribute of the env every copy runs (``venv.unwrapped.template``)."""
+        (:data:`SHARED_METHODS`), or else the setting of the env every copy runs, as the vector env's ``get_attr``
+        answers it (an attribute holding a copy's state, e.g. ``np_random``, is an AttributeError)."""
         if attr_name in ("observation_space", "action_space"):
             value = getattr(self.venv, f"single_{attr_name}")
         elif attr_name in SHARED_METHODS:
             value = self._shared(attr_name)
         else:
-            value = getattr(self.venv.unwrapped.template, attr_name)
+            value = self.venv.unwrapped.get_attr(attr_name)[0]
         return [value for _ in self._get_indices(indices)]
 
     def set_attr(self, attr_name: str, value: Any, indices: Any = None) -> None:

@@ -305,7 +305,6 @@ class StewartEnv(LatentEnv):
             max_force=max_force,
             target_spread=target_spread,
         )
-        kwargs.setdefault("camera", {"azimuth": 30.0, "elevation": 20.0})
         super().__init__(
             scene, sub, task, render_mode=render_mode, dt=dt, frame_skip=frame_skip, include_q=include_q, **kwargs
         )

@@ -160,8 +160,8 @@ class LatentVectorEnv(SharedCopies, VectorEnv):
         """One RGB frame [H, W, 3] per copy ("rgb_array"), else None."""
         if self.render_mode != "rgb_array":
             return None
-        if self._view is None:
-            self._view = self.sim.view(*self.template._render_size, self.template._camera)
+        rows = range(self.num_envs)
+        self._view = self.sim.framed_view(self._view, *self.template._render_size, self.template._camera, rows)
         return tuple(self.sim.draw(self._view, i) for i in range(self.num_envs))
 
     def get_state(self) -> dict[str, Any]:
@@ -221,6 +221,9 @@ def check_vector_args(
 
 
 def _with_masks(info: dict[str, np.ndarray], mask: np.ndarray) -> dict[str, Any]:
+    """``info`` with a ``_key`` mask [N] per key; no keys where no copy reports this step (as SyncVectorEnv's)."""
+    if not mask.any():
+        return {}
     out: dict[str, Any] = {}
     for key, value in info.items():
         out[key] = value
@@ -268,6 +271,13 @@ def vector_entry(env_class: type[LatentEnv]) -> Callable[..., LatentVectorEnv | 
             max_episode_steps = registered_steps(env_class)
         elif max_episode_steps == -1:
             max_episode_steps = None
+        elif (
+            isinstance(max_episode_steps, bool) or int(max_episode_steps) != max_episode_steps or max_episode_steps < 1
+        ):
+            raise ValueError(
+                f"max_episode_steps must be None (the id's length), -1 (no limit) or an integer >= 1, got "
+                f"{max_episode_steps!r}"
+            )
         build = functools.partial(_native, env_class, kwargs, max_episode_steps, autoreset_mode)
         if shards == 1:
             return build(num_envs)

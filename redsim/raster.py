@@ -158,6 +158,13 @@ class SceneView:
         x = self.scene.full_positions(q.reshape(1, -1).to(device=self.scene.device, dtype=self.scene.dtype))
         return [s.points.positions(x)[0].cpu().to(torch.float64).numpy() for s in self.scene.surfaces]
 
+    def contains(self, points: np.ndarray) -> bool:
+        """Whether every point [P, D] [m] projects inside the picture."""
+        pix = self.project(points)
+        return bool(
+            ((pix[:, 0] >= 0) & (pix[:, 0] <= self.width) & (pix[:, 1] >= 0) & (pix[:, 1] <= self.height)).all()
+        )
+
     def project(self, points: np.ndarray) -> np.ndarray:
         """Pixel coordinates [P, 2] (x right, y down) and depth [P] (larger is nearer) as [P, 3]."""
         cam = np.asarray(points, dtype=np.float64).reshape(-1, self.dim) @ self._rotation.T
@@ -215,6 +222,7 @@ class SceneView:
         start = np.asarray(arrow.origin, dtype=np.float64)
         end = start + arrow.scale * np.asarray(arrow.vector, dtype=np.float64)
         (x0, y0, _), (x1, y1, _) = self.project(np.stack([start, end]))
+        x1, y1 = self._inside(x0, y0, x1, y1)  # a long arrow ends at the border, its head still drawn
         length = math.hypot(x1 - x0, y1 - y0)
         if length < 1.0:
             return
@@ -224,6 +232,23 @@ class SceneView:
         left = (x1 - head * (ux - 0.5 * uy), y1 - head * (uy + 0.5 * ux))
         right = (x1 - head * (ux + 0.5 * uy), y1 - head * (uy - 0.5 * ux))
         pen.polygon([(x1, y1), left, right], fill=arrow.colour)  # type: ignore[attr-defined]
+
+    def _inside(self, x0: float, y0: float, x1: float, y1: float) -> tuple[float, float]:
+        """The end (x1, y1) [px] pulled back along the segment from (x0, y0) to the picture's border, 2 px in
+        (unchanged when inside, or when the start itself is outside)."""
+        low, high = 2.0, np.array([self.width - 2.0, self.height - 2.0])
+        start, end = np.array([x0, y0]), np.array([x1, y1])
+        if ((start < low) | (start > high)).any():
+            return x1, y1
+        t = 1.0
+        for axis in range(2):
+            delta = end[axis] - start[axis]
+            if delta > 0 and end[axis] > high[axis]:
+                t = min(t, (high[axis] - start[axis]) / delta)
+            elif delta < 0 and end[axis] < low:
+                t = min(t, (low - start[axis]) / delta)
+        x, y = start + t * (end - start)
+        return float(x), float(y)
 
 
 __all__ = ["Arrow", "Marker", "SceneView"]

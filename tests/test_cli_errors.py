@@ -216,7 +216,9 @@ def test_sample_names_the_file_it_writes_and_animate_refuses_a_non_gif(cli: Cli,
 
 def test_bench_step_refuses_a_bad_dt(cli: Cli) -> None:
     code, _, err = cli("bench", "step", "--scenes", "mini_chain", "--dt", "0")
-    assert code == 2 and "--dt must be a finite number > 0" in err
+    assert code == 2 and "--dt must be a finite number >= 1e-06 [s]" in err
+    code, _, err = cli("simulate", "mini_chain", "--dt", "1e-300")
+    assert code == 2 and "--dt must be a finite number >= 1e-06 [s]" in err and "Traceback" not in err
 
 
 def test_a_fit_interrupted_before_its_first_step_says_nothing_was_saved(
@@ -296,3 +298,19 @@ def test_inspect_prints_the_json_of_a_checkpoint_whose_scene_cannot_be_rebuilt(c
     assert code == 0 and "n=24), d=4" in out and "cannot rebuild the checkpoint's scene" in err, err
     code, _, err = cli("sample", str(tmp_path / "mine.pt"), "--out", str(tmp_path / "s.npz"))
     assert code == 2 and "cannot rebuild the checkpoint's scene" in err
+
+
+@pytest.mark.parametrize(
+    "argv",
+    [
+        ["demo", "RedSim/Klann-v0"],
+        ["eval-agent", "shipped", "RedSim/Klann-v0"],
+        ["train-agent", "RedSim/Klann-v0"],
+        ["fit", "mini_chain"],
+        ["bench", "stability"],
+        ["cubature", "x.pt"],
+    ],
+)
+def test_a_negative_seed_is_refused_by_the_parser(cli: Cli, argv: list[str]) -> None:
+    code, out, err = cli(*argv, "--seed", "-1")
+    assert code == 2 and out == "" and err.count("\n") == 1 and "--seed: must be an integer >= 0, got '-1'" in err, err

@@ -606,11 +606,45 @@ class TrainResult:
     out: Path
 
 
-def _curve_callback(curve: list[dict[str, float]], wall_offset: float, start: float) -> Any:
+class TrainingInterrupted(KeyboardInterrupt):
+    """A ``train_agent`` run stopped by Ctrl-C after its model, replay buffer, normalizer, curve and
+    ``agent.json`` (``"interrupted": true``) were saved: ``resume=True`` continues it.
+
+    Attributes:
+        steps: Env steps the saved model was trained for.
+        model_path: The saved ``model.zip``.
+    """
+
+    def __init__(self, steps: int, model_path: Path) -> None:
+        super().__init__(f"interrupted at {steps} env steps; saved {model_path}")
+        self.steps, self.model_path = steps, model_path
+
+
+def _save_run(model: Any, venv: Any, model_path: Path) -> None:
+    """The model, its replay buffer (off-policy) and its ``VecNormalize`` statistics (where normalized)."""
+    from stable_baselines3.common.vec_env import VecNormalize
+
+    model.save(model_path)
+    if hasattr(model, "save_replay_buffer"):
+        model.save_replay_buffer(model_path.parent / BUFFER)
+    if isinstance(venv, VecNormalize):
+        venv.save(str(normalizer_path(model_path)))
+
+
+def _close_quietly(venv: Any) -> None:
+    """Close an env after an interrupt (its workers may have been interrupted too)."""
+    try:
+        venv.close()
+    except Exception as error:  # the run is saved; a worker that died with the interrupt must not hide that
+        log.warning("closing %s after the interrupt failed: %r", type(venv).__name__, error)
+
+
+def _curve_callback(curve: list[dict[str, float]], wall_offset: float, start: float, path: Path) -> Any:
     from stable_baselines3.common.callbacks import BaseCallback
 
     class CurveRecorder(BaseCallback):
-        """After each evaluation: one row (env steps, wall s, mean/std return, success rate) of the curve."""
+        """After each evaluation: one row (env steps, wall s, mean/std return, success rate) of the curve, written
+        to ``path`` at once (a run killed later keeps its rows)."""
 
         def _on_step(self) -> bool:
             parent = self.parent
@@ -625,6 +659,7 @@ def _curve_callback(curve: list[dict[str, float]], wall_offset: float, start: fl
                     "success_rate": float(np.mean(success)) if len(success) else float("nan"),
                 }
             )
+            _write_curve(path, curve)
             return True
 
     return CurveRecorder()
@@ -950,6 +985,19 @@ def train_agent(
     curve = [row for row in curve if row["env_steps"] <= model.num_timesteps]
     start = time.perf_counter()
     every = max(int(eval_every or steps // 10) // copies, 1)
+    if algo == "ppo":  # the policy changes once per rollout of n_steps vector steps: evaluate no more often
+        rollout = int(model.n_steps)
+        every = max(every, rollout)
+        left = int(steps) - int(model.num_timesteps)
+        if 0 < left < rollout * copies:
+            log.warning(
+                "PPO learns from whole rollouts (n_steps %d x %d copies = %d env steps): this run takes %d, not %d",
+                rollout,
+                copies,
+                rollout * copies,
+                rollout * copies,
+                left,
+            )
     if overwrite:  # only now, with the envs and the model built: a refused run neither writes nor removes anything
         _remove_run(out)
     (out / "checkpoints").mkdir(parents=True, exist_ok=True)
@@ -959,7 +1007,7 @@ def train_agent(
         eval_freq=every,
         best_model_save_path=str(out),
         log_path=str(out),
-        callback_after_eval=_curve_callback(curve, wall_offset, start),
+        callback_after_eval=_curve_callback(curve, wall_offset, start, out / "curve.csv"),
         callback_on_new_best=_normalizer_saver(normalizer_path(out / "best_model.zip")),
         verbose=0,
     )
@@ -971,21 +1019,41 @@ def train_agent(
         save_vecnormalize=True,
     )
     remaining = int(steps) - int(model.num_timesteps)
-    if remaining > 0:
-        model.learn(
-            remaining,
-            callback=CallbackList([evaluation_cb, checkpoint_cb]),
-            reset_num_timesteps=previous is None,
-            progress_bar=progress_bar,
-        )
-    wall = wall_offset + time.perf_counter() - start
+    summary = {
+        "env_id": label,
+        "algo": algo,
+        "steps": int(model.num_timesteps),
+        "wall_s": wall_offset,
+        "n_envs": copies,
+        "seed": seed,
+        "her": her,
+        "env_kwargs": dict(env_kwargs or {}),
+        "hyperparams": {k: v for k, v in settings.items() if k != "action_noise"}
+        | ({"learning_starts": int(model.learning_starts)} if hasattr(model, "learning_starts") else {})
+        | {"action_noise_std": noise_std, "normalize": normalize},
+    }
     model_path = out / "model.zip"
-    model.save(model_path)
-    if hasattr(model, "save_replay_buffer"):
-        model.save_replay_buffer(out / BUFFER)
+    try:
+        if remaining > 0:
+            model.learn(
+                remaining,
+                callback=CallbackList([evaluation_cb, checkpoint_cb]),
+                reset_num_timesteps=previous is None,
+                progress_bar=progress_bar,
+            )
+    except KeyboardInterrupt:
+        # as a fit: keep what was learnt (model, replay buffer, normalizer, curve), so --resume goes on from here
+        summary |= {"steps": int(model.num_timesteps), "wall_s": wall_offset + time.perf_counter() - start}
+        _save_run(model, venv, model_path)
+        for env_ in (venv, eval_env):
+            _close_quietly(env_)
+        _write_curve(out / "curve.csv", curve)
+        (out / "agent.json").write_text(json.dumps(summary | {"interrupted": True}, indent=2, default=str))
+        raise TrainingInterrupted(int(model.num_timesteps), model_path) from None
+    wall = wall_offset + time.perf_counter() - start
+    _save_run(model, venv, model_path)
     agent = Agent(model, goal=goal)
     if isinstance(venv, VecNormalize):
-        venv.save(str(normalizer_path(model_path)))
         agent = Agent(model, load_normalizer(normalizer_path(model_path)), goal)
     venv.close()
     eval_env.close()
@@ -1005,20 +1073,7 @@ def train_agent(
     plot_curve(curve, out / "curve.png", f"{label}: {algo.upper()}")
     if video and (isinstance(env, str) or env.render_mode == "rgb_array"):
         record_gif(env, agent, out / "policy.gif", seed=seed, env_kwargs=env_kwargs)
-    summary = {
-        "env_id": label,
-        "algo": algo,
-        "steps": int(model.num_timesteps),
-        "wall_s": wall,
-        "n_envs": copies,
-        "seed": seed,
-        "her": her,
-        "env_kwargs": dict(env_kwargs or {}),
-        "hyperparams": {k: v for k, v in settings.items() if k != "action_noise"}
-        | ({"learning_starts": int(model.learning_starts)} if hasattr(model, "learning_starts") else {})
-        | {"action_noise_std": noise_std, "normalize": normalize},
-        "final_evaluation": final.as_dict(),
-    }
+    summary |= {"steps": int(model.num_timesteps), "wall_s": wall, "final_evaluation": final.as_dict()}
     (out / "agent.json").write_text(json.dumps(summary, indent=2, default=str))
     return TrainResult(model_path, int(model.num_timesteps), wall, final, out)
 
@@ -1029,6 +1084,7 @@ __all__ = [
     "Agent",
     "Evaluation",
     "TrainResult",
+    "TrainingInterrupted",
     "check_env_id",
     "evaluate",
     "hyperparams",

@@ -8,7 +8,9 @@ StepInfo: K + E rose by more than the loads' work, :mod:`redsim.integrators.ener
 information, not a failure), ``nan`` (non-finite states, energies or observations: must be 0),
 steps whose energy rose by more than its loads put in without any of those flags (``unreported``:
 must be 0), the largest mechanical energy above the start and the largest work the loads did (the
-bound the inputs allow).
+bound the inputs allow). A latent step's rise within its own ``energy_gain`` tolerance (what its inexact
+solve can put in, ``StepStats.energy_gain_tolerance``) is not unreported: it is counted as
+``within_tolerance``.
 
 The energy ledger is H_t = K_t + E(q_t) - W_t with K_t = |q_t - q_{t-1}|_M^2 / (2 h^2) and
 W_t = sum_{i<t} F_i . (p(q_{i+1}) - p(q_i)) the work of the (per-step constant) handle loads F.
@@ -97,11 +99,14 @@ def ledger(
     return mechanical - work
 
 
-def unreported_rises(h: Tensor, reported: Tensor, slack: float) -> list[int]:
-    """Steps t whose H [T + 1] rose by more than ``slack`` max|H| without being reported (reported: [T] bool)."""
+def unreported_rises(h: Tensor, reported: Tensor, slack: float, tolerance: Tensor | None = None) -> list[int]:
+    """Steps t whose H [T + 1] rose by more than ``slack`` max|H|, and by more than the step's own ``energy_gain``
+    tolerance [T] [J] where given (what its inexact solve can explain), without being reported ([T] bool)."""
     rise = h[1:] - h[:-1]
     limit = slack * float(h[torch.isfinite(h)].abs().max().clamp_min(1.0)) if bool(torch.isfinite(h).any()) else 0.0
     bad = ~torch.isfinite(rise) | (rise > limit)
+    if tolerance is not None:
+        bad &= ~(rise <= tolerance.to(rise.dtype))
     return [int(t) for t in torch.nonzero(bad & ~reported.to(torch.bool)).flatten()]
 
 
@@ -132,6 +137,7 @@ class Rollout:
         seconds: Wall time [s].
         cond: The condition [m] of a conditional scene, or None.
         gains: [T] bool: the step was flagged ``energy_gain`` (None: no such flag).
+        tolerance: [T] [J]: the rise each step's ``energy_gain`` test allowed (None: the slack alone).
     """
 
     q: Tensor
@@ -144,6 +150,7 @@ class Rollout:
     seconds: float
     cond: Tensor | None = None
     gains: Tensor | None = None
+    tolerance: Tensor | None = None
 
     def flagged(self) -> Tensor:
         """[T] bool: the step reported a failure or an energy gain."""
@@ -152,7 +159,7 @@ class Rollout:
     def energy_rises(self, scene: Scene, slack: float) -> list[int]:
         """Steps whose ledger rose by more than ``slack`` without being reported (a failure or an energy gain)."""
         return unreported_rises(
-            ledger(scene, self.q, self.loads, self.dt, self.q_prev, self.cond), self.flagged(), slack
+            ledger(scene, self.q, self.loads, self.dt, self.q_prev, self.cond), self.flagged(), slack, self.tolerance
         )
 
     def row(self, scene: Scene, target: str, regime: str, space: str, slack: float) -> dict[str, Any]:
@@ -169,7 +176,9 @@ class Rollout:
             "failures_recovered": recovered(reported),
             "energy_gains": 0 if self.gains is None else int(self.gains.sum()),
             "nan": self.nonfinite + int((~torch.isfinite(self.q)).any(-1).sum()),
-            "unreported": len(unreported_rises(h, self.flagged(), slack)),
+            "unreported": len(unreported_rises(h, self.flagged(), slack, self.tolerance)),
+            "within_tolerance": len(unreported_rises(h, self.flagged(), slack))
+            - len(unreported_rises(h, self.flagged(), slack, self.tolerance)),
             "start_energy_J": float(mechanical[0]),
             "max_energy_J": float((mechanical - mechanical[0]).max()),
             "input_work_J": float(work.max()),
@@ -203,7 +212,7 @@ def runtime_rollouts(
     z = stepper.rest_latent(None if c is None else c[:1]) if z0 is None else z0.reshape(1, -1).to(stepper.dtype)
     z = z.expand(batch, -1).clone()
     zp = z.clone() if z_prev is None else z_prev.reshape(1, -1).to(stepper.dtype).expand(batch, -1).clone()
-    zs, reported, gains, model = [zp, z], [], [], None
+    zs, reported, gains, tolerances, model = [zp, z], [], [], [], None
     nonfinite = torch.zeros(batch, dtype=torch.int64)
     flags = {k: torch.zeros(batch, dtype=torch.int64) for k in ("unconverged", "diverged", "out_of_range")}
     for i in range(steps):
@@ -217,6 +226,7 @@ def runtime_rollouts(
         flags["out_of_range"] += stats.out_of_range.cpu()
         reported.append((stats.diverged | ~stats.converged).cpu())
         gains.append(stats.energy_gain.cpu())
+        tolerances.append(stats.energy_gain_tolerance.cpu().to(torch.float64))
         zp, z = z, z_next
         zs.append(z)
         if seconds is not None and time.perf_counter() - start >= seconds:
@@ -225,7 +235,7 @@ def runtime_rollouts(
     q = stepper.positions(torch.cat(zs), None if c is None else c[:1].expand(len(zs) * batch, -1))
     q = q.to(torch.float64).reshape(len(zs), batch, -1)
     seconds_used = time.perf_counter() - start
-    reported_t, gains_t = torch.stack(reported), torch.stack(gains)
+    reported_t, gains_t, tolerance_t = torch.stack(reported), torch.stack(gains), torch.stack(tolerances)
     return [
         Rollout(
             q[1:, b],
@@ -238,6 +248,7 @@ def runtime_rollouts(
             seconds_used,
             cond,
             gains_t[:, b],
+            tolerance_t[:, b],
         )
         for b in range(batch)
     ]
@@ -527,8 +538,9 @@ class _EnvLedger:
         with torch.no_grad():
             return 0.5 * (v * self.scene.mass_matvec(v)).sum(-1) / self.dt**2 + self.scene.energy(q, None, cond)
 
-    def step(self, reported: Tensor) -> tuple[int, int]:
-        """Account for one step of every copy; returns (unreported rises, non-finite copies)."""
+    def step(self, reported: Tensor, tolerance: Tensor) -> tuple[int, int, int]:
+        """Account for one step of every copy, whose ``energy_gain`` tests allowed rises of ``tolerance`` [N] [J];
+        returns (unreported rises, rises above the slack within that tolerance, non-finite copies)."""
         q_next = self.positions()
         loads = self.sim.loads.to(torch.float64).reshape(q_next.shape[0], -1)
         before = self.mechanical(self.q, self.q_prev)
@@ -540,13 +552,15 @@ class _EnvLedger:
         rise = after - before - power
         limit = RISE_SLACK * torch.maximum(torch.maximum(before.abs(), after.abs()), torch.ones_like(after))
         finite = torch.isfinite(after) & torch.isfinite(q_next).all(-1)
-        unreported = int(((rise > limit) & ~reported).sum())
+        above = (rise > limit) & ~reported
+        excused = above & (rise <= tolerance.to(rise.dtype))
+        unreported = int((above & ~excused).sum())
         self.work = self.work + power
         if bool(finite.any()):
             self.max_energy = max(self.max_energy, float((after - self.start)[finite].max()))
             self.max_work = max(self.max_work, float(self.work[finite].max()))
         self.q_prev, self.q = self.q, q_next
-        return unreported, int((~finite).sum())
+        return unreported, int(excused.sum()), int((~finite).sum())
 
     def reset(self, rows: np.ndarray) -> None:
         """Copies ``rows`` restarted at rest."""
@@ -594,18 +608,20 @@ def fuzz_env(
     elapsed = np.zeros(copies, dtype=np.int64)
     pending = np.zeros(copies, dtype=np.int64)
     counts = dict.fromkeys(
-        ("steps", "failures", "recovered", "gains", "nan", "unreported", "out_of_range", "resets"), 0
+        ("steps", "failures", "recovered", "gains", "nan", "unreported", "excused", "out_of_range", "resets"), 0
     )
     vector_steps = max(1, math.ceil(steps / copies))
     for i in range(vector_steps):
         obs, reward, terminated, truncated, info = venv.step(fuzz_actions(rng, venv.action_space.shape, i))
         bad = ~np.asarray(info["converged"], dtype=bool) | np.asarray(info["diverged"], dtype=bool)
         gain = np.asarray(info["energy_gain"], dtype=bool)
-        unreported, nonfinite = account.step(torch.as_tensor(bad | gain))
+        tolerance = torch.as_tensor(np.asarray(info["energy_gain_tolerance"], dtype=np.float64))
+        unreported, excused, nonfinite = account.step(torch.as_tensor(bad | gain), tolerance)
         counts["gains"] += int(gain.sum())
         counts["nan"] += nonfinite + int((~np.isfinite(obs)).any(-1).sum() + (~np.isfinite(reward)).sum())
         counts["nan"] += int((~np.isfinite(info["energy"])).sum())
         counts["unreported"] += unreported
+        counts["excused"] += excused
         counts["out_of_range"] += int(np.asarray(info["out_of_range"]).sum())
         counts["failures"] += int(bad.sum())
         counts["recovered"] += int(pending[~bad].sum())
@@ -633,6 +649,7 @@ def fuzz_env(
         "energy_gains": counts["gains"],
         "nan": counts["nan"],
         "unreported": counts["unreported"],
+        "within_tolerance": counts["excused"],
         "max_energy_J": account.max_energy,
         "input_work_J": account.max_work,
         "out_of_range": counts["out_of_range"],
@@ -891,8 +908,10 @@ def chain_table(chain: dict[str, Any]) -> list[str]:
 
 
 def row_totals(rows: Sequence[Mapping[str, Any]]) -> dict[str, int]:
-    """Sums over the table's rows of ``nan`` and ``unreported`` (both must be 0), ``energy_gains`` and ``steps``."""
-    return {k: sum(int(r.get(k, 0)) for r in rows) for k in ("nan", "unreported", "energy_gains", "steps")}
+    """Sums over the table's rows of ``nan`` and ``unreported`` (both must be 0), ``energy_gains``,
+    ``within_tolerance`` and ``steps``."""
+    keys = ("nan", "unreported", "energy_gains", "within_tolerance", "steps")
+    return {k: sum(int(r.get(k, 0)) for r in rows) for k in keys}
 
 
 def report(result: dict[str, Any]) -> list[str]:
@@ -909,6 +928,10 @@ def report(result: dict[str, Any]) -> list[str]:
     totals = row_totals(rows)
     lines.append(f"total nan: {totals['nan']}, unreported energy gains: {totals['unreported']} (both must be 0)")
     lines.append(f"steps flagged energy_gain: {totals['energy_gains']} of {totals['steps']} (not failures)")
+    lines.append(
+        f"rises above the slack that the solve's tolerance explains (not flagged, by the flag's rule): "
+        f"{totals['within_tolerance']}"
+    )
     if result.get("chain") is not None:
         lines.append("")
         lines += chain_table(result["chain"])

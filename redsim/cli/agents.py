@@ -6,7 +6,18 @@ import argparse
 from pathlib import Path
 from typing import Any
 
-from redsim.cli.common import EXIT_OK, CliError, add_out_folder, finish_command, json_out, out, parse_env_args
+from redsim.cli.common import (
+    EXIT_INTERRUPTED,
+    EXIT_OK,
+    CliError,
+    add_out_folder,
+    finish_command,
+    json_out,
+    non_negative_seed,
+    out,
+    parse_env_args,
+    warn,
+)
 
 
 def _check_env(env_id: str) -> None:
@@ -57,7 +68,7 @@ def _line(name: str, result: dict[str, Any]) -> str:
 
 def cmd_train_agent(args: argparse.Namespace) -> int:
     from redsim.envs.sharded import ShardError
-    from redsim.trainers.agents import train_agent
+    from redsim.trainers.agents import TrainingInterrupted, train_agent
 
     _check_env(args.env_id)
     for value, flag in ((args.steps, "--steps"), (args.n_envs, "--n-envs"), (args.eval_episodes, "--eval-episodes")):
@@ -83,6 +94,12 @@ def cmd_train_agent(args: argparse.Namespace) -> int:
         )
     except (ValueError, FileNotFoundError, ShardError) as err:
         raise CliError(str(err)) from err
+    except TrainingInterrupted as stop:
+        warn(f"{stop}; continue with the same command and --resume")
+        return EXIT_INTERRUPTED
+    except KeyboardInterrupt:
+        warn("interrupted before training started; nothing was saved")
+        return EXIT_INTERRUPTED
     final = result.evaluation.as_dict()
     files = sorted(str(p) for p in Path(args.out).iterdir() if p.is_file())
     if args.json:
@@ -158,7 +175,7 @@ def add_commands(sub: Any) -> None:
     p.add_argument("--algo", choices=ALGOS, default="sac", help="algorithm (default sac)")
     p.add_argument("--steps", type=int, default=20_000, help="total env steps (default 20000)")
     add_out_folder(p, "output folder (default agent)", default="agent")
-    p.add_argument("--seed", type=int, default=0, help="seed of the algorithm and the envs (default 0)")
+    p.add_argument("--seed", type=non_negative_seed, default=0, help="seed of the algorithm and the envs (default 0)")
     p.add_argument("--n-envs", type=int, help="vector env copies (default: the table's)")
     p.add_argument(
         "--shards",
@@ -198,7 +215,7 @@ def add_commands(sub: Any) -> None:
     )
     p.add_argument("env_id", metavar="ENV_ID", help="the env id the model was trained on")
     p.add_argument("--episodes", type=int, default=20, help="episodes (default 20)")
-    p.add_argument("--seed", type=int, default=0, help="first episode seed (default 0)")
+    p.add_argument("--seed", type=non_negative_seed, default=0, help="first episode seed (default 0)")
     p.add_argument("--baselines", action="store_true", help="also a random policy and the scripted controller")
     _add_env_args(p)
     finish_command(p, cmd_eval_agent, "print one JSON document", default_threads=1)

@@ -26,6 +26,7 @@ from redsim.cli.common import (
     error,
     finish_command,
     json_out,
+    non_negative_seed,
     note,
     out,
     parse_list,
@@ -196,8 +197,10 @@ def cmd_bench_step(args: argparse.Namespace) -> int:
         raise CliError(f"--batches must be comma-separated integers, got {args.batches!r}") from err
     if min(batches) < 1 or args.steps < 1 or args.reference_steps < 1 or args.rounds < 1:
         raise CliError("--batches, --steps, --reference-steps and --rounds must be >= 1")
-    if not (math.isfinite(args.dt) and args.dt > 0):
-        raise CliError(f"--dt must be a finite number > 0, got {args.dt}")
+    from redsim.integrators import MIN_TIME_STEP
+
+    if not (math.isfinite(args.dt) and args.dt >= MIN_TIME_STEP):
+        raise CliError(f"--dt must be a finite number >= {MIN_TIME_STEP:g} [s], got {args.dt}")
     if args.device.startswith("cuda") and not torch.cuda.is_available():
         raise CliError("--device cuda requested but torch sees no CUDA device")
     baseline = None
@@ -620,7 +623,7 @@ def add_commands(sub: Any) -> Any:
         "scene size (default 0.1; larger probes the nonlinear range)",
     )
     p.add_argument("--samples", type=int, default=256, help="latent samples per statistic (default 256)")
-    p.add_argument("--seed", type=int, default=0, help="seed of fits, samples and loads (default 0)")
+    p.add_argument("--seed", type=non_negative_seed, default=0, help="seed of fits, samples and loads (default 0)")
     finish_command(p, cmd_bench_subspace, "print one JSON document")
 
     p = bench.add_parser(
@@ -670,10 +673,11 @@ def add_commands(sub: Any) -> Any:
     p.add_argument(
         "--hessians",
         metavar="H1,H2",
-        help="instead: compare the solver's Hessian models (exact,gauss_newton,bfgs,lagged) on the same loads",
+        help="instead: compare the solver's Hessian models (of exact,gauss_newton,bfgs,lagged,lagged_fd; lagged_fd "
+        "is the default) on the same loads",
     )
     p.add_argument("--device", default="cpu", help="torch device of the stepper (default cpu)")
-    p.add_argument("--seed", type=int, default=0, help="seed of the load sequences (default 0)")
+    p.add_argument("--seed", type=non_negative_seed, default=0, help="seed of the load sequences (default 0)")
     p.add_argument(
         "--rounds",
         type=int,
@@ -704,7 +708,7 @@ def add_commands(sub: Any) -> Any:
     p.add_argument("scene", help="one of mini_chain, chain, bistable_bar, hanging_sheet")
     p.add_argument("--steps", type=int, default=100, help="steps per scenario (default 100)")
     p.add_argument("--scenarios", default="push,actions", help="push and/or actions (default both)")
-    p.add_argument("--seed", type=int, default=0, help="seed of the actions scenario (default 0)")
+    p.add_argument("--seed", type=non_negative_seed, default=0, help="seed of the actions scenario (default 0)")
     p.add_argument(
         "--full",
         default="tol,newton1,newton3,dt2,dt5",
@@ -798,7 +802,9 @@ def add_commands(sub: Any) -> Any:
         help="wall-time budget of each fuzzed env and of each scene's long runs: they stop there and report "
         "the steps they ran (default none)",
     )
-    p.add_argument("--seed", type=int, default=0, help="seed of the fuzzed actions and resets (default 0)")
+    p.add_argument(
+        "--seed", type=non_negative_seed, default=0, help="seed of the fuzzed actions and resets (default 0)"
+    )
     finish_command(p, cmd_bench_stability, "print one JSON document on stdout", default_threads=1)
     cubature.add_bench_command(bench)
     return bench

@@ -238,6 +238,17 @@ def seconds(text: str) -> float:
     return value
 
 
+def non_negative_seed(text: str) -> int:
+    """argparse type of a seed: an integer >= 0 (as Gymnasium's and NumPy's seeding take)."""
+    try:
+        value = int(text)
+    except ValueError:
+        value = -1
+    if value < 0:
+        raise argparse.ArgumentTypeError(f"must be an integer >= 0, got {text!r}")
+    return value
+
+
 def add_threads(parser: argparse.ArgumentParser, default: int | None = None) -> None:
     """``--threads N``: torch's intra-op threads for the command."""
     shown = "torch's default: all cores" if default is None else str(default)

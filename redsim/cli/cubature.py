@@ -16,6 +16,7 @@ from redsim.cli.common import (
     json_out,
     load_checkpoint,
     machine_line,
+    non_negative_seed,
     out,
     parse_ints,
     parse_list,
@@ -213,7 +214,7 @@ def add_commands(sub: Any) -> None:
     p.add_argument("--rollout-steps", type=int, default=40, help="steps per rollout (default 40)")
     p.add_argument("--full", metavar="E1,E2", help="effects kept whole (default: contact effects)")
     p.add_argument("--subsample", metavar="E1,E2", help="effects subsampled even if they are contact")
-    p.add_argument("--seed", type=int, default=0, help="seed of samples, loads and split (default 0)")
+    p.add_argument("--seed", type=non_negative_seed, default=0, help="seed of samples, loads and split (default 0)")
     p.add_argument("--overwrite", action="store_true", help="replace an existing CHECKPOINT.cubature.json")
     finish_command(p, cmd_cubature, "print one JSON document on stdout (no progress bar)")
 

@@ -15,6 +15,7 @@ from redsim.cli.common import (
     add_out_folder,
     finish_command,
     json_out,
+    non_negative_seed,
     out,
     parse_env_args,
     parse_list,
@@ -376,7 +377,7 @@ def add_commands(sub: Any, bench: Any) -> None:
     )
     p.add_argument("env_id", metavar="ENV_ID", help="a RedSim env id")
     add_out_folder(p, "output folder (default out)", default="out")
-    p.add_argument("--seed", type=int, default=0, help="reset seed (default 0)")
+    p.add_argument("--seed", type=non_negative_seed, default=0, help="reset seed (default 0)")
     p.add_argument("--steps", type=int, help="episode length (default: the env's max_episode_steps)")
     p.add_argument("--scripted", action="store_true", help="use the scripted controller even where a policy is shipped")
     finish_command(p, cmd_demo, "print one JSON summary", default_threads=1)
@@ -452,7 +453,7 @@ def add_commands(sub: Any, bench: Any) -> None:
     p.add_argument("--rounds", type=int, default=4, help="timed rounds (default 4)")
     p.add_argument("--steps-per-round", type=int, default=10, help="vector steps per setting and round (default 10)")
     p.add_argument("--warmup", type=int, default=3, help="untimed vector steps of each setting first (default 3)")
-    p.add_argument("--seed", type=int, default=0, help="seed of the resets and the actions (default 0)")
+    p.add_argument("--seed", type=non_negative_seed, default=0, help="seed of the resets and the actions (default 0)")
     finish_command(p, cmd_bench_env_ab, "print one JSON document", default_threads=1)
 
     p = bench.add_parser(

@@ -67,6 +67,9 @@ def main(argv: Sequence[str] | None = None) -> int:
         if argv is None:  # the command line, not an in-process caller whose stdout this would close
             _silence_stdout()
         return 1
+    except OSError as err:  # a file the command could not read or write (a full disk, a path the OS refuses)
+        error(f"{err.strerror or err}: {err.filename}" if err.filename else str(err))
+        return 1
     finally:
         torch.set_num_threads(threads)  # in-process callers (tests, notebooks) keep their setting
 

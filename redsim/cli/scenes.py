@@ -73,8 +73,10 @@ def cmd_simulate(args: argparse.Namespace) -> int:
 
     if args.steps < 1:
         raise CliError(f"--steps must be an integer >= 1, got {args.steps}")
-    if not (math.isfinite(args.dt) and args.dt > 0):
-        raise CliError(f"--dt must be a finite number > 0, got {args.dt}")
+    from redsim.integrators import MIN_TIME_STEP
+
+    if not (math.isfinite(args.dt) and args.dt >= MIN_TIME_STEP):
+        raise CliError(f"--dt must be a finite number >= {MIN_TIME_STEP:g} [s], got {args.dt}")
     if args.meshes and args.out is None:
         raise CliError("--meshes needs --out DIR")
     scene = scene_from_args(args)

@@ -21,6 +21,7 @@ from redsim.cli.common import (
     finish_command,
     json_out,
     load_checkpoint,
+    non_negative_seed,
     out,
     parse_list,
     scene_from_args,
@@ -314,7 +315,9 @@ def add_commands(sub: Any) -> None:
         "--soften", default=None, metavar="A,B", help="scene effects whose energy rises from --soften-from to full"
     )
     p.add_argument("--cond", action="store_true", help="fit a conditional subspace over the scene's conditions")
-    p.add_argument("--seed", type=int, default=0, help="seed of the initialisation and sampling (default 0)")
+    p.add_argument(
+        "--seed", type=non_negative_seed, default=0, help="seed of the initialisation and sampling (default 0)"
+    )
     p.add_argument("--out", default=None, metavar="STEM", help="checkpoint stem (default SCENE_dD)")
     p.add_argument("--resume", action="store_true", help="continue from STEM.fit.pt")
     p.add_argument(
@@ -333,7 +336,7 @@ def add_commands(sub: Any) -> None:
     p = sub.add_parser("sample", help="export states sampled from a subspace (z ~ N(0, I))")
     p.add_argument("checkpoint", help="path to X.pt")
     p.add_argument("-n", type=int, default=1000, help="number of states (default 1000)")
-    p.add_argument("--seed", type=int, default=0, help="sampling seed (default 0)")
+    p.add_argument("--seed", type=non_negative_seed, default=0, help="sampling seed (default 0)")
     p.add_argument("--out", default="states.npz", help="output .npz with z, q, x (default states.npz)")
     finish_command(p, cmd_sample, "print one JSON summary")
 
@@ -342,6 +345,6 @@ def add_commands(sub: Any) -> None:
     p.add_argument("--keys", type=int, default=4, help="number of random latent keyframes (default 4)")
     p.add_argument("--frames", type=int, default=48, help="frames in the loop (default 48)")
     p.add_argument("--fps", type=float, default=16.0, help="frames per second (default 16)")
-    p.add_argument("--seed", type=int, default=0, help="keyframe seed (default 0)")
+    p.add_argument("--seed", type=non_negative_seed, default=0, help="keyframe seed (default 0)")
     p.add_argument("--out", default="anim.gif", help="output GIF (default anim.gif)")
     finish_command(p, cmd_animate, "print one JSON summary")

@@ -18,10 +18,18 @@ from __future__ import annotations
 
 from redsim.integrators.equilibrium import latent_equilibrium, static_equilibrium
 from redsim.integrators.implicit_euler import FullState, ImplicitEuler, LoadSchedule, StepInfo
-from redsim.integrators.objective import Inertia, PotentialObjective, SceneConstants, length_scale
+from redsim.integrators.objective import (
+    MIN_TIME_STEP,
+    Inertia,
+    PotentialObjective,
+    SceneConstants,
+    check_time_step,
+    length_scale,
+)
 from redsim.integrators.spaces import FullSpace, LatentSpace, Space, as_float64, map_condition_dim
 
 __all__ = [
+    "MIN_TIME_STEP",
     "FullSpace",
     "FullState",
     "ImplicitEuler",
@@ -33,6 +41,7 @@ __all__ = [
     "Space",
     "StepInfo",
     "as_float64",
+    "check_time_step",
     "latent_equilibrium",
     "length_scale",
     "map_condition_dim",

@@ -18,6 +18,13 @@ ENERGY_ROUNDOFF = 1000.0
 """Round-off allowance of the ``energy_gain`` test, in eps of the dtype times the energies summed [J]."""
 
 
+def energy_gain_tolerance(
+    mechanical_now: Tensor, mechanical_next: Tensor, work: Tensor, inexact: Tensor, eps: float
+) -> Tensor:
+    """The rise [B] [J] :func:`energy_gain_states` allows: ``inexact`` plus the round-off of the sums (its doc)."""
+    return inexact + ENERGY_ROUNDOFF * eps * (mechanical_now.abs() + mechanical_next.abs() + work.abs())
+
+
 def energy_gain_states(
     mechanical_now: Tensor, mechanical_next: Tensor, work: Tensor, inexact: Tensor, eps: float
 ) -> Tensor:
@@ -35,8 +42,7 @@ def energy_gain_states(
         eps: Machine epsilon of the dtype the energies were computed in.
     """
     gain = mechanical_next - mechanical_now - work
-    roundoff = ENERGY_ROUNDOFF * eps * (mechanical_now.abs() + mechanical_next.abs() + work.abs())
-    return ~torch.isfinite(gain) | (gain > inexact + roundoff)
+    return ~torch.isfinite(gain) | (gain > energy_gain_tolerance(mechanical_now, mechanical_next, work, inexact, eps))
 
 
-__all__ = ["ENERGY_ROUNDOFF", "energy_gain_states"]
+__all__ = ["ENERGY_ROUNDOFF", "energy_gain_states", "energy_gain_tolerance"]

@@ -21,7 +21,14 @@ import torch
 from torch import Tensor
 
 from redsim.integrators.energy_gain import energy_gain_states
-from redsim.integrators.objective import Inertia, PotentialObjective, SceneConstants, checked_vector, pack_inputs
+from redsim.integrators.objective import (
+    Inertia,
+    PotentialObjective,
+    SceneConstants,
+    check_time_step,
+    checked_vector,
+    pack_inputs,
+)
 from redsim.integrators.spaces import Space
 from redsim.scene import LoadsLike, Scene
 from redsim.solvers import ConvergenceError, SolveInfo, get_minimizer
@@ -99,8 +106,7 @@ class ImplicitEuler:
         max_iter: int = 50,
         strict: bool = False,
     ) -> None:
-        if not (isinstance(dt, (int, float)) and math.isfinite(dt) and dt > 0.0):
-            raise ValueError(f"dt must be a finite number > 0 [s], got {dt!r}")
+        dt = check_time_step(dt)
         if not (math.isfinite(tol) and tol > 0.0):
             raise ValueError(f"tol must be finite and > 0, got {tol!r}")
         if int(max_iter) != max_iter or max_iter < 1:

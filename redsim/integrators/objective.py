@@ -43,6 +43,20 @@ class Inertia:
     dt: float
 
 
+MIN_TIME_STEP = 1e-6
+"""The smallest time step [s] the integrators take: below it h^2 nears float32's smallest normal numbers (the
+inertia term's 1/h^2 overflows at 1e-20 s, h^2 underflows to 0 at 1e-162 s in float64)."""
+
+
+def check_time_step(dt: Any) -> float:
+    """``dt`` [s] as a float: a real number (not a bool) in [:data:`MIN_TIME_STEP`, inf); a ValueError otherwise."""
+    if isinstance(dt, bool) or not isinstance(dt, (int, float, np.integer, np.floating)):
+        raise ValueError(f"dt must be a number of seconds, got {dt!r}")
+    if not (math.isfinite(dt) and dt >= MIN_TIME_STEP):
+        raise ValueError(f"dt must be a finite number of seconds >= {MIN_TIME_STEP:g}, got {dt!r}")
+    return float(dt)
+
+
 def length_scale(scene: Scene) -> float:
     """Size L [m] of the scene: the larger of the seed's extent and magnitude, 1 for an all-zero seed."""
     x = scene.full_positions(scene.q_seed.detach().unsqueeze(0))[0]

@@ -13,7 +13,7 @@ import math
 import torch
 from torch import Tensor
 
-from redsim.integrators.energy_gain import ENERGY_ROUNDOFF, energy_gain_states
+from redsim.integrators.energy_gain import ENERGY_ROUNDOFF, energy_gain_states, energy_gain_tolerance
 from redsim.scene import ConditionSpace
 
 LATENT_RANGE = 4.0
@@ -81,5 +81,6 @@ __all__ = [
     "LATENT_RANGE",
     "diverged_states",
     "energy_gain_states",
+    "energy_gain_tolerance",
     "out_of_range_states",
 ]

@@ -21,9 +21,9 @@ from typing import NamedTuple
 import torch
 from torch import Tensor, nn
 
-from redsim.integrators import LatentSpace, latent_equilibrium, length_scale
+from redsim.integrators import LatentSpace, check_time_step, latent_equilibrium, length_scale
 from redsim.runtime.energy import LatentEnergy, MapEnergy, ReducedInertia
-from redsim.runtime.flags import diverged_states, energy_gain_states, out_of_range_states
+from redsim.runtime.flags import diverged_states, energy_gain_states, energy_gain_tolerance, out_of_range_states
 from redsim.runtime.solver import HESSIANS, BatchResult, check_max_step, check_sync_every, minimize
 from redsim.scene import Scene
 
@@ -55,6 +55,8 @@ class StepStats(NamedTuple):
         energy_gain: K + E rose by more than the loads' work, beyond round-off and the solve's
             tolerance (bool): an artefact of the map, reported as information
             (:func:`redsim.runtime.flags.energy_gain_states`).
+        energy_gain_tolerance: The rise of K + E beyond the loads' work [J] that ``energy_gain`` allows: what the
+            solve's leftover gradient can put in, |dPhi/dz| |z_{t+1} - z_t|, plus round-off.
         model: The solver's final d x d Hessian model [B, d, d]: pass it as ``warm`` to the next step
             of the same states (NaN rows: none was built).
     """
@@ -66,6 +68,7 @@ class StepStats(NamedTuple):
     out_of_range: Tensor
     diverged: Tensor
     energy_gain: Tensor
+    energy_gain_tolerance: Tensor
     model: Tensor
 
 
@@ -324,8 +327,7 @@ class LatentStepper:
         start: str = "extrapolated",
         row_block: int | None = None,
     ) -> None:
-        if not (isinstance(dt, (int, float)) and math.isfinite(dt) and dt > 0.0):
-            raise ValueError(f"dt must be a finite number > 0 [s], got {dt!r}")
+        dt = check_time_step(dt)
         if dtype not in DEFAULT_TOL:
             raise ValueError(f"dtype must be torch.float32 or torch.float64, got {dtype}")
         tol = DEFAULT_TOL[dtype] if tol is None else tol
@@ -648,14 +650,18 @@ class LatentStepper:
             work = torch.zeros_like(kinetic_now)  # of the loads over the step [J]
             if loads_t is not None:
                 work = (loads_t * (self._handles(q_next) - self._handles(q_t))).sum(-1)
-            energy_gain = energy_gain_states(
-                kinetic_now + energy[batch:],
-                kinetic_next + torch.where(result.finite, result.energy, energy[batch:]),
+            mechanical_now = kinetic_now + energy[batch:]
+            mechanical_next = kinetic_next + torch.where(result.finite, result.energy, energy[batch:])
+            balance = (
+                mechanical_now,
+                mechanical_next,
                 work,
                 result.grad_norm * torch.linalg.vector_norm(z_next - z, dim=-1)
                 + self._kinetic_roundoff(q_t, kinetic_now, kinetic_next),
                 self._eps,
             )
+            energy_gain = energy_gain_states(*balance)
+            gain_tolerance = energy_gain_tolerance(*balance)
         # a force scale past the dtype's range (finite loads too large to square) makes every threshold inf:
         # such a step proves nothing, so it is reported as not converged and diverged
         unbounded = ~torch.isfinite(force)
@@ -670,6 +676,7 @@ class LatentStepper:
             diverged=diverged | unbounded,
             energy_gain=energy_gain,
             model=result.model,
+            energy_gain_tolerance=gain_tolerance,
         )
         return z_next, stats
 

@@ -275,3 +275,13 @@ def test_mesh_sweep_leaves_the_batched_all_element_step_out_above_its_limit(cli)
     assert all(row["timing"][1]["all_s"] > 0 and row["timing"][2]["cubature_s"] > 0 for row in (small, big))
     code, _, err = cli("bench", "cubature", "--sweep", "3", "--batch-max-n", "-1")
     assert code == 2 and "--batch-max-n" in err
+
+
+def test_bench_deviation_does_not_depend_on_the_timing_batches(mini_chain) -> None:
+    """The deviation is the median over ACCURACY_STATES seeded rollouts, whatever batch sizes are timed."""
+    from redsim.cubature.bench import bench_cubature
+
+    scene, f = mini_chain
+    cub = build_cubature(scene, f, CubatureConfig(elements=4, **QUICK))
+    runs = [bench_cubature(scene, f, cub, steps=6, batches=b, timed_steps=2) for b in ((1,), (1, 16))]
+    assert runs[0]["trajectory_deviation"] == runs[1]["trajectory_deviation"] > 0.0

@@ -7,7 +7,7 @@ import numpy as np
 import pytest
 import trimesh
 
-import redsim  # noqa: F401  (registers the ids)
+import redsim
 from redsim.envs import base
 from redsim.envs.vector import LatentVectorEnv
 
@@ -111,6 +111,7 @@ def test_trimesh_export_of_the_full_mesh_per_frame(tmp_path) -> None:
         ({"camera": {"azimuth": float("nan")}}, "finite number"),
         ({"camera": {"azimuth": "abc"}}, "finite number"),
         ({"camera": {"zoom": 2}}, "unknown camera keys"),
+        ({"camera": "azimuth"}, "camera must be a dict"),
         ({"width": 0}, "width and height"),
         ({"height": 480.5}, "width and height"),
     ],
@@ -118,3 +119,45 @@ def test_trimesh_export_of_the_full_mesh_per_frame(tmp_path) -> None:
 def test_render_settings_are_checked_when_the_env_is_made(kwargs: dict, expected: str) -> None:
     with pytest.raises(ValueError, match=expected):
         gym.make("RedSim/MiniChain-v0", render_mode="rgb_array", **kwargs)
+
+
+def _red(frame: np.ndarray) -> int:
+    """Pixels of the target marker's red."""
+    return int(((frame[..., 0] > 200) & (frame[..., 1] < 80) & (frame[..., 2] < 80)).sum())
+
+
+def test_a_conditional_vector_env_draws_every_copy() -> None:
+    venv = gym.make_vec(
+        "RedSim/ConditionalBar-v0", 2, "vector_entry_point", render_mode="rgb_array", width=SIZE, height=SIZE
+    )
+    venv.reset(seed=0)
+    frames = venv.render()
+    assert len(frames) == 2 and frames[0].shape == (SIZE, SIZE, 3) and not np.array_equal(frames[0], frames[1])
+
+
+def test_a_target_outside_the_frame_reframes_the_view() -> None:
+    """The view frames the first render; a later target outside it (here a chosen one) gets a view that shows it."""
+    env = gym.make("RedSim/MiniChain-v0", render_mode="rgb_array", width=SIZE, height=SIZE)
+    env.reset(seed=0)
+    env.render()
+    env.reset(seed=0, options={"target": [0.5, 0.0, 0.0]})
+    assert _red(env.render()) > 10
+    venv = gym.make_vec(
+        "RedSim/MiniChain-v0", 3, "vector_entry_point", render_mode="rgb_array", width=SIZE, height=SIZE
+    )
+    venv.reset(seed=0)
+    venv.render()
+    venv.reset(options={"target": [0.0, -0.5, 0.4], "reset_mask": np.array([False, False, True])})
+    assert _red(venv.render()[2]) > 10
+
+
+def test_a_camera_key_overrides_only_itself_and_a_long_arrow_stays_in_the_picture() -> None:
+    env = gym.make("RedSim/ClothBall-v0", render_mode="rgb_array", camera={"margin": 0.3})
+    assert env.unwrapped._camera == {**type(env.unwrapped).camera, "margin": 0.3}
+    from redsim.raster import Arrow, SceneView
+
+    scene = redsim.scenes.build("mini_chain")
+    view = SceneView(scene, scene.q_seed, width=SIZE, height=SIZE)
+    frame = view.draw(scene.q_seed, arrows=[Arrow(np.zeros(3), np.array([100.0, 0.0, 0.0]), 1.0)])
+    green = (frame[..., 1] > 120) & (frame[..., 0] < 80) & (frame[..., 2] < 120)
+    assert green.any() and green[:, SIZE - 12 :].any()  # the head at the right border

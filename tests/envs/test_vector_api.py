@@ -186,3 +186,27 @@ def test_a_state_moves_between_sharded_and_native_envs_of_the_same_copies() -> N
         np.testing.assert_allclose(sharded.step(PUSH)[0], native.step(PUSH)[0], atol=1e-9)
     finally:
         sharded.close()
+
+
+def test_the_sb3_adapter_answers_get_attr_as_the_vector_env() -> None:
+    from redsim.envs.sb3 import SB3VecEnv
+
+    venv = SB3VecEnv.make(ID, num_envs=2)
+    assert venv.get_attr("dt") == [venv.venv.unwrapped.template.dt] * 2
+    for name in ("np_random", "sim"):
+        with pytest.raises(AttributeError, match="not one value per copy"):
+            venv.get_attr(name)
+    venv.close()
+
+
+@pytest.mark.parametrize("shards", [1, 2])
+def test_a_step_where_every_copy_restarts_reports_no_keys_as_sync(shards: int) -> None:
+    kwargs = {"max_episode_steps": 1}  # NEXT_STEP autoreset, both envs' default
+    venv, sync = _vec(shards=shards, **kwargs), gym.make_vec(ID, num_envs=2, vectorization_mode="sync", **kwargs)
+    try:
+        for env in (venv, sync):
+            env.reset(seed=0)
+            assert "energy" in env.step(PUSH)[4]
+        assert venv.step(PUSH)[4] == {} == sync.step(PUSH)[4]
+    finally:
+        venv.close()

@@ -161,3 +161,29 @@ def test_a_tiny_time_step_at_rest_raises_no_energy_gain_flag() -> None:
         z_next, stats = stepper.step(z, z_prev)
         assert not bool(stats.energy_gain.any())
         z_prev, z = z, z_next
+
+
+@pytest.mark.parametrize(
+    ("kwargs", "expected"),
+    [
+        ({"dt": 1e-300}, r"dt must be a finite number of seconds >= 1e-06"),  # h^2 underflowed to 0
+        ({"dt": 1e-20}, r"dt must be a finite number of seconds >= 1e-06"),  # 1/h^2 overflowed float32
+        ({"dt": True}, "dt must be a number of seconds"),
+        ({"dt": None}, "dt must be a number of seconds"),
+        ({"frame_skip": True}, "frame_skip must be an integer"),
+        ({"include_q": "yes"}, "include_q must be True or False"),
+        ({"stepper_options": {"bogus": 1}}, r"unknown stepper_options \['bogus'\]; valid: \['compile'"),
+        ({"scene_params": "x"}, "scene_params must be a dict"),
+        ({"target_spread": 1e30}, "target_spread 1e.30 puts targets inf m from rest"),
+    ],
+)
+def test_env_arguments_of_the_wrong_kind_are_refused_at_make(kwargs: dict, expected: str) -> None:
+    with pytest.raises(ValueError, match=expected):
+        gym.make("RedSim/MiniChain-v0", **kwargs)
+
+
+def test_the_full_space_integrator_refuses_a_time_step_too_small_for_its_arithmetic() -> None:
+    from redsim.integrators import FullSpace, ImplicitEuler
+
+    with pytest.raises(ValueError, match=r"dt must be a finite number of seconds >= 1e-06"):
+        ImplicitEuler(FullSpace(scenes.build("mini_chain")), 1e-200)

@@ -388,3 +388,37 @@ def test_a_resume_from_a_checkpoint_keeps_a_later_best_model(tmp_path: Path) -> 
     other = EvalCallback(gym.make("RedSim/MiniChain-v0"), n_eval_episodes=5)
     _continue_evaluations(other, path, until=200, episodes=5)  # another episode count: only the best is carried
     assert other.best_mean_reward == 5.0 and other.evaluations_timesteps == []
+
+
+def test_ctrl_c_saves_the_run_and_resume_goes_on_from_it(tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> None:
+    """A KeyboardInterrupt inside learn keeps the model, replay buffer, curve and agent.json (interrupted), and
+    --resume continues from that model with its buffer, not from an older checkpoint."""
+    from redsim.envs.sb3 import SB3VecEnv
+    from redsim.trainers.agents import BUFFER, TrainingInterrupted, train_agent
+
+    calls = {"n": 0}
+    step_wait = SB3VecEnv.step_wait
+
+    def interrupting(self: SB3VecEnv):  # the training env has 2 copies, the evaluation env 1
+        calls["n"] += self.num_envs == 2
+        if calls["n"] == 31:
+            raise KeyboardInterrupt
+        return step_wait(self)
+
+    monkeypatch.setattr(SB3VecEnv, "step_wait", interrupting)
+    tiny = {"n_envs": 2, "eval_episodes": 1, "final_episodes": 1, "env_kwargs": SHORT, "video": False}
+    with pytest.raises(TrainingInterrupted, match="interrupted at 60 env steps") as stop:
+        train_agent(MINI, tmp_path, algo="sac", steps=100, eval_every=20, **tiny)
+    assert stop.value.steps == 60 and stop.value.model_path == tmp_path / "model.zip"
+    record = json.loads((tmp_path / "agent.json").read_text())
+    assert record["interrupted"] is True and record["steps"] == 60 and "final_evaluation" not in record
+    assert (tmp_path / "model.zip").is_file() and (tmp_path / BUFFER).is_file()
+    with (tmp_path / "curve.csv").open() as handle:
+        assert [int(row["env_steps"]) for row in csv.DictReader(handle)] == [20, 40, 60]
+    monkeypatch.setattr(SB3VecEnv, "step_wait", step_wait)
+    result = train_agent(MINI, tmp_path, algo="sac", steps=100, eval_every=20, resume=True, **tiny)
+    assert result.steps == 100
+    record = json.loads((tmp_path / "agent.json").read_text())
+    assert "interrupted" not in record and record["wall_s"] >= 0.0
+    with (tmp_path / "curve.csv").open() as handle:
+        assert [int(row["env_steps"]) for row in csv.DictReader(handle)] == [20, 40, 60, 80, 100]
