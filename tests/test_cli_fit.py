@@ -8,7 +8,7 @@ import numpy as np
 import pytest
 import torch
 
-from redsim import pretrained
+from redsim import pretrained, scenes
 from redsim.cli import main
 from redsim.keyframes import catmull_rom_loop
 from redsim.subspace import read_metadata
@@ -79,6 +79,20 @@ def test_sample_exports_states(capsys: pytest.CaptureFixture[str], fitted: str, 
     data = np.load(out_path)
     assert data["q"].shape == (50, 36) and data["z"].shape == (50, 2)
     assert str(data["scene"]) == "toy_three_link_chain"
+
+
+def test_sample_writes_meshes_with_faces(capsys: pytest.CaptureFixture[str], fitted: str, tmp_path) -> None:
+    import trimesh
+
+    code, out, _ = run(
+        capsys, "sample", fitted, "-n", "2", "--out", str(tmp_path / "s"), "--meshes", str(tmp_path / "m")
+    )
+    assert code == 0 and "meshes (.ply, faces included)" in out
+    written = sorted((tmp_path / "m").glob("frame_*.ply"))
+    surfaces = len(scenes.build("toy_three_link_chain").surfaces)
+    assert len(written) == 2 * surfaces and written[0].name.startswith("frame_0000_")
+    mesh = trimesh.load(written[0])
+    assert len(mesh.faces) > 0 and np.isfinite(mesh.vertices).all()
 
 
 def test_animate_writes_gif(capsys: pytest.CaptureFixture[str], fitted: str, tmp_path) -> None:

@@ -244,12 +244,23 @@ def cmd_sample(args: argparse.Namespace) -> int:
     if cond is not None:
         arrays["cond"] = cond.numpy()
     np.savez_compressed(path, scene=scene.name, scene_fingerprint=scene.fingerprint(), **arrays)
+    meshes = []
+    if args.meshes:
+        from redsim.render import export_meshes
+
+        if Path(args.meshes).exists() and not Path(args.meshes).is_dir():
+            raise CliError(f"cannot write into --meshes {args.meshes}: it is a file, not a folder")
+        for i in range(args.n):
+            meshes += export_meshes(scene, q[i], args.meshes, i)
     finite = bool(torch.isfinite(q).all())
     summary = {"out": str(path), "count": args.n, "n": scene.free_dof_count, "finite": finite}
+    summary["meshes"] = [str(m) for m in meshes]
     if args.json:
         json_out(summary)
     else:
         out(f"wrote {args.n} states of {scene.name} (q: [{args.n}, {scene.free_dof_count}], full x too) to {path}")
+        if meshes:
+            out(f"wrote {len(meshes)} meshes (.ply, faces included) to {args.meshes}")
     return EXIT_OK if finite else EXIT_NAN
 
 
@@ -338,6 +349,11 @@ def add_commands(sub: Any) -> None:
     p.add_argument("-n", type=int, default=1000, help="number of states (default 1000)")
     p.add_argument("--seed", type=non_negative_seed, default=0, help="sampling seed (default 0)")
     p.add_argument("--out", default="states.npz", help="output .npz with z, q, x (default states.npz)")
+    p.add_argument(
+        "--meshes",
+        metavar="DIR",
+        help="also write every sample's surfaces with their faces as DIR/frame_XXXX_<surface>.ply (trimesh)",
+    )
     finish_command(p, cmd_sample, "print one JSON summary")
 
     p = sub.add_parser("animate", help="GIF of a cyclic Catmull-Rom keyframe loop in latent space")
