@@ -4,8 +4,25 @@ from __future__ import annotations
 
 from typing import Any, ClassVar
 
-from redsim.envs.reach import ReachEnv
+import numpy as np
+
+from redsim.envs.base import LatentSim
+from redsim.envs.reach import HandleReach, ReachEnv
 from redsim.envs.vector import vector_entry
+
+
+class SupportedReach(HandleReach):
+    """:class:`HandleReach` whose pictures also mark the bar's support (grey) at the episode's location c[1]."""
+
+    def overlay(self, sim: LatentSim, row: int) -> tuple[list[Any], list[Any]]:
+        from redsim.raster import Marker
+
+        markers, arrows = super().overlay(sim, row)
+        names = list(sim.scene.condition_space.names) if sim.scene.condition_space is not None else []
+        if sim.cond is not None and "pin_location" in names:
+            location = float(sim.cond[row, names.index("pin_location")])
+            markers.append(Marker(np.array([location, 0.0]), (150, 150, 150), 5))
+        return markers, arrows
 
 
 class ConditionalBarEnv(ReachEnv):
@@ -15,8 +32,8 @@ class ConditionalBarEnv(ReachEnv):
     The scene `conditional_bar` (n = 940: a 1 x 0.1 m plane-strain bar clamped at x = 0, gravity, a support
     along its bottom edge) runs in its shipped 8-d *conditional* subspace f(z, c). Each episode draws the
     condition c (domain randomization through the subspace): c[0] the Young's modulus factor of the right half,
-    c[1] the support location [m]; c is part of the observation. A force on the tip column (handle `tip`) must
-    bring the tip to a target.
+    c[1] the support location [m] (a grey dot in the pictures); c is part of the observation. A force on the tip
+    column (handle `tip`) must bring the tip to a target.
 
     ## Action Space
     The action space is a `Box(-1, 1, (2,), float32)`: the force on the tip, scaled to ±`max_force` [N].
@@ -80,6 +97,7 @@ class ConditionalBarEnv(ReachEnv):
     default_max_force: ClassVar[float] = 300.0
     default_target_spread: ClassVar[float] = 0.5
     randomize_condition: ClassVar[bool] = True
+    task_class: ClassVar[type[HandleReach]] = SupportedReach
 
 
 make_vec = vector_entry(ConditionalBarEnv)

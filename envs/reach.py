@@ -318,6 +318,7 @@ class ReachEnv(LatentEnv):
     goal_axes: ClassVar[tuple[int, ...] | None] = None
     camera: ClassVar[dict[str, float]] = {}
     randomize_condition: ClassVar[bool] = False
+    task_class: ClassVar[type[HandleReach]] = HandleReach
 
     def __init__(
         self,
@@ -341,7 +342,7 @@ class ReachEnv(LatentEnv):
         scene, sub = shipped(
             self.scene_name, scene_params, subspace, fit_if_missing=fit_if_missing, fit_options=fit_options
         )
-        task = HandleReach(
+        task = self.task_class(
             self.goal_handle,
             max_force=self.default_max_force if max_force is None else max_force,
             target_spread=self.default_target_spread if target_spread is None else target_spread,

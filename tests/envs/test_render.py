@@ -161,3 +161,13 @@ def test_a_camera_key_overrides_only_itself_and_a_long_arrow_stays_in_the_pictur
     frame = view.draw(scene.q_seed, arrows=[Arrow(np.zeros(3), np.array([100.0, 0.0, 0.0]), 1.0)])
     green = (frame[..., 1] > 120) & (frame[..., 0] < 80) & (frame[..., 2] < 120)
     assert green.any() and green[:, SIZE - 12 :].any()  # the head at the right border
+
+
+def test_the_conditional_bar_marks_its_support_where_the_condition_puts_it() -> None:
+    env = gym.make("RedSim/ConditionalBar-v0", render_mode="rgb_array", width=SIZE, height=SIZE)
+    env.reset(seed=0, options={"condition": [1.0, 0.4]})
+    markers, _ = env.unwrapped.sim.task.overlay(env.unwrapped.sim, 0)
+    assert np.allclose(markers[-1].position, [0.4, 0.0]) and markers[-1].colour == (150, 150, 150)
+    frame = env.render()
+    x, y, _ = env.unwrapped._view.project(np.array([0.4, 0.0]))[0]
+    assert tuple(frame[round(float(y)), round(float(x))]) == (150, 150, 150)
