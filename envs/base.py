@@ -722,7 +722,8 @@ class LatentEnv(gym.Env[np.ndarray, np.ndarray]):
     task; :func:`redsim.envs.make` builds one from any scene, subspace and task.
 
     ``info`` after each step: ``converged``, ``iterations``, ``residual`` (the stepper's solver
-    statistics), ``energy`` [J], ``out_of_range`` (z left the region the map was fitted on),
+    statistics), ``energy`` [J] (the energy the stepper minimized: a cubature's estimate where the env steps one),
+    ``out_of_range`` (z left the region the map was fitted on),
     ``diverged``, ``energy_gain`` (a step raised K + E by more than the action's work: an artefact
     of the map or the solve, reported like MuJoCo's warnings and never ending the episode; see
     :func:`redsim.runtime.flags.energy_gain_states`), ``energy_gain_tolerance`` [J] (the rise that flag allows: what

@@ -152,8 +152,9 @@ def bench_env(
             venv: Any = venv, cursor: Any = cursor, iterations: list[float] = iterations, slowest: list[float] = slowest
         ) -> None:
             _, _, _, _, info = venv.step(next(cursor))
-            iterations.append(float(np.mean(info["iterations"])))
-            slowest.append(float(np.max(info["iterations"])))
+            if "iterations" in info:  # none where every copy restarted (NEXT_STEP autoreset)
+                iterations.append(float(np.mean(info["iterations"])))
+                slowest.append(float(np.max(info["iterations"])))
 
         for _ in range(warmup):
             vector_step()

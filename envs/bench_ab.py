@@ -126,6 +126,8 @@ class _Work:
             infos.append(venv.step(action)[4])
         self.round_cpu_s.append((time.process_time() - start) / len(actions))
         for info in infos:
+            if "iterations" not in info:  # every copy restarted this step (NEXT_STEP autoreset): nothing solved
+                continue
             self.iterations.append(float(np.mean(info["iterations"])))
             self.slowest.append(float(np.max(info["iterations"])))
             self.converged.append(float(np.mean(info["converged"])))

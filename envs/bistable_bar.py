@@ -224,10 +224,12 @@ class BistableBarEnv(LatentEnv):
     mirror option makes the map equivariant under the up-down flip). The bar starts at rest arched up or down;
     a vertical force on its middle column (handle `middle`) must snap it over into the other arch. The force is
     bounded: a push only just above the snap-through load carries it over, a weaker one bends it and it springs
-    back. The full-space bar snaps under a static middle load of 46-47 N. v0 allows 60 N, so a push towards the
-    goal (the scripted controller) snaps it in every episode; v1 allows 40 N, below the static load: the same
-    push carries it over only in some episodes (its momentum), while pushing along the middle's motion pumps in
-    energy and snaps it every time (tests), so a policy must learn to swing the bar.
+    back: in this env a push held for 1.2 s snaps it at 48 N and springs back at 36 N. (The full-space bar buckles
+    sideways under a static middle load of 24-26 N, an asymmetric mode the mirror-equivariant map does not hold;
+    along the symmetric path its limit is 40.0-40.25 N.) v0 allows 60 N, so a push towards the goal (the scripted
+    controller) snaps it in every episode; v1 allows 40 N, below the env's held-push snap load: the same push
+    carries it over only in some episodes (its momentum), while pushing along the middle's motion pumps in energy
+    and snaps it every time (tests), so a policy must learn to swing the bar.
 
     ## Action Space
     The action space is a `Box(-1, 1, (1,), float32)`: the force along y on the middle column, scaled to
@@ -283,7 +285,8 @@ class BistableBarEnv(LatentEnv):
     "warm_refresh": True, "start": "extrapolated"}` gives the solver's general defaults.
 
     ## Version History
-    - v1: `max_force` 40 N (v0: 60 N), below the static snap-through load; nothing else changed.
+    - v1: `max_force` 40 N (v0: 60 N), below the load a held push needs to snap the env's bar; nothing else
+      changed.
     - v0: first version.
     - v0, v1: their solver defaults (`stepper_defaults`) later changed the path of each solve, not its minimum:
       the golden rollouts pass either way and v1's shipped policy scores alike (README "Env speed").

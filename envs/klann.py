@@ -159,6 +159,13 @@ class CrankSpeed(Task):
         loads[:, self._index, :2] = self.max_force * action[:, :1] * tangent
         return loads
 
+    def check_options(self, chosen: Mapping[str, Tensor]) -> None:
+        if "speed" in chosen and not 0.0 <= float(chosen["speed"].reshape(-1)[0]) <= self.speed_range[1]:
+            raise ValueError(
+                f"options['speed'] must lie in [0, {self.speed_range[1]:g}] rad/s (the observation's range), "
+                f"got {chosen['speed'].tolist()}"
+            )
+
     def extras_bounds(self) -> tuple[np.ndarray, np.ndarray]:
         high = np.array([1.0, 1.0, self._max_speed, self.speed_range[1]])
         return np.array([-1.0, -1.0, -self._max_speed, 0.0]), high

@@ -212,6 +212,10 @@ class HandleReach(Task):
         return self._goal.position(x)[:, self._goal_index]
 
     def check_options(self, chosen: Mapping[str, Tensor]) -> None:
+        if "target" in chosen and tuple(chosen["target"].shape) != (len(self._goal_index),):
+            raise ValueError(
+                f"options['target'] must have shape [{len(self._goal_index)}], got {list(chosen['target'].shape)}"
+            )
         if "target" in chosen and not bool((chosen["target"].abs() <= self._bound).all()):
             raise ValueError(
                 f"options['target'] must lie within the observation bound of {self._bound:.3g} m on each axis, "

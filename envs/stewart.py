@@ -157,6 +157,20 @@ class PlatePose(Task):
         loads[:, self._actuated, 1] = self.max_force * action
         return loads
 
+    def check_options(self, chosen: Mapping[str, Tensor]) -> None:
+        position, rotation = chosen.get("target_position"), chosen.get("target_rotation")
+        if position is not None and not bool((position.abs() <= self._bound).all()):
+            raise ValueError(
+                f"options['target_position'] must lie within the observation bound of {self._bound:.3g} m on each "
+                f"axis, got {position.tolist()}"
+            )
+        if rotation is not None:
+            r = rotation.to(torch.float64)
+            if r.shape != (3, 3) or not (
+                torch.allclose(r.T @ r, torch.eye(3, dtype=r.dtype), atol=1e-4) and float(torch.linalg.det(r)) > 0
+            ):
+                raise ValueError(f"options['target_rotation'] must be a rotation matrix [3, 3], got {r.tolist()}")
+
     def extras_bounds(self) -> tuple[np.ndarray, np.ndarray]:
         high = np.concatenate([np.full(6, self._bound), np.ones(3)])
         return -high, high

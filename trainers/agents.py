@@ -608,10 +608,12 @@ class TrainResult:
 
 class TrainingInterrupted(KeyboardInterrupt):
     """A ``train_agent`` run stopped by Ctrl-C after its model, replay buffer, normalizer, curve and
-    ``agent.json`` (``"interrupted": true``) were saved: ``resume=True`` continues it.
+    ``agent.json`` (``"interrupted": true``) were saved: ``resume=True`` continues it (or, stopped in the final
+    evaluation, runs that evaluation).
 
     Attributes:
-        steps: Env steps the saved model was trained for.
+        steps: Env steps the saved model was trained for (PPO: up to its last whole rollout; the unfinished one is
+            dropped).
         model_path: The saved ``model.zip``.
     """
 
@@ -1033,6 +1035,15 @@ def train_agent(
         | {"action_noise_std": noise_std, "normalize": normalize},
     }
     model_path = out / "model.zip"
+    started = int(model.num_timesteps)
+
+    def interrupted(wall: float) -> TrainingInterrupted:
+        """Record the saved run as interrupted (``agent.json``; the curve so far) for the caller to raise."""
+        _write_curve(out / "curve.csv", curve)
+        summary.update(steps=int(model.num_timesteps), wall_s=wall, interrupted=True)
+        (out / "agent.json").write_text(json.dumps(summary, indent=2, default=str))
+        return TrainingInterrupted(int(model.num_timesteps), model_path)
+
     try:
         if remaining > 0:
             model.learn(
@@ -1043,13 +1054,13 @@ def train_agent(
             )
     except KeyboardInterrupt:
         # as a fit: keep what was learnt (model, replay buffer, normalizer, curve), so --resume goes on from here
-        summary |= {"steps": int(model.num_timesteps), "wall_s": wall_offset + time.perf_counter() - start}
+        if algo == "ppo":  # PPO never learnt from its unfinished rollout: the saved steps end at its last one
+            rollout = int(model.n_steps) * copies
+            model.num_timesteps = started + (int(model.num_timesteps) - started) // rollout * rollout
         _save_run(model, venv, model_path)
         for env_ in (venv, eval_env):
             _close_quietly(env_)
-        _write_curve(out / "curve.csv", curve)
-        (out / "agent.json").write_text(json.dumps(summary | {"interrupted": True}, indent=2, default=str))
-        raise TrainingInterrupted(int(model.num_timesteps), model_path) from None
+        raise interrupted(wall_offset + time.perf_counter() - start) from None
     wall = wall_offset + time.perf_counter() - start
     _save_run(model, venv, model_path)
     agent = Agent(model, goal=goal)
@@ -1058,7 +1069,10 @@ def train_agent(
     venv.close()
     eval_env.close()
 
-    final = evaluate(env, agent, episodes=final_episodes, seed=seed + 20_000, env_kwargs=env_kwargs)
+    try:  # the model is saved: an interrupt here leaves a run that --resume finishes (its final evaluation)
+        final = evaluate(env, agent, episodes=final_episodes, seed=seed + 20_000, env_kwargs=env_kwargs)
+    except KeyboardInterrupt:
+        raise interrupted(wall) from None
     if not curve or curve[-1]["env_steps"] < model.num_timesteps:
         curve.append(
             {

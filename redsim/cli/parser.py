@@ -40,8 +40,8 @@ def main(argv: Sequence[str] | None = None) -> int:
         argv: Arguments without the program name (default: ``sys.argv[1:]``).
 
     Returns:
-        The exit status (0 ok, 1 a scene failed to build, 2 bad input, 3 NaN, 4 a failed simulation
-        step, 130 interrupted).
+        The exit status (0 ok, 1 a scene failed to build or a file could not be read or written, 2 bad input,
+        3 NaN, 4 a failed simulation step, 130 interrupted).
     """
     parser = build_parser()
     try:

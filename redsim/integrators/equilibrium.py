@@ -31,7 +31,10 @@ def static_equilibrium(
 
     Singular Hessians (rigid null modes, free bodies) are handled by the Levenberg shift of
     :func:`redsim.solvers.newton`. Without a minimizer (e.g. an unbalanced load on a free
-    body), the result reports ``converged=False``.
+    body), the result reports ``converged=False``. ``converged`` means stationary: projected Newton does not see
+    negative curvature, so from a symmetric start under a symmetric load it can end at a saddle (the bistable
+    bar under 30 N: smallest Hessian eigenvalue -0.43); :func:`redsim.integrators.reference.full_equilibrium`
+    escapes saddles.
 
     Args:
         scene: The scene (solved in float64).

@@ -15,7 +15,7 @@ from redsim.envs.bistable_bar import SnapThrough
 
 ID = "RedSim/BistableBar-v0"
 WEAK = "RedSim/BistableBar-v1"
-"""40 N, below the bar's static snap-through load (46-47 N)."""
+"""40 N, below what a held push needs to snap the env's bar (48 N snaps, 36 N springs back; docs/envs.md)."""
 
 
 @pytest.fixture(scope="module")

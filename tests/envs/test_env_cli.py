@@ -123,3 +123,13 @@ def test_demo_files_of_two_versions_do_not_overwrite_each_other() -> None:
     assert demo_name("RedSim/Chain-v0") == "chain"
     assert demo_name("RedSim/BistableBar-v1") == "bistablebar_v1" != demo_name("RedSim/BistableBar-v0")
     assert demo_name("MyEnv") == "myenv"
+
+
+def test_bench_envs_steps_through_a_step_where_every_copy_restarts() -> None:
+    """That step's info has no keys (as SyncVectorEnv's); the bench counts the solver work of the others."""
+    from redsim.envs.bench import bench_env
+
+    row = bench_env(
+        "RedSim/MiniChain-v0", batches=(2,), steps=6, warmup=1, budget=100.0, full_space=False, max_episode_steps=2
+    )
+    assert row["vector"][2]["env_steps_per_s"] > 0

@@ -118,3 +118,21 @@ def test_a_refused_option_leaves_the_sharded_env_open() -> None:
         venv.step(np.zeros((2, 3), np.float32))
     finally:
         venv.close()
+
+
+def test_klann_and_stewart_options_outside_what_the_task_observes_are_refused() -> None:
+    klann = gym.make("RedSim/Klann-v0")
+    klann.reset(seed=0, options={"speed": 6.0})
+    with pytest.raises(ValueError, match=r"options\['speed'\] must lie in \[0, 12\] rad/s"):
+        klann.reset(options={"speed": -1e6})
+    stewart = gym.make("RedSim/Stewart-v0")
+    for bad, match in (
+        ({"target_rotation": np.zeros((3, 3))}, "must be a rotation matrix"),
+        ({"target_rotation": 5.0 * np.eye(3)}, "must be a rotation matrix"),
+        ({"target_position": [10.0, 0.0, 0.0]}, "must lie within the observation bound"),
+    ):
+        with pytest.raises(ValueError, match=match):
+            stewart.reset(seed=0, options=bad)
+    turn = np.array([[0.0, -1.0, 0.0], [1.0, 0.0, 0.0], [0.0, 0.0, 1.0]])
+    stewart.reset(seed=0, options={"target_rotation": turn})
+    np.testing.assert_allclose(stewart.unwrapped.sim.params["target_rotation"][0].numpy(), turn, atol=1e-7)

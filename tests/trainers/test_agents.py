@@ -422,3 +422,41 @@ def test_ctrl_c_saves_the_run_and_resume_goes_on_from_it(tmp_path: Path, monkeyp
     assert "interrupted" not in record and record["wall_s"] >= 0.0
     with (tmp_path / "curve.csv").open() as handle:
         assert [int(row["env_steps"]) for row in csv.DictReader(handle)] == [20, 40, 60, 80, 100]
+
+
+def test_ctrl_c_in_the_final_evaluation_or_mid_rollout_keeps_an_honest_record(
+    tmp_path: Path, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    """Stopped in the final evaluation, the saved model is the trained one and --resume only evaluates it; PPO
+    stopped mid-rollout records the steps of its last whole rollout (it never learnt from the rest)."""
+    from redsim.envs.sb3 import SB3VecEnv
+    from redsim.trainers import agents
+    from redsim.trainers.agents import TrainingInterrupted, train_agent
+
+    tiny = {"n_envs": 2, "eval_episodes": 1, "final_episodes": 1, "env_kwargs": SHORT, "video": False}
+    evaluate_ = agents.evaluate
+
+    def stop(*args, **kwargs):
+        raise KeyboardInterrupt
+
+    monkeypatch.setattr(agents, "evaluate", stop)
+    with pytest.raises(TrainingInterrupted, match="interrupted at 40 env steps"):
+        train_agent(MINI, tmp_path / "sac", algo="sac", steps=40, **tiny)
+    assert json.loads((tmp_path / "sac" / "agent.json").read_text())["interrupted"] is True
+    monkeypatch.setattr(agents, "evaluate", evaluate_)
+    result = train_agent(MINI, tmp_path / "sac", algo="sac", steps=40, resume=True, **tiny)
+    assert result.steps == 40 and "final_evaluation" in json.loads((tmp_path / "sac" / "agent.json").read_text())
+
+    calls = {"n": 0}
+    step_wait = SB3VecEnv.step_wait
+
+    def interrupting(self: SB3VecEnv):
+        calls["n"] += self.num_envs == 2
+        if calls["n"] == 13:  # rollouts of n_steps 8 x 2 copies: one whole rollout (16 steps) and 4 more steps
+            raise KeyboardInterrupt
+        return step_wait(self)
+
+    monkeypatch.setattr(SB3VecEnv, "step_wait", interrupting)
+    with pytest.raises(TrainingInterrupted, match="interrupted at 16 env steps"):
+        train_agent(MINI, tmp_path / "ppo", algo="ppo", steps=64, overrides={"n_steps": 8, "batch_size": 8}, **tiny)
+    assert json.loads((tmp_path / "ppo" / "agent.json").read_text())["steps"] == 16
