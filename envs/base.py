@@ -292,8 +292,8 @@ class LatentSim:
             raise ValueError(f"frame_skip must be an integer >= 1, got {frame_skip!r}")
         if not isinstance(include_q, (bool, np.bool_)):
             raise ValueError(f"include_q must be True or False, got {include_q!r}")
-        if dtype not in DTYPES:
-            raise ValueError(f"dtype must be one of {sorted(DTYPES)}, got {dtype!r}")
+        dtype = _dtype_name(dtype)
+        device = _checked_device(device)
         check_subspace(scene, subspace)
         conditional = int(getattr(getattr(subspace, "config", None), "condition_dim", 0)) > 0
         if randomize_condition and not (conditional and scene.condition_space is not None):
@@ -490,11 +490,21 @@ class LatentSim:
         return z - turns
 
     def step(self, action: np.ndarray) -> tuple[np.ndarray, np.ndarray, dict[str, np.ndarray]]:
-        """Advance every copy by one env step with actions [B, A] (already checked and clipped).
+        """Advance every copy by one env step with actions [B, A] (already checked and clipped). The step is
+        atomic: an exception or a KeyboardInterrupt inside it leaves every copy as it was before the call.
 
         Returns:
             reward [B] (float64), terminated [B] (bool), info {key: [B] array} (see :class:`LatentEnv`).
         """
+        params = {k: v.clone() for k, v in self.params.items()}  # a task's loads may update them in place
+        saved = (self.z, self.z_prev, self.x, self.x_prev, self.loads, self.model.clone(), params)
+        try:
+            return self._step(action)
+        except BaseException:
+            self.z, self.z_prev, self.x, self.x_prev, self.loads, self.model, self.params = saved
+            raise
+
+    def _step(self, action: np.ndarray) -> tuple[np.ndarray, np.ndarray, dict[str, np.ndarray]]:
         act = torch.as_tensor(action, dtype=self.torch_dtype, device=self.device)
         self.loads = self.task.loads(act, self.params).to(self.torch_dtype)
         diverged = torch.zeros(self.batch, dtype=torch.bool, device=self.device)
@@ -1018,6 +1028,35 @@ def _check_task_output(
     checked = value if valid is None else value[valid]
     if finite and value.is_floating_point() and not bool(torch.isfinite(checked).all()):
         raise ValueError(f"Task {what} is not finite: {value.tolist()}")
+
+
+def _dtype_name(dtype: Any) -> str:
+    """``dtype`` ("float32"/"float64", or the torch or NumPy dtype) as its name in :data:`DTYPES`; a ValueError
+    otherwise."""
+    name = str(dtype).removeprefix("torch.")
+    if not isinstance(dtype, (str, torch.dtype)):
+        try:
+            name = np.dtype(dtype).name
+        except TypeError:
+            name = ""
+    if name not in DTYPES:
+        raise ValueError(f"dtype must be one of {sorted(DTYPES)} (or the torch/NumPy dtype), got {dtype!r}")
+    return name
+
+
+def _checked_device(device: Any) -> str:
+    """``device`` as a string torch takes, refused with a clear ValueError where redsim cannot run on it."""
+    try:
+        parsed = torch.device(device)
+    except (RuntimeError, TypeError):
+        raise ValueError(f"device must be 'cpu' or 'cuda[:N]', got {device!r}") from None
+    if parsed.type not in ("cpu", "cuda"):
+        raise ValueError(f"device must be 'cpu' or 'cuda[:N]', got {device!r}")
+    if parsed.type == "cuda" and not torch.cuda.is_available():
+        raise ValueError(
+            f"device {device!r} is not available: torch.cuda.is_available() is False (a CPU build or no GPU)"
+        )
+    return str(parsed)
 
 
 def _image_size(width: Any, height: Any) -> tuple[int, int]:

@@ -58,7 +58,8 @@ def load_subspace(path: str | Path, scene: Scene | None = None, *, device: str |
         valid = [SubspaceMap.kind, *sorted(k for k in KINDS if k != SubspaceMap.kind)]
         raise CheckpointError(f"unknown kind {kind!r}; valid: {', '.join(valid)}", str(weights))
     try:
-        model = KINDS[kind].from_shapes(doc["config"], metadata)
+        with torch.random.fork_rng(devices=[]):  # the layers' throwaway init must not use up the caller's stream
+            model = KINDS[kind].from_shapes(doc["config"], metadata)
     except (KeyError, TypeError, ValueError, AttributeError) as err:
         raise CheckpointError(f"bad config in metadata ({err!r})", str(weights)) from None
     try:

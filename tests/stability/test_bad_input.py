@@ -175,6 +175,9 @@ def test_a_tiny_time_step_at_rest_raises_no_energy_gain_flag() -> None:
         ({"stepper_options": {"bogus": 1}}, r"unknown stepper_options \['bogus'\]; valid: \['compile'"),
         ({"scene_params": "x"}, "scene_params must be a dict"),
         ({"target_spread": 1e30}, "target_spread 1e.30 puts targets inf m from rest"),
+        ({"device": "garbage"}, r"device must be 'cpu' or 'cuda\[:N\]'"),
+        ({"device": "meta"}, r"device must be 'cpu' or 'cuda\[:N\]'"),
+        ({"dtype": "float16"}, r"dtype must be one of \['float32', 'float64'\]"),
     ],
 )
 def test_env_arguments_of_the_wrong_kind_are_refused_at_make(kwargs: dict, expected: str) -> None:
@@ -187,3 +190,46 @@ def test_the_full_space_integrator_refuses_a_time_step_too_small_for_its_arithme
 
     with pytest.raises(ValueError, match=r"dt must be a finite number of seconds >= 1e-06"):
         ImplicitEuler(FullSpace(scenes.build("mini_chain")), 1e-200)
+
+
+@pytest.mark.skipif(torch.cuda.is_available(), reason="checks the message where CUDA is missing")
+def test_a_cuda_device_without_cuda_is_a_clear_error() -> None:
+    with pytest.raises(ValueError, match=r"device 'cuda' is not available: torch.cuda.is_available\(\) is False"):
+        gym.make("RedSim/MiniChain-v0", device="cuda")
+
+
+def test_torch_and_numpy_dtypes_name_the_same_env_dtype() -> None:
+    for dtype in ("float64", torch.float64, np.float64):
+        assert gym.make("RedSim/MiniChain-v0", dtype=dtype).unwrapped.sim.torch_dtype == torch.float64
+
+
+def test_an_interrupt_inside_a_step_leaves_the_env_as_it_was(monkeypatch: pytest.MonkeyPatch) -> None:
+    """The step is atomic: Ctrl-C (or a task's error) mid-step neither advances the state nor stales x."""
+    env = gym.make("RedSim/Klann-v0")
+    env.reset(seed=0)
+    for _ in range(3):
+        env.step(np.ones(1, np.float32))
+    sim = env.unwrapped.sim
+    state, obs = env.unwrapped.get_state(), sim.observe()
+
+    def interrupt(*args, **kwargs):
+        raise KeyboardInterrupt
+
+    monkeypatch.setattr(sim, "full_positions", interrupt)
+    with pytest.raises(KeyboardInterrupt):
+        env.step(np.ones(1, np.float32))
+    monkeypatch.undo()
+    np.testing.assert_array_equal(sim.observe(), obs)
+    for key in ("z", "z_prev", "params", "model"):
+        np.testing.assert_equal(env.unwrapped.get_state()[key], state[key])
+    env.step(np.ones(1, np.float32))
+
+
+@pytest.mark.parametrize("env_id", ["RedSim/MiniChain-v0", "RedSim/Klann-v0", "RedSim/ConditionalBar-v1"])
+def test_making_an_env_leaves_torch_s_global_random_stream_alone(env_id: str) -> None:
+    torch.manual_seed(0)
+    expected = torch.rand(3)
+    torch.manual_seed(0)
+    gym.make(env_id)
+    gym.make_vec(env_id, 2, "vector_entry_point")
+    assert torch.equal(torch.rand(3), expected)
