@@ -45,7 +45,8 @@ class HangingClothEnv(ReachEnv):
     At rest (z: the map's unloaded equilibrium, z_dot = 0). v0: the target is the corner in the subspace state
     z_rest + `target_spread` * N(0, I), drawn from `self.np_random`. v1 (`targets="held"`): the target is drawn by
     `self.np_random` from 256 places the corner comes to rest at under a held action u ~ U[-0.8, 0.8]^3 (fixed
-    seed; :class:`redsim.envs.reach.HandleReach`), each settled on the env's own energy at bind time (~10 s).
+    seed; :class:`redsim.envs.reach.HandleReach`), each settled on the env's own energy at bind time (~10 s,
+    once per process for identical envs).
     `reset(options={"target": [x, y, z]})` sets the target [m] instead.
 
     ## Episode End

@@ -509,3 +509,18 @@ def test_make_names_a_scene_or_task_of_the_wrong_type() -> None:
         redsim.envs.make(None, "x.pt")
     with pytest.raises(TypeError, match="task must be"):
         redsim.envs.make("mini_chain", task=None)
+
+
+def test_held_targets_are_settled_once_per_process_for_identical_envs() -> None:
+    from redsim.envs import reach
+
+    reach._held_cache.clear()
+    first = gym.make("RedSim/MiniChain-v0", targets="held", target_spread=0.5).unwrapped.sim.task.held_targets
+    again = gym.make("RedSim/MiniChain-v0", targets="held", target_spread=0.5).unwrapped.sim.task.held_targets
+    assert len(reach._held_cache) == 1 and torch.equal(first, again) and first.data_ptr() != again.data_ptr()
+    other = gym.make("RedSim/MiniChain-v0", targets="held", target_spread=0.4).unwrapped.sim.task.held_targets
+    assert len(reach._held_cache) == 2 and not torch.equal(first, other)
+    float64 = gym.make(
+        "RedSim/MiniChain-v0", targets="held", target_spread=0.5, dtype="float64"
+    ).unwrapped.sim.task.held_targets
+    assert len(reach._held_cache) == 3 and float64.dtype == torch.float64
