@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import os
 from collections.abc import Callable, Iterator
 
 import pytest
@@ -21,6 +22,18 @@ def _one_torch_thread() -> Iterator[None]:
 def _no_user_cache(monkeypatch: pytest.MonkeyPatch) -> None:
     """Tests never read or write the user's disk cache of full-space equilibria (REDSIM_CACHE=0)."""
     monkeypatch.setenv("REDSIM_CACHE", "0")
+
+
+@pytest.fixture(autouse=True, scope="session")
+def _sb3_logs_in_a_test_folder(tmp_path_factory: pytest.TempPathFactory) -> Iterator[None]:
+    """SB3 models learnt in tests without a logger of their own log here, not in new ``/tmp/SB3-*`` folders."""
+    before = os.environ.get("SB3_LOGDIR")
+    os.environ["SB3_LOGDIR"] = str(tmp_path_factory.mktemp("sb3_logs"))
+    yield
+    if before is None:
+        os.environ.pop("SB3_LOGDIR", None)
+    else:
+        os.environ["SB3_LOGDIR"] = before
 
 
 @pytest.fixture

@@ -14,6 +14,8 @@ progress bar, and resumable runs. :func:`train_agent` writes into its output fol
 - ``checkpoints/``: periodic models and their statistics (an interrupted run resumes from the newest,
   with an empty buffer);
 - ``curve.csv`` and ``curve.png``: evaluation return vs env steps and vs wall time;
+- ``progress.csv``: SB3's own training log (losses, learning rate, fps, ``eval/mean_reward``; a resumed run
+  writes ``progress-from-STEPS.csv`` beside it), where SB3 alone would make an empty ``/tmp/SB3-*`` folder;
 - ``policy.gif``: one episode of the trained policy;
 - ``agent.json``: what ran (env, algorithm, steps, wall time, hyperparameters, last evaluation).
 
@@ -689,6 +691,7 @@ RUN_FILES = (
     "evaluations.npz",
     "curve.csv",
     "curve.png",
+    "progress.csv",
     "policy.gif",
     "agent.json",
 )
@@ -715,6 +718,8 @@ def _remove_run(out: Path) -> None:
         (out / name).unlink(missing_ok=True)
         if name.endswith(".zip"):
             normalizer_path(out / name).unlink(missing_ok=True)
+    for resumed in out.glob("progress-from-*.csv"):
+        resumed.unlink()
     shutil.rmtree(out / "checkpoints", ignore_errors=True)
 
 
@@ -722,6 +727,15 @@ def _resume_from(out: Path) -> Path | None:
     """The newest of ``out/model.zip`` and the checkpoints (None: nothing to resume from)."""
     found = [p for p in [out / "model.zip", *(out / "checkpoints").glob("rl_model_*_steps.zip")] if p.is_file()]
     return max(found, key=lambda p: p.stat().st_mtime_ns) if found else None
+
+
+def _training_log(out: Path, resumed_at: int | None) -> Any:
+    """SB3's logger writing ``out/progress.csv`` (``progress-from-STEPS.csv`` for a run resumed at STEPS)."""
+    from stable_baselines3.common.logger import CSVOutputFormat, Logger
+
+    out.mkdir(parents=True, exist_ok=True)
+    name = "progress.csv" if resumed_at is None else f"progress-from-{resumed_at}.csv"
+    return Logger(folder=str(out), output_formats=[CSVOutputFormat(str(out / name))])
 
 
 def _read_curve(path: Path) -> list[dict[str, Any]]:
@@ -1046,12 +1060,16 @@ def train_agent(
 
     try:
         if remaining > 0:
-            model.learn(
-                remaining,
-                callback=CallbackList([evaluation_cb, checkpoint_cb]),
-                reset_num_timesteps=previous is None,
-                progress_bar=progress_bar,
-            )
+            model.set_logger(_training_log(out, None if previous is None else started))
+            try:
+                model.learn(
+                    remaining,
+                    callback=CallbackList([evaluation_cb, checkpoint_cb]),
+                    reset_num_timesteps=previous is None,
+                    progress_bar=progress_bar,
+                )
+            finally:
+                model.logger.close()
     except KeyboardInterrupt:
         # as a fit: keep what was learnt (model, replay buffer, normalizer, curve), so --resume goes on from here
         if algo == "ppo":  # PPO never learnt from its unfinished rollout: the saved steps end at its last one

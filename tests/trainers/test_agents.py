@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import csv
 import json
+import tempfile
 import zipfile
 from collections.abc import Callable
 from pathlib import Path
@@ -78,8 +79,13 @@ def test_evaluation_is_seeded_and_the_scripted_controller_beats_random() -> None
         evaluate("RedSim/Nope-v0", "random", episodes=2)
 
 
-def test_train_resume_and_evaluate_through_the_cli(cli: Callable[..., tuple[int, str, str]], tmp_path: Path) -> None:
+def test_train_resume_and_evaluate_through_the_cli(
+    cli: Callable[..., tuple[int, str, str]], tmp_path: Path, monkeypatch: pytest.MonkeyPatch
+) -> None:
     out = tmp_path / "run"
+    (tmp_path / "tmp").mkdir()
+    monkeypatch.delenv("SB3_LOGDIR", raising=False)
+    monkeypatch.setattr(tempfile, "tempdir", str(tmp_path / "tmp"))  # where SB3 alone would make an SB3-* folder
     code, stdout, err = cli(
         "train-agent",
         MINI,
@@ -100,6 +106,10 @@ def test_train_resume_and_evaluate_through_the_cli(cli: Callable[..., tuple[int,
     assert summary["steps"] == 200 and summary["final_evaluation"]["episodes"] == 2
     for name in ("model.zip", "best_model.zip", "curve.csv", "curve.png", "policy.gif", "agent.json"):
         assert (out / name).stat().st_size > 0, name
+    with (out / "progress.csv").open() as handle:  # SB3's training log in the run, none in the temp folder
+        rows = list(csv.DictReader(handle))
+    assert rows and {"time/total_timesteps", "train/actor_loss", "eval/mean_reward"} <= set(rows[0])
+    assert not list((tmp_path / "tmp").glob("SB3-*"))
     record = {"env_id": MINI, "algo": "sac", "normalized": True, "goal": None, "n_envs": 4}
     record["env_kwargs"] = {"max_force": 3.0, "max_episode_steps": 20}
     assert model_record(out / "model.zip") == record
@@ -123,6 +133,9 @@ def test_train_resume_and_evaluate_through_the_cli(cli: Callable[..., tuple[int,
     code, stdout, err = cli(*again, "--env-arg", "max_force=3.0", "--resume", "--no-video")
     assert code == 0, err
     assert load_agent(out / "model.zip", MINI).num_timesteps == 300
+    with (out / "progress-from-200.csv").open() as handle:
+        assert float(list(csv.DictReader(handle))[-1]["time/total_timesteps"]) > 200
+    assert (out / "progress.csv").stat().st_size > 0 and not list((tmp_path / "tmp").glob("SB3-*"))
     with (out / "curve.csv").open() as handle:
         steps = [float(row["env_steps"]) for row in csv.DictReader(handle)]
     assert steps == sorted(steps) and steps[-1] == 300 and steps[0] <= 200  # the first run's rows are kept
