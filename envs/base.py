@@ -17,6 +17,7 @@ values raise ValueError).
 
 from __future__ import annotations
 
+import copy
 import importlib.util
 import inspect
 import math
@@ -32,6 +33,7 @@ import torch
 from gymnasium import spaces
 from torch import Tensor, nn
 
+from redsim.devices import DTYPES, check_device
 from redsim.scene import Scene
 from redsim.subspace import CheckpointError, periodic_latents
 
@@ -41,7 +43,6 @@ CAMERA_KEYS = ("azimuth", "elevation", "margin")
 LATENT_BOUND = 10.0
 """Observation bound of each latent coordinate (maps are fitted on z ~ N(0, I)); z_dot gets 2 LATENT_BOUND / h, h the
 stepper's step (the env's dt / frame_skip)."""
-DTYPES = {"float32": torch.float32, "float64": torch.float64}
 DISPLAY_VARIABLES = ("DISPLAY", "WAYLAND_DISPLAY", "SDL_VIDEODRIVER")
 """On Linux a window needs one of these set (SDL_VIDEODRIVER=dummy gives a window that shows nothing)."""
 
@@ -168,7 +169,7 @@ def check_subspace(scene: Scene, subspace: nn.Module) -> None:
     """
     meta = getattr(subspace, "metadata", None) or {}
     fitted = (meta.get("scene"), meta.get("scene_fingerprint"))
-    if fitted[1] is not None and fitted != (scene.name, scene.fingerprint()):
+    if fitted[1] is not None and (fitted[0] != scene.name or not scene.accepts(fitted[1])):
         raise CheckpointError(
             f"the subspace was fitted to scene {fitted[0]!r} (fingerprint {fitted[1]}), not to scene "
             f"{scene.name!r} (fingerprint {scene.fingerprint()}); build the scene with the parameters it was fitted to"
@@ -188,6 +189,17 @@ those that meet the accuracy bar (held-out force error and 100-step trajectory d
 only by float32 round-off, so it stays off. The others step every element unless ``cubature=True``."""
 
 
+CHECKPOINT_ATTRIBUTE = "redsim_checkpoint"
+"""Attribute :func:`shipped` sets on a map it loads from a path: that path, where ``cubature=True`` looks."""
+
+
+def _on_device(module: nn.Module, device: torch.device) -> bool:
+    """Whether every parameter and buffer of ``module`` is on ``device`` (``cuda`` means the current index)."""
+    wanted = torch.device(device.type, torch.cuda.current_device()) if device == torch.device("cuda") else device
+    tensors = [*module.parameters(), *module.buffers()]
+    return all(t.device == wanted or t.device == device for t in tensors)
+
+
 def env_energy(
     scene: Scene,
     subspace: nn.Module,
@@ -202,8 +214,9 @@ def env_energy(
         scene: The scene.
         subspace: Its map.
         cubature: None: the shipped cubature of the scene where :data:`CUBATURE_DEFAULT` turns it on and it
-            belongs to this very map, else every element. True: the shipped cubature, which must belong to
-            this map. False: every element. A path: the cubature beside that checkpoint (or the
+            belongs to this very map, else every element. True: the cubature beside the checkpoint the map was
+            loaded from (:func:`shipped`), else the shipped one; either must belong to this map. False: every
+            element. A path: the cubature beside that checkpoint (or the
             ``.cubature.json`` itself).
         dtype: The stepper's dtype.
         device: The stepper's device.
@@ -217,6 +230,8 @@ def env_energy(
 
     if cubature is False:
         return None
+    if cubature is True and getattr(subspace, CHECKPOINT_ATTRIBUTE, None) is not None:
+        cubature = getattr(subspace, CHECKPOINT_ATTRIBUTE)
     if cubature is None or cubature is True:
         source = pretrained.FOLDER / scene.name
         if cubature is None:
@@ -293,7 +308,7 @@ class LatentSim:
         if not isinstance(include_q, (bool, np.bool_)):
             raise ValueError(f"include_q must be True or False, got {include_q!r}")
         dtype = _dtype_name(dtype)
-        device = _checked_device(device)
+        device = check_device(device)
         check_subspace(scene, subspace)
         conditional = int(getattr(getattr(subspace, "config", None), "condition_dim", 0)) > 0
         if randomize_condition and not (conditional and scene.condition_space is not None):
@@ -312,7 +327,8 @@ class LatentSim:
         self.torch_dtype = DTYPES[dtype]
         self.device = torch.device(device)
         self.scene = scene.to(self.device, self.torch_dtype)
-        self.subspace = subspace.to(self.device)
+        # nn.Module.to moves a module in place: the caller's map stays where it is
+        self.subspace = subspace if _on_device(subspace, self.device) else copy.deepcopy(subspace).to(self.device)
         self.batch = int(batch)
         self.frame_skip = int(frame_skip)
         self.randomize_condition = bool(randomize_condition)
@@ -722,7 +738,9 @@ def shipped(
         return scene, pretrained.load(scene_name, scene)
     if isinstance(subspace, nn.Module):
         return scene, subspace
-    return scene, load_subspace(subspace, scene=scene)
+    loaded = load_subspace(subspace, scene=scene)
+    setattr(loaded, CHECKPOINT_ATTRIBUTE, os.fspath(subspace))
+    return scene, loaded
 
 
 class LatentEnv(gym.Env[np.ndarray, np.ndarray]):
@@ -1042,21 +1060,6 @@ def _dtype_name(dtype: Any) -> str:
     if name not in DTYPES:
         raise ValueError(f"dtype must be one of {sorted(DTYPES)} (or the torch/NumPy dtype), got {dtype!r}")
     return name
-
-
-def _checked_device(device: Any) -> str:
-    """``device`` as a string torch takes, refused with a clear ValueError where redsim cannot run on it."""
-    try:
-        parsed = torch.device(device)
-    except (RuntimeError, TypeError):
-        raise ValueError(f"device must be 'cpu' or 'cuda[:N]', got {device!r}") from None
-    if parsed.type not in ("cpu", "cuda"):
-        raise ValueError(f"device must be 'cpu' or 'cuda[:N]', got {device!r}")
-    if parsed.type == "cuda" and not torch.cuda.is_available():
-        raise ValueError(
-            f"device {device!r} is not available: torch.cuda.is_available() is False (a CPU build or no GPU)"
-        )
-    return str(parsed)
 
 
 def _image_size(width: Any, height: Any) -> tuple[int, int]:

@@ -24,7 +24,6 @@ reported as ``reward_distance``, ``reward_control`` and ``reward_success``.
 from __future__ import annotations
 
 import hashlib
-import os
 from collections.abc import Mapping, Sequence
 from typing import TYPE_CHECKING, Any, ClassVar
 
@@ -383,8 +382,6 @@ class ReachEnv(LatentEnv):
         cubature: bool | str | None = None,
         **kwargs: Any,
     ) -> None:
-        if cubature is True and isinstance(subspace, (str, os.PathLike)):
-            cubature = str(subspace)  # the cubature beside the checkpoint the map comes from
         scene, sub = shipped(
             self.scene_name, scene_params, subspace, fit_if_missing=fit_if_missing, fit_options=fit_options
         )

@@ -4,7 +4,7 @@
 builds a :class:`LatentVectorEnv`. Copy i draws its episodes from its own generator, seeded
 ``seed + i`` by ``reset(seed=seed)`` exactly as a single env seeded ``seed + i``, so the
 vector env equals N single envs step for step, to the solve's tolerance (a float32 solve stops at a
-relative force balance of 1e-5, and another batch composition lands elsewhere inside it: ~5e-4 in z
+relative force balance of 1e-6, and another batch composition lands elsewhere inside it: ~5e-4 in z
 after a step, carried on by the dynamics; docs/envs.md). Autoreset follows Gymnasium: by default
 ``AutoresetMode.NEXT_STEP`` (the step after a copy ends resets it and ignores its action;
 reward 0, not terminated); ``AutoresetMode.SAME_STEP`` resets in the same step and puts the

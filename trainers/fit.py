@@ -87,6 +87,7 @@ from typing import Any, NamedTuple
 import torch
 from torch import Tensor
 
+from redsim.devices import DTYPES, check_device
 from redsim.scene import Scene
 from redsim.subspace import (
     AnchoredSubspace,
@@ -104,8 +105,6 @@ from redsim.trainers.presets import preset
 from redsim.version import __version__
 
 log = logging.getLogger(__name__)
-
-DTYPES = {"float32": torch.float32, "float64": torch.float64}
 
 
 @dataclass(frozen=True)
@@ -281,7 +280,7 @@ _FIELD_RULES: tuple[tuple[str, str, Callable[[FitConfig, Any], bool]], ...] = (
     ("dtype", f"one of {', '.join(DTYPES)}", lambda c, v: v in DTYPES),
     (
         "device",
-        "a torch device this machine has, such as cpu or cuda",
+        "cpu or cuda[:N], a GPU this machine has",
         lambda c, v: isinstance(v, str) and _is_device(v),
     ),
     ("fused_adam", "true or false", lambda c, v: isinstance(v, bool)),
@@ -291,12 +290,10 @@ _FIELD_RULES: tuple[tuple[str, str, Callable[[FitConfig, Any], bool]], ...] = (
 
 
 def _is_device(name: str) -> bool:
-    """A device name torch parses and this torch can use (a CUDA device needs a CUDA build and a GPU)."""
+    """A device redsim runs on and this torch can use (:func:`redsim.devices.check_device`)."""
     try:
-        device = torch.device(name)
-    except RuntimeError:
-        return False
-    if device.type == "cuda" and not torch.cuda.is_available():
+        check_device(name)
+    except ValueError:
         return False
     return True
 
@@ -469,31 +466,40 @@ def subspace_loss(
     step: int = 0,
     anchors: tuple[Tensor, Tensor] | None = None,
     modal: ModalTargets | None = None,
+    ramp_steps: int | None = None,
+    core: Callable[..., tuple[Tensor, ...]] | None = None,
 ) -> tuple[Tensor, dict[str, float]]:
-    """The fitting loss on one batch, and its terms (mean energy [J], pair term, mean metric stretch, driver [J],
-    mirror penalty [J], anchor pull [J], modal pull [J]; ``z`` must be antithetic, [z; -z], when ``config.mirror > 0``).
+    """The fitting loss on one batch, as :func:`fit_subspace` takes its steps, and its terms (mean energy [J],
+    pair term, mean metric stretch, driver [J], mirror penalty [J]; anchor pull [J] and modal pull [J] where those
+    terms are on); ``z`` must be antithetic, [z; -z], when ``config.mirror > 0``.
 
     ``step`` (0-based) sets the driver stiffness (:func:`drive_at`), softening (:func:`soften_at`), the
     anchor stiffness (:func:`anchor_at`; ``anchors`` from :func:`anchor_states`, needed when ``config.anchor > 0``)
     and the modal pull's (:func:`modal_at`; ``modal`` from :func:`redsim.trainers.modal.modal_targets`, needed
-    when ``config.modal > 0``).
+    when ``config.modal > 0``), over a fit planned for ``ramp_steps`` steps (default ``config.steps``). ``core``:
+    the paper's terms (default the eager ones; the fit passes them compiled with ``config.compile``).
     """
+    if config.mirror > 0 and scene.mirror is None:
+        raise ValueError(f"scene {scene.name!r} declares no mirror; fit without mirror (--mirror)")
     rho_t, drive_t, soften_t = (
         torch.as_tensor(v, dtype=z.dtype, device=z.device)
-        for v in (rho, drive_at(step, config), soften_at(step, config))
+        for v in (rho, drive_at(step, config, ramp_steps), soften_at(step, config, ramp_steps))
     )
-    total, *terms = _loss_tensors(scene, model, z, cond, rho_t, drive_t, soften_t, config)
-    pull = torch.zeros_like(total)
+    total, *parts = (core or _loss_tensors)(scene, model, z, cond, rho_t, drive_t, soften_t, config)
+    terms = _terms(*parts)
     if config.anchor > 0:
         if anchors is None:
             raise ValueError("config.anchor > 0 needs the anchors (anchor_states)")
-        pull = anchor_energy(scene, model, anchors, anchor_at(step, config))
-    hold = torch.zeros_like(total)
+        pull = anchor_energy(scene, model, anchors, anchor_at(step, config, ramp_steps))
+        total = total + pull
+        terms["anchor"] = float(pull.detach())
     if config.modal > 0:
         if modal is None:
             raise ValueError("config.modal > 0 needs the modal targets (redsim.trainers.modal.modal_targets)")
-        hold = 0.5 * modal_at(step, config) * modal_gap(scene, model, modal, config.sigma)
-    return total + pull + hold, {**_terms(*terms), "anchor": float(pull.detach()), "modal": float(hold.detach())}
+        hold = 0.5 * modal_at(step, config, ramp_steps) * modal_gap(scene, model, modal, config.sigma)
+        total = total + hold
+        terms["modal"] = float(hold.detach())
+    return total, terms
 
 
 def rho_at(step: int, config: FitConfig, ramp_steps: int | None = None) -> float:
@@ -677,19 +683,7 @@ def fit_subspace(
                     else work.pack_condition(None, config.batch_size)
                 )
             rho = rho_at(step, config, ramp_steps)
-            rho_t = torch.tensor(rho, dtype=dtype, device=config.device)
-            drive_t = torch.tensor(drive_at(step, config, ramp_steps), dtype=dtype, device=config.device)
-            soften_t = torch.tensor(soften_at(step, config, ramp_steps), dtype=dtype, device=config.device)
-            loss, *parts = loss_fn(work, model, z, cond, rho_t, drive_t, soften_t, config)
-            terms = _terms(*parts)
-            if anchors is not None:
-                pull = anchor_energy(work, model, anchors, anchor_at(step, config, ramp_steps))  # type: ignore[arg-type]
-                loss = loss + pull
-                terms["anchor"] = float(pull.detach())
-            if targets is not None:
-                hold = 0.5 * modal_at(step, config, ramp_steps) * modal_gap(work, model, targets, config.sigma)
-                loss = loss + hold
-                terms["modal"] = float(hold.detach())
+            loss, terms = subspace_loss(work, model, z, cond, rho, config, step, anchors, targets, ramp_steps, loss_fn)
             if not torch.isfinite(loss):
                 raise FloatingPointError(
                     f"loss became {float(loss)} at step {step} (terms {terms}); lower the learning rate or sigma"
@@ -892,7 +886,7 @@ def _load_training_state(
         state = torch.load(path, map_location="cpu", weights_only=True)
     except Exception as err:
         raise CheckpointError(f"training state is corrupt ({type(err).__name__}: {err})", str(path)) from None
-    if state["scene_fingerprint"] != scene.fingerprint():
+    if not scene.accepts(state["scene_fingerprint"]):
         raise CheckpointError(
             f"training state is for another scene (fingerprint {state['scene_fingerprint']}, "
             f"this scene {scene.fingerprint()})",

@@ -56,6 +56,7 @@ from redsim.envs.mini_chain import MiniChainEnv
 from redsim.envs.reach import ReachEnv
 from redsim.integrators import FullSpace, FullState, ImplicitEuler, LatentSpace, latent_equilibrium
 from redsim.integrators.reference import rest_state
+from redsim.metrics.reach import nearest_latent
 from redsim.runtime import LatentStepper
 from redsim.runtime.stepper import DEFAULT_HESSIAN, DEFAULT_MAX_ITER
 from redsim.scene import Scene
@@ -294,18 +295,10 @@ def project(
     with torch.no_grad():
         target = space.configuration(z_rest.reshape(1, -1))[0] + displacement
     size = float(_m_norm(scene64, displacement.unsqueeze(0))[0]) or 1.0
-    z = z_start.detach().clone().reshape(1, -1).requires_grad_(True)
-    optimizer = torch.optim.LBFGS([z], max_iter=200, line_search_fn="strong_wolfe", tolerance_grad=1e-12)
-
-    def closure() -> Tensor:
-        optimizer.zero_grad()
-        r = space.configuration(z) - target
-        loss = 0.5 * (r * scene64.mass_matvec(r)).sum() / size**2
-        loss.backward()
-        return loss
-
-    with torch.enable_grad():
-        optimizer.step(closure)
+    # it minimizes |r|^2_M / (2 size^2), as this bench always has
+    z = nearest_latent(
+        space.configuration, scene64, target, z_start.reshape(1, -1), scale=size * math.sqrt(2.0), tolerance_grad=1e-12
+    )
     with torch.no_grad():
         r = space.configuration(z) - target
     return float(_m_norm(scene64, r)[0]), z.detach()[0]

@@ -45,6 +45,7 @@ from redsim.envs.cloth_ball import ClothBallEnv
 from redsim.envs.conditional_bar import ConditionalBarEnv
 from redsim.integrators import FullSpace, ImplicitEuler
 from redsim.integrators.reference import rest_state
+from redsim.metrics.reach import nearest_latent
 from redsim.runtime import LatentStepper
 from redsim.scene import Scene
 
@@ -314,21 +315,9 @@ def latent_velocity(stepper: LatentStepper, z: Tensor, velocity: Tensor) -> Tens
 
 def project_latent(stepper: LatentStepper, q: Tensor, z0: Tensor, iterations: int = 100) -> Tensor:
     """argmin_z |f(z) - q|_M [1, d] from z0 [1, d] (L-BFGS): a configuration [n] as the map can show it."""
-    s = stepper.scene
     target = q.to(stepper.dtype).reshape(1, -1)
-    z = z0.detach().clone().to(stepper.dtype).requires_grad_(True)
-    optimizer = torch.optim.LBFGS([z], max_iter=iterations, line_search_fn="strong_wolfe")
-
-    def closure() -> Tensor:
-        optimizer.zero_grad()
-        d = stepper.energy.positions(z, None) - target
-        value = (d * s.mass_matvec(d)).sum()
-        value.backward()
-        return value
-
-    with torch.enable_grad():
-        optimizer.step(closure)
-    return z.detach()
+    f = stepper.energy.positions
+    return nearest_latent(lambda z: f(z, None), stepper.scene, target, z0.to(stepper.dtype), max_iter=iterations)
 
 
 # -- rigid motions of the chains ----------------------------------------------------------------

@@ -1,4 +1,5 @@
-"""``redsim bench energy | subspace | fit | step``: benchmarks; each prints the machine it ran on."""
+"""``redsim bench energy | subspace | fit | step | accuracy | scaling | stability``: benchmarks; each prints the machine
+it ran on (``cubature``, ``envs``, ``mujoco-cloth`` and ``env-ab`` are added by their own modules)."""
 
 from __future__ import annotations
 
@@ -7,12 +8,9 @@ import math
 from pathlib import Path
 from typing import Any
 
-import torch
-
 import redsim
 from redsim.cli import cubature
 from redsim.cli.common import (
-    DTYPES,
     EXIT_FAILED_STEP,
     EXIT_NAN,
     EXIT_OK,
@@ -37,6 +35,15 @@ from redsim.cli.common import (
 from redsim.cli.common import (
     machine_line as _machine_line,
 )
+from redsim.devices import DTYPES, check_device
+
+
+def _check_device(device: str) -> None:
+    """--device refused as a CLI error where redsim cannot run on it (:func:`redsim.devices.check_device`)."""
+    try:
+        check_device(device)
+    except ValueError as err:
+        raise CliError(f"--device: {err}") from None
 
 
 def cmd_bench_subspace(args: argparse.Namespace) -> int:
@@ -140,8 +147,7 @@ def cmd_bench_energy(args: argparse.Namespace) -> int:
     unknown = [d for d in dtypes if d not in DTYPES]
     if unknown:
         raise CliError(f"unknown dtype(s) {unknown}; valid: {', '.join(DTYPES)}")
-    if args.device.startswith("cuda") and not torch.cuda.is_available():
-        raise CliError("--device cuda requested but torch sees no CUDA device")
+    _check_device(args.device)
 
     machine = machine_info()
     columns = [(d, b) for d in dtypes for b in batches]
@@ -201,8 +207,7 @@ def cmd_bench_step(args: argparse.Namespace) -> int:
 
     if not (math.isfinite(args.dt) and args.dt >= MIN_TIME_STEP):
         raise CliError(f"--dt must be a finite number >= {MIN_TIME_STEP:g} [s], got {args.dt}")
-    if args.device.startswith("cuda") and not torch.cuda.is_available():
-        raise CliError("--device cuda requested but torch sees no CUDA device")
+    _check_device(args.device)
     baseline = None
     if args.baseline is not None:
         if args.hessians is not None:
@@ -295,8 +300,7 @@ def cmd_bench_fit(args: argparse.Namespace) -> int:
             raise CliError(f"--{flag} must be >= 1, got {getattr(args, flag)}")
     if args.batch < 2:
         raise CliError(f"--batch must be >= 2, got {args.batch}")
-    if args.device.startswith("cuda") and not torch.cuda.is_available():
-        raise CliError("--device cuda requested but torch sees no CUDA device")
+    _check_device(args.device)
     built = [(name, make()) for name, make in scenes]
     if not args.scenes and args.mesh is None:  # smallest first: the first compiled scene also pays the start-up
         built.sort(key=lambda item: item[1].free_dof_count)

@@ -27,8 +27,6 @@ EXIT_NAN = 3
 EXIT_FAILED_STEP = 4
 EXIT_INTERRUPTED = 130
 
-DTYPES = {"float64": torch.float64, "float32": torch.float32}
-
 
 class CliError(Exception):
     """Bad command-line input: reported as one line on stderr with exit status ``code``."""

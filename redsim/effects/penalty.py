@@ -359,13 +359,9 @@ class SDFContact(Effect):
         depth = ((self.margin - self._pair_distances(x)) * self.pair_mask.unsqueeze(1)).clamp_min(0.0)
         return depth.transpose(0, 1).flatten(1).amax(-1)
 
-    def pair_distances(self, x: Tensor) -> Tensor:
-        """Signed distance [m] of every point, by (point source, frame) pair: [B, pairs, S] (see
-        :meth:`_build_pairs`; unused slots, ``pair_mask`` 0, hold the frame origin's distance)."""
-        return self._pair_distances(x).transpose(0, 1)
-
     def _pair_distances(self, x: Tensor) -> Tensor:
-        """:meth:`pair_distances` in the layout it is computed in, [pairs, B, S].
+        """Signed distance [m] of every point, by (point source, frame) pair: [pairs, B, S] (see
+        :meth:`_build_pairs`; unused slots, ``pair_mask`` 0, hold the frame origin's distance).
 
         local = R_f^T (X_g w + o - t_f) for the points (weights w, offsets o) of source g in frame f:
         A = [R_f^T X_g | R_f^T | -R_f^T t_f] once per pair, then one contraction with the pair's

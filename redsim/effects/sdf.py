@@ -134,5 +134,3 @@ class Torus:
         x, y, z = p.unbind(-1)
         return _norm(_norm(x, y) - self.major, z) - self.minor
 
-
-SHAPES = {"sphere": Sphere, "plane": Plane, "box": Box, "capsule": Capsule, "torus": Torus}

@@ -8,7 +8,7 @@
 from __future__ import annotations
 
 import math
-from collections.abc import Sequence
+from collections.abc import Callable, Sequence
 from typing import Any
 
 import numpy as np
@@ -182,19 +182,40 @@ def buckled_states(scene: Scene, *, bump: float = 0.01, cond: Tensor | None = No
     return states
 
 
-def _nearest_latent(space: LatentSpace, mass: Any, target: Tensor, start: Tensor) -> tuple[float, Tensor]:
-    """Local minimum of |f(z) - target|_M over z from ``start``: (distance [kg^1/2 m], z [d])."""
+def nearest_latent(
+    positions: Callable[[Tensor], Tensor],
+    scene: Scene,
+    target: Tensor,
+    start: Tensor,
+    *,
+    max_iter: int = 200,
+    scale: float = 1.0,
+    tolerance_grad: float = 1e-7,
+) -> Tensor:
+    """A local minimum of |f(z) - target|_M over z [1, d], by L-BFGS (strong Wolfe) from ``start`` [1, d].
+
+    ``positions`` maps z [1, d] to f(z) [1, n] (a :class:`LatentSpace`'s ``configuration`` or a stepper's map),
+    ``scene`` gives M in the dtype of f(z); the minimized value is |f(z) - target|^2_M / scale^2, so
+    ``tolerance_grad`` (L-BFGS's stop on its gradient) is relative to ``scale`` [kg^1/2 m].
+    """
     z = start.detach().clone().requires_grad_(True)
-    optimizer = torch.optim.LBFGS([z], max_iter=200, line_search_fn="strong_wolfe")
+    optimizer = torch.optim.LBFGS([z], max_iter=max_iter, line_search_fn="strong_wolfe", tolerance_grad=tolerance_grad)
 
     def closure() -> Tensor:
         optimizer.zero_grad()
-        gap = space.configuration(z.unsqueeze(0)) - target
-        value = (gap * space.scene.mass_matvec(gap)).sum()
+        gap = positions(z) - target
+        value = (gap * scene.mass_matvec(gap)).sum() / scale**2
         value.backward()
         return value
 
-    optimizer.step(closure)
+    with torch.enable_grad():
+        optimizer.step(closure)
+    return z.detach()
+
+
+def _nearest_latent(space: LatentSpace, mass: Any, target: Tensor, start: Tensor) -> tuple[float, Tensor]:
+    """Local minimum of |f(z) - target|_M over z from ``start`` [d]: (distance [kg^1/2 m], z [d])."""
+    z = nearest_latent(space.configuration, space.scene, target, start.unsqueeze(0))
     with torch.no_grad():
-        q = space.configuration(z.unsqueeze(0))[0]
-    return m_norm(mass, q - target), z.detach()
+        q = space.configuration(z)[0]
+    return m_norm(mass, q - target), z[0]

@@ -225,7 +225,7 @@ def run_mujoco_chain(*, integrator: str, timestep: float, steps: int) -> dict[st
     }
 
 
-def _motion_norm(stepper: LatentStepper, z: Tensor) -> Tensor:
+def _configurations(stepper: LatentStepper, z: Tensor) -> Tensor:
     """f(z) [K, n] (float64, CPU) of latents z [K, d]."""
     return stepper.positions(z.to(device=stepper.device, dtype=stepper.dtype)).to(torch.float64).cpu()
 
@@ -245,7 +245,7 @@ def one_step_error(stepper: LatentStepper, reference: Tensor, loads: Tensor) -> 
     z_prev = torch.cat([reference[:1], reference[:-2]])
     dtype, device = stepper.dtype, stepper.device
     mine, _ = stepper.step(z_t.to(device, dtype), z_prev.to(device, dtype), loads.to(device, dtype))
-    q_mine, q_ref, q_t = (_motion_norm(stepper, u) for u in (mine, reference[1:], z_t))
+    q_mine, q_ref, q_t = (_configurations(stepper, u) for u in (mine, reference[1:], z_t))
     scene = stepper.source_scene
     motion = _m_norm(scene, q_ref - q_t)
     return float(_m_norm(scene, q_mine - q_ref).max() / motion.max().clamp_min(1e-300))
@@ -254,7 +254,7 @@ def one_step_error(stepper: LatentStepper, reference: Tensor, loads: Tensor) -> 
 def _rollout_error(stepper: LatentStepper, reference: Tensor, mine: Tensor) -> float:
     """Largest |f(z_mine) - f(z_ref)|_M over a rollout relative to the largest |f(z_ref) - f(z_0)|_M."""
     count = reference.shape[0]
-    q_mine, q_ref = _motion_norm(stepper, mine[:count]), _motion_norm(stepper, reference)
+    q_mine, q_ref = _configurations(stepper, mine[:count]), _configurations(stepper, reference)
     scene = stepper.source_scene
     motion = float(_m_norm(scene, q_ref - q_ref[:1]).max())
     return float(_m_norm(scene, q_mine - q_ref).max()) / motion if motion > 0 else math.nan

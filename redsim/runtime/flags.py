@@ -2,7 +2,7 @@
 
 ``energy_gain`` is the reference integrator's test too (:mod:`redsim.integrators.energy_gain`), re-exported here.
 
-Neither is hidden and neither is printed: they come back as [B] bool tensors in
+None of them is hidden or printed: they come back as [B] bool tensors in
 :class:`redsim.runtime.stepper.StepStats`.
 """
 

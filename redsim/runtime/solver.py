@@ -57,7 +57,7 @@ from torch import Tensor
 ARMIJO_C = 1e-4
 """Sufficient-decrease constant of the line search."""
 MAX_BACKTRACKS = 12
-"""Step halvings before a state's line search gives up (the last trial is 2^-11 of the first)."""
+"""Rejected trials before a state's line search gives up (each next trial 1/10-1/2 of the last, :func:`_backtrack`)."""
 HESSIAN_FLOOR = 1e-8
 """Smallest eigenvalue of an exact Hessian after the absolute-value fix, relative to its largest."""
 BFGS_DAMPING = 0.2

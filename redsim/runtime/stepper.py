@@ -49,7 +49,8 @@ class StepStats(NamedTuple):
         converged: The relative gradient norm met ``tol`` (bool).
         iterations: Accepted solver iterations (int64).
         residual: |dPhi/dz| / (|J_0|_2 F_b), the relative gradient norm ``tol`` bounds (see :class:`LatentStepper`).
-        energy: Potential energy E(f(z_next)) [J] (the load work not included).
+        energy: Potential energy E(f(z_next)) [J] (the load work not included); 0 where the start was not
+            finite (z_next is then z, and ``diverged`` is set).
         out_of_range: z or z_next (or the condition) is outside the region the map was fitted on (bool).
         diverged: The step is not trustworthy: non-finite, or it added more energy than it could have (bool).
         energy_gain: K + E rose by more than the loads' work, beyond round-off and the solve's

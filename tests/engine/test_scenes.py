@@ -312,9 +312,17 @@ def test_a_copied_mesh_file_is_the_same_scene_and_old_fingerprints_still_load(tm
     doc = {"scene": first.name, "scene_fingerprint": old}
     doc["config"] = {"output_dim": first.free_dof_count}
     check_scene(doc, first, "old.json")  # a fit written when the path was part of the fingerprint
+    other = redsim.scene._hash({"name": copy.name, "params": copy.params})  # the other path's old fingerprint
     with pytest.raises(redsim.subspace.CheckpointError, match="fitted to scene"):
-        other = redsim.scene._hash({"name": copy.name, "params": copy.params})  # the other path's old fingerprint
         check_scene({**doc, "scene_fingerprint": other}, first, "old.json")
+    from redsim.subspace import SubspaceConfig, SubspaceMap
+
+    old_map = SubspaceMap(SubspaceConfig(latent_dim=2, output_dim=first.free_dof_count))
+    old_map.metadata = {"scene": first.name, "scene_fingerprint": old}
+    assert redsim.envs.make(first, old_map).unwrapped.sim.latent_dim == 2  # an env takes what load_subspace takes
+    old_map.metadata["scene_fingerprint"] = other
+    with pytest.raises(redsim.subspace.CheckpointError, match="fitted to scene"):
+        redsim.envs.make(first, old_map)
 
 
 def test_a_hand_built_scene_is_fingerprinted_by_its_data() -> None:

@@ -54,6 +54,11 @@ def test_cubature_true_loads_the_shipped_one_and_refuses_where_none_exists() -> 
     assert gym.make("RedSim/HangingCloth-v0", cubature=True).unwrapped.sim.cubature
     with pytest.raises(CheckpointError, match="redsim cubature"):
         gym.make("RedSim/MiniChain-v0", cubature=True)
+    # with subspace=PATH, True means the cubature beside that checkpoint, on every env alike
+    sheet = gym.make("RedSim/HangingCloth-v0", subspace=str(redsim.pretrained.FOLDER / "hanging_sheet"), cubature=True)
+    assert sheet.unwrapped.sim.cubature
+    with pytest.raises(CheckpointError, match="no cubature file"):
+        gym.make("RedSim/Klann-v0", subspace=str(redsim.pretrained.FOLDER / "klann"), cubature=True)
     with pytest.raises(ValueError, match="cubature must be"):
         gym.make(CLOTH_BALL, cubature=3)
     with pytest.raises(ValueError, match="not both"):

@@ -524,3 +524,15 @@ def test_held_targets_are_settled_once_per_process_for_identical_envs() -> None:
         "RedSim/MiniChain-v0", targets="held", target_spread=0.5, dtype="float64"
     ).unwrapped.sim.task.held_targets
     assert len(reach._held_cache) == 3 and float64.dtype == torch.float64
+
+
+@pytest.mark.gpu
+@pytest.mark.skipif(not torch.cuda.is_available(), reason="needs a CUDA device")
+def test_an_env_on_cuda_leaves_the_caller_s_map_where_it_was() -> None:
+    scene = scenes.build("mini_chain")
+    sub = pretrained.load("mini_chain", scene)
+    env = redsim.envs.make(scene, sub, device="cuda")
+    env.reset(seed=0)
+    assert np.isfinite(env.step(env.action_space.sample())[0]).all()
+    assert {p.device.type for p in sub.parameters()} == {"cpu"}
+    assert {p.device.type for p in env.unwrapped.sim.subspace.parameters()} == {"cuda"}

@@ -392,6 +392,11 @@ def test_mirror_penalty_by_hand_and_antithetic_batches() -> None:
     assert terms["mirror"] == pytest.approx(300.0 * float(fit_module.mirror_gap(scene, model(z).detach())), rel=1e-9)
     assert without["mirror"] == 0.0 and terms["mirror"] > 0.0
     assert float(total.detach()) == pytest.approx(without["energy"] + config.lam * without["pair"] + terms["mirror"])
+    chain = scenes.build("mini_chain")
+    with pytest.raises(ValueError, match="declares no mirror"):  # a clear error, not an assertion
+        subspace_loss(
+            chain, SubspaceMap(SubspaceConfig(latent_dim=2, output_dim=chain.free_dof_count)), z, None, 1.0, config
+        )
 
 
 def test_mirror_needs_a_declared_mirror_and_an_even_batch() -> None:
