@@ -1,6 +1,7 @@
 """PPO on the conditional bar: stiffness and support change every episode, and the policy sees them.
 
-Run: python examples/bar_agent.py [--steps 50000]
+Run: python examples/bar_agent.py [--steps 50000] [--episodes 5] [--episode-steps 200] [--out DIR]
+(--out DIR saves DIR/bar_ppo.zip and the observation statistics it acts through, DIR/bar_ppo_vecnormalize.pkl).
 Domain randomization comes from the conditional subspace f(z, c): each episode draws c (the right half's
 stiffness factor and the support location), and c is the last two numbers of the observation. After
 training, a plain Gymnasium loop runs the policy and prints each episode's condition and final distance.
@@ -10,6 +11,7 @@ main()'s defaults are the tiny budget the test suite runs.
 from __future__ import annotations
 
 import argparse
+import sys
 from pathlib import Path
 
 import gymnasium as gym
@@ -34,7 +36,9 @@ def main(out: Path | None = None, steps: int = 128, episodes: int = 2, episode_s
     model = PPO("MlpPolicy", venv, seed=0, **settings).learn(total_timesteps=steps)
     venv.training = False
     if out is not None:
+        out.mkdir(parents=True, exist_ok=True)
         model.save(out / "bar_ppo.zip")
+        venv.save(str(out / "bar_ppo_vecnormalize.pkl"))  # the policy acts on observations normalized by these
 
     env = gym.make(ENV_ID, max_episode_steps=episode_steps)
     structure = env.unwrapped.observation_structure  # {"z": 8, "z_dot": 8, ..., "condition": 2}
@@ -55,6 +59,8 @@ def main(out: Path | None = None, steps: int = 128, episodes: int = 2, episode_s
     env.close()
     return {
         "steps": model.num_timesteps,
+        "budget": steps,
+        "episodes": episodes,
         "observation_size": sum(structure.values()),
         "distinct_conditions": len({tuple(np.round(c, 6)) for c in conditions}),
         "mean_return": float(np.mean(returns)),
@@ -64,15 +70,21 @@ def main(out: Path | None = None, steps: int = 128, episodes: int = 2, episode_s
 
 def check(result: dict[str, float]) -> None:
     """What this example must show: PPO ran its budget, each episode drew its own condition, nothing blew up."""
-    assert result["steps"] >= 128
+    assert result["steps"] >= result["budget"]
     assert result["observation_size"] == 22
-    assert result["distinct_conditions"] == 2
+    assert result["distinct_conditions"] == result["episodes"]
     assert result["finite"] == 1.0
 
 
 if __name__ == "__main__":
     parser = argparse.ArgumentParser(description="PPO on RedSim/ConditionalBar-v0")
-    parser.add_argument("--steps", type=int, default=50_000)
-    parser.add_argument("--out", type=Path)
+    parser.add_argument("--steps", type=int, default=50_000, help="PPO's env steps (default 50000)")
+    parser.add_argument("--episodes", type=int, default=5, help="episodes of the trained policy shown (default 5)")
+    parser.add_argument("--episode-steps", type=int, default=200, help="steps per episode (default 200)")
+    parser.add_argument("--out", type=Path, help="folder for the policy and its normalizer (default: not saved)")
     args = parser.parse_args()
-    check(main(args.out, args.steps, episodes=5, episode_steps=200))
+    try:
+        check(main(args.out, args.steps, args.episodes, args.episode_steps))
+    except KeyboardInterrupt:
+        print("interrupted; nothing was saved", file=sys.stderr)
+        sys.exit(130)

@@ -1,37 +1,59 @@
 """Train an agent to move a free corner of a pinned sheet with the trainers helper: curve, GIF, checkpoints, resume.
 
-Run: python examples/cloth_agent.py [--steps 20000] [--out runs/hanging_cloth]
-(the same as `redsim train-agent RedSim/HangingCloth-v0 --algo sac --steps 20000 --out runs/hanging_cloth`;
-main()'s defaults are the tiny budget the test suite runs).
+Run: python examples/cloth_agent.py [--steps 20000] [--episode-steps N] [--out DIR] [--resume | --overwrite]
+It trains half the budget, then resumes the same run to the full budget, in DIR/hanging_cloth (default
+runs/hanging_cloth): the same as `redsim train-agent RedSim/HangingCloth-v0 --algo sac --steps 20000 --out
+runs/hanging_cloth`. Stopped by Ctrl-C, the run is saved; `--resume` goes on from it. A folder that holds a run
+is refused unless `--resume` continues it or `--overwrite` replaces it. main()'s defaults are the tiny budget the
+test suite runs.
 """
 
 from __future__ import annotations
 
 import argparse
+import sys
 import tempfile
 from pathlib import Path
 
-from redsim.trainers.agents import evaluate, load_agent, train_agent
+from redsim.trainers.agents import TrainingInterrupted, evaluate, load_agent, train_agent
 
 ENV_ID = "RedSim/HangingCloth-v0"
 
 
-def main(out: Path | None = None, steps: int = 48, episode_steps: int | None = 8) -> dict[str, float]:
+def main(
+    out: Path | None = None,
+    steps: int = 48,
+    episode_steps: int | None = 8,
+    resume: bool = False,
+    overwrite: bool = False,
+) -> dict[str, float]:
     limit = {} if episode_steps is None else {"max_episode_steps": episode_steps}
     tiny = steps < 1000
     with tempfile.TemporaryDirectory() as tmp:
         folder = Path(out or tmp) / "hanging_cloth"
         options = {"n_envs": 4, "eval_every": steps, "eval_episodes": 2, "final_episodes": 2} if tiny else {}
-        half = train_agent(ENV_ID, folder, algo="sac", steps=steps // 2, env_kwargs=limit, video=False, **options)
-        # ... interrupted here, or more budget wanted: the same call with resume=True goes on to `steps`.
+        half = None
+        if not resume:  # half the budget first, as if the run had been stopped there ...
+            half = train_agent(
+                ENV_ID,
+                folder,
+                algo="sac",
+                steps=steps // 2,
+                env_kwargs=limit,
+                video=False,
+                overwrite=overwrite,
+                **options,
+            )
+        # ... then the same call with resume=True goes on to `steps` (from model.zip and its replay buffer)
         full = train_agent(ENV_ID, folder, algo="sac", steps=steps, env_kwargs=limit, resume=True, **options)
         files = sorted(p.name for p in folder.iterdir())
         print(f"{ENV_ID}: {full.steps} env steps in {full.wall_s:.0f} s; files: {', '.join(files)}")
         model = load_agent(folder / "model.zip", ENV_ID)  # refuses a model trained on another env
         again = evaluate(ENV_ID, model, episodes=2, seed=full.evaluation.seed, env_kwargs=limit)
         return {
-            "half_steps": half.steps,
+            "half_steps": float("nan") if half is None else half.steps,
             "steps": full.steps,
+            "budget": steps,
             "final_return": full.evaluation.mean,
             "reloaded_return": again.returns[:2].mean(),
             "final_first_two": full.evaluation.returns[:2].mean(),
@@ -42,14 +64,29 @@ def main(out: Path | None = None, steps: int = 48, episode_steps: int | None = 8
 
 def check(result: dict[str, float]) -> None:
     """What this example must show: the run resumed to its full budget, wrote its curve and GIF, and reloads."""
-    assert result["half_steps"] < result["steps"]
+    assert result["steps"] >= result["budget"] and not result["half_steps"] >= result["steps"]
     assert result["curve"] == 1.0 and result["gif"] == 1.0
     assert abs(result["reloaded_return"] - result["final_first_two"]) < 1e-6  # same seeds, deterministic policy
 
 
 if __name__ == "__main__":
     parser = argparse.ArgumentParser(description="Train SAC on RedSim/HangingCloth-v0 with redsim.trainers")
-    parser.add_argument("--steps", type=int, default=20_000)
-    parser.add_argument("--out", type=Path, default=Path("runs"))
+    parser.add_argument("--steps", type=int, default=20_000, help="env steps in all (default 20000)")
+    parser.add_argument("--episode-steps", type=int, help="steps per episode (default: the env's limit)")
+    parser.add_argument(
+        "--out", type=Path, default=Path("runs"), help="the run goes to OUT/hanging_cloth (default runs)"
+    )
+    what = parser.add_mutually_exclusive_group()
+    what.add_argument("--resume", action="store_true", help="continue the run in OUT/hanging_cloth to --steps")
+    what.add_argument("--overwrite", action="store_true", help="replace the run in OUT/hanging_cloth")
     args = parser.parse_args()
-    check(main(args.out, args.steps, episode_steps=None))
+    try:
+        check(main(args.out, args.steps, args.episode_steps, args.resume, args.overwrite))
+    except TrainingInterrupted as stop:  # the model, buffer and curve are saved
+        print(f"{stop}; continue with the same command and --resume", file=sys.stderr)
+        sys.exit(130)
+    except KeyboardInterrupt:
+        print("interrupted before training started; nothing was saved", file=sys.stderr)
+        sys.exit(130)
+    except ValueError as err:  # e.g. a run already in the folder: --resume or --overwrite
+        parser.error(str(err))

@@ -1,7 +1,8 @@
 """SAC with hindsight experience replay on a reach env, against SAC alone with the same budget and settings.
 
 Run: python examples/her_agent.py [--env RedSim/MiniChain-v0] [--steps 10000] [--episodes 20] [--seed 0]
-[--num-envs 1] (main()'s defaults are the tiny budget the test suite runs). Both agents see the goal-conditioned env
+[--num-envs 1] [--episode-steps N] [--out DIR] (main()'s defaults are the tiny budget the test suite runs).
+Both agents see the goal-conditioned env
 (:class:`redsim.envs.goal.GoalObservation`: dict observations, a reward from the goals alone); the only
 difference is the replay buffer. ``--num-envs N`` > 1 collects from N copies in the native vector env
 (:class:`redsim.envs.goal.GoalVectorObservation` through :class:`redsim.envs.sb3.SB3VecEnv`: one batched
@@ -13,6 +14,7 @@ env. Each is then evaluated on the same seeded episodes: mean return (the wrappe
 from __future__ import annotations
 
 import argparse
+import sys
 import time
 from pathlib import Path
 from typing import Any
@@ -45,10 +47,7 @@ def train(
     else:
         venv = SB3VecEnv.make(env_id, num_envs, goal=True, **env_kwargs)
     replay = {"replay_buffer_class": HerReplayBuffer, "replay_buffer_kwargs": {"n_sampled_goal": 4}} if her else {}
-    episode = env_kwargs.get("max_episode_steps", gym.spec(env_id).max_episode_steps)
-    ended = num_envs * (episode + 1)  # transitions until every copy has ended an episode: HER samples only then
-    if her and steps <= ended:
-        raise ValueError(f"{steps} steps end no episode of all {num_envs} copies (HER needs {ended + 1} or more)")
+    ended = episodes_ended(env_id, steps, env_kwargs, num_envs)
     starts = max(min(max(1000, ended), steps // 2), ended)
     model = SAC(
         "MultiInputPolicy",
@@ -62,6 +61,15 @@ def train(
     start = time.perf_counter()
     model.learn(total_timesteps=steps)
     return model, time.perf_counter() - start
+
+
+def episodes_ended(env_id: str, steps: int, env_kwargs: dict[str, Any], num_envs: int) -> int:
+    """Transitions until every copy has ended an episode (HER samples only then), refusing a budget below it."""
+    episode = env_kwargs.get("max_episode_steps", gym.spec(env_id).max_episode_steps)
+    ended = num_envs * (episode + 1)
+    if steps <= ended:
+        raise ValueError(f"{steps} steps end no episode of all {num_envs} copies (HER needs {ended + 1} or more)")
+    return ended
 
 
 def evaluate(model: SAC, env_id: str, episodes: int, env_kwargs: dict[str, Any]) -> dict[str, float]:
@@ -92,11 +100,13 @@ def main(
 ) -> dict[str, Any]:
     env_kwargs = {} if episode_steps is None else {"max_episode_steps": episode_steps}
     result: dict[str, Any] = {"env": env_id, "steps": steps, "seed": seed, "num_envs": num_envs}
+    episodes_ended(env_id, steps, env_kwargs, num_envs)  # before the plain agent trains, not after
     for name, her in (("sac", False), ("sac_her", True)):
         model, wall = train(env_id, steps, her, env_kwargs, seed, num_envs)
         scores = evaluate(model, env_id, episodes, env_kwargs)
         result[name] = {**scores, "wall_s": wall, "timesteps": model.num_timesteps}
         if out is not None:
+            out.mkdir(parents=True, exist_ok=True)
             model.save(out / f"{name}.zip")
         print(
             f"{name:<8} {steps} steps in {wall:6.0f} s: return {scores['mean']:8.2f} ± {scores['std']:6.2f}   "
@@ -119,6 +129,13 @@ if __name__ == "__main__":
     parser.add_argument("--episodes", type=int, default=20)
     parser.add_argument("--seed", type=int, default=0, help="seeds both agents' networks, exploration and envs")
     parser.add_argument("--num-envs", type=int, default=1, help="copies in the native vector env (module doc)")
-    parser.add_argument("--out", type=Path)
+    parser.add_argument("--episode-steps", type=int, help="steps per episode (default: the env's limit)")
+    parser.add_argument("--out", type=Path, help="folder for sac.zip and sac_her.zip (default: not saved)")
     args = parser.parse_args()
-    main(args.out, args.env, args.steps, args.episodes, episode_steps=None, seed=args.seed, num_envs=args.num_envs)
+    try:
+        main(args.out, args.env, args.steps, args.episodes, args.episode_steps, seed=args.seed, num_envs=args.num_envs)
+    except ValueError as err:  # a budget that ends no episode
+        parser.error(str(err))
+    except KeyboardInterrupt:
+        print("interrupted", file=sys.stderr)
+        sys.exit(130)

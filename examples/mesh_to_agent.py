@@ -1,14 +1,18 @@
 """From a mesh file to a trained agent: build a cloth scene, fit its subspace, wrap it in an env, train SAC.
 
-Run: python examples/mesh_to_agent.py [--fit-steps 3000] [--steps 20000] [--out runs/my_sheet]
+Run: python examples/mesh_to_agent.py [--fit-steps 3000] [--steps 20000] [--out DIR] [--resume | --overwrite]
 The mesh here is a small square sheet written to a temporary .obj, standing in for your file; its top
 edge is pinned, and the agent pulls the sheet (handle "cloth") to targets the subspace can reach.
+Everything goes to DIR/my_sheet (default runs/my_sheet): the fitted map (subspace.pt, .json) and the agent's run.
+Stopped by Ctrl-C while training, the run is saved and `--resume` goes on from it in the same map; a folder that
+holds a run is refused unless `--resume` continues it or `--overwrite` fits and trains anew.
 main()'s defaults are the tiny budget the test suite runs (a subspace that small is not a good one).
 """
 
 from __future__ import annotations
 
 import argparse
+import sys
 import tempfile
 from pathlib import Path
 
@@ -18,7 +22,7 @@ import trimesh
 
 import redsim
 from redsim.trainers import fit_subspace
-from redsim.trainers.agents import evaluate, train_agent
+from redsim.trainers.agents import TrainingInterrupted, evaluate, train_agent
 
 
 def sheet(size: float = 0.4, cells: int = 5) -> trimesh.Trimesh:
@@ -33,24 +37,37 @@ def sheet(size: float = 0.4, cells: int = 5) -> trimesh.Trimesh:
     return trimesh.Trimesh(vertices, np.array(faces), process=False)
 
 
-def main(out: Path | None = None, fit_steps: int = 60, steps: int = 100) -> dict[str, float]:
+def main(
+    out: Path | None = None, fit_steps: int = 60, steps: int = 100, resume: bool = False, overwrite: bool = False
+) -> dict[str, float]:
     with tempfile.TemporaryDirectory() as tmp:
+        folder = Path(out or tmp) / "my_sheet"
+        fitted = folder / "subspace.pt"
+        if fitted.is_file() and not (resume or overwrite):  # checked before a fit could replace the run's map
+            raise ValueError(f"{folder} holds a run: continue it with --resume or replace it with --overwrite")
         path = Path(tmp) / "sheet.obj"
         sheet().export(path)
         scene = redsim.scenes.cloth_scene_from_mesh(path, pin="max_y", name="my_sheet")
-        fit = fit_subspace(scene, dim=3, sigma=0.05, lam=1.0, steps=fit_steps, progress=False)
-        print(f"{scene.name}: n = {scene.free_dof_count}, fitted d = 3 in {fit.fit_seconds:.1f} s")
+        losses = [0.0]
+        if resume and fitted.is_file():
+            subspace = redsim.load_subspace(fitted, scene=scene)  # the map the agent has been trained in
+        else:
+            fit = fit_subspace(scene, dim=3, sigma=0.05, lam=1.0, steps=fit_steps, progress=False)
+            print(f"{scene.name}: n = {scene.free_dof_count}, fitted d = 3 in {fit.fit_seconds:.1f} s")
+            subspace, losses = fit.subspace, [h["loss"] for h in fit.history]
+            folder.mkdir(parents=True, exist_ok=True)
+            subspace.save(folder / "subspace")
 
-        env = redsim.envs.make(scene, fit.subspace, task="reach", max_episode_steps=20 if steps < 1000 else 200)
-        folder = Path(out or tmp) / "my_sheet"
+        env = redsim.envs.make(scene, subspace, task="reach", max_episode_steps=20 if steps < 1000 else 200)
         tiny = {"n_envs": 2, "eval_every": steps, "eval_episodes": 2, "final_episodes": 2} if steps < 1000 else {}
-        result = train_agent(env, folder, algo="sac", steps=steps, overrides={"learning_starts": 50}, **tiny)
+        settings = {"overrides": {"learning_starts": 50}, "resume": resume, "overwrite": overwrite, **tiny}
+        result = train_agent(env, folder, algo="sac", steps=steps, **settings)
         random = evaluate(env, "random", episodes=2, seed=result.evaluation.seed)
         print(f"agent return {result.evaluation.mean:.2f}, random {random.mean:.2f} ({result.steps} steps)")
         with torch.no_grad():  # the map must span shapes, or the env could not move
-            spread = fit.subspace(torch.randn(16, 3, generator=torch.Generator().manual_seed(0))).std(dim=0).max()
+            spread = subspace(torch.randn(16, 3, generator=torch.Generator().manual_seed(0))).std(dim=0).max()
         return {
-            "losses_finite": float(np.isfinite([h["loss"] for h in fit.history]).all()),
+            "losses_finite": float(np.isfinite(losses).all()),
             "spread": float(spread),
             "steps": result.steps,
             "agent": result.evaluation.mean,
@@ -68,8 +85,20 @@ def check(result: dict[str, float]) -> None:
 
 if __name__ == "__main__":
     parser = argparse.ArgumentParser(description="Mesh -> subspace -> env -> SAC agent")
-    parser.add_argument("--fit-steps", type=int, default=3000)
-    parser.add_argument("--steps", type=int, default=20_000)
-    parser.add_argument("--out", type=Path, default=Path("runs"))
+    parser.add_argument("--fit-steps", type=int, default=3000, help="steps of the subspace fit (default 3000)")
+    parser.add_argument("--steps", type=int, default=20_000, help="SAC's env steps (default 20000)")
+    parser.add_argument("--out", type=Path, default=Path("runs"), help="everything goes to OUT/my_sheet (default runs)")
+    what = parser.add_mutually_exclusive_group()
+    what.add_argument("--resume", action="store_true", help="continue the run in OUT/my_sheet, in its map")
+    what.add_argument("--overwrite", action="store_true", help="fit and train anew in OUT/my_sheet")
     args = parser.parse_args()
-    check(main(args.out, args.fit_steps, args.steps))
+    try:
+        check(main(args.out, args.fit_steps, args.steps, args.resume, args.overwrite))
+    except TrainingInterrupted as stop:  # the model, buffer and curve are saved beside the map
+        print(f"{stop}; continue with the same command and --resume", file=sys.stderr)
+        sys.exit(130)
+    except KeyboardInterrupt:
+        print("interrupted before training started; nothing was saved", file=sys.stderr)
+        sys.exit(130)
+    except ValueError as err:  # e.g. a run already in the folder: --resume or --overwrite
+        parser.error(str(err))

@@ -7,18 +7,20 @@ On a multi-machine cluster (redsim installed on every node, same versions):
     ray start --address=HEAD_IP:6379                # on each other node
     python examples/rllib_agent.py --address auto --env-runners 16
 (or set RAY_ADDRESS=HEAD_IP:6379; each env runner takes one CPU of whichever node Ray places it on).
+Each runner steps --envs-per-runner copies in redsim's native vector env (one batched solve for all of them).
+The env config is checked in this process first, so a bad id or keyword is a clear error here rather than dead
+runners. --out DIR saves the algorithm to DIR/rllib_ppo; `--restore DIR/rllib_ppo` trains on from it.
 main()'s defaults are the one-iteration budget the test suite runs.
 """
 
 from __future__ import annotations
 
 import argparse
+import importlib.util
+import sys
 from pathlib import Path
 
-import ray
-from ray.rllib.algorithms.ppo import PPOConfig
-
-from redsim.trainers.rllib import register
+from redsim.trainers.rllib import check_env_config, register
 
 ENV_ID = "RedSim/MiniChain-v0"
 
@@ -30,30 +32,49 @@ def main(
     address: str | None = None,
     episode_steps: int | None = 20,
     batch: int = 80,
+    env_id: str = ENV_ID,
+    envs_per_runner: int = 2,
+    restore: Path | None = None,
 ) -> dict[str, float]:
+    import ray
+    from ray.rllib.algorithms.algorithm import Algorithm
+    from ray.rllib.algorithms.ppo import PPOConfig
+
+    env_config = {"id": env_id, "kwargs": {} if episode_steps is None else {"max_episode_steps": episode_steps}}
+    check_env_config(env_config)  # before any runner starts
     if address is None:  # a local cluster, sized to the runners plus this driver (which also learns)
         ray.init(num_cpus=env_runners + 1, include_dashboard=False, object_store_memory=200 * 2**20)
     else:
         ray.init(address=address)
-    kwargs = {} if episode_steps is None else {"max_episode_steps": episode_steps}
-    config = (
-        PPOConfig()
-        .environment(register(), env_config={"id": ENV_ID, "kwargs": kwargs})
-        .env_runners(num_env_runners=env_runners, num_envs_per_env_runner=1, rollout_fragment_length="auto")
-        .training(train_batch_size_per_learner=batch, minibatch_size=min(batch, 128), num_epochs=2, lr=3e-4)
-    )
-    algo = config.build_algo()
+    name = register()  # before from_checkpoint too: the checkpoint names the creator
+    if restore is not None:
+        algo = Algorithm.from_checkpoint(str(restore.resolve()))
+    else:
+        config = (
+            PPOConfig()
+            .environment(name, env_config=env_config)
+            .env_runners(
+                num_env_runners=env_runners,
+                num_envs_per_env_runner=envs_per_runner,
+                gym_env_vectorize_mode="vector_entry_point",  # the copies of a runner: one batched latent solve
+                rollout_fragment_length="auto",
+            )
+            .training(train_batch_size_per_learner=batch, minibatch_size=min(batch, 128), num_epochs=2, lr=3e-4)
+        )
+        algo = config.build_algo()
     try:
-        for i in range(iterations):
+        for _ in range(iterations):
             result = algo.train()
-            runners = result["env_runners"]
+            runners = result.get("env_runners", {})
+            if "num_env_steps_sampled_lifetime" not in runners:
+                raise RuntimeError(f"iteration {result['training_iteration']} sampled nothing (see the runners' log)")
             print(
-                f"iteration {i + 1}: {runners['num_env_steps_sampled_lifetime']} env steps, "
+                f"iteration {result['training_iteration']}: {runners['num_env_steps_sampled_lifetime']} env steps, "
                 f"episode return {runners.get('episode_return_mean', float('nan')):.2f}"
             )
         healthy = algo.env_runner_group.num_healthy_remote_workers()
         if out is not None:
-            algo.save_to_path(str((out / "rllib_ppo").resolve()))
+            print(f"saved {algo.save_to_path(str((out / 'rllib_ppo').resolve()))}")
     finally:
         algo.stop()
         ray.shutdown()
@@ -62,20 +83,45 @@ def main(
         "env_steps": float(runners["num_env_steps_sampled_lifetime"]),
         "healthy_runners": float(healthy),
         "requested_runners": float(env_runners),
+        "batch": float(batch),
     }
 
 
 def check(result: dict[str, float]) -> None:
     """What this example must show: every runner stayed up and the iterations sampled env steps."""
     assert result["healthy_runners"] == result["requested_runners"]
-    assert result["iterations"] >= 1 and result["env_steps"] >= 80
+    assert result["iterations"] >= 1 and result["env_steps"] >= result["batch"]
 
 
 if __name__ == "__main__":
     parser = argparse.ArgumentParser(description="RLlib PPO on a RedSim env")
-    parser.add_argument("--iterations", type=int, default=20)
-    parser.add_argument("--env-runners", type=int, default=2)
+    parser.add_argument("--env", default=ENV_ID, help=f"a RedSim id (default {ENV_ID})")
+    parser.add_argument("--iterations", type=int, default=20, help="training iterations (default 20)")
+    parser.add_argument("--env-runners", type=int, default=2, help="env runner processes (default 2)")
+    parser.add_argument("--envs-per-runner", type=int, default=16, help="env copies per runner (default 16)")
+    parser.add_argument("--batch", type=int, default=4000, help="env steps per iteration (default 4000)")
+    parser.add_argument("--episode-steps", type=int, help="steps per episode (default: the env's limit)")
     parser.add_argument("--address", help="a running Ray cluster ('auto', or HEAD_IP:6379); default: start one")
-    parser.add_argument("--out", type=Path)
+    parser.add_argument("--out", type=Path, help="save the algorithm to OUT/rllib_ppo")
+    parser.add_argument("--restore", type=Path, help="train on from a saved algorithm (its own settings)")
     args = parser.parse_args()
-    check(main(args.out, args.iterations, args.env_runners, args.address, episode_steps=None, batch=4000))
+    if importlib.util.find_spec("ray") is None:
+        parser.error('this example needs Ray RLlib: pip install "redsim[ray]"')
+    try:
+        result = main(
+            args.out,
+            args.iterations,
+            args.env_runners,
+            args.address,
+            args.episode_steps,
+            args.batch,
+            args.env,
+            args.envs_per_runner,
+            args.restore,
+        )
+    except ValueError as err:  # the env config, checked before Ray starts
+        parser.error(str(err))
+    except KeyboardInterrupt:
+        print("interrupted; the algorithm was not saved", file=sys.stderr)
+        sys.exit(130)
+    check(result)

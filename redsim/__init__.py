@@ -6,6 +6,16 @@ simulator (:mod:`redsim.integrators`) is the ground truth that reduced models ar
 against.
 """
 
+import importlib.util as _importlib_util
+import pathlib as _pathlib
+
+_CHECKOUT = _pathlib.Path(__file__).resolve().parent.parent
+if _importlib_util.find_spec("redsim.envs") is None and (_CHECKOUT / "envs" / "__init__.py").is_file():
+    # imported from a source checkout that is not installed editable (e.g. a Ray worker whose working directory is
+    # the clone's root): redsim.envs and redsim.trainers are its top-level envs/ and trainers/ (pyproject's package-dir)
+    __path__.append(str(_CHECKOUT))
+del _importlib_util, _pathlib, _CHECKOUT
+
 # redsim.envs registers the Gymnasium ids ("RedSim/Chain-v0", ...) with string entry points: nothing
 # heavy is imported and no checkpoint is loaded until an env is made. redsim.fork_safety: a process forked
 # from this one runs torch on one thread (OpenMP's pool does not survive fork).

@@ -27,3 +27,22 @@ def test_every_package_folder_is_listed_for_installation() -> None:
     found = {".".join(p.parent.relative_to(root).parts) for p in (root / "redsim").rglob("__init__.py")}
     found |= {mapped[p.parent.name] for p in root.glob("*/__init__.py") if p.parent.name in mapped}
     assert found <= listed, sorted(found - listed)
+
+
+def test_a_source_checkout_imports_its_envs_and_trainers_without_an_editable_install() -> None:
+    """A process whose path starts at the clone's root (a Ray worker started there, `python -c` there) imports the
+    source folder redsim/: redsim.envs and redsim.trainers still resolve, to the top-level envs/ and trainers/."""
+    import subprocess
+    import sys
+
+    root = Path(redsim.__file__).resolve().parent.parent
+    script = (
+        "import sys\n"
+        "sys.meta_path = [f for f in sys.meta_path if 'Editable' not in getattr(f, '__name__', type(f).__name__)]\n"
+        f"sys.path.insert(0, {str(root)!r})\n"
+        "import redsim.envs, redsim.trainers.rllib\n"
+        "print(redsim.envs.__file__, redsim.trainers.__file__)\n"
+    )
+    done = subprocess.run([sys.executable, "-c", script], capture_output=True, text=True, cwd=root, check=False)
+    assert done.returncode == 0, done.stderr
+    assert done.stdout.split() == [str(root / "envs" / "__init__.py"), str(root / "trainers" / "__init__.py")]

@@ -3,14 +3,25 @@
 RLlib builds its envs on every env runner from a registered creator, never from Gymnasium's
 registry. :func:`register` registers :func:`env_creator` under a name with
 ``ray.tune.registry.register_env``; the creator lives in this importable module (not in a script), so
-runners on other machines unpickle it by reference: redsim must be installed on every node.
+runners on other machines unpickle it by reference: redsim must be installed on every node. A process that
+restores an algorithm from a checkpoint calls :func:`register` first (the checkpoint names the creator, not
+the function). With ``gym_env_vectorize_mode="vector_entry_point"`` a runner's ``num_envs_per_env_runner``
+copies are redsim's native vector env: one batched latent solve for all of them.
+
+RLlib drops every runner whose creator raises and then fails with an ``IndexError`` in ``get_spaces``, the
+creator's own message only in the workers' logs: :func:`check_env_config` makes the env once in the driver,
+so a bad id or keyword is a clear error there.
 
     >>> import ray
     >>> from ray.rllib.algorithms.ppo import PPOConfig
-    >>> from redsim.trainers.rllib import register
+    >>> from redsim.trainers.rllib import check_env_config, register
     >>> ray.init()                                  # a local cluster; ray.init(address="auto") joins one
-    >>> config = PPOConfig().environment(register(), env_config={"id": "RedSim/MiniChain-v0"})
-    >>> algo = config.env_runners(num_env_runners=2).build_algo()
+    >>> env_config = {"id": "RedSim/MiniChain-v0", "kwargs": {"max_episode_steps": 100}}
+    >>> check_env_config(env_config)
+    >>> config = PPOConfig().environment(register(), env_config=env_config)
+    >>> vector = {"num_envs_per_env_runner": 8, "gym_env_vectorize_mode": "vector_entry_point"}
+    >>> config = config.env_runners(num_env_runners=2, **vector)
+    >>> algo = config.build_algo()
     >>> algo.train()["env_runners"]["episode_return_mean"]
 """
 
@@ -23,20 +34,48 @@ import gymnasium as gym
 
 DEFAULT_NAME = "redsim"
 """The name :func:`register` gives the creator (``PPOConfig().environment(DEFAULT_NAME, ...)``)."""
+ENV_CONFIG_KEYS = ("id", "kwargs")
+"""What an ``env_config`` holds: the env id and its keyword arguments (RLlib adds ``num_envs`` itself)."""
 
 
-def env_creator(env_config: Mapping[str, Any]) -> gym.Env:
-    """One env for an RLlib env runner: ``env_config["id"]`` made with ``env_config["kwargs"]``.
+def env_creator(env_config: Mapping[str, Any]) -> gym.Env | gym.vector.VectorEnv:
+    """The env of an RLlib env runner: ``env_config["id"]`` made with ``env_config["kwargs"]``; where RLlib adds
+    ``"num_envs"`` (``gym_env_vectorize_mode="vector_entry_point"``), the native vector env of that many copies.
 
     Raises:
-        ValueError: no ``"id"``, or not a RedSim id.
+        ValueError: no ``"id"`` or not a RedSim id, ``"kwargs"`` not a dict, or a key other than
+            :data:`ENV_CONFIG_KEYS` (an env keyword given beside ``"kwargs"`` instead of in it).
     """
     import redsim.envs
 
+    unknown = sorted(set(env_config) - {*ENV_CONFIG_KEYS, "num_envs"})
+    if unknown:
+        raise ValueError(
+            f"env_config has unknown key(s) {unknown}: it is {{'id': ENV_ID, 'kwargs': {{...}}}}, "
+            "the env's keyword arguments go in 'kwargs'"
+        )
     env_id = env_config.get("id")
     if env_id not in redsim.envs.ids():
         raise ValueError(f"env_config['id'] must be one of {', '.join(redsim.envs.ids())}, got {env_id!r}")
-    return gym.make(env_id, **dict(env_config.get("kwargs", {})))
+    kwargs = env_config.get("kwargs", {})
+    if not isinstance(kwargs, Mapping):
+        raise ValueError(f"env_config['kwargs'] must be a dict of the env's keyword arguments, got {kwargs!r:.80}")
+    if "num_envs" in env_config:
+        copies = int(env_config["num_envs"])
+        return gym.make_vec(env_id, num_envs=copies, vectorization_mode="vector_entry_point", **kwargs)
+    return gym.make(env_id, **kwargs)
+
+
+def check_env_config(env_config: Mapping[str, Any]) -> None:
+    """Make (and close) the env of ``env_config`` here, so that a bad one fails in the driver (module doc).
+
+    Raises:
+        ValueError: what :func:`env_creator` or the env refuses (an unknown keyword is the env's TypeError).
+    """
+    try:
+        env_creator(env_config).close()
+    except TypeError as err:  # an unexpected keyword argument of the env class
+        raise ValueError(f"env_config['kwargs'] {dict(env_config.get('kwargs', {}))}: {err}") from None
 
 
 def register(name: str = DEFAULT_NAME) -> str:
@@ -53,4 +92,4 @@ def register(name: str = DEFAULT_NAME) -> str:
     return name
 
 
-__all__ = ["DEFAULT_NAME", "env_creator", "register"]
+__all__ = ["DEFAULT_NAME", "ENV_CONFIG_KEYS", "check_env_config", "env_creator", "register"]

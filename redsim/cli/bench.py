@@ -98,13 +98,19 @@ def cmd_bench_subspace(args: argparse.Namespace) -> int:
     return EXIT_OK
 
 
-def _metric(result: dict[str, Any], *path: str) -> float:
+def _metric(result: dict[str, Any], *path: str) -> float | None:
+    """The number at ``path`` in a method's result; None where it does not apply (absent, or undefined)."""
     value: Any = result
     for key in path:
         if not isinstance(value, dict) or key not in value:
-            return float("nan")
+            return None
         value = value[key]
-    return float(value) if isinstance(value, (int, float)) else float("nan")
+    return float(value) if isinstance(value, (int, float)) else None
+
+
+def _cell(value: float | None, width: int) -> str:
+    """``value`` in ``width`` characters (3 significant digits); – where it does not apply."""
+    return f"{'–':>{width}}" if value is None else f"{value:{width}.3g}"
 
 
 def _subspace_row(row: dict[str, Any]) -> str:
@@ -114,12 +120,12 @@ def _subspace_row(row: dict[str, Any]) -> str:
     ]
     for method, result in row["methods"].items():
         line = (
-            f"  {method:18s} rel. energy {_metric(result, 'energy', 'relative_energy'):8.3g}  "
-            f"excess {_metric(result, 'energy', 'excess_energy'):9.3g} J  "
-            f"stretch {_metric(result, 'stretch', 'mean'):8.3g}  "
-            f"load error {_metric(result, 'load_response', 'mean_error'):7.3g}  "
-            f"response {_metric(result, 'load_response', 'mean_response_error'):7.3g}  "
-            f"strain {_metric(result, 'nonrigid_strain', 'mean'):8.3g}"
+            f"  {method:18s} rel. energy {_cell(_metric(result, 'energy', 'relative_energy'), 8)}  "
+            f"excess {_cell(_metric(result, 'energy', 'excess_energy'), 9)} J  "
+            f"stretch {_cell(_metric(result, 'stretch', 'mean'), 8)}  "
+            f"load error {_cell(_metric(result, 'load_response', 'mean_error'), 7)}  "
+            f"response {_cell(_metric(result, 'load_response', 'mean_response_error'), 7)}  "
+            f"strain {_cell(_metric(result, 'nonrigid_strain', 'mean'), 8)}"
         )
         if "reach" in result:
             line += "  reach " + "/".join(f"{e:.3g}" for e in result["reach"]["errors"])

@@ -38,8 +38,8 @@ def energy_stats(
     - ``relative_energy`` = excess_energy / (E(q_seed) - E(q_rest)), unit-free: 0 when the states
       are on average as low as the rest equilibrium, 1 when they are as high as the seed (e.g. a
       cloth held flat), above 1 when higher. It is None (undefined) when the seed already is at
-      rest (no gravity or preload: the drop is below ``RELATIVE_ENERGY_FLOOR`` times the
-      energies involved); then compare ``excess_energy`` between subspaces of one scene.
+      rest (no gravity or preload: the drop is below ``RELATIVE_ENERGY_FLOOR`` times the seed's and
+      the rest's energies); then compare ``excess_energy`` between subspaces of one scene.
 
     Args:
         scene: The scene (evaluated in float64).
@@ -63,7 +63,7 @@ def energy_stats(
     rest_energy = float(scene64.energy(rest.unsqueeze(0), cond=cond)[0])
     mean = float(energies.mean())
     drop = seed_energy - rest_energy
-    floor = RELATIVE_ENERGY_FLOOR * max(abs(seed_energy), abs(rest_energy), abs(mean))
+    floor = RELATIVE_ENERGY_FLOOR * max(abs(seed_energy), abs(rest_energy))  # not the samples': a map's own cost
     return {
         "samples": samples,
         "seed": seed,

@@ -161,6 +161,10 @@ def test_energy_stats_are_seeded_and_relative_to_the_seed_to_rest_drop() -> None
     )
     no_gravity = scenes.build("toy_two_tets", gravity=False)
     assert metrics.energy_stats(no_gravity, small, samples=8)["relative_energy"] is None
+    # samples far above the seed (a baseline's sheared states) leave it defined: the floor is the drop's, not theirs
+    wild = metrics.energy_stats(scene, Affine(scene.q_seed, 100.0 * torch.eye(n, dtype=torch.float64)), samples=8)
+    drop = wild["seed_energy"] - wild["rest_energy"]
+    assert wild["mean_energy"] > 1e9 * drop and wild["relative_energy"] == pytest.approx(wild["excess_energy"] / drop)
 
 
 def test_evaluate_subspace_bundles_the_metrics_as_json() -> None:

@@ -1,20 +1,39 @@
-"""The RLlib env creator (the one-iteration run on a local Ray cluster is examples/rllib_agent.py's test)."""
+"""The RLlib env creator and its config check (the one-iteration run on a local Ray cluster is
+examples/rllib_agent.py's test, skipped without Ray)."""
 
 from __future__ import annotations
 
 import importlib.util
 
 import pytest
+from gymnasium.vector import VectorEnv
 
-from redsim.trainers.rllib import env_creator, register
+from redsim.trainers.rllib import check_env_config, env_creator, register
+
+MINI = "RedSim/MiniChain-v0"
 
 
-def test_env_creator_makes_the_id_with_its_kwargs() -> None:
-    env = env_creator({"id": "RedSim/MiniChain-v0", "kwargs": {"max_episode_steps": 7}})
+def test_env_creator_makes_the_id_with_its_kwargs_and_the_vector_env_where_rllib_asks() -> None:
+    env = env_creator({"id": MINI, "kwargs": {"max_episode_steps": 7}})
     assert env.spec.max_episode_steps == 7 and env.action_space.shape == (3,)
     env.close()
-    with pytest.raises(ValueError, match="env_config\\['id'\\] must be one of RedSim/Chain-v0"):
-        env_creator({"id": "CartPole-v1"})
+    venv = env_creator({"id": MINI, "kwargs": {"max_episode_steps": 7}, "num_envs": 3})  # vector_entry_point mode
+    assert isinstance(venv, VectorEnv) and venv.num_envs == 3 and venv.single_action_space.shape == (3,)
+    venv.close()
+
+
+@pytest.mark.parametrize(
+    ("env_config", "message"),
+    [
+        ({"id": "CartPole-v1"}, r"env_config\['id'\] must be one of RedSim/Chain-v0"),
+        ({"id": MINI, "max_episode_steps": 5}, r"unknown key\(s\) \['max_episode_steps'\].*go in 'kwargs'"),
+        ({"id": MINI, "kwargs": 3}, r"env_config\['kwargs'\] must be a dict"),
+        ({"id": MINI, "kwargs": {"bogus": 1}}, r"env_config\['kwargs'\] \{'bogus': 1\}: .*unexpected keyword"),
+    ],
+)
+def test_a_bad_env_config_is_a_clear_error_in_the_driver(env_config: dict, message: str) -> None:
+    with pytest.raises(ValueError, match=message):
+        check_env_config(env_config)
 
 
 @pytest.mark.skipif(importlib.util.find_spec("ray") is not None, reason="Ray is installed here")
