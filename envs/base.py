@@ -268,7 +268,7 @@ class LatentSim:
         device: Torch device of the stepper.
         randomize_condition: Draw the condition c uniformly from the scene's condition space per
             episode (a conditional map is needed) and append it to the observation.
-        include_q: Put the full free configuration q [n] in ``info["q"]``.
+        include_q: Put the full free configuration q [n] in ``info["q"]`` (steps and resets, :meth:`reset_info`).
         stepper_options: Extra keyword arguments of :class:`redsim.runtime.LatentStepper`.
         cubature: Step a cubature energy instead of every element (:func:`env_energy`): None (default)
             the shipped one where :data:`CUBATURE_DEFAULT` turns it on, True, False, or a checkpoint path.
@@ -573,9 +573,11 @@ class LatentSim:
             **self.invariants(self.x),
         }
         out = {k: v.detach().cpu().numpy() for k, v in info.items()}
-        if self.include_q:
-            out["q"] = self.positions(self.z).detach().cpu().numpy()
-        return reward.detach().cpu().numpy().astype(np.float64), terminated.cpu().numpy(), out
+        return reward.detach().cpu().numpy().astype(np.float64), terminated.cpu().numpy(), {**out, **self.reset_info()}
+
+    def reset_info(self) -> dict[str, np.ndarray]:
+        """What ``info`` holds at a reset: with ``include_q``, ``q`` [B, n] (every row; the caller picks its own)."""
+        return {"q": self.positions(self.z).detach().cpu().numpy()} if self.include_q else {}
 
     # -- state ----------------------------------------------------------------------------
     def get_state(self) -> dict[str, Any]:
@@ -771,7 +773,7 @@ class LatentEnv(gym.Env[np.ndarray, np.ndarray]):
         dtype: Stepper dtype, "float32" or "float64".
         device: Torch device.
         randomize_condition: Draw the scene's condition per episode (conditional maps).
-        include_q: Put q in ``info``.
+        include_q: Put q in the ``info`` of every step and reset.
         width: Render width [px].
         height: Render height [px].
         camera: ``azimuth``/``elevation``/``margin`` of :class:`redsim.raster.SceneView`, over the env's own
@@ -871,7 +873,7 @@ class LatentEnv(gym.Env[np.ndarray, np.ndarray]):
         self._reset_done = True
         if self.render_mode == "human":
             self.render()
-        return self.sim.observe()[0], {}
+        return self.sim.observe()[0], {k: v[0] for k, v in self.sim.reset_info().items()}
 
     def step(self, action: np.ndarray) -> tuple[np.ndarray, float, bool, bool, dict[str, Any]]:
         """One env step (``frame_skip`` stepper steps) with the action held.

@@ -42,7 +42,10 @@ class HangingClothEnv(ReachEnv):
     (formula: :class:`redsim.envs.reach.ReachEnv`).
 
     ## Starting State
-    At rest (z: the map's unloaded equilibrium, z_dot = 0). v0: the target is the corner in the subspace state
+    At rest (z: the map's unloaded equilibrium, z_dot = 0). That is the shipped map's rest, not the flat hanging
+    sheet's: the d = 8 map (4000 fit steps) holds the sheet folded, its lowest point at y = -0.75 m, its top row
+    ~6 cm above the pinned edge, 1.7 J above the full-space rest (`info["membrane_max_strain"]` 0.11 at rest; the
+    README's subspace table: rest offset, load error 36). v0: the target is the corner in the subspace state
     z_rest + `target_spread` * N(0, I), drawn from `self.np_random`. v1 (`targets="held"`): the target is drawn by
     `self.np_random` from 256 places the corner comes to rest at under a held action u ~ U[-0.8, 0.8]^3 (fixed
     seed; :class:`redsim.envs.reach.HandleReach`), each settled on the env's own energy at bind time (~10 s,

@@ -9,7 +9,9 @@ prefixed by the effect's name:
   directions (``joint_axes``: unit vectors) the chord between them, unitless (~ the misalignment in rad);
 - ``<elastic>_min_det_f`` and ``<elastic>_inverted`` (count of elements with det F <= 0);
 - ``<membrane>_max_strain``: max principal stretch - 1 over the cloth triangles (0: unstretched);
-- ``<contact>_penetration`` [m]: max depth of a contact point inside its shape's margin.
+- ``<contact>_penetration`` [m]: max depth of a contact point inside its shape's margin;
+- ``<contact>_clearance`` [m]: the smallest distance of a contact point beyond that margin, negative when one is
+  inside (the penetration, negated), positive when none touches: how far the nearest point is from contact.
 
 The checks run over blocks of rows sized so that one block's per-element [rows, elements] tensors stay in the
 CPU's cache (:data:`BLOCK_ELEMENTS`; the values are the one pass's to round-off): at 256 copies the cloth envs'
@@ -55,7 +57,8 @@ def _membrane(effect: StVKMembrane, x: Tensor) -> dict[str, Tensor]:
 
 
 def _contact(effect: SDFContact, x: Tensor) -> dict[str, Tensor]:
-    return {"penetration": effect.penetration(x)}
+    clearance = effect.clearance(x)
+    return {"penetration": (-clearance).clamp_min(0.0), "clearance": clearance}
 
 
 BLOCK_ELEMENTS = 262144

@@ -100,7 +100,7 @@ class LatentVectorEnv(SharedCopies, VectorEnv):
         self._elapsed[mask] = 0
         self._autoreset[mask] = False
         self._unreset[mask] = False
-        return self.sim.observe(), {}
+        return self.sim.observe(), _with_masks(self.sim.reset_info(), mask)
 
     def step(self, actions: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray, dict[str, Any]]:
         """Step every copy with actions [N, A] in one batched simulation step (module doc for autoreset)."""

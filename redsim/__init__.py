@@ -6,6 +6,7 @@ simulator (:mod:`redsim.integrators`) is the ground truth that reduced models ar
 against.
 """
 
+# ruff: noqa: E402  (the source-checkout path below must be set before redsim.envs is imported)
 import importlib.util as _importlib_util
 import pathlib as _pathlib
 

@@ -253,6 +253,50 @@ def pitch_for_vertex_count(
 
 
 # -- mesh queries ----------------------------------------------------------------------------
+def check_manifold(triangles: np.ndarray) -> None:
+    """Refuse a triangle surface that is not a manifold (with or without boundary), whatever its orientation.
+
+    Raises:
+        ValueError: an edge shared by more than two triangles, or a vertex where separate fans of triangles meet
+            at a single point (two sheets touching at a corner), naming the first such edge or vertex.
+    """
+    import scipy.sparse
+    from scipy.sparse.csgraph import connected_components
+
+    tri = np.asarray(triangles, dtype=np.int64).reshape(-1, 3)
+    if not tri.size:
+        return
+    corners = np.arange(tri.size).reshape(-1, 3)
+    start, end = tri.ravel(), tri[:, [1, 2, 0]].ravel()  # half-edge c runs from corner c to corner nxt[c]
+    nxt = corners[:, [1, 2, 0]].ravel()
+    base = int(tri.max()) + 1
+    keys = np.minimum(start, end) * base + np.maximum(start, end)
+    order = np.argsort(keys, kind="stable")
+    unique, counts = np.unique(keys, return_counts=True)
+    if bool((counts > 2).any()):
+        k = int(unique[counts > 2][0])
+        raise ValueError(
+            f"edge ({k // base}, {k % base}) is shared by {int(counts[counts > 2][0])} triangles: a cloth surface "
+            "must be a manifold (at most two triangles per edge)"
+        )
+    same = np.nonzero(keys[order[1:]] == keys[order[:-1]])[0]
+    i, j = order[same], order[same + 1]  # the two half-edges of each interior edge
+    along = start[j] == start[i]  # both run the same way (an orientation to fix later), or opposite ways
+    # the corners of start[i] and of end[i] in the two triangles are one fan around each of those vertices
+    left = np.concatenate([i, nxt[i]])
+    right = np.concatenate([np.where(along, j, nxt[j]), np.where(along, nxt[j], j)])
+    graph = scipy.sparse.coo_matrix((np.ones(left.size), (left, right)), shape=(tri.size, tri.size))
+    _, label = connected_components(graph, directed=False)
+    fans = np.unique(np.stack([start, label], axis=1), axis=0)[:, 0]
+    count = np.bincount(fans, minlength=base)
+    if bool((count > 1).any()):
+        v = int(np.nonzero(count > 1)[0][0])
+        raise ValueError(
+            f"vertex {v} joins {int(count[v])} separate fans of triangles (surfaces touching at one point): a cloth "
+            "surface must be a manifold; split the vertex or join the surfaces along an edge"
+        )
+
+
 def interior_hinges(triangles: np.ndarray) -> np.ndarray:
     """Hinges of the interior edges of a consistently oriented triangle mesh (for shell bending).
 

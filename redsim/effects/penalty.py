@@ -3,6 +3,7 @@ for contact. All are finite for any input, because fitting samples violate const
 
 from __future__ import annotations
 
+import math
 from dataclasses import dataclass
 
 import torch
@@ -350,14 +351,20 @@ class SDFContact(Effect):
         return self.shape.distance(local.squeeze(-1))
 
     def penetration(self, x: Tensor) -> Tensor:
-        """Deepest penetration [m] past the margin, shape [B], of full configurations x [B, N]."""
+        """Deepest penetration [m] past the margin, shape [B], of full configurations x [B, N] (0: none)."""
+        return (-self.clearance(x)).clamp_min(0.0)
+
+    def clearance(self, x: Tensor) -> Tensor:
+        """Smallest signed distance [m] of a contact point beyond the margin, shape [B], of full configurations
+        x [B, N]: negative inside the margin (minus the penetration), positive where no point touches (how far the
+        nearest one is from touching); +inf without points."""
         if self.single_frame:
             with torch.no_grad():
                 p, frame = self._points_and_frame(x)
-                depth = self.margin - self.shape.distance(_to_local(frame, p))
-            return depth.clamp_min(0.0).amax(-1) if depth.shape[-1] else x.new_zeros(x.shape[0])
-        depth = ((self.margin - self._pair_distances(x)) * self.pair_mask.unsqueeze(1)).clamp_min(0.0)
-        return depth.transpose(0, 1).flatten(1).amax(-1)
+                gap = self.shape.distance(_to_local(frame, p)) - self.margin
+            return gap.amin(-1) if gap.shape[-1] else x.new_full((x.shape[0],), math.inf)
+        gap = (self._pair_distances(x) - self.margin).masked_fill(self.pair_mask.unsqueeze(1) == 0, math.inf)
+        return gap.transpose(0, 1).flatten(1).amin(-1)
 
     def _pair_distances(self, x: Tensor) -> Tensor:
         """Signed distance [m] of every point, by (point source, frame) pair: [pairs, B, S] (see

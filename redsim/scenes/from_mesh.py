@@ -37,6 +37,8 @@ def _mesh_input(mesh_or_path: trimesh.Trimesh | str | os.PathLike[str]) -> tuple
         mesh = mesh_or_path.copy()
         if len(mesh.faces) == 0:
             raise ValueError("the mesh has no faces")
+        if not bool(np.isfinite(mesh.vertices).all()):  # as meshes.load_mesh refuses a file's
+            raise ValueError("the mesh has non-finite vertex coordinates")
         return mesh, "<trimesh>"
     if isinstance(mesh_or_path, str | os.PathLike):
         return meshes.load_mesh(mesh_or_path), os.path.abspath(os.fspath(mesh_or_path))
@@ -58,6 +60,18 @@ def _pinned(given: np.ndarray, vertices: np.ndarray, pin: PinSpec, *, tolerance:
     distance, index = scipy.spatial.cKDTree(vertices).query(points)
     scale = max(float(np.abs(vertices).max()), 1.0)  # welding merges within ~1e-8: found within 1e-6 of the size
     return np.unique(index[distance <= 1e-6 * scale])  # a given vertex no triangle uses is not in the cloth
+
+
+def _check_pins(pin: PinSpec, pinned: np.ndarray, count: int, gravity: bool) -> None:
+    """Refuse pins [P] (of ``count`` vertices) that leave nothing to move, or nothing to hang from under gravity."""
+    if pinned.size == count:
+        raise ValueError("pin selects every vertex; nothing would move")
+    if pinned.size == 0 and gravity:
+        shown = pin if pin is None or isinstance(pin, str) else type(pin).__name__
+        raise ValueError(
+            f"pin {shown!r} selects no vertex: under gravity the body free-falls and its energy has no minimum; "
+            "pin some vertices (e.g. pin='max_y') or give gravity=False"
+        )
 
 
 def _digest(*arrays: np.ndarray) -> str:
@@ -107,7 +121,8 @@ def fem_scene_from_mesh(
 
     Raises:
         FileNotFoundError: for a missing file.
-        ValueError: for an unreadable or non-watertight mesh or a bad parameter.
+        ValueError: for an unreadable or non-watertight mesh, non-finite vertices, a bad parameter, or pins that
+            select every vertex (or none, under gravity).
     """
     young = check_positive("young", young)
     poisson = check_poisson(poisson)
@@ -124,8 +139,7 @@ def fem_scene_from_mesh(
         pitch = check_positive("voxel_pitch", voxel_pitch)
     vertices, tets = meshes.voxel_tet_mesh(mesh, pitch)
     pinned = select_vertices(vertices, pin, tolerance=0.25 * pitch)
-    if pinned.size == vertices.shape[0]:
-        raise ValueError("pin selects every vertex; nothing would move")
+    _check_pins(pin, pinned, vertices.shape[0], gravity)
     b = SceneBuilder(dim=3)
     ids = add_fem(b, vertices, tets, young=young, poisson=poisson, density=density)
     if pinned.size:
@@ -184,7 +198,8 @@ def cloth_scene_from_mesh(
 
     Raises:
         FileNotFoundError: for a missing file.
-        ValueError: for an unreadable or non-manifold mesh or a bad parameter.
+        ValueError: for an unreadable or non-manifold mesh (an edge of three triangles, surfaces touching at a
+            vertex), non-finite vertices, a bad parameter, or pins that select every vertex (or none, under gravity).
     """
     young = check_positive("young", young)
     poisson = check_poisson(poisson)
@@ -197,6 +212,10 @@ def cloth_scene_from_mesh(
     _weld(mesh)
     mesh.update_faces(mesh.nondegenerate_faces())
     mesh.remove_unreferenced_vertices()
+    try:
+        meshes.check_manifold(mesh.faces)  # before fix_winding, which cannot orient a non-manifold surface
+    except ValueError as exc:
+        raise ValueError(f"mesh {source!r} cannot be used as cloth: {exc}") from exc
     if not mesh.is_winding_consistent:
         trimesh.repair.fix_winding(mesh)
     vertices = np.asarray(mesh.vertices, dtype=np.float64)
@@ -207,8 +226,7 @@ def cloth_scene_from_mesh(
         raise ValueError(f"mesh {source!r} cannot be used as cloth: {exc}") from exc
     diagonal = float(np.linalg.norm(vertices.max(0) - vertices.min(0)))
     pinned = _pinned(given, vertices, pin, tolerance=1e-3 * diagonal)
-    if pinned.size == vertices.shape[0]:
-        raise ValueError("pin selects every vertex; nothing would move")
+    _check_pins(pin, pinned, vertices.shape[0], gravity)
     b = SceneBuilder(dim=3)
     ids = add_cloth(
         b, vertices, triangles, young=young, poisson=poisson, thickness=thickness, density=density, bending=bending

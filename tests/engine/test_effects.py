@@ -542,6 +542,7 @@ def test_contact_penetration_matches_the_per_point_distances() -> None:
     expected = (contact.margin - per_point).clamp_min(0.0).amax(-1)
     assert float(expected.max()) > 0.0  # the perturbation made some points penetrate
     torch.testing.assert_close(contact.penetration(x), expected, rtol=1e-10, atol=1e-12)
+    torch.testing.assert_close(contact.clearance(x), (per_point - contact.margin).amin(-1), rtol=1e-10, atol=1e-12)
 
 
 @pytest.mark.parametrize(

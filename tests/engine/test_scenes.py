@@ -271,6 +271,29 @@ def test_cloth_scene_from_mesh(tmp_path) -> None:
         redsim.scenes.cloth_scene_from_mesh(path, young=0)
 
 
+def test_a_cloth_mesh_that_is_not_a_manifold_or_not_finite_or_not_held_is_refused() -> None:
+    vertices, triangles = meshes.cloth_grid(0.5, 0.5, (4, 4), origin=(0.0, -0.5, 0.0))
+    a, b = meshes.interior_hinges(triangles)[0][:2]
+    build = redsim.scenes.cloth_scene_from_mesh
+    with pytest.raises(ValueError, match=r"edge \(\d+, \d+\) is shared by 3 triangles"):
+        build(trimesh.Trimesh(vertices, np.vstack([triangles, [[a, b, 20]]]), process=False))
+    corner = vertices[np.argmax(vertices.sum(1))]  # a second sheet whose first corner is the first's last one
+    touching = trimesh.Trimesh(
+        np.vstack([vertices, vertices - vertices.min(0) + corner]), np.vstack([triangles, triangles + len(vertices)])
+    )
+    with pytest.raises(ValueError, match="separate fans of triangles"):
+        build(touching)
+    meshes.check_manifold(triangles[:, ::-1][::2].tolist() + triangles[1::2].tolist())  # orientation is not its job
+    broken = vertices.copy()
+    broken[5, 0] = np.nan
+    with pytest.raises(ValueError, match="non-finite vertex coordinates"):
+        build(trimesh.Trimesh(broken, triangles, process=False))
+    for pin in (None, [], lambda v: v[:, 1] > 10.0):
+        with pytest.raises(ValueError, match="selects no vertex: under gravity"):
+            build(trimesh.Trimesh(vertices, triangles), pin=pin)
+    assert build(trimesh.Trimesh(vertices, triangles), pin=None, gravity=False).free_dof_count == 3 * len(vertices)
+
+
 def test_a_mesh_split_at_uv_seams_or_per_face_normals_is_welded_back(tmp_path) -> None:
     """A flat-shaded or textured export repeats a vertex per face; the cloth and the solid are the welded mesh."""
     vertices, triangles = meshes.cloth_grid(0.5, 0.5, (6, 6), origin=(0.0, -0.5, 0.0))

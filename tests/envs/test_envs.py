@@ -346,6 +346,19 @@ def test_info_reports_solver_flags_invariants_rewards_and_q() -> None:
     assert reward == pytest.approx(sum(terms), rel=1e-5, abs=1e-6)
     assert info["q"].shape == (24,)
     assert info["rigid_orthogonality_error"] < 0.05 and info["contact_penetration"] < 0.01
+    assert info["contact_clearance"] == pytest.approx(-info["contact_penetration"]) or info["contact_clearance"] > 0
+
+
+def test_include_q_puts_the_configuration_in_the_reset_info_too() -> None:
+    env = gym.make("RedSim/MiniChain-v0", include_q=True)
+    _, info = env.reset(seed=0)
+    np.testing.assert_array_equal(info["q"], env.unwrapped.configuration())  # the first frame of an episode's mesh
+    assert gym.make("RedSim/MiniChain-v0").reset(seed=0)[1] == {}
+    venv = gym.make_vec("RedSim/MiniChain-v0", num_envs=3, vectorization_mode="vector_entry_point", include_q=True)
+    _, info = venv.reset(seed=0)
+    assert info["q"].shape == (3, 24) and info["_q"].all()
+    _, info = venv.reset(options={"reset_mask": np.array([False, True, False])})
+    assert info["_q"].tolist() == [False, True, False]
 
 
 def test_bang_bang_soak_stays_finite(mini: gym.Env) -> None:
