@@ -189,6 +189,8 @@ those that meet the accuracy bar (held-out force error and 100-step trajectory d
 only by float32 round-off, so it stays off. The others step every element unless ``cubature=True``."""
 
 
+RESET_INFO_KEYS = ("q",)
+"""The keys a reset's info can hold (:meth:`LatentSim.reset_info`)."""
 CHECKPOINT_ATTRIBUTE = "redsim_checkpoint"
 """Attribute :func:`shipped` sets on a map it loads from a path: that path, where ``cubature=True`` looks."""
 
@@ -245,7 +247,8 @@ def env_energy(
         if not cubature_path(source).is_file():
             raise CheckpointError(
                 f"no cubature is shipped for scene {scene.name!r}; make one for your map with "
-                "`redsim cubature CHECKPOINT --elements K` and pass cubature=CHECKPOINT"
+                "`redsim cubature CHECKPOINT --elements K` (a hand-built scene: redsim.cubature.build_cubature(scene, "
+                "map).save(STEM)) and pass cubature=CHECKPOINT"
             )
     elif isinstance(cubature, (str, os.PathLike)):
         source = cubature
@@ -576,7 +579,8 @@ class LatentSim:
         return reward.detach().cpu().numpy().astype(np.float64), terminated.cpu().numpy(), {**out, **self.reset_info()}
 
     def reset_info(self) -> dict[str, np.ndarray]:
-        """What ``info`` holds at a reset: with ``include_q``, ``q`` [B, n] (every row; the caller picks its own)."""
+        """What ``info`` holds at a reset (:data:`RESET_INFO_KEYS`): with ``include_q``, ``q`` [B, n] (every row; the
+        caller picks its own)."""
         return {"q": self.positions(self.z).detach().cpu().numpy()} if self.include_q else {}
 
     # -- state ----------------------------------------------------------------------------
@@ -719,7 +723,6 @@ def shipped(
             ``fit_if_missing`` is False), or the checkpoint is missing or corrupt.
     """
     from redsim import pretrained, scenes
-    from redsim.subspace import load_subspace
 
     if scene_params is not None and not isinstance(scene_params, Mapping):
         raise ValueError(f"scene_params must be a dict of build parameters, got {scene_params!r:.80}")
@@ -740,9 +743,21 @@ def shipped(
         return scene, pretrained.load(scene_name, scene)
     if isinstance(subspace, nn.Module):
         return scene, subspace
-    loaded = load_subspace(subspace, scene=scene)
-    setattr(loaded, CHECKPOINT_ATTRIBUTE, os.fspath(subspace))
-    return scene, loaded
+    return scene, checkpoint_subspace(subspace, scene)
+
+
+def checkpoint_subspace(path: str | os.PathLike[str], scene: Scene) -> nn.Module:
+    """The map saved at ``path`` for ``scene``, marked with its path (:data:`CHECKPOINT_ATTRIBUTE`): an env's
+    ``cubature=True`` then takes the cubature beside it.
+
+    Raises:
+        redsim.subspace.CheckpointError: a missing or corrupt checkpoint, or one of another scene.
+    """
+    from redsim.subspace import load_subspace
+
+    loaded = load_subspace(path, scene=scene)
+    setattr(loaded, CHECKPOINT_ATTRIBUTE, os.fspath(path))
+    return loaded
 
 
 class LatentEnv(gym.Env[np.ndarray, np.ndarray]):

@@ -8,7 +8,7 @@ from typing import Any
 import gymnasium as gym
 from gymnasium.wrappers import TimeLimit
 
-from redsim.envs.base import LatentEnv, Task
+from redsim.envs.base import LatentEnv, Task, checkpoint_subspace
 from redsim.envs.reach import HandleReach
 from redsim.scene import Scene
 
@@ -30,7 +30,6 @@ def build(
 ) -> gym.Env:
     """See :func:`redsim.envs.make`."""
     from redsim import pretrained, scenes
-    from redsim.subspace import load_subspace
 
     if not isinstance(scene, Scene | str):
         raise TypeError(f"scene must be a redsim.Scene or a catalog name, got {type(scene).__name__}")
@@ -44,7 +43,7 @@ def build(
     if subspace is None:
         raise ValueError(f"scene {scene.name!r} is not a catalog name: give its subspace (a map or a checkpoint path)")
     if not hasattr(subspace, "latent_dim"):
-        subspace = load_subspace(subspace, scene=scene)
+        subspace = checkpoint_subspace(subspace, scene)
     if isinstance(task, str):
         if task not in TASKS:
             raise ValueError(f"unknown task {task!r}; valid tasks: {sorted(TASKS)}")

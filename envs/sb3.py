@@ -24,6 +24,7 @@ import numpy as np
 from gymnasium.vector import AutoresetMode
 from stable_baselines3.common.vec_env import VecEnv
 
+from redsim.envs.base import RESET_INFO_KEYS
 from redsim.envs.goal import GoalVectorObservation
 from redsim.envs.sharded import ShardedVectorEnv
 from redsim.envs.vector import LatentVectorEnv
@@ -90,10 +91,10 @@ class SB3VecEnv(VecEnv):
         options = [dict(o or {}) for o in self._options]
         if any(o != options[0] for o in options):
             raise ValueError("SB3VecEnv resets its copies together: give every copy the same options (set_options)")
-        obs, _ = self.venv.reset(seed=seed, options=options[0] or None)
+        obs, info = self.venv.reset(seed=seed, options=options[0] or None)
         restarted = options[0].get("reset_mask", slice(None))  # the copies that start a new episode
         self._returns[restarted], self._lengths[restarted] = 0.0, 0
-        self.reset_infos = [{} for _ in range(self.num_envs)]
+        self.reset_infos = [_info_row(info, i) for i in range(self.num_envs)]
         self._reset_seeds()
         self._reset_options()
         return obs
@@ -110,6 +111,7 @@ class SB3VecEnv(VecEnv):
         for i in range(self.num_envs):
             row = _info_row(info, i)
             if done[i]:  # the step's own info (final_info), and what outer wrappers added (e.g. "episode")
+                self.reset_infos[i] = {k: row.pop(k) for k in RESET_INFO_KEYS if k in row}  # the new episode's
                 row = {**_info_row(info["final_info"], i), **row}
                 row["terminal_observation"] = info["final_obs"][i]
                 row["TimeLimit.truncated"] = bool(truncated[i] and not terminated[i])

@@ -128,7 +128,7 @@ class LatentVectorEnv(SharedCopies, VectorEnv):
                 reward[restart], terminated[restart], truncated[restart] = 0.0, False, False
                 self._elapsed[restart] = 0
             obs = self.sim.observe()
-            infos = _with_masks(info, ~restart)
+            infos = _with_reset_info(_with_masks(info, ~restart), self.sim.reset_info(), restart)
         else:
             # as Gymnasium's sync vector env: an ended copy's step info only in ``final_info`` (batched, masked)
             done = terminated | truncated
@@ -143,6 +143,7 @@ class LatentVectorEnv(SharedCopies, VectorEnv):
                 self.sim.reset_rows(rows, [self._rngs[i] for i in rows])
                 self._elapsed[done] = 0
                 obs = self.sim.observe()
+                infos = _with_reset_info(infos, self.sim.reset_info(), done)
                 infos.update(
                     final_obs=final_obs, _final_obs=done.copy(), final_info=final_info, _final_info=done.copy()
                 )
@@ -218,6 +219,22 @@ def check_vector_args(
     if max_episode_steps is not None and (int(max_episode_steps) != max_episode_steps or max_episode_steps < 1):
         raise ValueError(f"max_episode_steps must be None or an integer >= 1, got {max_episode_steps!r}")
     return mode
+
+
+def _with_reset_info(infos: dict[str, Any], reset: dict[str, np.ndarray], rows: np.ndarray) -> dict[str, Any]:
+    """``infos`` with the reset info [N, ...] of the copies ``rows`` [N] (bool) that were just reset, as
+    Gymnasium's sync vector env puts a reset env's info in its slot."""
+    if not rows.any():
+        return infos
+    out = dict(infos)
+    for key, value in reset.items():
+        if key in out:
+            merged = out[key].copy()
+            merged[rows] = value[rows]
+            out[key], out[f"_{key}"] = merged, out[f"_{key}"] | rows
+        else:
+            out[key], out[f"_{key}"] = value, rows.copy()
+    return out
 
 
 def _with_masks(info: dict[str, np.ndarray], mask: np.ndarray) -> dict[str, Any]:

@@ -15,7 +15,7 @@ import sys
 import tempfile
 from pathlib import Path
 
-from redsim.trainers.agents import TrainingInterrupted, evaluate, load_agent, train_agent
+from redsim.trainers.agents import TrainingInterrupted, check_run_folder, evaluate, load_agent, train_agent
 
 ENV_ID = "RedSim/HangingCloth-v0"
 
@@ -80,6 +80,10 @@ if __name__ == "__main__":
     what.add_argument("--resume", action="store_true", help="continue the run in OUT/hanging_cloth to --steps")
     what.add_argument("--overwrite", action="store_true", help="replace the run in OUT/hanging_cloth")
     args = parser.parse_args()
+    try:  # a run already in the folder: --resume or --overwrite
+        check_run_folder(args.out / "hanging_cloth", args.resume, args.overwrite)
+    except ValueError as err:
+        parser.error(str(err))
     try:
         check(main(args.out, args.steps, args.episode_steps, args.resume, args.overwrite))
     except TrainingInterrupted as stop:  # the model, buffer and curve are saved
@@ -88,5 +92,3 @@ if __name__ == "__main__":
     except KeyboardInterrupt:
         print("interrupted before training started; nothing was saved", file=sys.stderr)
         sys.exit(130)
-    except ValueError as err:  # e.g. a run already in the folder: --resume or --overwrite
-        parser.error(str(err))

@@ -132,10 +132,13 @@ if __name__ == "__main__":
     parser.add_argument("--episode-steps", type=int, help="steps per episode (default: the env's limit)")
     parser.add_argument("--out", type=Path, help="folder for sac.zip and sac_her.zip (default: not saved)")
     args = parser.parse_args()
+    limit = {} if args.episode_steps is None else {"max_episode_steps": args.episode_steps}
+    try:  # a budget that ends no episode
+        episodes_ended(args.env, args.steps, limit, args.num_envs)
+    except ValueError as err:
+        parser.error(str(err))
     try:
         main(args.out, args.env, args.steps, args.episodes, args.episode_steps, seed=args.seed, num_envs=args.num_envs)
-    except ValueError as err:  # a budget that ends no episode
-        parser.error(str(err))
     except KeyboardInterrupt:
         print("interrupted", file=sys.stderr)
         sys.exit(130)

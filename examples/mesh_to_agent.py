@@ -22,7 +22,7 @@ import trimesh
 
 import redsim
 from redsim.trainers import fit_subspace
-from redsim.trainers.agents import TrainingInterrupted, evaluate, train_agent
+from redsim.trainers.agents import TrainingInterrupted, check_run_folder, evaluate, train_agent
 
 
 def sheet(size: float = 0.4, cells: int = 5) -> trimesh.Trimesh:
@@ -37,14 +37,23 @@ def sheet(size: float = 0.4, cells: int = 5) -> trimesh.Trimesh:
     return trimesh.Trimesh(vertices, np.array(faces), process=False)
 
 
+def check_folder(folder: Path, resume: bool, overwrite: bool) -> None:
+    """Refuse a folder that holds a run or its map, unless ``resume`` continues it or ``overwrite`` replaces it."""
+    check_run_folder(folder, resume, overwrite)
+    fitted = folder / "subspace.pt"
+    if fitted.is_file() and not (resume or overwrite):
+        raise ValueError(f"{folder} holds a fitted map: continue its run with --resume or replace it with --overwrite")
+    if resume and (folder / "model.zip").is_file() and not fitted.is_file():
+        raise ValueError(f"{folder} holds an agent but not the map it was trained in (subspace.pt): use --overwrite")
+
+
 def main(
     out: Path | None = None, fit_steps: int = 60, steps: int = 100, resume: bool = False, overwrite: bool = False
 ) -> dict[str, float]:
     with tempfile.TemporaryDirectory() as tmp:
         folder = Path(out or tmp) / "my_sheet"
         fitted = folder / "subspace.pt"
-        if fitted.is_file() and not (resume or overwrite):  # checked before a fit could replace the run's map
-            raise ValueError(f"{folder} holds a run: continue it with --resume or replace it with --overwrite")
+        check_folder(folder, resume, overwrite)  # before a fit could replace the run's map
         path = Path(tmp) / "sheet.obj"
         sheet().export(path)
         scene = redsim.scenes.cloth_scene_from_mesh(path, pin="max_y", name="my_sheet")
@@ -92,6 +101,10 @@ if __name__ == "__main__":
     what.add_argument("--resume", action="store_true", help="continue the run in OUT/my_sheet, in its map")
     what.add_argument("--overwrite", action="store_true", help="fit and train anew in OUT/my_sheet")
     args = parser.parse_args()
+    try:  # a run already in the folder: --resume or --overwrite
+        check_folder(args.out / "my_sheet", args.resume, args.overwrite)
+    except ValueError as err:
+        parser.error(str(err))
     try:
         check(main(args.out, args.fit_steps, args.steps, args.resume, args.overwrite))
     except TrainingInterrupted as stop:  # the model, buffer and curve are saved beside the map

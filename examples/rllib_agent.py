@@ -8,8 +8,10 @@ On a multi-machine cluster (redsim installed on every node, same versions):
     python examples/rllib_agent.py --address auto --env-runners 16
 (or set RAY_ADDRESS=HEAD_IP:6379; each env runner takes one CPU of whichever node Ray places it on).
 Each runner steps --envs-per-runner copies in redsim's native vector env (one batched solve for all of them).
-The env config is checked in this process first, so a bad id or keyword is a clear error here rather than dead
-runners. --out DIR saves the algorithm to DIR/rllib_ppo; `--restore DIR/rllib_ppo` trains on from it.
+The env config is checked in this process first, as the runners build it, so a bad id or keyword is a clear error
+here rather than dead runners. --out DIR saves the algorithm to DIR/rllib_ppo (refused where one is, unless
+--overwrite); `--restore DIR/rllib_ppo` trains on from it with its own settings (env, runners, batch), so those
+flags are refused beside it; a local cluster then gets every CPU of the machine for the restored runners.
 main()'s defaults are the one-iteration budget the test suite runs.
 """
 
@@ -17,12 +19,15 @@ from __future__ import annotations
 
 import argparse
 import importlib.util
+import math
 import sys
 from pathlib import Path
 
 from redsim.trainers.rllib import check_env_config, register
 
 ENV_ID = "RedSim/MiniChain-v0"
+SETTINGS = {"env": ENV_ID, "env_runners": 2, "envs_per_runner": 16, "batch": 4000, "episode_steps": None}
+"""The command line's defaults of the settings a restored algorithm brings along."""
 
 
 def main(
@@ -40,12 +45,17 @@ def main(
     from ray.rllib.algorithms.algorithm import Algorithm
     from ray.rllib.algorithms.ppo import PPOConfig
 
+    if restore is not None and not (restore / "rllib_checkpoint.json").is_file():
+        raise ValueError(f"{restore} is not an RLlib checkpoint (no rllib_checkpoint.json): give OUT/rllib_ppo")
     env_config = {"id": env_id, "kwargs": {} if episode_steps is None else {"max_episode_steps": episode_steps}}
-    check_env_config(env_config)  # before any runner starts
-    if address is None:  # a local cluster, sized to the runners plus this driver (which also learns)
-        ray.init(num_cpus=env_runners + 1, include_dashboard=False, object_store_memory=200 * 2**20)
-    else:
+    if restore is None:
+        check_env_config(env_config, num_envs=envs_per_runner)  # before any runner starts, as the runners build it
+    if address is not None:
         ray.init(address=address)
+    elif restore is not None:  # the checkpoint's runners, whatever their number
+        ray.init(include_dashboard=False, object_store_memory=200 * 2**20)
+    else:  # a local cluster, sized to the runners plus this driver (which also learns)
+        ray.init(num_cpus=env_runners + 1, include_dashboard=False, object_store_memory=200 * 2**20)
     name = register()  # before from_checkpoint too: the checkpoint names the creator
     if restore is not None:
         algo = Algorithm.from_checkpoint(str(restore.resolve()))
@@ -68,13 +78,16 @@ def main(
             runners = result.get("env_runners", {})
             if "num_env_steps_sampled_lifetime" not in runners:
                 raise RuntimeError(f"iteration {result['training_iteration']} sampled nothing (see the runners' log)")
+            mean = runners.get("episode_return_mean", math.nan)
+            returns = "no episode ended yet" if math.isnan(mean) else f"episode return {mean:.2f}"
             print(
                 f"iteration {result['training_iteration']}: {runners['num_env_steps_sampled_lifetime']} env steps, "
-                f"episode return {runners.get('episode_return_mean', float('nan')):.2f}"
+                f"{returns}"
             )
         healthy = algo.env_runner_group.num_healthy_remote_workers()
         if out is not None:
             print(f"saved {algo.save_to_path(str((out / 'rllib_ppo').resolve()))}")
+        settings = {"runners": algo.config.num_env_runners, "batch": algo.config.train_batch_size_per_learner}
     finally:
         algo.stop()
         ray.shutdown()
@@ -82,8 +95,8 @@ def main(
         "iterations": float(result["training_iteration"]),
         "env_steps": float(runners["num_env_steps_sampled_lifetime"]),
         "healthy_runners": float(healthy),
-        "requested_runners": float(env_runners),
-        "batch": float(batch),
+        "requested_runners": float(settings["runners"]),
+        "batch": float(settings["batch"]),
     }
 
 
@@ -93,34 +106,55 @@ def check(result: dict[str, float]) -> None:
     assert result["iterations"] >= 1 and result["env_steps"] >= result["batch"]
 
 
+def _positive(text: str) -> int:
+    value = int(text)
+    if value < 1:
+        raise argparse.ArgumentTypeError(f"must be an integer >= 1, got {text}")
+    return value
+
+
 if __name__ == "__main__":
     parser = argparse.ArgumentParser(description="RLlib PPO on a RedSim env")
-    parser.add_argument("--env", default=ENV_ID, help=f"a RedSim id (default {ENV_ID})")
-    parser.add_argument("--iterations", type=int, default=20, help="training iterations (default 20)")
-    parser.add_argument("--env-runners", type=int, default=2, help="env runner processes (default 2)")
-    parser.add_argument("--envs-per-runner", type=int, default=16, help="env copies per runner (default 16)")
-    parser.add_argument("--batch", type=int, default=4000, help="env steps per iteration (default 4000)")
-    parser.add_argument("--episode-steps", type=int, help="steps per episode (default: the env's limit)")
+    parser.add_argument("--env", help=f"a RedSim id (default {ENV_ID})")
+    parser.add_argument("--iterations", type=_positive, default=20, help="training iterations (default 20)")
+    parser.add_argument("--env-runners", type=int, help="env runner processes (default 2)")
+    parser.add_argument("--envs-per-runner", type=_positive, help="env copies per runner (default 16)")
+    parser.add_argument("--batch", type=_positive, help="env steps per iteration (default 4000)")
+    parser.add_argument("--episode-steps", type=_positive, help="steps per episode (default: the env's limit)")
     parser.add_argument("--address", help="a running Ray cluster ('auto', or HEAD_IP:6379); default: start one")
     parser.add_argument("--out", type=Path, help="save the algorithm to OUT/rllib_ppo")
-    parser.add_argument("--restore", type=Path, help="train on from a saved algorithm (its own settings)")
+    parser.add_argument("--overwrite", action="store_true", help="replace an algorithm saved in OUT/rllib_ppo")
+    parser.add_argument("--restore", type=Path, help="train on from OUT/rllib_ppo, with its own settings")
     args = parser.parse_args()
     if importlib.util.find_spec("ray") is None:
         parser.error('this example needs Ray RLlib: pip install "redsim[ray]"')
+    given = {key: getattr(args, key) for key in SETTINGS}
+    if args.restore is not None and any(value is not None for value in given.values()):
+        flags = [f"--{key.replace('_', '-')}" for key, value in given.items() if value is not None]
+        parser.error(f"--restore trains on with the checkpoint's own settings: drop {' '.join(flags)}")
+    if args.out is not None and (args.out / "rllib_ppo").exists() and not args.overwrite:
+        parser.error(f"{args.out / 'rllib_ppo'} holds a saved algorithm: --restore it, or give --overwrite")
+    settings = {key: SETTINGS[key] if value is None else value for key, value in given.items()}
+    if args.restore is not None and not (args.restore / "rllib_checkpoint.json").is_file():
+        parser.error(f"{args.restore} is not an RLlib checkpoint (no rllib_checkpoint.json): give OUT/rllib_ppo")
+    if args.restore is None:
+        kwargs = {} if settings["episode_steps"] is None else {"max_episode_steps": settings["episode_steps"]}
+        try:  # as the runners will build it, before Ray starts
+            check_env_config({"id": settings["env"], "kwargs": kwargs}, num_envs=settings["envs_per_runner"])
+        except ValueError as err:
+            parser.error(str(err))
     try:
         result = main(
             args.out,
             args.iterations,
-            args.env_runners,
+            settings["env_runners"],
             args.address,
-            args.episode_steps,
-            args.batch,
-            args.env,
-            args.envs_per_runner,
+            settings["episode_steps"],
+            settings["batch"],
+            settings["env"],
+            settings["envs_per_runner"],
             args.restore,
         )
-    except ValueError as err:  # the env config, checked before Ray starts
-        parser.error(str(err))
     except KeyboardInterrupt:
         print("interrupted; the algorithm was not saved", file=sys.stderr)
         sys.exit(130)

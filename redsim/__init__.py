@@ -11,11 +11,17 @@ import importlib.util as _importlib_util
 import pathlib as _pathlib
 
 _CHECKOUT = _pathlib.Path(__file__).resolve().parent.parent
-if _importlib_util.find_spec("redsim.envs") is None and (_CHECKOUT / "envs" / "__init__.py").is_file():
+_PROJECT = _CHECKOUT / "pyproject.toml"
+if (
+    _importlib_util.find_spec("redsim.envs") is None
+    and (_CHECKOUT / "envs" / "__init__.py").is_file()
+    and _PROJECT.is_file()
+    and 'name = "redsim"' in _PROJECT.read_text()
+):
     # imported from a source checkout that is not installed editable (e.g. a Ray worker whose working directory is
     # the clone's root): redsim.envs and redsim.trainers are its top-level envs/ and trainers/ (pyproject's package-dir)
     __path__.append(str(_CHECKOUT))
-del _importlib_util, _pathlib, _CHECKOUT
+del _importlib_util, _pathlib, _CHECKOUT, _PROJECT
 
 # redsim.envs registers the Gymnasium ids ("RedSim/Chain-v0", ...) with string entry points: nothing
 # heavy is imported and no checkpoint is loaded until an env is made. redsim.fork_safety: a process forked

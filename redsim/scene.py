@@ -23,6 +23,7 @@ from collections.abc import Mapping, Sequence
 from dataclasses import dataclass, field
 from typing import Any
 
+import numpy as np
 import torch
 from torch import Tensor
 
@@ -167,7 +168,8 @@ class Scene:
 
     Attributes:
         name: Scene name (the catalog key, or a user's name).
-        params: Build parameters (JSON-serializable); with ``name`` they define :meth:`fingerprint`.
+        params: Build parameters (JSON-serializable); with ``name`` they define :meth:`fingerprint`, in place of the
+            scene's data: give them only where they determine the scene (a builder's arguments), else none.
         dim: Spatial dimension D (2 or 3).
         dof_map: Free/pinned layout; n = ``dof_map.free_dof_count``.
         mass_matrix: M over free DOFs [kg], sparse COO (coalesced), shape [n, n].
@@ -276,6 +278,23 @@ class Scene:
             raise KeyError(f"scene {self.name!r} has no effect {name!r}; it has {list(self._effect_index)}")
         return self.effects[self._effect_index[name]]
 
+    def load_free_effects(self, user: str) -> tuple[Effect, ...]:
+        """The effects but the load term (:class:`ExternalLoad`, whose work a latent step adds in closed form), for
+        ``user`` (named in the error): the effects E(q; c) a latent energy or a cubature evaluates.
+
+        Raises:
+            ValueError: another effect reads the loads (``uses_loads``): ``user`` evaluates E without them, so it
+                would drop that effect; the full-space integrators take it.
+        """
+        other = [e.name for e in self.effects if e.uses_loads and not isinstance(e, ExternalLoad)]
+        if other:
+            raise ValueError(
+                f"scene {self.name!r}: effect(s) {other} read the loads; {user} handles only the linear load term "
+                "(external_load) in closed form and would drop them. Model a load-dependent energy in full space "
+                "(redsim.integrators), or as an effect of the configuration (and condition) alone"
+            )
+        return tuple(e for e in self.effects if not e.uses_loads)
+
     # -- energy ---------------------------------------------------------------------------
     def energy(self, q: Tensor, loads: LoadsLike = None, cond: Tensor | None = None) -> Tensor:
         """Potential energy [J], shape [B], of free configurations q, shape [B, n] ([n] gives a scalar)."""
@@ -292,6 +311,12 @@ class Scene:
         loads_t = self.pack_loads(loads, q.shape[0], q)
         cond_t = self.pack_condition(cond, q.shape[0], q)
         terms = {e.name: e.energy(x, cond_t, loads_t) for e in self.effects}
+        for name, value in terms.items():
+            if value.shape != (q.shape[0],):
+                raise ValueError(
+                    f"effect {name!r} of scene {self.name!r} returned an energy of shape {tuple(value.shape)} for "
+                    f"{q.shape[0]} configuration(s), not [{q.shape[0]}]: element_energy must return [B, T]"
+                )
         return {k: v[0] for k, v in terms.items()} if single else terms
 
     def pack_loads(self, loads: LoadsLike, batch: int, like: Tensor | None = None) -> Tensor | None:
@@ -387,17 +412,24 @@ class Scene:
     def accepts(self, fingerprint: str | None) -> bool:
         """Whether a checkpoint's recorded fingerprint names this scene: this one, or the one written before stop
         29's rule (name and every parameter, a mesh's file path included; a hand-built scene's name alone)."""
-        return fingerprint in (self.fingerprint(), _hash({"name": self.name, "params": self.params}))
+        if fingerprint in (self.fingerprint(), _hash({"name": self.name, "params": self.params})):
+            return True
+        params = {k: v for k, v in self.params.items() if k not in SOURCE_PARAMS}
+        return not params and fingerprint == _hash({"name": self.name, "params": {"data": self._data_digest(1)}})
 
-    def _data_digest(self) -> str:
-        """Hash of the seed state, the free DOFs, the mass matrix and every effect's kind and data (tensors,
-        numbers, shapes: materials, elements, pins); floats as float32, so float32 and float64 copies agree."""
+    def _data_digest(self, version: int = 2) -> str:
+        """Hash of the seed state, the free DOFs, the mass matrix, the condition space and every effect's kind and
+        data (tensors, numbers, strings, and the lists, tuples, dicts and arrays that hold them: materials,
+        elements, pins); floats as float32, so float32 and float64 copies agree. ``version`` 1: the digest stop 29
+        to 30 wrote (no condition space, containers skipped), which :meth:`accepts` still takes."""
         h = hashlib.sha256(_bytes(self.q_seed))
         h.update(str((self.free_dof_count, self.full_dof_count, self.handle_names)).encode())
         h.update(_bytes(self.mass_matrix.to_dense() if self.mass_matrix.is_sparse else self.mass_matrix))
+        if version > 1 and self.condition_space is not None:
+            _digest_value(h, "condition_space", vars(self.condition_space), depth=2, containers=True)
         for effect in self.effects:
             h.update(f"{effect.name}:{effect.kind}:{effect.element_count}".encode())
-            _digest_fields(h, effect, depth=2)
+            _digest_fields(h, effect, depth=2, containers=version > 1)
         return h.hexdigest()[:16]
 
     def to(self, device: torch.device | str | None = None, dtype: torch.dtype | None = None) -> Scene:
@@ -447,7 +479,7 @@ class SceneBuilder:
         b.pin_particles(ids[:4])
         b.add_effect(NeoHookean("elastic", b.particle_dofs(tets), vertices[tets], young=1e5, poisson=0.4))
         b.add_gravity((0.0, -9.81, 0.0))
-        scene = b.finalize("my_scene", params={...})
+        scene = b.finalize("my_scene")  # fingerprinted by its data; params=... only if they determine it
     """
 
     default_rigid_stiffness = 5000.0
@@ -690,6 +722,8 @@ class SceneBuilder:
         dof_map = DofMap(free_index, seed)
 
         effects = list(self._effects)
+        for effect in effects:
+            _check_element_dofs(effect, N)
         if self._handles:
             points = PointSet.cat([h[1] for h in self._handles])
             index = torch.cat([torch.full((h[1].count,), i, dtype=torch.int64) for i, h in enumerate(self._handles)])
@@ -784,6 +818,19 @@ class SceneBuilder:
         return M
 
 
+def _check_element_dofs(effect: Effect, count: int) -> None:
+    """Refuse an effect whose ``element_dofs`` are not [T, k] int64 indices into a full configuration of ``count``."""
+    dofs = getattr(effect, "element_dofs", None)
+    if not isinstance(dofs, Tensor) or dofs.ndim != 2 or dofs.dtype != torch.int64:
+        shown = (tuple(dofs.shape), dofs.dtype) if isinstance(dofs, Tensor) else type(dofs).__name__
+        raise ValueError(f"effect {effect.name!r}: element_dofs must be an int64 tensor [T, k], got {shown}")
+    if dofs.numel() and (int(dofs.min()) < 0 or int(dofs.max()) >= count):
+        raise ValueError(
+            f"effect {effect.name!r}: element_dofs hold indices {int(dofs.min())}..{int(dofs.max())}, outside the "
+            f"scene's {count} full DOFs"
+        )
+
+
 def _hash(doc: dict[str, Any]) -> str:
     return hashlib.sha256(json.dumps(doc, sort_keys=True, default=str).encode()).hexdigest()[:16]
 
@@ -793,13 +840,29 @@ def _bytes(t: Tensor) -> bytes:
     return (t.to(torch.float32) if t.is_floating_point() else t).contiguous().numpy().tobytes()
 
 
-def _digest_fields(h: Any, obj: Any, depth: int) -> None:
-    """Feed ``h`` an object's tensors, numbers and strings, and those of the objects it holds (``depth`` levels)."""
+def _digest_fields(h: Any, obj: Any, depth: int, containers: bool = True) -> None:
+    """Feed ``h`` an object's tensors, numbers and strings, and those of the objects it holds (``depth`` levels);
+    with ``containers``, also those inside its lists, tuples, dicts and arrays."""
     for key, value in sorted(vars(obj).items()):
-        if isinstance(value, Tensor):
-            h.update(key.encode() + _bytes(value))
-        elif isinstance(value, bool | int | float | str) or value is None:
-            h.update(f"{key}={value!r}".encode())
-        elif depth > 0 and hasattr(value, "__dict__") and not callable(value):
-            h.update(f"{key}:{type(value).__name__}".encode())
-            _digest_fields(h, value, depth - 1)
+        _digest_value(h, key, value, depth, containers)
+
+
+def _digest_value(h: Any, key: str, value: Any, depth: int, containers: bool) -> None:
+    """Feed ``h`` one field (:func:`_digest_fields`)."""
+    if isinstance(value, Tensor):
+        h.update(key.encode() + _bytes(value))
+    elif isinstance(value, bool | int | float | str) or value is None:
+        h.update(f"{key}={value!r}".encode())
+    elif containers and isinstance(value, np.ndarray):
+        h.update(key.encode() + _bytes(torch.as_tensor(value)))
+    elif containers and isinstance(value, list | tuple):
+        h.update(f"{key}:{type(value).__name__}{len(value)}".encode())
+        for i, item in enumerate(value):
+            _digest_value(h, f"{key}[{i}]", item, depth, containers)
+    elif containers and isinstance(value, dict):
+        h.update(f"{key}:dict{len(value)}".encode())
+        for name, item in sorted(value.items(), key=lambda pair: str(pair[0])):
+            _digest_value(h, f"{key}[{name!r}]", item, depth, containers)
+    elif depth > 0 and hasattr(value, "__dict__") and not callable(value):
+        h.update(f"{key}:{type(value).__name__}".encode())
+        _digest_fields(h, value, depth - 1, containers)

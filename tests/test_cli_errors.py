@@ -55,7 +55,7 @@ def test_weights_of_another_scene_are_one_line_naming_both_shapes(cli: Cli, tmp_
         (["--explore", "1.5"], "--explore must be a number in (0, 1], got 1.5"),
         (["--checkpoint-every", "-1"], "--checkpoint-every must be an integer >= 0, got -1"),
         (["--dtype", "float16"], "--dtype must be one of float32, float64, got 'float16'"),
-        (["--device", "abacus"], "--device must be a torch device this machine has, such as cpu or cuda, got 'abacus'"),
+        (["--device", "abacus"], "--device must be cpu or cuda[:N], a GPU this machine has, got 'abacus'"),
         (["--dim", "2", "--periodic", "5"], "--periodic must be distinct latent indices in [0, latent_dim), got (5,)"),
         (["--periodic", "x"], "--periodic must be comma-separated integers"),
     ],
@@ -165,7 +165,7 @@ def test_simulate_picture_shows_loads_and_fixed_parts(tmp_path: Path) -> None:
 @pytest.mark.skipif(torch.cuda.is_available(), reason="this machine has CUDA")
 def test_fit_on_cuda_without_cuda_is_one_line(cli: Cli) -> None:
     code, _, err = cli("fit", "toy_two_tets", "--device", "cuda", "--steps", "2")
-    assert code == 2 and err.count("\n") == 1 and "--device must be a torch device this machine has" in err
+    assert code == 2 and err.count("\n") == 1 and "--device must be cpu or cuda[:N], a GPU this machine has" in err
 
 
 def test_an_out_that_cannot_be_written_is_refused_before_any_work(cli: Cli, tmp_path: Path) -> None:
@@ -296,6 +296,7 @@ def test_inspect_prints_the_json_of_a_checkpoint_whose_scene_cannot_be_rebuilt(c
     (tmp_path / "mine.json").write_text(json.dumps(doc))
     code, out, err = cli("inspect", str(tmp_path / "mine.pt"))
     assert code == 0 and "n=24), d=4" in out and "cannot rebuild the checkpoint's scene" in err, err
+    assert "reproduce:" not in out and "fit settings: redsim fit " in out and "not runnable as it is" in out
     code, _, err = cli("sample", str(tmp_path / "mine.pt"), "--out", str(tmp_path / "s.npz"))
     assert code == 2 and "cannot rebuild the checkpoint's scene" in err
 

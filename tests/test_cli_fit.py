@@ -185,6 +185,7 @@ def test_bench_subspace_compares_neural_modes_and_derivatives(capsys: pytest.Cap
     )
     assert code == 0 and "modal_derivatives" in out and "load error" in out
     assert "toy_tiny_bar_2d_s30.pt" in out  # reused, not refitted
+    assert out.startswith("machine: ") and "strain" in out
 
 
 def test_bench_subspace_uses_the_shipped_subspace(capsys: pytest.CaptureFixture[str], tmp_path) -> None:

@@ -698,8 +698,13 @@ RUN_FILES = (
 """The files of a run in its folder (module doc), with the normalizers beside the models and ``checkpoints/``."""
 
 
-def _check_run_folder(out: Path, resume: bool, overwrite: bool) -> None:
-    """Refuse to start a run where one is (unless ``overwrite``), or to resume and overwrite at once."""
+def check_run_folder(out: Path, resume: bool, overwrite: bool) -> None:
+    """Refuse to start a run in ``out`` where one is (unless ``overwrite``), or to resume and overwrite at once: what
+    :func:`train_agent` checks first, for a script to check before its own slow work (a fit, say).
+
+    Raises:
+        ValueError: as said, naming --resume / --overwrite.
+    """
     if resume and overwrite:
         raise ValueError("resume and overwrite exclude each other (--resume continues a run, --overwrite replaces it)")
     if resume or overwrite:
@@ -729,13 +734,20 @@ def _resume_from(out: Path) -> Path | None:
     return max(found, key=lambda p: p.stat().st_mtime_ns) if found else None
 
 
-def _training_log(out: Path, resumed_at: int | None) -> Any:
-    """SB3's logger writing ``out/progress.csv`` (``progress-from-STEPS.csv`` for a run resumed at STEPS)."""
+def _training_log(model: Any, out: Path, resumed_at: int | None) -> Any:
+    """SB3's logger writing ``out/progress.csv`` (``progress-from-STEPS.csv`` for a run resumed at STEPS), and, where
+    the settings ask for them (``tensorboard_log``, ``verbose``), SB3's own TensorBoard and stdout outputs."""
     from stable_baselines3.common.logger import CSVOutputFormat, Logger
+    from stable_baselines3.common.utils import configure_logger
 
     out.mkdir(parents=True, exist_ok=True)
     name = "progress.csv" if resumed_at is None else f"progress-from-{resumed_at}.csv"
-    return Logger(folder=str(out), output_formats=[CSVOutputFormat(str(out / name))])
+    progress = CSVOutputFormat(str(out / name))
+    if model.tensorboard_log is None and not model.verbose:
+        return Logger(folder=str(out), output_formats=[progress])
+    logger = configure_logger(model.verbose, model.tensorboard_log, type(model).__name__, resumed_at is None)
+    logger.output_formats.append(progress)
+    return logger
 
 
 def _read_curve(path: Path) -> list[dict[str, Any]]:
@@ -934,7 +946,7 @@ def train_agent(
         _her_settings(settings, algo, copies, _episode_steps(env, env_kwargs), int(steps))
     out = Path(out)
     cls = _algo_class(algo)
-    _check_run_folder(out, resume, overwrite)
+    check_run_folder(out, resume, overwrite)
     previous = _resume_from(out) if resume else None
     buffer = previous is not None and previous == out / "model.zip" and algo != "ppo" and (out / BUFFER).is_file()
     if previous is not None:
@@ -1060,7 +1072,7 @@ def train_agent(
 
     try:
         if remaining > 0:
-            model.set_logger(_training_log(out, None if previous is None else started))
+            model.set_logger(_training_log(model, out, None if previous is None else started))
             try:
                 model.learn(
                     remaining,
@@ -1118,6 +1130,7 @@ __all__ = [
     "TrainResult",
     "TrainingInterrupted",
     "check_env_id",
+    "check_run_folder",
     "evaluate",
     "hyperparams",
     "load_agent",

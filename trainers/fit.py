@@ -801,7 +801,8 @@ def _condition_doc(scene: Scene) -> list[dict[str, Any]]:
 
 
 def fit_command(scene: Scene, config: FitConfig, seed: int, out: str | Path | None) -> str:
-    """The `redsim fit` command line that reproduces this fit."""
+    """The `redsim fit` command line that reproduces this fit (for a scene built in Python, the fit's settings: no
+    command rebuilds that scene, and `redsim inspect` says so)."""
     from redsim.scenes.spec import scene_arguments
 
     parts = ["redsim", "fit", *scene_arguments(scene)]

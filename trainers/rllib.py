@@ -66,15 +66,19 @@ def env_creator(env_config: Mapping[str, Any]) -> gym.Env | gym.vector.VectorEnv
     return gym.make(env_id, **kwargs)
 
 
-def check_env_config(env_config: Mapping[str, Any]) -> None:
-    """Make (and close) the env of ``env_config`` here, so that a bad one fails in the driver (module doc).
+def check_env_config(env_config: Mapping[str, Any], num_envs: int | None = None) -> None:
+    """Make (and close) the env of ``env_config`` here as a runner would, so that a bad one fails in the driver
+    (module doc): ``num_envs`` copies in the native vector env (``gym_env_vectorize_mode="vector_entry_point"``,
+    which passes every keyword to the env), or the single env (None).
 
     Raises:
-        ValueError: what :func:`env_creator` or the env refuses (an unknown keyword is the env's TypeError).
+        ValueError: what :func:`env_creator` or the env refuses (an unknown keyword is the env's TypeError, a bad
+            ``max_episode_steps`` Gymnasium's AssertionError).
     """
+    config = dict(env_config) if num_envs is None else {**env_config, "num_envs": int(num_envs)}
     try:
-        env_creator(env_config).close()
-    except TypeError as err:  # an unexpected keyword argument of the env class
+        env_creator(config).close()
+    except (TypeError, AssertionError) as err:
         raise ValueError(f"env_config['kwargs'] {dict(env_config.get('kwargs', {}))}: {err}") from None
 
 

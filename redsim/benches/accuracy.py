@@ -295,7 +295,7 @@ def project(
     with torch.no_grad():
         target = space.configuration(z_rest.reshape(1, -1))[0] + displacement
     size = float(_m_norm(scene64, displacement.unsqueeze(0))[0]) or 1.0
-    # it minimizes |r|^2_M / (2 size^2), as this bench always has
+    # |r|^2_M / (2 size^2): the objective this bench minimized before nearest_latent (equal to round-off)
     z = nearest_latent(
         space.configuration, scene64, target, z_start.reshape(1, -1), scale=size * math.sqrt(2.0), tolerance_grad=1e-12
     )

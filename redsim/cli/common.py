@@ -36,6 +36,16 @@ class CliError(Exception):
         self.code = code
 
 
+def check_device_option(device: str) -> None:
+    """``--device`` refused as a CLI error where redsim cannot run on it (:func:`redsim.devices.check_device`)."""
+    from redsim.devices import check_device
+
+    try:
+        check_device(device)
+    except ValueError as err:
+        raise CliError(f"--device: {err}") from None
+
+
 class SceneNotRebuilt(CliError):
     """A checkpoint whose scene cannot be rebuilt from its ``.json`` (an in-memory mesh, a moved mesh file, ...)."""
 

@@ -13,6 +13,7 @@ from redsim.cli.common import (
     EXIT_OK,
     CliError,
     add_out_folder,
+    check_device_option,
     finish_command,
     json_out,
     non_negative_seed,
@@ -94,6 +95,7 @@ def cmd_bench_envs(args: argparse.Namespace) -> int:
     env_kwargs = parse_env_args(args.env_arg, ids)
     if "device" in env_kwargs:
         raise CliError("give the device with --device, not --env-arg device=...")
+    check_device_option(args.device)
     machine = machine_info()
     if not args.json:
         out("env steps/s (median over timed steps); simulated s per wall s of the single env, of the best batch,")

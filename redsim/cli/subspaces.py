@@ -210,7 +210,10 @@ def cmd_inspect(args: argparse.Namespace) -> int:
     for key, value in (meta.get("metrics") or {}).items():
         if isinstance(value, (int, float)):
             out(f"  metric {key}: {value:.5g}")
-    out(f"  reproduce: {meta.get('command')}")
+    if "scene_not_rebuilt" in meta:  # e.g. a scene built in Python: the command's scene argument names nothing
+        out(f"  fit settings: {meta.get('command')} (not runnable as it is: no redsim command rebuilds this scene)")
+    else:
+        out(f"  reproduce: {meta.get('command')}")
     return EXIT_OK
 
 

@@ -173,7 +173,7 @@ class Cubature:
                 "rebuild it with `redsim cubature` for this checkpoint",
                 where,
             )
-        names = {e.name: e.element_count for e in scene.effects if not e.uses_loads}
+        names = {e.name: e.element_count for e in scene.load_free_effects("a cubature")}
         theirs = {r.name: r.element_count for r in self.rules}
         if names != theirs:
             raise CheckpointError(f"cubature effects {theirs} differ from the scene's {names}", where)

@@ -279,9 +279,7 @@ def effect_modes(scene: Scene, config: CubatureConfig) -> dict[str, str]:
     if unknown:
         raise ValueError(f"scene {scene.name!r} has no effect(s) {unknown}; it has {sorted(names)}")
     modes = {}
-    for effect in scene.effects:
-        if effect.uses_loads:
-            continue
+    for effect in scene.load_free_effects("a cubature"):
         rare = effect.kind.split(":")[0] in RARE_KINDS and effect.name not in config.subsample
         whole = effect.name in config.full if config.full is not None else rare
         if effect.kind in LINEAR_KINDS:

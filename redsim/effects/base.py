@@ -28,7 +28,9 @@ class Effect:
     Attributes:
         name: Unique name of this term within a scene (e.g. ``"gravity"``, ``"joints"``).
         element_dofs: Full-configuration indices read by each element, shape [T, k], int64.
-        uses_loads: True for terms that read the per-step loads (external forces).
+        uses_loads: True for terms that read the per-step loads (external forces). The latent runtime and the
+            cubature take only :class:`redsim.effects.external.ExternalLoad`
+            (:meth:`redsim.scene.Scene.load_free_effects`).
         uses_condition: True for terms that read the condition vector c.
     """
 
@@ -53,7 +55,10 @@ class Effect:
             cond: Condition vectors, shape [B, m], for terms with ``uses_condition``.
             loads: Loads, shape [B, H, D] (force [N] per handle), for terms with ``uses_loads``.
         """
-        raise NotImplementedError
+        raise NotImplementedError(
+            f"{type(self).__name__} must implement element_energy(xe [B, T, k], cond, loads) -> [B, T] (or override "
+            "element_energies / energy)"
+        )
 
     def element_energies(self, x: Tensor, cond: Tensor | None = None, loads: Tensor | None = None) -> Tensor:
         """Energy of every element [J], shape [B, T], at configurations x [B, N], read at ``element_dofs`` only.

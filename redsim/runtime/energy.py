@@ -114,7 +114,7 @@ class MapEnergy:
         )
         if isinstance(self.map, nn.Module):
             self.map.requires_grad_(False)
-        self.effects = tuple(e for e in self.scene.effects if not e.uses_loads)
+        self.effects = self.scene.load_free_effects("the latent runtime")
         with torch.no_grad():
             cond = self.scene.pack_condition(None, 1, self.scene.q_seed) if self.condition_dim else None
             q = self.positions(torch.zeros(1, latent_dim, dtype=dtype, device=device), cond)

@@ -62,15 +62,33 @@ def _pinned(given: np.ndarray, vertices: np.ndarray, pin: PinSpec, *, tolerance:
     return np.unique(index[distance <= 1e-6 * scale])  # a given vertex no triangle uses is not in the cloth
 
 
-def _check_pins(pin: PinSpec, pinned: np.ndarray, count: int, gravity: bool) -> None:
-    """Refuse pins [P] (of ``count`` vertices) that leave nothing to move, or nothing to hang from under gravity."""
+def _check_pins(pin: PinSpec, pinned: np.ndarray, vertices: np.ndarray, elements: np.ndarray, gravity: bool) -> None:
+    """Refuse pins [P] that leave nothing to move, or, under gravity, a piece of the mesh (vertices [V, D] joined by
+    elements [T, k]) with nothing to hang from."""
+    count = vertices.shape[0]
     if pinned.size == count:
         raise ValueError("pin selects every vertex; nothing would move")
-    if pinned.size == 0 and gravity:
-        shown = pin if pin is None or isinstance(pin, str) else type(pin).__name__
+    if not gravity:
+        return
+    shown = pin if pin is None or isinstance(pin, str) else type(pin).__name__
+    if pinned.size == 0:
         raise ValueError(
             f"pin {shown!r} selects no vertex: under gravity the body free-falls and its energy has no minimum; "
             "pin some vertices (e.g. pin='max_y') or give gravity=False"
+        )
+    import scipy.sparse
+    from scipy.sparse.csgraph import connected_components
+
+    heads = np.repeat(elements[:, :1], elements.shape[1], axis=1).ravel()
+    graph = scipy.sparse.coo_matrix((np.ones(heads.size), (heads, elements.ravel())), shape=(count, count))
+    pieces, label = connected_components(graph, directed=False)
+    loose = np.setdiff1d(np.arange(pieces), label[pinned])
+    if loose.size:
+        first = int(np.nonzero(label == loose[0])[0][0])
+        raise ValueError(
+            f"{loose.size} of the mesh's {pieces} separate pieces hold no pinned vertex (pin {shown!r}), e.g. the "
+            f"one with vertex {first} at {np.round(vertices[first], 6).tolist()}: under gravity it free-falls; pin "
+            "it too, remove it, or give gravity=False"
         )
 
 
@@ -139,7 +157,7 @@ def fem_scene_from_mesh(
         pitch = check_positive("voxel_pitch", voxel_pitch)
     vertices, tets = meshes.voxel_tet_mesh(mesh, pitch)
     pinned = select_vertices(vertices, pin, tolerance=0.25 * pitch)
-    _check_pins(pin, pinned, vertices.shape[0], gravity)
+    _check_pins(pin, pinned, vertices, tets, gravity)
     b = SceneBuilder(dim=3)
     ids = add_fem(b, vertices, tets, young=young, poisson=poisson, density=density)
     if pinned.size:
@@ -226,7 +244,7 @@ def cloth_scene_from_mesh(
         raise ValueError(f"mesh {source!r} cannot be used as cloth: {exc}") from exc
     diagonal = float(np.linalg.norm(vertices.max(0) - vertices.min(0)))
     pinned = _pinned(given, vertices, pin, tolerance=1e-3 * diagonal)
-    _check_pins(pin, pinned, vertices.shape[0], gravity)
+    _check_pins(pin, pinned, vertices, triangles, gravity)
     b = SceneBuilder(dim=3)
     ids = add_cloth(
         b, vertices, triangles, young=young, poisson=poisson, thickness=thickness, density=density, bending=bending

@@ -5,6 +5,7 @@ All energies run in float64; tolerances are relative to each scene's own energy 
 
 from __future__ import annotations
 
+import dataclasses
 import functools
 import math
 
@@ -17,7 +18,7 @@ import trimesh
 import redsim
 from redsim import meshes
 from redsim.integrators import static_equilibrium
-from redsim.scene import Scene
+from redsim.scene import ConditionSpace, Scene
 from redsim.scenes.linkages import KLANN_CRANK
 
 # Table 1 of the paper: full dimension n per system.
@@ -292,6 +293,10 @@ def test_a_cloth_mesh_that_is_not_a_manifold_or_not_finite_or_not_held_is_refuse
         with pytest.raises(ValueError, match="selects no vertex: under gravity"):
             build(trimesh.Trimesh(vertices, triangles), pin=pin)
     assert build(trimesh.Trimesh(vertices, triangles), pin=None, gravity=False).free_dof_count == 3 * len(vertices)
+    above = np.array([[0.0, 1.0, 0.0], [0.1, 1.0, 0.0], [0.0, 1.1, 0.0]])  # a loose triangle takes the max_y pin
+    loose = trimesh.Trimesh(np.vstack([vertices, above]), np.vstack([triangles, [[25, 26, 27]]]), process=False)
+    with pytest.raises(ValueError, match=r"1 of the mesh's 2 separate pieces hold no pinned vertex .* vertex 0 at"):
+        build(loose)
 
 
 def test_a_mesh_split_at_uv_seams_or_per_face_normals_is_welded_back(tmp_path) -> None:
@@ -370,6 +375,25 @@ def test_a_hand_built_scene_is_fingerprinted_by_its_data() -> None:
     light = handmade(gravity=False)
     assert light.fingerprint() != handmade(density=2000.0, gravity=False).fingerprint()  # by the mass matrix
     assert scene.to(dtype=torch.float64).fingerprint() == scene.fingerprint()
+    # what an effect keeps in a list, tuple, dict or array counts, and so does the condition space
+    tagged, retagged = handmade(), handmade()
+    tagged.effect("membrane").extra = {"k": [1.0, (2.0,)]}
+    retagged.effect("membrane").extra = {"k": [1.0, (3.0,)]}
+    assert tagged.fingerprint() != retagged.fingerprint()
+    retagged.effect("membrane").extra = np.array([1.0, 2.0])
+    assert retagged.fingerprint() != tagged.fingerprint() != scene.fingerprint()
+    low = torch.tensor([0.5], dtype=torch.float64)
+    wide, narrow = (
+        dataclasses.replace(
+            scene, condition_space=ConditionSpace(("k",), low, torch.tensor([h]), low), _effect_index={}
+        )
+        for h in (5.0, 2.0)
+    )
+    assert wide.fingerprint() != narrow.fingerprint()
+    # a checkpoint written with stop 29-30's digest (no containers, no condition space) still loads
+    old = redsim.scene._hash({"name": tagged.name, "params": {"data": tagged._data_digest(1)}})
+    assert old == redsim.scene._hash({"name": scene.name, "params": {"data": scene._data_digest(1)}})
+    assert tagged.accepts(old) and old != tagged.fingerprint()
 
 
 # -- mechanisms --------------------------------------------------------------------------------
@@ -614,3 +638,38 @@ def test_mirror_particles_rejects_bad_partners() -> None:
     b.mirror_particles(torch.tensor([1, 0, 2]), axis=1, plane=0.5)  # pinned particle 0 lands on free particle 1
     with pytest.raises(ValueError, match="pinned particles"):
         b.finalize("bad_mirror")
+
+
+def test_a_custom_effect_with_bad_indices_or_energy_shape_is_a_clear_error() -> None:
+    from redsim.effects import Effect
+    from redsim.scene import SceneBuilder
+
+    class Spring(Effect):
+        kind = "spring"
+
+        def __init__(self, dofs: torch.Tensor, per_batch: bool = False) -> None:
+            self.name, self.element_dofs, self.per_batch = "spring", dofs, per_batch
+
+        def element_energy(self, xe, cond=None, loads=None):
+            energy = 0.5 * (xe**2).sum(-1)  # [B, T]
+            return energy.sum(-1) if self.per_batch else energy  # [B]: the wrong shape
+
+    def scene(effect: Effect) -> Scene:
+        b = SceneBuilder(2)
+        ids = b.add_particles(torch.tensor([[0.0, 0.0], [1.0, 0.0]], dtype=torch.float64), torch.ones(2))
+        b.add_effect(effect)
+        return b.finalize("springy") if ids is not None else None
+
+    for dofs, message in (
+        (torch.tensor([0, 1, 2, 3]), r"element_dofs must be an int64 tensor \[T, k\], got \(\(4,\)"),
+        (torch.tensor([[0.0, 1.0]]), "element_dofs must be an int64 tensor"),
+        (torch.tensor([[0, 9]]), r"indices 0\.\.9, outside the scene's 4 full DOFs"),
+    ):
+        with pytest.raises(ValueError, match=message):
+            scene(Spring(dofs))
+    wrong = scene(Spring(torch.tensor([[0, 1], [2, 3]]), per_batch=True))
+    with pytest.raises(ValueError, match=r"effect 'spring' .* shape \(\) for 3 configuration\(s\).* \[B, T\]"):
+        wrong.energy(torch.zeros(3, 4, dtype=torch.float64))
+    assert scene(Spring(torch.tensor([[0, 1], [2, 3]]))).energy(torch.ones(3, 4, dtype=torch.float64)).shape == (3,)
+    with pytest.raises(NotImplementedError, match="Effect must implement element_energy"):
+        Effect().element_energy(torch.zeros(1, 1, 1))

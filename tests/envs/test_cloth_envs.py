@@ -59,6 +59,10 @@ def test_cubature_true_loads_the_shipped_one_and_refuses_where_none_exists() -> 
     assert sheet.unwrapped.sim.cubature
     with pytest.raises(CheckpointError, match="no cubature file"):
         gym.make("RedSim/Klann-v0", subspace=str(redsim.pretrained.FOLDER / "klann"), cubature=True)
+    own = redsim.envs.make(
+        redsim.scenes.build("hanging_sheet"), redsim.pretrained.FOLDER / "hanging_sheet", cubature=True
+    )
+    assert own.unwrapped.sim.cubature  # redsim.envs.make with a checkpoint path alike
     with pytest.raises(ValueError, match="cubature must be"):
         gym.make(CLOTH_BALL, cubature=3)
     with pytest.raises(ValueError, match="not both"):

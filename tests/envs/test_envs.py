@@ -350,6 +350,9 @@ def test_info_reports_solver_flags_invariants_rewards_and_q() -> None:
 
 
 def test_include_q_puts_the_configuration_in_the_reset_info_too() -> None:
+    from redsim.envs.sb3 import SB3VecEnv
+
+    MINI = "RedSim/MiniChain-v0"
     env = gym.make("RedSim/MiniChain-v0", include_q=True)
     _, info = env.reset(seed=0)
     np.testing.assert_array_equal(info["q"], env.unwrapped.configuration())  # the first frame of an episode's mesh
@@ -359,6 +362,27 @@ def test_include_q_puts_the_configuration_in_the_reset_info_too() -> None:
     assert info["q"].shape == (3, 24) and info["_q"].all()
     _, info = venv.reset(options={"reset_mask": np.array([False, True, False])})
     assert info["_q"].tolist() == [False, True, False]
+    # an autoreset copy's slot holds its new episode's q, as in Gymnasium's sync vector env (both modes)
+    for mode, steps in ((AutoresetMode.NEXT_STEP, 3), (AutoresetMode.SAME_STEP, 2)):
+        options = {"include_q": True, "max_episode_steps": 2}
+        native = gym.make_vec(MINI, num_envs=2, vectorization_mode="vector_entry_point", autoreset_mode=mode, **options)
+        sync = gym.make_vec(
+            MINI, num_envs=2, vectorization_mode="sync", vector_kwargs={"autoreset_mode": mode}, **options
+        )
+        infos = []
+        for env in (native, sync):
+            env.reset(seed=0)
+            for _ in range(steps):
+                info = env.step(np.zeros((2, 3), np.float32))[4]
+            infos.append(info)
+        assert infos[0]["_q"].all() and infos[1]["_q"].all()
+        np.testing.assert_allclose(infos[0]["q"], infos[1]["q"], atol=1e-6)
+    sb3 = SB3VecEnv.make(MINI, num_envs=2, include_q=True, max_episode_steps=2)
+    sb3.reset()
+    assert [sorted(row) for row in sb3.reset_infos] == [["q"], ["q"]]
+    for _ in range(2):
+        _, _, done, rows = sb3.step(np.zeros((2, 3), np.float32))
+    assert done.all() and all("q" in row and "terminal_observation" in row for row in rows)
 
 
 def test_bang_bang_soak_stays_finite(mini: gym.Env) -> None:

@@ -384,3 +384,31 @@ def test_closed_form_inertia_gradient_equals_autograd(name: str, cubature: bool)
     torch.testing.assert_close(value, expected.detach(), rtol=1e-12, atol=0.0)
     torch.testing.assert_close(energy, expected_energy.detach(), rtol=0.0, atol=0.0)
     torch.testing.assert_close(grad, expected_grad, rtol=1e-9, atol=1e-9 * float(expected_grad.abs().max()))
+
+
+def test_an_effect_that_reads_the_loads_besides_the_load_term_is_refused(mini_chain) -> None:
+    """The runtime and the cubature add the loads' work in closed form (the linear external_load term); another
+    load-reading effect would be dropped, so they refuse the scene where the full-space integrators take it."""
+    import dataclasses
+
+    from redsim.cubature import CubatureConfig, build_cubature
+    from redsim.effects import Effect
+
+    class Wind(Effect):
+        kind = "wind"
+        uses_loads = True
+
+        def __init__(self, dofs: torch.Tensor) -> None:
+            self.name, self.element_dofs = "wind", dofs
+
+        def element_energy(self, xe, cond=None, loads=None):
+            return xe.new_zeros(xe.shape[:2]) if loads is None else -(xe * loads[:, :1, :1]).sum(-1)
+
+    scene, f = mini_chain
+    dofs = scene.effect("external_load").element_dofs[:, :1]
+    windy = dataclasses.replace(scene, effects=(*scene.effects, Wind(dofs)), _effect_index={})
+    assert "wind" in windy.energy_terms(windy.q_seed)  # the scene itself keeps it (full space evaluates it)
+    with pytest.raises(ValueError, match=r"effect\(s\) \['wind'\] read the loads; the latent runtime"):
+        LatentStepper(windy, f, DT)
+    with pytest.raises(ValueError, match=r"effect\(s\) \['wind'\] read the loads; a cubature"):
+        build_cubature(windy, f, CubatureConfig(samples=8))

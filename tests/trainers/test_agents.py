@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import csv
+import importlib.util
 import json
 import tempfile
 import zipfile
@@ -473,3 +474,23 @@ def test_ctrl_c_in_the_final_evaluation_or_mid_rollout_keeps_an_honest_record(
     with pytest.raises(TrainingInterrupted, match="interrupted at 16 env steps"):
         train_agent(MINI, tmp_path / "ppo", algo="ppo", steps=64, overrides={"n_steps": 8, "batch_size": 8}, **tiny)
     assert json.loads((tmp_path / "ppo" / "agent.json").read_text())["steps"] == 16
+
+
+def test_the_training_log_keeps_sb3_s_tensorboard_and_stdout_settings(tmp_path: Path) -> None:
+    """progress.csv always; SB3's own outputs where tensorboard_log or verbose ask for them (as SB3 would set up)."""
+    from types import SimpleNamespace
+
+    from stable_baselines3.common.logger import CSVOutputFormat, HumanOutputFormat
+
+    from redsim.trainers.agents import _training_log
+
+    quiet = _training_log(SimpleNamespace(tensorboard_log=None, verbose=0), tmp_path, None)
+    assert [type(f) for f in quiet.output_formats] == [CSVOutputFormat] and (tmp_path / "progress.csv").is_file()
+    loud = _training_log(SimpleNamespace(tensorboard_log=None, verbose=1), tmp_path, 200)
+    assert {type(f) for f in loud.output_formats} == {HumanOutputFormat, CSVOutputFormat}
+    assert (tmp_path / "progress-from-200.csv").is_file()
+    if importlib.util.find_spec("tensorboard") is None:  # asked for and missing: SB3's own error, as before
+        with pytest.raises(ImportError, match="tensorboard is not installed"):
+            _training_log(SimpleNamespace(tensorboard_log=str(tmp_path / "tb"), verbose=0), tmp_path, None)
+    for logger in (quiet, loud):
+        logger.close()

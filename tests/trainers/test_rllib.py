@@ -36,6 +36,16 @@ def test_a_bad_env_config_is_a_clear_error_in_the_driver(env_config: dict, messa
         check_env_config(env_config)
 
 
+def test_the_config_is_checked_as_the_runners_build_it() -> None:
+    """gym.make takes disable_env_checker itself; the vector entry point passes it on to the env, which refuses it."""
+    config = {"id": MINI, "kwargs": {"disable_env_checker": True}}
+    check_env_config(config)
+    with pytest.raises(ValueError, match="unexpected keyword argument 'disable_env_checker'"):
+        check_env_config(config, num_envs=2)
+    with pytest.raises(ValueError, match="max_episode_steps"):
+        check_env_config({"id": MINI, "kwargs": {"max_episode_steps": 0}})
+
+
 @pytest.mark.skipif(importlib.util.find_spec("ray") is not None, reason="Ray is installed here")
 def test_register_without_ray_names_the_extra() -> None:
     with pytest.raises(ImportError, match='pip install "redsim\\[ray\\]"'):
