@@ -253,13 +253,24 @@ def pitch_for_vertex_count(
 
 
 # -- mesh queries ----------------------------------------------------------------------------
-def check_manifold(triangles: np.ndarray) -> None:
+def check_manifold(triangles: np.ndarray, vertices: np.ndarray | None = None) -> None:
     """Refuse a triangle surface that is not a manifold (with or without boundary), whatever its orientation.
+
+    Args:
+        triangles: Triangles [T, 3], int.
+        vertices: Their positions [V, D], to name the offending vertices by where they are as well (a mesh file's
+            numbering changes when its vertices are welded); None: by index only.
 
     Raises:
         ValueError: an edge shared by more than two triangles, or a vertex where separate fans of triangles meet
             at a single point (two sheets touching at a corner), naming the first such edge or vertex.
     """
+
+    def at(*ids: int) -> str:
+        if vertices is None:
+            return ""
+        return " at " + " - ".join(str(np.round(np.asarray(vertices)[i], 6).tolist()) for i in ids)
+
     import scipy.sparse
     from scipy.sparse.csgraph import connected_components
 
@@ -276,7 +287,8 @@ def check_manifold(triangles: np.ndarray) -> None:
     if bool((counts > 2).any()):
         k = int(unique[counts > 2][0])
         raise ValueError(
-            f"edge ({k // base}, {k % base}) is shared by {int(counts[counts > 2][0])} triangles: a cloth surface "
+            f"edge ({k // base}, {k % base}){at(k // base, k % base)} is shared by {int(counts[counts > 2][0])} "
+            "triangles: a cloth surface "
             "must be a manifold (at most two triangles per edge)"
         )
     same = np.nonzero(keys[order[1:]] == keys[order[:-1]])[0]
@@ -292,8 +304,8 @@ def check_manifold(triangles: np.ndarray) -> None:
     if bool((count > 1).any()):
         v = int(np.nonzero(count > 1)[0][0])
         raise ValueError(
-            f"vertex {v} joins {int(count[v])} separate fans of triangles (surfaces touching at one point): a cloth "
-            "surface must be a manifold; split the vertex or join the surfaces along an edge"
+            f"vertex {v}{at(v)} joins {int(count[v])} separate fans of triangles (surfaces touching at one point): "
+            "a cloth surface must be a manifold; split the vertex or join the surfaces along an edge"
         )
 
 

@@ -231,7 +231,7 @@ def cloth_scene_from_mesh(
     mesh.update_faces(mesh.nondegenerate_faces())
     mesh.remove_unreferenced_vertices()
     try:
-        meshes.check_manifold(mesh.faces)  # before fix_winding, which cannot orient a non-manifold surface
+        meshes.check_manifold(mesh.faces, mesh.vertices)  # before fix_winding, which cannot orient a non-manifold one
     except ValueError as exc:
         raise ValueError(f"mesh {source!r} cannot be used as cloth: {exc}") from exc
     if not mesh.is_winding_consistent:
