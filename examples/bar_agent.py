@@ -1,7 +1,8 @@
 """PPO on the conditional bar: stiffness and support change every episode, and the policy sees them.
 
 Run: python examples/bar_agent.py [--steps 50000] [--episodes 5] [--episode-steps 200] [--out DIR]
-(--out DIR saves DIR/bar_ppo.zip and the observation statistics it acts through, DIR/bar_ppo_vecnormalize.pkl).
+(--out DIR saves DIR/bar_ppo.zip and the observation statistics it acts through, DIR/bar_ppo_vecnormalize.pkl;
+`redsim eval-agent DIR/bar_ppo.zip RedSim/ConditionalBar-v0 --algo ppo --baselines` evaluates it again later).
 Domain randomization comes from the conditional subspace f(z, c): each episode draws c (the right half's
 stiffness factor and the support location), and c is the last two numbers of the observation. After
 training, a plain Gymnasium loop runs the policy and prints each episode's condition and final distance.

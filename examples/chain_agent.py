@@ -2,7 +2,8 @@
 
 Run: python examples/chain_agent.py [--env RedSim/Chain-v0] [--steps 30000] [--episodes 20] [--episode-steps N]
 [--out DIR] (main()'s defaults are the tiny budget the test suite runs; MiniChain-v0 is the fast two-link chain;
---out DIR saves DIR/chain_sac.zip and the observation statistics it acts through, DIR/chain_sac_vecnormalize.pkl).
+--out DIR saves DIR/chain_sac.zip and the observation statistics it acts through, DIR/chain_sac_vecnormalize.pkl;
+`redsim eval-agent DIR/chain_sac.zip ENV_ID --algo sac --baselines` evaluates it again later).
 """
 
 from __future__ import annotations

@@ -262,8 +262,9 @@ def check_manifold(triangles: np.ndarray, vertices: np.ndarray | None = None) ->
             numbering changes when its vertices are welded); None: by index only.
 
     Raises:
-        ValueError: an edge shared by more than two triangles, or a vertex where separate fans of triangles meet
-            at a single point (two sheets touching at a corner), naming the first such edge or vertex.
+        ValueError: a triangle that repeats a vertex, two triangles on the same three vertices, an edge shared by
+            more than two triangles, or a vertex where separate fans of triangles meet at a single point (two sheets
+            touching at a corner), naming the first such triangle, edge or vertex.
     """
 
     def at(*ids: int) -> str:
@@ -277,6 +278,18 @@ def check_manifold(triangles: np.ndarray, vertices: np.ndarray | None = None) ->
     tri = np.asarray(triangles, dtype=np.int64).reshape(-1, 3)
     if not tri.size:
         return
+    ordered = np.sort(tri, axis=1)
+    repeats = np.nonzero((ordered[:, 1:] == ordered[:, :-1]).any(axis=1))[0]
+    if repeats.size:
+        t = int(repeats[0])
+        raise ValueError(f"triangle {t} {tri[t].tolist()}{at(*tri[t])} repeats a vertex: remove degenerate triangles")
+    _, first, seen = np.unique(ordered, axis=0, return_index=True, return_counts=True)
+    if bool((seen > 1).any()):
+        t = int(first[seen > 1][0])
+        raise ValueError(
+            f"triangle {t} {tri[t].tolist()}{at(*tri[t])} appears {int(seen[seen > 1][0])} times: remove duplicate "
+            "triangles (a cloth surface is a manifold)"
+        )
     corners = np.arange(tri.size).reshape(-1, 3)
     start, end = tri.ravel(), tri[:, [1, 2, 0]].ravel()  # half-edge c runs from corner c to corner nxt[c]
     nxt = corners[:, [1, 2, 0]].ravel()

@@ -307,6 +307,11 @@ class Scene:
             q = q.unsqueeze(0)
         if q.ndim != 2 or q.shape[1] != self.free_dof_count:
             raise ValueError(f"scene {self.name!r} expects q of shape [B, {self.free_dof_count}], got {tuple(q.shape)}")
+        if q.dtype != self.dtype or q.device != self.device:
+            raise ValueError(
+                f"scene {self.name!r} is {self.dtype} on {self.device}, q is {q.dtype} on {q.device}: convert one "
+                f"(q.to(scene.dtype) or scene.to(dtype=q.dtype))"
+            )
         x = self.full_positions(q)
         loads_t = self.pack_loads(loads, q.shape[0], q)
         cond_t = self.pack_condition(cond, q.shape[0], q)

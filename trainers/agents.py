@@ -359,6 +359,25 @@ class Evaluation:
         }
 
 
+class SpaceMismatchError(ValueError):
+    """A model that acts on observations or actions of other shapes than the env's."""
+
+
+def _check_spaces(policy: Any, venv: Any) -> None:
+    """Refuse a model that acts on other observations or actions than ``venv``'s (an SB3 model would raise deep
+    inside its network, or broadcast)."""
+    model = getattr(policy, "model", policy)
+    if getattr(policy, "goal", None) is not None:  # acts on the flat observations split into its dict (Agent)
+        return
+    spaces = (("observation", venv.single_observation_space), ("action", venv.single_action_space))
+    for name, space in spaces:
+        own = getattr(model, f"{name}_space", None)
+        if own is not None and own.shape != space.shape:
+            raise SpaceMismatchError(
+                f"the model's {name} space has shape {own.shape}, the env's {space.shape}: a model of another env?"
+            )
+
+
 def evaluate(
     env: str | gym.Env,
     policy: Any = "scripted",
@@ -381,12 +400,15 @@ def evaluate(
 
     Raises:
         ValueError: an unknown id or policy name, or fewer than one episode.
+        SpaceMismatchError: a model whose observation or action space has another shape than the env's.
     """
     if int(episodes) != episodes or episodes < 1:
         raise ValueError(f"episodes must be an integer >= 1, got {episodes!r}")
     if isinstance(policy, str) and policy not in ("random", "scripted"):
         raise ValueError(f"policy must be a model, 'random' or 'scripted', got {policy!r}")
     venv = vector_env(env, int(episodes), env_kwargs=env_kwargs)
+    if not isinstance(policy, str):
+        _check_spaces(policy, venv)
     if venv.max_episode_steps is None:
         raise ValueError("evaluation needs an env with an episode limit (max_episode_steps)")
     rng = np.random.default_rng(seed)
@@ -425,15 +447,20 @@ def evaluate(
 
 
 # -- model files ------------------------------------------------------------------------------
-def model_record(path: str | Path) -> dict[str, Any]:
+def model_record(path: str | Path, plain_algo: str | None = None) -> dict[str, Any]:
     """The env id and algorithm a model file of :func:`train_agent` was trained with, whether it acts
     through normalized observations, the observation blocks of a goal-conditioned (HER) model (else None), and
     the copies it was trained on, and the env's keyword arguments (``"env_id"``, ``"algo"``, ``"normalized"``,
     ``"goal"``, ``"n_envs"``, ``"env_kwargs"``: None for a model that does not record them).
 
+    ``plain_algo`` (one of :data:`ALGOS`) also takes an SB3 model that redsim did not write (an example's, your own
+    script's): its record is that algorithm, env id None, and normalized where the statistics file beside it
+    (:func:`normalizer_path`) exists.
+
     Raises:
         FileNotFoundError: no such file.
-        ValueError: the file is not an SB3 model, or not one written by :func:`train_agent`.
+        ValueError: the file is not an SB3 model, not one written by :func:`train_agent` (without ``plain_algo``),
+            or one written with another algorithm than ``plain_algo``.
     """
     from stable_baselines3.common.save_util import load_from_zip_file
 
@@ -444,8 +471,25 @@ def model_record(path: str | Path) -> dict[str, Any]:
         data, _, _ = load_from_zip_file(path, load_data=True, device="cpu")
     except Exception as err:  # SB3 raises whatever zipfile/json raise on a bad archive
         raise ValueError(f"{path} is not a stable-baselines3 model file: {err}") from err
+    if plain_algo is not None and plain_algo not in ALGOS:
+        raise ValueError(f"algo must be one of {', '.join(ALGOS)}, got {plain_algo!r}")
     if not data or "redsim_env_id" not in data or data.get("redsim_algo") not in ALGOS:
-        raise ValueError(f"{path} is an SB3 model, but not one trained by redsim (no env id recorded)")
+        if plain_algo is None:
+            raise ValueError(
+                f"{path} is an SB3 model, but not one trained by redsim (no env id recorded): name its algorithm "
+                "(eval-agent --algo, load_agent(..., algo=)) to load it as a plain SB3 model"
+            )
+        normalized = normalizer_path(path).is_file()
+        return {
+            "env_id": None,
+            "algo": plain_algo,
+            "normalized": normalized,
+            "goal": None,
+            "n_envs": None,
+            "env_kwargs": None,
+        }
+    if plain_algo is not None and plain_algo != data["redsim_algo"]:
+        raise ValueError(f"{path} was trained with {data['redsim_algo']}, not {plain_algo}")
     return {
         "env_id": data["redsim_env_id"],
         "algo": data["redsim_algo"],
@@ -532,22 +576,28 @@ class Agent:
         return self.model.predict(obs, deterministic=deterministic)
 
 
-def load_agent(path: str | Path, env_id: str | None = None) -> Agent:
+def load_agent(path: str | Path, env_id: str | None = None, algo: str | None = None) -> Agent:
     """Load a model of :func:`train_agent` and its normalization statistics (:func:`normalizer_path`).
 
-    With ``env_id``, refuse a model trained on another env.
+    With ``env_id``, refuse a model trained on another env. ``algo`` ("ppo", "sac", "td3") also loads a plain SB3
+    model that does not record its env (an example's), acting through the ``VecNormalize`` statistics beside it
+    where that file exists; :func:`evaluate` then checks its spaces against the env's.
 
     Raises:
         FileNotFoundError: no such model file, or a model trained with normalization whose
             statistics file is missing.
-        ValueError: not a redsim model, or a model of another env.
+        ValueError: not a redsim model (without ``algo``), a model of another env or algorithm, or a file that
+            does not load as ``algo``.
     """
-    record = model_record(path)
-    if env_id is not None and record["env_id"] != env_id:
+    record = model_record(path, plain_algo=algo)
+    if env_id is not None and record["env_id"] not in (env_id, None):
         raise ValueError(f"the model {path} was trained on {record['env_id']}, not on {env_id}")
     # a HER model's replay buffer needs its env to be built; an agent only acts, so it gets a plain one
     plain = {"replay_buffer_class": _dict_buffer(), "replay_buffer_kwargs": {}} if record["goal"] else None
-    model = _algo_class(record["algo"]).load(path, device="cpu", custom_objects=plain)
+    try:
+        model = _algo_class(record["algo"]).load(path, device="cpu", custom_objects=plain)
+    except Exception as err:  # SB3 raises what the policy's constructor raises on another algorithm's parameters
+        raise ValueError(f"{path} does not load as a {record['algo'].upper()} model: {err!r}") from err
     return Agent(model, load_normalizer(normalizer_path(path)) if record["normalized"] else None, record["goal"])
 
 
@@ -1127,6 +1177,7 @@ __all__ = [
     "HYPERPARAMS",
     "Agent",
     "Evaluation",
+    "SpaceMismatchError",
     "TrainResult",
     "TrainingInterrupted",
     "check_env_id",

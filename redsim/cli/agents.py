@@ -124,23 +124,26 @@ def cmd_train_agent(args: argparse.Namespace) -> int:
 
 
 def cmd_eval_agent(args: argparse.Namespace) -> int:
-    from redsim.trainers.agents import evaluate, load_agent, shipped_policy
+    from redsim.trainers.agents import SpaceMismatchError, evaluate, load_agent, shipped_policy
 
     _check_env(args.env_id)
     _positive(args.episodes, "--episodes")
     try:
         path = shipped_policy(args.env_id) if args.model == "shipped" else args.model
-        model = load_agent(path, env_id=args.env_id)
+        model = load_agent(path, env_id=args.env_id, algo=args.algo)
     except KeyError as err:
         raise CliError(err.args[0]) from err
     except (ValueError, FileNotFoundError) as err:
         raise CliError(str(err)) from err
     policies = {"agent": model, **({"random": "random", "scripted": "scripted"} if args.baselines else {})}
     env_kwargs = _env_kwargs(args)
-    runs = {
-        name: evaluate(args.env_id, policy, episodes=args.episodes, seed=args.seed, env_kwargs=env_kwargs)
-        for name, policy in policies.items()
-    }
+    try:
+        runs = {
+            name: evaluate(args.env_id, policy, episodes=args.episodes, seed=args.seed, env_kwargs=env_kwargs)
+            for name, policy in policies.items()
+        }
+    except SpaceMismatchError as err:
+        raise CliError(f"{path}: {err}") from err
     rows = {name: run.as_dict() for name, run in runs.items()}
     for name in rows.keys() - {"agent"}:
         rows[name]["agent_above_p"], rows[name]["agent_better_episodes"] = runs["agent"].above(runs[name])
@@ -206,7 +209,7 @@ def add_commands(sub: Any) -> None:
         help="mean return ± std and success rate of a trained agent",
         description=(
             "Run seeded episodes (seeds SEED .. SEED+EPISODES-1) of a model written by train-agent on ENV_ID "
-            "(MODEL 'shipped': the policy shipped with redsim for ENV_ID); "
+            "(MODEL 'shipped': the policy shipped with redsim for ENV_ID; --algo: any SB3 model of that algorithm); "
             "with --baselines, the same episodes with a random policy and with the task's scripted controller."
         ),
     )
@@ -214,6 +217,12 @@ def add_commands(sub: Any) -> None:
         "model", metavar="MODEL", help="a model .zip written by redsim train-agent, or 'shipped' (redsim's own)"
     )
     p.add_argument("env_id", metavar="ENV_ID", help="the env id the model was trained on")
+    p.add_argument(
+        "--algo",
+        choices=ALGOS,
+        help="the algorithm of a plain SB3 model that redsim did not write (e.g. an example's), acting through the "
+        "NAME_vecnormalize.pkl beside NAME.zip where it exists",
+    )
     p.add_argument("--episodes", type=int, default=20, help="episodes (default 20)")
     p.add_argument("--seed", type=non_negative_seed, default=0, help="first episode seed (default 0)")
     p.add_argument("--baselines", action="store_true", help="also a random policy and the scripted controller")

@@ -285,6 +285,11 @@ def test_a_cloth_mesh_that_is_not_a_manifold_or_not_finite_or_not_held_is_refuse
     with pytest.raises(ValueError, match=r"vertex \d+ at \[0\.5, 0\.0, 0\.0\] joins 2 separate fans of triangles"):
         build(touching)
     meshes.check_manifold(triangles[:, ::-1][::2].tolist() + triangles[1::2].tolist())  # orientation is not its job
+    twice = np.vstack([triangles, triangles[3, ::-1]])  # the same triangle again, flipped: a closed flat pillow
+    with pytest.raises(ValueError, match=r"triangle 3 \[\d+, \d+, \d+\] at \[.*\] appears 2 times"):
+        meshes.check_manifold(twice, vertices)
+    with pytest.raises(ValueError, match=r"triangle 1 \[4, 4, 5\] repeats a vertex"):
+        meshes.check_manifold([[0, 1, 2], [4, 4, 5]])
     broken = vertices.copy()
     broken[5, 0] = np.nan
     with pytest.raises(ValueError, match="non-finite vertex coordinates"):
@@ -673,3 +678,11 @@ def test_a_custom_effect_with_bad_indices_or_energy_shape_is_a_clear_error() -> 
     assert scene(Spring(torch.tensor([[0, 1], [2, 3]]))).energy(torch.ones(3, 4, dtype=torch.float64)).shape == (3,)
     with pytest.raises(NotImplementedError, match="Effect must implement element_energy"):
         Effect().element_energy(torch.zeros(1, 1, 1))
+
+
+def test_q_of_another_dtype_or_device_is_a_clear_error() -> None:
+    scene = redsim.scenes.build("mini_chain")
+    with pytest.raises(ValueError, match=r"'mini_chain' is torch.float64 on cpu, q is torch.float32 on cpu"):
+        scene.energy(scene.q_seed.float())
+    single = scene.to(dtype=torch.float32).energy(scene.q_seed.float())
+    assert single.dtype == torch.float32 and torch.isclose(single.double(), scene.energy(scene.q_seed), rtol=1e-5)

@@ -257,6 +257,32 @@ def test_bad_input_is_a_clear_cli_error(cli: Callable[..., tuple[int, str, str]]
     assert code == 2 and "shards must be an integer in [1, num_envs = 2], got 3" in err
 
 
+def test_eval_agent_takes_a_plain_sb3_model_with_its_algorithm(
+    cli: Callable[..., tuple[int, str, str]], tmp_path: Path
+) -> None:
+    """An example's model (plain SB3, its VecNormalize statistics beside it) evaluates with --algo; another env's
+    model is refused by its spaces, and another algorithm's by SB3's loader, each as a one-line error."""
+    from stable_baselines3 import PPO
+    from stable_baselines3.common.vec_env import VecNormalize
+
+    from redsim.envs.sb3 import SB3VecEnv
+
+    venv = VecNormalize(SB3VecEnv.make(MINI, num_envs=2))
+    model = PPO("MlpPolicy", venv, n_steps=8, batch_size=16, seed=0).learn(16)
+    model.save(tmp_path / "mine.zip")
+    venv.save(str(tmp_path / "mine_vecnormalize.pkl"))
+    agent = load_agent(tmp_path / "mine.zip", MINI, algo="ppo")
+    assert agent.normalizer is not None and agent.num_timesteps == 16
+    code, out, _ = cli("eval-agent", str(tmp_path / "mine.zip"), MINI, "--algo", "ppo", "--episodes", "2", "--json")
+    assert code == 0 and json.loads(out)["agent"]["episodes"] == 2
+    code, _, err = cli("eval-agent", str(_foreign_model(tmp_path)), MINI, "--algo", "sac", "--episodes", "2")
+    assert code == 2 and "the model's observation space has shape (3,), the env's (14,)" in err
+    code, _, err = cli("eval-agent", str(tmp_path / "mine.zip"), MINI, "--algo", "sac")
+    assert code == 2 and "does not load as a SAC model" in err
+    with pytest.raises(ValueError, match="algo must be one of ppo, sac, td3"):
+        load_agent(tmp_path / "mine.zip", algo="dqn")
+
+
 def _foreign_model(folder: Path) -> Path:
     """An SB3 model of another project's env (saved untrained)."""
     from stable_baselines3 import SAC
