@@ -48,25 +48,37 @@ def median_time(call: Callable[[], Any], repeats: int, budget: float) -> tuple[f
     return statistics.median(times), len(times)
 
 
-def _full_space_step(env: Any, repeats: int, budget: float, rng: np.random.Generator) -> dict[str, Any]:
-    """Median wall time of one float64 full-space step of the env's scene from rest, under one random load."""
+def _full_space_step(
+    env: Any, repeats: int, budget: float, rng: np.random.Generator, warmup: int = 3
+) -> dict[str, Any]:
+    """Median wall time of one float64 full-space step of the env's scene, each under the load of a fresh uniform
+    random action as the env's steps, from the env's reset state lifted into the full space (f(z)) after ``warmup``
+    untimed steps (f(z) is not the full space's rest: its first steps take more Newton iterations)."""
     from redsim.integrators import FullSpace, ImplicitEuler
 
     sim = env.sim
     scene = sim.source_scene.to(dtype=torch.float64)
     integrator = ImplicitEuler(FullSpace(scene), sim.dt / sim.frame_skip, minimizer="newton", tol=1e-8, max_iter=50)
     q0 = sim.positions(sim.z[:1])[0].to(torch.float64)
-    state = integrator.initial_state(q0)
-    action = rng.uniform(-1.0, 1.0, env.action_space.shape).astype(np.float32)
-    loads = sim.task.loads(torch.as_tensor(action[None], dtype=sim.torch_dtype), sim.params)[0].to(torch.float64)
-    holder = {"state": state, "converged": True}
+    holder = {"state": integrator.initial_state(q0), "converged": True, "iterations": []}
 
     def call() -> None:
-        holder["state"], info = integrator.step(holder["state"], loads.cpu())
+        action = torch.as_tensor(rng.uniform(-1.0, 1.0, (1, *env.action_space.shape)), dtype=sim.torch_dtype)
+        loads = sim.task.loads(action, sim.params)[0].to(torch.float64).cpu()
+        holder["state"], info = integrator.step(holder["state"], loads)
         holder["converged"] = holder["converged"] and info.converged
+        holder["iterations"].append(info.iterations)
 
+    for _ in range(warmup):
+        call()
+    holder["iterations"], holder["converged"] = [], True
     seconds, count = median_time(call, repeats, budget)
-    return {"step_s": seconds * sim.frame_skip, "repeats": count, "converged": holder["converged"]}
+    return {
+        "step_s": seconds * sim.frame_skip,
+        "repeats": count,
+        "converged": holder["converged"],
+        "iterations_per_step": statistics.fmean(holder["iterations"]),
+    }
 
 
 def bench_env(
@@ -177,7 +189,7 @@ def bench_env(
         venv.close()
     row["full_space"] = None
     if full_space:
-        full = _full_space_step(env, max(2, steps // 5), budget, rng)
+        full = _full_space_step(env, max(3, steps // 4), budget, rng, warmup)
         full["sim_s_per_wall_s"] = dt / full["step_s"]
         row["full_space"] = full
     env.close()

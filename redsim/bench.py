@@ -27,7 +27,7 @@ def machine_info() -> dict[str, Any]:
     for the cores while the benchmark ran.
     """
     return {
-        "processor": platform.processor() or platform.machine(),
+        "processor": _cpu_model() or platform.processor() or platform.machine(),
         "machine": platform.machine(),
         "platform": platform.platform(),
         "python": platform.python_version(),
@@ -37,6 +37,16 @@ def machine_info() -> dict[str, Any]:
         "torch_threads": torch.get_num_threads(),
         "cuda_device": torch.cuda.get_device_name(0) if torch.cuda.is_available() else None,
     }
+
+
+def _cpu_model() -> str | None:
+    """The CPU's model name where the OS tells it (Linux's /proc/cpuinfo; ``platform.processor()`` is empty there)."""
+    try:
+        with open("/proc/cpuinfo") as info:
+            names = [line.split(":", 1)[1].strip() for line in info if line.startswith("model name")]
+    except OSError:
+        return None
+    return names[0] if names else None
 
 
 def _sync(device: torch.device) -> None:

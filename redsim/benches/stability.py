@@ -849,16 +849,43 @@ def markdown_rows(rows: Sequence[dict[str, Any]]) -> list[str]:
     return lines
 
 
+UNLIKE_START = 2.0
+"""A latent chain run whose free energy at its start is above this many times the full-space run's starts from
+another state (the map cannot show the lifted chain): :func:`chain_table` says so."""
+
+
+def _free_energies(label: str, mujoco: Sequence[Mapping[str, Any]] | None, rows: Mapping[Any, Any]) -> str:
+    """A scenario's free energy at the start [J]: MuJoCo's / redsim full space's / redsim latent's."""
+    mine = [rows.get((label, space)) for space in ("full", "latent")]
+    theirs = next((r["free_energy_J"] for r in mujoco or () if r["scenario"] == label), None)
+    values = [theirs, *(None if r is None else r["free_energy_J"] for r in mine)]
+    return " / ".join("-" if v is None else f"{v:.3g}" for v in values)
+
+
+def _unlike_start(label: str, rows: Mapping[Any, Any]) -> bool:
+    latent, full = rows.get((label, "latent")), rows.get((label, "full"))
+    if latent is None or full is None:
+        return False
+    return latent["free_energy_J"] > UNLIKE_START * max(full["free_energy_J"], 1e-9)
+
+
 def chain_table(chain: dict[str, Any]) -> list[str]:
-    """Per chain scenario: which MuJoCo integrators blew up (and why), and whether redsim's chains survived."""
+    """Per chain scenario: which MuJoCo integrators blew up (and why), whether redsim's chains survived, and the
+    free energy each started with (a latent run that starts far above the full space's is another experiment)."""
     mujoco = chain["mujoco"]
     redsim_rows = {(r["scenario"], r["space"]): r for r in chain["redsim"]}
     labels = [label for label, _, _ in chain_scenarios()]
     integrators = list(MUJOCO_INTEGRATORS) if mujoco is not None else []
-    head = ["scenario", *(f"MuJoCo {i}" for i in integrators), "redsim latent", "redsim full"]
+    head = [
+        "scenario",
+        "free energy at start [J]: MuJoCo / full / latent",
+        *(f"MuJoCo {i}" for i in integrators),
+        "redsim latent",
+        "redsim full",
+    ]
     lines = ["| " + " | ".join(head) + " |", "|" + "---|" * len(head)]
     for label in labels:
-        cells = [label]
+        cells = [label, _free_energies(label, mujoco, redsim_rows)]
         for integrator in integrators:
             m = next(r for r in mujoco if r["scenario"] == label and r["integrator"] == integrator)
             cells.append(f"blew up ({m['reason']}, step {m['at_step']})" if m["blew_up"] else "ok")
@@ -886,13 +913,20 @@ def chain_table(chain: dict[str, Any]) -> list[str]:
             )
             for space in ("latent", "full")
         }
-        broken = sum(1 for label in labels if any(r["blew_up"] for r in mujoco if r["scenario"] == label))
+        broken = [label for label in labels if any(r["blew_up"] for r in mujoco if r["scenario"] == label)]
+        unlike = [label for label in broken if _unlike_start(label, redsim_rows)]
         lines.append("")
         lines.append(
-            f"{broken} of {len(labels)} scenarios blow up at least one MuJoCo integrator at dt {chain['dt']:g}; "
+            f"{len(broken)} of {len(labels)} scenarios blow up at least one MuJoCo integrator at dt {chain['dt']:g}; "
             f"of those, redsim's latent chain survives {survived['latent']} and its full-space chain "
             f"{survived['full']}"
         )
+        if unlike:
+            lines.append(
+                f"not the same experiment in latent space: {', '.join(unlike)} (the latent run starts with more than "
+                f"{UNLIKE_START:g}x the full space's free energy: the map cannot show that start, and its projection "
+                "is a strained state)"
+            )
     return lines
 
 

@@ -98,8 +98,10 @@ def cmd_bench_envs(args: argparse.Namespace) -> int:
     check_device_option(args.device)
     machine = machine_info()
     if not args.json:
-        out("env steps/s (median over timed steps); simulated s per wall s of the single env, of the best batch,")
-        out("and of the scene's float64 full-space implicit-Euler step (Newton) under the same kind of load;")
+        out("env steps/s by wall time (median over timed steps, each configuration timed once in turn: compare ids")
+        out("within a run, and settings with `redsim bench env-ab`); simulated s per wall s of the single env, of the")
+        out("best batch, and of the scene's float64 full-space implicit-Euler step (Newton, tol 1e-8, from the env's")
+        out("reset state after untimed steps, a fresh random action each step);")
         out("render/s: frames per second of the single env's rgb_array picture at 480 x 480")
         out(_machine_line(machine, args.device))
         if args.shards > 1:
@@ -148,6 +150,7 @@ def cmd_bench_envs(args: argparse.Namespace) -> int:
         anchors["cloth"] = cloth_anchor(args.anchor_steps, args.budget)
         ratios = cloth_ratios(rows, anchors["cloth"])
         lines += [cloth_anchor_line(anchors["cloth"]), *cloth_ratio_lines(ratios)]
+    machine["load_average_1min_at_end"] = machine_info()["load_average_1min"]
     if args.json:
         json_out(
             {"machine": machine, "env_args": env_kwargs, "results": rows, "mujoco": anchors, "cloth_ratios": ratios}
@@ -155,6 +158,8 @@ def cmd_bench_envs(args: argparse.Namespace) -> int:
     else:
         for line in lines:
             out(line)
+        if machine["load_average_1min_at_end"] is not None:
+            out(f"load at the end: {machine['load_average_1min_at_end']:.2f} (1-minute average)")
     return EXIT_OK
 
 

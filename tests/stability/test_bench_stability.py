@@ -196,3 +196,23 @@ def test_the_fuzz_counts_rises_its_steps_tolerance_explains_apart() -> None:
     tolerance of 1.5-3.6 mJ (|dPhi/dz| |dz|), and one more than 0.1% of |K + E| would be unreported."""
     row = stability.fuzz_env("RedSim/MiniChain-v0", 1600, num_envs=16, seed=0)
     assert row["nan"] == 0 and row["unreported"] == 0 and row["within_tolerance"] == 2
+
+
+def test_chain_table_shows_each_start_energy_and_names_latent_runs_from_another_start() -> None:
+    def redsim_row(label: str, space: str, free: float) -> dict:
+        return {"scenario": label, "space": space, "free_energy_J": free, "blew_up": False, "steps": 10}
+
+    labels = [label for label, _, _ in stability.chain_scenarios()]
+    mujoco = [
+        {"scenario": label, "integrator": i, "blew_up": True, "reason": "energy", "at_step": 5, "free_energy_J": 80.0}
+        for label in labels
+        for i in stability.MUJOCO_INTEGRATORS
+    ]
+    rows = [redsim_row(labels[-1], "full", 160.0), redsim_row(labels[-1], "latent", 3e4)]
+    rows += [redsim_row(labels[-2], "full", 160.0), redsim_row(labels[-2], "latent", 200.0)]
+    for row in rows:
+        row.update(failures_detected=0, unreported=0)
+    lines = stability.chain_table({"mujoco": mujoco, "redsim": rows, "dt": 0.01})
+    assert f"| {labels[-1]} | 80 / 160 / 3e+04 |" in "\n".join(lines)
+    assert f"| {labels[0]} | 80 / - / - |" in "\n".join(lines)
+    assert lines[-1].startswith(f"not the same experiment in latent space: {labels[-1]} (")
