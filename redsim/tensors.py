@@ -1,8 +1,10 @@
-"""Walking the tensors inside nested scene data (effects' fields, handles, surfaces): cast, move, select."""
+"""Walking the tensors inside nested scene data (effects' fields, handles, surfaces): cast, move, select; and
+forward-mode derivatives (:func:`jvp`)."""
 
 from __future__ import annotations
 
 import dataclasses
+import warnings
 from collections.abc import Callable
 from typing import Any
 
@@ -36,3 +38,12 @@ def cast_tensors(value: Any, device: torch.device | str | None, dtype: torch.dty
         return t.to(device=device, dtype=dtype) if t.is_floating_point() else t.to(device=device)
 
     return map_tensors(value, cast)
+
+
+def jvp(fn: Callable[..., Tensor], primals: tuple[Tensor, ...], tangents: tuple[Tensor, ...]) -> tuple[Tensor, Tensor]:
+    """``torch.func.jvp`` without the ``torch.jit.script`` DeprecationWarning that torch's own forward-mode
+    decompositions raise on first use: a warning about torch's internals, which under ``python -W error`` would
+    stop a user's first env step."""
+    with warnings.catch_warnings():
+        warnings.filterwarnings("ignore", message="`torch.jit.script` is deprecated", category=DeprecationWarning)
+        return torch.func.jvp(fn, primals, tangents)

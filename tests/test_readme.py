@@ -19,6 +19,8 @@ from redsim.cli import build_parser, main
 
 ROOT = Path(__file__).resolve().parents[1]
 README = ROOT / "README.md"
+if not README.is_file():  # the tests copied beside an installed wheel
+    pytest.skip("needs the source checkout (README.md, docs/)", allow_module_level=True)
 DOCS = sorted((ROOT / "docs").glob("*.md"))
 """The history and detail moved out of the README; their blocks are held to the same checks."""
 FILES = [README, *DOCS]

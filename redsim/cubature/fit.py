@@ -31,6 +31,7 @@ from redsim.cubature.output import AffineOutput
 from redsim.effects.base import Effect, gather_elements
 from redsim.scene import Scene
 from redsim.subspace import periodic_latents, sample_latents
+from redsim.tensors import jvp
 
 MODES = ("cubature", "full", "linear")
 """How a cubature treats an effect: a weighted subset of its elements, all of them, or exactly as a linear term."""
@@ -184,7 +185,7 @@ def element_columns(
         k = zs.shape[0]
         tangents = torch.eye(d, dtype=z.dtype).repeat_interleave(k, 0)
         with torch.no_grad():
-            q, dq = torch.func.jvp(
+            q, dq = jvp(
                 lambda u, cs=cs: output(u, None if cs is None else cs.repeat(d, 1)), (zs.repeat(d, 1),), (tangents,)
             )
         x = scene.full_positions(q[:k])

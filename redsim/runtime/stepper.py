@@ -26,6 +26,7 @@ from redsim.runtime.energy import LatentEnergy, MapEnergy, ReducedInertia
 from redsim.runtime.flags import diverged_states, energy_gain_states, energy_gain_tolerance, out_of_range_states
 from redsim.runtime.solver import HESSIANS, BatchResult, check_max_step, check_sync_every, minimize
 from redsim.scene import Scene
+from redsim.tensors import jvp
 
 DEFAULT_TOL = {torch.float32: 1e-6, torch.float64: 1e-9}
 """Default relative gradient tolerance per dtype.
@@ -222,7 +223,7 @@ class _StepObjective:
         tangents = torch.eye(d, dtype=z.dtype, device=z.device).repeat_interleave(k, 0)
         cond = self._cond(index, d)
         coords = self.s._coords if coords is None else coords
-        _, columns = torch.func.jvp(lambda u: coords(u, cond), (z.detach().repeat(d, 1),), (tangents,))
+        _, columns = jvp(lambda u: coords(u, cond), (z.detach().repeat(d, 1),), (tangents,))
         return columns.reshape(d, k, -1)
 
     def metric(self, z: Tensor, index: Tensor) -> Tensor:
