@@ -778,6 +778,14 @@ def _remove_run(out: Path) -> None:
     shutil.rmtree(out / "checkpoints", ignore_errors=True)
 
 
+def training_seed(seed: int, steps: int) -> int:
+    """The reset seed s of the training copies (copy i: s + i) of a run with ``seed``, started or resumed at
+    ``steps``: a 32-bit number from ``SeedSequence([seed, steps])``, so runs of neighbouring seeds share no episode
+    (seeds ``seed + i`` would give run 1's copy i run 0's copy i + 1), nor do they replay the evaluations'
+    (``seed + 10_000 + i``, ``seed + 20_000 + i``) or ``eval-agent``'s (0-19)."""
+    return int(np.random.SeedSequence([int(seed), int(steps)]).generate_state(1)[0])
+
+
 def _resume_from(out: Path) -> Path | None:
     """The newest of ``out/model.zip`` and the checkpoints (None: nothing to resume from)."""
     found = [p for p in [out / "model.zip", *(out / "checkpoints").glob("rl_model_*_steps.zip")] if p.is_file()]
@@ -1018,7 +1026,7 @@ def train_agent(
             f"cannot resume with env_kwargs {kwargs_now}: {previous} was trained with {found['env_kwargs']} "
             "(give the same --env-arg and --episode-steps, or another --out)"
         )
-    venv = _sb3_env(env, copies, seed, env_kwargs, shards, goal={} if her else None)
+    venv = _sb3_env(env, copies, training_seed(seed, 0), env_kwargs, shards, goal={} if her else None)
     # evaluations score the env's own reward (the goal env with its control cost passes it through)
     eval_env = _sb3_env(
         env, min(eval_episodes, 10), seed + 10_000, env_kwargs, goal={"control_cost": True} if her else None
@@ -1036,22 +1044,34 @@ def train_agent(
             eval_env = VecNormalize(eval_env, training=False, norm_reward=False)
         model = cls.load(previous, env=venv, device="cpu")
         # new episodes, not a replay of the first run's, nor of the evaluations' (seed + 10_000, seed + 20_000)
-        venv.seed(int(np.random.SeedSequence([seed, int(model.num_timesteps)]).generate_state(1)[0]))
+        venv.seed(training_seed(seed, int(model.num_timesteps)))
         if "action_noise" in settings:  # TD3: the saved noise is vectorized over the saved run's copies
             model.action_noise = settings["action_noise"]
         if buffer:
             model.load_replay_buffer(out / BUFFER)
-        elif her:  # from a checkpoint: an empty HER buffer samples only once every copy has ended an episode again
+        elif algo != "ppo":  # from a checkpoint (only model.zip keeps a replay buffer): refill before learning
+            # HER samples only once every copy has ended an episode again; plain replay after the table's start
             ended = copies * (int(_episode_steps(env, env_kwargs) or 0) + 1)
-            model.learning_starts = max(int(model.learning_starts), int(model.num_timesteps) + ended)
+            wait = ended if her else int(settings["learning_starts"])
+            model.learning_starts = max(int(model.learning_starts), int(model.num_timesteps) + wait)
+            log.warning(
+                "resuming %s from %s without a replay buffer (only model.zip keeps one): learning restarts after "
+                "%d new env steps",
+                label,
+                previous,
+                int(model.learning_starts) - int(model.num_timesteps),
+            )
         log.info("resuming %s from %s at %d steps", label, previous, model.num_timesteps)
     else:
+        if resume:
+            log.warning("nothing to resume in %s (no model.zip, no checkpoint): starting a new run", out)
         if normalize:
             options = {"norm_reward": False, "gamma": settings.get("gamma", 0.99), **dict(normalize)}
             venv = VecNormalize(venv, **options)
             eval_env = VecNormalize(eval_env, training=False, norm_reward=False)
         policy = "MultiInputPolicy" if her else "MlpPolicy"
         model = cls(policy, venv, seed=seed, device="cpu", verbose=0, **settings)
+        venv.seed(training_seed(seed, 0))  # SB3 seeded the copies seed + i: another run's and the evaluations'
     model.redsim_env_id = label
     model.redsim_algo = algo
     model.redsim_normalized = isinstance(venv, VecNormalize)
@@ -1193,5 +1213,6 @@ __all__ = [
     "shipped_policies",
     "shipped_policy",
     "train_agent",
+    "training_seed",
     "vector_env",
 ]

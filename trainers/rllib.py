@@ -40,7 +40,8 @@ ENV_CONFIG_KEYS = ("id", "kwargs")
 
 def env_creator(env_config: Mapping[str, Any]) -> gym.Env | gym.vector.VectorEnv:
     """The env of an RLlib env runner: ``env_config["id"]`` made with ``env_config["kwargs"]``; where RLlib adds
-    ``"num_envs"`` (``gym_env_vectorize_mode="vector_entry_point"``), the native vector env of that many copies.
+    ``"num_envs"`` (``gym_env_vectorize_mode="vector_entry_point"``), the native vector env of that many copies,
+    its seeds spread so that runners do not share episodes (:class:`RunnerSeeds`).
 
     Raises:
         ValueError: no ``"id"`` or not a RedSim id, ``"kwargs"`` not a dict, or a key other than
@@ -62,8 +63,22 @@ def env_creator(env_config: Mapping[str, Any]) -> gym.Env | gym.vector.VectorEnv
         raise ValueError(f"env_config['kwargs'] must be a dict of the env's keyword arguments, got {kwargs!r:.80}")
     if "num_envs" in env_config:
         copies = int(env_config["num_envs"])
-        return gym.make_vec(env_id, num_envs=copies, vectorization_mode="vector_entry_point", **kwargs)
+        return RunnerSeeds(gym.make_vec(env_id, num_envs=copies, vectorization_mode="vector_entry_point", **kwargs))
     return gym.make(env_id, **kwargs)
+
+
+class RunnerSeeds(gym.vector.VectorWrapper):
+    """A vector env whose reset with one seed s seeds copy i with ``s * num_envs + i``, not Gymnasium's ``s + i``.
+
+    RLlib resets env runner w with ``config.seed + w`` (``config.debugging(seed=...)``; + 10000 for evaluation
+    runners): with ``s + i``, copy i of runner w would replay copy i + 1 of runner w - 1, episode for episode.
+    A sequence of seeds, or None, passes through.
+    """
+
+    def reset(self, *, seed: Any = None, options: dict[str, Any] | None = None) -> Any:
+        if isinstance(seed, int):
+            seed = [seed * self.num_envs + i for i in range(self.num_envs)]
+        return self.env.reset(seed=seed, options=options)
 
 
 def check_env_config(env_config: Mapping[str, Any], num_envs: int | None = None) -> None:
@@ -96,4 +111,4 @@ def register(name: str = DEFAULT_NAME) -> str:
     return name
 
 
-__all__ = ["DEFAULT_NAME", "ENV_CONFIG_KEYS", "check_env_config", "env_creator", "register"]
+__all__ = ["DEFAULT_NAME", "ENV_CONFIG_KEYS", "RunnerSeeds", "check_env_config", "env_creator", "register"]

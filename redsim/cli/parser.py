@@ -5,7 +5,9 @@ from __future__ import annotations
 import argparse
 import logging
 import os
+import signal
 import sys
+import threading
 from collections.abc import Sequence
 from pathlib import Path
 
@@ -41,7 +43,8 @@ def main(argv: Sequence[str] | None = None) -> int:
 
     Returns:
         The exit status (0 ok, 1 a scene failed to build or a file could not be read or written, 2 bad input,
-        3 NaN, 4 a failed simulation step, 130 interrupted).
+        3 NaN, 4 a failed simulation step, 130 interrupted: Ctrl-C, or SIGTERM as a batch scheduler or ``kill``
+        sends it, which takes the same path, so an interrupted fit or training run saves what it has).
     """
     parser = build_parser()
     try:
@@ -56,6 +59,7 @@ def main(argv: Sequence[str] | None = None) -> int:
         format="redsim: %(levelname)s: %(name)s: %(message)s",
     )
     threads = torch.get_num_threads()
+    terminate = _interrupt_on_sigterm()
     try:
         apply_threads(args)
         _check_out(args)
@@ -72,6 +76,21 @@ def main(argv: Sequence[str] | None = None) -> int:
         return 1
     finally:
         torch.set_num_threads(threads)  # in-process callers (tests, notebooks) keep their setting
+        if terminate is not None:
+            signal.signal(signal.SIGTERM, terminate)
+
+
+def _raise_interrupt(signum: int, frame: object) -> None:
+    raise KeyboardInterrupt(f"signal {signum}")
+
+
+def _interrupt_on_sigterm() -> object:
+    """Make SIGTERM raise KeyboardInterrupt while a command runs (main thread only); returns the handler it replaced
+    (None off the main thread, where none is set)."""
+    if threading.current_thread() is not threading.main_thread():
+        return None
+    previous = signal.signal(signal.SIGTERM, _raise_interrupt)
+    return signal.SIG_DFL if previous is None else previous
 
 
 def _check_out(args: argparse.Namespace) -> None:

@@ -24,6 +24,7 @@ from redsim.trainers.agents import (
     normalizer_path,
     shipped_policies,
     shipped_policy,
+    training_seed,
 )
 
 MINI = "RedSim/MiniChain-v0"
@@ -394,11 +395,14 @@ def test_a_resumed_run_draws_new_episodes(tmp_path: Path, monkeypatch: pytest.Mo
     first = seeds[0]
     seeds.clear()
     train_agent(MINI, tmp_path, algo="sac", steps=80, seed=3, resume=True, **tiny)
-    assert first == 3 and seeds[0] not in (3, 3 + 10_000, 3 + 20_000)  # not the first run's, nor the evaluations'
+    assert first == training_seed(3, 0) and first >= 20_100  # no evaluation's seeds (3 + 10_000 + i, eval-agent's)
+    assert seeds[0] not in (first, 3 + 10_000, 3 + 20_000)  # not the first run's, nor the evaluations'
     again = seeds[0]
     seeds.clear()
     train_agent(MINI, tmp_path, algo="sac", steps=120, seed=3, resume=True, **tiny)
-    assert seeds[0] not in (3, again, 3 + 10_000, 3 + 20_000)
+    assert seeds[0] not in (first, again, 3 + 10_000, 3 + 20_000)
+    starts = [training_seed(s, 0) for s in range(100)]  # neighbouring seeds' 16 copies share no episode
+    assert min(abs(a - b) for i, a in enumerate(starts) for b in starts[i + 1 :]) > 16
 
 
 def test_td3_resumes_from_a_checkpoint_with_other_copies(tmp_path: Path) -> None:
@@ -520,3 +524,41 @@ def test_the_training_log_keeps_sb3_s_tensorboard_and_stdout_settings(tmp_path: 
             _training_log(SimpleNamespace(tensorboard_log=str(tmp_path / "tb"), verbose=0), tmp_path, None)
     for logger in (quiet, loud):
         logger.close()
+
+
+def test_sigterm_saves_the_run_as_ctrl_c_does_and_a_bufferless_resume_refills_first(
+    cli: Callable[..., tuple[int, str, str]], tmp_path: Path, monkeypatch: pytest.MonkeyPatch, caplog
+) -> None:
+    """A batch scheduler's SIGTERM takes the Ctrl-C path (exit 130, model and replay buffer saved); a resume from a
+    checkpoint, which keeps no replay buffer, waits for new transitions before learning, and says so."""
+    import os
+    import signal
+
+    from redsim.trainers import agents
+
+    training_log = agents._training_log
+
+    def terminated(*args: object) -> object:
+        os.kill(os.getpid(), signal.SIGTERM)  # arrives as the run starts to learn
+        return training_log(*args)
+
+    monkeypatch.setattr(agents, "_training_log", terminated)
+    code, _, err = cli("train-agent", MINI, "--steps", "200", "--out", str(tmp_path), *TINY)
+    assert code == 130 and "interrupted at 0 env steps" in err, err
+    assert (tmp_path / "model.zip").is_file() and (tmp_path / agents.BUFFER).is_file()
+    from redsim.cli.parser import _raise_interrupt
+
+    assert signal.getsignal(signal.SIGTERM) is not _raise_interrupt  # put back: not left on the caller
+    monkeypatch.setattr(agents, "_training_log", training_log)
+
+    run = tmp_path / "checkpointed"
+    tiny = {"n_envs": 2, "eval_episodes": 2, "final_episodes": 2, "env_kwargs": SHORT, "video": False}
+    agents.train_agent(MINI, run, algo="sac", steps=40, checkpoint_every=20, overrides={"learning_starts": 10}, **tiny)
+    (run / "model.zip").unlink()  # killed after its checkpoints
+    with caplog.at_level("WARNING", logger="redsim.trainers.agents"):
+        result = agents.train_agent(MINI, run, algo="sac", steps=60, resume=True, **tiny)
+    model = agents.load_agent(result.model_path).model
+    assert "without a replay buffer" in caplog.text and model.learning_starts >= 40 + 10
+    with caplog.at_level("WARNING", logger="redsim.trainers.agents"):
+        agents.train_agent(MINI, tmp_path / "empty", algo="sac", steps=20, resume=True, **tiny)
+    assert "nothing to resume in" in caplog.text

@@ -22,6 +22,20 @@ def test_env_creator_makes_the_id_with_its_kwargs_and_the_vector_env_where_rllib
     venv.close()
 
 
+def test_neighbouring_env_runners_share_no_episode() -> None:
+    """RLlib resets runner w with config.seed + w: the copies' seeds are spread (s * N + i), not s + i."""
+    import numpy as np
+
+    runners = [env_creator({"id": MINI, "num_envs": 4}) for _ in range(2)]
+    first, second = (venv.reset(seed=42 + w)[0] for w, venv in enumerate(runners))
+    targets = {tuple(np.round(row, 5)) for row in np.vstack([first, second])}
+    assert len(targets) == 8  # with s + i, runner 1's copy i would be runner 0's copy i + 1
+    np.testing.assert_array_equal(runners[0].reset(seed=42)[0], first)
+    assert runners[0].unwrapped.num_envs == 4 and runners[0].spec is not None
+    for venv in runners:
+        venv.close()
+
+
 @pytest.mark.parametrize(
     ("env_config", "message"),
     [
