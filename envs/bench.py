@@ -25,6 +25,7 @@ import gymnasium as gym
 import numpy as np
 import torch
 
+from redsim import scenes
 from redsim.runtime import Evaluations
 
 DEFAULT_BATCHES = (16, 64, 256)
@@ -53,12 +54,14 @@ def _full_space_step(
 ) -> dict[str, Any]:
     """Median wall time of one float64 full-space step of the env's scene, each under the load of a fresh uniform
     random action as the env's steps, from the env's reset state lifted into the full space (f(z)) after ``warmup``
-    untimed steps (f(z) is not the full space's rest: its first steps take more Newton iterations)."""
+    untimed steps (f(z) is not the full space's rest: its first steps take more Newton iterations), Newton to the
+    scene's ``full_space_tol`` (:class:`redsim.scenes.SceneEntry`)."""
     from redsim.integrators import FullSpace, ImplicitEuler
 
     sim = env.sim
     scene = sim.source_scene.to(dtype=torch.float64)
-    integrator = ImplicitEuler(FullSpace(scene), sim.dt / sim.frame_skip, minimizer="newton", tol=1e-8, max_iter=50)
+    tol = scenes.ENTRIES[scene.name].full_space_tol if scene.name in scenes.ENTRIES else 1e-8
+    integrator = ImplicitEuler(FullSpace(scene), sim.dt / sim.frame_skip, minimizer="newton", tol=tol, max_iter=50)
     q0 = sim.positions(sim.z[:1])[0].to(torch.float64)
     holder = {"state": integrator.initial_state(q0), "converged": True, "iterations": []}
 
@@ -78,6 +81,7 @@ def _full_space_step(
         "repeats": count,
         "converged": holder["converged"],
         "iterations_per_step": statistics.fmean(holder["iterations"]),
+        "tol": tol,
     }
 
 

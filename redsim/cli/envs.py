@@ -100,8 +100,8 @@ def cmd_bench_envs(args: argparse.Namespace) -> int:
     if not args.json:
         out("env steps/s by wall time (median over timed steps, each configuration timed once in turn: compare ids")
         out("within a run, and settings with `redsim bench env-ab`); simulated s per wall s of the single env, of the")
-        out("best batch, and of the scene's float64 full-space implicit-Euler step (Newton, tol 1e-8, from the env's")
-        out("reset state after untimed steps, a fresh random action each step);")
+        out("best batch, and of the scene's float64 full-space implicit-Euler step (Newton to the scene's tolerance,")
+        out("1e-8, the cloths 1e-4; from the env's reset state after untimed steps, a fresh random action each step);")
         out("render/s: frames per second of the single env's rgb_array picture at 480 x 480")
         out(_machine_line(machine, args.device))
         if args.shards > 1:

@@ -53,6 +53,9 @@ class SceneEntry:
             of states any good subspace of this scene should contain (the bistable bar's two
             buckled equilibria). A string, imported only when called, because computing the
             states needs the solver stack, which sits above the scenes.
+        full_space_tol: Relative gradient tolerance a float64 full-space Newton step of this scene reaches (the
+            reference of the accuracy bench, the full-space column of ``bench envs``): 1e-8, or looser where
+            Newton stalls above it (the cloths: near 3e-5 of their forces).
     """
 
     name: str
@@ -60,6 +63,7 @@ class SceneEntry:
     tags: tuple[str, ...] = ()
     crank: Crank | None = None
     reference_states: str | None = None
+    full_space_tol: float = 1e-8
 
     def __post_init__(self) -> None:
         unknown = sorted(set(self.tags) - set(TAGS))
