@@ -1116,6 +1116,9 @@ def train_agent(
         save_path=str(out / "checkpoints"),
         save_vecnormalize=True,
     )
+    if previous is not None:  # SB3's callbacks count their calls from 0 again: keep the run's step grid
+        for callback in (evaluation_cb, checkpoint_cb):
+            callback.n_calls = int(model.num_timesteps) // copies
     remaining = int(steps) - int(model.num_timesteps)
     summary = {
         "env_id": label,

@@ -562,3 +562,19 @@ def test_sigterm_saves_the_run_as_ctrl_c_does_and_a_bufferless_resume_refills_fi
     with caplog.at_level("WARNING", logger="redsim.trainers.agents"):
         agents.train_agent(MINI, tmp_path / "empty", algo="sac", steps=20, resume=True, **tiny)
     assert "nothing to resume in" in caplog.text
+
+
+def test_a_resumed_run_keeps_the_evaluation_and_checkpoint_grid(tmp_path: Path) -> None:
+    """Evaluations and checkpoints every 20 env steps land at 20, 40, 60 in all, whether or not the run stopped at 30
+    (SB3's callbacks count their calls from 0 again on a resume)."""
+    from redsim.trainers.agents import train_agent
+
+    tiny = {"n_envs": 2, "eval_episodes": 2, "final_episodes": 2, "env_kwargs": SHORT, "video": False}
+    grid = {"eval_every": 20, "checkpoint_every": 20, "overrides": {"learning_starts": 10}}
+    train_agent(MINI, tmp_path, algo="sac", steps=30, **grid, **tiny)
+    train_agent(MINI, tmp_path, algo="sac", steps=60, resume=True, **grid, **tiny)
+    with np.load(tmp_path / "evaluations.npz") as evaluations:
+        assert evaluations["timesteps"].tolist() == [20, 40, 60]
+    assert sorted(p.name for p in (tmp_path / "checkpoints").glob("rl_model_*_steps.zip")) == [
+        f"rl_model_{n}_steps.zip" for n in (20, 40, 60)
+    ]
