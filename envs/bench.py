@@ -60,8 +60,9 @@ def _full_space_step(
 
     sim = env.sim
     scene = sim.source_scene.to(dtype=torch.float64)
-    tol = scenes.ENTRIES[scene.name].full_space_tol if scene.name in scenes.ENTRIES else 1e-8
+    tol = scenes.full_space_tol(scene.name)
     integrator = ImplicitEuler(FullSpace(scene), sim.dt / sim.frame_skip, minimizer="newton", tol=tol, max_iter=50)
+    env.reset(seed=int(rng.integers(2**31)))
     q0 = sim.positions(sim.z[:1])[0].to(torch.float64)
     holder = {"state": integrator.initial_state(q0), "converged": True, "iterations": []}
 

@@ -283,12 +283,13 @@ def check_manifold(triangles: np.ndarray, vertices: np.ndarray | None = None) ->
     if repeats.size:
         t = int(repeats[0])
         raise ValueError(f"triangle {t} {tri[t].tolist()}{at(*tri[t])} repeats a vertex: remove degenerate triangles")
-    _, first, seen = np.unique(ordered, axis=0, return_index=True, return_counts=True)
-    if bool((seen > 1).any()):
-        t = int(first[seen > 1][0])
+    _, inverse, seen = np.unique(ordered, axis=0, return_inverse=True, return_counts=True)
+    twice = np.flatnonzero(seen[inverse.reshape(-1)] > 1)
+    if twice.size:
+        t = int(twice[0])
         raise ValueError(
-            f"triangle {t} {tri[t].tolist()}{at(*tri[t])} appears {int(seen[seen > 1][0])} times: remove duplicate "
-            "triangles (a cloth surface is a manifold)"
+            f"triangle {t} {tri[t].tolist()}{at(*tri[t])} appears {int(seen[inverse.reshape(-1)[t]])} times: remove "
+            "duplicate triangles (a cloth surface is a manifold)"
         )
     corners = np.arange(tri.size).reshape(-1, 3)
     start, end = tri.ravel(), tri[:, [1, 2, 0]].ravel()  # half-edge c runs from corner c to corner nxt[c]

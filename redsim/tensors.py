@@ -40,10 +40,19 @@ def cast_tensors(value: Any, device: torch.device | str | None, dtype: torch.dty
     return map_tensors(value, cast)
 
 
+_JVP_QUIET: list[bool] = []
+"""Non-empty once a :func:`jvp` call has run: torch scripts its forward-mode decompositions once per process."""
+
+
 def jvp(fn: Callable[..., Tensor], primals: tuple[Tensor, ...], tangents: tuple[Tensor, ...]) -> tuple[Tensor, Tensor]:
     """``torch.func.jvp`` without the ``torch.jit.script`` DeprecationWarning that torch's own forward-mode
     decompositions raise on first use: a warning about torch's internals, which under ``python -W error`` would
-    stop a user's first env step."""
+    stop a user's first env step. Only the first call is wrapped (``warnings.catch_warnings`` resets Python's
+    once-per-location warning registry and is not thread-safe)."""
+    if _JVP_QUIET:
+        return torch.func.jvp(fn, primals, tangents)
     with warnings.catch_warnings():
         warnings.filterwarnings("ignore", message="`torch.jit.script` is deprecated", category=DeprecationWarning)
-        return torch.func.jvp(fn, primals, tangents)
+        result = torch.func.jvp(fn, primals, tangents)
+    _JVP_QUIET.append(True)
+    return result

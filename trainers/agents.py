@@ -407,10 +407,14 @@ def evaluate(
     if isinstance(policy, str) and policy not in ("random", "scripted"):
         raise ValueError(f"policy must be a model, 'random' or 'scripted', got {policy!r}")
     venv = vector_env(env, int(episodes), env_kwargs=env_kwargs)
-    if not isinstance(policy, str):
-        _check_spaces(policy, venv)
-    if venv.max_episode_steps is None:
-        raise ValueError("evaluation needs an env with an episode limit (max_episode_steps)")
+    try:
+        if not isinstance(policy, str):
+            _check_spaces(policy, venv)
+        if venv.max_episode_steps is None:
+            raise ValueError("evaluation needs an env with an episode limit (max_episode_steps)")
+    except ValueError:
+        venv.close()  # a sharded env's workers too
+        raise
     rng = np.random.default_rng(seed)
     obs, _ = venv.reset(seed=seed)
     returns = np.zeros(venv.num_envs)
@@ -478,6 +482,11 @@ def model_record(path: str | Path, plain_algo: str | None = None) -> dict[str, A
             raise ValueError(
                 f"{path} is an SB3 model, but not one trained by redsim (no env id recorded): name its algorithm "
                 "(eval-agent --algo, load_agent(..., algo=)) to load it as a plain SB3 model"
+            )
+        if getattr(data.get("replay_buffer_class"), "__name__", "") == "HerReplayBuffer":
+            raise ValueError(
+                f"{path} is an SB3 model trained with HER on dict observations redsim does not know: only "
+                "`redsim train-agent --her` models record how to split the env's flat observations"
             )
         normalized = normalizer_path(path).is_file()
         return {
@@ -1052,14 +1061,16 @@ def train_agent(
         elif algo != "ppo":  # from a checkpoint (only model.zip keeps a replay buffer): refill before learning
             # HER samples only once every copy has ended an episode again; plain replay after the table's start
             ended = copies * (int(_episode_steps(env, env_kwargs) or 0) + 1)
-            wait = ended if her else int(settings["learning_starts"])
+            left = int(steps) - int(model.num_timesteps)
+            wait = ended if her else min(int(settings["learning_starts"]), left // 2)  # as a new run: half at most
             model.learning_starts = max(int(model.learning_starts), int(model.num_timesteps) + wait)
             log.warning(
-                "resuming %s from %s without a replay buffer (only model.zip keeps one): learning restarts after "
-                "%d new env steps",
+                "resuming %s from %s without a replay buffer (only model.zip keeps one): it acts at random for "
+                "%d new env steps, then learns again%s",
                 label,
                 previous,
-                int(model.learning_starts) - int(model.num_timesteps),
+                wait,
+                "" if wait < left else f" (past this run's {left} steps: it will not learn)",
             )
         log.info("resuming %s from %s at %d steps", label, previous, model.num_timesteps)
     else:

@@ -31,6 +31,7 @@ from collections.abc import Mapping
 from typing import Any
 
 import gymnasium as gym
+import numpy as np
 
 DEFAULT_NAME = "redsim"
 """The name :func:`register` gives the creator (``PPOConfig().environment(DEFAULT_NAME, ...)``)."""
@@ -68,16 +69,18 @@ def env_creator(env_config: Mapping[str, Any]) -> gym.Env | gym.vector.VectorEnv
 
 
 class RunnerSeeds(gym.vector.VectorWrapper):
-    """A vector env whose reset with one seed s seeds copy i with ``s * num_envs + i``, not Gymnasium's ``s + i``.
+    """A vector env whose reset with one seed s seeds copy i with ``b + i``, b a 32-bit number drawn from
+    ``SeedSequence([s])``, not Gymnasium's ``s + i``.
 
-    RLlib resets env runner w with ``config.seed + w`` (``config.debugging(seed=...)``; + 10000 for evaluation
-    runners): with ``s + i``, copy i of runner w would replay copy i + 1 of runner w - 1, episode for episode.
-    A sequence of seeds, or None, passes through.
+    RLlib resets env runner w with ``config.seed + w`` (``config.debugging(seed=...)``; evaluation runners further
+    up): with ``s + i``, copy i of runner w would replay copy i + 1 of runner w - 1, episode for episode, and the
+    low seeds are ``eval-agent``'s episodes (0-19). A sequence of seeds, or None, passes through.
     """
 
     def reset(self, *, seed: Any = None, options: dict[str, Any] | None = None) -> Any:
-        if isinstance(seed, int):
-            seed = [seed * self.num_envs + i for i in range(self.num_envs)]
+        if isinstance(seed, (int, np.integer)) and not isinstance(seed, bool):
+            base = int(np.random.SeedSequence([int(seed)]).generate_state(1)[0])
+            seed = [base + i for i in range(self.num_envs)]
         return self.env.reset(seed=seed, options=options)
 
 

@@ -18,6 +18,7 @@ from typing import Any
 import torch
 from torch import Tensor, nn
 
+from redsim import scenes
 from redsim.integrators import FullSpace, FullState, ImplicitEuler, LatentSpace
 from redsim.runtime.baseline import run_baseline
 from redsim.runtime.solver import HESSIANS
@@ -165,7 +166,7 @@ def run_reference(
         integrator = ImplicitEuler(LatentSpace(scene, subspace), dt)
         u0 = z0.to(torch.float64)
     else:
-        integrator = ImplicitEuler(FullSpace(scene), dt)
+        integrator = ImplicitEuler(FullSpace(scene), dt, tol=scenes.full_space_tol(scene.name))
         with torch.no_grad():
             u0 = LatentSpace(scene, subspace).configuration(z0.to(torch.float64).unsqueeze(0))[0]
     state = FullState(u0.clone(), u0.clone(), 0.0)

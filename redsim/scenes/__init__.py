@@ -65,6 +65,12 @@ def parameters(name: str) -> dict[str, Any]:
     return {k: p.default for k, p in inspect.signature(builder).parameters.items()}
 
 
+def full_space_tol(name: str) -> float:
+    """The relative gradient tolerance a float64 full-space Newton step of scene ``name`` reaches
+    (:attr:`SceneEntry.full_space_tol`; a scene not in the registry, e.g. one built from a mesh: the default 1e-8)."""
+    return ENTRIES[name].full_space_tol if name in ENTRIES else SceneEntry.full_space_tol
+
+
 def build(name: str, **params: Any) -> Scene:
     """Build the scene called ``name`` with keyword ``params`` overriding its defaults.
 
@@ -90,6 +96,7 @@ __all__ = [
     "cloth_scene_from_mesh",
     "entry",
     "fem_scene_from_mesh",
+    "full_space_tol",
     "names",
     "parameters",
 ]

@@ -189,3 +189,22 @@ def test_the_table_tells_a_non_finite_error_from_a_column_that_does_not_apply() 
     cells = table.splitlines()[-1].split(" | ")
     headers = [h for _k, h, _f in accuracy.COLUMNS]
     assert cells[headers.index("rel. M error")] == "nan" and cells[headers.index("projection")] == "–"
+
+
+def test_substeps_are_finer_steps_of_the_same_load_and_each_scene_has_its_full_space_tolerance(mini_chain) -> None:
+    """dt4th: a row step of 2 substeps is 2 reference steps of dt / 2 under the same load, counted once."""
+    from redsim.integrators import FullSpace, FullState, ImplicitEuler
+    from redsim.integrators.reference import rest_state
+
+    q0 = rest_state(mini_chain)[0]
+    loads = accuracy.scenario_loads(mini_chain, "push", 3)
+    fine = accuracy.run_full(mini_chain, q0, loads, substeps=2)
+    integrator = ImplicitEuler(FullSpace(mini_chain.to(dtype=torch.float64)), accuracy.DT / 2, tol=1e-8)
+    state = FullState(q0.clone(), q0.clone(), 0.0)
+    for i in range(3):
+        for _ in range(2):
+            state, _ = integrator.step(state, loads[i])
+        assert torch.allclose(fine.q[i + 1], state.q, atol=1e-12)
+    assert len(fine.step_s) == 3 and fine.failed == 0
+    assert scenes.full_space_tol("hanging_sheet") == accuracy.PLANS["hanging_sheet"].reference_tol == 1e-4
+    assert scenes.full_space_tol("chain") == 1e-8 == scenes.full_space_tol("a mesh scene not in the registry")

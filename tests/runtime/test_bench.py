@@ -112,3 +112,18 @@ def test_baseline_runs_another_trees_reference_on_the_same_loads() -> None:
 def test_baseline_needs_a_redsim_source_tree(tmp_path: Path) -> None:
     with pytest.raises(ValueError, match="holds no redsim package"):
         check_source(tmp_path)
+
+
+def test_the_full_space_row_times_from_where_its_settling_steps_end() -> None:
+    """run_reference(settle=S): the first S loads run untimed from f(z0), the timing and the trajectory go on from
+    there; a settle as long as the loads still times the last step."""
+    scene = scenes.build("mini_chain")
+    f = pretrained.load("mini_chain", scene)
+    z0 = LatentStepper(scene, f, 0.02).rest_latent()[0]
+    loads = load_sequence(scene, torch.tensor([5.0]), 4, 1, seed=0)[:, 0]
+    full = run_reference(scene, f, 0.02, z0, loads, space="full", warmup=0)
+    settled = run_reference(scene, f, 0.02, z0, loads, space="full", warmup=0, settle=2)
+    assert len(full["trajectory"]) == 5 and len(settled["trajectory"]) == 3
+    assert torch.allclose(settled["trajectory"][0], full["trajectory"][2], atol=1e-10)
+    assert torch.allclose(settled["trajectory"][-1], full["trajectory"][-1], atol=1e-10)
+    assert len(run_reference(scene, f, 0.02, z0, loads, space="full", warmup=0, settle=9)["trajectory"]) == 2

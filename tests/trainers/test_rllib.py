@@ -31,6 +31,7 @@ def test_neighbouring_env_runners_share_no_episode() -> None:
     targets = {tuple(np.round(row, 5)) for row in np.vstack([first, second])}
     assert len(targets) == 8  # with s + i, runner 1's copy i would be runner 0's copy i + 1
     np.testing.assert_array_equal(runners[0].reset(seed=42)[0], first)
+    np.testing.assert_array_equal(runners[1].reset(seed=np.int64(43))[0], second)  # numpy integers alike
     assert runners[0].unwrapped.num_envs == 4 and runners[0].spec is not None
     for venv in runners:
         venv.close()
