@@ -584,26 +584,45 @@ class LatentSim:
         return {"q": self.positions(self.z).detach().cpu().numpy()} if self.include_q else {}
 
     # -- state ----------------------------------------------------------------------------
+    def setting(self) -> dict[str, Any]:
+        """What a state means only under: the scene, the task, the step dt [s] and its substeps (z_prev encodes
+        the velocity (z - z_prev) / dt)."""
+        kind = type(self.task)
+        return {
+            "scene": self.source_scene.name,
+            "task": f"{kind.__module__}.{kind.__qualname__}",
+            "dt": self.dt,
+            "frame_skip": self.frame_skip,
+        }
+
     def get_state(self) -> dict[str, Any]:
         """Copies of the dynamic state: z, z_prev [B, d], cond [B, m] or None, task params {k: [B, ...]},
-        and the solver's warm start ``model`` [B, d, d] (so a restored state steps bitwise alike)."""
+        the solver's warm start ``model`` [B, d, d] (so a restored state steps bitwise alike) and the
+        :meth:`setting` it belongs to."""
         return {
             "z": self.z.cpu().numpy().copy(),
             "z_prev": self.z_prev.cpu().numpy().copy(),
             "model": self.model.cpu().numpy().copy(),
             "cond": None if self.cond is None else self.cond.cpu().numpy().copy(),
             "params": {k: v.cpu().numpy().copy() for k, v in self.params.items()},
+            "setting": self.setting(),
         }
 
     def set_state(self, state: Mapping[str, Any]) -> None:
         """Restore a state from :meth:`get_state` (shapes are checked; without ``model`` the next step
-        builds its solver model afresh: the same solve, to the tolerance).
+        builds its solver model afresh: the same solve to the tolerance, from which float32 trajectories then drift
+        apart as they do between batch sizes).
 
         Raises:
-            ValueError: on a missing key, a wrong shape, non-finite values or a condition outside
-                the scene's condition space.
+            ValueError: on a missing key, a wrong shape, non-finite values, a condition outside the scene's
+                condition space, or a state of another scene, task, dt or frame_skip (``state["setting"]``; a
+                state without it, from before stop 32, is taken as it is).
         """
         d, B = self.latent_dim, self.batch
+        theirs, mine = state.get("setting"), self.setting()
+        if theirs is not None and dict(theirs) != mine:
+            differ = ", ".join(f"{k} {theirs.get(k)!r} (here {v!r})" for k, v in mine.items() if theirs.get(k) != v)
+            raise ValueError(f"the state belongs to another env: {differ}")
 
         def tensor(value: Any, shape: tuple[int, ...], what: str, dtype: torch.dtype | None = None) -> Tensor:
             try:
@@ -939,12 +958,17 @@ class LatentEnv(gym.Env[np.ndarray, np.ndarray]):
 
     # -- state and export -----------------------------------------------------------------
     def get_state(self) -> dict[str, Any]:
-        """The dynamic state (numpy copies): z, z_prev [d], cond [m] or None, task params."""
-        return state_row(self.sim.get_state())
+        """The dynamic state (numpy copies): z, z_prev [d], cond [m] or None, task params, the solver's warm start,
+        the setting it belongs to, and ``rng``, the state of the env's generator (``np_random``: what the next
+        unseeded reset draws)."""
+        return {**state_row(self.sim.get_state()), "rng": self.np_random.bit_generator.state}
 
     def set_state(self, state: Mapping[str, Any]) -> None:
-        """Restore :meth:`get_state`'s state; the next step continues exactly from it."""
+        """Restore :meth:`get_state`'s state; the next step continues exactly from it, and with ``rng`` so does the
+        next unseeded reset."""
         self.sim.set_state(_batch(state))
+        if state.get("rng") is not None:
+            self.np_random.bit_generator.state = state["rng"]
         self._reset_done = True
 
     def configuration(self) -> np.ndarray:
@@ -1131,6 +1155,7 @@ def state_row(state: Mapping[str, Any], i: int = 0) -> dict[str, Any]:
         "model": state["model"][i],
         "cond": None if state["cond"] is None else state["cond"][i],
         "params": {k: v[i] for k, v in state["params"].items()},
+        "setting": state.get("setting"),
     }
 
 
@@ -1147,6 +1172,7 @@ def _batch(state: Mapping[str, Any]) -> dict[str, Any]:
         "model": row(state.get("model")),
         "cond": row(state["cond"]),
         "params": {k: row(v) for k, v in dict(state["params"]).items()},
+        "setting": state.get("setting"),
     }
 
 

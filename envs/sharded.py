@@ -363,11 +363,12 @@ def _cpu_count() -> int:
 
 
 def _join_states(parts: Sequence[Mapping[str, Any]]) -> dict[str, Any]:
-    """The shards' batched states joined along the copies (None stays None; nested dicts key by key)."""
+    """The shards' batched states joined along the copies (None stays None; nested dicts key by key; the
+    ``setting`` all shards share, once)."""
     joined: dict[str, Any] = {}
     for key, first in parts[0].items():
-        if first is None:
-            joined[key] = None
+        if first is None or key == "setting":
+            joined[key] = first
         elif isinstance(first, Mapping):
             joined[key] = _join_states([part[key] for part in parts])
         else:
@@ -376,10 +377,10 @@ def _join_states(parts: Sequence[Mapping[str, Any]]) -> dict[str, Any]:
 
 
 def _state_rows(state: Mapping[str, Any], rows: slice) -> dict[str, Any]:
-    """A shard's block ``rows`` of a batched state."""
+    """A shard's block ``rows`` of a batched state (its ``setting`` as it is)."""
     return {
-        key: None
-        if value is None
+        key: value
+        if value is None or key == "setting"
         else _state_rows(value, rows)
         if isinstance(value, Mapping)
         else np.asarray(value)[rows]

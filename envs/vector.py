@@ -168,18 +168,18 @@ class LatentVectorEnv(SharedCopies, VectorEnv):
         return tuple(self.sim.draw(self._view, i) for i in range(self.num_envs))
 
     def get_state(self) -> dict[str, Any]:
-        """The batched dynamic state (:meth:`redsim.envs.base.LatentSim.get_state`) and each copy's episode clock:
-        ``elapsed_steps`` [N] (int) and ``autoresetting`` [N] (bool), so a restored state steps exactly alike,
-        episode ends and autoresets included."""
+        """The batched dynamic state (:meth:`redsim.envs.base.LatentSim.get_state`), each copy's episode clock,
+        ``elapsed_steps`` [N] (int) and ``autoresetting`` [N] (bool), and each copy's generator state ``rngs`` (what
+        its autoresets draw), so a restored state steps exactly alike, episode ends and autoresets included."""
         clock = {"elapsed_steps": self._elapsed.copy(), "autoresetting": self._autoreset.copy()}
-        return {**self.sim.get_state(), **clock}
+        return {**self.sim.get_state(), **clock, "rngs": [g.bit_generator.state for g in self._rngs]}
 
     def set_state(self, state: dict[str, Any]) -> None:
         """Restore :meth:`get_state`'s state. Without the episode clock (a batched state of the simulation alone),
         every copy's episode count starts at 0 and none is pending an autoreset.
 
         Raises:
-            ValueError: a state of another env or batch, or a clock of another shape.
+            ValueError: a state of another env or batch, or a clock or ``rngs`` of another length.
         """
         elapsed = np.asarray(state.get("elapsed_steps", np.zeros(self.num_envs)))
         pending = np.asarray(state.get("autoresetting", np.zeros(self.num_envs, dtype=bool)))
@@ -188,7 +188,12 @@ class LatentVectorEnv(SharedCopies, VectorEnv):
                 f"state['elapsed_steps'] and state['autoresetting'] must have shape ({self.num_envs},), "
                 f"the first >= 0; got {elapsed.shape} and {pending.shape}"
             )
-        self.sim.set_state({k: v for k, v in state.items() if k not in ("elapsed_steps", "autoresetting")})
+        rngs = state.get("rngs")
+        if rngs is not None and len(rngs) != self.num_envs:
+            raise ValueError(f"state['rngs'] must hold {self.num_envs} generator states, got {len(rngs)}")
+        self.sim.set_state({k: v for k, v in state.items() if k not in ("elapsed_steps", "autoresetting", "rngs")})
+        for g, saved in zip(self._rngs, () if rngs is None else rngs, strict=False):
+            g.bit_generator.state = saved
         self._elapsed[:] = elapsed.astype(np.int64)
         self._autoreset[:] = pending.astype(bool) & (self.metadata["autoreset_mode"] != AutoresetMode.SAME_STEP)
         self._unreset[:] = False
@@ -198,8 +203,8 @@ class LatentVectorEnv(SharedCopies, VectorEnv):
             frames = self.render()
             return frames if frames is not None else (None,) * self.num_envs
         if name == "get_state":
-            state = self.sim.get_state()
-            return tuple(state_row(state, i) for i in range(self.num_envs))
+            state = self.sim.get_state()  # each copy's as a single env's: with its generator
+            return tuple({**state_row(state, i), "rng": g.bit_generator.state} for i, g in enumerate(self._rngs))
         q = self.sim.positions(self.sim.z).detach().cpu().numpy()  # configuration
         return tuple(q[i] for i in range(self.num_envs))
 

@@ -415,7 +415,7 @@ def evaluate(
     except ValueError:
         venv.close()  # a sharded env's workers too
         raise
-    rng = np.random.default_rng(seed)
+    rngs = [np.random.default_rng([seed, i]) for i in range(venv.num_envs)]  # episode i's actions, whatever the count
     obs, _ = venv.reset(seed=seed)
     returns = np.zeros(venv.num_envs)
     lengths = np.zeros(venv.num_envs, dtype=np.int64)
@@ -426,7 +426,7 @@ def evaluate(
     running = np.ones(venv.num_envs, dtype=bool)
     while running.any():
         if policy == "random":
-            action = rng.uniform(-1.0, 1.0, venv.action_space.shape).astype(np.float32)
+            action = np.stack([g.uniform(-1.0, 1.0, venv.single_action_space.shape) for g in rngs]).astype(np.float32)
         elif policy == "scripted":
             action = np.asarray(venv.sim.task.controller(venv.sim), dtype=np.float32)
         else:

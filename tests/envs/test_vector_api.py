@@ -72,6 +72,29 @@ def test_set_state_restores_the_episode_clock_after_an_episode_ended() -> None:
         venv.set_state({**saved, "elapsed_steps": np.zeros(3)})
 
 
+def test_a_restored_state_draws_the_same_next_episodes() -> None:
+    """The copies' generators are part of the state: the autoresets after a restore draw the episodes they drew
+    first; a single env's next unseeded reset alike; another env's or another dt's state is refused."""
+    venv = _vec(max_episode_steps=2)
+    venv.reset(seed=0)
+    saved = venv.get_state()
+    first = [venv.step(PUSH)[0] for _ in range(4)]  # through an autoreset
+    venv.set_state(saved)
+    np.testing.assert_array_equal(np.stack([venv.step(PUSH)[0] for _ in range(4)]), np.stack(first))
+    env = gym.make("RedSim/MiniChain-v0").unwrapped
+    env.reset(seed=3)
+    state = env.get_state()
+    after = env.reset()[0]
+    env.set_state(state)
+    np.testing.assert_array_equal(env.reset()[0], after)
+    for other, message in (
+        (gym.make("RedSim/Klann-v0").unwrapped, "scene 'mini_chain' \\(here 'klann'\\)"),
+        (gym.make("RedSim/MiniChain-v0", frame_skip=2).unwrapped, "frame_skip 1 \\(here 2\\)"),
+    ):
+        with pytest.raises(ValueError, match=f"the state belongs to another env: .*{message}"):
+            other.set_state(state)  # never reset: its params cannot tell
+
+
 def test_reset_masks_are_checked_as_the_sync_vector_env_checks_them() -> None:
     venv = _vec()
     venv.reset(seed=0)

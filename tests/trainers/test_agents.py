@@ -586,3 +586,12 @@ def test_a_resumed_run_keeps_the_evaluation_and_checkpoint_grid(tmp_path: Path) 
     assert sorted(p.name for p in (tmp_path / "checkpoints").glob("rl_model_*_steps.zip")) == [
         f"rl_model_{n}_steps.zip" for n in (20, 40, 60)
     ]
+
+
+def test_a_random_episode_is_the_same_whatever_the_episode_count() -> None:
+    """Episode i's random actions come from its own generator, so --episodes 2 and 3 share their first two
+    episodes (in float64, where the batch size does not move the solves)."""
+    exact = {"dtype": "float64", "max_episode_steps": 6}
+    two = evaluate(MINI, "random", episodes=2, seed=5, env_kwargs=exact)
+    three = evaluate(MINI, "random", episodes=3, seed=5, env_kwargs=exact)
+    np.testing.assert_allclose(three.returns[:2], two.returns, rtol=1e-6)
