@@ -150,8 +150,9 @@ def mesh_sweep(
     rows = []
     for c in cells:
         scene = scenes.build("hanging_sheet", cells_x=int(c), cells_y=int(c))
-        torch.manual_seed(seed)
-        f = SubspaceMap(SubspaceConfig(latent_dim=8, output_dim=scene.free_dof_count))
+        with torch.random.fork_rng(devices=[]):
+            torch.manual_seed(seed)
+            f = SubspaceMap(SubspaceConfig(latent_dim=8, output_dim=scene.free_dof_count))
         with torch.no_grad():
             f.mlp[-1].weight.mul_(0.01)
             f.mlp[-1].bias.copy_(scene.q_seed.to(torch.float32))

@@ -269,7 +269,9 @@ def test_the_energy_option_refuses_what_it_cannot_use(mini_chain) -> None:
 def test_mesh_sweep_leaves_the_batched_all_element_step_out_above_its_limit(cli) -> None:
     from redsim.cubature.bench import mesh_sweep
 
+    before = torch.random.get_rng_state()
     small, big = mesh_sweep((3, 5), elements=8, batches=(1, 2), timed_steps=1, batch_max_n=50)
+    assert torch.equal(torch.random.get_rng_state(), before)  # its maps draw from their own seeded stream
     assert small["n"] <= 50 < big["n"]
     assert small["timing"][2]["all_s"] > 0 and big["timing"][2]["all_s"] is None
     assert all(row["timing"][1]["all_s"] > 0 and row["timing"][2]["cubature_s"] > 0 for row in (small, big))
