@@ -63,11 +63,12 @@ def _full_space_step(
     tol = scenes.full_space_tol(scene.name)
     integrator = ImplicitEuler(FullSpace(scene), sim.dt / sim.frame_skip, minimizer="newton", tol=tol, max_iter=50)
     env.reset(seed=int(rng.integers(2**31)))
-    q0 = sim.positions(sim.z[:1])[0].to(torch.float64)
+    q0 = sim.positions(sim.z[:1])[0].to("cpu", torch.float64)
     holder = {"state": integrator.initial_state(q0), "converged": True, "iterations": []}
 
     def call() -> None:
-        action = torch.as_tensor(rng.uniform(-1.0, 1.0, (1, *env.action_space.shape)), dtype=sim.torch_dtype)
+        draw = rng.uniform(-1.0, 1.0, (1, *env.action_space.shape))
+        action = torch.as_tensor(draw, dtype=sim.torch_dtype, device=sim.device)
         loads = sim.task.loads(action, sim.params)[0].to(torch.float64).cpu()
         holder["state"], info = integrator.step(holder["state"], loads)
         holder["converged"] = holder["converged"] and info.converged

@@ -141,8 +141,9 @@ class PlatePose(Task):
     ) -> dict[str, Tensor]:
         from redsim.integrators import latent_equilibrium
 
-        held = torch.as_tensor(self.target_spread * rng.uniform(-1.0, 1.0, self.action_size)).unsqueeze(0)
-        loads = self.loads(held.to(torch.float64), {})[0].cpu()
+        draw = self.target_spread * rng.uniform(-1.0, 1.0, self.action_size)
+        held = torch.as_tensor(draw, dtype=torch.float64, device=sim.device).unsqueeze(0)
+        loads = self.loads(held, {})[0].cpu()
         z, _ = latent_equilibrium(self._space, loads, z0=z_rest.detach().cpu().to(torch.float64), minimizer=MINIMIZER)
         z = z.to(sim.device, sim.torch_dtype).unsqueeze(0)
         p, r = self.pose(sim.full_positions(z, cond))
@@ -167,7 +168,8 @@ class PlatePose(Task):
         if rotation is not None:
             r = rotation.to(torch.float64)
             if r.shape != (3, 3) or not (
-                torch.allclose(r.T @ r, torch.eye(3, dtype=r.dtype), atol=1e-4) and float(torch.linalg.det(r)) > 0
+                torch.allclose(r.T @ r, torch.eye(3, dtype=r.dtype, device=r.device), atol=1e-4)
+                and float(torch.linalg.det(r)) > 0
             ):
                 raise ValueError(f"options['target_rotation'] must be a rotation matrix [3, 3], got {r.tolist()}")
 

@@ -853,6 +853,9 @@ def fit_command(scene: Scene, config: FitConfig, seed: int, out: str | Path | No
     if config.mirror > 0:
         parts += ["--mirror", repr(config.mirror)]
     default = FitConfig()
+    for field in ("dtype", "device"):  # the precision and the random stream (a CUDA generator draws its own)
+        if getattr(config, field) != getattr(default, field):
+            parts += [f"--{field}", str(getattr(config, field))]
     for field in _ROUND_OFF_ONLY:  # switches, recorded only when not at their defaults
         value, flag = getattr(config, field), field.replace("_", "-")
         if value != getattr(default, field):
@@ -913,7 +916,12 @@ def _load_training_state(
     saved["soften"] = tuple(saved["soften"])
     if saved != mine:
         diff = sorted(k for k in mine if saved.get(k) != mine[k])
-        raise CheckpointError(f"training state was made with different settings {diff}", str(path))
+        values = ", ".join(f"{k}: saved {saved.get(k)!r}, now {mine[k]!r}" for k in diff)
+        raise CheckpointError(
+            f"training state was made with different settings ({values}); resume with the saved ones "
+            "(the fit's recorded command has them)",
+            str(path),
+        )
     step = int(state["step"])
     if config.steps < step:
         raise CheckpointError(

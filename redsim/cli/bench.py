@@ -277,6 +277,7 @@ def _bench_step_hessians(
                 steps=args.steps,
                 hessians=hessians,
                 seed=args.seed,
+                device=args.device,
             ):
                 rows.append(row)
                 if not args.json:

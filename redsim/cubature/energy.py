@@ -26,6 +26,7 @@ from torch import Tensor, nn
 
 from redsim.cubature.fit import MODES, CubatureConfig, EffectRule, fit_rules
 from redsim.cubature.output import AffineOutput, sliced_layer
+from redsim.devices import check_device
 from redsim.effects.base import Effect
 from redsim.scene import Scene
 from redsim.subspace import CheckpointError, checkpoint_path, periodic_latents, write_atomically
@@ -239,7 +240,7 @@ class CubatureEnergy:
 
     Raises:
         CheckpointError: the cubature belongs to another scene or map.
-        ValueError: a map without an affine output layer.
+        ValueError: a map without an affine output layer, or a device redsim cannot run on.
     """
 
     def __init__(
@@ -251,6 +252,7 @@ class CubatureEnergy:
         dtype: torch.dtype = torch.float32,
         device: str | torch.device = "cpu",
     ) -> None:
+        device = check_device(device)
         cubature.check(scene, subspace)
         self.cubature = cubature
         self.latent_dim = int(subspace.latent_dim)

@@ -205,10 +205,11 @@ class SDFContact(Effect):
         slots = int(counts.max()) if P else 0
         order = torch.argsort(pair_index, stable=True)
         first = torch.cumsum(counts, 0) - counts
-        slot = torch.arange(P) - first[pair_index[order]]
-        weights = torch.zeros(pairs, K, slots, dtype=self.points.weights.dtype)
-        offsets = torch.zeros(pairs, D, slots, dtype=self.points.offset.dtype)
-        mask = torch.zeros(pairs, slots, dtype=self.points.weights.dtype)
+        device = self.points.weights.device  # a subset built for the runtime lives where the scene does
+        slot = torch.arange(P, device=device) - first[pair_index[order]]
+        weights = torch.zeros(pairs, K, slots, dtype=self.points.weights.dtype, device=device)
+        offsets = torch.zeros(pairs, D, slots, dtype=self.points.offset.dtype, device=device)
+        mask = torch.zeros(pairs, slots, dtype=self.points.weights.dtype, device=device)
         weights[pair_index[order], :, slot] = self.points.weights[order]
         offsets[pair_index[order], :, slot] = self.points.offset[order]
         mask[pair_index[order], slot] = 1.0

@@ -278,12 +278,13 @@ def compare_hessians(
     steps: int = 20,
     hessians: tuple[str, ...] = HESSIANS,
     seed: int = 0,
+    device: str = "cpu",
 ) -> list[dict[str, Any]]:
-    """Iterations/step, time/step and converged fraction of each solver Hessian model, same loads."""
+    """Iterations/step, time/step and converged fraction of each solver Hessian model, same loads, on ``device``."""
     rows = []
     loads = None
     for hessian in hessians:
-        stepper = LatentStepper(scene, subspace, dt, hessian=hessian)
+        stepper = LatentStepper(scene, subspace, dt, hessian=hessian, device=device)
         if loads is None:
             loads = load_sequence(scene, load_magnitudes(stepper), steps, batch, seed=seed)
             z0 = stepper.rest_latent().expand(batch, -1).clone()

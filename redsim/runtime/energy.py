@@ -20,6 +20,7 @@ from typing import Protocol, runtime_checkable
 import torch
 from torch import Tensor, nn
 
+from redsim.devices import check_device
 from redsim.integrators import map_condition_dim
 from redsim.scene import Scene
 from redsim.subspace import periodic_latents
@@ -91,7 +92,8 @@ class MapEnergy:
         device: Where the evaluations run.
 
     Raises:
-        ValueError: a map without an integer ``latent_dim`` or whose output is not [B, n].
+        ValueError: a map without an integer ``latent_dim`` or whose output is not [B, n], or a device redsim
+            cannot run on.
     """
 
     def __init__(
@@ -102,6 +104,7 @@ class MapEnergy:
         dtype: torch.dtype = torch.float32,
         device: str | torch.device = "cpu",
     ) -> None:
+        device = check_device(device)
         latent_dim = getattr(subspace, "latent_dim", None)
         if not isinstance(latent_dim, int) or latent_dim < 1:
             raise ValueError(f"the subspace must have an integer latent_dim >= 1, got {latent_dim!r}")

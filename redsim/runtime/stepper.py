@@ -21,6 +21,7 @@ from typing import NamedTuple
 import torch
 from torch import Tensor, nn
 
+from redsim.devices import check_device
 from redsim.integrators import LatentSpace, check_time_step, latent_equilibrium, length_scale
 from redsim.runtime.energy import LatentEnergy, MapEnergy, ReducedInertia
 from redsim.runtime.flags import diverged_states, energy_gain_states, energy_gain_tolerance, out_of_range_states
@@ -304,8 +305,8 @@ class LatentStepper:
             28"). The exact and Gauss-Newton Hessians' passes are not split.
 
     Raises:
-        ValueError: a bad dt, tol, max_iter, hessian, sync_every, max_step, warm_refresh, start or row_block, or a
-            map that does not fit the scene.
+        ValueError: a bad dt, tol, max_iter, hessian, sync_every, max_step, warm_refresh, start or row_block, a
+            device redsim cannot run on (:func:`redsim.devices.check_device`), or a map that does not fit the scene.
     """
 
     def __init__(
@@ -355,7 +356,7 @@ class LatentStepper:
         self.warm_refresh = warm_refresh
         self.dt = float(dt)
         self.dtype = dtype
-        self.device = torch.device(device)
+        self.device = torch.device(check_device(device))
         self.tol = float(tol)
         self.max_iter = int(max_iter)
         self.hessian = hessian

@@ -86,6 +86,8 @@ class SubspaceMap(nn.Module):
         periodic = torch.zeros(config.latent_dim, dtype=torch.bool)
         periodic[list(config.periodic)] = True
         self.register_buffer("periodic_mask", periodic, persistent=False)
+        # the periodic entries by index: selecting them by the mask would read its count back to the host per call
+        self.register_buffer("periodic_index", periodic.nonzero().flatten(), persistent=False)
 
     @property
     def latent_dim(self) -> int:
@@ -97,7 +99,7 @@ class SubspaceMap(nn.Module):
             raise ValueError(f"z must have {self.config.latent_dim} entries in its last dim, got {tuple(z.shape)}")
         parts = [z]
         if self.config.periodic:
-            angles = z[..., self.periodic_mask]
+            angles = z.index_select(-1, self.periodic_index)
             parts = [torch.where(self.periodic_mask, torch.cos(z), z), torch.sin(angles)]
         if self.config.condition_dim:
             if cond is None or cond.shape[-1] != self.config.condition_dim:

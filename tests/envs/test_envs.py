@@ -576,3 +576,30 @@ def test_an_env_on_cuda_leaves_the_caller_s_map_where_it_was() -> None:
     assert np.isfinite(env.step(env.action_space.sample())[0]).all()
     assert {p.device.type for p in sub.parameters()} == {"cpu"}
     assert {p.device.type for p in env.unwrapped.sim.subspace.parameters()} == {"cuda"}
+
+
+CUDA_OPTIONS = {"RedSim/Stewart-v0": {"target_rotation": np.eye(3)}, "RedSim/BistableBar-v0": {"start_side": 1}}
+"""A reset option per id whose task draws or checks it with tensors (the reach tasks' target is the fallback)."""
+
+
+@pytest.mark.gpu
+@pytest.mark.skipif(not torch.cuda.is_available(), reason="needs a CUDA device")
+@pytest.mark.parametrize("env_id", [*FAST, *SLOW, *LINKAGES, *SNAP])
+def test_every_id_runs_on_cuda(env_id: str) -> None:
+    """Reset (its task's draw), an option, steps, a state round trip, a picture and bench envs' full-space step."""
+    from redsim.envs.bench import _full_space_step
+
+    env = gym.make(env_id, device="cuda", render_mode="rgb_array")
+    env.reset(seed=0)
+    for _ in range(3):
+        obs, *_ = env.step(env.action_space.sample())
+    assert np.isfinite(obs).all() and env.unwrapped.sim.z.device.type == "cuda"
+    state = env.unwrapped.get_state()
+    after = env.step(np.ones(env.action_space.shape, np.float32))[0]
+    env.unwrapped.set_state(state)
+    assert np.array_equal(env.step(np.ones(env.action_space.shape, np.float32))[0], after)
+    assert env.render().shape == (480, 480, 3)
+    sim = env.unwrapped.sim
+    reach = {"target": sim.params["target"][0].cpu().numpy()} if "target" in sim.task.reset_options else {}
+    env.reset(seed=1, options=CUDA_OPTIONS.get(env_id, reach))
+    assert _full_space_step(env.unwrapped, 1, 0.0, np.random.default_rng(0), warmup=1)["step_s"] > 0

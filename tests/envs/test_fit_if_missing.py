@@ -35,6 +35,17 @@ def test_fit_options_without_fit_if_missing_are_refused() -> None:
         gym.make("RedSim/MiniChain-v0", fit_options=TINY)
 
 
+def test_the_cache_key_ignores_how_a_fit_runs(tmp_path, monkeypatch: pytest.MonkeyPatch) -> None:
+    """A map fitted on a GPU (fit_options device) is the one a CPU run finds; another fit is another entry."""
+    from redsim import scenes
+
+    monkeypatch.setenv("REDSIM_CACHE", str(tmp_path))
+    scene = scenes.build("mini_chain", **PARAMS)
+    plain = fitted.cache_stem("mini_chain", scene, TINY)
+    assert fitted.cache_stem("mini_chain", scene, {**TINY, "device": "cuda", "compile": True}) == plain
+    assert fitted.cache_stem("mini_chain", scene, {**TINY, "steps": 21}) != plain
+
+
 def test_bad_fit_options_are_a_clear_error(tmp_path, monkeypatch: pytest.MonkeyPatch) -> None:
     monkeypatch.setenv("REDSIM_CACHE", str(tmp_path))
     with pytest.raises(ValueError, match="unknown fit option"):

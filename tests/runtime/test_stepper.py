@@ -240,6 +240,11 @@ def test_bad_settings_raise(mini_chain) -> None:
             LatentStepper(scene, f, DT, sync_every=sync_every)
     with pytest.raises(ValueError, match="maps z"):
         LatentStepper(scenes.build("chain"), f, DT)
+    for device in ("bogus", "mps", *(() if torch.cuda.is_available() else ("cuda",))):
+        with pytest.raises(ValueError, match="device"):  # the envs' check, not an error from deep inside torch
+            LatentStepper(scene, f, DT, device=device)
+        with pytest.raises(ValueError, match="device"):
+            MapEnergy(scene, f, device=device)
 
 
 def test_far_latent_is_out_of_range(mini_chain) -> None:

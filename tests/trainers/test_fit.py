@@ -157,7 +157,7 @@ def test_resume_refuses_other_settings_and_missing_state(tmp_path) -> None:
     scene = _tet_scene()
     config = FitConfig(latent_dim=2, steps=10, checkpoint_every=5, hidden_width=8)
     fit_subspace(scene, config, progress=False, out=tmp_path / "r")
-    with pytest.raises(CheckpointError, match="different settings"):
+    with pytest.raises(CheckpointError, match=r"different settings \(sigma: saved [0-9.]+, now 2\.0\)"):
         fit_subspace(scene, config, progress=False, out=tmp_path / "r", resume=True, sigma=2.0)
     with pytest.raises(CheckpointError, match="another scene"):
         fit_subspace(_tet_scene(young=2e3), config, progress=False, out=tmp_path / "r", resume=True)
@@ -273,6 +273,16 @@ def test_fit_command_records_speed_switches_only_when_not_default() -> None:
     assert "fused" not in fit_command(scene, FitConfig(), 0, None)
     assert "compile" not in fit_command(scene, FitConfig(), 0, None)
     assert "--no-fused-adam --compile" in fit_command(scene, FitConfig(fused_adam=False, compile=True), 0, None)
+
+
+def test_fit_command_records_a_dtype_and_device_that_are_not_the_defaults() -> None:
+    """A float64 fit rerun by its recorded command fits in float64 (a CUDA fit draws from a CUDA generator)."""
+    scene = _tet_scene()
+    assert "--dtype" not in fit_command(scene, FitConfig(), 0, None)
+    assert "--device" not in fit_command(scene, FitConfig(), 0, None)
+    config = FitConfig(dtype="float64")
+    object.__setattr__(config, "device", "cuda:0")  # FitConfig refuses a GPU this machine lacks
+    assert "--dtype float64 --device cuda:0" in fit_command(scene, config, 0, None)
 
 
 @pytest.mark.slow
