@@ -25,7 +25,7 @@ import numbers
 import os
 import sys
 from collections.abc import Mapping, Sequence
-from typing import Any, ClassVar
+from typing import TYPE_CHECKING, Any, ClassVar
 
 import gymnasium as gym
 import numpy as np
@@ -36,6 +36,10 @@ from torch import Tensor, nn
 from redsim.devices import DTYPES, check_device
 from redsim.scene import Scene
 from redsim.subspace import CheckpointError, periodic_latents
+
+if TYPE_CHECKING:  # imported where used: the runtime and the invariants load only when an env is built
+    from redsim.envs.invariants import Invariants
+    from redsim.runtime import LatentStepper
 
 CAMERA_KEYS = ("azimuth", "elevation", "margin")
 """The ``camera`` keys an env takes (keyword arguments of :class:`redsim.raster.SceneView`)."""
@@ -280,6 +284,31 @@ class LatentSim:
         ValueError: a bad number or option, or both ``cubature`` and ``stepper_options["energy"]``.
         redsim.subspace.CheckpointError: another scene's map, or a cubature asked for that does not exist.
     """
+
+    # declared for type checkers (set in __init__): the state [B, d] and what users read
+    source_scene: Scene
+    scene: Scene  # the copy in the stepper's dtype and device
+    subspace: nn.Module
+    task: Task
+    stepper: LatentStepper
+    invariants: Invariants
+    torch_dtype: torch.dtype
+    device: torch.device
+    batch: int
+    frame_skip: int
+    dt: float  # the env's step [s]: the stepper's dt times frame_skip
+    latent_dim: int
+    periodic: list[int]
+    cubature: bool
+    conditional: bool
+    randomize_condition: bool
+    include_q: bool
+    z: Tensor
+    z_prev: Tensor
+    x: Tensor
+    x_prev: Tensor
+    loads: Tensor
+    model: Tensor
 
     def __init__(
         self,

@@ -8,6 +8,7 @@ from typing import Any
 import gymnasium as gym
 from gymnasium.wrappers import TimeLimit
 
+from redsim.effects.external import Gravity
 from redsim.envs.base import LatentEnv, Task, checkpoint_subspace
 from redsim.envs.reach import HandleReach
 from redsim.scene import Scene
@@ -58,7 +59,9 @@ def build(
 
 
 def _default_force(scene: Scene) -> float:
-    gravity = next((e for e in scene.effects if e.name == "gravity"), None)
+    """The reach task's default max force [N]: a fraction of the scene's weight under its gravity effect (found by
+    type: a user's effect may be named "gravity"), 1 N without one."""
+    gravity = next((e for e in scene.effects if isinstance(e, Gravity)), None)
     if gravity is None:
         return 1.0
     weight = float(gravity.masses.sum()) * float(gravity.acceleration.norm())

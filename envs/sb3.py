@@ -61,9 +61,15 @@ class SB3VecEnv(VecEnv):
 
     @classmethod
     def make(cls, env_id: str, num_envs: int, *, goal: bool | Mapping[str, Any] = False, **kwargs: Any) -> SB3VecEnv:
-        """``gymnasium.make_vec(env_id, num_envs, vectorization_mode="vector_entry_point", SAME_STEP)`` wrapped;
-        ``goal``: in :class:`GoalVectorObservation` (a reach env's dict observations, for HER), a mapping: with
-        those arguments (``goal={"control_cost": True}``).
+        """``gymnasium.make_vec(env_id, num_envs, vectorization_mode="vector_entry_point", SAME_STEP)`` wrapped.
+
+        Args:
+            env_id: A registered id (``"RedSim/Chain-v0"``).
+            num_envs: N, the copies stepped in one batched solve.
+            goal: Wrap the vector env in :class:`GoalVectorObservation` (a reach env's dict observations, for HER);
+                a mapping: with those arguments (``goal={"control_cost": True}``).
+            **kwargs: Passed to ``gymnasium.make_vec``: the env's arguments, ``max_episode_steps``, ``shards``
+                (worker processes, :class:`redsim.envs.sharded.ShardedVectorEnv`).
 
         Raises:
             TypeError: ``goal`` with an env that is not a reach env, or with ``shards`` > 1 (the vector env is

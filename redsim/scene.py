@@ -297,11 +297,16 @@ class Scene:
 
     # -- energy ---------------------------------------------------------------------------
     def energy(self, q: Tensor, loads: LoadsLike = None, cond: Tensor | None = None) -> Tensor:
-        """Potential energy [J], shape [B], of free configurations q, shape [B, n] ([n] gives a scalar)."""
+        """Potential energy [J], shape [B], of free configurations q, shape [B, n] ([n] gives a scalar).
+
+        ``loads``: forces [N] on the handles, a tensor [B, H, D] (or [H, D]) or ``{handle: [D]}``; None: none.
+        ``cond``: the condition c [B, m] of a conditional scene (None: its default).
+        """
         return sum(self.energy_terms(q, loads, cond).values())  # type: ignore[return-value]
 
     def energy_terms(self, q: Tensor, loads: LoadsLike = None, cond: Tensor | None = None) -> dict[str, Tensor]:
-        """Energy [J] of each declared effect, by name; each shape [B] ([] for q of shape [n])."""
+        """Energy [J] of each declared effect, by name; each shape [B] ([] for q of shape [n]); ``loads`` and
+        ``cond`` as in :meth:`energy`."""
         single = q.ndim == 1
         if single:
             q = q.unsqueeze(0)
@@ -552,6 +557,7 @@ class SceneBuilder:
         return first[ids].unsqueeze(-1) + torch.arange(self.dim)
 
     def particle_points(self, ids: Tensor) -> PointSet:
+        """The particles ``ids`` (any shape, flattened) as points, e.g. for a handle or a surface."""
         return PointSet.particles(self.particle_dofs(torch.as_tensor(ids).reshape(-1)))
 
     def particle_positions(self, ids: Tensor) -> Tensor:
@@ -595,6 +601,8 @@ class SceneBuilder:
         return self._body_first_dof[body] + torch.arange(12)
 
     def body_points(self, body: int, local: Tensor, *, direction: bool = False) -> PointSet:
+        """Points fixed in body ``body`` at ``local`` [P, 3] [m] in its frame (``direction``: vectors, which ignore
+        the body's translation)."""
         return PointSet.body_points(self.body_dofs(body), local, direction=direction)
 
     def pin_particles(self, ids: Tensor, positions: Tensor | None = None) -> None:
@@ -609,6 +617,8 @@ class SceneBuilder:
         self._pinned_values.append(values.reshape(-1))
 
     def add_effect(self, effect: Effect) -> Effect:
+        """Declare ``effect``: the scene's energy is the sum of the declared effects (its ``element_dofs`` are
+        checked at :meth:`finalize`). Returns the effect."""
         self._effects.append(effect)
         return effect
 
@@ -644,6 +654,7 @@ class SceneBuilder:
         self._handles.append((name, points, w / w.sum()))
 
     def add_surface(self, name: str, points: PointSet, faces: Tensor) -> None:
+        """A triangle surface for rendering and mesh export: ``faces`` [F, 3] index ``points``."""
         self._surfaces.append(Surface(name, points, torch.as_tensor(faces, dtype=torch.int64)))
 
     def add_driver(

@@ -288,7 +288,8 @@ class Evaluation:
     Attributes:
         policy: What acted ("agent", "random", "scripted").
         returns: Undiscounted return of each episode, shape [episodes].
-        successes: Whether each episode ended within the success radius, shape [episodes].
+        successes: ``info["is_success"]`` at each episode's last step (the task's test: within the success radius
+            for the reach tasks, Klann's speed window held), shape [episodes].
         lengths: Steps of each episode, shape [episodes].
         success_steps: Fraction of each episode's steps that met the success test, shape [episodes]
             (what a tracking task, Klann's crank speed, is judged by along the way).
@@ -310,14 +311,17 @@ class Evaluation:
 
     @property
     def mean(self) -> float:
+        """Mean return over the episodes."""
         return float(np.mean(self.returns))
 
     @property
     def std(self) -> float:
+        """Standard deviation of the returns (population, ddof 0)."""
         return float(np.std(self.returns))
 
     @property
     def success_rate(self) -> float:
+        """Fraction of the episodes that ended in success."""
         return float(np.mean(self.successes))
 
     def above(self, other: Evaluation) -> tuple[float, int]:
@@ -343,6 +347,7 @@ class Evaluation:
         return p_value, int(np.sum(self.returns > other.returns))
 
     def as_dict(self) -> dict[str, Any]:
+        """JSON-able summary (what ``eval-agent --json`` prints): the means, the rates and the per-episode lists."""
         return {
             "policy": self.policy,
             "episodes": len(self.returns),
@@ -477,7 +482,9 @@ def model_record(path: str | Path, plain_algo: str | None = None) -> dict[str, A
         raise ValueError(f"{path} is not a stable-baselines3 model file: {err}") from err
     if plain_algo is not None and plain_algo not in ALGOS:
         raise ValueError(f"algo must be one of {', '.join(ALGOS)}, got {plain_algo!r}")
-    if not data or "redsim_env_id" not in data or data.get("redsim_algo") not in ALGOS:
+    if data is None:  # SB3 reads an archive without its "data" member as no data, without raising
+        raise ValueError(f"{path} is not a stable-baselines3 model file: it has no 'data' member")
+    if "redsim_env_id" not in data or data.get("redsim_algo") not in ALGOS:
         if plain_algo is None:
             raise ValueError(
                 f"{path} is an SB3 model, but not one trained by redsim (no env id recorded): name its algorithm "

@@ -150,3 +150,29 @@ def test_what_a_task_samples_is_checked_at_reset() -> None:
     with pytest.raises(ValueError, match="another episode"):
         for seed in range(20):
             env.reset(seed=seed)
+
+
+def test_the_reach_task_s_default_force_finds_gravity_by_type_not_by_name() -> None:
+    """A user's effect named "gravity" is not the scene's weight: no gravity effect, the default 1 N."""
+    from redsim import scenes
+    from redsim.effects import Effect
+    from redsim.envs.factory import DEFAULT_FORCE_FRACTION, _default_force
+    from redsim.scene import SceneBuilder
+
+    class Tether(Effect):
+        kind = "tether"
+
+        def __init__(self, name, dofs) -> None:
+            self.name, self.element_dofs = name, dofs
+
+        def element_energy(self, xe, cond=None, loads=None):
+            return 0.5 * (xe**2).sum(-1)
+
+    b = SceneBuilder(dim=2)
+    ids = b.add_particles(torch.tensor([[0.0, -0.5], [0.3, -0.4]], dtype=torch.float64), torch.ones(2))
+    b.add_effect(Tether("gravity", b.particle_dofs(ids)))
+    assert _default_force(b.finalize("tethered")) == 1.0
+    chain = scenes.build("mini_chain")
+    gravity = next(e for e in chain.effects if e.kind == "gravity")
+    weight = float(gravity.masses.sum()) * float(gravity.acceleration.norm())
+    assert _default_force(chain) == pytest.approx(DEFAULT_FORCE_FRACTION * weight)

@@ -242,6 +242,11 @@ def test_bad_input_is_a_clear_cli_error(cli: Callable[..., tuple[int, str, str]]
     junk.write_text("not a zip")
     code, _, err = cli("eval-agent", str(junk), MINI)
     assert code == 2 and "is not a stable-baselines3 model file" in err
+    other_zip = tmp_path / "other.zip"  # a zip archive, but no SB3 "data" member: SB3 returns None for it
+    with zipfile.ZipFile(other_zip, "w") as archive:
+        archive.writestr("notes.txt", "hello")
+    code, _, err = cli("eval-agent", str(other_zip), MINI, "--algo", "sac")
+    assert code == 2 and "has no 'data' member" in err
     code, _, err = cli("eval-agent", str(_foreign_model(tmp_path)), MINI)
     assert code == 2 and "not one trained by redsim" in err
     code, _, err = cli("eval-agent", str(junk), MINI, "--episodes", "0")
