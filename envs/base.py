@@ -75,7 +75,7 @@ VECTOR_RENDER_MODES = ["rgb_array"]
 """The vector envs (native and sharded) draw one RGB frame per copy; "human", a window, is a single env's."""
 NO_HUMAN = (
     'render_mode="human" is a single env\'s window; a vector env draws render_mode="rgb_array" frames (one per '
-    "copy, venv.render()), which gymnasium.wrappers.vector.HumanRendering shows in a window"
+    "copy, venv.render()), which gymnasium.wrappers.vector.HumanRendering (it needs opencv-python) shows in a window"
 )
 """Why a vector env refuses ``render_mode="human"`` (it would draw nothing)."""
 
@@ -290,8 +290,9 @@ class LatentSim:
     scene: Scene  # the copy in the stepper's dtype and device
     subspace: nn.Module
     task: Task
-    stepper: LatentStepper
-    invariants: Invariants
+    if TYPE_CHECKING:  # annotations typing.get_type_hints could not resolve at run time
+        stepper: LatentStepper
+        invariants: Invariants
     torch_dtype: torch.dtype
     device: torch.device
     batch: int
@@ -337,8 +338,9 @@ class LatentSim:
         dt = check_time_step(dt)
         if isinstance(frame_skip, bool) or not isinstance(frame_skip, numbers.Integral) or frame_skip < 1:
             raise ValueError(f"frame_skip must be an integer >= 1, got {frame_skip!r}")
-        if not isinstance(include_q, (bool, np.bool_)):
-            raise ValueError(f"include_q must be True or False, got {include_q!r}")
+        for flag, value in (("include_q", include_q), ("randomize_condition", randomize_condition)):
+            if not isinstance(value, (bool, np.bool_)):
+                raise ValueError(f"{flag} must be True or False, got {value!r}")
         dtype = _dtype_name(dtype)
         device = check_device(device)
         check_subspace(scene, subspace)
@@ -429,6 +431,8 @@ class LatentSim:
             ValueError: another key, a value that is not a finite number array (of the parameter's shape), one the
                 task refuses (:meth:`Task.check_options`), or a condition outside its space.
         """
+        if options is not None and not isinstance(options, Mapping):
+            raise ValueError(f"options must be a dict (or None), got {options!r:.80}")
         accepted = (*self.task.reset_options, *(("condition",) if self.randomize_condition else ()))
         chosen = {k: v for k, v in (options or {}).items() if not (vector and k == "reset_mask")}
         unknown = sorted(set(chosen) - set(accepted))
@@ -544,13 +548,34 @@ class LatentSim:
         Returns:
             reward [B] (float64), terminated [B] (bool), info {key: [B] array} (see :class:`LatentEnv`).
         """
-        params = {k: v.clone() for k, v in self.params.items()}  # a task's loads may update them in place
-        saved = (self.z, self.z_prev, self.x, self.x_prev, self.loads, self.model.clone(), params)
+        saved = self.snapshot()
         try:
             return self._step(action)
         except BaseException:
-            self.z, self.z_prev, self.x, self.x_prev, self.loads, self.model, self.params = saved
+            self.restore(saved)
             raise
+
+    def snapshot(self) -> tuple[Any, ...]:
+        """Copies of what a step or a reset of some rows changes (z, z_prev, loads, the solver's model, the task
+        params, which a task's loads may update in place, and cond); x and x_prev are replaced, never written in
+        place, so they are kept by reference. :meth:`restore` puts them back: an env step that fails after the
+        simulation step (its observation, an autoreset) leaves every copy as it was."""
+        params = {k: v.clone() for k, v in self.params.items()}
+        cond = None if self.cond is None else self.cond.clone()
+        return (
+            self.z.clone(),
+            self.z_prev.clone(),
+            self.x,
+            self.x_prev,
+            self.loads.clone(),
+            self.model.clone(),
+            params,
+            cond,
+        )
+
+    def restore(self, saved: tuple[Any, ...]) -> None:
+        """Return to a :meth:`snapshot`."""
+        self.z, self.z_prev, self.x, self.x_prev, self.loads, self.model, self.params, self.cond = saved
 
     def _step(self, action: np.ndarray) -> tuple[np.ndarray, np.ndarray, dict[str, np.ndarray]]:
         act = torch.as_tensor(action, dtype=self.torch_dtype, device=self.device)
@@ -774,6 +799,8 @@ def shipped(
 
     if scene_params is not None and not isinstance(scene_params, Mapping):
         raise ValueError(f"scene_params must be a dict of build parameters, got {scene_params!r:.80}")
+    if not isinstance(fit_if_missing, (bool, np.bool_)):  # "no" is truthy: it would start a fit
+        raise ValueError(f"fit_if_missing must be True or False, got {fit_if_missing!r}")
     scene = scenes.build(scene_name, **dict(scene_params or {}))
     if fit_options is not None and not fit_if_missing:
         raise ValueError("fit_options only apply with fit_if_missing=True")
@@ -897,7 +924,8 @@ class LatentEnv(gym.Env[np.ndarray, np.ndarray]):
         )
         self.task = task
         self.render_mode = render_mode
-        self.dt = self.sim.dt
+        self.dt = self.sim.dt  # [s] of an env step, as MuJoCo envs' dt
+        self.frame_skip = self.sim.frame_skip  # stepper steps per env step (the stepper's dt = dt / frame_skip)
         modes = [m for m in RENDER_MODES if m != "human" or human_unavailable() is None]
         fps = 1.0 / self.dt  # frames per simulated second; a float where 1/dt is not whole (Gymnasium allows it)
         fps = int(fps) if fps.is_integer() else fps
@@ -947,11 +975,17 @@ class LatentEnv(gym.Env[np.ndarray, np.ndarray]):
         if not self._reset_done:
             raise gym.error.ResetNeeded("call reset() before step()")
         act = check_action(action, self.action_space.shape)
-        reward, terminated, info = self.sim.step(act[None])
-        info_row = {k: (v[0].item() if v.ndim == 1 else v[0]) for k, v in info.items()}
-        if self.render_mode == "human":
-            self.render()
-        return self.sim.observe()[0], float(reward[0]), bool(terminated[0]), False, info_row
+        saved = self.sim.snapshot()  # atomic up to the return: an interrupt in the observation or the window too
+        try:
+            reward, terminated, info = self.sim.step(act[None])
+            info_row = {k: (v[0].item() if v.ndim == 1 else v[0]) for k, v in info.items()}
+            obs = self.sim.observe()[0]
+            if self.render_mode == "human":
+                self.render()
+        except BaseException:
+            self.sim.restore(saved)
+            raise
+        return obs, float(reward[0]), bool(terminated[0]), False, info_row
 
     def render(self) -> np.ndarray | None:
         """The current picture: an RGB array [H, W, 3] ("rgb_array"), or a window update ("human")."""
@@ -1065,9 +1099,16 @@ def check_action(action: Any, shape: tuple[int, ...]) -> np.ndarray:
     value beyond float32's range is clipped too, not refused as infinite).
 
     Raises:
-        ValueError: a wrong shape (both named) or non-finite entries.
+        ValueError: not an array of numbers (strings are refused, not parsed), a wrong shape (both named) or
+            non-finite entries.
     """
-    act = np.asarray(action, dtype=np.float64)
+    try:
+        raw = np.asarray(action)
+    except (TypeError, ValueError):
+        raw = np.asarray(None)  # ragged nesting: refused below
+    if raw.dtype.kind not in "biuf":
+        raise ValueError(f"action must be an array of numbers, got {action!r:.80}")
+    act = raw.astype(np.float64)
     if act.shape != tuple(shape):
         raise ValueError(f"action must have shape {tuple(shape)}, got {act.shape}")
     if not np.all(np.isfinite(act)):
@@ -1162,15 +1203,17 @@ def copy_seeds(seed: int | Sequence[int | None] | None, count: int) -> tuple[int
     its generator, as Gymnasium's sync and async vector envs do).
 
     Raises:
-        ValueError: a sequence of another length.
+        ValueError: not an int, None or a sequence of them, or a sequence of another length.
     """
     if isinstance(seed, np.integer):
         seed = int(seed)
     if seed is None:
         return None, None
-    if isinstance(seed, int):
+    if isinstance(seed, int) and not isinstance(seed, bool):
         return seed, [seed + i for i in range(count)]
-    seeds = list(seed)
+    if isinstance(seed, (str, bytes)) or not isinstance(seed, Sequence | np.ndarray):
+        raise ValueError(f"seed must be an int, None or a sequence of them (one per copy), got {seed!r:.80}")
+    seeds = [int(s) if isinstance(s, np.integer) else s for s in seed]
     if len(seeds) != count:
         raise ValueError(f"need {count} seeds, got {len(seeds)}")
     return None, seeds

@@ -262,7 +262,8 @@ class BistableBarEnv(LatentEnv):
     `reset(options={"start_side": 0})` starts up, 1 down), z_dot = 0; the goal is the other one.
 
     ## Episode End
-    Termination: the stepper could not make a step finite (`info["diverged"]`). Truncation: 200 steps (4 s).
+    Termination: the stepper could not make a step finite (`info["diverged"]`). Truncation: 200 steps
+    (4 s at the default `dt` and `frame_skip`).
 
     ## Arguments
     | Argument | Default | Meaning |

@@ -47,7 +47,8 @@ class ChainEnv(ReachEnv):
     sets the target [m] instead.
 
     ## Episode End
-    Termination: the stepper could not make a step finite (`info["diverged"]`). Truncation: 300 steps (6 s).
+    Termination: the stepper could not make a step finite (`info["diverged"]`). Truncation: 300 steps
+    (6 s at the default `dt` and `frame_skip`).
 
     ## Arguments
     As :class:`redsim.envs.reach.ReachEnv`; `max_force` and `target_spread` default to 40 N, spread 0.5, and

@@ -67,7 +67,8 @@ class ConditionalBarEnv(ReachEnv):
     `reset(options={"target": [x, y], "condition": [ratio, location]})` sets either instead.
 
     ## Episode End
-    Termination: the stepper could not make a step finite (`info["diverged"]`). Truncation: 200 steps (4 s).
+    Termination: the stepper could not make a step finite (`info["diverged"]`). Truncation: 200 steps
+    (4 s at the default `dt` and `frame_skip`).
 
     ## Arguments
     As :class:`redsim.envs.reach.ReachEnv`; `max_force` and `target_spread` default to 300 N, spread 0.5, and

@@ -36,15 +36,12 @@ FOLDER = "subspaces"
 def cache_stem(scene_name: str, scene: Scene, options: Mapping[str, Any]) -> Path | None:
     """``cache_root()/subspaces/SCENE-FINGERPRINT-OPTIONS`` (no suffix), or None with the cache off.
 
-    OPTIONS hashes the fit options but those that say how a fit runs (``RUNTIME_FIELDS``: a map fitted on a GPU
-    serves a CPU run too)."""
-    from redsim.trainers.cache import RUNTIME_FIELDS
-
+    OPTIONS hashes every fit option, ``device`` too: a fit on a GPU draws from a CUDA generator (another map than
+    the CPU's), and its resumable training state cannot continue on the CPU."""
     root = cache_root()
     if root is None:
         return None
-    what = {k: v for k, v in options.items() if k not in RUNTIME_FIELDS}
-    digest = hashlib.sha256(json.dumps(what, sort_keys=True, default=str).encode()).hexdigest()[:12]
+    digest = hashlib.sha256(json.dumps(dict(options), sort_keys=True, default=str).encode()).hexdigest()[:12]
     return root / FOLDER / f"{scene_name}-{scene.fingerprint()}-{digest}"
 
 

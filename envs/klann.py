@@ -80,7 +80,10 @@ class CrankSpeed(Task):
         hold_steps: int = 100,
         hold_fraction: float = 0.5,
     ) -> None:
-        low, high = (float(v) for v in speed_range)
+        pair = np.asarray(speed_range) if not isinstance(speed_range, (str, bytes)) else np.asarray(None)
+        if pair.shape != (2,) or pair.dtype.kind not in "iuf":
+            raise ValueError(f"speed_range must be a (low, high) pair of numbers [rad/s], got {speed_range!r}")
+        low, high = float(pair[0]), float(pair[1])
         if not (np.isfinite(low) and np.isfinite(high) and 0.0 < low <= high):
             raise ValueError(f"speed_range must be finite with 0 < low <= high, got {speed_range!r}")
         check_numbers(
@@ -281,7 +284,8 @@ class KlannEnv(LatentEnv):
     `reset(options={"speed": omega})` sets it [rad/s] instead.
 
     ## Episode End
-    Termination: the stepper could not make a step finite (`info["diverged"]`). Truncation: 300 steps (6 s).
+    Termination: the stepper could not make a step finite (`info["diverged"]`). Truncation: 300 steps
+    (6 s at the default `dt` and `frame_skip`).
 
     ## Arguments
     | Argument | Default | Meaning |

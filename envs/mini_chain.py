@@ -47,7 +47,8 @@ class MiniChainEnv(ReachEnv):
     `reset(options={"target": [x, y, z]})` sets the target [m] instead.
 
     ## Episode End
-    Termination: the stepper could not make a step finite (`info["diverged"]`). Truncation: 200 steps (4 s).
+    Termination: the stepper could not make a step finite (`info["diverged"]`). Truncation: 200 steps
+    (4 s at the default `dt` and `frame_skip`).
 
     ## Arguments
     As :class:`redsim.envs.reach.ReachEnv`; `max_force` and `target_spread` default to 15 N, spread 0.6, and

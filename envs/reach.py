@@ -325,6 +325,17 @@ class HandleReach(Task):
         )
 
 
+_HERE = ":class:`redsim.envs.reach.ReachEnv`"
+"""How a reach env's docstring points at :class:`ReachEnv`'s sections (replaced by them, ``__init_subclass__``)."""
+
+
+def _doc_section(doc: str, name: str) -> str:
+    """The lines under ``## name`` in a class docstring, up to the next section."""
+    start = doc.index(f"## {name}\n") + len(f"## {name}\n")
+    end = doc.find("\n    ## ", start)
+    return doc[start : len(doc) if end < 0 else end].rstrip()
+
+
 class ReachEnv(LatentEnv):
     """A catalog scene in its shipped subspace with a :class:`HandleReach` task: the base of the registered ids.
 
@@ -364,6 +375,15 @@ class ReachEnv(LatentEnv):
     camera: ClassVar[dict[str, float]] = {}
     randomize_condition: ClassVar[bool] = False
     task_class: ClassVar[type[HandleReach]] = HandleReach
+
+    def __init_subclass__(cls, **kwargs: Any) -> None:
+        """Write this class's Rewards formula and Arguments table into a subclass's docstring where it points here:
+        ``help(env.unwrapped)`` shows the env's own docstring, not its base's."""
+        super().__init_subclass__(**kwargs)
+        doc, shared = cls.__doc__ or "", ReachEnv.__doc__ or ""
+        formula, arguments = _doc_section(shared, "Rewards"), _doc_section(shared, "Arguments")
+        doc = doc.replace(f"\n    (formula: {_HERE}).", f":\n{formula}")
+        cls.__doc__ = doc.replace(f"As {_HERE}; ", f"{arguments.lstrip()}\n\n    In this env, ")
 
     def __init__(
         self,

@@ -174,6 +174,7 @@ class ShardedVectorEnv(SharedCopies, VectorEnv):
         self.action_space = batch_space(self.single_action_space, self.num_envs)
         self.observation_space = batch_space(self.single_observation_space, self.num_envs)
         self.dt = self.template.dt
+        self.frame_skip = self.template.frame_skip
         self.starts = np.cumsum([0, *self.sizes])[:-1].tolist()
         self._pipes: list[Connection] = []
         self._processes: list[Any] = []

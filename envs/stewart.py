@@ -31,6 +31,10 @@ from redsim.envs.vector import vector_entry
 if TYPE_CHECKING:
     from redsim.envs.base import LatentSim
 
+ROTATION_TOL = 1e-2
+"""How far from orthonormal (max |R^T R - I|) a ``target_rotation`` option may be: a drawn target is the plate's
+affine block in f(z*), orthonormal to 2.6e-3 (target_spread 0.5) or 4.2e-3 (1) over 12 seeds; one replays."""
+
 MINIMIZER = "lbfgs"
 """Minimizer of the target's static solve (a descent method; Newton gave the same targets on 4 seeds)."""
 
@@ -83,6 +87,10 @@ class PlatePose(Task):
             },
             {"control_weight": control_weight, "success_bonus": success_bonus},
         )
+        if target_spread > 1.0:
+            raise ValueError(
+                f"target_spread must be <= 1 (a target is a pose a held action in [-1, 1] reaches), got {target_spread}"
+            )
         self.body_handle = body_handle
         self.actuated = tuple(actuated)
         self.action_size = len(self.actuated)
@@ -168,7 +176,7 @@ class PlatePose(Task):
         if rotation is not None:
             r = rotation.to(torch.float64)
             if r.shape != (3, 3) or not (
-                torch.allclose(r.T @ r, torch.eye(3, dtype=r.dtype, device=r.device), atol=1e-4)
+                torch.allclose(r.T @ r, torch.eye(3, dtype=r.dtype, device=r.device), atol=ROTATION_TOL)
                 and float(torch.linalg.det(r)) > 0
             ):
                 raise ValueError(f"options['target_rotation'] must be a rotation matrix [3, 3], got {r.tolist()}")
@@ -265,17 +273,19 @@ class StewartEnv(LatentEnv):
     At rest (z: the map's unloaded equilibrium, z_dot = 0). The target is a pose the servos can hold: the
     plate's pose in the latent static equilibrium under a held action drawn uniformly from
     [-`target_spread`, `target_spread`]^6 by `self.np_random` (a float64 Newton solve at each reset, about 1 s).
-    `reset(options={"target_position": [x, y, z], "target_rotation": R})` sets either instead ([m]; R [3, 3]).
+    `reset(options={"target_position": [x, y, z], "target_rotation": R})` sets either instead ([m]; R [3, 3], a
+    rotation to `ROTATION_TOL` = 1e-2, so a drawn target read from `get_state()["params"]` replays).
 
     ## Episode End
-    Termination: the stepper could not make a step finite (`info["diverged"]`). Truncation: 200 steps (4 s).
+    Termination: the stepper could not make a step finite (`info["diverged"]`). Truncation: 200 steps
+    (4 s at the default `dt` and `frame_skip`).
 
     ## Arguments
     | Argument | Default | Meaning |
     |---|---|---|
     | `render_mode` | None | None, "rgb_array" or "human" |
     | `max_force` | 60.0 | force [N] of a unit action at each arm tip |
-    | `target_spread` | 0.5 | largest entry of the held action that sets a target |
+    | `target_spread` | 0.5 | largest entry of the held action that sets a target, in (0, 1] |
     | `dt` | 0.02 | stepper time step [s] |
     | `frame_skip` | 1 | stepper steps per env step |
     | `subspace` | None | the shipped map, a checkpoint path or a map |

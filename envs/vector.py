@@ -75,6 +75,7 @@ class LatentVectorEnv(SharedCopies, VectorEnv):
         self.observation_structure = env.observation_structure
         self.max_episode_steps = None if max_episode_steps is None else int(max_episode_steps)
         self.dt = env.dt
+        self.frame_skip = env.frame_skip
         self._rngs: list[np.random.Generator] = [seeding.np_random()[0] for _ in range(self.num_envs)]
         self._elapsed = np.zeros(self.num_envs, dtype=np.int64)
         self._autoreset = np.zeros(self.num_envs, dtype=bool)
@@ -114,6 +115,24 @@ class LatentVectorEnv(SharedCopies, VectorEnv):
                 "with reset(options={'reset_mask': mask}) before the next step"
             )
         act = check_action(actions, self.action_space.shape)
+        saved = (
+            self.sim.snapshot(),
+            self._elapsed.copy(),
+            self._autoreset.copy(),
+            [g.bit_generator.state for g in self._rngs],
+        )
+        try:
+            return self._step(act, mode)
+        except BaseException:  # atomic: an interrupt in an autoreset or the observation leaves every copy as it was
+            sim, self._elapsed, self._autoreset, rngs = saved
+            self.sim.restore(sim)
+            for generator, state in zip(self._rngs, rngs, strict=True):
+                generator.bit_generator.state = state
+            raise
+
+    def _step(
+        self, act: np.ndarray, mode: AutoresetMode
+    ) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray, dict[str, Any]]:
         reward, terminated, info = self.sim.step(act)
         self._elapsed += 1
         truncated = np.zeros(self.num_envs, dtype=bool)
@@ -220,7 +239,11 @@ def check_vector_args(
     Raises:
         ValueError: a bad copy count, episode length or autoreset mode.
     """
-    if int(num_envs) != num_envs or num_envs < 1:
+    try:
+        whole = int(num_envs) == num_envs and not isinstance(num_envs, (bool, str))
+    except (TypeError, ValueError, OverflowError):  # NaN, inf, None
+        whole = False
+    if not whole or num_envs < 1:
         raise ValueError(f"num_envs must be an integer >= 1, got {num_envs!r}")
     mode = AutoresetMode(autoreset_mode)
     if max_episode_steps is not None and (int(max_episode_steps) != max_episode_steps or max_episode_steps < 1):
@@ -289,8 +312,14 @@ def vector_entry(env_class: type[LatentEnv]) -> Callable[..., LatentVectorEnv | 
         shards: int = 1,
         **kwargs: Any,
     ) -> LatentVectorEnv | ShardedVectorEnv:
-        if kwargs.get("render_mode") == "human":  # before any env or worker is made (or a display is asked for)
+        render = kwargs.get("render_mode")
+        if render == "human":  # before any env or worker is made (or a display is asked for)
             raise ValueError(NO_HUMAN)
+        if render is not None and render not in VECTOR_RENDER_MODES:
+            raise ValueError(
+                f"a vector env's render_mode must be None or 'rgb_array' (one frame per copy; keep a list of them "
+                f"yourself, or use vectorization_mode='sync' for Gymnasium's per-copy wrappers), got {render!r}"
+            )
         if max_episode_steps is None:  # as gym.make: None is the id's episode length, -1 none
             max_episode_steps = registered_steps(env_class)
         elif max_episode_steps == -1:

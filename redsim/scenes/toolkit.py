@@ -33,7 +33,10 @@ axis), ``"none"``/None, a boolean mask [V], an index list, or a callable mapping
 
 # -- argument checks ---------------------------------------------------------------------------
 def check_positive(name: str, value: Any, *, allow_zero: bool = False) -> float:
-    """``value`` as a float, > 0 (or >= 0 with ``allow_zero``); a ValueError names ``name`` otherwise."""
+    """``value`` as a float, > 0 (or >= 0 with ``allow_zero``); a ValueError names ``name`` otherwise (also for a
+    string or a bool, which ``float`` would take)."""
+    if isinstance(value, (str, bytes, bool, np.bool_)):
+        raise ValueError(f"{name} must be a number, got {value!r}")
     try:
         out = float(value)
     except (TypeError, ValueError) as exc:

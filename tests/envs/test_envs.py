@@ -65,6 +65,26 @@ def test_registry_lists_the_suite() -> None:
         assert spec.entry_point.startswith("redsim.envs.")
 
 
+def test_each_env_s_own_docstring_states_its_reward_terms_and_arguments() -> None:
+    """help(env.unwrapped) prints the env class's own docstring: the reach envs' carry ReachEnv's formula and table."""
+    for env_id in redsim.envs.ids():
+        doc = gym.spec(env_id).entry_point
+        module, name = doc.split(":")
+        text = getattr(__import__(module, fromlist=[name]), name).__doc__
+        assert (
+            'info["reward_' in text
+            and "| `frame_skip` |" in text
+            and ":class:`redsim.envs.reach.ReachEnv`)" not in text
+        )
+
+
+def test_frame_skip_reads_back_as_on_mujoco_envs() -> None:
+    env = gym.make("RedSim/MiniChain-v0", frame_skip=2)
+    assert env.unwrapped.frame_skip == 2 and env.unwrapped.dt == pytest.approx(0.04)
+    venv = gym.make_vec("RedSim/MiniChain-v0", num_envs=2, vectorization_mode="vector_entry_point", frame_skip=2)
+    assert venv.frame_skip == 2 and venv.get_attr("frame_skip") == (2, 2)
+
+
 @pytest.mark.parametrize("env_id", CONTRACT_IDS)
 def test_gymnasium_and_sb3_check_env_without_warnings(env_id: str) -> None:
     from stable_baselines3.common.env_checker import check_env as sb3_check_env
@@ -158,6 +178,11 @@ def test_a_none_seed_in_a_vector_reset_keeps_that_copy_s_generator() -> None:
     env.reset(seed=2)
     np.testing.assert_allclose(obs[1], env.reset()[0], rtol=0, atol=1e-6)
     np.testing.assert_allclose(obs[0], env.reset(seed=5)[0], rtol=0, atol=1e-6)
+    assert np.array_equal(venv.reset(seed=np.array([5, 6]))[0], venv.reset(seed=[5, 6])[0])  # NumPy's ints too
+    with pytest.raises(ValueError, match="seed must be an int, None or a sequence"):
+        venv.reset(seed=2.5)
+    with pytest.raises(ValueError, match="num_envs must be an integer"):
+        gym.make_vec("RedSim/MiniChain-v0", num_envs=float("nan"), vectorization_mode="vector_entry_point")
 
 
 def test_same_step_autoreset_reports_the_final_observation() -> None:
@@ -244,6 +269,11 @@ def test_bad_actions_are_clear_errors(mini: gym.Env) -> None:
         mini.step(np.array([np.nan, 0.0, 0.0], np.float32))
     with pytest.raises(ValueError, match=r"shape \(3,\)"):
         mini.step(np.zeros(2, np.float32))
+    for bad in (["0.1"] * 3, {"a": 1.0}, [[0.1, 0.2], [0.3]]):  # strings are not parsed; ragged is no array
+        with pytest.raises(ValueError, match="action must be an array of numbers"):
+            mini.step(bad)
+    with pytest.raises(ValueError, match="options must be a dict"):
+        mini.reset(options="target")
     obs, *_ = mini.step(np.array([50.0, -50.0, 0.0], np.float32))  # clipped, not an error
     assert mini.observation_space.contains(obs)
     state = mini.unwrapped.get_state()  # finite but beyond float32's range: clipped too, not "not finite"
@@ -433,6 +463,15 @@ def test_held_targets_are_the_static_positions_under_held_actions() -> None:
         assert float((reference - task.held_targets[i]).norm()) < 0.1 * task.success_radius
     with pytest.raises(ValueError, match="targets must be one of"):
         gym.make("RedSim/MiniChain-v0", targets="pushed")
+    for flag in ("max_force", "target_spread"):  # float() would take "40" and True
+        for bad in ("40", True):
+            with pytest.raises(ValueError, match=f"{flag} must be a number"):
+                gym.make("RedSim/MiniChain-v0", **{flag: bad})
+    for flag in ("include_q", "randomize_condition"):
+        with pytest.raises(ValueError, match=f"{flag} must be True or False"):
+            gym.make("RedSim/ConditionalBar-v0", **{flag: "no"})
+    with pytest.raises(ValueError, match="fit_if_missing must be True or False"):  # "no" would have started a fit
+        gym.make("RedSim/MiniChain-v0", scene_params={"density": 8000.0}, fit_if_missing="no")
     with pytest.raises(ValueError, match="needs one condition for all episodes"):
         gym.make("RedSim/ConditionalBar-v0", targets="held")
 

@@ -105,8 +105,9 @@ def test_stewart_arm_torques_move_the_plate() -> None:
 
 
 def test_linkage_tasks_reject_bad_arguments() -> None:
-    with pytest.raises(ValueError, match="speed_range"):
-        CrankSpeed("crank_pin", (0.0, 0.08), max_force=40.0, speed_range=(5.0, 1.0))
+    for bad in ((5.0, 1.0), (1.0, 2.0, 3.0), "ab"):
+        with pytest.raises(ValueError, match="speed_range"):
+            CrankSpeed("crank_pin", (0.0, 0.08), max_force=40.0, speed_range=bad)
     with pytest.raises(ValueError, match="max_force"):
         CrankSpeed("crank_pin", (0.0, 0.08), max_force=float("nan"))
     with pytest.raises(ValueError, match="target_spread"):

@@ -75,6 +75,8 @@ def test_a_vector_env_refuses_human_mode_and_draws_a_frame_per_copy(monkeypatch:
     for shards in (1, 2):
         with pytest.raises(ValueError, match="HumanRendering"):
             gym.make_vec("RedSim/MiniChain-v0", num_envs=2, render_mode="human", shards=shards)
+    with pytest.raises(ValueError, match="a vector env's render_mode must be None or 'rgb_array'"):
+        gym.make_vec("RedSim/MiniChain-v0", num_envs=2, render_mode="rgb_array_list")
     venv = gym.make_vec("RedSim/MiniChain-v0", num_envs=2, render_mode="rgb_array", width=SIZE, height=SIZE)
     assert venv.metadata["render_modes"] == ["rgb_array"]
     venv.reset(seed=0)

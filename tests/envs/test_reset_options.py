@@ -136,3 +136,8 @@ def test_klann_and_stewart_options_outside_what_the_task_observes_are_refused() 
     turn = np.array([[0.0, -1.0, 0.0], [1.0, 0.0, 0.0], [0.0, 0.0, 1.0]])
     stewart.reset(seed=0, options={"target_rotation": turn})
     np.testing.assert_allclose(stewart.unwrapped.sim.params["target_rotation"][0].numpy(), turn, atol=1e-7)
+    stewart.reset(seed=3)  # a drawn target (the map's plate block, orthonormal to ~3e-3) replays as an option
+    drawn = {k: v for k, v in stewart.unwrapped.get_state()["params"].items() if k.startswith("target")}
+    stewart.reset(seed=3, options=drawn)
+    with pytest.raises(ValueError, match="target_spread must be <= 1"):
+        gym.make("RedSim/Stewart-v0", target_spread=1.5)

@@ -233,3 +233,57 @@ def test_a_step_where_every_copy_restarts_reports_no_keys_as_sync(shards: int) -
         assert venv.step(PUSH)[4] == {} == sync.step(PUSH)[4]
     finally:
         venv.close()
+
+
+def _same_state(a: dict, b: dict) -> bool:
+    """Equal get_state()s, generators' states included."""
+    return all(
+        np.array_equal(a[k], b[k]) if isinstance(a[k], np.ndarray) else a[k] == b[k]
+        for k in ("z", "z_prev", "model", "elapsed_steps", "autoresetting", "rngs")
+    ) and all(np.array_equal(a["params"][k], b["params"][k]) for k in a["params"])
+
+
+@pytest.mark.parametrize("mode", [AutoresetMode.NEXT_STEP, AutoresetMode.SAME_STEP])
+def test_a_step_interrupted_in_its_autoreset_leaves_every_copy_as_it_was(mode: AutoresetMode) -> None:
+    """Ctrl-C after the simulation step (here in the autoreset's draw) is undone: the clock, the generators, z."""
+    venv, twin = (_vec(max_episode_steps=2, autoreset_mode=mode) for _ in range(2))
+    for env in (venv, twin):
+        env.reset(seed=0)
+        env.step(PUSH)
+        if mode == AutoresetMode.NEXT_STEP:
+            env.step(PUSH)  # both copies end here; the next step resets them
+    before = venv.get_state()
+    draw = venv.sim.reset_rows
+
+    def interrupted(*args, **kwargs):
+        raise KeyboardInterrupt
+
+    venv.sim.reset_rows = interrupted
+    with pytest.raises(KeyboardInterrupt):
+        venv.step(PUSH)
+    venv.sim.reset_rows = draw
+    assert _same_state(venv.get_state(), before)
+    got, want = venv.step(PUSH), twin.step(PUSH)
+    for a, b in zip(got[:4], want[:4], strict=True):
+        np.testing.assert_array_equal(a, b)
+
+
+def test_a_single_env_step_interrupted_after_the_simulation_leaves_it_as_it_was() -> None:
+    env, twin = gym.make(ID), gym.make(ID)
+    for e in (env, twin):
+        e.reset(seed=0)
+        e.step(PUSH[0])
+    before = env.unwrapped.get_state()
+    sim = env.unwrapped.sim
+    observe = sim.observe
+
+    def interrupted():
+        raise KeyboardInterrupt
+
+    sim.observe = interrupted
+    with pytest.raises(KeyboardInterrupt):
+        env.step(PUSH[0])
+    sim.observe = observe
+    after = env.unwrapped.get_state()
+    assert all(np.array_equal(after[k], before[k]) for k in ("z", "z_prev", "model"))
+    np.testing.assert_array_equal(env.step(PUSH[0])[0], twin.step(PUSH[0])[0])

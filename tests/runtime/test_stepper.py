@@ -223,7 +223,10 @@ def test_non_finite_inputs_raise_before_stepping(mini_chain) -> None:
 
 
 def test_bad_settings_raise(mini_chain) -> None:
+    from redsim.cubature import CubatureConfig, CubatureEnergy, build_cubature
+
     scene, f = mini_chain
+    rules = build_cubature(scene, f, CubatureConfig(elements=2, samples=8, episodes=0))
     for kwargs in ({"dt": 0.0}, {"dt": float("nan")}):
         with pytest.raises(ValueError, match="dt"):
             LatentStepper(scene, f, **kwargs)
@@ -245,6 +248,8 @@ def test_bad_settings_raise(mini_chain) -> None:
             LatentStepper(scene, f, DT, device=device)
         with pytest.raises(ValueError, match="device"):
             MapEnergy(scene, f, device=device)
+        with pytest.raises(ValueError, match="device"):
+            CubatureEnergy(scene, f, rules, device=device)
 
 
 def test_far_latent_is_out_of_range(mini_chain) -> None:
