@@ -38,6 +38,10 @@ if TYPE_CHECKING:
     from redsim.envs.base import LatentSim
 
 
+MAX_HOLD_STEPS = 10_000
+"""Longest success window [env steps] (200 s at the default dt; each copy stores one speed per step of it)."""
+
+
 class CrankSpeed(Task):
     """Track a commanded crank speed with a tangential force on a crank handle (module doc).
 
@@ -99,6 +103,8 @@ class CrankSpeed(Task):
         )
         if isinstance(hold_steps, bool) or not isinstance(hold_steps, (int, np.integer)) or hold_steps < 1:
             raise ValueError(f"hold_steps must be an integer >= 1, got {hold_steps!r}")
+        if hold_steps > MAX_HOLD_STEPS:  # each copy keeps a window of that many speeds
+            raise ValueError(f"hold_steps must be <= {MAX_HOLD_STEPS} (a window no episode reaches), got {hold_steps}")
         if hold_fraction > 1.0:
             raise ValueError(f"hold_fraction must be in (0, 1], got {hold_fraction!r}")
         self.handle = handle

@@ -59,6 +59,7 @@ def test_klann_success_is_the_fraction_of_the_last_steps_within_tolerance() -> N
     [
         ({"hold_steps": 0}, "hold_steps must be an integer >= 1"),
         ({"hold_steps": 2.5}, "hold_steps must be an integer >= 1"),
+        ({"hold_steps": 10**9}, "hold_steps must be <= 10000"),
         ({"hold_fraction": 1.5}, r"hold_fraction must be in \(0, 1\]"),
         ({"hold_fraction": 0.0}, "hold_fraction must"),
     ],
