@@ -12,6 +12,9 @@ The env config is checked in this process first, as the runners build it, so a b
 here rather than dead runners. --out DIR saves the algorithm to DIR/rllib_ppo (refused where one is, unless
 --overwrite); `--restore DIR/rllib_ppo` trains on from it with its own settings (env, runners, batch), so those
 flags are refused beside it; a local cluster then gets every CPU of the machine for the restored runners.
+--seed S seeds the runners' episodes (runs repeat; without it they do not); --evaluate N then runs the saved
+policy greedily on N seeded single envs (policy_returns: the network alone, no Ray cluster). With --address the
+cluster must have a CPU per runner, else this stops with the count (RLlib would wait without a word).
 main()'s defaults are the one-iteration budget the test suite runs.
 """
 
@@ -22,6 +25,9 @@ import importlib.util
 import math
 import sys
 from pathlib import Path
+from typing import Any
+
+import numpy as np
 
 from redsim.trainers.rllib import check_env_config, register
 
@@ -40,7 +46,8 @@ def main(
     env_id: str = ENV_ID,
     envs_per_runner: int = 2,
     restore: Path | None = None,
-) -> dict[str, float]:
+    seed: int | None = None,
+) -> dict[str, Any]:
     import ray
     from ray.rllib.algorithms.algorithm import Algorithm
     from ray.rllib.algorithms.ppo import PPOConfig
@@ -52,6 +59,14 @@ def main(
         check_env_config(env_config, num_envs=envs_per_runner)  # before any runner starts, as the runners build it
     if address is not None:
         ray.init(address=address)
+        cpus = ray.cluster_resources().get("CPU", 0.0)
+        if restore is None and cpus < env_runners:  # RLlib would wait for them without a word
+            ray.shutdown()
+            raise RuntimeError(
+                f"the cluster at {address!r} has {cpus:g} CPUs and each of the {env_runners} env runners takes one: "
+                "start more nodes or ask for fewer runners (a node that did not join: see its log, e.g. "
+                "InvalidAuthToken where the head has token authentication on)"
+            )
     elif restore is not None:  # the checkpoint's runners, whatever their number
         ray.init(include_dashboard=False, object_store_memory=200 * 2**20)
     else:  # a local cluster, sized to the runners plus this driver (which also learns)
@@ -70,6 +85,7 @@ def main(
                 rollout_fragment_length="auto",
             )
             .training(train_batch_size_per_learner=batch, minibatch_size=min(batch, 128), num_epochs=2, lr=3e-4)
+            .debugging(seed=seed)  # runner r's copies draw from it (redsim.trainers.rllib.RunnerSeeds)
         )
         algo = config.build_algo()
     try:
@@ -88,6 +104,7 @@ def main(
         if out is not None:
             print(f"saved {algo.save_to_path(str((out / 'rllib_ppo').resolve()))}")
         settings = {"runners": algo.config.num_env_runners, "batch": algo.config.train_batch_size_per_learner}
+        env_id = algo.config.env_config["id"]
     finally:
         algo.stop()
         ray.shutdown()
@@ -97,10 +114,37 @@ def main(
         "healthy_runners": float(healthy),
         "requested_runners": float(settings["runners"]),
         "batch": float(settings["batch"]),
+        "env_id": env_id,
     }
 
 
-def check(result: dict[str, float]) -> None:
+def policy_returns(checkpoint: Path, env_id: str = ENV_ID, episodes: int = 5, seed: int = 0) -> np.ndarray:
+    """Returns [episodes] of a saved algorithm's policy acting greedily (its Gaussian's mean) in single envs reset
+    with seeds seed .. seed + episodes - 1: the policy network alone, loaded without a Ray cluster."""
+    import gymnasium as gym
+    import torch
+    from ray.rllib.core.columns import Columns
+    from ray.rllib.core.rl_module.rl_module import RLModule
+
+    module = RLModule.from_checkpoint(str((checkpoint / "learner_group/learner/rl_module/default_policy").resolve()))
+    greedy = module.get_inference_action_dist_cls()
+    env = gym.make(env_id)
+    returns = np.zeros(episodes)
+    for i in range(episodes):
+        obs, _ = env.reset(seed=seed + i)
+        done = False
+        while not done:
+            with torch.no_grad():
+                out = module.forward_inference({Columns.OBS: torch.as_tensor(obs)[None]})
+            action = greedy.from_logits(out[Columns.ACTION_DIST_INPUTS]).to_deterministic().sample()[0].numpy()
+            obs, reward, terminated, truncated, _ = env.step(action)
+            returns[i] += reward
+            done = terminated or truncated
+    env.close()
+    return returns
+
+
+def check(result: dict[str, Any]) -> None:
     """What this example must show: every runner stayed up and the iterations sampled env steps."""
     assert result["healthy_runners"] == result["requested_runners"]
     assert result["iterations"] >= 1 and result["env_steps"] >= result["batch"]
@@ -113,11 +157,18 @@ def _positive(text: str) -> int:
     return value
 
 
+def _count(text: str) -> int:
+    value = int(text)
+    if value < 0:
+        raise argparse.ArgumentTypeError(f"must be an integer >= 0 (0: the driver samples), got {text}")
+    return value
+
+
 if __name__ == "__main__":
     parser = argparse.ArgumentParser(description="RLlib PPO on a RedSim env")
     parser.add_argument("--env", help=f"a RedSim id (default {ENV_ID})")
     parser.add_argument("--iterations", type=_positive, default=20, help="training iterations (default 20)")
-    parser.add_argument("--env-runners", type=int, help="env runner processes (default 2)")
+    parser.add_argument("--env-runners", type=_count, help="env runner processes (default 2; 0: the driver samples)")
     parser.add_argument("--envs-per-runner", type=_positive, help="env copies per runner (default 16)")
     parser.add_argument("--batch", type=_positive, help="env steps per iteration (default 4000)")
     parser.add_argument("--episode-steps", type=_positive, help="steps per episode (default: the env's limit)")
@@ -125,6 +176,10 @@ if __name__ == "__main__":
     parser.add_argument("--out", type=Path, help="save the algorithm to OUT/rllib_ppo")
     parser.add_argument("--overwrite", action="store_true", help="replace an algorithm saved in OUT/rllib_ppo")
     parser.add_argument("--restore", type=Path, help="train on from OUT/rllib_ppo, with its own settings")
+    parser.add_argument("--seed", type=int, help="seed of the runners' episodes (default: none, not reproducible)")
+    parser.add_argument(
+        "--evaluate", type=_positive, metavar="EPISODES", help="then run the saved policy greedily (needs --out)"
+    )
     args = parser.parse_args()
     if importlib.util.find_spec("ray") is None:
         parser.error('this example needs Ray RLlib: pip install "redsim[ray]"')
@@ -132,6 +187,8 @@ if __name__ == "__main__":
     if args.restore is not None and any(value is not None for value in given.values()):
         flags = [f"--{key.replace('_', '-')}" for key, value in given.items() if value is not None]
         parser.error(f"--restore trains on with the checkpoint's own settings: drop {' '.join(flags)}")
+    if args.evaluate is not None and args.out is None:
+        parser.error("--evaluate runs the policy saved in OUT/rllib_ppo: give --out")
     if args.out is not None and (args.out / "rllib_ppo").exists() and not args.overwrite:
         parser.error(f"{args.out / 'rllib_ppo'} holds a saved algorithm: --restore it, or give --overwrite")
     settings = {key: SETTINGS[key] if value is None else value for key, value in given.items()}
@@ -154,8 +211,17 @@ if __name__ == "__main__":
             settings["env"],
             settings["envs_per_runner"],
             args.restore,
+            args.seed,
         )
     except KeyboardInterrupt:
         print("interrupted; the algorithm was not saved", file=sys.stderr)
         sys.exit(130)
+    except RuntimeError as err:
+        sys.exit(f"error: {err}")
     check(result)
+    if args.evaluate is not None:
+        returns = policy_returns(args.out / "rllib_ppo", result["env_id"], args.evaluate)
+        print(
+            f"greedy policy, {args.evaluate} episodes (seeds 0-{args.evaluate - 1}): return {returns.mean():.2f} "
+            f"± {returns.std():.2f}"
+        )

@@ -23,7 +23,7 @@ def test_env_creator_makes_the_id_with_its_kwargs_and_the_vector_env_where_rllib
 
 
 def test_neighbouring_env_runners_share_no_episode() -> None:
-    """RLlib resets runner w with config.seed + w: the copies' seeds are spread (s * N + i), not s + i."""
+    """RLlib resets runner w with config.seed + w: copy i gets b + i, b drawn from SeedSequence([s]), not s + i."""
     import numpy as np
 
     runners = [env_creator({"id": MINI, "num_envs": 4}) for _ in range(2)]
