@@ -267,7 +267,9 @@ class StewartEnv(LatentEnv):
     `reward = -d / L_p - theta / L_a - 0.05 mean(action^2) + 1[d < 0.2 L_p and theta < 0.2 L_a]` with d the
     plate's distance [m] and theta its angle [rad] from the target pose, L_p = 0.02 m and L_a = 0.1 rad,
     reported as `info["reward_position"]`, `info["reward_orientation"]`, `info["reward_control"]` and
-    `info["reward_success"]`; `info` also holds `distance` [m], `angle` [rad] and `is_success`.
+    `info["reward_success"]`; `info` also holds `distance` [m], `angle` [rad] and `is_success`, and the linkage's
+    invariants: `rigid_orthogonality_error`, `joints_max_gap` and `servos_max_gap` [m] (the arms' and the servo
+    pins' largest gap), `joint_axes_max_gap` (unitless).
 
     ## Starting State
     At rest (z: the map's unloaded equilibrium, z_dot = 0). The target is a pose the servos can hold: the
