@@ -268,8 +268,9 @@ class StewartEnv(LatentEnv):
     plate's distance [m] and theta its angle [rad] from the target pose, L_p = 0.02 m and L_a = 0.1 rad,
     reported as `info["reward_position"]`, `info["reward_orientation"]`, `info["reward_control"]` and
     `info["reward_success"]`; `info` also holds `distance` [m], `angle` [rad] and `is_success`, and the linkage's
-    invariants: `rigid_orthogonality_error`, `joints_max_gap` and `servos_max_gap` [m] (the arms' and the servo
-    pins' largest gap), `joint_axes_max_gap` (unitless).
+    invariants: `rigid_orthogonality_error`, `joints_max_gap` [m] (the largest joint gap), `joint_axes_max_gap` and
+    `servos_max_gap` (unitless chords between unit directions, ~ rad: the hinge axes' misalignment, and the
+    largest arm swing from its seed angle, which the servos' springs resist).
 
     ## Starting State
     At rest (z: the map's unloaded equilibrium, z_dot = 0). The target is a pose the servos can hold: the
