@@ -1205,6 +1205,8 @@ def copy_seeds(seed: int | Sequence[int | None] | None, count: int) -> tuple[int
     Raises:
         ValueError: not an int, None or a sequence of them, or a sequence of another length.
     """
+    if isinstance(seed, np.ndarray) and seed.ndim == 0:
+        seed = seed.item()
     if isinstance(seed, np.integer):
         seed = int(seed)
     if seed is None:

@@ -29,6 +29,9 @@ from redsim.usercache import cache_root
 
 log = logging.getLogger(__name__)
 
+SPEED_ONLY = ("checkpoint_every", "fused_adam", "compile")
+"""Fit options that change how often a fit saves or how fast it runs, not its map (a resume ignores them too)."""
+
 FOLDER = "subspaces"
 """Folder of the fitted maps inside redsim's user cache."""
 
@@ -36,12 +39,14 @@ FOLDER = "subspaces"
 def cache_stem(scene_name: str, scene: Scene, options: Mapping[str, Any]) -> Path | None:
     """``cache_root()/subspaces/SCENE-FINGERPRINT-OPTIONS`` (no suffix), or None with the cache off.
 
-    OPTIONS hashes every fit option, ``device`` too: a fit on a GPU draws from a CUDA generator (another map than
-    the CPU's), and its resumable training state cannot continue on the CPU."""
+    OPTIONS hashes the fit options but those that only say how often it saves or how fast it runs
+    (:data:`SPEED_ONLY`), ``device`` included where it is not the CPU: a fit on a GPU draws from a CUDA generator
+    (another map than the CPU's), and its resumable training state cannot continue on the CPU."""
     root = cache_root()
     if root is None:
         return None
-    digest = hashlib.sha256(json.dumps(dict(options), sort_keys=True, default=str).encode()).hexdigest()[:12]
+    what = {k: v for k, v in options.items() if k not in SPEED_ONLY and not (k == "device" and str(v) == "cpu")}
+    digest = hashlib.sha256(json.dumps(what, sort_keys=True, default=str).encode()).hexdigest()[:12]
     return root / FOLDER / f"{scene_name}-{scene.fingerprint()}-{digest}"
 
 

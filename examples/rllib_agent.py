@@ -176,14 +176,14 @@ if __name__ == "__main__":
     parser.add_argument("--out", type=Path, help="save the algorithm to OUT/rllib_ppo")
     parser.add_argument("--overwrite", action="store_true", help="replace an algorithm saved in OUT/rllib_ppo")
     parser.add_argument("--restore", type=Path, help="train on from OUT/rllib_ppo, with its own settings")
-    parser.add_argument("--seed", type=int, help="seed of the runners' episodes (default: none, not reproducible)")
+    parser.add_argument("--seed", type=_count, help="seed of the runners' episodes (default: none, not reproducible)")
     parser.add_argument(
         "--evaluate", type=_positive, metavar="EPISODES", help="then run the saved policy greedily (needs --out)"
     )
     args = parser.parse_args()
     if importlib.util.find_spec("ray") is None:
         parser.error('this example needs Ray RLlib: pip install "redsim[ray]"')
-    given = {key: getattr(args, key) for key in SETTINGS}
+    given = {key: getattr(args, key) for key in (*SETTINGS, "seed")}
     if args.restore is not None and any(value is not None for value in given.values()):
         flags = [f"--{key.replace('_', '-')}" for key, value in given.items() if value is not None]
         parser.error(f"--restore trains on with the checkpoint's own settings: drop {' '.join(flags)}")
@@ -191,7 +191,7 @@ if __name__ == "__main__":
         parser.error("--evaluate runs the policy saved in OUT/rllib_ppo: give --out")
     if args.out is not None and (args.out / "rllib_ppo").exists() and not args.overwrite:
         parser.error(f"{args.out / 'rllib_ppo'} holds a saved algorithm: --restore it, or give --overwrite")
-    settings = {key: SETTINGS[key] if value is None else value for key, value in given.items()}
+    settings = {key: SETTINGS[key] if value is None else value for key, value in given.items() if key in SETTINGS}
     if args.restore is not None and not (args.restore / "rllib_checkpoint.json").is_file():
         parser.error(f"{args.restore} is not an RLlib checkpoint (no rllib_checkpoint.json): give OUT/rllib_ppo")
     if args.restore is None:
