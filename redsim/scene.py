@@ -16,6 +16,7 @@ the centre of mass).
 from __future__ import annotations
 
 import dataclasses
+import functools
 import hashlib
 import json
 import math
@@ -249,7 +250,12 @@ class Scene:
 
         Unlike the spread of raw x entries it ignores the unitless rotation entries of rigid
         bodies. Scenes without surfaces use the spread of all full-configuration entries.
+        Computed once per scene (the env overlays ask for it every frame).
         """
+        return self._extent
+
+    @functools.cached_property
+    def _extent(self) -> float:
         x = self.full_positions(self.q_seed.detach().unsqueeze(0))
         points = torch.cat([s.points.positions(x)[0] for s in self.surfaces]) if self.surfaces else x.reshape(-1, 1)
         size = float((points.max(0).values - points.min(0).values).max())

@@ -106,6 +106,11 @@ def test_scene_contract(name: str) -> None:
         assert surface.faces.shape[1] == 3 and int(surface.faces.max()) < surface.points.count
     M = scene.mass_matrix_scipy()
     assert M.shape == (scene.free_dof_count,) * 2 and abs(M - M.T).max() == 0
+    # the extent (computed once, the overlays ask every frame) is the surfaces' bounding box at the seed
+    x = scene.full_positions(scene.q_seed.unsqueeze(0))
+    points = torch.cat([s.points.positions(x)[0] for s in scene.surfaces])
+    assert scene.extent() == float((points.max(0).values - points.min(0).values).max()) > 0.0
+    assert "_extent" in vars(scene) and scene.extent() == scene.extent()
 
 
 @pytest.mark.parametrize("name", redsim.scenes.names())
