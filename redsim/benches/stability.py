@@ -134,7 +134,8 @@ class Rollout:
         dt: Time step [s].
         reported: [T] bool: the step said it failed (not converged or diverged).
         nonfinite: Non-finite states or energies met (never stepped on).
-        flags: Counts of ``unconverged``, ``diverged`` and ``out_of_range`` steps.
+        flags: Counts of ``unconverged``, ``diverged`` and ``out_of_range`` steps (latent runs also ``idle``: steps
+            whose start was already within the solver's tolerance, so it took no iteration).
         seconds: Wall time [s].
         cond: The condition [m] of a conditional scene, or None.
         gains: [T] bool: the step was flagged ``energy_gain`` (None: no such flag).
@@ -215,7 +216,7 @@ def runtime_rollouts(
     zp = z.clone() if z_prev is None else z_prev.reshape(1, -1).to(stepper.dtype).expand(batch, -1).clone()
     zs, reported, gains, tolerances, model = [zp, z], [], [], [], None
     nonfinite = torch.zeros(batch, dtype=torch.int64)
-    flags = {k: torch.zeros(batch, dtype=torch.int64) for k in ("unconverged", "diverged", "out_of_range")}
+    flags = {k: torch.zeros(batch, dtype=torch.int64) for k in ("unconverged", "diverged", "out_of_range", "idle")}
     for i in range(steps):
         z_next, stats = stepper.step(z, zp, loads[i], c, warm=model)  # warm-started as the envs do
         model = stats.model
@@ -225,6 +226,7 @@ def runtime_rollouts(
         flags["unconverged"] += (~stats.converged).cpu()
         flags["diverged"] += stats.diverged.cpu()
         flags["out_of_range"] += stats.out_of_range.cpu()
+        flags["idle"] += (stats.iterations == 0).cpu()
         reported.append((stats.diverged | ~stats.converged).cpu())
         gains.append(stats.energy_gain.cpu())
         tolerances.append(stats.energy_gain_tolerance.cpu().to(torch.float64))
@@ -940,6 +942,8 @@ def row_totals(rows: Sequence[Mapping[str, Any]]) -> dict[str, int]:
 def report(result: dict[str, Any]) -> list[str]:
     """Human-readable lines of a :mod:`redsim bench stability <redsim.benches.stability>` result."""
     rows = result["rows"]
+    if not rows and result.get("damping") is not None:  # the damping regime alone: its table only
+        return _damping_lines(result["damping"])
     lines = markdown_rows(rows)
     fuzz = [r for r in rows if r["regime"] == "fuzz"]
     if fuzz:
@@ -958,7 +962,21 @@ def report(result: dict[str, Any]) -> list[str]:
     if result.get("chain") is not None:
         lines.append("")
         lines += chain_table(result["chain"])
+    if result.get("damping") is not None:
+        lines.append("")
+        lines += _damping_lines(result["damping"])
     return lines
+
+
+def _damping_lines(damping: dict[str, Any]) -> list[str]:
+    """The damping regime's heading and table (:func:`redsim.benches.damping.damping_table`)."""
+    from redsim.benches.damping import damping_table  # it imports this module
+
+    head = (
+        f"numerical damping: free energy K + E - E_rest retained after release, {damping['seconds']:g} s unforced "
+        "from the equilibrium under the push load, at zero velocity (redsim.benches.damping)"
+    )
+    return [head, *damping_table(damping)]
 
 
 __all__ = [

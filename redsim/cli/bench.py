@@ -28,6 +28,7 @@ from redsim.cli.common import (
     non_negative_seed,
     note,
     out,
+    parse_ints,
     parse_list,
     seconds,
     shown_path,
@@ -506,10 +507,11 @@ def cmd_bench_stability(args: argparse.Namespace) -> int:
     from redsim.bench import machine_info
     from redsim.benches import stability
 
+    extra = ("fuzz", "mujoco", "damping")
     regimes = list(stability.REGIMES) if args.regimes is None else parse_list(args.regimes, "--regimes")
-    unknown = [r for r in regimes if r not in stability.REGIMES and r not in ("fuzz", "mujoco")]
+    unknown = [r for r in regimes if r not in stability.REGIMES and r not in extra]
     if unknown:
-        raise CliError(f"unknown regime(s) {unknown}; valid: {', '.join([*stability.REGIMES, 'fuzz', 'mujoco'])}")
+        raise CliError(f"unknown regime(s) {unknown}; valid: {', '.join([*stability.REGIMES, *extra])}")
     if args.regimes is None:
         regimes += ["fuzz", "mujoco"]
     env_ids = list(redsim.envs.ids()) if args.envs is None else parse_list(args.envs, "--envs")
@@ -521,6 +523,7 @@ def cmd_bench_stability(args: argparse.Namespace) -> int:
             raise CliError(f"--{flag.replace('_', '-')} must be >= 1, got {getattr(args, flag)}")
     if args.copies is not None and args.copies < 1:
         raise CliError(f"--copies must be >= 1, got {args.copies}")
+    damping_options = _damping_options(args) if "damping" in regimes else None
     progress = None if args.json else note
     machine = machine_info()
     rows = []
@@ -550,6 +553,11 @@ def cmd_bench_stability(args: argparse.Namespace) -> int:
                 args.chain_steps, full_steps=args.chain_full_steps, scenarios=broken
             ),
         }
+    damping = None
+    if damping_options is not None:
+        from redsim.benches.damping import bench_damping
+
+        damping = bench_damping(**damping_options, progress=progress)
     result = {
         "machine": machine,
         "long_steps": args.long_steps,
@@ -557,6 +565,7 @@ def cmd_bench_stability(args: argparse.Namespace) -> int:
         "budget_s": args.budget,
         "rows": rows,
         "chain": chain,
+        "damping": damping,
     }
     if args.json:
         json_out(result)
@@ -565,10 +574,30 @@ def cmd_bench_stability(args: argparse.Namespace) -> int:
         for line in stability.report(result):
             out(line)
     totals = stability.row_totals(rows)
+    totals["nan"] += sum(r["nan"] for r in damping["rows"]) if damping else 0  # redsim's released runs, not MuJoCo's
     if totals["nan"] or totals["unreported"]:  # the checks that must be 0 fail the command, for CI
         error(f"{totals['nan']} non-finite and {totals['unreported']} unreported energy gains (both must be 0)")
         return EXIT_NAN if totals["nan"] else EXIT_FAILED_STEP
     return EXIT_OK
+
+
+def _damping_options(args: argparse.Namespace) -> dict[str, Any]:
+    """The checked ``--damping-*`` options as keyword arguments of :func:`redsim.benches.damping.bench_damping`."""
+    from redsim import pretrained
+    from redsim.benches import damping, stability
+
+    names = list(damping.SCENES) if args.damping_scenes is None else parse_list(args.damping_scenes, "--damping-scenes")
+    valid = [n for n in stability.LOADS if n in pretrained.names()]
+    bad = [n for n in names if n not in valid]
+    if bad:
+        raise CliError(f"--damping-scenes: unknown scene(s) {bad}; valid: {', '.join(valid)}")
+    full = [] if args.damping_full == "none" else parse_ints(args.damping_full, "--damping-full")
+    return {
+        "names": names,
+        "seconds": args.damping_seconds,
+        "divisions": parse_ints(args.damping_divisions, "--damping-divisions"),
+        "full_divisions": full,
+    }
 
 
 def add_commands(sub: Any) -> Any:
@@ -791,7 +820,8 @@ def add_commands(sub: Any) -> Any:
         "--regimes",
         metavar="R1,R2",
         help="only these, from stiff, big_dt, far_latent, action_bounds, impact, near_inversion, condition_edges, "
-        "fuzz, mujoco (default all)",
+        "fuzz, mujoco, damping (default all but damping, which measures implicit Euler's numerical damping: released "
+        "unforced runs, the free energy they keep; redsim.benches.damping)",
     )
     p.add_argument("--long-steps", type=int, default=2000, help="steps of the bang-bang runs (default 2000)")
     p.add_argument("--chain-steps", type=int, default=300, help="steps of the chain scenarios (default 300)")
@@ -809,6 +839,31 @@ def add_commands(sub: Any) -> Any:
         metavar="SECONDS",
         help="wall-time budget of each fuzzed env and of each scene's long runs: they stop there and report "
         "the steps they ran (default none)",
+    )
+    p.add_argument(
+        "--damping-scenes",
+        metavar="A,B",
+        help="scenes of the damping regime (default mini_chain,chain,bistable_bar,conditional_bar; also "
+        "hanging_sheet, cloth_ball)",
+    )
+    p.add_argument(
+        "--damping-seconds",
+        type=seconds,
+        default=1.0,
+        metavar="T",
+        help="simulated seconds of each released run of the damping regime (default 1)",
+    )
+    p.add_argument(
+        "--damping-divisions",
+        default="1,4,16",
+        metavar="K1,K2",
+        help="the damping regime's latent runs (and MuJoCo's) step at 0.02 s / K for each K (default 1,4,16)",
+    )
+    p.add_argument(
+        "--damping-full",
+        default="1,4,16",
+        metavar="K1,K2",
+        help="its full-space runs step at 0.02 s / K for each K, or none (default 1,4,16)",
     )
     p.add_argument(
         "--seed", type=non_negative_seed, default=0, help="seed of the fuzzed actions and resets (default 0)"

@@ -1,0 +1,379 @@
+"""`redsim bench stability --regimes damping`: implicit Euler's numerical damping, measured.
+
+Backward Euler dissipates: an exact step of a convex energy loses |v_{t+1} - v_t|²_M / 2
+(:mod:`redsim.integrators.energy_gain`), so an unforced scene slows down although nothing in it is a
+damper. How much, per scene, space and time step:
+
+- start: the static equilibrium under the constant load of the accuracy bench's ``push`` scenario
+  (:data:`redsim.benches.stability.LOADS`: the env's unit action along +x on its handle), each space its
+  own (full space: :func:`redsim.integrators.reference.full_equilibrium` from the rest
+  :func:`redsim.integrators.reference.rest_state`; latent: :func:`redsim.integrators.latent_equilibrium`
+  of the shipped map from its unloaded rest z*), at zero velocity (q_{-1} = q_0);
+- release: the load removed (gravity and the scene's other effects stay), ``seconds`` simulated at dt / k
+  for each k of ``divisions`` (dt = 0.02 s, the envs');
+- free energy F_t = K_t + E(q_t) - E_rest [J], K_t = |q_t - q_{t-1}|²_M / (2 h²), E_rest the energy of the
+  space's own unloaded equilibrium (full: q_rest; latent: f(z*)), all in float64
+  (:func:`redsim.benches.stability.energy_account`);
+- ``retained``: F_t / F_0 at 0.5 s, 1 s and ``seconds``; ``largest``: its maximum after the start (above
+  1: the run gained energy). A run that comes to rest at another equilibrium than E_rest's ends away from 0.
+
+Runs: the latent runtime (:class:`redsim.runtime.LatentStepper`, B = 1, in float32, what the envs run, and
+in float64, which separates the solver's tolerance from the integrator), and the float64 full-space reference
+(:func:`redsim.benches.accuracy.run_full`: Newton to the scene's tolerance). ``idle`` counts the runtime steps
+that took no iteration (the start was already within its tolerance, which grows as 1/h²: the state then does
+not move). With mujoco installed and the chain among the scenes: MuJoCo's 24-capsule chain of
+``redsim bench step`` (ball joints, no joint damping) lifted rigidly about the hook by the angle of the
+full-space chain's loaded tip, at rest, under :data:`MUJOCO_INTEGRATORS` at the same time steps.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import math
+import time
+from collections.abc import Callable, Sequence
+from typing import Any
+
+import numpy as np
+import torch
+from torch import Tensor, nn
+
+from redsim import pretrained, scenes
+from redsim.benches.accuracy import run_full
+from redsim.benches.stability import DT, LOADS, energy_account, runtime_rollout
+from redsim.integrators import LatentSpace, latent_equilibrium
+from redsim.integrators.reference import full_equilibrium, rest_state
+from redsim.scene import Scene
+
+SCENES = ("mini_chain", "chain", "bistable_bar", "conditional_bar")
+"""Scenes measured by default (any of :data:`LOADS` with a shipped map can be asked for)."""
+DIVISIONS = (1, 4, 16)
+"""Time steps dt / k measured by default (dt = :data:`DT`)."""
+CHECKPOINTS = (0.5, 1.0)
+"""Simulated times [s] the retained fraction is reported at (beside the run's end)."""
+RUNTIME_DTYPES = {"latent f32": torch.float32, "latent f64": torch.float64}
+"""The latent runtime's rows: label and dtype."""
+MUJOCO_INTEGRATORS = ("RK4", "implicit")
+"""MuJoCo's integrators measured beside the chain."""
+
+
+def release_load(scene: Scene) -> Tensor:
+    """The load [H, D] [N] (float64) the start is the equilibrium under: :data:`LOADS`' force along +x."""
+    plan = LOADS[scene.name]
+    load = torch.zeros(len(scene.handles), scene.dim, dtype=torch.float64)
+    load[scene.handle_names.index(plan.handle), 0] = plan.max_force
+    return load
+
+
+@dataclasses.dataclass(frozen=True)
+class Start:
+    """Where the released runs start and what their free energy is measured from (module doc).
+
+    Attributes:
+        q0: Full-space start [n] (float64): the equilibrium under :func:`release_load`.
+        q_rest: Full-space unloaded equilibrium [n].
+        z0: Latent start [d] (float64).
+        z_rest: The map's unloaded equilibrium z* [d].
+        full_rest_J: E(q_rest) [J].
+        latent_rest_J: E(f(z*)) [J].
+        converged: All four static solves converged.
+    """
+
+    q0: Tensor
+    q_rest: Tensor
+    z0: Tensor
+    z_rest: Tensor
+    full_rest_J: float
+    latent_rest_J: float
+    converged: bool
+
+
+def release_start(scene: Scene, f: nn.Module) -> Start:
+    """The :class:`Start` of a scene and its map f."""
+    s64 = scene.to(dtype=torch.float64)
+    load = release_load(scene)
+    q_rest, rest_ok = rest_state(scene)
+    q0, loaded_ok, _ = full_equilibrium(s64, load, start=q_rest)
+    space = LatentSpace(s64, f)
+    z_rest, z_rest_info = latent_equilibrium(space, None)
+    z0, z0_info = latent_equilibrium(space, load, z0=z_rest)
+    with torch.no_grad():
+        energies = s64.energy(torch.stack([q_rest, space.configuration(z_rest.unsqueeze(0))[0]]))
+    converged = bool(rest_ok and loaded_ok and z_rest_info.converged and z0_info.converged)
+    return Start(q0, q_rest, z0, z_rest, float(energies[0]), float(energies[1]), converged)
+
+
+def retained(scene: Scene, q: Tensor, q_prev: Tensor, dt: float, rest_energy: float) -> Tensor:
+    """F_t / F_0 [T + 1] of an unloaded run q [T + 1, n] (q_prev [n]: the state before q[0]; module doc)."""
+    loads = torch.zeros(q.shape[0] - 1, len(scene.handles), scene.dim, dtype=torch.float64)
+    mechanical, _ = energy_account(scene, q, loads, dt, q_prev)
+    free = mechanical - rest_energy
+    return free / free[0]
+
+
+def _row(
+    name: str, space: str, dt: float, fractions: Tensor, free_J: float, seconds: float, **counts: Any
+) -> dict[str, Any]:
+    """One table row of run ``name``: the retained fraction at each checkpoint and at the end, and its counts."""
+    values = {}
+    for t in (*(c for c in CHECKPOINTS if c < seconds), seconds):
+        index = round(t / dt)
+        values[f"{t:g}"] = float(fractions[index]) if index < fractions.shape[0] else math.nan
+    after = fractions[1:]
+    return {
+        "scene": name,
+        "space": space,
+        "dt": dt,
+        "steps": int(fractions.shape[0] - 1),
+        "free_energy_J": free_J,
+        "retained": values,
+        "largest": float(after.max()) if bool(torch.isfinite(after).all()) and after.numel() else math.nan,
+        **counts,
+    }
+
+
+def scene_rows(
+    scene: Scene,
+    f: nn.Module,
+    *,
+    seconds: float,
+    divisions: Sequence[int] = DIVISIONS,
+    full_divisions: Sequence[int] = DIVISIONS,
+    start: Start | None = None,
+    progress: Callable[[str], None] | None = None,
+) -> list[dict[str, Any]]:
+    """The rows of one scene: the runtime (:data:`RUNTIME_DTYPES`) at dt / k for k in ``divisions``, the full
+    space at dt / k for k in ``full_divisions``, each released from ``start`` (default :func:`release_start`)."""
+    start = release_start(scene, f) if start is None else start
+    s64 = scene.to(dtype=torch.float64)
+    tol = scenes.full_space_tol(scene.name)
+    rows = []
+    for k in divisions:
+        dt = DT / k
+        steps = round(seconds / dt)
+        loads = torch.zeros(steps, len(scene.handles), scene.dim, dtype=torch.float64)
+        for label, dtype in RUNTIME_DTYPES.items():
+            begin = time.perf_counter()
+            run = runtime_rollout(scene, f, loads, dt, z0=start.z0, z_prev=start.z0, dtype=dtype)
+            fractions = retained(s64, run.q, run.q_prev, dt, start.latent_rest_J)
+            free = float(s64.energy(run.q[:1])[0]) - start.latent_rest_J
+            nan = run.nonfinite + int((~torch.isfinite(run.q)).any(-1).sum())
+            rows.append(
+                _row(
+                    scene.name,
+                    label,
+                    dt,
+                    fractions,
+                    free,
+                    seconds,
+                    unconverged=run.flags["unconverged"],
+                    idle=run.flags["idle"],
+                    nan=nan,
+                    wall_s=time.perf_counter() - begin,
+                )
+            )
+            if progress:
+                progress(f"damping {scene.name} {label} dt {dt:g}: {time.perf_counter() - begin:.1f} s")
+    for k in full_divisions:
+        dt = DT / k
+        steps = round(seconds / dt)
+        loads = torch.zeros(steps, len(scene.handles), scene.dim, dtype=torch.float64)
+        begin = time.perf_counter()
+        run = run_full(scene, start.q0, loads, dt=dt, tol=tol, max_iter=100)
+        fractions = retained(s64, run.q, run.q[0], dt, start.full_rest_J)
+        free = float(s64.energy(run.q[:1])[0]) - start.full_rest_J
+        rows.append(
+            _row(
+                scene.name,
+                "full f64",
+                dt,
+                fractions,
+                free,
+                seconds,
+                unconverged=run.failed,
+                idle=0,
+                nan=run.nonfinite,
+                wall_s=time.perf_counter() - begin,
+            )
+        )
+        if progress:
+            progress(f"damping {scene.name} full dt {dt:g}: {time.perf_counter() - begin:.1f} s")
+    return rows
+
+
+def lift_angle(scene: Scene, start: Start) -> float:
+    """Angle [rad] about the hook (the origin) between the chain's handle at the start and at rest."""
+    s64 = scene.to(dtype=torch.float64)
+    p = s64.handle_positions(torch.stack([start.q0, start.q_rest]))
+    a, b = p[0], p[1]
+    return float(torch.atan2(torch.linalg.vector_norm(torch.linalg.cross(a, b)), (a * b).sum()))
+
+
+def mujoco_rows(
+    angle: float,
+    *,
+    seconds: float,
+    divisions: Sequence[int] = DIVISIONS,
+    integrators: Sequence[str] = MUJOCO_INTEGRATORS,
+) -> list[dict[str, Any]] | None:
+    """MuJoCo's 24-capsule chain lifted by ``angle`` [rad] at rest, released (module doc); None without mujoco.
+
+    Its free energy is MuJoCo's total energy (``data.energy``, evaluated after each step) above the hanging rest.
+    """
+    try:
+        import mujoco
+    except ImportError:
+        return None
+    from redsim.runtime.bench import mujoco_chain_xml
+
+    rows = []
+    previous = mujoco.get_mju_user_warning()
+    mujoco.set_mju_user_warning(lambda _text: None)  # a blow-up shows as a NaN or a gain in the row
+    try:
+        for k in divisions:
+            dt = DT / k
+            for integrator in integrators:
+                xml = mujoco_chain_xml(integrator=integrator, timestep=dt)
+                xml = xml.replace('-9.81"/>', '-9.81"><flag energy="enable"/></option>', 1)
+                model = mujoco.MjModel.from_xml_string(xml)
+                data = mujoco.MjData(model)
+                mujoco.mj_forward(model, data)
+                rest = float(data.energy.sum())
+                data.qpos[0:4] = [math.cos(angle / 2), math.sin(angle / 2), 0.0, 0.0]
+                mujoco.mj_forward(model, data)
+                energies = [float(data.energy.sum())]
+                begin = time.perf_counter()
+                for _ in range(round(seconds / dt)):
+                    mujoco.mj_step(model, data)
+                    mujoco.mj_forward(model, data)  # data.energy of the new state
+                    energies.append(float(data.energy.sum()) if np.isfinite(data.qpos).all() else math.nan)
+                free = torch.tensor(energies, dtype=torch.float64) - rest
+                nan = int((~torch.isfinite(free)).sum())
+                wall = time.perf_counter() - begin
+                fractions = free / free[0]
+                rows.append(
+                    _row(
+                        "mujoco_chain",
+                        f"MuJoCo {integrator}",
+                        dt,
+                        fractions,
+                        float(free[0]),
+                        seconds,
+                        unconverged=0,
+                        idle=0,
+                        nan=nan,
+                        wall_s=wall,
+                    )
+                )
+    finally:
+        mujoco.set_mju_user_warning(previous)
+    return rows
+
+
+def bench_damping(
+    names: Sequence[str] = SCENES,
+    *,
+    seconds: float = 1.0,
+    divisions: Sequence[int] = DIVISIONS,
+    full_divisions: Sequence[int] = DIVISIONS,
+    progress: Callable[[str], None] | None = None,
+) -> dict[str, Any]:
+    """Every scene's rows (:func:`scene_rows`), and MuJoCo's chain (:func:`mujoco_rows`) when ``chain`` is one.
+
+    Raises:
+        ValueError: a scene without a :data:`LOADS` plan or a shipped map, ``seconds`` not > 0 or a division < 1.
+    """
+    unknown = [n for n in names if n not in LOADS or n not in pretrained.names()]
+    if unknown:
+        valid = sorted(n for n in LOADS if n in pretrained.names())
+        raise ValueError(f"damping runs on {valid}, not {unknown}")
+    if not (math.isfinite(seconds) and seconds > 0):
+        raise ValueError(f"seconds must be finite and > 0, got {seconds!r}")
+    if any(int(k) != k or k < 1 for k in (*divisions, *full_divisions)):
+        raise ValueError(f"divisions must be integers >= 1, got {list(divisions)} and {list(full_divisions)}")
+    rows: list[dict[str, Any]] = []
+    mujoco: list[dict[str, Any]] | None = None
+    starts = {}
+    angle = None
+    for name in names:
+        scene = scenes.build(name)
+        f = pretrained.load(name, scene)
+        start = release_start(scene, f)
+        starts[name] = start.converged
+        rows += scene_rows(
+            scene,
+            f,
+            seconds=seconds,
+            divisions=divisions,
+            full_divisions=full_divisions,
+            start=start,
+            progress=progress,
+        )
+        if name == "chain":
+            angle = lift_angle(scene, start)
+            mujoco = mujoco_rows(angle, seconds=seconds, divisions=divisions)
+    return {
+        "dt": DT,
+        "seconds": seconds,
+        "divisions": list(divisions),
+        "full_divisions": list(full_divisions),
+        "starts_converged": starts,
+        "mujoco_lift_deg": None if angle is None else math.degrees(angle),
+        "rows": rows,
+        "mujoco": mujoco,
+    }
+
+
+def damping_table(result: dict[str, Any]) -> list[str]:
+    """The result as markdown lines: one row per scene, space and time step (module doc)."""
+    seconds = result["seconds"]
+    times = [f"{t:g}" for t in (*(c for c in CHECKPOINTS if c < seconds), seconds)]
+    head = [
+        "scene",
+        "space",
+        "dt [s]",
+        "steps",
+        "free energy at start [J]",
+        *(f"retained at {t} s" for t in times),
+        "largest",
+        "unconverged",
+        "idle",
+        "nan",
+    ]
+    lines = ["| " + " | ".join(head) + " |", "|" + "---|" * len(head)]
+    for row in [*result["rows"], *(result["mujoco"] or [])]:
+        cells = [row["scene"], row["space"], f"{row['dt']:g}", str(row["steps"]), f"{row['free_energy_J']:.3g}"]
+        cells += [f"{row['retained'].get(t, math.nan):.3g}" for t in times]
+        cells += [f"{row['largest']:.3g}", str(row["unconverged"]), str(row["idle"]), str(row["nan"])]
+        lines.append("| " + " | ".join(cells) + " |")
+    notes = []
+    if result.get("mujoco_lift_deg") is not None:
+        if result["mujoco"] is None:
+            notes.append("mujoco is not installed (pip install 'redsim[bench]'): no MuJoCo rows")
+        else:
+            notes.append(
+                f"mujoco_chain: MuJoCo's 24-capsule chain lifted rigidly by {result['mujoco_lift_deg']:.3g} deg (the "
+                "full-space chain's loaded tip about the hook), released at rest"
+            )
+    unconverged = [k for k, ok in result["starts_converged"].items() if not ok]
+    if unconverged:
+        notes.append(f"a static solve of the start did not converge: {', '.join(unconverged)}")
+    return lines + (["", *notes] if notes else [])
+
+
+__all__ = [
+    "CHECKPOINTS",
+    "DIVISIONS",
+    "MUJOCO_INTEGRATORS",
+    "RUNTIME_DTYPES",
+    "SCENES",
+    "Start",
+    "bench_damping",
+    "damping_table",
+    "lift_angle",
+    "mujoco_rows",
+    "release_load",
+    "release_start",
+    "retained",
+    "scene_rows",
+]

@@ -1,0 +1,91 @@
+"""`redsim bench stability --regimes damping`: released unforced runs keep a finite, falling share of their free
+energy, and the full-space reference keeps more at a smaller time step (implicit Euler's damping is O(h))."""
+
+from __future__ import annotations
+
+import json
+import math
+from collections.abc import Callable
+
+import pytest
+import torch
+
+from redsim import pretrained, scenes
+from redsim.benches import damping, stability
+from redsim.benches.accuracy import run_full
+from redsim.benches.stability import DT, FULL_SLACK
+
+Cli = Callable[..., tuple[int, str, str]]
+
+
+@pytest.fixture(scope="module")
+def mini_chain() -> tuple:
+    scene = scenes.build("mini_chain")
+    f = pretrained.load("mini_chain", scene)
+    return scene, f, damping.release_start(scene, f)
+
+
+def test_released_runs_keep_a_finite_falling_share_of_their_free_energy(mini_chain: tuple) -> None:
+    scene, f, start = mini_chain
+    assert start.converged
+    rows = damping.scene_rows(scene, f, seconds=0.3, divisions=(1,), full_divisions=(1,), start=start)
+    assert [r["space"] for r in rows] == [*damping.RUNTIME_DTYPES, "full f64"]
+    for row in rows:
+        assert row["nan"] == 0 and row["unconverged"] == 0 and row["steps"] == 15, row
+        assert row["free_energy_J"] > 0.0, row
+        end = row["retained"]["0.3"]
+        assert math.isfinite(end) and end < row["largest"] <= 1.0 + 1e-3, row
+
+
+def test_the_reference_loses_free_energy_every_step_and_less_at_half_the_step(mini_chain: tuple) -> None:
+    """Backward Euler on the mini chain: F_t never rises (float64 round-off aside), and dt / 2 keeps more of it."""
+    scene, _f, start = mini_chain
+    s64 = scene.to(dtype=torch.float64)
+    kept = []
+    for dt in (DT, DT / 2):
+        steps = round(0.3 / dt)
+        loads = torch.zeros(steps, 1, 3, dtype=torch.float64)
+        run = run_full(scene, start.q0, loads, dt=dt, tol=scenes.full_space_tol("mini_chain"), max_iter=100)
+        fractions = damping.retained(s64, run.q, run.q[0], dt, start.full_rest_J)
+        assert float(fractions[0]) == 1.0 and bool(torch.isfinite(fractions).all())
+        assert float(torch.diff(fractions).max()) <= FULL_SLACK
+        kept.append(float(fractions[-1]))
+    assert 0.0 < kept[0] < kept[1] < 1.0, kept
+
+
+def test_mujoco_chain_rows_are_finite_fractions() -> None:
+    pytest.importorskip("mujoco")
+    rows = damping.mujoco_rows(0.5, seconds=0.1, divisions=(1,))
+    assert rows is not None and [r["space"] for r in rows] == [f"MuJoCo {i}" for i in damping.MUJOCO_INTEGRATORS]
+    for row in rows:
+        assert row["nan"] == 0 and row["free_energy_J"] > 0.0 and math.isfinite(row["retained"]["0.1"]), row
+
+
+def test_cli_damping_regime(cli: Cli) -> None:
+    argv = ("bench", "stability", "--regimes", "damping", "--damping-scenes", "mini_chain", "--damping-seconds", "0.1")
+    code, out, err = cli(*argv, "--damping-divisions", "1", "--damping-full", "1", "--json")
+    assert code == 0, err
+    doc = json.loads(out)
+    assert doc["rows"] == [] and "machine" in doc
+    assert [(r["scene"], r["space"], r["steps"]) for r in doc["damping"]["rows"]] == [
+        ("mini_chain", "latent f32", 5),
+        ("mini_chain", "latent f64", 5),
+        ("mini_chain", "full f64", 5),
+    ]
+    code, out, err = cli(*argv, "--damping-divisions", "1", "--damping-full", "none")
+    assert code == 0, err
+    assert out.startswith("machine: ") and "| mini_chain | latent f64 | 0.02 | 5 |" in out and "full f64" not in out
+    code, _out, err = cli(*argv, "--damping-scenes", "klann")
+    assert code == 2 and "--damping-scenes: unknown scene(s) ['klann']" in err
+
+
+def test_the_float32_runtime_idles_when_its_tolerance_outgrows_the_forces(mini_chain: tuple) -> None:
+    """At dt / 16 the float32 runtime's tolerance (1e-6 of a force scale that grows as 1/h²) holds at the released
+    start, so every step ends without an iteration and the chain never moves; float64 (1e-9) moves it."""
+    scene, f, start = mini_chain
+    loads = torch.zeros(10, 1, 3, dtype=torch.float64)
+    for dtype, idle in ((torch.float32, 10), (torch.float64, 0)):
+        run = stability.runtime_rollout(scene, f, loads, DT / 16, z0=start.z0, z_prev=start.z0, dtype=dtype)
+        assert run.flags["idle"] == idle and run.flags["unconverged"] == 0, (dtype, run.flags)
+        moved = float(torch.linalg.vector_norm(run.q[-1] - run.q[0]))
+        assert (moved == 0.0) == (idle == 10), (dtype, moved)
