@@ -667,10 +667,15 @@ class LatentSim:
         builds its solver model afresh: the same solve to the tolerance, from which float32 trajectories then drift
         apart as they do between batch sizes).
 
+        The state is checked as ``reset(options=...)`` checks its options (a task parameter named in
+        :attr:`Task.reset_options`, e.g. a target beyond the observation bound, is refused by
+        :meth:`Task.check_options`; a condition outside its space too) before anything changes.
+
         Raises:
             ValueError: on a missing key, a wrong shape, non-finite values, a condition outside the scene's
-                condition space, or a state of another scene, task, dt or frame_skip (``state["setting"]``; a
-                state without it, from before stop 32, is taken as it is).
+                condition space, a task parameter that ``reset(options=...)`` would refuse, or a state of another
+                scene, task, dt or frame_skip (``state["setting"]``; a state without it, from before stop 32, is
+                taken as it is).
         """
         d, B = self.latent_dim, self.batch
         theirs, mine = state.get("setting"), self.setting()
@@ -700,20 +705,18 @@ class LatentSim:
         if missing:
             raise ValueError(f"state is missing {sorted(missing)}")
         cond = None if self.cond is None else self._checked_cond(tensor(state["cond"], tuple(self.cond.shape), "cond"))
-        self.z = tensor(state["z"], (B, d), "z")
-        self.z_prev = tensor(state["z_prev"], (B, d), "z_prev")
-        self.model = torch.full((B, d, d), torch.nan, dtype=self.torch_dtype, device=self.device)
+        z = tensor(state["z"], (B, d), "z")
+        z_prev = tensor(state["z_prev"], (B, d), "z_prev")
+        model = torch.full((B, d, d), torch.nan, dtype=self.torch_dtype, device=self.device)
         if state.get("model") is not None:
             model = torch.as_tensor(np.asarray(state["model"]), dtype=self.torch_dtype, device=self.device)
             if tuple(model.shape) != (B, d, d):
                 raise ValueError(f"state['model'] must have shape {[B, d, d]}, got {list(model.shape)}")
-            self.model = model.clone()
-        if cond is not None:
-            self.cond = cond
+            model = model.clone()
         params = state["params"]
         if self.params and set(params) != set(self.params):
             raise ValueError(f"state['params'] must have keys {sorted(self.params)}, got {sorted(params)}")
-        self.params = {  # each keeps its dtype (a task's counters and flags stay integers and bools)
+        params = {  # each keeps its dtype (a task's counters and flags stay integers and bools)
             k: tensor(
                 v,
                 tuple(self.params[k].shape) if k in self.params else (B, *np.shape(v)[1:]),
@@ -722,8 +725,32 @@ class LatentSim:
             )
             for k, v in params.items()
         }
+        self.check_state_params(params)
+        self.z, self.z_prev, self.model, self.params = z, z_prev, model, params
+        if cond is not None:
+            self.cond = cond
         self.x_prev = self.full_positions(self.z_prev)
         self.x = self.full_positions(self.z)
+
+    def check_state_params(self, params: Mapping[str, Any]) -> None:
+        """Refuse a state's task parameters {name: [B, ...]} where ``reset(options=...)`` would refuse them as
+        options: those named in :attr:`Task.reset_options`, copy by copy, by :meth:`Task.check_options`.
+
+        Raises:
+            ValueError: naming the copy and the task's reason.
+        """
+        chosen = {}
+        for key in set(params) & set(self.task.reset_options):
+            try:
+                value = params[key]
+                chosen[key] = value if isinstance(value, Tensor) else torch.as_tensor(np.asarray(value, np.float64))
+            except (TypeError, ValueError):
+                continue  # not a number array: set_state refuses it by its shape, and says so
+        for row in range(min((v.shape[0] if v.ndim else 0 for v in chosen.values()), default=0)):
+            try:
+                self.task.check_options({k: v[row] for k, v in chosen.items()})
+            except ValueError as error:
+                raise ValueError(f"state['params'] of copy {row} is one a reset would refuse: {error}") from None
 
     def _checked_cond(self, cond: Tensor, what: str = "state['cond']") -> Tensor:
         """``cond`` [B, m], refused (ValueError naming ``what`` and the ranges) where it leaves the condition space."""

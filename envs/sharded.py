@@ -248,13 +248,16 @@ class ShardedVectorEnv(SharedCopies, VectorEnv):
         """Restore :meth:`get_state`'s state (or a native env's of as many copies).
 
         Raises:
-            ValueError: a state of another env or copy count (from the workers, which check their blocks).
+            ValueError: a task parameter ``reset(options=...)`` would refuse (checked here: the env stays open), or a
+                state of another env or copy count (from the workers, which check their blocks).
         """
         if not isinstance(state, Mapping):
             raise ValueError(f"need the dict get_state() returns, got {type(state).__name__}")
         z = np.asarray(state.get("z"))
         if z.ndim != 2 or z.shape[0] != self.num_envs:
             raise ValueError(f"state['z'] must have shape [{self.num_envs}, d] (one row per copy), got {z.shape}")
+        if isinstance(state.get("params"), Mapping):
+            self.template.sim.check_state_params(state["params"])
         parts = [_state_rows(state, block) for block in self._blocks()]
         self._call([("set_state", part) for part in parts])
         if self.metadata["autoreset_mode"] == AutoresetMode.DISABLED:

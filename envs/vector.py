@@ -198,7 +198,8 @@ class LatentVectorEnv(SharedCopies, VectorEnv):
         every copy's episode count starts at 0 and none is pending an autoreset.
 
         Raises:
-            ValueError: a state of another env or batch, or a clock or ``rngs`` of another length.
+            ValueError: a state of another env or batch, a task parameter ``reset(options=...)`` would refuse
+                (:meth:`redsim.envs.base.LatentSim.set_state`), or a clock or ``rngs`` of another length.
         """
         elapsed = np.asarray(state.get("elapsed_steps", np.zeros(self.num_envs)))
         pending = np.asarray(state.get("autoresetting", np.zeros(self.num_envs, dtype=bool)))

@@ -115,6 +115,10 @@ def test_a_refused_option_leaves_the_sharded_env_open() -> None:
         for bad in ({"target": [1.0, 2.0]}, {"bad": 1}):
             with pytest.raises(ValueError):
                 venv.reset(options=bad)
+        state = venv.get_state()  # and a state with a target no reset would take: refused here, not in a worker
+        far = {**state, "params": {**state["params"], "target": np.full((2, 3), 1e6, np.float32)}}
+        with pytest.raises(ValueError, match=r"state\['params'\] of copy 0 .*observation bound"):
+            venv.set_state(far)
         venv.step(np.zeros((2, 3), np.float32))
     finally:
         venv.close()
@@ -141,3 +145,35 @@ def test_klann_and_stewart_options_outside_what_the_task_observes_are_refused() 
     stewart.reset(seed=3, options=drawn)
     with pytest.raises(ValueError, match="target_spread must be <= 1"):
         gym.make("RedSim/Stewart-v0", target_spread=1.5)
+
+
+def test_set_state_refuses_what_a_reset_option_would_and_changes_nothing() -> None:
+    env = gym.make(ID).unwrapped
+    env.reset(seed=0)
+    env.step(np.full(3, 0.5, np.float32))
+    state = env.get_state()
+    far = {**state, "params": {**state["params"], "target": np.array([1e6, 0.0, 0.0], np.float32)}}
+    with pytest.raises(ValueError, match=r"state\['params'\] of copy 0 .*options\['target'\] must lie within"):
+        env.set_state(far)
+    for key in ("z", "z_prev", "model", "params"):
+        np.testing.assert_equal(env.get_state()[key], state[key])
+    env.set_state(state)  # a state get_state() gave still round-trips
+    np.testing.assert_equal(env.get_state(), state)
+    klann = gym.make("RedSim/Klann-v0").unwrapped
+    klann.reset(seed=0)
+    fast = klann.get_state()
+    fast["params"]["speed"] = np.float32(-1e6)
+    with pytest.raises(ValueError, match=r"options\['speed'\] must lie in \[0, 12\] rad/s"):
+        klann.set_state(fast)
+
+
+def test_the_vector_env_set_state_refuses_a_copy_a_reset_option_would() -> None:
+    venv = gym.make_vec(ID, num_envs=2, vectorization_mode="vector_entry_point")
+    venv.reset(seed=0)
+    state = venv.get_state()
+    targets = state["params"]["target"].copy()
+    targets[1, 2] = -1e6
+    with pytest.raises(ValueError, match=r"state\['params'\] of copy 1 .*options\['target'\]"):
+        venv.set_state({**state, "params": {**state["params"], "target": targets}})
+    np.testing.assert_equal(venv.get_state(), state)
+    venv.step(np.zeros((2, 3), np.float32))
