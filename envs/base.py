@@ -47,6 +47,9 @@ CAMERA_KEYS = ("azimuth", "elevation", "margin")
 LATENT_BOUND = 10.0
 """Observation bound of each latent coordinate (maps are fitted on z ~ N(0, I)); z_dot gets 2 LATENT_BOUND / h, h the
 stepper's step (the env's dt / frame_skip)."""
+MAX_FRAME_SKIP = 1000
+"""Most stepper steps one env step may take (``frame_skip``): each is an implicit solve, so a larger value makes a
+single ``step()`` run for minutes or, mistyped (``10**12``), forever; for a longer env step raise ``dt`` instead."""
 DISPLAY_VARIABLES = ("DISPLAY", "WAYLAND_DISPLAY", "SDL_VIDEODRIVER")
 """On Linux a window needs one of these set (SDL_VIDEODRIVER=dummy gives a window that shows nothing)."""
 
@@ -270,7 +273,7 @@ class LatentSim:
         task: The task (bound to this sim here).
         batch: B, the number of copies.
         dt: Stepper time step [s].
-        frame_skip: Stepper steps per env step (the env's dt is ``dt * frame_skip``).
+        frame_skip: Stepper steps per env step, in [1, :data:`MAX_FRAME_SKIP`] (the env's dt is ``dt * frame_skip``).
         dtype: "float32" or "float64", the stepper's dtype.
         device: Torch device of the stepper.
         randomize_condition: Draw the condition c uniformly from the scene's condition space per
@@ -336,8 +339,15 @@ class LatentSim:
         from redsim.integrators import check_time_step
 
         dt = check_time_step(dt)
-        if isinstance(frame_skip, bool) or not isinstance(frame_skip, numbers.Integral) or frame_skip < 1:
-            raise ValueError(f"frame_skip must be an integer >= 1, got {frame_skip!r}")
+        if (
+            isinstance(frame_skip, bool)
+            or not isinstance(frame_skip, numbers.Integral)
+            or not 1 <= frame_skip <= MAX_FRAME_SKIP
+        ):
+            raise ValueError(
+                f"frame_skip must be an integer in [1, {MAX_FRAME_SKIP}] (MAX_FRAME_SKIP; for longer env steps raise "
+                f"dt), got {frame_skip!r}"
+            )
         for flag, value in (("include_q", include_q), ("randomize_condition", randomize_condition)):
             if not isinstance(value, (bool, np.bool_)):
                 raise ValueError(f"{flag} must be True or False, got {value!r}")
@@ -886,7 +896,7 @@ class LatentEnv(gym.Env[np.ndarray, np.ndarray]):
         render_mode: None, "rgb_array" (headless) or "human" (a pygame window; listed in ``metadata``
             where pygame and a display exist, else a clear error: :func:`human_unavailable`).
         dt: Stepper time step [s].
-        frame_skip: Stepper steps per env step.
+        frame_skip: Stepper steps per env step, in [1, :data:`MAX_FRAME_SKIP`].
         dtype: Stepper dtype, "float32" or "float64".
         device: Torch device.
         randomize_condition: Draw the scene's condition per episode (conditional maps).
@@ -1279,6 +1289,7 @@ def _batch(state: Mapping[str, Any]) -> dict[str, Any]:
 
 __all__ = [
     "LATENT_BOUND",
+    "MAX_FRAME_SKIP",
     "NO_HUMAN",
     "VECTOR_RENDER_MODES",
     "LatentEnv",

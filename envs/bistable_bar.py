@@ -271,7 +271,7 @@ class BistableBarEnv(LatentEnv):
     | `render_mode` | None | None, "rgb_array" or "human" |
     | `max_force` | 60.0 | force [N] of a unit action on the middle column (v1 registers 40.0) |
     | `dt` | 0.02 | stepper time step [s] |
-    | `frame_skip` | 1 | stepper steps per env step |
+    | `frame_skip` | 1 | stepper steps per env step, 1 to 1000 (`MAX_FRAME_SKIP`) |
     | `subspace` | None | the shipped map, a checkpoint path or a map (it must hold both states) |
     | `scene_params` | None | scene build parameters (the shipped map covers only the defaults) |
     | `fit_if_missing` | False | fit a map for `scene_params` no shipped map covers into the user cache |

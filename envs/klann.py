@@ -300,7 +300,7 @@ class KlannEnv(LatentEnv):
     | `max_force` | 40.0 | tangential force [N] of a unit action |
     | `speed_range` | (4.0, 12.0) | range [rad/s] of the commanded speed |
     | `dt` | 0.02 | stepper time step [s] |
-    | `frame_skip` | 1 | stepper steps per env step |
+    | `frame_skip` | 1 | stepper steps per env step, 1 to 1000 (`MAX_FRAME_SKIP`) |
     | `hold_steps` | 100 | env steps of the success window |
     | `hold_fraction` | 0.5 | fraction of the window within the tolerance that makes a success |
     | `subspace` | None | the shipped map, a checkpoint path or a map |

@@ -355,7 +355,7 @@ class ReachEnv(LatentEnv):
     | `target_spread` | the env's | latent spread s of the targets (held targets: largest held action entry) |
     | `targets` | the env's | "latent" or "held" (:class:`HandleReach`) |
     | `dt` | 0.02 | stepper time step [s] |
-    | `frame_skip` | 1 | stepper steps per env step |
+    | `frame_skip` | 1 | stepper steps per env step, 1 to 1000 (`MAX_FRAME_SKIP`) |
     | `subspace` | None | the shipped map, a checkpoint path or a map |
     | `scene_params` | None | scene build parameters (a shipped map covers only the defaults) |
     | `fit_if_missing` | False | fit a map for `scene_params` no shipped map covers into the user cache |

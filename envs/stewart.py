@@ -290,7 +290,7 @@ class StewartEnv(LatentEnv):
     | `max_force` | 60.0 | force [N] of a unit action at each arm tip |
     | `target_spread` | 0.5 | largest entry of the held action that sets a target, in (0, 1] |
     | `dt` | 0.02 | stepper time step [s] |
-    | `frame_skip` | 1 | stepper steps per env step |
+    | `frame_skip` | 1 | stepper steps per env step, 1 to 1000 (`MAX_FRAME_SKIP`) |
     | `subspace` | None | the shipped map, a checkpoint path or a map |
     | `scene_params` | None | scene build parameters (the shipped map covers only the defaults) |
     | `fit_if_missing` | False | fit a map for `scene_params` no shipped map covers into the user cache |

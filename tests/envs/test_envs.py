@@ -20,7 +20,7 @@ from gymnasium.vector import AutoresetMode
 
 import redsim
 from redsim import pretrained, scenes
-from redsim.envs.base import LatentEnv
+from redsim.envs.base import MAX_FRAME_SKIP, LatentEnv
 from redsim.envs.reach import HandleReach
 from redsim.subspace import CheckpointError
 
@@ -83,6 +83,13 @@ def test_frame_skip_reads_back_as_on_mujoco_envs() -> None:
     assert env.unwrapped.frame_skip == 2 and env.unwrapped.dt == pytest.approx(0.04)
     venv = gym.make_vec("RedSim/MiniChain-v0", num_envs=2, vectorization_mode="vector_entry_point", frame_skip=2)
     assert venv.frame_skip == 2 and venv.get_attr("frame_skip") == (2, 2)
+    assert gym.make("RedSim/MiniChain-v0", frame_skip=MAX_FRAME_SKIP).unwrapped.frame_skip == MAX_FRAME_SKIP
+    refused = rf"frame_skip must be an integer in \[1, {MAX_FRAME_SKIP}\]"
+    with pytest.raises(ValueError, match=refused):
+        gym.make("RedSim/MiniChain-v0", frame_skip=MAX_FRAME_SKIP + 1)
+    for shards in ({}, {"shards": 2}):  # native vector, sharded
+        with pytest.raises(ValueError, match=refused):
+            gym.make_vec("RedSim/MiniChain-v0", 2, vectorization_mode="vector_entry_point", frame_skip=10**12, **shards)
 
 
 @pytest.mark.parametrize("env_id", CONTRACT_IDS)

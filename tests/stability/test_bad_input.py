@@ -171,6 +171,8 @@ def test_a_tiny_time_step_at_rest_raises_no_energy_gain_flag() -> None:
         ({"dt": True}, "dt must be a number of seconds"),
         ({"dt": None}, "dt must be a number of seconds"),
         ({"frame_skip": True}, "frame_skip must be an integer"),
+        ({"frame_skip": 0}, r"frame_skip must be an integer in \[1, 1000\] \(MAX_FRAME_SKIP"),
+        ({"frame_skip": 10**12}, r"frame_skip must be an integer in \[1, 1000\] \(MAX_FRAME_SKIP"),
         ({"include_q": "yes"}, "include_q must be True or False"),
         ({"stepper_options": {"bogus": 1}}, r"unknown stepper_options \['bogus'\]; valid: \['compile'"),
         ({"scene_params": "x"}, "scene_params must be a dict"),
