@@ -24,6 +24,7 @@ from multiprocessing.connection import Connection
 from typing import TYPE_CHECKING, Any
 
 import numpy as np
+from gymnasium.utils import seeding
 from gymnasium.vector import AutoresetMode, VectorEnv
 from gymnasium.vector.utils import batch_space
 
@@ -200,12 +201,16 @@ class ShardedVectorEnv(SharedCopies, VectorEnv):
     def reset(
         self, *, seed: int | Sequence[int | None] | None = None, options: dict[str, Any] | None = None
     ) -> tuple[np.ndarray, dict[str, Any]]:
-        """Reset all copies, or those of ``options["reset_mask"]`` (bool [N]); seed copy i with ``seed + i``."""
+        """Reset all copies, or those of ``options["reset_mask"]`` (bool [N]); seed copy i with ``seed + i``. A seed
+        or option refused is refused before any shard resets (the env stays open)."""
         mask = reset_mask(options, self.num_envs)
         if set(options or ()) - {"reset_mask"} and not self.template.sim.params:
             self.template.reset(seed=0)  # one draw, for the parameters' shapes (a refused option closes no shard)
         self.template.sim.episode_options(options, vector=True)
         own, seeds = copy_seeds(seed, self.num_envs)
+        for copy_seed in seeds or ():  # here, as the native env's reset does: a worker's refusal closes the env
+            if copy_seed is not None:
+                seeding.np_random(copy_seed)  # Gymnasium's rule (gymnasium.error.Error), before any shard is seeded
         super().reset(seed=own)
         requests = []
         for block in self._blocks():

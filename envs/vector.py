@@ -87,17 +87,19 @@ class LatentVectorEnv(SharedCopies, VectorEnv):
     ) -> tuple[np.ndarray, dict[str, Any]]:
         """Reset all copies, or those of ``options["reset_mask"]`` (bool [N]); seed copy i with ``seed + i``, or with
         ``seed[i]`` for a sequence (None: copy i keeps its generator, as in Gymnasium's sync vector env). The other
-        options set parts of every reset copy's draw, as in the single env's ``reset`` (autoresets draw them)."""
+        options set parts of every reset copy's draw, as in the single env's ``reset`` (autoresets draw them).
+
+        Every seed is checked (Gymnasium's rule: an int >= 0, else ``gymnasium.error.Error``) before any copy's
+        generator is replaced, so a refused reset changes nothing."""
         given = reset_mask(options, self.num_envs)
         chosen = self.sim.episode_options(options, vector=True)
         mask = np.ones(self.num_envs, dtype=bool) if given is None else given
         own, seeds = copy_seeds(seed, self.num_envs)
-        super().reset(seed=own)
-        if seeds is not None:
-            for i in np.nonzero(mask)[0]:
-                if seeds[i] is not None:
-                    self._rngs[i] = seeding.np_random(seeds[i])[0]
         rows = [int(i) for i in np.nonzero(mask)[0]]
+        fresh = {i: seeding.np_random(seeds[i])[0] for i in rows if seeds is not None and seeds[i] is not None}
+        super().reset(seed=own)
+        for i, generator in fresh.items():
+            self._rngs[i] = generator
         self._unreset[mask] = True  # until the draws succeed (a task may refuse an option's value)
         self.sim.reset_rows(rows, [self._rngs[i] for i in rows], chosen)
         self._elapsed[mask] = 0

@@ -188,6 +188,11 @@ def test_a_none_seed_in_a_vector_reset_keeps_that_copy_s_generator() -> None:
     assert np.array_equal(venv.reset(seed=np.array([5, 6]))[0], venv.reset(seed=[5, 6])[0])  # NumPy's ints too
     with pytest.raises(ValueError, match="seed must be an int, None or a sequence"):
         venv.reset(seed=2.5)
+    generators = venv.get_state()["rngs"]
+    for bad in ([3, -1], [3, 1.5]):  # every seed is checked before any copy's generator is replaced
+        with pytest.raises(gym.error.Error, match="Seed must be"):
+            venv.reset(seed=bad)
+        assert venv.get_state()["rngs"] == generators
     with pytest.raises(ValueError, match="num_envs must be an integer"):
         gym.make_vec("RedSim/MiniChain-v0", num_envs=float("nan"), vectorization_mode="vector_entry_point")
 

@@ -115,6 +115,8 @@ def test_a_refused_option_leaves_the_sharded_env_open() -> None:
         for bad in ({"target": [1.0, 2.0]}, {"bad": 1}):
             with pytest.raises(ValueError):
                 venv.reset(options=bad)
+        with pytest.raises(gym.error.Error, match="Seed must be greater or equal to zero"):
+            venv.reset(seed=[3, -1])  # refused before shard 0 is seeded
         state = venv.get_state()  # and a state with a target no reset would take: refused here, not in a worker
         far = {**state, "params": {**state["params"], "target": np.full((2, 3), 1e6, np.float32)}}
         with pytest.raises(ValueError, match=r"state\['params'\] of copy 0 .*observation bound"):
