@@ -1135,10 +1135,19 @@ def check_action(action: Any, shape: tuple[int, ...]) -> np.ndarray:
     """The action as float32 of ``shape``, clipped to [-1, 1] (checked and clipped in float64, so a finite
     value beyond float32's range is clipped too, not refused as infinite).
 
+    A torch tensor is taken as NumPy takes it: on the CPU and without grad (a policy's output that requires grad
+    or lives on a GPU is refused, naming the fix, instead of torch's error from inside NumPy).
+
     Raises:
-        ValueError: not an array of numbers (strings are refused, not parsed), a wrong shape (both named) or
-            non-finite entries.
+        ValueError: not an array of numbers (strings are refused, not parsed), a torch tensor that requires grad
+            or is not on the CPU, a wrong shape (both named) or non-finite entries.
     """
+    if isinstance(action, Tensor) and (action.requires_grad or action.device.type != "cpu"):
+        why = "requires grad" if action.requires_grad else f"is on {action.device}"
+        raise ValueError(
+            f"action must be a NumPy array (actions are not differentiated through), got a torch tensor that {why}: "
+            "pass action.detach().cpu().numpy()"
+        )
     try:
         raw = np.asarray(action)
     except (TypeError, ValueError):

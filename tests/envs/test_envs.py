@@ -284,6 +284,16 @@ def test_bad_actions_are_clear_errors(mini: gym.Env) -> None:
     for bad in (["0.1"] * 3, {"a": 1.0}, [[0.1, 0.2], [0.3]]):  # strings are not parsed; ragged is no array
         with pytest.raises(ValueError, match="action must be an array of numbers"):
             mini.step(bad)
+    policy_output = torch.zeros(3, requires_grad=True)  # not torch's "Can't call numpy()": the env's own error
+    with pytest.raises(ValueError, match=r"torch tensor that requires grad: pass action.detach\(\).cpu\(\).numpy\(\)"):
+        mini.step(policy_output)
+    with pytest.raises(ValueError, match=r"torch tensor that is on meta"):  # a GPU's, where there is none
+        mini.step(torch.zeros(3, device="meta"))
+    mini.step(policy_output.detach())  # a CPU tensor without grad is an array of numbers
+    venv = gym.make_vec("RedSim/MiniChain-v0", num_envs=2, vectorization_mode="vector_entry_point")
+    venv.reset(seed=0)
+    with pytest.raises(ValueError, match="torch tensor that requires grad"):
+        venv.step(torch.zeros((2, 3), requires_grad=True))
     with pytest.raises(ValueError, match="options must be a dict"):
         mini.reset(options="target")
     obs, *_ = mini.step(np.array([50.0, -50.0, 0.0], np.float32))  # clipped, not an error
