@@ -17,9 +17,12 @@ import math
 import os
 from collections.abc import Sequence
 from pathlib import Path
+from typing import TYPE_CHECKING
 
 import numpy as np
-import trimesh
+
+if TYPE_CHECKING:  # imported where used: import redsim needs none of trimesh (slow to import)
+    import trimesh
 
 # The six Kuhn tetrahedra of the unit cube: corner c has offset bits (c & 1, c >> 1 & 1, c >> 2 & 1).
 # Each walks from corner 0 to corner 7 along one permutation of the axes, so every face of
@@ -220,6 +223,8 @@ def voxel_tet_mesh(meshes: trimesh.Trimesh | Sequence[trimesh.Trimesh], pitch: f
     Returns:
         vertices [V, 3], positively oriented tets [6K, 4] (six Kuhn tets per voxel).
     """
+    import trimesh
+
     parts = [meshes] if isinstance(meshes, trimesh.Trimesh) else list(meshes)
     cells = np.concatenate([voxel_cells(m, pitch) for m in parts])
     return cells_to_tets(cells, pitch, origin=(-0.5 * pitch,) * 3)
@@ -237,6 +242,8 @@ def pitch_for_vertex_count(
         target: Wanted vertex count (> 8).
         iterations: Voxelizations spent refining the estimate.
     """
+    import trimesh
+
     if target < 8:
         raise ValueError(f"target vertex count must be >= 8, got {target}")
     parts = [meshes] if isinstance(meshes, trimesh.Trimesh) else list(meshes)
@@ -417,6 +424,8 @@ def affine_mass_block(mesh: trimesh.Trimesh, density: float) -> tuple[np.ndarray
     Raises:
         ValueError: on a non-positive density or a mesh without positive volume.
     """
+    import trimesh
+
     if not density > 0:
         raise ValueError(f"density must be > 0, got {density}")
     if not mesh.is_watertight or not mesh.volume > 0:
@@ -453,6 +462,8 @@ def load_mesh(path: str | os.PathLike[str]) -> trimesh.Trimesh:
         FileNotFoundError: if ``path`` does not exist (the message names it).
         ValueError: if the file cannot be parsed, is not a triangle mesh, or has no faces.
     """
+    import trimesh
+
     p = Path(path)
     if not p.exists():
         raise FileNotFoundError(f"mesh file not found: {str(p)!r}")

@@ -70,3 +70,14 @@ def test_an_env_runs_under_python_w_error() -> None:
     )
     done = subprocess.run([sys.executable, "-W", "error", "-c", script], capture_output=True, text=True, check=False)
     assert done.returncode == 0 and done.stdout.strip() == "ok", done.stderr[-2000:]
+
+
+def test_import_redsim_does_not_import_trimesh() -> None:
+    """trimesh (and the scipy.spatial it pulls in) took about a third of ``import redsim``; the scene builders and
+    mesh helpers import it where they use it, so a process that only imports redsim never pays for it."""
+    import subprocess
+    import sys
+
+    script = "import redsim, sys; assert 'trimesh' not in sys.modules, 'trimesh imported'; print('ok')"
+    done = subprocess.run([sys.executable, "-c", script], capture_output=True, text=True, check=False)
+    assert done.returncode == 0 and done.stdout.strip() == "ok", done.stderr[-2000:]

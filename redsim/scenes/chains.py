@@ -10,7 +10,6 @@ from typing import Any
 
 import numpy as np
 import torch
-import trimesh
 
 from redsim import meshes
 from redsim.effects import FrameSet, SDFContact, Torus
@@ -86,6 +85,8 @@ def mini_chain(
 
 def _chain_scene(name: str, params: dict[str, Any], links: int) -> Scene:
     """Validate the chain parameters and build a chain of ``links`` links (see :func:`chain`)."""
+    import trimesh
+
     links = toolkit.check_int("links", links, 1)
     samples = toolkit.check_int("contact_samples", params["contact_samples"], 8)
     major, minor, density, contact_stiffness, rigid_stiffness = (

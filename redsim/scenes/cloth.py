@@ -6,7 +6,6 @@ SI units (m, kg, s, Pa, N, J); cloth is StVK membrane + discrete-shell bending, 
 from __future__ import annotations
 
 import torch
-import trimesh
 
 from redsim import meshes
 from redsim.effects import FrameSet, SDFContact, Sphere
@@ -54,7 +53,9 @@ def cloth_ball(
     Effects: membrane, bending, rigid, contact, gravity, external_load. Handles: "ball" (its
     centre), "cloth_center" (the middle cloth vertex). Surfaces: "cloth", "ball".
     """
-    params = toolkit.builder_params(locals())
+    params = toolkit.builder_params(locals())  # first: the arguments alone (before any local name)
+    import trimesh
+
     cells = toolkit.check_int("cells", cells, 2)
     for key in (
         "size",

@@ -11,11 +11,10 @@ from __future__ import annotations
 
 import hashlib
 import os
+from typing import TYPE_CHECKING
 
 import numpy as np
-import scipy.spatial
 import torch
-import trimesh
 
 from redsim import meshes
 from redsim.scene import Scene, SceneBuilder
@@ -31,8 +30,13 @@ from redsim.scenes.toolkit import (
     select_vertices,
 )
 
+if TYPE_CHECKING:  # imported where used: import redsim needs none of trimesh (slow to import)
+    import trimesh
+
 
 def _mesh_input(mesh_or_path: trimesh.Trimesh | str | os.PathLike[str]) -> tuple[trimesh.Trimesh, str]:
+    import trimesh
+
     if isinstance(mesh_or_path, trimesh.Trimesh):
         mesh = mesh_or_path.copy()
         if len(mesh.faces) == 0:
@@ -56,6 +60,8 @@ def _pinned(given: np.ndarray, vertices: np.ndarray, pin: PinSpec, *, tolerance:
     vertices as given (``given`` [V0, D]): they are found again by position; names and callables see ``vertices``."""
     if pin is None or isinstance(pin, str) or callable(pin):
         return select_vertices(vertices, pin, tolerance=tolerance)
+    import scipy.spatial
+
     points = given[select_vertices(given, pin, tolerance=tolerance)]
     distance, index = scipy.spatial.cKDTree(vertices).query(points)
     scale = max(float(np.abs(vertices).max()), 1.0)  # welding merges within ~1e-8: found within 1e-6 of the size
@@ -219,6 +225,8 @@ def cloth_scene_from_mesh(
         ValueError: for an unreadable or non-manifold mesh (an edge of three triangles, surfaces touching at a
             vertex), non-finite vertices, a bad parameter, or pins that select every vertex (or none, under gravity).
     """
+    import trimesh
+
     young = check_positive("young", young)
     poisson = check_poisson(poisson)
     thickness = check_positive("thickness", thickness)

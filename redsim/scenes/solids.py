@@ -8,16 +8,18 @@ from __future__ import annotations
 
 import math
 from collections.abc import Callable
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
 import numpy as np
 import torch
-import trimesh
 
 from redsim import meshes
 from redsim.effects import ConditionalPin
 from redsim.scene import Scene, SceneBuilder
 from redsim.scenes import shapes, toolkit
+
+if TYPE_CHECKING:  # imported where used: import redsim needs none of trimesh (slow to import)
+    import trimesh
 
 
 # ---------------------------------------------------------------------------------------------
@@ -367,6 +369,8 @@ def _voxel_solid(
 
 def _cow_parts() -> list[trimesh.Trimesh]:
     """A cow-like body about 0.7 m long, 0.6 m tall, feet on y = 0 [m]."""
+    import trimesh
+
     torso = trimesh.creation.capsule(height=0.36, radius=0.12, count=[16, 16])
     torso.apply_transform(trimesh.transformations.rotation_matrix(math.pi / 2, [0.0, 1.0, 0.0]))
     torso.apply_translation((0.0, 0.35, 0.0))
@@ -426,6 +430,8 @@ def stiff_body(
 
 def _elephant_parts() -> list[trimesh.Trimesh]:
     """An elephant-like body about 1.3 m long, 1 m tall, feet on y = 0 [m]."""
+    import trimesh
+
     body = shapes.ellipsoid((0.0, 0.62, 0.0), (0.42, 0.28, 0.26))
     legs = [shapes.cylinder_y((x, 0.28, z), 0.085, 0.56) for x in (-0.24, 0.24) for z in (-0.14, 0.14)]
     head = trimesh.creation.icosphere(subdivisions=3, radius=0.19).apply_translation((0.5, 0.8, 0.0))

@@ -8,7 +8,6 @@ from __future__ import annotations
 
 import numpy as np
 import torch
-import trimesh
 
 from redsim import meshes
 from redsim.scene import Scene, SceneBuilder
@@ -65,7 +64,9 @@ def three_link_chain(
     Effects: rigid, joints, joint_axes, [gravity], external_load. Handle: "tip" (the free end
     of the last bar). Surfaces: "link_0".."link_2".
     """
-    params = toolkit.builder_params(locals())
+    params = toolkit.builder_params(locals())  # first: the arguments alone (before any local name)
+    import trimesh
+
     for key in ("joint_stiffness", "axis_stiffness", "rigid_stiffness", "density"):
         toolkit.check_positive(key, params[key])
     gravity = toolkit.check_bool("gravity", gravity)
@@ -181,7 +182,9 @@ def crank(
     (fitting only): "crank", the pin round the hinge in the x-y plane, turned by latent 0.
     Surface: "bar".
     """
-    params = toolkit.builder_params(locals())
+    params = toolkit.builder_params(locals())  # first: the arguments alone (before any local name)
+    import trimesh
+
     for key in ("joint_stiffness", "axis_stiffness", "rigid_stiffness", "density"):
         toolkit.check_positive(key, params[key])
     gravity = toolkit.check_bool("gravity", gravity)

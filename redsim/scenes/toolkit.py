@@ -10,17 +10,19 @@
 from __future__ import annotations
 
 from collections.abc import Callable, Sequence
-from typing import Any, Literal, NamedTuple
+from typing import TYPE_CHECKING, Any, Literal, NamedTuple
 
 import numpy as np
 import torch
-import trimesh
 from torch import Tensor
 
 from redsim import meshes
 from redsim.effects import DiscreteShellBending, NeoHookean, PointPairPenalty, RigidOrthogonality, StVKMembrane
 from redsim.points import PointSet
 from redsim.scene import SceneBuilder
+
+if TYPE_CHECKING:  # imported where used: import redsim needs none of trimesh (slow to import)
+    import trimesh
 
 GRAVITY = 9.81
 """Gravitational acceleration [m/s^2]; every catalog scene pulls along -y."""
