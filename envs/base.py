@@ -999,6 +999,7 @@ class LatentEnv(gym.Env[np.ndarray, np.ndarray]):
         self._reset_done = False  # until the draw succeeds (a task may refuse an option's value)
         self.sim.reset_rows([0], [self.np_random], chosen)
         self._reset_done = True
+        self._view = None  # framed anew on this episode: a picture never depends on earlier episodes
         if self.render_mode == "human":
             self.render()
         return self.sim.observe()[0], {k: v[0] for k, v in self.sim.reset_info().items()}
@@ -1070,6 +1071,7 @@ class LatentEnv(gym.Env[np.ndarray, np.ndarray]):
         if state.get("rng") is not None:
             self.np_random.bit_generator.state = state["rng"]
         self._reset_done = True
+        self._view = None  # framed anew on the restored state, as after a reset
 
     def configuration(self) -> np.ndarray:
         """The free configuration q [n] of the current state (float of the stepper's dtype)."""

@@ -153,6 +153,25 @@ def test_a_target_outside_the_frame_reframes_the_view() -> None:
     assert _red(venv.render()[2]) > 10
 
 
+def test_the_same_state_draws_the_same_picture_whatever_came_before() -> None:
+    """A single env frames anew at reset and set_state: envs whose earlier episodes differed (another first target,
+    a far chosen one that zoomed the view out) draw one state alike, as a pixel observation must."""
+    pictures = []
+    for first in ({"seed": 0}, {"seed": 5}, {"seed": 0, "options": {"target": [1.0, 0.0, 0.0]}}):
+        env = gym.make("RedSim/Chain-v0", render_mode="rgb_array", width=84, height=84)
+        env.reset(**first)
+        env.render()
+        env.reset(seed=1000)
+        pictures.append(env.render())
+        state = env.unwrapped.get_state()
+        env.reset(seed=7)
+        env.render()
+        env.unwrapped.set_state(state)
+        pictures.append(env.render())
+    for picture in pictures[1:]:
+        np.testing.assert_array_equal(picture, pictures[0])
+
+
 def test_a_camera_key_overrides_only_itself_and_a_long_arrow_stays_in_the_picture() -> None:
     env = gym.make("RedSim/ClothBall-v0", render_mode="rgb_array", camera={"margin": 0.3})
     assert env.unwrapped._camera == {**type(env.unwrapped).camera, "margin": 0.3}
