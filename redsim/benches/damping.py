@@ -40,7 +40,7 @@ from torch import Tensor, nn
 
 from redsim import pretrained, scenes
 from redsim.benches.accuracy import run_full
-from redsim.benches.stability import DT, LOADS, energy_account, runtime_rollout
+from redsim.benches.stability import DT, LOADS, energy_account, mujoco_lifted_chain, runtime_rollout
 from redsim.integrators import LatentSpace, latent_equilibrium
 from redsim.integrators.reference import full_equilibrium, rest_state
 from redsim.scene import Scene
@@ -224,8 +224,6 @@ def mujoco_rows(
         import mujoco
     except ImportError:
         return None
-    from redsim.runtime.bench import mujoco_chain_xml
-
     rows = []
     previous = mujoco.get_mju_user_warning()
     mujoco.set_mju_user_warning(lambda _text: None)  # a blow-up shows as a NaN or a gain in the row
@@ -233,13 +231,7 @@ def mujoco_rows(
         for k in divisions:
             dt = DT / k
             for integrator in integrators:
-                xml = mujoco_chain_xml(integrator=integrator, timestep=dt)
-                xml = xml.replace('-9.81"/>', '-9.81"><flag energy="enable"/></option>', 1)
-                model = mujoco.MjModel.from_xml_string(xml)
-                data = mujoco.MjData(model)
-                mujoco.mj_forward(model, data)
-                rest = float(data.energy.sum())
-                data.qpos[0:4] = [math.cos(angle / 2), math.sin(angle / 2), 0.0, 0.0]
+                model, data, rest = mujoco_lifted_chain(integrator, dt, angle)
                 mujoco.mj_forward(model, data)
                 energies = [float(data.energy.sum())]
                 begin = time.perf_counter()

@@ -711,6 +711,23 @@ def chain_scenarios() -> list[tuple[str, float, float]]:
     return [(f"kick_{v:g}", 0.0, v) for v in CHAIN_KICKS] + [(f"drop_{a:g}", math.radians(a), 0.0) for a in CHAIN_DROPS]
 
 
+def mujoco_lifted_chain(integrator: str, dt: float, angle: float) -> tuple[Any, Any, float]:
+    """MuJoCo's chain of :func:`redsim.runtime.bench.mujoco_chain_xml` with its energy computed, lifted rigidly by
+    ``angle`` [rad] about the hook's x axis, at rest: (model, data, the hanging rest's total energy [J])."""
+    import mujoco
+
+    from redsim.runtime.bench import mujoco_chain_xml
+
+    xml = mujoco_chain_xml(integrator=integrator, timestep=dt)
+    xml = xml.replace('-9.81"/>', '-9.81"><flag energy="enable"/></option>', 1)
+    model = mujoco.MjModel.from_xml_string(xml)
+    data = mujoco.MjData(model)
+    mujoco.mj_forward(model, data)
+    rest = float(data.energy.sum())
+    data.qpos[0:4] = [math.cos(angle / 2), math.sin(angle / 2), 0.0, 0.0]
+    return model, data, rest
+
+
 def mujoco_chain_run(
     integrator: str, angle: float, tip_speed: float, *, steps: int, dt: float = 0.01
 ) -> dict[str, Any]:
@@ -722,15 +739,9 @@ def mujoco_chain_run(
     """
     import mujoco
 
-    from redsim.runtime.bench import MUJOCO_CHAIN_LINKS, mujoco_chain_xml
+    from redsim.runtime.bench import MUJOCO_CHAIN_LINKS
 
-    xml = mujoco_chain_xml(integrator=integrator, timestep=dt)
-    xml = xml.replace('-9.81"/>', '-9.81"><flag energy="enable"/></option>', 1)
-    model = mujoco.MjModel.from_xml_string(xml)
-    data = mujoco.MjData(model)
-    mujoco.mj_forward(model, data)
-    rest = float(data.energy.sum())
-    data.qpos[0:4] = [math.cos(angle / 2), math.sin(angle / 2), 0.0, 0.0]
+    model, data, rest = mujoco_lifted_chain(integrator, dt, angle)
     omega = tip_speed / (0.1 * MUJOCO_CHAIN_LINKS)
     local = np.array([0.0, omega, 0.0])  # about the horizontal y axis (MuJoCo's z is up): the tip moves along x
     rot = np.array([[1.0, 0.0, 0.0], [0.0, math.cos(angle), -math.sin(angle)], [0.0, math.sin(angle), math.cos(angle)]])
