@@ -316,6 +316,15 @@ def bench_damping(
     }
 
 
+def report(result: dict[str, Any]) -> list[str]:
+    """The damping regime's heading and :func:`damping_table`."""
+    head = (
+        f"numerical damping: free energy K + E - E_rest retained after release, {result['seconds']:g} s unforced "
+        "from the equilibrium under the push load, at zero velocity (redsim.benches.damping)"
+    )
+    return [head, *damping_table(result)]
+
+
 def damping_table(result: dict[str, Any]) -> list[str]:
     """The result as markdown lines: one row per scene, space and time step (module doc)."""
     seconds = result["seconds"]
@@ -366,6 +375,7 @@ __all__ = [
     "mujoco_rows",
     "release_load",
     "release_start",
+    "report",
     "retained",
     "scene_rows",
 ]

@@ -953,8 +953,6 @@ def row_totals(rows: Sequence[Mapping[str, Any]]) -> dict[str, int]:
 def report(result: dict[str, Any]) -> list[str]:
     """Human-readable lines of a :mod:`redsim bench stability <redsim.benches.stability>` result."""
     rows = result["rows"]
-    if not rows and result.get("damping") is not None:  # the damping regime alone: its table only
-        return _damping_lines(result["damping"])
     lines = markdown_rows(rows)
     fuzz = [r for r in rows if r["regime"] == "fuzz"]
     if fuzz:
@@ -973,21 +971,7 @@ def report(result: dict[str, Any]) -> list[str]:
     if result.get("chain") is not None:
         lines.append("")
         lines += chain_table(result["chain"])
-    if result.get("damping") is not None:
-        lines.append("")
-        lines += _damping_lines(result["damping"])
     return lines
-
-
-def _damping_lines(damping: dict[str, Any]) -> list[str]:
-    """The damping regime's heading and table (:func:`redsim.benches.damping.damping_table`)."""
-    from redsim.benches.damping import damping_table  # it imports this module
-
-    head = (
-        f"numerical damping: free energy K + E - E_rest retained after release, {damping['seconds']:g} s unforced "
-        "from the equilibrium under the push load, at zero velocity (redsim.benches.damping)"
-    )
-    return [head, *damping_table(damping)]
 
 
 __all__ = [

@@ -571,7 +571,12 @@ def cmd_bench_stability(args: argparse.Namespace) -> int:
         json_out(result)
     else:
         out(_machine_line(machine, "cpu"))
-        for line in stability.report(result):
+        lines = stability.report(result) if rows or damping is None else []  # the damping regime alone: its table
+        if damping is not None:
+            from redsim.benches import damping as damping_bench
+
+            lines += ([""] if lines else []) + damping_bench.report(damping)
+        for line in lines:
             out(line)
     totals = stability.row_totals(rows)
     totals["nan"] += sum(r["nan"] for r in damping["rows"]) if damping else 0  # redsim's released runs, not MuJoCo's
