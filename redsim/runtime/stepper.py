@@ -14,6 +14,7 @@ from __future__ import annotations
 
 import math
 import numbers
+import warnings
 from collections.abc import Callable
 from dataclasses import dataclass
 from typing import NamedTuple
@@ -40,6 +41,9 @@ FD_STEP = {torch.float32: 1e-3, torch.float64: 1e-6}
 """Forward-difference step of the "lagged_fd" Hessian, relative to 1 + max|z| (about sqrt(eps) of each dtype)."""
 DEFAULT_HESSIAN = "lagged_fd"
 """Default Hessian model of the solver (see the README's "Latent runtime" measurements)."""
+RESOLUTION_WARNING = 0.01 * 9.81
+"""[m/s^2] A stepper whose :attr:`LatentStepper.acceleration_resolution` exceeds this (1% of standard gravity)
+warns at construction: forces that small are not felt (README "Latent runtime", "Tolerance")."""
 STARTS = ("extrapolated", "lower")
 """Where a step's solve starts: 2 z_t - z_{t-1}, or whichever of that and z_t has the lower Phi (both are evaluated)."""
 
@@ -431,6 +435,16 @@ class LatentStepper:
         columns = objective._jacobian(z0, index0, self.energy.positions)[:, 0].to(torch.float64)
         self.jacobian_norm = float(torch.linalg.matrix_norm(columns, 2)) or 1.0
         self._eps = float(torch.finfo(dtype).eps)
+        self.acceleration_resolution = self.tol * self.base_force / float(mass_diagonal)
+        """[m/s^2] tol F / |diag M|_2: an acceleration the same at every node that is smaller is not felt (a step
+        ends at its start); one the map projects weakly needs more. Grows as 1 / dt^2 (README "Tolerance")."""
+        if self.acceleration_resolution > RESOLUTION_WARNING:
+            warnings.warn(
+                f"{self.dtype} at dt={self.dt:g} s resolves accelerations only to "
+                f"{self.acceleration_resolution:.3g} m/s^2 (tol {self.tol:g}): smaller forces are not felt, a "
+                "step ends where it starts; use dtype=torch.float64 or a longer dt (README 'Tolerance')",
+                stacklevel=3,
+            )
 
     def _reduce_inertia(self) -> None:
         """Coordinates r with q = r W^T + b: mass W^T M W, |M v| by W^T M^2 W, handles A W r + (A b + p0)."""

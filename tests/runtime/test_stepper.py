@@ -7,6 +7,8 @@ the motion of a step; both start every step from the same state.
 
 from __future__ import annotations
 
+import warnings
+
 import pytest
 import torch
 
@@ -14,7 +16,7 @@ from redsim import pretrained, scenes
 from redsim.cubature import cubature_energy
 from redsim.integrators import FullState, ImplicitEuler, LatentSpace
 from redsim.runtime import Evaluations, LatentStepper, MapEnergy, StepStats
-from redsim.runtime.stepper import _StepObjective
+from redsim.runtime.stepper import RESOLUTION_WARNING, _StepObjective
 
 DT = 0.02
 
@@ -422,3 +424,24 @@ def test_an_effect_that_reads_the_loads_besides_the_load_term_is_refused(mini_ch
         LatentStepper(windy, f, DT)
     with pytest.raises(ValueError, match=r"effect\(s\) \['wind'\] read the loads; a cubature"):
         build_cubature(windy, f, CubatureConfig(samples=8))
+
+
+def test_a_stepper_too_coarse_to_feel_its_forces_warns(mini_chain) -> None:
+    """float32 at dt 1 ms resolves only ~2 m/s^2 on the mini chain: it warns, and a 10 N load is not felt (the step
+    ends at its start with no iteration) where float64 moves; the envs' dt 0.02 s does not warn."""
+    scene, f = mini_chain
+    with pytest.warns(UserWarning, match=r"resolves accelerations only to .* use dtype=torch.float64"):
+        coarse = LatentStepper(scene, f, 0.001, dtype=torch.float32)
+    fine = LatentStepper(scene, f, 0.001, dtype=torch.float64)
+    assert coarse.acceleration_resolution == pytest.approx(1000 * fine.acceleration_resolution, rel=1e-4)
+    for stepper, felt in ((coarse, False), (fine, True)):
+        z = stepper.rest_latent()
+        loads = torch.zeros(1, len(scene.handles), scene.dim, dtype=stepper.dtype)
+        loads[..., 0] = 10.0
+        z_next, stats = stepper.step(z, z.clone(), loads)
+        assert bool(stats.converged[0])
+        assert (int(stats.iterations[0]) > 0) == felt and bool((z_next != z).any()) == felt
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")
+        default = LatentStepper(scene, f, DT)
+    assert default.acceleration_resolution < RESOLUTION_WARNING
