@@ -202,15 +202,18 @@ class SnapThrough(Task):
         return action.unsqueeze(1).cpu().numpy().astype(np.float32)
 
     def overlay(self, sim: LatentSim, row: int) -> tuple[list[Any], list[Any]]:
-        from redsim.raster import Arrow, Marker
+        """A ring on the pushed point, the goal as a ring of the success tolerance [m] (of height: a band, drawn
+        round the goal point) and the force arrow."""
+        from redsim.raster import HANDLE_RGB, TARGET_RGB, Arrow, Marker
 
         x = sim.x[row : row + 1]
         point = self._point.position(x)[0].cpu().numpy()
-        markers = [Marker(point, (40, 40, 40), 4)]
+        markers = [Marker(point, HANDLE_RGB)]
         if "goal_height" in sim.params:
             goal = point.copy()
             goal[self._axis] = self._seed_height + float(sim.params["goal_height"][row])
-            markers.insert(0, Marker(goal, (220, 40, 40), 7))
+            _, radius = self._error(x, {k: v[row : row + 1] for k, v in sim.params.items()})
+            markers.insert(0, Marker(goal, TARGET_RGB, float(radius[0])))
         force = sim.loads[row, self._index].cpu().numpy()
         return markers, [Arrow(point, force, 0.25 * sim.scene.extent() / self.max_force)]
 

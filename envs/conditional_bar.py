@@ -10,6 +10,9 @@ from redsim.envs.base import LatentSim
 from redsim.envs.reach import HandleReach, ReachEnv
 from redsim.envs.vector import vector_entry
 
+SUPPORT_RGB = (150, 150, 150)
+"""Colour of the disc that marks the bar's support."""
+
 
 class SupportedReach(HandleReach):
     """:class:`HandleReach` whose pictures also mark the bar's support (grey) at the episode's location c[1]."""
@@ -21,7 +24,7 @@ class SupportedReach(HandleReach):
         names = list(sim.scene.condition_space.names) if sim.scene.condition_space is not None else []
         if sim.cond is not None and "pin_location" in names:
             location = float(sim.cond[row, names.index("pin_location")])
-            markers.append(Marker(np.array([location, 0.0]), (150, 150, 150), 5))
+            markers.append(Marker(np.array([location, 0.0]), SUPPORT_RGB, filled=True))
         return markers, arrows
 
 

@@ -38,6 +38,8 @@ if TYPE_CHECKING:
     from redsim.envs.base import LatentSim
 
 
+PIN_RGB = (220, 40, 40)
+"""Colour of the ring on the crank pin (where the force acts; the pivot's ring is :data:`redsim.raster.HANDLE_RGB`)."""
 MAX_HOLD_STEPS = 10_000
 """Longest success window [env steps] (200 s at the default dt; each copy stores one speed per step of it)."""
 
@@ -230,14 +232,14 @@ class CrankSpeed(Task):
         return action.unsqueeze(1).cpu().numpy().astype(np.float32)
 
     def overlay(self, sim: LatentSim, row: int) -> tuple[list[Any], list[Any]]:
-        from redsim.raster import Arrow, Marker
+        from redsim.raster import HANDLE_RGB, Arrow, Marker
 
         x = sim.x[row : row + 1]
         pin = self._pin.position(x)[0].cpu().numpy()
         pivot = np.array([*self.pivot, float(pin[2])])
         force = sim.loads[row, self._index].cpu().numpy()
         scale = 0.25 * sim.scene.extent() / self.max_force
-        return [Marker(pivot, (40, 40, 40), 4), Marker(pin, (220, 40, 40), 5)], [Arrow(pin, force, scale)]
+        return [Marker(pivot, HANDLE_RGB), Marker(pin, PIN_RGB)], [Arrow(pin, force, scale)]
 
 
 class KlannEnv(LatentEnv):

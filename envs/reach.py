@@ -309,7 +309,9 @@ class HandleReach(Task):
         return action.clamp(-1.0, 1.0).cpu().numpy().astype(np.float32)
 
     def overlay(self, sim: LatentSim, row: int) -> tuple[list[Any], list[Any]]:
-        from redsim.raster import Arrow, Marker
+        """The target as a ring of the success radius [m] (a sphere's outline; with fewer goal axes than the scene
+        has, the success region is a cylinder or slab through it), a ring on the goal handle, the force arrow."""
+        from redsim.raster import HANDLE_RGB, TARGET_RGB, Arrow, Marker
 
         x = sim.x[row : row + 1]
         goal = self._goal.position(x)[0].clone()
@@ -320,7 +322,7 @@ class HandleReach(Task):
         force = sim.loads[row, self._actuated_index]
         scale = 0.25 * sim.scene.extent() / self.max_force
         return (
-            [Marker(target.cpu().numpy(), (220, 40, 40), 7), Marker(goal.cpu().numpy(), (40, 40, 40), 4)],
+            [Marker(target.cpu().numpy(), TARGET_RGB, self.success_radius), Marker(goal.cpu().numpy(), HANDLE_RGB)],
             [Arrow(pushed.cpu().numpy(), force.cpu().numpy(), scale)],
         )
 

@@ -35,6 +35,9 @@ ROTATION_TOL = 1e-2
 """How far from orthonormal (max |R^T R - I|) a ``target_rotation`` option may be: a drawn target is the plate's
 affine block in f(z*), orthonormal to 2.6e-3 (target_spread 0.5) or 4.2e-3 (1) over 12 seeds; one replays."""
 
+SUCCESS_FRACTION = 0.2
+"""Success radii as fractions of the scales: d < 0.2 L_p and theta < 0.2 L_a (module doc)."""
+
 MINIMIZER = "lbfgs"
 """Minimizer of the target's static solve (a descent method; Newton gave the same targets on 4 seeds)."""
 
@@ -194,7 +197,7 @@ class PlatePose(Task):
         return torch.cat([p, params["target_position"] - p, turn], dim=1)
 
     def _success(self, distance: Tensor, angle: Tensor) -> Tensor:
-        return (distance < 0.2 * self.position_scale) & (angle < 0.2 * self.angle_scale)
+        return (distance < SUCCESS_FRACTION * self.position_scale) & (angle < SUCCESS_FRACTION * self.angle_scale)
 
     def reward(self, x: Tensor, action: Tensor, params: Mapping[str, Tensor]) -> tuple[Tensor, dict[str, Tensor]]:
         distance, angle = self.errors(x, params)
@@ -219,13 +222,16 @@ class PlatePose(Task):
         return sim.params["held_action"].cpu().numpy().astype(np.float32)
 
     def overlay(self, sim: LatentSim, row: int) -> tuple[list[Any], list[Any]]:
-        from redsim.raster import Arrow, Marker
+        """A ring on the plate's centre, the target position as a ring of the position success radius [m] and an
+        arrow per actuated handle."""
+        from redsim.raster import HANDLE_RGB, TARGET_RGB, Arrow, Marker
 
         x = sim.x[row : row + 1]
         p, _ = self.pose(x)
-        markers = [Marker(p[0].cpu().numpy(), (40, 40, 40), 4)]
+        markers = [Marker(p[0].cpu().numpy(), HANDLE_RGB)]
         if "target_position" in sim.params:
-            markers.insert(0, Marker(sim.params["target_position"][row].cpu().numpy(), (220, 40, 40), 7))
+            target = sim.params["target_position"][row].cpu().numpy()
+            markers.insert(0, Marker(target, TARGET_RGB, SUCCESS_FRACTION * self.position_scale))
         scale = 0.25 * sim.scene.extent() / self.max_force
         arrows = [
             Arrow(sim.scene.handles[int(i)].position(x)[0].cpu().numpy(), sim.loads[row, int(i)].cpu().numpy(), scale)

@@ -8,7 +8,12 @@ two-sided. `redsim bench envs` prints each env's frames per second at 480x480. 3
 convention: the camera turns about the y axis (``azimuth``) and then tilts down (``elevation``).
 
     >>> view = SceneView(scene, q_rest, width=480, height=480)
-    >>> image = view.draw(q, markers=[Marker(target, (220, 40, 40))], arrows=[Arrow(p, force)])  # [480, 480, 3]
+    >>> image = view.draw(q, markers=[Marker(target, radius=0.05)], arrows=[Arrow(p, force, 0.01)])  # [480, 480, 3]
+
+Overlays scale with the picture: a marker with a scene radius [m] (a task's success radius) is drawn at that
+radius, one without at :data:`MARKER_FRACTION` of the picture, never under :data:`MIN_MARKER_PX`; strokes and arrow
+heads grow with the picture's size (:meth:`SceneView.stroke_px`). Markers are rings by default, so the body they
+mark stays visible inside them.
 """
 
 from __future__ import annotations
@@ -29,21 +34,38 @@ SURFACE_COLOURS = ((86, 126, 196), (214, 138, 64), (120, 170, 110), (170, 110, 1
 """Surface colours, cycled in ``scene.surfaces`` order."""
 LIGHT = np.array([0.35, 0.8, 0.5]) / np.linalg.norm([0.35, 0.8, 0.5])
 """Light direction in camera space (two-sided Lambert)."""
+TARGET_RGB = (220, 40, 40)
+"""Colour of a task's target (its success disc)."""
+HANDLE_RGB = (40, 40, 40)
+"""Colour of the marker on the handle a task moves to its target (and of every marker's edge)."""
+MIN_MARKER_PX = 2.0
+"""Smallest marker radius [px]: a success radius under it (tiny at 84 px) is drawn this large."""
+MARKER_FRACTION = 1.0 / 60.0
+"""Radius of a marker without a scene radius, as a fraction of the picture's smaller side (8 px at 480 px)."""
+ARROW_HEAD_FRACTION = 1.0 / 48.0
+"""Length of an arrow's head, as a fraction of the picture's smaller side (at least 3 px, at most half the arrow;
+10 px at 480 px)."""
+STROKE_FRACTION = 1.0 / 160.0
+"""Width of arrow shafts and marker rings, as a fraction of the picture's smaller side (at least 1 px; 3 px at
+480 px)."""
 
 
 @dataclass(frozen=True)
 class Marker:
-    """A filled disc at a scene point.
+    """A ring (or a filled disc) around a scene point, edged in :data:`HANDLE_RGB`.
 
     Attributes:
         position: Point [m], shape [D].
         colour: RGB.
-        radius: Radius in pixels.
+        radius: Radius [m] in scene units (e.g. a task's success radius), drawn at the view's pixels per metre;
+            None: :data:`MARKER_FRACTION` of the picture's smaller side. Never drawn under :data:`MIN_MARKER_PX`.
+        filled: A filled disc instead of a ring (a ring leaves the body it marks visible).
     """
 
     position: np.ndarray
-    colour: tuple[int, int, int] = (220, 40, 40)
-    radius: int = 6
+    colour: tuple[int, int, int] = TARGET_RGB
+    radius: float | None = None
+    filled: bool = False
 
 
 @dataclass(frozen=True)
@@ -158,6 +180,23 @@ class SceneView:
         x = self.scene.full_positions(q.reshape(1, -1).to(device=self.scene.device, dtype=self.scene.dtype))
         return [s.points.positions(x)[0].cpu().to(torch.float64).numpy() for s in self.scene.surfaces]
 
+    @property
+    def pixels_per_metre(self) -> float:
+        """The camera's scale [px/m] (orthographic: the same everywhere in the picture)."""
+        return self._pixels_per_metre
+
+    def stroke_px(self) -> int:
+        """Width [px] of arrow shafts and marker rings: :data:`STROKE_FRACTION` of the smaller side, at least 1."""
+        return max(1, round(STROKE_FRACTION * min(self.width, self.height)))
+
+    def marker_radius_px(self, marker: Marker) -> float:
+        """The radius [px] ``marker`` is drawn at (its scene radius, or the frame-relative default; >= 2 px)."""
+        if marker.radius is None:
+            radius = MARKER_FRACTION * min(self.width, self.height)
+        else:
+            radius = float(marker.radius) * self._pixels_per_metre
+        return max(MIN_MARKER_PX, radius)
+
     def contains(self, points: np.ndarray) -> bool:
         """Whether every point [P, D] [m] projects inside the picture."""
         pix = self.project(points)
@@ -213,10 +252,24 @@ class SceneView:
         for arrow in arrows:
             self._arrow(pen, arrow)
         for marker in markers:
-            x, y, _ = self.project(np.asarray(marker.position))[0]
-            r = marker.radius
-            pen.ellipse((x - r, y - r, x + r, y + r), fill=marker.colour, outline=(40, 40, 40))
+            self._marker(pen, marker)
         return np.asarray(image, dtype=np.uint8).copy()
+
+    def _marker(self, pen: object, marker: Marker) -> None:
+        """A disc, or a ring of :meth:`marker_radius_px` around the marker: a band of :meth:`stroke_px` between
+        1 px edges in :data:`HANDLE_RGB` where that leaves a hole of 2 px radius, else one band of the colour."""
+        x, y, _ = self.project(np.asarray(marker.position))[0]
+        r = self.marker_radius_px(marker)
+        if marker.filled:
+            pen.ellipse((x - r, y - r, x + r, y + r), fill=marker.colour, outline=HANDLE_RGB)  # type: ignore[attr-defined]
+            return
+        band = self.stroke_px()
+        if r < band + 4:  # too small for edges: they would fill the hole
+            pen.ellipse((x - r, y - r, x + r, y + r), outline=marker.colour, width=band + 1)  # type: ignore[attr-defined]
+            return
+        pen.ellipse((x - r, y - r, x + r, y + r), outline=HANDLE_RGB, width=band + 2)  # type: ignore[attr-defined]
+        inner = r - 1
+        pen.ellipse((x - inner, y - inner, x + inner, y + inner), outline=marker.colour, width=band)  # type: ignore[attr-defined]
 
     def _arrow(self, pen: object, arrow: Arrow) -> None:
         start = np.asarray(arrow.origin, dtype=np.float64)
@@ -226,9 +279,10 @@ class SceneView:
         length = math.hypot(x1 - x0, y1 - y0)
         if length < 1.0:
             return
-        pen.line((x0, y0, x1, y1), fill=arrow.colour, width=3)  # type: ignore[attr-defined]
+        stroke = self.stroke_px()
+        pen.line((x0, y0, x1, y1), fill=arrow.colour, width=stroke)  # type: ignore[attr-defined]
         ux, uy = (x1 - x0) / length, (y1 - y0) / length
-        head = min(10.0, 0.5 * length)
+        head = min(max(3.0, ARROW_HEAD_FRACTION * min(self.width, self.height)), 0.5 * length)
         left = (x1 - head * (ux - 0.5 * uy), y1 - head * (uy + 0.5 * ux))
         right = (x1 - head * (ux + 0.5 * uy), y1 - head * (uy - 0.5 * ux))
         pen.polygon([(x1, y1), left, right], fill=arrow.colour)  # type: ignore[attr-defined]
@@ -251,4 +305,4 @@ class SceneView:
         return float(x), float(y)
 
 
-__all__ = ["Arrow", "Marker", "SceneView"]
+__all__ = ["HANDLE_RGB", "TARGET_RGB", "Arrow", "Marker", "SceneView"]

@@ -9,7 +9,7 @@ import numpy as np
 import pytest
 
 from redsim import scenes
-from redsim.raster import SceneView
+from redsim.raster import Arrow, Marker, SceneView
 
 
 def _filled(view: SceneView, q, monkeypatch: pytest.MonkeyPatch) -> tuple[np.ndarray, int]:
@@ -76,3 +76,20 @@ def test_drawing_leaves_the_garbage_collector_as_it_found_it(enabled: bool) -> N
         assert gc.isenabled() == enabled
     finally:
         gc.enable() if was else gc.disable()
+
+
+def test_arrows_and_markers_keep_their_share_of_the_picture_at_any_size() -> None:
+    """An arrow of a given length [m] and a marker without a scene radius cover the same fraction of a 160 px and a
+    480 px picture (within a factor 2: pixel rounding; smaller pictures reach the 1 px stroke and 2 px marker
+    minimums), instead of fixed pixel widths that swamp a small picture."""
+    scene = scenes.build("mini_chain")
+    shares = []
+    for size in (160, 480):
+        view = SceneView(scene, scene.q_seed, width=size, height=size)
+        view_blank = view.draw(scene.q_seed)
+        arrow = Arrow(np.zeros(3), np.array([0.1, 0.0, 0.0]), 1.0)
+        arrow_px = (view.draw(scene.q_seed, arrows=[arrow]) != view_blank).any(-1).sum()
+        marker_px = (view.draw(scene.q_seed, markers=[Marker(np.zeros(3), filled=True)]) != view_blank).any(-1).sum()
+        shares.append(np.array([arrow_px, marker_px]) / size**2)
+    ratio = shares[0] / shares[1]
+    assert ((0.5 < ratio) & (ratio < 2.0)).all(), ratio

@@ -8,6 +8,7 @@ import pytest
 import trimesh
 
 import redsim
+from redsim import raster
 from redsim.envs import base
 from redsim.envs.vector import LatentVectorEnv
 
@@ -192,3 +193,44 @@ def test_the_conditional_bar_marks_its_support_where_the_condition_puts_it() -> 
     frame = env.render()
     x, y, _ = env.unwrapped._view.project(np.array([0.4, 0.0]))[0]
     assert tuple(frame[round(float(y)), round(float(x))]) == (150, 150, 150)
+
+
+def _overlay_drawn(env: gym.Env, keep: slice) -> tuple[np.ndarray, list]:
+    """Copy 0's picture (after a render framed it) with only ``markers[keep]`` of its overlay drawn, and the markers."""
+    sim = env.unwrapped.sim
+    markers, arrows = sim.task.overlay(sim, 0)
+    picture = env.unwrapped._view.draw(sim.positions(sim.z[:1])[0], markers=markers[keep], arrows=arrows)
+    return picture, markers
+
+
+@pytest.mark.parametrize("env_id", ["RedSim/MiniChain-v0", "RedSim/ClothBall-v0"])
+@pytest.mark.parametrize("size", [84, 480])
+def test_the_success_disc_is_drawn_at_the_success_radius(env_id: str, size: int) -> None:
+    """The target's ring spans the success radius [m] at the view's scale (within 1 px; at least 2 px at 84 px,
+    where the radius is under 2 px), at 84 and at 480 px alike."""
+    env = gym.make(env_id, render_mode="rgb_array", width=size, height=size)
+    env.reset(seed=0)
+    framed = env.render()
+    unmarked, _ = _overlay_drawn(env, slice(1, None))  # markers[0] is the target
+    ys, xs = np.nonzero((framed != unmarked).any(-1))
+    drawn = 0.5 * np.array([xs.max() - xs.min() + 1, ys.max() - ys.min() + 1])  # half the ring's extent [px]
+    view = env.unwrapped._view
+    expected = max(raster.MIN_MARKER_PX, env.unwrapped.sim.task.success_radius * view.pixels_per_metre)
+    np.testing.assert_allclose(drawn, expected, atol=1.0)
+
+
+@pytest.mark.parametrize("env_id", ["RedSim/ClothBall-v0", "RedSim/HangingCloth-v0"])
+@pytest.mark.parametrize("size", [84, 480])
+def test_the_goal_marker_leaves_the_body_it_marks_visible(env_id: str, size: int) -> None:
+    """The ring on the goal handle (the ball, the sheet's corner) keeps some of that body's pixels inside it."""
+    env = gym.make(env_id, render_mode="rgb_array", width=size, height=size)
+    env.reset(seed=0)
+    env.render()
+    (bare, markers), (marked, _) = _overlay_drawn(env, slice(0, 0)), _overlay_drawn(env, slice(1, 2))
+    view = env.unwrapped._view
+    x, y, _ = view.project(markers[1].position)[0]
+    rows, cols = np.mgrid[:size, :size]
+    inside = np.hypot(cols - x, rows - y) < view.marker_radius_px(markers[1]) - 0.5
+    body = inside & (bare != raster.BACKGROUND).any(-1)
+    assert body.sum() >= 1
+    assert (marked[body] == bare[body]).all(-1).any()  # not every body pixel under the marker is painted over
