@@ -34,8 +34,10 @@ SURFACE_COLOURS = ((86, 126, 196), (214, 138, 64), (120, 170, 110), (170, 110, 1
 """Surface colours, cycled in ``scene.surfaces`` order."""
 LIGHT = np.array([0.35, 0.8, 0.5]) / np.linalg.norm([0.35, 0.8, 0.5])
 """Light direction in camera space (two-sided Lambert)."""
-TARGET_RGB = (220, 40, 40)
-"""Colour of a task's target (its success disc)."""
+TARGET_RGB = (255, 190, 190)
+"""Colour of a task's target (its success disc): a light red whose grey level (Gymnasium's GrayscaleObservation
+weights 0.2125 R + 0.7154 G + 0.0721 B: 204) lies 46 under the background's (250) and 81 over the brightest the cloth's
+blue is shaded (123); a saturated red (220, 40, 40: 78) matched the shaded cloth in greyscale."""
 HANDLE_RGB = (40, 40, 40)
 """Colour of the marker on the handle a task moves to its target (and of every marker's edge)."""
 MIN_MARKER_PX = 2.0

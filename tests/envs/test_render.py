@@ -125,8 +125,8 @@ def test_render_settings_are_checked_when_the_env_is_made(kwargs: dict, expected
 
 
 def _red(frame: np.ndarray) -> int:
-    """Pixels of the target marker's red."""
-    return int(((frame[..., 0] > 200) & (frame[..., 1] < 80) & (frame[..., 2] < 80)).sum())
+    """Pixels of the target marker's colour."""
+    return int((frame == raster.TARGET_RGB).all(-1).sum())
 
 
 def test_a_conditional_vector_env_draws_every_copy() -> None:
@@ -234,3 +234,27 @@ def test_the_goal_marker_leaves_the_body_it_marks_visible(env_id: str, size: int
     body = inside & (bare != raster.BACKGROUND).any(-1)
     assert body.sum() >= 1
     assert (marked[body] == bare[body]).all(-1).any()  # not every body pixel under the marker is painted over
+
+
+@pytest.mark.parametrize("env_id", ["RedSim/ClothBall-v0", "RedSim/HangingCloth-v0"])
+def test_the_target_stands_out_from_the_cloth_and_the_background_in_greyscale(env_id: str) -> None:
+    """Through Gymnasium's GrayscaleObservation (its luminance weights), the target's grey differs by >= 40 levels from
+    the background's and from the cloth colour's at every shade the rasterizer gives it; in an 84 px frame hardly a
+    cloth pixel comes that close."""
+    from gymnasium.wrappers import AddRenderObservation, GrayscaleObservation
+
+    env = gym.make(env_id, render_mode="rgb_array", width=84, height=84)
+    grey = GrayscaleObservation(AddRenderObservation(env, render_only=True)).observation  # uint8 [H, W] of RGB
+    env.reset(seed=0)
+    frame = env.render()
+    level = grey(frame).astype(int)
+    target = level[(frame == raster.TARGET_RGB).all(-1)]
+    assert target.size
+    target = int(np.median(target))
+    assert grey(np.array([[raster.BACKGROUND]], np.uint8))[0, 0] - target >= 40
+    shades = np.outer(np.linspace(0.35, 1.0, 14), raster.SURFACE_COLOURS[0])  # raster.SceneView.draw's shading
+    cloth_levels = grey(shades.astype(np.uint8)[None])[0].astype(int)
+    assert np.abs(cloth_levels - target).min() >= 40
+    bare, _ = _overlay_drawn(env, slice(0, 0))
+    cloth = level[(bare != raster.BACKGROUND).any(-1) & (frame == bare).all(-1)]
+    assert (np.abs(cloth - target) < 40).mean() < 0.01
