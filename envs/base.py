@@ -661,12 +661,14 @@ class LatentSim:
 
     def get_state(self) -> dict[str, Any]:
         """Copies of the dynamic state: z, z_prev [B, d], cond [B, m] or None, task params {k: [B, ...]},
-        the solver's warm start ``model`` [B, d, d] (so a restored state steps bitwise alike) and the
+        the solver's warm start ``model`` [B, d, d] (so a restored state steps bitwise alike), the loads of the last
+        step ``loads`` [B, H, D] [N] (what the force arrows draw and a task's controller reads) and the
         :meth:`setting` it belongs to."""
         return {
             "z": self.z.cpu().numpy().copy(),
             "z_prev": self.z_prev.cpu().numpy().copy(),
             "model": self.model.cpu().numpy().copy(),
+            "loads": self.loads.cpu().numpy().copy(),
             "cond": None if self.cond is None else self.cond.cpu().numpy().copy(),
             "params": {k: v.cpu().numpy().copy() for k, v in self.params.items()},
             "setting": self.setting(),
@@ -675,7 +677,8 @@ class LatentSim:
     def set_state(self, state: Mapping[str, Any]) -> None:
         """Restore a state from :meth:`get_state` (shapes are checked; without ``model`` the next step
         builds its solver model afresh: the same solve to the tolerance, from which float32 trajectories then drift
-        apart as they do between batch sizes).
+        apart as they do between batch sizes; without ``loads`` (a state saved before states held them) the last
+        loads are zero, as after a reset: no force arrow is drawn until the next step).
 
         The state is checked as ``reset(options=...)`` checks its options (a task parameter named in
         :attr:`Task.reset_options`, e.g. a target beyond the observation bound, is refused by
@@ -723,6 +726,10 @@ class LatentSim:
             if tuple(model.shape) != (B, d, d):
                 raise ValueError(f"state['model'] must have shape {[B, d, d]}, got {list(model.shape)}")
             model = model.clone()
+        H, D = self.loads.shape[1:]
+        loads = torch.zeros_like(self.loads)
+        if state.get("loads") is not None:
+            loads = tensor(state["loads"], (B, H, D), "loads")
         params = state["params"]
         if self.params and set(params) != set(self.params):
             raise ValueError(f"state['params'] must have keys {sorted(self.params)}, got {sorted(params)}")
@@ -736,7 +743,7 @@ class LatentSim:
             for k, v in params.items()
         }
         self.check_state_params(params)
-        self.z, self.z_prev, self.model, self.params = z, z_prev, model, params
+        self.z, self.z_prev, self.model, self.params, self.loads = z, z_prev, model, params, loads
         if cond is not None:
             self.cond = cond
         self.x_prev = self.full_positions(self.z_prev)
@@ -1060,8 +1067,8 @@ class LatentEnv(gym.Env[np.ndarray, np.ndarray]):
     # -- state and export -----------------------------------------------------------------
     def get_state(self) -> dict[str, Any]:
         """The dynamic state (numpy copies): z, z_prev [d], cond [m] or None, task params, the solver's warm start,
-        the setting it belongs to, and ``rng``, the state of the env's generator (``np_random``: what the next
-        unseeded reset draws)."""
+        the last step's loads [H, D] [N] (a restored env draws the same force arrow), the setting it belongs to, and
+        ``rng``, the state of the env's generator (``np_random``: what the next unseeded reset draws)."""
         return {**state_row(self.sim.get_state()), "rng": self.np_random.bit_generator.state}
 
     def set_state(self, state: Mapping[str, Any]) -> None:
@@ -1275,6 +1282,7 @@ def state_row(state: Mapping[str, Any], i: int = 0) -> dict[str, Any]:
         "z": state["z"][i],
         "z_prev": state["z_prev"][i],
         "model": state["model"][i],
+        "loads": None if state.get("loads") is None else state["loads"][i],
         "cond": None if state["cond"] is None else state["cond"][i],
         "params": {k: v[i] for k, v in state["params"].items()},
         "setting": state.get("setting"),
@@ -1292,6 +1300,7 @@ def _batch(state: Mapping[str, Any]) -> dict[str, Any]:
         "z": row(state["z"]),
         "z_prev": row(state["z_prev"]),
         "model": row(state.get("model")),
+        "loads": row(state.get("loads")),
         "cond": row(state["cond"]),
         "params": {k: row(v) for k, v in dict(state["params"]).items()},
         "setting": state.get("setting"),

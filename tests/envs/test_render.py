@@ -258,3 +258,28 @@ def test_the_target_stands_out_from_the_cloth_and_the_background_in_greyscale(en
     bare, _ = _overlay_drawn(env, slice(0, 0))
     cloth = level[(bare != raster.BACKGROUND).any(-1) & (frame == bare).all(-1)]
     assert (np.abs(cloth - target) < 40).mean() < 0.01
+
+
+def test_a_restored_state_draws_the_force_arrow_of_its_last_step() -> None:
+    """get_state holds the last step's loads: after set_state (in the env itself, after other steps, or in another
+    env) the frame is the one drawn when the state was saved, force arrow included; a state without loads (saved
+    before states held them) still restores, with no arrow until the next step."""
+    actions = np.random.default_rng(1).uniform(-1, 1, (8, 3)).astype(np.float32)
+    env, other = (gym.make("RedSim/MiniChain-v0", render_mode="rgb_array", width=84, height=84) for _ in range(2))
+    env.reset(seed=3)
+    for action in actions[:4]:
+        env.step(action)
+    saved, state = env.render(), env.unwrapped.get_state()
+    for action in actions[4:]:
+        env.step(action)
+    env.unwrapped.set_state(state)
+    other.reset(seed=9)
+    other.unwrapped.set_state(state)
+    np.testing.assert_array_equal(env.render(), saved)
+    np.testing.assert_array_equal(other.render(), saved)
+    arrow = (saved == raster.Arrow.colour).all(-1)
+    assert arrow.any()
+    other.unwrapped.set_state({k: v for k, v in state.items() if k != "loads"})
+    unloaded = other.render()
+    assert not (unloaded == raster.Arrow.colour).all(-1).any()
+    assert (unloaded != saved).any(-1).sum() <= arrow.sum()  # only the arrow's pixels changed
