@@ -12,6 +12,7 @@ import shlex
 import shutil
 from pathlib import Path
 
+import numpy as np
 import pytest
 
 from redsim import pretrained
@@ -28,6 +29,8 @@ FENCE = re.compile(r"^( *)```(\w*)\n(.*?)^ *```", re.S | re.M)
 """A fenced block, also one indented in a list item (its body is dedented by the fence's indent)."""
 CHEAP = ("scenes", "inspect", "sample", "animate")
 """Commands that run in seconds (`inspect`/`sample`/`animate` on the shipped mini chain map)."""
+PIXELS = "CnnPolicy"
+"""What marks README's "Learning from pixels" block, which its own test runs (and checks what it built)."""
 
 
 def name(path: Path) -> str:
@@ -57,7 +60,8 @@ def python_blocks() -> list:
     return [
         pytest.param(path, index, id=f"{name(path)} python block {index}")
         for path in FILES
-        for index in range(len(blocks("python", path)))
+        for index, code in enumerate(blocks("python", path))
+        if not (path == README and PIXELS in code)  # run by test_the_pixels_recipe_trains_a_cnn_policy_on_frame_stacks
     ]
 
 
@@ -92,6 +96,27 @@ def test_python_block_runs_on_its_own(path: Path, index: int, tmp_path: Path, mo
     monkeypatch.chdir(tmp_path)
     code = blocks("python", path)[index]
     exec(compile(code, f"{name(path)} python block {index}", "exec"), {"__name__": "__main__"})  # as a script runs it
+
+
+def test_the_pixels_recipe_trains_a_cnn_policy_on_frame_stacks(tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> None:
+    """README's "Learning from pixels" block runs as written, what it trains is SB3's CNN policy over stacks of 4
+    grey 84 px frames (uint8 [4, 84, 84]) for the steps it asks, and Gymnasium's and SB3's check_env pass on the
+    wrapped env (as the README says)."""
+    from gymnasium.utils.env_checker import check_env
+    from stable_baselines3.common.env_checker import check_env as sb3_check_env
+    from stable_baselines3.common.policies import ActorCriticCnnPolicy
+
+    (code,) = [block for block in blocks("python") if PIXELS in block]
+    monkeypatch.chdir(tmp_path)
+    namespace = {"__name__": "__main__"}
+    exec(compile(code, "README.md pixels block", "exec"), namespace)
+    model, obs = namespace["model"], namespace["obs"]
+    assert isinstance(model.policy, ActorCriticCnnPolicy)
+    assert model.observation_space.shape == obs.shape == (4, 84, 84) and obs.dtype == np.uint8
+    assert model.num_timesteps >= 256
+    assert len(np.unique(obs)) > 2  # a picture, not a blank frame
+    check_env(namespace["env"], skip_render_check=True)
+    sb3_check_env(namespace["env"], warn=False)
 
 
 @pytest.mark.parametrize("argv", command_params())
