@@ -49,12 +49,32 @@ SCENES = ("mini_chain", "chain", "bistable_bar", "conditional_bar")
 """Scenes measured by default (any of :data:`LOADS` with a shipped map can be asked for)."""
 DIVISIONS = (1, 4, 16)
 """Time steps dt / k measured by default (dt = :data:`DT`)."""
+SECONDS = 1.0
+"""Simulated time [s] of each released run by default."""
 CHECKPOINTS = (0.5, 1.0)
 """Simulated times [s] the retained fraction is reported at (beside the run's end)."""
 RUNTIME_DTYPES = {"latent f32": torch.float32, "latent f64": torch.float64}
 """The latent runtime's rows: label and dtype."""
 MUJOCO_INTEGRATORS = ("RK4", "implicit")
 """MuJoCo's integrators measured beside the chain."""
+
+
+def check_seconds(seconds: float, divisions: Sequence[int], what: str = "seconds") -> None:
+    """Refuse a run length ``seconds`` [s] that is not a whole multiple (>= 1) of every time step dt / k, k in
+    ``divisions`` (float round-off aside): its step count and time columns would be rounded.
+
+    Raises:
+        ValueError: naming ``what``, the time steps and the step they all divide (dt / gcd(divisions)).
+    """
+    dts = [DT / k for k in sorted(set(divisions))]
+    steps = [seconds / dt for dt in dts]
+    if all(round(n) >= 1 and math.isclose(n, round(n), rel_tol=1e-9) for n in steps):
+        return
+    unit = DT / math.gcd(*(int(k) for k in divisions))
+    raise ValueError(
+        f"{what} must be a whole multiple of {unit:g} s (each time step {', '.join(f'{dt:g}' for dt in dts)} s "
+        f"divides it), got {seconds!r}"
+    )
 
 
 def release_load(scene: Scene) -> Tensor:
@@ -143,7 +163,12 @@ def scene_rows(
     progress: Callable[[str], None] | None = None,
 ) -> list[dict[str, Any]]:
     """The rows of one scene: the runtime (:data:`RUNTIME_DTYPES`) at dt / k for k in ``divisions``, the full
-    space at dt / k for k in ``full_divisions``, each released from ``start`` (default :func:`release_start`)."""
+    space at dt / k for k in ``full_divisions``, each released from ``start`` (default :func:`release_start`).
+
+    Raises:
+        ValueError: ``seconds`` not a whole multiple of every time step (:func:`check_seconds`).
+    """
+    check_seconds(seconds, [*divisions, *full_divisions])
     start = release_start(scene, f) if start is None else start
     s64 = scene.to(dtype=torch.float64)
     tol = scenes.full_space_tol(scene.name)
@@ -219,7 +244,11 @@ def mujoco_rows(
     """MuJoCo's 24-capsule chain lifted by ``angle`` [rad] at rest, released (module doc); None without mujoco.
 
     Its free energy is MuJoCo's total energy (``data.energy``, evaluated after each step) above the hanging rest.
+
+    Raises:
+        ValueError: ``seconds`` not a whole multiple of every time step (:func:`check_seconds`).
     """
+    check_seconds(seconds, divisions)
     try:
         import mujoco
     except ImportError:
@@ -265,7 +294,7 @@ def mujoco_rows(
 def bench_damping(
     names: Sequence[str] = SCENES,
     *,
-    seconds: float = 1.0,
+    seconds: float = SECONDS,
     divisions: Sequence[int] = DIVISIONS,
     full_divisions: Sequence[int] = DIVISIONS,
     progress: Callable[[str], None] | None = None,
@@ -273,7 +302,8 @@ def bench_damping(
     """Every scene's rows (:func:`scene_rows`), and MuJoCo's chain (:func:`mujoco_rows`) when ``chain`` is one.
 
     Raises:
-        ValueError: a scene without a :data:`LOADS` plan or a shipped map, ``seconds`` not > 0 or a division < 1.
+        ValueError: a scene without a :data:`LOADS` plan or a shipped map, ``seconds`` not > 0 or not a whole
+            multiple of every time step (:func:`check_seconds`), or a division < 1.
     """
     unknown = [n for n in names if n not in LOADS or n not in pretrained.names()]
     if unknown:
@@ -283,6 +313,7 @@ def bench_damping(
         raise ValueError(f"seconds must be finite and > 0, got {seconds!r}")
     if any(int(k) != k or k < 1 for k in (*divisions, *full_divisions)):
         raise ValueError(f"divisions must be integers >= 1, got {list(divisions)} and {list(full_divisions)}")
+    check_seconds(seconds, [*divisions, *full_divisions])
     rows: list[dict[str, Any]] = []
     mujoco: list[dict[str, Any]] | None = None
     starts = {}
@@ -368,8 +399,10 @@ __all__ = [
     "MUJOCO_INTEGRATORS",
     "RUNTIME_DTYPES",
     "SCENES",
+    "SECONDS",
     "Start",
     "bench_damping",
+    "check_seconds",
     "damping_table",
     "lift_angle",
     "mujoco_rows",

@@ -523,7 +523,7 @@ def cmd_bench_stability(args: argparse.Namespace) -> int:
             raise CliError(f"--{flag.replace('_', '-')} must be >= 1, got {getattr(args, flag)}")
     if args.copies is not None and args.copies < 1:
         raise CliError(f"--copies must be >= 1, got {args.copies}")
-    damping_options = _damping_options(args) if "damping" in regimes else None
+    damping_options = _damping_options(args, regimes)
     progress = None if args.json else note
     machine = machine_info()
     rows = []
@@ -586,23 +586,38 @@ def cmd_bench_stability(args: argparse.Namespace) -> int:
     return EXIT_OK
 
 
-def _damping_options(args: argparse.Namespace) -> dict[str, Any]:
-    """The checked ``--damping-*`` options as keyword arguments of :func:`redsim.benches.damping.bench_damping`."""
+DAMPING_OPTIONS = ("damping_scenes", "damping_seconds", "damping_divisions", "damping_full")
+"""The ``--damping-*`` options (argparse names): None unless given, so that one given without the regime is refused."""
+
+
+def _damping_options(args: argparse.Namespace, regimes: list[str]) -> dict[str, Any] | None:
+    """The checked ``--damping-*`` options as keyword arguments of :func:`redsim.benches.damping.bench_damping`;
+    None without the damping regime (a ``--damping-*`` option given then is a CLI error)."""
     from redsim import pretrained
     from redsim.benches import damping, stability
 
+    if "damping" not in regimes:
+        given = [f"--{o.replace('_', '-')}" for o in DAMPING_OPTIONS if getattr(args, o) is not None]
+        if given:
+            raise CliError(f"{', '.join(given)} can only be given with --regimes damping (add damping to --regimes)")
+        return None
     names = list(damping.SCENES) if args.damping_scenes is None else parse_list(args.damping_scenes, "--damping-scenes")
     valid = [n for n in stability.LOADS if n in pretrained.names()]
     bad = [n for n in names if n not in valid]
     if bad:
         raise CliError(f"--damping-scenes: unknown scene(s) {bad}; valid: {', '.join(valid)}")
-    full = [] if args.damping_full == "none" else parse_ints(args.damping_full, "--damping-full")
-    return {
-        "names": names,
-        "seconds": args.damping_seconds,
-        "divisions": parse_ints(args.damping_divisions, "--damping-divisions"),
-        "full_divisions": full,
-    }
+    divisions = list(damping.DIVISIONS)
+    if args.damping_divisions is not None:
+        divisions = parse_ints(args.damping_divisions, "--damping-divisions")
+    full = list(damping.DIVISIONS)
+    if args.damping_full is not None:
+        full = [] if args.damping_full == "none" else parse_ints(args.damping_full, "--damping-full")
+    seconds = damping.SECONDS if args.damping_seconds is None else args.damping_seconds
+    try:
+        damping.check_seconds(seconds, [*divisions, *full], "--damping-seconds")
+    except ValueError as err:
+        raise CliError(str(err)) from None
+    return {"names": names, "seconds": seconds, "divisions": divisions, "full_divisions": full}
 
 
 def add_commands(sub: Any) -> Any:
@@ -854,19 +869,17 @@ def add_commands(sub: Any) -> Any:
     p.add_argument(
         "--damping-seconds",
         type=seconds,
-        default=1.0,
         metavar="T",
-        help="simulated seconds of each released run of the damping regime (default 1)",
+        help="simulated seconds of each released run of the damping regime, a whole multiple of each of its time "
+        "steps (default 1)",
     )
     p.add_argument(
         "--damping-divisions",
-        default="1,4,16",
         metavar="K1,K2",
         help="the damping regime's latent runs (and MuJoCo's) step at 0.02 s / K for each K (default 1,4,16)",
     )
     p.add_argument(
         "--damping-full",
-        default="1,4,16",
         metavar="K1,K2",
         help="its full-space runs step at 0.02 s / K for each K, or none (default 1,4,16)",
     )

@@ -89,3 +89,46 @@ def test_the_float32_runtime_idles_when_its_tolerance_outgrows_the_forces(mini_c
         assert run.flags["idle"] == idle and run.flags["unconverged"] == 0, (dtype, run.flags)
         moved = float(torch.linalg.vector_norm(run.q[-1] - run.q[0]))
         assert (moved == 0.0) == (idle == 10), (dtype, moved)
+
+
+@pytest.mark.parametrize(
+    ("argv", "expected"),
+    [
+        (["--damping-seconds", "0.001"], "--damping-seconds must be a whole multiple of 0.02 s"),
+        (["--damping-seconds", "0.01"], "--damping-seconds must be a whole multiple of 0.02 s"),
+        (["--damping-seconds", "0.003", "--damping-divisions", "16", "--damping-full", "4,16"], "of 0.005 s"),
+        (["--damping-seconds", "0.03", "--damping-divisions", "1", "--damping-full", "none"], "of 0.02 s"),
+        (["--damping-seconds", "0.01", "--damping-divisions", "1", "--damping-full", "4"], "of 0.02 s"),
+    ],
+)
+def test_cli_refuses_damping_seconds_that_no_time_step_divides(cli: Cli, argv: list[str], expected: str) -> None:
+    """Shorter than a step (no step to run) or not a whole number of steps (its columns would be mislabelled)."""
+    code, out, err = cli("bench", "stability", "--regimes", "damping", "--damping-scenes", "mini_chain", *argv)
+    assert code == 2 and out == "" and err.count("\n") == 1 and expected in err, err
+    assert "Traceback" not in err
+
+
+@pytest.mark.parametrize(
+    "argv",
+    [
+        ["--damping-seconds", "2"],
+        ["--damping-scenes", "chain"],
+        ["--damping-divisions", "1"],
+        ["--damping-full", "none"],
+    ],
+)
+def test_cli_refuses_damping_options_without_the_damping_regime(cli: Cli, argv: list[str]) -> None:
+    code, out, err = cli("bench", "stability", "--regimes", "stiff", *argv)
+    assert code == 2 and out == "" and err.count("\n") == 1, err
+    assert f"{argv[0]} can only be given with --regimes damping" in err
+
+
+def test_check_seconds_takes_whole_multiples_of_every_step_up_to_round_off() -> None:
+    for seconds in (0.02, 0.3, 1.0, 2.5):
+        damping.check_seconds(seconds, damping.DIVISIONS)
+    damping.check_seconds(0.005, (4, 16))
+    for seconds, divisions in ((0.001, (1,)), (0.01, (1,)), (0.03, (1, 4)), (0.013, (16,)), (0.01, (3,))):
+        with pytest.raises(ValueError, match="whole multiple"):
+            damping.check_seconds(seconds, divisions)
+    with pytest.raises(ValueError, match="whole multiple"):
+        damping.bench_damping(["mini_chain"], seconds=0.001, divisions=(1,), full_divisions=())
