@@ -202,15 +202,17 @@ class ShardedVectorEnv(SharedCopies, VectorEnv):
         self, *, seed: int | Sequence[int | None] | None = None, options: dict[str, Any] | None = None
     ) -> tuple[np.ndarray, dict[str, Any]]:
         """Reset all copies, or those of ``options["reset_mask"]`` (bool [N]); seed copy i with ``seed + i``. A seed
-        or option refused is refused before any shard resets (the env stays open)."""
+        of a reset copy (only those are checked, as in the native env) or an option refused is refused before any
+        shard resets (the env stays open)."""
         mask = reset_mask(options, self.num_envs)
         if set(options or ()) - {"reset_mask"} and not self.template.sim.params:
             self.template.reset(seed=0)  # one draw, for the parameters' shapes (a refused option closes no shard)
         self.template.sim.episode_options(options, vector=True)
         own, seeds = copy_seeds(seed, self.num_envs)
-        for copy_seed in seeds or ():  # here, as the native env's reset does: a worker's refusal closes the env
-            if copy_seed is not None:
-                seeding.np_random(copy_seed)  # Gymnasium's rule (gymnasium.error.Error), before any shard is seeded
+        rows = range(self.num_envs) if mask is None else np.nonzero(mask)[0]
+        for i in rows if seeds is not None else ():  # the reset copies' seeds, as the native env's reset checks them,
+            if seeds[i] is not None:  # here: a worker's refusal closes the env
+                seeding.np_random(seeds[i])  # Gymnasium's rule (gymnasium.error.Error), before any shard is seeded
         super().reset(seed=own)
         requests = []
         for block in self._blocks():
@@ -253,14 +255,13 @@ class ShardedVectorEnv(SharedCopies, VectorEnv):
         """Restore :meth:`get_state`'s state (or a native env's of as many copies).
 
         Raises:
-            ValueError: a task parameter ``reset(options=...)`` would refuse (checked here: the env stays open), or a
-                state of another env or copy count (from the workers, which check their blocks).
+            ValueError: a state whose ``z``, ``z_prev`` or task parameters have another shape, then a task parameter
+                ``reset(options=...)`` would refuse (both checked here, in that order, as the native env does: the
+                env stays open), or a state of another env (from the workers, which check their blocks).
         """
         if not isinstance(state, Mapping):
             raise ValueError(f"need the dict get_state() returns, got {type(state).__name__}")
-        z = np.asarray(state.get("z"))
-        if z.ndim != 2 or z.shape[0] != self.num_envs:
-            raise ValueError(f"state['z'] must have shape [{self.num_envs}, d] (one row per copy), got {z.shape}")
+        self._check_state_shapes(state)
         if isinstance(state.get("params"), Mapping):
             self.template.sim.check_state_params(state["params"])
         parts = [_state_rows(state, block) for block in self._blocks()]
@@ -285,6 +286,46 @@ class ShardedVectorEnv(SharedCopies, VectorEnv):
         self.template.close()
 
     # -- internals --------------------------------------------------------------------------------
+    def _check_state_shapes(self, state: Mapping[str, Any]) -> None:
+        """Refuse a state of another env or shape, in the native env's order (:meth:`LatentSim.set_state`): its
+        ``setting``, a missing key, ``cond`` [N, m], ``z`` and ``z_prev`` [N, d], ``model`` [N, d, d] and each
+        task parameter [N, ...] as the env's own (ValueError naming the key and both shapes)."""
+        sim, n = self.template.sim, self.num_envs
+        theirs, mine = state.get("setting"), sim.setting()
+        if theirs is not None and dict(theirs) != mine:
+            differ = ", ".join(f"{k} {theirs.get(k)!r} (here {v!r})" for k, v in mine.items() if theirs.get(k) != v)
+            raise ValueError(f"the state belongs to another env: {differ}")
+        missing = {"z", "z_prev", "cond", "params"} - set(state)
+        if missing:
+            raise ValueError(f"state is missing {sorted(missing)}")
+
+        def check(key: str, value: Any, want: tuple[int, ...] | None) -> None:
+            """``want`` None: [N, ...]."""
+            try:
+                got = tuple(np.shape(value))
+            except ValueError:  # ragged nesting
+                got = None
+            if got is None or (got != want if want is not None else not got or got[0] != n):
+                expected = f"[{n}, ...]" if want is None else str(list(want))
+                raise ValueError(f"state[{key!r}] must have shape {expected} (one row per copy), got {got}")
+
+        d = sim.latent_dim
+        if sim.cond is not None:
+            check("cond", state["cond"], (n, *sim.cond.shape[1:]))
+        check("z", state["z"], (n, d))
+        check("z_prev", state["z_prev"], (n, d))
+        if state.get("model") is not None:
+            check("model", state["model"], (n, d, d))
+        params = state["params"]
+        if not isinstance(params, Mapping) or not params:
+            return  # the workers refuse what is not a dict of arrays
+        if not sim.params:
+            self.template.reset(seed=0)  # one draw, for the parameters' keys and shapes
+        if sim.params and set(params) != set(sim.params):
+            raise ValueError(f"state['params'] must have keys {sorted(sim.params)}, got {sorted(params)}")
+        for key, value in params.items():
+            check(f"params.{key}", value, (n, *sim.params[key].shape[1:]) if key in sim.params else None)
+
     def _blocks(self) -> list[slice]:
         return [slice(start, start + size) for start, size in zip(self.starts, self.sizes, strict=True)]
 

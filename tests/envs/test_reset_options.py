@@ -179,3 +179,49 @@ def test_the_vector_env_set_state_refuses_a_copy_a_reset_option_would() -> None:
         venv.set_state({**state, "params": {**state["params"], "target": targets}})
     np.testing.assert_equal(venv.get_state(), state)
     venv.step(np.zeros((2, 3), np.float32))
+
+
+def test_a_masked_reset_checks_only_the_seeds_of_the_copies_it_resets() -> None:
+    """Native and sharded alike: copy 0 is not reset, so its seed (-1, refused if used) is never looked at."""
+    make = lambda **kw: gym.make_vec(ID, num_envs=2, vectorization_mode="vector_entry_point", **kw)  # noqa: E731
+    native, sharded = make(), make(shards=2)
+    mask = np.array([False, True])
+    try:
+        answers = []
+        for venv in (native, sharded):
+            venv.reset(seed=0)
+            answers.append(venv.reset(seed=[-1, 5], options={"reset_mask": mask})[0])
+            with pytest.raises(gym.error.Error, match="Seed must be greater or equal to zero"):
+                venv.reset(seed=[5, -1], options={"reset_mask": mask})
+            assert not getattr(venv, "closed", False)
+        np.testing.assert_allclose(answers[1], answers[0], atol=1e-6)
+    finally:
+        native.close()
+        sharded.close()
+
+
+def test_the_sharded_set_state_refuses_a_wrong_shape_before_a_refused_target() -> None:
+    """A state of the wrong shape gets the shape error (as the native env's set_state), not the target's."""
+    make = lambda **kw: gym.make_vec(ID, num_envs=2, vectorization_mode="vector_entry_point", **kw)  # noqa: E731
+    native, sharded = make(), make(shards=2)
+    try:
+        for venv in (native, sharded):
+            venv.reset(seed=0)
+            state = venv.get_state()
+            far = {**state, "params": {**state["params"], "target": np.full((2, 3), 1e6, np.float32)}}
+            d = state["z"].shape[1]
+            for bad, match in (
+                ({**far, "z_prev": np.zeros((2, d + 1))}, rf"state\['z_prev'\] must have shape \[2, {d}\]"),
+                ({**far, "z": np.zeros((3, d))}, rf"state\['z'\] must have shape \[2, {d}\]"),
+                ({**far, "params": {"target": np.full((3, 3), 1e6)}}, r"state\['params.target'\] must have shape"),
+            ):
+                with pytest.raises(ValueError, match=match):
+                    venv.set_state(bad)
+            assert not getattr(venv, "closed", False)
+            with pytest.raises(ValueError, match=r"state\['params'\] of copy 0 .*observation bound"):
+                venv.set_state(far)
+            venv.set_state(state)
+            venv.step(np.zeros((2, 3), np.float32))
+    finally:
+        native.close()
+        sharded.close()
