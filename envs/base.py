@@ -1144,15 +1144,16 @@ def check_action(action: Any, shape: tuple[int, ...]) -> np.ndarray:
     """The action as float32 of ``shape``, clipped to [-1, 1] (checked and clipped in float64, so a finite
     value beyond float32's range is clipped too, not refused as infinite).
 
-    A torch tensor is taken as NumPy takes it: on the CPU and without grad (a policy's output that requires grad
-    or lives on a GPU is refused, naming the fix, instead of torch's error from inside NumPy).
+    A torch tensor (or a list or tuple of them) is taken as NumPy takes it: on the CPU and without grad (a
+    policy's output that requires grad or lives on a GPU is refused, naming the fix, instead of torch's error from
+    inside NumPy).
 
     Raises:
         ValueError: not an array of numbers (strings are refused, not parsed), a torch tensor that requires grad
-            or is not on the CPU, a wrong shape (both named) or non-finite entries.
+            or is not on the CPU (alone or in a list or tuple), a wrong shape (both named) or non-finite entries.
     """
-    if isinstance(action, Tensor) and (action.requires_grad or action.device.type != "cpu"):
-        why = "requires grad" if action.requires_grad else f"is on {action.device}"
+    why = _tensor_refusal(action)
+    if why is not None:
         raise ValueError(
             f"action must be a NumPy array (actions are not differentiated through), got a torch tensor that {why}: "
             "pass action.detach().cpu().numpy()"
@@ -1169,6 +1170,18 @@ def check_action(action: Any, shape: tuple[int, ...]) -> np.ndarray:
     if not np.all(np.isfinite(act)):
         raise ValueError(f"action must be finite, got {act.tolist()}")
     return np.clip(act, -1.0, 1.0).astype(np.float32)
+
+
+def _tensor_refusal(action: Any) -> str | None:
+    """Why NumPy cannot take a torch tensor in ``action`` (itself, or nested in lists and tuples): it requires grad
+    or is not on the CPU; None where there is none."""
+    if isinstance(action, Tensor):
+        if action.requires_grad:
+            return "requires grad"
+        return None if action.device.type == "cpu" else f"is on {action.device}"
+    if isinstance(action, list | tuple):
+        return next((why for why in map(_tensor_refusal, action) if why is not None), None)
+    return None
 
 
 def _chosen_param(key: str, value: Tensor, drawn: Tensor | None) -> Tensor:

@@ -289,11 +289,18 @@ def test_bad_actions_are_clear_errors(mini: gym.Env) -> None:
         mini.step(policy_output)
     with pytest.raises(ValueError, match=r"torch tensor that is on meta"):  # a GPU's, where there is none
         mini.step(torch.zeros(3, device="meta"))
+    for nested in (list(torch.zeros(3, requires_grad=True)), (torch.tensor(0.1, requires_grad=True), 0.0, 0.0)):
+        with pytest.raises(ValueError, match=r"torch tensor that requires grad: pass action.detach\(\).cpu\(\)"):
+            mini.step(nested)  # in a list or tuple too, not torch's RuntimeError from inside np.asarray
+    with pytest.raises(ValueError, match=r"torch tensor that is on meta"):
+        mini.step([torch.zeros((), device="meta")] * 3)
     mini.step(policy_output.detach())  # a CPU tensor without grad is an array of numbers
+    mini.step(list(policy_output.detach()))  # and a list of them
     venv = gym.make_vec("RedSim/MiniChain-v0", num_envs=2, vectorization_mode="vector_entry_point")
     venv.reset(seed=0)
-    with pytest.raises(ValueError, match="torch tensor that requires grad"):
-        venv.step(torch.zeros((2, 3), requires_grad=True))
+    for bad in (torch.zeros((2, 3), requires_grad=True), [torch.zeros(3, requires_grad=True), torch.zeros(3)]):
+        with pytest.raises(ValueError, match=r"torch tensor that requires grad: pass action.detach\(\).cpu\(\)"):
+            venv.step(bad)
     with pytest.raises(ValueError, match="options must be a dict"):
         mini.reset(options="target")
     obs, *_ = mini.step(np.array([50.0, -50.0, 0.0], np.float32))  # clipped, not an error
