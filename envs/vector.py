@@ -89,8 +89,9 @@ class LatentVectorEnv(SharedCopies, VectorEnv):
         ``seed[i]`` for a sequence (None: copy i keeps its generator, as in Gymnasium's sync vector env). The other
         options set parts of every reset copy's draw, as in the single env's ``reset`` (autoresets draw them).
 
-        Every seed is checked (Gymnasium's rule: an int >= 0, else ``gymnasium.error.Error``) before any copy's
-        generator is replaced, so a refused reset changes nothing."""
+        The seed of every copy being reset is checked (Gymnasium's rule: an int >= 0, else
+        ``gymnasium.error.Error``; the others' are not used) before any copy's generator is replaced, so a refused
+        seed changes nothing."""
         given = reset_mask(options, self.num_envs)
         chosen = self.sim.episode_options(options, vector=True)
         mask = np.ones(self.num_envs, dtype=bool) if given is None else given
