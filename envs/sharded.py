@@ -288,8 +288,8 @@ class ShardedVectorEnv(SharedCopies, VectorEnv):
     # -- internals --------------------------------------------------------------------------------
     def _check_state_shapes(self, state: Mapping[str, Any]) -> None:
         """Refuse a state of another env or shape, in the native env's order (:meth:`LatentSim.set_state`): its
-        ``setting``, a missing key, ``cond`` [N, m], ``z`` and ``z_prev`` [N, d], ``model`` [N, d, d] and each
-        task parameter [N, ...] as the env's own (ValueError naming the key and both shapes)."""
+        ``setting``, a missing key, ``cond`` [N, m], ``z`` and ``z_prev`` [N, d], ``model`` [N, d, d], ``loads``
+        [N, H, D] and each task parameter [N, ...] as the env's own (ValueError naming the key and both shapes)."""
         sim, n = self.template.sim, self.num_envs
         theirs, mine = state.get("setting"), sim.setting()
         if theirs is not None and dict(theirs) != mine:
@@ -316,6 +316,8 @@ class ShardedVectorEnv(SharedCopies, VectorEnv):
         check("z_prev", state["z_prev"], (n, d))
         if state.get("model") is not None:
             check("model", state["model"], (n, d, d))
+        if state.get("loads") is not None:
+            check("loads", state["loads"], (n, *sim.loads.shape[1:]))
         params = state["params"]
         if not isinstance(params, Mapping) or not params:
             return  # the workers refuse what is not a dict of arrays

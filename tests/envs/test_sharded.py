@@ -96,6 +96,8 @@ def test_bad_input_is_a_clear_error_and_a_failing_worker_raises_in_the_caller() 
         venv.set_state({"z": None})
     with pytest.raises(ValueError, match="one row per copy"):
         venv.set_state({**venv.get_state(), "z": None})
+    with pytest.raises(ValueError, match=r"state\['loads'\] must have shape"):  # before a worker refuses it
+        venv.set_state({**venv.get_state(), "loads": np.zeros((2, 1, 1))})
     assert not venv.closed
     with pytest.raises(ValueError, match="must be finite") as raised:  # a worker's own error, as itself
         venv.set_state({**venv.get_state(), "z": np.full_like(venv.get_state()["z"], np.nan)})
