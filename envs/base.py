@@ -1100,15 +1100,20 @@ class LatentEnv(gym.Env[np.ndarray, np.ndarray]):
         ]
 
     def __getstate__(self) -> dict[str, Any]:
+        """The constructor arguments (the copy is rebuilt from them), the state, the spec and the generator; and
+        the map itself where no checkpoint file backs it (:data:`redsim.envs.fitted.IN_MEMORY_ATTRIBUTE`): a
+        rebuild would fit it again. A map loaded from a file (a shipped one) is not pickled: the copy loads it."""
         state = {"init": self._init_args, "sim": self.get_state() if self._reset_done else None, "spec": self.spec}
         state["rng"] = None if self._np_random is None else self._np_random.bit_generator.state
         state["seed"] = self._np_random_seed  # without it, reading np_random_seed would replace the generator
+        state["subspace"] = self._unbacked_subspace()
         return state
 
     def __setstate__(self, state: dict[str, Any]) -> None:
         args, kwargs = state["init"]
         self._init_args = (args, kwargs)
-        self.__init__(*args, **kwargs)  # type: ignore[misc]
+        carried = state.get("subspace")
+        self.__init__(*args, **(kwargs if carried is None else {**kwargs, "subspace": carried}))  # type: ignore[misc]
         self.spec = state["spec"]
         if state["rng"] is not None:
             self._np_random = np.random.Generator(np.random.PCG64())
@@ -1116,6 +1121,22 @@ class LatentEnv(gym.Env[np.ndarray, np.ndarray]):
             self._np_random_seed = state["seed"]
         if state["sim"] is not None:
             self.set_state(state["sim"])
+
+    def _unbacked_subspace(self) -> nn.Module | None:
+        """The map where it was fitted in memory (:data:`redsim.envs.fitted.IN_MEMORY_ATTRIBUTE`), the constructor
+        arguments do not hold it (a rebuild from them would fit it again) and the constructor takes a ``subspace``,
+        else None."""
+        from redsim.envs.fitted import IN_MEMORY_ATTRIBUTE
+
+        subspace = self.sim.subspace
+        if not getattr(subspace, IN_MEMORY_ATTRIBUTE, False):
+            return None
+        args, kwargs = self._init_args
+        if any(value is subspace for value in (*args, *kwargs.values())):
+            return None  # pickled with the arguments already
+        if "subspace" not in inspect.signature(type(self).__init__).parameters:
+            return None  # an env class that cannot take it: rebuilt (and fitted) from its arguments
+        return subspace
 
 
 def check_numbers(

@@ -6,8 +6,10 @@ fitted by :func:`redsim.trainers.fit_subspace` (the scene's preset, :mod:`redsim
 updated by ``fit_options``; a tqdm progress bar), saved under
 ``cache_root()/subspaces`` (:func:`redsim.usercache.cache_root`: ``$REDSIM_CACHE`` or
 ``~/.cache/redsim``) and loaded from there the next time. With the cache off
-(``REDSIM_CACHE=0``) the map is fitted and kept in memory only. An interrupted fit resumes
-from its training state (``STEM.fit.pt``) on the next call.
+(``REDSIM_CACHE=0``) the map is fitted and kept in memory only, marked
+:data:`IN_MEMORY_ATTRIBUTE`: a pickled or copied env carries it instead of
+fitting again. An interrupted fit resumes from its training state (``STEM.fit.pt``) on the
+next call.
 
 Import direction: the trainers are imported inside :func:`cached_subspace` (envs may import
 trainers; nothing below the envs does).
@@ -34,6 +36,9 @@ SPEED_ONLY = ("checkpoint_every", "fused_adam", "compile")
 
 FOLDER = "subspaces"
 """Folder of the fitted maps inside redsim's user cache."""
+IN_MEMORY_ATTRIBUTE = "redsim_in_memory"
+"""Attribute (True) of a map fitted with no checkpoint file behind it (the cache off): an env pickles such a map with
+itself (:meth:`redsim.envs.base.LatentEnv.__getstate__`), as a rebuild from its arguments would fit it again."""
 
 
 def cache_stem(scene_name: str, scene: Scene, options: Mapping[str, Any]) -> Path | None:
@@ -56,7 +61,8 @@ def cached_subspace(
     """The user-cache map of ``scene`` (catalog scene ``scene_name`` built with non-default parameters).
 
     Loaded when the cache has it; otherwise fitted (the scene's preset updated by ``fit_options``,
-    with a progress bar unless ``progress=False``), saved to the cache and returned.
+    with a progress bar unless ``progress=False``), saved to the cache and returned (with the cache off,
+    marked :data:`IN_MEMORY_ATTRIBUTE`).
 
     Raises:
         ValueError: an unknown or bad fit option (from the fitter, before any step).
@@ -76,7 +82,9 @@ def cached_subspace(
     result = fit_subspace(scene, out=stem, resume=resume, progress=progress, **options)
     if state is not None:
         state.unlink(missing_ok=True)
+    if stem is None:  # no file behind it: an env pickles it rather than fit it again
+        setattr(result.subspace, IN_MEMORY_ATTRIBUTE, True)
     return result.subspace
 
 
-__all__ = ["FOLDER", "cache_stem", "cached_subspace"]
+__all__ = ["FOLDER", "IN_MEMORY_ATTRIBUTE", "cache_stem", "cached_subspace"]

@@ -2,6 +2,9 @@
 
 from __future__ import annotations
 
+import copy
+import pickle
+
 import gymnasium as gym
 import numpy as np
 import pytest
@@ -78,3 +81,28 @@ def test_with_the_cache_off_the_fit_stays_in_memory(tmp_path, monkeypatch: pytes
     env = gym.make("RedSim/MiniChain-v0", scene_params=PARAMS, fit_if_missing=True, fit_options=TINY)
     env.reset(seed=0)
     assert not list(tmp_path.iterdir())
+
+
+def test_an_env_fitted_in_memory_copies_with_its_map_instead_of_fitting_again(monkeypatch: pytest.MonkeyPatch) -> None:
+    """With the cache off no file backs the map: pickle and deepcopy carry it, and the copy steps bit for bit alike;
+    a shipped map's env still pickles without its weights (the copy loads the file)."""
+    monkeypatch.setenv("REDSIM_CACHE", "0")
+    env = gym.make("RedSim/MiniChain-v0", scene_params=PARAMS, fit_if_missing=True, fit_options=TINY)
+    env.reset(seed=0)
+    env.step(np.full(3, 0.3, np.float32))
+    monkeypatch.setattr("redsim.trainers.fit.fit_subspace", lambda *a, **k: pytest.fail("fitted again"))
+    clones = [pickle.loads(pickle.dumps(env)), copy.deepcopy(env)]
+    clones.append(pickle.loads(pickle.dumps(clones[0])))  # a copy's copy carries the map too
+    push = np.full(3, 0.7, np.float32)
+    obs, reward, *_ = env.step(push)
+    for clone in clones:
+        clone_obs, clone_reward, *_ = clone.step(push)
+        assert np.array_equal(clone_obs, obs) and clone_reward == reward
+    assert len(pickle.dumps(env)) > _weights(env)
+    shipped = gym.make("RedSim/MiniChain-v0")
+    assert len(pickle.dumps(shipped)) < _weights(shipped)
+
+
+def _weights(env: gym.Env) -> int:
+    """Bytes of the env's map's pickled weights."""
+    return len(pickle.dumps(env.unwrapped.sim.subspace.state_dict()))
