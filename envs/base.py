@@ -1076,7 +1076,7 @@ class LatentEnv(gym.Env[np.ndarray, np.ndarray]):
         next unseeded reset."""
         self.sim.set_state(_batch(state))
         if state.get("rng") is not None:
-            self.np_random.bit_generator.state = state["rng"]
+            self._np_random = restored_generator(self.np_random, state["rng"])
         self._reset_done = True
         self._view = None  # framed anew on the restored state, as after a reset
 
@@ -1116,8 +1116,7 @@ class LatentEnv(gym.Env[np.ndarray, np.ndarray]):
         self.__init__(*args, **(kwargs if carried is None else {**kwargs, "subspace": carried}))  # type: ignore[misc]
         self.spec = state["spec"]
         if state["rng"] is not None:
-            self._np_random = np.random.Generator(np.random.PCG64())
-            self._np_random.bit_generator.state = state["rng"]
+            self._np_random = restored_generator(None, state["rng"])
             self._np_random_seed = state["seed"]
         if state["sim"] is not None:
             self.set_state(state["sim"])
@@ -1308,6 +1307,24 @@ def copy_seeds(seed: int | Sequence[int | None] | None, count: int) -> tuple[int
     if len(seeds) != count:
         raise ValueError(f"need {count} seeds, got {len(seeds)}")
     return None, seeds
+
+
+def restored_generator(generator: np.random.Generator | None, state: Mapping[str, Any]) -> np.random.Generator:
+    """A NumPy generator in ``state`` (a ``bit_generator.state`` dict): ``generator`` set in place where its bit
+    generator is of the kind ``state["bit_generator"]`` names, else a new one of that kind (PCG64, Philox, SFC64, ...:
+    Gymnasium's ``np_random`` may be any ``Generator``).
+
+    Raises:
+        ValueError: ``state`` names no NumPy bit generator.
+    """
+    name = state.get("bit_generator") if isinstance(state, Mapping) else None
+    kind = getattr(np.random, str(name), None)
+    if not (isinstance(kind, type) and issubclass(kind, np.random.BitGenerator)):
+        raise ValueError(f"a generator state must name a NumPy bit generator in 'bit_generator', got {name!r}")
+    if generator is None or type(generator.bit_generator) is not kind:
+        generator = np.random.Generator(kind())
+    generator.bit_generator.state = state
+    return generator
 
 
 def state_row(state: Mapping[str, Any], i: int = 0) -> dict[str, Any]:

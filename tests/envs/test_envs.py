@@ -394,6 +394,22 @@ def test_envs_pickle_and_continue_exactly(mini: gym.Env) -> None:
     assert np.array_equal(env.reset()[0], clone.reset()[0])  # the generator travels too
 
 
+def test_a_generator_of_another_kind_travels_with_copies_and_states() -> None:
+    """Gymnasium's ``np_random`` may be any Generator: a Philox one survives pickle, deepcopy and set_state."""
+    env = gym.make("RedSim/MiniChain-v0").unwrapped
+    env.reset(seed=0)
+    env.np_random = np.random.Generator(np.random.Philox(7))
+    state = env.get_state()
+    restored = gym.make("RedSim/MiniChain-v0").unwrapped
+    restored.reset(seed=1)  # a PCG64 generator
+    restored.set_state(state)
+    copies = [pickle.loads(pickle.dumps(env)), copy.deepcopy(env), restored]
+    next_obs = env.reset()[0]
+    for clone in copies:
+        assert isinstance(clone.np_random.bit_generator, np.random.Philox)
+        assert np.array_equal(clone.reset()[0], next_obs)
+
+
 def test_a_copy_keeps_the_seed_and_spec_so_reading_the_seed_keeps_the_generator() -> None:
     """Gymnasium's ``np_random_seed`` draws a fresh generator where the seed is unset; a copy that dropped it
     would lose its seeded stream on the first read."""
