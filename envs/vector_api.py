@@ -9,9 +9,11 @@ per-copy methods from the batched state (:data:`PER_COPY_CALLS`), a goal env's p
 
 from __future__ import annotations
 
+import copy
 from typing import TYPE_CHECKING, Any
 
 import numpy as np
+from gymnasium.envs.registration import EnvSpec
 
 if TYPE_CHECKING:
     from redsim.envs.base import LatentEnv
@@ -22,6 +24,18 @@ SHARED_METHODS = ("compute_reward", "compute_terminated", "compute_truncated")
 PER_COPY_CALLS = ("get_state", "configuration", "render")
 """Methods ``call`` answers copy by copy, from the batched simulation (no arguments)."""
 
+VECTOR_KWARGS = (
+    "num_envs",
+    "vectorization_mode",
+    "vector_kwargs",
+    "wrappers",
+    "max_episode_steps",
+    "autoreset_mode",
+    "shards",
+)
+"""Keys of a vector env's ``spec.kwargs`` that are the vector env's, not its copies' (``gym.make_vec``'s and the
+vector entry point's)."""
+
 STATEFUL = ("sim", "np_random", "np_random_seed", "reset", "step", "set_state", "trimeshes", "close")
 """The template's attributes that are not its copies' (its never-stepped state and generator, its own calls)."""
 
@@ -31,12 +45,14 @@ class SharedCopies:
 
     template: LatentEnv
     num_envs: int
+    max_episode_steps: int | None
+    spec: EnvSpec | None
     single_observation_space: Any
     single_action_space: Any
 
     def get_attr(self, name: str) -> tuple[Any, ...]:
-        """Each copy's ``name``: the single observation or action space, or the setting of the env every copy runs
-        (``dt``, ``metadata``, ``scene``, ``task`` settings, ...).
+        """Each copy's ``name``: the single observation or action space, its ``spec`` (:meth:`single_spec`), or the
+        setting of the env every copy runs (``dt``, ``metadata``, ``scene``, ``task`` settings, ...).
 
         Raises:
             AttributeError: an attribute that holds a copy's state (:data:`STATEFUL`, :data:`PER_COPY_CALLS`: use
@@ -44,6 +60,8 @@ class SharedCopies:
         """
         if name in ("observation_space", "action_space"):
             value = getattr(self, f"single_{name}")
+        elif name == "spec":
+            value = self.single_spec()
         elif name in STATEFUL or name in PER_COPY_CALLS:
             raise AttributeError(
                 f"{name!r} is not one value per copy here (the copies are rows of one batched simulation); "
@@ -52,6 +70,17 @@ class SharedCopies:
         else:
             value = getattr(self.template, name)
         return tuple(value for _ in range(self.num_envs))
+
+    def single_spec(self) -> EnvSpec | None:
+        """A copy's spec, as ``gym.make(id, **kwargs)`` of one copy gives it (Gymnasium's sync vector env answers
+        each copy's): the vector env's spec without the vector arguments (:data:`VECTOR_KWARGS`), with the copies'
+        ``max_episode_steps``; the template's spec where the vector env has none (not made by ``gym.make_vec``)."""
+        if self.spec is None:
+            return self.template.spec
+        spec = copy.deepcopy(self.spec)
+        spec.kwargs = {k: v for k, v in spec.kwargs.items() if k not in VECTOR_KWARGS}
+        spec.max_episode_steps = self.max_episode_steps
+        return spec
 
     def set_attr(self, name: str, values: Any) -> None:
         raise AttributeError(
@@ -121,4 +150,12 @@ def reset_mask(options: dict[str, Any] | None, num_envs: int) -> np.ndarray | No
     return mask
 
 
-__all__ = ["PER_COPY_CALLS", "SHARED_METHODS", "STATEFUL", "SharedCopies", "check_started", "reset_mask"]
+__all__ = [
+    "PER_COPY_CALLS",
+    "SHARED_METHODS",
+    "STATEFUL",
+    "VECTOR_KWARGS",
+    "SharedCopies",
+    "check_started",
+    "reset_mask",
+]

@@ -52,6 +52,27 @@ def test_get_attr_call_and_set_attr_as_the_sync_vector_env(shards: int) -> None:
         sync.close()
 
 
+@pytest.mark.parametrize("shards", [1, 2])
+def test_each_copys_spec_is_a_single_envs_as_in_the_sync_vector_env(shards: int) -> None:
+    """``get_attr("spec")`` answers what ``gym.make`` gives one copy: id, kwargs and episode length."""
+    from redsim.envs.sb3 import SB3VecEnv
+
+    for kwargs in ({}, {"max_episode_steps": 50, "dt": 0.01}):
+        single = gym.make(ID, **kwargs).spec
+        venv, sync = _vec(shards=shards, **kwargs), gym.make_vec(ID, 2, vectorization_mode="sync", **kwargs)
+        try:
+            assert venv.get_attr("spec") == sync.get_attr("spec") == (single, single), kwargs
+            assert venv.spec.kwargs["num_envs"] == 2  # the vector env's own spec is unchanged
+        finally:
+            venv.close()
+            sync.close()
+    sb3 = SB3VecEnv.make(ID, num_envs=2, shards=shards, dt=0.01)
+    try:
+        assert sb3.get_attr("spec") == [gym.make(ID, dt=0.01).spec] * 2
+    finally:
+        sb3.close()
+
+
 def test_set_state_restores_the_episode_clock_after_an_episode_ended() -> None:
     """A state saved mid-episode and restored after the episode ended steps as it did (no pending autoreset)."""
     venv = _vec(max_episode_steps=3)
