@@ -556,7 +556,8 @@ class LatentSim:
         atomic: an exception or a KeyboardInterrupt inside it leaves every copy as it was before the call.
 
         Returns:
-            reward [B] (float64), terminated [B] (bool), info {key: [B] array} (see :class:`LatentEnv`).
+            reward [B] (float64), terminated [B] (bool), info {key: [B] array} (see :class:`LatentEnv`; floats
+            float64, integers int64, as Gymnasium's sync vector env batches the single env's numbers).
         """
         saved = self.snapshot()
         try:
@@ -639,7 +640,7 @@ class LatentSim:
             **metrics,
             **self.invariants(self.x),
         }
-        out = {k: v.detach().cpu().numpy() for k, v in info.items()}
+        out = {k: _info_array(v.detach().cpu().numpy()) for k, v in info.items()}
         return reward.detach().cpu().numpy().astype(np.float64), terminated.cpu().numpy(), {**out, **self.reset_info()}
 
     def reset_info(self) -> dict[str, np.ndarray]:
@@ -1213,6 +1214,15 @@ def _chosen_param(key: str, value: Tensor, drawn: Tensor | None) -> Tensor:
     if not drawn.is_floating_point() and not bool((value == value.round()).all()):
         raise ValueError(f"options[{key!r}] must be integral (the task's is {drawn.dtype}), got {value.tolist()}")
     return value.to(drawn.dtype).to(drawn.device)
+
+
+def _info_array(value: np.ndarray) -> np.ndarray:
+    """A step's info value with the dtype Gymnasium's sync vector env gives it: an entry [B] is a Python number in
+    the single env's info, so floats become float64 and integers int64 (bools, and arrays [B, ...], stay)."""
+    if value.ndim != 1:
+        return value
+    kind = value.dtype.kind
+    return value.astype(np.float64) if kind == "f" else value.astype(np.int64) if kind in "iu" else value
 
 
 def _param_dtype(value: Any, floating: torch.dtype) -> torch.dtype:

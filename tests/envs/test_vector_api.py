@@ -73,6 +73,25 @@ def test_each_copys_spec_is_a_single_envs_as_in_the_sync_vector_env(shards: int)
         sb3.close()
 
 
+@pytest.mark.parametrize("mode", [AutoresetMode.NEXT_STEP, AutoresetMode.SAME_STEP])
+def test_info_keys_and_dtypes_are_the_sync_vector_envs(mode: AutoresetMode) -> None:
+    """Every info key (masks, ``q`` and ``final_info`` included) has the sync env's dtype: float64 floats."""
+    options = {"include_q": True, "max_episode_steps": 2}
+    native = _vec(autoreset_mode=mode, **options)
+    sync = gym.make_vec(ID, 2, vectorization_mode="sync", vector_kwargs={"autoreset_mode": mode}, **options)
+    infos = []
+    for env in (native, sync):
+        infos.append([env.reset(seed=0)[1], *(env.step(PUSH)[4] for _ in range(3))])  # an end, then a restart
+    for ours, theirs in zip(*infos, strict=True):
+        assert _dtypes(ours) == _dtypes(theirs)
+    assert _dtypes(infos[0][1])["distance"] == np.float64
+
+
+def _dtypes(info: dict) -> dict:
+    """The dtype of each array in ``info``, nested dicts key by key."""
+    return {k: _dtypes(v) if isinstance(v, dict) else np.asarray(v).dtype for k, v in info.items()}
+
+
 def test_set_state_restores_the_episode_clock_after_an_episode_ended() -> None:
     """A state saved mid-episode and restored after the episode ended steps as it did (no pending autoreset)."""
     venv = _vec(max_episode_steps=3)
