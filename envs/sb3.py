@@ -28,15 +28,17 @@ from redsim.envs.base import RESET_INFO_KEYS
 from redsim.envs.goal import GoalVectorObservation
 from redsim.envs.sharded import ShardedVectorEnv
 from redsim.envs.vector import LatentVectorEnv
-from redsim.envs.vector_api import SHARED_METHODS
+from redsim.envs.vector_api import PER_COPY_CALLS, SHARED_METHODS
 
 
 class SB3VecEnv(VecEnv):
     """SB3's VecEnv interface over a :class:`LatentVectorEnv` or :class:`ShardedVectorEnv`, or a Gymnasium vector
     wrapper of one (e.g. :class:`GoalVectorObservation`), in ``AutoresetMode.SAME_STEP``.
 
-    The copies share one simulation: ``get_attr`` reads the env's (the same for every copy), ``set_attr`` and
-    per-copy methods are refused, and ``env_method`` answers only :data:`SHARED_METHODS` the vector env defines.
+    The copies share one simulation: ``get_attr`` reads the env's (the same for every copy), ``set_attr`` is
+    refused, and ``env_method`` answers the per-copy methods of the vector env's ``call``
+    (:data:`~redsim.envs.vector_api.PER_COPY_CALLS`: ``get_state``, ``configuration``, ``render``) and the
+    :data:`SHARED_METHODS` the vector env defines.
     An ended copy's info carries SB3 ``Monitor``'s ``"episode"`` (``r`` return, ``l`` length, ``t`` seconds since
     this env was made), so SB3 logs ``rollout/ep_rew_mean`` and its evaluations read returns as from a Monitor
     (``env_is_wrapped(Monitor)`` is True); an ``"episode"`` from a wrapper inside is kept.
@@ -150,12 +152,18 @@ class SB3VecEnv(VecEnv):
         raise AttributeError("the copies of a SB3VecEnv share one simulation; set attributes on the env instead")
 
     def env_method(self, method_name: str, *method_args: Any, indices: Any = None, **method_kwargs: Any) -> list[Any]:
-        """``method_name(*method_args, **method_kwargs)`` of the vector env, once, as every listed copy's answer.
+        """Each listed copy's answer to ``method_name``: a per-copy method of the vector env's ``call``
+        (:data:`~redsim.envs.vector_api.PER_COPY_CALLS`, e.g. ``env_method("get_state")``; it answers every copy
+        and the listed ones are kept), or a method of :data:`SHARED_METHODS`, called once for all.
 
         Raises:
-            AttributeError: not one of :data:`SHARED_METHODS` the vector env defines (the copies share one
-                simulation and have no per-copy methods).
+            AttributeError: another name, or a shared method the vector env does not define (the copies share one
+                simulation and have no other methods).
+            TypeError: arguments to a per-copy method (they take none).
         """
+        if method_name in PER_COPY_CALLS:
+            answers = self.venv.call(method_name, *method_args, **method_kwargs)
+            return [answers[i] for i in self._get_indices(indices)]
         result = self._shared(method_name)(*method_args, **method_kwargs)
         return [result for _ in self._get_indices(indices)]
 
@@ -174,8 +182,9 @@ class SB3VecEnv(VecEnv):
                 break
             layer = layer.env
         raise AttributeError(
-            f"SB3VecEnv answers only {', '.join(SHARED_METHODS)} where the vector env or a wrapper in it defines "
-            f"them (the copies share one simulation and have no per-copy methods), not {name!r}"
+            f"SB3VecEnv.env_method answers {', '.join(PER_COPY_CALLS)} copy by copy and {', '.join(SHARED_METHODS)} "
+            f"where the vector env or a wrapper in it defines them (the copies share one simulation and have no other "
+            f"methods), not {name!r}"
         )
 
     def env_is_wrapped(self, wrapper_class: type[gym.Wrapper], indices: Any = None) -> list[bool]:

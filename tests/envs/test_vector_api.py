@@ -262,6 +262,30 @@ def test_the_sb3_adapter_answers_get_attr_as_the_vector_env() -> None:
     venv.close()
 
 
+def test_the_sb3_adapters_env_method_answers_the_per_copy_calls_copy_by_copy() -> None:
+    from redsim.envs.sb3 import SB3VecEnv
+
+    venv = SB3VecEnv.make(ID, num_envs=2, render_mode="rgb_array", width=32, height=32)
+    try:
+        venv.reset()
+        venv.step(np.array([[1, 0, 0], [0, 1, 0]], np.float32))
+        native = venv.venv.unwrapped
+        states = venv.env_method("get_state")
+        assert len(states) == 2 and not np.array_equal(states[0]["z"], states[1]["z"])
+        for mine, theirs in zip(states, native.call("get_state"), strict=True):
+            assert np.array_equal(mine["z"], theirs["z"]) and mine["rng"] == theirs["rng"]
+        q = venv.env_method("configuration", indices=[1])
+        assert len(q) == 1 and np.array_equal(q[0], native.call("configuration")[1])
+        frames = venv.env_method("render", indices=0)
+        assert len(frames) == 1 and frames[0].shape == (32, 32, 3)
+        with pytest.raises(TypeError, match="no arguments"):
+            venv.env_method("configuration", 1)
+        with pytest.raises(AttributeError, match=r"get_state, configuration, render copy by copy.*not 'step'"):
+            venv.env_method("step")
+    finally:
+        venv.close()
+
+
 @pytest.mark.parametrize("shards", [1, 2])
 def test_a_step_where_every_copy_restarts_reports_no_keys_as_sync(shards: int) -> None:
     kwargs = {"max_episode_steps": 1}  # NEXT_STEP autoreset, both envs' default
