@@ -20,6 +20,7 @@ from __future__ import annotations
 
 import gc
 import math
+import numbers
 from collections.abc import Sequence
 from dataclasses import dataclass
 
@@ -59,8 +60,9 @@ class Marker:
     Attributes:
         position: Point [m], shape [D].
         colour: RGB.
-        radius: Radius [m] in scene units (e.g. a task's success radius), drawn at the view's pixels per metre;
-            None: :data:`MARKER_FRACTION` of the picture's smaller side. Never drawn under :data:`MIN_MARKER_PX`.
+        radius: Radius [m] in scene units (e.g. a task's success radius), drawn at the view's pixels per metre
+            (pixels before stop 35); None: :data:`MARKER_FRACTION` of the picture's smaller side. Never drawn under
+            :data:`MIN_MARKER_PX`, nor over the picture's diagonal (a larger ring is off the picture anyway).
         filled: A filled disc instead of a ring (a ring leaves the body it marks visible).
     """
 
@@ -68,6 +70,10 @@ class Marker:
     colour: tuple[int, int, int] = TARGET_RGB
     radius: float | None = None
     filled: bool = False
+
+    def __post_init__(self) -> None:
+        if self.radius is not None and not (isinstance(self.radius, numbers.Real) and 0.0 <= self.radius < math.inf):
+            raise ValueError(f"Marker.radius must be a finite number of metres >= 0 or None, got {self.radius!r}")
 
 
 @dataclass(frozen=True)
@@ -197,7 +203,7 @@ class SceneView:
             radius = MARKER_FRACTION * min(self.width, self.height)
         else:
             radius = float(marker.radius) * self._pixels_per_metre
-        return max(MIN_MARKER_PX, radius)
+        return min(max(MIN_MARKER_PX, radius), math.hypot(self.width, self.height))
 
     def contains(self, points: np.ndarray) -> bool:
         """Whether every point [P, D] [m] projects inside the picture."""

@@ -93,3 +93,16 @@ def test_arrows_and_markers_keep_their_share_of_the_picture_at_any_size() -> Non
         shares.append(np.array([arrow_px, marker_px]) / size**2)
     ratio = shares[0] / shares[1]
     assert ((0.5 < ratio) & (ratio < 2.0)).all(), ratio
+
+
+def test_a_marker_radius_is_metres_checked_and_drawn_no_larger_than_the_picture() -> None:
+    """A radius [m] far beyond the scene is drawn at most the picture's diagonal (Pillow would fill a 1000 m ring's
+    whole ellipse: 88 s a frame), and a radius that is not a finite number >= 0 is refused."""
+    scene = scenes.build("mini_chain")
+    view = SceneView(scene, scene.q_seed, width=96, height=64)
+    assert view.marker_radius_px(Marker(np.zeros(3), radius=1000.0)) == pytest.approx(np.hypot(96, 64))
+    assert view.marker_radius_px(Marker(np.zeros(3), radius=np.float32(0.0))) == 2.0  # the minimum
+    view.draw(scene.q_seed, markers=[Marker(np.zeros(3), radius=1000.0)])
+    for bad in (float("nan"), -1.0, float("inf"), "7"):
+        with pytest.raises(ValueError, match=r"Marker\.radius must be a finite number of metres"):
+            Marker(np.zeros(3), radius=bad)
