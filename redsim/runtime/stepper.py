@@ -441,8 +441,9 @@ class LatentStepper:
         if self.acceleration_resolution > RESOLUTION_WARNING:
             warnings.warn(
                 f"{self.dtype} at dt={self.dt:g} s resolves accelerations only to "
-                f"{self.acceleration_resolution:.3g} m/s^2 (tol {self.tol:g}): smaller forces are not felt, a "
-                "step ends where it starts; use dtype=torch.float64 or a longer dt (README 'Tolerance')",
+                f"{self.acceleration_resolution:.3g} m/s^2 (tol {self.tol:g}) at best: smaller forces are not felt, a "
+                "step ends where it starts, and a load on one handle needs more; use dtype=torch.float64 (envs: "
+                "dtype='float64') or a longer dt (README 'Tolerance')",
                 stacklevel=3,
             )
 
