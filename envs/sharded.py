@@ -255,9 +255,10 @@ class ShardedVectorEnv(SharedCopies, VectorEnv):
         """Restore :meth:`get_state`'s state (or a native env's of as many copies).
 
         Raises:
-            ValueError: a state whose ``z``, ``z_prev`` or task parameters have another shape, then a task parameter
-                ``reset(options=...)`` would refuse (both checked here, in that order, as the native env does: the
-                env stays open), or a state of another env (from the workers, which check their blocks).
+            ValueError: a state whose ``z``, ``z_prev``, ``loads`` or task parameters have another shape or are not
+                finite, then a task parameter ``reset(options=...)`` would refuse (checked here, in that order, as
+                the native env does: the env stays open); a condition outside the scene's range comes from the
+                workers, which check their blocks, and closes the env.
         """
         if not isinstance(state, Mapping):
             raise ValueError(f"need the dict get_state() returns, got {type(state).__name__}")
@@ -299,8 +300,8 @@ class ShardedVectorEnv(SharedCopies, VectorEnv):
         if missing:
             raise ValueError(f"state is missing {sorted(missing)}")
 
-        def check(key: str, value: Any, want: tuple[int, ...] | None) -> None:
-            """``want`` None: [N, ...]."""
+        def check(key: str, value: Any, want: tuple[int, ...] | None, finite: bool = False) -> None:
+            """``want`` None: [N, ...]; ``finite``: also refuse NaN and inf (as the workers would)."""
             try:
                 got = tuple(np.shape(value))
             except ValueError:  # ragged nesting
@@ -308,16 +309,18 @@ class ShardedVectorEnv(SharedCopies, VectorEnv):
             if got is None or (got != want if want is not None else not got or got[0] != n):
                 expected = f"[{n}, ...]" if want is None else str(list(want))
                 raise ValueError(f"state[{key!r}] must have shape {expected} (one row per copy), got {got}")
+            if finite and not np.isfinite(np.asarray(value, dtype=np.float64)).all():
+                raise ValueError(f"state[{key!r}] must be finite")
 
         d = sim.latent_dim
         if sim.cond is not None:
-            check("cond", state["cond"], (n, *sim.cond.shape[1:]))
-        check("z", state["z"], (n, d))
-        check("z_prev", state["z_prev"], (n, d))
+            check("cond", state["cond"], (n, *sim.cond.shape[1:]), finite=True)
+        check("z", state["z"], (n, d), finite=True)
+        check("z_prev", state["z_prev"], (n, d), finite=True)
         if state.get("model") is not None:
             check("model", state["model"], (n, d, d))
         if state.get("loads") is not None:
-            check("loads", state["loads"], (n, *sim.loads.shape[1:]))
+            check("loads", state["loads"], (n, *sim.loads.shape[1:]), finite=True)
         params = state["params"]
         if not isinstance(params, Mapping) or not params:
             return  # the workers refuse what is not a dict of arrays

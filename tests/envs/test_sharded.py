@@ -98,9 +98,12 @@ def test_bad_input_is_a_clear_error_and_a_failing_worker_raises_in_the_caller() 
         venv.set_state({**venv.get_state(), "z": None})
     with pytest.raises(ValueError, match=r"state\['loads'\] must have shape"):  # before a worker refuses it
         venv.set_state({**venv.get_state(), "loads": np.zeros((2, 1, 1))})
+    for key in ("z", "z_prev", "loads"):  # non-finite: refused here too, as the native env refuses it
+        with pytest.raises(ValueError, match=rf"state\['{key}'\] must be finite"):
+            venv.set_state({**venv.get_state(), key: np.full_like(venv.get_state()[key], np.nan)})
     assert not venv.closed
-    with pytest.raises(ValueError, match="must be finite") as raised:  # a worker's own error, as itself
-        venv.set_state({**venv.get_state(), "z": np.full_like(venv.get_state()["z"], np.nan)})
+    with pytest.raises(TypeError, match="state must be a dict") as raised:  # a worker's own error, as itself
+        venv.set_state({**venv.get_state(), "rngs": [None, None]})  # (numpy's, on a generator state)
     assert "shard 0:" in "\n".join(raised.value.__notes__)  # with the worker's traceback
     assert venv.closed
     venv = make(shards=2)
