@@ -70,7 +70,7 @@ def _row_line(row: dict[str, Any], batches: list[int]) -> str:
         f"{row['id']:<26} {row['n']:>6} {row['d']:>3} {row['action_size']:>4} {row['observation_size']:>4} "
         f"{row['single']['env_steps_per_s']:>8.0f} {cells} {row['single']['sim_s_per_wall_s']:>9.2f} "
         + (f"{best:>10.1f} " if best is not None else f"{'-':>10} ")
-        + (f"{full['sim_s_per_wall_s']:>10.3g}" if full else f"{'-':>10}")
+        + (f"{full['sim_s_per_wall_s']:.3g}{'' if full['converged'] else '*':1}" if full else "-").rjust(10)
         + f" {row['render']['frames_per_s']:>8.0f}"
     )
 
@@ -127,6 +127,8 @@ def cmd_bench_envs(args: argparse.Namespace) -> int:
         if not args.json:
             out(_row_line(row, batches))
     if not args.json:
+        if any(row["full_space"] is not None and not row["full_space"]["converged"] for row in rows):
+            out("* a timed full-space step ended unconverged at Newton's iteration cap: a faster rate than converging")
         out(
             "solver work per vector step: iterations per copy (of the slowest copy) / value-and-gradient calls "
             "/ rows per copy"

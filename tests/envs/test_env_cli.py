@@ -133,3 +133,14 @@ def test_bench_envs_steps_through_a_step_where_every_copy_restarts() -> None:
         "RedSim/MiniChain-v0", batches=(2,), steps=6, warmup=1, budget=100.0, full_space=False, max_episode_steps=2
     )
     assert row["vector"][2]["env_steps_per_s"] > 0
+
+
+def test_bench_envs_table_marks_an_unconverged_full_space_step() -> None:
+    """The text table stars a full-space rate whose timed steps hit Newton's cap (only --json said so before)."""
+    from redsim.cli.envs import _row_line
+
+    row = {"id": "RedSim/X-v0", "n": 1, "d": 1, "action_size": 1, "observation_size": 1, "render": {"frames_per_s": 1}}
+    row |= {"single": {"env_steps_per_s": 1.0, "sim_s_per_wall_s": 0.02}, "vector": {}}
+    converged = _row_line({**row, "full_space": {"sim_s_per_wall_s": 0.0322, "converged": True}}, [])
+    capped = _row_line({**row, "full_space": {"sim_s_per_wall_s": 0.0322, "converged": False}}, [])
+    assert "0.0322*" in capped and "*" not in converged and len(capped) == len(converged)
