@@ -322,7 +322,8 @@ class HandleReach(Task):
         force = sim.loads[row, self._actuated_index]
         scale = 0.25 * sim.scene.extent() / self.max_force
         return (
-            [Marker(target.cpu().numpy(), TARGET_RGB, self.success_radius), Marker(goal.cpu().numpy(), HANDLE_RGB)],
+            # the target last, so that the goal handle's ring does not hide it as the handle comes near
+            [Marker(goal.cpu().numpy(), HANDLE_RGB), Marker(target.cpu().numpy(), TARGET_RGB, self.success_radius)],
             [Arrow(pushed.cpu().numpy(), force.cpu().numpy(), scale)],
         )
 

@@ -211,7 +211,7 @@ def test_the_success_disc_is_drawn_at_the_success_radius(env_id: str, size: int)
     env = gym.make(env_id, render_mode="rgb_array", width=size, height=size)
     env.reset(seed=0)
     framed = env.render()
-    unmarked, _ = _overlay_drawn(env, slice(1, None))  # markers[0] is the target
+    unmarked, _ = _overlay_drawn(env, slice(None, -1))  # markers[-1] is the target, drawn last
     ys, xs = np.nonzero((framed != unmarked).any(-1))
     drawn = 0.5 * np.array([xs.max() - xs.min() + 1, ys.max() - ys.min() + 1])  # half the ring's extent [px]
     view = env.unwrapped._view
@@ -226,11 +226,11 @@ def test_the_goal_marker_leaves_the_body_it_marks_visible(env_id: str, size: int
     env = gym.make(env_id, render_mode="rgb_array", width=size, height=size)
     env.reset(seed=0)
     env.render()
-    (bare, markers), (marked, _) = _overlay_drawn(env, slice(0, 0)), _overlay_drawn(env, slice(1, 2))
+    (bare, markers), (marked, _) = _overlay_drawn(env, slice(0, 0)), _overlay_drawn(env, slice(0, 1))
     view = env.unwrapped._view
-    x, y, _ = view.project(markers[1].position)[0]
+    x, y, _ = view.project(markers[0].position)[0]  # the goal handle's ring, drawn first
     rows, cols = np.mgrid[:size, :size]
-    inside = np.hypot(cols - x, rows - y) < view.marker_radius_px(markers[1]) - 0.5
+    inside = np.hypot(cols - x, rows - y) < view.marker_radius_px(markers[0]) - 0.5
     body = inside & (bare != raster.BACKGROUND).any(-1)
     assert body.sum() >= 1
     assert (marked[body] == bare[body]).all(-1).any()  # not every body pixel under the marker is painted over
@@ -283,3 +283,18 @@ def test_a_restored_state_draws_the_force_arrow_of_its_last_step() -> None:
     unloaded = other.render()
     assert not (unloaded == raster.Arrow.colour).all(-1).any()
     assert (unloaded != saved).any(-1).sum() <= arrow.sum()  # only the arrow's pixels changed
+
+
+@pytest.mark.parametrize("env_id", ["RedSim/MiniChain-v0", "RedSim/ConditionalBar-v1", "RedSim/ClothBall-v0"])
+def test_a_target_at_the_goal_handle_stays_visible(env_id: str) -> None:
+    """The target ring is drawn after the goal handle's ring: with the target on the handle (an episode near success)
+    its colour still shows at 84 px (the handle's ring hid it whole)."""
+    from redsim.raster import TARGET_RGB
+
+    env = gym.make(env_id, render_mode="rgb_array", width=84, height=84)
+    env.reset(seed=0)
+    sim, task = env.unwrapped.sim, env.unwrapped.task
+    goal = task._goal.position(sim.x[:1])[0][task._goal_index].cpu().numpy()
+    env.reset(seed=0, options={"target": goal})
+    assert (env.render() == np.array(TARGET_RGB)).all(-1).sum() > 0
+    env.close()
