@@ -353,8 +353,13 @@ def test_every_id_steps_alike_from_a_restored_state(env_id: str) -> None:
     obs2, reward2, terminated2, truncated2, _ = env.step(action)
     np.testing.assert_allclose(obs2, obs, rtol=1e-6, atol=1e-6)
     assert np.isclose(reward2, reward, rtol=1e-6, atol=1e-6) and (terminated2, truncated2) == (terminated, truncated)
-    for key in ("z", "z_prev"):
-        np.testing.assert_allclose(env.get_state()[key], after[key], rtol=1e-6, atol=1e-6)
+    again = env.get_state()
+    for key in ("z", "z_prev", "model", "loads", "cond"):
+        if after.get(key) is not None:
+            np.testing.assert_allclose(again[key], after[key], rtol=1e-6, atol=1e-6, equal_nan=True, err_msg=key)
+    assert set(again["params"]) == set(after["params"])
+    for key, value in after["params"].items():
+        np.testing.assert_allclose(again["params"][key], value, rtol=1e-6, atol=1e-6, err_msg=f"params.{key}")
 
 
 def test_get_state_set_state_round_trip_exactly(mini: gym.Env) -> None:
