@@ -24,6 +24,7 @@ import math
 import numbers
 import os
 import sys
+import warnings
 from collections.abc import Mapping, Sequence
 from typing import TYPE_CHECKING, Any, ClassVar
 
@@ -50,6 +51,9 @@ stepper's step (the env's dt / frame_skip)."""
 MAX_FRAME_SKIP = 1000
 """Most stepper steps one env step may take (``frame_skip``): each is an implicit solve, so a larger value makes a
 single ``step()`` run for minutes or, mistyped (``10**12``), forever; for a longer env step raise ``dt`` instead."""
+ACTION_RESOLUTION_WARNING = 0.05
+"""An env whose steps cannot feel actions below this fraction of their range (:attr:`LatentSim.action_resolution`)
+warns at its first reset (README "Tolerance")."""
 DISPLAY_VARIABLES = ("DISPLAY", "WAYLAND_DISPLAY", "SDL_VIDEODRIVER")
 """On Linux a window needs one of these set (SDL_VIDEODRIVER=dummy gives a window that shows nothing)."""
 
@@ -406,6 +410,8 @@ class LatentSim:
         self.z, self.z_prev = zeros.clone(), zeros.clone()
         self.cond: Tensor | None = None if not conditional else self.default_cond.expand(B, -1).clone()
         self.params: dict[str, Tensor] = {}
+        self.action_resolution: np.ndarray | None = None
+        """[A] after the first reset: :meth:`_action_resolution` (actions below this fraction go unfelt)."""
         self.loads = torch.zeros(B, len(scene.handles), scene.dim, dtype=self.torch_dtype, device=self.device)
         # the solver's d x d model of each copy, carried from step to step (NaN: build one)
         self.model = torch.full((B, d, d), torch.nan, dtype=self.torch_dtype, device=self.device)
@@ -507,6 +513,31 @@ class LatentSim:
         self.x_prev = self.x_prev.clone()
         self.x[rows] = x
         self.x_prev[rows] = x
+        if self.action_resolution is None:
+            self.action_resolution = self._action_resolution(rows[0])
+
+    def _action_resolution(self, row: int) -> np.ndarray:
+        """[A] The fraction of each action's range whose load a step from the map's origin can feel at best
+        (:attr:`redsim.runtime.LatentStepper.load_resolution` over the load a full action puts on each handle); warns
+        where it exceeds :data:`ACTION_RESOLUTION_WARNING`."""
+        resolution = self.stepper.load_resolution
+        size = self.task.action_size
+        fractions = np.zeros(size)
+        for i in range(size):
+            action = torch.zeros(self.batch, size, dtype=self.torch_dtype, device=self.device)
+            action[:, i] = 1.0
+            load = self.task.loads(action, self.params)[row].detach().to("cpu", torch.float64).norm(dim=-1)  # [H]
+            if bool((load > 0.0).any()):
+                fractions[i] = float((resolution[load > 0.0] / load[load > 0.0]).min())
+        if fractions.max() > ACTION_RESOLUTION_WARNING:
+            warnings.warn(
+                f"{self.torch_dtype} at dt={self.stepper.dt:g} s cannot feel actions below "
+                f"{fractions.max():.1%} of their range (action {int(fractions.argmax())}): such a step ends where it "
+                "started (at best: from the map's origin, along the direction it moves a handle most); use "
+                "dtype='float64' or a longer dt (README 'Tolerance')",
+                stacklevel=2,
+            )
+        return fractions
 
     def observe(self) -> np.ndarray:
         """Observations [B, obs] (float32, clipped to :meth:`observation_bounds`)."""

@@ -438,6 +438,13 @@ class LatentStepper:
         self.acceleration_resolution = self.tol * self.base_force / float(mass_diagonal)
         """[m/s^2] tol F / |diag M|_2: an acceleration the same at every node that is smaller is not felt (a step
         ends at its start); one the map projects weakly needs more. Grows as 1 / dt^2 (README "Tolerance")."""
+        handle_jacobian = self._handle_matrix.to(torch.float64) @ columns.T  # dp/dz at z = 0 [H D, d]
+        D, F = scene.dim, self.tol * self.jacobian_norm * self.base_force
+        blocks = [handle_jacobian[h * D : (h + 1) * D] for h in range(len(scene.handles))]
+        gains = [float(torch.linalg.matrix_norm(block, 2)) for block in blocks]
+        self.load_resolution = torch.tensor([F / g if g > 0.0 else math.inf for g in gains], dtype=torch.float64)
+        """[N] per handle [H]: tol |J_0|_2 F / |dp_h/dz|_2 at z = 0, the smallest load on handle h (along the direction
+        the map moves it most) that a step can feel; a smaller one ends the step where it starts."""
         if self.acceleration_resolution > RESOLUTION_WARNING:
             warnings.warn(
                 f"{self.dtype} at dt={self.dt:g} s resolves accelerations only to "

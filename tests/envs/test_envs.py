@@ -20,7 +20,7 @@ from gymnasium.vector import AutoresetMode
 
 import redsim
 from redsim import pretrained, scenes
-from redsim.envs.base import MAX_FRAME_SKIP, LatentEnv
+from redsim.envs.base import ACTION_RESOLUTION_WARNING, MAX_FRAME_SKIP, LatentEnv
 from redsim.envs.reach import HandleReach
 from redsim.subspace import CheckpointError
 
@@ -728,3 +728,22 @@ def test_every_id_runs_on_cuda(env_id: str) -> None:
     reach = {"target": sim.params["target"][0].cpu().numpy()} if "target" in sim.task.reset_options else {}
     env.reset(seed=1, options=CUDA_OPTIONS.get(env_id, reach))
     assert _full_space_step(env.unwrapped, 1, 0.0, np.random.default_rng(0), warmup=1)["step_s"] > 0
+
+
+def test_an_env_too_coarse_to_feel_its_actions_warns_at_its_first_reset() -> None:
+    """float32 at dt 0.005 s on the mini chain cannot feel actions below ~8% of their range: the first reset warns
+    (once); float64 resolves 1000x finer (its tol) and the default dt stays under 1%, both silent."""
+    with pytest.warns(UserWarning, match=r"cannot feel actions below .* of their range"):
+        coarse = gym.make("RedSim/MiniChain-v0", dt=0.005)
+        coarse.reset(seed=0)
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")
+        coarse.reset(seed=1)  # once per env
+        fine = gym.make("RedSim/MiniChain-v0", dt=0.005, dtype="float64")
+        fine.reset(seed=0)
+        default = gym.make("RedSim/MiniChain-v0")
+        default.reset(seed=0)
+    resolution = coarse.unwrapped.sim.action_resolution
+    assert resolution.shape == (3,) and (resolution > ACTION_RESOLUTION_WARNING).all()
+    np.testing.assert_allclose(fine.unwrapped.sim.action_resolution, resolution / 1000, rtol=1e-3)
+    assert (default.unwrapped.sim.action_resolution < 0.01).all()

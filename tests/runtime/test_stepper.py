@@ -434,6 +434,8 @@ def test_a_stepper_too_coarse_to_feel_its_forces_warns(mini_chain) -> None:
         coarse = LatentStepper(scene, f, 0.001, dtype=torch.float32)
     fine = LatentStepper(scene, f, 0.001, dtype=torch.float64)
     assert coarse.acceleration_resolution == pytest.approx(1000 * fine.acceleration_resolution, rel=1e-4)
+    assert coarse.load_resolution.shape == (len(scene.handles),) and bool((coarse.load_resolution > 0).all())
+    torch.testing.assert_close(coarse.load_resolution, 1000 * fine.load_resolution, rtol=1e-3, atol=0.0)
     for stepper, felt in ((coarse, False), (fine, True)):
         z = stepper.rest_latent()
         loads = torch.zeros(1, len(scene.handles), scene.dim, dtype=stepper.dtype)
