@@ -472,7 +472,7 @@ class LatentSim:
             if tuple(out["condition"].shape) != (m,):
                 raise ValueError(f"options['condition'] must have shape [{m}], got {list(out['condition'].shape)}")
             cond = out["condition"].to(self.torch_dtype)[None]
-            out["condition"] = self._checked_cond(cond, "options['condition']")[0]
+            out["condition"] = self.check_cond(cond, "options['condition']")[0]
         return out
 
     def reset_rows(
@@ -749,7 +749,7 @@ class LatentSim:
         missing = {"z", "z_prev", "cond", "params"} - set(state)
         if missing:
             raise ValueError(f"state is missing {sorted(missing)}")
-        cond = None if self.cond is None else self._checked_cond(tensor(state["cond"], tuple(self.cond.shape), "cond"))
+        cond = None if self.cond is None else self.check_cond(tensor(state["cond"], tuple(self.cond.shape), "cond"))
         z = tensor(state["z"], (B, d), "z")
         z_prev = tensor(state["z_prev"], (B, d), "z_prev")
         model = torch.full((B, d, d), torch.nan, dtype=self.torch_dtype, device=self.device)
@@ -801,7 +801,7 @@ class LatentSim:
             except ValueError as error:
                 raise ValueError(f"state['params'] of copy {row} is one a reset would refuse: {error}") from None
 
-    def _checked_cond(self, cond: Tensor, what: str = "state['cond']") -> Tensor:
+    def check_cond(self, cond: Tensor, what: str = "state['cond']") -> Tensor:
         """``cond`` [B, m], refused (ValueError naming ``what`` and the ranges) where it leaves the condition space."""
         if bool(((cond < self._cond_low) | (cond > self._cond_high)).any()):
             space = self.scene.condition_space

@@ -24,11 +24,12 @@ from multiprocessing.connection import Connection
 from typing import TYPE_CHECKING, Any
 
 import numpy as np
+import torch
 from gymnasium.utils import seeding
 from gymnasium.vector import AutoresetMode, VectorEnv
 from gymnasium.vector.utils import batch_space
 
-from redsim.envs.base import NO_HUMAN, VECTOR_RENDER_MODES, check_action, copy_seeds
+from redsim.envs.base import NO_HUMAN, VECTOR_RENDER_MODES, check_action, copy_seeds, restored_generator
 from redsim.envs.vector_api import SharedCopies, check_started, reset_mask
 
 if TYPE_CHECKING:
@@ -255,14 +256,20 @@ class ShardedVectorEnv(SharedCopies, VectorEnv):
         """Restore :meth:`get_state`'s state (or a native env's of as many copies).
 
         Raises:
-            ValueError: a state whose ``z``, ``z_prev``, ``loads`` or task parameters have another shape or are not
-                finite, then a task parameter ``reset(options=...)`` would refuse (checked here, in that order, as
-                the native env does: the env stays open); a condition outside the scene's range comes from the
-                workers, which check their blocks, and closes the env.
+            ValueError: a state whose ``cond``, ``z``, ``z_prev``, ``loads`` or task parameters have another shape or
+                are not finite, a condition outside the scene's range, an ``rngs`` entry that is not a NumPy generator
+                state, then a task parameter ``reset(options=...)`` would refuse (checked here, in that order, as the
+                native env does: the env stays open).
         """
         if not isinstance(state, Mapping):
             raise ValueError(f"need the dict get_state() returns, got {type(state).__name__}")
         self._check_state_shapes(state)
+        rngs = state.get("rngs")
+        if rngs is not None:
+            if len(rngs) != self.num_envs:
+                raise ValueError(f"state['rngs'] must hold {self.num_envs} generator states, got {len(rngs)}")
+            for saved in rngs:
+                restored_generator(None, saved)
         if isinstance(state.get("params"), Mapping):
             self.template.sim.check_state_params(state["params"])
         parts = [_state_rows(state, block) for block in self._blocks()]
@@ -315,6 +322,7 @@ class ShardedVectorEnv(SharedCopies, VectorEnv):
         d = sim.latent_dim
         if sim.cond is not None:
             check("cond", state["cond"], (n, *sim.cond.shape[1:]), finite=True)
+            sim.check_cond(torch.as_tensor(np.asarray(state["cond"], dtype=np.float64), dtype=sim.cond.dtype))
         check("z", state["z"], (n, d), finite=True)
         check("z_prev", state["z_prev"], (n, d), finite=True)
         if state.get("model") is not None:

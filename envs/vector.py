@@ -29,7 +29,7 @@ from gymnasium.utils import seeding
 from gymnasium.vector import AutoresetMode, VectorEnv
 from gymnasium.vector.utils import batch_space
 
-from redsim.envs.base import NO_HUMAN, VECTOR_RENDER_MODES, check_action, copy_seeds, state_row
+from redsim.envs.base import NO_HUMAN, VECTOR_RENDER_MODES, check_action, copy_seeds, restored_generator, state_row
 from redsim.envs.sharded import ShardedVectorEnv, shard_sizes
 from redsim.envs.vector_api import SharedCopies, check_started, reset_mask
 
@@ -202,7 +202,9 @@ class LatentVectorEnv(SharedCopies, VectorEnv):
 
         Raises:
             ValueError: a state of another env or batch, a task parameter ``reset(options=...)`` would refuse
-                (:meth:`redsim.envs.base.LatentSim.set_state`), or a clock or ``rngs`` of another length.
+                (:meth:`redsim.envs.base.LatentSim.set_state`), a clock or ``rngs`` of another length, or an ``rngs``
+                entry that is not a NumPy generator state (each may be of any bit generator: PCG64, Philox, ...);
+                nothing changes then.
         """
         elapsed = np.asarray(state.get("elapsed_steps", np.zeros(self.num_envs)))
         pending = np.asarray(state.get("autoresetting", np.zeros(self.num_envs, dtype=bool)))
@@ -214,9 +216,10 @@ class LatentVectorEnv(SharedCopies, VectorEnv):
         rngs = state.get("rngs")
         if rngs is not None and len(rngs) != self.num_envs:
             raise ValueError(f"state['rngs'] must hold {self.num_envs} generator states, got {len(rngs)}")
+        generators = None if rngs is None else [restored_generator(None, saved) for saved in rngs]  # checked first
         self.sim.set_state({k: v for k, v in state.items() if k not in ("elapsed_steps", "autoresetting", "rngs")})
-        for g, saved in zip(self._rngs, () if rngs is None else rngs, strict=False):
-            g.bit_generator.state = saved
+        if generators is not None:
+            self._rngs = generators
         self._elapsed[:] = elapsed.astype(np.int64)
         self._autoreset[:] = pending.astype(bool) & (self.metadata["autoreset_mode"] != AutoresetMode.SAME_STEP)
         self._unreset[:] = False

@@ -430,6 +430,30 @@ def test_a_generator_of_another_kind_travels_with_copies_and_states() -> None:
         assert np.array_equal(clone.reset()[0], next_obs)
 
 
+def test_vector_generators_of_another_kind_restore_and_a_bad_one_changes_nothing() -> None:
+    """The native vector env's ``rngs`` restore by their own kind (as a single env's), and a malformed entry is
+    refused before the simulation changes."""
+    venv = gym.make_vec("RedSim/MiniChain-v0", num_envs=2, vectorization_mode="vector_entry_point").unwrapped
+    venv.reset(seed=0)
+    state = venv.get_state()
+    state["rngs"] = [np.random.Generator(np.random.Philox(s)).bit_generator.state for s in (3, 4)]
+    other = gym.make_vec("RedSim/MiniChain-v0", num_envs=2, vectorization_mode="vector_entry_point").unwrapped
+    other.reset(seed=1)
+    other.set_state(state)
+    np.testing.assert_equal(other.get_state()["rngs"], state["rngs"])  # (Philox's state holds arrays)
+    mask = np.array([True, False])
+    obs = other.reset(options={"reset_mask": mask})[0]
+    venv.set_state(state)
+    assert np.array_equal(venv.reset(options={"reset_mask": mask})[0], obs)  # the same draws from the Philox streams
+    with pytest.raises(AssertionError):  # copy 0's stream moved on, copy 1's did not
+        np.testing.assert_equal(other.get_state()["rngs"][0], state["rngs"][0])
+    np.testing.assert_equal(other.get_state()["rngs"][1], state["rngs"][1])
+    before = other.get_state()
+    with pytest.raises(ValueError, match="must name a NumPy bit generator"):
+        other.set_state({**venv.get_state(), "z": before["z"] + 1.0, "rngs": [None, None]})
+    assert np.array_equal(other.get_state()["z"], before["z"])
+
+
 def test_a_copy_keeps_the_seed_and_spec_so_reading_the_seed_keeps_the_generator() -> None:
     """Gymnasium's ``np_random_seed`` draws a fresh generator where the seed is unset; a copy that dropped it
     would lose its seeded stream on the first read."""

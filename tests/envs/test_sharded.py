@@ -101,9 +101,11 @@ def test_bad_input_is_a_clear_error_and_a_failing_worker_raises_in_the_caller() 
     for key in ("z", "z_prev", "loads"):  # non-finite: refused here too, as the native env refuses it
         with pytest.raises(ValueError, match=rf"state\['{key}'\] must be finite"):
             venv.set_state({**venv.get_state(), key: np.full_like(venv.get_state()[key], np.nan)})
+    with pytest.raises(ValueError, match="must name a NumPy bit generator"):  # here too, before any worker
+        venv.set_state({**venv.get_state(), "rngs": [None, None]})
     assert not venv.closed
-    with pytest.raises(TypeError, match="state must be a dict") as raised:  # a worker's own error, as itself
-        venv.set_state({**venv.get_state(), "rngs": [None, None]})  # (numpy's, on a generator state)
+    with pytest.raises(ValueError, match="state is missing") as raised:  # a worker's own error, as itself
+        venv._call([("set_state", {})] * len(venv.sizes))  # (a request the checks above would have refused)
     assert "shard 0:" in "\n".join(raised.value.__notes__)  # with the worker's traceback
     assert venv.closed
     venv = make(shards=2)
@@ -189,5 +191,21 @@ def test_sb3_adapter_runs_on_shards() -> None:
         assert obs.shape == (4, *venv.observation_space.shape)
         obs, reward, _, infos = venv.step(np.zeros((4, 3), np.float32))
         assert reward.shape == (4,) and len(infos) == 4 and np.isfinite(obs).all()
+    finally:
+        venv.close()
+
+
+def test_a_condition_outside_its_space_is_refused_before_the_workers_and_the_env_stays_open() -> None:
+    """As the native env: ``set_state`` refuses a ``cond`` beyond the scene's condition space in this process."""
+    venv = gym.make_vec("RedSim/ConditionalBar-v0", num_envs=2, vectorization_mode="vector_entry_point", shards=2)
+    try:
+        venv.reset(seed=0)
+        state = venv.get_state()
+        high = venv.template.sim.scene.condition_space.high.numpy()
+        with pytest.raises(ValueError, match=r"state\['cond'\] must lie in the condition space"):
+            venv.set_state({**state, "cond": np.tile(2.0 * np.abs(high) + 1.0, (2, 1))})
+        assert not venv.closed
+        venv.set_state(state)  # still usable
+        venv.step(np.zeros((2, *venv.single_action_space.shape), np.float32))
     finally:
         venv.close()
