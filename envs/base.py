@@ -1138,7 +1138,7 @@ class LatentEnv(gym.Env[np.ndarray, np.ndarray]):
         state = {"init": self._init_args, "sim": self.get_state() if self._reset_done else None, "spec": self.spec}
         state["rng"] = None if self._np_random is None else self._np_random.bit_generator.state
         state["seed"] = self._np_random_seed  # without it, reading np_random_seed would replace the generator
-        state["subspace"] = self._unbacked_subspace()
+        state["subspace"] = self.unbacked_subspace()
         return state
 
     def __setstate__(self, state: dict[str, Any]) -> None:
@@ -1153,7 +1153,7 @@ class LatentEnv(gym.Env[np.ndarray, np.ndarray]):
         if state["sim"] is not None:
             self.set_state(state["sim"])
 
-    def _unbacked_subspace(self) -> nn.Module | None:
+    def unbacked_subspace(self) -> nn.Module | None:
         """The map where it was fitted in memory (:data:`redsim.envs.fitted.IN_MEMORY_ATTRIBUTE`), the constructor
         arguments do not hold it (a rebuild from them would fit it again) and the constructor takes a ``subspace``,
         else None."""

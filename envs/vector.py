@@ -343,8 +343,14 @@ def vector_entry(env_class: type[LatentEnv]) -> Callable[..., LatentVectorEnv | 
             return build(num_envs)
         mode = check_vector_args(num_envs, max_episode_steps, autoreset_mode)  # before any env or worker is made
         shard_sizes(num_envs, shards)
+        template = env_class(**kwargs)
+        carried = template.unbacked_subspace()
+        if carried is not None:  # fitted in memory here: the workers take the map instead of fitting it again
+            build = functools.partial(
+                _native, env_class, {**kwargs, "subspace": carried}, max_episode_steps, autoreset_mode
+            )
         return ShardedVectorEnv(
-            build, env_class(**kwargs), num_envs, shards, autoreset_mode=mode, max_episode_steps=max_episode_steps
+            build, template, num_envs, shards, autoreset_mode=mode, max_episode_steps=max_episode_steps
         )
 
     make_vec.__doc__ = (

@@ -8,6 +8,7 @@ import pickle
 import gymnasium as gym
 import numpy as np
 import pytest
+import torch
 
 import redsim  # noqa: F401  (registers the ids)
 from redsim.envs import fitted
@@ -106,3 +107,36 @@ def test_an_env_fitted_in_memory_copies_with_its_map_instead_of_fitting_again(mo
 def _weights(env: gym.Env) -> int:
     """Bytes of the env's map's pickled weights."""
     return len(pickle.dumps(env.unwrapped.sim.subspace.state_dict()))
+
+
+def test_a_sharded_env_fitted_in_memory_sends_its_map_to_the_workers(monkeypatch: pytest.MonkeyPatch) -> None:
+    """With the cache off, ``shards=2`` fits once (here) and each worker builds its copies from that map: the build a
+    worker unpickles makes its env without fitting."""
+    from redsim.envs import vector
+
+    monkeypatch.setenv("REDSIM_CACHE", "0")
+    made = {}
+
+    class Recorded(Exception):
+        """Raised in place of starting the workers, once what they would be sent is recorded."""
+
+    def record(build, template, *args, **kwargs):
+        made.update(build=build, template=template)
+        raise Recorded
+
+    monkeypatch.setattr(vector, "ShardedVectorEnv", record)
+    with pytest.raises(Recorded):
+        gym.make_vec(
+            "RedSim/MiniChain-v0",
+            num_envs=2,
+            vectorization_mode="vector_entry_point",
+            shards=2,
+            scene_params=PARAMS,
+            fit_if_missing=True,
+            fit_options=TINY,
+        )
+    monkeypatch.setattr("redsim.trainers.fit.fit_subspace", lambda *a, **k: pytest.fail("a worker fitted again"))
+    shard = pickle.loads(pickle.dumps(made["build"]))(1)  # what a worker runs
+    template = made["template"].sim.subspace
+    for mine, theirs in zip(template.state_dict().values(), shard.sim.subspace.state_dict().values(), strict=True):
+        assert torch.equal(mine, theirs)
