@@ -283,6 +283,8 @@ class LatentSim:
         randomize_condition: Draw the condition c uniformly from the scene's condition space per
             episode (a conditional map is needed) and append it to the observation.
         include_q: Put the full free configuration q [n] in ``info["q"]`` (steps and resets, :meth:`reset_info`).
+        reset_noise_scale: s >= 0: each episode starts at the task's start z0 + U(-s, s) with z_dot s N(0, 1)
+            [latent units, per s], per latent, from the copy's generator (MuJoCo's convention; 0: exactly z0 at rest).
         stepper_options: Extra keyword arguments of :class:`redsim.runtime.LatentStepper`.
         cubature: Step a cubature energy instead of every element (:func:`env_energy`): None (default)
             the shipped one where :data:`CUBATURE_DEFAULT` turns it on, True, False, or a checkpoint path.
@@ -311,6 +313,7 @@ class LatentSim:
     conditional: bool
     randomize_condition: bool
     include_q: bool
+    reset_noise_scale: float
     z: Tensor
     z_prev: Tensor
     x: Tensor
@@ -331,6 +334,7 @@ class LatentSim:
         device: str = "cpu",
         randomize_condition: bool = False,
         include_q: bool = False,
+        reset_noise_scale: float = 0.0,
         stepper_options: Mapping[str, Any] | None = None,
         cubature: bool | str | os.PathLike[str] | None = None,
     ) -> None:
@@ -355,6 +359,9 @@ class LatentSim:
         for flag, value in (("include_q", include_q), ("randomize_condition", randomize_condition)):
             if not isinstance(value, (bool, np.bool_)):
                 raise ValueError(f"{flag} must be True or False, got {value!r}")
+        noise = reset_noise_scale
+        if isinstance(noise, bool) or not isinstance(noise, numbers.Real) or not 0.0 <= noise < math.inf:
+            raise ValueError(f"reset_noise_scale must be a finite number >= 0 [latent units], got {noise!r}")
         dtype = _dtype_name(dtype)
         device = check_device(device)
         check_subspace(scene, subspace)
@@ -368,6 +375,7 @@ class LatentSim:
             "device": device,
             "randomize_condition": bool(randomize_condition),
             "include_q": bool(include_q),
+            "reset_noise_scale": float(reset_noise_scale),
             "stepper_options": dict(stepper_options or {}),
             "cubature": cubature,
         }
@@ -382,6 +390,7 @@ class LatentSim:
         self.randomize_condition = bool(randomize_condition)
         self.conditional = conditional
         self.include_q = bool(include_q)
+        self.reset_noise_scale = float(reset_noise_scale)
         if stepper_options is not None and not isinstance(stepper_options, Mapping):
             raise ValueError(f"stepper_options must be a dict, got {stepper_options!r:.80}")
         options = dict(stepper_options or {})
@@ -506,6 +515,12 @@ class LatentSim:
             start = self.task.start(self, row, z_rest)
             self.z[row] = start
             self.z_prev[row] = start
+            if self.reset_noise_scale > 0.0:  # drawn last: with s = 0 the streams are those of an env without it
+                s, d = self.reset_noise_scale, self.latent_dim
+                offset = torch.as_tensor(rng.uniform(-s, s, d), dtype=self.torch_dtype, device=self.device)
+                speed = torch.as_tensor(s * rng.standard_normal(d), dtype=self.torch_dtype, device=self.device)
+                self.z[row] = start + offset
+                self.z_prev[row] = self.z[row] - speed * self.stepper.dt
         self.loads[rows] = 0.0
         self.model[rows] = torch.nan
         x = self.full_positions(self.z[rows], None if self.cond is None else self.cond[rows])
@@ -940,6 +955,7 @@ class LatentEnv(gym.Env[np.ndarray, np.ndarray]):
         device: Torch device.
         randomize_condition: Draw the scene's condition per episode (conditional maps).
         include_q: Put q in the ``info`` of every step and reset.
+        reset_noise_scale: Start noise s [latent units] (:class:`LatentSim`; 0: every episode starts at rest).
         width: Render width [px].
         height: Render height [px].
         camera: ``azimuth``/``elevation``/``margin`` of :class:`redsim.raster.SceneView`, over the env's own
@@ -973,6 +989,7 @@ class LatentEnv(gym.Env[np.ndarray, np.ndarray]):
         device: str = "cpu",
         randomize_condition: bool = False,
         include_q: bool = False,
+        reset_noise_scale: float = 0.0,
         width: int = 480,
         height: int = 480,
         camera: Mapping[str, float] | None = None,
@@ -995,6 +1012,7 @@ class LatentEnv(gym.Env[np.ndarray, np.ndarray]):
             device=device,
             randomize_condition=randomize_condition,
             include_q=include_q,
+            reset_noise_scale=reset_noise_scale,
             stepper_options={**self.stepper_defaults, **(stepper_options or {})},
             cubature=cubature,
         )
@@ -1027,7 +1045,8 @@ class LatentEnv(gym.Env[np.ndarray, np.ndarray]):
 
     # -- Gymnasium API --------------------------------------------------------------------
     def reset(self, *, seed: int | None = None, options: dict[str, Any] | None = None) -> tuple[np.ndarray, dict]:
-        """Start at the rest state (z = the map's unloaded equilibrium, z_dot = 0) with a new task draw.
+        """Start at the rest state (z = the map's unloaded equilibrium, z_dot = 0; or where the task starts, plus
+        ``reset_noise_scale`` noise) with a new task draw.
 
         ``options`` sets parts of the draw for this episode: the task's ``reset_options`` (e.g. ``{"target": [x, y,
         z]}``, see the env's "Starting State") and ``"condition"`` where it is drawn per episode; another key is a

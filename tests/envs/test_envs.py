@@ -191,6 +191,31 @@ def test_a_vector_copys_reset_is_a_single_envs_bit_for_bit_in_float64_and_to_rou
             np.testing.assert_allclose(batch, singles, rtol=0, atol=4 * np.spacing(np.abs(singles).max()))
 
 
+def test_reset_noise_scale_perturbs_the_start_reproducibly_and_alike_in_vector_copies() -> None:
+    """MuJoCo's convention: z0 + U(-s, s), z_dot s N(0, 1) per latent, from the env's generator; s = 0: at rest."""
+    s = 0.05
+    plain = gym.make("RedSim/MiniChain-v0", dtype="float64").unwrapped
+    noisy = gym.make("RedSim/MiniChain-v0", dtype="float64", reset_noise_scale=s).unwrapped
+    rest, _ = plain.reset(seed=3)
+    obs, _ = noisy.reset(seed=3)
+    d = noisy.sim.latent_dim
+    offset, speed = obs[:d] - rest[:d], obs[d : 2 * d]
+    assert 0.0 < np.abs(offset).max() <= s and np.abs(offset).min() > 0.0
+    assert np.abs(speed).max() > 0.0 and not np.allclose(speed, 0.0)
+    for key, value in plain.sim.params.items():  # the same task draw (the target), drawn before the noise
+        assert torch.equal(noisy.sim.params[key], value)
+    assert np.array_equal(noisy.reset(seed=3)[0], obs)
+    assert not np.array_equal(noisy.reset(seed=4)[0][:d], gym.make("RedSim/MiniChain-v0").reset(seed=4)[0][:d])
+    venv = gym.make_vec(
+        "RedSim/MiniChain-v0", num_envs=2, vectorization_mode="vector_entry_point", dtype="float64", reset_noise_scale=s
+    )
+    assert np.array_equal(venv.reset(seed=3)[0][0], obs)
+    noisy.step(np.zeros(3, np.float32))  # a noisy start steps like any other
+    for bad in (-0.1, float("nan"), float("inf"), True, "0.1"):
+        with pytest.raises(ValueError, match="reset_noise_scale must be a finite number >= 0"):
+            gym.make("RedSim/MiniChain-v0", reset_noise_scale=bad)
+
+
 def test_a_none_seed_in_a_vector_reset_keeps_that_copy_s_generator() -> None:
     """As Gymnasium's sync vector env (and a single env's ``reset(seed=None)``): copy 1 continues its stream."""
     venv = gym.make_vec("RedSim/MiniChain-v0", num_envs=2, vectorization_mode="vector_entry_point")
