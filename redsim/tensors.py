@@ -1,10 +1,9 @@
 """Walking the tensors inside nested scene data (effects' fields, handles, surfaces): cast, move, select; and
-forward-mode derivatives (:func:`jvp`)."""
+Jacobian-vector products (:func:`jvp`)."""
 
 from __future__ import annotations
 
 import dataclasses
-import warnings
 from collections.abc import Callable
 from typing import Any
 
@@ -40,19 +39,19 @@ def cast_tensors(value: Any, device: torch.device | str | None, dtype: torch.dty
     return map_tensors(value, cast)
 
 
-_JVP_QUIET: list[bool] = []
-"""Non-empty once a :func:`jvp` call has run: torch scripts its forward-mode decompositions once per process."""
-
-
 def jvp(fn: Callable[..., Tensor], primals: tuple[Tensor, ...], tangents: tuple[Tensor, ...]) -> tuple[Tensor, Tensor]:
-    """``torch.func.jvp`` without the ``torch.jit.script`` DeprecationWarning that torch's own forward-mode
-    decompositions raise on first use: a warning about torch's internals, which under ``python -W error`` would
-    stop a user's first env step. Only the first call is wrapped (``warnings.catch_warnings`` resets Python's
-    once-per-location warning registry and is not thread-safe)."""
-    if _JVP_QUIET:
-        return torch.func.jvp(fn, primals, tangents)
-    with warnings.catch_warnings():
-        warnings.filterwarnings("ignore", message="`torch.jit.script` is deprecated", category=DeprecationWarning)
-        result = torch.func.jvp(fn, primals, tangents)
-    _JVP_QUIET.append(True)
-    return result
+    """(fn(*primals), J tangents), as ``torch.func.jvp``, by reverse mode twice: J^T u (a graph linear in a dummy
+    u), then its gradient in u along the tangents. ``torch.func.jvp`` and ``torch.autograd.forward_ad`` import
+    ``torch._dynamo`` on first use (3-4 s of every process's first env, measured) and raise a
+    ``torch.jit.script`` DeprecationWarning; this needs neither. Tensors in, tensors out (no graph kept)."""
+    inputs = tuple(p.detach().requires_grad_(True) for p in primals)
+    with torch.enable_grad():
+        out = fn(*inputs)
+        dummy = torch.zeros_like(out, requires_grad=True)
+        # scalar outputs: grad_outputs would import torch.fx's symbolic shapes (sympy, ~2 s) in autograd's checks
+        vjps = torch.autograd.grad((out * dummy).sum(), inputs, create_graph=True, allow_unused=True)
+        pairs = [(v, t) for v, t in zip(vjps, tangents, strict=True) if v is not None]
+        if not pairs:  # fn does not depend on its inputs
+            return out.detach(), torch.zeros_like(out)
+        (column,) = torch.autograd.grad(sum((v * t).sum() for v, t in pairs), dummy, allow_unused=True)
+    return out.detach(), torch.zeros_like(out) if column is None else column.detach()

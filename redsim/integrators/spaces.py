@@ -19,6 +19,7 @@ import torch
 from torch import Tensor
 
 from redsim.scene import Scene
+from redsim.tensors import jvp
 
 HESSIAN_FLOOR = 1e-8
 """Smallest eigenvalue of a latent Newton Hessian, relative to its largest (see :meth:`LatentSpace.hessian`)."""
@@ -239,18 +240,9 @@ class LatentSpace:
         u = u.detach()
         if self._jacobian_at is not None and torch.equal(self._jacobian_at[0], u):
             return self._jacobian_at[1]
-        z = u.expand(self.latent_dim, -1).clone().requires_grad_(True)  # one copy of u per column
-        with torch.enable_grad():
-            q = self.configuration(z)  # [d, n]
-            probe = torch.zeros_like(q, requires_grad=True)
-            pulled = None  # stays None for a map that ignores z
-            if q.requires_grad:
-                (pulled,) = torch.autograd.grad(q, z, probe, create_graph=True, allow_unused=True)  # row k: J^T p_k
-            columns = None
-            if pulled is not None and pulled.requires_grad:
-                (columns,) = torch.autograd.grad(pulled.diagonal().sum(), probe, allow_unused=True)  # row k: J e_k
-        jac = torch.zeros_like(q) if columns is None else columns
-        matrix = jac.detach().T.cpu().numpy().astype(np.float64)
+        d = self.latent_dim
+        _, columns = jvp(self.configuration, (u.expand(d, -1),), (torch.eye(d, dtype=u.dtype, device=u.device),))
+        matrix = columns.T.cpu().numpy().astype(np.float64)  # row k of columns: J e_k
         self._jacobian_at = (u.clone(), matrix)
         return matrix
 

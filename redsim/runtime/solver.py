@@ -7,9 +7,9 @@ model Hessian comes from one of :data:`HESSIANS`:
 - ``"exact"``: the exact Hessian of Phi in z (map curvature included) by double backward over d
   copies of each state, eigenvalues replaced by their absolute value (floored), as the reference
   :class:`redsim.integrators.LatentSpace` does.
-- ``"gauss_newton"``: J^T (M/h^2 + d^2E/dq^2) J with J = dq/dz from forward mode (``torch.func.jvp``)
+- ``"gauss_newton"``: J^T (M/h^2 + d^2E/dq^2) J with J = dq/dz from :func:`redsim.tensors.jvp`
   and the q-space Hessian applied to J's columns (double backward over q), map curvature dropped.
-- ``"bfgs"``: a damped BFGS update of the Hessian, started from J^T M J / h^2 (forward-mode J).
+- ``"bfgs"``: a damped BFGS update of the Hessian, started from J^T M J / h^2.
 - ``"lagged"``: the exact Hessian at the first iterate of a step, then BFGS updates of it.
 - ``"lagged_fd"``: as "lagged", with the first Hessian from forward differences of the gradient
   (d gradients at z + eps e_k in one call: no double backward, so it also runs compiled).

@@ -223,7 +223,7 @@ class _StepObjective:
     def _jacobian(
         self, z: Tensor, index: Tensor, coords: Callable[[Tensor, Tensor | None], Tensor] | None = None
     ) -> Tensor:
-        """J^T as [d, k, n]: dy/dz_j of every state (y = the stepper's coordinates), by forward mode."""
+        """J^T as [d, k, n]: dy/dz_j of every state (y = the stepper's coordinates), by :func:`redsim.tensors.jvp`."""
         k, d = z.shape
         tangents = torch.eye(d, dtype=z.dtype, device=z.device).repeat_interleave(k, 0)
         cond = self._cond(index, d)
