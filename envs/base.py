@@ -42,8 +42,15 @@ if TYPE_CHECKING:  # imported where used: the runtime and the invariants load on
     from redsim.envs.invariants import Invariants
     from redsim.runtime import LatentStepper
 
-CAMERA_KEYS = ("azimuth", "elevation", "margin")
-"""The ``camera`` keys an env takes (keyword arguments of :class:`redsim.raster.SceneView`)."""
+CAMERA_KEYS = ("azimuth", "elevation", "margin", "track")
+"""The ``camera`` keys an env takes: ``azimuth``, ``elevation`` [deg] and ``margin`` (keyword arguments of
+:class:`redsim.raster.SceneView`), and ``track`` (bool, default False: the fixed camera of :meth:`LatentSim.fixed_view`;
+True: each episode framed anew, :meth:`LatentSim.view`)."""
+FRAME_SAMPLES = 64
+"""Fixed draws (seed 0) of a task's targets whose shapes bound the region a fixed camera frames
+(:meth:`Task.frame_points`)."""
+LOOP_SAMPLES = 64
+"""Shapes round the loop of each periodic latent that a fixed camera frames (:meth:`LatentSim.frame_points`)."""
 
 LATENT_BOUND = 10.0
 """Observation bound of each latent coordinate (maps are fitted on z ~ N(0, I)); z_dot gets 2 LATENT_BOUND / h, h the
@@ -169,6 +176,12 @@ class Task:
     def overlay(self, sim: LatentSim, row: int) -> tuple[list[Any], list[Any]]:
         """(markers, arrows) of :mod:`redsim.raster` to draw on copy ``row``."""
         return [], []
+
+    def frame_points(self, sim: LatentSim) -> np.ndarray | None:
+        """Points [P, D] [m] the env's fixed camera must hold besides the reset shapes (:meth:`LatentSim.frame_points`):
+        the region targets or goals are drawn from (the corners of a sampling box, or shapes of fixed draws) and the
+        handles' reachable extent; None (default): nothing more. Called once per env, at its first render."""
+        return None
 
 
 def check_subspace(scene: Scene, subspace: nn.Module) -> None:
@@ -828,14 +841,67 @@ class LatentSim:
         return cond
 
     # -- drawing --------------------------------------------------------------------------
-    def view(self, width: int, height: int, camera: Mapping[str, float] | None, rows: Sequence[int] = (0,)) -> Any:
-        """A :class:`redsim.raster.SceneView` framed on copy 0's current shape and the overlay markers (targets,
-        handles) of copies ``rows``."""
+    def surface_points(self, z: Tensor, cond: Tensor | None = None) -> np.ndarray:
+        """Vertex positions [P, D] [m] of every surface in the shapes of latents z [B, d] (conditions cond [B, m],
+        default: the default condition), float64."""
+        if cond is None and self.conditional:
+            cond = self.default_cond.expand(len(z), -1)
+        x = self.full_positions(z, cond)
+        points = [s.points.positions(x).reshape(-1, self.scene.dim) for s in self.scene.surfaces]
+        return torch.cat(points).detach().cpu().to(torch.float64).numpy()
+
+    def frame_conditions(self) -> list[Tensor | None]:
+        """The conditions [1, m] whose reset shapes a fixed camera frames: the default, and where the condition is
+        drawn per episode the corners of the condition box too ([None] for an unconditional map)."""
+        if not self.conditional:
+            return [None]
+        conds = [self.default_cond]
+        if self.randomize_condition:
+            m = self._cond_low.shape[0]
+            for corner in range(2**m):
+                pick = torch.tensor([(corner >> i) & 1 for i in range(m)], dtype=torch.bool, device=self.device)
+                conds.append(torch.where(pick, self._cond_high, self._cond_low).unsqueeze(0))
+        return conds
+
+    def frame_points(self) -> np.ndarray:
+        """Points [P, D] [m] a fixed camera frames (computed once, then kept): the reset shapes (at rest under each
+        of :meth:`frame_conditions`), every shape round the loop of each periodic latent (:data:`LOOP_SAMPLES`
+        angles) and the task's :meth:`Task.frame_points` (its target region, its handles' reach)."""
+        if getattr(self, "_frame_points", None) is None:
+            points = []
+            angles = torch.linspace(-math.pi, math.pi, LOOP_SAMPLES + 1, dtype=self.torch_dtype)[:-1]
+            for cond in self.frame_conditions():
+                z = self._rest_latent(cond).unsqueeze(0)
+                if self.periodic:
+                    z = z.repeat(LOOP_SAMPLES, 1)
+                    z[:, self.periodic] = angles.to(self.device).unsqueeze(1)
+                points.append(self.surface_points(z, None if cond is None else cond.expand(len(z), -1)))
+            extra = self.task.frame_points(self)
+            if extra is not None and len(extra):
+                points.append(np.asarray(extra, dtype=np.float64).reshape(-1, self.scene.dim))
+            self._frame_points = np.concatenate(points)
+        return self._frame_points
+
+    def fixed_view(self, width: int, height: int, camera: Mapping[str, Any] | None) -> Any:
+        """The env's fixed camera: a :class:`redsim.raster.SceneView` framed on :meth:`frame_points`, so the same
+        world point lands on the same pixel in every episode and every copy (DeepMind Control's fixed cameras); a
+        shape that leaves the frame is clipped at the picture's border."""
+        from redsim.raster import SceneView
+
+        rest = self._rest_latent(self.default_cond).unsqueeze(0)
+        q = self.positions(rest, self.default_cond)[0]
+        settings = {k: v for k, v in dict(camera or {}).items() if k != "track"}
+        return SceneView(self.scene, q, width=width, height=height, extra_points=self.frame_points(), **settings)
+
+    def view(self, width: int, height: int, camera: Mapping[str, Any] | None, rows: Sequence[int] = (0,)) -> Any:
+        """A tracking camera (``camera={"track": True}``): a :class:`redsim.raster.SceneView` framed on copy 0's
+        current shape and the overlay markers (targets, handles) of copies ``rows``."""
         from redsim.raster import SceneView
 
         q = self.positions(self.z[:1], None if self.cond is None else self.cond[:1])[0]
         extra = self._marker_points(rows)
-        return SceneView(self.scene, q, width=width, height=height, extra_points=extra, **dict(camera or {}))
+        settings = {k: v for k, v in dict(camera or {}).items() if k != "track"}
+        return SceneView(self.scene, q, width=width, height=height, extra_points=extra, **settings)
 
     def _marker_points(self, rows: Sequence[int]) -> np.ndarray | None:
         """Positions [P, D] of the overlay markers of copies ``rows`` (None: no marker)."""
@@ -843,10 +909,14 @@ class LatentSim:
         return np.array(points, dtype=np.float64).reshape(len(points), -1) if points else None
 
     def framed_view(
-        self, view: Any, width: int, height: int, camera: Mapping[str, float] | None, rows: Sequence[int]
+        self, view: Any, width: int, height: int, camera: Mapping[str, Any] | None, rows: Sequence[int]
     ) -> Any:
-        """``view`` while it shows every overlay marker of copies ``rows``, else a new :meth:`view` framed on them
-        all (a target drawn or chosen outside the frame, or a handle that left it; None: a first view)."""
+        """The view to draw copies ``rows`` with. The fixed camera (default): ``view``, or :meth:`fixed_view` for a
+        first one (None). A tracking camera (``camera["track"]``): ``view`` while it shows every overlay marker of
+        copies ``rows``, else a new :meth:`view` framed on them all (a target drawn or chosen outside the frame, or a
+        handle that left it; None: a first view)."""
+        if not (camera or {}).get("track", False):
+            return view if view is not None else self.fixed_view(width, height, camera)
         if view is not None:
             points = self._marker_points(rows)
             if points is None or view.contains(points):
@@ -959,7 +1029,9 @@ class LatentEnv(gym.Env[np.ndarray, np.ndarray]):
         width: Render width [px].
         height: Render height [px].
         camera: ``azimuth``/``elevation``/``margin`` of :class:`redsim.raster.SceneView`, over the env's own
-            :attr:`camera` key by key.
+            :attr:`camera` key by key. The camera is fixed (framed once, at the first render, on the reset shapes
+            and the task's target region: :meth:`LatentSim.fixed_view`); ``track=True`` frames each episode anew
+            on its shape and markers instead.
         stepper_options: Extra keyword arguments of :class:`redsim.runtime.LatentStepper`.
         cubature: Step a cubature energy (:func:`env_energy`): None (the shipped one where
             :data:`CUBATURE_DEFAULT` turns it on), True (required), False (every element) or a checkpoint path.
@@ -1057,7 +1129,8 @@ class LatentEnv(gym.Env[np.ndarray, np.ndarray]):
         self._reset_done = False  # until the draw succeeds (a task may refuse an option's value)
         self.sim.reset_rows([0], [self.np_random], chosen)
         self._reset_done = True
-        self._view = None  # framed anew on this episode: a picture never depends on earlier episodes
+        if self._camera.get("track", False):
+            self._view = None  # framed anew on this episode: a picture never depends on earlier episodes
         if self.render_mode == "human":
             self.render()
         return self.sim.observe()[0], {k: v[0] for k, v in self.sim.reset_info().items()}
@@ -1129,7 +1202,8 @@ class LatentEnv(gym.Env[np.ndarray, np.ndarray]):
         if state.get("rng") is not None:
             self._np_random = restored_generator(self.np_random, state["rng"])
         self._reset_done = True
-        self._view = None  # framed anew on the restored state, as after a reset
+        if self._camera.get("track", False):
+            self._view = None  # framed anew on the restored state, as after a reset
 
     def configuration(self) -> np.ndarray:
         """The free configuration q [n] of the current state (float of the stepper's dtype)."""
@@ -1328,20 +1402,23 @@ def _image_size(width: Any, height: Any) -> tuple[int, int]:
     return int(width), int(height)
 
 
-def _camera(camera: Mapping[str, Any] | None) -> dict[str, float]:
-    """The ``camera`` settings, checked (:data:`CAMERA_KEYS`: finite numbers [deg], a margin >= 0)."""
+def _camera(camera: Mapping[str, Any] | None) -> dict[str, Any]:
+    """The ``camera`` settings, checked (:data:`CAMERA_KEYS`: finite numbers [deg], a margin >= 0, track a bool)."""
     if camera is not None and not isinstance(camera, Mapping):
         raise ValueError(f"camera must be a dict of {list(CAMERA_KEYS)}, got {camera!r:.80}")
     camera = dict(camera or {})
     unknown = sorted(set(camera) - set(CAMERA_KEYS))
     if unknown:
         raise ValueError(f"unknown camera keys {unknown}; valid: {list(CAMERA_KEYS)}")
+    if not isinstance(camera.get("track", False), bool | np.bool_):
+        raise ValueError(f"camera['track'] must be True or False, got {camera['track']!r}")
+    track = {"track": bool(camera.pop("track"))} if "track" in camera else {}
     for key, value in camera.items():
         if isinstance(value, bool) or not isinstance(value, numbers.Real) or not math.isfinite(value):
             raise ValueError(f"camera[{key!r}] must be a finite number, got {value!r}")
     if camera.get("margin", 0.0) < 0.0:
         raise ValueError(f"camera['margin'] must be >= 0 (a fraction of the frame), got {camera['margin']!r}")
-    return {k: float(v) for k, v in camera.items()}
+    return {**{k: float(v) for k, v in camera.items()}, **track}
 
 
 def copy_seeds(seed: int | Sequence[int | None] | None, count: int) -> tuple[int | None, list[Any] | None]:

@@ -151,7 +151,7 @@ def bench_env(
         "single": {"env_steps_per_s": 1.0 / seconds, "sim_s_per_wall_s": dt / seconds, "repeats": count},
         "vector": {},
     }
-    view = env.sim.view(*RENDER_SIZE, None)  # what render() draws, framed once as render() frames it
+    view = env.sim.fixed_view(*RENDER_SIZE, env._camera)  # the fixed camera render() draws with
     env.sim.draw(view, 0)
     frame_s, frames = median_time(lambda: env.sim.draw(view, 0), steps, budget)
     row["render"] = {"frames_per_s": 1.0 / frame_s, "size": list(RENDER_SIZE), "repeats": frames}

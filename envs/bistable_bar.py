@@ -155,6 +155,11 @@ class SnapThrough(Task):
         sim.params["goal_height"][row] = self.heights[1 - side]
         return self.states[side]
 
+    def frame_points(self, sim: LatentSim) -> np.ndarray:
+        """Both stable states' shapes (an episode starts in one and snaps to the other through the straight bar),
+        [P, D] [m]."""
+        return sim.surface_points(self.states)
+
     def loads(self, action: Tensor, params: Mapping[str, Tensor]) -> Tensor:
         loads = torch.zeros(action.shape[0], self._handles, self._dim, dtype=action.dtype, device=action.device)
         loads[:, self._index, self._axis] = self.max_force * action[:, 0]

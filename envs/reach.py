@@ -31,7 +31,7 @@ import numpy as np
 import torch
 from torch import Tensor, nn
 
-from redsim.envs.base import LatentEnv, Task, check_numbers, shipped
+from redsim.envs.base import FRAME_SAMPLES, LatentEnv, Task, check_numbers, shipped
 
 if TYPE_CHECKING:
     from redsim.envs.base import LatentSim
@@ -243,6 +243,26 @@ class HandleReach(Task):
         z = (z_rest + self.target_spread * eps).unsqueeze(0)
         target = self._goal.position(sim.full_positions(z, cond))[0, self._goal_index]
         return {"target": target}
+
+    def frame_points(self, sim: LatentSim) -> np.ndarray:
+        """Where targets come from, [P, D] [m]. Held targets: the goal handle's settled positions (the whole table a
+        reset draws from), at the rest position along the other axes. Latent targets: the shapes of FRAME_SAMPLES
+        fixed draws z_rest + s eps (seed 0) and their goal handle positions, under every condition the camera
+        frames (:meth:`LatentSim.frame_conditions`); a draw beyond them all (rare) is clipped at the border."""
+        rest_x = sim.full_positions(sim._rest_latent(sim.default_cond).unsqueeze(0), sim.default_cond)
+        if self.held_targets is not None:
+            points = self._goal.position(rest_x).expand(len(self.held_targets), -1).clone()
+            points[:, self._goal_index] = self.held_targets
+            return points.detach().cpu().to(torch.float64).numpy()
+        generator = torch.Generator().manual_seed(0)
+        eps = torch.randn(FRAME_SAMPLES, sim.latent_dim, generator=generator).to(sim.device, sim.torch_dtype)
+        out = []
+        for cond in sim.frame_conditions():
+            z = sim._rest_latent(cond).unsqueeze(0) + self.target_spread * eps
+            conds = None if cond is None else cond.expand(FRAME_SAMPLES, -1)
+            goal = self._goal.position(sim.full_positions(z, conds)).detach().cpu().to(torch.float64).numpy()
+            out += [sim.surface_points(z, conds), goal]
+        return np.concatenate(out)
 
     def loads(self, action: Tensor, params: Mapping[str, Tensor]) -> Tensor:
         loads = torch.zeros(action.shape[0], self._handles, self._dim, dtype=action.dtype, device=action.device)

@@ -164,6 +164,22 @@ class PlatePose(Task):
             "held_action": held[0].to(sim.device, sim.torch_dtype),
         }
 
+    def frame_points(self, sim: LatentSim) -> np.ndarray:
+        """The plate's shapes at the targets of the 2^A corners of the held-action box [-s, s]^A (the extremes of
+        the target region) and their plate centres, [P, 3] [m]."""
+        from redsim.integrators import latent_equilibrium
+
+        corners = torch.cartesian_prod(*[torch.tensor([-1.0, 1.0], dtype=torch.float64)] * self.action_size)
+        z_rest = sim._rest_latent(sim.default_cond).detach().cpu().to(torch.float64)
+        latents = []
+        for held in self.target_spread * corners.reshape(-1, self.action_size):
+            loads = self.loads(held.to(sim.device).unsqueeze(0), {})[0].cpu()
+            z, _ = latent_equilibrium(self._space, loads, z0=z_rest, minimizer=MINIMIZER)
+            latents.append(z)
+        z = torch.stack(latents).to(sim.device, sim.torch_dtype)
+        centres = self.pose(sim.full_positions(z))[0].detach().cpu().to(torch.float64).numpy()
+        return np.concatenate([sim.surface_points(z), centres])
+
     def loads(self, action: Tensor, params: Mapping[str, Tensor]) -> Tensor:
         loads = torch.zeros(action.shape[0], self._handles, self._dim, dtype=action.dtype, device=action.device)
         loads[:, self._actuated, 1] = self.max_force * action

@@ -185,8 +185,9 @@ class LatentVectorEnv(SharedCopies, VectorEnv):
         """One RGB frame [H, W, 3] per copy ("rgb_array"), else None."""
         if self.render_mode != "rgb_array":
             return None
-        rows = range(self.num_envs)
-        self._view = self.sim.framed_view(self._view, *self.template._render_size, self.template._camera, rows)
+        rows, camera = range(self.num_envs), self.template._camera
+        sim = self.sim if camera.get("track", False) else self.template.sim  # fixed: the single env's camera
+        self._view = sim.framed_view(self._view, *self.template._render_size, camera, rows)
         return tuple(self.sim.draw(self._view, i) for i in range(self.num_envs))
 
     def get_state(self) -> dict[str, Any]:

@@ -115,6 +115,7 @@ def test_trimesh_export_of_the_full_mesh_per_frame(tmp_path) -> None:
         ({"camera": {"azimuth": "abc"}}, "finite number"),
         ({"camera": {"zoom": 2}}, "unknown camera keys"),
         ({"camera": "azimuth"}, "camera must be a dict"),
+        ({"camera": {"track": 1}}, "track"),
         ({"width": 0}, "width and height"),
         ({"height": 480.5}, "width and height"),
     ],
@@ -138,39 +139,55 @@ def test_a_conditional_vector_env_draws_every_copy() -> None:
     assert len(frames) == 2 and frames[0].shape == (SIZE, SIZE, 3) and not np.array_equal(frames[0], frames[1])
 
 
-def test_a_target_outside_the_frame_reframes_the_view() -> None:
-    """The view frames the first render; a later target outside it (here a chosen one) gets a view that shows it."""
-    env = gym.make("RedSim/MiniChain-v0", render_mode="rgb_array", width=SIZE, height=SIZE)
+def test_a_tracking_camera_reframes_on_a_target_outside_the_frame() -> None:
+    """``camera={"track": True}`` frames the first render; a later target outside it (here a chosen one) gets a view
+    that shows it."""
+    track = {"render_mode": "rgb_array", "width": SIZE, "height": SIZE, "camera": {"track": True}}
+    env = gym.make("RedSim/MiniChain-v0", **track)
     env.reset(seed=0)
     env.render()
     env.reset(seed=0, options={"target": [0.5, 0.0, 0.0]})
     assert _red(env.render()) > 10
-    venv = gym.make_vec(
-        "RedSim/MiniChain-v0", 3, "vector_entry_point", render_mode="rgb_array", width=SIZE, height=SIZE
-    )
+    venv = gym.make_vec("RedSim/MiniChain-v0", 3, "vector_entry_point", **track)
     venv.reset(seed=0)
     venv.render()
     venv.reset(options={"target": [0.0, -0.5, 0.4], "reset_mask": np.array([False, False, True])})
     assert _red(venv.render()[2]) > 10
 
 
+def test_the_fixed_camera_keeps_its_frame_for_a_target_outside_it() -> None:
+    """The default camera does not move for a chosen target beyond the drawn ones: that target is clipped away,
+    and the picture still draws."""
+    env = gym.make("RedSim/MiniChain-v0", render_mode="rgb_array", width=SIZE, height=SIZE)
+    env.reset(seed=0)
+    env.render()
+    view = env.unwrapped._view
+    env.reset(seed=0, options={"target": [0.5, 0.0, 0.0]})
+    frame = env.render()
+    assert env.unwrapped._view is view and not view.contains(np.array([[0.5, 0.0, 0.0]]))
+    assert frame.shape == (SIZE, SIZE, 3) and _red(frame) == 0
+
+
 def test_the_same_state_draws_the_same_picture_whatever_came_before() -> None:
-    """A single env frames anew at reset and set_state: envs whose earlier episodes differed (another first target,
-    a far chosen one that zoomed the view out) draw one state alike, as a pixel observation must."""
-    pictures = []
-    for first in ({"seed": 0}, {"seed": 5}, {"seed": 0, "options": {"target": [1.0, 0.0, 0.0]}}):
-        env = gym.make("RedSim/Chain-v0", render_mode="rgb_array", width=84, height=84)
-        env.reset(**first)
-        env.render()
-        env.reset(seed=1000)
-        pictures.append(env.render())
-        state = env.unwrapped.get_state()
-        env.reset(seed=7)
-        env.render()
-        env.unwrapped.set_state(state)
-        pictures.append(env.render())
-    for picture in pictures[1:]:
-        np.testing.assert_array_equal(picture, pictures[0])
+    """A fixed camera, or a tracking one that frames anew at reset and set_state: envs whose earlier episodes differed
+    (another first target, a far chosen one that zooms a tracking view out) draw one state alike, as a pixel
+    observation must."""
+    firsts = ({"seed": 0}, {"seed": 5}, {"seed": 0, "options": {"target": [1.0, 0.0, 0.0]}})
+    for camera in ({}, {"track": True}):
+        pictures = []
+        for first in firsts:
+            env = gym.make("RedSim/Chain-v0", render_mode="rgb_array", width=84, height=84, camera=camera)
+            env.reset(**first)
+            env.render()
+            env.reset(seed=1000)
+            pictures.append(env.render())
+            state = env.unwrapped.get_state()
+            env.reset(seed=7)
+            env.render()
+            env.unwrapped.set_state(state)
+            pictures.append(env.render())
+        for picture in pictures[1:]:
+            np.testing.assert_array_equal(picture, pictures[0])
 
 
 def test_a_camera_key_overrides_only_itself_and_a_long_arrow_stays_in_the_picture() -> None:
@@ -298,3 +315,38 @@ def test_a_target_at_the_goal_handle_stays_visible(env_id: str) -> None:
     env.reset(seed=0, options={"target": goal})
     assert (env.render() == np.array(TARGET_RGB)).all(-1).sum() > 0
     env.close()
+
+
+@pytest.mark.parametrize("env_id", redsim.envs.ids())
+def test_every_id_has_a_fixed_camera_that_shows_its_targets(env_id: str) -> None:
+    """DeepMind Control's fixed cameras: one view (scale [px/m] and centre) for every episode (5 seeds) and every
+    copy of a vector env, at 84 and 480 px, with every overlay marker's centre (target, goal handle) in the picture."""
+    for size in (84, 480):
+        env = gym.make(env_id, render_mode="rgb_array", width=size, height=size)
+        venv = gym.make_vec(env_id, 2, "vector_entry_point", render_mode="rgb_array", width=size, height=size)
+        views = []
+        for seed in range(5):
+            env.reset(seed=seed)
+            venv.reset(seed=100 + seed)
+            assert env.render().shape == (size, size, 3) and len(venv.render()) == 2
+            views += [env.unwrapped._view, venv.unwrapped._view]
+            for sim, row in [(env.unwrapped.sim, 0), (venv.unwrapped.sim, 0), (venv.unwrapped.sim, 1)]:
+                markers, _ = sim.task.overlay(sim, row)
+                assert markers and views[-1].contains(np.array([m.position for m in markers])), (seed, row)
+        first = views[0]
+        assert all(v.pixels_per_metre == first.pixels_per_metre for v in views)
+        assert all(
+            np.array_equal(v.project(np.zeros((1, first.dim))), first.project(np.zeros((1, first.dim)))) for v in views
+        )
+
+
+def test_a_shape_far_out_of_the_fixed_frame_draws_clipped() -> None:
+    """A state far outside the frame (a large motion) draws without error: the picture shows what stays inside."""
+    env = gym.make("RedSim/MiniChain-v0", render_mode="rgb_array", width=84, height=84)
+    env.reset(seed=0)
+    env.render()
+    sim = env.unwrapped.sim
+    for scale in (3.0, 1e3, 1e9):
+        sim.z[:] = scale
+        sim.x = sim.full_positions(sim.z)
+        assert env.render().shape == (84, 84, 3)
