@@ -437,6 +437,7 @@ class LatentSim:
         self.loads = torch.zeros(B, len(scene.handles), scene.dim, dtype=self.torch_dtype, device=self.device)
         # the solver's d x d model of each copy, carried from step to step (NaN: build one)
         self.model = torch.full((B, d, d), torch.nan, dtype=self.torch_dtype, device=self.device)
+        self._frame_points: np.ndarray | None = None  # the fixed camera's frame, at the first render (frame_points)
         task.bind(self)
         self.x = self.x_prev = self.full_positions(self.z)
 
@@ -867,7 +868,7 @@ class LatentSim:
         """Points [P, D] [m] a fixed camera frames (computed once, then kept): the reset shapes (at rest under each
         of :meth:`frame_conditions`), every shape round the loop of each periodic latent (:data:`LOOP_SAMPLES`
         angles) and the task's :meth:`Task.frame_points` (its target region, its handles' reach)."""
-        if getattr(self, "_frame_points", None) is None:
+        if self._frame_points is None:
             points = []
             angles = torch.linspace(-math.pi, math.pi, LOOP_SAMPLES + 1, dtype=self.torch_dtype)[:-1]
             for cond in self.frame_conditions():
