@@ -357,3 +357,14 @@ def test_a_shape_far_out_of_the_fixed_frame_draws_clipped() -> None:
         sim.z[:] = scale
         sim.x = sim.full_positions(sim.z)
         assert env.render().shape == (84, 84, 3)
+
+
+def test_the_fixed_camera_holds_the_points_a_task_frames_and_the_tracking_one_ignores_them() -> None:
+    """A task's :meth:`Task.frame_points` (here a far point, as a custom task's target region) is in the picture."""
+    far = np.array([[2.0, -1.0, 0.5]])
+    for camera, inside in (({}, True), ({"track": True}, False)):
+        env = gym.make("RedSim/MiniChain-v0", render_mode="rgb_array", width=84, height=84, camera=camera)
+        env.unwrapped.sim.task.frame_points = lambda sim: far
+        env.reset(seed=0)
+        env.render()
+        assert env.unwrapped._view.contains(far) is inside
