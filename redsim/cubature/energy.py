@@ -28,6 +28,8 @@ from redsim.cubature.fit import MODES, CubatureConfig, EffectRule, fit_rules
 from redsim.cubature.output import AffineOutput, sliced_layer
 from redsim.devices import check_device
 from redsim.effects.base import Effect
+from redsim.effects.penalty import FrameSet, SDFContact
+from redsim.points import PointSet
 from redsim.scene import Scene
 from redsim.subspace import CheckpointError, checkpoint_path, periodic_latents, write_atomically
 
@@ -232,11 +234,19 @@ class CubatureEnergy:
         cubature: The rules (checked against scene and map).
         dtype: Floating dtype of every evaluation.
         device: Where the evaluations run.
+        slice_all: True: the path before stop 36 (docs/cubature.md), kept for comparisons: every DOF a kept or
+            whole effect reads through the sliced output layer, whole effects by their own ``energy`` on x with
+            the slice scattered in. False (default): a whole single-frame contact (the cloth against its ball) is
+            evaluated by its near points only (every point's position without gradients for
+            :meth:`SDFContact.near_points`, then a graph only through the rows of W the near points read), and a
+            whole effect that is its element sum reads the slice directly. Equal to round-off.
 
     Attributes:
         output_weight: W [n, w] of q = r W^T + b.
         output_bias: b [n].
-        kept_dofs: The full DOFs the kept elements read, [s], int64 (s does not grow with n).
+        kept_dofs: The full DOFs the kept elements read with gradients, [s], int64 (s does not grow with n; a
+            near-point contact's points are not among them).
+        screened_dofs: The full DOFs of near-point contacts' points and frames, read without gradients, [c].
 
     Raises:
         CheckpointError: the cubature belongs to another scene or map.
@@ -251,10 +261,12 @@ class CubatureEnergy:
         *,
         dtype: torch.dtype = torch.float32,
         device: str | torch.device = "cpu",
+        slice_all: bool = False,
     ) -> None:
         device = check_device(device)
         cubature.check(scene, subspace)
         self.cubature = cubature
+        self.slice_all = bool(slice_all)
         self.latent_dim = int(subspace.latent_dim)
         self.condition_dim = int(getattr(getattr(subspace, "config", None), "condition_dim", 0))
         self.periodic = periodic_latents(subspace)
@@ -264,30 +276,57 @@ class CubatureEnergy:
         self.output_bias = self.output.bias
         self._build(scene, subspace, dtype, torch.device(device))
 
-    def _terms(self, scene: Scene) -> list[tuple[Effect, Tensor | None]]:
-        """Per effect: (a whole effect, None), or (its kept elements reading the kept slice x_s, their weights)."""
+    def _screened(self, effect: Effect) -> bool:
+        """True for a whole single-frame contact evaluated by its near points (not ``slice_all``)."""
+        rule = {r.name: r for r in self.cubature.rules}.get(effect.name)
+        return (
+            not self.slice_all
+            and rule is not None
+            and rule.mode == "full"
+            and isinstance(effect, SDFContact)
+            and effect.single_frame
+            and effect.point_weights is None
+        )
+
+    def _terms(self, scene: Scene, output: AffineOutput) -> list[tuple[str, Effect, Any]]:
+        """Per effect, (how, effect, data) at the kept slice x_s: ``"kept"`` (its kept elements reindexed into the
+        slice, data their weights), ``"slice"`` (a whole effect whose energy is its element sum, reindexed into the
+        slice), ``"near"`` (a near-point contact reindexed into its own screened DOFs, data (W_c [c, w], b_c [c],
+        the points' positions in them [P, D*K])), ``"whole"`` (its own ``energy`` on x with the slice scattered in)."""
         rules = {r.name: r for r in self.cubature.rules}
-        out: list[tuple[Effect, Tensor | None]] = []
+        out: list[tuple[str, Effect, Any]] = []
         for effect in scene.effects:
             rule = rules.get(effect.name)
             if rule is None or rule.mode == "linear":
                 continue
-            if rule.mode == "full":
-                out.append((effect, None))
-                continue
-            kept = effect.subset(rule.indices.to(scene.device))
-            local = kept.reindexed(torch.searchsorted(self.kept_dofs, kept.element_dofs))
-            out.append((local, rule.weights.to(device=scene.device, dtype=scene.dtype)))
+            if self._screened(effect):
+                local = _reindexed_contact(effect, self.screened_dofs)  # type: ignore[arg-type]
+                weight, bias = sliced_layer(output, scene, self.screened_dofs)
+                out.append(("near", local, _NearContact.build(local, weight, bias)))
+            elif rule.mode == "full" and not self.slice_all and type(effect).energy is Effect.energy:
+                out.append(("slice", effect.reindexed(torch.searchsorted(self.kept_dofs, effect.element_dofs)), None))
+            elif rule.mode == "full":
+                out.append(("whole", effect, None))
+            else:
+                kept = effect.subset(rule.indices.to(scene.device))
+                local = kept.reindexed(torch.searchsorted(self.kept_dofs, kept.element_dofs))
+                out.append(("kept", local, rule.weights.to(device=scene.device, dtype=scene.dtype)))
         return out
 
     def _build(self, scene: Scene, subspace: nn.Module, dtype: torch.dtype, device: torch.device) -> None:
         rules = {r.name: r for r in self.cubature.rules}
         sampled = [e for e in self.scene.effects if e.name in rules and rules[e.name].mode != "linear"]
-        dofs = [e.element_dofs.index_select(0, rules[e.name].indices.to(device)).reshape(-1) for e in sampled]
-        kept = torch.unique(torch.cat(dofs)) if dofs else torch.zeros(0, dtype=torch.int64, device=device)
-        self.kept_dofs = kept.to(device)
+        none = torch.zeros(0, dtype=torch.int64, device=device)
+        dofs = [
+            e.element_dofs.index_select(0, rules[e.name].indices.to(device)).reshape(-1)
+            for e in sampled
+            if not self._screened(e)
+        ]
+        self.kept_dofs = torch.unique(torch.cat(dofs)).to(device) if dofs else none
+        screened = [e.element_dofs.reshape(-1) for e in sampled if self._screened(e)]
+        self.screened_dofs = torch.unique(torch.cat(screened)).to(device) if screened else none
         self.slice_weight, self.slice_bias = sliced_layer(self.output, self.scene, self.kept_dofs)
-        self.terms = self._terms(self.scene)
+        self.terms = self._terms(self.scene, self.output)
         self._full_values = self.scene.dof_map.full_values
         # linear effects: E = r . c + e0 exactly (c, e0 by one backward through the float64 output layer)
         output64 = AffineOutput(subspace).to(device=device, dtype=torch.float64)
@@ -325,7 +364,7 @@ class CubatureEnergy:
         w_s, b_s = sliced_layer(output64, scene64, self.kept_dofs)
         x_s = r @ w_s.T + b_s
         total = r @ self.linear_coef.to(torch.float64) + self.linear_constant
-        return self._sum(total, x_s, cond, self._terms(scene64), scene64.dof_map.full_values)
+        return self._sum(total, r, x_s, cond, self._terms(scene64, output64), scene64.dof_map.full_values)
 
     # -- the LatentEnergy protocol ------------------------------------------------------------
     def features(self, z: Tensor, cond: Tensor | None) -> Tensor:
@@ -337,30 +376,36 @@ class CubatureEnergy:
         r = self.features(z, cond)
         x_s = torch.addmm(self.slice_bias, r, self.slice_weight.T)
         total = r @ self.linear_coef + (self.linear_constant + self.offset)
-        return self._sum(total, x_s, cond, self.terms, self._full_values), r
+        return self._sum(total, r, x_s, cond, self.terms, self._full_values), r
 
     def _sum(
         self,
         total: Tensor,
+        r: Tensor,
         x_s: Tensor,
         cond: Tensor | None,
-        terms: list[tuple[Effect, Tensor | None]],
+        terms: list[tuple[str, Effect, Any]],
         full_values: Tensor,
     ) -> Tensor:
-        """total + every term at the kept DOFs x_s [B, s]: weighted kept elements, or a whole effect's energy.
+        """total + every term (:meth:`_terms`) at the features r [B, w] and the kept DOFs x_s [B, s].
 
-        Kept elements read x_s directly (their ``element_dofs`` index the slice). A whole effect (weights None)
-        is evaluated by its own ``energy`` (e.g. contact's per-pair path) on x with the kept DOFs scattered in
-        (every DOF it reads is kept; the others hold the pinned/seed values).
+        Kept elements and whole element sums read x_s directly (their ``element_dofs`` index the slice). A
+        near-point contact screens its points at r without gradients and differentiates only the near ones,
+        each as its rows of W times r. Any other whole effect is evaluated by its own ``energy`` on x with the
+        kept DOFs scattered in (every DOF it reads is kept; the others hold the pinned/seed values).
         """
         x_full = None
-        for effect, weights in terms:
-            if weights is None:
+        for how, effect, data in terms:
+            if how == "kept":
+                total = total + effect.element_energies(x_s, cond) @ data
+            elif how == "slice":
+                total = total + effect.element_energies(x_s, cond).sum(-1)
+            elif how == "near":
+                total = total + data.energy(effect, r)
+            else:
                 if x_full is None:
                     x_full = full_values.to(x_s.dtype).expand(x_s.shape[0], -1).index_copy(1, self.kept_dofs, x_s)
                 total = total + effect.energy(x_full, cond)
-            else:
-                total = total + effect.element_energies(x_s, cond) @ weights
         return total
 
     def energy(self, z: Tensor, cond: Tensor | None) -> tuple[Tensor, None]:
@@ -376,9 +421,80 @@ class CubatureEnergy:
         return {
             "kept_elements": {r.name: int(r.indices.numel()) for r in self.cubature.rules},
             "kept_dofs": int(self.kept_dofs.numel()),
+            "screened_dofs": int(self.screened_dofs.numel()),
             "free_dofs": int(self.output_weight.shape[0]),
             "features": int(self.output_weight.shape[1]),
         }
+
+
+def _reindexed_contact(effect: SDFContact, dofs: Tensor) -> SDFContact:
+    """A copy of single-frame contact ``effect`` whose points and frame read x at their positions in ``dofs`` [c]
+    (sorted full DOFs holding every entry it reads), its pair tables rebuilt."""
+    points = PointSet(torch.searchsorted(dofs, effect.points.dofs), effect.points.weights, effect.points.offset)
+    frames = FrameSet(torch.searchsorted(dofs, effect.frames.dofs), effect.frames.weights, effect.frames.offset)
+    return SDFContact(effect.name, points, frames, effect.shape, effect.stiffness, margin=effect.margin)
+
+
+@dataclass
+class _NearContact:
+    """The output rows a near-point contact reads (reindexed into its screened DOFs, :func:`_reindexed_contact`).
+
+    Attributes:
+        weight: W_c [c, w], the rows of the screened DOFs.
+        bias: b_c [c].
+        points: Each point's entries in them, [P, 3].
+        frame_weight: The frame's 12 rows [12, w] (raw entries, before the frame's weights and offset).
+        frame_bias: [12].
+        offset_weight: Rows [3 P, w] of p - t (point minus frame origin), coordinate-major: affine in r.
+        offset_bias: [3 P].
+    """
+
+    weight: Tensor
+    bias: Tensor
+    points: Tensor
+    frame_weight: Tensor
+    frame_bias: Tensor
+    offset_weight: Tensor
+    offset_bias: Tensor
+
+    @staticmethod
+    def build(effect: SDFContact, weight: Tensor, bias: Tensor) -> _NearContact:
+        points = effect.points.dofs[..., 0]  # [P, 3] (plain points: K = 1, weights 1, no offset)
+        frame = effect.pair_frame_index[:12]
+        origin = frame[3::4]  # t_k = x[frame[4k + 3]] * fw[4k + 3] + fo[4k + 3]
+        scale = effect.pair_frame_weights[0, 3::4].to(weight.dtype)
+        shift = effect.pair_frame_offset[0, 3::4].to(weight.dtype)
+        coords = points.T.reshape(-1)  # coordinate-major [3 P]
+        count = points.shape[0]
+        offset_weight = weight.index_select(0, coords).view(3, count, -1) - (scale[:, None] * weight[origin])[:, None]
+        offset_bias = bias.index_select(0, coords).view(3, count) - (scale * bias[origin] + shift)[:, None]
+        return _NearContact(
+            weight,
+            bias,
+            points,
+            weight.index_select(0, frame),
+            bias.index_select(0, frame),
+            offset_weight.reshape(3 * count, -1).contiguous(),
+            offset_bias.reshape(-1).contiguous(),
+        )
+
+    def energy(self, effect: SDFContact, r: Tensor) -> Tensor:
+        """The energy [B] of near-point contact ``effect`` at features r [B, w].
+
+        Screen: every point's p - t = r W_o^T + b_o without gradients, against
+        :meth:`SDFContact.screen_radius_sq`. With gradients only the frame's 12 entries and the near points'
+        own entries, each the dot product of its rows of W_c with its state's r.
+        """
+        frame = torch.addmm(self.frame_bias, r, self.frame_weight.T)  # [B, 12]
+        with torch.no_grad():
+            frames = (frame * effect.pair_frame_weights[0] + effect.pair_frame_offset[0]).view(-1, 3, 4)
+            offsets = torch.addmm(self.offset_bias, r, self.offset_weight.T).view(r.shape[0], 3, -1)
+            rows, cols = (offsets.square().sum(1) < effect.screen_radius_sq(frames)[:, None]).nonzero().unbind(1)
+        dofs = self.points.index_select(0, cols).reshape(-1)  # [A * 3]
+        rows_w = self.weight.index_select(0, dofs).view(cols.shape[0], 3, r.shape[1])  # [A, 3, w]
+        entries = torch.bmm(rows_w, r.index_select(0, rows).unsqueeze(-1)).squeeze(-1)
+        entries = entries + self.bias.index_select(0, dofs).view(-1, 3)
+        return effect.near_point_energy(rows, cols, entries, frame)
 
 
 __all__ = [

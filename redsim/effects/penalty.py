@@ -293,40 +293,66 @@ class SDFContact(Effect):
         """The exact energy [B] of single-frame contact, differentiated through the points near the shape only.
 
         A point farther than the margin adds exactly zero energy and force, so a screen without
-        gradients keeps the points with |p - t| < (bounding radius + margin) / sigma_min(R) (a
-        superset of those within the margin: |R^T d| >= sigma_min |d|), and only those (a few per
-        state, e.g. the cloth under a ball) are evaluated with autograd; sigma_min is bounded from below by
-        Gershgorin's circles of R^T R (where that bound is not positive, every point is kept). The result
-        and its derivatives equal the all-point sum.
+        gradients (:meth:`near_points`) keeps a superset of the points within the margin, and only those
+        (a few per state, e.g. the cloth under a ball) are evaluated with autograd
+        (:meth:`near_point_energy`). The result and its derivatives equal the all-point sum.
         """
-        B = x.shape[0]
+        rows, cols = self.near_points(x)
+        if not rows.shape[0]:
+            return 0.0 * x[:, 0]  # zero, still a function of x (callers differentiate it)
+        P, D, K = self.points.dofs.shape
+        dofs = self.points.dofs.reshape(P, D * K).index_select(0, cols)  # [A, D*K]
+        flat = (rows[:, None] * x.shape[1] + dofs).reshape(-1)
+        entries = x.reshape(-1).index_select(0, flat).view(-1, D * K)
+        return self.near_point_energy(rows, cols, entries, x.index_select(1, self.pair_frame_index[:12]))
+
+    def near_points(self, x: Tensor) -> tuple[Tensor, Tensor]:
+        """The (state [A], point [A]) pairs of single-frame contact that may lie within the margin, without gradients.
+
+        Keeps the points with |p - t| < (bounding radius + margin) / sigma_min(R) (a superset of those within
+        the margin: |R^T d| >= sigma_min |d|); sigma_min is bounded from below by Gershgorin's circles of
+        R^T R (where that bound is not positive, every point is kept). x [B, N] needs to hold only the
+        points' and the frame's entries.
+        """
         with torch.no_grad():
             p, frame = self._points_and_frame(x)
+            near = ((p - frame[:, None, :, 3]).square().sum(-1) < self.screen_radius_sq(frame)[:, None]).nonzero()
+        rows, cols = near.unbind(1)
+        return rows, cols
+
+    def screen_radius_sq(self, frame: Tensor) -> Tensor:
+        """Squared radius [B] [m^2] about each frame's origin t outside which no point lies within the margin, of
+        frames [B, 3, 4] = [R | t] (:meth:`near_points`; inf where Gershgorin's bound on sigma_min(R) fails)."""
+        with torch.no_grad():
             reach = self.shape.bounding_radius + self.margin
             gram = frame[..., :3].transpose(1, 2) @ frame[..., :3]  # R^T R [B, 3, 3]
             diagonal = gram.diagonal(dim1=1, dim2=2)
             # Gershgorin: sigma_min(R)^2 = lambda_min(R^T R) >= min_i (G_ii - sum_{j != i} |G_ij|)
             low = (2.0 * diagonal - gram.abs().sum(-1)).amin(-1)  # [B]
             bound = torch.where(low > 0.0, (reach * (1.0 + 1e-3) + 1e-6) / low.clamp_min(1e-30).sqrt(), torch.inf)
-            near = ((p - frame[:, None, :, 3]).square().sum(-1) < bound.square()[:, None]).nonzero()
-        if not near.shape[0]:
-            return 0.0 * x[:, 0]  # zero, still a function of x (callers differentiate it)
-        rows, cols = near.unbind(1)
-        P, D, K = self.points.dofs.shape
-        dofs = self.points.dofs.reshape(P, D * K).index_select(0, cols)  # [A, D*K]
-        flat = (rows[:, None] * x.shape[1] + dofs).reshape(-1)
-        gathered = x.reshape(-1).index_select(0, flat).view(-1, D, K)
+        return bound.square()
+
+    def near_point_energy(self, rows: Tensor, cols: Tensor, entries: Tensor, frame_entries: Tensor) -> Tensor:
+        """The energy [B] of single-frame contact summed over the points ``cols`` [A] of states ``rows`` [A] only.
+
+        Args:
+            rows: State of each point, [A], int64.
+            cols: Point index of each, [A], int64.
+            entries: x[rows, points.dofs[cols]] [A, D*K], the points' entries of x (a graph only through these).
+            frame_entries: x[:, frame dofs] [B, 12], the frame's raw entries (before its weights and offset).
+        """
+        B = frame_entries.shape[0]
+        _, D, K = self.points.dofs.shape
+        gathered = entries.view(-1, D, K)
         if self.point_weights is None:
             q = gathered[..., 0]
         else:
             q = (gathered * self.point_weights.index_select(0, cols)[:, None, :]).sum(-1)
             q = q + self.point_offset.index_select(0, cols)
-        frames = (
-            x.index_select(1, self.pair_frame_index[:12]) * self.pair_frame_weights[0] + self.pair_frame_offset[0]
-        ).view(B, 3, 4)
+        frames = (frame_entries * self.pair_frame_weights[0] + self.pair_frame_offset[0]).view(B, 3, 4)
         local = _to_local(frames.index_select(0, rows), q.unsqueeze(1))[:, 0]  # [A, 3]
         gap = (self.shape.distance(local) - self.margin).clamp_max(0.0)
-        return x.new_zeros(B).index_add(0, rows, 0.5 * self.stiffness * gap * gap)
+        return frame_entries.new_zeros(B).index_add(0, rows, 0.5 * self.stiffness * gap * gap)
 
     def _point_distances(self, x: Tensor, pair: Tensor, state: Tensor, slot: Tensor) -> Tensor:
         """Signed distance [m] of single points [A], point ``slot`` of pair ``pair`` in state ``state`` (each [A]).

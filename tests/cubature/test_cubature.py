@@ -287,3 +287,77 @@ def test_bench_deviation_does_not_depend_on_the_timing_batches(mini_chain) -> No
     cub = build_cubature(scene, f, CubatureConfig(elements=4, **QUICK))
     runs = [bench_cubature(scene, f, cub, steps=6, batches=b, timed_steps=2) for b in ((1,), (1, 16))]
     assert runs[0]["trajectory_deviation"] == runs[1]["trajectory_deviation"] > 0.0
+
+
+@pytest.mark.parametrize("name", ["cloth_ball", "hanging_sheet"])
+def test_near_contact_path_equals_the_slice_path(name: str) -> None:
+    """The default path (a whole single-frame contact by its near points only, whole element sums on the slice)
+    gives the energy, gradient and steps of the path before (``slice_all=True``) to float64 round-off."""
+    scene = scenes.build(name)
+    f = pretrained.load(name, scene)
+    cub = load_cubature(pretrained.FOLDER / name, scene, f)
+    new = CubatureEnergy(scene, f, cub, dtype=torch.float64)
+    old = CubatureEnergy(scene, f, cub, dtype=torch.float64, slice_all=True)
+    if name == "cloth_ball":  # the contact's points are screened, not sliced; the graph reads fewer DOFs
+        assert new.describe()["kept_dofs"] < old.describe()["kept_dofs"] == scene.dof_map.full_values.numel()
+        assert new.describe()["screened_dofs"] == scene.dof_map.full_values.numel()
+    else:  # no contact: the same slice
+        assert new.describe()["kept_dofs"] == old.describe()["kept_dofs"] and new.describe()["screened_dofs"] == 0
+    assert new.offset == pytest.approx(old.offset, rel=1e-12, abs=1e-12)
+    stepper = LatentStepper(scene, f, 0.02, energy=old, dtype=torch.float64)
+    rest = stepper.rest_latent()
+    z = torch.cat([rest, 2.0 * torch.randn(7, f.latent_dim, generator=torch.Generator().manual_seed(0))])
+    if name == "cloth_ball":  # some states touch the ball (the near path has points to differentiate)
+        contact = stepper.scene.effect("contact")
+        assert bool((contact.energy(stepper.scene.full_positions(stepper.positions(z))) > 0).any())
+    values, grads = [], []
+    for energy in (old, new):
+        zz = z.clone().requires_grad_(True)
+        value, _ = energy.energy_features(zz, None)
+        (grad,) = torch.autograd.grad(value.sum(), zz)
+        values.append(value.detach())
+        grads.append(grad)
+    assert torch.allclose(values[1], values[0], rtol=1e-12, atol=1e-12 * float(values[0].abs().max()))
+    assert torch.allclose(grads[1], grads[0], rtol=1e-10, atol=1e-10 * float(grads[0].abs().max()))
+    stepped = []
+    for energy in (old, new):
+        stepper = LatentStepper(scene, f, 0.02, energy=energy, dtype=torch.float64)
+        zt, zp = z, z
+        for _ in range(3):
+            zt, zp = stepper.step(zt, zp)[0], zt
+        stepped.append(zt)
+    assert torch.allclose(stepped[1], stepped[0], rtol=0.0, atol=1e-8)
+
+
+def test_near_contact_follows_a_moving_sheared_frame() -> None:
+    """A whole single-frame contact whose frame is free (moved, sheared and scaled by the map) and particles
+    around it: the near-point path equals the slice path (value and gradient) in float64."""
+    from redsim.cubature.energy import map_fingerprint
+    from redsim.cubature.fit import EffectRule
+    from redsim.effects.penalty import FrameSet, SDFContact
+    from redsim.effects.sdf import Sphere
+
+    g = torch.Generator().manual_seed(5)
+    count = 300
+    b = SceneBuilder(dim=3)
+    body = b.add_body(torch.eye(4, dtype=torch.float64))
+    ids = b.add_particles(1.2 * (2.0 * torch.rand(count, 3, generator=g, dtype=torch.float64) - 1.0), torch.ones(count))
+    points = b.particle_points(ids)
+    b.add_effect(SDFContact("c", points, FrameSet.body(b.body_dofs(body), count), Sphere(0.5), 50.0, margin=0.02))
+    scene = b.finalize("moving_ball", params={"count": count})
+    n = scene.free_dof_count
+    f = LinearSubspace(0.1 * torch.randn(n, 4, generator=g, dtype=torch.float64), scene.q_seed.clone())
+    rule = EffectRule("c", "full", count, torch.arange(count), torch.ones(count, dtype=torch.float64), 0.0, 0.0, [])
+    cub = Cubature(scene.name, scene.fingerprint(), map_fingerprint(f), [rule])
+    new = CubatureEnergy(scene, f, cub, dtype=torch.float64)
+    old = CubatureEnergy(scene, f, cub, dtype=torch.float64, slice_all=True)
+    assert [how for how, _, _ in new.terms] == ["near"] and [how for how, _, _ in old.terms] == ["whole"]
+    z = (2.0 * torch.randn(16, 4, generator=g, dtype=torch.float64)).requires_grad_(True)
+    x = scene.full_positions(f(z.detach()))
+    touching = scene.effect("c").element_energy(x[:, scene.effect("c").element_dofs]) > 0
+    assert 0 < int(touching.sum()) < touching.numel()
+    (value_old, _), (value_new, _) = old.energy_features(z, None), new.energy_features(z, None)
+    (grad_old,) = torch.autograd.grad(value_old.sum(), z)
+    (grad_new,) = torch.autograd.grad(value_new.sum(), z)
+    torch.testing.assert_close(value_new, value_old, rtol=1e-12, atol=1e-12)
+    torch.testing.assert_close(grad_new, grad_old, rtol=1e-10, atol=1e-10)
