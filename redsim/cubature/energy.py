@@ -483,8 +483,11 @@ class _NearContact:
 
         Screen: every point's p - t = r W_o^T + b_o without gradients, against
         :meth:`SDFContact.screen_radius_sq`. With gradients only the frame's 12 entries and the near points'
-        own entries, each the dot product of its rows of W_c with its state's r.
+        own entries, each the dot product of its rows of W_c with its state's r. Under ``torch.compile``, every
+        point through W_c and the contact's dense ``energy``.
         """
+        if torch.compiler.is_compiling():  # no data-dependent shapes: every point, by the contact's dense path
+            return effect.energy(torch.addmm(self.bias, r, self.weight.T))
         frame = torch.addmm(self.frame_bias, r, self.frame_weight.T)  # [B, 12]
         with torch.no_grad():
             frames = (frame * effect.pair_frame_weights[0] + effect.pair_frame_offset[0]).view(-1, 3, 4)

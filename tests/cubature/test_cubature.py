@@ -329,9 +329,10 @@ def test_near_contact_path_equals_the_slice_path(name: str) -> None:
     assert torch.allclose(stepped[1], stepped[0], rtol=0.0, atol=1e-8)
 
 
-def test_near_contact_follows_a_moving_sheared_frame() -> None:
+def test_near_contact_follows_a_moving_sheared_frame(monkeypatch: pytest.MonkeyPatch) -> None:
     """A whole single-frame contact whose frame is free (moved, sheared and scaled by the map) and particles
-    around it: the near-point path equals the slice path (value and gradient) in float64."""
+    around it: the near-point path, and its dense form under ``torch.compile``, equal the slice path (value and
+    gradient) in float64."""
     from redsim.cubature.energy import map_fingerprint
     from redsim.cubature.fit import EffectRule
     from redsim.effects.penalty import FrameSet, SDFContact
@@ -361,3 +362,8 @@ def test_near_contact_follows_a_moving_sheared_frame() -> None:
     (grad_new,) = torch.autograd.grad(value_new.sum(), z)
     torch.testing.assert_close(value_new, value_old, rtol=1e-12, atol=1e-12)
     torch.testing.assert_close(grad_new, grad_old, rtol=1e-10, atol=1e-10)
+    monkeypatch.setattr(torch.compiler, "is_compiling", lambda: True)  # the dense form a compiled step takes
+    (value_dense, _) = new.energy_features(z, None)
+    (grad_dense,) = torch.autograd.grad(value_dense.sum(), z)
+    torch.testing.assert_close(value_dense, value_old, rtol=1e-12, atol=1e-12)
+    torch.testing.assert_close(grad_dense, grad_old, rtol=1e-10, atol=1e-10)
