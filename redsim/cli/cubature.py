@@ -108,6 +108,8 @@ def cmd_cubature(args: argparse.Namespace) -> int:
 
 
 def cmd_bench_cubature(args: argparse.Namespace) -> int:
+    import torch
+
     from redsim import pretrained
     from redsim.bench import machine_info
     from redsim.cubature import CubatureConfig, build_cubature, load_cubature
@@ -129,7 +131,7 @@ def cmd_bench_cubature(args: argparse.Namespace) -> int:
     results = []
     if not args.json:
         out(
-            "cubature vs all-element latent step (float32, CPU); deviation over "
+            f"cubature vs all-element latent step ({args.dtype}, CPU); deviation over "
             f"{args.steps} steps, step time median (ms)"
         )
         out(machine_line(machine, "cpu"))
@@ -150,7 +152,15 @@ def cmd_bench_cubature(args: argparse.Namespace) -> int:
             raise CliError(str(err)) from err
         if cub is None:
             cub = build_cubature(scene, subspace, CubatureConfig(elements=args.elements))
-        result = bench_cubature(scene, subspace, cub, steps=args.steps, batches=batches, timed_steps=args.timed_steps)
+        result = bench_cubature(
+            scene,
+            subspace,
+            cub,
+            steps=args.steps,
+            batches=batches,
+            timed_steps=args.timed_steps,
+            dtype=getattr(torch, args.dtype),
+        )
         results.append(result)
         if not args.json:
             kept = ", ".join(f"{k} {v}/{result['element_counts'][k]}" for k, v in result["elements"].items())
@@ -235,6 +245,12 @@ def add_bench_command(bench: Any) -> None:
     p.add_argument("--timed-steps", type=int, default=10, help="timed steps per batch size (default 10)")
     p.add_argument("--batches", default="1,64", metavar="B1,B2", help="batch sizes timed (default 1,64)")
     p.add_argument("--elements", type=int, default=200, help="elements per effect when none is shipped (200)")
+    p.add_argument(
+        "--dtype",
+        choices=("float32", "float64"),
+        default="float32",
+        help="dtype of both steps (default float32; float64 shows what round-off adds to the deviation)",
+    )
     p.add_argument(
         "--checkpoints",
         metavar="DIR",

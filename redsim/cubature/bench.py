@@ -66,8 +66,9 @@ def bench_cubature(
     hold: int = 10,
     load_scale: float | None = None,
     seed: int = 0,
+    dtype: torch.dtype = torch.float32,
 ) -> dict[str, Any]:
-    """Compare the cubature energy with the all-element step (float32, CPU, the stepper's defaults).
+    """Compare the cubature energy with the all-element step (``dtype``, CPU, the stepper's defaults).
 
     Accuracy: :data:`ACCURACY_STATES` states from the rest latent under the same seeded loads, ``steps`` steps
     with each energy; the deviation of a state is max_t |q_cub(t) - q_all(t)|_M / max_t |q_all(t) - q_all(0)|_M
@@ -75,9 +76,9 @@ def bench_cubature(
     Time: the median step [s] over ``timed_steps`` steps per batch size, the two energies interleaved.
     """
     scale = default_load_scale(scene) if load_scale is None else load_scale
-    all_elements = LatentStepper(scene, subspace, dt)
-    energy = CubatureEnergy(scene, subspace, cubature)
-    reduced = LatentStepper(scene, subspace, dt, energy=energy)
+    all_elements = LatentStepper(scene, subspace, dt, dtype=dtype)
+    energy = CubatureEnergy(scene, subspace, cubature, dtype=dtype)
+    reduced = LatentStepper(scene, subspace, dt, dtype=dtype, energy=energy)
     rest = all_elements.rest_latent()
     count = ACCURACY_STATES
     loads = _loads(scene, steps, count, hold, scale, seed) if scene.handles else None
@@ -106,6 +107,7 @@ def bench_cubature(
         timing[batch] = {"all_s": statistics.median(times_all), "cubature_s": statistics.median(times_cub)}
     return {
         "scene": scene.name,
+        "dtype": str(dtype).removeprefix("torch."),
         "n": scene.free_dof_count,
         "elements": {r.name: int(r.indices.numel()) for r in cubature.rules},
         "element_counts": {r.name: r.element_count for r in cubature.rules},

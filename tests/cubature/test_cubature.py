@@ -289,6 +289,31 @@ def test_bench_deviation_does_not_depend_on_the_timing_batches(mini_chain) -> No
     assert runs[0]["trajectory_deviation"] == runs[1]["trajectory_deviation"] > 0.0
 
 
+def test_bench_cubature_in_float64(cli, mini_chain) -> None:
+    """``--dtype float64`` steps both energies in float64 (the deviation without float32's round-off)."""
+    import json
+
+    code, out, err = cli(
+        "bench",
+        "cubature",
+        "mini_chain",
+        "--dtype",
+        "float64",
+        "--steps",
+        "4",
+        "--batches",
+        "1",
+        "--timed-steps",
+        "2",
+        "--elements",
+        "4",
+        "--json",
+    )
+    assert code == 0, err
+    (result,) = json.loads(out)["results"]
+    assert result["dtype"] == "float64" and result["trajectory_deviation"] >= 0.0
+
+
 @pytest.mark.parametrize("name", ["cloth_ball", "hanging_sheet"])
 def test_near_contact_path_equals_the_slice_path(name: str) -> None:
     """The default path (a whole single-frame contact by its near points only, whole element sums on the slice)
