@@ -872,10 +872,13 @@ class LatentSim:
             points = []
             angles = torch.linspace(-math.pi, math.pi, LOOP_SAMPLES + 1, dtype=self.torch_dtype)[:-1]
             for cond in self.frame_conditions():
-                z = self._rest_latent(cond).unsqueeze(0)
-                if self.periodic:
-                    z = z.repeat(LOOP_SAMPLES, 1)
-                    z[:, self.periodic] = angles.to(self.device).unsqueeze(1)
+                rest = self._rest_latent(cond).unsqueeze(0)
+                shapes = [rest]
+                for latent in self.periodic:  # each loop on its own, the other latents at rest
+                    loop = rest.repeat(LOOP_SAMPLES, 1)
+                    loop[:, latent] = angles.to(self.device)
+                    shapes.append(loop)
+                z = torch.cat(shapes)
                 points.append(self.surface_points(z, None if cond is None else cond.expand(len(z), -1)))
             extra = self.task.frame_points(self)
             if extra is not None and len(extra):
@@ -1453,14 +1456,19 @@ def restored_generator(generator: np.random.Generator | None, state: Mapping[str
     Gymnasium's ``np_random`` may be any ``Generator``).
 
     Raises:
-        ValueError: ``state`` names no NumPy bit generator.
+        ValueError: ``state`` names no NumPy bit generator, or is not a state of the one it names.
     """
     name = state.get("bit_generator") if isinstance(state, Mapping) else None
     kind = getattr(np.random, str(name), None)
     if not (isinstance(kind, type) and issubclass(kind, np.random.BitGenerator)):
         raise ValueError(f"a generator state must name a NumPy bit generator in 'bit_generator', got {name!r}")
+    fresh = np.random.Generator(kind())
+    try:  # on a fresh generator first: a malformed state leaves ``generator`` as it was
+        fresh.bit_generator.state = state
+    except (KeyError, TypeError, ValueError) as error:
+        raise ValueError(f"not a {name} generator state ({type(error).__name__}: {error})") from None
     if generator is None or type(generator.bit_generator) is not kind:
-        generator = np.random.Generator(kind())
+        return fresh
     generator.bit_generator.state = state
     return generator
 

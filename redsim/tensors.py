@@ -43,15 +43,16 @@ def jvp(fn: Callable[..., Tensor], primals: tuple[Tensor, ...], tangents: tuple[
     """(fn(*primals), J tangents), as ``torch.func.jvp``, by reverse mode twice: J^T u (a graph linear in a dummy
     u), then its gradient in u along the tangents. ``torch.func.jvp`` and ``torch.autograd.forward_ad`` import
     ``torch._dynamo`` on first use (3-4 s of every process's first env, measured) and raise a
-    ``torch.jit.script`` DeprecationWarning; this needs neither. Tensors in, tensors out (no graph kept)."""
+    ``torch.jit.script`` DeprecationWarning; this needs neither. One tensor out, detached (no graph kept); not
+    under ``torch.inference_mode`` (it needs autograd)."""
     inputs = tuple(p.detach().requires_grad_(True) for p in primals)
     with torch.enable_grad():
         out = fn(*inputs)
         dummy = torch.zeros_like(out, requires_grad=True)
         # scalar outputs: grad_outputs would import torch.fx's symbolic shapes (sympy, ~2 s) in autograd's checks
         vjps = torch.autograd.grad((out * dummy).sum(), inputs, create_graph=True, allow_unused=True)
-        pairs = [(v, t) for v, t in zip(vjps, tangents, strict=True) if v is not None]
-        if not pairs:  # fn does not depend on its inputs
+        pairs = [(v, t) for v, t in zip(vjps, tangents, strict=True) if v is not None and v.requires_grad]
+        if not pairs:  # fn does not depend on its inputs, or only through piecewise-constant ops: J = 0
             return out.detach(), torch.zeros_like(out)
         (column,) = torch.autograd.grad(sum((v * t).sum() for v, t in pairs), dummy, allow_unused=True)
     return out.detach(), torch.zeros_like(out) if column is None else column.detach()

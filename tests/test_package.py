@@ -57,7 +57,7 @@ def test_a_source_checkout_imports_its_envs_and_trainers_without_an_editable_ins
 
 
 def test_an_env_runs_under_python_w_error() -> None:
-    """No warning from redsim's import to a vector step (torch's own jit deprecation in forward mode included):
+    """No warning from redsim's import to a vector step (torch's own deprecations on redsim's paths included):
     users whose test suites turn warnings into errors run the envs."""
     import subprocess
     import sys

@@ -20,11 +20,14 @@ def test_jvp_equals_forward_mode_and_handles_maps_that_ignore_an_input() -> None
     torch.testing.assert_close(out, ref_out, rtol=0, atol=0)
     torch.testing.assert_close(column, ref_column, rtol=1e-12, atol=1e-14)
     assert not out.requires_grad and not column.requires_grad
-    c = torch.randn(6, 2, dtype=torch.float64)
-    out, column = jvp(lambda u, v: net(u) * v.sum(-1, keepdim=True), (z, c), (tangents, torch.zeros_like(c)))
-    torch.testing.assert_close(column, ref_column * c.sum(-1, keepdim=True), rtol=1e-12, atol=1e-14)
-    out, column = jvp(lambda u: torch.ones(6, 5, dtype=torch.float64), (z,), (tangents,))  # constant: J = 0
-    assert torch.equal(column, torch.zeros(6, 5, dtype=torch.float64))
+    c, c_tangents = torch.randn(6, 2, dtype=torch.float64), torch.randn(6, 2, dtype=torch.float64)
+    conditional = lambda u, v: net(u) * v.sum(-1, keepdim=True)  # noqa: E731  (two inputs, as a conditional map)
+    out, column = jvp(conditional, (z, c), (tangents, c_tangents))
+    _, ref_column = torch.func.jvp(conditional, (z, c), (tangents, c_tangents))
+    torch.testing.assert_close(column, ref_column, rtol=1e-12, atol=1e-14)
+    for constant in (lambda u: torch.ones(6, 5, dtype=torch.float64), lambda u: torch.floor(net(u))):  # J = 0
+        out, column = jvp(constant, (z,), (tangents,))
+        assert torch.equal(column, torch.zeros(6, 5, dtype=torch.float64))
 
 
 def test_an_env_s_first_step_does_not_import_torch_dynamo() -> None:

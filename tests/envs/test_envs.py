@@ -474,9 +474,14 @@ def test_vector_generators_of_another_kind_restore_and_a_bad_one_changes_nothing
         np.testing.assert_equal(other.get_state()["rngs"][0], state["rngs"][0])
     np.testing.assert_equal(other.get_state()["rngs"][1], state["rngs"][1])
     before = other.get_state()
-    with pytest.raises(ValueError, match="must name a NumPy bit generator"):
-        other.set_state({**venv.get_state(), "z": before["z"] + 1.0, "rngs": [None, None]})
-    assert np.array_equal(other.get_state()["z"], before["z"])
+    for bad, message in (
+        (None, "must name a NumPy bit generator"),
+        ({"bit_generator": "PCG64"}, "not a PCG64 generator state"),  # numpy's KeyError, as a ValueError
+        ({"bit_generator": "PCG64", "state": 5}, "not a PCG64 generator state"),  # numpy's TypeError
+    ):
+        with pytest.raises(ValueError, match=message):
+            other.set_state({**venv.get_state(), "z": before["z"] + 1.0, "rngs": [bad, bad]})
+        assert np.array_equal(other.get_state()["z"], before["z"])
 
 
 def test_a_copy_keeps_the_seed_and_spec_so_reading_the_seed_keeps_the_generator() -> None:
