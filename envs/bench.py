@@ -108,7 +108,8 @@ def bench_env(
         warmup: Untimed steps first.
         budget: Seconds of timing per configuration.
         full_space: Also time the scene's full-space step.
-        seed: Seeds resets and actions.
+        seed: Seeds resets and actions: each batch size's actions and the full-space step's draw from their own
+            streams (``(seed, batch)``, ``(seed, 0)``), so no part depends on which others run.
         shards: Worker processes of each vector env (1: the native vector env in this process; P > 1: a
             :class:`redsim.envs.sharded.ShardedVectorEnv`, whose solver calls and rows are not counted: None).
         **env_kwargs: Passed to ``gym.make``/``gym.make_vec``.
@@ -123,7 +124,6 @@ def bench_env(
         ``full_space`` (``step_s``, ``sim_s_per_wall_s``) or None, ``render`` (``frames_per_s`` of the single
         env's ``rgb_array`` frame at :data:`RENDER_SIZE`, the map's full configuration included).
     """
-    rng = np.random.default_rng(seed)
     start = time.perf_counter()
     env = gym.make(env_id, **env_kwargs).unwrapped
     make_s = time.perf_counter() - start
@@ -161,6 +161,7 @@ def bench_env(
             env_id, num_envs=int(batch), vectorization_mode="vector_entry_point", **sharding, **env_kwargs
         )
         venv.reset(seed=seed)
+        rng = np.random.default_rng((seed, int(batch)))
         actions = rng.uniform(-1.0, 1.0, (max(steps, 1) + warmup, *venv.action_space.shape)).astype(np.float32)
         cursor = iter(actions)
         iterations: list[float] = []
@@ -195,7 +196,7 @@ def bench_env(
         venv.close()
     row["full_space"] = None
     if full_space:
-        full = _full_space_step(env, max(3, steps // 4), budget, rng, warmup)
+        full = _full_space_step(env, max(3, steps // 4), budget, np.random.default_rng((seed, 0)), warmup)
         full["sim_s_per_wall_s"] = dt / full["step_s"]
         row["full_space"] = full
     env.close()

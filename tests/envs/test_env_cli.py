@@ -144,3 +144,17 @@ def test_bench_envs_table_marks_an_unconverged_full_space_step() -> None:
     converged = _row_line({**row, "full_space": {"sim_s_per_wall_s": 0.0322, "converged": True}}, [])
     capped = _row_line({**row, "full_space": {"sim_s_per_wall_s": 0.0322, "converged": False}}, [])
     assert "0.0322*" in capped and "*" not in converged and len(capped) == len(converged)
+
+
+def test_bench_envs_parts_do_not_depend_on_which_others_run() -> None:
+    """Each batch size's actions and the full-space step's draw come from their own streams: the solver work of
+    N = 2 and of the full-space step are the same whether N = 3 runs before them or not."""
+    from redsim.envs.bench import bench_env
+
+    kwargs = {"steps": 4, "warmup": 1, "budget": 1000.0}
+    alone = bench_env("RedSim/MiniChain-v0", batches=(2,), **kwargs)
+    after = bench_env("RedSim/MiniChain-v0", batches=(3, 2), **kwargs)
+    for key in ("iterations_per_step", "slowest_iterations_per_step", "calls_per_step", "rows_per_copy_step"):
+        assert alone["vector"][2][key] == after["vector"][2][key]
+    assert alone["full_space"]["iterations_per_step"] == after["full_space"]["iterations_per_step"]
+    assert alone["full_space"]["repeats"] == after["full_space"]["repeats"] == 3
