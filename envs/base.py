@@ -929,12 +929,19 @@ class LatentSim:
 
     def draw(self, view: Any, row: int) -> np.ndarray:
         """RGB picture [H, W, 3] of copy ``row``."""
-        markers, arrows = self.task.overlay(self, row)
-        return view.draw(
-            self.positions(self.z[row : row + 1], None if self.cond is None else self.cond[row : row + 1])[0],
-            markers=markers,
-            arrows=arrows,
+        return self.draw_rows(view, [row])[0]
+
+    def draw_rows(self, view: Any, rows: Sequence[int]) -> np.ndarray:
+        """RGB pictures [len(rows), H, W, 3] of copies ``rows``, in one :meth:`redsim.raster.SceneView.draw_batch`.
+
+        Each copy's configuration is decoded on its own (as a single env decodes its one copy: a batched decode
+        differs in the last bits, which moves a vertex across a pixel boundary now and then), so copy i's picture is
+        pixel for pixel the single env's for the same state."""
+        q = torch.cat(
+            [self.positions(self.z[i : i + 1], None if self.cond is None else self.cond[i : i + 1]) for i in rows]
         )
+        overlays = [self.task.overlay(self, i) for i in rows]
+        return view.draw_batch(q, markers=[m for m, _ in overlays], arrows=[a for _, a in overlays])
 
 
 def shipped(

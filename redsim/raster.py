@@ -1,14 +1,17 @@
 """A fast headless rasterizer for scene states: flat-shaded triangles, markers and arrows into RGB arrays.
 
-Triangles are projected orthographically, sorted back to front and filled by Pillow's C polygon
-fill (the painter's algorithm), with no display and no plotting library. On a closed, consistently
-wound surface (rigid links, FEM solids) the triangles facing away from the camera are hidden by
-the ones facing it, so they are not drawn (back-face culling); open surfaces (cloth) are drawn
-two-sided. `redsim bench envs` prints each env's frames per second at 480x480. 3D scenes use the builders' y-up
+Triangles are projected orthographically, sorted back to front and filled by :func:`fill_triangles` (the
+painter's algorithm in a few vectorized numpy passes over all triangles of one or many frames, the nearest
+triangle's colour winning each pixel, Pillow's polygon fill emulated: 99.8-100% of a scene's pixels equal), with no
+display and no plotting library; :meth:`SceneView.draw_batch` draws many states at once. On a closed, consistently
+wound surface (rigid links, FEM solids) the triangles facing away from the camera are hidden by the ones facing it,
+so they are not drawn (back-face culling); open surfaces (cloth) are drawn two-sided. `redsim bench envs` prints
+each env's frames per second at 480x480. 3D scenes use the builders' y-up
 convention: the camera turns about the y axis (``azimuth``) and then tilts down (``elevation``).
 
     >>> view = SceneView(scene, q_rest, width=480, height=480)
     >>> image = view.draw(q, markers=[Marker(target, radius=0.05)], arrows=[Arrow(p, force, 0.01)])  # [480, 480, 3]
+    >>> frames = view.draw_batch(qs)  # qs [B, n] -> [B, 480, 480, 3], frames[i] == view.draw(qs[i])
 
 Overlays scale with the picture: a marker with a scene radius [m] (a task's success radius) is drawn at that
 radius, one without at :data:`MARKER_FRACTION` of the picture, never under :data:`MIN_MARKER_PX`; strokes and arrow
@@ -18,7 +21,7 @@ mark stays visible inside them.
 
 from __future__ import annotations
 
-import gc
+import itertools
 import math
 import numbers
 from collections.abc import Sequence
@@ -124,6 +127,79 @@ def _outward_sign(points: np.ndarray, faces: np.ndarray) -> int:
     return signs.pop() if len(signs) == 1 else 0
 
 
+COORDINATE_LIMIT = float(2**23)
+"""Largest vertex coordinate [px] :func:`fill_triangles` draws (8.4 million: its integer arithmetic stays exact in
+float64); a triangle with a vertex beyond it, or a non-finite one, is not drawn (Pillow paints such a triangle as
+garbage)."""
+
+
+def _expand(counts: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """(owner [N], offset [N]) for counts [K] (N = counts.sum()): k repeated counts[k] times, offsets 0..counts[k]-1."""
+    owner = np.repeat(np.arange(len(counts)), counts)
+    start = np.cumsum(counts) - counts
+    return owner, np.arange(owner.size) - start[owner]
+
+
+def fill_triangles(
+    corners: np.ndarray, colours: np.ndarray, frames: np.ndarray, count: int, height: int, width: int
+) -> np.ndarray:
+    """Frames of filled triangles on :data:`BACKGROUND`: uint8 [count, height, width, 3].
+
+    Pillow's polygon fill, vectorized over every triangle of every frame (no Python loop per triangle): the
+    vertices are truncated to whole pixels (as Pillow does), each triangle covers row by row the pixels whose
+    centres (x, y whole numbers) lie within half a pixel of its span on that row (strictly on sloped edges, inclusive
+    on horizontal ones, so a zero-area triangle is a line), and each pixel takes the colour of the last triangle
+    (in the given order) of its frame that covers it: pass each frame's triangles far to near.
+
+    Args:
+        corners: Vertex pixel coordinates [T, 3, 2] (x right, y down); a triangle with a non-finite coordinate or
+            one beyond :data:`COORDINATE_LIMIT` is skipped.
+        colours: RGB [T, 3] (0-255).
+        frames: The frame of each triangle [T] (ints in [0, count)).
+        count: Number of frames.
+        height: Frame height [px].
+        width: Frame width [px].
+    """
+    corners = np.asarray(corners, dtype=np.float64).reshape(-1, 3, 2)
+    x, y = (np.trunc(np.ascontiguousarray(corners[:, :, k].T)) for k in range(2))  # [3, T] each
+    with np.errstate(invalid="ignore"):
+        valid = (np.abs(x) <= COORDINATE_LIMIT).all(0) & (np.abs(y) <= COORDINATE_LIMIT).all(0)  # NaN fails too
+    x, y = np.where(valid, x, 0.0), np.where(valid, y, 0.0)
+    left = np.maximum(np.minimum(np.minimum(x[0], x[1]), x[2]), 0.0)
+    right = np.minimum(np.maximum(np.maximum(x[0], x[1]), x[2]), width - 1.0)
+    top = np.maximum(np.minimum(np.minimum(y[0], y[1]), y[2]), 0.0)
+    bottom = np.minimum(np.maximum(np.maximum(y[0], y[1]), y[2]), height - 1.0)
+    rows = np.where(valid & (right >= left), np.maximum(bottom - top + 1.0, 0.0), 0.0).astype(np.int64)
+    # edge e runs from vertex e to e + 1; on a counter-clockwise triangle (s = 1; else s = -1) the pixel (i, j)
+    # covers edge e's side iff V = 2 s ((x1 - x0)(j - y0) - (y1 - y0)(i - x0)) + |dV/di| / 2 - [sloped] >= 0
+    nx, ny = x[[1, 2, 0]], y[[1, 2, 0]]
+    s = np.where((x[1] - x[0]) * (y[2] - y[0]) - (y[1] - y[0]) * (x[2] - x[0]) >= 0.0, 1.0, -1.0)
+    a = 2.0 * s * (y - ny)  # dV/di [3, T]
+    b = 2.0 * s * (nx - x)  # dV/dj
+    c = -(a * x + b * y) + 0.5 * np.abs(a) - (a != 0.0)
+    tri, j = _expand(rows)
+    row_y = top[tri] + j
+    at = a[:, tri]
+    v0 = b[:, tri] * row_y + c[:, tri]  # V at i = 0, [3, R]
+    bound = -v0 / np.where(at == 0.0, 1.0, at)  # V >= 0 <=> i >= bound (a > 0) or i <= bound (a < 0)
+    lo = np.maximum(np.where(at > 0.0, np.ceil(bound), -np.inf).max(0), left[tri])
+    hi = np.minimum(np.where(at < 0.0, np.floor(bound), np.inf).min(0), right[tri])
+    hi = np.where(((at == 0.0) & (v0 < 0.0)).any(0), -1.0, hi)  # a horizontal edge with the row outside it
+    span = np.maximum(hi - lo + 1.0, 0.0).astype(np.int64)
+    run, i = _expand(span)
+    start = (np.asarray(frames, dtype=np.int64)[tri] * height + row_y.astype(np.int64)) * width + lo.astype(np.int64)
+    winner = np.zeros(count * height * width, dtype=np.int64)  # 0: the background, k: triangle k - 1
+    np.maximum.at(winner, start[run] + i, tri[run] + 1)  # the last triangle covering a pixel wins
+    palette = np.concatenate([np.asarray([BACKGROUND], dtype=np.uint8), np.asarray(colours, dtype=np.uint8)])
+    out = np.take(palette, winner, axis=0)
+    return out.reshape(count, height, width, 3)
+
+
+FILL_CHUNK = 40_000
+"""Triangles :meth:`SceneView.draw_batch` fills per :func:`fill_triangles` call (whole frames; at least one): its
+arrays stay in the CPU's cache (64 frames of Chain-v0 at 84 px in one call take 1.6x as long as in chunks)."""
+
+
 class SceneView:
     """A fixed orthographic camera on one scene, framed on a reference state.
 
@@ -183,10 +259,14 @@ class SceneView:
         self._pixels_per_metre = min(self.width, self.height) / size
 
     def surface_points(self, q: Tensor) -> list[np.ndarray]:
-        """Vertex positions [m] of every surface at free configuration q ([n]), float64."""
+        """Vertex positions [m] of every surface at free configuration q ([n]), float64 [P, D] each."""
+        return [points[0] for points in self._surface_points_batch(torch.as_tensor(q).reshape(1, -1))]
+
+    def _surface_points_batch(self, q: Tensor) -> list[np.ndarray]:
+        """Vertex positions [m] of every surface at free configurations q ([B, n]), float64 [B, P, D] each."""
         q = torch.as_tensor(q).detach()
-        x = self.scene.full_positions(q.reshape(1, -1).to(device=self.scene.device, dtype=self.scene.dtype))
-        return [s.points.positions(x)[0].cpu().to(torch.float64).numpy() for s in self.scene.surfaces]
+        x = self.scene.full_positions(q.to(device=self.scene.device, dtype=self.scene.dtype))
+        return [s.points.positions(x).cpu().to(torch.float64).numpy() for s in self.scene.surfaces]
 
     @property
     def pixels_per_metre(self) -> float:
@@ -222,46 +302,100 @@ class SceneView:
 
     def draw(self, q: Tensor, *, markers: Sequence[Marker] = (), arrows: Sequence[Arrow] = ()) -> np.ndarray:
         """The picture of state q ([n]) with markers and arrows on top, uint8 [height, width, 3]."""
+        return self.draw_batch(torch.as_tensor(q).reshape(1, -1), markers=[markers], arrows=[arrows])[0]
+
+    def draw_batch(
+        self,
+        q: Tensor,
+        *,
+        markers: Sequence[Sequence[Marker]] | None = None,
+        arrows: Sequence[Sequence[Arrow]] | None = None,
+    ) -> np.ndarray:
+        """The pictures of states q ([B, n]), each with its own markers and arrows, uint8 [B, height, width, 3].
+
+        One batched surface evaluation and one :func:`fill_triangles` pass per :data:`FILL_CHUNK` triangles (whole
+        frames); frame i is pixel for pixel ``draw(q[i], markers=markers[i], arrows=arrows[i])``.
+
+        Args:
+            q: Free configurations [B, n].
+            markers: Per state, its markers (None: none).
+            arrows: Per state, its arrows (None: none).
+        """
+        count = int(torch.as_tensor(q).shape[0])
+        for name, overlay in (("markers", markers), ("arrows", arrows)):
+            if overlay is not None and len(overlay) != count:
+                raise ValueError(f"draw_batch needs one list of {name} per state ({count}), got {len(overlay)}")
+        corners, colours, frames = self._triangles(self._surface_points_batch(q))
+        images = np.empty((count, self.height, self.width, 3), dtype=np.uint8)
+        per_frame = max(1, FILL_CHUNK // max(1, len(corners) // max(1, count)))
+        bounds = np.searchsorted(frames, np.arange(0, count + per_frame, per_frame))
+        for k, (lo, hi) in enumerate(itertools.pairwise(bounds.tolist())):
+            first = k * per_frame
+            last = min(count, first + per_frame)
+            images[first:last] = fill_triangles(
+                corners[lo:hi], colours[lo:hi], frames[lo:hi] - first, last - first, self.height, self.width
+            )
+        for i in range(count):
+            on_top = (markers[i] if markers is not None else ()), (arrows[i] if arrows is not None else ())
+            if on_top[0] or on_top[1]:
+                images[i] = self._overlay(images[i], *on_top)
+        return images
+
+    def _overlay(self, frame: np.ndarray, markers: Sequence[Marker], arrows: Sequence[Arrow]) -> np.ndarray:
+        """``frame`` [H, W, 3] with arrows and then markers drawn on it by Pillow."""
         Image, ImageDraw = _require_pillow()
-        image = Image.new("RGB", (self.width, self.height), BACKGROUND)
+        image = Image.fromarray(frame)
         pen = ImageDraw.Draw(image)
-        polygons, colours, depths = [], [], []
-        surfaces = zip(self.surface_points(q), self._faces, self._colours, self._outward, strict=True)
-        for verts, faces, rgb, outward in surfaces:
-            tri = verts[faces]  # [F, 3, D]
-            cam = tri.reshape(-1, self.dim) @ self._rotation.T
-            pix = self.project(tri.reshape(-1, self.dim))[:, :2].reshape(-1, 6)
-            if self.dim == 3:
-                cam = cam.reshape(-1, 3, 3)
-                normal = np.cross(cam[:, 1] - cam[:, 0], cam[:, 2] - cam[:, 0])
-                if outward:  # a closed surface: keep the faces whose outward normal points at the camera
-                    front = outward * normal[:, 2] >= 0.0
-                    cam, normal, pix = cam[front], normal[front], pix[front]
-                length = np.linalg.norm(normal, axis=1, keepdims=True)
-                normal = normal / np.where(length > 0.0, length, 1.0)
-                shade = 0.35 + 0.65 * np.abs(normal @ LIGHT)
-                depths.append(cam[:, :, 2].mean(1))
-            else:
-                shade = np.full(len(tri), 0.9)
-                depths.append(np.zeros(len(tri)))
-            colours.append(np.clip(rgb[None] * shade[:, None], 0, 255).astype(np.int64))
-            polygons.append(pix)
-        order = np.argsort(np.concatenate(depths), kind="stable")  # far (small depth) first
-        collecting = gc.isenabled()
-        gc.disable()  # the loop makes ~10 short-lived objects per triangle; cyclic GC passes over them cost 3x the fill
-        try:
-            pix_all = np.concatenate(polygons)[order].tolist()
-            col_all = [tuple(c) for c in np.concatenate(colours)[order].tolist()]
-            for poly, colour in zip(pix_all, col_all, strict=True):
-                pen.polygon(poly, fill=colour)
-        finally:
-            if collecting:
-                gc.enable()
         for arrow in arrows:
             self._arrow(pen, arrow)
         for marker in markers:
             self._marker(pen, marker)
-        return np.asarray(image, dtype=np.uint8).copy()
+        return np.asarray(image, dtype=np.uint8)
+
+    def _rotate(self, points: np.ndarray) -> list[np.ndarray]:
+        """Camera coordinates of points [..., D]: D arrays [...] (elementwise sums, so a row's result never depends
+        on how many rows are rotated with it, as a BLAS product's may)."""
+        rotation = self._rotation
+        return [sum(points[..., d] * rotation[k, d] for d in range(self.dim)) for k in range(self.dim)]
+
+    def _triangles(self, surfaces: list[np.ndarray]) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """The triangles to fill for states whose surface points are ``surfaces`` ([B, P, D] each): pixel corners
+        [T, 3, 2], RGB [T, 3] and frame [T], sorted by frame and, within one, far (small depth) to near (ties in
+        ``scene.surfaces`` and face order)."""
+        sizes = [len(f) for f in self._faces]
+        offsets = np.cumsum([0] + [p.shape[1] for p in surfaces[:-1]])
+        faces = np.concatenate([f + o for f, o in zip(self._faces, offsets, strict=True)]).reshape(-1)  # [F * 3]
+        base = np.repeat(np.stack(self._colours), sizes, axis=0)  # RGB [F, 3] of each face's surface
+        cam = self._rotate(np.concatenate(surfaces, axis=1))  # D arrays [B, P]: rotate the points, then gather
+        count, n_faces = cam[0].shape[0], len(base)
+        x, y = (np.take(c, faces, axis=1).reshape(-1, 3) for c in cam[:2])  # corners [B * F, 3], frame-major
+        if self.dim == 3:
+            z = np.take(cam[2], faces, axis=1).reshape(-1, 3)
+            ux, uy, vx, vy = x[:, 1] - x[:, 0], y[:, 1] - y[:, 0], x[:, 2] - x[:, 0], y[:, 2] - y[:, 0]
+            outward = np.tile(np.repeat(np.asarray(self._outward, dtype=np.float64), sizes), count)  # 0: open
+            keep = np.flatnonzero((outward == 0.0) | (outward * (ux * vy - uy * vx) >= 0.0))  # closed: front faces
+            x, y, z = x[keep], y[keep], z[keep]
+            u = x[:, 1] - x[:, 0], y[:, 1] - y[:, 0], z[:, 1] - z[:, 0]
+            v = x[:, 2] - x[:, 0], y[:, 2] - y[:, 0], z[:, 2] - z[:, 0]
+            normal = u[1] * v[2] - u[2] * v[1], u[2] * v[0] - u[0] * v[2], u[0] * v[1] - u[1] * v[0]
+            length = np.sqrt(normal[0] * normal[0] + normal[1] * normal[1] + normal[2] * normal[2])
+            lit = normal[0] * LIGHT[0] + normal[1] * LIGHT[1] + normal[2] * LIGHT[2]
+            shade = 0.35 + 0.65 * np.abs(lit / np.where(length > 0.0, length, 1.0))
+            depth = (z[:, 0] + z[:, 1] + z[:, 2]) / 3.0
+            # far to near within each frame (a stable sort per frame: 2.4x faster than one lexsort at 64 frames)
+            bounds = np.searchsorted(keep, np.arange(count + 1) * n_faces).tolist()
+            order = np.concatenate(
+                [lo + np.argsort(depth[lo:hi], kind="stable") for lo, hi in itertools.pairwise(bounds)]
+            )
+            keep, x, y, shade = keep[order], x[order], y[order], shade[order]
+        else:  # flat: drawn in face order
+            keep = np.arange(count * n_faces)
+            shade = np.full(len(keep), 0.9)
+        corners = np.empty((len(keep), 3, 2))
+        corners[:, :, 0] = (x - self._centre[0]) * self._pixels_per_metre + 0.5 * self.width
+        corners[:, :, 1] = 0.5 * self.height - (y - self._centre[1]) * self._pixels_per_metre
+        colours = np.clip(base[keep % n_faces] * shade[:, None], 0, 255).astype(np.uint8)
+        return corners, colours, keep // n_faces
 
     def _marker(self, pen: object, marker: Marker) -> None:
         """A disc, or a ring of :meth:`marker_radius_px` around the marker: a band of :meth:`stroke_px` between

@@ -7,21 +7,20 @@ import gc
 
 import numpy as np
 import pytest
+import torch
 
-from redsim import scenes
+from redsim import raster, scenes
 from redsim.raster import Arrow, Marker, SceneView
 
 
 def _filled(view: SceneView, q, monkeypatch: pytest.MonkeyPatch) -> tuple[np.ndarray, int]:
-    """The picture of q and the number of triangles Pillow filled for it."""
-    from PIL import ImageDraw
-
+    """The picture of q and the number of triangles filled for it."""
     calls = []
-    original = ImageDraw.ImageDraw.polygon
-    monkeypatch.setattr(ImageDraw.ImageDraw, "polygon", lambda pen, *a, **k: calls.append(1) or original(pen, *a, **k))
+    original = raster.fill_triangles
+    monkeypatch.setattr(raster, "fill_triangles", lambda tri, *a: calls.append(len(tri)) or original(tri, *a))
     picture = view.draw(q)
-    monkeypatch.setattr(ImageDraw.ImageDraw, "polygon", original)
-    return picture, len(calls)
+    monkeypatch.setattr(raster, "fill_triangles", original)
+    return picture, sum(calls)
 
 
 def _unculled(view: SceneView) -> SceneView:
@@ -106,3 +105,116 @@ def test_a_marker_radius_is_metres_checked_and_drawn_no_larger_than_the_picture(
     for bad in (float("nan"), -1.0, float("inf"), "7"):
         with pytest.raises(ValueError, match=r"Marker\.radius must be a finite number of metres"):
             Marker(np.zeros(3), radius=bad)
+
+
+def _pillow_fill(corners: np.ndarray, colours: np.ndarray, height: int, width: int) -> np.ndarray:
+    """Stop 35's fill: one Pillow polygon call per triangle [T, 3, 2] (x, y px), in order, on the background."""
+    from PIL import Image, ImageDraw
+
+    image = Image.new("RGB", (width, height), raster.BACKGROUND)
+    pen = ImageDraw.Draw(image)
+    for poly, colour in zip(corners.reshape(-1, 6).tolist(), colours.tolist(), strict=True):
+        pen.polygon(poly, fill=tuple(colour))
+    return np.asarray(image)
+
+
+def _near_edges(corners: np.ndarray, height: int, width: int) -> np.ndarray:
+    """Bool [H, W]: pixels within one pixel of a triangle's outline (Pillow's lines, grown by one pixel)."""
+    from PIL import Image, ImageDraw
+
+    image = Image.new("L", (width, height), 0)
+    pen = ImageDraw.Draw(image)
+    for poly in corners.reshape(-1, 6).tolist():
+        pen.polygon(poly, outline=1)
+    edge = np.pad(np.asarray(image) > 0, 1)
+    grown = np.zeros_like(edge)
+    for dy in (-1, 0, 1):
+        for dx in (-1, 0, 1):
+            grown |= np.roll(np.roll(edge, dy, 0), dx, 1)
+    return grown[1:-1, 1:-1]
+
+
+@pytest.mark.parametrize("size", [84, 240])
+@pytest.mark.parametrize("name", ["mini_chain", "stewart", "cloth_ball", "bistable_bar", "conditional_bar"])
+def test_the_numpy_fill_matches_pillows_on_real_scenes(name: str, size: int) -> None:
+    """fill_triangles on a scene's triangles (3D links and plates, the two-sided cloth, the 2D bars) equals the
+    per-triangle Pillow fill it replaced on >= 98% of the pixels (measured 98.99-99.98% here), and the pixels that
+    differ all lie on a triangle's edge."""
+    scene = scenes.build(name)
+    generator = torch.Generator().manual_seed(0)
+    q = scene.q_seed + 0.02 * scene.extent() * torch.randn(scene.q_seed.shape, generator=generator)
+    view = SceneView(scene, scene.q_seed, width=size, height=size)
+    corners, colours, frames = view._triangles(view._surface_points_batch(q.reshape(1, -1)))
+    mine = raster.fill_triangles(corners, colours, frames, 1, size, size)[0]
+    theirs = _pillow_fill(corners, colours, size, size)
+    differ = (mine != theirs).any(-1)
+    assert (mine != raster.BACKGROUND).any(-1).mean() > 0.01  # something was drawn
+    assert differ.mean() < 0.02, differ.mean()
+    assert not (differ & ~_near_edges(corners, size, size)).any()
+
+
+def test_the_fill_covers_a_subset_of_pillows_pixels_on_random_triangles() -> None:
+    """Single random triangles (some thin, some off the picture): every pixel filled is one Pillow fills, and
+    Pillow fills < 1% more (measured 0.2%: rounding where an edge crosses a pixel centre's row)."""
+    rng = np.random.default_rng(1)
+    extra = covered = 0
+    mark = np.array([[1, 2, 3]])
+    for k in range(300):
+        corners = rng.uniform(-5.0, 45.0, (1, 3, 2))
+        if k % 5 == 0:
+            corners[0, 2] = corners[0, 0] + 0.7 * (corners[0, 1] - corners[0, 0])  # zero area: a line
+        mine = (raster.fill_triangles(corners, mark, np.zeros(1, int), 1, 40, 40)[0] == mark).all(-1)
+        theirs = (_pillow_fill(corners, mark, 40, 40) == mark).all(-1)
+        assert not (mine & ~theirs).any()
+        extra, covered = extra + (theirs & ~mine).sum(), covered + theirs.sum()
+    assert extra < 0.01 * covered
+
+
+def test_degenerate_and_far_triangles_neither_crash_nor_paint_garbage() -> None:
+    """Zero area paints its segment (Pillow's line), a point one pixel; a non-finite vertex or one beyond
+    COORDINATE_LIMIT paints nothing (Pillow painted such triangles as garbage); a valid huge triangle around the
+    picture paints all of it, one far off it nothing; none disturbs a normal triangle drawn with it."""
+    normal = np.array([[[5.0, 5.0], [30.0, 8.0], [12.0, 28.0]]])
+
+    def fill(extra: list[list[list[float]]]) -> np.ndarray:
+        corners = np.concatenate([normal, np.array(extra, dtype=np.float64).reshape(-1, 3, 2)])
+        colours = np.array([[10, 20, 30]] + [[200, 0, 0]] * (len(corners) - 1))
+        return raster.fill_triangles(corners, colours, np.zeros(len(corners), int), 1, 40, 40)[0]
+
+    alone = fill([])
+    painted = lambda picture: (picture == (200, 0, 0)).all(-1)  # noqa: E731
+    line = painted(fill([[[0, 36], [30, 36], [15, 36]]]))
+    assert line.sum() == 31 and line[36, :31].all()
+    assert painted(fill([[[38.5, 2.2], [38.1, 2.9], [38.9, 2.0]]])).sum() == 1
+    nan, inf, big = float("nan"), float("inf"), 2.0 * raster.COORDINATE_LIMIT
+    for bad in ([[nan, 0], [10, 10], [0, 20]], [[inf, 0], [10, 10], [0, 20]], [[big, 0], [10, 10], [0, 20]]):
+        assert np.array_equal(fill([bad]), alone)
+    assert painted(fill([[[-1e6, -1e6], [1e6, -1e6], [0, 1e6]]])).all()
+    assert np.array_equal(fill([[[1e5, 0], [2e5, 10], [1e5, 1e6]]]), alone)
+    assert raster.fill_triangles(np.zeros((0, 3, 2)), np.zeros((0, 3)), np.zeros(0, int), 2, 8, 8).shape == (2, 8, 8, 3)
+    scene = scenes.build("mini_chain")
+    view = SceneView(scene, scene.q_seed, width=32, height=32)
+    blank = np.broadcast_to(np.array(raster.BACKGROUND, dtype=np.uint8), (32, 32, 3))
+    assert np.array_equal(view.draw(scene.q_seed * float("nan")), blank)  # a diverged state: nothing drawn
+
+
+@pytest.mark.parametrize("name", ["mini_chain", "cloth_ball", "bistable_bar"])
+def test_a_batch_draws_each_state_as_draw_does(name: str, monkeypatch: pytest.MonkeyPatch) -> None:
+    """draw_batch's frame i is draw(q[i]) with copy i's markers and arrows, pixel for pixel, however the
+    triangles are split into fill calls (FILL_CHUNK)."""
+    scene = scenes.build(name)
+    generator = torch.Generator().manual_seed(1)
+    q = scene.q_seed + 0.05 * scene.extent() * torch.randn((5, scene.q_seed.numel()), generator=generator)
+    view = SceneView(scene, scene.q_seed, width=64, height=48)
+    origin = np.zeros(scene.dim)
+    markers = [[Marker(origin + 0.01 * i, radius=0.02 * i)] if i % 2 else [] for i in range(5)]
+    arrows = [[Arrow(origin, np.eye(scene.dim)[0], 0.05 * i)] if i % 3 else [] for i in range(5)]
+    single = [view.draw(q[i], markers=markers[i], arrows=arrows[i]) for i in range(5)]
+    assert len({s.tobytes() for s in single}) == 5
+    for chunk in (raster.FILL_CHUNK, 1):
+        monkeypatch.setattr(raster, "FILL_CHUNK", chunk)
+        batch = view.draw_batch(q, markers=markers, arrows=arrows)
+        assert batch.shape == (5, 48, 64, 3) and batch.dtype == np.uint8
+        assert all(np.array_equal(batch[i], single[i]) for i in range(5))
+    with pytest.raises(ValueError, match="one list of markers per state"):
+        view.draw_batch(q, markers=markers[:2])

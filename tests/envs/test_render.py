@@ -368,3 +368,26 @@ def test_the_fixed_camera_holds_the_points_a_task_frames_and_the_tracking_one_ig
         env.reset(seed=0)
         env.render()
         assert env.unwrapped._view.contains(far) is inside
+
+
+@pytest.mark.parametrize("env_id", ["RedSim/Chain-v0", "RedSim/ClothBall-v0", "RedSim/BistableBar-v1"])
+def test_a_vector_copy_draws_the_single_envs_picture(env_id: str) -> None:
+    """The vector env draws all copies in one batched drawing; copy i's frame is pixel for pixel the single env's
+    picture of the same state (copy i's state, targets and last loads set on the single env)."""
+    n = 3
+    venv = gym.make_vec(env_id, n, "vector_entry_point", render_mode="rgb_array", width=84, height=84)
+    venv.reset(seed=0)
+    for _ in range(2):
+        venv.step(venv.action_space.sample())
+    frames = venv.render()
+    state = venv.sim.get_state()
+    single = gym.make(env_id, render_mode="rgb_array", width=84, height=84)
+    single.reset(seed=0)
+    for i in range(n):
+        row = {
+            k: state[k][i : i + 1] if state[k] is not None else None for k in ("z", "z_prev", "model", "loads", "cond")
+        }
+        row["params"] = {k: v[i : i + 1] for k, v in state["params"].items()}
+        single.unwrapped.sim.set_state({**row, "setting": state["setting"]})
+        assert np.array_equal(frames[i], single.render()), i
+    assert not np.array_equal(frames[0], frames[1])
