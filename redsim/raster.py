@@ -31,6 +31,7 @@ import numpy as np
 import torch
 from torch import Tensor
 
+from redsim.points import PointSet
 from redsim.scene import Scene
 
 BACKGROUND = (250, 250, 247)
@@ -237,6 +238,17 @@ class SceneView:
         self.width, self.height = int(width), int(height)
         self.dim = scene.dim
         self._faces = [s.faces.cpu().numpy() for s in scene.surfaces]
+        groups: dict[tuple[int, ...], list[int]] = {}
+        for index, surface in enumerate(scene.surfaces):  # point sets of one shape [P, D, K] evaluate as one
+            groups.setdefault(tuple(surface.points.dofs.shape[1:]), []).append(index)
+        self._point_groups = []
+        for members in groups.values():
+            sets = [scene.surfaces[i].points for i in members]
+            merged = PointSet(*(torch.cat([getattr(p, f) for p in sets]) for f in ("dofs", "weights", "offset")))
+            stops = np.cumsum([p.count for p in sets]).tolist()
+            self._point_groups.append(
+                (merged, [(i, b - p.count, b) for i, b, p in zip(members, stops, sets, strict=True)])
+            )
         frame_points = self.surface_points(q_frame)
         self._outward = [_outward_sign(p, f) for p, f in zip(frame_points, self._faces, strict=True)]
         self._colours = [
@@ -266,7 +278,12 @@ class SceneView:
         """Vertex positions [m] of every surface at free configurations q ([B, n]), float64 [B, P, D] each."""
         q = torch.as_tensor(q).detach()
         x = self.scene.full_positions(q.to(device=self.scene.device, dtype=self.scene.dtype))
-        return [s.points.positions(x).cpu().to(torch.float64).numpy() for s in self.scene.surfaces]
+        points: list[np.ndarray] = [np.empty(0)] * len(self.scene.surfaces)
+        for merged, members in self._point_groups:  # one evaluation per group of alike point sets
+            at = merged.positions(x).cpu().to(torch.float64).numpy()
+            for index, start, stop in members:
+                points[index] = at[:, start:stop]
+        return points
 
     @property
     def pixels_per_metre(self) -> float:
