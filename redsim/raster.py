@@ -31,7 +31,6 @@ import numpy as np
 import torch
 from torch import Tensor
 
-from redsim.points import PointSet
 from redsim.scene import Scene
 
 BACKGROUND = (250, 250, 247)
@@ -241,13 +240,21 @@ class SceneView:
         groups: dict[tuple[int, ...], list[int]] = {}
         for index, surface in enumerate(scene.surfaces):  # point sets of one shape [P, D, K] evaluate as one
             groups.setdefault(tuple(surface.points.dofs.shape[1:]), []).append(index)
-        self._point_groups = []
+        self._point_groups = []  # (dofs [K, P * D], weights [K, P * D], offset [P * D], [(surface, start, stop)])
         for members in groups.values():
             sets = [scene.surfaces[i].points for i in members]
-            merged = PointSet(*(torch.cat([getattr(p, f) for p in sets]) for f in ("dofs", "weights", "offset")))
-            stops = np.cumsum([p.count for p in sets]).tolist()
+            dofs, weights, offset = (
+                torch.cat([getattr(p, f) for p in sets]).cpu() for f in ("dofs", "weights", "offset")
+            )
+            size, dim = dofs.shape[:2]
+            stops = (np.cumsum([p.count for p in sets]) * dim).tolist()
             self._point_groups.append(
-                (merged, [(i, b - p.count, b) for i, b, p in zip(members, stops, sets, strict=True)])
+                (
+                    dofs.permute(2, 0, 1).reshape(-1, size * dim).numpy(),
+                    weights.T.to(torch.float64).repeat_interleave(dim, 1).numpy(),
+                    offset.to(torch.float64).reshape(-1).numpy(),
+                    [(i, b - p.count * dim, b) for i, b, p in zip(members, stops, sets, strict=True)],
+                )
             )
         frame_points = self.surface_points(q_frame)
         self._outward = [_outward_sign(p, f) for p, f in zip(frame_points, self._faces, strict=True)]
@@ -278,11 +285,12 @@ class SceneView:
         """Vertex positions [m] of every surface at free configurations q ([B, n]), float64 [B, P, D] each."""
         q = torch.as_tensor(q).detach()
         x = self.scene.full_positions(q.to(device=self.scene.device, dtype=self.scene.dtype))
+        x = x.cpu().to(torch.float64).numpy()  # [B, N]
         points: list[np.ndarray] = [np.empty(0)] * len(self.scene.surfaces)
-        for merged, members in self._point_groups:  # one evaluation per group of alike point sets
-            at = merged.positions(x).cpu().to(torch.float64).numpy()
+        for dofs, weights, offset, members in self._point_groups:  # p = sum_k x[dofs_k] w_k + offset, elementwise
+            at = offset + sum(np.take(x, d, axis=1) * w for d, w in zip(dofs, weights, strict=True))
             for index, start, stop in members:
-                points[index] = at[:, start:stop]
+                points[index] = at[:, start:stop].reshape(len(x), -1, self.dim)
         return points
 
     @property

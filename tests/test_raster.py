@@ -201,7 +201,7 @@ def test_degenerate_and_far_triangles_neither_crash_nor_paint_garbage() -> None:
 @pytest.mark.parametrize("name", ["mini_chain", "cloth_ball", "bistable_bar"])
 def test_a_batch_draws_each_state_as_draw_does(name: str, monkeypatch: pytest.MonkeyPatch) -> None:
     """draw_batch's frame i is draw(q[i]) with copy i's markers and arrows, pixel for pixel, however the
-    triangles are split into fill calls (FILL_CHUNK)."""
+    triangles are split into fill calls (FILL_CHUNK); the surface points are the scene's PointSet positions."""
     scene = scenes.build(name)
     generator = torch.Generator().manual_seed(1)
     q = scene.q_seed + 0.05 * scene.extent() * torch.randn((5, scene.q_seed.numel()), generator=generator)
@@ -209,6 +209,10 @@ def test_a_batch_draws_each_state_as_draw_does(name: str, monkeypatch: pytest.Mo
     origin = np.zeros(scene.dim)
     markers = [[Marker(origin + 0.01 * i, radius=0.02 * i)] if i % 2 else [] for i in range(5)]
     arrows = [[Arrow(origin, np.eye(scene.dim)[0], 0.05 * i)] if i % 3 else [] for i in range(5)]
+    x = scene.full_positions(q[:1])
+    for points, surface in zip(view.surface_points(q[0]), scene.surfaces, strict=True):  # the PointSet's positions
+        expected = surface.points.positions(x)[0].double().numpy()
+        np.testing.assert_allclose(points, expected, rtol=0.0, atol=1e-6 * scene.extent())
     single = [view.draw(q[i], markers=markers[i], arrows=arrows[i]) for i in range(5)]
     assert len({s.tobytes() for s in single}) == 5
     for chunk in (raster.FILL_CHUNK, 1):
