@@ -171,20 +171,36 @@ def fill_triangles(
     bottom = np.minimum(np.maximum(np.maximum(y[0], y[1]), y[2]), height - 1.0)
     rows = np.where(valid & (right >= left), np.maximum(bottom - top + 1.0, 0.0), 0.0).astype(np.int64)
     # edge e runs from vertex e to e + 1; on a counter-clockwise triangle (s = 1; else s = -1) the pixel (i, j)
-    # covers edge e's side iff V = 2 s ((x1 - x0)(j - y0) - (y1 - y0)(i - x0)) + |dV/di| / 2 - [sloped] >= 0
+    # covers edge e's side iff V = a i + b j + c >= 0, V = 2 s ((x1 - x0)(j - y0) - (y1 - y0)(i - x0)) + |a| / 2 -
+    # [a != 0]: i >= -(b j + c) / a where a > 0 (a left edge), i <= -(b j + c) / a where a < 0 (a right one); a
+    # horizontal edge (a = 0) holds on every row between the top and bottom vertex
     nx, ny = x[[1, 2, 0]], y[[1, 2, 0]]
     s = np.where((x[1] - x[0]) * (y[2] - y[0]) - (y[1] - y[0]) * (x[2] - x[0]) >= 0.0, 1.0, -1.0)
-    a = 2.0 * s * (y - ny)  # dV/di [3, T]
-    b = 2.0 * s * (nx - x)  # dV/dj
+    a = 2.0 * s * (y - ny)  # [3, T]
+    b = 2.0 * s * (nx - x)
     c = -(a * x + b * y) + 0.5 * np.abs(a) - (a != 0.0)
+    # slots by a: the largest (left if a > 0), the middle (left or right) and the smallest (right if a < 0); a slot
+    # without its edge is a far bound that never binds (-/+ 2^60, never reached by a real one)
+    high, low = a.argmax(0), a.argmin(0)
+    low = np.where(high == low, 2, low)  # all a equal: all 0 (the three a sum to 0)
+    rank = np.stack([high, 3 - high - low, low])  # [3, T]: largest a first
+    a, b, c = (np.take_along_axis(v, rank, axis=0) for v in (a, b, c))
+    slots = []
+    for edge, use in ((0, a[0] > 0.0), (1, a[1] > 0.0), (1, a[1] < 0.0), (2, a[2] < 0.0)):
+        sign = 1.0 if len(slots) < 2 else -1.0  # left slots bound below, right ones above
+        slots.append(
+            (
+                np.where(use, -a[edge], -sign),  # bound = (b j + c) / -a
+                np.where(use, b[edge], 0.0),
+                np.where(use, c[edge], 2.0**60),
+            )
+        )
     tri, j = _expand(rows)
     row_y = top[tri] + j
-    at = a[:, tri]
-    v0 = b[:, tri] * row_y + c[:, tri]  # V at i = 0, [3, R]
-    bound = -v0 / np.where(at == 0.0, 1.0, at)  # V >= 0 <=> i >= bound (a > 0) or i <= bound (a < 0)
-    lo = np.maximum(np.where(at > 0.0, np.ceil(bound), -np.inf).max(0), left[tri])
-    hi = np.minimum(np.where(at < 0.0, np.floor(bound), np.inf).min(0), right[tri])
-    hi = np.where(((at == 0.0) & (v0 < 0.0)).any(0), -1.0, hi)  # a horizontal edge with the row outside it
+    coef = np.stack([v for slot in slots for v in slot])[:, tri]  # [12, R]: (-a, b, c) of the 4 slots
+    bound = (coef[1::3] * row_y + coef[2::3]) / coef[0::3]  # [4, R]
+    lo = np.maximum(np.maximum(np.ceil(bound[0]), np.ceil(bound[1])), left[tri])
+    hi = np.minimum(np.minimum(np.floor(bound[2]), np.floor(bound[3])), right[tri])
     span = np.maximum(hi - lo + 1.0, 0.0).astype(np.int64)
     run, i = _expand(span)
     start = (np.asarray(frames, dtype=np.int64)[tri] * height + row_y.astype(np.int64)) * width + lo.astype(np.int64)
