@@ -197,7 +197,7 @@ def fill_triangles(
         )
     tri, j = _expand(rows)
     row_y = top[tri] + j
-    coef = np.stack([v for slot in slots for v in slot])[:, tri]  # [12, R]: (-a, b, c) of the 4 slots
+    coef = np.take(np.stack([v for slot in slots for v in slot]), tri, axis=1)  # [12, R]: (-a, b, c) of the 4 slots
     bound = (coef[1::3] * row_y + coef[2::3]) / coef[0::3]  # [4, R]
     lo = np.maximum(np.maximum(np.ceil(bound[0]), np.ceil(bound[1])), left[tri])
     hi = np.minimum(np.minimum(np.floor(bound[2]), np.floor(bound[3])), right[tri])
@@ -412,31 +412,33 @@ class SceneView:
         x, y = (np.take(c, faces, axis=1).reshape(-1, 3) for c in cam[:2])  # corners [B * F, 3], frame-major
         if self.dim == 3:
             z = np.take(cam[2], faces, axis=1).reshape(-1, 3)
-            ux, uy, vx, vy = x[:, 1] - x[:, 0], y[:, 1] - y[:, 0], x[:, 2] - x[:, 0], y[:, 2] - y[:, 0]
-            outward = np.tile(np.repeat(np.asarray(self._outward, dtype=np.float64), sizes), count)  # 0: open
-            keep = np.flatnonzero((outward == 0.0) | (outward * (ux * vy - uy * vx) >= 0.0))  # closed: front faces
-            x, y, z = x[keep], y[keep], z[keep]
             u = x[:, 1] - x[:, 0], y[:, 1] - y[:, 0], z[:, 1] - z[:, 0]
             v = x[:, 2] - x[:, 0], y[:, 2] - y[:, 0], z[:, 2] - z[:, 0]
-            normal = u[1] * v[2] - u[2] * v[1], u[2] * v[0] - u[0] * v[2], u[0] * v[1] - u[1] * v[0]
+            depth = (z[:, 0] + z[:, 1] + z[:, 2]) / 3.0
+            nz = u[0] * v[1] - u[1] * v[0]
+            outward = np.tile(np.repeat(np.asarray(self._outward, dtype=np.float64), sizes), count)  # 0: open
+            keep = np.flatnonzero((outward == 0.0) | (outward * nz >= 0.0))  # closed: the faces turned to the camera
+            u, v = tuple(np.take(w, keep) for w in u), tuple(np.take(w, keep) for w in v)
+            nz, depth = np.take(nz, keep), np.take(depth, keep)
+            normal = u[1] * v[2] - u[2] * v[1], u[2] * v[0] - u[0] * v[2], nz
             length = np.sqrt(normal[0] * normal[0] + normal[1] * normal[1] + normal[2] * normal[2])
             lit = normal[0] * LIGHT[0] + normal[1] * LIGHT[1] + normal[2] * LIGHT[2]
             shade = 0.35 + 0.65 * np.abs(lit / np.where(length > 0.0, length, 1.0))
-            depth = (z[:, 0] + z[:, 1] + z[:, 2]) / 3.0
             # far to near within each frame (a stable sort per frame: 2.4x faster than one lexsort at 64 frames)
             bounds = np.searchsorted(keep, np.arange(count + 1) * n_faces).tolist()
             order = np.concatenate(
                 [lo + np.argsort(depth[lo:hi], kind="stable") for lo, hi in itertools.pairwise(bounds)]
             )
-            keep, x, y, shade = keep[order], x[order], y[order], shade[order]
+            pick, shade = keep[order], shade[order]  # rows of the B * F faces, in drawing order
+            x, y = np.take(x, pick, axis=0), np.take(y, pick, axis=0)  # take: 3x faster than x[pick] on rows
         else:  # flat: drawn in face order
-            keep = np.arange(count * n_faces)
-            shade = np.full(len(keep), 0.9)
-        corners = np.empty((len(keep), 3, 2))
+            pick = np.arange(count * n_faces)
+            shade = np.full(len(pick), 0.9)
+        corners = np.empty((len(pick), 3, 2))
         corners[:, :, 0] = (x - self._centre[0]) * self._pixels_per_metre + 0.5 * self.width
         corners[:, :, 1] = 0.5 * self.height - (y - self._centre[1]) * self._pixels_per_metre
-        colours = np.clip(base[keep % n_faces] * shade[:, None], 0, 255).astype(np.uint8)
-        return corners, colours, keep // n_faces
+        colours = np.clip(base[pick % n_faces] * shade[:, None], 0, 255).astype(np.uint8)
+        return corners, colours, pick // n_faces
 
     def _marker(self, pen: object, marker: Marker) -> None:
         """A disc, or a ring of :meth:`marker_radius_px` around the marker: a band of :meth:`stroke_px` between
