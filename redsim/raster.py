@@ -2,11 +2,11 @@
 
 Triangles are projected orthographically, sorted back to front and filled by :func:`fill_triangles` (the
 painter's algorithm in a few vectorized numpy passes over all triangles of one or many frames, the nearest
-triangle's colour winning each pixel, Pillow's polygon fill emulated: 99.8-100% of a scene's pixels equal), with no
-display and no plotting library; :meth:`SceneView.draw_batch` draws many states at once. On a closed, consistently
-wound surface (rigid links, FEM solids) the triangles facing away from the camera are hidden by the ones facing it,
-so they are not drawn (back-face culling); open surfaces (cloth) are drawn two-sided. `redsim bench envs` prints
-each env's frames per second at 480x480. 3D scenes use the builders' y-up
+triangle's colour winning each pixel, Pillow's polygon fill emulated: 99-100% of a scene's pixels equal, the rest on
+triangle edges), with no display and no plotting library; :meth:`SceneView.draw_batch` draws many states at once. On
+a closed, consistently wound surface (rigid links, FEM solids) the triangles facing away from the camera are hidden
+by the ones facing it, so they are not drawn (back-face culling); open surfaces (cloth) are drawn two-sided. `redsim
+bench envs` prints each env's frames per second at 480x480. 3D scenes use the builders' y-up
 convention: the camera turns about the y axis (``azimuth``) and then tilts down (``elevation``).
 
     >>> view = SceneView(scene, q_rest, width=480, height=480)
@@ -213,7 +213,7 @@ def fill_triangles(
 
 FILL_CHUNK = 40_000
 """Triangles :meth:`SceneView.draw_batch` fills per :func:`fill_triangles` call (whole frames; at least one): its
-arrays stay in the CPU's cache (64 frames of Chain-v0 at 84 px in one call take 1.6x as long as in chunks)."""
+arrays stay in the CPU's cache (64 frames of Chain-v0 at 84 px in one call took 1.2-1.6x as long as in chunks)."""
 
 
 class SceneView:
