@@ -214,6 +214,9 @@ def fill_triangles(
 FILL_CHUNK = 40_000
 """Triangles :meth:`SceneView.draw_batch` fills per :func:`fill_triangles` call (whole frames; at least one): its
 arrays stay in the CPU's cache (64 frames of Chain-v0 at 84 px in one call took 1.2-1.6x as long as in chunks)."""
+FILL_PIXELS = 2_000_000
+"""Pixels :meth:`SceneView.draw_batch` fills per :func:`fill_triangles` call (whole frames; at least one), so a
+large batch of large frames keeps its per-pixel index arrays [F * H * W] small (8 frames at 480 x 480)."""
 
 
 class SceneView:
@@ -368,7 +371,9 @@ class SceneView:
                 raise ValueError(f"draw_batch needs one list of {name} per state ({count}), got {len(overlay)}")
         corners, colours, frames = self._triangles(self._surface_points_batch(q))
         images = np.empty((count, self.height, self.width, 3), dtype=np.uint8)
-        per_frame = max(1, FILL_CHUNK // max(1, len(corners) // max(1, count)))
+        per_frame = max(
+            1, min(FILL_CHUNK // max(1, len(corners) // max(1, count)), FILL_PIXELS // self.height // self.width)
+        )
         bounds = np.searchsorted(frames, np.arange(0, count + per_frame, per_frame))
         for k, (lo, hi) in enumerate(itertools.pairwise(bounds.tolist())):
             first = k * per_frame

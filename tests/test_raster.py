@@ -201,7 +201,8 @@ def test_degenerate_and_far_triangles_neither_crash_nor_paint_garbage() -> None:
 @pytest.mark.parametrize("name", ["mini_chain", "cloth_ball", "bistable_bar"])
 def test_a_batch_draws_each_state_as_draw_does(name: str, monkeypatch: pytest.MonkeyPatch) -> None:
     """draw_batch's frame i is draw(q[i]) with copy i's markers and arrows, pixel for pixel, however the
-    triangles are split into fill calls (FILL_CHUNK); the surface points are the scene's PointSet positions."""
+    triangles are split into fill calls (FILL_CHUNK, FILL_PIXELS); the surface points are the scene's PointSet
+    positions."""
     scene = scenes.build(name)
     generator = torch.Generator().manual_seed(1)
     q = scene.q_seed + 0.05 * scene.extent() * torch.randn((5, scene.q_seed.numel()), generator=generator)
@@ -215,9 +216,18 @@ def test_a_batch_draws_each_state_as_draw_does(name: str, monkeypatch: pytest.Mo
         np.testing.assert_allclose(points, expected, rtol=0.0, atol=1e-6 * scene.extent())
     single = [view.draw(q[i], markers=markers[i], arrows=arrows[i]) for i in range(5)]
     assert len({s.tobytes() for s in single}) == 5
-    for chunk in (raster.FILL_CHUNK, 1):
+    original, calls = raster.fill_triangles, []
+    monkeypatch.setattr(raster, "fill_triangles", lambda *a: calls.append(a[3]) or original(*a))
+    for chunk, pixels, frames in (
+        (raster.FILL_CHUNK, raster.FILL_PIXELS, [5]),
+        (1, 10**9, [1] * 5),
+        (10**9, 2 * 64 * 48, [2, 2, 1]),
+    ):
         monkeypatch.setattr(raster, "FILL_CHUNK", chunk)
+        monkeypatch.setattr(raster, "FILL_PIXELS", pixels)
+        calls.clear()
         batch = view.draw_batch(q, markers=markers, arrows=arrows)
+        assert calls == frames  # frames per fill call: at most FILL_CHUNK triangles and FILL_PIXELS pixels
         assert batch.shape == (5, 48, 64, 3) and batch.dtype == np.uint8
         assert all(np.array_equal(batch[i], single[i]) for i in range(5))
     with pytest.raises(ValueError, match="one list of markers per state"):
