@@ -25,7 +25,7 @@ import numbers
 import os
 import sys
 import warnings
-from collections.abc import Mapping, Sequence
+from collections.abc import Callable, Mapping, Sequence
 from typing import TYPE_CHECKING, Any, ClassVar
 
 import gymnasium as gym
@@ -182,6 +182,20 @@ class Task:
         the region targets or goals are drawn from (the corners of a sampling box, or shapes of fixed draws) and the
         handles' reachable extent; None (default): nothing more. Called once per env, at its first render."""
         return None
+
+
+PROCESS_CACHE_SIZE = 8
+"""Entries each per-process cache of settled work keeps (:func:`cached`), the oldest dropped first."""
+
+
+def cached(cache: dict[Any, Any], key: Any, compute: Callable[[], Any]) -> Any:
+    """``cache[key]``, computed once by ``compute()`` (work an identical env made again in this process reuses: a
+    task's settled targets or frame), keeping the :data:`PROCESS_CACHE_SIZE` newest entries."""
+    if key not in cache:
+        cache[key] = compute()
+        while len(cache) > PROCESS_CACHE_SIZE:
+            cache.pop(next(iter(cache)))
+    return cache[key]
 
 
 def check_subspace(scene: Scene, subspace: nn.Module) -> None:

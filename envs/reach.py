@@ -31,7 +31,7 @@ import numpy as np
 import torch
 from torch import Tensor, nn
 
-from redsim.envs.base import FRAME_SAMPLES, LatentEnv, Task, check_numbers, shipped
+from redsim.envs.base import FRAME_SAMPLES, LatentEnv, Task, cached, check_numbers, shipped
 
 if TYPE_CHECKING:
     from redsim.envs.base import LatentSim
@@ -46,7 +46,6 @@ SETTLE_STEPS = 20
 """Settling steps per held action (the hanging sheet moves < 3e-4 m in its 10th step)."""
 TARGETS = ("latent", "held")
 """Target distributions of :class:`HandleReach` (module doc)."""
-HELD_CACHE_SIZE = 8
 _held_cache: dict[tuple[Any, ...], tuple[Tensor, Tensor]] = {}
 """Held actions and targets settled in this process, by everything they depend on (:meth:`HandleReach._held_key`):
 an identical env made again reuses them (HangingCloth-v1 settles for ~7 s)."""
@@ -173,12 +172,7 @@ class HandleReach(Task):
         (module doc), settled once per process for each :meth:`_held_key`."""
         if sim.randomize_condition:
             raise ValueError("targets='held' needs one condition for all episodes (randomize_condition is on)")
-        key = self._held_key(sim)
-        if key not in _held_cache:
-            _held_cache[key] = self._settle(sim)
-            while len(_held_cache) > HELD_CACHE_SIZE:
-                _held_cache.pop(next(iter(_held_cache)))
-        held, targets = _held_cache[key]
+        held, targets = cached(_held_cache, self._held_key(sim), lambda: self._settle(sim))
         return held.clone(), targets.clone()
 
     def _held_key(self, sim: LatentSim) -> tuple[Any, ...]:

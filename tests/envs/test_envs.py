@@ -745,6 +745,32 @@ def test_held_targets_are_settled_once_per_process_for_identical_envs() -> None:
     assert len(reach._held_cache) == 3 and float64.dtype == torch.float64
 
 
+def test_stewart_s_frame_is_solved_once_per_process_and_caches_keep_their_newest_entries(
+    monkeypatch: pytest.MonkeyPatch,
+) -> None:
+    """Stewart-v0's fixed camera solves 64 static equilibria (5-8 s): an identical env made again reuses them."""
+    from redsim.envs import base, stewart
+
+    calls = []
+
+    def corners(self, sim):
+        calls.append(self.target_spread)
+        return np.full((2, 3), float(len(calls)))
+
+    monkeypatch.setattr(stewart.PlatePose, "_corner_points", corners)
+    stewart._frame_cache.clear()
+    envs = [gym.make("RedSim/Stewart-v0", target_spread=s).unwrapped for s in (0.5, 0.5, 0.4)]
+    frames = [env.sim.task.frame_points(env.sim) for env in envs]
+    assert calls == [0.5, 0.4] and np.array_equal(frames[0], frames[1]) and not np.array_equal(frames[0], frames[2])
+    frames[0][:] = -1.0  # a caller's copy: the cache keeps its own
+    assert np.array_equal(envs[1].sim.task.frame_points(envs[1].sim), np.full((2, 3), 1.0))
+    cache: dict = {}
+    for key in range(base.PROCESS_CACHE_SIZE + 2):
+        base.cached(cache, key, lambda key=key: key * 10)
+    assert list(cache) == list(range(2, base.PROCESS_CACHE_SIZE + 2))
+    assert base.cached(cache, 5, lambda: pytest.fail("computed again")) == 50
+
+
 @pytest.mark.gpu
 @pytest.mark.skipif(not torch.cuda.is_available(), reason="needs a CUDA device")
 def test_an_env_on_cuda_leaves_the_caller_s_map_where_it_was() -> None:
