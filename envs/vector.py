@@ -188,7 +188,8 @@ class LatentVectorEnv(SharedCopies, VectorEnv):
         rows, camera = range(self.num_envs), self.template._camera
         sim = self.sim if camera.get("track", False) else self.template.sim  # fixed: the single env's camera
         self._view = sim.framed_view(self._view, *self.template._render_size, camera, rows)
-        return tuple(self.sim.draw_rows(self._view, rows))  # one batched drawing of every copy
+        # one batched drawing of every copy; each frame its own array (a kept frame must not hold all N)
+        return tuple(np.array(frame) for frame in self.sim.draw_rows(self._view, rows))
 
     def get_state(self) -> dict[str, Any]:
         """The batched dynamic state (:meth:`redsim.envs.base.LatentSim.get_state`), each copy's episode clock,

@@ -3,7 +3,6 @@
 from __future__ import annotations
 
 import dataclasses
-import gc
 
 import numpy as np
 import pytest
@@ -62,19 +61,6 @@ def test_inward_wound_surfaces_cull_the_other_side(monkeypatch) -> None:
     (picture, kept), (inward_picture, inward_kept) = (_filled(v, scene.q_seed, monkeypatch) for v in (view, inward))
     assert kept == inward_kept < 0.7 * sum(len(f) for f in view._faces)
     assert np.array_equal(picture, inward_picture)
-
-
-@pytest.mark.parametrize("enabled", [True, False])
-def test_drawing_leaves_the_garbage_collector_as_it_found_it(enabled: bool) -> None:
-    scene = scenes.build("mini_chain")
-    view = SceneView(scene, scene.q_seed, width=64, height=64)
-    was = gc.isenabled()
-    try:
-        gc.enable() if enabled else gc.disable()
-        view.draw(scene.q_seed)
-        assert gc.isenabled() == enabled
-    finally:
-        gc.enable() if was else gc.disable()
 
 
 def test_arrows_and_markers_keep_their_share_of_the_picture_at_any_size() -> None:
@@ -138,8 +124,9 @@ def _near_edges(corners: np.ndarray, height: int, width: int) -> np.ndarray:
 @pytest.mark.parametrize("name", ["mini_chain", "stewart", "cloth_ball", "bistable_bar", "conditional_bar"])
 def test_the_numpy_fill_matches_pillows_on_real_scenes(name: str, size: int) -> None:
     """fill_triangles on a scene's triangles (3D links and plates, the two-sided cloth, the 2D bars) equals the
-    per-triangle Pillow fill it replaced on >= 98% of the pixels (measured 98.99-99.98% here), and the pixels that
-    differ all lie on a triangle's edge."""
+    per-triangle Pillow fill it replaced on >= 98% of the pixels (measured 98.99-99.98% here) and on most of the
+    pixels either fill draws (measured 0.3-8.9% differ at 84 px, Stewart's thin plates the most; 0.3-3.2% at 240), and
+    the pixels that differ all lie on a triangle's edge."""
     scene = scenes.build(name)
     generator = torch.Generator().manual_seed(0)
     q = scene.q_seed + 0.02 * scene.extent() * torch.randn(scene.q_seed.shape, generator=generator)
@@ -148,8 +135,10 @@ def test_the_numpy_fill_matches_pillows_on_real_scenes(name: str, size: int) -> 
     mine = raster.fill_triangles(corners, colours, frames, 1, size, size)[0]
     theirs = _pillow_fill(corners, colours, size, size)
     differ = (mine != theirs).any(-1)
-    assert (mine != raster.BACKGROUND).any(-1).mean() > 0.01  # something was drawn
+    drawn = (mine != raster.BACKGROUND).any(-1) | (theirs != raster.BACKGROUND).any(-1)
+    assert drawn.mean() > 0.01  # something was drawn
     assert differ.mean() < 0.02, differ.mean()
+    assert differ[drawn].mean() < (0.10 if size < 100 else 0.04), differ[drawn].mean()  # a body, not the background
     assert not (differ & ~_near_edges(corners, size, size)).any()
 
 
@@ -216,6 +205,7 @@ def test_a_batch_draws_each_state_as_draw_does(name: str, monkeypatch: pytest.Mo
         np.testing.assert_allclose(points, expected, rtol=0.0, atol=1e-6 * scene.extent())
     single = [view.draw(q[i], markers=markers[i], arrows=arrows[i]) for i in range(5)]
     assert len({s.tobytes() for s in single}) == 5
+    assert view.draw_batch(q[:0]).shape == (0, 48, 64, 3)  # no state: no frame
     original, calls = raster.fill_triangles, []
     monkeypatch.setattr(raster, "fill_triangles", lambda *a: calls.append(a[3]) or original(*a))
     for chunk, pixels, frames in (

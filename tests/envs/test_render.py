@@ -391,3 +391,4 @@ def test_a_vector_copy_draws_the_single_envs_picture(env_id: str) -> None:
         single.unwrapped.sim.set_state({**row, "setting": state["setting"]})
         assert np.array_equal(frames[i], single.render()), i
     assert not np.array_equal(frames[0], frames[1])
+    assert all(frame.base is None for frame in frames)  # each its own array: keeping one keeps only its pixels
