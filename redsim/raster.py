@@ -154,12 +154,15 @@ def fill_triangles(
     Args:
         corners: Vertex pixel coordinates [T, 3, 2] (x right, y down); a triangle with a non-finite coordinate or
             one beyond :data:`COORDINATE_LIMIT` is skipped.
-        colours: RGB [T, 3] (0-255).
+        colours: RGB [T, 3] (0-255; others are a ValueError, not wrapped).
         frames: The frame of each triangle [T] (ints in [0, count)).
         count: Number of frames.
         height: Frame height [px].
         width: Frame width [px].
     """
+    colours = np.asarray(colours)
+    if colours.size and not (np.isfinite(colours).all() and colours.min() >= 0 and colours.max() <= 255):
+        raise ValueError(f"colours must be RGB values in [0, 255], got {colours.min()} to {colours.max()}")
     corners = np.asarray(corners, dtype=np.float64).reshape(-1, 3, 2)
     x, y = (np.trunc(np.ascontiguousarray(corners[:, :, k].T)) for k in range(2))  # [3, T] each
     with np.errstate(invalid="ignore"):
@@ -206,7 +209,7 @@ def fill_triangles(
     start = (np.asarray(frames, dtype=np.int64)[tri] * height + row_y.astype(np.int64)) * width + lo.astype(np.int64)
     winner = np.zeros(count * height * width, dtype=np.int64)  # 0: the background, k: triangle k - 1
     np.maximum.at(winner, start[run] + i, tri[run] + 1)  # the last triangle covering a pixel wins
-    palette = np.concatenate([np.asarray([BACKGROUND], dtype=np.uint8), np.asarray(colours, dtype=np.uint8)])
+    palette = np.concatenate([np.asarray([BACKGROUND], dtype=np.uint8), colours.astype(np.uint8)])
     out = np.take(palette, winner, axis=0)
     return out.reshape(count, height, width, 3)
 
@@ -371,7 +374,8 @@ class SceneView:
                 raise ValueError(f"draw_batch needs one list of {name} per state ({count}), got {len(overlay)}")
         if count == 0:
             return np.empty((0, self.height, self.width, 3), dtype=np.uint8)
-        corners, colours, frames = self._triangles(self._surface_points_batch(q))
+        with np.errstate(invalid="ignore", over="ignore"):  # a non-finite state: its triangles are skipped by the fill
+            corners, colours, frames = self._triangles(self._surface_points_batch(q))
         images = np.empty((count, self.height, self.width, 3), dtype=np.uint8)
         per_frame = max(
             1, min(FILL_CHUNK // max(1, len(corners) // max(1, count)), FILL_PIXELS // self.height // self.width)
@@ -411,9 +415,9 @@ class SceneView:
         [T, 3, 2], RGB [T, 3] and frame [T], sorted by frame and, within one, far (small depth) to near (ties in
         ``scene.surfaces`` and face order)."""
         sizes = [len(f) for f in self._faces]
+        base = np.repeat(np.stack(self._colours), sizes, axis=0)  # RGB [F, 3] of each face's surface
         offsets = np.cumsum([0] + [p.shape[1] for p in surfaces[:-1]])
         faces = np.concatenate([f + o for f, o in zip(self._faces, offsets, strict=True)]).reshape(-1)  # [F * 3]
-        base = np.repeat(np.stack(self._colours), sizes, axis=0)  # RGB [F, 3] of each face's surface
         cam = self._rotate(np.concatenate(surfaces, axis=1))  # D arrays [B, P]: rotate the points, then gather
         count, n_faces = cam[0].shape[0], len(base)
         x, y = (np.take(c, faces, axis=1).reshape(-1, 3) for c in cam[:2])  # corners [B * F, 3], frame-major

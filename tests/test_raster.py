@@ -1,8 +1,10 @@
-"""The headless rasterizer: back-face culling on closed surfaces, two-sided open ones, GC left as found."""
+"""The headless rasterizer: back-face culling on closed surfaces, two-sided open ones, the numpy fill against
+Pillow's, batches, degenerate input."""
 
 from __future__ import annotations
 
 import dataclasses
+import warnings
 
 import numpy as np
 import pytest
@@ -184,7 +186,12 @@ def test_degenerate_and_far_triangles_neither_crash_nor_paint_garbage() -> None:
     scene = scenes.build("mini_chain")
     view = SceneView(scene, scene.q_seed, width=32, height=32)
     blank = np.broadcast_to(np.array(raster.BACKGROUND, dtype=np.uint8), (32, 32, 3))
-    assert np.array_equal(view.draw(scene.q_seed * float("nan")), blank)  # a diverged state: nothing drawn
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")  # and no RuntimeWarning per frame (a training loop would print thousands)
+        for bad in (float("nan"), float("inf")):
+            assert np.array_equal(view.draw(scene.q_seed * bad), blank)  # a diverged state: nothing drawn
+    with pytest.raises(ValueError, match=r"colours must be RGB values in \[0, 255\]"):  # never wrapped round
+        raster.fill_triangles(np.zeros((1, 3, 2)), np.array([[300, 0, 0]]), np.zeros(1, int), 1, 8, 8)
 
 
 @pytest.mark.parametrize("name", ["mini_chain", "cloth_ball", "bistable_bar"])
