@@ -18,14 +18,17 @@ values raise ValueError).
 from __future__ import annotations
 
 import copy
+import hashlib
 import importlib.util
 import inspect
+import logging
 import math
 import numbers
 import os
 import sys
 import warnings
 from collections.abc import Callable, Mapping, Sequence
+from pathlib import Path
 from typing import TYPE_CHECKING, Any, ClassVar
 
 import gymnasium as gym
@@ -37,6 +40,10 @@ from torch import Tensor, nn
 from redsim.devices import DTYPES, check_device
 from redsim.scene import Scene
 from redsim.subspace import CheckpointError, periodic_latents
+from redsim.usercache import cache_root, read_arrays, write_arrays
+from redsim.version import __version__
+
+logger = logging.getLogger(__name__)
 
 if TYPE_CHECKING:  # imported where used: the runtime and the invariants load only when an env is built
     from redsim.envs.invariants import Invariants
@@ -186,16 +193,66 @@ class Task:
 
 PROCESS_CACHE_SIZE = 8
 """Entries each per-process cache of settled work keeps (:func:`cached`), the oldest dropped first."""
+SETTLED_CACHE_VERSION = 1
+"""Part of every disk key of :func:`cached` (with redsim's version): bump it when code changes what a cached
+computation returns for the same key (a task's settling or frame solves, the stepper's defaults)."""
+
+Settled = Tensor | np.ndarray | tuple[Tensor | np.ndarray, ...]
+"""What :func:`cached` keeps on disk: a tensor, an array, or a tuple of them."""
 
 
-def cached(cache: dict[Any, Any], key: Any, compute: Callable[[], Any]) -> Any:
+def cached(cache: dict[Any, Any], key: Any, compute: Callable[[], Any], disk: str | None = None) -> Any:
     """``cache[key]``, computed once by ``compute()`` (work an identical env made again in this process reuses: a
-    task's settled targets or frame), keeping the :data:`PROCESS_CACHE_SIZE` newest entries."""
+    task's settled targets or frame), keeping the :data:`PROCESS_CACHE_SIZE` newest entries.
+
+    With ``disk`` (a name for what it holds), also kept across processes in ``cache_root()/envs`` (one ``.npz`` per
+    key, written atomically; off with ``REDSIM_CACHE=0``, :func:`redsim.usercache.cache_root`): a later process, a
+    vector env's worker, reads it back bit for bit instead of solving again. ``compute()`` must then return a
+    :data:`Settled` value, and ``key`` name by value everything it depends on (its repr is hashed with redsim's
+    version and :data:`SETTLED_CACHE_VERSION`). A damaged or foreign file is warned about and computed again.
+    """
     if key not in cache:
-        cache[key] = compute()
+        root = None if disk is None else cache_root()
+        path = None
+        if root is not None:
+            text = repr((__version__, SETTLED_CACHE_VERSION, disk, key))
+            path = root / "envs" / f"{hashlib.sha256(text.encode()).hexdigest()}.npz"
+        value = None if path is None else _read_settled(path, text, disk)
+        if value is None:
+            value = compute()
+            if path is not None:
+                write_arrays(path, text, _settled_arrays(value), disk)
+        cache[key] = value
         while len(cache) > PROCESS_CACHE_SIZE:
             cache.pop(next(iter(cache)))
     return cache[key]
+
+
+def _settled_arrays(value: Settled) -> dict[str, np.ndarray]:
+    """The arrays of a :data:`Settled` value, each tensor's device beside it (a single value: ``single``)."""
+    items = value if isinstance(value, tuple) else (value,)
+    arrays: dict[str, np.ndarray] = {"single": np.array(not isinstance(value, tuple))}
+    for i, item in enumerate(items):
+        tensor = isinstance(item, Tensor)
+        arrays[f"item{i}"] = item.detach().cpu().numpy() if tensor else np.asarray(item)
+        arrays[f"device{i}"] = np.array(str(item.device) if tensor else "")
+    return arrays
+
+
+def _read_settled(path: Path, key: str, what: str) -> Settled | None:
+    """The :data:`Settled` value stored at ``path`` for ``key``, or None (no file, or an unusable one: warned)."""
+    arrays = read_arrays(path, key, what)
+    if arrays is None:
+        return None
+    try:
+        items: list[Tensor | np.ndarray] = []
+        for i in range(sum(name.startswith("item") for name in arrays)):
+            device = str(arrays[f"device{i}"])
+            items.append(torch.from_numpy(arrays[f"item{i}"]).to(device) if device else arrays[f"item{i}"])
+        return items[0] if bool(arrays["single"]) else tuple(items)
+    except Exception as error:  # fields missing or unusable: compute again
+        logger.warning("ignoring unusable %s cache file %s (%s); computing again", what, path, error)
+        return None
 
 
 def check_subspace(scene: Scene, subspace: nn.Module) -> None:

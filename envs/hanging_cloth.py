@@ -48,8 +48,8 @@ class HangingClothEnv(ReachEnv):
     README's subspace table: rest offset, load error 36). v0: the target is the corner in the subspace state
     z_rest + `target_spread` * N(0, I), drawn from `self.np_random`. v1 (`targets="held"`): the target is drawn by
     `self.np_random` from 256 places the corner comes to rest at under a held action u ~ U[-0.8, 0.8]^3 (fixed
-    seed; :class:`redsim.envs.reach.HandleReach`), each settled on the env's own energy at bind time (~10 s,
-    once per process for identical envs).
+    seed; :class:`redsim.envs.reach.HandleReach`), each settled on the env's own energy at bind time (3-10 s,
+    once for identical envs: kept for the process and in the user cache, ``~/.cache/redsim/envs``).
     `reset(options={"target": [x, y, z]})` sets the target [m] instead.
 
     ## Episode End

@@ -48,7 +48,8 @@ TARGETS = ("latent", "held")
 """Target distributions of :class:`HandleReach` (module doc)."""
 _held_cache: dict[tuple[Any, ...], tuple[Tensor, Tensor]] = {}
 """Held actions and targets settled in this process, by everything they depend on (:meth:`HandleReach._held_key`):
-an identical env made again reuses them (HangingCloth-v1 settles for ~7 s)."""
+an identical env made again reuses them (HangingCloth-v1 settles for 3-7 s); a later process reads them from the user
+cache (:func:`redsim.envs.base.cached`)."""
 
 
 class HandleReach(Task):
@@ -169,16 +170,18 @@ class HandleReach(Task):
 
     def _held(self, sim: LatentSim) -> tuple[Tensor, Tensor]:
         """Held actions [HELD_SAMPLES, A] and the goal handle's positions [HELD_SAMPLES, k] [m] at rest under them
-        (module doc), settled once per process for each :meth:`_held_key`."""
+        (module doc), settled once per process for each :meth:`_held_key` and kept on disk for the next process
+        (:func:`redsim.envs.base.cached`)."""
         if sim.randomize_condition:
             raise ValueError("targets='held' needs one condition for all episodes (randomize_condition is on)")
-        held, targets = cached(_held_cache, self._held_key(sim), lambda: self._settle(sim))
+        held, targets = cached(_held_cache, self._held_key(sim), lambda: self._settle(sim), disk="held targets")
         return held.clone(), targets.clone()
 
     def _held_key(self, sim: LatentSim) -> tuple[Any, ...]:
-        """What the held targets depend on: the scene, the map's weights, the energy stepped (every element or a
-        cubature's rules), dtype, device and this task's force, spread and handles."""
+        """What the held targets depend on: the scene's content, the map's weights, the energy stepped (every element
+        or a cubature's rules), dtype, device, the settling's constants and this task's force, spread and handles."""
         from redsim.cubature.energy import map_fingerprint
+        from redsim.integrators.cache import scene_digest
 
         energy = sim.stepper.energy
         cubature = getattr(energy, "cubature", None)
@@ -188,7 +191,7 @@ class HandleReach(Task):
             rules.update(rule.indices.detach().cpu().to(torch.int64).numpy().tobytes())
             rules.update(rule.weights.detach().cpu().to(torch.float64).numpy().tobytes())
         return (
-            sim.source_scene.fingerprint(),
+            scene_digest(sim.source_scene),
             map_fingerprint(sim.subspace),
             type(energy).__name__,
             rules.hexdigest(),
@@ -200,6 +203,9 @@ class HandleReach(Task):
             self.actuated,
             self._force_axes,
             self._goal_axes,
+            HELD_SAMPLES,
+            SETTLE_DT,
+            SETTLE_STEPS,
         )
 
     def _settle(self, sim: LatentSim) -> tuple[Tensor, Tensor]:

@@ -41,7 +41,8 @@ SUCCESS_FRACTION = 0.2
 MINIMIZER = "lbfgs"
 """Minimizer of the target's static solve (a descent method; Newton gave the same targets on 4 seeds)."""
 _frame_cache: dict[tuple[Any, ...], np.ndarray] = {}
-"""The fixed camera's frame points of :meth:`PlatePose.frame_points`, per process (an identical env reuses them)."""
+"""The fixed camera's frame points of :meth:`PlatePose.frame_points`, per process (an identical env reuses them; a
+later process reads them from the user cache)."""
 
 
 def _axial(m: Tensor) -> Tensor:
@@ -169,18 +170,21 @@ class PlatePose(Task):
     def frame_points(self, sim: LatentSim) -> np.ndarray:
         """The plate's shapes at the targets of the 2^A corners of the held-action box [-s, s]^A (the extremes of
         the target region) and their plate centres, [P, 3] [m]; 64 static solves (5-8 s), once per process for
-        each scene, map, force, spread, dtype and device (:func:`redsim.envs.base.cached`)."""
+        each scene, map, force, spread, dtype and device, and kept on disk for the next process
+        (:func:`redsim.envs.base.cached`)."""
         from redsim.cubature.energy import map_fingerprint
+        from redsim.integrators.cache import scene_digest
 
         key = (
-            sim.source_scene.fingerprint(),
+            scene_digest(sim.source_scene),
             map_fingerprint(sim.subspace),
             self.target_spread,
             self.max_force,
             str(sim.torch_dtype),
             str(sim.device),
+            MINIMIZER,
         )
-        return cached(_frame_cache, key, lambda: self._corner_points(sim)).copy()
+        return cached(_frame_cache, key, lambda: self._corner_points(sim), disk="Stewart frame").copy()
 
     def _corner_points(self, sim: LatentSim) -> np.ndarray:
         """:meth:`frame_points`, computed."""

@@ -12,8 +12,6 @@ from __future__ import annotations
 import dataclasses
 import hashlib
 import logging
-import os
-import tempfile
 from collections import OrderedDict
 from collections.abc import Callable, Mapping
 from pathlib import Path
@@ -25,7 +23,7 @@ from torch import Tensor
 
 from redsim.scene import Scene
 from redsim.usercache import CACHE_ENV as CACHE_ENV  # re-exported: redsim.metrics and the tests name it here
-from redsim.usercache import cache_root
+from redsim.usercache import cache_root, read_arrays, write_arrays
 from redsim.version import __version__
 
 logger = logging.getLogger(__name__)
@@ -109,17 +107,14 @@ def lookup(
 
 def _read_entry(path: Path, key: str, n: int) -> Result | None:
     """A disk cache entry (q [n], converged, energy), or None if there is none or it is unusable (warned)."""
-    if not path.is_file():
+    data = read_arrays(path, key, "equilibrium")
+    if data is None:
         return None
     try:
-        with np.load(path, allow_pickle=False) as data:
-            stored_key, q = str(data["key"]), np.array(data["q"], dtype=np.float64)
-            converged, energy = bool(data["converged"]), float(data["energy"])
-        if stored_key != key:
-            raise ValueError("the file belongs to another key")
+        q, converged, energy = np.array(data["q"], dtype=np.float64), bool(data["converged"]), float(data["energy"])
         if q.shape != (n,) or not np.all(np.isfinite(q)):
             raise ValueError(f"q has shape {q.shape} or is not finite; expected [{n}]")
-    except Exception as error:  # any damage (truncated, not a zip, missing fields) means: solve again
+    except Exception as error:  # missing fields, a wrong shape: solve again
         logger.warning("ignoring unreadable equilibrium cache file %s (%s); solving again", path, error)
         return None
     logger.debug("full-space equilibrium from the disk cache %s", path)
@@ -127,26 +122,14 @@ def _read_entry(path: Path, key: str, n: int) -> Result | None:
 
 
 def _write_entry(path: Path, key: str, result: Result) -> None:
-    """Store a result atomically (temporary file, then rename); failures are warned, never raised."""
+    """Store a result atomically (:func:`redsim.usercache.write_arrays`); failures are warned, never raised."""
     q, converged, energy = result
-    temporary: Path | None = None
-    try:
-        path.parent.mkdir(parents=True, exist_ok=True)
-        with tempfile.NamedTemporaryFile(dir=path.parent, prefix=".", suffix=".npz.tmp", delete=False) as file:
-            temporary = Path(file.name)
-            np.savez(
-                file,
-                key=np.array(key),
-                q=q.detach().cpu().numpy().astype(np.float64),
-                converged=np.array(bool(converged)),
-                energy=np.array(float(energy)),
-            )
-        temporary.chmod(0o644)  # a temporary file is private; the cache is not
-        os.replace(temporary, path)
-    except OSError as error:
-        logger.warning("could not write the equilibrium cache file %s (%s)", path, error)
-        if temporary is not None:
-            temporary.unlink(missing_ok=True)
+    arrays = {
+        "q": q.detach().cpu().numpy().astype(np.float64),
+        "converged": np.array(bool(converged)),
+        "energy": np.array(float(energy)),
+    }
+    write_arrays(path, key, arrays, "equilibrium")
 
 
 def scene_digest(scene: Scene) -> str:

@@ -49,7 +49,7 @@ def test_a_damagedequilibrium_cache_entry_is_solved_again(
     for damage in (b"not a zip file", path.read_bytes()[:100], b""):
         path.write_bytes(damage)
         cache.clear_cache()
-        with caplog.at_level(logging.WARNING, logger="redsim.integrators.cache"):
+        with caplog.at_level(logging.WARNING, logger="redsim"):
             again = reference.full_equilibrium(scene)
         assert "ignoring unreadable equilibrium cache file" in caplog.text
         caplog.clear()
@@ -78,7 +78,7 @@ def test_theequilibrium_cache_can_be_turned_off_and_never_breaks_a_run(
     blocker.write_text("a file where the cache folder should be")
     monkeypatch.setenv(cache.CACHE_ENV, str(blocker))
     cache.clear_cache()
-    with caplog.at_level(logging.WARNING, logger="redsim.integrators.cache"):
+    with caplog.at_level(logging.WARNING, logger="redsim"):
         _, converged, _ = reference.full_equilibrium(scene)
     assert converged and "could not write the equilibrium cache file" in caplog.text
 

@@ -8,8 +8,10 @@ run the same checks under ``-m slow``. Float tolerances: the stepper runs in flo
 from __future__ import annotations
 
 import copy
+import logging
 import pickle
 import warnings
+from pathlib import Path
 
 import gymnasium as gym
 import numpy as np
@@ -769,6 +771,96 @@ def test_stewart_s_frame_is_solved_once_per_process_and_caches_keep_their_newest
         base.cached(cache, key, lambda key=key: key * 10)
     assert list(cache) == list(range(2, base.PROCESS_CACHE_SIZE + 2))
     assert base.cached(cache, 5, lambda: pytest.fail("computed again")) == 50
+
+
+def test_held_targets_are_kept_on_disk_for_the_next_process(
+    monkeypatch: pytest.MonkeyPatch, tmp_path: Path, caplog: pytest.LogCaptureFixture
+) -> None:
+    """A process that finds the held targets on disk reads them back bit for bit instead of settling again; a damaged
+    file, or one of another key, is warned about and settled again; REDSIM_CACHE=0 writes nothing."""
+    from redsim.envs import reach
+
+    settles = []
+    settle = reach.HandleReach._settle
+
+    def counted(self, sim):
+        settles.append(self.target_spread)
+        return settle(self, sim)
+
+    def task(spread: float = 0.5):
+        reach._held_cache.clear()  # as in a new process
+        return gym.make("RedSim/MiniChain-v0", targets="held", target_spread=spread).unwrapped.sim.task
+
+    monkeypatch.setattr(reach.HandleReach, "_settle", counted)
+    monkeypatch.setenv("REDSIM_CACHE", str(tmp_path))
+    first = task()
+    (path,) = (tmp_path / "envs").glob("*.npz")
+    again = task()
+    assert settles == [0.5]
+    for old, new in ((first.held_actions, again.held_actions), (first.held_targets, again.held_targets)):
+        assert torch.equal(old, new) and (old.dtype, old.device) == (new.dtype, new.device)
+    good = path.read_bytes()
+    task(0.4)
+    (other,) = set((tmp_path / "envs").glob("*.npz")) - {path}
+    for damage in (b"not a zip file", good[:100], other.read_bytes()):
+        path.write_bytes(damage)
+        with caplog.at_level(logging.WARNING, logger="redsim"):
+            assert torch.equal(task().held_targets, first.held_targets)
+        assert "ignoring unreadable held targets cache file" in caplog.text
+        caplog.clear()
+    assert settles == [0.5, 0.4, 0.5, 0.5, 0.5]
+    task()  # each settled again rewrote the file
+    assert len(settles) == 5
+    monkeypatch.setenv("REDSIM_CACHE", "0")
+    path.unlink()
+    task()
+    assert len(settles) == 6 and not path.exists()
+
+
+def test_the_disk_cache_of_settled_work_returns_what_was_computed(
+    monkeypatch: pytest.MonkeyPatch, tmp_path: Path, caplog: pytest.LogCaptureFixture
+) -> None:
+    """:func:`redsim.envs.base.cached` with ``disk``: a tensor, an array, or a tuple of them comes back with its type,
+    dtype and values; a file with the right key but unusable fields is warned about and computed again."""
+    from redsim.envs import base
+
+    monkeypatch.setenv("REDSIM_CACHE", str(tmp_path))
+    values = {
+        "tuple": (torch.arange(6, dtype=torch.float32).reshape(2, 3), np.array([[1.5, -2.0]])),
+        "array": np.linspace(0.0, 1.0, 5),
+        "tensor": torch.tensor([1, 2], dtype=torch.int64),
+    }
+    for name, value in values.items():
+        base.cached({}, ("key", name), lambda value=value: value, disk="test")
+        back = base.cached({}, ("key", name), lambda: pytest.fail("computed again"), disk="test")
+        pairs = zip(value, back, strict=True) if isinstance(value, tuple) else [(value, back)]
+        assert isinstance(back, tuple) == isinstance(value, tuple)
+        for old, new in pairs:
+            assert type(old) is type(new) and old.dtype == new.dtype and old.shape == new.shape
+            assert (old == new).all()
+    (path,) = [p for p in (tmp_path / "envs").glob("*.npz") if "'array'" in str(np.load(p)["key"])]
+    np.savez(path, key=np.load(path)["key"])  # the right key, no fields
+    with caplog.at_level(logging.WARNING, logger="redsim"):
+        assert base.cached({}, ("key", "array"), lambda: np.zeros(1), disk="test").shape == (1,)
+    assert "ignoring unusable test cache file" in caplog.text
+
+
+def test_stewart_s_frame_is_kept_on_disk_for_the_next_process(monkeypatch: pytest.MonkeyPatch, tmp_path: Path) -> None:
+    from redsim.envs import stewart
+
+    calls = []
+
+    def corners(self, sim):
+        calls.append(self.target_spread)
+        return np.full((2, 3), 7.0)
+
+    monkeypatch.setattr(stewart.PlatePose, "_corner_points", corners)
+    monkeypatch.setenv("REDSIM_CACHE", str(tmp_path))
+    for _ in range(2):
+        stewart._frame_cache.clear()  # as in a new process
+        env = gym.make("RedSim/Stewart-v0").unwrapped
+        assert np.array_equal(env.sim.task.frame_points(env.sim), np.full((2, 3), 7.0))
+    assert len(calls) == 1
 
 
 @pytest.mark.gpu
