@@ -208,14 +208,15 @@ def cached(cache: dict[Any, Any], key: Any, compute: Callable[[], Any], disk: st
     With ``disk`` (a name for what it holds), also kept across processes in ``cache_root()/envs`` (one ``.npz`` per
     key, written atomically; off with ``REDSIM_CACHE=0``, :func:`redsim.usercache.cache_root`): a later process, a
     vector env's worker, reads it back bit for bit instead of solving again. ``compute()`` must then return a
-    :data:`Settled` value, and ``key`` name by value everything it depends on (its repr is hashed with redsim's
-    version and :data:`SETTLED_CACHE_VERSION`). A damaged or foreign file is warned about and computed again.
+    :data:`Settled` value, and ``key`` name by value everything it depends on (its repr is hashed with redsim's and
+    torch's versions and :data:`SETTLED_CACHE_VERSION`). A damaged or foreign file is warned about and computed again;
+    delete ``cache_root()/envs`` to forget them all.
     """
     if key not in cache:
         root = None if disk is None else cache_root()
         path = None
         if root is not None:
-            text = repr((__version__, SETTLED_CACHE_VERSION, disk, key))
+            text = repr((__version__, torch.__version__, SETTLED_CACHE_VERSION, disk, key))
             path = root / "envs" / f"{hashlib.sha256(text.encode()).hexdigest()}.npz"
         value = None if path is None else _read_settled(path, text, disk)
         if value is None:
@@ -226,6 +227,14 @@ def cached(cache: dict[Any, Any], key: Any, compute: Callable[[], Any], disk: st
         while len(cache) > PROCESS_CACHE_SIZE:
             cache.pop(next(iter(cache)))
     return cache[key]
+
+
+def map_key(subspace: nn.Module) -> tuple[str, str, str]:
+    """What a map computes, for the keys of :func:`cached`: its class, its configuration (activation, periodic
+    latents, sizes: not in its weights) and a hash of its weights (:func:`redsim.cubature.energy.map_fingerprint`)."""
+    from redsim.cubature.energy import map_fingerprint
+
+    return type(subspace).__name__, repr(getattr(subspace, "config", None)), map_fingerprint(subspace)
 
 
 def _settled_arrays(value: Settled) -> dict[str, np.ndarray]:

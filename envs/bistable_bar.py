@@ -104,7 +104,7 @@ class SnapThrough(Task):
         from redsim.integrators import LatentSpace, latent_equilibrium
 
         space = LatentSpace(sim.source_scene, sim.subspace)
-        z = torch.randn(SEARCH_SAMPLES, sim.latent_dim, generator=torch.Generator().manual_seed(0))
+        z = torch.randn(SEARCH_SAMPLES, sim.latent_dim, generator=torch.Generator().manual_seed(0), dtype=torch.float32)
         z = z.to(torch.float64)
         with torch.no_grad():
             q = space.configuration(z)

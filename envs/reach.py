@@ -31,7 +31,7 @@ import numpy as np
 import torch
 from torch import Tensor, nn
 
-from redsim.envs.base import FRAME_SAMPLES, LatentEnv, Task, cached, check_numbers, shipped
+from redsim.envs.base import FRAME_SAMPLES, LatentEnv, Task, cached, check_numbers, map_key, shipped
 
 if TYPE_CHECKING:
     from redsim.envs.base import LatentSim
@@ -147,7 +147,9 @@ class HandleReach(Task):
         if self._distance_scale is None:
             if self.held_targets is None:
                 generator = torch.Generator().manual_seed(0)
-                eps = torch.randn(SCALE_SAMPLES, sim.latent_dim, generator=generator).to(sim.device, sim.torch_dtype)
+                eps = torch.randn(SCALE_SAMPLES, sim.latent_dim, generator=generator, dtype=torch.float32).to(
+                    sim.device, sim.torch_dtype
+                )
                 z = sim._rest_latent(sim.default_cond).unsqueeze(0) + self.target_spread * eps
                 cond = None if sim.default_cond is None else sim.default_cond.expand(SCALE_SAMPLES, -1)
                 targets = self._goal.position(sim.full_positions(z, cond))[:, self._goal_index]
@@ -180,7 +182,6 @@ class HandleReach(Task):
     def _held_key(self, sim: LatentSim) -> tuple[Any, ...]:
         """What the held targets depend on: the scene's content, the map's weights, the energy stepped (every element
         or a cubature's rules), dtype, device, the settling's constants and this task's force, spread and handles."""
-        from redsim.cubature.energy import map_fingerprint
         from redsim.integrators.cache import scene_digest
 
         energy = sim.stepper.energy
@@ -192,7 +193,7 @@ class HandleReach(Task):
             rules.update(rule.weights.detach().cpu().to(torch.float64).numpy().tobytes())
         return (
             scene_digest(sim.source_scene),
-            map_fingerprint(sim.subspace),
+            map_key(sim.subspace),
             type(energy).__name__,
             rules.hexdigest(),
             str(sim.torch_dtype),
@@ -213,7 +214,9 @@ class HandleReach(Task):
         from redsim.runtime import LatentStepper
 
         generator = torch.Generator().manual_seed(0)
-        held = self.target_spread * (2.0 * torch.rand(HELD_SAMPLES, self.action_size, generator=generator) - 1.0)
+        # float32 whatever torch's default dtype: the table must not depend on it (it is cached by _held_key)
+        uniform = torch.rand(HELD_SAMPLES, self.action_size, generator=generator, dtype=torch.float32)
+        held = self.target_spread * (2.0 * uniform - 1.0)
         loads = self.loads(held.to(sim.device, sim.torch_dtype), {})
         stepper = LatentStepper(
             sim.source_scene,
@@ -255,7 +258,9 @@ class HandleReach(Task):
             points[:, self._goal_index] = self.held_targets
             return points.detach().cpu().to(torch.float64).numpy()
         generator = torch.Generator().manual_seed(0)
-        eps = torch.randn(FRAME_SAMPLES, sim.latent_dim, generator=generator).to(sim.device, sim.torch_dtype)
+        eps = torch.randn(FRAME_SAMPLES, sim.latent_dim, generator=generator, dtype=torch.float32).to(
+            sim.device, sim.torch_dtype
+        )
         out = []
         for cond in sim.frame_conditions():
             z = sim._rest_latent(cond).unsqueeze(0) + self.target_spread * eps

@@ -25,7 +25,7 @@ import numpy as np
 import torch
 from torch import Tensor, nn
 
-from redsim.envs.base import LatentEnv, Task, cached, check_numbers, shipped
+from redsim.envs.base import LatentEnv, Task, cached, check_numbers, map_key, shipped
 from redsim.envs.vector import vector_entry
 
 if TYPE_CHECKING:
@@ -172,12 +172,11 @@ class PlatePose(Task):
         the target region) and their plate centres, [P, 3] [m]; 64 static solves (5-8 s), once per process for
         each scene, map, force, spread, dtype and device, and kept on disk for the next process
         (:func:`redsim.envs.base.cached`)."""
-        from redsim.cubature.energy import map_fingerprint
         from redsim.integrators.cache import scene_digest
 
         key = (
             scene_digest(sim.source_scene),
-            map_fingerprint(sim.subspace),
+            map_key(sim.subspace),
             self.target_spread,
             self.max_force,
             str(sim.torch_dtype),

@@ -37,10 +37,11 @@ def cache_root() -> Path | None:
 def read_arrays(path: Path, key: str, what: str) -> dict[str, np.ndarray] | None:
     """The arrays a cache file at ``path`` holds for ``key`` (:func:`write_arrays`), or None: no file, or an unusable
     one (truncated, not a zip, another key), which is warned about (naming ``what`` it holds) and left for the
-    caller to compute again."""
-    if not path.is_file():
-        return None
+    caller to compute again. A path that cannot even be checked (a folder without permission, a name too long) is
+    warned about too: the cache never stops the caller."""
     try:
+        if not path.is_file():
+            return None
         with np.load(path, allow_pickle=False) as data:
             arrays = {name: np.array(data[name]) for name in data.files}
         if str(arrays.pop("key", None)) != key:

@@ -84,7 +84,7 @@ def _step_times(stepper: Any, batch: int, steps: int, load: float) -> tuple[floa
 
 def _eval_ms(energy: Any, latent_dim: int, repeats: int = 20) -> float:
     """Median wall time [ms] of one latent energy and its gradient dE/dz at B = 1 (z ~ N(0, I), seeded)."""
-    z = torch.randn(1, latent_dim, generator=torch.Generator().manual_seed(0)).requires_grad_(True)
+    z = torch.randn(1, latent_dim, generator=torch.Generator().manual_seed(0), dtype=torch.float32).requires_grad_(True)
     times = []
     for _ in range(repeats + 1):
         start = time.perf_counter()

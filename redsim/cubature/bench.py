@@ -27,7 +27,9 @@ def _loads(scene: Scene, steps: int, batch: int, hold: int, scale: float, seed: 
     """Seeded piecewise-constant loads [steps, B, H, D]: N(0, scale^2) per component, redrawn every ``hold`` steps."""
     generator = torch.Generator().manual_seed(seed)
     segments = -(-steps // hold)
-    draws = scale * torch.randn(segments, batch, len(scene.handles), scene.dim, generator=generator)
+    draws = scale * torch.randn(
+        segments, batch, len(scene.handles), scene.dim, generator=generator, dtype=torch.float32
+    )
     return draws.repeat_interleave(hold, 0)[:steps]
 
 

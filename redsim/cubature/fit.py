@@ -152,7 +152,7 @@ def training_states(scene: Scene, subspace: nn.Module, config: CubatureConfig) -
     stepper = LatentStepper(scene, subspace, config.dt)
     B = int(config.episodes)
     segments = -(-int(config.steps) // int(config.hold))
-    loads = scale * torch.randn(segments, B, len(scene.handles), scene.dim, generator=generator)
+    loads = scale * torch.randn(segments, B, len(scene.handles), scene.dim, generator=generator, dtype=torch.float32)
     current = stepper.rest_latent().expand(B, -1)
     previous = current
     visited, model = [], None

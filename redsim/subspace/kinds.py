@@ -37,6 +37,9 @@ KINDS: dict[str, type[MapKind]] = {
 def load_subspace(path: str | Path, scene: Scene | None = None, *, device: str | torch.device = "cpu") -> nn.Module:
     """Load any saved subspace: a neural map, or a baseline of :mod:`redsim.baselines` (by its ``kind``).
 
+    Its tensors keep the dtype they were saved in (the shipped maps: float32), whatever ``torch.get_default_dtype()``
+    is: a process that made float64 its default loads the same map as any other.
+
     Args:
         path: ``STEM.pt``, ``STEM.json`` or ``STEM``.
         scene: With it, refuse a checkpoint made for another scene.
@@ -69,8 +72,8 @@ def load_subspace(path: str | Path, scene: Scene | None = None, *, device: str |
     mismatch = _state_mismatch(model.state_dict(), state)
     if mismatch:
         raise CheckpointError(f"the weights do not fit the .json beside them: {mismatch}", str(weights))
-    try:
-        model.load_state_dict(state)
+    try:  # assign: the weights keep the checkpoint's dtype, whatever torch's default dtype built the layers in
+        model.load_state_dict(state, assign=True)
     except (RuntimeError, KeyError) as err:
         raise CheckpointError(f"weights do not match the config ({err})", str(weights)) from None
     return model.to(device)

@@ -812,9 +812,80 @@ def test_held_targets_are_kept_on_disk_for_the_next_process(
     task()  # each settled again rewrote the file
     assert len(settles) == 5
     monkeypatch.setenv("REDSIM_CACHE", "0")
-    path.unlink()
+    before = set(tmp_path.rglob("*"))
+    work = tmp_path / "cwd"
+    work.mkdir()
+    monkeypatch.chdir(work)
     task()
-    assert len(settles) == 6 and not path.exists()
+    assert len(settles) == 6 and set(tmp_path.rglob("*")) == before | {work} and not any(work.iterdir())
+
+
+def test_an_unusable_cache_folder_never_stops_an_env(
+    monkeypatch: pytest.MonkeyPatch, tmp_path: Path, caplog: pytest.LogCaptureFixture
+) -> None:
+    from redsim.envs import reach
+
+    monkeypatch.setenv("REDSIM_CACHE", str(tmp_path / ("a" * 300)))  # a name too long to check or create
+    reach._held_cache.clear()
+    with caplog.at_level(logging.WARNING, logger="redsim"):
+        env = gym.make("RedSim/MiniChain-v0", targets="held", target_spread=0.5)
+    assert env.unwrapped.sim.task.held_targets.shape == (reach.HELD_SAMPLES, 3)
+    assert "ignoring unreadable held targets cache file" in caplog.text and "could not write" in caplog.text
+
+
+def test_held_targets_and_their_key_do_not_depend_on_torch_s_default_dtype() -> None:
+    from redsim.envs import reach
+
+    def held() -> tuple:
+        reach._held_cache.clear()
+        sim = gym.make("RedSim/MiniChain-v0", targets="held", target_spread=0.5).unwrapped.sim
+        return sim.task._held_key(sim), sim.task.held_actions, sim.task.held_targets
+
+    first = held()
+    default = torch.get_default_dtype()
+    torch.set_default_dtype(torch.float64)
+    try:
+        second = held()
+    finally:
+        torch.set_default_dtype(default)
+    assert first[0] == second[0] and all(torch.equal(a, b) for a, b in zip(first[1:], second[1:], strict=True))
+
+
+@pytest.mark.parametrize("env_id", ["RedSim/MiniChain-v0", "RedSim/BistableBar-v1"])
+def test_an_env_steps_alike_whatever_torch_s_default_dtype(env_id: str) -> None:
+    """torch.set_default_dtype(torch.float64) in the user's process changes neither the map's weights (loaded in the
+    checkpoint's dtype) nor a task's seeded draws (BistableBar-v1's start search): the same observations,
+    bit for bit."""
+
+    def rollout() -> np.ndarray:
+        env = gym.make(env_id)
+        observations = [env.reset(seed=0)[0]]
+        rng = np.random.default_rng(0)
+        for _ in range(4):
+            observations.append(env.step(rng.uniform(-0.5, 0.5, env.action_space.shape).astype(np.float32))[0])
+        return np.array(observations)
+
+    first = rollout()
+    default = torch.get_default_dtype()
+    torch.set_default_dtype(torch.float64)
+    try:
+        again = rollout()
+        loaded = pretrained.load("mini_chain", scenes.build("mini_chain"))
+    finally:
+        torch.set_default_dtype(default)
+    assert np.array_equal(first, again)
+    assert {p.dtype for p in loaded.parameters()} == {torch.float32}
+
+
+def test_the_cache_keys_tell_apart_maps_that_share_their_weights() -> None:
+    import dataclasses
+
+    from redsim.envs.base import map_key
+
+    sub = pretrained.load("mini_chain", scenes.build("mini_chain"))
+    other = copy.deepcopy(sub)
+    other.config = dataclasses.replace(sub.config, activation="tanh")
+    assert map_key(sub)[2] == map_key(other)[2] and map_key(sub) != map_key(other)
 
 
 def test_the_disk_cache_of_settled_work_returns_what_was_computed(
@@ -838,8 +909,12 @@ def test_the_disk_cache_of_settled_work_returns_what_was_computed(
         for old, new in pairs:
             assert type(old) is type(new) and old.dtype == new.dtype and old.shape == new.shape
             assert (old == new).all()
-    (path,) = [p for p in (tmp_path / "envs").glob("*.npz") if "'array'" in str(np.load(p)["key"])]
-    np.savez(path, key=np.load(path)["key"])  # the right key, no fields
+    keys = {}
+    for file in (tmp_path / "envs").glob("*.npz"):
+        with np.load(file) as data:
+            keys[file] = data["key"]
+    (path,) = [file for file, key in keys.items() if "'array'" in str(key)]
+    np.savez(path, key=keys[path])  # the right key, no fields
     with caplog.at_level(logging.WARNING, logger="redsim"):
         assert base.cached({}, ("key", "array"), lambda: np.zeros(1), disk="test").shape == (1,)
     assert "ignoring unusable test cache file" in caplog.text
