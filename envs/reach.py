@@ -48,7 +48,7 @@ TARGETS = ("latent", "held")
 """Target distributions of :class:`HandleReach` (module doc)."""
 _held_cache: dict[tuple[Any, ...], tuple[Tensor, Tensor]] = {}
 """Held actions and targets settled in this process, by everything they depend on (:meth:`HandleReach._held_key`):
-an identical env made again reuses them (HangingCloth-v1 settles for 3-7 s); a later process reads them from the user
+an identical env made again reuses them (HangingCloth-v1 settles for 3-10 s); a later process reads them from the user
 cache (:func:`redsim.envs.base.cached`)."""
 
 

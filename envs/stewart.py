@@ -169,7 +169,7 @@ class PlatePose(Task):
 
     def frame_points(self, sim: LatentSim) -> np.ndarray:
         """The plate's shapes at the targets of the 2^A corners of the held-action box [-s, s]^A (the extremes of
-        the target region) and their plate centres, [P, 3] [m]; 64 static solves (5-8 s), once per process for
+        the target region) and their plate centres, [P, 3] [m]; 64 static solves (2.6-8 s), once per process for
         each scene, map, force, spread, dtype and device, and kept on disk for the next process
         (:func:`redsim.envs.base.cached`)."""
         from redsim.integrators.cache import scene_digest
