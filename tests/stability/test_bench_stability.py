@@ -191,11 +191,14 @@ def test_a_rise_within_the_steps_own_tolerance_is_not_unreported() -> None:
     assert stability.unreported_rises(h, unflagged, 1e-3, torch.full((3,), torch.nan)) == [0, 1]
 
 
-def test_the_fuzz_counts_rises_its_steps_tolerance_explains_apart() -> None:
-    """MiniChain-v0, seed 0, 16 copies: two steps rise 1.4-1.8 mJ above the 1 mJ slack, within their solves'
-    tolerance of 1.5-3.6 mJ (|dPhi/dz| |dz|), and one more than 0.1% of |K + E| would be unreported."""
+def test_the_fuzz_leaves_no_rise_unreported_and_counts_those_within_tolerance_apart() -> None:
+    """MiniChain-v0, seed 0, 16 copies, 1600 steps: no NaN and no unreported energy rise. How many steps rise above
+    the 1 mJ slack yet within their solves' tolerance (|dPhi/dz| |dz|) is float32 round-off and depends on the CPU:
+    2 (1.4-1.8 mJ against 1.5-3.6 mJ) on stop 36's AMD EPYC, none on stop 37's Intel Xeon (seeds 0-2); the rule that
+    excuses them is checked on its own above."""
     row = stability.fuzz_env("RedSim/MiniChain-v0", 1600, num_envs=16, seed=0)
-    assert row["nan"] == 0 and row["unreported"] == 0 and row["within_tolerance"] == 2
+    assert row["nan"] == 0 and row["unreported"] == 0
+    assert 0 <= row["within_tolerance"] <= row["steps"] and row["steps"] == 1600
 
 
 def test_chain_table_shows_each_start_energy_and_names_latent_runs_from_another_start() -> None:
