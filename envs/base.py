@@ -201,7 +201,13 @@ Settled = Tensor | np.ndarray | tuple[Tensor | np.ndarray, ...]
 """What :func:`cached` keeps on disk: a tensor, an array, or a tuple of them."""
 
 
-def cached(cache: dict[Any, Any], key: Any, compute: Callable[[], Any], disk: str | None = None) -> Any:
+def cached(
+    cache: dict[Any, Any],
+    key: Any,
+    compute: Callable[[], Any],
+    disk: str | None = None,
+    check: Callable[[Any], str] | None = None,
+) -> Any:
     """``cache[key]``, computed once by ``compute()`` (work an identical env made again in this process reuses: a
     task's settled targets or frame), keeping the :data:`PROCESS_CACHE_SIZE` newest entries.
 
@@ -209,8 +215,9 @@ def cached(cache: dict[Any, Any], key: Any, compute: Callable[[], Any], disk: st
     key, written atomically; off with ``REDSIM_CACHE=0``, :func:`redsim.usercache.cache_root`): a later process, a
     vector env's worker, reads it back bit for bit instead of solving again. ``compute()`` must then return a
     :data:`Settled` value, and ``key`` name by value everything it depends on (its repr is hashed with redsim's and
-    torch's versions and :data:`SETTLED_CACHE_VERSION`). A damaged or foreign file is warned about and computed again;
-    delete ``cache_root()/envs`` to forget them all.
+    torch's versions and :data:`SETTLED_CACHE_VERSION`). A damaged or foreign file, or a value read back that
+    ``check`` refuses (it returns what is wrong with it, "" when nothing), is warned about and computed again; delete
+    ``cache_root()/envs`` to forget them all.
     """
     if key not in cache:
         root = None if disk is None else cache_root()
@@ -218,7 +225,7 @@ def cached(cache: dict[Any, Any], key: Any, compute: Callable[[], Any], disk: st
         if root is not None:
             text = repr((__version__, torch.__version__, SETTLED_CACHE_VERSION, disk, key))
             path = root / "envs" / f"{hashlib.sha256(text.encode()).hexdigest()}.npz"
-        value = None if path is None else _read_settled(path, text, disk)
+        value = None if path is None else _read_settled(path, text, disk, check)
         if value is None:
             value = compute()
             if path is not None:
@@ -248,7 +255,7 @@ def _settled_arrays(value: Settled) -> dict[str, np.ndarray]:
     return arrays
 
 
-def _read_settled(path: Path, key: str, what: str) -> Settled | None:
+def _read_settled(path: Path, key: str, what: str, check: Callable[[Any], str] | None = None) -> Settled | None:
     """The :data:`Settled` value stored at ``path`` for ``key``, or None (no file, or an unusable one: warned)."""
     arrays = read_arrays(path, key, what)
     if arrays is None:
@@ -258,7 +265,11 @@ def _read_settled(path: Path, key: str, what: str) -> Settled | None:
         for i in range(sum(name.startswith("item") for name in arrays)):
             device = str(arrays[f"device{i}"])
             items.append(torch.from_numpy(arrays[f"item{i}"]).to(device) if device else arrays[f"item{i}"])
-        return items[0] if bool(arrays["single"]) else tuple(items)
+        value = items[0] if bool(arrays["single"]) else tuple(items)
+        wrong = "" if check is None else check(value)
+        if wrong:
+            raise ValueError(wrong)
+        return value
     except Exception as error:  # fields missing or unusable: compute again
         logger.warning("ignoring unusable %s cache file %s (%s); computing again", what, path, error)
         return None

@@ -176,7 +176,15 @@ class HandleReach(Task):
         (:func:`redsim.envs.base.cached`)."""
         if sim.randomize_condition:
             raise ValueError("targets='held' needs one condition for all episodes (randomize_condition is on)")
-        held, targets = cached(_held_cache, self._held_key(sim), lambda: self._settle(sim), disk="held targets")
+        shapes = (HELD_SAMPLES, self.action_size), (HELD_SAMPLES, len(self.goal_axes))
+
+        def check(value: Any) -> str:
+            got = tuple(tuple(item.shape) for item in value)
+            return "" if got == shapes else f"shapes {got}, expected {shapes}"
+
+        held, targets = cached(
+            _held_cache, self._held_key(sim), lambda: self._settle(sim), disk="held targets", check=check
+        )
         return held.clone(), targets.clone()
 
     def _held_key(self, sim: LatentSim) -> tuple[Any, ...]:

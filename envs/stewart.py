@@ -183,7 +183,11 @@ class PlatePose(Task):
             str(sim.device),
             MINIMIZER,
         )
-        return cached(_frame_cache, key, lambda: self._corner_points(sim), disk="Stewart frame").copy()
+
+        def check(points: Any) -> str:
+            return "" if points.ndim == 2 and points.shape[1] == 3 else f"shape {points.shape}, expected [P, 3]"
+
+        return cached(_frame_cache, key, lambda: self._corner_points(sim), disk="Stewart frame", check=check).copy()
 
     def _corner_points(self, sim: LatentSim) -> np.ndarray:
         """:meth:`frame_points`, computed."""

@@ -918,6 +918,15 @@ def test_the_disk_cache_of_settled_work_returns_what_was_computed(
     with caplog.at_level(logging.WARNING, logger="redsim"):
         assert base.cached({}, ("key", "array"), lambda: np.zeros(1), disk="test").shape == (1,)
     assert "ignoring unusable test cache file" in caplog.text
+    caplog.clear()
+
+    def check(value: np.ndarray) -> str:
+        return "" if value.shape == (2,) else f"shape {value.shape}"
+
+    with caplog.at_level(logging.WARNING, logger="redsim"):  # the file now holds np.zeros(1): refused by the check
+        assert base.cached({}, ("key", "array"), lambda: np.ones(2), disk="test", check=check).shape == (2,)
+    assert "ignoring unusable test cache file" in caplog.text and "shape (1,)" in caplog.text
+    assert base.cached({}, ("key", "array"), lambda: pytest.fail("computed again"), disk="test", check=check)[0] == 1
 
 
 def test_stewart_s_frame_is_kept_on_disk_for_the_next_process(monkeypatch: pytest.MonkeyPatch, tmp_path: Path) -> None:
