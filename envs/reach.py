@@ -189,7 +189,8 @@ class HandleReach(Task):
 
     def _held_key(self, sim: LatentSim) -> tuple[Any, ...]:
         """What the held targets depend on: the scene's content, the map's weights, the energy stepped (every element
-        or a cubature's rules), dtype, device, the settling's constants and this task's force, spread and handles."""
+        or a cubature's rules), dtype, device, the settling's constants and start (the rest latent) and this task's
+        force, spread and handles."""
         from redsim.integrators.cache import scene_digest
 
         energy = sim.stepper.energy
@@ -215,6 +216,7 @@ class HandleReach(Task):
             HELD_SAMPLES,
             SETTLE_DT,
             SETTLE_STEPS,
+            tuple(sim._rest_latent(sim.default_cond).tolist()),  # where the settling starts
         )
 
     def _settle(self, sim: LatentSim) -> tuple[Tensor, Tensor]:

@@ -182,6 +182,7 @@ class PlatePose(Task):
             str(sim.torch_dtype),
             str(sim.device),
             MINIMIZER,
+            tuple(sim._rest_latent(sim.default_cond).tolist()),  # where the static solves start
         )
 
         def check(points: Any) -> str:

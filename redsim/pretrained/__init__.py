@@ -12,10 +12,11 @@ ship ``SCENE.cubature.json``, a cubature energy for that map (:mod:`redsim.cubat
 
 from __future__ import annotations
 
+import json
 from pathlib import Path
 
 import torch
-from torch import nn
+from torch import Tensor, nn
 
 from redsim import scenes
 from redsim.scene import Scene
@@ -27,7 +28,27 @@ ENV_SCENES = tuple(scenes.names("env"))
 
 def names() -> list[str]:
     """Scenes with a shipped subspace, sorted."""
-    return sorted(p.stem for p in FOLDER.glob("*.json") if not p.name.endswith(".cubature.json"))
+    return sorted(p.stem for p in FOLDER.glob("*.json") if not p.name.endswith((".cubature.json", ".rest.json")))
+
+
+def rest_start(scene_name: str, subspace: nn.Module) -> Tensor | None:
+    """Where the rest solve of the shipped map of ``scene_name`` starts, [d] float64, from ``SCENE.rest.json``; None
+    where none is shipped or ``subspace`` is another map (by :func:`redsim.cubature.energy.map_fingerprint`).
+
+    The rest latent is solved by Newton from z = 0 (:meth:`redsim.runtime.LatentStepper.rest_latent`). Where a map's
+    latent energy has near-degenerate minima near z = 0, that path ends in one or another by the CPU's round-off (the
+    file's ``why`` says what was measured), and an env would start its episodes from another state on another machine;
+    from a start inside one basin every machine converges to the same minimum.
+    """
+    file = FOLDER / f"{scene_name}.rest.json"
+    if not file.is_file():
+        return None
+    from redsim.cubature.energy import map_fingerprint  # here: redsim.cubature imports this module
+
+    doc = json.loads(file.read_text())
+    if map_fingerprint(subspace) != doc["map"]:
+        return None
+    return torch.tensor(doc["start"], dtype=torch.float64)
 
 
 def path(scene_name: str) -> Path:

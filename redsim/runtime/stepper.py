@@ -772,13 +772,13 @@ class LatentStepper:
             value, _ = self._phi(candidate, qbar, loads_t, cond_t)
         return value
 
-    def rest_latent(self, cond: Tensor | None = None) -> Tensor:
+    def rest_latent(self, cond: Tensor | None = None, start: Tensor | None = None) -> Tensor:
         """The latent static equilibrium under zero load near z = 0: [1, d] (cond None) or [B, d] (cond [B, m]).
 
         Solved once per condition by the reference :func:`redsim.integrators.latent_equilibrium`
-        (float64 Newton from z = 0) and cached for the default condition.
+        (float64 Newton from z = 0, or from ``start`` [d]) and cached for the default condition (from z = 0 only).
         """
-        if cond is None and self._rest is not None:
+        if cond is None and start is None and self._rest is not None:
             return self._rest.clone()
         conds = [None] if cond is None else list(self._cond(cond, torch.as_tensor(cond).shape[0]).to(torch.float64))
         out = []
@@ -786,10 +786,10 @@ class LatentStepper:
             space = LatentSpace(
                 self.source_scene, self.subspace, cond=None if c is None or not self.energy.condition_dim else c
             )
-            z, _ = latent_equilibrium(space, None, c)
+            z, _ = latent_equilibrium(space, None, c, z0=start)
             out.append(z.to(device=self.device, dtype=self.dtype))
         rest = torch.stack(out)
-        if cond is None:
+        if cond is None and start is None:
             self._rest = rest
         return rest.clone()
 
