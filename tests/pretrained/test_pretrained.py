@@ -148,3 +148,9 @@ def test_the_hanging_sheet_map_ships_a_rest_start_that_every_machine_converges_a
     assert pretrained.rest_start("hanging_sheet", other) is None  # another map: solved from z = 0
     assert pretrained.rest_start("mini_chain", pretrained.load("mini_chain")) is None
     assert "hanging_sheet.rest" not in pretrained.names() and "hanging_sheet" in pretrained.names()
+    stewart = scenes.build("stewart")  # a start where Newton from z = 0 stops within its tolerance 1.4e-4 apart
+    f = pretrained.load("stewart", stewart)
+    start = pretrained.rest_start("stewart", f)
+    assert start is not None and torch.equal(
+        LatentStepper(stewart, f, dtype=torch.float64).rest_latent(None, start=start)[0], start
+    )
