@@ -444,6 +444,7 @@ class LatentSim:
     ) -> None:
         from redsim import pretrained
         from redsim.cubature import CubatureEnergy
+        from redsim.cubature.energy import map_fingerprint
         from redsim.envs.invariants import Invariants
         from redsim.runtime import LatentStepper
 
@@ -518,7 +519,7 @@ class LatentSim:
         self._cond_low = None if space is None else space.low.to(self.device, self.torch_dtype)
         self._cond_high = None if space is None else space.high.to(self.device, self.torch_dtype)
         self.default_cond = self.scene.pack_condition(None, 1, self.scene.q_seed) if conditional else None
-        self._rest_start = None if conditional else pretrained.rest_start(scene.name, self.subspace)
+        self._rest_start = None if conditional else pretrained.rest_start(scene.name, map_fingerprint(self.subspace))
         self._rest: Tensor | None = None if self.randomize_condition else self._rest_latent(self.default_cond)
         d, B = self.latent_dim, self.batch
         zeros = torch.zeros(B, d, dtype=self.torch_dtype, device=self.device)

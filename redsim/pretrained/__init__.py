@@ -31,9 +31,10 @@ def names() -> list[str]:
     return sorted(p.stem for p in FOLDER.glob("*.json") if not p.name.endswith((".cubature.json", ".rest.json")))
 
 
-def rest_start(scene_name: str, subspace: nn.Module) -> Tensor | None:
+def rest_start(scene_name: str, fingerprint: str) -> Tensor | None:
     """Where the rest solve of the shipped map of ``scene_name`` starts, [d] float64, from ``SCENE.rest.json``; None
-    where none is shipped or ``subspace`` is another map (by :func:`redsim.cubature.energy.map_fingerprint`).
+    where none is shipped or ``fingerprint`` (the map's :func:`redsim.cubature.energy.map_fingerprint`, which the
+    caller computes: redsim.cubature imports this module) is another map's.
 
     The rest latent is solved by Newton from z = 0 (:meth:`redsim.runtime.LatentStepper.rest_latent`). Where a map's
     latent energy has near-degenerate minima near z = 0, that path ends in one or another by the CPU's round-off (the
@@ -43,10 +44,8 @@ def rest_start(scene_name: str, subspace: nn.Module) -> Tensor | None:
     file = FOLDER / f"{scene_name}.rest.json"
     if not file.is_file():
         return None
-    from redsim.cubature.energy import map_fingerprint  # here: redsim.cubature imports this module
-
     doc = json.loads(file.read_text())
-    if map_fingerprint(subspace) != doc["map"]:
+    if fingerprint != doc["map"]:
         return None
     return torch.tensor(doc["start"], dtype=torch.float64)
 

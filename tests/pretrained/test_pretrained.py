@@ -132,11 +132,12 @@ def test_the_hanging_sheet_map_ships_a_rest_start_that_every_machine_converges_a
     ``why``); from the shipped start it stops at once, so the envs start from the same rest on every machine."""
     import gymnasium as gym
 
+    from redsim.cubature.energy import map_fingerprint
     from redsim.runtime import LatentStepper
 
     scene = scenes.build("hanging_sheet")
     sub = pretrained.load("hanging_sheet", scene)
-    start = pretrained.rest_start("hanging_sheet", sub)
+    start = pretrained.rest_start("hanging_sheet", map_fingerprint(sub))
     assert start is not None and start.shape == (8,) and start.dtype == torch.float64
     stepper = LatentStepper(scene, sub, dtype=torch.float64)
     assert torch.equal(stepper.rest_latent(None, start=start)[0], start)
@@ -145,12 +146,12 @@ def test_the_hanging_sheet_map_ships_a_rest_start_that_every_machine_converges_a
     other = load_subspace(pretrained.path("hanging_sheet"))
     with torch.no_grad():
         next(other.parameters()).add_(1e-3)
-    assert pretrained.rest_start("hanging_sheet", other) is None  # another map: solved from z = 0
-    assert pretrained.rest_start("mini_chain", pretrained.load("mini_chain")) is None
+    assert pretrained.rest_start("hanging_sheet", map_fingerprint(other)) is None  # another map: solved from z = 0
+    assert pretrained.rest_start("mini_chain", map_fingerprint(pretrained.load("mini_chain"))) is None
     assert "hanging_sheet.rest" not in pretrained.names() and "hanging_sheet" in pretrained.names()
     stewart = scenes.build("stewart")  # a start where Newton from z = 0 stops within its tolerance 1.4e-4 apart
     f = pretrained.load("stewart", stewart)
-    start = pretrained.rest_start("stewart", f)
+    start = pretrained.rest_start("stewart", map_fingerprint(f))
     assert start is not None and torch.equal(
         LatentStepper(stewart, f, dtype=torch.float64).rest_latent(None, start=start)[0], start
     )
