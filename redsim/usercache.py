@@ -5,7 +5,9 @@ from __future__ import annotations
 import logging
 import os
 import tempfile
-from collections.abc import Mapping
+import time
+from collections.abc import Iterable, Mapping
+from dataclasses import dataclass
 from pathlib import Path
 
 import numpy as np
@@ -14,6 +16,12 @@ logger = logging.getLogger(__name__)
 
 CACHE_ENV = "REDSIM_CACHE"
 """Environment variable naming redsim's cache folder; "0", "off", "false", "no" or "" turn the disk cache off."""
+FOLDERS = {
+    "equilibria": "full-space static solves (the metrics' and benches' reference equilibria)",
+    "subspaces": "maps fitted for scene parameters no shipped map covers (fit_if_missing), with resumable fits",
+    "envs": "the envs' settled work (held targets, Stewart's camera frame)",
+}
+"""The folders of redsim's user cache and what each holds; :func:`clear_user_cache` deletes files in these only."""
 
 
 def cache_root() -> Path | None:
@@ -69,4 +77,102 @@ def write_arrays(path: Path, key: str, arrays: Mapping[str, np.ndarray], what: s
             temporary.unlink(missing_ok=True)
 
 
-__all__ = ["CACHE_ENV", "cache_root", "read_arrays", "write_arrays"]
+@dataclass(frozen=True)
+class FolderUsage:
+    """One folder of the user cache: its path, files and their total size [bytes]."""
+
+    name: str
+    path: Path
+    files: int
+    bytes: int
+
+
+def _files(folder: Path, older_than_days: float | None = None) -> list[Path]:
+    """The regular files directly in ``folder`` (none if it is missing), only those last written more than
+    ``older_than_days`` days ago when given."""
+    if not folder.is_dir():
+        return []
+    cutoff = None if older_than_days is None else time.time() - 86400.0 * older_than_days
+    found = []
+    for path in folder.iterdir():
+        try:
+            if path.is_file() and not path.is_symlink() and (cutoff is None or path.stat().st_mtime < cutoff):
+                found.append(path)
+        except OSError:  # removed meanwhile by another process
+            continue
+    return found
+
+
+def _size(path: Path) -> int | None:
+    """The size of ``path`` [bytes], None if another process removed it meanwhile."""
+    try:
+        return path.stat().st_size
+    except OSError:
+        return None
+
+
+def _selected(folders: Iterable[str] | None, older_than_days: float | None) -> dict[str, tuple[Path, list[Path]]]:
+    """Each chosen folder's path and files ({} with the cache off); refuses unknown names and bad ages up front."""
+    chosen = list(FOLDERS) if folders is None else list(dict.fromkeys(folders))
+    unknown = [name for name in chosen if name not in FOLDERS]
+    if unknown:
+        raise ValueError(f"unknown cache folder(s) {unknown}; valid: {list(FOLDERS)}")
+    if older_than_days is not None and not (0.0 <= older_than_days < float("inf")):
+        raise ValueError(f"older_than_days must be a finite number >= 0 [days], got {older_than_days}")
+    root = cache_root()
+    if root is None:
+        return {}
+    return {name: (root / name, _files(root / name, older_than_days)) for name in chosen}
+
+
+def user_cache_usage(folders: Iterable[str] | None = None, older_than_days: float | None = None) -> list[FolderUsage]:
+    """Files and bytes in each of ``folders`` (default: all of :data:`FOLDERS`) of the user cache, counting only
+    files last written more than ``older_than_days`` days ago when given; [] with the cache off.
+
+    Raises:
+        ValueError: a name not in :data:`FOLDERS`, or a negative or non-finite ``older_than_days``.
+    """
+    usage = []
+    for name, (folder, files) in _selected(folders, older_than_days).items():
+        sizes = [size for size in map(_size, files) if size is not None]
+        usage.append(FolderUsage(name, folder, len(sizes), sum(sizes)))
+    return usage
+
+
+def clear_user_cache(folders: Iterable[str] | None = None, older_than_days: float | None = None) -> list[FolderUsage]:
+    """Delete the files in ``folders`` (default: all of :data:`FOLDERS`) of the user cache, only those last
+    written more than ``older_than_days`` days ago when given; returns what was deleted per folder ([] with the
+    cache off). Only regular files directly in those folders are touched (never the cache root itself, which
+    ``$REDSIM_CACHE`` may point anywhere). Every entry is computed again when next needed; deleting a fit's
+    training state (``subspaces/*.fit.pt``) means an interrupted fit starts over. A file another process removed
+    meanwhile is skipped; one that cannot be deleted raises.
+
+    Raises:
+        ValueError: as :func:`user_cache_usage`, before anything is deleted.
+        OSError: a file that exists but could not be deleted (permissions).
+    """
+    deleted = []
+    for name, (folder, files) in _selected(folders, older_than_days).items():
+        count = total = 0
+        for path in files:
+            size = _size(path)
+            try:
+                path.unlink()
+            except FileNotFoundError:
+                continue
+            count += 1
+            total += size or 0
+        deleted.append(FolderUsage(name, folder, count, total))
+    return deleted
+
+
+__all__ = [
+    "CACHE_ENV",
+    "FOLDERS",
+    "FolderUsage",
+    "cache_root",
+    "clear_user_cache",
+    "read_arrays",
+    "user_cache_usage",
+    "write_arrays",
+]

@@ -1,5 +1,5 @@
 """The ``redsim`` command line: ``scenes``, ``simulate``, ``fit``, ``inspect``, ``sample``, ``animate``, ``bench``,
-``demo``, ``train-agent``, ``eval-agent``.
+``demo``, ``train-agent``, ``eval-agent``, ``cache``.
 
 Every subcommand has ``--help`` and ``--json`` (one JSON document on stdout; human-readable
 text otherwise). Bad input is reported as a single ``redsim: error: ...`` line on stderr with
@@ -11,7 +11,7 @@ Modules: :mod:`~redsim.cli.parser` (the parser and :func:`main`), :mod:`~redsim.
 (errors, output, shared options), and one per command group: :mod:`~redsim.cli.scenes`
 (scenes, simulate), :mod:`~redsim.cli.subspaces` (fit, inspect, sample, animate),
 :mod:`~redsim.cli.bench` (bench), :mod:`~redsim.cli.envs` (demo, bench envs, bench env-ab), :mod:`~redsim.cli.agents`
-(train-agent, eval-agent).
+(train-agent, eval-agent), :mod:`~redsim.cli.cache` (cache info, cache clear).
 
 Exit status: 0 success; 1 a scene failed to build (``scenes``); 2 bad input; 3 NaN or inf;
 4 a simulation step failed (implausible for its scene); 130 interrupted.

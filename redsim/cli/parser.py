@@ -14,7 +14,7 @@ from pathlib import Path
 import torch
 
 import redsim
-from redsim.cli import agents, bench, cubature, envs, scenes, subspaces
+from redsim.cli import agents, bench, cache, cubature, envs, scenes, subspaces
 from redsim.cli.common import CliError, Parser, StdoutClosed, apply_threads, error
 
 
@@ -32,6 +32,7 @@ def build_parser() -> argparse.ArgumentParser:
     cubature.add_commands(sub)
     envs.add_commands(sub, bench.add_commands(sub))
     agents.add_commands(sub)
+    cache.add_commands(sub)
     return parser
 
 

@@ -23,7 +23,7 @@ from torch import Tensor
 
 from redsim.scene import Scene
 from redsim.usercache import CACHE_ENV as CACHE_ENV  # re-exported: redsim.metrics and the tests name it here
-from redsim.usercache import cache_root, read_arrays, write_arrays
+from redsim.usercache import cache_root, clear_user_cache, read_arrays, write_arrays
 from redsim.version import __version__
 
 logger = logging.getLogger(__name__)
@@ -43,10 +43,8 @@ _CACHE: OrderedDict[tuple[str, ...], Result] = OrderedDict()
 def clear_cache(*, disk: bool = False) -> None:
     """Forget the cached full-space equilibria: in memory, and with ``disk=True`` also on disk."""
     _CACHE.clear()
-    directory = cache_directory() if disk else None
-    if directory is not None and directory.is_dir():
-        for path in directory.glob("*.npz"):
-            path.unlink(missing_ok=True)
+    if disk:
+        clear_user_cache(["equilibria"])
 
 
 def cache_directory() -> Path | None:

@@ -1,0 +1,104 @@
+"""``redsim cache info`` and ``redsim cache clear``: what redsim's user cache holds, and deleting it."""
+
+from __future__ import annotations
+
+import argparse
+from typing import Any
+
+from redsim.cli.common import EXIT_OK, CliError, finish_command, json_out, out, shown_path
+from redsim.usercache import CACHE_ENV, FOLDERS, FolderUsage, cache_root, clear_user_cache, user_cache_usage
+
+
+def _megabytes(size: int) -> str:
+    """``size`` [bytes] in MB, two significant digits below 1 MB."""
+    return f"{size / 1e6:.2g} MB" if size < 1e6 else f"{size / 1e6:.1f} MB"
+
+
+def _rows(usage: list[FolderUsage]) -> list[dict[str, Any]]:
+    return [{"folder": u.name, "path": str(u.path), "files": u.files, "bytes": u.bytes} for u in usage]
+
+
+def _off() -> str:
+    return f'the user cache is off (${CACHE_ENV} is "0", "off" or empty): nothing is kept on disk'
+
+
+def _age(args: argparse.Namespace) -> float | None:
+    days = args.older_than
+    if days is not None and not (0.0 <= days < float("inf")):
+        raise CliError(f"--older-than must be a finite number of days >= 0, got {days}")
+    return days
+
+
+def cmd_cache_info(args: argparse.Namespace) -> int:
+    root = cache_root()
+    usage = user_cache_usage(older_than_days=_age(args))
+    if args.json:
+        json_out({"root": None if root is None else str(root), "folders": _rows(usage)})
+        return EXIT_OK
+    if root is None:
+        out(_off())
+        return EXIT_OK
+    older = "" if args.older_than is None else f" (files older than {args.older_than:g} days)"
+    out(f"redsim user cache: {shown_path(root)}{older}")
+    for u in usage:
+        out(f"  {u.name:<11} {u.files:>6} files {_megabytes(u.bytes):>10}   {FOLDERS[u.name]}")
+    out(f"  {'total':<11} {sum(u.files for u in usage):>6} files {_megabytes(sum(u.bytes for u in usage)):>10}")
+    return EXIT_OK
+
+
+def cmd_cache_clear(args: argparse.Namespace) -> int:
+    folders = args.folders or None
+    unknown = [name for name in folders or () if name not in FOLDERS]
+    if unknown:
+        raise CliError(f"unknown cache folder(s) {', '.join(unknown)}; valid: {', '.join(FOLDERS)}")
+    days = _age(args)
+    root = cache_root()
+    if root is None:
+        if args.json:
+            json_out({"root": None, "dry_run": args.dry_run, "deleted": []})
+        else:
+            out(_off())
+        return EXIT_OK
+    done = (user_cache_usage if args.dry_run else clear_user_cache)(folders, days)
+    if args.json:
+        json_out({"root": str(root), "dry_run": args.dry_run, "deleted": _rows(done)})
+        return EXIT_OK
+    verb = "would delete" if args.dry_run else "deleted"
+    for u in done:
+        out(f"{verb} {u.files} files ({_megabytes(u.bytes)}) in {shown_path(u.path)}")
+    return EXIT_OK
+
+
+def add_commands(sub: Any) -> None:
+    """Add ``cache`` and its subcommands ``info`` and ``clear`` to the subcommands ``sub``."""
+    described = "; ".join(f"{name}: {what}" for name, what in FOLDERS.items())
+    p = sub.add_parser(
+        "cache",
+        help="show or clear redsim's user cache",
+        description=(
+            f"redsim's user cache (${CACHE_ENV}, by default ~/.cache/redsim; {CACHE_ENV}=0 turns it off) keeps "
+            f"work that a later process would otherwise repeat, in three folders ({described}). Every entry is "
+            "computed again when it is missing, so clearing loses time, never results."
+        ),
+    )
+    cache = p.add_subparsers(dest="cache_command", metavar="ACTION", required=True)
+    p = cache.add_parser(
+        "info", help="where the cache is and what it holds", description="Files and size of each cache folder."
+    )
+    p.add_argument("--older-than", type=float, metavar="DAYS", help="count only files last written DAYS days ago")
+    finish_command(p, cmd_cache_info, "print one JSON object on stdout", threads=False)
+    p = cache.add_parser(
+        "clear",
+        help="delete cached files",
+        description=(
+            "Delete the files in the named cache folders (default: all). Only files directly in those folders "
+            "are deleted, never anything else under the cache root. Deleting subspaces/*.fit.pt makes an "
+            "interrupted fit start over."
+        ),
+    )
+    p.add_argument("folders", nargs="*", metavar="FOLDER", help=f"one of {', '.join(FOLDERS)} (default: all)")
+    p.add_argument(
+        "--older-than", type=float, metavar="DAYS", help="delete only files last written more than DAYS days ago"
+    )
+    p.add_argument("--dry-run", action="store_true", help="show what would be deleted, delete nothing")
+    finish_command(p, cmd_cache_clear, "print one JSON object on stdout", threads=False)

@@ -1,0 +1,117 @@
+"""redsim's user cache: which folders it has, what they hold, and deleting them (the API and ``redsim cache``)."""
+
+from __future__ import annotations
+
+import json
+import os
+import time
+from pathlib import Path
+
+import pytest
+import torch
+
+import redsim
+from redsim.cli import main
+from redsim.envs.base import cached
+from redsim.envs.fitted import cache_stem
+from redsim.integrators import cache as equilibria
+from redsim.usercache import FOLDERS, cache_root, clear_user_cache, user_cache_usage
+
+
+@pytest.fixture
+def root(tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> Path:
+    """A user cache with two files in each folder (one a week old), plus files the cache does not own."""
+    root = tmp_path / "cache"
+    monkeypatch.setenv("REDSIM_CACHE", str(root))
+    week = time.time() - 7 * 86400.0
+    for name in FOLDERS:
+        (root / name).mkdir(parents=True)
+        (root / name / "new.npz").write_bytes(b"x" * 10)
+        (root / name / "old.npz").write_bytes(b"x" * 100)
+        os.utime(root / name / "old.npz", (week, week))
+    (root / "mine.txt").write_text("not the cache's")  # $REDSIM_CACHE may point at a user's folder
+    (root / "envs" / "nested").mkdir()
+    (root / "envs" / "nested" / "keep.npz").write_bytes(b"x")
+    return root
+
+
+def _counts(usage: list) -> dict[str, tuple[int, int]]:
+    return {u.name: (u.files, u.bytes) for u in usage}
+
+
+def test_the_folders_are_those_the_caches_write_to(tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> None:
+    monkeypatch.setenv("REDSIM_CACHE", str(tmp_path))
+    assert equilibria.cache_directory() == tmp_path / "equilibria"
+    scene = redsim.scenes.build("toy_two_tets")
+    assert cache_stem("toy_two_tets", scene, {}).parent == tmp_path / "subspaces"
+    cached({}, ("test_usercache", 1), lambda: torch.zeros(2), disk="probe")
+    assert [p.parent for p in tmp_path.rglob("*.npz")] == [tmp_path / "envs"]
+    assert set(FOLDERS) == {"equilibria", "subspaces", "envs"}
+
+
+def test_usage_counts_the_files_of_each_folder(root: Path) -> None:
+    assert _counts(user_cache_usage()) == {name: (2, 110) for name in FOLDERS}
+    assert _counts(user_cache_usage(["envs"], older_than_days=1)) == {"envs": (1, 100)}
+    assert user_cache_usage()[0].path == root / "equilibria"
+
+
+def test_clear_deletes_only_the_named_folders_files(root: Path) -> None:
+    deleted = clear_user_cache(["envs", "equilibria"], older_than_days=1.5)
+    assert _counts(deleted) == {"envs": (1, 100), "equilibria": (1, 100)}
+    assert sorted(p.name for p in (root / "envs").iterdir()) == ["nested", "new.npz"]
+    assert _counts(clear_user_cache()) == {"equilibria": (1, 10), "subspaces": (2, 110), "envs": (1, 10)}
+    assert _counts(user_cache_usage()) == {name: (0, 0) for name in FOLDERS}
+    assert (root / "mine.txt").is_file() and (root / "envs" / "nested" / "keep.npz").is_file()
+
+
+def test_equilibria_clear_cache_on_disk_uses_the_same_deletion(root: Path) -> None:
+    equilibria.clear_cache(disk=True)
+    assert _counts(user_cache_usage()) == {"equilibria": (0, 0), "subspaces": (2, 110), "envs": (2, 110)}
+
+
+@pytest.mark.parametrize("bad", [{"folders": ["cache"]}, {"older_than_days": -1.0}, {"older_than_days": float("nan")}])
+def test_bad_arguments_are_refused_before_anything_is_deleted(root: Path, bad: dict) -> None:
+    with pytest.raises(ValueError, match=r"cache folder|older_than_days"):
+        clear_user_cache(**bad)
+    assert _counts(user_cache_usage()) == {name: (2, 110) for name in FOLDERS}
+
+
+def test_with_the_cache_off_there_is_nothing(monkeypatch: pytest.MonkeyPatch) -> None:
+    monkeypatch.setenv("REDSIM_CACHE", "0")
+    assert cache_root() is None and user_cache_usage() == [] and clear_user_cache() == []
+
+
+def test_cli_info_and_clear(root: Path, capsys: pytest.CaptureFixture[str]) -> None:
+    assert main(["cache", "info", "--json"]) == 0
+    info = json.loads(capsys.readouterr().out)
+    assert info["root"] == str(root) and [f["files"] for f in info["folders"]] == [2, 2, 2]
+    assert main(["cache", "info"]) == 0
+    text = capsys.readouterr().out
+    assert str(root) in text and "6 files" in text
+    assert main(["cache", "clear", "envs", "--dry-run", "--json"]) == 0
+    assert json.loads(capsys.readouterr().out)["deleted"][0]["files"] == 2
+    assert _counts(user_cache_usage(["envs"])) == {"envs": (2, 110)}
+    assert main(["cache", "clear", "subspaces", "--older-than", "3"]) == 0
+    assert "deleted 1 files" in capsys.readouterr().out
+    assert _counts(user_cache_usage(["subspaces"])) == {"subspaces": (1, 10)}
+
+
+@pytest.mark.parametrize(
+    ("argv", "message"),
+    [
+        (["cache", "clear", "models"], "unknown cache folder(s) models"),
+        (["cache", "clear", "--older-than", "-2"], "--older-than must be a finite number"),
+        (["cache", "info", "--older-than", "inf"], "--older-than must be a finite number"),
+        (["cache"], "ACTION"),
+    ],
+)
+def test_cli_refuses_bad_input(root: Path, capsys: pytest.CaptureFixture[str], argv: list[str], message: str) -> None:
+    assert main(argv) == 2
+    assert message in capsys.readouterr().err
+    assert _counts(user_cache_usage()) == {name: (2, 110) for name in FOLDERS}
+
+
+def test_cli_with_the_cache_off(monkeypatch: pytest.MonkeyPatch, capsys: pytest.CaptureFixture[str]) -> None:
+    monkeypatch.setenv("REDSIM_CACHE", "off")
+    assert main(["cache", "clear"]) == 0
+    assert "the user cache is off" in capsys.readouterr().out
