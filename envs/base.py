@@ -49,10 +49,11 @@ if TYPE_CHECKING:  # imported where used: the runtime and the invariants load on
     from redsim.envs.invariants import Invariants
     from redsim.runtime import LatentStepper
 
-CAMERA_KEYS = ("azimuth", "elevation", "margin", "track")
-"""The ``camera`` keys an env takes: ``azimuth``, ``elevation`` [deg] and ``margin`` (keyword arguments of
-:class:`redsim.raster.SceneView`), and ``track`` (bool, default False: the fixed camera of :meth:`LatentSim.fixed_view`;
-True: each episode framed anew, :meth:`LatentSim.view`)."""
+CAMERA_KEYS = ("azimuth", "elevation", "margin", "merge_px", "track")
+"""The ``camera`` keys an env takes: ``azimuth``, ``elevation`` [deg], ``margin`` and ``merge_px`` (keyword arguments
+of :class:`redsim.raster.SceneView`; ``merge_px=0`` draws every triangle of a small picture), and ``track`` (bool,
+default False: the fixed camera of :meth:`LatentSim.fixed_view`; True: each episode framed anew,
+:meth:`LatentSim.view`)."""
 FRAME_SAMPLES = 64
 """Fixed draws (seed 0) of a task's targets whose shapes bound the region a fixed camera frames
 (:meth:`Task.frame_points`)."""
@@ -1138,10 +1139,10 @@ class LatentEnv(gym.Env[np.ndarray, np.ndarray]):
         reset_noise_scale: Start noise s [latent units] (:class:`LatentSim`; 0: every episode starts at rest).
         width: Render width [px].
         height: Render height [px].
-        camera: ``azimuth``/``elevation``/``margin`` of :class:`redsim.raster.SceneView`, over the env's own
-            :attr:`camera` key by key. The camera is fixed (framed once, at the first render, on the reset shapes
-            and the task's target region: :meth:`LatentSim.fixed_view`); ``track=True`` frames each episode anew
-            on its shape and markers instead.
+        camera: ``azimuth``/``elevation``/``margin``/``merge_px`` of :class:`redsim.raster.SceneView`, over the
+            env's own :attr:`camera` key by key. The camera is fixed (framed once, at the first render, on the reset
+            shapes and the task's target region: :meth:`LatentSim.fixed_view`); ``track=True`` frames each episode
+            anew on its shape and markers instead.
         stepper_options: Extra keyword arguments of :class:`redsim.runtime.LatentStepper`.
         cubature: Step a cubature energy (:func:`env_energy`): None (the shipped one where
             :data:`CUBATURE_DEFAULT` turns it on), True (required), False (every element) or a checkpoint path.
@@ -1513,7 +1514,8 @@ def _image_size(width: Any, height: Any) -> tuple[int, int]:
 
 
 def _camera(camera: Mapping[str, Any] | None) -> dict[str, Any]:
-    """The ``camera`` settings, checked (:data:`CAMERA_KEYS`: finite numbers [deg], a margin >= 0, track a bool)."""
+    """The ``camera`` settings, checked (:data:`CAMERA_KEYS`: finite numbers [deg], a margin and merge_px >= 0, track a
+    bool)."""
     if camera is not None and not isinstance(camera, Mapping):
         raise ValueError(f"camera must be a dict of {list(CAMERA_KEYS)}, got {camera!r:.80}")
     camera = dict(camera or {})
@@ -1528,6 +1530,8 @@ def _camera(camera: Mapping[str, Any] | None) -> dict[str, Any]:
             raise ValueError(f"camera[{key!r}] must be a finite number, got {value!r}")
     if camera.get("margin", 0.0) < 0.0:
         raise ValueError(f"camera['margin'] must be >= 0 (a fraction of the frame), got {camera['margin']!r}")
+    if camera.get("merge_px", 0.0) < 0.0:
+        raise ValueError(f"camera['merge_px'] must be >= 0 [px], got {camera['merge_px']!r}")
     return {**{k: float(v) for k, v in camera.items()}, **track}
 
 

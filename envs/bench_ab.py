@@ -11,7 +11,9 @@ setting it reports the median CPU time of a vector step, the solver's work (iter
 value-and-gradient calls and the latent rows they evaluated, :class:`redsim.runtime.Evaluations`, as
 ``redsim bench envs`` counts them) and what the solves said (converged, out of range, diverged), and the
 per-round CPU ratio of each setting against the first: the first's time over the setting's in the same
-round, so a ratio above 1 means the setting is faster.
+round, so a ratio above 1 means the setting is faster. With ``render`` (a frame size [px]) every timed step also
+draws all copies' ``rgb_array`` frames (``render()``, timed on its own and counted in the ratio): what a pixel agent
+pays per step.
 """
 
 from __future__ import annotations
@@ -36,6 +38,7 @@ def bench_env_ab(
     steps_per_round: int = 10,
     warmup: int = 3,
     seed: int = 0,
+    render: int | None = None,
 ) -> dict[str, Any]:
     """CPU time and solver work of ``env_id``'s native vector env under each of ``settings``, interleaved.
 
@@ -48,6 +51,8 @@ def bench_env_ab(
         steps_per_round: Vector steps per setting and round.
         warmup: Untimed vector steps of each setting first (their actions are not reused).
         seed: Seeds the resets (copy i: ``seed + i``) and the actions.
+        render: A frame size [px]: every setting gets ``render_mode="rgb_array"`` and that width and height (unless
+            it names its own), and every timed step renders all copies after stepping them; None: no frames.
 
     Returns:
         ``env_id``, ``num_envs``, ``rounds``, ``steps_per_round``, ``warmup``, ``seed`` and ``settings``, a list in
@@ -58,7 +63,8 @@ def bench_env_ab(
         value-and-gradient calls per vector step), ``rows_per_copy_step`` (latent states those calls evaluated,
         per copy and step), ``converged_fraction`` (of copy-steps), ``out_of_range`` and ``diverged`` (copy-steps
         flagged), and ``ratio`` against the first setting: ``rounds`` (its time over this one's, per round),
-        ``median``, ``min``, ``max``.
+        ``median``, ``min``, ``max``. With ``render``, ``render_size``, and per setting ``round_render_cpu_s`` and
+        ``render_cpu_ms`` (the renders' share of the round times, which include them).
 
     Raises:
         ValueError: no setting, a count < 1 (``warmup`` < 0), or settings whose action spaces differ.
@@ -70,8 +76,11 @@ def bench_env_ab(
             raise ValueError(f"{name} must be >= 1, got {value}")
     if warmup < 0:
         raise ValueError(f"warmup must be >= 0, got {warmup}")
+    if render is not None and render < 8:
+        raise ValueError(f"render must be a frame size >= 8 [px], got {render}")
+    frame = {} if render is None else {"render_mode": "rgb_array", "width": render, "height": render}
     venvs = {
-        name: gym.make_vec(env_id, num_envs=num_envs, vectorization_mode="vector_entry_point", **kwargs)
+        name: gym.make_vec(env_id, num_envs=num_envs, vectorization_mode="vector_entry_point", **{**frame, **kwargs})
         for name, kwargs in settings.items()
     }
     try:
@@ -86,12 +95,14 @@ def bench_env_ab(
             venv.reset(seed=seed)
             for action in actions[:warmup]:
                 venv.step(action)
+                if render is not None:
+                    venv.render()
             venv.unwrapped.sim.stepper.evaluations = Evaluations()
         names = list(venvs)
         for r in range(rounds):
             block = actions[warmup + r * steps_per_round : warmup + (r + 1) * steps_per_round]
             for name in names if r % 2 == 0 else names[::-1]:
-                work[name].run_round(venvs[name], block)
+                work[name].run_round(venvs[name], block, render is not None)
         results = [_summary(name, settings[name], work[name], work[names[0]], venvs[name], num_envs) for name in names]
     finally:
         for venv in venvs.values():
@@ -103,6 +114,7 @@ def bench_env_ab(
         "steps_per_round": steps_per_round,
         "warmup": warmup,
         "seed": seed,
+        "render_size": render,
         "settings": results,
     }
 
@@ -112,19 +124,28 @@ class _Work:
 
     def __init__(self) -> None:
         self.round_cpu_s: list[float] = []
+        self.round_render_cpu_s: list[float] = []
         self.iterations: list[float] = []
         self.slowest: list[float] = []
         self.converged: list[float] = []
         self.out_of_range = 0
         self.diverged = 0
 
-    def run_round(self, venv: Any, actions: np.ndarray) -> None:
-        """Step ``venv`` once per action [N, A] and record the round's CPU time per step [s]."""
+    def run_round(self, venv: Any, actions: np.ndarray, render: bool = False) -> None:
+        """Step ``venv`` once per action [N, A] (and render it after each step) and record the round's CPU time per
+        step [s] (renders included) and the renders' share of it."""
         infos = []
+        drawing = 0.0
         start = time.process_time()
         for action in actions:
             infos.append(venv.step(action)[4])
+            if render:
+                before = time.process_time()
+                venv.render()
+                drawing += time.process_time() - before
         self.round_cpu_s.append((time.process_time() - start) / len(actions))
+        if render:
+            self.round_render_cpu_s.append(drawing / len(actions))
         for info in infos:
             if "iterations" not in info:  # every copy restarted this step (NEXT_STEP autoreset): nothing solved
                 continue
@@ -143,10 +164,19 @@ def _summary(
     evaluations = venv.unwrapped.sim.stepper.evaluations
     median_s = statistics.median(work.round_cpu_s)
     ratios = [a / b for a, b in zip(first.round_cpu_s, work.round_cpu_s, strict=True)]
+    rendered = (
+        {
+            "round_render_cpu_s": work.round_render_cpu_s,
+            "render_cpu_ms": 1e3 * statistics.median(work.round_render_cpu_s),
+        }
+        if work.round_render_cpu_s
+        else {}
+    )
     return {
         "name": name,
         "env_args": dict(env_args),
         "round_cpu_s": work.round_cpu_s,
+        **rendered,
         "cpu_ms_per_step": 1e3 * median_s,
         "env_steps_per_cpu_s": num_envs / median_s,
         "iterations_per_step": statistics.fmean(work.iterations),

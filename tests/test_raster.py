@@ -229,3 +229,56 @@ def test_a_batch_draws_each_state_as_draw_does(name: str, monkeypatch: pytest.Mo
         assert all(np.array_equal(batch[i], single[i]) for i in range(5))
     with pytest.raises(ValueError, match="one list of markers per state"):
         view.draw_batch(q, markers=markers[:2])
+
+
+def test_merging_close_vertices_coarsens_a_mesh_and_keeps_its_winding() -> None:
+    """Vertex clustering on a fine sphere: no change at a spacing below the vertex spacing; at a coarse one fewer
+    faces over the lowest-numbered vertex of each cell, none degenerate or repeated, still outward and near the
+    sphere's volume; a mesh smaller than one cell keeps one face; a non-finite point merges with nothing."""
+    import trimesh
+
+    sphere = trimesh.creation.icosphere(subdivisions=3, radius=1.0)
+    points, faces = np.asarray(sphere.vertices), np.asarray(sphere.faces)
+    assert raster.merge_close_vertices(points, faces, 0.0) is faces
+    assert np.array_equal(raster.merge_close_vertices(points, faces, 1e-3), faces)
+    coarse = raster.merge_close_vertices(points, faces, 0.4)
+    assert 50 < len(coarse) < 0.3 * len(faces)
+    assert (coarse[:, 0] != coarse[:, 1]).all() and (coarse[:, 1] != coarse[:, 2]).all()
+    assert (coarse[:, 0] != coarse[:, 2]).all()
+    cells = np.floor(points / 0.4)
+    for vertex in np.unique(coarse):  # each kept vertex is the lowest-numbered of its cell
+        assert vertex == np.flatnonzero((cells == cells[vertex]).all(1)).min()
+    rotated = np.array([np.roll(f, -int(np.argmin(f))) for f in coarse])
+    assert len(np.unique(rotated, axis=0)) == len(coarse)
+    volume = np.einsum("fi,fi->", points[coarse[:, 0]], np.cross(points[coarse[:, 1]], points[coarse[:, 2]])) / 6
+    assert 0.6 * sphere.volume < volume <= sphere.volume
+    assert np.array_equal(raster.merge_close_vertices(points + 5.0, faces, 10.0), faces[:1])  # all in one cell
+    holed = points.copy()
+    holed[faces[0]] = np.nan
+    assert any(set(faces[0]) <= set(f) for f in raster.merge_close_vertices(holed, faces, 0.4).tolist())
+
+
+@pytest.mark.parametrize(
+    ("name", "faces_kept", "size"), [("chain", 0.2, 84), ("stewart", 0.25, 84), ("chain", 1.0, 480)]
+)
+def test_a_small_picture_draws_a_coarser_mesh_with_the_same_silhouette(name: str, faces_kept: float, size: int) -> None:
+    """At 84 px the chain's links and Stewart's arms merge to a few triangles each (measured 10% and 16% of the
+    mesh's); the picture keeps its silhouette (background or not: >= 99% of pixels equal, measured 99.4-99.8%), while
+    the shading of sub-pixel faces changes; ``merge_px=0`` draws every triangle; at 480 px nearly nothing merges."""
+    scene = scenes.build(name)
+    generator = torch.Generator().manual_seed(0)
+    q = scene.q_seed + 0.01 * scene.extent() * torch.randn((4, scene.q_seed.numel()), generator=generator)
+    view = SceneView(scene, scene.q_seed, width=size, height=size)
+    every = SceneView(scene, scene.q_seed, width=size, height=size, merge_px=0.0)
+    total = sum(len(s.faces) for s in scene.surfaces)
+    assert sum(len(f) for f in every._faces) == total
+    assert sum(len(f) for f in view._faces) <= faces_kept * total
+    if size > 100:
+        assert sum(len(f) for f in view._faces) > 0.99 * total
+    merged, full = view.draw_batch(q), every.draw_batch(q)
+    background = np.array(raster.BACKGROUND)
+    silhouette = (merged == background).all(-1) != (full == background).all(-1)
+    assert silhouette.mean() < 0.01, silhouette.mean()
+    assert (full != background).any(-1).mean() > 0.005  # something was drawn
+    with pytest.raises(ValueError, match="merge_px"):
+        SceneView(scene, scene.q_seed, merge_px=-1.0)

@@ -203,6 +203,7 @@ def cmd_bench_env_ab(args: argparse.Namespace) -> int:
         ("--rounds", args.rounds, 1),
         ("--steps-per-round", args.steps_per_round, 1),
         ("--warmup", args.warmup, 0),
+        ("--render", 8 if args.render is None else args.render, 8),
     ):
         if value < least:
             raise CliError(f"{flag} must be an integer >= {least}, got {value}")
@@ -216,6 +217,7 @@ def cmd_bench_env_ab(args: argparse.Namespace) -> int:
         steps_per_round=args.steps_per_round,
         warmup=args.warmup,
         seed=args.seed,
+        render=args.render,
     )
     result["machine"] = machine
     result["load_average_1min_end"] = machine_info()["load_average_1min"]
@@ -224,9 +226,10 @@ def cmd_bench_env_ab(args: argparse.Namespace) -> int:
         return EXIT_OK
     rows = result["settings"]
     first = rows[0]["name"]
+    drawn = "" if args.render is None else f", each step then rendering every copy at {args.render} x {args.render} px"
     out(
         f"interleaved A/B of {args.env_id}: {args.num_envs} envs, {args.rounds} rounds of {args.steps_per_round} "
-        f"vector steps per setting after {args.warmup} untimed (order reversed every other round), the same "
+        f"vector steps per setting after {args.warmup} untimed (order reversed every other round){drawn}, the same "
         f"random actions (seed {args.seed}); CPU time of this process"
     )
     out(_machine_line(machine, "cpu"))
@@ -234,15 +237,19 @@ def cmd_bench_env_ab(args: argparse.Namespace) -> int:
         shown = " ".join(f"{k}={json.dumps(v)}" for k, v in row["env_args"].items()) or "the env's defaults"
         out(f"  {row['name']}: {shown}")
     width = max(10, *(len(row["name"]) for row in rows))
+    rendered = args.render is not None
+    render_column = f"{'of it render':>12} " if rendered else ""
     out(
-        f"{'setting':<{width}} {'CPU ms/step':>11} {'steps/CPU s':>11} {'its (slowest)':>14} {'calls':>6} "
+        f"{'setting':<{width}} {'CPU ms/step':>11} {render_column}"
+        f"{'steps/CPU s':>11} {'its (slowest)':>14} {'calls':>6} "
         f"{'rows/copy':>9} {'converged':>9} {'out_of_range':>12} {'diverged':>8}  vs {first}: median (range)"
     )
     for row in rows:
         ratio = row["ratio"]
         its = f"{row['iterations_per_step']:.2f} ({row['slowest_iterations_per_step']:.1f})"
+        render = f"{row['render_cpu_ms']:>12.1f} " if rendered else ""
         out(
-            f"{row['name']:<{width}} {row['cpu_ms_per_step']:>11.1f} {row['env_steps_per_cpu_s']:>11.0f} "
+            f"{row['name']:<{width}} {row['cpu_ms_per_step']:>11.1f} {render}{row['env_steps_per_cpu_s']:>11.0f} "
             f"{its:>14} {row['calls_per_step']:>6.1f} {row['rows_per_copy_step']:>9.1f} "
             f"{row['converged_fraction']:>9.3f} {row['out_of_range']:>12} {row['diverged']:>8}  "
             f"{ratio['median']:.2f}x ({ratio['min']:.2f}-{ratio['max']:.2f})"
@@ -463,6 +470,13 @@ def add_commands(sub: Any, bench: Any) -> None:
     p.add_argument("--steps-per-round", type=int, default=10, help="vector steps per setting and round (default 10)")
     p.add_argument("--warmup", type=int, default=3, help="untimed vector steps of each setting first (default 3)")
     p.add_argument("--seed", type=non_negative_seed, default=0, help="seed of the resets and the actions (default 0)")
+    p.add_argument(
+        "--render",
+        type=int,
+        metavar="PX",
+        help="also render every copy after each timed step, rgb_array frames of PX x PX (e.g. 84, a pixel agent's; "
+        "the CPU times include the renders, and their share is printed)",
+    )
     finish_command(p, cmd_bench_env_ab, "print one JSON document", default_threads=1)
 
     p = bench.add_parser(

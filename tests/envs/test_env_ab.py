@@ -54,6 +54,24 @@ def test_env_ab_prints_a_row_per_setting_and_the_ratios(capsys: pytest.CaptureFi
     assert "per-round CPU ratio vs cold" in text and "machine:" in text
 
 
+def test_env_ab_renders_every_copy_after_each_timed_step(capsys: pytest.CaptureFixture[str]) -> None:
+    """--render PX: frames of that size for every setting (a setting's camera key reaches its env), the renders'
+    CPU time reported apart and counted in the step's."""
+    args = ["bench", "env-ab", "RedSim/MiniChain-v0", "--setting", "merged", "--setting", 'all:camera={"merge_px": 0}']
+    assert main([*args, *TINY, "--render", "32", "--json"]) == 0
+    doc = json.loads(capsys.readouterr().out)
+    assert doc["render_size"] == 32
+    for row in doc["settings"]:
+        assert len(row["round_render_cpu_s"]) == 2
+        assert 0 < row["render_cpu_ms"] < row["cpu_ms_per_step"]
+    assert main([*args, *TINY, "--render", "32"]) == 0
+    text = capsys.readouterr().out
+    assert "each step then rendering every copy at 32 x 32 px" in text and "of it render" in text
+    assert main([*args, *TINY, "--json"]) == 0
+    doc = json.loads(capsys.readouterr().out)
+    assert doc["render_size"] is None and "render_cpu_ms" not in doc["settings"][0]
+
+
 @pytest.mark.parametrize(
     ("extra", "expected"),
     [
@@ -74,6 +92,7 @@ def test_env_ab_prints_a_row_per_setting_and_the_ratios(capsys: pytest.CaptureFi
         (["RedSim/MiniChain-v0", "--setting", "a", "--setting", "b", "--steps-per-round", "0"], "--steps-per-round"),
         (["RedSim/MiniChain-v0", "--setting", "a", "--setting", "b", "--warmup", "-1"], "--warmup must be"),
         (["RedSim/MiniChain-v0", "--setting", "a", "--setting", "b", "--rounds", "two"], "invalid int value"),
+        (["RedSim/MiniChain-v0", "--setting", "a", "--setting", "b", "--render", "4"], "--render must be"),
     ],
 )
 def test_env_ab_bad_input_is_a_usage_error(extra: list[str], expected: str, capsys: pytest.CaptureFixture[str]) -> None:
@@ -90,6 +109,7 @@ def test_env_ab_bad_input_is_a_usage_error(extra: list[str], expected: str, caps
         ({"rounds": 0}, "rounds must be >= 1"),
         ({"steps_per_round": 0}, "steps_per_round must be >= 1"),
         ({"warmup": -1}, "warmup must be >= 0"),
+        ({"render": 0}, "render must be a frame size"),
     ],
 )
 def test_bench_env_ab_rejects_bad_counts_before_making_envs(kwargs: dict, expected: str) -> None:
