@@ -9,7 +9,7 @@ by the ones facing it, so they are not drawn (back-face culling); open surfaces 
 draws each surface through a coarser mesh over the same points where the picture is small: vertices within
 ``merge_px`` pixels of each other (:data:`MERGE_PX`, in the state it is framed on) merge, and the triangles that
 collapse are dropped (:func:`merge_close_vertices`), so a small picture fills far fewer triangles with nearly the
-same pixels (Chain-v0 at 84 px: 9,600 triangles to ~800). `redsim bench envs` prints each env's frames per second at
+same pixels (Chain-v0 at 84 px: 9,600 triangles to ~1,000). `redsim bench envs` prints each env's frames per second at
 480x480; `redsim bench render` times many copies' small pictures. 3D scenes use the builders' y-up
 convention: the camera turns about the y axis (``azimuth``) and then tilts down (``elevation``).
 
