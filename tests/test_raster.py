@@ -263,8 +263,9 @@ def test_merging_close_vertices_coarsens_a_mesh_and_keeps_its_winding() -> None:
 )
 def test_a_small_picture_draws_a_coarser_mesh_with_the_same_silhouette(name: str, faces_kept: float, size: int) -> None:
     """At 84 px the chain's links and Stewart's arms merge to a few triangles each (measured 15% and 15% of the
-    mesh's, framed on the seed states); the picture keeps its silhouette (background or not: >= 99% of pixels equal, measured 99.4-99.8%), while
-    the shading of sub-pixel faces changes; ``merge_px=0`` draws every triangle; at 480 px nearly nothing merges."""
+    mesh's, framed on the seed states); the picture keeps its silhouette (background or not: >= 99% of pixels
+    equal), while the shading of sub-pixel faces changes; ``merge_px=0`` draws every triangle; at 480 px nearly
+    nothing merges."""
     scene = scenes.build(name)
     generator = torch.Generator().manual_seed(0)
     q = scene.q_seed + 0.01 * scene.extent() * torch.randn((4, scene.q_seed.numel()), generator=generator)
