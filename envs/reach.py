@@ -52,6 +52,32 @@ an identical env made again reuses them (HangingCloth-v1 settles for 3-10 s); a 
 cache (:func:`redsim.envs.base.cached`)."""
 
 
+def _energy_key(energy: Any) -> tuple[str, ...] | None:
+    """What a latent energy computes, by value: its class, its scene's content, and its map (every element) or its
+    cubature's map and rules (indices and weights); None for an energy of another class (a user's own, whose state
+    is not known), which the caller must not cache by."""
+    from redsim.cubature.energy import CubatureEnergy
+    from redsim.integrators.cache import scene_digest
+    from redsim.runtime.energy import MapEnergy
+
+    if type(energy) is MapEnergy and isinstance(energy.map, nn.Module):
+        return ("MapEnergy", scene_digest(energy.scene), *map_key(energy.map))
+    if type(energy) is CubatureEnergy:
+        rules = hashlib.sha256()
+        for rule in energy.cubature.rules:
+            rules.update(f"{rule.name}:{rule.mode}:".encode())
+            rules.update(rule.indices.detach().cpu().to(torch.int64).numpy().tobytes())
+            rules.update(rule.weights.detach().cpu().to(torch.float64).numpy().tobytes())
+        return (
+            "CubatureEnergy",
+            scene_digest(energy.scene),
+            energy.cubature.map_fingerprint,
+            rules.hexdigest(),
+            str(energy.slice_all),
+        )
+    return None
+
+
 class HandleReach(Task):
     """Bring handle ``goal_handle`` to a target with a force on handle ``actuated`` (module doc).
 
@@ -182,29 +208,26 @@ class HandleReach(Task):
             got = tuple(tuple(item.shape) for item in value)
             return "" if got == shapes else f"shapes {got}, expected {shapes}"
 
-        held, targets = cached(
-            _held_cache, self._held_key(sim), lambda: self._settle(sim), disk="held targets", check=check
-        )
+        key = self._held_key(sim)
+        if key is None:  # an energy of the user's own: what it computes is not known by value, so nothing is kept
+            held, targets = self._settle(sim)
+        else:
+            held, targets = cached(_held_cache, key, lambda: self._settle(sim), disk="held targets", check=check)
         return held.clone(), targets.clone()
 
-    def _held_key(self, sim: LatentSim) -> tuple[Any, ...]:
-        """What the held targets depend on: the scene's content, the map's weights, the energy stepped (every element
-        or a cubature's rules), dtype, device, the settling's constants and start (the rest latent) and this task's
-        force, spread and handles."""
+    def _held_key(self, sim: LatentSim) -> tuple[Any, ...] | None:
+        """What the held targets depend on: the scene's content, the map's weights, the energy stepped
+        (:func:`_energy_key`), dtype, device, the settling's constants and start (the rest latent) and this task's
+        force, spread and handles; None for an energy that is not redsim's own (``stepper_options["energy"]``)."""
         from redsim.integrators.cache import scene_digest
 
-        energy = sim.stepper.energy
-        cubature = getattr(energy, "cubature", None)
-        rules = hashlib.sha256()
-        for rule in [] if cubature is None else cubature.rules:
-            rules.update(f"{rule.name}:{rule.mode}:".encode())
-            rules.update(rule.indices.detach().cpu().to(torch.int64).numpy().tobytes())
-            rules.update(rule.weights.detach().cpu().to(torch.float64).numpy().tobytes())
+        energy = _energy_key(sim.stepper.energy)
+        if energy is None:
+            return None
         return (
             scene_digest(sim.source_scene),
             map_key(sim.subspace),
-            type(energy).__name__,
-            rules.hexdigest(),
+            *energy,
             str(sim.torch_dtype),
             str(sim.device),
             self.target_spread,

@@ -838,6 +838,41 @@ def test_an_unusable_cache_folder_never_stops_an_env(
     assert "ignoring unreadable held targets cache file" in caplog.text and "could not write" in caplog.text
 
 
+def test_held_targets_are_keyed_by_what_the_stepped_energy_computes(
+    monkeypatch: pytest.MonkeyPatch, tmp_path: Path
+) -> None:
+    """An energy passed through ``stepper_options`` settles its own targets: one on a stiffer scene gets a key (and
+    targets) of its own, and an energy of the user's own class is never cached (it is settled at every make and
+    nothing is written), since what it computes is not known by value."""
+    from redsim.envs import reach
+    from redsim.runtime.energy import MapEnergy
+
+    monkeypatch.setenv("REDSIM_CACHE", str(tmp_path))
+    subspace = pretrained.load("mini_chain", scenes.build("mini_chain"))
+    settles = []
+    settle = reach.HandleReach._settle
+    monkeypatch.setattr(reach.HandleReach, "_settle", lambda self, sim: settles.append(1) or settle(self, sim))
+
+    def sim(energy=None):
+        options = {} if energy is None else {"stepper_options": {"energy": energy}}
+        return gym.make("RedSim/MiniChain-v0", targets="held", target_spread=0.5, **options).unwrapped.sim
+
+    reach._held_cache.clear()
+    default = sim()
+    stiffer = sim(MapEnergy(scenes.build("mini_chain", rigid_stiffness=20000.0), subspace))
+    assert default.task._held_key(default) != stiffer.task._held_key(stiffer) and len(settles) == 2
+    assert len(list((tmp_path / "envs").glob("*.npz"))) == 2
+
+    class Mine(MapEnergy):  # a user's energy: its state is its own
+        pass
+
+    for _ in range(2):
+        mine = sim(Mine(scenes.build("mini_chain"), subspace))
+        assert mine.task._held_key(mine) is None
+    assert len(settles) == 4 and len(list((tmp_path / "envs").glob("*.npz"))) == 2
+    assert torch.equal(mine.task.held_targets, default.task.held_targets)  # the same physics, settled again
+
+
 def test_held_targets_and_their_key_do_not_depend_on_torch_s_default_dtype() -> None:
     from redsim.envs import reach
 
