@@ -18,6 +18,7 @@ values raise ValueError).
 from __future__ import annotations
 
 import copy
+import functools
 import hashlib
 import importlib.util
 import inspect
@@ -40,6 +41,7 @@ from torch import Tensor, nn
 from redsim.devices import DTYPES, check_device
 from redsim.scene import Scene
 from redsim.subspace import CheckpointError, periodic_latents
+from redsim.threads import check_threads, torch_threads
 from redsim.usercache import cache_root, read_arrays, write_arrays
 from redsim.version import __version__
 
@@ -1107,6 +1109,18 @@ def checkpoint_subspace(path: str | os.PathLike[str], scene: Scene) -> nn.Module
     return loaded
 
 
+def on_env_threads(method: Callable[..., Any]) -> Callable[..., Any]:
+    """``method`` of an env run on the env's ``threads`` torch threads, the caller's setting restored after it
+    (:func:`redsim.threads.torch_threads`)."""
+
+    @functools.wraps(method)
+    def run(self: Any, *args: Any, **kwargs: Any) -> Any:
+        with torch_threads(self.threads):
+            return method(self, *args, **kwargs)
+
+    return run
+
+
 class LatentEnv(gym.Env[np.ndarray, np.ndarray]):
     """A Gymnasium env whose state is the latent (z, z_dot) of a subspace, advanced by the latent stepper.
 
@@ -1146,6 +1160,9 @@ class LatentEnv(gym.Env[np.ndarray, np.ndarray]):
         stepper_options: Extra keyword arguments of :class:`redsim.runtime.LatentStepper`.
         cubature: Step a cubature energy (:func:`env_energy`): None (the shipped one where
             :data:`CUBATURE_DEFAULT` turns it on), True (required), False (every element) or a checkpoint path.
+        threads: torch intra-op threads while the env computes (made, reset, stepped, rendered; default 1, what its
+            small tensor ops run fastest on), the caller's own setting restored after each call; None: the caller's
+            setting (:mod:`redsim.threads`).
     """
 
     metadata: ClassVar[dict[str, Any]] = {"render_modes": RENDER_MODES, "render_fps": 50}
@@ -1178,27 +1195,31 @@ class LatentEnv(gym.Env[np.ndarray, np.ndarray]):
         camera: Mapping[str, float] | None = None,
         stepper_options: Mapping[str, Any] | None = None,
         cubature: bool | str | os.PathLike[str] | None = None,
+        threads: int | None = 1,
     ) -> None:
+        self.threads = check_threads(threads)
+        """torch intra-op threads the env computes on (None: the caller's setting; :mod:`redsim.threads`)."""
         if render_mode not in (None, "rgb_array", "human"):
             raise ValueError(f"render_mode must be None, 'rgb_array' or 'human', got {render_mode!r}")
         if render_mode == "human" and (reason := human_unavailable()) is not None:
             error = ValueError if importlib.util.find_spec("pygame") else gym.error.DependencyNotInstalled
             raise error(f'render_mode="human" needs a window: {reason}')
-        self.sim = LatentSim(
-            scene,
-            subspace,
-            task,
-            batch=1,
-            dt=dt,
-            frame_skip=frame_skip,
-            dtype=dtype,
-            device=device,
-            randomize_condition=randomize_condition,
-            include_q=include_q,
-            reset_noise_scale=reset_noise_scale,
-            stepper_options={**self.stepper_defaults, **(stepper_options or {})},
-            cubature=cubature,
-        )
+        with torch_threads(self.threads):  # the rest solve, a task's settling
+            self.sim = LatentSim(
+                scene,
+                subspace,
+                task,
+                batch=1,
+                dt=dt,
+                frame_skip=frame_skip,
+                dtype=dtype,
+                device=device,
+                randomize_condition=randomize_condition,
+                include_q=include_q,
+                reset_noise_scale=reset_noise_scale,
+                stepper_options={**self.stepper_defaults, **(stepper_options or {})},
+                cubature=cubature,
+            )
         self.task = task
         self.render_mode = render_mode
         self.dt = self.sim.dt  # [s] of an env step, as MuJoCo envs' dt
@@ -1227,6 +1248,7 @@ class LatentEnv(gym.Env[np.ndarray, np.ndarray]):
         return self.sim.scene
 
     # -- Gymnasium API --------------------------------------------------------------------
+    @on_env_threads
     def reset(self, *, seed: int | None = None, options: dict[str, Any] | None = None) -> tuple[np.ndarray, dict]:
         """Start at the rest state (z = the map's unloaded equilibrium, z_dot = 0; or where the task starts, plus
         ``reset_noise_scale`` noise) with a new task draw.
@@ -1246,6 +1268,7 @@ class LatentEnv(gym.Env[np.ndarray, np.ndarray]):
             self.render()
         return self.sim.observe()[0], {k: v[0] for k, v in self.sim.reset_info().items()}
 
+    @on_env_threads
     def step(self, action: np.ndarray) -> tuple[np.ndarray, float, bool, bool, dict[str, Any]]:
         """One env step (``frame_skip`` stepper steps) with the action held.
 
@@ -1267,6 +1290,7 @@ class LatentEnv(gym.Env[np.ndarray, np.ndarray]):
             raise
         return obs, float(reward[0]), bool(terminated[0]), False, info_row
 
+    @on_env_threads
     def render(self) -> np.ndarray | None:
         """The current picture: an RGB array [H, W, 3] ("rgb_array"), or a window update ("human")."""
         if self.render_mode is None:

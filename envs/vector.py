@@ -29,7 +29,15 @@ from gymnasium.utils import seeding
 from gymnasium.vector import AutoresetMode, VectorEnv
 from gymnasium.vector.utils import batch_space
 
-from redsim.envs.base import NO_HUMAN, VECTOR_RENDER_MODES, check_action, copy_seeds, restored_generator, state_row
+from redsim.envs.base import (
+    NO_HUMAN,
+    VECTOR_RENDER_MODES,
+    check_action,
+    copy_seeds,
+    on_env_threads,
+    restored_generator,
+    state_row,
+)
 from redsim.envs.sharded import ShardedVectorEnv, shard_sizes
 from redsim.envs.vector_api import SharedCopies, check_started, reset_mask
 
@@ -76,12 +84,14 @@ class LatentVectorEnv(SharedCopies, VectorEnv):
         self.max_episode_steps = None if max_episode_steps is None else int(max_episode_steps)
         self.dt = env.dt
         self.frame_skip = env.frame_skip
+        self.threads = env.threads  # torch threads it computes on (the single env's, :mod:`redsim.threads`)
         self._rngs: list[np.random.Generator] = [seeding.np_random()[0] for _ in range(self.num_envs)]
         self._elapsed = np.zeros(self.num_envs, dtype=np.int64)
         self._autoreset = np.zeros(self.num_envs, dtype=bool)
         self._unreset = np.ones(self.num_envs, dtype=bool)  # copies never reset (nor restored by set_state)
         self._view: Any = None
 
+    @on_env_threads
     def reset(
         self, *, seed: int | Sequence[int | None] | None = None, options: dict[str, Any] | None = None
     ) -> tuple[np.ndarray, dict[str, Any]]:
@@ -108,6 +118,7 @@ class LatentVectorEnv(SharedCopies, VectorEnv):
         self._unreset[mask] = False
         return self.sim.observe(), _with_masks(self.sim.reset_info(), mask)
 
+    @on_env_threads
     def step(self, actions: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray, dict[str, Any]]:
         """Step every copy with actions [N, A] in one batched simulation step (module doc for autoreset)."""
         check_started(self._unreset)
@@ -181,6 +192,7 @@ class LatentVectorEnv(SharedCopies, VectorEnv):
         ``SAME_STEP``."""
         return self._autoreset.copy()
 
+    @on_env_threads
     def render(self) -> tuple[np.ndarray, ...] | None:
         """One RGB frame [H, W, 3] per copy ("rgb_array"), else None."""
         if self.render_mode != "rgb_array":
