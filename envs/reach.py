@@ -424,7 +424,7 @@ class ReachEnv(LatentEnv):
     | `include_q` | False | put q [n] in `info["q"]` |
     | `reset_noise_scale` | 0.0 | s: start at z0 + U(-s, s) with z_dot s N(0, 1) per latent (MuJoCo's convention) |
     | `cubature` | None | None: the shipped cubature where it meets the bar; True: required; False: none; a path |
-    | `**kwargs` | | more :class:`LatentEnv` arguments (`dtype`, `device`, `width`, `height`, `camera`, ...) |
+    | `**kwargs` | | more :class:`LatentEnv` arguments (`dtype`, `device`, `width`, `height`, `camera`, `threads`...) |
     """
 
     scene_name: ClassVar[str]

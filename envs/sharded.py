@@ -132,7 +132,8 @@ class ShardedVectorEnv(SharedCopies, VectorEnv):
             (it is never stepped; not in render_mode "human": a ValueError, :data:`redsim.envs.base.NO_HUMAN`).
         num_envs: N.
         shards: P, in [1, N].
-        threads: torch intra-op threads per worker (None: the CPU count over P, at least 1).
+        threads: torch intra-op threads of each worker process outside its env's calls, which run on the env's own
+            ``threads`` (default 1; :mod:`redsim.threads`) (None: the CPU count over P, at least 1).
         context: The multiprocessing start method (None: "forkserver" where available, else "spawn";
             "fork" is refused: torch's thread pools do not survive it).
         autoreset_mode: The mode ``build`` makes the native envs with (for ``metadata``).

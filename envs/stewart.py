@@ -345,7 +345,7 @@ class StewartEnv(LatentEnv):
     | `include_q` | False | put q [n] in `info["q"]` |
     | `reset_noise_scale` | 0.0 | s: start at z0 + U(-s, s) with z_dot s N(0, 1) per latent (MuJoCo's convention) |
     | `stepper_options` | `{"max_step": 2.0, "warm_refresh": False, "start": "lower"}` | solver options over these |
-    | `**kwargs` | | more :class:`LatentEnv` arguments (`dtype`, `device`, `width`, `height`, `camera`, ...) |
+    | `**kwargs` | | more :class:`LatentEnv` arguments (`dtype`, `device`, `width`, `height`, `camera`, `threads`...) |
 
     `stepper_options` (a :class:`LatentEnv` argument): no solver trial moves z by more than 2 latent units, the
     warm model is BFGS-updated from step to step and never rebuilt, and each solve starts at the lower of the
