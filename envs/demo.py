@@ -16,14 +16,14 @@ import gymnasium as gym
 import numpy as np
 
 
-def demo_name(env_id: str) -> str:
+def demo_name(env_id: str, scripted: bool = False, seed: int = 0) -> str:
     """The file stem of an id's demo: the task in lower case, with its version past v0 (``RedSim/Chain-v0`` ->
-    ``chain``, ``RedSim/BistableBar-v1`` -> ``bistablebar_v1``), so the versions of one task do not overwrite
+    ``chain``, ``RedSim/BistableBar-v1`` -> ``bistablebar_v1``), ``_scripted`` for the task's scripted controller
+    and ``_seedS`` for a reset seed S other than 0, so demos of other versions, actors or seeds do not overwrite
     each other."""
     name, dash, version = env_id.split("/")[-1].rpartition("-")
-    if not dash:
-        return version.lower()
-    return name.lower() if version == "v0" else f"{name.lower()}_{version}"
+    stem = version.lower() if not dash else name.lower() if version == "v0" else f"{name.lower()}_{version}"
+    return stem + ("_scripted" if scripted else "") + (f"_seed{seed}" if seed else "")
 
 
 def run_demo(
@@ -38,8 +38,9 @@ def run_demo(
     policy: Any = None,
     **env_kwargs: Any,
 ) -> dict[str, Any]:
-    """Run one scripted episode of ``env_id``, writing ``OUT/<name>.gif`` and ``OUT/<name>.png``
-    (:func:`demo_name`).
+    """Run one episode of ``env_id`` (``policy``, or the task's scripted controller), writing ``OUT/<name>.gif`` and
+    ``OUT/<name>.png`` (:func:`demo_name`: ``chain.gif`` for a policy at seed 0, ``chain_scripted.gif`` for the
+    controller).
 
     Args:
         env_id: A registered id.
@@ -92,7 +93,8 @@ def run_demo(
             break
     out = Path(out)
     out.mkdir(parents=True, exist_ok=True)
-    gif, png = (out / f"{demo_name(env_id)}{suffix}" for suffix in (".gif", ".png"))
+    stem = demo_name(env_id, scripted=policy is None, seed=seed)
+    gif, png = (out / f"{stem}{suffix}" for suffix in (".gif", ".png"))
     images = [Image.fromarray(f) for f in frames]
     duration = round(1000.0 * core.dt * frame_every)
     images[0].save(gif, save_all=True, append_images=images[1:], duration=duration, loop=0)

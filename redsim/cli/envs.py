@@ -388,7 +388,11 @@ def add_commands(sub: Any, bench: Any) -> None:
         help="run an env with its shipped policy or scripted controller; print return and speed, write a GIF",
         description=(
             "One episode of ENV_ID (e.g. RedSim/Chain-v0) driven by the trained policy shipped for it "
-            "(redsim/pretrained/policies) or, where none is shipped or with --scripted, the task's scripted controller."
+            "(redsim/pretrained/policies) or, where none is shipped or with --scripted, the task's scripted "
+            "controller. Writes OUT/NAME.gif (every other frame) and OUT/NAME.png (first and last frame), NAME "
+            "the task in lower case with its version past v0, _scripted for the controller and _seedS for a seed "
+            "S other than 0 (RedSim/Chain-v0: chain, chain_scripted, chain_seed3), so other demos are not "
+            "overwritten."
         ),
     )
     p.add_argument("env_id", metavar="ENV_ID", help="a RedSim env id")

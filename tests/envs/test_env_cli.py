@@ -18,8 +18,15 @@ def test_demo_prints_return_and_speed_and_writes_gif_and_picture(
     assert "return" in text and "env steps/s" in text
     assert "(shipped policy MiniChain-v0.zip, seed 0)" in text  # a policy is shipped for the mini chain
     assert (tmp_path / "minichain.gif").stat().st_size > 0 and (tmp_path / "minichain.png").stat().st_size > 0
+    policy_gif = (tmp_path / "minichain.gif").read_bytes()
     assert main(["demo", "RedSim/MiniChain-v0", "--steps", "6", "--out", str(tmp_path), "--scripted"]) == 0
-    assert "(scripted controller, seed 0)" in capsys.readouterr().out
+    text = capsys.readouterr().out
+    assert "(scripted controller, seed 0)" in text and "minichain_scripted.gif" in text
+    assert (tmp_path / "minichain.gif").read_bytes() == policy_gif  # the policy's demo is not overwritten
+    assert main(["demo", "RedSim/MiniChain-v0", "--steps", "6", "--out", str(tmp_path), "--seed", "3"]) == 0
+    capsys.readouterr()
+    names = sorted(p.name for p in tmp_path.glob("*.gif"))
+    assert names == ["minichain.gif", "minichain_scripted.gif", "minichain_seed3.gif"]
 
 
 def test_bench_envs_json(capsys: pytest.CaptureFixture[str]) -> None:
@@ -123,6 +130,7 @@ def test_demo_files_of_two_versions_do_not_overwrite_each_other() -> None:
     assert demo_name("RedSim/Chain-v0") == "chain"
     assert demo_name("RedSim/BistableBar-v1") == "bistablebar_v1" != demo_name("RedSim/BistableBar-v0")
     assert demo_name("MyEnv") == "myenv"
+    assert demo_name("RedSim/Chain-v0", scripted=True, seed=2) == "chain_scripted_seed2"
 
 
 def test_bench_envs_steps_through_a_step_where_every_copy_restarts() -> None:
