@@ -14,6 +14,7 @@ progress bar, and resumable runs. :func:`train_agent` writes into its output fol
 - ``checkpoints/``: periodic models and their statistics (an interrupted run resumes from the newest,
   with an empty buffer);
 - ``curve.csv`` and ``curve.png``: evaluation return vs env steps and vs wall time;
+- ``evaluations.npz``: ``EvalCallback``'s log of every evaluation (steps, returns, episode lengths);
 - ``progress.csv``: SB3's own training log (losses, learning rate, fps, ``eval/mean_reward``; a resumed run
   writes ``progress-from-STEPS.csv`` beside it), where SB3 alone would make an empty ``/tmp/SB3-*`` folder;
 - ``policy.gif``: one episode of the trained policy;
@@ -665,6 +666,7 @@ class TrainResult:
         wall_s: Wall time of all training runs into this folder [s] (evaluations included).
         evaluation: The final seeded evaluation of the model.
         out: The output folder.
+        trained: Env steps this call trained (0: a resumed run already at ``steps``, evaluated and saved again).
     """
 
     model_path: Path
@@ -672,6 +674,7 @@ class TrainResult:
     wall_s: float
     evaluation: Evaluation
     out: Path
+    trained: int = 0
 
 
 class TrainingInterrupted(KeyboardInterrupt):
@@ -1210,7 +1213,7 @@ def train_agent(
         record_gif(env, agent, out / "policy.gif", seed=seed, env_kwargs=env_kwargs)
     summary |= {"steps": int(model.num_timesteps), "wall_s": wall, "final_evaluation": final.as_dict()}
     (out / "agent.json").write_text(json.dumps(summary, indent=2, default=str))
-    return TrainResult(model_path, int(model.num_timesteps), wall, final, out)
+    return TrainResult(model_path, int(model.num_timesteps), wall, final, out, int(model.num_timesteps) - started)
 
 
 __all__ = [

@@ -109,6 +109,7 @@ def cmd_train_agent(args: argparse.Namespace) -> int:
                 "algo": args.algo,
                 "her": args.her,
                 "steps": result.steps,
+                "trained_now": result.trained,
                 "wall_s": result.wall_s,
                 "model": str(result.model_path),
                 "final_evaluation": final,
@@ -117,7 +118,13 @@ def cmd_train_agent(args: argparse.Namespace) -> int:
         )
         return EXIT_OK
     replay = " with HER" if args.her else ""
-    out(f"{args.env_id}: {args.algo.upper()}{replay} trained {result.steps} env steps in {result.wall_s:.0f} s")
+    if result.trained == 0:  # --resume of a run already at --steps: only its final evaluation and files again
+        out(
+            f"{args.env_id}: the {args.algo.upper()}{replay} run in {args.out} is already at {result.steps} env steps "
+            f"(--steps {args.steps}): nothing trained, its final evaluation and files made again"
+        )
+    else:
+        out(f"{args.env_id}: {args.algo.upper()}{replay} trained {result.steps} env steps in {result.wall_s:.0f} s")
     out(_line("agent", final))
     out(f"wrote {', '.join(Path(f).name for f in files)} in {args.out}")
     return EXIT_OK
@@ -170,8 +177,11 @@ def add_commands(sub: Any) -> None:
         help="train a stable-baselines3 agent on a RedSim env",
         description=(
             "Train an SB3 algorithm on ENV_ID through the native vector env, with the settings of "
-            "redsim.trainers.agents.HYPERPARAMS. Writes OUT/model.zip, best_model.zip, checkpoints/, curve.csv, "
-            "curve.png (evaluation return vs env steps and wall time), policy.gif and agent.json."
+            "redsim.trainers.agents.HYPERPARAMS. Writes OUT/model.zip (+ model_vecnormalize.pkl where the "
+            "observations are normalized), best_model.zip, replay_buffer.pkl (SAC, TD3: tens of MB), checkpoints/, "
+            "curve.csv, curve.png (evaluation return vs env steps and wall time), evaluations.npz, progress.csv "
+            "(SB3's log; a resumed run adds progress-from-STEPS.csv), policy.gif and agent.json. --resume of a run "
+            "already at --steps trains nothing and makes its final evaluation and files again."
         ),
     )
     p.add_argument("env_id", metavar="ENV_ID", help="a RedSim env id, e.g. RedSim/MiniChain-v0")

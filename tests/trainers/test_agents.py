@@ -146,6 +146,10 @@ def test_train_resume_and_evaluate_through_the_cli(
         resumed_best = float(both["results"][len(first_steps) :].mean(axis=1).max())
     if resumed_best <= first_best:  # the best model is replaced only by a better mean return
         assert (out / "best_model.zip").read_bytes() == best_bytes
+    code, stdout, err = cli(*again, "--env-arg", "max_force=3.0", "--resume", "--no-video")  # already at 300
+    assert code == 0, err
+    assert "is already at 300 env steps (--steps 300): nothing trained" in stdout and "trained 300" not in stdout
+    assert load_agent(out / "model.zip", MINI).num_timesteps == 300
 
     code, stdout, err = cli(
         "eval-agent", str(out / "model.zip"), MINI, "--episodes", "2", "--episode-steps", "20", "--json", "--baselines"
