@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import fnmatch
 import logging
 import os
 import tempfile
@@ -22,6 +23,12 @@ FOLDERS = {
     "envs": "the envs' settled work (held targets, Stewart's camera frame)",
 }
 """The folders of redsim's user cache and what each holds; :func:`clear_user_cache` deletes files in these only."""
+CACHE_FILES = {"equilibria": ("*.npz",), "subspaces": ("*.pt", "*.json"), "envs": ("*.npz",)}
+"""The names of the files redsim writes in each folder (a ``subspaces`` stem has ``.pt``, ``.json`` and, while its fit
+is unfinished, ``.fit.pt``); nothing else there is counted or deleted."""
+STALE_TEMPORARY_DAYS = 1.0
+"""Age [days] past which a temporary file a writer left behind (an interrupted process: ``.*.npz.tmp``,
+``*.pt.tmp``, ``*.json.tmp``) counts as cache; a younger one may be another process's write in flight."""
 
 
 def cache_root() -> Path | None:
@@ -87,19 +94,32 @@ class FolderUsage:
     bytes: int
 
 
-def _files(folder: Path, older_than_days: float | None = None) -> list[Path]:
-    """The regular files directly in ``folder`` (none if it is missing), only those last written more than
-    ``older_than_days`` days ago when given."""
-    if not folder.is_dir():
+def _files(root: Path, name: str, older_than_days: float | None = None) -> list[Path]:
+    """redsim's files (:data:`CACHE_FILES`, and temporary files older than :data:`STALE_TEMPORARY_DAYS`) directly in
+    ``root/name``, only those last written more than ``older_than_days`` days ago when given. None where the folder
+    is missing, or is a link (``$REDSIM_CACHE`` may name a user's folder: a linked ``envs`` could lead anywhere);
+    links and anything else in it are never counted."""
+    folder = root / name
+    if folder.is_symlink() or not folder.is_dir():
         return []
-    cutoff = None if older_than_days is None else time.time() - 86400.0 * older_than_days
+    now = time.time()
+    cutoff = None if older_than_days is None else now - 86400.0 * older_than_days
     found = []
     for path in folder.iterdir():
+        temporary = path.name.endswith(".tmp")
+        stem = path.name[: -len(".tmp")].lstrip(".") if temporary else path.name
+        if not any(fnmatch.fnmatch(stem, pattern) for pattern in CACHE_FILES[name]):
+            continue
         try:
-            if path.is_file() and not path.is_symlink() and (cutoff is None or path.stat().st_mtime < cutoff):
-                found.append(path)
+            if path.is_symlink() or not path.is_file():
+                continue
+            written = path.stat().st_mtime
         except OSError:  # removed meanwhile by another process
             continue
+        if temporary and written > now - 86400.0 * STALE_TEMPORARY_DAYS:
+            continue
+        if cutoff is None or written < cutoff:
+            found.append(path)
     return found
 
 
@@ -122,7 +142,7 @@ def _selected(folders: Iterable[str] | None, older_than_days: float | None) -> d
     root = cache_root()
     if root is None:
         return {}
-    return {name: (root / name, _files(root / name, older_than_days)) for name in chosen}
+    return {name: (root / name, _files(root, name, older_than_days)) for name in chosen}
 
 
 def user_cache_usage(folders: Iterable[str] | None = None, older_than_days: float | None = None) -> list[FolderUsage]:
@@ -142,8 +162,9 @@ def user_cache_usage(folders: Iterable[str] | None = None, older_than_days: floa
 def clear_user_cache(folders: Iterable[str] | None = None, older_than_days: float | None = None) -> list[FolderUsage]:
     """Delete the files in ``folders`` (default: all of :data:`FOLDERS`) of the user cache, only those last
     written more than ``older_than_days`` days ago when given; returns what was deleted per folder ([] with the
-    cache off). Only regular files directly in those folders are touched (never the cache root itself, which
-    ``$REDSIM_CACHE`` may point anywhere). Every entry is computed again when next needed; deleting a fit's
+    cache off). Only redsim's own files directly in those folders are touched (:data:`CACHE_FILES`; never the cache
+    root itself, which ``$REDSIM_CACHE`` may point anywhere, a linked folder or file, or another process's write in
+    flight). Every entry is computed again when next needed; deleting a fit's
     training state (``subspaces/*.fit.pt``) means an interrupted fit starts over. A file another process removed
     meanwhile is skipped; one that cannot be deleted raises.
 

@@ -17,21 +17,27 @@ from redsim.envs.fitted import cache_stem
 from redsim.integrators import cache as equilibria
 from redsim.usercache import FOLDERS, cache_root, clear_user_cache, user_cache_usage
 
+WEEK = 7 * 86400.0
+NAMES = {"equilibria": ("new.npz", "old.npz"), "subspaces": ("new.pt", "old.json"), "envs": ("new.npz", "old.npz")}
+
 
 @pytest.fixture
 def root(tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> Path:
-    """A user cache with two files in each folder (one a week old), plus files the cache does not own."""
+    """A user cache with two of redsim's files in each folder (one a week old), plus files the cache does not own
+    (at the root, in a subfolder, of another kind, and a fresh temporary file: another process's write in flight)."""
     root = tmp_path / "cache"
     monkeypatch.setenv("REDSIM_CACHE", str(root))
-    week = time.time() - 7 * 86400.0
-    for name in FOLDERS:
+    week = time.time() - WEEK
+    for name, (new, old) in NAMES.items():
         (root / name).mkdir(parents=True)
-        (root / name / "new.npz").write_bytes(b"x" * 10)
-        (root / name / "old.npz").write_bytes(b"x" * 100)
-        os.utime(root / name / "old.npz", (week, week))
+        (root / name / new).write_bytes(b"x" * 10)
+        (root / name / old).write_bytes(b"x" * 100)
+        os.utime(root / name / old, (week, week))
     (root / "mine.txt").write_text("not the cache's")  # $REDSIM_CACHE may point at a user's folder
     (root / "envs" / "nested").mkdir()
     (root / "envs" / "nested" / "keep.npz").write_bytes(b"x")
+    (root / "envs" / "notes.txt").write_text("a user's")
+    (root / "envs" / ".abc.npz.tmp").write_bytes(b"in flight")
     return root
 
 
@@ -58,10 +64,33 @@ def test_usage_counts_the_files_of_each_folder(root: Path) -> None:
 def test_clear_deletes_only_the_named_folders_files(root: Path) -> None:
     deleted = clear_user_cache(["envs", "equilibria"], older_than_days=1.5)
     assert _counts(deleted) == {"envs": (1, 100), "equilibria": (1, 100)}
-    assert sorted(p.name for p in (root / "envs").iterdir()) == ["nested", "new.npz"]
+    assert sorted(p.name for p in (root / "envs").iterdir()) == [".abc.npz.tmp", "nested", "new.npz", "notes.txt"]
     assert _counts(clear_user_cache()) == {"equilibria": (1, 10), "subspaces": (2, 110), "envs": (1, 10)}
     assert _counts(user_cache_usage()) == {name: (0, 0) for name in FOLDERS}
     assert (root / "mine.txt").is_file() and (root / "envs" / "nested" / "keep.npz").is_file()
+    assert (root / "envs" / "notes.txt").is_file() and (root / "envs" / ".abc.npz.tmp").is_file()
+
+
+def test_clear_leaves_linked_folders_and_files_alone_and_takes_stale_temporaries(root: Path, tmp_path: Path) -> None:
+    """A linked cache folder could lead to a user's files: neither it nor a linked file is counted or deleted; a
+    temporary file left by an interrupted writer more than a day ago is the cache's."""
+    user = tmp_path / "documents"
+    user.mkdir()
+    (user / "thesis.npz").write_bytes(b"precious")
+    for path in (root / "envs").iterdir():
+        if path.is_file():
+            path.unlink()
+    (root / "envs" / "nested" / "keep.npz").unlink()
+    (root / "envs" / "nested").rmdir()
+    (root / "envs").rmdir()
+    (root / "envs").symlink_to(user, target_is_directory=True)
+    (root / "equilibria" / "linked.npz").symlink_to(user / "thesis.npz")
+    stale = root / "subspaces" / "map.fit.pt.tmp"
+    stale.write_bytes(b"x")
+    os.utime(stale, (time.time() - 2 * 86400.0,) * 2)
+    assert _counts(user_cache_usage())["envs"] == (0, 0)
+    assert _counts(clear_user_cache()) == {"equilibria": (2, 110), "subspaces": (3, 111), "envs": (0, 0)}
+    assert (user / "thesis.npz").read_bytes() == b"precious" and (root / "equilibria" / "linked.npz").is_symlink()
 
 
 def test_equilibria_clear_cache_on_disk_uses_the_same_deletion(root: Path) -> None:

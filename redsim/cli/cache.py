@@ -91,8 +91,9 @@ def add_commands(sub: Any) -> None:
         "clear",
         help="delete cached files",
         description=(
-            "Delete the files in the named cache folders (default: all). Only files directly in those folders "
-            "are deleted, never anything else under the cache root. Deleting subspaces/*.fit.pt makes an "
+            "Delete the files in the named cache folders (default: all). Only redsim's own files directly in those "
+            "folders are deleted (*.npz; *.pt and *.json in subspaces), never a linked folder or file, another "
+            "process's write in flight, or anything else under the cache root. Deleting subspaces/*.fit.pt makes an "
             "interrupted fit start over."
         ),
     )
