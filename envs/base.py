@@ -1172,6 +1172,7 @@ class LatentEnv(gym.Env[np.ndarray, np.ndarray]):
     """The env's own camera (a user's ``camera`` overrides it key by key)."""
 
     def __new__(cls, *args: Any, **kwargs: Any) -> LatentEnv:
+        check_threads(kwargs.get("threads", 1))  # before a subclass builds its scene or fits a map
         env = super().__new__(cls)
         env._init_args = (args, dict(kwargs))  # for pickling: rebuilt from the same arguments
         return env
@@ -1330,6 +1331,7 @@ class LatentEnv(gym.Env[np.ndarray, np.ndarray]):
         ``rng``, the state of the env's generator (``np_random``: what the next unseeded reset draws)."""
         return {**state_row(self.sim.get_state()), "rng": self.np_random.bit_generator.state}
 
+    @on_env_threads
     def set_state(self, state: Mapping[str, Any]) -> None:
         """Restore :meth:`get_state`'s state; the next step continues exactly from it, and with ``rng`` so does the
         next unseeded reset."""
@@ -1340,10 +1342,12 @@ class LatentEnv(gym.Env[np.ndarray, np.ndarray]):
         if self._camera.get("track", False):
             self._view = None  # framed anew on the restored state, as after a reset
 
+    @on_env_threads
     def configuration(self) -> np.ndarray:
         """The free configuration q [n] of the current state (float of the stepper's dtype)."""
         return self.sim.positions(self.sim.z)[0].detach().cpu().numpy()
 
+    @on_env_threads
     def trimeshes(self) -> list[Any]:
         """The scene's surfaces at the current state as ``trimesh.Trimesh`` objects (3D scenes)."""
         import trimesh

@@ -40,6 +40,7 @@ from redsim.envs.base import (
 )
 from redsim.envs.sharded import ShardedVectorEnv, shard_sizes
 from redsim.envs.vector_api import SharedCopies, check_started, reset_mask
+from redsim.threads import torch_threads
 
 if TYPE_CHECKING:
     from redsim.envs.base import LatentEnv
@@ -72,7 +73,9 @@ class LatentVectorEnv(SharedCopies, VectorEnv):
         if env.render_mode == "human":
             raise ValueError(NO_HUMAN)
         self.num_envs = int(num_envs)
-        self.sim = env.sim.clone(self.num_envs, copy.deepcopy(env.task))
+        self.threads = env.threads  # torch threads it computes on (the single env's, :mod:`redsim.threads`)
+        with torch_threads(self.threads):  # the copies' sim: its rest solve, a task's settling
+            self.sim = env.sim.clone(self.num_envs, copy.deepcopy(env.task))
         self.template = env
         self.render_mode = env.render_mode
         self.metadata = {**env.metadata, "render_modes": list(VECTOR_RENDER_MODES), "autoreset_mode": mode}
@@ -84,7 +87,6 @@ class LatentVectorEnv(SharedCopies, VectorEnv):
         self.max_episode_steps = None if max_episode_steps is None else int(max_episode_steps)
         self.dt = env.dt
         self.frame_skip = env.frame_skip
-        self.threads = env.threads  # torch threads it computes on (the single env's, :mod:`redsim.threads`)
         self._rngs: list[np.random.Generator] = [seeding.np_random()[0] for _ in range(self.num_envs)]
         self._elapsed = np.zeros(self.num_envs, dtype=np.int64)
         self._autoreset = np.zeros(self.num_envs, dtype=bool)
@@ -210,6 +212,7 @@ class LatentVectorEnv(SharedCopies, VectorEnv):
         clock = {"elapsed_steps": self._elapsed.copy(), "autoresetting": self._autoreset.copy()}
         return {**self.sim.get_state(), **clock, "rngs": [g.bit_generator.state for g in self._rngs]}
 
+    @on_env_threads
     def set_state(self, state: dict[str, Any]) -> None:
         """Restore :meth:`get_state`'s state. Without the episode clock (a batched state of the simulation alone),
         every copy's episode count starts at 0 and none is pending an autoreset.

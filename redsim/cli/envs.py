@@ -428,7 +428,8 @@ def add_commands(sub: Any, bench: Any) -> None:
         type=int,
         default=1,
         help="worker processes per vector env (default 1: the native vector env; P > 1: redsim.envs.sharded, "
-        "each worker a block of the copies on CPU count / P torch threads; its solver calls are not counted)",
+        "each worker a block of the copies, its env on the env's threads (default 1); its solver calls are not "
+        "counted)",
     )
     p.add_argument(
         "--anchor-steps",
