@@ -162,6 +162,38 @@ def merge_close_vertices(points: np.ndarray, faces: np.ndarray, spacing: float) 
     return merged[np.sort(first)]
 
 
+PointGroup = tuple[np.ndarray, np.ndarray, np.ndarray, list[tuple[int, int, int]]]
+"""Point sets of one shape evaluated as one: dofs [K, P * D], weights [K, P * D], offset [P * D], and per surface
+(its index, start, stop) in the P * D values."""
+
+
+def _point_groups(scene: Scene, keep: Sequence[np.ndarray | None]) -> list[PointGroup]:
+    """The :data:`PointGroup` s of ``scene``'s surfaces, surface i's points ``keep[i]`` (None: all) in that order."""
+    groups: dict[tuple[int, ...], list[int]] = {}
+    for index, surface in enumerate(scene.surfaces):  # point sets of one shape [P, D, K] evaluate as one
+        groups.setdefault(tuple(surface.points.dofs.shape[1:]), []).append(index)
+    out = []
+    for members in groups.values():
+        rows = [slice(None) if keep[i] is None else torch.as_tensor(keep[i], dtype=torch.int64) for i in members]
+        sets = [scene.surfaces[i].points for i in members]
+        dofs, weights, offset = (
+            torch.cat([getattr(p, f).cpu()[r] for p, r in zip(sets, rows, strict=True)])
+            for f in ("dofs", "weights", "offset")
+        )
+        size, dim = dofs.shape[:2]
+        counts = [p.count if keep[i] is None else len(keep[i]) for i, p in zip(members, sets, strict=True)]
+        stops = (np.cumsum(counts) * dim).tolist()
+        out.append(
+            (
+                dofs.permute(2, 0, 1).reshape(-1, size * dim).numpy(),
+                weights.T.to(torch.float64).repeat_interleave(dim, 1).numpy(),
+                offset.to(torch.float64).reshape(-1).numpy(),
+                [(i, b - c * dim, b) for i, b, c in zip(members, stops, counts, strict=True)],
+            )
+        )
+    return out
+
+
 COORDINATE_LIMIT = float(2**23)
 """Largest vertex coordinate [px] :func:`fill_triangles` draws (8.4 million: its integer arithmetic stays exact in
 float64); a triangle with a vertex beyond it, or a non-finite one, is not drawn (Pillow paints such a triangle as
@@ -299,25 +331,7 @@ class SceneView:
         self.width, self.height = int(width), int(height)
         self.dim = scene.dim
         self._faces = [s.faces.cpu().numpy() for s in scene.surfaces]
-        groups: dict[tuple[int, ...], list[int]] = {}
-        for index, surface in enumerate(scene.surfaces):  # point sets of one shape [P, D, K] evaluate as one
-            groups.setdefault(tuple(surface.points.dofs.shape[1:]), []).append(index)
-        self._point_groups = []  # (dofs [K, P * D], weights [K, P * D], offset [P * D], [(surface, start, stop)])
-        for members in groups.values():
-            sets = [scene.surfaces[i].points for i in members]
-            dofs, weights, offset = (
-                torch.cat([getattr(p, f) for p in sets]).cpu() for f in ("dofs", "weights", "offset")
-            )
-            size, dim = dofs.shape[:2]
-            stops = (np.cumsum([p.count for p in sets]) * dim).tolist()
-            self._point_groups.append(
-                (
-                    dofs.permute(2, 0, 1).reshape(-1, size * dim).numpy(),
-                    weights.T.to(torch.float64).repeat_interleave(dim, 1).numpy(),
-                    offset.to(torch.float64).reshape(-1).numpy(),
-                    [(i, b - p.count * dim, b) for i, b, p in zip(members, stops, sets, strict=True)],
-                )
-            )
+        self._point_groups = _point_groups(scene, [None] * len(scene.surfaces))
         frame_points = self.surface_points(q_frame)
         self._outward = [_outward_sign(p, f) for p, f in zip(frame_points, self._faces, strict=True)]
         self._colours = [
@@ -340,18 +354,24 @@ class SceneView:
         self._pixels_per_metre = min(self.width, self.height) / size
         spacing = merge_px / self._pixels_per_metre
         self._faces = [merge_close_vertices(p, f, spacing) for p, f in zip(frame_points, self._faces, strict=True)]
+        # a picture evaluates only the points its faces use (merged away: most of a small picture's), renumbered
+        used = [np.unique(f) for f in self._faces]
+        self._drawn_faces = [np.searchsorted(u, f) for u, f in zip(used, self._faces, strict=True)]
+        self._drawn_groups = _point_groups(scene, used)
 
     def surface_points(self, q: Tensor) -> list[np.ndarray]:
         """Vertex positions [m] of every surface at free configuration q ([n]), float64 [P, D] each."""
         return [points[0] for points in self._surface_points_batch(torch.as_tensor(q).reshape(1, -1))]
 
-    def _surface_points_batch(self, q: Tensor) -> list[np.ndarray]:
-        """Vertex positions [m] of every surface at free configurations q ([B, n]), float64 [B, P, D] each."""
+    def _surface_points_batch(self, q: Tensor, groups: list[PointGroup] | None = None) -> list[np.ndarray]:
+        """Vertex positions [m] of every surface at free configurations q ([B, n]), float64 [B, P, D] each (with
+        ``groups``, the points they hold: ``self._drawn_groups`` gives those the drawn faces use)."""
         q = torch.as_tensor(q).detach()
         x = self.scene.full_positions(q.to(device=self.scene.device, dtype=self.scene.dtype))
         x = x.cpu().to(torch.float64).numpy()  # [B, N]
         points: list[np.ndarray] = [np.empty(0)] * len(self.scene.surfaces)
-        for dofs, weights, offset, members in self._point_groups:  # p = sum_k x[dofs_k] w_k + offset, elementwise
+        for dofs, weights, offset, members in self._point_groups if groups is None else groups:
+            # p = sum_k x[dofs_k] w_k + offset, elementwise (a point's value never depends on the others evaluated)
             at = offset + sum(np.take(x, d, axis=1) * w for d, w in zip(dofs, weights, strict=True))
             for index, start, stop in members:
                 points[index] = at[:, start:stop].reshape(len(x), -1, self.dim)
@@ -417,7 +437,7 @@ class SceneView:
         if count == 0:
             return np.empty((0, self.height, self.width, 3), dtype=np.uint8)
         with np.errstate(invalid="ignore", over="ignore"):  # a non-finite state: its triangles are skipped by the fill
-            corners, colours, frames = self._triangles(self._surface_points_batch(q))
+            corners, colours, frames = self._triangles(self._surface_points_batch(q, self._drawn_groups))
         images = np.empty((count, self.height, self.width, 3), dtype=np.uint8)
         per_frame = max(
             1, min(FILL_CHUNK // max(1, len(corners) // max(1, count)), FILL_PIXELS // self.height // self.width)
@@ -453,13 +473,14 @@ class SceneView:
         return [sum(points[..., d] * rotation[k, d] for d in range(self.dim)) for k in range(self.dim)]
 
     def _triangles(self, surfaces: list[np.ndarray]) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-        """The triangles to fill for states whose surface points are ``surfaces`` ([B, P, D] each): pixel corners
+        """The triangles to fill for states whose drawn surface points (``self._drawn_groups``) are ``surfaces``
+        ([B, P, D] each): pixel corners
         [T, 3, 2], RGB [T, 3] and frame [T], sorted by frame and, within one, far (small depth) to near (ties in
         ``scene.surfaces`` and face order)."""
-        sizes = [len(f) for f in self._faces]
+        sizes = [len(f) for f in self._drawn_faces]
         base = np.repeat(np.stack(self._colours), sizes, axis=0)  # RGB [F, 3] of each face's surface
         offsets = np.cumsum([0] + [p.shape[1] for p in surfaces[:-1]])
-        faces = np.concatenate([f + o for f, o in zip(self._faces, offsets, strict=True)]).reshape(-1)  # [F * 3]
+        faces = np.concatenate([f + o for f, o in zip(self._drawn_faces, offsets, strict=True)]).reshape(-1)  # [F * 3]
         cam = self._rotate(np.concatenate(surfaces, axis=1))  # D arrays [B, P]: rotate the points, then gather
         count, n_faces = cam[0].shape[0], len(base)
         x, y = (np.take(c, faces, axis=1).reshape(-1, 3) for c in cam[:2])  # corners [B * F, 3], frame-major

@@ -133,7 +133,7 @@ def test_the_numpy_fill_matches_pillows_on_real_scenes(name: str, size: int) -> 
     generator = torch.Generator().manual_seed(0)
     q = scene.q_seed + 0.02 * scene.extent() * torch.randn(scene.q_seed.shape, generator=generator)
     view = SceneView(scene, scene.q_seed, width=size, height=size)
-    corners, colours, frames = view._triangles(view._surface_points_batch(q.reshape(1, -1)))
+    corners, colours, frames = view._triangles(view._surface_points_batch(q.reshape(1, -1), view._drawn_groups))
     mine = raster.fill_triangles(corners, colours, frames, 1, size, size)[0]
     theirs = _pillow_fill(corners, colours, size, size)
     differ = (mine != theirs).any(-1)
@@ -283,3 +283,16 @@ def test_a_small_picture_draws_a_coarser_mesh_with_the_same_silhouette(name: str
     assert (full != background).any(-1).mean() > 0.005  # something was drawn
     with pytest.raises(ValueError, match="merge_px"):
         SceneView(scene, scene.q_seed, merge_px=-1.0)
+
+
+def test_a_picture_evaluates_only_the_points_its_faces_use() -> None:
+    """After merging, a small picture's faces use a fraction of the surface points: only those are evaluated (the
+    drawn faces renumbered onto them), each equal to its full evaluation, so the picture is the same."""
+    scene = scenes.build("chain")
+    generator = torch.Generator().manual_seed(0)
+    q = scene.q_seed + 0.01 * scene.extent() * torch.randn((2, scene.q_seed.numel()), generator=generator)
+    view = SceneView(scene, scene.q_seed, width=84, height=84)
+    full, drawn = view._surface_points_batch(q), view._surface_points_batch(q, view._drawn_groups)
+    assert sum(d.shape[1] for d in drawn) < 0.25 * sum(f.shape[1] for f in full)
+    for points, subset, faces, renumbered in zip(full, drawn, view._faces, view._drawn_faces, strict=True):
+        assert np.array_equal(subset[:, renumbered], points[:, faces])
