@@ -131,7 +131,7 @@ def cmd_train_agent(args: argparse.Namespace) -> int:
 
 
 def cmd_eval_agent(args: argparse.Namespace) -> int:
-    from redsim.trainers.agents import SpaceMismatchError, evaluate, load_agent, shipped_policy
+    from redsim.trainers.agents import SpaceMismatchError, evaluate, load_agent, normalizer_path, shipped_policy
 
     _check_env(args.env_id)
     _positive(args.episodes, "--episodes")
@@ -152,12 +152,15 @@ def cmd_eval_agent(args: argparse.Namespace) -> int:
     except SpaceMismatchError as err:
         raise CliError(f"{path}: {err}") from err
     rows = {name: run.as_dict() for name, run in runs.items()}
+    # which observation statistics the policy acted through: a plain model's file beside it is optional
+    normalization = None if model.normalizer is None else str(normalizer_path(path))
     for name in rows.keys() - {"agent"}:
         rows[name]["agent_above_p"], rows[name]["agent_better_episodes"] = runs["agent"].above(runs[name])
     if args.json:
-        json_out({"env_id": args.env_id, "model": args.model, **rows})
+        json_out({"env_id": args.env_id, "model": args.model, "normalization": normalization, **rows})
         return EXIT_OK
-    out(f"{args.env_id}, {args.model}:")
+    acting = "raw observations" if normalization is None else f"observations normalized by {normalization}"
+    out(f"{args.env_id}, {args.model} ({acting}):")
     for name, row in rows.items():
         out(_line(name, row))
         if name != "agent":

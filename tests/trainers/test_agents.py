@@ -156,6 +156,7 @@ def test_train_resume_and_evaluate_through_the_cli(
     )
     assert code == 0, err
     doc = json.loads(stdout)
+    assert doc["normalization"] == str(out / "model_vecnormalize.pkl")
     agent = doc["agent"]
     assert agent["episodes"] == 2 and np.isfinite(agent["mean_return"]) and 0.0 <= agent["success_rate"] <= 1.0
     for name in ("random", "scripted"):
@@ -164,6 +165,7 @@ def test_train_resume_and_evaluate_through_the_cli(
         "eval-agent", str(out / "model.zip"), MINI, "--episodes", "2", "--episode-steps", "20", "--baselines"
     )
     assert code == 0 and "agent above scripted: paired one-sided t-test p = " in stdout, err
+    assert f"(observations normalized by {out / 'model_vecnormalize.pkl'}):" in stdout.splitlines()[0]
 
     agent = load_agent(out / "model.zip", MINI)  # acts through the saved VecNormalize statistics
     obs = np.random.default_rng(0).normal(size=(3, 14)).astype(np.float32)
@@ -285,6 +287,11 @@ def test_eval_agent_takes_a_plain_sb3_model_with_its_algorithm(
     assert agent.normalizer is not None and agent.num_timesteps == 16
     code, out, _ = cli("eval-agent", str(tmp_path / "mine.zip"), MINI, "--algo", "ppo", "--episodes", "2", "--json")
     assert code == 0 and json.loads(out)["agent"]["episodes"] == 2
+    assert json.loads(out)["normalization"] == str(tmp_path / "mine_vecnormalize.pkl")
+    (tmp_path / "mine_vecnormalize.pkl").rename(tmp_path / "elsewhere.pkl")  # a plain model's file is optional
+    code, out, _ = cli("eval-agent", str(tmp_path / "mine.zip"), MINI, "--algo", "ppo", "--episodes", "2")
+    assert code == 0 and "(raw observations):" in out.splitlines()[0]
+    (tmp_path / "elsewhere.pkl").rename(tmp_path / "mine_vecnormalize.pkl")
     code, _, err = cli("eval-agent", str(_foreign_model(tmp_path)), MINI, "--algo", "sac", "--episodes", "2")
     assert code == 2 and "the model's observation space has shape (3,), the env's (14,)" in err
     code, _, err = cli("eval-agent", str(tmp_path / "mine.zip"), MINI, "--algo", "sac")
