@@ -241,8 +241,8 @@ def cached(
 
 def map_key(subspace: nn.Module) -> tuple[str, str, str]:
     """What a map computes, for the keys of :func:`cached`: its class, its configuration (activation, periodic
-    latents, sizes: not in its weights) and a hash of its weights (:func:`redsim.cubature.energy.map_fingerprint`)."""
-    from redsim.cubature.energy import map_fingerprint
+    latents, sizes: not in its weights) and a hash of its weights (:func:`redsim.subspace.map_fingerprint`)."""
+    from redsim.subspace import map_fingerprint
 
     return type(subspace).__name__, repr(getattr(subspace, "config", None)), map_fingerprint(subspace)
 
@@ -445,9 +445,7 @@ class LatentSim:
         stepper_options: Mapping[str, Any] | None = None,
         cubature: bool | str | os.PathLike[str] | None = None,
     ) -> None:
-        from redsim import pretrained
         from redsim.cubature import CubatureEnergy
-        from redsim.cubature.energy import map_fingerprint
         from redsim.envs.invariants import Invariants
         from redsim.runtime import LatentStepper
 
@@ -522,7 +520,6 @@ class LatentSim:
         self._cond_low = None if space is None else space.low.to(self.device, self.torch_dtype)
         self._cond_high = None if space is None else space.high.to(self.device, self.torch_dtype)
         self.default_cond = self.scene.pack_condition(None, 1, self.scene.q_seed) if conditional else None
-        self._rest_start = None if conditional else pretrained.rest_start(scene.name, map_fingerprint(self.subspace))
         self._rest: Tensor | None = None if self.randomize_condition else self._rest_latent(self.default_cond)
         d, B = self.latent_dim, self.batch
         zeros = torch.zeros(B, d, dtype=self.torch_dtype, device=self.device)
@@ -546,12 +543,11 @@ class LatentSim:
 
     # -- configurations -------------------------------------------------------------------
     def _rest_latent(self, cond: Tensor | None) -> Tensor:
-        """The rest latent [d] under ``cond`` (None: the scene has none), solved from the shipped map's rest start where
-        it has one (:func:`redsim.pretrained.rest_start`), else from z = 0."""
+        """The rest latent [d] under ``cond`` (None: the scene has none; :meth:`LatentStepper.rest_latent`: from the
+        shipped map's rest start where it has one, else from z = 0)."""
         if cond is None and getattr(self, "_rest", None) is not None:  # solved once, at construction
             return self._rest.clone()
-        start = self._rest_start if cond is None else None
-        return self.stepper.rest_latent(cond, start=start).reshape(-1, self.latent_dim)[0].detach().clone()
+        return self.stepper.rest_latent(cond).reshape(-1, self.latent_dim)[0].detach().clone()
 
     def positions(self, z: Tensor, cond: Tensor | None = None) -> Tensor:
         """Free configurations q [B, n] of latents z [B, d] (the copies' conditions by default)."""

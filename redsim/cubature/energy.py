@@ -15,7 +15,6 @@ exactly as (r - rbar)^T (W^T M W) (r - rbar) / (2h^2), a w x w form.
 
 from __future__ import annotations
 
-import hashlib
 import json
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -31,21 +30,10 @@ from redsim.effects.base import Effect
 from redsim.effects.penalty import FrameSet, SDFContact
 from redsim.points import PointSet
 from redsim.scene import Scene
-from redsim.subspace import CheckpointError, checkpoint_path, periodic_latents, write_atomically
+from redsim.subspace import CheckpointError, checkpoint_path, map_fingerprint, periodic_latents, write_atomically
 
 FORMAT_VERSION = 1
 SUFFIX = ".cubature.json"
-
-
-def map_fingerprint(subspace: nn.Module) -> str:
-    """Hash of a map's weights (as float32, so a float64 copy of the same map matches)."""
-    digest = hashlib.sha256()
-    for key, value in sorted(subspace.state_dict().items()):
-        digest.update(key.encode())
-        if value.is_floating_point():
-            value = value.to(torch.float32)
-        digest.update(value.detach().cpu().contiguous().numpy().tobytes())
-    return digest.hexdigest()[:16]
 
 
 def cubature_path(path: str | Path) -> Path:

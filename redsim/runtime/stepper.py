@@ -22,12 +22,14 @@ from typing import NamedTuple
 import torch
 from torch import Tensor, nn
 
+from redsim import pretrained
 from redsim.devices import check_device
 from redsim.integrators import LatentSpace, check_time_step, latent_equilibrium, length_scale
 from redsim.runtime.energy import LatentEnergy, MapEnergy, ReducedInertia
 from redsim.runtime.flags import diverged_states, energy_gain_states, energy_gain_tolerance, out_of_range_states
 from redsim.runtime.solver import HESSIANS, BatchResult, check_max_step, check_sync_every, minimize
 from redsim.scene import Scene
+from redsim.subspace import map_fingerprint
 from redsim.tensors import jvp
 
 DEFAULT_TOL = {torch.float32: 1e-6, torch.float64: 1e-9}
@@ -775,11 +777,20 @@ class LatentStepper:
     def rest_latent(self, cond: Tensor | None = None, start: Tensor | None = None) -> Tensor:
         """The latent static equilibrium under zero load near z = 0: [1, d] (cond None) or [B, d] (cond [B, m]).
 
-        Solved once per condition by the reference :func:`redsim.integrators.latent_equilibrium`
-        (float64 Newton from z = 0, or from ``start`` [d]) and cached for the default condition (from z = 0 only).
+        Solved once per condition by the reference :func:`redsim.integrators.latent_equilibrium`: float64 Newton
+        from ``start`` [d]; without one, under the default condition from the shipped map's rest start where it
+        has one (:func:`redsim.pretrained.rest_start`: the same minimum on every CPU where the map's latent energy
+        has near-degenerate ones), else from z = 0. Cached for the default condition without ``start``.
         """
-        if cond is None and start is None and self._rest is not None:
-            return self._rest.clone()
+        if cond is not None or start is not None:
+            return self._solve_rest(cond, start)
+        if self._rest is None:
+            shipped = pretrained.rest_start(self.source_scene.name, map_fingerprint(self.subspace))
+            self._rest = self._solve_rest(None, shipped)
+        return self._rest.clone()
+
+    def _solve_rest(self, cond: Tensor | None, start: Tensor | None) -> Tensor:
+        """:meth:`rest_latent` solved from ``start`` [d] (None: z = 0), [1, d] or [B, d]."""
         conds = [None] if cond is None else list(self._cond(cond, torch.as_tensor(cond).shape[0]).to(torch.float64))
         out = []
         for c in conds:
@@ -788,10 +799,7 @@ class LatentStepper:
             )
             z, _ = latent_equilibrium(space, None, c, z0=start)
             out.append(z.to(device=self.device, dtype=self.dtype))
-        rest = torch.stack(out)
-        if cond is None and start is None:
-            self._rest = rest
-        return rest.clone()
+        return torch.stack(out)
 
 
 __all__ = ["DEFAULT_HESSIAN", "DEFAULT_MAX_ITER", "DEFAULT_TOL", "STARTS", "Evaluations", "LatentStepper", "StepStats"]

@@ -8,6 +8,7 @@ Nothing is pickled. Which class a checkpoint rebuilds is decided by :mod:`redsim
 
 from __future__ import annotations
 
+import hashlib
 import json
 import os
 from collections.abc import Callable
@@ -28,6 +29,17 @@ class CheckpointError(ValueError):
     def __init__(self, message: str, path: str = "") -> None:
         super().__init__(f"{path}: {message}" if path else message)
         self.path = path
+
+
+def map_fingerprint(subspace: nn.Module) -> str:
+    """Hash of a map's weights (as float32, so a float64 copy of the same map matches)."""
+    digest = hashlib.sha256()
+    for key, value in sorted(subspace.state_dict().items()):
+        digest.update(key.encode())
+        if value.is_floating_point():
+            value = value.to(torch.float32)
+        digest.update(value.detach().cpu().contiguous().numpy().tobytes())
+    return digest.hexdigest()[:16]
 
 
 def checkpoint_path(path: str | Path, suffix: str) -> Path:

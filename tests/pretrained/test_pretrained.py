@@ -129,11 +129,12 @@ def test_shipped_bistable_map_reaches_both_buckled_states() -> None:
 
 def test_the_hanging_sheet_map_ships_a_rest_start_that_every_machine_converges_at() -> None:
     """Newton from z = 0 ends in one of two near-degenerate minima by the CPU's round-off (hanging_sheet.rest.json's
-    ``why``); from the shipped start it stops at once, so the envs start from the same rest on every machine."""
+    ``why``); from the shipped start it stops at once, so the envs start from the same rest on every machine, and so
+    does every user of ``LatentStepper.rest_latent()`` (the benches, the cubature's training rollouts)."""
     import gymnasium as gym
 
-    from redsim.cubature.energy import map_fingerprint
     from redsim.runtime import LatentStepper
+    from redsim.subspace import map_fingerprint
 
     scene = scenes.build("hanging_sheet")
     sub = pretrained.load("hanging_sheet", scene)
@@ -141,6 +142,9 @@ def test_the_hanging_sheet_map_ships_a_rest_start_that_every_machine_converges_a
     assert start is not None and start.shape == (8,) and start.dtype == torch.float64
     stepper = LatentStepper(scene, sub, dtype=torch.float64)
     assert torch.equal(stepper.rest_latent(None, start=start)[0], start)
+    assert torch.equal(LatentStepper(scene, sub, dtype=torch.float64).rest_latent()[0], start)  # the default
+    stepper.rest_latent(None, start=torch.zeros(8, dtype=torch.float64))  # from z = 0: one of the two minima
+    assert torch.equal(stepper.rest_latent()[0], start)  # a start given is not cached as the default's rest
     env = gym.make("RedSim/HangingCloth-v0", dtype="float64")
     assert torch.equal(env.unwrapped.sim._rest, start)
     other = load_subspace(pretrained.path("hanging_sheet"))
