@@ -61,7 +61,7 @@ class HangingClothEnv(ReachEnv):
 
     | Argument | Default | Meaning |
     |---|---|---|
-    | `cubature` | None: off (v1: True) | `True`: the shipped cubature (force error 3.1%, deviation 4.7-9.3%) |
+    | `cubature` | None: off (v1: True) | `True`: the shipped cubature (force error 3.1%, deviation 9.3%) |
     | `targets` | "latent" (v1: "held") | where targets come from (Starting State) |
     | `target_spread` | 0.5 (v1: 0.8) | latent spread of v0's targets; v1: largest entry of the held action |
 
