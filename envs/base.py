@@ -303,8 +303,8 @@ def check_subspace(scene: Scene, subspace: nn.Module) -> None:
 CUBATURE_DEFAULT: dict[str, bool] = {"cloth_ball": True, "hanging_sheet": False}
 """Catalog scenes whose shipped cubature (``redsim/pretrained/SCENE.cubature.json``) an env uses by default:
 those that meet the accuracy bar (held-out force error and 100-step trajectory deviation <= 5%,
-``redsim bench cubature``, README "Cubature"). hanging_sheet's deviation measured 4.7-9.3% in runs that differ
-only by float32 round-off, so it stays off. The others step every element unless ``cubature=True``."""
+``redsim bench cubature``, README "Cubature"). hanging_sheet's deviation is 9.3% from the envs' rest, so it stays
+off. The others step every element unless ``cubature=True``."""
 
 
 RESET_INFO_KEYS = ("q",)

@@ -33,13 +33,12 @@ def names() -> list[str]:
 
 def rest_start(scene_name: str, fingerprint: str) -> Tensor | None:
     """Where the rest solve of the shipped map of ``scene_name`` starts, [d] float64, from ``SCENE.rest.json``; None
-    where none is shipped or ``fingerprint`` (the map's :func:`redsim.cubature.energy.map_fingerprint`, which the
-    caller computes: redsim.cubature imports this module) is another map's.
+    where none is shipped or ``fingerprint`` (the map's :func:`redsim.subspace.map_fingerprint`) is another map's.
 
-    The rest latent is solved by Newton from z = 0 (:meth:`redsim.runtime.LatentStepper.rest_latent`). Where a map's
-    latent energy has near-degenerate minima near z = 0, that path ends in one or another by the CPU's round-off (the
-    file's ``why`` says what was measured), and an env would start its episodes from another state on another machine;
-    from a start inside one basin every machine converges to the same minimum.
+    :meth:`redsim.runtime.LatentStepper.rest_latent` solves the rest latent by Newton from here, else from z = 0. Where
+    a map's latent energy has near-degenerate minima near z = 0, the path from z = 0 ends in one or another by the
+    CPU's round-off (the file's ``why`` says what was measured), and an env (or a bench) would start from another state
+    on another machine; from a start inside one basin every machine converges to the same minimum.
     """
     file = FOLDER / f"{scene_name}.rest.json"
     if not file.is_file():

@@ -778,14 +778,17 @@ class LatentStepper:
         """The latent static equilibrium under zero load near z = 0: [1, d] (cond None) or [B, d] (cond [B, m]).
 
         Solved once per condition by the reference :func:`redsim.integrators.latent_equilibrium`: float64 Newton
-        from ``start`` [d]; without one, under the default condition from the shipped map's rest start where it
-        has one (:func:`redsim.pretrained.rest_start`: the same minimum on every CPU where the map's latent energy
-        has near-degenerate ones), else from z = 0. Cached for the default condition without ``start``.
+        from ``start`` [d]; without one, under the default condition (``cond`` None) from the shipped map's rest
+        start where it has one (:func:`redsim.pretrained.rest_start`: the same minimum on every CPU where the map's
+        latent energy has near-degenerate ones), else from z = 0. Cached for the default condition without ``start``.
+        A ``cond`` given, even the default one, solves from z = 0 (no conditional map ships a rest start).
         """
         if cond is not None or start is not None:
             return self._solve_rest(cond, start)
         if self._rest is None:
-            shipped = pretrained.rest_start(self.source_scene.name, map_fingerprint(self.subspace))
+            shipped = None  # a map that is not a module (any callable) has no weights to match a shipped start
+            if isinstance(self.subspace, nn.Module):
+                shipped = pretrained.rest_start(self.source_scene.name, map_fingerprint(self.subspace))
             self._rest = self._solve_rest(None, shipped)
         return self._rest.clone()
 

@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import copy
 import dataclasses
 import json
 import shlex
@@ -145,6 +146,17 @@ def test_the_hanging_sheet_map_ships_a_rest_start_that_every_machine_converges_a
     assert torch.equal(LatentStepper(scene, sub, dtype=torch.float64).rest_latent()[0], start)  # the default
     stepper.rest_latent(None, start=torch.zeros(8, dtype=torch.float64))  # from z = 0: one of the two minima
     assert torch.equal(stepper.rest_latent()[0], start)  # a start given is not cached as the default's rest
+
+    inner = copy.deepcopy(sub).to(torch.float64)  # a stepper converts modules, not other callables
+
+    class Plain:  # a map that is not a module: no weights to match, so solved from z = 0
+        latent_dim = 8
+
+        def __call__(self, z: torch.Tensor, cond: torch.Tensor | None = None) -> torch.Tensor:
+            return inner(z)
+
+    plain = LatentStepper(scene, Plain(), dtype=torch.float64)
+    assert torch.equal(plain.rest_latent(), plain.rest_latent(None, start=torch.zeros(8, dtype=torch.float64)))
     env = gym.make("RedSim/HangingCloth-v0", dtype="float64")
     assert torch.equal(env.unwrapped.sim._rest, start)
     other = load_subspace(pretrained.path("hanging_sheet"))
