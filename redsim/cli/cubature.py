@@ -113,7 +113,7 @@ def cmd_bench_cubature(args: argparse.Namespace) -> int:
     from redsim import pretrained
     from redsim.bench import machine_info
     from redsim.cubature import CubatureConfig, build_cubature, load_cubature
-    from redsim.cubature.bench import bench_cubature
+    from redsim.cubature.bench import WARMUP_STEPS, bench_cubature
     from redsim.cubature.energy import cubature_path
     from redsim.subspace import CheckpointError
 
@@ -125,14 +125,15 @@ def cmd_bench_cubature(args: argparse.Namespace) -> int:
     for name in names:
         check_scene_name(name)
     batches = tuple(parse_ints(args.batches, "--batches"))
-    if args.steps < 1 or args.timed_steps < 2:
-        raise CliError("--steps must be >= 1 and --timed-steps >= 2")
+    warmup = WARMUP_STEPS if args.warmup_steps is None else args.warmup_steps
+    if args.steps < 1 or args.timed_steps < 2 or warmup < 0:
+        raise CliError("--steps must be >= 1, --timed-steps >= 2 and --warmup-steps >= 0")
     machine = machine_info()
     results = []
     if not args.json:
         out(
-            f"cubature vs all-element latent step ({args.dtype}, CPU); deviation over "
-            f"{args.steps} steps, step time median (ms)"
+            f"cubature vs all-element latent step ({args.dtype}, CPU); deviation over {args.steps} steps; step time "
+            f"median (ms) and value-and-gradient calls per step, after {warmup} loaded steps"
         )
         out(machine_line(machine, "cpu"))
     for name in names:
@@ -159,13 +160,15 @@ def cmd_bench_cubature(args: argparse.Namespace) -> int:
             steps=args.steps,
             batches=batches,
             timed_steps=args.timed_steps,
+            warmup=warmup,
             dtype=getattr(torch, args.dtype),
         )
         results.append(result)
         if not args.json:
             kept = ", ".join(f"{k} {v}/{result['element_counts'][k]}" for k, v in result["elements"].items())
             times = "  ".join(
-                f"B={b}: {1e3 * t['all_s']:.3g} -> {1e3 * t['cubature_s']:.3g} ({t['all_s'] / t['cubature_s']:.1f}x)"
+                f"B={b}: {1e3 * t['all_s']:.3g} -> {1e3 * t['cubature_s']:.3g} ({t['all_s'] / t['cubature_s']:.1f}x; "
+                f"calls {t['all_calls_per_step']:.1f} -> {t['cubature_calls_per_step']:.1f})"
                 for b, t in result["timing"].items()
             )
             out(
@@ -243,6 +246,12 @@ def add_bench_command(bench: Any) -> None:
     p.add_argument("scenes", nargs="?", default="cloth_ball,hanging_sheet", help="comma-separated scene names")
     p.add_argument("--steps", type=int, default=100, help="steps of the accuracy rollouts (default 100)")
     p.add_argument("--timed-steps", type=int, default=10, help="timed steps per batch size (default 10)")
+    p.add_argument(
+        "--warmup-steps",
+        type=int,
+        help="all-element steps under the loads before the timed ones, which start from that moving state "
+        "(default redsim.cubature.bench.WARMUP_STEPS, 30; 0: from rest)",
+    )
     p.add_argument("--batches", default="1,64", metavar="B1,B2", help="batch sizes timed (default 1,64)")
     p.add_argument("--elements", type=int, default=200, help="elements per effect when none is shipped (200)")
     p.add_argument(

@@ -16,11 +16,14 @@ from torch import Tensor, nn
 from redsim.cubature.energy import Cubature, CubatureEnergy
 from redsim.cubature.fit import default_load_scale
 from redsim.effects.penalty import SDFContact
-from redsim.runtime import LatentStepper
+from redsim.runtime import Evaluations, LatentStepper
 from redsim.scene import Scene
 
 ACCURACY_STATES = 8
 """Rollouts (seeded load sequences) whose median deviation the bench reports, whatever its timing batches."""
+WARMUP_STEPS = 30
+"""All-element steps under the seeded loads before the timed ones (from rest a cloth's steps take fewer calls than
+once it swings: hanging_sheet 12 against 19 at B=64, docs/cubature.md, "Stop 39")."""
 
 
 def _loads(scene: Scene, steps: int, batch: int, hold: int, scale: float, seed: int) -> Tensor:
@@ -33,9 +36,12 @@ def _loads(scene: Scene, steps: int, batch: int, hold: int, scale: float, seed: 
     return draws.repeat_interleave(hold, 0)[:steps]
 
 
-def _rollout(stepper: LatentStepper, z0: Tensor, loads: Tensor | None, steps: int) -> tuple[Tensor, list[float]]:
-    """Latents [steps + 1, B, d] of a rollout and the wall time of each step [s]."""
-    z, z_prev, out, times, model = z0, z0, [z0], [], None
+def _rollout(
+    stepper: LatentStepper, z0: Tensor, loads: Tensor | None, steps: int, z_prev: Tensor | None = None
+) -> tuple[Tensor, list[float]]:
+    """Latents [steps + 1, B, d] of a rollout from z0 (at rest, or moving from ``z_prev``) and each step's wall time
+    [s]."""
+    z, z_prev, out, times, model = z0, z0 if z_prev is None else z_prev, [z0], [], None
     for t in range(steps):
         start = time.perf_counter()
         z_next, stats = stepper.step(z, z_prev, None if loads is None else loads[t], warm=model)
@@ -65,6 +71,7 @@ def bench_cubature(
     steps: int = 100,
     batches: tuple[int, ...] = (1, 64),
     timed_steps: int = 10,
+    warmup: int = WARMUP_STEPS,
     hold: int = 10,
     load_scale: float | None = None,
     seed: int = 0,
@@ -75,8 +82,13 @@ def bench_cubature(
     Accuracy: :data:`ACCURACY_STATES` states from the rest latent under the same seeded loads, ``steps`` steps
     with each energy; the deviation of a state is max_t |q_cub(t) - q_all(t)|_M / max_t |q_all(t) - q_all(0)|_M
     (the median over states is reported), the penetration the deepest contact over all states and steps.
-    Time: the median step [s] over ``timed_steps`` steps per batch size, the two energies interleaved.
+    Time: the median step [s] over ``timed_steps`` steps per batch size, the two energies interleaved, from the
+    state ``warmup`` all-element steps under seeded loads reach (a moving shape: steps from rest take fewer
+    iterations), with each energy's value-and-gradient calls per step of its timed rollouts (their untimed first
+    steps included).
     """
+    if isinstance(warmup, bool) or not isinstance(warmup, int) or warmup < 0:
+        raise ValueError(f"warmup must be an integer >= 0, got {warmup!r}")
     scale = default_load_scale(scene) if load_scale is None else load_scale
     all_elements = LatentStepper(scene, subspace, dt, dtype=dtype)
     energy = CubatureEnergy(scene, subspace, cubature, dtype=dtype)
@@ -98,15 +110,27 @@ def bench_cubature(
         pen_cub = penetration(scene32, q_cub.reshape(-1, q_cub.shape[-1]))
     timing = {}
     for batch in batches:
+        timed = timed_steps // 2 + 1
+        batch_loads = _loads(scene, warmup + timed, batch, hold, scale, seed + 1) if scene.handles else None
         z0 = rest.expand(batch, -1)
-        batch_loads = _loads(scene, timed_steps + 2, batch, hold, scale, seed + 1) if scene.handles else None
-        times_all, times_cub = [], []
+        z_prev = None
+        if warmup:  # both energies are timed from the same moving state
+            path, _ = _rollout(all_elements, z0, None if batch_loads is None else batch_loads[:warmup], warmup)
+            z0, z_prev = path[-1], path[-2]
+        timed_loads = None if batch_loads is None else batch_loads[warmup:]
+        times_all, times_cub, calls = [], [], {"all": 0, "cubature": 0}
         for _ in range(2):  # interleaved halves, so other load on the machine hits both alike
-            _, t = _rollout(all_elements, z0, batch_loads, timed_steps // 2 + 1)
-            times_all += t[1:]
-            _, t = _rollout(reduced, z0, batch_loads, timed_steps // 2 + 1)
-            times_cub += t[1:]
-        timing[batch] = {"all_s": statistics.median(times_all), "cubature_s": statistics.median(times_cub)}
+            for key, stepper in (("all", all_elements), ("cubature", reduced)):
+                stepper.evaluations = Evaluations()
+                _, t = _rollout(stepper, z0, timed_loads, timed, z_prev)
+                (times_all if key == "all" else times_cub).extend(t[1:])
+                calls[key] += stepper.evaluations.calls
+        timing[batch] = {
+            "all_s": statistics.median(times_all),
+            "cubature_s": statistics.median(times_cub),
+            "all_calls_per_step": calls["all"] / (2 * timed),
+            "cubature_calls_per_step": calls["cubature"] / (2 * timed),
+        }
     return {
         "scene": scene.name,
         "dtype": str(dtype).removeprefix("torch."),
@@ -119,6 +143,7 @@ def bench_cubature(
         "held_out_force_error": cubature.summary.get("held_out_force_error"),
         "trajectory_deviation": float(deviation),
         "steps": steps,
+        "warmup_steps": warmup,
         "load_scale": scale,
         "penetration_all_m": pen_all,
         "penetration_cubature_m": pen_cub,

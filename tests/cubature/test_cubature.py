@@ -289,6 +289,38 @@ def test_bench_deviation_does_not_depend_on_the_timing_batches(mini_chain) -> No
     assert runs[0]["trajectory_deviation"] == runs[1]["trajectory_deviation"] > 0.0
 
 
+def test_bench_times_both_energies_from_the_same_moving_state(cli, mini_chain) -> None:
+    """The timed steps start where ``warmup`` all-element steps under the loads end (0: from rest), with each energy's
+    calls per step; the deviation does not depend on it; a bad warm-up is refused."""
+    from redsim.cubature import bench
+
+    scene, f = mini_chain
+    cub = build_cubature(scene, f, CubatureConfig(elements=4, **QUICK))
+    starts = []
+    rollout = bench._rollout
+
+    def spy(stepper, z0, loads, steps, z_prev=None):  # type: ignore[no-untyped-def]
+        starts.append((z0.clone(), None if z_prev is None else z_prev.clone()))
+        return rollout(stepper, z0, loads, steps, z_prev)
+
+    bench._rollout = spy
+    try:
+        runs = [bench.bench_cubature(scene, f, cub, steps=6, batches=(2,), timed_steps=2, warmup=w) for w in (0, 3)]
+    finally:
+        bench._rollout = rollout
+    assert runs[0]["trajectory_deviation"] == runs[1]["trajectory_deviation"] and runs[1]["warmup_steps"] == 3
+    timing = runs[1]["timing"][2]
+    assert timing["all_calls_per_step"] >= 1.0 and timing["cubature_calls_per_step"] >= 1.0
+    from_rest, warmed = starts[2:6], starts[9:]  # each run: 2 accuracy rollouts, (a warm-up,) 4 timed rollouts
+    assert all(prev is None for _, prev in from_rest) and len(warmed) == 4
+    assert all(torch.equal(z, warmed[0][0]) and torch.equal(p, warmed[0][1]) for z, p in warmed)
+    assert not torch.equal(warmed[0][0], from_rest[0][0])  # moved away from rest
+    with pytest.raises(ValueError, match="warmup must be an integer >= 0"):
+        bench.bench_cubature(scene, f, cub, steps=2, batches=(1,), timed_steps=2, warmup=-1)
+    code, _, err = cli("bench", "cubature", "mini_chain", "--warmup-steps", "-1")
+    assert code == 2 and "--warmup-steps >= 0" in err
+
+
 def test_bench_cubature_in_float64(cli, mini_chain) -> None:
     """``--dtype float64`` steps both energies in float64 (the deviation without float32's round-off)."""
     import json
