@@ -126,14 +126,17 @@ def cmd_bench_cubature(args: argparse.Namespace) -> int:
         check_scene_name(name)
     batches = tuple(parse_ints(args.batches, "--batches"))
     warmup = WARMUP_STEPS if args.warmup_steps is None else args.warmup_steps
-    if args.steps < 1 or args.timed_steps < 2 or warmup < 0:
-        raise CliError("--steps must be >= 1, --timed-steps >= 2 and --warmup-steps >= 0")
+    if args.steps < 1 or args.timed_steps < 2:
+        raise CliError("--steps must be >= 1 and --timed-steps >= 2")
+    if warmup < 0:
+        raise CliError(f"--warmup-steps must be >= 0, got {warmup}")
     machine = machine_info()
     results = []
     if not args.json:
         out(
             f"cubature vs all-element latent step ({args.dtype}, CPU); deviation over {args.steps} steps; step time "
-            f"median (ms) and value-and-gradient calls per step, after {warmup} loaded steps"
+            f"median (ms) and value-and-gradient calls per step (a timed rollout's cold first step included), "
+            + (f"after {warmup} all-element steps under the loads" if warmup else "from rest")
         )
         out(machine_line(machine, "cpu"))
     for name in names:
@@ -250,7 +253,7 @@ def add_bench_command(bench: Any) -> None:
         "--warmup-steps",
         type=int,
         help="all-element steps under the loads before the timed ones, which start from that moving state "
-        "(default redsim.cubature.bench.WARMUP_STEPS, 30; 0: from rest)",
+        "(default redsim.cubature.bench.WARMUP_STEPS, 30; 0: from rest; not the --sweep)",
     )
     p.add_argument("--batches", default="1,64", metavar="B1,B2", help="batch sizes timed (default 1,64)")
     p.add_argument("--elements", type=int, default=200, help="elements per effect when none is shipped (200)")

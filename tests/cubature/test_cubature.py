@@ -290,18 +290,22 @@ def test_bench_deviation_does_not_depend_on_the_timing_batches(mini_chain) -> No
 
 
 def test_bench_times_both_energies_from_the_same_moving_state(cli, mini_chain) -> None:
-    """The timed steps start where ``warmup`` all-element steps under the loads end (0: from rest), with each energy's
-    calls per step; the deviation does not depend on it; a bad warm-up is refused."""
+    """The timed steps of both energies start where ``warmup`` all-element steps under the loads end (0: from rest),
+    under the same loads, those after the warm-up's; the calls per step are the timed rollouts' own; the deviation
+    does not depend on it; a bad warm-up is refused."""
     from redsim.cubature import bench
+    from redsim.cubature.fit import default_load_scale
 
     scene, f = mini_chain
     cub = build_cubature(scene, f, CubatureConfig(elements=4, **QUICK))
-    starts = []
+    calls = []
     rollout = bench._rollout
 
     def spy(stepper, z0, loads, steps, z_prev=None):  # type: ignore[no-untyped-def]
-        starts.append((z0.clone(), None if z_prev is None else z_prev.clone()))
-        return rollout(stepper, z0, loads, steps, z_prev)
+        before = stepper.evaluations.calls
+        path, times = rollout(stepper, z0, loads, steps, z_prev)
+        calls.append((stepper, z0.clone(), z_prev, loads, path, stepper.evaluations.calls - before))
+        return path, times
 
     bench._rollout = spy
     try:
@@ -309,16 +313,22 @@ def test_bench_times_both_energies_from_the_same_moving_state(cli, mini_chain) -
     finally:
         bench._rollout = rollout
     assert runs[0]["trajectory_deviation"] == runs[1]["trajectory_deviation"] and runs[1]["warmup_steps"] == 3
-    timing = runs[1]["timing"][2]
-    assert timing["all_calls_per_step"] >= 1.0 and timing["cubature_calls_per_step"] >= 1.0
-    from_rest, warmed = starts[2:6], starts[9:]  # each run: 2 accuracy rollouts, (a warm-up,) 4 timed rollouts
-    assert all(prev is None for _, prev in from_rest) and len(warmed) == 4
-    assert all(torch.equal(z, warmed[0][0]) and torch.equal(p, warmed[0][1]) for z, p in warmed)
-    assert not torch.equal(warmed[0][0], from_rest[0][0])  # moved away from rest
+    from_rest, warm_up, timed = calls[2:6], calls[8], calls[9:]  # per run: 2 accuracy rollouts, (warm-up,) 4 timed
+    assert len(from_rest) == 4 and all(c[2] is None for c in from_rest)  # warmup 0: from rest, not moving
+    loads = bench._loads(scene, 3 + 2, 2, 10, default_load_scale(scene), 1)  # warm-up + timed steps, B = 2, seed + 1
+    assert torch.equal(warm_up[3], loads[:3]) and warm_up[2] is None
+    moving, previous = warm_up[4][-1], warm_up[4][-2]
+    assert not torch.equal(moving, previous)
+    for _, z0, z_prev, timed_loads, _, _ in timed:
+        assert torch.equal(z0, moving) and torch.equal(z_prev, previous) and torch.equal(timed_loads, loads[3:])
+    assert {id(c[0]) for c in timed} == {id(timed[0][0]), id(timed[1][0])} and timed[0][0] is not timed[1][0]
+    for key, stepper in (("all_calls_per_step", timed[0][0]), ("cubature_calls_per_step", timed[1][0])):
+        own = sum(c[5] for c in timed if c[0] is stepper)  # 2 halves of 2 steps each
+        assert own >= 4 and runs[1]["timing"][2][key] == own / 4
     with pytest.raises(ValueError, match="warmup must be an integer >= 0"):
         bench.bench_cubature(scene, f, cub, steps=2, batches=(1,), timed_steps=2, warmup=-1)
     code, _, err = cli("bench", "cubature", "mini_chain", "--warmup-steps", "-1")
-    assert code == 2 and "--warmup-steps >= 0" in err
+    assert code == 2 and "--warmup-steps must be >= 0, got -1" in err
 
 
 def test_bench_cubature_in_float64(cli, mini_chain) -> None:
