@@ -214,6 +214,20 @@ def test_sample_names_the_file_it_writes_and_animate_refuses_a_non_gif(cli: Cli,
     assert code == 2 and "--out must name a .gif file" in err and not (tmp_path / "a.mp4").exists()
 
 
+def test_sample_with_only_meshes_leaves_the_states_written_before(
+    cli: Cli, tmp_path: Path, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    from redsim import pretrained
+
+    monkeypatch.chdir(tmp_path)
+    checkpoint = str(pretrained.path("mini_chain"))
+    assert cli("sample", checkpoint, "-n", "3")[0] == 0
+    before = (tmp_path / "states.npz").read_bytes()
+    code, out, err = cli("sample", checkpoint, "-n", "1", "--meshes", "samples", "--json")
+    assert code == 0 and json.loads(out)["out"] is None and json.loads(out)["meshes"], err
+    assert (tmp_path / "states.npz").read_bytes() == before
+
+
 def test_bench_step_refuses_a_bad_dt(cli: Cli) -> None:
     code, _, err = cli("bench", "step", "--scenes", "mini_chain", "--dt", "0")
     assert code == 2 and "--dt must be a finite number >= 1e-06 [s]" in err
@@ -221,17 +235,32 @@ def test_bench_step_refuses_a_bad_dt(cli: Cli) -> None:
     assert code == 2 and "--dt must be a finite number >= 1e-06 [s]" in err and "Traceback" not in err
 
 
+def _interrupted(*args: object, **kwargs: object) -> None:
+    raise KeyboardInterrupt  # what Ctrl-C (or SIGTERM, under `redsim`) raises
+
+
 def test_a_fit_interrupted_before_its_first_step_says_nothing_was_saved(
     cli: Cli, tmp_path: Path, monkeypatch: pytest.MonkeyPatch
 ) -> None:
     import redsim.trainers
 
-    def interrupted(*args: object, **kwargs: object) -> None:
-        raise KeyboardInterrupt
-
-    monkeypatch.setattr(redsim.trainers, "fit_subspace", interrupted)
+    monkeypatch.setattr(redsim.trainers, "fit_subspace", _interrupted)
     code, _, err = cli("fit", "toy_two_tets", *SMALL, "--steps", "2", "--out", str(tmp_path / "x"))
     assert code == 130 and "nothing was saved, rerun: redsim fit toy_two_tets" in err and "--resume" not in err
+
+
+def test_any_interrupted_command_exits_130_with_one_line_and_no_traceback(
+    cli: Cli, tmp_path: Path, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    import redsim.cubature
+    from redsim import pretrained
+
+    monkeypatch.setattr(redsim.cubature, "build_cubature", _interrupted)
+    stem = tmp_path / "mini_chain"
+    for suffix in (".pt", ".json"):
+        (tmp_path / f"mini_chain{suffix}").write_bytes(pretrained.path("mini_chain").with_suffix(suffix).read_bytes())
+    code, out, err = cli("cubature", str(stem), "--elements", "2")
+    assert (code, out, err) == (130, "", "redsim: warning: interrupted\n")
 
 
 def test_a_closed_pipe_gives_no_traceback() -> None:

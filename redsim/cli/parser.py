@@ -15,7 +15,7 @@ import torch
 
 import redsim
 from redsim.cli import agents, bench, cache, cubature, envs, scenes, subspaces
-from redsim.cli.common import CliError, Parser, StdoutClosed, apply_threads, error
+from redsim.cli.common import EXIT_INTERRUPTED, CliError, Parser, StdoutClosed, apply_threads, error, warn
 
 
 def build_parser() -> argparse.ArgumentParser:
@@ -75,6 +75,9 @@ def main(argv: Sequence[str] | None = None) -> int:
     except OSError as err:  # a file the command could not read or write (a full disk, a path the OS refuses)
         error(f"{err.strerror or err}: {err.filename}" if err.filename else str(err))
         return 1
+    except KeyboardInterrupt:  # a command without its own handler (fit and train-agent save and say more)
+        warn("interrupted")
+        return EXIT_INTERRUPTED
     finally:
         torch.set_num_threads(threads)  # in-process callers (tests, notebooks) keep their setting
         if terminate is not None:

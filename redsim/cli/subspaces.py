@@ -237,16 +237,18 @@ def cmd_sample(args: argparse.Namespace) -> int:
     with torch.no_grad():
         q = sub(z, cond).double()
         x = scene.full_positions(q)
-    path = Path(args.out)
-    if path.name in ("", ".", ".."):
-        raise CliError(f"--out must name a .npz file, got {args.out!r}")
-    if path.suffix != ".npz":  # numpy's savez would add it
-        path = path.with_name(path.name + ".npz")
-    path.parent.mkdir(parents=True, exist_ok=True)
-    arrays = {"z": z.numpy(), "q": q.numpy(), "x": x.numpy()}
-    if cond is not None:
-        arrays["cond"] = cond.numpy()
-    np.savez_compressed(path, scene=scene.name, scene_fingerprint=scene.fingerprint(), **arrays)
+    path = None
+    if args.out is not None or not args.meshes:  # --meshes alone does not replace a states.npz written before
+        path = Path(args.out or "states.npz")
+        if path.name in ("", ".", ".."):
+            raise CliError(f"--out must name a .npz file, got {args.out!r}")
+        if path.suffix != ".npz":  # numpy's savez would add it
+            path = path.with_name(path.name + ".npz")
+        path.parent.mkdir(parents=True, exist_ok=True)
+        arrays = {"z": z.numpy(), "q": q.numpy(), "x": x.numpy()}
+        if cond is not None:
+            arrays["cond"] = cond.numpy()
+        np.savez_compressed(path, scene=scene.name, scene_fingerprint=scene.fingerprint(), **arrays)
     meshes = []
     if args.meshes:
         from redsim.render import export_meshes
@@ -256,12 +258,13 @@ def cmd_sample(args: argparse.Namespace) -> int:
         for i in range(args.n):
             meshes += export_meshes(scene, q[i], args.meshes, i)
     finite = bool(torch.isfinite(q).all())
-    summary = {"out": str(path), "count": args.n, "n": scene.free_dof_count, "finite": finite}
+    summary = {"out": None if path is None else str(path), "count": args.n, "n": scene.free_dof_count, "finite": finite}
     summary["meshes"] = [str(m) for m in meshes]
     if args.json:
         json_out(summary)
     else:
-        out(f"wrote {args.n} states of {scene.name} (q: [{args.n}, {scene.free_dof_count}], full x too) to {path}")
+        if path is not None:
+            out(f"wrote {args.n} states of {scene.name} (q: [{args.n}, {scene.free_dof_count}], full x too) to {path}")
         if meshes:
             out(f"wrote {len(meshes)} meshes (.ply, faces included) to {args.meshes}")
     return EXIT_OK if finite else EXIT_NAN
@@ -351,11 +354,11 @@ def add_commands(sub: Any) -> None:
     p.add_argument("checkpoint", help="path to X.pt")
     p.add_argument("-n", type=int, default=1000, help="number of states (default 1000)")
     p.add_argument("--seed", type=non_negative_seed, default=0, help="sampling seed (default 0)")
-    p.add_argument("--out", default="states.npz", help="output .npz with z, q, x (default states.npz)")
+    p.add_argument("--out", help="output .npz with z, q, x (default states.npz, or none when only --meshes is given)")
     p.add_argument(
         "--meshes",
         metavar="DIR",
-        help="also write every sample's surfaces with their faces as DIR/frame_XXXX_<surface>.ply (trimesh)",
+        help="write every sample's surfaces with their faces as DIR/frame_XXXX_<surface>.ply (trimesh)",
     )
     finish_command(p, cmd_sample, "print one JSON summary")
 

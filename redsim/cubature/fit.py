@@ -29,6 +29,7 @@ from torch import Tensor, nn
 
 from redsim.cubature.output import AffineOutput
 from redsim.effects.base import Effect, gather_elements
+from redsim.progress import progress_bar
 from redsim.scene import Scene
 from redsim.subspace import periodic_latents, sample_latents
 from redsim.tensors import jvp
@@ -350,9 +351,7 @@ def fit_rules(
         train, test = a[train_rows], a[test_rows]
         bar = None
         if progress:
-            from tqdm.auto import tqdm
-
-            bar = tqdm(total=config.elements, desc=f"cubature {effect.name}", dynamic_ncols=True)
+            bar = progress_bar(total=config.elements, desc=f"cubature {effect.name}", dynamic_ncols=True)
 
         def report(kept: int, held: float, bar: object = bar) -> None:
             if bar is not None:
