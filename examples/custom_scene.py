@@ -52,5 +52,5 @@ def check(result: dict[str, float]) -> None:
 
 if __name__ == "__main__":
     parser = argparse.ArgumentParser(description=__doc__)
-    parser.add_argument("--out", type=Path, default=None)
+    parser.add_argument("--out", type=Path, help="folder for custom_scene.png: first and last state (default: none)")
     check(main(parser.parse_args().out))

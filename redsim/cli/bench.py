@@ -477,7 +477,8 @@ def cmd_bench_scaling(args: argparse.Namespace) -> int:
         (folder / "scaling.md").write_text(f"{line}\n\n{scaling.markdown_table(partial)}\n")
         scaling.scaling_png(partial, folder / "scaling.png", line)
         if not args.json:
-            note(f"bench scaling: n = {partial['rows'][-1]['n']} done, wrote {folder}/scaling.md and scaling.png")
+            n = partial["rows"][-1]["n"]
+            note(f"bench scaling: n = {n} done, wrote {folder}/scaling.md and {folder}/scaling.png")
 
     result = scaling.bench_scaling(
         sizes,

@@ -210,8 +210,8 @@ def cmd_inspect(args: argparse.Namespace) -> int:
     for key, value in (meta.get("metrics") or {}).items():
         if isinstance(value, (int, float)):
             out(f"  metric {key}: {value:.5g}")
-    if "scene_not_rebuilt" in meta:  # e.g. a scene built in Python: the command's scene argument names nothing
-        out(f"  fit settings: {meta.get('command')} (not runnable as it is: no redsim command rebuilds this scene)")
+    if "scene_not_rebuilt" in meta:  # a scene built in Python, a mesh file changed since: the warning above says
+        out(f"  fit settings: {meta.get('command')} (not runnable as it is: the scene cannot be rebuilt as recorded)")
     else:
         out(f"  reproduce: {meta.get('command')}")
     return EXIT_OK

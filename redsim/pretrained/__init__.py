@@ -49,15 +49,22 @@ def rest_start(scene_name: str, fingerprint: str) -> Tensor | None:
     return torch.tensor(doc["start"], dtype=torch.float64)
 
 
+class NotShipped(KeyError):
+    """No subspace is shipped for the scene; a KeyError whose message prints as written (KeyError's is quoted)."""
+
+    def __str__(self) -> str:
+        return str(self.args[0])
+
+
 def path(scene_name: str) -> Path:
     """The shipped checkpoint ``SCENE.pt`` of ``scene_name``.
 
     Raises:
-        KeyError: no subspace is shipped for this scene (the message lists those that are).
+        NotShipped: a KeyError; no subspace is shipped for this scene (the message lists those that are).
     """
     weights = FOLDER / f"{scene_name}.pt"
     if not (weights.is_file() and weights.with_suffix(".json").is_file()):
-        raise KeyError(f"no shipped subspace for scene {scene_name!r}; shipped: {', '.join(names()) or 'none'}")
+        raise NotShipped(f"no shipped subspace for scene {scene_name!r}; shipped: {', '.join(names()) or 'none'}")
     return weights
 
 
@@ -72,7 +79,7 @@ def load(scene_name: str, scene: Scene | None = None, *, device: str | torch.dev
         device: Where to put the weights.
 
     Raises:
-        KeyError: no subspace is shipped for this scene.
+        NotShipped: a KeyError; no subspace is shipped for this scene.
         redsim.subspace.CheckpointError: the scene differs from the one the subspace was fitted to.
     """
     from redsim.scenes.spec import scene_from_spec
@@ -83,4 +90,4 @@ def load(scene_name: str, scene: Scene | None = None, *, device: str | torch.dev
     return load_subspace(weights, scene=scene, device=device)
 
 
-__all__ = ["ENV_SCENES", "FOLDER", "load", "names", "path"]
+__all__ = ["ENV_SCENES", "FOLDER", "NotShipped", "load", "names", "path"]
