@@ -909,7 +909,8 @@ def chain_table(chain: dict[str, Any]) -> list[str]:
                 continue
             state = "blew up" if r["blew_up"] else "ok"
             cells.append(
-                f"{state} ({r['steps']} steps, {r['failures_detected']} flagged, {r['unreported']} unreported gains)"
+                f"{state} ({r['steps']} steps, {r['failures_detected']} failures detected, {r['unreported']} "
+                "unreported gains)"
             )
         lines.append("| " + " | ".join(cells) + " |")
     if mujoco is None:
@@ -952,25 +953,25 @@ def row_totals(rows: Sequence[Mapping[str, Any]]) -> dict[str, int]:
 
 def report(result: dict[str, Any]) -> list[str]:
     """Human-readable lines of a :mod:`redsim bench stability <redsim.benches.stability>` result."""
-    rows = result["rows"]
-    lines = markdown_rows(rows)
-    fuzz = [r for r in rows if r["regime"] == "fuzz"]
-    if fuzz:
-        lines.append("")
+    rows, lines = result["rows"], []
+    if rows:  # none when only the MuJoCo chain regime ran
+        lines += markdown_rows(rows)
+        fuzz = [r for r in rows if r["regime"] == "fuzz"]
+        if fuzz:
+            lines.append("")
+            lines.append(
+                f"fuzzed env steps run: {sum(r['steps'] for r in fuzz)} of {result['fuzz_steps']} asked "
+                "(split by measured env speed)"
+            )
+        totals = row_totals(rows)
+        lines.append(f"total nan: {totals['nan']}, unreported energy gains: {totals['unreported']} (both must be 0)")
+        lines.append(f"steps flagged energy_gain: {totals['energy_gains']} of {totals['steps']} (not failures)")
         lines.append(
-            f"fuzzed env steps run: {sum(r['steps'] for r in fuzz)} of {result['fuzz_steps']} asked "
-            "(split by measured env speed)"
+            f"rises above the slack that the solve's tolerance explains (not flagged, by the flag's rule): "
+            f"{totals['within_tolerance']}"
         )
-    totals = row_totals(rows)
-    lines.append(f"total nan: {totals['nan']}, unreported energy gains: {totals['unreported']} (both must be 0)")
-    lines.append(f"steps flagged energy_gain: {totals['energy_gains']} of {totals['steps']} (not failures)")
-    lines.append(
-        f"rises above the slack that the solve's tolerance explains (not flagged, by the flag's rule): "
-        f"{totals['within_tolerance']}"
-    )
     if result.get("chain") is not None:
-        lines.append("")
-        lines += chain_table(result["chain"])
+        lines += [""] * bool(lines) + chain_table(result["chain"])
     return lines
 
 
