@@ -1,12 +1,16 @@
 """Fit what is missing: a subspace for a scene and a :class:`FitConfig`, reused from a checkpoint stem if one is there.
 
 The benches that compare fitted maps (``redsim bench subspace``, ``redsim bench accuracy --dims``)
-keep their fits under a folder the user names; a second run reuses them instead of fitting again.
+keep their fits under a folder the user names; a second run reuses them instead of fitting again. A file there that
+is not the fit asked for (a user's own fit, one of another scene of the same name) is never overwritten: the new fit
+goes beside it, to a stem suffixed with :func:`fit_key`.
 """
 
 from __future__ import annotations
 
 import dataclasses
+import hashlib
+import json
 from collections.abc import Callable, Sequence
 from pathlib import Path
 from typing import Any
@@ -32,52 +36,90 @@ def fitted_subspace(
     progress: bool = True,
     warn: Callable[[str], None] | None = None,
 ) -> tuple[nn.Module, str]:
-    """The map saved at ``STEM.pt`` (or at the first of ``also`` that loads), else a fit of ``config`` saved to STEM.
+    """The map saved at ``STEM.pt``, ``STEM_KEY.pt`` or the first of ``also`` that qualifies, else a fit of ``config``
+    saved to the first of STEM and STEM_KEY that holds no other fit.
 
-    A checkpoint is used only if it loads for ``scene`` and records the config's fit (every field but
-    :data:`RUNTIME_FIELDS`; a field recorded before it existed counts as its default) and ``seed``, and was not
-    extended by a resumed fit (its schedules were planned for fewer steps); one that
-    exists but does not qualify is reported through ``warn`` and skipped.
+    KEY hashes the scene's fingerprint, the config's fit and ``seed`` (:func:`fit_key`), so that another scene of the
+    same name, or another fit, never overwrites a checkpoint it cannot use. A checkpoint qualifies if it loads for
+    ``scene`` and records the config's fit (every field but :data:`RUNTIME_FIELDS`; a field recorded before it existed
+    counts as its default) and ``seed``, and was not extended by a resumed fit (its schedules were planned for fewer
+    steps); one that exists but does not qualify is reported through ``warn`` and skipped.
 
     Args:
         scene: The scene.
         config: The fit to reuse or run (a scene preset, possibly with other d or steps).
         stem: Where the fit is kept (``STEM.pt`` + ``STEM.json``).
         seed: Seed of a new fit.
-        also: Further checkpoints tried after ``STEM.pt`` (e.g. the shipped map).
-        refit: Fit even if a checkpoint qualifies.
+        also: Further checkpoints tried after STEM's (e.g. the shipped map).
+        refit: Fit even if a checkpoint qualifies (replacing the one at STEM or STEM_KEY).
         progress: Show the fit's progress bar.
-        warn: Called with one line per checkpoint skipped.
+        warn: Called with one line per checkpoint skipped, and where a fit goes to STEM_KEY.
 
     Returns:
         The map and where it came from (the checkpoint's path).
+
+    Raises:
+        FileExistsError: both STEM and STEM_KEY hold files (``.pt``, ``.json`` or ``.fit.pt``) of other fits.
     """
-    candidates = [checkpoint_path(stem, ".pt"), *(Path(p) for p in also)]
-    for path in [] if refit else candidates:
-        if not path.is_file():
-            continue
-        try:
-            subspace = load_subspace(path, scene=scene)
-        except CheckpointError as err:
-            if warn:
-                warn(f"not using {path}: {err}")
-            continue
-        metadata = getattr(subspace, "metadata", {})
-        fit = {"latent_dim": int(subspace.latent_dim), **metadata.get("fit", {})}
-        differs = _differences(fit, config)
-        if metadata.get("seed", seed) != seed:
-            differs.append(f"seed = {metadata['seed']!r}, not {seed!r}")
-        for extension in metadata.get("schedule", {}).get("extensions", []):  # its schedule was planned for less
-            differs.append(f"extended from {extension['from_steps']} steps (--resume), not fitted for {config.steps}")
-        if differs:
-            if warn:
-                warn(f"not using {path}: it records {', '.join(differs)}")
-            continue
-        return subspace, str(path)
+    stems = [Path(stem), Path(stem).with_name(f"{Path(stem).name}_{fit_key(scene, config, seed)}")]
+    if not refit:
+        for path in [*(checkpoint_path(s, ".pt") for s in stems), *(Path(p) for p in also)]:
+            subspace = _qualified(path, scene, config, seed, warn)
+            if subspace is not None:
+                return subspace, str(path)
+    free = [
+        s for s in stems if not _occupied(s) or (refit and _qualified(checkpoint_path(s, ".pt"), scene, config, seed))
+    ]
+    if not free:
+        raise FileExistsError(
+            f"not fitting into {stems[0]} or {stems[1]}: both hold files of another fit; move them away, or keep the "
+            "fits in another folder"
+        )
+    if free[0] != stems[0] and warn:
+        warn(f"fitting into {checkpoint_path(free[0], '.pt')}, keeping the other fit at {stems[0]}")
     result = fit_subspace(
-        scene, config, seed=seed, out=stem, progress=progress, command=fit_command(scene, config, seed, stem)
+        scene, config, seed=seed, out=free[0], progress=progress, command=fit_command(scene, config, seed, free[0])
     )
-    return result.subspace, str(candidates[0])
+    return result.subspace, str(checkpoint_path(free[0], ".pt"))
+
+
+def fit_key(scene: Scene, config: FitConfig, seed: int) -> str:
+    """8 hex digits of a hash of ``scene``'s fingerprint, ``config``'s fit (all but :data:`RUNTIME_FIELDS`) and
+    ``seed``: what a checkpoint must match to be reused."""
+    fit = {k: v for k, v in dataclasses.asdict(config).items() if k not in RUNTIME_FIELDS}
+    doc = {"scene": scene.fingerprint(), "fit": fit, "seed": seed}
+    return hashlib.sha256(json.dumps(doc, sort_keys=True, default=str).encode()).hexdigest()[:8]
+
+
+def _occupied(stem: Path) -> bool:
+    """Whether a fit has written any of its files at ``stem``."""
+    return any(checkpoint_path(stem, suffix).exists() for suffix in (".pt", ".json", ".fit.pt"))
+
+
+def _qualified(
+    path: Path, scene: Scene, config: FitConfig, seed: int, warn: Callable[[str], None] | None = None
+) -> nn.Module | None:
+    """The map at ``path`` if it is ``config``'s fit of ``scene`` with ``seed``; None (and why, to ``warn``) if not."""
+    if not path.is_file():
+        return None
+    try:
+        subspace = load_subspace(path, scene=scene)
+    except CheckpointError as err:
+        if warn:
+            warn(f"not using {path}: {err}")
+        return None
+    metadata = getattr(subspace, "metadata", {})
+    fit = {"latent_dim": int(subspace.latent_dim), **metadata.get("fit", {})}
+    differs = _differences(fit, config)
+    if metadata.get("seed", seed) != seed:
+        differs.append(f"seed = {metadata['seed']!r}, not {seed!r}")
+    for extension in metadata.get("schedule", {}).get("extensions", []):  # its schedule was planned for less
+        differs.append(f"extended from {extension['from_steps']} steps (--resume), not fitted for {config.steps}")
+    if differs:
+        if warn:
+            warn(f"not using {path}: it records {', '.join(differs)}")
+        return None
+    return subspace
 
 
 def _differences(recorded: dict[str, Any], config: FitConfig) -> list[str]:
@@ -96,4 +138,4 @@ def _differences(recorded: dict[str, Any], config: FitConfig) -> list[str]:
     return out
 
 
-__all__ = ["RUNTIME_FIELDS", "fitted_subspace"]
+__all__ = ["RUNTIME_FIELDS", "fit_key", "fitted_subspace"]

@@ -658,18 +658,24 @@ def add_commands(sub: Any) -> Any:
         "subspace",
         help="neural subspace vs linear modes vs modal derivatives",
         description=(
-            "For each scene, take a neural subspace: DIR/SCENE.pt if it exists, else the one shipped with redsim "
-            "(environment scenes), else fit one with the scene's preset into DIR/SCENE; with --steps N, "
-            "DIR/SCENE_sN.pt or a fit of N steps. Build linear modes and modal derivatives of the same d and sigma, "
-            "and print for each the energy of samples relative to the seed's (0: rest, 1: seed) and in J above the "
-            "rest state, the metric stretch, the load-response error, (FEM) the non-rigid strain and (bistable_bar) "
-            "how close the subspace comes to each buckled state."
+            "For each scene, take a neural subspace: DIR/SCENE.pt if it is the preset's fit, else the one shipped "
+            "with redsim (environment scenes), else fit one with the scene's preset into DIR/SCENE; with --steps N, "
+            "DIR/SCENE_sN.pt or a fit of N steps. A file there that is another fit (other options, extended by "
+            "--resume, another scene of the same name) is kept: the fit goes to DIR/SCENE[_sN]_KEY.pt beside it "
+            "(KEY: 8 hex digits of a hash of the scene and the fit) and is reused from there. Build linear modes and "
+            "modal derivatives of the same d and sigma, and print for each the energy of samples relative to the "
+            "seed's (0: rest, 1: seed) and in J above the rest state, the metric stretch, the load-response error, "
+            "(FEM) the non-rigid strain and (bistable_bar) how close the subspace comes to each buckled state."
         ),
     )
     add_bench_scene_args(p, "the eleven of Table 1")
     p.add_argument("--steps", type=int, help="fit (or reuse) N-step subspaces instead (default: the presets')")
     p.add_argument("--checkpoints", default="subspaces", metavar="DIR", help="where fits are kept (default subspaces)")
-    p.add_argument("--refit", action="store_true", help="fit even if a checkpoint exists (shipped ones included)")
+    p.add_argument(
+        "--refit",
+        action="store_true",
+        help="fit even if a checkpoint qualifies (shipped ones included; never over another fit)",
+    )
     p.add_argument("--loads", type=int, default=8, help="loads of the load-response error (default 8)")
     p.add_argument(
         "--load-size",
@@ -777,7 +783,8 @@ def add_commands(sub: Any) -> Any:
         "--dims",
         metavar="D1,D2",
         help="compare the three subspaces at each of these d (e.g. 1,2,4,8,16) and the shipped map's d: the shipped "
-        "neural map at its d, else DIR/SCENE_dD.pt, fitted with the scene's preset into --checkpoints when missing",
+        "neural map at its d, else DIR/SCENE_dD.pt, fitted with the scene's preset into --checkpoints when missing "
+        "(into DIR/SCENE_dD_KEY.pt where DIR/SCENE_dD.pt is another fit, as in bench subspace)",
     )
     p.add_argument(
         "--checkpoints", default="subspaces", metavar="DIR", help="where --dims fits are kept (default subspaces)"

@@ -1,10 +1,13 @@
-"""`fitted_subspace`: fits what is missing once, reuses it after, and skips checkpoints that do not qualify."""
+"""`fitted_subspace`: fits what is missing once, reuses it after, skips checkpoints that do not qualify and never
+overwrites them."""
 
 from __future__ import annotations
 
+import pytest
+
 from redsim.scenes import build
 from redsim.trainers import FitConfig, fit_subspace
-from redsim.trainers.cache import fitted_subspace
+from redsim.trainers.cache import fit_key, fitted_subspace
 
 TINY = {"latent_dim": 2, "hidden_width": 8, "hidden_layers": 1, "steps": 4}
 
@@ -19,25 +22,52 @@ def test_fits_once_then_reuses_and_skips_another_d_or_scene(tmp_path) -> None:
     assert (tmp_path / "two.pt").stat().st_mtime_ns == stamp and not skipped  # reused, not refitted
     assert all((a == b).all() for a, b in zip(first.state_dict().values(), again.state_dict().values(), strict=True))
 
-    wider, _ = fitted_subspace(scene, FitConfig(**{**TINY, "latent_dim": 3}), stem, progress=False, warn=skipped.append)
-    assert int(wider.latent_dim) == 3 and "latent_dim = 2, not 3" in skipped[-1]
+    wider, source = fitted_subspace(
+        scene, FitConfig(**{**TINY, "latent_dim": 3}), stem, progress=False, warn=skipped.append
+    )
+    assert int(wider.latent_dim) == 3 and "latent_dim = 2, not 3" in skipped[-2]
+    assert source != str(stem) + ".pt" and (tmp_path / "two.pt").stat().st_mtime_ns == stamp  # fitted beside it
     anchored = FitConfig(**{**TINY, "lam": 3.0})  # any other option of the fit, e.g. after a preset changed
     fitted_subspace(scene, anchored, stem, progress=False, warn=skipped.append)
-    assert "lam = 1.0, not 3.0" in skipped[-1]
+    assert "lam = 1.0, not 3.0" in skipped[-2]
+    count = len(skipped)
     fitted_subspace(
         scene, FitConfig(**{**TINY, "lam": 3.0, "checkpoint_every": 7}), stem, progress=False, warn=skipped.append
     )
-    assert len(skipped) == 2  # how a fit runs (checkpoints, device) is not what it fits: reused
+    assert len(skipped) == count + 1  # how a fit runs (checkpoints, device) is not what it fits: reused
     fitted_subspace(scene, anchored, stem, seed=1, progress=False, warn=skipped.append)
-    assert "seed = 0, not 1" in skipped[-1]  # another seed is another fit
-
-    short = tmp_path / "short"
-    fit_subspace(scene, FitConfig(**{**TINY, "steps": 2}), out=short, progress=False)
-    fit_subspace(scene, FitConfig(**TINY), out=short, resume=True, progress=False)  # extended 2 -> 4 steps
-    fitted_subspace(scene, FitConfig(**TINY), short, progress=False, warn=skipped.append)
-    assert "extended from 2 steps" in skipped[-1]  # its rho ramp ran over 2 steps: not a 4-step fit
+    assert "seed = 0, not 1" in skipped[-2]  # another seed is another fit
 
     other = build("toy_tiny_bar_2d")
     count, offered = len(skipped), str(stem) + ".pt"
     fitted_subspace(other, FitConfig(**TINY), tmp_path / "bar", also=[offered], progress=False, warn=skipped.append)
     assert len(skipped) == count + 1 and offered in skipped[-1]  # the two-tets map was offered for the bar, refused
+
+
+def test_never_overwrites_a_checkpoint_it_cannot_use(tmp_path) -> None:
+    scene, skipped = build("toy_two_tets"), []
+    short = tmp_path / "short"
+    fit_subspace(scene, FitConfig(**{**TINY, "steps": 2}), out=short, progress=False)
+    fit_subspace(scene, FitConfig(**TINY), out=short, resume=True, progress=False)  # a user's fit, extended 2 -> 4
+    mine = {p.name: p.read_bytes() for p in tmp_path.iterdir()}
+    _, source = fitted_subspace(scene, FitConfig(**TINY), short, progress=False, warn=skipped.append)
+    assert "extended from 2 steps" in skipped[0]  # its rho ramp ran over 2 steps: not a 4-step fit
+    keyed = tmp_path / f"short_{fit_key(scene, FitConfig(**TINY), 0)}.pt"
+    assert source == str(keyed) and str(keyed) in skipped[1]
+    assert all((tmp_path / name).read_bytes() == data for name, data in mine.items())  # the user's fit is intact
+    stamp = keyed.stat().st_mtime_ns
+    _, again = fitted_subspace(scene, FitConfig(**TINY), short, progress=False, warn=skipped.append)
+    assert again == source and keyed.stat().st_mtime_ns == stamp  # reused from the keyed stem
+
+    stiffer = build("toy_two_tets", young=2e4)  # the same name, another scene (two meshes both named mesh_fem)
+    _, source = fitted_subspace(stiffer, FitConfig(**TINY), short, progress=False, warn=skipped.append)
+    assert source == str(tmp_path / f"short_{fit_key(stiffer, FitConfig(**TINY), 0)}.pt") != str(keyed)
+    assert "fitted to scene" in skipped[-2] and keyed.stat().st_mtime_ns == stamp
+
+    _, source = fitted_subspace(scene, FitConfig(**TINY), short, refit=True, progress=False)
+    assert source == str(keyed) and keyed.stat().st_mtime_ns != stamp  # a refit replaces the cache's own fit only
+    assert all((tmp_path / name).read_bytes() == data for name, data in mine.items())
+    for suffix in (".pt", ".json"):  # the keyed stem taken by another fit too: refused, nothing written
+        keyed.with_suffix(suffix).write_bytes(mine["short" + suffix])
+    with pytest.raises(FileExistsError, match="another fit"):
+        fitted_subspace(scene, FitConfig(**TINY), short, progress=False)
