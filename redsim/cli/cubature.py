@@ -20,6 +20,7 @@ from redsim.cli.common import (
     out,
     parse_ints,
     parse_list,
+    shown_path,
 )
 
 TOL_ELEMENTS = 1000
@@ -130,6 +131,9 @@ def cmd_bench_cubature(args: argparse.Namespace) -> int:
         raise CliError("--steps must be >= 1 and --timed-steps >= 2")
     if warmup < 0:
         raise CliError(f"--warmup-steps must be >= 0, got {warmup}")
+    folder = Path(args.checkpoints) if args.checkpoints else None
+    if folder is not None and not folder.is_dir():
+        raise CliError(f"--checkpoints {folder}: no such folder")
     machine = machine_info()
     results = []
     if not args.json:
@@ -140,7 +144,7 @@ def cmd_bench_cubature(args: argparse.Namespace) -> int:
         )
         out(machine_line(machine, "cpu"))
     for name in names:
-        mine = Path(args.checkpoints) / f"{name}.pt" if args.checkpoints else None
+        mine = folder / f"{name}.pt" if folder is not None else None
         try:
             weights = mine if mine is not None and mine.is_file() else pretrained.path(name)
         except KeyError as err:
@@ -149,6 +153,8 @@ def cmd_bench_cubature(args: argparse.Namespace) -> int:
                 f"{err.args[0]}; {where} (fit one with `redsim fit {name} --out DIR/{name}`, "
                 "then pass --checkpoints DIR)"
             ) from err
+        if weights == mine:
+            _check_scene_of(mine, name)
         scene, subspace = load_checkpoint(str(weights))
         try:
             cub = load_cubature(weights, scene, subspace) if cubature_path(weights).is_file() else None
@@ -156,7 +162,7 @@ def cmd_bench_cubature(args: argparse.Namespace) -> int:
             raise CliError(str(err)) from err
         if cub is None:
             cub = build_cubature(scene, subspace, CubatureConfig(elements=args.elements))
-        result = bench_cubature(
+        result = {"checkpoint": str(weights)} | bench_cubature(
             scene,
             subspace,
             cub,
@@ -175,13 +181,31 @@ def cmd_bench_cubature(args: argparse.Namespace) -> int:
                 for b, t in result["timing"].items()
             )
             out(
-                f"{name}: n={result['n']}, kept {kept}; held-out force error {result['held_out_force_error']:.3g}; "
+                f"{name} ({shown_path(weights)}): n={result['n']}, kept {kept}; "
+                f"held-out force error {result['held_out_force_error']:.3g}; "
                 f"trajectory deviation {result['trajectory_deviation']:.3g}; penetration "
                 f"{result['penetration_all_m']:.2g} -> {result['penetration_cubature_m']:.2g} m; {times}"
             )
     if args.json:
         json_out({"machine": machine, "results": results})
     return EXIT_OK
+
+
+def _check_scene_of(weights: Path, name: str) -> None:
+    """Refuse ``weights`` (a user's DIR/NAME.pt) unless it was fitted to the catalog scene ``name``."""
+    from redsim.subspace import CheckpointError, read_metadata
+
+    try:
+        doc = read_metadata(weights)
+    except CheckpointError as err:
+        raise CliError(str(err)) from err
+    builder = (doc.get("scene_params") or {}).get("builder")
+    if doc.get("scene") != name or builder is not None:
+        what = f"the {builder} mesh scene" if builder is not None else "scene"
+        raise CliError(
+            f"{weights} is a fit of {what} {doc.get('scene')!r}, not of {name!r}: bench cubature reads "
+            "DIR/SCENE.pt as a fit of the catalog scene SCENE (move that file, or pass another --checkpoints DIR)"
+        )
 
 
 def _sweep(args: argparse.Namespace) -> int:
@@ -266,7 +290,8 @@ def add_bench_command(bench: Any) -> None:
     p.add_argument(
         "--checkpoints",
         metavar="DIR",
-        help="use DIR/SCENE.pt and the cubature beside it where they exist (default: the shipped ones)",
+        help="use DIR/SCENE.pt (a fit of SCENE) and the cubature beside it where they exist, the shipped ones "
+        "elsewhere (default: the shipped ones; each row names its checkpoint)",
     )
     p.add_argument(
         "--sweep",

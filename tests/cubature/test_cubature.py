@@ -245,6 +245,33 @@ def test_cli_bad_input_exits_with_a_message(cli, tmp_path) -> None:
     assert code == 2 and str(tmp_path / "stiff_body.pt") in err and "redsim fit stiff_body" in err
 
 
+def test_bench_names_its_checkpoint_and_refuses_one_of_another_scene(cli, tmp_path) -> None:
+    """``--checkpoints DIR``: a folder that is not there, or a DIR/SCENE.pt of another scene (by name, or a user's
+    mesh of that name), is refused (exit 2); each row names the checkpoint it used, in the text and in ``--json``."""
+    import json
+    import shutil
+
+    quick = ("mini_chain", "--steps", "2", "--batches", "1", "--timed-steps", "2", "--elements", "4")
+    code, _, err = cli("bench", "cubature", *quick, "--checkpoints", str(tmp_path / "nowhere"))
+    assert code == 2 and f"--checkpoints {tmp_path / 'nowhere'}: no such folder" in err
+    for suffix in (".pt", ".json"):
+        shutil.copy(pretrained.path("chain").with_suffix(suffix), tmp_path / f"mini_chain{suffix}")
+    code, _, err = cli("bench", "cubature", *quick, "--checkpoints", str(tmp_path))
+    assert code == 2 and f"{tmp_path / 'mini_chain.pt'} is a fit of scene 'chain', not of 'mini_chain'" in err
+    for suffix in (".pt", ".json"):
+        shutil.copy(pretrained.path("mini_chain").with_suffix(suffix), tmp_path / f"mini_chain{suffix}")
+    code, out, err = cli("bench", "cubature", *quick, "--checkpoints", str(tmp_path), "--json")
+    assert code == 0, err
+    assert json.loads(out)["results"][0]["checkpoint"] == str(tmp_path / "mini_chain.pt")
+    meta = json.loads((tmp_path / "mini_chain.json").read_text())
+    meta["scene_params"] = {**meta["scene_params"], "builder": "fem"}  # a mesh scene named mini_chain
+    (tmp_path / "mini_chain.json").write_text(json.dumps(meta))
+    code, _, err = cli("bench", "cubature", *quick, "--checkpoints", str(tmp_path))
+    assert code == 2 and "the fem mesh scene 'mini_chain', not of 'mini_chain'" in err
+    code, out, err = cli("bench", "cubature", *quick)
+    assert code == 0 and "mini_chain (redsim/pretrained/mini_chain.pt): n=24" in out, err
+
+
 @pytest.mark.parametrize("name", ["hanging_sheet", "cloth_ball"])
 def test_shipped_cubatures_are_chosen_with_one_option(name: str) -> None:
     scene = scenes.build(name)
