@@ -960,8 +960,9 @@ def report(result: dict[str, Any]) -> list[str]:
         if fuzz:
             lines.append("")
             lines.append(
-                f"fuzzed env steps run: {sum(r['steps'] for r in fuzz)} of {result['fuzz_steps']} asked "
-                "(split by measured env speed)"
+                f"fuzzed env steps run: {sum(r['steps'] for r in fuzz)} of {sum(r['steps_asked'] for r in fuzz)} "
+                f"planned ({result['fuzz_steps']} asked, split by measured env speed, each env's share rounded up to "
+                "whole vector steps of its copies)"
             )
         totals = row_totals(rows)
         lines.append(f"total nan: {totals['nan']}, unreported energy gains: {totals['unreported']} (both must be 0)")

@@ -79,6 +79,14 @@ def test_fuzz_stops_at_its_budget() -> None:
     assert stability.fuzz_copies("RedSim/Klann-v0") == stability.DEFAULT_FUZZ_COPIES
 
 
+def test_report_says_what_the_fuzz_asked_planned_and_ran() -> None:
+    """Each env's share is rounded up to whole vector steps: 10 steps asked over two envs of 8 copies plan 16."""
+    row = stability.fuzz_env("RedSim/MiniChain-v0", 5, num_envs=8, seconds=1e-9)
+    rows = [row, {**row, "target": "RedSim/Other-v0", "steps": 0}]  # the second stopped by its budget
+    lines = stability.report({"rows": rows, "fuzz_steps": 10})
+    assert "fuzzed env steps run: 8 of 16 planned (10 asked, split by measured env speed" in "\n".join(lines)
+
+
 def test_bang_bang_holds_and_flips() -> None:
     scene = scenes.build("mini_chain")
     loads = stability.bang_bang(scene, 6, 2.0, hold=2)
