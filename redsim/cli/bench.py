@@ -50,7 +50,7 @@ def cmd_bench_subspace(args: argparse.Namespace) -> int:
     scenes = bench_scenes(args, redsim.scenes.names("table1"))
     if not (math.isfinite(args.load_size) and args.load_size > 0.0):
         raise CliError(f"--load-size must be finite and > 0, got {args.load_size}")
-    folder = Path(args.checkpoints)
+    folder = _checkpoint_folder(args)
     rows = []
     if not args.json:
         out(_machine_line(machine_info(), "cpu"))  # the metrics are deterministic; the fits' times are not
@@ -407,7 +407,16 @@ def _accuracy_dims(args: argparse.Namespace, n: int) -> tuple[int, ...] | None:
         raise CliError(f"--dims must be between 1 and the scene's n = {n}, got {args.dims!r}")
     if args.fit_steps is not None and args.fit_steps < 1:
         raise CliError(f"--fit-steps must be >= 1, got {args.fit_steps}")
+    _checkpoint_folder(args)
     return dims
+
+
+def _checkpoint_folder(args: argparse.Namespace) -> Path:
+    """``--checkpoints``, where fits are kept (made when missing); a file there is refused before any work."""
+    folder = Path(args.checkpoints)
+    if folder.exists() and not folder.is_dir():
+        raise CliError(f"--checkpoints {folder}: it is a file, not a folder")
+    return folder
 
 
 def _accuracy_maps(
@@ -429,7 +438,7 @@ def _accuracy_maps(
             maps[dim] = shipped
             continue
         config = FitConfig(**{**preset(scene.name), **overrides, "latent_dim": dim})
-        stem = Path(args.checkpoints) / f"{scene.name}_d{dim}{suffix}"
+        stem = _checkpoint_folder(args) / f"{scene.name}_d{dim}{suffix}"
         if not args.json:
             note(f"neural map d={dim}: {stem}.pt, or a fit of the {scene.name} preset ({config.steps} steps)")
         maps[dim], source = fitted_subspace(scene, config, stem, progress=not args.json, warn=warn)

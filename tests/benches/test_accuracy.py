@@ -149,6 +149,18 @@ def test_maps_and_cubatures_that_do_not_belong_are_refused(mini_chain, tiny_maps
         accuracy.bench_accuracy(mini_chain, maps[1], cubatures={1: cubature})  # built for the d = 2 map
 
 
+def test_a_checkpoints_file_is_refused_before_any_work(cli, tmp_path) -> None:
+    """``--checkpoints`` of bench accuracy --dims and bench subspace is a folder (made when missing), never a file."""
+    (tmp_path / "file").write_text("kept")
+    for argv in (
+        ["bench", "accuracy", "mini_chain", "--steps", "10", "--scenarios", "push", "--full", "none", "--dims", "1"],
+        ["bench", "subspace", "--scenes", "toy_tiny_bar_2d", "--steps", "3"],
+    ):
+        code, out, err = cli(*argv, "--checkpoints", str(tmp_path / "file"))
+        assert code == 2 and out == "" and f"--checkpoints {tmp_path / 'file'}: it is a file, not a folder" in err
+    assert (tmp_path / "file").read_text() == "kept"
+
+
 @pytest.mark.slow
 def test_cli_dims_fit_what_is_missing_once(cli, tmp_path) -> None:
     argv = ["bench", "accuracy", "mini_chain", "--steps", "10", "--scenarios", "push", "--full", "none", "--no-study"]
