@@ -97,7 +97,33 @@ def test_resume_with_more_steps_extends_the_fit(cli: Cli, tmp_path: Path) -> Non
     assert state["history"][-1]["rho"] == 1.0
     assert state["optimizer"]["param_groups"][0]["lr"] == pytest.approx(0.01 * 0.5**4)  # 20 steps, halved every 5
     code, out, err = cli(*argv, "--steps", "10", "--resume")
-    assert code == 2 and "steps must be >= the 20 steps already done" in err
+    assert code == 2 and "steps must be >= 20 to resume, got 10: 20 steps are done" in err
+
+
+def test_resume_continues_to_the_fits_own_length_and_refuses_one_ending_before_rho_is_1(
+    cli: Cli, tmp_path: Path
+) -> None:
+    from redsim.scenes import build
+    from redsim.trainers import fit_subspace
+
+    stem = tmp_path / "cut"
+
+    def interrupt(step: int, _terms: dict) -> None:
+        if step == 5:
+            raise KeyboardInterrupt
+
+    config = FitConfig(latent_dim=2, hidden_width=8, hidden_layers=1, steps=20)  # what SMALL asks for
+    with pytest.raises(KeyboardInterrupt):
+        fit_subspace(build("toy_two_tets"), config, out=stem, progress=False, callbacks=[interrupt])
+    argv = ["fit", "toy_two_tets", *SMALL, "--out", str(stem), "--resume", "--json"]
+    code, out, err = cli(*argv, "--steps", "19")  # would stop at rho = 19/20 and save the MLP alone
+    assert code == 2 and out == "" and "steps must be >= 20 to resume, got 19: rho, ramped for 20 steps" in err
+    assert not (tmp_path / "cut.pt").exists()
+    code, out, err = cli(*argv)  # no --steps: the interrupted fit's 20, not FitConfig's 10000
+    assert code == 0, err
+    meta = json.loads(out)
+    assert meta["fit"]["steps"] == 20 and meta["schedule"]["extensions"] == []
+    assert torch.load(f"{stem}.fit.pt", weights_only=True)["history"][-1]["rho"] == 1.0
 
 
 def test_absurd_load_fails_the_step(cli: Cli) -> None:

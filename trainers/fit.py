@@ -511,6 +511,11 @@ def rho_at(step: int, config: FitConfig, ramp_steps: int | None = None) -> float
     return min(1.0, (step + 1) / (config.exploration_fraction * (ramp_steps or config.steps)))
 
 
+def ramp_end(config: FitConfig, ramp_steps: int) -> int:
+    """The fewest steps after which rho is 1 (:func:`rho_at`) for a ramp planned over ``ramp_steps`` steps."""
+    return math.ceil(config.exploration_fraction * ramp_steps)
+
+
 def _lr_step_size(steps: int) -> int:
     """Steps between halvings of the learning rate: a quarter of the run."""
     return max(1, steps // 4)
@@ -557,7 +562,8 @@ def fit_subspace(
             ``STEM.pt`` + ``STEM.json``.
         resume: Continue from ``STEM.fit.pt`` (same scene and config required, except ``steps``:
             a larger value extends a fit, with the learning-rate schedule recomputed for the new
-            length from the step reached on; rho keeps the ramp of the first length).
+            length from the step reached on; rho keeps the ramp of the first length, so ``steps``
+            may not end the fit before rho reaches 1 (:func:`ramp_end`), nor before the steps done).
         callbacks: Called as ``cb(step, terms)`` after every step.
         progress: Show a tqdm bar with the energy, pair and stretch terms.
         command: The command line recorded in the metadata (default: a `redsim fit` line).
@@ -922,26 +928,40 @@ def _load_training_state(
             "(the fit's recorded command has them)",
             str(path),
         )
-    step = int(state["step"])
-    if config.steps < step:
-        raise CheckpointError(
-            f"steps must be >= the {step} steps already done to resume, got {config.steps}", str(path)
+    step, saved_steps = int(state["step"]), int(state["config"]["steps"])
+    ramp_steps = int(state.get("ramp_steps", saved_steps))
+    minimum = max(step, ramp_end(config, ramp_steps))
+    if config.steps < minimum:
+        why = (
+            f"{step} steps are done"
+            if minimum == step
+            else f"rho, ramped for {ramp_steps} steps, reaches 1 at step {minimum} (the saved map is the one at rho 1)"
         )
+        raise CheckpointError(f"steps must be >= {minimum} to resume, got {config.steps}: {why}", str(path))
     model.load_state_dict(state["model"])
     optimizer.load_state_dict(state["optimizer"])
     scheduler.load_state_dict(state["scheduler"])
     generator.set_state(state["generator"])
-    saved_steps = int(state["config"]["steps"])
     return {
         "step": step,
         "elapsed": float(state["elapsed"]),
         "history": list(state["history"]),
         "steps": saved_steps,
-        "ramp_steps": int(state.get("ramp_steps", saved_steps)),
+        "ramp_steps": ramp_steps,
         "extensions": list(state.get("extensions", [])),
         "command": state.get("command", ""),
         "seed": state.get("seed"),
     }
+
+
+def planned_steps(stem: str | Path) -> int | None:
+    """The length (``steps``) of the fit whose training state is at ``STEM.fit.pt``; None without a readable one
+    (resuming it says why)."""
+    try:
+        state = torch.load(checkpoint_path(stem, ".fit.pt"), map_location="cpu", weights_only=True)
+        return int(state["config"]["steps"])
+    except Exception:
+        return None
 
 
 def _reschedule(optimizer: torch.optim.Optimizer, scheduler: Any, config: FitConfig, step: int) -> None:

@@ -35,7 +35,7 @@ FIT_FLAGS: tuple[tuple[str, str, Any, str], ...] = (
     ("--dim", "latent_dim", int, "latent dimension d"),
     ("--sigma", "sigma", float, "target Lipschitz scale σ [sqrt(kg) m per unit z]"),
     ("--lam", "lam", float, "weight λ of the pair term"),
-    ("--steps", "steps", int, "Adam steps (with --resume, a larger N extends a finished or interrupted fit)"),
+    ("--steps", "steps", int, "Adam steps (with --resume: the fit's own unless given; a larger N extends it)"),
     ("--batch", "batch_size", int, "latent samples per step"),
     ("--lr", "learning_rate", float, "initial learning rate (halved after each quarter)"),
     ("--width", "hidden_width", int, "MLP hidden width"),
@@ -135,13 +135,15 @@ def _drop_preset_anchor_map(args: argparse.Namespace, fields: dict[str, Any], sc
 
 def cmd_fit(args: argparse.Namespace) -> int:
     from redsim.trainers import fit_subspace
-    from redsim.trainers.fit import fit_command
+    from redsim.trainers.fit import fit_command, planned_steps
 
     scene = scene_from_args(args)
     config = _fit_config(args, scene.name)
     stem = Path(args.out) if args.out else Path(f"{scene.name}_d{config.latent_dim}")
     if stem.name in ("", ".", ".."):
         raise CliError(f"--out must name a checkpoint stem (e.g. DIR/NAME), got {args.out!r}")
+    if args.resume and args.steps is None and (steps := planned_steps(stem)) is not None:
+        config = dataclasses.replace(config, steps=steps)  # the fit's own length, not the preset's
     if args.resume and args.overwrite:
         raise CliError("give --resume (continue the fit at the stem) or --overwrite (replace it), not both")
     existing = [p for p in (checkpoint_path(stem, ".pt"), checkpoint_path(stem, ".fit.pt")) if p.is_file()]
@@ -308,9 +310,10 @@ def add_commands(sub: Any) -> None:
             "Fit f(z) -> q by the paper's loss from the scene's energy alone. Defaults per scene come from "
             "Table 1 (redsim.trainers.presets); flags override them. Writes OUT.pt + OUT.json (and OUT.fit.pt, "
             "the resumable training state); an existing fit there is refused unless --resume or --overwrite. "
-            "Ctrl-C saves the state; rerun with --resume to continue, or with "
+            "Ctrl-C saves the state; rerun with --resume to continue to the fit's own length, or with "
             "--resume and a larger --steps to extend a fit (the learning-rate schedule is recomputed for the new "
-            "length and recorded in the .json)."
+            "length and recorded in the .json; ρ keeps its first ramp, so a --steps that ends the fit before ρ "
+            "reaches 1 is refused)."
         ),
         epilog="Exit status: 0 done, 2 bad input, 3 the loss became NaN/inf, 130 interrupted (resumable).",
     )
