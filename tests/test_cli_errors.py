@@ -289,6 +289,20 @@ def test_any_interrupted_command_exits_130_with_one_line_and_no_traceback(
     assert (code, out, err) == (130, "", "redsim: warning: interrupted\n")
 
 
+def test_a_resume_that_keeps_the_map_keeps_its_cubature(cli: Cli, tmp_path: Path) -> None:
+    stem = str(tmp_path / "k")
+    argv = ["fit", "toy_two_tets", *SMALL, "--out", stem, "--json"]
+    assert cli(*argv, "--steps", "4")[0] == 0
+    assert cli("cubature", stem + ".pt", "--elements", "1", "--samples", "16", "--episodes", "0", "--json")[0] == 0
+    weights, cubature = (tmp_path / "k.pt").read_bytes(), (tmp_path / "k.cubature.json").read_text()
+    code, _, err = cli(*argv, "--steps", "4", "--resume")  # already at 4 steps: none run, the same map
+    assert code == 0, err
+    assert (tmp_path / "k.pt").read_bytes() == weights and (tmp_path / "k.cubature.json").read_text() == cubature
+    with pytest.warns(UserWarning, match="k.cubature.json: it was built for the map this fit replaced"):
+        code, _, err = cli(*argv, "--steps", "6", "--resume")  # extended: another map
+    assert code == 0 and not (tmp_path / "k.cubature.json").exists(), err
+
+
 def test_a_closed_pipe_gives_no_traceback() -> None:
     done = subprocess.run(
         f"{sys.executable} -m redsim scenes | head -c 1", shell=True, capture_output=True, text=True, timeout=120

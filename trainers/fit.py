@@ -95,6 +95,7 @@ from redsim.subspace import (
     SubspaceConfig,
     SubspaceMap,
     checkpoint_path,
+    map_fingerprint,
     pair_log_ratios,
     sample_latents,
     write_atomically,
@@ -741,21 +742,28 @@ def fit_subspace(
     model = model.cpu()
     if out is not None:
         model.save(out)
-        _remove_stale_cubature(out)
+        _remove_stale_cubature(out, model)
     return FitResult(model, history, fit_seconds)
 
 
-def _remove_stale_cubature(stem: str | Path) -> None:
-    """Delete (saying so) the cubature beside ``stem`` made for the map this fit replaced: it would be refused."""
-    from redsim.cubature.energy import cubature_path
+def _remove_stale_cubature(stem: str | Path, model: torch.nn.Module) -> None:
+    """Delete (saying so) the cubature beside ``stem`` unless it records ``model``'s weights hash: one made for the map
+    this fit replaced would be refused (a resume that ran no step keeps the map, and its cubature)."""
+    from redsim.cubature.energy import Cubature, cubature_path
 
     stale = cubature_path(stem)
-    if stale.is_file():
-        stale.unlink()
-        warnings.warn(
-            f"removed {stale}: it was built for the map this fit replaced (rebuild it: redsim cubature {stem})",
-            stacklevel=3,
-        )
+    if not stale.is_file():
+        return
+    try:
+        if Cubature.load(stale).map_fingerprint == map_fingerprint(model):
+            return
+    except CheckpointError:  # unreadable: no use to any map
+        pass
+    stale.unlink()
+    warnings.warn(
+        f"removed {stale}: it was built for the map this fit replaced (rebuild it: redsim cubature {stem})",
+        stacklevel=3,
+    )
 
 
 def _check_drivers(scene: Scene, config: FitConfig) -> None:
