@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import json
+import shlex
 import subprocess
 import sys
 from collections.abc import Callable
@@ -13,7 +14,7 @@ import torch
 
 import redsim
 from redsim.cli import build_parser
-from redsim.subspace import CheckpointError, load_subspace
+from redsim.subspace import CheckpointError, load_subspace, read_metadata
 from redsim.trainers import FitConfig
 
 Cli = Callable[..., tuple[int, str, str]]
@@ -124,6 +125,33 @@ def test_resume_continues_to_the_fits_own_length_and_refuses_one_ending_before_r
     meta = json.loads(out)
     assert meta["fit"]["steps"] == 20 and meta["schedule"]["extensions"] == []
     assert torch.load(f"{stem}.fit.pt", weights_only=True)["history"][-1]["rho"] == 1.0
+
+
+def test_the_recorded_command_of_an_interrupted_then_extended_fit_reproduces_it(cli: Cli, tmp_path: Path) -> None:
+    from redsim.scenes import build
+    from redsim.trainers import fit_subspace
+
+    def interrupt(step: int, _terms: dict) -> None:
+        if step == 7:
+            raise KeyboardInterrupt  # Ctrl-C after step 7 of 12
+
+    config = FitConfig(latent_dim=2, hidden_width=8, hidden_layers=1, steps=12)  # what SMALL asks for
+    with pytest.raises(KeyboardInterrupt):
+        fit_subspace(build("toy_two_tets"), config, out=tmp_path / "a", progress=False, callbacks=[interrupt])
+    code, out, err = cli("fit", "toy_two_tets", *SMALL, "--steps", "20", "--out", str(tmp_path / "a"), "--resume")
+    assert code == 0, err
+    command = read_metadata(tmp_path / "a.pt")["command"]
+    assert " --steps 12 " in command and " --stop-at 7 && " in command and command.endswith(" --resume")
+    outputs = []
+    for part in command.split(" && "):  # run the record into an empty folder
+        argv = shlex.split(part)[1:]
+        argv[argv.index("--out") + 1] = str(tmp_path / "again" / "b")
+        code, out, err = cli(*argv)
+        assert code == 0, err
+        outputs.append(out)
+    a, b = (torch.load(tmp_path / name, weights_only=True) for name in ("a.pt", "again/b.pt"))
+    assert a.keys() == b.keys() and all(torch.equal(a[k], b[k]) for k in a)
+    assert outputs[0].startswith("stopped after step 7 of 12; continue with: redsim fit toy_two_tets ")
 
 
 def test_absurd_load_fails_the_step(cli: Cli) -> None:

@@ -322,6 +322,20 @@ _ROUND_OFF_ONLY = ("fused_adam", "compile")
 """FitConfig fields that change a fit only by round-off: a fit may resume with other values of them."""
 
 
+class FitStopped(Exception):
+    """A fit stopped at ``stop_at``, before its last step; its training state is saved for ``resume``.
+
+    Attributes:
+        step: Steps done.
+        state: The training state, ``STEM.fit.pt``.
+    """
+
+    def __init__(self, step: int, state: Path) -> None:
+        super().__init__(f"stopped after step {step}; the training state is in {state}")
+        self.step = step
+        self.state = state
+
+
 class FitResult(NamedTuple):
     """What :func:`fit_subspace` returns."""
 
@@ -550,6 +564,7 @@ def fit_subspace(
     callbacks: Sequence[Callback] = (),
     progress: bool = True,
     command: str | None = None,
+    stop_at: int | None = None,
     **overrides: Any,
 ) -> FitResult:
     """Fit a neural subspace to ``scene`` from its energy alone.
@@ -568,13 +583,18 @@ def fit_subspace(
         callbacks: Called as ``cb(step, terms)`` after every step.
         progress: Show a tqdm bar with the energy, pair and stretch terms.
         command: The command line recorded in the metadata (default: a `redsim fit` line).
+        stop_at: Stop when this many steps are done, before ``config.steps``, as Ctrl-C does: the training state is
+            saved (``resume`` continues it), no map is written, and :class:`FitStopped` is raised. Needs ``out``.
         **overrides: FitConfig fields replacing those of ``config`` (``dim`` is an alias of
             ``latent_dim``), e.g. ``fit_subspace(scene, dim=8, sigma=1.0, lam=1.0, steps=2000)``.
 
     Raises:
-        ValueError: bad config, a conditional fit on a scene without conditions, or
-            ``resume`` with no matching checkpoint.
+        ValueError: bad config, a conditional fit on a scene without conditions, ``resume`` with no matching
+            checkpoint, or ``stop_at`` outside [steps done, ``config.steps``) or without ``out``.
+        FitStopped: the fit stopped at ``stop_at``.
     """
+    if stop_at is not None and out is None:
+        raise ValueError("stop_at needs out (the training state is saved there)")
     if "dim" in overrides:
         overrides["latent_dim"] = overrides.pop("dim")
     unknown = sorted(set(overrides) - {f.name for f in dataclasses.fields(FitConfig)})
@@ -643,11 +663,15 @@ def fit_subspace(
         if saved["steps"] != config.steps:
             _reschedule(optimizer, scheduler, config, start_step)
             extensions.append({"at_step": start_step, "from_steps": saved["steps"], "to_steps": config.steps})
-            command = f"{saved['command']} && {command} --resume" if saved["command"] else command
+            if saved["command"]:  # the stop too where it came before the first length's end: the rescheduling step
+                stop = f" --stop-at {start_step}" if start_step < saved["steps"] else ""
+                command = f"{saved['command']}{stop} && {command} --resume"
         else:
             command = saved["command"]
         _set_fused(optimizer, fused)
         log.info("resuming %s at step %d of %d", state_path, start_step, config.steps)
+    if stop_at is not None and not start_step <= stop_at < config.steps:
+        raise ValueError(f"stop_at must be < steps ({config.steps}) and >= the {start_step} steps done, got {stop_at}")
 
     bar = None
     if progress:
@@ -680,7 +704,7 @@ def fit_subspace(
             )
 
     try:
-        for step in range(start_step, config.steps):
+        for step in range(start_step, config.steps if stop_at is None else stop_at):
             z = batch_latents(config, generator, dtype)
             cond = None
             if work.condition_space is not None:
@@ -720,6 +744,9 @@ def fit_subspace(
         if bar is not None:
             bar.close()
     save_state()  # the end state too, so that a finished fit can be extended (--resume with more --steps)
+    if completed < config.steps:
+        assert state_path is not None  # stop_at needs out
+        raise FitStopped(completed, state_path)
     fit_seconds = elapsed + time.perf_counter() - clock
     tail = history[-min(len(history), 100) :]
     model.metadata = {

@@ -135,7 +135,7 @@ def _drop_preset_anchor_map(args: argparse.Namespace, fields: dict[str, Any], sc
 
 def cmd_fit(args: argparse.Namespace) -> int:
     from redsim.trainers import fit_subspace
-    from redsim.trainers.fit import fit_command, planned_steps
+    from redsim.trainers.fit import FitStopped, fit_command, planned_steps
 
     scene = scene_from_args(args)
     config = _fit_config(args, scene.name)
@@ -157,8 +157,21 @@ def cmd_fit(args: argparse.Namespace) -> int:
     command = fit_command(scene, config, args.seed, stem)
     try:
         result = fit_subspace(
-            scene, config, seed=args.seed, out=stem, resume=args.resume, progress=not args.json, command=command
+            scene,
+            config,
+            seed=args.seed,
+            out=stem,
+            resume=args.resume,
+            progress=not args.json,
+            command=command,
+            stop_at=args.stop_at,
         )
+    except FitStopped as stop:
+        if args.json:
+            json_out({"stopped_at": stop.step, "steps": config.steps, "training_state": str(stop.state)})
+        else:
+            out(f"stopped after step {stop.step} of {config.steps}; continue with: {command} --resume")
+        return EXIT_OK
     except KeyboardInterrupt:
         state = checkpoint_path(stem, ".fit.pt")
         if state.is_file():
@@ -310,12 +323,15 @@ def add_commands(sub: Any) -> None:
             "Fit f(z) -> q by the paper's loss from the scene's energy alone. Defaults per scene come from "
             "Table 1 (redsim.trainers.presets); flags override them. Writes OUT.pt + OUT.json (and OUT.fit.pt, "
             "the resumable training state); an existing fit there is refused unless --resume or --overwrite. "
-            "Ctrl-C saves the state; rerun with --resume to continue to the fit's own length, or with "
+            "Ctrl-C (or --stop-at) saves the state; rerun with --resume to continue to the fit's own length, or with "
             "--resume and a larger --steps to extend a fit (the learning-rate schedule is recomputed for the new "
-            "length and recorded in the .json; ρ keeps its first ramp, so a --steps that ends the fit before ρ "
-            "reaches 1 is refused)."
+            "length and recorded in the .json, an interruption as --stop-at in its command; ρ keeps its first ramp, "
+            "so a --steps that ends the fit before ρ reaches 1 is refused)."
         ),
-        epilog="Exit status: 0 done, 2 bad input, 3 the loss became NaN/inf, 130 interrupted (resumable).",
+        epilog=(
+            "Exit status: 0 done (or stopped by --stop-at), 2 bad input, 3 the loss became NaN/inf, "
+            "130 interrupted (resumable)."
+        ),
     )
     add_scene_args(p)
     fit_defaults = _fit_defaults()
@@ -340,6 +356,13 @@ def add_commands(sub: Any) -> None:
     )
     p.add_argument("--out", default=None, metavar="STEM", help="checkpoint stem (default SCENE_dD)")
     p.add_argument("--resume", action="store_true", help="continue from STEM.fit.pt")
+    p.add_argument(
+        "--stop-at",
+        type=int,
+        default=None,
+        metavar="N",
+        help="stop when N steps are done, saving STEM.fit.pt as Ctrl-C does (exit 0; --resume continues)",
+    )
     p.add_argument(
         "--overwrite", action="store_true", help="replace an existing fit at STEM (without it, one is refused)"
     )
