@@ -88,6 +88,8 @@ import torch
 from torch import Tensor
 
 from redsim.devices import DTYPES, check_device
+from redsim.interrupts import deferred_interrupts
+from redsim.progress import progress_bar
 from redsim.scene import Scene
 from redsim.subspace import (
     AnchoredSubspace,
@@ -675,9 +677,7 @@ def fit_subspace(
 
     bar = None
     if progress:
-        from tqdm.auto import tqdm
-
-        bar = tqdm(total=config.steps, initial=start_step, desc=f"fit {scene.name}", dynamic_ncols=True)
+        bar = progress_bar(total=config.steps, initial=start_step, desc=f"fit {scene.name}", dynamic_ncols=True)
     completed, generator_state = start_step, generator.get_state()
     loss_fn = torch.compile(_loss_tensors, dynamic=False) if config.compile else _loss_tensors
     clock = time.perf_counter()
@@ -703,46 +703,50 @@ def fit_subspace(
                 },
             )
 
-    try:
-        for step in range(start_step, config.steps if stop_at is None else stop_at):
-            z = batch_latents(config, generator, dtype)
-            cond = None
-            if work.condition_space is not None:
-                cond = (
-                    work.condition_space.sample(config.batch_size, generator)
-                    if config.conditional
-                    else work.pack_condition(None, config.batch_size)
+    with deferred_interrupts() as interrupt_point:
+        try:
+            for step in range(start_step, config.steps if stop_at is None else stop_at):
+                z = batch_latents(config, generator, dtype)
+                cond = None
+                if work.condition_space is not None:
+                    cond = (
+                        work.condition_space.sample(config.batch_size, generator)
+                        if config.conditional
+                        else work.pack_condition(None, config.batch_size)
+                    )
+                rho = rho_at(step, config, ramp_steps)
+                loss, terms = subspace_loss(
+                    work, model, z, cond, rho, config, step, anchors, targets, ramp_steps, loss_fn
                 )
-            rho = rho_at(step, config, ramp_steps)
-            loss, terms = subspace_loss(work, model, z, cond, rho, config, step, anchors, targets, ramp_steps, loss_fn)
-            if not torch.isfinite(loss):
-                raise FloatingPointError(
-                    f"loss became {float(loss)} at step {step} (terms {terms}); lower the learning rate or sigma"
-                )
-            optimizer.zero_grad(set_to_none=True)
-            loss.backward()
-            optimizer.step()
-            scheduler.step()
-            terms = {"step": step + 1, "loss": float(loss.detach()), "rho": rho, **terms}
-            history.append(terms)
-            completed, generator_state = step + 1, generator.get_state()
-            for cb in callbacks:
-                cb(completed, terms)
+                if not torch.isfinite(loss):
+                    raise FloatingPointError(
+                        f"loss became {float(loss)} at step {step} (terms {terms}); lower the learning rate or sigma"
+                    )
+                optimizer.zero_grad(set_to_none=True)
+                loss.backward()
+                optimizer.step()
+                scheduler.step()
+                terms = {"step": step + 1, "loss": float(loss.detach()), "rho": rho, **terms}
+                history.append(terms)
+                completed, generator_state = step + 1, generator.get_state()
+                for cb in callbacks:
+                    cb(completed, terms)
+                if bar is not None:
+                    bar.update(1)
+                    bar.set_postfix(
+                        E=f"{terms['energy']:.3g}", pair=f"{terms['pair']:.3g}", stretch=f"{terms['stretch']:.3f}"
+                    )
+                if config.checkpoint_every and completed % config.checkpoint_every == 0:
+                    save_state()
+                interrupt_point()  # a Ctrl-C during the step stops here, between steps
+        except KeyboardInterrupt:
+            save_state()
+            if state_path is not None:
+                log.warning("interrupted after step %d; rerun with --resume to continue (%s)", completed, state_path)
+            raise
+        finally:
             if bar is not None:
-                bar.update(1)
-                bar.set_postfix(
-                    E=f"{terms['energy']:.3g}", pair=f"{terms['pair']:.3g}", stretch=f"{terms['stretch']:.3f}"
-                )
-            if config.checkpoint_every and completed % config.checkpoint_every == 0:
-                save_state()
-    except KeyboardInterrupt:
-        save_state()
-        if state_path is not None:
-            log.warning("interrupted after step %d; rerun with --resume to continue (%s)", completed, state_path)
-        raise
-    finally:
-        if bar is not None:
-            bar.close()
+                bar.close()
     save_state()  # the end state too, so that a finished fit can be extended (--resume with more --steps)
     if completed < config.steps:
         assert state_path is not None  # stop_at needs out

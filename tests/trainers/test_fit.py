@@ -153,6 +153,35 @@ def test_fixed_seed_reproduces_and_resume_continues_the_same_run(tmp_path) -> No
     assert torch.equal(resumed.subspace(z), straight.subspace(z))
 
 
+def test_a_ctrl_c_inside_a_step_stops_after_it_and_the_resume_is_the_same_run(tmp_path) -> None:
+    import os
+    import signal
+
+    from torch.optim.optimizer import register_optimizer_step_post_hook
+
+    scene = _tet_scene()
+    config = FitConfig(latent_dim=2, sigma=0.05, steps=12, hidden_width=16)
+    straight = fit_subspace(scene, config, seed=3, progress=False)
+    updates = []
+
+    def ctrl_c_after_the_update(optimizer: torch.optim.Optimizer, args: object, kwargs: object) -> None:
+        updates.append(1)
+        if len(updates) == 5:  # the weights moved; the step is not counted yet
+            os.kill(os.getpid(), signal.SIGINT)
+
+    hook = register_optimizer_step_post_hook(ctrl_c_after_the_update)
+    try:
+        with pytest.raises(KeyboardInterrupt):
+            fit_subspace(scene, config, seed=3, progress=False, out=tmp_path / "c")
+    finally:
+        hook.remove()
+    assert torch.load(tmp_path / "c.fit.pt", weights_only=False)["step"] == 5  # the step it was inside, finished
+    resumed = fit_subspace(scene, config, seed=3, progress=False, out=tmp_path / "c", resume=True)
+    z = torch.randn(4, 2)
+    assert torch.equal(resumed.subspace(z), straight.subspace(z))
+    assert signal.getsignal(signal.SIGINT) is signal.default_int_handler  # restored
+
+
 def test_resume_refuses_other_settings_and_missing_state(tmp_path) -> None:
     scene = _tet_scene()
     config = FitConfig(latent_dim=2, steps=10, checkpoint_every=5, hidden_width=8)

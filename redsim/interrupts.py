@@ -1,0 +1,45 @@
+"""Ctrl-C between the steps of a loop, not inside one.
+
+A KeyboardInterrupt raised in the middle of a training step (between the optimizer's update and the line that counts
+the step, or between two parameter groups of the update) leaves a state whose weights and step count disagree, and
+a resume from it is no longer the run it continues. :func:`deferred_interrupts` holds Ctrl-C (and a SIGTERM that
+someone has made raise, as the ``redsim`` command line does; an ignored signal stays ignored) until the loop calls
+its check at a step boundary; a second signal raises at once, for a step that never ends.
+"""
+
+from __future__ import annotations
+
+import contextlib
+import signal
+import threading
+from collections.abc import Callable, Iterator
+from types import FrameType
+
+
+@contextlib.contextmanager
+def deferred_interrupts() -> Iterator[Callable[[], None]]:
+    """Within the block, SIGINT (and SIGTERM where a Python handler is set for it) only records the signal; the
+    yielded ``check()`` raises KeyboardInterrupt once one was recorded. Off the main thread (where signals cannot be
+    handled) ``check`` does nothing and signals keep their handlers."""
+    if threading.current_thread() is not threading.main_thread():
+        yield lambda: None
+        return
+    pending: list[int] = []
+
+    def record(signum: int, frame: FrameType | None) -> None:
+        if pending:  # the second one: the step is not ending, stop now
+            raise KeyboardInterrupt(f"signal {signum}")
+        pending.append(signum)
+
+    wanted = [s for s in (signal.SIGINT, signal.SIGTERM) if callable(signal.getsignal(s))]  # not ignored or default
+    previous = {signum: signal.signal(signum, record) for signum in wanted}
+
+    def check() -> None:
+        if pending:
+            raise KeyboardInterrupt(f"signal {pending[0]}")
+
+    try:
+        yield check
+    finally:
+        for signum, handler in previous.items():
+            signal.signal(signum, handler)
