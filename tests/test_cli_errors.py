@@ -331,6 +331,16 @@ def test_a_resume_that_keeps_the_map_keeps_its_cubature(cli: Cli, tmp_path: Path
     assert code == 0 and not (tmp_path / "k.cubature.json").exists(), err
 
 
+def test_a_fit_whose_sigma_is_far_too_large_for_its_scene_is_warned_about(cli: Cli, tmp_path: Path) -> None:
+    argv = ["fit", "toy_two_tets", *SMALL, "--steps", "40", "--json"]
+    code, out, err = cli(*argv, "--sigma", "1000", "--out", str(tmp_path / "far"))
+    stretch = json.loads(out)["final"]["stretch"]
+    assert code == 0 and stretch < 1e-3 and err.count("\n") == 1, err
+    assert "mean metric stretch" in err and f"try --sigma near {1000 * stretch:.2g} " in err
+    code, out, err = cli(*argv, "--sigma", "0.05", "--out", str(tmp_path / "near"))
+    assert code == 0 and json.loads(out)["final"]["stretch"] > 0.5 and err == ""
+
+
 def test_a_closed_pipe_gives_no_traceback() -> None:
     done = subprocess.run(
         f"{sys.executable} -m redsim scenes | head -c 1", shell=True, capture_output=True, text=True, timeout=120

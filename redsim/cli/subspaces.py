@@ -71,6 +71,7 @@ FIT_FLAGS: tuple[tuple[str, str, Any, str], ...] = (
     ("--fused-adam", "fused_adam", bool, "fused Adam (--no-fused-adam: plain Adam)"),
     ("--compile", "compile", bool, "torch.compile the loss: faster steps after a compile of tens of seconds"),
 )
+LOW_STRETCH = 0.1  # a fit whose mean metric stretch ends below this is warned about (its sigma is too large)
 FIELD_FLAGS = {field: flag for flag, field, _kind, _help in FIT_FLAGS} | {
     "periodic": "--periodic",
     "conditional": "--cond",
@@ -196,6 +197,14 @@ def cmd_fit(args: argparse.Namespace) -> int:
             f"mean metric stretch {final['stretch']:.4f}"
         )
         out(f"wrote {summary['checkpoint']} and {summary['metadata']}")
+    stretch = meta["final"]["stretch"]
+    if stretch < LOW_STRETCH:
+        warn(
+            f"the map spreads its samples {100 * stretch:.2g}% as far as sigma ({config.sigma:g}) asks (mean metric "
+            f"stretch {stretch:.3g}): sigma is large for this scene's energy and its states sit near one "
+            f"configuration; try --sigma near {config.sigma * stretch:.2g} (sigma times the stretch: the spread this "
+            "fit reached)"
+        )
     return EXIT_OK
 
 
@@ -345,7 +354,8 @@ def add_commands(sub: Any) -> None:
                 help=f"{text} (default: preset, else {default})",
             )
         else:
-            p.add_argument(flag, dest=field, type=kind, default=None, help=f"{text} (default: scene preset)")
+            default = fit_defaults[field]
+            p.add_argument(flag, dest=field, type=kind, default=None, help=f"{text} (default: preset, else {default})")
     p.add_argument("--periodic", default=None, metavar="I,J", help="latent indices that are angles")
     p.add_argument(
         "--soften", default=None, metavar="A,B", help="scene effects whose energy rises from --soften-from to full"
