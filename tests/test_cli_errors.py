@@ -356,6 +356,9 @@ def test_a_fit_at_an_existing_stem_is_refused_without_resume_or_overwrite(cli: C
     code, _, err = cli(*argv, "--seed", "1")
     assert code == 2 and "a fit exists at" in err and "--overwrite" in err
     assert (tmp_path / "f.pt").read_bytes() == before  # untouched
+    mesh = ["fit", "--mesh", str(tmp_path / "not_made_yet.stl"), "--kind", "fem", "--out", stem]
+    code, _, err = cli(*mesh)  # refused before the scene is built (a mesh's voxelization can take minutes)
+    assert code == 2 and "a fit exists at" in err, err
     assert cli(*argv, "--resume", "--overwrite")[0] == 2
     stale = tmp_path / "f.fit.pt"
     assert stale.is_file()

@@ -134,25 +134,32 @@ def _drop_preset_anchor_map(args: argparse.Namespace, fields: dict[str, Any], sc
     fields.pop("anchor_radius", None)
 
 
-def cmd_fit(args: argparse.Namespace) -> int:
-    from redsim.trainers import fit_subspace
-    from redsim.trainers.fit import FitStopped, fit_command, planned_steps
-
-    scene = scene_from_args(args)
-    config = _fit_config(args, scene.name)
-    stem = Path(args.out) if args.out else Path(f"{scene.name}_d{config.latent_dim}")
+def _check_stem(stem: Path, args: argparse.Namespace) -> None:
+    """Refuse a stem that names no file, or one that holds a fit, unless ``--resume`` or ``--overwrite``."""
     if stem.name in ("", ".", ".."):
         raise CliError(f"--out must name a checkpoint stem (e.g. DIR/NAME), got {args.out!r}")
-    if args.resume and args.steps is None and (steps := planned_steps(stem)) is not None:
-        config = dataclasses.replace(config, steps=steps)  # the fit's own length, not the preset's
-    if args.resume and args.overwrite:
-        raise CliError("give --resume (continue the fit at the stem) or --overwrite (replace it), not both")
     existing = [p for p in (checkpoint_path(stem, ".pt"), checkpoint_path(stem, ".fit.pt")) if p.is_file()]
     if existing and not (args.resume or args.overwrite):  # minutes to hours of work: not replaced silently
         raise CliError(
             f"a fit exists at {existing[0]}: continue it with --resume (a larger --steps extends it), or replace it "
             "with --overwrite"
         )
+
+
+def cmd_fit(args: argparse.Namespace) -> int:
+    from redsim.trainers import fit_subspace
+    from redsim.trainers.fit import FitStopped, fit_command, planned_steps
+
+    if args.resume and args.overwrite:
+        raise CliError("give --resume (continue the fit at the stem) or --overwrite (replace it), not both")
+    if args.out:  # refused before the scene is built (a mesh's voxelization can take minutes)
+        _check_stem(Path(args.out), args)
+    scene = scene_from_args(args)
+    config = _fit_config(args, scene.name)
+    stem = Path(args.out) if args.out else Path(f"{scene.name}_d{config.latent_dim}")
+    _check_stem(stem, args)
+    if args.resume and args.steps is None and (steps := planned_steps(stem)) is not None:
+        config = dataclasses.replace(config, steps=steps)  # the fit's own length, not the preset's
     if args.overwrite:  # the old training state must not be taken for the new fit's (an interrupt's advice)
         checkpoint_path(stem, ".fit.pt").unlink(missing_ok=True)
     command = fit_command(scene, config, args.seed, stem)
