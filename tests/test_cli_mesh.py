@@ -158,3 +158,12 @@ def test_mesh_argument_errors(cli: Cli, argv: list[str], expected: str) -> None:
     code, out, err = cli(*argv)
     assert code == 2 and out == "" and err.count("\n") == 1
     assert expected in err
+
+
+def test_the_default_stem_stays_in_the_working_folder_whatever_the_scene_name(
+    box: Path, tmp_path: Path, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    monkeypatch.chdir(tmp_path)
+    argv = ["fit", "--mesh", str(box), *MESH_ARGS, "--param", 'name="../escape"', "--steps", "2", "--dim", "2"]
+    assert main([*argv, "--width", "8", "--layers", "1", "--sigma", "0.01", "--json"]) == 0
+    assert (tmp_path / ".._escape_d2.pt").is_file() and not (tmp_path.parent / "escape_d2.pt").exists()

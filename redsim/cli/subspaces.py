@@ -18,6 +18,7 @@ from redsim.cli.common import (
     SceneNotRebuilt,
     add_scene_args,
     error,
+    file_name,
     finish_command,
     json_out,
     load_checkpoint,
@@ -156,7 +157,7 @@ def cmd_fit(args: argparse.Namespace) -> int:
         _check_stem(Path(args.out), args)
     scene = scene_from_args(args)
     config = _fit_config(args, scene.name)
-    stem = Path(args.out) if args.out else Path(f"{scene.name}_d{config.latent_dim}")
+    stem = Path(args.out) if args.out else Path(file_name(f"{scene.name}_d{config.latent_dim}"))  # in this folder
     _check_stem(stem, args)
     if args.resume and args.steps is None and (steps := planned_steps(stem)) is not None:
         config = dataclasses.replace(config, steps=steps)  # the fit's own length, not the preset's

@@ -33,6 +33,23 @@ from redsim.scenes.toolkit import (
 if TYPE_CHECKING:  # imported where used: import redsim needs none of trimesh (slow to import)
     import trimesh
 
+MAX_VOXELS = 2_000_000  # a voxel_pitch that would fill the mesh with more is refused (minutes and GBs to voxelize)
+
+
+def _check_voxel_count(mesh: trimesh.Trimesh, pitch: float) -> None:
+    """Refuse a voxel pitch [m] that fills the mesh with more than :data:`MAX_VOXELS` voxels or less than one."""
+    voxels = abs(float(mesh.volume)) / pitch**3
+    if voxels > MAX_VOXELS:
+        raise ValueError(
+            f"voxel_pitch {pitch:g} m would fill this mesh ({abs(float(mesh.volume)):.3g} m^3) with ~{voxels:.3g} "
+            f"voxels (at most {MAX_VOXELS:.0e}); choose a larger voxel_pitch, or target_dofs instead"
+        )
+    if voxels < 1:
+        raise ValueError(
+            f"voxel_pitch {pitch:g} m is larger than this mesh ({abs(float(mesh.volume)):.3g} m^3, ~{voxels:.2g} "
+            "voxels): the solid would be a single voxel; choose a smaller voxel_pitch"
+        )
+
 
 def _mesh_input(mesh_or_path: trimesh.Trimesh | str | os.PathLike[str]) -> tuple[trimesh.Trimesh, str]:
     import trimesh
@@ -161,6 +178,7 @@ def fem_scene_from_mesh(
         pitch = meshes.pitch_for_vertex_count(mesh, target // 3)
     else:
         pitch = check_positive("voxel_pitch", voxel_pitch)
+        _check_voxel_count(mesh, pitch)
     vertices, tets = meshes.voxel_tet_mesh(mesh, pitch)
     pinned = select_vertices(vertices, pin, tolerance=0.25 * pitch)
     _check_pins(pin, pinned, vertices, tets, gravity)

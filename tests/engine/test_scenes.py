@@ -261,6 +261,11 @@ def test_fem_scene_from_mesh_file(tmp_path, suffix: str) -> None:
     assert other.fingerprint() != scene.fingerprint()
     with pytest.raises(ValueError, match="pin"):
         redsim.scenes.fem_scene_from_mesh(path, voxel_pitch=0.05, pin="top")
+    # A pitch that would take minutes and GBs to voxelize, or one larger than the mesh, is refused up front.
+    with pytest.raises(ValueError, match=r"voxel_pitch 0.0005 m would fill this mesh .* voxels \(at most 2e\+06\)"):
+        redsim.scenes.fem_scene_from_mesh(path, voxel_pitch=5e-4)
+    with pytest.raises(ValueError, match="voxel_pitch 1 m is larger than this mesh"):
+        redsim.scenes.fem_scene_from_mesh(path, voxel_pitch=1.0)
 
 
 def test_cloth_scene_from_mesh(tmp_path) -> None:
