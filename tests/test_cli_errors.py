@@ -341,6 +341,28 @@ def test_a_fit_whose_sigma_is_far_too_large_for_its_scene_is_warned_about(cli: C
     assert code == 0 and json.loads(out)["final"]["stretch"] > 0.5 and err == ""
 
 
+def test_a_fit_whose_loss_becomes_nan_exits_3_with_one_line(
+    cli: Cli, tmp_path: Path, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    import warnings
+
+    from redsim.trainers import fit as fit_module
+
+    loss = fit_module.subspace_loss
+
+    def nan_loss(*args: object, **kwargs: object) -> tuple[torch.Tensor, dict]:
+        value, terms = loss(*args, **kwargs)
+        return value * float("nan"), terms
+
+    monkeypatch.setattr(fit_module, "subspace_loss", nan_loss)
+    with warnings.catch_warnings(record=True) as caught:
+        warnings.simplefilter("always")
+        code, out, err = cli("fit", "toy_two_tets", *SMALL, "--steps", "3", "--out", str(tmp_path / "n"), "--json")
+    assert code == 3 and out == "" and err.count("\n") == 1
+    assert err.startswith("redsim: error: loss became nan at step 0")
+    assert not [w for w in caught if "requires_grad" in str(w.message)]  # no torch warning before the error
+
+
 def test_a_closed_pipe_gives_no_traceback() -> None:
     done = subprocess.run(
         f"{sys.executable} -m redsim scenes | head -c 1", shell=True, capture_output=True, text=True, timeout=120

@@ -720,7 +720,8 @@ def fit_subspace(
                 )
                 if not torch.isfinite(loss):
                     raise FloatingPointError(
-                        f"loss became {float(loss)} at step {step} (terms {terms}); lower the learning rate or sigma"
+                        f"loss became {float(loss.detach())} at step {step} (terms {terms}); lower the learning rate "
+                        "or sigma"
                     )
                 optimizer.zero_grad(set_to_none=True)
                 loss.backward()

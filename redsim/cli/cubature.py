@@ -270,7 +270,8 @@ def add_bench_command(bench: Any) -> None:
             "step under the same seeded loads, contact penetration of both, and step time per batch size side by side."
         ),
     )
-    p.add_argument("scenes", nargs="?", default="cloth_ball,hanging_sheet", help="comma-separated scene names")
+    scenes_help = "comma-separated scene names (default: %(default)s)"
+    p.add_argument("scenes", nargs="?", default="cloth_ball,hanging_sheet", help=scenes_help)
     p.add_argument("--steps", type=int, default=100, help="steps of the accuracy rollouts (default 100)")
     p.add_argument("--timed-steps", type=int, default=10, help="timed steps per batch size (default 10)")
     p.add_argument(
