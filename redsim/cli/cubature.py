@@ -101,8 +101,15 @@ def cmd_cubature(args: argparse.Namespace) -> int:
             f"held-out error {row['held_out_error']:.3g}"
         )
     s = cub.summary
+    dropped = s.get("rollout_states_dropped") or {}
+    dropped_note = (
+        f"; {sum(dropped.values())} rollout states dropped: {dropped['diverged']} diverged, "
+        f"{dropped['out_of_range']} out of the map's range"
+        if sum(dropped.values())
+        else ""
+    )
     out(
-        f"  {s['states']} states ({s['sampled_states']} sampled, {s['rollout_states']} from rollouts), "
+        f"  {s['states']} states ({s['sampled_states']} sampled, {s['rollout_states']} from rollouts{dropped_note}), "
         f"held-out force error {s['held_out_force_error']:.3g}, force+energy {s['held_out_error']:.3g}"
     )
     return EXIT_OK

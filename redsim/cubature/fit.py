@@ -133,8 +133,11 @@ def default_load_scale(scene: Scene) -> float:
     return trace / scene.dim * 9.81 / len(scene.handles)
 
 
-def training_states(scene: Scene, subspace: nn.Module, config: CubatureConfig) -> tuple[Tensor, Tensor | None]:
-    """Latents [S, d] (float64) and conditions [S, m] (or None) of the training and held-out states.
+def training_states(
+    scene: Scene, subspace: nn.Module, config: CubatureConfig
+) -> tuple[Tensor, Tensor | None, dict[str, int]]:
+    """Latents [S, d] (float64) and conditions [S, m] (or None) of the training and held-out states, and how many
+    rollout steps were dropped: ``{"diverged": ..., "out_of_range": ...}`` (a copy keeps its last kept state).
 
     ``config.samples`` draws of z ~ N(0, I) (conditions uniform in their ranges), then every state of
     ``config.episodes`` latent rollouts of ``config.steps`` steps from the rest latent under loads redrawn
@@ -147,8 +150,9 @@ def training_states(scene: Scene, subspace: nn.Module, config: CubatureConfig) -
     z = sample_latents(config.samples, d, periodic_latents(subspace), generator=generator, dtype=torch.float64)
     space = scene.condition_space
     cond = space.sample(config.samples, generator).to(torch.float64) if space is not None else None
+    dropped = {"diverged": 0, "out_of_range": 0}
     if not config.episodes or not scene.handles:
-        return z, cond
+        return z, cond, dropped
     scale = default_load_scale(scene) if config.load_scale is None else config.load_scale
     stepper = LatentStepper(scene, subspace, config.dt)
     B = int(config.episodes)
@@ -161,13 +165,15 @@ def training_states(scene: Scene, subspace: nn.Module, config: CubatureConfig) -
         nxt, stats = stepper.step(current, previous, loads[step // int(config.hold)].to(stepper.dtype), warm=model)
         model = stats.model
         keep = ~(stats.diverged | stats.out_of_range)
+        dropped["diverged"] += int(stats.diverged.sum())
+        dropped["out_of_range"] += int((stats.out_of_range & ~stats.diverged).sum())
         previous, current = current, torch.where(keep[:, None], nxt, current)
         visited.append(current[keep].to(torch.float64))
     rollout = torch.cat(visited)
     z = torch.cat([z, rollout])
     if space is not None:
         cond = torch.cat([cond, space.default.to(torch.float64).expand(rollout.shape[0], -1)])
-    return z, cond
+    return z, cond, dropped
 
 
 def element_columns(
@@ -307,7 +313,7 @@ def fit_rules(
         progress: Show a tqdm bar per subsampled effect (kept elements and held-out error).
     """
     modes = effect_modes(scene, config)
-    z, cond = training_states(scene, subspace, config)
+    z, cond, dropped = training_states(scene, subspace, config)
     scene64 = scene.to(dtype=torch.float64)
     output = AffineOutput(subspace).to(torch.float64)
     generator = torch.Generator().manual_seed(config.seed + 1)
@@ -371,6 +377,7 @@ def fit_rules(
         "states": int(z.shape[0]),
         "sampled_states": int(config.samples),
         "rollout_states": int(z.shape[0] - config.samples),
+        "rollout_states_dropped": dropped,
         "held_out_states": int(n_test),
         "train_error": float(torch.linalg.vector_norm(train_residual)) / train_norm,
         "held_out_error": float(torch.linalg.vector_norm(test_residual)) / test_norm,

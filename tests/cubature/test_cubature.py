@@ -461,3 +461,17 @@ def test_near_contact_follows_a_moving_sheared_frame(monkeypatch: pytest.MonkeyP
     (grad_dense,) = torch.autograd.grad(value_dense.sum(), z)
     torch.testing.assert_close(value_dense, value_old, rtol=1e-12, atol=1e-12)
     torch.testing.assert_close(grad_dense, grad_old, rtol=1e-10, atol=1e-10)
+
+
+def test_rollout_states_dropped_are_counted_with_their_reason(mini_chain) -> None:
+    from redsim.cubature.fit import training_states
+
+    scene, f = mini_chain
+    config = CubatureConfig(elements=4, samples=8, episodes=4, steps=10, load_scale=1e5)  # loads far outside the map
+    z, _, dropped = training_states(scene, f, config)
+    rollout = z.shape[0] - 8
+    assert dropped["out_of_range"] > 0 and rollout + sum(dropped.values()) == 4 * 10, dropped
+    assert training_states(scene, f, CubatureConfig(elements=4, samples=8, episodes=2, steps=3))[2] == {
+        "diverged": 0,
+        "out_of_range": 0,
+    }
