@@ -31,6 +31,7 @@ def test_a_bar_in_a_log_file_redraws_only_every_log_interval(monkeypatch: pytest
     monkeypatch.setattr("tqdm.std.time", lambda: float(next(clock)) * 0.2)  # 0.2 s per read of tqdm's clock
     log, terminal = io.StringIO(), Terminal()
     assert progress_bar(total=1, file=log).mininterval == LOG_INTERVAL
+    assert progress_bar(total=1, file=log).maxinterval == LOG_INTERVAL  # tqdm's monitor thread waits as long
     assert progress_bar(total=1, file=terminal).mininterval == 0.1
     logged, shown = _redraws(log), _redraws(terminal)
     assert logged <= 6 < 50 <= shown, (logged, shown)
@@ -42,3 +43,20 @@ def test_the_user_setting_of_tqdm_wins() -> None:
     env = {**os.environ, "TQDM_MININTERVAL": "2"}  # tqdm reads it when it is imported
     done = subprocess.run([sys.executable, "-c", code], env=env, capture_output=True, text=True, timeout=60)
     assert done.stdout.strip() == "2.0", done.stderr
+
+
+def test_the_fit_and_cubature_bars_redraw_sparsely_in_a_log(monkeypatch: pytest.MonkeyPatch) -> None:
+    from redsim import pretrained, scenes
+    from redsim.cubature import CubatureConfig, build_cubature
+    from redsim.trainers import fit_subspace
+
+    monkeypatch.delenv("TQDM_MININTERVAL", raising=False)
+    log = io.StringIO()
+    monkeypatch.setattr(sys, "stderr", log)
+    fit_subspace(scenes.build("toy_two_tets"), dim=2, hidden_width=8, hidden_layers=1, steps=200, progress=True)
+    scene = scenes.build("conditional_bar")
+    config = CubatureConfig(elements=20, samples=32, episodes=0)
+    build_cubature(scene, pretrained.load("conditional_bar", scene), config, progress=True)
+    bars = log.getvalue()
+    assert "200/200" in bars and "cubature elastic" in bars  # both bars were written, with their final state
+    assert bars.count("\r") <= 12, bars.count("\r")  # a few per bar, not one per step (200) or element

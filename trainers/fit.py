@@ -733,10 +733,13 @@ def fit_subspace(
                 for cb in callbacks:
                     cb(completed, terms)
                 if bar is not None:
-                    bar.update(1)
                     bar.set_postfix(
-                        E=f"{terms['energy']:.3g}", pair=f"{terms['pair']:.3g}", stretch=f"{terms['stretch']:.3f}"
+                        E=f"{terms['energy']:.3g}",
+                        pair=f"{terms['pair']:.3g}",
+                        stretch=f"{terms['stretch']:.3f}",
+                        refresh=False,  # drawn by update(), as often as the bar allows
                     )
+                    bar.update(1)
                 if config.checkpoint_every and completed % config.checkpoint_every == 0:
                     save_state()
                 interrupt_point()  # a Ctrl-C during the step stops here, between steps

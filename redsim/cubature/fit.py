@@ -361,8 +361,8 @@ def fit_rules(
 
         def report(kept: int, held: float, bar: object = bar) -> None:
             if bar is not None:
-                bar.n = kept  # type: ignore[attr-defined]
-                bar.set_postfix(held_out_error=f"{held:.3g}")  # type: ignore[attr-defined]
+                bar.set_postfix(held_out_error=f"{held:.3g}", refresh=False)  # type: ignore[attr-defined]
+                bar.update(kept - bar.n)  # type: ignore[attr-defined]  # redraws as often as the bar allows
 
         index, weights, history = greedy_nnls(
             train, test, train_norm, test_norm, elements=config.elements, tol=per_tol, progress=report
