@@ -34,7 +34,7 @@ def test_a_bar_in_a_log_file_redraws_only_every_log_interval(monkeypatch: pytest
     assert progress_bar(total=1, file=log).maxinterval == LOG_INTERVAL  # tqdm's monitor thread waits as long
     assert progress_bar(total=1, file=terminal).mininterval == 0.1
     logged, shown = _redraws(log), _redraws(terminal)
-    assert logged <= 6 < 50 <= shown, (logged, shown)
+    assert logged <= 8 < 50 <= shown, (logged, shown)  # ~40 s of its clock: a redraw per 30 s, the first, the last
     assert "200/200" in log.getvalue()  # the last state is written when the bar closes
 
 
