@@ -4,7 +4,7 @@ A KeyboardInterrupt raised in the middle of a training step (between the optimiz
 the step, or between two parameter groups of the update) leaves a state whose weights and step count disagree, and
 a resume from it is no longer the run it continues. :func:`deferred_interrupts` holds Ctrl-C (and a SIGTERM that
 someone has made raise, as the ``redsim`` command line does; an ignored signal stays ignored) until the loop calls
-its check at a step boundary; a second signal raises at once, for a step that never ends.
+its check at a step boundary; a second signal raises :class:`ForcedInterrupt` at once, for a step that never ends.
 """
 
 from __future__ import annotations
@@ -16,11 +16,16 @@ from collections.abc import Callable, Iterator
 from types import FrameType
 
 
+class ForcedInterrupt(KeyboardInterrupt):
+    """A second signal while the first waited for the step's end: raised inside the step, whose state is partial."""
+
+
 @contextlib.contextmanager
 def deferred_interrupts() -> Iterator[Callable[[], None]]:
     """Within the block, SIGINT (and SIGTERM where a Python handler is set for it) only records the signal; the
-    yielded ``check()`` raises KeyboardInterrupt once one was recorded. Off the main thread (where signals cannot be
-    handled) ``check`` does nothing and signals keep their handlers."""
+    yielded ``check()`` then calls the handler the block replaced (Python's raises KeyboardInterrupt; a caller's own
+    does what it does), at a step boundary. A second signal before that raises :class:`ForcedInterrupt` at once. Off
+    the main thread (where signals cannot be handled) ``check`` does nothing and signals keep their handlers."""
     if threading.current_thread() is not threading.main_thread():
         yield lambda: None
         return
@@ -28,15 +33,16 @@ def deferred_interrupts() -> Iterator[Callable[[], None]]:
 
     def record(signum: int, frame: FrameType | None) -> None:
         if pending:  # the second one: the step is not ending, stop now
-            raise KeyboardInterrupt(f"signal {signum}")
+            raise ForcedInterrupt(f"signal {signum}")
         pending.append(signum)
 
     wanted = [s for s in (signal.SIGINT, signal.SIGTERM) if callable(signal.getsignal(s))]  # not ignored or default
     previous = {signum: signal.signal(signum, record) for signum in wanted}
 
     def check() -> None:
-        if pending:
-            raise KeyboardInterrupt(f"signal {pending[0]}")
+        while pending:
+            signum = pending.pop(0)
+            previous[signum](signum, None)
 
     try:
         yield check

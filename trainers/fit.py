@@ -88,7 +88,7 @@ import torch
 from torch import Tensor
 
 from redsim.devices import DTYPES, check_device
-from redsim.interrupts import deferred_interrupts
+from redsim.interrupts import ForcedInterrupt, deferred_interrupts
 from redsim.progress import progress_bar
 from redsim.scene import Scene
 from redsim.subspace import (
@@ -743,6 +743,10 @@ def fit_subspace(
                 if config.checkpoint_every and completed % config.checkpoint_every == 0:
                     save_state()
                 interrupt_point()  # a Ctrl-C during the step stops here, between steps
+        except ForcedInterrupt:  # a second Ctrl-C inside a step: the weights may be part of an update, not saved
+            if state_path is not None:
+                log.warning("interrupted inside step %d; not saved: the last saved state is resumable", completed + 1)
+            raise
         except KeyboardInterrupt:
             save_state()
             if state_path is not None:

@@ -28,6 +28,7 @@ from redsim.cli.common import (
     scene_from_args,
     warn,
 )
+from redsim.interrupts import ForcedInterrupt
 from redsim.scene import Scene
 from redsim.subspace import checkpoint_path, periodic_latents, sample_latents
 
@@ -181,12 +182,15 @@ def cmd_fit(args: argparse.Namespace) -> int:
         else:
             out(f"stopped after step {stop.step} of {config.steps}; continue with: {command} --resume")
         return EXIT_OK
-    except KeyboardInterrupt:
+    except KeyboardInterrupt as stop:
         state = checkpoint_path(stem, ".fit.pt")
+        forced = isinstance(stop, ForcedInterrupt)  # a second Ctrl-C inside a step: that step is not saved
         if state.is_file():
-            warn(f"interrupted; the state is in {state}; continue with: {command} --resume")
-        else:  # before the first step: nothing was saved
-            warn(f"interrupted before the fit's first step; nothing was saved, rerun: {command}")
+            where = " inside a step, saved before it" if forced else ""
+            warn(f"interrupted{where}; the state is in {state}; continue with: {command} --resume")
+        else:
+            when = "inside a step before any state was saved" if forced else "before the fit's first step"
+            warn(f"interrupted {when}; nothing was saved, rerun: {command}")
         return EXIT_INTERRUPTED
     except FloatingPointError as err:
         error(str(err))

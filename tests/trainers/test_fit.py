@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import dataclasses
 import math
+from collections.abc import Callable
 
 import pytest
 import torch
@@ -159,27 +160,55 @@ def test_a_ctrl_c_inside_a_step_stops_after_it_and_the_resume_is_the_same_run(tm
 
     from torch.optim.optimizer import register_optimizer_step_post_hook
 
+    from redsim.interrupts import ForcedInterrupt
+
     scene = _tet_scene()
-    config = FitConfig(latent_dim=2, sigma=0.05, steps=12, hidden_width=16)
+    config = FitConfig(latent_dim=2, sigma=0.05, steps=12, hidden_width=16, checkpoint_every=2)
     straight = fit_subspace(scene, config, seed=3, progress=False)
-    updates = []
-
-    def ctrl_c_after_the_update(optimizer: torch.optim.Optimizer, args: object, kwargs: object) -> None:
-        updates.append(1)
-        if len(updates) == 5:  # the weights moved; the step is not counted yet
-            os.kill(os.getpid(), signal.SIGINT)
-
-    hook = register_optimizer_step_post_hook(ctrl_c_after_the_update)
-    try:
-        with pytest.raises(KeyboardInterrupt):
-            fit_subspace(scene, config, seed=3, progress=False, out=tmp_path / "c")
-    finally:
-        hook.remove()
-    assert torch.load(tmp_path / "c.fit.pt", weights_only=False)["step"] == 5  # the step it was inside, finished
-    resumed = fit_subspace(scene, config, seed=3, progress=False, out=tmp_path / "c", resume=True)
     z = torch.randn(4, 2)
-    assert torch.equal(resumed.subspace(z), straight.subspace(z))
-    assert signal.getsignal(signal.SIGINT) is signal.default_int_handler  # restored
+
+    def ctrl_c_after_the_update(presses: int) -> Callable[..., None]:
+        updates = []
+
+        def hook(optimizer: torch.optim.Optimizer, args: object, kwargs: object) -> None:
+            updates.append(1)
+            if len(updates) == 5:  # the weights moved; the step is not counted yet
+                for _ in range(presses):
+                    os.kill(os.getpid(), signal.SIGINT)
+
+        return hook
+
+    for presses, saved, raised in ((1, 5, KeyboardInterrupt), (2, 4, ForcedInterrupt)):
+        hook = register_optimizer_step_post_hook(ctrl_c_after_the_update(presses))
+        stem = tmp_path / f"c{presses}"
+        try:
+            with pytest.raises(raised):
+                fit_subspace(scene, config, seed=3, progress=False, out=stem)
+        finally:
+            hook.remove()
+        # one press: the step it was inside finishes and is saved; two: it stops inside and keeps step 4's save
+        assert torch.load(stem.with_suffix(".fit.pt"), weights_only=False)["step"] == saved
+        resumed = fit_subspace(scene, config, seed=3, progress=False, out=stem, resume=True)
+        assert torch.equal(resumed.subspace(z), straight.subspace(z)), presses
+        assert signal.getsignal(signal.SIGINT) is signal.default_int_handler  # restored
+
+
+def test_a_callers_own_signal_handler_is_called_at_the_step_boundary() -> None:
+    import os
+    import signal
+
+    from redsim.interrupts import deferred_interrupts
+
+    seen: list[int] = []
+    mine = signal.signal(signal.SIGINT, lambda signum, frame: seen.append(signum))
+    try:
+        with deferred_interrupts() as check:
+            os.kill(os.getpid(), signal.SIGINT)
+            assert seen == []  # held inside the step
+            check()
+            assert seen == [signal.SIGINT]  # the caller's handler, not a KeyboardInterrupt
+    finally:
+        signal.signal(signal.SIGINT, mine)
 
 
 def test_resume_refuses_other_settings_and_missing_state(tmp_path) -> None:
