@@ -261,11 +261,22 @@ def test_fem_scene_from_mesh_file(tmp_path, suffix: str) -> None:
     assert other.fingerprint() != scene.fingerprint()
     with pytest.raises(ValueError, match="pin"):
         redsim.scenes.fem_scene_from_mesh(path, voxel_pitch=0.05, pin="top")
-    # A pitch that would take minutes and GBs to voxelize, or one larger than the mesh, is refused up front.
-    with pytest.raises(ValueError, match=r"voxel_pitch 0.0005 m would fill this mesh .* voxels \(at most 2e\+06\)"):
-        redsim.scenes.fem_scene_from_mesh(path, voxel_pitch=5e-4)
-    with pytest.raises(ValueError, match="voxel_pitch 1 m is larger than this mesh"):
-        redsim.scenes.fem_scene_from_mesh(path, voxel_pitch=1.0)
+    # A pitch whose voxel grid would take minutes and GBs is refused up front, whatever the mesh's volume: two small
+    # parts far apart span a large grid; a thin plate is a small volume in a few cells.
+    with pytest.raises(ValueError, match=r"voxel_pitch 0.0002 m would voxelize .* cells \(at most 2e\+08\)"):
+        redsim.scenes.fem_scene_from_mesh(path, voxel_pitch=2e-4)
+    apart = trimesh.util.concatenate(
+        [
+            trimesh.creation.box(extents=(0.01,) * 3),
+            trimesh.creation.box(extents=(0.01,) * 3).apply_translation((1, 1, 1)),
+        ]
+    )
+    with pytest.raises(ValueError, match="cells"):
+        redsim.scenes.fem_scene_from_mesh(apart, voxel_pitch=1e-3)
+    plate = redsim.scenes.fem_scene_from_mesh(
+        trimesh.creation.box(extents=(1.0, 1.0, 0.002)), voxel_pitch=0.2, gravity=False
+    )
+    assert plate.free_dof_count > 0
 
 
 def test_cloth_scene_from_mesh(tmp_path) -> None:
