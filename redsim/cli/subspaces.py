@@ -213,9 +213,10 @@ def cmd_fit(args: argparse.Namespace) -> int:
     if stretch < LOW_STRETCH:
         warn(
             f"the map spreads its samples {100 * stretch:.2g}% as far as sigma ({config.sigma:g}) asks (mean metric "
-            f"stretch {stretch:.3g}): sigma is large for this scene's energy and its states sit near one "
-            f"configuration; try --sigma near {config.sigma * stretch:.2g} (sigma times the stretch: the spread this "
-            "fit reached)"
+            f"stretch {stretch:.3g}): its states sit near one configuration. Either sigma is large for this scene's "
+            f"energy (try --sigma near {config.sigma * stretch:.2g}, sigma times the stretch), or the map collapsed "
+            "onto the seed against a stiff energy (start the output at the seed with --seed-bias, raise --lam, or "
+            "--explore 0.5, as the stiff body's preset does: README 'Fitting a subspace')"
         )
     return EXIT_OK
 
