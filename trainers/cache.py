@@ -84,9 +84,14 @@ def fitted_subspace(
 
 
 def fit_key(scene: Scene, config: FitConfig, seed: int) -> str:
-    """8 hex digits of a hash of ``scene``'s fingerprint, ``config``'s fit (all but :data:`RUNTIME_FIELDS`) and
-    ``seed``: what a checkpoint must match to be reused."""
-    fit = {k: v for k, v in dataclasses.asdict(config).items() if k not in RUNTIME_FIELDS}
+    """8 hex digits of a hash of ``scene``'s fingerprint, the fields of ``config``'s fit (all but
+    :data:`RUNTIME_FIELDS`) that differ from FitConfig's defaults, and ``seed``: what a checkpoint must match to be
+    reused. A field added to FitConfig later, or 1 given for 1.0, leaves the key as it was."""
+    fit = {
+        field.name: _comparable(getattr(config, field.name))
+        for field in dataclasses.fields(config)
+        if field.name not in RUNTIME_FIELDS and _comparable(getattr(config, field.name)) != _comparable(field.default)
+    }
     doc = {"scene": scene.fingerprint(), "fit": fit, "seed": seed}
     return hashlib.sha256(json.dumps(doc, sort_keys=True, default=str).encode()).hexdigest()[:8]
 
@@ -122,6 +127,13 @@ def _qualified(
     return subspace
 
 
+def _comparable(value: Any) -> Any:
+    """A fit setting as compared and hashed: numbers as float (1 == 1.0), tuples as lists."""
+    if isinstance(value, (int, float)) and not isinstance(value, bool):
+        return float(value)
+    return [_comparable(v) for v in value] if isinstance(value, (list, tuple)) else value
+
+
 def _differences(recorded: dict[str, Any], config: FitConfig) -> list[str]:
     """``"field = recorded, not wanted"`` for each field of ``config`` (but :data:`RUNTIME_FIELDS`) that a
     checkpoint's recorded fit differs in (a field it does not record: FitConfig's default)."""
@@ -131,9 +143,7 @@ def _differences(recorded: dict[str, Any], config: FitConfig) -> list[str]:
             continue
         wanted = getattr(config, field.name)
         value = recorded.get(field.name, field.default)
-        if (list(value) if isinstance(value, (list, tuple)) else value) != (
-            list(wanted) if isinstance(wanted, tuple) else wanted
-        ):
+        if _comparable(value) != _comparable(wanted):
             out.append(f"{field.name} = {value!r}, not {wanted!r}")
     return out
 

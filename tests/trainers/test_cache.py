@@ -71,3 +71,18 @@ def test_never_overwrites_a_checkpoint_it_cannot_use(tmp_path) -> None:
         keyed.with_suffix(suffix).write_bytes(mine["short" + suffix])
     with pytest.raises(FileExistsError, match="another fit"):
         fitted_subspace(scene, FitConfig(**TINY), short, progress=False)
+
+
+def test_the_key_names_only_what_differs_from_the_defaults() -> None:
+    import dataclasses
+
+    from redsim.trainers import cache
+
+    scene = build("toy_two_tets")
+    key = fit_key(scene, FitConfig(**TINY, sigma=1), 0)
+    assert key == fit_key(scene, FitConfig(**TINY, sigma=1.0), 0)  # 1 and 1.0 are the same fit
+    assert key != fit_key(scene, FitConfig(**TINY, sigma=2.0), 0) != fit_key(scene, FitConfig(**TINY), 1)
+    # a field at its default does not enter the key, so one added to FitConfig later leaves old keys as they were
+    unset = [f.name for f in dataclasses.fields(FitConfig) if f.name not in cache.RUNTIME_FIELDS and f.name not in TINY]
+    defaults = FitConfig(**TINY, **{unset[0]: getattr(FitConfig(), unset[0])})
+    assert fit_key(scene, defaults, 0) == fit_key(scene, FitConfig(**TINY), 0)
