@@ -412,10 +412,12 @@ def _accuracy_dims(args: argparse.Namespace, n: int) -> tuple[int, ...] | None:
 
 
 def _checkpoint_folder(args: argparse.Namespace) -> Path:
-    """``--checkpoints``, where fits are kept (made when missing); a file there is refused before any work."""
+    """``--checkpoints``, where fits are kept (made when missing); a file there, or above it, is refused before any
+    work."""
     folder = Path(args.checkpoints)
-    if folder.exists() and not folder.is_dir():
-        raise CliError(f"--checkpoints {folder}: it is a file, not a folder")
+    above = next((p for p in (folder, *folder.absolute().parents) if p.exists()), None)
+    if above is not None and not above.is_dir():
+        raise CliError(f"--checkpoints {folder}: {above} is a file, not a folder")
     return folder
 
 

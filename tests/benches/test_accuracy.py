@@ -156,9 +156,10 @@ def test_a_checkpoints_file_is_refused_before_any_work(cli, tmp_path) -> None:
         ["bench", "accuracy", "mini_chain", "--steps", "10", "--scenarios", "push", "--full", "none", "--dims", "1"],
         ["bench", "subspace", "--scenes", "toy_tiny_bar_2d", "--steps", "3"],
     ):
-        code, out, err = cli(*argv, "--checkpoints", str(tmp_path / "file"))
-        assert code == 2 and out == "" and f"--checkpoints {tmp_path / 'file'}: it is a file, not a folder" in err
-    assert (tmp_path / "file").read_text() == "kept"
+        for folder in (tmp_path / "file", tmp_path / "file" / "sub"):  # the file itself, or a folder below it
+            code, out, err = cli(*argv, "--checkpoints", str(folder))
+            assert code == 2 and out == "" and f"--checkpoints {folder}: {tmp_path / 'file'} is a file" in err, err
+    assert (tmp_path / "file").read_text() == "kept" and not list(tmp_path.glob("*.pt"))  # no fit ran
 
 
 @pytest.mark.slow
