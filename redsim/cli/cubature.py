@@ -115,10 +115,26 @@ def cmd_cubature(args: argparse.Namespace) -> int:
     return EXIT_OK
 
 
+def _checkpoint_of(name: str, folder: Path | None) -> Path:
+    """``folder/NAME.pt`` where it exists (refused if fitted to another scene), else the shipped map of ``name``."""
+    from redsim import pretrained
+
+    mine = folder / f"{name}.pt" if folder is not None else None
+    if mine is not None and mine.is_file():
+        _check_scene_of(mine, name)
+        return mine
+    try:
+        return pretrained.path(name)
+    except KeyError as err:
+        where = f"no {mine}" if mine is not None else "no --checkpoints DIR given"
+        raise CliError(
+            f"{err.args[0]}; {where} (fit one with `redsim fit {name} --out DIR/{name}`, then pass --checkpoints DIR)"
+        ) from err
+
+
 def cmd_bench_cubature(args: argparse.Namespace) -> int:
     import torch
 
-    from redsim import pretrained
     from redsim.bench import machine_info
     from redsim.cubature import CubatureConfig, build_cubature, load_cubature
     from redsim.cubature.bench import WARMUP_STEPS, bench_cubature
@@ -141,6 +157,7 @@ def cmd_bench_cubature(args: argparse.Namespace) -> int:
     folder = Path(args.checkpoints) if args.checkpoints else None
     if folder is not None and not folder.is_dir():
         raise CliError(f"--checkpoints {folder}: no such folder")
+    checkpoints = {name: _checkpoint_of(name, folder) for name in names}  # each refused before any bench runs
     machine = machine_info()
     results = []
     if not args.json:
@@ -151,17 +168,7 @@ def cmd_bench_cubature(args: argparse.Namespace) -> int:
         )
         out(machine_line(machine, "cpu"))
     for name in names:
-        mine = folder / f"{name}.pt" if folder is not None else None
-        try:
-            weights = mine if mine is not None and mine.is_file() else pretrained.path(name)
-        except KeyError as err:
-            where = f"no {mine}" if mine is not None else "no --checkpoints DIR given"
-            raise CliError(
-                f"{err.args[0]}; {where} (fit one with `redsim fit {name} --out DIR/{name}`, "
-                "then pass --checkpoints DIR)"
-            ) from err
-        if weights == mine:
-            _check_scene_of(mine, name)
+        weights = checkpoints[name]
         scene, subspace = load_checkpoint(str(weights))
         try:
             cub = load_cubature(weights, scene, subspace) if cubature_path(weights).is_file() else None

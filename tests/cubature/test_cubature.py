@@ -270,6 +270,12 @@ def test_bench_names_its_checkpoint_and_refuses_one_of_another_scene(cli, tmp_pa
     assert code == 2 and "the fem mesh scene 'mini_chain', not of 'mini_chain'" in err
     code, out, err = cli("bench", "cubature", *quick)
     assert code == 0 and "mini_chain (redsim/pretrained/mini_chain.pt): n=24" in out, err
+    later = tmp_path / "later"  # a wrong checkpoint for a later scene is refused before the first scene is benched
+    later.mkdir()
+    for suffix in (".pt", ".json"):
+        shutil.copy(pretrained.path("mini_chain").with_suffix(suffix), later / f"chain{suffix}")
+    code, out, err = cli("bench", "cubature", "mini_chain,chain", *quick[1:], "--checkpoints", str(later))
+    assert code == 2 and out == "" and "is a fit of scene 'mini_chain', not of 'chain'" in err
 
 
 @pytest.mark.parametrize("name", ["hanging_sheet", "cloth_ball"])
