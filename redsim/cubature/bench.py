@@ -81,7 +81,8 @@ def bench_cubature(
 
     Accuracy: :data:`ACCURACY_STATES` states from the rest latent under the same seeded loads, ``steps`` steps
     with each energy; the deviation of a state is max_t |q_cub(t) - q_all(t)|_M / max_t |q_all(t) - q_all(0)|_M
-    (the median over states is reported), the penetration the deepest contact over all states and steps.
+    (the median over states is reported; each state's, its largest motion max_t |q_all(t) - q_all(0)|_M and the largest
+    |z| of the all-element rollouts too), the penetration the deepest contact over all states and steps.
     Time: the median step [s] over ``timed_steps`` steps per batch size, the two energies interleaved, from the
     state ``warmup`` all-element steps under seeded loads reach (a moving shape: steps from rest take fewer
     iterations), with each energy's value-and-gradient calls per step of its timed rollouts (their untimed first
@@ -104,7 +105,8 @@ def bench_cubature(
         mass = all_elements.scene.mass_norm_sq
         gap = mass((q_cub - q_all).reshape(-1, q_all.shape[-1])).reshape(steps + 1, count).sqrt().amax(0)
         motion = mass((q_all - q_all[:1]).reshape(-1, q_all.shape[-1])).reshape(steps + 1, count).sqrt().amax(0)
-        deviation = (gap / motion.clamp_min(1e-30)).median()
+        deviations = gap / motion.clamp_min(1e-30)
+        deviation = deviations.median()
         scene32 = all_elements.scene
         pen_all = penetration(scene32, q_all.reshape(-1, q_all.shape[-1]))
         pen_cub = penetration(scene32, q_cub.reshape(-1, q_cub.shape[-1]))
@@ -142,6 +144,9 @@ def bench_cubature(
         "held_out_error": cubature.summary.get("held_out_error"),
         "held_out_force_error": cubature.summary.get("held_out_force_error"),
         "trajectory_deviation": float(deviation),
+        "deviation_per_state": [float(v) for v in deviations],
+        "motion_per_state": [float(v) for v in motion],
+        "max_latent_norm": float(torch.linalg.vector_norm(z_all, dim=-1).max()),
         "steps": steps,
         "warmup_steps": warmup,
         "load_scale": scale,

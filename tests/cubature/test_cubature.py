@@ -314,12 +314,15 @@ def test_mesh_sweep_leaves_the_batched_all_element_step_out_above_its_limit(cli)
 
 def test_bench_deviation_does_not_depend_on_the_timing_batches(mini_chain) -> None:
     """The deviation is the median over ACCURACY_STATES seeded rollouts, whatever batch sizes are timed."""
-    from redsim.cubature.bench import bench_cubature
+    from redsim.cubature.bench import ACCURACY_STATES, bench_cubature
 
     scene, f = mini_chain
     cub = build_cubature(scene, f, CubatureConfig(elements=4, **QUICK))
     runs = [bench_cubature(scene, f, cub, steps=6, batches=b, timed_steps=2) for b in ((1,), (1, 16))]
     assert runs[0]["trajectory_deviation"] == runs[1]["trajectory_deviation"] > 0.0
+    per_state, motion = runs[0]["deviation_per_state"], runs[0]["motion_per_state"]
+    assert len(per_state) == len(motion) == ACCURACY_STATES and min(motion) > 0.0 and runs[0]["max_latent_norm"] > 0.0
+    assert runs[0]["trajectory_deviation"] == torch.tensor(per_state).median().item()  # the median of these
 
 
 def test_bench_times_both_energies_from_the_same_moving_state(cli, mini_chain) -> None:
