@@ -42,6 +42,7 @@ import pickle
 import re
 import shutil
 import time
+import zipfile
 from collections.abc import Mapping
 from dataclasses import dataclass
 from pathlib import Path
@@ -806,9 +807,20 @@ def training_seed(seed: int, steps: int) -> int:
 
 
 def _resume_from(out: Path) -> Path | None:
-    """The newest of ``out/model.zip`` and the checkpoints (None: nothing to resume from)."""
+    """Of ``out/model.zip`` and the checkpoints, the one trained the most env steps (``model.zip`` on a tie: it keeps
+    the replay buffer); None: nothing to resume from. Steps, not file times: a copy that resets times must not make
+    an older checkpoint replace newer work."""
     found = [p for p in [out / "model.zip", *(out / "checkpoints").glob("rl_model_*_steps.zip")] if p.is_file()]
-    return max(found, key=lambda p: p.stat().st_mtime_ns) if found else None
+    return max(found, key=lambda p: (_saved_steps(p), p.name == "model.zip")) if found else None
+
+
+def _saved_steps(path: Path) -> int:
+    """The env steps an SB3 zip was trained for (its ``data``'s ``num_timesteps``; -1 if it cannot be read)."""
+    try:
+        with zipfile.ZipFile(path) as saved:
+            return int(json.loads(saved.read("data"))["num_timesteps"])
+    except (OSError, KeyError, ValueError, zipfile.BadZipFile):
+        return -1
 
 
 def _training_log(model: Any, out: Path, resumed_at: int | None) -> Any:

@@ -438,6 +438,25 @@ def test_td3_resumes_from_a_checkpoint_with_other_copies(tmp_path: Path) -> None
     assert result.steps == 80 and model_record(result.model_path)["n_envs"] == 4
 
 
+def test_resume_takes_the_file_trained_the_most_steps_not_the_newest(tmp_path: Path) -> None:
+    """A copy that resets file times (``cp`` without ``-a``, a sync tool) must not make an older checkpoint win."""
+    import json
+    import os
+    import zipfile
+
+    from redsim.trainers.agents import _resume_from
+
+    (tmp_path / "checkpoints").mkdir()
+    for name, steps in (("model.zip", 972), ("checkpoints/rl_model_300_steps.zip", 300)):
+        with zipfile.ZipFile(tmp_path / name, "w") as saved:
+            saved.writestr("data", json.dumps({"num_timesteps": steps}))
+    os.utime(tmp_path / "model.zip", (1, 1))  # older on disk than the 300-step checkpoint
+    assert _resume_from(tmp_path) == tmp_path / "model.zip"
+    with zipfile.ZipFile(tmp_path / "checkpoints/rl_model_972_steps.zip", "w") as saved:
+        saved.writestr("data", json.dumps({"num_timesteps": 972}))
+    assert _resume_from(tmp_path) == tmp_path / "model.zip"  # a tie: model.zip keeps the replay buffer
+
+
 def test_a_resume_from_a_checkpoint_keeps_a_later_best_model(tmp_path: Path) -> None:
     """Resumed at 200 steps from a checkpoint, the run's evaluations up to 200 are carried and the best mean to beat
     is the best of all of them (the t = 300 evaluation saved best_model.zip)."""
