@@ -1014,8 +1014,11 @@ def train_agent(
     from stable_baselines3.common.noise import NormalActionNoise
     from stable_baselines3.common.vec_env import VecNormalize
 
-    if int(steps) != steps or steps < 1:
-        raise ValueError(f"steps must be an integer >= 1, got {steps!r}")
+    for name, value in (("steps", steps), ("eval_episodes", eval_episodes), ("final_episodes", final_episodes)):
+        if isinstance(value, bool) or int(value) != value or value < 1:  # before training, not after it
+            raise ValueError(f"{name} must be an integer >= 1, got {value!r}")
+    if eval_every is not None and (isinstance(eval_every, bool) or int(eval_every) != eval_every or eval_every < 1):
+        raise ValueError(f"eval_every must be an integer >= 1 (env steps), got {eval_every!r}")
     env_id = env if isinstance(env, str) else None
     if env_id is not None:
         check_env_id(env_id)

@@ -71,7 +71,13 @@ def cmd_train_agent(args: argparse.Namespace) -> int:
     from redsim.trainers.agents import TrainingInterrupted, train_agent
 
     _check_env(args.env_id)
-    for value, flag in ((args.steps, "--steps"), (args.n_envs, "--n-envs"), (args.eval_episodes, "--eval-episodes")):
+    for value, flag in (
+        (args.steps, "--steps"),
+        (args.n_envs, "--n-envs"),
+        (args.eval_episodes, "--eval-episodes"),
+        (args.final_episodes, "--final-episodes"),
+        (args.eval_every, "--eval-every"),
+    ):
         _positive(value, flag)
     try:
         result = train_agent(

@@ -242,6 +242,15 @@ def test_bad_input_is_a_clear_cli_error(cli: Callable[..., tuple[int, str, str]]
     assert code == 2 and "unknown env 'RedSim/Nope-v0'; valid: RedSim/Chain-v0" in err
     code, _, err = cli("train-agent", MINI, "--steps", "0", "--out", str(tmp_path))
     assert code == 2 and "--steps must be >= 1" in err
+    for flag in ("--final-episodes", "--eval-every"):  # refused before training, not after it
+        code, _, err = cli("train-agent", MINI, flag, "0", "--out", str(tmp_path / "never"))
+        assert code == 2 and f"{flag} must be >= 1, got 0" in err and not (tmp_path / "never").exists()
+    from redsim.trainers.agents import train_agent
+
+    with pytest.raises(ValueError, match="final_episodes must be an integer >= 1, got 0"):
+        train_agent(MINI, tmp_path / "never", steps=8, final_episodes=0)
+    with pytest.raises(ValueError, match=r"eval_every must be an integer >= 1 \(env steps\), got -5"):
+        train_agent(MINI, tmp_path / "never", steps=8, eval_every=-5)
     code, _, err = cli("eval-agent", str(tmp_path / "missing.zip"), MINI)
     assert code == 2 and "no model file" in err
     junk = tmp_path / "junk.zip"
