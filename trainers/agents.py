@@ -1060,6 +1060,14 @@ def train_agent(
             f"cannot resume with env_kwargs {kwargs_now}: {previous} was trained with {found['env_kwargs']} "
             "(give the same --env-arg and --episode-steps, or another --out)"
         )
+    started_with = seed
+    if previous is not None and (out / "agent.json").is_file():
+        started_with = json.loads((out / "agent.json").read_text()).get("seed", seed)
+    if started_with != seed:  # the copies' and the evaluations' episodes follow the seed
+        raise ValueError(
+            f"cannot resume with seed {seed}: the run in {out} was started with seed {started_with} (give "
+            f"--seed {started_with}, or another --out)"
+        )
     venv = _sb3_env(env, copies, training_seed(seed, 0), env_kwargs, shards, goal={} if her else None)
     # evaluations score the env's own reward (the goal env with its control cost passes it through)
     eval_env = _sb3_env(

@@ -510,6 +510,8 @@ def test_ctrl_c_saves_the_run_and_resume_goes_on_from_it(tmp_path: Path, monkeyp
     with (tmp_path / "curve.csv").open() as handle:
         assert [int(row["env_steps"]) for row in csv.DictReader(handle)] == [20, 40, 60]
     monkeypatch.setattr(SB3VecEnv, "step_wait", step_wait)
+    with pytest.raises(ValueError, match="cannot resume with seed 5: the run in .* was started with seed 0"):
+        train_agent(MINI, tmp_path, algo="sac", steps=100, eval_every=20, resume=True, seed=5, **tiny)
     result = train_agent(MINI, tmp_path, algo="sac", steps=100, eval_every=20, resume=True, **tiny)
     assert result.steps == 100
     record = json.loads((tmp_path / "agent.json").read_text())
