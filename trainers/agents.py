@@ -1191,6 +1191,11 @@ def train_agent(
         if remaining > 0:
             model.set_logger(_training_log(model, out, None if previous is None else started))
             try:
+                missed = evaluation_cb.n_calls % every == 0 and started not in evaluation_cb.evaluations_timesteps
+                if previous is not None and started > 0 and missed:  # interrupted in its evaluation: made now
+                    evaluation_cb.init_callback(model)
+                    evaluation_cb.n_calls -= 1
+                    evaluation_cb.on_step()
                 model.learn(
                     remaining,
                     callback=CallbackList([evaluation_cb, checkpoint_cb]),

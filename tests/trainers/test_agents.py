@@ -510,7 +510,7 @@ def test_ctrl_c_saves_the_run_and_resume_goes_on_from_it(tmp_path: Path, monkeyp
     with (tmp_path / "curve.csv").open() as handle:
         assert [int(row["env_steps"]) for row in csv.DictReader(handle)] == [20, 40, 60]
     monkeypatch.setattr(SB3VecEnv, "step_wait", step_wait)
-    with pytest.raises(ValueError, match="cannot resume with seed 5: the run in .* was started with seed 0"):
+    with pytest.raises(ValueError, match=r"cannot resume with seed 5: the run in .* was started with seed 0"):
         train_agent(MINI, tmp_path, algo="sac", steps=100, eval_every=20, resume=True, seed=5, **tiny)
     result = train_agent(MINI, tmp_path, algo="sac", steps=100, eval_every=20, resume=True, **tiny)
     assert result.steps == 100
@@ -576,6 +576,35 @@ def test_the_training_log_keeps_sb3_s_tensorboard_and_stdout_settings(tmp_path: 
             _training_log(SimpleNamespace(tensorboard_log=str(tmp_path / "tb"), verbose=0), tmp_path, None)
     for logger in (quiet, loud):
         logger.close()
+
+
+def test_a_run_interrupted_in_an_evaluation_makes_it_on_resume(
+    tmp_path: Path, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    """Stopped inside the evaluation at 40 steps, the resumed run evaluates at 40 first: no grid point is lost."""
+    import stable_baselines3.common.callbacks as sb3_callbacks
+
+    from redsim.trainers.agents import TrainingInterrupted, train_agent
+
+    evaluate = sb3_callbacks.evaluate_policy
+    calls = {"n": 0}
+
+    def interrupted_second(*args: object, **kwargs: object) -> object:
+        calls["n"] += 1
+        if calls["n"] == 2:
+            raise KeyboardInterrupt
+        return evaluate(*args, **kwargs)
+
+    monkeypatch.setattr(sb3_callbacks, "evaluate_policy", interrupted_second)
+    tiny = {"n_envs": 2, "eval_episodes": 1, "final_episodes": 1, "env_kwargs": SHORT, "video": False}
+    with pytest.raises(TrainingInterrupted, match="interrupted at 40 env steps"):
+        train_agent(MINI, tmp_path, algo="sac", steps=100, eval_every=20, **tiny)
+    monkeypatch.setattr(sb3_callbacks, "evaluate_policy", evaluate)
+    train_agent(MINI, tmp_path, algo="sac", steps=100, eval_every=20, resume=True, **tiny)
+    with (tmp_path / "curve.csv").open() as handle:
+        assert [int(row["env_steps"]) for row in csv.DictReader(handle)] == [20, 40, 60, 80, 100]
+    with np.load(tmp_path / "evaluations.npz") as evaluations:
+        assert list(evaluations["timesteps"]) == [20, 40, 60, 80, 100]
 
 
 def test_sigterm_saves_the_run_as_ctrl_c_does_and_a_bufferless_resume_refills_first(
