@@ -713,6 +713,30 @@ def _close_quietly(venv: Any) -> None:
         log.warning("closing %s after the interrupt failed: %r", type(venv).__name__, error)
 
 
+def _statistics_keeper(venv: Any) -> Any:
+    """A callback that copies ``venv``'s ``VecNormalize`` statistics as each rollout starts; its ``restore()`` puts
+    them back. An interrupted PPO run is saved at its last finished rollout, and its statistics must be those too
+    (the unfinished rollout's observations are not in what the model learnt)."""
+    from stable_baselines3.common.callbacks import BaseCallback
+    from stable_baselines3.common.vec_env import VecNormalize
+
+    class StatisticsKeeper(BaseCallback):
+        kept: tuple[Any, Any, Any] | None = None
+
+        def _on_rollout_start(self) -> None:
+            if isinstance(venv, VecNormalize):
+                self.kept = copy.deepcopy((venv.obs_rms, venv.ret_rms, venv.returns))
+
+        def _on_step(self) -> bool:
+            return True
+
+        def restore(self) -> None:
+            if self.kept is not None:
+                venv.obs_rms, venv.ret_rms, venv.returns = copy.deepcopy(self.kept)
+
+    return StatisticsKeeper()
+
+
 def _curve_callback(curve: list[dict[str, float]], wall_offset: float, start: float, path: Path) -> Any:
     from stable_baselines3.common.callbacks import BaseCallback
 
@@ -1179,6 +1203,7 @@ def train_agent(
     }
     model_path = out / "model.zip"
     started = int(model.num_timesteps)
+    statistics = _statistics_keeper(venv)
 
     def interrupted(wall: float) -> TrainingInterrupted:
         """Record the saved run as interrupted (``agent.json``; the curve so far) for the caller to raise."""
@@ -1198,7 +1223,7 @@ def train_agent(
                     evaluation_cb.on_step()
                 model.learn(
                     remaining,
-                    callback=CallbackList([evaluation_cb, checkpoint_cb]),
+                    callback=CallbackList([evaluation_cb, checkpoint_cb, statistics]),
                     reset_num_timesteps=previous is None,
                     progress_bar=progress_bar,
                 )
@@ -1209,6 +1234,7 @@ def train_agent(
         if algo == "ppo":  # PPO never learnt from its unfinished rollout: the saved steps end at its last one
             rollout = int(model.n_steps) * copies
             model.num_timesteps = started + (int(model.num_timesteps) - started) // rollout * rollout
+            statistics.restore()  # and so do the normalizer's statistics
         _save_run(model, venv, model_path)
         for env_ in (venv, eval_env):
             _close_quietly(env_)

@@ -578,9 +578,35 @@ def test_the_training_log_keeps_sb3_s_tensorboard_and_stdout_settings(tmp_path: 
         logger.close()
 
 
-def test_a_run_interrupted_in_an_evaluation_makes_it_on_resume(
+def test_an_interrupted_ppo_run_saves_the_normalizer_of_its_last_rollout(
     tmp_path: Path, monkeypatch: pytest.MonkeyPatch
 ) -> None:
+    """PPO's saved steps end at its last finished rollout (16 of the 24 stepped): so do its VecNormalize statistics."""
+    import pickle
+
+    from redsim.envs.sb3 import SB3VecEnv
+    from redsim.trainers.agents import TrainingInterrupted, train_agent
+
+    calls = {"n": 0}
+    step_wait = SB3VecEnv.step_wait
+
+    def interrupting(self: SB3VecEnv):  # the training env has 2 copies
+        calls["n"] += self.num_envs == 2
+        if calls["n"] == 13:  # 12 vector steps done: the first rollout's 8 and 4 of the second's
+            raise KeyboardInterrupt
+        return step_wait(self)
+
+    monkeypatch.setattr(SB3VecEnv, "step_wait", interrupting)
+    small = {"n_steps": 8, "batch_size": 16, "n_epochs": 1}
+    tiny = {"n_envs": 2, "eval_episodes": 1, "final_episodes": 1, "env_kwargs": SHORT, "video": False}
+    with pytest.raises(TrainingInterrupted, match="interrupted at 16 env steps"):
+        train_agent(MINI, tmp_path, algo="ppo", steps=64, eval_every=64, overrides=small, **tiny)
+    with (tmp_path / "model_vecnormalize.pkl").open("rb") as handle:
+        saved = pickle.load(handle)  # a VecNormalize without its env
+    assert saved.obs_rms.count == pytest.approx(2 + 16, abs=1e-3)  # the reset and the first rollout's 8 x 2 steps
+
+
+def test_a_run_interrupted_in_an_evaluation_makes_it_on_resume(tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> None:
     """Stopped inside the evaluation at 40 steps, the resumed run evaluates at 40 first: no grid point is lost."""
     import stable_baselines3.common.callbacks as sb3_callbacks
 
