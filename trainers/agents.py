@@ -379,6 +379,12 @@ def _check_spaces(policy: Any, venv: Any) -> None:
     spaces = (("observation", venv.single_observation_space), ("action", venv.single_action_space))
     for name, space in spaces:
         own = getattr(model, f"{name}_space", None)
+        if isinstance(own, gym.spaces.Dict) and not isinstance(space, gym.spaces.Dict):
+            raise SpaceMismatchError(
+                f"the model acts on dict observations ({', '.join(own.spaces)}), the env gives an array of shape "
+                f"{space.shape}: a goal-conditioned model (HER) not trained by redsim (train-agent --her records "
+                "its goal split), or one of another env?"
+            )
         if own is not None and own.shape != space.shape:
             raise SpaceMismatchError(
                 f"the model's {name} space has shape {own.shape}, the env's {space.shape}: a model of another env?"

@@ -62,7 +62,7 @@ def _line(name: str, result: dict[str, Any]) -> str:
     return (
         f"{name:<9} return {result['mean_return']:9.2f} ± {result['std_return']:7.2f}   "
         f"success {100 * result['success_rate']:5.1f}% (of steps {100 * result['success_steps']:5.1f}%)   "
-        f"({result['episodes']} episodes from seed {result['seed']})"
+        f"({result['episodes']} episode{'s' * (result['episodes'] != 1)} from seed {result['seed']})"
     )
 
 

@@ -696,3 +696,17 @@ def test_a_random_episode_is_the_same_whatever_the_episode_count() -> None:
     two = evaluate(MINI, "random", episodes=2, seed=5, env_kwargs=exact)
     three = evaluate(MINI, "random", episodes=3, seed=5, env_kwargs=exact)
     np.testing.assert_allclose(three.returns[:2], two.returns, rtol=1e-6)
+
+
+def test_a_dict_observation_model_is_named_as_such() -> None:
+    """A plain SB3 model of the goal-conditioned env (dict observations) on the env's array: said plainly, not as a
+    shape of None."""
+    from stable_baselines3 import SAC
+
+    from redsim.envs.goal import GoalObservation
+    from redsim.trainers.agents import SpaceMismatchError, _check_spaces
+
+    model = SAC("MultiInputPolicy", GoalObservation(gym.make(MINI)), buffer_size=100)
+    venv = gym.make_vec(MINI, num_envs=1, vectorization_mode="vector_entry_point")
+    with pytest.raises(SpaceMismatchError, match=r"dict observations \(achieved_goal, desired_goal, observation\)"):
+        _check_spaces(model, venv)
