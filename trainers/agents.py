@@ -1079,6 +1079,11 @@ def train_agent(
                 f"cannot resume: {previous} is {found['algo']}{replay[found['goal'] is not None]} on "
                 f"{found['env_id']}, not {algo}{replay[her]} on {label}"
             )
+        if found["normalized"] and not normalizer_path(previous).is_file():
+            raise FileNotFoundError(
+                f"cannot resume from {previous}: it was trained on normalized observations and its statistics "
+                f"{normalizer_path(previous)} are missing (restore the file, or start again with --overwrite)"
+            )
         if buffer and found["n_envs"] not in (None, copies):
             raise ValueError(
                 f"cannot resume with {copies} copies: the run's replay buffer {out / BUFFER} holds "

@@ -512,6 +512,10 @@ def test_ctrl_c_saves_the_run_and_resume_goes_on_from_it(tmp_path: Path, monkeyp
     monkeypatch.setattr(SB3VecEnv, "step_wait", step_wait)
     with pytest.raises(ValueError, match=r"cannot resume with seed 5: the run in .* was started with seed 0"):
         train_agent(MINI, tmp_path, algo="sac", steps=100, eval_every=20, resume=True, seed=5, **tiny)
+    (tmp_path / "model_vecnormalize.pkl").rename(tmp_path / "aside.pkl")
+    with pytest.raises(FileNotFoundError, match=r"trained on normalized observations and its statistics .* missing"):
+        train_agent(MINI, tmp_path, algo="sac", steps=100, eval_every=20, resume=True, **tiny)
+    (tmp_path / "aside.pkl").rename(tmp_path / "model_vecnormalize.pkl")
     result = train_agent(MINI, tmp_path, algo="sac", steps=100, eval_every=20, resume=True, **tiny)
     assert result.steps == 100
     record = json.loads((tmp_path / "agent.json").read_text())
