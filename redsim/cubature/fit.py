@@ -88,8 +88,10 @@ class CubatureConfig:
         both = sorted(set(self.full or ()) & set(self.subsample))
         if both:
             raise ValueError(f"effect(s) {both} are both in full (kept whole) and in subsample; name each in one")
-        if self.tol is not None and not (math.isfinite(self.tol) and self.tol > 0.0):
-            raise ValueError(f"tol must be finite and > 0, got {self.tol!r}")
+        if self.tol is not None and not (math.isfinite(self.tol) and 0.0 < self.tol < 1.0):
+            raise ValueError(  # a relative error of 1 is what keeping no element gives
+                f"tol must be a relative force error in (0, 1), e.g. 0.05, got {self.tol!r}"
+            )
         if self.load_scale is not None and not (math.isfinite(self.load_scale) and self.load_scale >= 0.0):
             raise ValueError(f"load_scale must be finite and >= 0 [N], got {self.load_scale!r}")
         if not (math.isfinite(self.dt) and self.dt > 0.0):

@@ -111,8 +111,9 @@ def test_bad_input_is_a_clear_error(tmp_path) -> None:
     scene, f = _toy_cloth_map()
     with pytest.raises(ValueError, match="elements"):
         CubatureConfig(elements=0)
-    with pytest.raises(ValueError, match="tol"):
-        CubatureConfig(tol=-1.0)
+    for tol in (-1.0, 0.0, 1.0, 2.0):  # a relative force error of 1 is what keeping no element gives
+        with pytest.raises(ValueError, match=r"tol must be a relative force error in \(0, 1\)"):
+            CubatureConfig(tol=tol)
     with pytest.raises(ValueError, match="held_out"):
         CubatureConfig(held_out=1.0)
     with pytest.raises(ValueError, match="no effect"):
