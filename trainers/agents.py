@@ -1166,13 +1166,14 @@ def train_agent(
         rollout = int(model.n_steps)
         every = max(every, rollout)
         left = int(steps) - int(model.num_timesteps)
-        if 0 < left < rollout * copies:
+        taken = -(-left // (rollout * copies)) * rollout * copies  # SB3 finishes the rollout it is in
+        if left > 0 and taken != left:
             log.warning(
                 "PPO learns from whole rollouts (n_steps %d x %d copies = %d env steps): this run takes %d, not %d",
                 rollout,
                 copies,
                 rollout * copies,
-                rollout * copies,
+                taken,
                 left,
             )
     if overwrite:  # only now, with the envs and the model built: a refused run neither writes nor removes anything

@@ -714,3 +714,16 @@ def test_a_dict_observation_model_is_named_as_such() -> None:
     venv = gym.make_vec(MINI, num_envs=1, vectorization_mode="vector_entry_point")
     with pytest.raises(SpaceMismatchError, match=r"dict observations \(achieved_goal, desired_goal, observation\)"):
         _check_spaces(model, venv)
+
+
+def test_ppo_says_when_whole_rollouts_take_more_steps_than_asked(
+    tmp_path: Path, caplog: pytest.LogCaptureFixture
+) -> None:
+    """24 steps asked of 8-step rollouts over 2 copies: SB3 finishes the second rollout (32), and the run says so."""
+    from redsim.trainers.agents import train_agent
+
+    small = {"n_steps": 8, "batch_size": 16, "n_epochs": 1}
+    tiny = {"n_envs": 2, "eval_episodes": 1, "final_episodes": 1, "env_kwargs": SHORT, "video": False}
+    with caplog.at_level("WARNING", logger="redsim.trainers.agents"):
+        result = train_agent(MINI, tmp_path, algo="ppo", steps=24, overrides=small, **tiny)
+    assert result.steps == 32 and "this run takes 32, not 24" in caplog.text
