@@ -50,6 +50,7 @@ from typing import Any
 
 import gymnasium as gym
 import numpy as np
+import torch
 
 log = logging.getLogger(__name__)
 
@@ -300,6 +301,7 @@ class Evaluation:
             (|a| >= 0.999), shape [episodes].
         final_distance: ``info["distance"]`` at each episode's last step [m] (the reach tasks, Stewart),
             shape [episodes]; None where the env reports no distance.
+        sampled: The policy's actions were sampled (``evaluate(deterministic=False)``), not its deterministic ones.
     """
 
     policy: str
@@ -310,6 +312,7 @@ class Evaluation:
     success_steps: np.ndarray
     saturated_steps: np.ndarray
     final_distance: np.ndarray | None = None
+    sampled: bool = False
 
     @property
     def mean(self) -> float:
@@ -354,6 +357,7 @@ class Evaluation:
             "policy": self.policy,
             "episodes": len(self.returns),
             "seed": self.seed,
+            "sampled": self.sampled,
             "mean_return": self.mean,
             "std_return": self.std,
             "success_rate": self.success_rate,
@@ -408,7 +412,9 @@ def evaluate(
             ``"random"`` (uniform actions drawn from ``seed``) or ``"scripted"`` (the task's controller).
         episodes: Number of episodes (copies).
         seed: Copy i resets with seed ``seed + i``.
-        deterministic: Passed to the model's ``predict``.
+        deterministic: Passed to the model's ``predict``. False samples the policy's actions (SB3's stochastic
+            ``predict``; TD3's actor has no distribution and acts alike either way) from torch's generator seeded
+            with ``seed`` inside the call (the caller's generator state is kept), so a sampled evaluation repeats.
         env_kwargs: Keyword arguments of the id's env (e.g. ``max_episode_steps``).
 
     Raises:
@@ -429,6 +435,15 @@ def evaluate(
         venv.close()  # a sharded env's workers too
         raise
     rngs = [np.random.default_rng([seed, i]) for i in range(venv.num_envs)]  # episode i's actions, whatever the count
+    with torch.random.fork_rng(devices=[]):  # a sampling policy draws from torch's generator: seeded, then restored
+        torch.manual_seed(seed)
+        return _run_episodes(venv, policy, seed, deterministic, rngs)
+
+
+def _run_episodes(
+    venv: Any, policy: Any, seed: int, deterministic: bool, rngs: list[np.random.Generator]
+) -> Evaluation:
+    """The episodes of :func:`evaluate` on its vector env ``venv`` (closed at the end), one per copy."""
     obs, _ = venv.reset(seed=seed)
     returns = np.zeros(venv.num_envs)
     lengths = np.zeros(venv.num_envs, dtype=np.int64)
@@ -460,7 +475,8 @@ def evaluate(
     venv.close()
     name = policy if isinstance(policy, str) else "agent"
     steps = dict(success_steps=success_steps / lengths, saturated_steps=saturated / lengths)
-    return Evaluation(name, returns, successes, lengths, int(seed), **steps, final_distance=distance)
+    sampled = not deterministic and not isinstance(policy, str)
+    return Evaluation(name, returns, successes, lengths, int(seed), **steps, final_distance=distance, sampled=sampled)
 
 
 # -- model files ------------------------------------------------------------------------------

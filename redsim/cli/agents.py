@@ -152,7 +152,14 @@ def cmd_eval_agent(args: argparse.Namespace) -> int:
     env_kwargs = _env_kwargs(args)
     try:
         runs = {
-            name: evaluate(args.env_id, policy, episodes=args.episodes, seed=args.seed, env_kwargs=env_kwargs)
+            name: evaluate(
+                args.env_id,
+                policy,
+                episodes=args.episodes,
+                seed=args.seed,
+                deterministic=not args.stochastic,
+                env_kwargs=env_kwargs,
+            )
             for name, policy in policies.items()
         }
     except SpaceMismatchError as err:
@@ -166,7 +173,8 @@ def cmd_eval_agent(args: argparse.Namespace) -> int:
         json_out({"env_id": args.env_id, "model": args.model, "normalization": normalization, **rows})
         return EXIT_OK
     acting = "raw observations" if normalization is None else f"observations normalized by {normalization}"
-    out(f"{args.env_id}, {args.model} ({acting}):")
+    sampling = f"; actions sampled, seed {args.seed}" if args.stochastic else ""
+    out(f"{args.env_id}, {args.model} ({acting}{sampling}):")
     for name, row in rows.items():
         out(_line(name, row))
         if name != "agent":
@@ -245,6 +253,12 @@ def add_commands(sub: Any) -> None:
     p.add_argument("--episodes", type=int, default=20, help="episodes (default 20)")
     p.add_argument("--seed", type=non_negative_seed, default=0, help="first episode seed (default 0)")
     p.add_argument("--baselines", action="store_true", help="also a random policy and the scripted controller")
+    p.add_argument(
+        "--stochastic",
+        action="store_true",
+        help="sample the policy's actions (SB3's predict(deterministic=False), seeded by --seed; TD3 acts alike "
+        "either way) instead of its deterministic action",
+    )
     _add_env_args(p)
     finish_command(p, cmd_eval_agent, "print one JSON document", default_threads=1)
 

@@ -315,6 +315,35 @@ def test_eval_agent_takes_a_plain_sb3_model_with_its_algorithm(
     assert code == 2 and "trained with HER on dict observations redsim does not know" in err
 
 
+def test_a_sampled_evaluation_repeats_and_leaves_the_callers_generator(
+    cli: Callable[..., tuple[int, str, str]], tmp_path: Path
+) -> None:
+    """evaluate(deterministic=False) / eval-agent --stochastic: the policy's sampled actions, seeded by the evaluation's
+    seed (two runs alike, unlike the deterministic actions), drawn without moving the caller's torch generator."""
+    import torch
+    from stable_baselines3 import PPO
+
+    from redsim.envs.sb3 import SB3VecEnv
+
+    PPO("MlpPolicy", SB3VecEnv.make(MINI, num_envs=2), n_steps=8, batch_size=16, seed=0).save(tmp_path / "m.zip")
+    agent = load_agent(tmp_path / "m.zip", MINI, algo="ppo")
+    torch.manual_seed(123)
+    expected = torch.rand(3)
+    torch.manual_seed(123)
+    sampled = [evaluate(MINI, agent, episodes=2, seed=s, deterministic=False, env_kwargs=SHORT) for s in (4, 4)]
+    np.testing.assert_array_equal(torch.rand(3), expected)  # the caller's draws go on as if nothing had sampled
+    np.testing.assert_array_equal(sampled[0].returns, sampled[1].returns)
+    assert sampled[0].sampled and sampled[0].as_dict()["sampled"]
+    plain = evaluate(MINI, agent, episodes=2, seed=4, env_kwargs=SHORT)
+    assert not plain.sampled and not np.array_equal(plain.returns, sampled[0].returns)
+    sampling = ["eval-agent", str(tmp_path / "m.zip"), MINI, "--algo", "ppo", "--episodes", "2", "--stochastic"]
+    code, out, err = cli(*sampling, "--episode-steps", "20", "--seed", "4", "--json")
+    assert code == 0, err
+    assert json.loads(out)["agent"]["returns"] == sampled[0].as_dict()["returns"]
+    code, out, _ = cli(*sampling, "--episode-steps", "20", "--baselines")
+    assert code == 0 and "actions sampled, seed 0" in out.splitlines()[0]
+
+
 def _foreign_model(folder: Path) -> Path:
     """An SB3 model of another project's env (saved untrained)."""
     from stable_baselines3 import SAC
