@@ -19,7 +19,7 @@ from torch import nn
 
 from redsim.scene import Scene
 from redsim.subspace import CheckpointError, checkpoint_path, load_subspace
-from redsim.trainers.fit import FitConfig, fit_command, fit_subspace
+from redsim.trainers.fit import FitConfig, fit_command, fit_subspace, planned_steps
 
 RUNTIME_FIELDS = ("checkpoint_every", "device", "fused_adam", "compile")
 """FitConfig fields that say how a fit runs, not what it fits: a checkpoint may differ in them."""
@@ -51,7 +51,8 @@ def fitted_subspace(
         stem: Where the fit is kept (``STEM.pt`` + ``STEM.json``).
         seed: Seed of a new fit.
         also: Further checkpoints tried after STEM's (e.g. the shipped map).
-        refit: Fit even if a checkpoint qualifies (replacing the one at STEM or STEM_KEY).
+        refit: Fit even if a checkpoint qualifies (replacing the one at STEM or STEM_KEY, not one whose resumed
+            extension is under way: its STEM.fit.pt plans another length).
         progress: Show the fit's progress bar.
         warn: Called with one line per checkpoint skipped, and where a fit goes to STEM_KEY.
 
@@ -67,9 +68,7 @@ def fitted_subspace(
             subspace = _qualified(path, scene, config, seed, warn)
             if subspace is not None:
                 return subspace, str(path)
-    free = [
-        s for s in stems if not _occupied(s) or (refit and _qualified(checkpoint_path(s, ".pt"), scene, config, seed))
-    ]
+    free = [s for s in stems if not _occupied(s) or (refit and _replaceable(s, scene, config, seed))]
     if not free:
         raise FileExistsError(
             f"not fitting into {stems[0]} or {stems[1]}: both hold files of another fit; move them away, or keep the "
@@ -99,6 +98,13 @@ def fit_key(scene: Scene, config: FitConfig, seed: int) -> str:
 def _occupied(stem: Path) -> bool:
     """Whether a fit has written any of its files at ``stem``."""
     return any(checkpoint_path(stem, suffix).exists() for suffix in (".pt", ".json", ".fit.pt"))
+
+
+def _replaceable(stem: Path, scene: Scene, config: FitConfig, seed: int) -> bool:
+    """Whether a refit may overwrite ``stem``: its map qualifies and its training state (``STEM.fit.pt``), if any, is
+    that finished fit's, not a resumed extension of it still under way (an interrupted ``--resume --steps N``)."""
+    in_progress = checkpoint_path(stem, ".fit.pt").exists() and planned_steps(stem) != config.steps
+    return not in_progress and _qualified(checkpoint_path(stem, ".pt"), scene, config, seed) is not None
 
 
 def _qualified(

@@ -6,7 +6,7 @@ from __future__ import annotations
 import pytest
 
 from redsim.scenes import build
-from redsim.trainers import FitConfig, fit_subspace
+from redsim.trainers import FitConfig, FitStopped, fit_subspace
 from redsim.trainers.cache import fit_key, fitted_subspace
 
 TINY = {"latent_dim": 2, "hidden_width": 8, "hidden_layers": 1, "steps": 4}
@@ -71,6 +71,24 @@ def test_never_overwrites_a_checkpoint_it_cannot_use(tmp_path) -> None:
         keyed.with_suffix(suffix).write_bytes(mine["short" + suffix])
     with pytest.raises(FileExistsError, match="another fit"):
         fitted_subspace(scene, FitConfig(**TINY), short, progress=False)
+
+
+def test_a_refit_keeps_an_extension_under_way(tmp_path) -> None:
+    """A refit replaces its own finished fit, but not one whose ``--resume --steps N`` extension was interrupted: that
+    STEM.fit.pt is the user's work in progress (the refit goes to STEM_KEY)."""
+    scene = build("toy_two_tets")
+    stem = tmp_path / "mine"
+    fit_subspace(scene, FitConfig(**TINY), out=stem, progress=False)
+    with pytest.raises(FitStopped):  # extended towards 8 steps, stopped at 6 as a Ctrl-C would
+        fit_subspace(scene, FitConfig(**{**TINY, "steps": 8}), out=stem, resume=True, stop_at=6, progress=False)
+    mine = {p.name: p.read_bytes() for p in tmp_path.iterdir()}
+    _, source = fitted_subspace(scene, FitConfig(**TINY), stem, refit=True, progress=False)
+    assert source == str(tmp_path / f"mine_{fit_key(scene, FitConfig(**TINY), 0)}.pt")
+    assert all((tmp_path / name).read_bytes() == data for name, data in mine.items())  # still resumable to 8
+    fit_subspace(scene, FitConfig(**TINY), out=tmp_path / "done", progress=False)
+    stamp = (tmp_path / "done.pt").stat().st_mtime_ns
+    _, source = fitted_subspace(scene, FitConfig(**TINY), tmp_path / "done", refit=True, progress=False)
+    assert source == str(tmp_path / "done.pt") and (tmp_path / "done.pt").stat().st_mtime_ns != stamp  # its own: redone
 
 
 def test_the_key_names_only_what_differs_from_the_defaults() -> None:
