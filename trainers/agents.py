@@ -885,6 +885,17 @@ def _training_log(model: Any, out: Path, resumed_at: int | None) -> Any:
     return logger
 
 
+def _wall_at(curve: list[dict[str, Any]], record: Mapping[str, Any], steps: int) -> float:
+    """The run's wall time [s] when it had trained ``steps`` env steps: the record's (``agent.json``) where the run
+    stopped there, else linear between the curve's evaluations and the record's end (a resume from an older
+    checkpoint does not count the time of the work it drops; a record without its steps is taken as the resumed
+    step's)."""
+    points = {0: 0.0, **{int(row["env_steps"]): float(row["wall_s"]) for row in curve}}
+    points[int(record.get("steps", steps))] = float(record.get("wall_s", 0.0))
+    xs, ys = zip(*sorted(points.items()), strict=True)
+    return float(np.interp(steps, xs, ys))
+
+
 def _read_curve(path: Path) -> list[dict[str, Any]]:
     if not path.is_file():
         return []
@@ -1173,8 +1184,8 @@ def train_agent(
     model.redsim_goal = goal
     model.redsim_env_kwargs = kwargs_now
 
-    wall_offset = float(record.get("wall_s", 0.0)) if previous is not None else 0.0
     curve = _read_curve(out / "curve.csv") if previous is not None else []
+    wall_offset = _wall_at(curve, record, int(model.num_timesteps)) if previous is not None else 0.0
     curve = [row for row in curve if row["env_steps"] <= model.num_timesteps]
     start = time.perf_counter()
     every = max(int(eval_every or steps // 10) // copies, 1)

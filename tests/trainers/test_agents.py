@@ -722,6 +722,19 @@ def test_a_resumed_run_keeps_the_evaluation_and_checkpoint_grid(tmp_path: Path) 
     ]
 
 
+def test_a_resume_from_an_older_checkpoint_counts_the_wall_time_up_to_it() -> None:
+    """The wall time a resumed run starts from: the record's where it stopped at the resumed step, else read off the
+    curve (linear between its evaluations), not the dropped later work's."""
+    from redsim.trainers.agents import _wall_at
+
+    curve = [{"env_steps": 20, "wall_s": 10.0}, {"env_steps": 40, "wall_s": 30.0}]
+    record = {"steps": 60, "wall_s": 50.0}
+    assert _wall_at(curve, record, 60) == 50.0 and _wall_at(curve, record, 40) == 30.0
+    assert _wall_at(curve, record, 30) == 20.0 and _wall_at(curve, record, 10) == 5.0
+    assert _wall_at(curve, record, 80) == 50.0  # a killed run's later checkpoint: at least the record's
+    assert _wall_at([], {"wall_s": 7.0}, 20) == 7.0  # a record without its steps: as before
+
+
 def test_a_random_episode_is_the_same_whatever_the_episode_count() -> None:
     """Episode i's random actions come from its own generator, so --episodes 2 and 3 share their first two
     episodes (in float64, where the batch size does not move the solves)."""
