@@ -52,6 +52,8 @@ from torch import Tensor, nn
 from redsim import scenes
 from redsim.cubature import Cubature, CubatureEnergy
 from redsim.envs.chain import ChainEnv
+from redsim.envs.cloth_ball import ClothBallEnv
+from redsim.envs.conditional_bar import ConditionalBarEnv
 from redsim.envs.hanging_cloth import HangingClothEnv
 from redsim.envs.mini_chain import MiniChainEnv
 from redsim.envs.reach import ReachEnv
@@ -106,6 +108,12 @@ PLANS: dict[str, Plan] = {
         HangingClothEnv,
         why="the sheet's Newton stalls near 3e-5 of its forces (tol 1e-5 and 1e-6 steps end unconverged at "
         "|g| ~ 1e-3 N), so 1e-4 is the converged reference",
+    ),
+    "cloth_ball": _env_plan("cloth_ball", ClothBallEnv, why="the ball pushed across the pinned cloth"),
+    "conditional_bar": _env_plan(
+        "conditional_bar",
+        ConditionalBarEnv,
+        why="at the condition space's default (stiffness ratio 1, pin at 0.65), shared by the full space and maps",
     ),
     "bistable_bar": Plan(
         "middle",

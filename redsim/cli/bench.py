@@ -779,7 +779,7 @@ def add_commands(sub: Any) -> Any:
             "redsim.benches.accuracy."
         ),
     )
-    p.add_argument("scene", help="one of mini_chain, chain, bistable_bar, hanging_sheet")
+    p.add_argument("scene", help="one of mini_chain, chain, cloth_ball, hanging_sheet, conditional_bar, bistable_bar")
     p.add_argument("--steps", type=int, default=100, help="steps per scenario (default 100)")
     p.add_argument("--scenarios", default="push,actions", help="push and/or actions (default both)")
     p.add_argument("--seed", type=non_negative_seed, default=0, help="seed of the actions scenario (default 0)")

@@ -41,7 +41,7 @@ def test_bad_scenarios_and_scenes_raise(mini_chain) -> None:
     with pytest.raises(ValueError, match="steps"):
         accuracy.scenario_loads(mini_chain, "push", 0)
     with pytest.raises(ValueError, match="knows scenes"):
-        accuracy.plan("cloth_ball")
+        accuracy.plan("stiff_body")
 
 
 def test_errors_compare_displacements_and_report_the_rest_offset(mini_chain) -> None:
@@ -64,8 +64,23 @@ def test_errors_compare_displacements_and_report_the_rest_offset(mini_chain) -> 
     assert 0.0 < still["rel_error_mean"] <= 1.0  # not moving at all: at most the reference's own motion
 
 
+def test_every_plan_is_an_envs_push_and_the_help_names_it(cli) -> None:
+    """The reach envs' scenes push the env's handle with its max_force (bench and env cannot drift apart), and
+    `--help` lists every scene the bench runs on."""
+    from redsim.envs.cloth_ball import ClothBallEnv
+    from redsim.envs.conditional_bar import ConditionalBarEnv
+
+    for name, env in (("cloth_ball", ClothBallEnv), ("conditional_bar", ConditionalBarEnv)):
+        plan = accuracy.plan(name)
+        assert (plan.handle, plan.max_force) == (env.goal_handle, env.default_max_force)
+        assert plan.reference_tol == scenes.full_space_tol(name)
+        assert plan.handle in [h.name for h in scenes.build(name).handles]
+    _, out, _ = cli("bench", "accuracy", "--help")
+    assert all(name in " ".join(out.split()) for name in accuracy.PLANS)
+
+
 def test_cli_refuses_bad_input(cli) -> None:
-    code, _, err = cli("bench", "accuracy", "cloth_ball")
+    code, _, err = cli("bench", "accuracy", "klann")
     assert code == 2 and "bench accuracy runs on" in err
     code, _, err = cli("bench", "accuracy", "mini_chain", "--steps", "5")
     assert code == 2 and "--steps >= 10" in err
