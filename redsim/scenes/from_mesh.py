@@ -177,6 +177,11 @@ def fem_scene_from_mesh(
         pitch = check_positive("voxel_pitch", voxel_pitch)
         _check_voxel_count(mesh, pitch)
     vertices, tets = meshes.voxel_tet_mesh(mesh, pitch)
+    if tets.shape[0] <= 6:  # one voxel (six tets): voxelizing always fills at least one, whatever the pitch
+        raise ValueError(
+            f"voxel_pitch {pitch:g} m is as large as this mesh ({' x '.join(f'{e:.3g}' for e in mesh.extents)} m): "
+            "the solid would be a single voxel; choose a smaller voxel_pitch"
+        )
     pinned = select_vertices(vertices, pin, tolerance=0.25 * pitch)
     _check_pins(pin, pinned, vertices, tets, gravity)
     b = SceneBuilder(dim=3)

@@ -277,6 +277,9 @@ def test_fem_scene_from_mesh_file(tmp_path, suffix: str) -> None:
         trimesh.creation.box(extents=(1.0, 1.0, 0.002)), voxel_pitch=0.2, gravity=False
     )
     assert plate.free_dof_count > 0
+    for pitch in (1.0, 100.0):  # voxelizing fills one voxel whatever the pitch: a one-voxel solid is refused
+        with pytest.raises(ValueError, match=f"voxel_pitch {pitch:g} m is as large as this mesh"):
+            redsim.scenes.fem_scene_from_mesh(path, voxel_pitch=pitch)
 
 
 def test_cloth_scene_from_mesh(tmp_path) -> None:
