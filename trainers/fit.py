@@ -745,7 +745,7 @@ def fit_subspace(
                 interrupt_point()  # a Ctrl-C during the step stops here, between steps
         except ForcedInterrupt:  # a second Ctrl-C inside a step: the weights may be part of an update, not saved
             if state_path is not None:
-                log.warning("interrupted inside step %d; not saved: the last saved state is resumable", completed + 1)
+                log.warning("interrupted inside step %d; not saved: the last saved state is resumable", step + 1)
             raise
         except KeyboardInterrupt:
             save_state()

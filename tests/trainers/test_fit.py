@@ -193,6 +193,24 @@ def test_a_ctrl_c_inside_a_step_stops_after_it_and_the_resume_is_the_same_run(tm
         assert signal.getsignal(signal.SIGINT) is signal.default_int_handler  # restored
 
 
+def test_a_forced_interrupt_names_the_step_it_landed_in(tmp_path, caplog: pytest.LogCaptureFixture) -> None:
+    """Two Ctrl-Cs in a callback of step 3 (after the step was counted): the warning names step 3, not 4."""
+    import os
+    import signal
+
+    from redsim.interrupts import ForcedInterrupt
+
+    def press_twice(completed: int, terms: object) -> None:
+        if completed == 3:
+            os.kill(os.getpid(), signal.SIGINT)
+            os.kill(os.getpid(), signal.SIGINT)
+
+    config = FitConfig(latent_dim=2, sigma=0.05, steps=6, hidden_width=16)
+    with caplog.at_level("WARNING", logger="redsim.trainers.fit"), pytest.raises(ForcedInterrupt):
+        fit_subspace(_tet_scene(), config, progress=False, out=tmp_path / "f", callbacks=[press_twice])
+    assert "interrupted inside step 3;" in caplog.text
+
+
 def test_a_callers_own_signal_handler_is_called_at_the_step_boundary() -> None:
     import os
     import signal
