@@ -18,6 +18,7 @@ values raise ValueError).
 from __future__ import annotations
 
 import copy
+import dataclasses
 import functools
 import hashlib
 import importlib.util
@@ -36,6 +37,7 @@ import gymnasium as gym
 import numpy as np
 import torch
 from gymnasium import spaces
+from gymnasium.envs.registration import EnvSpec
 from torch import Tensor, nn
 
 from redsim.devices import DTYPES, check_device
@@ -1142,8 +1144,8 @@ class LatentEnv(gym.Env[np.ndarray, np.ndarray]):
             where pygame and a display exist, else a clear error: :func:`human_unavailable`).
         dt: Stepper time step [s].
         frame_skip: Stepper steps per env step, in [1, :data:`MAX_FRAME_SKIP`].
-        dtype: Stepper dtype, "float32" or "float64".
-        device: Torch device.
+        dtype: Stepper dtype, "float32" or "float64" (or the torch/NumPy dtype; the spec records its name).
+        device: Torch device (a ``torch.device`` is recorded in the spec as its string).
         randomize_condition: Draw the scene's condition per episode (conditional maps).
         include_q: Put q in the ``info`` of every step and reset.
         reset_noise_scale: Start noise s [latent units] (:class:`LatentSim`; 0: every episode starts at rest).
@@ -1166,6 +1168,16 @@ class LatentEnv(gym.Env[np.ndarray, np.ndarray]):
     """The env's own defaults of ``stepper_options`` (a user's options override them key by key)."""
     camera: ClassVar[dict[str, float]] = {}
     """The env's own camera (a user's ``camera`` overrides it key by key)."""
+    _spec: EnvSpec | None = None
+
+    @property
+    def spec(self) -> EnvSpec | None:
+        """The spec ``gym.make`` gave the env, its kwargs in JSON form (:func:`json_spec`: ``spec.to_json()`` works)."""
+        return self._spec
+
+    @spec.setter
+    def spec(self, spec: EnvSpec | None) -> None:
+        self._spec = json_spec(spec)
 
     def __new__(cls, *args: Any, **kwargs: Any) -> LatentEnv:
         check_threads(kwargs.get("threads", 1))  # before a subclass builds its scene or fits a map
@@ -1530,6 +1542,24 @@ def _dtype_name(dtype: Any) -> str:
     return name
 
 
+def json_spec(spec: EnvSpec | None) -> EnvSpec | None:
+    """``spec`` with the env arguments given in a non-JSON form redsim accepts in their JSON one, so that
+    ``spec.to_json()`` works and ``gym.make(spec)`` makes the same env: ``dtype`` by name (``torch.float64`` or
+    ``np.float64`` as "float64"), a ``torch.device`` as its string, a path (``subspace``, ``cubature``) as a string.
+    Other values are kept (a map given as ``subspace`` is not JSON: its spec cannot be)."""
+    if spec is None:
+        return None
+    kwargs = dict(spec.kwargs)
+    if "dtype" in kwargs and not isinstance(kwargs["dtype"], str):
+        kwargs["dtype"] = _dtype_name(kwargs["dtype"])
+    if isinstance(kwargs.get("device"), torch.device):
+        kwargs["device"] = str(kwargs["device"])
+    for key in ("subspace", "cubature"):
+        if isinstance(kwargs.get(key), os.PathLike):
+            kwargs[key] = os.fspath(kwargs[key])
+    return dataclasses.replace(spec, kwargs=kwargs)
+
+
 def _image_size(width: Any, height: Any) -> tuple[int, int]:
     """(width, height) [px], checked here rather than at the first ``render()``."""
     if any(isinstance(v, bool) or not isinstance(v, numbers.Integral) or v < 8 for v in (width, height)):
@@ -1650,5 +1680,6 @@ __all__ = [
     "check_numbers",
     "check_subspace",
     "human_unavailable",
+    "json_spec",
     "shipped",
 ]

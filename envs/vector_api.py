@@ -46,9 +46,21 @@ class SharedCopies:
     template: LatentEnv
     num_envs: int
     max_episode_steps: int | None
-    spec: EnvSpec | None
     single_observation_space: Any
     single_action_space: Any
+    _spec: EnvSpec | None = None
+
+    @property
+    def spec(self) -> EnvSpec | None:
+        """The spec ``gym.make_vec`` gave the vector env, its kwargs in JSON form
+        (:func:`redsim.envs.base.json_spec`: ``spec.to_json()`` works)."""
+        return self._spec
+
+    @spec.setter
+    def spec(self, spec: EnvSpec | None) -> None:
+        from redsim.envs.base import json_spec
+
+        self._spec = json_spec(spec)
 
     def get_attr(self, name: str) -> tuple[Any, ...]:
         """Each copy's ``name``: the single observation or action space, its ``spec`` (:meth:`single_spec`), or the

@@ -8,6 +8,7 @@ run the same checks under ``-m slow``. Float tolerances: the stepper runs in flo
 from __future__ import annotations
 
 import copy
+import json
 import logging
 import pickle
 import warnings
@@ -17,6 +18,7 @@ import gymnasium as gym
 import numpy as np
 import pytest
 import torch
+from gymnasium.envs.registration import EnvSpec
 from gymnasium.utils.env_checker import check_env
 from gymnasium.vector import AutoresetMode
 
@@ -497,6 +499,25 @@ def test_a_copy_keeps_the_seed_and_spec_so_reading_the_seed_keeps_the_generator(
         assert clone.unwrapped.np_random_seed == 5
         assert clone.unwrapped.spec == env.unwrapped.spec
         assert np.array_equal(clone.reset()[0], next_obs)
+
+
+def test_a_spec_made_with_torch_or_numpy_dtypes_a_device_or_a_path_is_json_and_remakes_the_env() -> None:
+    """``dtype=torch.float64`` (or a NumPy dtype, a ``torch.device``, a checkpoint ``Path``) is recorded in the spec
+    by its JSON form, so ``spec.to_json()`` (SB3's and RecordVideo's metadata) and ``gym.make(spec)`` work."""
+    path = pretrained.path("mini_chain")
+    cases = [
+        ({"dtype": torch.float64}, {"dtype": "float64"}),
+        ({"dtype": np.dtype("float64")}, {"dtype": "float64"}),
+        ({"device": torch.device("cpu")}, {"device": "cpu"}),
+    ]
+    for given, recorded in cases:
+        env = gym.make("RedSim/MiniChain-v0", subspace=path, **given)
+        spec = EnvSpec.from_json(env.spec.to_json())
+        assert spec.kwargs == {"subspace": str(path), **recorded}
+        again = gym.make(spec).unwrapped
+        assert again.sim.torch_dtype == env.unwrapped.sim.torch_dtype and again.spec == env.unwrapped.spec
+    venv = gym.make_vec("RedSim/MiniChain-v0", 2, "vector_entry_point", dtype=torch.float64)
+    assert json.loads(venv.spec.to_json())["kwargs"]["dtype"] == "float64"
 
 
 def test_info_reports_solver_flags_invariants_rewards_and_q() -> None:
