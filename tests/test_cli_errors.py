@@ -415,6 +415,23 @@ def test_bench_budgets_and_empty_scene_lists_are_refused(cli: Cli, argv: list[st
     assert code == 2 and out == "" and err.count("\n") == 1 and ("--budget" in err or "--scenes" in err), err
 
 
+@pytest.mark.parametrize(
+    ("argv", "expected"),
+    [
+        (["bench", "step", "--scenes", "mini_chain,chain,mini_chain"], "--scenes gives 'mini_chain' twice"),
+        (["bench", "envs", "--envs", "RedSim/MiniChain-v0, RedSim/MiniChain-v0"], "--envs gives 'RedSim/MiniChain-v0'"),
+        (["bench", "energy", "--scenes", "mini_chain", "--batches", "1,32,1"], "--batches gives '1' twice"),
+        (["bench", "stability", "--regimes", "stiff,stiff"], "--regimes gives 'stiff' twice"),
+        (["bench", "accuracy", "mini_chain", "--scenarios", "push,push"], "--scenarios gives 'push' twice"),
+    ],
+)
+def test_a_name_given_twice_in_a_bench_list_is_refused_before_any_work(
+    cli: Cli, argv: list[str], expected: str
+) -> None:
+    code, out, err = cli(*argv)
+    assert code == 2 and out == "" and err.count("\n") == 1 and expected in err, err
+
+
 def test_inspect_prints_the_json_of_a_checkpoint_whose_scene_cannot_be_rebuilt(cli: Cli, tmp_path: Path) -> None:
     """A fit of an in-memory mesh (Python API) records no file to rebuild its scene from; inspect still reads it."""
     import json

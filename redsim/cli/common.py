@@ -204,9 +204,14 @@ def parse_loads(items: Sequence[str], scene: Scene) -> dict[str, list[float]] | 
 
 
 def parse_list(text: str, what: str) -> list[str]:
+    """The items of a comma-separated list (``what`` names the option in the error); an item given twice is an error
+    (a bench would run it twice)."""
     items = [s.strip() for s in text.split(",") if s.strip()]
     if not items:
         raise CliError(f"{what} must be a comma-separated list, got {text!r}")
+    repeated = next((item for i, item in enumerate(items) if item in items[:i]), None)
+    if repeated is not None:
+        raise CliError(f"{what} gives {repeated!r} twice; give each once")
     return items
 
 
