@@ -244,6 +244,19 @@ def test_an_out_that_cannot_be_written_is_refused_before_any_work(cli: Cli, tmp_
     assert code == 2 and "--fps must be" in err and not (tmp_path / "a.gif").exists()
 
 
+@pytest.mark.skipif(not Path("/proc/self").is_dir(), reason="needs Linux's /proc")
+def test_an_out_in_a_folder_that_takes_no_files_is_refused_before_any_work(cli: Cli) -> None:
+    """``os.access`` calls /proc writable (and every folder, for root), but nothing can be made in it: the bench
+    ran to its end and lost its results."""
+    for argv in (
+        ["bench", "accuracy", "mini_chain", "--steps", "10", "--scenarios", "push", "--full", "none", "--no-study"],
+        ["bench", "scaling"],
+    ):
+        code, out, err = cli(*argv, "--out", "/proc/redsim_out")
+        assert code == 2 and out == "" and err.count("\n") == 1, (argv, err)
+        assert "cannot write --out /proc/redsim_out: /proc is not writable" in err, err
+
+
 def test_an_out_folder_that_is_a_file_is_refused_before_any_work(cli: Cli, tmp_path: Path) -> None:
     existing = tmp_path / "file"
     existing.write_text("kept")

@@ -7,6 +7,7 @@ import logging
 import os
 import signal
 import sys
+import tempfile
 import threading
 from collections.abc import Sequence
 from pathlib import Path
@@ -99,8 +100,9 @@ def _interrupt_on_sigterm() -> object:
 
 def _check_out(args: argparse.Namespace) -> None:
     """Refuse an ``--out`` whose folder could not be made or written, before any work (a fit or a bench that ends
-    in a traceback loses its results). Nothing is created here: the nearest existing folder above it must be a
-    writable folder."""
+    in a traceback loses its results). Nothing is left behind here: the nearest existing folder above it must be a
+    folder that a file can be made in (tried, not asked of ``os.access``, which says yes to root everywhere and to
+    anyone on ``/proc``)."""
     out = getattr(args, "out", None)
     if not out:
         return
@@ -114,8 +116,11 @@ def _check_out(args: argparse.Namespace) -> None:
         folder = folder.parent
     if not folder.is_dir():
         raise CliError(f"cannot write --out {out}: {folder} is a file, not a folder")
-    if not os.access(folder, os.W_OK | os.X_OK):
-        raise CliError(f"cannot write --out {out}: {folder} is not writable")
+    try:
+        with tempfile.TemporaryFile(dir=folder):
+            pass
+    except OSError as err:
+        raise CliError(f"cannot write --out {out}: {folder} is not writable ({err.strerror or err})") from None
 
 
 def _silence_stdout() -> None:
