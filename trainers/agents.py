@@ -36,6 +36,7 @@ from __future__ import annotations
 
 import copy
 import csv
+import inspect
 import json
 import logging
 import pickle
@@ -275,6 +276,21 @@ def _episode_steps(env: str | gym.Env, env_kwargs: Mapping[str, Any] | None) -> 
     if isinstance(env, str):
         return dict(env_kwargs or {}).get("max_episode_steps", gym.spec(env).max_episode_steps)
     return _base_env(env)[1]
+
+
+def _env_defaults(env: str | gym.Env) -> dict[str, Any]:
+    """The keyword arguments an id's env is made with where none is given, as a model file records them (JSON): its
+    entry point's defaults, the id's registered kwargs and its ``max_episode_steps``; {} for a user's env."""
+    from gymnasium.envs.registration import load_env_creator
+
+    if not isinstance(env, str):
+        return {}
+    spec = gym.spec(env)
+    creator = load_env_creator(spec.entry_point) if isinstance(spec.entry_point, str) else spec.entry_point
+    parameters = inspect.signature(creator).parameters.values()
+    defaults = {p.name: p.default for p in parameters if p.default is not inspect.Parameter.empty}
+    defaults.update(spec.kwargs, max_episode_steps=spec.max_episode_steps)
+    return json.loads(json.dumps(defaults, default=str))
 
 
 def _env_label(env: str | gym.Env) -> str:
@@ -1050,7 +1066,7 @@ def train_agent(
         final_episodes: Seeded episodes of the final evaluation (in ``agent.json``).
         checkpoint_every: Env steps between checkpoints (default: ``steps / 4``).
         resume: Continue from the newest of ``out/model.zip`` and ``out/checkpoints/*.zip`` (with the same
-            ``env_kwargs``).
+            ``env_kwargs``; a default given again is the same).
         overwrite: Replace a run already in ``out`` (its files of the module doc); without it (or ``resume``) a
             run there is refused, so that nothing is mixed or lost.
         progress_bar: Show SB3's progress bar (needs ``rich``).
@@ -1118,10 +1134,12 @@ def train_agent(
             )
     kwargs_now = json.loads(json.dumps(dict(env_kwargs or {}), default=str))  # as the model file records them
     if previous is not None and found["env_kwargs"] not in (None, kwargs_now):
-        raise ValueError(
-            f"cannot resume with env_kwargs {kwargs_now}: {previous} was trained with {found['env_kwargs']} "
-            "(give the same --env-arg and --episode-steps, or another --out)"
-        )
+        defaults = _env_defaults(env)  # a default given again (--env-arg max_episode_steps=200) makes the same env
+        if {**defaults, **found["env_kwargs"]} != {**defaults, **kwargs_now}:
+            raise ValueError(
+                f"cannot resume with env_kwargs {kwargs_now}: {previous} was trained with {found['env_kwargs']} "
+                "(give the same --env-arg and --episode-steps, or another --out)"
+            )
     started_with = seed
     if previous is not None and (out / "agent.json").is_file():
         started_with = json.loads((out / "agent.json").read_text()).get("seed", seed)

@@ -465,6 +465,21 @@ def test_a_resumed_run_draws_new_episodes(tmp_path: Path, monkeypatch: pytest.Mo
     assert min(abs(a - b) for i, a in enumerate(starts) for b in starts[i + 1 :]) > 16
 
 
+def test_a_resume_that_gives_an_env_default_again_goes_on_and_another_value_is_refused(
+    cli: Callable[..., tuple[int, str, str]], tmp_path: Path
+) -> None:
+    """``--env-arg max_episode_steps=200`` (the id's length) and ``dt=0.02`` (the env's) make the env the run was
+    made with (no env args): the resume goes on."""
+    run = ["train-agent", MINI, "--algo", "sac", "--n-envs", "2", "--eval-every", "20", "--eval-episodes", "1"]
+    run += ["--final-episodes", "1", "--no-video", "--no-progress", "--out", str(tmp_path)]
+    assert cli(*run, "--steps", "20")[0] == 0
+    code, _, err = cli(*run, "--steps", "40", "--resume", "--env-arg", "max_episode_steps=200", "--env-arg", "dt=0.02")
+    assert code == 0, err
+    assert load_agent(tmp_path / "model.zip", MINI).num_timesteps == 40
+    code, _, err = cli(*run, "--steps", "60", "--resume", "--episode-steps", "100")
+    assert code == 2 and "cannot resume with env_kwargs {'max_episode_steps': 100}" in err, err
+
+
 def test_td3_resumes_from_a_checkpoint_with_other_copies(tmp_path: Path) -> None:
     """No replay buffer comes with a checkpoint, so the copies may change; the exploration noise follows them."""
     from redsim.trainers.agents import train_agent
