@@ -38,6 +38,7 @@ import numpy as np
 import torch
 from gymnasium import spaces
 from gymnasium.envs.registration import EnvSpec
+from gymnasium.vector import AutoresetMode
 from torch import Tensor, nn
 
 from redsim.devices import DTYPES, check_device
@@ -1545,8 +1546,9 @@ def _dtype_name(dtype: Any) -> str:
 def json_spec(spec: EnvSpec | None) -> EnvSpec | None:
     """``spec`` with the env arguments given in a non-JSON form redsim accepts in their JSON one, so that
     ``spec.to_json()`` works and ``gym.make(spec)`` makes the same env: ``dtype`` by name (``torch.float64`` or
-    ``np.float64`` as "float64"), a ``torch.device`` as its string, a path (``subspace``, ``cubature``) as a string.
-    Other values are kept (a map given as ``subspace`` is not JSON: its spec cannot be)."""
+    ``np.float64`` as "float64"), a ``torch.device`` as its string, a path (``subspace``, ``cubature``) as a string,
+    a vector env's ``AutoresetMode`` as its value ("SameStep"). Other values are kept (a map given as ``subspace`` is
+    not JSON: its spec cannot be)."""
     if spec is None:
         return None
     kwargs = dict(spec.kwargs)
@@ -1554,6 +1556,8 @@ def json_spec(spec: EnvSpec | None) -> EnvSpec | None:
         kwargs["dtype"] = _dtype_name(kwargs["dtype"])
     if isinstance(kwargs.get("device"), torch.device):
         kwargs["device"] = str(kwargs["device"])
+    if isinstance(kwargs.get("autoreset_mode"), AutoresetMode):
+        kwargs["autoreset_mode"] = kwargs["autoreset_mode"].value
     for key in ("subspace", "cubature"):
         if isinstance(kwargs.get(key), os.PathLike):
             kwargs[key] = os.fspath(kwargs[key])

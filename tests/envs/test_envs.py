@@ -518,6 +518,11 @@ def test_a_spec_made_with_torch_or_numpy_dtypes_a_device_or_a_path_is_json_and_r
         assert again.sim.torch_dtype == env.unwrapped.sim.torch_dtype and again.spec == env.unwrapped.spec
     venv = gym.make_vec("RedSim/MiniChain-v0", 2, "vector_entry_point", dtype=torch.float64)
     assert json.loads(venv.spec.to_json())["kwargs"]["dtype"] == "float64"
+    from redsim.envs.sb3 import SB3VecEnv  # its vector env is made with AutoresetMode.SAME_STEP
+
+    spec = EnvSpec.from_json(SB3VecEnv.make("RedSim/MiniChain-v0", 2).venv.spec.to_json())
+    assert spec.kwargs["autoreset_mode"] == "SameStep"
+    assert gym.make_vec(spec, 2, "vector_entry_point").metadata["autoreset_mode"] == AutoresetMode.SAME_STEP
 
 
 def test_info_reports_solver_flags_invariants_rewards_and_q() -> None:
