@@ -722,7 +722,8 @@ class TrainingInterrupted(KeyboardInterrupt):
     evaluation, runs that evaluation).
 
     Attributes:
-        steps: Env steps the saved model was trained for (PPO: up to its last whole rollout; the unfinished one is
+        steps: Env steps the saved model was trained for (PPO: up to its last learnt rollout, with the weights,
+            optimizer and normalizer statistics of then; a rollout not yet learnt, or its unfinished update, is
             dropped).
         model_path: The saved ``model.zip``.
     """
@@ -751,28 +752,41 @@ def _close_quietly(venv: Any) -> None:
         log.warning("closing %s after the interrupt failed: %r", type(venv).__name__, error)
 
 
-def _statistics_keeper(venv: Any) -> Any:
-    """A callback that copies ``venv``'s ``VecNormalize`` statistics as each rollout starts; its ``restore()`` puts
-    them back. An interrupted PPO run is saved at its last finished rollout, and its statistics must be those too
-    (the unfinished rollout's observations are not in what the model learnt)."""
+def _rollout_keeper(venv: Any) -> Any:
+    """A PPO callback that copies, as each rollout starts, the point the run has learnt up to: the model's step and
+    update counts, its policy and optimizer state and ``venv``'s ``VecNormalize`` statistics; its ``restore()`` puts
+    them back. An interrupted PPO run is saved at that point. SB3 counts a rollout's steps (and its observations
+    into the statistics) as it collects them and updates the weights in place over ``n_epochs`` only after the
+    rollout, so an interrupt inside the rollout, in a callback at its last step or inside the update would otherwise
+    save steps, statistics or partly updated weights that were never learnt together. (An interrupt after an update
+    but before the next rollout starts drops that update as well: the saved run is older, never inconsistent.)"""
     from stable_baselines3.common.callbacks import BaseCallback
     from stable_baselines3.common.vec_env import VecNormalize
 
-    class StatisticsKeeper(BaseCallback):
-        kept: tuple[Any, Any, Any] | None = None
+    class RolloutKeeper(BaseCallback):
+        kept: tuple[int, int, Any, Any, Any] | None = None
 
         def _on_rollout_start(self) -> None:
-            if isinstance(venv, VecNormalize):
-                self.kept = copy.deepcopy((venv.obs_rms, venv.ret_rms, venv.returns))
+            model = self.model
+            statistics = (venv.obs_rms, venv.ret_rms, venv.returns) if isinstance(venv, VecNormalize) else None
+            weights = (model.policy.state_dict(), model.policy.optimizer.state_dict(), statistics)
+            # one assignment: an interrupt while copying keeps the previous rollout's point whole
+            self.kept = (int(model.num_timesteps), int(model._n_updates), *copy.deepcopy(weights))
 
         def _on_step(self) -> bool:
             return True
 
         def restore(self) -> None:
-            if self.kept is not None:
-                venv.obs_rms, venv.ret_rms, venv.returns = copy.deepcopy(self.kept)
+            if self.kept is None:  # no rollout started: nothing has moved
+                return
+            model = self.model
+            model.num_timesteps, model._n_updates, policy, optimizer, statistics = self.kept
+            model.policy.load_state_dict(policy)
+            model.policy.optimizer.load_state_dict(optimizer)
+            if statistics is not None:
+                venv.obs_rms, venv.ret_rms, venv.returns = copy.deepcopy(statistics)
 
-    return StatisticsKeeper()
+    return RolloutKeeper()
 
 
 def _curve_callback(curve: list[dict[str, float]], wall_offset: float, start: float, path: Path) -> Any:
@@ -1260,7 +1274,7 @@ def train_agent(
     }
     model_path = out / "model.zip"
     started = int(model.num_timesteps)
-    statistics = _statistics_keeper(venv)
+    keeper = [_rollout_keeper(venv)] if algo == "ppo" else []  # PPO's last learnt point, for an interrupt
 
     def interrupted(wall: float) -> TrainingInterrupted:
         """Record the saved run as interrupted (``agent.json``; the curve so far) for the caller to raise."""
@@ -1280,7 +1294,7 @@ def train_agent(
                     evaluation_cb.on_step()
                 model.learn(
                     remaining,
-                    callback=CallbackList([evaluation_cb, checkpoint_cb, statistics]),
+                    callback=CallbackList([*keeper, evaluation_cb, checkpoint_cb]),
                     reset_num_timesteps=previous is None,
                     progress_bar=progress_bar,
                 )
@@ -1288,10 +1302,8 @@ def train_agent(
                 model.logger.close()
     except KeyboardInterrupt:
         # as a fit: keep what was learnt (model, replay buffer, normalizer, curve), so --resume goes on from here
-        if algo == "ppo":  # PPO never learnt from its unfinished rollout: the saved steps end at its last one
-            rollout = int(model.n_steps) * copies
-            model.num_timesteps = started + (int(model.num_timesteps) - started) // rollout * rollout
-            statistics.restore()  # and so do the normalizer's statistics
+        for kept in keeper:  # PPO: back to its last learnt rollout (steps, weights, normalizer statistics)
+            kept.restore()
         _save_run(model, venv, model_path)
         for env_ in (venv, eval_env):
             _close_quietly(env_)

@@ -654,6 +654,59 @@ def test_an_interrupted_ppo_run_saves_the_normalizer_of_its_last_rollout(
     assert saved.obs_rms.count == pytest.approx(2 + 16, abs=1e-3)  # the reset and the first rollout's 8 x 2 steps
 
 
+def test_ppo_interrupted_in_its_update_or_at_a_rollouts_last_step_saves_its_last_learnt_rollout(
+    tmp_path: Path, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    """SB3 counts a rollout's 16 steps before it updates on them: stopped inside the second update (weights half
+    changed in place) or in the evaluation at the second rollout's last step, the run is saved as of the first
+    update (16 steps, its weights, optimizer and statistics), not at 32 steps with weights that never learnt them."""
+    import pickle
+
+    import stable_baselines3.common.callbacks as sb3_callbacks
+    import torch
+    from stable_baselines3 import PPO
+
+    from redsim.trainers.agents import TrainingInterrupted, train_agent
+
+    learnt: list[dict[str, torch.Tensor]] = []
+    train = PPO.train
+
+    def interrupted_second(self: PPO) -> None:
+        train(self)  # the second update changes the weights, then the interrupt comes
+        learnt.append({k: v.clone() for k, v in self.policy.state_dict().items()})
+        if len(learnt) == 2:
+            raise KeyboardInterrupt
+
+    monkeypatch.setattr(PPO, "train", interrupted_second)
+    small = {"n_steps": 8, "batch_size": 16, "n_epochs": 1}
+    tiny = {"n_envs": 2, "eval_episodes": 1, "final_episodes": 1, "env_kwargs": SHORT, "video": False}
+    with pytest.raises(TrainingInterrupted, match="interrupted at 16 env steps"):
+        train_agent(MINI, tmp_path / "train", algo="ppo", steps=64, eval_every=64, overrides=small, **tiny)
+    saved = load_agent(tmp_path / "train" / "model.zip")
+    assert saved.num_timesteps == 16 and saved.model._n_updates == 1
+    assert saved.normalizer.obs_rms.count == pytest.approx(2 + 16, abs=1e-3)  # the reset and the first rollout
+    for name, value in saved.model.policy.state_dict().items():
+        torch.testing.assert_close(value, learnt[0][name], rtol=0, atol=0)  # the first update's, not the second's
+    assert not all(torch.equal(value, learnt[1][name]) for name, value in saved.model.policy.state_dict().items())
+    assert {int(s["step"]) for s in saved.model.policy.optimizer.state_dict()["state"].values()} == {1}  # Adam's
+    monkeypatch.setattr(PPO, "train", train)
+
+    evaluate = sb3_callbacks.evaluate_policy
+    calls = {"n": 0}
+
+    def interrupted_evaluation(*args: object, **kwargs: object) -> object:  # every 16 steps: each rollout's last
+        calls["n"] += 1
+        if calls["n"] == 2:
+            raise KeyboardInterrupt
+        return evaluate(*args, **kwargs)
+
+    monkeypatch.setattr(sb3_callbacks, "evaluate_policy", interrupted_evaluation)
+    with pytest.raises(TrainingInterrupted, match="interrupted at 16 env steps"):
+        train_agent(MINI, tmp_path / "evaluation", algo="ppo", steps=64, eval_every=16, overrides=small, **tiny)
+    with (tmp_path / "evaluation" / "model_vecnormalize.pkl").open("rb") as handle:
+        assert pickle.load(handle).obs_rms.count == pytest.approx(2 + 16, abs=1e-3)
+
+
 def test_a_run_interrupted_in_an_evaluation_makes_it_on_resume(tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> None:
     """Stopped inside the evaluation at 40 steps, the resumed run evaluates at 40 first: no grid point is lost."""
     import stable_baselines3.common.callbacks as sb3_callbacks
