@@ -11,8 +11,9 @@ progress bar, and resumable runs. :func:`train_agent` writes into its output fol
   them, :func:`normalizer_path` names the file beside any model);
 - ``best_model.zip`` (+ ``best_model_vecnormalize.pkl``): the best model by evaluation return (``EvalCallback``);
 - ``replay_buffer.pkl`` (SAC, TD3): the replay buffer, so a resumed run goes on with it;
-- ``checkpoints/``: periodic models and their statistics (an interrupted run resumes from the newest,
-  with an empty buffer);
+- ``checkpoints/``: periodic models and their statistics (PPO's as a rollout starts: only learnt rollouts). A resumed
+  run goes on from whichever of ``model.zip`` and the checkpoints was trained the most env steps (``model.zip`` on
+  a tie), from a checkpoint with an empty replay buffer;
 - ``curve.csv`` and ``curve.png``: evaluation return vs env steps and vs wall time;
 - ``evaluations.npz``: ``EvalCallback``'s log of every evaluation (steps, returns, episode lengths);
 - ``progress.csv``: SB3's own training log (losses, learning rate, fps, ``eval/mean_reward``; a resumed run
@@ -789,6 +790,46 @@ def _rollout_keeper(venv: Any) -> Any:
     return RolloutKeeper()
 
 
+def _rollout_checkpoints(every: int, folder: Path) -> Any:
+    """PPO's checkpoints, in the files of SB3's ``CheckpointCallback`` (``folder/rl_model_N_steps.zip`` and its
+    statistics, :func:`normalizer_path`), saved as the first rollout at or past each multiple of ``every`` env steps
+    starts, and as training ends: points where the steps, weights and statistics were learnt together. (SB3's saves
+    at any vector step, counting the steps of a rollout PPO has not learnt yet, with its observations in the
+    statistics; at a rollout's last step even the weights are those from before its update. A resume takes the
+    file trained the most steps, so such a checkpoint would skip the rollout, or run past ``steps``.)"""
+    from stable_baselines3.common.callbacks import BaseCallback
+
+    class RolloutCheckpoint(BaseCallback):
+        saved = 0
+        """Grid points (multiples of ``every``) passed at the last save, or at training start."""
+
+        def _init_callback(self) -> None:
+            folder.mkdir(parents=True, exist_ok=True)
+            self.saved = int(self.model.num_timesteps) // every
+
+        def _on_rollout_start(self) -> None:
+            self._save()
+
+        def _on_step(self) -> bool:
+            return True
+
+        def _on_training_end(self) -> None:
+            self._save()
+
+        def _save(self) -> None:
+            steps = int(self.model.num_timesteps)
+            if steps // every <= self.saved:
+                return
+            self.saved = steps // every
+            path = folder / f"rl_model_{steps}_steps.zip"
+            normalizer = self.model.get_vec_normalize_env()
+            if normalizer is not None:  # first: a checkpoint's model is never without its statistics
+                normalizer.save(str(normalizer_path(path)))
+            self.model.save(path)
+
+    return RolloutCheckpoint()
+
+
 def _curve_callback(curve: list[dict[str, float]], wall_offset: float, start: float, path: Path) -> Any:
     from stable_baselines3.common.callbacks import BaseCallback
 
@@ -1078,9 +1119,10 @@ def train_agent(
         eval_every: Env steps between evaluations (default: ``steps / 10``).
         eval_episodes: Episodes per evaluation during training.
         final_episodes: Seeded episodes of the final evaluation (in ``agent.json``).
-        checkpoint_every: Env steps between checkpoints (default: ``steps / 4``).
-        resume: Continue from the newest of ``out/model.zip`` and ``out/checkpoints/*.zip`` (with the same
-            ``env_kwargs``; a default given again is the same).
+        checkpoint_every: Env steps between checkpoints (default: ``steps / 4``; PPO saves as the first rollout at
+            or past each multiple starts, when the steps before it are learnt).
+        resume: Continue from the one of ``out/model.zip`` and ``out/checkpoints/*.zip`` trained the most env steps
+            (``model.zip`` on a tie), with the same ``env_kwargs`` (a default given again is the same) and seed.
         overwrite: Replace a run already in ``out`` (its files of the module doc); without it (or ``resume``) a
             run there is refused, so that nothing is mixed or lost.
         progress_bar: Show SB3's progress bar (needs ``rich``).
@@ -1250,11 +1292,13 @@ def train_agent(
     )
     if previous is not None:
         _continue_evaluations(evaluation_cb, out / "evaluations.npz", int(model.num_timesteps), eval_episodes)
-    checkpoint_cb = CheckpointCallback(
-        save_freq=max(int(checkpoint_every or steps // 4) // copies, 1),
-        save_path=str(out / "checkpoints"),
-        save_vecnormalize=True,
-    )
+    save_freq = max(int(checkpoint_every or steps // 4) // copies, 1)  # vector steps
+    if algo == "ppo":  # at learnt rollouts only
+        checkpoint_cb = _rollout_checkpoints(save_freq * copies, out / "checkpoints")
+    else:
+        checkpoint_cb = CheckpointCallback(
+            save_freq=save_freq, save_path=str(out / "checkpoints"), save_vecnormalize=True
+        )
     if previous is not None:  # SB3's callbacks count their calls from 0 again: keep the run's step grid
         for callback in (evaluation_cb, checkpoint_cb):
             callback.n_calls = int(model.num_timesteps) // copies
@@ -1274,7 +1318,7 @@ def train_agent(
     }
     model_path = out / "model.zip"
     started = int(model.num_timesteps)
-    keeper = [_rollout_keeper(venv)] if algo == "ppo" else []  # PPO's last learnt point, for an interrupt
+    keeper = [_rollout_keeper(venv)] if algo == "ppo" else []  # first: a rollout's point is kept before its checkpoint
 
     def interrupted(wall: float) -> TrainingInterrupted:
         """Record the saved run as interrupted (``agent.json``; the curve so far) for the caller to raise."""

@@ -707,6 +707,47 @@ def test_ppo_interrupted_in_its_update_or_at_a_rollouts_last_step_saves_its_last
         assert pickle.load(handle).obs_rms.count == pytest.approx(2 + 16, abs=1e-3)
 
 
+def test_ppo_checkpoints_hold_learnt_rollouts_and_a_resume_after_ctrl_c_takes_model_zip(
+    tmp_path: Path, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    """PPO's checkpoints are saved as a rollout starts (and as training ends), so each holds the weights, update
+    count and statistics of the steps it counts, and a run stopped mid-rollout (16 steps learnt, 28 stepped) leaves
+    none past 16: --resume goes on from model.zip to the 64 steps asked, not from a 24-step checkpoint to 72."""
+    from redsim.envs.sb3 import SB3VecEnv
+    from redsim.trainers.agents import TrainingInterrupted, train_agent
+
+    small = {"n_steps": 8, "batch_size": 16, "n_epochs": 1}  # rollouts of 16 env steps, one update each
+    tiny = {"n_envs": 2, "eval_episodes": 1, "final_episodes": 1, "env_kwargs": SHORT, "video": False}
+    run = {"algo": "ppo", "steps": 64, "eval_every": 64, "overrides": small, **tiny}
+    train_agent(MINI, tmp_path / "whole", checkpoint_every=16, **run)
+    folder = tmp_path / "whole" / "checkpoints"
+    assert sorted(p.name for p in folder.glob("rl_model_*_steps.zip")) == [
+        f"rl_model_{n}_steps.zip" for n in (16, 32, 48, 64)
+    ]
+    for n in (16, 32, 48, 64):
+        saved = load_agent(folder / f"rl_model_{n}_steps.zip")
+        assert saved.num_timesteps == n and saved.model._n_updates == n // 16  # every rollout it counts was learnt
+        assert saved.normalizer.obs_rms.count == pytest.approx(2 + n, abs=1e-3)  # the reset and n steps
+    (tmp_path / "whole" / "model.zip").unlink()  # killed after its last checkpoint
+    assert train_agent(MINI, tmp_path / "whole", resume=True, **{**run, "steps": 80}).steps == 80
+
+    calls = {"n": 0}
+    step_wait = SB3VecEnv.step_wait
+
+    def interrupting(self: SB3VecEnv):  # the training env has 2 copies
+        calls["n"] += self.num_envs == 2
+        if calls["n"] == 15:  # 14 vector steps done: the first rollout's 8 and 6 of the second's
+            raise KeyboardInterrupt
+        return step_wait(self)
+
+    monkeypatch.setattr(SB3VecEnv, "step_wait", interrupting)
+    with pytest.raises(TrainingInterrupted, match="interrupted at 16 env steps"):
+        train_agent(MINI, tmp_path / "stopped", checkpoint_every=24, **run)
+    assert not list((tmp_path / "stopped" / "checkpoints").glob("rl_model_*"))  # 24 is saved as a rollout starts
+    monkeypatch.setattr(SB3VecEnv, "step_wait", step_wait)
+    assert train_agent(MINI, tmp_path / "stopped", checkpoint_every=24, resume=True, **run).steps == 64
+
+
 def test_a_run_interrupted_in_an_evaluation_makes_it_on_resume(tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> None:
     """Stopped inside the evaluation at 40 steps, the resumed run evaluates at 40 first: no grid point is lost."""
     import stable_baselines3.common.callbacks as sb3_callbacks
