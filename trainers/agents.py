@@ -1331,7 +1331,10 @@ def train_agent(
         if remaining > 0:
             model.set_logger(_training_log(model, out, None if previous is None else started))
             try:
-                missed = evaluation_cb.n_calls % every == 0 and started not in evaluation_cb.evaluations_timesteps
+                # the curve has a row of every evaluation made, whatever its episode count (evaluations.npz keeps
+                # only those of this run's count), and of the final one
+                evaluated = any(row["env_steps"] == started for row in curve)
+                missed = evaluation_cb.n_calls % every == 0 and not evaluated
                 if previous is not None and started > 0 and missed:  # interrupted in its evaluation: made now
                     evaluation_cb.init_callback(model)
                     evaluation_cb.n_calls -= 1

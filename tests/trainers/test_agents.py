@@ -775,6 +775,43 @@ def test_a_run_interrupted_in_an_evaluation_makes_it_on_resume(tmp_path: Path, m
         assert list(evaluations["timesteps"]) == [20, 40, 60, 80, 100]
 
 
+def test_a_resume_with_other_eval_episodes_evaluates_only_the_missed_step(
+    tmp_path: Path, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    """evaluations.npz drops the evaluations of another episode count, the curve keeps them: a finished run extended
+    with another --eval-episodes does not evaluate its last step again (no second row at 40), and one stopped
+    inside the evaluation at 40 still makes it first."""
+    import stable_baselines3.common.callbacks as sb3_callbacks
+
+    from redsim.trainers.agents import TrainingInterrupted, train_agent
+
+    tiny = {"n_envs": 2, "final_episodes": 1, "env_kwargs": SHORT, "video": False, "eval_every": 20}
+
+    def curve_steps(run: Path) -> list[int]:
+        with (run / "curve.csv").open() as handle:
+            return [int(row["env_steps"]) for row in csv.DictReader(handle)]
+
+    train_agent(MINI, tmp_path / "done", algo="sac", steps=40, eval_episodes=1, **tiny)
+    train_agent(MINI, tmp_path / "done", algo="sac", steps=60, eval_episodes=2, resume=True, **tiny)
+    assert curve_steps(tmp_path / "done") == [20, 40, 60]
+
+    evaluate = sb3_callbacks.evaluate_policy
+    calls = {"n": 0}
+
+    def interrupted_second(*args: object, **kwargs: object) -> object:
+        calls["n"] += 1
+        if calls["n"] == 2:
+            raise KeyboardInterrupt
+        return evaluate(*args, **kwargs)
+
+    monkeypatch.setattr(sb3_callbacks, "evaluate_policy", interrupted_second)
+    with pytest.raises(TrainingInterrupted, match="interrupted at 40 env steps"):
+        train_agent(MINI, tmp_path / "stopped", algo="sac", steps=60, eval_episodes=1, **tiny)
+    monkeypatch.setattr(sb3_callbacks, "evaluate_policy", evaluate)
+    train_agent(MINI, tmp_path / "stopped", algo="sac", steps=60, eval_episodes=2, resume=True, **tiny)
+    assert curve_steps(tmp_path / "stopped") == [20, 40, 60]
+
+
 def test_sigterm_saves_the_run_as_ctrl_c_does_and_a_bufferless_resume_refills_first(
     cli: Callable[..., tuple[int, str, str]], tmp_path: Path, monkeypatch: pytest.MonkeyPatch, caplog
 ) -> None:
