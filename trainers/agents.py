@@ -1137,7 +1137,12 @@ def train_agent(
     Raises:
         ValueError: an unknown id or algorithm, bad counts, ``her`` with PPO, another task or shards, a budget
             that ends no episode of every copy, a run already in ``out`` (neither ``resume`` nor ``overwrite``),
-            or (resume) a model of another env, algorithm, replay or ``env_kwargs``.
+            ``resume`` with ``overwrite``, or (resume) a model of another env, algorithm, replay or ``env_kwargs``,
+            a run started with another ``seed``, or other ``n_envs`` than its replay buffer holds.
+        FileNotFoundError: (resume) a model trained on normalized observations whose ``VecNormalize`` statistics
+            (:func:`normalizer_path`) are missing.
+        TrainingInterrupted: a KeyboardInterrupt in training or the final evaluation, raised once the run is saved
+            (``resume=True`` continues it).
     """
     from stable_baselines3.common.callbacks import CallbackList, CheckpointCallback, EvalCallback
     from stable_baselines3.common.noise import NormalActionNoise
