@@ -9,6 +9,7 @@ import tempfile
 import zipfile
 from collections.abc import Callable
 from pathlib import Path
+from typing import Any
 
 import gymnasium as gym
 import numpy as np
@@ -344,6 +345,42 @@ def test_a_sampled_evaluation_repeats_and_leaves_the_callers_generator(
     assert code == 0 and "actions sampled, seed 0" in out.splitlines()[0]
 
 
+def _ctrl_c_at_training_step(monkeypatch: pytest.MonkeyPatch, call: int) -> Callable[..., Any]:
+    """Make the ``call``-th vector step of the training env (the one with 2 copies; an evaluation env has 1) raise
+    KeyboardInterrupt; returns SB3VecEnv's own ``step_wait``, to put back."""
+    from redsim.envs.sb3 import SB3VecEnv
+
+    calls = {"n": 0}
+    step_wait = SB3VecEnv.step_wait
+
+    def interrupting(self: SB3VecEnv) -> Any:
+        calls["n"] += self.num_envs == 2
+        if calls["n"] == call:
+            raise KeyboardInterrupt
+        return step_wait(self)
+
+    monkeypatch.setattr(SB3VecEnv, "step_wait", interrupting)
+    return step_wait
+
+
+def _ctrl_c_in_second_evaluation(monkeypatch: pytest.MonkeyPatch) -> Callable[..., Any]:
+    """Make SB3's second ``evaluate_policy`` call (the EvalCallback's) raise KeyboardInterrupt; returns the original,
+    to put back."""
+    import stable_baselines3.common.callbacks as sb3_callbacks
+
+    evaluate = sb3_callbacks.evaluate_policy
+    calls = {"n": 0}
+
+    def interrupted_second(*args: object, **kwargs: object) -> object:
+        calls["n"] += 1
+        if calls["n"] == 2:
+            raise KeyboardInterrupt
+        return evaluate(*args, **kwargs)
+
+    monkeypatch.setattr(sb3_callbacks, "evaluate_policy", interrupted_second)
+    return evaluate
+
+
 def _foreign_model(folder: Path) -> Path:
     """An SB3 model of another project's env (saved untrained)."""
     from stable_baselines3 import SAC
@@ -534,16 +571,7 @@ def test_ctrl_c_saves_the_run_and_resume_goes_on_from_it(tmp_path: Path, monkeyp
     from redsim.envs.sb3 import SB3VecEnv
     from redsim.trainers.agents import BUFFER, TrainingInterrupted, train_agent
 
-    calls = {"n": 0}
-    step_wait = SB3VecEnv.step_wait
-
-    def interrupting(self: SB3VecEnv):  # the training env has 2 copies, the evaluation env 1
-        calls["n"] += self.num_envs == 2
-        if calls["n"] == 31:
-            raise KeyboardInterrupt
-        return step_wait(self)
-
-    monkeypatch.setattr(SB3VecEnv, "step_wait", interrupting)
+    step_wait = _ctrl_c_at_training_step(monkeypatch, 31)
     tiny = {"n_envs": 2, "eval_episodes": 1, "final_episodes": 1, "env_kwargs": SHORT, "video": False}
     with pytest.raises(TrainingInterrupted, match="interrupted at 60 env steps") as stop:
         train_agent(MINI, tmp_path, algo="sac", steps=100, eval_every=20, **tiny)
@@ -573,7 +601,6 @@ def test_ctrl_c_in_the_final_evaluation_or_mid_rollout_keeps_an_honest_record(
 ) -> None:
     """Stopped in the final evaluation, the saved model is the trained one and --resume only evaluates it; PPO
     stopped mid-rollout records the steps of its last whole rollout (it never learnt from the rest)."""
-    from redsim.envs.sb3 import SB3VecEnv
     from redsim.trainers import agents
     from redsim.trainers.agents import TrainingInterrupted, train_agent
 
@@ -591,16 +618,8 @@ def test_ctrl_c_in_the_final_evaluation_or_mid_rollout_keeps_an_honest_record(
     result = train_agent(MINI, tmp_path / "sac", algo="sac", steps=40, resume=True, **tiny)
     assert result.steps == 40 and "final_evaluation" in json.loads((tmp_path / "sac" / "agent.json").read_text())
 
-    calls = {"n": 0}
-    step_wait = SB3VecEnv.step_wait
-
-    def interrupting(self: SB3VecEnv):
-        calls["n"] += self.num_envs == 2
-        if calls["n"] == 13:  # rollouts of n_steps 8 x 2 copies: one whole rollout (16 steps) and 4 more steps
-            raise KeyboardInterrupt
-        return step_wait(self)
-
-    monkeypatch.setattr(SB3VecEnv, "step_wait", interrupting)
+    # rollouts of n_steps 8 x 2 copies: one whole rollout (16 steps) and 4 more steps
+    _ctrl_c_at_training_step(monkeypatch, 13)
     with pytest.raises(TrainingInterrupted, match="interrupted at 16 env steps"):
         train_agent(MINI, tmp_path / "ppo", algo="ppo", steps=64, overrides={"n_steps": 8, "batch_size": 8}, **tiny)
     assert json.loads((tmp_path / "ppo" / "agent.json").read_text())["steps"] == 16
@@ -632,19 +651,9 @@ def test_an_interrupted_ppo_run_saves_the_normalizer_of_its_last_rollout(
     """PPO's saved steps end at its last finished rollout (16 of the 24 stepped): so do its VecNormalize statistics."""
     import pickle
 
-    from redsim.envs.sb3 import SB3VecEnv
     from redsim.trainers.agents import TrainingInterrupted, train_agent
 
-    calls = {"n": 0}
-    step_wait = SB3VecEnv.step_wait
-
-    def interrupting(self: SB3VecEnv):  # the training env has 2 copies
-        calls["n"] += self.num_envs == 2
-        if calls["n"] == 13:  # 12 vector steps done: the first rollout's 8 and 4 of the second's
-            raise KeyboardInterrupt
-        return step_wait(self)
-
-    monkeypatch.setattr(SB3VecEnv, "step_wait", interrupting)
+    _ctrl_c_at_training_step(monkeypatch, 13)  # 12 vector steps: the first rollout's 8, 4 of the next
     small = {"n_steps": 8, "batch_size": 16, "n_epochs": 1}
     tiny = {"n_envs": 2, "eval_episodes": 1, "final_episodes": 1, "env_kwargs": SHORT, "video": False}
     with pytest.raises(TrainingInterrupted, match="interrupted at 16 env steps"):
@@ -731,16 +740,7 @@ def test_ppo_checkpoints_hold_learnt_rollouts_and_a_resume_after_ctrl_c_takes_mo
     (tmp_path / "whole" / "model.zip").unlink()  # killed after its last checkpoint
     assert train_agent(MINI, tmp_path / "whole", resume=True, **{**run, "steps": 80}).steps == 80
 
-    calls = {"n": 0}
-    step_wait = SB3VecEnv.step_wait
-
-    def interrupting(self: SB3VecEnv):  # the training env has 2 copies
-        calls["n"] += self.num_envs == 2
-        if calls["n"] == 15:  # 14 vector steps done: the first rollout's 8 and 6 of the second's
-            raise KeyboardInterrupt
-        return step_wait(self)
-
-    monkeypatch.setattr(SB3VecEnv, "step_wait", interrupting)
+    step_wait = _ctrl_c_at_training_step(monkeypatch, 15)  # 14 vector steps: the first rollout's 8, 6 of the next
     with pytest.raises(TrainingInterrupted, match="interrupted at 16 env steps"):
         train_agent(MINI, tmp_path / "stopped", checkpoint_every=24, **run)
     assert not list((tmp_path / "stopped" / "checkpoints").glob("rl_model_*"))  # 24 is saved as a rollout starts
@@ -754,16 +754,7 @@ def test_a_run_interrupted_in_an_evaluation_makes_it_on_resume(tmp_path: Path, m
 
     from redsim.trainers.agents import TrainingInterrupted, train_agent
 
-    evaluate = sb3_callbacks.evaluate_policy
-    calls = {"n": 0}
-
-    def interrupted_second(*args: object, **kwargs: object) -> object:
-        calls["n"] += 1
-        if calls["n"] == 2:
-            raise KeyboardInterrupt
-        return evaluate(*args, **kwargs)
-
-    monkeypatch.setattr(sb3_callbacks, "evaluate_policy", interrupted_second)
+    evaluate = _ctrl_c_in_second_evaluation(monkeypatch)
     tiny = {"n_envs": 2, "eval_episodes": 1, "final_episodes": 1, "env_kwargs": SHORT, "video": False}
     with pytest.raises(TrainingInterrupted, match="interrupted at 40 env steps"):
         train_agent(MINI, tmp_path, algo="sac", steps=100, eval_every=20, **tiny)
@@ -795,16 +786,7 @@ def test_a_resume_with_other_eval_episodes_evaluates_only_the_missed_step(
     train_agent(MINI, tmp_path / "done", algo="sac", steps=60, eval_episodes=2, resume=True, **tiny)
     assert curve_steps(tmp_path / "done") == [20, 40, 60]
 
-    evaluate = sb3_callbacks.evaluate_policy
-    calls = {"n": 0}
-
-    def interrupted_second(*args: object, **kwargs: object) -> object:
-        calls["n"] += 1
-        if calls["n"] == 2:
-            raise KeyboardInterrupt
-        return evaluate(*args, **kwargs)
-
-    monkeypatch.setattr(sb3_callbacks, "evaluate_policy", interrupted_second)
+    evaluate = _ctrl_c_in_second_evaluation(monkeypatch)
     with pytest.raises(TrainingInterrupted, match="interrupted at 40 env steps"):
         train_agent(MINI, tmp_path / "stopped", algo="sac", steps=60, eval_episodes=1, **tiny)
     monkeypatch.setattr(sb3_callbacks, "evaluate_policy", evaluate)
