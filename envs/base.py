@@ -394,7 +394,8 @@ class LatentSim:
             episode (a conditional map is needed) and append it to the observation.
         include_q: Put the full free configuration q [n] in ``info["q"]`` (steps and resets, :meth:`reset_info`).
         reset_noise_scale: s >= 0: each episode starts at the task's start z0 + U(-s, s) with z_dot s N(0, 1)
-            [latent units, per s], per latent, from the copy's generator (MuJoCo's convention; 0: exactly z0 at rest).
+            [latent units, per s], per latent, from the copy's generator (MuJoCo's convention; 0: exactly z0 at rest);
+            periodic latents then move by whole turns into [-pi, pi), z_prev with them, as after a step.
         stepper_options: Extra keyword arguments of :class:`redsim.runtime.LatentStepper`.
         cubature: Step a cubature energy instead of every element (:func:`env_energy`): None (default)
             the shipped one where :data:`CUBATURE_DEFAULT` turns it on, True, False, or a checkpoint path.
@@ -636,6 +637,7 @@ class LatentSim:
                 speed = torch.as_tensor(s * rng.standard_normal(d), dtype=self.torch_dtype, device=self.device)
                 self.z[row] = start + offset
                 self.z_prev[row] = self.z[row] - speed * self.stepper.dt
+        self.z[rows], self.z_prev[rows] = self._first_turn(self.z[rows], self.z_prev[rows])  # as after a step
         self.loads[rows] = 0.0
         self.model[rows] = torch.nan
         x = self.full_positions(self.z[rows], None if self.cond is None else self.cond[rows])
@@ -712,6 +714,14 @@ class LatentSim:
         turns[:, self.periodic] = 2.0 * math.pi * torch.round(gap / (2.0 * math.pi))
         return z - turns
 
+    def _first_turn(self, z: Tensor, z_prev: Tensor) -> tuple[Tensor, Tensor]:
+        """z, z_prev [B, d] shifted by the same whole turns that bring z's periodic latents into [-pi, pi) (z_dot
+        unchanged; a no-op without periodic latents)."""
+        if not self.periodic:
+            return z, z_prev
+        turns = z - self._nearest_turn(z, torch.zeros_like(z))
+        return z - turns, z_prev - turns
+
     def step(self, action: np.ndarray) -> tuple[np.ndarray, np.ndarray, dict[str, np.ndarray]]:
         """Advance every copy by one env step with actions [B, A] (already checked and clipped). The step is
         atomic: an exception or a KeyboardInterrupt inside it leaves every copy as it was before the call.
@@ -769,9 +779,7 @@ class LatentSim:
             converged &= stats.converged.to(self.device)
             iterations += stats.iterations.to(self.device).to(torch.int64)
         diverged |= ~torch.isfinite(self.z).all(dim=1)
-        if self.periodic:  # angles stay in [-pi, pi): z and z_prev shift by the same whole turns
-            turns = self.z - self._nearest_turn(self.z, torch.zeros_like(self.z))
-            self.z, self.z_prev = self.z - turns, self.z_prev - turns
+        self.z, self.z_prev = self._first_turn(self.z, self.z_prev)
         self.x_prev, self.x = self.x, self.full_positions(self.z)
         reward, terms = self.task.reward(self.x, act, self.params)
         _check_task_output("reward", reward, self.batch, valid=~diverged)

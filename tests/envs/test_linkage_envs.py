@@ -31,6 +31,18 @@ def test_klann_turns_full_turns_and_its_angle_latent_stays_wrapped() -> None:
     assert angle > 2.0 * 2.0 * math.pi, angle  # more than two full turns in 0.8 s at 40 N
 
 
+def test_klann_noisy_start_keeps_its_angle_latent_wrapped() -> None:
+    """reset_noise_scale may push z past pi: z and z_prev move back by whole turns at the reset (z_dot kept)."""
+    env = gym.make("RedSim/Klann-v0", reset_noise_scale=5.0, dtype="float64").unwrapped
+    for seed in range(4):
+        obs, _ = env.reset(seed=seed)
+        assert -math.pi <= obs[0] < math.pi, (seed, obs[0])
+        rng = np.random.default_rng(seed)  # the draws of the reset: the task's speed, then the noise
+        rng.random()
+        rng.uniform(-5.0, 5.0, 1)
+        assert obs[1] == pytest.approx(5.0 * rng.standard_normal(1)[0], rel=1e-6)
+
+
 def test_klann_success_is_the_fraction_of_the_last_steps_within_tolerance() -> None:
     """is_success holds when at least hold_fraction of the last hold_steps steps were within the tolerance.
 
