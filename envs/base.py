@@ -855,7 +855,8 @@ class LatentSim:
         :meth:`Task.check_options`; a condition outside its space too) before anything changes.
 
         Raises:
-            ValueError: on a missing key, a wrong shape, non-finite values, a condition outside the scene's
+            ValueError: on a missing key, task parameters other than the task draws (their keys, shapes; before
+                any reset: of :meth:`drawn_params`), a wrong shape, non-finite values, a condition outside the scene's
                 condition space, a task parameter that ``reset(options=...)`` would refuse, or a state of another
                 scene, task, dt or frame_skip (``state["setting"]``; a state without it, from before stop 32, is
                 taken as it is).
@@ -900,24 +901,24 @@ class LatentSim:
         loads = torch.zeros_like(self.loads)
         if state.get("loads") is not None:
             loads = tensor(state["loads"], (B, H, D), "loads")
-        params = state["params"]
-        if self.params and set(params) != set(self.params):
-            raise ValueError(f"state['params'] must have keys {sorted(self.params)}, got {sorted(params)}")
-        params = {  # each keeps its dtype (a task's counters and flags stay integers and bools)
-            k: tensor(
-                v,
-                tuple(self.params[k].shape) if k in self.params else (B, *np.shape(v)[1:]),
-                f"params.{k}",
-                self.params[k].dtype if k in self.params else _param_dtype(v, self.torch_dtype),
-            )
-            for k, v in params.items()
-        }
+        params, like = state["params"], self.params or self.drawn_params()
+        if set(params) != set(like):
+            raise ValueError(f"state['params'] must have keys {sorted(like)} (the task's draw), got {sorted(params)}")
+        # each keeps its dtype (a task's counters and flags stay integers and bools)
+        params = {k: tensor(v, tuple(like[k].shape), f"params.{k}", like[k].dtype) for k, v in params.items()}
         self.check_state_params(params)
         self.z, self.z_prev, self.model, self.params, self.loads = z, z_prev, model, params, loads
         if cond is not None:
             self.cond = cond
         self.x_prev = self.full_positions(self.z_prev)
         self.x = self.full_positions(self.z)
+
+    def drawn_params(self) -> dict[str, Tensor]:
+        """Zeros {name: [B, ...]} shaped and typed as the task's parameters, from one throwaway draw (seed 0, the
+        default condition; the copies' generators untouched): what a state must hold before any reset."""
+        z_rest = self._rest if self._rest is not None else self._rest_latent(self.default_cond)
+        drawn = self.task.sample(np.random.default_rng(0), self, z_rest, self.default_cond)
+        return {k: torch.zeros((self.batch, *v.shape), dtype=v.dtype, device=self.device) for k, v in drawn.items()}
 
     def check_state_params(self, params: Mapping[str, Any]) -> None:
         """Refuse a state's task parameters {name: [B, ...]} where ``reset(options=...)`` would refuse them as
@@ -1345,7 +1346,13 @@ class LatentEnv(gym.Env[np.ndarray, np.ndarray]):
     def get_state(self) -> dict[str, Any]:
         """The dynamic state (numpy copies): z, z_prev [d], cond [m] or None, task params, the solver's warm start,
         the last step's loads [H, D] [N] (a restored env draws the same force arrow), the setting it belongs to, and
-        ``rng``, the state of the env's generator (``np_random``: what the next unseeded reset draws)."""
+        ``rng``, the state of the env's generator (``np_random``: what the next unseeded reset draws).
+
+        Raises:
+            gymnasium.error.ResetNeeded: before the first reset (or :meth:`set_state`): there is no episode yet.
+        """
+        if not self._reset_done:
+            raise gym.error.ResetNeeded("call reset() (or set_state()) before get_state(): there is no episode yet")
         return {**state_row(self.sim.get_state()), "rng": self.np_random.bit_generator.state}
 
     @on_env_threads
@@ -1503,12 +1510,6 @@ def _info_array(value: np.ndarray) -> np.ndarray:
         return value
     kind = value.dtype.kind
     return value.astype(np.float64) if kind == "f" else value.astype(np.int64) if kind in "iu" else value
-
-
-def _param_dtype(value: Any, floating: torch.dtype) -> torch.dtype:
-    """The dtype a restored task parameter takes: its own where it is bool or integer, else ``floating``."""
-    kind = np.asarray(value).dtype.kind
-    return torch.bool if kind == "b" else torch.int64 if kind in "iu" else floating
 
 
 def _check_task_output(

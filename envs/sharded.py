@@ -25,6 +25,7 @@ from typing import TYPE_CHECKING, Any
 
 import numpy as np
 import torch
+from gymnasium.error import ResetNeeded
 from gymnasium.utils import seeding
 from gymnasium.vector import AutoresetMode, VectorEnv
 from gymnasium.vector.utils import batch_space
@@ -250,7 +251,12 @@ class ShardedVectorEnv(SharedCopies, VectorEnv):
 
     def get_state(self) -> dict[str, Any]:
         """The batched state of all copies, as the native env's :meth:`LatentVectorEnv.get_state` (the shards'
-        states joined along the copies), so a state moves between sharded and native envs of the same copies."""
+        states joined along the copies), so a state moves between sharded and native envs of the same copies.
+
+        Raises:
+            gymnasium.error.ResetNeeded: a copy was never reset (nor restored by :meth:`set_state`).
+        """
+        check_started(self._unreset, "get_state()", ResetNeeded)  # here: a shard's error would close the env
         return _join_states(self._call([("get_state", None)] * len(self.sizes)))
 
     def set_state(self, state: Mapping[str, Any]) -> None:
@@ -283,6 +289,8 @@ class ShardedVectorEnv(SharedCopies, VectorEnv):
         if name == "render":
             frames = self.render()
             return frames if frames is not None else (None,) * self.num_envs
+        if name == "get_state":
+            check_started(self._unreset, "call('get_state')", ResetNeeded)
         return tuple(answer for answers in self._call([("call", name)] * len(self.sizes)) for answer in answers)
 
     def close_extras(self, **kwargs: Any) -> None:
@@ -331,7 +339,7 @@ class ShardedVectorEnv(SharedCopies, VectorEnv):
         if state.get("loads") is not None:
             check("loads", state["loads"], (n, *sim.loads.shape[1:]), finite=True)
         params = state["params"]
-        if not isinstance(params, Mapping) or not params:
+        if not isinstance(params, Mapping):
             return  # the workers refuse what is not a dict of arrays
         if not sim.params:
             self.template.reset(seed=0)  # one draw, for the parameters' keys and shapes

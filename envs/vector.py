@@ -25,6 +25,7 @@ from collections.abc import Callable, Sequence
 from typing import TYPE_CHECKING, Any
 
 import numpy as np
+from gymnasium.error import ResetNeeded
 from gymnasium.utils import seeding
 from gymnasium.vector import AutoresetMode, VectorEnv
 from gymnasium.vector.utils import batch_space
@@ -208,7 +209,12 @@ class LatentVectorEnv(SharedCopies, VectorEnv):
     def get_state(self) -> dict[str, Any]:
         """The batched dynamic state (:meth:`redsim.envs.base.LatentSim.get_state`), each copy's episode clock,
         ``elapsed_steps`` [N] (int) and ``autoresetting`` [N] (bool), and each copy's generator state ``rngs`` (what
-        its autoresets draw), so a restored state steps exactly alike, episode ends and autoresets included."""
+        its autoresets draw), so a restored state steps exactly alike, episode ends and autoresets included.
+
+        Raises:
+            gymnasium.error.ResetNeeded: a copy was never reset (nor restored by :meth:`set_state`).
+        """
+        check_started(self._unreset, "get_state()", ResetNeeded)
         clock = {"elapsed_steps": self._elapsed.copy(), "autoresetting": self._autoreset.copy()}
         return {**self.sim.get_state(), **clock, "rngs": [g.bit_generator.state for g in self._rngs]}
 
@@ -246,6 +252,7 @@ class LatentVectorEnv(SharedCopies, VectorEnv):
             frames = self.render()
             return frames if frames is not None else (None,) * self.num_envs
         if name == "get_state":
+            check_started(self._unreset, "call('get_state')", ResetNeeded)
             state = self.sim.get_state()  # each copy's as a single env's: with its generator
             return tuple({**state_row(state, i), "rng": g.bit_generator.state} for i, g in enumerate(self._rngs))
         q = self.sim.positions(self.sim.z).detach().cpu().numpy()  # configuration

@@ -127,18 +127,19 @@ class SharedCopies:
         raise NotImplementedError
 
 
-def check_started(unreset: np.ndarray) -> None:
-    """Refuse a step while copies [N] (bool) were never reset, as Gymnasium's sync env refuses one (a masked first
-    reset leaves the others unstarted).
+def check_started(unreset: np.ndarray, call: str = "step()", error: type[Exception] = RuntimeError) -> None:
+    """Refuse ``call`` (a step; a ``get_state``: ``gymnasium.error.ResetNeeded``, as a single env's) while copies [N]
+    (bool) were never reset, as Gymnasium's sync env refuses a step (a masked first reset leaves the others
+    unstarted).
 
     Raises:
-        RuntimeError: naming the copies.
+        error: naming the copies.
     """
     if unreset.all():
-        raise RuntimeError("call reset() before step()")
+        raise error(f"call reset() before {call}")
     if unreset.any():
-        raise RuntimeError(
-            f"call reset() before step(): copies {np.nonzero(unreset)[0].tolist()} were never reset "
+        raise error(
+            f"call reset() before {call}: copies {np.nonzero(unreset)[0].tolist()} were never reset "
             "(or their reset failed)"
         )
 

@@ -419,6 +419,33 @@ def test_get_state_set_state_round_trip_exactly(mini: gym.Env) -> None:
     )
 
 
+def test_get_state_needs_a_reset_and_set_state_needs_the_task_s_params_before_one_too() -> None:
+    """No state exists before the first reset; a never-reset env (no draw of its own to compare with) still refuses a
+    state without the task's parameters, instead of a KeyError at the next step."""
+    fresh = gym.make("RedSim/MiniChain-v0").unwrapped
+    with pytest.raises(gym.error.ResetNeeded, match=r"before get_state\(\)"):
+        fresh.get_state()
+    venv = gym.make_vec("RedSim/MiniChain-v0", num_envs=2, vectorization_mode="vector_entry_point")
+    for get in (venv.get_state, lambda: venv.call("get_state")):
+        with pytest.raises(gym.error.ResetNeeded, match="call reset"):
+            get()
+    done = gym.make("RedSim/MiniChain-v0").unwrapped
+    done.reset(seed=0)
+    state = done.get_state()
+    for params in ({}, {"goal": state["params"]["target"]}):
+        with pytest.raises(ValueError, match=r"state\['params'\] must have keys \['target'\]"):
+            fresh.set_state({**state, "params": params})
+    with pytest.raises(ValueError, match=r"state\['params.target'\] must have shape \[1, 3\]"):
+        fresh.set_state({**state, "params": {"target": state["params"]["target"][:2]}})
+    fresh.set_state(state)
+    assert np.array_equal(fresh.step(np.zeros(3, np.float32))[0], done.step(np.zeros(3, np.float32))[0])
+    venv.reset(seed=0)
+    with pytest.raises(ValueError, match=r"state\['params'\] must have keys \['target'\]"):
+        gym.make_vec("RedSim/MiniChain-v0", num_envs=2, vectorization_mode="vector_entry_point").set_state(
+            {**venv.get_state(), "params": {}}
+        )
+
+
 def test_a_state_of_another_env_and_an_unknown_camera_key_are_clear_errors(mini: gym.Env) -> None:
     conditional = gym.make("RedSim/ConditionalBar-v1").unwrapped
     conditional.reset(seed=0)
