@@ -122,7 +122,8 @@ class Task:
     [B, N]; a handle's position is ``sim.scene.handle(name).position(x)`` [B, D]; keep ``sim`` from :meth:`bind`
     for anything else (``sim.x_prev``, ``sim.dt``). Every step checks what the task returns: ``reward``, each
     reward term (named as ``reward_terms``, summing to the reward) and each metric are tensors [B], finite where
-    floating; ``terminated`` is a bool tensor [B]; a ValueError names the method otherwise. A vector env and an
+    floating; ``terminated`` is a bool tensor [B]; ``extras`` (at every observation, resets too) a tensor [B, k],
+    k = ``len(extras_bounds()[0])``, finite; a ValueError names the method otherwise. A vector env and an
     unpickled env work on a copy of the task object (:meth:`bind` runs again for it).
 
     Attributes:
@@ -674,7 +675,10 @@ class LatentSim:
     def observe(self) -> np.ndarray:
         """Observations [B, obs] (float32, clipped to :meth:`observation_bounds`)."""
         # z_dot of the state the stepper carries: z_prev is the last stepper step's, h (not the env's dt) before
-        parts = [self.z, (self.z - self.z_prev) / self.stepper.dt, self.task.extras(self.x, self.x_prev, self.params)]
+        extras = self.task.extras(self.x, self.x_prev, self.params)
+        k = len(self.task.extras_bounds()[0])
+        _check_task_output("extras", extras, self.batch, valid=torch.isfinite(self.x).all(dim=1), width=k)
+        parts = [self.z, (self.z - self.z_prev) / self.stepper.dt, extras]
         if self.randomize_condition:
             parts.append(self.cond)
         obs = torch.cat([p.to(self.torch_dtype) for p in parts], dim=1).cpu().numpy().astype(np.float32)
@@ -1520,17 +1524,19 @@ def _check_task_output(
     dtype: torch.dtype | None = None,
     finite: bool = True,
     valid: Tensor | None = None,
+    width: int | None = None,
 ) -> None:
-    """Refuse a task's step output that is not a tensor of shape [B] (of ``dtype``; finite where asked, in the
-    ``valid`` copies [B] (bool): a diverged copy's state may not be): a bug in a user's task would otherwise be
-    broadcast over the copies silently (one copy's reward for all).
+    """Refuse a task's step output that is not a tensor of shape [B] (with ``width`` k: [B, k]; of ``dtype``; finite
+    where asked, in the ``valid`` copies [B] (bool): a diverged copy's state may not be): a bug in a user's task would
+    otherwise be broadcast over the copies silently (one copy's reward for all).
 
     Raises:
         ValueError: naming the Task method and the shape it returned.
     """
-    if not isinstance(value, Tensor) or tuple(value.shape) != (batch,):
+    want, names = ((batch,), "[B]") if width is None else ((batch, width), "[B, k]")
+    if not isinstance(value, Tensor) or tuple(value.shape) != want:
         shape = list(value.shape) if isinstance(value, Tensor) else type(value).__name__
-        raise ValueError(f"Task {what} must be a torch tensor of shape [B] = [{batch}], got {shape}")
+        raise ValueError(f"Task {what} must be a torch tensor of shape {names} = {list(want)}, got {shape}")
     if dtype is not None and value.dtype != dtype:
         raise ValueError(f"Task {what} must be a {dtype} tensor, got {value.dtype}")
     checked = value if valid is None else value[valid]

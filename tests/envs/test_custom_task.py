@@ -115,6 +115,42 @@ def test_what_a_task_returns_is_checked_at_every_step(task: Task, expected: str)
         venv.step(np.zeros((4, 3), np.float32))
 
 
+class WideExtras(HoldHeight):
+    def extras(self, x, x_prev, params):
+        return torch.cat([super().extras(x, x_prev, params), x[:, :1]], 1)
+
+
+class NumpyExtras(HoldHeight):
+    def extras(self, x, x_prev, params):
+        return super().extras(x, x_prev, params).numpy()
+
+
+class NanAfterAStep(HoldHeight):
+    observed = 0
+
+    def extras(self, x, x_prev, params):
+        self.observed += 1  # the reset's observation is finite, the step's is not
+        return super().extras(x, x_prev, params) * (1.0 if self.observed == 1 else float("nan"))
+
+
+@pytest.mark.parametrize(
+    ("task", "expected"),
+    [
+        (WideExtras(), r"Task extras must be a torch tensor of shape \[B, k\] = \[1, 2\], got \[1, 3\]"),
+        (NumpyExtras(), r"Task extras must be a torch tensor of shape \[B, k\] = \[1, 2\], got ndarray"),
+        (NanAfterAStep(), r"Task extras is not finite"),
+    ],
+)
+def test_what_a_task_s_extras_return_is_checked_at_every_observation(task: Task, expected: str) -> None:
+    env = _env(task)
+    with pytest.raises(ValueError, match=expected):
+        env.reset(seed=0)
+        before = env.unwrapped.get_state()
+        env.step(np.zeros(3, np.float32))
+    if isinstance(task, NanAfterAStep):  # refused at the step's observation: the step is undone
+        assert np.array_equal(env.unwrapped.get_state()["z"], before["z"])
+
+
 class Unbounded(HoldHeight):
     def extras_bounds(self):
         return np.full(2, -np.inf), np.full(2, np.inf)
