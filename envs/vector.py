@@ -22,17 +22,20 @@ from __future__ import annotations
 import copy
 import functools
 from collections.abc import Callable, Sequence
-from typing import TYPE_CHECKING, Any
+from typing import Any
 
+import gymnasium as gym
 import numpy as np
 from gymnasium.error import ResetNeeded
 from gymnasium.utils import seeding
 from gymnasium.vector import AutoresetMode, VectorEnv
 from gymnasium.vector.utils import batch_space
+from gymnasium.wrappers import TimeLimit
 
 from redsim.envs.base import (
     NO_HUMAN,
     VECTOR_RENDER_MODES,
+    LatentEnv,
     check_action,
     copy_seeds,
     on_env_threads,
@@ -42,9 +45,6 @@ from redsim.envs.base import (
 from redsim.envs.sharded import ShardedVectorEnv, shard_sizes
 from redsim.envs.vector_api import SharedCopies, check_started, reset_mask
 from redsim.threads import torch_threads
-
-if TYPE_CHECKING:
-    from redsim.envs.base import LatentEnv
 
 
 class LatentVectorEnv(SharedCopies, VectorEnv):
@@ -58,6 +58,8 @@ class LatentVectorEnv(SharedCopies, VectorEnv):
             resets ended copies with ``options["reset_mask"]``).
 
     Raises:
+        TypeError: ``env`` is not a :class:`LatentEnv` (a wrapped one: pass ``env.unwrapped``; its wrappers would
+            not act on the copies, and a ``TimeLimit``'s length goes in ``max_episode_steps``).
         ValueError: a bad count or autoreset mode, an env with ``render_mode="human"``
             (:data:`redsim.envs.base.NO_HUMAN`), and (in :meth:`step`) a bad action batch.
     """
@@ -71,6 +73,7 @@ class LatentVectorEnv(SharedCopies, VectorEnv):
         autoreset_mode: AutoresetMode | str = AutoresetMode.NEXT_STEP,
     ) -> None:
         mode = check_vector_args(num_envs, max_episode_steps, autoreset_mode)
+        check_latent_env(env)
         if env.render_mode == "human":
             raise ValueError(NO_HUMAN)
         self.num_envs = int(num_envs)
@@ -260,6 +263,28 @@ class LatentVectorEnv(SharedCopies, VectorEnv):
 
     def close_extras(self, **kwargs: Any) -> None:
         self.template.close()
+
+
+def check_latent_env(env: Any) -> None:
+    """Refuse a vector env's template that is not a :class:`LatentEnv`, naming the fix for a wrapped one.
+
+    Raises:
+        TypeError: ``env`` is a wrapper (pass ``env.unwrapped``: the wrappers would be dropped silently; a
+            ``TimeLimit``'s length is named as the ``max_episode_steps`` to pass) or not an env of redsim's.
+    """
+    if isinstance(env, LatentEnv):
+        return
+    if isinstance(env, gym.Wrapper) and isinstance(env.unwrapped, LatentEnv):
+        limit, wrapper = "", env
+        while isinstance(wrapper, gym.Wrapper):
+            if isinstance(wrapper, TimeLimit):
+                limit = f"; for its TimeLimit pass max_episode_steps={wrapper._max_episode_steps}"
+            wrapper = wrapper.env
+        raise TypeError(
+            f"the vector env takes the LatentEnv itself, got it wrapped in {env}: pass env.unwrapped (its wrappers "
+            f"would not act on the copies{limit})"
+        )
+    raise TypeError(f"the vector env takes a redsim LatentEnv, got {type(env).__name__}")
 
 
 def check_vector_args(

@@ -8,7 +8,7 @@ import numpy as np
 import pytest
 from gymnasium.vector import AutoresetMode
 
-import redsim  # noqa: F401  (registers the ids)
+import redsim  # registers the ids
 
 ID = "RedSim/MiniChain-v0"
 TIGHT = {"dtype": "float64", "stepper_options": {"tol": 1e-10, "max_iter": 60}}
@@ -355,3 +355,17 @@ def test_a_single_env_step_interrupted_after_the_simulation_leaves_it_as_it_was(
     after = env.unwrapped.get_state()
     assert all(np.array_equal(after[k], before[k]) for k in ("z", "z_prev", "model"))
     np.testing.assert_array_equal(env.step(PUSH[0])[0], twin.step(PUSH[0])[0])
+
+
+def test_the_native_vector_env_takes_the_env_itself_and_names_the_fix_for_a_wrapped_one() -> None:
+    """A wrapper would act on no copy (the copies are rows of one simulation): refused, naming env.unwrapped and the
+    TimeLimit's length for max_episode_steps."""
+    from redsim.envs.vector import LatentVectorEnv
+
+    for wrapped in (redsim.envs.make("mini_chain"), gym.make(ID)):
+        with pytest.raises(TypeError, match=r"pass env\.unwrapped .*max_episode_steps=200\)"):
+            LatentVectorEnv(wrapped, 2)
+    with pytest.raises(TypeError, match="takes a redsim LatentEnv, got str"):
+        LatentVectorEnv(ID, 2)
+    venv = LatentVectorEnv(redsim.envs.make("mini_chain").unwrapped, 2, max_episode_steps=200)
+    assert venv.reset(seed=0)[0].shape == (2, *venv.single_observation_space.shape)
