@@ -69,11 +69,13 @@ def make(
         task: A :class:`redsim.envs.base.Task`, or ``"reach"``: push the scene's first handle
             to targets drawn from the subspace (:class:`redsim.envs.reach.HandleReach`);
             give its arguments as ``task_options``.
-        max_episode_steps: Wrap in ``TimeLimit`` (None: no limit).
+        max_episode_steps: Wrap in ``TimeLimit`` of this many steps (None or -1: no limit, no wrapper; -1 as
+            ``gym.make`` and the vector envs read it).
         **kwargs: :class:`redsim.envs.base.LatentEnv` arguments, plus ``task_options`` (dict).
 
     Raises:
-        ValueError: an unknown task name, scene or handle, or a subspace of the wrong size.
+        ValueError: an unknown task name, scene or handle, a subspace of the wrong size, or a bad
+            ``max_episode_steps``.
         redsim.subspace.CheckpointError: the subspace was fitted to another scene.
         TypeError: a scene or task of another type.
     """

@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import numbers
 from collections.abc import Mapping
 from typing import Any
 
@@ -32,6 +33,14 @@ def build(
     """See :func:`redsim.envs.make`."""
     from redsim import pretrained, scenes
 
+    if max_episode_steps is not None and (
+        isinstance(max_episode_steps, bool)
+        or not isinstance(max_episode_steps, numbers.Integral)
+        or not (max_episode_steps == -1 or max_episode_steps >= 1)
+    ):
+        raise ValueError(
+            f"max_episode_steps must be None or -1 (no limit) or an integer >= 1, got {max_episode_steps!r}"
+        )
     if not isinstance(scene, Scene | str):
         raise TypeError(f"scene must be a redsim.Scene or a catalog name, got {type(scene).__name__}")
     if not isinstance(task, Task | str):
@@ -55,7 +64,7 @@ def build(
     elif task_options:
         raise ValueError("task_options only apply to a task given by name")
     env: gym.Env = LatentEnv(scene, subspace, task, **kwargs)
-    return env if max_episode_steps is None else TimeLimit(env, max_episode_steps)
+    return env if max_episode_steps in (None, -1) else TimeLimit(env, int(max_episode_steps))
 
 
 def _default_force(scene: Scene) -> float:

@@ -687,6 +687,16 @@ def test_make_builds_an_env_from_any_scene_and_subspace() -> None:
         redsim.envs.make(scenes.build("mini_chain", density=1000.0))
 
 
+def test_make_takes_minus_one_and_none_as_no_episode_limit_as_gym_make_does() -> None:
+    for unlimited in (-1, None):
+        env = redsim.envs.make("mini_chain", max_episode_steps=unlimited)
+        assert isinstance(env, LatentEnv)  # no TimeLimit
+    assert redsim.envs.make("mini_chain", max_episode_steps=np.int64(3))._max_episode_steps == 3
+    for bad in (0, -2, 2.5, True, "5"):
+        with pytest.raises(ValueError, match=r"max_episode_steps must be None or -1 \(no limit\) or an integer >= 1"):
+            redsim.envs.make("mini_chain", max_episode_steps=bad)
+
+
 def test_conditional_bar_draws_its_condition_per_episode() -> None:
     env = gym.make("RedSim/ConditionalBar-v0").unwrapped
     conditions = {tuple(env.reset(seed=s)[0][-2:].round(4)) for s in range(3)}
