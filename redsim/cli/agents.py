@@ -16,17 +16,9 @@ from redsim.cli.common import (
     non_negative_seed,
     out,
     parse_env_args,
+    parse_env_id,
     warn,
 )
-
-
-def _check_env(env_id: str) -> None:
-    from redsim.trainers.agents import check_env_id
-
-    try:
-        check_env_id(env_id)
-    except ValueError as err:
-        raise CliError(str(err)) from err
 
 
 def _positive(value: int | None, flag: str) -> None:
@@ -70,7 +62,7 @@ def cmd_train_agent(args: argparse.Namespace) -> int:
     from redsim.envs.sharded import ShardError
     from redsim.trainers.agents import TrainingInterrupted, train_agent
 
-    _check_env(args.env_id)
+    args.env_id = parse_env_id(args.env_id)
     for value, flag in (
         (args.steps, "--steps"),
         (args.n_envs, "--n-envs"),
@@ -139,7 +131,7 @@ def cmd_train_agent(args: argparse.Namespace) -> int:
 def cmd_eval_agent(args: argparse.Namespace) -> int:
     from redsim.trainers.agents import SpaceMismatchError, evaluate, load_agent, normalizer_path, shipped_policy
 
-    _check_env(args.env_id)
+    args.env_id = parse_env_id(args.env_id)
     _positive(args.episodes, "--episodes")
     try:
         path = shipped_policy(args.env_id) if args.model == "shipped" else args.model
@@ -201,7 +193,7 @@ def add_commands(sub: Any) -> None:
             "already at --steps trains nothing and makes its final evaluation and files again."
         ),
     )
-    p.add_argument("env_id", metavar="ENV_ID", help="a RedSim env id, e.g. RedSim/MiniChain-v0")
+    p.add_argument("env_id", metavar="ENV_ID", help="a RedSim env id, e.g. RedSim/MiniChain-v0 (prefix redsim: fine)")
     p.add_argument("--algo", choices=ALGOS, default="sac", help="algorithm (default sac)")
     p.add_argument("--steps", type=int, default=20_000, help="total env steps (default 20000)")
     add_out_folder(p, "output folder (default agent)", default="agent")
@@ -243,7 +235,7 @@ def add_commands(sub: Any) -> None:
     p.add_argument(
         "model", metavar="MODEL", help="a model .zip written by redsim train-agent, or 'shipped' (redsim's own)"
     )
-    p.add_argument("env_id", metavar="ENV_ID", help="the env id the model was trained on")
+    p.add_argument("env_id", metavar="ENV_ID", help="the env id the model was trained on (the prefix redsim: is fine)")
     p.add_argument(
         "--algo",
         choices=ALGOS,

@@ -28,6 +28,7 @@ from redsim.cli.common import (
     non_negative_seed,
     note,
     out,
+    parse_env_id,
     parse_ints,
     parse_list,
     seconds,
@@ -526,10 +527,9 @@ def cmd_bench_stability(args: argparse.Namespace) -> int:
         raise CliError(f"unknown regime(s) {unknown}; valid: {', '.join([*stability.REGIMES, *extra])}")
     if args.regimes is None:
         regimes += ["fuzz", "mujoco"]
-    env_ids = list(redsim.envs.ids()) if args.envs is None else parse_list(args.envs, "--envs")
-    bad = [e for e in env_ids if e not in redsim.envs.ids()]
-    if bad:
-        raise CliError(f"unknown env id(s) {bad}; valid: {', '.join(redsim.envs.ids())}")
+    env_ids = (
+        list(redsim.envs.ids()) if args.envs is None else [parse_env_id(e) for e in parse_list(args.envs, "--envs")]
+    )
     for flag in ("steps", "long_steps", "chain_steps"):
         if getattr(args, flag) < 1:
             raise CliError(f"--{flag.replace('_', '-')} must be >= 1, got {getattr(args, flag)}")

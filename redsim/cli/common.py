@@ -124,6 +124,22 @@ def check_scene_name(name: str) -> None:
         raise CliError(f"unknown scene {name!r}; valid scenes: {', '.join(names)}")
 
 
+def parse_env_id(text: str) -> str:
+    """The RedSim id ``text`` names, bare or with Gymnasium's module prefix (``redsim:RedSim/MiniChain-v0``:
+    ``gym.make`` imports the module before the colon; here it must be redsim or one of its modules, already imported).
+
+    Raises:
+        CliError: not a RedSim id, naming the valid ones.
+    """
+    module, sep, name = text.partition(":")
+    bare = name if sep and (module == "redsim" or module.startswith("redsim.")) else text
+    if bare not in redsim.envs.ids():
+        raise CliError(
+            f"unknown env {text!r}; valid: {', '.join(redsim.envs.ids())} (each may take the prefix redsim:)"
+        )
+    return bare
+
+
 def build_scene(name: str, params: dict[str, Any] | None = None) -> Scene:
     """Build catalog scene ``name``; unknown names and rejected parameters become CliErrors."""
     check_scene_name(name)

@@ -19,6 +19,7 @@ from redsim.cli.common import (
     non_negative_seed,
     out,
     parse_env_args,
+    parse_env_id,
     parse_list,
     seconds,
 )
@@ -26,17 +27,10 @@ from redsim.cli.common import (
 SCRIPTED = "scripted controller"
 
 
-def _check_id(env_id: str) -> None:
-    import redsim
-
-    if env_id not in redsim.envs.ids():
-        raise CliError(f"unknown env {env_id!r}; valid: {', '.join(redsim.envs.ids())}")
-
-
 def cmd_demo(args: argparse.Namespace) -> int:
     from redsim.envs.demo import run_demo
 
-    _check_id(args.env_id)
+    args.env_id = parse_env_id(args.env_id)
     if args.steps is not None and args.steps < 1:
         raise CliError(f"--steps must be >= 1, got {args.steps}")
     policy, name = None, SCRIPTED
@@ -81,9 +75,7 @@ def cmd_bench_envs(args: argparse.Namespace) -> int:
     from redsim.benches.mujoco_cloth import cloth_anchor, cloth_anchor_line, cloth_ratio_lines, cloth_ratios
     from redsim.envs.bench import anchor_lines, bench_env, mujoco_anchors
 
-    ids = redsim.envs.ids() if args.envs is None else parse_list(args.envs, "--envs")
-    for env_id in ids:
-        _check_id(env_id)
+    ids = redsim.envs.ids() if args.envs is None else [parse_env_id(i) for i in parse_list(args.envs, "--envs")]
     try:
         batches = [int(b) for b in parse_list(args.batches, "--batches")]
     except ValueError as err:
@@ -197,7 +189,7 @@ def cmd_bench_env_ab(args: argparse.Namespace) -> int:
     from redsim.bench import machine_info
     from redsim.envs.bench_ab import bench_env_ab
 
-    _check_id(args.env_id)
+    args.env_id = parse_env_id(args.env_id)
     for flag, value, least in (
         ("--num-envs", args.num_envs, 1),
         ("--rounds", args.rounds, 1),
@@ -395,7 +387,7 @@ def add_commands(sub: Any, bench: Any) -> None:
             "overwritten."
         ),
     )
-    p.add_argument("env_id", metavar="ENV_ID", help="a RedSim env id")
+    p.add_argument("env_id", metavar="ENV_ID", help="a RedSim env id (the prefix redsim: as in gym.make is fine)")
     add_out_folder(p, "output folder (default out)", default="out")
     p.add_argument("--seed", type=non_negative_seed, default=0, help="reset seed (default 0)")
     p.add_argument("--steps", type=int, help="episode length (default: the env's max_episode_steps)")
@@ -460,7 +452,7 @@ def add_commands(sub: Any, bench: Any) -> None:
             "ratio against the first setting."
         ),
     )
-    p.add_argument("env_id", metavar="ENV_ID", help="a RedSim env id")
+    p.add_argument("env_id", metavar="ENV_ID", help="a RedSim env id (the prefix redsim: as in gym.make is fine)")
     p.add_argument(
         "--setting",
         action="append",

@@ -87,6 +87,31 @@ def test_unknown_env_id_is_a_usage_error(argv: list[str], capsys: pytest.Capture
     assert "unknown env" in capsys.readouterr().err
 
 
+def test_commands_take_an_id_with_the_redsim_prefix_as_gym_make_does(
+    tmp_path: Path, capsys: pytest.CaptureFixture[str]
+) -> None:
+    """``redsim:RedSim/...`` (README: gym.make's module prefix) names the bare id everywhere: its shipped policy, its
+    file names; another module's prefix stays an unknown env in every command that takes an id."""
+    assert main(["demo", "redsim:RedSim/MiniChain-v0", "--steps", "2", "--out", str(tmp_path)]) == 0
+    assert "RedSim/MiniChain-v0 (shipped policy MiniChain-v0.zip, seed 0)" in capsys.readouterr().out
+    assert (tmp_path / "minichain.gif").is_file()
+    assert main(["eval-agent", "shipped", "redsim:RedSim/MiniChain-v0", "--episodes", "1"]) == 0
+    assert capsys.readouterr().out.startswith("RedSim/MiniChain-v0, shipped")
+    from redsim.cli.common import parse_env_id
+
+    assert parse_env_id("redsim:RedSim/Klann-v0") == parse_env_id("redsim.envs:RedSim/Klann-v0") == "RedSim/Klann-v0"
+    for argv in (
+        ["demo", "gymnasium:RedSim/MiniChain-v0"],
+        ["train-agent", "redsim:RedSim/Nope-v0"],
+        ["eval-agent", "shipped", "redsimx:RedSim/MiniChain-v0"],
+        ["bench", "envs", "--envs", "RedSim/MiniChain-v0,other:RedSim/Chain-v0"],
+        ["bench", "env-ab", "RedSim:MiniChain-v0", "--setting", "a", "--setting", "b"],
+        ["bench", "stability", "--envs", "redsim:Nope"],
+    ):
+        assert main(argv) == 2, argv
+        assert "unknown env" in capsys.readouterr().err, argv
+
+
 @pytest.mark.parametrize(
     ("env_arg", "expected"),
     [("no_such_option=1", "cannot make RedSim/MiniChain-v0 with --env-arg"), ('device="cpu"', "--device")],

@@ -83,7 +83,7 @@ def test_the_intact_copy_loads(cli: Cli, checkpoint: Path) -> None:
         (["--steps", "0"], "--steps must be >= 1, got 0"),
         (["--long-steps", "-3"], "--long-steps must be >= 1, got -3"),
         (["--steps", "many"], "invalid int value"),
-        (["--envs", "RedSim/Nope-v0"], "unknown env id(s) ['RedSim/Nope-v0']"),
+        (["--envs", "RedSim/Nope-v0"], "unknown env 'RedSim/Nope-v0'; valid:"),
         (["--regimes", "stiff,wobbly"], "unknown regime(s) ['wobbly']"),
         (["--regimes", ""], "--regimes"),
         (["--copies", "0"], "--copies must be >= 1, got 0"),
