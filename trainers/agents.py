@@ -1361,33 +1361,34 @@ def train_agent(
             _close_quietly(env_)
         raise interrupted(wall_offset + time.perf_counter() - start) from None
     wall = wall_offset + time.perf_counter() - start
-    _save_run(model, venv, model_path)
-    agent = Agent(model, goal=goal)
-    if isinstance(venv, VecNormalize):
-        agent = Agent(model, load_normalizer(normalizer_path(model_path)), goal)
-    venv.close()
-    eval_env.close()
+    try:  # trained: an interrupt from here on (the saves, the final evaluation, the files) leaves a run that
+        # --resume finishes (its final evaluation and files)
+        _save_run(model, venv, model_path)
+        agent = Agent(model, goal=goal)
+        if isinstance(venv, VecNormalize):
+            agent = Agent(model, load_normalizer(normalizer_path(model_path)), goal)
+        venv.close()
+        eval_env.close()
 
-    try:  # the model is saved: an interrupt here leaves a run that --resume finishes (its final evaluation)
         final = evaluate(env, agent, episodes=final_episodes, seed=seed + 20_000, env_kwargs=env_kwargs)
+        if not curve or curve[-1]["env_steps"] < model.num_timesteps:
+            curve.append(
+                {
+                    "env_steps": int(model.num_timesteps),
+                    "wall_s": wall,
+                    "mean_return": final.mean,
+                    "std_return": final.std,
+                    "success_rate": final.success_rate,
+                }
+            )
+        _write_curve(out / "curve.csv", curve)
+        plot_curve(curve, out / "curve.png", f"{label}: {algo.upper()}")
+        if video and (isinstance(env, str) or env.render_mode == "rgb_array"):
+            record_gif(env, agent, out / "policy.gif", seed=seed, env_kwargs=env_kwargs)
+        summary |= {"steps": int(model.num_timesteps), "wall_s": wall, "final_evaluation": final.as_dict()}
+        (out / "agent.json").write_text(json.dumps(summary, indent=2, default=str))
     except KeyboardInterrupt:
         raise interrupted(wall) from None
-    if not curve or curve[-1]["env_steps"] < model.num_timesteps:
-        curve.append(
-            {
-                "env_steps": int(model.num_timesteps),
-                "wall_s": wall,
-                "mean_return": final.mean,
-                "std_return": final.std,
-                "success_rate": final.success_rate,
-            }
-        )
-    _write_curve(out / "curve.csv", curve)
-    plot_curve(curve, out / "curve.png", f"{label}: {algo.upper()}")
-    if video and (isinstance(env, str) or env.render_mode == "rgb_array"):
-        record_gif(env, agent, out / "policy.gif", seed=seed, env_kwargs=env_kwargs)
-    summary |= {"steps": int(model.num_timesteps), "wall_s": wall, "final_evaluation": final.as_dict()}
-    (out / "agent.json").write_text(json.dumps(summary, indent=2, default=str))
     return TrainResult(model_path, int(model.num_timesteps), wall, final, out, int(model.num_timesteps) - started)
 
 

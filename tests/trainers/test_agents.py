@@ -617,6 +617,14 @@ def test_ctrl_c_in_the_final_evaluation_or_mid_rollout_keeps_an_honest_record(
     monkeypatch.setattr(agents, "evaluate", evaluate_)
     result = train_agent(MINI, tmp_path / "sac", algo="sac", steps=40, resume=True, **tiny)
     assert result.steps == 40 and "final_evaluation" in json.loads((tmp_path / "sac" / "agent.json").read_text())
+    plot = agents.plot_curve
+    monkeypatch.setattr(agents, "plot_curve", stop)  # after the final evaluation, in the files: the same record
+    with pytest.raises(TrainingInterrupted, match="interrupted at 40 env steps"):
+        train_agent(MINI, tmp_path / "late", algo="sac", steps=40, **tiny)
+    assert json.loads((tmp_path / "late" / "agent.json").read_text())["interrupted"] is True
+    monkeypatch.setattr(agents, "plot_curve", plot)
+    assert train_agent(MINI, tmp_path / "late", algo="sac", steps=40, resume=True, **tiny).trained == 0
+    assert (tmp_path / "late" / "curve.png").is_file()
 
     # rollouts of n_steps 8 x 2 copies: one whole rollout (16 steps) and 4 more steps
     _ctrl_c_at_training_step(monkeypatch, 13)
