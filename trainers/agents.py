@@ -177,11 +177,26 @@ def _algo_class(algo: str) -> Any:
     return {"ppo": PPO, "sac": SAC, "td3": TD3}[algo]
 
 
+KEPT_WRAPPERS = ("TimeLimit", "OrderEnforcing", "PassiveEnvChecker")
+"""Wrappers of a user's env that its vectorized copies stand in for (``gym.make``'s and :func:`redsim.envs.make`'s):
+the limit of a TimeLimit is kept; any other wrapper would not act on the copies and is refused."""
+
+
 def _base_env(env: gym.Env) -> tuple[Any, int | None]:
-    """The :class:`LatentEnv` under ``env`` and its episode limit (the ``TimeLimit``'s, if any)."""
+    """The :class:`LatentEnv` under ``env`` and its episode limit (the ``TimeLimit``'s, if any).
+
+    Raises:
+        ValueError: a wrapper other than :data:`KEPT_WRAPPERS` (the copies are made from the bare env).
+    """
     limit = env.spec.max_episode_steps if env.spec is not None else None
     inner: Any = env
     while isinstance(inner, gym.Wrapper):
+        if type(inner).__name__ not in KEPT_WRAPPERS:
+            raise ValueError(
+                f"the env is wrapped in {type(inner).__name__}, which its vectorized copies would not have: pass the "
+                "env without it (a TimeLimit's length is kept; normalized observations are a setting: "
+                "overrides={'normalize': {...}})"
+            )
         limit = getattr(inner, "_max_episode_steps", limit)
         inner = inner.env
     return inner, limit

@@ -871,6 +871,21 @@ def test_a_resume_from_an_older_checkpoint_counts_the_wall_time_up_to_it() -> No
     assert _wall_at([], {"wall_s": 7.0}, 20) == 7.0  # a record without its steps: as before
 
 
+def test_a_user_env_in_a_wrapper_its_copies_would_not_have_is_refused(tmp_path: Path) -> None:
+    """The copies are made from the bare env: gym.make's own wrappers stand for them (the TimeLimit's length is
+    kept), another wrapper would be dropped silently, so it is refused."""
+    from redsim.trainers.agents import train_agent
+
+    made = gym.make(MINI, max_episode_steps=7)
+    assert evaluate(made, "scripted", episodes=1).lengths.tolist() == [7]
+    wrapped = gym.wrappers.NormalizeObservation(made)
+    with pytest.raises(ValueError, match="wrapped in NormalizeObservation"):
+        evaluate(wrapped, "scripted", episodes=1)
+    with pytest.raises(ValueError, match="wrapped in NormalizeObservation"):
+        train_agent(wrapped, tmp_path, algo="sac", steps=20, n_envs=1, video=False)
+    assert not any(tmp_path.iterdir())  # refused before anything is written
+
+
 def test_a_random_episode_is_the_same_whatever_the_episode_count() -> None:
     """Episode i's random actions come from its own generator, so --episodes 2 and 3 share their first two
     episodes (in float64, where the batch size does not move the solves)."""
