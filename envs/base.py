@@ -952,7 +952,7 @@ class LatentSim:
                 f"{name} in [{lo:g}, {hi:g}]"
                 for name, lo, hi in zip(space.names, space.low.tolist(), space.high.tolist(), strict=True)
             )
-            raise ValueError(f"{what} must lie in the condition space ({ranges}), got {cond.tolist()}")
+            raise ValueError(f"{what} must lie in the condition space ({ranges}), got {shown(cond)}")
         return cond
 
     # -- drawing --------------------------------------------------------------------------
@@ -1541,7 +1541,7 @@ def _check_task_output(
         raise ValueError(f"Task {what} must be a {dtype} tensor, got {value.dtype}")
     checked = value if valid is None else value[valid]
     if finite and value.is_floating_point() and not bool(torch.isfinite(checked).all()):
-        raise ValueError(f"Task {what} is not finite: {value.tolist()}")
+        raise ValueError(f"Task {what} is not finite: {shown(value)}")
 
 
 def _dtype_name(dtype: Any) -> str:
@@ -1556,6 +1556,13 @@ def _dtype_name(dtype: Any) -> str:
     if name not in DTYPES:
         raise ValueError(f"dtype must be one of {sorted(DTYPES)} (or the torch/NumPy dtype), got {dtype!r}")
     return name
+
+
+def shown(value: Tensor) -> Any:
+    """``value`` as (nested) lists for an error message, each entry to 7 significant digits: a float32 0.2 reads 0.2,
+    not 0.20000000298023224."""
+    array = value.detach().cpu().to(torch.float64).numpy()
+    return np.vectorize(lambda v: float(f"{v:.7g}"), otypes=[float])(array).tolist()
 
 
 def json_spec(spec: EnvSpec | None) -> EnvSpec | None:

@@ -24,7 +24,7 @@ import numpy as np
 import torch
 from torch import Tensor, nn
 
-from redsim.envs.base import LatentEnv, Task, check_numbers, shipped
+from redsim.envs.base import LatentEnv, Task, check_numbers, shipped, shown
 from redsim.envs.vector import vector_entry
 
 if TYPE_CHECKING:
@@ -121,8 +121,7 @@ class SnapThrough(Task):
         heights = self.height(sim.full_positions(out))
         if not bool(heights[0] > 0.0 > heights[1]):
             raise ValueError(
-                "the subspace's stable states do not lie on both sides of the seed "
-                f"(handle heights {heights.tolist()} m)"
+                f"the subspace's stable states do not lie on both sides of the seed (handle heights {shown(heights)} m)"
             )
         return out
 

@@ -31,7 +31,7 @@ import numpy as np
 import torch
 from torch import Tensor, nn
 
-from redsim.envs.base import LatentEnv, Task, check_numbers, shipped
+from redsim.envs.base import LatentEnv, Task, check_numbers, shipped, shown
 from redsim.envs.vector import vector_entry
 
 if TYPE_CHECKING:
@@ -174,7 +174,7 @@ class CrankSpeed(Task):
         if "speed" in chosen and not 0.0 <= float(chosen["speed"].reshape(-1)[0]) <= self.speed_range[1]:
             raise ValueError(
                 f"options['speed'] must lie in [0, {self.speed_range[1]:g}] rad/s (the observation's range), "
-                f"got {chosen['speed'].tolist()}"
+                f"got {shown(chosen['speed'])}"
             )
 
     def extras_bounds(self) -> tuple[np.ndarray, np.ndarray]:

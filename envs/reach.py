@@ -31,7 +31,7 @@ import numpy as np
 import torch
 from torch import Tensor, nn
 
-from redsim.envs.base import FRAME_SAMPLES, LatentEnv, Task, cached, check_numbers, map_key, shipped
+from redsim.envs.base import FRAME_SAMPLES, LatentEnv, Task, cached, check_numbers, map_key, shipped, shown
 
 if TYPE_CHECKING:
     from redsim.envs.base import LatentSim
@@ -318,7 +318,7 @@ class HandleReach(Task):
         if "target" in chosen and not bool((chosen["target"].abs() <= self._bound).all()):
             raise ValueError(
                 f"options['target'] must lie within the observation bound of {self._bound:.3g} m on each axis, "
-                f"got {chosen['target'].tolist()}"
+                f"got {shown(chosen['target'])}"
             )
 
     def extras_bounds(self) -> tuple[np.ndarray, np.ndarray]:

@@ -25,7 +25,7 @@ import numpy as np
 import torch
 from torch import Tensor, nn
 
-from redsim.envs.base import LatentEnv, Task, cached, check_numbers, map_key, shipped
+from redsim.envs.base import LatentEnv, Task, cached, check_numbers, map_key, shipped, shown
 from redsim.envs.vector import vector_entry
 
 if TYPE_CHECKING:
@@ -215,7 +215,7 @@ class PlatePose(Task):
         if position is not None and not bool((position.abs() <= self._bound).all()):
             raise ValueError(
                 f"options['target_position'] must lie within the observation bound of {self._bound:.3g} m on each "
-                f"axis, got {position.tolist()}"
+                f"axis, got {shown(position)}"
             )
         if rotation is not None:
             r = rotation.to(torch.float64)
@@ -223,7 +223,7 @@ class PlatePose(Task):
                 torch.allclose(r.T @ r, torch.eye(3, dtype=r.dtype, device=r.device), atol=ROTATION_TOL)
                 and float(torch.linalg.det(r)) > 0
             ):
-                raise ValueError(f"options['target_rotation'] must be a rotation matrix [3, 3], got {r.tolist()}")
+                raise ValueError(f"options['target_rotation'] must be a rotation matrix [3, 3], got {shown(r)}")
 
     def extras_bounds(self) -> tuple[np.ndarray, np.ndarray]:
         high = np.concatenate([np.full(6, self._bound), np.ones(3)])

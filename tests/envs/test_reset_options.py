@@ -40,6 +40,7 @@ def test_a_chosen_target_is_the_episode_target_and_leaves_the_random_stream_alon
         ({"target": [np.nan, 0.0, 0.0]}, r"options\['target'\] must be finite"),
         ({"target": "up"}, r"options\['target'\] must be a number array"),
         ({"target": [1e30, 0.0, 0.0]}, r"options\['target'\] must lie within the observation bound"),
+        ({"target": [10.0, 0.2, 0.0]}, r"got \[10\.0, 0\.2, 0\.0\]$"),  # float32 as given, not 0.2000000029
         ({"reset_mask": np.ones(1, bool)}, r"unknown reset option"),  # a vector env's option
     ],
 )
