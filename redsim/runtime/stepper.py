@@ -12,6 +12,7 @@ here; a step only evaluates the energy.
 
 from __future__ import annotations
 
+import copy
 import math
 import numbers
 import warnings
@@ -312,7 +313,9 @@ class LatentStepper:
 
     Raises:
         ValueError: a bad dt, tol, max_iter, hessian, sync_every, max_step, warm_refresh, start or row_block, a
-            device redsim cannot run on (:func:`redsim.devices.check_device`), or a map that does not fit the scene.
+            device redsim cannot run on (:func:`redsim.devices.check_device`), or a map that does not fit the scene
+            (another output size, or fitted to a scene of another name; one fitted to this scene with other
+            parameters, e.g. a soft map driven on a stiffer material, is stepped with a warning).
     """
 
     def __init__(
@@ -368,8 +371,10 @@ class LatentStepper:
         self.hessian = hessian
         self.dense = self.device.type == "cuda" if dense is None else bool(dense)
         self.sync_every = sync_every
+        _check_map_scene(subspace, scene)
         self.source_scene = scene
-        self.subspace = subspace
+        # a snapshot: the rest solve reads the map the steps use, whatever the caller does to its own afterwards
+        self.subspace = copy.deepcopy(subspace) if isinstance(subspace, nn.Module) else subspace
         self.scene = scene.to(device=self.device, dtype=dtype)
         if callable(energy) and not isinstance(energy, LatentEnergy):  # a factory, e.g. cubature_energy
             energy = energy(scene, subspace, dtype=dtype, device=self.device)
@@ -803,6 +808,21 @@ class LatentStepper:
             z, _ = latent_equilibrium(space, None, c, z0=start)
             out.append(z.to(device=self.device, dtype=self.dtype))
         return torch.stack(out)
+
+
+def _check_map_scene(subspace: nn.Module, scene: Scene) -> None:
+    """Refuse a map whose metadata names another scene; warn where it names this scene with other parameters (a
+    deliberate study, e.g. a soft material's map on a stiffer one, or a mistake the caller should see)."""
+    metadata = getattr(subspace, "metadata", None) or {}
+    name, fingerprint = metadata.get("scene"), metadata.get("scene_fingerprint")
+    if name is not None and name != scene.name:
+        raise ValueError(f"the subspace was fitted to scene {name!r}, not to {scene.name!r}")
+    if fingerprint is not None and not scene.accepts(fingerprint):
+        warnings.warn(
+            f"the subspace was fitted to scene {name!r} with other parameters (fingerprint {fingerprint}; this one "
+            f"{scene.fingerprint()}): it is stepped on this scene's energy",
+            stacklevel=3,
+        )
 
 
 __all__ = ["DEFAULT_HESSIAN", "DEFAULT_MAX_ITER", "DEFAULT_TOL", "STARTS", "Evaluations", "LatentStepper", "StepStats"]

@@ -7,6 +7,7 @@ the motion of a step; both start every step from the same state.
 
 from __future__ import annotations
 
+import copy
 import warnings
 
 import pytest
@@ -224,6 +225,20 @@ def test_non_finite_inputs_raise_before_stepping(mini_chain) -> None:
         stepper.step(z, z, cond=torch.zeros(2, 1))
 
 
+def test_the_stepper_steps_its_own_copy_of_the_map_and_names_a_scene_of_other_parameters() -> None:
+    """The rest solve reads the map the steps use (a copy), whatever the caller does to its own after; a map fitted
+    to the scene with other parameters (a soft bar's map on a stiffer bar) is stepped, with a warning that says so."""
+    scene, mine = scenes.build("mini_chain"), pretrained.load("mini_chain")
+    stepper = LatentStepper(scene, mine, DT, dtype=torch.float64)
+    rest = stepper.rest_latent(start=torch.zeros(4))
+    with torch.no_grad():
+        for p in mine.parameters():
+            p.mul_(0.5)
+    torch.testing.assert_close(stepper.rest_latent(start=torch.zeros(4)), rest)
+    with pytest.warns(UserWarning, match="fitted to scene 'mini_chain' with other parameters"):
+        LatentStepper(scenes.build("mini_chain", density=2000.0), pretrained.load("mini_chain"), DT)
+
+
 def test_bad_settings_raise(mini_chain) -> None:
     from redsim.cubature import CubatureConfig, CubatureEnergy, build_cubature
 
@@ -243,8 +258,12 @@ def test_bad_settings_raise(mini_chain) -> None:
     for sync_every in (0, 1.5, True):
         with pytest.raises(ValueError, match="sync_every"):
             LatentStepper(scene, f, DT, sync_every=sync_every)
-    with pytest.raises(ValueError, match="maps z"):
+    with pytest.raises(ValueError, match="fitted to scene 'mini_chain', not to 'chain'"):
         LatentStepper(scenes.build("chain"), f, DT)
+    bare = copy.deepcopy(f)
+    bare.metadata = {}  # a map that names no scene: its output size is what is checked
+    with pytest.raises(ValueError, match="maps z"):
+        LatentStepper(scenes.build("chain"), bare, DT)
     for device in ("bogus", "mps", *(() if torch.cuda.is_available() else ("cuda",))):
         with pytest.raises(ValueError, match="device"):  # the envs' check, not an error from deep inside torch
             LatentStepper(scene, f, DT, device=device)
