@@ -19,6 +19,7 @@ Example::
 from __future__ import annotations
 
 import inspect
+import numbers
 from collections.abc import Callable
 from typing import Any
 
@@ -79,11 +80,22 @@ def build(name: str, **params: Any) -> Scene:
             parameter (it lists the scene's parameters) or a bad parameter value.
     """
     builder = entry(name).builder
-    valid = list(inspect.signature(builder).parameters)
+    signature = inspect.signature(builder).parameters
+    valid = list(signature)
     unknown = sorted(set(params) - set(valid))
     if unknown:
         raise ValueError(f"scene {name!r} has no parameter(s) {unknown}; valid parameters: {valid}")
-    return builder(**params)
+    return builder(**{key: _as_default_type(key, value, signature[key].default) for key, value in params.items()})
+
+
+def _as_default_type(key: str, value: Any, default: Any) -> Any:
+    """A parameter whose default is a float, given as an int, as that float (``density=7800`` builds the scene, and
+    its fingerprint, of ``density=7800.0``); anything but a real number there is refused."""
+    if not isinstance(default, float):
+        return value
+    if isinstance(value, bool) or not isinstance(value, numbers.Real):
+        raise ValueError(f"scene parameter {key} must be a number, got {value!r}")
+    return float(value)
 
 
 __all__ = [

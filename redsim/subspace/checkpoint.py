@@ -113,8 +113,15 @@ def check_scene(doc: dict[str, Any], scene: Scene, path: str) -> None:
     mine = (doc.get("scene"), doc.get("scene_fingerprint"), (doc.get("config") or {}).get("output_dim"))
     theirs = (scene.name, scene.fingerprint(), scene.free_dof_count)
     if (mine[0], mine[2]) != (theirs[0], theirs[2]) or not scene.accepts(mine[1]):
+        recorded = doc.get("scene_params") or {}
+        differs = [
+            f"{key} {recorded.get(key)!r} (this scene: {scene.params.get(key)!r})"
+            for key in sorted(set(recorded) | set(scene.params))
+            if recorded.get(key) != scene.params.get(key)
+        ]
+        where = f"; it records {', '.join(differs)}" if mine[0] == theirs[0] and differs else ""
         raise CheckpointError(
             f"fitted to scene {mine[0]!r} (fingerprint {mine[1]}, n={mine[2]}), not to scene {theirs[0]!r} "
-            f"(fingerprint {theirs[1]}, n={theirs[2]}); build the scene with the parameters in the .json",
+            f"(fingerprint {theirs[1]}, n={theirs[2]}){where}; build the scene with the parameters in the .json",
             path,
         )

@@ -186,6 +186,19 @@ def test_unknown_scene_lists_valid_names() -> None:
     assert "chain" in str(info.value) and "klann" in str(info.value)
 
 
+def test_a_float_parameter_given_as_an_int_is_the_same_scene() -> None:
+    """density=7800 builds the scene (and fingerprint) of density=7800.0, so the shipped map loads on it; a map of
+    other parameters is refused naming the parameter that differs."""
+    from redsim import pretrained
+
+    scene = redsim.scenes.build("mini_chain", density=7800)
+    assert scene.fingerprint() == redsim.scenes.build("mini_chain").fingerprint()
+    assert scene.params["density"] == 7800.0 and isinstance(scene.params["density"], float)
+    pretrained.load("mini_chain", scene)
+    with pytest.raises(redsim.subspace.CheckpointError, match=r"it records density 7800.0 \(this scene: 2000.0\)"):
+        pretrained.load("mini_chain", redsim.scenes.build("mini_chain", density=2000))
+
+
 def test_unknown_parameter_lists_valid_parameters() -> None:
     with pytest.raises(ValueError, match="valid parameters") as info:
         redsim.scenes.build("chain", lenks=3)
@@ -206,6 +219,7 @@ def test_unknown_parameter_lists_valid_parameters() -> None:
         ("conditional_bar", {"stiffness_ratio_range": (2.0, 1.0)}, "range"),
         ("toy_two_tets", {"gravity": "yes"}, "gravity"),
         ("toy_tiny_bar_2d", {"density": "heavy"}, "density"),
+        ("toy_two_tets", {"poisson": "0.4"}, "poisson must be a number"),
     ],
 )
 def test_bad_parameter_values(name: str, params: dict, word: str) -> None:
