@@ -79,7 +79,7 @@ def cached_subspace(
     state = None if stem is None else checkpoint_path(stem, ".fit.pt")
     resume = state is not None and state.is_file()
     log.info("fitting a subspace for %s (%s) into %s", scene_name, scene.fingerprint(), stem or "memory (cache off)")
-    result = fit_subspace(scene, out=stem, resume=resume, progress=progress, **options)
+    result = fit_subspace(scene, out=stem, resume=resume, overwrite=not resume, progress=progress, **options)
     if state is not None:
         state.unlink(missing_ok=True)
     if stem is None:  # no file behind it: an env pickles it rather than fit it again

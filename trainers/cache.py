@@ -19,7 +19,7 @@ from torch import nn
 
 from redsim.scene import Scene
 from redsim.subspace import CheckpointError, checkpoint_path, load_subspace
-from redsim.trainers.fit import FitConfig, fit_command, fit_subspace, planned_steps
+from redsim.trainers.fit import FitConfig, existing_fit, fit_command, fit_subspace, planned_steps
 
 RUNTIME_FIELDS = ("checkpoint_every", "device", "fused_adam", "compile")
 """FitConfig fields that say how a fit runs, not what it fits: a checkpoint may differ in them."""
@@ -68,7 +68,7 @@ def fitted_subspace(
             subspace = _qualified(path, scene, config, seed, warn)
             if subspace is not None:
                 return subspace, str(path)
-    free = [s for s in stems if not _occupied(s) or (refit and _replaceable(s, scene, config, seed))]
+    free = [s for s in stems if existing_fit(s) is None or (refit and _replaceable(s, scene, config, seed))]
     if not free:
         raise FileExistsError(
             f"not fitting into {stems[0]} or {stems[1]}: both hold files of another fit; move them away, or keep the "
@@ -77,7 +77,13 @@ def fitted_subspace(
     if free[0] != stems[0] and warn:
         warn(f"fitting into {checkpoint_path(free[0], '.pt')}, keeping the other fit at {stems[0]}")
     result = fit_subspace(
-        scene, config, seed=seed, out=free[0], progress=progress, command=fit_command(scene, config, seed, free[0])
+        scene,
+        config,
+        seed=seed,
+        out=free[0],
+        overwrite=refit,  # a refit replaces only a stem it may (_replaceable); the others are free
+        progress=progress,
+        command=fit_command(scene, config, seed, free[0]),
     )
     return result.subspace, str(checkpoint_path(free[0], ".pt"))
 
@@ -93,11 +99,6 @@ def fit_key(scene: Scene, config: FitConfig, seed: int) -> str:
     }
     doc = {"scene": scene.fingerprint(), "fit": fit, "seed": seed}
     return hashlib.sha256(json.dumps(doc, sort_keys=True, default=str).encode()).hexdigest()[:8]
-
-
-def _occupied(stem: Path) -> bool:
-    """Whether a fit has written any of its files at ``stem``."""
-    return any(checkpoint_path(stem, suffix).exists() for suffix in (".pt", ".json", ".fit.pt"))
 
 
 def _replaceable(stem: Path, scene: Scene, config: FitConfig, seed: int) -> bool:

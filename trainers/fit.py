@@ -567,6 +567,7 @@ def fit_subspace(
     progress: bool = True,
     command: str | None = None,
     stop_at: int | None = None,
+    overwrite: bool = False,
     **overrides: Any,
 ) -> FitResult:
     """Fit a neural subspace to ``scene`` from its energy alone.
@@ -587,16 +588,29 @@ def fit_subspace(
         command: The command line recorded in the metadata (default: a `redsim fit` line).
         stop_at: Stop when this many steps are done, before ``config.steps``, as Ctrl-C does: the training state is
             saved (``resume`` continues it), no map is written, and :class:`FitStopped` is raised. Needs ``out``.
+        overwrite: Replace a fit already at ``out`` (its map, metadata and training state); without it (or
+            ``resume``) one there is refused, so that a finished or interrupted fit is never replaced silently.
         **overrides: FitConfig fields replacing those of ``config`` (``dim`` is an alias of
             ``latent_dim``), e.g. ``fit_subspace(scene, dim=8, sigma=1.0, lam=1.0, steps=2000)``.
 
     Raises:
         ValueError: bad config, a conditional fit on a scene without conditions, ``resume`` with no matching
-            checkpoint, or ``stop_at`` outside [steps done, ``config.steps``) or without ``out``.
+            checkpoint, ``resume`` with ``overwrite``, or ``stop_at`` outside [steps done, ``config.steps``) or
+            without ``out``.
+        FileExistsError: a fit at ``out`` and neither ``resume`` nor ``overwrite``.
         FitStopped: the fit stopped at ``stop_at``.
     """
     if stop_at is not None and out is None:
         raise ValueError("stop_at needs out (the training state is saved there)")
+    if resume and overwrite:
+        raise ValueError("resume continues the fit at out, overwrite replaces it: give one")
+    if out is not None and not (resume or overwrite) and (found := existing_fit(out)) is not None:
+        raise FileExistsError(
+            f"a fit exists at {found}: continue it with resume=True (a larger steps extends it), or replace it with "
+            "overwrite=True"
+        )
+    if out is not None and overwrite:  # the old training state must not be taken for the new fit's
+        checkpoint_path(out, ".fit.pt").unlink(missing_ok=True)
     if "dim" in overrides:
         overrides["latent_dim"] = overrides.pop("dim")
     unknown = sorted(set(overrides) - {f.name for f in dataclasses.fields(FitConfig)})
@@ -999,6 +1013,11 @@ def _load_training_state(
         "command": state.get("command", ""),
         "seed": state.get("seed"),
     }
+
+
+def existing_fit(stem: str | Path) -> Path | None:
+    """The first file of a fit at ``stem`` (``STEM.pt``, ``STEM.json`` or ``STEM.fit.pt``); None where there is none."""
+    return next((p for p in (checkpoint_path(stem, s) for s in (".pt", ".json", ".fit.pt")) if p.is_file()), None)
 
 
 def planned_steps(stem: str | Path) -> int | None:

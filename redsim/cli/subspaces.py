@@ -140,10 +140,12 @@ def _check_stem(stem: Path, args: argparse.Namespace) -> None:
     """Refuse a stem that names no file, or one that holds a fit, unless ``--resume`` or ``--overwrite``."""
     if stem.name in ("", ".", ".."):
         raise CliError(f"--out must name a checkpoint stem (e.g. DIR/NAME), got {args.out!r}")
-    existing = [p for p in (checkpoint_path(stem, ".pt"), checkpoint_path(stem, ".fit.pt")) if p.is_file()]
-    if existing and not (args.resume or args.overwrite):  # minutes to hours of work: not replaced silently
+    from redsim.trainers.fit import existing_fit
+
+    found = existing_fit(stem)
+    if found is not None and not (args.resume or args.overwrite):  # minutes to hours of work: not replaced silently
         raise CliError(
-            f"a fit exists at {existing[0]}: continue it with --resume (a larger --steps extends it), or replace it "
+            f"a fit exists at {found}: continue it with --resume (a larger --steps extends it), or replace it "
             "with --overwrite"
         )
 
@@ -162,8 +164,6 @@ def cmd_fit(args: argparse.Namespace) -> int:
     _check_stem(stem, args)
     if args.resume and args.steps is None and (steps := planned_steps(stem)) is not None:
         config = dataclasses.replace(config, steps=steps)  # the fit's own length, not the preset's
-    if args.overwrite:  # the old training state must not be taken for the new fit's (an interrupt's advice)
-        checkpoint_path(stem, ".fit.pt").unlink(missing_ok=True)
     command = fit_command(scene, config, args.seed, stem)
     try:
         result = fit_subspace(
@@ -172,6 +172,7 @@ def cmd_fit(args: argparse.Namespace) -> int:
             seed=args.seed,
             out=stem,
             resume=args.resume,
+            overwrite=args.overwrite,
             progress=not args.json,
             command=command,
             stop_at=args.stop_at,

@@ -211,6 +211,23 @@ def test_a_forced_interrupt_names_the_step_it_landed_in(tmp_path, caplog: pytest
     assert "interrupted inside step 3;" in caplog.text
 
 
+def test_a_fit_at_an_existing_stem_is_refused_unless_resumed_or_overwritten(tmp_path) -> None:
+    """As the CLI: a finished (or interrupted) fit at ``out`` is not replaced silently, nor is its cubature removed."""
+    scene = _tet_scene()
+    config = FitConfig(latent_dim=2, sigma=0.05, steps=4, hidden_width=8)
+    fit_subspace(scene, config, progress=False, out=tmp_path / "mine")
+    (tmp_path / "mine.cubature.json").write_text("{}")  # stands for its cubature
+    kept = {p.name: p.read_bytes() for p in tmp_path.iterdir()}
+    with pytest.raises(FileExistsError, match=r"a fit exists at .*mine\.pt: continue it with resume=True"):
+        fit_subspace(scene, config, seed=1, progress=False, out=tmp_path / "mine")
+    assert {p.name: p.read_bytes() for p in tmp_path.iterdir()} == kept
+    with pytest.raises(ValueError, match="give one"):
+        fit_subspace(scene, config, progress=False, out=tmp_path / "mine", resume=True, overwrite=True)
+    with pytest.warns(UserWarning, match="cubature"):  # the replaced map's cubature goes, saying so
+        fit_subspace(scene, config, seed=1, progress=False, out=tmp_path / "mine", overwrite=True)
+    assert (tmp_path / "mine.pt").read_bytes() != kept["mine.pt"]
+
+
 def test_a_callers_own_signal_handler_is_called_at_the_step_boundary() -> None:
     import os
     import signal
