@@ -327,14 +327,21 @@ def export_meshes(scene: Scene, q: Tensor, directory: str | Path, frame: int) ->
         scene: The scene.
         q: Free configuration, shape [n].
         directory: Output folder (created if needed).
-        frame: Frame number, zero-padded to four digits in the file names.
+        frame: Frame number (>= 0), zero-padded to four digits in the file names.
 
     Returns:
         The paths written, in ``scene.surfaces`` order.
 
     Raises:
         DependencyNotInstalled: without trimesh.
+        ValueError: a scene without surfaces, a configuration that is not finite, or a negative frame.
     """
+    if not scene.surfaces:
+        raise ValueError(f"scene {scene.name!r} has no surfaces to export")
+    if not bool(torch.isfinite(torch.as_tensor(q)).all()):
+        raise ValueError("the configuration q is not finite: no mesh to export")
+    if isinstance(frame, bool) or not isinstance(frame, int) or frame < 0:
+        raise ValueError(f"frame must be an integer >= 0, got {frame!r}")
     trimesh = _require("trimesh")
     directory = Path(directory)
     directory.mkdir(parents=True, exist_ok=True)

@@ -198,6 +198,14 @@ def test_render_2d_scene(tmp_path) -> None:
     assert mesh.vertices.shape == (4, 3) and mesh.faces.shape == (2, 3)
     assert abs(mesh.vertices[:, 2]).max() == 0.0
     assert mesh.vertices[3].tolist()[:2] == pytest.approx([1.1, 1.1])
+    with pytest.raises(ValueError, match="not finite"):  # not a .ply of NaNs
+        export_meshes(scene, moved * torch.nan, tmp_path, 8)
+    with pytest.raises(ValueError, match="frame must be an integer >= 0"):
+        export_meshes(scene, moved, tmp_path, -1)
+    bare = redsim.SceneBuilder(dim=2)
+    bare.add_particles(vertices, torch.ones(4))
+    with pytest.raises(ValueError, match="no surfaces to export"):
+        export_meshes(bare.finalize("points"), moved, tmp_path, 0)
 
 
 def test_shown_path_is_machine_independent(tmp_path, monkeypatch: pytest.MonkeyPatch) -> None:
