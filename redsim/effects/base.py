@@ -13,7 +13,7 @@ from __future__ import annotations
 import copy
 import math
 from collections.abc import Sequence
-from typing import Any, ClassVar
+from typing import Any, ClassVar, Literal
 
 import torch
 from torch import Tensor
@@ -146,16 +146,30 @@ def gather_coordinates(x: Tensor, element_dofs: Tensor) -> Sequence[Tensor]:
     return x.index_select(1, element_dofs.T.reshape(-1)).view(x.shape[0], k, count).unbind(1)
 
 
-def per_element(value: float | Tensor, count: int, what: str) -> Tensor:
+def per_element(
+    value: float | Tensor, count: int, what: str, *, sign: Literal["nonnegative", "positive", "any"] = "nonnegative"
+) -> Tensor:
     """A per-element parameter (stiffness, modulus) as float64 [count]: a scalar is broadcast.
 
+    Every entry must be finite and, by ``sign``, >= 0 (the default: a zero stiffness switches an element off),
+    > 0 (a modulus) or of ``"any"`` sign (a Poisson ratio, whose range its own conversion checks).
+
     Raises:
-        ValueError: ``value`` is neither a scalar nor of shape [count] (``what`` names it).
+        ValueError: ``value`` is neither a scalar nor of shape [count], or an entry is not finite or has the
+            wrong sign (``what`` names it, with the value).
     """
-    out = torch.as_tensor(value, dtype=torch.float64)
-    out = out.expand(count).clone() if out.ndim == 0 else out.clone()
+    given = torch.as_tensor(value, dtype=torch.float64)
+    out = given.expand(count).clone() if given.ndim == 0 else given.clone()
     if out.shape != (count,):
         raise ValueError(f"{what} must be a scalar or have shape [{count}], got {tuple(out.shape)}")
+    ok = torch.isfinite(out)
+    if sign != "any":
+        ok &= out > 0 if sign == "positive" else out >= 0
+    if not bool(ok.all()):
+        rule = {"nonnegative": "finite and >= 0", "positive": "finite and > 0", "any": "finite"}[sign]
+        i = int(torch.nonzero(~ok)[0, 0])
+        shown = f"{float(out[i])!r}" if given.ndim == 0 else f"{float(out[i])!r} at element {i}"
+        raise ValueError(f"{what} must be {rule}, got {shown}")
     return out
 
 

@@ -18,8 +18,33 @@ def _lame(
     young: float | Tensor, poisson: float | Tensor, count: int, plane: Literal["strain", "stress"] | None
 ) -> tuple[Tensor, Tensor]:
     """Lamé parameters (mu, lambda) [Pa], each [count], of per-element (scalar or [count]) young [Pa] and poisson."""
-    young_t, poisson_t = per_element(young, count, "young"), per_element(poisson, count, "poisson")
+    young_t = per_element(young, count, "young", sign="positive")
+    poisson_t = per_element(poisson, count, "poisson", sign="any")
     return lame_from_young_poisson(young_t, poisson_t, plane=plane)
+
+
+def _check_rest(rest: Tensor, name: str) -> None:
+    """Refuse rest positions [T, nv, D] with a NaN or infinite coordinate (naming the element)."""
+    bad = torch.nonzero(~torch.isfinite(rest).reshape(rest.shape[0], -1).all(-1)).reshape(-1)
+    if bad.numel():
+        i = int(bad[0])
+        raise ValueError(f"rest positions of {name!r} must be finite, got {rest[i].tolist()} for element {i}")
+
+
+def _vertex_dofs(vertex_dofs: Tensor, rest: Tensor, name: str) -> Tensor:
+    """``vertex_dofs`` as int64 [T, nv * D]: one index per coordinate of ``rest`` [T, nv, D] (or already flat).
+
+    Raises:
+        ValueError: its shape is neither [T, nv, D] nor [T, nv * D].
+    """
+    dofs = torch.as_tensor(vertex_dofs, dtype=torch.int64)
+    T, nv, D = rest.shape
+    if tuple(dofs.shape) not in ((T, nv, D), (T, nv * D)):
+        raise ValueError(
+            f"vertex_dofs of {name!r} must have shape [{T}, {nv}, {D}] (one index per coordinate of rest "
+            f"{list(rest.shape)}), got {list(dofs.shape)}"
+        )
+    return dofs.reshape(T, nv * D)
 
 
 def _edge_matrix(v: Tensor) -> Tensor:
@@ -78,7 +103,8 @@ class NeoHookean(Effect):
             have their modulus multiplied by c[i] (conditional stiffness ratio).
 
     Raises:
-        ValueError: on an inverted or degenerate rest element (its index is named).
+        ValueError: on an inverted, degenerate or non-finite rest element (its index is named), ``vertex_dofs`` not
+            of shape [T, D+1, D], a non-finite or non-positive modulus or 2D thickness, or a non-finite Poisson ratio.
     """
 
     kind = "neo_hookean"
@@ -99,6 +125,10 @@ class NeoHookean(Effect):
         T, nv, D = rest.shape
         if nv != D + 1 or D not in (2, 3):
             raise ValueError(f"rest must have shape [T, D+1, D] with D in (2, 3), got {tuple(rest.shape)}")
+        _check_rest(rest, name)
+        element_dofs = _vertex_dofs(vertex_dofs, rest, name)
+        if D == 2:
+            per_element(thickness, 1, f"thickness of {name!r}", sign="positive")
         rest_edges = _edge_matrix(rest)
         det = torch.linalg.det(rest_edges)
         volume = det / (2.0 if D == 2 else 6.0)
@@ -114,7 +144,7 @@ class NeoHookean(Effect):
         mu, lam = _lame(young, poisson, T, plane if D == 2 else None)
         self.name = name
         self.dim = D
-        self.element_dofs = torch.as_tensor(vertex_dofs, dtype=torch.int64).reshape(T, -1)
+        self.element_dofs = element_dofs
         self.shape_gradients = _shape_gradients(torch.linalg.inv(rest_edges))
         self.rest_volume = volume * (thickness if D == 2 else 1.0)
         self.mu = mu
@@ -231,7 +261,11 @@ class StVKMembrane(Effect):
         rest: Rest positions [m], shape [T, 3, 3].
         young: Young's modulus [Pa], scalar or [T].
         poisson: Poisson ratio, scalar or [T].
-        thickness: Sheet thickness [m].
+        thickness: Sheet thickness [m], finite and > 0.
+
+    Raises:
+        ValueError: on a degenerate or non-finite rest triangle, ``vertex_dofs`` not of shape [T, 3, 3] or a bad
+            material parameter (each named with its value).
     """
 
     kind = "stvk_membrane"
@@ -250,6 +284,9 @@ class StVKMembrane(Effect):
         T = rest.shape[0]
         if rest.shape != (T, 3, 3):
             raise ValueError(f"rest must have shape [T, 3, 3], got {tuple(rest.shape)}")
+        _check_rest(rest, name)
+        element_dofs = _vertex_dofs(vertex_dofs, rest, name)
+        per_element(thickness, 1, f"thickness of {name!r}", sign="positive")
         frame = _triangle_frame(rest)
         area = 0.5 * torch.linalg.det(frame)
         bad = torch.nonzero(area <= 1e-12 * frame.abs().amax(dim=(-1, -2)) ** 2).reshape(-1)
@@ -257,7 +294,7 @@ class StVKMembrane(Effect):
             raise ValueError(f"triangle {int(bad[0])} of {name!r} is degenerate (rest area {float(area[bad[0]]):.3g})")
         mu, lam = _lame(young, poisson, T, "stress")
         self.name = name
-        self.element_dofs = torch.as_tensor(vertex_dofs, dtype=torch.int64).reshape(T, 9)
+        self.element_dofs = element_dofs
         self.shape_gradients = _shape_gradients(torch.linalg.inv(frame))
         self.metric_coefficients = membrane_coefficients(self.shape_gradients)
         self.rest_area = area
@@ -342,7 +379,11 @@ class DiscreteShellBending(Effect):
         vertex_dofs: Index of each hinge vertex coordinate, shape [E, 4, 3], int64, ordered
             (edge start, edge end, apex of the triangle (x0, x1, x2), apex of (x1, x0, x3)).
         rest: Rest positions [m], shape [E, 4, 3].
-        stiffness: Bending stiffness [J], scalar or [E].
+        stiffness: Bending stiffness [J], scalar or [E], finite and >= 0.
+
+    Raises:
+        ValueError: on a zero-area or non-finite rest hinge, ``vertex_dofs`` not of shape [E, 4, 3] or a negative or
+            non-finite stiffness.
     """
 
     kind = "discrete_shell_bending"
@@ -352,6 +393,9 @@ class DiscreteShellBending(Effect):
         count = rest.shape[0]
         if rest.shape != (count, 4, 3):
             raise ValueError(f"rest must have shape [E, 4, 3], got {tuple(rest.shape)}")
+        _check_rest(rest, name)
+        element_dofs = _vertex_dofs(vertex_dofs, rest, name)
+        stiffness_t = per_element(stiffness, count, f"stiffness of {name!r}")
         e = rest[:, 1] - rest[:, 0]
         area_a = 0.5 * torch.linalg.cross(e, rest[:, 2] - rest[:, 0]).norm(dim=-1)
         area_b = 0.5 * torch.linalg.cross(rest[:, 3] - rest[:, 0], e).norm(dim=-1)
@@ -359,10 +403,10 @@ class DiscreteShellBending(Effect):
         if bool(torch.any(area_a + area_b <= 0)):
             raise ValueError(f"hinge {int(torch.argmin(area_a + area_b))} of {name!r} has zero rest area")
         self.name = name
-        self.element_dofs = torch.as_tensor(vertex_dofs, dtype=torch.int64).reshape(count, 12)
+        self.element_dofs = element_dofs
         self.length_eps = float(edge_sq.min()) * 1e-12
         self.rest_angle = hinge_angles(rest.reshape(count, 12).unbind(-1), self.length_eps)
-        self.weight = per_element(stiffness, count, "stiffness") * 3.0 * edge_sq / (area_a + area_b)
+        self.weight = stiffness_t * 3.0 * edge_sq / (area_a + area_b)
 
     def element_energy(self, xe: Tensor, cond: Tensor | None = None, loads: Tensor | None = None) -> Tensor:
         return self._energy(hinge_angles(xe.unbind(-1), self.length_eps))

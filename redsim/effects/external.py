@@ -16,7 +16,10 @@ class Gravity(Effect):
         name: Term name.
         points: Where the masses sit (vertices, body centroids), P of them.
         masses: Mass [kg] of each point, shape [P].
-        acceleration: Gravitational acceleration [m/s^2], shape [D] (e.g. (0, -9.81, 0)).
+        acceleration: Gravitational acceleration [m/s^2], shape [D] (e.g. (0, -9.81, 0)), finite.
+
+    Raises:
+        ValueError: ``acceleration`` is not D finite numbers.
     """
 
     kind = "gravity"
@@ -26,7 +29,13 @@ class Gravity(Effect):
         self.points = points
         self.element_dofs = points.local_dofs()
         self.masses = torch.as_tensor(masses, dtype=torch.float64).reshape(points.count)
-        self.acceleration = torch.as_tensor(acceleration, dtype=torch.float64).reshape(points.dim)
+        given = torch.as_tensor(acceleration, dtype=torch.float64)
+        if given.numel() != points.dim or not bool(torch.isfinite(given).all()):
+            raise ValueError(
+                f"acceleration of {name!r} must be {points.dim} finite numbers (the scene's dimension), got "
+                f"{given.tolist()}"
+            )
+        self.acceleration = given.reshape(points.dim)
         # E is linear in x: E = -(x . coefficients + constant); precomputed for the hot path.
         weight = -self.masses[:, None, None] * self.acceleration[None, :, None] * points.weights[:, None, :]
         size = int(points.dofs.max()) + 1 if points.count else 0

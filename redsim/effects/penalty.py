@@ -25,18 +25,29 @@ class PointPairPenalty(Effect):
         name: Term name.
         a: First points, P of them.
         b: Second points, P of them.
-        stiffness: Penalty weight [N/m], scalar or [P].
+        stiffness: Penalty weight [N/m], scalar or [P], finite and >= 0.
         kind: Label shown by `redsim scenes` (e.g. "joint", "hinge_axis", "pin").
+
+    Raises:
+        ValueError: on a negative or non-finite stiffness or a non-finite point weight or offset (a world target).
     """
 
     def __init__(self, name: str, a: PointSet, b: PointSet, stiffness: float | Tensor, *, kind: str = "joint") -> None:
         if a.dim != b.dim:
             raise ValueError(f"point sets of {name!r} differ in dimension ({a.dim} vs {b.dim})")
+        for side, points in (("a", a), ("b", b)):
+            for field in ("weights", "offset"):
+                values = getattr(points, field)
+                if not bool(torch.isfinite(values).all()):
+                    i = int(torch.nonzero(~torch.isfinite(values).reshape(values.shape[0], -1).all(-1))[0, 0])
+                    raise ValueError(
+                        f"points {side} of {name!r} must be finite: {field} of point {i} is {values[i].tolist()}"
+                    )
         self.name = name
         self.kind = kind
         self.a, self.b = a, b
         self.element_dofs = point_dofs(a, b)
-        self.stiffness = per_element(stiffness, a.count, "stiffness")
+        self.stiffness = per_element(stiffness, a.count, f"stiffness of {name!r}")
 
     def element_energy(self, xe: Tensor, cond: Tensor | None = None, loads: Tensor | None = None) -> Tensor:
         pa, pb = split_points(xe, self.a, self.b)
@@ -72,8 +83,9 @@ class ConditionalPin(Effect):
         width: float,
         stiffness: float,
     ) -> None:
-        if not width > 0:
-            raise ValueError(f"width must be > 0, got {width}")
+        if not 0 < width < math.inf:
+            raise ValueError(f"width of {name!r} must be finite and > 0, got {width}")
+        per_element(stiffness, 1, f"stiffness of {name!r}")
         self.name = name
         self.points = points
         self.element_dofs = points.local_dofs()
@@ -172,6 +184,7 @@ class SDFContact(Effect):
             raise ValueError(f"contact points must be 3D, got {points.dim}D")
         if frames.dofs.shape != (points.count, 12):
             raise ValueError(f"need one frame per point: {points.count} points, frames {tuple(frames.dofs.shape)}")
+        per_element(stiffness, 1, f"stiffness of {name!r}")
         self.name = name
         self.kind = f"sdf_contact:{type(shape).__name__.lower()}"
         self.points = points

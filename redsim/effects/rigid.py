@@ -14,7 +14,7 @@ class RigidOrthogonality(Effect):
     Args:
         name: Term name.
         body_dofs: The 12 entries of each body, shape [bodies, 12], int64.
-        stiffness: Penalty weight [J], scalar or [bodies].
+        stiffness: Penalty weight [J], scalar or [bodies], finite and >= 0.
     """
 
     kind = "rigid_orthogonality"
@@ -25,7 +25,7 @@ class RigidOrthogonality(Effect):
             raise ValueError(f"body_dofs must have shape [bodies, 12], got {tuple(body_dofs.shape)}")
         self.name = name
         self.element_dofs = body_dofs
-        self.stiffness = per_element(stiffness, body_dofs.shape[0], "stiffness")
+        self.stiffness = per_element(stiffness, body_dofs.shape[0], f"stiffness of {name!r}")
 
     def element_energy(self, xe: Tensor, cond: Tensor | None = None, loads: Tensor | None = None) -> Tensor:
         B, T, _ = xe.shape

@@ -337,6 +337,108 @@ def test_external_load_and_gravity_are_linear_potentials() -> None:
     assert float(gravity.energy(x).detach()) == pytest.approx(9.81 * (1 * 2 + 2 * 5))
 
 
+# -- parameters are checked where they enter --------------------------------------------------
+_HINGE_REST = torch.tensor([[0.0, 0, 0], [1, 0, 0], [0, 1, 0], [1, -1, 0]], dtype=torch.float64)
+
+
+@pytest.mark.parametrize(
+    ("make", "expected"),
+    [
+        (
+            lambda: NeoHookean("elastic", torch.arange(12).reshape(1, 4, 3), TET[None], math.inf, 0.3),
+            r"young must be finite and > 0, got inf",
+        ),
+        (
+            lambda: NeoHookean("elastic", torch.arange(12).reshape(1, 4, 3), TET[None], 1e3, math.nan),
+            r"poisson must be finite, got nan",
+        ),
+        (
+            lambda: NeoHookean("fem", torch.arange(6).reshape(1, 3, 2), TRI[None], 1e3, 0.3, thickness=-1.0),
+            r"thickness of 'fem' must be finite and > 0, got -1.0",
+        ),
+        (
+            lambda: NeoHookean("fem", torch.arange(6).reshape(1, 3, 2), TRI[None], 1e3, 0.3, thickness=math.nan),
+            r"thickness of 'fem' must be finite and > 0, got nan",
+        ),
+        (
+            lambda: StVKMembrane("m", torch.arange(9).reshape(1, 3, 3), TET[None, :3], 1e3, 0.3, thickness=-1e-3),
+            r"thickness of 'm' must be finite and > 0, got -0.001",
+        ),
+        (
+            lambda: DiscreteShellBending("b", torch.arange(12).reshape(1, 4, 3), _HINGE_REST[None], -1.0),
+            r"stiffness of 'b' must be finite and >= 0, got -1.0",
+        ),
+        (
+            lambda: DiscreteShellBending("b", torch.arange(12).reshape(1, 4, 3), _HINGE_REST[None], math.nan),
+            r"stiffness of 'b' must be finite and >= 0, got nan",
+        ),
+        (
+            lambda: RigidOrthogonality("rigid", torch.arange(24).reshape(2, 12), torch.tensor([1.0, -2.0])),
+            r"stiffness of 'rigid' must be finite and >= 0, got -2.0 at element 1",
+        ),
+        (
+            lambda: PointPairPenalty(
+                "pin", PointSet.particles(torch.arange(2).reshape(1, 2)), PointSet.world(torch.zeros(1, 2)), -5.0
+            ),
+            r"stiffness of 'pin' must be finite and >= 0, got -5.0",
+        ),
+        (
+            lambda: PointPairPenalty(
+                "pin",
+                PointSet.particles(torch.arange(2).reshape(1, 2)),
+                PointSet.world(torch.tensor([[math.nan, 0.0]])),
+                5.0,
+            ),
+            r"points b of 'pin' must be finite: offset of point 0 is \[nan, 0.0\]",
+        ),
+        (
+            lambda: Gravity(
+                "gravity", PointSet.particles(torch.arange(2).reshape(1, 2)), torch.ones(1), (0.0, math.nan)
+            ),
+            r"acceleration of 'gravity' must be 2 finite numbers \(the scene's dimension\), got \[0.0, nan\]",
+        ),
+    ],
+)
+def test_bad_parameters_are_refused_by_the_effect(make, expected: str) -> None:
+    with pytest.raises(ValueError, match=expected):
+        make()
+
+
+@pytest.mark.parametrize("bad", [math.nan, math.inf])
+def test_non_finite_rest_positions_are_refused(bad: float) -> None:
+    tet, tri, hinge = TET.clone(), TET[:3].clone(), _HINGE_REST.clone()
+    for rest in (tet, tri, hinge):
+        rest[0, 0] = bad
+    with pytest.raises(ValueError, match=r"rest positions of 'elastic' must be finite, got .* for element 0"):
+        NeoHookean("elastic", torch.arange(12).reshape(1, 4, 3), tet[None], 1e3, 0.3)
+    with pytest.raises(ValueError, match=r"rest positions of 'm' must be finite"):
+        StVKMembrane("m", torch.arange(9).reshape(1, 3, 3), tri[None], 1e3, 0.3)
+    with pytest.raises(ValueError, match=r"rest positions of 'b' must be finite"):
+        DiscreteShellBending("b", torch.arange(12).reshape(1, 4, 3), hinge[None], 1.0)
+
+
+def test_vertex_dofs_must_match_the_rest_elements() -> None:
+    rest = torch.stack([TRI, TRI + 2.0])  # T = 2 triangles
+    with pytest.raises(ValueError, match=r"vertex_dofs of 'fem' must have shape \[2, 3, 2\] .* got \[1, 6\]"):
+        NeoHookean("fem", torch.tensor([[0, 1, 2, 3, 4, 5]]), rest, 1e4, 0.3)
+    with pytest.raises(ValueError, match=r"vertex_dofs of 'm' must have shape \[1, 3, 3\]"):
+        StVKMembrane("m", torch.arange(6).reshape(1, 3, 2), TET[None, :3], 1e3, 0.3)
+    flat = NeoHookean("fem", torch.arange(12).reshape(2, 6), rest, 1e4, 0.3)  # the flat [T, 6] form still works
+    assert torch.equal(
+        flat.element_dofs, NeoHookean("fem", torch.arange(12).reshape(2, 3, 2), rest, 1e4, 0.3).element_dofs
+    )
+
+
+def test_zero_stiffness_switches_elements_off() -> None:
+    joint = PointPairPenalty(
+        "pin",
+        PointSet.particles(torch.arange(4).reshape(2, 2)),
+        PointSet.world(torch.zeros(2, 2)),
+        torch.tensor([0.0, 2.0]),
+    )
+    assert float(_energy(joint, torch.ones(4, dtype=torch.float64))) == pytest.approx(2.0)
+
+
 # -- signed distances and contact --------------------------------------------------------------
 @pytest.mark.parametrize(
     ("shape", "point", "expected"),
