@@ -612,13 +612,21 @@ class SceneBuilder:
         return PointSet.body_points(self.body_dofs(body), local, direction=direction)
 
     def pin_particles(self, ids: Tensor, positions: Tensor | None = None) -> None:
-        """Remove particles ``ids`` from q, holding them at ``positions`` [m] (default: their seed)."""
+        """Remove particles ``ids`` (P of them) from q, holding them at ``positions`` [m], shape [P, D], finite
+        (default: their seed)."""
         dofs = self.particle_dofs(torch.as_tensor(ids, dtype=torch.int64).reshape(-1))
-        values = (
-            self.particle_positions(torch.as_tensor(ids).reshape(-1))
-            if positions is None
-            else torch.as_tensor(positions, dtype=torch.float64)
-        )
+        if positions is None:
+            values = self.particle_positions(torch.as_tensor(ids).reshape(-1))
+        else:
+            values = torch.as_tensor(positions, dtype=torch.float64)
+            if values.shape != dofs.shape:
+                raise ValueError(
+                    f"pin_particles: positions must have shape [{dofs.shape[0]}, {self.dim}] (one row per pinned "
+                    f"particle), got {list(values.shape)}"
+                )
+            if not bool(torch.isfinite(values).all()):
+                i = int(torch.nonzero(~torch.isfinite(values).all(-1))[0, 0])
+                raise ValueError(f"pin_particles: positions must be finite, got {values[i].tolist()} in row {i}")
         self._pinned.append(dofs.reshape(-1))
         self._pinned_values.append(values.reshape(-1))
 
@@ -647,7 +655,8 @@ class SceneBuilder:
         return gravity
 
     def add_handle(self, name: str, points: PointSet, weights: Tensor | None = None) -> None:
-        """A named place where loads act; ``weights`` (default uniform) are normalised to sum to 1."""
+        """A named place where loads act; ``weights`` [P] (default uniform), each finite and > 0, are normalised to
+        sum to 1."""
         if any(h[0] == name for h in self._handles):
             raise ValueError(f"handle {name!r} already exists")
         w = (
@@ -655,8 +664,14 @@ class SceneBuilder:
             if weights is None
             else torch.as_tensor(weights, dtype=torch.float64)
         )
-        if w.shape != (points.count,) or not float(w.sum()) > 0:
-            raise ValueError(f"handle {name!r} needs {points.count} positive weights")
+        if not points.count:
+            raise ValueError(f"handle {name!r} has no points")
+        rule = f"handle {name!r} needs {points.count} finite positive weights"
+        if w.shape != (points.count,):
+            raise ValueError(f"{rule}, got weights of shape {list(w.shape)}")
+        bad = torch.nonzero(~((w > 0) & torch.isfinite(w))).reshape(-1)
+        if bad.numel():
+            raise ValueError(f"{rule}, got {float(w[bad[0]])!r} at point {int(bad[0])}")
         self._handles.append((name, points, w / w.sum()))
 
     def add_surface(self, name: str, points: PointSet, faces: Tensor) -> None:

@@ -724,3 +724,31 @@ def test_q_of_another_dtype_or_device_is_a_clear_error() -> None:
         scene.energy(scene.q_seed.float())
     single = scene.to(dtype=torch.float32).energy(scene.q_seed.float())
     assert single.dtype == torch.float32 and torch.isclose(single.double(), scene.energy(scene.q_seed), rtol=1e-5)
+
+
+def test_builder_refuses_bad_pins_gravity_and_handle_weights_where_they_are_given() -> None:
+    square = torch.tensor([[0.0, 0.0], [0.1, 0.0], [0.0, 0.1], [0.1, 0.1]], dtype=torch.float64)
+    b = redsim.SceneBuilder(dim=2)
+    ids = b.add_particles(square, torch.full((4,), 0.1))
+    with pytest.raises(ValueError, match=r"positions must have shape \[4, 2\] .* got \[3, 2\]"):
+        b.pin_particles(ids, torch.zeros(3, 2))
+    with pytest.raises(ValueError, match=r"positions must be finite, got \[nan, 0.0\] in row 0"):
+        b.pin_particles(ids[:1], torch.tensor([[math.nan, 0.0]]))
+    with pytest.raises(
+        ValueError, match=r"'gravity' must be 2 finite numbers \(the scene's dimension\), got \[0.0, nan\]"
+    ):
+        b.add_gravity((0.0, math.nan))
+    with pytest.raises(
+        ValueError, match=r"must be 2 finite numbers \(the scene's dimension\), got \[0.0, -9.81, 0.0\]"
+    ):
+        b.add_gravity((0.0, -9.81, 0.0))
+    with pytest.raises(ValueError, match=r"handle 'h' needs 2 finite positive weights, got -0.5 at point 1"):
+        b.add_handle("h", b.particle_points(ids[:2]), weights=torch.tensor([1.0, -0.5]))
+    with pytest.raises(ValueError, match=r"handle 'h' needs 2 finite positive weights, got weights of shape \[3\]"):
+        b.add_handle("h", b.particle_points(ids[:2]), weights=torch.ones(3))
+    b.pin_particles(ids[:1], torch.tensor([[0.0, 0.05]], dtype=torch.float64))
+    b.add_gravity((0.0, -9.81))
+    b.add_handle("h", b.particle_points(ids[:2]), weights=torch.tensor([1.0, 3.0]))
+    scene = b.finalize("square")
+    assert scene.full_positions(scene.q_seed[None])[0, :2].tolist() == [0.0, 0.05]
+    assert scene.handles[0].weights.tolist() == [0.25, 0.75]
