@@ -10,6 +10,13 @@ DTYPES = {"float32": torch.float32, "float64": torch.float64}
 """The dtypes an env, a fit or a benchmark runs in, by the name its option takes."""
 
 
+def check_dtype(dtype: Any, what: str = "dtype") -> torch.dtype:
+    """``dtype`` if it is one of :data:`DTYPES` (torch.float32 or torch.float64), or a ValueError naming ``what``."""
+    if dtype not in DTYPES.values():
+        raise ValueError(f"{what} must be torch.float32 or torch.float64, got {dtype}")
+    return dtype
+
+
 def check_device(device: Any) -> str:
     """``device`` as the string torch takes, or a ValueError where redsim cannot run on it.
 

@@ -28,6 +28,7 @@ import numpy as np
 import torch
 from torch import Tensor
 
+from redsim.devices import check_dtype
 from redsim.dofs import DofMap
 from redsim.effects.base import Effect
 from redsim.effects.external import ExternalLoad, Gravity
@@ -449,7 +450,14 @@ class Scene:
         return h.hexdigest()[:16]
 
     def to(self, device: torch.device | str | None = None, dtype: torch.dtype | None = None) -> Scene:
-        """A copy on ``device`` with floating data in ``dtype`` (energies in float64 are the reference)."""
+        """A copy on ``device`` with floating data in ``dtype``: torch.float32 or torch.float64 (energies in float64
+        are the reference), or None to keep the scene's.
+
+        Raises:
+            ValueError: any other dtype (an integer one truncated the seed state, float16 overflowed energies).
+        """
+        if dtype is not None:
+            check_dtype(dtype, f"the dtype of scene {self.name!r}")
         mass = self.mass_matrix.to(device=device)
         if dtype is not None:
             mass = mass.to(dtype)

@@ -24,7 +24,7 @@ import torch
 from torch import Tensor, nn
 
 from redsim import pretrained
-from redsim.devices import check_device
+from redsim.devices import check_device, check_dtype
 from redsim.integrators import LatentSpace, check_time_step, latent_equilibrium, length_scale
 from redsim.runtime.energy import LatentEnergy, MapEnergy, ReducedInertia
 from redsim.runtime.flags import diverged_states, energy_gain_states, energy_gain_tolerance, out_of_range_states
@@ -340,8 +340,7 @@ class LatentStepper:
         row_block: int | None = None,
     ) -> None:
         dt = check_time_step(dt)
-        if dtype not in DEFAULT_TOL:
-            raise ValueError(f"dtype must be torch.float32 or torch.float64, got {dtype}")
+        check_dtype(dtype)
         tol = DEFAULT_TOL[dtype] if tol is None else tol
         if not (isinstance(tol, (int, float)) and math.isfinite(tol) and tol > 0.0):
             raise ValueError(f"tol must be finite and > 0, got {tol!r}")

@@ -752,3 +752,12 @@ def test_builder_refuses_bad_pins_gravity_and_handle_weights_where_they_are_give
     scene = b.finalize("square")
     assert scene.full_positions(scene.q_seed[None])[0, :2].tolist() == [0.0, 0.05]
     assert scene.handles[0].weights.tolist() == [0.25, 0.75]
+
+
+@pytest.mark.parametrize("dtype", [torch.int64, torch.float16, torch.bfloat16])
+def test_scene_to_takes_only_float32_or_float64(dtype: torch.dtype) -> None:
+    scene = redsim.scenes.build("toy_two_tets")
+    with pytest.raises(ValueError, match=rf"dtype of scene 'toy_two_tets' must be .*float64, got {dtype}"):
+        scene.to(dtype=dtype)
+    assert scene.to(dtype=torch.float32).q_seed.dtype == torch.float32
+    assert torch.equal(scene.to().q_seed, scene.q_seed)
