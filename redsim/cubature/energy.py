@@ -127,8 +127,7 @@ class Cubature:
                 else:
                     index = torch.arange(count) if r["mode"] == "full" else torch.zeros(0, dtype=torch.int64)
                     weights = torch.ones(index.shape[0], dtype=torch.float64)
-                if index.shape != weights.shape or bool((weights < 0).any()):
-                    raise CheckpointError(f"effect {r['name']!r}: indices and weights (>= 0) must match", str(src))
+                _check_rule(r["name"], count, index, weights, str(src))
                 history = [tuple(h) for h in r.get("history", [])]
                 rules.append(
                     EffectRule(
@@ -168,6 +167,40 @@ class Cubature:
         theirs = {r.name: r.element_count for r in self.rules}
         if names != theirs:
             raise CheckpointError(f"cubature effects {theirs} differ from the scene's {names}", where)
+
+
+def _check_rule(name: str, count: int, index: Tensor, weights: Tensor, where: str) -> None:
+    """Refuse a rule read from a file whose kept elements or weights cannot be a cubature's (:class:`CheckpointError`).
+
+    ``index`` [K] must hold distinct element indices in [0, ``count``) and ``weights`` [K] be >= 0 and finite in
+    float32 (the runtime casts them to the scene's dtype; NaN, or 1e300, would make every energy NaN or inf).
+    """
+    if count < 0 or index.ndim != 1 or index.shape != weights.shape:
+        raise CheckpointError(
+            f"effect {name!r}: one weight per kept element needed, got indices of shape {list(index.shape)} and "
+            f"weights of shape {list(weights.shape)} (element_count {count})",
+            where,
+        )
+    bad = torch.nonzero(~(torch.isfinite(weights.to(torch.float32)) & (weights >= 0))).reshape(-1)
+    if bad.numel():
+        i = int(bad[0])
+        raise CheckpointError(
+            f"effect {name!r}: cubature weights must be finite (in float32) and >= 0, got {float(weights[i])!r} "
+            f"at position {i}",
+            where,
+        )
+    outside = torch.nonzero((index < 0) | (index >= count)).reshape(-1)
+    if outside.numel():
+        i = int(outside[0])
+        raise CheckpointError(
+            f"effect {name!r}: kept element indices must lie in [0, {count}) (its element_count), got "
+            f"{int(index[i])} at position {i}",
+            where,
+        )
+    values, counts = index.unique(return_counts=True)
+    if bool((counts > 1).any()):
+        twice = int(values[counts > 1][0])
+        raise CheckpointError(f"effect {name!r}: kept element indices must be distinct, got {twice} twice", where)
 
 
 def build_cubature(

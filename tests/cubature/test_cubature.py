@@ -2,6 +2,9 @@
 
 from __future__ import annotations
 
+import json
+import math
+
 import pytest
 import torch
 
@@ -130,6 +133,27 @@ def test_bad_input_is_a_clear_error(tmp_path) -> None:
     (tmp_path / "bad.cubature.json").write_text("{not json")
     with pytest.raises(CheckpointError, match="corrupt"):
         Cubature.load(tmp_path / "bad")
+
+
+@pytest.mark.parametrize(
+    ("field", "value", "expected"),
+    [
+        ("weights", math.nan, r"weights must be finite \(in float32\) and >= 0, got nan at position 0"),
+        ("weights", 1e300, r"weights must be finite \(in float32\) and >= 0, got 1e\+300 at position 0"),
+        ("weights", -1.0, r"weights must be finite \(in float32\) and >= 0, got -1.0 at position 0"),
+        ("indices", 999, r"indices must lie in \[0, \d+\) \(its element_count\), got 999 at position 0"),
+        ("indices", -1, r"indices must lie in \[0, \d+\) \(its element_count\), got -1 at position 0"),
+    ],
+)
+def test_a_tampered_cubature_file_is_refused_at_load(tmp_path, field: str, value: float, expected: str) -> None:
+    scene, f = _toy_cloth_map()
+    path = build_cubature(scene, f, CubatureConfig(elements=4, **QUICK)).save(tmp_path / "cloth")
+    doc = json.loads(path.read_text())
+    rule = next(r for r in doc["rules"] if r["mode"] == "cubature")
+    rule[field][0] = value
+    path.write_text(json.dumps(doc))
+    with pytest.raises(CheckpointError, match=rf"cloth.cubature.json: effect '{rule['name']}': .*{expected}"):
+        Cubature.load(tmp_path / "cloth")
 
 
 @pytest.fixture(scope="module")
