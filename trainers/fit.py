@@ -75,6 +75,7 @@ import dataclasses
 import functools
 import logging
 import math
+import numbers
 import os
 import shlex
 import time
@@ -113,6 +114,8 @@ log = logging.getLogger(__name__)
 @dataclass(frozen=True)
 class FitConfig:
     """Hyperparameters of one fit. Every field has a default; Table 1 values come per scene.
+
+    Numeric fields also take NumPy scalars (``numbers.Integral`` / ``numbers.Real``), kept as Python int / float.
 
     Attributes:
         latent_dim: d.
@@ -217,9 +220,27 @@ class FitConfig:
     compile: bool = False
 
     def __post_init__(self) -> None:
+        for field in dataclasses.fields(self):  # NumPy scalars (np.float32(0.1), np.int64(10)) as Python numbers
+            value = getattr(self, field.name)
+            if field.name == "periodic" and isinstance(value, tuple):
+                object.__setattr__(self, field.name, tuple(_python_number(i, int) for i in value))
+            elif type(field.default) in (int, float):
+                object.__setattr__(self, field.name, _python_number(value, type(field.default)))
         bad = [(f, rule) for f, rule, ok in _FIELD_RULES if not ok(self, getattr(self, f))]
         if bad:
             raise FitConfigError(bad, self)
+
+
+def _python_number(value: Any, kind: type) -> Any:
+    """A non-bool ``numbers.Integral`` as int, a ``numbers.Real`` as float where ``kind`` is float (a float field takes
+    both, as Python numbers); anything else, Python ints and floats included, unchanged (the rules judge it)."""
+    if type(value) in (int, float) or isinstance(value, bool):
+        return value
+    if isinstance(value, numbers.Integral):
+        return int(value)
+    if kind is float and isinstance(value, numbers.Real):
+        return float(value)
+    return value
 
 
 def _is_int(value: Any) -> bool:
@@ -319,6 +340,9 @@ class FitConfigError(ValueError):
         names = names or {}
         return "; ".join(f"{names.get(f, f)} must be {rule}, got {self.values[f]!r}" for f, rule in self.problems)
 
+
+_ALIASES = {"dim": "latent_dim"}
+"""Keyword aliases :func:`fit_subspace` takes for FitConfig fields (alias -> field)."""
 
 _ROUND_OFF_ONLY = ("fused_adam", "compile")
 """FitConfig fields that change a fit only by round-off: a fit may resume with other values of them."""
@@ -594,14 +618,16 @@ def fit_subspace(
             ``latent_dim``), e.g. ``fit_subspace(scene, dim=8, sigma=1.0, lam=1.0, steps=2000)``.
 
     Raises:
-        ValueError: bad config, a conditional fit on a scene without conditions, ``resume`` with no matching
-            checkpoint, ``resume`` with ``overwrite``, or ``stop_at`` outside [steps done, ``config.steps``) or
-            without ``out``.
+        ValueError: bad config, an alias given with its field at another value (``dim=3, latent_dim=4``), a
+            conditional fit on a scene without conditions, ``resume`` without ``out``, with no matching checkpoint or
+            with ``overwrite``, or ``stop_at`` outside [steps done, ``config.steps``) or without ``out``.
         FileExistsError: a fit at ``out`` and neither ``resume`` nor ``overwrite``.
         FitStopped: the fit stopped at ``stop_at``.
     """
     if stop_at is not None and out is None:
         raise ValueError("stop_at needs out (the training state is saved there)")
+    if resume and out is None:
+        raise ValueError("resume needs out: the checkpoint stem whose STEM.fit.pt it continues")
     if resume and overwrite:
         raise ValueError("resume continues the fit at out, overwrite replaces it: give one")
     if out is not None and not (resume or overwrite) and (found := existing_fit(out)) is not None:
@@ -611,8 +637,14 @@ def fit_subspace(
         )
     if out is not None and overwrite:  # the old training state must not be taken for the new fit's
         checkpoint_path(out, ".fit.pt").unlink(missing_ok=True)
-    if "dim" in overrides:
-        overrides["latent_dim"] = overrides.pop("dim")
+    for alias, field in _ALIASES.items():
+        if alias in overrides:
+            if field in overrides and overrides[field] != overrides[alias]:
+                raise ValueError(
+                    f"{alias} is an alias of {field}, and they differ: {alias}={overrides[alias]!r}, "
+                    f"{field}={overrides[field]!r}; give one"
+                )
+            overrides[field] = overrides.pop(alias)
     unknown = sorted(set(overrides) - {f.name for f in dataclasses.fields(FitConfig)})
     if unknown:
         raise ValueError(f"unknown fit option(s) {unknown}; valid: {[f.name for f in dataclasses.fields(FitConfig)]}")

@@ -289,6 +289,29 @@ def test_bad_fit_options_are_clear_errors() -> None:
         fit_subspace(scene, steps=1, conditional=True, progress=False)
 
 
+def test_an_alias_and_its_field_at_different_values_and_resume_without_out_are_refused() -> None:
+    scene = _tet_scene()
+    with pytest.raises(ValueError, match=r"dim is an alias of latent_dim, and they differ: dim=3, latent_dim=4"):
+        fit_subspace(scene, dim=3, latent_dim=4, steps=1, progress=False)
+    with pytest.raises(ValueError, match=r"resume needs out"):
+        fit_subspace(scene, FitConfig(steps=1), resume=True, progress=False)
+    agreed = fit_subspace(scene, dim=2, latent_dim=2, steps=1, hidden_width=8, batch_size=4, progress=False)
+    assert agreed.subspace.config.latent_dim == 2
+
+
+def test_numpy_scalars_are_taken_as_python_numbers() -> None:
+    np = pytest.importorskip("numpy")
+    config = FitConfig(sigma=np.float32(0.5), steps=np.int64(10), lam=np.int64(2), periodic=(np.int64(0),))
+    assert config == FitConfig(sigma=0.5, steps=10, lam=2, periodic=(0,))
+    kinds = (type(config.sigma), type(config.steps), type(config.lam), type(config.periodic[0]))
+    assert kinds == (float, int, int, int)
+    assert type(FitConfig(sigma=1).sigma) is int and type(FitConfig(sigma=np.float64(0.1)).sigma) is float
+    with pytest.raises(ValueError, match=r"steps must be an integer >= 1, got np.float32\(10.0\)"):
+        FitConfig(steps=np.float32(10.0))
+    with pytest.raises(ValueError, match=r"sigma must be a finite number > 0, got nan"):
+        FitConfig(sigma=np.float32("nan"))
+
+
 def test_periodic_latents_wrap_around() -> None:
     model = SubspaceMap(SubspaceConfig(latent_dim=2, output_dim=4, periodic=(0,)))
     z = torch.tensor([[0.3, 0.1]])
