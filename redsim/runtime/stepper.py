@@ -375,10 +375,13 @@ class LatentStepper:
         # a snapshot: the rest solve reads the map the steps use, whatever the caller does to its own afterwards
         self.subspace = copy.deepcopy(subspace) if isinstance(subspace, nn.Module) else subspace
         self.scene = scene.to(device=self.device, dtype=dtype)
-        if callable(energy) and not isinstance(energy, LatentEnergy):  # a factory, e.g. cubature_energy
+        factory = callable(energy) and not isinstance(energy, LatentEnergy)
+        if factory:  # e.g. cubature_energy
             energy = energy(scene, subspace, dtype=dtype, device=self.device)
         if energy is not None and not isinstance(energy, LatentEnergy):
             raise ValueError(f"energy must be a LatentEnergy, a factory of one, or None; got {energy!r}")
+        if energy is not None:
+            self._check_energy_placement(energy, factory)
         self.energy: LatentEnergy = (
             MapEnergy(scene, subspace, dtype=dtype, device=self.device) if energy is None else energy
         )
@@ -394,6 +397,30 @@ class LatentStepper:
         self.warm_start = bool(warm_start)
         self.evaluations = Evaluations()
         """Value-and-gradient calls and rows so far (:class:`Evaluations`; assign a new one to restart the count)."""
+
+    def _check_energy_placement(self, energy: LatentEnergy, factory: bool) -> None:
+        """Refuse an energy that evaluates in another dtype or on another device than the stepper (where it says:
+        its own ``dtype``/``device`` or its scene's); its first step would fail in a matmul."""
+        source = energy if hasattr(energy, "dtype") else getattr(energy, "scene", None)
+        their_dtype, their_device = getattr(source, "dtype", None), getattr(source, "device", None)
+        if not isinstance(their_dtype, torch.dtype):
+            their_dtype = None
+        theirs = their_device if isinstance(their_device, torch.device) else None
+        same_device = (
+            theirs is None
+            or theirs == self.device
+            or (theirs.type == self.device.type and None in (theirs.index, self.device.index))  # "cuda" is "cuda:0"
+        )
+        if (their_dtype is None or their_dtype == self.dtype) and same_device:
+            return
+        given = "the energy factory returned" if factory else "energy is"
+        raise ValueError(
+            f"{given} a {type(energy).__name__} in {their_dtype} on {their_device}, but the stepper runs in "
+            f"{self.dtype} on {self.device}: build it with dtype={self.dtype}, device={str(self.device)!r}, or pass "
+            "a factory energy(scene, subspace, *, dtype, device) -> LatentEnergy (e.g. redsim.cubature.cubature_energy,"
+            " or lambda scene, subspace, dtype, device: CubatureEnergy(scene, subspace, cubature, dtype=dtype, "
+            "device=device)), which the stepper calls with its own"
+        )
 
     # -- constants, once per scene and map --------------------------------------------------
     def _build_constants(self) -> None:

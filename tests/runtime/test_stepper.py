@@ -273,6 +273,31 @@ def test_bad_settings_raise(mini_chain) -> None:
             CubatureEnergy(scene, f, rules, device=device)
 
 
+def test_an_energy_in_another_dtype_is_refused_at_construction(mini_chain) -> None:
+    from redsim.cubature import CubatureConfig, CubatureEnergy, build_cubature
+
+    scene, f = mini_chain
+    rules = build_cubature(scene, f, CubatureConfig(elements=2, samples=8, episodes=0))
+    for energy, name in ((MapEnergy(scene, f), "MapEnergy"), (CubatureEnergy(scene, f, rules), "CubatureEnergy")):
+        with pytest.raises(
+            ValueError,
+            match=rf"energy is a {name} in torch.float32 on cpu, but the stepper runs in torch.float64 on cpu: "
+            r"build it with dtype=torch.float64, .* or pass a factory energy\(scene, subspace, \*, dtype, device\)",
+        ):
+            LatentStepper(scene, f, DT, dtype=torch.float64, energy=energy)
+    with pytest.raises(ValueError, match=r"MapEnergy in torch.float64 on cpu, but the stepper runs in torch.float32"):
+        LatentStepper(scene, f, DT, energy=MapEnergy(scene, f, dtype=torch.float64))
+
+    def factory(scene, subspace, dtype, device):
+        return CubatureEnergy(scene, subspace, rules, dtype=dtype, device=device)
+
+    stepper = LatentStepper(scene, f, DT, dtype=torch.float64, energy=factory)
+    z = torch.zeros(1, stepper.latent_dim, dtype=torch.float64)
+    assert stepper.step(z, z)[0].dtype == torch.float64
+    same = MapEnergy(scene, f, dtype=torch.float64)
+    assert LatentStepper(scene, f, DT, dtype=torch.float64, energy=same).energy is same
+
+
 def test_far_latent_is_out_of_range(mini_chain) -> None:
     scene, f = mini_chain
     stepper = LatentStepper(scene, f, DT)
