@@ -109,7 +109,8 @@ def draw_states(
         The path written.
 
     Raises:
-        ValueError: when the scene has no surfaces, ``qs`` is empty, or the counts disagree.
+        ValueError: when the scene has no surfaces, ``qs`` is empty, the counts disagree, or ``loads`` names a
+            handle the scene lacks or holds a force that is not [D].
         DependencyNotInstalled: without matplotlib.
     """
     if not scene.surfaces:
@@ -119,6 +120,8 @@ def draw_states(
     titles = [f"state {i}" for i in range(len(qs))] if titles is None else list(titles)
     if len(titles) != len(qs):
         raise ValueError(f"got {len(qs)} states but {len(titles)} titles")
+    if loads:
+        scene.pack_loads(loads, 1)  # an unknown handle or a wrong shape: the error scene.energy gives
     _require("matplotlib")
     from matplotlib.backends.backend_agg import FigureCanvasAgg
     from matplotlib.figure import Figure

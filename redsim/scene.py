@@ -357,9 +357,18 @@ class Scene:
             for i, h in enumerate(self.handle_names):
                 if h in loads:
                     f = torch.as_tensor(loads[h], dtype=dtype, device=device)
-                    if f.shape[-1] != D:
-                        raise ValueError(f"load on handle {h!r} must have {D} components, got {tuple(f.shape)}")
-                    out[:, i] = f
+                    if f.ndim == 0 or f.shape[-1] != D:
+                        raise ValueError(
+                            f"load on handle {h!r} must have {D} components (a force [{D}] or [{batch}, {D}]), got "
+                            f"shape {tuple(f.shape)}"
+                        )
+                    try:
+                        out[:, i] = f
+                    except RuntimeError:
+                        raise ValueError(
+                            f"load on handle {h!r} must be a force [{D}] or [{batch}, {D}] for {batch} "
+                            f"configuration(s), got shape {tuple(f.shape)}"
+                        ) from None
             return out
         loads = torch.as_tensor(loads, dtype=dtype, device=device)
         if loads.ndim == 2:

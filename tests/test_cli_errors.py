@@ -216,6 +216,15 @@ def test_simulate_picture_shows_loads_and_fixed_parts(tmp_path: Path) -> None:
     assert red[0] == 0 and red[1] > 50  # the arrow (and its label) in the load colour
 
 
+def test_a_picture_with_a_load_on_an_unknown_handle_is_refused(tmp_path: Path) -> None:
+    from redsim.render import draw_states
+
+    scene = redsim.scenes.build("toy_two_tets")
+    with pytest.raises(ValueError, match=r"no handle\(s\) \['nope'\]; valid handles: \['top'\]"):
+        draw_states(scene, [scene.q_seed], path=tmp_path / "x.png", loads={"nope": [5.0, 0.0, 0.0]})
+    assert not (tmp_path / "x.png").exists()
+
+
 @pytest.mark.skipif(torch.cuda.is_available(), reason="this machine has CUDA")
 def test_fit_on_cuda_without_cuda_is_one_line(cli: Cli) -> None:
     code, _, err = cli("fit", "toy_two_tets", "--device", "cuda", "--steps", "2")

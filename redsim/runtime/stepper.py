@@ -16,7 +16,7 @@ import copy
 import math
 import numbers
 import warnings
-from collections.abc import Callable
+from collections.abc import Callable, Mapping
 from dataclasses import dataclass
 from typing import NamedTuple
 
@@ -29,7 +29,7 @@ from redsim.integrators import LatentSpace, check_time_step, latent_equilibrium,
 from redsim.runtime.energy import LatentEnergy, MapEnergy, ReducedInertia
 from redsim.runtime.flags import diverged_states, energy_gain_states, energy_gain_tolerance, out_of_range_states
 from redsim.runtime.solver import HESSIANS, BatchResult, check_max_step, check_sync_every, minimize
-from redsim.scene import Scene
+from redsim.scene import LoadsLike, Scene
 from redsim.subspace import map_fingerprint
 from redsim.tensors import jvp
 
@@ -578,10 +578,12 @@ class LatentStepper:
             raise ValueError("cond must be finite")
         return cond.to(self.dtype)
 
-    def _loads(self, loads: Tensor | None, batch: int) -> Tensor | None:
+    def _loads(self, loads: LoadsLike, batch: int) -> Tensor | None:
         if loads is None:
             return None
         H, D = len(self.scene.handles), self.scene.dim
+        if isinstance(loads, Mapping):  # {handle: force}, as scene.energy takes it
+            loads = self.scene.pack_loads(loads, batch)
         loads = torch.as_tensor(loads, device=self.device)
         if loads.shape != (batch, H, D):
             raise ValueError(
@@ -604,7 +606,7 @@ class LatentStepper:
         self,
         z: Tensor,
         z_prev: Tensor,
-        loads: Tensor | None = None,
+        loads: LoadsLike = None,
         cond: Tensor | None = None,
         *,
         warm: Tensor | None = None,
@@ -614,7 +616,9 @@ class LatentStepper:
         Args:
             z: Latents at time t, [B, d].
             z_prev: Latents at time t - h, [B, d].
-            loads: Forces [N] on the scene's handles, [B, H, D] (held during the step), or None.
+            loads: Forces [N] on the scene's handles (held during the step): a tensor [B, H, D] in handle order, a
+                mapping ``{handle: force}`` with each force [D] or [B, D] (absent handles get none; as
+                :meth:`redsim.scene.Scene.pack_loads` and ``scene.energy`` take it), or None.
             cond: Scene conditions [B, m] (default: the scene's default condition), or None.
             warm: The previous step's ``stats.model`` [B, d, d] of the same states, or None. With it
                 the quasi-Newton models start from it instead of building a Hessian (the default
@@ -626,7 +630,8 @@ class LatentStepper:
             :class:`StepStats`.
 
         Raises:
-            ValueError: a wrong shape or a non-finite z, z_prev, loads or cond (nothing is stepped).
+            ValueError: a wrong shape or a non-finite z, z_prev, loads or cond, or an unknown handle in a loads
+                mapping (nothing is stepped).
         """
         z = self._latents(z, "z")
         z_prev = self._latents(z_prev, "z_prev")
@@ -786,10 +791,11 @@ class LatentStepper:
         return BatchResult(**fields)
 
     def objective(
-        self, candidate: Tensor, z: Tensor, z_prev: Tensor, loads: Tensor | None = None, cond: Tensor | None = None
+        self, candidate: Tensor, z: Tensor, z_prev: Tensor, loads: LoadsLike = None, cond: Tensor | None = None
     ) -> Tensor:
         """Phi_b [J] of candidate next latents [B, d] for the step from (z, z_prev) [B, d] under ``loads``
-        [B, H, D] (what :meth:`step` minimizes, module doc): compare two answers to one step.
+        ([B, H, D] or ``{handle: force}``, as :meth:`step`; what :meth:`step` minimizes, module doc): compare two
+        answers to one step.
 
         Raises:
             ValueError: as :meth:`step`.

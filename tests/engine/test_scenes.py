@@ -592,6 +592,19 @@ def test_chain_loads_and_handles() -> None:
     assert float(work) == pytest.approx(-0.1)
 
 
+def test_a_handle_load_of_the_wrong_shape_is_a_clear_error() -> None:
+    scene = built("toy_two_tets")
+    q = scene.q_seed.expand(3, -1)
+    with pytest.raises(
+        ValueError, match=r"load on handle 'top' must have 3 components \(a force \[3\] or \[3, 3\]\), got shape \(\)"
+    ):
+        scene.energy(q, loads={"top": 5.0})
+    with pytest.raises(ValueError, match=r"load on handle 'top' must be a force \[3\] or \[3, 3\] for 3 configuration"):
+        scene.energy(q, loads={"top": torch.ones(2, 3)})
+    force = torch.tensor([0.0, 5.0, 0.0], dtype=torch.float64)
+    assert torch.equal(scene.energy(q, loads={"top": force}), scene.energy(q, loads={"top": force.expand(3, -1)}))
+
+
 def test_conditional_bar_conditions_act() -> None:
     scene = built("conditional_bar")
     assert scene.condition_space is not None and scene.condition_space.names == ("stiffness_ratio", "pin_location")

@@ -205,6 +205,23 @@ def test_load_term_matches_the_scene_external_load(mini_chain) -> None:
     torch.testing.assert_close(work, want, rtol=1e-10, atol=1e-10)
 
 
+def test_loads_by_handle_name_step_like_the_tensor_form(mini_chain) -> None:
+    scene, f = mini_chain
+    stepper = LatentStepper(scene, f, DT)
+    z = stepper.rest_latent().expand(2, -1).clone()
+    tensor = torch.tensor([[[5.0, 0.0, 0.0]], [[5.0, 0.0, 0.0]]])
+    by_name, stats = stepper.step(z, z, {"bottom": [5.0, 0.0, 0.0]})
+    want, want_stats = stepper.step(z, z, tensor)
+    assert torch.equal(by_name, want) and torch.equal(stats.energy, want_stats.energy)
+    per_row = stepper.step(z, z, {"bottom": torch.tensor([[5.0, 0.0, 0.0], [0.0, 0.0, 0.0]])})[0]
+    torch.testing.assert_close(per_row[0], want[0])  # the batch's rows agree to round-off, not bitwise
+    assert float((per_row[1] - want[1]).abs().max()) > 1e-3
+    with pytest.raises(ValueError, match=r"no handle\(s\) \['nope'\]; valid handles: \['bottom'\]"):
+        stepper.step(z, z, {"nope": [5.0, 0.0, 0.0]})
+    with pytest.raises(ValueError, match="loads must be finite"):
+        stepper.step(z, z, {"bottom": [float("nan"), 0.0, 0.0]})
+
+
 def test_non_finite_inputs_raise_before_stepping(mini_chain) -> None:
     scene, f = mini_chain
     stepper = LatentStepper(scene, f, DT)
