@@ -181,22 +181,21 @@ def _check_rule(name: str, count: int, index: Tensor, weights: Tensor, where: st
             f"weights of shape {list(weights.shape)} (element_count {count})",
             where,
         )
-    bad = torch.nonzero(~(torch.isfinite(weights.to(torch.float32)) & (weights >= 0))).reshape(-1)
-    if bad.numel():
-        i = int(bad[0])
-        raise CheckpointError(
-            f"effect {name!r}: cubature weights must be finite (in float32) and >= 0, got {float(weights[i])!r} "
-            f"at position {i}",
-            where,
-        )
-    outside = torch.nonzero((index < 0) | (index >= count)).reshape(-1)
-    if outside.numel():
-        i = int(outside[0])
-        raise CheckpointError(
-            f"effect {name!r}: kept element indices must lie in [0, {count}) (its element_count), got "
-            f"{int(index[i])} at position {i}",
-            where,
-        )
+    for wrong, rule, values in (
+        (
+            ~(torch.isfinite(weights.to(torch.float32)) & (weights >= 0)),
+            "cubature weights must be finite (in float32) and >= 0",
+            weights.tolist(),
+        ),
+        (
+            (index < 0) | (index >= count),
+            f"kept element indices must lie in [0, {count}) (its element_count)",
+            index.tolist(),
+        ),
+    ):
+        if bool(wrong.any()):
+            i = int(torch.nonzero(wrong)[0])
+            raise CheckpointError(f"effect {name!r}: {rule}, got {values[i]!r} at position {i}", where)
     values, counts = index.unique(return_counts=True)
     if bool((counts > 1).any()):
         twice = int(values[counts > 1][0])
