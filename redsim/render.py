@@ -109,14 +109,16 @@ def draw_states(
         The path written.
 
     Raises:
-        ValueError: when the scene has no surfaces, ``qs`` is empty, the counts disagree, or ``loads`` names a
-            handle the scene lacks or holds a force that is not [D].
+        ValueError: when the scene has no surfaces, ``qs`` is empty or not finite, the counts disagree, or ``loads``
+            names a handle the scene lacks or holds a force that is not [D].
         DependencyNotInstalled: without matplotlib.
     """
     if not scene.surfaces:
         raise ValueError(f"scene {scene.name!r} has no surfaces to draw")
     if not qs:
         raise ValueError("draw_states needs at least one state")
+    if not all(bool(torch.isfinite(torch.as_tensor(q)).all()) for q in qs):
+        raise ValueError("draw_states needs finite states: a state that is not finite has no picture")
     titles = [f"state {i}" for i in range(len(qs))] if titles is None else list(titles)
     if len(titles) != len(qs):
         raise ValueError(f"got {len(qs)} states but {len(titles)} titles")

@@ -28,7 +28,7 @@ import numpy as np
 import torch
 from torch import Tensor
 
-from redsim.devices import check_dtype
+from redsim.devices import check_device, check_dtype
 from redsim.dofs import DofMap
 from redsim.effects.base import Effect
 from redsim.effects.external import ExternalLoad, Gravity
@@ -463,10 +463,13 @@ class Scene:
         are the reference), or None to keep the scene's.
 
         Raises:
-            ValueError: any other dtype (an integer one truncated the seed state, float16 overflowed energies).
+            ValueError: any other dtype (an integer one truncated the seed state, float16 overflowed energies), or a
+                device redsim cannot run on (:func:`redsim.devices.check_device`).
         """
         if dtype is not None:
             check_dtype(dtype, f"the dtype of scene {self.name!r}")
+        if device is not None:
+            device = check_device(device)
         mass = self.mass_matrix.to(device=device)
         if dtype is not None:
             mass = mass.to(dtype)

@@ -200,6 +200,10 @@ def test_render_2d_scene(tmp_path) -> None:
     assert mesh.vertices[3].tolist()[:2] == pytest.approx([1.1, 1.1])
     with pytest.raises(ValueError, match="not finite"):  # not a .ply of NaNs
         export_meshes(scene, moved * torch.nan, tmp_path, 8)
+    with pytest.raises(ValueError, match="needs finite states"):  # not matplotlib's axis-limits error
+        draw_states(scene, [moved * torch.nan], path=tmp_path / "nan.png")
+    with pytest.raises(ValueError, match="device must be 'cpu' or 'cuda"):
+        scene.to(device="bogus")
     with pytest.raises(ValueError, match="frame must be an integer >= 0"):
         export_meshes(scene, moved, tmp_path, -1)
     bare = redsim.SceneBuilder(dim=2)
