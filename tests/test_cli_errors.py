@@ -266,6 +266,27 @@ def test_an_out_in_a_folder_that_takes_no_files_is_refused_before_any_work(cli: 
         assert "cannot write --out /proc/redsim_out: /proc is not writable" in err, err
 
 
+def test_a_cubature_beside_a_map_in_a_folder_that_takes_no_files_is_refused_before_any_work(
+    cli: Cli, tmp_path: Path, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    """The cubature is written beside the map: a folder where no file can be made (tried, as --out is) is refused
+    before the fit of the cubature, not after it."""
+    import shutil
+    import tempfile
+
+    from redsim import pretrained
+
+    for suffix in (".pt", ".json"):
+        shutil.copy(pretrained.path("mini_chain").with_suffix(suffix), tmp_path / f"m{suffix}")
+
+    def refused(*args: object, **kwargs: object) -> object:
+        raise PermissionError(13, "Permission denied")
+
+    monkeypatch.setattr(tempfile, "TemporaryFile", refused)
+    code, out, err = cli("cubature", str(tmp_path / "m.pt"), "--elements", "5")
+    assert code == 2 and out == "" and "its folder is not writable (Permission denied" in err, err
+
+
 def test_an_out_folder_that_is_a_file_is_refused_before_any_work(cli: Cli, tmp_path: Path) -> None:
     existing = tmp_path / "file"
     existing.write_text("kept")

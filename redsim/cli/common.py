@@ -11,6 +11,7 @@ import json
 import math
 import re
 import sys
+import tempfile
 from collections.abc import Callable, Sequence
 from pathlib import Path
 from typing import Any, NoReturn
@@ -217,6 +218,16 @@ def parse_loads(items: Sequence[str], scene: Scene) -> dict[str, list[float]] | 
             raise CliError(f"--load gives handle {handle!r} twice")
         loads[handle] = force
     return loads
+
+
+def write_error(folder: Path) -> str | None:
+    """Why no file can be made in the existing ``folder`` (tried: ``os.access`` says yes to root everywhere and to
+    anyone on ``/proc``); None where one can. Nothing is left behind."""
+    try:
+        with tempfile.TemporaryFile(dir=folder):
+            return None
+    except OSError as err:
+        return err.strerror or str(err)
 
 
 def parse_list(text: str, what: str) -> list[str]:

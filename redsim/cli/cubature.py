@@ -3,7 +3,6 @@
 from __future__ import annotations
 
 import argparse
-import os
 import shlex
 from pathlib import Path
 from typing import Any
@@ -21,6 +20,7 @@ from redsim.cli.common import (
     parse_ints,
     parse_list,
     shown_path,
+    write_error,
 )
 
 TOL_ELEMENTS = 1000
@@ -73,8 +73,10 @@ def cmd_cubature(args: argparse.Namespace) -> int:
     target = cubature_path(args.checkpoint)
     if target.exists() and not args.overwrite:
         raise CliError(f"{target} exists (the cubature the runtime uses for this map); --overwrite replaces it")
-    if not os.access(target.absolute().parent, os.W_OK | os.X_OK):
-        raise CliError(f"cannot write {target}: its folder is not writable (copy STEM.pt and STEM.json elsewhere)")
+    if (why := write_error(target.absolute().parent)) is not None:
+        raise CliError(
+            f"cannot write {target}: its folder is not writable ({why}; copy STEM.pt and STEM.json elsewhere)"
+        )
     command = _command(args)
     try:
         cub = build_cubature(scene, subspace, _config(args), progress=not args.json, command=command)

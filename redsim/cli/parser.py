@@ -7,7 +7,6 @@ import logging
 import os
 import signal
 import sys
-import tempfile
 import threading
 from collections.abc import Sequence
 from pathlib import Path
@@ -16,7 +15,16 @@ import torch
 
 import redsim
 from redsim.cli import agents, bench, cache, cubature, envs, scenes, subspaces
-from redsim.cli.common import EXIT_INTERRUPTED, CliError, Parser, StdoutClosed, apply_threads, error, warn
+from redsim.cli.common import (
+    EXIT_INTERRUPTED,
+    CliError,
+    Parser,
+    StdoutClosed,
+    apply_threads,
+    error,
+    warn,
+    write_error,
+)
 
 
 def build_parser() -> argparse.ArgumentParser:
@@ -116,11 +124,8 @@ def _check_out(args: argparse.Namespace) -> None:
         folder = folder.parent
     if not folder.is_dir():
         raise CliError(f"cannot write --out {out}: {folder} is a file, not a folder")
-    try:
-        with tempfile.TemporaryFile(dir=folder):
-            pass
-    except OSError as err:
-        raise CliError(f"cannot write --out {out}: {folder} is not writable ({err.strerror or err})") from None
+    if (why := write_error(folder)) is not None:
+        raise CliError(f"cannot write --out {out}: {folder} is not writable ({why})")
 
 
 def _silence_stdout() -> None:
