@@ -585,9 +585,11 @@ class LatentStepper:
         if isinstance(loads, Mapping):  # {handle: force}, as scene.energy takes it
             loads = self.scene.pack_loads(loads, batch)
         loads = torch.as_tensor(loads, device=self.device)
+        if loads.shape == (H, D):  # one set of loads for every state
+            loads = loads.expand(batch, H, D)
         if loads.shape != (batch, H, D):
             raise ValueError(
-                f"loads must have shape [{batch}, {H}, {D}] (handles {list(self.scene.handle_names)}), "
+                f"loads must have shape [{batch}, {H}, {D}] or [{H}, {D}] (handles {list(self.scene.handle_names)}), "
                 f"got {tuple(loads.shape)}"
             )
         loads = loads.to(self.dtype)  # checked after the cast: 1e100 is inf in float32
@@ -616,8 +618,8 @@ class LatentStepper:
         Args:
             z: Latents at time t, [B, d].
             z_prev: Latents at time t - h, [B, d].
-            loads: Forces [N] on the scene's handles (held during the step): a tensor [B, H, D] in handle order, a
-                mapping ``{handle: force}`` with each force [D] or [B, D] (absent handles get none; as
+            loads: Forces [N] on the scene's handles (held during the step): a tensor [B, H, D] in handle order (or
+                [H, D], the same loads for every state, as ``scene.energy`` broadcasts them), a mapping ``{handle: force}`` with each force [D] or [B, D] (absent handles get none; as
                 :meth:`redsim.scene.Scene.pack_loads` and ``scene.energy`` take it), or None.
             cond: Scene conditions [B, m] (default: the scene's default condition), or None.
             warm: The previous step's ``stats.model`` [B, d, d] of the same states, or None. With it

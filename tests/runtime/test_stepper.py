@@ -213,6 +213,7 @@ def test_loads_by_handle_name_step_like_the_tensor_form(mini_chain) -> None:
     by_name, stats = stepper.step(z, z, {"bottom": [5.0, 0.0, 0.0]})
     want, want_stats = stepper.step(z, z, tensor)
     assert torch.equal(by_name, want) and torch.equal(stats.energy, want_stats.energy)
+    assert torch.equal(stepper.step(z, z, tensor[0])[0], want)  # [H, D]: the same loads for every state
     per_row = stepper.step(z, z, {"bottom": torch.tensor([[5.0, 0.0, 0.0], [0.0, 0.0, 0.0]])})[0]
     torch.testing.assert_close(per_row[0], want[0])  # the batch's rows agree to round-off, not bitwise
     assert float((per_row[1] - want[1]).abs().max()) > 1e-3
