@@ -619,7 +619,8 @@ class LatentStepper:
             z: Latents at time t, [B, d].
             z_prev: Latents at time t - h, [B, d].
             loads: Forces [N] on the scene's handles (held during the step): a tensor [B, H, D] in handle order (or
-                [H, D], the same loads for every state, as ``scene.energy`` broadcasts them), a mapping ``{handle: force}`` with each force [D] or [B, D] (absent handles get none; as
+                [H, D], the same loads for every state, as ``scene.energy`` broadcasts them), a mapping
+                ``{handle: force}`` with each force [D] or [B, D] (absent handles get none; as
                 :meth:`redsim.scene.Scene.pack_loads` and ``scene.energy`` take it), or None.
             cond: Scene conditions [B, m] (default: the scene's default condition), or None.
             warm: The previous step's ``stats.model`` [B, d, d] of the same states, or None. With it
