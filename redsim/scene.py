@@ -770,7 +770,14 @@ class SceneBuilder:
         seed = torch.cat(self._seed)
         pinned = torch.cat(self._pinned) if self._pinned else torch.zeros(0, dtype=torch.int64)
         if pinned.numel():
-            seed[pinned] = torch.cat(self._pinned_values)
+            values = torch.cat(self._pinned_values)
+            order = torch.argsort(pinned, stable=True)
+            same = pinned[order][1:] == pinned[order][:-1]
+            clash = same & (values[order][1:] != values[order][:-1])
+            if bool(clash.any()):  # which position would win is not defined
+                dof = int(pinned[order][1:][clash][0])
+                raise ValueError(f"DOF {dof} is pinned twice at different positions; pin each particle once")
+            seed[pinned] = values
         free_mask = torch.ones(N, dtype=torch.bool)
         free_mask[pinned] = False
         free_index = torch.nonzero(free_mask).reshape(-1)

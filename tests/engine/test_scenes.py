@@ -765,6 +765,11 @@ def test_builder_refuses_bad_pins_gravity_and_handle_weights_where_they_are_give
     scene = b.finalize("square")
     assert scene.full_positions(scene.q_seed[None])[0, :2].tolist() == [0.0, 0.05]
     assert scene.handles[0].weights.tolist() == [0.25, 0.75]
+    b.pin_particles(ids[:1], torch.tensor([[0.0, 0.05]], dtype=torch.float64))  # again, at the same place: one pin
+    assert b.finalize("square").free_dof_count == scene.free_dof_count
+    b.pin_particles(ids[:1])  # again, at its seed: which position would hold is not defined
+    with pytest.raises(ValueError, match="DOF 1 is pinned twice at different positions"):
+        b.finalize("square")
 
 
 @pytest.mark.parametrize("dtype", [torch.int64, torch.float16, torch.bfloat16])
