@@ -35,13 +35,11 @@ its mean over the steps, and the same for the handle's position in cm (``handle 
 
 from __future__ import annotations
 
-import contextlib
 import csv
-import logging
 import math
 import statistics
 import time
-from collections.abc import Callable, Iterator, Mapping
+from collections.abc import Callable, Mapping
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
@@ -58,6 +56,7 @@ from redsim.envs.hanging_cloth import HangingClothEnv
 from redsim.envs.mini_chain import MiniChainEnv
 from redsim.envs.reach import ReachEnv
 from redsim.integrators import FullSpace, FullState, ImplicitEuler, LatentSpace, latent_equilibrium
+from redsim.integrators.implicit_euler import quiet_steps
 from redsim.integrators.reference import rest_state
 from redsim.metrics.reach import nearest_latent
 from redsim.runtime import LatentStepper
@@ -154,18 +153,6 @@ def scenario_loads(scene: Scene, scenario: str, steps: int, *, seed: int = 0) ->
     return loads
 
 
-@contextlib.contextmanager
-def _quiet(name: str = "redsim.integrators.implicit_euler") -> Iterator[None]:
-    """Silence the per-step non-convergence warnings (the bench counts them instead)."""
-    logger = logging.getLogger(name)
-    level = logger.level
-    logger.setLevel(logging.ERROR)
-    try:
-        yield
-    finally:
-        logger.setLevel(level)
-
-
 @dataclass
 class Run:
     """One configuration's trajectory and cost.
@@ -212,7 +199,7 @@ def run_full(
     integrator = ImplicitEuler(FullSpace(scene64), dt * stride / substeps, tol=tol, max_iter=max_iter)
     state = FullState(q0.clone(), q0.clone(), 0.0)
     qs, times, failed, nonfinite, idle = [q0.clone()], [], 0, 0, 0
-    with _quiet():
+    with quiet_steps():
         for i in range(0, loads.shape[0] - stride + 1, stride):
             start = time.perf_counter()
             infos = []
@@ -234,7 +221,7 @@ def run_latent_reference(scene: Scene, subspace: nn.Module, z0: Tensor, loads: T
     integrator = ImplicitEuler(space, dt)
     state = FullState(z0.clone(), z0.clone(), 0.0)
     zs, times, failed = [z0.clone()], [], 0
-    with _quiet():
+    with quiet_steps():
         for i in range(loads.shape[0]):
             start = time.perf_counter()
             state, info = integrator.step(state, loads[i])

@@ -11,10 +11,11 @@ the state holds z and the inertial target stays in q: qbar = 2 f(z_t) - f(z_{t-1
 
 from __future__ import annotations
 
+import contextlib
 import dataclasses
 import logging
 import math
-from collections.abc import Callable
+from collections.abc import Callable, Iterator
 from dataclasses import dataclass
 
 import torch
@@ -37,6 +38,18 @@ logger = logging.getLogger(__name__)
 
 LoadSchedule = Callable[[int, "FullState"], LoadsLike]
 """Loads as a function of (step index, state before the step)."""
+
+
+@contextlib.contextmanager
+def quiet_steps() -> Iterator[None]:
+    """Silence the per-step non-convergence warnings inside the block, for a caller that counts
+    ``info.converged`` itself and reports it (a benchmark's table)."""
+    level = logger.level
+    logger.setLevel(logging.ERROR)
+    try:
+        yield
+    finally:
+        logger.setLevel(level)
 
 
 @dataclass(frozen=True)
