@@ -311,8 +311,6 @@ those that meet the accuracy bar (held-out force error and 100-step trajectory d
 off. The others step every element unless ``cubature=True``."""
 
 
-RESET_INFO_KEYS = ("q",)
-"""The keys a reset's info can hold (:meth:`LatentSim.reset_info`)."""
 CHECKPOINT_ATTRIBUTE = "redsim_checkpoint"
 """Attribute :func:`shipped` sets on a map it loads from a path: that path, where ``cubature=True`` looks."""
 
@@ -393,7 +391,7 @@ class LatentSim:
         device: Torch device of the stepper.
         randomize_condition: Draw the condition c uniformly from the scene's condition space per
             episode (a conditional map is needed) and append it to the observation.
-        include_q: Put the full free configuration q [n] in ``info["q"]`` (steps and resets, :meth:`reset_info`).
+        include_q: Put the full free configuration q [n] in ``info["q"]`` (steps and resets, :meth:`state_info`).
         reset_noise_scale: s >= 0: each episode starts at the task's start z0 + U(-s, s) with z_dot s N(0, 1)
             [latent units, per s], per latent, from the copy's generator (MuJoCo's convention; 0: exactly z0 at rest);
             periodic latents then move by whole turns into [-pi, pi), z_prev with them, as after a step.
@@ -797,9 +795,6 @@ class LatentSim:
         ended = self.task.terminated(self.x, self.params)
         _check_task_output("terminated", ended, self.batch, dtype=torch.bool)
         terminated = ended | diverged
-        metrics = self.task.metrics(self.x, self.params)
-        for key, value in metrics.items():
-            _check_task_output(f"metric {key!r}", value, self.batch, finite=False)
         info: dict[str, Tensor] = {
             "converged": converged,
             "iterations": iterations,
@@ -810,16 +805,38 @@ class LatentSim:
             "energy_gain": energy_gain,
             "energy_gain_tolerance": gain_tolerance,
             **{f"reward_{k}": v for k, v in terms.items()},
-            **metrics,
-            **self.invariants(self.x),
         }
         out = {k: _info_array(v.detach().cpu().numpy()) for k, v in info.items()}
-        return reward.detach().cpu().numpy().astype(np.float64), terminated.cpu().numpy(), {**out, **self.reset_info()}
+        return reward.detach().cpu().numpy().astype(np.float64), terminated.cpu().numpy(), {**out, **self.state_info()}
 
-    def reset_info(self) -> dict[str, np.ndarray]:
-        """What ``info`` holds at a reset (:data:`RESET_INFO_KEYS`): with ``include_q``, ``q`` [B, n] (every row; the
-        caller picks its own)."""
-        return {"q": self.positions(self.z).detach().cpu().numpy()} if self.include_q else {}
+    def state_info(self, rows: np.ndarray | None = None) -> dict[str, np.ndarray]:
+        """What ``info`` says about the current states, at a step and at a reset alike (Gymnasium: a reset's info is
+        analogous to a step's): the task's metrics, the scene's invariants and, with ``include_q``, ``q`` [B, n]; each
+        [B, ...], the [B] ones float64 or int64 as a step's numbers. With ``rows`` (bool [B]) only those copies are
+        evaluated (the ones a reset just started) and the others' entries are zeros; none: an empty dict."""
+        every = rows is None or bool(np.all(rows))
+        if rows is not None and not np.any(rows):
+            return {}
+        index = None if every else torch.as_tensor(np.nonzero(rows)[0], device=self.device)
+        x = self.x if index is None else self.x[index]
+        params = self.params if index is None else {k: v[index] for k, v in self.params.items()}
+        metrics = self.task.metrics(x, params)
+        for key, value in metrics.items():
+            _check_task_output(f"metric {key!r}", value, x.shape[0], finite=False)
+        values = {**metrics, **self.invariants(x)}
+        if self.include_q:
+            z = self.z if index is None else self.z[index]
+            cond = None if self.cond is None or index is None else self.cond[index]
+            values["q"] = self.positions(z, cond)
+        out: dict[str, np.ndarray] = {}
+        for key, value in values.items():
+            part = value.detach().cpu().numpy()
+            if index is not None:
+                full = np.zeros((self.batch, *part.shape[1:]), dtype=part.dtype)
+                full[rows] = part
+                part = full
+            out[key] = _info_array(part)
+        return out
 
     # -- state ----------------------------------------------------------------------------
     def setting(self) -> dict[str, Any]:
@@ -1147,7 +1164,8 @@ class LatentEnv(gym.Env[np.ndarray, np.ndarray]):
     :func:`redsim.runtime.flags.energy_gain_states`), ``energy_gain_tolerance`` [J] (the rise that flag allows: what
     the solve's leftover gradient can put in, plus round-off), ``reward_<term>`` for each reward term, the
     task's metrics (``distance``, ``is_success``), the scene's invariants (:mod:`redsim.envs.invariants`) and, with
-    ``include_q=True``, ``q`` [n]. A step the stepper cannot make finite ends the episode
+    ``include_q=True``, ``q`` [n]. ``info`` after a reset: the same metrics, invariants and ``q`` of the new
+    episode's start (:meth:`LatentSim.state_info`). A step the stepper cannot make finite ends the episode
     (``terminated=True``, ``info["diverged"]=True``).
 
     Args:
@@ -1289,7 +1307,7 @@ class LatentEnv(gym.Env[np.ndarray, np.ndarray]):
             self._view = None  # framed anew on this episode: a picture never depends on earlier episodes
         if self.render_mode == "human":
             self.render()
-        return self.sim.observe()[0], {k: v[0] for k, v in self.sim.reset_info().items()}
+        return self.sim.observe()[0], _first_row(self.sim.state_info())
 
     @on_env_threads
     def step(self, action: np.ndarray) -> tuple[np.ndarray, float, bool, bool, dict[str, Any]]:
@@ -1304,7 +1322,7 @@ class LatentEnv(gym.Env[np.ndarray, np.ndarray]):
         saved = self.sim.snapshot()  # atomic up to the return: an interrupt in the observation or the window too
         try:
             reward, terminated, info = self.sim.step(act[None])
-            info_row = {k: (v[0].item() if v.ndim == 1 else v[0]) for k, v in info.items()}
+            info_row = _first_row(info)
             obs = self.sim.observe()[0]
             if self.render_mode == "human":
                 self.render()
@@ -1505,6 +1523,11 @@ def _chosen_param(key: str, value: Tensor, drawn: Tensor | None) -> Tensor:
     if not drawn.is_floating_point() and not bool((value == value.round()).all()):
         raise ValueError(f"options[{key!r}] must be integral (the task's is {drawn.dtype}), got {value.tolist()}")
     return value.to(drawn.dtype).to(drawn.device)
+
+
+def _first_row(info: dict[str, np.ndarray]) -> dict[str, Any]:
+    """The single env's ``info`` from the batch of one: an entry [1] becomes a Python number, [1, ...] its row."""
+    return {k: (v[0].item() if v.ndim == 1 else v[0]) for k, v in info.items()}
 
 
 def _info_array(value: np.ndarray) -> np.ndarray:

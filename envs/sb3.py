@@ -24,7 +24,6 @@ import numpy as np
 from gymnasium.vector import AutoresetMode
 from stable_baselines3.common.vec_env import VecEnv
 
-from redsim.envs.base import RESET_INFO_KEYS
 from redsim.envs.goal import GoalVectorObservation
 from redsim.envs.sharded import ShardedVectorEnv
 from redsim.envs.vector import LatentVectorEnv
@@ -60,6 +59,7 @@ class SB3VecEnv(VecEnv):
         self._returns = np.zeros(self.num_envs)
         self._lengths = np.zeros(self.num_envs, dtype=np.int64)
         self._start = time.time()
+        self._reset_keys: list[str] = []  # the keys of a reset's info, learnt at reset()
 
     @classmethod
     def make(cls, env_id: str, num_envs: int, *, goal: bool | Mapping[str, Any] = False, **kwargs: Any) -> SB3VecEnv:
@@ -103,6 +103,7 @@ class SB3VecEnv(VecEnv):
         restarted = options[0].get("reset_mask", slice(None))  # the copies that start a new episode
         self._returns[restarted], self._lengths[restarted] = 0.0, 0
         self.reset_infos = [_info_row(info, i) for i in range(self.num_envs)]
+        self._reset_keys = [k for k in info if not k.startswith("_")]  # what a copy's reset info holds
         self._reset_seeds()
         self._reset_options()
         return obs
@@ -119,7 +120,7 @@ class SB3VecEnv(VecEnv):
         for i in range(self.num_envs):
             row = _info_row(info, i)
             if done[i]:  # the step's own info (final_info), and what outer wrappers added (e.g. "episode")
-                self.reset_infos[i] = {k: row.pop(k) for k in RESET_INFO_KEYS if k in row}  # the new episode's
+                self.reset_infos[i] = {k: row.pop(k) for k in self._reset_keys if k in row}  # the new episode's
                 row = {**_info_row(info["final_info"], i), **row}
                 row["terminal_observation"] = info["final_obs"][i]
                 row["TimeLimit.truncated"] = bool(truncated[i] and not terminated[i])

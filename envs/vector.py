@@ -122,7 +122,7 @@ class LatentVectorEnv(SharedCopies, VectorEnv):
         self._elapsed[mask] = 0
         self._autoreset[mask] = False
         self._unreset[mask] = False
-        return self.sim.observe(), _with_masks(self.sim.reset_info(), mask)
+        return self.sim.observe(), _with_masks(self.sim.state_info(mask), mask)
 
     @on_env_threads
     def step(self, actions: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray, dict[str, Any]]:
@@ -169,7 +169,7 @@ class LatentVectorEnv(SharedCopies, VectorEnv):
                 reward[restart], terminated[restart], truncated[restart] = 0.0, False, False
                 self._elapsed[restart] = 0
             obs = self.sim.observe()
-            infos = _with_reset_info(_with_masks(info, ~restart), self.sim.reset_info(), restart)
+            infos = _with_reset_info(_with_masks(info, ~restart), self.sim.state_info(restart), restart)
         else:
             # as Gymnasium's sync vector env: an ended copy's step info only in ``final_info`` (batched, masked)
             done = terminated | truncated
@@ -184,7 +184,7 @@ class LatentVectorEnv(SharedCopies, VectorEnv):
                 self.sim.reset_rows(rows, [self._rngs[i] for i in rows])
                 self._elapsed[done] = 0
                 obs = self.sim.observe()
-                infos = _with_reset_info(infos, self.sim.reset_info(), done)
+                infos = _with_reset_info(infos, self.sim.state_info(done), done)
                 infos.update(
                     final_obs=final_obs, _final_obs=done.copy(), final_info=final_info, _final_info=done.copy()
                 )

@@ -577,6 +577,45 @@ def test_info_reports_solver_flags_invariants_rewards_and_q() -> None:
     assert info["contact_clearance"] == pytest.approx(-info["contact_penetration"]) or info["contact_clearance"] > 0
 
 
+SOLVER_INFO = ("converged", "iterations", "residual", "energy", "out_of_range", "diverged", "energy_gain")
+"""A step's info keys about the solve (and ``energy_gain_tolerance``), which a reset's info has not."""
+
+
+def test_reset_info_holds_the_metrics_and_invariants_a_step_reports() -> None:
+    """Gymnasium: a reset's info is analogous to a step's. It was empty (``q`` alone with include_q): a user logging
+    ``info["distance"]`` or an invariant from the first frame on had nothing at the reset."""
+    from redsim.envs.sb3 import SB3VecEnv
+
+    MINI = "RedSim/MiniChain-v0"
+    env = gym.make(MINI)
+    _, reset_info = env.reset(seed=0)
+    step_info = env.step(np.zeros(3, np.float32))[4]
+    state = {k for k in step_info if not k.startswith(("reward_", "energy_gain")) and k not in SOLVER_INFO}
+    assert set(reset_info) == state and {"distance", "is_success", "rigid_orthogonality_error"} <= state
+    assert all(type(reset_info[k]) is type(step_info[k]) for k in state)  # Python numbers, as a step's
+    # the vector env: the reset copies only (masks), an autoreset's slot holds the new episode's start as Gymnasium's
+    # sync vector env over single envs does, in both modes
+    venv = gym.make_vec(MINI, num_envs=3, vectorization_mode="vector_entry_point")
+    _, info = venv.reset(seed=0)
+    assert set(info) == state | {f"_{k}" for k in state} and info["_distance"].all()
+    _, info = venv.reset(options={"reset_mask": np.array([False, True, False])})
+    assert info["_distance"].tolist() == [False, True, False] and info["distance"][0] == 0.0
+    # (an autoreset's slot, both modes: test_include_q_puts_the_configuration_in_the_reset_info_too)
+    # SB3: the new episode's start in reset_infos, the ended step's own values in the step's info
+    sb3 = SB3VecEnv.make(MINI, num_envs=2, max_episode_steps=2)
+    same = gym.make_vec(
+        MINI, num_envs=2, vectorization_mode="vector_entry_point", max_episode_steps=2, autoreset_mode="SameStep"
+    )
+    same.reset(seed=0)
+    sb3.seed(0)
+    sb3.reset()
+    for _ in range(2):
+        rows = sb3.step(np.zeros((2, 3), np.float32))[3]
+        info = same.step(np.zeros((2, 3), np.float32))[4]
+    assert [row["distance"] for row in rows] == info["final_info"]["distance"].tolist()
+    assert [row["distance"] for row in sb3.reset_infos] == info["distance"].tolist()
+
+
 def test_include_q_puts_the_configuration_in_the_reset_info_too() -> None:
     from redsim.envs.sb3 import SB3VecEnv
 
@@ -584,13 +623,14 @@ def test_include_q_puts_the_configuration_in_the_reset_info_too() -> None:
     env = gym.make("RedSim/MiniChain-v0", include_q=True)
     _, info = env.reset(seed=0)
     np.testing.assert_array_equal(info["q"], env.unwrapped.configuration())  # the first frame of an episode's mesh
-    assert gym.make("RedSim/MiniChain-v0").reset(seed=0)[1] == {}
+    assert "q" not in gym.make("RedSim/MiniChain-v0").reset(seed=0)[1]
     venv = gym.make_vec("RedSim/MiniChain-v0", num_envs=3, vectorization_mode="vector_entry_point", include_q=True)
     _, info = venv.reset(seed=0)
     assert info["q"].shape == (3, 24) and info["_q"].all()
     _, info = venv.reset(options={"reset_mask": np.array([False, True, False])})
     assert info["_q"].tolist() == [False, True, False]
-    # an autoreset copy's slot holds its new episode's q, as in Gymnasium's sync vector env (both modes)
+    # an autoreset copy's slot holds its new episode's q, metrics and invariants, as in Gymnasium's sync vector env
+    # (both modes)
     for mode, steps in ((AutoresetMode.NEXT_STEP, 3), (AutoresetMode.SAME_STEP, 2)):
         options = {"include_q": True, "max_episode_steps": 2}
         native = gym.make_vec(MINI, num_envs=2, vectorization_mode="vector_entry_point", autoreset_mode=mode, **options)
@@ -603,11 +643,12 @@ def test_include_q_puts_the_configuration_in_the_reset_info_too() -> None:
             for _ in range(steps):
                 info = env.step(np.zeros((2, 3), np.float32))[4]
             infos.append(info)
-        assert infos[0]["_q"].all() and infos[1]["_q"].all()
-        np.testing.assert_allclose(infos[0]["q"], infos[1]["q"], atol=1e-6)
+        for key in ("q", "distance", "is_success", "rigid_orthogonality_error", "contact_clearance"):
+            assert infos[0][f"_{key}"].all() and infos[1][f"_{key}"].all()
+            np.testing.assert_allclose(infos[0][key], infos[1][key], rtol=1e-5, atol=1e-6, err_msg=key)
     sb3 = SB3VecEnv.make(MINI, num_envs=2, include_q=True, max_episode_steps=2)
     sb3.reset()
-    assert [sorted(row) for row in sb3.reset_infos] == [["q"], ["q"]]
+    assert all("q" in row and "distance" in row for row in sb3.reset_infos)
     for _ in range(2):
         _, _, done, rows = sb3.step(np.zeros((2, 3), np.float32))
     assert done.all() and all("q" in row and "terminal_observation" in row for row in rows)
