@@ -282,7 +282,8 @@ class LatentStepper:
         tol: Relative gradient tolerance (default :data:`DEFAULT_TOL` of the dtype).
         hessian: The solver's Hessian model, one of :data:`redsim.runtime.solver.HESSIANS`.
         compile: Evaluate the objective's value and gradient through ``torch.compile`` (the first
-            steps pay the compilation, tens of seconds; results equal eager within dtype round-off).
+            steps pay the compilation, tens of seconds; results equal eager within dtype round-off; on the CPU
+            it needs a C++ compiler).
         warm_start: Use the ``warm`` model :meth:`step` is given (default). False ignores it: every
             step builds its own model, as the reference does. Where a step's objective has several
             nearby minima (the mini chain's folded map under full-range actions) the two can
@@ -316,6 +317,7 @@ class LatentStepper:
             device redsim cannot run on (:func:`redsim.devices.check_device`), or a map that does not fit the scene
             (another output size, or fitted to a scene of another name; one fitted to this scene with other
             parameters, e.g. a soft map driven on a stiffer material, is stepped with a warning).
+        RuntimeError: ``compile`` on the CPU without a C++ compiler (:func:`check_compiler`).
     """
 
     def __init__(
@@ -365,6 +367,8 @@ class LatentStepper:
         self.dt = float(dt)
         self.dtype = dtype
         self.device = torch.device(check_device(device))
+        if compile:
+            check_compiler(self.device)
         self.tol = float(tol)
         self.max_iter = int(max_iter)
         self.hessian = hessian
@@ -845,6 +849,29 @@ class LatentStepper:
         return torch.stack(out)
 
 
+def check_compiler(device: torch.device) -> None:
+    """Refuse ``torch.compile`` on the CPU where no C++ compiler is found (Inductor builds its CPU kernels with one).
+
+    Without this, a compiled stepper fails at its first step, deep inside torch. Other devices are not checked.
+
+    Raises:
+        RuntimeError: no compiler found (the ``CXX`` environment variable, else ``g++``, as Inductor looks).
+    """
+    if device.type != "cpu":
+        return
+    try:
+        from torch._inductor.cpp_builder import get_cpp_compiler
+    except ImportError:  # a torch without this helper: torch.compile reports it at the first step
+        return
+    try:
+        get_cpp_compiler()
+    except Exception as err:  # InvalidCxxCompiler, or a compiler that does not run
+        raise RuntimeError(
+            f"compile needs a C++ compiler on the CPU (torch.compile builds its kernels with one), and none runs "
+            f"({type(err).__name__}); install g++ (or set CXX to a C++ compiler), or step without compile"
+        ) from None
+
+
 def _check_map_scene(subspace: nn.Module, scene: Scene) -> None:
     """Refuse a map whose metadata names another scene; warn where it names this scene with other parameters (a
     deliberate study, e.g. a soft material's map on a stiffer one, or a mistake the caller should see)."""
@@ -860,4 +887,13 @@ def _check_map_scene(subspace: nn.Module, scene: Scene) -> None:
         )
 
 
-__all__ = ["DEFAULT_HESSIAN", "DEFAULT_MAX_ITER", "DEFAULT_TOL", "STARTS", "Evaluations", "LatentStepper", "StepStats"]
+__all__ = [
+    "DEFAULT_HESSIAN",
+    "DEFAULT_MAX_ITER",
+    "DEFAULT_TOL",
+    "STARTS",
+    "Evaluations",
+    "LatentStepper",
+    "StepStats",
+    "check_compiler",
+]

@@ -407,6 +407,21 @@ def test_compiled_step_equals_eager_within_float32_round_off(mini_chain) -> None
     torch.testing.assert_close(q_got, q_want, rtol=0.0, atol=1e-2 * motion)
 
 
+def test_compile_without_a_cpp_compiler_is_refused_at_construction(mini_chain, monkeypatch) -> None:
+    """torch.compile on the CPU needs a C++ compiler: without one the stepper says so when built, not at its first
+    step from inside Inductor."""
+    from torch._inductor import cpp_builder, exc
+
+    def missing() -> str:
+        raise exc.InvalidCxxCompiler
+
+    monkeypatch.setattr(cpp_builder, "get_cpp_compiler", missing)
+    scene, f = mini_chain
+    with pytest.raises(RuntimeError, match="compile needs a C\\+\\+ compiler"):
+        LatentStepper(scene, f, DT, compile=True)
+    LatentStepper(scene, f, DT)  # without compile no compiler is needed
+
+
 @pytest.mark.gpu
 @pytest.mark.skipif(not torch.cuda.is_available(), reason="needs a CUDA device")
 def test_runs_on_cuda_like_on_the_cpu(mini_chain) -> None:
