@@ -47,6 +47,9 @@ DEFAULT_HESSIAN = "lagged_fd"
 RESOLUTION_WARNING = 0.01 * 9.81
 """[m/s^2] A stepper whose :attr:`LatentStepper.acceleration_resolution` exceeds this (1% of standard gravity)
 warns at construction: forces that small are not felt (README "Latent runtime", "Tolerance")."""
+COMPILES = (False, True, "dynamic")
+"""The ``compile`` settings of :class:`LatentStepper`: eager, static shapes (every call pads to the batch), and one
+graph of value and gradient over any row count."""
 STARTS = ("extrapolated", "lower")
 """Where a step's solve starts: 2 z_t - z_{t-1}, or whichever of that and z_t has the lower Phi (both are evaluated)."""
 
@@ -171,6 +174,8 @@ class _StepObjective:
         self, z: Tensor, qbar: Tensor, loads: Tensor | None, cond: Tensor | None
     ) -> tuple[Tensor, Tensor, Tensor]:
         """Phi, dPhi/dz and E of one block of rows (uncounted: :meth:`_value_and_grad` counts the call)."""
+        if self.s._compiled_call is not None:  # compile="dynamic": value and gradient in one graph, these rows only
+            return self.s._compiled_call(z, qbar, loads, cond)
         z = z.detach().requires_grad_(True)
         if self.s.compiled:
             with torch.enable_grad():
@@ -281,9 +286,13 @@ class LatentStepper:
         max_iter: Most solver iterations per step.
         tol: Relative gradient tolerance (default :data:`DEFAULT_TOL` of the dtype).
         hessian: The solver's Hessian model, one of :data:`redsim.runtime.solver.HESSIANS`.
-        compile: Evaluate the objective's value and gradient through ``torch.compile`` (the first
-            steps pay the compilation, tens of seconds; results equal eager within dtype round-off; on the CPU
-            it needs a C++ compiler).
+        compile: Evaluate the objective's value and gradient through ``torch.compile`` (:data:`COMPILES`): True,
+            with static shapes (every call evaluates the whole batch, its other rows dropped; one graph per batch
+            size); "dynamic", the value and its gradient in one graph for any number of rows (a call evaluates only
+            the rows it needs, as eager does; two graphs, one row and several; HangingCloth-v1 at 64 envs 1.18-1.25x
+            by CPU time, static 0.62x). The first steps pay the compilation (tens of seconds; 90 s cold on a loaded
+            2-core CPU); results equal eager within dtype round-off; on the CPU it needs a C++ compiler. The exact
+            and Gauss-Newton Hessians' double backward passes stay eager.
         warm_start: Use the ``warm`` model :meth:`step` is given (default). False ignores it: every
             step builds its own model, as the reference does. Where a step's objective has several
             nearby minima (the mini chain's folded map under full-range actions) the two can
@@ -305,15 +314,15 @@ class LatentStepper:
             whichever of that and z_t has the lower Phi (the step evaluates both anyway). The same minimum
             where the step's objective has one (README "Env speed", ConditionalBar-v0). Either way a copy whose
             extrapolated start has a non-finite Phi or gradient starts from z_t.
-        row_block: Most rows one value-and-gradient pass evaluates (eager only); a call with more is evaluated in
-            blocks of this many rows, the same values to round-off (counted as one call). None (default): one pass.
-            Where one pass's per-element tensors outgrow the CPU's cache it pays: ClothBall-v0 at 256 envs (its whole
-            contact, 2025 points a row, in a step's first call of 512 rows and its d x k-row difference-Hessian
-            calls) 1.16x by CPU time with 256; HangingCloth-v1 and Chain-v0 gain nothing (docs/env-speed.md, "Stop
-            28"). The exact and Gauss-Newton Hessians' passes are not split.
+        row_block: Most rows one value-and-gradient pass evaluates (not with ``compile=True``); a call with more is
+            evaluated in blocks of this many rows, the same values to round-off (counted as one call). None
+            (default): one pass. Where one pass's per-element tensors outgrow the CPU's cache it pays: ClothBall-v0 at
+            256 envs (its whole contact, 2025 points a row, in a step's first call of 512 rows and its d x k-row
+            difference-Hessian calls) 1.16x by CPU time with 256; HangingCloth-v1 and Chain-v0 gain nothing
+            (docs/env-speed.md, "Stop 28"). The exact and Gauss-Newton Hessians' passes are not split.
 
     Raises:
-        ValueError: a bad dt, tol, max_iter, hessian, sync_every, max_step, warm_refresh, start or row_block, a
+        ValueError: a bad dt, tol, max_iter, hessian, compile, sync_every, max_step, warm_refresh, start or row_block, a
             device redsim cannot run on (:func:`redsim.devices.check_device`), or a map that does not fit the scene
             (another output size, or fitted to a scene of another name; one fitted to this scene with other
             parameters, e.g. a soft map driven on a stiffer material, is stepped with a warning).
@@ -332,7 +341,7 @@ class LatentStepper:
         max_iter: int = DEFAULT_MAX_ITER,
         tol: float | None = None,
         hessian: str = DEFAULT_HESSIAN,
-        compile: bool = False,
+        compile: bool | str = False,
         warm_start: bool = True,
         dense: bool | None = None,
         sync_every: int | None = 1,
@@ -367,6 +376,8 @@ class LatentStepper:
         self.dt = float(dt)
         self.dtype = dtype
         self.device = torch.device(check_device(device))
+        if not (isinstance(compile, bool) or compile == "dynamic"):
+            raise ValueError(f"unknown compile {compile!r}; valid: {list(COMPILES)}")
         if compile:
             check_compiler(self.device)
         self.tol = float(tol)
@@ -396,8 +407,9 @@ class LatentStepper:
         self._phi = self._phi_eager
         # value and gradient through torch.compile (AOTAutograd compiles the backward too); the
         # exact Hessian's double backward stays eager (compiled graphs do not support it)
-        self._phi_fast = torch.compile(self._phi_eager, dynamic=False) if compile else self._phi_eager
-        self.compiled = bool(compile)
+        self._phi_fast = torch.compile(self._phi_eager, dynamic=False) if compile is True else self._phi_eager
+        self.compiled = compile is True  # static shapes: a call pads to the whole batch
+        self._compiled_call = _compiled_value_and_grad(self._phi_eager) if compile == "dynamic" else None
         self.warm_start = bool(warm_start)
         self.evaluations = Evaluations()
         """Value-and-gradient calls and rows so far (:class:`Evaluations`; assign a new one to restart the count)."""
@@ -849,6 +861,51 @@ class LatentStepper:
         return torch.stack(out)
 
 
+def _compiled_value_and_grad(
+    phi: Callable[[Tensor, Tensor, Tensor | None, Tensor | None], tuple[Tensor, Tensor]],
+) -> Callable[[Tensor, Tensor, Tensor | None, Tensor | None], tuple[Tensor, Tensor, Tensor]]:
+    """``(z, qbar, loads, cond) -> (Phi [k], dPhi/dz [k, d], E [k])`` (detached) as one compiled graph of ``phi``
+    (:meth:`LatentStepper._phi_eager`) and its gradient, the row count k dynamic.
+
+    ``torch.autograd.grad`` is traced into the graph (Dynamo's ``trace_autograd_ops``, where this torch has it;
+    elsewhere the graph breaks there and the call runs as a compiled forward and backward, 1.3-1.9x slower at 1-4 rows).
+    One row is its own graph (Dynamo specialises sizes 0 and 1); every k >= 2 shares the other.
+    """
+
+    def value_and_grad(
+        z: Tensor, qbar: Tensor, loads: Tensor | None, cond: Tensor | None
+    ) -> tuple[Tensor, Tensor, Tensor]:
+        value, energy = phi(z, qbar, loads, cond)
+        if not value.requires_grad:  # Phi does not depend on z
+            return value.detach(), torch.zeros_like(z), energy.detach()
+        (grad,) = torch.autograd.grad(value.sum(), z)
+        return value.detach(), grad, energy.detach()
+
+    compiled = torch.compile(value_and_grad)
+    config = torch._dynamo.config
+    trace = hasattr(config, "trace_autograd_ops")
+
+    def call(z: Tensor, qbar: Tensor, loads: Tensor | None, cond: Tensor | None) -> tuple[Tensor, Tensor, Tensor]:
+        z = z.detach().requires_grad_(True)
+        if z.shape[0] > 1:
+            for t in (z, qbar, loads, cond):
+                if t is not None:
+                    torch._dynamo.maybe_mark_dynamic(t, 0)
+        # set around every call (read only when Dynamo traces, which any call may), the caller's value restored;
+        # set directly: config.patch costs ~17 us a call, 2-3% of a compiled one-row call
+        before = config.trace_autograd_ops if trace else None
+        if trace:
+            config.trace_autograd_ops = True
+        try:
+            with torch.enable_grad():
+                return compiled(z, qbar, loads, cond)
+        finally:
+            if trace:
+                config.trace_autograd_ops = before
+
+    return call
+
+
 def check_compiler(device: torch.device) -> None:
     """Refuse ``torch.compile`` on the CPU where no C++ compiler is found (Inductor builds its CPU kernels with one).
 
@@ -888,6 +945,7 @@ def _check_map_scene(subspace: nn.Module, scene: Scene) -> None:
 
 
 __all__ = [
+    "COMPILES",
     "DEFAULT_HESSIAN",
     "DEFAULT_MAX_ITER",
     "DEFAULT_TOL",

@@ -17,7 +17,7 @@ from redsim import pretrained, scenes
 from redsim.cubature import cubature_energy
 from redsim.integrators import FullState, ImplicitEuler, LatentSpace
 from redsim.runtime import Evaluations, LatentStepper, MapEnergy, StepStats
-from redsim.runtime.stepper import RESOLUTION_WARNING, _StepObjective
+from redsim.runtime.stepper import RESOLUTION_WARNING, _StepObjective, check_compiler
 
 DT = 0.02
 
@@ -405,6 +405,57 @@ def test_compiled_step_equals_eager_within_float32_round_off(mini_chain) -> None
     # two float32 solves stopped by tol 1e-6 at different round-off: they agree to the solve tolerance
     # (one-step errors of 0.02-2.5% of the motion against the float64 reference, README)
     torch.testing.assert_close(q_got, q_want, rtol=0.0, atol=1e-2 * motion)
+
+
+def _compiles() -> bool:
+    try:
+        check_compiler(torch.device("cpu"))
+    except RuntimeError:
+        return False
+    return True
+
+
+@pytest.mark.slow
+@pytest.mark.skipif(not _compiles(), reason="torch.compile needs a C++ compiler on the CPU")
+def test_dynamic_compile_equals_eager_and_evaluates_only_the_rows_asked() -> None:
+    """compile="dynamic" (value and gradient in one graph, any row count) on the cubature HangingCloth-v1 steps on:
+    the same Phi, gradient and E as eager at 1, 2 and 5 of 5 states (counted as those rows, not padded to the batch),
+    and the same step to the solve's tolerance."""
+    scene, f = scenes.build("hanging_sheet"), pretrained.load("hanging_sheet")
+    eager = LatentStepper(scene, f, DT, energy=cubature_energy)
+    compiled = LatentStepper(scene, f, DT, energy=cubature_energy, compile="dynamic")
+    breaks = sum(torch._dynamo.utils.counters["graph_break"].values())
+    g = torch.Generator().manual_seed(0)
+    z = eager.rest_latent() + 0.3 * torch.randn(5, eager.latent_dim, generator=g)
+    with torch.no_grad():
+        qbar = eager._energy_coords(z + 0.05 * torch.randn(z.shape, generator=g), None)[1]
+    loads = _loads(scene, 5, 1, 1.0, torch.float32).reshape(5, -1)
+    for rows in (1, 2, 5):
+        index = torch.arange(rows)
+        want = _StepObjective(eager, qbar, loads, None, z).value_and_grad(z[:rows], index)
+        got = _StepObjective(compiled, qbar, loads, None, z).value_and_grad(z[:rows], index)
+        # float32 sums over 1000 kept elements: eager itself moves by up to 2e-4 of a row's gradient norm between
+        # batch sizes, and Phi by a few 1e-6 of its size
+        torch.testing.assert_close(got[0], want[0], rtol=1e-5, atol=0.0)
+        torch.testing.assert_close(got[2], want[2], rtol=1e-5, atol=1e-5 * float(want[2].abs().max()))
+        assert float(((got[1] - want[1]).norm(dim=1) / want[1].norm(dim=1)).max()) < 2e-3
+    assert compiled.evaluations == eager.evaluations == Evaluations(calls=3, rows=8)
+    # value and gradient in one graph (no break at autograd.grad), and Dynamo's setting restored after each call
+    assert sum(torch._dynamo.utils.counters["graph_break"].values()) == breaks
+    assert not getattr(torch._dynamo.config, "trace_autograd_ops", False)
+    z_prev = z - 0.05 * torch.randn(z.shape, generator=g)
+    want, want_stats = eager.step(z, z_prev, loads.reshape(5, -1, scene.dim))
+    got, got_stats = compiled.step(z, z_prev, loads.reshape(5, -1, scene.dim))
+    assert bool(want_stats.converged.all()) and bool(got_stats.converged.all())
+    q_want, q_got = eager.positions(want), eager.positions(got)
+    motion = float((q_want - eager.positions(z)).abs().max())
+    torch.testing.assert_close(q_got, q_want, rtol=0.0, atol=1e-2 * motion)  # as the static compile's test
+
+
+def test_unknown_compile_is_refused(mini_chain) -> None:
+    scene, f = mini_chain
+    with pytest.raises(ValueError, match="unknown compile 'static'; valid: \\[False, True, 'dynamic'\\]"):
+        LatentStepper(scene, f, DT, compile="static")
 
 
 def test_compile_without_a_cpp_compiler_is_refused_at_construction(mini_chain, monkeypatch) -> None:
