@@ -31,7 +31,7 @@ from gymnasium.vector import AutoresetMode, VectorEnv
 from gymnasium.vector.utils import batch_space
 
 from redsim.envs.base import NO_HUMAN, VECTOR_RENDER_MODES, check_action, copy_seeds, restored_generator
-from redsim.envs.vector_api import SharedCopies, check_started, reset_mask
+from redsim.envs.vector_api import SharedCopies, check_started, episode_clock, reset_mask
 
 if TYPE_CHECKING:
     from redsim.envs.base import LatentEnv
@@ -264,13 +264,15 @@ class ShardedVectorEnv(SharedCopies, VectorEnv):
 
         Raises:
             ValueError: a state whose ``cond``, ``z``, ``z_prev``, ``loads`` or task parameters have another shape or
-                are not finite, a condition outside the scene's range, an ``rngs`` entry that is not a NumPy generator
+                are not finite, a condition outside the scene's range, an episode clock the native env refuses
+                (:func:`~redsim.envs.vector_api.episode_clock`), an ``rngs`` entry that is not a NumPy generator
                 state, then a task parameter ``reset(options=...)`` would refuse (checked here, in that order, as the
                 native env does: the env stays open).
         """
         if not isinstance(state, Mapping):
             raise ValueError(f"need the dict get_state() returns, got {type(state).__name__}")
         self._check_state_shapes(state)
+        _, pending = episode_clock(state, self.num_envs)
         rngs = state.get("rngs")
         if rngs is not None:
             if len(rngs) != self.num_envs:
@@ -282,7 +284,7 @@ class ShardedVectorEnv(SharedCopies, VectorEnv):
         parts = [_state_rows(state, block) for block in self._blocks()]
         self._call([("set_state", part) for part in parts])
         if self.metadata["autoreset_mode"] == AutoresetMode.DISABLED:
-            self._ended = np.asarray(state.get("autoresetting", np.zeros(self.num_envs, bool)), dtype=bool).copy()
+            self._ended = pending
         self._unreset[:] = False
 
     def _per_copy(self, name: str) -> tuple[Any, ...]:

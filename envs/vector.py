@@ -43,7 +43,7 @@ from redsim.envs.base import (
     state_row,
 )
 from redsim.envs.sharded import ShardedVectorEnv, shard_sizes
-from redsim.envs.vector_api import SharedCopies, check_started, reset_mask
+from redsim.envs.vector_api import SharedCopies, check_started, episode_clock, reset_mask
 from redsim.threads import torch_threads
 
 
@@ -228,17 +228,13 @@ class LatentVectorEnv(SharedCopies, VectorEnv):
 
         Raises:
             ValueError: a state of another env or batch, a task parameter ``reset(options=...)`` would refuse
-                (:meth:`redsim.envs.base.LatentSim.set_state`), a clock or ``rngs`` of another length, or an ``rngs``
-                entry that is not a NumPy generator state (each may be of any bit generator: PCG64, Philox, ...);
+                (:meth:`redsim.envs.base.LatentSim.set_state`), a clock or ``rngs`` of another length, an
+                ``elapsed_steps`` entry that is not a whole number >= 0 (NaN, 2.5) or an ``autoresetting`` one other
+                than True/False (:func:`~redsim.envs.vector_api.episode_clock`), or an ``rngs`` entry that is not a
+                NumPy generator state (each may be of any bit generator: PCG64, Philox, ...);
                 nothing changes then.
         """
-        elapsed = np.asarray(state.get("elapsed_steps", np.zeros(self.num_envs)))
-        pending = np.asarray(state.get("autoresetting", np.zeros(self.num_envs, dtype=bool)))
-        if elapsed.shape != (self.num_envs,) or pending.shape != (self.num_envs,) or (elapsed < 0).any():
-            raise ValueError(
-                f"state['elapsed_steps'] and state['autoresetting'] must have shape ({self.num_envs},), "
-                f"the first >= 0; got {elapsed.shape} and {pending.shape}"
-            )
+        elapsed, pending = episode_clock(state, self.num_envs)
         rngs = state.get("rngs")
         if rngs is not None and len(rngs) != self.num_envs:
             raise ValueError(f"state['rngs'] must hold {self.num_envs} generator states, got {len(rngs)}")
@@ -246,8 +242,8 @@ class LatentVectorEnv(SharedCopies, VectorEnv):
         self.sim.set_state({k: v for k, v in state.items() if k not in ("elapsed_steps", "autoresetting", "rngs")})
         if generators is not None:
             self._rngs = generators
-        self._elapsed[:] = elapsed.astype(np.int64)
-        self._autoreset[:] = pending.astype(bool) & (self.metadata["autoreset_mode"] != AutoresetMode.SAME_STEP)
+        self._elapsed[:] = elapsed
+        self._autoreset[:] = pending & (self.metadata["autoreset_mode"] != AutoresetMode.SAME_STEP)
         self._unreset[:] = False
 
     def _per_copy(self, name: str) -> tuple[Any, ...]:

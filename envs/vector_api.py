@@ -10,6 +10,7 @@ per-copy methods from the batched state (:data:`PER_COPY_CALLS`), a goal env's p
 from __future__ import annotations
 
 import copy
+from collections.abc import Mapping
 from typing import TYPE_CHECKING, Any
 
 import numpy as np
@@ -163,6 +164,33 @@ def reset_mask(options: dict[str, Any] | None, num_envs: int) -> np.ndarray | No
     return mask
 
 
+def episode_clock(state: Mapping[str, Any], num_envs: int) -> tuple[np.ndarray, np.ndarray]:
+    """A vector state's episode clock, checked: ``elapsed_steps`` [N] (int64) and ``autoresetting`` [N] (bool); zeros
+    and False where the state holds none (a batched state of the simulation alone).
+
+    Raises:
+        ValueError: another shape, a step count that is not a whole number >= 0 (NaN, inf or 2.5 would be cast to
+            a count that never reaches the episode limit, or to another one), or a flag other than True/False (1/0).
+    """
+    elapsed = np.asarray(state.get("elapsed_steps", np.zeros(num_envs, np.int64)))
+    pending = np.asarray(state.get("autoresetting", np.zeros(num_envs, dtype=bool)))
+    if elapsed.shape != (num_envs,) or pending.shape != (num_envs,):
+        raise ValueError(
+            f"state['elapsed_steps'] and state['autoresetting'] must have shape ({num_envs},), "
+            f"got {elapsed.shape} and {pending.shape}"
+        )
+    whole = elapsed.dtype.kind in "iu"
+    if elapsed.dtype.kind == "f":
+        with np.errstate(invalid="ignore"):
+            whole = bool((np.isfinite(elapsed) & (elapsed == np.floor(elapsed)) & (elapsed < 2.0**62)).all())
+    if not whole or (elapsed < 0).any():
+        raise ValueError(f"state['elapsed_steps'] must hold whole step counts >= 0, got {elapsed.tolist()}")
+    flags = pending.dtype.kind == "b" or (pending.dtype.kind in "iuf" and bool(np.isin(pending, (0, 1)).all()))
+    if not flags:
+        raise ValueError(f"state['autoresetting'] must hold True/False per copy, got {pending.tolist()}")
+    return elapsed.astype(np.int64), pending.astype(bool)
+
+
 __all__ = [
     "PER_COPY_CALLS",
     "SHARED_METHODS",
@@ -170,5 +198,6 @@ __all__ = [
     "VECTOR_KWARGS",
     "SharedCopies",
     "check_started",
+    "episode_clock",
     "reset_mask",
 ]

@@ -112,6 +112,27 @@ def test_set_state_restores_the_episode_clock_after_an_episode_ended() -> None:
         venv.set_state({**saved, "elapsed_steps": np.zeros(3)})
 
 
+@pytest.mark.parametrize("shards", [1, 2])
+def test_set_state_refuses_an_episode_clock_that_is_not_whole_counts(shards: int) -> None:
+    """A NaN, inf, huge or fractional step count was cast to int64 (NaN: -2**63, a copy that never truncates) and a
+    NaN flag to True; each is refused now, before anything changes (the sharded env stays open)."""
+    venv = _vec(max_episode_steps=2, shards=shards)
+    try:
+        venv.reset(seed=0)
+        saved = venv.get_state()
+        for bad in (np.nan, np.inf, 1e30, 2.5, -1.0):
+            with pytest.raises(ValueError, match=r"state\['elapsed_steps'\] must hold whole step counts >= 0"):
+                venv.set_state({**saved, "elapsed_steps": np.array([bad, 0.0])})
+        for bad in (np.nan, 2.0):
+            with pytest.raises(ValueError, match=r"state\['autoresetting'\] must hold True/False"):
+                venv.set_state({**saved, "autoresetting": np.array([bad, 0.0])})
+        venv.set_state({**saved, "elapsed_steps": np.array([1.0, 0.0]), "autoresetting": np.array([0, 0])})
+        _, _, _, truncated, _ = venv.step(PUSH)
+        assert truncated.tolist() == [True, False]  # whole floats and 0/1 flags are taken as before
+    finally:
+        venv.close()
+
+
 def test_a_restored_state_draws_the_same_next_episodes() -> None:
     """The copies' generators are part of the state: the autoresets after a restore draw the episodes they drew
     first; a single env's next unseeded reset alike; another env's or another dt's state is refused."""
