@@ -334,6 +334,9 @@ class Evaluation:
         final_distance: ``info["distance"]`` at each episode's last step [m] (the reach tasks, Stewart),
             shape [episodes]; None where the env reports no distance.
         sampled: The policy's actions were sampled (``evaluate(deterministic=False)``), not its deterministic ones.
+        diverged: ``info["diverged"]`` at each episode's last step: the stepper could not make a step of it finite
+            and the episode ended there (``terminated``), its return over fewer steps, shape [episodes]; None where
+            the env reports no such flag.
     """
 
     policy: str
@@ -345,6 +348,7 @@ class Evaluation:
     saturated_steps: np.ndarray
     final_distance: np.ndarray | None = None
     sampled: bool = False
+    diverged: np.ndarray | None = None
 
     @property
     def mean(self) -> float:
@@ -399,6 +403,8 @@ class Evaluation:
             "successes": [bool(h) for h in self.successes],
             "saturated_steps": [float(f) for f in self.saturated_steps],
             **({} if self.final_distance is None else {"final_distance": [float(d) for d in self.final_distance]}),
+            **({} if self.diverged is None else {"diverged_episodes": int(np.sum(self.diverged))}),
+            **({} if self.diverged is None else {"diverged": [bool(f) for f in self.diverged]}),
         }
 
 
@@ -482,7 +488,7 @@ def _run_episodes(
     successes = np.zeros(venv.num_envs, dtype=bool)
     success_steps = np.zeros(venv.num_envs)
     saturated = np.zeros(venv.num_envs)
-    distance = None
+    distance = diverged = None
     running = np.ones(venv.num_envs, dtype=bool)
     while running.any():
         if policy == "random":
@@ -503,12 +509,25 @@ def _run_episodes(
         if "distance" in info:
             distance = np.full(venv.num_envs, np.nan) if distance is None else distance
             distance[done] = np.asarray(info["distance"], dtype=float)[done]
+        if "diverged" in info:
+            diverged = np.zeros(venv.num_envs, dtype=bool) if diverged is None else diverged
+            diverged[done] = np.asarray(info["diverged"], dtype=bool)[done]
         running &= ~done
     venv.close()
     name = policy if isinstance(policy, str) else "agent"
     steps = dict(success_steps=success_steps / lengths, saturated_steps=saturated / lengths)
     sampled = not deterministic and not isinstance(policy, str)
-    return Evaluation(name, returns, successes, lengths, int(seed), **steps, final_distance=distance, sampled=sampled)
+    return Evaluation(
+        name,
+        returns,
+        successes,
+        lengths,
+        int(seed),
+        **steps,
+        final_distance=distance,
+        sampled=sampled,
+        diverged=diverged,
+    )
 
 
 # -- model files ------------------------------------------------------------------------------

@@ -51,11 +51,24 @@ def _add_env_args(parser: argparse.ArgumentParser) -> None:
 
 
 def _line(name: str, result: dict[str, Any]) -> str:
+    diverged = result.get("diverged_episodes", 0)
     return (
         f"{name:<9} return {result['mean_return']:9.2f} ± {result['std_return']:7.2f}   "
         f"success {100 * result['success_rate']:5.1f}% (of steps {100 * result['success_steps']:5.1f}%)   "
-        f"({result['episodes']} episode{'s' * (result['episodes'] != 1)} from seed {result['seed']})"
+        f"({result['episodes']} episode{'s' * (result['episodes'] != 1)} from seed {result['seed']}"
+        + (f"; {diverged} diverged" if diverged else "")
+        + ")"
     )
+
+
+def _warn_diverged(name: str, result: dict[str, Any]) -> None:
+    """Warn (stderr, in --json runs too) where episodes of ``result`` (an ``Evaluation.as_dict()``) ended diverged."""
+    diverged = result.get("diverged_episodes", 0)
+    if diverged:
+        warn(
+            f"{name}: {diverged} of {result['episodes']} episodes ended diverged (info['diverged']: a step the stepper "
+            "could not trust ended each; their returns and successes count only the steps up to it)"
+        )
 
 
 def cmd_train_agent(args: argparse.Namespace) -> int:
@@ -99,6 +112,7 @@ def cmd_train_agent(args: argparse.Namespace) -> int:
         warn("interrupted before training started; nothing was saved")
         return EXIT_INTERRUPTED
     final = result.evaluation.as_dict()
+    _warn_diverged("agent", final)
     files = sorted(str(p) for p in Path(args.out).iterdir() if p.is_file())
     if args.json:
         json_out(
@@ -161,6 +175,8 @@ def cmd_eval_agent(args: argparse.Namespace) -> int:
     normalization = None if model.normalizer is None else str(normalizer_path(path))
     for name in rows.keys() - {"agent"}:
         rows[name]["agent_above_p"], rows[name]["agent_better_episodes"] = runs["agent"].above(runs[name])
+    for name, row in rows.items():
+        _warn_diverged(name, row)
     if args.json:
         json_out({"env_id": args.env_id, "model": args.model, "normalization": normalization, **rows})
         return EXIT_OK
@@ -229,7 +245,9 @@ def add_commands(sub: Any) -> None:
         description=(
             "Run seeded episodes (seeds SEED .. SEED+EPISODES-1) of a model written by train-agent on ENV_ID "
             "(MODEL 'shipped': the policy shipped with redsim for ENV_ID; --algo: any SB3 model of that algorithm); "
-            "with --baselines, the same episodes with a random policy and with the task's scripted controller."
+            "with --baselines, the same episodes with a random policy and with the task's scripted controller. "
+            "Episodes that ended diverged (info['diverged']) are counted on each line and in --json "
+            "('diverged_episodes') and warned about on stderr."
         ),
     )
     p.add_argument(

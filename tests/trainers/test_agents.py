@@ -279,6 +279,25 @@ def test_bad_input_is_a_clear_cli_error(cli: Callable[..., tuple[int, str, str]]
     assert code == 2 and "shards must be an integer in [1, num_envs = 2], got 3" in err
 
 
+def test_evaluation_reports_the_episodes_that_ended_diverged(cli: Callable[..., tuple[int, str, str]]) -> None:
+    """An episode the stepper ends diverged (BistableBar-v1 at 2500x its force and 10x its dt) has a shorter, so
+    often better, return: evaluate marks it, eval-agent counts it on its line, in --json and in a warning (it was
+    not told apart from an episode that ran to its limit)."""
+    hard = {"max_force": 1e5, "dt": 0.2, "max_episode_steps": 20}
+    run = evaluate("RedSim/BistableBar-v1", "random", episodes=2, env_kwargs=hard)
+    assert run.diverged is not None and run.diverged.tolist() == [True, True] and (run.lengths < 20).all()
+    assert run.as_dict()["diverged_episodes"] == 2 and run.as_dict()["diverged"] == [True, True]
+    calm = evaluate(MINI, "random", episodes=2, env_kwargs={"max_episode_steps": 5})
+    assert calm.diverged is not None and not calm.diverged.any() and calm.as_dict()["diverged_episodes"] == 0
+    args = ["eval-agent", "shipped", "RedSim/BistableBar-v1", "--episodes", "2", "--episode-steps", "20"]
+    args += ["--env-arg", "max_force=1e5", "--env-arg", "dt=0.2"]
+    code, out, err = cli(*args)
+    assert code == 0 and "(2 episodes from seed 0; 2 diverged)" in out
+    assert "agent: 2 of 2 episodes ended diverged (info['diverged']" in err
+    code, out, err = cli(*args, "--json")
+    assert code == 0 and json.loads(out)["agent"]["diverged_episodes"] == 2 and "ended diverged" in err
+
+
 def test_eval_agent_takes_a_plain_sb3_model_with_its_algorithm(
     cli: Callable[..., tuple[int, str, str]], tmp_path: Path
 ) -> None:
