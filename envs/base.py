@@ -724,6 +724,15 @@ class LatentSim:
         turns = z - self._nearest_turn(z, torch.zeros_like(z))
         return z - turns, z_prev - turns
 
+    def _beyond_bound(self, z: Tensor, z_prev: Tensor) -> Tensor:
+        """Copies [B] (bool) with a non-periodic latent of z or z_prev [B, d] beyond :data:`LATENT_BOUND`, which the
+        observation clips (z, and z_dot past its bound): flagged ``out_of_range`` even where |z| is inside the map's
+        radius (:data:`redsim.runtime.flags.LATENT_RANGE`, 11.3 at d = 8), so a clipped observation is never silent."""
+        beyond = torch.stack([z, z_prev], 1).abs() > LATENT_BOUND  # [B, 2, d]
+        if self.periodic:
+            beyond[..., self.periodic] = False
+        return beyond.any(-1).any(-1)
+
     def step(self, action: np.ndarray) -> tuple[np.ndarray, np.ndarray, dict[str, np.ndarray]]:
         """Advance every copy by one env step with actions [B, A] (already checked and clipped). The step is
         atomic: an exception or a KeyboardInterrupt inside it leaves every copy as it was before the call.
@@ -782,6 +791,7 @@ class LatentSim:
             iterations += stats.iterations.to(self.device).to(torch.int64)
         diverged |= ~torch.isfinite(self.z).all(dim=1)
         self.z, self.z_prev = self._first_turn(self.z, self.z_prev)
+        out_of_range |= self._beyond_bound(self.z, self.z_prev)
         self.x_prev, self.x = self.x, self.full_positions(self.z)
         reward, terms = self.task.reward(self.x, act, self.params)
         _check_task_output("reward", reward, self.batch, valid=~diverged)
@@ -1158,9 +1168,10 @@ class LatentEnv(gym.Env[np.ndarray, np.ndarray]):
 
     ``info`` after each step: ``converged``, ``iterations``, ``residual`` (the stepper's solver
     statistics), ``energy`` [J] (the energy the stepper minimized: a cubature's estimate where the env steps one),
-    ``out_of_range`` (z left the region the map was fitted on),
-    ``diverged``, ``energy_gain`` (a step raised K + E by more than the action's work: an artefact
-    of the map or the solve, reported like MuJoCo's warnings and never ending the episode; see
+    ``out_of_range`` (z left the region the map was fitted on, or a latent of z lies beyond the observation's
+    :data:`LATENT_BOUND`, where the observation clips it), ``diverged``, ``energy_gain`` (a step raised K + E by
+    more than the action's work: an artefact of the map or the solve, reported like MuJoCo's warnings and never
+    ending the episode; see
     :func:`redsim.runtime.flags.energy_gain_states`), ``energy_gain_tolerance`` [J] (the rise that flag allows: what
     the solve's leftover gradient can put in, plus round-off), ``reward_<term>`` for each reward term, the
     task's metrics (``distance``, ``is_success``), the scene's invariants (:mod:`redsim.envs.invariants`) and, with

@@ -107,6 +107,33 @@ def test_far_latent_start_stays_finite_and_out_of_range(mini_chain) -> None:
     assert run.flags["out_of_range"] >= 1
 
 
+def test_a_latent_the_observation_clips_is_flagged_out_of_range() -> None:
+    """Chain-v0 (d = 8): the map's radius is 4 sqrt(8) = 11.3, the observation clips each latent at LATENT_BOUND = 10,
+    so a latent at 10.2-10.9 with |z| < 11.3 was clipped silently (out_of_range False); the env flags it now."""
+    import gymnasium as gym
+    import numpy as np
+
+    from redsim.envs.base import LATENT_BOUND
+    from redsim.runtime.flags import out_of_range_states
+
+    env = gym.make("RedSim/Chain-v0")
+    env.reset(seed=0)
+    sim, state = env.unwrapped.sim, env.unwrapped.get_state()
+    low, high = env.observation_space.low, env.observation_space.high
+    zero = np.zeros(env.action_space.shape, np.float32)
+    for start, before in ((-10.5, -10.5), (-11.0, -10.6)):  # at rest beyond the bound; moving out (lands at -10.2)
+        z, z_prev = np.zeros(8), np.zeros(8)
+        z[7], z_prev[7] = start, before
+        assert not bool(out_of_range_states(torch.tensor(z[None]), (), None, None)[0])  # inside the map's radius
+        env.unwrapped.set_state({**state, "z": z, "z_prev": z_prev})
+        obs, _, _, _, info = env.step(zero)
+        assert info["out_of_range"] and not info["diverged"], (start, info)
+        clipped = (obs <= low) | (obs >= high)
+        assert not clipped[:16].any() or bool((sim.z.abs() > LATENT_BOUND).any())  # a clip shows a latent beyond
+    env.unwrapped.set_state({**state, "z": np.full(8, 3.0), "z_prev": np.full(8, 3.0)})  # |z| = 8.5: in range
+    assert not env.step(zero)[4]["out_of_range"]
+
+
 @pytest.mark.parametrize("bad", [float("nan"), float("inf"), -float("inf")])
 def test_non_finite_actions_are_rejected_with_a_message(mini_chain, bad: float) -> None:
     scene, f = mini_chain
