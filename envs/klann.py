@@ -62,7 +62,9 @@ class CrankSpeed(Task):
         hold_fraction: Fraction of the window's steps within the tolerance that makes a success.
 
     Raises:
-        ValueError: a bad number or range, or (at bind) an unknown handle.
+        ValueError: a bad number or range, or (at bind) an unknown handle or a ``speed_range`` whose top is not
+            below pi / dt, the fastest speed one env step of dt [s] measures (dt x frame_skip above 0.26 s at the
+            default range).
     """
 
     name = "crank_speed"
@@ -138,6 +140,12 @@ class CrankSpeed(Task):
         self._dim = sim.scene.dim
         self._pivot = torch.tensor(self.pivot, dtype=sim.torch_dtype, device=sim.device)
         self._max_speed = math.pi / sim.dt
+        if self.speed_range[1] >= self._max_speed:  # a commanded speed the observation and reward cannot tell
+            raise ValueError(
+                f"speed_range's top {self.speed_range[1]:g} rad/s must be below pi/dt = {self._max_speed:.3g} rad/s, "
+                f"the fastest crank speed one env step of {sim.dt:g} s (dt x frame_skip) measures (a crank turning "
+                "faster reads as a slower or backward one): lower dt or frame_skip, or the speed_range"
+            )
 
     def _arm(self, x: Tensor) -> Tensor:
         """Crank vector [B, 2] [m] from the pivot to the pin."""
@@ -300,7 +308,7 @@ class KlannEnv(LatentEnv):
     |---|---|---|
     | `render_mode` | None | None, "rgb_array" or "human" |
     | `max_force` | 40.0 | tangential force [N] of a unit action |
-    | `speed_range` | (4.0, 12.0) | range [rad/s] of the commanded speed |
+    | `speed_range` | (4.0, 12.0) | range [rad/s] of the commanded speed; its top must be below pi / (dt x frame_skip) |
     | `dt` | 0.02 | stepper time step [s] |
     | `frame_skip` | 1 | stepper steps per env step, 1 to 1000 (`MAX_FRAME_SKIP`) |
     | `hold_steps` | 100 | env steps of the success window |

@@ -81,6 +81,17 @@ def test_klann_success_window_arguments_are_checked(kwargs: dict, match: str) ->
         CrankSpeed("crank_pin", (0.0, 0.08), max_force=40.0, **kwargs)
 
 
+def test_klann_refuses_commanded_speeds_one_env_step_cannot_measure() -> None:
+    """The crank speed is the wrapped angle change over an env step: at dt x frame_skip = 0.4 s it reads at most
+    pi / 0.4 = 7.9 rad/s, so a command of 10 rad/s was unobservable and a crank at 10 rad/s read -5.7 rad/s; such
+    a speed_range is refused at make, naming both speeds (the default range runs up to dt x frame_skip 0.26 s)."""
+    for kwargs in ({"frame_skip": 20}, {"dt": 0.5}):
+        with pytest.raises(ValueError, match=r"speed_range's top 12 rad/s must be below pi/dt = (7.85|6.28) rad/s"):
+            gym.make("RedSim/Klann-v0", **kwargs)
+    env = gym.make("RedSim/Klann-v0", frame_skip=20, speed_range=(2.0, 7.0)).unwrapped  # measurable: made
+    assert env.observation_space.high[4] == pytest.approx(math.pi / 0.4)
+
+
 @pytest.mark.slow
 def test_klann_pi_controller_tracks_the_commanded_speed_on_average() -> None:
     """Eight copies under the scripted PI: the mean speed over the last 1.5 s matches the command.
