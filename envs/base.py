@@ -894,11 +894,15 @@ class LatentSim:
         """
         d, B = self.latent_dim, self.batch
         theirs, mine = state.get("setting"), self.setting()
+        if theirs is not None and not isinstance(theirs, Mapping):
+            raise ValueError(f"state['setting'] must be the dict get_state() wrote, got {theirs!r:.80}")
         if theirs is not None and dict(theirs) != mine:
             differ = ", ".join(f"{k} {theirs.get(k)!r} (here {v!r})" for k, v in mine.items() if theirs.get(k) != v)
             raise ValueError(f"the state belongs to another env: {differ}")
 
-        def tensor(value: Any, shape: tuple[int, ...], what: str, dtype: torch.dtype | None = None) -> Tensor:
+        def tensor(
+            value: Any, shape: tuple[int, ...], what: str, dtype: torch.dtype | None = None, finite: bool = True
+        ) -> Tensor:
             try:
                 if value is None:
                     raise TypeError
@@ -912,7 +916,7 @@ class LatentSim:
                 ) from None
             if tuple(t.shape) != shape:
                 raise ValueError(f"state[{what!r}] must have shape {list(shape)}, got {list(t.shape)}")
-            if not bool(torch.isfinite(t).all()):
+            if finite and not bool(torch.isfinite(t).all()):
                 raise ValueError(f"state[{what!r}] must be finite")
             return t.clone()
 
@@ -923,11 +927,8 @@ class LatentSim:
         z = tensor(state["z"], (B, d), "z")
         z_prev = tensor(state["z_prev"], (B, d), "z_prev")
         model = torch.full((B, d, d), torch.nan, dtype=self.torch_dtype, device=self.device)
-        if state.get("model") is not None:
-            model = torch.as_tensor(np.asarray(state["model"]), dtype=self.torch_dtype, device=self.device)
-            if tuple(model.shape) != (B, d, d):
-                raise ValueError(f"state['model'] must have shape {[B, d, d]}, got {list(model.shape)}")
-            model = model.clone()
+        if state.get("model") is not None:  # NaN rows: none built yet (the next step builds its own)
+            model = tensor(state["model"], (B, d, d), "model", finite=False)
         H, D = self.loads.shape[1:]
         loads = torch.zeros_like(self.loads)
         if state.get("loads") is not None:
@@ -1712,7 +1713,12 @@ def state_row(state: Mapping[str, Any], i: int = 0) -> dict[str, Any]:
 
 def _batch(state: Mapping[str, Any]) -> dict[str, Any]:
     def row(value: Any) -> Any:
-        return None if value is None else np.asarray(value)[None]
+        if value is None:
+            return None
+        try:
+            return np.asarray(value)[None]
+        except ValueError:  # ragged: the batched set_state refuses it, naming the key and the shape it needs
+            return [value]
 
     missing = {"z", "z_prev", "cond", "params"} - set(state)
     if missing:

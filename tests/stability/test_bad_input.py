@@ -235,3 +235,21 @@ def test_making_an_env_leaves_torch_s_global_random_stream_alone(env_id: str) ->
     gym.make(env_id)
     gym.make_vec(env_id, 2, "vector_entry_point")
     assert torch.equal(torch.rand(3), expected)
+
+
+def test_set_state_names_a_malformed_setting_or_model() -> None:
+    """A ``setting`` that is not a dict was a bare ``TypeError: 'int' object is not iterable``, a ``model`` of strings
+    torch's conversion error and a ragged one NumPy's: each is now a ValueError naming the key; a NaN model still
+    means "none built yet" and steps as a fresh one."""
+    env = gym.make("RedSim/MiniChain-v0").unwrapped
+    env.reset(seed=0)
+    state = env.get_state()
+    with pytest.raises(ValueError, match=r"state\['setting'\] must be the dict get_state\(\) wrote, got 5"):
+        env.set_state({**state, "setting": 5})
+    for model in (np.full((4, 4), "x"), [[1.0], [1.0, 2.0]]):
+        with pytest.raises(ValueError, match=r"state\['model'\] must be a numeric array of shape \[1, 4, 4\]"):
+            env.set_state({**state, "model": model})
+    env.set_state({**state, "model": np.full((4, 4), np.nan)})
+    fresh = env.step(np.zeros(3, np.float32))[0]
+    env.set_state({**state, "model": None})
+    np.testing.assert_array_equal(env.step(np.zeros(3, np.float32))[0], fresh)
