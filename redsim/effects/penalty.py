@@ -420,7 +420,8 @@ class SDFContact(Effect):
         pairs, K = self.pair_weights.shape[:2]
         # gathers from x [B, N] only: their backward is one index_add_ into x (on a [B, pairs, ...]
         # tensor it is one slice-add per index, 10-40x slower at B = 1)
-        sources = x.index_select(1, self.pair_source_index).reshape(B, pairs, -1, K)  # [B, pairs, 3, K]
+        # sizes spelled out, never -1: an empty batch (B = 0) has no size to infer
+        sources = x.index_select(1, self.pair_source_index).reshape(B, pairs, 3, K)  # [B, pairs, 3, K]
         frames = x.index_select(1, self.pair_frame_index).reshape(B, pairs, 12)
         frames = (frames * self.pair_frame_weights + self.pair_frame_offset).reshape(B, pairs, 3, 4)
         rotation_t = frames[..., :3].transpose(-1, -2)  # [B, pairs, 3, 3]
@@ -431,5 +432,6 @@ class SDFContact(Effect):
         # [pairs, 3, B, K (+D) + 1]: the contraction's output [pairs, 3 * B, S] then holds each
         # component of a pair's points in one contiguous block of B * S
         lifted = torch.cat(parts, -1).permute(1, 2, 0, 3)
-        local = torch.bmm(lifted.reshape(pairs, 3 * B, -1), self.pair_lift)  # [pairs, 3 * B, S]
-        return self.shape.distance(local.view(pairs, 3, B, -1).permute(0, 2, 3, 1))  # local [pairs, B, S, 3]
+        local = torch.bmm(lifted.reshape(pairs, 3 * B, lifted.shape[-1]), self.pair_lift)  # [pairs, 3 * B, S]
+        S = self.pair_lift.shape[-1]
+        return self.shape.distance(local.view(pairs, 3, B, S).permute(0, 2, 3, 1))  # local [pairs, B, S, 3]

@@ -243,6 +243,22 @@ def test_non_finite_inputs_raise_before_stepping(mini_chain) -> None:
         stepper.step(z, z, cond=torch.zeros(2, 1))
 
 
+def test_an_empty_batch_steps_to_an_empty_batch(mini_chain) -> None:
+    """Stepping only the copies still running (``z[~done]``) can leave none: B = 0 returns empty results, as torch
+    does. The chains' contact effect inferred a size with reshape(..., -1), which an empty batch cannot (a
+    RuntimeError deep inside scene.energy); it also made the chain scenes' energy refuse q [0, n]."""
+    scene, f = mini_chain
+    stepper = LatentStepper(scene, f, DT)
+    z = stepper.rest_latent()[:0]
+    z_next, stats = stepper.step(z, z, torch.zeros(0, len(scene.handles), scene.dim))
+    assert z_next.shape == (0, stepper.latent_dim) and stats.model.shape == (0, stepper.latent_dim, stepper.latent_dim)
+    assert stats.converged.shape == stats.diverged.shape == stats.energy.shape == (0,)
+    for name in ("mini_chain", "chain"):
+        built = scenes.build(name)
+        assert built.energy(built.q_seed[None][:0]).shape == (0,)
+        assert torch.isfinite(built.energy(built.q_seed[None]))
+
+
 def test_the_stepper_steps_its_own_copy_of_the_map_and_names_a_scene_of_other_parameters() -> None:
     """The rest solve reads the map the steps use (a copy), whatever the caller does to its own after; a map fitted
     to the scene with other parameters (a soft bar's map on a stiffer bar) is stepped, with a warning that says so."""
