@@ -243,6 +243,26 @@ def test_non_finite_inputs_raise_before_stepping(mini_chain) -> None:
         stepper.step(z, z, cond=torch.zeros(2, 1))
 
 
+def test_inputs_that_are_not_numbers_are_named(mini_chain) -> None:
+    """A string, None or a ragged list was torch's conversion error (TypeError "new(): invalid data type 'str'",
+    RuntimeError "Could not infer dtype of NoneType"), naming neither the argument nor its shape; a complex z was
+    cast with its imaginary part dropped. Each is a ValueError naming both now."""
+    scene, f = mini_chain
+    stepper = LatentStepper(scene, f, DT)
+    z = stepper.rest_latent()
+    for bad in ("abc", None, [[1.0], [1.0, 2.0]]):
+        with pytest.raises(ValueError, match=r"z must be an array of numbers of shape \[B, 4\]"):
+            stepper.step(bad, z)
+    with pytest.raises(ValueError, match=r"z_prev must be an array of real numbers of shape \[B, 4\], got torch.compl"):
+        stepper.step(z, z.to(torch.complex64))
+    with pytest.raises(ValueError, match=r"loads must be an array of numbers of shape \[1, 1, 3\] or \[1, 3\]"):
+        stepper.step(z, z, "abc")
+    with pytest.raises(ValueError, match=r"warm must be an array of numbers of shape \[1, 4, 4\]"):
+        stepper.step(z, z, warm="abc")
+    z_next, _ = stepper.step(z.numpy(), z.numpy().tolist(), [[0.0, 0.0, 0.0]])  # NumPy arrays and lists still work
+    assert torch.equal(z_next, stepper.step(z, z, torch.zeros(1, 1, 3))[0])
+
+
 def test_an_empty_batch_steps_to_an_empty_batch(mini_chain) -> None:
     """Stepping only the copies still running (``z[~done]``) can leave none: B = 0 returns empty results, as torch
     does. The chains' contact effect inferred a size with reshape(..., -1), which an empty batch cannot (a
