@@ -33,7 +33,7 @@ from redsim.dofs import DofMap
 from redsim.effects.base import Effect
 from redsim.effects.external import ExternalLoad, Gravity
 from redsim.points import PointSet
-from redsim.tensors import cast_tensors
+from redsim.tensors import as_numbers, cast_tensors
 
 SOURCE_PARAMS = ("source", "mesh_sha256")
 """Build parameters that record where a mesh scene was read from, not what it is (left out of its fingerprint)."""
@@ -356,7 +356,7 @@ class Scene:
             out = torch.zeros(batch, H, D, dtype=dtype, device=device)
             for i, h in enumerate(self.handle_names):
                 if h in loads:
-                    f = torch.as_tensor(loads[h], dtype=dtype, device=device)
+                    f = as_numbers(loads[h], f"load on handle {h!r}", f"[{D}] or [{batch}, {D}]", dtype, device)
                     if f.ndim == 0 or f.shape[-1] != D:
                         raise ValueError(
                             f"load on handle {h!r} must have {D} components (a force [{D}] or [{batch}, {D}]), got "
@@ -370,7 +370,7 @@ class Scene:
                             f"configuration(s), got shape {tuple(f.shape)}"
                         ) from None
             return out
-        loads = torch.as_tensor(loads, dtype=dtype, device=device)
+        loads = as_numbers(loads, "loads", f"[{batch}, {H}, {D}] or [{H}, {D}]", dtype, device)
         if loads.ndim == 2:
             loads = loads.unsqueeze(0).expand(batch, -1, -1)
         if loads.shape != (batch, H, D):
@@ -389,7 +389,7 @@ class Scene:
             return None
         dtype = like.dtype if like is not None else self.dtype
         device = like.device if like is not None else self.device
-        c = space.default if cond is None else torch.as_tensor(cond, dtype=dtype)
+        c = space.default if cond is None else as_numbers(cond, "condition", f"[{batch}, {space.dim}]", dtype)
         c = c.to(dtype=dtype, device=device)
         if c.ndim == 1:
             c = c.unsqueeze(0).expand(batch, -1)

@@ -1,5 +1,5 @@
-"""Walking the tensors inside nested scene data (effects' fields, handles, surfaces): cast, move, select; and
-Jacobian-vector products (:func:`jvp`)."""
+"""Walking the tensors inside nested scene data (effects' fields, handles, surfaces): cast, move, select;
+Jacobian-vector products (:func:`jvp`); a user's numbers as a tensor, or a clear error (:func:`as_numbers`)."""
 
 from __future__ import annotations
 
@@ -7,6 +7,7 @@ import dataclasses
 from collections.abc import Callable
 from typing import Any
 
+import numpy as np
 import torch
 from torch import Tensor
 
@@ -37,6 +38,21 @@ def cast_tensors(value: Any, device: torch.device | str | None, dtype: torch.dty
         return t.to(device=device, dtype=dtype) if t.is_floating_point() else t.to(device=device)
 
     return map_tensors(value, cast)
+
+
+def as_numbers(
+    value: Any, what: str, shape: str, dtype: torch.dtype | None = None, device: torch.device | str | None = None
+) -> Tensor:
+    """``value`` as a real tensor (in ``dtype`` on ``device`` where given); a ValueError naming ``what`` and its
+    ``shape`` [str] where it is not an array of real numbers (torch's own errors, e.g. "new(): invalid data type
+    'str'", name neither, and a complex value would be cast with its imaginary part dropped)."""
+    kind = value.dtype if isinstance(value, (Tensor, np.ndarray)) else None
+    if kind is not None and (kind.is_complex if isinstance(kind, torch.dtype) else kind.kind == "c"):
+        raise ValueError(f"{what} must be an array of real numbers of shape {shape}, got {kind}")
+    try:
+        return torch.as_tensor(value, dtype=dtype, device=device)
+    except (TypeError, ValueError, RuntimeError):
+        raise ValueError(f"{what} must be an array of numbers of shape {shape}, got {value!r:.80}") from None
 
 
 def jvp(fn: Callable[..., Tensor], primals: tuple[Tensor, ...], tangents: tuple[Tensor, ...]) -> tuple[Tensor, Tensor]:

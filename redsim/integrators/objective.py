@@ -20,6 +20,7 @@ from torch import Tensor
 from redsim.hessian import energy_hessian
 from redsim.integrators.spaces import FullSpace, Space
 from redsim.scene import LoadsLike, Scene
+from redsim.tensors import as_numbers
 
 STATIC_MAX_STEP = 0.05
 """Newton trust radius of static full-space solves, as a fraction of the scene's extent."""
@@ -239,7 +240,7 @@ def pack_inputs(scene: Scene, loads: LoadsLike, cond: Tensor | None) -> tuple[Te
 
 def checked_vector(value: Tensor | Any, size: int, what: str, like: Tensor) -> Tensor:
     """``value`` as a finite vector [size] in ``like``'s dtype and device (a copy); else ValueError naming ``what``."""
-    out = torch.as_tensor(value, dtype=like.dtype, device=like.device)
+    out = as_numbers(value, what, f"[{size}]", like.dtype, like.device)
     if out.shape != (size,):
         raise ValueError(f"{what} must have shape [{size}], got {tuple(out.shape)}")
     if not bool(torch.isfinite(out).all()):

@@ -31,7 +31,7 @@ from redsim.runtime.flags import diverged_states, energy_gain_states, energy_gai
 from redsim.runtime.solver import HESSIANS, BatchResult, check_max_step, check_sync_every, minimize
 from redsim.scene import LoadsLike, Scene
 from redsim.subspace import map_fingerprint
-from redsim.tensors import jvp
+from redsim.tensors import as_numbers, jvp
 
 DEFAULT_TOL = {torch.float32: 1e-6, torch.float64: 1e-9}
 """Default relative gradient tolerance per dtype.
@@ -569,7 +569,7 @@ class LatentStepper:
 
     # -- inputs -----------------------------------------------------------------------------
     def _latents(self, z: Tensor, what: str) -> Tensor:
-        z = _numbers(z, what, f"[B, {self.latent_dim}]", self.device)
+        z = as_numbers(z, what, f"[B, {self.latent_dim}]", device=self.device)
         if z.ndim != 2 or z.shape[1] != self.latent_dim:
             raise ValueError(f"{what} must have shape [B, {self.latent_dim}], got {tuple(z.shape)}")
         z = z.to(self.dtype)  # checked after the cast
@@ -585,7 +585,7 @@ class LatentStepper:
             return None
         if cond is None:
             return self._default_cond(batch)
-        cond = _numbers(cond, "cond", f"[{batch}, {space.dim}]", self.device)
+        cond = as_numbers(cond, "cond", f"[{batch}, {space.dim}]", device=self.device)
         if cond.shape != (batch, space.dim):
             raise ValueError(
                 f"cond must have shape [{batch}, {space.dim}] ({list(space.names)}), got {tuple(cond.shape)}"
@@ -600,7 +600,7 @@ class LatentStepper:
         H, D = len(self.scene.handles), self.scene.dim
         if isinstance(loads, Mapping):  # {handle: force}, as scene.energy takes it
             loads = self.scene.pack_loads(loads, batch)
-        loads = _numbers(loads, "loads", f"[{batch}, {H}, {D}] or [{H}, {D}]", self.device)
+        loads = as_numbers(loads, "loads", f"[{batch}, {H}, {D}] or [{H}, {D}]", device=self.device)
         if loads.shape == (H, D):  # one set of loads for every state
             loads = loads.expand(batch, H, D)
         if loads.shape != (batch, H, D):
@@ -663,7 +663,7 @@ class LatentStepper:
         if not self.warm_start:
             warm = None
         if warm is not None:
-            warm = _numbers(warm, "warm", f"[{batch}, {d}, {d}]", self.device)
+            warm = as_numbers(warm, "warm", f"[{batch}, {d}, {d}]", device=self.device)
             if warm.shape != (batch, d, d):
                 raise ValueError(
                     f"warm must have shape [{batch}, {d}, {d}] (a step's stats.model), got {tuple(warm.shape)}"
@@ -927,18 +927,6 @@ def check_compiler(device: torch.device) -> None:
             f"compile needs a C++ compiler on the CPU (torch.compile builds its kernels with one), and none runs "
             f"({type(err).__name__}); install g++ (or set CXX to a C++ compiler), or step without compile"
         ) from None
-
-
-def _numbers(value: object, what: str, shape: str, device: torch.device) -> Tensor:
-    """``value`` as a tensor on ``device``; a ValueError naming ``what`` and its ``shape`` where it is not an array
-    of numbers (torch's own errors, e.g. "new(): invalid data type 'str'", name neither)."""
-    try:
-        tensor = torch.as_tensor(value, device=device)
-    except (TypeError, ValueError, RuntimeError):
-        raise ValueError(f"{what} must be an array of numbers of shape {shape}, got {value!r:.80}") from None
-    if tensor.is_complex():  # a cast to the stepper's dtype would drop the imaginary part
-        raise ValueError(f"{what} must be an array of real numbers of shape {shape}, got {tensor.dtype}")
-    return tensor
 
 
 def _check_map_scene(subspace: nn.Module, scene: Scene) -> None:

@@ -253,3 +253,26 @@ def test_set_state_names_a_malformed_setting_or_model() -> None:
     fresh = env.step(np.zeros(3, np.float32))[0]
     env.set_state({**state, "model": None})
     np.testing.assert_array_equal(env.step(np.zeros(3, np.float32))[0], fresh)
+
+
+def test_the_reference_names_inputs_that_are_not_numbers() -> None:
+    """As the runtime: a string or ragged load, a string state or condition was torch's TypeError "new(): invalid
+    data type 'str'" (or NumPy's ragged error) naming nothing; now a ValueError names the argument and its shape."""
+    from redsim.integrators import FullSpace, FullState, ImplicitEuler
+
+    chain = scenes.build("mini_chain").to(dtype=torch.float64)
+    integrator = ImplicitEuler(FullSpace(chain), 0.02)
+    state = integrator.initial_state()
+    for loads in ("abc", [[1.0], [1.0, 2.0]]):
+        with pytest.raises(ValueError, match=r"loads must be an array of numbers of shape \[1, 1, 3\] or \[1, 3\]"):
+            integrator.step(state, loads)
+    with pytest.raises(ValueError, match=r"load on handle 'bottom' must be an array of numbers of shape \[3\]"):
+        integrator.step(state, {"bottom": "ab"})
+    with pytest.raises(ValueError, match=r"state.q must be an array of numbers of shape \[24\]"):
+        integrator.step(FullState("abc", state.q_prev, 0.0))  # type: ignore[arg-type]
+    with pytest.raises(ValueError, match=r"loads must be an array of real numbers .* got complex128"):
+        chain.energy(state.q[None], np.array([[1j, 0.0, 0.0]]))
+    bar = scenes.build("conditional_bar")
+    with pytest.raises(ValueError, match=r"condition must be an array of numbers of shape \[1, 2\]"):
+        bar.energy(bar.q_seed[None], None, "ab")
+    assert bool(torch.isfinite(integrator.step(state, [[0.0, 0.0, 1.0]])[0].q).all())  # lists still work
