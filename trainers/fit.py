@@ -635,8 +635,6 @@ def fit_subspace(
             f"a fit exists at {found}: continue it with resume=True (a larger steps extends it), or replace it with "
             "overwrite=True"
         )
-    if out is not None and overwrite:  # the old training state must not be taken for the new fit's
-        checkpoint_path(out, ".fit.pt").unlink(missing_ok=True)
     for alias, field in _ALIASES.items():
         if alias in overrides:
             if field in overrides and overrides[field] != overrides[alias]:
@@ -720,6 +718,8 @@ def fit_subspace(
         log.info("resuming %s at step %d of %d", state_path, start_step, config.steps)
     if stop_at is not None and not start_step <= stop_at < config.steps:
         raise ValueError(f"stop_at must be < steps ({config.steps}) and >= the {start_step} steps done, got {stop_at}")
+    if state_path is not None and overwrite:  # the old training state must not be taken for the new fit's; removed
+        state_path.unlink(missing_ok=True)  # only here, after every refusal: a refused call keeps it
 
     bar = None
     if progress:

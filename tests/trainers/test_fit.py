@@ -228,6 +228,24 @@ def test_a_fit_at_an_existing_stem_is_refused_unless_resumed_or_overwritten(tmp_
     assert (tmp_path / "mine.pt").read_bytes() != kept["mine.pt"]
 
 
+def test_a_refused_overwrite_keeps_the_training_state_at_the_stem(tmp_path) -> None:
+    """overwrite=True removes the old STEM.fit.pt only once the new fit starts: a call refused for its settings
+    (a bad field, an unknown option, a stop_at past steps) leaves the interrupted fit resumable."""
+    from redsim.trainers.fit import FitConfigError, FitStopped
+
+    scene = _tet_scene()
+    config = FitConfig(latent_dim=2, sigma=0.05, steps=6, hidden_width=8)
+    with pytest.raises(FitStopped):
+        fit_subspace(scene, config, progress=False, out=tmp_path / "mine", stop_at=3)
+    state = (tmp_path / "mine.fit.pt").read_bytes()
+    for bad, error in (({"steps": 0}, FitConfigError), ({"lr": 1e-3}, ValueError), ({"stop_at": 99}, ValueError)):
+        with pytest.raises(error):
+            fit_subspace(scene, config, progress=False, out=tmp_path / "mine", overwrite=True, **bad)
+        assert (tmp_path / "mine.fit.pt").read_bytes() == state, bad
+    fit_subspace(scene, config, progress=False, out=tmp_path / "mine", resume=True)  # still resumable
+    assert (tmp_path / "mine.pt").is_file()
+
+
 def test_a_callers_own_signal_handler_is_called_at_the_step_boundary() -> None:
     import os
     import signal
