@@ -296,15 +296,27 @@ def _episode_steps(env: str | gym.Env, env_kwargs: Mapping[str, Any] | None) -> 
 
 def _env_defaults(env: str | gym.Env) -> dict[str, Any]:
     """The keyword arguments an id's env is made with where none is given, as a model file records them (JSON): its
-    entry point's defaults, the id's registered kwargs and its ``max_episode_steps``; {} for a user's env."""
+    entry point's defaults, the id's registered kwargs and its ``max_episode_steps``; {} for a user's env. A class's
+    defaults include those of its base classes that its ``**kwargs`` reach (LatentEnv's ``dtype``, ``device``),
+    except where the class replaces one by a class attribute of that name (ConditionalBar's
+    ``randomize_condition``): that default is not known here."""
     from gymnasium.envs.registration import load_env_creator
 
     if not isinstance(env, str):
         return {}
     spec = gym.spec(env)
     creator = load_env_creator(spec.entry_point) if isinstance(spec.entry_point, str) else spec.entry_point
-    parameters = inspect.signature(creator).parameters.values()
-    defaults = {p.name: p.default for p in parameters if p.default is not inspect.Parameter.empty}
+
+    def own_defaults(function: Any) -> dict[str, Any]:
+        parameters = inspect.signature(function).parameters.values()
+        return {p.name: p.default for p in parameters if p.default is not inspect.Parameter.empty}
+
+    defaults = own_defaults(creator)
+    if inspect.isclass(creator):
+        for base in creator.__mro__[1:]:
+            if "__init__" in vars(base):
+                inherited = own_defaults(base.__init__).items()
+                defaults = {k: v for k, v in inherited if not hasattr(creator, k)} | defaults  # the subclass's win
     defaults.update(spec.kwargs, max_episode_steps=spec.max_episode_steps)
     return json.loads(json.dumps(defaults, default=str))
 

@@ -524,16 +524,22 @@ def test_a_resumed_run_draws_new_episodes(tmp_path: Path, monkeypatch: pytest.Mo
 def test_a_resume_that_gives_an_env_default_again_goes_on_and_another_value_is_refused(
     cli: Callable[..., tuple[int, str, str]], tmp_path: Path
 ) -> None:
-    """``--env-arg max_episode_steps=200`` (the id's length) and ``dt=0.02`` (the env's) make the env the run was
-    made with (no env args): the resume goes on."""
+    """``--env-arg max_episode_steps=200`` (the id's length), ``dt=0.02`` (the env's) and ``dtype="float32"`` (a
+    default of LatentEnv, which the env's ``**kwargs`` reach) make the env the run was made with (no env args): the
+    resume goes on."""
+    from redsim.trainers.agents import _env_defaults
+
     run = ["train-agent", MINI, "--algo", "sac", "--n-envs", "2", "--eval-every", "20", "--eval-episodes", "1"]
     run += ["--final-episodes", "1", "--no-video", "--no-progress", "--out", str(tmp_path)]
     assert cli(*run, "--steps", "20")[0] == 0
-    code, _, err = cli(*run, "--steps", "40", "--resume", "--env-arg", "max_episode_steps=200", "--env-arg", "dt=0.02")
+    defaults = ["--env-arg", "max_episode_steps=200", "--env-arg", "dt=0.02", "--env-arg", 'dtype="float32"']
+    code, _, err = cli(*run, "--steps", "40", "--resume", *defaults)
     assert code == 0, err
     assert load_agent(tmp_path / "model.zip", MINI).num_timesteps == 40
     code, _, err = cli(*run, "--steps", "60", "--resume", "--episode-steps", "100")
     assert code == 2 and "cannot resume with env_kwargs {'max_episode_steps': 100}" in err, err
+    # a base class's default that the env replaces by its own class attribute is not taken for the env's
+    assert "randomize_condition" not in _env_defaults("RedSim/ConditionalBar-v0")  # True there, False in LatentEnv
 
 
 def test_td3_resumes_from_a_checkpoint_with_other_copies(tmp_path: Path) -> None:
