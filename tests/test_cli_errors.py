@@ -466,6 +466,15 @@ def test_bench_budgets_and_empty_scene_lists_are_refused(cli: Cli, argv: list[st
         (["bench", "energy", "--scenes", "mini_chain", "--batches", "1,32,1"], "--batches gives '1' twice"),
         (["bench", "stability", "--regimes", "stiff,stiff"], "--regimes gives 'stiff' twice"),
         (["bench", "accuracy", "mini_chain", "--scenarios", "push,push"], "--scenarios gives 'push' twice"),
+        (  # two spellings of one id (Gymnasium's module prefix) or one number are one item too
+            ["bench", "envs", "--envs", "RedSim/MiniChain-v0,redsim:RedSim/MiniChain-v0"],
+            "--envs gives 'RedSim/MiniChain-v0' and 'redsim:RedSim/MiniChain-v0', which read the same",
+        ),
+        (
+            ["bench", "stability", "--envs", "redsim:RedSim/MiniChain-v0,RedSim/MiniChain-v0"],
+            "--envs gives 'redsim:RedSim/MiniChain-v0' and 'RedSim/MiniChain-v0', which read the same",
+        ),
+        (["bench", "cubature", "mini_chain", "--batches", "1,01"], "--batches gives '1' and '01', which read the same"),
     ],
 )
 def test_a_name_given_twice_in_a_bench_list_is_refused_before_any_work(

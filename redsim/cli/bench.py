@@ -527,9 +527,7 @@ def cmd_bench_stability(args: argparse.Namespace) -> int:
         raise CliError(f"unknown regime(s) {unknown}; valid: {', '.join([*stability.REGIMES, *extra])}")
     if args.regimes is None:
         regimes += ["fuzz", "mujoco"]
-    env_ids = (
-        list(redsim.envs.ids()) if args.envs is None else [parse_env_id(e) for e in parse_list(args.envs, "--envs")]
-    )
+    env_ids = list(redsim.envs.ids()) if args.envs is None else parse_list(args.envs, "--envs", parse_env_id)
     for flag in ("steps", "long_steps", "chain_steps"):
         if getattr(args, flag) < 1:
             raise CliError(f"--{flag.replace('_', '-')} must be >= 1, got {getattr(args, flag)}")

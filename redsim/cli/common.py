@@ -230,16 +230,20 @@ def write_error(folder: Path) -> str | None:
         return err.strerror or str(err)
 
 
-def parse_list(text: str, what: str) -> list[str]:
-    """The items of a comma-separated list (``what`` names the option in the error); an item given twice is an error
-    (a bench would run it twice)."""
+def parse_list(text: str, what: str, item: Callable[[str], Any] | None = None) -> list[Any]:
+    """The items of a comma-separated list (``what`` names the option in the error), each as ``item`` reads it
+    (default: the text); an item given twice is an error (a bench would run it twice), also where two spellings
+    read the same (``redsim:RedSim/X-v0`` and ``RedSim/X-v0``, ``1`` and ``01``)."""
     items = [s.strip() for s in text.split(",") if s.strip()]
     if not items:
         raise CliError(f"{what} must be a comma-separated list, got {text!r}")
-    repeated = next((item for i, item in enumerate(items) if item in items[:i]), None)
+    values = items if item is None else [item(s) for s in items]
+    repeated = next((i for i, value in enumerate(values) if value in values[:i]), None)
     if repeated is not None:
-        raise CliError(f"{what} gives {repeated!r} twice; give each once")
-    return items
+        first, again = items[values.index(values[repeated])], items[repeated]
+        given = f"{first!r} twice" if first == again else f"{first!r} and {again!r}, which read the same,"
+        raise CliError(f"{what} gives {given}; give each once")
+    return values
 
 
 # -- shared options -------------------------------------------------------------------------
@@ -259,7 +263,7 @@ def machine_line(machine: dict[str, Any], device: str) -> str:
 def parse_ints(text: str, what: str) -> list[int]:
     """Comma-separated integers >= 1 (``what`` names the option in the error)."""
     try:
-        values = [int(v) for v in parse_list(text, what)]
+        values = parse_list(text, what, int)
     except ValueError as err:
         raise CliError(f"{what} must be comma-separated integers, got {text!r}") from err
     if min(values) < 1:

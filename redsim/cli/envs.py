@@ -75,7 +75,7 @@ def cmd_bench_envs(args: argparse.Namespace) -> int:
     from redsim.benches.mujoco_cloth import cloth_anchor, cloth_anchor_line, cloth_ratio_lines, cloth_ratios
     from redsim.envs.bench import anchor_lines, bench_env, mujoco_anchors
 
-    ids = redsim.envs.ids() if args.envs is None else [parse_env_id(i) for i in parse_list(args.envs, "--envs")]
+    ids = redsim.envs.ids() if args.envs is None else parse_list(args.envs, "--envs", parse_env_id)
     try:
         batches = [int(b) for b in parse_list(args.batches, "--batches")]
     except ValueError as err:
