@@ -40,12 +40,13 @@ import csv
 import inspect
 import json
 import logging
+import os
 import pickle
 import re
 import shutil
 import time
 import zipfile
-from collections.abc import Mapping
+from collections.abc import Callable, Mapping
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
@@ -781,14 +782,25 @@ class TrainingInterrupted(KeyboardInterrupt):
 
 
 def _save_run(model: Any, venv: Any, model_path: Path) -> None:
-    """The model, its replay buffer (off-policy) and its ``VecNormalize`` statistics (where normalized)."""
+    """The model, its replay buffer (off-policy) and its ``VecNormalize`` statistics (where normalized), each
+    written in full beside its file before any replaces its file: an interrupt while saving keeps the previous
+    three whole and together (not a cut-short zip, nor a new model beside the older model's statistics)."""
     from stable_baselines3.common.vec_env import VecNormalize
 
-    model.save(model_path)
+    writes: list[tuple[Path, Callable[[Path], Any]]] = [(model_path, model.save)]
     if hasattr(model, "save_replay_buffer"):
-        model.save_replay_buffer(model_path.parent / BUFFER)
+        writes.append((model_path.parent / BUFFER, model.save_replay_buffer))
     if isinstance(venv, VecNormalize):
-        venv.save(str(normalizer_path(model_path)))
+        writes.append((normalizer_path(model_path), lambda tmp: venv.save(str(tmp))))
+    partial = [path.with_name(path.name + ".tmp") for path, _ in writes]  # a suffix: SB3 adds none
+    try:
+        for (_, write), tmp in zip(writes, partial, strict=True):
+            write(tmp)
+        for (path, _), tmp in zip(writes, partial, strict=True):
+            os.replace(tmp, path)
+    finally:
+        for tmp in partial:
+            tmp.unlink(missing_ok=True)
 
 
 def _close_quietly(venv: Any) -> None:

@@ -621,6 +621,40 @@ def test_ctrl_c_saves_the_run_and_resume_goes_on_from_it(tmp_path: Path, monkeyp
         assert [int(row["env_steps"]) for row in csv.DictReader(handle)] == [20, 40, 60, 80, 100]
 
 
+@pytest.mark.parametrize("stopped_in", ["model.zip", "model_vecnormalize.pkl"])
+def test_ctrl_c_while_the_run_is_saved_keeps_its_previous_files_whole(
+    tmp_path: Path, monkeypatch: pytest.MonkeyPatch, stopped_in: str
+) -> None:
+    """A Ctrl-C inside the save after training (recorded as an interrupted run that --resume finishes) leaves the
+    previous model.zip, replay buffer and statistics whole and together: not a cut-short zip, nor a new model beside
+    the statistics of the older one (which a resume, or eval-agent, would act through)."""
+    from stable_baselines3 import SAC
+    from stable_baselines3.common.vec_env import VecNormalize
+
+    from redsim.trainers.agents import TrainingInterrupted, train_agent
+
+    tiny = {"n_envs": 2, "eval_episodes": 1, "final_episodes": 1, "env_kwargs": SHORT, "video": False}
+    train_agent(MINI, tmp_path, algo="sac", steps=20, **tiny)
+    names = ("model.zip", "replay_buffer.pkl", "model_vecnormalize.pkl")
+    before = {name: (tmp_path / name).read_bytes() for name in names}
+    owner = SAC if stopped_in == "model.zip" else VecNormalize
+    save = owner.save
+
+    def cut_short(self: Any, path: Any, *args: Any, **kwargs: Any) -> None:
+        save(self, path, *args, **kwargs)
+        if Path(path).name.startswith(stopped_in):  # the run's own file, not a checkpoint's
+            with open(path, "r+b") as handle:
+                handle.truncate(100)  # stopped mid-write
+            raise KeyboardInterrupt
+
+    monkeypatch.setattr(owner, "save", cut_short)
+    with pytest.raises(TrainingInterrupted):
+        train_agent(MINI, tmp_path, algo="sac", steps=40, resume=True, **tiny)
+    assert {name: (tmp_path / name).read_bytes() for name in names} == before
+    monkeypatch.setattr(owner, "save", save)
+    assert train_agent(MINI, tmp_path, algo="sac", steps=40, resume=True, **tiny).steps == 40
+
+
 def test_ctrl_c_in_the_final_evaluation_or_mid_rollout_keeps_an_honest_record(
     tmp_path: Path, monkeypatch: pytest.MonkeyPatch
 ) -> None:
