@@ -23,6 +23,9 @@ import numbers
 from collections.abc import Callable
 from typing import Any
 
+import numpy as np
+import torch
+
 from redsim.scene import Scene
 from redsim.scenes.catalog import CATALOG
 from redsim.scenes.from_mesh import cloth_scene_from_mesh, fem_scene_from_mesh
@@ -88,11 +91,18 @@ def build(name: str, **params: Any) -> Scene:
     return builder(**{key: _as_default_type(key, value, signature[key].default) for key, value in params.items()})
 
 
+_NOT_REAL = (torch.bool, torch.complex64, torch.complex128, np.dtype(bool), np.dtype(np.complex64), np.dtype(complex))
+"""Dtypes of a one-number tensor or array that are no real number (a scene parameter refuses them)."""
+
+
 def _as_default_type(key: str, value: Any, default: Any) -> Any:
     """A parameter whose default is a float, given as an int, as that float (``density=7800`` builds the scene, and
-    its fingerprint, of ``density=7800.0``); anything but a real number there is refused."""
+    its fingerprint, of ``density=7800.0``); so is a one-number torch tensor or NumPy array of a real dtype
+    (``torch.tensor(7800.0)``); anything but a real number there is refused."""
     if not isinstance(default, float):
         return value
+    if isinstance(value, torch.Tensor | np.ndarray) and value.ndim == 0 and value.dtype not in _NOT_REAL:
+        value = value.item()
     if isinstance(value, bool) or not isinstance(value, numbers.Real):
         raise ValueError(f"scene parameter {key} must be a number, got {value!r}")
     return float(value)

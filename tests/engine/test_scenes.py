@@ -193,6 +193,10 @@ def test_a_float_parameter_given_as_an_int_is_the_same_scene() -> None:
 
     scene = redsim.scenes.build("mini_chain", density=7800)
     assert scene.fingerprint() == redsim.scenes.build("mini_chain").fingerprint()
+    for number in (torch.tensor(7800.0), torch.tensor(7800), np.float32(7800.0), np.array(7800.0)):  # one number
+        assert redsim.scenes.build("mini_chain", density=number).fingerprint() == scene.fingerprint(), number
+    with pytest.raises(ValueError, match="density must be a number"):
+        redsim.scenes.build("mini_chain", density=torch.tensor([7800.0, 7800.0]))
     assert scene.params["density"] == 7800.0 and isinstance(scene.params["density"], float)
     pretrained.load("mini_chain", scene)
     with pytest.raises(redsim.subspace.CheckpointError, match=r"it records density 7800.0 \(this scene: 2000.0\)"):
