@@ -178,9 +178,12 @@ def fem_scene_from_mesh(
         _check_voxel_count(mesh, pitch)
     vertices, tets = meshes.voxel_tet_mesh(mesh, pitch)
     if tets.shape[0] <= 6:  # one voxel (six tets): voxelizing always fills at least one, whatever the pitch
+        size = " x ".join(f"{e:.3g}" for e in mesh.extents)
+        given = f"voxel_pitch {pitch:g} m" if voxel_pitch is not None else f"target_dofs {target_dofs}"
+        fix = "a smaller voxel_pitch" if voxel_pitch is not None else "more target_dofs (or a voxel_pitch)"
         raise ValueError(
-            f"voxel_pitch {pitch:g} m is as large as this mesh ({' x '.join(f'{e:.3g}' for e in mesh.extents)} m): "
-            "the solid would be a single voxel; choose a smaller voxel_pitch"
+            f"{given} voxelizes this mesh ({size} m) into a single voxel (pitch {pitch:.3g} m, as large as the mesh):"
+            f" no solid to simulate; choose {fix}"
         )
     pinned = select_vertices(vertices, pin, tolerance=0.25 * pitch)
     _check_pins(pin, pinned, vertices, tets, gravity)

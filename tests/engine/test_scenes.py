@@ -296,8 +296,12 @@ def test_fem_scene_from_mesh_file(tmp_path, suffix: str) -> None:
     )
     assert plate.free_dof_count > 0
     for pitch in (1.0, 100.0):  # voxelizing fills one voxel whatever the pitch: a one-voxel solid is refused
-        with pytest.raises(ValueError, match=f"voxel_pitch {pitch:g} m is as large as this mesh"):
+        with pytest.raises(ValueError, match=f"voxel_pitch {pitch:g} m voxelizes this mesh .* into a single voxel"):
             redsim.scenes.fem_scene_from_mesh(path, voxel_pitch=pitch)
+    # the pitch drawn from target_dofs (>= 24, eight vertices: one voxel) is refused naming target_dofs, not a
+    # voxel_pitch that was never given
+    with pytest.raises(ValueError, match=r"target_dofs 24 voxelizes .* single voxel .* choose more target_dofs"):
+        redsim.scenes.fem_scene_from_mesh(trimesh.creation.box(extents=(1.0, 1.0, 1.0)), target_dofs=24)
 
 
 def test_cloth_scene_from_mesh(tmp_path) -> None:
