@@ -139,7 +139,7 @@ def cmd_bench_energy(args: argparse.Namespace) -> int:
     if args.repeats < 1:
         raise CliError(f"--repeats must be >= 1, got {args.repeats}")
     try:
-        batches = [int(b) for b in parse_list(args.batches, "--batches")]
+        batches = parse_list(args.batches, "--batches", int)
     except ValueError as err:
         raise CliError(f"--batches must be comma-separated integers, got {args.batches!r}") from err
     if min(batches) < 1:
@@ -201,7 +201,7 @@ def cmd_bench_step(args: argparse.Namespace) -> int:
         if name not in pretrained.names():
             raise CliError(f"no shipped subspace for {name!r}; shipped: {', '.join(pretrained.names())}")
     try:
-        batches = tuple(int(b) for b in parse_list(args.batches, "--batches"))
+        batches = tuple(parse_list(args.batches, "--batches", int))
     except ValueError as err:
         raise CliError(f"--batches must be comma-separated integers, got {args.batches!r}") from err
     if min(batches) < 1 or args.steps < 1 or args.reference_steps < 1 or args.rounds < 1:
@@ -470,7 +470,7 @@ def cmd_bench_scaling(args: argparse.Namespace) -> int:
     from redsim.benches import scaling
 
     try:
-        sizes = tuple(int(k) for k in parse_list(args.sizes, "--sizes"))
+        sizes = tuple(parse_list(args.sizes, "--sizes", int))
     except ValueError as err:
         raise CliError(f"--sizes must be comma-separated integers, got {args.sizes!r}") from err
     counts = (min(sizes), args.fit_steps, args.fit_warmup, args.latent_steps, args.cubature_elements)

@@ -77,7 +77,7 @@ def cmd_bench_envs(args: argparse.Namespace) -> int:
 
     ids = redsim.envs.ids() if args.envs is None else parse_list(args.envs, "--envs", parse_env_id)
     try:
-        batches = [int(b) for b in parse_list(args.batches, "--batches")]
+        batches = parse_list(args.batches, "--batches", int)
     except ValueError as err:
         raise CliError(f"--batches must be comma-separated integers, got {args.batches!r}") from err
     if min(batches) < 1 or args.steps < 1 or args.anchor_steps < 1:
@@ -271,7 +271,7 @@ def cmd_bench_mujoco_cloth(args: argparse.Namespace) -> int:
     if args.timesteps is not None:
         integrator, _, values = args.timesteps.partition(":")
         try:
-            sweep = {integrator: tuple(float(v) for v in parse_list(values, "--timesteps"))}
+            sweep = {integrator: tuple(parse_list(values, "--timesteps", float))}
         except ValueError as err:
             raise CliError(f"--timesteps must be INTEGRATOR:DT,DT,..., got {args.timesteps!r}") from err
         steps_ok = all(math.isfinite(dt) and dt > 0 for dt in sweep[integrator])
