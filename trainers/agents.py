@@ -486,8 +486,9 @@ def evaluate(
         venv.close()  # a sharded env's workers too
         raise
     rngs = [np.random.default_rng([seed, i]) for i in range(venv.num_envs)]  # episode i's actions, whatever the count
-    with torch.random.fork_rng(devices=[]):  # a sampling policy draws from torch's generator: seeded, then restored
-        torch.manual_seed(seed)
+    cuda = list(range(torch.cuda.device_count())) if torch.cuda.is_available() else []
+    with torch.random.fork_rng(devices=cuda):  # a sampling policy draws from torch's generators: seeded, then restored
+        torch.manual_seed(seed)  # (the CUDA ones too: a policy on the GPU samples there)
         return _run_episodes(venv, policy, seed, deterministic, rngs)
 
 

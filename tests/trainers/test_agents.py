@@ -335,6 +335,25 @@ def test_eval_agent_takes_a_plain_sb3_model_with_its_algorithm(
     assert code == 2 and "trained with HER on dict observations redsim does not know" in err
 
 
+def test_an_evaluation_leaves_the_callers_cuda_generators(tmp_path: Path) -> None:
+    """evaluate seeds torch's generators, the CUDA ones too (torch.manual_seed): it forked only the CPU's, so the
+    caller's CUDA generators were reset to the evaluation's seed."""
+    import torch
+    from stable_baselines3 import PPO
+
+    from redsim.envs.sb3 import SB3VecEnv
+
+    if not torch.cuda.is_available():
+        pytest.skip("needs a CUDA device")
+    PPO("MlpPolicy", SB3VecEnv.make(MINI, num_envs=2), n_steps=8, batch_size=16, seed=0).save(tmp_path / "m.zip")
+    agent = load_agent(tmp_path / "m.zip", MINI, algo="ppo")
+    torch.cuda.manual_seed_all(123)
+    torch.rand(3, device="cuda")
+    before = torch.cuda.get_rng_state_all()
+    evaluate(MINI, agent, episodes=2, seed=4, deterministic=False, env_kwargs=SHORT)
+    assert all(torch.equal(a, b) for a, b in zip(torch.cuda.get_rng_state_all(), before, strict=True))
+
+
 def test_a_sampled_evaluation_repeats_and_leaves_the_callers_generator(
     cli: Callable[..., tuple[int, str, str]], tmp_path: Path
 ) -> None:
