@@ -1447,6 +1447,8 @@ def train_agent(
         summary |= {"steps": int(model.num_timesteps), "wall_s": wall, "final_evaluation": final.as_dict()}
         (out / "agent.json").write_text(json.dumps(summary, indent=2, default=str))
     except KeyboardInterrupt:
+        for env_ in (venv, eval_env):  # stopped before they were closed: a sharded env's workers too
+            _close_quietly(env_)
         raise interrupted(wall) from None
     return TrainResult(model_path, int(model.num_timesteps), wall, final, out, int(model.num_timesteps) - started)
 

@@ -650,6 +650,7 @@ def test_ctrl_c_while_the_run_is_saved_keeps_its_previous_files_whole(
     from stable_baselines3 import SAC
     from stable_baselines3.common.vec_env import VecNormalize
 
+    from redsim.envs.sb3 import SB3VecEnv
     from redsim.trainers.agents import TrainingInterrupted, train_agent
 
     tiny = {"n_envs": 2, "eval_episodes": 1, "final_episodes": 1, "env_kwargs": SHORT, "video": False}
@@ -667,9 +668,23 @@ def test_ctrl_c_while_the_run_is_saved_keeps_its_previous_files_whole(
             raise KeyboardInterrupt
 
     monkeypatch.setattr(owner, "save", cut_short)
+    made, closed = [], []
+    init, close = SB3VecEnv.__init__, SB3VecEnv.close
+
+    def counted_init(self: Any, *args: Any, **kwargs: Any) -> None:
+        made.append(self)
+        init(self, *args, **kwargs)
+
+    def counted_close(self: Any) -> None:
+        closed.append(self)
+        close(self)
+
+    monkeypatch.setattr(SB3VecEnv, "__init__", counted_init)
+    monkeypatch.setattr(SB3VecEnv, "close", counted_close)
     with pytest.raises(TrainingInterrupted):
         train_agent(MINI, tmp_path, algo="sac", steps=40, resume=True, **tiny)
     assert {name: (tmp_path / name).read_bytes() for name in names} == before
+    assert made and all(any(env is c for c in closed) for env in made)  # the training and evaluation envs closed
     monkeypatch.setattr(owner, "save", save)
     assert train_agent(MINI, tmp_path, algo="sac", steps=40, resume=True, **tiny).steps == 40
 
