@@ -195,8 +195,8 @@ def _base_env(env: gym.Env) -> tuple[Any, int | None]:
         if type(inner).__name__ not in KEPT_WRAPPERS:
             raise ValueError(
                 f"the env is wrapped in {type(inner).__name__}, which its vectorized copies would not have: pass the "
-                "env without it (a TimeLimit's length is kept; normalized observations are a setting: "
-                "overrides={'normalize': {...}})"
+                "env without it (a TimeLimit's length is kept; normalized observations are train_agent's setting "
+                "overrides={'normalize': {...}}, and an Agent trained so normalizes its observations itself)"
             )
         limit = getattr(inner, "_max_episode_steps", limit)
         inner = inner.env
