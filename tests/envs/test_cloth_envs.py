@@ -130,6 +130,24 @@ def test_cloth_strain_invariant_is_the_largest_principal_stretch() -> None:
     torch.testing.assert_close(got, expected, rtol=1e-10, atol=1e-12)
 
 
+def test_cloth_strain_invariant_leaves_x_alone_and_float32_agrees() -> None:
+    """The membrane check works in place on its gathered coordinates: x is unchanged, and in float32 it equals the
+    float64 value to float32 round-off."""
+    from redsim.envs.invariants import Invariants
+
+    scene = redsim.scenes.build("hanging_sheet")
+    g = torch.Generator().manual_seed(1)
+    q = scene.q_seed + 0.01 * torch.randn(5, scene.free_dof_count, generator=g, dtype=scene.q_seed.dtype)
+    x64 = scene.full_positions(q)
+    x32 = x64.float()
+    kept = x32.clone()
+    got = Invariants(scene.to(dtype=torch.float32))(x32)["membrane_max_strain"]
+    assert torch.equal(x32, kept)
+    expected = Invariants(scene)(x64)["membrane_max_strain"]
+    assert got.dtype == torch.float32 and float(expected.min()) > 0.01
+    torch.testing.assert_close(got.double(), expected, rtol=2e-6, atol=1e-6)
+
+
 @pytest.mark.parametrize("name", ["cloth_ball", "chain"])
 def test_invariants_in_row_blocks_equal_one_pass(name: str) -> None:
     """Every invariant, computed over blocks of rows (the last one short), equals the one-pass value row for row (to
