@@ -1,0 +1,71 @@
+"""The row-selected loop's bookkeeping (index lists, selections of every row skipped) on a toy objective whose first
+trials are all rejected and non-finite, then some finite but rejected (the model relearned from them): the same
+iterates as the dense loop, which updates every state by masks."""
+
+from __future__ import annotations
+
+import torch
+from torch import Tensor
+
+from redsim.runtime.solver import minimize
+
+LIMIT = 50.0
+"""|z| beyond which the toy objective is NaN (a non-finite trial)."""
+
+
+class _Quartic:
+    """Phi_b(z) = sum_j c_bj (z_j^2 / 2 + z_j^4 / 4), NaN where any |z_j| > LIMIT; records each call's rows."""
+
+    def __init__(self, c: Tensor) -> None:
+        self.c = c
+        self.calls: list[tuple[Tensor, Tensor]] = []
+
+    def value_and_grad(self, z: Tensor, index: Tensor) -> tuple[Tensor, Tensor, Tensor]:
+        c = self.c[index]
+        value = (c * (0.5 * z**2 + 0.25 * z**4)).sum(-1)
+        grad = c * (z + z**3)
+        bad = (z.abs() > LIMIT).any(-1)
+        value = torch.where(bad, torch.nan, value)
+        grad = torch.where(bad[:, None], torch.nan, grad)
+        self.calls.append((index.clone(), torch.isfinite(value)))
+        return value, grad, value
+
+    def metric(self, z: Tensor, index: Tensor) -> Tensor:
+        return torch.diag_embed(self.c[index])
+
+
+def _solve(dense: bool) -> tuple[object, _Quartic]:
+    g = torch.Generator().manual_seed(0)
+    batch, d = 6, 3
+    objective = _Quartic(1.0 + torch.rand(batch, d, generator=g, dtype=torch.float64))
+    z0 = torch.randn(batch, d, generator=g, dtype=torch.float64)
+    # a warm model far too soft: every first step is ~1e5-1e15 long (NaN trials, then backtracks)
+    soft = torch.tensor([1e-14, 1e-14, 1e-14, 1e-6, 1e-6, 1e-6], dtype=torch.float64)
+    warm = soft[:, None, None] * torch.eye(d, dtype=torch.float64)
+    result = minimize(
+        objective,
+        z0,
+        torch.ones(batch, dtype=torch.float64),
+        torch.zeros(batch, dtype=torch.float64),
+        tol=1e-10,
+        max_iter=50,
+        hessian="bfgs",
+        warm=warm,
+        warm_refresh=False,
+        dense=dense,
+    )
+    return result, objective
+
+
+def test_row_loop_equals_dense_loop_through_rejections_and_restarts() -> None:
+    rows, calls = _solve(dense=False)
+    dense, _ = _solve(dense=True)
+    first_index, first_finite = calls.calls[1]  # (calls[0]: the start)
+    assert first_index.numel() == 6 and not bool(first_finite.any())  # every first trial rejected, non-finite
+    assert bool(rows.converged.all()) and bool(dense.converged.all())
+    assert torch.equal(rows.iterations, dense.iterations)
+    torch.testing.assert_close(rows.z, dense.z, rtol=0.0, atol=1e-12)
+    torch.testing.assert_close(rows.model, dense.model, rtol=1e-9, atol=1e-12)
+    # calls whose trials were all non-finite (all rejected), all finite, and a mix
+    kinds = {(bool(finite.all()), bool(finite.any())) for _, finite in calls.calls[1:]}
+    assert kinds == {(False, False), (True, True), (False, True)}
