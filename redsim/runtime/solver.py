@@ -122,6 +122,12 @@ class BatchResult:
     model: Tensor
 
 
+def _finite(t: Tensor) -> Tensor:
+    """``torch.isfinite(t)`` as |t| < inf (NaN compares false): two aten ops where ``isfinite`` dispatches four
+    (abs, ne, eq, mul); the loops' tensors are small, so each op's fixed cost is what they cost."""
+    return t.abs() < torch.inf
+
+
 def _pd_exact(hessian: Tensor) -> Tensor:
     """V |w| V^T with |w| floored at HESSIAN_FLOOR max|w| (all-zero stays zero)."""
     sym = 0.5 * (hessian + hessian.transpose(-1, -2))
@@ -142,7 +148,7 @@ def _direction(hessian: Tensor, grad: Tensor, fallback: Tensor | None = None) ->
         chol = torch.where(bad[:, None, None], chol2, chol)
         usable = usable | (info2 == 0)
     step = -torch.cholesky_solve(grad.unsqueeze(-1), chol).squeeze(-1)
-    return torch.where(usable[:, None] & torch.isfinite(step), step, -grad)
+    return torch.where(usable[:, None] & _finite(step), step, -grad)
 
 
 def _limit(step: Tensor, max_step: float | None) -> Tensor:
@@ -161,7 +167,7 @@ def _bfgs_update(hessian: Tensor, s: Tensor, y: Tensor) -> Tensor:
     theta = torch.where(sy >= BFGS_DAMPING * shs, 1.0, (1.0 - BFGS_DAMPING) * shs / (shs - sy))
     r = hs + theta.unsqueeze(-1) * (y - hs)
     sr = (s * r).sum(-1)
-    ok = (shs > 0) & (sr > 0) & torch.isfinite(sr) & torch.isfinite(shs)
+    ok = (shs > 0) & (sr > 0) & (sr < torch.inf) & (shs < torch.inf)  # positive and finite
     # H - hs hs^T / s.Hs + r r^T / s.r as one batched product [k, d, 2] x [k, 2, d] (rows not ok: unused)
     left = torch.stack([hs, r], -1)
     right = torch.stack([hs / -shs.unsqueeze(-1), r / sr.unsqueeze(-1)], -2)
@@ -173,7 +179,7 @@ def _backtrack(alpha: Tensor, slope: Tensor, rise: Tensor) -> Tensor:
     Phi(alpha) (``rise`` = Phi(alpha) - Phi(0)), kept in [alpha / 10, alpha / 2]; alpha / 2 if not finite."""
     curvature = rise - slope * alpha
     guess = -slope * alpha * alpha / (2.0 * curvature)
-    guess = torch.where(torch.isfinite(guess) & (curvature > 0), guess, 0.5 * alpha)
+    guess = torch.where(_finite(guess) & (curvature > 0), guess, 0.5 * alpha)
     return torch.minimum(torch.maximum(guess, 0.1 * alpha), 0.5 * alpha)
 
 
@@ -226,7 +232,7 @@ def _stale(model: Tensor, built: Tensor, iterations: Tensor, backtracked: Tensor
     """Which states [k] need a quasi-Newton model built before their next iteration: none there (a NaN
     model [k, d, d]), or, with ``warm_refresh``, a warm one (not ``built`` in this solve) that has taken
     WARM_ITERATIONS ``iterations`` or ``backtracked``."""
-    missing = ~torch.isfinite(model).all(-1).all(-1)
+    missing = ~_finite(model).all(-1).all(-1)
     if not warm_refresh:
         return missing
     return missing | (~built & ((iterations >= WARM_ITERATIONS) | backtracked))
@@ -258,7 +264,7 @@ def _judge(
     v_t, g_t = trial
     v_a, g_a = here
     eps = torch.finfo(v_t.dtype).eps
-    finite = torch.isfinite(v_t) & torch.isfinite(g_t).all(-1)
+    finite = _finite(v_t) & _finite(g_t).all(-1)
     armijo = v_t <= v_a + ARMIJO_C * alpha * slope
     flat = (v_t - v_a) <= noise + NOISE_FACTOR * eps * v_a.abs()
     lower = torch.linalg.vector_norm(g_t, dim=-1) < torch.linalg.vector_norm(g_a, dim=-1)

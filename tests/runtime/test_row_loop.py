@@ -69,3 +69,12 @@ def test_row_loop_equals_dense_loop_through_rejections_and_restarts() -> None:
     # calls whose trials were all non-finite (all rejected), all finite, and a mix
     kinds = {(bool(finite.all()), bool(finite.any())) for _, finite in calls.calls[1:]}
     assert kinds == {(False, False), (True, True), (False, True)}
+
+
+def test_finite_is_isfinite() -> None:
+    from redsim.runtime.solver import _finite
+
+    for dtype in (torch.float32, torch.float64):
+        big = torch.finfo(dtype).max
+        t = torch.tensor([torch.nan, torch.inf, -torch.inf, 0.0, -0.0, 1e-45, big, -big, 3.0], dtype=dtype)
+        assert torch.equal(_finite(t), torch.isfinite(t))
