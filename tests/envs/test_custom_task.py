@@ -151,6 +151,20 @@ def test_what_a_task_s_extras_return_is_checked_at_every_observation(task: Task,
         assert np.array_equal(env.unwrapped.get_state()["z"], before["z"])
 
 
+def test_extras_need_only_be_finite_where_x_is() -> None:
+    """A copy whose x is not finite (a diverged state) may report non-finite extras; a finite one may not."""
+    env = _env(HoldHeight())
+    env.reset(seed=0)
+    sim = env.unwrapped.sim
+    finite_x = sim.x
+    sim.x = torch.full_like(finite_x, float("nan"))  # the extras (the link's height) follow: NaN
+    assert sim.observe().shape == (1, 2 * sim.latent_dim + 2)
+    sim.x = finite_x
+    sim.task.extras = lambda x, x_prev, params: torch.full((1, 2), float("nan"), dtype=x.dtype)
+    with pytest.raises(ValueError, match="Task extras is not finite"):
+        sim.observe()
+
+
 class Unbounded(HoldHeight):
     def extras_bounds(self):
         return np.full(2, -np.inf), np.full(2, np.inf)
