@@ -383,7 +383,8 @@ class Evaluation:
 
         Returns:
             The p-value of a paired one-sided t-test (mean of self - other > 0) and the number of episodes
-            in which self returned more.
+            in which self returned more. The p-value is NaN for a single episode (no spread to test against),
+            and 0 or 1 where every episode differs by the same amount (above or below).
 
         Raises:
             ValueError: ``other`` ran other episodes.
@@ -397,8 +398,14 @@ class Evaluation:
             )
         if np.array_equal(self.returns, other.returns):
             return 1.0, 0
+        better = int(np.sum(self.returns > other.returns))
+        difference = self.returns - other.returns
+        if len(difference) < 2:  # scipy would warn (divide by zero) and answer NaN
+            return float("nan"), better
+        if np.all(difference == difference[0]):  # no spread: t is +-inf (scipy warns of precision loss)
+            return (0.0 if difference[0] > 0 else 1.0), better
         p_value = float(stats.ttest_rel(self.returns, other.returns, alternative="greater").pvalue)
-        return p_value, int(np.sum(self.returns > other.returns))
+        return p_value, better
 
     def as_dict(self) -> dict[str, Any]:
         """JSON-able summary (what ``eval-agent --json`` prints): the means, the rates and the per-episode lists."""

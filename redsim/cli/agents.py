@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import argparse
+import math
 from pathlib import Path
 from typing import Any
 
@@ -48,6 +49,11 @@ def _add_env_args(parser: argparse.ArgumentParser) -> None:
         metavar="KEY=VALUE",
         help="keyword argument of the env, VALUE a JSON literal (e.g. cubature=true, max_force=4.0); repeatable",
     )
+
+
+def _p_value(p: float | None) -> str:
+    """A paired test's p-value, or – where it has none (one episode: ``--json`` gives null)."""
+    return "– (one episode)" if p is None or math.isnan(p) else f"{p:.2g}"
 
 
 def _line(name: str, result: dict[str, Any]) -> str:
@@ -187,7 +193,7 @@ def cmd_eval_agent(args: argparse.Namespace) -> int:
         out(_line(name, row))
         if name != "agent":
             out(
-                f"{'':<9} agent above {name}: paired one-sided t-test p = {row['agent_above_p']:.2g}, "
+                f"{'':<9} agent above {name}: paired one-sided t-test p = {_p_value(row['agent_above_p'])}, "
                 f"better in {row['agent_better_episodes']} of {row['episodes']} episodes"
             )
     return EXIT_OK

@@ -18,6 +18,7 @@ import pytest
 from redsim.trainers.agents import (
     ALGOS,
     HYPERPARAMS,
+    Evaluation,
     evaluate,
     hyperparams,
     load_agent,
@@ -58,6 +59,29 @@ def test_the_table_covers_every_id_and_algorithm() -> None:
     assert HYPERPARAMS["default"]["sac"]["policy_kwargs"]["net_arch"] == [64, 64]
     with pytest.raises(ValueError, match="unknown algorithm 'a2c'"):
         hyperparams(MINI, "a2c")
+
+
+def _evaluation(returns: list[float]) -> Evaluation:
+    n = len(returns)
+    zeros = np.zeros(n)
+    return Evaluation("agent", np.array(returns), zeros.astype(bool), np.full(n, 10), 0, zeros, zeros)
+
+
+@pytest.mark.filterwarnings("error")  # scipy's divide-by-zero and precision-loss warnings reached the user
+def test_a_paired_test_of_one_episode_has_no_p_value_and_no_spread_gives_0_or_1() -> None:
+    p_value, better = _evaluation([5.0]).above(_evaluation([1.0]))
+    assert np.isnan(p_value) and better == 1
+    assert _evaluation([2.0, 3.0]).above(_evaluation([1.0, 2.0])) == (0.0, 2)  # every episode 1 above
+    assert _evaluation([1.0, 2.0]).above(_evaluation([2.0, 3.0])) == (1.0, 0)
+    p_value, better = _evaluation([2.0, 3.5, 1.0]).above(_evaluation([1.0, 2.0, 1.5]))
+    assert 0.0 < p_value < 1.0 and better == 2
+
+
+@pytest.mark.filterwarnings("error")
+def test_eval_agent_of_one_episode_prints_no_p_value(cli: Callable[..., tuple[int, str, str]]) -> None:
+    code, stdout, err = cli("eval-agent", "shipped", MINI, "--episodes", "1", "--episode-steps", "5", "--baselines")
+    assert code == 0, err
+    assert stdout.count("paired one-sided t-test p = – (one episode), better in") == 2, stdout
 
 
 def test_evaluation_is_seeded_and_the_scripted_controller_beats_random() -> None:
