@@ -311,6 +311,23 @@ def test_sample_names_the_file_it_writes_and_animate_refuses_a_non_gif(cli: Cli,
     assert code == 2 and "--out must name a .gif file" in err and not (tmp_path / "a.mp4").exists()
 
 
+def test_a_fits_training_state_given_as_a_checkpoint_says_what_it_is(cli: Cli, tmp_path: Path) -> None:
+    stem = str(tmp_path / "part")
+    code, _, err = cli("fit", "toy_two_tets", *SMALL, "--steps", "8", "--stop-at", "4", "--out", stem)
+    assert code == 0 and Path(stem + ".fit.pt").is_file() and not Path(stem + ".pt").exists(), err
+    for command in ("inspect", "sample", "animate", "cubature"):
+        flags = ["--elements", "5"] if command == "cubature" else []
+        code, out, err = cli(command, stem + ".fit.pt", *flags)  # the only file --stop-at leaves
+        assert code == 2 and out == "" and err.count("\n") == 1, (command, err)
+        assert f"{stem}.fit.pt is a fit's training state, not a checkpoint: the fit is unfinished" in err
+        code, _, err = cli(command, stem + ".pt", *flags)
+        assert code == 2 and f"the weights file is missing ({stem}.fit.pt holds an unfinished fit" in err
+    assert cli("fit", "toy_two_tets", *SMALL, "--steps", "8", "--out", stem, "--resume")[0] == 0
+    code, _, err = cli("inspect", stem + ".fit.pt")
+    assert code == 2 and f"the fitted map is {stem}.pt" in err
+    assert cli("inspect", stem + ".pt")[0] == 0
+
+
 def test_sample_with_only_meshes_leaves_the_states_written_before(
     cli: Cli, tmp_path: Path, monkeypatch: pytest.MonkeyPatch
 ) -> None:

@@ -438,9 +438,21 @@ def load_checkpoint(path: str) -> tuple[Scene, Any]:
     from redsim.subspace import CheckpointError, checkpoint_path, load_subspace, read_metadata
 
     weights = checkpoint_path(path, ".pt")
+    if weights.name.endswith(".fit.pt"):  # a fit's resumable state (all that --stop-at or Ctrl-C leaves)
+        mapped = weights.with_name(weights.name[: -len(".fit.pt")] + ".pt")
+        raise CliError(
+            f"{weights} is a fit's training state, not a checkpoint: "
+            + (
+                f"the fitted map is {mapped}"
+                if mapped.is_file()
+                else f"the fit is unfinished; `redsim fit ... --resume` finishes it into {mapped}"
+            )
+        )
     try:
         if not weights.is_file():
-            raise CheckpointError("the weights file is missing", str(weights))
+            state = checkpoint_path(path, ".fit.pt")
+            unfinished = f" ({state} holds an unfinished fit: `redsim fit ... --resume` finishes it)"
+            raise CheckpointError("the weights file is missing" + unfinished * state.is_file(), str(weights))
         doc = read_metadata(path)
         try:
             scene = scene_from_spec(doc)
