@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import argparse
 import json
 import shlex
 import subprocess
@@ -182,6 +183,27 @@ def test_absurd_load_fails_the_step(cli: Cli) -> None:
 )
 def test_every_computing_command_takes_threads(argv: list[str]) -> None:
     assert build_parser().parse_args([*argv, "--threads", "3"]).threads == 3
+
+
+def test_every_option_with_a_default_names_it_in_its_help() -> None:
+    def options(parser: argparse.ArgumentParser, path: str) -> list[tuple[str, argparse.Action]]:
+        found = []
+        for action in parser._actions:
+            if isinstance(action, argparse._SubParsersAction):
+                for name, sub in action.choices.items():
+                    found += options(sub, f"{path} {name}")
+            elif action.option_strings and isinstance(action.default, int | float | str) and action.help:
+                found.append((f"{path} {action.option_strings[-1]}", action))
+        return found
+
+    silent = [
+        name
+        for name, action in options(build_parser(), "redsim")
+        if action.default not in (False, argparse.SUPPRESS)
+        and "default" not in action.help
+        and f"({action.default})" not in action.help
+    ]
+    assert silent == []
 
 
 def test_threads_are_applied_and_restored(cli: Cli, monkeypatch: pytest.MonkeyPatch) -> None:

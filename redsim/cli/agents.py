@@ -229,7 +229,9 @@ def add_commands(sub: Any) -> None:
     )
     p.add_argument("--eval-every", type=int, metavar="STEPS", help="env steps between evaluations (default steps/10)")
     p.add_argument("--eval-episodes", type=int, default=10, help="episodes per evaluation (default 10)")
-    p.add_argument("--final-episodes", type=int, default=20, help="seeded episodes of the final evaluation")
+    p.add_argument(
+        "--final-episodes", type=int, default=20, help="seeded episodes of the final evaluation (default 20)"
+    )
     p.add_argument("--resume", action="store_true", help="continue the run in DIR up to --steps in all")
     p.add_argument(
         "--overwrite", action="store_true", help="replace a run already in DIR (refused without it or --resume)"
