@@ -269,7 +269,9 @@ def cmd_bench_mujoco_cloth(args: argparse.Namespace) -> int:
         raise CliError(f"--seconds and --settle must be finite and > 0, got {args.seconds} and {args.settle}")
     sweep = mujoco_cloth.SWEEP_TIMESTEPS
     if args.timesteps is not None:
-        integrator, _, values = args.timesteps.partition(":")
+        integrator, colon, values = args.timesteps.partition(":")
+        if not colon or not values.strip(" ,"):  # parse_list would name only the (empty) part after the colon
+            raise CliError(f"--timesteps must be INTEGRATOR:DT,DT,..., e.g. discrete:0.02,0.01, got {args.timesteps!r}")
         try:
             sweep = {integrator: tuple(parse_list(values, "--timesteps", float))}
         except ValueError as err:

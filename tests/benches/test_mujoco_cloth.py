@@ -151,6 +151,15 @@ def test_bench_mujoco_cloth_prints_the_match_and_a_tiny_sweep(capsys: pytest.Cap
         assert "must be finite and > 0" in capsys.readouterr().err
 
 
+def test_a_timesteps_without_its_time_steps_names_what_was_given(capsys: pytest.CaptureFixture[str]) -> None:
+    from redsim.cli import main
+
+    for bad in ("discrete", "discrete:", "Euler: ,"):
+        assert main(["bench", "mujoco-cloth", "--timesteps", bad]) == 2
+        err = capsys.readouterr().err
+        assert f"--timesteps must be INTEGRATOR:DT,DT,..., e.g. discrete:0.02,0.01, got {bad!r}" in err, err
+
+
 def test_an_old_mujoco_is_named_not_a_traceback(monkeypatch: pytest.MonkeyPatch) -> None:
     monkeypatch.delattr(mujoco.mjtIntegrator, "mjINT_DISCRETE")
     assert "needs mujoco >= 3.13" in mujoco_cloth.flex_cloth_unavailable()
