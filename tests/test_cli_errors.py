@@ -206,6 +206,24 @@ def test_every_option_with_a_default_names_it_in_its_help() -> None:
     assert silent == []
 
 
+@pytest.mark.parametrize(
+    ("argv", "extras", "command"),
+    [
+        (["scenes", "nope"], "nope", "redsim scenes"),
+        (["cache", "info", "extra"], "extra", "redsim cache info"),
+        (["bench", "energy", "--scenes", "mini_chain", "--bogus"], "--bogus", "redsim bench energy"),
+        (["simulate", "mini_chain", "a", "b"], "a b", "redsim simulate"),
+    ],
+    ids=lambda a: " ".join(a) if isinstance(a, list) else "",
+)
+def test_arguments_left_over_point_to_the_subcommands_help(
+    cli: Cli, argv: list[str], extras: str, command: str
+) -> None:
+    code, out, err = cli(*argv)  # argparse named the top-level `redsim --help` for these
+    assert code == 2 and out == ""
+    assert err == f"redsim: error: unrecognized arguments: {extras} (see `{command} --help`)\n"
+
+
 def test_threads_are_applied_and_restored(cli: Cli, monkeypatch: pytest.MonkeyPatch) -> None:
     from redsim.cli import scenes
 

@@ -57,6 +57,24 @@ class Parser(argparse.ArgumentParser):
     def error(self, message: str) -> NoReturn:
         raise CliError(f"{message} (see `{self.prog} --help`)")
 
+    def parse_known_args(  # type: ignore[override]
+        self, args: Sequence[str] | None = None, namespace: argparse.Namespace | None = None
+    ) -> tuple[argparse.Namespace, list[str]]:
+        """As argparse's, recording in ``_prog`` the innermost (sub)command that parsed (it returns first)."""
+        namespace, extras = super().parse_known_args(args, namespace)
+        if not hasattr(namespace, "_prog"):
+            namespace._prog = self.prog
+        return namespace, extras
+
+    def parse_args(  # type: ignore[override]
+        self, args: Sequence[str] | None = None, namespace: argparse.Namespace | None = None
+    ) -> argparse.Namespace:
+        """As argparse's, but arguments left over point to the subcommand's ``--help``, not the top-level one."""
+        namespace, extras = self.parse_known_args(args, namespace)
+        if extras:
+            raise CliError(f"unrecognized arguments: {' '.join(extras)} (see `{namespace._prog} --help`)")
+        return namespace
+
 
 # -- output ---------------------------------------------------------------------------------
 class StdoutClosed(Exception):
