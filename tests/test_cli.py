@@ -53,6 +53,11 @@ def test_help_exits_zero(capsys: pytest.CaptureFixture[str], argv: list[str]) ->
     assert out.startswith("usage: redsim")
 
 
+def test_fit_help_says_what_a_zero_checkpoint_every_does(capsys: pytest.CaptureFixture[str]) -> None:
+    code, out, _ = run(capsys, "fit", "--help")
+    assert code == 0 and "0: only at the end and on Ctrl-C" in " ".join(out.split())  # FitConfig allows 0
+
+
 def test_python_m_redsim_help() -> None:
     done = subprocess.run([sys.executable, "-m", "redsim", "--help"], capture_output=True, text=True, timeout=120)
     assert done.returncode == 0, done.stderr

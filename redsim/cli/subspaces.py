@@ -67,7 +67,12 @@ FIT_FLAGS: tuple[tuple[str, str, Any, str], ...] = (
     ),
     ("--anchor-radius", "anchor_radius", float, "R > 0: the --anchor-map polynomial fades out beyond |z| ~ R"),
     ("--mirror", "mirror", float, "weight [1/s^2] of the map's equivariance under the scene's mirror; 0: off"),
-    ("--checkpoint-every", "checkpoint_every", int, "steps between resumable checkpoints"),
+    (
+        "--checkpoint-every",
+        "checkpoint_every",
+        int,
+        "steps between resumable checkpoints; 0: only at the end and on Ctrl-C",
+    ),
     ("--dtype", "dtype", str, "float32 or float64"),
     ("--device", "device", str, "torch device"),
     ("--fused-adam", "fused_adam", bool, "fused Adam (--no-fused-adam: plain Adam)"),
