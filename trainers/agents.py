@@ -1127,17 +1127,25 @@ def _continue_evaluations(callback: Any, path: Path, until: int, episodes: int) 
             callback.evaluations_successes = [list(row) for row in old["successes"][keep]]
 
 
-def _her_settings(settings: dict[str, Any], algo: str, copies: int, episode: int | None, steps: int) -> None:
+def _her_settings(
+    settings: dict[str, Any], algo: str, copies: int, episode: int | None, steps: int, shards: int = 1
+) -> None:
     """Add SB3's ``HerReplayBuffer`` to an off-policy algorithm's ``settings`` (in place), with ``learning_starts``
     at least the transitions until every copy has ended an episode (HER samples only then).
 
     Raises:
-        ValueError: PPO, an env without an episode limit, or ``steps`` that end no episode of every copy.
+        ValueError: PPO, ``shards`` > 1, an env without an episode limit, or ``steps`` that end no episode of every
+            copy.
     """
     from stable_baselines3 import HerReplayBuffer
 
     if algo == "ppo":
         raise ValueError("her needs an off-policy algorithm (sac or td3): HER relabels a replay buffer")
+    if shards != 1:  # refused before any worker process starts
+        raise ValueError(
+            f"her needs the native vector env in one process (shards=1, no --shards), got shards={shards}: the "
+            "goal env relabels with the copies' targets, which a sharded env's workers hold"
+        )
     if episode is None:
         raise ValueError("her needs an episode limit (max_episode_steps): HER relabels with the episode's goals")
     ended = copies * (episode + 1)
@@ -1235,7 +1243,7 @@ def train_agent(
         settings["learning_starts"] = min(int(settings["learning_starts"]), int(steps) // 2)
     if her:
         _check_reach(env)
-        _her_settings(settings, algo, copies, _episode_steps(env, env_kwargs), int(steps))
+        _her_settings(settings, algo, copies, _episode_steps(env, env_kwargs), int(steps), shards)
     out = Path(out)
     cls = _algo_class(algo)
     check_run_folder(out, resume, overwrite)

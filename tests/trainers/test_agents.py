@@ -480,6 +480,19 @@ def test_sac_learns_mini_chain_clearly_above_random(tmp_path: Path) -> None:
     assert result.evaluation.mean > scripted.mean  # the table's settings beat the PI controller in 20k steps
 
 
+def test_her_with_shards_is_refused_before_any_worker_starts(tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> None:
+    from redsim.envs import sharded
+    from redsim.trainers.agents import train_agent
+
+    def no_workers(*args: Any, **kwargs: Any) -> None:
+        raise AssertionError("a worker process was started")
+
+    monkeypatch.setattr(sharded.ShardedVectorEnv, "__init__", no_workers)
+    with pytest.raises(ValueError, match=r"native vector env in one process \(shards=1, no --shards\), got shards=2"):
+        train_agent(MINI, tmp_path / "x", algo="sac", steps=4000, her=True, shards=2, video=False)
+    assert not (tmp_path / "x").exists()
+
+
 def test_her_trains_on_the_goal_env_and_its_agent_acts_on_the_flat_one(
     cli: Callable[..., tuple[int, str, str]], tmp_path: Path
 ) -> None:
@@ -524,7 +537,7 @@ def test_her_trains_on_the_goal_env_and_its_agent_acts_on_the_flat_one(
 
     for extra, message in (
         (["--algo", "ppo"], "off-policy"),
-        (["--shards", "2"], "native vector env"),
+        (["--shards", "2"], "native vector env in one process (shards=1, no --shards), got shards=2"),
         (["--steps", "50"], "end no episode"),
     ):
         code, _, err = cli("train-agent", MINI, "--her", "--out", str(tmp_path / "x"), *TINY, *extra)
