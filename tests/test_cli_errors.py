@@ -351,6 +351,15 @@ def test_sample_names_the_file_it_writes_and_animate_refuses_a_non_gif(cli: Cli,
     assert code == 2 and "--out must name a .gif file" in err and not (tmp_path / "a.mp4").exists()
 
 
+def test_a_file_or_folder_that_is_no_checkpoint_is_named_as_given(cli: Cli, tmp_path: Path) -> None:
+    mesh = tmp_path / "part.stl"
+    mesh.write_text("solid part\nendsolid part\n")
+    for given, kind in ((mesh, "a file"), (tmp_path, "a folder")):
+        for command in ("inspect", "sample", "animate"):
+            code, out, err = cli(command, str(given))  # was: "part.stl.pt: the weights file is missing"
+            assert code == 2 and out == "" and f"{given} is {kind}, not a checkpoint: give a fit's STEM.pt" in err
+
+
 def test_a_fits_training_state_given_as_a_checkpoint_says_what_it_is(cli: Cli, tmp_path: Path) -> None:
     stem = str(tmp_path / "part")
     code, _, err = cli("fit", "toy_two_tets", *SMALL, "--steps", "8", "--stop-at", "4", "--out", stem)

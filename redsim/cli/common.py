@@ -467,6 +467,9 @@ def load_checkpoint(path: str) -> tuple[Scene, Any]:
             )
         )
     try:
+        if not weights.is_file() and Path(path).suffix not in (".pt", ".json") and Path(path).exists():
+            kind = "a folder" if Path(path).is_dir() else "a file"
+            raise CliError(f"{path} is {kind}, not a checkpoint: give a fit's STEM.pt (STEM.json beside it) or STEM")
         if not weights.is_file():
             state = checkpoint_path(path, ".fit.pt")
             unfinished = f" ({state} holds an unfinished fit: `redsim fit ... --resume` finishes it)"
