@@ -92,7 +92,7 @@ def _full_space_step(
 
 
 @contextlib.contextmanager
-def _old_versions_quiet() -> Iterator[None]:
+def old_versions_quiet() -> Iterator[None]:
     """Gymnasium's "is out of date" warning silenced: the bench times every version of an id on purpose."""
     with warnings.catch_warnings():
         warnings.filterwarnings("ignore", message=".*is out of date", category=DeprecationWarning)
@@ -137,7 +137,7 @@ def bench_env(
         env's ``rgb_array`` frame at :data:`RENDER_SIZE`, the map's full configuration included).
     """
     start = time.perf_counter()
-    with _old_versions_quiet():
+    with old_versions_quiet():
         env = gym.make(env_id, **env_kwargs).unwrapped
     make_s = time.perf_counter() - start
     env.reset(seed=seed)
@@ -170,7 +170,7 @@ def bench_env(
     row["render"] = {"frames_per_s": 1.0 / frame_s, "size": list(RENDER_SIZE), "repeats": frames}
     for batch in batches:
         sharding = {"shards": shards} if shards != 1 else {}
-        with _old_versions_quiet():
+        with old_versions_quiet():
             venv = gym.make_vec(
                 env_id, num_envs=int(batch), vectorization_mode="vector_entry_point", **sharding, **env_kwargs
             )

@@ -73,7 +73,7 @@ def cmd_bench_envs(args: argparse.Namespace) -> int:
     import redsim
     from redsim.bench import machine_info
     from redsim.benches.mujoco_cloth import cloth_anchor, cloth_anchor_line, cloth_ratio_lines, cloth_ratios
-    from redsim.envs.bench import anchor_lines, bench_env, mujoco_anchors
+    from redsim.envs.bench import anchor_lines, bench_env, mujoco_anchors, old_versions_quiet
 
     ids = redsim.envs.ids() if args.envs is None else parse_list(args.envs, "--envs", parse_env_id)
     try:
@@ -84,7 +84,8 @@ def cmd_bench_envs(args: argparse.Namespace) -> int:
         raise CliError("--batches, --steps and --anchor-steps must be >= 1")
     if args.shards < 1 or args.shards > min(batches):
         raise CliError(f"--shards must be in [1, the smallest batch {min(batches)}], got {args.shards}")
-    env_kwargs = parse_env_args(args.env_arg, ids)
+    with old_versions_quiet():  # the env args are checked on every id, the older versions too
+        env_kwargs = parse_env_args(args.env_arg, ids)
     if "device" in env_kwargs:
         raise CliError("give the device with --device, not --env-arg device=...")
     check_device_option(args.device)

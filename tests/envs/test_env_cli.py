@@ -204,3 +204,11 @@ def test_bench_envs_row_prints_no_warnings_between_the_table_lines(
     row = bench_env("RedSim/ConditionalBar-v0", batches=(2,), steps=2, warmup=1, budget=100.0)
     assert row["full_space"]["converged"] is False  # this scene's full-space steps do hit the cap
     assert not [str(w.message) for w in recwarn] and not caplog.records
+
+
+def test_bench_envs_checks_env_args_on_an_older_version_quietly(capfd: pytest.CaptureFixture[str]) -> None:
+    """--env-arg is checked by making every id with it: Gymnasium's "out of date" of a v0 id printed above the table."""
+    args = ["bench", "envs", "--envs", "RedSim/BistableBar-v0", "--batches", "2", "--steps", "1", "--budget", "1"]
+    assert main([*args, "--no-full-space", "--anchor-steps", "20", "--env-arg", 'dtype="float32"']) == 0
+    text, err = capfd.readouterr()
+    assert "RedSim/BistableBar-v0" in text and "out of date" not in err + text
