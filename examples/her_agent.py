@@ -127,8 +127,12 @@ if __name__ == "__main__":
     parser.add_argument("--env", default="RedSim/MiniChain-v0", help="a reach env id (default RedSim/MiniChain-v0)")
     parser.add_argument("--steps", type=int, default=10_000, help="env steps per agent (default 10000)")
     parser.add_argument("--episodes", type=int, default=20, help="evaluation episodes per agent (default 20)")
-    parser.add_argument("--seed", type=int, default=0, help="seeds both agents' networks, exploration and envs")
-    parser.add_argument("--num-envs", type=int, default=1, help="copies in the native vector env (module doc)")
+    parser.add_argument(
+        "--seed", type=int, default=0, help="seeds both agents' networks, exploration and envs (default 0)"
+    )
+    parser.add_argument(
+        "--num-envs", type=int, default=1, help="copies in the native vector env (default 1; module doc)"
+    )
     parser.add_argument("--episode-steps", type=int, help="steps per episode (default: the env's limit)")
     parser.add_argument("--out", type=Path, help="folder for sac.zip and sac_her.zip (default: not saved)")
     args = parser.parse_args()
