@@ -826,17 +826,20 @@ class LatentSim:
     def state_info(self, rows: np.ndarray | None = None) -> dict[str, np.ndarray]:
         """What ``info`` says about the current states, at a step and at a reset alike (Gymnasium: a reset's info is
         analogous to a step's): the task's metrics, the scene's invariants and, with ``include_q``, ``q`` [B, n]; each
-        [B, ...], the [B] ones float64 or int64 as a step's numbers. With ``rows`` (bool [B]) only those copies are
-        evaluated (the ones a reset just started) and the others' entries are zeros; none: an empty dict."""
+        [B, ...], the [B] ones float64 or int64 as a step's numbers. With ``rows`` (bool [B]) only those copies'
+        entries are kept (the ones a reset just started; the others' are zeros), and the invariants and q are evaluated
+        for them only; none: an empty dict. The task's metrics are evaluated for every copy: a task may read the whole
+        batch's state through the sim :meth:`Task.bind` gave it (Klann-v0's crank speed reads ``sim.x_prev``)."""
         every = rows is None or bool(np.all(rows))
         if rows is not None and not np.any(rows):
             return {}
         index = None if every else torch.as_tensor(np.nonzero(rows)[0], device=self.device)
-        x = self.x if index is None else self.x[index]
-        params = self.params if index is None else {k: v[index] for k, v in self.params.items()}
-        metrics = self.task.metrics(x, params)
+        metrics = self.task.metrics(self.x, self.params)
         for key, value in metrics.items():
-            _check_task_output(f"metric {key!r}", value, x.shape[0], finite=False)
+            _check_task_output(f"metric {key!r}", value, self.batch, finite=False)
+        if index is not None:
+            metrics = {key: value[index] for key, value in metrics.items()}
+        x = self.x if index is None else self.x[index]
         values = {**metrics, **self.invariants(x)}
         if self.include_q:
             z = self.z if index is None else self.z[index]

@@ -616,6 +616,22 @@ def test_reset_info_holds_the_metrics_and_invariants_a_step_reports() -> None:
     assert [row["distance"] for row in sb3.reset_infos] == info["distance"].tolist()
 
 
+def test_a_partial_reset_reports_the_metrics_of_a_task_that_reads_the_sims_batch() -> None:
+    """The Task doc lets a task read the sim's state (``sim.x_prev``) for the whole batch, as Klann-v0's crank speed
+    does: the reset info of some copies evaluated the metrics on those rows' x against every copy's x_prev, and a
+    partial reset (reset_mask, an autoreset of some copies) raised a size mismatch."""
+    venv = gym.make_vec("RedSim/Klann-v0", num_envs=3, vectorization_mode="vector_entry_point")
+    venv.reset(seed=0)
+    venv.step(np.stack([venv.single_action_space.sample() for _ in range(3)]))
+    mask = np.array([False, True, False])
+    _, info = venv.reset(options={"reset_mask": mask})
+    assert info["_crank_speed"].tolist() == mask.tolist() and info["crank_speed"][0] == 0.0
+    every = venv.unwrapped.sim.state_info()
+    for key in ("crank_speed", "speed_error", "is_success"):
+        assert info[key].dtype == every[key].dtype
+        np.testing.assert_array_equal(info[key][1], every[key][1], err_msg=key)
+
+
 def test_include_q_puts_the_configuration_in_the_reset_info_too() -> None:
     from redsim.envs.sb3 import SB3VecEnv
 
