@@ -46,13 +46,16 @@ def as_numbers(
     """``value`` as a real tensor (in ``dtype`` on ``device`` where given); a ValueError naming ``what`` and its
     ``shape`` [str] where it is not an array of real numbers (torch's own errors, e.g. "new(): invalid data type
     'str'", name neither, and a complex value would be cast with its imaginary part dropped)."""
-    kind = value.dtype if isinstance(value, (Tensor, np.ndarray)) else None
+    kind = value.dtype if isinstance(value, (Tensor, np.ndarray, np.generic)) else None
     if kind is not None and (kind.is_complex if isinstance(kind, torch.dtype) else kind.kind == "c"):
         raise ValueError(f"{what} must be an array of real numbers of shape {shape}, got {kind}")
     try:
-        return torch.as_tensor(value, dtype=dtype, device=device)
+        out = torch.as_tensor(value, dtype=dtype, device=device)
     except (TypeError, ValueError, RuntimeError):
         raise ValueError(f"{what} must be an array of numbers of shape {shape}, got {value!r:.80}") from None
+    if out.is_complex():  # complex numbers in a list (or a Python complex): their tensor is complex
+        raise ValueError(f"{what} must be an array of real numbers of shape {shape}, got {out.dtype}")
+    return out
 
 
 def jvp(fn: Callable[..., Tensor], primals: tuple[Tensor, ...], tangents: tuple[Tensor, ...]) -> tuple[Tensor, Tensor]:

@@ -255,6 +255,10 @@ def test_inputs_that_are_not_numbers_are_named(mini_chain) -> None:
             stepper.step(bad, z)
     with pytest.raises(ValueError, match=r"z_prev must be an array of real numbers of shape \[B, 4\], got torch.compl"):
         stepper.step(z, z.to(torch.complex64))
+    # complex numbers in a list, not an array: their tensor is complex, and was cast to real with a warning
+    for bad in ((z.to(torch.complex128) + 5j).tolist(), [[1j, 0.0, 0.0, 0.0]]):
+        with pytest.raises(ValueError, match=r"z must be an array of real numbers of shape \[B, 4\], got .*complex"):
+            stepper.step(bad, z)
     with pytest.raises(ValueError, match=r"loads must be an array of numbers of shape \[1, 1, 3\] or \[1, 3\]"):
         stepper.step(z, z, "abc")
     with pytest.raises(ValueError, match=r"warm must be an array of numbers of shape \[1, 4, 4\]"):
