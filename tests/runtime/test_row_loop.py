@@ -78,3 +78,66 @@ def test_finite_is_isfinite() -> None:
         big = torch.finfo(dtype).max
         t = torch.tensor([torch.nan, torch.inf, -torch.inf, 0.0, -0.0, 1e-45, big, -big, 3.0], dtype=dtype)
         assert torch.equal(_finite(t), torch.isfinite(t))
+
+
+class _Walled(_Quartic):
+    """:class:`_Quartic` whose states ``walled`` [B] (bool) have a non-finite value (NaN, inf or -inf by row) at every
+    point but their start: each line search from there fails, restarts once from a fresh model, fails again."""
+
+    def __init__(self, c: Tensor, start: Tensor, walled: Tensor) -> None:
+        super().__init__(c)
+        self.start, self.walled = start, walled
+
+    def value_and_grad(self, z: Tensor, index: Tensor) -> tuple[Tensor, Tensor, Tensor]:
+        value, grad, energy = super().value_and_grad(z, index)
+        wall = torch.tensor([torch.nan, torch.inf, -torch.inf], dtype=z.dtype)[index % 3]
+        off = self.walled[index] & (z != self.start[index]).any(-1)  # (the dense loop's idle rows sit at z)
+        return torch.where(off, wall, value), grad, energy
+
+
+def test_row_loop_equals_dense_loop_where_line_searches_fail_and_restart() -> None:
+    """The restart path (MAX_BACKTRACKS rejected trials, a fresh model, MAX_BACKTRACKS more, then stalled), which
+    the test above does not reach, for a mix of walled states (NaN, +inf and -inf values) and free ones."""
+    from redsim.runtime import solver
+
+    restarts: list[Tensor] = []
+    restart = solver._restart
+
+    def counted(it: object, rows: Tensor) -> None:
+        restarts.append(rows.clone())
+        restart(it, rows)
+
+    g = torch.Generator().manual_seed(1)
+    batch, d = 7, 3
+    c = 1.0 + torch.rand(batch, d, generator=g, dtype=torch.float64)
+    z0 = torch.randn(batch, d, generator=g, dtype=torch.float64)
+    walled = torch.tensor([True, False, True, True, False, False, True])
+    results = []
+    for dense in (False, True):
+        objective = _Walled(c, z0.clone(), walled)
+        solver._restart = counted
+        try:
+            results.append(
+                minimize(
+                    objective,
+                    z0,
+                    torch.ones(batch, dtype=torch.float64),
+                    torch.zeros(batch, dtype=torch.float64),
+                    tol=1e-10,
+                    max_iter=50,
+                    hessian="bfgs",
+                    warm=torch.eye(d, dtype=torch.float64).expand(batch, d, d),  # not built here: a failure restarts
+                    warm_refresh=False,
+                    dense=dense,
+                )
+            )
+        finally:
+            solver._restart = restart
+    rows, dense = results
+    assert len(restarts) == 1  # the row loop's one call, every walled state in it (the dense loop restarts by masks)
+    assert torch.equal(torch.zeros(batch, dtype=torch.bool).index_fill_(0, restarts[0], True), walled)
+    assert torch.equal(rows.stalled, walled) and torch.equal(rows.converged, ~walled)
+    assert int(rows.iterations[walled].max()) == 0
+    for name in ("z", "value", "energy", "iterations", "converged", "stalled", "finite"):
+        torch.testing.assert_close(getattr(rows, name), getattr(dense, name), rtol=0.0, atol=1e-12, msg=name)
+    torch.testing.assert_close(rows.model, dense.model, rtol=1e-9, atol=1e-12, equal_nan=True)
