@@ -414,6 +414,21 @@ class LatentStepper:
         self.evaluations = Evaluations()
         """Value-and-gradient calls and rows so far (:class:`Evaluations`; assign a new one to restart the count)."""
 
+    def __getstate__(self) -> dict[str, object]:
+        """The attributes less the compiled callables: closures over this stepper's own ``_phi_eager``, so a
+        ``copy.deepcopy`` kept calling the original's (its map and scene, not the copy's) and a pickle failed;
+        :meth:`__setstate__` compiles the copy's own (the eager stepper's state is unchanged)."""
+        state = dict(self.__dict__)
+        state["_compiled_call"] = self._compiled_call is not None  # compile="dynamic"
+        state["_phi_fast"] = None
+        return state
+
+    def __setstate__(self, state: dict[str, object]) -> None:
+        self.__dict__.update(state)
+        dynamic = bool(state["_compiled_call"])
+        self._phi_fast = torch.compile(self._phi_eager, dynamic=False) if self.compiled else self._phi_eager
+        self._compiled_call = _compiled_value_and_grad(self._phi_eager) if dynamic else None
+
     def _check_energy_placement(self, energy: LatentEnergy, factory: bool) -> None:
         """Refuse an energy that evaluates in another dtype or on another device than the stepper (where it says:
         its own ``dtype``/``device`` or its scene's); its first step would fail in a matmul."""

@@ -492,6 +492,31 @@ def test_dynamic_compile_equals_eager_and_evaluates_only_the_rows_asked() -> Non
     torch.testing.assert_close(q_got, q_want, rtol=0.0, atol=1e-2 * motion)  # as the static compile's test
 
 
+@pytest.mark.skipif(not _compiles(), reason="torch.compile needs a C++ compiler on the CPU")
+def test_a_copied_or_pickled_compiled_stepper_evaluates_its_own_map(mini_chain, monkeypatch) -> None:
+    """compile="dynamic" (and True) keep callables compiled from the stepper's own ``_phi_eager``: copy.deepcopy
+    shared them, so the copy's calls evaluated the original's map (a copy whose map then changed stepped the old
+    one), and pickle failed. Dynamo alone (backend "eager", no kernels built): the test is about which map is called."""
+    import pickle
+
+    compile_ = torch.compile
+    monkeypatch.setattr(torch, "compile", lambda fn, **kw: compile_(fn, **{**kw, "backend": "eager"}))
+    scene, f = mini_chain
+    stepper = LatentStepper(scene, f, DT, compile="dynamic")
+    copied = copy.deepcopy(stepper)
+    with torch.no_grad():
+        for p in copied.energy.map.parameters():
+            p.mul_(1.05)
+    z = stepper.rest_latent().expand(3, -1) + 0.1
+    qbar = copied.positions(z).detach()
+    want = copied._phi_eager(z, qbar, None, None)[0]
+    torch.testing.assert_close(copied._compiled_call(z, qbar, None, None)[0], want, rtol=1e-6, atol=0.0)
+    assert not torch.allclose(stepper._compiled_call(z, qbar, None, None)[0], want)  # the original keeps its map
+    for mode in (True, "dynamic"):
+        z_next, _ = pickle.loads(pickle.dumps(LatentStepper(scene, f, DT, compile=mode))).step(z, z)
+        torch.testing.assert_close(z_next, LatentStepper(scene, f, DT).step(z, z)[0], rtol=0.0, atol=1e-4)
+
+
 def test_unknown_compile_is_refused(mini_chain) -> None:
     scene, f = mini_chain
     with pytest.raises(ValueError, match="unknown compile 'static'; valid: \\[False, True, 'dynamic'\\]"):
