@@ -110,6 +110,30 @@ def test_simulate_human_output_with_load(capsys: pytest.CaptureFixture[str], toy
     assert "step 1/1" in out and "1/1 steps converged" in out
 
 
+def test_simulate_reports_steps_that_gained_energy(
+    capsys: pytest.CaptureFixture[str], monkeypatch: pytest.MonkeyPatch
+) -> None:
+    """The reference's energy-gain flag (StepInfo.energy_gain) was dropped: not in the per-step JSON, the summary or
+    a warning. It is reported as the envs report it: never acted on (exit status 0)."""
+    from redsim.integrators import ImplicitEuler
+
+    step = ImplicitEuler.step
+
+    def gaining_step(self, state, loads=None, cond=None):  # type: ignore[no-untyped-def]
+        state, info = step(self, state, loads, cond)
+        gained = round(float(state.time) / 0.01) == 2
+        return state, dataclasses.replace(info, energy_gain=gained, mechanical_gain=0.5 if gained else 0.0)
+
+    monkeypatch.setattr(ImplicitEuler, "step", gaining_step)
+    code, out, err = run(capsys, "simulate", TOY, "--steps", "3", "--dt", "0.01", "--json")
+    assert code == 0, err
+    summary = json.loads(out)
+    assert summary["energy_gain_steps"] == [2]
+    assert [r["energy_gain"] for r in summary["per_step"]] == [False, True, False]
+    assert summary["per_step"][1]["mechanical_gain"] == 0.5
+    assert "1 of 3 step(s) raised K + E by more than the loads' work (first: step 2, 0.5 J)" in err
+
+
 def test_simulate_nan_exits_3(capsys: pytest.CaptureFixture[str], monkeypatch: pytest.MonkeyPatch) -> None:
     from redsim.integrators import ImplicitEuler
 

@@ -133,6 +133,8 @@ def cmd_simulate(args: argparse.Namespace) -> int:
             "grad_norm": float(info.grad_norm),
             "objective": float(info.energy),
             "potential_energy": potential(state.q) if finite else math.nan,
+            "energy_gain": bool(info.energy_gain),
+            "mechanical_gain": float(info.mechanical_gain),
             "message": info.message,
         }
         if not finite or not math.isfinite(rec["grad_norm"]):
@@ -170,6 +172,7 @@ def cmd_simulate(args: argparse.Namespace) -> int:
             warn(f"scene {scene.name!r} has no surfaces; no picture written")
 
     not_converged = [r["step"] for r in records if not r["converged"]]
+    gained = [r["step"] for r in records if r["energy_gain"]]
     summary = {
         "scene": scene.name,
         "params": scene.params,
@@ -181,6 +184,7 @@ def cmd_simulate(args: argparse.Namespace) -> int:
         "loads": loads or {},
         "converged_steps": len(records) - len(not_converged),
         "not_converged_steps": not_converged,
+        "energy_gain_steps": gained,
         "max_iterations": max(r["iterations"] for r in records),
         "final_grad_norm": records[-1]["grad_norm"],
         "energy_start": energy_start,
@@ -210,6 +214,12 @@ def cmd_simulate(args: argparse.Namespace) -> int:
         warn(
             f"{len(not_converged)} of {len(records)} step(s) did not converge "
             f"(first: step {first['step']}: {first['message']})"
+        )
+    if gained:
+        first = records[gained[0] - 1]
+        warn(
+            f"{len(gained)} of {len(records)} step(s) raised K + E by more than the loads' work (first: step "
+            f"{first['step']}, {first['mechanical_gain']:.3g} J): an artefact of the solve, reported, not acted on"
         )
     if nan_step is not None:
         warn(f"step {nan_step} produced NaN or inf; stopped there")
@@ -242,9 +252,9 @@ def add_commands(sub: Any) -> None:
             "bodies and pins in grey) and, with --meshes, OUT/frames/frame_XXXX_<surface>.ply for every frame."
         ),
         epilog=(
-            "Exit status: 0 done (non-converged steps are warned about), 2 bad input, 3 NaN or inf, 4 a step "
-            "failed (its forces moved a coordinate more than 10 scene sizes in one step: loads or dt far beyond "
-            "the scene)."
+            "Exit status: 0 done (non-converged steps, and steps that gained energy, are warned about), 2 bad "
+            "input, 3 NaN or inf, 4 a step failed (its forces moved a coordinate more than 10 scene sizes in one "
+            "step: loads or dt far beyond the scene)."
         ),
     )
     add_scene_args(p)
