@@ -59,7 +59,6 @@ class SB3VecEnv(VecEnv):
         self._returns = np.zeros(self.num_envs)
         self._lengths = np.zeros(self.num_envs, dtype=np.int64)
         self._start = time.time()
-        self._reset_keys: list[str] = []  # the keys of a reset's info, learnt at reset()
 
     @classmethod
     def make(cls, env_id: str, num_envs: int, *, goal: bool | Mapping[str, Any] = False, **kwargs: Any) -> SB3VecEnv:
@@ -103,7 +102,6 @@ class SB3VecEnv(VecEnv):
         restarted = options[0].get("reset_mask", slice(None))  # the copies that start a new episode
         self._returns[restarted], self._lengths[restarted] = 0.0, 0
         self.reset_infos = [_info_row(info, i) for i in range(self.num_envs)]
-        self._reset_keys = [k for k in info if not k.startswith("_")]  # what a copy's reset info holds
         self._reset_seeds()
         self._reset_options()
         return obs
@@ -120,8 +118,10 @@ class SB3VecEnv(VecEnv):
         for i in range(self.num_envs):
             row = _info_row(info, i)
             if done[i]:  # the step's own info (final_info), and what outer wrappers added (e.g. "episode")
-                self.reset_infos[i] = {k: row.pop(k) for k in self._reset_keys if k in row}  # the new episode's
-                row = {**_info_row(info["final_info"], i), **row}
+                final = _info_row(info["final_info"], i)
+                # the top-level values of a key the ended step also reports are the new episode's reset info
+                self.reset_infos[i] = {k: row.pop(k) for k in list(row) if k in final}
+                row = {**final, **row}
                 row["terminal_observation"] = info["final_obs"][i]
                 row["TimeLimit.truncated"] = bool(truncated[i] and not terminated[i])
                 episode = {"r": float(self._returns[i]), "l": int(self._lengths[i]), "t": time.time() - self._start}

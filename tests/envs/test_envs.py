@@ -614,6 +614,17 @@ def test_reset_info_holds_the_metrics_and_invariants_a_step_reports() -> None:
         info = same.step(np.zeros((2, 3), np.float32))[4]
     assert [row["distance"] for row in rows] == info["final_info"]["distance"].tolist()
     assert [row["distance"] for row in sb3.reset_infos] == info["distance"].tolist()
+    # the same where the vector env started without SB3VecEnv.reset (a state restored on it): the adapter learnt the
+    # reset info's keys at reset() and, with none learnt, reported the new episode's distance as the ended step's
+    restored = SB3VecEnv.make(MINI, num_envs=2, max_episode_steps=2)
+    same.reset(seed=0)
+    restored.venv.unwrapped.set_state(same.get_state())
+    for _ in range(2):
+        rows = restored.step(np.zeros((2, 3), np.float32))[3]
+        info = same.step(np.zeros((2, 3), np.float32))[4]
+    assert [row["distance"] for row in rows] == info["final_info"]["distance"].tolist()
+    assert [row["is_success"] for row in rows] == info["final_info"]["is_success"].tolist()
+    assert [row["distance"] for row in restored.reset_infos] == info["distance"].tolist()
 
 
 def test_a_partial_reset_reports_the_metrics_of_a_task_that_reads_the_sims_batch() -> None:
