@@ -13,12 +13,14 @@ here; a step only evaluates the energy.
 from __future__ import annotations
 
 import copy
+import itertools
 import math
 import numbers
+import types
 import warnings
 from collections.abc import Callable, Mapping
 from dataclasses import dataclass
-from typing import NamedTuple
+from typing import Any, NamedTuple
 
 import torch
 from torch import Tensor, nn
@@ -405,11 +407,8 @@ class LatentStepper:
         self._rest: Tensor | None = None
         self._build_constants()
         self._phi = self._phi_eager
-        # value and gradient through torch.compile (AOTAutograd compiles the backward too); the
-        # exact Hessian's double backward stays eager (compiled graphs do not support it)
-        self._phi_fast = torch.compile(self._phi_eager, dynamic=False) if compile is True else self._phi_eager
         self.compiled = compile is True  # static shapes: a call pads to the whole batch
-        self._compiled_call = _compiled_value_and_grad(self._phi_eager) if compile == "dynamic" else None
+        self._compile(compile == "dynamic")
         self.warm_start = bool(warm_start)
         self.evaluations = Evaluations()
         """Value-and-gradient calls and rows so far (:class:`Evaluations`; assign a new one to restart the count)."""
@@ -425,8 +424,13 @@ class LatentStepper:
 
     def __setstate__(self, state: dict[str, object]) -> None:
         self.__dict__.update(state)
-        dynamic = bool(state["_compiled_call"])
-        self._phi_fast = torch.compile(self._phi_eager, dynamic=False) if self.compiled else self._phi_eager
+        self._compile(bool(state["_compiled_call"]))
+
+    def _compile(self, dynamic: bool) -> None:
+        """This stepper's own compiled callables of ``_phi_eager``: ``_phi_fast`` (static shapes, ``compiled``; the
+        value and gradient through torch.compile, AOTAutograd compiling the backward, the exact Hessian's double
+        backward eager, as compiled graphs do not support it) and ``_compiled_call`` (``dynamic``)."""
+        self._phi_fast = torch.compile(_own_frame(self._phi_eager), dynamic=False) if self.compiled else self._phi_eager
         self._compiled_call = _compiled_value_and_grad(self._phi_eager) if dynamic else None
 
     def _check_energy_placement(self, energy: LatentEnergy, factory: bool) -> None:
@@ -876,6 +880,21 @@ class LatentStepper:
         return torch.stack(out)
 
 
+_FRAMES = itertools.count()
+
+
+def _own_frame(fn: Callable[..., Any]) -> Callable[..., Any]:
+    """``fn`` behind a function whose code object is its own, for ``torch.compile``: Dynamo keeps its graphs and its
+    limit of ``recompile_limit`` (8) per code object, so every stepper compiling the same function shared them, and
+    past ~4 steppers in one process (2 graphs each: one row, several) the later ones silently ran uncompiled."""
+
+    def frame(*args: Any) -> Any:
+        return fn(*args)
+
+    code = frame.__code__.replace(co_name=f"{getattr(fn, '__name__', 'fn')}_{next(_FRAMES)}")
+    return types.FunctionType(code, frame.__globals__, code.co_name, None, frame.__closure__)
+
+
 def _compiled_value_and_grad(
     phi: Callable[[Tensor, Tensor, Tensor | None, Tensor | None], tuple[Tensor, Tensor]],
 ) -> Callable[[Tensor, Tensor, Tensor | None, Tensor | None], tuple[Tensor, Tensor, Tensor]]:
@@ -896,7 +915,7 @@ def _compiled_value_and_grad(
         (grad,) = torch.autograd.grad(value.sum(), z)
         return value.detach(), grad, energy.detach()
 
-    compiled = torch.compile(value_and_grad)
+    compiled = torch.compile(_own_frame(value_and_grad))
     config = torch._dynamo.config
     trace = hasattr(config, "trace_autograd_ops")
 

@@ -517,6 +517,31 @@ def test_a_copied_or_pickled_compiled_stepper_evaluates_its_own_map(mini_chain, 
         torch.testing.assert_close(z_next, LatentStepper(scene, f, DT).step(z, z)[0], rtol=0.0, atol=1e-4)
 
 
+@pytest.mark.skipif(not _compiles(), reason="torch.compile needs a C++ compiler on the CPU")
+@pytest.mark.parametrize("mode", [True, "dynamic"])
+def test_every_compiled_stepper_in_a_process_stays_compiled(mini_chain, monkeypatch, mode) -> None:
+    """Dynamo keeps its graphs, and a limit of 8 of them, per code object: every stepper compiled the same function,
+    so past ~4 steppers in one process (2 graphs each) the later ones ran uncompiled behind one logged warning. Each
+    now compiles a function of its own. Dynamo alone (backend "eager"): the test is about what Dynamo compiles."""
+    from torch._dynamo.utils import counters
+
+    compile_ = torch.compile
+    monkeypatch.setattr(torch, "compile", lambda fn, **kw: compile_(fn, **{**kw, "backend": "eager"}))
+    scene, f = mini_chain
+    compiled = counters["frames"]["ok"]
+    steppers = 6
+    for _ in range(steppers):
+        stepper = LatentStepper(scene, f, DT, compile=mode)
+        z = stepper.rest_latent().expand(3, -1) + 0.01
+        qbar = stepper.positions(z).detach()
+        for rows in (1, 3):
+            if mode == "dynamic":
+                stepper._compiled_call(z[:rows], qbar[:rows], None, None)
+            else:
+                stepper._phi_fast(z[:rows], qbar[:rows], None, None)
+    assert counters["frames"]["ok"] - compiled == 2 * steppers
+
+
 def test_unknown_compile_is_refused(mini_chain) -> None:
     scene, f = mini_chain
     with pytest.raises(ValueError, match="unknown compile 'static'; valid: \\[False, True, 'dynamic'\\]"):
