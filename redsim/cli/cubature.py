@@ -146,7 +146,16 @@ def cmd_bench_cubature(args: argparse.Namespace) -> int:
     if args.elements < 1:
         raise CliError(f"--elements must be an integer >= 1, got {args.elements}")
     if args.sweep:
+        if args.compile:
+            raise CliError("--compile times the benched scenes' cubature step; the --sweep has no compiled column")
         return _sweep(args)
+    if args.compile:
+        from redsim.runtime.stepper import check_compiler
+
+        try:
+            check_compiler(torch.device("cpu"))
+        except RuntimeError as err:
+            raise CliError(str(err)) from err
     names = parse_list(args.scenes, "SCENES")
     for name in names:
         check_scene_name(name)
@@ -187,6 +196,7 @@ def cmd_bench_cubature(args: argparse.Namespace) -> int:
             timed_steps=args.timed_steps,
             warmup=warmup,
             dtype=getattr(torch, args.dtype),
+            compiled=args.compile,
         )
         results.append(result)
         if not args.json:
@@ -194,6 +204,11 @@ def cmd_bench_cubature(args: argparse.Namespace) -> int:
             times = "  ".join(
                 f"B={b}: {1e3 * t['all_s']:.3g} -> {1e3 * t['cubature_s']:.3g} ({t['all_s'] / t['cubature_s']:.1f}x; "
                 f"calls {t['all_calls_per_step']:.1f} -> {t['cubature_calls_per_step']:.1f})"
+                + (
+                    f", compiled {1e3 * t['cubature_compiled_s']:.3g} ({t['all_s'] / t['cubature_compiled_s']:.1f}x)"
+                    if args.compile
+                    else ""
+                )
                 for b, t in result["timing"].items()
             )
             out(
@@ -309,6 +324,12 @@ def add_bench_command(bench: Any) -> None:
         metavar="DIR",
         help="use DIR/SCENE.pt (a fit of SCENE) and the cubature beside it where they exist, the shipped ones "
         "elsewhere (default: the shipped ones; each row names its checkpoint)",
+    )
+    p.add_argument(
+        "--compile",
+        action="store_true",
+        help='also time the cubature step with LatentStepper(compile="dynamic") (its first steps, which compile, '
+        "untimed; needs a C++ compiler)",
     )
     p.add_argument(
         "--sweep",

@@ -76,6 +76,7 @@ def bench_cubature(
     load_scale: float | None = None,
     seed: int = 0,
     dtype: torch.dtype = torch.float32,
+    compiled: bool = False,
 ) -> dict[str, Any]:
     """Compare the cubature energy with the all-element step (``dtype``, CPU, the stepper's defaults).
 
@@ -86,7 +87,8 @@ def bench_cubature(
     Time: the median step [s] over ``timed_steps`` steps per batch size, the two energies interleaved, from the
     state ``warmup`` all-element steps under seeded loads reach (a moving shape: steps from rest take fewer
     iterations), with each energy's value-and-gradient calls per step of its timed rollouts (their untimed first
-    steps included).
+    steps included). ``compiled``: the cubature step with ``compile="dynamic"`` timed beside them
+    (``cubature_compiled_s``; a few steps at each batch size before, which compile its graphs, untimed).
     """
     if isinstance(warmup, bool) or not isinstance(warmup, int) or warmup < 0:
         raise ValueError(f"warmup must be an integer >= 0, got {warmup!r}")
@@ -94,6 +96,11 @@ def bench_cubature(
     all_elements = LatentStepper(scene, subspace, dt, dtype=dtype)
     energy = CubatureEnergy(scene, subspace, cubature, dtype=dtype)
     reduced = LatentStepper(scene, subspace, dt, dtype=dtype, energy=energy)
+    timed_steppers = {"all": all_elements, "cubature": reduced}
+    if compiled:
+        timed_steppers["cubature_compiled"] = LatentStepper(
+            scene, subspace, dt, dtype=dtype, energy=energy, compile="dynamic"
+        )
     rest = all_elements.rest_latent()
     count = ACCURACY_STATES
     loads = _loads(scene, steps, count, hold, scale, seed) if scene.handles else None
@@ -120,18 +127,18 @@ def bench_cubature(
             path, _ = _rollout(all_elements, z0, None if batch_loads is None else batch_loads[:warmup], warmup)
             z0, z_prev = path[-1], path[-2]
         timed_loads = None if batch_loads is None else batch_loads[warmup:]
-        times_all, times_cub, calls = [], [], {"all": 0, "cubature": 0}
-        for _ in range(2):  # interleaved halves, so other load on the machine hits both alike
-            for key, stepper in (("all", all_elements), ("cubature", reduced)):
+        if compiled:  # its graphs compile in these steps (one row, several), not in the timed ones
+            _rollout(timed_steppers["cubature_compiled"], z0, timed_loads, min(timed, 3), z_prev)
+        times = {key: [] for key in timed_steppers}
+        calls = dict.fromkeys(timed_steppers, 0)
+        for _ in range(2):  # interleaved halves, so other load on the machine hits all alike
+            for key, stepper in timed_steppers.items():
                 stepper.evaluations = Evaluations()
                 _, t = _rollout(stepper, z0, timed_loads, timed, z_prev)
-                (times_all if key == "all" else times_cub).extend(t[1:])
+                times[key].extend(t[1:])
                 calls[key] += stepper.evaluations.calls
-        timing[batch] = {
-            "all_s": statistics.median(times_all),
-            "cubature_s": statistics.median(times_cub),
-            "all_calls_per_step": calls["all"] / (2 * timed),
-            "cubature_calls_per_step": calls["cubature"] / (2 * timed),
+        timing[batch] = {f"{key}_s": statistics.median(t) for key, t in times.items()} | {
+            f"{key}_calls_per_step": count / (2 * timed) for key, count in calls.items()
         }
     return {
         "scene": scene.name,

@@ -417,6 +417,28 @@ def test_bench_cubature_in_float64(cli, mini_chain) -> None:
     assert result["dtype"] == "float64" and result["trajectory_deviation"] >= 0.0
 
 
+def test_bench_cubature_times_the_compiled_cubature_step_on_request(cli, mini_chain, monkeypatch) -> None:
+    """``--compile`` adds the cubature step with compile="dynamic" (its compiling first steps untimed); the sweep
+    refuses it. Dynamo alone (backend "eager", no kernels built): the test is about what is timed and printed."""
+    import json
+
+    from redsim.runtime import stepper
+
+    compile_ = torch.compile
+    monkeypatch.setattr(torch, "compile", lambda fn, **kw: compile_(fn, **{**kw, "backend": "eager"}))
+    monkeypatch.setattr(stepper, "check_compiler", lambda device: None)
+    argv = ("bench", "cubature", "mini_chain", "--steps", "3", "--batches", "1,4", "--timed-steps", "2", "--elements")
+    code, out, err = cli(*argv, "4", "--compile", "--json")
+    assert code == 0, err
+    (result,) = json.loads(out)["results"]
+    for timing in result["timing"].values():
+        assert timing["cubature_compiled_s"] > 0.0 and timing["cubature_compiled_calls_per_step"] >= 1.0
+    code, out, err = cli(*argv, "4", "--compile")
+    assert code == 0 and out.count("compiled ") == 2, out
+    code, _, err = cli("bench", "cubature", "--sweep", "3", "--compile")
+    assert code == 2 and "--compile" in err
+
+
 @pytest.mark.parametrize("name", ["cloth_ball", "hanging_sheet"])
 def test_near_contact_path_equals_the_slice_path(name: str) -> None:
     """The default path (a whole single-frame contact by its near points only, whole element sums on the slice)
