@@ -941,6 +941,8 @@ class LatentSim:
         if state.get("loads") is not None:
             loads = tensor(state["loads"], (B, H, D), "loads")
         params, like = state["params"], self.params or self.drawn_params()
+        if not isinstance(params, Mapping):
+            raise ValueError(f"state['params'] must be the task parameters' dict get_state() wrote, got {params!r:.60}")
         if set(params) != set(like):
             raise ValueError(f"state['params'] must have keys {sorted(like)} (the task's draw), got {sorted(params)}")
         # each keeps its dtype (a task's counters and flags stay integers and bools)
@@ -1736,7 +1738,8 @@ def _batch(state: Mapping[str, Any]) -> dict[str, Any]:
         "model": row(state.get("model")),
         "loads": row(state.get("loads")),
         "cond": row(state["cond"]),
-        "params": {k: row(v) for k, v in dict(state["params"]).items()},
+        # not a dict: as given, for the batched set_state to name
+        "params": {k: row(v) for k, v in params.items()} if isinstance(params := state["params"], Mapping) else params,
         "setting": state.get("setting"),
     }
 

@@ -451,15 +451,23 @@ def _join_states(parts: Sequence[Mapping[str, Any]]) -> dict[str, Any]:
 
 
 def _state_rows(state: Mapping[str, Any], rows: slice) -> dict[str, Any]:
-    """A shard's block ``rows`` of a batched state (its ``setting`` as it is)."""
-    return {
-        key: value
-        if value is None or key == "setting"
-        else _state_rows(value, rows)
-        if isinstance(value, Mapping)
-        else np.asarray(value)[rows]
-        for key, value in state.items()
-    }
+    """A shard's block ``rows`` of a batched state (its ``setting`` as it is).
+
+    Raises:
+        ValueError: an entry that is not one value per copy (a number, where a batch of them was written).
+    """
+    block: dict[str, Any] = {}
+    for key, value in state.items():
+        if value is None or key == "setting":
+            block[key] = value
+        elif isinstance(value, Mapping):
+            block[key] = _state_rows(value, rows)
+        else:
+            array = np.asarray(value)
+            if array.ndim == 0:
+                raise ValueError(f"state[{key!r}] must hold one entry per copy (get_state()'s), got {value!r:.60}")
+            block[key] = array[rows]
+    return block
 
 
 def _merge_infos(infos: Sequence[dict[str, Any]], sizes: Sequence[int]) -> dict[str, Any]:

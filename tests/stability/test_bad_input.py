@@ -253,6 +253,19 @@ def test_set_state_names_a_malformed_setting_or_model() -> None:
     fresh = env.step(np.zeros(3, np.float32))[0]
     env.set_state({**state, "model": None})
     np.testing.assert_array_equal(env.step(np.zeros(3, np.float32))[0], fresh)
+    # a ``params`` that is not a dict: the native vector env raised TypeError, the sharded one IndexError
+    with pytest.raises(ValueError, match=r"state\['params'\] must be the task parameters' dict get_state\(\) wrote"):
+        env.set_state({**state, "params": 5})
+    for shards in (1, 2):
+        venv = gym.make_vec("RedSim/MiniChain-v0", num_envs=3, vectorization_mode="vector_entry_point", shards=shards)
+        try:
+            venv.reset(seed=0)
+            batch = venv.get_state()
+            with pytest.raises(ValueError, match=r"state\['params'\] must (be the task|hold one entry per copy)"):
+                venv.set_state({**batch, "params": 5})
+            venv.step(np.zeros((3, 3), np.float32))  # still open and usable
+        finally:
+            venv.close()
 
 
 def test_the_reference_names_inputs_that_are_not_numbers() -> None:
