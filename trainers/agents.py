@@ -289,9 +289,13 @@ def _check_reach(env: str | gym.Env) -> None:
 
 
 def _episode_steps(env: str | gym.Env, env_kwargs: Mapping[str, Any] | None) -> int | None:
-    """The episode limit of an id (made with ``env_kwargs``) or of a user's env."""
+    """The episode limit of an id made with ``env_kwargs`` (whose ``max_episode_steps`` None is the id's own and -1
+    none, as ``gym.make`` and the vector entry points read it) or of a user's env; None: no limit."""
     if isinstance(env, str):
-        return dict(env_kwargs or {}).get("max_episode_steps", gym.spec(env).max_episode_steps)
+        steps = dict(env_kwargs or {}).get("max_episode_steps")
+        if steps is None:
+            return gym.spec(env).max_episode_steps
+        return None if steps == -1 else steps
     return _base_env(env)[1]
 
 
@@ -782,11 +786,20 @@ class TrainingInterrupted(KeyboardInterrupt):
             optimizer and normalizer statistics of then; a rollout not yet learnt, or its unfinished update, is
             dropped).
         model_path: The saved ``model.zip``.
+        saved: False where a second Ctrl-C stopped the save: ``model_path`` (if any) and the checkpoints are then
+            those of the last whole save, which ``resume=True`` continues from.
     """
 
-    def __init__(self, steps: int, model_path: Path) -> None:
-        super().__init__(f"interrupted at {steps} env steps; saved {model_path}")
-        self.steps, self.model_path = steps, model_path
+    def __init__(self, steps: int, model_path: Path, saved: bool = True) -> None:
+        if saved:
+            message = f"interrupted at {steps} env steps; saved {model_path}"
+        else:
+            message = (
+                f"interrupted at {steps} env steps and again while saving them: {model_path} and the checkpoints "
+                "beside it hold the last whole save"
+            )
+        super().__init__(message)
+        self.steps, self.model_path, self.saved = steps, model_path, saved
 
 
 def _save_run(model: Any, venv: Any, model_path: Path) -> None:
@@ -809,6 +822,15 @@ def _save_run(model: Any, venv: Any, model_path: Path) -> None:
     finally:
         for tmp in partial:
             tmp.unlink(missing_ok=True)
+
+
+def _save_after_interrupt(model: Any, venv: Any, model_path: Path) -> bool:
+    """:func:`_save_run` after a Ctrl-C; False where a second Ctrl-C stopped it (the previous files stand whole)."""
+    try:
+        _save_run(model, venv, model_path)
+    except KeyboardInterrupt:
+        return False
+    return True
 
 
 def _close_quietly(venv: Any) -> None:
@@ -1241,6 +1263,11 @@ def train_agent(
     if algo != "ppo" and "learning_starts" not in (overrides or {}):
         # the table's start would leave a short run untrained, silently: at most half the budget
         settings["learning_starts"] = min(int(settings["learning_starts"]), int(steps) // 2)
+    if _episode_steps(env, env_kwargs) is None:  # before any env is made: an evaluation would never end
+        raise ValueError(
+            f"train_agent needs an episode limit (max_episode_steps): {label}'s evaluations run whole episodes, "
+            "and without a limit its episodes need not end"
+        )
     if her:
         _check_reach(env)
         _her_settings(settings, algo, copies, _episode_steps(env, env_kwargs), int(steps), shards)
@@ -1399,12 +1426,13 @@ def train_agent(
     started = int(model.num_timesteps)
     keeper = [_rollout_keeper(venv)] if algo == "ppo" else []  # first: a rollout's point is kept before its checkpoint
 
-    def interrupted(wall: float) -> TrainingInterrupted:
-        """Record the saved run as interrupted (``agent.json``; the curve so far) for the caller to raise."""
+    def interrupted(wall: float, saved: bool) -> TrainingInterrupted:
+        """Record the run as interrupted (``agent.json``; the curve so far) for the caller to raise; ``saved``: its
+        model was saved at this step (else a second Ctrl-C stopped the save)."""
         _write_curve(out / "curve.csv", curve)
-        summary.update(steps=int(model.num_timesteps), wall_s=wall, interrupted=True)
+        summary.update(steps=int(model.num_timesteps), wall_s=wall, interrupted=True, saved=saved)
         (out / "agent.json").write_text(json.dumps(summary, indent=2, default=str))
-        return TrainingInterrupted(int(model.num_timesteps), model_path)
+        return TrainingInterrupted(int(model.num_timesteps), model_path, saved)
 
     try:
         if remaining > 0:
@@ -1430,14 +1458,16 @@ def train_agent(
         # as a fit: keep what was learnt (model, replay buffer, normalizer, curve), so --resume goes on from here
         for kept in keeper:  # PPO: back to its last learnt rollout (steps, weights, normalizer statistics)
             kept.restore()
-        _save_run(model, venv, model_path)
+        saved = _save_after_interrupt(model, venv, model_path)
         for env_ in (venv, eval_env):
             _close_quietly(env_)
-        raise interrupted(wall_offset + time.perf_counter() - start) from None
+        raise interrupted(wall_offset + time.perf_counter() - start, saved) from None
     wall = wall_offset + time.perf_counter() - start
+    saved = False
     try:  # trained: an interrupt from here on (the saves, the final evaluation, the files) leaves a run that
         # --resume finishes (its final evaluation and files)
         _save_run(model, venv, model_path)
+        saved = True
         agent = Agent(model, goal=goal)
         if isinstance(venv, VecNormalize):
             agent = Agent(model, load_normalizer(normalizer_path(model_path)), goal)
@@ -1462,9 +1492,11 @@ def train_agent(
         summary |= {"steps": int(model.num_timesteps), "wall_s": wall, "final_evaluation": final.as_dict()}
         (out / "agent.json").write_text(json.dumps(summary, indent=2, default=str))
     except KeyboardInterrupt:
+        if not saved:  # stopped in the save: once more, so the trained model is kept
+            saved = _save_after_interrupt(model, venv, model_path)
         for env_ in (venv, eval_env):  # stopped before they were closed: a sharded env's workers too
             _close_quietly(env_)
-        raise interrupted(wall) from None
+        raise interrupted(wall, saved) from None
     return TrainResult(model_path, int(model.num_timesteps), wall, final, out, int(model.num_timesteps) - started)
 
 

@@ -176,6 +176,8 @@ def cmd_eval_agent(args: argparse.Namespace) -> int:
         }
     except SpaceMismatchError as err:
         raise CliError(f"{path}: {err}") from err
+    except ValueError as err:  # the env's arguments (--env-arg), e.g. no episode limit to end an evaluation
+        raise CliError(str(err)) from err
     rows = {name: run.as_dict() for name, run in runs.items()}
     # which observation statistics the policy acted through: a plain model's file beside it is optional
     normalization = None if model.normalizer is None else str(normalizer_path(path))

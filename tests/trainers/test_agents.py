@@ -493,6 +493,34 @@ def test_her_with_shards_is_refused_before_any_worker_starts(tmp_path: Path, mon
     assert not (tmp_path / "x").exists()
 
 
+def test_an_env_without_an_episode_limit_is_refused_before_training_and_evaluation(
+    cli: Callable[..., tuple[int, str, str]], tmp_path: Path, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    """max_episode_steps=-1 (no limit, as gym.make reads it) passed every check: the EvalCallback's first evaluation
+    of a reach env never ended (train-agent, with --her too), and eval-agent printed a traceback. None is the id's own
+    limit, which HER refused as none."""
+    from redsim.envs.sb3 import SB3VecEnv
+    from redsim.trainers.agents import _her_settings, train_agent
+
+    def no_env(*args: Any, **kwargs: Any) -> None:
+        raise AssertionError("an env was made")
+
+    monkeypatch.setattr(SB3VecEnv, "__init__", no_env)
+    for her in (False, True):
+        with pytest.raises(ValueError, match=r"needs an episode limit \(max_episode_steps\)"):
+            train_agent(MINI, tmp_path / "x", algo="sac", steps=100, her=her, env_kwargs={"max_episode_steps": -1})
+    assert not (tmp_path / "x").exists()
+    code, _, err = cli("train-agent", MINI, "--steps", "100", "--env-arg", "max_episode_steps=-1", "--out", "y")
+    assert code == 2 and "needs an episode limit" in err, err
+    settings: dict[str, Any] = {}
+    from redsim.trainers.agents import _episode_steps
+
+    assert _episode_steps(MINI, {"max_episode_steps": None}) == 200 and _episode_steps(MINI, {}) == 200
+    _her_settings(settings, "sac", 2, _episode_steps(MINI, {"max_episode_steps": None}), 1000, 1)  # the id's 200
+    code, _, err = cli("eval-agent", "shipped", MINI, "--episodes", "1", "--env-arg", "max_episode_steps=-1")
+    assert code == 2 and "evaluation needs an env with an episode limit" in err and "Traceback" not in err, err
+
+
 def test_her_trains_on_the_goal_env_and_its_agent_acts_on_the_flat_one(
     cli: Callable[..., tuple[int, str, str]], tmp_path: Path
 ) -> None:
@@ -718,12 +746,44 @@ def test_ctrl_c_while_the_run_is_saved_keeps_its_previous_files_whole(
 
     monkeypatch.setattr(SB3VecEnv, "__init__", counted_init)
     monkeypatch.setattr(SB3VecEnv, "close", counted_close)
-    with pytest.raises(TrainingInterrupted):
-        train_agent(MINI, tmp_path, algo="sac", steps=40, resume=True, **tiny)
+    with pytest.raises(TrainingInterrupted, match="and again while saving them") as stop:
+        train_agent(MINI, tmp_path, algo="sac", steps=40, resume=True, **tiny)  # the save is retried once, also cut
+    assert stop.value.saved is False and json.loads((tmp_path / "agent.json").read_text())["saved"] is False
     assert {name: (tmp_path / name).read_bytes() for name in names} == before
     assert made and all(any(env is c for c in closed) for env in made)  # the training and evaluation envs closed
     monkeypatch.setattr(owner, "save", save)
     assert train_agent(MINI, tmp_path, algo="sac", steps=40, resume=True, **tiny).steps == 40
+
+
+def test_a_second_ctrl_c_while_an_interrupted_run_is_saved_is_reported_as_such(
+    cli, tmp_path: Path, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    """Ctrl-C in training, then again in the save it starts (a replay buffer of tens of MB takes a while): the
+    CLI said 'interrupted before training started; nothing was saved' though the run had trained and its
+    checkpoints were there; now the interrupt says the last whole save stands, and --resume goes on from it."""
+    from stable_baselines3 import SAC
+
+    save = SAC.save
+
+    def interrupted_save(self: Any, path: Any, *args: Any, **kwargs: Any) -> None:
+        if Path(path).name.startswith("model.zip"):  # the run's own file, not a checkpoint's
+            raise KeyboardInterrupt
+        save(self, path, *args, **kwargs)
+
+    step_wait = _ctrl_c_at_training_step(monkeypatch, 31)
+    monkeypatch.setattr(SAC, "save", interrupted_save)
+    argv = ("train-agent", MINI, "--algo", "sac", "--steps", "100", "--eval-every", "20", "--n-envs", "2")
+    tiny = ("--eval-episodes", "1", "--final-episodes", "1", "--episode-steps", "20", "--no-video", "--no-progress")
+    code, _, err = cli(*argv, *tiny, "--out", str(tmp_path))
+    assert code == 130 and "interrupted at 60 env steps and again while saving them" in err, err
+    assert "nothing was saved" not in err and not (tmp_path / "model.zip").exists()
+    assert any((tmp_path / "checkpoints").iterdir())
+    monkeypatch.setattr(SAC, "save", save)
+    from redsim.envs.sb3 import SB3VecEnv
+
+    monkeypatch.setattr(SB3VecEnv, "step_wait", step_wait)
+    code, _, err = cli(*argv, *tiny, "--out", str(tmp_path), "--resume")
+    assert code == 0, err
 
 
 def test_ctrl_c_in_the_final_evaluation_or_mid_rollout_keeps_an_honest_record(
