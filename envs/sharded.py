@@ -438,13 +438,16 @@ def _cpu_count() -> int:
 
 def _join_states(parts: Sequence[Mapping[str, Any]]) -> dict[str, Any]:
     """The shards' batched states joined along the copies (None stays None; nested dicts key by key; the
-    ``setting`` all shards share, once)."""
+    ``setting`` all shards share, once; a list, such as the copies' generator states, stays a list, as the native
+    vector env's)."""
     joined: dict[str, Any] = {}
     for key, first in parts[0].items():
         if first is None or key == "setting":
             joined[key] = first
         elif isinstance(first, Mapping):
             joined[key] = _join_states([part[key] for part in parts])
+        elif isinstance(first, list):
+            joined[key] = [entry for part in parts for entry in part[key]]
         else:
             joined[key] = np.concatenate([np.asarray(part[key]) for part in parts])
     return joined

@@ -60,6 +60,7 @@ def test_reset_mask_state_round_trip_render_and_close() -> None:
     processes = list(venv._processes)
     venv.reset(seed=0)
     state = venv.get_state()
+    assert isinstance(state["rngs"], list) and len(state["rngs"]) == 3  # as the native env's, not an object array
     after, *_ = venv.step(np.ones((3, 3), np.float32))
     venv.set_state(state)
     again, *_ = venv.step(np.ones((3, 3), np.float32))
