@@ -70,12 +70,14 @@ def make(
             to targets drawn from the subspace (:class:`redsim.envs.reach.HandleReach`);
             give its arguments as ``task_options``.
         max_episode_steps: Wrap in ``TimeLimit`` of this many steps (None or -1: no limit, no wrapper; -1 as
-            ``gym.make`` and the vector envs read it).
+            ``gym.make`` and the vector envs read it). Registered as an entry point (``gym.register(id,
+            entry_point="redsim.envs:make", kwargs={..., "max_episode_steps": None}, max_episode_steps=N)``), give
+            None here: Gymnasium's own ``TimeLimit`` then holds the limit, not this one's 200 inside it.
         **kwargs: :class:`redsim.envs.base.LatentEnv` arguments, plus ``task_options`` (dict).
 
     Raises:
-        ValueError: an unknown task name, scene or handle, a subspace of the wrong size, or a bad
-            ``max_episode_steps``.
+        ValueError: an unknown task name, scene or handle, a subspace of the wrong size or without ``latent_dim``,
+            a catalog scene without a shipped subspace and none given, or a bad ``max_episode_steps``.
         redsim.subspace.CheckpointError: the subspace was fitted to another scene.
         TypeError: a scene or task of another type.
     """

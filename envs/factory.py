@@ -8,6 +8,7 @@ from typing import Any
 
 import gymnasium as gym
 from gymnasium.wrappers import TimeLimit
+from torch import nn
 
 from redsim.effects.external import Gravity
 from redsim.envs.base import LatentEnv, Task, checkpoint_subspace
@@ -51,7 +52,14 @@ def build(
         if subspace is None:
             subspace = pretrained.load(name, scene)
     if subspace is None:
-        raise ValueError(f"scene {scene.name!r} is not a catalog name: give its subspace (a map or a checkpoint path)")
+        if scene.name not in pretrained.names():
+            raise ValueError(f"scene {scene.name!r} has no shipped subspace: give one (a map or a checkpoint path)")
+        subspace = pretrained.load(scene.name, scene)  # a catalog scene built with other parameters is refused
+    if isinstance(subspace, nn.Module) and not hasattr(subspace, "latent_dim"):
+        raise ValueError(
+            f"the subspace {type(subspace).__name__} has no latent_dim: a map z [B, d] -> q [B, n] needs one "
+            "(redsim's maps have it), or give a checkpoint path"
+        )
     if not hasattr(subspace, "latent_dim"):
         subspace = checkpoint_subspace(subspace, scene)
     if isinstance(task, str):

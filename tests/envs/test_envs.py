@@ -751,8 +751,6 @@ def test_make_builds_an_env_from_any_scene_and_subspace() -> None:
     assert env.observation_space.contains(obs) and env.action_space.shape == (3,)
     with pytest.raises(ValueError, match="unknown task"):
         redsim.envs.make("mini_chain", task="balance")
-    with pytest.raises(ValueError, match="give its subspace"):
-        redsim.envs.make(scenes.build("mini_chain", density=1000.0))
 
 
 def test_make_takes_minus_one_and_none_as_no_episode_limit_as_gym_make_does() -> None:
@@ -866,6 +864,21 @@ def test_make_names_a_scene_or_task_of_the_wrong_type() -> None:
         redsim.envs.make(None, "x.pt")
     with pytest.raises(TypeError, match="task must be"):
         redsim.envs.make("mini_chain", task=None)
+    # a module that is no map was taken for a checkpoint path (TypeError "expected str, bytes or os.PathLike")
+    with pytest.raises(ValueError, match="the subspace Linear has no latent_dim"):
+        redsim.envs.make(scenes.build("mini_chain"), torch.nn.Linear(2, 24))
+
+
+def test_make_of_a_catalog_scene_object_takes_its_shipped_subspace() -> None:
+    """A catalog scene given as the object (not its name) was refused as 'not a catalog name'; it now takes the
+    shipped map, which refuses the scene built with other parameters, and a catalog scene without a shipped map says
+    so."""
+    env = redsim.envs.make(scenes.build("mini_chain"))
+    assert env.unwrapped.sim.scene.name == "mini_chain"
+    with pytest.raises(CheckpointError, match="fingerprint"):
+        redsim.envs.make(scenes.build("mini_chain", density=1000.0))
+    with pytest.raises(ValueError, match="scene 'cantilever' has no shipped subspace: give one"):
+        redsim.envs.make(scenes.build("cantilever"))
 
 
 def test_held_targets_are_settled_once_per_process_for_identical_envs() -> None:
