@@ -55,6 +55,12 @@ def cache_stem(scene_name: str, scene: Scene, options: Mapping[str, Any]) -> Pat
     return root / FOLDER / f"{scene_name}-{scene.fingerprint()}-{digest}"
 
 
+RESERVED_FIT_OPTIONS = frozenset(
+    {"scene", "config", "out", "resume", "overwrite", "progress", "callbacks", "command", "stop_at"}
+)
+"""``fit_subspace`` arguments the env's cache sets itself (``fit_options`` may not: they clashed as a TypeError)."""
+
+
 def cached_subspace(
     scene_name: str, scene: Scene, fit_options: Mapping[str, Any] | None = None, *, progress: bool = True
 ) -> nn.Module:
@@ -65,13 +71,20 @@ def cached_subspace(
     marked :data:`IN_MEMORY_ATTRIBUTE`).
 
     Raises:
-        ValueError: an unknown or bad fit option (from the fitter, before any step).
+        ValueError: an unknown or bad fit option (from the fitter, before any step), or one the cache sets itself
+            (:data:`RESERVED_FIT_OPTIONS`).
         redsim.subspace.CheckpointError: a corrupt cached checkpoint (delete it to fit again).
     """
     from redsim.subspace import checkpoint_path, load_subspace
     from redsim.trainers.fit import fit_subspace
     from redsim.trainers.presets import preset
 
+    reserved = sorted(set(fit_options or {}) & RESERVED_FIT_OPTIONS)
+    if reserved:
+        raise ValueError(
+            f"fit_options cannot set {reserved}: the env's cache chooses where its fit is saved, resumed and shown "
+            "(fit options are FitConfig's fields and seed)"
+        )
     options = {**preset(scene_name), **dict(fit_options or {})}
     stem = cache_stem(scene_name, scene, options)
     if stem is not None and checkpoint_path(stem, ".pt").is_file() and checkpoint_path(stem, ".json").is_file():
@@ -87,4 +100,4 @@ def cached_subspace(
     return result.subspace
 
 
-__all__ = ["FOLDER", "IN_MEMORY_ATTRIBUTE", "cache_stem", "cached_subspace"]
+__all__ = ["FOLDER", "IN_MEMORY_ATTRIBUTE", "RESERVED_FIT_OPTIONS", "cache_stem", "cached_subspace"]

@@ -498,6 +498,9 @@ def test_a_fit_at_an_existing_stem_is_refused_without_resume_or_overwrite(cli: C
         code, _, err = cli(*argv, "--seed", "1", "--overwrite")
     assert code == 0 and (tmp_path / "f.pt").read_bytes() != before, err
     assert not (tmp_path / "f.cubature.json").exists()
+    (tmp_path / "g.fit.pt").mkdir()  # a folder where the training state goes: refused before the fit, not after it
+    code, _, err = cli("fit", "toy_two_tets", *SMALL, "--steps", "2", "--out", str(tmp_path / "g"))
+    assert code == 2 and "g.fit.pt is a folder, not a file" in err and "choose another --out" in err, err
 
 
 def test_cubature_flags_are_named_in_their_errors(cli: Cli, tmp_path: Path) -> None:

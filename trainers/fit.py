@@ -620,7 +620,8 @@ def fit_subspace(
     Raises:
         ValueError: bad config, an alias given with its field at another value (``dim=3, latent_dim=4``), a
             conditional fit on a scene without conditions, ``resume`` without ``out``, with no matching checkpoint or
-            with ``overwrite``, or ``stop_at`` outside [steps done, ``config.steps``) or without ``out``.
+            with ``overwrite``, ``stop_at`` outside [steps done, ``config.steps``) or without ``out``, or a folder
+            where one of the fit's files goes (:func:`check_fit_files`).
         FileExistsError: a fit at ``out`` and neither ``resume`` nor ``overwrite``.
         FitStopped: the fit stopped at ``stop_at``.
     """
@@ -630,6 +631,8 @@ def fit_subspace(
         raise ValueError("resume needs out: the checkpoint stem whose STEM.fit.pt it continues")
     if resume and overwrite:
         raise ValueError("resume continues the fit at out, overwrite replaces it: give one")
+    if out is not None:
+        check_fit_files(out)
     if out is not None and not (resume or overwrite) and (found := existing_fit(out)) is not None:
         raise FileExistsError(
             f"a fit exists at {found}: continue it with resume=True (a larger steps extends it), or replace it with "
@@ -1045,6 +1048,22 @@ def _load_training_state(
         "command": state.get("command", ""),
         "seed": state.get("seed"),
     }
+
+
+def check_fit_files(stem: str | Path) -> None:
+    """Refuse a stem where ``STEM.pt``, ``STEM.json`` or ``STEM.fit.pt`` is something other than a file (a folder):
+    a fit would run all its steps and then fail to save (its training state too, so all of it lost).
+
+    Raises:
+        ValueError: naming the path that is in the way.
+    """
+    for suffix in (".pt", ".json", ".fit.pt"):
+        path = checkpoint_path(stem, suffix)
+        if path.exists() and not path.is_file():
+            raise ValueError(
+                f"{path} is a folder, not a file, so a fit at {stem} could not be saved: remove it or "
+                "choose another out"
+            )
 
 
 def existing_fit(stem: str | Path) -> Path | None:

@@ -145,8 +145,12 @@ def _check_stem(stem: Path, args: argparse.Namespace) -> None:
     """Refuse a stem that names no file, or one that holds a fit, unless ``--resume`` or ``--overwrite``."""
     if stem.name in ("", ".", ".."):
         raise CliError(f"--out must name a checkpoint stem (e.g. DIR/NAME), got {args.out!r}")
-    from redsim.trainers.fit import existing_fit
+    from redsim.trainers.fit import check_fit_files, existing_fit
 
+    try:
+        check_fit_files(stem)
+    except ValueError as err:
+        raise CliError(str(err).replace("choose another out", "choose another --out")) from err
     found = existing_fit(stem)
     if found is not None and not (args.resume or args.overwrite):  # minutes to hours of work: not replaced silently
         raise CliError(

@@ -133,4 +133,3 @@ class Torus:
     def distance(self, p: Tensor) -> Tensor:
         x, y, z = p.unbind(-1)
         return _norm(_norm(x, y) - self.major, z) - self.minor
-

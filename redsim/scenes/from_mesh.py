@@ -168,6 +168,9 @@ def fem_scene_from_mesh(
     gravity = check_bool("gravity", gravity)
     mesh, source = _mesh_input(mesh_or_path)
     _weld(mesh)
+    # zero-area and repeated faces (an exporter's) close nothing and open nothing: dropped, as the cloth does
+    mesh.update_faces(mesh.nondegenerate_faces() & mesh.unique_faces())
+    mesh.remove_unreferenced_vertices()
     if not mesh.is_watertight:
         raise ValueError(f"mesh {source!r} is not watertight; a solid needs a closed surface")
     if voxel_pitch is None:

@@ -367,6 +367,21 @@ def test_a_mesh_split_at_uv_seams_or_per_face_normals_is_welded_back(tmp_path) -
     assert redsim.scenes.fem_scene_from_mesh(faceted, voxel_pitch=0.05).free_dof_count > 0  # closed once welded
 
 
+def test_a_solid_with_zero_area_or_repeated_faces_is_the_closed_solid(tmp_path) -> None:
+    """An exporter's zero-area triangle or repeated face made a closed box 'not watertight' for the solid (the cloth
+    dropped them); they are dropped, and the scene is the clean box's."""
+    box = trimesh.creation.box(extents=(0.2, 0.1, 0.1))
+    clean = redsim.scenes.fem_scene_from_mesh(box, voxel_pitch=0.05)
+    for extra in ([[0, 1, 1]], box.faces[:1]):
+        messy = trimesh.Trimesh(box.vertices, np.vstack([box.faces, extra]), process=False)
+        path = tmp_path / "messy.stl"
+        messy.export(path)
+        for source in (messy, path):
+            scene = redsim.scenes.fem_scene_from_mesh(source, voxel_pitch=0.05)
+            assert scene.free_dof_count == clean.free_dof_count
+    assert len(messy.faces) == len(box.faces) + 1  # the caller's mesh is left as it was
+
+
 def test_a_pin_index_list_counts_the_vertices_as_given(tmp_path) -> None:
     vertices, triangles = meshes.cloth_grid(0.5, 0.5, (6, 6), origin=(0.0, 0.0, 0.0))
     stray = np.vstack([[[5.0, 5.0, 5.0]], vertices])  # a vertex no triangle uses, first

@@ -54,6 +54,10 @@ def test_bad_fit_options_are_a_clear_error(tmp_path, monkeypatch: pytest.MonkeyP
     monkeypatch.setenv("REDSIM_CACHE", str(tmp_path))
     with pytest.raises(ValueError, match="unknown fit option"):
         gym.make("RedSim/MiniChain-v0", scene_params=PARAMS, fit_if_missing=True, fit_options={"stepz": 3})
+    # the fitter's own arguments, which the cache sets: a TypeError "got multiple values for keyword argument"
+    for option in ({"progress": False}, {"out": str(tmp_path / "x")}, {"resume": True}):
+        with pytest.raises(ValueError, match=r"fit_options cannot set \['(progress|out|resume)'\]"):
+            gym.make("RedSim/MiniChain-v0", scene_params=PARAMS, fit_if_missing=True, fit_options=option)
 
 
 def test_fit_if_missing_fits_into_the_user_cache_with_a_progress_bar_then_reuses_it(

@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import dataclasses
 import math
+import re
 from collections.abc import Callable
 
 import pytest
@@ -226,6 +227,23 @@ def test_a_fit_at_an_existing_stem_is_refused_unless_resumed_or_overwritten(tmp_
     with pytest.warns(UserWarning, match="cubature"):  # the replaced map's cubature goes, saying so
         fit_subspace(scene, config, seed=1, progress=False, out=tmp_path / "mine", overwrite=True)
     assert (tmp_path / "mine.pt").read_bytes() != kept["mine.pt"]
+
+
+@pytest.mark.parametrize("suffix", [".pt", ".json", ".fit.pt"])
+def test_a_folder_where_a_fit_file_goes_is_refused_before_any_step(tmp_path, suffix: str) -> None:
+    """A folder named STEM.pt, STEM.json or STEM.fit.pt was found only when the fit saved, after all its steps
+    ('Is a directory: STEM.fit.pt.tmp', the whole fit lost), and resume said the training state 'does not exist'."""
+    from redsim.trainers.fit import fit_subspace
+
+    (tmp_path / f"y{suffix}").mkdir()
+    config = FitConfig(latent_dim=2, sigma=0.05, steps=4, hidden_width=8)
+    for flags in ({}, {"overwrite": True}, {"resume": True}):
+        with pytest.raises(ValueError, match=rf"y{re.escape(suffix)} is a folder, not a file"):
+            fit_subspace(_tet_scene(), config, progress=False, out=tmp_path / "y", callbacks=[_no_step], **flags)
+
+
+def _no_step(*args: object) -> None:
+    raise AssertionError("a fit step ran")
 
 
 def test_a_refused_overwrite_keeps_the_training_state_at_the_stem(tmp_path) -> None:
