@@ -107,6 +107,14 @@ NO_HUMAN = (
 """Why a vector env refuses ``render_mode="human"`` (it would draw nothing)."""
 
 
+def _unimplemented(task: Task, method: str) -> NotImplementedError:
+    """The error of a :class:`Task` method that a task of the user's does not implement, naming it."""
+    return NotImplementedError(
+        f"{type(task).__name__}.{method} is not implemented: a Task implements action_size, extras_bounds, "
+        "observation_structure, loads, extras and reward (controller for scripted actions)"
+    )
+
+
 class Task:
     """What an environment asks of its scene; every method is batched over B copies.
 
@@ -144,11 +152,11 @@ class Task:
 
     def extras_bounds(self) -> tuple[np.ndarray, np.ndarray]:
         """Finite (low, high) bounds of the observation extras, each shape [k]."""
-        raise NotImplementedError
+        raise _unimplemented(self, "extras_bounds")
 
     def observation_structure(self) -> dict[str, int]:
         """Name -> size of each block of the extras, in order."""
-        raise NotImplementedError
+        raise _unimplemented(self, "observation_structure")
 
     def sample(
         self, rng: np.random.Generator, sim: LatentSim, z_rest: Tensor, cond: Tensor | None
@@ -165,15 +173,15 @@ class Task:
 
     def loads(self, action: Tensor, params: Mapping[str, Tensor]) -> Tensor:
         """Loads [B, H, D] [N] from actions [B, A] in [-1, 1]."""
-        raise NotImplementedError
+        raise _unimplemented(self, "loads")
 
     def extras(self, x: Tensor, x_prev: Tensor, params: Mapping[str, Tensor]) -> Tensor:
         """Observation extras [B, k] from full configurations x [B, N] (and the previous ones)."""
-        raise NotImplementedError
+        raise _unimplemented(self, "extras")
 
     def reward(self, x: Tensor, action: Tensor, params: Mapping[str, Tensor]) -> tuple[Tensor, dict[str, Tensor]]:
         """Reward [B] and its terms {name: [B]} (they sum to the reward)."""
-        raise NotImplementedError
+        raise _unimplemented(self, "reward")
 
     def terminated(self, x: Tensor, params: Mapping[str, Tensor]) -> Tensor:
         """Task termination [B] (bool); divergence ends an episode on its own."""
@@ -185,7 +193,7 @@ class Task:
 
     def controller(self, sim: LatentSim) -> np.ndarray:
         """A scripted action [B, A] for the current states (demos and the did-it-reach tests)."""
-        raise NotImplementedError
+        raise _unimplemented(self, "controller")
 
     def overlay(self, sim: LatentSim, row: int) -> tuple[list[Any], list[Any]]:
         """(markers, arrows) of :mod:`redsim.raster` to draw on copy ``row``."""

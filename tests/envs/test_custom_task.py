@@ -182,6 +182,16 @@ def test_a_task_s_observation_contract_is_checked_when_the_env_is_made() -> None
         _env(WrongBlocks())
 
 
+def test_a_method_a_task_leaves_out_is_named() -> None:
+    """A Task subclass without a required method raised a bare NotImplementedError (an empty message)."""
+
+    class Bare(Task):
+        action_size = 1
+
+    with pytest.raises(NotImplementedError, match=r"Bare\.extras_bounds is not implemented: a Task implements"):
+        _env(Bare())
+
+
 class FloatTarget(HoldHeight):
     def sample(self, rng, sim, z_rest, cond):
         return {**super().sample(rng, sim, z_rest, cond), "target": 0.1}
