@@ -180,15 +180,20 @@ def _result(point: _Point, converged: bool, iterations: int, history: list[float
     return SolveInfo(converged, iterations, point.grad_norm, point.value, message, tuple(history))
 
 
-def _check_settings(tol: float, max_iter: int) -> None:
-    if not (math.isfinite(tol) and tol > 0.0):
-        raise ValueError(f"tol must be finite and > 0, got {tol}")
-    if int(max_iter) != max_iter or max_iter < 1:
-        raise ValueError(f"max_iter must be an integer >= 1, got {max_iter}")
+def check_settings(tol: Any, max_iter: Any) -> tuple[float, int]:
+    """``tol`` as a finite float > 0 and ``max_iter`` as an int >= 1, each a real number (not a bool or a string);
+    a ValueError otherwise (an inf ``max_iter`` was an OverflowError, a string ``tol`` a TypeError)."""
+    real = (int, float, np.integer, np.floating)
+    if isinstance(tol, bool) or not isinstance(tol, real) or not (math.isfinite(tol) and tol > 0.0):
+        raise ValueError(f"tol must be finite and > 0, got {tol!r}")
+    whole = isinstance(max_iter, real) and not isinstance(max_iter, bool) and math.isfinite(max_iter)
+    if not (whole and int(max_iter) == max_iter and max_iter >= 1):
+        raise ValueError(f"max_iter must be an integer >= 1, got {max_iter!r}")
+    return float(tol), int(max_iter)
 
 
 def _start(objective: Objective, u0: Tensor, tol: float, max_iter: int) -> tuple[_Point, float]:
-    _check_settings(tol, max_iter)
+    check_settings(tol, max_iter)
     if u0.ndim != 1:
         raise ValueError(f"u0 must have shape [m], got {tuple(u0.shape)}")
     point = _evaluate(objective, u0.detach().clone())

@@ -14,7 +14,6 @@ from __future__ import annotations
 import contextlib
 import dataclasses
 import logging
-import math
 from collections.abc import Callable, Iterator
 from dataclasses import dataclass
 
@@ -32,7 +31,7 @@ from redsim.integrators.objective import (
 )
 from redsim.integrators.spaces import Space
 from redsim.scene import LoadsLike, Scene
-from redsim.solvers import ConvergenceError, SolveInfo, get_minimizer
+from redsim.solvers import ConvergenceError, SolveInfo, check_settings, get_minimizer
 
 logger = logging.getLogger(__name__)
 
@@ -120,10 +119,7 @@ class ImplicitEuler:
         strict: bool = False,
     ) -> None:
         dt = check_time_step(dt)
-        if not (math.isfinite(tol) and tol > 0.0):
-            raise ValueError(f"tol must be finite and > 0, got {tol!r}")
-        if int(max_iter) != max_iter or max_iter < 1:
-            raise ValueError(f"max_iter must be an integer >= 1, got {max_iter!r}")
+        tol, max_iter = check_settings(tol, max_iter)
         self.space = space
         self.dt = float(dt)
         self.minimizer = minimizer

@@ -11,6 +11,7 @@ float64 reference); :class:`LatentSpace` solves over the latent z of a subspace 
 from __future__ import annotations
 
 import itertools
+import math
 from collections.abc import Callable
 from typing import Any, Protocol
 
@@ -191,6 +192,8 @@ class LatentSpace:
                 raise ValueError(
                     f"the subspace needs a condition of size {condition_dim}, got {tuple(self.condition.shape)}"
                 )
+            if not bool(torch.isfinite(self.condition).all()):
+                raise ValueError(f"the condition must be finite, got {self.condition.tolist()}")
         elif cond is not None:
             raise ValueError("this subspace takes no condition")
         self._origin = torch.zeros(latent_dim, dtype=torch.float64, device=self._scene.device)
@@ -278,7 +281,10 @@ class LatentSpace:
         return (v * w) @ v.T
 
     def gradient_scale(self, u: Tensor) -> float:
-        return float(np.linalg.norm(self.jacobian(u), 2))
+        """|J|_2 at u; inf where J is not finite (a latent the map overflows at: the step then reports that it did not
+        converge, where the SVD of a non-finite J raised LinAlgError)."""
+        jacobian = self.jacobian(u)
+        return float(np.linalg.norm(jacobian, 2)) if np.isfinite(jacobian).all() else math.inf
 
     def metric_norm(self, u: Tensor, matrix: Any) -> float:
         """|A J|_F."""

@@ -32,6 +32,7 @@ from redsim.runtime.energy import LatentEnergy, MapEnergy, ReducedInertia
 from redsim.runtime.flags import diverged_states, energy_gain_states, energy_gain_tolerance, out_of_range_states
 from redsim.runtime.solver import HESSIANS, BatchResult, check_max_step, check_sync_every, minimize
 from redsim.scene import LoadsLike, Scene
+from redsim.solvers import check_settings
 from redsim.subspace import map_fingerprint
 from redsim.tensors import as_numbers, jvp
 
@@ -355,10 +356,7 @@ class LatentStepper:
         dt = check_time_step(dt)
         check_dtype(dtype)
         tol = DEFAULT_TOL[dtype] if tol is None else tol
-        if not (isinstance(tol, (int, float)) and math.isfinite(tol) and tol > 0.0):
-            raise ValueError(f"tol must be finite and > 0, got {tol!r}")
-        if int(max_iter) != max_iter or max_iter < 1:
-            raise ValueError(f"max_iter must be an integer >= 1, got {max_iter!r}")
+        tol, max_iter = check_settings(tol, max_iter)
         if hessian not in HESSIANS:
             raise ValueError(f"unknown hessian {hessian!r}; valid: {list(HESSIANS)}")
         check_sync_every(sync_every)

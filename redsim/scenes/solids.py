@@ -151,8 +151,14 @@ def conditional_bar(
     toolkit.check_positive("pin_width", pin_width)
     toolkit.check_positive("pin_stiffness", pin_stiffness)
     gravity = toolkit.check_bool("gravity", gravity)
-    ratio_low, ratio_high = (toolkit.check_positive("stiffness_ratio_range", v) for v in stiffness_ratio_range)
-    loc_low, loc_high = (toolkit.check_range("pin_location_range", v, 0.0, 1.0) for v in pin_location_range)
+    ratio_low, ratio_high = (
+        toolkit.check_positive("stiffness_ratio_range", v)
+        for v in toolkit.check_pair("stiffness_ratio_range", stiffness_ratio_range)
+    )
+    loc_low, loc_high = (
+        toolkit.check_range("pin_location_range", v, 0.0, 1.0)
+        for v in toolkit.check_pair("pin_location_range", pin_location_range)
+    )
     if not (ratio_low < ratio_high and loc_low < loc_high):
         raise ValueError("condition ranges must be (low, high) with low < high")
 

@@ -80,6 +80,13 @@ def check_range(name: str, value: Any, low: float, high: float) -> float:
     return out
 
 
+def check_pair(name: str, value: Any) -> tuple[Any, Any]:
+    """The two entries of a (low, high) parameter (each checked by the caller)."""
+    if isinstance(value, str | bytes) or not hasattr(value, "__len__") or len(value) != 2:
+        raise ValueError(f"{name} must be a pair (low, high), got {value!r}")
+    return value[0], value[1]
+
+
 def check_bool(name: str, value: Any) -> bool:
     """A flag that must really be a bool (so ``gravity="no"`` is an error, not True)."""
     if not isinstance(value, bool | np.bool_):

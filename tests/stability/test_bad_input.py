@@ -8,6 +8,7 @@ tests/trainers/test_agents.py), non-finite actions and loads (test_stability.py,
 
 from __future__ import annotations
 
+import re
 from collections.abc import Callable
 from pathlib import Path
 
@@ -192,6 +193,49 @@ def test_the_full_space_integrator_refuses_a_time_step_too_small_for_its_arithme
 
     with pytest.raises(ValueError, match=r"dt must be a finite number of seconds >= 1e-06"):
         ImplicitEuler(FullSpace(scenes.build("mini_chain")), 1e-200)
+
+
+@pytest.mark.parametrize(
+    ("kwargs", "expected"),
+    [
+        ({"max_iter": float("inf")}, "max_iter must be an integer >= 1, got inf"),  # was OverflowError
+        ({"max_iter": float("nan")}, "max_iter must be an integer >= 1, got nan"),
+        ({"max_iter": True}, "max_iter must be an integer >= 1, got True"),
+        ({"tol": "1e-8"}, "tol must be finite and > 0, got '1e-8'"),  # was TypeError
+    ],
+)
+def test_solver_settings_of_the_wrong_kind_are_a_value_error(kwargs: dict, expected: str) -> None:
+    """ImplicitEuler, static_equilibrium's solver and LatentStepper share one check of tol and max_iter."""
+    from redsim.integrators import FullSpace, ImplicitEuler
+    from redsim.solvers import check_settings
+
+    scene = scenes.build("mini_chain")
+    with pytest.raises(ValueError, match=re.escape(expected)):
+        ImplicitEuler(FullSpace(scene), 0.01, **kwargs)
+    with pytest.raises(ValueError, match=re.escape(expected)):
+        LatentStepper(scene, pretrained.load("mini_chain", scene), 0.02, **kwargs)
+    with pytest.raises(ValueError, match=re.escape(expected)):
+        check_settings(kwargs.get("tol", 1e-8), kwargs.get("max_iter", 50))
+
+
+def test_a_latent_space_refuses_a_non_finite_condition_and_a_latent_its_map_overflows_at_is_unconverged() -> None:
+    """LatentSpace took a NaN condition and its step then died in NumPy's SVD (LinAlgError), as did a latent that
+    overflows the float32 map (|z| >= 3.4e38): the condition is refused, the step reports that it did not converge."""
+    from redsim.integrators import ImplicitEuler, LatentSpace
+
+    bar = scenes.build("conditional_bar")
+    with pytest.raises(ValueError, match=r"the condition must be finite, got \[nan, 0\.5\]"):
+        LatentSpace(bar, pretrained.load("conditional_bar", bar), cond=torch.tensor([float("nan"), 0.5]))
+    chain = scenes.build("mini_chain")
+    integrator = ImplicitEuler(LatentSpace(chain, pretrained.load("mini_chain", chain)), 0.02)
+    _, info = integrator.step(integrator.initial_state(torch.full((4,), 1e39, dtype=torch.float64)))
+    assert not info.converged
+
+
+@pytest.mark.parametrize("value", [None, 5, [0.3, 0.6, 0.9], "ab"])
+def test_a_range_parameter_that_is_not_a_pair_is_a_value_error(value: object) -> None:
+    with pytest.raises(ValueError, match=r"pin_location_range must be a pair \(low, high\)"):
+        scenes.build("conditional_bar", pin_location_range=value)
 
 
 @pytest.mark.skipif(torch.cuda.is_available(), reason="checks the message where CUDA is missing")
