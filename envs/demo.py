@@ -91,6 +91,8 @@ def run_demo(
             frames.append(env.render())
         if terminated or truncated:
             break
+    if stepped % frame_every:  # the last state, where the episode ended between kept frames
+        frames.append(env.render())
     out = Path(out)
     out.mkdir(parents=True, exist_ok=True)
     stem = demo_name(env_id, scripted=policy is None, seed=seed)

@@ -122,6 +122,7 @@ class LatentVectorEnv(SharedCopies, VectorEnv):
         self._elapsed[mask] = 0
         self._autoreset[mask] = False
         self._unreset[mask] = False
+        self._unframe()
         return self.sim.observe(), _with_masks(self.sim.state_info(mask), mask)
 
     @on_env_threads
@@ -245,6 +246,13 @@ class LatentVectorEnv(SharedCopies, VectorEnv):
         self._elapsed[:] = elapsed
         self._autoreset[:] = pending & (self.metadata["autoreset_mode"] != AutoresetMode.SAME_STEP)
         self._unreset[:] = False
+        self._unframe()
+
+    def _unframe(self) -> None:
+        """A tracking camera frames the picture anew at the next render after a ``reset`` or ``set_state`` call, as the
+        single env's does, so a state draws the same picture whatever came before it (the fixed camera never moves)."""
+        if self.template._camera.get("track", False):
+            self._view = None
 
     def _per_copy(self, name: str) -> tuple[Any, ...]:
         if name == "render":

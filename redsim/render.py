@@ -144,6 +144,10 @@ def draw_states(
     return path
 
 
+MIN_GIF_FPS = 100.0 / 65535
+"""The lowest frame rate a GIF holds [1/s]: its frame time is a 16-bit count of 10 ms (655.35 s at most)."""
+
+
 def animate_states(
     scene: Scene, qs: Sequence[Tensor], path: str | Path = "anim.gif", *, fps: float = 20.0, dpi: int = 80
 ) -> Path:
@@ -184,7 +188,7 @@ def animate_states(
         images.append(Image.fromarray(np.asarray(canvas.buffer_rgba())).convert("P", palette=Image.ADAPTIVE))
     path = Path(path)
     path.parent.mkdir(parents=True, exist_ok=True)
-    images[0].save(path, save_all=True, append_images=images[1:], duration=int(1000 / fps), loop=0)
+    images[0].save(path, save_all=True, append_images=images[1:], duration=round(1000 / fps), loop=0)
     return path
 
 

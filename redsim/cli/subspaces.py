@@ -319,12 +319,13 @@ def cmd_sample(args: argparse.Namespace) -> int:
 
 def cmd_animate(args: argparse.Namespace) -> int:
     from redsim.keyframes import catmull_rom_loop
-    from redsim.render import animate_states
+    from redsim.render import MIN_GIF_FPS, animate_states
 
     if args.keys < 2 or args.frames < args.keys:
         raise CliError(f"need --keys >= 2 and --frames >= --keys, got {args.keys} and {args.frames}")
-    if not (math.isfinite(args.fps) and 0.0 < args.fps <= 100.0):  # a GIF's frame time is whole 10 ms
-        raise CliError(f"--fps must be a number of frames per second in (0, 100], got {args.fps}")
+    # a GIF's frame time is whole 10 ms, at most 65535 of them
+    if not (math.isfinite(args.fps) and MIN_GIF_FPS <= args.fps <= 100.0):
+        raise CliError(f"--fps must be a number of frames per second in [{MIN_GIF_FPS:.3g}, 100], got {args.fps}")
     scene, sub = load_checkpoint(args.checkpoint)
     if Path(args.out).suffix.lower() != ".gif":  # before the frames are drawn
         raise CliError(f"--out must name a .gif file, got {args.out!r}")

@@ -5,6 +5,7 @@ from __future__ import annotations
 import json
 from pathlib import Path
 
+import numpy as np
 import pytest
 
 from redsim.cli import main
@@ -147,6 +148,26 @@ def test_demo_runs_the_steps_asked_for_past_the_ids_time_limit(tmp_path: Path) -
     small = {"frame_every": 10_000, "width": 64, "height": 64}
     short = run_demo("RedSim/MiniChain-v0", tmp_path, steps=4, max_episode_steps=2, **small)
     assert short["steps"] == 4  # steps sets the episode, over a max_episode_steps given with it
+
+
+def test_demo_draws_the_last_state_where_the_episode_ends_between_kept_frames(tmp_path: Path) -> None:
+    """The picture's right half and the GIF's last frame were the last kept frame (every frame_every steps), not the
+    state the episode ended in: with 5 steps and frames every 2, step 4's."""
+    import gymnasium as gym
+    from PIL import Image
+
+    from redsim.envs.demo import demo_name, run_demo
+
+    run_demo("RedSim/MiniChain-v0", tmp_path, steps=5, frame_every=2, width=64, height=64)
+    env = gym.make("RedSim/MiniChain-v0", render_mode="rgb_array", width=64, height=64)
+    env.reset(seed=0)
+    for _ in range(5):
+        env.step(env.unwrapped.task.controller(env.unwrapped.sim)[0])
+    stem = tmp_path / demo_name("RedSim/MiniChain-v0", scripted=True, seed=0)
+    with Image.open(stem.with_suffix(".gif")) as gif:
+        assert gif.n_frames == 4  # the reset, steps 2 and 4, and step 5
+    picture = np.asarray(Image.open(stem.with_suffix(".png")).convert("RGB"))
+    np.testing.assert_array_equal(picture[:, 64:], env.render())
 
 
 def test_demo_files_of_two_versions_do_not_overwrite_each_other() -> None:

@@ -191,6 +191,28 @@ def test_the_same_state_draws_the_same_picture_whatever_came_before() -> None:
             np.testing.assert_array_equal(picture, pictures[0])
 
 
+def test_the_vector_env_draws_the_same_state_alike_whatever_came_before() -> None:
+    """The vector env's tracking camera kept the first episode's framing through reset and set_state (900+ pixels of
+    84 x 84 apart for one state); it frames anew at both calls, as the single env's."""
+    options = {"num_envs": 2, "vectorization_mode": "vector_entry_point", "render_mode": "rgb_array"}
+    kw = {**options, "width": 84, "height": 84, "camera": {"track": True}}
+    first, fresh = gym.make_vec("RedSim/MiniChain-v0", **kw), gym.make_vec("RedSim/MiniChain-v0", **kw)
+    first.reset(seed=0, options={"target": [0.5, 0.0, 0.0]})  # a far target zooms the tracking view out
+    first.render()
+    first.reset(seed=1000)
+    fresh.reset(seed=1000)
+    for got, want in zip(first.render(), fresh.render(), strict=True):
+        np.testing.assert_array_equal(got, want)
+    fresh.step(np.ones((2, 3), np.float32))
+    state = fresh.get_state()
+    first.reset(seed=0, options={"target": [0.5, 0.0, 0.0]})
+    first.render()
+    first.set_state(state)
+    fresh.set_state(state)
+    for got, want in zip(first.render(), fresh.render(), strict=True):
+        np.testing.assert_array_equal(got, want)
+
+
 def test_a_camera_key_overrides_only_itself_and_a_long_arrow_stays_in_the_picture() -> None:
     env = gym.make("RedSim/ClothBall-v0", render_mode="rgb_array", camera={"margin": 0.3})
     assert env.unwrapped._camera == {**type(env.unwrapped).camera, "margin": 0.3}
