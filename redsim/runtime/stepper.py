@@ -22,6 +22,7 @@ from collections.abc import Callable, Mapping
 from dataclasses import dataclass
 from typing import Any, NamedTuple
 
+import numpy as np
 import torch
 from torch import Tensor, nn
 
@@ -677,15 +678,13 @@ class LatentStepper:
         loads_t = self._loads(loads, batch)
         cond_t = self._cond(cond, batch)
         d = self.latent_dim
-        if not self.warm_start:
-            warm = None
-        if warm is not None:
+        if warm is not None:  # checked even where warm_start=False ignores it: a wrong one is a caller's mistake
             warm = as_numbers(warm, "warm", f"[{batch}, {d}, {d}]", device=self.device)
             if warm.shape != (batch, d, d):
                 raise ValueError(
                     f"warm must have shape [{batch}, {d}, {d}] (a step's stats.model), got {tuple(warm.shape)}"
                 )
-            warm = warm.to(self.dtype)
+            warm = warm.to(self.dtype) if self.warm_start else None
         with torch.no_grad():
             both = self._coords(torch.cat([z, z_prev]), None if cond_t is None else cond_t.repeat(2, 1))
             q_t, q_prev = both[:batch], both[batch:]
@@ -867,7 +866,13 @@ class LatentStepper:
 
     def _solve_rest(self, cond: Tensor | None, start: Tensor | None) -> Tensor:
         """:meth:`rest_latent` solved from ``start`` [d] (None: z = 0), [1, d] or [B, d]."""
-        conds = [None] if cond is None else list(self._cond(cond, torch.as_tensor(cond).shape[0]).to(torch.float64))
+        conds: list[Tensor | None] = [None]
+        if cond is not None:
+            try:
+                shape = tuple(cond.shape) if isinstance(cond, Tensor) else np.shape(cond)
+            except ValueError:  # ragged: _cond names it
+                shape = ()
+            conds = list(self._cond(cond, shape[0] if len(shape) == 2 else 1).to(torch.float64))  # B = 0 gives none
         out = []
         for c in conds:
             space = LatentSpace(
@@ -875,7 +880,7 @@ class LatentStepper:
             )
             z, _ = latent_equilibrium(space, None, c, z0=start)
             out.append(z.to(device=self.device, dtype=self.dtype))
-        return torch.stack(out)
+        return torch.stack(out) if out else torch.zeros(0, self.latent_dim, dtype=self.dtype, device=self.device)
 
 
 _FRAMES = itertools.count()

@@ -281,6 +281,21 @@ def test_an_empty_batch_steps_to_an_empty_batch(mini_chain) -> None:
         built = scenes.build(name)
         assert built.energy(built.q_seed[None][:0]).shape == (0,)
         assert torch.isfinite(built.energy(built.q_seed[None]))
+    # the rest of no conditions is none (torch.stack of an empty list raised), and a 1-D condition's error asks for
+    # its batch form ([1, m], not [m, m])
+    bar = LatentStepper(scenes.build("conditional_bar"), pretrained.load("conditional_bar"), DT)
+    assert bar.rest_latent(torch.zeros(0, 2)).shape == (0, bar.latent_dim)
+    with pytest.raises(ValueError, match=r"cond must have shape \[1, 2\] .*got \(2,\)"):
+        bar.rest_latent(torch.tensor([1.0, 0.65]))
+
+
+def test_a_warm_model_of_the_wrong_shape_is_refused_also_where_warm_start_ignores_it(mini_chain) -> None:
+    scene, f = mini_chain
+    cold = LatentStepper(scene, f, DT, warm_start=False)
+    z = cold.rest_latent().expand(2, -1)
+    with pytest.raises(ValueError, match=r"warm must have shape \[2, 4, 4\]"):
+        cold.step(z, z, warm=torch.zeros(7))
+    torch.testing.assert_close(cold.step(z, z, warm=torch.eye(4).expand(2, 4, 4))[0], cold.step(z, z)[0])
 
 
 def test_the_stepper_steps_its_own_copy_of_the_map_and_names_a_scene_of_other_parameters() -> None:
