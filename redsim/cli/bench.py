@@ -144,8 +144,8 @@ def cmd_bench_energy(args: argparse.Namespace) -> int:
         raise CliError(f"--batches must be comma-separated integers, got {args.batches!r}") from err
     if min(batches) < 1:
         raise CliError(f"--batches must be >= 1, got {args.batches!r}")
-    if not args.perturbation > 0:
-        raise CliError(f"--perturbation must be > 0, got {args.perturbation}")
+    if not (math.isfinite(args.perturbation) and args.perturbation > 0):
+        raise CliError(f"--perturbation must be a finite number > 0, got {args.perturbation}")
     dtypes = parse_list(args.dtypes, "--dtypes")
     unknown = [d for d in dtypes if d not in DTYPES]
     if unknown:

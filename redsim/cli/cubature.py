@@ -71,6 +71,8 @@ def cmd_cubature(args: argparse.Namespace) -> int:
 
     scene, subspace = load_checkpoint(args.checkpoint)
     target = cubature_path(args.checkpoint)
+    if target.exists() and not target.is_file():  # found before the fit, not when it saves
+        raise CliError(f"{target} is a folder, not a file: remove it, or copy STEM.pt and STEM.json elsewhere")
     if target.exists() and not args.overwrite:
         raise CliError(f"{target} exists (the cubature the runtime uses for this map); --overwrite replaces it")
     if (why := write_error(target.absolute().parent)) is not None:
@@ -145,6 +147,8 @@ def cmd_bench_cubature(args: argparse.Namespace) -> int:
 
     if args.elements < 1:
         raise CliError(f"--elements must be an integer >= 1, got {args.elements}")
+    if args.steps < 1 or args.timed_steps < 2:  # the sweep's too
+        raise CliError("--steps must be >= 1 and --timed-steps >= 2")
     if args.sweep:
         if args.compile:
             raise CliError("--compile times the benched scenes' cubature step; the --sweep has no compiled column")
@@ -161,14 +165,21 @@ def cmd_bench_cubature(args: argparse.Namespace) -> int:
         check_scene_name(name)
     batches = tuple(parse_ints(args.batches, "--batches"))
     warmup = WARMUP_STEPS if args.warmup_steps is None else args.warmup_steps
-    if args.steps < 1 or args.timed_steps < 2:
-        raise CliError("--steps must be >= 1 and --timed-steps >= 2")
     if warmup < 0:
         raise CliError(f"--warmup-steps must be >= 0, got {warmup}")
     folder = Path(args.checkpoints) if args.checkpoints else None
     if folder is not None and not folder.is_dir():
         raise CliError(f"--checkpoints {folder}: no such folder")
-    checkpoints = {name: _checkpoint_of(name, folder) for name in names}  # each refused before any bench runs
+    checkpoints = {name: _checkpoint_of(name, folder) for name in names}
+    loaded = {}
+    for name in names:  # every checkpoint and the cubature beside it refused, if it is, before any bench runs
+        weights = checkpoints[name]
+        scene, subspace = load_checkpoint(str(weights))
+        try:
+            cub = load_cubature(weights, scene, subspace) if cubature_path(weights).is_file() else None
+        except CheckpointError as err:
+            raise CliError(str(err)) from err
+        loaded[name] = (weights, scene, subspace, cub)
     machine = machine_info()
     results = []
     if not args.json:
@@ -179,12 +190,7 @@ def cmd_bench_cubature(args: argparse.Namespace) -> int:
         )
         out(machine_line(machine, "cpu"))
     for name in names:
-        weights = checkpoints[name]
-        scene, subspace = load_checkpoint(str(weights))
-        try:
-            cub = load_cubature(weights, scene, subspace) if cubature_path(weights).is_file() else None
-        except CheckpointError as err:
-            raise CliError(str(err)) from err
+        weights, scene, subspace, cub = loaded[name]
         if cub is None:
             cub = build_cubature(scene, subspace, CubatureConfig(elements=args.elements))
         result = {"checkpoint": str(weights)} | bench_cubature(
@@ -283,7 +289,11 @@ def add_commands(sub: Any) -> None:
     p.add_argument("--samples", type=int, default=256, help="states z ~ N(0, I) (default 256)")
     p.add_argument("--episodes", type=int, default=4, help="latent rollouts under random loads (default 4)")
     p.add_argument("--rollout-steps", type=int, default=40, help="steps per rollout (default 40)")
-    p.add_argument("--full", metavar="E1,E2", help="effects kept whole (default: contact effects)")
+    p.add_argument(
+        "--full",
+        metavar="E1,E2",
+        help="effects kept whole, in place of the default (contact effects): name contact too to keep it whole",
+    )
     p.add_argument("--subsample", metavar="E1,E2", help="effects subsampled even if they are contact")
     p.add_argument("--seed", type=non_negative_seed, default=0, help="seed of samples, loads and split (default 0)")
     p.add_argument("--overwrite", action="store_true", help="replace an existing CHECKPOINT.cubature.json")

@@ -114,6 +114,8 @@ class Cubature:
             raise CheckpointError("no cubature file (make one with `redsim cubature`)", str(src))
         try:
             doc = json.loads(src.read_text())
+            if not isinstance(doc, dict):
+                raise CheckpointError(f"corrupt cubature file (not a JSON object: {type(doc).__name__})", str(src))
             if doc.get("format_version") != FORMAT_VERSION:
                 raise CheckpointError(f"unsupported format_version {doc.get('format_version')!r}", str(src))
             rules = []

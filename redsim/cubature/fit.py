@@ -61,7 +61,8 @@ class CubatureConfig:
         load_scale: Std of each load component [N]; None: the scene's weight per handle (trace(M)/D * 9.81 / H).
         dt: Rollout time step [s].
         held_out: Fraction of the states kept out of the fit for the reported error (0 < f < 1).
-        full: Effects kept whole; None: those of :data:`RARE_KINDS` (and any with at most ``elements`` elements).
+        full: Effects kept whole, in place of the default; None: those of :data:`RARE_KINDS` (and, without ``tol``,
+            any with at most ``elements`` elements).
         subsample: Effects subsampled even if their kind is in :data:`RARE_KINDS`.
         seed: Seeds the samples, loads and split.
     """
@@ -296,8 +297,8 @@ def effect_modes(scene: Scene, config: CubatureConfig) -> dict[str, str]:
             if effect.name in config.subsample:
                 raise ValueError(f"effect {effect.name!r} is linear: it stays exact and cannot be subsampled")
             modes[effect.name] = "linear"
-        elif whole or effect.element_count <= config.elements:
-            modes[effect.name] = "full"
+        elif whole or (config.tol is None and effect.element_count <= config.elements):
+            modes[effect.name] = "full"  # under a tol, the greedy search decides how many of them it needs
         else:
             modes[effect.name] = "cubature"
     return modes

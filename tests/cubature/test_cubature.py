@@ -268,6 +268,35 @@ def test_cli_bad_input_exits_with_a_message(cli, tmp_path) -> None:
     assert code == 2 and "no shipped subspace" in err and "--checkpoints DIR" in err
     code, _, err = cli("bench", "cubature", "stiff_body", "--checkpoints", str(tmp_path))
     assert code == 2 and str(tmp_path / "stiff_body.pt") in err and "redsim fit stiff_body" in err
+    # the sweep checks --timed-steps too (0 was statistics.StatisticsError, -3 a negative tensor size)
+    for timed in ("0", "-3"):
+        code, _, err = cli("bench", "cubature", "--sweep", "2", "--timed-steps", timed, "--batches", "1")
+        assert code == 2 and "--timed-steps >= 2" in err
+    code, _, err = cli("bench", "energy", "--scenes", "mini_chain", "--perturbation", "inf")
+    assert code == 2 and "--perturbation must be a finite number > 0, got inf" in err
+    import shutil
+
+    for suffix in (".pt", ".json"):
+        shutil.copy(pretrained.path("mini_chain").with_suffix(suffix), tmp_path / f"m{suffix}")
+    (tmp_path / "m.cubature.json").mkdir()  # a folder where the cubature goes: refused before the fit, not after it
+    for extra in ((), ("--overwrite",)):
+        code, _, err = cli("cubature", str(tmp_path / "m.pt"), "--elements", "4", "--samples", "8", *extra)
+        assert code == 2 and "m.cubature.json is a folder, not a file" in err, err
+    (tmp_path / "m.cubature.json").rmdir()
+    (tmp_path / "m.cubature.json").write_text("[]")  # JSON, but not an object: AttributeError before
+    with pytest.raises(CheckpointError, match=r"corrupt cubature file \(not a JSON object: list\)"):
+        Cubature.load(tmp_path / "m")
+
+
+def test_a_tol_chooses_how_many_elements_of_a_small_effect_it_needs(mini_chain) -> None:
+    """Under --tol the cap is 1000 elements, and an effect with at most that many was kept whole without a search:
+    the tolerance did nothing on the bars (756-846 elements). Without a tol such an effect is still kept whole."""
+    from redsim.cubature.fit import effect_modes
+
+    scene, _ = mini_chain
+    config = CubatureConfig(elements=1000, tol=0.3, subsample=("contact",))
+    assert effect_modes(scene, config)["contact"] == "cubature"
+    assert effect_modes(scene, CubatureConfig(elements=1000, subsample=("contact",)))["contact"] == "full"
 
 
 def test_bench_names_its_checkpoint_and_refuses_one_of_another_scene(cli, tmp_path) -> None:
@@ -301,6 +330,18 @@ def test_bench_names_its_checkpoint_and_refuses_one_of_another_scene(cli, tmp_pa
         shutil.copy(pretrained.path("mini_chain").with_suffix(suffix), later / f"chain{suffix}")
     code, out, err = cli("bench", "cubature", "mini_chain,chain", *quick[1:], "--checkpoints", str(later))
     assert code == 2 and out == "" and "is a fit of scene 'mini_chain', not of 'chain'" in err
+    # so is a cubature beside a later checkpoint that belongs to another map (it was loaded in that scene's turn)
+    wrong = tmp_path / "wrong"
+    wrong.mkdir()
+    for name in ("mini_chain", "klann"):
+        for suffix in (".pt", ".json"):
+            shutil.copy(pretrained.path(name).with_suffix(suffix), wrong / f"{name}{suffix}")
+    chain = scenes.build("mini_chain")
+    build_cubature(chain, pretrained.load("mini_chain", chain), CubatureConfig(elements=4, **QUICK)).save(
+        wrong / "klann"
+    )
+    code, out, err = cli("bench", "cubature", "mini_chain,klann", *quick[1:], "--checkpoints", str(wrong))
+    assert code == 2 and "mini_chain (" not in out and "klann.cubature.json" in err, (out, err)
 
 
 @pytest.mark.parametrize("name", ["hanging_sheet", "cloth_ball"])
