@@ -219,6 +219,22 @@ def cmd_bench_step(args: argparse.Namespace) -> int:
             baseline = check_source(Path(args.baseline))
         except ValueError as err:
             raise CliError(f"--baseline: {err}") from err
+    if args.hessians is not None:
+        ignored = [
+            flag
+            for flag, given in (
+                ("--reference-steps", args.reference_steps != STEP_REFERENCE_STEPS),
+                ("--rounds", args.rounds != 1),
+                ("--no-compile", args.no_compile),
+                ("--dense", args.dense),
+            )
+            if given
+        ]
+        if ignored:
+            raise CliError(
+                "--hessians runs each Hessian model once, eager and row-selected, without the reference: "
+                f"drop {', '.join(ignored)}"
+            )
     machine = machine_info()
     if args.hessians is not None:
         return _bench_step_hessians(args, names, batches, machine)
@@ -596,6 +612,7 @@ def cmd_bench_stability(args: argparse.Namespace) -> int:
     return EXIT_OK
 
 
+STEP_REFERENCE_STEPS = 10  # bench step's default --reference-steps
 DAMPING_OPTIONS = ("damping_scenes", "damping_seconds", "damping_divisions", "damping_full")
 """The ``--damping-*`` options (argparse names): None unless given, so that one given without the regime is refused."""
 
@@ -732,7 +749,12 @@ def add_commands(sub: Any) -> Any:
     )
     p.add_argument("--batches", default="1,16,64,256", metavar="B1,B2", help="batch sizes (default 1,16,64,256)")
     p.add_argument("--steps", type=int, default=20, help="timed steps per batch size (default 20)")
-    p.add_argument("--reference-steps", type=int, default=10, help="steps of the reference path (default 10)")
+    p.add_argument(
+        "--reference-steps",
+        type=int,
+        default=STEP_REFERENCE_STEPS,
+        help=f"steps of the reference path (default {STEP_REFERENCE_STEPS})",
+    )
     p.add_argument("--dt", type=float, default=0.02, help="time step [s] (default 0.02)")
     p.add_argument("--no-compile", action="store_true", help="skip the torch.compile variant")
     p.add_argument(

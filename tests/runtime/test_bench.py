@@ -63,6 +63,8 @@ def test_bench_step_dense_runs_both_iterations(capsys: pytest.CaptureFixture[str
         (["--batches", "x"], "comma-separated integers"),
         (["--rounds", "0"], ">= 1"),
         (["--hessians", "magic"], "unknown Hessian"),
+        (["--hessians", "exact", "--rounds", "3", "--dense"], "drop --rounds, --dense"),
+        (["--hessians", "exact", "--reference-steps", "4", "--no-compile"], "drop --reference-steps, --no-compile"),
         (["--baseline", "/"], "holds no redsim package"),
     ],
 )
