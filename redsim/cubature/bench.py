@@ -92,6 +92,8 @@ def bench_cubature(
     """
     if isinstance(warmup, bool) or not isinstance(warmup, int) or warmup < 0:
         raise ValueError(f"warmup must be an integer >= 0, got {warmup!r}")
+    if isinstance(timed_steps, bool) or not isinstance(timed_steps, int) or timed_steps < 1:
+        raise ValueError(f"timed_steps must be an integer >= 1, got {timed_steps!r}")
     scale = default_load_scale(scene) if load_scale is None else load_scale
     all_elements = LatentStepper(scene, subspace, dt, dtype=dtype)
     energy = CubatureEnergy(scene, subspace, cubature, dtype=dtype)
@@ -119,8 +121,8 @@ def bench_cubature(
         pen_cub = penetration(scene32, q_cub.reshape(-1, q_cub.shape[-1]))
     timing = {}
     for batch in batches:
-        timed = timed_steps // 2 + 1
-        batch_loads = _loads(scene, warmup + timed, batch, hold, scale, seed + 1) if scene.handles else None
+        halves = ((timed_steps + 1) // 2 + 1, timed_steps // 2 + 1)  # each rollout's first step untimed
+        batch_loads = _loads(scene, warmup + halves[0], batch, hold, scale, seed + 1) if scene.handles else None
         z0 = rest.expand(batch, -1)
         z_prev = None
         if warmup:  # both energies are timed from the same moving state
@@ -128,17 +130,17 @@ def bench_cubature(
             z0, z_prev = path[-1], path[-2]
         timed_loads = None if batch_loads is None else batch_loads[warmup:]
         if compiled:  # its graphs compile in these steps (one row, several), not in the timed ones
-            _rollout(timed_steppers["cubature_compiled"], z0, timed_loads, min(timed, 3), z_prev)
+            _rollout(timed_steppers["cubature_compiled"], z0, timed_loads, min(halves[0], 3), z_prev)
         times = {key: [] for key in timed_steppers}
         calls = dict.fromkeys(timed_steppers, 0)
-        for _ in range(2):  # interleaved halves, so other load on the machine hits all alike
+        for half in halves:  # interleaved halves, so other load on the machine hits all alike
             for key, stepper in timed_steppers.items():
                 stepper.evaluations = Evaluations()
-                _, t = _rollout(stepper, z0, timed_loads, timed, z_prev)
+                _, t = _rollout(stepper, z0, timed_loads, half, z_prev)
                 times[key].extend(t[1:])
                 calls[key] += stepper.evaluations.calls
         timing[batch] = {f"{key}_s": statistics.median(t) for key, t in times.items()} | {
-            f"{key}_calls_per_step": count / (2 * timed) for key, count in calls.items()
+            f"{key}_calls_per_step": count / sum(halves) for key, count in calls.items()
         }
     return {
         "scene": scene.name,

@@ -433,6 +433,34 @@ def test_bench_times_both_energies_from_the_same_moving_state(cli, mini_chain) -
     assert code == 2 and "--warmup-steps must be >= 0, got -1" in err
 
 
+def test_bench_cubature_times_exactly_the_timed_steps_asked(mini_chain) -> None:
+    """An odd ``timed_steps`` is timed whole: the two interleaved halves time (n + 1) // 2 and n // 2 steps after
+    each rollout's untimed first step (n - 1 were timed before); 0 is refused."""
+    from redsim.cubature import bench
+
+    scene, f = mini_chain
+    cub = build_cubature(scene, f, CubatureConfig(elements=4, **QUICK))
+    timed = []
+    rollout = bench._rollout
+
+    def spy(stepper, z0, loads, steps, z_prev=None):  # type: ignore[no-untyped-def]
+        path, times = rollout(stepper, z0, loads, steps, z_prev)
+        timed.append(len(times) - 1)
+        return path, times
+
+    bench._rollout = spy
+    try:
+        for n in (3, 4):
+            timed.clear()
+            bench.bench_cubature(scene, f, cub, steps=2, batches=(1,), timed_steps=n, warmup=0)
+            halves = timed[2:]  # after the two accuracy rollouts: all, cubature, all, cubature
+            assert halves == [(n + 1) // 2] * 2 + [n // 2] * 2
+    finally:
+        bench._rollout = rollout
+    with pytest.raises(ValueError, match="timed_steps must be an integer >= 1"):
+        bench.bench_cubature(scene, f, cub, steps=2, batches=(1,), timed_steps=0)
+
+
 def test_bench_cubature_in_float64(cli, mini_chain) -> None:
     """``--dtype float64`` steps both energies in float64 (the deviation without float32's round-off)."""
     import json
