@@ -363,6 +363,25 @@ def test_a_file_or_folder_that_is_no_checkpoint_is_named_as_given(cli: Cli, tmp_
             assert code == 2 and out == "" and f"{given} is {kind}, not a checkpoint: give a fit's STEM.pt" in err
 
 
+def test_a_cubature_or_rest_start_given_as_a_checkpoint_names_the_map_it_belongs_to(cli: Cli, tmp_path: Path) -> None:
+    from redsim import pretrained
+
+    shipped = pretrained.path("hanging_sheet")
+    stray = tmp_path / "part.rest.json"
+    stray.write_text("{}")
+    cases = (
+        (shipped.with_name("hanging_sheet.cubature.json"), "a cubature", f"belongs to, {shipped}"),
+        (stray, "a shipped map's rest start", "belongs to (a fit's STEM.pt)"),
+    )
+    for given, what, names in cases:
+        for command in ("inspect", "sample", "animate", "cubature"):
+            flags = ["--elements", "5"] if command == "cubature" else []
+            code, out, err = cli(command, str(given), *flags)  # was: "...cubature.pt: the weights file is missing"
+            assert (
+                code == 2 and out == "" and f"{given} is {what}, not a checkpoint: give the subspace it {names}" in err
+            )
+
+
 def test_a_fits_training_state_given_as_a_checkpoint_says_what_it_is(cli: Cli, tmp_path: Path) -> None:
     stem = str(tmp_path / "part")
     code, _, err = cli("fit", "toy_two_tets", *SMALL, "--steps", "8", "--stop-at", "4", "--out", stem)

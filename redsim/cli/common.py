@@ -455,6 +455,15 @@ def load_checkpoint(path: str) -> tuple[Scene, Any]:
     from redsim.scenes.spec import SceneSpecError, scene_from_spec
     from redsim.subspace import CheckpointError, checkpoint_path, load_subspace, read_metadata
 
+    from redsim.cubature.energy import SUFFIX as CUBATURE_SUFFIX
+
+    for suffix, what in ((CUBATURE_SUFFIX, "a cubature"), (".rest.json", "a shipped map's rest start")):
+        if Path(path).name.endswith(suffix):  # a file beside a checkpoint, given in its place
+            mapped = Path(path).with_name(Path(path).name[: -len(suffix)] + ".pt")
+            raise CliError(
+                f"{path} is {what}, not a checkpoint: give the subspace it belongs to"
+                + (f", {mapped}" if mapped.is_file() else " (a fit's STEM.pt)")
+            )
     weights = checkpoint_path(path, ".pt")
     if weights.name.endswith(".fit.pt"):  # a fit's resumable state (all that --stop-at or Ctrl-C leaves)
         mapped = weights.with_name(weights.name[: -len(".fit.pt")] + ".pt")
