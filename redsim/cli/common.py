@@ -452,10 +452,9 @@ def bench_scenes(args: argparse.Namespace, default: Sequence[str]) -> list[tuple
 
 def load_checkpoint(path: str) -> tuple[Scene, Any]:
     """The scene a checkpoint was fitted to (rebuilt from its JSON, a user's mesh included) and the subspace."""
+    from redsim.cubature.energy import SUFFIX as CUBATURE_SUFFIX
     from redsim.scenes.spec import SceneSpecError, scene_from_spec
     from redsim.subspace import CheckpointError, checkpoint_path, load_subspace, read_metadata
-
-    from redsim.cubature.energy import SUFFIX as CUBATURE_SUFFIX
 
     for suffix, what in ((CUBATURE_SUFFIX, "a cubature"), (".rest.json", "a shipped map's rest start")):
         if Path(path).name.endswith(suffix):  # a file beside a checkpoint, given in its place
