@@ -11,6 +11,7 @@ from __future__ import annotations
 
 import hashlib
 import os
+import warnings
 from typing import TYPE_CHECKING
 
 import numpy as np
@@ -33,6 +34,7 @@ from redsim.scenes.toolkit import (
 if TYPE_CHECKING:  # imported where used: import redsim needs none of trimesh (slow to import)
     import trimesh
 
+LARGE_MESH_M = 10.0  # a mesh spanning more [m] is warned about: likely a file in millimetres or centimetres
 MAX_VOXELS = 200_000_000  # cells of the voxel grid over the bounding box; more is refused (minutes and GBs)
 
 
@@ -61,6 +63,22 @@ def _mesh_input(mesh_or_path: trimesh.Trimesh | str | os.PathLike[str]) -> tuple
     if isinstance(mesh_or_path, str | os.PathLike):
         return meshes.load_mesh(mesh_or_path), os.path.abspath(os.fspath(mesh_or_path))
     raise ValueError(f"expected a trimesh.Trimesh or a file path, got {type(mesh_or_path).__name__}")
+
+
+def _scaled(mesh: trimesh.Trimesh, scale: float, source: str) -> trimesh.Trimesh:
+    """The mesh with its coordinates multiplied by ``scale`` (in place); a warning where the result spans more than
+    :data:`LARGE_MESH_M` metres, the size of a file in millimetres or centimetres read as metres."""
+    if scale != 1.0:
+        mesh.apply_scale(scale)
+    span = float(np.max(mesh.extents))
+    if span > LARGE_MESH_M:
+        warnings.warn(
+            f"mesh {source!r} spans {span:.4g} m: redsim reads a mesh's coordinates in metres; for a file in "
+            "millimetres give scale=1e-3 (centimetres: 1e-2; on the command line --param scale=0.001)",
+            UserWarning,
+            stacklevel=3,
+        )
+    return mesh
 
 
 def _weld(mesh: trimesh.Trimesh) -> None:
@@ -119,6 +137,12 @@ def _digest(*arrays: np.ndarray) -> str:
     return h.hexdigest()[:16]
 
 
+def _scale_param(scale: float) -> dict[str, float]:
+    """``{"scale": scale}``, or nothing at 1: the params (and so the fingerprint) of a scene made before the
+    option existed stay its own."""
+    return {} if scale == 1.0 else {"scale": scale}
+
+
 def _pin_label(spec: PinSpec, pinned: np.ndarray) -> str:
     return spec if isinstance(spec, str) else ("none" if spec is None else f"ids:{_digest(pinned)}")
 
@@ -134,6 +158,7 @@ def fem_scene_from_mesh(
     density: float = 1000.0,
     pin: PinSpec = "min_y",
     gravity: bool = True,
+    scale: float = 1.0,
     name: str = "mesh_fem",
 ) -> Scene:
     """A neo-Hookean solid from a watertight surface mesh, voxel-tetrahedralized.
@@ -151,6 +176,8 @@ def fem_scene_from_mesh(
         density: Mass density [kg/m^3].
         pin: Which tet vertices to pin (see :data:`PinSpec`); "min_y" pins the bottom voxel layer.
         gravity: Add gravity (9.81 m/s^2 along -y).
+        scale: Multiplies the mesh's coordinates (1e-3 for a file in millimetres); a mesh spanning more than
+            :data:`LARGE_MESH_M` metres after it is warned about.
         name: Scene name.
 
     Returns:
@@ -166,7 +193,9 @@ def fem_scene_from_mesh(
     poisson = check_poisson(poisson)
     density = check_positive("density", density)
     gravity = check_bool("gravity", gravity)
+    scale = check_positive("scale", scale)
     mesh, source = _mesh_input(mesh_or_path)
+    _scaled(mesh, scale, source)
     _weld(mesh)
     # zero-area and repeated faces (an exporter's) close nothing and open nothing: dropped, as the cloth does
     mesh.update_faces(mesh.nondegenerate_faces() & mesh.unique_faces())
@@ -209,7 +238,7 @@ def fem_scene_from_mesh(
         "density": density,
         "pin": _pin_label(pin, pinned),
         "gravity": gravity,
-    }
+    } | _scale_param(scale)
     return b.finalize(
         name,
         params=params,
@@ -227,6 +256,7 @@ def cloth_scene_from_mesh(
     density: float = 200.0,
     pin: PinSpec = "max_y",
     gravity: bool = True,
+    scale: float = 1.0,
     name: str = "mesh_cloth",
 ) -> Scene:
     """Cloth made directly from the triangles of a surface mesh (StVK membrane + discrete-shell bending).
@@ -241,6 +271,8 @@ def cloth_scene_from_mesh(
         pin: Which vertices to pin (see :data:`PinSpec`); "max_y" pins the top (within 0.1% of
             the bounding-box diagonal).
         gravity: Add gravity (9.81 m/s^2 along -y).
+        scale: Multiplies the mesh's coordinates (1e-3 for a file in millimetres); a mesh spanning more than
+            :data:`LARGE_MESH_M` metres after it is warned about.
         name: Scene name.
 
     Returns:
@@ -259,7 +291,9 @@ def cloth_scene_from_mesh(
     bending = check_positive("bending", bending, allow_zero=True)
     density = check_positive("density", density)
     gravity = check_bool("gravity", gravity)
+    scale = check_positive("scale", scale)
     mesh, source = _mesh_input(mesh_or_path)
+    _scaled(mesh, scale, source)
     given = np.asarray(mesh.vertices, dtype=np.float64).copy()
     _weld(mesh)
     mesh.update_faces(mesh.nondegenerate_faces())
@@ -301,7 +335,7 @@ def cloth_scene_from_mesh(
         "density": density,
         "pin": _pin_label(pin, pinned),
         "gravity": gravity,
-    }
+    } | _scale_param(scale)
     return b.finalize(
         name,
         params=params,

@@ -392,6 +392,37 @@ def test_a_pin_index_list_counts_the_vertices_as_given(tmp_path) -> None:
     torch.testing.assert_close(scene.q_seed, expected.q_seed)  # the same vertices are free
 
 
+def test_a_mesh_in_millimetres_is_warned_about_and_scale_reads_it_in_metres(tmp_path) -> None:
+    """A file in millimetres read as metres spans hundreds of metres: a warning says so and names ``scale``; with
+    scale=1e-3 it is the same scene geometry as the file in metres, and its spec rebuilds it; scale 1 leaves the
+    params (so the fingerprints of scenes made before the option) as they were."""
+    import warnings
+
+    from redsim.scenes.spec import scene_arguments, scene_from_spec, scene_spec
+
+    vertices, triangles = meshes.cloth_grid(0.5, 0.5, (4, 4), origin=(0.0, -0.5, 0.0))
+    metres, millimetres = tmp_path / "sheet_m.obj", tmp_path / "sheet_mm.obj"
+    trimesh.Trimesh(vertices, triangles).export(metres)
+    trimesh.Trimesh(1e3 * vertices, triangles).export(millimetres)
+    with pytest.warns(UserWarning, match=r"spans 500 m: .* in metres; for a file in millimetres give scale=1e-3"):
+        redsim.scenes.cloth_scene_from_mesh(millimetres)
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")
+        sheet = redsim.scenes.cloth_scene_from_mesh(metres)
+        scaled = redsim.scenes.cloth_scene_from_mesh(millimetres, scale=1e-3)
+    assert "scale" not in sheet.params and scaled.params["scale"] == 1e-3
+    torch.testing.assert_close(scaled.q_seed, sheet.q_seed)
+    assert scene_from_spec(scene_spec(scaled)).fingerprint() == scaled.fingerprint()
+    assert "scale=0.001" in scene_arguments(scaled)
+    box = trimesh.creation.box(extents=(200.0, 100.0, 100.0))  # a 20 x 10 x 10 cm block in millimetres
+    with pytest.warns(UserWarning, match="spans 200 m"):
+        redsim.scenes.fem_scene_from_mesh(box.copy(), voxel_pitch=50.0, gravity=False)
+    solid = redsim.scenes.fem_scene_from_mesh(box, voxel_pitch=0.05, gravity=False, scale=1e-3)
+    assert solid.params["voxel_pitch"] == 0.05 and float(solid.q_seed.abs().max()) < 0.2  # voxels overhang a little
+    with pytest.raises(ValueError, match="scale must be > 0"):
+        redsim.scenes.cloth_scene_from_mesh(metres, scale=0.0)
+
+
 def test_a_copied_mesh_file_is_the_same_scene_and_old_fingerprints_still_load(tmp_path) -> None:
     vertices, triangles = meshes.cloth_grid(0.5, 0.5, (4, 4), origin=(0.0, -0.5, 0.0))
     (tmp_path / "a").mkdir()
