@@ -51,6 +51,11 @@ def _local_hessians(
 ) -> Tensor | None:
     """Per-element Hessians [T, k, k], or None when the effect is affine in x (zero Hessian).
 
+    An element whose second derivatives are not finite at finite coordinates gets a zero block: its energy is not
+    twice differentiable there (a collapsed bending hinge, zero-length edge or apex on the edge line, has no
+    dihedral angle; autograd's atan2 gives a zero gradient and NaN curvature at (0, 0)), and a Newton model without
+    that element's curvature still descends, where a NaN block made the projected step's eigh fail.
+
     Args:
         effect: The energy term.
         x: One full configuration, shape [N].
@@ -81,6 +86,9 @@ def _local_hessians(
             (rows_h,) = torch.autograd.grad(picked.sum(), xe, allow_unused=True)
         if rows_h is not None:
             out[:, start : start + count, :] = rows_h.transpose(0, 1)
+    undefined = ~out.isfinite().all(dim=(1, 2)) & xe0.isfinite().all(dim=1)
+    if bool(undefined.any()):
+        out[undefined] = 0.0
     return out
 
 

@@ -147,6 +147,31 @@ def test_assembled_hessian_matches_autograd_and_finite_differences() -> None:
     torch.testing.assert_close(element_hessians(scene.effect("joint"), x, project=True), joint)
 
 
+def test_a_collapsed_bending_hinge_adds_no_curvature_and_the_step_goes_on() -> None:
+    """A cloth vertex moved onto its neighbour collapses the hinges on that edge: their dihedral angle has no second
+    derivative (autograd: NaN), and the projected full-space step failed in eigh. Their blocks are zero now, the
+    other hinges' as before, and the step converges to a finite state."""
+    import redsim
+
+    scene = redsim.scenes.build("toy_small_cloth")
+    full_to_free = scene.dof_map.full_to_free()
+    hinges = scene.effect("bending").element_dofs  # [E, 12]: edge start, edge end, two apexes
+    hinge = next(t for t in range(hinges.shape[0]) if bool((full_to_free[hinges[t]] >= 0).all()))
+    q = scene.q_seed.clone()
+    x = scene.full_positions(q[None])[0]
+    q[full_to_free[hinges[hinge, 3:6]]] = x[hinges[hinge, 0:3]]  # the edge's end onto its start
+    x = scene.full_positions(q[None])[0]
+    blocks = element_hessians(scene.effect("bending"), x)
+    assert bool(blocks.isfinite().all()) and not bool(blocks[hinge].any())
+    collapsed = ~blocks.flatten(1).any(1)
+    regular = element_hessians(scene.effect("bending"), scene.full_positions(scene.q_seed[None])[0])
+    assert bool(regular.flatten(1).any(1)[collapsed].all())  # zeroed only where collapsed
+    assert np.isfinite(energy_hessian(scene, q, project=True).data).all()
+    integrator = ImplicitEuler(FullSpace(scene), 0.01)
+    state, info = integrator.step(integrator.initial_state(q))
+    assert info.converged and bool(state.q.isfinite().all())
+
+
 # -- implicit Euler: exact recursions and physics -----------------------------------------------
 def test_falling_particles_match_discrete_and_analytic_solutions() -> None:
     b = SceneBuilder(dim=3)
