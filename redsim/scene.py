@@ -596,7 +596,8 @@ class SceneBuilder:
 
         Args:
             mass_block: The 4x4 matrix sum_v m_v [v;1][v;1]^T over the body-frame mass
-                distribution [kg, kg m, kg m^2] (see :func:`redsim.meshes.affine_mass_block`).
+                distribution [kg, kg m, kg m^2] (see :func:`redsim.meshes.affine_mass_block`); the frame's origin
+                need not be the centre of mass (block[:3, 3] / block[3, 3]), where gravity acts.
             transform: Seed 3x4 ``[R | t]``; identity rotation at the origin by default.
 
         Returns:
@@ -662,9 +663,9 @@ class SceneBuilder:
         if self._particle_first_dof:
             sets.append(self.particle_points(torch.arange(self.particle_count)))
             masses.append(torch.cat(self._particle_mass))
-        if self._body_first_dof:
-            origin = torch.zeros(1, 3, dtype=torch.float64)
-            sets.extend(self.body_points(b, origin) for b in range(self.body_count))
+        if self._body_first_dof:  # at the centre of mass, in the body frame block[:3, 3] / m (0 where centred)
+            centres = [(m[:3, 3] / m[3, 3]).reshape(1, 3) for m in self._body_mass_block]
+            sets.extend(self.body_points(b, centre) for b, centre in enumerate(centres))
             masses.append(torch.stack([m[3, 3] for m in self._body_mass_block]))
         if not sets:
             raise ValueError("add particles or bodies before gravity")

@@ -212,6 +212,22 @@ def test_falling_rigid_body_matches_discrete_recursion() -> None:
     torch.testing.assert_close(traj, scene.q_seed + n * h * v0 + h**2 * accel * n * (n + 1) / 2, rtol=0.0, atol=1e-10)
 
 
+def test_gravity_acts_at_a_bodys_centre_of_mass_where_its_frame_is_off_centre() -> None:
+    """A body whose frame origin is not its centre of mass (mass block with block[:3, 3] != 0): turning it 90 degrees
+    about z lifts the centre of mass by 1 m, and gravity's energy rises by m g (it stayed 0: gravity acted at the
+    frame origin)."""
+    points = CUBE - 0.5 + torch.tensor([1.0, 0.0, 0.0], dtype=torch.float64)  # 8 x 0.25 kg around (1, 0, 0)
+    homogeneous = torch.cat([points, torch.ones(8, 1, dtype=torch.float64)], dim=1)
+    block = 0.25 * homogeneous.T @ homogeneous
+    b = SceneBuilder(dim=3)
+    b.add_body(block)
+    b.add_gravity(GRAVITY)
+    scene = b.finalize("off_centre_body")
+    turned = torch.tensor([[0.0, -1.0, 0.0, 0.0], [1.0, 0.0, 0.0, 0.0], [0.0, 0.0, 1.0, 0.0]], dtype=torch.float64)
+    lift = scene.energy_terms(turned.reshape(1, 12))["gravity"] - scene.energy_terms(scene.q_seed[None])["gravity"]
+    torch.testing.assert_close(lift, torch.tensor([2.0 * G], dtype=torch.float64))
+
+
 def _zero_crossings(t: np.ndarray, x: np.ndarray) -> np.ndarray:
     i = np.nonzero(np.sign(x[:-1]) != np.sign(x[1:]))[0]
     return t[i] - x[i] * (t[i + 1] - t[i]) / (x[i + 1] - x[i])
