@@ -9,6 +9,7 @@ components (``p.unbind(-1)``), so a caller may pass a view whose components are 
 from __future__ import annotations
 
 import math
+import numbers
 from dataclasses import dataclass
 
 import torch
@@ -25,11 +26,22 @@ def _norm(*components: Tensor) -> Tensor:
     return torch.sqrt(total + _SMOOTHING)
 
 
+def _check_lengths(shape: object, **lengths: float) -> None:
+    """Refuse a shape's lengths [m] that are not finite numbers > 0 (a negative radius turns the shape inside out:
+    its centre would count as outside)."""
+    for name, value in lengths.items():
+        if isinstance(value, bool) or not isinstance(value, numbers.Real) or not (math.isfinite(value) and value > 0):
+            raise ValueError(f"{type(shape).__name__} {name} must be a finite number > 0 [m], got {value!r}")
+
+
 @dataclass(frozen=True)
 class Sphere:
     """Ball of ``radius`` [m] centred at the origin."""
 
     radius: float
+
+    def __post_init__(self) -> None:
+        _check_lengths(self, radius=self.radius)
 
     @property
     def feature_size(self) -> float:
@@ -52,6 +64,19 @@ class Plane:
     normal: tuple[float, float, float]
     height: float = 0.0
 
+    def __post_init__(self) -> None:
+        try:
+            normal = [float(v) for v in self.normal]
+        except (TypeError, ValueError) as err:
+            raise ValueError(f"Plane normal must be 3 numbers, got {self.normal!r}") from err
+        length = math.sqrt(sum(v * v for v in normal))
+        if len(normal) != 3 or not math.isfinite(length) or abs(length - 1.0) > 1e-6:
+            raise ValueError(
+                f"Plane normal must be a unit 3-vector (its length scales every distance), got {self.normal!r}"
+            )
+        if not math.isfinite(float(self.height)):
+            raise ValueError(f"Plane height must be finite [m], got {self.height!r}")
+
     @property
     def feature_size(self) -> float:
         """A half-space has no thin part."""
@@ -73,6 +98,11 @@ class Box:
     """Axis-aligned box with ``half_extents`` [m] centred at the origin."""
 
     half_extents: tuple[float, float, float]
+
+    def __post_init__(self) -> None:
+        if len(self.half_extents) != 3:
+            raise ValueError(f"Box half_extents must be 3 lengths [m], got {self.half_extents!r}")
+        _check_lengths(self, **{f"half_extents[{i}]": h for i, h in enumerate(self.half_extents)})
 
     @property
     def feature_size(self) -> float:
@@ -98,6 +128,11 @@ class Capsule:
     half_length: float
     radius: float
 
+    def __post_init__(self) -> None:
+        _check_lengths(self, radius=self.radius)
+        if not (math.isfinite(self.half_length) and self.half_length >= 0):
+            raise ValueError(f"Capsule half_length must be a finite number >= 0 [m], got {self.half_length!r}")
+
     @property
     def feature_size(self) -> float:
         """Thinnest part [m]: a point moving further than this in one step may pass through."""
@@ -119,6 +154,9 @@ class Torus:
 
     major: float
     minor: float
+
+    def __post_init__(self) -> None:
+        _check_lengths(self, major=self.major, minor=self.minor)
 
     @property
     def feature_size(self) -> float:

@@ -461,6 +461,26 @@ def test_signed_distances_by_hand(shape, point, expected) -> None:
     assert float(d) == pytest.approx(expected, abs=1e-5)
 
 
+@pytest.mark.parametrize(
+    ("make", "expected"),
+    [
+        (lambda: Plane((0.0, 2.0, 0.0)), "Plane normal must be a unit 3-vector"),  # distances were twice as long
+        (lambda: Plane((0.0, 1.0)), "Plane normal must be a unit 3-vector"),
+        (lambda: Plane((0.0, 1.0, 0.0), float("nan")), "Plane height must be finite"),
+        (lambda: Sphere(-0.5), "Sphere radius must be a finite number > 0"),  # its centre counted as outside
+        (lambda: Sphere(True), "Sphere radius must be a finite number > 0"),
+        (lambda: Box((1.0, 1.0)), "Box half_extents must be 3 lengths"),
+        (lambda: Box((1.0, 0.0, 1.0)), r"Box half_extents\[1\] must be a finite number > 0"),
+        (lambda: Capsule(-1.0, 0.1), "Capsule half_length must be a finite number >= 0"),
+        (lambda: Capsule(1.0, float("inf")), "Capsule radius must be a finite number > 0"),
+        (lambda: Torus(0.5, 0.0), "Torus minor must be a finite number > 0"),
+    ],
+)
+def test_a_shape_with_a_non_unit_normal_or_a_non_positive_length_is_refused(make, expected: str) -> None:
+    with pytest.raises(ValueError, match=expected):
+        make()
+
+
 def test_contact_penalty_finite_everywhere_including_singular_points() -> None:
     for shape in (
         Sphere(0.3),
