@@ -65,6 +65,8 @@ def run_demo(
         raise ValueError(f"frame_every must be >= 1, got {frame_every}")
     from PIL import Image
 
+    from redsim.render import MAX_GIF_FPS, gif_frame_ms
+
     if steps is not None and int(steps) < 1:
         raise ValueError(f"steps must be >= 1, got {steps}")
     if steps is not None:  # an episode of ``steps`` (longer than the id's own too: its time limit is replaced)
@@ -98,7 +100,7 @@ def run_demo(
     stem = demo_name(env_id, scripted=policy is None, seed=seed)
     gif, png = (out / f"{stem}{suffix}" for suffix in (".gif", ".png"))
     images = [Image.fromarray(f) for f in frames]
-    duration = round(1000.0 * core.dt * frame_every)
+    duration = gif_frame_ms(min(MAX_GIF_FPS, 1.0 / (core.dt * frame_every)))
     images[0].save(gif, save_all=True, append_images=images[1:], duration=duration, loop=0)
     Image.fromarray(np.concatenate([frames[0], frames[-1]], axis=1)).save(png)
     env.close()

@@ -325,6 +325,8 @@ class SceneView:
             raise ValueError(f"scene {scene.name!r} has no surfaces to draw")
         if not (0.0 <= merge_px < math.inf):
             raise ValueError(f"merge_px must be a finite number >= 0 [px], got {merge_px!r}")
+        if not (0.0 <= margin < math.inf):
+            raise ValueError(f"margin must be a finite number >= 0 (a fraction of the frame), got {margin!r}")
         if int(width) < 8 or int(height) < 8:
             raise ValueError(f"image size must be at least 8 x 8 px, got {width} x {height}")
         self.scene = scene
@@ -352,6 +354,8 @@ class SceneView:
         size = float(max((high - low).max(), 1e-6)) * (1.0 + 2.0 * margin)
         self._centre = 0.5 * (low + high)
         self._pixels_per_metre = min(self.width, self.height) / size
+        if not (math.isfinite(size) and self._pixels_per_metre > 0.0):  # a margin of ~1e300 (zero division below)
+            raise ValueError(f"margin {margin!r} leaves the scene smaller than a pixel; choose a smaller margin")
         spacing = merge_px / self._pixels_per_metre
         self._faces = [merge_close_vertices(p, f, spacing) for p, f in zip(frame_points, self._faces, strict=True)]
         # a picture evaluates only the points its faces use (merged away: most of a small picture's), renumbered

@@ -10,6 +10,7 @@ from __future__ import annotations
 
 import logging
 import math
+import operator
 import re
 from collections.abc import Sequence
 from pathlib import Path
@@ -146,6 +147,16 @@ def draw_states(
 
 MIN_GIF_FPS = 100.0 / 65535
 """The lowest frame rate a GIF holds [1/s]: its frame time is a 16-bit count of 10 ms (655.35 s at most)."""
+MAX_GIF_FPS = 50.0
+"""The highest frame rate a GIF plays at as written [1/s]: browsers show a frame time of 10 ms (or 0) as 100 ms."""
+
+
+def gif_frame_ms(fps: float) -> int:
+    """A GIF's frame time [ms] for ``fps`` in [:data:`MIN_GIF_FPS`, :data:`MAX_GIF_FPS`]: rounded to the 10 ms
+    the format stores (Pillow truncates to them: 15 fps played at 16.7, 45 at 50)."""
+    if not (math.isfinite(fps) and MIN_GIF_FPS <= fps <= MAX_GIF_FPS):
+        raise ValueError(f"a GIF's fps must be in [{MIN_GIF_FPS:.3g}, {MAX_GIF_FPS:g}], got {fps!r}")
+    return 10 * min(65535, max(2, round(100.0 / fps)))
 
 
 def animate_states(
@@ -157,7 +168,7 @@ def animate_states(
         scene: The scene (must have surfaces).
         qs: Free configurations, each of shape [n], one per frame.
         path: Output .gif file; parent folders are created.
-        fps: Frames per second.
+        fps: Frames per second, in [:data:`MIN_GIF_FPS`, :data:`MAX_GIF_FPS`] (:func:`gif_frame_ms`).
         dpi: Resolution.
 
     Returns:
@@ -169,6 +180,7 @@ def animate_states(
         raise ValueError("animate_states needs at least one state")
     if Path(path).suffix.lower() != ".gif":
         raise ValueError(f"animate_states writes a .gif, got {str(path)!r}")
+    frame_ms = gif_frame_ms(fps)
     _require("matplotlib")
     import matplotlib as mpl
     from matplotlib.backends.backend_agg import FigureCanvasAgg
@@ -188,7 +200,7 @@ def animate_states(
         images.append(Image.fromarray(np.asarray(canvas.buffer_rgba())).convert("P", palette=Image.ADAPTIVE))
     path = Path(path)
     path.parent.mkdir(parents=True, exist_ok=True)
-    images[0].save(path, save_all=True, append_images=images[1:], duration=round(1000 / fps), loop=0)
+    images[0].save(path, save_all=True, append_images=images[1:], duration=frame_ms, loop=0)
     return path
 
 
@@ -349,8 +361,13 @@ def export_meshes(scene: Scene, q: Tensor, directory: str | Path, frame: int) ->
         raise ValueError(f"scene {scene.name!r} has no surfaces to export")
     if not bool(torch.isfinite(torch.as_tensor(q)).all()):
         raise ValueError("the configuration q is not finite: no mesh to export")
-    if isinstance(frame, bool) or not isinstance(frame, int) or frame < 0:
+    try:
+        index = -1 if isinstance(frame, bool) else operator.index(frame)  # an int, a NumPy or one-number torch integer
+    except TypeError:
+        index = -1
+    if index < 0:
         raise ValueError(f"frame must be an integer >= 0, got {frame!r}")
+    frame = index
     trimesh = _require("trimesh")
     directory = Path(directory)
     directory.mkdir(parents=True, exist_ok=True)

@@ -221,6 +221,10 @@ def test_render_2d_scene(tmp_path) -> None:
     assert png.read_bytes()[:4] == b"\x89PNG"
     (ply,) = export_meshes(scene, moved, tmp_path, 7)
     assert ply.name == "frame_0007_sheet.ply"
+    import numpy as np
+
+    for frame in (np.int64(7), torch.tensor(7)):  # a loop over np.arange or a tensor's frame numbers
+        assert export_meshes(scene, moved, tmp_path, frame) == [ply]
     import trimesh
 
     mesh = trimesh.load(ply, process=False)
@@ -233,8 +237,9 @@ def test_render_2d_scene(tmp_path) -> None:
         draw_states(scene, [moved * torch.nan], path=tmp_path / "nan.png")
     with pytest.raises(ValueError, match="device must be 'cpu' or 'cuda"):
         scene.to(device="bogus")
-    with pytest.raises(ValueError, match="frame must be an integer >= 0"):
-        export_meshes(scene, moved, tmp_path, -1)
+    for frame in (-1, True, 7.0, torch.tensor(7.0)):
+        with pytest.raises(ValueError, match="frame must be an integer >= 0"):
+            export_meshes(scene, moved, tmp_path, frame)
     bare = redsim.SceneBuilder(dim=2)
     bare.add_particles(vertices, torch.ones(4))
     with pytest.raises(ValueError, match="no surfaces to export"):

@@ -99,6 +99,12 @@ def test_animate_writes_gif(capsys: pytest.CaptureFixture[str], fitted: str, tmp
     gif = tmp_path / "loop.gif"
     code, _, _ = run(capsys, "animate", fitted, "--keys", "3", "--frames", "6", "--out", str(gif))
     assert code == 0 and gif.read_bytes()[:6] in (b"GIF89a", b"GIF87a")
+    from PIL import Image
+
+    for fps, frame_ms in (("15", 70), ("45", 20), ("50", 20)):  # rounded to the 10 ms a GIF holds (Pillow: 60, 20)
+        code, _, _ = run(capsys, "animate", fitted, "--keys", "2", "--frames", "2", "--fps", fps, "--out", str(gif))
+        with Image.open(gif) as image:
+            assert code == 0 and image.info["duration"] == frame_ms, fps
 
 
 def test_catmull_rom_loop_passes_through_keys_and_closes() -> None:

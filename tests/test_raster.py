@@ -283,6 +283,10 @@ def test_a_small_picture_draws_a_coarser_mesh_with_the_same_silhouette(name: str
     assert (full != background).any(-1).mean() > 0.005  # something was drawn
     with pytest.raises(ValueError, match="merge_px"):
         SceneView(scene, scene.q_seed, merge_px=-1.0)
+    # a margin that leaves the scene under a pixel was a ZeroDivisionError at the env's first render
+    for margin, expected in ((1e308, "smaller than a pixel"), (-0.1, "margin must be"), (np.inf, "margin must be")):
+        with pytest.raises(ValueError, match=expected):
+            SceneView(scene, scene.q_seed, margin=margin)
 
 
 def test_a_picture_evaluates_only_the_points_its_faces_use() -> None:
