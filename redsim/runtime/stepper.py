@@ -307,7 +307,9 @@ class LatentStepper:
             exact and difference Hessians still synchronise). None (default): dense exactly on a CUDA
             device; on the CPU the row-selected iteration, which evaluates only the active states, is
             as fast or faster (README "Latent runtime").
-        sync_every: With ``dense``, calls between early-exit checks (None: never; see ``minimize``).
+        sync_every: With ``dense``, calls between early-exit checks (None: never, so every step runs the loop's
+            whole bound of max_iter (2 MAX_BACKTRACKS + 1) calls however soon it converges: for a graph that must
+            not read the device, not for speed; see ``minimize``).
         max_step: The longest latent step |dz| a solver trial takes (longer directions are scaled down to it);
             None (default): no limit. Guards against Newton-type steps along a direction the map barely
             moves, which overshoot (README "Env speed", ConditionalBar-v0).
