@@ -818,7 +818,8 @@ def redsim_chain_cases(
         kick = dt * latent_velocity(stepper, z0, swing_velocity(scene, stepper.positions(z0)[0], speed)).to(z0)
         latent = runtime_rollout(scene, f, _zero_loads(scene, steps), dt, z0=z0[0], z_prev=z0[0] - kick)
         velocity = swing_velocity(scene, q0, speed)
-        full = full_rollout(scene, _zero_loads(scene, full_steps or steps), dt, q0=q0, velocity=velocity)
+        full_count = steps if full_steps is None else full_steps
+        full = full_rollout(scene, _zero_loads(scene, full_count), dt, q0=q0, velocity=velocity)
         for space, run, slack, rest in (
             ("latent", latent, RISE_SLACK, latent_rest),
             ("full", full, FULL_SLACK, full_rest),
@@ -909,8 +910,8 @@ def chain_table(chain: dict[str, Any]) -> list[str]:
                 continue
             state = "blew up" if r["blew_up"] else "ok"
             cells.append(
-                f"{state} ({r['steps']} steps, {r['failures_detected']} failures detected, {r['unreported']} "
-                "unreported gains)"
+                f"{state} ({r['steps']} steps, {r.get('nan', 0)} non-finite, {r['failures_detected']} failures "
+                f"detected, {r['unreported']} unreported gains)"
             )
         lines.append("| " + " | ".join(cells) + " |")
     if mujoco is None:

@@ -543,8 +543,9 @@ def cmd_bench_stability(args: argparse.Namespace) -> int:
         raise CliError(f"unknown regime(s) {unknown}; valid: {', '.join([*stability.REGIMES, *extra])}")
     if args.regimes is None:
         regimes += ["fuzz", "mujoco"]
+    _regime_options(args, regimes)
     env_ids = list(redsim.envs.ids()) if args.envs is None else parse_list(args.envs, "--envs", parse_env_id)
-    for flag in ("steps", "long_steps", "chain_steps"):
+    for flag in ("steps", "long_steps", "chain_steps", "chain_full_steps"):
         if getattr(args, flag) < 1:
             raise CliError(f"--{flag.replace('_', '-')} must be >= 1, got {getattr(args, flag)}")
     if args.copies is not None and args.copies < 1:
@@ -604,7 +605,7 @@ def cmd_bench_stability(args: argparse.Namespace) -> int:
             lines += ([""] if lines else []) + damping_bench.report(damping)
         for line in lines:
             out(line)
-    totals = stability.row_totals(rows)
+    totals = stability.row_totals([*rows, *(chain["redsim"] if chain else [])])  # redsim's chains, not MuJoCo's
     totals["nan"] += sum(r["nan"] for r in damping["rows"]) if damping else 0  # redsim's released runs, not MuJoCo's
     if totals["nan"] or totals["unreported"]:  # the checks that must be 0 fail the command, for CI
         error(f"{totals['nan']} non-finite and {totals['unreported']} unreported energy gains (both must be 0)")
@@ -613,6 +614,41 @@ def cmd_bench_stability(args: argparse.Namespace) -> int:
 
 
 STEP_REFERENCE_STEPS = 10  # bench step's default --reference-steps
+STABILITY_OPTIONS = {
+    "steps": (("fuzz",), 10_000),
+    "envs": (("fuzz",), None),
+    "copies": (("fuzz",), None),
+    "seed": (("fuzz",), 0),
+    "budget": (("fuzz", "long runs"), None),
+    "long_steps": (("long runs",), 2000),
+    "chain_steps": (("mujoco",), 300),
+    "chain_full_steps": (("mujoco",), 50),
+}
+"""bench stability's options that only some regimes use ("long runs": any of ``stability.REGIMES``) and their
+defaults; each is None unless given, so that one given without a regime that uses it is refused."""
+
+
+def _regime_options(args: argparse.Namespace, regimes: list[str]) -> None:
+    """Refuse the options (:data:`STABILITY_OPTIONS`) that no chosen regime uses, then fill in the defaults."""
+    from redsim.benches import stability
+
+    chosen = {*regimes, *(["long runs"] if any(r in stability.REGIMES for r in regimes) else [])}
+    unused = [
+        f"--{o.replace('_', '-')}"
+        for o, (users, _) in STABILITY_OPTIONS.items()
+        if getattr(args, o) is not None and not chosen.intersection(users)
+    ]
+    if unused:
+        raise CliError(
+            f"{', '.join(unused)} not used by --regimes {','.join(regimes)}: --steps, --envs, --copies and --seed are "
+            "the fuzz's, --long-steps the scene regimes' (stiff, ...), --budget both's, --chain-steps and "
+            "--chain-full-steps mujoco's"
+        )
+    for option, (_, default) in STABILITY_OPTIONS.items():
+        if getattr(args, option) is None:
+            setattr(args, option, default)
+
+
 DAMPING_OPTIONS = ("damping_scenes", "damping_seconds", "damping_divisions", "damping_full")
 """The ``--damping-*`` options (argparse names): None unless given, so that one given without the regime is refused."""
 
@@ -873,7 +909,7 @@ def add_commands(sub: Any) -> Any:
             "(all of them without mujoco). See redsim.benches.stability."
         ),
     )
-    p.add_argument("--steps", type=int, default=10_000, help="fuzzed env steps over all envs (default 10000)")
+    p.add_argument("--steps", type=int, help="fuzzed env steps over all envs (default 10000)")
     p.add_argument("--envs", metavar="ID1,ID2", help="env ids to fuzz (default: all registered)")
     p.add_argument(
         "--regimes",
@@ -882,11 +918,9 @@ def add_commands(sub: Any) -> Any:
         "fuzz, mujoco, damping (default all but damping, which measures implicit Euler's numerical damping: released "
         "unforced runs, the free energy they keep; redsim.benches.damping)",
     )
-    p.add_argument("--long-steps", type=int, default=2000, help="steps of the bang-bang runs (default 2000)")
-    p.add_argument("--chain-steps", type=int, default=300, help="steps of the chain scenarios (default 300)")
-    p.add_argument(
-        "--chain-full-steps", type=int, default=50, help="steps of redsim's full-space chain runs (default 50)"
-    )
+    p.add_argument("--long-steps", type=int, help="steps of the bang-bang runs (default 2000)")
+    p.add_argument("--chain-steps", type=int, help="steps of the chain scenarios (default 300)")
+    p.add_argument("--chain-full-steps", type=int, help="steps of redsim's full-space chain runs (default 50)")
     p.add_argument(
         "--copies",
         type=int,
@@ -922,9 +956,7 @@ def add_commands(sub: Any) -> Any:
         metavar="K1,K2",
         help="its full-space runs step at 0.02 s / K for each K, or none (default 1,4,16)",
     )
-    p.add_argument(
-        "--seed", type=non_negative_seed, default=0, help="seed of the fuzzed actions and resets (default 0)"
-    )
+    p.add_argument("--seed", type=non_negative_seed, help="seed of the fuzzed actions and resets (default 0)")
     finish_command(p, cmd_bench_stability, "print one JSON document on stdout", default_threads=1)
     cubature.add_bench_command(bench)
     return bench

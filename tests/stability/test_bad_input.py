@@ -88,6 +88,14 @@ def test_the_intact_copy_loads(cli: Cli, checkpoint: Path) -> None:
         (["--regimes", "stiff,wobbly"], "unknown regime(s) ['wobbly']"),
         (["--regimes", ""], "--regimes"),
         (["--copies", "0"], "--copies must be >= 1, got 0"),
+        (["--chain-full-steps", "0"], "--chain-full-steps must be >= 1, got 0"),  # it ran --chain-steps full steps
+        (["--regimes", "mujoco", "--chain-full-steps", "-1"], "--chain-full-steps must be >= 1, got -1"),  # traceback
+        (
+            ["--regimes", "stiff", "--copies", "7", "--chain-steps", "5"],
+            "--copies, --chain-steps not used by --regimes",
+        ),
+        (["--regimes", "mujoco", "--steps", "5", "--seed", "1", "--budget", "9"], "--steps, --seed, --budget not used"),
+        (["--regimes", "fuzz", "--long-steps", "5"], "--long-steps not used by --regimes fuzz"),
         (["--budget", "-5"], "--budget: must be a number of seconds > 0, got '-5'"),
         (["--budget", "nan"], "--budget: must be a number of seconds > 0, got 'nan'"),
     ],
@@ -95,6 +103,24 @@ def test_the_intact_copy_loads(cli: Cli, checkpoint: Path) -> None:
 def test_bench_stability_options_are_checked(cli: Cli, argv: list[str], expected: str) -> None:
     code, out, err = cli("bench", "stability", *argv)
     assert code == 2 and out == "" and expected in err, err
+
+
+def test_bench_stability_fails_on_a_redsim_chain_run_that_went_non_finite(
+    cli: Cli, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    """The mujoco regime's redsim chains count towards the exit status as every other redsim run does (a NaN or an
+    unreported gain there exited 0), and their cells show the non-finite steps."""
+    from redsim.benches import stability
+
+    row = {"space": "latent", "steps": 1, "free_energy_J": 1.0, "blew_up": True, "failures_detected": 0}
+    label = stability.chain_scenarios()[0][0]
+    monkeypatch.setattr(stability, "mujoco_chain_cases", lambda steps: None)
+    for bad, code in (({"nan": 1, "unreported": 0}, 3), ({"nan": 0, "unreported": 2}, 4)):
+        rows = [{"scenario": label, **row, **bad}]
+        monkeypatch.setattr(stability, "redsim_chain_cases", lambda *a, rows=rows, **k: rows)
+        got, out, err = cli("bench", "stability", "--regimes", "mujoco", "--chain-steps", "1")
+        assert got == code and "must be 0" in err, err
+        assert f"blew up (1 steps, {bad['nan']} non-finite, 0 failures detected" in out
 
 
 def test_condition_outside_its_range_is_flagged_by_the_stepper_and_refused_by_set_state() -> None:

@@ -227,7 +227,7 @@ def test_chain_table_shows_each_start_energy_and_names_latent_runs_from_another_
     assert f"| {labels[-1]} | 80 / 160 / 3e+04 |" in "\n".join(lines)
     assert f"| {labels[0]} | 80 / - / - |" in "\n".join(lines)
     assert lines[-1].startswith(f"not the same experiment in latent space: {labels[-1]} (")
-    assert "0 failures detected, 0 unreported gains)" in "\n".join(lines)  # the scene table's column name
+    assert "0 non-finite, 0 failures detected, 0 unreported gains)" in "\n".join(lines)  # the scene table's names
 
     only_chain = stability.report({"rows": [], "chain": {"mujoco": mujoco, "redsim": rows, "dt": 0.01}})
     assert only_chain == lines  # no empty scene table and no "0 of 0" totals before it
