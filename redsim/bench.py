@@ -108,7 +108,7 @@ def bench_energy(
     for _ in range(max(1, warmup)):
         last = call()
     if time_budget is not None and last * repeats > time_budget:
-        repeats = max(3, min(repeats, int(time_budget / max(last, 1e-9))))
+        repeats = min(repeats, max(3, int(time_budget / max(last, 1e-9))))  # at least 3, never above repeats
     times = [call() for _ in range(repeats)]
     median = statistics.median(times)
     return {
@@ -212,9 +212,10 @@ def bench_fit_variants(
 ) -> dict[str, dict[str, Any]]:
     """:func:`bench_fit` of several settings of ``config``, interleaved so that load changes hit all alike.
 
-    Each of ``rounds`` rounds runs every variant (in reverse order every other round) for
-    ``ceil(steps / rounds)`` timed steps after ``warmup`` untimed ones; the timed steps of all
-    rounds are pooled. Compilation happens in the first round; later rounds reuse the compiled code.
+    Each of ``rounds`` rounds runs every variant (in reverse order every other round) for its share of
+    ``steps`` (``steps // rounds``, one more in the first ``steps % rounds``; a round of none is skipped) timed
+    steps after ``warmup`` untimed ones; the timed steps of all rounds are pooled. Compilation happens in the
+    first round; later rounds reuse the compiled code.
 
     Args:
         scene: The scene.
@@ -232,16 +233,14 @@ def bench_fit_variants(
     """
     if rounds < 1:
         raise ValueError(f"rounds must be >= 1, got {rounds}")
-    per_round = -(-steps // rounds)
+    shares = [count for r in range(rounds) if (count := steps // rounds + (r < steps % rounds))]
     names = list(variants)
     results: dict[str, dict[str, Any]] = {}
-    for r in range(rounds):
+    for r, share in enumerate(shares):
         for name in names if r % 2 == 0 else names[::-1]:
-            run = bench_fit(
-                scene, dataclasses.replace(config, **variants[name]), steps=per_round, warmup=warmup, seed=seed
-            )
+            run = bench_fit(scene, dataclasses.replace(config, **variants[name]), steps=share, warmup=warmup, seed=seed)
             if name not in results:
-                results[name] = {**run, "rounds": rounds}
+                results[name] = {**run, "rounds": len(shares)}
                 continue
             pooled = results[name]
             pooled["times_s"] = pooled["times_s"] + run["times_s"]

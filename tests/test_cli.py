@@ -166,6 +166,8 @@ def test_simulate_nan_exits_3(capsys: pytest.CaptureFixture[str], monkeypatch: p
         (["simulate", TOY, "--dt", "fast"], "invalid float value"),
         (["simulate", TOY, "--max-iter", "0"], "max_iter"),
         (["bench", "energy", "--scenes", "no_such_scene"], TOY),
+        (["bench", "subspace", "--scenes", "mini_chain", "--samples", "0"], "--samples must be >= 1"),  # traceback
+        (["bench", "subspace", "--scenes", "mini_chain", "--loads", "-3"], "--loads >= 0, got 256 and -3"),
     ],
     ids=[
         "scene",
@@ -180,6 +182,8 @@ def test_simulate_nan_exits_3(capsys: pytest.CaptureFixture[str], monkeypatch: p
         "dt-text",
         "max-iter",
         "bench-scene",
+        "subspace-samples",
+        "subspace-loads",
     ],
 )
 def test_bad_input_is_one_line_exit_2(capsys: pytest.CaptureFixture[str], argv: list[str], expected: str) -> None:
@@ -201,6 +205,11 @@ def test_bench_energy_json(capsys: pytest.CaptureFixture[str]) -> None:
     assert {(r["dtype"], r["batch"]) for r in results} == {(d, b) for d in ("float64", "float32") for b in (1, 32)}
     assert all(r["scene"] == TOY and r["median_s"] > 0 for r in results)
     assert report["perturbation"] == 3e-3
+    from redsim.bench import bench_energy
+
+    scene = redsim.scenes.build(TOY)
+    assert bench_energy(scene, 1, 1, time_budget=1e-9)["repeats"] == 1  # a budget never times more (it timed 3)
+    assert bench_energy(scene, 1, 9, time_budget=1e-9)["repeats"] == 3  # but at least 3 of the asked
 
 
 def test_render_2d_scene(tmp_path) -> None:

@@ -51,6 +51,8 @@ def cmd_bench_subspace(args: argparse.Namespace) -> int:
     scenes = bench_scenes(args, redsim.scenes.names("table1"))
     if not (math.isfinite(args.load_size) and args.load_size > 0.0):
         raise CliError(f"--load-size must be finite and > 0, got {args.load_size}")
+    if args.samples < 1 or args.loads < 0:
+        raise CliError(f"--samples must be >= 1 and --loads >= 0, got {args.samples} and {args.loads}")
     folder = _checkpoint_folder(args)
     rows = []
     if not args.json:
@@ -327,8 +329,8 @@ def cmd_bench_fit(args: argparse.Namespace) -> int:
     machine = machine_info()
     if not args.json:
         out(
-            f"fit step wall time (ms), median of {args.steps} steps in {args.rounds} interleaved rounds, after "
-            f"{args.warmup} warm-up steps each; batch {args.batch}, {FitConfig().dtype}, scene presets"
+            f"fit step wall time (ms), median of {args.steps} steps in {min(args.rounds, args.steps)} interleaved "
+            f"rounds, after {args.warmup} warm-up steps each; batch {args.batch}, {FitConfig().dtype}, scene presets"
         )
         out(_machine_line(machine, args.device))
         width = max(14, *(len(name) for name, _scene in built))
