@@ -469,8 +469,9 @@ def step_table(rows: list[dict[str, Any]], mujoco: list[dict[str, Any]] | None, 
         )
         lines.append(
             f"{'':<23} {'error':<9} eager (B = 1) against the reference row (the latent float64 solve, not full "
-            f"space): one step {row['step_error']:.2g}, rollout {row.get('trajectory_error', math.nan):.2g} of the "
-            "motion (M-norm of f(z))"
+            f"space): one step {row['step_error']:.2g}, rollout "
+            + (f"{row['trajectory_error']:.2g}" if "trajectory_error" in row else "not run (B = 1 not in --batches)")
+            + " of the motion (M-norm of f(z))"
         )
     sources = sorted({row["baseline"]["redsim_file"] for row in rows if "baseline" in row})
     lines.extend(f"baseline: the reference path (B = 1) of {source}; vs base: speedup over it" for source in sources)

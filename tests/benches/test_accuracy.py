@@ -4,11 +4,12 @@ from __future__ import annotations
 
 import csv
 import json
+import math
 
 import pytest
 import torch
 
-from redsim import scenes
+from redsim import pretrained, scenes
 from redsim.benches import accuracy
 from redsim.benches.accuracy import Run
 
@@ -62,6 +63,13 @@ def test_errors_compare_displacements_and_report_the_rest_offset(mini_chain) -> 
         scene, Run(q[:1].expand(11, -1), torch.arange(11), [1.0] * 10), reference, "bottom"
     )
     assert 0.0 < still["rel_error_mean"] <= 1.0  # not moving at all: at most the reference's own motion
+    # the error at the projection floor's steps (every 10th: here step 10 alone), which the floor bounds
+    assert still["rel_error_at_projection_steps"] == pytest.approx(still["rel_error_final"])
+    assert math.isnan(
+        accuracy.trajectory_errors(scene, Run(q[:6], torch.arange(6), [1.0] * 5), reference, "bottom")[
+            "rel_error_at_projection_steps"
+        ]
+    )
 
 
 def test_every_plan_is_an_envs_push_and_the_help_names_it(cli) -> None:
@@ -251,3 +259,14 @@ def test_substeps_are_finer_steps_of_the_same_load_and_each_scene_has_its_full_s
     assert len(fine.step_s) == 3 and fine.failed == 0
     assert scenes.full_space_tol("hanging_sheet") == accuracy.PLANS["hanging_sheet"].reference_tol == 1e-4
     assert scenes.full_space_tol("chain") == 1e-8 == scenes.full_space_tol("a mesh scene not in the registry")
+
+
+def test_a_full_space_rest_that_did_not_converge_is_said_in_the_report(mini_chain, monkeypatch) -> None:
+    """``rest_converged`` was in the JSON alone: the text report now says so where the rest solve stopped short."""
+    rest_state = accuracy.rest_state
+    monkeypatch.setattr(accuracy, "rest_state", lambda scene: (rest_state(scene)[0], False))
+    result = accuracy.bench_accuracy(
+        mini_chain, pretrained.load("mini_chain"), steps=10, scenarios=("push",), full=(), study=False
+    )
+    assert result["rest_converged"] is False
+    assert "note: the full-space rest solve did not converge" in accuracy.report(result, "machine: test")
