@@ -285,7 +285,12 @@ def add_commands(sub: Any) -> None:
     p.add_argument("checkpoint", help="the subspace checkpoint (STEM, STEM.pt or STEM.json)")
     size = p.add_mutually_exclusive_group(required=True)
     size.add_argument("--elements", type=int, help="most elements kept per subsampled effect")
-    size.add_argument("--tol", type=float, help="target training force error (at most 1000 elements per effect)")
+    size.add_argument(
+        "--tol",
+        type=float,
+        help="target training error of the reduced forces and energy together, relative to their totals (at most "
+        "1000 elements per effect)",
+    )
     p.add_argument("--samples", type=int, default=256, help="states z ~ N(0, I) (default 256)")
     p.add_argument("--episodes", type=int, default=4, help="latent rollouts under random loads (default 4)")
     p.add_argument("--rollout-steps", type=int, default=40, help="steps per rollout (default 40)")

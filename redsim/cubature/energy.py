@@ -28,6 +28,7 @@ from redsim.cubature.output import AffineOutput, sliced_layer
 from redsim.devices import check_device
 from redsim.effects.base import Effect
 from redsim.effects.penalty import FrameSet, SDFContact
+from redsim.integrators import map_condition_dim
 from redsim.points import PointSet
 from redsim.scene import Scene
 from redsim.subspace import CheckpointError, checkpoint_path, map_fingerprint, periodic_latents, write_atomically
@@ -290,7 +291,7 @@ class CubatureEnergy:
         self.cubature = cubature
         self.slice_all = bool(slice_all)
         self.latent_dim = int(subspace.latent_dim)
-        self.condition_dim = int(getattr(getattr(subspace, "config", None), "condition_dim", 0))
+        self.condition_dim = map_condition_dim(subspace)
         self.periodic = periodic_latents(subspace)
         self.scene = scene.to(device=device, dtype=dtype)
         self.output = AffineOutput(subspace).to(device=device, dtype=dtype)

@@ -29,6 +29,7 @@ from torch import Tensor, nn
 
 from redsim.cubature.output import AffineOutput
 from redsim.effects.base import Effect, gather_elements
+from redsim.integrators import map_condition_dim
 from redsim.progress import progress_bar
 from redsim.scene import Scene
 from redsim.subspace import periodic_latents, sample_latents
@@ -52,8 +53,8 @@ class CubatureConfig:
 
     Attributes:
         elements: Most elements kept per subsampled effect (>= 1).
-        tol: Stop an effect earlier once its training force error (relative to the total reduced force) is
-            below tol / sqrt(number of subsampled effects); None: keep ``elements``.
+        tol: Stop an effect earlier once its training error (its reduced forces and energy, relative to the total
+            reduced force and energy) is below tol / sqrt(number of subsampled effects); None: keep ``elements``.
         samples: States z ~ N(0, I) (>= 2).
         episodes: Latent rollouts under random loads (>= 0).
         steps: Steps per rollout.
@@ -91,7 +92,7 @@ class CubatureConfig:
             raise ValueError(f"effect(s) {both} are both in full (kept whole) and in subsample; name each in one")
         if self.tol is not None and not (math.isfinite(self.tol) and 0.0 < self.tol < 1.0):
             raise ValueError(  # a relative error of 1 is what keeping no element gives
-                f"tol must be a relative force error in (0, 1), e.g. 0.05, got {self.tol!r}"
+                f"tol must be a relative force error in (0, 1), e.g. 0.05 (forces and energy), got {self.tol!r}"
             )
         if self.load_scale is not None and not (math.isfinite(self.load_scale) and self.load_scale >= 0.0):
             raise ValueError(f"load_scale must be finite and >= 0 [N], got {self.load_scale!r}")
@@ -189,15 +190,15 @@ def element_columns(
     free = scene.dof_map.free_index
     forces, energies = [], []
     d = z.shape[1]
+    takes_cond = bool(map_condition_dim(output.map))  # an unconditional map of a conditional scene: the effects' alone
     for start in range(0, z.shape[0], chunk):
         zs = z[start : start + chunk]
         cs = None if cond is None else cond[start : start + chunk]
         k = zs.shape[0]
         tangents = torch.eye(d, dtype=z.dtype).repeat_interleave(k, 0)
+        map_cond = cs.repeat(d, 1) if cs is not None and takes_cond else None
         with torch.no_grad():
-            q, dq = jvp(
-                lambda u, cs=cs: output(u, None if cs is None else cs.repeat(d, 1)), (zs.repeat(d, 1),), (tangents,)
-            )
+            q, dq = jvp(lambda u, map_cond=map_cond: output(u, map_cond), (zs.repeat(d, 1),), (tangents,))
         x = scene.full_positions(q[:k])
         jx = torch.zeros(d * k, scene.full_dof_count, dtype=z.dtype).index_copy(1, free, dq)
         xe = gather_elements(x, effect.element_dofs).requires_grad_(True)
@@ -321,7 +322,7 @@ def fit_rules(
     output = AffineOutput(subspace).to(torch.float64)
     generator = torch.Generator().manual_seed(config.seed + 1)
     order = torch.randperm(z.shape[0], generator=generator)
-    n_test = max(1, round(config.held_out * z.shape[0]))
+    n_test = min(z.shape[0] - 1, max(1, round(config.held_out * z.shape[0])))  # a state or more on each side
     test_index, train_index = order[:n_test], order[n_test:]
     d1 = z.shape[1] + 1  # rows per state: d force components and the energy
     train_rows = (train_index[:, None] * d1 + torch.arange(d1)).reshape(-1)
@@ -374,7 +375,11 @@ def fit_rules(
             bar.close()  # type: ignore[attr-defined]
         train_residual += (train[:, index] @ weights - train.sum(1, dtype=torch.float64)).reshape(-1, d1)
         test_residual += (test[:, index].to(torch.float64) @ weights - test.sum(1, dtype=torch.float64)).reshape(-1, d1)
-        last = history[-1] if history else (0, 1.0, 1.0)
+        if history:
+            last = history[-1]
+        else:  # no element lowers the error (an effect idle on every state, such as a contact never touched)
+            last = (0, _relative_error(train, weights, index, train.sum(1, dtype=torch.float64), train_norm))
+            last += (_relative_error(test, weights, index, test.sum(1, dtype=torch.float64), test_norm),)
         rules.append(EffectRule(effect.name, mode, T, index, weights, last[1], last[2], history))
     summary = {
         "states": int(z.shape[0]),

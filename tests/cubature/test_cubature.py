@@ -135,6 +135,45 @@ def test_bad_input_is_a_clear_error(tmp_path) -> None:
         Cubature.load(tmp_path / "bad")
 
 
+def test_an_unconditional_map_of_a_conditional_scene_gets_a_cubature() -> None:
+    """The runtime steps a map without condition inputs (modal analysis) on the conditional bar; the fit passed the
+    sampled conditions into the map as well as into the effects, and the map refused them."""
+    from redsim.baselines import modal_analysis
+
+    scene = scenes.build("conditional_bar")
+    f = modal_analysis(scene, 3, sigma=0.05, rest=scene.q_seed.clone())
+    cub = build_cubature(scene, f, CubatureConfig(elements=20, samples=8, episodes=0))
+    assert cub.kept > 0 and math.isfinite(cub.summary["held_out_error"])
+    LatentStepper(scene, f, 0.02, energy=CubatureEnergy(scene, f, cub))
+
+
+def test_an_effect_idle_on_every_state_reports_its_real_error_and_no_split_leaves_a_side_empty() -> None:
+    """A contact that never touches (its sphere 100 m away) keeps no element; its error is 0, as keeping none
+    is exact there (it was reported as 1.0). A held-out share that rounds to every state leaves one to train on
+    (a ZeroDivisionError before)."""
+    from redsim.effects.penalty import FrameSet, SDFContact
+    from redsim.effects.sdf import Sphere
+
+    count = 6
+    rest = torch.tensor([[0.0, 0.0, 0.0], [0.1, 0.0, 0.0], [0.0, 0.1, 0.0]], dtype=torch.float64)
+    shift = torch.arange(count, dtype=torch.float64)[:, None, None] * torch.tensor([0.5, 0.0, 0.0])
+    b = SceneBuilder(dim=3)
+    ids = b.add_particles((rest + shift).reshape(-1, 3), torch.full((3 * count,), 0.01))
+    b.add_effect(StVKMembrane("membrane", b.particle_dofs(ids).reshape(count, 3, 3), rest + shift, 1e4, 0.3))
+    far = torch.eye(3, 4, dtype=torch.float64)
+    far[1, 3] = 100.0
+    b.add_effect(SDFContact("contact", b.particle_points(ids), FrameSet.world(far, 3 * count), Sphere(0.1), 1e3))
+    scene = b.finalize("far_contact", params={"count": count})
+    pattern = 0.02 * torch.randn(9 * count, 3, generator=torch.Generator().manual_seed(1), dtype=torch.float64)
+    f = LinearSubspace(pattern, scene.q_seed.clone())
+    cub = build_cubature(scene, f, CubatureConfig(elements=4, samples=16, episodes=0, subsample=("contact",)))
+    contact = next(r for r in cub.rules if r.name == "contact")
+    assert contact.indices.numel() == 0 and contact.train_error == contact.held_out_error == 0.0
+    for samples, held_out in ((4, 0.9), (2, 0.75)):
+        cub = build_cubature(scene, f, CubatureConfig(elements=2, samples=samples, episodes=0, held_out=held_out))
+        assert cub.summary["held_out_states"] == samples - 1 and math.isfinite(cub.summary["train_error"])
+
+
 @pytest.mark.parametrize(
     ("field", "value", "expected"),
     [
