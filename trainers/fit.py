@@ -932,19 +932,29 @@ def fit_command(scene: Scene, config: FitConfig, seed: int, out: str | Path | No
         parts += ["--periodic", ",".join(map(str, config.periodic))]
     if config.conditional:
         parts.append("--cond")
-    if config.exploration_fraction != 1.0:
+    # `redsim fit` starts from the scene's preset: a setting turned off there is written too (--drive 0, ...)
+    base = FitConfig(**preset(scene.name))
+    if config.exploration_fraction != 1.0 or base.exploration_fraction != 1.0:
         parts += ["--explore", repr(config.exploration_fraction)]
-    if config.seed_bias:
-        parts.append("--seed-bias")
+    if config.seed_bias or base.seed_bias:
+        parts.append("--seed-bias" if config.seed_bias else "--no-seed-bias")
     if config.drive > 0:
         parts += ["--drive", repr(config.drive), "--drive-fraction", repr(config.drive_fraction)]
+    elif base.drive > 0:
+        parts += ["--drive", "0"]
     if config.soften:
         parts += ["--soften", ",".join(config.soften), "--soften-from", repr(config.soften_from)]
         parts += ["--soften-fraction", repr(config.soften_fraction)]
-    if config.anchor > 0:
-        parts += ["--anchor", repr(config.anchor), "--anchor-fraction", repr(config.anchor_fraction)]
-    if config.modal > 0:
-        parts += ["--modal", repr(config.modal), "--modal-fraction", repr(config.modal_fraction)]
+    for field, flag in (("anchor", "--anchor"), ("modal", "--modal")):
+        if getattr(config, field) > 0:
+            parts += [
+                flag,
+                repr(getattr(config, field)),
+                f"{flag}-fraction",
+                repr(getattr(config, f"{field}_fraction")),
+            ]
+        elif getattr(base, field) > 0:
+            parts += [flag, "0"]
     if config.anchor_map != "none" or preset(scene.name).get("anchor_map", "none") != "none":
         parts += ["--anchor-map", config.anchor_map]  # "none" too where the scene's preset anchors its map
     if config.anchor_map != "none":
@@ -952,7 +962,7 @@ def fit_command(scene: Scene, config: FitConfig, seed: int, out: str | Path | No
             parts += ["--anchor-map-cond", config.anchor_map_cond]
         if config.anchor_radius > 0:
             parts += ["--anchor-radius", repr(config.anchor_radius)]
-    if config.mirror > 0:
+    if config.mirror > 0 or base.mirror > 0:
         parts += ["--mirror", repr(config.mirror)]
     default = FitConfig()
     for field in ("dtype", "device"):  # the precision and the random stream (a CUDA generator draws its own)

@@ -427,6 +427,31 @@ def test_fit_command_records_speed_switches_only_when_not_default() -> None:
     assert "--no-fused-adam --compile" in fit_command(scene, FitConfig(fused_adam=False, compile=True), 0, None)
 
 
+@pytest.mark.parametrize(
+    ("name", "overrides"),
+    [
+        ("klann", {"seed_bias": False, "drive": 0.0, "exploration_fraction": 1.0}),
+        ("bistable_bar", {"anchor": 0.0, "mirror": 0.0}),
+        ("klann", {}),
+        ("bistable_bar", {}),
+    ],
+)
+def test_the_recorded_command_rebuilds_a_preset_scene_s_settings_also_where_turned_off(name: str, overrides) -> None:
+    """`redsim fit` starts from the scene's preset: a setting the user turned off there (--no-seed-bias, --drive 0,
+    --anchor 0, --mirror 0, --explore 1.0) was left out of the recorded command, whose rerun (and the printed
+    "continue with: ... --resume") then took the preset's value back."""
+    import shlex
+
+    from redsim.cli.parser import build_parser
+    from redsim.cli.subspaces import _fit_config
+    from redsim.trainers.presets import preset
+
+    scene = scenes.build(name)
+    config = FitConfig(**{**preset(name), **overrides})
+    argv = shlex.split(fit_command(scene, config, 0, "out/x"))[1:]
+    assert _fit_config(build_parser().parse_args(argv), name) == config
+
+
 def test_fit_command_records_a_dtype_and_device_that_are_not_the_defaults() -> None:
     """A float64 fit rerun by its recorded command fits in float64 (a CUDA fit draws from a CUDA generator)."""
     scene = _tet_scene()
@@ -570,7 +595,8 @@ def test_mirror_needs_a_declared_mirror_and_an_even_batch() -> None:
     assert FitConfig(batch_size=5).mirror == 0.0  # odd batches stay fine without it
     command = fit_command(_small_bar(), FitConfig(mirror=300.0), 0, "bar")
     assert "--mirror 300.0 --out bar" in command
-    assert "--mirror" not in fit_command(_small_bar(), FitConfig(), 0, None)
+    assert "--mirror" not in fit_command(_tet_scene(), FitConfig(), 0, None)
+    assert "--mirror 0.0" in fit_command(_small_bar(), FitConfig(), 0, None)  # off where the preset has it on
 
 
 def test_mirror_fit_makes_the_map_equivariant() -> None:
