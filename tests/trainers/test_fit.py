@@ -649,7 +649,8 @@ def test_anchor_needs_declared_reference_states() -> None:
             FitConfig(**bad)
     command = fit_command(_small_bar(), FitConfig(anchor=1e4), 0, None)
     assert "--anchor 10000.0 --anchor-fraction 0.5" in command
-    assert "--anchor" not in fit_command(_small_bar(), FitConfig(), 0, None)
+    assert "--anchor" not in fit_command(_tet_scene(), FitConfig(), 0, None)
+    assert "--anchor 0 " in fit_command(_small_bar(), FitConfig(), 0, None)  # off where the preset has it on
 
 
 def test_anchored_fit_holds_both_buckled_states_after_the_pull_is_off() -> None:
