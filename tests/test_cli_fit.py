@@ -107,6 +107,19 @@ def test_animate_writes_gif(capsys: pytest.CaptureFixture[str], fitted: str, tmp
             assert code == 0 and image.info["duration"] == frame_ms, fps
 
 
+def test_sample_and_animate_a_float64_fit(capsys: pytest.CaptureFixture[str], tmp_path) -> None:
+    """The latents are drawn in the map's dtype: a float64 map was given float32 ones (a matmul dtype error)."""
+    stem = str(tmp_path / "d64")
+    fit = ("fit", "toy_two_tets", "--steps", "4", "--width", "8", "--layers", "1", "--dim", "2", "--dtype", "float64")
+    assert run(capsys, *fit, "--out", stem)[0] == 0
+    code, _, err = run(capsys, "sample", stem + ".pt", "-n", "3", "--out", str(tmp_path / "s.npz"))
+    assert code == 0 and np.load(tmp_path / "s.npz")["q"].shape == (3, 6), err
+    code, _, err = run(
+        capsys, "animate", stem + ".pt", "--keys", "2", "--frames", "2", "--out", str(tmp_path / "a.gif")
+    )
+    assert code == 0 and (tmp_path / "a.gif").is_file(), err
+
+
 def test_catmull_rom_loop_passes_through_keys_and_closes() -> None:
     keys = torch.tensor([[0.0, 0.0], [1.0, 0.0], [1.0, 1.0], [0.0, 1.0]], dtype=torch.float64)
     path = catmull_rom_loop(keys, 40)

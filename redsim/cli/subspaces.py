@@ -265,13 +265,19 @@ def cmd_inspect(args: argparse.Namespace) -> int:
 
 
 def _latent_samples(sub: Any, scene: Scene, count: int, seed: int) -> tuple[torch.Tensor, torch.Tensor | None]:
+    """Seeded latents [count, d] (and conditions [count, m]) in the map's dtype (a float64 fit's too)."""
+    from redsim.integrators import map_condition_dim, map_tensor
+
     generator = torch.Generator().manual_seed(seed)
     z = sample_latents(count, sub.latent_dim, periodic_latents(sub), generator=generator)
     cond = None
-    if getattr(getattr(sub, "config", None), "condition_dim", 0):
+    if map_condition_dim(sub):
         assert scene.condition_space is not None  # a conditional map was fitted to a conditional scene
         cond = scene.condition_space.sample(count, generator).float()
-    return z, cond
+    like = map_tensor(sub)
+    if like is None:
+        return z, cond
+    return z.to(like), None if cond is None else cond.to(like)
 
 
 def cmd_sample(args: argparse.Namespace) -> int:

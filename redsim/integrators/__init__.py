@@ -26,7 +26,7 @@ from redsim.integrators.objective import (
     check_time_step,
     length_scale,
 )
-from redsim.integrators.spaces import FullSpace, LatentSpace, Space, as_float64, map_condition_dim
+from redsim.integrators.spaces import FullSpace, LatentSpace, Space, as_float64, map_condition_dim, map_tensor
 
 __all__ = [
     "MIN_TIME_STEP",
@@ -45,5 +45,6 @@ __all__ = [
     "latent_equilibrium",
     "length_scale",
     "map_condition_dim",
+    "map_tensor",
     "static_equilibrium",
 ]

@@ -223,7 +223,7 @@ class LatentSpace:
     @property
     def map_dtype(self) -> torch.dtype:
         """The dtype the map runs in: that of its first floating parameter or buffer (float64 if none)."""
-        like = _map_tensor(self.subspace)
+        like = map_tensor(self.subspace)
         return torch.float64 if like is None else like.dtype
 
     @property
@@ -233,7 +233,7 @@ class LatentSpace:
         return 0.0 if dtype == torch.float64 else float(torch.finfo(dtype).eps)
 
     def configuration(self, u: Tensor) -> Tensor:
-        like = _map_tensor(self.subspace)
+        like = map_tensor(self.subspace)
         z, cond = (u, self.condition) if like is None else (u.to(like), _to(self.condition, like))
         q = self.subspace(z) if cond is None else self.subspace(z, cond)
         return q.to(device=self._scene.device, dtype=torch.float64)
@@ -301,7 +301,7 @@ def as_float64(scene: Scene) -> Scene:
     return scene if scene.dtype == torch.float64 else scene.to(dtype=torch.float64)
 
 
-def _map_tensor(subspace: Any) -> Tensor | None:
+def map_tensor(subspace: Any) -> Tensor | None:
     """A map's first floating parameter or buffer (its dtype and device), or None (inputs are left as they are)."""
     if isinstance(subspace, torch.nn.Module):
         for tensor in itertools.chain(subspace.parameters(), subspace.buffers()):
