@@ -270,7 +270,11 @@ _FIELD_RULES: tuple[tuple[str, str, Callable[[FitConfig, Any], bool]], ...] = (
     ),
     ("conditional", "true or false", lambda c, v: isinstance(v, bool)),
     ("exploration_fraction", "a number in (0, 1]", lambda c, v: _is_number(v) and 0 < v <= 1),
-    ("seed_bias", "true or false", lambda c, v: isinstance(v, bool)),
+    (  # the modal pull starts the map at the rest state, over the seed bias (it was dropped without a word)
+        "seed_bias",
+        "true or false (not with modal: its start at the rest state replaces the seed)",
+        lambda c, v: isinstance(v, bool) and not (v and c.modal),
+    ),
     ("drive", "a finite number >= 0", lambda c, v: _is_number(v) and v >= 0),
     ("drive_fraction", "a number in (0, 1]", lambda c, v: _is_number(v) and 0 < v <= 1),
     ("soften", "effect names", lambda c, v: isinstance(v, tuple) and all(isinstance(n, str) and n for n in v)),
@@ -757,12 +761,12 @@ def fit_subspace(
             for step in range(start_step, config.steps if stop_at is None else stop_at):
                 z = batch_latents(config, generator, dtype)
                 cond = None
-                if work.condition_space is not None:
-                    cond = (
-                        work.condition_space.sample(config.batch_size, generator)
-                        if config.conditional
-                        else work.pack_condition(None, config.batch_size)
-                    )
+                if work.condition_space is not None and not config.conditional:
+                    cond = work.pack_condition(None, config.batch_size)
+                elif work.condition_space is not None and config.mirror > 0:  # z_i and -z_i under one condition
+                    cond = work.condition_space.sample(config.batch_size // 2, generator).repeat(2, 1)
+                elif work.condition_space is not None:
+                    cond = work.condition_space.sample(config.batch_size, generator)
                 rho = rho_at(step, config, ramp_steps)
                 loss, terms = subspace_loss(
                     work, model, z, cond, rho, config, step, anchors, targets, ramp_steps, loss_fn

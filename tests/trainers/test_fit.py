@@ -586,6 +586,47 @@ def test_mirror_penalty_by_hand_and_antithetic_batches() -> None:
         )
 
 
+def test_a_conditional_mirrored_fit_pairs_z_and_minus_z_under_one_condition(monkeypatch: pytest.MonkeyPatch) -> None:
+    """The mirror term compares y(-z_i, c) with P y(z_i, c): each pair of the antithetic batch shares its condition
+    (independent draws made even an equivariant map pay the term)."""
+    from redsim.effects import Effect
+
+    class Spring(Effect):
+        kind = "test_spring"
+
+        def __init__(self, dofs: torch.Tensor) -> None:
+            self.name, self.element_dofs = "springs", dofs
+
+        def element_energy(self, xe, cond=None, loads=None):  # type: ignore[no-untyped-def]
+            return 100.0 * (torch.linalg.vector_norm(xe, dim=-1) - 0.5) ** 2
+
+    b = SceneBuilder(dim=2)
+    ids = b.add_particles(torch.tensor([[0.5, 0.0], [-0.5, 0.0]], dtype=torch.float64), torch.ones(2))
+    b.add_effect(Spring(b.particle_dofs(ids)))
+    b.mirror_particles(torch.tensor([0, 1]), axis=1, plane=0.0)
+    b.add_condition("c", 0.5, 2.0)
+    scene = b.finalize("mirror_cond")
+    seen = []
+    loss = fit_module.subspace_loss
+
+    def spy(work, model, z, cond, *args, **kwargs):  # type: ignore[no-untyped-def]
+        seen.append((z.clone(), cond.clone()))
+        return loss(work, model, z, cond, *args, **kwargs)
+
+    monkeypatch.setattr(fit_module, "subspace_loss", spy)
+    fit_subspace(scene, latent_dim=2, batch_size=8, mirror=1.0, conditional=True, steps=2, hidden_width=8,
+                 hidden_layers=1, progress=False)  # fmt: skip
+    for z, cond in seen:
+        assert torch.equal(z[4:], -z[:4]) and torch.equal(cond[4:], cond[:4]) and not torch.equal(cond[0], cond[1])
+
+
+def test_seed_bias_is_refused_with_the_modal_pull() -> None:
+    """The modal pull starts the map at the rest state over the seed bias, which was dropped without a word."""
+    with pytest.raises(ValueError, match="seed_bias must be true or false \\(not with modal"):
+        FitConfig(seed_bias=True, modal=1.0)
+    assert FitConfig(seed_bias=False, modal=1.0).modal == 1.0
+
+
 def test_mirror_needs_a_declared_mirror_and_an_even_batch() -> None:
     with pytest.raises(ValueError, match="declares no mirror"):
         fit_subspace(_tet_scene(), steps=1, mirror=1.0, progress=False)
