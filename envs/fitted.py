@@ -76,7 +76,7 @@ def cached_subspace(
         redsim.subspace.CheckpointError: a corrupt cached checkpoint (delete it to fit again).
     """
     from redsim.subspace import checkpoint_path, load_subspace
-    from redsim.trainers.fit import fit_subspace
+    from redsim.trainers.fit import FIT_ALIASES, fit_subspace
     from redsim.trainers.presets import preset
 
     reserved = sorted(set(fit_options or {}) & RESERVED_FIT_OPTIONS)
@@ -85,7 +85,11 @@ def cached_subspace(
             f"fit_options cannot set {reserved}: the env's cache chooses where its fit is saved, resumed and shown "
             "(fit options are FitConfig's fields and seed)"
         )
-    options = {**preset(scene_name), **dict(fit_options or {})}
+    given = dict(fit_options or {})
+    for alias, field in FIT_ALIASES.items():  # dim=2 replaces the preset's latent_dim (not "two values that differ")
+        if alias in given and field not in given:
+            given[field] = given.pop(alias)
+    options = {**preset(scene_name), **given}  # the same cache entry for either spelling
     stem = cache_stem(scene_name, scene, options)
     if stem is not None and checkpoint_path(stem, ".pt").is_file() and checkpoint_path(stem, ".json").is_file():
         return load_subspace(stem, scene=scene)

@@ -345,7 +345,7 @@ class FitConfigError(ValueError):
         return "; ".join(f"{names.get(f, f)} must be {rule}, got {self.values[f]!r}" for f, rule in self.problems)
 
 
-_ALIASES = {"dim": "latent_dim"}
+FIT_ALIASES = {"dim": "latent_dim"}
 """Keyword aliases :func:`fit_subspace` takes for FitConfig fields (alias -> field)."""
 
 _ROUND_OFF_ONLY = ("fused_adam", "compile")
@@ -642,7 +642,7 @@ def fit_subspace(
             f"a fit exists at {found}: continue it with resume=True (a larger steps extends it), or replace it with "
             "overwrite=True"
         )
-    for alias, field in _ALIASES.items():
+    for alias, field in FIT_ALIASES.items():
         if alias in overrides:
             if field in overrides and overrides[field] != overrides[alias]:
                 raise ValueError(

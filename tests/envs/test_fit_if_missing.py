@@ -10,7 +10,7 @@ import numpy as np
 import pytest
 import torch
 
-import redsim  # noqa: F401  (registers the ids)
+import redsim
 from redsim.envs import fitted
 from redsim.subspace import CheckpointError
 
@@ -144,3 +144,15 @@ def test_a_sharded_env_fitted_in_memory_sends_its_map_to_the_workers(monkeypatch
     template = made["template"].sim.subspace
     for mine, theirs in zip(template.state_dict().values(), shard.sim.subspace.state_dict().values(), strict=True):
         assert torch.equal(mine, theirs)
+
+
+def test_dim_in_fit_options_replaces_the_presets_latent_dim(tmp_path, monkeypatch: pytest.MonkeyPatch) -> None:
+    """``dim`` (fit_subspace's alias of latent_dim) was merged beside the preset's latent_dim and refused as two
+    values that differ; it is the same cache entry as latent_dim."""
+    monkeypatch.setenv("REDSIM_CACHE", str(tmp_path))
+    scene = redsim.scenes.build("mini_chain", **PARAMS)
+    by_alias = fitted.cached_subspace("mini_chain", scene, {**TINY, "dim": 2}, progress=False)
+    assert by_alias.latent_dim == 2
+    monkeypatch.setattr("redsim.trainers.fit.fit_subspace", lambda *a, **k: pytest.fail("fitted again"))
+    by_field = fitted.cached_subspace("mini_chain", scene, {**TINY, "latent_dim": 2}, progress=False)
+    assert by_field.latent_dim == 2  # loaded from the cache entry the alias made
