@@ -1,6 +1,7 @@
 """From a mesh file to a trained agent: build a cloth scene, fit its subspace, wrap it in an env, train SAC.
 
-Run: python examples/mesh_to_agent.py [--fit-steps 3000] [--steps 20000] [--out DIR] [--resume | --overwrite]
+Run: python examples/mesh_to_agent.py [--fit-steps 3000] [--steps 20000] [--episode-steps 200] [--out DIR]
+[--resume | --overwrite]
 The mesh here is a small square sheet written to a temporary .obj, standing in for your file; its top
 edge is pinned, and the agent pulls the sheet (handle "cloth") to targets the subspace can reach.
 Everything goes to DIR/my_sheet (default runs/my_sheet): the fitted map (subspace.pt, .json) and the agent's run.
@@ -48,7 +49,12 @@ def check_folder(folder: Path, resume: bool, overwrite: bool) -> None:
 
 
 def main(
-    out: Path | None = None, fit_steps: int = 60, steps: int = 100, resume: bool = False, overwrite: bool = False
+    out: Path | None = None,
+    fit_steps: int = 60,
+    steps: int = 100,
+    resume: bool = False,
+    overwrite: bool = False,
+    episode_steps: int = 20,
 ) -> dict[str, float]:
     with tempfile.TemporaryDirectory() as tmp:
         folder = Path(out or tmp) / "my_sheet"
@@ -67,7 +73,7 @@ def main(
             folder.mkdir(parents=True, exist_ok=True)
             subspace.save(folder / "subspace")
 
-        env = redsim.envs.make(scene, subspace, task="reach", max_episode_steps=20 if steps < 1000 else 200)
+        env = redsim.envs.make(scene, subspace, task="reach", max_episode_steps=episode_steps)  # --resume: the same
         tiny = {"n_envs": 2, "eval_every": steps, "eval_episodes": 2, "final_episodes": 2} if steps < 1000 else {}
         settings = {"overrides": {"learning_starts": 50}, "resume": resume, "overwrite": overwrite, **tiny}
         result = train_agent(env, folder, algo="sac", steps=steps, **settings)
@@ -97,6 +103,7 @@ if __name__ == "__main__":
     parser.add_argument("--fit-steps", type=int, default=3000, help="steps of the subspace fit (default 3000)")
     parser.add_argument("--steps", type=int, default=20_000, help="SAC's env steps (default 20000)")
     parser.add_argument("--out", type=Path, default=Path("runs"), help="everything goes to OUT/my_sheet (default runs)")
+    parser.add_argument("--episode-steps", type=int, default=200, help="steps per episode (default 200)")
     what = parser.add_mutually_exclusive_group()
     what.add_argument("--resume", action="store_true", help="continue the run in OUT/my_sheet, in its map")
     what.add_argument("--overwrite", action="store_true", help="fit and train anew in OUT/my_sheet")
@@ -106,7 +113,7 @@ if __name__ == "__main__":
     except ValueError as err:
         parser.error(str(err))
     try:
-        check(main(args.out, args.fit_steps, args.steps, args.resume, args.overwrite))
+        check(main(args.out, args.fit_steps, args.steps, args.resume, args.overwrite, args.episode_steps))
     except TrainingInterrupted as stop:  # the model, buffer and curve are saved beside the map
         print(f"{stop}; continue with the same command and --resume", file=sys.stderr)
         sys.exit(130)

@@ -9,7 +9,8 @@ progress bar, and resumable runs. :func:`train_agent` writes into its output fol
 - ``model_vecnormalize.pkl``: the observation (and reward) normalization statistics of SB3's
   ``VecNormalize`` the policy acts through (settings with ``"normalize"``; :func:`load_agent` applies
   them, :func:`normalizer_path` names the file beside any model);
-- ``best_model.zip`` (+ ``best_model_vecnormalize.pkl``): the best model by evaluation return (``EvalCallback``);
+- ``best_model.zip`` (+ ``best_model_vecnormalize.pkl``): the best model by evaluation return (``EvalCallback``, each
+  evaluation on the same seeded episodes; PPO's after an update, :func:`_evaluations`);
 - ``replay_buffer.pkl`` (SAC, TD3): the replay buffer, so a resumed run goes on with it;
 - ``checkpoints/``: periodic models and their statistics (PPO's as a rollout starts: only learnt rollouts). A resumed
   run goes on from whichever of ``model.zip`` and the checkpoints was trained the most env steps (``model.zip`` on
@@ -918,6 +919,52 @@ def _rollout_checkpoints(every: int, folder: Path) -> Any:
     return RolloutCheckpoint()
 
 
+def _evaluations(eval_env: Any, eval_seed: int, on_rollouts: bool, **options: Any) -> Any:
+    """SB3's ``EvalCallback`` (``options``: its arguments) whose every evaluation plays the same episodes: the eval
+    env is reseeded with ``eval_seed`` first, so the curve's points compare policies and a resumed run evaluates as
+    an uninterrupted one (the env's stream went on from evaluation to evaluation, and restarted on a resume).
+    ``on_rollouts`` (PPO): it evaluates as the first rollout at or past each multiple of ``eval_freq`` vector steps
+    starts, and as training ends: the policy learnt from every step counted (at a rollout's last step, where SB3's
+    own evaluates, the update has not happened yet: the point labelled N scored the policy of N minus a rollout).
+    ``evaluate_now()`` makes one evaluation at once (a resumed run's missed one)."""
+    from stable_baselines3.common.callbacks import EvalCallback
+
+    class SeededEvaluation(EvalCallback):
+        evaluated = 0
+        """Grid points (multiples of ``eval_freq`` vector steps) evaluated, or passed at training start."""
+
+        def _init_callback(self) -> None:
+            super()._init_callback()
+            self.evaluated = self.n_calls // self.eval_freq
+
+        def _on_step(self) -> bool:
+            if on_rollouts:
+                return True
+            if self.n_calls % self.eval_freq == 0:
+                self.evaluated = self.n_calls // self.eval_freq
+                self.eval_env.seed(eval_seed)
+            return super()._on_step()
+
+        def _on_rollout_start(self) -> None:
+            if on_rollouts and self.n_calls // self.eval_freq > self.evaluated:
+                self.evaluate_now()
+
+        def _on_training_end(self) -> None:
+            self._on_rollout_start()
+
+        def evaluate_now(self) -> bool:
+            self.evaluated = self.n_calls // self.eval_freq
+            self.num_timesteps = self.model.num_timesteps
+            self.eval_env.seed(eval_seed)
+            freq, self.eval_freq = self.eval_freq, 1  # EvalCallback evaluates where n_calls % eval_freq == 0
+            try:
+                return super()._on_step()
+            finally:
+                self.eval_freq = freq
+
+    return SeededEvaluation(eval_env, **options)
+
+
 def _curve_callback(curve: list[dict[str, float]], wall_offset: float, start: float, path: Path) -> Any:
     from stable_baselines3.common.callbacks import BaseCallback
 
@@ -1240,7 +1287,7 @@ def train_agent(
         TrainingInterrupted: a KeyboardInterrupt in training or the final evaluation, raised once the run is saved
             (``resume=True`` continues it).
     """
-    from stable_baselines3.common.callbacks import CallbackList, CheckpointCallback, EvalCallback
+    from stable_baselines3.common.callbacks import CallbackList, CheckpointCallback
     from stable_baselines3.common.noise import NormalActionNoise
     from stable_baselines3.common.vec_env import VecNormalize
 
@@ -1295,12 +1342,20 @@ def train_agent(
                 f"{found['n_envs']} (give n_envs={found['n_envs']}, --n-envs {found['n_envs']})"
             )
     kwargs_now = json.loads(json.dumps(dict(env_kwargs or {}), default=str))  # as the model file records them
+    limit_now = None if isinstance(env, str) else _base_env(env)[1]
+    if not isinstance(env, str):  # a user's env: no kwargs make it, but its episode limit changes the task
+        kwargs_now["max_episode_steps"] = limit_now
+        if previous is not None and found["env_kwargs"] == {}:  # a run saved before the limit was recorded
+            found["env_kwargs"] = None
     if previous is not None and found["env_kwargs"] not in (None, kwargs_now):
         defaults = _env_defaults(env)  # a default given again (--env-arg max_episode_steps=200) makes the same env
         if {**defaults, **found["env_kwargs"]} != {**defaults, **kwargs_now}:
+            same = (
+                "the same --env-arg and --episode-steps" if isinstance(env, str) else "the env the same episode limit"
+            )
             raise ValueError(
                 f"cannot resume with env_kwargs {kwargs_now}: {previous} was trained with {found['env_kwargs']} "
-                "(give the same --env-arg and --episode-steps, or another --out)"
+                f"(give {same}, or another --out)"
             )
     started_with = seed
     if previous is not None and (out / "agent.json").is_file():
@@ -1386,8 +1441,10 @@ def train_agent(
     if overwrite:  # only now, with the envs and the model built: a refused run neither writes nor removes anything
         _remove_run(out)
     (out / "checkpoints").mkdir(parents=True, exist_ok=True)
-    evaluation_cb = EvalCallback(
+    evaluation_cb = _evaluations(
         eval_env,
+        seed + 10_000,
+        algo == "ppo",
         n_eval_episodes=eval_episodes,
         eval_freq=every,
         best_model_save_path=str(out),
@@ -1417,7 +1474,7 @@ def train_agent(
         "n_envs": copies,
         "seed": seed,
         "her": her,
-        "env_kwargs": dict(env_kwargs or {}),
+        "env_kwargs": dict(env_kwargs or {}) | ({} if isinstance(env, str) else {"max_episode_steps": limit_now}),
         "hyperparams": {k: v for k, v in settings.items() if k != "action_noise"}
         | ({"learning_starts": int(model.learning_starts)} if hasattr(model, "learning_starts") else {})
         | {"action_noise_std": noise_std, "normalize": normalize},
@@ -1440,12 +1497,11 @@ def train_agent(
             try:
                 # the curve has a row of every evaluation made, whatever its episode count (evaluations.npz keeps
                 # only those of this run's count), and of the final one
-                evaluated = any(row["env_steps"] == started for row in curve)
-                missed = evaluation_cb.n_calls % every == 0 and not evaluated
+                last = max((row["env_steps"] for row in curve), default=0)  # the last evaluation before it
+                missed = evaluation_cb.n_calls // every > last // copies // every  # a grid point since, not evaluated
                 if previous is not None and started > 0 and missed:  # interrupted in its evaluation: made now
                     evaluation_cb.init_callback(model)
-                    evaluation_cb.n_calls -= 1
-                    evaluation_cb.on_step()
+                    evaluation_cb.evaluate_now()
                 model.learn(
                     remaining,
                     callback=CallbackList([*keeper, evaluation_cb, checkpoint_cb]),

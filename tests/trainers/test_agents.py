@@ -262,6 +262,51 @@ def test_ppo_trains_a_few_hundred_steps(tmp_path: Path, shards: int) -> None:
     assert model_record(result.model_path)["algo"] == "ppo"
 
 
+def test_ppo_evaluations_score_the_policy_learnt_from_the_steps_they_are_labelled_with(
+    tmp_path: Path, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    """SB3's EvalCallback evaluates at a rollout's last step, before PPO's update: the point labelled 256 scored the
+    untrained policy, and the trained one never reached the curve. Now each evaluation follows an update, the last
+    at the end of training."""
+    from stable_baselines3.common import callbacks
+
+    from redsim.trainers.agents import train_agent
+
+    seen = []
+    evaluate_policy = callbacks.evaluate_policy
+
+    def spy(model, *args, **kwargs):  # type: ignore[no-untyped-def]
+        seen.append((int(model.num_timesteps), int(model._n_updates)))
+        return evaluate_policy(model, *args, **kwargs)
+
+    monkeypatch.setattr(callbacks, "evaluate_policy", spy)
+    train_agent(
+        MINI, tmp_path, algo="ppo", steps=256, n_envs=2, eval_every=128, eval_episodes=2, final_episodes=2,
+        video=False, env_kwargs=SHORT, overrides={"n_steps": 64, "batch_size": 64, "n_epochs": 2},
+    )  # fmt: skip
+    assert seen == [(128, 2), (256, 4)]  # after one and two updates of 2 epochs (was (128, 0), (256, 2))
+    with np.load(tmp_path / "evaluations.npz") as log:
+        assert log["timesteps"].tolist() == [128, 256]
+
+
+def test_every_evaluation_plays_the_same_episodes(tmp_path: Path) -> None:
+    """The eval env is reseeded before each evaluation: a policy that does not change (learning never starts, no
+    normalizer statistics following the training copies) scores
+    the same at every point, so the points compare policies, and a resumed run's evaluations are the same as an
+    uninterrupted one's (the env's stream went on, and restarted at a resume)."""
+    from redsim.trainers.agents import train_agent
+
+    options = {"algo": "sac", "eval_every": 40, "eval_episodes": 2, "final_episodes": 2, "video": False}
+    options |= {"env_kwargs": SHORT, "overrides": {"learning_starts": 10**6, "normalize": None}, "n_envs": 1}
+    train_agent(MINI, tmp_path / "a", steps=160, **options)
+    train_agent(MINI, tmp_path / "b", steps=80, **options)
+    train_agent(MINI, tmp_path / "b", steps=160, resume=True, **options)
+    with np.load(tmp_path / "a" / "evaluations.npz") as whole, np.load(tmp_path / "b" / "evaluations.npz") as resumed:
+        assert whole["timesteps"].tolist() == resumed["timesteps"].tolist() == [40, 80, 120, 160]
+        assert np.array_equal(whole["results"], resumed["results"])
+        assert (whole["results"] == whole["results"][0]).all()
+
+
 def test_bad_input_is_a_clear_cli_error(cli: Callable[..., tuple[int, str, str]], tmp_path: Path) -> None:
     code, _, err = cli("train-agent", "RedSim/Nope-v0", "--out", str(tmp_path))
     assert code == 2 and "unknown env 'RedSim/Nope-v0'; valid: RedSim/Chain-v0" in err
@@ -865,8 +910,9 @@ def test_ppo_interrupted_in_its_update_or_at_a_rollouts_last_step_saves_its_last
     tmp_path: Path, monkeypatch: pytest.MonkeyPatch
 ) -> None:
     """SB3 counts a rollout's 16 steps before it updates on them: stopped inside the second update (weights half
-    changed in place) or in the evaluation at the second rollout's last step, the run is saved as of the first
-    update (16 steps, its weights, optimizer and statistics), not at 32 steps with weights that never learnt them."""
+    changed in place), the run is saved as of the first update (16 steps, its weights, optimizer and statistics),
+    not at 32 steps with weights that never learnt them. PPO's evaluations come after an update, as the next rollout
+    starts: stopped in the second (at 32 steps, two updates learnt), the run is saved at 32 with those statistics."""
     import pickle
 
     import stable_baselines3.common.callbacks as sb3_callbacks
@@ -901,17 +947,18 @@ def test_ppo_interrupted_in_its_update_or_at_a_rollouts_last_step_saves_its_last
     evaluate = sb3_callbacks.evaluate_policy
     calls = {"n": 0}
 
-    def interrupted_evaluation(*args: object, **kwargs: object) -> object:  # every 16 steps: each rollout's last
+    def interrupted_evaluation(*args: object, **kwargs: object) -> object:  # every 16 steps: each rollout's start
         calls["n"] += 1
         if calls["n"] == 2:
             raise KeyboardInterrupt
         return evaluate(*args, **kwargs)
 
     monkeypatch.setattr(sb3_callbacks, "evaluate_policy", interrupted_evaluation)
-    with pytest.raises(TrainingInterrupted, match="interrupted at 16 env steps"):
+    with pytest.raises(TrainingInterrupted, match="interrupted at 32 env steps"):
         train_agent(MINI, tmp_path / "evaluation", algo="ppo", steps=64, eval_every=16, overrides=small, **tiny)
+    assert load_agent(tmp_path / "evaluation" / "model.zip").model._n_updates == 2
     with (tmp_path / "evaluation" / "model_vecnormalize.pkl").open("rb") as handle:
-        assert pickle.load(handle).obs_rms.count == pytest.approx(2 + 16, abs=1e-3)
+        assert pickle.load(handle).obs_rms.count == pytest.approx(2 + 32, abs=1e-3)
 
 
 def test_ppo_checkpoints_hold_learnt_rollouts_and_a_resume_after_ctrl_c_takes_model_zip(
@@ -1110,3 +1157,17 @@ def test_ppo_says_when_whole_rollouts_take_more_steps_than_asked(
     with caplog.at_level("WARNING", logger="redsim.trainers.agents"):
         result = train_agent(MINI, tmp_path, algo="ppo", steps=24, overrides=small, **tiny)
     assert result.steps == 32 and "this run takes 32, not 24" in caplog.text
+
+
+def test_a_user_envs_episode_limit_is_recorded_and_checked_on_resume(tmp_path: Path) -> None:
+    """A user's env is made by no kwargs, so nothing was recorded: a resume with another TimeLimit went on with
+    other episodes without a word (the mesh example's length followed --steps). Its limit is recorded now."""
+    from redsim.trainers.agents import model_record, train_agent
+
+    options = {"algo": "sac", "eval_every": 40, "eval_episodes": 1, "final_episodes": 1, "video": False, "n_envs": 1}
+    result = train_agent(gym.make(MINI, max_episode_steps=5), tmp_path, steps=40, **options)
+    assert model_record(result.model_path)["env_kwargs"] == {"max_episode_steps": 5}
+    with pytest.raises(ValueError, match=r"max_episode_steps': 50}: .* trained with \{'max_episode_steps': 5\}"):
+        train_agent(gym.make(MINI, max_episode_steps=50), tmp_path, steps=80, resume=True, **options)
+    again = train_agent(gym.make(MINI, max_episode_steps=5), tmp_path, steps=80, resume=True, **options)
+    assert again.steps == 80
