@@ -789,6 +789,9 @@ class SceneBuilder:
         effects = list(self._effects)
         for effect in effects:
             _check_element_dofs(effect, N)
+        for handle_name, points, _ in self._handles:  # a load on a handle no free DOF moves would do nothing
+            if not bool((free_mask[points.dofs] & (points.weights != 0).unsqueeze(1)).any()):
+                raise ValueError(f"handle {handle_name!r} has no point a free DOF moves (all pinned or fixed)")
         if self._handles:
             points = PointSet.cat([h[1] for h in self._handles])
             index = torch.cat([torch.full((h[1].count,), i, dtype=torch.int64) for i, h in enumerate(self._handles)])

@@ -141,6 +141,16 @@ def test_specs_that_cannot_be_rebuilt() -> None:
     with pytest.raises(SceneSpecError, match="in-memory mesh"):
         scene_from_spec(scene_spec(in_memory))
     assert scene_from_spec(scene_spec(redsim.scenes.build("toy_two_tets"))).name == "toy_two_tets"
+    for params in ([1, 2], [["young", 5]]):  # dict()'s own message, or a list of pairs taken as an object
+        with pytest.raises(SceneSpecError, match="scene_params must be a JSON object, got list"):
+            scene_from_spec({"scene": "toy_crank", "scene_params": params})
+
+
+def test_kind_with_a_spec_is_refused(cli: Cli, tmp_path: Path) -> None:
+    spec = tmp_path / "spec.json"
+    spec.write_text(json.dumps(scene_spec(redsim.scenes.build("toy_crank"))))
+    code, out, err = cli("simulate", "--spec", str(spec), "--kind", "cloth", "--steps", "1")  # ran, --kind ignored
+    assert code == 2 and out == "" and "--kind goes with --mesh, not --spec" in err
 
 
 @pytest.mark.parametrize(

@@ -396,6 +396,8 @@ def scene_from_args(args: argparse.Namespace) -> Scene:
     if len(given) > 1:
         raise CliError(f"give one of a scene name, --mesh or --spec, not {' and '.join(given)}")
     if spec is not None:
+        if args.kind is not None:  # the spec names its builder
+            raise CliError("--kind goes with --mesh, not --spec (a spec's scene_params name its builder)")
         return _scene_from_spec_file(spec, params)
     if args.mesh is None:
         if args.kind is not None:

@@ -98,7 +98,20 @@ _NOT_REAL = (torch.bool, torch.complex64, torch.complex128, np.dtype(bool), np.d
 def _as_default_type(key: str, value: Any, default: Any) -> Any:
     """A parameter whose default is a float, given as an int, as that float (``density=7800`` builds the scene, and
     its fingerprint, of ``density=7800.0``); so is a one-number torch tensor or NumPy array of a real dtype
-    (``torch.tensor(7800.0)``); anything but a real number there is refused."""
+    (``torch.tensor(7800.0)``); anything but a real number there is refused. Where the default is an int or a bool, a
+    NumPy or one-number torch integer or bool is that Python int or bool, and a pair of floats given as ints is
+    floats (each the same scene, and fingerprint, as the Python value; a NumPy int could not be written as JSON)."""
+    if isinstance(default, tuple | list) and isinstance(value, tuple | list) and len(value) == len(default):
+        return type(default)(
+            _as_default_type(f"{key}[{i}]", v, d) for i, (v, d) in enumerate(zip(value, default, strict=True))
+        )
+    if isinstance(default, bool | int) and isinstance(value, torch.Tensor | np.ndarray | np.generic):
+        item = value.item() if value.ndim == 0 else value
+        if isinstance(default, bool) and isinstance(item, bool):
+            return item
+        if not isinstance(default, bool) and isinstance(item, int) and not isinstance(item, bool):
+            return item
+        return value
     if not isinstance(default, float):
         return value
     if isinstance(value, torch.Tensor | np.ndarray) and value.ndim == 0 and value.dtype not in _NOT_REAL:

@@ -5,6 +5,7 @@ SI units (m, kg, s, Pa, N, J); cloth is StVK membrane + discrete-shell bending, 
 
 from __future__ import annotations
 
+import numpy as np
 import torch
 
 from redsim import meshes
@@ -51,7 +52,8 @@ def cloth_ball(
         gravity: Add gravity (9.81 m/s^2 along -y).
 
     Effects: membrane, bending, rigid, contact, gravity, external_load. Handles: "ball" (its
-    centre), "cloth_center" (the middle cloth vertex). Surfaces: "cloth", "ball".
+    centre), "cloth_center" (the cloth vertex nearest the middle: the middle one for an even ``cells``, one of
+    the four around it for an odd). Surfaces: "cloth", "ball".
     """
     params = toolkit.builder_params(locals())  # first: the arguments alone (before any local name)
     import trimesh
@@ -104,7 +106,8 @@ def cloth_ball(
     if gravity:
         toolkit.add_gravity(b)
     b.add_handle("ball", b.body_points(ball.body, torch.zeros(1, 3)))
-    b.add_handle("cloth_center", b.particle_points(ids[torch.tensor([(side * side) // 2])]))
+    middle = int(np.argmin(np.linalg.norm(np.asarray(vertices)[:, [0, 2]], axis=1)))  # index (side * side) // 2
+    b.add_handle("cloth_center", b.particle_points(ids[torch.tensor([middle])]))  # where cells is even
     return b.finalize(
         "cloth_ball",
         params=params,

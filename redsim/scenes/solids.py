@@ -308,11 +308,11 @@ def hetero_beam(
     vertices, 25 clamped: n = 1950.
 
     Args:
-        cells_x: Cells along the beam.
+        cells_x: Cells along the beam (>= 2).
         cells_yz: Cells across (in y and in z).
         length: Length [m].
         width: Square cross-section side [m].
-        segments: Number of alternating segments.
+        segments: Number of alternating segments (at most ``cells_x``).
         young_stiff: Young's modulus of the stiff segments [Pa].
         young_soft: Young's modulus of the soft segments [Pa].
         poisson: Poisson ratio.
@@ -323,9 +323,11 @@ def hetero_beam(
     x = length/2), "tip" (the free end face). Surface: "elastic".
     """
     params = toolkit.builder_params(locals())
-    cells_x = toolkit.check_int("cells_x", cells_x, 1)
+    cells_x = toolkit.check_int("cells_x", cells_x, 2)  # one cell: the section nearest the middle is the clamp
     cells_yz = toolkit.check_int("cells_yz", cells_yz, 1)
     segments = toolkit.check_int("segments", segments, 1)
+    if segments > cells_x:  # materials go per tet: a segment shorter than a cell aliases (13 on 4 cells: 10 seen)
+        raise ValueError(f"segments must be at most cells_x ({cells_x}) to alternate along the beam, got {segments}")
     for key in ("length", "width", "young_stiff", "young_soft", "density"):
         toolkit.check_positive(key, params[key])
     toolkit.check_poisson(poisson)
@@ -468,7 +470,8 @@ def elephant(
         gravity: Add gravity (9.81 m/s^2 along -y).
 
     Effects: elastic, gravity, external_load. Handles: "trunk_tip" (the lowest trunk
-    vertices), "back" (the top of the body). Surface: "elastic".
+    vertices), "back" (the top vertex layer of the body's middle, |x| <= 0.25 m; before stop 44 the mesh's top
+    layer, which is the ears' tips and the head's top). Surface: "elastic".
     """
     params = toolkit.builder_params(locals())
     gravity = toolkit.check_bool("gravity", gravity)
@@ -479,7 +482,8 @@ def elephant(
         toolkit.add_gravity(b)
     trunk = vertices[:, 0] >= 0.62
     trunk_tip = np.nonzero(trunk & (y <= y[trunk].min() + 0.25 * pitch))[0]
-    back = np.nonzero(y >= y.max() - 0.25 * pitch)[0]
+    body = np.abs(vertices[:, 0]) <= 0.25  # the body's middle, clear of the head (x >= 0.31) and ears (0.37-0.47)
+    back = np.nonzero(body & (y >= y[body].max() - 0.25 * pitch))[0]  # the mesh's top layer is the ears' tips
     b.add_handle("trunk_tip", b.particle_points(ids[torch.as_tensor(trunk_tip)]))
     b.add_handle("back", b.particle_points(ids[torch.as_tensor(back)]))
     return b.finalize(

@@ -82,7 +82,10 @@ def scene_from_spec(doc: Mapping[str, Any]) -> Scene:
     name = doc.get("scene")
     if not isinstance(name, str):
         raise SceneSpecError("the spec names no scene (expected a 'scene' string)")
-    params = dict(doc.get("scene_params") or {})
+    given = doc.get("scene_params") or {}
+    if not isinstance(given, Mapping):  # a list of pairs was taken as one, other lists gave dict()'s own message
+        raise SceneSpecError(f"scene {name!r}: scene_params must be a JSON object, got {type(given).__name__}")
+    params = dict(given)
     kind = params.get("builder")
     if kind is None:
         if name not in scenes.names():
@@ -95,7 +98,10 @@ def scene_from_spec(doc: Mapping[str, Any]) -> Scene:
         raise SceneSpecError(f"scene {name!r}: unknown mesh builder {kind!r}; valid: {', '.join(MESH_BUILDERS)}")
     source, recorded = params.get("source"), params.get("mesh_sha256")
     if not isinstance(source, str) or recorded is None:
-        raise SceneSpecError(f"scene {name!r} was built from an in-memory mesh; save the mesh to a file to rebuild it")
+        raise SceneSpecError(
+            f"scene {name!r}: its spec names no mesh file and hash ('source', 'mesh_sha256'): a scene built from an "
+            "in-memory mesh; save the mesh to a file to rebuild it"
+        )
     if not os.path.isfile(source):
         raise SceneSpecError(f"scene {name!r}: mesh file {source!r} is missing")
     now = file_sha256(source)

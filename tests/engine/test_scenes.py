@@ -7,6 +7,7 @@ from __future__ import annotations
 
 import dataclasses
 import functools
+import json
 import math
 
 import numpy as np
@@ -18,7 +19,7 @@ import trimesh
 import redsim
 from redsim import meshes
 from redsim.integrators import static_equilibrium
-from redsim.scene import ConditionSpace, Scene
+from redsim.scene import ConditionSpace, Scene, SceneBuilder
 from redsim.scenes.linkages import KLANN_CRANK
 
 # Table 1 of the paper: full dimension n per system.
@@ -499,6 +500,50 @@ def _rotate_about_z(transform: torch.Tensor, pivot: torch.Tensor, angle: float) 
     Rz = torch.tensor([[c, -s, 0.0], [s, c, 0.0], [0.0, 0.0, 1.0]], dtype=torch.float64)
     T = transform.reshape(3, 4)
     return torch.cat([Rz @ T[:, :3], (pivot + Rz @ (T[:, 3] - pivot))[:, None]], dim=1).reshape(-1)
+
+
+def test_handles_sit_where_their_docstrings_say() -> None:
+    """The elephant's "back" was the mesh's top layer: the ears' tips and the head's top; the cloth ball's
+    "cloth_center" with an odd ``cells`` was a vertex on the cloth's edge."""
+    elephant = redsim.scenes.build("elephant")
+    back = elephant.handle("back").points.positions(elephant.full_positions(elephant.q_seed[None]))[0]
+    assert float(back[:, 0].abs().max()) <= 0.25 and float(back[:, 1].min()) < 1.0  # ears at x ~0.42, y up to 1.1
+    for cells in (44, 3):
+        cloth = redsim.scenes.build("cloth_ball", cells=cells)
+        centre = cloth.handle("cloth_center").points.positions(cloth.full_positions(cloth.q_seed[None]))[0, 0]
+        assert float(centre[[0, 2]].norm()) <= 0.5 * 2**0.5 / cells + 1e-12  # 0 for an even cells
+
+
+def test_a_handle_no_free_dof_moves_and_a_beam_that_cannot_alternate_are_refused() -> None:
+    """hetero_beam with one cell put its "middle" handle on the clamp (a load there did nothing, silently); more
+    segments than cells aliased the materials (13 on 4 cells: every cell the same mix)."""
+    with pytest.raises(ValueError, match="cells_x must be"):
+        redsim.scenes.build("hetero_beam", cells_x=1)
+    with pytest.raises(ValueError, match=r"segments must be at most cells_x \(4\)"):
+        redsim.scenes.build("hetero_beam", cells_x=4, segments=13)
+    b = SceneBuilder(dim=2)
+    ids = b.add_particles(torch.tensor([[0.0, 0.0], [1.0, 0.0]], dtype=torch.float64), torch.ones(2))
+    b.pin_particles(ids[:1])
+    b.add_handle("held", b.particle_points(ids[:1]))
+    with pytest.raises(ValueError, match="handle 'held' has no point a free DOF moves"):
+        b.finalize("pinned_handle")
+
+
+def test_numpy_and_int_parameters_build_the_python_values_scene() -> None:
+    """A NumPy int or bool, or a range of floats given as ints, made another fingerprint (and a NumPy int broke the
+    fit's JSON); each is now the scene of the Python value."""
+    cases = [
+        ("mini_chain", "contact_samples", np.int64(8), 8),
+        ("mini_chain", "contact_samples", torch.tensor(8), 8),
+        ("cantilever", "gravity", np.bool_(False), False),
+        ("conditional_bar", "stiffness_ratio_range", (1, 5), (1.0, 5.0)),
+    ]
+    for name, key, given, python in cases:
+        scene = redsim.scenes.build(name, **{key: given})
+        assert scene.fingerprint() == redsim.scenes.build(name, **{key: python}).fingerprint()
+        json.dumps(scene.params)  # writable in a checkpoint's JSON
+    with pytest.raises(ValueError, match="contact_samples must be an integer"):
+        redsim.scenes.build("mini_chain", contact_samples=np.float64(8.5))
 
 
 def test_klann_is_a_one_dof_mechanism() -> None:
