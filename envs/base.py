@@ -535,6 +535,8 @@ class LatentSim:
         d, B = self.latent_dim, self.batch
         zeros = torch.zeros(B, d, dtype=self.torch_dtype, device=self.device)
         self.z, self.z_prev = zeros.clone(), zeros.clone()
+        self.z_before = zeros.clone()
+        """[B, d] z at the start of the last env step (frame_skip stepper steps before z; z_prev's with 1): x_prev's."""
         self.cond: Tensor | None = None if not conditional else self.default_cond.expand(B, -1).clone()
         self.params: dict[str, Tensor] = {}
         self.action_resolution: np.ndarray | None = None
@@ -645,6 +647,7 @@ class LatentSim:
                 self.z[row] = start + offset
                 self.z_prev[row] = self.z[row] - speed * self.stepper.dt
         self.z[rows], self.z_prev[rows] = self._first_turn(self.z[rows], self.z_prev[rows])  # as after a step
+        self.z_before[rows] = self.z[rows]
         self.loads[rows] = 0.0
         self.model[rows] = torch.nan
         x = self.full_positions(self.z[rows], None if self.cond is None else self.cond[rows])
@@ -761,8 +764,8 @@ class LatentSim:
             raise
 
     def snapshot(self) -> tuple[Any, ...]:
-        """Copies of what a step or a reset of some rows changes (z, z_prev, loads, the solver's model, the task
-        params, which a task's loads may update in place, and cond); x and x_prev are replaced, never written in
+        """Copies of what a step or a reset of some rows changes (z, z_prev, z_before, loads, the solver's model, the
+        task params, which a task's loads may update in place, and cond); x and x_prev are replaced, never written in
         place, so they are kept by reference. :meth:`restore` puts them back: an env step that fails after the
         simulation step (its observation, an autoreset) leaves every copy as it was."""
         params = {k: v.clone() for k, v in self.params.items()}
@@ -770,6 +773,7 @@ class LatentSim:
         return (
             self.z.clone(),
             self.z_prev.clone(),
+            self.z_before.clone(),
             self.x,
             self.x_prev,
             self.loads.clone(),
@@ -780,7 +784,7 @@ class LatentSim:
 
     def restore(self, saved: tuple[Any, ...]) -> None:
         """Return to a :meth:`snapshot`."""
-        self.z, self.z_prev, self.x, self.x_prev, self.loads, self.model, self.params, self.cond = saved
+        self.z, self.z_prev, self.z_before, self.x, self.x_prev, self.loads, self.model, self.params, self.cond = saved
 
     def _step(self, action: np.ndarray) -> tuple[np.ndarray, np.ndarray, dict[str, np.ndarray]]:
         act = torch.as_tensor(action, dtype=self.torch_dtype, device=self.device)
@@ -791,6 +795,7 @@ class LatentSim:
         gain_tolerance = torch.zeros(self.batch, dtype=self.torch_dtype, device=self.device)
         iterations = torch.zeros(self.batch, dtype=torch.int64, device=self.device)
         converged = torch.ones_like(diverged)
+        z_before = self.z.clone()  # x's latent, x_prev's after this step
         for _ in range(self.frame_skip):
             z_next, stats = self.stepper.step(self.z, self.z_prev, self.loads, self.cond, warm=self.model)
             self.model = stats.model
@@ -804,7 +809,7 @@ class LatentSim:
         diverged |= ~torch.isfinite(self.z).all(dim=1)
         self.z, self.z_prev = self._first_turn(self.z, self.z_prev)
         out_of_range |= self._beyond_bound(self.z, self.z_prev)
-        self.x_prev, self.x = self.x, self.full_positions(self.z)
+        self.x_prev, self.x, self.z_before = self.x, self.full_positions(self.z), z_before
         reward, terms = self.task.reward(self.x, act, self.params)
         _check_task_output("reward", reward, self.batch, valid=~diverged)
         for key, value in terms.items():
@@ -876,13 +881,15 @@ class LatentSim:
         }
 
     def get_state(self) -> dict[str, Any]:
-        """Copies of the dynamic state: z, z_prev [B, d], cond [B, m] or None, task params {k: [B, ...]},
+        """Copies of the dynamic state: z, z_prev [B, d], ``z_before`` [B, d] (z one env step ago: x_prev's, which
+        Klann's crank speed reads), cond [B, m] or None, task params {k: [B, ...]},
         the solver's warm start ``model`` [B, d, d] (so a restored state steps bitwise alike), the loads of the last
         step ``loads`` [B, H, D] [N] (what the force arrows draw and a task's controller reads) and the
         :meth:`setting` it belongs to."""
         return {
             "z": self.z.cpu().numpy().copy(),
             "z_prev": self.z_prev.cpu().numpy().copy(),
+            "z_before": self.z_before.cpu().numpy().copy(),
             "model": self.model.cpu().numpy().copy(),
             "loads": self.loads.cpu().numpy().copy(),
             "cond": None if self.cond is None else self.cond.cpu().numpy().copy(),
@@ -941,6 +948,8 @@ class LatentSim:
         cond = None if self.cond is None else self.check_cond(tensor(state["cond"], tuple(self.cond.shape), "cond"))
         z = tensor(state["z"], (B, d), "z")
         z_prev = tensor(state["z_prev"], (B, d), "z_prev")
+        # a state saved before stop 44 holds no z_before: z_prev, which is it with frame_skip 1
+        z_before = z_prev.clone() if state.get("z_before") is None else tensor(state["z_before"], (B, d), "z_before")
         model = torch.full((B, d, d), torch.nan, dtype=self.torch_dtype, device=self.device)
         if state.get("model") is not None:  # NaN rows: none built yet (the next step builds its own)
             model = tensor(state["model"], (B, d, d), "model", finite=False)
@@ -956,10 +965,17 @@ class LatentSim:
         # each keeps its dtype (a task's counters and flags stay integers and bools)
         params = {k: tensor(v, tuple(like[k].shape), f"params.{k}", like[k].dtype) for k, v in params.items()}
         self.check_state_params(params)
-        self.z, self.z_prev, self.model, self.params, self.loads = z, z_prev, model, params, loads
+        self.z, self.z_prev, self.z_before, self.model, self.params, self.loads = (
+            z,
+            z_prev,
+            z_before,
+            model,
+            params,
+            loads,
+        )
         if cond is not None:
             self.cond = cond
-        self.x_prev = self.full_positions(self.z_prev)
+        self.x_prev = self.full_positions(self.z_before)
         self.x = self.full_positions(self.z)
 
     def drawn_params(self) -> dict[str, Tensor]:
@@ -1720,6 +1736,7 @@ def state_row(state: Mapping[str, Any], i: int = 0) -> dict[str, Any]:
     return {
         "z": state["z"][i],
         "z_prev": state["z_prev"][i],
+        "z_before": None if state.get("z_before") is None else state["z_before"][i],
         "model": state["model"][i],
         "loads": None if state.get("loads") is None else state["loads"][i],
         "cond": None if state["cond"] is None else state["cond"][i],
@@ -1743,6 +1760,7 @@ def _batch(state: Mapping[str, Any]) -> dict[str, Any]:
     return {
         "z": row(state["z"]),
         "z_prev": row(state["z_prev"]),
+        "z_before": row(state.get("z_before")),
         "model": row(state.get("model")),
         "loads": row(state.get("loads")),
         "cond": row(state["cond"]),

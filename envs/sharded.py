@@ -336,6 +336,8 @@ class ShardedVectorEnv(SharedCopies, VectorEnv):
             sim.check_cond(torch.as_tensor(np.asarray(state["cond"], dtype=np.float64), dtype=sim.cond.dtype))
         check("z", state["z"], (n, d), finite=True)
         check("z_prev", state["z_prev"], (n, d), finite=True)
+        if state.get("z_before") is not None:
+            check("z_before", state["z_before"], (n, d), finite=True)
         if state.get("model") is not None:
             check("model", state["model"], (n, d, d))
         if state.get("loads") is not None:

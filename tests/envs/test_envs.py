@@ -419,6 +419,26 @@ def test_get_state_set_state_round_trip_exactly(mini: gym.Env) -> None:
     )
 
 
+@pytest.mark.parametrize(("env_id", "frame_skip"), [("RedSim/Klann-v0", 2), ("RedSim/MiniChain-v0", 3)])
+def test_a_restored_state_reads_the_last_env_step_s_motion_with_frame_skip(env_id: str, frame_skip: int) -> None:
+    """x_prev is the shape one env step (frame_skip stepper steps) ago; set_state rebuilt it from z_prev, one stepper
+    step ago, so what reads it before the next step (Klann's crank speed, the controllers, a vector env's observation
+    of the copies a masked reset leaves) differed from the env that saved the state. A state without z_before (saved
+    before stop 44) still loads, as before."""
+    saved = gym.make(env_id, frame_skip=frame_skip).unwrapped
+    saved.reset(seed=0)
+    for _ in range(4):
+        saved.step(np.full(saved.action_space.shape, 0.7, np.float32))
+    state = saved.get_state()
+    restored = gym.make(env_id, frame_skip=frame_skip).unwrapped
+    restored.set_state(state)
+    assert torch.equal(restored.sim.x_prev, saved.sim.x_prev)
+    assert np.array_equal(restored.sim.observe()[0], saved.sim.observe()[0])
+    np.testing.assert_array_equal(restored.task.controller(restored.sim), saved.task.controller(saved.sim))
+    restored.set_state({k: v for k, v in state.items() if k != "z_before"})
+    assert torch.equal(restored.sim.x_prev, restored.sim.full_positions(restored.sim.z_prev))
+
+
 def test_get_state_needs_a_reset_and_set_state_needs_the_task_s_params_before_one_too() -> None:
     """No state exists before the first reset; a never-reset env (no draw of its own to compare with) still refuses a
     state without the task's parameters, instead of a KeyError at the next step."""
