@@ -6,7 +6,8 @@ prefixed by the effect's name:
 
 - ``<rigid>_orthogonality_error``: max over bodies of |R^T R - I|_F (0 for exact rotations);
 - ``<joints>_max_gap`` [m]: max distance between the two points of a joint / pin; for a hinge's axis
-  directions (``joint_axes``: unit vectors) the chord between them, unitless (~ the misalignment in rad);
+  directions (``joint_axes``: unit vectors; Stewart's ``servos``: each arm's against its seed) the chord between them,
+  unitless (~ the misalignment in rad);
 - ``<elastic>_min_det_f`` and ``<elastic>_inverted`` (count of elements with det F <= 0);
 - ``<membrane>_max_strain``: max principal stretch - 1 over the cloth triangles (0: unstretched);
 - ``<contact>_penetration`` [m]: max depth of a contact point inside its shape's margin;

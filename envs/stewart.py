@@ -70,7 +70,7 @@ class PlatePose(Task):
 
     name = "plate_pose"
     reward_terms = ("position", "orientation", "control", "success")
-    reset_options = ("target_position", "target_rotation")
+    reset_options = ("target_position", "target_rotation", "held_action")
 
     def __init__(
         self,
@@ -217,6 +217,9 @@ class PlatePose(Task):
                 f"options['target_position'] must lie within the observation bound of {self._bound:.3g} m on each "
                 f"axis, got {shown(position)}"
             )
+        held = chosen.get("held_action")
+        if held is not None and not bool((held.abs() <= 1.0).all()):
+            raise ValueError(f"options['held_action'] must lie in the action space [-1, 1], got {shown(held)}")
         if rotation is not None:
             r = rotation.to(torch.float64)
             if r.shape != (3, 3) or not (
@@ -258,7 +261,9 @@ class PlatePose(Task):
     def controller(self, sim: LatentSim) -> np.ndarray:
         """Open loop: hold the action whose static equilibrium is the target (``params["held_action"]``).
 
-        It shows that a bounded action reaches every target; the solve's damping settles the plate.
+        It shows that a bounded action reaches every target; the solve's damping settles the plate. The action is
+        drawn with the target: a target chosen by ``reset(options=...)`` needs its ``held_action`` option too (the
+        ``held_action`` param of the episode that drew it), else this holds the drawn target's action and steers there.
         """
         return sim.params["held_action"].cpu().numpy().astype(np.float32)
 
@@ -324,7 +329,9 @@ class StewartEnv(LatentEnv):
     plate's pose in the latent static equilibrium under a held action drawn uniformly from
     [-`target_spread`, `target_spread`]^6 by `self.np_random` (a float64 Newton solve at each reset, about 1 s).
     `reset(options={"target_position": [x, y, z], "target_rotation": R})` sets either instead ([m]; R [3, 3], a
-    rotation to `ROTATION_TOL` = 1e-2, so a drawn target read from `get_state()["params"]` replays).
+    rotation to `ROTATION_TOL` = 1e-2, so a drawn target read from `get_state()["params"]` replays); `"held_action"`
+    (in [-1, 1]^6) sets the action the task's scripted controller holds, the one drawn with a target (give it with a
+    replayed target, or the controller holds this episode's draw).
 
     ## Episode End
     Termination: the stepper could not make a step finite (`info["diverged"]`). Truncation: 200 steps

@@ -226,3 +226,15 @@ def test_the_sharded_set_state_refuses_a_wrong_shape_before_a_refused_target() -
     finally:
         native.close()
         sharded.close()
+
+
+def test_stewart_takes_the_held_action_with_a_chosen_target_for_its_controller() -> None:
+    """Stewart's scripted controller holds the action drawn with the target: a target copied from another episode
+    comes with that episode's held_action (an option since stop 44), else the controller steered to the drawn one."""
+    env = gym.make("RedSim/Stewart-v0").unwrapped
+    env.reset(seed=0)
+    chosen = {k: env.sim.params[k][0].cpu().numpy() for k in ("target_position", "target_rotation", "held_action")}
+    env.reset(seed=3, options=chosen)
+    np.testing.assert_array_equal(env.task.controller(env.sim)[0], chosen["held_action"].astype(np.float32))
+    with pytest.raises(ValueError, match=r"options\['held_action'\] must lie in the action space \[-1, 1\]"):
+        env.reset(seed=3, options={"held_action": np.full(6, 1.5)})
