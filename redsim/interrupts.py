@@ -49,3 +49,4 @@ def deferred_interrupts() -> Iterator[Callable[[], None]]:
     finally:
         for signum, handler in previous.items():
             signal.signal(signum, handler)
+    check()  # a signal after the block's last check (and no exception on its way out): not lost

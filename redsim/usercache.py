@@ -5,6 +5,7 @@ from __future__ import annotations
 import fnmatch
 import logging
 import os
+import re
 import tempfile
 import time
 from collections.abc import Iterable, Mapping
@@ -28,7 +29,10 @@ CACHE_FILES = {"equilibria": ("*.npz",), "subspaces": ("*.pt", "*.json"), "envs"
 is unfinished, ``.fit.pt``); nothing else there is counted or deleted."""
 STALE_TEMPORARY_DAYS = 1.0
 """Age [days] past which a temporary file a writer left behind (an interrupted process: ``.*.npz.tmp``,
-``*.pt.tmp``, ``*.json.tmp``) counts as cache; a younger one may be another process's write in flight."""
+``*.pt.XXXXXXXXtmp``, ``*.json.XXXXXXXXtmp``; ``*.pt.tmp`` before stop 44) counts as cache; a younger one may be
+another process's write in flight."""
+TEMPORARY = re.compile(r"\.?(?P<name>.+?)(?:\.tmp|\.[a-z0-9_]{8}tmp)")
+"""A temporary file's name: the file it will replace (``name``), a writer's own random part, ``tmp``."""
 
 
 def cache_root() -> Path | None:
@@ -106,8 +110,8 @@ def _files(root: Path, name: str, older_than_days: float | None = None) -> list[
     cutoff = None if older_than_days is None else now - 86400.0 * older_than_days
     found = []
     for path in folder.iterdir():
-        temporary = path.name.endswith(".tmp")
-        stem = path.name[: -len(".tmp")].lstrip(".") if temporary else path.name
+        temporary = path.name.endswith("tmp") and (found_name := TEMPORARY.fullmatch(path.name)) is not None
+        stem = found_name["name"] if temporary else path.name
         if not any(fnmatch.fnmatch(stem, pattern) for pattern in CACHE_FILES[name]):
             continue
         try:

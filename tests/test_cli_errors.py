@@ -234,8 +234,9 @@ def test_threads_are_applied_and_restored(cli: Cli, monkeypatch: pytest.MonkeyPa
     code, _, err = cli("simulate", "toy_two_tets", "--steps", "1", "--threads", "2")
     assert code == 0, err
     assert seen == [2] and torch.get_num_threads() == before
-    code, _, err = cli("simulate", "toy_two_tets", "--threads", "0")
-    assert code == 2 and "--threads must be an integer >= 1" in err
+    for threads in ("0", "99999999999", "40000"):  # an OverflowError traceback, a segfault
+        code, _, err = cli("simulate", "toy_two_tets", "--threads", threads)
+        assert code == 2 and f"--threads must be an integer in [1, 32768], got {threads}" in err
 
 
 def test_simulate_picture_shows_loads_and_fixed_parts(tmp_path: Path) -> None:

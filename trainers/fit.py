@@ -808,7 +808,9 @@ def fit_subspace(
         finally:
             if bar is not None:
                 bar.close()
-    save_state()  # the end state too, so that a finished fit can be extended (--resume with more --steps)
+        # the end state too, so that a finished fit can be extended (--resume with more --steps); inside the block,
+        # so a Ctrl-C after the last step's check is raised at its end with this state saved
+        save_state()
     if completed < config.steps:
         assert state_path is not None  # stop_at needs out
         raise FitStopped(completed, state_path)

@@ -345,9 +345,12 @@ def apply_threads(args: argparse.Namespace) -> None:
     threads = getattr(args, "threads", None)
     if threads is None:
         return
-    if threads < 1:
-        raise CliError(f"--threads must be an integer >= 1, got {threads}")
-    torch.set_num_threads(threads)
+    from redsim.threads import MAX_THREADS, check_threads
+
+    try:
+        torch.set_num_threads(check_threads(threads))
+    except ValueError as err:  # 99999999999 was an OverflowError traceback, 40000 a segfault
+        raise CliError(f"--threads must be an integer in [1, {MAX_THREADS}], got {threads}") from err
 
 
 # -- scene arguments ------------------------------------------------------------------------

@@ -11,6 +11,7 @@ from __future__ import annotations
 import hashlib
 import json
 import os
+import tempfile
 from collections.abc import Callable
 from pathlib import Path
 from typing import Any
@@ -55,12 +56,23 @@ def checkpoint_path(path: str | Path, suffix: str) -> Path:
 def write_atomically(path: Path, write: Callable[[Path], Any]) -> None:
     """Call ``write(tmp)`` on a temporary file beside ``path``, then move it onto ``path``: an interrupted write
     leaves the previous file whole (and no partial one under its name)."""
-    tmp = path.with_name(path.name + ".tmp")
+    tmp = _temporary(path)
     try:
         write(tmp)
         os.replace(tmp, path)
     finally:
         tmp.unlink(missing_ok=True)
+
+
+def _temporary(path: Path) -> Path:
+    """A new empty file ``NAME.XXXXXXXXtmp`` beside ``path`` (``NAME``), this writer's own: two processes writing
+    the same file (SubprocVecEnv workers fitting one cached map) each replace it whole (one shared ``NAME.tmp`` made
+    the second one's replace fail, or moved a file the other was still writing). ``NAME`` whole before the last dot:
+    ``torch.save`` names its archive after the file without its last suffix, so a checkpoint's bytes stay those of
+    the same weights written at any time; ``redsim cache clear`` knows a stale one (:data:`TEMPORARY`)."""
+    handle, name = tempfile.mkstemp(dir=path.parent, prefix=f"{path.name}.", suffix="tmp")
+    os.close(handle)
+    return Path(name)
 
 
 def write_checkpoint(module: nn.Module, stem: str | Path, config: dict[str, Any]) -> tuple[Path, Path]:
@@ -71,7 +83,7 @@ def write_checkpoint(module: nn.Module, stem: str | Path, config: dict[str, Any]
     doc = {**getattr(module, "metadata", {}), "format_version": FORMAT_VERSION, "config": config}
     text = json.dumps(doc, indent=2, sort_keys=True, default=_json_default)  # fails before any file is touched
     # both written in full before either replaces its file (an interruption while writing keeps the old pair)
-    tmp_weights, tmp_meta = (p.with_name(p.name + ".tmp") for p in (weights, meta))
+    tmp_weights, tmp_meta = (_temporary(p) for p in (weights, meta))
     try:
         torch.save(module.state_dict(), tmp_weights)
         tmp_meta.write_text(text)

@@ -62,3 +62,24 @@ def test_an_interrupted_write_keeps_the_previous_file_whole(tmp_path) -> None:
     assert path.read_text() == "previous" and sorted(p.name for p in tmp_path.iterdir()) == ["map.pt"]
     subspace.write_atomically(path, lambda tmp: tmp.write_text("next"))
     assert path.read_text() == "next" and sorted(p.name for p in tmp_path.iterdir()) == ["map.pt"]
+
+
+def test_two_writers_of_one_file_each_write_their_own_temporary(tmp_path) -> None:
+    """SubprocVecEnv workers fitting one cached map write the same files: one shared NAME.tmp made the second
+    writer's replace fail (FileNotFoundError), or moved a file the other was still writing. Each temporary keeps
+    the file's name before its last dot (torch.save names its archive so: the same weights, the same bytes), and
+    `redsim cache clear` knows a stale one."""
+    path = tmp_path / "map.fit.pt"
+    seen = []
+
+    def outer(tmp) -> None:
+        seen.append(tmp.name)
+        tmp.write_text("outer")
+        subspace.write_atomically(path, lambda inner: (seen.append(inner.name), inner.write_text("inner")))
+
+    subspace.write_atomically(path, outer)  # the inner writer finishes while the outer one is still writing
+    assert path.read_text() == "outer" and sorted(p.name for p in tmp_path.iterdir()) == ["map.fit.pt"]
+    assert seen[0] != seen[1] and all(n.startswith("map.fit.pt.") and n.endswith("tmp") for n in seen)
+    from redsim.usercache import TEMPORARY
+
+    assert all(TEMPORARY.fullmatch(n)["name"] == "map.fit.pt" for n in seen)  # cache clear takes a stale one

@@ -282,6 +282,42 @@ def test_a_callers_own_signal_handler_is_called_at_the_step_boundary() -> None:
         signal.signal(signal.SIGINT, mine)
 
 
+def test_a_signal_after_the_last_check_is_not_lost() -> None:
+    """A Ctrl-C between the block's last check() and its end was recorded and dropped: the program went on."""
+    import os
+    import signal
+
+    from redsim.interrupts import deferred_interrupts
+
+    with pytest.raises(KeyboardInterrupt):
+        with deferred_interrupts() as check:
+            check()
+            os.kill(os.getpid(), signal.SIGINT)
+    assert signal.getsignal(signal.SIGINT) is signal.default_int_handler
+
+
+def test_a_ctrl_c_in_the_fit_s_last_save_keeps_the_end_state_and_is_raised(tmp_path, monkeypatch) -> None:
+    """A Ctrl-C after the last step's check (here: in the end state's save) was dropped; now it is raised once that
+    state is saved, so --resume writes the map without another step."""
+    import os
+    import signal
+
+    save = fit_module._save_training_state
+
+    def interrupted_save(path, state):  # type: ignore[no-untyped-def]
+        os.kill(os.getpid(), signal.SIGINT)
+        save(path, state)
+
+    monkeypatch.setattr(fit_module, "_save_training_state", interrupted_save)
+    config = FitConfig(latent_dim=2, steps=6, checkpoint_every=0, hidden_width=8)
+    with pytest.raises(KeyboardInterrupt):
+        fit_subspace(_tet_scene(), config, progress=False, out=tmp_path / "m")
+    monkeypatch.setattr(fit_module, "_save_training_state", save)
+    assert (tmp_path / "m.fit.pt").is_file() and not (tmp_path / "m.pt").exists()
+    result = fit_subspace(_tet_scene(), config, progress=False, out=tmp_path / "m", resume=True)
+    assert len(result.history) == 6 and (tmp_path / "m.pt").is_file()
+
+
 def test_resume_refuses_other_settings_and_missing_state(tmp_path) -> None:
     scene = _tet_scene()
     config = FitConfig(latent_dim=2, steps=10, checkpoint_every=5, hidden_width=8)
