@@ -20,6 +20,8 @@ from __future__ import annotations
 import hashlib
 import json
 import logging
+import tempfile
+import warnings
 from collections.abc import Mapping
 from pathlib import Path
 from typing import Any
@@ -93,6 +95,14 @@ def cached_subspace(
     stem = cache_stem(scene_name, scene, options)
     if stem is not None and checkpoint_path(stem, ".pt").is_file() and checkpoint_path(stem, ".json").is_file():
         return load_subspace(stem, scene=scene)
+    if stem is not None and not _writable(stem.parent):  # as the other caches: it never stops the caller
+        warnings.warn(
+            f"the user cache cannot hold this fit ({stem.parent} is not a writable folder): fitting in memory (set "
+            "$REDSIM_CACHE to a writable folder, or to 0 to turn the cache off)",
+            UserWarning,
+            stacklevel=2,
+        )
+        stem = None
     state = None if stem is None else checkpoint_path(stem, ".fit.pt")
     resume = state is not None and state.is_file()
     log.info("fitting a subspace for %s (%s) into %s", scene_name, scene.fingerprint(), stem or "memory (cache off)")
@@ -102,6 +112,16 @@ def cached_subspace(
     if stem is None:  # no file behind it: an env pickles it rather than fit it again
         setattr(result.subspace, IN_MEMORY_ATTRIBUTE, True)
     return result.subspace
+
+
+def _writable(folder: Path) -> bool:
+    """Whether ``folder`` exists or can be made, and a file can be written in it."""
+    try:
+        folder.mkdir(parents=True, exist_ok=True)
+        with tempfile.TemporaryFile(dir=folder):
+            return True
+    except OSError:
+        return False
 
 
 __all__ = ["FOLDER", "IN_MEMORY_ATTRIBUTE", "RESERVED_FIT_OPTIONS", "cache_stem", "cached_subspace"]

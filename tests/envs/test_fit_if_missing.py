@@ -156,3 +156,15 @@ def test_dim_in_fit_options_replaces_the_presets_latent_dim(tmp_path, monkeypatc
     monkeypatch.setattr("redsim.trainers.fit.fit_subspace", lambda *a, **k: pytest.fail("fitted again"))
     by_field = fitted.cached_subspace("mini_chain", scene, {**TINY, "latent_dim": 2}, progress=False)
     assert by_field.latent_dim == 2  # loaded from the cache entry the alias made
+
+
+def test_a_cache_that_cannot_hold_the_fit_fits_in_memory_with_a_warning(tmp_path, monkeypatch) -> None:
+    """$REDSIM_CACHE naming a file: the fit's save failed with a raw NotADirectoryError after the whole fit; the other
+    caches only warn, and so does this one now, fitting in memory."""
+    blocker = tmp_path / "afile"
+    blocker.write_text("not a folder")
+    monkeypatch.setenv("REDSIM_CACHE", str(blocker))
+    scene = redsim.scenes.build("mini_chain", **PARAMS)
+    with pytest.warns(UserWarning, match="cannot hold this fit .* fitting in memory"):
+        subspace = fitted.cached_subspace("mini_chain", scene, TINY, progress=False)
+    assert getattr(subspace, fitted.IN_MEMORY_ATTRIBUTE) and blocker.read_text() == "not a folder"
