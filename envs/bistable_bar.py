@@ -231,12 +231,13 @@ class BistableBarEnv(LatentEnv):
     mirror option makes the map equivariant under the up-down flip). The bar starts at rest arched up or down;
     a vertical force on its middle column (handle `middle`) must snap it over into the other arch. The force is
     bounded: a push only just above the snap-through load carries it over, a weaker one bends it and it springs
-    back: in this env a push held for 1.2 s snaps it at 48 N and springs back at 36 N. (The full-space bar buckles
-    sideways under a static middle load of 24-26 N, an asymmetric mode the mirror-equivariant map does not hold;
-    along the symmetric path its limit is 40.0-40.25 N.) v0 allows 60 N, so a push towards the goal (the scripted
-    controller) snaps it in every episode; v1 allows 40 N, below the env's held-push snap load: the same push
-    carries it over only in some episodes (its momentum), while pushing along the middle's motion pumps in energy
-    and snaps it every time (tests), so a policy must learn to swing the bar.
+    back: in this env (the shipped map, stop 44) a push held for 1.2 s snaps it from the down arch at 36-40 N and
+    from the up arch at 40-44 N. (The full-space bar buckles sideways under a static middle load of 24-26 N, an
+    asymmetric mode the mirror-equivariant map does not hold; along the symmetric path its limit is 40.0-40.25 N.)
+    v0 allows 60 N, so a push towards the goal (the scripted controller) snaps it in every episode; v1 allows 40 N,
+    below the up arch's held-push snap load: the same push snaps it from the down arch (``start_side`` 1; 27 steps
+    at seed 1) and never from the up arch (200 steps), while pushing along the middle's motion pumps in energy and
+    snaps it every time (tests), so a policy must learn to swing the bar over from the up arch.
 
     ## Action Space
     The action space is a `Box(-1, 1, (1,), float32)`: the force along y on the middle column, scaled to
@@ -260,7 +261,7 @@ class BistableBarEnv(LatentEnv):
 
     ## Rewards
     `reward = -|h - h*| / D - 0.05 action^2 + 1[|h - h*| < 0.1 D]` with D = |h* - h0| the height difference of
-    the two states (about 0.52 m), reported as `info["reward_height"]`, `info["reward_control"]` and
+    the two states (about 0.50 m), reported as `info["reward_height"]`, `info["reward_control"]` and
     `info["reward_success"]`; `info` also holds `height` [m], `height_error` [m], `is_success` and the FEM
     invariants `elastic_min_det_f` and `elastic_inverted`.
 
@@ -294,8 +295,8 @@ class BistableBarEnv(LatentEnv):
     "warm_refresh": True, "start": "extrapolated"}` gives the solver's general defaults.
 
     ## Version History
-    - v1: `max_force` 40 N (v0: 60 N), below the load a held push needs to snap the env's bar; nothing else
-      changed.
+    - v1: `max_force` 40 N (v0: 60 N), below the load a held push needs to snap the env's bar from its up arch
+      (not from its down arch); nothing else changed.
     - v0: first version.
     - v0, v1: their solver defaults (`stepper_defaults`) later changed the path of each solve, not its minimum:
       the golden rollouts pass either way and v1's shipped policy scores alike (README "Env speed").

@@ -258,7 +258,7 @@ class KlannEnv(LatentEnv):
     shipped 1-d periodic neural subspace, whose latent is an angle that takes the linkage once round its
     crank loop (winding 1). A tangential force on the crank pin (handle `crank_pin`), a crank torque, must
     keep the crank turning at the commanded speed omega*, through full turns and over the gravity hump of
-    the leg (the pin needs about 18 N to get over it from rest).
+    the leg (the pin needs about 16 N to get over it from rest: 15 N held 6 s turns it 0.2 rad).
 
     ## Action Space
     The action space is a `Box(-1, 1, (1,), float32)`: the tangential force on handle `crank_pin`, scaled to
@@ -295,7 +295,7 @@ class KlannEnv(LatentEnv):
     The speed swings over each turn (the gravity hump), so one step's error says little about the tracking.
 
     ## Starting State
-    At rest (z: the map's unloaded equilibrium, z_dot = 0, the crank hanging at theta = 2.8 rad). The commanded
+    At rest (z: the map's unloaded equilibrium, z_dot = 0, the crank hanging at theta = 2.33 rad). The commanded
     speed omega* is drawn uniformly from `speed_range` (4-12 rad/s, 0.6-1.9 turns/s) by `self.np_random`;
     `reset(options={"speed": omega})` sets it [rad/s] instead.
 

@@ -3,7 +3,7 @@
 Targets are poses the servos can hold inside the subspace: at reset an action u is drawn
 uniformly from [-s, s]^A by the env's generator (s = ``target_spread``), and z* is the latent
 static equilibrium under its loads (:func:`redsim.integrators.latent_equilibrium`, float64
-Newton from the rest latent); the target is the plate's centre p* and rotation R* in f(z*).
+L-BFGS, ``MINIMIZER``, from the rest latent); the target is the plate's centre p* and rotation R* in f(z*).
 The action drives the six servos: a force ``max_force * action_i`` [N] along y at arm tip i,
 a hinge torque of that force times the 0.08 m arm.
 
@@ -311,7 +311,7 @@ class StewartEnv(LatentEnv):
     |---|---|---|---|---|
     | 0-5 | latent z | -10 | 10 | unitless |
     | 6-11 | latent velocity z_dot | -1000 | 1000 | 1/s |
-    | 12-14 | plate centre p | -(r + 2L) | r + 2L | m (r = 0.25 m, L = the scene's extent) |
+    | 12-14 | plate centre p | -(r + 2L) | r + 2L | m (r = 0.22 m, the rest centre's largest coordinate; L: extent) |
     | 15-17 | target offset p* - p | -(r + 2L) | r + 2L | m |
     | 18-20 | orientation error e: axial vector of R* R^T (sin of the angle times the axis) | -1 | 1 | unitless |
 
@@ -327,7 +327,8 @@ class StewartEnv(LatentEnv):
     ## Starting State
     At rest (z: the map's unloaded equilibrium, z_dot = 0). The target is a pose the servos can hold: the
     plate's pose in the latent static equilibrium under a held action drawn uniformly from
-    [-`target_spread`, `target_spread`]^6 by `self.np_random` (a float64 Newton solve at each reset, about 1 s).
+    [-`target_spread`, `target_spread`]^6 by `self.np_random` (a float64 L-BFGS static solve, `MINIMIZER`, at each
+    reset: 0.03-0.07 s in stop 44's review).
     `reset(options={"target_position": [x, y, z], "target_rotation": R})` sets either instead ([m]; R [3, 3], a
     rotation to `ROTATION_TOL` = 1e-2, so a drawn target read from `get_state()["params"]` replays); `"held_action"`
     (in [-1, 1]^6) sets the action the task's scripted controller holds, the one drawn with a target (give it with a
