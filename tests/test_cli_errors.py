@@ -344,6 +344,11 @@ def test_an_out_folder_that_is_a_file_is_refused_before_any_work(cli: Cli, tmp_p
         code, out, err = cli(*argv, "--out", str(existing))
         assert code == 2 and out == "" and err.count("\n") == 1 and "it is a file, not a folder" in err, (argv, err)
     assert existing.read_text() == "kept"
+    from redsim import pretrained
+
+    states = tmp_path / "new.npz"  # sample wrote its states before it refused --meshes
+    code, out, err = cli("sample", str(pretrained.path("mini_chain")), "--out", str(states), "--meshes", str(existing))
+    assert code == 2 and "it is a file, not a folder" in err and not states.exists()
 
 
 def test_sample_names_the_file_it_writes_and_animate_refuses_a_non_gif(cli: Cli, tmp_path: Path) -> None:
@@ -613,5 +618,33 @@ def test_inspect_prints_the_json_of_a_checkpoint_whose_scene_cannot_be_rebuilt(c
     ],
 )
 def test_a_negative_seed_is_refused_by_the_parser(cli: Cli, argv: list[str]) -> None:
-    code, out, err = cli(*argv, "--seed", "-1")
-    assert code == 2 and out == "" and err.count("\n") == 1 and "--seed: must be an integer >= 0, got '-1'" in err, err
+    for seed in ("-1", str(2**64)):  # 2**64: torch's generators overflowed (a traceback in sample and animate)
+        code, out, err = cli(*argv, "--seed", seed)
+        expected = f"--seed: must be an integer in [0, 2**64 - 1], got '{seed}'"
+        assert code == 2 and out == "" and err.count("\n") == 1 and expected in err, err
+
+
+def test_metadata_that_is_no_object_and_weights_that_are_no_zip_are_one_line_errors(cli: Cli, tmp_path: Path) -> None:
+    """A .json of valid JSON but no object was an AttributeError traceback; a .pt that is no zip printed torch's
+    six lines (with its advice to load it with weights_only=False)."""
+    import shutil
+
+    from redsim import pretrained
+
+    shipped = pretrained.path("mini_chain")
+    for text in ("[]", "null", '"text"'):
+        shutil.copy(shipped, tmp_path / "h.pt")
+        (tmp_path / "h.json").write_text(text)
+        code, out, err = cli("inspect", str(tmp_path / "h.pt"))
+        assert code == 2 and out == "" and err.count("\n") == 1 and "metadata is not a JSON object" in err, err
+    shutil.copy(shipped.with_suffix(".json"), tmp_path / "t.json")
+    (tmp_path / "t.pt").write_text("garbage text")
+    code, out, err = cli("sample", str(tmp_path / "t.pt"), "-n", "2", "--out", str(tmp_path / "s.npz"))
+    assert (
+        code == 2 and err.count("\n") == 1 and "weights are corrupt or truncated" in err and "weights_only" not in err
+    )
+
+
+def test_simulate_refuses_a_time_step_whose_square_overflows(cli: Cli) -> None:
+    code, out, err = cli("simulate", "mini_chain", "--steps", "1", "--dt", "1e200")  # an OverflowError traceback
+    assert code == 2 and out == "" and "--dt must be a finite number" in err

@@ -19,7 +19,7 @@ def _rows(usage: list[FolderUsage]) -> list[dict[str, Any]]:
 
 
 def _off() -> str:
-    return f'the user cache is off (${CACHE_ENV} is "0", "off" or empty): nothing is kept on disk'
+    return f'the user cache is off (${CACHE_ENV} is "0", "off", "false", "no" or empty): nothing is kept on disk'
 
 
 def _age(args: argparse.Namespace) -> float | None:

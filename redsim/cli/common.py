@@ -301,13 +301,14 @@ def seconds(text: str) -> float:
 
 
 def non_negative_seed(text: str) -> int:
-    """argparse type of a seed: an integer >= 0 (as Gymnasium's and NumPy's seeding take)."""
+    """argparse type of a seed: an integer in [0, 2**64 - 1] (Gymnasium's and NumPy's seeding take it, and torch's
+    generators, which overflowed past it)."""
     try:
         value = int(text)
     except ValueError:
         value = -1
-    if value < 0:
-        raise argparse.ArgumentTypeError(f"must be an integer >= 0, got {text!r}")
+    if not 0 <= value < 2**64:
+        raise argparse.ArgumentTypeError(f"must be an integer in [0, 2**64 - 1], got {text!r}")
     return value
 
 

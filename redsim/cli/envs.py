@@ -41,7 +41,7 @@ def cmd_demo(args: argparse.Namespace) -> int:
         if path is not None:
             policy, name = load_agent(path, env_id=args.env_id), f"shipped policy {path.name}"
     result = run_demo(args.env_id, args.out, seed=args.seed, steps=args.steps, policy=policy)
-    result["policy"] = name
+    result["policy"], result["seed"] = name, args.seed
     if args.json:
         json_out(result)
         return EXIT_OK
@@ -387,7 +387,7 @@ def add_commands(sub: Any, bench: Any) -> None:
             "controller. Writes OUT/NAME.gif (every other frame) and OUT/NAME.png (first and last frame), NAME "
             "the task in lower case with its version past v0, _scripted for the controller and _seedS for a seed "
             "S other than 0 (RedSim/Chain-v0: chain, chain_scripted, chain_seed3), so other demos are not "
-            "overwritten."
+            "overwritten (a --steps run replaces the full episode's demo of the same name)."
         ),
     )
     p.add_argument("env_id", metavar="ENV_ID", help="a RedSim env id (the prefix redsim: as in gym.make is fine)")

@@ -75,7 +75,7 @@ def cmd_simulate(args: argparse.Namespace) -> int:
         raise CliError(f"--steps must be an integer >= 1, got {args.steps}")
     from redsim.integrators import MIN_TIME_STEP
 
-    if not (math.isfinite(args.dt) and args.dt >= MIN_TIME_STEP):
+    if not (math.isfinite(args.dt * args.dt) and args.dt >= MIN_TIME_STEP):  # 1 / dt^2 in the step (1e200: overflow)
         raise CliError(f"--dt must be a finite number >= {MIN_TIME_STEP:g} [s], got {args.dt}")
     if args.meshes and args.out is None:
         raise CliError("--meshes needs --out DIR")

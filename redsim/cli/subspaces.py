@@ -285,6 +285,8 @@ def cmd_sample(args: argparse.Namespace) -> int:
 
     if args.n < 1:
         raise CliError(f"-n must be an integer >= 1, got {args.n}")
+    if args.meshes and Path(args.meshes).exists() and not Path(args.meshes).is_dir():  # before anything is written
+        raise CliError(f"cannot write into --meshes {args.meshes}: it is a file, not a folder")
     scene, sub = load_checkpoint(args.checkpoint)
     z, cond = _latent_samples(sub, scene, args.n, args.seed)
     with torch.no_grad():
@@ -306,8 +308,6 @@ def cmd_sample(args: argparse.Namespace) -> int:
     if args.meshes:
         from redsim.render import export_meshes
 
-        if Path(args.meshes).exists() and not Path(args.meshes).is_dir():
-            raise CliError(f"cannot write into --meshes {args.meshes}: it is a file, not a folder")
         for i in range(args.n):
             meshes += export_meshes(scene, q[i], args.meshes, i)
     finite = bool(torch.isfinite(q).all())

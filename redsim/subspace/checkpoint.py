@@ -112,6 +112,8 @@ def read_metadata(path: str | Path) -> dict[str, Any]:
         doc = json.loads(meta.read_text())
     except (json.JSONDecodeError, UnicodeDecodeError) as err:
         raise CheckpointError(f"metadata is not valid JSON ({err})", str(meta)) from None
+    if not isinstance(doc, dict):  # valid JSON, but no checkpoint's (a list, null, a string)
+        raise CheckpointError(f"metadata is not a JSON object (got {type(doc).__name__})", str(meta))
     if doc.get("format_version") != FORMAT_VERSION:
         raise CheckpointError(
             f"unsupported format_version {doc.get('format_version')!r} (this redsim reads {FORMAT_VERSION})",

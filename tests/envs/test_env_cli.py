@@ -28,6 +28,8 @@ def test_demo_prints_return_and_speed_and_writes_gif_and_picture(
     capsys.readouterr()
     names = sorted(p.name for p in tmp_path.glob("*.gif"))
     assert names == ["minichain.gif", "minichain_scripted.gif", "minichain_seed3.gif"]
+    assert main(["demo", "RedSim/MiniChain-v0", "--steps", "2", "--out", str(tmp_path), "--seed", "3", "--json"]) == 0
+    assert json.loads(capsys.readouterr().out)["seed"] == 3  # the text said it, the JSON did not
 
 
 def test_bench_envs_json(capsys: pytest.CaptureFixture[str]) -> None:
