@@ -637,6 +637,12 @@ def test_metadata_that_is_no_object_and_weights_that_are_no_zip_are_one_line_err
         (tmp_path / "h.json").write_text(text)
         code, out, err = cli("inspect", str(tmp_path / "h.pt"))
         assert code == 2 and out == "" and err.count("\n") == 1 and "metadata is not a JSON object" in err, err
+    doc = json.loads(shipped.with_suffix(".json").read_text()) | {"fit": None, "fit_seconds": None}
+    doc["final"] = {"energy": None}  # hand-edited: inspect's text formatted them (TypeError, AttributeError)
+    shutil.copy(shipped, tmp_path / "h.pt")
+    (tmp_path / "h.json").write_text(json.dumps(doc))
+    code, out, err = cli("inspect", str(tmp_path / "h.pt"))
+    assert code == 0 and "in None s" in out and "final energy: None" in out, err
     shutil.copy(shipped.with_suffix(".json"), tmp_path / "t.json")
     (tmp_path / "t.pt").write_text("garbage text")
     code, out, err = cli("sample", str(tmp_path / "t.pt"), "-n", "2", "--out", str(tmp_path / "s.npz"))

@@ -247,13 +247,16 @@ def cmd_inspect(args: argparse.Namespace) -> int:
         json_out(meta)
         return EXIT_OK
     out(f"{args.checkpoint}: scene {meta.get('scene')} (n={meta['n']}), d={meta['latent_dim']}")
-    fit = meta.get("fit", {})
+    fit = meta.get("fit") if isinstance(meta.get("fit"), dict) else {}  # a hand-edited .json: null, a number
+    seconds = meta.get("fit_seconds")
+    took = f"{seconds:.1f} s" if isinstance(seconds, int | float) else f"{seconds!r} s"
     out(
         f"  fit: sigma={fit.get('sigma')} lam={fit.get('lam')} steps={fit.get('steps')} seed={meta.get('seed')} "
-        f"width={fit.get('hidden_width')} layers={fit.get('hidden_layers')} in {meta.get('fit_seconds', 0):.1f} s"
+        f"width={fit.get('hidden_width')} layers={fit.get('hidden_layers')} in {took}"
     )
-    for key, value in (meta.get("final") or {}).items():
-        out(f"  final {key}: {value:.5g}")
+    final = meta.get("final") if isinstance(meta.get("final"), dict) else {}
+    for key, value in final.items():
+        out(f"  final {key}: {value:.5g}" if isinstance(value, int | float) else f"  final {key}: {value!r}")
     for key, value in (meta.get("metrics") or {}).items():
         if isinstance(value, (int, float)):
             out(f"  metric {key}: {value:.5g}")
