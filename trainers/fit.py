@@ -131,7 +131,9 @@ class FitConfig:
         exploration_fraction: rho reaches 1 after this fraction of the steps (paper: 1.0).
         seed_bias: Start the output layer's bias at q_seed, so the MLP starts near the seed shape
             instead of near 0 (the map still has no seed term). Stiff meshes need it: from a zero
-            output they spend their steps rebuilding the shape against a large elastic energy.
+            output they spend their steps rebuilding the shape against a large elastic energy. No effect with
+            ``modal``, whose pull starts the map at the rest state (over this bias; the stiff body's and Klann's
+            presets set it, so ``--modal`` on them fits as without it).
         drive: Initial stiffness [N/m] of the scene's drivers (:class:`redsim.scene.Driver`), a
             fitting-only pull of a handle round a circle by a periodic latent (0: off). Needs a
             scene that declares drivers, each turned by a latent in ``periodic``.
@@ -270,11 +272,7 @@ _FIELD_RULES: tuple[tuple[str, str, Callable[[FitConfig, Any], bool]], ...] = (
     ),
     ("conditional", "true or false", lambda c, v: isinstance(v, bool)),
     ("exploration_fraction", "a number in (0, 1]", lambda c, v: _is_number(v) and 0 < v <= 1),
-    (  # the modal pull starts the map at the rest state, over the seed bias (it was dropped without a word)
-        "seed_bias",
-        "true or false (not with modal: its start at the rest state replaces the seed)",
-        lambda c, v: isinstance(v, bool) and not (v and c.modal),
-    ),
+    ("seed_bias", "true or false", lambda c, v: isinstance(v, bool)),
     ("drive", "a finite number >= 0", lambda c, v: _is_number(v) and v >= 0),
     ("drive_fraction", "a number in (0, 1]", lambda c, v: _is_number(v) and 0 < v <= 1),
     ("soften", "effect names", lambda c, v: isinstance(v, tuple) and all(isinstance(n, str) and n for n in v)),

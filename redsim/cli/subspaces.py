@@ -43,7 +43,12 @@ FIT_FLAGS: tuple[tuple[str, str, Any, str], ...] = (
     ("--width", "hidden_width", int, "MLP hidden width"),
     ("--layers", "hidden_layers", int, "MLP hidden layers"),
     ("--explore", "exploration_fraction", float, "fraction of the steps over which ρ rises 0 -> 1"),
-    ("--seed-bias", "seed_bias", bool, "start the output bias at the seed state (stiff meshes)"),
+    (
+        "--seed-bias",
+        "seed_bias",
+        bool,
+        "start the output bias at the seed state (stiff meshes; no effect with --modal, which starts it at rest)",
+    ),
     ("--drive", "drive", float, "start stiffness [N/m] of the scene's fitting drivers (cranks); 0: off"),
     ("--drive-fraction", "drive_fraction", float, "--drive holds for half this fraction of the steps, then falls to 0"),
     ("--soften-from", "soften_from", float, "initial weight of the --soften effects"),

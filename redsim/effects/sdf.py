@@ -12,6 +12,7 @@ import math
 import numbers
 from dataclasses import dataclass
 
+import numpy as np
 import torch
 from torch import Tensor
 
@@ -30,6 +31,8 @@ def _check_lengths(shape: object, **lengths: float) -> None:
     """Refuse a shape's lengths [m] that are not finite numbers > 0 (a negative radius turns the shape inside out:
     its centre would count as outside)."""
     for name, value in lengths.items():
+        if isinstance(value, torch.Tensor | np.ndarray | np.generic) and value.ndim == 0:  # a one-number tensor
+            value = value.item()
         if isinstance(value, bool) or not isinstance(value, numbers.Real) or not (math.isfinite(value) and value > 0):
             raise ValueError(f"{type(shape).__name__} {name} must be a finite number > 0 [m], got {value!r}")
 

@@ -72,6 +72,9 @@ def _temporary(path: Path) -> Path:
     the same weights written at any time; ``redsim cache clear`` knows a stale one (:data:`TEMPORARY`)."""
     handle, name = tempfile.mkstemp(dir=path.parent, prefix=f"{path.name}.", suffix="tmp")
     os.close(handle)
+    umask = os.umask(0)  # mkstemp makes it 0600: the file it becomes gets the mode a plain write would give it
+    os.umask(umask)
+    os.chmod(name, 0o666 & ~umask)
     return Path(name)
 
 
@@ -83,15 +86,18 @@ def write_checkpoint(module: nn.Module, stem: str | Path, config: dict[str, Any]
     doc = {**getattr(module, "metadata", {}), "format_version": FORMAT_VERSION, "config": config}
     text = json.dumps(doc, indent=2, sort_keys=True, default=_json_default)  # fails before any file is touched
     # both written in full before either replaces its file (an interruption while writing keeps the old pair)
-    tmp_weights, tmp_meta = (_temporary(p) for p in (weights, meta))
+    made: list[Path] = []  # those made before a failure (a name too long for the second) are removed too
     try:
+        made.append(_temporary(weights))
+        made.append(_temporary(meta))
+        tmp_weights, tmp_meta = made
         torch.save(module.state_dict(), tmp_weights)
         tmp_meta.write_text(text)
         os.replace(tmp_weights, weights)
         os.replace(tmp_meta, meta)
     finally:
-        tmp_weights.unlink(missing_ok=True)
-        tmp_meta.unlink(missing_ok=True)
+        for tmp in made:
+            tmp.unlink(missing_ok=True)
     return weights, meta
 
 

@@ -5,7 +5,6 @@ A checkpoint without a ``kind`` holds a neural map (the format before baselines 
 
 from __future__ import annotations
 
-import zipfile
 from pathlib import Path
 from typing import Any, Protocol
 
@@ -66,15 +65,13 @@ def load_subspace(path: str | Path, scene: Scene | None = None, *, device: str |
             model = KINDS[kind].from_shapes(doc["config"], metadata)
     except (KeyError, TypeError, ValueError, AttributeError) as err:
         raise CheckpointError(f"bad config in metadata ({err!r})", str(weights)) from None
-    if not zipfile.is_zipfile(weights):  # torch's own message: six lines, with advice to load it unsafely
-        raise CheckpointError("weights are corrupt or truncated (not a torch checkpoint's zip archive)", str(weights))
     try:
         state = torch.load(weights, map_location=device, weights_only=True)
     except Exception as err:  # torch raises several types for truncated/corrupt zips
-        first = (str(err).strip().splitlines() or [""])[0]  # torch's own advice (weights_only=False) left out
-        raise CheckpointError(
-            f"weights are corrupt or truncated ({type(err).__name__}: {first})", str(weights)
-        ) from None
+        # one line, without torch's advice to load the file unsafely (weights_only=False)
+        first = (str(err).strip().splitlines() or [""])[0]
+        why = "not a checkpoint torch loads safely" if "weights_only" in first else first
+        raise CheckpointError(f"weights are corrupt or truncated ({type(err).__name__}: {why})", str(weights)) from None
     mismatch = _state_mismatch(model.state_dict(), state)
     if mismatch:
         raise CheckpointError(f"the weights do not fit the .json beside them: {mismatch}", str(weights))

@@ -481,6 +481,16 @@ def test_a_shape_with_a_non_unit_normal_or_a_non_positive_length_is_refused(make
         make()
 
 
+def test_shapes_take_one_number_tensors_as_lengths() -> None:
+    for shape in (
+        Sphere(torch.tensor(0.5)),
+        Capsule(torch.tensor(0.3), torch.tensor(0.1)),
+        Torus(torch.tensor(0.5), 0.1),
+    ):
+        assert bool(torch.isfinite(shape.distance(torch.zeros(3))))
+    assert Box(torch.tensor([0.3, 0.2, 0.5])).bounding_radius > 0.5
+
+
 def test_contact_penalty_finite_everywhere_including_singular_points() -> None:
     for shape in (
         Sphere(0.3),

@@ -83,3 +83,31 @@ def test_two_writers_of_one_file_each_write_their_own_temporary(tmp_path) -> Non
     from redsim.usercache import TEMPORARY
 
     assert all(TEMPORARY.fullmatch(n)["name"] == "map.fit.pt" for n in seen)  # cache clear takes a stale one
+    import os
+    import stat
+
+    umask = os.umask(0)
+    os.umask(umask)
+    assert stat.S_IMODE(path.stat().st_mode) == 0o666 & ~umask  # mkstemp's 0600 would make it the owner's alone
+
+
+def test_old_format_weights_load_and_a_failed_pair_write_leaves_nothing(tmp_path) -> None:
+    """A .pt in torch's older (non-zip) format loads as before (a zip check refused it); a checkpoint whose second
+    temporary cannot be made (a name too long) leaves no first one behind."""
+    import shutil
+
+    import torch
+
+    from redsim import pretrained
+    from redsim.subspace.checkpoint import write_checkpoint
+
+    shipped = pretrained.path("mini_chain")
+    shutil.copy(shipped.with_suffix(".json"), tmp_path / "m.json")
+    weights = torch.load(shipped, weights_only=True)
+    torch.save(weights, tmp_path / "m.pt", _use_new_zipfile_serialization=False)
+    assert subspace.load_subspace(tmp_path / "m").latent_dim == 4
+    long = tmp_path / "long"
+    long.mkdir()
+    with pytest.raises(OSError):
+        write_checkpoint(torch.nn.Linear(2, 2), long / ("a" * 240), {})
+    assert list(long.iterdir()) == []
