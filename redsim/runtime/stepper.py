@@ -498,6 +498,7 @@ class LatentStepper:
         rows_m, cols_m = mass.indices()
         mass_diagonal = torch.linalg.vector_norm(mass.values()[rows_m == cols_m])
         self.base_force = force + float(mass_diagonal) * self.length / self.dt**2
+        self._terms_force = force  # [N] the energy terms' part of base_force: their round-off scale (_value_noise)
         z0 = torch.zeros(1, self.latent_dim, dtype=dtype, device=device)
         objective = _StepObjective(self, torch.zeros(1, n, dtype=dtype, device=device), None, self._default_cond(1), z0)
         index0 = torch.zeros(1, dtype=torch.int64, device=device)
@@ -539,6 +540,13 @@ class LatentStepper:
         self._mass_norm = lambda v, _mv: (v * (v @ gram_sq)).sum(-1).clamp_min(0.0).sqrt()
         self._handles = lambda y: y @ handle_matrix.T + handle_offset
         self._handle_rows = handle_matrix
+
+    def _value_noise(self, moving: Tensor) -> Tensor:
+        """Phi's round-off [J] [B] for the inertia and loads' force scale ``moving`` [B] [N]: 100 eps (F_E + moving) L,
+        F_E the energy terms' forces at f(0) (``base_force`` less |diag M| L / h^2: the inertia force of a whole scene
+        length per step is a scale for the gradient's threshold, not a term of Phi, and made this 2,000-7,000x the
+        float32 round-off of Phi on the chains, the cloth and Stewart, so the line search took uphill trials)."""
+        return 100.0 * self._eps * (self._terms_force + moving) * self.length
 
     def _kinetic_roundoff(self, q: Tensor, kinetic_now: Tensor, kinetic_next: Tensor) -> Tensor:
         """Round-off [B] [J] of K_t + K_{t+1} (each [B] [J]): each q carries eps |q|_M of it, and K = |dq|_M^2 /
@@ -693,15 +701,16 @@ class LatentStepper:
             velocity = q_t - q_prev
             qbar = q_t + velocity
             m_v = self._mass(velocity)
-            force = self.base_force + self._mass_norm(velocity, m_v) / self.dt**2
+            moving = self._mass_norm(velocity, m_v) / self.dt**2  # [N] the inertia and loads' force scale [B]
             if loads_t is not None:
-                force = force + torch.linalg.vector_norm(loads_t, dim=-1)
+                moving = moving + torch.linalg.vector_norm(loads_t, dim=-1)
+            force = self.base_force + moving
             z0 = 2.0 * z - z_prev
             objective = _StepObjective(self, qbar, loads_t, cond_t, z0)
             # Phi at the extrapolated start and at z_t: the start of the solve, a secant pair for
             # the quasi-Newton models, and Phi(z_t) for the diverged flag (one call)
             value, grad, energy = objective.start(z0, z)
-            noise = 100.0 * self._eps * force * self.length
+            noise = self._value_noise(moving)
             at_z = (value[batch:], grad[batch:], energy[batch:])
             first = (value[:batch], grad[:batch], energy[:batch])
             # from z_t where the extrapolated start is not finite (a finite step may still exist), and with

@@ -426,6 +426,24 @@ def test_forced_blow_up_is_flagged_diverged_and_stays_finite(mini_chain, dense: 
     assert not bool(stats.diverged.any())
 
 
+@pytest.mark.parametrize("name", ["mini_chain", "bistable_bar"])
+def test_float32_value_noise_is_sized_by_the_round_off_of_phi(name: str) -> None:
+    # the line search takes a trial that raises Phi by up to the noise; it sat 7,000x above Phi's float32 round-off
+    # on mini_chain (|diag M| L / h^2 counted as a force), so uphill trials of 0.02 J were accepted
+    scene, f = scenes.build(name), pretrained.load(name)
+    s32 = LatentStepper(scene, f, DT, dtype=torch.float32)
+    s64 = LatentStepper(scene, f, DT, dtype=torch.float64)
+    g = torch.Generator().manual_seed(0)
+    z = s64.rest_latent() + 0.5 * torch.randn(64, s64.latent_dim, generator=g, dtype=torch.float64)
+    z_prev = z - 0.02 * torch.randn(z.shape, generator=g, dtype=torch.float64)
+    candidate = z + 0.01 * torch.randn(z.shape, generator=g, dtype=torch.float64)
+    exact = s64.objective(candidate, z, z_prev)
+    rounded = s32.objective(candidate.float(), z.float(), z_prev.float()).double()
+    roundoff = float((rounded - exact).abs().max())
+    noise = float(s32._value_noise(torch.zeros(1))[0])
+    assert 10.0 * roundoff < noise < 1000.0 * roundoff
+
+
 @pytest.mark.parametrize("start", ["extrapolated", "lower"])
 @pytest.mark.parametrize("dense", [False, True])
 def test_non_finite_trials_are_rejected(mini_chain, dense: bool, start: str) -> None:
