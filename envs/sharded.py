@@ -244,9 +244,14 @@ class ShardedVectorEnv(SharedCopies, VectorEnv):
         return obs, reward, terminated, truncated, _merge_infos([r[4] for r in results], self.sizes)
 
     def render(self) -> tuple[np.ndarray, ...] | None:
-        """One RGB frame [H, W, 3] per copy ("rgb_array"), else None."""
+        """One RGB frame [H, W, 3] per copy ("rgb_array"), else None.
+
+        Raises:
+            gymnasium.error.ResetNeeded: a copy was never reset (nor restored by :meth:`set_state`); the env stays open.
+        """
         if self.render_mode != "rgb_array":
             return None
+        check_started(self._unreset, "render()", ResetNeeded)  # here: a shard's error would close the env
         return tuple(frame for frames in self._call([("render", None)] * len(self.sizes)) for frame in frames)
 
     def get_state(self) -> dict[str, Any]:

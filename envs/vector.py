@@ -201,9 +201,15 @@ class LatentVectorEnv(SharedCopies, VectorEnv):
 
     @on_env_threads
     def render(self) -> tuple[np.ndarray, ...] | None:
-        """One RGB frame [H, W, 3] per copy ("rgb_array"), else None."""
+        """One RGB frame [H, W, 3] per copy ("rgb_array"), else None.
+
+        Raises:
+            gymnasium.error.ResetNeeded: a copy was never reset (nor restored by :meth:`set_state`), as Gymnasium's
+                sync vector env's copies refuse it (their ``OrderEnforcing``).
+        """
         if self.render_mode != "rgb_array":
             return None
+        check_started(self._unreset, "render()", ResetNeeded)
         rows, camera = range(self.num_envs), self.template._camera
         sim = self.sim if camera.get("track", False) else self.template.sim  # fixed: the single env's camera
         self._view = sim.framed_view(self._view, *self.template._render_size, camera, rows)

@@ -394,3 +394,24 @@ def test_the_native_vector_env_takes_the_env_itself_and_names_the_fix_for_a_wrap
         LatentVectorEnv(ID, 2)
     venv = LatentVectorEnv(redsim.envs.make("mini_chain").unwrapped, 2, max_episode_steps=200)
     assert venv.reset(seed=0)[0].shape == (2, *venv.single_observation_space.shape)
+
+
+@pytest.mark.parametrize("shards", [1, 2])
+def test_render_before_every_copy_was_reset_is_refused_as_sync(shards: int) -> None:
+    """Gymnasium's sync env's copies refuse a render before their reset (OrderEnforcing); a copy's picture is then
+    of no episode."""
+    sync = gym.vector.SyncVectorEnv([lambda: gym.make(ID, render_mode="rgb_array")] * 2)
+    with pytest.raises(gym.error.ResetNeeded):
+        sync.render()
+    sync.close()
+    venv = _vec(shards=shards, render_mode="rgb_array")
+    try:
+        with pytest.raises(gym.error.ResetNeeded, match="render"):
+            venv.render()
+        venv.reset(seed=0, options={"reset_mask": np.array([True, False])})
+        with pytest.raises(gym.error.ResetNeeded, match=r"copies \[1\]"):
+            venv.render()
+        venv.reset(options={"reset_mask": np.array([False, True])})
+        assert len(venv.render()) == 2
+    finally:
+        venv.close()
