@@ -201,6 +201,10 @@ def test_max_episode_steps_none_is_the_ids_and_minus_one_is_none() -> None:
 def test_render_fps_is_the_frame_rate_of_simulated_time() -> None:
     assert gym.make(ID).metadata["render_fps"] == 50
     assert gym.make(ID, frame_skip=3).metadata["render_fps"] == pytest.approx(50 / 3)
+    # SB3's VecVideoRecorder reads the VecEnv's metadata (DummyVecEnv forwards the env's; else it writes 30 fps)
+    from redsim.envs.sb3 import SB3VecEnv
+
+    assert SB3VecEnv.make(ID, num_envs=2, frame_skip=3).metadata["render_fps"] == pytest.approx(50 / 3)
 
 
 def test_the_sb3_adapter_reports_monitor_episode_statistics() -> None:
