@@ -23,15 +23,16 @@ the restart below; otherwise the BFGS updates repair it).
 ``max_step`` caps the length |dz| of every step the solver tries (a trust radius in latent units): where the map
 barely moves along some latent direction a Newton-type step along it can be far too long (README "Env speed").
 
-The line search is Armijo backtracking per state: a trial with a non-finite value or gradient is
-rejected like an uphill one; a trial whose value change is at round-off level is accepted if it
-lowers |g|. A quasi-Newton state whose line search fails (MAX_BACKTRACKS rejected trials) restarts it once
-from a model built afresh at the same iterate: a model that BFGS updates have bent far from the curvature
-gives directions no step length along which lowers Phi enough, while the state is far from converged. A
-state whose restarted line search fails too, or whose model was built at this iterate already (a restart
-would replay the same trials), or an "exact" or "gauss_newton" one (its model is always fresh), keeps its
-last accepted (finite) iterate and stops (``stalled``). So one iteration takes at most
-2 MAX_BACKTRACKS + 1 calls of the objective, and the loops allow max_iter times that.
+The line search is Armijo backtracking per state: a trial with a non-finite value or gradient is rejected like an
+uphill one; a trial whose value change is at round-off level is accepted if it lowers |g|. A quasi-Newton state's
+rejected finite trial updates its model (BFGS) and turns the next trial along it, after a trial that rose beyond
+round-off no longer than the backtracked trial (so such trials shrink as plain backtracking's do). One whose line
+search fails (MAX_BACKTRACKS rejected trials) restarts it once from a model built afresh at the same iterate: a
+model that BFGS updates have bent far from the curvature gives directions no step length along which lowers Phi
+enough, while the state is far from converged. A state whose restarted line search fails too, or whose model was
+built at this iterate already (a restart would replay the same trials), or an "exact" or "gauss_newton" one (its
+model is always fresh), keeps its last accepted (finite) iterate and stops (``stalled``). So one iteration takes at
+most 2 MAX_BACKTRACKS + 1 calls of the objective, and the loops allow max_iter times that.
 
 Two loops compute the same iterates of every state (to round-off): the row-selected one (the default)
 evaluates only the active states in each call, which is what a CPU wants; choosing them (``nonzero``,
@@ -256,6 +257,11 @@ def _descent(
     return direction, (grad * direction).sum(-1)
 
 
+def _round_off(value: Tensor, noise: Tensor) -> Tensor:
+    """The change [k] of Phi that is round-off at values ``value`` [k] with value noise ``noise`` [k]."""
+    return noise + NOISE_FACTOR * torch.finfo(value.dtype).eps * value.abs()
+
+
 def _judge(
     trial: tuple[Tensor, Tensor], here: tuple[Tensor, Tensor], alpha: Tensor, slope: Tensor, noise: Tensor
 ) -> tuple[Tensor, Tensor]:
@@ -263,22 +269,26 @@ def _judge(
     lengths ``alpha``, slopes and value round-off ``noise`` [k]: Armijo, or a round-off change that lowers |g|."""
     v_t, g_t = trial
     v_a, g_a = here
-    eps = torch.finfo(v_t.dtype).eps
     finite = _finite(v_t) & _finite(g_t).all(-1)
     armijo = v_t <= v_a + ARMIJO_C * alpha * slope
-    flat = (v_t - v_a) <= noise + NOISE_FACTOR * eps * v_a.abs()
+    flat = (v_t - v_a) <= _round_off(v_a, noise)
     lower = torch.linalg.vector_norm(g_t, dim=-1) < torch.linalg.vector_norm(g_a, dim=-1)
     return finite, finite & (armijo | (flat & lower))
 
 
 def _relearn(
-    model: Tensor, step: Tensor, change: Tensor, grad: Tensor, max_step: float | None = None
+    model: Tensor, step: Tensor, change: Tensor, grad: Tensor, bound: Tensor, max_step: float | None = None
 ) -> tuple[Tensor, Tensor, Tensor]:
     """A rejected but finite trial still measured the curvature along its ``step`` [k, d] (gradient
     ``change`` [k, d]): the BFGS-updated model [k, d, d], and the direction from it at the iterate's
-    gradient ``grad`` [k, d] (a shorter, turned step, at most ``max_step`` long) with its slope [k]."""
+    gradient ``grad`` [k, d] (a turned step, at most ``max_step`` and ``bound`` [k] long: the backtracked trial's
+    length after a trial that rose beyond round-off, so such trials shrink as a backtracking search's do (an updated
+    model's step alone could stay as long, every trial rising); inf after one that rose by round-off only, where the
+    model's own step moves on and a shrinking one would barely move) with its slope [k]."""
     updated = _bfgs_update(model, step, change)
     fresh = _limit(_direction(updated, grad), max_step)
+    length = torch.linalg.vector_norm(fresh, dim=-1)
+    fresh = torch.where((length > bound)[:, None], fresh * (bound / length)[:, None], fresh)
     return updated, fresh, (grad * fresh).sum(-1)
 
 
@@ -483,10 +493,15 @@ def _minimize_rows(problem: _Problem, it: _Iterates) -> None:
         if quasi_newton:
             redo, learn = _pick(rows, _take(back, ok_finite & ~ok)[0])
             if redo.numel():
-                grad_r, alpha_used_r, step_r, model_r = _take(redo, it.grad, it.alpha_used, it.step, it.model)
-                change = _take(_within(back, learn), g_t)[0] - grad_r
+                grad_r, alpha_used_r, alpha_r, step_r, model_r = _take(
+                    redo, it.grad, it.alpha_used, it.alpha, it.step, it.model
+                )
+                change, v_r, noise_r = _take(_within(back, learn), g_t, v_a, noise_a)
+                change = change - grad_r
                 step = alpha_used_r[:, None] * step_r
-                updated, fresh, fresh_slope = _relearn(model_r, step, change, grad_r, max_step)
+                uphill = _take(learn, rise)[0] > _round_off(v_r, noise_r)
+                bound = torch.where(uphill, alpha_r * torch.linalg.vector_norm(step_r, dim=-1), torch.inf)
+                updated, fresh, fresh_slope = _relearn(model_r, step, change, grad_r, bound, max_step)
                 it.model.index_copy_(0, redo, updated)
                 good, turned = _pick(redo, fresh_slope < 0)
                 if good.numel():
@@ -593,7 +608,9 @@ def _minimize_dense(problem: _Problem, it: _Iterates, sync_every: int | None) ->
         if quasi_newton:
             learn = back & ok_finite
             step = it.alpha_used[:, None] * it.step
-            updated, fresh, fresh_slope = _relearn(it.model, step, change, it.grad, max_step)
+            uphill = rise > _round_off(it.value, problem.noise)
+            bound = torch.where(uphill, it.alpha * torch.linalg.vector_norm(it.step, dim=-1), torch.inf)
+            updated, fresh, fresh_slope = _relearn(it.model, step, change, it.grad, bound, max_step)
             it.model = torch.where(learn[:, None, None], updated, it.model)
             good = learn & (fresh_slope < 0)
             it.step = torch.where(good[:, None], fresh, it.step)

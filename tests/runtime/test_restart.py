@@ -36,3 +36,15 @@ def test_klann_under_the_scripted_controller_never_diverges() -> None:
         _, _, terminated, _, info = venv.step(sim.task.controller(sim))
         assert not terminated.any() and not info["diverged"].any()
     venv.close()
+
+
+def test_mini_chain_random_actions_in_float32_converge_every_step() -> None:
+    """Copy 1 of step 182 stalled: each trial turned by the BFGS update after a rejection restarted at full length
+    (|dz| 0.23-0.30, each 0.013-0.028 J uphill) until the line search gave up; the turned trials now shrink."""
+    venv = gym.make_vec("RedSim/MiniChain-v0", num_envs=16, vectorization_mode="vector_entry_point")
+    actions = np.random.default_rng(0).uniform(-1, 1, (183, 16, 3)).astype(np.float32)
+    venv.reset(seed=0)
+    for action in actions:
+        _, _, terminated, _, info = venv.step(action)
+        assert info["converged"].all() and not terminated.any()
+    venv.close()

@@ -297,3 +297,16 @@ def test_bad_row_block_raises(row_block) -> None:
 def test_row_block_takes_numpy_integers() -> None:
     stepper = LatentStepper(scenes.build("mini_chain"), pretrained.load("mini_chain"), DT, row_block=np.int64(4))
     assert stepper.row_block == 4 and type(stepper.row_block) is int
+
+
+def test_a_turned_trial_is_no_longer_than_the_backtracked_one() -> None:
+    """After a rejected trial the BFGS-updated model's step is capped at the backtracked length (a step as long as
+    the rejected one could rise again, and again, until the line search gave up)."""
+    g = torch.Generator().manual_seed(0)
+    model = torch.eye(3).expand(4, 3, 3).clone()
+    grad, step = torch.randn(4, 3, generator=g), torch.randn(4, 3, generator=g)
+    change = 0.01 * torch.randn(4, 3, generator=g)  # little curvature measured: the turned step stays long
+    bound = torch.tensor([1e-3, 0.1, 1.0, 1e3])
+    _, fresh, slope = solver._relearn(model, step, change, grad, bound)
+    assert (torch.linalg.vector_norm(fresh, dim=-1) <= bound * (1 + 1e-6)).all()
+    assert torch.allclose(slope, (grad * fresh).sum(-1))
