@@ -30,6 +30,7 @@ from typing import Any
 import numpy as np
 
 from redsim.trainers.rllib import check_env_config, register
+from redsim.trainers.rllib import restore as restore_algorithm
 
 ENV_ID = "RedSim/MiniChain-v0"
 SETTINGS = {"env": ENV_ID, "env_runners": 2, "envs_per_runner": 16, "batch": 4000, "episode_steps": None}
@@ -49,7 +50,6 @@ def main(
     seed: int | None = None,
 ) -> dict[str, Any]:
     import ray
-    from ray.rllib.algorithms.algorithm import Algorithm
     from ray.rllib.algorithms.ppo import PPOConfig
 
     if restore is not None and not (restore / "rllib_checkpoint.json").is_file():
@@ -73,7 +73,7 @@ def main(
         ray.init(num_cpus=env_runners + 1, include_dashboard=False, object_store_memory=200 * 2**20)
     name = register()  # before from_checkpoint too: the checkpoint names the creator
     if restore is not None:
-        algo = Algorithm.from_checkpoint(str(restore.resolve()))
+        algo = restore_algorithm(restore)  # every runner on the checkpoint's weights
     else:
         config = (
             PPOConfig()

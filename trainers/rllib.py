@@ -1,12 +1,12 @@
 """Ray RLlib on the RedSim envs (the optional extra ``pip install "redsim[ray]"``).
 
-RLlib builds its envs on every env runner from a registered creator, never from Gymnasium's
-registry. :func:`register` registers :func:`env_creator` under a name with
-``ray.tune.registry.register_env``; the creator lives in this importable module (not in a script), so
-runners on other machines unpickle it by reference: redsim must be installed on every node. A process that
-restores an algorithm from a checkpoint calls :func:`register` first (the checkpoint names the creator, not
-the function). With ``gym_env_vectorize_mode="vector_entry_point"`` a runner's ``num_envs_per_env_runner``
-copies are redsim's native vector env: one batched latent solve for all of them.
+RLlib builds its envs on every env runner from a registered creator, never from Gymnasium's registry.
+:func:`register` registers :func:`env_creator` under a name with ``ray.tune.registry.register_env``; the creator
+lives in this importable module (not in a script), so runners on other machines unpickle it by reference: redsim
+must be installed on every node. A process that restores an algorithm from a checkpoint calls :func:`register`
+first (the checkpoint names the creator, not the function), then :func:`restore` (RLlib's ``from_checkpoint``
+leaves runners on their old weights). With ``gym_env_vectorize_mode="vector_entry_point"`` a runner's
+``num_envs_per_env_runner`` copies are redsim's native vector env: one batched latent solve for all of them.
 
 RLlib drops every runner whose creator raises and then fails with an ``IndexError`` in ``get_spaces``, the
 creator's own message only in the workers' logs: :func:`check_env_config` makes the env once in the driver,
@@ -28,6 +28,7 @@ so a bad id or keyword is a clear error there.
 from __future__ import annotations
 
 from collections.abc import Mapping
+from pathlib import Path
 from typing import Any
 
 import gymnasium as gym
@@ -37,6 +38,8 @@ DEFAULT_NAME = "redsim"
 """The name :func:`register` gives the creator (``PPOConfig().environment(DEFAULT_NAME, ...)``)."""
 ENV_CONFIG_KEYS = ("id", "kwargs")
 """What an ``env_config`` holds: the env id and its keyword arguments (RLlib adds ``num_envs`` itself)."""
+RESTORE_TIMEOUT = 60.0
+"""Seconds :func:`restore` waits for the env runners to take the checkpoint's weights."""
 
 
 def env_creator(env_config: Mapping[str, Any]) -> gym.Env | gym.vector.VectorEnv:
@@ -114,4 +117,29 @@ def register(name: str = DEFAULT_NAME) -> str:
     return name
 
 
-__all__ = ["DEFAULT_NAME", "ENV_CONFIG_KEYS", "RunnerSeeds", "check_env_config", "env_creator", "register"]
+def restore(path: str | Path) -> Any:
+    """``Algorithm.from_checkpoint(path)`` with every env runner holding the checkpoint's weights; call
+    :func:`register` first (the checkpoint names the creator).
+
+    RLlib sends the restored weights to the remote runners without waiting, and a runner still busy with its build's
+    own weights keeps those: the first restored iteration then sampled with the untrained policy on some runners
+    (which ones changed from run to run). This waits for every runner.
+    """
+    from ray.rllib.algorithms.algorithm import Algorithm
+
+    algo = Algorithm.from_checkpoint(str(Path(path).resolve()))
+    algo.env_runner_group.sync_weights(
+        from_worker_or_learner_group=algo.learner_group, inference_only=True, timeout_seconds=RESTORE_TIMEOUT
+    )
+    return algo
+
+
+__all__ = [
+    "DEFAULT_NAME",
+    "ENV_CONFIG_KEYS",
+    "RunnerSeeds",
+    "check_env_config",
+    "env_creator",
+    "register",
+    "restore",
+]

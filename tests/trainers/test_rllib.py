@@ -65,3 +65,42 @@ def test_the_config_is_checked_as_the_runners_build_it() -> None:
 def test_register_without_ray_names_the_extra() -> None:
     with pytest.raises(ImportError, match='pip install "redsim\\[ray\\]"'):
         register()
+
+
+def test_a_restored_algorithm_samples_with_the_checkpoints_weights_on_every_runner(tmp_path) -> None:
+    """RLlib's from_checkpoint sent the weights to the runners without waiting: a runner busy with its build's own
+    kept those, and the first restored iteration sampled with the untrained policy (which runners: run to run)."""
+    ray = pytest.importorskip("ray", reason='Ray RLlib is not installed (pip install "redsim[ray]")')
+    import torch
+    from ray.rllib.algorithms.ppo import PPOConfig
+    from ray.rllib.core.rl_module.rl_module import RLModule
+
+    from redsim.trainers.rllib import restore
+
+    ray.init(num_cpus=3, include_dashboard=False, object_store_memory=200 * 2**20)
+    try:
+        config = (
+            PPOConfig()
+            .environment(register(), env_config={"id": MINI, "kwargs": {"max_episode_steps": 20}})
+            .env_runners(num_env_runners=2, num_envs_per_env_runner=2, gym_env_vectorize_mode="vector_entry_point")
+            .training(train_batch_size_per_learner=80, minibatch_size=80, num_epochs=1)
+            .debugging(seed=0)
+        )
+        algo = config.build_algo()
+        algo.train()
+        algo.save_to_path(str(tmp_path / "ppo"))
+        algo.stop()
+        saved = RLModule.from_checkpoint(str(tmp_path / "ppo/learner_group/learner/rl_module/default_policy"))
+        expected = saved.state_dict()
+        restored = restore(tmp_path / "ppo")
+        states = restored.env_runner_group.foreach_env_runner(
+            lambda runner: {k: torch.as_tensor(v).detach().cpu() for k, v in runner.module.state_dict().items()},
+            local_env_runner=False,
+        )
+        restored.stop()
+        assert len(states) == 2
+        for state in states:
+            assert all(torch.equal(state[k], torch.as_tensor(expected[k])) for k in expected if k in state)
+            assert set(expected) & set(state)
+    finally:
+        ray.shutdown()
