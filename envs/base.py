@@ -1075,14 +1075,22 @@ class LatentSim:
     def view(self, width: int, height: int, camera: Mapping[str, Any] | None, rows: Sequence[int] = (0,)) -> Any:
         """A tracking camera (``camera={"track": True}``): a :class:`redsim.raster.SceneView` framed on copy 0's
         current shape and the overlay markers (targets, handles) of copies ``rows``."""
+        return self.view_on(width, height, camera, self.first_shape(), self.marker_points(rows))
+
+    def first_shape(self) -> Tensor:
+        """Copy 0's configuration q [n], what a tracking camera frames (:meth:`view`)."""
+        return self.positions(self.z[:1], None if self.cond is None else self.cond[:1])[0]
+
+    def view_on(
+        self, width: int, height: int, camera: Mapping[str, Any] | None, q: Tensor, extra: np.ndarray | None
+    ) -> Any:
+        """A :class:`redsim.raster.SceneView` framed on q [n] and the points ``extra`` [P, D] (None: none)."""
         from redsim.raster import SceneView
 
-        q = self.positions(self.z[:1], None if self.cond is None else self.cond[:1])[0]
-        extra = self._marker_points(rows)
         settings = {k: v for k, v in dict(camera or {}).items() if k != "track"}
         return SceneView(self.scene, q, width=width, height=height, extra_points=extra, **settings)
 
-    def _marker_points(self, rows: Sequence[int]) -> np.ndarray | None:
+    def marker_points(self, rows: Sequence[int]) -> np.ndarray | None:
         """Positions [P, D] of the overlay markers of copies ``rows`` (None: no marker)."""
         points = [m.position for row in rows for m in self.task.overlay(self, row)[0]]
         return np.array(points, dtype=np.float64).reshape(len(points), -1) if points else None
@@ -1097,7 +1105,7 @@ class LatentSim:
         if not (camera or {}).get("track", False):
             return view if view is not None else self.fixed_view(width, height, camera)
         if view is not None:
-            points = self._marker_points(rows)
+            points = self.marker_points(rows)
             if points is None or view.contains(points):
                 return view
         return self.view(width, height, camera, rows)

@@ -105,7 +105,12 @@ def _serve(venv: VectorEnv, command: str, payload: Any) -> Any:
         return venv.reset(seed=payload[0], options=payload[1])
     if command == "call":
         return venv.call(payload)
+    if command == "frame":  # a tracking camera's points: this shard's overlay markers, and copy 0's shape (shard 0)
+        sim = venv.sim  # type: ignore[attr-defined]
+        return sim.marker_points(range(venv.num_envs)), sim.first_shape() if payload else None
     if command == "render":
+        if payload is not None:  # the view of every shard's copies (a tracking camera reframed)
+            venv.frame_on(*payload)  # type: ignore[attr-defined]
         return venv.render()
     if command == "get_state":
         return venv.get_state()  # type: ignore[attr-defined]
@@ -184,6 +189,7 @@ class ShardedVectorEnv(SharedCopies, VectorEnv):
         self._processes: list[Any] = []
         self._unreset = np.ones(self.num_envs, dtype=bool)  # copies never reset (nor restored by set_state)
         self._ended = np.zeros(self.num_envs, dtype=bool)  # DISABLED: copies that ended and were not reset
+        self._view: Any = None  # a tracking camera's view of all the copies (:meth:`_framing`)
         self.closed = False
         ctx = mp.get_context(context)
         payload = pickle.dumps(build)  # here, so that a build that does not pickle fails in the caller
@@ -224,6 +230,7 @@ class ShardedVectorEnv(SharedCopies, VectorEnv):
                 shard_options["reset_mask"] = mask[block]  # type: ignore[index]
             requests.append(("reset", (None if seeds is None else seeds[block], shard_options)))
         results = self._call(requests)
+        self._view = None  # a tracking camera frames anew after a reset, as the native env's
         self._ended[slice(None) if mask is None else mask] = False
         self._unreset[slice(None) if mask is None else mask] = False
         return np.concatenate([obs for obs, _ in results]), _merge_infos([info for _, info in results], self.sizes)
@@ -252,7 +259,21 @@ class ShardedVectorEnv(SharedCopies, VectorEnv):
         if self.render_mode != "rgb_array":
             return None
         check_started(self._unreset, "render()", ResetNeeded)  # here: a shard's error would close the env
-        return tuple(frame for frames in self._call([("render", None)] * len(self.sizes)) for frame in frames)
+        framing = self._framing() if self.template._camera.get("track", False) else None
+        return tuple(frame for frames in self._call([("render", framing)] * len(self.sizes)) for frame in frames)
+
+    def _framing(self) -> tuple[torch.Tensor, np.ndarray | None] | None:
+        """A tracking camera frames every copy as the native env of all of them does (copy 0's shape and every
+        copy's markers, reframed when a marker leaves the view): (q [n], points [P, D]) to frame the shards' views on
+        where this render reframes, else None (each shard keeps the view it was last sent)."""
+        answers = self._call([("frame", shard == 0) for shard in range(len(self.sizes))])
+        found = [points for points, _ in answers if points is not None]
+        points = np.concatenate(found) if found else None
+        if self._view is not None and (points is None or self._view.contains(points)):
+            return None
+        q = answers[0][1]
+        self._view = self.template.sim.view_on(*self.template._render_size, self.template._camera, q, points)
+        return q, points
 
     def get_state(self) -> dict[str, Any]:
         """The batched state of all copies, as the native env's :meth:`LatentVectorEnv.get_state` (the shards'
@@ -288,6 +309,7 @@ class ShardedVectorEnv(SharedCopies, VectorEnv):
             self.template.sim.check_state_params(state["params"])
         parts = [_state_rows(state, block) for block in self._blocks()]
         self._call([("set_state", part) for part in parts])
+        self._view = None
         if self.metadata["autoreset_mode"] == AutoresetMode.DISABLED:
             self._ended = pending
         self._unreset[:] = False

@@ -31,6 +31,7 @@ from gymnasium.utils import seeding
 from gymnasium.vector import AutoresetMode, VectorEnv
 from gymnasium.vector.utils import batch_space
 from gymnasium.wrappers import TimeLimit
+from torch import Tensor
 
 from redsim.envs.base import (
     NO_HUMAN,
@@ -253,6 +254,12 @@ class LatentVectorEnv(SharedCopies, VectorEnv):
         self._autoreset[:] = pending & (self.metadata["autoreset_mode"] != AutoresetMode.SAME_STEP)
         self._unreset[:] = False
         self._unframe()
+
+    def frame_on(self, q: Tensor, points: np.ndarray | None) -> None:
+        """Frame the next renders of a tracking camera on configuration q [n] and the points [P, D] (or None): the
+        sharded env's view of all its shards' copies (:meth:`redsim.envs.sharded.ShardedVectorEnv.render`), so each
+        shard draws what the native env of all the copies draws."""
+        self._view = self.sim.view_on(*self.template._render_size, self.template._camera, q, points)
 
     def _unframe(self) -> None:
         """A tracking camera frames the picture anew at the next render after a ``reset`` or ``set_state`` call, as the

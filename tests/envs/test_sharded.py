@@ -76,6 +76,41 @@ def test_reset_mask_state_round_trip_render_and_close() -> None:
         venv.step(np.zeros((3, 3), np.float32))
 
 
+def test_a_tracking_camera_frames_the_sharded_copies_as_the_native_env_does() -> None:
+    """Each shard framed its own copies (its first copy's shape, its markers); now every shard draws with the view of
+    all copies, pixel for pixel the native env's, through steps (a marker leaving the view reframes), a masked
+    reset and a restored state."""
+    kwargs = {"num_envs": 4, "vectorization_mode": "vector_entry_point", "render_mode": "rgb_array"}
+    kwargs |= {"width": 64, "height": 64, "camera": {"track": True}, "dtype": "float64"}
+    native = gym.make_vec("RedSim/MiniChain-v0", **kwargs)
+    sharded = gym.make_vec("RedSim/MiniChain-v0", shards=2, **kwargs)
+    actions = np.random.default_rng(0).uniform(-1, 1, (12, 4, 3)).astype(np.float32)
+
+    def same_frames() -> None:
+        for a, b in zip(native.render(), sharded.render(), strict=True):
+            np.testing.assert_array_equal(a, b)
+
+    try:
+        for venv in (native, sharded):
+            venv.reset(seed=3)
+        same_frames()
+        state = native.get_state()
+        for action in actions:
+            native.step(action)
+            sharded.step(action)
+            same_frames()
+        mask = {"reset_mask": np.array([False, False, True, False])}
+        native.reset(options=mask)
+        sharded.reset(options=mask)
+        same_frames()
+        native.set_state(state)
+        sharded.set_state(state)
+        same_frames()
+    finally:
+        native.close()
+        sharded.close()
+
+
 def test_bad_input_is_a_clear_error_and_a_failing_worker_raises_in_the_caller() -> None:
     make = lambda **kw: gym.make_vec(  # noqa: E731
         "RedSim/MiniChain-v0", num_envs=2, vectorization_mode="vector_entry_point", **kw
