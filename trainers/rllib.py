@@ -124,13 +124,26 @@ def restore(path: str | Path) -> Any:
     RLlib sends the restored weights to the remote runners without waiting, and a runner still busy with its build's
     own weights keeps those: the first restored iteration then sampled with the untrained policy on some runners
     (which ones changed from run to run). This waits for every runner.
+
+    Raises:
+        RuntimeError: a runner did not answer within :data:`RESTORE_TIMEOUT` seconds (the algorithm is stopped).
     """
     from ray.rllib.algorithms.algorithm import Algorithm
 
     algo = Algorithm.from_checkpoint(str(Path(path).resolve()))
-    algo.env_runner_group.sync_weights(
+    runners = algo.env_runner_group
+    runners.sync_weights(
         from_worker_or_learner_group=algo.learner_group, inference_only=True, timeout_seconds=RESTORE_TIMEOUT
     )
+    # sync_weights waits for the calls in flight, then sends the weights without waiting; a runner serves its calls
+    # in order, so one answered call after them means each holds the checkpoint's weights
+    answered = runners.foreach_env_runner(lambda runner: None, local_env_runner=False, timeout_seconds=RESTORE_TIMEOUT)
+    if len(answered) < runners.num_healthy_remote_workers():
+        algo.stop()
+        raise RuntimeError(
+            f"{runners.num_healthy_remote_workers() - len(answered)} env runner(s) did not take the checkpoint's "
+            f"weights within {RESTORE_TIMEOUT:g} s"
+        )
     return algo
 
 
