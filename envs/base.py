@@ -180,7 +180,8 @@ class Task:
         raise _unimplemented(self, "extras")
 
     def reward(self, x: Tensor, action: Tensor, params: Mapping[str, Tensor]) -> tuple[Tensor, dict[str, Tensor]]:
-        """Reward [B] and its terms {name: [B]} (they sum to the reward)."""
+        """Reward [B] and its terms {name: [B]} (they sum to the reward). Also called by ``set_state`` on the restored
+        x with zero actions and copies of the params, to refuse a state whose reward is not finite."""
         raise _unimplemented(self, "reward")
 
     def terminated(self, x: Tensor, params: Mapping[str, Tensor]) -> Tensor:
@@ -909,8 +910,9 @@ class LatentSim:
 
         Raises:
             ValueError: on a missing key, task parameters other than the task draws (their keys, shapes; before
-                any reset: of :meth:`drawn_params`), a wrong shape, non-finite values, a condition outside the scene's
-                condition space, a task parameter that ``reset(options=...)`` would refuse, or a state of another
+                any reset: of :meth:`drawn_params`), a wrong shape, non-finite values, latents too far out for the
+                map (their positions or reward not finite), a condition outside the scene's condition space, a task
+                parameter that ``reset(options=...)`` would refuse, or a state of another
                 scene, task, dt or frame_skip (``state["setting"]``; a state without it, from before stop 32, is
                 taken as it is).
         """
@@ -965,6 +967,25 @@ class LatentSim:
         # each keeps its dtype (a task's counters and flags stay integers and bools)
         params = {k: tensor(v, tuple(like[k].shape), f"params.{k}", like[k].dtype) for k, v in params.items()}
         self.check_state_params(params)
+        decoded = {}  # latents too far out for the map decode to inf: the next step's reward and extras would be too
+        for what, latent in (("z", z), ("z_before", z_before), ("z_prev", z_prev)):
+            x = self.full_positions(latent, cond if cond is not None else self.cond)
+            far = ~torch.isfinite(x).all(dim=1)
+            if bool(far.any()):
+                raise ValueError(
+                    f"state[{what!r}] of copies {torch.nonzero(far).flatten().tolist()} decodes to non-finite "
+                    f"positions (|z| up to {float(latent[far].abs().max()):.3g}): latents too far out for the map"
+                )
+            decoded[what] = x
+        # latents so far out that the positions are finite but the reward overflows (float32 distances past 1e19 m)
+        idle = torch.zeros(B, self.task.action_size, dtype=self.torch_dtype, device=self.device)
+        reward, _ = self.task.reward(decoded["z"], idle, {k: v.clone() for k, v in params.items()})
+        far = ~torch.isfinite(reward)
+        if bool(far.any()):
+            raise ValueError(
+                f"state['z'] of copies {torch.nonzero(far).flatten().tolist()} is too far out for the map: its reward "
+                f"is not finite (|z| up to {float(z[far].abs().max()):.3g})"
+            )
         self.z, self.z_prev, self.z_before, self.model, self.params, self.loads = (
             z,
             z_prev,
@@ -975,8 +996,7 @@ class LatentSim:
         )
         if cond is not None:
             self.cond = cond
-        self.x_prev = self.full_positions(self.z_before)
-        self.x = self.full_positions(self.z)
+        self.x_prev, self.x = decoded["z_before"], decoded["z"]
 
     def drawn_params(self) -> dict[str, Tensor]:
         """Zeros {name: [B, ...]} shaped and typed as the task's parameters, from one throwaway draw (seed 0, the

@@ -145,6 +145,21 @@ def test_condition_outside_its_range_is_flagged_by_the_stepper_and_refused_by_se
             env.set_state({**state, "cond": bad.astype(np.float32)})
 
 
+def test_a_state_too_far_out_for_the_map_is_refused_and_the_env_keeps_its_own() -> None:
+    """z = 1e30 decodes to finite float32 positions (2e28 m) whose distance overflows: the next step's reward was
+    -inf (the step flagged diverged, but the return poisoned). A far but usable z (1e3) still steps, flagged."""
+    env = gym.make("RedSim/MiniChain-v0").unwrapped
+    env.reset(seed=0)
+    state = env.get_state()
+    far = {**state, "z": np.full_like(state["z"], 1e30), "z_prev": np.full_like(state["z_prev"], 1e30)}
+    with pytest.raises(ValueError, match=r"state\['z'\] of copies \[0\] is too far out for the map"):
+        env.set_state(far)
+    np.testing.assert_array_equal(env.get_state()["z"], state["z"])  # nothing changed
+    env.set_state({**state, "z": np.full_like(state["z"], 1e3), "z_prev": np.full_like(state["z_prev"], 1e3)})
+    _, reward, terminated, _, info = env.step(np.zeros(3, np.float32))
+    assert np.isfinite(reward) and terminated and info["diverged"]
+
+
 @pytest.mark.parametrize(("row", "code"), [({"nan": 2}, 3), ({"unreported": 1}, 4), ({"energy_gains": 5}, 0)])
 def test_bench_stability_fails_when_a_must_be_zero_count_is_not(
     cli: Cli, monkeypatch: pytest.MonkeyPatch, row: dict, code: int
