@@ -967,25 +967,7 @@ class LatentSim:
         # each keeps its dtype (a task's counters and flags stay integers and bools)
         params = {k: tensor(v, tuple(like[k].shape), f"params.{k}", like[k].dtype) for k, v in params.items()}
         self.check_state_params(params)
-        decoded = {}  # latents too far out for the map decode to inf: the next step's reward and extras would be too
-        for what, latent in (("z", z), ("z_before", z_before), ("z_prev", z_prev)):
-            x = self.full_positions(latent, cond if cond is not None else self.cond)
-            far = ~torch.isfinite(x).all(dim=1)
-            if bool(far.any()):
-                raise ValueError(
-                    f"state[{what!r}] of copies {torch.nonzero(far).flatten().tolist()} decodes to non-finite "
-                    f"positions (|z| up to {float(latent[far].abs().max()):.3g}): latents too far out for the map"
-                )
-            decoded[what] = x
-        # latents so far out that the positions are finite but the reward overflows (float32 distances past 1e19 m)
-        idle = torch.zeros(B, self.task.action_size, dtype=self.torch_dtype, device=self.device)
-        reward, _ = self.task.reward(decoded["z"], idle, {k: v.clone() for k, v in params.items()})
-        far = ~torch.isfinite(reward)
-        if bool(far.any()):
-            raise ValueError(
-                f"state['z'] of copies {torch.nonzero(far).flatten().tolist()} is too far out for the map: its reward "
-                f"is not finite (|z| up to {float(z[far].abs().max()):.3g})"
-            )
+        decoded = self.decode_state_latents({"z": z, "z_before": z_before, "z_prev": z_prev}, cond, params)
         self.z, self.z_prev, self.z_before, self.model, self.params, self.loads = (
             z,
             z_prev,
@@ -997,6 +979,38 @@ class LatentSim:
         if cond is not None:
             self.cond = cond
         self.x_prev, self.x = decoded["z_before"], decoded["z"]
+
+    def decode_state_latents(
+        self, latents: Mapping[str, Tensor], cond: Tensor | None, params: Mapping[str, Tensor]
+    ) -> dict[str, Tensor]:
+        """Full positions {name: x [B, N]} of a state's latents {"z", "z_before", "z_prev": [B, d]} under its
+        conditions cond [B, m] (None: the copies' own) and task parameters; changes nothing.
+
+        Raises:
+            ValueError: copies too far out for the map: positions not finite, or a reward at z (zero action, copies
+                of the params; float32 distances past 1e19 m overflow) that is not; the next step's would be too.
+        """
+        cond = cond if cond is not None else self.cond
+        decoded = {}
+        for what, latent in latents.items():
+            x = self.full_positions(latent, cond)
+            far = ~torch.isfinite(x).all(dim=1)
+            if bool(far.any()):
+                raise ValueError(
+                    f"state[{what!r}] of copies {torch.nonzero(far).flatten().tolist()} decodes to non-finite "
+                    f"positions (|z| up to {float(latent[far].abs().max()):.3g}): latents too far out for the map"
+                )
+            decoded[what] = x
+        z, x = latents["z"], decoded["z"]
+        idle = torch.zeros(x.shape[0], self.task.action_size, dtype=self.torch_dtype, device=self.device)
+        reward, _ = self.task.reward(x, idle, {k: v.clone() for k, v in params.items()})
+        far = ~torch.isfinite(reward)
+        if bool(far.any()):
+            raise ValueError(
+                f"state['z'] of copies {torch.nonzero(far).flatten().tolist()} is too far out for the map: its reward "
+                f"is not finite (|z| up to {float(z[far].abs().max()):.3g})"
+            )
+        return decoded
 
     def drawn_params(self) -> dict[str, Tensor]:
         """Zeros {name: [B, ...]} shaped and typed as the task's parameters, from one throwaway draw (seed 0, the

@@ -292,8 +292,8 @@ class ShardedVectorEnv(SharedCopies, VectorEnv):
             ValueError: a state whose ``cond``, ``z``, ``z_prev``, ``loads`` or task parameters have another shape or
                 are not finite, a condition outside the scene's range, an episode clock the native env refuses
                 (:func:`~redsim.envs.vector_api.episode_clock`), an ``rngs`` entry that is not a NumPy generator
-                state, then a task parameter ``reset(options=...)`` would refuse (checked here, in that order, as the
-                native env does: the env stays open).
+                state, then a task parameter ``reset(options=...)`` would refuse and latents too far out for the map
+                (checked here, in that order, as the native env does: the env stays open).
         """
         if not isinstance(state, Mapping):
             raise ValueError(f"need the dict get_state() returns, got {type(state).__name__}")
@@ -307,6 +307,7 @@ class ShardedVectorEnv(SharedCopies, VectorEnv):
                 restored_generator(None, saved)
         if isinstance(state.get("params"), Mapping):
             self.template.sim.check_state_params(state["params"])
+            self._check_state_latents(state)
         parts = [_state_rows(state, block) for block in self._blocks()]
         self._call([("set_state", part) for part in parts])
         self._view = None
@@ -332,6 +333,21 @@ class ShardedVectorEnv(SharedCopies, VectorEnv):
         self.template.close()
 
     # -- internals --------------------------------------------------------------------------------
+    def _check_state_latents(self, state: Mapping[str, Any]) -> None:
+        """Refuse, here, latents too far out for the map (:meth:`LatentSim.decode_state_latents` on the template's
+        sim, all copies at once; a worker's refusal would close the env)."""
+        sim = self.template.sim
+
+        def tensor(value: Any) -> torch.Tensor:
+            return torch.as_tensor(np.asarray(value, dtype=np.float64), dtype=sim.torch_dtype, device=sim.device)
+
+        z_before = state.get("z_before")
+        latents = {"z": state["z"], "z_before": state["z_prev"] if z_before is None else z_before}
+        latents["z_prev"] = state["z_prev"]
+        cond = None if sim.cond is None else tensor(state["cond"])
+        params = {k: torch.as_tensor(np.asarray(v), device=sim.device) for k, v in state["params"].items()}
+        sim.decode_state_latents({k: tensor(v) for k, v in latents.items()}, cond, params)
+
     def _check_state_shapes(self, state: Mapping[str, Any]) -> None:
         """Refuse a state of another env or shape, in the native env's order (:meth:`LatentSim.set_state`): its
         ``setting``, a missing key, ``cond`` [N, m], ``z`` and ``z_prev`` [N, d], ``model`` [N, d, d], ``loads``

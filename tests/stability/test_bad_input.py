@@ -158,6 +158,18 @@ def test_a_state_too_far_out_for_the_map_is_refused_and_the_env_keeps_its_own() 
     env.set_state({**state, "z": np.full_like(state["z"], 1e3), "z_prev": np.full_like(state["z_prev"], 1e3)})
     _, reward, terminated, _, info = env.step(np.zeros(3, np.float32))
     assert np.isfinite(reward) and terminated and info["diverged"]
+    # the sharded env refuses it before its workers (a worker's refusal closes the env), naming the env's copies
+    venv = gym.make_vec("RedSim/MiniChain-v0", num_envs=2, vectorization_mode="vector_entry_point", shards=2)
+    try:
+        venv.reset(seed=0)
+        state = venv.get_state()
+        far = {**state, "z": state["z"].copy()}
+        far["z"][1] = 1e30
+        with pytest.raises(ValueError, match=r"state\['z'\] of copies \[1\] is too far out for the map"):
+            venv.set_state(far)
+        venv.step(np.zeros((2, 3), np.float32))  # still open
+    finally:
+        venv.close()
 
 
 @pytest.mark.parametrize(("row", "code"), [({"nan": 2}, 3), ({"unreported": 1}, 4), ({"energy_gains": 5}, 0)])
