@@ -27,8 +27,12 @@ from typing import Any
 # (3e4 N/m, held for 40% of the steps, off at 80%) with the bodies' orthogonality and hinge-axis
 # penalties softened (weight 1e-3 rising to 1 at 60%) goes round it and stays there.
 # Bistable bar: the paper's loss alone holds one buckled state (reach 0.017) and misses the other
-# (0.28); the map anchored through both (1e5 1/s^2, held for half the steps, off at the end) and
-# kept equivariant under the up-down mirror (300 1/s^2) holds both (reach 0.035 and 0.033).
+# (0.28) after 10^4 steps; kept equivariant under the up-down mirror (300 1/s^2) it comes closer to
+# both the longer it runs (reach 0.115, 0.104, 0.073, 0.034 and 0.013 after 5k, 10k, 20k, 40k and
+# 80k steps; ~25 s per 10^4 steps on one core), so the preset runs 8 * 10^4 and needs no state of
+# the bar. The shipped map (the envs') is an older 10^4-step fit also pulled through both arches by
+# their static solves (--anchor 1e5): reach 0.035 and 0.033, its samples 30.6 J above rest against
+# this preset's ~13 J (docs/fitting.md).
 # Cantilever and elephant: the paper's MLP missed the small linear responses (response 0.84 and 0.99
 # after 10^4 steps); the map anchored on the modal-derivative map (anchor_map "md") holds them (0.034,
 # 0.16) and its samples are lower and more diverse (excess 5.2 against 28.9 J and 7.4 against 51 J,
@@ -56,9 +60,8 @@ PRESETS: dict[str, dict[str, Any]] = {
         "hidden_width": 128,
         "lam": 100.0,
         "sigma": 0.1,
-        "anchor": 1e5,
-        "anchor_fraction": 1.0,
         "mirror": 300.0,
+        "steps": 80000,
     },
     "hanging_sheet": {"latent_dim": 8, "hidden_width": 128, "lam": 10.0, "sigma": 0.03, "steps": 4000},  # ~0.3 m
     "conditional_bar": {"latent_dim": 8, "hidden_width": 128, "lam": 100.0, "sigma": 0.05, "conditional": True},

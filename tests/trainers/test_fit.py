@@ -20,7 +20,7 @@ from redsim.subspace import (
     pair_log_ratios,
     sample_latents,
 )
-from redsim.trainers import FitConfig, fit_subspace
+from redsim.trainers import FitConfig, fit_subspace, presets
 from redsim.trainers import fit as fit_module
 from redsim.trainers.fit import fit_command, rho_at, subspace_loss
 
@@ -476,7 +476,7 @@ def test_fit_command_records_speed_switches_only_when_not_default() -> None:
     ("name", "overrides"),
     [
         ("klann", {"seed_bias": False, "drive": 0.0, "exploration_fraction": 1.0}),
-        ("bistable_bar", {"anchor": 0.0, "mirror": 0.0}),
+        ("bistable_bar", {"mirror": 0.0}),
         ("klann", {}),
         ("bistable_bar", {}),
     ],
@@ -718,7 +718,7 @@ def test_anchor_states_pull_and_schedule() -> None:
         subspace_loss(scene, model, z, None, 1.0, config)
 
 
-def test_anchor_needs_declared_reference_states() -> None:
+def test_anchor_needs_declared_reference_states(monkeypatch) -> None:
     with pytest.raises(ValueError, match="declares no reference states"):
         fit_subspace(_tet_scene(), steps=1, anchor=1.0, progress=False)
     with pytest.raises(ValueError, match="declares no reference states"):
@@ -729,6 +729,8 @@ def test_anchor_needs_declared_reference_states() -> None:
     command = fit_command(_small_bar(), FitConfig(anchor=1e4), 0, None)
     assert "--anchor 10000.0 --anchor-fraction 0.5" in command
     assert "--anchor" not in fit_command(_tet_scene(), FitConfig(), 0, None)
+    assert "--anchor" not in fit_command(_small_bar(), FitConfig(), 0, None)  # the bar's preset has none since stop 46
+    monkeypatch.setitem(presets.PRESETS, "bistable_bar", {**presets.PRESETS["bistable_bar"], "anchor": 1e5})
     assert "--anchor 0 " in fit_command(_small_bar(), FitConfig(), 0, None)  # off where the preset has it on
 
 
