@@ -29,7 +29,7 @@ from typing import Any
 # Bistable bar: the paper's loss alone holds one buckled state (reach 0.017) and misses the other
 # (0.28) after 10^4 steps; kept equivariant under the up-down mirror (300 1/s^2) it comes closer to
 # both the longer it runs (reach 0.115, 0.104, 0.073, 0.034 and 0.013 after 5k, 10k, 20k, 40k and
-# 80k steps; ~25 s per 10^4 steps on one core), so the preset runs 8 * 10^4 and needs no state of
+# 80k steps; ~35 s per 10^4 steps on one core), so the preset runs 8 * 10^4 and needs no state of
 # the bar. The shipped map (the envs') is an older 10^4-step fit also pulled through both arches by
 # their static solves (--anchor 1e5): reach 0.035 and 0.033, its samples 30.6 J above rest against
 # this preset's ~13 J (docs/fitting.md).
