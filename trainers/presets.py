@@ -33,7 +33,7 @@ from typing import Any
 # 80k steps; ~35 s per 10^4 steps on one core), so the preset runs 8 * 10^4 and needs no state of
 # the bar. The shipped map (the envs') is an older 10^4-step fit also pulled through both arches by
 # their static solves (--anchor 1e5): reach 0.035 and 0.033, its samples 30.6 J above rest against
-# this preset's ~13 J (docs/fitting.md).
+# this preset's ~11 J (docs/fitting.md).
 # Chain: its load error at load size 0.3 falls with the fit's length (0.34, 0.24, 0.24 and 0.21 after 10k, 40k,
 # 80k and 160k steps; modal derivatives 0.22), so the preset runs 1.6 * 10^5 steps (~10 min on one core); the
 # shipped map (Chain-v0's) is the older 10^4-step fit (docs/fitting.md).

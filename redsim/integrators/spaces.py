@@ -145,7 +145,7 @@ class LatentSpace:
       per-element Hessians, and unlike Gauss-Newton (J^T H_q J with the per-element projected
       q-space Hessian H_q, linear convergence where f(z*) leaves a large q-space force
       unbalanced) it converges quadratically near a minimum: on the mini_chain, chain and
-      bistable_bar presets it took up to 7x fewer iterations per step (never more), each cheaper.
+      bistable_bar shipped maps it took up to 7x fewer iterations per step (never more), each cheaper.
       "lbfgs" (the paper's choice) sees the exact gradient J^T g_q only.
     - Convergence: the q-space force scale F of :class:`PotentialObjective` is multiplied by
       |J(z_ref)|_2, the most a q-space force can grow when read in z (|J^T g| <= |J|_2 |g|), so
