@@ -33,7 +33,7 @@ from typing import Any
 # 80k steps; ~35 s per 10^4 steps on one core), so the preset runs 8 * 10^4 and needs no state of
 # the bar. The shipped map (the envs') is an older 10^4-step fit also pulled through both arches by
 # their static solves (--anchor 1e5): reach 0.035 and 0.033, its samples 30.6 J above rest against
-# this preset's ~11 J (docs/fitting.md); the envs step 3.4x faster on it (this preset's map has flatter
+# this preset's ~11 J (docs/fitting.md); the envs step ~3x faster on it (this preset's map has flatter
 # latent directions at the arches: docs/env-speed.md "Stop 46").
 # Chain: its load error at load size 0.3 falls with the fit's length (0.34, 0.24, 0.24 and 0.21 after 10k, 40k,
 # 80k and 160k steps; modal derivatives 0.22), so the preset runs 1.6 * 10^5 steps (~10 min on one core); the
