@@ -1177,7 +1177,7 @@ def shipped(
         subspace: None (shipped), a checkpoint path or a map.
         fit_if_missing: With ``subspace=None`` and parameters no shipped map covers, fit one into
             the user cache (or load it from there): :func:`redsim.envs.fitted.cached_subspace`.
-        fit_options: FitConfig fields over the scene's preset for that fit (e.g. ``{"steps": 2000}``).
+        fit_options: FitConfig fields over the shipped map's fit options for that fit (e.g. ``{"steps": 2000}``).
 
     Raises:
         ValueError: an unknown scene or parameter, or a bad fit option.

@@ -420,7 +420,7 @@ class ReachEnv(LatentEnv):
     | `subspace` | None | the shipped map, a checkpoint path or a map |
     | `scene_params` | None | scene build parameters (a shipped map covers only the defaults) |
     | `fit_if_missing` | False | fit a map for `scene_params` no shipped map covers into the user cache |
-    | `fit_options` | None | FitConfig fields over the scene's preset for that fit |
+    | `fit_options` | None | FitConfig fields over the shipped map's fit options for that fit |
     | `include_q` | False | put q [n] in `info["q"]` |
     | `reset_noise_scale` | 0.0 | s: start at z0 + U(-s, s) with z_dot s N(0, 1) per latent (MuJoCo's convention) |
     | `cubature` | None | None: the shipped cubature where it meets the bar; True: required; False: none; a path |

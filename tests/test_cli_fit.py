@@ -290,3 +290,11 @@ def test_an_option_a_preset_s_anchored_map_cannot_take_replaces_it(
     assert main(["fit", "cantilever", "--anchor-map", "none", *small, "--out", str(tmp_path / "n")]) == 0
     command = read_metadata(tmp_path / "n.pt")["command"]
     assert "--anchor-map none" in command  # reruns as the MLP, not as the preset's anchored map
+    # a preset that also tapers its anchored map (the conditional bar's): --anchor-map none drops the taper with it
+    # (it was refused: "--anchor-radius must be ... 0 without anchor_map", so the shipped map's command failed)
+    tiny = ["--steps", "2", "--width", "8", "--layers", "1", "--checkpoint-every", "0", "--json"]
+    assert main(["fit", "conditional_bar", "--cond", "--anchor-map", "none", *tiny, "--out", str(tmp_path / "c")]) == 0
+    fit = read_metadata(tmp_path / "c.pt")["fit"]
+    assert fit["anchor_map"] == "none" and fit["anchor_radius"] == 0.0
+    taper = ["--anchor-map", "none", "--anchor-radius", "1.0", *tiny, "--out", str(tmp_path / "r")]
+    assert main(["fit", "conditional_bar", *taper]) == 2  # a taper given with the MLP alone is still refused

@@ -111,6 +111,10 @@ def _fit_config(args: argparse.Namespace, scene_name: str) -> Any:
     if args.cond:
         fields["conditional"] = True
     _drop_preset_anchor_map(args, fields, scene_name)
+    if fields.get("anchor_map", "none") == "none":  # the preset's taper goes with its anchored map (--anchor-map none)
+        for field in ("anchor_radius", "anchor_map_cond"):
+            if getattr(args, field) is None:
+                fields.pop(field, None)
     try:
         return FitConfig(**fields)
     except FitConfigError as err:
@@ -143,7 +147,6 @@ def _drop_preset_anchor_map(args: argparse.Namespace, fields: dict[str, Any], sc
     verb = "replaces" if len(asked) == 1 else "replace"
     warn(f"{' and '.join(asked)} {verb} the {scene_name} preset's --anchor-map {fields['anchor_map']} (the MLP alone)")
     fields["anchor_map"] = "none"
-    fields.pop("anchor_radius", None)
 
 
 def _check_stem(stem: Path, args: argparse.Namespace) -> None:

@@ -68,6 +68,21 @@ def path(scene_name: str) -> Path:
     return weights
 
 
+def fit_record(scene_name: str) -> dict:
+    """The fit options the shipped map of ``scene_name`` was fitted with: its JSON's ``fit`` record plus ``seed``
+    (FitConfig's field names; a record older than a field lacks it, and that field was at its default).
+
+    An env fits a map for parameters no shipped map covers with these (:func:`redsim.envs.fitted.cached_subspace`),
+    so its cached map is made as its shipped one was, which the env's settings were chosen on; a scene's fitting
+    preset may since have moved on (README "Shipped subspaces").
+
+    Raises:
+        NotShipped: a KeyError; no subspace is shipped for this scene.
+    """
+    doc = json.loads(path(scene_name).with_suffix(".json").read_text())
+    return {**doc["fit"], "seed": doc["seed"]}
+
+
 def load(scene_name: str, scene: Scene | None = None, *, device: str | torch.device = "cpu") -> nn.Module:
     """The shipped subspace of ``scene_name``, checked against ``scene``.
 
@@ -90,4 +105,4 @@ def load(scene_name: str, scene: Scene | None = None, *, device: str | torch.dev
     return load_subspace(weights, scene=scene, device=device)
 
 
-__all__ = ["ENV_SCENES", "FOLDER", "NotShipped", "load", "names", "path"]
+__all__ = ["ENV_SCENES", "FOLDER", "NotShipped", "fit_record", "load", "names", "path"]

@@ -146,9 +146,9 @@ def test_a_sharded_env_fitted_in_memory_sends_its_map_to_the_workers(monkeypatch
         assert torch.equal(mine, theirs)
 
 
-def test_dim_in_fit_options_replaces_the_presets_latent_dim(tmp_path, monkeypatch: pytest.MonkeyPatch) -> None:
-    """``dim`` (fit_subspace's alias of latent_dim) was merged beside the preset's latent_dim and refused as two
-    values that differ; it is the same cache entry as latent_dim."""
+def test_dim_in_fit_options_replaces_the_recorded_latent_dim(tmp_path, monkeypatch: pytest.MonkeyPatch) -> None:
+    """``dim`` (fit_subspace's alias of latent_dim) was merged beside the preset's (now the shipped record's)
+    latent_dim and refused as two values that differ; it is the same cache entry as latent_dim."""
     monkeypatch.setenv("REDSIM_CACHE", str(tmp_path))
     scene = redsim.scenes.build("mini_chain", **PARAMS)
     by_alias = fitted.cached_subspace("mini_chain", scene, {**TINY, "dim": 2}, progress=False)
@@ -168,3 +168,46 @@ def test_a_cache_that_cannot_hold_the_fit_fits_in_memory_with_a_warning(tmp_path
     with pytest.warns(UserWarning, match="cannot hold this fit .* fitting in memory"):
         subspace = fitted.cached_subspace("mini_chain", scene, TINY, progress=False)
     assert getattr(subspace, fitted.IN_MEMORY_ATTRIBUTE) and blocker.read_text() == "not a folder"
+
+
+@pytest.mark.parametrize("scene_name", ["chain", "bistable_bar"])
+def test_the_cache_fits_as_the_shipped_map_was_fitted_not_the_moved_on_preset(
+    scene_name: str, tmp_path, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    """Stop 46 lengthened these presets (1.6*10^5 and 8*10^4 steps, maps the envs step 2-3x slower on); an env's
+    uncovered parameters took that preset, a ~12-minute fit. The cache fits the shipped map's recorded options."""
+    from redsim import pretrained, scenes
+    from redsim.trainers.presets import preset
+
+    monkeypatch.setenv("REDSIM_CACHE", str(tmp_path))
+    seen = {}
+
+    class Recorded(Exception):
+        """Raised in place of fitting, once the options are recorded."""
+
+    def record(scene, **options):
+        seen.update(options)
+        raise Recorded
+
+    monkeypatch.setattr("redsim.trainers.fit.fit_subspace", record)
+    scene = scenes.build(scene_name, density=scenes.build(scene_name).params["density"] * 1.1)
+    with pytest.raises(Recorded):
+        fitted.cached_subspace(scene_name, scene, {"hidden_layers": 4}, progress=False)
+    shipped = pretrained.fit_record(scene_name)
+    assert seen["steps"] == shipped["steps"] == 10000 != preset(scene_name)["steps"]
+    assert seen["hidden_layers"] == 4  # fit_options still override
+    assert seen.get("anchor", 0.0) == shipped.get("anchor", 0.0) and seen["seed"] == shipped["seed"]
+    assert "checkpoint_every" not in seen and "device" not in seen  # speed and device are the fitter's defaults
+
+
+def test_a_scene_whose_preset_fits_its_shipped_map_keeps_its_cache_entries(tmp_path, monkeypatch) -> None:
+    """Where the preset still fits the shipped map (the mini chain), the cache entry keeps the name it had when the
+    envs fitted presets: a user's cached fit is found, not fitted again."""
+    from redsim import scenes
+    from redsim.trainers.presets import preset
+
+    monkeypatch.setenv("REDSIM_CACHE", str(tmp_path))
+    scene = scenes.build("mini_chain", **PARAMS)
+    before = fitted.cache_stem("mini_chain", scene, {**preset("mini_chain"), **TINY})
+    made = fitted.cached_subspace("mini_chain", scene, TINY, progress=False)
+    assert before.with_suffix(".pt").is_file() and made.latent_dim == preset("mini_chain")["latent_dim"]

@@ -479,6 +479,8 @@ def test_fit_command_records_speed_switches_only_when_not_default() -> None:
         ("bistable_bar", {"mirror": 0.0}),
         ("klann", {}),
         ("bistable_bar", {}),
+        ("conditional_bar", {"anchor_map": "none", "anchor_radius": 0.0}),  # the shipped map's settings since stop 47
+        ("hanging_sheet", {"anchor_map": "none", "anchor_radius": 0.0}),
     ],
 )
 def test_the_recorded_command_rebuilds_a_preset_scene_s_settings_also_where_turned_off(name: str, overrides) -> None:
