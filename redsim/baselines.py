@@ -84,18 +84,29 @@ def _stiffness_scale(H: scipy.sparse.csr_matrix, M: scipy.sparse.csr_matrix) -> 
 def _lowest_modes(
     H: scipy.sparse.csr_matrix, M: scipy.sparse.csr_matrix, dim: int
 ) -> tuple[np.ndarray, np.ndarray, str]:
-    """The ``dim`` smallest generalized eigenpairs of H phi = lambda M phi, ascending, with Phi^T M Phi = I."""
+    """The ``dim`` smallest generalized eigenpairs of H phi = lambda M phi, ascending, with Phi^T M Phi = I.
+
+    Each vector's sign is fixed (its largest entry in magnitude is positive), and ARPACK starts from a seeded vector
+    (its default is a fresh random one): the same inputs give the same basis on every run, so the baselines' sampled
+    metrics (which map fixed latent draws through the basis) repeat."""
     n = H.shape[0]
     if n <= DENSE_EIGEN_LIMIT:
         values, vectors = scipy.linalg.eigh(H.toarray(), M.toarray(), subset_by_index=[0, dim - 1])
-        return values, vectors, "dense"
+        return values, _signed(vectors), "dense"
     shift = -SHIFT_FRACTION * _stiffness_scale(H, M)
-    values, vectors = scipy.sparse.linalg.eigsh(H.tocsc(), k=dim, M=M.tocsc(), sigma=shift, which="LM")
+    start = np.random.default_rng(0).standard_normal(n)
+    values, vectors = scipy.sparse.linalg.eigsh(H.tocsc(), k=dim, M=M.tocsc(), sigma=shift, which="LM", v0=start)
     order = np.argsort(values)
     values, vectors = values[order], vectors[:, order]
     gram = vectors.T @ (M @ vectors)  # ARPACK's vectors are M-orthonormal up to round-off; make them exactly so
     vectors = scipy.linalg.solve_triangular(np.linalg.cholesky(gram), vectors.T, lower=True).T
-    return values, vectors, "shift-invert"
+    return values, _signed(vectors), "shift-invert"
+
+
+def _signed(vectors: np.ndarray) -> np.ndarray:
+    """``vectors`` [n, d] with each column's sign chosen so that its largest entry in magnitude is positive."""
+    rows = np.argmax(np.abs(vectors), axis=0)
+    return vectors * np.sign(vectors[rows, np.arange(vectors.shape[1])])
 
 
 class _Modes(NamedTuple):
