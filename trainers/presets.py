@@ -43,9 +43,9 @@ from typing import Any
 # 0.16) and its samples are lower and more diverse (excess 5.2 against 28.9 J and 7.4 against 51 J,
 # stretch 0.91 against 0.56 and 0.95 against 0.79; docs/fitting.md).
 # Conditional bar and hanging sheet (stop 47), anchored the same way with the polynomial faded out beyond
-# |z| ~ 1.5: response 0.34 and 0.11 against the paper's loss's 0.99 and 0.97 at the same length (4 * 10^4 and
+# |z| ~ 1.5: response 0.34 and 0.13 against the paper's loss's 0.99 and 0.97 at the same length (4 * 10^4 and
 # 1.6 * 10^4 steps), the bar's samples as low (10.7 J) and more diverse (stretch 0.86 against 0.83), the sheet's
-# 1.3 J higher (3.3 against 2.0 J) and as diverse (0.77 against 0.76); both lower and more diverse than the shipped
+# 0.7 J higher (2.7 against 2.0 J) and as diverse (0.78 against 0.76); both lower and more diverse than the shipped
 # maps (docs/fitting.md "Stop 47").
 # Not for the maps the envs run on: an anchored map costs an env its speed (docs/env-speed.md), and the envs'
 # maps for other scene parameters are fitted as their shipped maps were (redsim.envs.fitted).
