@@ -298,3 +298,26 @@ def test_an_option_a_preset_s_anchored_map_cannot_take_replaces_it(
     assert fit["anchor_map"] == "none" and fit["anchor_radius"] == 0.0
     taper = ["--anchor-map", "none", "--anchor-radius", "1.0", *tiny, "--out", str(tmp_path / "r")]
     assert main(["fit", "conditional_bar", *taper]) == 2  # a taper given with the MLP alone is still refused
+
+
+def test_bench_subspace_marks_load_errors_measured_against_unconverged_references() -> None:
+    """cloth_ball's row printed its load error with 5 of its 8 full-space references stopped unconverged and nothing
+    said so (the warnings came only from the solve, not from a cached rerun); the row now says it."""
+    from redsim.cli.bench import _subspace_row
+
+    def row(full: list[bool], rest: bool = True) -> str:
+        result = {
+            "load_response": {
+                "mean_error": 0.9,
+                "mean_response_error": 0.9,
+                "full_converged": full,
+                "rest_converged": rest,
+            }
+        }
+        header = {"scene": "s", "n": 3, "d": 1, "sigma": 0.1, "lam": 1.0, "steps": 2, "fit_seconds": 1.0}
+        return _subspace_row({**header, "checkpoint": "x.pt", "methods": {"neural": result, "modes": result}})
+
+    assert "unconverged" not in row([True] * 8)
+    marked = row([True, False, False, True, False, True, False, False])
+    assert marked.count("* 5 of 8 loaded full-space equilibria stopped unconverged") == 1
+    assert "8 loaded full-space equilibria and the rest stopped" in row([False] * 8, rest=False)

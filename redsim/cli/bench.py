@@ -131,6 +131,14 @@ def _subspace_row(row: dict[str, Any]) -> str:
         if "loop" in result:
             line += f"  crank turn {result['loop']['turn_degrees']:.0f} deg (winding {result['loop']['winding']})"
         lines.append(line)
+    references = next((r["load_response"] for r in row["methods"].values() if "load_response" in r), None)
+    if references is not None:  # the full-space equilibria every method's load error is measured against
+        stalled = [not c for c in (references["rest_converged"], *references["full_converged"])]
+        if any(stalled):
+            lines.append(
+                f"  * {sum(stalled[1:])} of {len(stalled) - 1} loaded full-space equilibria"
+                f"{' and the rest' if stalled[0] else ''} stopped unconverged: the load errors compare against them"
+            )
     return "\n".join(lines)
 
 
