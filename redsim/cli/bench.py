@@ -137,7 +137,12 @@ def _subspace_row(row: dict[str, Any]) -> str:
         if any(stalled):
             lines.append(
                 f"  * {sum(stalled[1:])} of {len(stalled) - 1} loaded full-space equilibria"
-                f"{' and the rest' if stalled[0] else ''} stopped unconverged: the load errors compare against them"
+                f"{' and the rest' if stalled[0] else ''} stopped unconverged: "
+                + (
+                    "the load errors compare against them"
+                    if stalled[0]
+                    else "the scene cannot hold those loads, and the load errors leave them out"
+                )
             )
     return "\n".join(lines)
 
