@@ -133,16 +133,15 @@ def _subspace_row(row: dict[str, Any]) -> str:
         lines.append(line)
     references = next((r["load_response"] for r in row["methods"].values() if "load_response" in r), None)
     if references is not None:  # the full-space equilibria every method's load error is measured against
-        stalled = [not c for c in (references["rest_converged"], *references["full_converged"])]
-        if any(stalled):
+        loaded = references["full_converged"]
+        if not all(loaded):
             lines.append(
-                f"  * {sum(stalled[1:])} of {len(stalled) - 1} loaded full-space equilibria"
-                f"{' and the rest' if stalled[0] else ''} stopped unconverged: "
-                + (
-                    "the load errors compare against them"
-                    if stalled[0]
-                    else "the scene cannot hold those loads, and the load errors leave them out"
-                )
+                f"  * {loaded.count(False)} of {len(loaded)} loaded full-space equilibria stopped unconverged "
+                "(no static equilibrium found): the load errors leave them out"
+            )
+        if not references["rest_converged"]:
+            lines.append(
+                "  * the unloaded full-space equilibrium stopped unconverged: the load errors measure around it"
             )
     return "\n".join(lines)
 

@@ -67,10 +67,10 @@ def load_response_error(
     the linear response along the handle's softest direction is 10% (by default) of the scene
     size, whatever the units, stiffness or weight. The loads used are returned.
 
-    A load the scene cannot hold has no static equilibrium (cloth_ball: a push on the ball rolls
-    it off the taut cloth, and the full-space solve ends with it falling): its full-space solve
-    stops unconverged, and its errors, still listed per load, are left out of the mean, median
-    and max (NaN where no load was held; ``averaged_loads`` counts those averaged).
+    A load whose full-space solve stops unconverged (``full_converged`` False; e.g. cloth_ball,
+    where a push on the ball rolls it off the taut cloth and no static equilibrium exists) is
+    still listed per load but left out of the means, median and max (NaN where no solve
+    converged); ``averaged_loads`` counts the loads averaged.
 
     Args:
         scene: The scene; it needs handles.
@@ -90,7 +90,7 @@ def load_response_error(
 
     Returns:
         ``errors`` (per load), ``mean_error``, ``median_error``, ``max_error``,
-        ``response_errors`` (per load) and ``mean_response_error`` (over the held loads),
+        ``response_errors`` (per load) and ``mean_response_error`` (over the converged loads),
         ``averaged_loads``,
         ``absolute_errors`` and ``displacements`` (|q*_l - q_rest|_M) [kg^1/2 m],
         ``energy_gaps`` E(f(z*_l); l) - E(q*_l; l) [J] (>= 0 when both are in one basin),
