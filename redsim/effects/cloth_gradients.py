@@ -1,11 +1,14 @@
-"""The StVK cloth membrane's element energies with a closed-form gradient.
+"""The cloth's element energies (StVK membrane, discrete-shell bending) with closed-form gradients.
 
-:class:`MembraneEnergy` is a :class:`torch.autograd.Function` of a triangle's nine vertex coordinates (each [B, T])
-whose forward builds no graph and whose backward is the analytic gradient, entry by entry: about half the
-elementwise ops of autograd through :func:`redsim.effects.elastic.membrane_metric`, and none of its graph nodes.
-Under ``create_graph`` (Hessians, modal derivatives) the backward recomputes its terms from the inputs with torch
-ops, so it can be differentiated again to any order. (The same approach for the bending hinges was measured and
-not kept: README "Env speed".)
+:class:`MembraneEnergy` and :class:`HingeEnergy` are :class:`torch.autograd.Function` s of an element's vertex
+coordinates (each [B, T]) whose forward builds no graph and whose backward is the analytic gradient, entry by entry:
+about half the elementwise ops of autograd through the plain formulas (:func:`redsim.effects.elastic.membrane_metric`,
+:func:`hinge_parts`), and none of their graph nodes. The hinge's backward is the chain rule through the very
+expressions its forward evaluates (atan2 of the triple-product sine and the normals' cosine), so it is as accurate
+as autograd's in float32; a textbook gradient of the dihedral angle from the normals and the heights was measured
+before and not kept, 3x less accurate near flat hinges (docs/env-speed.md, "Stop 25"). Under ``create_graph``
+(Hessians, modal derivatives) a backward recomputes its terms from the inputs with torch ops, so it can be
+differentiated again to any order.
 """
 
 from __future__ import annotations
@@ -112,3 +115,100 @@ class MembraneEnergy(torch.autograd.Function):
         if torch.is_grad_enabled():  # create_graph: rebuild the terms as a graph of the coordinates
             terms = _membrane_terms(coords, p, mu, lam)
         return None, None, None, None, *_membrane_gradient(terms, p, mu, lam, grad * area)
+
+
+# -- discrete-shell bending ---------------------------------------------------------------------------
+
+
+def _cross(u: Sequence[Tensor], v: Sequence[Tensor]) -> list[Tensor]:
+    """u x v of 3-vectors given entry by entry."""
+    ux, uy, uz = u
+    vx, vy, vz = v
+    return [
+        torch.addcmul(uy * vz, uz, vy, value=-1.0),
+        torch.addcmul(uz * vx, ux, vz, value=-1.0),
+        torch.addcmul(ux * vy, uy, vx, value=-1.0),
+    ]
+
+
+def hinge_parts(coords: Sequence[Tensor], length_eps: float) -> tuple[Tensor, ...]:
+    """The signed dihedral angle theta [rad] of hinges and the terms its gradient reads:
+    (theta, ex, ey, ez, ax, ay, az, bx, by, bz, nax, nay, naz, nbx, nby, nbz, cos, sin, edge_sq, u, length, m).
+
+    ``coords`` = (x0, y0, z0, ..., x3, y3, z3), each [B, E] (any one shape). The hinge's shared edge is x0-x1, its
+    triangles (x0, x1, x2) and (x1, x0, x3). With e = x1 - x0, a = x2 - x0, b = x3 - x0 and the normals
+    n_a = e x a, n_b = b x e: cos ~ n_a . n_b and sin ~ (n_a x n_b) . e / |e| = -|e|^2 (n_a . b) / |e|
+    ((e x a) x (b x e) = -((e x a) . b) e), entry by entry: elementwise products of the coordinates instead of
+    [..., 3] cross products (their stacks and strided views cost 2.6-3.3x more CPU time at B >= 16, forward and
+    backward). ``length_eps`` [m^2] keeps |e| = length = edge_sq u, u = 1 / sqrt(edge_sq + eps), positive; m = n_a . b.
+    """
+    x0, y0, z0, x1, y1, z1, x2, y2, z2, x3, y3, z3 = coords
+    ex, ey, ez = x1 - x0, y1 - y0, z1 - z0
+    ax, ay, az = x2 - x0, y2 - y0, z2 - z0
+    bx, by, bz = x3 - x0, y3 - y0, z3 - z0
+    nax, nay, naz = ey * az - ez * ay, ez * ax - ex * az, ex * ay - ey * ax  # n_a = e x a
+    nbx, nby, nbz = by * ez - bz * ey, bz * ex - bx * ez, bx * ey - by * ex  # n_b = b x e
+    cos = nax * nbx + nay * nby + naz * nbz
+    edge_sq = ex * ex + ey * ey + ez * ez
+    u = torch.rsqrt(edge_sq + length_eps)
+    length = edge_sq * u
+    m = nax * bx + nay * by + naz * bz
+    sin = -length * m
+    theta = torch.atan2(sin, cos)
+    return (theta, ex, ey, ez, ax, ay, az, bx, by, bz, nax, nay, naz, nbx, nby, nbz, cos, sin, edge_sq, u, length, m)
+
+
+def _hinge_gradient(parts: Sequence[Tensor], g_theta: Tensor) -> list[Tensor]:
+    """d(theta) / d coordinates (12 tensors) times ``g_theta`` [B, E], from :func:`hinge_parts`.
+
+    With k = -g_theta / (sin^2 + cos^2) (atan2's derivative, sign folded in; 0 where sin = cos = 0, a collapsed
+    hinge, as torch's atan2 backward), P = k cos and Q = k sin, and
+    h = P length b + Q n_b (the gradient at n_a), the chain rule through the forward's expressions gives
+    d/db = P length n_a + Q (e x n_a), d/da = h x e,
+    d/de = 2 P m (u - edge_sq u^3 / 2) e + a x h + Q (n_a x b), and d/dx0 = -(d/de + d/da + d/db).
+    """
+    _, ex, ey, ez, ax, ay, az, bx, by, bz, nax, nay, naz, nbx, nby, nbz, cos, sin, edge_sq, u, length, m = parts
+    e, a, b, n_a = (ex, ey, ez), (ax, ay, az), (bx, by, bz), (nax, nay, naz)
+    radius_sq = torch.addcmul(sin * sin, cos, cos)
+    k = -g_theta * radius_sq.reciprocal().masked_fill(radius_sq == 0.0, 0.0)  # 0 at (0, 0), as autograd's atan2
+    p, q = k * cos, k * sin
+    p_length = p * length
+    h = [torch.addcmul(p_length * bi, q, ni) for bi, ni in zip(b, (nbx, nby, nbz), strict=True)]
+    e_na = _cross(e, n_a)
+    grad_b = [torch.addcmul(p_length * ni, q, ci) for ni, ci in zip(n_a, e_na, strict=True)]
+    grad_a = _cross(h, e)
+    dlength = torch.addcmul(u, edge_sq * u, u * u, value=-0.5)  # d length / d edge_sq
+    pe = 2.0 * p * m * dlength
+    na_b = _cross(n_a, b)
+    a_h = _cross(a, h)
+    grad_e = [torch.addcmul(torch.addcmul(ahi, q, ci), pe, ei) for ahi, ci, ei in zip(a_h, na_b, e, strict=True)]
+    grad_0 = [-(ge + ga + gb) for ge, ga, gb in zip(grad_e, grad_a, grad_b, strict=True)]
+    return [*grad_0, *grad_e, *grad_a, *grad_b]
+
+
+class HingeEnergy(torch.autograd.Function):
+    """Discrete-shell bending energies [J], [B, E]: ``apply(weight, rest_angle, length_eps, *coords)``,
+    weight * (theta - rest_angle)^2 per hinge.
+
+    ``weight`` [J] and ``rest_angle`` [rad], each [E], are constants (no gradient), ``length_eps`` [m^2] a float
+    (:func:`hinge_parts`); ``coords`` = (x0, y0, z0, ..., x3, y3, z3), each [B, E].
+    """
+
+    @staticmethod
+    def forward(ctx: Any, weight: Tensor, rest_angle: Tensor, length_eps: float, *coords: Tensor) -> Tensor:
+        if any(ctx.needs_input_grad[:2]):
+            raise ValueError("HingeEnergy has no gradient with respect to its weights and rest angles")
+        parts = hinge_parts(coords, length_eps)
+        deviation = parts[0] - rest_angle
+        ctx.length_eps = length_eps
+        ctx.save_for_backward(weight, rest_angle, *coords, *parts)
+        return weight * deviation**2
+
+    @staticmethod
+    def backward(ctx: Any, grad: Tensor) -> tuple[Tensor | None, ...]:
+        weight, rest_angle, *saved = ctx.saved_tensors
+        coords, parts = saved[:12], saved[12:]
+        if torch.is_grad_enabled():  # create_graph: rebuild the terms as a graph of the coordinates
+            parts = hinge_parts(coords, ctx.length_eps)
+        g_theta = 2.0 * grad * weight * (parts[0] - rest_angle)
+        return None, None, None, *_hinge_gradient(parts, g_theta)

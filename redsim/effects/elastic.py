@@ -9,7 +9,7 @@ import torch
 from torch import Tensor
 
 from redsim.effects.base import Effect, gather_coordinates, gather_elements, per_element
-from redsim.effects.cloth_gradients import MembraneEnergy, membrane_coefficients
+from redsim.effects.cloth_gradients import HingeEnergy, MembraneEnergy, hinge_parts, membrane_coefficients
 from redsim.effects.plane_gradients import PlaneNeoHookeanEnergy, plane_constants
 from redsim.materials import lame_from_young_poisson
 
@@ -346,25 +346,10 @@ def membrane_metric(coords: Sequence[Tensor], shape_gradients: Tensor) -> tuple[
 
 
 def hinge_angles(coords: Sequence[Tensor], length_eps: float) -> Tensor:
-    """Signed dihedral angles [rad] of hinges from their vertex coordinates (x0, y0, z0, ..., x3, y3, z3).
-
-    Each coordinate is a tensor of one shape (e.g. [B, E]); the hinge's shared edge is x0-x1, its
-    triangles (x0, x1, x2) and (x1, x0, x3). With e = x1 - x0, a = x2 - x0, b = x3 - x0 and the normals
-    n_a = e x a, n_b = b x e: cos ~ n_a . n_b and sin ~ (n_a x n_b) . e / |e| = -|e|^2 (n_a . b) / |e|
-    ((e x a) x (b x e) = -((e x a) . b) e), entry by entry: elementwise products of the coordinates
-    instead of [..., 3] cross products (their stacks and strided views cost 2.6-3.3x more CPU time at
-    B >= 16, forward and backward). ``length_eps`` [m^2] keeps |e| = sqrt(e . e + eps) positive.
-    """
-    x0, y0, z0, x1, y1, z1, x2, y2, z2, x3, y3, z3 = coords
-    ex, ey, ez = x1 - x0, y1 - y0, z1 - z0
-    ax, ay, az = x2 - x0, y2 - y0, z2 - z0
-    bx, by, bz = x3 - x0, y3 - y0, z3 - z0
-    nax, nay, naz = ey * az - ez * ay, ez * ax - ex * az, ex * ay - ey * ax  # n_a = e x a
-    nbx, nby, nbz = by * ez - bz * ey, bz * ex - bx * ez, bx * ey - by * ex  # n_b = b x e
-    cos = nax * nbx + nay * nby + naz * nbz
-    edge_sq = ex * ex + ey * ey + ez * ez
-    sin = -(edge_sq * torch.rsqrt(edge_sq + length_eps)) * (nax * bx + nay * by + naz * bz)
-    return torch.atan2(sin, cos)
+    """Signed dihedral angles [rad] of hinges from their vertex coordinates (x0, y0, z0, ..., x3, y3, z3), each
+    a tensor of one shape (e.g. [B, E]): :func:`redsim.effects.cloth_gradients.hinge_parts`' first term (its doc
+    has the formula); ``length_eps`` [m^2] keeps the edge length positive."""
+    return hinge_parts(coords, length_eps)[0]
 
 
 class DiscreteShellBending(Effect):
@@ -409,7 +394,7 @@ class DiscreteShellBending(Effect):
         self.weight = stiffness_t * 3.0 * edge_sq / (area_a + area_b)
 
     def element_energy(self, xe: Tensor, cond: Tensor | None = None, loads: Tensor | None = None) -> Tensor:
-        return self._energy(hinge_angles(xe.unbind(-1), self.length_eps))
+        return self._energies(xe.unbind(-1))
 
     def element_energies(self, x: Tensor, cond: Tensor | None = None, loads: Tensor | None = None) -> Tensor:
         """Energy of every hinge [J], [B, E], at x [B, N]: the twelve vertex coordinates gathered as [B, E]
@@ -417,8 +402,9 @@ class DiscreteShellBending(Effect):
         and [..., 3] cross products: 2.6-3.3x less CPU time for the term's energy and gradient at B = 16 to 256
         and 1.5x at B = 1 (hanging_sheet and cloth_ball, float32, an interleaved development A/B; the scenes'
         energies before and after in README "Cubature")."""
-        return self._energy(hinge_angles(gather_coordinates(x, self.element_dofs), self.length_eps))
+        return self._energies(gather_coordinates(x, self.element_dofs))
 
-    def _energy(self, theta: Tensor) -> Tensor:
-        """Hinge energies [J] of dihedral angles theta [rad] (class doc)."""
-        return self.weight * (theta - self.rest_angle) ** 2
+    def _energies(self, coords: Sequence[Tensor]) -> Tensor:
+        """Hinge energies [J], [B, E], of the twelve vertex coordinates, each [B, E] (class doc), through
+        :class:`redsim.effects.cloth_gradients.HingeEnergy` (closed-form gradient)."""
+        return HingeEnergy.apply(self.weight, self.rest_angle, self.length_eps, *coords)

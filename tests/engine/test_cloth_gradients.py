@@ -1,5 +1,6 @@
-"""The membrane's closed-form gradient (:mod:`redsim.effects.cloth_gradients`) against autograd through the plain
-formula (:func:`membrane_metric`) and against central differences, to second and third order."""
+"""The cloth kernels' closed-form gradients (:mod:`redsim.effects.cloth_gradients`: the membrane, the bending hinges)
+against autograd through the plain formulas (:func:`membrane_metric`, :func:`hinge_parts`) and against central
+differences, to second and third order."""
 
 from __future__ import annotations
 
@@ -11,12 +12,19 @@ import torch
 import redsim
 from redsim.effects import Effect
 from redsim.effects.base import gather_coordinates
-from redsim.effects.elastic import membrane_metric
+from redsim.effects.cloth_gradients import hinge_parts
+from redsim.effects.elastic import DiscreteShellBending, membrane_metric
+
+EFFECTS = ("membrane", "bending")
+"""The cloth terms with a closed-form gradient (named as the cloth scenes name them)."""
 
 
 def _plain_energies(effect: Effect, x: torch.Tensor) -> torch.Tensor:
     """Element energies [B, T] by autograd-traceable formulas (the kernels before their closed-form gradients)."""
-    caa, cbb, cab = membrane_metric(gather_coordinates(x, effect.element_dofs), effect.shape_gradients)
+    coords = gather_coordinates(x, effect.element_dofs)
+    if isinstance(effect, DiscreteShellBending):
+        return effect.weight * (hinge_parts(coords, effect.length_eps)[0] - effect.rest_angle) ** 2
+    caa, cbb, cab = membrane_metric(coords, effect.shape_gradients)
     e00, e11, e01 = 0.5 * (caa - 1.0), 0.5 * (cbb - 1.0), 0.5 * cab
     trace = e00 + e11
     psi = effect.mu * (e00 * e00 + e11 * e11 + 2.0 * e01 * e01) + 0.5 * effect.lam * trace * trace
@@ -29,13 +37,14 @@ def _state(scene: redsim.Scene, batch: int, scale: float, dtype: torch.dtype) ->
     return scene.to(dtype=dtype).full_positions(q)
 
 
+@pytest.mark.parametrize("effect_name", EFFECTS)
 @pytest.mark.parametrize("scene_name", ["hanging_sheet", "cloth_ball"])
 def test_closed_form_derivatives_equal_autograd_of_the_plain_formulas(
-    scene_name: str, derivatives: Callable[..., list[torch.Tensor]]
+    scene_name: str, effect_name: str, derivatives: Callable[..., list[torch.Tensor]]
 ) -> None:
     """float64: values, gradients, Hessian-vector products and third derivatives (backward under create_graph)."""
     scene = redsim.scenes.build(scene_name)
-    effect = scene.effect("membrane")
+    effect = scene.effect(effect_name)
     x = _state(scene, 3, 0.05, torch.float64)
     g = torch.Generator().manual_seed(1)
     u, v = (torch.randn(x.shape, generator=g, dtype=torch.float64) for _ in range(2))
@@ -45,11 +54,16 @@ def test_closed_form_derivatives_equal_autograd_of_the_plain_formulas(
         assert torch.allclose(a, b, rtol=1e-9, atol=1e-12 * float(b.abs().max()))
 
 
-def test_float32_gradients_match_float64_like_autograd(derivatives: Callable[..., list[torch.Tensor]]) -> None:
-    """float32: the closed-form gradient is as close to the float64 one as float32 autograd is (within 5x)."""
+@pytest.mark.parametrize("scale", [0.01, 0.001])
+@pytest.mark.parametrize("effect_name", EFFECTS)
+def test_float32_gradients_match_float64_like_autograd(
+    effect_name: str, scale: float, derivatives: Callable[..., list[torch.Tensor]]
+) -> None:
+    """float32: the closed-form gradient is as close to the float64 one as float32 autograd is (within 5x), also
+    near the flat rest (scale 0.001: the hinges' sine and the membrane's strain near zero)."""
     scene = redsim.scenes.build("hanging_sheet")
-    effect, effect32 = scene.effect("membrane"), scene.to(dtype=torch.float32).effect("membrane")
-    x = _state(scene, 2, 0.01, torch.float64)
+    effect, effect32 = scene.effect(effect_name), scene.to(dtype=torch.float32).effect(effect_name)
+    x = _state(scene, 2, scale, torch.float64)
     zero = torch.zeros_like(x)
 
     def gradient(energies, y: torch.Tensor) -> torch.Tensor:
@@ -62,11 +76,12 @@ def test_float32_gradients_match_float64_like_autograd(derivatives: Callable[...
     assert float((fast - reference).abs().max()) <= 5.0 * float((plain - reference).abs().max()) + 1e-6 * scale
 
 
-def test_closed_form_gradients_pass_gradcheck_and_gradgradcheck() -> None:
+@pytest.mark.parametrize("effect_name", EFFECTS)
+def test_closed_form_gradients_pass_gradcheck_and_gradgradcheck(effect_name: str) -> None:
     """Central differences (float64) of the energies and of their gradients, on a few elements read from the slice
     of x they use (as a cubature's)."""
     scene = redsim.scenes.build("cloth_ball")
-    subset = scene.effect("membrane").subset(torch.arange(5))
+    subset = scene.effect(effect_name).subset(torch.arange(5))
     kept = torch.unique(subset.element_dofs)
     effect = subset.reindexed(torch.searchsorted(kept, subset.element_dofs))
     x = _state(scene, 2, 0.05, torch.float64)[:, kept].requires_grad_(True)
@@ -76,9 +91,31 @@ def test_closed_form_gradients_pass_gradcheck_and_gradgradcheck() -> None:
     assert torch.autograd.gradgradcheck(effect.element_energy, (xe,))
 
 
-def test_constants_with_gradients_are_refused() -> None:
+@pytest.mark.parametrize(
+    ("effect_name", "constant", "message"),
+    [("membrane", "mu", "material constants"), ("bending", "weight", "weights and rest angles")],
+)
+def test_constants_with_gradients_are_refused(effect_name: str, constant: str, message: str) -> None:
     scene = redsim.scenes.build("hanging_sheet")
-    membrane = scene.effect("membrane")
-    membrane.mu = membrane.mu.clone().requires_grad_(True)
-    with pytest.raises(ValueError, match="material constants"):
-        membrane.element_energies(_state(scene, 1, 0.01, torch.float64))
+    effect = scene.effect(effect_name)
+    setattr(effect, constant, getattr(effect, constant).clone().requires_grad_(True))
+    with pytest.raises(ValueError, match=message):
+        effect.element_energies(_state(scene, 1, 0.01, torch.float64))
+
+
+@pytest.mark.parametrize("rest_apex", [0.0, 0.4])
+def test_a_collapsed_hinge_has_the_gradient_autograd_gives(rest_apex: float) -> None:
+    """Apexes on the edge line: atan2 at (0, 0), whose derivative torch's atan2 backward takes as 0 (a flat and a
+    bent rest hinge); the energy stays finite (element Hessians give such an element a zero block, 1da4fa4)."""
+    rest = torch.tensor(
+        [[0.0, 0.0, 0.0], [1.0, 0.0, 0.0], [0.3, 1.0, 0.0], [0.6, -1.0, rest_apex]], dtype=torch.float64
+    )
+    bending = DiscreteShellBending("b", torch.arange(12).reshape(1, 4, 3), rest[None], 1.0)
+    collapsed = torch.tensor([[0.0, 0.0, 0.0, 1.0, 0.0, 0.0, 0.5, 0.0, 0.0, 0.7, 0.0, 0.0]], dtype=torch.float64)
+    grads = []
+    for energies in (bending.element_energies, lambda y: _plain_energies(bending, y)):
+        x = collapsed.clone().requires_grad_(True)
+        energy = energies(x)
+        assert torch.isfinite(energy).all()
+        grads.append(torch.autograd.grad(energy.sum(), x)[0])
+    assert torch.equal(grads[0], grads[1])
