@@ -2,13 +2,14 @@
 
 :class:`MembraneEnergy` and :class:`HingeEnergy` are :class:`torch.autograd.Function` s of an element's vertex
 coordinates (each [B, T]) whose forward builds no graph and whose backward is the analytic gradient, entry by entry:
-about half the elementwise ops of autograd through the plain formulas (:func:`redsim.effects.elastic.membrane_metric`,
-:func:`hinge_parts`), and none of their graph nodes. The hinge's backward is the chain rule through the very
-expressions its forward evaluates (atan2 of the triple-product sine and the normals' cosine), so it is as accurate
-as autograd's in float32; a textbook gradient of the dihedral angle from the normals and the heights was measured
-before and not kept, 3x less accurate near flat hinges (docs/env-speed.md, "Stop 25"). Under ``create_graph``
-(Hessians, modal derivatives) a backward recomputes its terms from the inputs with torch ops, so it can be
-differentiated again to any order.
+fewer elementwise ops than autograd through the plain formulas (:func:`redsim.effects.elastic.membrane_metric`,
+:func:`hinge_parts`; a hinge's 81 against 124, most of them in place), and none of their graph nodes. The hinge's
+backward is the chain rule through the very expressions its forward evaluates (atan2 of the triple-product sine and
+the normals' cosine), so it is as accurate as autograd's in float32; a textbook gradient of the dihedral angle from
+the normals and the heights was measured before and not kept, 3x less accurate near flat hinges, and one writing a
+fresh tensor per op was slower than autograd on whole sheets at B >= 16 (docs/env-speed.md, "Stop 49"). Under
+``create_graph`` (Hessians, modal derivatives) the membrane's backward recomputes its terms from the inputs with torch
+ops and the hinges' is autograd of their plain formula, so either can be differentiated again to any order.
 """
 
 from __future__ import annotations
@@ -121,13 +122,13 @@ class MembraneEnergy(torch.autograd.Function):
 
 
 def _cross(u: Sequence[Tensor], v: Sequence[Tensor]) -> list[Tensor]:
-    """u x v of 3-vectors given entry by entry."""
+    """u x v of 3-vectors given entry by entry (each entry one product, then a fused multiply-subtract in place)."""
     ux, uy, uz = u
     vx, vy, vz = v
     return [
-        torch.addcmul(uy * vz, uz, vy, value=-1.0),
-        torch.addcmul(uz * vx, ux, vz, value=-1.0),
-        torch.addcmul(ux * vy, uy, vx, value=-1.0),
+        torch.mul(uy, vz).addcmul_(uz, vy, value=-1.0),
+        torch.mul(uz, vx).addcmul_(ux, vz, value=-1.0),
+        torch.mul(ux, vy).addcmul_(uy, vx, value=-1.0),
     ]
 
 
@@ -169,21 +170,39 @@ def _hinge_gradient(parts: Sequence[Tensor], g_theta: Tensor) -> list[Tensor]:
     """
     _, ex, ey, ez, ax, ay, az, bx, by, bz, nax, nay, naz, nbx, nby, nbz, cos, sin, edge_sq, u, length, m = parts
     e, a, b, n_a = (ex, ey, ez), (ax, ay, az), (bx, by, bz), (nax, nay, naz)
-    radius_sq = torch.addcmul(sin * sin, cos, cos)
-    k = -g_theta * radius_sq.reciprocal().masked_fill(radius_sq == 0.0, 0.0)  # 0 at (0, 0), as autograd's atan2
-    p, q = k * cos, k * sin
+    # every product below is a fresh tensor, so the sums accumulate into it in place: one allocation per entry
+    radius_sq = torch.mul(sin, sin).addcmul_(cos, cos)
+    k = radius_sq.reciprocal().masked_fill_(radius_sq == 0.0, 0.0).mul_(g_theta).neg_()  # 0 at (0, 0), as autograd
+    p, q = k * cos, k.mul_(sin)
     p_length = p * length
-    h = [torch.addcmul(p_length * bi, q, ni) for bi, ni in zip(b, (nbx, nby, nbz), strict=True)]
+    h = [torch.mul(p_length, bi).addcmul_(q, ni) for bi, ni in zip(b, (nbx, nby, nbz), strict=True)]
     e_na = _cross(e, n_a)
-    grad_b = [torch.addcmul(p_length * ni, q, ci) for ni, ci in zip(n_a, e_na, strict=True)]
+    grad_b = [ci.mul_(q).addcmul_(p_length, ni) for ni, ci in zip(n_a, e_na, strict=True)]
     grad_a = _cross(h, e)
-    dlength = torch.addcmul(u, edge_sq * u, u * u, value=-0.5)  # d length / d edge_sq
-    pe = 2.0 * p * m * dlength
+    dlength = torch.mul(edge_sq, u).mul_(u).mul_(u).mul_(-0.5).add_(u)  # d length / d edge_sq
+    pe = dlength.mul_(m).mul_(p).mul_(2.0)
     na_b = _cross(n_a, b)
-    a_h = _cross(a, h)
-    grad_e = [torch.addcmul(torch.addcmul(ahi, q, ci), pe, ei) for ahi, ci, ei in zip(a_h, na_b, e, strict=True)]
-    grad_0 = [-(ge + ga + gb) for ge, ga, gb in zip(grad_e, grad_a, grad_b, strict=True)]
+    grad_e = [ahi.addcmul_(q, ci).addcmul_(pe, ei) for ahi, ci, ei in zip(_cross(a, h), na_b, e, strict=True)]
+    grad_0 = [torch.add(ge, ga).add_(gb).neg_() for ge, ga, gb in zip(grad_e, grad_a, grad_b, strict=True)]
     return [*grad_0, *grad_e, *grad_a, *grad_b]
+
+
+HINGE_CLOSED_FORM_ENTRIES = 65536
+"""The most entries [B x E] of one coordinate tensor for which :func:`hinge_energies` takes :class:`HingeEnergy`'s
+closed-form gradient; above, autograd through the plain formula. The closed form's terms all stay alive to the end of
+its backward, while autograd consumes each as it goes: inside a whole sheet's energy (5851 hinges beside the
+membrane's terms) the closed form took 1.1-1.25x autograd's time at B = 16 and 64 (`redsim bench energy`), while on a
+cubature's 500 hinges it took 0.79-0.89x from B = 1 to 256 and on the whole sheet at B = 1 0.89x (the term alone;
+docs/env-speed.md, "Stop 49")."""
+
+
+def hinge_energies(weight: Tensor, rest_angle: Tensor, length_eps: float, coords: Sequence[Tensor]) -> Tensor:
+    """Discrete-shell bending energies [J], [B, E], weight * (theta - rest_angle)^2 per hinge, of the twelve vertex
+    coordinates (each [B, E]; :func:`hinge_parts`): through :class:`HingeEnergy` up to
+    :data:`HINGE_CLOSED_FORM_ENTRIES` entries per coordinate, else by autograd of the same formula."""
+    if coords[0].numel() > HINGE_CLOSED_FORM_ENTRIES:
+        return weight * (hinge_parts(coords, length_eps)[0] - rest_angle) ** 2
+    return HingeEnergy.apply(weight, rest_angle, length_eps, *coords)
 
 
 class HingeEnergy(torch.autograd.Function):
@@ -191,7 +210,9 @@ class HingeEnergy(torch.autograd.Function):
     weight * (theta - rest_angle)^2 per hinge.
 
     ``weight`` [J] and ``rest_angle`` [rad], each [E], are constants (no gradient), ``length_eps`` [m^2] a float
-    (:func:`hinge_parts`); ``coords`` = (x0, y0, z0, ..., x3, y3, z3), each [B, E].
+    (:func:`hinge_parts`); ``coords`` = (x0, y0, z0, ..., x3, y3, z3), each [B, E]. The backward is
+    :func:`_hinge_gradient` (in place on its own fresh tensors); under ``create_graph`` (Hessians) it is autograd
+    of the plain formula through :func:`hinge_parts` instead, differentiable to any order.
     """
 
     @staticmethod
@@ -201,14 +222,14 @@ class HingeEnergy(torch.autograd.Function):
         parts = hinge_parts(coords, length_eps)
         deviation = parts[0] - rest_angle
         ctx.length_eps = length_eps
-        ctx.save_for_backward(weight, rest_angle, *coords, *parts)
+        ctx.save_for_backward(weight, rest_angle, deviation, *coords, *parts)
         return weight * deviation**2
 
     @staticmethod
     def backward(ctx: Any, grad: Tensor) -> tuple[Tensor | None, ...]:
-        weight, rest_angle, *saved = ctx.saved_tensors
+        weight, rest_angle, deviation, *saved = ctx.saved_tensors
         coords, parts = saved[:12], saved[12:]
-        if torch.is_grad_enabled():  # create_graph: rebuild the terms as a graph of the coordinates
-            parts = hinge_parts(coords, ctx.length_eps)
-        g_theta = 2.0 * grad * weight * (parts[0] - rest_angle)
-        return None, None, None, *_hinge_gradient(parts, g_theta)
+        if torch.is_grad_enabled():  # create_graph: autograd through the plain formula, a graph of the inputs
+            energy = weight * (hinge_parts(coords, ctx.length_eps)[0] - rest_angle) ** 2
+            return None, None, None, *torch.autograd.grad(energy, coords, grad, create_graph=True)
+        return None, None, None, *_hinge_gradient(parts, (2.0 * grad) * weight * deviation)

@@ -9,7 +9,7 @@ import torch
 from torch import Tensor
 
 from redsim.effects.base import Effect, gather_coordinates, gather_elements, per_element
-from redsim.effects.cloth_gradients import HingeEnergy, MembraneEnergy, hinge_parts, membrane_coefficients
+from redsim.effects.cloth_gradients import MembraneEnergy, hinge_energies, hinge_parts, membrane_coefficients
 from redsim.effects.plane_gradients import PlaneNeoHookeanEnergy, plane_constants
 from redsim.materials import lame_from_young_poisson
 
@@ -405,6 +405,6 @@ class DiscreteShellBending(Effect):
         return self._energies(gather_coordinates(x, self.element_dofs))
 
     def _energies(self, coords: Sequence[Tensor]) -> Tensor:
-        """Hinge energies [J], [B, E], of the twelve vertex coordinates, each [B, E] (class doc), through
-        :class:`redsim.effects.cloth_gradients.HingeEnergy` (closed-form gradient)."""
-        return HingeEnergy.apply(self.weight, self.rest_angle, self.length_eps, *coords)
+        """Hinge energies [J], [B, E], of the twelve vertex coordinates, each [B, E] (class doc), by
+        :func:`redsim.effects.cloth_gradients.hinge_energies` (a closed-form gradient up to a size)."""
+        return hinge_energies(self.weight, self.rest_angle, self.length_eps, coords)

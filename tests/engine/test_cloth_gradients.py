@@ -12,7 +12,7 @@ import torch
 import redsim
 from redsim.effects import Effect
 from redsim.effects.base import gather_coordinates
-from redsim.effects.cloth_gradients import hinge_parts
+from redsim.effects.cloth_gradients import HINGE_CLOSED_FORM_ENTRIES, hinge_parts
 from redsim.effects.elastic import DiscreteShellBending, membrane_metric
 
 EFFECTS = ("membrane", "bending")
@@ -37,12 +37,19 @@ def _state(scene: redsim.Scene, batch: int, scale: float, dtype: torch.dtype) ->
     return scene.to(dtype=dtype).full_positions(q)
 
 
+def _gradient(energies: Callable[[torch.Tensor], torch.Tensor], x: torch.Tensor) -> torch.Tensor:
+    """d(sum of the energies)/dx at x, a plain backward (no create_graph: the kernels' own first-order path)."""
+    x = x.detach().requires_grad_(True)
+    return torch.autograd.grad(energies(x).sum(), x)[0]
+
+
 @pytest.mark.parametrize("effect_name", EFFECTS)
 @pytest.mark.parametrize("scene_name", ["hanging_sheet", "cloth_ball"])
 def test_closed_form_derivatives_equal_autograd_of_the_plain_formulas(
     scene_name: str, effect_name: str, derivatives: Callable[..., list[torch.Tensor]]
 ) -> None:
-    """float64: values, gradients, Hessian-vector products and third derivatives (backward under create_graph)."""
+    """float64: values, gradients (a plain backward, and under create_graph), Hessian-vector products and third
+    derivatives."""
     scene = redsim.scenes.build(scene_name)
     effect = scene.effect(effect_name)
     x = _state(scene, 3, 0.05, torch.float64)
@@ -50,28 +57,23 @@ def test_closed_form_derivatives_equal_autograd_of_the_plain_formulas(
     u, v = (torch.randn(x.shape, generator=g, dtype=torch.float64) for _ in range(2))
     fast = derivatives(effect.element_energies, x, u, v)
     plain = derivatives(lambda y: _plain_energies(effect, y), x, u, v)
+    fast.append(_gradient(effect.element_energies, x))
+    plain.append(plain[1])
     for a, b in zip(fast, plain, strict=True):
         assert torch.allclose(a, b, rtol=1e-9, atol=1e-12 * float(b.abs().max()))
 
 
 @pytest.mark.parametrize("scale", [0.01, 0.001])
 @pytest.mark.parametrize("effect_name", EFFECTS)
-def test_float32_gradients_match_float64_like_autograd(
-    effect_name: str, scale: float, derivatives: Callable[..., list[torch.Tensor]]
-) -> None:
+def test_float32_gradients_match_float64_like_autograd(effect_name: str, scale: float) -> None:
     """float32: the closed-form gradient is as close to the float64 one as float32 autograd is (within 5x), also
     near the flat rest (scale 0.001: the hinges' sine and the membrane's strain near zero)."""
     scene = redsim.scenes.build("hanging_sheet")
     effect, effect32 = scene.effect(effect_name), scene.to(dtype=torch.float32).effect(effect_name)
     x = _state(scene, 2, scale, torch.float64)
-    zero = torch.zeros_like(x)
-
-    def gradient(energies, y: torch.Tensor) -> torch.Tensor:
-        return derivatives(energies, y, zero, zero)[1].double()
-
-    reference = gradient(effect.element_energies, x)
-    fast = gradient(effect32.element_energies, x.float())
-    plain = gradient(lambda y: _plain_energies(effect32, y), x.float())
+    reference = _gradient(effect.element_energies, x)
+    fast = _gradient(effect32.element_energies, x.float()).double()
+    plain = _gradient(lambda y: _plain_energies(effect32, y), x.float()).double()
     scale = float(reference.abs().max())
     assert float((fast - reference).abs().max()) <= 5.0 * float((plain - reference).abs().max()) + 1e-6 * scale
 
@@ -119,3 +121,16 @@ def test_a_collapsed_hinge_has_the_gradient_autograd_gives(rest_apex: float) -> 
         assert torch.isfinite(energy).all()
         grads.append(torch.autograd.grad(energy.sum(), x)[0])
     assert torch.equal(grads[0], grads[1])
+
+
+def test_hinges_past_the_closed_form_size_take_autograd() -> None:
+    """Above HINGE_CLOSED_FORM_ENTRIES per coordinate the hinges are differentiated by autograd of the same formula
+    (the closed form is slower there); below, by HingeEnergy: the same gradients either way (float64)."""
+    scene = redsim.scenes.build("hanging_sheet")
+    bending = scene.effect("bending")
+    for batch, kernel in ((1, "HingeEnergyBackward"), (HINGE_CLOSED_FORM_ENTRIES // bending.element_count + 1, None)):
+        x = _state(scene, batch, 0.05, torch.float64).requires_grad_(True)
+        energy = bending.element_energies(x)
+        assert (type(energy.grad_fn).__name__ == kernel) if kernel else "Hinge" not in type(energy.grad_fn).__name__
+        fast = torch.autograd.grad(energy.sum(), x)[0]
+        assert torch.allclose(fast, _gradient(lambda y: _plain_energies(bending, y), x), rtol=1e-9, atol=1e-12)
