@@ -231,5 +231,8 @@ class HingeEnergy(torch.autograd.Function):
         coords, parts = saved[:12], saved[12:]
         if torch.is_grad_enabled():  # create_graph: autograd through the plain formula, a graph of the inputs
             energy = weight * (hinge_parts(coords, ctx.length_eps)[0] - rest_angle) ** 2
-            return None, None, None, *torch.autograd.grad(energy, coords, grad, create_graph=True)
+            needs = ctx.needs_input_grad[3:]  # a coordinate without a gradient gets None (autograd.grad refuses it)
+            inputs = [c for c, need in zip(coords, needs, strict=True) if need]
+            wanted = iter(torch.autograd.grad(energy, inputs, grad, create_graph=True))
+            return None, None, None, *(next(wanted) if need else None for need in needs)
         return None, None, None, *_hinge_gradient(parts, (2.0 * grad) * weight * deviation)
