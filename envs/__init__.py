@@ -13,9 +13,20 @@ checkpoint is loaded until an env is made), so these all work::
 
 from __future__ import annotations
 
+import importlib.util
+from pathlib import Path
 from typing import Any
 
 import gymnasium as gym
+
+
+def shipped_file(name: str) -> str:
+    """The path of a file shipped in :mod:`redsim.pretrained`, found without importing it (registering stays cheap)."""
+    spec = importlib.util.find_spec("redsim.pretrained")
+    if spec is None or not spec.submodule_search_locations:
+        raise ModuleNotFoundError("redsim.pretrained is not installed")
+    return str(Path(next(iter(spec.submodule_search_locations))) / name)
+
 
 ENVS: dict[str, tuple[str, str, int, dict[str, Any]]] = {
     "RedSim/Chain-v0": ("chain", "ChainEnv", 300, {}),
@@ -27,6 +38,12 @@ ENVS: dict[str, tuple[str, str, int, dict[str, Any]]] = {
         "HangingClothEnv",
         200,
         {"targets": "held", "target_spread": 0.8, "cubature": True},
+    ),
+    "RedSim/HangingCloth-v2": (
+        "hanging_cloth",
+        "HangingClothEnv",
+        200,
+        {"targets": "held", "target_spread": 0.8, "cubature": shipped_file("hanging_sheet.lean.cubature.json")},
     ),
     "RedSim/ConditionalBar-v0": ("conditional_bar", "ConditionalBarEnv", 200, {}),
     "RedSim/ConditionalBar-v1": ("conditional_bar", "ConditionalBarEnv", 200, {"cubature": True}),

@@ -126,6 +126,7 @@ HYPERPARAMS: dict[str, dict[str, dict[str, Any]]] = {
     "RedSim/ClothBall-v0": {"sac": {"n_envs": 16, "gradient_steps": 8}},
     "RedSim/HangingCloth-v0": {"sac": {"n_envs": 16, "gradient_steps": 8}},
     "RedSim/HangingCloth-v1": {"ppo": _PPO_WIDE},
+    "RedSim/HangingCloth-v2": {"ppo": _PPO_WIDE},
     "RedSim/ConditionalBar-v0": _CONDITIONAL_BAR,
     "RedSim/ConditionalBar-v1": _CONDITIONAL_BAR,
     "RedSim/Klann-v0": {"sac": {"n_envs": 16, "gradient_steps": 8}},

@@ -34,6 +34,7 @@ SLOW = (
     "RedSim/ClothBall-v0",
     "RedSim/HangingCloth-v0",
     "RedSim/HangingCloth-v1",
+    "RedSim/HangingCloth-v2",
     "RedSim/ConditionalBar-v1",
 )
 ALL_IDS = [*FAST, *(pytest.param(i, marks=pytest.mark.slow) for i in SLOW)]

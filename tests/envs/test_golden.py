@@ -45,7 +45,13 @@ SPREAD_LIMIT = 0.3 * Z_TOLERANCE
 ACTION_SCALE = 0.5
 """Half the action range: under full random pushes MiniChain's step objective often has two nearby minima
 (3 of 4 rollouts measured), and which one a solve lands in depends on its start, not on the physics."""
-SLOW = ("RedSim/Chain-v0", "RedSim/HangingCloth-v0", "RedSim/HangingCloth-v1", "RedSim/Stewart-v0")
+SLOW = (
+    "RedSim/Chain-v0",
+    "RedSim/HangingCloth-v0",
+    "RedSim/HangingCloth-v1",
+    "RedSim/HangingCloth-v2",
+    "RedSim/Stewart-v0",
+)
 """Ids whose construction or float64 steps take seconds: checked under ``-m slow`` (ClothBall-v0, on its
 cubature and near-point contact, runs its 50 float64 steps in ~5 s under load: default suite)."""
 
