@@ -1,4 +1,4 @@
-"""`RedSim/HangingCloth-v0` and `-v1`: move a free corner of the hanging sheet to a target point."""
+"""`RedSim/HangingCloth-v0`, `-v1` and `-v2`: move a free corner of the hanging sheet to a target point."""
 
 from __future__ import annotations
 
@@ -74,8 +74,8 @@ class HangingClothEnv(ReachEnv):
     ## Version History
     - v2: v1 on a leaner cubature (`redsim/pretrained/hanging_sheet.lean.cubature.json`: 728 membrane triangles and
       76 bending hinges against the shipped 500 and 500), more accurate and faster: force error 2.8% against 3.1%,
-      trajectory deviation 7.6% against 9.2% (`redsim bench cubature`), 1.16x v1's CPU time per step at 64 envs
-      (`redsim bench env-ab`, 19.7 -> 16.6 calls per vector step; docs/cubature.md, "Stop 49"). Its dynamics differ
+      trajectory deviation 7.6% against 9.2% (`redsim bench cubature`), 1.16x v1's env steps per CPU second at 64
+      envs (`redsim bench env-ab`, 19.7 -> 16.6 calls per vector step; docs/cubature.md, "Stop 49"). Its dynamics differ
       from v1's by what the two cubatures differ by; no policy is shipped for it yet.
     - v1: targets a held push reaches (`targets="held"`, `target_spread=0.8`), on the shipped cubature
       (`cubature=True`, 545 against 118 env steps/s at 64 envs in the latest quiet run). v0's latent targets are

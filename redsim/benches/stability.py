@@ -63,7 +63,12 @@ LOADS: dict[str, Plan] = {
 """Handle and force of a unit action per scene (the envs' ``goal_handle`` and ``default_max_force``)."""
 BANG_BANG_HOLD = 50
 """Steps a ``bang_bang`` action is held at one bound before it flips."""
-FUZZ_COPIES = {"RedSim/ClothBall-v0": 8, "RedSim/HangingCloth-v0": 8, "RedSim/HangingCloth-v1": 8}
+FUZZ_COPIES = {
+    "RedSim/ClothBall-v0": 8,
+    "RedSim/HangingCloth-v0": 8,
+    "RedSim/HangingCloth-v1": 8,
+    "RedSim/HangingCloth-v2": 8,
+}
 """Vector env copies of the fuzzed cloth envs: a 64-copy step takes 0.1-1 s; few copies get deep into episodes."""
 DEFAULT_FUZZ_COPIES = 256
 """Vector env copies of the other fuzzed envs (Klann and MiniChain run about 2x the env steps/s of 64 copies)."""
