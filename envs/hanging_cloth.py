@@ -76,7 +76,7 @@ class HangingClothEnv(ReachEnv):
       76 bending hinges against the shipped 500 and 500), more accurate and faster: force error 2.8% against 3.1%,
       trajectory deviation 7.6% against 9.2% (`redsim bench cubature`), 1.16x v1's env steps per CPU second at 64
       envs (`redsim bench env-ab`, 19.7 -> 16.6 calls per vector step; docs/cubature.md, "Stop 49"). Its dynamics differ
-      from v1's by what the two cubatures differ by; no policy is shipped for it yet.
+      from v1's by what the two cubatures differ by; it has its own shipped policy.
     - v1: targets a held push reaches (`targets="held"`, `target_spread=0.8`), on the shipped cubature
       (`cubature=True`, 545 against 118 env steps/s at 64 envs in the latest quiet run). v0's latent targets are
       often out of reach: the corner settles within -0.10 to +0.14 m of its rest out of the sheet's plane (z) and
