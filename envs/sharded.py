@@ -25,7 +25,6 @@ from typing import TYPE_CHECKING, Any
 
 import numpy as np
 import torch
-from gymnasium.error import ResetNeeded
 from gymnasium.utils import seeding
 from gymnasium.vector import AutoresetMode, VectorEnv
 from gymnasium.vector.utils import batch_space
@@ -258,7 +257,7 @@ class ShardedVectorEnv(SharedCopies, VectorEnv):
         """
         if self.render_mode != "rgb_array":
             return None
-        check_started(self._unreset, "render()", ResetNeeded)  # here: a shard's error would close the env
+        check_started(self._unreset, "render()")  # here: a shard's error would close the env
         framing = self._framing() if self.template._camera.get("track", False) else None
         return tuple(frame for frames in self._call([("render", framing)] * len(self.sizes)) for frame in frames)
 
@@ -282,7 +281,7 @@ class ShardedVectorEnv(SharedCopies, VectorEnv):
         Raises:
             gymnasium.error.ResetNeeded: a copy was never reset (nor restored by :meth:`set_state`).
         """
-        check_started(self._unreset, "get_state()", ResetNeeded)  # here: a shard's error would close the env
+        check_started(self._unreset, "get_state()")  # here: a shard's error would close the env
         return _join_states(self._call([("get_state", None)] * len(self.sizes)))
 
     def set_state(self, state: Mapping[str, Any]) -> None:
@@ -320,7 +319,7 @@ class ShardedVectorEnv(SharedCopies, VectorEnv):
             frames = self.render()
             return frames if frames is not None else (None,) * self.num_envs
         if name == "get_state":
-            check_started(self._unreset, "call('get_state')", ResetNeeded)
+            check_started(self._unreset, "call('get_state')")
         return tuple(answer for answers in self._call([("call", name)] * len(self.sizes)) for answer in answers)
 
     def close_extras(self, **kwargs: Any) -> None:

@@ -26,7 +26,6 @@ from typing import Any
 
 import gymnasium as gym
 import numpy as np
-from gymnasium.error import ResetNeeded
 from gymnasium.utils import seeding
 from gymnasium.vector import AutoresetMode, VectorEnv
 from gymnasium.vector.utils import batch_space
@@ -210,7 +209,7 @@ class LatentVectorEnv(SharedCopies, VectorEnv):
         """
         if self.render_mode != "rgb_array":
             return None
-        check_started(self._unreset, "render()", ResetNeeded)
+        check_started(self._unreset, "render()")
         rows, camera = range(self.num_envs), self.template._camera
         sim = self.sim if camera.get("track", False) else self.template.sim  # fixed: the single env's camera
         self._view = sim.framed_view(self._view, *self.template._render_size, camera, rows)
@@ -225,7 +224,7 @@ class LatentVectorEnv(SharedCopies, VectorEnv):
         Raises:
             gymnasium.error.ResetNeeded: a copy was never reset (nor restored by :meth:`set_state`).
         """
-        check_started(self._unreset, "get_state()", ResetNeeded)
+        check_started(self._unreset, "get_state()")
         clock = {"elapsed_steps": self._elapsed.copy(), "autoresetting": self._autoreset.copy()}
         return {**self.sim.get_state(), **clock, "rngs": [g.bit_generator.state for g in self._rngs]}
 
@@ -272,7 +271,7 @@ class LatentVectorEnv(SharedCopies, VectorEnv):
             frames = self.render()
             return frames if frames is not None else (None,) * self.num_envs
         if name == "get_state":
-            check_started(self._unreset, "call('get_state')", ResetNeeded)
+            check_started(self._unreset, "call('get_state')")
             state = self.sim.get_state()  # each copy's as a single env's: with its generator
             return tuple({**state_row(state, i), "rng": g.bit_generator.state} for i, g in enumerate(self._rngs))
         q = self.sim.positions(self.sim.z).detach().cpu().numpy()  # configuration

@@ -15,6 +15,7 @@ from typing import TYPE_CHECKING, Any
 
 import numpy as np
 from gymnasium.envs.registration import EnvSpec
+from gymnasium.error import ResetNeeded
 
 if TYPE_CHECKING:
     from redsim.envs.base import LatentEnv
@@ -128,18 +129,22 @@ class SharedCopies:
         raise NotImplementedError
 
 
-def check_started(unreset: np.ndarray, call: str = "step()", error: type[Exception] = RuntimeError) -> None:
-    """Refuse ``call`` (a step; a ``get_state``: ``gymnasium.error.ResetNeeded``, as a single env's) while copies [N]
-    (bool) were never reset, as Gymnasium's sync env refuses a step (a masked first reset leaves the others
-    unstarted).
+class NotStarted(ResetNeeded, RuntimeError):
+    """A call on a vector env whose copies were not all reset: Gymnasium's ``ResetNeeded``, as its sync and async
+    envs and a single env raise, and a ``RuntimeError``, as a step raised before stop 50."""
+
+
+def check_started(unreset: np.ndarray, call: str = "step()") -> None:
+    """Refuse ``call`` while copies [N] (bool) were never reset, as Gymnasium's sync env refuses a step (a masked
+    first reset leaves the others unstarted).
 
     Raises:
-        error: naming the copies.
+        NotStarted: naming the copies (a ``gymnasium.error.ResetNeeded``).
     """
     if unreset.all():
-        raise error(f"call reset() before {call}")
+        raise NotStarted(f"call reset() before {call}")
     if unreset.any():
-        raise error(
+        raise NotStarted(
             f"call reset() before {call}: copies {np.nonzero(unreset)[0].tolist()} were never reset "
             "(or their reset failed)"
         )
@@ -196,6 +201,7 @@ __all__ = [
     "SHARED_METHODS",
     "STATEFUL",
     "VECTOR_KWARGS",
+    "NotStarted",
     "SharedCopies",
     "check_started",
     "episode_clock",

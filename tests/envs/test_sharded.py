@@ -123,7 +123,7 @@ def test_bad_input_is_a_clear_error_and_a_failing_worker_raises_in_the_caller() 
         make(shards=2, stepper_options={"hessian": "unknown"})
     venv = make(shards=2)
     assert venv.max_episode_steps == 200  # the id's, as the native env's
-    with pytest.raises(RuntimeError, match="call reset"):  # as the native env, and the env stays usable
+    with pytest.raises(gym.error.ResetNeeded, match="call reset"):  # as the native env, and the env stays usable
         venv.step(np.zeros((2, 3), np.float32))
     venv.reset(seed=0)
     with pytest.raises(ValueError, match="finite"):

@@ -256,8 +256,9 @@ def test_a_masked_first_reset_leaves_the_other_copies_unstarted(shards: int) -> 
     try:
         obs, _ = venv.reset(seed=0, options={"reset_mask": np.array([True, False])})
         assert obs.shape == (2, 14)
-        with pytest.raises(RuntimeError, match=r"copies \[1\] were never reset"):
+        with pytest.raises(gym.error.ResetNeeded, match=r"copies \[1\] were never reset") as refused:
             venv.step(PUSH)
+        assert isinstance(refused.value, RuntimeError)  # what a step raised before stop 50
         venv.reset(options={"reset_mask": np.array([False, True])})
         venv.step(PUSH)
     finally:
@@ -398,6 +399,24 @@ def test_the_native_vector_env_takes_the_env_itself_and_names_the_fix_for_a_wrap
         LatentVectorEnv(ID, 2)
     venv = LatentVectorEnv(redsim.envs.make("mini_chain").unwrapped, 2, max_episode_steps=200)
     assert venv.reset(seed=0)[0].shape == (2, *venv.single_observation_space.shape)
+
+
+@pytest.mark.parametrize("shards", [1, 2])
+def test_a_step_before_reset_raises_what_sync_raises(shards: int) -> None:
+    """Gymnasium's sync env raises ``ResetNeeded`` for a step before its reset, so ``except ResetNeeded`` catches
+    the native and sharded envs' refusal too (a review's finding: they raised a plain RuntimeError)."""
+    sync = gym.vector.SyncVectorEnv([lambda: gym.make(ID)] * 2)
+    with pytest.raises(gym.error.ResetNeeded):
+        sync.step(PUSH)
+    sync.close()
+    venv = _vec(shards=shards)
+    try:
+        with pytest.raises(gym.error.ResetNeeded, match=r"call reset\(\) before step\(\)"):
+            venv.step(PUSH)
+        venv.reset(seed=0)
+        venv.step(PUSH)  # usable after the refusal
+    finally:
+        venv.close()
 
 
 @pytest.mark.parametrize("shards", [1, 2])
