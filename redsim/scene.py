@@ -886,6 +886,12 @@ class SceneBuilder:
         return M
 
 
+def check_scene_type(scene: object) -> None:
+    """Refuse what is not a :class:`Scene` (e.g. a scene's name) with a TypeError that says how to build one."""
+    if not isinstance(scene, Scene):
+        raise TypeError(f"scene must be a redsim Scene (redsim.scenes.build(name)), got {scene!r}")
+
+
 def _check_element_dofs(effect: Effect, count: int) -> None:
     """Refuse an effect whose ``element_dofs`` are not [T, k] int64 indices into a full configuration of ``count``."""
     dofs = getattr(effect, "element_dofs", None)

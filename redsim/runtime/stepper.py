@@ -32,7 +32,7 @@ from redsim.integrators import LatentSpace, check_time_step, latent_equilibrium,
 from redsim.runtime.energy import LatentEnergy, MapEnergy, ReducedInertia
 from redsim.runtime.flags import diverged_states, energy_gain_states, energy_gain_tolerance, out_of_range_states
 from redsim.runtime.solver import HESSIANS, BatchResult, check_max_step, check_sync_every, minimize
-from redsim.scene import LoadsLike, Scene
+from redsim.scene import LoadsLike, Scene, check_scene_type
 from redsim.solvers import check_settings
 from redsim.subspace import map_fingerprint
 from redsim.tensors import as_numbers, jvp
@@ -64,7 +64,8 @@ class StepStats(NamedTuple):
     Attributes:
         converged: The relative gradient norm met ``tol`` (bool).
         iterations: Accepted solver iterations (int64).
-        residual: |dPhi/dz| / (|J_0|_2 F_b), the relative gradient norm ``tol`` bounds (see :class:`LatentStepper`).
+        residual: |dPhi/dz| / (|J_0|_2 F_b), the relative gradient norm ``tol`` bounds (see :class:`LatentStepper`);
+            inf where the force scale F_b overflows the dtype (loads too large to square; the step is then diverged).
         energy: Potential energy E(f(z_next)) [J] (the load work not included); 0 where the start was not
             finite (z_next is then z, and ``diverged`` is set).
         out_of_range: z or z_next (or the condition) is outside the region the map was fitted on (bool).
@@ -73,7 +74,7 @@ class StepStats(NamedTuple):
             tolerance (bool): an artefact of the map, reported as information
             (:func:`redsim.runtime.flags.energy_gain_states`).
         energy_gain_tolerance: The rise of K + E beyond the loads' work [J] that ``energy_gain`` allows: what the
-            solve's leftover gradient can put in, |dPhi/dz| |z_{t+1} - z_t|, plus round-off.
+            solve's leftover gradient can put in, |dPhi/dz| |z_{t+1} - z_t|, plus round-off (inf where ``residual`` is).
         model: The solver's final d x d Hessian model [B, d, d]: pass it as ``warm`` to the next step
             of the same states (NaN rows: none was built).
     """
@@ -328,10 +329,11 @@ class LatentStepper:
             (docs/env-speed.md, "Stop 28"). The exact and Gauss-Newton Hessians' passes are not split.
 
     Raises:
-        ValueError: a bad dt, tol, max_iter, hessian, compile, sync_every, max_step, warm_refresh, start or row_block, a
-            device redsim cannot run on (:func:`redsim.devices.check_device`), or a map that does not fit the scene
-            (another output size, or fitted to a scene of another name; one fitted to this scene with other
-            parameters, e.g. a soft map driven on a stiffer material, is stepped with a warning).
+        ValueError: a bad dt, tol, max_iter, hessian, compile, sync_every, max_step, warm_refresh, warm_start, dense,
+            start or row_block, a device redsim cannot run on (:func:`redsim.devices.check_device`), or a map that
+            does not fit the scene (another output size, or fitted to a scene of another name; one fitted to this
+            scene with other parameters, e.g. a soft map driven on a stiffer material, is stepped with a warning).
+        TypeError: a scene that is not a :class:`redsim.scene.Scene` (e.g. its name).
         RuntimeError: ``compile`` on the CPU without a C++ compiler (:func:`check_compiler`).
     """
 
@@ -386,7 +388,11 @@ class LatentStepper:
         self.tol = float(tol)
         self.max_iter = int(max_iter)
         self.hessian = hessian
-        self.dense = self.device.type == "cuda" if dense is None else bool(dense)
+        if not (dense is None or isinstance(dense, bool)):
+            raise ValueError(f"dense must be True, False or None, got {dense!r}")
+        if not isinstance(warm_start, bool):
+            raise ValueError(f"warm_start must be True or False, got {warm_start!r}")
+        self.dense = self.device.type == "cuda" if dense is None else dense
         self.sync_every = sync_every
         _check_map_scene(subspace, scene)
         self.source_scene = scene
@@ -410,7 +416,7 @@ class LatentStepper:
         self._phi = self._phi_eager
         self.compiled = compile is True  # static shapes: a call pads to the whole batch
         self._compile(compile == "dynamic")
-        self.warm_start = bool(warm_start)
+        self.warm_start = warm_start
         self.evaluations = Evaluations()
         """Value-and-gradient calls and rows so far (:class:`Evaluations`; assign a new one to restart the count)."""
 
@@ -773,11 +779,12 @@ class LatentStepper:
             gain_tolerance = energy_gain_tolerance(*balance)
         # a force scale past the dtype's range (finite loads too large to square) makes every threshold inf:
         # such a step proves nothing, so it is reported as not converged and diverged
+        # (its residual and energy-gain tolerance inf, not the 0 or NaN that dividing by an inf scale gives)
         unbounded = ~torch.isfinite(force)
         stats = StepStats(
             converged=result.converged & ~unbounded,
             iterations=result.iterations,
-            residual=result.grad_norm / (self.jacobian_norm * force),
+            residual=(result.grad_norm / (self.jacobian_norm * force)).masked_fill(unbounded, math.inf),
             energy=result.energy,
             out_of_range=out_of_range_states(
                 torch.stack([z, z_next], 1), self.energy.periodic, cond_t, self.scene.condition_space
@@ -785,7 +792,7 @@ class LatentStepper:
             diverged=diverged | unbounded,
             energy_gain=energy_gain,
             model=result.model,
-            energy_gain_tolerance=gain_tolerance,
+            energy_gain_tolerance=gain_tolerance.masked_fill(unbounded, math.inf),
         )
         return z_next, stats
 
@@ -980,6 +987,7 @@ def check_compiler(device: torch.device) -> None:
 def _check_map_scene(subspace: nn.Module, scene: Scene) -> None:
     """Refuse a map whose metadata names another scene; warn where it names this scene with other parameters (a
     deliberate study, e.g. a soft material's map on a stiffer one, or a mistake the caller should see)."""
+    check_scene_type(scene)
     metadata = getattr(subspace, "metadata", None) or {}
     name, fingerprint = metadata.get("scene"), metadata.get("scene_fingerprint")
     if name is not None and name != scene.name:

@@ -19,7 +19,7 @@ from typing import Any
 import torch
 from torch import Tensor, nn
 
-from redsim.scene import Scene
+from redsim.scene import Scene, check_scene_type
 
 FORMAT_VERSION = 1
 
@@ -129,7 +129,9 @@ def read_metadata(path: str | Path) -> dict[str, Any]:
 
 
 def check_scene(doc: dict[str, Any], scene: Scene, path: str) -> None:
-    """Refuse a checkpoint whose metadata ``doc`` names another scene (name, fingerprint or n)."""
+    """Refuse a checkpoint whose metadata ``doc`` names another scene (name, fingerprint or n), and a scene that
+    is not a :class:`Scene` (a TypeError)."""
+    check_scene_type(scene)
     mine = (doc.get("scene"), doc.get("scene_fingerprint"), (doc.get("config") or {}).get("output_dim"))
     theirs = (scene.name, scene.fingerprint(), scene.free_dof_count)
     if (mine[0], mine[2]) != (theirs[0], theirs[2]) or not scene.accepts(mine[1]):

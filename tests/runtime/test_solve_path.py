@@ -260,11 +260,32 @@ def test_unknown_start_raises() -> None:
         LatentStepper(scenes.build("mini_chain"), pretrained.load("mini_chain"), DT, start="zero")
 
 
-@pytest.mark.parametrize("warm_refresh", ["false", 0, None])
-def test_warm_refresh_must_be_a_bool(warm_refresh) -> None:
-    """A JSON string such as "false" would otherwise read as True."""
-    with pytest.raises(ValueError, match="warm_refresh must be True or False"):
-        LatentStepper(scenes.build("mini_chain"), pretrained.load("mini_chain"), DT, warm_refresh=warm_refresh)
+@pytest.mark.parametrize(
+    ("option", "value", "match"),
+    [
+        ("warm_refresh", "false", "warm_refresh must be True or False"),
+        ("warm_refresh", 0, "warm_refresh must be True or False"),
+        ("warm_refresh", None, "warm_refresh must be True or False"),
+        ("warm_start", "False", "warm_start must be True or False"),
+        ("warm_start", None, "warm_start must be True or False"),
+        ("dense", "no", "dense must be True, False or None"),
+        ("dense", 1, "dense must be True, False or None"),
+    ],
+)
+def test_switches_must_be_bools(option: str, value, match: str) -> None:
+    """A JSON string such as "false" would otherwise read as True (warm_start and dense did: a review's finding)."""
+    with pytest.raises(ValueError, match=match):
+        LatentStepper(scenes.build("mini_chain"), pretrained.load("mini_chain"), DT, **{option: value})
+
+
+def test_a_scene_name_for_a_scene_is_a_type_error() -> None:
+    """Where a Scene is expected, its name (or None) is a TypeError saying how to build one, not an AttributeError."""
+    scene = scenes.build("mini_chain")
+    for wrong in ("mini_chain", None):
+        with pytest.raises(TypeError, match=r"scene must be a redsim Scene \(redsim.scenes.build\(name\)\)"):
+            LatentStepper(wrong, pretrained.load("mini_chain", scene), DT)
+    with pytest.raises(TypeError, match="scene must be a redsim Scene"):
+        pretrained.load("mini_chain", "mini_chain")
 
 
 def test_row_blocks_give_the_same_values_gradients_and_steps() -> None:

@@ -8,6 +8,7 @@ tests/trainers/test_agents.py), non-finite actions and loads (test_stability.py,
 
 from __future__ import annotations
 
+import math
 import re
 from collections.abc import Callable
 from pathlib import Path
@@ -197,6 +198,8 @@ def test_a_load_too_large_for_the_dtype_is_never_converged() -> None:
     for force in (1e20, 1e30):  # float32: the norm of the load overflows
         _, stats = stepper.step(z, z, torch.tensor([[[force, 0.0, 0.0]]], dtype=torch.float64))
         assert not bool(stats.converged) and bool(stats.diverged), force
+        # not the 0 or NaN of a division by the inf scale (a review's finding)
+        assert float(stats.residual) == float(stats.energy_gain_tolerance) == math.inf, force
     with pytest.raises(ValueError, match="loads must be finite"):  # inf once cast to float32
         stepper.step(z, z, torch.tensor([[[1e100, 0.0, 0.0]]], dtype=torch.float64))
     q0 = scene.q_seed.double()
