@@ -55,8 +55,11 @@ def test_a_bad_option_is_refused_and_the_running_episode_goes_on(options: dict, 
     env.step(np.zeros(3, np.float32))
 
 
-def test_a_shape_refused_at_the_first_draw_needs_a_new_reset() -> None:
-    env = gym.make(ID).unwrapped  # (Gymnasium's env checker cannot follow a first reset that raised)
+@pytest.mark.parametrize("wrapped", [False, True])
+def test_a_shape_refused_at_the_first_draw_needs_a_new_reset(wrapped: bool) -> None:
+    """Gymnasium 1.4's passive env checker cannot follow a first reset that raised (README: make the env again, or
+    ``disable_env_checker=True``, as here through the other wrappers)."""
+    env = gym.make(ID, disable_env_checker=True) if wrapped else gym.make(ID).unwrapped
     with pytest.raises(ValueError, match="must have shape"):
         env.reset(seed=0, options={"target": [1.0]})
     with pytest.raises(gym.error.ResetNeeded):
