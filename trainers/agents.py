@@ -1279,10 +1279,11 @@ def train_agent(
             is raised to the transitions until every copy has ended an episode, where HER starts to sample.
 
     Raises:
-        ValueError: an unknown id or algorithm, bad counts, ``her`` with PPO, another task or shards, a budget
-            that ends no episode of every copy, a run already in ``out`` (neither ``resume`` nor ``overwrite``),
-            ``resume`` with ``overwrite``, or (resume) a model of another env, algorithm, replay or ``env_kwargs``,
-            a run started with another ``seed``, or other ``n_envs`` than its replay buffer holds.
+        ValueError: an unknown id or algorithm, bad counts, a seed outside [0, 2**32 - 1], ``her`` with PPO,
+            another task or shards, a budget that ends no episode of every copy, a run already in ``out`` (neither
+            ``resume`` nor ``overwrite``), ``resume`` with ``overwrite``, or (resume) a model of another env,
+            algorithm, replay or ``env_kwargs``, a run started with another ``seed``, or other ``n_envs`` than its
+            replay buffer holds.
         FileNotFoundError: (resume) a model trained on normalized observations whose ``VecNormalize`` statistics
             (:func:`normalizer_path`) are missing.
         TrainingInterrupted: a KeyboardInterrupt in training or the final evaluation, raised once the run is saved
@@ -1295,6 +1296,10 @@ def train_agent(
     for name, value in (("steps", steps), ("eval_episodes", eval_episodes), ("final_episodes", final_episodes)):
         if isinstance(value, bool) or int(value) != value or value < 1:  # before training, not after it
             raise ValueError(f"{name} must be an integer >= 1, got {value!r}")
+    if isinstance(seed, bool) or int(seed) != seed or not 0 <= seed < 2**32:
+        raise ValueError(
+            f"seed must be an integer in [0, 2**32 - 1] (stable-baselines3 seeds NumPy with it), got {seed!r}"
+        )
     if eval_every is not None and (isinstance(eval_every, bool) or int(eval_every) != eval_every or eval_every < 1):
         raise ValueError(f"eval_every must be an integer >= 1 (env steps), got {eval_every!r}")
     env_id = env if isinstance(env, str) else None

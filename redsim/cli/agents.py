@@ -18,6 +18,7 @@ from redsim.cli.common import (
     out,
     parse_env_args,
     parse_env_id,
+    sb3_seed,
     warn,
 )
 
@@ -221,7 +222,9 @@ def add_commands(sub: Any) -> None:
     p.add_argument("--algo", choices=ALGOS, default="sac", help="algorithm (default sac)")
     p.add_argument("--steps", type=int, default=20_000, help="total env steps (default 20000)")
     add_out_folder(p, "output folder (default agent)", default="agent")
-    p.add_argument("--seed", type=non_negative_seed, default=0, help="seed of the algorithm and the envs (default 0)")
+    p.add_argument(
+        "--seed", type=sb3_seed, default=0, help="seed of the algorithm and the envs, below 2**32 (default 0)"
+    )
     p.add_argument("--n-envs", type=int, help="vector env copies (default: the table's)")
     p.add_argument(
         "--shards",

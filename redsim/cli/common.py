@@ -300,16 +300,22 @@ def seconds(text: str) -> float:
     return value
 
 
-def non_negative_seed(text: str) -> int:
-    """argparse type of a seed: an integer in [0, 2**64 - 1] (Gymnasium's and NumPy's seeding take it, and torch's
-    generators, which overflowed past it)."""
+def non_negative_seed(text: str, bits: int = 64) -> int:
+    """argparse type of a seed: an integer in [0, 2**bits - 1] (64: Gymnasium's and NumPy's seeding take it, and
+    torch's generators, which overflowed past it; :func:`sb3_seed`: 32)."""
     try:
         value = int(text)
     except ValueError:
         value = -1
-    if not 0 <= value < 2**64:
-        raise argparse.ArgumentTypeError(f"must be an integer in [0, 2**64 - 1], got {text!r}")
+    if not 0 <= value < 2**bits:
+        raise argparse.ArgumentTypeError(f"must be an integer in [0, 2**{bits} - 1], got {text!r}")
     return value
+
+
+def sb3_seed(text: str) -> int:
+    """argparse type of a stable-baselines3 algorithm's seed: an integer in [0, 2**32 - 1] (SB3 seeds NumPy's
+    legacy generator, which refuses more)."""
+    return non_negative_seed(text, 32)
 
 
 def add_threads(parser: argparse.ArgumentParser, default: int | None = None) -> None:

@@ -49,7 +49,7 @@ def cmd_demo(args: argparse.Namespace) -> int:
     out(
         f"{args.env_id} ({name}, seed {args.seed}): return {result['return']:.1f} over {result['steps']} steps, "
         + ("" if distance is None else f"final distance {distance:.3g} m, ")
-        + f"{100 * result['success_fraction']:.0f}% of steps within the task's success tolerance"
+        + f"{100 * result['success_fraction']:.1f}% of steps within the task's success tolerance"
     )
     out(f"speed: {result['env_steps_per_s']:.0f} env steps/s, {result['sim_s_per_wall_s']:.2f} simulated s per wall s")
     out(f"wrote {result['gif']} and {result['png']}")
