@@ -217,7 +217,8 @@ class SnapThrough(Task):
             goal = point.copy()
             goal[self._axis] = self._seed_height + float(sim.params["goal_height"][row])
             _, radius = self._error(x, {k: v[row : row + 1] for k, v in sim.params.items()})
-            markers.insert(0, Marker(goal, TARGET_RGB, float(radius[0])))
+            # the target last, so that the handle's ring does not hide it as the handle comes near (as reach tasks)
+            markers.append(Marker(goal, TARGET_RGB, float(radius[0])))
         force = sim.loads[row, self._index].cpu().numpy()
         return markers, [Arrow(point, force, 0.25 * sim.scene.extent() / self.max_force)]
 

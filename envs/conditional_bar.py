@@ -24,7 +24,8 @@ class SupportedReach(HandleReach):
         names = list(sim.scene.condition_space.names) if sim.scene.condition_space is not None else []
         if sim.cond is not None and "pin_location" in names:
             location = float(sim.cond[row, names.index("pin_location")])
-            markers.append(Marker(np.array([location, 0.0]), SUPPORT_RGB, filled=True))
+            # first, under the rings: the target stays the last marker drawn
+            markers.insert(0, Marker(np.array([location, 0.0]), SUPPORT_RGB, filled=True))
         return markers, arrows
 
 

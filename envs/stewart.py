@@ -277,7 +277,8 @@ class PlatePose(Task):
         markers = [Marker(p[0].cpu().numpy(), HANDLE_RGB)]
         if "target_position" in sim.params:
             target = sim.params["target_position"][row].cpu().numpy()
-            markers.insert(0, Marker(target, TARGET_RGB, SUCCESS_FRACTION * self.position_scale))
+            # the target last, so that the plate's ring does not hide it as the plate comes near (as reach tasks)
+            markers.append(Marker(target, TARGET_RGB, SUCCESS_FRACTION * self.position_scale))
         scale = 0.25 * sim.scene.extent() / self.max_force
         arrows = [
             Arrow(sim.scene.handles[int(i)].position(x)[0].cpu().numpy(), sim.loads[row, int(i)].cpu().numpy(), scale)
