@@ -56,6 +56,8 @@ import gymnasium as gym
 import numpy as np
 import torch
 
+from redsim.subspace import write_atomically
+
 log = logging.getLogger(__name__)
 
 BUFFER = "replay_buffer.pkl"
@@ -1062,9 +1064,48 @@ def training_seed(seed: int, steps: int) -> int:
 def _resume_from(out: Path) -> Path | None:
     """Of ``out/model.zip`` and the checkpoints, the one trained the most env steps (``model.zip`` on a tie: it keeps
     the replay buffer); None: nothing to resume from. Steps, not file times: a copy that resets times must not make
-    an older checkpoint replace newer work."""
+    an older checkpoint replace newer work. A checkpoint whose ``VecNormalize`` statistics are missing or damaged
+    (:func:`_whole`) is passed over, with a warning, for the next one."""
     found = [p for p in [out / "model.zip", *(out / "checkpoints").glob("rl_model_*_steps.zip")] if p.is_file()]
-    return max(found, key=lambda p: (_saved_steps(p), p.name == "model.zip")) if found else None
+    for path in sorted(found, key=lambda p: (_saved_steps(p), p.name == "model.zip"), reverse=True):
+        if path.name == "model.zip" or _whole(path):  # model.zip's own statistics missing: the caller refuses
+            return path
+        log.warning(
+            "not resuming from %s: its observation statistics %s are missing or damaged", path, normalizer_path(path)
+        )
+    return None
+
+
+def _check_kept_settings(overrides: Mapping[str, Any] | None, recorded: Mapping[str, Any] | None, out: Path) -> None:
+    """Refuse ``overrides`` that a resumed model would not take: its settings are the saved ones (``recorded``, the
+    run's ``agent.json``), so another value would be written to the record but not used. ``learning_starts`` is
+    derived again on a resume (module doc) and passes."""
+    if not overrides or recorded is None:
+        return
+    given = json.loads(json.dumps(dict(overrides), default=str))  # as the record holds them
+    changed = {k: v for k, v in given.items() if k != "learning_starts" and k in recorded and recorded[k] != v}
+    if changed:
+        kept = {k: recorded.get(k) for k in changed}
+        raise ValueError(
+            f"cannot resume with overrides {changed}: the run in {out} was made with {kept}, and a resumed model "
+            "keeps its settings (give the same overrides, or none, or another --out)"
+        )
+
+
+def _whole(path: Path) -> bool:
+    """False for a saved model trained on normalized observations whose ``VecNormalize`` statistics are missing or do
+    not load (a checkpoint's are written after its model: a hard stop between the two leaves them out); a model
+    file that cannot be read counts as whole here (its load reports it; :func:`_saved_steps` ranks it last)."""
+    try:
+        normalized = model_record(path)["normalized"]
+    except (FileNotFoundError, ValueError):
+        return True
+    try:
+        if normalized:
+            load_normalizer(normalizer_path(path))
+    except (FileNotFoundError, ValueError):
+        return False
+    return True
 
 
 def _saved_steps(path: Path) -> int:
@@ -1111,10 +1152,22 @@ def _read_curve(path: Path) -> list[dict[str, Any]]:
 
 
 def _write_curve(path: Path, curve: list[dict[str, float]]) -> None:
-    with path.open("w", newline="") as handle:
-        writer = csv.DictWriter(handle, fieldnames=["env_steps", "wall_s", "mean_return", "std_return", "success_rate"])
-        writer.writeheader()
-        writer.writerows(curve)
+    """``curve.csv``, replaced whole (an interrupt in the write leaves the previous file, so a resume can read it)."""
+
+    def write(tmp: Path) -> None:
+        with tmp.open("w", newline="") as handle:
+            fields = ["env_steps", "wall_s", "mean_return", "std_return", "success_rate"]
+            writer = csv.DictWriter(handle, fieldnames=fields)
+            writer.writeheader()
+            writer.writerows(curve)
+
+    write_atomically(path, write)
+
+
+def _write_record(out: Path, summary: Mapping[str, Any]) -> None:
+    """``agent.json``, replaced whole (as :func:`_write_curve`)."""
+    text = json.dumps(summary, indent=2, default=str)
+    write_atomically(out / "agent.json", lambda tmp: tmp.write_text(text))
 
 
 def plot_curve(curve: list[dict[str, float]], path: Path, title: str) -> None:
@@ -1363,14 +1416,19 @@ def train_agent(
                 f"cannot resume with env_kwargs {kwargs_now}: {previous} was trained with {found['env_kwargs']} "
                 f"(give {same}, or another --out)"
             )
-    started_with = seed
-    if previous is not None and (out / "agent.json").is_file():
-        started_with = json.loads((out / "agent.json").read_text()).get("seed", seed)
+    has_record = previous is not None and (out / "agent.json").is_file()
+    record = json.loads((out / "agent.json").read_text()) if has_record else {}
+    started_with = record.get("seed", seed)
     if started_with != seed:  # the copies' and the evaluations' episodes follow the seed
         raise ValueError(
             f"cannot resume with seed {seed}: the run in {out} was started with seed {started_with} (give "
             f"--seed {started_with}, or another --out)"
         )
+    if previous is not None:
+        _check_kept_settings(overrides, record.get("hyperparams"), out)
+        # the run's own evaluation and checkpoint intervals where this call names none: its step grid stays
+        eval_every = eval_every or record.get("eval_every")
+        checkpoint_every = checkpoint_every or record.get("checkpoint_every")
     venv = _sb3_env(env, copies, training_seed(seed, 0), env_kwargs, shards, goal={} if her else None)
     # evaluations score the env's own reward (the goal env with its control cost passes it through)
     eval_env = _sb3_env(
@@ -1382,7 +1440,6 @@ def train_agent(
         shape = venv.action_space.shape
         settings["action_noise"] = NormalActionNoise(np.zeros(shape), noise_std * np.ones(shape))
 
-    record = json.loads((out / "agent.json").read_text()) if resume and (out / "agent.json").is_file() else {}
     if previous is not None:
         if found["normalized"]:
             venv = VecNormalize.load(str(normalizer_path(previous)), venv)
@@ -1429,7 +1486,8 @@ def train_agent(
     wall_offset = _wall_at(curve, record, int(model.num_timesteps)) if previous is not None else 0.0
     curve = [row for row in curve if row["env_steps"] <= model.num_timesteps]
     start = time.perf_counter()
-    every = max(int(eval_every or steps // 10) // copies, 1)
+    eval_every, checkpoint_every = int(eval_every or steps // 10), int(checkpoint_every or steps // 4)  # env steps
+    every = max(eval_every // copies, 1)
     if algo == "ppo":  # the policy changes once per rollout of n_steps vector steps: evaluate no more often
         rollout = int(model.n_steps)
         every = max(every, rollout)
@@ -1461,7 +1519,7 @@ def train_agent(
     )
     if previous is not None:
         _continue_evaluations(evaluation_cb, out / "evaluations.npz", int(model.num_timesteps), eval_episodes)
-    save_freq = max(int(checkpoint_every or steps // 4) // copies, 1)  # vector steps
+    save_freq = max(checkpoint_every // copies, 1)  # vector steps
     if algo == "ppo":  # at learnt rollouts only
         checkpoint_cb = _rollout_checkpoints(save_freq * copies, out / "checkpoints")
     else:
@@ -1480,10 +1538,16 @@ def train_agent(
         "n_envs": copies,
         "seed": seed,
         "her": her,
+        "eval_every": eval_every,
+        "checkpoint_every": checkpoint_every,
         "env_kwargs": dict(env_kwargs or {}) | ({} if isinstance(env, str) else {"max_episode_steps": limit_now}),
-        "hyperparams": {k: v for k, v in settings.items() if k != "action_noise"}
-        | ({"learning_starts": int(model.learning_starts)} if hasattr(model, "learning_starts") else {})
-        | {"action_noise_std": noise_std, "normalize": normalize},
+        # a resumed model keeps the settings it was made with (the record's), whatever this call's table gives
+        "hyperparams": (
+            record.get("hyperparams")
+            or {k: v for k, v in settings.items() if k != "action_noise"}
+            | {"action_noise_std": noise_std, "normalize": normalize}
+        )
+        | ({"learning_starts": int(model.learning_starts)} if hasattr(model, "learning_starts") else {}),
     }
     model_path = out / "model.zip"
     started = int(model.num_timesteps)
@@ -1494,7 +1558,7 @@ def train_agent(
         model was saved at this step (else a second Ctrl-C stopped the save)."""
         _write_curve(out / "curve.csv", curve)
         summary.update(steps=int(model.num_timesteps), wall_s=wall, interrupted=True, saved=saved)
-        (out / "agent.json").write_text(json.dumps(summary, indent=2, default=str))
+        _write_record(out, summary)
         return TrainingInterrupted(int(model.num_timesteps), model_path, saved)
 
     try:
@@ -1552,7 +1616,7 @@ def train_agent(
         if video and (isinstance(env, str) or env.render_mode == "rgb_array"):
             record_gif(env, agent, out / "policy.gif", seed=seed, env_kwargs=env_kwargs)
         summary |= {"steps": int(model.num_timesteps), "wall_s": wall, "final_evaluation": final.as_dict()}
-        (out / "agent.json").write_text(json.dumps(summary, indent=2, default=str))
+        _write_record(out, summary)
     except KeyboardInterrupt:
         if not saved:  # stopped in the save: once more, so the trained model is kept
             saved = _save_after_interrupt(model, venv, model_path)

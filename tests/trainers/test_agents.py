@@ -1095,6 +1095,82 @@ def test_a_resumed_run_keeps_the_evaluation_and_checkpoint_grid(tmp_path: Path) 
     ]
 
 
+def test_a_resume_without_intervals_keeps_the_runs_own_and_refuses_other_settings(tmp_path: Path) -> None:
+    """A run resumed with more steps and no --eval-every evaluates and checkpoints on its first call's grid (it was
+    steps / 10 and steps / 4 of the new budget), and overrides other than those its model was made with are refused
+    (the loaded model ignored them while agent.json recorded them): a review's findings."""
+    import json
+
+    from redsim.trainers.agents import train_agent
+
+    tiny = {"n_envs": 2, "eval_episodes": 2, "final_episodes": 2, "env_kwargs": SHORT, "video": False}
+    made = {"overrides": {"learning_starts": 10, "learning_rate": 1e-3}}
+    train_agent(MINI, tmp_path, algo="sac", steps=40, **made, **tiny)  # evaluations every 4, checkpoints every 10
+    with pytest.raises(ValueError, match=r"cannot resume with overrides \{'learning_rate': 0.5\}.*0.001"):
+        train_agent(MINI, tmp_path, algo="sac", steps=80, resume=True, overrides={"learning_rate": 0.5}, **tiny)
+    train_agent(MINI, tmp_path, algo="sac", steps=80, resume=True, **tiny)  # no overrides: the model's settings
+    with np.load(tmp_path / "evaluations.npz") as evaluations:
+        assert evaluations["timesteps"].tolist() == list(range(4, 81, 4))
+    assert sorted(int(p.name.split("_")[2]) for p in (tmp_path / "checkpoints").glob("rl_model_*_steps.zip")) == [
+        10,
+        20,
+        30,
+        40,
+        50,
+        60,
+        70,
+        80,
+    ]
+    record = json.loads((tmp_path / "agent.json").read_text())
+    assert record["eval_every"] == 4 and record["checkpoint_every"] == 10
+    assert record["hyperparams"]["learning_rate"] == 1e-3  # what the model trained with, not the table's
+
+
+def test_run_files_are_replaced_whole(tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> None:
+    """curve.csv and agent.json go through a temporary file: a write that stops half way leaves the previous file
+    (they were written in place, and a cut curve.csv or empty agent.json stopped --resume: a review's finding)."""
+    import csv
+
+    from redsim.trainers.agents import _read_curve, _write_curve, _write_record
+
+    row = {"env_steps": 4, "wall_s": 1.0, "mean_return": 2.0, "std_return": 0.5, "success_rate": 0.0}
+    _write_curve(tmp_path / "curve.csv", [row])
+    _write_record(tmp_path, {"seed": 3})
+
+    def stopped(self: csv.DictWriter, rows: list) -> None:
+        raise KeyboardInterrupt
+
+    monkeypatch.setattr(csv.DictWriter, "writerows", stopped)
+    with pytest.raises(KeyboardInterrupt):
+        _write_curve(tmp_path / "curve.csv", [row, row])
+    monkeypatch.setattr(Path, "write_text", lambda self, text: (_ for _ in ()).throw(KeyboardInterrupt()))
+    with pytest.raises(KeyboardInterrupt):
+        _write_record(tmp_path, {"seed": 4})
+    monkeypatch.undo()
+    assert _read_curve(tmp_path / "curve.csv") == [row]
+    assert (tmp_path / "agent.json").read_text().count('"seed": 3') == 1
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["agent.json", "curve.csv"]  # no temporary left
+
+
+def test_a_resume_skips_a_checkpoint_whose_statistics_are_missing_or_damaged(tmp_path: Path) -> None:
+    """A hard stop between a checkpoint's model and its VecNormalize file (written after it) leaves a model without
+    statistics: the resume takes the newest whole save instead of refusing the run."""
+    from redsim.trainers.agents import _resume_from, normalizer_path, train_agent
+
+    tiny = {"n_envs": 2, "eval_episodes": 1, "final_episodes": 1, "env_kwargs": SHORT, "video": False}
+    overrides = {"learning_starts": 10, "normalize": {"clip_obs": 10.0}}
+    train_agent(MINI, tmp_path, algo="sac", steps=40, checkpoint_every=20, overrides=overrides, **tiny)
+    (tmp_path / "model.zip").unlink()
+    newest = tmp_path / "checkpoints" / "rl_model_40_steps.zip"
+    assert _resume_from(tmp_path) == newest
+    normalizer_path(newest).write_bytes(b"cut sho")
+    assert _resume_from(tmp_path) == tmp_path / "checkpoints" / "rl_model_20_steps.zip"
+    normalizer_path(newest).unlink()
+    assert _resume_from(tmp_path) == tmp_path / "checkpoints" / "rl_model_20_steps.zip"
+    result = train_agent(MINI, tmp_path, algo="sac", steps=60, resume=True, checkpoint_every=20, **tiny)
+    assert result.steps == 60
+
+
 def test_a_resume_from_an_older_checkpoint_counts_the_wall_time_up_to_it() -> None:
     """The wall time a resumed run starts from: the record's where it stopped at the resumed step, else read off the
     curve (linear between its evaluations), not the dropped later work's."""
