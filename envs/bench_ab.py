@@ -125,6 +125,7 @@ class _Work:
     def __init__(self) -> None:
         self.round_cpu_s: list[float] = []
         self.round_render_cpu_s: list[float] = []
+        self.steps = 0  # timed vector steps
         self.iterations: list[float] = []
         self.slowest: list[float] = []
         self.converged: list[float] = []
@@ -146,8 +147,11 @@ class _Work:
         self.round_cpu_s.append((time.process_time() - start) / len(actions))
         if render:
             self.round_render_cpu_s.append(drawing / len(actions))
+        self.steps += len(infos)
         for info in infos:
-            if "iterations" not in info:  # every copy restarted this step (NEXT_STEP autoreset): nothing solved
+            # every copy restarted this step (NEXT_STEP autoreset): their solves were made and dropped, so the step's
+            # calls count (in ``calls_per_step``) but it has no solve statistics to report
+            if "iterations" not in info:
                 continue
             self.iterations.append(float(np.mean(info["iterations"])))
             self.slowest.append(float(np.max(info["iterations"])))
@@ -160,7 +164,7 @@ def _summary(
     name: str, env_args: Mapping[str, Any], work: _Work, first: _Work, venv: Any, num_envs: int
 ) -> dict[str, Any]:
     """One setting's row of :func:`bench_env_ab`."""
-    steps = len(work.iterations)
+    steps = work.steps
     evaluations = venv.unwrapped.sim.stepper.evaluations
     median_s = statistics.median(work.round_cpu_s)
     ratios = [a / b for a, b in zip(first.round_cpu_s, work.round_cpu_s, strict=True)]

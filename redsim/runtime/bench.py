@@ -210,8 +210,8 @@ def mujoco_chain_xml(links: int = MUJOCO_CHAIN_LINKS, *, integrator: str = "RK4"
     )
 
 
-def run_mujoco_chain(*, integrator: str, timestep: float, steps: int) -> dict[str, Any] | None:
-    """Steps/s and simulated seconds per wall second of the MuJoCo chain (None without mujoco)."""
+def mujoco_chain(*, integrator: str, timestep: float) -> tuple[Any, Any] | None:
+    """The MuJoCo chain's ``(MjModel, MjData)``, swinging, after 100 untimed steps (None without mujoco)."""
     try:
         import mujoco
     except ImportError:
@@ -221,6 +221,18 @@ def run_mujoco_chain(*, integrator: str, timestep: float, steps: int) -> dict[st
     data.qvel[:] = 0.1  # start swinging
     for _ in range(100):
         mujoco.mj_step(model, data)
+    return model, data
+
+
+def run_mujoco_chain(*, integrator: str, timestep: float, steps: int) -> dict[str, Any] | None:
+    """Steps/s and simulated seconds per wall second of the MuJoCo chain, the mean of a bare loop of ``steps``
+    steps, as ``redsim bench step`` times its rates (None without mujoco)."""
+    built = mujoco_chain(integrator=integrator, timestep=timestep)
+    if built is None:
+        return None
+    import mujoco
+
+    model, data = built
     start = time.perf_counter()
     for _ in range(steps):
         mujoco.mj_step(model, data)

@@ -42,6 +42,30 @@ def test_env_ab_json_counts_the_work_and_the_same_setting_twice_does_the_same_wo
     assert loose["iterations_per_step"] < a["iterations_per_step"]  # a 100x looser tolerance stops sooner
 
 
+def test_env_ab_divides_the_work_by_every_timed_step_even_where_every_copy_restarts() -> None:
+    """With 2-step episodes every third vector step restarts every copy (NEXT_STEP autoreset): its solves are made
+    and dropped, so they count, and so does the step (it was left out of the divisor: a review's finding)."""
+    from redsim.runtime.stepper import Evaluations
+
+    doc = bench_env_ab(
+        "RedSim/MiniChain-v0", {"a": {"max_episode_steps": 2}}, num_envs=2, rounds=2, steps_per_round=2, warmup=1
+    )
+    (row,) = doc["settings"]
+    # the same env and actions stepped by hand: its calls per timed vector step
+    import gymnasium as gym
+    import numpy as np
+
+    venv = gym.make_vec("RedSim/MiniChain-v0", 2, "vector_entry_point", max_episode_steps=2)
+    venv.reset(seed=0)
+    actions = np.random.default_rng(0).uniform(-1.0, 1.0, (5, 2, 3)).astype(np.float32)
+    venv.step(actions[0])
+    venv.unwrapped.sim.stepper.evaluations = Evaluations()
+    for action in actions[1:]:
+        venv.step(action)
+    assert row["calls_per_step"] == venv.unwrapped.sim.stepper.evaluations.calls / 4
+    venv.close()
+
+
 def test_env_ab_prints_a_row_per_setting_and_the_ratios(capsys: pytest.CaptureFixture[str]) -> None:
     args = ["bench", "env-ab", "RedSim/MiniChain-v0", "--setting", "cold"]
     assert main([*args, "--setting", 'warm:stepper_options={"warm_start": true}', *TINY]) == 0

@@ -75,6 +75,8 @@ def test_batched_rollouts_match_single_runs_and_stop_at_their_budget() -> None:
 def test_fuzz_stops_at_its_budget() -> None:
     row = stability.fuzz_env("RedSim/MiniChain-v0", 64 * 50, num_envs=8, seconds=1e-9)
     assert row["steps"] == 8 and row["steps_asked"] == 64 * 50
+    # the speed probe's time is the steps' alone, not the env's construction and reset (a review's finding)
+    assert 0 < row["stepping_seconds"] < row["seconds"]
     assert stability.fuzz_copies("RedSim/HangingCloth-v0", 512) == 8
     assert stability.fuzz_copies("RedSim/Klann-v0") == stability.DEFAULT_FUZZ_COPIES
 
