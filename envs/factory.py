@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import numbers
+import os
 from collections.abc import Mapping
 from typing import Any
 
@@ -61,6 +62,10 @@ def build(
             "(redsim's maps have it), or give a checkpoint path"
         )
     if not hasattr(subspace, "latent_dim"):
+        if not isinstance(subspace, (str, os.PathLike)):
+            raise TypeError(
+                f"subspace must be a map (an nn.Module with latent_dim) or a checkpoint path, got {subspace!r}"
+            )
         subspace = checkpoint_subspace(subspace, scene)
     if isinstance(task, str):
         if task not in TASKS:

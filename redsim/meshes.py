@@ -230,8 +230,20 @@ def voxel_tet_mesh(meshes: trimesh.Trimesh | Sequence[trimesh.Trimesh], pitch: f
     return cells_to_tets(cells, pitch, origin=(-0.5 * pitch,) * 3)
 
 
+def grid_cells(meshes: trimesh.Trimesh | Sequence[trimesh.Trimesh], pitch: float) -> float:
+    """Cells of the dense voxel grids :func:`voxel_tet_mesh` fills at ``pitch`` [m]: each mesh's bounding box."""
+    import trimesh
+
+    parts = [meshes] if isinstance(meshes, trimesh.Trimesh) else list(meshes)
+    return sum(float(np.prod(np.ceil(np.asarray(m.extents, dtype=np.float64) / pitch) + 1.0)) for m in parts)
+
+
 def pitch_for_vertex_count(
-    meshes: trimesh.Trimesh | Sequence[trimesh.Trimesh], target: int, *, iterations: int = 4
+    meshes: trimesh.Trimesh | Sequence[trimesh.Trimesh],
+    target: int,
+    *,
+    iterations: int = 4,
+    max_cells: float | None = None,
 ) -> float:
     """Voxel pitch [m] whose :func:`voxel_tet_mesh` has about ``target`` vertices.
 
@@ -241,6 +253,8 @@ def pitch_for_vertex_count(
         meshes: Watertight mesh(es) [m].
         target: Wanted vertex count (> 8).
         iterations: Voxelizations spent refining the estimate.
+        max_cells: Refuse (ValueError) a pitch whose voxel grids (:func:`grid_cells`) would have more cells, before
+            voxelizing at it (a solid that fills little of its bounding box needs a dense grid); None: no limit.
     """
     import trimesh
 
@@ -252,6 +266,12 @@ def pitch_for_vertex_count(
         raise ValueError("mesh volume must be > 0 to choose a voxel pitch")
     pitch = (volume / target) ** (1.0 / 3.0)
     for _ in range(iterations):
+        cells = grid_cells(parts, pitch)
+        if max_cells is not None and cells > max_cells:
+            raise ValueError(
+                f"about {target} vertices need a voxel pitch near {pitch:.3g} m, whose grid over the mesh's bounding "
+                f"box has ~{cells:.3g} cells (at most {max_cells:.0e}): the solid fills little of its bounding box"
+            )
         count = voxel_tet_mesh(parts, pitch)[0].shape[0]
         if abs(count - target) <= 0.03 * target:
             break
@@ -470,7 +490,9 @@ def load_mesh(path: str | os.PathLike[str]) -> trimesh.Trimesh:
     if not p.is_file():
         raise ValueError(f"mesh path {str(p)!r} is not a file")
     try:
-        mesh = trimesh.load(p, force="mesh")
+        # as written: no vertex dropped (a NaN one, an unreferenced one) nor reordered, so the checks below see
+        # the file's vertices and pin indices count in the file's numbering (the scene builders weld duplicates)
+        mesh = trimesh.load(p, force="mesh", process=False, maintain_order=True)
     except Exception as exc:
         raise ValueError(f"could not read mesh file {str(p)!r}: {type(exc).__name__}: {exc}") from exc
     if not isinstance(mesh, trimesh.Trimesh):

@@ -41,7 +41,7 @@ MAX_VOXELS = 200_000_000  # cells of the voxel grid over the bounding box; more 
 def _check_voxel_count(mesh: trimesh.Trimesh, pitch: float) -> None:
     """Refuse a voxel pitch [m] whose voxel grid over the mesh's bounding box has more than :data:`MAX_VOXELS` cells:
     voxelizing fills a dense array of them (two 1 cm cubes 1 m apart at 2 mm: 1.3e8 cells, 11 s and 0.9 GB)."""
-    cells = float(np.prod(np.ceil(np.asarray(mesh.extents, dtype=np.float64) / pitch) + 1.0))
+    cells = meshes.grid_cells(mesh, pitch)
     if cells > MAX_VOXELS:
         raise ValueError(
             f"voxel_pitch {pitch:g} m would voxelize this mesh's {' x '.join(f'{e:.3g}' for e in mesh.extents)} m "
@@ -204,7 +204,10 @@ def fem_scene_from_mesh(
         raise ValueError(f"mesh {source!r} is not watertight; a solid needs a closed surface")
     if voxel_pitch is None:
         target = check_int("target_dofs", target_dofs, 24)
-        pitch = meshes.pitch_for_vertex_count(mesh, target // 3)
+        try:
+            pitch = meshes.pitch_for_vertex_count(mesh, target // 3, max_cells=MAX_VOXELS)
+        except ValueError as exc:
+            raise ValueError(f"target_dofs {target_dofs} for mesh {source!r}: {exc}; give fewer target_dofs") from exc
     else:
         pitch = check_positive("voxel_pitch", voxel_pitch)
         _check_voxel_count(mesh, pitch)
@@ -298,6 +301,8 @@ def cloth_scene_from_mesh(
     _weld(mesh)
     mesh.update_faces(mesh.nondegenerate_faces())
     mesh.remove_unreferenced_vertices()
+    if len(mesh.faces) == 0:
+        raise ValueError(f"mesh {source!r} has no triangle of nonzero area")
     try:
         meshes.check_manifold(mesh.faces, mesh.vertices)  # before fix_winding, which cannot orient a non-manifold one
     except ValueError as exc:

@@ -339,7 +339,7 @@ def select_vertices(vertices: np.ndarray, spec: PinSpec, *, tolerance: float) ->
         tolerance: Distance [m] from the extreme coordinate still counted as on the extreme layer.
 
     Raises:
-        ValueError: on an unknown name, a mask of the wrong shape or out-of-range indices.
+        ValueError: on an unknown name, a mask of the wrong shape, indices that are not integers or out of range.
     """
     V, D = vertices.shape
     if spec is None or (isinstance(spec, str) and spec == "none"):
@@ -358,6 +358,10 @@ def select_vertices(vertices: np.ndarray, spec: PinSpec, *, tolerance: float) ->
         if chosen.shape != (V,):
             raise ValueError(f"pin mask must have shape [{V}], got {chosen.shape}")
         return np.nonzero(chosen)[0]
+    if chosen.size and not np.issubdtype(chosen.dtype, np.integer):  # [0.0, 0.4, 0.0]: a position, not indices
+        raise ValueError(
+            f"pin indices must be integers (or a bool mask, a name, a callable), got {chosen.dtype} values"
+        )
     chosen = chosen.astype(np.int64).reshape(-1)
     if chosen.size and (chosen.min() < 0 or chosen.max() >= V):
         raise ValueError(f"pin indices must lie in [0, {V}), got range [{chosen.min()}, {chosen.max()}]")

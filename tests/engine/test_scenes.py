@@ -351,6 +351,48 @@ def test_a_cloth_mesh_that_is_not_a_manifold_or_not_finite_or_not_held_is_refuse
         build(loose)
 
 
+def test_a_mesh_file_is_read_as_written(tmp_path) -> None:
+    """A review's findings: trimesh's processing dropped a file's NaN vertex (the scene was built without it) and its
+    unreferenced vertices (pin indices then counted in the loader's numbering, pinning the wrong vertices)."""
+    vertices, triangles = meshes.cloth_grid(0.3, 0.3, (3, 3), origin=(0.0, -0.3, 0.0))
+
+    def obj(path, points, faces) -> None:
+        lines = [f"v {float(x)!r} {float(y)!r} {float(z)!r}" for x, y, z in points]
+        lines += [f"f {a + 1} {b + 1} {c + 1}" for a, b, c in faces]
+        path.write_text("\n".join(lines) + "\n")
+
+    broken = vertices.copy()
+    broken[5, 0] = np.nan
+    obj(tmp_path / "nan.obj", broken, triangles)
+    with pytest.raises(ValueError, match="non-finite vertex coordinates"):
+        redsim.scenes.cloth_scene_from_mesh(tmp_path / "nan.obj")
+    top = [i for i in range(len(vertices)) if vertices[i, 1] >= vertices[:, 1].max() - 1e-9][:2]
+    obj(tmp_path / "stray.obj", np.vstack([[[5.0, 5.0, 5.0]], vertices]), triangles + 1)  # vertex 1 is unused
+    scene = redsim.scenes.cloth_scene_from_mesh(tmp_path / "stray.obj", pin=[i + 1 for i in top])
+    dofs = scene.dof_map
+    pinned = dofs.full_values[dofs.pinned_index].view(-1, 3).double().numpy()
+    np.testing.assert_allclose(np.sort(pinned, axis=0), np.sort(vertices[top], axis=0), atol=1e-6)
+
+
+def test_bad_cloth_and_solid_inputs_are_named() -> None:
+    """Every triangle degenerate, pin indices given as floats (a position typed by mistake), and a target_dofs whose
+    pitch would fill a huge voxel grid (the limit applied to voxel_pitch alone): a review's findings."""
+    line = trimesh.Trimesh([[0.0, 0.0, 0.0], [1.0, 0.0, 0.0], [2.0, 0.0, 0.0]], [[0, 1, 2]], process=False)
+    with pytest.raises(ValueError, match="has no triangle of nonzero area"):
+        redsim.scenes.cloth_scene_from_mesh(line)
+    vertices, triangles = meshes.cloth_grid(0.3, 0.3, (3, 3), origin=(0.0, -0.3, 0.0))
+    with pytest.raises(ValueError, match=r"pin indices must be integers .* got float64"):
+        redsim.scenes.cloth_scene_from_mesh(trimesh.Trimesh(vertices, triangles), pin=[0.0, 0.4, 0.0])
+    apart = trimesh.util.concatenate(
+        [
+            trimesh.creation.box(extents=(0.01,) * 3),
+            trimesh.creation.box(extents=(0.01,) * 3).apply_translation((1, 1, 1)),
+        ]
+    )
+    with pytest.raises(ValueError, match=r"target_dofs .* cells \(at most 2e\+08\).* give fewer target_dofs"):
+        redsim.scenes.fem_scene_from_mesh(apart)
+
+
 def test_a_mesh_split_at_uv_seams_or_per_face_normals_is_welded_back(tmp_path) -> None:
     """A flat-shaded or textured export repeats a vertex per face; the cloth and the solid are the welded mesh."""
     vertices, triangles = meshes.cloth_grid(0.5, 0.5, (6, 6), origin=(0.0, -0.5, 0.0))

@@ -888,6 +888,9 @@ def test_make_names_a_scene_or_task_of_the_wrong_type() -> None:
     # a module that is no map was taken for a checkpoint path (TypeError "expected str, bytes or os.PathLike")
     with pytest.raises(ValueError, match="the subspace Linear has no latent_dim"):
         redsim.envs.make(scenes.build("mini_chain"), torch.nn.Linear(2, 24))
+    # neither a map nor a path: named (pathlib's "expected str, bytes or os.PathLike" before; a review's finding)
+    with pytest.raises(TypeError, match=r"subspace must be a map .* or a checkpoint path, got 42"):
+        redsim.envs.make(scenes.build("mini_chain"), 42)
 
 
 def test_make_of_a_catalog_scene_object_takes_its_shipped_subspace() -> None:
