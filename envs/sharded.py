@@ -98,9 +98,10 @@ def _serve(venv: VectorEnv, command: str, payload: Any) -> Any:
         return venv.step(payload)
     if command == "reset":
         if payload[1] and "reset_mask" in payload[1] and not payload[1]["reset_mask"].any():  # no copy of this shard
-            if venv._unreset.all():  # type: ignore[attr-defined]  # never reset: zeros, as SyncVectorEnv's
-                return np.zeros(venv.observation_space.shape, venv.observation_space.dtype), {}
-            return venv.sim.observe(), {}  # type: ignore[attr-defined]
+            sim = venv.sim  # type: ignore[attr-defined]
+            if not sim.params:  # never reset: the native env's unreset rows (rest, zero task parameters)
+                sim.params = sim.drawn_params()
+            return sim.observe(), {}
         return venv.reset(seed=payload[0], options=payload[1])
     if command == "call":
         return venv.call(payload)
@@ -353,6 +354,8 @@ class ShardedVectorEnv(SharedCopies, VectorEnv):
         [N, H, D] and each task parameter [N, ...] as the env's own (ValueError naming the key and both shapes)."""
         sim, n = self.template.sim, self.num_envs
         theirs, mine = state.get("setting"), sim.setting()
+        if theirs is not None and not isinstance(theirs, Mapping):
+            raise ValueError(f"state['setting'] must be the dict get_state() wrote, got {theirs!r:.80}")
         if theirs is not None and dict(theirs) != mine:
             differ = ", ".join(f"{k} {theirs.get(k)!r} (here {v!r})" for k, v in mine.items() if theirs.get(k) != v)
             raise ValueError(f"the state belongs to another env: {differ}")
@@ -393,6 +396,12 @@ class ShardedVectorEnv(SharedCopies, VectorEnv):
             raise ValueError(f"state['params'] must have keys {sorted(sim.params)}, got {sorted(params)}")
         for key, value in params.items():
             check(f"params.{key}", value, (n, *sim.params[key].shape[1:]) if key in sim.params else None)
+            try:  # numbers, as the native env converts them (before the task's own checks read them)
+                np.asarray(value, dtype=np.float64)
+            except (TypeError, ValueError):
+                raise ValueError(
+                    f"state['params.{key}'] must be a numeric array (one row per copy), got {value!r:.80}"
+                ) from None
 
     def _blocks(self) -> list[slice]:
         return [slice(start, start + size) for start, size in zip(self.starts, self.sizes, strict=True)]
@@ -521,14 +530,15 @@ def _merge_infos(infos: Sequence[dict[str, Any]], sizes: Sequence[int]) -> dict[
     """One vector info from the shards' (Gymnasium's layout: ``key`` [N] values and ``_key`` [N] masks).
 
     A key that only some shards report (e.g. ``final_obs`` where a copy ended) gets, in the others, an
-    empty entry of its kind and a False mask; a nested info (``final_info``) is merged the same way.
+    empty entry of its kind and a False mask; a nested info (``final_info``) is merged the same way, a shard
+    without it giving its own step values under False masks (the native env's masked entries keep the step's value).
     """
     keys = list(dict.fromkeys(key for info in infos for key in info))
     out: dict[str, Any] = {}
     for key in keys:
         example = next(info[key] for info in infos if key in info)
         if isinstance(example, Mapping):
-            out[key] = _merge_infos([info.get(key, {}) for info in infos], sizes)
+            out[key] = _merge_infos([info[key] if key in info else _hidden(info) for info in infos], sizes)
             continue
         parts = []
         for info, size in zip(infos, sizes, strict=True):
@@ -540,6 +550,12 @@ def _merge_infos(infos: Sequence[dict[str, Any]], sizes: Sequence[int]) -> dict[
                 parts.append(np.zeros((size, *example.shape[1:]), dtype=example.dtype))
         out[key] = np.concatenate(parts)
     return out
+
+
+def _hidden(info: Mapping[str, Any]) -> dict[str, Any]:
+    """A shard's step values (its info less masks, nested infos and ``final_obs``) under False masks."""
+    values = {k: v for k, v in info.items() if not (k.startswith("_") or isinstance(v, Mapping) or k == "final_obs")}
+    return values | {f"_{k}": np.zeros(len(v), dtype=bool) for k, v in values.items()}
 
 
 __all__ = ["JOIN_TIMEOUT_S", "ShardError", "ShardedVectorEnv", "shard_sizes"]

@@ -215,9 +215,35 @@ def test_a_key_only_some_shards_report_is_merged_as_the_native_env_reports_it() 
         if key.startswith("_"):
             np.testing.assert_array_equal(final_s[key], [True, True, False, False])
             np.testing.assert_array_equal(final_s[key], final_n[key])
-        else:
-            np.testing.assert_allclose(final_s[key][:2], final_n[key][:2], rtol=1e-4, atol=1e-4)
+        else:  # every entry: the masked ones keep the step's value in both (zeros in shard 1 before stop 50)
+            np.testing.assert_allclose(final_s[key], final_n[key], rtol=1e-4, atol=1e-4)
     assert sharded["final_obs"][2] is None and sharded["final_obs"][3] is None
+
+
+def test_a_masked_first_reset_and_garbage_states_as_the_native_env() -> None:
+    """A shard none of whose copies a masked first reset names shows them as the native env does (at rest, zero
+    task parameters; it returned zeros), and a state whose setting is no dict, or whose task parameters are no
+    numbers, is the native env's ValueError (a TypeError before): a review's findings."""
+    envs = [
+        gym.make_vec("RedSim/MiniChain-v0", num_envs=3, vectorization_mode="vector_entry_point", **TIGHT),
+        gym.make_vec("RedSim/MiniChain-v0", num_envs=3, vectorization_mode="vector_entry_point", shards=2, **TIGHT),
+    ]
+    try:
+        first = {"reset_mask": np.array([True, False, False])}
+        native, sharded = (venv.reset(seed=4, options=first)[0] for venv in envs)
+        np.testing.assert_allclose(sharded, native, atol=1e-12)
+        for venv in envs:
+            venv.reset(seed=0)
+            good = venv.get_state()
+            with pytest.raises(ValueError, match=r"state\['setting'\] must be the dict get_state\(\) wrote"):
+                venv.set_state({**good, "setting": 5})
+            key = next(iter(good["params"]))
+            bad = {**good, "params": {**good["params"], key: np.full(np.shape(good["params"][key]), "x")}}
+            with pytest.raises(ValueError, match=f"params.{key}"):
+                venv.set_state(bad)
+    finally:
+        for venv in envs:
+            venv.close()
 
 
 def test_sb3_adapter_runs_on_shards() -> None:
