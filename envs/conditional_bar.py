@@ -55,8 +55,8 @@ class ConditionalBarEnv(ReachEnv):
     |---|---|---|---|---|
     | 0-7 | latent z | -10 | 10 | unitless |
     | 8-15 | latent velocity z_dot | -1000 | 1000 | 1/s |
-    | 16-17 | tip position p (mean of the tip column) | -3 | 3 | m |
-    | 18-19 | target - p | -3 | 3 | m |
+    | 16-17 | tip position p (mean of the tip column) | -(r + 2L) | r + 2L | m (r = 0.99 m, the rest tip's x; L = 1 m) |
+    | 18-19 | target - p | -(r + 2L) | r + 2L | m |
     | 20 | stiffness ratio c[0] | 0.2 | 5 | unitless |
     | 21 | support location c[1] | 0.3 | 1.0 | m |
 
