@@ -675,13 +675,13 @@ def test_stewart_has_six_dofs_plus_strut_spins() -> None:
 
 
 def test_stewart_rest_pose_holds_under_gravity_with_zero_action() -> None:
-    """The servos hold the seed: the full-space static solve with zero load moves the plate < 1 cm."""
+    """The servos hold the seed: the full-space static solve with zero load moves the plate 3.4 mm (< 4 mm)."""
     scene = built("stewart", True)
     q, info = static_equilibrium(scene, {f"arm_{i}": [0.0, 0.0, 0.0] for i in range(6)})
     assert info.converged
     plate = scene.handle("top_plate")
     moved = plate.position(scene.full_positions(q[None])) - plate.position(scene.full_positions(scene.q_seed[None]))
-    assert float(moved.norm()) < 0.01
+    assert float(moved.norm()) < 0.004
     # unheld (servos ~ 0), the same solve lets the platform fall
     loose = redsim.scenes.build("stewart", servo_stiffness=1e-6)
     q, _ = static_equilibrium(loose)
