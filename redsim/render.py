@@ -82,7 +82,7 @@ def _shade(tris: np.ndarray, rgb: np.ndarray) -> np.ndarray:
 
 def draw_states(
     scene: Scene,
-    qs: Sequence[Tensor],
+    qs: Sequence[Tensor] | Tensor,
     titles: Sequence[str] | None = None,
     path: str | Path = "states.png",
     *,
@@ -100,7 +100,7 @@ def draw_states(
 
     Args:
         scene: The scene (must have at least one surface).
-        qs: Free configurations, each of shape [n].
+        qs: Free configurations, each of shape [n] (or a batch [k, n]).
         titles: One title per state (default: ``state 0``, ``state 1``, ...).
         path: Output file; parent folders are created.
         loads: Forces [N] by handle name (as for :meth:`Scene.pack_loads`), drawn on every panel.
@@ -116,10 +116,7 @@ def draw_states(
     """
     if not scene.surfaces:
         raise ValueError(f"scene {scene.name!r} has no surfaces to draw")
-    if not qs:
-        raise ValueError("draw_states needs at least one state")
-    if not all(bool(torch.isfinite(torch.as_tensor(q)).all()) for q in qs):
-        raise ValueError("draw_states needs finite states: a state that is not finite has no picture")
+    qs = _states(qs, "draw_states")
     titles = [f"state {i}" for i in range(len(qs))] if titles is None else list(titles)
     if len(titles) != len(qs):
         raise ValueError(f"got {len(qs)} states but {len(titles)} titles")
@@ -141,8 +138,22 @@ def draw_states(
         _draw_loads(ax, scene, q, loads or {}, half)
     path = Path(path)
     path.parent.mkdir(parents=True, exist_ok=True)
-    fig.savefig(path, dpi=dpi, bbox_inches="tight", pad_inches=0.1)
+    fig.savefig(path, format="png", dpi=dpi, bbox_inches="tight", pad_inches=0.1)  # at ``path``, whatever its suffix
     return path
+
+
+def _states(qs: Sequence[Tensor] | Tensor, caller: str) -> list[Tensor]:
+    """``qs`` as a list of states [n]: a sequence of them, or a batch [k, n]; refused where empty or not finite."""
+    if isinstance(qs, Tensor | np.ndarray):
+        if qs.ndim != 2:
+            raise ValueError(f"{caller} takes a sequence of [n] states or a batch [k, n], got shape {tuple(qs.shape)}")
+        qs = list(qs)
+    qs = list(qs)
+    if not qs:
+        raise ValueError(f"{caller} needs at least one state")
+    if not all(bool(torch.isfinite(torch.as_tensor(q)).all()) for q in qs):
+        raise ValueError(f"{caller} needs finite states: a state that is not finite has no picture")
+    return qs
 
 
 MIN_GIF_FPS = 100.0 / 65535
@@ -160,24 +171,27 @@ def gif_frame_ms(fps: float) -> int:
 
 
 def animate_states(
-    scene: Scene, qs: Sequence[Tensor], path: str | Path = "anim.gif", *, fps: float = 20.0, dpi: int = 80
+    scene: Scene, qs: Sequence[Tensor] | Tensor, path: str | Path = "anim.gif", *, fps: float = 20.0, dpi: int = 80
 ) -> Path:
     """Write configurations of ``scene`` as the frames of a looping GIF (shared axis limits).
 
     Args:
         scene: The scene (must have surfaces).
-        qs: Free configurations, each of shape [n], one per frame.
+        qs: Free configurations, each of shape [n], one per frame (or a batch [k, n]).
         path: Output .gif file; parent folders are created.
         fps: Frames per second, in [:data:`MIN_GIF_FPS`, :data:`MAX_GIF_FPS`] (:func:`gif_frame_ms`).
         dpi: Resolution.
 
     Returns:
         The path written.
+
+    Raises:
+        ValueError: a scene without surfaces, no state or one that is not finite, a path that is not a .gif, or an
+            fps out of range.
     """
     if not scene.surfaces:
         raise ValueError(f"scene {scene.name!r} has no surfaces to draw")
-    if not qs:
-        raise ValueError("animate_states needs at least one state")
+    qs = _states(qs, "animate_states")
     if Path(path).suffix.lower() != ".gif":
         raise ValueError(f"animate_states writes a .gif, got {str(path)!r}")
     frame_ms = gif_frame_ms(fps)
@@ -355,7 +369,8 @@ def export_meshes(scene: Scene, q: Tensor, directory: str | Path, frame: int) ->
 
     Raises:
         DependencyNotInstalled: without trimesh.
-        ValueError: a scene without surfaces, a configuration that is not finite, or a negative frame.
+        ValueError: a scene without surfaces, a configuration that is not finite, a negative frame, or two surfaces
+            whose file names coincide (one would overwrite the other).
     """
     if not scene.surfaces:
         raise ValueError(f"scene {scene.name!r} has no surfaces to export")
@@ -369,15 +384,20 @@ def export_meshes(scene: Scene, q: Tensor, directory: str | Path, frame: int) ->
         raise ValueError(f"frame must be an integer >= 0, got {frame!r}")
     frame = index
     trimesh = _require("trimesh")
+    names = [_safe_name(surface.name) for surface in scene.surfaces]
+    same = sorted({name for name in names if names.count(name) > 1})
+    if same:  # one file would overwrite the other
+        raise ValueError(f"surfaces of scene {scene.name!r} share file names {same}: give them distinct names")
+    vertices = surface_vertices(scene, q)  # a q of the wrong shape is refused before the folder is made
     directory = Path(directory)
     directory.mkdir(parents=True, exist_ok=True)
     paths = []
-    for surface, v in zip(scene.surfaces, surface_vertices(scene, q), strict=True):
+    for surface, name, v in zip(scene.surfaces, names, vertices, strict=True):
         if v.shape[1] == 2:
             v = np.concatenate([v, np.zeros((len(v), 1))], axis=1)
         faces = surface.faces.cpu().numpy()
         geometry = trimesh.Trimesh(v, faces, process=False) if len(faces) else trimesh.PointCloud(v)
-        path = directory / f"frame_{frame:04d}_{_safe_name(surface.name)}.ply"
+        path = directory / f"frame_{frame:04d}_{name}.ply"
         geometry.export(path)
         paths.append(path)
     return paths

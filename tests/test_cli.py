@@ -255,6 +255,30 @@ def test_render_2d_scene(tmp_path) -> None:
         export_meshes(bare.finalize("points"), moved, tmp_path, 0)
 
 
+def test_render_takes_a_batch_writes_where_it_says_and_never_overwrites_a_surface(tmp_path) -> None:
+    """A review's findings: a batch [k, n] was an ambiguous-truth RuntimeError, a path without .png came back as a
+    file that did not exist (matplotlib wrote NAME.png), two surfaces with one file name overwrote each other, a
+    refused q left an empty folder, and a NaN frame of an animation failed inside matplotlib."""
+    from redsim.render import animate_states, draw_states, export_meshes
+
+    scene = redsim.scenes.build("mini_chain")
+    batch = torch.stack([scene.q_seed, scene.q_seed + 0.01])
+    written = draw_states(scene, batch, path=tmp_path / "no_suffix")
+    assert written == tmp_path / "no_suffix" and written.read_bytes()[:4] == b"\x89PNG"
+    assert animate_states(scene, batch, tmp_path / "two.gif").read_bytes()[:3] == b"GIF"
+    with pytest.raises(ValueError, match=r"a sequence of \[n\] states or a batch \[k, n\], got shape \(24,\)"):
+        draw_states(scene, scene.q_seed, path=tmp_path / "one.png")
+    with pytest.raises(ValueError, match="animate_states needs finite states"):
+        animate_states(scene, batch * torch.nan, tmp_path / "nan.gif")
+    with pytest.raises(ValueError):
+        export_meshes(scene, scene.q_seed[:5], tmp_path / "refused", 0)
+    assert not (tmp_path / "refused").exists()
+    surfaces = list(scene.surfaces)
+    twins = dataclasses.replace(scene, surfaces=(surfaces[0], dataclasses.replace(surfaces[1], name=surfaces[0].name)))
+    with pytest.raises(ValueError, match="share file names"):
+        export_meshes(twins, scene.q_seed, tmp_path / "twins", 0)
+
+
 def test_shown_path_is_machine_independent(tmp_path, monkeypatch: pytest.MonkeyPatch) -> None:
     """Reports print shipped checkpoints package-relative and local ones relative to the working folder."""
     from redsim import pretrained
