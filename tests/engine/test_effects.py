@@ -566,6 +566,25 @@ def test_every_effect_gradient_matches_central_differences(name: str) -> None:
             _directional_fd_check(scene, effect, q, cond, seed)
 
 
+def test_cloth_ball_contact_gradient_matches_central_differences_where_the_ball_presses() -> None:
+    """The sampled states above leave the cloth clear of the ball (its contact compared 0 with 0; a review's
+    finding): here the ball is lowered 1 cm into the contact margin, and every effect's gradient is checked."""
+    scene = redsim.scenes.build("cloth_ball")
+    contact = next(e for e in scene.effects if isinstance(e, SDFContact))
+    rigid = next(e for e in scene.effects if isinstance(e, RigidOrthogonality))
+    height = int((scene.dof_map.free_index == int(rigid.element_dofs[0, 7])).nonzero())  # the ball's y: [R | t]
+    for seed, scale in ((1, 1e-4), (2, 1e-3)):
+        q = _random_state(scene, scale, seed)
+        q[height] -= float(contact.clearance(scene.full_positions(q[None]))[0]) + 0.01
+        x = scene.full_positions(q[None])
+        assert float(contact.penetration(x)[0]) > 5e-3
+        qr = q.clone().requires_grad_(True)
+        (grad,) = torch.autograd.grad(contact.energy(scene.full_positions(qr[None]))[0], qr)
+        assert float(grad.norm()) > 0.0  # the contact pushes
+        for effect in scene.effects:
+            _directional_fd_check(scene, effect, q, None, seed)
+
+
 def test_tiny_effects_pass_torch_gradcheck() -> None:
     torch.manual_seed(1)
     _gradcheck(_tet_effect(), TET.reshape(-1) + 0.1 * torch.randn(12, dtype=torch.float64))

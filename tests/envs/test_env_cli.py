@@ -42,7 +42,7 @@ def test_bench_envs_json(capsys: pytest.CaptureFixture[str]) -> None:
     assert row["n"] == 24 and row["d"] == 4 and row["action_size"] == 3 and row["observation_size"] == 14
     assert row["vector"]["2"]["env_steps_per_s"] > 0 and row["full_space"]["step_s"] > 0
     work = row["vector"]["2"]  # each step evaluates at least the start and z_t of every copy, in one call
-    assert work["iterations_per_step"] >= 0 and work["calls_per_step"] >= 1 and work["rows_per_copy_step"] >= 2
+    assert work["iterations_per_step"] > 0 and work["calls_per_step"] >= 1 and work["rows_per_copy_step"] >= 2
     # a vector step calls the objective at least once per iteration of its slowest copy, after the start call
     assert work["iterations_per_step"] <= work["slowest_iterations_per_step"] <= work["calls_per_step"] - 1
     assert "machine" in doc and "available" in doc["mujoco"]
@@ -133,7 +133,7 @@ def test_bench_envs_sharded(capsys: pytest.CaptureFixture[str]) -> None:
     args = ["bench", "envs", "--envs", "RedSim/MiniChain-v0", "--batches", "2", "--steps", "2", "--no-full-space"]
     assert main([*args, "--anchor-steps", "20", "--shards", "2", "--json"]) == 0
     work = json.loads(capsys.readouterr().out)["results"][0]["vector"]["2"]
-    assert work["shards"] == 2 and work["env_steps_per_s"] > 0 and work["iterations_per_step"] >= 0
+    assert work["shards"] == 2 and work["env_steps_per_s"] > 0 and work["iterations_per_step"] > 0
     assert work["calls_per_step"] is None and work["rows_per_copy_step"] is None  # the workers keep their counts
     assert main([*args, "--shards", "3"]) == 2
     assert "--shards must be in [1, the smallest batch 2]" in capsys.readouterr().err

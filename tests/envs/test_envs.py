@@ -292,6 +292,9 @@ def test_same_step_infos_have_the_sync_vector_envs_layout() -> None:
                         np.testing.assert_allclose(got[ended], v[ended], rtol=1e-5, atol=1e-6, err_msg=k)
             elif key.startswith("_"):
                 np.testing.assert_array_equal(mine[key], value, err_msg=key)
+            else:  # the top-level values, where the masks show them (a review: they were never compared)
+                shown = np.asarray(theirs[f"_{key}"], dtype=bool)
+                np.testing.assert_allclose(mine[key][shown], value[shown], rtol=1e-5, atol=1e-6, err_msg=key)
     ended = [info["_final_obs"] for info in infos[0] if "_final_obs" in info]
     assert [list(e) for e in ended] == [[True, True, False], [False, False, True]]
 
@@ -322,7 +325,7 @@ def test_an_env_s_stepper_defaults_yield_to_the_user_s_options_key_by_key() -> N
 
 def test_bad_actions_are_clear_errors(mini: gym.Env) -> None:
     mini.reset(seed=0)
-    with pytest.raises(ValueError, match="finite"):
+    with pytest.raises(ValueError, match="action must be finite"):  # the env's own check, not the stepper's
         mini.step(np.array([np.nan, 0.0, 0.0], np.float32))
     with pytest.raises(ValueError, match=r"shape \(3,\)"):
         mini.step(np.zeros(2, np.float32))
@@ -800,9 +803,12 @@ def test_sb3_ppo_and_sac_run_a_few_hundred_steps(env_id: str) -> None:
     from redsim.envs.sb3 import SB3VecEnv
 
     venv = SB3VecEnv.make(env_id, num_envs=4)
-    PPO("MlpPolicy", venv, n_steps=32, batch_size=64, n_epochs=1, seed=0, policy_kwargs={"net_arch": [16]}).learn(256)
+    ppo = PPO("MlpPolicy", venv, n_steps=32, batch_size=64, n_epochs=1, seed=0, policy_kwargs={"net_arch": [16]})
     env = gym.make(env_id)
-    SAC("MlpPolicy", env, learning_starts=50, batch_size=32, seed=0, policy_kwargs={"net_arch": [16]}).learn(150)
+    sac = SAC("MlpPolicy", env, learning_starts=50, batch_size=32, seed=0, policy_kwargs={"net_arch": [16]})
+    for model, steps in ((ppo.learn(256), 256), (sac.learn(150), 150)):  # trained, and its weights stay finite
+        assert model.num_timesteps >= steps and model._n_updates > 0
+        assert all(bool(torch.isfinite(p).all()) for p in model.policy.parameters())
 
 
 @pytest.mark.slow

@@ -125,7 +125,7 @@ def test_stewart_arm_torques_move_the_plate() -> None:
     moved = float((env.task.pose(env.sim.x)[0] - start).norm())
     assert moved > 0.2 * env.task.position_scale, (moved, env.task.position_scale)
     terms = [info[f"reward_{t}"] for t in ("position", "orientation", "control", "success")]
-    assert np.isfinite(terms).all() and info["angle"] >= 0.0
+    assert np.isfinite(terms).all() and np.isfinite(info["angle"])
 
 
 def test_linkage_tasks_reject_bad_arguments() -> None:

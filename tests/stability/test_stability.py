@@ -105,6 +105,7 @@ def test_far_latent_start_stays_finite_and_out_of_range(mini_chain) -> None:
     z = torch.full((1, stepper.latent_dim), 10.0 / stepper.latent_dim**0.5)  # |z| = 10
     run = runtime_rollout(scene, f, torch.zeros(10, 1, 3, dtype=torch.float64), 0.02, z0=z)
     assert run.flags["out_of_range"] >= 1
+    assert run.nonfinite == 0 and bool(torch.isfinite(run.q).all())  # the "stays finite" of the name
 
 
 def test_a_latent_the_observation_clips_is_flagged_out_of_range() -> None:
