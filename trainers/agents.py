@@ -1067,13 +1067,14 @@ def _resume_from(out: Path) -> Path | None:
     an older checkpoint replace newer work. A checkpoint whose ``VecNormalize`` statistics are missing or damaged
     (:func:`_whole`) is passed over, with a warning, for the next one."""
     found = [p for p in [out / "model.zip", *(out / "checkpoints").glob("rl_model_*_steps.zip")] if p.is_file()]
-    for path in sorted(found, key=lambda p: (_saved_steps(p), p.name == "model.zip"), reverse=True):
+    ranked = sorted(found, key=lambda p: (_saved_steps(p), p.name == "model.zip"), reverse=True)
+    for path in ranked:
         if path.name == "model.zip" or _whole(path):  # model.zip's own statistics missing: the caller refuses
             return path
         log.warning(
             "not resuming from %s: its observation statistics %s are missing or damaged", path, normalizer_path(path)
         )
-    return None
+    return ranked[0] if ranked else None  # none whole: the newest, which the caller refuses (never a new run)
 
 
 def _check_kept_settings(overrides: Mapping[str, Any] | None, recorded: Mapping[str, Any] | None, out: Path) -> None:
@@ -1082,14 +1083,38 @@ def _check_kept_settings(overrides: Mapping[str, Any] | None, recorded: Mapping[
     derived again on a resume (module doc) and passes."""
     if not overrides or recorded is None:
         return
-    given = json.loads(json.dumps(dict(overrides), default=str))  # as the record holds them
-    changed = {k: v for k, v in given.items() if k != "learning_starts" and k in recorded and recorded[k] != v}
+    changed = {
+        k: v
+        for k, v in overrides.items()
+        if k != "learning_starts"
+        and k in recorded
+        and _plain(v)
+        and not _within(json.loads(json.dumps(v)), recorded[k])
+    }
     if changed:
         kept = {k: recorded.get(k) for k in changed}
         raise ValueError(
             f"cannot resume with overrides {changed}: the run in {out} was made with {kept}, and a resumed model "
             "keeps its settings (give the same overrides, or none, or another --out)"
         )
+
+
+def _plain(value: Any) -> bool:
+    """A value JSON holds as it is (numbers, strings, bools, None, lists and dicts of them): one a record can be
+    compared with; a function or class (a schedule, a policy class) is recorded by a name that changes per process."""
+    if isinstance(value, Mapping):
+        return all(isinstance(k, str) and _plain(v) for k, v in value.items())
+    if isinstance(value, list | tuple):
+        return all(_plain(v) for v in value)
+    return value is None or isinstance(value, bool | int | float | str)
+
+
+def _within(given: Any, recorded: Any) -> bool:
+    """``given`` equals ``recorded``, a dict's keys compared only where given (the run may have added its own, as
+    HER's ``goal_selection_strategy`` in ``replay_buffer_kwargs``)."""
+    if isinstance(given, dict) and isinstance(recorded, dict):
+        return all(k in recorded and _within(v, recorded[k]) for k, v in given.items())
+    return given == recorded
 
 
 def _whole(path: Path) -> bool:
@@ -1400,6 +1425,14 @@ def train_agent(
                 f"cannot resume with {copies} copies: the run's replay buffer {out / BUFFER} holds "
                 f"{found['n_envs']} (give n_envs={found['n_envs']}, --n-envs {found['n_envs']})"
             )
+        if found["normalized"]:
+            try:
+                load_normalizer(normalizer_path(previous))
+            except ValueError as err:
+                raise ValueError(
+                    f"cannot resume from {previous}: its statistics are damaged ({err}; restore the file, or start "
+                    "again with --overwrite)"
+                ) from None
     kwargs_now = json.loads(json.dumps(dict(env_kwargs or {}), default=str))  # as the model file records them
     limit_now = None if isinstance(env, str) else _base_env(env)[1]
     if not isinstance(env, str):  # a user's env: no kwargs make it, but its episode limit changes the task

@@ -375,9 +375,9 @@ class LatentStepper:
         self.row_block = None if row_block is None else int(row_block)
         self.start = start
         self.max_step = None if max_step is None else float(max_step)
-        if not isinstance(warm_refresh, bool):
+        if not isinstance(warm_refresh, bool | np.bool_):
             raise ValueError(f"warm_refresh must be True or False, got {warm_refresh!r}")
-        self.warm_refresh = warm_refresh
+        self.warm_refresh = bool(warm_refresh)
         self.dt = float(dt)
         self.dtype = dtype
         self.device = torch.device(check_device(device))
@@ -388,11 +388,11 @@ class LatentStepper:
         self.tol = float(tol)
         self.max_iter = int(max_iter)
         self.hessian = hessian
-        if not (dense is None or isinstance(dense, bool)):
+        if not (dense is None or isinstance(dense, bool | np.bool_)):
             raise ValueError(f"dense must be True, False or None, got {dense!r}")
-        if not isinstance(warm_start, bool):
+        if not isinstance(warm_start, bool | np.bool_):  # NumPy's bools too, as the scene builders take them
             raise ValueError(f"warm_start must be True or False, got {warm_start!r}")
-        self.dense = self.device.type == "cuda" if dense is None else dense
+        self.dense = self.device.type == "cuda" if dense is None else bool(dense)
         self.sync_every = sync_every
         _check_map_scene(subspace, scene)
         self.source_scene = scene
@@ -416,7 +416,7 @@ class LatentStepper:
         self._phi = self._phi_eager
         self.compiled = compile is True  # static shapes: a call pads to the whole batch
         self._compile(compile == "dynamic")
-        self.warm_start = warm_start
+        self.warm_start = bool(warm_start)
         self.evaluations = Evaluations()
         """Value-and-gradient calls and rows so far (:class:`Evaluations`; assign a new one to restart the count)."""
 

@@ -278,6 +278,16 @@ def test_switches_must_be_bools(option: str, value, match: str) -> None:
         LatentStepper(scenes.build("mini_chain"), pretrained.load("mini_chain"), DT, **{option: value})
 
 
+def test_switches_take_numpy_bools() -> None:
+    """NumPy's bools pass as the scene builders take them (a review: the stricter check refused np.True_)."""
+    import numpy as np
+
+    stepper = LatentStepper(
+        scenes.build("mini_chain"), pretrained.load("mini_chain"), DT, warm_start=np.False_, dense=np.True_
+    )
+    assert stepper.warm_start is False and stepper.dense is True
+
+
 def test_a_scene_name_for_a_scene_is_a_type_error() -> None:
     """Where a Scene is expected, its name (or None) is a TypeError saying how to build one, not an AttributeError."""
     scene = scenes.build("mini_chain")

@@ -1167,8 +1167,30 @@ def test_a_resume_skips_a_checkpoint_whose_statistics_are_missing_or_damaged(tmp
     assert _resume_from(tmp_path) == tmp_path / "checkpoints" / "rl_model_20_steps.zip"
     normalizer_path(newest).unlink()
     assert _resume_from(tmp_path) == tmp_path / "checkpoints" / "rl_model_20_steps.zip"
+    older = tmp_path / "checkpoints" / "rl_model_20_steps.zip"
+    kept = normalizer_path(older).read_bytes()
+    normalizer_path(older).unlink()  # none whole: refused, never a new run over the old one (a review's finding)
+    with pytest.raises(FileNotFoundError, match="are missing"):
+        train_agent(MINI, tmp_path, algo="sac", steps=60, resume=True, checkpoint_every=20, **tiny)
+    for path in (newest, older):
+        normalizer_path(path).write_bytes(b"cut")
+    with pytest.raises(ValueError, match="its statistics are damaged"):
+        train_agent(MINI, tmp_path, algo="sac", steps=60, resume=True, checkpoint_every=20, **tiny)
+    normalizer_path(older).write_bytes(kept)
     result = train_agent(MINI, tmp_path, algo="sac", steps=60, resume=True, checkpoint_every=20, **tiny)
     assert result.steps == 60
+
+
+def test_kept_settings_compare_what_a_record_can_hold(tmp_path: Path) -> None:
+    """A dict override is compared key by key (HER adds goal_selection_strategy to replay_buffer_kwargs), and a
+    function (a schedule) is not compared by its per-process name: a resume with the same overrides goes on."""
+    from redsim.trainers.agents import _check_kept_settings
+
+    recorded = {"replay_buffer_kwargs": {"n_sampled_goal": 2, "goal_selection_strategy": "future"}, "gamma": 0.98}
+    _check_kept_settings({"replay_buffer_kwargs": {"n_sampled_goal": 2}, "gamma": 0.98}, recorded, tmp_path)
+    _check_kept_settings({"learning_rate": lambda progress: 1e-3 * progress}, {"learning_rate": "<fn>"}, tmp_path)
+    with pytest.raises(ValueError, match="cannot resume with overrides"):
+        _check_kept_settings({"replay_buffer_kwargs": {"n_sampled_goal": 4}}, recorded, tmp_path)
 
 
 def test_a_resume_from_an_older_checkpoint_counts_the_wall_time_up_to_it() -> None:
