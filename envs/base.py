@@ -128,11 +128,14 @@ class Task:
     :meth:`extras_bounds` (finite), :meth:`observation_structure` (block sizes adding up to the extras'),
     :meth:`loads`, :meth:`extras` and :meth:`reward`; the others have defaults. ``x`` is the full configuration
     [B, N]; a handle's position is ``sim.scene.handle(name).position(x)`` [B, D]; keep ``sim`` from :meth:`bind`
-    for anything else (``sim.x_prev``, ``sim.dt``). Every step checks what the task returns: ``reward``, each
-    reward term (named as ``reward_terms``, summing to the reward) and each metric are tensors [B], finite where
-    floating; ``terminated`` is a bool tensor [B]; ``extras`` (at every observation, resets too) a tensor [B, k],
-    k = ``len(extras_bounds()[0])``, finite; a ValueError names the method otherwise. A vector env and an
-    unpickled env work on a copy of the task object (:meth:`bind` runs again for it).
+    for anything else (``sim.x_prev``, ``sim.dt``). Every step checks what the task returns: ``reward`` and each
+    reward term (named as ``reward_terms``, summing to the reward) are tensors [B], finite where floating; each
+    metric a tensor [B] (it may be NaN where it has no value); ``terminated`` a bool tensor [B]; ``loads`` a
+    tensor [B, H, D]; ``extras`` (at every observation, resets too) a tensor [B, k], k = ``len(extras_bounds()[0])``,
+    finite; ``start`` a finite latent [d]; ``frame_points`` finite points [P, D]; a ValueError names the method
+    otherwise. A vector env and an unpickled env work on a copy of the task object (:meth:`bind` runs again for
+    it). :meth:`loads` runs only in steps (the first reset's probe of the action scale works on a copy of the
+    parameters).
 
     Attributes:
         name: Task name (used by :func:`redsim.envs.make`).
@@ -639,6 +642,11 @@ class LatentSim:
                     self.params[key] = torch.zeros((self.batch, *value.shape), dtype=value.dtype, device=self.device)
                 self.params[key][row] = value
             start = self.task.start(self, row, z_rest)
+            if not isinstance(start, Tensor) or tuple(start.shape) != (self.latent_dim,):
+                got = list(start.shape) if isinstance(start, Tensor) else type(start).__name__
+                raise ValueError(f"Task.start must return a torch tensor of shape [d] = [{self.latent_dim}], got {got}")
+            if not bool(torch.isfinite(start).all()):
+                raise ValueError(f"Task.start returned a latent that is not finite: {shown(start)}")
             self.z[row] = start
             self.z_prev[row] = start
             if self.reset_noise_scale > 0.0:  # drawn last: with s = 0 the streams are those of an env without it
@@ -659,6 +667,15 @@ class LatentSim:
         if self.action_resolution is None:
             self.action_resolution = self._action_resolution(rows[0])
 
+    def task_loads(self, action: Tensor, params: Mapping[str, Tensor]) -> Tensor:
+        """:meth:`Task.loads` of actions [B, A], refused (a ValueError naming it) unless a tensor [B, H, D]."""
+        loads = self.task.loads(action, params)
+        want = (self.batch, len(self.scene.handles), self.scene.dim)
+        if not isinstance(loads, Tensor) or tuple(loads.shape) != want:
+            got = list(loads.shape) if isinstance(loads, Tensor) else type(loads).__name__
+            raise ValueError(f"Task.loads must return a torch tensor of shape [B, H, D] = {list(want)}, got {got}")
+        return loads
+
     def _action_resolution(self, row: int) -> np.ndarray:
         """[A] The fraction of each action's range whose load a step from the map's origin can feel at best
         (:attr:`redsim.runtime.LatentStepper.load_resolution` over the load a full action puts on each handle); warns
@@ -669,7 +686,9 @@ class LatentSim:
         for i in range(size):
             action = torch.zeros(self.batch, size, dtype=self.torch_dtype, device=self.device)
             action[:, i] = 1.0
-            load = self.task.loads(action, self.params)[row].detach().to("cpu", torch.float64).norm(dim=-1)  # [H]
+            # on a copy: loads may advance per-episode parameters in place (a clock), and this is no step
+            params = {k: v.clone() for k, v in self.params.items()}
+            load = self.task_loads(action, params)[row].detach().to("cpu", torch.float64).norm(dim=-1)  # [H]
             if bool((load > 0.0).any()):
                 fractions[i] = float((resolution[load > 0.0] / load[load > 0.0]).min())
         if fractions.max() > ACTION_RESOLUTION_WARNING:
@@ -703,6 +722,11 @@ class LatentSim:
         """(low, high) of one observation, float32 [obs]."""
         d = self.latent_dim
         low_e, high_e = self.task.extras_bounds()
+        if np.shape(low_e) != np.shape(high_e) or np.ndim(low_e) != 1:
+            raise ValueError(
+                f"Task.extras_bounds must return (low, high), two 1-D arrays of one length, got shapes "
+                f"{list(np.shape(low_e))} and {list(np.shape(high_e))}"
+            )
         low = [np.full(d, -LATENT_BOUND), np.full(d, -2.0 * LATENT_BOUND / self.stepper.dt), low_e]
         high = [np.full(d, LATENT_BOUND), np.full(d, 2.0 * LATENT_BOUND / self.stepper.dt), high_e]
         if self.randomize_condition:
@@ -789,7 +813,7 @@ class LatentSim:
 
     def _step(self, action: np.ndarray) -> tuple[np.ndarray, np.ndarray, dict[str, np.ndarray]]:
         act = torch.as_tensor(action, dtype=self.torch_dtype, device=self.device)
-        self.loads = self.task.loads(act, self.params).to(self.torch_dtype)
+        self.loads = self.task_loads(act, self.params).to(self.torch_dtype)
         diverged = torch.zeros(self.batch, dtype=torch.bool, device=self.device)
         out_of_range = torch.zeros_like(diverged)
         energy_gain = torch.zeros_like(diverged)
@@ -1091,7 +1115,13 @@ class LatentSim:
                 points.append(self.surface_points(z, None if cond is None else cond.expand(len(z), -1)))
             extra = self.task.frame_points(self)
             if extra is not None and len(extra):
-                points.append(np.asarray(extra, dtype=np.float64).reshape(-1, self.scene.dim))
+                extra = np.asarray(extra, dtype=np.float64)
+                if extra.ndim != 2 or extra.shape[1] != self.scene.dim or not np.isfinite(extra).all():
+                    raise ValueError(
+                        f"Task.frame_points must return finite points [P, D] = [P, {self.scene.dim}] [m], got "
+                        f"shape {list(extra.shape)}{'' if np.isfinite(extra).all() else ' with non-finite values'}"
+                    )
+                points.append(extra)
             self._frame_points = np.concatenate(points)
         return self._frame_points
 

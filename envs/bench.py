@@ -72,7 +72,7 @@ def _full_space_step(
     def call() -> None:
         draw = rng.uniform(-1.0, 1.0, (1, *env.action_space.shape))
         action = torch.as_tensor(draw, dtype=sim.torch_dtype, device=sim.device)
-        loads = sim.task.loads(action, sim.params)[0].to(torch.float64).cpu()
+        loads = sim.task_loads(action, sim.params)[0].to(torch.float64).cpu()
         holder["state"], info = integrator.step(holder["state"], loads)
         holder["converged"] = holder["converged"] and info.converged
         holder["iterations"].append(info.iterations)

@@ -236,3 +236,57 @@ def test_the_reach_task_s_default_force_finds_gravity_by_type_not_by_name() -> N
     gravity = next(e for e in chain.effects if e.kind == "gravity")
     weight = float(gravity.masses.sum()) * float(gravity.acceleration.norm())
     assert _default_force(chain) == pytest.approx(DEFAULT_FORCE_FRACTION * weight)
+
+
+def test_the_first_reset_leaves_the_task_parameters_as_drawn() -> None:
+    """The first reset probes the action scale through Task.loads, which may advance per-episode parameters (a
+    clock): it works on a copy, so a seed draws the same episode at the first reset as later (a review: clock 3)."""
+    env = _env(HoldHeight())
+    env.reset(seed=0)
+    first = {k: v.clone() for k, v in env.unwrapped.sim.params.items()}
+    env.reset(seed=0)
+    again = env.unwrapped.sim.params
+    assert all(torch.equal(first[k], again[k]) for k in again) and int(first["clock"][0]) == 0
+
+
+class NumpyLoads(HoldHeight):
+    def loads(self, action, params):
+        return super().loads(action, params).numpy()
+
+
+class ShortStart(HoldHeight):
+    def start(self, sim, row, z_rest):
+        return z_rest[:1]
+
+
+class FlatFramePoints(HoldHeight):
+    def frame_points(self, sim):
+        return np.zeros((3, 2))
+
+
+class RaggedBounds(HoldHeight):
+    def extras_bounds(self):
+        return np.full(2, -10.0), np.full(3, 10.0)
+
+
+@pytest.mark.parametrize(
+    ("task", "call", "expected"),
+    [
+        (
+            NumpyLoads(),
+            "reset",
+            r"Task.loads must return a torch tensor of shape \[B, H, D\] = \[1, 1, 3\], got ndarray",
+        ),
+        (ShortStart(), "reset", r"Task.start must return a torch tensor of shape \[d\] = \[4\], got \[1\]"),
+        (FlatFramePoints(), "render", r"Task.frame_points must return finite points \[P, D\] = \[P, 3\]"),
+        (RaggedBounds(), "make", r"Task.extras_bounds must return \(low, high\), two 1-D arrays of one length"),
+    ],
+)
+def test_a_hook_returning_the_wrong_shape_is_named(task: Task, call: str, expected: str) -> None:
+    """These were broadcast or reshaped silently (a short start, flat frame points) or failed deep inside (numpy
+    loads, ragged bounds): a review's findings."""
+    with pytest.raises(ValueError, match=expected):
+        env = redsim.envs.make("mini_chain", task=task, max_episode_steps=20, render_mode="rgb_array")
+        env.reset(seed=0)
+        if call == "render":
+            env.render()
