@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import csv
+import dataclasses
 import json
 import math
 
@@ -270,3 +271,20 @@ def test_a_full_space_rest_that_did_not_converge_is_said_in_the_report(mini_chai
     )
     assert result["rest_converged"] is False
     assert "note: the full-space rest solve did not converge" in accuracy.report(result, "machine: test")
+
+
+def test_a_latent_rest_that_did_not_converge_is_said_in_the_report(mini_chain, monkeypatch) -> None:
+    """Each subspace's rest solve's convergence was thrown away (a review's finding): its rows start where the solve
+    stopped, so the JSON names the subspaces and the report says so."""
+    solve = accuracy.latent_equilibrium
+
+    def stopped_short(space, cond):
+        z, info = solve(space, cond)
+        return z, dataclasses.replace(info, converged=False)
+
+    monkeypatch.setattr(accuracy, "latent_equilibrium", stopped_short)
+    result = accuracy.bench_accuracy(
+        mini_chain, pretrained.load("mini_chain"), steps=10, scenarios=("push",), full=(), study=False
+    )
+    assert result["latent_rests_unconverged"] and "neural" in result["latent_rests_unconverged"][0]
+    assert "note: the latent rest solve did not converge for" in accuracy.report(result, "machine: test")
