@@ -442,6 +442,7 @@ class LatentSim:
     x_prev: Tensor
     loads: Tensor
     model: Tensor
+    carry: Tensor
 
     def __init__(
         self,
@@ -548,6 +549,8 @@ class LatentSim:
         self.loads = torch.zeros(B, len(scene.handles), scene.dim, dtype=self.torch_dtype, device=self.device)
         # the solver's d x d model of each copy, carried from step to step (NaN: build one)
         self.model = torch.full((B, d, d), torch.nan, dtype=self.torch_dtype, device=self.device)
+        # E and dE/dz at z of each copy, from its last step (the stepper's carry; NaN: evaluate them)
+        self.carry = torch.full((B, self.stepper.carry_size), torch.nan, dtype=self.torch_dtype, device=self.device)
         self._frame_points: np.ndarray | None = None  # the fixed camera's frame, at the first render (frame_points)
         task.bind(self)
         self.x = self.x_prev = self.full_positions(self.z)
@@ -659,6 +662,7 @@ class LatentSim:
         self.z_before[rows] = self.z[rows]
         self.loads[rows] = 0.0
         self.model[rows] = torch.nan
+        self.carry[rows] = torch.nan
         x = self.full_positions(self.z[rows], None if self.cond is None else self.cond[rows])
         self.x = self.x.clone()
         self.x_prev = self.x_prev.clone()
@@ -789,10 +793,10 @@ class LatentSim:
             raise
 
     def snapshot(self) -> tuple[Any, ...]:
-        """Copies of what a step or a reset of some rows changes (z, z_prev, z_before, loads, the solver's model, the
-        task params, which a task's loads may update in place, and cond); x and x_prev are replaced, never written in
-        place, so they are kept by reference. :meth:`restore` puts them back: an env step that fails after the
-        simulation step (its observation, an autoreset) leaves every copy as it was."""
+        """Copies of what a step or a reset of some rows changes (z, z_prev, z_before, loads, the solver's model and
+        carry, the task params, which a task's loads may update in place, and cond); x and x_prev are replaced, never
+        written in place, so they are kept by reference. :meth:`restore` puts them back: an env step that fails after
+        the simulation step (its observation, an autoreset) leaves every copy as it was."""
         params = {k: v.clone() for k, v in self.params.items()}
         cond = None if self.cond is None else self.cond.clone()
         return (
@@ -803,13 +807,16 @@ class LatentSim:
             self.x_prev,
             self.loads.clone(),
             self.model.clone(),
+            self.carry.clone(),
             params,
             cond,
         )
 
     def restore(self, saved: tuple[Any, ...]) -> None:
         """Return to a :meth:`snapshot`."""
-        self.z, self.z_prev, self.z_before, self.x, self.x_prev, self.loads, self.model, self.params, self.cond = saved
+        z, z_prev, z_before, x, x_prev, loads, model, carry, params, cond = saved
+        self.z, self.z_prev, self.z_before, self.x, self.x_prev, self.loads = z, z_prev, z_before, x, x_prev, loads
+        self.model, self.carry, self.params, self.cond = model, carry, params, cond
 
     def _step(self, action: np.ndarray) -> tuple[np.ndarray, np.ndarray, dict[str, np.ndarray]]:
         act = torch.as_tensor(action, dtype=self.torch_dtype, device=self.device)
@@ -822,8 +829,10 @@ class LatentSim:
         converged = torch.ones_like(diverged)
         z_before = self.z.clone()  # x's latent, x_prev's after this step
         for _ in range(self.frame_skip):
-            z_next, stats = self.stepper.step(self.z, self.z_prev, self.loads, self.cond, warm=self.model)
-            self.model = stats.model
+            z_next, stats = self.stepper.step(
+                self.z, self.z_prev, self.loads, self.cond, warm=self.model, carry=self.carry
+            )
+            self.model, self.carry = stats.model, stats.carry
             self.z_prev, self.z = self.z, self._nearest_turn(z_next.detach(), self.z)
             diverged |= stats.diverged.to(self.device)
             out_of_range |= stats.out_of_range.to(self.device)
@@ -908,7 +917,8 @@ class LatentSim:
     def get_state(self) -> dict[str, Any]:
         """Copies of the dynamic state: z, z_prev [B, d], ``z_before`` [B, d] (z one env step ago: x_prev's, which
         Klann's crank speed reads), cond [B, m] or None, task params {k: [B, ...]},
-        the solver's warm start ``model`` [B, d, d] (so a restored state steps bitwise alike), the loads of the last
+        the solver's warm start ``model`` [B, d, d] and ``carry`` [B, k] (so a restored state steps bitwise alike;
+        :attr:`redsim.runtime.stepper.StepStats`), the loads of the last
         step ``loads`` [B, H, D] [N] (what the force arrows draw and a task's controller reads) and the
         :meth:`setting` it belongs to."""
         return {
@@ -916,6 +926,7 @@ class LatentSim:
             "z_prev": self.z_prev.cpu().numpy().copy(),
             "z_before": self.z_before.cpu().numpy().copy(),
             "model": self.model.cpu().numpy().copy(),
+            "carry": self.carry.cpu().numpy().copy(),
             "loads": self.loads.cpu().numpy().copy(),
             "cond": None if self.cond is None else self.cond.cpu().numpy().copy(),
             "params": {k: v.cpu().numpy().copy() for k, v in self.params.items()},
@@ -924,9 +935,10 @@ class LatentSim:
 
     def set_state(self, state: Mapping[str, Any]) -> None:
         """Restore a state from :meth:`get_state` (shapes are checked; without ``model`` the next step
-        builds its solver model afresh: the same solve to the tolerance, from which float32 trajectories then drift
-        apart as they do between batch sizes; without ``loads`` (a state saved before states held them) the last
-        loads are zero, as after a reset: no force arrow is drawn until the next step).
+        builds its solver model afresh and without ``carry`` evaluates E at z itself: the same solve to the
+        tolerance, from which float32 trajectories then drift apart as they do between batch sizes; without
+        ``loads`` (a state saved before states held them) the last loads are zero, as after a reset: no force arrow
+        is drawn until the next step).
 
         The state is checked as ``reset(options=...)`` checks its options (a task parameter named in
         :attr:`Task.reset_options`, e.g. a target beyond the observation bound, is refused by
@@ -979,6 +991,9 @@ class LatentSim:
         model = torch.full((B, d, d), torch.nan, dtype=self.torch_dtype, device=self.device)
         if state.get("model") is not None:  # NaN rows: none built yet (the next step builds its own)
             model = tensor(state["model"], (B, d, d), "model", finite=False)
+        carry = torch.full_like(self.carry, torch.nan)
+        if state.get("carry") is not None:  # NaN rows: the next step evaluates them
+            carry = tensor(state["carry"], tuple(carry.shape), "carry", finite=False)
         H, D = self.loads.shape[1:]
         loads = torch.zeros_like(self.loads)
         if state.get("loads") is not None:
@@ -992,11 +1007,12 @@ class LatentSim:
         params = {k: tensor(v, tuple(like[k].shape), f"params.{k}", like[k].dtype) for k, v in params.items()}
         self.check_state_params(params)
         decoded = self.decode_state_latents({"z": z, "z_before": z_before, "z_prev": z_prev}, cond, params)
-        self.z, self.z_prev, self.z_before, self.model, self.params, self.loads = (
+        self.z, self.z_prev, self.z_before, self.model, self.carry, self.params, self.loads = (
             z,
             z_prev,
             z_before,
             model,
+            carry,
             params,
             loads,
         )
@@ -1810,6 +1826,7 @@ def state_row(state: Mapping[str, Any], i: int = 0) -> dict[str, Any]:
         "z_prev": state["z_prev"][i],
         "z_before": None if state.get("z_before") is None else state["z_before"][i],
         "model": state["model"][i],
+        "carry": None if state.get("carry") is None else state["carry"][i],
         "loads": None if state.get("loads") is None else state["loads"][i],
         "cond": None if state["cond"] is None else state["cond"][i],
         "params": {k: v[i] for k, v in state["params"].items()},
@@ -1834,6 +1851,7 @@ def _batch(state: Mapping[str, Any]) -> dict[str, Any]:
         "z_prev": row(state["z_prev"]),
         "z_before": row(state.get("z_before")),
         "model": row(state.get("model")),
+        "carry": row(state.get("carry")),
         "loads": row(state.get("loads")),
         "cond": row(state["cond"]),
         # not a dict: as given, for the batched set_state to name

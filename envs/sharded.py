@@ -350,8 +350,9 @@ class ShardedVectorEnv(SharedCopies, VectorEnv):
 
     def _check_state_shapes(self, state: Mapping[str, Any]) -> None:
         """Refuse a state of another env or shape, in the native env's order (:meth:`LatentSim.set_state`): its
-        ``setting``, a missing key, ``cond`` [N, m], ``z`` and ``z_prev`` [N, d], ``model`` [N, d, d], ``loads``
-        [N, H, D] and each task parameter [N, ...] as the env's own (ValueError naming the key and both shapes)."""
+        ``setting``, a missing key, ``cond`` [N, m], ``z`` and ``z_prev`` [N, d], ``model`` [N, d, d], ``carry``
+        [N, k], ``loads`` [N, H, D] and each task parameter [N, ...] as the env's own (ValueError naming the key and
+        both shapes)."""
         sim, n = self.template.sim, self.num_envs
         theirs, mine = state.get("setting"), sim.setting()
         if theirs is not None and not isinstance(theirs, Mapping):
@@ -385,6 +386,8 @@ class ShardedVectorEnv(SharedCopies, VectorEnv):
             check("z_before", state["z_before"], (n, d), finite=True)
         if state.get("model") is not None:
             check("model", state["model"], (n, d, d))
+        if state.get("carry") is not None:
+            check("carry", state["carry"], (n, *sim.carry.shape[1:]))
         if state.get("loads") is not None:
             check("loads", state["loads"], (n, *sim.loads.shape[1:]), finite=True)
         params = state["params"]

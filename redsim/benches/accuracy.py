@@ -243,11 +243,11 @@ def run_runtime(stepper: LatentStepper, z0: Tensor, loads: Tensor) -> Run:
     z_prev = z.clone()
     zs, times = [z.clone()], []
     failed = flagged = out_of_range = idle = 0
-    model = None
+    model = carry = None
     for i in range(loads.shape[0]):
         start = time.perf_counter()
-        z_next, stats = stepper.step(z, z_prev, loads[i : i + 1], warm=model)
-        model = stats.model
+        z_next, stats = stepper.step(z, z_prev, loads[i : i + 1], warm=model, carry=carry)
+        model, carry = stats.model, stats.carry
         times.append(time.perf_counter() - start)
         failed += int((~stats.converged).sum())
         idle += int(((stats.iterations == 0) & bool(loads[i].any())).sum())

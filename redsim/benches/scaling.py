@@ -67,18 +67,19 @@ def _step_times(stepper: Any, batch: int, steps: int, load: float) -> tuple[floa
 
     The tip is pushed sideways (+z) by ``load`` [N] and pulled back by it on alternate steps. A briefly
     fitted map barely moves the tip, so many steps still meet the tolerance at their start (no
-    iteration): their time is the two energy evaluations every step makes and the solver's overhead.
+    iteration): their time is the step's first energy evaluation (at the extrapolated start; E at z_t is carried
+    from the step before, as the envs carry it) and the solver's overhead.
     """
     z = torch.zeros(batch, stepper.latent_dim)
     push = torch.zeros(batch, 1, 3)
     push[..., 2] = load
-    z_prev, model, times, iterations = z.clone(), None, [], []
+    z_prev, model, carry, times, iterations = z.clone(), None, None, [], []
     for step in range(steps + 1):
         start = time.perf_counter()
-        z_next, stats = stepper.step(z, z_prev, push if step % 2 == 0 else -push, warm=model)
+        z_next, stats = stepper.step(z, z_prev, push if step % 2 == 0 else -push, warm=model, carry=carry)
         times.append(time.perf_counter() - start)
         iterations.append(float(stats.iterations.float().mean()))
-        model, z_prev, z = stats.model, z, z_next
+        model, carry, z_prev, z = stats.model, stats.carry, z, z_next
     return 1e3 * statistics.median(times[1:]), statistics.fmean(iterations[1:])
 
 

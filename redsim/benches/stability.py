@@ -219,12 +219,12 @@ def runtime_rollouts(
     z = stepper.rest_latent(None if c is None else c[:1]) if z0 is None else z0.reshape(1, -1).to(stepper.dtype)
     z = z.expand(batch, -1).clone()
     zp = z.clone() if z_prev is None else z_prev.reshape(1, -1).to(stepper.dtype).expand(batch, -1).clone()
-    zs, reported, gains, tolerances, model = [zp, z], [], [], [], None
+    zs, reported, gains, tolerances, model, carry = [zp, z], [], [], [], None, None
     nonfinite = torch.zeros(batch, dtype=torch.int64)
     flags = {k: torch.zeros(batch, dtype=torch.int64) for k in ("unconverged", "diverged", "out_of_range", "idle")}
     for i in range(steps):
-        z_next, stats = stepper.step(z, zp, loads[i], c, warm=model)  # warm-started as the envs do
-        model = stats.model
+        z_next, stats = stepper.step(z, zp, loads[i], c, warm=model, carry=carry)  # warm and carried as the envs do
+        model, carry = stats.model, stats.carry
         bad = ~(torch.isfinite(z_next).all(-1) & torch.isfinite(stats.energy))
         nonfinite += bad.cpu()
         z_next = torch.where(torch.isfinite(z_next), z_next, z)

@@ -41,11 +41,11 @@ def _rollout(
 ) -> tuple[Tensor, list[float]]:
     """Latents [steps + 1, B, d] of a rollout from z0 (at rest, or moving from ``z_prev``) and each step's wall time
     [s]."""
-    z, z_prev, out, times, model = z0, z0 if z_prev is None else z_prev, [z0], [], None
+    z, z_prev, out, times, model, carry = z0, z0 if z_prev is None else z_prev, [z0], [], None, None
     for t in range(steps):
         start = time.perf_counter()
-        z_next, stats = stepper.step(z, z_prev, None if loads is None else loads[t], warm=model)
-        model = stats.model
+        z_next, stats = stepper.step(z, z_prev, None if loads is None else loads[t], warm=model, carry=carry)
+        model, carry = stats.model, stats.carry
         times.append(time.perf_counter() - start)
         z_prev, z = z, z_next
         out.append(z)

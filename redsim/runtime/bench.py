@@ -97,7 +97,8 @@ def run_stepper(
 ) -> dict[str, Any]:
     """Step B states from rest (z = z_prev = z0 [B, d]) through ``loads`` [steps, B, H, D].
 
-    With ``warm`` each step starts its solver from the last step's model (``stats.model``), as the envs do.
+    Each step takes E and dE/dz at z_t from the last step's ``stats.carry``, and with ``warm`` starts its solver
+    from the last step's model (``stats.model``), as the envs do.
 
     Returns env_steps_per_s (B * steps / wall time of the timed steps, after ``warmup`` untimed ones
     from the same start), per-step medians (wall and this process's CPU time), iterations per step (mean
@@ -113,12 +114,12 @@ def run_stepper(
     z_prev = z.clone()
     trajectory = [z.clone()]
     times, cpu_times, iterations, converged, out_of_range, diverged = [], [], [], [], [], []
-    model = None
+    model = carry = None
     calls, rows = stepper.evaluations.calls, stepper.evaluations.rows
     for i in range(loads.shape[0]):
         start, cpu_start = time.perf_counter(), time.process_time()
-        z_next, stats = stepper.step(z, z_prev, loads[i], warm=model)
-        model = stats.model if warm else None
+        z_next, stats = stepper.step(z, z_prev, loads[i], warm=model, carry=carry)
+        model, carry = stats.model if warm else None, stats.carry
         _sync(device)
         times.append(time.perf_counter() - start)
         cpu_times.append(time.process_time() - cpu_start)

@@ -103,6 +103,7 @@ class BatchResult:
         z: Last accepted iterate (finite wherever the start was).
         value: Phi at z [J].
         energy: The potential energy E at z [J] (the objective's third output).
+        grad: dPhi/dz at z [B, d] (zero where ``finite`` is false).
         grad_norm: |dPhi/dz| at z.
         iterations: Accepted iterations, int64.
         converged: grad_norm <= tol * scale.
@@ -115,6 +116,7 @@ class BatchResult:
     z: Tensor
     value: Tensor
     energy: Tensor
+    grad: Tensor
     grad_norm: Tensor
     iterations: Tensor
     converged: Tensor
@@ -697,7 +699,9 @@ def minimize(
     grad_norm = torch.linalg.vector_norm(it.grad, dim=-1)
     converged = it.finite & (grad_norm <= problem.threshold)
     stalled = it.stalled & ~converged
-    return BatchResult(it.z, it.value, it.energy, grad_norm, it.iterations, converged, stalled, it.finite, it.model)
+    return BatchResult(
+        it.z, it.value, it.energy, it.grad, grad_norm, it.iterations, converged, stalled, it.finite, it.model
+    )
 
 
 __all__ = [

@@ -59,7 +59,7 @@ STARTS = ("extrapolated", "lower")
 
 
 class StepStats(NamedTuple):
-    """What one step did, per state; every field has shape [B], except ``model`` [B, d, d].
+    """What one step did, per state; every field has shape [B], except ``model`` [B, d, d] and ``carry`` [B, k].
 
     Attributes:
         converged: The relative gradient norm met ``tol`` (bool).
@@ -77,6 +77,9 @@ class StepStats(NamedTuple):
             solve's leftover gradient can put in, |dPhi/dz| |z_{t+1} - z_t|, plus round-off (inf where ``residual`` is).
         model: The solver's final d x d Hessian model [B, d, d]: pass it as ``warm`` to the next step
             of the same states (NaN rows: none was built).
+        carry: What the step knows at z_next, [B, :attr:`LatentStepper.carry_size`]: (z_next, cond) as its key, E,
+            dPhi/dz and the inertia and load terms' force dPhi/dq - dE/dq [w] there: pass it as ``carry`` to the next
+            step of the same states, which then evaluates Phi at z_t without the energy (NaN rows: none).
     """
 
     converged: Tensor
@@ -88,6 +91,7 @@ class StepStats(NamedTuple):
     energy_gain: Tensor
     energy_gain_tolerance: Tensor
     model: Tensor
+    carry: Tensor
 
 
 @dataclass
@@ -480,6 +484,7 @@ class LatentStepper:
         self._handle_matrix = torch.stack(rows) if rows else torch.zeros(0, n, dtype=dtype, device=device)
         self._handle_offset = p[0].detach() if p is not None else torch.zeros(0, dtype=dtype, device=device)
         self._coords = self.energy.positions
+        self._coords_size = n  # the width w of the stepper's coordinates q (a reduced energy's features: theirs)
         self._mass = scene.mass_matvec
         self._handles = self.handle_positions
         self._handle_rows = self._handle_matrix
@@ -542,6 +547,7 @@ class LatentStepper:
         handle_matrix = (handles @ weight).to(self.dtype)
         handle_offset = (handles @ bias).to(self.dtype) + self._handle_offset
         self._coords = energy.features
+        self._coords_size = weight.shape[1]
         self._mass = lambda y: y @ gram
         self._mass_norm = lambda v, _mv: (v * (v @ gram_sq)).sum(-1).clamp_min(0.0).sqrt()
         self._handles = lambda y: y @ handle_matrix.T + handle_offset
@@ -648,6 +654,13 @@ class LatentStepper:
         return loads.reshape(batch, H * D)
 
     # -- public -----------------------------------------------------------------------------
+    @property
+    def carry_size(self) -> int:
+        """Columns k of :attr:`StepStats.carry`: 2 d + m + 1 + w (m the scene's condition size, 0 without one; w the
+        stepper's coordinates: the free DOFs n, or a reduced energy's features)."""
+        space = self.scene.condition_space
+        return 2 * self.latent_dim + 1 + (0 if space is None else space.dim) + self._coords_size
+
     def positions(self, z: Tensor, cond: Tensor | None = None) -> Tensor:
         """Free DOFs q = f(z) [B, n] of latents z [B, d] (``scene.full_positions(q)`` draws them)."""
         z = self._latents(z, "z")
@@ -662,6 +675,7 @@ class LatentStepper:
         cond: Tensor | None = None,
         *,
         warm: Tensor | None = None,
+        carry: Tensor | None = None,
     ) -> tuple[Tensor, StepStats]:
         """One implicit-Euler step of every state.
 
@@ -677,14 +691,21 @@ class LatentStepper:
                 the quasi-Newton models start from it instead of building a Hessian (the default
                 "lagged_fd" saves d gradient evaluations a step; rows with a NaN build their own).
                 The result is the same solve, to the tolerance.
+            carry: The previous step's ``stats.carry`` of the same states, or None. A row whose key (that step's
+                z_next and condition) equals this step's z and cond bitwise has Phi and dPhi/dz at z_t from it (E,
+                and the last dPhi/dz plus dq/dz^T times the change of the inertia and load force: one backward pass
+                through the map's coordinates), so the step's first call evaluates the energy at the extrapolated
+                start only; other rows (NaN, another z: a reset, a periodic latent turned by 2 pi) are evaluated. The
+                same step, to round-off.
 
         Returns:
             z_next [B, d] (never NaN: a state that failed keeps its best finite iterate) and the
             :class:`StepStats`.
 
         Raises:
-            ValueError: a z, z_prev, loads, cond or warm that is not an array of real numbers, a wrong shape or a
-                non-finite z, z_prev, loads or cond, or an unknown handle in a loads mapping (nothing is stepped).
+            ValueError: a z, z_prev, loads, cond, warm or carry that is not an array of real numbers, a wrong shape
+                or a non-finite z, z_prev, loads or cond, or an unknown handle in a loads mapping (nothing is
+                stepped).
         """
         z = self._latents(z, "z")
         z_prev = self._latents(z_prev, "z_prev")
@@ -701,9 +722,13 @@ class LatentStepper:
                     f"warm must have shape [{batch}, {d}, {d}] (a step's stats.model), got {tuple(warm.shape)}"
                 )
             warm = warm.to(self.dtype) if self.warm_start else None
+        known = self._reusable(carry, z, cond_t)
+        z_grad = z.detach().requires_grad_(known is not None)  # a carry's Phi(z_t) takes dq/dz^T there
         with torch.no_grad():
-            both = self._coords(torch.cat([z, z_prev]), None if cond_t is None else cond_t.repeat(2, 1))
-            q_t, q_prev = both[:batch], both[batch:]
+            with torch.set_grad_enabled(known is not None):
+                both = self._coords(torch.cat([z_grad, z_prev]), None if cond_t is None else cond_t.repeat(2, 1))
+                q_graph = both[:batch]
+            q_t, q_prev = q_graph.detach(), both[batch:].detach()
             velocity = q_t - q_prev
             qbar = q_t + velocity
             m_v = self._mass(velocity)
@@ -714,11 +739,10 @@ class LatentStepper:
             z0 = 2.0 * z - z_prev
             objective = _StepObjective(self, qbar, loads_t, cond_t, z0)
             # Phi at the extrapolated start and at z_t: the start of the solve, a secant pair for
-            # the quasi-Newton models, and Phi(z_t) for the diverged flag (one call)
-            value, grad, energy = objective.start(z0, z)
+            # the quasi-Newton models, and Phi(z_t) for the diverged flag (one call; at z_t from the carry where
+            # it holds the last step's E, dPhi/dz and force there)
+            first, at_z = self._start(objective, z0, z, known, (z_grad, q_graph))
             noise = self._value_noise(moving)
-            at_z = (value[batch:], grad[batch:], energy[batch:])
-            first = (value[:batch], grad[:batch], energy[:batch])
             # from z_t where the extrapolated start is not finite (a finite step may still exist), and with
             # start "lower" where Phi(z_t) is lower (from z_t the secant pair is empty: the solver skips its update)
             lower = ~(torch.isfinite(first[0]) & torch.isfinite(first[1]).all(-1))
@@ -743,7 +767,7 @@ class LatentStepper:
                 max_step=self.max_step,
                 warm_refresh=self.warm_refresh,
                 start=first,
-                secant=(z, grad[batch:]),
+                secant=(z, at_z[1]),
                 warm=warm,
             )
             result = self._restart_worse(objective, result, z, at_z, force, noise)
@@ -754,7 +778,7 @@ class LatentStepper:
             offset = q_next - qbar
             kinetic_now = 0.5 * (velocity * m_v).sum(-1) / self.dt**2
             diverged = ~result.finite | diverged_states(
-                value[batch:],
+                at_z[0],
                 result.value,
                 kinetic_now,
                 kinetic_next,
@@ -765,8 +789,8 @@ class LatentStepper:
             work = torch.zeros_like(kinetic_now)  # of the loads over the step [J]
             if loads_t is not None:
                 work = (loads_t * (self._handles(q_next) - self._handles(q_t))).sum(-1)
-            mechanical_now = kinetic_now + energy[batch:]
-            mechanical_next = kinetic_next + torch.where(result.finite, result.energy, energy[batch:])
+            mechanical_now = kinetic_now + at_z[2]
+            mechanical_next = kinetic_next + torch.where(result.finite, result.energy, at_z[2])
             balance = (
                 mechanical_now,
                 mechanical_next,
@@ -793,8 +817,75 @@ class LatentStepper:
             energy_gain=energy_gain,
             model=result.model,
             energy_gain_tolerance=gain_tolerance.masked_fill(unbounded, math.inf),
+            carry=self._carry(z_next, cond_t, result, self._inertia_loads(result.energy, q_next, qbar, loads_t)[1]),
         )
         return z_next, stats
+
+    def _reusable(self, carry: Tensor | None, z: Tensor, cond: Tensor | None) -> Tensor | None:
+        """The last step's (E, dPhi/dz, force) at z_t [B, 1 + d + w] from a ``carry`` of :meth:`step` whose rows are
+        keyed by z [B, d] and cond [B, m] (NaN rows: evaluate them), or None where no row is (or the stepper is
+        compiled with static shapes, whose first call evaluates every row at both points anyway).
+
+        Raises:
+            ValueError: a carry that is not an array of real numbers of shape [B, :attr:`carry_size`].
+        """
+        if carry is None:
+            return None
+        key = z if cond is None else torch.cat([z, cond], -1)
+        batch, width = z.shape[0], self.carry_size
+        carry = as_numbers(carry, "carry", f"[{batch}, {width}]", device=self.device)
+        if carry.shape != (batch, width):
+            raise ValueError(f"carry must have shape [{batch}, {width}] (a step's carry), got {list(carry.shape)}")
+        carry = carry.to(self.dtype)
+        if self.compiled:
+            return None
+        known = carry[:, key.shape[1] :]
+        holds = (carry[:, : key.shape[1]] == key).all(-1) & torch.isfinite(known).all(-1)
+        if not bool(holds.any()):
+            return None
+        return known.masked_fill(~holds[:, None], torch.nan)
+
+    def _start(
+        self,
+        objective: _StepObjective,
+        z0: Tensor,
+        z: Tensor,
+        known: Tensor | None,
+        coords: tuple[Tensor, Tensor],
+    ) -> tuple[tuple[Tensor, Tensor, Tensor], tuple[Tensor, Tensor, Tensor]]:
+        """(Phi, dPhi/dz, E) at the starts z0 and at z_t (both [B, d]): [B], [B, d], [B] each. At z_t from ``known``
+        (:meth:`_reusable`) where it holds the last step's E, dPhi/dz and force dPhi/dq - dE/dq there:
+        Phi = E + this step's inertia and load terms, dPhi/dz = the last one's + dq/dz^T (this force - the last),
+        through ``coords`` (z_t [B, d] and its coordinates q [B, w] in autograd); the other rows with z0 in one
+        call."""
+        batch, d = z.shape
+        if known is None:
+            value, grad, energy = objective.start(z0, z)
+            return (value[:batch], grad[:batch], energy[:batch]), (value[batch:], grad[batch:], energy[batch:])
+        rows = torch.arange(batch, device=z.device)
+        have = torch.isfinite(known[:, 0])
+        fresh, kept = rows[~have], rows[have]
+        value, grad, energy = objective.value_and_grad(torch.cat([z0, z[fresh]]), torch.cat([rows, fresh]))
+        z_grad, q = coords
+        loads = None if objective.loads is None else objective.loads[kept]
+        kept_energy = known[kept, 0]
+        kept_value, force = self._inertia_loads(kept_energy, q[kept].detach(), objective.qbar[kept], loads)
+        change = torch.zeros_like(q).index_copy_(0, kept, force - known[kept, 1 + d :])
+        (moved,) = torch.autograd.grad(q, z_grad, change, allow_unused=True)  # None: q does not depend on z
+        kept_grad = known[kept, 1 : 1 + d] + (0.0 if moved is None else moved[kept])
+        at_z = (
+            value.new_empty(batch).index_copy_(0, fresh, value[batch:]).index_copy_(0, kept, kept_value),
+            grad.new_empty(batch, d).index_copy_(0, fresh, grad[batch:]).index_copy_(0, kept, kept_grad),
+            energy.new_empty(batch).index_copy_(0, fresh, energy[batch:]).index_copy_(0, kept, kept_energy),
+        )
+        return (value[:batch], grad[:batch], energy[:batch]), at_z
+
+    def _carry(self, z_next: Tensor, cond: Tensor | None, result: BatchResult, force: Tensor) -> Tensor:
+        """:attr:`StepStats.carry` [B, :attr:`carry_size`]: (z_next, cond, E, dPhi/dz, the inertia and load terms'
+        force dPhi/dq - dE/dq [B, w]) per state at the solve's end; NaN where the solve did not start."""
+        key = z_next if cond is None else torch.cat([z_next, cond], -1)
+        carry = torch.cat([key, result.energy[:, None], result.grad, force], -1)
+        return carry.masked_fill(~result.finite[:, None], torch.nan)
 
     def _restart_worse(
         self,

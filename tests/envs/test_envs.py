@@ -387,7 +387,7 @@ def test_every_id_steps_alike_from_a_restored_state(env_id: str) -> None:
     np.testing.assert_allclose(obs2, obs, rtol=1e-6, atol=1e-6)
     assert np.isclose(reward2, reward, rtol=1e-6, atol=1e-6) and (terminated2, truncated2) == (terminated, truncated)
     again = env.get_state()
-    for key in ("z", "z_prev", "model", "loads", "cond"):
+    for key in ("z", "z_prev", "model", "carry", "loads", "cond"):
         if after.get(key) is not None:
             np.testing.assert_allclose(again[key], after[key], rtol=1e-6, atol=1e-6, equal_nan=True, err_msg=key)
     assert set(again["params"]) == set(after["params"])
@@ -414,7 +414,12 @@ def test_get_state_set_state_round_trip_exactly(mini: gym.Env) -> None:
     assert state["model"].shape == (len(state["z"]),) * 2 and np.isfinite(state["model"]).all()
     with pytest.raises(ValueError, match="model"):
         env.set_state({**state, "model": state["model"][:2]})
-    env.set_state({k: v for k, v in state.items() if k != "model"})
+    # so does E and dE/dz at z (the stepper's carry), keyed by z: without it the next step evaluates them
+    assert state["carry"].shape == (env.sim.stepper.carry_size,) and np.isfinite(state["carry"]).all()
+    assert np.array_equal(state["carry"][: len(state["z"])], state["z"])
+    with pytest.raises(ValueError, match="carry"):
+        env.set_state({**state, "carry": state["carry"][:2]})
+    env.set_state({k: v for k, v in state.items() if k not in ("model", "carry")})
     cold = [env.step(np.full(3, -0.3, np.float32))[0] for _ in range(3)]
     d = len(state["z"])  # z within 1e-3, so z_dot = dz / dt within 1e-3 / dt: the float32 solve tolerance
     np.testing.assert_allclose(np.array(cold)[:, :d], np.array(after)[:, :d], rtol=0, atol=1e-3)

@@ -161,6 +161,64 @@ def test_warm_start_is_the_same_solve_with_fewer_evaluations() -> None:
     assert torch.equal(a, b)
 
 
+@pytest.mark.parametrize(("name", "cubature"), [("chain", False), ("conditional_bar", True)])
+def test_a_carried_start_is_the_same_step_with_fewer_rows(name: str, cubature: bool) -> None:
+    """Passing stats.carry on (as the envs do) takes Phi and dPhi/dz at z_t from the last step's E, dPhi/dz and force
+    there (E and dE/dz as a fresh evaluation at z_next), the steps land on the same minimizers (float64, tol 1e-10),
+    each step's first call evaluates B rows fewer, and rows keyed by another z (or cond) are evaluated; a wrong shape
+    is refused."""
+    scene = scenes.build(name)
+    f = pretrained.load(name).double()
+    stepper = LatentStepper(scene, f, DT, dtype=torch.float64, tol=1e-10, energy=cubature_energy if cubature else None)
+    assert stepper.reduced == cubature
+    B, d = 2, stepper.latent_dim
+    cond = stepper._default_cond(B)
+    loads = _loads(scene, B, 3, 20.0)
+    runs = {}
+    for carried in (False, True):
+        stepper.evaluations = Evaluations()
+        z = stepper.rest_latent().expand(B, -1).clone()
+        z_prev, model, carry, path, energies = z.clone(), None, None, [z], []
+        for _ in range(6):
+            z_next, stats = stepper.step(z, z_prev, loads, warm=model, carry=carry)
+            assert bool(stats.converged.all()) and not bool(stats.diverged.any())
+            model, carry = stats.model, stats.carry if carried else None
+            z_prev, z = z, z_next
+            path.append(z)
+            energies.append(stats.energy)
+        runs[carried] = (torch.stack(path), torch.stack(energies), stepper.evaluations.rows)
+    (cold, cold_e, cold_rows), (hot, hot_e, hot_rows) = runs[False], runs[True]
+    motion = float((cold - cold[0]).abs().max())
+    assert motion > 1e-3  # it moved
+    assert float((hot - cold).abs().max()) <= 1e-5 * motion
+    torch.testing.assert_close(hot_e, cold_e, rtol=1e-6, atol=1e-9)
+    assert hot_rows < cold_rows  # B rows fewer in each carried step's first call (the paths differ in the rest)
+    # the carry: (z_next, cond, E, dPhi/dz, the inertia and load force dPhi/dq - dE/dq) at z_next: E and
+    # dPhi/dz - dq/dz^T force = dE/dz against autograd through the energy
+    key = torch.cat([z, cond], -1) if cond is not None else z
+    k = key.shape[1]
+    assert stats.carry.shape == (B, stepper.carry_size) and torch.equal(stats.carry[:, :k], key)
+    zr = z.clone().requires_grad_(True)
+    energy, q = stepper._energy_coords(zr, cond)
+    (grad,) = torch.autograd.grad(energy.sum(), zr, retain_graph=True)
+    (inertia,) = torch.autograd.grad(q, zr, stats.carry[:, k + 1 + d :])
+    torch.testing.assert_close(stats.carry[:, k], energy.detach(), rtol=1e-12, atol=0.0)
+    carried_grad = stats.carry[:, k + 1 : k + 1 + d] - inertia
+    torch.testing.assert_close(carried_grad, grad, rtol=1e-6, atol=1e-6 * float(grad.abs().max()))
+    # a carry keyed by another z (a reset row) or NaN is evaluated: the same rows as no carry at all, bitwise alike
+    other = stats.carry.clone()
+    other[0, 0] += 1.0
+    other[1] = torch.nan
+    stepper.evaluations = Evaluations()
+    a, _ = stepper.step(z, z_prev, loads, warm=model, carry=other)
+    rows_other = stepper.evaluations.rows
+    stepper.evaluations = Evaluations()
+    b, _ = stepper.step(z, z_prev, loads, warm=model)
+    assert torch.equal(a, b) and rows_other == stepper.evaluations.rows
+    with pytest.raises(ValueError, match=rf"carry must have shape \[2, {stepper.carry_size}\]"):
+        stepper.step(z, z_prev, loads, carry=torch.zeros(2, d))
+
+
 def test_stats_shapes_and_types(mini_chain) -> None:
     scene, f = mini_chain
     stepper = LatentStepper(scene, f, DT)
@@ -170,7 +228,8 @@ def test_stats_shapes_and_types(mini_chain) -> None:
     assert z_next.shape == (3, stepper.latent_dim) and z_next.dtype == torch.float32
     assert stats.converged.dtype == torch.bool and stats.out_of_range.dtype == torch.bool
     assert stats.diverged.dtype == torch.bool and stats.iterations.dtype == torch.int64
-    assert all(t.shape == (3,) for t in stats[:-1]) and stats.model.shape == (3, stepper.latent_dim, stepper.latent_dim)
+    assert all(t.shape == (3,) for t in stats[:-2]) and stats.model.shape == (3, stepper.latent_dim, stepper.latent_dim)
+    assert stats.carry.shape == (3, stepper.carry_size) == (3, 2 * stepper.latent_dim + 1 + scene.free_dof_count)
     assert stepper.positions(z).shape == (3, scene.free_dof_count)
     # at rest without load nothing moves, nothing is flagged
     torch.testing.assert_close(z_next, z, rtol=0.0, atol=1e-3)
