@@ -217,6 +217,41 @@ def bench_env(
     return row
 
 
+RATES = ("env_steps_per_s", "sim_s_per_wall_s", "steps_per_s", "frames_per_s")
+"""The keys of the rates a round measures (in :func:`bench_env`'s rows and the anchors), which :func:`median_rounds`
+takes the median of."""
+
+
+def median_rounds(rounds: Sequence[dict[str, Any]]) -> dict[str, Any]:
+    """One result of several rounds of the same measurement (:func:`bench_env`'s row of one id, or an anchor): the
+    first round's, with each rate (:data:`RATES`) in it, nested too, replaced by its median over the rounds and the
+    rounds' values listed beside it under ``rounds_<key>``. Everything else is the first round's: the sizes, the
+    solver's work (the same seeded steps in every round) and what only the first round measured (a part the others
+    hold as None or without the same keys: the full-space step).
+
+    Raises:
+        ValueError: no rounds.
+    """
+    if not rounds:
+        raise ValueError("need at least one round")
+
+    def merge(parts: Sequence[Any]) -> Any:
+        head = parts[0]
+        if not isinstance(head, dict) or any(not isinstance(p, dict) or p.keys() != head.keys() for p in parts):
+            return head
+        out = {}
+        for key, value in head.items():
+            if key in RATES and isinstance(value, float | int):
+                values = [float(part[key]) for part in parts]
+                out[key] = statistics.median(values)
+                out[f"rounds_{key}"] = values
+            else:
+                out[key] = merge([part[key] for part in parts])
+        return out
+
+    return merge(list(rounds)) if len(rounds) > 1 else rounds[0]
+
+
 MUJOCO_MISSING = "mujoco is not installed (pip install 'redsim[bench]')"
 ANCHOR_STEPS = 2000
 """Timed steps of each MuJoCo anchor (after 100 untimed ones)."""
@@ -327,9 +362,11 @@ __all__ = [
     "ANCHOR_STEPS",
     "DEFAULT_BATCHES",
     "MUJOCO_MISSING",
+    "RATES",
     "RENDER_SIZE",
     "anchor_lines",
     "bench_env",
+    "median_rounds",
     "median_time",
     "mujoco_anchors",
 ]

@@ -73,15 +73,15 @@ def cmd_bench_envs(args: argparse.Namespace) -> int:
     import redsim
     from redsim.bench import machine_info
     from redsim.benches.mujoco_cloth import cloth_anchor, cloth_anchor_line, cloth_ratio_lines, cloth_ratios
-    from redsim.envs.bench import anchor_lines, bench_env, mujoco_anchors, old_versions_quiet
+    from redsim.envs.bench import anchor_lines, bench_env, median_rounds, mujoco_anchors, old_versions_quiet
 
     ids = redsim.envs.ids() if args.envs is None else parse_list(args.envs, "--envs", parse_env_id)
     try:
         batches = parse_list(args.batches, "--batches", int)
     except ValueError as err:
         raise CliError(f"--batches must be comma-separated integers, got {args.batches!r}") from err
-    if min(batches) < 1 or args.steps < 1 or args.anchor_steps < 1:
-        raise CliError("--batches, --steps and --anchor-steps must be >= 1")
+    if min(batches) < 1 or args.steps < 1 or args.anchor_steps < 1 or args.rounds < 1:
+        raise CliError("--batches, --steps, --anchor-steps and --rounds must be >= 1")
     if args.shards < 1 or args.shards > min(batches):
         raise CliError(f"--shards must be in [1, the smallest batch {min(batches)}], got {args.shards}")
     with old_versions_quiet():  # the env args are checked on every id, the older versions too
@@ -91,7 +91,13 @@ def cmd_bench_envs(args: argparse.Namespace) -> int:
     check_device_option(args.device)
     machine = machine_info()
     if not args.json:
-        out("env steps/s by wall time (median over timed steps, each configuration timed once in turn: compare ids")
+        if args.rounds == 1:
+            out("env steps/s by wall time (median over timed steps, each configuration timed once in turn: compare ids")
+        else:
+            out(
+                f"env steps/s by wall time (median over timed steps, then over {args.rounds} rounds of every id in "
+                "turn, reversed every other round; the full-space step in the first: compare ids"
+            )
         out("within a run, and settings with `redsim bench env-ab`); simulated s per wall s of the single env, of the")
         out("best batch, and of the scene's float64 full-space implicit-Euler step (Newton to the scene's tolerance,")
         out("1e-8, the cloths 1e-4; from the env's reset state after untimed steps, a fresh random action each step);")
@@ -104,20 +110,30 @@ def cmd_bench_envs(args: argparse.Namespace) -> int:
             f"{'env':<26} {'n':>6} {'d':>3} {'act':>4} {'obs':>4} {'single':>8} {vec} {'sim/wall':>9} "
             f"{'best N':>10} {'full space':>10} {'render/s':>8}"
         )
-    rows = []
-    for env_id in ids:
-        row = bench_env(
-            env_id,
-            batches=batches,
-            steps=args.steps,
-            budget=args.budget,
-            device=args.device,
-            full_space=not args.no_full_space,
-            shards=args.shards,
-            **env_kwargs,
-        )
-        rows.append(row)
-        if not args.json:
+    measured: dict[str, list[dict[str, Any]]] = {env_id: [] for env_id in ids}
+    anchor_rounds = []
+    for index in range(args.rounds):
+        for env_id in ids if index % 2 == 0 else ids[::-1]:
+            row = bench_env(
+                env_id,
+                batches=batches,
+                steps=args.steps,
+                budget=args.budget,
+                device=args.device,
+                full_space=not args.no_full_space and index == 0,
+                shards=args.shards,
+                **env_kwargs,
+            )
+            measured[env_id].append(row)
+            if not args.json and args.rounds == 1:  # one round: each id's line as soon as it is measured
+                out(_row_line(row, batches))
+        anchors = mujoco_anchors(args.anchor_steps)
+        if anchors["available"]:
+            anchors["cloth"] = cloth_anchor(args.anchor_steps, args.budget)
+        anchor_rounds.append(anchors)
+    rows = [median_rounds(measured[env_id]) for env_id in ids]
+    if not args.json and args.rounds > 1:
+        for row in rows:
             out(_row_line(row, batches))
     if not args.json:
         if any(row["full_space"] is not None and not row["full_space"]["converged"] for row in rows):
@@ -138,17 +154,23 @@ def cmd_bench_envs(args: argparse.Namespace) -> int:
                 for r in (row["vector"][b] for b in batches)
             )
             out(f"{row['id']:<26} " + " ".join(f"{c:>27}" for c in cells))
-    anchors = mujoco_anchors(args.anchor_steps)
+    anchors = median_rounds(anchor_rounds)
     lines = anchor_lines(anchors)
     ratios: dict[str, float] = {}
     if anchors["available"]:
-        anchors["cloth"] = cloth_anchor(args.anchor_steps, args.budget)
         ratios = cloth_ratios(rows, anchors["cloth"])
         lines += [cloth_anchor_line(anchors["cloth"]), *cloth_ratio_lines(ratios)]
     machine["load_average_1min_at_end"] = machine_info()["load_average_1min"]
     if args.json:
         json_out(
-            {"machine": machine, "env_args": env_kwargs, "results": rows, "mujoco": anchors, "cloth_ratios": ratios}
+            {
+                "machine": machine,
+                "env_args": env_kwargs,
+                "rounds": args.rounds,
+                "results": rows,
+                "mujoco": anchors,
+                "cloth_ratios": ratios,
+            }
         )
     else:
         for line in lines:
@@ -410,6 +432,13 @@ def add_commands(sub: Any, bench: Any) -> None:
     p.add_argument("--envs", metavar="A,B,...", help="comma-separated ids (default: all)")
     p.add_argument("--batches", default="16,64,256", help="vector env sizes (default 16,64,256)")
     p.add_argument("--steps", type=int, default=20, help="timed steps per configuration (default 20)")
+    p.add_argument(
+        "--rounds",
+        type=int,
+        default=1,
+        help="time every id and anchor this many times in turn (ids reversed every other round) and report each "
+        "rate's median over the rounds (default 1); the full-space step is timed in the first round only",
+    )
     p.add_argument(
         "--budget",
         type=seconds,

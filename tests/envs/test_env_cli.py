@@ -9,6 +9,7 @@ import numpy as np
 import pytest
 
 from redsim.cli import main
+from redsim.envs.bench import median_rounds
 
 
 def test_demo_prints_return_and_speed_and_writes_gif_and_picture(
@@ -41,12 +42,47 @@ def test_bench_envs_json(capsys: pytest.CaptureFixture[str]) -> None:
     (row,) = doc["results"]
     assert row["n"] == 24 and row["d"] == 4 and row["action_size"] == 3 and row["observation_size"] == 14
     assert row["vector"]["2"]["env_steps_per_s"] > 0 and row["full_space"]["step_s"] > 0
-    work = row["vector"]["2"]  # each step evaluates at least the start and z_t of every copy, in one call
-    assert work["iterations_per_step"] > 0 and work["calls_per_step"] >= 1 and work["rows_per_copy_step"] >= 2
+    work = row["vector"]["2"]  # each step evaluates at least the start of every copy (z_t's: the last step's carry)
+    assert work["iterations_per_step"] > 0 and work["calls_per_step"] >= 1 and work["rows_per_copy_step"] >= 1
     # a vector step calls the objective at least once per iteration of its slowest copy, after the start call
     assert work["iterations_per_step"] <= work["slowest_iterations_per_step"] <= work["calls_per_step"] - 1
     assert "machine" in doc and "available" in doc["mujoco"]
     assert row["render"]["size"] == [480, 480] and row["render"]["frames_per_s"] > 0
+
+
+def test_bench_envs_rounds_report_each_rate_s_median_over_the_rounds(capsys: pytest.CaptureFixture[str]) -> None:
+    """``--rounds 3``: every id (and anchor) timed three times in turn; each rate is the median of its three values,
+    listed beside it; the solver's work and the full-space step come from the first round."""
+    args = ["bench", "envs", "--envs", "RedSim/MiniChain-v0", "--batches", "2", "--steps", "2", "--budget", "1"]
+    assert main([*args, "--anchor-steps", "20", "--rounds", "3", "--json"]) == 0
+    doc = json.loads(capsys.readouterr().out)
+    assert doc["rounds"] == 3
+    (row,) = doc["results"]
+    for part in (row["single"], row["vector"]["2"], row["render"]):
+        for key in ("env_steps_per_s", "sim_s_per_wall_s", "frames_per_s"):
+            if key in part:
+                values = part[f"rounds_{key}"]
+                assert len(values) == 3 and all(v > 0 for v in values) and part[key] == sorted(values)[1]
+    assert row["full_space"]["step_s"] > 0 and "rounds_env_steps_per_s" not in row["full_space"]
+    assert row["vector"]["2"]["calls_per_step"] >= 1
+    if doc["mujoco"]["available"]:
+        chain = doc["mujoco"]["chain"]
+        assert len(chain["rounds_steps_per_s"]) == 3 and chain["steps_per_s"] == sorted(chain["rounds_steps_per_s"])[1]
+    assert main([*args, "--rounds", "0"]) == 2
+    assert "--rounds must be >= 1" in capsys.readouterr().err
+
+
+def test_median_rounds_keeps_what_the_first_round_alone_measured() -> None:
+    rounds = [
+        {"id": "x", "single": {"env_steps_per_s": v, "repeats": 2}, "full_space": full}
+        for v, full in ((3.0, {"step_s": 1.0}), (1.0, None), (2.0, None))
+    ]
+    merged = median_rounds(rounds)
+    assert merged["single"] == {"env_steps_per_s": 2.0, "rounds_env_steps_per_s": [3.0, 1.0, 2.0], "repeats": 2}
+    assert merged["full_space"] == {"step_s": 1.0} and merged["id"] == "x"
+    assert median_rounds(rounds[:1]) is rounds[0]
+    with pytest.raises(ValueError, match="at least one round"):
+        median_rounds([])
 
 
 def test_bench_envs_times_the_mujoco_anchors_in_the_same_run(capfd: pytest.CaptureFixture[str]) -> None:
