@@ -79,7 +79,8 @@ class StepStats(NamedTuple):
             of the same states (NaN rows: none was built).
         carry: What the step knows at z_next, [B, :attr:`LatentStepper.carry_size`]: (z_next, cond) as its key, E,
             dPhi/dz and the inertia and load terms' force dPhi/dq - dE/dq [w] there: pass it as ``carry`` to the next
-            step of the same states, which then evaluates Phi at z_t without the energy (NaN rows: none).
+            step of the same states, which then evaluates Phi at z_t without the energy (NaN rows: the step did not
+            converge, and the next one evaluates Phi there).
     """
 
     converged: Tensor
@@ -805,8 +806,9 @@ class LatentStepper:
         # such a step proves nothing, so it is reported as not converged and diverged
         # (its residual and energy-gain tolerance inf, not the 0 or NaN that dividing by an inf scale gives)
         unbounded = ~torch.isfinite(force)
+        converged = result.converged & ~unbounded
         stats = StepStats(
-            converged=result.converged & ~unbounded,
+            converged=converged,
             iterations=result.iterations,
             residual=(result.grad_norm / (self.jacobian_norm * force)).masked_fill(unbounded, math.inf),
             energy=result.energy,
@@ -817,7 +819,9 @@ class LatentStepper:
             energy_gain=energy_gain,
             model=result.model,
             energy_gain_tolerance=gain_tolerance.masked_fill(unbounded, math.inf),
-            carry=self._carry(z_next, cond_t, result, self._inertia_loads(result.energy, q_next, qbar, loads_t)[1]),
+            carry=self._carry(
+                z_next, cond_t, result, self._inertia_loads(result.energy, q_next, qbar, loads_t)[1], converged
+            ),
         )
         return z_next, stats
 
@@ -880,12 +884,16 @@ class LatentStepper:
         )
         return (value[:batch], grad[:batch], energy[:batch]), at_z
 
-    def _carry(self, z_next: Tensor, cond: Tensor | None, result: BatchResult, force: Tensor) -> Tensor:
+    def _carry(
+        self, z_next: Tensor, cond: Tensor | None, result: BatchResult, force: Tensor, converged: Tensor
+    ) -> Tensor:
         """:attr:`StepStats.carry` [B, :attr:`carry_size`]: (z_next, cond, E, dPhi/dz, the inertia and load terms'
-        force dPhi/dq - dE/dq [B, w]) per state at the solve's end; NaN where the solve did not start."""
+        force dPhi/dq - dE/dq [B, w]) per state at the solve's end; NaN where the step did not converge (``converged``
+        [B]). There the force need not balance E's, and the next step's dPhi/dz = this one + dq/dz^T (its force - this
+        force) would carry the round-off of a force far above its own (a load past the dtype's range: all of it)."""
         key = z_next if cond is None else torch.cat([z_next, cond], -1)
         carry = torch.cat([key, result.energy[:, None], result.grad, force], -1)
-        return carry.masked_fill(~result.finite[:, None], torch.nan)
+        return carry.masked_fill(~converged[:, None], torch.nan)
 
     def _restart_worse(
         self,

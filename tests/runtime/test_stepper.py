@@ -219,6 +219,25 @@ def test_a_carried_start_is_the_same_step_with_fewer_rows(name: str, cubature: b
         stepper.step(z, z_prev, loads, carry=torch.zeros(2, d))
 
 
+def test_a_step_that_did_not_converge_carries_nothing(mini_chain) -> None:
+    """A load past float32's range (the step proves nothing: not converged, diverged) leaves a NaN carry, so the next
+    step evaluates Phi at z_t: a carried force of ~1e20 N would have cancelled dE/dz to exactly 0 there, and the next
+    step (a 5 N load, start "lower") would have stopped converged at z_t, 11x the tolerance from its minimum."""
+    scene, f = mini_chain
+    stepper = LatentStepper(scene, f, DT, start="lower")
+    z = stepper.rest_latent()
+    huge = torch.zeros(1, len(scene.handles), scene.dim)
+    huge[0, 0, 0] = 1e20
+    z1, stats = stepper.step(z, z, huge)
+    assert not bool(stats.converged[0]) and bool(stats.diverged[0]) and bool(stats.carry.isnan().all())
+    small = torch.zeros(1, len(scene.handles), scene.dim)
+    small[0, 0, 1] = 5.0
+    carried, carried_stats = stepper.step(z1, z, small, carry=stats.carry)
+    fresh, _ = stepper.step(z1, z, small)
+    assert torch.equal(carried, fresh) and float((fresh - z1).abs().max()) > 1e-3
+    assert bool(carried_stats.converged[0]) and int(carried_stats.iterations[0]) >= 1
+
+
 def test_stats_shapes_and_types(mini_chain) -> None:
     scene, f = mini_chain
     stepper = LatentStepper(scene, f, DT)
