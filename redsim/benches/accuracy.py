@@ -168,9 +168,9 @@ class Run:
         flagged: Steps the runtime flagged ``diverged`` (latent runs).
         out_of_range: Steps flagged ``out_of_range`` (latent runs).
         nonfinite: Steps whose state was not finite (must be 0).
-        idle: Steps under a load that the solver accepted without an iteration: the start was already within
-            its tolerance, so a loose ``tol`` can leave the scene where it was (the row is then not a faster
-            solve of the same motion).
+        idle: Steps under a load that the solver accepted without an iteration where it began (a latent step: at
+            z_t, not at a start that moves): the start was already within its tolerance, so a loose ``tol`` can
+            leave the scene where it was (the row is then not a faster solve of the same motion).
     """
 
     q: Tensor
@@ -250,7 +250,7 @@ def run_runtime(stepper: LatentStepper, z0: Tensor, loads: Tensor) -> Run:
         model, carry = stats.model, stats.carry
         times.append(time.perf_counter() - start)
         failed += int((~stats.converged).sum())
-        idle += int(((stats.iterations == 0) & bool(loads[i].any())).sum())
+        idle += int(((stats.iterations == 0) & (z_next == z).all(-1) & bool(loads[i].any())).sum())
         flagged += int(stats.diverged.sum())
         out_of_range += int(stats.out_of_range.sum())
         z_prev, z = z, z_next

@@ -140,7 +140,8 @@ class Rollout:
         reported: [T] bool: the step said it failed (not converged or diverged).
         nonfinite: Non-finite states or energies met (never stepped on).
         flags: Counts of ``unconverged``, ``diverged`` and ``out_of_range`` steps (latent runs also ``idle``: steps
-            whose start was already within the solver's tolerance, so it took no iteration).
+            that took no iteration and ended where they began, their start z_t already within the solver's
+            tolerance; a step accepted at a start that moves, extrapolated or predicted, is not idle).
         seconds: Wall time [s].
         cond: The condition [m] of a conditional scene, or None.
         gains: [T] bool: the step was flagged ``energy_gain`` (None: no such flag).
@@ -231,7 +232,7 @@ def runtime_rollouts(
         flags["unconverged"] += (~stats.converged).cpu()
         flags["diverged"] += stats.diverged.cpu()
         flags["out_of_range"] += stats.out_of_range.cpu()
-        flags["idle"] += (stats.iterations == 0).cpu()
+        flags["idle"] += ((stats.iterations == 0) & (z_next == z).all(-1)).cpu()  # left where it was
         reported.append((stats.diverged | ~stats.converged).cpu())
         gains.append(stats.energy_gain.cpu())
         tolerances.append(stats.energy_gain_tolerance.cpu().to(torch.float64))

@@ -162,6 +162,15 @@ def _limit(step: Tensor, max_step: float | None) -> Tensor:
     return step * (max_step / length).clamp(max=1.0)
 
 
+def newton_step(model: Tensor, grad: Tensor, max_step: float | None = None) -> tuple[Tensor, Tensor]:
+    """The model's Newton step -H^-1 g [k, d] of models H [k, d, d] and gradients g [k, d], at most ``max_step`` long
+    (None: any length), and where it exists [k] (H positive definite and finite, the step finite; elsewhere 0)."""
+    chol, info = torch.linalg.cholesky_ex(torch.nan_to_num(model))
+    step = -torch.cholesky_solve(grad.unsqueeze(-1), chol).squeeze(-1)
+    usable = (info == 0) & _finite(model).all(-1).all(-1) & _finite(step).all(-1)
+    return torch.where(usable[:, None], _limit(step, max_step), torch.zeros_like(step)), usable
+
+
 def _bfgs_update(hessian: Tensor, s: Tensor, y: Tensor) -> Tensor:
     """Damped (Powell) BFGS update of Hessians [k, d, d] with steps s [k, d] and gradient changes y [k, d]."""
     hs = (hessian @ s.unsqueeze(-1)).squeeze(-1)
@@ -712,4 +721,5 @@ __all__ = [
     "check_max_step",
     "check_sync_every",
     "minimize",
+    "newton_step",
 ]

@@ -31,7 +31,7 @@ from redsim.devices import check_device, check_dtype
 from redsim.integrators import LatentSpace, check_time_step, latent_equilibrium, length_scale
 from redsim.runtime.energy import LatentEnergy, MapEnergy, ReducedInertia
 from redsim.runtime.flags import diverged_states, energy_gain_states, energy_gain_tolerance, out_of_range_states
-from redsim.runtime.solver import HESSIANS, BatchResult, check_max_step, check_sync_every, minimize
+from redsim.runtime.solver import HESSIANS, BatchResult, check_max_step, check_sync_every, minimize, newton_step
 from redsim.scene import LoadsLike, Scene, check_scene_type
 from redsim.solvers import check_settings
 from redsim.subspace import map_fingerprint
@@ -332,11 +332,16 @@ class LatentStepper:
             256 envs (its whole contact, 2025 points a row, in a step's first call of 512 rows and its d x k-row
             difference-Hessian calls) 1.16x by CPU time with 256; HangingCloth-v1 and Chain-v0 gain nothing
             (docs/env-speed.md, "Stop 28"). The exact and Gauss-Newton Hessians' passes are not split.
+        predict: Where a step is given both a ``carry`` and a ``warm`` model of a state (the envs pass both), start
+            its solve from the model's Newton step from z_t, z_t - H^-1 dPhi/dz(z_t) (at most ``max_step`` long;
+            the carry gives dPhi/dz there without a call), instead of 2 z_t - z_{t-1}: the same minimum where the
+            step's objective has one, ~1 iteration fewer per copy on the cloths and the chain (docs/env-speed.md,
+            "Stop 51"). False: the extrapolated start always. ``start="lower"`` compares Phi there with Phi(z_t).
 
     Raises:
         ValueError: a bad dt, tol, max_iter, hessian, compile, sync_every, max_step, warm_refresh, warm_start, dense,
-            start or row_block, a device redsim cannot run on (:func:`redsim.devices.check_device`), or a map that
-            does not fit the scene (another output size, or fitted to a scene of another name; one fitted to this
+            start, row_block or predict, a device redsim cannot run on (:func:`redsim.devices.check_device`), or a map
+            that does not fit the scene (another output size, or fitted to a scene of another name; one fitted to this
             scene with other parameters, e.g. a soft map driven on a stiffer material, is stepped with a warning).
         TypeError: a scene that is not a :class:`redsim.scene.Scene` (e.g. its name).
         RuntimeError: ``compile`` on the CPU without a C++ compiler (:func:`check_compiler`).
@@ -362,6 +367,7 @@ class LatentStepper:
         warm_refresh: bool = True,
         start: str = "extrapolated",
         row_block: int | None = None,
+        predict: bool = True,
     ) -> None:
         dt = check_time_step(dt)
         check_dtype(dtype)
@@ -378,6 +384,9 @@ class LatentStepper:
         ):
             raise ValueError(f"row_block must be an integer >= 1 or None, got {row_block!r}")
         self.row_block = None if row_block is None else int(row_block)
+        if not isinstance(predict, bool | np.bool_):
+            raise ValueError(f"predict must be True or False, got {predict!r}")
+        self.predict = bool(predict)
         self.start = start
         self.max_step = None if max_step is None else float(max_step)
         if not isinstance(warm_refresh, bool | np.bool_):
@@ -742,7 +751,7 @@ class LatentStepper:
             # Phi at the extrapolated start and at z_t: the start of the solve, a secant pair for
             # the quasi-Newton models, and Phi(z_t) for the diverged flag (one call; at z_t from the carry where
             # it holds the last step's E, dPhi/dz and force there)
-            first, at_z = self._start(objective, z0, z, known, (z_grad, q_graph))
+            first, at_z, z0 = self._start(objective, z0, z, known, (z_grad, q_graph), warm)
             noise = self._value_noise(moving)
             # from z_t where the extrapolated start is not finite (a finite step may still exist), and with
             # start "lower" where Phi(z_t) is lower (from z_t the secant pair is empty: the solver skips its update)
@@ -856,20 +865,23 @@ class LatentStepper:
         z: Tensor,
         known: Tensor | None,
         coords: tuple[Tensor, Tensor],
-    ) -> tuple[tuple[Tensor, Tensor, Tensor], tuple[Tensor, Tensor, Tensor]]:
-        """(Phi, dPhi/dz, E) at the starts z0 and at z_t (both [B, d]): [B], [B, d], [B] each. At z_t from ``known``
-        (:meth:`_reusable`) where it holds the last step's E, dPhi/dz and force dPhi/dq - dE/dq there:
-        Phi = E + this step's inertia and load terms, dPhi/dz = the last one's + dq/dz^T (this force - the last),
-        through ``coords`` (z_t [B, d] and its coordinates q [B, w] in autograd); the other rows with z0 in one
-        call."""
+        warm: Tensor | None,
+    ) -> tuple[tuple[Tensor, Tensor, Tensor], tuple[Tensor, Tensor, Tensor], Tensor]:
+        """(Phi, dPhi/dz, E) at the starts [B], [B, d], [B], the same at z_t (both [B, d]), and the starts [B, d].
+
+        At z_t from ``known`` (:meth:`_reusable`) where it holds the last step's E, dPhi/dz and force dPhi/dq - dE/dq
+        there: Phi = E + this step's inertia and load terms, dPhi/dz = the last one's + dq/dz^T (this force - the
+        last), through ``coords`` (z_t [B, d] and its coordinates q [B, w] in autograd); the other rows with the
+        starts in one call. With :attr:`predict`, a state with both that and a ``warm`` model [B, d, d] starts from
+        the model's Newton step from z_t (:func:`redsim.runtime.solver.newton_step`, at most ``max_step`` long),
+        the others from z0 [B, d] (2 z_t - z_{t-1})."""
         batch, d = z.shape
         if known is None:
             value, grad, energy = objective.start(z0, z)
-            return (value[:batch], grad[:batch], energy[:batch]), (value[batch:], grad[batch:], energy[batch:])
+            return (value[:batch], grad[:batch], energy[:batch]), (value[batch:], grad[batch:], energy[batch:]), z0
         rows = torch.arange(batch, device=z.device)
         have = torch.isfinite(known[:, 0])
         fresh, kept = rows[~have], rows[have]
-        value, grad, energy = objective.value_and_grad(torch.cat([z0, z[fresh]]), torch.cat([rows, fresh]))
         z_grad, q = coords
         loads = None if objective.loads is None else objective.loads[kept]
         kept_energy = known[kept, 0]
@@ -877,12 +889,16 @@ class LatentStepper:
         change = torch.zeros_like(q).index_copy_(0, kept, force - known[kept, 1 + d :])
         (moved,) = torch.autograd.grad(q, z_grad, change, allow_unused=True)  # None: q does not depend on z
         kept_grad = known[kept, 1 : 1 + d] + (0.0 if moved is None else moved[kept])
+        if self.predict and warm is not None:
+            step, usable = newton_step(warm[kept], kept_grad, self.max_step)
+            z0 = z0.index_copy(0, kept, torch.where(usable[:, None], z[kept] + step, z0[kept]))
+        value, grad, energy = objective.value_and_grad(torch.cat([z0, z[fresh]]), torch.cat([rows, fresh]))
         at_z = (
             value.new_empty(batch).index_copy_(0, fresh, value[batch:]).index_copy_(0, kept, kept_value),
             grad.new_empty(batch, d).index_copy_(0, fresh, grad[batch:]).index_copy_(0, kept, kept_grad),
             energy.new_empty(batch).index_copy_(0, fresh, energy[batch:]).index_copy_(0, kept, kept_energy),
         )
-        return (value[:batch], grad[:batch], energy[:batch]), at_z
+        return (value[:batch], grad[:batch], energy[:batch]), at_z, z0
 
     def _carry(
         self, z_next: Tensor, cond: Tensor | None, result: BatchResult, force: Tensor, converged: Tensor

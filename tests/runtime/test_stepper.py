@@ -17,6 +17,7 @@ from redsim import pretrained, scenes
 from redsim.cubature import cubature_energy
 from redsim.integrators import FullState, ImplicitEuler, LatentSpace
 from redsim.runtime import Evaluations, LatentStepper, MapEnergy, StepStats
+from redsim.runtime.solver import newton_step
 from redsim.runtime.stepper import RESOLUTION_WARNING, _StepObjective, check_compiler
 
 DT = 0.02
@@ -217,6 +218,55 @@ def test_a_carried_start_is_the_same_step_with_fewer_rows(name: str, cubature: b
     assert torch.equal(a, b) and rows_other == stepper.evaluations.rows
     with pytest.raises(ValueError, match=rf"carry must have shape \[2, {stepper.carry_size}\]"):
         stepper.step(z, z_prev, loads, carry=torch.zeros(2, d))
+
+
+@pytest.mark.parametrize(("name", "cubature"), [("chain", False), ("hanging_sheet", True)])
+def test_a_predicted_start_is_the_same_step_with_fewer_rows(name: str, cubature: bool) -> None:
+    """With a carry and a warm model (as the envs pass them), ``predict`` starts each solve from the model's Newton
+    step from z_t: float64 steps land on the same minimizers as from 2 z_t - z_{t-1}, for fewer rows; without the
+    carry or the model it changes nothing, bitwise."""
+    scene = scenes.build(name)
+    f = pretrained.load(name).double()
+    energy = cubature_energy if cubature else None
+    steppers = {
+        p: LatentStepper(scene, f, DT, dtype=torch.float64, tol=1e-10, energy=energy, predict=p) for p in (False, True)
+    }
+    B = 2
+    loads = _loads(scene, B, 5, 2.0 if cubature else 20.0)
+    runs = {}
+    for predict, stepper in steppers.items():
+        z = stepper.rest_latent().expand(B, -1).clone()
+        z_prev, model, carry, path = z.clone(), None, None, [z]
+        for _ in range(6):
+            z_next, stats = stepper.step(z, z_prev, loads, warm=model, carry=carry)
+            assert bool(stats.converged.all()) and not bool(stats.diverged.any())
+            model, carry = stats.model, stats.carry
+            z_prev, z = z, z_next
+            path.append(z)
+        runs[predict] = (torch.stack(path), stepper.evaluations.rows)
+    (plain, plain_rows), (predicted, predicted_rows) = runs[False], runs[True]
+    motion = float((plain - plain[0]).abs().max())
+    assert motion > 1e-4  # it moved
+    assert float((predicted - plain).abs().max()) <= 1e-5 * motion
+    assert predicted_rows < plain_rows
+    # without the carry, or without the model, the extrapolated start: bitwise the stepper without predict
+    z, z_prev = path[-1], path[-2]
+    for kwargs in ({"warm": model}, {"carry": carry}):
+        a, _ = steppers[True].step(z, z_prev, loads, **kwargs)
+        b, _ = steppers[False].step(z, z_prev, loads, **kwargs)
+        assert torch.equal(a, b)
+    with pytest.raises(ValueError, match="predict must be True or False"):
+        LatentStepper(scene, f, DT, dtype=torch.float64, predict="yes")
+
+
+def test_newton_step_is_the_model_s_step_where_it_has_one() -> None:
+    model = torch.stack([torch.diag(torch.tensor([2.0, 4.0])), torch.full((2, 2), torch.nan), -torch.eye(2)])
+    grad = torch.tensor([[2.0, 4.0], [1.0, 1.0], [1.0, 1.0]])
+    step, usable = newton_step(model, grad)
+    assert usable.tolist() == [True, False, False]  # NaN, not positive definite
+    torch.testing.assert_close(step, torch.tensor([[-1.0, -1.0], [0.0, 0.0], [0.0, 0.0]]))
+    short, _ = newton_step(model, grad, max_step=0.5)
+    torch.testing.assert_close(torch.linalg.vector_norm(short[0]), torch.tensor(0.5))
 
 
 def test_a_step_that_did_not_converge_carries_nothing(mini_chain) -> None:
