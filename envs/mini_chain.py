@@ -53,7 +53,8 @@ class MiniChainEnv(ReachEnv):
     ## Arguments
     As :class:`redsim.envs.reach.ReachEnv`; `max_force` and `target_spread` default to 15 N, spread 0.6, and
     `stepper_options` to `{"warm_start": False}` (each step's solve starts from a fresh Hessian model: 1.2x
-    faster at 16-64 envs here; `{"warm_start": True}` carries the last step's model, as the other ids do).
+    faster at 16-64 envs here; `{"warm_start": True}` carries the last step's model, as the other ids do, and with it
+    starts each solve at the model's Newton step, `predict`: add `"predict": False` to keep 2 z_t - z_{t-1}).
 
     ## Version History
     - v0: first version. Its solver starts cold again (`stepper_defaults`), as when v0 was released and its

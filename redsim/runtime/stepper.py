@@ -335,8 +335,10 @@ class LatentStepper:
         predict: Where a step is given both a ``carry`` and a ``warm`` model of a state (the envs pass both), start
             its solve from the model's Newton step from z_t, z_t - H^-1 dPhi/dz(z_t) (at most ``max_step`` long;
             the carry gives dPhi/dz there without a call), instead of 2 z_t - z_{t-1}: the same minimum where the
-            step's objective has one, ~1 iteration fewer per copy on the cloths and the chain (docs/env-speed.md,
-            "Stop 51"). False: the extrapolated start always. ``start="lower"`` compares Phi there with Phi(z_t).
+            step's objective has one near z_t (where it has two, either start may pick the higher: docs/runtime.md),
+            ~1 iteration fewer per copy on the cloths and the chain (docs/env-speed.md, "Stop 51"). Skipped with
+            ``hessian="gauss_newton"`` (no warm model: 31% more calls on the chain). False: the extrapolated start
+            always. ``start="lower"`` compares Phi there with Phi(z_t).
 
     Raises:
         ValueError: a bad dt, tol, max_iter, hessian, compile, sync_every, max_step, warm_refresh, warm_start, dense,
@@ -889,7 +891,7 @@ class LatentStepper:
         change = torch.zeros_like(q).index_copy_(0, kept, force - known[kept, 1 + d :])
         (moved,) = torch.autograd.grad(q, z_grad, change, allow_unused=True)  # None: q does not depend on z
         kept_grad = known[kept, 1 : 1 + d] + (0.0 if moved is None else moved[kept])
-        if self.predict and warm is not None:
+        if self.predict and warm is not None and self.hessian != "gauss_newton":
             step, usable = newton_step(warm[kept], kept_grad, self.max_step)
             z0 = z0.index_copy(0, kept, torch.where(usable[:, None], z[kept] + step, z0[kept]))
         value, grad, energy = objective.value_and_grad(torch.cat([z0, z[fresh]]), torch.cat([rows, fresh]))
