@@ -27,7 +27,7 @@ import torch
 from torch import Tensor
 
 from redsim.effects import NeoHookean, PointPairPenalty, RigidOrthogonality, SDFContact, StVKMembrane
-from redsim.effects.base import Effect, gather_coordinates, gather_elements, split_points
+from redsim.effects.base import Effect, gather_elements, split_points
 from redsim.scene import Scene
 
 
@@ -54,21 +54,24 @@ def _membrane(effect: StVKMembrane, x: Tensor) -> dict[str, Tensor]:
     """The larger eigenvalue of C = F^T F (the squared principal stretch) in closed form, (C_00 + C_11) / 2 +
     hypot((C_00 - C_11) / 2, C_01), with the half sum and half difference taken from s = (a.a, a.b, b.b) of the
     edges a, b by folded coefficients (:func:`redsim.effects.cloth_gradients.membrane_coefficients`), in place on
-    the gathered [B, T] coordinates: 35 passes over [B, T] where :meth:`StVKMembrane.metric` and the eigenvalue
-    took 54, each into a fresh tensor (1.38x less CPU time at 64 HangingCloth-v1 copies, float32; equal to
-    round-off)."""
-    x0, y0, z0, x1, y1, z1, x2, y2, z2 = gather_coordinates(x, effect.element_dofs)  # fresh tensors: written below
+    the gathered coordinates: 35 passes where :meth:`StVKMembrane.metric` and the eigenvalue took 54, each into a
+    fresh tensor (1.38x less CPU time at 64 HangingCloth-v1 copies, float32; equal to round-off). Element-major
+    ([T, B]: x transposed once, each coordinate gathered as whole rows of B copies, the coefficients contiguous
+    [T, 1] columns) it took 1.9 ms where the copy-major [B, T] form's strided gathers and stride-9 coefficient rows
+    took 3.6 (64 HangingCloth-v2 copies, float32; the same bits; docs/env-speed.md, "Stop 52")."""
+    rows = x.T.contiguous()  # [N, B]
+    x0, y0, z0, x1, y1, z1, x2, y2, z2 = (rows.index_select(0, dofs) for dofs in effect.element_dofs.T)  # [T, B]
     ax, ay, az, bx, by, bz = x1.sub_(x0), y1.sub_(y0), z1.sub_(z0), x2.sub_(x0), y2.sub_(y0), z2.sub_(z0)
     s11 = torch.mul(ax, ax, out=x0).addcmul_(ay, ay).addcmul_(az, az)
     s12 = torch.mul(ax, bx, out=y0).addcmul_(ay, by).addcmul_(az, bz)
     s22 = torch.mul(bx, bx, out=z0).addcmul_(by, by).addcmul_(bz, bz)
-    p = effect.metric_coefficients.T  # [9, T]: C_00, C_11, C_01 = rows (0-2, 3-5, 6-8) . s
-    mean_p, half_p = 0.5 * (p[0:3] + p[3:6]), 0.5 * (p[0:3] - p[3:6])
+    p = effect.metric_coefficients.T.unsqueeze(-1)  # [9, T, 1]: C_00, C_11, C_01 = rows (0-2, 3-5, 6-8) . s
+    mean_p, half_p, cab_p = (0.5 * (p[0:3] + p[3:6]), 0.5 * (p[0:3] - p[3:6]), p[6:9].contiguous())
     mean = torch.mul(s11, mean_p[0], out=ax).addcmul_(s12, mean_p[1]).addcmul_(s22, mean_p[2])
     half = torch.mul(s11, half_p[0], out=ay).addcmul_(s12, half_p[1]).addcmul_(s22, half_p[2])
-    cab = torch.mul(s11, p[6], out=az).addcmul_(s12, p[7]).addcmul_(s22, p[8])
+    cab = torch.mul(s11, cab_p[0], out=az).addcmul_(s12, cab_p[1]).addcmul_(s22, cab_p[2])
     largest = mean.add_(torch.hypot(half, cab, out=bx))
-    return {"max_strain": largest.amax(-1).clamp_min(0.0).sqrt() - 1.0}
+    return {"max_strain": largest.amax(0).clamp_min(0.0).sqrt() - 1.0}
 
 
 def _contact(effect: SDFContact, x: Tensor) -> dict[str, Tensor]:

@@ -67,8 +67,9 @@ class AffineOutput(nn.Module):
         return torch.cat([z, f.monomials(z)], -1) if isinstance(f, QuadraticSubspace) else z
 
     def forward(self, z: Tensor, cond: Tensor | None = None) -> Tensor:
-        """All of q [B, n] (the unsliced map)."""
-        return self.features(z, cond) @ self.weight.T + self.bias
+        """All of q [B, n] (the unsliced map), by one ``addmm``: the same bits as ``r @ W.T + b``, without its second
+        pass over [B, n] (1.3 against 3.2 ms at B = 64, n = 6,072, w = 128, float32; docs/env-speed.md, "Stop 52")."""
+        return torch.addmm(self.bias, self.features(z, cond), self.weight.T)
 
 
 def sliced_layer(output: AffineOutput, scene: Scene, full_index: Tensor) -> tuple[Tensor, Tensor]:
