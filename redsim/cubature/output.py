@@ -68,7 +68,8 @@ class AffineOutput(nn.Module):
 
     def forward(self, z: Tensor, cond: Tensor | None = None) -> Tensor:
         """All of q [B, n] (the unsliced map), by one ``addmm``: the same bits as ``r @ W.T + b``, without its second
-        pass over [B, n] (1.3 against 3.2 ms at B = 64, n = 6,072, w = 128, float32; docs/env-speed.md, "Stop 52")."""
+        pass over [B, n] (1.15-1.3 against 1.25-3.2 ms at B = 64, n = 6,072, w = 128, float32, the larger where the
+        [B, n] temporary's allocation showed; docs/env-speed.md, "Stop 52")."""
         return torch.addmm(self.bias, self.features(z, cond), self.weight.T)
 
 
