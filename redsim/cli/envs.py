@@ -69,6 +69,14 @@ def _row_line(row: dict[str, Any], batches: list[int]) -> str:
     )
 
 
+def _spread_line(row: dict[str, Any], batches: list[int]) -> str:
+    """The lowest and highest env steps/s over the rounds (``rounds_env_steps_per_s`` of :func:`median_rounds`) of the
+    single env and each batch: how far the rounds of one cell moved (the table's value is their median)."""
+    parts = [row["single"], *(row["vector"][b] for b in batches)]
+    cells = (f"{min(p['rounds_env_steps_per_s']):.0f}-{max(p['rounds_env_steps_per_s']):.0f}" for p in parts)
+    return f"{row['id']:<26} " + " ".join(f"{c:>11}" for c in cells)
+
+
 def cmd_bench_envs(args: argparse.Namespace) -> int:
     import redsim
     from redsim.bench import machine_info
@@ -154,6 +162,11 @@ def cmd_bench_envs(args: argparse.Namespace) -> int:
                 for r in (row["vector"][b] for b in batches)
             )
             out(f"{row['id']:<26} " + " ".join(f"{c:>27}" for c in cells))
+        if args.rounds > 1:
+            out(f"env steps/s, the lowest and highest of the {args.rounds} rounds (each value above is their median)")
+            out(f"{'env':<26} {'single':>11} " + " ".join(f"{f'N={b}':>11}" for b in batches))
+            for row in rows:
+                out(_spread_line(row, batches))
     anchors = median_rounds(anchor_rounds)
     lines = anchor_lines(anchors)
     ratios: dict[str, float] = {}
@@ -437,7 +450,8 @@ def add_commands(sub: Any, bench: Any) -> None:
         type=int,
         default=1,
         help="time every id and anchor this many times in turn (ids reversed every other round) and report each "
-        "rate's median over the rounds (default 1); the full-space step is timed in the first round only",
+        "rate's median over the rounds (default 1), and the env steps/s' lowest and highest round in a table of their "
+        "own; the full-space step is timed in the first round only",
     )
     p.add_argument(
         "--budget",

@@ -68,6 +68,13 @@ def test_bench_envs_rounds_report_each_rate_s_median_over_the_rounds(capsys: pyt
     if doc["mujoco"]["available"]:
         chain = doc["mujoco"]["chain"]
         assert len(chain["rounds_steps_per_s"]) == 3 and chain["steps_per_s"] == sorted(chain["rounds_steps_per_s"])[1]
+    assert main([*args, "--anchor-steps", "20", "--rounds", "2", "--no-full-space"]) == 0
+    text = capsys.readouterr().out
+    assert "the lowest and highest of the 2 rounds" in text
+    spread = next(line for line in text.splitlines()[::-1] if line.startswith("RedSim/MiniChain-v0"))
+    for cell in spread.split()[1:]:  # the single env and N=2: "low-high", low <= high
+        low, high = (float(v) for v in cell.split("-"))
+        assert 0 < low <= high
     assert main([*args, "--rounds", "0"]) == 2
     assert "--rounds must be >= 1" in capsys.readouterr().err
 
