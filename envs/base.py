@@ -71,6 +71,10 @@ stepper's step (the env's dt / frame_skip)."""
 MAX_FRAME_SKIP = 1000
 """Most stepper steps one env step may take (``frame_skip``): each is an implicit solve, so a larger value makes a
 single ``step()`` run for minutes or, mistyped (``10**12``), forever; for a longer env step raise ``dt`` instead."""
+MAX_IMAGE_SIDE = 4096
+"""Largest rendered width or height [px]: a 4096 x 4096 RGB frame is 48 MiB (and a vector env draws one per copy), so a
+larger one is refused when the env is made, not found out as a memory error at the first render."""
+
 ACTION_RESOLUTION_WARNING = 0.05
 """An env whose steps cannot feel actions below this fraction of their range (:attr:`LatentSim.action_resolution`)
 warns at its first reset (README "Tolerance")."""
@@ -1314,8 +1318,8 @@ class LatentEnv(gym.Env[np.ndarray, np.ndarray]):
         randomize_condition: Draw the scene's condition per episode (conditional maps).
         include_q: Put q in the ``info`` of every step and reset.
         reset_noise_scale: Start noise s [latent units] (:class:`LatentSim`; 0: every episode starts at rest).
-        width: Render width [px].
-        height: Render height [px].
+        width: Render width [px], 8 to :data:`MAX_IMAGE_SIDE` (4096).
+        height: Render height [px], the same range.
         camera: ``azimuth``/``elevation``/``margin``/``merge_px`` of :class:`redsim.raster.SceneView`, over the
             env's own :attr:`camera` key by key. The camera is fixed (framed once, at the first render, on the reset
             shapes and the task's target region: :meth:`LatentSim.fixed_view`); ``track=True`` frames each episode
@@ -1743,9 +1747,10 @@ def json_spec(spec: EnvSpec | None) -> EnvSpec | None:
 
 
 def _image_size(width: Any, height: Any) -> tuple[int, int]:
-    """(width, height) [px], checked here rather than at the first ``render()``."""
-    if any(isinstance(v, bool) or not isinstance(v, numbers.Integral) or v < 8 for v in (width, height)):
-        raise ValueError(f"width and height must be integers >= 8 [px], got {width!r} x {height!r}")
+    """(width, height) [px], checked here rather than at the first ``render()`` (8 to :data:`MAX_IMAGE_SIDE`)."""
+    sizes = (width, height)
+    if any(isinstance(v, bool) or not isinstance(v, numbers.Integral) or not 8 <= v <= MAX_IMAGE_SIDE for v in sizes):
+        raise ValueError(f"width and height must be integers in [8, {MAX_IMAGE_SIDE}] [px], got {width!r} x {height!r}")
     return int(width), int(height)
 
 

@@ -119,6 +119,7 @@ def test_trimesh_export_of_the_full_mesh_per_frame(tmp_path) -> None:
         ({"camera": {"merge_px": -0.5}}, "merge_px"),
         ({"width": 0}, "width and height"),
         ({"height": 480.5}, "width and height"),
+        ({"width": 4097}, r"width and height must be integers in \[8, 4096\]"),
     ],
 )
 def test_render_settings_are_checked_when_the_env_is_made(kwargs: dict, expected: str) -> None:
