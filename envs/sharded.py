@@ -206,6 +206,19 @@ class ShardedVectorEnv(SharedCopies, VectorEnv):
             self._abort()
             raise
 
+    def __getstate__(self) -> dict[str, Any]:
+        """Refused: the env holds worker processes and their pipes, which do not pickle (nor ``copy.deepcopy``).
+
+        Raises:
+            TypeError: always, naming what does pickle: :meth:`get_state` (restored with :meth:`set_state` into a
+                sharded env made again) or a native vector env (``shards=1``).
+        """
+        raise TypeError(
+            "a sharded vector env holds worker processes and does not pickle: pickle its get_state() and restore it "
+            "with set_state() into one made again (gymnasium.make_vec(..., shards=P)), or use a native vector env "
+            "(shards=1), which pickles"
+        )
+
     # -- the VectorEnv API ----------------------------------------------------------------------
     def reset(
         self, *, seed: int | Sequence[int | None] | None = None, options: dict[str, Any] | None = None

@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+import pickle
+
 import gymnasium as gym
 import numpy as np
 import pytest
@@ -61,6 +63,9 @@ def test_reset_mask_state_round_trip_render_and_close() -> None:
     venv.reset(seed=0)
     state = venv.get_state()
     assert isinstance(state["rngs"], list) and len(state["rngs"]) == 3  # as the native env's, not an object array
+    state = pickle.loads(pickle.dumps(state))  # what pickles instead of the env
+    with pytest.raises(TypeError, match=r"does not pickle: pickle its get_state\(\)"):
+        pickle.dumps(venv)
     after, *_ = venv.step(np.ones((3, 3), np.float32))
     venv.set_state(state)
     again, *_ = venv.step(np.ones((3, 3), np.float32))
