@@ -26,6 +26,7 @@ from typing import Any
 import gymnasium as gym
 import numpy as np
 
+from redsim.envs.base import MAX_IMAGE_SIDE
 from redsim.runtime import Evaluations
 
 
@@ -76,8 +77,8 @@ def bench_env_ab(
             raise ValueError(f"{name} must be >= 1, got {value}")
     if warmup < 0:
         raise ValueError(f"warmup must be >= 0, got {warmup}")
-    if render is not None and render < 8:
-        raise ValueError(f"render must be a frame size >= 8 [px], got {render}")
+    if render is not None and not 8 <= render <= MAX_IMAGE_SIDE:
+        raise ValueError(f"render must be a frame size in [8, {MAX_IMAGE_SIDE}] [px], got {render}")
     frame = {} if render is None else {"render_mode": "rgb_array", "width": render, "height": render}
     venvs = {
         name: gym.make_vec(env_id, num_envs=num_envs, vectorization_mode="vector_entry_point", **{**frame, **kwargs})

@@ -235,6 +235,10 @@ def cmd_bench_env_ab(args: argparse.Namespace) -> int:
     ):
         if value < least:
             raise CliError(f"{flag} must be an integer >= {least}, got {value}")
+    from redsim.envs.base import MAX_IMAGE_SIDE
+
+    if args.render is not None and args.render > MAX_IMAGE_SIDE:
+        raise CliError(f"--render must be an integer in [8, {MAX_IMAGE_SIDE}] [px], got {args.render}")
     settings = _parse_settings(args.setting, args.env_id)
     machine = machine_info()
     result = bench_env_ab(

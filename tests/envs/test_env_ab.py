@@ -117,6 +117,10 @@ def test_env_ab_renders_every_copy_after_each_timed_step(capsys: pytest.CaptureF
         (["RedSim/MiniChain-v0", "--setting", "a", "--setting", "b", "--warmup", "-1"], "--warmup must be"),
         (["RedSim/MiniChain-v0", "--setting", "a", "--setting", "b", "--rounds", "two"], "invalid int value"),
         (["RedSim/MiniChain-v0", "--setting", "a", "--setting", "b", "--render", "4"], "--render must be"),
+        (
+            ["RedSim/MiniChain-v0", "--setting", "a", "--setting", "b", "--render", "5000"],
+            "--render must be an integer in [8, 4096]",
+        ),
     ],
 )
 def test_env_ab_bad_input_is_a_usage_error(extra: list[str], expected: str, capsys: pytest.CaptureFixture[str]) -> None:
@@ -134,6 +138,7 @@ def test_env_ab_bad_input_is_a_usage_error(extra: list[str], expected: str, caps
         ({"steps_per_round": 0}, "steps_per_round must be >= 1"),
         ({"warmup": -1}, "warmup must be >= 0"),
         ({"render": 0}, "render must be a frame size"),
+        ({"render": 4097}, r"render must be a frame size in \[8, 4096\]"),
     ],
 )
 def test_bench_env_ab_rejects_bad_counts_before_making_envs(kwargs: dict, expected: str) -> None:
