@@ -8,9 +8,13 @@ and fingerprint and a hash of the map's weights, so it is refused for another sc
     E_cub(z) = sum_effects sum_{e kept} w_e E_e(x_S(z)) + sum_linear (r(z) . c + e0) + offset,
 
 where x_S = r(z) W_S^T + b_S are only the full DOFs the kept elements read (a sliced output layer) and
-r(z) the map's last features. It also offers the runtime's reduced-inertia extension (``features``,
-``energy_features`` and the output layer), with which the stepper evaluates 1/(2h^2)|f(z) - qbar|_M^2
-exactly as (r - rbar)^T (W^T M W) (r - rbar) / (2h^2), a w x w form.
+r(z) the map's last features. The cloth's elements (membrane triangles, bending hinges) read only their edges
+x_j - x_0, so they get those straight from r as well, r W_E^T + b_E with the row differences W_E taken once in
+float64: no gather of vertex positions, no scatter of their gradients, and no float32 cancellation in x_j - x_0.
+
+It also offers the runtime's reduced-inertia extension (``features``, ``energy_features`` and the output layer),
+with which the stepper evaluates 1/(2h^2)|f(z) - qbar|_M^2 exactly as (r - rbar)^T (W^T M W) (r - rbar) / (2h^2),
+a w x w form.
 """
 
 from __future__ import annotations
@@ -261,7 +265,8 @@ class CubatureEnergy:
             whole effect reads through the sliced output layer, whole effects by their own ``energy`` on x with
             the slice scattered in. False (default): a whole single-frame contact (the cloth against its ball) is
             evaluated by its near points only (every point's position without gradients for
-            :meth:`SDFContact.near_points`, then a graph only through the rows of W the near points read), and a
+            :meth:`SDFContact.near_points`, then a graph only through the rows of W the near points read), an effect
+            with ``edge_energies`` (the cloth's) reads its elements' edges from the edge layer (since stop 53), and a
             whole effect that is its element sum reads the slice directly. Equal to round-off.
 
     Attributes:
@@ -269,6 +274,8 @@ class CubatureEnergy:
         output_bias: b [n].
         kept_dofs: The full DOFs the kept elements read with gradients, [s], int64 (s does not grow with n; a
             near-point contact's points are not among them).
+        slice_dofs: Those of them read through the slice x_S (the others' elements read edges), [s'], int64.
+        edge_weight: W_E [K, w] of the edge layer (:func:`_edge_layer`); edge_bias: b_E [K].
         screened_dofs: The full DOFs of near-point contacts' points and frames, read without gradients, [c].
 
     Raises:
@@ -311,28 +318,42 @@ class CubatureEnergy:
             and effect.point_weights is None
         )
 
+    def _by_edges(self, effect: Effect) -> bool:
+        """True for an effect whose elements read only their edges x_j - x_0 (``edge_energies``) and whose energy is
+        its (weighted) element sum: evaluated on edges computed straight from r (not ``slice_all``)."""
+        return not self.slice_all and hasattr(effect, "edge_energies") and type(effect).energy is Effect.energy
+
     def _terms(self, scene: Scene, output: AffineOutput) -> list[tuple[str, Effect, Any]]:
-        """Per effect, (how, effect, data) at the kept slice x_s: ``"kept"`` (its kept elements reindexed into the
-        slice, data their weights), ``"slice"`` (a whole effect whose energy is its element sum, reindexed into the
-        slice), ``"near"`` (a near-point contact reindexed into its own screened DOFs, data (W_c [c, w], b_c [c],
-        the points' positions in them [P, D*K])), ``"whole"`` (its own ``energy`` on x with the slice scattered in)."""
+        """Per effect, (how, effect, data) at the slice x_s: ``"edges"`` (its kept elements, or all of a whole effect,
+        on their edges, data (its block of the edge layer, its weights or None: the plain sum)), ``"kept"`` (its kept
+        elements reindexed into the slice, data their weights), ``"slice"`` (a whole effect whose energy is its element
+        sum, reindexed into the slice), ``"near"`` (a near-point contact reindexed into its own screened DOFs, data
+        (W_c [c, w], b_c [c], the points' positions in them [P, D*K])), ``"whole"`` (its own ``energy`` on x with the
+        slice scattered in)."""
         rules = {r.name: r for r in self.cubature.rules}
         out: list[tuple[str, Effect, Any]] = []
         for effect in scene.effects:
             rule = rules.get(effect.name)
             if rule is None or rule.mode == "linear":
                 continue
-            if self._screened(effect):
+            if self._by_edges(effect):
+                block = len([how for how, _, _ in out if how == "edges"])
+                if rule.mode == "full":
+                    out.append(("edges", effect, (block, None)))
+                else:
+                    weights = rule.weights.to(device=scene.device, dtype=scene.dtype)
+                    out.append(("edges", effect.subset(rule.indices.to(scene.device)), (block, weights)))
+            elif self._screened(effect):
                 local = _reindexed_contact(effect, self.screened_dofs)  # type: ignore[arg-type]
                 weight, bias = sliced_layer(output, scene, self.screened_dofs)
                 out.append(("near", local, _NearContact.build(local, weight, bias)))
             elif rule.mode == "full" and not self.slice_all and type(effect).energy is Effect.energy:
-                out.append(("slice", effect.reindexed(torch.searchsorted(self.kept_dofs, effect.element_dofs)), None))
+                out.append(("slice", effect.reindexed(torch.searchsorted(self.slice_dofs, effect.element_dofs)), None))
             elif rule.mode == "full":
                 out.append(("whole", effect, None))
             else:
                 kept = effect.subset(rule.indices.to(scene.device))
-                local = kept.reindexed(torch.searchsorted(self.kept_dofs, kept.element_dofs))
+                local = kept.reindexed(torch.searchsorted(self.slice_dofs, kept.element_dofs))
                 out.append(("kept", local, rule.weights.to(device=scene.device, dtype=scene.dtype)))
         return out
 
@@ -340,20 +361,25 @@ class CubatureEnergy:
         rules = {r.name: r for r in self.cubature.rules}
         sampled = [e for e in self.scene.effects if e.name in rules and rules[e.name].mode != "linear"]
         none = torch.zeros(0, dtype=torch.int64, device=device)
-        dofs = [
-            e.element_dofs.index_select(0, rules[e.name].indices.to(device)).reshape(-1)
+        dofs = {
+            e.name: e.element_dofs.index_select(0, rules[e.name].indices.to(device)).reshape(-1)
             for e in sampled
             if not self._screened(e)
-        ]
-        self.kept_dofs = torch.unique(torch.cat(dofs)).to(device) if dofs else none
+        }
+        self.kept_dofs = torch.unique(torch.cat(list(dofs.values()))).to(device) if dofs else none
+        sliced = [dofs[e.name] for e in sampled if e.name in dofs and not self._by_edges(e)]
+        self.slice_dofs = torch.unique(torch.cat(sliced)).to(device) if sliced else none
         screened = [e.element_dofs.reshape(-1) for e in sampled if self._screened(e)]
         self.screened_dofs = torch.unique(torch.cat(screened)).to(device) if screened else none
-        self.slice_weight, self.slice_bias = sliced_layer(self.output, self.scene, self.kept_dofs)
+        self.slice_weight, self.slice_bias = sliced_layer(self.output, self.scene, self.slice_dofs)
         self.terms = self._terms(self.scene, self.output)
         self._full_values = self.scene.dof_map.full_values
-        # linear effects: E = r . c + e0 exactly (c, e0 by one backward through the float64 output layer)
         output64 = AffineOutput(subspace).to(device=device, dtype=torch.float64)
         scene64 = scene.to(device=device, dtype=torch.float64)
+        # the edge layer: every edge entry of the edge terms' elements, differences of rows taken in float64
+        self.edge_weight, self.edge_bias = _edge_layer(output64, scene64, _edged(self.terms))
+        self.edge_weight, self.edge_bias = self.edge_weight.to(dtype), self.edge_bias.to(dtype)
+        # linear effects: E = r . c + e0 exactly (c, e0 by one backward through the float64 output layer)
         w = output64.feature_dim
         r0 = torch.zeros(1, w, dtype=torch.float64, device=device, requires_grad=True)
         linear = 0.0
@@ -384,10 +410,11 @@ class CubatureEnergy:
     def _energy64(self, output64: AffineOutput, scene64: Scene, z: Tensor, cond: Tensor | None) -> Tensor:
         """The cubature energy in float64 (for the offset), without the offset."""
         r = output64.features(z, cond if self.condition_dim else None)
-        w_s, b_s = sliced_layer(output64, scene64, self.kept_dofs)
-        x_s = r @ w_s.T + b_s
+        w_s, b_s = sliced_layer(output64, scene64, self.slice_dofs)
+        terms = self._terms(scene64, output64)
+        w_e, b_e = _edge_layer(output64, scene64, _edged(terms))
         total = r @ self.linear_coef.to(torch.float64) + self.linear_constant
-        return self._sum(total, r, x_s, cond, self._terms(scene64, output64), scene64.dof_map.full_values)
+        return self._sum(total, r, (w_s, b_s), (w_e, b_e), cond, terms, scene64.dof_map.full_values)
 
     # -- the LatentEnergy protocol ------------------------------------------------------------
     def features(self, z: Tensor, cond: Tensor | None) -> Tensor:
@@ -397,29 +424,42 @@ class CubatureEnergy:
     def energy_features(self, z: Tensor, cond: Tensor | None) -> tuple[Tensor, Tensor]:
         """E_cub [B] [J] of latents z [B, d] and the features r [B, w] it computed."""
         r = self.features(z, cond)
-        x_s = torch.addmm(self.slice_bias, r, self.slice_weight.T)
         total = r @ self.linear_coef + (self.linear_constant + self.offset)
-        return self._sum(total, r, x_s, cond, self.terms, self._full_values), r
+        layers = (self.slice_weight, self.slice_bias), (self.edge_weight, self.edge_bias)
+        return self._sum(total, r, *layers, cond, self.terms, self._full_values), r
 
     def _sum(
         self,
         total: Tensor,
         r: Tensor,
-        x_s: Tensor,
+        slice_layer: tuple[Tensor, Tensor],
+        edge_layer: tuple[Tensor, Tensor],
         cond: Tensor | None,
         terms: list[tuple[str, Effect, Any]],
         full_values: Tensor,
     ) -> Tensor:
-        """total + every term (:meth:`_terms`) at the features r [B, w] and the kept DOFs x_s [B, s].
+        """total + every term (:meth:`_terms`) at the features r [B, w], with the slice layer (W_S [s, w], b_S [s])
+        and the edge layer (:func:`_edge_layer`).
 
-        Kept elements and whole element sums read x_s directly (their ``element_dofs`` index the slice). A
-        near-point contact screens its points at r without gradients and differentiates only the near ones,
-        each as its rows of W times r. Any other whole effect is evaluated by its own ``energy`` on x with the
-        kept DOFs scattered in (every DOF it reads is kept; the others hold the pinned/seed values).
+        Edge terms read their edges, r W_E^T + b_E (one product for all of them). Kept elements and whole element
+        sums read the slice x_S = r W_S^T + b_S directly (their ``element_dofs`` index it). A near-point contact
+        screens its points at r without gradients and differentiates only the near ones, each as its rows of W times
+        r. Any other whole effect is evaluated by its own ``energy`` on x with the slice scattered in (every DOF it
+        reads is in it; the others hold the pinned/seed values). A layer no term reads is not evaluated.
         """
+        x_s = torch.addmm(slice_layer[1], r, slice_layer[0].T) if slice_layer[0].shape[0] else None
+        blocks = None
         x_full = None
         for how, effect, data in terms:
-            if how == "kept":
+            if how == "edges":
+                if blocks is None:
+                    edges = torch.addmm(edge_layer[1], r, edge_layer[0].T)
+                    blocks = edges.split([(e.element_dofs.shape[1] - 3) * e.element_count for e in _edged(terms)], 1)
+                block, weights = data
+                entries = blocks[block].view(r.shape[0], -1, effect.element_count).unbind(1)
+                energies = effect.edge_energies(entries)  # type: ignore[attr-defined]
+                total = total + (energies.sum(-1) if weights is None else energies @ weights)
+            elif how == "kept":
                 total = total + effect.element_energies(x_s, cond) @ data
             elif how == "slice":
                 total = total + effect.element_energies(x_s, cond).sum(-1)
@@ -427,7 +467,7 @@ class CubatureEnergy:
                 total = total + data.energy(effect, r)
             else:
                 if x_full is None:
-                    x_full = full_values.to(x_s.dtype).expand(x_s.shape[0], -1).index_copy(1, self.kept_dofs, x_s)
+                    x_full = full_values.to(r.dtype).expand(r.shape[0], -1).index_copy(1, self.slice_dofs, x_s)
                 total = total + effect.energy(x_full, cond)
         return total
 
@@ -440,14 +480,40 @@ class CubatureEnergy:
         return self.output(z, cond if self.condition_dim else None)
 
     def describe(self) -> dict[str, Any]:
-        """Kept elements per effect, kept DOFs and n."""
+        """Kept elements per effect, the DOFs they read (all; those read through the slice), edge entries, n, w."""
         return {
             "kept_elements": {r.name: int(r.indices.numel()) for r in self.cubature.rules},
             "kept_dofs": int(self.kept_dofs.numel()),
+            "slice_dofs": int(self.slice_dofs.numel()),
+            "edge_entries": int(self.edge_weight.shape[0]),
             "screened_dofs": int(self.screened_dofs.numel()),
             "free_dofs": int(self.output_weight.shape[0]),
             "features": int(self.output_weight.shape[1]),
         }
+
+
+def _edged(terms: list[tuple[str, Effect, Any]]) -> list[Effect]:
+    """The effects of a cubature's edge terms (:meth:`CubatureEnergy._terms`), in order."""
+    return [effect for how, effect, _ in terms if how == "edges"]
+
+
+def _edge_layer(output: AffineOutput, scene: Scene, effects: list[Effect]) -> tuple[Tensor, Tensor]:
+    """W_E [K, w] and b_E [K] with r W_E^T + b_E every edge entry x_j - x_0 of ``effects``' elements (each
+    ``element_dofs`` [T, 3 k]: k vertices' x, y, z), effect by effect, each block ordered (edge, coordinate, element):
+    its [B, 3 (k - 1) T] part viewed as [B, 3 (k - 1), T] gives the entries as [B, T] rows. A pinned vertex's rows
+    are zero and its bias its pinned value (:func:`sliced_layer`). The row differences are taken in ``output``'s
+    dtype (float64: an edge's entries without the cancellation of subtracting two float32 positions)."""
+    weights, biases = [], []
+    for effect in effects:
+        count, width = effect.element_dofs.shape
+        weight, bias = sliced_layer(output, scene, effect.element_dofs.reshape(-1))
+        weight = weight.view(count, width // 3, 3, -1)
+        bias = bias.view(count, width // 3, 3)
+        weights.append((weight[:, 1:] - weight[:, :1]).permute(1, 2, 0, 3).reshape(-1, weight.shape[-1]))
+        biases.append((bias[:, 1:] - bias[:, :1]).permute(1, 2, 0).reshape(-1))
+    if not weights:
+        return output.weight.new_zeros(0, output.feature_dim), output.bias.new_zeros(0)
+    return torch.cat(weights), torch.cat(biases)
 
 
 def _reindexed_contact(effect: SDFContact, dofs: Tensor) -> SDFContact:

@@ -64,10 +64,17 @@ def membrane_coefficients(shape_gradients: Tensor) -> Tensor:
     return torch.stack([c for row in rows for c in row], dim=-1)
 
 
-def _membrane_terms(coords: Sequence[Tensor], p: Sequence[Tensor], mu: Tensor, lam: Tensor) -> tuple[Tensor, ...]:
-    """psi [J/m^2] and the terms its gradient reads: (psi, ax, ay, az, bx, by, bz, e00, e11, e01, tr E)."""
-    x0, y0, z0, x1, y1, z1, x2, y2, z2 = coords
-    ax, ay, az, bx, by, bz = x1 - x0, y1 - y0, z1 - z0, x2 - x0, y2 - y0, z2 - z0
+def edge_vectors(coords: Sequence[Tensor]) -> list[Tensor]:
+    """The edges x_j - x_0 (j = 1, 2, ...), entry by entry, of an element's vertex coordinates
+    (x0, y0, z0, x1, ..., each one shape): 3 (k - 1) tensors of k vertices' 3 k."""
+    origin = coords[:3]
+    return [c - o for j in range(3, len(coords), 3) for c, o in zip(coords[j : j + 3], origin, strict=True)]
+
+
+def _membrane_terms(entries: Sequence[Tensor], p: Sequence[Tensor], mu: Tensor, lam: Tensor) -> tuple[Tensor, ...]:
+    """psi [J/m^2] and the terms its gradient reads: (psi, ax, ay, az, bx, by, bz, e00, e11, e01, tr E), of the
+    nine vertex coordinates or the six edge entries (a, b) = (x1 - x0, x2 - x0) (:class:`MembraneEnergy`)."""
+    ax, ay, az, bx, by, bz = entries if len(entries) == 6 else edge_vectors(entries)
     s11, s12, s22 = _dot(ax, ay, az, ax, ay, az), _dot(ax, ay, az, bx, by, bz), _dot(bx, by, bz, bx, by, bz)
     c00, c11, c01 = (_combine((p[3 * r], s11), (p[3 * r + 1], s12), (p[3 * r + 2], s22)) for r in range(3))
     e00, e11, e01 = 0.5 * (c00 - 1.0), 0.5 * (c11 - 1.0), 0.5 * c01  # Green strain E = (C - I) / 2
@@ -78,7 +85,7 @@ def _membrane_terms(coords: Sequence[Tensor], p: Sequence[Tensor], mu: Tensor, l
 
 
 def _membrane_gradient(terms: Sequence[Tensor], p: Sequence[Tensor], mu: Tensor, lam: Tensor, scale: Tensor) -> list:
-    """d(scale * psi) / d coordinates (9 tensors) from :func:`_membrane_terms`."""
+    """d(scale * psi) / d edges (a, b) (6 tensors) from :func:`_membrane_terms`."""
     _, ax, ay, az, bx, by, bz, e00, e11, e01, trace = terms
     half_lam_tr = 0.5 * lam * trace
     g00 = scale * torch.addcmul(half_lam_tr, mu, e00)  # d psi / d C_00
@@ -88,34 +95,40 @@ def _membrane_gradient(terms: Sequence[Tensor], p: Sequence[Tensor], mu: Tensor,
     a2, b2 = 2.0 * d11, 2.0 * d22
     grad_a = [torch.addcmul(a2 * u, d12, v) for u, v in ((ax, bx), (ay, by), (az, bz))]
     grad_b = [torch.addcmul(b2 * v, d12, u) for u, v in ((ax, bx), (ay, by), (az, bz))]
-    return _vertex_gradients(grad_a + grad_b)
+    return grad_a + grad_b
 
 
 class MembraneEnergy(torch.autograd.Function):
-    """StVK membrane energies [J], [B, T]: ``apply(coefficients, mu, lam, area, *coords)``.
+    """StVK membrane energies [J], [B, T]: ``apply(coefficients, mu, lam, area, *entries)``.
 
     ``coefficients`` P^T [9, T] (:func:`membrane_coefficients`, transposed), mu and lam [J/m^2] (thickness
-    included) and rest area [m^2], each [T], are constants (no gradient); ``coords`` = (x0, y0, z0, x1, ..., z2),
-    each [B, T].
+    included) and rest area [m^2], each [T], are constants (no gradient); ``entries`` are the nine vertex
+    coordinates (x0, y0, z0, x1, ..., z2) or the six edge entries (ax, ay, az, bx, by, bz) = (x1 - x0, x2 - x0)
+    (a cubature computes those straight from its features, :class:`redsim.cubature.energy.CubatureEnergy`), each
+    [B, T]; the gradient is with respect to what was given.
     """
 
     @staticmethod
-    def forward(ctx: Any, coefficients: Tensor, mu: Tensor, lam: Tensor, area: Tensor, *coords: Tensor) -> Tensor:
+    def forward(ctx: Any, coefficients: Tensor, mu: Tensor, lam: Tensor, area: Tensor, *entries: Tensor) -> Tensor:
         if any(ctx.needs_input_grad[:4]):
             raise ValueError("MembraneEnergy has no gradient with respect to its material constants")
+        if len(entries) not in (6, 9):
+            raise ValueError(f"MembraneEnergy takes 9 vertex coordinates or 6 edge entries, got {len(entries)}")
         p = coefficients.unbind(0)
-        terms = _membrane_terms(coords, p, mu, lam)
-        ctx.save_for_backward(coefficients, mu, lam, area, *coords, *terms)
+        terms = _membrane_terms(entries, p, mu, lam)
+        ctx.save_for_backward(coefficients, mu, lam, area, *entries, *terms)
         return terms[0] * area
 
     @staticmethod
     def backward(ctx: Any, grad: Tensor) -> tuple[Tensor | None, ...]:
         coefficients, mu, lam, area, *saved = ctx.saved_tensors
-        coords, terms = saved[:9], saved[9:]
+        count = len(saved) - 11  # the entries given, then the 11 terms
+        entries, terms = saved[:count], saved[count:]
         p = coefficients.unbind(0)
-        if torch.is_grad_enabled():  # create_graph: rebuild the terms as a graph of the coordinates
-            terms = _membrane_terms(coords, p, mu, lam)
-        return None, None, None, None, *_membrane_gradient(terms, p, mu, lam, grad * area)
+        if torch.is_grad_enabled():  # create_graph: rebuild the terms as a graph of the entries
+            terms = _membrane_terms(entries, p, mu, lam)
+        edges = _membrane_gradient(terms, p, mu, lam, grad * area)
+        return None, None, None, None, *(edges if count == 6 else _vertex_gradients(edges))
 
 
 # -- discrete-shell bending ---------------------------------------------------------------------------
@@ -136,17 +149,15 @@ def hinge_parts(coords: Sequence[Tensor], length_eps: float) -> tuple[Tensor, ..
     """The signed dihedral angle theta [rad] of hinges and the terms its gradient reads:
     (theta, ex, ey, ez, ax, ay, az, bx, by, bz, nax, nay, naz, nbx, nby, nbz, cos, sin, edge_sq, u, length, m).
 
-    ``coords`` = (x0, y0, z0, ..., x3, y3, z3), each [B, E] (any one shape). The hinge's shared edge is x0-x1, its
+    ``coords`` = (x0, y0, z0, ..., x3, y3, z3), each [B, E] (any one shape), or the nine edge entries (ex, ey, ez,
+    ax, ..., bz) defined next (they are all it reads). The hinge's shared edge is x0-x1, its
     triangles (x0, x1, x2) and (x1, x0, x3). With e = x1 - x0, a = x2 - x0, b = x3 - x0 and the normals
     n_a = e x a, n_b = b x e: cos ~ n_a . n_b and sin ~ (n_a x n_b) . e / |e| = -|e|^2 (n_a . b) / |e|
     ((e x a) x (b x e) = -((e x a) . b) e), entry by entry: elementwise products of the coordinates instead of
     [..., 3] cross products (their stacks and strided views cost 2.6-3.3x more CPU time at B >= 16, forward and
     backward). ``length_eps`` [m^2] keeps |e| = length = edge_sq u, u = 1 / sqrt(edge_sq + eps), positive; m = n_a . b.
     """
-    x0, y0, z0, x1, y1, z1, x2, y2, z2, x3, y3, z3 = coords
-    ex, ey, ez = x1 - x0, y1 - y0, z1 - z0
-    ax, ay, az = x2 - x0, y2 - y0, z2 - z0
-    bx, by, bz = x3 - x0, y3 - y0, z3 - z0
+    ex, ey, ez, ax, ay, az, bx, by, bz = coords if len(coords) == 9 else edge_vectors(coords)
     nax, nay, naz = ey * az - ez * ay, ez * ax - ex * az, ex * ay - ey * ax  # n_a = e x a
     nbx, nby, nbz = by * ez - bz * ey, bz * ex - bx * ez, bx * ey - by * ex  # n_b = b x e
     cos = nax * nbx + nay * nby + naz * nbz
@@ -159,8 +170,9 @@ def hinge_parts(coords: Sequence[Tensor], length_eps: float) -> tuple[Tensor, ..
     return (theta, ex, ey, ez, ax, ay, az, bx, by, bz, nax, nay, naz, nbx, nby, nbz, cos, sin, edge_sq, u, length, m)
 
 
-def _hinge_gradient(parts: Sequence[Tensor], g_theta: Tensor) -> list[Tensor]:
-    """d(theta) / d coordinates (12 tensors) times ``g_theta`` [B, E], from :func:`hinge_parts`.
+def _hinge_gradient(parts: Sequence[Tensor], g_theta: Tensor, vertices: bool = True) -> list[Tensor]:
+    """d(theta) / d coordinates (12 tensors; ``vertices`` False: d / d edges (e, a, b), 9) times ``g_theta`` [B, E],
+    from :func:`hinge_parts`.
 
     With k = -g_theta / (sin^2 + cos^2) (atan2's derivative, sign folded in; 0 where sin = cos = 0, a collapsed
     hinge, as torch's atan2 backward), P = k cos and Q = k sin, and
@@ -183,6 +195,8 @@ def _hinge_gradient(parts: Sequence[Tensor], g_theta: Tensor) -> list[Tensor]:
     pe = dlength.mul_(m).mul_(p).mul_(2.0)
     na_b = _cross(n_a, b)
     grad_e = [ahi.addcmul_(q, ci).addcmul_(pe, ei) for ahi, ci, ei in zip(_cross(a, h), na_b, e, strict=True)]
+    if not vertices:
+        return [*grad_e, *grad_a, *grad_b]
     grad_0 = [torch.add(ge, ga).add_(gb).neg_() for ge, ga, gb in zip(grad_e, grad_a, grad_b, strict=True)]
     return [*grad_0, *grad_e, *grad_a, *grad_b]
 
@@ -198,7 +212,7 @@ docs/env-speed.md, "Stop 49")."""
 
 def hinge_energies(weight: Tensor, rest_angle: Tensor, length_eps: float, coords: Sequence[Tensor]) -> Tensor:
     """Discrete-shell bending energies [J], [B, E], weight * (theta - rest_angle)^2 per hinge, of the twelve vertex
-    coordinates (each [B, E]; :func:`hinge_parts`): through :class:`HingeEnergy` up to
+    coordinates or the nine edge entries (each [B, E]; :func:`hinge_parts`): through :class:`HingeEnergy` up to
     :data:`HINGE_CLOSED_FORM_ENTRIES` entries per coordinate, else by autograd of the same formula."""
     if coords[0].numel() > HINGE_CLOSED_FORM_ENTRIES:
         return weight * (hinge_parts(coords, length_eps)[0] - rest_angle) ** 2
@@ -210,7 +224,8 @@ class HingeEnergy(torch.autograd.Function):
     weight * (theta - rest_angle)^2 per hinge.
 
     ``weight`` [J] and ``rest_angle`` [rad], each [E], are constants (no gradient), ``length_eps`` [m^2] a float
-    (:func:`hinge_parts`); ``coords`` = (x0, y0, z0, ..., x3, y3, z3), each [B, E]. The backward is
+    (:func:`hinge_parts`); ``coords`` = (x0, y0, z0, ..., x3, y3, z3) or the nine edge entries, each [B, E]
+    (the gradient is with respect to what was given). The backward is
     :func:`_hinge_gradient` (in place on its own fresh tensors); under ``create_graph`` (Hessians) it is autograd
     of the plain formula through :func:`hinge_parts` instead, differentiable to any order.
     """
@@ -219,6 +234,8 @@ class HingeEnergy(torch.autograd.Function):
     def forward(ctx: Any, weight: Tensor, rest_angle: Tensor, length_eps: float, *coords: Tensor) -> Tensor:
         if any(ctx.needs_input_grad[:2]):
             raise ValueError("HingeEnergy has no gradient with respect to its weights and rest angles")
+        if len(coords) not in (9, 12):
+            raise ValueError(f"HingeEnergy takes 12 vertex coordinates or 9 edge entries, got {len(coords)}")
         parts = hinge_parts(coords, length_eps)
         deviation = parts[0] - rest_angle
         ctx.length_eps = length_eps
@@ -228,11 +245,12 @@ class HingeEnergy(torch.autograd.Function):
     @staticmethod
     def backward(ctx: Any, grad: Tensor) -> tuple[Tensor | None, ...]:
         weight, rest_angle, deviation, *saved = ctx.saved_tensors
-        coords, parts = saved[:12], saved[12:]
+        count = len(saved) - 22  # the entries given, then hinge_parts' 22 terms
+        coords, parts = saved[:count], saved[count:]
         if torch.is_grad_enabled():  # create_graph: autograd through the plain formula, a graph of the inputs
             energy = weight * (hinge_parts(coords, ctx.length_eps)[0] - rest_angle) ** 2
             needs = ctx.needs_input_grad[3:]  # a coordinate without a gradient gets None (autograd.grad refuses it)
             inputs = [c for c, need in zip(coords, needs, strict=True) if need]
             wanted = iter(torch.autograd.grad(energy, inputs, grad, create_graph=True))
             return None, None, None, *(next(wanted) if need else None for need in needs)
-        return None, None, None, *_hinge_gradient(parts, (2.0 * grad) * weight * deviation)
+        return None, None, None, *_hinge_gradient(parts, (2.0 * grad) * weight * deviation, vertices=count == 12)

@@ -311,11 +311,17 @@ class StVKMembrane(Effect):
         """
         return self._energies(gather_coordinates(x, self.element_dofs))
 
-    def _energies(self, coords: Sequence[Tensor]) -> Tensor:
-        """Energies [J], [B, T], of the nine vertex coordinates, each [B, T], with the closed-form gradient of
-        :class:`redsim.effects.cloth_gradients.MembraneEnergy`."""
+    def edge_energies(self, edges: Sequence[Tensor]) -> Tensor:
+        """Energies [J], [B, T], of the six edge entries (x1 - x0, x2 - x0), each [B, T]: all a triangle's energy
+        reads, and affine in the features of an affine output layer, so a cubature computes them straight from those
+        (:class:`redsim.cubature.energy.CubatureEnergy`); the gradient is with respect to the edges."""
+        return self._energies(edges)
+
+    def _energies(self, entries: Sequence[Tensor]) -> Tensor:
+        """Energies [J], [B, T], of the nine vertex coordinates or the six edge entries, each [B, T], with the
+        closed-form gradient of :class:`redsim.effects.cloth_gradients.MembraneEnergy`."""
         coefficients = self.metric_coefficients.T.contiguous()
-        return MembraneEnergy.apply(coefficients, self.mu, self.lam, self.rest_area, *coords)
+        return MembraneEnergy.apply(coefficients, self.mu, self.lam, self.rest_area, *entries)
 
     def metric(self, x: Tensor) -> tuple[Tensor, Tensor, Tensor]:
         """(C_00, C_11, C_01) of C = F^T F of every triangle, each [B, T], at full configurations x [B, N].
@@ -404,7 +410,12 @@ class DiscreteShellBending(Effect):
         energies before and after in README "Cubature")."""
         return self._energies(gather_coordinates(x, self.element_dofs))
 
+    def edge_energies(self, edges: Sequence[Tensor]) -> Tensor:
+        """Hinge energies [J], [B, E], of the nine edge entries (x1 - x0, x2 - x0, x3 - x0), each [B, E]: all a
+        hinge's energy reads (as :meth:`StVKMembrane.edge_energies`); the gradient is with respect to the edges."""
+        return self._energies(edges)
+
     def _energies(self, coords: Sequence[Tensor]) -> Tensor:
-        """Hinge energies [J], [B, E], of the twelve vertex coordinates, each [B, E] (class doc), by
-        :func:`redsim.effects.cloth_gradients.hinge_energies` (a closed-form gradient up to a size)."""
+        """Hinge energies [J], [B, E], of the twelve vertex coordinates or the nine edge entries, each [B, E] (class
+        doc), by :func:`redsim.effects.cloth_gradients.hinge_energies` (a closed-form gradient up to a size)."""
         return hinge_energies(self.weight, self.rest_angle, self.length_eps, coords)

@@ -12,7 +12,7 @@ import torch
 import redsim
 from redsim.effects import Effect
 from redsim.effects.base import gather_coordinates
-from redsim.effects.cloth_gradients import HINGE_CLOSED_FORM_ENTRIES, HingeEnergy, hinge_parts
+from redsim.effects.cloth_gradients import HINGE_CLOSED_FORM_ENTRIES, HingeEnergy, edge_vectors, hinge_parts
 from redsim.effects.elastic import DiscreteShellBending, membrane_metric
 
 EFFECTS = ("membrane", "bending")
@@ -91,6 +91,30 @@ def test_closed_form_gradients_pass_gradcheck_and_gradgradcheck(effect_name: str
     assert torch.autograd.gradgradcheck(effect.element_energies, (x,))
     xe = x.detach()[:, effect.element_dofs].requires_grad_(True)  # the gathered path (Hessians, cubature fit)
     assert torch.autograd.gradgradcheck(effect.element_energy, (xe,))
+
+
+@pytest.mark.parametrize("effect_name", EFFECTS)
+def test_edge_entries_give_the_vertex_path_s_energies_and_gradients(effect_name: str) -> None:
+    """``edge_energies`` of the edges x_j - x_0 (what a cubature computes from its features) equals
+    ``element_energies`` of the vertex coordinates, and its gradient is the vertex gradient's edge part: d/dx_j for
+    j >= 1 (float64); central differences of it and of its gradient pass; a wrong entry count is refused."""
+    scene = redsim.scenes.build("cloth_ball")
+    effect = scene.effect(effect_name).subset(torch.arange(40))
+    x = _state(scene, 3, 0.05, torch.float64)
+    xe = x[:, effect.element_dofs].requires_grad_(True)  # [B, T, 3 k]: vertex-major x, y, z
+    edges = [e.requires_grad_(True) for e in edge_vectors(xe.detach().unbind(-1))]
+    by_vertex, by_edges = effect.element_energy(xe), effect.edge_energies(edges)
+    assert torch.allclose(by_vertex, effect.element_energies(x), rtol=1e-12, atol=0.0)
+    assert torch.allclose(by_edges, by_vertex, rtol=1e-12, atol=0.0)
+    (vertex_grads,) = torch.autograd.grad(by_vertex.sum(), xe)
+    edge_grads = torch.autograd.grad(by_edges.sum(), edges)
+    for a, b in zip(edge_grads, vertex_grads[..., 3:].unbind(-1), strict=True):
+        assert torch.allclose(a, b, rtol=1e-10, atol=1e-12 * float(b.abs().max()))
+    few = [e[:, :5].detach().requires_grad_(True) for e in edges]
+    assert torch.autograd.gradcheck(lambda *u: effect.subset(torch.arange(5)).edge_energies(u), few)
+    assert torch.autograd.gradgradcheck(lambda *u: effect.subset(torch.arange(5)).edge_energies(u), few)
+    with pytest.raises(ValueError, match="edge entries"):
+        effect.edge_energies(edges[:-1])
 
 
 @pytest.mark.parametrize(
