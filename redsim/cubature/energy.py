@@ -266,8 +266,8 @@ class CubatureEnergy:
             the slice scattered in. False (default): a whole single-frame contact (the cloth against its ball) is
             evaluated by its near points only (every point's position without gradients for
             :meth:`SDFContact.near_points`, then a graph only through the rows of W the near points read), an effect
-            with ``edge_energies`` (the cloth's) reads its elements' edges from the edge layer (since stop 53), and a
-            whole effect that is its element sum reads the slice directly. Equal to round-off.
+            with ``edge_dim`` (the cloth's, 2D neo-Hookean) reads its elements' edges from the edge layer (since stop
+            53), and a whole effect that is its element sum reads the slice directly. Equal to round-off.
 
     Attributes:
         output_weight: W [n, w] of q = r W^T + b.
@@ -319,9 +319,9 @@ class CubatureEnergy:
         )
 
     def _by_edges(self, effect: Effect) -> bool:
-        """True for an effect whose elements read only their edges x_j - x_0 (``edge_energies``) and whose energy is
-        its (weighted) element sum: evaluated on edges computed straight from r (not ``slice_all``)."""
-        return not self.slice_all and hasattr(effect, "edge_energies") and type(effect).energy is Effect.energy
+        """True for an effect whose elements read only their edges x_j - x_0 (``edge_dim``, ``edge_energies``) and
+        whose energy is its (weighted) element sum: evaluated on edges computed straight from r (not ``slice_all``)."""
+        return not self.slice_all and effect.edge_dim is not None and type(effect).energy is Effect.energy
 
     def _terms(self, scene: Scene, output: AffineOutput) -> list[tuple[str, Effect, Any]]:
         """Per effect, (how, effect, data) at the slice x_s: ``"edges"`` (its kept elements, or all of a whole effect,
@@ -454,10 +454,11 @@ class CubatureEnergy:
             if how == "edges":
                 if blocks is None:
                     edges = torch.addmm(edge_layer[1], r, edge_layer[0].T)
-                    blocks = edges.split([(e.element_dofs.shape[1] - 3) * e.element_count for e in _edged(terms)], 1)
+                    sizes = [(e.element_dofs.shape[1] - int(e.edge_dim)) * e.element_count for e in _edged(terms)]
+                    blocks = edges.split(sizes, 1)
                 block, weights = data
                 entries = blocks[block].view(r.shape[0], -1, effect.element_count).unbind(1)
-                energies = effect.edge_energies(entries)  # type: ignore[attr-defined]
+                energies = effect.edge_energies(entries, cond)
                 total = total + (energies.sum(-1) if weights is None else energies @ weights)
             elif how == "kept":
                 total = total + effect.element_energies(x_s, cond) @ data
@@ -499,16 +500,18 @@ def _edged(terms: list[tuple[str, Effect, Any]]) -> list[Effect]:
 
 def _edge_layer(output: AffineOutput, scene: Scene, effects: list[Effect]) -> tuple[Tensor, Tensor]:
     """W_E [K, w] and b_E [K] with r W_E^T + b_E every edge entry x_j - x_0 of ``effects``' elements (each
-    ``element_dofs`` [T, 3 k]: k vertices' x, y, z), effect by effect, each block ordered (edge, coordinate, element):
-    its [B, 3 (k - 1) T] part viewed as [B, 3 (k - 1), T] gives the entries as [B, T] rows. A pinned vertex's rows
-    are zero and its bias its pinned value (:func:`sliced_layer`). The row differences are taken in ``output``'s
-    dtype (float64: an edge's entries without the cancellation of subtracting two float32 positions)."""
+    ``element_dofs`` [T, D k]: k vertices' D = ``edge_dim`` coordinates), effect by effect, each block ordered (edge,
+    coordinate, element): its [B, D (k - 1) T] part viewed as [B, D (k - 1), T] gives the entries as [B, T] rows
+    (:func:`redsim.effects.base.edge_vectors`' order). A pinned vertex's rows are zero and its bias its pinned value
+    (:func:`sliced_layer`). The row differences are taken in ``output``'s dtype (float64: an edge's entries without
+    the cancellation of subtracting two float32 positions)."""
     weights, biases = [], []
     for effect in effects:
         count, width = effect.element_dofs.shape
+        dim = int(effect.edge_dim)  # type: ignore[arg-type]
         weight, bias = sliced_layer(output, scene, effect.element_dofs.reshape(-1))
-        weight = weight.view(count, width // 3, 3, -1)
-        bias = bias.view(count, width // 3, 3)
+        weight = weight.view(count, width // dim, dim, -1)
+        bias = bias.view(count, width // dim, dim)
         weights.append((weight[:, 1:] - weight[:, :1]).permute(1, 2, 0, 3).reshape(-1, weight.shape[-1]))
         biases.append((bias[:, 1:] - bias[:, :1]).permute(1, 2, 0).reshape(-1))
     if not weights:

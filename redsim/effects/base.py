@@ -36,6 +36,9 @@ class Effect:
 
     kind: ClassVar[str] = "effect"
     feature_size: float = math.inf
+    edge_dim: int | None = None
+    """Coordinates per vertex of an effect whose elements' energies read only their edges x_j - x_0 and that offers
+    them as :meth:`edge_energies` (a cubature then computes the edges straight from its features); None: not one."""
     """Thinnest feature [m] this term resolves (contact shapes); solvers keep steps below it."""
     uses_loads: ClassVar[bool] = False
     uses_condition: ClassVar[bool] = False
@@ -66,6 +69,11 @@ class Effect:
         :meth:`element_energy` of the gathered entries; kernels that gather each coordinate on its own override it.
         """
         return self.element_energy(gather_elements(x, self.element_dofs), cond, loads)
+
+    def edge_energies(self, edges: Sequence[Tensor], cond: Tensor | None = None) -> Tensor:
+        """Energy of every element [J], [B, T], of its edge entries (:func:`edge_vectors` of its vertex coordinates,
+        each [B, T]), for an effect with ``edge_dim``; the gradient is with respect to the edges."""
+        raise NotImplementedError(f"{type(self).__name__} {self.name!r} does not read its elements by their edges")
 
     def energy(self, x: Tensor, cond: Tensor | None = None, loads: Tensor | None = None) -> Tensor:
         """Total energy [J], shape [B], of full configurations x, shape [B, N]."""
@@ -127,6 +135,13 @@ def gather_elements(x: Tensor, element_dofs: Tensor) -> Tensor:
     faster on the CPU for the thousands of repeated indices of a mesh).
     """
     return x.index_select(1, element_dofs.reshape(-1)).reshape(x.shape[0], *element_dofs.shape)
+
+
+def edge_vectors(coords: Sequence[Tensor], dim: int = 3) -> list[Tensor]:
+    """The edges x_j - x_0 (j = 1, 2, ...), entry by entry, of an element's vertex coordinates (x0, y0[, z0], x1, ...,
+    each one shape; ``dim`` per vertex): dim (k - 1) tensors of k vertices' dim k, edge-major."""
+    origin = coords[:dim]
+    return [c - o for j in range(dim, len(coords), dim) for c, o in zip(coords[j : j + dim], origin, strict=True)]
 
 
 def gather_coordinates(x: Tensor, element_dofs: Tensor) -> Sequence[Tensor]:

@@ -20,6 +20,8 @@ from typing import Any
 import torch
 from torch import Tensor
 
+from redsim.effects.base import edge_vectors
+
 
 def _dot(ux: Tensor, uy: Tensor, uz: Tensor, vx: Tensor, vy: Tensor, vz: Tensor) -> Tensor:
     """u . v of 3-vectors given entry by entry."""
@@ -62,13 +64,6 @@ def membrane_coefficients(shape_gradients: Tensor) -> Tensor:
         (m00 * m01, m00 * m11 + m10 * m01, m10 * m11),
     ]
     return torch.stack([c for row in rows for c in row], dim=-1)
-
-
-def edge_vectors(coords: Sequence[Tensor]) -> list[Tensor]:
-    """The edges x_j - x_0 (j = 1, 2, ...), entry by entry, of an element's vertex coordinates
-    (x0, y0, z0, x1, ..., each one shape): 3 (k - 1) tensors of k vertices' 3 k."""
-    origin = coords[:3]
-    return [c - o for j in range(3, len(coords), 3) for c, o in zip(coords[j : j + 3], origin, strict=True)]
 
 
 def _membrane_terms(entries: Sequence[Tensor], p: Sequence[Tensor], mu: Tensor, lam: Tensor) -> tuple[Tensor, ...]:

@@ -151,6 +151,7 @@ class NeoHookean(Effect):
         self.lam = lam
         if D == 2:  # per-element constants of the closed-form kernel, each [T]
             self.plane_constants = plane_constants(self.shape_gradients, mu, lam, self.rest_volume)
+            self.edge_dim = 2  # its kernel also takes the edges (:meth:`edge_energies`)
         self.condition_scale = None
         if condition_scale is not None:
             index, mask = condition_scale
@@ -187,8 +188,15 @@ class NeoHookean(Effect):
             return _plane_invariants(gather_coordinates(x, self.element_dofs), self.shape_gradients)
         return _solid_invariants(gather_elements(x, self.element_dofs), self.shape_gradients)
 
+    def edge_energies(self, edges: Sequence[Tensor], cond: Tensor | None = None) -> Tensor:
+        """Energies [J], [B, T], of 2D triangles from their four edge entries (x1 - x0, y1 - y0, x2 - x0, y2 - y0),
+        each [B, T] (F reads only those; a cubature computes them from its features); 3D elements refuse."""
+        if self.dim != 2:
+            return super().edge_energies(edges, cond)
+        return self._plane_energies(edges, cond)
+
     def _plane_energies(self, coords: Sequence[Tensor], cond: Tensor | None) -> Tensor:
-        """Energies [J], [B, T], of triangles from their six vertex coordinates, each [B, T]."""
+        """Energies [J], [B, T], of triangles from their six vertex coordinates or four edge entries, each [B, T]."""
         return PlaneNeoHookeanEnergy.apply(self.plane_constants, self._scale(cond), *coords)
 
     def _energy_density(self, trace: Tensor, det: Tensor, cond: Tensor | None) -> Tensor:
@@ -269,6 +277,7 @@ class StVKMembrane(Effect):
     """
 
     kind = "stvk_membrane"
+    edge_dim = 3
 
     def __init__(
         self,
@@ -311,7 +320,7 @@ class StVKMembrane(Effect):
         """
         return self._energies(gather_coordinates(x, self.element_dofs))
 
-    def edge_energies(self, edges: Sequence[Tensor]) -> Tensor:
+    def edge_energies(self, edges: Sequence[Tensor], cond: Tensor | None = None) -> Tensor:
         """Energies [J], [B, T], of the six edge entries (x1 - x0, x2 - x0), each [B, T]: all a triangle's energy
         reads, and affine in the features of an affine output layer, so a cubature computes them straight from those
         (:class:`redsim.cubature.energy.CubatureEnergy`); the gradient is with respect to the edges."""
@@ -378,6 +387,7 @@ class DiscreteShellBending(Effect):
     """
 
     kind = "discrete_shell_bending"
+    edge_dim = 3
 
     def __init__(self, name: str, vertex_dofs: Tensor, rest: Tensor, stiffness: float | Tensor) -> None:
         rest = torch.as_tensor(rest, dtype=torch.float64)
@@ -410,7 +420,7 @@ class DiscreteShellBending(Effect):
         energies before and after in README "Cubature")."""
         return self._energies(gather_coordinates(x, self.element_dofs))
 
-    def edge_energies(self, edges: Sequence[Tensor]) -> Tensor:
+    def edge_energies(self, edges: Sequence[Tensor], cond: Tensor | None = None) -> Tensor:
         """Hinge energies [J], [B, E], of the nine edge entries (x1 - x0, x2 - x0, x3 - x0), each [B, E]: all a
         hinge's energy reads (as :meth:`StVKMembrane.edge_energies`); the gradient is with respect to the edges."""
         return self._energies(edges)

@@ -24,6 +24,8 @@ from typing import Any
 import torch
 from torch import Tensor
 
+from redsim.effects.base import edge_vectors
+
 
 def plane_constants(shape_gradients: Tensor, mu: Tensor, lam: Tensor, volume: Tensor) -> tuple[Tensor, ...]:
     """(K_00, K_01, K_11, -beta, A, 2A, B, -C), each [T] and contiguous (module doc for the symbols).
@@ -50,11 +52,11 @@ def plane_constants(shape_gradients: Tensor, mu: Tensor, lam: Tensor, volume: Te
     return tuple(c.contiguous() for c in constants)
 
 
-def _terms(coords: Sequence[Tensor], constants: Sequence[Tensor]) -> tuple[Tensor, ...]:
-    """Energies E [J] and what the gradient reads: (E, a, b, c, d, (D_s K)_00, _01, _10, _11, B (det D_s - beta))."""
-    x0, y0, x1, y1, x2, y2 = coords
+def _terms(entries: Sequence[Tensor], constants: Sequence[Tensor]) -> tuple[Tensor, ...]:
+    """Energies E [J] and what the gradient reads: (E, a, b, c, d, (D_s K)_00, _01, _10, _11, B (det D_s - beta)), of
+    the six vertex coordinates or the four edge entries (x1 - x0, y1 - y0, x2 - x0, y2 - y0) = (a, c, b, d)."""
     k00, k01, k11, neg_beta, shear, _, bulk, neg_offset = constants
-    a, b, c, d = x1 - x0, x2 - x0, y1 - y0, y2 - y0
+    a, c, b, d = entries if len(entries) == 4 else edge_vectors(entries, 2)
     u00, u01 = torch.addcmul(a * k00, b, k01), torch.addcmul(a * k01, b, k11)
     u10, u11 = torch.addcmul(c * k00, d, k01), torch.addcmul(c * k01, d, k11)
     stretch = torch.addcmul(torch.addcmul(torch.addcmul(a * u00 - 2.0, b, u01), c, u10), d, u11)  # tr F^T F - 2
@@ -64,26 +66,30 @@ def _terms(coords: Sequence[Tensor], constants: Sequence[Tensor]) -> tuple[Tenso
     return energy, a, b, c, d, u00, u01, u10, u11, q
 
 
-def _gradient(terms: Sequence[Tensor], shear2: Tensor, grad: Tensor) -> list[Tensor]:
-    """d(grad * E) / d coordinates (six tensors) from :func:`_terms`; ``grad`` [B, T]."""
+def _gradient(terms: Sequence[Tensor], shear2: Tensor, grad: Tensor, vertices: bool = True) -> list[Tensor]:
+    """d(grad * E) / d coordinates (six tensors; ``vertices`` False: d / d edge entries, four) from :func:`_terms`;
+    ``grad`` [B, T]."""
     _, a, b, c, d, u00, u01, u10, u11, q = terms
     t, s = grad * shear2, grad * q
     da, db = torch.addcmul(t * u00, s, d), torch.addcmul(t * u01, s, c, value=-1.0)
     dc, dd = torch.addcmul(t * u10, s, b, value=-1.0), torch.addcmul(t * u11, s, a)
-    return [-(da + db), -(dc + dd), da, dc, db, dd]
+    return [-(da + db), -(dc + dd), da, dc, db, dd] if vertices else [da, dc, db, dd]
 
 
 class PlaneNeoHookeanEnergy(torch.autograd.Function):
     """Stable neo-Hookean energies [J], [B, T], of 2D triangles: ``apply(constants, scale, *coords)``.
 
     ``constants`` is :func:`plane_constants`' tuple (no gradient); ``scale`` a per-element modulus factor [B, T]
-    (differentiable) or None; ``coords`` = (x0, y0, x1, y1, x2, y2), each [B, T].
+    (differentiable) or None; ``coords`` = (x0, y0, x1, y1, x2, y2) or the four edge entries (x1 - x0, y1 - y0,
+    x2 - x0, y2 - y0), each [B, T] (the gradient is with respect to what was given).
     """
 
     @staticmethod
     def forward(ctx: Any, constants: tuple[Tensor, ...], scale: Tensor | None, *coords: Tensor) -> Tensor:
         if any(c.requires_grad for c in constants):
             raise ValueError("PlaneNeoHookeanEnergy has no gradient with respect to its material constants")
+        if len(coords) not in (4, 6):
+            raise ValueError(f"PlaneNeoHookeanEnergy takes 6 vertex coordinates or 4 edge entries, got {len(coords)}")
         terms = _terms(coords, constants)
         ctx.constants = constants
         ctx.save_for_backward(scale, *coords, *terms)
@@ -92,10 +98,11 @@ class PlaneNeoHookeanEnergy(torch.autograd.Function):
     @staticmethod
     def backward(ctx: Any, grad: Tensor) -> tuple[Tensor | None, ...]:
         scale, *saved = ctx.saved_tensors
-        coords, terms = saved[:6], saved[6:]
+        count = len(saved) - 10  # the entries given, then the 10 terms
+        coords, terms = saved[:count], saved[count:]
         if torch.is_grad_enabled():  # create_graph: rebuild the terms as a graph of the coordinates
             terms = _terms(coords, ctx.constants)
         grad_scale = grad * terms[0] if ctx.needs_input_grad[1] else None
         if scale is not None:
             grad = grad * scale
-        return None, grad_scale, *_gradient(terms, ctx.constants[5], grad)
+        return None, grad_scale, *_gradient(terms, ctx.constants[5], grad, vertices=count == 6)

@@ -11,8 +11,8 @@ import torch
 
 import redsim
 from redsim.effects import Effect
-from redsim.effects.base import gather_coordinates
-from redsim.effects.cloth_gradients import HINGE_CLOSED_FORM_ENTRIES, HingeEnergy, edge_vectors, hinge_parts
+from redsim.effects.base import edge_vectors, gather_coordinates
+from redsim.effects.cloth_gradients import HINGE_CLOSED_FORM_ENTRIES, HingeEnergy, hinge_parts
 from redsim.effects.elastic import DiscreteShellBending, membrane_metric
 
 EFFECTS = ("membrane", "bending")
@@ -102,7 +102,7 @@ def test_edge_entries_give_the_vertex_path_s_energies_and_gradients(effect_name:
     effect = scene.effect(effect_name).subset(torch.arange(40))
     x = _state(scene, 3, 0.05, torch.float64)
     xe = x[:, effect.element_dofs].requires_grad_(True)  # [B, T, 3 k]: vertex-major x, y, z
-    edges = [e.requires_grad_(True) for e in edge_vectors(xe.detach().unbind(-1))]
+    edges = [e.requires_grad_(True) for e in edge_vectors(xe.detach().unbind(-1), 3)]
     by_vertex, by_edges = effect.element_energy(xe), effect.edge_energies(edges)
     assert torch.allclose(by_vertex, effect.element_energies(x), rtol=1e-12, atol=0.0)
     assert torch.allclose(by_edges, by_vertex, rtol=1e-12, atol=0.0)

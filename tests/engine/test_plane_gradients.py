@@ -11,7 +11,7 @@ import torch
 
 import redsim
 from redsim.effects import NeoHookean
-from redsim.effects.base import gather_coordinates
+from redsim.effects.base import edge_vectors, gather_coordinates
 from redsim.effects.elastic import _plane_invariants
 
 
@@ -106,3 +106,29 @@ def test_constants_with_gradients_are_refused() -> None:
     fem.plane_constants = tuple(c.clone().requires_grad_(True) for c in fem.plane_constants)
     with pytest.raises(ValueError, match="material constants"):
         fem.element_energies(x, cond)
+
+
+@pytest.mark.parametrize("name", ["conditional_bar", "bistable_bar"])
+def test_edge_entries_give_the_vertex_path_s_energies_and_gradients(name: str) -> None:
+    """``edge_energies`` of the edges (x1 - x0, y1 - y0, x2 - x0, y2 - y0) equals the vertex path and its gradient is
+    the vertex gradient's edge part (float64); central differences of it and of its gradient pass (the condition
+    scale included); a wrong entry count and a 3D element are refused."""
+    fem, x, cond = _case(name, 3, 0.05, torch.float64)
+    assert fem.edge_dim == 2
+    xe = x[:, fem.element_dofs].requires_grad_(True)
+    edges = [e.requires_grad_(True) for e in edge_vectors(xe.detach().unbind(-1), 2)]
+    by_vertex, by_edges = fem.element_energy(xe, cond), fem.edge_energies(edges, cond)
+    assert torch.allclose(by_edges, by_vertex, rtol=1e-12, atol=0.0)
+    (vertex_grads,) = torch.autograd.grad(by_vertex.sum(), xe)
+    for a, b in zip(torch.autograd.grad(by_edges.sum(), edges), vertex_grads[..., 2:].unbind(-1), strict=True):
+        assert torch.allclose(a, b, rtol=1e-10, atol=1e-12 * float(b.abs().max()))
+    few = fem.subset(torch.arange(4))
+    entries = [e[:, :4].detach().requires_grad_(True) for e in edges]
+    assert torch.autograd.gradcheck(lambda *u: few.edge_energies(u, cond), entries)
+    assert torch.autograd.gradgradcheck(lambda *u: few.edge_energies(u, cond), entries)
+    with pytest.raises(ValueError, match="edge entries"):
+        fem.edge_energies(edges[:-1], cond)
+    solid = redsim.scenes.build("stiff_body").effect("elastic")
+    assert solid.edge_dim is None
+    with pytest.raises(NotImplementedError, match="by their edges"):
+        solid.edge_energies(edges, None)
