@@ -457,7 +457,8 @@ class CubatureEnergy:
                     sizes = [(e.element_dofs.shape[1] - int(e.edge_dim)) * e.element_count for e in _edged(terms)]
                     blocks = edges.split(sizes, 1)
                 block, weights = data
-                entries = blocks[block].view(r.shape[0], -1, effect.element_count).unbind(1)
+                width = effect.element_dofs.shape[1] - int(effect.edge_dim)  # type: ignore[arg-type]
+                entries = blocks[block].view(r.shape[0], width, effect.element_count).unbind(1)
                 energies = effect.edge_energies(entries, cond)
                 total = total + (energies.sum(-1) if weights is None else energies @ weights)
             elif how == "kept":
@@ -510,7 +511,7 @@ def _edge_layer(output: AffineOutput, scene: Scene, effects: list[Effect]) -> tu
         count, width = effect.element_dofs.shape
         dim = int(effect.edge_dim)  # type: ignore[arg-type]
         weight, bias = sliced_layer(output, scene, effect.element_dofs.reshape(-1))
-        weight = weight.view(count, width // dim, dim, -1)
+        weight = weight.view(count, width // dim, dim, weight.shape[-1])  # (no -1: a rule may keep no element)
         bias = bias.view(count, width // dim, dim)
         weights.append((weight[:, 1:] - weight[:, :1]).permute(1, 2, 0, 3).reshape(-1, weight.shape[-1]))
         biases.append((bias[:, 1:] - bias[:, :1]).permute(1, 2, 0).reshape(-1))

@@ -611,6 +611,31 @@ def test_float32_edges_are_as_accurate_as_the_float32_slice() -> None:
     assert float((g_edges - g64).abs().max()) <= 1.5 * float((g_slice - g64).abs().max())
 
 
+def test_an_edge_effect_that_keeps_no_element_adds_nothing() -> None:
+    """A cubature rule may keep no element (an effect idle on every training state, :mod:`redsim.cubature.fit`): on
+    edges it adds zero energy, as on the slice (float64)."""
+    from redsim.cubature.fit import EffectRule
+
+    scene = scenes.build("hanging_sheet")
+    f = pretrained.load("hanging_sheet", scene)
+    cub = load_cubature(pretrained.FOLDER / "hanging_sheet.lean", scene, f)
+    count = scene.effect("bending").element_count
+    none = EffectRule(
+        "bending", "cubature", count, torch.zeros(0, dtype=torch.int64), torch.zeros(0, dtype=torch.float64)
+    )
+    cub.rules = [none if r.name == "bending" else r for r in cub.rules]
+    z = 0.5 * torch.randn(4, f.latent_dim, generator=torch.Generator().manual_seed(2), dtype=torch.float64)
+    values = []
+    for slice_all in (False, True):
+        energy = CubatureEnergy(scene, f, cub, dtype=torch.float64, slice_all=slice_all)
+        zz = z.clone().requires_grad_(True)
+        value, _ = energy.energy_features(zz, None)
+        values.append((value.detach(), torch.autograd.grad(value.sum(), zz)[0]))
+    assert energy.describe()["edge_entries"] == 0  # the slice path's
+    torch.testing.assert_close(values[0][0], values[1][0], rtol=1e-12, atol=1e-12)
+    torch.testing.assert_close(values[0][1], values[1][1], rtol=1e-10, atol=1e-12)
+
+
 def test_near_contact_follows_a_moving_sheared_frame(monkeypatch: pytest.MonkeyPatch) -> None:
     """A whole single-frame contact whose frame is free (moved, sheared and scaled by the map) and particles
     around it: the near-point path, and its dense form under ``torch.compile``, equal the slice path (value and
