@@ -3,9 +3,10 @@
 Every map kind redsim ships ends in an affine layer: the neural map's last ``nn.Linear`` (r = the
 last hidden activation, width w = 64..128), the linear map (r = z) and the quadratic map
 (r = [z, 1/2 c_ij z_i z_j]) and the anchored map (r = [MLP remainder, z, 1/2 c_ij z_i z_j], see
-:class:`redsim.subspace.AnchoredSubspace`). A cubature energy evaluates r once per state and then only the rows of
-W its kept elements read (a sliced output layer), and the step's inertia term exactly in r with the
-precomputed w x w Gram W^T M W (see :class:`redsim.cubature.energy.CubatureEnergy`).
+:class:`redsim.subspace.AnchoredSubspace`). A cubature energy evaluates r once per state and then only what its
+kept elements read from it: their edges through differences of W's rows (an edge layer), or their DOFs through the
+rows of W (a sliced output layer), and the step's inertia term exactly in r with the precomputed w x w Gram W^T M W
+(see :class:`redsim.cubature.energy.CubatureEnergy`).
 """
 
 from __future__ import annotations
