@@ -114,7 +114,7 @@ def test_no_step_is_longer_than_max_step_and_the_minimum_is_the_same(monkeypatch
         def recorded(*args, _original=original, **kwargs):
             out = _original(*args, **kwargs)
             step = out[0] if len(out) == 2 else out[1]
-            lengths.extend(torch.linalg.vector_norm(step, dim=-1).tolist())
+            lengths.extend(torch.linalg.vector_norm(torch.as_tensor(step), dim=-1).tolist())
             return out
 
         monkeypatch.setattr(solver, name, recorded)
