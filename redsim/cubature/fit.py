@@ -164,10 +164,11 @@ def training_states(
     loads = scale * torch.randn(segments, B, len(scene.handles), scene.dim, generator=generator, dtype=torch.float32)
     current = stepper.rest_latent().expand(B, -1)
     previous = current
-    visited, model = [], None
+    visited, model, carry = [], None, None
     for step in range(int(config.steps)):
-        nxt, stats = stepper.step(current, previous, loads[step // int(config.hold)].to(stepper.dtype), warm=model)
-        model = stats.model
+        held = loads[step // int(config.hold)].to(stepper.dtype)
+        nxt, stats = stepper.step(current, previous, held, warm=model, carry=carry)  # warm and carried as the envs do
+        model, carry = stats.model, stats.carry  # (a dropped row's carry no longer matches its z: it is evaluated)
         keep = ~(stats.diverged | stats.out_of_range)
         dropped["diverged"] += int(stats.diverged.sum())
         dropped["out_of_range"] += int((stats.out_of_range & ~stats.diverged).sum())
