@@ -28,7 +28,7 @@ import torch
 from torch import Tensor, nn
 
 from redsim.cubature.fit import MODES, CubatureConfig, EffectRule, fit_rules
-from redsim.cubature.output import AffineOutput, sliced_layer
+from redsim.cubature.output import AffineOutput, column_major, sliced_layer
 from redsim.devices import check_device
 from redsim.effects.base import Effect
 from redsim.effects.penalty import FrameSet, SDFContact
@@ -372,13 +372,14 @@ class CubatureEnergy:
         screened = [e.element_dofs.reshape(-1) for e in sampled if self._screened(e)]
         self.screened_dofs = torch.unique(torch.cat(screened)).to(device) if screened else none
         self.slice_weight, self.slice_bias = sliced_layer(self.output, self.scene, self.slice_dofs)
+        self.slice_weight = column_major(self.slice_weight)
         self.terms = self._terms(self.scene, self.output)
         self._full_values = self.scene.dof_map.full_values
         output64 = AffineOutput(subspace).to(device=device, dtype=torch.float64)
         scene64 = scene.to(device=device, dtype=torch.float64)
         # the edge layer: every edge entry of the edge terms' elements, differences of rows taken in float64
         self.edge_weight, self.edge_bias = _edge_layer(output64, scene64, _edged(self.terms))
-        self.edge_weight, self.edge_bias = self.edge_weight.to(dtype), self.edge_bias.to(dtype)
+        self.edge_weight, self.edge_bias = column_major(self.edge_weight.to(dtype)), self.edge_bias.to(dtype)
         # linear effects: E = r . c + e0 exactly (c, e0 by one backward through the float64 output layer)
         w = output64.feature_dim
         r0 = torch.zeros(1, w, dtype=torch.float64, device=device, requires_grad=True)
@@ -567,7 +568,7 @@ class _NearContact:
             points,
             weight.index_select(0, frame),
             bias.index_select(0, frame),
-            offset_weight.reshape(3 * count, -1).contiguous(),
+            column_major(offset_weight.reshape(3 * count, -1)),
             offset_bias.reshape(-1).contiguous(),
         )
 
