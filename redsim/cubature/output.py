@@ -91,8 +91,9 @@ def sliced_layer(output: AffineOutput, scene: Scene, full_index: Tensor) -> tupl
 
 def column_major(weight: Tensor) -> Tensor:
     """``weight`` [K, w] (same values) stored column-major, so that ``torch.addmm(b, r, weight.T)`` and its backward
-    multiply by a contiguous [w, K] matrix: at K = 7,500, w = 128, float32, one thread, 1.8x faster for 1 row and
-    1.7x for 2-3 (the row loop's tail calls), the same from 4 rows on (docs/env-speed.md, "Stop 55")."""
+    multiply by a contiguous [w, K] matrix: at K = 7,500, w = 128, float32, one thread, 1.74x less CPU time for the
+    product and its backward at 1 row and 1.64-1.66x at 2-3 (the row loop's tail calls), the same from 4 rows on
+    (docs/env-speed.md, "Stop 55")."""
     return weight.T.contiguous().T
 
 
