@@ -149,6 +149,8 @@ def cmd_bench_cubature(args: argparse.Namespace) -> int:
         raise CliError(f"--elements must be an integer >= 1, got {args.elements}")
     if args.steps < 1 or args.timed_steps < 2:  # the sweep's too
         raise CliError("--steps must be >= 1 and --timed-steps >= 2")
+    if args.states < 1:
+        raise CliError(f"--states must be an integer >= 1, got {args.states}")
     if args.sweep:
         if args.compile:
             raise CliError("--compile times the benched scenes' cubature step; the --sweep has no compiled column")
@@ -184,7 +186,8 @@ def cmd_bench_cubature(args: argparse.Namespace) -> int:
     results = []
     if not args.json:
         out(
-            f"cubature vs all-element latent step ({args.dtype}, CPU); deviation over {args.steps} steps; step time "
+            f"cubature vs all-element latent step ({args.dtype}, CPU); deviation over {args.steps} steps (median of "
+            f"{args.states} rollouts); step time "
             f"median (ms) and value-and-gradient calls per step (a timed rollout's cold first step included), "
             + (f"after {warmup} all-element steps under the loads" if warmup else "from rest")
         )
@@ -203,6 +206,7 @@ def cmd_bench_cubature(args: argparse.Namespace) -> int:
             warmup=warmup,
             dtype=getattr(torch, args.dtype),
             compiled=args.compile,
+            states=args.states,
         )
         results.append(result)
         if not args.json:
@@ -320,6 +324,12 @@ def add_bench_command(bench: Any) -> None:
     p.add_argument("scenes", nargs="?", default="cloth_ball,hanging_sheet", help=scenes_help)
     p.add_argument("--steps", type=int, default=100, help="steps of the accuracy rollouts (default 100)")
     p.add_argument("--timed-steps", type=int, default=10, help="timed steps per batch size (default 10)")
+    p.add_argument(
+        "--states",
+        type=int,
+        default=8,
+        help="accuracy rollouts whose median deviation is reported (default 8; more keep the first 8 and add others)",
+    )
     p.add_argument(
         "--warmup-steps",
         type=int,

@@ -20,7 +20,8 @@ from redsim.runtime import Evaluations, LatentStepper
 from redsim.scene import Scene
 
 ACCURACY_STATES = 8
-"""Rollouts (seeded load sequences) whose median deviation the bench reports, whatever its timing batches."""
+"""Rollouts (seeded load sequences) whose median deviation the bench reports by default, whatever its timing
+batches."""
 WARMUP_STEPS = 30
 """All-element steps under the seeded loads before the timed ones (from rest a cloth's steps take fewer calls than
 once it swings: hanging_sheet 12 against 19 at B=64, docs/cubature.md, "Stop 39")."""
@@ -34,6 +35,15 @@ def _loads(scene: Scene, steps: int, batch: int, hold: int, scale: float, seed: 
         segments, batch, len(scene.handles), scene.dim, generator=generator, dtype=torch.float32
     )
     return draws.repeat_interleave(hold, 0)[:steps]
+
+
+def _state_loads(scene: Scene, steps: int, count: int, hold: int, scale: float, seed: int) -> Tensor:
+    """The accuracy rollouts' loads [steps, count, H, D], nested: the first :data:`ACCURACY_STATES` are the default
+    bench's whatever ``count`` (fewer states take the first ones, more add states drawn from seed + 2)."""
+    loads = _loads(scene, steps, ACCURACY_STATES, hold, scale, seed)
+    if count <= ACCURACY_STATES:
+        return loads[:, :count]
+    return torch.cat([loads, _loads(scene, steps, count - ACCURACY_STATES, hold, scale, seed + 2)], 1)
 
 
 def _rollout(
@@ -77,10 +87,13 @@ def bench_cubature(
     seed: int = 0,
     dtype: torch.dtype = torch.float32,
     compiled: bool = False,
+    states: int = ACCURACY_STATES,
 ) -> dict[str, Any]:
     """Compare the cubature energy with the all-element step (``dtype``, CPU, the stepper's defaults).
 
-    Accuracy: :data:`ACCURACY_STATES` states from the rest latent under the same seeded loads, ``steps`` steps
+    Accuracy: ``states`` states (:func:`_state_loads`: a larger count keeps the default's first ones and adds others;
+    the median of 8 can move by a point when one state moves) from the rest latent under the same seeded loads,
+    ``steps`` steps
     with each energy; the deviation of a state is max_t |q_cub(t) - q_all(t)|_M / max_t |q_all(t) - q_all(0)|_M
     (the median over states is reported; each state's, its largest motion max_t |q_all(t) - q_all(0)|_M and the largest
     |z| of the all-element rollouts too), the penetration the deepest contact over all states and steps.
@@ -94,6 +107,8 @@ def bench_cubature(
         raise ValueError(f"warmup must be an integer >= 0, got {warmup!r}")
     if isinstance(timed_steps, bool) or not isinstance(timed_steps, int) or timed_steps < 1:
         raise ValueError(f"timed_steps must be an integer >= 1, got {timed_steps!r}")
+    if isinstance(states, bool) or not isinstance(states, int) or states < 1:
+        raise ValueError(f"states must be an integer >= 1, got {states!r}")
     scale = default_load_scale(scene) if load_scale is None else load_scale
     all_elements = LatentStepper(scene, subspace, dt, dtype=dtype)
     energy = CubatureEnergy(scene, subspace, cubature, dtype=dtype)
@@ -104,8 +119,8 @@ def bench_cubature(
             scene, subspace, dt, dtype=dtype, energy=energy, compile="dynamic"
         )
     rest = all_elements.rest_latent()
-    count = ACCURACY_STATES
-    loads = _loads(scene, steps, count, hold, scale, seed) if scene.handles else None
+    count = states
+    loads = _state_loads(scene, steps, count, hold, scale, seed) if scene.handles else None
     z_all, _ = _rollout(all_elements, rest.expand(count, -1), loads, steps)
     z_cub, _ = _rollout(reduced, rest.expand(count, -1), loads, steps)
     with torch.no_grad():

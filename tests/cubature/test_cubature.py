@@ -430,6 +430,28 @@ def test_bench_deviation_does_not_depend_on_the_timing_batches(mini_chain) -> No
     assert runs[0]["trajectory_deviation"] == torch.tensor(per_state).median().item()  # the median of these
 
 
+def test_bench_states_are_nested_and_counted(cli, mini_chain) -> None:
+    """``states`` sets how many rollouts the deviation is the median of; their loads are nested (fewer states take the
+    default's first ones, more add others after them); a count below 1 is refused by the function and the CLI."""
+    from redsim.cubature import bench
+
+    scene, f = mini_chain
+    default = bench._state_loads(scene, 6, bench.ACCURACY_STATES, 2, 1.0, 0)
+    assert torch.equal(default, bench._loads(scene, 6, bench.ACCURACY_STATES, 2, 1.0, 0))  # the default's loads
+    more, fewer = (bench._state_loads(scene, 6, n, 2, 1.0, 0) for n in (11, 3))
+    assert more.shape[1] == 11 and torch.equal(more[:, :8], default) and torch.equal(fewer, default[:, :3])
+    assert not torch.equal(more[:, 8:], default[:, :3])  # the added states are others
+    cub = build_cubature(scene, f, CubatureConfig(elements=4, **QUICK))
+    run = bench.bench_cubature(scene, f, cub, steps=4, batches=(1,), timed_steps=2, states=11)
+    assert len(run["deviation_per_state"]) == len(run["motion_per_state"]) == 11
+    assert run["trajectory_deviation"] == torch.tensor(run["deviation_per_state"]).median().item()
+    for bad in (0, True, 2.0):
+        with pytest.raises(ValueError, match="states must be an integer >= 1"):
+            bench.bench_cubature(scene, f, cub, steps=2, batches=(1,), timed_steps=2, states=bad)
+    code, _, err = cli("bench", "cubature", "mini_chain", "--states", "0")
+    assert code == 2 and "--states must be an integer >= 1, got 0" in err
+
+
 def test_bench_times_both_energies_from_the_same_moving_state(cli, mini_chain) -> None:
     """The timed steps of both energies start where ``warmup`` all-element steps under the loads end (0: from rest),
     under the same loads, those after the warm-up's; the calls per step are the timed rollouts' own; the deviation
