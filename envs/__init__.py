@@ -32,6 +32,12 @@ ENVS: dict[str, tuple[str, str, int, dict[str, Any]]] = {
     "RedSim/Chain-v0": ("chain", "ChainEnv", 300, {}),
     "RedSim/MiniChain-v0": ("mini_chain", "MiniChainEnv", 200, {}),
     "RedSim/ClothBall-v0": ("cloth_ball", "ClothBallEnv", 200, {}),
+    "RedSim/ClothBall-v1": (
+        "cloth_ball",
+        "ClothBallEnv",
+        200,
+        {"cubature": shipped_file("cloth_ball.lean.cubature.json")},
+    ),
     "RedSim/HangingCloth-v0": ("hanging_cloth", "HangingClothEnv", 200, {}),
     "RedSim/HangingCloth-v1": (
         "hanging_cloth",

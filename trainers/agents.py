@@ -126,6 +126,7 @@ HYPERPARAMS: dict[str, dict[str, dict[str, Any]]] = {
     "RedSim/MiniChain-v0": {"sac": {"n_envs": 16, "gradient_steps": 8}},
     "RedSim/Chain-v0": {"sac": {"n_envs": 16, "gradient_steps": 8}},
     "RedSim/ClothBall-v0": {"sac": {"n_envs": 16, "gradient_steps": 8}},
+    "RedSim/ClothBall-v1": {"sac": {"n_envs": 16, "gradient_steps": 8}},
     "RedSim/HangingCloth-v0": {"sac": {"n_envs": 16, "gradient_steps": 8}},
     "RedSim/HangingCloth-v1": {"ppo": _PPO_WIDE},
     "RedSim/HangingCloth-v2": {"ppo": _PPO_WIDE},

@@ -65,6 +65,7 @@ BANG_BANG_HOLD = 50
 """Steps a ``bang_bang`` action is held at one bound before it flips."""
 FUZZ_COPIES = {
     "RedSim/ClothBall-v0": 8,
+    "RedSim/ClothBall-v1": 8,
     "RedSim/HangingCloth-v0": 8,
     "RedSim/HangingCloth-v1": 8,
     "RedSim/HangingCloth-v2": 8,

@@ -32,6 +32,7 @@ FAST = ("RedSim/MiniChain-v0", "RedSim/ConditionalBar-v0")
 SLOW = (
     "RedSim/Chain-v0",
     "RedSim/ClothBall-v0",
+    "RedSim/ClothBall-v1",
     "RedSim/HangingCloth-v0",
     "RedSim/HangingCloth-v1",
     "RedSim/HangingCloth-v2",
