@@ -70,7 +70,7 @@ class ClothBallEnv(ReachEnv):
     - v1: v0 on a leaner, more accurate cubature of the same map (`redsim/pretrained/cloth_ball.lean.cubature.json`:
       366 membrane triangles and 1 bending hinge against the shipped 200 and 200, chosen by `--tol 0.015` on more
       training states): held-out force error 1.4% against 2.9%, trajectory deviation from the all-element step 3.1%
-      against 6.5% (median of 32 rollouts, `redsim bench cubature --states 32`), as fast (1.01x at 64 envs, `redsim
+      against 6.3% (median of 32 rollouts, `redsim bench cubature --states 32`), as fast (1.01x at 64 envs, `redsim
       bench env-ab`; README "Cubature", "Stop 56"). Its dynamics differ from v0's by what the two cubatures differ
       by; the task, observation and reward are v0's.
     - v0: first version; stepped with the shipped cubature by default since it was added (`cubature=False`
