@@ -154,6 +154,8 @@ def cmd_bench_cubature(args: argparse.Namespace) -> int:
     if args.sweep:
         if args.compile:
             raise CliError("--compile times the benched scenes' cubature step; the --sweep has no compiled column")
+        if args.cubature:
+            raise CliError("--cubature benches one scene's cubature; the --sweep fits none (unfitted maps)")
         return _sweep(args)
     if args.compile:
         from redsim.runtime.stepper import check_compiler
@@ -172,16 +174,18 @@ def cmd_bench_cubature(args: argparse.Namespace) -> int:
     folder = Path(args.checkpoints) if args.checkpoints else None
     if folder is not None and not folder.is_dir():
         raise CliError(f"--checkpoints {folder}: no such folder")
+    source = _cubature_source(args.cubature, names)
     checkpoints = {name: _checkpoint_of(name, folder) for name in names}
     loaded = {}
-    for name in names:  # every checkpoint and the cubature beside it refused, if it is, before any bench runs
+    for name in names:  # every checkpoint and its cubature refused, if they are, before any bench runs
         weights = checkpoints[name]
         scene, subspace = load_checkpoint(str(weights))
+        path = source or cubature_path(weights)
         try:
-            cub = load_cubature(weights, scene, subspace) if cubature_path(weights).is_file() else None
+            cub = load_cubature(path, scene, subspace) if path.is_file() else None
         except CheckpointError as err:
             raise CliError(str(err)) from err
-        loaded[name] = (weights, scene, subspace, cub)
+        loaded[name] = (weights, scene, subspace, cub, path if cub is not None else None)
     machine = machine_info()
     results = []
     if not args.json:
@@ -193,10 +197,10 @@ def cmd_bench_cubature(args: argparse.Namespace) -> int:
         )
         out(machine_line(machine, "cpu"))
     for name in names:
-        weights, scene, subspace, cub = loaded[name]
+        weights, scene, subspace, cub, path = loaded[name]
         if cub is None:
             cub = build_cubature(scene, subspace, CubatureConfig(elements=args.elements))
-        result = {"checkpoint": str(weights)} | bench_cubature(
+        result = {"checkpoint": str(weights), "cubature": None if path is None else str(path)} | bench_cubature(
             scene,
             subspace,
             cub,
@@ -221,8 +225,9 @@ def cmd_bench_cubature(args: argparse.Namespace) -> int:
                 )
                 for b, t in result["timing"].items()
             )
+            made = shown_path(path) if path is not None else f"built here, --elements {args.elements}"
             out(
-                f"{name} ({shown_path(weights)}): n={result['n']}, kept {kept}; "
+                f"{name} ({shown_path(weights)}; {made}): n={result['n']}, kept {kept}; "
                 f"held-out force error {result['held_out_force_error']:.3g}; "
                 f"trajectory deviation {result['trajectory_deviation']:.3g}; penetration "
                 f"{result['penetration_all_m']:.2g} -> {result['penetration_cubature_m']:.2g} m; {times}"
@@ -230,6 +235,22 @@ def cmd_bench_cubature(args: argparse.Namespace) -> int:
     if args.json:
         json_out({"machine": machine, "results": results})
     return EXIT_OK
+
+
+def _cubature_source(given: str | None, names: list[str]) -> Path | None:
+    """``--cubature PATH``: a ``.cubature.json`` file, for a bench of one scene (None: the one beside each map)."""
+    from redsim.cubature.energy import SUFFIX
+
+    if given is None:
+        return None
+    path = Path(given)
+    if len(names) != 1:
+        raise CliError(f"--cubature {path} is one map's cubature: name one scene, got {', '.join(names)}")
+    if not path.name.endswith(SUFFIX):
+        raise CliError(f"--cubature {path}: not a {SUFFIX} file (made by `redsim cubature`)")
+    if not path.is_file():
+        raise CliError(f"--cubature {path}: no such file")
+    return path
 
 
 def _check_scene_of(weights: Path, name: str) -> None:
@@ -315,9 +336,10 @@ def add_bench_command(bench: Any) -> None:
         "cubature",
         help="cubature energy vs the all-element latent step",
         description=(
-            "For each scene's shipped subspace (or DIR/SCENE.pt) and the cubature beside it (built with --elements "
-            "if there is none): elements kept, held-out force error, trajectory deviation from the all-element "
-            "step under the same seeded loads, contact penetration of both, and step time per batch size side by side."
+            "For each scene's shipped subspace (or DIR/SCENE.pt) and the cubature beside it (or --cubature PATH; "
+            "built with --elements if there is none): elements kept, held-out force error, trajectory deviation from "
+            "the all-element step under the same seeded loads, contact penetration of both, and step time per batch "
+            "size side by side."
         ),
     )
     scenes_help = "comma-separated scene names (default: %(default)s)"
@@ -349,6 +371,12 @@ def add_bench_command(bench: Any) -> None:
         metavar="DIR",
         help="use DIR/SCENE.pt (a fit of SCENE) and the cubature beside it where they exist, the shipped ones "
         "elsewhere (default: the shipped ones; each row names its checkpoint)",
+    )
+    p.add_argument(
+        "--cubature",
+        metavar="PATH",
+        help="bench this cubature file (one scene; it must belong to the scene's map, e.g. "
+        "redsim/pretrained/cloth_ball.lean.cubature.json) instead of the one beside the map",
     )
     p.add_argument(
         "--compile",

@@ -362,7 +362,7 @@ def test_bench_names_its_checkpoint_and_refuses_one_of_another_scene(cli, tmp_pa
     code, _, err = cli("bench", "cubature", *quick, "--checkpoints", str(tmp_path))
     assert code == 2 and "the fem mesh scene 'mini_chain', not of 'mini_chain'" in err
     code, out, err = cli("bench", "cubature", *quick)
-    assert code == 0 and "mini_chain (redsim/pretrained/mini_chain.pt): n=24" in out, err
+    assert code == 0 and "mini_chain (redsim/pretrained/mini_chain.pt; built here, --elements 4): n=24" in out, err
     later = tmp_path / "later"  # a wrong checkpoint for a later scene is refused before the first scene is benched
     later.mkdir()
     for suffix in (".pt", ".json"):
@@ -415,6 +415,37 @@ def test_mesh_sweep_leaves_the_batched_all_element_step_out_above_its_limit(cli)
     assert all(row["timing"][1]["all_s"] > 0 and row["timing"][2]["cubature_s"] > 0 for row in (small, big))
     code, _, err = cli("bench", "cubature", "--sweep", "3", "--batch-max-n", "-1")
     assert code == 2 and "--batch-max-n" in err
+
+
+def test_bench_takes_a_cubature_file_and_refuses_a_wrong_one(cli, tmp_path) -> None:
+    """``--cubature PATH`` benches that file (one scene, fitted to its map); each row names its cubature (None where
+    the bench built one). Another scene's cubature, two scenes, a file of another kind, a missing one and the --sweep
+    are refused (exit 2) before any bench runs."""
+    import shutil
+
+    quick = ("--steps", "2", "--batches", "1", "--timed-steps", "2", "--states", "1")
+    for suffix in (".pt", ".json"):
+        shutil.copy(pretrained.path("mini_chain").with_suffix(suffix), tmp_path / f"m{suffix}")
+    code, _, err = cli("cubature", str(tmp_path / "m.pt"), "--elements", "4", "--samples", "16", "--episodes", "0")
+    assert code == 0, err
+    made = tmp_path / "m.cubature.json"
+    code, out, err = cli("bench", "cubature", "mini_chain", *quick, "--cubature", str(made), "--json")
+    assert code == 0, err
+    row = json.loads(out)["results"][0]
+    assert row["cubature"] == str(made) and row["checkpoint"] == str(pretrained.path("mini_chain"))
+    assert row["elements"] == {r.name: int(r.indices.numel()) for r in Cubature.load(made).rules}
+    code, out, err = cli("bench", "cubature", "mini_chain", *quick, "--elements", "4", "--json")
+    assert code == 0 and json.loads(out)["results"][0]["cubature"] is None, err  # none beside the map: built here
+    lean = pretrained.FOLDER / "cloth_ball.lean.cubature.json"
+    for args, message in [
+        (("mini_chain", "--cubature", str(lean)), "cubature built for scene 'cloth_ball'"),
+        (("mini_chain,chain", "--cubature", str(made)), "name one scene, got mini_chain, chain"),
+        (("mini_chain", "--cubature", str(tmp_path / "m.json")), "not a .cubature.json file"),
+        (("mini_chain", "--cubature", str(tmp_path / "no.cubature.json")), "no such file"),
+        (("--sweep", "2", "--cubature", str(made)), "the --sweep fits none"),
+    ]:
+        code, out, err = cli("bench", "cubature", *args, *quick)
+        assert code == 2 and message in err and not out, (args, err)
 
 
 def test_bench_deviation_does_not_depend_on_the_timing_batches(mini_chain) -> None:
