@@ -72,6 +72,7 @@ def test_bending_is_matched_on_the_cylinder_and_close_on_a_bump(scene, match) ->
     assert np.linalg.norm(probe.elastic_forces() - expected) <= 0.01 * np.linalg.norm(expected)
 
 
+@pytest.mark.slow
 def test_the_anchors_time_step_stays_finite_through_a_drop(scene, match) -> None:
     steps = 200
     run = mujoco_cloth.drop_run(

@@ -578,6 +578,7 @@ def test_bench_cubature_in_float64(cli, mini_chain) -> None:
     assert result["dtype"] == "float64" and result["trajectory_deviation"] >= 0.0
 
 
+@pytest.mark.slow
 def test_bench_cubature_times_the_compiled_cubature_step_on_request(cli, mini_chain, monkeypatch) -> None:
     """``--compile`` adds the cubature step with compile="dynamic" (its compiling first steps untimed); the sweep
     refuses it. Dynamo alone (backend "eager", no kernels built): the test is about what is timed and printed."""

@@ -53,7 +53,7 @@ def test_bench_envs_json(capsys: pytest.CaptureFixture[str]) -> None:
 def test_bench_envs_rounds_report_each_rate_s_median_over_the_rounds(capsys: pytest.CaptureFixture[str]) -> None:
     """``--rounds 3``: every id (and anchor) timed three times in turn; each rate is the median of its three values,
     listed beside it; the solver's work and the full-space step come from the first round."""
-    args = ["bench", "envs", "--envs", "RedSim/MiniChain-v0", "--batches", "2", "--steps", "2", "--budget", "1"]
+    args = ["bench", "envs", "--envs", "RedSim/MiniChain-v0", "--batches", "2", "--steps", "2", "--budget", "0.1"]
     assert main([*args, "--anchor-steps", "20", "--rounds", "3", "--json"]) == 0
     doc = json.loads(capsys.readouterr().out)
     assert doc["rounds"] == 3

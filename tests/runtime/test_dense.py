@@ -68,6 +68,7 @@ def test_dense_equals_row_selected_step_for_step(name: str) -> None:
             torch.testing.assert_close(got, want, rtol=0.0, atol=atol * motion)
 
 
+@pytest.mark.slow
 def test_fewer_early_exit_checks_do_not_change_a_state_s_iterates() -> None:
     """sync_every 3: a state that needs a model between checks waits for the next one, so only the call its
     iterations happen in moves; never checking builds models every call and runs the loop's whole bound."""

@@ -693,7 +693,7 @@ def test_a_copied_or_pickled_compiled_stepper_evaluates_its_own_map(mini_chain, 
 
 
 @pytest.mark.skipif(not _compiles(), reason="torch.compile needs a C++ compiler on the CPU")
-@pytest.mark.parametrize("mode", [True, "dynamic"])
+@pytest.mark.parametrize("mode", [True, pytest.param("dynamic", marks=pytest.mark.slow)])
 def test_every_compiled_stepper_in_a_process_stays_compiled(mini_chain, monkeypatch, mode) -> None:
     """Dynamo keeps its graphs, and a limit of 8 of them, per code object: every stepper compiled the same function,
     so past ~4 steppers in one process (2 graphs each) the later ones ran uncompiled behind one logged warning. Each

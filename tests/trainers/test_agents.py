@@ -289,6 +289,7 @@ def test_ppo_evaluations_score_the_policy_learnt_from_the_steps_they_are_labelle
         assert log["timesteps"].tolist() == [128, 256]
 
 
+@pytest.mark.slow
 def test_every_evaluation_plays_the_same_episodes(tmp_path: Path) -> None:
     """The eval env is reseeded before each evaluation: a policy that does not change (learning never starts, no
     normalizer statistics following the training copies) scores
@@ -566,6 +567,7 @@ def test_an_env_without_an_episode_limit_is_refused_before_training_and_evaluati
     assert code == 2 and "evaluation needs an env with an episode limit" in err and "Traceback" not in err, err
 
 
+@pytest.mark.slow
 def test_her_trains_on_the_goal_env_and_its_agent_acts_on_the_flat_one(
     cli: Callable[..., tuple[int, str, str]], tmp_path: Path
 ) -> None:
@@ -608,6 +610,12 @@ def test_her_trains_on_the_goal_env_and_its_agent_acts_on_the_flat_one(
     code, stdout, err = cli("eval-agent", str(out / "model.zip"), MINI, "--episodes", "2", "--episode-steps", "20")
     assert code == 0 and "agent" in stdout, err
 
+
+def test_her_settings_it_cannot_train_are_clear_cli_errors(
+    cli: Callable[..., tuple[int, str, str]], tmp_path: Path
+) -> None:
+    """Refused before training (the slow test above trains with HER): an on-policy algorithm, shards, a budget
+    that ends no episode, an env without a goal; refused runs leave no folders behind."""
     for extra, message in (
         (["--algo", "ppo"], "off-policy"),
         (["--shards", "2"], "native vector env in one process (shards=1, no --shards), got shards=2"),
@@ -623,6 +631,7 @@ def test_her_trains_on_the_goal_env_and_its_agent_acts_on_the_flat_one(
     assert not (tmp_path / "x").exists() and not (tmp_path / "k").exists()
 
 
+@pytest.mark.slow
 def test_a_resumed_run_draws_new_episodes(tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> None:
     from redsim.envs.sb3 import SB3VecEnv
     from redsim.trainers.agents import train_agent
@@ -650,6 +659,7 @@ def test_a_resumed_run_draws_new_episodes(tmp_path: Path, monkeypatch: pytest.Mo
     assert min(abs(a - b) for i, a in enumerate(starts) for b in starts[i + 1 :]) > 16
 
 
+@pytest.mark.slow
 def test_a_resume_that_gives_an_env_default_again_goes_on_and_another_value_is_refused(
     cli: Callable[..., tuple[int, str, str]], tmp_path: Path
 ) -> None:
@@ -671,6 +681,7 @@ def test_a_resume_that_gives_an_env_default_again_goes_on_and_another_value_is_r
     assert "randomize_condition" not in _env_defaults("RedSim/ConditionalBar-v0")  # True there, False in LatentEnv
 
 
+@pytest.mark.slow
 def test_td3_resumes_from_a_checkpoint_with_other_copies(tmp_path: Path) -> None:
     """No replay buffer comes with a checkpoint, so the copies may change; the exploration noise follows them."""
     from redsim.trainers.agents import train_agent
@@ -831,6 +842,7 @@ def test_a_second_ctrl_c_while_an_interrupted_run_is_saved_is_reported_as_such(
     assert code == 0, err
 
 
+@pytest.mark.slow
 def test_ctrl_c_in_the_final_evaluation_or_mid_rollout_keeps_an_honest_record(
     tmp_path: Path, monkeypatch: pytest.MonkeyPatch
 ) -> None:
@@ -1011,6 +1023,7 @@ def test_a_run_interrupted_in_an_evaluation_makes_it_on_resume(tmp_path: Path, m
         assert list(evaluations["timesteps"]) == [20, 40, 60, 80, 100]
 
 
+@pytest.mark.slow
 def test_a_resume_with_other_eval_episodes_evaluates_only_the_missed_step(
     tmp_path: Path, monkeypatch: pytest.MonkeyPatch
 ) -> None:
@@ -1095,6 +1108,7 @@ def test_a_resumed_run_keeps_the_evaluation_and_checkpoint_grid(tmp_path: Path) 
     ]
 
 
+@pytest.mark.slow
 def test_a_resume_without_intervals_keeps_the_runs_own_and_refuses_other_settings(tmp_path: Path) -> None:
     """A run resumed with more steps and no --eval-every evaluates and checkpoints on its first call's grid (it was
     steps / 10 and steps / 4 of the new budget), and overrides other than those its model was made with are refused
