@@ -28,6 +28,7 @@ envs`` prints (``redsim bench mujoco-cloth`` prints the rest).
 
 from __future__ import annotations
 
+import functools
 import math
 import time
 from dataclasses import dataclass
@@ -521,13 +522,15 @@ def time_flex_cloth(
     timestep: float = CLOTH_TIMESTEP,
     warmup: int = 10,
     seed: int = 0,
+    match: ShellMatch | None = None,
 ) -> dict[str, Any]:
     """Steps/s and simulated seconds per wall second of MuJoCo's sheet (median over timed ``mj_step`` calls).
 
     From the seed under the scene's gravity, with a random force of up to :data:`PUSH_FORCE` N per axis
     on the bottom-left corner, drawn anew every :data:`PUSH_EVERY` s of simulated time (as
     ``RedSim/HangingCloth`` pushes it), after ``warmup`` untimed steps; at most ``steps`` timed steps, fewer
-    once ``budget`` seconds are spent.
+    once ``budget`` seconds are spent. ``match`` (default :func:`matched_shell`) saves its two model compiles
+    where the caller has one.
 
     Returns:
         ``vertices``, ``pinned``, ``nv``, ``integrator``, ``timestep``, ``steps``, ``steps_per_s``,
@@ -535,7 +538,7 @@ def time_flex_cloth(
     """
     if steps < 1:
         raise ValueError(f"steps must be >= 1, got {steps}")
-    match = matched_shell(scene)
+    match = matched_shell(scene) if match is None else match
     sheet = flex_sheet(scene, integrator=integrator, timestep=timestep, match=match)
     corner = (
         int(scene.handle("bottom_left").points.dofs.reshape(-1)[0]) // 3 if "bottom_left" in scene.handle_names else 0
@@ -632,15 +635,24 @@ def flex_cloth_unavailable() -> str | None:
 def cloth_anchor(steps: int, budget: float = ANCHOR_BUDGET) -> dict[str, Any]:
     """The flex cloth anchor of ``redsim bench envs``: :func:`time_flex_cloth` of :data:`CLOTH_SCENE`, or a
     ``reason`` where mujoco is missing or refuses the model (an older one without the ``discrete`` integrator)."""
-    import redsim
-
     reason = flex_cloth_unavailable()
     if reason is not None:
         return {"reason": reason}
     try:
-        return time_flex_cloth(redsim.scenes.build(CLOTH_SCENE), steps=steps, budget=budget)
+        scene, match = _anchor_sheet()
+        return time_flex_cloth(scene, steps=steps, budget=budget, match=match)
     except ValueError as err:
         return {"reason": str(err)}
+
+
+@functools.cache
+def _anchor_sheet() -> tuple[Scene, ShellMatch]:
+    """:data:`CLOTH_SCENE` and its :func:`matched_shell`, made once per process: every round of ``redsim bench envs
+    --rounds N`` times the same model (the match, ~2 s of MuJoCo compiles, is a pure function of the scene)."""
+    import redsim
+
+    scene = redsim.scenes.build(CLOTH_SCENE)
+    return scene, matched_shell(scene)
 
 
 def cloth_anchor_line(cloth: dict[str, Any]) -> str:
