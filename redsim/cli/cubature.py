@@ -25,6 +25,10 @@ from redsim.cli.common import (
 
 TOL_ELEMENTS = 1000
 """Most elements per effect with ``--tol``."""
+BENCH_ELEMENTS = 200
+"""Elements per effect of the cubature ``redsim bench cubature`` builds where none is beside the map."""
+BENCH_SCENES = "cloth_ball,hanging_sheet"
+"""The scenes ``redsim bench cubature`` benches where none is named."""
 CONFIG_FLAGS = {
     "elements": "--elements",
     "samples": "--samples",
@@ -145,6 +149,9 @@ def cmd_bench_cubature(args: argparse.Namespace) -> int:
     from redsim.cubature.energy import cubature_path
     from redsim.subspace import CheckpointError
 
+    if args.cubature is not None and args.elements is not None:
+        raise CliError("--elements sizes a cubature the bench builds; --cubature PATH benches one built already")
+    args.elements = BENCH_ELEMENTS if args.elements is None else args.elements
     if args.elements < 1:
         raise CliError(f"--elements must be an integer >= 1, got {args.elements}")
     if args.steps < 1 or args.timed_steps < 2:  # the sweep's too
@@ -164,7 +171,7 @@ def cmd_bench_cubature(args: argparse.Namespace) -> int:
             check_compiler(torch.device("cpu"))
         except RuntimeError as err:
             raise CliError(str(err)) from err
-    names = parse_list(args.scenes, "SCENES")
+    names = parse_list(BENCH_SCENES if args.scenes is None else args.scenes, "SCENES")
     for name in names:
         check_scene_name(name)
     batches = tuple(parse_ints(args.batches, "--batches"))
@@ -174,7 +181,7 @@ def cmd_bench_cubature(args: argparse.Namespace) -> int:
     folder = Path(args.checkpoints) if args.checkpoints else None
     if folder is not None and not folder.is_dir():
         raise CliError(f"--checkpoints {folder}: no such folder")
-    source = _cubature_source(args.cubature, names)
+    source = _cubature_source(args.cubature, names, named=args.scenes is not None)
     checkpoints = {name: _checkpoint_of(name, folder) for name in names}
     loaded = {}
     for name in names:  # every checkpoint and its cubature refused, if they are, before any bench runs
@@ -237,13 +244,19 @@ def cmd_bench_cubature(args: argparse.Namespace) -> int:
     return EXIT_OK
 
 
-def _cubature_source(given: str | None, names: list[str]) -> Path | None:
-    """``--cubature PATH``: a ``.cubature.json`` file, for a bench of one scene (None: the one beside each map)."""
+def _cubature_source(given: str | None, names: list[str], named: bool) -> Path | None:
+    """``--cubature PATH``: a ``.cubature.json`` file, for a bench of one scene (None: the one beside each map);
+    ``named``: the caller named the scenes (else ``names`` are the defaults)."""
     from redsim.cubature.energy import SUFFIX
 
     if given is None:
         return None
     path = Path(given)
+    if not named:
+        raise CliError(
+            f"--cubature {path} is one map's cubature: name its scene, e.g. `redsim bench cubature "
+            f"cloth_ball --cubature {path}`"
+        )
     if len(names) != 1:
         raise CliError(f"--cubature {path} is one map's cubature: name one scene, got {', '.join(names)}")
     if not path.name.endswith(SUFFIX):
@@ -342,8 +355,7 @@ def add_bench_command(bench: Any) -> None:
             "size side by side."
         ),
     )
-    scenes_help = "comma-separated scene names (default: %(default)s)"
-    p.add_argument("scenes", nargs="?", default="cloth_ball,hanging_sheet", help=scenes_help)
+    p.add_argument("scenes", nargs="?", help=f"comma-separated scene names (default: {BENCH_SCENES})")
     p.add_argument("--steps", type=int, default=100, help="steps of the accuracy rollouts (default 100)")
     p.add_argument("--timed-steps", type=int, default=10, help="timed steps per batch size (default 10)")
     p.add_argument(
@@ -359,7 +371,12 @@ def add_bench_command(bench: Any) -> None:
         "(default redsim.cubature.bench.WARMUP_STEPS, 30; 0: from rest; not the --sweep)",
     )
     p.add_argument("--batches", default="1,64", metavar="B1,B2", help="batch sizes timed (default 1,64)")
-    p.add_argument("--elements", type=int, default=200, help="elements per effect when none is shipped (200)")
+    p.add_argument(
+        "--elements",
+        type=int,
+        help=f"elements per effect of the cubature the bench builds where none is beside the map "
+        f"({BENCH_ELEMENTS}; not with --cubature)",
+    )
     p.add_argument(
         "--dtype",
         choices=("float32", "float64"),

@@ -415,12 +415,14 @@ def test_mesh_sweep_leaves_the_batched_all_element_step_out_above_its_limit(cli)
     assert all(row["timing"][1]["all_s"] > 0 and row["timing"][2]["cubature_s"] > 0 for row in (small, big))
     code, _, err = cli("bench", "cubature", "--sweep", "3", "--batch-max-n", "-1")
     assert code == 2 and "--batch-max-n" in err
+    code, _, err = cli("bench", "cubature", "--sweep", "3", "--compile")
+    assert code == 2 and "--compile" in err
 
 
 def test_bench_takes_a_cubature_file_and_refuses_a_wrong_one(cli, tmp_path) -> None:
     """``--cubature PATH`` benches that file (one scene, fitted to its map); each row names its cubature (None where
-    the bench built one). Another scene's cubature, two scenes, a file of another kind, a missing one and the --sweep
-    are refused (exit 2) before any bench runs."""
+    the bench built one). Another scene's cubature, two scenes or none named, a file of another kind, a missing one,
+    the --sweep and --elements (which sizes a cubature the bench builds) are refused (exit 2) before any bench runs."""
     import shutil
 
     quick = ("--steps", "2", "--batches", "1", "--timed-steps", "2", "--states", "1")
@@ -443,6 +445,8 @@ def test_bench_takes_a_cubature_file_and_refuses_a_wrong_one(cli, tmp_path) -> N
         (("mini_chain", "--cubature", str(tmp_path / "m.json")), "not a .cubature.json file"),
         (("mini_chain", "--cubature", str(tmp_path / "no.cubature.json")), "no such file"),
         (("--sweep", "2", "--cubature", str(made)), "the --sweep fits none"),
+        (("--cubature", str(made)), "name its scene, e.g. `redsim bench cubature cloth_ball --cubature"),
+        (("mini_chain", "--cubature", str(made), "--elements", "4"), "--elements sizes a cubature the bench builds"),
     ]:
         code, out, err = cli("bench", "cubature", *args, *quick)
         assert code == 2 and message in err and not out, (args, err)
@@ -597,8 +601,6 @@ def test_bench_cubature_times_the_compiled_cubature_step_on_request(cli, mini_ch
         assert timing["cubature_compiled_s"] > 0.0 and timing["cubature_compiled_calls_per_step"] >= 1.0
     code, out, err = cli(*argv, "4", "--compile")
     assert code == 0 and out.count("compiled ") == 2, out
-    code, _, err = cli("bench", "cubature", "--sweep", "3", "--compile")
-    assert code == 2 and "--compile" in err
 
 
 @pytest.mark.parametrize("name", ["cloth_ball", "hanging_sheet"])

@@ -289,7 +289,6 @@ def test_ppo_evaluations_score_the_policy_learnt_from_the_steps_they_are_labelle
         assert log["timesteps"].tolist() == [128, 256]
 
 
-@pytest.mark.slow
 def test_every_evaluation_plays_the_same_episodes(tmp_path: Path) -> None:
     """The eval env is reseeded before each evaluation: a policy that does not change (learning never starts, no
     normalizer statistics following the training copies) scores
@@ -297,13 +296,14 @@ def test_every_evaluation_plays_the_same_episodes(tmp_path: Path) -> None:
     uninterrupted one's (the env's stream went on, and restarted at a resume)."""
     from redsim.trainers.agents import train_agent
 
-    options = {"algo": "sac", "eval_every": 40, "eval_episodes": 2, "final_episodes": 2, "video": False}
-    options |= {"env_kwargs": SHORT, "overrides": {"learning_starts": 10**6, "normalize": None}, "n_envs": 1}
-    train_agent(MINI, tmp_path / "a", steps=160, **options)
-    train_agent(MINI, tmp_path / "b", steps=80, **options)
-    train_agent(MINI, tmp_path / "b", steps=160, resume=True, **options)
+    options = {"algo": "sac", "eval_every": 20, "eval_episodes": 2, "final_episodes": 1, "video": False}
+    options |= {"env_kwargs": {"max_episode_steps": 10}, "n_envs": 1}
+    options |= {"overrides": {"learning_starts": 10**6, "normalize": None}}
+    train_agent(MINI, tmp_path / "a", steps=80, **options)
+    train_agent(MINI, tmp_path / "b", steps=40, **options)
+    train_agent(MINI, tmp_path / "b", steps=80, resume=True, **options)
     with np.load(tmp_path / "a" / "evaluations.npz") as whole, np.load(tmp_path / "b" / "evaluations.npz") as resumed:
-        assert whole["timesteps"].tolist() == resumed["timesteps"].tolist() == [40, 80, 120, 160]
+        assert whole["timesteps"].tolist() == resumed["timesteps"].tolist() == [20, 40, 60, 80]
         assert np.array_equal(whole["results"], resumed["results"])
         assert (whole["results"] == whole["results"][0]).all()
 
@@ -567,16 +567,18 @@ def test_an_env_without_an_episode_limit_is_refused_before_training_and_evaluati
     assert code == 2 and "evaluation needs an env with an episode limit" in err and "Traceback" not in err, err
 
 
-@pytest.mark.slow
-def test_her_trains_on_the_goal_env_and_its_agent_acts_on_the_flat_one(
-    cli: Callable[..., tuple[int, str, str]], tmp_path: Path
-) -> None:
+HER_RUN = {"eval_every": 100, "eval_episodes": 2, "final_episodes": 2, "env_kwargs": SHORT, "n_envs": 4}
+"""A tiny HER run of the mini chain: 200 steps over 4 copies of 20-step episodes."""
+
+
+def test_her_trains_on_the_goal_env_and_its_agent_acts_on_the_flat_one(tmp_path: Path) -> None:
     from redsim.envs.goal import GoalSplit
     from redsim.trainers.agents import train_agent
 
     out = tmp_path / "her"
-    tiny = {"eval_every": 100, "eval_episodes": 2, "final_episodes": 2, "env_kwargs": SHORT, "n_envs": 4}
-    result = train_agent(MINI, out, steps=200, her=True, overrides={"learning_starts": 100, "batch_size": 32}, **tiny)
+    result = train_agent(
+        MINI, out, steps=200, her=True, overrides={"learning_starts": 100, "batch_size": 32}, **HER_RUN
+    )
     model = load_agent(result.model_path, MINI)
     from stable_baselines3.common.save_util import load_from_pkl
 
@@ -592,14 +594,24 @@ def test_her_trains_on_the_goal_env_and_its_agent_acts_on_the_flat_one(
     with pytest.raises(ValueError, match="observations of size 14"):  # another env's: not silently cut
         model.predict(obs[:, :12])
 
+
+@pytest.mark.slow
+def test_her_resumes_after_an_interruption_and_through_the_cli(
+    cli: Callable[..., tuple[int, str, str]], tmp_path: Path
+) -> None:
+    from redsim.trainers.agents import train_agent
+
     interrupted = tmp_path / "interrupted"  # killed after a checkpoint: no model.zip, no buffer
     train_agent(
-        MINI, interrupted, steps=200, her=True, checkpoint_every=100, overrides={"learning_starts": 100}, **tiny
+        MINI, interrupted, steps=200, her=True, checkpoint_every=100, overrides={"learning_starts": 100}, **HER_RUN
     )
     (interrupted / "model.zip").unlink()
-    resumed = train_agent(MINI, interrupted, steps=300, her=True, resume=True, video=False, **tiny)
+    resumed = train_agent(MINI, interrupted, steps=300, her=True, resume=True, video=False, **HER_RUN)
     assert resumed.steps == 300 and np.isfinite(resumed.evaluation.mean)
 
+    out = tmp_path / "her"
+    code, _, err = cli("train-agent", MINI, "--her", "--steps", "200", "--out", str(out), *TINY, "--no-video")
+    assert code == 0, err
     code, _, err = cli(
         "train-agent", MINI, "--her", "--steps", "300", "--out", str(out), *TINY, "--resume", "--no-video"
     )
@@ -655,8 +667,6 @@ def test_a_resumed_run_draws_new_episodes(tmp_path: Path, monkeypatch: pytest.Mo
     seeds.clear()
     train_agent(MINI, tmp_path, algo="sac", steps=120, seed=3, resume=True, **tiny)
     assert seeds[0] not in (first, again, 3 + 10_000, 3 + 20_000)
-    starts = [training_seed(s, 0) for s in range(100)]  # neighbouring seeds' 16 copies share no episode
-    assert min(abs(a - b) for i, a in enumerate(starts) for b in starts[i + 1 :]) > 16
 
 
 @pytest.mark.slow
@@ -666,8 +676,6 @@ def test_a_resume_that_gives_an_env_default_again_goes_on_and_another_value_is_r
     """``--env-arg max_episode_steps=200`` (the id's length), ``dt=0.02`` (the env's) and ``dtype="float32"`` (a
     default of LatentEnv, which the env's ``**kwargs`` reach) make the env the run was made with (no env args): the
     resume goes on."""
-    from redsim.trainers.agents import _env_defaults
-
     run = ["train-agent", MINI, "--algo", "sac", "--n-envs", "2", "--eval-every", "20", "--eval-episodes", "1"]
     run += ["--final-episodes", "1", "--no-video", "--no-progress", "--out", str(tmp_path)]
     assert cli(*run, "--steps", "20")[0] == 0
@@ -677,11 +685,20 @@ def test_a_resume_that_gives_an_env_default_again_goes_on_and_another_value_is_r
     assert load_agent(tmp_path / "model.zip", MINI).num_timesteps == 40
     code, _, err = cli(*run, "--steps", "60", "--resume", "--episode-steps", "100")
     assert code == 2 and "cannot resume with env_kwargs {'max_episode_steps': 100}" in err, err
-    # a base class's default that the env replaces by its own class attribute is not taken for the env's
-    assert "randomize_condition" not in _env_defaults("RedSim/ConditionalBar-v0")  # True there, False in LatentEnv
 
 
-@pytest.mark.slow
+def test_training_seeds_are_apart_and_env_defaults_are_the_env_s_own() -> None:
+    """Neighbouring seeds' 16 copies share no episode; a base class's default that the env replaces by its own class
+    attribute is not taken for the env's (``randomize_condition``: True in ConditionalBar-v0, False in LatentEnv)."""
+    from redsim.trainers.agents import _env_defaults
+
+    starts = [training_seed(s, 0) for s in range(100)]
+    assert min(abs(a - b) for i, a in enumerate(starts) for b in starts[i + 1 :]) > 16
+    assert training_seed(3, 0) >= 20_100  # above every evaluation's seeds (3 + 10_000 + i, eval-agent's 3 + 20_000)
+    assert "randomize_condition" not in _env_defaults("RedSim/ConditionalBar-v0")
+    assert _env_defaults(MINI)["dtype"] == "float32"
+
+
 def test_td3_resumes_from_a_checkpoint_with_other_copies(tmp_path: Path) -> None:
     """No replay buffer comes with a checkpoint, so the copies may change; the exploration noise follows them."""
     from redsim.trainers.agents import train_agent
