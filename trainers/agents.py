@@ -1299,7 +1299,11 @@ def _her_settings(
         raise ValueError("her needs an episode limit (max_episode_steps): HER relabels with the episode's goals")
     ended = copies * (episode + 1)
     if steps <= ended:
-        raise ValueError(f"her: {steps} steps end no episode of every one of {copies} copies ({ended + 1} or more do)")
+        raise ValueError(
+            f"her: {steps} steps end no episode of some of the {copies} copies ({episode}-step episodes: {ended + 1} "
+            "steps or more end one of each, as HER's relabelling needs); give more steps, or fewer copies or shorter "
+            "episodes (--steps, --n-envs, --episode-steps)"
+        )
     settings["replay_buffer_class"] = HerReplayBuffer
     settings["replay_buffer_kwargs"] = {
         "n_sampled_goal": 4,

@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import argparse
+import json
 import math
 from pathlib import Path
 from typing import Any
@@ -20,6 +21,7 @@ from redsim.cli.common import (
     parse_env_id,
     sb3_seed,
     warn,
+    warn_if_out_of_date,
 )
 
 
@@ -50,6 +52,16 @@ def _add_env_args(parser: argparse.ArgumentParser) -> None:
         metavar="KEY=VALUE",
         help="keyword argument of the env, VALUE a JSON literal (e.g. cubature=true, max_force=4.0); repeatable",
     )
+
+
+def _model_file(given: str) -> Path:
+    """MODEL of eval-agent: a model file, or a train-agent run folder (its ``model.zip``)."""
+    path = Path(given)
+    if path.is_dir():
+        if not (path / "model.zip").is_file():
+            raise CliError(f"{path} is a folder without a model.zip: give a model file, e.g. {path / 'model.zip'}")
+        return path / "model.zip"
+    return path
 
 
 def _p_value(p: float | None) -> str:
@@ -83,6 +95,7 @@ def cmd_train_agent(args: argparse.Namespace) -> int:
     from redsim.trainers.agents import TrainingInterrupted, train_agent
 
     args.env_id = parse_env_id(args.env_id)
+    warn_if_out_of_date(args.env_id)
     for value, flag in (
         (args.steps, "--steps"),
         (args.n_envs, "--n-envs"),
@@ -150,19 +163,29 @@ def cmd_train_agent(args: argparse.Namespace) -> int:
 
 
 def cmd_eval_agent(args: argparse.Namespace) -> int:
-    from redsim.trainers.agents import SpaceMismatchError, evaluate, load_agent, normalizer_path, shipped_policy
+    from redsim.trainers.agents import (
+        SpaceMismatchError,
+        evaluate,
+        load_agent,
+        model_record,
+        normalizer_path,
+        shipped_policy,
+    )
 
     args.env_id = parse_env_id(args.env_id)
+    warn_if_out_of_date(args.env_id)
     _positive(args.episodes, "--episodes")
+    given = _env_kwargs(args)
     try:
-        path = shipped_policy(args.env_id) if args.model == "shipped" else args.model
+        path = shipped_policy(args.env_id) if args.model == "shipped" else _model_file(args.model)
         model = load_agent(path, env_id=args.env_id, algo=args.algo)
+        trained_on = model_record(path, plain_algo=args.algo)["env_kwargs"] or {}
     except KeyError as err:
         raise CliError(err.args[0]) from err
     except (ValueError, FileNotFoundError) as err:
         raise CliError(str(err)) from err
     policies = {"agent": model, **({"random": "random", "scripted": "scripted"} if args.baselines else {})}
-    env_kwargs = _env_kwargs(args)
+    env_kwargs = {**trained_on, **given}  # the env the model was trained on, with the arguments given on top
     try:
         runs = {
             name: evaluate(
@@ -187,11 +210,14 @@ def cmd_eval_agent(args: argparse.Namespace) -> int:
     for name, row in rows.items():
         _warn_diverged(name, row)
     if args.json:
-        json_out({"env_id": args.env_id, "model": args.model, "normalization": normalization, **rows})
+        doc = {"env_id": args.env_id, "env_kwargs": env_kwargs, "model": args.model, "normalization": normalization}
+        json_out({**doc, **rows})
         return EXIT_OK
     acting = "raw observations" if normalization is None else f"observations normalized by {normalization}"
     sampling = f"; actions sampled, seed {args.seed}" if args.stochastic else ""
-    out(f"{args.env_id}, {args.model} ({acting}{sampling}):")
+    settings = "".join(f" {k}={json.dumps(v)}" for k, v in env_kwargs.items())
+    env = f"{args.env_id} ({settings.strip()})" if settings else args.env_id
+    out(f"{env}, {args.model} ({acting}{sampling}):")
     for name, row in rows.items():
         out(_line(name, row))
         if name != "agent":
@@ -264,7 +290,11 @@ def add_commands(sub: Any) -> None:
         ),
     )
     p.add_argument(
-        "model", metavar="MODEL", help="a model .zip written by redsim train-agent, or 'shipped' (redsim's own)"
+        "model",
+        metavar="MODEL",
+        help="a model .zip written by redsim train-agent (or its run folder: its model.zip), or 'shipped' (redsim's "
+        "own); evaluated on the env it was trained on (its recorded --env-arg and --episode-steps, with those given "
+        "here on top)",
     )
     p.add_argument("env_id", metavar="ENV_ID", help="the env id the model was trained on (the prefix redsim: is fine)")
     p.add_argument(

@@ -159,6 +159,16 @@ def parse_env_id(text: str) -> str:
     return bare
 
 
+def warn_if_out_of_date(env_id: str) -> None:
+    """Say on stderr, in one line, that ``env_id`` (a RedSim id) has a later version; Gymnasium's own multi-line
+    warning of it is silenced in the CLI (:func:`redsim.cli.parser.main`). Benches, which time older versions on
+    purpose, do not call this."""
+    name, version = env_id.rsplit("-v", 1)
+    latest = max(int(other.rsplit("-v", 1)[1]) for other in redsim.envs.ids() if other.rsplit("-v", 1)[0] == name)
+    if int(version) < latest:
+        warn(f'{env_id} is out of date: {name}-v{latest} is its latest version (README "Gymnasium environments")')
+
+
 def build_scene(name: str, params: dict[str, Any] | None = None) -> Scene:
     """Build catalog scene ``name``; unknown names and rejected parameters become CliErrors."""
     check_scene_name(name)

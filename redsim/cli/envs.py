@@ -22,6 +22,7 @@ from redsim.cli.common import (
     parse_env_id,
     parse_list,
     seconds,
+    warn_if_out_of_date,
 )
 
 SCRIPTED = "scripted controller"
@@ -31,6 +32,7 @@ def cmd_demo(args: argparse.Namespace) -> int:
     from redsim.envs.demo import run_demo
 
     args.env_id = parse_env_id(args.env_id)
+    warn_if_out_of_date(args.env_id)
     if args.steps is not None and args.steps < 1:
         raise CliError(f"--steps must be >= 1, got {args.steps}")
     policy, name = None, SCRIPTED

@@ -8,6 +8,7 @@ import os
 import signal
 import sys
 import threading
+import warnings
 from collections.abc import Sequence
 from pathlib import Path
 
@@ -73,7 +74,11 @@ def main(argv: Sequence[str] | None = None) -> int:
     try:
         apply_threads(args)
         _check_out(args)
-        return int(args.func(args))
+        with warnings.catch_warnings():  # the CLI says it in one line of its own (parse_env_id)
+            warnings.filterwarnings(
+                "ignore", message=".*The environment RedSim/.* is out of date", category=DeprecationWarning
+            )
+            return int(args.func(args))
     except CliError as err:
         error(str(err))
         return err.code
@@ -125,7 +130,7 @@ def _check_out(args: argparse.Namespace) -> None:
     if not folder.is_dir():
         raise CliError(f"cannot write --out {out}: {folder} is a file, not a folder")
     if (why := write_error(folder)) is not None:
-        raise CliError(f"cannot write --out {out}: {folder} is not writable ({why})")
+        raise CliError(f"cannot write --out {out}: no file can be made in {folder} ({why})")
 
 
 def _silence_stdout() -> None:

@@ -182,6 +182,21 @@ def test_bench_envs_sharded(capsys: pytest.CaptureFixture[str]) -> None:
     assert "--shards must be in [1, the smallest batch 2]" in capsys.readouterr().err
 
 
+def test_an_out_of_date_id_is_one_warning_line_in_demo_and_eval_agent(
+    tmp_path: Path, capfd: pytest.CaptureFixture[str]
+) -> None:
+    """Gymnasium's own warning (a source line, colour codes and its call) is replaced by one line naming the latest
+    version; the latest version gets none."""
+    assert main(["demo", "RedSim/BistableBar-v0", "--out", str(tmp_path), "--steps", "2", "--scripted"]) == 0
+    err = capfd.readouterr().err
+    line = "redsim: warning: RedSim/BistableBar-v0 is out of date: RedSim/BistableBar-v1 is its latest version"
+    assert line in err and "DeprecationWarning" not in err and "\x1b[" not in err and err.count("out of date") == 1
+    assert main(["eval-agent", "shipped", "RedSim/ClothBall-v0", "--episodes", "1", "--episode-steps", "2"]) == 0
+    assert capfd.readouterr().err.count("out of date") == 1
+    assert main(["demo", "RedSim/BistableBar-v1", "--out", str(tmp_path), "--steps", "2", "--scripted"]) == 0
+    assert "out of date" not in capfd.readouterr().err
+
+
 def test_demo_runs_the_steps_asked_for_past_the_ids_time_limit(tmp_path: Path) -> None:
     import gymnasium as gym
 

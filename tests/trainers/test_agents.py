@@ -176,14 +176,18 @@ def test_train_resume_and_evaluate_through_the_cli(
     assert "is already at 300 env steps (--steps 300): nothing trained" in stdout and "trained 300" not in stdout
     assert load_agent(out / "model.zip", MINI).num_timesteps == 300
 
-    code, stdout, err = cli(
-        "eval-agent", str(out / "model.zip"), MINI, "--episodes", "2", "--episode-steps", "20", "--json", "--baselines"
-    )
+    # the run folder's model.zip, on the env it was trained on (its recorded env arguments, none given here)
+    code, stdout, err = cli("eval-agent", str(out), MINI, "--episodes", "2", "--json", "--baselines")
     assert code == 0, err
     doc = json.loads(stdout)
     assert doc["normalization"] == str(out / "model_vecnormalize.pkl")
+    assert doc["env_kwargs"] == {"max_force": 3.0, "max_episode_steps": 20}
     agent = doc["agent"]
     assert agent["episodes"] == 2 and np.isfinite(agent["mean_return"]) and 0.0 <= agent["success_rate"] <= 1.0
+    assert agent["mean_length"] <= 20
+    code, stdout, err = cli("eval-agent", str(out), MINI, "--episodes", "1", "--episode-steps", "5", "--json")
+    assert code == 0 and json.loads(stdout)["env_kwargs"] == {"max_force": 3.0, "max_episode_steps": 5}, err
+    assert json.loads(stdout)["agent"]["mean_length"] <= 5  # the arguments given here on top of the recorded ones
     for name in ("random", "scripted"):
         assert 0.0 <= doc[name]["agent_above_p"] <= 1.0 and 0 <= doc[name]["agent_better_episodes"] <= 2
     code, stdout, err = cli(
@@ -191,6 +195,10 @@ def test_train_resume_and_evaluate_through_the_cli(
     )
     assert code == 0 and "agent above scripted: paired one-sided t-test p = " in stdout, err
     assert f"(observations normalized by {out / 'model_vecnormalize.pkl'}):" in stdout.splitlines()[0]
+    assert stdout.startswith(f"{MINI} (max_force=3.0 max_episode_steps=20), ")
+    (tmp_path / "no_run").mkdir()
+    code, _, err = cli("eval-agent", str(tmp_path / "no_run"), MINI)
+    assert code == 2 and "is a folder without a model.zip: give a model file" in err
 
     agent = load_agent(out / "model.zip", MINI)  # acts through the saved VecNormalize statistics
     obs = np.random.default_rng(0).normal(size=(3, 14)).astype(np.float32)
