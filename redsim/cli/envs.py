@@ -22,6 +22,7 @@ from redsim.cli.common import (
     parse_env_id,
     parse_list,
     seconds,
+    warn,
     warn_if_out_of_date,
 )
 
@@ -42,6 +43,8 @@ def cmd_demo(args: argparse.Namespace) -> int:
         path = shipped_policies().get(args.env_id)
         if path is not None:
             policy, name = load_agent(path, env_id=args.env_id), f"shipped policy {path.name}"
+        else:
+            warn(f"no policy is shipped for {args.env_id}: the task's scripted controller runs it")
     result = run_demo(args.env_id, args.out, seed=args.seed, steps=args.steps, policy=policy)
     result["policy"], result["seed"] = name, args.seed
     if args.json:

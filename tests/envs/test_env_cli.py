@@ -186,11 +186,17 @@ def test_an_out_of_date_id_is_one_warning_line_in_demo_and_eval_agent(
     tmp_path: Path, capfd: pytest.CaptureFixture[str]
 ) -> None:
     """Gymnasium's own warning (a source line, colour codes and its call) is replaced by one line naming the latest
-    version; the latest version gets none."""
+    version; the latest version gets none. A demo of an id without a shipped policy says that its scripted controller
+    runs it (unless --scripted asked for it)."""
     assert main(["demo", "RedSim/BistableBar-v0", "--out", str(tmp_path), "--steps", "2", "--scripted"]) == 0
     err = capfd.readouterr().err
     line = "redsim: warning: RedSim/BistableBar-v0 is out of date: RedSim/BistableBar-v1 is its latest version"
     assert line in err and "DeprecationWarning" not in err and "\x1b[" not in err and err.count("out of date") == 1
+    assert "no policy is shipped for RedSim/BistableBar-v0: the task's scripted controller runs it" not in err  # asked
+    assert main(["demo", "RedSim/BistableBar-v0", "--out", str(tmp_path), "--steps", "2"]) == 0
+    assert (
+        "redsim: warning: no policy is shipped for RedSim/BistableBar-v0: the task's scripted" in capfd.readouterr().err
+    )
     assert main(["eval-agent", "shipped", "RedSim/ClothBall-v0", "--episodes", "1", "--episode-steps", "2"]) == 0
     assert capfd.readouterr().err.count("out of date") == 1
     assert main(["demo", "RedSim/BistableBar-v1", "--out", str(tmp_path), "--steps", "2", "--scripted"]) == 0
