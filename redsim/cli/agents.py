@@ -41,9 +41,9 @@ def _env_kwargs(args: argparse.Namespace) -> dict[str, Any]:
     return kwargs
 
 
-def _add_env_args(parser: argparse.ArgumentParser) -> None:
+def _add_env_args(parser: argparse.ArgumentParser, default: str = "the id's") -> None:
     parser.add_argument(
-        "--episode-steps", type=int, metavar="N", help="truncate episodes at N steps (default: the id's)"
+        "--episode-steps", type=int, metavar="N", help=f"truncate episodes at N steps (default: {default})"
     )
     parser.add_argument(
         "--env-arg",
@@ -312,7 +312,7 @@ def add_commands(sub: Any) -> None:
         help="sample the policy's actions (SB3's predict(deterministic=False), seeded by --seed; TD3 acts alike "
         "either way) instead of its deterministic action",
     )
-    _add_env_args(p)
+    _add_env_args(p, default="the model's training env's, else the id's")
     finish_command(p, cmd_eval_agent, "print one JSON document", default_threads=1)
 
 
