@@ -76,10 +76,13 @@ class SharedCopies:
             value = getattr(self, f"single_{name}")
         elif name == "spec":
             value = self.single_spec()
-        elif name in STATEFUL or name in PER_COPY_CALLS:
+        elif name in PER_COPY_CALLS:
+            raise AttributeError(f"{name!r} is a method: call({name!r}) answers it copy by copy")
+        elif name in STATEFUL:
             raise AttributeError(
                 f"{name!r} is not one value per copy here (the copies are rows of one batched simulation); "
-                f"call({name!r}) answers {list(PER_COPY_CALLS)} copy by copy, get_state() the whole batch"
+                f"call() answers {list(PER_COPY_CALLS)} copy by copy, get_state() the whole batch (its 'rngs': each "
+                "copy's generator state)"
             )
         else:
             value = getattr(self.template, name)

@@ -43,6 +43,8 @@ def test_get_attr_call_and_set_attr_as_the_sync_vector_env(shards: int) -> None:
             venv.set_attr("dt", [0.1, 0.1])
         with pytest.raises(AttributeError, match="copy by copy"):
             venv.get_attr("sim")
+        with pytest.raises(AttributeError, match=r"'get_state' is a method: call\('get_state'\) answers it"):
+            venv.get_attr("get_state")
         with pytest.raises(AttributeError, match="no methods of their own"):
             venv.call("get_wrapper_attr", "dt")
         with pytest.raises(TypeError, match="no arguments"):
