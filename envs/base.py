@@ -1448,7 +1448,8 @@ class LatentEnv(gym.Env[np.ndarray, np.ndarray]):
 
     @on_env_threads
     def step(self, action: np.ndarray) -> tuple[np.ndarray, float, bool, bool, dict[str, Any]]:
-        """One env step (``frame_skip`` stepper steps) with the action held.
+        """One env step (``frame_skip`` stepper steps) with the action held; entries outside the action space's
+        [-1, 1] are clipped to it (as the loads the subspace was fitted for bound them).
 
         Raises:
             ValueError: a wrong action shape (both shapes are named) or non-finite entries.

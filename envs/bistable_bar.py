@@ -243,6 +243,7 @@ class BistableBarEnv(LatentEnv):
     ## Action Space
     The action space is a `Box(-1, 1, (1,), float32)`: the force along y on the middle column, scaled to
     ±`max_force` [N].
+    Values outside [-1, 1] are clipped; non-finite ones raise `ValueError`.
 
     | Num | Action | Control Min | Control Max | Unit |
     |---|---|---|---|---|

@@ -18,6 +18,7 @@ class ChainEnv(ReachEnv):
 
     ## Action Space
     The action space is a `Box(-1, 1, (3,), float32)`: the force on handle `bottom`, scaled to ±`max_force` [N].
+    Values outside [-1, 1] are clipped; non-finite ones raise `ValueError`.
 
     | Num | Action | Control Min | Control Max | Unit |
     |---|---|---|---|---|

@@ -41,6 +41,7 @@ class ConditionalBarEnv(ReachEnv):
 
     ## Action Space
     The action space is a `Box(-1, 1, (2,), float32)`: the force on the tip, scaled to ±`max_force` [N].
+    Values outside [-1, 1] are clipped; non-finite ones raise `ValueError`.
 
     | Num | Action | Control Min | Control Max | Unit |
     |---|---|---|---|---|

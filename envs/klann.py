@@ -263,6 +263,7 @@ class KlannEnv(LatentEnv):
     ## Action Space
     The action space is a `Box(-1, 1, (1,), float32)`: the tangential force on handle `crank_pin`, scaled to
     ±`max_force` [N] (counter-clockwise positive).
+    Values outside [-1, 1] are clipped; non-finite ones raise `ValueError`.
 
     | Num | Action | Control Min | Control Max | Unit |
     |---|---|---|---|---|

@@ -299,6 +299,7 @@ class StewartEnv(LatentEnv):
     ## Action Space
     The action space is a `Box(-1, 1, (6,), float32)`: the forces along y at the six arm tips, scaled to
     ±`max_force` [N] (a hinge torque of F × 0.08 m against the servo's 20 N m/rad).
+    Values outside [-1, 1] are clipped; non-finite ones raise `ValueError`.
 
     | Num | Action | Control Min | Control Max | Unit |
     |---|---|---|---|---|
