@@ -167,6 +167,7 @@ def test_an_old_mujoco_is_named_not_a_traceback(monkeypatch: pytest.MonkeyPatch)
     assert "needs mujoco >= 3.13" in mujoco_cloth.cloth_anchor(steps=1)["reason"]
 
 
+@pytest.mark.slow  # 7 s of MuJoCo Euler steps at 1e-4 s
 def test_the_dropped_sheet_starts_in_free_fall_in_both_simulators(scene) -> None:
     seconds = 0.06  # three redsim steps: the free edge falls before the cloth pulls on it
     swing = mujoco_cloth.swing_check(scene, seconds=seconds, runs=(("discrete", 0.02), ("Euler", 1e-4)))

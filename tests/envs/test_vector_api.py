@@ -54,7 +54,7 @@ def test_get_attr_call_and_set_attr_as_the_sync_vector_env(shards: int) -> None:
         sync.close()
 
 
-@pytest.mark.parametrize("shards", [1, 2])
+@pytest.mark.parametrize("shards", [1, pytest.param(2, marks=pytest.mark.slow)])  # sharded: 10 s
 def test_each_copys_spec_is_a_single_envs_as_in_the_sync_vector_env(shards: int) -> None:
     """``get_attr("spec")`` answers what ``gym.make`` gives one copy: id, kwargs and episode length."""
     from redsim.envs.sb3 import SB3VecEnv
