@@ -487,6 +487,14 @@ class Scene:
             _effect_index={},
         )
 
+    def __repr__(self) -> str:
+        """One line: name, n, dim, effects, handles and conditions (not the tensors; :meth:`describe` has more)."""
+        conditions = "" if self.condition_space is None else f", conditions={list(self.condition_space.names)}"
+        return (
+            f"Scene({self.name!r}, n={self.free_dof_count}, dim={self.dim}, effects={[e.name for e in self.effects]}, "
+            f"handles={list(self.handle_names)}{conditions})"
+        )
+
     def describe(self) -> dict[str, Any]:
         """Summary for `redsim scenes`: n, effects, handles, conditions."""
         return {

@@ -508,6 +508,26 @@ def test_a_closed_pipe_gives_no_traceback() -> None:
     assert "Traceback" not in done.stderr and "BrokenPipeError" not in done.stderr, done.stderr
 
 
+def test_a_fit_of_another_scene_at_the_stem_says_so_and_names_out(
+    cli: Cli, tmp_path: Path, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    """Two meshes fitted without --out share the default stem: the second fit said "continue it with --resume",
+    which then failed on the other scene's training state."""
+    monkeypatch.chdir(tmp_path)
+    assert cli("fit", "toy_two_tets", *SMALL, "--steps", "2", "--json")[0] == 0  # default stem: toy_two_tets_d2
+    other = ["fit", "toy_two_tets", "--param", "young=2e5", *SMALL, "--steps", "2", "--json"]
+    for flags in ((), ("--resume",)):
+        code, _, err = cli(*other, *flags)
+        assert code == 2 and "a fit of another scene is at toy_two_tets_d2.pt (the default name" in err, err
+        assert "young 10000.0 (this scene: 200000.0)" in err and "--out STEM" in err and "--overwrite" in err, err
+    assert cli("fit", "toy_two_tets", *SMALL, "--steps", "4", "--stop-at", "2", "--out", "cut")[0] == 0
+    code, _, err = cli(*other, "--out", "cut", "--resume")  # only its training state there
+    assert code == 2 and "a fit of another scene is at cut.fit.pt: its training state is of scene fingerprint" in err
+    code, _, err = cli(*other, "--out", "cut")  # refused before the scene is built: it names all three ways out
+    assert code == 2 and "a fit exists at cut.fit.pt: continue it with --resume" in err and "--out STEM" in err, err
+    assert cli(*other, "--overwrite")[0] == 0
+
+
 def test_a_fit_at_an_existing_stem_is_refused_without_resume_or_overwrite(cli: Cli, tmp_path: Path) -> None:
     stem = str(tmp_path / "f")
     argv = ["fit", "toy_two_tets", *SMALL, "--steps", "2", "--out", stem, "--json"]

@@ -95,6 +95,17 @@ def test_a_checkpoint_json_is_a_scene_spec(cli: Cli, fitted: Path, box: Path, tm
     code, out, err = cli("simulate", "--spec", str(spec), "--steps", "1", "--json")
     assert code == 0, err
     assert json.loads(out)["params"]["gravity"] is False
+    # in Python, the same files by path (a checkpoint's .pt reads its .json)
+    rebuilt = scene_from_spec(fitted.with_suffix(".json"))
+    assert (
+        rebuilt.params == meta["scene_params"] and scene_from_spec(str(fitted)).fingerprint() == rebuilt.fingerprint()
+    )
+    assert scene_from_spec(spec).params["gravity"] is False
+    with pytest.raises(SceneSpecError, match=r"cannot read the scene spec .*nothing\.json"):
+        scene_from_spec(tmp_path / "nothing.json")
+    (tmp_path / "list.json").write_text("[1]")
+    code, _, err = cli("simulate", "--spec", str(tmp_path / "list.json"))
+    assert code == 2 and f"the scene spec {tmp_path / 'list.json'} is not a JSON object" in err, err
     code, _, err = cli("simulate", "--spec", str(spec), "--param", "gravity=true")
     assert code == 2 and "--param does not apply to --spec" in err
     code, _, err = cli("simulate", "toy_two_tets", "--spec", str(spec))

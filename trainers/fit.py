@@ -636,6 +636,11 @@ def fit_subspace(
     if out is not None:
         check_fit_files(out)
     if out is not None and not (resume or overwrite) and (found := existing_fit(out)) is not None:
+        if (why := other_scene_fit(out, scene)) is not None:
+            raise FileExistsError(
+                f"a fit of another scene is at {found} ({why}): give another out for this one, or replace that one "
+                "with overwrite=True"
+            )
         raise FileExistsError(
             f"a fit exists at {found}: continue it with resume=True (a larger steps extends it), or replace it with "
             "overwrite=True"
@@ -1083,6 +1088,27 @@ def check_fit_files(stem: str | Path) -> None:
 def existing_fit(stem: str | Path) -> Path | None:
     """The first file of a fit at ``stem`` (``STEM.pt``, ``STEM.json`` or ``STEM.fit.pt``); None where there is none."""
     return next((p for p in (checkpoint_path(stem, s) for s in (".pt", ".json", ".fit.pt")) if p.is_file()), None)
+
+
+def other_scene_fit(stem: str | Path, scene: Scene) -> str | None:
+    """Why the fit at ``stem`` is of another scene than ``scene`` (its ``STEM.json``'s record, or an interrupted
+    fit's ``STEM.fit.pt``), or None: the same scene, no fit there, or files that do not say (resuming says why)."""
+    from redsim.subspace.checkpoint import read_metadata, scene_mismatch
+
+    try:
+        doc = read_metadata(stem)
+    except CheckpointError:  # none, or unreadable: the training state may say
+        doc = None
+    if doc is not None:
+        return scene_mismatch(doc, scene)
+    try:
+        state = torch.load(checkpoint_path(stem, ".fit.pt"), map_location="cpu", weights_only=True)
+        fingerprint = state["scene_fingerprint"]
+    except Exception:
+        return None
+    if scene.accepts(fingerprint):
+        return None
+    return f"its training state is of scene fingerprint {fingerprint}, not this scene's {scene.fingerprint()}"
 
 
 def planned_steps(stem: str | Path) -> int | None:

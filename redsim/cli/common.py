@@ -434,17 +434,14 @@ def scene_from_args(args: argparse.Namespace) -> Scene:
 
 
 def _scene_from_spec_file(path: str, params: dict[str, Any]) -> Scene:
-    from redsim.scenes.spec import SceneSpecError, scene_from_spec
+    from redsim.scenes.spec import SceneSpecError, read_spec, scene_from_spec
 
     if params:
         raise CliError("--param does not apply to --spec: the spec holds the scene's parameters")
     try:
-        with open(path) as handle:
-            doc = json.load(handle)
-    except (OSError, json.JSONDecodeError, UnicodeDecodeError) as err:
-        raise CliError(f"cannot read the scene spec {path}: {err}") from err
-    if not isinstance(doc, dict):
-        raise CliError(f"the scene spec {path} is not a JSON object")
+        doc = read_spec(path)
+    except SceneSpecError as err:
+        raise CliError(str(err)) from err
     try:
         return scene_from_spec(doc)
     except (SceneSpecError, TypeError, ValueError) as err:

@@ -149,21 +149,30 @@ def _drop_preset_anchor_map(args: argparse.Namespace, fields: dict[str, Any], sc
     fields["anchor_map"] = "none"
 
 
-def _check_stem(stem: Path, args: argparse.Namespace) -> None:
-    """Refuse a stem that names no file, or one that holds a fit, unless ``--resume`` or ``--overwrite``."""
+def _check_stem(stem: Path, args: argparse.Namespace, scene: Scene | None = None) -> None:
+    """Refuse a stem that names no file, or one that holds a fit, unless ``--resume`` or ``--overwrite`` (with
+    ``scene``: a fit of another scene unless ``--overwrite``, whose ``--resume`` could not continue it)."""
     if stem.name in ("", ".", ".."):
         raise CliError(f"--out must name a checkpoint stem (e.g. DIR/NAME), got {args.out!r}")
-    from redsim.trainers.fit import check_fit_files, existing_fit
+    from redsim.trainers.fit import check_fit_files, existing_fit, other_scene_fit
 
     try:
         check_fit_files(stem)
     except ValueError as err:
         raise CliError(str(err).replace("choose another out", "choose another --out")) from err
     found = existing_fit(stem)
-    if found is not None and not (args.resume or args.overwrite):  # minutes to hours of work: not replaced silently
+    if found is None or args.overwrite:
+        return
+    if scene is not None and (why := other_scene_fit(stem, scene)) is not None:
+        default = "" if args.out else " (the default name for this scene and --dim, in this folder)"
         raise CliError(
-            f"a fit exists at {found}: continue it with --resume (a larger --steps extends it), or replace it "
-            "with --overwrite"
+            f"a fit of another scene is at {found}{default}: {why}. Write this fit elsewhere with --out STEM, or "
+            "replace that one with --overwrite"
+        )
+    if not args.resume:  # minutes to hours of work: not replaced silently
+        raise CliError(
+            f"a fit exists at {found}: continue it with --resume (a larger --steps extends it), replace it with "
+            "--overwrite, or write this fit elsewhere with --out STEM"
         )
 
 
@@ -178,7 +187,7 @@ def cmd_fit(args: argparse.Namespace) -> int:
     scene = scene_from_args(args)
     config = _fit_config(args, scene.name)
     stem = Path(args.out) if args.out else Path(file_name(f"{scene.name}_d{config.latent_dim}"))  # in this folder
-    _check_stem(stem, args)
+    _check_stem(stem, args, scene)
     if args.resume and args.steps is None and (steps := planned_steps(stem)) is not None:
         config = dataclasses.replace(config, steps=steps)  # the fit's own length, not the preset's
     command = fit_command(scene, config, args.seed, stem)

@@ -35,6 +35,25 @@ class SceneSpecError(ValueError):
     """A spec that cannot be turned back into its scene (unknown scene, missing or changed mesh file, ...)."""
 
 
+def read_spec(path: str | os.PathLike[str]) -> Mapping[str, Any]:
+    """The JSON object in the file at ``path`` (a ``.pt``: the ``.json`` beside it).
+
+    Raises:
+        SceneSpecError: the file cannot be read, or holds no JSON object.
+    """
+    path = os.fspath(path)
+    if path.endswith(".pt"):
+        path = path[: -len(".fit.pt" if path.endswith(".fit.pt") else ".pt")] + ".json"
+    try:
+        with open(path) as handle:
+            doc = json.load(handle)
+    except (OSError, json.JSONDecodeError, UnicodeDecodeError) as err:
+        raise SceneSpecError(f"cannot read the scene spec {path}: {err}") from err
+    if not isinstance(doc, dict):
+        raise SceneSpecError(f"the scene spec {path} is not a JSON object")
+    return doc
+
+
 def scene_spec(scene: Scene) -> dict[str, Any]:
     """The spec that rebuilds ``scene`` (see the module doc)."""
     return {"scene": scene.name, "scene_params": dict(scene.params)}
@@ -68,17 +87,23 @@ def mesh_scene(kind: str, path: str | os.PathLike[str], **params: Any) -> Scene:
     return MESH_BUILDERS[kind](path, **params)
 
 
-def scene_from_spec(doc: Mapping[str, Any]) -> Scene:
+def scene_from_spec(doc: Mapping[str, Any] | str | os.PathLike[str]) -> Scene:
     """Rebuild the scene a spec (or a checkpoint's metadata) describes.
 
+    Args:
+        doc: The spec, or the path of a JSON file holding one (a spec file, or a checkpoint's ``.json``; a
+            checkpoint's ``.pt`` reads the ``.json`` beside it).
+
     Raises:
-        SceneSpecError: no scene name, an unknown catalog scene, a mesh scene built from an
-            in-memory mesh or an explicit vertex selection, or a mesh file that is missing or
-            whose SHA-256 differs from the recorded one (both hashes are named).
+        SceneSpecError: an unreadable file or one that is not a JSON object, no scene name, an unknown catalog
+            scene, a mesh scene built from an in-memory mesh or an explicit vertex selection, or a mesh file that is
+            missing or whose SHA-256 differs from the recorded one (both hashes are named).
         ValueError: parameters the builder rejects.
     """
     from redsim import scenes
 
+    if isinstance(doc, (str, os.PathLike)):
+        doc = read_spec(doc)
     name = doc.get("scene")
     if not isinstance(name, str):
         raise SceneSpecError("the spec names no scene (expected a 'scene' string)")
@@ -116,7 +141,21 @@ def scene_from_spec(doc: Mapping[str, Any]) -> Scene:
             f"scene {name!r} pinned an explicit vertex selection ({args['pin']}), which is not recorded; "
             "rebuild it in Python"
         )
+    explicit = [key for key, label in (args.get("handles") or {}).items() if str(label).startswith("ids:")]
+    if explicit:
+        raise SceneSpecError(
+            f"scene {name!r} placed handle {explicit[0]!r} on an explicit vertex selection "
+            f"({args['handles'][explicit[0]]}), which is not recorded; rebuild it in Python"
+        )
     return MESH_BUILDERS[kind](source, name=name, **args)
 
 
-__all__ = ["MESH_BUILDERS", "SceneSpecError", "mesh_scene", "scene_arguments", "scene_from_spec", "scene_spec"]
+__all__ = [
+    "MESH_BUILDERS",
+    "SceneSpecError",
+    "mesh_scene",
+    "read_spec",
+    "scene_arguments",
+    "scene_from_spec",
+    "scene_spec",
+]

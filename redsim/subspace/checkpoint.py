@@ -128,22 +128,29 @@ def read_metadata(path: str | Path) -> dict[str, Any]:
     return doc
 
 
-def check_scene(doc: dict[str, Any], scene: Scene, path: str) -> None:
-    """Refuse a checkpoint whose metadata ``doc`` names another scene (name, fingerprint or n), and a scene that
-    is not a :class:`Scene` (a TypeError)."""
-    check_scene_type(scene)
+def scene_mismatch(doc: dict[str, Any], scene: Scene) -> str | None:
+    """How the scene a checkpoint's metadata ``doc`` records differs from ``scene`` (name, fingerprint or n, and the
+    parameters that differ), or None where it is this scene."""
     mine = (doc.get("scene"), doc.get("scene_fingerprint"), (doc.get("config") or {}).get("output_dim"))
     theirs = (scene.name, scene.fingerprint(), scene.free_dof_count)
-    if (mine[0], mine[2]) != (theirs[0], theirs[2]) or not scene.accepts(mine[1]):
-        recorded = doc.get("scene_params") or {}
-        differs = [
-            f"{key} {recorded.get(key)!r} (this scene: {scene.params.get(key)!r})"
-            for key in sorted(set(recorded) | set(scene.params))
-            if recorded.get(key) != scene.params.get(key)
-        ]
-        where = f"; it records {', '.join(differs)}" if mine[0] == theirs[0] and differs else ""
-        raise CheckpointError(
-            f"fitted to scene {mine[0]!r} (fingerprint {mine[1]}, n={mine[2]}), not to scene {theirs[0]!r} "
-            f"(fingerprint {theirs[1]}, n={theirs[2]}){where}; build the scene with the parameters in the .json",
-            path,
-        )
+    if (mine[0], mine[2]) == (theirs[0], theirs[2]) and scene.accepts(mine[1]):
+        return None
+    recorded = doc.get("scene_params") or {}
+    differs = [
+        f"{key} {recorded.get(key)!r} (this scene: {scene.params.get(key)!r})"
+        for key in sorted(set(recorded) | set(scene.params))
+        if recorded.get(key) != scene.params.get(key)
+    ]
+    where = f"; it records {', '.join(differs)}" if mine[0] == theirs[0] and differs else ""
+    return (
+        f"fitted to scene {mine[0]!r} (fingerprint {mine[1]}, n={mine[2]}), not to scene {theirs[0]!r} "
+        f"(fingerprint {theirs[1]}, n={theirs[2]}){where}"
+    )
+
+
+def check_scene(doc: dict[str, Any], scene: Scene, path: str) -> None:
+    """Refuse a checkpoint whose metadata ``doc`` names another scene (:func:`scene_mismatch`), and a scene that
+    is not a :class:`Scene` (a TypeError)."""
+    check_scene_type(scene)
+    if (why := scene_mismatch(doc, scene)) is not None:
+        raise CheckpointError(f"{why}; build the scene with the parameters in the .json", path)

@@ -50,6 +50,12 @@ def load_subspace(path: str | Path, scene: Scene | None = None, *, device: str |
             fingerprint or n differ.
     """
     weights = checkpoint_path(path, ".pt")
+    if weights.name.endswith(".fit.pt"):  # a fit's resumable state, not a map
+        mapped = weights.with_name(weights.name[: -len(".fit.pt")] + ".pt")
+        done = (
+            f"the fitted map is {mapped}" if mapped.is_file() else f"the fit is unfinished: resuming it writes {mapped}"
+        )
+        raise CheckpointError(f"a fit's training state, not a subspace checkpoint: {done}", str(weights))
     if not weights.is_file():
         raise CheckpointError("the weights file is missing", str(weights))
     doc = read_metadata(path)

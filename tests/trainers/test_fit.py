@@ -150,8 +150,12 @@ def test_fixed_seed_reproduces_and_resume_continues_the_same_run(tmp_path) -> No
     with pytest.raises(KeyboardInterrupt):
         fit_subspace(scene, config, seed=3, progress=False, out=tmp_path / "c", callbacks=[interrupt])
     assert (tmp_path / "c.fit.pt").is_file() and not (tmp_path / "c.pt").exists()
+    with pytest.raises(CheckpointError, match=r"c\.fit\.pt: a fit's training state, not .*unfinished: resuming it"):
+        load_subspace(tmp_path / "c.fit.pt", scene)  # what an env given that path loads
     resumed = fit_subspace(scene, config, seed=3, progress=False, out=tmp_path / "c", resume=True)
     assert len(resumed.history) == 40
+    with pytest.raises(CheckpointError, match=r"training state, not a subspace checkpoint: the fitted map is .*c\.pt"):
+        load_subspace(tmp_path / "c.fit.pt", scene)
     assert torch.equal(resumed.subspace(z), straight.subspace(z))
 
 
@@ -221,6 +225,8 @@ def test_a_fit_at_an_existing_stem_is_refused_unless_resumed_or_overwritten(tmp_
     kept = {p.name: p.read_bytes() for p in tmp_path.iterdir()}
     with pytest.raises(FileExistsError, match=r"a fit exists at .*mine\.pt: continue it with resume=True"):
         fit_subspace(scene, config, seed=1, progress=False, out=tmp_path / "mine")
+    with pytest.raises(FileExistsError, match=r"a fit of another scene is at .*mine\.pt \(fitted to .*young 1000\.0"):
+        fit_subspace(_tet_scene(young=2e3), config, progress=False, out=tmp_path / "mine")
     assert {p.name: p.read_bytes() for p in tmp_path.iterdir()} == kept
     with pytest.raises(ValueError, match="give one"):
         fit_subspace(scene, config, progress=False, out=tmp_path / "mine", resume=True, overwrite=True)
