@@ -91,7 +91,9 @@ def make(
             (catalog scenes at their default parameters only).
         task: A :class:`redsim.envs.base.Task`, or ``"reach"``: push the scene's first handle
             to targets drawn from the subspace (:class:`redsim.envs.reach.HandleReach`);
-            give its arguments as ``task_options``.
+            give its arguments as ``task_options`` (e.g. ``{"goal_handle": "tip", "targets": "held"}``;
+            ``max_force`` [N] defaults to half the scene's weight, or 1 N without gravity). The
+            observation's blocks: ``env.unwrapped.observation_structure``.
         max_episode_steps: Wrap in ``TimeLimit`` of this many steps (None or -1: no limit, no wrapper; -1 as
             ``gym.make`` and the vector envs read it). Registered as an entry point (``gym.register(id,
             entry_point="redsim.envs:make", kwargs={..., "max_episode_steps": None}, max_episode_steps=N)``), give

@@ -9,9 +9,11 @@ Both are made with the builder toolkit the catalog uses (:mod:`redsim.scenes.too
 
 from __future__ import annotations
 
+import functools
 import hashlib
 import os
 import warnings
+from collections.abc import Callable, Mapping
 from typing import TYPE_CHECKING
 
 import numpy as np
@@ -87,15 +89,21 @@ def _weld(mesh: trimesh.Trimesh) -> None:
     mesh.merge_vertices(merge_tex=True, merge_norm=True)
 
 
-def _pinned(given: np.ndarray, vertices: np.ndarray, pin: PinSpec, *, tolerance: float) -> np.ndarray:
-    """The indices into ``vertices`` (the welded, cleaned mesh) of the pin. A mask or index list counts the
-    vertices as given (``given`` [V0, D]): they are found again by position; names and callables see ``vertices``."""
+def _pinned(
+    given: np.ndarray, vertices: np.ndarray, pin: PinSpec, *, tolerance: float, nearest: bool = False
+) -> np.ndarray:
+    """The indices into ``vertices`` (the welded, cleaned mesh, or the voxel solid) of the pin. A mask or index list
+    counts the vertices as given (``given`` [V0, D], the file's): they are found again by position (``nearest``:
+    each pins the vertex nearest it, as a voxel solid's grid holds none of the file's); names and callables see
+    ``vertices``."""
     if pin is None or isinstance(pin, str) or callable(pin):
         return select_vertices(vertices, pin, tolerance=tolerance)
     import scipy.spatial
 
     points = given[select_vertices(given, pin, tolerance=tolerance)]
     distance, index = scipy.spatial.cKDTree(vertices).query(points)
+    if nearest:
+        return np.unique(index)
     scale = max(float(np.abs(vertices).max()), 1.0)  # welding merges within ~1e-8: found within 1e-6 of the size
     return np.unique(index[distance <= 1e-6 * scale])  # a given vertex no triangle uses is not in the cloth
 
@@ -143,8 +151,47 @@ def _scale_param(scale: float) -> dict[str, float]:
     return {} if scale == 1.0 else {"scale": scale}
 
 
+def _handles_param(labels: dict[str, str]) -> dict[str, dict[str, str]]:
+    """``{"handles": labels}``, or nothing without extra handles (the fingerprints of scenes made before the option
+    stay their own)."""
+    return {"handles": labels} if labels else {}
+
+
 def _pin_label(spec: PinSpec, pinned: np.ndarray) -> str:
     return spec if isinstance(spec, str) else ("none" if spec is None else f"ids:{_digest(pinned)}")
+
+
+def _add_handles(
+    b: SceneBuilder,
+    ids: torch.Tensor,
+    masses: np.ndarray,
+    pinned: np.ndarray,
+    handles: Mapping[str, PinSpec] | None,
+    select: Callable[[PinSpec], np.ndarray],
+    whole: str,
+) -> dict[str, str]:
+    """Add each of ``handles`` (name -> a vertex selection, as a pin's; ``select`` turns one into vertex indices)
+    at the mass-weighted centre of its vertices, after the whole body's handle ``whole``; their labels for the
+    params ({} without any)."""
+    if handles is None:
+        return {}
+    if not isinstance(handles, Mapping):
+        raise ValueError(
+            f"handles must be a dict of name -> vertex selection (e.g. {{'tip': 'max_x'}}), got {handles!r}"
+        )
+    labels = {}
+    for name, spec in handles.items():
+        if not isinstance(name, str) or not name or name == whole:
+            raise ValueError(f"a handle name must be a non-empty string other than {whole!r}, got {name!r}")
+        chosen = select(spec)
+        label = _pin_label(spec, chosen)
+        if chosen.size == 0:
+            raise ValueError(f"handle {name!r} ({label}) selects no vertex")
+        if np.isin(chosen, pinned).all():
+            raise ValueError(f"handle {name!r} ({label}) selects only pinned vertices: a load on it would move nothing")
+        b.add_handle(name, b.particle_points(ids[torch.as_tensor(chosen)]), torch.as_tensor(masses[chosen]))
+        labels[name] = label
+    return labels
 
 
 # -- public builders ---------------------------------------------------------------------------
@@ -159,13 +206,16 @@ def fem_scene_from_mesh(
     pin: PinSpec = "min_y",
     gravity: bool = True,
     scale: float = 1.0,
+    handles: Mapping[str, PinSpec] | None = None,
     name: str = "mesh_fem",
 ) -> Scene:
     """A neo-Hookean solid from a watertight surface mesh, voxel-tetrahedralized.
 
-    The mesh is voxelized (trimesh ``voxelized(pitch).fill()``; boundary voxels are kept, so
-    the solid is slightly larger than the mesh) and each voxel split into six conforming
-    Kuhn tets. Coordinates stay those of the mesh; gravity pulls along -y.
+    The mesh is voxelized (trimesh ``voxelized(pitch).fill()``) and each voxel split into six conforming
+    Kuhn tets. Every voxel the surface passes through is kept, so the solid is larger than the mesh by up to
+    about a voxel on each side (a 0.2 x 0.04 x 0.04 m bar at pitch 0.01 m: 0.21 x 0.05 x 0.05 m, 60% more
+    mass): choose a pitch well below the mesh's thinnest part. Coordinates stay those of the mesh; gravity
+    pulls along -y.
 
     Args:
         mesh_or_path: A ``trimesh.Trimesh`` or a mesh file path [m].
@@ -174,15 +224,19 @@ def fem_scene_from_mesh(
         young: Young's modulus [Pa].
         poisson: Poisson ratio in (-1, 0.5).
         density: Mass density [kg/m^3].
-        pin: Which tet vertices to pin (see :data:`PinSpec`); "min_y" pins the bottom voxel layer.
+        pin: Which vertices to pin (see :data:`PinSpec`): a name or callable selects among the solid's (voxel
+            grid) vertices ("min_y" pins the bottom voxel layer); a mask or index list counts the mesh file's own
+            vertices, each pinning the solid's vertex nearest it.
         gravity: Add gravity (9.81 m/s^2 along -y).
         scale: Multiplies the mesh's coordinates (1e-3 for a file in millimetres); a mesh spanning more than
             :data:`LARGE_MESH_M` metres after it is warned about.
+        handles: More handles, name -> a vertex selection as ``pin`` takes (e.g. ``{"tip": "max_x"}``): each at
+            the mass-weighted centre of its vertices, after "body" (a load there spreads over them by mass).
         name: Scene name.
 
     Returns:
         The scene; handle "body" (mass-weighted over all vertices, i.e. a force at the centre of
-        mass), surface "elastic" (the voxel boundary).
+        mass), then ``handles``; surface "elastic" (the voxel boundary).
 
     Raises:
         FileNotFoundError: for a missing file.
@@ -196,6 +250,7 @@ def fem_scene_from_mesh(
     scale = check_positive("scale", scale)
     mesh, source = _mesh_input(mesh_or_path)
     _scaled(mesh, scale, source)
+    given = np.asarray(mesh.vertices, dtype=np.float64).copy()
     _weld(mesh)
     # zero-area and repeated faces (an exporter's) close nothing and open nothing: dropped, as the cloth does
     mesh.update_faces(mesh.nondegenerate_faces() & mesh.unique_faces())
@@ -220,7 +275,7 @@ def fem_scene_from_mesh(
             f"{given} voxelizes this mesh ({size} m) into a single voxel (pitch {pitch:.3g} m, as large as the mesh):"
             f" no solid to simulate; choose {fix}"
         )
-    pinned = select_vertices(vertices, pin, tolerance=0.25 * pitch)
+    pinned = _pinned(given, vertices, pin, tolerance=0.25 * pitch, nearest=True)
     _check_pins(pin, pinned, vertices, tets, gravity)
     b = SceneBuilder(dim=3)
     ids = add_fem(b, vertices, tets, young=young, poisson=poisson, density=density)
@@ -228,20 +283,26 @@ def fem_scene_from_mesh(
         b.pin_particles(ids[torch.as_tensor(pinned)])
     masses = meshes.lumped_masses(vertices, tets, density)
     b.add_handle("body", b.particle_points(ids), torch.as_tensor(masses))
+    select = functools.partial(_pinned, given, vertices, tolerance=0.25 * pitch, nearest=True)
+    labels = _add_handles(b, ids, masses, pinned, handles, select, "body")
     if gravity:
         add_gravity(b)
-    params = {
-        "builder": "fem",
-        "source": source,
-        "mesh_sha256": None if source == "<trimesh>" else meshes.file_sha256(source),
-        "mesh_digest": _digest(np.asarray(mesh.vertices), np.asarray(mesh.faces)),
-        "voxel_pitch": pitch,
-        "young": young,
-        "poisson": poisson,
-        "density": density,
-        "pin": _pin_label(pin, pinned),
-        "gravity": gravity,
-    } | _scale_param(scale)
+    params = (
+        {
+            "builder": "fem",
+            "source": source,
+            "mesh_sha256": None if source == "<trimesh>" else meshes.file_sha256(source),
+            "mesh_digest": _digest(np.asarray(mesh.vertices), np.asarray(mesh.faces)),
+            "voxel_pitch": pitch,
+            "young": young,
+            "poisson": poisson,
+            "density": density,
+            "pin": _pin_label(pin, pinned),
+            "gravity": gravity,
+        }
+        | _scale_param(scale)
+        | _handles_param(labels)
+    )
     return b.finalize(
         name,
         params=params,
@@ -260,6 +321,7 @@ def cloth_scene_from_mesh(
     pin: PinSpec = "max_y",
     gravity: bool = True,
     scale: float = 1.0,
+    handles: Mapping[str, PinSpec] | None = None,
     name: str = "mesh_cloth",
 ) -> Scene:
     """Cloth made directly from the triangles of a surface mesh (StVK membrane + discrete-shell bending).
@@ -276,10 +338,12 @@ def cloth_scene_from_mesh(
         gravity: Add gravity (9.81 m/s^2 along -y).
         scale: Multiplies the mesh's coordinates (1e-3 for a file in millimetres); a mesh spanning more than
             :data:`LARGE_MESH_M` metres after it is warned about.
+        handles: More handles, name -> a vertex selection as ``pin`` takes (e.g. ``{"corner": [12]}``): each at
+            the mass-weighted centre of its vertices, after "cloth".
         name: Scene name.
 
     Returns:
-        The scene; handle "cloth" (mass-weighted over all vertices), surface "cloth".
+        The scene; handle "cloth" (mass-weighted over all vertices), then ``handles``; surface "cloth".
 
     Raises:
         FileNotFoundError: for a missing file.
@@ -326,21 +390,27 @@ def cloth_scene_from_mesh(
         b.pin_particles(ids[torch.as_tensor(pinned)])
     masses = meshes.lumped_masses(vertices, triangles, density, thickness=thickness)
     b.add_handle("cloth", b.particle_points(ids), torch.as_tensor(masses))
+    select = functools.partial(_pinned, given, vertices, tolerance=1e-3 * diagonal)
+    labels = _add_handles(b, ids, masses, pinned, handles, select, "cloth")
     if gravity:
         add_gravity(b)
-    params = {
-        "builder": "cloth",
-        "source": source,
-        "mesh_sha256": None if source == "<trimesh>" else meshes.file_sha256(source),
-        "mesh_digest": _digest(vertices, triangles),
-        "young": young,
-        "poisson": poisson,
-        "thickness": thickness,
-        "bending": bending,
-        "density": density,
-        "pin": _pin_label(pin, pinned),
-        "gravity": gravity,
-    } | _scale_param(scale)
+    params = (
+        {
+            "builder": "cloth",
+            "source": source,
+            "mesh_sha256": None if source == "<trimesh>" else meshes.file_sha256(source),
+            "mesh_digest": _digest(vertices, triangles),
+            "young": young,
+            "poisson": poisson,
+            "thickness": thickness,
+            "bending": bending,
+            "density": density,
+            "pin": _pin_label(pin, pinned),
+            "gravity": gravity,
+        }
+        | _scale_param(scale)
+        | _handles_param(labels)
+    )
     return b.finalize(
         name,
         params=params,

@@ -435,6 +435,58 @@ def test_a_pin_index_list_counts_the_vertices_as_given(tmp_path) -> None:
     torch.testing.assert_close(scene.q_seed, expected.q_seed)  # the same vertices are free
 
 
+def test_a_solids_pin_index_list_counts_the_files_vertices_each_pinning_the_nearest_grid_vertex() -> None:
+    """The voxel solid's pins by index named voxel-grid vertices (undocumented numbering) while README says a list
+    counts the file's own vertices: now each given file vertex pins the solid's vertex nearest it."""
+    box = trimesh.creation.box(extents=(0.2, 0.04, 0.04))
+    ends = np.nonzero(np.isclose(box.vertices[:, 0], -0.1))[0]  # the four corners at x = -0.1
+    scene = redsim.scenes.fem_scene_from_mesh(box, voxel_pitch=0.01, pin=ends)
+    layer = redsim.scenes.fem_scene_from_mesh(box, voxel_pitch=0.01, pin="min_x")
+    assert scene.full_dof_count == layer.full_dof_count and scene.free_dof_count == layer.full_dof_count - 12
+    pinned = scene.dof_map.full_values[scene.dof_map.pinned_index].reshape(-1, 3)  # four vertices
+    nearest = torch.cdist(torch.as_tensor(box.vertices[ends], dtype=pinned.dtype), pinned).min(1).values
+    assert bool((nearest <= 0.5 * 0.01 * 3**0.5 + 1e-9).all())  # each file corner's nearest grid vertex is pinned
+    mask = np.zeros(len(box.vertices), dtype=bool)
+    mask[ends] = True
+    assert redsim.scenes.fem_scene_from_mesh(box, voxel_pitch=0.01, pin=mask).fingerprint() == scene.fingerprint()
+
+
+def test_mesh_scenes_take_more_handles_by_vertex_selection(tmp_path) -> None:
+    """A mesh scene's only handle was the whole body's centre of mass: a cantilever's tip could not be pushed."""
+    from redsim.scenes.spec import SceneSpecError, scene_from_spec, scene_spec
+
+    path = tmp_path / "beam.stl"
+    trimesh.creation.box(extents=(0.2, 0.04, 0.04)).export(path)
+    plain = redsim.scenes.fem_scene_from_mesh(path, voxel_pitch=0.01, pin="min_x")
+    beam = redsim.scenes.fem_scene_from_mesh(path, voxel_pitch=0.01, pin="min_x", handles={"tip": "max_x"})
+    assert beam.handle_names == ("body", "tip") and beam.params["handles"] == {"tip": "max_x"}
+    assert "handles" not in plain.params and plain.fingerprint() != beam.fingerprint()
+    tip = beam.handle_positions(beam.q_seed[None])[0, 3:]
+    # the end layer's centre by mass (the Kuhn split lumps its masses unevenly: within a sixth of a voxel)
+    torch.testing.assert_close(tip, torch.tensor([0.105, 0.0, 0.0], dtype=tip.dtype), atol=0.01 / 6, rtol=0)
+    assert scene_from_spec(scene_spec(beam)).fingerprint() == beam.fingerprint()  # a name is rebuilt from the spec
+    given = trimesh.load(path, process=False).vertices  # the file's own numbering (an STL's: three per triangle)
+    far = np.nonzero(np.isclose(given[:, 0], 0.1))[0][:2]
+    corners = redsim.scenes.fem_scene_from_mesh(path, voxel_pitch=0.01, pin="min_x", handles={"c": far})
+    with pytest.raises(SceneSpecError, match="handle 'c' on an explicit vertex selection"):
+        scene_from_spec(scene_spec(corners))
+    for handles, message in (
+        ({"body": "max_x"}, "other than 'body'"),
+        ({"end": "min_x"}, "selects only pinned vertices"),
+        ({"end": "none"}, "selects no vertex"),
+        ({"end": "max_q"}, "unknown pin 'max_q'"),
+        (["max_x"], "handles must be a dict"),
+    ):
+        with pytest.raises(ValueError, match=message):
+            redsim.scenes.fem_scene_from_mesh(path, voxel_pitch=0.01, pin="min_x", handles=handles)
+    vertices, triangles = meshes.cloth_grid(0.5, 0.5, (6, 6), origin=(0.0, 0.0, 0.0))
+    sheet = redsim.scenes.cloth_scene_from_mesh(trimesh.Trimesh(vertices, triangles), handles={"corner": [0]})
+    assert sheet.handle_names == ("cloth", "corner")
+    torch.testing.assert_close(
+        sheet.handle_positions(sheet.q_seed[None])[0, 3:], torch.as_tensor(vertices[0], dtype=torch.float64)
+    )
+
+
 def test_a_mesh_in_millimetres_is_warned_about_and_scale_reads_it_in_metres(tmp_path) -> None:
     """A file in millimetres read as metres spans hundreds of metres: a warning says so and names ``scale``; with
     scale=1e-3 it is the same scene geometry as the file in metres, and its spec rebuilds it; scale 1 leaves the
@@ -920,3 +972,13 @@ def test_scene_to_takes_only_float32_or_float64(dtype: torch.dtype) -> None:
         scene.to(dtype=dtype)
     assert scene.to(dtype=torch.float32).q_seed.dtype == torch.float32
     assert torch.equal(scene.to().q_seed, scene.q_seed)
+
+
+def test_a_scene_prints_as_one_line_not_its_tensors() -> None:
+    """``print(scene)`` dumped every tensor of the dataclass (~2,000 lines for a voxel solid)."""
+    text = repr(redsim.scenes.build("conditional_bar"))
+    assert text == (
+        "Scene('conditional_bar', n=940, dim=2, effects=['elastic', 'pin', 'gravity', 'external_load'], "
+        "handles=['tip'], conditions=['stiffness_ratio', 'pin_location'])"
+    )
+    assert "\n" not in str(redsim.scenes.build("toy_two_tets"))
