@@ -72,7 +72,7 @@ def build(
             raise ValueError(f"unknown task {task!r}; valid tasks: {sorted(TASKS)}")
         if not scene.handles:
             raise ValueError(f"scene {scene.name!r} has no handles for a {task!r} task")
-        options = {"goal_handle": scene.handle_names[0], "max_force": _default_force(scene), **dict(task_options or {})}
+        options = {"goal_handle": scene.handle_names[0], "max_force": default_force(scene), **dict(task_options or {})}
         task = TASKS[task](**options)
     elif task_options:
         raise ValueError("task_options only apply to a task given by name")
@@ -80,7 +80,7 @@ def build(
     return env if max_episode_steps in (None, -1) else TimeLimit(env, int(max_episode_steps))
 
 
-def _default_force(scene: Scene) -> float:
+def default_force(scene: Scene) -> float:
     """The reach task's default max force [N]: a fraction of the scene's weight under its gravity effect (found by
     type: a user's effect may be named "gravity"), 1 N without one."""
     gravity = next((e for e in scene.effects if isinstance(e, Gravity)), None)

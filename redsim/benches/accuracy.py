@@ -134,13 +134,36 @@ def plan(scene_name: str) -> Plan:
     return PLANS[scene_name]
 
 
-def scenario_loads(scene: Scene, scenario: str, steps: int, *, seed: int = 0) -> Tensor:
-    """Loads [steps, H, D] [N] (float64) of a seeded scenario on the scene's :data:`PLANS` handle."""
+def reach_plan(scene: Scene, handle: str | None = None, max_force: float | None = None) -> Plan:
+    """The plan of any scene as ``redsim.envs.make(scene, ..., task="reach")`` sets it up: ``handle`` (default
+    the first) pushed with ``max_force`` [N] per unit action (default the reach task's: half the scene's weight),
+    the reference at the scene's full-space tolerance.
+
+    Raises:
+        ValueError: a scene without handles, an unknown handle, or a max_force that is not finite and > 0.
+    """
+    from redsim.envs.factory import default_force
+
+    if not scene.handles:
+        raise ValueError(f"scene {scene.name!r} has no handles to push")
+    handle = scene.handle_names[0] if handle is None else handle
+    if handle not in scene.handle_names:
+        raise ValueError(f"scene {scene.name!r} has no handle {handle!r}; valid: {list(scene.handle_names)}")
+    force = default_force(scene) if max_force is None else float(max_force)
+    if not (math.isfinite(force) and force > 0.0):
+        raise ValueError(f"max_force must be finite and > 0 [N], got {max_force!r}")
+    why = "the reach task's default (half the scene's weight; 1 N without gravity)" if max_force is None else "given"
+    return Plan(handle, force, reference_tol=scenes.full_space_tol(scene.name), note=f"max_force {why}")
+
+
+def scenario_loads(scene: Scene, scenario: str, steps: int, *, seed: int = 0, load_plan: Plan | None = None) -> Tensor:
+    """Loads [steps, H, D] [N] (float64) of a seeded scenario on the plan's handle (default: the scene's
+    :data:`PLANS` entry)."""
     if scenario not in SCENARIOS:
         raise ValueError(f"unknown scenario {scenario!r}; valid: {list(SCENARIOS)}")
     if int(steps) != steps or steps < 1:
         raise ValueError(f"steps must be an integer >= 1, got {steps!r}")
-    p = plan(scene.name)
+    p = plan(scene.name) if load_plan is None else load_plan
     if p.handle not in scene.handle_names:
         raise ValueError(f"scene {scene.name!r} has no handle {p.handle!r}; valid: {list(scene.handle_names)}")
     h = scene.handle_names.index(p.handle)
@@ -515,11 +538,12 @@ def bench_accuracy(
     maps: Mapping[int, nn.Module] | None = None,
     cubatures: Mapping[int, Cubature] | None = None,
     progress: Callable[[str], None] | None = None,
+    load_plan: Plan | None = None,
 ) -> dict[str, Any]:
     """All rows of one scene (module doc).
 
     Args:
-        scene: A scene of :data:`PLANS`.
+        scene: A scene of :data:`PLANS`, or any scene with ``load_plan`` (:func:`reach_plan`).
         neural: Its fitted neural map (the shipped one in the CLI); it alone gets every runtime option.
         steps: Steps per scenario (>= 10).
         scenarios: Names from :data:`SCENARIOS`.
@@ -531,6 +555,7 @@ def bench_accuracy(
             modal derivatives are built at each of these d and every subspace label carries its d.
         cubatures: Cubatures by d of the neural maps that have one (each checked against its map).
         progress: Called with one line per finished configuration.
+        load_plan: The handle, load scale and reference tolerance (default: the scene's :data:`PLANS` entry).
 
     Returns:
         ``scene``, ``n``, ``d``, ``dims``, ``maps`` (per neural map: d, fit steps, fit seconds, cubature
@@ -541,7 +566,7 @@ def bench_accuracy(
         ValueError: an unknown scene, scenario or a bad count; ``maps`` holding another map at
             ``neural``'s d; a cubature for a d without a map, or for another map.
     """
-    p = plan(scene.name)
+    p = plan(scene.name) if load_plan is None else load_plan
     if int(steps) != steps or steps < 10:
         raise ValueError(f"steps must be an integer >= 10, got {steps!r}")
     for name in scenarios:
@@ -593,7 +618,7 @@ def bench_accuracy(
         "rows": rows,
     }
     for scenario in scenarios:
-        loads = scenario_loads(scene, scenario, steps, seed=seed)
+        loads = scenario_loads(scene, scenario, steps, seed=seed, load_plan=p)
         reference = run_full(scene, q_rest, loads, dt=dt, tol=p.reference_tol, max_iter=100)
         ref_median = statistics.median(reference.step_s)
         rows.append(_row(scenario, "full reference", "reference", reference, reference, scene64, p.handle, ref_median))

@@ -25,6 +25,7 @@ from redsim.cli.common import (
     error,
     finish_command,
     json_out,
+    load_checkpoint,
     non_negative_seed,
     note,
     out,
@@ -379,8 +380,13 @@ def cmd_bench_accuracy(args: argparse.Namespace) -> int:
     from redsim.bench import machine_info
     from redsim.benches import accuracy
 
-    if args.scene not in accuracy.PLANS:
-        raise CliError(f"bench accuracy runs on {', '.join(accuracy.PLANS)}; got {args.scene!r}")
+    checkpoint = args.scene.endswith((".pt", ".json")) or Path(args.scene).is_file()
+    if not checkpoint and args.scene not in accuracy.PLANS:
+        raise CliError(
+            f"bench accuracy runs on {', '.join(accuracy.PLANS)} or a checkpoint (STEM.pt); got {args.scene!r}"
+        )
+    if checkpoint and args.dims is not None:
+        raise CliError("--dims fits maps of a catalog scene's preset: give a scene name, not a checkpoint")
     scenarios = tuple(parse_list(args.scenarios, "--scenarios"))
     unknown = [s for s in scenarios if s not in accuracy.SCENARIOS]
     full = tuple(parse_list(args.full, "--full")) if args.full != "none" else ()
@@ -390,11 +396,25 @@ def cmd_bench_accuracy(args: argparse.Namespace) -> int:
             f"--scenarios must be from {', '.join(accuracy.SCENARIOS)}, --full from "
             f"{', '.join(accuracy.FULL_VARIANTS)} (or none), --steps >= 10; got {unknown or args.steps}"
         )
-    scene = redsim.scenes.build(args.scene)
+    if checkpoint:  # a user's map (a mesh scene's too): the scene its .json records, pushed as the reach task is
+        from redsim.subspace import checkpoint_path
+
+        scene, neural = load_checkpoint(args.scene)
+        path = checkpoint_path(args.scene, ".pt")
+    else:
+        scene = redsim.scenes.build(args.scene)
+        neural, path = pretrained.load(args.scene, scene), pretrained.path(args.scene)
+    try:
+        load_plan = (
+            accuracy.reach_plan(scene, args.handle, args.max_force)
+            if checkpoint or args.handle is not None or args.max_force is not None
+            else None
+        )
+    except ValueError as err:
+        raise CliError(str(err)) from err
     dims = _accuracy_dims(args, scene.free_dof_count)
-    neural = pretrained.load(args.scene, scene)
     shipped_dim = int(neural.latent_dim)
-    paths = {shipped_dim: pretrained.path(args.scene)}
+    paths = {shipped_dim: path}
     maps = None if dims is None else _accuracy_maps(args, scene, neural, dims, paths)
     cubatures = _accuracy_cubatures(scene, {shipped_dim: neural, **(maps or {})}, paths)
     result = accuracy.bench_accuracy(
@@ -408,9 +428,11 @@ def cmd_bench_accuracy(args: argparse.Namespace) -> int:
         maps=maps,
         cubatures=cubatures,
         progress=None if args.json else note,
+        load_plan=load_plan,
     )
     for info in result["maps"]:
-        info["source"] = ("shipped " if info["d"] == shipped_dim else "") + shown_path(paths[info["d"]])
+        shipped = info["d"] == shipped_dim and not checkpoint
+        info["source"] = ("shipped " if shipped else "") + shown_path(paths[info["d"]])
     machine = machine_info()
     result["machine"] = machine
     line = _machine_line(machine, "cpu")
@@ -849,7 +871,21 @@ def add_commands(sub: Any) -> Any:
             "redsim.benches.accuracy."
         ),
     )
-    p.add_argument("scene", help="one of mini_chain, chain, cloth_ball, hanging_sheet, conditional_bar, bistable_bar")
+    p.add_argument(
+        "scene",
+        help="one of mini_chain, chain, cloth_ball, hanging_sheet, conditional_bar, bistable_bar (its shipped map), or "
+        "a checkpoint STEM.pt (any scene, a mesh's too: the map against the full space of the scene its .json records)",
+    )
+    p.add_argument(
+        "--handle",
+        help="the handle the loads push (default: the scene's env's, or a checkpoint scene's first handle)",
+    )
+    p.add_argument(
+        "--max-force",
+        type=float,
+        metavar="N",
+        help="force [N] of a unit action (default: the scene's env's, or the reach task's: half the scene's weight)",
+    )
     p.add_argument("--steps", type=int, default=100, help="steps per scenario (default 100)")
     p.add_argument("--scenarios", default="push,actions", help="push and/or actions (default both)")
     p.add_argument("--seed", type=non_negative_seed, default=0, help="seed of the actions scenario (default 0)")

@@ -105,11 +105,43 @@ def test_the_readme_names_every_plan_whose_reference_is_looser() -> None:
 
 def test_cli_refuses_bad_input(cli) -> None:
     code, _, err = cli("bench", "accuracy", "klann")
-    assert code == 2 and "bench accuracy runs on" in err
+    assert code == 2 and "bench accuracy runs on" in err and "or a checkpoint (STEM.pt)" in err
     code, _, err = cli("bench", "accuracy", "mini_chain", "--steps", "5")
     assert code == 2 and "--steps >= 10" in err
     code, _, err = cli("bench", "accuracy", "mini_chain", "--full", "dt3")
     assert code == 2 and "dt3" in err
+
+
+@pytest.mark.filterwarnings("ignore:torch.float32 at dt")  # the toy cloth's loads are below float32's resolution
+def test_a_checkpoint_of_any_scene_is_benched_as_the_reach_task_pushes_it(cli, tmp_path) -> None:
+    """A user's map (a mesh scene's too) against the full space of the scene its .json records: how a short fit
+    that barely follows the loads shows before an agent trains on it."""
+    from redsim.envs.factory import default_force
+
+    stem = str(tmp_path / "cloth")
+    small = ("--dim", "2", "--width", "8", "--layers", "1", "--steps", "20", "--json")
+    assert cli("fit", "toy_small_cloth", *small, "--out", stem)[0] == 0
+    run = ("bench", "accuracy", stem + ".pt", "--steps", "10", "--scenarios", "push", "--full", "none", "--no-study")
+    code, out, err = cli(*run, "--json")
+    assert code == 0, err
+    result = json.loads(out)
+    scene = scenes.build("toy_small_cloth")
+    assert result["scene"] == "toy_small_cloth" and result["plan"]["handle"] == scene.handle_names[0]
+    assert result["plan"]["max_force"] == pytest.approx(default_force(scene))
+    assert result["maps"][0]["source"].endswith("cloth.pt") and "shipped" not in result["maps"][0]["source"]
+    labels = [row["config"] for row in result["rows"]]
+    assert labels[:2] == ["full reference", accuracy.NO_MOTION] and any(x.startswith("neural:") for x in labels)
+    code, out, _ = cli(*run, "--json", "--max-force", "0.5", "--handle", scene.handle_names[-1])
+    assert code == 0 and json.loads(out)["plan"] | {"note": ""} == {
+        "handle": scene.handle_names[-1], "max_force": 0.5, "reference_tol": 1e-8, "note": ""
+    }  # fmt: skip
+    for flags, message in (
+        (("--handle", "nope"), "has no handle 'nope'; valid:"),
+        (("--max-force", "0"), "max_force must be finite and > 0"),
+        (("--dims", "1"), "--dims fits maps of a catalog scene's preset"),
+    ):
+        code, _, err = cli(*run, *flags)
+        assert code == 2 and message in err, (flags, err)
 
 
 @pytest.mark.slow

@@ -212,11 +212,11 @@ def test_what_a_task_samples_is_checked_at_reset() -> None:
             env.reset(seed=seed)
 
 
-def test_the_reach_task_s_default_force_finds_gravity_by_type_not_by_name() -> None:
+def test_the_reach_task_sdefault_force_finds_gravity_by_type_not_by_name() -> None:
     """A user's effect named "gravity" is not the scene's weight: no gravity effect, the default 1 N."""
     from redsim import scenes
     from redsim.effects import Effect
-    from redsim.envs.factory import DEFAULT_FORCE_FRACTION, _default_force
+    from redsim.envs.factory import DEFAULT_FORCE_FRACTION, default_force
     from redsim.scene import SceneBuilder
 
     class Tether(Effect):
@@ -231,11 +231,11 @@ def test_the_reach_task_s_default_force_finds_gravity_by_type_not_by_name() -> N
     b = SceneBuilder(dim=2)
     ids = b.add_particles(torch.tensor([[0.0, -0.5], [0.3, -0.4]], dtype=torch.float64), torch.ones(2))
     b.add_effect(Tether("gravity", b.particle_dofs(ids)))
-    assert _default_force(b.finalize("tethered")) == 1.0
+    assert default_force(b.finalize("tethered")) == 1.0
     chain = scenes.build("mini_chain")
     gravity = next(e for e in chain.effects if e.kind == "gravity")
     weight = float(gravity.masses.sum()) * float(gravity.acceleration.norm())
-    assert _default_force(chain) == pytest.approx(DEFAULT_FORCE_FRACTION * weight)
+    assert default_force(chain) == pytest.approx(DEFAULT_FORCE_FRACTION * weight)
 
 
 def test_the_first_reset_leaves_the_task_parameters_as_drawn() -> None:
