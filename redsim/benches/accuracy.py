@@ -1,7 +1,8 @@
 """`redsim bench accuracy SCENE`: what accuracy costs in time, against a converged full-space reference.
 
 For each seeded scenario of a scene (loads on one handle as the environments apply them: an
-action in [-1, 1]^D times the env's ``max_force``, :data:`PLANS`), the reference is float64
+action in [-1, 1]^D times the env's ``max_force``, :data:`PLANS`; for any other scene, e.g. a fitted mesh's,
+as the reach task of ``redsim.envs.make`` applies them, :func:`reach_plan`), the reference is float64
 full-space implicit Euler (:class:`redsim.integrators.ImplicitEuler` over :class:`FullSpace`,
 Newton, converged to ``PLANS[scene].reference_tol``) started from the full-space rest
 equilibrium (:func:`redsim.integrators.reference.rest_state`). Every configuration runs the same
