@@ -525,7 +525,11 @@ def test_a_fit_of_another_scene_at_the_stem_says_so_and_names_out(
     assert code == 2 and "a fit of another scene is at cut.fit.pt: its training state is of scene fingerprint" in err
     code, _, err = cli(*other, "--out", "cut")  # refused before the scene is built: it names all three ways out
     assert code == 2 and "a fit exists at cut.fit.pt: continue it with --resume" in err and "--out STEM" in err, err
-    assert cli(*other, "--overwrite")[0] == 0
+    assert cli(*other, "--overwrite", "--steps", "4", "--stop-at", "2")[0] == 0  # replaced, interrupted
+    resume = ("fit", "toy_two_tets", "--param", "young=2e5", *SMALL, "--json", "--resume")
+    code, _, err = cli(*resume)  # the training state decides, not the replaced fit's .json beside it
+    assert code == 0, err
+    assert json.loads((tmp_path / "toy_two_tets_d2.json").read_text())["scene_params"]["young"] == 2e5
 
 
 def test_a_fit_at_an_existing_stem_is_refused_without_resume_or_overwrite(cli: Cli, tmp_path: Path) -> None:

@@ -1091,24 +1091,28 @@ def existing_fit(stem: str | Path) -> Path | None:
 
 
 def other_scene_fit(stem: str | Path, scene: Scene) -> str | None:
-    """Why the fit at ``stem`` is of another scene than ``scene`` (its ``STEM.json``'s record, or an interrupted
-    fit's ``STEM.fit.pt``), or None: the same scene, no fit there, or files that do not say (resuming says why)."""
+    """Why the fit at ``stem`` is of another scene than ``scene``, or None: the same scene, no fit there, or files
+    that do not say (resuming says why). Its training state ``STEM.fit.pt`` decides where there is a readable one
+    (what a resume continues: an interrupted ``--overwrite`` leaves the replaced fit's ``.pt`` and ``.json`` beside
+    it), else the ``STEM.json`` record."""
     from redsim.subspace.checkpoint import read_metadata, scene_mismatch
 
     try:
-        doc = read_metadata(stem)
-    except CheckpointError:  # none, or unreadable: the training state may say
-        doc = None
-    if doc is not None:
-        return scene_mismatch(doc, scene)
-    try:
         state = torch.load(checkpoint_path(stem, ".fit.pt"), map_location="cpu", weights_only=True)
         fingerprint = state["scene_fingerprint"]
-    except Exception:
+    except Exception:  # none, or unreadable: the record may say
+        fingerprint = None
+    if fingerprint is not None and scene.accepts(fingerprint):
         return None
-    if scene.accepts(fingerprint):
-        return None
-    return f"its training state is of scene fingerprint {fingerprint}, not this scene's {scene.fingerprint()}"
+    try:
+        doc = read_metadata(stem)
+    except CheckpointError:
+        doc = None
+    if doc is not None and fingerprint in (None, doc.get("scene_fingerprint")):  # the record of that same fit
+        return scene_mismatch(doc, scene)  # (names the parameters that differ)
+    if fingerprint is not None:
+        return f"its training state is of scene fingerprint {fingerprint}, not this scene's {scene.fingerprint()}"
+    return None
 
 
 def planned_steps(stem: str | Path) -> int | None:

@@ -43,7 +43,7 @@ import math
 import statistics
 import time
 from collections.abc import Callable, Mapping
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 from pathlib import Path
 from typing import Any
 
@@ -133,6 +133,26 @@ def plan(scene_name: str) -> Plan:
     if scene_name not in PLANS:
         raise ValueError(f"bench accuracy knows scenes {sorted(PLANS)}, not {scene_name!r}")
     return PLANS[scene_name]
+
+
+def replanned(scene: Scene, handle: str | None = None, max_force: float | None = None) -> Plan:
+    """The :data:`PLANS` entry of ``scene`` with the ``handle`` and ``max_force`` [N] given (each kept where None).
+
+    Raises:
+        ValueError: a scene outside :data:`PLANS`, an unknown handle, or a max_force that is not finite and > 0.
+    """
+    p = plan(scene.name)
+    if handle is not None and handle not in scene.handle_names:
+        raise ValueError(f"scene {scene.name!r} has no handle {handle!r}; valid: {list(scene.handle_names)}")
+    if max_force is not None and not (math.isfinite(float(max_force)) and float(max_force) > 0.0):
+        raise ValueError(f"max_force must be finite and > 0 [N], got {max_force!r}")
+    given = [f"{key} {value!r} given" for key, value in (("handle", handle), ("max_force", max_force)) if value]
+    return replace(
+        p,
+        handle=p.handle if handle is None else handle,
+        max_force=p.max_force if max_force is None else float(max_force),
+        note="; ".join([p.note, *given]) if given else p.note,
+    )
 
 
 def reach_plan(scene: Scene, handle: str | None = None, max_force: float | None = None) -> Plan:

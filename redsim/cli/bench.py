@@ -379,8 +379,13 @@ def cmd_bench_accuracy(args: argparse.Namespace) -> int:
     from redsim import pretrained
     from redsim.bench import machine_info
     from redsim.benches import accuracy
+    from redsim.subspace import checkpoint_path
 
-    checkpoint = args.scene.endswith((".pt", ".json")) or Path(args.scene).is_file()
+    checkpoint = args.scene not in accuracy.PLANS and (
+        args.scene.endswith((".pt", ".json"))
+        or Path(args.scene).is_file()
+        or checkpoint_path(args.scene, ".pt").is_file()
+    )
     if not checkpoint and args.scene not in accuracy.PLANS:
         raise CliError(
             f"bench accuracy runs on {', '.join(accuracy.PLANS)} or a checkpoint (STEM.pt); got {args.scene!r}"
@@ -397,8 +402,6 @@ def cmd_bench_accuracy(args: argparse.Namespace) -> int:
             f"{', '.join(accuracy.FULL_VARIANTS)} (or none), --steps >= 10; got {unknown or args.steps}"
         )
     if checkpoint:  # a user's map (a mesh scene's too): the scene its .json records, pushed as the reach task is
-        from redsim.subspace import checkpoint_path
-
         scene, neural = load_checkpoint(args.scene)
         path = checkpoint_path(args.scene, ".pt")
     else:
@@ -407,8 +410,8 @@ def cmd_bench_accuracy(args: argparse.Namespace) -> int:
     try:
         load_plan = (
             accuracy.reach_plan(scene, args.handle, args.max_force)
-            if checkpoint or args.handle is not None or args.max_force is not None
-            else None
+            if checkpoint
+            else accuracy.replanned(scene, args.handle, args.max_force)
         )
     except ValueError as err:
         raise CliError(str(err)) from err

@@ -90,17 +90,17 @@ def _weld(mesh: trimesh.Trimesh) -> None:
 
 
 def _pinned(
-    given: np.ndarray, vertices: np.ndarray, pin: PinSpec, *, tolerance: float, nearest: bool = False
+    given: np.ndarray, vertices: np.ndarray, pin: PinSpec, *, tolerance: float, nearest: bool = False, what: str = "pin"
 ) -> np.ndarray:
     """The indices into ``vertices`` (the welded, cleaned mesh, or the voxel solid) of the pin. A mask or index list
     counts the vertices as given (``given`` [V0, D], the file's): they are found again by position (``nearest``:
     each pins the vertex nearest it, as a voxel solid's grid holds none of the file's); names and callables see
     ``vertices``."""
     if pin is None or isinstance(pin, str) or callable(pin):
-        return select_vertices(vertices, pin, tolerance=tolerance)
+        return select_vertices(vertices, pin, tolerance=tolerance, what=what)
     import scipy.spatial
 
-    points = given[select_vertices(given, pin, tolerance=tolerance)]
+    points = given[select_vertices(given, pin, tolerance=tolerance, what=what)]
     distance, index = scipy.spatial.cKDTree(vertices).query(points)
     if nearest:
         return np.unique(index)
@@ -167,12 +167,12 @@ def _add_handles(
     masses: np.ndarray,
     pinned: np.ndarray,
     handles: Mapping[str, PinSpec] | None,
-    select: Callable[[PinSpec], np.ndarray],
+    select: Callable[..., np.ndarray],
     whole: str,
 ) -> dict[str, str]:
     """Add each of ``handles`` (name -> a vertex selection, as a pin's; ``select`` turns one into vertex indices)
-    at the mass-weighted centre of its vertices, after the whole body's handle ``whole``; their labels for the
-    params ({} without any)."""
+    at the mass-weighted centre of its vertices, after the whole body's handle ``whole``, in name order (the order
+    a spec's JSON, its keys sorted, rebuilds); their labels for the params ({} without any)."""
     if handles is None:
         return {}
     if not isinstance(handles, Mapping):
@@ -180,10 +180,12 @@ def _add_handles(
             f"handles must be a dict of name -> vertex selection (e.g. {{'tip': 'max_x'}}), got {handles!r}"
         )
     labels = {}
-    for name, spec in handles.items():
+    for name in handles:
         if not isinstance(name, str) or not name or name == whole:
             raise ValueError(f"a handle name must be a non-empty string other than {whole!r}, got {name!r}")
-        chosen = select(spec)
+    for name in sorted(handles):
+        spec = handles[name]
+        chosen = select(spec, what=f"handle {name!r} selection")
         label = _pin_label(spec, chosen)
         if chosen.size == 0:
             raise ValueError(f"handle {name!r} ({label}) selects no vertex")
@@ -231,7 +233,8 @@ def fem_scene_from_mesh(
         scale: Multiplies the mesh's coordinates (1e-3 for a file in millimetres); a mesh spanning more than
             :data:`LARGE_MESH_M` metres after it is warned about.
         handles: More handles, name -> a vertex selection as ``pin`` takes (e.g. ``{"tip": "max_x"}``): each at
-            the mass-weighted centre of its vertices, after "body" (a load there spreads over them by mass).
+            the mass-weighted centre of its vertices, after "body" in name order (a load there spreads over them
+            by mass).
         name: Scene name.
 
     Returns:
@@ -339,7 +342,7 @@ def cloth_scene_from_mesh(
         scale: Multiplies the mesh's coordinates (1e-3 for a file in millimetres); a mesh spanning more than
             :data:`LARGE_MESH_M` metres after it is warned about.
         handles: More handles, name -> a vertex selection as ``pin`` takes (e.g. ``{"corner": [12]}``): each at
-            the mass-weighted centre of its vertices, after "cloth".
+            the mass-weighted centre of its vertices, after "cloth" in name order.
         name: Scene name.
 
     Returns:

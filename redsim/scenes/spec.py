@@ -42,8 +42,9 @@ def read_spec(path: str | os.PathLike[str]) -> Mapping[str, Any]:
         SceneSpecError: the file cannot be read, or holds no JSON object.
     """
     path = os.fspath(path)
-    if path.endswith(".pt"):
-        path = path[: -len(".fit.pt" if path.endswith(".fit.pt") else ".pt")] + ".json"
+    if path.endswith(".pt"):  # a checkpoint's .json (a training state STEM.fit.pt: its fit's STEM.json)
+        beside = path[: -len(".pt")] + ".json"
+        path = beside if os.path.isfile(beside) or not path.endswith(".fit.pt") else path[: -len(".fit.pt")] + ".json"
     try:
         with open(path) as handle:
             doc = json.load(handle)

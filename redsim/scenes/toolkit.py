@@ -330,13 +330,14 @@ def add_gravity(builder: SceneBuilder) -> None:
     builder.add_gravity((0.0, -GRAVITY) if builder.dim == 2 else (0.0, -GRAVITY, 0.0))
 
 
-def select_vertices(vertices: np.ndarray, spec: PinSpec, *, tolerance: float) -> np.ndarray:
+def select_vertices(vertices: np.ndarray, spec: PinSpec, *, tolerance: float, what: str = "pin") -> np.ndarray:
     """Indices of the vertices chosen by ``spec`` (see :data:`PinSpec`), shape [P], int64.
 
     Args:
         vertices: [V, D] [m].
         spec: The selection.
         tolerance: Distance [m] from the extreme coordinate still counted as on the extreme layer.
+        what: What the selection is for, as the errors name it.
 
     Raises:
         ValueError: on an unknown name, a mask of the wrong shape, indices that are not integers or out of range.
@@ -347,7 +348,7 @@ def select_vertices(vertices: np.ndarray, spec: PinSpec, *, tolerance: float) ->
     if isinstance(spec, str):
         names = [f"{e}_{a}" for e in ("min", "max") for a in "xyz"[:D]]
         if spec not in names:
-            raise ValueError(f"unknown pin {spec!r}; use one of {[*names, 'none']}, a mask, indices or a callable")
+            raise ValueError(f"unknown {what} {spec!r}; use one of {[*names, 'none']}, a mask, indices or a callable")
         extreme, axis = spec.split("_")
         coord = vertices[:, "xyz".index(axis)]
         if extreme == "min":
@@ -356,13 +357,13 @@ def select_vertices(vertices: np.ndarray, spec: PinSpec, *, tolerance: float) ->
     chosen = np.asarray(spec(vertices.copy()) if callable(spec) else spec)
     if chosen.dtype == bool:
         if chosen.shape != (V,):
-            raise ValueError(f"pin mask must have shape [{V}], got {chosen.shape}")
+            raise ValueError(f"{what} mask must have shape [{V}], got {chosen.shape}")
         return np.nonzero(chosen)[0]
     if chosen.size and not np.issubdtype(chosen.dtype, np.integer):  # [0.0, 0.4, 0.0]: a position, not indices
         raise ValueError(
-            f"pin indices must be integers (or a bool mask, a name, a callable), got {chosen.dtype} values"
+            f"{what} indices must be integers (or a bool mask, a name, a callable), got {chosen.dtype} values"
         )
     chosen = chosen.astype(np.int64).reshape(-1)
     if chosen.size and (chosen.min() < 0 or chosen.max() >= V):
-        raise ValueError(f"pin indices must lie in [0, {V}), got range [{chosen.min()}, {chosen.max()}]")
+        raise ValueError(f"{what} indices must lie in [0, {V}), got range [{chosen.min()}, {chosen.max()}]")
     return np.unique(chosen)

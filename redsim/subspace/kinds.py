@@ -50,7 +50,7 @@ def load_subspace(path: str | Path, scene: Scene | None = None, *, device: str |
             fingerprint or n differ.
     """
     weights = checkpoint_path(path, ".pt")
-    if weights.name.endswith(".fit.pt"):  # a fit's resumable state, not a map
+    if weights.name.endswith(".fit.pt") and not weights.with_suffix(".json").is_file():  # a fit's resumable state
         mapped = weights.with_name(weights.name[: -len(".fit.pt")] + ".pt")
         done = (
             f"the fitted map is {mapped}" if mapped.is_file() else f"the fit is unfinished: resuming it writes {mapped}"

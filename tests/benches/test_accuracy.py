@@ -135,6 +135,8 @@ def test_a_checkpoint_of_any_scene_is_benched_as_the_reach_task_pushes_it(cli, t
     assert code == 0 and json.loads(out)["plan"] | {"note": ""} == {
         "handle": scene.handle_names[-1], "max_force": 0.5, "reference_tol": 1e-8, "note": ""
     }  # fmt: skip
+    bare = ("bench", "accuracy", stem, *run[3:], "--json")  # a bare STEM is a checkpoint too
+    assert cli(*bare)[0] == 0
     for flags, message in (
         (("--handle", "nope"), "has no handle 'nope'; valid:"),
         (("--max-force", "0"), "max_force must be finite and > 0"),
@@ -142,6 +144,27 @@ def test_a_checkpoint_of_any_scene_is_benched_as_the_reach_task_pushes_it(cli, t
     ):
         code, _, err = cli(*run, *flags)
         assert code == 2 and message in err, (flags, err)
+
+
+def test_handle_and_max_force_on_a_catalog_scene_change_only_what_is_given(
+    cli, mini_chain, tmp_path, monkeypatch
+) -> None:
+    shipped = accuracy.plan("mini_chain")
+    stronger = accuracy.replanned(mini_chain, max_force=30.0)
+    assert (stronger.handle, stronger.max_force, stronger.reference_tol) == (
+        shipped.handle,
+        30.0,
+        shipped.reference_tol,
+    )
+    assert stronger.note.endswith("max_force 30.0 given") and accuracy.replanned(mini_chain) == shipped
+    with pytest.raises(ValueError, match="has no handle 'tip'"):
+        accuracy.replanned(mini_chain, handle="tip")
+    monkeypatch.chdir(tmp_path)
+    (tmp_path / "mini_chain").write_text("a file named like the scene")  # the catalog name wins
+    code, _, err = cli("bench", "accuracy", "mini_chain", "--steps", "5")
+    assert code == 2 and "--steps >= 10" in err, err
+    code, _, err = cli("bench", "accuracy", "mini_chain", "--max-force", "-1")
+    assert code == 2 and "max_force must be finite and > 0" in err, err
 
 
 @pytest.mark.slow

@@ -465,6 +465,14 @@ def test_mesh_scenes_take_more_handles_by_vertex_selection(tmp_path) -> None:
     # the end layer's centre by mass (the Kuhn split lumps its masses unevenly: within a sixth of a voxel)
     torch.testing.assert_close(tip, torch.tensor([0.105, 0.0, 0.0], dtype=tip.dtype), atol=0.01 / 6, rtol=0)
     assert scene_from_spec(scene_spec(beam)).fingerprint() == beam.fingerprint()  # a name is rebuilt from the spec
+    two = redsim.scenes.fem_scene_from_mesh(
+        path, voxel_pitch=0.01, pin="min_x", handles={"tip": "max_x", "top": "max_y"}
+    )
+    again = redsim.scenes.fem_scene_from_mesh(
+        path, voxel_pitch=0.01, pin="min_x", handles={"top": "max_y", "tip": "max_x"}
+    )
+    rebuilt = scene_from_spec(json.loads(json.dumps(scene_spec(two), sort_keys=True)))  # as a checkpoint's .json
+    assert two.handle_names == again.handle_names == rebuilt.handle_names == ("body", "tip", "top")  # name order
     given = trimesh.load(path, process=False).vertices  # the file's own numbering (an STL's: three per triangle)
     far = np.nonzero(np.isclose(given[:, 0], 0.1))[0][:2]
     corners = redsim.scenes.fem_scene_from_mesh(path, voxel_pitch=0.01, pin="min_x", handles={"c": far})
@@ -474,7 +482,8 @@ def test_mesh_scenes_take_more_handles_by_vertex_selection(tmp_path) -> None:
         ({"body": "max_x"}, "other than 'body'"),
         ({"end": "min_x"}, "selects only pinned vertices"),
         ({"end": "none"}, "selects no vertex"),
-        ({"end": "max_q"}, "unknown pin 'max_q'"),
+        ({"end": "max_q"}, "unknown handle 'end' selection 'max_q'"),
+        ({"end": np.zeros(5, dtype=bool)}, r"handle 'end' selection mask must have shape \["),
         (["max_x"], "handles must be a dict"),
     ):
         with pytest.raises(ValueError, match=message):

@@ -212,7 +212,7 @@ def test_what_a_task_samples_is_checked_at_reset() -> None:
             env.reset(seed=seed)
 
 
-def test_the_reach_task_sdefault_force_finds_gravity_by_type_not_by_name() -> None:
+def test_the_reach_task_s_default_force_finds_gravity_by_type_not_by_name() -> None:
     """A user's effect named "gravity" is not the scene's weight: no gravity effect, the default 1 N."""
     from redsim import scenes
     from redsim.effects import Effect
