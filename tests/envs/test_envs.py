@@ -958,6 +958,7 @@ def test_stewart_s_frame_is_solved_once_per_process_and_caches_keep_their_newest
     assert base.cached(cache, 5, lambda: pytest.fail("computed again")) == 50
 
 
+@pytest.mark.slow  # 9 s (a second process); their keys and the per-process cache stay in the default suite
 def test_held_targets_are_kept_on_disk_for_the_next_process(
     monkeypatch: pytest.MonkeyPatch, tmp_path: Path, caplog: pytest.LogCaptureFixture
 ) -> None:

@@ -786,7 +786,10 @@ def test_ctrl_c_saves_the_run_and_resume_goes_on_from_it(tmp_path: Path, monkeyp
         assert [int(row["env_steps"]) for row in csv.DictReader(handle)] == [20, 40, 60, 80, 100]
 
 
-@pytest.mark.parametrize("stopped_in", ["model.zip", "model_vecnormalize.pkl"])
+@pytest.mark.parametrize(
+    "stopped_in",
+    ["model.zip", pytest.param("model_vecnormalize.pkl", marks=pytest.mark.slow)],  # the same save, 10 s
+)
 def test_ctrl_c_while_the_run_is_saved_keeps_its_previous_files_whole(
     tmp_path: Path, monkeypatch: pytest.MonkeyPatch, stopped_in: str
 ) -> None:
