@@ -324,3 +324,17 @@ def test_bench_subspace_marks_load_errors_measured_against_unconverged_reference
     rest = row([True] * 8, rest=False)
     assert "of 8 loaded" not in rest
     assert "* the unloaded full-space equilibrium stopped unconverged: the load errors measure around it" in rest
+
+
+def test_a_fit_ends_with_the_accuracy_check_to_run_and_that_command_runs(
+    capsys: pytest.CaptureFixture[str], tmp_path
+) -> None:
+    """Nothing in a fit's summary shows a map too stiff to follow its loads; it names the command that does, which
+    runs on the fit (whose d = 8 > n = 6 leaves out the modal baselines: they crashed it)."""
+    stem = str(tmp_path / "tt")
+    code, out, err = run(capsys, "fit", "toy_two_tets", "--steps", "4", "--width", "8", "--layers", "1", "--out", stem)
+    check = [line for line in out.splitlines() if "redsim bench accuracy" in line]
+    assert code == 0 and len(check) == 1, (out, err)
+    argv = check[0].split("redsim ", 1)[1].split()
+    code, out, err = run(capsys, *argv, "--steps", "10")
+    assert code == 0 and "no motion" in out and "no modes or modal derivatives for d > n = 6" in out, (out, err)

@@ -407,7 +407,8 @@ KINDS = ("neural", "modes", "modal_derivatives")
 
 
 def _subspaces(scene: Scene, maps: Mapping[int, nn.Module], *, with_dims: bool) -> dict[str, nn.Module]:
-    """Per neural map of ``maps`` (by d): it, linear modes and modal derivatives of its d and σ at the full rest.
+    """Per neural map of ``maps`` (by d): it, linear modes and modal derivatives of its d and σ at the full rest
+    (the two baselines only where d <= n: a scene has n modes, and a neural map may have more latents than DOFs).
 
     Keys are the kinds of :data:`KINDS` (``"KIND d=D"`` when ``with_dims``), grouped by kind, d ascending.
     """
@@ -417,9 +418,11 @@ def _subspaces(scene: Scene, maps: Mapping[int, nn.Module], *, with_dims: bool) 
     built: dict[str, dict[int, nn.Module]] = {kind: {} for kind in KINDS}
     for dim in sorted(maps):
         neural = maps[dim]
+        built["neural"][dim] = neural
+        if dim > scene.free_dof_count:
+            continue
         sigma = float(neural.metadata["fit"]["sigma"]) if hasattr(neural, "metadata") else 1.0
         modes = modal_analysis(scene, dim, sigma=sigma, rest=rest)
-        built["neural"][dim] = neural
         built["modes"][dim] = modes
         built["modal_derivatives"][dim] = modal_derivatives(scene, dim, sigma=sigma, rest=modes.offset)
     return {_key(kind, dim, with_dims): m for kind, by_dim in built.items() for dim, m in by_dim.items()}
@@ -830,6 +833,8 @@ def report(result: dict[str, Any], machine: str) -> str:
     ]
     if len(result.get("dims", ())) > 1 or any(m["cubature_elements"] for m in result.get("maps", ())):
         lines.append("neural maps: " + "; ".join(_map_line(m) for m in result["maps"]))
+    if any(d > result["n"] for d in result.get("dims", ())):
+        lines.append(f"note: no modes or modal derivatives for d > n = {result['n']} (a scene has n modes)")
     if not result.get("rest_converged", True):
         lines.append(
             "note: the full-space rest solve did not converge: the reference starts from the state it stopped at, "

@@ -236,6 +236,11 @@ def cmd_fit(args: argparse.Namespace) -> int:
             f"mean metric stretch {final['stretch']:.4f}"
         )
         out(f"wrote {summary['checkpoint']} and {summary['metadata']}")
+        if scene.handles:  # a short fit can leave a map too stiff to follow the loads; nothing above shows it
+            out(
+                f"before training on it, compare it with the full space: redsim bench accuracy {summary['checkpoint']} "
+                "--scenarios push --full none --no-study"
+            )
     stretch = meta["final"]["stretch"]
     if stretch < LOW_STRETCH:
         warn(

@@ -664,7 +664,7 @@ def test_a_resumed_run_draws_new_episodes(tmp_path: Path, monkeypatch: pytest.Mo
         return reset(self)
 
     monkeypatch.setattr(SB3VecEnv, "reset", recording)
-    tiny = {"n_envs": 2, "eval_episodes": 2, "final_episodes": 2, "env_kwargs": SHORT, "video": False}
+    tiny = {"n_envs": 2, "eval_episodes": 2, "final_episodes": 2, "env_kwargs": SHORT, "video": False, "eval_every": 40}
     train_agent(MINI, tmp_path, algo="sac", steps=40, seed=3, **tiny)
     first = seeds[0]
     seeds.clear()
@@ -711,7 +711,7 @@ def test_td3_resumes_from_a_checkpoint_with_other_copies(tmp_path: Path) -> None
     """No replay buffer comes with a checkpoint, so the copies may change; the exploration noise follows them."""
     from redsim.trainers.agents import train_agent
 
-    tiny = {"eval_episodes": 2, "final_episodes": 2, "env_kwargs": SHORT, "video": False}
+    tiny = {"eval_episodes": 2, "final_episodes": 2, "env_kwargs": SHORT, "video": False, "eval_every": 40}
     train_agent(MINI, tmp_path, algo="td3", steps=40, n_envs=2, checkpoint_every=20, **tiny)
     (tmp_path / "model.zip").unlink()  # interrupted after its checkpoints
     result = train_agent(MINI, tmp_path, algo="td3", steps=80, n_envs=4, resume=True, **tiny)
@@ -802,7 +802,7 @@ def test_ctrl_c_while_the_run_is_saved_keeps_its_previous_files_whole(
     from redsim.envs.sb3 import SB3VecEnv
     from redsim.trainers.agents import TrainingInterrupted, train_agent
 
-    tiny = {"n_envs": 2, "eval_episodes": 1, "final_episodes": 1, "env_kwargs": SHORT, "video": False}
+    tiny = {"n_envs": 2, "eval_episodes": 1, "final_episodes": 1, "env_kwargs": SHORT, "video": False, "eval_every": 20}
     train_agent(MINI, tmp_path, algo="sac", steps=20, **tiny)
     names = ("model.zip", "replay_buffer.pkl", "model_vecnormalize.pkl")
     before = {name: (tmp_path / name).read_bytes() for name in names}
@@ -1108,7 +1108,7 @@ def test_sigterm_saves_the_run_as_ctrl_c_does_and_a_bufferless_resume_refills_fi
     monkeypatch.setattr(agents, "_training_log", training_log)
 
     run = tmp_path / "checkpointed"
-    tiny = {"n_envs": 2, "eval_episodes": 2, "final_episodes": 2, "env_kwargs": SHORT, "video": False}
+    tiny = {"n_envs": 2, "eval_episodes": 2, "final_episodes": 2, "env_kwargs": SHORT, "video": False, "eval_every": 20}
     agents.train_agent(MINI, run, algo="sac", steps=40, checkpoint_every=20, overrides={"learning_starts": 10}, **tiny)
     (run / "model.zip").unlink()  # killed after its checkpoints
     with caplog.at_level("WARNING", logger="redsim.trainers.agents"):
@@ -1199,7 +1199,7 @@ def test_a_resume_skips_a_checkpoint_whose_statistics_are_missing_or_damaged(tmp
     statistics: the resume takes the newest whole save instead of refusing the run."""
     from redsim.trainers.agents import _resume_from, normalizer_path, train_agent
 
-    tiny = {"n_envs": 2, "eval_episodes": 1, "final_episodes": 1, "env_kwargs": SHORT, "video": False}
+    tiny = {"n_envs": 2, "eval_episodes": 1, "final_episodes": 1, "env_kwargs": SHORT, "video": False, "eval_every": 20}
     overrides = {"learning_starts": 10, "normalize": {"clip_obs": 10.0}}
     train_agent(MINI, tmp_path, algo="sac", steps=40, checkpoint_every=20, overrides=overrides, **tiny)
     (tmp_path / "model.zip").unlink()
@@ -1293,7 +1293,7 @@ def test_ppo_says_when_whole_rollouts_take_more_steps_than_asked(
     from redsim.trainers.agents import train_agent
 
     small = {"n_steps": 8, "batch_size": 16, "n_epochs": 1}
-    tiny = {"n_envs": 2, "eval_episodes": 1, "final_episodes": 1, "env_kwargs": SHORT, "video": False}
+    tiny = {"n_envs": 2, "eval_episodes": 1, "final_episodes": 1, "env_kwargs": SHORT, "video": False, "eval_every": 32}
     with caplog.at_level("WARNING", logger="redsim.trainers.agents"):
         result = train_agent(MINI, tmp_path, algo="ppo", steps=24, overrides=small, **tiny)
     assert result.steps == 32 and "this run takes 32, not 24" in caplog.text
