@@ -92,7 +92,7 @@ def evaluate(model: SAC, env_id: str, episodes: int, env_kwargs: dict[str, Any])
 def main(
     out: Path | None = None,
     env_id: str = "RedSim/MiniChain-v0",
-    steps: int = 120,
+    steps: int = 80,
     episodes: int = 2,
     episode_steps: int | None = 30,
     seed: int = 0,
