@@ -302,6 +302,8 @@ def test_an_out_that_cannot_be_written_is_refused_before_any_work(cli: Cli, tmp_
 def test_an_out_in_a_folder_that_takes_no_files_is_refused_before_any_work(cli: Cli) -> None:
     """``os.access`` calls /proc writable (and every folder, for root), but nothing can be made in it: the bench
     ran to its end and lost its results."""
+    from redsim import pretrained
+
     for argv in (
         ["bench", "accuracy", "mini_chain", "--steps", "10", "--scenarios", "push", "--full", "none", "--no-study"],
         ["bench", "scaling"],
@@ -309,6 +311,9 @@ def test_an_out_in_a_folder_that_takes_no_files_is_refused_before_any_work(cli: 
         code, out, err = cli(*argv, "--out", "/proc/redsim_out")
         assert code == 2 and out == "" and err.count("\n") == 1, (argv, err)
         assert "cannot write --out /proc/redsim_out: no file can be made in /proc (" in err, err
+    code, out, err = cli("sample", str(pretrained.path("mini_chain")), "-n", "1", "--meshes", "/proc/redsim_meshes")
+    assert code == 2 and out == "" and err.count("\n") == 1, err  # was exit 1, "No such file or directory"
+    assert "cannot write --meshes /proc/redsim_meshes: no file can be made in /proc (" in err, err
 
 
 def test_a_cubature_beside_a_map_in_a_folder_that_takes_no_files_is_refused_before_any_work(

@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import json
+import re
 
 import numpy as np
 import pytest
@@ -337,4 +338,9 @@ def test_a_fit_ends_with_the_accuracy_check_to_run_and_that_command_runs(
     assert code == 0 and len(check) == 1, (out, err)
     argv = check[0].split("redsim ", 1)[1].split()
     code, out, err = run(capsys, *argv, "--steps", "10")
-    assert code == 0 and "no motion" in out and "no modes or modal derivatives for d > n = 6" in out, (out, err)
+    assert code == 0 and "no motion" in out and "neural maps: d=8: 4 fit steps" in out, (out, err)
+    assert "no modes or modal derivatives for d > n = 6" in out
+    assert "note: the reference is not a trustworthy motion" not in out
+    code, out, err = run(capsys, *argv, "--steps", "10", "--max-force", "1000")  # ~60x the scene's weight on 0.2 m
+    note = re.search(r"note: the reference is not a trustworthy motion: (\d+) of its 10 steps moved", out)
+    assert code == 0 and note and int(note.group(1)) >= 1, (out, err)

@@ -658,7 +658,7 @@ def fit_subspace(
         raise ValueError(f"unknown fit option(s) {unknown}; valid: {[f.name for f in dataclasses.fields(FitConfig)]}")
     config = dataclasses.replace(config or FitConfig(), **overrides)
     if config.conditional and scene.condition_space is None:
-        raise ValueError(f"scene {scene.name!r} has no condition space; fit without conditional")
+        raise ValueError(f"scene {scene.name!r} has no condition space; fit without conditional (--cond)")
     if config.drive > 0:
         _check_drivers(scene, config)
     if config.mirror > 0 and scene.mirror is None:

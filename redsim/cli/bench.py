@@ -393,14 +393,14 @@ def cmd_bench_accuracy(args: argparse.Namespace) -> int:
     if checkpoint and args.dims is not None:
         raise CliError("--dims fits maps of a catalog scene's preset: give a scene name, not a checkpoint")
     scenarios = tuple(parse_list(args.scenarios, "--scenarios"))
-    unknown = [s for s in scenarios if s not in accuracy.SCENARIOS]
     full = tuple(parse_list(args.full, "--full")) if args.full != "none" else ()
-    unknown += [k for k in full if k not in accuracy.FULL_VARIANTS]
-    if unknown or args.steps < 10:
-        raise CliError(
-            f"--scenarios must be from {', '.join(accuracy.SCENARIOS)}, --full from "
-            f"{', '.join(accuracy.FULL_VARIANTS)} (or none), --steps >= 10; got {unknown or args.steps}"
-        )
+    checks = (("--scenarios", scenarios, accuracy.SCENARIOS), ("--full", full, accuracy.FULL_VARIANTS))
+    for flag, given, valid in checks:
+        if unknown := [k for k in given if k not in valid]:
+            extra = " (or none)" if flag == "--full" else ""
+            raise CliError(f"{flag} must be from {', '.join(valid)}{extra}; got {', '.join(unknown)}")
+    if args.steps < 10:
+        raise CliError(f"--steps must be >= 10, got {args.steps}")
     if checkpoint:  # a user's map (a mesh scene's too): the scene its .json records, pushed as the reach task is
         scene, neural = load_checkpoint(args.scene)
         path = checkpoint_path(args.scene, ".pt")
@@ -889,7 +889,7 @@ def add_commands(sub: Any) -> Any:
         metavar="N",
         help="force [N] of a unit action (default: the scene's env's, or the reach task's: half the scene's weight)",
     )
-    p.add_argument("--steps", type=int, default=100, help="steps per scenario (default 100)")
+    p.add_argument("--steps", type=int, default=100, help="steps per scenario, >= 10 (default 100)")
     p.add_argument("--scenarios", default="push,actions", help="push and/or actions (default both)")
     p.add_argument("--seed", type=non_negative_seed, default=0, help="seed of the actions scenario (default 0)")
     p.add_argument(

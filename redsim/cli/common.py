@@ -248,6 +248,21 @@ def parse_loads(items: Sequence[str], scene: Scene) -> dict[str, list[float]] | 
     return loads
 
 
+def check_writable(path: str, flag: str, *, folder: bool) -> None:
+    """Raise CliError unless ``path`` (given as ``flag``; a folder to write into where ``folder``, else a file) could
+    be made and written. Nothing is left behind: the nearest existing folder above it must be a folder that a file
+    can be made in (tried, not asked of ``os.access``, which says yes to root everywhere and to anyone on ``/proc``)."""
+    if folder and Path(path).exists() and not Path(path).is_dir():
+        raise CliError(f"cannot write into {flag} {path}: it is a file, not a folder")
+    above = Path(path).absolute().parent
+    while not above.exists() and above != above.parent:
+        above = above.parent
+    if not above.is_dir():
+        raise CliError(f"cannot write {flag} {path}: {above} is a file, not a folder")
+    if (why := write_error(above)) is not None:
+        raise CliError(f"cannot write {flag} {path}: no file can be made in {above} ({why})")
+
+
 def write_error(folder: Path) -> str | None:
     """Why no file can be made in the existing ``folder`` (tried: ``os.access`` says yes to root everywhere and to
     anyone on ``/proc``); None where one can. Nothing is left behind."""
@@ -471,17 +486,12 @@ def bench_scenes(args: argparse.Namespace, default: Sequence[str]) -> list[tuple
 
 def load_checkpoint(path: str) -> tuple[Scene, Any]:
     """The scene a checkpoint was fitted to (rebuilt from its JSON, a user's mesh included) and the subspace."""
-    from redsim.cubature.energy import SUFFIX as CUBATURE_SUFFIX
     from redsim.scenes.spec import SceneSpecError, scene_from_spec
     from redsim.subspace import CheckpointError, checkpoint_path, load_subspace, read_metadata
+    from redsim.subspace.checkpoint import beside_checkpoint
 
-    for suffix, what in ((CUBATURE_SUFFIX, "a cubature"), (".rest.json", "a shipped map's rest start")):
-        if Path(path).name.endswith(suffix):  # a file beside a checkpoint, given in its place
-            mapped = Path(path).with_name(Path(path).name[: -len(suffix)] + ".pt")
-            raise CliError(
-                f"{path} is {what}, not a checkpoint: give the subspace it belongs to"
-                + (f", {mapped}" if mapped.is_file() else " (a fit's STEM.pt)")
-            )
+    if (why := beside_checkpoint(path)) is not None:  # a file beside a checkpoint, given in its place
+        raise CliError(why)
     weights = checkpoint_path(path, ".pt")
     if weights.name.endswith(".fit.pt"):  # a fit's resumable state (all that --stop-at or Ctrl-C leaves)
         mapped = weights.with_name(weights.name[: -len(".fit.pt")] + ".pt")

@@ -22,9 +22,9 @@ from redsim.cli.common import (
     Parser,
     StdoutClosed,
     apply_threads,
+    check_writable,
     error,
     warn,
-    write_error,
 )
 
 
@@ -113,24 +113,15 @@ def _interrupt_on_sigterm() -> object:
 
 def _check_out(args: argparse.Namespace) -> None:
     """Refuse an ``--out`` whose folder could not be made or written, before any work (a fit or a bench that ends
-    in a traceback loses its results). Nothing is left behind here: the nearest existing folder above it must be a
-    folder that a file can be made in (tried, not asked of ``os.access``, which says yes to root everywhere and to
-    anyone on ``/proc``)."""
+    in a traceback loses its results): :func:`redsim.cli.common.check_writable`."""
     out = getattr(args, "out", None)
     if not out:
         return
-    if getattr(args, "out_is_folder", False):
-        if Path(out).exists() and not Path(out).is_dir():
-            raise CliError(f"cannot write into --out {out}: it is a file, not a folder")
-    elif out.endswith(("/", os.sep)) or os.path.basename(out) in ("", ".", ".."):  # a stem may share a folder's name
+    if not getattr(args, "out_is_folder", False) and (
+        out.endswith(("/", os.sep)) or os.path.basename(out) in ("", ".", "..")  # a stem may share a folder's name
+    ):
         raise CliError(f"--out {out} is a folder; name a file in it (e.g. {Path(out) / 'NAME'})")
-    folder = Path(out).absolute().parent
-    while not folder.exists() and folder != folder.parent:
-        folder = folder.parent
-    if not folder.is_dir():
-        raise CliError(f"cannot write --out {out}: {folder} is a file, not a folder")
-    if (why := write_error(folder)) is not None:
-        raise CliError(f"cannot write --out {out}: no file can be made in {folder} ({why})")
+    check_writable(out, "--out", folder=getattr(args, "out_is_folder", False))
 
 
 def _silence_stdout() -> None:

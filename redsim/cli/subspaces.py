@@ -17,6 +17,7 @@ from redsim.cli.common import (
     CliError,
     SceneNotRebuilt,
     add_scene_args,
+    check_writable,
     error,
     file_name,
     finish_command,
@@ -310,8 +311,8 @@ def cmd_sample(args: argparse.Namespace) -> int:
 
     if args.n < 1:
         raise CliError(f"-n must be an integer >= 1, got {args.n}")
-    if args.meshes and Path(args.meshes).exists() and not Path(args.meshes).is_dir():  # before anything is written
-        raise CliError(f"cannot write into --meshes {args.meshes}: it is a file, not a folder")
+    if args.meshes:  # before anything is written
+        check_writable(args.meshes, "--meshes", folder=True)
     scene, sub = load_checkpoint(args.checkpoint)
     z, cond = _latent_samples(sub, scene, args.n, args.seed)
     with torch.no_grad():

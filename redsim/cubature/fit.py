@@ -29,7 +29,7 @@ from torch import Tensor, nn
 
 from redsim.cubature.output import AffineOutput
 from redsim.effects.base import Effect, gather_elements
-from redsim.integrators import map_condition_dim
+from redsim.integrators import map_condition_dim, map_tensor
 from redsim.progress import progress_bar
 from redsim.scene import Scene
 from redsim.subspace import periodic_latents, sample_latents
@@ -145,7 +145,8 @@ def training_states(
 
     ``config.samples`` draws of z ~ N(0, I) (conditions uniform in their ranges), then every state of
     ``config.episodes`` latent rollouts of ``config.steps`` steps from the rest latent under loads redrawn
-    from N(0, load_scale^2 I) every ``config.hold`` steps (the scene's default condition).
+    from N(0, load_scale^2 I) every ``config.hold`` steps (the scene's default condition), in float64 for a float64
+    map and in float32 (the envs' default) otherwise.
     """
     from redsim.runtime import LatentStepper  # the runtime imports nothing of this package
 
@@ -158,7 +159,9 @@ def training_states(
     if not config.episodes or not scene.handles:
         return z, cond, dropped
     scale = default_load_scale(scene) if config.load_scale is None else config.load_scale
-    stepper = LatentStepper(scene, subspace, config.dt)
+    like = map_tensor(subspace)  # a float64 map's rollouts in float64 (float32 would not feel small loads)
+    dtype = torch.float64 if like is not None and like.dtype == torch.float64 else torch.float32
+    stepper = LatentStepper(scene, subspace, config.dt, dtype=dtype)
     B = int(config.episodes)
     segments = -(-int(config.steps) // int(config.hold))
     loads = scale * torch.randn(segments, B, len(scene.handles), scene.dim, generator=generator, dtype=torch.float32)

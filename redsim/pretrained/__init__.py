@@ -20,6 +20,7 @@ from torch import Tensor, nn
 
 from redsim import scenes
 from redsim.scene import Scene
+from redsim.subspace.checkpoint import beside_checkpoint
 
 FOLDER = Path(__file__).resolve().parent
 ENV_SCENES = tuple(scenes.names("env"))
@@ -28,7 +29,7 @@ ENV_SCENES = tuple(scenes.names("env"))
 
 def names() -> list[str]:
     """Scenes with a shipped subspace, sorted."""
-    return sorted(p.stem for p in FOLDER.glob("*.json") if not p.name.endswith((".cubature.json", ".rest.json")))
+    return sorted(p.stem for p in FOLDER.glob("*.json") if beside_checkpoint(p) is None)
 
 
 def rest_start(scene_name: str, fingerprint: str) -> Tensor | None:

@@ -53,6 +53,22 @@ def checkpoint_path(path: str | Path, suffix: str) -> Path:
     return stem.with_name(stem.name + suffix)
 
 
+BESIDE = {".cubature.json": "a cubature", ".rest.json": "a shipped map's rest start"}
+"""Files kept beside a checkpoint ``STEM.pt`` as ``STEM + suffix``, by suffix: what each is."""
+
+
+def beside_checkpoint(path: str | Path) -> str | None:
+    """Why ``path`` is not a checkpoint when it is a file of :data:`BESIDE` given in its place (naming the map it
+    belongs to where that exists), else None."""
+    name = Path(path).name
+    for suffix, what in BESIDE.items():
+        if name.endswith(suffix):
+            mapped = Path(path).with_name(name[: -len(suffix)] + ".pt")
+            where = f", {mapped}" if mapped.is_file() else " (a fit's STEM.pt)"
+            return f"{path} is {what}, not a checkpoint: give the subspace it belongs to{where}"
+    return None
+
+
 def write_atomically(path: Path, write: Callable[[Path], Any]) -> None:
     """Call ``write(tmp)`` on a temporary file beside ``path``, then move it onto ``path``: an interrupted write
     leaves the previous file whole (and no partial one under its name)."""

@@ -14,7 +14,7 @@ from torch import Tensor, nn
 from redsim.scene import Scene
 from redsim.subspace.anchored import AnchoredSubspace
 from redsim.subspace.autoencoder import AutoencoderSubspace
-from redsim.subspace.checkpoint import CheckpointError, check_scene, checkpoint_path, read_metadata
+from redsim.subspace.checkpoint import CheckpointError, beside_checkpoint, check_scene, checkpoint_path, read_metadata
 from redsim.subspace.linear import LinearSubspace, QuadraticSubspace
 from redsim.subspace.neural import SubspaceMap
 
@@ -49,6 +49,8 @@ def load_subspace(path: str | Path, scene: Scene | None = None, *, device: str |
         CheckpointError: missing or corrupt files, an unknown kind, or a scene whose name,
             fingerprint or n differ.
     """
+    if (why := beside_checkpoint(path)) is not None:
+        raise CheckpointError(why)
     weights = checkpoint_path(path, ".pt")
     if weights.name.endswith(".fit.pt") and not weights.with_suffix(".json").is_file():  # a fit's resumable state
         mapped = weights.with_name(weights.name[: -len(".fit.pt")] + ".pt")

@@ -107,9 +107,11 @@ def test_cli_refuses_bad_input(cli) -> None:
     code, _, err = cli("bench", "accuracy", "klann")
     assert code == 2 and "bench accuracy runs on" in err and "or a checkpoint (STEM.pt)" in err
     code, _, err = cli("bench", "accuracy", "mini_chain", "--steps", "5")
-    assert code == 2 and "--steps >= 10" in err
+    assert code == 2 and "--steps must be >= 10, got 5" in err
     code, _, err = cli("bench", "accuracy", "mini_chain", "--full", "dt3")
-    assert code == 2 and "dt3" in err
+    assert code == 2 and "--full must be from" in err and "(or none); got dt3" in err, err
+    code, _, err = cli("bench", "accuracy", "mini_chain", "--scenarios", "push,pull")
+    assert code == 2 and "--scenarios must be from push, actions; got pull" in err, err
 
 
 @pytest.mark.filterwarnings("ignore:torch.float32 at dt")  # the toy cloth's loads are below float32's resolution
@@ -162,7 +164,7 @@ def test_handle_and_max_force_on_a_catalog_scene_change_only_what_is_given(
     monkeypatch.chdir(tmp_path)
     (tmp_path / "mini_chain").write_text("a file named like the scene")  # the catalog name wins
     code, _, err = cli("bench", "accuracy", "mini_chain", "--steps", "5")
-    assert code == 2 and "--steps >= 10" in err, err
+    assert code == 2 and "--steps must be >= 10, got 5" in err, err
     code, _, err = cli("bench", "accuracy", "mini_chain", "--max-force", "-1")
     assert code == 2 and "max_force must be finite and > 0" in err, err
 

@@ -745,3 +745,24 @@ def test_rollout_states_dropped_are_counted_with_their_reason(mini_chain) -> Non
         "diverged": 0,
         "out_of_range": 0,
     }
+
+
+def test_a_float64_maps_training_rollouts_run_in_float64() -> None:
+    """A float64 fit's rollouts ran in the stepper's float32, which could not feel the small cloth's loads (and
+    said so, advising a dtype that ``redsim cubature`` cannot take); they run in the map's dtype now."""
+    import copy
+    import warnings
+
+    from redsim.cubature.fit import training_states
+    from redsim.trainers import FitConfig, fit_subspace
+
+    scene = scenes.build("toy_small_cloth")
+    config = FitConfig(latent_dim=3, steps=20, hidden_width=16, hidden_layers=2, dtype="float64")
+    f = fit_subspace(scene, config, progress=False).subspace
+    rollouts = CubatureConfig(samples=4, episodes=1, steps=3)
+    with pytest.warns(UserWarning, match="float32 at dt=0.02 s resolves accelerations only to"):
+        training_states(scene, copy.deepcopy(f).float(), rollouts)  # what a float32 stepper makes of this scene
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")
+        z, _, dropped = training_states(scene, f, rollouts)
+    assert z.dtype == torch.float64 and z.shape == (4 + 3, 3) and dropped == {"diverged": 0, "out_of_range": 0}

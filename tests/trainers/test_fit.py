@@ -157,6 +157,10 @@ def test_fixed_seed_reproduces_and_resume_continues_the_same_run(tmp_path) -> No
     with pytest.raises(CheckpointError, match=r"training state, not a subspace checkpoint: the fitted map is .*c\.pt"):
         load_subspace(tmp_path / "c.fit.pt", scene)
     assert torch.equal(resumed.subspace(z), straight.subspace(z))
+    for beside, what in ((".cubature.json", "a cubature"), (".rest.json", "a shipped map's rest start")):
+        (tmp_path / f"c{beside}").write_text("{}")  # said "c.cubature.pt: the weights file is missing"
+        with pytest.raises(CheckpointError, match=rf"c{beside} is {what}, not a checkpoint: .* it belongs to, .*c\.pt"):
+            load_subspace(tmp_path / f"c{beside}", scene)
 
 
 def test_a_ctrl_c_inside_a_step_stops_after_it_and_the_resume_is_the_same_run(tmp_path) -> None:
