@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import json
 import re
+from pathlib import Path
 
 import numpy as np
 import pytest
@@ -70,7 +71,14 @@ def test_inspect_prints_metadata(capsys: pytest.CaptureFixture[str], fitted: str
     doc = json.loads(out)
     assert doc["latent_dim"] == 2 and doc["n"] == 36 and "final" in doc
     code, out, _ = run(capsys, "inspect", fitted)
-    assert code == 0 and "reproduce: redsim fit" in out
+    assert code == 0 and "reproduce: redsim fit" in out and "conditions:" not in out and "anchor map" not in out
+    stem = str(Path(fitted).parent / "anchored")
+    fit = ("fit", "toy_two_tets", "--steps", "4", "--width", "8", "--layers", "1", "--dim", "2", "--anchor-map", "md")
+    assert run(capsys, *fit, "--out", stem)[0] == 0
+    code, out, _ = run(capsys, "inspect", stem + ".pt")
+    assert code == 0 and "  anchor map: --anchor-map md --anchor-map-cond default\n" in out, out
+    code, out, _ = run(capsys, "inspect", str(pretrained.path("conditional_bar")))  # what f(z, c) takes, in order
+    assert code == 0 and "  conditions: stiffness_ratio in [0.2, 5.0], pin_location in [0.3, 1.0]\n" in out, out
 
 
 def test_sample_exports_states(capsys: pytest.CaptureFixture[str], fitted: str, tmp_path) -> None:

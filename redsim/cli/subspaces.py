@@ -277,6 +277,12 @@ def cmd_inspect(args: argparse.Namespace) -> int:
         f"  fit: sigma={fit.get('sigma')} lam={fit.get('lam')} steps={fit.get('steps')} seed={meta.get('seed')} "
         f"width={fit.get('hidden_width')} layers={fit.get('hidden_layers')} in {took}"
     )
+    conditions = meta.get("conditions") if isinstance(meta.get("conditions"), list) else []
+    if conditions:  # a conditional map: what f(z, c) takes, in its input order
+        shown = [f"{c.get('name')} in [{c.get('low')}, {c.get('high')}]" for c in conditions if isinstance(c, dict)]
+        out(f"  conditions: {', '.join(shown)}")
+    if fit.get("anchor_map", "none") != "none":
+        out(f"  anchor map: --anchor-map {fit.get('anchor_map')} --anchor-map-cond {fit.get('anchor_map_cond')}")
     final = meta.get("final") if isinstance(meta.get("final"), dict) else {}
     for key, value in final.items():
         out(f"  final {key}: {value:.5g}" if isinstance(value, int | float) else f"  final {key}: {value!r}")
