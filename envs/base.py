@@ -603,7 +603,10 @@ class LatentSim:
         out = {}
         for key, value in chosen.items():
             try:
-                array = np.asarray(value, dtype=np.float64)
+                array = np.asarray(value)  # numbers only: NumPy would read "5" as 5.0 and True as 1.0
+                if array.dtype.kind not in "iuf":
+                    raise TypeError
+                array = array.astype(np.float64)
             except (TypeError, ValueError):
                 raise ValueError(f"options[{key!r}] must be a number array, got {value!r:.80}") from None
             if not np.isfinite(array).all():

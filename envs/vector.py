@@ -108,6 +108,7 @@ class LatentVectorEnv(SharedCopies, VectorEnv):
         The seed of every copy being reset is checked (Gymnasium's rule: an int >= 0, else
         ``gymnasium.error.Error``; the others' are not used) before any copy's generator is replaced, so a refused
         seed changes nothing."""
+        self._check_open()
         given = reset_mask(options, self.num_envs)
         chosen = self.sim.episode_options(options, vector=True)
         mask = np.ones(self.num_envs, dtype=bool) if given is None else given
@@ -128,6 +129,7 @@ class LatentVectorEnv(SharedCopies, VectorEnv):
     @on_env_threads
     def step(self, actions: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray, dict[str, Any]]:
         """Step every copy with actions [N, A] in one batched simulation step (module doc for autoreset)."""
+        self._check_open()
         check_started(self._unreset)
         mode = self.metadata["autoreset_mode"]
         if mode == AutoresetMode.DISABLED and self._autoreset.any():
@@ -279,6 +281,11 @@ class LatentVectorEnv(SharedCopies, VectorEnv):
 
     def close_extras(self, **kwargs: Any) -> None:
         self.template.close()
+
+    def _check_open(self) -> None:
+        """Refuse a call after :meth:`close`, as the sharded env does (a closed env stepped on as if open)."""
+        if self.closed:
+            raise RuntimeError("this LatentVectorEnv is closed")
 
 
 def check_latent_env(env: Any) -> None:

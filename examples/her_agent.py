@@ -68,7 +68,10 @@ def episodes_ended(env_id: str, steps: int, env_kwargs: dict[str, Any], num_envs
     episode = env_kwargs.get("max_episode_steps", gym.spec(env_id).max_episode_steps)
     ended = num_envs * (episode + 1)
     if steps <= ended:
-        raise ValueError(f"{steps} steps end no episode of all {num_envs} copies (HER needs {ended + 1} or more)")
+        raise ValueError(
+            f"{steps} steps are not enough: learning starts once every one of the {num_envs} copies has ended an "
+            f"episode, at {ended} steps (HER needs {ended + 1} or more)"
+        )
     return ended
 
 

@@ -1283,8 +1283,8 @@ def _her_settings(
     at least the transitions until every copy has ended an episode (HER samples only then).
 
     Raises:
-        ValueError: PPO, ``shards`` > 1, an env without an episode limit, or ``steps`` that end no episode of every
-            copy.
+        ValueError: PPO, ``shards`` > 1, an env without an episode limit, or ``steps`` that do not go past the
+            start of learning (copies x (episode + 1) steps: an ended episode of every copy).
     """
     from stable_baselines3 import HerReplayBuffer
 
@@ -1300,9 +1300,9 @@ def _her_settings(
     ended = copies * (episode + 1)
     if steps <= ended:
         raise ValueError(
-            f"her: {steps} steps end no episode of some of the {copies} copies ({episode}-step episodes: {ended + 1} "
-            "steps or more end one of each, as HER's relabelling needs); give more steps, or fewer copies or shorter "
-            "episodes (--steps, --n-envs, --episode-steps)"
+            f"her: {steps} steps are not enough: HER's relabelling needs an ended episode of every copy, so learning "
+            f"starts at {ended} steps ({copies} copies x ({episode}-step episodes + 1)) and the run must go past it: "
+            f"give {ended + 1} or more, or fewer copies or shorter episodes (--steps, --n-envs, --episode-steps)"
         )
     settings["replay_buffer_class"] = HerReplayBuffer
     settings["replay_buffer_kwargs"] = {

@@ -39,6 +39,8 @@ def test_a_chosen_target_is_the_episode_target_and_leaves_the_random_stream_alon
         ({"target": [1.0, 2.0]}, r"options\['target'\] must have shape \[3\], got \[2\]"),
         ({"target": [np.nan, 0.0, 0.0]}, r"options\['target'\] must be finite"),
         ({"target": "up"}, r"options\['target'\] must be a number array"),
+        ({"target": ["1", "0", "0"]}, r"options\['target'\] must be a number array"),  # NumPy reads them as numbers
+        ({"target": [True, False, False]}, r"options\['target'\] must be a number array"),
         ({"target": [1e30, 0.0, 0.0]}, r"options\['target'\] must lie within the observation bound"),
         ({"target": [10.0, 0.2, 0.0]}, r"got \[10\.0, 0\.2, 0\.0\]$"),  # float32 as given, not 0.2000000029
         ({"reset_mask": np.ones(1, bool)}, r"unknown reset option"),  # a vector env's option

@@ -440,3 +440,15 @@ def test_render_before_every_copy_was_reset_is_refused_as_sync(shards: int) -> N
         assert len(venv.render()) == 2
     finally:
         venv.close()
+
+
+def test_a_closed_native_vector_env_refuses_to_step_or_reset_as_the_sharded_one_does() -> None:
+    """Closed, it went on stepping as if open (the sharded env raises: test_sharded.py)."""
+    venv = gym.make_vec(ID, num_envs=2, vectorization_mode="vector_entry_point")
+    venv.reset(seed=0)
+    venv.close()
+    with pytest.raises(RuntimeError, match="this LatentVectorEnv is closed"):
+        venv.step(np.zeros((2, 3), np.float32))
+    with pytest.raises(RuntimeError, match="this LatentVectorEnv is closed"):
+        venv.reset(seed=0)
+    venv.close()  # closing again stays harmless

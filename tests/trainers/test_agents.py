@@ -639,7 +639,7 @@ def test_her_settings_it_cannot_train_are_clear_cli_errors(
     for extra, message in (
         (["--algo", "ppo"], "off-policy"),
         (["--shards", "2"], "native vector env in one process (shards=1, no --shards), got shards=2"),
-        (["--steps", "50"], "end no episode"),
+        (["--steps", "50"], "50 steps are not enough: HER's relabelling needs an ended episode of every copy"),
     ):
         code, _, err = cli("train-agent", MINI, "--her", "--out", str(tmp_path / "x"), *TINY, *extra)
         assert code == 2 and message in err, (extra, err)
