@@ -241,8 +241,8 @@ def test_the_shipped_policies_load_and_the_mini_chain_one_beats_random() -> None
         record = json.loads(path.with_suffix(".json").read_text())
         assert record["command"].startswith(f"redsim train-agent {env_id} ")
     agent = load_agent(shipped_policy(MINI), MINI)
-    mine = evaluate(MINI, agent, episodes=2, seed=0)
-    random = evaluate(MINI, "random", episodes=2, seed=0)
+    mine = evaluate(MINI, agent, episodes=1, seed=0)  # one whole 200-step episode each (~3 s)
+    random = evaluate(MINI, "random", episodes=1, seed=0)
     assert mine.mean > random.mean + 300.0 and mine.success_rate == 1.0
     with pytest.raises(KeyError, match=r"no shipped policy for 'RedSim/Nope-v0'; shipped: .*MiniChain"):
         shipped_policy("RedSim/Nope-v0")
@@ -392,11 +392,14 @@ def test_eval_agent_takes_a_plain_sb3_model_with_its_algorithm(
     venv.save(str(tmp_path / "mine_vecnormalize.pkl"))
     agent = load_agent(tmp_path / "mine.zip", MINI, algo="ppo")
     assert agent.normalizer is not None and agent.num_timesteps == 16
-    code, out, _ = cli("eval-agent", str(tmp_path / "mine.zip"), MINI, "--algo", "ppo", "--episodes", "2", "--json")
+    short = ("--episode-steps", "20")  # what is checked is how the model loads, not how long its episodes run
+    code, out, _ = cli(
+        "eval-agent", str(tmp_path / "mine.zip"), MINI, "--algo", "ppo", "--episodes", "2", *short, "--json"
+    )
     assert code == 0 and json.loads(out)["agent"]["episodes"] == 2
     assert json.loads(out)["normalization"] == str(tmp_path / "mine_vecnormalize.pkl")
     (tmp_path / "mine_vecnormalize.pkl").rename(tmp_path / "elsewhere.pkl")  # a plain model's file is optional
-    code, out, _ = cli("eval-agent", str(tmp_path / "mine.zip"), MINI, "--algo", "ppo", "--episodes", "2")
+    code, out, _ = cli("eval-agent", str(tmp_path / "mine.zip"), MINI, "--algo", "ppo", "--episodes", "2", *short)
     assert code == 0 and "(raw observations):" in out.splitlines()[0]
     (tmp_path / "elsewhere.pkl").rename(tmp_path / "mine_vecnormalize.pkl")
     code, _, err = cli("eval-agent", str(_foreign_model(tmp_path)), MINI, "--algo", "sac", "--episodes", "2")
