@@ -155,6 +155,11 @@ def cmd_train_agent(args: argparse.Namespace) -> int:
             f"{args.env_id}: the {args.algo.upper()}{replay} run in {args.out} is already at {result.steps} env steps "
             f"(--steps {args.steps}): nothing trained, its final evaluation and files made again"
         )
+    elif result.trained < result.steps:  # a resumed run: this call's steps, then the run's
+        out(
+            f"{args.env_id}: {args.algo.upper()}{replay} trained {result.trained} env steps more "
+            f"(the run: {result.steps} env steps in {result.wall_s:.0f} s)"
+        )
     else:
         out(f"{args.env_id}: {args.algo.upper()}{replay} trained {result.steps} env steps in {result.wall_s:.0f} s")
     out(_line("agent", final))

@@ -159,6 +159,7 @@ def test_train_resume_and_evaluate_through_the_cli(
     assert code == 2 and (out / "best_model.zip").is_file() and (out / "agent.json").is_file()
     code, stdout, err = cli(*again, "--env-arg", "max_force=3.0", "--resume", "--no-video")
     assert code == 0, err
+    assert "trained 100 env steps more (the run: 300 env steps in" in stdout  # this call's steps, then the run's
     assert load_agent(out / "model.zip", MINI).num_timesteps == 300
     with (out / "progress-from-200.csv").open() as handle:
         assert float(list(csv.DictReader(handle))[-1]["time/total_timesteps"]) > 200
