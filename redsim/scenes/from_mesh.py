@@ -37,6 +37,8 @@ if TYPE_CHECKING:  # imported where used: import redsim needs none of trimesh (s
     import trimesh
 
 LARGE_MESH_M = 10.0  # a mesh spanning more [m] is warned about: likely a file in millimetres or centimetres
+SMALL_MESH_M = 1e-3  # a mesh spanning less [m] is warned about: likely a file in kilometres, or a wrong scale
+INFLATED_SOLID = 2.0  # a voxel solid of more than this many times its mesh's volume is warned about
 MAX_VOXELS = 200_000_000  # cells of the voxel grid over the bounding box; more is refused (minutes and GBs)
 
 
@@ -80,7 +82,35 @@ def _scaled(mesh: trimesh.Trimesh, scale: float, source: str) -> trimesh.Trimesh
             UserWarning,
             stacklevel=3,
         )
+    elif 0.0 < span < SMALL_MESH_M:
+        warnings.warn(
+            f"mesh {source!r} spans {span:.4g} m, less than a millimetre: redsim reads a mesh's coordinates in "
+            "metres; give scale= to convert them (on the command line --param scale=...)",
+            UserWarning,
+            stacklevel=3,
+        )
     return mesh
+
+
+def _volume(mesh: trimesh.Trimesh) -> float:
+    """The mesh's enclosed volume [m^3], 0 for a flat one (trimesh's centre of mass divides by it)."""
+    with np.errstate(divide="ignore", invalid="ignore"):
+        return abs(float(mesh.volume))
+
+
+def _warn_if_inflated(mesh: trimesh.Trimesh, tets: np.ndarray, pitch: float, source: str, chosen: bool) -> None:
+    """Warn where the voxel solid (``tets`` [T, 4], six per voxel of side ``pitch`` [m]) holds more than
+    :data:`INFLATED_SOLID` times the mesh's volume: its mass, and every load scaled by it, grow the same."""
+    ratio = tets.shape[0] / 6 * pitch**3 / _volume(mesh)
+    if ratio > INFLATED_SOLID:
+        fix = "more target_dofs, or a voxel_pitch" if chosen else "a voxel_pitch"
+        warnings.warn(
+            f"the voxel solid of mesh {source!r} at pitch {pitch:.3g} m has {ratio:.1f}x the mesh's volume (and "
+            f"mass): every voxel the surface passes through is kept, so parts thinner than a few voxels grow; "
+            f"give {fix} well below the mesh's thinnest part",
+            UserWarning,
+            stacklevel=3,
+        )
 
 
 def _weld(mesh: trimesh.Trimesh) -> None:
@@ -116,10 +146,10 @@ def _check_pins(pin: PinSpec, pinned: np.ndarray, vertices: np.ndarray, elements
         raise ValueError("pin selects every vertex; nothing would move")
     if not gravity:
         return
-    shown = pin if pin is None or isinstance(pin, str) else type(pin).__name__
+    shown = _shown(pin)
     if pinned.size == 0:
         raise ValueError(
-            f"pin {shown!r} selects no vertex: under gravity the body free-falls and its energy has no minimum; "
+            f"pin {shown} selects no vertex: under gravity the body free-falls and its energy has no minimum; "
             "pin some vertices (e.g. pin='max_y') or give gravity=False"
         )
     import scipy.sparse
@@ -132,7 +162,7 @@ def _check_pins(pin: PinSpec, pinned: np.ndarray, vertices: np.ndarray, elements
     if loose.size:
         first = int(np.nonzero(label == loose[0])[0][0])
         raise ValueError(
-            f"{loose.size} of the mesh's {pieces} separate pieces hold no pinned vertex (pin {shown!r}), e.g. the "
+            f"{loose.size} of the mesh's {pieces} separate pieces hold no pinned vertex (pin {shown}), e.g. the "
             f"one with vertex {first} at {np.round(vertices[first], 6).tolist()}: under gravity it free-falls; pin "
             "it too, remove it, or give gravity=False"
         )
@@ -155,6 +185,18 @@ def _handles_param(labels: dict[str, str]) -> dict[str, dict[str, str]]:
     """``{"handles": labels}``, or nothing without extra handles (the fingerprints of scenes made before the option
     stay their own)."""
     return {"handles": labels} if labels else {}
+
+
+def _shown(spec: PinSpec) -> str:
+    """A vertex selection as an error message names it: a name quoted, a short list or mask as written, a long one
+    by its kind and length, a callable by its name."""
+    if callable(spec):
+        return getattr(spec, "__name__", type(spec).__name__)
+    if spec is None or isinstance(spec, str):
+        return repr(spec)
+    values = np.asarray(spec).tolist()
+    text = repr(values)
+    return text if len(text) <= 40 else f"{type(spec).__name__} of {len(values)} entries"
 
 
 def _pin_label(spec: PinSpec, pinned: np.ndarray) -> str:
@@ -186,11 +228,13 @@ def _add_handles(
     for name in sorted(handles):
         spec = handles[name]
         chosen = select(spec, what=f"handle {name!r} selection")
-        label = _pin_label(spec, chosen)
         if chosen.size == 0:
-            raise ValueError(f"handle {name!r} ({label}) selects no vertex")
+            raise ValueError(f"handle {name!r} ({_shown(spec)}) selects no vertex")
         if np.isin(chosen, pinned).all():
-            raise ValueError(f"handle {name!r} ({label}) selects only pinned vertices: a load on it would move nothing")
+            raise ValueError(
+                f"handle {name!r} ({_shown(spec)}) selects only pinned vertices: a load on it would move nothing"
+            )
+        label = _pin_label(spec, chosen)
         b.add_handle(name, b.particle_points(ids[torch.as_tensor(chosen)]), torch.as_tensor(masses[chosen]))
         labels[name] = label
     return labels
@@ -216,8 +260,8 @@ def fem_scene_from_mesh(
     The mesh is voxelized (trimesh ``voxelized(pitch).fill()``) and each voxel split into six conforming
     Kuhn tets. Every voxel the surface passes through is kept, so the solid is larger than the mesh by up to
     about a voxel on each side (a 0.2 x 0.04 x 0.04 m bar at pitch 0.01 m: 0.21 x 0.05 x 0.05 m, 60% more
-    mass): choose a pitch well below the mesh's thinnest part. Coordinates stay those of the mesh; gravity
-    pulls along -y.
+    mass): choose a pitch well below the mesh's thinnest part (a solid of more than :data:`INFLATED_SOLID` times the
+    mesh's volume is warned about). Coordinates stay those of the mesh; gravity pulls along -y.
 
     Args:
         mesh_or_path: A ``trimesh.Trimesh`` or a mesh file path [m].
@@ -231,7 +275,7 @@ def fem_scene_from_mesh(
             vertices, each pinning the solid's vertex nearest it.
         gravity: Add gravity (9.81 m/s^2 along -y).
         scale: Multiplies the mesh's coordinates (1e-3 for a file in millimetres); a mesh spanning more than
-            :data:`LARGE_MESH_M` metres after it is warned about.
+            :data:`LARGE_MESH_M` or less than :data:`SMALL_MESH_M` metres after it is warned about.
         handles: More handles, name -> a vertex selection as ``pin`` takes (e.g. ``{"tip": "max_x"}``): each at
             the mass-weighted centre of its vertices, after "body" in name order (a load there spreads over them
             by mass).
@@ -243,8 +287,8 @@ def fem_scene_from_mesh(
 
     Raises:
         FileNotFoundError: for a missing file.
-        ValueError: for an unreadable or non-watertight mesh, non-finite vertices, a bad parameter, or pins that
-            select every vertex (or none, under gravity).
+        ValueError: for an unreadable, non-watertight or flat mesh, non-finite vertices, a bad parameter, or pins
+            that select every vertex (or none, under gravity).
     """
     young = check_positive("young", young)
     poisson = check_poisson(poisson)
@@ -258,8 +302,12 @@ def fem_scene_from_mesh(
     # zero-area and repeated faces (an exporter's) close nothing and open nothing: dropped, as the cloth does
     mesh.update_faces(mesh.nondegenerate_faces() & mesh.unique_faces())
     mesh.remove_unreferenced_vertices()
+    if len(mesh.faces) == 0:
+        raise ValueError(f"every face of mesh {source!r} has zero area: it encloses no volume")
     if not mesh.is_watertight:
         raise ValueError(f"mesh {source!r} is not watertight; a solid needs a closed surface")
+    if _volume(mesh) <= 1e-9 * float(np.prod(np.maximum(mesh.extents, 1e-300))):
+        raise ValueError(f"mesh {source!r} is closed but encloses no volume (its faces are flat)")
     if voxel_pitch is None:
         target = check_int("target_dofs", target_dofs, 24)
         try:
@@ -278,6 +326,7 @@ def fem_scene_from_mesh(
             f"{given} voxelizes this mesh ({size} m) into a single voxel (pitch {pitch:.3g} m, as large as the mesh):"
             f" no solid to simulate; choose {fix}"
         )
+    _warn_if_inflated(mesh, tets, pitch, source, chosen=voxel_pitch is None)
     pinned = _pinned(given, vertices, pin, tolerance=0.25 * pitch, nearest=True)
     _check_pins(pin, pinned, vertices, tets, gravity)
     b = SceneBuilder(dim=3)
@@ -340,7 +389,7 @@ def cloth_scene_from_mesh(
             the bounding-box diagonal).
         gravity: Add gravity (9.81 m/s^2 along -y).
         scale: Multiplies the mesh's coordinates (1e-3 for a file in millimetres); a mesh spanning more than
-            :data:`LARGE_MESH_M` metres after it is warned about.
+            :data:`LARGE_MESH_M` or less than :data:`SMALL_MESH_M` metres after it is warned about.
         handles: More handles, name -> a vertex selection as ``pin`` takes (e.g. ``{"corner": [12]}``): each at
             the mass-weighted centre of its vertices, after "cloth" in name order.
         name: Scene name.

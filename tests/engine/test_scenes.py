@@ -341,8 +341,8 @@ def test_a_cloth_mesh_that_is_not_a_manifold_or_not_finite_or_not_held_is_refuse
     broken[5, 0] = np.nan
     with pytest.raises(ValueError, match="non-finite vertex coordinates"):
         build(trimesh.Trimesh(broken, triangles, process=False))
-    for pin in (None, [], lambda v: v[:, 1] > 10.0):
-        with pytest.raises(ValueError, match="selects no vertex: under gravity"):
+    for pin, shown in ((None, "None"), ([], r"\[\]"), (lambda v: v[:, 1] > 10.0, "<lambda>")):
+        with pytest.raises(ValueError, match=f"pin {shown} selects no vertex: under gravity"):
             build(trimesh.Trimesh(vertices, triangles), pin=pin)
     assert build(trimesh.Trimesh(vertices, triangles), pin=None, gravity=False).free_dof_count == 3 * len(vertices)
     above = np.array([[0.0, 1.0, 0.0], [0.1, 1.0, 0.0], [0.0, 1.1, 0.0]])  # a loose triangle takes the max_y pin
@@ -482,6 +482,7 @@ def test_mesh_scenes_take_more_handles_by_vertex_selection(tmp_path) -> None:
         ({"body": "max_x"}, "other than 'body'"),
         ({"end": "min_x"}, "selects only pinned vertices"),
         ({"end": "none"}, "selects no vertex"),
+        ({"end": []}, r"handle 'end' \(\[\]\) selects no vertex"),  # the value, not a hash of what it selects
         ({"end": "max_q"}, "unknown handle 'end' selection 'max_q'"),
         ({"end": np.zeros(5, dtype=bool)}, r"handle 'end' selection mask must have shape \["),
         (["max_x"], "handles must be a dict"),
@@ -525,6 +526,26 @@ def test_a_mesh_in_millimetres_is_warned_about_and_scale_reads_it_in_metres(tmp_
     assert solid.params["voxel_pitch"] == 0.05 and float(solid.q_seed.abs().max()) < 0.2  # voxels overhang a little
     with pytest.raises(ValueError, match="scale must be > 0"):
         redsim.scenes.cloth_scene_from_mesh(metres, scale=0.0)
+
+
+def test_a_solid_voxelized_far_larger_than_its_mesh_and_a_sub_millimetre_or_flat_mesh_are_named() -> None:
+    """A rod 4 cm thick voxelized at 2 cm becomes a solid of ~3x its volume and mass (a review's case, silent
+    before): a warning gives the ratio and asks for a finer pitch; the README's bar at 1 cm (1.6x) is not warned
+    about. A mesh under a millimetre is warned about as one over 10 m is; a closed mesh with no volume is refused
+    as that, not as "not watertight"."""
+    import warnings
+
+    rod = trimesh.creation.cylinder(radius=0.02, height=0.3, sections=20)
+    with pytest.warns(UserWarning, match=r"at pitch 0.02 m has 3.\dx the mesh's volume .* give a voxel_pitch"):
+        redsim.scenes.fem_scene_from_mesh(rod, voxel_pitch=0.02, gravity=False)
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")
+        redsim.scenes.fem_scene_from_mesh(trimesh.creation.box(extents=(0.2, 0.04, 0.04)), voxel_pitch=0.01)
+    with pytest.warns(UserWarning, match="less than a millimetre: .* give scale="):
+        redsim.scenes.fem_scene_from_mesh(trimesh.creation.box(extents=(5e-4, 5e-4, 5e-4)), voxel_pitch=1e-4)
+    flat = trimesh.Trimesh([[0, 0, 0], [1, 0, 0], [0, 1, 0], [1, 1, 0]], [[0, 1, 2], [0, 2, 3], [0, 3, 1], [1, 3, 2]])
+    with pytest.raises(ValueError, match="closed but encloses no volume"):
+        redsim.scenes.fem_scene_from_mesh(flat, voxel_pitch=0.1)
 
 
 def test_a_copied_mesh_file_is_the_same_scene_and_old_fingerprints_still_load(tmp_path) -> None:
