@@ -482,6 +482,10 @@ def test_a_fit_whose_sigma_is_far_too_large_for_its_scene_is_warned_about(cli: C
     assert "mean metric stretch" in err and f"try --sigma near {1000 * stretch:.2g}, " in err and "--seed-bias" in err
     code, out, err = cli(*argv, "--sigma", "0.05", "--out", str(tmp_path / "near"))
     assert code == 0 and json.loads(out)["final"]["stretch"] > 0.5 and err == ""
+    # the Python fit warns too (a review's fit_subspace ended at stretch 0.035 silently), naming FitConfig's fields
+    config = FitConfig(latent_dim=2, hidden_width=8, hidden_layers=1, steps=40, sigma=1000.0)
+    with pytest.warns(UserWarning, match=r"try sigma near .* seed_bias=True, raise lam, or exploration_fraction=0.5"):
+        redsim.trainers.fit_subspace(redsim.scenes.build("toy_two_tets"), config, progress=False)
 
 
 def test_a_fit_whose_loss_becomes_nan_exits_3_with_one_line(

@@ -143,7 +143,10 @@ def test_catmull_rom_loop_passes_through_keys_and_closes() -> None:
         (["fit", "toy_two_tets", "--sigma", "-1"], "sigma"),
         (["fit", "toy_two_tets", "--cond"], "no condition space"),
         (["fit", "toy_two_tets", "--resume", "--out", "no_such_dir/x"], "nothing to resume"),
-        (["fit", "toy_two_tets", "--steps", "4", "--stop-at", "4", "--out", "no_such_dir/x"], "stop_at must be <"),
+        (
+            ["fit", "toy_two_tets", "--steps", "4", "--stop-at", "4", "--out", "no_such_dir/x"],
+            "--stop-at must be >= 0 and < the fit's --steps (4), got 4",
+        ),
         (["fit", "toy_two_tets", "--drive", "10", "--out", "no_such_dir/x"], "declares no driver"),
         (["fit", "toy_crank", "--drive", "10", "--out", "no_such_dir/x"], "not periodic (periodic []; --periodic)"),
         (["fit", "toy_crank", "--soften", "rigid,nope", "--out", "no_such_dir/x"], "no effect(s) ['nope']"),

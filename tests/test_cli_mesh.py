@@ -70,6 +70,17 @@ def test_refit_from_the_recorded_command(fitted: Path, tmp_path: Path) -> None:
     assert json.loads((tmp_path / "again.json").read_text())["scene_fingerprint"] == meta["scene_fingerprint"]
 
 
+def test_a_mesh_fit_names_its_own_handle_in_the_accuracy_check_it_prints(cli: Cli, box: Path, tmp_path: Path) -> None:
+    """The bench pushes a checkpoint scene's first handle, the whole body's centre of mass, by default; the handle a
+    user added (the one an env of it pushes) is the one to check, so the printed command names it."""
+    handles = ["--param", 'handles={"tip": "max_y", "side": "max_x"}']
+    argv = ["fit", "--mesh", str(box), *MESH_ARGS, *handles, "--steps", "2", "--dim", "2", "--width", "8"]
+    code, out, err = cli(*argv, "--layers", "1", "--out", str(tmp_path / "h"))
+    assert code == 0, err
+    assert f"redsim bench accuracy {tmp_path / 'h.pt'} --handle side --scenarios push --full none" in out
+    assert "--no-study (or --handle tip)" in out
+
+
 def test_simulate_a_mesh_and_a_cloth(cli: Cli, box: Path, tmp_path: Path) -> None:
     code, out, err = cli("simulate", "--mesh", str(box), *MESH_ARGS, "--steps", "1", "--json")
     assert code == 0, err

@@ -46,6 +46,7 @@ import pickle
 import re
 import shutil
 import time
+import warnings
 import zipfile
 from collections.abc import Callable, Mapping
 from dataclasses import dataclass
@@ -337,6 +338,32 @@ def _env_label(env: str | gym.Env) -> str:
     return f"custom:{_base_env(env)[0].sim.scene.name}"
 
 
+def _label_scene(label: str) -> str | None:
+    """The scene name behind an env label of :func:`_env_label` (None: an id whose env class names none)."""
+    if label.startswith("custom:"):
+        return label.removeprefix("custom:")
+    from gymnasium.envs.registration import load_env_creator
+
+    return getattr(load_env_creator(gym.spec(label).entry_point), "scene_name", None)
+
+
+def _warn_if_other_env(trained_on: str | None, env: str | gym.Env) -> None:
+    """Warn where a model recorded as trained on ``trained_on`` (an :func:`_env_label`) is run on another env: its
+    spaces may match (HangingCloth-v1 and v2, a user's scene and a shipped one of the same sizes) while its task does
+    not. A user's env of a registered id's scene counts as that id (training on it records ``custom:SCENE``)."""
+    label = _env_label(env)
+    if trained_on is None or trained_on == label:
+        return
+    if "custom:" in (trained_on[:7], label[:7]) and _label_scene(trained_on) == _label_scene(label):
+        return
+    warnings.warn(
+        f"this model was trained on {trained_on}, and is evaluated on {label} (load_agent(path, env_id=...) refuses "
+        "another env; eval-agent does too)",
+        UserWarning,
+        stacklevel=3,
+    )
+
+
 # -- evaluation -------------------------------------------------------------------------------
 @dataclass(frozen=True)
 class Evaluation:
@@ -496,6 +523,7 @@ def evaluate(
     try:
         if not isinstance(policy, str):
             _check_spaces(policy, venv)
+            _warn_if_other_env(getattr(policy, "env_id", None), env)
         if venv.max_episode_steps is None:
             raise ValueError("evaluation needs an env with an episode limit (max_episode_steps)")
     except ValueError:
@@ -667,11 +695,14 @@ class Agent:
             inputs (None: the model takes raw observations).
         goal: A goal-conditioned (HER) model's observation blocks: the flat observations it is given are split
             into its dict observation first (:class:`redsim.envs.goal.GoalSplit`); None: the model takes them flat.
+        env_id: The env the model records it was trained on (an id, or ``custom:SCENE`` for a user's env; None:
+            not recorded): :func:`evaluate` warns on another.
     """
 
     model: Any
     normalizer: Any = None
     goal: Mapping[str, int] | None = None
+    env_id: str | None = None
 
     @property
     def num_timesteps(self) -> int:
@@ -719,7 +750,8 @@ def load_agent(path: str | Path, env_id: str | None = None, algo: str | None = N
         model = _algo_class(record["algo"]).load(path, device="cpu", custom_objects=plain)
     except Exception as err:  # SB3 raises what the policy's constructor raises on another algorithm's parameters
         raise ValueError(f"{path} does not load as a {record['algo'].upper()} model: {err!r}") from err
-    return Agent(model, load_normalizer(normalizer_path(path)) if record["normalized"] else None, record["goal"])
+    normalizer = load_normalizer(normalizer_path(path)) if record["normalized"] else None
+    return Agent(model, normalizer, record["goal"], record["env_id"])
 
 
 def _dict_buffer() -> Any:

@@ -71,6 +71,7 @@ Speed options (:class:`FitConfig`): ``fused_adam`` (one fused Adam kernel per st
 
 from __future__ import annotations
 
+import contextlib
 import dataclasses
 import functools
 import logging
@@ -80,7 +81,7 @@ import os
 import shlex
 import time
 import warnings
-from collections.abc import Callable, Sequence
+from collections.abc import Callable, Iterator, Sequence
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any, NamedTuple
@@ -362,6 +363,35 @@ class FitStopped(Exception):
         super().__init__(f"stopped after step {step}; the training state is in {state}")
         self.step = step
         self.state = state
+
+
+LOW_STRETCH = 0.1  # a fit whose mean metric stretch ends below this is warned about (sigma too large, or collapsed)
+
+
+def low_stretch_warning(stretch: float, sigma: float, *, flags: bool = False) -> str | None:
+    """What to say of a fit whose mean metric ``stretch`` ended below :data:`LOW_STRETCH` at ``sigma`` (None:
+    nothing), naming the settings as FitConfig's fields or, with ``flags``, as ``redsim fit``'s options."""
+    if not stretch < LOW_STRETCH:
+        return None
+    name = {"sigma": "--sigma", "seed_bias": "--seed-bias", "lam": "--lam", "explore": "--explore 0.5"}
+    if not flags:
+        name = {"sigma": "sigma", "seed_bias": "seed_bias=True", "lam": "lam", "explore": "exploration_fraction=0.5"}
+    return (
+        f"the map spreads its samples {100 * stretch:.2g}% as far as sigma ({sigma:g}) asks (mean metric stretch "
+        f"{stretch:.3g}): its states sit near one configuration. Either sigma is large for this scene's energy (try "
+        f"{name['sigma']} near {sigma * stretch:.2g}, sigma times the stretch), or the map collapsed onto the seed "
+        f"against a stiff energy (start the output at the seed with {name['seed_bias']}, raise {name['lam']}, or "
+        f"{name['explore']}, as the stiff body's preset does: README 'Fitting a subspace')"
+    )
+
+
+@contextlib.contextmanager
+def quiet_low_stretch() -> Iterator[None]:
+    """Silence :func:`fit_subspace`'s low-stretch warning inside: for the benches' timing fits, and the CLI, which
+    says it in its own words."""
+    with warnings.catch_warnings():
+        warnings.filterwarnings("ignore", message="the map spreads its samples", category=UserWarning)
+        yield
 
 
 class FitResult(NamedTuple):
@@ -840,6 +870,8 @@ def fit_subspace(
     if out is not None:
         model.save(out)
         _remove_stale_cubature(out, model)
+    if (message := low_stretch_warning(model.metadata["final"]["stretch"], config.sigma)) is not None:
+        warnings.warn(message, UserWarning, stacklevel=2)
     return FitResult(model, history, fit_seconds)
 
 

@@ -84,7 +84,6 @@ FIT_FLAGS: tuple[tuple[str, str, Any, str], ...] = (
     ("--fused-adam", "fused_adam", bool, "fused Adam (--no-fused-adam: plain Adam)"),
     ("--compile", "compile", bool, "torch.compile the loss: faster steps after a compile of tens of seconds"),
 )
-LOW_STRETCH = 0.1  # a fit whose mean metric stretch ends below this is warned about (its sigma is too large)
 FIELD_FLAGS = {field: flag for flag, field, _kind, _help in FIT_FLAGS} | {
     "periodic": "--periodic",
     "conditional": "--cond",
@@ -179,7 +178,7 @@ def _check_stem(stem: Path, args: argparse.Namespace, scene: Scene | None = None
 
 def cmd_fit(args: argparse.Namespace) -> int:
     from redsim.trainers import fit_subspace
-    from redsim.trainers.fit import FitStopped, fit_command, planned_steps
+    from redsim.trainers.fit import FitStopped, fit_command, low_stretch_warning, planned_steps, quiet_low_stretch
 
     if args.resume and args.overwrite:
         raise CliError("give --resume (continue the fit at the stem) or --overwrite (replace it), not both")
@@ -191,19 +190,22 @@ def cmd_fit(args: argparse.Namespace) -> int:
     _check_stem(stem, args, scene)
     if args.resume and args.steps is None and (steps := planned_steps(stem)) is not None:
         config = dataclasses.replace(config, steps=steps)  # the fit's own length, not the preset's
+    if args.stop_at is not None and not 0 <= args.stop_at < config.steps:  # the steps done: fit_subspace's check
+        raise CliError(f"--stop-at must be >= 0 and < the fit's --steps ({config.steps}), got {args.stop_at}")
     command = fit_command(scene, config, args.seed, stem)
     try:
-        result = fit_subspace(
-            scene,
-            config,
-            seed=args.seed,
-            out=stem,
-            resume=args.resume,
-            overwrite=args.overwrite,
-            progress=not args.json,
-            command=command,
-            stop_at=args.stop_at,
-        )
+        with quiet_low_stretch():  # said below in one line, with the options' names
+            result = fit_subspace(
+                scene,
+                config,
+                seed=args.seed,
+                out=stem,
+                resume=args.resume,
+                overwrite=args.overwrite,
+                progress=not args.json,
+                command=command,
+                stop_at=args.stop_at,
+            )
     except FitStopped as stop:
         if args.json:
             json_out({"stopped_at": stop.step, "steps": config.steps, "training_state": str(stop.state)})
@@ -238,19 +240,16 @@ def cmd_fit(args: argparse.Namespace) -> int:
         )
         out(f"wrote {summary['checkpoint']} and {summary['metadata']}")
         if scene.handles:  # a short fit can leave a map too stiff to follow the loads; nothing above shows it
+            # a mesh scene's own handles come after its whole-body one, which the bench would push by default
+            own = scene.handle_names[1:] if "builder" in scene.params else ()
+            handle = f" --handle {own[0]}" if own else ""
+            others = f" (or --handle {' / '.join(own[1:])})" if len(own) > 1 else ""
             out(
-                f"before training on it, compare it with the full space: redsim bench accuracy {summary['checkpoint']} "
-                "--scenarios push --full none --no-study"
+                f"before training on it, compare it with the full space: redsim bench accuracy {summary['checkpoint']}"
+                f"{handle} --scenarios push --full none --no-study{others}"
             )
-    stretch = meta["final"]["stretch"]
-    if stretch < LOW_STRETCH:
-        warn(
-            f"the map spreads its samples {100 * stretch:.2g}% as far as sigma ({config.sigma:g}) asks (mean metric "
-            f"stretch {stretch:.3g}): its states sit near one configuration. Either sigma is large for this scene's "
-            f"energy (try --sigma near {config.sigma * stretch:.2g}, sigma times the stretch), or the map collapsed "
-            "onto the seed against a stiff energy (start the output at the seed with --seed-bias, raise --lam, or "
-            "--explore 0.5, as the stiff body's preset does: README 'Fitting a subspace')"
-        )
+    if (message := low_stretch_warning(meta["final"]["stretch"], config.sigma, flags=True)) is not None:
+        warn(message)
     return EXIT_OK
 
 

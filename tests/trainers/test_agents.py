@@ -249,6 +249,26 @@ def test_the_shipped_policies_load_and_the_mini_chain_one_beats_random() -> None
         shipped_policy("RedSim/Nope-v0")
 
 
+def test_evaluating_a_model_on_another_env_than_it_was_trained_on_is_warned_about() -> None:
+    """Spaces of the same shapes let a model of one env act on another (a review evaluated a user's scene's model on
+    MiniChain-v0 and got a return, silently): evaluate warns, naming both; a user's env of the same scene does not."""
+    import dataclasses
+    import warnings
+
+    from redsim.envs import make
+
+    agent = load_agent(shipped_policy(MINI), MINI)
+    assert agent.env_id == MINI
+    short = {"max_episode_steps": 2}
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")
+        evaluate(MINI, agent, episodes=1, env_kwargs=short)
+        evaluate(make("mini_chain", task="reach", task_options={"goal_handle": "bottom"}, **short), agent, episodes=1)
+    other = dataclasses.replace(agent, env_id="custom:my_rod")
+    with pytest.warns(UserWarning, match=r"trained on custom:my_rod, and is evaluated on RedSim/MiniChain-v0"):
+        evaluate(MINI, other, episodes=1, env_kwargs=short)
+
+
 @pytest.mark.parametrize("shards", [1, 2])
 def test_ppo_trains_a_few_hundred_steps(tmp_path: Path, shards: int) -> None:
     from redsim.trainers.agents import train_agent
