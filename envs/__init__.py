@@ -97,7 +97,8 @@ def make(
         max_episode_steps: Wrap in ``TimeLimit`` of this many steps (None or -1: no limit, no wrapper; -1 as
             ``gym.make`` and the vector envs read it). Registered as an entry point (``gym.register(id,
             entry_point="redsim.envs:make", kwargs={..., "max_episode_steps": None}, max_episode_steps=N)``), give
-            None here: Gymnasium's own ``TimeLimit`` then holds the limit, not this one's 200 inside it.
+            None here: Gymnasium's own ``TimeLimit`` then holds the limit, not this one's 200 inside it (with
+            :func:`make_vec` as the vector entry point, keep the length in ``kwargs`` instead: its docstring).
         **kwargs: :class:`redsim.envs.base.LatentEnv` arguments, plus ``task_options`` (dict).
 
     Raises:
@@ -111,6 +112,56 @@ def make(
     return build(scene, subspace, task, max_episode_steps=max_episode_steps, **kwargs)
 
 
+def make_vec(
+    scene: Any,
+    subspace: Any = None,
+    task: Any = "reach",
+    *,
+    num_envs: int = 1,
+    max_episode_steps: int | None = 200,
+    autoreset_mode: Any = None,
+    shards: int = 1,
+    **kwargs: Any,
+) -> Any:
+    """``num_envs`` copies of ``make(scene, subspace, task, **kwargs)`` stepped in one batched solve: a
+    :class:`redsim.envs.vector.LatentVectorEnv`, or with ``shards`` P > 1 a
+    :class:`redsim.envs.sharded.ShardedVectorEnv` of P worker processes (as a registered id's vector env).
+
+    It is the ``vector_entry_point`` of a user's own id: register both entry points with the episode length in
+    ``kwargs``, where both read it (``gym.register("MyRod-v0", entry_point="redsim.envs:make",
+    vector_entry_point="redsim.envs:make_vec", kwargs={"scene": scene, "subspace": "subspaces/part.pt",
+    "max_episode_steps": 200})``), then ``gym.make_vec("MyRod-v0", num_envs=N,
+    vectorization_mode="vector_entry_point")``. A length given only as the spec's ``max_episode_steps`` (with
+    ``"max_episode_steps": None`` in ``kwargs``, as :func:`make` allows) reaches this function as None: no limit.
+
+    Args:
+        scene, subspace, task: As :func:`make`'s (``task_options`` among ``kwargs``).
+        num_envs: N.
+        max_episode_steps: Each copy's episode length (None or -1: no limit).
+        autoreset_mode: Gymnasium's ``AutoresetMode`` (None: ``NEXT_STEP``).
+        shards: Worker processes (1: all copies in this process).
+        **kwargs: :class:`redsim.envs.base.LatentEnv` arguments, plus ``task_options`` (dict).
+
+    Raises:
+        ValueError, TypeError, redsim.subspace.CheckpointError: as :func:`make`, and a bad N, mode or shard count.
+    """
+    from gymnasium.vector import AutoresetMode
+
+    from redsim.envs.factory import build_vector
+
+    mode = AutoresetMode.NEXT_STEP if autoreset_mode is None else autoreset_mode
+    return build_vector(
+        scene,
+        subspace,
+        task,
+        num_envs=num_envs,
+        max_episode_steps=max_episode_steps,
+        autoreset_mode=mode,
+        shards=shards,
+        **kwargs,
+    )
+
+
 register_envs()
 
-__all__ = ["ENVS", "ids", "make", "register_envs"]
+__all__ = ["ENVS", "ids", "make", "make_vec", "register_envs"]

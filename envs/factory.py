@@ -1,19 +1,24 @@
-"""Build an env from any scene, subspace and task (the body of :func:`redsim.envs.make`)."""
+"""Build an env, or a vector env of copies, from any scene, subspace and task (the bodies of
+:func:`redsim.envs.make` and :func:`redsim.envs.make_vec`)."""
 
 from __future__ import annotations
 
+import functools
 import numbers
 import os
 from collections.abc import Mapping
 from typing import Any
 
 import gymnasium as gym
+from gymnasium.vector import AutoresetMode
 from gymnasium.wrappers import TimeLimit
 from torch import nn
 
 from redsim.effects.external import Gravity
 from redsim.envs.base import LatentEnv, Task, checkpoint_subspace
 from redsim.envs.reach import HandleReach
+from redsim.envs.sharded import ShardedVectorEnv
+from redsim.envs.vector import LatentVectorEnv, vector_of
 from redsim.scene import Scene
 
 TASKS: dict[str, type[Task]] = {"reach": HandleReach}
@@ -78,6 +83,31 @@ def build(
         raise ValueError("task_options only apply to a task given by name")
     env: gym.Env = LatentEnv(scene, subspace, task, **kwargs)
     return env if max_episode_steps in (None, -1) else TimeLimit(env, int(max_episode_steps))
+
+
+def _bare(*, scene: Scene | str, subspace: Any, task: Task | str, **kwargs: Any) -> LatentEnv:
+    """The env :func:`build` makes, without a TimeLimit (keyword arguments only: :func:`vector_of` may swap the
+    subspace)."""
+    return build(scene, subspace, task, max_episode_steps=None, **kwargs)
+
+
+def build_vector(
+    scene: Scene | str,
+    subspace: Any = None,
+    task: Task | str = "reach",
+    *,
+    num_envs: int = 1,
+    max_episode_steps: int | None = 200,
+    autoreset_mode: AutoresetMode | str = AutoresetMode.NEXT_STEP,
+    shards: int = 1,
+    **kwargs: Any,
+) -> LatentVectorEnv | ShardedVectorEnv:
+    """See :func:`redsim.envs.make_vec`."""
+    limit = None if max_episode_steps in (None, -1) else max_episode_steps
+    if limit is not None and (isinstance(limit, bool) or not isinstance(limit, numbers.Integral) or limit < 1):
+        raise ValueError(f"max_episode_steps must be None or -1 (no limit) or an integer >= 1, got {limit!r}")
+    create = functools.partial(_bare, scene=scene, subspace=subspace, task=task, **kwargs)
+    return vector_of(create, num_envs, None if limit is None else int(limit), autoreset_mode, shards)
 
 
 def default_force(scene: Scene) -> float:

@@ -358,17 +358,14 @@ def _with_masks(info: dict[str, np.ndarray], mask: np.ndarray) -> dict[str, Any]
 
 
 def _native(
-    env_class: type[LatentEnv],
-    kwargs: dict[str, Any],
+    create: Callable[..., LatentEnv],
     max_episode_steps: int | None,
     autoreset_mode: AutoresetMode | str,
     num_envs: int,
 ) -> LatentVectorEnv:
-    """A :class:`LatentVectorEnv` of ``num_envs`` copies of ``env_class(**kwargs)`` (module level: a shard's
-    worker process unpickles it)."""
-    return LatentVectorEnv(
-        env_class(**kwargs), num_envs, max_episode_steps=max_episode_steps, autoreset_mode=autoreset_mode
-    )
+    """A :class:`LatentVectorEnv` of ``num_envs`` copies of the env ``create()`` makes (module level, and ``create``
+    a ``functools.partial`` with keyword arguments: a shard's worker process unpickles it)."""
+    return LatentVectorEnv(create(), num_envs, max_episode_steps=max_episode_steps, autoreset_mode=autoreset_mode)
 
 
 def registered_steps(env_class: type[LatentEnv]) -> int | None:
@@ -378,6 +375,55 @@ def registered_steps(env_class: type[LatentEnv]) -> int | None:
     module = env_class.__module__.rsplit(".", 1)[-1]
     steps = {n for mod, cls, n, _ in ENVS.values() if (mod, cls) == (module, env_class.__name__)}
     return steps.pop() if len(steps) == 1 else None
+
+
+def vector_of(
+    create: functools.partial[LatentEnv],
+    num_envs: int,
+    max_episode_steps: int | None,
+    autoreset_mode: AutoresetMode | str,
+    shards: int,
+) -> LatentVectorEnv | ShardedVectorEnv:
+    """``num_envs`` copies of the env ``create()`` makes (a partial with keyword arguments, ``render_mode`` among
+    them if any), in one :class:`LatentVectorEnv` or, with ``shards`` P > 1, a
+    :class:`redsim.envs.sharded.ShardedVectorEnv` of P worker processes; ``max_episode_steps`` None: no limit."""
+    render = create.keywords.get("render_mode")
+    if render == "human":  # before any env or worker is made (or a display is asked for)
+        raise ValueError(NO_HUMAN)
+    if render is not None and render not in VECTOR_RENDER_MODES:
+        raise ValueError(
+            f"a vector env's render_mode must be None or 'rgb_array' (one frame per copy; keep a list of them "
+            f"yourself, or use vectorization_mode='sync' for Gymnasium's per-copy wrappers), got {render!r}"
+        )
+    build = functools.partial(_native, create, max_episode_steps, autoreset_mode)
+    if shards == 1:
+        return build(num_envs)
+    mode = check_vector_args(num_envs, max_episode_steps, autoreset_mode)  # before any env or worker is made
+    shard_sizes(num_envs, shards)
+    template = create()
+    carried = template.unbacked_subspace()
+    if carried is not None:  # fitted in memory here: the workers take the map instead of fitting it again
+        carrying = functools.partial(create.func, *create.args, **{**create.keywords, "subspace": carried})
+        build = functools.partial(_native, carrying, max_episode_steps, autoreset_mode)
+    return ShardedVectorEnv(build, template, num_envs, shards, autoreset_mode=mode, max_episode_steps=max_episode_steps)
+
+
+def episode_limit(max_episode_steps: int | None, default: int | None) -> int | None:
+    """``max_episode_steps`` as ``gym.make`` reads it: None is ``default`` (the id's length), -1 no limit.
+
+    Raises:
+        ValueError: anything else but an integer >= 1.
+    """
+    if max_episode_steps is None:
+        return default
+    if max_episode_steps == -1:
+        return None
+    if isinstance(max_episode_steps, bool) or int(max_episode_steps) != max_episode_steps or max_episode_steps < 1:
+        raise ValueError(
+            f"max_episode_steps must be None (the id's length), -1 (no limit) or an integer >= 1, got "
+            f"{max_episode_steps!r}"
+        )
+    return int(max_episode_steps)
 
 
 def vector_entry(env_class: type[LatentEnv]) -> Callable[..., LatentVectorEnv | ShardedVectorEnv]:
@@ -391,39 +437,8 @@ def vector_entry(env_class: type[LatentEnv]) -> Callable[..., LatentVectorEnv | 
         shards: int = 1,
         **kwargs: Any,
     ) -> LatentVectorEnv | ShardedVectorEnv:
-        render = kwargs.get("render_mode")
-        if render == "human":  # before any env or worker is made (or a display is asked for)
-            raise ValueError(NO_HUMAN)
-        if render is not None and render not in VECTOR_RENDER_MODES:
-            raise ValueError(
-                f"a vector env's render_mode must be None or 'rgb_array' (one frame per copy; keep a list of them "
-                f"yourself, or use vectorization_mode='sync' for Gymnasium's per-copy wrappers), got {render!r}"
-            )
-        if max_episode_steps is None:  # as gym.make: None is the id's episode length, -1 none
-            max_episode_steps = registered_steps(env_class)
-        elif max_episode_steps == -1:
-            max_episode_steps = None
-        elif (
-            isinstance(max_episode_steps, bool) or int(max_episode_steps) != max_episode_steps or max_episode_steps < 1
-        ):
-            raise ValueError(
-                f"max_episode_steps must be None (the id's length), -1 (no limit) or an integer >= 1, got "
-                f"{max_episode_steps!r}"
-            )
-        build = functools.partial(_native, env_class, kwargs, max_episode_steps, autoreset_mode)
-        if shards == 1:
-            return build(num_envs)
-        mode = check_vector_args(num_envs, max_episode_steps, autoreset_mode)  # before any env or worker is made
-        shard_sizes(num_envs, shards)
-        template = env_class(**kwargs)
-        carried = template.unbacked_subspace()
-        if carried is not None:  # fitted in memory here: the workers take the map instead of fitting it again
-            build = functools.partial(
-                _native, env_class, {**kwargs, "subspace": carried}, max_episode_steps, autoreset_mode
-            )
-        return ShardedVectorEnv(
-            build, template, num_envs, shards, autoreset_mode=mode, max_episode_steps=max_episode_steps
-        )
+        limit = episode_limit(max_episode_steps, registered_steps(env_class))
+        return vector_of(functools.partial(env_class, **kwargs), num_envs, limit, autoreset_mode, shards)
 
     make_vec.__doc__ = (
         f"A :class:`LatentVectorEnv` of ``num_envs`` copies of :class:`{env_class.__name__}`; with ``shards`` P > 1,"
@@ -433,4 +448,4 @@ def vector_entry(env_class: type[LatentEnv]) -> Callable[..., LatentVectorEnv | 
     return make_vec
 
 
-__all__ = ["LatentVectorEnv", "check_vector_args", "vector_entry"]
+__all__ = ["LatentVectorEnv", "check_vector_args", "episode_limit", "vector_entry", "vector_of"]
