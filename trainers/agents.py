@@ -344,7 +344,11 @@ def _label_scene(label: str) -> str | None:
         return label.removeprefix("custom:")
     from gymnasium.envs.registration import load_env_creator
 
-    return getattr(load_env_creator(gym.spec(label).entry_point), "scene_name", None)
+    try:
+        creator = load_env_creator(gym.spec(label).entry_point)
+    except gym.error.Error:  # an id not registered here (recorded by another version of redsim)
+        return None
+    return getattr(creator, "scene_name", None)
 
 
 def _warn_if_other_env(trained_on: str | None, env: str | gym.Env) -> None:

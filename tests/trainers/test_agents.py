@@ -267,6 +267,9 @@ def test_evaluating_a_model_on_another_env_than_it_was_trained_on_is_warned_abou
     other = dataclasses.replace(agent, env_id="custom:my_rod")
     with pytest.warns(UserWarning, match=r"trained on custom:my_rod, and is evaluated on RedSim/MiniChain-v0"):
         evaluate(MINI, other, episodes=1, env_kwargs=short)
+    user_env = make("mini_chain", task="reach", task_options={"goal_handle": "bottom"}, **short)
+    with pytest.warns(UserWarning, match=r"trained on RedSim/Gone-v9, and is evaluated on custom:mini_chain"):
+        evaluate(user_env, dataclasses.replace(agent, env_id="RedSim/Gone-v9"), episodes=1)  # an id not known here
 
 
 @pytest.mark.parametrize("shards", [1, 2])
