@@ -12,8 +12,10 @@ after a step, which grows under random actions on MiniChain-v0 to 0.1 in z after
 reward 0, not terminated); ``AutoresetMode.SAME_STEP`` resets in the same step and puts the
 last observation and info in ``info["final_obs"]`` (an object array, None for the other copies) and
 ``info["final_info"]`` (a dict of [N] arrays with ``_key`` masks), as Gymnasium's sync vector env: the ended
-copies' entries of the top-level keys are masked out (their ``_key`` False). In both modes a masked entry keeps
-the step's value (the benches count every copy's solver work), where the sync env holds zeros.
+copies' entries of the top-level keys are masked out (their ``_key`` False). There a masked entry keeps the ended
+step's value (the benches count every copy's solver work), where the sync env holds zeros; with ``NEXT_STEP`` a
+restarted copy's step-only entries (``converged``, ``diverged``, ``energy``, ...) hold zeros, as the sync env's:
+that step, from the state that ended, is discarded.
 For stable-baselines3 use :class:`redsim.envs.sb3.SB3VecEnv`.
 """
 
@@ -172,7 +174,13 @@ class LatentVectorEnv(SharedCopies, VectorEnv):
                 reward[restart], terminated[restart], truncated[restart] = 0.0, False, False
                 self._elapsed[restart] = 0
             obs = self.sim.observe()
-            infos = _with_reset_info(_with_masks(info, ~restart), self.sim.state_info(restart), restart)
+            # the restarted copies' step (from the state that ended, its action ignored) is discarded: their slots
+            # hold zeros, as the sync env's (a review read a diverged copy's flag and energy twice, the second time
+            # from that discarded step), then their reset info
+            stepped = {
+                key: np.where(_rows(restart, value.ndim), np.zeros_like(value), value) for key, value in info.items()
+            }
+            infos = _with_reset_info(_with_masks(stepped, ~restart), self.sim.state_info(restart), restart)
         else:
             # as Gymnasium's sync vector env: an ended copy's step info only in ``final_info`` (batched, masked)
             done = terminated | truncated
@@ -344,6 +352,11 @@ def _with_reset_info(infos: dict[str, Any], reset: dict[str, np.ndarray], rows: 
         else:
             out[key], out[f"_{key}"] = value, rows.copy()
     return out
+
+
+def _rows(rows: np.ndarray, ndim: int) -> np.ndarray:
+    """The copies ``rows`` [N] (bool) shaped to broadcast against an info value of ``ndim`` dimensions [N, ...]."""
+    return rows.reshape(-1, *([1] * (ndim - 1)))
 
 
 def _with_masks(info: dict[str, np.ndarray], mask: np.ndarray) -> dict[str, Any]:

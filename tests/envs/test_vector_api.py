@@ -89,6 +89,29 @@ def test_info_keys_and_dtypes_are_the_sync_vector_envs(mode: AutoresetMode) -> N
     assert _dtypes(infos[0][1])["distance"] == np.float64
 
 
+def test_a_copy_restarted_by_the_next_step_holds_zeros_for_the_discarded_step_as_in_the_sync_env() -> None:
+    """NEXT_STEP steps a copy that ended once more and discards that step: its slot's step values (a review read a
+    diverged copy's flag and a 1e13 J energy there a second time) are zeros as the sync env's; its reset info and the
+    other copy's step are as before."""
+    options = {"max_force": 1e15, "dtype": "float64"}  # copy 0's push diverges at once; copy 1 is left alone
+    native = _vec(**options)
+    sync = gym.make_vec(ID, 2, vectorization_mode="sync", **options)
+    push = np.zeros((2, 3), np.float32)
+    push[0] = 1.0
+    infos = []
+    for env in (native, sync):
+        env.reset(seed=0)
+        _, _, terminated, _, info = env.step(push)
+        assert terminated.tolist() == [True, False] and info["diverged"].tolist() == [True, False]
+        infos.append(env.step(np.zeros((2, 3), np.float32))[4])
+    ours, theirs = infos
+    assert set(ours) == set(theirs)
+    for key in ("diverged", "converged", "energy", "iterations", "residual", "out_of_range", "distance"):
+        np.testing.assert_array_equal(ours[f"_{key}"], theirs[f"_{key}"])
+        np.testing.assert_allclose(ours[key], theirs[key], rtol=1e-6, atol=1e-9, err_msg=key)
+    assert not ours["diverged"][0] and ours["energy"][0] == 0.0 and ours["_distance"][0]  # the new start's distance
+
+
 def _dtypes(info: dict) -> dict:
     """The dtype of each array in ``info``, nested dicts key by key."""
     return {k: _dtypes(v) if isinstance(v, dict) else np.asarray(v).dtype for k, v in info.items()}
