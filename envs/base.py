@@ -877,13 +877,15 @@ class LatentSim:
         out = {k: _info_array(v.detach().cpu().numpy()) for k, v in info.items()}
         return reward.detach().cpu().numpy().astype(np.float64), terminated.cpu().numpy(), {**out, **self.state_info()}
 
-    def state_info(self, rows: np.ndarray | None = None) -> dict[str, np.ndarray]:
+    def state_info(self, rows: np.ndarray | None = None, *, start: bool = False) -> dict[str, np.ndarray]:
         """What ``info`` says about the current states, at a step and at a reset alike (Gymnasium: a reset's info is
         analogous to a step's): the task's metrics, the scene's invariants and, with ``include_q``, ``q`` [B, n]; each
         [B, ...], the [B] ones float64 or int64 as a step's numbers. With ``rows`` (bool [B]) only those copies'
         entries are kept (the ones a reset just started; the others' are zeros), and the invariants and q are evaluated
         for them only; none: an empty dict. The task's metrics are evaluated for every copy: a task may read the whole
-        batch's state through the sim :meth:`Task.bind` gave it (Klann-v0's crank speed reads ``sim.x_prev``)."""
+        batch's state through the sim :meth:`Task.bind` gave it (Klann-v0's crank speed reads ``sim.x_prev``).
+        ``start`` (a reset's info) adds ``out_of_range``, as a step flags it, for a start beyond the map's region or
+        the observation's bounds (a large ``reset_noise_scale``: a review's started at |z| 60, clipped to 10)."""
         every = rows is None or bool(np.all(rows))
         if rows is not None and not np.any(rows):
             return {}
@@ -895,6 +897,16 @@ class LatentSim:
             metrics = {key: value[index] for key, value in metrics.items()}
         x = self.x if index is None else self.x[index]
         values = {**metrics, **self.invariants(x)}
+        if start:
+            from redsim.runtime.flags import out_of_range_states
+
+            z, z_prev = (self.z, self.z_prev) if index is None else (self.z[index], self.z_prev[index])
+            cond = None if self.cond is None else (self.cond if index is None else self.cond[index])
+            pair = torch.stack([z, z_prev], 1)
+            space = self.scene.condition_space
+            values["out_of_range"] = out_of_range_states(pair, tuple(self.periodic), cond, space) | self._beyond_bound(
+                z, z_prev
+            )
         if self.include_q:
             z = self.z if index is None else self.z[index]
             cond = None if self.cond is None or index is None else self.cond[index]
@@ -1447,7 +1459,7 @@ class LatentEnv(gym.Env[np.ndarray, np.ndarray]):
             self._view = None  # framed anew on this episode: a picture never depends on earlier episodes
         if self.render_mode == "human":
             self.render()
-        return self.sim.observe()[0], _first_row(self.sim.state_info())
+        return self.sim.observe()[0], _first_row(self.sim.state_info(start=True))
 
     @on_env_threads
     def step(self, action: np.ndarray) -> tuple[np.ndarray, float, bool, bool, dict[str, Any]]:

@@ -126,7 +126,7 @@ class LatentVectorEnv(SharedCopies, VectorEnv):
         self._autoreset[mask] = False
         self._unreset[mask] = False
         self._unframe()
-        return self.sim.observe(), _with_masks(self.sim.state_info(mask), mask)
+        return self.sim.observe(), _with_masks(self.sim.state_info(mask, start=True), mask)
 
     @on_env_threads
     def step(self, actions: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray, dict[str, Any]]:
@@ -180,7 +180,7 @@ class LatentVectorEnv(SharedCopies, VectorEnv):
             stepped = {
                 key: np.where(_rows(restart, value.ndim), np.zeros_like(value), value) for key, value in info.items()
             }
-            infos = _with_reset_info(_with_masks(stepped, ~restart), self.sim.state_info(restart), restart)
+            infos = _with_reset_info(_with_masks(stepped, ~restart), self.sim.state_info(restart, start=True), restart)
         else:
             # as Gymnasium's sync vector env: an ended copy's step info only in ``final_info`` (batched, masked)
             done = terminated | truncated
@@ -195,7 +195,7 @@ class LatentVectorEnv(SharedCopies, VectorEnv):
                 self.sim.reset_rows(rows, [self._rngs[i] for i in rows])
                 self._elapsed[done] = 0
                 obs = self.sim.observe()
-                infos = _with_reset_info(infos, self.sim.state_info(done), done)
+                infos = _with_reset_info(infos, self.sim.state_info(done, start=True), done)
                 infos.update(
                     final_obs=final_obs, _final_obs=done.copy(), final_info=final_info, _final_info=done.copy()
                 )

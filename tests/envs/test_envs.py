@@ -220,6 +220,13 @@ def test_reset_noise_scale_perturbs_the_start_reproducibly_and_alike_in_vector_c
     for bad in (-0.1, float("nan"), float("inf"), True, "0.1"):
         with pytest.raises(ValueError, match="reset_noise_scale must be a finite number >= 0"):
             gym.make("RedSim/MiniChain-v0", reset_noise_scale=bad)
+    # a start beyond the map's region is flagged in the reset's info, as a step flags it (a review's noise of 100
+    # started at |z| 60, its observation clipped to 10, and nothing said so before the first step)
+    assert noisy.reset(seed=3)[1]["out_of_range"] is False
+    far = gym.make("RedSim/MiniChain-v0", reset_noise_scale=100.0)
+    assert far.reset(seed=0)[1]["out_of_range"] is True
+    _, infos = venv.reset(seed=3)
+    assert infos["out_of_range"].tolist() == [False, False] and infos["_out_of_range"].all()
 
 
 def test_a_none_seed_in_a_vector_reset_keeps_that_copy_s_generator() -> None:
@@ -607,8 +614,9 @@ def test_info_reports_solver_flags_invariants_rewards_and_q() -> None:
     assert info["contact_clearance"] == pytest.approx(-info["contact_penetration"]) or info["contact_clearance"] > 0
 
 
-SOLVER_INFO = ("converged", "iterations", "residual", "energy", "out_of_range", "diverged", "energy_gain")
-"""A step's info keys about the solve (and ``energy_gain_tolerance``), which a reset's info has not."""
+SOLVER_INFO = ("converged", "iterations", "residual", "energy", "diverged", "energy_gain")
+"""A step's info keys about the solve (and ``energy_gain_tolerance``), which a reset's info has not (it has
+``out_of_range``, of the start)."""
 
 
 def test_reset_info_holds_the_metrics_and_invariants_a_step_reports() -> None:
