@@ -828,8 +828,11 @@ class LatentSim:
     def _step(self, action: np.ndarray) -> tuple[np.ndarray, np.ndarray, dict[str, np.ndarray]]:
         act = torch.as_tensor(action, dtype=self.torch_dtype, device=self.device)
         self.loads = self.task_loads(act, self.params).to(self.torch_dtype)
+        from redsim.runtime.flags import out_of_range_states
+
         diverged = torch.zeros(self.batch, dtype=torch.bool, device=self.device)
-        out_of_range = torch.zeros_like(diverged)
+        # the step's own start too: a z_prev set beyond the map's region (a velocity no step of it made) is flagged
+        out_of_range = out_of_range_states(self.z_prev[:, None], tuple(self.periodic), None, None).to(self.device)
         energy_gain = torch.zeros_like(diverged)
         gain_tolerance = torch.zeros(self.batch, dtype=self.torch_dtype, device=self.device)
         iterations = torch.zeros(self.batch, dtype=torch.int64, device=self.device)

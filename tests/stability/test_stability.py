@@ -133,6 +133,15 @@ def test_a_latent_the_observation_clips_is_flagged_out_of_range() -> None:
         assert not clipped[:16].any() or bool((sim.z.abs() > LATENT_BOUND).any())  # a clip shows a latent beyond
     env.unwrapped.set_state({**state, "z": np.full(8, 3.0), "z_prev": np.full(8, 3.0)})  # |z| = 8.5: in range
     assert not env.step(zero)[4]["out_of_range"]
+    # a z_prev set far out (a latent velocity of 5e5/s that no step of the map made) is the step's start too: on
+    # MiniChain-v0 the step from it lands in range, and reported nothing (a review's case); now it is flagged, and
+    # the step after it, from states in range, is not
+    mini = gym.make("RedSim/MiniChain-v0").unwrapped
+    mini.reset(seed=0)
+    state = mini.get_state()
+    mini.set_state({**state, "z_prev": state["z"] - 1e4, "z_before": state["z"] - 1e4})
+    assert mini.step(zero)[4]["out_of_range"] and not out_of_range_states(mini.sim.z, (), None, None)[0]
+    assert not mini.step(zero)[4]["out_of_range"]
 
 
 @pytest.mark.parametrize("bad", [float("nan"), float("inf"), -float("inf")])
