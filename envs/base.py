@@ -826,10 +826,10 @@ class LatentSim:
         self.model, self.carry, self.params, self.cond = model, carry, params, cond
 
     def _step(self, action: np.ndarray) -> tuple[np.ndarray, np.ndarray, dict[str, np.ndarray]]:
-        act = torch.as_tensor(action, dtype=self.torch_dtype, device=self.device)
-        self.loads = self.task_loads(act, self.params).to(self.torch_dtype)
         from redsim.runtime.flags import out_of_range_states
 
+        act = torch.as_tensor(action, dtype=self.torch_dtype, device=self.device)
+        self.loads = self.task_loads(act, self.params).to(self.torch_dtype)
         diverged = torch.zeros(self.batch, dtype=torch.bool, device=self.device)
         # the step's own start too: a z_prev set beyond the map's region (a velocity no step of it made) is flagged
         out_of_range = out_of_range_states(self.z_prev[:, None], tuple(self.periodic), None, None).to(self.device)

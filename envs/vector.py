@@ -382,11 +382,15 @@ def _native(
 
 
 def registered_steps(env_class: type[LatentEnv]) -> int | None:
-    """The ``max_episode_steps`` of the registered ids of ``env_class`` (None: not registered, or ids disagree)."""
-    from redsim.envs import ENVS
-
-    module = env_class.__module__.rsplit(".", 1)[-1]
-    steps = {n for mod, cls, n, _ in ENVS.values() if (mod, cls) == (module, env_class.__name__)}
+    """The ``max_episode_steps`` of the ``RedSim/`` ids registered with ``env_class`` (None: not registered, or ids
+    disagree); read from Gymnasium's registry, which ``import redsim.envs`` fills (this module imports no package
+    above it: redsim.envs imports it through :func:`redsim.envs.make_vec`)."""
+    entry = f"redsim.envs.{env_class.__module__.rsplit('.', 1)[-1]}:{env_class.__name__}"
+    steps = {
+        spec.max_episode_steps
+        for spec in gym.registry.values()
+        if spec.namespace == "RedSim" and spec.entry_point == entry
+    }
     return steps.pop() if len(steps) == 1 else None
 
 
