@@ -52,7 +52,7 @@ logger = logging.getLogger(__name__)
 
 if TYPE_CHECKING:  # imported where used: the runtime and the invariants load only when an env is built
     from redsim.envs.invariants import Invariants
-    from redsim.runtime import LatentStepper
+    from redsim.runtime import LatentStepper, StepStats
 
 CAMERA_KEYS = ("azimuth", "elevation", "margin", "merge_px", "track")
 """The ``camera`` keys an env takes: ``azimuth``, ``elevation`` [deg], ``margin`` and ``merge_px`` (keyword arguments
@@ -784,9 +784,43 @@ class LatentSim:
             beyond[..., self.periodic] = False
         return beyond.any(-1).any(-1)
 
-    def step(self, action: np.ndarray) -> tuple[np.ndarray, np.ndarray, dict[str, np.ndarray]]:
+    def _stepper_step(self, rows: Tensor | None) -> StepStats:
+        """One stepper step of the copies ``rows`` (indices; None: every copy) from z, z_prev under the loads, which
+        updates their z, z_prev, model and carry; the other copies keep theirs and get zeros (False) in the
+        returned [B] fields (its ``model`` and ``carry`` are the sim's)."""
+        if rows is None:
+            z_next, stats = self.stepper.step(
+                self.z, self.z_prev, self.loads, self.cond, warm=self.model, carry=self.carry
+            )
+            self.model, self.carry = stats.model, stats.carry
+            self.z_prev, self.z = self.z, self._nearest_turn(z_next.detach(), self.z)
+            return stats
+        cond = None if self.cond is None else self.cond[rows]
+        z, z_prev = self.z[rows], self.z_prev[rows]
+        z_next, stats = self.stepper.step(
+            z, z_prev, self.loads[rows], cond, warm=self.model[rows], carry=self.carry[rows]
+        )
+        self.model, self.carry = self.model.clone(), self.carry.clone()
+        self.model[rows], self.carry[rows] = stats.model, stats.carry
+        self.z_prev, self.z = self.z_prev.clone(), self.z.clone()
+        self.z_prev[rows], self.z[rows] = z, self._nearest_turn(z_next.detach(), z)
+        from redsim.runtime import StepStats
+
+        spread = {}
+        for field, value in stats._asdict().items():
+            if field not in ("model", "carry"):
+                spread[field] = value.new_zeros(self.batch).index_copy(0, rows.to(value.device), value)
+        return StepStats(**spread, model=self.model, carry=self.carry)
+
+    def step(
+        self, action: np.ndarray, active: np.ndarray | None = None
+    ) -> tuple[np.ndarray, np.ndarray, dict[str, np.ndarray]]:
         """Advance every copy by one env step with actions [B, A] (already checked and clipped). The step is
         atomic: an exception or a KeyboardInterrupt inside it leaves every copy as it was before the call.
+
+        ``active`` (bool [B], default all) names the copies the solver steps; the others keep their state and get
+        zeros in the solver's entries of ``info`` (a vector env's copies that the step resets: their step would be
+        discarded). Their reward, termination and metrics are of the state they keep, for the caller to drop.
 
         Returns:
             reward [B] (float64), terminated [B] (bool), info {key: [B] array} (see :class:`LatentEnv`; floats
@@ -794,7 +828,7 @@ class LatentSim:
         """
         saved = self.snapshot()
         try:
-            return self._step(action)
+            return self._step(action, active)
         except BaseException:
             self.restore(saved)
             raise
@@ -825,43 +859,50 @@ class LatentSim:
         self.z, self.z_prev, self.z_before, self.x, self.x_prev, self.loads = z, z_prev, z_before, x, x_prev, loads
         self.model, self.carry, self.params, self.cond = model, carry, params, cond
 
-    def _step(self, action: np.ndarray) -> tuple[np.ndarray, np.ndarray, dict[str, np.ndarray]]:
+    def _step(
+        self, action: np.ndarray, active: np.ndarray | None
+    ) -> tuple[np.ndarray, np.ndarray, dict[str, np.ndarray]]:
         from redsim.runtime.flags import out_of_range_states
 
         act = torch.as_tensor(action, dtype=self.torch_dtype, device=self.device)
         self.loads = self.task_loads(act, self.params).to(self.torch_dtype)
+        moving = torch.ones(self.batch, dtype=torch.bool, device=self.device)
+        if active is not None:
+            moving = torch.as_tensor(np.asarray(active, dtype=bool), device=self.device)
+        every = bool(moving.all())
+        rows = None if every else torch.nonzero(moving).flatten()
         diverged = torch.zeros(self.batch, dtype=torch.bool, device=self.device)
         # the step's own start too: a z_prev set beyond the map's region (a velocity no step of it made) is flagged
         out_of_range = out_of_range_states(self.z_prev[:, None], tuple(self.periodic), None, None).to(self.device)
+        out_of_range &= moving
         energy_gain = torch.zeros_like(diverged)
         gain_tolerance = torch.zeros(self.batch, dtype=self.torch_dtype, device=self.device)
         iterations = torch.zeros(self.batch, dtype=torch.int64, device=self.device)
-        converged = torch.ones_like(diverged)
+        converged = moving.clone()
+        residual = energy = torch.zeros(self.batch, dtype=self.torch_dtype, device=self.device)
         z_before = self.z.clone()  # x's latent, x_prev's after this step
-        for _ in range(self.frame_skip):
-            z_next, stats = self.stepper.step(
-                self.z, self.z_prev, self.loads, self.cond, warm=self.model, carry=self.carry
-            )
-            self.model, self.carry = stats.model, stats.carry
-            self.z_prev, self.z = self.z, self._nearest_turn(z_next.detach(), self.z)
+        for _ in range(self.frame_skip if rows is None or len(rows) else 0):
+            stats = self._stepper_step(rows)
             diverged |= stats.diverged.to(self.device)
             out_of_range |= stats.out_of_range.to(self.device)
             energy_gain |= stats.energy_gain.to(self.device)
             gain_tolerance += stats.energy_gain_tolerance.to(self.device, self.torch_dtype)
             converged &= stats.converged.to(self.device)
             iterations += stats.iterations.to(self.device).to(torch.int64)
+            residual, energy = stats.residual, stats.energy
         diverged |= ~torch.isfinite(self.z).all(dim=1)
         self.z, self.z_prev = self._first_turn(self.z, self.z_prev)
         out_of_range |= self._beyond_bound(self.z, self.z_prev)
         self.x_prev, self.x, self.z_before = self.x, self.full_positions(self.z), z_before
         reward, terms = self.task.reward(self.x, act, self.params)
-        _check_task_output("reward", reward, self.batch, valid=~diverged)
+        valid = moving & ~diverged
+        _check_task_output("reward", reward, self.batch, valid=valid)
         for key, value in terms.items():
-            _check_task_output(f"reward term {key!r}", value, self.batch, valid=~diverged)
+            _check_task_output(f"reward term {key!r}", value, self.batch, valid=valid)
         if self.task.reward_terms and set(terms) != set(self.task.reward_terms):
             raise ValueError(f"Task reward terms {sorted(terms)} are not reward_terms {list(self.task.reward_terms)}")
         total = sum(terms.values())
-        if terms and not torch.allclose(total.to(reward.dtype)[~diverged], reward[~diverged], rtol=1e-4, atol=1e-5):
+        if terms and not torch.allclose(total.to(reward.dtype)[valid], reward[valid], rtol=1e-4, atol=1e-5):
             raise ValueError("Task reward terms must sum to the reward (each is reported as info['reward_<term>'])")
         ended = self.task.terminated(self.x, self.params)
         _check_task_output("terminated", ended, self.batch, dtype=torch.bool)
@@ -869,8 +910,8 @@ class LatentSim:
         info: dict[str, Tensor] = {
             "converged": converged,
             "iterations": iterations,
-            "residual": stats.residual,
-            "energy": stats.energy,
+            "residual": residual,
+            "energy": energy,
             "out_of_range": out_of_range,
             "diverged": diverged,
             "energy_gain": energy_gain,

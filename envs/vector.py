@@ -13,9 +13,9 @@ reward 0, not terminated); ``AutoresetMode.SAME_STEP`` resets in the same step a
 last observation and info in ``info["final_obs"]`` (an object array, None for the other copies) and
 ``info["final_info"]`` (a dict of [N] arrays with ``_key`` masks), as Gymnasium's sync vector env: the ended
 copies' entries of the top-level keys are masked out (their ``_key`` False). There a masked entry keeps the ended
-step's value (the benches count every copy's solver work), where the sync env holds zeros; with ``NEXT_STEP`` a
-restarted copy's step-only entries (``converged``, ``diverged``, ``energy``, ...) hold zeros, as the sync env's:
-that step, from the state that ended, is discarded.
+step's value (the benches count every copy's solver work), where the sync env holds zeros; with ``NEXT_STEP`` the
+solver skips the copies the step resets (the sync env calls their ``reset``, not their ``step``), and their
+step-only entries (``converged``, ``diverged``, ``energy``, ...) hold zeros, as the sync env's.
 For stable-baselines3 use :class:`redsim.envs.sb3.SB3VecEnv`.
 """
 
@@ -158,7 +158,9 @@ class LatentVectorEnv(SharedCopies, VectorEnv):
     def _step(
         self, act: np.ndarray, mode: AutoresetMode
     ) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray, dict[str, Any]]:
-        reward, terminated, info = self.sim.step(act)
+        # NEXT_STEP: the copies that ended last step are reset, not stepped (the solver skips them)
+        restart = self._autoreset.copy() if mode == AutoresetMode.NEXT_STEP else np.zeros(self.num_envs, bool)
+        reward, terminated, info = self.sim.step(act, active=~restart if restart.any() else None)
         self._elapsed += 1
         truncated = np.zeros(self.num_envs, dtype=bool)
         if self.max_episode_steps is not None:
@@ -167,16 +169,14 @@ class LatentVectorEnv(SharedCopies, VectorEnv):
             self._autoreset = terminated | truncated
             return self.sim.observe(), reward, terminated, truncated, _with_masks(info, np.ones(self.num_envs, bool))
         if mode == AutoresetMode.NEXT_STEP:
-            restart = self._autoreset.copy()
             if restart.any():
                 rows = [int(i) for i in np.nonzero(restart)[0]]
                 self.sim.reset_rows(rows, [self._rngs[i] for i in rows])
                 reward[restart], terminated[restart], truncated[restart] = 0.0, False, False
                 self._elapsed[restart] = 0
             obs = self.sim.observe()
-            # the restarted copies' step (from the state that ended, its action ignored) is discarded: their slots
-            # hold zeros, as the sync env's (a review read a diverged copy's flag and energy twice, the second time
-            # from that discarded step), then their reset info
+            # the restarted copies were not stepped: their slots hold zeros, as the sync env's (a review read a
+            # diverged copy's flag and energy twice when they held a discarded step's), then their reset info
             stepped = {
                 key: np.where(_rows(restart, value.ndim), np.zeros_like(value), value) for key, value in info.items()
             }

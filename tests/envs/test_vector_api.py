@@ -89,21 +89,25 @@ def test_info_keys_and_dtypes_are_the_sync_vector_envs(mode: AutoresetMode) -> N
     assert _dtypes(infos[0][1])["distance"] == np.float64
 
 
-def test_a_copy_restarted_by_the_next_step_holds_zeros_for_the_discarded_step_as_in_the_sync_env() -> None:
-    """NEXT_STEP steps a copy that ended once more and discards that step: its slot's step values (a review read a
-    diverged copy's flag and a 1e13 J energy there a second time) are zeros as the sync env's; its reset info and the
-    other copy's step are as before."""
+def test_a_copy_restarted_by_the_next_step_is_not_stepped_and_holds_zeros_as_in_the_sync_env() -> None:
+    """NEXT_STEP resets a copy that ended without stepping it, as the sync env: its slot's step values (a review read
+    a diverged copy's flag and a 1e13 J energy there a second time, when the step solved it and discarded the result)
+    are zeros as the sync env's; its reset info and the other copy's step are as before."""
     options = {"max_force": 1e15, "dtype": "float64"}  # copy 0's push diverges at once; copy 1 is left alone
     native = _vec(**options)
     sync = gym.make_vec(ID, 2, vectorization_mode="sync", **options)
     push = np.zeros((2, 3), np.float32)
     push[0] = 1.0
     infos = []
+    solved = []  # the batch of each stepper step
+    step = native.sim.stepper.step
+    native.sim.stepper.step = lambda z, *args, **kwargs: solved.append(len(z)) or step(z, *args, **kwargs)
     for env in (native, sync):
         env.reset(seed=0)
         _, _, terminated, _, info = env.step(push)
         assert terminated.tolist() == [True, False] and info["diverged"].tolist() == [True, False]
         infos.append(env.step(np.zeros((2, 3), np.float32))[4])
+    assert solved == [2, 1]  # copy 0 is not solved from the state that diverged
     ours, theirs = infos
     assert set(ours) == set(theirs)
     for key in ("diverged", "converged", "energy", "iterations", "residual", "out_of_range", "distance"):
@@ -350,8 +354,11 @@ def test_a_step_where_every_copy_restarts_reports_the_reset_infos_as_sync(shards
         for env in (venv, sync):
             env.reset(seed=0)
             assert "energy" in env.step(PUSH)[4]
+        calls = venv.sim.stepper.evaluations.calls if shards == 1 else 0
         mine, theirs = venv.step(PUSH)[4], sync.step(PUSH)[4]
         assert sorted(mine) == sorted(theirs) and "energy" not in mine and mine["_distance"].all()
+        if shards == 1:  # nothing was solved
+            assert venv.sim.stepper.evaluations.calls == calls
         for key in mine:
             np.testing.assert_allclose(mine[key], theirs[key], rtol=1e-5, atol=1e-6, err_msg=key)
     finally:
