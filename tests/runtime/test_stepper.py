@@ -819,6 +819,25 @@ def test_an_effect_that_reads_the_loads_besides_the_load_term_is_refused(mini_ch
         build_cubature(windy, f, CubatureConfig(samples=8))
 
 
+def test_a_tolerance_below_float32_round_off_warns_and_its_steps_end_unconverged(mini_chain) -> None:
+    """tol 1e-12 in float32 (a review's setting: every step ran max_iter and nothing said why) warns at construction;
+    its steps under a load end unconverged where the default converges; float64 takes 1e-12 without a warning."""
+    scene, f = mini_chain
+    with pytest.warns(UserWarning, match=r"tol 1e-12 is below what torch.float32's round-off .* larger tol"):
+        tight = LatentStepper(scene, f, DT, dtype=torch.float32, tol=1e-12, max_iter=20)
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")
+        LatentStepper(scene, f, DT, dtype=torch.float64, tol=1e-12)
+        default = LatentStepper(scene, f, DT, dtype=torch.float32)
+    for stepper, converges in ((tight, False), (default, True)):
+        z = stepper.rest_latent()
+        loads = torch.zeros(1, len(scene.handles), scene.dim, dtype=stepper.dtype)
+        loads[..., 0] = 10.0
+        _, stats = stepper.step(z, z.clone(), loads)
+        assert bool(stats.converged[0]) == converges
+        assert (int(stats.iterations[0]) == 20) != converges
+
+
 def test_a_stepper_too_coarse_to_feel_its_forces_warns(mini_chain) -> None:
     """float32 at dt 1 ms resolves only ~2 m/s^2 on the mini chain: it warns, and a 10 N load is not felt (the step
     ends at its start with no iteration) where float64 moves; the envs' dt 0.02 s does not warn."""
