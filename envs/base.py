@@ -820,7 +820,9 @@ class LatentSim:
 
         ``active`` (bool [B], default all) names the copies the solver steps; the others keep their state and get
         zeros in the solver's entries of ``info`` (a vector env's copies that the step resets: their step would be
-        discarded). Their reward, termination and metrics are of the state they keep, for the caller to drop.
+        discarded). Their reward, termination, metrics and ``out_of_range`` (a latent beyond the observation's bound)
+        are of the state they keep, for the caller to drop. A stepper compiled with static shapes (``compile=True``:
+        one graph per batch size) steps every copy, as before.
 
         Returns:
             reward [B] (float64), terminated [B] (bool), info {key: [B] array} (see :class:`LatentEnv`; floats
@@ -867,7 +869,9 @@ class LatentSim:
         act = torch.as_tensor(action, dtype=self.torch_dtype, device=self.device)
         self.loads = self.task_loads(act, self.params).to(self.torch_dtype)
         moving = torch.ones(self.batch, dtype=torch.bool, device=self.device)
-        if active is not None:
+        if active is not None and np.shape(active) != (self.batch,):
+            raise ValueError(f"active must be a bool mask of shape ({self.batch},), got shape {np.shape(active)}")
+        if active is not None and not self.stepper.compiled:  # a static graph per batch size: a subset recompiles
             moving = torch.as_tensor(np.asarray(active, dtype=bool), device=self.device)
         every = bool(moving.all())
         rows = None if every else torch.nonzero(moving).flatten()

@@ -150,13 +150,13 @@ class _Work:
             self.round_render_cpu_s.append(drawing / len(actions))
         self.steps += len(infos)
         for info in infos:
-            # every copy restarted this step (NEXT_STEP autoreset): their solves were made and dropped, so the step's
-            # calls count (in ``calls_per_step``) but it has no solve statistics to report
+            # every copy restarted this step (NEXT_STEP autoreset): none was solved, so the step made no calls and
+            # has no solve statistics; restarted copies count 0 iterations and are left out of the converged fraction
             if "iterations" not in info:
                 continue
             self.iterations.append(float(np.mean(info["iterations"])))
             self.slowest.append(float(np.max(info["iterations"])))
-            self.converged.append(float(np.mean(info["converged"])))
+            self.converged.append(float(np.mean(info["converged"][info["_converged"]])))
             self.out_of_range += int(np.sum(info["out_of_range"]))
             self.diverged += int(np.sum(info["diverged"]))
 

@@ -108,6 +108,8 @@ def test_a_copy_restarted_by_the_next_step_is_not_stepped_and_holds_zeros_as_in_
         assert terminated.tolist() == [True, False] and info["diverged"].tolist() == [True, False]
         infos.append(env.step(np.zeros((2, 3), np.float32))[4])
     assert solved == [2, 1]  # copy 0 is not solved from the state that diverged
+    with pytest.raises(ValueError, match=r"active must be a bool mask of shape \(2,\), got shape \(1,\)"):
+        native.sim.step(np.zeros((2, 3), np.float32), active=[False])
     ours, theirs = infos
     assert set(ours) == set(theirs)
     for key in ("diverged", "converged", "energy", "iterations", "residual", "out_of_range", "distance"):
