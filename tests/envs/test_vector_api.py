@@ -118,6 +118,21 @@ def test_a_copy_restarted_by_the_next_step_is_not_stepped_and_holds_zeros_as_in_
     assert not ours["diverged"][0] and ours["energy"][0] == 0.0 and ours["_distance"][0]  # the new start's distance
 
 
+def test_a_stepper_compiled_with_static_shapes_steps_every_copy_at_a_restart() -> None:
+    """compile=True keeps one graph per batch size, so a restart does not solve a subset (a new size: a new graph,
+    16 s in a review's run): every copy is solved, the restarted ones' results dropped as before. The flag alone is set
+    here (its padded calls run eagerly), without the minutes a real compile takes."""
+    venv = _vec(max_episode_steps=1)
+    venv.sim.stepper.compiled = True
+    solved = []
+    step = venv.sim.stepper.step
+    venv.sim.stepper.step = lambda z, *args, **kwargs: solved.append(len(z)) or step(z, *args, **kwargs)
+    venv.reset(seed=0)
+    venv.step(PUSH)
+    info = venv.step(PUSH)[4]  # every copy restarts
+    assert solved == [2, 2] and "energy" not in info and info["_distance"].all()
+
+
 def _dtypes(info: dict) -> dict:
     """The dtype of each array in ``info``, nested dicts key by key."""
     return {k: _dtypes(v) if isinstance(v, dict) else np.asarray(v).dtype for k, v in info.items()}
