@@ -63,9 +63,10 @@ def bench_env_ab(
         ``slowest_iterations_per_step`` (mean over steps of the slowest copy's), ``calls_per_step`` (the stepper's
         value-and-gradient calls per vector step), ``rows_per_copy_step`` (latent states those calls evaluated,
         per copy and step), ``converged_fraction`` (of copy-steps), ``out_of_range`` and ``diverged`` (copy-steps
-        flagged), and ``ratio`` against the first setting: ``rounds`` (its time over this one's, per round),
-        ``median``, ``min``, ``max``. With ``render``, ``render_size``, and per setting ``round_render_cpu_s`` and
-        ``render_cpu_ms`` (the renders' share of the round times, which include them).
+        flagged; a copy restarted in a step is not stepped, and neither counts there), and ``ratio`` against the
+        first setting: ``rounds`` (its time over this one's, per round), ``median``, ``min``, ``max``. With
+        ``render``, ``render_size``, and per setting ``round_render_cpu_s`` and ``render_cpu_ms`` (the renders' share
+        of the round times, which include them).
 
     Raises:
         ValueError: no setting, a count < 1 (``warmup`` < 0), or settings whose action spaces differ.
@@ -151,14 +152,16 @@ class _Work:
         self.steps += len(infos)
         for info in infos:
             # every copy restarted this step (NEXT_STEP autoreset): none was solved, so the step made no calls and
-            # has no solve statistics; restarted copies count 0 iterations and are left out of the converged fraction
+            # has no solve statistics; restarted copies count 0 iterations, and their flags (a reset's out_of_range
+            # for its start) are left out of the converged fraction and the counts
             if "iterations" not in info:
                 continue
+            stepped = info["_converged"]
             self.iterations.append(float(np.mean(info["iterations"])))
             self.slowest.append(float(np.max(info["iterations"])))
-            self.converged.append(float(np.mean(info["converged"][info["_converged"]])))
-            self.out_of_range += int(np.sum(info["out_of_range"]))
-            self.diverged += int(np.sum(info["diverged"]))
+            self.converged.append(float(np.mean(info["converged"][stepped])))
+            self.out_of_range += int(np.sum(info["out_of_range"][stepped]))
+            self.diverged += int(np.sum(info["diverged"][stepped]))
 
 
 def _summary(

@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import json
 
+import numpy as np
 import pytest
 
 from redsim.cli import main
@@ -43,8 +44,8 @@ def test_env_ab_json_counts_the_work_and_the_same_setting_twice_does_the_same_wo
 
 
 def test_env_ab_divides_the_work_by_every_timed_step_even_where_every_copy_restarts() -> None:
-    """With 2-step episodes every third vector step restarts every copy (NEXT_STEP autoreset): its solves are made
-    and dropped, so they count, and so does the step (it was left out of the divisor: a review's finding)."""
+    """With 2-step episodes every third vector step restarts every copy (NEXT_STEP autoreset): it solves nothing,
+    yet it is a timed step, so it counts in the divisor (it was left out: a review's finding)."""
     from redsim.runtime.stepper import Evaluations
 
     doc = bench_env_ab(
@@ -53,7 +54,6 @@ def test_env_ab_divides_the_work_by_every_timed_step_even_where_every_copy_resta
     (row,) = doc["settings"]
     # the same env and actions stepped by hand: its calls per timed vector step
     import gymnasium as gym
-    import numpy as np
 
     venv = gym.make_vec("RedSim/MiniChain-v0", 2, "vector_entry_point", max_episode_steps=2)
     venv.reset(seed=0)
@@ -64,6 +64,32 @@ def test_env_ab_divides_the_work_by_every_timed_step_even_where_every_copy_resta
         venv.step(action)
     assert row["calls_per_step"] == venv.unwrapped.sim.stepper.evaluations.calls / 4
     venv.close()
+
+
+def test_a_restarted_copys_flags_are_not_counted_as_its_steps() -> None:
+    """A copy that NEXT_STEP autoreset restarts is not stepped: its slots hold the reset's ``out_of_range`` (a start
+    beyond the map's region), not a step's, so the counts of flagged copy-steps leave it out."""
+    from redsim.envs.bench_ab import _Work
+
+    stepped = np.array([True, False, True])
+    info = {
+        "iterations": np.array([3, 0, 5]),
+        "converged": np.array([True, False, False]),
+        "_converged": stepped,
+        "out_of_range": np.array([False, True, True]),
+        "_out_of_range": np.ones(3, bool),
+        "diverged": np.array([False, True, True]),
+        "_diverged": stepped,
+    }
+
+    class Venv:
+        def step(self, action: np.ndarray) -> tuple:
+            return None, None, None, None, info
+
+    work = _Work()
+    work.run_round(Venv(), np.zeros((2, 3, 1), np.float32))
+    assert work.out_of_range == 2 and work.diverged == 2 and work.converged == [0.5, 0.5]
+    assert work.slowest == [5.0, 5.0]
 
 
 def test_env_ab_prints_a_row_per_setting_and_the_ratios(capsys: pytest.CaptureFixture[str]) -> None:
