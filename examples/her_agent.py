@@ -95,9 +95,9 @@ def evaluate(model: SAC, env_id: str, episodes: int, env_kwargs: dict[str, Any])
 def main(
     out: Path | None = None,
     env_id: str = "RedSim/MiniChain-v0",
-    steps: int = 80,
+    steps: int = 50,
     episodes: int = 2,
-    episode_steps: int | None = 30,
+    episode_steps: int | None = 20,
     seed: int = 0,
     num_envs: int = 1,
 ) -> dict[str, Any]:
