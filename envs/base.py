@@ -27,6 +27,7 @@ import logging
 import math
 import numbers
 import os
+import re
 import sys
 import warnings
 from collections.abc import Callable, Mapping, Sequence
@@ -218,7 +219,11 @@ PROCESS_CACHE_SIZE = 8
 """Entries each per-process cache of settled work keeps (:func:`cached`), the oldest dropped first."""
 SETTLED_CACHE_VERSION = 1
 """Part of every disk key of :func:`cached` (with redsim's version): bump it when code changes what a cached
-computation returns for the same key (a task's settling or frame solves, the stepper's defaults)."""
+computation returns for the same key (a task's settling or frame solves, the rest solve, the stepper's defaults)."""
+
+_rest_cache: dict[tuple[Any, ...], Tensor] = {}
+"""Rest latents solved in this process, by what they depend on (:meth:`LatentSim._settled_rest`): an identical env
+made again reuses them (ClothBall-v1's solve takes ~0.6 s); a later process reads them from the user cache."""
 
 Settled = Tensor | np.ndarray | tuple[Tensor | np.ndarray, ...]
 """What :func:`cached` keeps on disk: a tensor, an array, or a tuple of them."""
@@ -231,12 +236,13 @@ def cached(
     disk: str | None = None,
     check: Callable[[Any], str] | None = None,
 ) -> Any:
-    """``cache[key]``, computed once by ``compute()`` (work an identical env made again in this process reuses: a
-    task's settled targets or frame), keeping the :data:`PROCESS_CACHE_SIZE` newest entries.
+    """``cache[key]``, computed once by ``compute()`` (work an identical env made again in this process reuses: its
+    rest latent, a task's settled targets or frame), keeping the :data:`PROCESS_CACHE_SIZE` newest entries.
 
     With ``disk`` (a name for what it holds), also kept across processes in ``cache_root()/envs`` (one ``.npz`` per
-    key, written atomically; off with ``REDSIM_CACHE=0``, :func:`redsim.usercache.cache_root`): a later process, a
-    vector env's worker, reads it back bit for bit instead of solving again. ``compute()`` must then return a
+    key, named by ``disk`` and the key's hash, e.g. ``rest-latent-<sha256>.npz``, written atomically; off with
+    ``REDSIM_CACHE=0``, :func:`redsim.usercache.cache_root`): a later process, a vector env's worker, reads it back
+    bit for bit instead of solving again. ``compute()`` must then return a
     :data:`Settled` value, and ``key`` name by value everything it depends on (its repr is hashed with redsim's and
     torch's versions and :data:`SETTLED_CACHE_VERSION`). A damaged or foreign file, or a value read back that
     ``check`` refuses (it returns what is wrong with it, "" when nothing), is warned about and computed again; delete
@@ -247,7 +253,8 @@ def cached(
         path = None
         if root is not None:
             text = repr((__version__, torch.__version__, SETTLED_CACHE_VERSION, disk, key))
-            path = root / "envs" / f"{hashlib.sha256(text.encode()).hexdigest()}.npz"
+            kind = re.sub(r"[^a-z0-9]+", "-", disk.lower()).strip("-")
+            path = root / "envs" / f"{kind}-{hashlib.sha256(text.encode()).hexdigest()}.npz"
         value = None if path is None else _read_settled(path, text, disk, check)
         if value is None:
             value = compute()
@@ -540,7 +547,9 @@ class LatentSim:
         self._cond_low = None if space is None else space.low.to(self.device, self.torch_dtype)
         self._cond_high = None if space is None else space.high.to(self.device, self.torch_dtype)
         self.default_cond = self.scene.pack_condition(None, 1, self.scene.q_seed) if conditional else None
-        self._rest: Tensor | None = None if self.randomize_condition else self._rest_latent(self.default_cond)
+        self._default_rest = self._settled_rest()
+        """[d] the rest latent under the default condition (the only one where it is not drawn per episode)."""
+        self._rest: Tensor | None = None if self.randomize_condition else self._default_rest
         d, B = self.latent_dim, self.batch
         zeros = torch.zeros(B, d, dtype=self.torch_dtype, device=self.device)
         self.z, self.z_prev = zeros.clone(), zeros.clone()
@@ -566,11 +575,30 @@ class LatentSim:
         )
 
     # -- configurations -------------------------------------------------------------------
+    def _settled_rest(self) -> Tensor:
+        """The rest latent [d] under the default condition (:meth:`_rest_latent`), solved once per process for each
+        scene content, map, dtype and device and kept on disk for the next process (:func:`cached`); solved every
+        time for a map that is not a module (its weights are not known by value)."""
+        if not isinstance(self.subspace, nn.Module):
+            return self._rest_latent(self.default_cond)
+        from redsim.integrators.cache import scene_digest
+
+        d = self.latent_dim
+        key = (scene_digest(self.source_scene), map_key(self.subspace), str(self.torch_dtype), str(self.device))
+
+        def check(value: Any) -> str:
+            ok = isinstance(value, Tensor) and tuple(value.shape) == (d,) and value.dtype == self.torch_dtype
+            return "" if ok else f"not a {self.torch_dtype} tensor of shape ({d},)"
+
+        rest = cached(_rest_cache, key, lambda: self._rest_latent(self.default_cond), disk="rest latent", check=check)
+        return rest.to(self.device).clone()
+
     def _rest_latent(self, cond: Tensor | None) -> Tensor:
         """The rest latent [d] under ``cond`` (None: the scene has none; :meth:`LatentStepper.rest_latent`: from the
-        shipped map's rest start where it has one, else from z = 0)."""
-        if cond is None and getattr(self, "_rest", None) is not None:  # solved once, at construction
-            return self._rest.clone()
+        shipped map's rest start where it has one, else from z = 0); under ``default_cond`` itself the one solved at
+        construction."""
+        if cond is self.default_cond and getattr(self, "_default_rest", None) is not None:
+            return self._default_rest.clone()
         return self.stepper.rest_latent(cond).reshape(-1, self.latent_dim)[0].detach().clone()
 
     def positions(self, z: Tensor, cond: Tensor | None = None) -> Tensor:
@@ -1122,7 +1150,7 @@ class LatentSim:
     def drawn_params(self) -> dict[str, Tensor]:
         """Zeros {name: [B, ...]} shaped and typed as the task's parameters, from one throwaway draw (seed 0, the
         default condition; the copies' generators untouched): what a state must hold before any reset."""
-        z_rest = self._rest if self._rest is not None else self._rest_latent(self.default_cond)
+        z_rest = self._default_rest.clone()
         drawn = self.task.sample(np.random.default_rng(0), self, z_rest, self.default_cond)
         return {k: torch.zeros((self.batch, *v.shape), dtype=v.dtype, device=self.device) for k, v in drawn.items()}
 

@@ -21,7 +21,7 @@ CACHE_ENV = "REDSIM_CACHE"
 FOLDERS = {
     "equilibria": "full-space static solves (the metrics' and benches' reference equilibria)",
     "subspaces": "maps fitted for scene parameters no shipped map covers (fit_if_missing), with resumable fits",
-    "envs": "the envs' settled work (held targets, Stewart's camera frame)",
+    "envs": "the envs' settled work (rest latents, held targets, Stewart's camera frame)",
 }
 """The folders of redsim's user cache and what each holds; :func:`clear_user_cache` deletes files in these only."""
 CACHE_FILES = {"equilibria": ("*.npz",), "subspaces": ("*.pt", "*.json"), "envs": ("*.npz",)}

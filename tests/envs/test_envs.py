@@ -925,6 +925,37 @@ def test_make_of_a_catalog_scene_object_takes_its_shipped_subspace() -> None:
         redsim.envs.make(scenes.build("cantilever"))
 
 
+def test_the_rest_latent_is_solved_once_per_process_and_read_back_by_the_next(
+    monkeypatch: pytest.MonkeyPatch, tmp_path: Path
+) -> None:
+    """An env made again with the same scene, map, dtype and device reuses the rest solve (ClothBall-v1's takes
+    ~0.6 s; the suite makes hundreds of envs), whatever its task's arguments; another dtype solves its own; a new
+    process reads it back from the user cache bit for bit; an env that draws its condition per episode solves the
+    default condition's rest once (at construction its task solved it twice)."""
+    from redsim.envs import base
+    from redsim.runtime import LatentStepper
+
+    solves = []
+    solve = LatentStepper._solve_rest
+    monkeypatch.setattr(LatentStepper, "_solve_rest", lambda self, *args: solves.append(1) or solve(self, *args))
+    monkeypatch.setenv("REDSIM_CACHE", str(tmp_path))
+    base._rest_cache.clear()
+    first = gym.make("RedSim/MiniChain-v0").unwrapped.sim._rest
+    again = gym.make("RedSim/MiniChain-v0", max_force=2.0).unwrapped.sim._rest
+    assert len(solves) == 1 and torch.equal(first, again) and first.data_ptr() != again.data_ptr()
+    float64 = gym.make("RedSim/MiniChain-v0", dtype="float64").unwrapped.sim._rest
+    assert len(solves) == 2 and float64.dtype == torch.float64 and torch.allclose(float64.float(), first)
+    base._rest_cache.clear()  # as in a new process
+    back = gym.make("RedSim/MiniChain-v0").unwrapped.sim._rest
+    assert len(solves) == 2 and torch.equal(back, first) and back.dtype == first.dtype
+    assert len(list((tmp_path / "envs").glob("rest-latent-*.npz"))) == 2
+    solves.clear()
+    envs = [gym.make("RedSim/ConditionalBar-v1") for _ in range(2)]  # the default condition's rest: made it solve 2
+    assert len(solves) == 1
+    envs[0].reset(seed=0)  # a condition drawn for the episode solves its own
+    assert len(solves) == 2
+
+
 def test_held_targets_are_settled_once_per_process_for_identical_envs() -> None:
     from redsim.envs import reach
 
@@ -988,14 +1019,14 @@ def test_held_targets_are_kept_on_disk_for_the_next_process(
     monkeypatch.setattr(reach.HandleReach, "_settle", counted)
     monkeypatch.setenv("REDSIM_CACHE", str(tmp_path))
     first = task()
-    (path,) = (tmp_path / "envs").glob("*.npz")
+    (path,) = (tmp_path / "envs").glob("held-targets-*.npz")
     again = task()
     assert settles == [0.5]
     for old, new in ((first.held_actions, again.held_actions), (first.held_targets, again.held_targets)):
         assert torch.equal(old, new) and (old.dtype, old.device) == (new.dtype, new.device)
     good = path.read_bytes()
     task(0.4)
-    (other,) = set((tmp_path / "envs").glob("*.npz")) - {path}
+    (other,) = set((tmp_path / "envs").glob("held-targets-*.npz")) - {path}
     for damage in (b"not a zip file", good[:100], other.read_bytes()):
         path.write_bytes(damage)
         with caplog.at_level(logging.WARNING, logger="redsim"):
@@ -1050,7 +1081,7 @@ def test_held_targets_are_keyed_by_what_the_stepped_energy_computes(
     default = sim()
     stiffer = sim(MapEnergy(scenes.build("mini_chain", rigid_stiffness=20000.0), subspace))
     assert default.task._held_key(default) != stiffer.task._held_key(stiffer) and len(settles) == 2
-    assert len(list((tmp_path / "envs").glob("*.npz"))) == 2
+    assert len(list((tmp_path / "envs").glob("held-targets-*.npz"))) == 2
 
     class Mine(MapEnergy):  # a user's energy: its state is its own
         pass
@@ -1058,7 +1089,7 @@ def test_held_targets_are_keyed_by_what_the_stepped_energy_computes(
     for _ in range(2):
         mine = sim(Mine(scenes.build("mini_chain"), subspace))
         assert mine.task._held_key(mine) is None
-    assert len(settles) == 4 and len(list((tmp_path / "envs").glob("*.npz"))) == 2
+    assert len(settles) == 4 and len(list((tmp_path / "envs").glob("held-targets-*.npz"))) == 2
     assert torch.equal(mine.task.held_targets, default.task.held_targets)  # the same physics, settled again
 
 
@@ -1140,6 +1171,7 @@ def test_the_disk_cache_of_settled_work_returns_what_was_computed(
             assert (old == new).all()
     keys = {}
     for file in (tmp_path / "envs").glob("*.npz"):
+        assert file.name.startswith("test-")  # named by what it holds
         with np.load(file) as data:
             keys[file] = data["key"]
     (path,) = [file for file, key in keys.items() if "'array'" in str(key)]
