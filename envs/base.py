@@ -628,6 +628,18 @@ class LatentSim:
         if unknown:
             allowed = ", ".join(repr(k) for k in (*accepted, *(("reset_mask",) if vector else ()))) or "none"
             raise ValueError(f"unknown reset option(s) {unknown}; this env accepts {allowed}")
+        try:
+            return self._checked_options(chosen)
+        except ValueError as err:
+            if vector and "must have shape" in str(err):  # one value per copy, stacked: a natural first try
+                raise ValueError(
+                    f"{err}: a vector env's reset option is one value for every copy the reset starts; give copies "
+                    "values of their own in separate resets, each with options['reset_mask'] naming its copies"
+                ) from None
+            raise
+
+    def _checked_options(self, chosen: Mapping[str, Any]) -> dict[str, Tensor]:
+        """:meth:`episode_options`' checks of the values of known keys ``chosen``."""
         out = {}
         for key, value in chosen.items():
             try:
@@ -636,7 +648,9 @@ class LatentSim:
                     raise TypeError
                 array = array.astype(np.float64)
             except (TypeError, ValueError):
-                raise ValueError(f"options[{key!r}] must be a number array, got {value!r:.80}") from None
+                raise ValueError(
+                    f"options[{key!r}] must be a number array (not a bool or a string), got {value!r:.80}"
+                ) from None
             if not np.isfinite(array).all():
                 raise ValueError(f"options[{key!r}] must be finite, got {array.tolist()}")
             out[key] = torch.as_tensor(array, device=self.device)
@@ -648,7 +662,7 @@ class LatentSim:
             if tuple(out["condition"].shape) != (m,):
                 raise ValueError(f"options['condition'] must have shape [{m}], got {list(out['condition'].shape)}")
             cond = out["condition"].to(self.torch_dtype)[None]
-            out["condition"] = self.check_cond(cond, "options['condition']")[0]
+            out["condition"] = self.check_cond(cond, "options['condition']", single=True)[0]
         return out
 
     def reset_rows(
@@ -1174,15 +1188,17 @@ class LatentSim:
             except ValueError as error:
                 raise ValueError(f"state['params'] of copy {row} is one a reset would refuse: {error}") from None
 
-    def check_cond(self, cond: Tensor, what: str = "state['cond']") -> Tensor:
-        """``cond`` [B, m], refused (ValueError naming ``what`` and the ranges) where it leaves the condition space."""
+    def check_cond(self, cond: Tensor, what: str = "state['cond']", single: bool = False) -> Tensor:
+        """``cond`` [B, m], refused (ValueError naming ``what`` and the ranges) where it leaves the condition space;
+        ``single``: ``what`` is one condition [m] (B = 1), shown as such."""
         if bool(((cond < self._cond_low) | (cond > self._cond_high)).any()):
             space = self.scene.condition_space
             ranges = ", ".join(
                 f"{name} in [{lo:g}, {hi:g}]"
                 for name, lo, hi in zip(space.names, space.low.tolist(), space.high.tolist(), strict=True)
             )
-            raise ValueError(f"{what} must lie in the condition space ({ranges}), got {shown(cond)}")
+            got = shown(cond[0] if single else cond)
+            raise ValueError(f"{what} must lie in the condition space ({ranges}), got {got}")
         return cond
 
     # -- drawing --------------------------------------------------------------------------

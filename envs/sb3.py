@@ -152,7 +152,10 @@ class SB3VecEnv(VecEnv):
         return [value for _ in self._get_indices(indices)]
 
     def set_attr(self, attr_name: str, value: Any, indices: Any = None) -> None:
-        raise AttributeError("the copies of a SB3VecEnv share one simulation; set attributes on the env instead")
+        raise AttributeError(
+            f"cannot set {attr_name!r} per copy: the copies of a SB3VecEnv share one simulation and its settings; "
+            "make it with the setting instead (SB3VecEnv.make(ENV_ID, num_envs=N, KEY=VALUE))"
+        )
 
     def env_method(self, method_name: str, *method_args: Any, indices: Any = None, **method_kwargs: Any) -> list[Any]:
         """Each listed copy's answer to ``method_name``: a per-copy method of the vector env's ``call``

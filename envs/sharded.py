@@ -30,7 +30,7 @@ from gymnasium.vector import AutoresetMode, VectorEnv
 from gymnasium.vector.utils import batch_space
 
 from redsim.envs.base import NO_HUMAN, VECTOR_RENDER_MODES, check_action, copy_seeds, restored_generator
-from redsim.envs.vector_api import SharedCopies, check_started, episode_clock, reset_mask
+from redsim.envs.vector_api import ClosedVectorEnvError, SharedCopies, check_started, episode_clock, reset_mask
 
 if TYPE_CHECKING:
     from redsim.envs.base import LatentEnv
@@ -430,7 +430,7 @@ class ShardedVectorEnv(SharedCopies, VectorEnv):
         closes the env too (its shards may now differ) and is raised here (:meth:`_gather`).
         """
         if self.closed or not self._pipes:
-            raise RuntimeError("this ShardedVectorEnv is closed")
+            raise ClosedVectorEnvError("this ShardedVectorEnv is closed")
         try:
             for shard, request in enumerate(requests):
                 try:

@@ -45,7 +45,7 @@ from redsim.envs.base import (
     state_row,
 )
 from redsim.envs.sharded import ShardedVectorEnv, shard_sizes
-from redsim.envs.vector_api import SharedCopies, check_started, episode_clock, reset_mask
+from redsim.envs.vector_api import ClosedVectorEnvError, SharedCopies, check_started, episode_clock, reset_mask
 from redsim.threads import torch_threads
 
 
@@ -293,7 +293,7 @@ class LatentVectorEnv(SharedCopies, VectorEnv):
     def _check_open(self) -> None:
         """Refuse a call after :meth:`close`, as the sharded env does (a closed env stepped on as if open)."""
         if self.closed:
-            raise RuntimeError("this LatentVectorEnv is closed")
+            raise ClosedVectorEnvError("this LatentVectorEnv is closed")
 
 
 def check_latent_env(env: Any) -> None:

@@ -15,10 +15,16 @@ from typing import TYPE_CHECKING, Any
 
 import numpy as np
 from gymnasium.envs.registration import EnvSpec
-from gymnasium.error import ResetNeeded
+from gymnasium.error import ClosedEnvironmentError, ResetNeeded
 
 if TYPE_CHECKING:
     from redsim.envs.base import LatentEnv
+
+
+class ClosedVectorEnvError(ClosedEnvironmentError, RuntimeError):
+    """A call on a closed redsim vector env: Gymnasium's ``ClosedEnvironmentError`` (what its ``AsyncVectorEnv``
+    raises), and a RuntimeError as before."""
+
 
 SHARED_METHODS = ("compute_reward", "compute_terminated", "compute_truncated")
 """Methods answered for every copy by the template: pure functions of their arguments (a goal env's)."""
@@ -204,6 +210,7 @@ __all__ = [
     "SHARED_METHODS",
     "STATEFUL",
     "VECTOR_KWARGS",
+    "ClosedVectorEnvError",
     "NotStarted",
     "SharedCopies",
     "check_started",

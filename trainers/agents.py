@@ -1269,7 +1269,8 @@ def record_gif(
     from PIL import Image
 
     if isinstance(env, str):
-        single = gym.make(env, render_mode="rgb_array", width=size, height=size, **dict(env_kwargs or {}))
+        # the env's own width and height win over ``size``
+        single = gym.make(env, **{"width": size, "height": size, **dict(env_kwargs or {}), "render_mode": "rgb_array"})
     elif env.render_mode == "rgb_array":
         single = env
     else:

@@ -202,12 +202,24 @@ def parse_params(items: Sequence[str], flag: str = "--param", example: str = "li
     return params
 
 
+NOT_ENV_ARGS = {
+    "disable_env_checker": "gym.make's own option, not the env's (the command makes vector envs, which do not take it)",
+    "render_mode": "the command sets the render mode itself",
+}
+"""``gym.make`` keywords that :func:`parse_env_args` refuses, and why."""
+
+
 def parse_env_args(
     items: Sequence[str], env_ids: Sequence[str], flag: str = "--env-arg", example: str = "cubature=true"
 ) -> dict[str, Any]:
     """Env keyword arguments from ``KEY=VALUE`` pairs (VALUE a JSON literal; given with ``flag``), checked by making
-    each of ``env_ids`` once with them, so that a bad one is a one-line :class:`CliError` rather than a traceback."""
+    each of ``env_ids`` once with them, so that a bad one is a one-line :class:`CliError` rather than a traceback.
+    ``gym.make``'s own ``disable_env_checker`` (the commands make vector envs, which pass every key to the env) and
+    ``render_mode`` (the command picks it) are refused."""
     kwargs = parse_params(items, flag, example)
+    for key, why in NOT_ENV_ARGS.items():
+        if key in kwargs:
+            raise CliError(f"{flag} {key}: {why}; drop it")
     if kwargs:
         import gymnasium as gym
 

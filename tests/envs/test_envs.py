@@ -641,6 +641,8 @@ def test_reset_info_holds_the_metrics_and_invariants_a_step_reports() -> None:
     # (an autoreset's slot, both modes: test_include_q_puts_the_configuration_in_the_reset_info_too)
     # SB3: the new episode's start in reset_infos, the ended step's own values in the step's info
     sb3 = SB3VecEnv.make(MINI, num_envs=2, max_episode_steps=2)
+    with pytest.raises(AttributeError, match=r"make it with the setting instead \(SB3VecEnv.make\(ENV_ID"):
+        sb3.set_attr("dt", 0.1)
     same = gym.make_vec(
         MINI, num_envs=2, vectorization_mode="vector_entry_point", max_episode_steps=2, autoreset_mode="SameStep"
     )

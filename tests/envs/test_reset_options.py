@@ -90,8 +90,8 @@ def test_a_chosen_condition_is_observed_and_one_outside_its_space_is_refused() -
     cond = (0.5 * (space.low + space.high)).tolist()
     obs, _ = env.reset(seed=0, options={"condition": cond, "target": [0.5, 0.0]})
     np.testing.assert_allclose(obs[-len(cond) :], cond, rtol=1e-6)
-    with pytest.raises(ValueError, match=r"options\['condition'\] must lie in the condition space"):
-        env.reset(options={"condition": (space.high + 1.0).tolist()})
+    with pytest.raises(ValueError, match=r"options\['condition'\] must lie in the condition space .*, got \[[^[]"):
+        env.reset(options={"condition": (space.high + 1.0).tolist()})  # shown as given: [m], not [[m]]
     with pytest.raises(ValueError, match=r"this env accepts 'speed'$"):
         gym.make("RedSim/Klann-v0").reset(options={"condition": cond})
 
@@ -106,6 +106,9 @@ def test_the_vector_env_sets_the_option_in_the_copies_it_resets() -> None:
     np.testing.assert_array_equal(targets[[0, 2]], drawn[[0, 2]])
     with pytest.raises(ValueError, match="this env accepts 'target', 'reset_mask'"):
         venv.reset(options={"speed": 1.0})
+    # one target per copy, stacked: refused, saying how to set copies apart (a user's first try)
+    with pytest.raises(ValueError, match=r"got \[3, 3\]: a vector env's reset option is one value for every copy"):
+        venv.reset(options={"target": [TARGET] * 3})
     venv.step(np.zeros((3, 3), np.float32))
     single = gym.make(ID)
     obs, _ = single.reset(seed=1, options={"target": TARGET})

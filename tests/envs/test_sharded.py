@@ -82,7 +82,7 @@ def test_reset_mask_state_round_trip_render_and_close() -> None:
     assert len(frames) == 3 and frames[0].ndim == 3 and frames[0].dtype == np.uint8
     venv.close()
     assert all(not p.is_alive() for p in processes)
-    with pytest.raises(RuntimeError, match="closed"):
+    with pytest.raises(gym.error.ClosedEnvironmentError, match="this ShardedVectorEnv is closed"):
         venv.step(np.zeros((3, 3), np.float32))
 
 

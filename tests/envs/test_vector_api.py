@@ -530,7 +530,7 @@ def test_a_closed_native_vector_env_refuses_to_step_or_reset_as_the_sharded_one_
     venv = gym.make_vec(ID, num_envs=2, vectorization_mode="vector_entry_point")
     venv.reset(seed=0)
     venv.close()
-    with pytest.raises(RuntimeError, match="this LatentVectorEnv is closed"):
+    with pytest.raises(gym.error.ClosedEnvironmentError, match="this LatentVectorEnv is closed"):  # AsyncVectorEnv's
         venv.step(np.zeros((2, 3), np.float32))
     with pytest.raises(RuntimeError, match="this LatentVectorEnv is closed"):
         venv.reset(seed=0)

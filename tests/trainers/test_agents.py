@@ -379,6 +379,28 @@ def test_bad_input_is_a_clear_cli_error(cli: Callable[..., tuple[int, str, str]]
     assert code == 2 and "give the episode length once" in err
     code, _, err = cli("train-agent", MINI, "--n-envs", "2", "--shards", "3", "--out", str(tmp_path))
     assert code == 2 and "shards must be an integer in [1, num_envs = 2], got 3" in err
+    # gym.make's own keys passed its check, then the vector env (or the GIF's gym.make) crashed with a traceback
+    code, _, err = cli("eval-agent", "shipped", MINI, "--episodes", "1", "--env-arg", "disable_env_checker=true")
+    assert code == 2 and "--env-arg disable_env_checker: gym.make's own option" in err and "Traceback" not in err
+    code, _, err = cli("train-agent", MINI, "--env-arg", 'render_mode="rgb_array"', "--out", str(tmp_path))
+    assert code == 2 and "--env-arg render_mode: the command sets the render mode itself; drop it" in err
+
+
+def test_the_gif_takes_the_env_args_width_and_height(tmp_path: Path) -> None:
+    """``--env-arg width=64`` trained the whole run, then the GIF's gym.make got width twice and crashed."""
+    from PIL import Image
+
+    from redsim.trainers.agents import record_gif
+
+    class Still:
+        def predict(self, obs: Any, deterministic: bool = True) -> tuple[np.ndarray, None]:
+            return np.zeros(3, np.float32), None
+
+    kwargs = {"width": 48, "height": 32, "max_episode_steps": 4}
+    assert record_gif(MINI, Still(), tmp_path / "a.gif", size=64, env_kwargs=kwargs) == 3
+    assert Image.open(tmp_path / "a.gif").size == (48, 32)
+    record_gif(MINI, Still(), tmp_path / "b.gif", size=40, env_kwargs={"max_episode_steps": 2})
+    assert Image.open(tmp_path / "b.gif").size == (40, 40)
 
 
 def test_evaluation_reports_the_episodes_that_ended_diverged(cli: Callable[..., tuple[int, str, str]]) -> None:
