@@ -44,7 +44,7 @@ from torch import Tensor, nn
 
 from redsim.devices import DTYPES, check_device
 from redsim.scene import Scene
-from redsim.subspace import CheckpointError, periodic_latents
+from redsim.subspace import CheckpointError, map_fingerprint, periodic_latents
 from redsim.threads import check_threads, torch_threads
 from redsim.usercache import cache_root, read_arrays, write_arrays
 from redsim.version import __version__
@@ -266,12 +266,22 @@ def cached(
     return cache[key]
 
 
-def map_key(subspace: nn.Module) -> tuple[str, str, str]:
+def map_key(subspace: nn.Module) -> tuple[str, str, str, str]:
     """What a map computes, for the keys of :func:`cached`: its class, its configuration (activation, periodic
-    latents, sizes: not in its weights) and a hash of its weights (:func:`redsim.subspace.map_fingerprint`)."""
-    from redsim.subspace import map_fingerprint
-
-    return type(subspace).__name__, repr(getattr(subspace, "config", None)), map_fingerprint(subspace)
+    latents, sizes: not in its weights), a hash of its weights exactly as they are (dtype included: the checkpoint's
+    :func:`redsim.subspace.map_fingerprint` reads them as float32, so a float64 copy shares it, but its solves differ)
+    and its modules' plain settings (an anchored map's order and radius)."""
+    weights = hashlib.sha256()
+    for name, value in sorted(subspace.state_dict().items()):
+        weights.update(f"{name}:{value.dtype}:{tuple(value.shape)}:".encode())
+        weights.update(value.detach().cpu().contiguous().reshape(-1).view(torch.uint8).numpy().tobytes())
+    settings = [
+        (name, key, value)
+        for name, module in subspace.named_modules()
+        for key, value in sorted(vars(module).items())
+        if not key.startswith("_") and isinstance(value, (bool, int, float, str))
+    ]
+    return type(subspace).__name__, repr(getattr(subspace, "config", None)), weights.hexdigest(), repr(settings)
 
 
 def _settled_arrays(value: Settled) -> dict[str, np.ndarray]:
@@ -577,14 +587,18 @@ class LatentSim:
     # -- configurations -------------------------------------------------------------------
     def _settled_rest(self) -> Tensor:
         """The rest latent [d] under the default condition (:meth:`_rest_latent`), solved once per process for each
-        scene content, map, dtype and device and kept on disk for the next process (:func:`cached`); solved every
-        time for a map that is not a module (its weights are not known by value)."""
+        scene content, map, dtype, device and shipped start (:func:`redsim.pretrained.rest_start`) and kept on disk
+        for the next process (:func:`cached`); solved every time for a map that is not a module (its weights are not
+        known by value)."""
         if not isinstance(self.subspace, nn.Module):
             return self._rest_latent(self.default_cond)
+        from redsim import pretrained
         from redsim.integrators.cache import scene_digest
 
         d = self.latent_dim
-        key = (scene_digest(self.source_scene), map_key(self.subspace), str(self.torch_dtype), str(self.device))
+        start = pretrained.rest_start(self.source_scene.name, map_fingerprint(self.subspace))  # a shipped map's
+        where = None if start is None else tuple(start.tolist())
+        key = (scene_digest(self.source_scene), map_key(self.subspace), str(self.torch_dtype), str(self.device), where)
 
         def check(value: Any) -> str:
             ok = isinstance(value, Tensor) and tuple(value.shape) == (d,) and value.dtype == self.torch_dtype
@@ -631,12 +645,21 @@ class LatentSim:
         try:
             return self._checked_options(chosen)
         except ValueError as err:
-            if vector and "must have shape" in str(err):  # one value per copy, stacked: a natural first try
+            if vector and self._stacked(chosen):  # one value per copy, stacked: a natural first try
                 raise ValueError(
                     f"{err}: a vector env's reset option is one value for every copy the reset starts; give copies "
                     "values of their own in separate resets, each with options['reset_mask'] naming its copies"
                 ) from None
             raise
+
+    def _stacked(self, chosen: Mapping[str, Any]) -> bool:
+        """Whether the first row of every value in ``chosen`` passes :meth:`_checked_options` (values stacked one per
+        copy)."""
+        try:
+            self._checked_options({key: np.asarray(value)[0] for key, value in chosen.items()})
+        except (ValueError, TypeError, IndexError):
+            return False
+        return True
 
     def _checked_options(self, chosen: Mapping[str, Any]) -> dict[str, Tensor]:
         """:meth:`episode_options`' checks of the values of known keys ``chosen``."""

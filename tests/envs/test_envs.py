@@ -951,6 +951,17 @@ def test_the_rest_latent_is_solved_once_per_process_and_read_back_by_the_next(
     back = gym.make("RedSim/MiniChain-v0").unwrapped.sim._rest
     assert len(solves) == 2 and torch.equal(back, first) and back.dtype == first.dtype
     assert len(list((tmp_path / "envs").glob("rest-latent-*.npz"))) == 2
+    # the map as it computes: a float64 copy of the same weights (one checkpoint fingerprint) solves its own rest
+    shipped = gym.make("RedSim/MiniChain-v0").unwrapped.sim.subspace
+    double = copy.deepcopy(shipped).double()
+    assert base.map_key(double) != base.map_key(shipped)
+    layer = torch.nn.Linear(2, 2)
+    plain = base.map_key(layer)
+    layer.order = 3  # a setting outside the weights (an anchored map's order and radius) is part of the key
+    assert base.map_key(layer) != plain
+    solves.clear()
+    gym.make("RedSim/MiniChain-v0", subspace=double)
+    assert len(solves) == 1
     solves.clear()
     envs = [gym.make("RedSim/ConditionalBar-v1") for _ in range(2)]  # the default condition's rest: made it solve 2
     assert len(solves) == 1

@@ -109,6 +109,8 @@ def test_the_vector_env_sets_the_option_in_the_copies_it_resets() -> None:
     # one target per copy, stacked: refused, saying how to set copies apart (a user's first try)
     with pytest.raises(ValueError, match=r"got \[3, 3\]: a vector env's reset option is one value for every copy"):
         venv.reset(options={"target": [TARGET] * 3})
+    with pytest.raises(ValueError, match=r"got \[2\]$"):  # a wrong value, not a stacked one: no hint
+        venv.reset(options={"target": TARGET[:2]})
     venv.step(np.zeros((3, 3), np.float32))
     single = gym.make(ID)
     obs, _ = single.reset(seed=1, options={"target": TARGET})
