@@ -586,26 +586,37 @@ class LatentSim:
 
     # -- configurations -------------------------------------------------------------------
     def _settled_rest(self) -> Tensor:
-        """The rest latent [d] under the default condition (:meth:`_rest_latent`), solved once per process for each
-        scene content, map, dtype, device and shipped start (:func:`redsim.pretrained.rest_start`) and kept on disk
-        for the next process (:func:`cached`); solved every time for a map that is not a module (its weights are not
-        known by value)."""
+        """The rest latent [d] under the default condition (:meth:`_settled_rests`)."""
+        return self._settled_rests([self.default_cond])[0]
+
+    def _settled_rests(self, conds: Sequence[Tensor | None]) -> tuple[Tensor, ...]:
+        """The rest latents [d] under ``conds`` (:meth:`_rest_latent`), solved once per process for each scene
+        content, map, dtype, device, shipped start (:func:`redsim.pretrained.rest_start`) and conditions and kept on
+        disk for the next process (:func:`cached`); solved every time for a map that is not a module (its weights are
+        not known by value)."""
+
+        def solve() -> tuple[Tensor, ...]:
+            return tuple(self._rest_latent(cond) for cond in conds)
+
         if not isinstance(self.subspace, nn.Module):
-            return self._rest_latent(self.default_cond)
+            return solve()
         from redsim import pretrained
         from redsim.integrators.cache import scene_digest
 
         d = self.latent_dim
         start = pretrained.rest_start(self.source_scene.name, map_fingerprint(self.subspace))  # a shipped map's
         where = None if start is None else tuple(start.tolist())
-        key = (scene_digest(self.source_scene), map_key(self.subspace), str(self.torch_dtype), str(self.device), where)
+        values = tuple(None if cond is None else tuple(cond.flatten().tolist()) for cond in conds)
+        key = (scene_digest(self.source_scene), map_key(self.subspace), str(self.torch_dtype), str(self.device))
+        key += (where, values)
 
         def check(value: Any) -> str:
-            ok = isinstance(value, Tensor) and tuple(value.shape) == (d,) and value.dtype == self.torch_dtype
-            return "" if ok else f"not a {self.torch_dtype} tensor of shape ({d},)"
+            shapes = [(tuple(v.shape), v.dtype) if isinstance(v, Tensor) else type(v) for v in value]
+            ok = isinstance(value, tuple) and shapes == [((d,), self.torch_dtype)] * len(conds)
+            return "" if ok else f"not {len(conds)} {self.torch_dtype} tensors of shape ({d},): {shapes}"
 
-        rest = cached(_rest_cache, key, lambda: self._rest_latent(self.default_cond), disk="rest latent", check=check)
-        return rest.to(self.device).clone()
+        rests = cached(_rest_cache, key, solve, disk="rest latent", check=check)
+        return tuple(rest.to(self.device).clone() for rest in rests)
 
     def _rest_latent(self, cond: Tensor | None) -> Tensor:
         """The rest latent [d] under ``cond`` (None: the scene has none; :meth:`LatentStepper.rest_latent`: from the
@@ -1247,6 +1258,11 @@ class LatentSim:
                 conds.append(torch.where(pick, self._cond_high, self._cond_low).unsqueeze(0))
         return conds
 
+    def frame_rests(self) -> list[tuple[Tensor | None, Tensor]]:
+        """Each of :meth:`frame_conditions` with its rest latent [d] (solved once: :meth:`_settled_rests`)."""
+        conds = self.frame_conditions()
+        return list(zip(conds, self._settled_rests(conds), strict=True))
+
     def frame_points(self) -> np.ndarray:
         """Points [P, D] [m] a fixed camera frames (computed once, then kept): the reset shapes (at rest under each
         of :meth:`frame_conditions`), every shape round the loop of each periodic latent (:data:`LOOP_SAMPLES`
@@ -1254,8 +1270,8 @@ class LatentSim:
         if self._frame_points is None:
             points = []
             angles = torch.linspace(-math.pi, math.pi, LOOP_SAMPLES + 1, dtype=self.torch_dtype)[:-1]
-            for cond in self.frame_conditions():
-                rest = self._rest_latent(cond).unsqueeze(0)
+            for cond, rest in self.frame_rests():
+                rest = rest.unsqueeze(0)
                 shapes = [rest]
                 for latent in self.periodic:  # each loop on its own, the other latents at rest
                     loop = rest.repeat(LOOP_SAMPLES, 1)

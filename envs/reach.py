@@ -295,8 +295,8 @@ class HandleReach(Task):
             sim.device, sim.torch_dtype
         )
         out = []
-        for cond in sim.frame_conditions():
-            z = sim._rest_latent(cond).unsqueeze(0) + self.target_spread * eps
+        for cond, rest in sim.frame_rests():
+            z = rest.unsqueeze(0) + self.target_spread * eps
             conds = None if cond is None else cond.expand(FRAME_SAMPLES, -1)
             goal = self._goal.position(sim.full_positions(z, conds)).detach().cpu().to(torch.float64).numpy()
             out += [sim.surface_points(z, conds), goal]

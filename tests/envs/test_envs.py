@@ -967,6 +967,17 @@ def test_the_rest_latent_is_solved_once_per_process_and_read_back_by_the_next(
     assert len(solves) == 1
     envs[0].reset(seed=0)  # a condition drawn for the episode solves its own
     assert len(solves) == 2
+    # the fixed camera frames the rest under each corner of the condition box: solved once (the env's frame and its
+    # task's targets solved each twice), and not again for an env made again
+    solves.clear()
+    frames = []
+    for _ in range(2):
+        env = gym.make("RedSim/ConditionalBar-v1", render_mode="rgb_array")
+        env.reset(seed=0)
+        solves.clear()
+        frames.append(env.render())
+        assert len(solves) == (4 if len(frames) == 1 else 0)
+    np.testing.assert_array_equal(frames[0], frames[1])
 
 
 def test_held_targets_are_settled_once_per_process_for_identical_envs() -> None:
