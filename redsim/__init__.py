@@ -23,28 +23,44 @@ if (
     __path__.append(str(_CHECKOUT))
 del _importlib_util, _pathlib, _CHECKOUT, _PROJECT
 
-# redsim.envs registers the Gymnasium ids ("RedSim/Chain-v0", ...) with string entry points: nothing
-# heavy is imported and no checkpoint is loaded until an env is made. redsim.fork_safety: a process forked
-# from this one runs torch on one thread (OpenMP's pool does not survive fork).
-from redsim import effects, envs, fork_safety, scenes
-from redsim.points import PointSet
-from redsim.scene import ConditionSpace, Handle, Scene, SceneBuilder, Surface
-from redsim.subspace import SubspaceConfig, SubspaceMap, load_subspace
+# redsim.envs registers the Gymnasium ids ("RedSim/Chain-v0", ...) with string entry points, and redsim.fork_safety
+# makes a process forked from this one run torch on one thread (OpenMP's pool does not survive fork). Neither
+# imports torch: the names below are loaded on first use (PEP 562), so ``import redsim`` and ``redsim --help``
+# stay quick.
+import importlib as _importlib
+
+from redsim import envs, fork_safety
 from redsim.version import __version__
 
-__all__ = [
-    "ConditionSpace",
-    "Handle",
-    "PointSet",
-    "Scene",
-    "SceneBuilder",
-    "SubspaceConfig",
-    "SubspaceMap",
-    "Surface",
-    "__version__",
-    "effects",
-    "envs",
-    "fork_safety",
-    "load_subspace",
-    "scenes",
-]
+_LAZY = {
+    "ConditionSpace": "redsim.scene",
+    "Handle": "redsim.scene",
+    "PointSet": "redsim.points",
+    "Scene": "redsim.scene",
+    "SceneBuilder": "redsim.scene",
+    "SubspaceConfig": "redsim.subspace",
+    "SubspaceMap": "redsim.subspace",
+    "Surface": "redsim.scene",
+    "effects": None,
+    "load_subspace": "redsim.subspace",
+    "scenes": None,
+}
+"""Public name -> the module that defines it (None: the name is a subpackage of redsim)."""
+
+
+def __getattr__(name: str) -> object:
+    """Import a public name on first use (the engine loads torch)."""
+    if name not in _LAZY:
+        raise AttributeError(f"module 'redsim' has no attribute {name!r}")
+    owner = _LAZY[name]
+    module = _importlib.import_module(f"redsim.{name}" if owner is None else owner)
+    value = module if owner is None else getattr(module, name)
+    globals()[name] = value
+    return value
+
+
+def __dir__() -> list[str]:
+    return sorted({*globals(), *_LAZY})
+
+
+__all__ = [*sorted(_LAZY), "__version__", "envs", "fork_safety"]

@@ -6,19 +6,25 @@ for threads that were not copied. Gymnasium's ``AsyncVectorEnv`` forks its worke
 Linux (after building one env in the parent to read its spaces), so
 ``gym.make_vec("RedSim/...", vectorization_mode="async")`` hung before this module existed. Registered at
 import: the child starts on one thread (as torch's own ``DataLoader`` workers do); it may raise the
-count itself if its parent never ran a parallel region. Spawned processes are not affected.
+count itself if its parent never ran a parallel region. Spawned processes are not affected. Importing this module
+does not import torch.
 """
 
 from __future__ import annotations
 
 import os
-
-import torch
+import sys
 
 
 def one_thread_in_child() -> None:
-    """``os.register_at_fork`` handler: one torch intra-op thread in the forked child."""
-    torch.set_num_threads(1)
+    """``os.register_at_fork`` handler: one torch intra-op thread in the forked child.
+
+    Nothing to do where the parent never imported torch (no thread pool to lose); importing it here would cost
+    every forked child ~2 s.
+    """
+    torch = sys.modules.get("torch")
+    if torch is not None:
+        torch.set_num_threads(1)
 
 
 if hasattr(os, "register_at_fork"):  # POSIX only; Windows has no fork

@@ -191,19 +191,22 @@ def test_every_option_with_a_default_names_it_in_its_help() -> None:
         for action in parser._actions:
             if isinstance(action, argparse._SubParsersAction):
                 for name, sub in action.choices.items():
-                    found += options(sub, f"{path} {name}")
+                    found += options(sub.complete(), f"{path} {name}")  # fit's options are added on first use
             elif action.option_strings and isinstance(action.default, int | float | str) and action.help:
                 found.append((f"{path} {action.option_strings[-1]}", action))
         return found
 
+    found = options(build_parser(), "redsim")
+    names = {name for name, _action in found}
     silent = [
         name
-        for name, action in options(build_parser(), "redsim")
+        for name, action in found
         if action.default not in (False, argparse.SUPPRESS)
         and "default" not in action.help
         and f"({action.default})" not in action.help
     ]
     assert silent == []
+    assert "redsim fit --seed" in names and "redsim train-agent --algo" in names
 
 
 @pytest.mark.parametrize(

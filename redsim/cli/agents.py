@@ -233,22 +233,10 @@ def cmd_eval_agent(args: argparse.Namespace) -> int:
     return EXIT_OK
 
 
-def add_commands(sub: Any) -> None:
-    """Add ``train-agent`` and ``eval-agent`` to the subcommands ``sub``."""
+def _add_train_arguments(p: Any) -> None:
+    """The options of ``redsim train-agent`` (added on first use: :meth:`redsim.cli.common.Parser.add_later`)."""
     from redsim.trainers.agents import ALGOS
 
-    p = sub.add_parser(
-        "train-agent",
-        help="train a stable-baselines3 agent on a RedSim env",
-        description=(
-            "Train an SB3 algorithm on ENV_ID through the native vector env, with the settings of "
-            "redsim.trainers.agents.HYPERPARAMS. Writes OUT/model.zip (+ model_vecnormalize.pkl where the "
-            "observations are normalized), best_model.zip, replay_buffer.pkl (SAC, TD3: tens of MB), checkpoints/, "
-            "curve.csv, curve.png (evaluation return vs env steps and wall time), evaluations.npz, progress.csv "
-            "(SB3's log; a resumed run adds progress-from-STEPS.csv), policy.gif and agent.json. --resume of a run "
-            "already at --steps trains nothing and makes its final evaluation and files again."
-        ),
-    )
     p.add_argument("env_id", metavar="ENV_ID", help="a RedSim env id, e.g. RedSim/MiniChain-v0 (prefix redsim: fine)")
     p.add_argument("--algo", choices=ALGOS, default="sac", help="algorithm (default sac)")
     p.add_argument("--steps", type=int, default=20_000, help="total env steps (default 20000)")
@@ -283,17 +271,11 @@ def add_commands(sub: Any) -> None:
     p.add_argument("--no-progress", action="store_true", help="no progress bar")
     finish_command(p, cmd_train_agent, "print one JSON summary", default_threads=1)
 
-    p = sub.add_parser(
-        "eval-agent",
-        help="mean return ± std and success rate of a trained agent",
-        description=(
-            "Run seeded episodes (seeds SEED .. SEED+EPISODES-1) of a model written by train-agent on ENV_ID "
-            "(MODEL 'shipped': the policy shipped with redsim for ENV_ID; --algo: any SB3 model of that algorithm); "
-            "with --baselines, the same episodes with a random policy and with the task's scripted controller. "
-            "Episodes that ended diverged (info['diverged']) are counted on each line and in --json "
-            "('diverged_episodes') and warned about on stderr."
-        ),
-    )
+
+def _add_eval_arguments(p: Any) -> None:
+    """The options of ``redsim eval-agent`` (added on first use)."""
+    from redsim.trainers.agents import ALGOS
+
     p.add_argument(
         "model",
         metavar="MODEL",
@@ -319,6 +301,36 @@ def add_commands(sub: Any) -> None:
     )
     _add_env_args(p, default="the model's training env's, else the id's")
     finish_command(p, cmd_eval_agent, "print one JSON document", default_threads=1)
+
+
+def add_commands(sub: Any) -> None:
+    """Add ``train-agent`` and ``eval-agent`` to the subcommands ``sub``."""
+    p = sub.add_parser(
+        "train-agent",
+        help="train a stable-baselines3 agent on a RedSim env",
+        description=(
+            "Train an SB3 algorithm on ENV_ID through the native vector env, with the settings of "
+            "redsim.trainers.agents.HYPERPARAMS. Writes OUT/model.zip (+ model_vecnormalize.pkl where the "
+            "observations are normalized), best_model.zip, replay_buffer.pkl (SAC, TD3: tens of MB), checkpoints/, "
+            "curve.csv, curve.png (evaluation return vs env steps and wall time), evaluations.npz, progress.csv "
+            "(SB3's log; a resumed run adds progress-from-STEPS.csv), policy.gif and agent.json. --resume of a run "
+            "already at --steps trains nothing and makes its final evaluation and files again."
+        ),
+    )
+    p.add_later(_add_train_arguments)  # --algo's choices come from redsim.trainers.agents, which imports torch
+
+    p = sub.add_parser(
+        "eval-agent",
+        help="mean return ± std and success rate of a trained agent",
+        description=(
+            "Run seeded episodes (seeds SEED .. SEED+EPISODES-1) of a model written by train-agent on ENV_ID "
+            "(MODEL 'shipped': the policy shipped with redsim for ENV_ID; --algo: any SB3 model of that algorithm); "
+            "with --baselines, the same episodes with a random policy and with the task's scripted controller. "
+            "Episodes that ended diverged (info['diverged']) are counted on each line and in --json "
+            "('diverged_episodes') and warned about on stderr."
+        ),
+    )
+    p.add_later(_add_eval_arguments)  # --algo's choices come from redsim.trainers.agents, which imports torch
 
 
 __all__ = ["add_commands"]

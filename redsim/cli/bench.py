@@ -39,7 +39,6 @@ from redsim.cli.common import (
 from redsim.cli.common import (
     machine_line as _machine_line,
 )
-from redsim.devices import DTYPES
 
 
 def cmd_bench_subspace(args: argparse.Namespace) -> int:
@@ -161,6 +160,8 @@ def cmd_bench_energy(args: argparse.Namespace) -> int:
         raise CliError(f"--batches must be >= 1, got {args.batches!r}")
     if not (math.isfinite(args.perturbation) and args.perturbation > 0):
         raise CliError(f"--perturbation must be a finite number > 0, got {args.perturbation}")
+    from redsim.devices import DTYPES
+
     dtypes = parse_list(args.dtypes, "--dtypes")
     unknown = [d for d in dtypes if d not in DTYPES]
     if unknown:
@@ -722,6 +723,17 @@ def _damping_options(args: argparse.Namespace, regimes: list[str]) -> dict[str, 
     return {"names": names, "seconds": seconds, "divisions": divisions, "full_divisions": full}
 
 
+def _add_bench_fit_arguments(p: Any) -> None:
+    """The options of ``redsim bench fit`` (added on first use: :meth:`redsim.cli.common.Parser.add_later`)."""
+    add_bench_scene_args(p, f"{','.join(redsim.scenes.names('bench-fit'))}, smallest first")
+    p.add_argument("--steps", type=int, default=20, help="timed steps per variant, over all rounds (default 20)")
+    p.add_argument("--warmup", type=int, default=3, help="untimed steps per round, the compile included (default 3)")
+    p.add_argument("--rounds", type=int, default=2, help="interleaved rounds of all variants (default 2)")
+    p.add_argument("--batch", type=int, default=32, help="latent samples per step (default 32)")
+    p.add_argument("--device", default="cpu", help="torch device (default cpu)")
+    finish_command(p, cmd_bench_fit, "print one JSON document on stdout", default_threads=1)
+
+
 def add_commands(sub: Any) -> Any:
     """Add ``bench`` and its subcommands to the subcommands ``sub``; returns the ``bench`` subcommands."""
     p = sub.add_parser("bench", help="benchmarks", description="Benchmarks; each prints the machine it ran on.")
@@ -799,13 +811,7 @@ def add_commands(sub: Any) -> Any:
             "all three alike), and the one-off compile time."
         ),
     )
-    add_bench_scene_args(p, f"{','.join(redsim.scenes.names('bench-fit'))}, smallest first")
-    p.add_argument("--steps", type=int, default=20, help="timed steps per variant, over all rounds (default 20)")
-    p.add_argument("--warmup", type=int, default=3, help="untimed steps per round, the compile included (default 3)")
-    p.add_argument("--rounds", type=int, default=2, help="interleaved rounds of all variants (default 2)")
-    p.add_argument("--batch", type=int, default=32, help="latent samples per step (default 32)")
-    p.add_argument("--device", default="cpu", help="torch device (default cpu)")
-    finish_command(p, cmd_bench_fit, "print one JSON document on stdout", default_threads=1)
+    p.add_later(_add_bench_fit_arguments)  # its help names the scenes, whose catalog imports torch
 
     p = bench.add_parser(
         "step",

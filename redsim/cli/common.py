@@ -7,19 +7,20 @@ Bad input is a :class:`CliError`, reported by :func:`redsim.cli.main` as one
 from __future__ import annotations
 
 import argparse
+import contextlib
 import json
 import math
 import re
 import sys
 import tempfile
-from collections.abc import Callable, Sequence
+from collections.abc import Callable, Iterator, Sequence
 from pathlib import Path
-from typing import Any, NoReturn
-
-import torch
+from typing import TYPE_CHECKING, Any, NoReturn
 
 import redsim
-from redsim.scene import Scene
+
+if TYPE_CHECKING:
+    from redsim.scene import Scene
 
 EXIT_OK = 0
 EXIT_SCENE_FAILED = 1
@@ -52,15 +53,39 @@ class SceneNotRebuilt(CliError):
 
 
 class Parser(argparse.ArgumentParser):
-    """An ArgumentParser whose usage errors become :class:`CliError` (one line, exit status 2)."""
+    """An ArgumentParser whose usage errors become :class:`CliError` (one line, exit status 2), and whose arguments
+    may be added on first use (:meth:`add_later`)."""
+
+    _pending: Callable[[Parser], None] | None = None
 
     def error(self, message: str) -> NoReturn:
         raise CliError(f"{message} (see `{self.prog} --help`)")
+
+    def add_later(self, add: Callable[[Parser], None]) -> None:
+        """Add this parser's arguments with ``add(self)`` when it first parses or prints its help, not now: a command
+        whose help text needs a module that imports torch (``fit``'s defaults) leaves ``redsim --help`` quick."""
+        self._pending = add
+
+    def complete(self) -> Parser:
+        """This parser with every argument added (:meth:`add_later`)."""
+        if self._pending is not None:
+            add, self._pending = self._pending, None
+            add(self)
+        return self
+
+    def format_usage(self) -> str:
+        self.complete()
+        return super().format_usage()
+
+    def format_help(self) -> str:
+        self.complete()
+        return super().format_help()
 
     def parse_known_args(  # type: ignore[override]
         self, args: Sequence[str] | None = None, namespace: argparse.Namespace | None = None
     ) -> tuple[argparse.Namespace, list[str]]:
         """As argparse's, recording in ``_prog`` the innermost (sub)command that parsed (it returns first)."""
+        self.complete()
         namespace, extras = super().parse_known_args(args, namespace)
         if not hasattr(namespace, "_prog"):
             namespace._prog = self.prog
@@ -384,17 +409,22 @@ def finish_command(
     parser.set_defaults(func=func)
 
 
-def apply_threads(args: argparse.Namespace) -> None:
-    """Set torch's intra-op threads from ``--threads`` (nothing when the command has none or it is unset)."""
+@contextlib.contextmanager
+def command_threads(args: argparse.Namespace) -> Iterator[None]:
+    """Run the command on ``--threads`` torch intra-op threads, giving an in-process caller (a test, a notebook) its
+    own setting back after it; nothing (and no torch import) when the command has no ``--threads`` or it is unset."""
     threads = getattr(args, "threads", None)
     if threads is None:
+        yield
         return
-    from redsim.threads import MAX_THREADS, check_threads
+    from redsim.threads import MAX_THREADS, check_threads, torch_threads
 
     try:
-        torch.set_num_threads(check_threads(threads))
+        threads = check_threads(threads)
     except ValueError as err:  # 99999999999 was an OverflowError traceback, 40000 a segfault
         raise CliError(f"--threads must be an integer in [1, {MAX_THREADS}], got {threads}") from err
+    with torch_threads(threads):
+        yield
 
 
 # -- scene arguments ------------------------------------------------------------------------

@@ -12,8 +12,6 @@ import warnings
 from collections.abc import Sequence
 from pathlib import Path
 
-import torch
-
 import redsim
 from redsim.cli import agents, bench, cache, cubature, envs, scenes, subspaces
 from redsim.cli.common import (
@@ -21,8 +19,8 @@ from redsim.cli.common import (
     CliError,
     Parser,
     StdoutClosed,
-    apply_threads,
     check_writable,
+    command_threads,
     error,
     warn,
 )
@@ -69,12 +67,10 @@ def main(argv: Sequence[str] | None = None) -> int:
         level=logging.INFO if args.verbose else logging.WARNING,
         format="redsim: %(levelname)s: %(name)s: %(message)s",
     )
-    threads = torch.get_num_threads()
     terminate = _interrupt_on_sigterm()
     try:
-        apply_threads(args)
-        _check_out(args)
-        with warnings.catch_warnings():  # the CLI says it in one line of its own (parse_env_id)
+        with command_threads(args), warnings.catch_warnings():  # the CLI says it in one line (parse_env_id)
+            _check_out(args)
             warnings.filterwarnings(
                 "ignore", message=".*The environment RedSim/.* is out of date", category=DeprecationWarning
             )
@@ -93,7 +89,6 @@ def main(argv: Sequence[str] | None = None) -> int:
         warn("interrupted")
         return EXIT_INTERRUPTED
     finally:
-        torch.set_num_threads(threads)  # in-process callers (tests, notebooks) keep their setting
         if terminate is not None:
             signal.signal(signal.SIGTERM, terminate)
 

@@ -8,8 +8,6 @@ import time
 from pathlib import Path
 from typing import Any
 
-import torch
-
 import redsim
 from redsim.cli.common import (
     EXIT_FAILED_STEP,
@@ -69,6 +67,8 @@ def _step_line(rec: dict[str, Any], steps: int) -> str:
 
 
 def cmd_simulate(args: argparse.Namespace) -> int:
+    import torch
+
     from redsim.plausibility import step_failure
 
     if args.steps < 1:

@@ -6,9 +6,7 @@ import argparse
 import dataclasses
 import math
 from pathlib import Path
-from typing import Any
-
-import torch
+from typing import TYPE_CHECKING, Any
 
 from redsim.cli.common import (
     EXIT_INTERRUPTED,
@@ -30,8 +28,11 @@ from redsim.cli.common import (
     warn,
 )
 from redsim.interrupts import ForcedInterrupt
-from redsim.scene import Scene
-from redsim.subspace import checkpoint_path, periodic_latents, sample_latents
+
+if TYPE_CHECKING:
+    import torch
+
+    from redsim.scene import Scene
 
 # (flag, FitConfig field, type, help); the flags of `redsim fit` are generated from this table.
 FIT_FLAGS: tuple[tuple[str, str, Any, str], ...] = (
@@ -177,6 +178,7 @@ def _check_stem(stem: Path, args: argparse.Namespace, scene: Scene | None = None
 
 
 def cmd_fit(args: argparse.Namespace) -> int:
+    from redsim.subspace import checkpoint_path
     from redsim.trainers import fit_subspace
     from redsim.trainers.fit import FitStopped, fit_command, low_stretch_warning, planned_steps, quiet_low_stretch
 
@@ -297,7 +299,10 @@ def cmd_inspect(args: argparse.Namespace) -> int:
 
 def _latent_samples(sub: Any, scene: Scene, count: int, seed: int) -> tuple[torch.Tensor, torch.Tensor | None]:
     """Seeded latents [count, d] (and conditions [count, m]) in the map's dtype (a float64 fit's too)."""
+    import torch
+
     from redsim.integrators import map_condition_dim, map_tensor
+    from redsim.subspace import periodic_latents, sample_latents
 
     generator = torch.Generator().manual_seed(seed)
     z = sample_latents(count, sub.latent_dim, periodic_latents(sub), generator=generator)
@@ -313,6 +318,7 @@ def _latent_samples(sub: Any, scene: Scene, count: int, seed: int) -> tuple[torc
 
 def cmd_sample(args: argparse.Namespace) -> int:
     import numpy as np
+    import torch
 
     if args.n < 1:
         raise CliError(f"-n must be an integer >= 1, got {args.n}")
@@ -355,6 +361,8 @@ def cmd_sample(args: argparse.Namespace) -> int:
 
 
 def cmd_animate(args: argparse.Namespace) -> int:
+    import torch
+
     from redsim.keyframes import catmull_rom_loop
     from redsim.render import MAX_GIF_FPS, MIN_GIF_FPS, animate_states
 
@@ -386,25 +394,8 @@ def _fit_defaults() -> dict[str, Any]:
     return dataclasses.asdict(FitConfig())
 
 
-def add_commands(sub: Any) -> None:
-    """Add ``fit``, ``inspect``, ``sample`` and ``animate`` to the subcommands ``sub``."""
-    p = sub.add_parser(
-        "fit",
-        help="fit a neural subspace to a scene (data-free)",
-        description=(
-            "Fit f(z) -> q by the paper's loss from the scene's energy alone. Defaults per scene come from "
-            "Table 1 (redsim.trainers.presets); flags override them. Writes OUT.pt + OUT.json (and OUT.fit.pt, "
-            "the resumable training state); an existing fit there is refused unless --resume or --overwrite. "
-            "Ctrl-C (or --stop-at) saves the state; rerun with --resume to continue to the fit's own length, or with "
-            "--resume and a larger --steps to extend a fit (the learning-rate schedule is recomputed for the new "
-            "length and recorded in the .json, an interruption as --stop-at in its command; ρ keeps its first ramp, "
-            "so a --steps that ends the fit before ρ reaches 1 is refused)."
-        ),
-        epilog=(
-            "Exit status: 0 done (or stopped by --stop-at), 2 bad input, 3 the loss became NaN/inf, "
-            "130 interrupted (resumable)."
-        ),
-    )
+def _add_fit_arguments(p: Any) -> None:
+    """The options of ``redsim fit`` (added on first use: :meth:`redsim.cli.common.Parser.add_later`)."""
     add_scene_args(p)
     fit_defaults = _fit_defaults()
     for flag, field, kind, text in FIT_FLAGS:
@@ -440,6 +431,28 @@ def add_commands(sub: Any) -> None:
         "--overwrite", action="store_true", help="replace an existing fit at STEM (without it, one is refused)"
     )
     finish_command(p, cmd_fit, "print the metadata as JSON (no progress bar)")
+
+
+def add_commands(sub: Any) -> None:
+    """Add ``fit``, ``inspect``, ``sample`` and ``animate`` to the subcommands ``sub``."""
+    p = sub.add_parser(
+        "fit",
+        help="fit a neural subspace to a scene (data-free)",
+        description=(
+            "Fit f(z) -> q by the paper's loss from the scene's energy alone. Defaults per scene come from "
+            "Table 1 (redsim.trainers.presets); flags override them. Writes OUT.pt + OUT.json (and OUT.fit.pt, "
+            "the resumable training state); an existing fit there is refused unless --resume or --overwrite. "
+            "Ctrl-C (or --stop-at) saves the state; rerun with --resume to continue to the fit's own length, or with "
+            "--resume and a larger --steps to extend a fit (the learning-rate schedule is recomputed for the new "
+            "length and recorded in the .json, an interruption as --stop-at in its command; ρ keeps its first ramp, "
+            "so a --steps that ends the fit before ρ reaches 1 is refused)."
+        ),
+        epilog=(
+            "Exit status: 0 done (or stopped by --stop-at), 2 bad input, 3 the loss became NaN/inf, "
+            "130 interrupted (resumable)."
+        ),
+    )
+    p.add_later(_add_fit_arguments)  # its defaults' help needs FitConfig, whose module imports torch
 
     p = sub.add_parser(
         "inspect",
