@@ -94,11 +94,11 @@ def make(
             give its arguments as ``task_options`` (e.g. ``{"goal_handle": "tip", "targets": "held"}``;
             ``max_force`` [N] defaults to half the scene's weight, or 1 N without gravity). The
             observation's blocks: ``env.unwrapped.observation_structure``.
-        max_episode_steps: Wrap in ``TimeLimit`` of this many steps (None or -1: no limit, no wrapper; -1 as
+        max_episode_steps: Wrap in a ``TimeLimit`` of this many steps (None or -1: no limit, no wrapper; -1 as
             ``gym.make`` and the vector envs read it). Registered as an entry point (``gym.register(id,
-            entry_point="redsim.envs:make", kwargs={..., "max_episode_steps": None}, max_episode_steps=N)``), give
-            None here: Gymnasium's own ``TimeLimit`` then holds the limit, not this one's 200 inside it (with
-            :func:`make_vec` as the vector entry point, keep the length in ``kwargs`` instead: its docstring).
+            entry_point="redsim.envs:make", kwargs={...}, max_episode_steps=N)``), the spec's N replaces this
+            default, as ``gym.make_vec`` gives N to :func:`make_vec`; a length in ``kwargs`` holds in both
+            (:class:`redsim.envs.factory.EpisodeLimit`).
         **kwargs: :class:`redsim.envs.base.LatentEnv` arguments, plus ``task_options`` (dict).
 
     Raises:
@@ -127,12 +127,12 @@ def make_vec(
     :class:`redsim.envs.vector.LatentVectorEnv`, or with ``shards`` P > 1 a
     :class:`redsim.envs.sharded.ShardedVectorEnv` of P worker processes (as a registered id's vector env).
 
-    It is the ``vector_entry_point`` of a user's own id: register both entry points with the episode length in
-    ``kwargs``, where both read it (``gym.register("MyRod-v0", entry_point="redsim.envs:make",
-    vector_entry_point="redsim.envs:make_vec", kwargs={"scene": scene, "subspace": "subspaces/part.pt",
-    "max_episode_steps": 200})``), then ``gym.make_vec("MyRod-v0", num_envs=N,
-    vectorization_mode="vector_entry_point")``. A length given only as the spec's ``max_episode_steps`` (with
-    ``"max_episode_steps": None`` in ``kwargs``, as :func:`make` allows) reaches this function as None: no limit.
+    It is the ``vector_entry_point`` of a user's own id: register both entry points (``gym.register("MyRod-v0",
+    entry_point="redsim.envs:make", vector_entry_point="redsim.envs:make_vec", kwargs={"scene": scene, "subspace":
+    "subspaces/part.pt"}, max_episode_steps=250)``), then ``gym.make_vec("MyRod-v0", num_envs=N,
+    vectorization_mode="vector_entry_point")``: Gymnasium passes the spec's length here, and :func:`make` takes it
+    too, so the single env and the copies end their episodes alike (a length in ``kwargs`` holds in both). With
+    ``"max_episode_steps": None`` in ``kwargs`` neither has a limit of its own.
 
     Args:
         scene, subspace, task: As :func:`make`'s (``task_options`` among ``kwargs``).

@@ -21,6 +21,28 @@ from redsim.envs.sharded import ShardedVectorEnv
 from redsim.envs.vector import LatentVectorEnv, vector_of
 from redsim.scene import Scene
 
+
+class EpisodeLimit(TimeLimit):
+    """:func:`redsim.envs.make`'s episode length, which a registered id's length replaces as Gymnasium replaces it
+    for the id's vector entry point: an id registered with ``max_episode_steps=N`` and none in its ``kwargs`` ends its
+    episodes at N, in ``gym.make`` as in ``gym.make_vec`` (which passes N to :func:`redsim.envs.make_vec`); 200
+    steps inside Gymnasium's N before. A length in the ``kwargs`` holds in both. (``gym.make(id,
+    max_episode_steps=M)`` is not seen here: Gymnasium gives the env a spec without a length.)"""
+
+    @property
+    def _max_episode_steps(self) -> int:
+        spec = self.env.unwrapped.spec  # gym.make's, once the entry point has returned: its kwargs, not its length
+        if spec is not None and "max_episode_steps" not in spec.kwargs:
+            registered = gym.registry.get(spec.id)
+            if registered is not None and registered.max_episode_steps is not None:
+                return int(registered.max_episode_steps)
+        return self._own_steps
+
+    @_max_episode_steps.setter
+    def _max_episode_steps(self, steps: int) -> None:
+        self._own_steps = steps
+
+
 TASKS: dict[str, type[Task]] = {"reach": HandleReach}
 """Task names accepted by :func:`redsim.envs.make`."""
 
@@ -68,8 +90,10 @@ def build(
         )
     if not hasattr(subspace, "latent_dim"):
         if not isinstance(subspace, (str, os.PathLike)):
+            fitted = hasattr(getattr(subspace, "subspace", None), "latent_dim")  # fit_subspace's FitResult
             raise TypeError(
-                f"subspace must be a map (an nn.Module with latent_dim) or a checkpoint path, got {subspace!r}"
+                "subspace must be a map (an nn.Module with latent_dim) or a checkpoint path, got "
+                + (f"a {type(subspace).__name__}: pass its .subspace" if fitted else f"{subspace!r:.80}")
             )
         subspace = checkpoint_subspace(subspace, scene)
     if isinstance(task, str):
@@ -82,7 +106,7 @@ def build(
     elif task_options:
         raise ValueError("task_options only apply to a task given by name")
     env: gym.Env = LatentEnv(scene, subspace, task, **kwargs)
-    return env if max_episode_steps in (None, -1) else TimeLimit(env, int(max_episode_steps))
+    return env if max_episode_steps in (None, -1) else EpisodeLimit(env, int(max_episode_steps))
 
 
 def _bare(*, scene: Scene | str, subspace: Any, task: Task | str, **kwargs: Any) -> LatentEnv:

@@ -21,7 +21,7 @@ if (
     # imported from a source checkout that is not installed editable (e.g. a Ray worker whose working directory is
     # the clone's root): redsim.envs and redsim.trainers are its top-level envs/ and trainers/ (pyproject's package-dir)
     __path__.append(str(_CHECKOUT))
-del _importlib_util, _pathlib, _CHECKOUT, _PROJECT
+del _pathlib, _CHECKOUT, _PROJECT
 
 # redsim.envs registers the Gymnasium ids ("RedSim/Chain-v0", ...) with string entry points, and redsim.fork_safety
 # makes a process forked from this one run torch on one thread (OpenMP's pool does not survive fork). Neither
@@ -45,14 +45,15 @@ _LAZY = {
     "load_subspace": "redsim.subspace",
     "scenes": None,
 }
-"""Public name -> the module that defines it (None: the name is a subpackage of redsim)."""
+"""Public name -> the module that defines it (None: the name is a subpackage of redsim, as every other submodule
+is reached too)."""
 
 
 def __getattr__(name: str) -> object:
-    """Import a public name on first use (the engine loads torch)."""
-    if name not in _LAZY:
+    """Import a public name, or any submodule (``redsim.meshes``), on first use (the engine loads torch)."""
+    owner = _LAZY.get(name)
+    if owner is None and (name.startswith("_") or _importlib_util.find_spec(f"redsim.{name}") is None):
         raise AttributeError(f"module 'redsim' has no attribute {name!r}")
-    owner = _LAZY[name]
     module = _importlib.import_module(f"redsim.{name}" if owner is None else owner)
     value = module if owner is None else getattr(module, name)
     globals()[name] = value

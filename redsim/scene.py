@@ -35,8 +35,10 @@ from redsim.effects.external import ExternalLoad, Gravity
 from redsim.points import PointSet
 from redsim.tensors import as_numbers, cast_tensors
 
-SOURCE_PARAMS = ("source", "mesh_sha256")
-"""Build parameters that record where a mesh scene was read from, not what it is (left out of its fingerprint)."""
+SOURCE_PARAMS = ("source", "mesh_sha256", "selections")
+"""Build parameters that record where a mesh scene was read from and the vertex indices its masks and index lists
+were given as, not what it is (left out of its fingerprint: the geometry is in ``mesh_digest``, what a selection
+chose in its ``ids:`` label)."""
 
 
 @dataclass(frozen=True)

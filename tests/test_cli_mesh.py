@@ -123,6 +123,44 @@ def test_a_checkpoint_json_is_a_scene_spec(cli: Cli, fitted: Path, box: Path, tm
     assert code == 2 and "not a scene name and --spec" in err
 
 
+def test_a_cloth_pinned_by_vertex_index_on_the_command_line_is_rebuilt_from_its_checkpoint(
+    cli: Cli, tmp_path: Path
+) -> None:
+    """`--param 'pin=[...]'` fitted, and then no command could use the fit: the .json held only the indices' hash."""
+    vertices, triangles = redsim.meshes.cloth_grid(0.2, 0.2, (3, 3), origin=(0.0, -0.2, 0.0))
+    sheet = tmp_path / "sheet.obj"
+    trimesh.Trimesh(vertices, triangles).export(sheet)
+    stem = tmp_path / "pinned"
+    argv = ["fit", "--mesh", str(sheet), "--kind", "cloth", "--param", "pin=[6,7,8]", "--param", 'handles={"c": [0]}']
+    code, _, err = cli(*argv, "--steps", "5", "--dim", "2", "--width", "8", "--layers", "1", "--out", str(stem))
+    assert code == 0, err
+    params = json.loads(stem.with_suffix(".json").read_text())["scene_params"]
+    assert params["selections"] == {"pin": [6, 7, 8], "handles": {"c": [0]}}
+    code, out, err = cli("inspect", str(stem.with_suffix(".pt")))
+    assert code == 0 and "not runnable" not in out + err, err
+    code, out, err = cli("simulate", "--spec", str(stem.with_suffix(".json")), "--steps", "1", "--json")
+    assert code == 0 and json.loads(out)["params"] == params, err
+
+
+def test_a_hand_written_spec_reads_a_relative_mesh_path_from_its_folder_and_needs_no_hash(
+    cli: Cli, box: Path, tmp_path: Path, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    (tmp_path / "specs").mkdir()
+    (tmp_path / "meshes").mkdir()
+    (tmp_path / "meshes" / "box.obj").write_bytes(box.read_bytes())
+    spec = tmp_path / "specs" / "box.json"
+    params = {"builder": "fem", "source": "../meshes/box.obj", "voxel_pitch": 0.05}
+    spec.write_text(json.dumps({"scene": "my_box", "scene_params": params}))
+    monkeypatch.chdir(tmp_path / "meshes")  # not the spec's folder: the path is the spec's, as written
+    code, out, err = cli("simulate", "--spec", str(spec), "--steps", "1", "--json")
+    assert code == 0, err
+    assert json.loads(out)["params"]["source"] == str(tmp_path / "meshes" / "box.obj")
+    assert scene_from_spec(spec).name == "my_box"
+    spec.write_text(json.dumps({"scene": "my_box", "scene_params": {"builder": "fem"}}))
+    code, _, err = cli("simulate", "--spec", str(spec), "--steps", "1")
+    assert code == 2 and "names no mesh file (a 'source' path in scene_params)" in err, err
+
+
 def test_bench_energy_on_a_mesh(cli: Cli, box: Path) -> None:
     code, out, err = cli(
         "bench", "energy", "--mesh", str(box), *MESH_ARGS, "--repeats", "1", "--batches", "1", "--json"
@@ -184,6 +222,8 @@ def test_kind_with_a_spec_is_refused(cli: Cli, tmp_path: Path) -> None:
         (["fit", "toy_two_tets", "--mesh", "x.obj", "--kind", "fem"], "not a scene name and --mesh"),
         (["fit", "--mesh", "/nonexistent/x.obj", "--kind", "fem"], "x.obj"),
         (["simulate", "--mesh", "/nonexistent/x.obj", "--kind", "plate"], "invalid choice"),
+        (["simulate", "cloth.obj"], "(a file path: a mesh goes with --mesh PATH --kind fem|cloth, a spec or"),
+        (["bench", "cubature", "subspaces/cloth.pt"], "(a file path: this command runs on catalog scenes only)"),
     ],
 )
 def test_mesh_argument_errors(cli: Cli, argv: list[str], expected: str) -> None:

@@ -101,6 +101,7 @@ def test_the_package_names_load_on_first_use() -> None:
     assert redsim.Scene is scene.Scene and redsim.SceneBuilder is scene.SceneBuilder
     assert redsim.load_subspace is subspace.load_subspace and redsim.effects is effects
     assert set(redsim.__all__) <= set(dir(redsim))
+    assert redsim.meshes.cloth_grid is not None  # any submodule, as when redsim's import loaded them all
     with pytest.raises(AttributeError, match="no attribute 'Scenes'"):
         redsim.Scenes  # noqa: B018 (the attribute access is the test)
 

@@ -184,9 +184,10 @@ def _algo_class(algo: str) -> Any:
     return {"ppo": PPO, "sac": SAC, "td3": TD3}[algo]
 
 
-KEPT_WRAPPERS = ("TimeLimit", "OrderEnforcing", "PassiveEnvChecker")
-"""Wrappers of a user's env that its vectorized copies stand in for (``gym.make``'s and :func:`redsim.envs.make`'s):
-the limit of a TimeLimit is kept; any other wrapper would not act on the copies and is refused."""
+KEPT_WRAPPERS = ("TimeLimit", "EpisodeLimit", "OrderEnforcing", "PassiveEnvChecker")
+"""Wrappers of a user's env that its vectorized copies stand in for (``gym.make``'s, and :func:`redsim.envs.make`'s
+:class:`redsim.envs.factory.EpisodeLimit`): the limit of a TimeLimit is kept; any other wrapper would not act on the
+copies and is refused."""
 
 
 def _base_env(env: gym.Env) -> tuple[Any, int | None]:

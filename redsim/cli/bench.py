@@ -213,7 +213,7 @@ def cmd_bench_step(args: argparse.Namespace) -> int:
 
     names = list(STEP_SCENES) if args.scenes is None else parse_list(args.scenes, "--scenes")
     for name in names:
-        check_scene_name(name)
+        check_scene_name(name, takes_files=False)
         if name not in pretrained.names():
             raise CliError(f"no shipped subspace for {name!r}; shipped: {', '.join(pretrained.names())}")
     try:

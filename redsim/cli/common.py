@@ -162,10 +162,19 @@ def catalog_names() -> list[str]:
     return list(redsim.scenes.names())
 
 
-def check_scene_name(name: str) -> None:
+def check_scene_name(name: str, *, takes_files: bool = True) -> None:
+    """Refuse a name that is not a catalog scene; a file path given for one is told where files go (``takes_files``:
+    the command has ``--mesh`` and ``--spec``; else it runs on catalog scenes only)."""
     names = catalog_names()
     if name not in names:
-        raise CliError(f"unknown scene {name!r}; valid scenes: {', '.join(names)}")
+        hint = ""
+        if redsim.scenes.looks_like_a_path(name):
+            hint = (
+                " (a file path: a mesh goes with --mesh PATH --kind fem|cloth, a spec or checkpoint .json with --spec)"
+                if takes_files
+                else " (a file path: this command runs on catalog scenes only)"
+            )
+        raise CliError(f"unknown scene {name!r}{hint}; valid scenes: {', '.join(names)}")
 
 
 def parse_env_id(text: str) -> str:
@@ -496,11 +505,11 @@ def _scene_from_spec_file(path: str, params: dict[str, Any]) -> Scene:
     if params:
         raise CliError("--param does not apply to --spec: the spec holds the scene's parameters")
     try:
-        doc = read_spec(path)
+        read_spec(path)  # an unreadable file says so without "cannot build"
     except SceneSpecError as err:
         raise CliError(str(err)) from err
     try:
-        return scene_from_spec(doc)
+        return scene_from_spec(path)  # a relative mesh path is the spec file's folder's
     except (SceneSpecError, TypeError, ValueError) as err:
         raise CliError(f"cannot build the scene of {path}: {err}") from err
 

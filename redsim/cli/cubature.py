@@ -173,7 +173,7 @@ def cmd_bench_cubature(args: argparse.Namespace) -> int:
             raise CliError(str(err)) from err
     names = parse_list(BENCH_SCENES if args.scenes is None else args.scenes, "SCENES")
     for name in names:
-        check_scene_name(name)
+        check_scene_name(name, takes_files=False)
     batches = tuple(parse_ints(args.batches, "--batches"))
     warmup = WARMUP_STEPS if args.warmup_steps is None else args.warmup_steps
     if warmup < 0:

@@ -20,6 +20,7 @@ from __future__ import annotations
 
 import inspect
 import numbers
+import os
 from collections.abc import Callable
 from typing import Any
 
@@ -59,8 +60,23 @@ def entry(name: str) -> SceneEntry:
         ValueError: on an unknown name (the message lists the valid names).
     """
     if name not in ENTRIES:
-        raise ValueError(f"unknown scene {name!r}; valid scenes: {names()}")
+        hint = (
+            " (a path: build a mesh file's scene with cloth_scene_from_mesh or fem_scene_from_mesh, a spec's or a "
+            "checkpoint's .json with redsim.scenes.spec.scene_from_spec)"
+            if looks_like_a_path(name)
+            else ""
+        )
+        raise ValueError(f"unknown scene {name!r}{hint}; valid scenes: {names()}")
     return ENTRIES[name]
+
+
+def looks_like_a_path(name: str) -> bool:
+    """Whether a scene name given is a file path (a folder in it, or a file suffix): its error says how to use one."""
+    return "/" in name or os.sep in name or os.path.splitext(name)[1].lower() in _PATH_SUFFIXES
+
+
+_PATH_SUFFIXES = (".obj", ".stl", ".ply", ".off", ".glb", ".gltf", ".msh", ".vtk", ".json", ".pt", ".npz")
+"""File suffixes a scene name is taken for a path by (:func:`looks_like_a_path`)."""
 
 
 def parameters(name: str) -> dict[str, Any]:
@@ -132,6 +148,7 @@ __all__ = [
     "entry",
     "fem_scene_from_mesh",
     "full_space_tol",
+    "looks_like_a_path",
     "names",
     "parameters",
 ]

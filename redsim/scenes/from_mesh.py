@@ -14,7 +14,7 @@ import hashlib
 import os
 import warnings
 from collections.abc import Callable, Mapping
-from typing import TYPE_CHECKING
+from typing import TYPE_CHECKING, Any
 
 import numpy as np
 import torch
@@ -143,7 +143,9 @@ def _check_pins(pin: PinSpec, pinned: np.ndarray, vertices: np.ndarray, elements
     elements [T, k]) with nothing to hang from."""
     count = vertices.shape[0]
     if pinned.size == count:
-        raise ValueError("pin selects every vertex; nothing would move")
+        flat = isinstance(pin, str) and pin != "none"  # e.g. a sheet lying in the plane the default 'max_y' names
+        fix = ": the mesh is flat along that axis; pin another side (e.g. pin='min_x') or vertex indices"
+        raise ValueError(f"pin {_shown(pin)} selects every vertex; nothing would move" + (fix if flat else ""))
     if not gravity:
         return
     shown = _shown(pin)
@@ -197,6 +199,26 @@ def _shown(spec: PinSpec) -> str:
     values = np.asarray(spec).tolist()
     text = repr(values)
     return text if len(text) <= 40 else f"{type(spec).__name__} of {len(values)} entries"
+
+
+def _selections_param(given: np.ndarray, pin: PinSpec, handles: Mapping[str, PinSpec] | None) -> dict[str, Any]:
+    """``{"selections": {"pin": indices, "handles": {name: indices}}}``: the file's vertex indices of each selection
+    given as a mask or an index list (its label is a hash, ``ids:...``), so that a spec rebuilds it; nothing without
+    any (a name is its own record, a callable cannot be recorded). Left out of the fingerprint, which hashes what they
+    select."""
+
+    def indices(spec: PinSpec, what: str) -> list[int] | None:
+        if spec is None or isinstance(spec, str) or callable(spec):
+            return None
+        return select_vertices(given, spec, tolerance=0.0, what=what).tolist()
+
+    recorded: dict[str, Any] = {}
+    if (chosen := indices(pin, "pin")) is not None:
+        recorded["pin"] = chosen
+    kept = {name: indices(spec, f"handle {name!r} selection") for name, spec in (handles or {}).items()}
+    if kept := {name: chosen for name, chosen in kept.items() if chosen is not None}:
+        recorded["handles"] = kept
+    return {"selections": recorded} if recorded else {}
 
 
 def _pin_label(spec: PinSpec, pinned: np.ndarray) -> str:
@@ -354,6 +376,7 @@ def fem_scene_from_mesh(
         }
         | _scale_param(scale)
         | _handles_param(labels)
+        | _selections_param(given, pin, handles)
     )
     return b.finalize(
         name,
@@ -462,6 +485,7 @@ def cloth_scene_from_mesh(
         }
         | _scale_param(scale)
         | _handles_param(labels)
+        | _selections_param(given, pin, handles)
     )
     return b.finalize(
         name,

@@ -4,8 +4,10 @@ A spec is ``{"scene": NAME, "scene_params": {...}}``, the two keys a checkpoint'
 holds, so a checkpoint's metadata is itself a spec. For a catalog scene the params are its
 builder arguments. For a scene from a user's mesh (:func:`fem_scene_from_mesh`,
 :func:`cloth_scene_from_mesh`) they also hold ``builder`` ("fem" or "cloth"), ``source`` (the
-mesh file's absolute path) and ``mesh_sha256`` (the file's hash): the file is re-read and
-must be unchanged.
+mesh file's absolute path; a relative one, in a spec file written by hand, is read from the spec file's folder)
+and ``mesh_sha256`` (the file's hash, which a hand-written spec may leave out): the file is re-read and must be
+unchanged; ``selections`` holds the file's vertex indices of a ``pin`` or handle given as a mask or an
+index list.
 
 Example::
 
@@ -27,7 +29,7 @@ from redsim.scenes.from_mesh import cloth_scene_from_mesh, fem_scene_from_mesh
 MESH_BUILDERS: dict[str, Callable[..., Scene]] = {"fem": fem_scene_from_mesh, "cloth": cloth_scene_from_mesh}
 """Builders of scenes from a user's mesh file, by ``--kind``."""
 
-_RECORD_ONLY = ("builder", "source", "mesh_sha256", "mesh_digest")
+_RECORD_ONLY = ("builder", "source", "mesh_sha256", "mesh_digest", "selections")
 """Mesh-scene params that describe the input rather than being builder arguments."""
 
 
@@ -97,13 +99,16 @@ def scene_from_spec(doc: Mapping[str, Any] | str | os.PathLike[str]) -> Scene:
 
     Raises:
         SceneSpecError: an unreadable file or one that is not a JSON object, no scene name, an unknown catalog
-            scene, a mesh scene built from an in-memory mesh or an explicit vertex selection, or a mesh file that is
-            missing or whose SHA-256 differs from the recorded one (both hashes are named).
+            scene, a mesh scene built from an in-memory mesh or from a vertex selection that is not recorded (a
+            Python function's), or a mesh file that is missing or whose SHA-256 differs from the recorded one (both
+            hashes are named).
         ValueError: parameters the builder rejects.
     """
     from redsim import scenes
 
+    folder = None
     if isinstance(doc, (str, os.PathLike)):
+        folder = os.path.dirname(os.path.abspath(doc))
         doc = read_spec(doc)
     name = doc.get("scene")
     if not isinstance(name, str):
@@ -123,31 +128,44 @@ def scene_from_spec(doc: Mapping[str, Any] | str | os.PathLike[str]) -> Scene:
     if kind not in MESH_BUILDERS:
         raise SceneSpecError(f"scene {name!r}: unknown mesh builder {kind!r}; valid: {', '.join(MESH_BUILDERS)}")
     source, recorded = params.get("source"), params.get("mesh_sha256")
-    if not isinstance(source, str) or recorded is None:
+    if source == "<trimesh>":
         raise SceneSpecError(
-            f"scene {name!r}: its spec names no mesh file and hash ('source', 'mesh_sha256'): a scene built from an "
-            "in-memory mesh; save the mesh to a file to rebuild it"
+            f"scene {name!r} was built from an in-memory mesh (source '<trimesh>'); save the mesh to a file and build "
+            "the scene from that file to rebuild it"
         )
+    if not isinstance(source, str) or not source:
+        raise SceneSpecError(f"scene {name!r}: its spec names no mesh file (a 'source' path in scene_params)")
+    if folder is not None and not os.path.isabs(source):  # a hand-written spec file's relative path
+        source = os.path.join(folder, source)
     if not os.path.isfile(source):
         raise SceneSpecError(f"scene {name!r}: mesh file {source!r} is missing")
     now = file_sha256(source)
-    if now != recorded:
+    if recorded is not None and now != recorded:
         raise SceneSpecError(
             f"scene {name!r}: mesh file {source!r} changed since the scene was recorded "
             f"(sha256 {recorded} recorded, {now} now)"
         )
     args = {k: v for k, v in params.items() if k not in _RECORD_ONLY}
+    selections = params.get("selections") or {}
     if str(args.get("pin", "")).startswith("ids:"):
-        raise SceneSpecError(
-            f"scene {name!r} pinned an explicit vertex selection ({args['pin']}), which is not recorded; "
-            "rebuild it in Python"
-        )
-    explicit = [key for key, label in (args.get("handles") or {}).items() if str(label).startswith("ids:")]
-    if explicit:
-        raise SceneSpecError(
-            f"scene {name!r} placed handle {explicit[0]!r} on an explicit vertex selection "
-            f"({args['handles'][explicit[0]]}), which is not recorded; rebuild it in Python"
-        )
+        if "pin" not in selections:
+            raise SceneSpecError(
+                f"scene {name!r} pinned a vertex selection that is not recorded ({args['pin']}: a Python function's, "
+                "or a mask or index list recorded before redsim recorded them); rebuild it in Python"
+            )
+        args["pin"] = selections["pin"]
+    handles = dict(args.get("handles") or {})
+    for key, label in handles.items():
+        if str(label).startswith("ids:"):
+            if key not in selections.get("handles", {}):
+                raise SceneSpecError(
+                    f"scene {name!r} placed handle {key!r} on a vertex selection that is not recorded ({label}: a "
+                    "Python function's, or a mask or index list recorded before redsim recorded them); rebuild it "
+                    "in Python"
+                )
+            handles[key] = selections["handles"][key]
+    if handles:
+        args["handles"] = handles
     return MESH_BUILDERS[kind](source, name=name, **args)
 
 

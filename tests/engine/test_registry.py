@@ -24,6 +24,10 @@ def test_names_by_tag() -> None:
         redsim.scenes.names("nope")
     with pytest.raises(ValueError, match=r"unknown scene 'nope'; valid scenes: \['cloth_ball'"):
         redsim.scenes.entry("nope")
+    for path in ("sheet.obj", "subspaces/part.json", "out/fit.pt"):  # a file given where a scene name goes
+        with pytest.raises(ValueError, match=r"\(a path: build a mesh file's scene with cloth_scene_from_mesh"):
+            redsim.envs.make(path)
+    assert not redsim.scenes.looks_like_a_path("chain")
 
 
 def test_bad_entries_are_refused() -> None:

@@ -345,6 +345,9 @@ def test_a_cloth_mesh_that_is_not_a_manifold_or_not_finite_or_not_held_is_refuse
         with pytest.raises(ValueError, match=f"pin {shown} selects no vertex: under gravity"):
             build(trimesh.Trimesh(vertices, triangles), pin=pin)
     assert build(trimesh.Trimesh(vertices, triangles), pin=None, gravity=False).free_dof_count == 3 * len(vertices)
+    lying = trimesh.Trimesh(vertices[:, [0, 2, 1]], triangles)  # flat in x-z: the default 'max_y' takes every vertex
+    with pytest.raises(ValueError, match=r"pin 'max_y' selects every vertex; .* flat along that axis; pin another"):
+        build(lying)
     above = np.array([[0.0, 1.0, 0.0], [0.1, 1.0, 0.0], [0.0, 1.1, 0.0]])  # a loose triangle takes the max_y pin
     loose = trimesh.Trimesh(np.vstack([vertices, above]), np.vstack([triangles, [[25, 26, 27]]]), process=False)
     with pytest.raises(ValueError, match=r"1 of the mesh's 2 separate pieces hold no pinned vertex .* vertex 0 at"):
@@ -476,8 +479,18 @@ def test_mesh_scenes_take_more_handles_by_vertex_selection(tmp_path) -> None:
     given = trimesh.load(path, process=False).vertices  # the file's own numbering (an STL's: three per triangle)
     far = np.nonzero(np.isclose(given[:, 0], 0.1))[0][:2]
     corners = redsim.scenes.fem_scene_from_mesh(path, voxel_pitch=0.01, pin="min_x", handles={"c": far})
-    with pytest.raises(SceneSpecError, match="handle 'c' on an explicit vertex selection"):
-        scene_from_spec(scene_spec(corners))
+    assert corners.params["handles"]["c"].startswith("ids:")  # the fingerprint hashes what the list selects
+    assert corners.params["selections"] == {"handles": {"c": sorted(far.tolist())}}  # the spec records the list
+    rebuilt = scene_from_spec(json.loads(json.dumps(scene_spec(corners))))  # was refused: "not recorded"
+    assert rebuilt.fingerprint() == corners.fingerprint() and rebuilt.params == corners.params
+
+    def end(vertices: np.ndarray) -> np.ndarray:
+        return vertices[:, 0] >= vertices[:, 0].max() - 1e-9
+
+    near = redsim.scenes.fem_scene_from_mesh(path, voxel_pitch=0.01, pin="min_x", handles={"c": end})
+    assert near.params["handles"]["c"].startswith("ids:") and "selections" not in near.params
+    with pytest.raises(SceneSpecError, match="handle 'c' on a vertex selection that is not recorded"):
+        scene_from_spec(scene_spec(near))  # a Python function cannot be recorded
     for handles, message in (
         ({"body": "max_x"}, "other than 'body'"),
         ({"end": "min_x"}, "selects only pinned vertices"),

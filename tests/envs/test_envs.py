@@ -913,6 +913,13 @@ def test_make_names_a_scene_or_task_of_the_wrong_type() -> None:
     # neither a map nor a path: named (pathlib's "expected str, bytes or os.PathLike" before; a review's finding)
     with pytest.raises(TypeError, match=r"subspace must be a map .* or a checkpoint path, got 42"):
         redsim.envs.make(scenes.build("mini_chain"), 42)
+    # fit_subspace's result for its map: the message held the result's repr, the whole training history (35 kB)
+    from redsim.trainers.fit import FitResult
+
+    fitted = FitResult(pretrained.load("mini_chain"), [{"loss": 1.0}] * 10_000, 1.0)
+    with pytest.raises(TypeError, match=r"got a FitResult: pass its .subspace$") as refused:
+        redsim.envs.make(scenes.build("mini_chain"), fitted)
+    assert len(str(refused.value)) < 200
 
 
 def test_make_of_a_catalog_scene_object_takes_its_shipped_subspace() -> None:

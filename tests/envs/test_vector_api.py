@@ -486,6 +486,32 @@ def test_a_users_own_id_gets_the_native_vector_env_through_make_vec(shards: int)
         gym.registry.pop(own)
 
 
+def test_a_users_own_id_ends_its_episodes_at_the_specs_length_single_and_vectorized() -> None:
+    """Registered the Gymnasium way, the length in the spec (a review's finding): ``gym.make`` ended episodes at
+    make's own 200 steps inside the spec's N, and ``gym.make_vec``, which passes N to make_vec, at N."""
+    from redsim.trainers.agents import _base_env
+
+    own = "RedSimTest/MyMiniLength-v0"
+    kwargs = {"scene": "mini_chain", "task_options": {"goal_handle": "bottom"}, **TIGHT}
+    gym.register(own, entry_point="redsim.envs:make", vector_entry_point="redsim.envs:make_vec", kwargs=kwargs)
+    try:
+        for length, given in ((4, False), (3, True)):  # the spec's length, or one in the kwargs (the spec says 4)
+            gym.registry[own].max_episode_steps = 4
+            if given:
+                gym.registry[own].kwargs["max_episode_steps"] = length
+            single = gym.make(own)
+            venv = gym.make_vec(own, num_envs=2, vectorization_mode="vector_entry_point")
+            single.reset(seed=0)
+            venv.reset(seed=0)
+            ends = [(single.step(PUSH[0])[3], bool(venv.step(PUSH)[3][0])) for _ in range(length)]
+            assert ends == [(False, False)] * (length - 1) + [(True, True)], (length, ends)
+            assert _base_env(single)[1] == length
+            venv.close()
+        assert redsim.envs.make("mini_chain")._max_episode_steps == 200  # no spec: make's own default
+    finally:
+        gym.registry.pop(own)
+
+
 @pytest.mark.parametrize("shards", [1, 2])
 def test_a_step_before_reset_raises_what_sync_raises(shards: int) -> None:
     """Gymnasium's sync env raises ``ResetNeeded`` for a step before its reset, so ``except ResetNeeded`` catches
