@@ -779,11 +779,16 @@ class LatentSim:
             if bool((load > 0.0).any()):
                 fractions[i] = float((resolution[load > 0.0] / load[load > 0.0]).min())
         if fractions.max() > ACTION_RESOLUTION_WARNING:
+            worst = fractions.max()
+            felt = (
+                f"cannot feel actions below {worst:.1%} of their range"
+                if worst <= 1.0
+                else f"cannot feel any value of an action (the least it feels is {worst:.3g}x its range)"
+            )
             warnings.warn(
-                f"{self.torch_dtype} at dt={self.stepper.dt:g} s cannot feel actions below "
-                f"{fractions.max():.1%} of their range (action {int(fractions.argmax())}): such a step ends where it "
-                "started (at best: from the map's origin, along the direction it moves a handle most); use "
-                "dtype='float64' or a longer dt (README 'Tolerance')",
+                f"{self.torch_dtype} at dt={self.stepper.dt:g} s {felt} (action {int(fractions.argmax())}): such a "
+                "step ends where it started (at best: from the map's origin, along the direction it moves a handle "
+                "most); use dtype='float64' or a longer dt (README 'Tolerance')",
                 stacklevel=2,
             )
         return fractions

@@ -2,9 +2,10 @@
 
 Run: python examples/mesh_to_agent.py [--fit-steps 3000] [--steps 20000] [--episode-steps 200] [--out DIR]
 [--resume | --overwrite]
-The mesh here is a small square sheet written to a temporary .obj, standing in for your file; its top
+The mesh here is a small square sheet written to DIR/my_sheet/sheet.obj, standing in for your file; its top
 edge is pinned, and the agent pulls the sheet (handle "cloth") to targets the subspace can reach.
-Everything goes to DIR/my_sheet (default runs/my_sheet): the fitted map (subspace.pt, .json) and the agent's run.
+Everything goes to DIR/my_sheet (default runs/my_sheet): the mesh, the fitted map (subspace.pt, .json; `redsim inspect
+DIR/my_sheet/subspace.pt` rebuilds its scene) and the agent's run.
 Stopped by Ctrl-C while training, the run is saved and `--resume` goes on from it in the same map; a folder that
 holds a run is refused unless `--resume` continues it or `--overwrite` fits and trains anew.
 main()'s defaults are the tiny budget the test suite runs (a subspace that small is not a good one).
@@ -60,7 +61,8 @@ def main(
         folder = Path(out or tmp) / "my_sheet"
         fitted = folder / "subspace.pt"
         check_folder(folder, resume, overwrite)  # before a fit could replace the run's map
-        path = Path(tmp) / "sheet.obj"
+        folder.mkdir(parents=True, exist_ok=True)
+        path = folder / "sheet.obj"  # beside the map, whose .json names it: `redsim inspect` rebuilds the scene
         sheet().export(path)
         scene = redsim.scenes.cloth_scene_from_mesh(path, pin="max_y", name="my_sheet")
         losses = [0.0]
@@ -70,7 +72,6 @@ def main(
             fit = fit_subspace(scene, dim=3, sigma=0.05, lam=1.0, steps=fit_steps, progress=False)
             print(f"{scene.name}: n = {scene.free_dof_count}, fitted d = 3 in {fit.fit_seconds:.1f} s")
             subspace, losses = fit.subspace, [h["loss"] for h in fit.history]
-            folder.mkdir(parents=True, exist_ok=True)
             subspace.save(folder / "subspace")
 
         env = redsim.envs.make(scene, subspace, task="reach", max_episode_steps=episode_steps)  # --resume: the same

@@ -222,6 +222,10 @@ def test_kind_with_a_spec_is_refused(cli: Cli, tmp_path: Path) -> None:
         (["fit", "toy_two_tets", "--mesh", "x.obj", "--kind", "fem"], "not a scene name and --mesh"),
         (["fit", "--mesh", "/nonexistent/x.obj", "--kind", "fem"], "x.obj"),
         (["simulate", "--mesh", "/nonexistent/x.obj", "--kind", "plate"], "invalid choice"),
+        (
+            ["fit", "--mesh", "x.obj", "--kind", "fem", "--param", "youngs=3"],
+            "unknown parameter(s) ['youngs'] of a fem",
+        ),
         (["simulate", "cloth.obj"], "(a file path: a mesh goes with --mesh PATH --kind fem|cloth, a spec or"),
         (["bench", "cubature", "subspaces/cloth.pt"], "(a file path: this command runs on catalog scenes only)"),
     ],

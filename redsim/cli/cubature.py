@@ -78,7 +78,9 @@ def cmd_cubature(args: argparse.Namespace) -> int:
     if target.exists() and not target.is_file():  # found before the fit, not when it saves
         raise CliError(f"{target} is a folder, not a file: remove it, or copy STEM.pt and STEM.json elsewhere")
     if target.exists() and not args.overwrite:
-        raise CliError(f"{target} exists (the cubature the runtime uses for this map); --overwrite replaces it")
+        raise CliError(
+            f"{target} exists (this map's cubature, which an env made with cubature=True uses); --overwrite replaces it"
+        )
     if (why := write_error(target.absolute().parent)) is not None:
         raise CliError(
             f"cannot write {target}: its folder is not writable ({why}; copy STEM.pt and STEM.json elsewhere)"

@@ -17,6 +17,7 @@ Example::
 
 from __future__ import annotations
 
+import inspect
 import json
 import os
 from collections.abc import Callable, Mapping
@@ -83,10 +84,14 @@ def mesh_scene(kind: str, path: str | os.PathLike[str], **params: Any) -> Scene:
 
     Raises:
         SceneSpecError: an unknown kind.
+        ValueError: a parameter the builder does not take (the valid ones are named).
         FileNotFoundError, ValueError: from the builder (missing file, bad mesh or argument).
     """
     if kind not in MESH_BUILDERS:
         raise SceneSpecError(f"unknown mesh builder kind {kind!r}; valid: {', '.join(MESH_BUILDERS)}")
+    valid = list(inspect.signature(MESH_BUILDERS[kind]).parameters)[1:]  # after the mesh
+    if unknown := [key for key in params if key not in valid]:
+        raise ValueError(f"unknown parameter(s) {unknown} of a {kind} mesh scene; valid: {', '.join(valid)}")
     return MESH_BUILDERS[kind](path, **params)
 
 

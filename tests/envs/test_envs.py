@@ -1295,3 +1295,5 @@ def test_an_env_too_coarse_to_feel_its_actions_warns_at_its_first_reset() -> Non
     assert resolution.shape == (3,) and (resolution > ACTION_RESOLUTION_WARNING).all()
     np.testing.assert_allclose(fine.unwrapped.sim.action_resolution, resolution / 1000, rtol=1e-3)
     assert (default.unwrapped.sim.action_resolution < 0.01).all()
+    with pytest.warns(UserWarning, match=r"cannot feel any value of an action \(the least it feels is .*x its range"):
+        gym.make("RedSim/MiniChain-v0", dt=0.005, max_force=0.01).reset(seed=0)  # was "below 1234.5% of their range"
