@@ -131,8 +131,9 @@ def make_vec(
     entry_point="redsim.envs:make", vector_entry_point="redsim.envs:make_vec", kwargs={"scene": scene, "subspace":
     "subspaces/part.pt"}, max_episode_steps=250)``), then ``gym.make_vec("MyRod-v0", num_envs=N,
     vectorization_mode="vector_entry_point")``: Gymnasium passes the spec's length here, and :func:`make` takes it
-    too, so the single env and the copies end their episodes alike (a length in ``kwargs`` holds in both). With
-    ``"max_episode_steps": None`` in ``kwargs`` neither has a limit of its own.
+    too, so the single env and the copies end their episodes alike (a length in ``kwargs`` holds in both). Give the
+    length one way: with ``"max_episode_steps": None`` in ``kwargs`` and N in the spec, ``gym.make`` still wraps
+    Gymnasium's ``TimeLimit(N)`` while the copies here have no limit.
 
     Args:
         scene, subspace, task: As :func:`make`'s (``task_options`` among ``kwargs``).

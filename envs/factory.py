@@ -6,10 +6,12 @@ from __future__ import annotations
 import functools
 import numbers
 import os
+import sys
 from collections.abc import Mapping
 from typing import Any
 
 import gymnasium as gym
+from gymnasium.envs.registration import EnvSpec
 from gymnasium.vector import AutoresetMode
 from gymnasium.wrappers import TimeLimit
 from torch import nn
@@ -21,26 +23,38 @@ from redsim.envs.sharded import ShardedVectorEnv
 from redsim.envs.vector import LatentVectorEnv, vector_of
 from redsim.scene import Scene
 
+NO_LIMIT = sys.maxsize
+""":class:`EpisodeLimit`'s length where Gymnasium's own ``TimeLimit`` around it holds the episode's (or none)."""
+
 
 class EpisodeLimit(TimeLimit):
-    """:func:`redsim.envs.make`'s episode length, which a registered id's length replaces as Gymnasium replaces it
-    for the id's vector entry point: an id registered with ``max_episode_steps=N`` and none in its ``kwargs`` ends its
-    episodes at N, in ``gym.make`` as in ``gym.make_vec`` (which passes N to :func:`redsim.envs.make_vec`); 200
-    steps inside Gymnasium's N before. A length in the ``kwargs`` holds in both. (``gym.make(id,
-    max_episode_steps=M)`` is not seen here: Gymnasium gives the env a spec without a length.)"""
+    """:func:`redsim.envs.make`'s episode length, which gives way to Gymnasium's where ``gym.make`` made the env:
+    an id registered with ``max_episode_steps=N`` and no length in its ``kwargs`` ends its episodes where Gymnasium's
+    ``TimeLimit`` ends them (N; M for ``gym.make(id, max_episode_steps=M)``; never for -1), as ``gym.make_vec``
+    passes N to :func:`redsim.envs.make_vec`; 200 steps inside Gymnasium's length before. A length in the ``kwargs``
+    holds in both, and an id registered with no length at all keeps make's 200, as make_vec does."""
 
     @property
     def _max_episode_steps(self) -> int:
-        spec = self.env.unwrapped.spec  # gym.make's, once the entry point has returned: its kwargs, not its length
-        if spec is not None and "max_episode_steps" not in spec.kwargs:
+        if self._resolved is None:
+            spec = self.env.unwrapped.spec  # gym.make's, once the entry point has returned: its kwargs, no length
+            if spec is None:  # made directly (or gym.make has not returned yet)
+                return self._own_steps
             registered = gym.registry.get(spec.id)
-            if registered is not None and registered.max_episode_steps is not None:
-                return int(registered.max_episode_steps)
-        return self._own_steps
+            own = "max_episode_steps" in spec.kwargs or (
+                registered is not None and registered.max_episode_steps is None
+            )
+            self._resolved = self._own_steps if own else NO_LIMIT
+        return self._resolved
 
     @_max_episode_steps.setter
     def _max_episode_steps(self, steps: int) -> None:
-        self._own_steps = steps
+        self._own_steps, self._resolved = steps, None
+
+    @property
+    def spec(self) -> EnvSpec | None:
+        """As TimeLimit's, without a length where Gymnasium's ``TimeLimit`` holds it (no wrapper of its own)."""
+        return self.env.spec if self._max_episode_steps == NO_LIMIT else super().spec
 
 
 TASKS: dict[str, type[Task]] = {"reach": HandleReach}

@@ -7,7 +7,8 @@ Linux (after building one env in the parent to read its spaces), so
 ``gym.make_vec("RedSim/...", vectorization_mode="async")`` hung before this module existed. Registered at
 import: the child starts on one thread (as torch's own ``DataLoader`` workers do); it may raise the
 count itself if its parent never ran a parallel region. Spawned processes are not affected. Importing this module
-does not import torch.
+does not import torch, and a child of a parent that never loaded torch is left alone: it has no pool to lose, and it
+imports torch with torch's default thread count (an env still computes on its own ``threads``, default 1).
 """
 
 from __future__ import annotations

@@ -440,7 +440,8 @@ class Scene:
     def accepts(self, fingerprint: str | None) -> bool:
         """Whether a checkpoint's recorded fingerprint names this scene: this one, or the one written before stop
         29's rule (name and every parameter, a mesh's file path included; a hand-built scene's name alone)."""
-        if fingerprint in (self.fingerprint(), _hash({"name": self.name, "params": self.params})):
+        before = {k: v for k, v in self.params.items() if k != "selections"}  # recorded since stop 63
+        if fingerprint in (self.fingerprint(), _hash({"name": self.name, "params": before})):
             return True
         params = {k: v for k, v in self.params.items() if k not in SOURCE_PARAMS}
         return not params and fingerprint == _hash({"name": self.name, "params": {"data": self._data_digest(1)}})

@@ -161,6 +161,21 @@ def test_a_hand_written_spec_reads_a_relative_mesh_path_from_its_folder_and_need
     assert code == 2 and "names no mesh file (a 'source' path in scene_params)" in err, err
 
 
+def test_a_checkpoint_json_edited_to_a_relative_mesh_path_reads_it_from_its_folder(
+    cli: Cli, fitted: Path, box: Path, tmp_path: Path, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    """As a hand-written spec's: a checkpoint loaded by the commands resolved it against the working folder."""
+    meta = json.loads(fitted.with_suffix(".json").read_text())
+    meta["scene_params"]["source"] = "box.obj"
+    (tmp_path / "box.obj").write_bytes(box.read_bytes())
+    (tmp_path / "m.json").write_text(json.dumps(meta))
+    (tmp_path / "m.pt").write_bytes(fitted.read_bytes())
+    (tmp_path / "elsewhere").mkdir()
+    monkeypatch.chdir(tmp_path / "elsewhere")
+    code, _, err = cli("sample", str(tmp_path / "m.pt"), "-n", "2", "--out", str(tmp_path / "s.npz"))
+    assert code == 0, err
+
+
 def test_bench_energy_on_a_mesh(cli: Cli, box: Path) -> None:
     code, out, err = cli(
         "bench", "energy", "--mesh", str(box), *MESH_ARGS, "--repeats", "1", "--batches", "1", "--json"
@@ -226,6 +241,7 @@ def test_kind_with_a_spec_is_refused(cli: Cli, tmp_path: Path) -> None:
             ["fit", "--mesh", "x.obj", "--kind", "fem", "--param", "youngs=3"],
             "unknown parameter(s) ['youngs'] of a fem",
         ),
+        (["fit", "redsim:RedSim/Chain-v0"], "(an env id: demo, train-agent, eval-agent and bench envs take ids;"),
         (["simulate", "cloth.obj"], "(a file path: a mesh goes with --mesh PATH --kind fem|cloth, a spec or"),
         (["bench", "cubature", "subspaces/cloth.pt"], "(a file path: this command runs on catalog scenes only)"),
     ],

@@ -122,8 +122,10 @@ def test_the_command_line_loads_torch_only_for_a_command_that_needs_it() -> None
     assert _run(script).split("\n")[:2] == ["[0, 0] False", "[0, 0] True"]
 
 
-def test_ctrl_c_while_a_command_loads_torch_exits_130_with_one_line() -> None:
-    """Ctrl-C in a command's first seconds (torch loading) was a KeyboardInterrupt traceback from the imports."""
+@pytest.mark.parametrize("argv", [["simulate", "mini_chain", "--steps", "1"], ["fit", "mini_chain", "--steps", "1"]])
+def test_ctrl_c_while_a_command_loads_torch_exits_130_with_one_line(argv: list[str]) -> None:
+    """Ctrl-C in a command's first seconds (torch loading) was a KeyboardInterrupt traceback from the imports; fit
+    loads it while parsing (its options' defaults), before the command runs (helper-194's finding)."""
     script = (
         "import sys\n"
         "class CtrlC:\n"
@@ -132,7 +134,7 @@ def test_ctrl_c_while_a_command_loads_torch_exits_130_with_one_line() -> None:
         "            raise KeyboardInterrupt\n"
         "sys.meta_path.insert(0, CtrlC())\n"
         "from redsim.cli import main\n"
-        "print(main(['simulate', 'mini_chain', '--steps', '1']))\n"
+        f"print(main({argv!r}))\n"
     )
     import subprocess
     import sys

@@ -196,7 +196,9 @@ def _base_env(env: gym.Env) -> tuple[Any, int | None]:
     Raises:
         ValueError: a wrapper other than :data:`KEPT_WRAPPERS` (the copies are made from the bare env).
     """
-    limit = env.spec.max_episode_steps if env.spec is not None else None
+    from redsim.envs.factory import NO_LIMIT
+
+    limits = [env.spec.max_episode_steps] if env.spec is not None and env.spec.max_episode_steps is not None else []
     inner: Any = env
     while isinstance(inner, gym.Wrapper):
         if type(inner).__name__ not in KEPT_WRAPPERS:
@@ -205,9 +207,10 @@ def _base_env(env: gym.Env) -> tuple[Any, int | None]:
                 "env without it (a TimeLimit's length is kept; normalized observations are train_agent's setting "
                 "overrides={'normalize': {...}}, and an Agent trained so normalizes its observations itself)"
             )
-        limit = getattr(inner, "_max_episode_steps", limit)
+        limits.append(getattr(inner, "_max_episode_steps", NO_LIMIT))
         inner = inner.env
-    return inner, limit
+    limit = min(limits, default=NO_LIMIT)  # the first TimeLimit to end an episode ends it
+    return inner, None if limit == NO_LIMIT else limit
 
 
 def vector_env(

@@ -168,7 +168,9 @@ def check_scene_name(name: str, *, takes_files: bool = True) -> None:
     names = catalog_names()
     if name not in names:
         hint = ""
-        if redsim.scenes.looks_like_a_path(name):
+        if redsim.scenes.looks_like_an_env_id(name):
+            hint = " (an env id: demo, train-agent, eval-agent and bench envs take ids; this command takes a scene)"
+        elif redsim.scenes.looks_like_a_path(name):
             hint = (
                 " (a file path: a mesh goes with --mesh PATH --kind fem|cloth, a spec or checkpoint .json with --spec)"
                 if takes_files
@@ -562,9 +564,9 @@ def load_checkpoint(path: str) -> tuple[Scene, Any]:
             state = checkpoint_path(path, ".fit.pt")
             unfinished = f" ({state} holds an unfinished fit: `redsim fit ... --resume` finishes it)"
             raise CheckpointError("the weights file is missing" + unfinished * state.is_file(), str(weights))
-        doc = read_metadata(path)
+        read_metadata(path)  # a missing or corrupt .json says so as a checkpoint's
         try:
-            scene = scene_from_spec(doc)
+            scene = scene_from_spec(weights)  # its .json: a relative mesh path is its folder's
         except (SceneSpecError, TypeError, ValueError) as err:
             raise SceneNotRebuilt(f"{weights}: cannot rebuild the checkpoint's scene: {err}") from err
         return scene, load_subspace(path, scene=scene)

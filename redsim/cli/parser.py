@@ -63,6 +63,9 @@ def main(argv: Sequence[str] | None = None) -> int:
     except CliError as err:
         error(str(err))
         return err.code
+    except KeyboardInterrupt:  # while a command's options load (Parser.add_later: fit's import torch)
+        warn("interrupted")
+        return EXIT_INTERRUPTED
     logging.basicConfig(
         level=logging.INFO if args.verbose else logging.WARNING,
         format="redsim: %(levelname)s: %(name)s: %(message)s",

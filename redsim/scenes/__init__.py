@@ -21,6 +21,7 @@ from __future__ import annotations
 import inspect
 import numbers
 import os
+import re
 from collections.abc import Callable
 from typing import Any
 
@@ -60,19 +61,29 @@ def entry(name: str) -> SceneEntry:
         ValueError: on an unknown name (the message lists the valid names).
     """
     if name not in ENTRIES:
-        hint = (
-            " (a path: build a mesh file's scene with cloth_scene_from_mesh or fem_scene_from_mesh, a spec's or a "
-            "checkpoint's .json with redsim.scenes.spec.scene_from_spec)"
-            if looks_like_a_path(name)
-            else ""
-        )
+        hint = ""
+        if looks_like_an_env_id(name):
+            hint = " (an env id: gymnasium.make makes it; here a scene goes)"
+        elif looks_like_a_path(name):
+            hint = (
+                " (a path: build a mesh file's scene with cloth_scene_from_mesh or fem_scene_from_mesh, a spec's or a "
+                "checkpoint's .json with redsim.scenes.spec.scene_from_spec)"
+            )
         raise ValueError(f"unknown scene {name!r}{hint}; valid scenes: {names()}")
     return ENTRIES[name]
 
 
 def looks_like_a_path(name: str) -> bool:
-    """Whether a scene name given is a file path (a folder in it, or a file suffix): its error says how to use one."""
+    """Whether a scene name given is a file path (a folder in it, or a file suffix; not an env id such as
+    ``RedSim/Chain-v0``): its error says how to use one."""
+    if looks_like_an_env_id(name):
+        return False
     return "/" in name or os.sep in name or os.path.splitext(name)[1].lower() in _PATH_SUFFIXES
+
+
+def looks_like_an_env_id(name: str) -> bool:
+    """Whether a scene name given is a Gymnasium id (``RedSim/Chain-v0``, ``redsim:RedSim/Chain-v0``)."""
+    return re.fullmatch(r"([\w.]+:)?[\w.-]+/[\w.-]+-v\d+", name) is not None
 
 
 _PATH_SUFFIXES = (".obj", ".stl", ".ply", ".off", ".glb", ".gltf", ".msh", ".vtk", ".json", ".pt", ".npz")
@@ -149,6 +160,7 @@ __all__ = [
     "fem_scene_from_mesh",
     "full_space_tol",
     "looks_like_a_path",
+    "looks_like_an_env_id",
     "names",
     "parameters",
 ]

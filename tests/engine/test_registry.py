@@ -28,6 +28,9 @@ def test_names_by_tag() -> None:
         with pytest.raises(ValueError, match=r"\(a path: build a mesh file's scene with cloth_scene_from_mesh"):
             redsim.envs.make(path)
     assert not redsim.scenes.looks_like_a_path("chain")
+    for env_id in ("RedSim/MiniChain-v0", "redsim:RedSim/Chain-v0"):  # not a path (helper-194's finding)
+        with pytest.raises(ValueError, match=r"\(an env id: gymnasium.make makes it; here a scene goes\)"):
+            redsim.envs.make(env_id)
 
 
 def test_bad_entries_are_refused() -> None:

@@ -483,6 +483,8 @@ def test_mesh_scenes_take_more_handles_by_vertex_selection(tmp_path) -> None:
     assert corners.params["selections"] == {"handles": {"c": sorted(far.tolist())}}  # the spec records the list
     rebuilt = scene_from_spec(json.loads(json.dumps(scene_spec(corners))))  # was refused: "not recorded"
     assert rebuilt.fingerprint() == corners.fingerprint() and rebuilt.params == corners.params
+    before = {k: v for k, v in corners.params.items() if k != "selections"}  # a checkpoint of before stop 29's rule
+    assert corners.accepts(redsim.scene._hash({"name": corners.name, "params": before}))
 
     def end(vertices: np.ndarray) -> np.ndarray:
         return vertices[:, 0] >= vertices[:, 0].max() - 1e-9

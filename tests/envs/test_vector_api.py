@@ -486,30 +486,47 @@ def test_a_users_own_id_gets_the_native_vector_env_through_make_vec(shards: int)
         gym.registry.pop(own)
 
 
-def test_a_users_own_id_ends_its_episodes_at_the_specs_length_single_and_vectorized() -> None:
-    """Registered the Gymnasium way, the length in the spec (a review's finding): ``gym.make`` ended episodes at
-    make's own 200 steps inside the spec's N, and ``gym.make_vec``, which passes N to make_vec, at N."""
+def _episode_end(env: gym.Env, most: int = 12) -> int | None:
+    """The step (1-based) at which ``env`` first truncates within ``most`` steps, or None."""
+    env.reset(seed=0)
+    for step in range(1, most + 1):
+        if env.step(PUSH[0])[3]:
+            return step
+    return None
+
+
+def test_a_users_own_id_ends_its_episodes_where_gymnasium_says_single_and_vectorized() -> None:
+    """Registered the Gymnasium way, the length in the spec (helper-193's finding): ``gym.make`` ended episodes at
+    make's own 200 steps inside the spec's N, and ``gym.make_vec``, which passes N to make_vec, at N; a length given
+    to ``gym.make``, -1 (no limit) and a copy made from the spec where the id is not registered (a spawned worker)
+    hold too (helper-194's), and the vectorized copies of a single env take the length that ends its episodes."""
     from redsim.trainers.agents import _base_env
 
     own = "RedSimTest/MyMiniLength-v0"
     kwargs = {"scene": "mini_chain", "task_options": {"goal_handle": "bottom"}, **TIGHT}
     gym.register(own, entry_point="redsim.envs:make", vector_entry_point="redsim.envs:make_vec", kwargs=kwargs)
     try:
-        for length, given in ((4, False), (3, True)):  # the spec's length, or one in the kwargs (the spec says 4)
-            gym.registry[own].max_episode_steps = 4
-            if given:
-                gym.registry[own].kwargs["max_episode_steps"] = length
-            single = gym.make(own)
-            venv = gym.make_vec(own, num_envs=2, vectorization_mode="vector_entry_point")
-            single.reset(seed=0)
-            venv.reset(seed=0)
-            ends = [(single.step(PUSH[0])[3], bool(venv.step(PUSH)[3][0])) for _ in range(length)]
-            assert ends == [(False, False)] * (length - 1) + [(True, True)], (length, ends)
-            assert _base_env(single)[1] == length
-            venv.close()
+        gym.registry[own].max_episode_steps = 4
+        venv = gym.make_vec(own, num_envs=2, vectorization_mode="vector_entry_point")
+        venv.reset(seed=0)
+        assert [bool(venv.step(PUSH)[3][0]) for _ in range(4)] == [False, False, False, True]
+        venv.close()
+        for made, end in (
+            (gym.make(own), 4),
+            (gym.make(own, max_episode_steps=8), 8),
+            (gym.make(own, max_episode_steps=2), 2),
+        ):
+            assert _episode_end(made) == end and _base_env(made)[1] == end and made.spec.max_episode_steps == end
+        assert _episode_end(gym.make(own, max_episode_steps=-1)) is None  # was 200: make's own inside no limit
+        spec = gym.registry.pop(own)
+        assert _episode_end(gym.make(spec)) == 4  # as a spawned worker makes it, the id unknown there
+        gym.register(
+            own, entry_point="redsim.envs:make", kwargs={**kwargs, "max_episode_steps": 3}, max_episode_steps=4
+        )
+        assert _episode_end(gym.make(own)) == 3  # a length in the kwargs holds, as gym.make_vec passes it
         assert redsim.envs.make("mini_chain")._max_episode_steps == 200  # no spec: make's own default
     finally:
-        gym.registry.pop(own)
+        gym.registry.pop(own, None)
 
 
 @pytest.mark.parametrize("shards", [1, 2])
