@@ -13,6 +13,17 @@ ID = "RedSim/MiniChain-v0"
 TARGET = [0.05, -0.15, 0.0]
 
 
+@pytest.fixture(scope="module")
+def pair() -> tuple[gym.vector.VectorEnv, gym.vector.VectorEnv]:
+    """A native and a 2-shard vector env of two copies, shared by the module's sharded checks (each resets first and
+    leaves them open): one worker spawn instead of one per test."""
+    make = lambda **kw: gym.make_vec(ID, num_envs=2, vectorization_mode="vector_entry_point", **kw)  # noqa: E731
+    native, sharded = make(), make(shards=2)
+    yield native, sharded
+    native.close()
+    sharded.close()
+
+
 def _target_offset(env: gym.Env, obs: np.ndarray) -> np.ndarray:
     blocks = env.unwrapped.sim.observation_structure()
     start = blocks["z"] + blocks["z_dot"] + blocks["handle_position"]
@@ -118,23 +129,21 @@ def test_the_vector_env_sets_the_option_in_the_copies_it_resets() -> None:
     np.testing.assert_allclose(vobs[1], obs, atol=1e-6)
 
 
-def test_a_refused_option_leaves_the_sharded_env_open() -> None:
-    venv = gym.make_vec(ID, num_envs=2, vectorization_mode="vector_entry_point", shards=2)
-    try:
-        venv.reset(seed=0, options={"target": TARGET})
-        np.testing.assert_allclose(venv.get_state()["params"]["target"], [TARGET, TARGET], atol=1e-7)
-        for bad in ({"target": [1.0, 2.0]}, {"bad": 1}):
-            with pytest.raises(ValueError):
-                venv.reset(options=bad)
-        with pytest.raises(gym.error.Error, match="Seed must be greater or equal to zero"):
-            venv.reset(seed=[3, -1])  # refused before shard 0 is seeded
-        state = venv.get_state()  # and a state with a target no reset would take: refused here, not in a worker
-        far = {**state, "params": {**state["params"], "target": np.full((2, 3), 1e6, np.float32)}}
-        with pytest.raises(ValueError, match=r"state\['params'\] of copy 0 .*observation bound"):
-            venv.set_state(far)
-        venv.step(np.zeros((2, 3), np.float32))
-    finally:
-        venv.close()
+def test_a_refused_option_leaves_the_sharded_env_open(pair: tuple[gym.vector.VectorEnv, ...]) -> None:
+    venv = pair[1]
+    venv.reset(seed=0, options={"target": TARGET})
+    np.testing.assert_allclose(venv.get_state()["params"]["target"], [TARGET, TARGET], atol=1e-7)
+    for bad in ({"target": [1.0, 2.0]}, {"bad": 1}):
+        with pytest.raises(ValueError):
+            venv.reset(options=bad)
+    with pytest.raises(gym.error.Error, match="Seed must be greater or equal to zero"):
+        venv.reset(seed=[3, -1])  # refused before shard 0 is seeded
+    state = venv.get_state()  # and a state with a target no reset would take: refused here, not in a worker
+    far = {**state, "params": {**state["params"], "target": np.full((2, 3), 1e6, np.float32)}}
+    with pytest.raises(ValueError, match=r"state\['params'\] of copy 0 .*observation bound"):
+        venv.set_state(far)
+    venv.step(np.zeros((2, 3), np.float32))
+    assert not venv.closed
 
 
 def test_klann_and_stewart_options_outside_what_the_task_observes_are_refused() -> None:
@@ -192,50 +201,40 @@ def test_the_vector_env_set_state_refuses_a_copy_a_reset_option_would() -> None:
     venv.step(np.zeros((2, 3), np.float32))
 
 
-def test_a_masked_reset_checks_only_the_seeds_of_the_copies_it_resets() -> None:
+def test_a_masked_reset_checks_only_the_seeds_of_the_copies_it_resets(pair: tuple[gym.vector.VectorEnv, ...]) -> None:
     """Native and sharded alike: copy 0 is not reset, so its seed (-1, refused if used) is never looked at."""
-    make = lambda **kw: gym.make_vec(ID, num_envs=2, vectorization_mode="vector_entry_point", **kw)  # noqa: E731
-    native, sharded = make(), make(shards=2)
     mask = np.array([False, True])
-    try:
-        answers = []
-        for venv in (native, sharded):
-            venv.reset(seed=0)
-            answers.append(venv.reset(seed=[-1, 5], options={"reset_mask": mask})[0])
-            with pytest.raises(gym.error.Error, match="Seed must be greater or equal to zero"):
-                venv.reset(seed=[5, -1], options={"reset_mask": mask})
-            assert not getattr(venv, "closed", False)
-        np.testing.assert_allclose(answers[1], answers[0], atol=1e-6)
-    finally:
-        native.close()
-        sharded.close()
+    answers = []
+    for venv in pair:
+        venv.reset(seed=0)
+        answers.append(venv.reset(seed=[-1, 5], options={"reset_mask": mask})[0])
+        with pytest.raises(gym.error.Error, match="Seed must be greater or equal to zero"):
+            venv.reset(seed=[5, -1], options={"reset_mask": mask})
+        assert not getattr(venv, "closed", False)
+    np.testing.assert_allclose(answers[1], answers[0], atol=1e-6)
 
 
-def test_the_sharded_set_state_refuses_a_wrong_shape_before_a_refused_target() -> None:
+def test_the_sharded_set_state_refuses_a_wrong_shape_before_a_refused_target(
+    pair: tuple[gym.vector.VectorEnv, ...],
+) -> None:
     """A state of the wrong shape gets the shape error (as the native env's set_state), not the target's."""
-    make = lambda **kw: gym.make_vec(ID, num_envs=2, vectorization_mode="vector_entry_point", **kw)  # noqa: E731
-    native, sharded = make(), make(shards=2)
-    try:
-        for venv in (native, sharded):
-            venv.reset(seed=0)
-            state = venv.get_state()
-            far = {**state, "params": {**state["params"], "target": np.full((2, 3), 1e6, np.float32)}}
-            d = state["z"].shape[1]
-            for bad, match in (
-                ({**far, "z_prev": np.zeros((2, d + 1))}, rf"state\['z_prev'\] must have shape \[2, {d}\]"),
-                ({**far, "z": np.zeros((3, d))}, rf"state\['z'\] must have shape \[2, {d}\]"),
-                ({**far, "params": {"target": np.full((3, 3), 1e6)}}, r"state\['params.target'\] must have shape"),
-            ):
-                with pytest.raises(ValueError, match=match):
-                    venv.set_state(bad)
-            assert not getattr(venv, "closed", False)
-            with pytest.raises(ValueError, match=r"state\['params'\] of copy 0 .*observation bound"):
-                venv.set_state(far)
-            venv.set_state(state)
-            venv.step(np.zeros((2, 3), np.float32))
-    finally:
-        native.close()
-        sharded.close()
+    for venv in pair:
+        venv.reset(seed=0)
+        state = venv.get_state()
+        far = {**state, "params": {**state["params"], "target": np.full((2, 3), 1e6, np.float32)}}
+        d = state["z"].shape[1]
+        for bad, match in (
+            ({**far, "z_prev": np.zeros((2, d + 1))}, rf"state\['z_prev'\] must have shape \[2, {d}\]"),
+            ({**far, "z": np.zeros((3, d))}, rf"state\['z'\] must have shape \[2, {d}\]"),
+            ({**far, "params": {"target": np.full((3, 3), 1e6)}}, r"state\['params.target'\] must have shape"),
+        ):
+            with pytest.raises(ValueError, match=match):
+                venv.set_state(bad)
+        assert not getattr(venv, "closed", False)
+        with pytest.raises(ValueError, match=r"state\['params'\] of copy 0 .*observation bound"):
+            venv.set_state(far)
+        venv.set_state(state)
+        venv.step(np.zeros((2, 3), np.float32))
 
 
 def test_stewart_takes_the_held_action_with_a_chosen_target_for_its_controller() -> None:
