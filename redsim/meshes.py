@@ -494,7 +494,8 @@ def load_mesh(path: str | os.PathLike[str]) -> trimesh.Trimesh:
         # the file's vertices and pin indices count in the file's numbering (the scene builders weld duplicates)
         mesh = trimesh.load(p, force="mesh", process=False, maintain_order=True)
     except Exception as exc:
-        raise ValueError(f"could not read mesh file {str(p)!r}: {type(exc).__name__}: {exc}") from exc
+        hint = f"; {TET_FILE_HINT}" if p.suffix.lower() in TET_MESH_SUFFIXES else ""
+        raise ValueError(f"could not read mesh file {str(p)!r}: {type(exc).__name__}: {exc}{hint}") from exc
     if not isinstance(mesh, trimesh.Trimesh):
         raise ValueError(f"{str(p)!r} does not contain a triangle mesh (got {type(mesh).__name__})")
     if len(mesh.faces) == 0 or len(mesh.vertices) == 0:
@@ -502,6 +503,79 @@ def load_mesh(path: str | os.PathLike[str]) -> trimesh.Trimesh:
     if not bool(np.isfinite(mesh.vertices).all()):
         raise ValueError(f"{str(p)!r} has non-finite vertex coordinates")
     return mesh
+
+
+TET_FILE_HINT = (
+    "a tetrahedral mesh goes in a .npz file with arrays 'vertices' [V, 3] and 'tets' [T, 4] (e.g. from meshio: "
+    "m = meshio.read(PATH); numpy.savez('part.npz', vertices=m.points, tets=m.cells_dict['tetra'])), built by "
+    "tet_scene_from_mesh (--kind tets)"
+)
+"""How a tet mesh reaches redsim: named where a file cannot be read as one."""
+TET_MESH_SUFFIXES = (".msh", ".vtk", ".vtu", ".mesh", ".ele", ".node", ".inp", ".npz")
+"""Suffixes of volume-mesh files a triangle-mesh reader refuses; its error then names :data:`TET_FILE_HINT`."""
+SURFACE_MESH_SUFFIXES = (".stl", ".obj", ".ply", ".off", ".glb", ".gltf", ".dae", ".3mf")
+"""Suffixes of surface-mesh files, which the tet reader refuses naming the voxelizing builder."""
+
+
+def load_tets(path: str | os.PathLike[str]) -> tuple[np.ndarray, np.ndarray]:
+    """A tetrahedral mesh from a ``.npz`` file holding ``vertices`` [V, 3] [m] and ``tets`` [T, 4] (vertex
+    indices from 0), checked by :func:`check_tet_mesh`.
+
+    Raises:
+        FileNotFoundError: if ``path`` does not exist (the message names it).
+        ValueError: if the file is not such a ``.npz`` (the arrays it holds are named) or the mesh is invalid.
+    """
+    p = Path(path)
+    if not p.exists():
+        raise FileNotFoundError(f"tet mesh file not found: {str(p)!r}")
+    if not p.is_file():
+        raise ValueError(f"tet mesh path {str(p)!r} is not a file")
+    surface = p.suffix.lower() in SURFACE_MESH_SUFFIXES
+    hint = "a surface mesh is voxelized by fem_scene_from_mesh (--kind fem)" if surface else TET_FILE_HINT
+    with open(p, "rb") as handle:
+        head = handle.read(6)
+    if not head.startswith(b"PK\x03\x04"):  # a .npz is a zip of .npy files
+        what = "a single .npy array" if head.startswith(b"\x93NUMPY") else "not a .npz (a zip of numpy arrays)"
+        raise ValueError(f"{str(p)!r} is {what}; {hint}")
+    try:
+        with np.load(p, allow_pickle=False) as data:
+            arrays = {key: data[key] for key in data.files}
+    except Exception as exc:
+        raise ValueError(f"could not read {str(p)!r} as a .npz of arrays: {type(exc).__name__}: {exc}; {hint}") from exc
+    missing = [key for key in ("vertices", "tets") if key not in arrays]
+    if missing:
+        raise ValueError(f"{str(p)!r} holds arrays {sorted(arrays)}, not {missing}; {TET_FILE_HINT}")
+    return check_tet_mesh(arrays["vertices"], arrays["tets"], str(p))
+
+
+def check_tet_mesh(vertices: np.ndarray, tets: np.ndarray, source: str) -> tuple[np.ndarray, np.ndarray]:
+    """``vertices`` as float64 [V, 3] and ``tets`` as int64 [T, 4], checked (``source`` names them in errors).
+
+    Raises:
+        ValueError: a wrong shape, a non-finite vertex, an index that is not a whole number or lies outside
+            [0, V), or a tet that repeats a vertex.
+    """
+    vertices, tets = np.asarray(vertices), np.asarray(tets)
+    if vertices.ndim != 2 or vertices.shape[1] != 3 or vertices.shape[0] < 4:
+        raise ValueError(f"{source!r}: vertices must have shape [V >= 4, 3], got {list(vertices.shape)}")
+    if not np.issubdtype(vertices.dtype, np.number) or not bool(np.isfinite(vertices).all()):
+        raise ValueError(f"{source!r} has non-finite (or non-numeric) vertex coordinates")
+    if tets.ndim != 2 or tets.shape[1] != 4 or tets.shape[0] == 0:
+        raise ValueError(f"{source!r}: tets must have shape [T >= 1, 4] (vertex indices), got {list(tets.shape)}")
+    if not np.issubdtype(tets.dtype, np.number) or not bool(np.all(np.asarray(tets, np.float64) % 1 == 0)):
+        raise ValueError(f"{source!r}: tets must hold whole vertex indices, got dtype {tets.dtype}")
+    tets = tets.astype(np.int64)
+    low, high = int(tets.min()), int(tets.max())
+    if low < 0 or high >= vertices.shape[0]:
+        raise ValueError(
+            f"{source!r}: tet vertex indices must lie in [0, {vertices.shape[0]}) (counted from 0), got "
+            f"{low if low < 0 else high}"
+        )
+    ordered = np.sort(tets, axis=1)
+    repeated = np.nonzero((ordered[:, 1:] == ordered[:, :-1]).any(axis=1))[0]
+    if repeated.size:
+        raise ValueError(f"{source!r}: tet {int(repeated[0])} repeats a vertex {tets[repeated[0]].tolist()}")
+    return vertices.astype(np.float64), tets
 
 
 def _cell_counts(cells: Sequence[int], dim: int) -> tuple[int, ...]:

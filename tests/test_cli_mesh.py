@@ -96,6 +96,22 @@ def test_simulate_a_mesh_and_a_cloth(cli: Cli, box: Path, tmp_path: Path) -> Non
     assert Path(summary["png"]).read_bytes()[:4] == b"\x89PNG"
 
 
+def test_a_tet_mesh_file_is_simulated_fitted_and_inspected(cli: Cli, tmp_path: Path) -> None:
+    vertices, tets = redsim.meshes.box_tet_grid((0.1, 0.2, 0.1), (2, 4, 2))
+    path = tmp_path / "box.npz"
+    np.savez(path, vertices=vertices, tets=tets)
+    args = ["--mesh", str(path), "--kind", "tets", "--param", "young=2e4", "--param", "pin=[0, 1, 2]"]
+    code, out, err = cli("simulate", *args, "--steps", "1", "--json")
+    assert code == 0, err
+    assert json.loads(out)["params"]["selections"] == {"pin": [0, 1, 2]}
+    fit = ["--steps", "2", "--dim", "2", "--width", "8", "--layers", "1", "--sigma", "0.01"]
+    code, _, err = cli("fit", *args, *fit, "--out", str(tmp_path / "t"))
+    assert code == 0, err
+    code, out, err = cli("inspect", str(tmp_path / "t.pt"), "--json")
+    assert code == 0, err
+    assert json.loads(out)["scene"] == "mesh_tets"
+
+
 def test_a_checkpoint_json_is_a_scene_spec(cli: Cli, fitted: Path, box: Path, tmp_path: Path) -> None:
     meta = json.loads(fitted.with_suffix(".json").read_text())
     code, out, err = cli("simulate", "--spec", str(fitted.with_suffix(".json")), "--steps", "1", "--json")
@@ -241,8 +257,12 @@ def test_kind_with_a_spec_is_refused(cli: Cli, tmp_path: Path) -> None:
             ["fit", "--mesh", "x.obj", "--kind", "fem", "--param", "youngs=3"],
             "unknown parameter(s) ['youngs'] of a fem",
         ),
+        (
+            ["simulate", "--mesh", "x.npz", "--kind", "tets", "--param", "voxel_pitch=0.01"],
+            "unknown parameter(s) ['voxel_pitch'] of a tets mesh scene",
+        ),
         (["fit", "redsim:RedSim/Chain-v0"], "(an env id: demo, train-agent, eval-agent and bench envs take ids;"),
-        (["simulate", "cloth.obj"], "(a file path: a mesh goes with --mesh PATH --kind fem|cloth, a spec or"),
+        (["simulate", "cloth.obj"], "(a file path: a mesh goes with --mesh PATH --kind fem|tets|cloth, a spec or"),
         (["bench", "cubature", "subspaces/cloth.pt"], "(a file path: this command runs on catalog scenes only)"),
     ],
 )

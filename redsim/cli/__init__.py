@@ -4,7 +4,7 @@
 Every subcommand has ``--help`` and ``--json`` (one JSON document on stdout; human-readable
 text otherwise). Bad input is reported as a single ``redsim: error: ...`` line on stderr with
 exit status 2, never as a traceback. Commands that take a scene take a catalog name or a
-user's mesh (``--mesh PATH --kind fem|cloth``); commands that take a checkpoint rebuild its
+user's mesh (``--mesh PATH --kind fem|tets|cloth``); commands that take a checkpoint rebuild its
 scene from the checkpoint's ``.json`` (:func:`redsim.scenes.spec.scene_from_spec`).
 
 Modules: :mod:`~redsim.cli.parser` (the parser and :func:`main`), :mod:`~redsim.cli.common`

@@ -172,7 +172,8 @@ def check_scene_name(name: str, *, takes_files: bool = True) -> None:
             hint = " (an env id: demo, train-agent, eval-agent and bench envs take ids; this command takes a scene)"
         elif redsim.scenes.looks_like_a_path(name):
             hint = (
-                " (a file path: a mesh goes with --mesh PATH --kind fem|cloth, a spec or checkpoint .json with --spec)"
+                " (a file path: a mesh goes with --mesh PATH --kind fem|tets|cloth, a spec or checkpoint .json with "
+                "--spec)"
                 if takes_files
                 else " (a file path: this command runs on catalog scenes only)"
             )
@@ -440,7 +441,8 @@ def command_threads(args: argparse.Namespace) -> Iterator[None]:
 
 # -- scene arguments ------------------------------------------------------------------------
 def add_scene_args(parser: argparse.ArgumentParser) -> None:
-    """A catalog scene name, ``--mesh PATH --kind fem|cloth`` or ``--spec FILE``; builder params with ``--param``."""
+    """A catalog scene name, ``--mesh PATH --kind fem|tets|cloth`` or ``--spec FILE``; builder params with
+    ``--param``."""
     parser.add_argument(
         "scene", nargs="?", help="catalog name (see `redsim scenes --all`); or give --mesh or --spec instead"
     )
@@ -456,8 +458,9 @@ def _add_mesh_args(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--mesh", metavar="PATH", help="build the scene from your own mesh file (needs --kind)")
     parser.add_argument(
         "--kind",
-        choices=("fem", "cloth"),
-        help="builder for --mesh: fem (a watertight mesh, voxelized into a neo-Hookean solid) or cloth (its "
+        choices=("fem", "tets", "cloth"),
+        help="builder for --mesh: fem (a watertight surface mesh, voxelized into a neo-Hookean solid), tets (a "
+        "tetrahedral mesh as a .npz of 'vertices' and 'tets', a neo-Hookean solid as given) or cloth (a surface's "
         "triangles as cloth); its arguments come with --param (e.g. young=2e5, pin='\"min_y\"', voxel_pitch=0.05, "
         "name='\"bunny\"')",
     )
@@ -491,10 +494,10 @@ def scene_from_args(args: argparse.Namespace) -> Scene:
         if args.kind is not None:
             raise CliError("--kind needs --mesh PATH")
         if getattr(args, "scene", None) is None:
-            raise CliError("give a scene name, a mesh with --mesh PATH --kind fem|cloth, or --spec FILE")
+            raise CliError("give a scene name, a mesh with --mesh PATH --kind fem|tets|cloth, or --spec FILE")
         return build_scene(args.scene, params)
     if args.kind is None:
-        raise CliError("--mesh needs --kind fem|cloth")
+        raise CliError("--mesh needs --kind fem|tets|cloth")
     try:
         return mesh_scene(args.kind, args.mesh, **params)
     except (FileNotFoundError, TypeError, ValueError) as err:
@@ -517,7 +520,7 @@ def _scene_from_spec_file(path: str, params: dict[str, Any]) -> Scene:
 
 
 def add_bench_scene_args(parser: argparse.ArgumentParser, default: str) -> None:
-    """``--scenes A,B,...`` (default: ``default``), or one scene from ``--mesh PATH --kind fem|cloth``."""
+    """``--scenes A,B,...`` (default: ``default``), or one scene from ``--mesh PATH --kind fem|tets|cloth``."""
     parser.add_argument("--scenes", metavar="A,B,...", help=f"comma-separated scene names (default: {default})")
     _add_mesh_args(parser)
 

@@ -4,8 +4,9 @@ Catalog scenes (:mod:`redsim.scenes.catalog`) reproduce the systems of the paper
 plus a heterogeneous beam; toy scenes (:mod:`redsim.scenes.testing`, names starting with
 ``toy_``) are tiny systems for fast tests. Each has a :class:`SceneEntry` in :data:`ENTRIES`
 saying what the rest of redsim needs to know about it (tags, a crank, reference states).
-Scenes from your own meshes come from :func:`fem_scene_from_mesh` and
-:func:`cloth_scene_from_mesh`; :func:`redsim.scenes.spec.scene_from_spec` rebuilds any scene from
+Scenes from your own meshes come from :func:`fem_scene_from_mesh` (a surface, voxelized),
+:func:`tet_scene_from_mesh` (a tet mesh) and :func:`cloth_scene_from_mesh`;
+:func:`redsim.scenes.spec.scene_from_spec` rebuilds any scene from
 the record a checkpoint keeps.
 
 Example::
@@ -30,7 +31,7 @@ import torch
 
 from redsim.scene import Scene
 from redsim.scenes.catalog import CATALOG
-from redsim.scenes.from_mesh import cloth_scene_from_mesh, fem_scene_from_mesh
+from redsim.scenes.from_mesh import cloth_scene_from_mesh, fem_scene_from_mesh, tet_scene_from_mesh
 from redsim.scenes.registry import TAGS, Crank, SceneEntry
 from redsim.scenes.testing import TOYS
 
@@ -66,7 +67,8 @@ def entry(name: str) -> SceneEntry:
             hint = " (an env id: gymnasium.make makes it; here a scene goes)"
         elif looks_like_a_path(name):
             hint = (
-                " (a path: build a mesh file's scene with cloth_scene_from_mesh or fem_scene_from_mesh, a spec's or a "
+                " (a path: build a mesh file's scene with fem_scene_from_mesh, tet_scene_from_mesh or "
+                "cloth_scene_from_mesh, a spec's or a "
                 "checkpoint's .json with redsim.scenes.spec.scene_from_spec)"
             )
         raise ValueError(f"unknown scene {name!r}{hint}; valid scenes: {names()}")
@@ -163,4 +165,5 @@ __all__ = [
     "looks_like_an_env_id",
     "names",
     "parameters",
+    "tet_scene_from_mesh",
 ]

@@ -2,6 +2,7 @@
 
 - :func:`fem_scene_from_mesh`: a watertight surface mesh, voxel-tetrahedralized, as a
   neo-Hookean solid.
+- :func:`tet_scene_from_mesh`: a tetrahedral mesh of your own (a ``.npz`` of vertices and tets), used as given.
 - :func:`cloth_scene_from_mesh`: a triangle surface, used directly as cloth.
 
 Both are made with the builder toolkit the catalog uses (:mod:`redsim.scenes.toolkit`).
@@ -39,6 +40,7 @@ if TYPE_CHECKING:  # imported where used: import redsim needs none of trimesh (s
 LARGE_MESH_M = 10.0  # a mesh spanning more [m] is warned about: likely a file in millimetres or centimetres
 SMALL_MESH_M = 1e-3  # a mesh spanning less [m] is warned about: likely a file in kilometres, or a wrong scale
 INFLATED_SOLID = 2.0  # a voxel solid of more than this many times its mesh's volume is warned about
+IN_MEMORY_TETS = "<arrays>"  # the source of a tet scene built from arrays: a spec cannot rebuild it
 MAX_VOXELS = 200_000_000  # cells of the voxel grid over the bounding box; more is refused (minutes and GBs)
 
 
@@ -74,22 +76,48 @@ def _scaled(mesh: trimesh.Trimesh, scale: float, source: str) -> trimesh.Trimesh
     :data:`LARGE_MESH_M` metres, the size of a file in millimetres or centimetres read as metres."""
     if scale != 1.0:
         mesh.apply_scale(scale)
-    span = float(np.max(mesh.extents))
+    _warn_span(float(np.max(mesh.extents)), source)
+    return mesh
+
+
+def _warn_span(span: float, source: str) -> None:
+    """Warn where a mesh spans [m] more than :data:`LARGE_MESH_M` (a file in millimetres or centimetres read as
+    metres) or less than :data:`SMALL_MESH_M`; the warning points at the builder's caller."""
     if span > LARGE_MESH_M:
         warnings.warn(
             f"mesh {source!r} spans {span:.4g} m: redsim reads a mesh's coordinates in metres; for a file in "
             "millimetres give scale=1e-3 (centimetres: 1e-2; on the command line --param scale=0.001)",
             UserWarning,
-            stacklevel=3,
+            stacklevel=4,
         )
     elif 0.0 < span < SMALL_MESH_M:
         warnings.warn(
             f"mesh {source!r} spans {span:.4g} m, less than a millimetre: redsim reads a mesh's coordinates in "
             "metres; give scale= to convert them (on the command line --param scale=...)",
             UserWarning,
-            stacklevel=3,
+            stacklevel=4,
         )
-    return mesh
+
+
+def _tet_input(
+    mesh_or_path: tuple[np.ndarray, np.ndarray] | str | os.PathLike[str], scale: float
+) -> tuple[np.ndarray, np.ndarray, str]:
+    """(vertices [V, 3] [m] times ``scale``, tets [T, 4], source): from a ``.npz`` file (its absolute path is the
+    source) or a (vertices, tets) pair (``"<arrays>"``), checked by :func:`redsim.meshes.check_tet_mesh`."""
+    if isinstance(mesh_or_path, str | os.PathLike):
+        vertices, tets = meshes.load_tets(mesh_or_path)
+        source = os.path.abspath(os.fspath(mesh_or_path))
+    elif isinstance(mesh_or_path, tuple | list) and len(mesh_or_path) == 2:
+        vertices, tets = meshes.check_tet_mesh(*mesh_or_path, IN_MEMORY_TETS)
+        source = IN_MEMORY_TETS
+    else:
+        raise ValueError(
+            f"expected a .npz file path or a (vertices, tets) pair, got {type(mesh_or_path).__name__}; "
+            f"{meshes.TET_FILE_HINT}"
+        )
+    vertices = vertices * scale
+    _warn_span(float(np.max(vertices.max(0) - vertices.min(0))), source)
+    return vertices, tets, source
 
 
 def _volume(mesh: trimesh.Trimesh) -> float:
@@ -349,39 +377,159 @@ def fem_scene_from_mesh(
             f" no solid to simulate; choose {fix}"
         )
     _warn_if_inflated(mesh, tets, pitch, source, chosen=voxel_pitch is None)
-    pinned = _pinned(given, vertices, pin, tolerance=0.25 * pitch, nearest=True)
+    select = functools.partial(_pinned, given, vertices, tolerance=0.25 * pitch, nearest=True)
+    record = {
+        "builder": "fem",
+        "source": source,
+        "mesh_sha256": None if source == "<trimesh>" else meshes.file_sha256(source),
+        "mesh_digest": _digest(np.asarray(mesh.vertices), np.asarray(mesh.faces)),
+        "voxel_pitch": pitch,
+    }
+    material = {"young": young, "poisson": poisson, "density": density}
+    return _solid(
+        vertices,
+        tets,
+        given,
+        select,
+        pin=pin,
+        handles=handles,
+        gravity=gravity,
+        scale=scale,
+        material=material,
+        record=record,
+        name=name,
+        description=f"neo-Hookean voxel solid from {source} ({tets.shape[0]} tets, pitch {pitch:.3g} m); SI units",
+    )
+
+
+def _solid(
+    vertices: np.ndarray,
+    tets: np.ndarray,
+    given: np.ndarray,
+    select: Callable[..., np.ndarray],
+    *,
+    pin: PinSpec,
+    handles: Mapping[str, PinSpec] | None,
+    gravity: bool,
+    scale: float,
+    material: dict[str, float],
+    record: dict[str, Any],
+    name: str,
+    description: str,
+) -> Scene:
+    """The neo-Hookean solid of ``tets`` [T, 4] on ``vertices`` [V, 3] [m] (``material``: young [Pa], poisson,
+    density [kg/m^3]): ``pin`` held, the whole body's handle "body" then ``handles`` (``select`` turns a selection
+    into vertex indices; ``given`` [V0, 3] are the vertices a mask or index list counts), gravity; its params are
+    ``record`` (builder, source, hashes, ...) then the material and options."""
+    pinned = select(pin)
     _check_pins(pin, pinned, vertices, tets, gravity)
     b = SceneBuilder(dim=3)
-    ids = add_fem(b, vertices, tets, young=young, poisson=poisson, density=density)
+    ids = add_fem(b, vertices, tets, **material)
     if pinned.size:
         b.pin_particles(ids[torch.as_tensor(pinned)])
-    masses = meshes.lumped_masses(vertices, tets, density)
+    masses = meshes.lumped_masses(vertices, tets, material["density"])
     b.add_handle("body", b.particle_points(ids), torch.as_tensor(masses))
-    select = functools.partial(_pinned, given, vertices, tolerance=0.25 * pitch, nearest=True)
     labels = _add_handles(b, ids, masses, pinned, handles, select, "body")
     if gravity:
         add_gravity(b)
     params = (
-        {
-            "builder": "fem",
-            "source": source,
-            "mesh_sha256": None if source == "<trimesh>" else meshes.file_sha256(source),
-            "mesh_digest": _digest(np.asarray(mesh.vertices), np.asarray(mesh.faces)),
-            "voxel_pitch": pitch,
-            "young": young,
-            "poisson": poisson,
-            "density": density,
-            "pin": _pin_label(pin, pinned),
-            "gravity": gravity,
-        }
+        record
+        | material
+        | {"pin": _pin_label(pin, pinned), "gravity": gravity}
         | _scale_param(scale)
         | _handles_param(labels)
         | _selections_param(given, pin, handles)
     )
-    return b.finalize(
-        name,
-        params=params,
-        description=f"neo-Hookean voxel solid from {source} ({tets.shape[0]} tets, pitch {pitch:.3g} m); SI units",
+    return b.finalize(name, params=params, description=description)
+
+
+def tet_scene_from_mesh(
+    mesh_or_path: tuple[np.ndarray, np.ndarray] | str | os.PathLike[str],
+    *,
+    young: float = 1e5,
+    poisson: float = 0.45,
+    density: float = 1000.0,
+    pin: PinSpec = "min_y",
+    gravity: bool = True,
+    scale: float = 1.0,
+    handles: Mapping[str, PinSpec] | None = None,
+    name: str = "mesh_tets",
+) -> Scene:
+    """A neo-Hookean solid on a tetrahedral mesh of your own, used as given (no voxelization).
+
+    A tet mesher's file (Gmsh ``.msh``, VTK, ...) becomes the ``.npz`` this reads in two lines, e.g. with meshio:
+    ``m = meshio.read("part.msh"); numpy.savez("part.npz", vertices=m.points, tets=m.cells_dict["tetra"])``.
+    Tets of either orientation are taken (negative ones are reordered); vertices no tet uses (a mesher's geometry
+    points) are left out. Gravity pulls along -y.
+
+    Args:
+        mesh_or_path: A ``.npz`` file path holding ``vertices`` [V, 3] [m] and ``tets`` [T, 4] (vertex indices
+            counted from 0), or the pair (vertices, tets).
+        young: Young's modulus [Pa].
+        poisson: Poisson ratio in (-1, 0.5).
+        density: Mass density [kg/m^3].
+        pin: Which vertices to pin (see :data:`PinSpec`): a name (within 0.1% of the bounding-box diagonal, e.g.
+            "min_y" pins the bottom), a callable, or a mask or index list of the given vertices.
+        gravity: Add gravity (9.81 m/s^2 along -y).
+        scale: Multiplies the coordinates (1e-3 for millimetres); a mesh spanning more than :data:`LARGE_MESH_M`
+            or less than :data:`SMALL_MESH_M` metres after it is warned about.
+        handles: More handles, name -> a vertex selection as ``pin`` takes (e.g. ``{"tip": "max_x"}``): each at
+            the mass-weighted centre of its vertices, after "body" in name order.
+        name: Scene name.
+
+    Returns:
+        The scene; handle "body" (mass-weighted over all vertices: a force at the centre of mass), then
+        ``handles``; surface "elastic" (the mesh's boundary faces).
+
+    Raises:
+        FileNotFoundError: for a missing file.
+        ValueError: for a file that is not such a ``.npz``, a wrong shape, a non-finite vertex, an index outside
+            the vertices, a degenerate (zero-volume) tet, a bad parameter, or pins that select every vertex (or,
+            under gravity, none, or leave a piece of the mesh hanging from nothing).
+    """
+    young = check_positive("young", young)
+    poisson = check_poisson(poisson)
+    density = check_positive("density", density)
+    gravity = check_bool("gravity", gravity)
+    scale = check_positive("scale", scale)
+    given, given_tets, source = _tet_input(mesh_or_path, scale)
+    used = np.unique(given_tets)  # the vertices some tet holds, in the given order
+    renumber = np.full(given.shape[0], -1, dtype=np.int64)
+    renumber[used] = np.arange(used.size)
+    vertices = given[used]
+    try:
+        tets = meshes.orient_tets(vertices, renumber[given_tets])
+    except ValueError as exc:
+        raise ValueError(f"mesh {source!r}: {exc}; a solid needs tets of nonzero volume") from exc
+    tolerance = 1e-3 * float(np.linalg.norm(vertices.max(0) - vertices.min(0)))
+
+    def select(spec: PinSpec, what: str = "pin") -> np.ndarray:
+        """Indices into ``vertices`` of a selection: a name or callable sees the used vertices, a mask or index
+        list counts the given ones (a vertex no tet uses selects nothing)."""
+        if spec is None or isinstance(spec, str) or callable(spec):
+            return select_vertices(vertices, spec, tolerance=tolerance, what=what)
+        chosen = renumber[select_vertices(given, spec, tolerance=tolerance, what=what)]
+        return np.unique(chosen[chosen >= 0])
+
+    record = {
+        "builder": "tets",
+        "source": source,
+        "mesh_sha256": None if source == IN_MEMORY_TETS else meshes.file_sha256(source),
+        "mesh_digest": _digest(given, given_tets),
+    }
+    return _solid(
+        vertices,
+        tets,
+        given,
+        select,
+        pin=pin,
+        handles=handles,
+        gravity=gravity,
+        scale=scale,
+        material={"young": young, "poisson": poisson, "density": density},
+        record=record,
+        name=name,
+        description=f"neo-Hookean solid on the tet mesh {source} ({tets.shape[0]} tets); SI units",
     )
 
 

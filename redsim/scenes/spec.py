@@ -3,7 +3,8 @@
 A spec is ``{"scene": NAME, "scene_params": {...}}``, the two keys a checkpoint's ``.json``
 holds, so a checkpoint's metadata is itself a spec. For a catalog scene the params are its
 builder arguments. For a scene from a user's mesh (:func:`fem_scene_from_mesh`,
-:func:`cloth_scene_from_mesh`) they also hold ``builder`` ("fem" or "cloth"), ``source`` (the
+:func:`tet_scene_from_mesh`, :func:`cloth_scene_from_mesh`) they also hold ``builder`` ("fem", "tets" or "cloth"),
+``source`` (the
 mesh file's absolute path; a relative one, in a spec file written by hand, is read from the spec file's folder)
 and ``mesh_sha256`` (the file's hash, which a hand-written spec may leave out): the file is re-read and must be
 unchanged; ``selections`` holds the file's vertex indices of a ``pin`` or handle given as a mask or an
@@ -25,9 +26,13 @@ from typing import Any
 
 from redsim.meshes import file_sha256
 from redsim.scene import Scene
-from redsim.scenes.from_mesh import cloth_scene_from_mesh, fem_scene_from_mesh
+from redsim.scenes.from_mesh import IN_MEMORY_TETS, cloth_scene_from_mesh, fem_scene_from_mesh, tet_scene_from_mesh
 
-MESH_BUILDERS: dict[str, Callable[..., Scene]] = {"fem": fem_scene_from_mesh, "cloth": cloth_scene_from_mesh}
+MESH_BUILDERS: dict[str, Callable[..., Scene]] = {
+    "fem": fem_scene_from_mesh,
+    "tets": tet_scene_from_mesh,
+    "cloth": cloth_scene_from_mesh,
+}
 """Builders of scenes from a user's mesh file, by ``--kind``."""
 
 _RECORD_ONLY = ("builder", "source", "mesh_sha256", "mesh_digest", "selections")
@@ -80,7 +85,7 @@ def scene_arguments(scene: Scene) -> list[str]:
 
 
 def mesh_scene(kind: str, path: str | os.PathLike[str], **params: Any) -> Scene:
-    """A scene from the mesh file at ``path`` with builder ``kind`` ("fem" or "cloth") and its arguments.
+    """A scene from the mesh file at ``path`` with builder ``kind`` ("fem", "tets" or "cloth") and its arguments.
 
     Raises:
         SceneSpecError: an unknown kind.
@@ -133,10 +138,11 @@ def scene_from_spec(doc: Mapping[str, Any] | str | os.PathLike[str]) -> Scene:
     if kind not in MESH_BUILDERS:
         raise SceneSpecError(f"scene {name!r}: unknown mesh builder {kind!r}; valid: {', '.join(MESH_BUILDERS)}")
     source, recorded = params.get("source"), params.get("mesh_sha256")
-    if source == "<trimesh>":
+    if source in ("<trimesh>", IN_MEMORY_TETS):
+        fix = "save the mesh to a file" if source == "<trimesh>" else "save the arrays with numpy.savez"
         raise SceneSpecError(
-            f"scene {name!r} was built from an in-memory mesh (source '<trimesh>'); save the mesh to a file and build "
-            "the scene from that file to rebuild it"
+            f"scene {name!r} was built from an in-memory mesh (source {source!r}); {fix} and build the scene from "
+            "that file to rebuild it"
         )
     if not isinstance(source, str) or not source:
         raise SceneSpecError(f"scene {name!r}: its spec names no mesh file (a 'source' path in scene_params)")
