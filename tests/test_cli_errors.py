@@ -700,3 +700,27 @@ def test_metadata_that_is_no_object_and_weights_that_are_no_zip_are_one_line_err
 def test_simulate_refuses_a_time_step_whose_square_overflows(cli: Cli) -> None:
     code, out, err = cli("simulate", "mini_chain", "--steps", "1", "--dt", "1e200")  # an OverflowError traceback
     assert code == 2 and out == "" and "--dt must be a finite number" in err
+
+
+@pytest.mark.parametrize(
+    "raised",
+    [
+        RuntimeError("DefaultCPUAllocator: can't allocate memory: you tried to allocate 800000000000 bytes."),
+        MemoryError(),
+    ],
+)
+def test_running_out_of_memory_is_one_line_and_exit_1(
+    cli: Cli, monkeypatch: pytest.MonkeyPatch, raised: BaseException
+) -> None:
+    """A batch too large for the machine (`bench step --batches 100000000`) ended in torch's allocator traceback."""
+
+    def fail(args: argparse.Namespace) -> int:
+        raise raised
+
+    monkeypatch.setattr("redsim.cli.scenes.cmd_scenes", fail)
+    code, out, err = cli("scenes")
+    assert code == 1 and out == "" and err.count("\n") == 1, err
+    assert err.startswith("redsim: error: out of memory: ") and "ask for less" in err
+    monkeypatch.setattr("redsim.cli.scenes.cmd_scenes", lambda args: (_ for _ in ()).throw(RuntimeError("a bug")))
+    with pytest.raises(RuntimeError, match="a bug"):  # any other error is not hidden
+        cli("scenes")

@@ -977,7 +977,13 @@ def add_commands(sub: Any) -> Any:
         "fuzz, mujoco, damping (default all but damping, which measures implicit Euler's numerical damping: released "
         "unforced runs, the free energy they keep; redsim.benches.damping)",
     )
-    p.add_argument("--long-steps", type=int, help="steps of the bang-bang runs (default 2000)")
+    p.add_argument(
+        "--long-steps",
+        type=int,
+        help="steps of the action_bounds regime's bang-bang runs (default 2000); the other scene regimes run a "
+        "fraction of it (stiff and condition_edges 1/10, big_dt 1/20, far_latent 1/40, impact and near_inversion "
+        "1/100), at least 2 steps",
+    )
     p.add_argument("--chain-steps", type=int, help="steps of the chain scenarios (default 300)")
     p.add_argument("--chain-full-steps", type=int, help="steps of redsim's full-space chain runs (default 50)")
     p.add_argument(

@@ -51,9 +51,9 @@ def main(argv: Sequence[str] | None = None) -> int:
         argv: Arguments without the program name (default: ``sys.argv[1:]``).
 
     Returns:
-        The exit status (0 ok, 1 a scene failed to build or a file could not be read or written, 2 bad input,
-        3 NaN, 4 a failed simulation step, 130 interrupted: Ctrl-C, or SIGTERM as a batch scheduler or ``kill``
-        sends it, which takes the same path, so an interrupted fit or training run saves what it has).
+        The exit status (0 ok, 1 a scene failed to build, a file could not be read or written, or memory ran out,
+        2 bad input, 3 NaN, 4 a failed simulation step, 130 interrupted: Ctrl-C, or SIGTERM as a batch scheduler or
+        ``kill`` sends it, which takes the same path, so an interrupted fit or training run saves what it has).
     """
     parser = build_parser()
     try:
@@ -91,9 +91,29 @@ def main(argv: Sequence[str] | None = None) -> int:
     except KeyboardInterrupt:  # a command without its own handler (fit and train-agent save and say more)
         warn("interrupted")
         return EXIT_INTERRUPTED
+    except (MemoryError, RuntimeError) as err:
+        if not _out_of_memory(err):
+            raise
+        error(
+            f"out of memory: {str(err).splitlines()[0] if str(err) else type(err).__name__}; ask for less (fewer "
+            "batches, envs, samples or states), or free memory"
+        )
+        return 1
     finally:
         if terminate is not None:
             signal.signal(signal.SIGTERM, terminate)
+
+
+def _out_of_memory(err: BaseException) -> bool:
+    """Whether ``err`` says memory ran out: Python's MemoryError, torch's CPU allocator ("can't allocate memory") or
+    its device one (``torch.OutOfMemoryError``)."""
+    text = str(err)
+    return (
+        isinstance(err, MemoryError)
+        or type(err).__name__ == "OutOfMemoryError"
+        or "can't allocate memory" in text
+        or "out of memory" in text.lower()
+    )
 
 
 def _raise_interrupt(signum: int, frame: object) -> None:

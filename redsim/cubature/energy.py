@@ -248,8 +248,16 @@ def cubature_energy(
     if source is None:
         from redsim import pretrained
 
-        source = pretrained.FOLDER / scene.name
-    return CubatureEnergy(scene, subspace, load_cubature(source, scene, subspace), dtype=dtype, device=device)
+        try:
+            rules = load_cubature(pretrained.FOLDER / scene.name, scene, subspace)
+        except CheckpointError as err:  # rebuilding it beside a user's own map would not help: name the way
+            raise CheckpointError(
+                f"{err} (with no source, cubature_energy reads the cubature shipped for {scene.name!r}; for a map of "
+                "your own give its checkpoint: energy=functools.partial(cubature_energy, source='DIR/STEM.pt'))"
+            ) from err
+    else:
+        rules = load_cubature(source, scene, subspace)
+    return CubatureEnergy(scene, subspace, rules, dtype=dtype, device=device)
 
 
 class CubatureEnergy:

@@ -92,7 +92,7 @@ class CubatureConfig:
             raise ValueError(f"effect(s) {both} are both in full (kept whole) and in subsample; name each in one")
         if self.tol is not None and not (math.isfinite(self.tol) and 0.0 < self.tol < 1.0):
             raise ValueError(  # a relative error of 1 is what keeping no element gives
-                f"tol must be a relative force error in (0, 1), e.g. 0.05 (forces and energy), got {self.tol!r}"
+                f"tol must be a relative error of the reduced forces and energy in (0, 1), e.g. 0.05, got {self.tol!r}"
             )
         if self.load_scale is not None and not (math.isfinite(self.load_scale) and self.load_scale >= 0.0):
             raise ValueError(f"load_scale must be finite and >= 0 [N], got {self.load_scale!r}")
@@ -294,8 +294,21 @@ def effect_modes(scene: Scene, config: CubatureConfig) -> dict[str, str]:
     unknown = sorted((set(config.full or ()) | set(config.subsample)) - names)
     if unknown:
         raise ValueError(f"scene {scene.name!r} has no effect(s) {unknown}; it has {sorted(names)}")
+    effects = scene.load_free_effects("a cubature")
+    load_terms = sorted(names - {e.name for e in effects})
+    if stray := sorted(set(config.full or ()) & set(load_terms)):
+        raise ValueError(
+            f"effect(s) {stray} are the load term, which the latent step adds exactly: a cubature has nothing of "
+            "them to keep (full names the effects to keep whole, in place of the default)"
+        )
+    linear = sorted(e.name for e in effects if e.kind in LINEAR_KINDS and e.name in (config.full or ()))
+    if linear:
+        raise ValueError(
+            f"effect(s) {linear} are linear: they stay exact, kept whole or not (full names the effects to keep whole, "
+            "in place of the default)"
+        )
     modes = {}
-    for effect in scene.load_free_effects("a cubature"):
+    for effect in effects:
         rare = effect.kind.split(":")[0] in RARE_KINDS and effect.name not in config.subsample
         whole = effect.name in config.full if config.full is not None else rare
         if effect.kind in LINEAR_KINDS:

@@ -333,7 +333,8 @@ class LatentStepper:
             whichever of that and z_t has the lower Phi (the step evaluates both anyway). The same minimum
             where the step's objective has one (README "Env speed", ConditionalBar-v0). Either way a copy whose
             extrapolated start has a non-finite Phi or gradient starts from z_t.
-        row_block: Most rows one value-and-gradient pass evaluates (not with ``compile=True``); a call with more is
+        row_block: Most rows one value-and-gradient pass evaluates (ignored with ``compile=True``, whose one graph
+            evaluates the whole batch: ClothBall-v0's default stays harmless there); a call with more is
             evaluated in blocks of this many rows, the same values to round-off (counted as one call). None
             (default): one pass. Where one pass's per-element tensors outgrow the CPU's cache it pays: ClothBall-v0 at
             256 envs (its whole contact, 2025 points a row, in a step's first call of 512 rows and its d x k-row
@@ -432,6 +433,11 @@ class LatentStepper:
         self.energy: LatentEnergy = (
             MapEnergy(scene, subspace, dtype=dtype, device=self.device) if energy is None else energy
         )
+        if hessian == "gauss_newton" and getattr(self.energy, "q_energy", None) is None:
+            raise ValueError(
+                f"hessian='gauss_newton' needs an energy with q_energy(q, cond) (e.g. MapEnergy); "
+                f"{type(self.energy).__name__} has none: choose another hessian (e.g. {DEFAULT_HESSIAN!r})"
+            )
         self.latent_dim = int(self.energy.latent_dim)
         self.reduced = isinstance(self.energy, ReducedInertia)
         self._rest: Tensor | None = None
@@ -1005,6 +1011,8 @@ class LatentStepper:
         latent energy has near-degenerate ones), else from z = 0. Cached for the default condition without ``start``.
         A ``cond`` given, even the default one, solves from z = 0 (no conditional map ships a rest start).
         """
+        if start is not None and not bool(torch.isfinite(torch.as_tensor(start, dtype=torch.float64)).all()):
+            raise ValueError("start must be finite (a latent [d], [1, d] or [B, d])")
         if cond is not None or start is not None:
             return self._solve_rest(cond, start)
         if self._rest is None:

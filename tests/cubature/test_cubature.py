@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import functools
 import json
 import math
 
@@ -108,6 +109,9 @@ def test_a_cubature_for_another_map_or_scene_is_refused(tmp_path) -> None:
         load_cubature(tmp_path / "cloth", stiffer, f)
     # the same map in float64 is the same map
     CubatureEnergy(scene, f.to(torch.float64), cub)
+    # a map of the user's own takes its cubature through the factory the README names
+    stepper = LatentStepper(scene, f, 0.02, energy=functools.partial(cubature_energy, source=tmp_path / "cloth.pt"))
+    assert isinstance(stepper.energy, CubatureEnergy)
 
 
 def test_bad_input_is_a_clear_error(tmp_path) -> None:
@@ -115,7 +119,9 @@ def test_bad_input_is_a_clear_error(tmp_path) -> None:
     with pytest.raises(ValueError, match="elements"):
         CubatureConfig(elements=0)
     for tol in (-1.0, 0.0, 1.0, 2.0):  # a relative force error of 1 is what keeping no element gives
-        with pytest.raises(ValueError, match=r"tol must be a relative force error in \(0, 1\)"):
+        with pytest.raises(
+            ValueError, match=r"tol must be a relative error of the reduced forces and energy in \(0, 1\)"
+        ):
             CubatureConfig(tol=tol)
     with pytest.raises(ValueError, match="held_out"):
         CubatureConfig(held_out=1.0)
@@ -211,6 +217,8 @@ def test_all_element_cubature_steps_like_the_map_energy(mini_chain) -> None:
     assert isinstance(energy, ReducedInertia) and not isinstance(MapEnergy(scene, f), ReducedInertia)
     reduced = LatentStepper(scene, f, 0.02, dtype=torch.float64, energy=energy)
     full = LatentStepper(scene, f, 0.02, dtype=torch.float64)
+    with pytest.raises(ValueError, match=r"hessian='gauss_newton' needs an energy with q_energy.*CubatureEnergy"):
+        LatentStepper(scene, f, 0.02, dtype=torch.float64, energy=energy, hessian="gauss_newton")  # not at a step
     z = reduced.rest_latent().expand(3, -1).clone()
     loads = 0.5 * torch.randn(3, len(scene.handles), scene.dim, generator=torch.Generator().manual_seed(0))
     a = b = c = d = z
@@ -327,6 +335,26 @@ def test_cli_bad_input_exits_with_a_message(cli, tmp_path) -> None:
         Cubature.load(tmp_path / "m")
 
 
+def test_cli_says_a_tol_not_reached_and_refuses_full_names_that_keep_nothing(cli, tmp_path, monkeypatch) -> None:
+    """--tol stopped at its element cap without a word; --full gravity (linear, exact anyway) or external_load (the
+    stepper's term) was taken, and, replacing the default, quietly subsampled the contact."""
+    import json
+    import shutil
+
+    for suffix in (".pt", ".json"):
+        shutil.copy(pretrained.path("mini_chain").with_suffix(suffix), tmp_path / f"m{suffix}")
+    quick = ("--samples", "16", "--episodes", "0", "--subsample", "contact")
+    for name, why in (("gravity", "are linear: they stay exact"), ("external_load", "are the load term")):
+        code, _, err = cli("cubature", str(tmp_path / "m.pt"), "--tol", "0.1", "--full", name, *quick)
+        assert code == 2 and f"effect(s) ['{name}'] {why}" in err, err
+    monkeypatch.setattr("redsim.cli.cubature.TOL_ELEMENTS", 2)  # of the contact's 96: a tight tol is out of reach
+    code, out, err = cli("cubature", str(tmp_path / "m.pt"), "--tol", "1e-6", *quick, "--json")
+    assert code == 0 and "--tol 1e-06 not reached: training error" in err and "at most 2 elements" in err, err
+    assert json.loads(out)["tol_reached"] is False
+    code, out, err = cli("cubature", str(tmp_path / "m.pt"), "--tol", "0.9", *quick, "--json", "--overwrite")
+    assert code == 0 and "not reached" not in err and json.loads(out)["tol_reached"] is True
+
+
 def test_a_tol_chooses_how_many_elements_of_a_small_effect_it_needs(mini_chain) -> None:
     """Under --tol the cap is 1000 elements, and an effect with at most that many was kept whole without a search:
     the tolerance did nothing on the bars (756-846 elements). Without a tol such an effect is still kept whole."""
@@ -398,7 +426,7 @@ def test_shipped_cubatures_are_chosen_with_one_option(name: str) -> None:
 
 def test_the_energy_option_refuses_what_it_cannot_use(mini_chain) -> None:
     scene, f = mini_chain
-    with pytest.raises(CheckpointError, match="no cubature file"):
+    with pytest.raises(CheckpointError, match=r"no cubature file .* for a map of your own give its checkpoint"):
         LatentStepper(scene, f, 0.02, energy=cubature_energy)  # none is shipped for the mini chain
     with pytest.raises(ValueError, match="factory"):
         LatentStepper(scene, f, 0.02, energy="fast")

@@ -444,6 +444,8 @@ def test_the_stepper_steps_its_own_copy_of_the_map_and_names_a_scene_of_other_pa
         for p in mine.parameters():
             p.mul_(0.5)
     torch.testing.assert_close(stepper.rest_latent(start=torch.zeros(4)), rest)
+    with pytest.raises(ValueError, match=r"start must be finite"):  # it said "z0 must be finite", a name not given
+        stepper.rest_latent(start=torch.full((4,), float("nan")))
     with pytest.warns(UserWarning, match="fitted to scene 'mini_chain' with other parameters"):
         LatentStepper(scenes.build("mini_chain", density=2000.0), pretrained.load("mini_chain"), DT)
 
