@@ -538,13 +538,13 @@ def load_tets(path: str | os.PathLike[str]) -> tuple[np.ndarray, np.ndarray]:
         what = "a single .npy array" if head.startswith(b"\x93NUMPY") else "not a .npz (a zip of numpy arrays)"
         raise ValueError(f"{str(p)!r} is {what}; {hint}")
     try:
-        with np.load(p, allow_pickle=False) as data:
-            arrays = {key: data[key] for key in data.files}
+        with np.load(p, allow_pickle=False) as data:  # reads only the two arrays: the others may hold anything
+            names = sorted(data.files)
+            arrays = {key: data[key] for key in ("vertices", "tets") if key in names}
     except Exception as exc:
         raise ValueError(f"could not read {str(p)!r} as a .npz of arrays: {type(exc).__name__}: {exc}; {hint}") from exc
-    missing = [key for key in ("vertices", "tets") if key not in arrays]
-    if missing:
-        raise ValueError(f"{str(p)!r} holds arrays {sorted(arrays)}, not {missing}; {TET_FILE_HINT}")
+    if missing := [key for key in ("vertices", "tets") if key not in arrays]:
+        raise ValueError(f"{str(p)!r} holds arrays {names}, not {missing}; {TET_FILE_HINT}")
     return check_tet_mesh(arrays["vertices"], arrays["tets"], str(p))
 
 
@@ -553,7 +553,7 @@ def check_tet_mesh(vertices: np.ndarray, tets: np.ndarray, source: str) -> tuple
 
     Raises:
         ValueError: a wrong shape, a non-finite vertex, an index that is not a whole number or lies outside
-            [0, V), or a tet that repeats a vertex.
+            [0, V), a tet that repeats a vertex, or one listed twice.
     """
     vertices, tets = np.asarray(vertices), np.asarray(tets)
     if vertices.ndim != 2 or vertices.shape[1] != 3 or vertices.shape[0] < 4:
@@ -575,6 +575,11 @@ def check_tet_mesh(vertices: np.ndarray, tets: np.ndarray, source: str) -> tuple
     repeated = np.nonzero((ordered[:, 1:] == ordered[:, :-1]).any(axis=1))[0]
     if repeated.size:
         raise ValueError(f"{source!r}: tet {int(repeated[0])} repeats a vertex {tets[repeated[0]].tolist()}")
+    _, first, count = np.unique(ordered, axis=0, return_index=True, return_counts=True)
+    if (count > 1).any():  # its stiffness and mass would count twice
+        twice = int(np.sort(first[count > 1])[0])
+        later = int(np.nonzero((ordered == ordered[twice]).all(axis=1))[0][1])
+        raise ValueError(f"{source!r}: tet {later} repeats tet {twice} ({tets[twice].tolist()}); list each tet once")
     return vertices.astype(np.float64), tets
 
 

@@ -156,6 +156,14 @@ def test_a_cloth_pinned_by_vertex_index_on_the_command_line_is_rebuilt_from_its_
     assert code == 0 and "not runnable" not in out + err, err
     code, out, err = cli("simulate", "--spec", str(stem.with_suffix(".json")), "--steps", "1", "--json")
     assert code == 0 and json.loads(out)["params"] == params, err
+    # the recorded command names the indices, not their hash label (`pin="ids:..."` could not be run again)
+    command = json.loads(stem.with_suffix(".json").read_text())["command"]
+    assert "ids:" not in command and "--param 'pin=[6, 7, 8]'" in command, command
+    again = shlex.split(command)[1:]
+    again[again.index("--out") + 1] = str(tmp_path / "again")
+    code, _, err = cli(*again)
+    assert code == 0, err
+    assert json.loads((tmp_path / "again.json").read_text())["scene_params"] == params
 
 
 def test_a_hand_written_spec_reads_a_relative_mesh_path_from_its_folder_and_needs_no_hash(

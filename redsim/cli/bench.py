@@ -982,7 +982,7 @@ def add_commands(sub: Any) -> Any:
         type=int,
         help="steps of the action_bounds regime's bang-bang runs (default 2000); the other scene regimes run a "
         "fraction of it (stiff and condition_edges 1/10, big_dt 1/20, far_latent 1/40, impact and near_inversion "
-        "1/100), at least 2 steps",
+        "1/100, near_inversion at most 5), at least 2 steps",
     )
     p.add_argument("--chain-steps", type=int, help="steps of the chain scenarios (default 300)")
     p.add_argument("--chain-full-steps", type=int, help="steps of redsim's full-space chain runs (default 50)")

@@ -105,8 +105,9 @@ def cmd_cubature(args: argparse.Namespace) -> int:
     missed = args.tol is not None and cub.summary["train_error"] > args.tol
     if missed:  # the file is written and usable; the caller sees that it is coarser than asked
         warn(
-            f"--tol {args.tol:g} not reached: training error {cub.summary['train_error']:.3g} with at most "
-            f"{TOL_ELEMENTS} elements per effect"
+            f"--tol {args.tol:g} not reached: training error {cub.summary['train_error']:.3g} (each subsampled "
+            f"effect's search stops at its share of --tol, at {TOL_ELEMENTS} elements, or where no element lowers "
+            "its error further)"
         )
     if args.json:
         json_out(

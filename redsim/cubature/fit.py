@@ -296,10 +296,10 @@ def effect_modes(scene: Scene, config: CubatureConfig) -> dict[str, str]:
         raise ValueError(f"scene {scene.name!r} has no effect(s) {unknown}; it has {sorted(names)}")
     effects = scene.load_free_effects("a cubature")
     load_terms = sorted(names - {e.name for e in effects})
-    if stray := sorted(set(config.full or ()) & set(load_terms)):
+    if stray := sorted((set(config.full or ()) | set(config.subsample)) & set(load_terms)):
         raise ValueError(
             f"effect(s) {stray} are the load term, which the latent step adds exactly: a cubature has nothing of "
-            "them to keep (full names the effects to keep whole, in place of the default)"
+            "them to keep or subsample (full names the effects to keep whole, in place of the default)"
         )
     linear = sorted(e.name for e in effects if e.kind in LINEAR_KINDS and e.name in (config.full or ()))
     if linear:

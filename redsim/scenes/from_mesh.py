@@ -497,6 +497,14 @@ def tet_scene_from_mesh(
     renumber = np.full(given.shape[0], -1, dtype=np.int64)
     renumber[used] = np.arange(used.size)
     vertices = given[used]
+    _, copies = np.unique(vertices, axis=0, return_counts=True)
+    if (copies > 1).any():  # a "tet soup" (each tet its own corners) would fall apart into loose tets
+        warnings.warn(
+            f"mesh {source!r}: {int((copies - 1).sum())} vertices sit where another does; the mesh is used as given "
+            "(not welded), so tets that meet only at such copies are not joined",
+            UserWarning,
+            stacklevel=2,
+        )
     try:
         tets = meshes.orient_tets(vertices, renumber[given_tets])
     except ValueError as exc:

@@ -77,7 +77,7 @@ def scene_arguments(scene: Scene) -> list[str]:
         parts = [scene.name]
     else:
         parts = ["--mesh", str(params.get("source")), "--kind", str(kind)]
-        params = {k: v for k, v in params.items() if k not in _RECORD_ONLY}
+        params = _builder_args(scene.name, params, strict=False)  # recorded selections as indices: rerunnable
         params["name"] = scene.name
     for key, value in sorted(params.items()):
         parts += ["--param", f"{key}={json.dumps(value)}"]
@@ -156,28 +156,38 @@ def scene_from_spec(doc: Mapping[str, Any] | str | os.PathLike[str]) -> Scene:
             f"scene {name!r}: mesh file {source!r} changed since the scene was recorded "
             f"(sha256 {recorded} recorded, {now} now)"
         )
+    return MESH_BUILDERS[kind](source, name=name, **_builder_args(name, params))
+
+
+def _builder_args(name: str, params: Mapping[str, Any], *, strict: bool = True) -> dict[str, Any]:
+    """A mesh scene's builder arguments from its params: the record-only keys left out, and a ``pin`` or handle
+    recorded by a hash label (``ids:...``) given as the file's vertex indices ``selections`` holds. One not recorded
+    (a Python function's, or recorded before redsim recorded them) raises :class:`SceneSpecError` where ``strict``,
+    else keeps its label."""
     args = {k: v for k, v in params.items() if k not in _RECORD_ONLY}
     selections = params.get("selections") or {}
     if str(args.get("pin", "")).startswith("ids:"):
-        if "pin" not in selections:
+        if "pin" in selections:
+            args["pin"] = selections["pin"]
+        elif strict:
             raise SceneSpecError(
                 f"scene {name!r} pinned a vertex selection that is not recorded ({args['pin']}: a Python function's, "
                 "or a mask or index list recorded before redsim recorded them); rebuild it in Python"
             )
-        args["pin"] = selections["pin"]
     handles = dict(args.get("handles") or {})
     for key, label in handles.items():
         if str(label).startswith("ids:"):
-            if key not in selections.get("handles", {}):
+            if key in selections.get("handles", {}):
+                handles[key] = selections["handles"][key]
+            elif strict:
                 raise SceneSpecError(
                     f"scene {name!r} placed handle {key!r} on a vertex selection that is not recorded ({label}: a "
                     "Python function's, or a mask or index list recorded before redsim recorded them); rebuild it "
                     "in Python"
                 )
-            handles[key] = selections["handles"][key]
     if handles:
         args["handles"] = handles
-    return MESH_BUILDERS[kind](source, name=name, **args)
+    return args
 
 
 __all__ = [

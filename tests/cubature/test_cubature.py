@@ -347,9 +347,13 @@ def test_cli_says_a_tol_not_reached_and_refuses_full_names_that_keep_nothing(cli
     for name, why in (("gravity", "are linear: they stay exact"), ("external_load", "are the load term")):
         code, _, err = cli("cubature", str(tmp_path / "m.pt"), "--tol", "0.1", "--full", name, *quick)
         assert code == 2 and f"effect(s) ['{name}'] {why}" in err, err
+    code, _, err = cli(
+        "cubature", str(tmp_path / "m.pt"), "--elements", "4", *quick[:4], "--subsample", "external_load"
+    )
+    assert code == 2 and "effect(s) ['external_load'] are the load term" in err, err
     monkeypatch.setattr("redsim.cli.cubature.TOL_ELEMENTS", 2)  # of the contact's 96: a tight tol is out of reach
     code, out, err = cli("cubature", str(tmp_path / "m.pt"), "--tol", "1e-6", *quick, "--json")
-    assert code == 0 and "--tol 1e-06 not reached: training error" in err and "at most 2 elements" in err, err
+    assert code == 0 and "--tol 1e-06 not reached: training error" in err and "at 2 elements" in err, err
     assert json.loads(out)["tol_reached"] is False
     code, out, err = cli("cubature", str(tmp_path / "m.pt"), "--tol", "0.9", *quick, "--json", "--overwrite")
     assert code == 0 and "not reached" not in err and json.loads(out)["tol_reached"] is True

@@ -62,6 +62,9 @@ def test_tets_of_either_orientation_and_unused_vertices_are_taken(bar: tuple[Pat
     torch.testing.assert_close(scene.energy(q), reference.energy(q), rtol=1e-12, atol=1e-12)
     with pytest.raises(ValueError, match=r"pin .* selects no vertex"):  # the unused vertex pins nothing
         redsim.scenes.tet_scene_from_mesh((extra, tets + 1), pin=[0])
+    soup = vertices[tets].reshape(-1, 3)  # each tet with its own four corners: nothing joins them
+    with pytest.warns(UserWarning, match=r"vertices sit where another does; the mesh is used as given \(not welded\)"):
+        redsim.scenes.tet_scene_from_mesh((soup, np.arange(soup.shape[0]).reshape(-1, 4)), gravity=False)
 
 
 def test_the_spec_rebuilds_a_tet_scene_from_its_file(bar: tuple[Path, np.ndarray, np.ndarray]) -> None:
@@ -90,6 +93,8 @@ def test_a_file_that_is_not_a_tet_mesh_is_named(tmp_path: Path, bar: tuple[Path,
     np.save(tmp_path / "v.npy", vertices)
     with pytest.raises(ValueError, match=r"is a single \.npy array; a tetrahedral mesh goes in a \.npz"):
         build(tmp_path / "v.npy")
+    np.savez(tmp_path / "extra.npz", vertices=vertices, tets=tets, meta=np.array([{"units": "m"}], dtype=object))
+    assert build(tmp_path / "extra.npz", pin="min_x").free_dof_count > 0  # an array it does not read may be anything
     np.savez(tmp_path / "named.npz", points=vertices, tetra=tets)
     with pytest.raises(ValueError, match=r"holds arrays \['points', 'tetra'\], not \['vertices', 'tets'\]"):
         build(tmp_path / "named.npz")
@@ -101,6 +106,7 @@ def test_a_file_that_is_not_a_tet_mesh_is_named(tmp_path: Path, bar: tuple[Path,
         ((vertices, np.vstack([tets, [[0, 1, 2, 24]]])), r"must lie in \[0, 24\) \(counted from 0\), got 24"),
         ((vertices, np.vstack([tets, [[0, 1, 1, 2]]])), r"tet 30 repeats a vertex \[0, 1, 1, 2\]"),
         ((vertices, np.vstack([tets, [[0, 1, 2, 3]]])), "tet 30 is degenerate .* tets of nonzero volume"),
+        ((vertices, np.vstack([tets, tets[4:5]])), r"tet 30 repeats tet 4 \(.*\); list each tet once"),
         ((vertices, tets, None), "a .npz file path or a \\(vertices, tets\\) pair"),
     ):
         with pytest.raises(ValueError, match=match):
