@@ -243,7 +243,42 @@ def test_speed_switches_are_recorded_and_do_not_block_resume(capsys: pytest.Capt
     assert meta["command"].endswith("--no-fused-adam --out " + stem)
     code, out, err = run(capsys, *argv, "--checkpoint-every", "3", "--fused-adam", "--resume", "--json")
     assert code == 0, err
+    assert json.loads(out)["fit"]["fused_adam"] is False  # no step ran: the map is the saved fit's, so is its record
+    extended = [*argv[:3], "8", *argv[4:]]  # --steps 8: two more steps, run fused
+    code, out, err = run(capsys, *extended, "--checkpoint-every", "3", "--fused-adam", "--resume", "--json")
+    assert code == 0, err
     assert json.loads(out)["fit"]["fused_adam"] is True
+
+
+def test_a_stem_ending_in_fit_is_refused_and_a_map_saved_there_before_still_loads(
+    capsys: pytest.CaptureFixture[str], tmp_path
+) -> None:
+    """STEM.fit.pt is a fit's training state: a map saved as X.fit.pt was refused by inspect as an unfinished fit, and
+    a --resume of X took it for X's training state (a KeyError traceback)."""
+    code, _, err = run(capsys, "fit", "toy_two_tets", "--steps", "2", "--out", str(tmp_path / "a.fit"))
+    assert code == 2 and "a stem ending in .fit would save the map as" in err and "choose another --out" in err, err
+    for suffix in (".pt", ".json"):  # a map saved there by an earlier version
+        (tmp_path / f"a.fit{suffix}").write_bytes(pretrained.path("mini_chain").with_suffix(suffix).read_bytes())
+    code, out, err = run(capsys, "inspect", str(tmp_path / "a.fit.pt"))
+    assert code == 0 and "mini_chain" in out, err
+    code, _, err = run(capsys, "fit", "mini_chain", "--steps", "4", "--out", str(tmp_path / "a"), "--resume")
+    assert code == 2 and "not a fit's training state (it lacks" in err and err.count("\n") == 1, err
+
+
+def test_more_latents_than_dofs_are_warned_about_and_bench_subspace_refuses_them(
+    capsys: pytest.CaptureFixture[str], tmp_path
+) -> None:
+    """toy_two_tets (n = 6) has no preset, so FitConfig's d = 8: fit said nothing, and bench subspace fitted the map
+    and then crashed in the modal baselines; its --steps 0 was a traceback."""
+    argv = ["fit", "toy_two_tets", "--steps", "2", "--width", "8", "--layers", "1", "--out", str(tmp_path / "t")]
+    code, _, err = run(capsys, *argv)
+    assert code == 0 and "d = 8 latents for toy_two_tets's n = 6 free DOFs" in err, err
+    bench = ["bench", "subspace", "--scenes", "toy_two_tets", "--checkpoints", str(tmp_path / "b")]
+    code, _, err = run(capsys, *bench, "--steps", "2")
+    assert code == 2 and "the modal baselines need d <= n" in err and err.count("\n") == 1, err
+    assert not (tmp_path / "b").exists() or not list((tmp_path / "b").iterdir())  # refused before any fit
+    code, _, err = run(capsys, *bench, "--steps", "0")
+    assert code == 2 and "--steps must be an integer >= 1" in err and err.count("\n") == 1, err
 
 
 def test_bench_fit_times_the_real_fit_loop_in_interleaved_rounds() -> None:
@@ -355,3 +390,10 @@ def test_a_fit_ends_with_the_accuracy_check_to_run_and_that_command_runs(
     code, out, err = run(capsys, *argv, "--steps", "10", "--max-force", "1000")  # ~60x the scene's weight on 0.2 m
     note = re.search(r"note: the reference is not a trustworthy motion: (\d+) of its 10 steps moved", out)
     assert code == 0 and note and int(note.group(1)) >= 1, (out, err)
+
+
+def test_a_fit_that_runs_away_is_warned_about(capsys: pytest.CaptureFixture[str], tmp_path) -> None:
+    """A learning rate far too large drove the map's samples to ~1e4 sigma at ~1e31 J, and fit said nothing."""
+    argv = ["fit", "toy_tiny_bar_2d", "--sigma", "100", "--lr", "1", "--steps", "60", "--out", str(tmp_path / "r")]
+    code, _, err = run(capsys, *argv)
+    assert code == 0 and "as far as sigma (100) asks, at a final energy of" in err and "smaller --lr" in err, err

@@ -737,6 +737,7 @@ def fit_subspace(
     start_step, elapsed = 0, 0.0
     command = command or fit_command(scene, config, seed, out)
     ramp_steps, extensions = config.steps, []
+    recorded = config  # what the metadata records: a resume that runs no step keeps the saved fit's own settings
     state_path = None if out is None else checkpoint_path(out, ".fit.pt")
     if resume:
         if state_path is None or not state_path.is_file():
@@ -746,6 +747,8 @@ def fit_subspace(
             raise CheckpointError(f"training state was made with seed {saved['seed']}, not {seed}", str(state_path))
         start_step, elapsed, history = saved["step"], saved["elapsed"], saved["history"]
         ramp_steps, extensions = saved["ramp_steps"], saved["extensions"]
+        if start_step == config.steps:  # nothing to run: fused_adam or compile given now changed nothing
+            recorded = dataclasses.replace(config, **{k: saved["config"][k] for k in _ROUND_OFF_ONLY})
         if saved["steps"] != config.steps:
             _reschedule(optimizer, scheduler, config, start_step)
             extensions.append({"at_step": start_step, "from_steps": saved["steps"], "to_steps": config.steps})
@@ -777,7 +780,7 @@ def fit_subspace(
                     "elapsed": elapsed + time.perf_counter() - clock,
                     "history": history,
                     "scene_fingerprint": scene.fingerprint(),
-                    "config": dataclasses.asdict(config),
+                    "config": dataclasses.asdict(recorded),
                     "model": model.state_dict(),
                     "optimizer": optimizer.state_dict(),
                     "scheduler": scheduler.state_dict(),
@@ -854,7 +857,7 @@ def fit_subspace(
         "scene_fingerprint": scene.fingerprint(),
         "scene_params": scene.params,
         "conditions": _condition_doc(scene) if config.conditional else [],
-        "fit": dataclasses.asdict(config),
+        "fit": dataclasses.asdict(recorded),
         "seed": seed,
         "fit_seconds": fit_seconds,
         "final": {k: sum(h[k] for h in tail) / len(tail) for k in ("energy", "pair", "stretch")},
@@ -1036,13 +1039,20 @@ def _load_training_state(
     """Restore the training state at ``path`` into the model, optimizer, scheduler and generator.
 
     Returns:
-        ``step``, ``elapsed``, ``history``, the saved ``steps``, ``ramp_steps``, ``extensions``, ``command`` and
-        ``seed`` (None in states written before it was recorded).
+        ``step``, ``elapsed``, ``history``, the saved ``steps``, ``ramp_steps``, ``extensions``, ``command``,
+        ``seed`` (None in states written before it was recorded) and the saved ``config`` (a dict).
     """
     try:
         state = torch.load(path, map_location="cpu", weights_only=True)
     except Exception as err:
         raise CheckpointError(f"training state is corrupt ({type(err).__name__}: {err})", str(path)) from None
+    needed = ("scene_fingerprint", "config", "step", "elapsed", "history", "model", "optimizer", "scheduler")
+    if not isinstance(state, dict) or (lacking := [key for key in (*needed, "generator") if key not in state]):
+        what = f"it lacks {lacking}" if isinstance(state, dict) else f"it holds a {type(state).__name__}"
+        raise CheckpointError(
+            f"not a fit's training state ({what}): a map saved at a stem ending in .fit takes this name; move it",
+            str(path),
+        )
     if not scene.accepts(state["scene_fingerprint"]):
         raise CheckpointError(
             f"training state is for another scene (fingerprint {state['scene_fingerprint']}, "
@@ -1085,10 +1095,13 @@ def _load_training_state(
             else f"rho, ramped for {ramp_steps} steps, reaches 1 at step {minimum} (the saved map is the one at rho 1)"
         )
         raise CheckpointError(f"steps must be >= {minimum} to resume, got {config.steps}: {why}", str(path))
-    model.load_state_dict(state["model"])
-    optimizer.load_state_dict(state["optimizer"])
-    scheduler.load_state_dict(state["scheduler"])
-    generator.set_state(state["generator"])
+    try:
+        model.load_state_dict(state["model"])
+        optimizer.load_state_dict(state["optimizer"])
+        scheduler.load_state_dict(state["scheduler"])
+        generator.set_state(state["generator"])
+    except (KeyError, RuntimeError, TypeError, ValueError) as err:
+        raise CheckpointError(f"training state is corrupt ({type(err).__name__}: {err})", str(path)) from None
     return {
         "step": step,
         "elapsed": float(state["elapsed"]),
@@ -1098,6 +1111,7 @@ def _load_training_state(
         "extensions": list(state.get("extensions", [])),
         "command": state.get("command", ""),
         "seed": state.get("seed"),
+        "config": state["config"],
     }
 
 
@@ -1105,9 +1119,17 @@ def check_fit_files(stem: str | Path) -> None:
     """Refuse a stem where ``STEM.pt``, ``STEM.json`` or ``STEM.fit.pt`` is something other than a file (a folder):
     a fit would run all its steps and then fail to save (its training state too, so all of it lost).
 
+    Also refuse a stem ending in ``.fit``: its map ``STEM.fit.pt`` would take the name of a training state.
+
     Raises:
         ValueError: naming the path that is in the way.
     """
+    weights = checkpoint_path(stem, ".pt")
+    if weights.name.endswith(".fit.pt"):
+        raise ValueError(
+            f"a stem ending in .fit would save the map as {weights}, the name of a fit's training state (the commands "
+            "would take it for one): choose another out"
+        )
     for suffix in (".pt", ".json", ".fit.pt"):
         path = checkpoint_path(stem, suffix)
         if path.exists() and not path.is_file():

@@ -46,6 +46,7 @@ def cmd_bench_subspace(args: argparse.Namespace) -> int:
     from redsim.bench import compare_subspaces, machine_info
     from redsim.trainers import FitConfig
     from redsim.trainers.cache import fitted_subspace
+    from redsim.trainers.fit import low_stretch_warning, quiet_low_stretch
     from redsim.trainers.presets import preset
 
     scenes = bench_scenes(args, redsim.scenes.names("table1"))
@@ -60,13 +61,25 @@ def cmd_bench_subspace(args: argparse.Namespace) -> int:
     for name, make in scenes:
         scene = make()
         overrides = {} if args.steps is None else {"steps": args.steps}
-        config = FitConfig(**{**preset(name), **overrides})
+        try:
+            config = FitConfig(**{**preset(name), **overrides})
+        except ValueError as err:  # FitConfigError names the field: --steps is the one this command sets
+            raise CliError(f"--{err}" if str(err).startswith("steps ") else str(err)) from err
+        if config.latent_dim > scene.free_dof_count:  # the modal baselines take d of the scene's n modes
+            raise CliError(
+                f"{name}: its fit has d = {config.latent_dim} latents (its preset's, or FitConfig's default) and the "
+                f"scene n = {scene.free_dof_count} free DOFs; the modal baselines need d <= n: bench a larger scene"
+            )
         stem = folder / (name if args.steps is None else f"{name}_s{args.steps}")
         shipped = [pretrained.path(name)] if args.steps is None and name in pretrained.names() else []
-        neural, source = fitted_subspace(
-            scene, config, stem, seed=args.seed, also=shipped, refit=args.refit, progress=not args.json, warn=warn
-        )
+        with quiet_low_stretch():  # said below in one line, as redsim fit says it
+            neural, source = fitted_subspace(
+                scene, config, stem, seed=args.seed, also=shipped, refit=args.refit, progress=not args.json, warn=warn
+            )
         fit = neural.metadata["fit"]
+        stretch = neural.metadata.get("final", {}).get("stretch", 1.0)  # a map saved without it: nothing to say
+        if (message := low_stretch_warning(stretch, fit["sigma"])) is not None:
+            warn(f"{source}: {message}")
         if not args.json:  # the full-space static responses can take minutes (a mechanism has none to find)
             note(f"{name}: energy, stretch and the static responses to {args.loads} loads of each subspace")
         metrics = compare_subspaces(

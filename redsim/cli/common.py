@@ -469,7 +469,8 @@ def _add_mesh_args(parser: argparse.ArgumentParser) -> None:
         action="append",
         default=[],
         metavar="KEY=VALUE",
-        help="scene build parameter, VALUE a JSON literal (e.g. links=3, gravity=false); repeatable",
+        help="scene build parameter, VALUE a JSON literal (e.g. links=3, gravity=false); repeatable (in a bench, "
+        "with --mesh only: --scenes are built with their defaults)",
     )
 
 
@@ -549,7 +550,7 @@ def load_checkpoint(path: str) -> tuple[Scene, Any]:
     if (why := beside_checkpoint(path)) is not None:  # a file beside a checkpoint, given in its place
         raise CliError(why)
     weights = checkpoint_path(path, ".pt")
-    if weights.name.endswith(".fit.pt"):  # a fit's resumable state (all that --stop-at or Ctrl-C leaves)
+    if weights.name.endswith(".fit.pt") and not weights.with_suffix(".json").is_file():  # a fit's resumable state
         mapped = weights.with_name(weights.name[: -len(".fit.pt")] + ".pt")
         raise CliError(
             f"{weights} is a fit's training state, not a checkpoint: "

@@ -150,6 +150,10 @@ def _drop_preset_anchor_map(args: argparse.Namespace, fields: dict[str, Any], sc
     fields["anchor_map"] = "none"
 
 
+HIGH_STRETCH = 10.0
+"""A fit whose mean metric stretch ends above this is warned about: its samples spread far beyond sigma (a runaway)."""
+
+
 def _check_stem(stem: Path, args: argparse.Namespace, scene: Scene | None = None) -> None:
     """Refuse a stem that names no file, or one that holds a fit, unless ``--resume`` or ``--overwrite`` (with
     ``scene``: a fit of another scene unless ``--overwrite``, whose ``--resume`` could not continue it)."""
@@ -252,6 +256,18 @@ def cmd_fit(args: argparse.Namespace) -> int:
             )
     if (message := low_stretch_warning(meta["final"]["stretch"], config.sigma, flags=True)) is not None:
         warn(message)
+    elif meta["final"]["stretch"] > HIGH_STRETCH:  # the baselines' reach ~1-7; a fit's 0.5-0.95
+        warn(
+            f"the map spreads its samples {meta['final']['stretch']:.3g}x as far as sigma ({config.sigma:g}) asks, "
+            f"at a final energy of {meta['final']['energy']:.3g} J: the fit ran away from the low-energy set; try a "
+            "smaller --lr (or --sigma)"
+        )
+    if config.latent_dim > scene.free_dof_count:  # it fits, but no latent can add a motion the DOFs lack
+        warn(
+            f"d = {config.latent_dim} latents for {scene.name}'s n = {scene.free_dof_count} free DOFs: more latents "
+            f"than the scene has DOFs (benches with modal baselines refuse such a map); --dim {scene.free_dof_count} "
+            "or less is the usual choice"
+        )
     return EXIT_OK
 
 
@@ -466,7 +482,11 @@ def add_commands(sub: Any) -> None:
     p.add_argument("checkpoint", help="path to X.pt")
     p.add_argument("-n", type=int, default=1000, help="number of states (default 1000)")
     p.add_argument("--seed", type=non_negative_seed, default=0, help="sampling seed (default 0)")
-    p.add_argument("--out", help="output .npz with z, q, x (default states.npz, or none when only --meshes is given)")
+    p.add_argument(
+        "--out",
+        help="output .npz with z, q, x (and cond: a conditional map's sampled conditions), scene and "
+        "scene_fingerprint (default states.npz, or none when only --meshes is given)",
+    )
     p.add_argument(
         "--meshes",
         metavar="DIR",
