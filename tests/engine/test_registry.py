@@ -25,7 +25,9 @@ def test_names_by_tag() -> None:
     with pytest.raises(ValueError, match=r"unknown scene 'nope'; valid scenes: \['cloth_ball'"):
         redsim.scenes.entry("nope")
     for path in ("sheet.obj", "subspaces/part.json", "out/fit.pt"):  # a file given where a scene name goes
-        with pytest.raises(ValueError, match=r"\(a path: build a mesh file's scene with cloth_scene_from_mesh"):
+        with pytest.raises(
+            ValueError, match=r"\(a path: build a mesh file's scene with fem_scene_from_mesh, tet_scene_from_mesh or "
+        ):
             redsim.envs.make(path)
     assert not redsim.scenes.looks_like_a_path("chain")
     for env_id in ("RedSim/MiniChain-v0", "redsim:RedSim/Chain-v0"):  # not a path (helper-194's finding)
