@@ -353,6 +353,13 @@ def _safe_name(name: str) -> str:
     return re.sub(r"[^A-Za-z0-9_.-]+", "_", name) or "surface"
 
 
+def frames_in(directory: str | Path) -> list[Path]:
+    """The ``frame_XXXX_<surface>.ply`` files :func:`export_meshes` wrote into ``directory`` before, sorted (none
+    where the folder does not exist)."""
+    directory = Path(directory)
+    return sorted(directory.glob("frame_[0-9][0-9][0-9][0-9]_*.ply")) if directory.is_dir() else []
+
+
 def export_meshes(scene: Scene, q: Tensor, directory: str | Path, frame: int) -> list[Path]:
     """Write every surface of ``scene`` at configuration ``q`` as ``frame_XXXX_<surface>.ply``.
 

@@ -97,6 +97,9 @@ def test_simulate_writes_picture_and_meshes(capsys: pytest.CaptureFixture[str], 
     plys = sorted((tmp_path / "frames").glob("frame_*.ply"))
     assert len(plys) == 3 * len(toy.surfaces) > 0  # frames 0, 1, 2
     assert (tmp_path / "frames" / f"frame_0002_{toy.surfaces[0].name}.ply") in plys
+    assert "earlier run" not in err, err
+    code, _, err = run(capsys, "simulate", TOY, "--steps", "1", "--dt", "0.01", "--out", str(tmp_path), "--meshes")
+    assert code == 0 and f"already holds {len(plys)} mesh files (frame_*.ply) from an earlier run" in err, err
 
 
 def test_simulate_human_output_with_load(capsys: pytest.CaptureFixture[str], toy: redsim.Scene) -> None:

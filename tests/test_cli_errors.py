@@ -58,7 +58,7 @@ def test_weights_of_another_scene_are_one_line_naming_both_shapes(cli: Cli, tmp_
         (["--checkpoint-every", "-1"], "--checkpoint-every must be an integer >= 0, got -1"),
         (["--dtype", "float16"], "--dtype must be one of float32, float64, got 'float16'"),
         (["--device", "abacus"], "--device must be cpu or cuda[:N], a GPU this machine has, got 'abacus'"),
-        (["--dim", "2", "--periodic", "5"], "--periodic must be distinct latent indices in [0, latent_dim), got (5,)"),
+        (["--dim", "2", "--periodic", "5"], "--periodic must be distinct latent indices in [0, latent_dim), got 5"),
         (["--periodic", "x"], "--periodic must be comma-separated integers"),
     ],
 )
@@ -293,6 +293,13 @@ def test_an_out_that_cannot_be_written_is_refused_before_any_work(cli: Cli, tmp_
             code, _, err = cli(*argv, "--out", folder)
             assert code == 2 and err.count("\n") == 1 and "is a folder; name a file in it" in err, err
     assert not (tmp_path / "new").exists() and not (tmp_path.parent / f"{tmp_path.name}.npz").exists()
+    # an empty path read as the default stem (fit, sample) or as no output (bench accuracy, sample --meshes)
+    for argv in (
+        *[[*a, "--out", ""] for a in (["fit", "toy_two_tets"], ["demo", "RedSim/MiniChain-v0"])],
+        ["sample", str(pretrained.path("mini_chain")), "--meshes", ""],
+    ):
+        code, _, err = cli(*argv)
+        assert code == 2 and err.count("\n") == 1 and "is empty: name a path, or leave the option out" in err, err
     # a GIF holds frame times up to 655.35 s (0.0015 fps was Pillow's struct.error); browsers play 10 ms as 100 ms
     for fps in ("0", "0.0015", "51"):
         gif = str(tmp_path / "a.gif")
@@ -426,6 +433,11 @@ def test_sample_with_only_meshes_leaves_the_states_written_before(
     code, out, err = cli("sample", checkpoint, "-n", "1", "--meshes", "samples", "--json")
     assert code == 0 and json.loads(out)["out"] is None and json.loads(out)["meshes"], err
     assert (tmp_path / "states.npz").read_bytes() == before
+    assert "earlier run" not in err, err
+    code, _, err = cli("sample", checkpoint, "-n", "1", "--meshes", "samples")  # the folder holds the frames above
+    assert (
+        code == 0 and "--meshes samples already holds 3 mesh files (frame_*.ply) from an earlier run; they stay" in err
+    ), err
 
 
 def test_bench_step_refuses_a_bad_dt(cli: Cli) -> None:

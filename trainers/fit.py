@@ -339,9 +339,14 @@ class FitConfigError(ValueError):
         super().__init__(self.describe())
 
     def describe(self, names: dict[str, str] | None = None) -> str:
-        """One line naming each field (or its alias in ``names``, e.g. a CLI flag), its rule and its value."""
-        names = names or {}
-        return "; ".join(f"{names.get(f, f)} must be {rule}, got {self.values[f]!r}" for f, rule in self.problems)
+        """One line naming each field (or its alias in ``names``, e.g. a CLI flag), its rule and its value (a tuple
+        as the flag takes it, comma-separated, where ``names`` is given)."""
+
+        def shown(value: Any) -> str:
+            return ",".join(map(str, value)) if names and isinstance(value, tuple) else repr(value)
+
+        aliases = names or {}
+        return "; ".join(f"{aliases.get(f, f)} must be {why}, got {shown(self.values[f])}" for f, why in self.problems)
 
 
 FIT_ALIASES = {"dim": "latent_dim"}

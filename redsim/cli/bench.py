@@ -81,7 +81,7 @@ def cmd_bench_subspace(args: argparse.Namespace) -> int:
         if (message := low_stretch_warning(stretch, fit["sigma"])) is not None:
             warn(f"{source}: {message}")
         if not args.json:  # the full-space static responses can take minutes (a mechanism has none to find)
-            note(f"{name}: energy, stretch and the static responses to {args.loads} loads of each subspace")
+            note(f"{name}: energy, stretch and the static responses to {args.loads} load(s) of each subspace")
         metrics = compare_subspaces(
             scene,
             neural,
@@ -126,9 +126,11 @@ def _cell(value: float | None, width: int) -> str:
 
 
 def _subspace_row(row: dict[str, Any]) -> str:
+    fit = row["fit_seconds"]
+    took = "fit time not recorded" if fit is None else f"fit {fit:.{0 if fit >= 10 else 2}f} s"
     lines = [
         f"{row['scene']}  n={row['n']}  d={row['d']}  sigma={row['sigma']:g}  lam={row['lam']:g}  "
-        f"steps={row['steps']}  fit {row['fit_seconds']:.0f} s  ({shown_path(row['checkpoint'])})"
+        f"steps={row['steps']}  {took}  ({shown_path(row['checkpoint'])})"
     ]
     for method, result in row["methods"].items():
         line = (

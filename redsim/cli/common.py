@@ -132,6 +132,18 @@ def warn(text: str) -> None:
     print(f"redsim: warning: {text}", file=sys.stderr, flush=True)
 
 
+def warn_earlier_frames(folder: str | Path, flag: str) -> None:
+    """Say on stderr that ``folder`` (given as ``flag``) holds mesh frames from an earlier run: they are not removed,
+    and this run's frames replace only those of the same number."""
+    from redsim.render import frames_in
+
+    if earlier := frames_in(folder):
+        warn(
+            f"{flag} {shown_path(folder)} already holds {len(earlier)} mesh files (frame_*.ply) from an earlier run; "
+            "they stay, and this run replaces only the frames it writes (use an empty folder to keep runs apart)"
+        )
+
+
 def note(text: str) -> None:
     """A progress line on stderr (stdout stays the command's result)."""
     print(text, file=sys.stderr, flush=True)

@@ -131,9 +131,13 @@ def _interrupt_on_sigterm() -> object:
 
 def _check_out(args: argparse.Namespace) -> None:
     """Refuse an ``--out`` whose folder could not be made or written, before any work (a fit or a bench that ends
-    in a traceback loses its results): :func:`redsim.cli.common.check_writable`."""
+    in a traceback loses its results): :func:`redsim.cli.common.check_writable`. An empty path is refused (it read as
+    the default, or as no output at all)."""
+    for flag in ("out", "meshes"):
+        if getattr(args, flag, None) == "":
+            raise CliError(f"--{flag} is empty: name a path, or leave the option out for its default")
     out = getattr(args, "out", None)
-    if not out:
+    if out is None:
         return
     if not getattr(args, "out_is_folder", False) and (
         out.endswith(("/", os.sep)) or os.path.basename(out) in ("", ".", "..")  # a stem may share a folder's name

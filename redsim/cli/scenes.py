@@ -25,6 +25,7 @@ from redsim.cli.common import (
     parse_loads,
     scene_from_args,
     warn,
+    warn_earlier_frames,
 )
 
 
@@ -109,6 +110,7 @@ def cmd_simulate(args: argparse.Namespace) -> int:
     if args.meshes:
         from redsim.render import export_meshes
 
+        warn_earlier_frames(frames, "--out")
         mesh_paths += export_meshes(scene, q_start, frames, 0)
     if not args.json:
         out(

@@ -26,6 +26,7 @@ from redsim.cli.common import (
     parse_list,
     scene_from_args,
     warn,
+    warn_earlier_frames,
 )
 from redsim.interrupts import ForcedInterrupt
 
@@ -169,7 +170,7 @@ def _check_stem(stem: Path, args: argparse.Namespace, scene: Scene | None = None
     if found is None or args.overwrite:
         return
     if scene is not None and (why := other_scene_fit(stem, scene)) is not None:
-        default = "" if args.out else " (the default name for this scene and --dim, in this folder)"
+        default = "" if args.out is not None else " (the default name for this scene and --dim, in this folder)"
         raise CliError(
             f"a fit of another scene is at {found}{default}: {why}. Write this fit elsewhere with --out STEM, or "
             "replace that one with --overwrite"
@@ -188,11 +189,13 @@ def cmd_fit(args: argparse.Namespace) -> int:
 
     if args.resume and args.overwrite:
         raise CliError("give --resume (continue the fit at the stem) or --overwrite (replace it), not both")
-    if args.out:  # refused before the scene is built (a mesh's voxelization can take minutes)
+    if args.out is not None:  # refused before the scene is built (a mesh's voxelization can take minutes)
         _check_stem(Path(args.out), args)
     scene = scene_from_args(args)
     config = _fit_config(args, scene.name)
-    stem = Path(args.out) if args.out else Path(file_name(f"{scene.name}_d{config.latent_dim}"))  # in this folder
+    stem = (
+        Path(args.out) if args.out is not None else Path(file_name(f"{scene.name}_d{config.latent_dim}"))
+    )  # in this folder
     _check_stem(stem, args, scene)
     if args.resume and args.steps is None and (steps := planned_steps(stem)) is not None:
         config = dataclasses.replace(config, steps=steps)  # the fit's own length, not the preset's
@@ -340,6 +343,7 @@ def cmd_sample(args: argparse.Namespace) -> int:
         raise CliError(f"-n must be an integer >= 1, got {args.n}")
     if args.meshes:  # before anything is written
         check_writable(args.meshes, "--meshes", folder=True)
+        warn_earlier_frames(args.meshes, "--meshes")
     scene, sub = load_checkpoint(args.checkpoint)
     z, cond = _latent_samples(sub, scene, args.n, args.seed)
     with torch.no_grad():
@@ -347,7 +351,7 @@ def cmd_sample(args: argparse.Namespace) -> int:
         x = scene.full_positions(q)
     path = None
     if args.out is not None or not args.meshes:  # --meshes alone does not replace a states.npz written before
-        path = Path(args.out or "states.npz")
+        path = Path("states.npz" if args.out is None else args.out)
         if path.name in ("", ".", ".."):
             raise CliError(f"--out must name a .npz file, got {args.out!r}")
         if path.suffix != ".npz":  # numpy's savez would add it

@@ -56,7 +56,7 @@ class SubspaceConfig:
         if self.activation not in ACTIVATIONS:
             raise ValueError(f"unknown activation {self.activation!r}; valid: {sorted(ACTIVATIONS)}")
         if any(not 0 <= i < self.latent_dim for i in self.periodic) or len(set(self.periodic)) != len(self.periodic):
-            raise ValueError(f"periodic indices {self.periodic} must be distinct and in [0, {self.latent_dim})")
+            raise ValueError(f"periodic indices {list(self.periodic)} must be distinct and in [0, {self.latent_dim})")
 
 
 class SubspaceMap(nn.Module):
