@@ -40,6 +40,7 @@ def bench_env_ab(
     warmup: int = 3,
     seed: int = 0,
     render: int | None = None,
+    threads: int | None = 1,
 ) -> dict[str, Any]:
     """CPU time and solver work of ``env_id``'s native vector env under each of ``settings``, interleaved.
 
@@ -54,6 +55,7 @@ def bench_env_ab(
         seed: Seeds the resets (copy i: ``seed + i``) and the actions.
         render: A frame size [px]: every setting gets ``render_mode="rgb_array"`` and that width and height (unless
             it names its own), and every timed step renders all copies after stepping them; None: no frames.
+        threads: The envs' torch intra-op threads (:mod:`redsim.threads`), unless a setting names its own.
 
     Returns:
         ``env_id``, ``num_envs``, ``rounds``, ``steps_per_round``, ``warmup``, ``seed`` and ``settings``, a list in
@@ -63,8 +65,10 @@ def bench_env_ab(
         ``slowest_iterations_per_step`` (mean over steps of the slowest copy's), ``calls_per_step`` (the stepper's
         value-and-gradient calls per vector step), ``rows_per_copy_step`` (latent states those calls evaluated,
         per copy and step), ``converged_fraction`` (of copy-steps), ``out_of_range`` and ``diverged`` (copy-steps
-        flagged; a copy restarted in a step is not stepped, and neither counts there), and ``ratio`` against the
-        first setting: ``rounds`` (its time over this one's, per round), ``median``, ``min``, ``max``. With
+        flagged; a copy restarted in a step is not stepped, and neither counts there), ``observation_gap`` (the
+        largest absolute difference over the timed steps, copies and entries of its observations from the first
+        setting's, which saw the same resets and actions: what the setting changes in the results), and ``ratio``
+        against the first setting: ``rounds`` (its time over this one's, per round), ``median``, ``min``, ``max``. With
         ``render``, ``render_size``, and per setting ``round_render_cpu_s`` and ``render_cpu_ms`` (the renders' share
         of the round times, which include them).
 
@@ -81,6 +85,7 @@ def bench_env_ab(
     if render is not None and not 8 <= render <= MAX_IMAGE_SIDE:
         raise ValueError(f"render must be a frame size in [8, {MAX_IMAGE_SIDE}] [px], got {render}")
     frame = {} if render is None else {"render_mode": "rgb_array", "width": render, "height": render}
+    frame["threads"] = threads
     venvs = {
         name: gym.make_vec(env_id, num_envs=num_envs, vectorization_mode="vector_entry_point", **{**frame, **kwargs})
         for name, kwargs in settings.items()
@@ -133,6 +138,7 @@ class _Work:
         self.converged: list[float] = []
         self.out_of_range = 0
         self.diverged = 0
+        self.observations: list[np.ndarray] = []  # per timed step [N, obs]
 
     def run_round(self, venv: Any, actions: np.ndarray, render: bool = False) -> None:
         """Step ``venv`` once per action [N, A] (and render it after each step) and record the round's CPU time per
@@ -141,7 +147,9 @@ class _Work:
         drawing = 0.0
         start = time.process_time()
         for action in actions:
-            infos.append(venv.step(action)[4])
+            observation, _, _, _, info = venv.step(action)
+            infos.append(info)
+            self.observations.append(np.array(observation))
             if render:
                 before = time.process_time()
                 venv.render()
@@ -172,6 +180,7 @@ def _summary(
     evaluations = venv.unwrapped.sim.stepper.evaluations
     median_s = statistics.median(work.round_cpu_s)
     ratios = [a / b for a, b in zip(first.round_cpu_s, work.round_cpu_s, strict=True)]
+    gap = max(float(np.max(np.abs(a - b))) for a, b in zip(work.observations, first.observations, strict=True))
     rendered = (
         {
             "round_render_cpu_s": work.round_render_cpu_s,
@@ -194,6 +203,7 @@ def _summary(
         "converged_fraction": statistics.fmean(work.converged),
         "out_of_range": work.out_of_range,
         "diverged": work.diverged,
+        "observation_gap": gap,
         "ratio": {"rounds": ratios, "median": statistics.median(ratios), "min": min(ratios), "max": max(ratios)},
     }
 

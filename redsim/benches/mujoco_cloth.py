@@ -663,13 +663,15 @@ def cloth_anchor_line(cloth: dict[str, Any]) -> str:
         f"MuJoCo flex cloth ({cloth['vertices']} vertices, {cloth['pinned']} pinned, nv {cloth['nv']}, "
         f"{cloth['integrator']} dt {cloth['timestep']} s): {cloth['steps_per_s']:.1f} steps/s, "
         f"{cloth['sim_s_per_wall_s']:.2f} sim s per wall s"
+        + ("" if cloth["finite"] else " (NOT FINITE at the end: no ratio is taken against it)")
     )
 
 
 def cloth_ratios(rows: list[dict[str, Any]], cloth: dict[str, Any]) -> dict[str, float]:
     """Per cloth env row of :func:`redsim.envs.bench.bench_env` (with vector batches): its best batch's simulated
-    s per wall s over the flex cloth's (:func:`cloth_anchor`); empty where the flex cloth was not timed."""
-    if "reason" in cloth:
+    s per wall s over the flex cloth's (:func:`cloth_anchor`); empty where the flex cloth was not timed or its state
+    ended not finite (a blown-up run's speed is no anchor)."""
+    if "reason" in cloth or not cloth["finite"]:
         return {}
     return {
         row["id"]: max(v["sim_s_per_wall_s"] for v in row["vector"].values()) / cloth["sim_s_per_wall_s"]

@@ -17,6 +17,7 @@ from redsim.cli.common import (
     finish_command,
     json_out,
     non_negative_seed,
+    note,
     out,
     parse_env_args,
     parse_env_id,
@@ -45,7 +46,7 @@ def cmd_demo(args: argparse.Namespace) -> int:
             policy, name = load_agent(path, env_id=args.env_id), f"shipped policy {path.name}"
         else:
             warn(f"no policy is shipped for {args.env_id}: the task's scripted controller runs it")
-    result = run_demo(args.env_id, args.out, seed=args.seed, steps=args.steps, policy=policy)
+    result = run_demo(args.env_id, args.out, seed=args.seed, steps=args.steps, policy=policy, threads=args.threads)
     result["policy"], result["seed"] = name, args.seed
     if args.json:
         json_out(result)
@@ -54,9 +55,13 @@ def cmd_demo(args: argparse.Namespace) -> int:
     out(
         f"{args.env_id} ({name}, seed {args.seed}): return {result['return']:.1f} over {result['steps']} steps, "
         + ("" if distance is None else f"final distance {distance:.3g} m, ")
-        + f"{100 * result['success_fraction']:.1f}% of steps within the task's success tolerance"
+        + f"{100 * result['success_fraction']:.1f}% of steps with info['is_success']"
     )
-    out(f"speed: {result['env_steps_per_s']:.0f} env steps/s, {result['sim_s_per_wall_s']:.2f} simulated s per wall s")
+    out(
+        f"speed: {result['env_steps_per_s']:.0f} env steps/s, {result['sim_s_per_wall_s']:.2f} simulated s per wall s "
+        f"(the median env step on {args.threads} thread(s), without the policy and the frames; the first step took "
+        f"{1e3 * result['first_step_s']:.0f} ms)"
+    )
     out(f"wrote {result['gif']} and {result['png']}")
     return EXIT_OK
 
@@ -101,6 +106,8 @@ def cmd_bench_envs(args: argparse.Namespace) -> int:
         env_kwargs = parse_env_args(args.env_arg, ids)
     if "device" in env_kwargs:
         raise CliError("give the device with --device, not --env-arg device=...")
+    if "threads" in env_kwargs:  # the full-space step and the frames run on --threads too: one setting for all
+        raise CliError("give the threads with --threads, not --env-arg threads=...")
     check_device_option(args.device)
     machine = machine_info()
     if not args.json:
@@ -127,6 +134,8 @@ def cmd_bench_envs(args: argparse.Namespace) -> int:
     anchor_rounds = []
     for index in range(args.rounds):
         for env_id in ids if index % 2 == 0 else ids[::-1]:
+            if args.json:  # the text prints each row as it is measured; a JSON run says where it is on stderr
+                note(f"timing {env_id}" + (f" (round {index + 1} of {args.rounds})" if args.rounds > 1 else ""))
             row = bench_env(
                 env_id,
                 batches=batches,
@@ -135,6 +144,7 @@ def cmd_bench_envs(args: argparse.Namespace) -> int:
                 device=args.device,
                 full_space=not args.no_full_space and index == 0,
                 shards=args.shards,
+                threads=args.threads,
                 **env_kwargs,
             )
             measured[env_id].append(row)
@@ -255,6 +265,7 @@ def cmd_bench_env_ab(args: argparse.Namespace) -> int:
         warmup=args.warmup,
         seed=args.seed,
         render=args.render,
+        threads=args.threads,
     )
     result["machine"] = machine
     result["load_average_1min_end"] = machine_info()["load_average_1min"]
@@ -279,7 +290,8 @@ def cmd_bench_env_ab(args: argparse.Namespace) -> int:
     out(
         f"{'setting':<{width}} {'CPU ms/step':>11} {render_column}"
         f"{'steps/CPU s':>11} {'its (slowest)':>14} {'calls':>6} "
-        f"{'rows/copy':>9} {'converged':>9} {'out_of_range':>12} {'diverged':>8}  vs {first}: median (range)"
+        f"{'rows/copy':>9} {'converged':>9} {'out_of_range':>12} {'diverged':>8} {'obs gap':>8}  "
+        f"vs {first}: median (range)"
     )
     for row in rows:
         ratio = row["ratio"]
@@ -288,9 +300,16 @@ def cmd_bench_env_ab(args: argparse.Namespace) -> int:
         out(
             f"{row['name']:<{width}} {row['cpu_ms_per_step']:>11.1f} {render}{row['env_steps_per_cpu_s']:>11.0f} "
             f"{its:>14} {row['calls_per_step']:>6.1f} {row['rows_per_copy_step']:>9.1f} "
-            f"{row['converged_fraction']:>9.3f} {row['out_of_range']:>12} {row['diverged']:>8}  "
+            f"{row['converged_fraction']:>9.3f} {row['out_of_range']:>12} {row['diverged']:>8} "
+            f"{row['observation_gap']:>8.2g}{'*' if row['iterations_per_step'] == 0 else ' '} "
             f"{ratio['median']:.2f}x ({ratio['min']:.2f}-{ratio['max']:.2f})"
         )
+    out(
+        f"obs gap: the largest difference of a setting's observations from {first}'s over the timed steps (the same "
+        "resets and actions): what it changes in the results"
+    )
+    if any(row["iterations_per_step"] == 0 for row in rows):
+        out("* no solver iteration in any timed step: the steps end where they start (its speed is no speed-up)")
     out(f"per-round CPU ratio vs {first} ({first}'s time over the setting's: > 1 is faster):")
     for row in rows[1:]:
         out(f"  {row['name']}: " + " ".join(f"{r:.2f}" for r in row["ratio"]["rounds"]))

@@ -114,10 +114,15 @@ def test_cloth_ratios_use_the_best_batch_of_the_cloth_envs_only() -> None:
         }
 
     rows = [row("RedSim/HangingCloth-v1", "hanging_sheet", [4.0, 8.0]), row("RedSim/Chain-v0", "chain", [9.0])]
-    ratios = mujoco_cloth.cloth_ratios(rows, {"sim_s_per_wall_s": 0.5})
+    ratios = mujoco_cloth.cloth_ratios(rows, {"sim_s_per_wall_s": 0.5, "finite": True})
     assert ratios == {"RedSim/HangingCloth-v1": 16.0}
     assert "RedSim/HangingCloth-v1 16.0x" in mujoco_cloth.cloth_ratio_lines(ratios)[0]
     assert mujoco_cloth.cloth_ratios(rows, {"reason": "old mujoco"}) == {} and mujoco_cloth.cloth_ratio_lines({}) == []
+    # a flex cloth that blew up is said on its line and is no anchor for a ratio
+    blown = {"sim_s_per_wall_s": 0.5, "finite": False, "steps_per_s": 25.0}
+    blown |= {"vertices": 9, "pinned": 3, "nv": 18, "integrator": "discrete", "timestep": 0.02}
+    assert mujoco_cloth.cloth_ratios(rows, blown) == {}
+    assert "(NOT FINITE at the end: no ratio is taken against it)" in mujoco_cloth.cloth_anchor_line(blown)
 
 
 def test_dropped_start_is_the_sheet_turned_level_about_its_pinned_edge(scene) -> None:

@@ -41,6 +41,7 @@ def test_env_ab_json_counts_the_work_and_the_same_setting_twice_does_the_same_wo
     for key in (*WORK, "converged_fraction", "out_of_range", "diverged"):  # same seed, same actions: same solves
         assert a[key] == again[key], key
     assert loose["iterations_per_step"] < a["iterations_per_step"]  # a 100x looser tolerance stops sooner
+    assert a["observation_gap"] == again["observation_gap"] == 0.0 < loose["observation_gap"]  # and ends elsewhere
 
 
 def test_env_ab_divides_the_work_by_every_timed_step_even_where_every_copy_restarts() -> None:
@@ -102,6 +103,13 @@ def test_env_ab_prints_a_row_per_setting_and_the_ratios(capsys: pytest.CaptureFi
     assert any(line.startswith("cold ") and "1.00x (1.00-1.00)" in line for line in lines)
     assert any(line.startswith("warm ") and line.endswith(")") for line in lines)
     assert "per-round CPU ratio vs cold" in text and "machine:" in text
+    assert "obs gap: the largest difference of a setting's observations from cold's" in text
+    assert "* no solver iteration" not in text
+    # a tolerance the start already meets: no iteration, a step that ends where it started, said under the table
+    assert main([*args, "--setting", 'idle:stepper_options={"tol": 1e3}', *TINY]) == 0
+    text = capsys.readouterr().out
+    assert "* no solver iteration in any timed step: the steps end where they start (its speed is no speed-up)" in text
+    assert any(line.startswith("idle ") and "* " in line for line in text.splitlines()), text
 
 
 def test_env_ab_renders_every_copy_after_each_timed_step(capsys: pytest.CaptureFixture[str]) -> None:

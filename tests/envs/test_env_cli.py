@@ -30,7 +30,10 @@ def test_demo_prints_return_and_speed_and_writes_gif_and_picture(
     names = sorted(p.name for p in tmp_path.glob("*.gif"))
     assert names == ["minichain.gif", "minichain_scripted.gif", "minichain_seed3.gif"]
     assert main(["demo", "RedSim/MiniChain-v0", "--steps", "2", "--out", str(tmp_path), "--seed", "3", "--json"]) == 0
-    assert json.loads(capsys.readouterr().out)["seed"] == 3  # the text said it, the JSON did not
+    doc = json.loads(capsys.readouterr().out)
+    assert doc["seed"] == 3  # the text said it, the JSON did not
+    # the speed is the median step's: the first, which warms the solver, is reported apart (it was in a mean)
+    assert doc["first_step_s"] > 0 and doc["sim_s_per_wall_s"] == pytest.approx(0.02 * doc["env_steps_per_s"])
 
 
 def test_bench_envs_rounds_report_each_rate_s_median_over_the_rounds(capsys: pytest.CaptureFixture[str]) -> None:
@@ -152,7 +155,11 @@ def test_commands_take_an_id_with_the_redsim_prefix_as_gym_make_does(
 
 @pytest.mark.parametrize(
     ("env_arg", "expected"),
-    [("no_such_option=1", "cannot make RedSim/MiniChain-v0 with --env-arg"), ('device="cpu"', "--device")],
+    [
+        ("no_such_option=1", "cannot make RedSim/MiniChain-v0 with --env-arg"),
+        ('device="cpu"', "--device"),
+        ("threads=2", "give the threads with --threads"),
+    ],
 )
 def test_bench_envs_bad_env_arg_is_a_usage_error(
     env_arg: str, expected: str, capsys: pytest.CaptureFixture[str]
