@@ -146,11 +146,19 @@ class _GoalReward:
         sequence or object array of shape [...], as SB3's HER passes them); read only with ``control_cost``.
 
         Raises:
+            ValueError: goals of other shapes, or whose last axis is not the task's k (numpy broadcast them into
+                rewards of other transitions).
             KeyError: ``control_cost`` and an ``info`` without ``"reward_control"`` (SB3's HER copies none unless
                 ``copy_info_dict=True``).
         """
         achieved = np.asarray(achieved_goal, dtype=np.float64)
         desired = np.asarray(desired_goal, dtype=np.float64)
+        k = len(self.task.goal_axes)
+        if achieved.shape != desired.shape or achieved.ndim < 1 or achieved.shape[-1] != k:
+            raise ValueError(
+                f"achieved_goal and desired_goal must share a shape [..., {k}] (k = {k}: the goal axes), got "
+                f"{list(achieved.shape)} and {list(desired.shape)}"
+            )
         distance = np.linalg.norm(achieved - desired, axis=-1)
         task = self.task
         reward = -distance / task.distance_scale + task.success_bonus * (distance < task.success_radius)

@@ -27,6 +27,7 @@ from stable_baselines3.common.env_util import make_vec_env
 import redsim  # noqa: F401  (registers the ids)
 from redsim.envs.goal import GoalObservation
 from redsim.envs.sb3 import SB3VecEnv
+from redsim.trainers.agents import her_wait
 
 SETTINGS: dict[str, Any] = {
     "learning_rate": 1e-3,
@@ -64,15 +65,20 @@ def train(
 
 
 def episodes_ended(env_id: str, steps: int, env_kwargs: dict[str, Any], num_envs: int) -> int:
-    """Transitions until every copy has ended an episode (HER samples only then), refusing a budget below it."""
+    """SAC's ``learning_starts`` for its first update to come once every copy has ended an episode (HER samples
+    only ended episodes; :func:`redsim.trainers.agents.her_wait`), refusing a budget that does not reach it."""
     episode = env_kwargs.get("max_episode_steps", gym.spec(env_id).max_episode_steps)
-    ended = num_envs * (episode + 1)
-    if steps <= ended:
+    if episode is None or episode < 1:  # -1 (no limit) trained, then evaluated an episode that never ends
+        raise ValueError(f"HER needs episodes that end: --episode-steps must be >= 1, got {episode}")
+    if num_envs < 1:
+        raise ValueError(f"--num-envs must be >= 1, got {num_envs}")
+    wait = her_wait(num_envs, episode)
+    if steps <= wait:
         raise ValueError(
-            f"{steps} steps are not enough: learning starts once every one of the {num_envs} copies has ended an "
-            f"episode, at {ended} steps (HER needs {ended + 1} or more)"
+            f"{steps} steps are not enough: every one of the {num_envs} copies has ended an episode at {wait + 1} "
+            f"steps, where learning starts (give {wait + 1} or more)"
         )
-    return ended
+    return wait
 
 
 def evaluate(model: SAC, env_id: str, episodes: int, env_kwargs: dict[str, Any]) -> dict[str, float]:
@@ -140,9 +146,12 @@ if __name__ == "__main__":
     parser.add_argument("--out", type=Path, help="folder for sac.zip and sac_her.zip (default: not saved)")
     args = parser.parse_args()
     limit = {} if args.episode_steps is None else {"max_episode_steps": args.episode_steps}
-    try:  # a budget that ends no episode
+    try:  # a budget that ends no episode, an env without a goal, nothing to evaluate
         episodes_ended(args.env, args.steps, limit, args.num_envs)
-    except ValueError as err:
+        GoalObservation(gym.make(args.env, **limit)).close()
+        if args.episodes < 1:
+            raise ValueError(f"--episodes must be >= 1, got {args.episodes}")
+    except (ValueError, TypeError, gym.error.Error) as err:
         parser.error(str(err))
     try:
         main(args.out, args.env, args.steps, args.episodes, args.episode_steps, seed=args.seed, num_envs=args.num_envs)

@@ -23,3 +23,25 @@ def test_example_runs_and_checks(path: Path, tmp_path: Path) -> None:
     module = importlib.util.module_from_spec(spec)
     spec.loader.exec_module(module)
     module.check(module.main(tmp_path))
+
+
+def test_her_example_refuses_a_budget_or_episodes_it_cannot_train_on() -> None:
+    """--episode-steps -1 (no limit) trained and then evaluated an episode that never ends; 0 was a traceback."""
+    path = next(p for p in EXAMPLES if p.stem == "her_agent")
+    spec = importlib.util.spec_from_file_location(path.stem, path)
+    module = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(module)
+    env_id = "RedSim/MiniChain-v0"
+    for episode in (-1, 0):
+        with pytest.raises(
+            ValueError, match=f"HER needs episodes that end: --episode-steps must be >= 1, got {episode}"
+        ):
+            module.episodes_ended(env_id, 100, {"max_episode_steps": episode}, 1)
+    with pytest.raises(ValueError, match="--num-envs must be >= 1, got 0"):
+        module.episodes_ended(env_id, 100, {"max_episode_steps": 20}, 0)
+    # every copy has ended an episode at copies x episode steps: learning starts there, and that budget is enough
+    assert module.episodes_ended(env_id, 40, {"max_episode_steps": 20}, 2) == 39
+    with pytest.raises(
+        ValueError, match="39 steps are not enough: every one of the 2 copies has ended an episode at 40"
+    ):
+        module.episodes_ended(env_id, 39, {"max_episode_steps": 20}, 2)

@@ -1321,11 +1321,12 @@ def _her_settings(
     settings: dict[str, Any], algo: str, copies: int, episode: int | None, steps: int, shards: int = 1
 ) -> None:
     """Add SB3's ``HerReplayBuffer`` to an off-policy algorithm's ``settings`` (in place), with ``learning_starts``
-    at least the transitions until every copy has ended an episode (HER samples only then).
+    such that learning waits for an ended episode of every copy (HER samples only ended episodes): SB3 learns once
+    its step count exceeds ``learning_starts``, so at least copies x episode - 1 (:func:`her_wait`).
 
     Raises:
-        ValueError: PPO, ``shards`` > 1, an env without an episode limit, or ``steps`` that do not go past the
-            start of learning (copies x (episode + 1) steps: an ended episode of every copy).
+        ValueError: PPO, ``shards`` > 1, an env without an episode limit, or ``steps`` below copies x episode (no
+            step would learn).
     """
     from stable_baselines3 import HerReplayBuffer
 
@@ -1338,12 +1339,12 @@ def _her_settings(
         )
     if episode is None:
         raise ValueError("her needs an episode limit (max_episode_steps): HER relabels with the episode's goals")
-    ended = copies * (episode + 1)
-    if steps <= ended:
+    ended = copies * episode
+    if steps < ended:
         raise ValueError(
             f"her: {steps} steps are not enough: HER's relabelling needs an ended episode of every copy, so learning "
-            f"starts at {ended} steps ({copies} copies x ({episode}-step episodes + 1)) and the run must go past it: "
-            f"give {ended + 1} or more, or fewer copies or shorter episodes (--steps, --n-envs, --episode-steps)"
+            f"starts at {ended} steps ({copies} copies x {episode}-step episodes): give {ended} or more, or fewer "
+            "copies or shorter episodes (--steps, --n-envs, --episode-steps)"
         )
     settings["replay_buffer_class"] = HerReplayBuffer
     settings["replay_buffer_kwargs"] = {
@@ -1351,7 +1352,13 @@ def _her_settings(
         "goal_selection_strategy": "future",
         **settings.get("replay_buffer_kwargs", {}),
     }
-    settings["learning_starts"] = max(int(settings.get("learning_starts", 100)), ended)
+    settings["learning_starts"] = max(int(settings.get("learning_starts", 100)), her_wait(copies, episode))
+
+
+def her_wait(copies: int, episode: int) -> int:
+    """The ``learning_starts`` at which SB3 (learning once its step count exceeds it) first learns with an ended
+    episode of every copy of a vector env whose copies start together: copies x episode steps, less one."""
+    return copies * episode - 1
 
 
 def train_agent(
@@ -1532,7 +1539,7 @@ def train_agent(
             model.load_replay_buffer(out / BUFFER)
         elif algo != "ppo":  # from a checkpoint (only model.zip keeps a replay buffer): refill before learning
             # HER samples only once every copy has ended an episode again; plain replay after the table's start
-            ended = copies * (int(_episode_steps(env, env_kwargs) or 0) + 1)
+            ended = her_wait(copies, int(_episode_steps(env, env_kwargs) or 0))
             left = int(steps) - int(model.num_timesteps)
             wait = ended if her else min(int(settings["learning_starts"]), left // 2)  # as a new run: half at most
             model.learning_starts = max(int(model.learning_starts), int(model.num_timesteps) + wait)
@@ -1716,6 +1723,7 @@ __all__ = [
     "check_env_id",
     "check_run_folder",
     "evaluate",
+    "her_wait",
     "hyperparams",
     "load_agent",
     "load_normalizer",

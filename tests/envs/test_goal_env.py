@@ -84,6 +84,11 @@ def test_compute_reward_is_the_step_reward_for_its_own_goals_and_relabels_others
         np.testing.assert_array_equal(env.compute_reward(np.stack(achieved), np.stack(desired), empty), batched)
     assert env.compute_terminated(np.stack(achieved), np.stack(desired), infos).shape == (20,)
     assert not env.compute_truncated(np.stack(achieved), np.stack(desired), infos).any()
+    # goals numpy would broadcast into other transitions' rewards (a column, the batch transposed, flattened)
+    a, d = np.stack(achieved), np.stack(desired)
+    for bad in ((a[:, :1], d), (a.T, d.T), (a.ravel(), d.ravel()), (a[0, 0], d[0, 0])):
+        with pytest.raises(ValueError, match=r"must share a shape \[\.\.\., 3\] \(k = 3: the goal axes\)"):
+            env.compute_reward(*bad, infos)
 
 
 def test_the_wrapped_env_passes_both_checkers_and_remakes_from_its_spec() -> None:
@@ -119,6 +124,23 @@ def test_one_info_for_a_batch_of_goals_and_the_task_is_the_env_s() -> None:
     np.testing.assert_allclose(batched, np.full(4, reward), atol=1e-6)
     clone = copy.deepcopy(env)
     assert clone.task is clone.unwrapped.task
+
+
+def test_her_learns_from_the_step_that_ends_every_copys_first_episode() -> None:
+    """``her_wait``: learning_starts such that SB3 (which learns once its step count exceeds it) learns at copies x
+    episode steps, where every copy has ended an episode (the bound was one episode step per copy later)."""
+    from stable_baselines3 import SAC, HerReplayBuffer
+
+    from redsim.envs.sb3 import SB3VecEnv
+    from redsim.trainers.agents import her_wait
+
+    copies, episode = 2, 4
+    venv = SB3VecEnv.make("RedSim/MiniChain-v0", copies, goal=True, max_episode_steps=episode)
+    model = SAC("MultiInputPolicy", venv, replay_buffer_class=HerReplayBuffer, batch_size=4, seed=0)
+    model.learning_starts = her_wait(copies, episode)
+    model.learn(copies * episode)  # HER samples only ended episodes: before every copy ended one, it would raise
+    assert model.num_timesteps == copies * episode and model._n_updates == 1
+    venv.close()
 
 
 def test_sb3_sac_with_hindsight_replay_learns_on_it() -> None:
