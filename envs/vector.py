@@ -288,7 +288,8 @@ class LatentVectorEnv(SharedCopies, VectorEnv):
         return tuple(q[i] for i in range(self.num_envs))
 
     def close_extras(self, **kwargs: Any) -> None:
-        self.template.close()
+        if hasattr(self, "template"):  # not where the constructor refused its arguments (garbage collection closes it)
+            self.template.close()
 
     def _check_open(self) -> None:
         """Refuse a call after :meth:`close`, as the sharded env does (a closed env stepped on as if open)."""

@@ -11,10 +11,12 @@ Each runner steps --envs-per-runner copies in redsim's native vector env (one ba
 The env config is checked in this process first, as the runners build it, so a bad id or keyword is a clear error
 here rather than dead runners. --out DIR saves the algorithm to DIR/rllib_ppo (refused where one is, unless
 --overwrite); `--restore DIR/rllib_ppo` trains on from it with its own settings (env, runners, batch), so those
-flags are refused beside it; a local cluster then gets every CPU of the machine for the restored runners.
+flags are refused beside it; a local cluster then gets every CPU of the machine, and at least one per restored
+runner (read from the checkpoint: with fewer, RLlib waited for them without a word).
 --seed S seeds the runners' episodes (runs repeat; without it they do not); --evaluate N then runs the saved
-policy greedily on N seeded single envs (policy_returns: the network alone, no Ray cluster). With --address the
-cluster must have a CPU per runner, else this stops with the count (RLlib would wait without a word).
+policy greedily on N seeded single envs of the env it trained in, its episode length included (policy_returns: the
+network alone, no Ray cluster). With --address the cluster must have a free CPU per runner (a restore's too), else
+this stops with the count (RLlib would wait without a word).
 main()'s defaults are the one-iteration budget the test suite runs.
 """
 
@@ -23,13 +25,14 @@ from __future__ import annotations
 import argparse
 import importlib.util
 import math
+import os
 import sys
 from pathlib import Path
 from typing import Any
 
 import numpy as np
 
-from redsim.trainers.rllib import check_env_config, register
+from redsim.trainers.rllib import check_env_config, checkpoint_config, register
 from redsim.trainers.rllib import restore as restore_algorithm
 
 ENV_ID = "RedSim/MiniChain-v0"
@@ -57,18 +60,21 @@ def main(
     env_config = {"id": env_id, "kwargs": {} if episode_steps is None else {"max_episode_steps": episode_steps}}
     if restore is None:
         check_env_config(env_config, num_envs=envs_per_runner)  # before any runner starts, as the runners build it
+    if restore is not None:  # the checkpoint's runners, whatever the command line says
+        env_runners = int(checkpoint_config(restore)["num_env_runners"])
     if address is not None:
         ray.init(address=address)
-        cpus = ray.cluster_resources().get("CPU", 0.0)
-        if restore is None and cpus < env_runners:  # RLlib would wait for them without a word
+        cpus = ray.available_resources().get("CPU", 0.0)  # free ones: another job's runners hold theirs
+        if cpus < env_runners:  # RLlib would wait for them without a word
             ray.shutdown()
             raise RuntimeError(
-                f"the cluster at {address!r} has {cpus:g} CPUs and each of the {env_runners} env runners takes one: "
-                "start more nodes or ask for fewer runners (a node that did not join: see its log, e.g. "
+                f"the cluster at {address!r} has {cpus:g} free CPUs and each of the {env_runners} env runners takes "
+                "one: start more nodes or ask for fewer runners (a node that did not join: see its log, e.g. "
                 "InvalidAuthToken where the head has token authentication on)"
             )
-    elif restore is not None:  # the checkpoint's runners, whatever their number
-        ray.init(include_dashboard=False, object_store_memory=200 * 2**20)
+    elif restore is not None:  # every CPU of the machine, and one per runner plus this driver at least
+        cpus = max(os.cpu_count() or 1, env_runners + 1)
+        ray.init(num_cpus=cpus, include_dashboard=False, object_store_memory=200 * 2**20)
     else:  # a local cluster, sized to the runners plus this driver (which also learns)
         ray.init(num_cpus=env_runners + 1, include_dashboard=False, object_store_memory=200 * 2**20)
     name = register()  # before from_checkpoint too: the checkpoint names the creator
@@ -104,7 +110,7 @@ def main(
         if out is not None:
             print(f"saved {algo.save_to_path(str((out / 'rllib_ppo').resolve()))}")
         settings = {"runners": algo.config.num_env_runners, "batch": algo.config.train_batch_size_per_learner}
-        env_id = algo.config.env_config["id"]
+        env_id, env_kwargs = algo.config.env_config["id"], dict(algo.config.env_config.get("kwargs", {}))
     finally:
         algo.stop()
         ray.shutdown()
@@ -115,12 +121,16 @@ def main(
         "requested_runners": float(settings["runners"]),
         "batch": float(settings["batch"]),
         "env_id": env_id,
+        "env_kwargs": env_kwargs,
     }
 
 
-def policy_returns(checkpoint: Path, env_id: str = ENV_ID, episodes: int = 5, seed: int = 0) -> np.ndarray:
-    """Returns [episodes] of a saved algorithm's policy acting greedily (its Gaussian's mean) in single envs reset
-    with seeds seed .. seed + episodes - 1: the policy network alone, loaded without a Ray cluster."""
+def policy_returns(
+    checkpoint: Path, env_id: str = ENV_ID, episodes: int = 5, seed: int = 0, env_kwargs: dict[str, Any] | None = None
+) -> np.ndarray:
+    """Returns [episodes] of a saved algorithm's policy acting greedily (its Gaussian's mean) in single envs made
+    with ``env_kwargs`` (those it trained with: an episode length too) and reset with seeds seed .. seed + episodes - 1:
+    the policy network alone, loaded without a Ray cluster."""
     import gymnasium as gym
     import torch
     from ray.rllib.core.columns import Columns
@@ -128,7 +138,7 @@ def policy_returns(checkpoint: Path, env_id: str = ENV_ID, episodes: int = 5, se
 
     module = RLModule.from_checkpoint(str((checkpoint / "learner_group/learner/rl_module/default_policy").resolve()))
     greedy = module.get_inference_action_dist_cls()
-    env = gym.make(env_id)
+    env = gym.make(env_id, **(env_kwargs or {}))
     returns = np.zeros(episodes)
     for i in range(episodes):
         obs, _ = env.reset(seed=seed + i)
@@ -220,8 +230,11 @@ if __name__ == "__main__":
         sys.exit(f"error: {err}")
     check(result)
     if args.evaluate is not None:
-        returns = policy_returns(args.out / "rllib_ppo", result["env_id"], args.evaluate)
+        returns = policy_returns(
+            args.out / "rllib_ppo", result["env_id"], args.evaluate, env_kwargs=result["env_kwargs"]
+        )
+        length = result["env_kwargs"].get("max_episode_steps", "the env's")
         print(
-            f"greedy policy, {args.evaluate} episodes (seeds 0-{args.evaluate - 1}): return {returns.mean():.2f} "
-            f"± {returns.std():.2f}"
+            f"greedy policy, {args.evaluate} episodes of {length} steps as trained (seeds 0-{args.evaluate - 1}): "
+            f"return {returns.mean():.2f} ± {returns.std():.2f}"
         )

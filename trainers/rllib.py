@@ -3,10 +3,14 @@
 RLlib builds its envs on every env runner from a registered creator, never from Gymnasium's registry.
 :func:`register` registers :func:`env_creator` under a name with ``ray.tune.registry.register_env``; the creator
 lives in this importable module (not in a script), so runners on other machines unpickle it by reference: redsim
-must be installed on every node. A process that restores an algorithm from a checkpoint calls :func:`register`
-first (the checkpoint names the creator, not the function), then :func:`restore` (RLlib's ``from_checkpoint``
-leaves runners on their old weights). With ``gym_env_vectorize_mode="vector_entry_point"`` a runner's
-``num_envs_per_env_runner`` copies are redsim's native vector env: one batched latent solve for all of them.
+must be installed on every node. The creator's name, not a RedSim id, goes to ``PPOConfig().environment(...)``:
+a bare ``"RedSim/..."`` id fails on the runners, which never import redsim (``NamespaceNotFound`` in their logs;
+``"redsim:RedSim/..."`` makes Gymnasium import it, without the native vector env's seeds of :class:`RunnerSeeds`).
+:func:`restore` restores an algorithm from a checkpoint, registering the creator under the checkpoint's name first
+(the checkpoint names it, not the function; RLlib's ``from_checkpoint`` also leaves runners on their old weights);
+:func:`checkpoint_config` reads a checkpoint's settings (its runners, its env) without a Ray cluster. With
+``gym_env_vectorize_mode="vector_entry_point"`` a runner's ``num_envs_per_env_runner`` copies are redsim's native
+vector env: one batched latent solve for all of them.
 
 RLlib drops every runner whose creator raises and then fails with an ``IndexError`` in ``get_spaces``, the
 creator's own message only in the workers' logs: :func:`check_env_config` makes the env once in the driver,
@@ -17,7 +21,7 @@ so a bad id or keyword is a clear error there.
     >>> from redsim.trainers.rllib import check_env_config, register
     >>> ray.init()                                  # a local cluster; ray.init(address="auto") joins one
     >>> env_config = {"id": "RedSim/MiniChain-v0", "kwargs": {"max_episode_steps": 100}}
-    >>> check_env_config(env_config)
+    >>> check_env_config(env_config, num_envs=8)     # as the runners build it (8 copies each, below)
     >>> config = PPOConfig().environment(register(), env_config=env_config)
     >>> vector = {"num_envs_per_env_runner": 8, "gym_env_vectorize_mode": "vector_entry_point"}
     >>> config = config.env_runners(num_env_runners=2, **vector)
@@ -96,6 +100,8 @@ def check_env_config(env_config: Mapping[str, Any], num_envs: int | None = None)
         ValueError: what :func:`env_creator` or the env refuses (an unknown keyword is the env's TypeError, a bad
             ``max_episode_steps`` Gymnasium's AssertionError).
     """
+    if not isinstance(env_config, Mapping):
+        raise ValueError(f"env_config must be a dict {{'id': ENV_ID, 'kwargs': {{...}}}}, got {env_config!r:.80}")
     config = dict(env_config) if num_envs is None else {**env_config, "num_envs": int(num_envs)}
     try:
         env_creator(config).close()
@@ -117,9 +123,27 @@ def register(name: str = DEFAULT_NAME) -> str:
     return name
 
 
+def checkpoint_config(path: str | Path) -> dict[str, Any]:
+    """The algorithm config an RLlib checkpoint (``algo.save_to_path(path)``) was saved with, as a dict
+    (``num_env_runners``, ``env``, ``env_config``, ...), read from its ``class_and_ctor_args.pkl`` without a Ray
+    cluster: how many CPUs its runners need before ``ray.init``, which env its policy acts in.
+
+    Raises:
+        ValueError: ``path`` is not an RLlib checkpoint (no ``rllib_checkpoint.json``).
+    """
+    import pickle
+
+    path = Path(path)
+    if not (path / "rllib_checkpoint.json").is_file():
+        raise ValueError(f"{path} is not an RLlib checkpoint (no rllib_checkpoint.json)")
+    with open(path / "class_and_ctor_args.pkl", "rb") as file:  # RLlib's own file, unpickled as from_checkpoint does
+        config = pickle.load(file)["ctor_args_and_kwargs"][0][0]
+    return dict(config) if isinstance(config, Mapping) else config.to_dict()
+
+
 def restore(path: str | Path) -> Any:
-    """``Algorithm.from_checkpoint(path)`` with every env runner holding the checkpoint's weights; call
-    :func:`register` first (the checkpoint names the creator).
+    """``Algorithm.from_checkpoint(path)`` with every env runner holding the checkpoint's weights, :func:`env_creator`
+    registered first under the checkpoint's env name where its ``env_config`` is the creator's (``id``, ``kwargs``).
 
     RLlib sends the restored weights to the remote runners without waiting, and a runner still busy with its build's
     own weights keeps those: the first restored iteration then sampled with the untrained policy on some runners
@@ -130,6 +154,9 @@ def restore(path: str | Path) -> Any:
     """
     from ray.rllib.algorithms.algorithm import Algorithm
 
+    config = checkpoint_config(path)
+    if isinstance(config.get("env"), str) and set(config.get("env_config") or {}) <= {*ENV_CONFIG_KEYS}:
+        register(config["env"])  # without it, RLlib's runners died on make_vec(..., id=...): an IndexError here
     algo = Algorithm.from_checkpoint(str(Path(path).resolve()))
     runners = algo.env_runner_group
     runners.sync_weights(
@@ -152,6 +179,7 @@ __all__ = [
     "ENV_CONFIG_KEYS",
     "RunnerSeeds",
     "check_env_config",
+    "checkpoint_config",
     "env_creator",
     "register",
     "restore",

@@ -51,6 +51,19 @@ def test_a_bad_env_config_is_a_clear_error_in_the_driver(env_config: dict, messa
         check_env_config(env_config)
 
 
+@pytest.mark.parametrize("env_config", [MINI, None, ["id", MINI]])
+def test_an_env_config_that_is_not_a_dict_is_named(env_config: object) -> None:
+    with pytest.raises(ValueError, match=r"env_config must be a dict \{'id': ENV_ID, 'kwargs': \{...\}\}, got "):
+        check_env_config(env_config)
+
+
+def test_checkpoint_config_refuses_a_folder_that_is_no_checkpoint(tmp_path) -> None:
+    from redsim.trainers.rllib import checkpoint_config
+
+    with pytest.raises(ValueError, match=r"is not an RLlib checkpoint \(no rllib_checkpoint\.json\)"):
+        checkpoint_config(tmp_path)
+
+
 def test_the_config_is_checked_as_the_runners_build_it() -> None:
     """gym.make takes disable_env_checker itself; the vector entry point passes it on to the env, which refuses it."""
     config = {"id": MINI, "kwargs": {"disable_env_checker": True}}
@@ -75,7 +88,7 @@ def test_a_restored_algorithm_samples_with_the_checkpoints_weights_on_every_runn
     from ray.rllib.algorithms.ppo import PPOConfig
     from ray.rllib.core.rl_module.rl_module import RLModule
 
-    from redsim.trainers.rllib import restore
+    from redsim.trainers.rllib import checkpoint_config, restore
 
     ray.init(num_cpus=3, include_dashboard=False, object_store_memory=200 * 2**20)
     try:
@@ -90,6 +103,8 @@ def test_a_restored_algorithm_samples_with_the_checkpoints_weights_on_every_runn
         algo.train()
         algo.save_to_path(str(tmp_path / "ppo"))
         algo.stop()
+        saved_config = checkpoint_config(tmp_path / "ppo")  # read without the cluster: what a restore needs first
+        assert saved_config["num_env_runners"] == 2 and saved_config["env_config"]["id"] == MINI
         saved = RLModule.from_checkpoint(str(tmp_path / "ppo/learner_group/learner/rl_module/default_policy"))
         expected = saved.state_dict()
         restored = restore(tmp_path / "ppo")
