@@ -662,8 +662,12 @@ def cmd_bench_stability(args: argparse.Namespace) -> int:
             out(line)
     totals = stability.row_totals([*rows, *(chain["redsim"] if chain else [])])  # redsim's chains, not MuJoCo's
     totals["nan"] += sum(r["nan"] for r in damping["rows"]) if damping else 0  # redsim's released runs, not MuJoCo's
-    if totals["nan"] or totals["unreported"]:  # the checks that must be 0 fail the command, for CI
-        error(f"{totals['nan']} non-finite and {totals['unreported']} unreported energy gains (both must be 0)")
+    blown = [f"{r['scenario']} ({r['space']})" for r in (chain["redsim"] if chain else []) if r["blew_up"]]
+    if totals["nan"] or totals["unreported"] or blown:  # the checks that must be 0 fail the command, for CI
+        error(
+            f"{totals['nan']} non-finite and {totals['unreported']} unreported energy gains (both must be 0)"
+            + (f"; redsim's chain blew up in {', '.join(blown)}" if blown else "")
+        )
         return EXIT_NAN if totals["nan"] else EXIT_FAILED_STEP
     return EXIT_OK
 

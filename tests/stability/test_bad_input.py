@@ -122,6 +122,11 @@ def test_bench_stability_fails_on_a_redsim_chain_run_that_went_non_finite(
         got, out, err = cli("bench", "stability", "--regimes", "mujoco", "--chain-steps", "1")
         assert got == code and "must be 0" in err, err
         assert f"blew up (1 steps, {bad['nan']} non-finite, 0 failures detected" in out
+    # a chain that blew up by its energy alone (finite, every gain reported) fails the command too: it exited 0
+    rows = [{"scenario": label, **row, "nan": 0, "unreported": 0}]
+    monkeypatch.setattr(stability, "redsim_chain_cases", lambda *a, **k: rows)
+    got, _, err = cli("bench", "stability", "--regimes", "mujoco", "--chain-steps", "1")
+    assert got == 4 and f"redsim's chain blew up in {label} (latent)" in err, err
 
 
 def test_condition_outside_its_range_is_flagged_by_the_stepper_and_refused_by_set_state() -> None:

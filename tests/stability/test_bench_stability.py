@@ -233,3 +233,23 @@ def test_chain_table_shows_each_start_energy_and_names_latent_runs_from_another_
 
     only_chain = stability.report({"rows": [], "chain": {"mujoco": mujoco, "redsim": rows, "dt": 0.01}})
     assert only_chain == lines  # no empty scene table and no "0 of 0" totals before it
+
+
+def test_rows_count_inverted_elements_and_idle_steps_that_no_flag_shows() -> None:
+    """A review's cases (helper-201): the bistable bar's middle pushed at 1e4 N inverts elements in a converged latent
+    step (the stable neo-Hookean stays finite there: no NaN, no flag), and a float32 step at dt 1e-4 under a small
+    load ends where it began (converged, idle). The rows count both; a scene without a solid has no count."""
+    scene, f = stability._shipped("bistable_bar")
+    loads = stability._zero_loads(scene, 1)
+    loads[0, scene.handle_names.index(stability.LOADS["bistable_bar"].handle), 1] = 1e4
+    run = stability.runtime_rollout(scene, f, loads, stability.DT)
+    row = run.row(scene, "bistable_bar", "push", "latent", stability.RISE_SLACK)
+    assert row["nan"] == 0 and row["failures_detected"] == 0 and row["inverted"] > 0
+    assert stability.inverted_elements(scene, scene.q_seed.to(torch.float64)[None]) == 0  # the seed: none
+    chain, g = stability._shipped("mini_chain")
+    small = stability._zero_loads(chain, 4)
+    small[:, 0, 0] = 1e-3
+    row = stability.runtime_rollout(chain, g, small, 1e-4).row(chain, "mini_chain", "tiny_dt", "latent", 1e-3)
+    assert row["idle"] == 4 and row["failures_detected"] == 0 and row["inverted"] is None
+    assert "| idle steps | most inverted elements |" in stability.markdown_rows([row])[0]
+    assert stability.markdown_rows([row])[2].endswith("| 4 | - |")
