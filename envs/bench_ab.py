@@ -67,7 +67,8 @@ def bench_env_ab(
         per copy and step), ``converged_fraction`` (of copy-steps), ``out_of_range`` and ``diverged`` (copy-steps
         flagged; a copy restarted in a step is not stepped, and neither counts there), ``observation_gap`` (the
         largest absolute difference over the timed steps, copies and entries of its observations from the first
-        setting's, which saw the same resets and actions: what the setting changes in the results), and ``ratio``
+        setting's, which saw the same resets and actions: what the setting changes in the results; None where the
+        observations' shapes differ), and ``ratio``
         against the first setting: ``rounds`` (its time over this one's, per round), ``median``, ``min``, ``max``. With
         ``render``, ``render_size``, and per setting ``round_render_cpu_s`` and ``render_cpu_ms`` (the renders' share
         of the round times, which include them).
@@ -172,6 +173,14 @@ class _Work:
             self.diverged += int(np.sum(info["diverged"][stepped]))
 
 
+def observation_gap(observations: list[np.ndarray], reference: list[np.ndarray]) -> float | None:
+    """The largest absolute difference of one setting's observations from another's over the same steps (NaN where
+    either holds a NaN); None where their shapes differ (a map of another dimension: nothing to compare)."""
+    if any(a.shape != b.shape for a, b in zip(observations, reference, strict=True)):
+        return None
+    return float(max(np.max(np.abs(a.astype(np.float64) - b)) for a, b in zip(observations, reference, strict=True)))
+
+
 def _summary(
     name: str, env_args: Mapping[str, Any], work: _Work, first: _Work, venv: Any, num_envs: int
 ) -> dict[str, Any]:
@@ -180,7 +189,7 @@ def _summary(
     evaluations = venv.unwrapped.sim.stepper.evaluations
     median_s = statistics.median(work.round_cpu_s)
     ratios = [a / b for a, b in zip(first.round_cpu_s, work.round_cpu_s, strict=True)]
-    gap = max(float(np.max(np.abs(a - b))) for a, b in zip(work.observations, first.observations, strict=True))
+    gap = observation_gap(work.observations, first.observations)
     rendered = (
         {
             "round_render_cpu_s": work.round_render_cpu_s,

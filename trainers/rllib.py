@@ -141,9 +141,17 @@ def checkpoint_config(path: str | Path) -> dict[str, Any]:
     return dict(config) if isinstance(config, Mapping) else config.to_dict()
 
 
+def _is_redsim(env_config: Mapping[str, Any]) -> bool:
+    """Whether ``env_config`` names a RedSim id (the creator's config, not another env's)."""
+    import redsim.envs
+
+    return env_config.get("id") in redsim.envs.ids()
+
+
 def restore(path: str | Path) -> Any:
     """``Algorithm.from_checkpoint(path)`` with every env runner holding the checkpoint's weights, :func:`env_creator`
-    registered first under the checkpoint's env name where its ``env_config`` is the creator's (``id``, ``kwargs``).
+    registered first under the checkpoint's env name where its ``env_config`` is the creator's (``id``, a RedSim id,
+    and ``kwargs``; another env's checkpoint is left to its own registration).
 
     RLlib sends the restored weights to the remote runners without waiting, and a runner still busy with its build's
     own weights keeps those: the first restored iteration then sampled with the untrained policy on some runners
@@ -155,7 +163,8 @@ def restore(path: str | Path) -> Any:
     from ray.rllib.algorithms.algorithm import Algorithm
 
     config = checkpoint_config(path)
-    if isinstance(config.get("env"), str) and set(config.get("env_config") or {}) <= {*ENV_CONFIG_KEYS}:
+    env_config = config.get("env_config") or {}
+    if isinstance(config.get("env"), str) and set(env_config) <= {*ENV_CONFIG_KEYS} and _is_redsim(env_config):
         register(config["env"])  # without it, RLlib's runners died on make_vec(..., id=...): an IndexError here
     algo = Algorithm.from_checkpoint(str(Path(path).resolve()))
     runners = algo.env_runner_group

@@ -626,11 +626,19 @@ def fuzz_env(
     elapsed = np.zeros(copies, dtype=np.int64)
     pending = np.zeros(copies, dtype=np.int64)
     counts = dict.fromkeys(
-        ("steps", "failures", "recovered", "gains", "nan", "unreported", "excused", "out_of_range", "resets"), 0
+        ("steps", "failures", "recovered", "gains", "nan", "unreported", "excused", "out_of_range", "resets", "idle"),
+        0,
     )
+    inverted: int | None = None
     vector_steps = max(1, math.ceil(steps / copies))
     for i in range(vector_steps):
+        z_before = venv.unwrapped.sim.z.clone()
         obs, reward, terminated, truncated, info = venv.step(fuzz_actions(rng, venv.action_space.shape, i))
+        still = (venv.unwrapped.sim.z == z_before).all(-1).cpu().numpy()  # before any reset below
+        counts["idle"] += int((still & (np.asarray(info["iterations"]) == 0)).sum())
+        solids = [np.asarray(info[k]) for k in info if k.endswith("_inverted") and not k.startswith("_")]
+        if solids:  # the envs' invariants (redsim.envs.invariants): elements with det F <= 0, per copy
+            inverted = max(inverted or 0, int(np.sum(solids, axis=0).max()))
         bad = ~np.asarray(info["converged"], dtype=bool) | np.asarray(info["diverged"], dtype=bool)
         gain = np.asarray(info["energy_gain"], dtype=bool)
         tolerance = torch.as_tensor(np.asarray(info["energy_gain_tolerance"], dtype=np.float64))
@@ -671,6 +679,8 @@ def fuzz_env(
         "max_energy_J": account.max_energy,
         "input_work_J": account.max_work,
         "out_of_range": counts["out_of_range"],
+        "idle": counts["idle"],
+        "inverted": inverted,
         "copies": copies,
         "resets": counts["resets"],
         "seconds": time.perf_counter() - start,

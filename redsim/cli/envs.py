@@ -66,6 +66,11 @@ def cmd_demo(args: argparse.Namespace) -> int:
     return EXIT_OK
 
 
+def _gap(value: float | None) -> str:
+    """An env-ab observation gap as printed: "-" where the observations' shapes differ."""
+    return "-" if value is None else f"{value:.2g}"
+
+
 def _row_line(row: dict[str, Any], batches: list[int]) -> str:
     cells = " ".join(f"{row['vector'][b]['env_steps_per_s']:>9.0f}" for b in batches)
     best = max((row["vector"][b]["sim_s_per_wall_s"] for b in batches), default=None)
@@ -301,7 +306,7 @@ def cmd_bench_env_ab(args: argparse.Namespace) -> int:
             f"{row['name']:<{width}} {row['cpu_ms_per_step']:>11.1f} {render}{row['env_steps_per_cpu_s']:>11.0f} "
             f"{its:>14} {row['calls_per_step']:>6.1f} {row['rows_per_copy_step']:>9.1f} "
             f"{row['converged_fraction']:>9.3f} {row['out_of_range']:>12} {row['diverged']:>8} "
-            f"{row['observation_gap']:>8.2g}{'*' if row['iterations_per_step'] == 0 else ' '} "
+            f"{_gap(row['observation_gap']):>8}{'*' if row['iterations_per_step'] == 0 else ' '} "
             f"{ratio['median']:.2f}x ({ratio['min']:.2f}-{ratio['max']:.2f})"
         )
     out(
@@ -309,7 +314,10 @@ def cmd_bench_env_ab(args: argparse.Namespace) -> int:
         "resets and actions): what it changes in the results"
     )
     if any(row["iterations_per_step"] == 0 for row in rows):
-        out("* no solver iteration in any timed step: the steps end where they start (its speed is no speed-up)")
+        out(
+            "* no solver iteration in any timed step: each step took the solver's start as it was (no solve; its "
+            "speed is no speed-up)"
+        )
     out(f"per-round CPU ratio vs {first} ({first}'s time over the setting's: > 1 is faster):")
     for row in rows[1:]:
         out(f"  {row['name']}: " + " ".join(f"{r:.2f}" for r in row["ratio"]["rounds"]))
@@ -494,7 +502,7 @@ def add_commands(sub: Any, bench: Any) -> None:
         type=int,
         default=1,
         help="worker processes per vector env (default 1: the native vector env; P > 1: redsim.envs.sharded, "
-        "each worker a block of the copies, its env on the env's threads (default 1); its solver calls are not "
+        "each worker a block of the copies, its env on --threads; its solver calls are not "
         "counted)",
     )
     p.add_argument(

@@ -253,3 +253,7 @@ def test_rows_count_inverted_elements_and_idle_steps_that_no_flag_shows() -> Non
     assert row["idle"] == 4 and row["failures_detected"] == 0 and row["inverted"] is None
     assert "| idle steps | most inverted elements |" in stability.markdown_rows([row])[0]
     assert stability.markdown_rows([row])[2].endswith("| 4 | - |")
+    # the fuzz rows count both from the envs' own info (the invariants' *_inverted per copy)
+    fuzz = stability.fuzz_env("RedSim/BistableBar-v0", 16, num_envs=8)
+    assert isinstance(fuzz["inverted"], int) and fuzz["idle"] >= 0
+    assert stability.fuzz_env("RedSim/MiniChain-v0", 16, num_envs=8)["inverted"] is None
