@@ -56,7 +56,11 @@ def main(out: Path | None = None, steps: int = 128, episodes: int = 2, episode_s
         distances.append(info["distance"])
         returns.append(total)
         stiffness, support = conditions[-1]
-        print(f"seed {seed}: stiffness x{stiffness:.2f}, support {support:.2f} m, distance {info['distance']:.3f} m")
+        print(
+            f"seed {seed}: stiffness x{stiffness:.2f}, support {support:.2f} m: return {total:.1f}, final distance "
+            f"{info['distance']:.3f} m, success {bool(info['is_success'])} (random and scripted baselines: redsim "
+            "eval-agent --baselines)"
+        )
     env.close()
     return {
         "steps": model.num_timesteps,
@@ -84,6 +88,15 @@ if __name__ == "__main__":
     parser.add_argument("--episode-steps", type=int, default=200, help="steps per episode (default 200)")
     parser.add_argument("--out", type=Path, help="folder for the policy and its normalizer (default: not saved)")
     args = parser.parse_args()
+    for flag, value in (
+        ("--steps", args.steps),
+        ("--episodes", args.episodes),
+        ("--episode-steps", args.episode_steps),
+    ):
+        if value < 1:  # before training: --episode-steps -1 trained, then evaluated an episode that never ends
+            parser.error(f"{flag} must be an integer >= 1, got {value}")
+    if args.out is not None and args.out.exists() and not args.out.is_dir():
+        parser.error(f"--out {args.out} is a file, not a folder")
     try:
         check(main(args.out, args.steps, args.episodes, args.episode_steps))
     except KeyboardInterrupt:

@@ -66,6 +66,12 @@ if __name__ == "__main__":
     parser.add_argument("--episode-steps", type=int, help="steps per evaluation episode (default: the env's limit)")
     parser.add_argument("--out", type=Path, help="folder for the policy and its normalizer (default: not saved)")
     args = parser.parse_args()
+    counts = (("--steps", args.steps), ("--episodes", args.episodes), ("--episode-steps", args.episode_steps or 1))
+    for flag, value in counts:
+        if value < 1:  # before training, not in the evaluation after it
+            parser.error(f"{flag} must be an integer >= 1, got {value}")
+    if args.out is not None and args.out.exists() and not args.out.is_dir():
+        parser.error(f"--out {args.out} is a file, not a folder")
     try:  # (check() is the test budget's claim: at any other budget the numbers speak for themselves)
         main(args.out, args.env, args.steps, args.episodes, args.episode_steps)
     except KeyboardInterrupt:

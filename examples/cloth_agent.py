@@ -53,6 +53,11 @@ def main(
         # (another batch size moves a return in the fourth digit, README "Gymnasium environments")
         episodes = full.evaluation.returns.size
         again = evaluate(ENV_ID, model, episodes=episodes, seed=full.evaluation.seed, env_kwargs=limit)
+        final = full.evaluation
+        print(
+            f"final evaluation, {episodes} episodes: return {final.mean:.2f} ± {final.returns.std():.2f}, success "
+            f"{100 * final.successes.mean():.0f}%; the reloaded model {again.mean:.2f}"
+        )
         return {
             "half_steps": float("nan") if half is None else half.steps,
             "steps": full.steps,
@@ -83,6 +88,12 @@ if __name__ == "__main__":
     what.add_argument("--resume", action="store_true", help="continue the run in OUT/hanging_cloth to --steps")
     what.add_argument("--overwrite", action="store_true", help="replace the run in OUT/hanging_cloth")
     args = parser.parse_args()
+    if args.steps < 2:  # half of it runs first
+        parser.error(f"--steps must be an integer >= 2, got {args.steps}")
+    if args.episode_steps is not None and args.episode_steps < 1:
+        parser.error(f"--episode-steps must be an integer >= 1, got {args.episode_steps}")
+    if args.out is not None and args.out.exists() and not args.out.is_dir():
+        parser.error(f"--out {args.out} is a file, not a folder")
     try:  # a run already in the folder: --resume or --overwrite
         check_run_folder(args.out / "hanging_cloth", args.resume, args.overwrite)
     except ValueError as err:

@@ -57,4 +57,8 @@ if __name__ == "__main__":
     parser.add_argument("--out", type=Path, help="folder for custom_scene.png: first and last state (default: none)")
     parser.add_argument("--steps", type=int, default=8, help="implicit-Euler steps of 0.02 s (default 8)")
     args = parser.parse_args()
+    if args.steps < 1:
+        parser.error(f"--steps must be an integer >= 1, got {args.steps}")
+    if args.out is not None and args.out.exists() and not args.out.is_dir():
+        parser.error(f"--out {args.out} is a file, not a folder")
     check(main(args.out, args.steps))

@@ -78,8 +78,13 @@ def main(
         tiny = {"n_envs": 2, "eval_every": steps, "eval_episodes": 2, "final_episodes": 2} if steps < 1000 else {}
         settings = {"overrides": {"learning_starts": 50}, "resume": resume, "overwrite": overwrite, **tiny}
         result = train_agent(env, folder, algo="sac", steps=steps, **settings)
-        random = evaluate(env, "random", episodes=2, seed=result.evaluation.seed)
-        print(f"agent return {result.evaluation.mean:.2f}, random {random.mean:.2f} ({result.steps} steps)")
+        episodes = result.evaluation.returns.size  # the random policy on the agent's own evaluation episodes
+        random = evaluate(env, "random", episodes=episodes, seed=result.evaluation.seed)
+        print(
+            f"{episodes} episodes: agent return {result.evaluation.mean:.2f}, success "
+            f"{100 * result.evaluation.successes.mean():.0f}%; random {random.mean:.2f}, "
+            f"{100 * random.successes.mean():.0f}% ({result.steps} steps)"
+        )
         with torch.no_grad():  # the map must span shapes, or the env could not move
             spread = subspace(torch.randn(16, 3, generator=torch.Generator().manual_seed(0))).std(dim=0).max()
         return {
@@ -110,6 +115,15 @@ if __name__ == "__main__":
     what.add_argument("--resume", action="store_true", help="continue the run in OUT/my_sheet, in its map")
     what.add_argument("--overwrite", action="store_true", help="fit and train anew in OUT/my_sheet")
     args = parser.parse_args()
+    for flag, value in (
+        ("--fit-steps", args.fit_steps),
+        ("--steps", args.steps),
+        ("--episode-steps", args.episode_steps),
+    ):
+        if value < 1:  # before the fit (it was saved, and the run refused after it)
+            parser.error(f"{flag} must be an integer >= 1, got {value}")
+    if args.out is not None and args.out.exists() and not args.out.is_dir():
+        parser.error(f"--out {args.out} is a file, not a folder")
     try:  # a run already in the folder: --resume or --overwrite
         check_folder(args.out / "my_sheet", args.resume, args.overwrite)
     except ValueError as err:
