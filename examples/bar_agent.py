@@ -22,7 +22,7 @@ from stable_baselines3.common.vec_env import VecNormalize
 
 import redsim  # noqa: F401  (registers the RedSim ids)
 from redsim.envs.sb3 import SB3VecEnv
-from redsim.trainers.agents import hyperparams
+from redsim.trainers.agents import FINAL_EVAL_SEED, hyperparams
 
 ENV_ID = "RedSim/ConditionalBar-v0"
 
@@ -44,7 +44,8 @@ def main(out: Path | None = None, steps: int = 128, episodes: int = 2, episode_s
     env = gym.make(ENV_ID, max_episode_steps=episode_steps)
     structure = env.unwrapped.observation_structure  # {"z": 8, "z_dot": 8, ..., "condition": 2}
     conditions, distances, returns = [], [], []
-    for seed in range(episodes):
+    first = FINAL_EVAL_SEED  # seeds no training copy started from (SB3's are 0, 1, ...)
+    for seed in range(first, first + episodes):
         obs, _ = env.reset(seed=seed)
         conditions.append(obs[-2:].copy())
         total, done = 0.0, False

@@ -16,7 +16,7 @@ from stable_baselines3 import SAC
 from stable_baselines3.common.vec_env import VecNormalize
 
 from redsim.envs.sb3 import SB3VecEnv
-from redsim.trainers.agents import Agent, evaluate, hyperparams
+from redsim.trainers.agents import FINAL_EVAL_SEED, Agent, evaluate, hyperparams
 
 
 def main(
@@ -40,7 +40,11 @@ def main(
     limit = {} if episode_steps is None else {"max_episode_steps": episode_steps}
     venv.training = False
     policies = {"agent": Agent(model, venv), "random": "random", "scripted": "scripted"}  # Agent: obs normalized
-    results = {name: evaluate(env_id, p, episodes=episodes, env_kwargs=limit) for name, p in policies.items()}
+    # seeds no training copy started from (SB3 seeds copy i with i), as train_agent's final evaluation takes them
+    seed = FINAL_EVAL_SEED
+    results = {
+        name: evaluate(env_id, p, episodes=episodes, seed=seed, env_kwargs=limit) for name, p in policies.items()
+    }
     for name, r in results.items():
         print(f"{name:<9} return {r.mean:8.2f} ± {r.std:6.2f}   success {100 * r.success_rate:.0f}%")
     return {

@@ -66,6 +66,9 @@ BUFFER = "replay_buffer.pkl"
 NORMALIZER = "_vecnormalize.pkl"
 """Suffix of the ``VecNormalize`` statistics beside a model (``model.zip`` -> ``model_vecnormalize.pkl``)."""
 ALGOS = ("ppo", "sac", "td3")
+FINAL_EVAL_SEED = 20_000
+"""The first reset seed of a run's final evaluation past its own seed (``seed + FINAL_EVAL_SEED + i``): seeds no
+training copy starts from (:func:`training_seed`; SB3's own envs start at 0, 1, ...)."""
 """The stable-baselines3 algorithms the table covers."""
 
 _OFF_POLICY = {
@@ -1686,7 +1689,7 @@ def train_agent(
         venv.close()
         eval_env.close()
 
-        final = evaluate(env, agent, episodes=final_episodes, seed=seed + 20_000, env_kwargs=env_kwargs)
+        final = evaluate(env, agent, episodes=final_episodes, seed=seed + FINAL_EVAL_SEED, env_kwargs=env_kwargs)
         if not curve or curve[-1]["env_steps"] < model.num_timesteps:
             curve.append(
                 {
@@ -1714,6 +1717,7 @@ def train_agent(
 
 __all__ = [
     "ALGOS",
+    "FINAL_EVAL_SEED",
     "HYPERPARAMS",
     "Agent",
     "Evaluation",
