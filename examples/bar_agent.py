@@ -5,8 +5,10 @@ Run: python examples/bar_agent.py [--steps 50000] [--episodes 5] [--episode-step
 `redsim eval-agent DIR/bar_ppo.zip RedSim/ConditionalBar-v0 --algo ppo --baselines` evaluates it again later).
 Domain randomization comes from the conditional subspace f(z, c): each episode draws c (the right half's
 stiffness factor and the support location), and c is the last two numbers of the observation. After
-training, a plain Gymnasium loop runs the policy and prints each episode's condition and final distance.
-main()'s defaults are the tiny budget the test suite runs.
+training, a plain Gymnasium loop runs the policy and prints each episode's condition, return, final distance
+and success. Gymnasium warns that ConditionalBar-v0 is out of date: v1 is its cubature version, v0 steps every
+element (the exact dynamics; README "Gymnasium environments"). main()'s defaults are the tiny budget the test suite
+runs.
 """
 
 from __future__ import annotations

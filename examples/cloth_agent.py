@@ -4,8 +4,9 @@ Run: python examples/cloth_agent.py [--steps 20000] [--episode-steps N] [--out D
 It trains half the budget, then resumes the same run to the full budget, in DIR/hanging_cloth (default
 runs/hanging_cloth): the same as `redsim train-agent RedSim/HangingCloth-v0 --algo sac --steps 20000 --out
 runs/hanging_cloth`. Stopped by Ctrl-C, the run is saved; `--resume` goes on from it. A folder that holds a run
-is refused unless `--resume` continues it or `--overwrite` replaces it. main()'s defaults are the tiny budget the
-test suite runs.
+is refused unless `--resume` continues it or `--overwrite` replaces it. Gymnasium warns that HangingCloth-v0 is
+out of date: v1 and v2 are its cubature versions, v0 steps every element (README "Gymnasium environments").
+main()'s defaults are the tiny budget the test suite runs.
 """
 
 from __future__ import annotations
