@@ -2,7 +2,6 @@
 
 from __future__ import annotations
 
-import fnmatch
 import logging
 import os
 import re
@@ -24,15 +23,24 @@ FOLDERS = {
     "envs": "the envs' settled work (rest latents, held targets, Stewart's camera frame)",
 }
 """The folders of redsim's user cache and what each holds; :func:`clear_user_cache` deletes files in these only."""
-CACHE_FILES = {"equilibria": ("*.npz",), "subspaces": ("*.pt", "*.json"), "envs": ("*.npz",)}
-"""The names of the files redsim writes in each folder (a ``subspaces`` stem has ``.pt``, ``.json`` and, while its fit
-is unfinished, ``.fit.pt``); nothing else there is counted or deleted."""
+CACHE_FILES = {
+    "equilibria": re.compile(r"[0-9a-f]{64}\.npz"),
+    "subspaces": re.compile(r".+-[0-9a-f]{16}-[0-9a-f]{12}\.(?:pt|json|fit\.pt)"),
+    "envs": re.compile(r"(?:[a-z0-9-]+-)?[0-9a-f]{64}\.npz"),
+}
+"""The names of the files redsim writes in each folder: an equilibrium's key hash (``<sha256>.npz``), a fitted map's
+``SCENE-FINGERPRINT-OPTIONS`` stem (:func:`redsim.envs.fitted.cache_stem`: ``.pt``, ``.json`` and, while its fit is
+unfinished, ``.fit.pt``), an env's settled work (``rest-latent-<sha256>.npz``; ``<sha256>.npz`` from earlier versions).
+Nothing else there is counted or deleted: ``$REDSIM_CACHE`` may name a folder of the user's, whose own fits in
+``subspaces/`` (README: ``redsim fit ... --out subspaces/SCENE``) are not the cache's."""
 STALE_TEMPORARY_DAYS = 1.0
 """Age [days] past which a temporary file a writer left behind (an interrupted process: ``.*.npz.tmp``,
 ``*.pt.XXXXXXXXtmp``, ``*.json.XXXXXXXXtmp``; ``*.pt.tmp`` before stop 44) counts as cache; a younger one may be
 another process's write in flight."""
 TEMPORARY = re.compile(r"\.?(?P<name>.+?)(?:\.tmp|\.[a-z0-9_]{8}tmp)")
 """A temporary file's name: the file it will replace (``name``), a writer's own random part, ``tmp``."""
+ARRAYS_TEMPORARY = re.compile(r"\.[a-z0-9_]{8}\.npz\.tmp")
+"""A temporary file of :func:`write_arrays`: a writer's own random part, not the name of the file it replaces."""
 
 
 def cache_root() -> Path | None:
@@ -112,7 +120,8 @@ def _files(root: Path, name: str, older_than_days: float | None = None) -> list[
     for path in folder.iterdir():
         temporary = path.name.endswith("tmp") and (found_name := TEMPORARY.fullmatch(path.name)) is not None
         stem = found_name["name"] if temporary else path.name
-        if not any(fnmatch.fnmatch(stem, pattern) for pattern in CACHE_FILES[name]):
+        arrays = name != "subspaces" and ARRAYS_TEMPORARY.fullmatch(path.name) is not None
+        if not (arrays or CACHE_FILES[name].fullmatch(stem)):
             continue
         try:
             if path.is_symlink() or not path.is_file():

@@ -18,7 +18,14 @@ from redsim.integrators import cache as equilibria
 from redsim.usercache import FOLDERS, cache_root, clear_user_cache, user_cache_usage
 
 WEEK = 7 * 86400.0
-NAMES = {"equilibria": ("new.npz", "old.npz"), "subspaces": ("new.pt", "old.json"), "envs": ("new.npz", "old.npz")}
+STEM = "mini_chain-" + "a" * 16 + "-" + "b" * 12
+"""A fitted map's cache stem (redsim.envs.fitted.cache_stem: SCENE-FINGERPRINT-OPTIONS)."""
+NAMES = {
+    "equilibria": ("0" * 64 + ".npz", "1" * 64 + ".npz"),
+    "subspaces": (STEM + ".pt", STEM.replace("a", "c") + ".json"),
+    "envs": ("rest-latent-" + "2" * 64 + ".npz", "3" * 64 + ".npz"),
+}
+"""Two files of each folder, named as redsim names them (the first is written now, the second a week ago)."""
 
 
 @pytest.fixture
@@ -64,7 +71,8 @@ def test_usage_counts_the_files_of_each_folder(root: Path) -> None:
 def test_clear_deletes_only_the_named_folders_files(root: Path) -> None:
     deleted = clear_user_cache(["envs", "equilibria"], older_than_days=1.5)
     assert _counts(deleted) == {"envs": (1, 100), "equilibria": (1, 100)}
-    assert sorted(p.name for p in (root / "envs").iterdir()) == [".abc.npz.tmp", "nested", "new.npz", "notes.txt"]
+    kept = [".abc.npz.tmp", "nested", "notes.txt", NAMES["envs"][0]]
+    assert sorted(p.name for p in (root / "envs").iterdir()) == kept
     assert _counts(clear_user_cache()) == {"equilibria": (1, 10), "subspaces": (2, 110), "envs": (1, 10)}
     assert _counts(user_cache_usage()) == {name: (0, 0) for name in FOLDERS}
     assert (root / "mine.txt").is_file() and (root / "envs" / "nested" / "keep.npz").is_file()
@@ -85,12 +93,28 @@ def test_clear_leaves_linked_folders_and_files_alone_and_takes_stale_temporaries
     (root / "envs").rmdir()
     (root / "envs").symlink_to(user, target_is_directory=True)
     (root / "equilibria" / "linked.npz").symlink_to(user / "thesis.npz")
-    stale = root / "subspaces" / "map.fit.pt.tmp"
-    stale.write_bytes(b"x")
-    os.utime(stale, (time.time() - 2 * 86400.0,) * 2)
+    for stale in (root / "subspaces" / f"{STEM}.fit.pt.tmp", root / "equilibria" / ".k2x_9abc.npz.tmp"):
+        stale.write_bytes(b"x")  # write_atomically's before stop 44; write_arrays's (a random name)
+        os.utime(stale, (time.time() - 2 * 86400.0,) * 2)
     assert _counts(user_cache_usage())["envs"] == (0, 0)
-    assert _counts(clear_user_cache()) == {"equilibria": (2, 110), "subspaces": (3, 111), "envs": (0, 0)}
+    assert _counts(clear_user_cache()) == {"equilibria": (3, 111), "subspaces": (3, 111), "envs": (0, 0)}
     assert (user / "thesis.npz").read_bytes() == b"precious" and (root / "equilibria" / "linked.npz").is_symlink()
+
+
+def test_a_users_own_files_in_a_folder_named_like_the_caches_are_not_the_caches(root: Path) -> None:
+    """$REDSIM_CACHE may name a user's folder, whose subspaces/ holds the user's fits (README: `redsim fit chain --out
+    subspaces/chain`): any *.pt and *.json there were counted and deleted as cache; only redsim's names are now."""
+    mine = [
+        root / "subspaces" / name for name in ("chain.pt", "chain.json", "chain.fit.pt", "part-v2.pt", "chain.pt.tmp")
+    ]
+    mine += [root / "envs" / "states.npz", root / "equilibria" / "reference.npz"]
+    week = time.time() - WEEK
+    for path in mine:
+        path.write_bytes(b"a fit of the user's")
+        os.utime(path, (week, week))
+    assert _counts(user_cache_usage()) == {name: (2, 110) for name in FOLDERS}
+    assert _counts(clear_user_cache()) == {name: (2, 110) for name in FOLDERS}
+    assert all(path.read_bytes() == b"a fit of the user's" for path in mine)
 
 
 def test_equilibria_clear_cache_on_disk_uses_the_same_deletion(root: Path) -> None:

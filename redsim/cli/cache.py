@@ -91,10 +91,11 @@ def add_commands(sub: Any) -> None:
         "clear",
         help="delete cached files",
         description=(
-            "Delete the files in the named cache folders (default: all). Only redsim's own files directly in those "
-            "folders are deleted (*.npz; *.pt and *.json in subspaces), never a linked folder or file, another "
-            "process's write in flight, or anything else under the cache root. Deleting subspaces/*.fit.pt makes an "
-            "interrupted fit start over."
+            "Delete the files in the named cache folders (default: all). Only the files redsim writes directly in "
+            "those folders are deleted (named by their hash: <sha256>.npz, rest-latent-<sha256>.npz, "
+            "SCENE-FINGERPRINT-OPTIONS.pt/.json/.fit.pt in subspaces), never a linked folder or file, another "
+            "process's write in flight, a file of yours such as subspaces/chain.pt, or anything else under the cache "
+            "root. Deleting subspaces/*.fit.pt makes an interrupted fit start over."
         ),
     )
     p.add_argument("folders", nargs="*", metavar="FOLDER", help=f"one of {', '.join(FOLDERS)} (default: all)")
