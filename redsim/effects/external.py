@@ -36,13 +36,21 @@ class Gravity(Effect):
                 f"{given.tolist()}"
             )
         self.acceleration = given.reshape(points.dim)
-        # E is linear in x: E = -(x . coefficients + constant); precomputed for the hot path.
+        self._precompute()
+
+    def _precompute(self) -> None:
+        """E is linear in x: E = x . coefficients + constant, precomputed for the hot path (:meth:`energy`)."""
+        points = self.points
         weight = -self.masses[:, None, None] * self.acceleration[None, :, None] * points.weights[:, None, :]
         size = int(points.dofs.max()) + 1 if points.count else 0
-        self.coefficients = torch.zeros(size, dtype=torch.float64).index_add_(
-            0, points.dofs.reshape(-1), weight.reshape(-1)
-        )
+        self.coefficients = weight.new_zeros(size).index_add_(0, points.dofs.reshape(-1), weight.reshape(-1))
         self.constant = -(self.masses[:, None] * self.acceleration * points.offset).sum()
+
+    def subset(self, index: Tensor) -> Gravity:
+        """The gravity of the points ``index`` only (its linear form recomputed: :meth:`energy` is theirs)."""
+        out: Gravity = super().subset(index)  # type: ignore[assignment]
+        out._precompute()
+        return out
 
     def element_energy(self, xe: Tensor, cond: Tensor | None = None, loads: Tensor | None = None) -> Tensor:
         return -self.masses * (self.points.local_positions(xe) * self.acceleration).sum(-1)
