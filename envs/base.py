@@ -79,6 +79,8 @@ larger one is refused when the env is made, not found out as a memory error at t
 ACTION_RESOLUTION_WARNING = 0.05
 """An env whose steps cannot feel actions below this fraction of their range (:attr:`LatentSim.action_resolution`)
 warns at its first reset (README "Tolerance")."""
+USE_RGB_ARRAY = "use render_mode='rgb_array'"
+"""What a refused ``render_mode="human"`` advises instead."""
 DISPLAY_VARIABLES = ("DISPLAY", "WAYLAND_DISPLAY", "SDL_VIDEODRIVER")
 """On Linux a window needs one of these set (SDL_VIDEODRIVER=dummy gives a window that shows nothing)."""
 
@@ -91,8 +93,38 @@ def human_unavailable() -> str | None:
     if importlib.util.find_spec("pygame") is None:
         return 'pygame is not installed; run `pip install "redsim[render]"` (or `pip install pygame`)'
     if sys.platform.startswith("linux") and not any(os.environ.get(k) for k in DISPLAY_VARIABLES):
-        return f"there is no display ({', '.join(DISPLAY_VARIABLES)} are unset); use render_mode='rgb_array'"
+        return f"there is no display ({', '.join(DISPLAY_VARIABLES)} are unset); {USE_RGB_ARRAY}"
     return None
+
+
+HEADLESS_DRIVERS = ("offscreen", "dummy")
+"""SDL video drivers that draw into no window: pygame falls back to "offscreen" where ``DISPLAY`` names no reachable
+display (a stale variable, a container without the X socket), so a window there is refused unless
+``SDL_VIDEODRIVER`` asks for that driver."""
+
+
+def open_display() -> None:
+    """Start pygame's display for ``render_mode="human"``.
+
+    Raises:
+        ValueError: pygame opened no display (a driver that ``SDL_VIDEODRIVER`` asks for is not available), or fell
+            back to a :data:`HEADLESS_DRIVERS` driver nobody asked for: the window would show nothing.
+    """
+    import pygame  # present: human_unavailable() was checked first
+
+    try:
+        pygame.display.init()
+    except pygame.error as err:
+        reason = f"pygame opened no display ({err}); {USE_RGB_ARRAY}"
+        raise ValueError(f'render_mode="human" needs a window: {reason}') from err
+    driver = pygame.display.get_driver()
+    if driver in HEADLESS_DRIVERS and driver not in os.environ.get("SDL_VIDEODRIVER", "").lower().split(","):
+        pygame.display.quit()
+        found = ", ".join(f"{k}={os.environ[k]!r}" for k in DISPLAY_VARIABLES if os.environ.get(k)) or "no display"
+        raise ValueError(
+            f'render_mode="human" needs a window: pygame reached no display ({found}) and fell back to its {driver!r} '
+            f"driver, which shows nothing; {USE_RGB_ARRAY} (or SDL_VIDEODRIVER={driver} to run the window unseen)"
+        )
 
 
 RENDER_MODES = ["rgb_array", "human"]
@@ -1461,7 +1493,8 @@ class LatentEnv(gym.Env[np.ndarray, np.ndarray]):
         subspace: Its map (fitted to this scene: another scene's map raises CheckpointError).
         task: The task.
         render_mode: None, "rgb_array" (headless) or "human" (a pygame window; listed in ``metadata``
-            where pygame and a display exist, else a clear error: :func:`human_unavailable`).
+            where pygame and a display exist, else a clear error: :func:`human_unavailable`, and
+            :func:`open_display` where pygame reaches no display).
         dt: Stepper time step [s].
         frame_skip: Stepper steps per env step, in [1, :data:`MAX_FRAME_SKIP`].
         dtype: Stepper dtype, "float32" or "float64" (or the torch/NumPy dtype; the spec records its name).
@@ -1533,6 +1566,8 @@ class LatentEnv(gym.Env[np.ndarray, np.ndarray]):
         if render_mode == "human" and (reason := human_unavailable()) is not None:
             error = ValueError if importlib.util.find_spec("pygame") else gym.error.DependencyNotInstalled
             raise error(f'render_mode="human" needs a window: {reason}')
+        if render_mode == "human":
+            open_display()  # here, not at the first frame: a display that shows nothing is refused as none is
         with torch_threads(self.threads):  # the rest solve, a task's settling
             self.sim = LatentSim(
                 scene,
@@ -1570,6 +1605,7 @@ class LatentEnv(gym.Env[np.ndarray, np.ndarray]):
         self._camera = {**self.camera, **_camera(camera)}
         self._view: Any = None
         self._window: Any = None
+        self._display = render_mode == "human"  # pygame's display, started above; quit by close()
         self._reset_done = False
 
     @property
@@ -1637,7 +1673,8 @@ class LatentEnv(gym.Env[np.ndarray, np.ndarray]):
         import pygame  # present: checked with the render mode in __init__
 
         if self._window is None:
-            pygame.display.init()
+            open_display()  # again after close()
+            self._display = True
             self._window = pygame.display.set_mode(frame.shape[1::-1])
             self._clock = pygame.time.Clock()
         pygame.event.pump()
@@ -1646,12 +1683,12 @@ class LatentEnv(gym.Env[np.ndarray, np.ndarray]):
         self._clock.tick(self.metadata["render_fps"])
 
     def close(self) -> None:
-        if self._window is not None:
+        if self._display:
             import pygame
 
             pygame.display.quit()
             pygame.quit()
-            self._window = None
+            self._window, self._display = None, False
 
     # -- state and export -----------------------------------------------------------------
     def get_state(self) -> dict[str, Any]:

@@ -216,7 +216,9 @@ class LatentVectorEnv(SharedCopies, VectorEnv):
         Raises:
             gymnasium.error.ResetNeeded: a copy was never reset (nor restored by :meth:`set_state`), as Gymnasium's
                 sync vector env's copies refuse it (their ``OrderEnforcing``).
+            ClosedVectorEnvError: after :meth:`close`, as the sharded env raises (it drew on as if open).
         """
+        self._check_open()
         if self.render_mode != "rgb_array":
             return None
         check_started(self._unreset, "render()")

@@ -71,6 +71,57 @@ def test_human_mode_opens_a_window_where_a_display_exists(monkeypatch: pytest.Mo
     assert not pygame.display.get_init()
 
 
+def test_human_mode_where_pygame_reaches_no_display_is_a_clear_error(monkeypatch: pytest.MonkeyPatch) -> None:
+    """A DISPLAY that names no reachable X server (stale, or a container without the socket): pygame fell back to
+    its "offscreen" driver, and the env stepped on with a window nobody could see, without a word."""
+    pygame = pytest.importorskip("pygame")
+    monkeypatch.setattr(base.sys, "platform", "linux")
+    for name in base.DISPLAY_VARIABLES:
+        monkeypatch.delenv(name, raising=False)
+    monkeypatch.setenv("DISPLAY", ":4711")  # no X server listens there
+    with pytest.raises(ValueError, match=r"DISPLAY=':4711'.*'offscreen' driver, which shows nothing.*rgb_array"):
+        gym.make("RedSim/MiniChain-v0", render_mode="human")
+    assert not pygame.display.get_init()
+    monkeypatch.setenv("SDL_VIDEODRIVER", "offscreen")  # asked for: a window that shows nothing, as with "dummy"
+    env = gym.make("RedSim/MiniChain-v0", render_mode="human", width=SIZE, height=SIZE)
+    env.close()  # never rendered: the display it started is quit all the same
+    assert not pygame.display.get_init()
+
+
+def test_a_closed_vector_env_refuses_to_render_as_the_sharded_one_does() -> None:
+    """Closed, the native vector env drew on as if open (a step raised, the sharded env's render raises)."""
+    venv = gym.make_vec("RedSim/MiniChain-v0", num_envs=2, render_mode="rgb_array", width=SIZE, height=SIZE)
+    venv.reset(seed=0)
+    venv.close()
+    with pytest.raises(gym.error.ClosedEnvironmentError, match="this LatentVectorEnv is closed"):
+        venv.render()
+    with pytest.raises(gym.error.ClosedEnvironmentError, match="this LatentVectorEnv is closed"):
+        venv.call("render")
+
+
+def test_sb3_records_a_video_of_every_copy_of_a_vector_env(tmp_path) -> None:
+    """Gymnasium's RecordVideo wraps a single env (it refuses a vector env); SB3's VecVideoRecorder over SB3VecEnv
+    records all the copies' frames, tiled (README)."""
+    pytest.importorskip("moviepy")
+    imageio_ffmpeg = pytest.importorskip("imageio_ffmpeg")
+    from gymnasium.wrappers import RecordVideo
+    from stable_baselines3.common.vec_env import VecVideoRecorder
+
+    from redsim.envs.sb3 import SB3VecEnv
+
+    venv = SB3VecEnv.make("RedSim/MiniChain-v0", num_envs=4, render_mode="rgb_array", width=32, height=32)
+    with pytest.raises(TypeError, match=r"gymnasium\.Env"):
+        RecordVideo(venv.venv, str(tmp_path / "refused"))
+    recorder = VecVideoRecorder(venv, str(tmp_path), record_video_trigger=lambda step: step == 0, video_length=6)
+    recorder.reset()
+    for _ in range(6):
+        recorder.step(np.ones((4, 3), np.float32))
+    recorder.close()
+    (video,) = tmp_path.glob("*.mp4")
+    frames = imageio_ffmpeg.read_frames(str(video))
+    assert tuple(next(frames)["size"]) == (64, 64) and len(list(frames)) >= 6  # a 2 x 2 tile of 32 px frames
+
+
 def test_a_vector_env_refuses_human_mode_and_draws_a_frame_per_copy(monkeypatch: pytest.MonkeyPatch) -> None:
     """A vector env would open no window in "human" mode; it says so, before it makes an env or a worker."""
     for shards in (1, 2):
