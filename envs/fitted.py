@@ -29,6 +29,7 @@ from typing import Any
 from torch import nn
 
 from redsim.scene import Scene
+from redsim.subspace import CheckpointError
 from redsim.usercache import cache_root
 
 log = logging.getLogger(__name__)
@@ -77,7 +78,8 @@ def cached_subspace(
     Raises:
         ValueError: an unknown or bad fit option (from the fitter, before any step), or one the cache sets itself
             (:data:`RESERVED_FIT_OPTIONS`).
-        redsim.subspace.CheckpointError: a corrupt cached checkpoint (delete it to fit again).
+        redsim.subspace.CheckpointError: a corrupt cached checkpoint or training state (the message names the files
+            to delete to fit again or start over).
     """
     from redsim.subspace import checkpoint_path, load_subspace
     from redsim.trainers.fit import FIT_ALIASES, fit_subspace
@@ -95,7 +97,11 @@ def cached_subspace(
     options = {**_shipped_recipe(scene_name), **given}  # the same cache entry for either spelling
     stem = cache_stem(scene_name, scene, options)
     if stem is not None and checkpoint_path(stem, ".pt").is_file() and checkpoint_path(stem, ".json").is_file():
-        return load_subspace(stem, scene=scene)
+        try:
+            return load_subspace(stem, scene=scene)
+        except CheckpointError as err:
+            files = f"{checkpoint_path(stem, '.pt')} and {checkpoint_path(stem, '.json')}"
+            raise _damaged(err, f"delete {files} to fit it again") from None
     if stem is not None and not _writable(stem.parent):  # as the other caches: it never stops the caller
         warnings.warn(
             f"the user cache cannot hold this fit ({stem.parent} is not a writable folder): fitting in memory (set "
@@ -107,12 +113,24 @@ def cached_subspace(
     state = None if stem is None else checkpoint_path(stem, ".fit.pt")
     resume = state is not None and state.is_file()
     log.info("fitting a subspace for %s (%s) into %s", scene_name, scene.fingerprint(), stem or "memory (cache off)")
-    result = fit_subspace(scene, out=stem, resume=resume, overwrite=not resume, progress=progress, **options)
+    try:
+        result = fit_subspace(scene, out=stem, resume=resume, overwrite=not resume, progress=progress, **options)
+    except CheckpointError as err:
+        if not resume:
+            raise
+        raise _damaged(err, f"delete {state} to start its fit over") from None
     if state is not None:
         state.unlink(missing_ok=True)
     if stem is None:  # no file behind it: an env pickles it rather than fit it again
         setattr(result.subspace, IN_MEMORY_ATTRIBUTE, True)
     return result.subspace
+
+
+def _damaged(err: CheckpointError, remedy: str) -> CheckpointError:
+    """``err`` (about a file of the cache's ``subspaces`` folder) with what to do about it."""
+    damaged = CheckpointError(f"{err}; it is an entry of redsim's user cache ($REDSIM_CACHE): {remedy}")
+    damaged.path = err.path
+    return damaged
 
 
 def _shipped_recipe(scene_name: str) -> dict[str, Any]:

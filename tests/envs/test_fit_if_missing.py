@@ -211,3 +211,22 @@ def test_a_scene_whose_preset_fits_its_shipped_map_keeps_its_cache_entries(tmp_p
     before = fitted.cache_stem("mini_chain", scene, {**preset("mini_chain"), **TINY})
     made = fitted.cached_subspace("mini_chain", scene, TINY, progress=False)
     assert before.with_suffix(".pt").is_file() and made.latent_dim == preset("mini_chain")["latent_dim"]
+
+
+@pytest.mark.parametrize("damaged", [".pt", ".json", ".fit.pt"])
+def test_a_damaged_cache_entry_is_an_error_naming_the_files_to_delete(tmp_path, monkeypatch, damaged: str) -> None:
+    """A truncated cached map (or an interrupted fit's training state) was a CheckpointError naming the file but not
+    that it is the user cache's, nor what to do; it says which files to delete, and deleting them fits again."""
+    monkeypatch.setenv("REDSIM_CACHE", str(tmp_path))
+    scene = redsim.scenes.build("mini_chain", **PARAMS)
+    fitted.cached_subspace("mini_chain", scene, TINY, progress=False)
+    stem = fitted.cache_stem("mini_chain", scene, {**fitted._shipped_recipe("mini_chain"), **TINY})
+    if damaged == ".fit.pt":  # a fit killed mid-way: its state, no map yet
+        stem.with_name(stem.name + ".pt").rename(stem.with_name(stem.name + ".fit.pt"))
+    path = stem.with_name(stem.name + damaged)
+    path.write_bytes(path.read_bytes()[:300])
+    with pytest.raises(CheckpointError, match=r"user cache.*: delete .*(\.pt and .*\.json to fit it again|\.fit\.pt)"):
+        gym.make("RedSim/MiniChain-v0", scene_params=PARAMS, fit_if_missing=True, fit_options=TINY)
+    for suffix in (".pt", ".json", ".fit.pt"):  # as the message says
+        stem.with_name(stem.name + suffix).unlink(missing_ok=True)
+    assert fitted.cached_subspace("mini_chain", scene, TINY, progress=False).latent_dim > 0
