@@ -168,3 +168,16 @@ def test_cli_with_the_cache_off(monkeypatch: pytest.MonkeyPatch, capsys: pytest.
     monkeypatch.setenv("REDSIM_CACHE", "off")
     assert main(["cache", "clear"]) == 0
     assert "the user cache is off" in capsys.readouterr().out
+
+
+def test_cli_info_says_where_the_cache_is_not_made_yet_or_cannot_be(tmp_path, monkeypatch, capsys) -> None:
+    """A missing root or $REDSIM_CACHE naming a file printed the same zero counts as an empty cache folder."""
+    monkeypatch.setenv("REDSIM_CACHE", str(tmp_path / "none"))
+    assert main(["cache", "info"]) == 0
+    assert "(not made yet: nothing is cached)" in capsys.readouterr().out
+    (tmp_path / "afile").write_text("x")
+    monkeypatch.setenv("REDSIM_CACHE", str(tmp_path / "afile"))
+    assert main(["cache", "info"]) == 0
+    assert "which is not a folder: nothing can be cached there" in capsys.readouterr().err
+    assert main(["cache", "info", "--json"]) == 0
+    assert json.loads(capsys.readouterr().out)["state"] == "not a folder"

@@ -3,9 +3,10 @@
 from __future__ import annotations
 
 import argparse
+from pathlib import Path
 from typing import Any
 
-from redsim.cli.common import EXIT_OK, CliError, finish_command, json_out, out, shown_path
+from redsim.cli.common import EXIT_OK, CliError, finish_command, json_out, out, shown_path, warn
 from redsim.usercache import CACHE_ENV, FOLDERS, FolderUsage, cache_root, clear_user_cache, user_cache_usage
 
 
@@ -22,6 +23,11 @@ def _off() -> str:
     return f'the user cache is off (${CACHE_ENV} is "0", "off", "false", "no" or empty): nothing is kept on disk'
 
 
+def _state(root: Path) -> str:
+    """Whether the cache root is a ``"folder"``, ``"missing"`` (made at the first write) or ``"not a folder"``."""
+    return "folder" if root.is_dir() else "not a folder" if root.exists() else "missing"
+
+
 def _age(args: argparse.Namespace) -> float | None:
     days = args.older_than
     if days is not None and not (0.0 <= days < float("inf")):
@@ -33,13 +39,17 @@ def cmd_cache_info(args: argparse.Namespace) -> int:
     root = cache_root()
     usage = user_cache_usage(older_than_days=_age(args))
     if args.json:
-        json_out({"root": None if root is None else str(root), "folders": _rows(usage)})
+        state = None if root is None else _state(root)
+        json_out({"root": None if root is None else str(root), "state": state, "folders": _rows(usage)})
         return EXIT_OK
     if root is None:
         out(_off())
         return EXIT_OK
     older = "" if args.older_than is None else f" (files older than {args.older_than:g} days)"
-    out(f"redsim user cache: {shown_path(root)}{older}")
+    state = {"folder": "", "missing": " (not made yet: nothing is cached)"}.get(_state(root))
+    if state is None:
+        warn(f"${CACHE_ENV} names {shown_path(root)}, which is not a folder: nothing can be cached there")
+    out(f"redsim user cache: {shown_path(root)}{older}{state or ''}")
     for u in usage:
         out(f"  {u.name:<11} {u.files:>6} files {_megabytes(u.bytes):>10}   {FOLDERS[u.name]}")
     out(f"  {'total':<11} {sum(u.files for u in usage):>6} files {_megabytes(sum(u.bytes for u in usage)):>10}")
