@@ -5,7 +5,7 @@ from __future__ import annotations
 import torch
 from torch import Tensor
 
-from redsim.effects.base import Effect
+from redsim.effects.base import Effect, per_element
 from redsim.points import PointSet
 
 
@@ -19,7 +19,7 @@ class Gravity(Effect):
         acceleration: Gravitational acceleration [m/s^2], shape [D] (e.g. (0, -9.81, 0)), finite.
 
     Raises:
-        ValueError: ``acceleration`` is not D finite numbers.
+        ValueError: ``acceleration`` is not D finite numbers, or a mass is negative or not finite.
     """
 
     kind = "gravity"
@@ -28,7 +28,8 @@ class Gravity(Effect):
         self.name = name
         self.points = points
         self.element_dofs = points.local_dofs()
-        self.masses = torch.as_tensor(masses, dtype=torch.float64).reshape(points.count)
+        masses = torch.as_tensor(masses, dtype=torch.float64).reshape(points.count)
+        self.masses = per_element(masses, points.count, f"masses of {name!r}")
         given = torch.as_tensor(acceleration, dtype=torch.float64)
         if given.numel() != points.dim or not bool(torch.isfinite(given).all()):
             raise ValueError(

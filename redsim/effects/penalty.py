@@ -68,6 +68,10 @@ class ConditionalPin(Effect):
         condition_index: Which entry j of the condition vector is the support location.
         width: Width of the support [same unit as locations].
         stiffness: Penalty weight [N/m].
+
+    Raises:
+        ValueError: on a non-finite target or location, or a non-positive or non-finite width, or a negative or
+            non-finite stiffness.
     """
 
     kind = "conditional_pin"
@@ -90,7 +94,12 @@ class ConditionalPin(Effect):
         self.points = points
         self.element_dofs = points.local_dofs()
         self.targets = torch.as_tensor(targets, dtype=torch.float64).reshape(points.count, points.dim)
-        self.locations = torch.as_tensor(locations, dtype=torch.float64).reshape(points.count)
+        locations = torch.as_tensor(locations, dtype=torch.float64).reshape(points.count)
+        self.locations = per_element(locations, points.count, f"locations of {name!r}", sign="any")
+        bad = torch.nonzero(~torch.isfinite(self.targets).all(-1)).reshape(-1)
+        if bad.numel():
+            i = int(bad[0])
+            raise ValueError(f"targets of {name!r} must be finite, got {self.targets[i].tolist()} for point {i}")
         self.condition_index = int(condition_index)
         self.width = float(width)
         self.stiffness = float(stiffness)
@@ -164,8 +173,12 @@ class SDFContact(Effect):
         points: Points that must stay outside the shape (3D), P of them.
         frames: The frame carrying the shape, one per point.
         shape: A shape from :mod:`redsim.effects.sdf`.
-        stiffness: Penalty weight [N/m].
-        margin: Distance [m] kept from the surface.
+        stiffness: Penalty weight [N/m], finite and >= 0.
+        margin: Distance [m] kept from the surface, finite and >= 0.
+
+    Raises:
+        ValueError: on points that are not 3D, not one frame per point, or a negative or non-finite stiffness or
+            margin.
     """
 
     kind = "sdf_contact"
@@ -185,6 +198,7 @@ class SDFContact(Effect):
         if frames.dofs.shape != (points.count, 12):
             raise ValueError(f"need one frame per point: {points.count} points, frames {tuple(frames.dofs.shape)}")
         per_element(stiffness, 1, f"stiffness of {name!r}")
+        per_element(margin, 1, f"margin of {name!r}")
         self.name = name
         self.kind = f"sdf_contact:{type(shape).__name__.lower()}"
         self.points = points

@@ -341,6 +341,11 @@ def test_external_load_and_gravity_are_linear_potentials() -> None:
 _HINGE_REST = torch.tensor([[0.0, 0, 0], [1, 0, 0], [0, 1, 0], [1, -1, 0]], dtype=torch.float64)
 
 
+def _contact_with_margin(margin: float) -> SDFContact:
+    points = PointSet.particles(torch.arange(3).reshape(1, 3))
+    return SDFContact("contact", points, FrameSet.body(torch.arange(3, 15), 1), Sphere(0.1), 100.0, margin=margin)
+
+
 @pytest.mark.parametrize(
     ("make", "expected"),
     [
@@ -396,6 +401,46 @@ _HINGE_REST = torch.tensor([[0.0, 0, 0], [1, 0, 0], [0, 1, 0], [1, -1, 0]], dtyp
                 "gravity", PointSet.particles(torch.arange(2).reshape(1, 2)), torch.ones(1), (0.0, math.nan)
             ),
             r"acceleration of 'gravity' must be 2 finite numbers \(the scene's dimension\), got \[0.0, nan\]",
+        ),
+        (
+            lambda: Gravity(
+                "gravity",
+                PointSet.particles(torch.arange(4).reshape(2, 2)),
+                torch.tensor([1.0, math.nan]),
+                (0.0, -9.81),
+            ),
+            r"masses of 'gravity' must be finite and >= 0, got nan at element 1",
+        ),
+        *(
+            (
+                lambda margin=margin: _contact_with_margin(margin),
+                rf"margin of 'contact' must be finite and >= 0, got {shown}",
+            )
+            for margin, shown in ((math.nan, "nan"), (-0.5, "-0.5"))
+        ),
+        (
+            lambda: ConditionalPin(
+                "pin",
+                PointSet.particles(torch.arange(2).reshape(1, 2)),
+                torch.tensor([[0.0, math.inf]]),
+                torch.zeros(1),
+                0,
+                0.1,
+                10.0,
+            ),
+            r"targets of 'pin' must be finite, got \[0.0, inf\] for point 0",
+        ),
+        (
+            lambda: ConditionalPin(
+                "pin",
+                PointSet.particles(torch.arange(2).reshape(1, 2)),
+                torch.zeros(1, 2),
+                torch.tensor([math.nan]),
+                0,
+                0.1,
+                10.0,
+            ),
+            r"locations of 'pin' must be finite, got nan",
         ),
     ],
 )
