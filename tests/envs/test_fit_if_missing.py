@@ -230,3 +230,26 @@ def test_a_damaged_cache_entry_is_an_error_naming_the_files_to_delete(tmp_path, 
     for suffix in (".pt", ".json", ".fit.pt"):  # as the message says
         stem.with_name(stem.name + suffix).unlink(missing_ok=True)
     assert fitted.cached_subspace("mini_chain", scene, TINY, progress=False).latent_dim > 0
+
+
+def test_an_interrupted_cache_fit_resumes_to_the_map_an_uninterrupted_one_makes(tmp_path, monkeypatch) -> None:
+    """A fit stopped mid-way (Ctrl-C saves STEM.fit.pt so) leaves no map that loads as if whole: the next env
+    resumes it from its training state, to the same weights as a fit never stopped, and removes the state."""
+    from redsim.trainers import fit
+
+    scene = redsim.scenes.build("mini_chain", **PARAMS)
+    monkeypatch.setenv("REDSIM_CACHE", str(tmp_path / "whole"))
+    whole = fitted.cached_subspace("mini_chain", scene, TINY, progress=False)
+    monkeypatch.setenv("REDSIM_CACHE", str(tmp_path / "stopped"))
+    options = {**fitted._shipped_recipe("mini_chain"), **TINY}
+    stem = fitted.cache_stem("mini_chain", scene, options)
+    with pytest.raises(fit.FitStopped):
+        fit.fit_subspace(scene, out=stem, stop_at=7, progress=False, **options)
+    assert sorted(p.name for p in stem.parent.iterdir()) == [stem.name + ".fit.pt"]
+    calls = []
+    real = fit.fit_subspace
+    monkeypatch.setattr(fit, "fit_subspace", lambda *a, **k: calls.append(k["resume"]) or real(*a, **k))
+    env = gym.make("RedSim/MiniChain-v0", scene_params=PARAMS, fit_if_missing=True, fit_options=TINY)
+    assert calls == [True] and not stem.with_name(stem.name + ".fit.pt").exists()
+    resumed = env.unwrapped.sim.subspace.state_dict()
+    assert all(torch.equal(value, resumed[key]) for key, value in whole.state_dict().items())
