@@ -1,6 +1,6 @@
 """PPO on the conditional bar: stiffness and support change every episode, and the policy sees them.
 
-Run: python examples/bar_agent.py [--steps 50000] [--episodes 5] [--episode-steps 200] [--out DIR]
+Run: python examples/bar_agent.py [--steps 50000] [--episodes 5] [--episode-steps 200] [--out DIR] [--no-progress]
 (--out DIR saves DIR/bar_ppo.zip and the observation statistics it acts through, DIR/bar_ppo_vecnormalize.pkl;
 `redsim eval-agent DIR/bar_ppo.zip RedSim/ConditionalBar-v0 --algo ppo --baselines` evaluates it again later).
 Domain randomization comes from the conditional subspace f(z, c): each episode draws c (the right half's
@@ -29,14 +29,16 @@ from redsim.trainers.agents import FINAL_EVAL_SEED, hyperparams
 ENV_ID = "RedSim/ConditionalBar-v0"
 
 
-def main(out: Path | None = None, steps: int = 128, episodes: int = 2, episode_steps: int = 20) -> dict[str, float]:
+def main(
+    out: Path | None = None, steps: int = 128, episodes: int = 2, episode_steps: int = 20, progress: bool = False
+) -> dict[str, float]:
     settings = hyperparams(ENV_ID, "ppo")
     n_envs = settings.pop("n_envs")
     if steps < 1000:  # the test budget: one short rollout
         n_envs, settings["n_steps"], settings["batch_size"], settings["n_epochs"] = 4, 32, 64, 2
     venv = SB3VecEnv.make(ENV_ID, num_envs=n_envs, max_episode_steps=episode_steps)
     venv = VecNormalize(venv, gamma=settings["gamma"], **settings.pop("normalize"))  # running obs/return mean, std
-    model = PPO("MlpPolicy", venv, seed=0, **settings).learn(total_timesteps=steps)
+    model = PPO("MlpPolicy", venv, seed=0, **settings).learn(total_timesteps=steps, progress_bar=progress)
     venv.training = False
     if out is not None:
         out.mkdir(parents=True, exist_ok=True)
@@ -90,6 +92,7 @@ if __name__ == "__main__":
     parser.add_argument("--episodes", type=int, default=5, help="episodes of the trained policy shown (default 5)")
     parser.add_argument("--episode-steps", type=int, default=200, help="steps per episode (default 200)")
     parser.add_argument("--out", type=Path, help="folder for the policy and its normalizer (default: not saved)")
+    parser.add_argument("--no-progress", action="store_true", help="no SB3 progress bar while training")
     args = parser.parse_args()
     for flag, value in (
         ("--steps", args.steps),
@@ -101,7 +104,7 @@ if __name__ == "__main__":
     if args.out is not None and args.out.exists() and not args.out.is_dir():
         parser.error(f"--out {args.out} is a file, not a folder")
     try:
-        check(main(args.out, args.steps, args.episodes, args.episode_steps))
+        check(main(args.out, args.steps, args.episodes, args.episode_steps, progress=not args.no_progress))
     except KeyboardInterrupt:
         print("interrupted; nothing was saved", file=sys.stderr)
         sys.exit(130)

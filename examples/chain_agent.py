@@ -1,7 +1,8 @@
 """Train SAC to push the end of a chain to random targets; compare it with a random policy and the PI controller.
 
 Run: python examples/chain_agent.py [--env RedSim/Chain-v0] [--steps 30000] [--episodes 20] [--episode-steps N]
-[--out DIR] (main()'s defaults are the tiny budget the test suite runs; MiniChain-v0 is the fast two-link chain;
+[--out DIR] [--no-progress] (main()'s defaults are the tiny budget the test suite runs; MiniChain-v0 is the fast
+two-link chain; SB3's progress bar shows unless --no-progress;
 --out DIR saves DIR/chain_sac.zip and the observation statistics it acts through, DIR/chain_sac_vecnormalize.pkl;
 `redsim eval-agent DIR/chain_sac.zip ENV_ID --algo sac --baselines` evaluates it again later).
 """
@@ -25,13 +26,14 @@ def main(
     steps: int = 200,
     episodes: int = 4,
     episode_steps: int | None = 30,
+    progress: bool = False,
 ) -> dict[str, float]:
     settings = hyperparams(env_id, "sac")  # the rl-zoo style table of redsim.trainers.agents
     venv = SB3VecEnv.make(env_id, num_envs=settings.pop("n_envs"))  # one batched latent step for all copies
     venv = VecNormalize(venv, gamma=settings["gamma"], **settings.pop("normalize"))  # running obs mean/std
     settings["learning_starts"] = min(settings["learning_starts"], steps // 2)
     model = SAC("MlpPolicy", venv, seed=0, **settings)
-    model.learn(total_timesteps=steps)
+    model.learn(total_timesteps=steps, progress_bar=progress)  # SB3's bar (rich): the default 30k steps take long
     if out is not None:
         out.mkdir(parents=True, exist_ok=True)
         model.save(out / "chain_sac.zip")
@@ -69,6 +71,7 @@ if __name__ == "__main__":
     parser.add_argument("--episodes", type=int, default=20, help="evaluation episodes per policy (default 20)")
     parser.add_argument("--episode-steps", type=int, help="steps per evaluation episode (default: the env's limit)")
     parser.add_argument("--out", type=Path, help="folder for the policy and its normalizer (default: not saved)")
+    parser.add_argument("--no-progress", action="store_true", help="no SB3 progress bar while training")
     args = parser.parse_args()
     counts = (("--steps", args.steps), ("--episodes", args.episodes), ("--episode-steps", args.episode_steps or 1))
     for flag, value in counts:
@@ -77,7 +80,7 @@ if __name__ == "__main__":
     if args.out is not None and args.out.exists() and not args.out.is_dir():
         parser.error(f"--out {args.out} is a file, not a folder")
     try:  # (check() is the test budget's claim: at any other budget the numbers speak for themselves)
-        main(args.out, args.env, args.steps, args.episodes, args.episode_steps)
+        main(args.out, args.env, args.steps, args.episodes, args.episode_steps, progress=not args.no_progress)
     except KeyboardInterrupt:
         print("interrupted; nothing was saved", file=sys.stderr)
         sys.exit(130)

@@ -1,6 +1,7 @@
 """Train an agent to move a free corner of a pinned sheet with the trainers helper: curve, GIF, checkpoints, resume.
 
 Run: python examples/cloth_agent.py [--steps 20000] [--episode-steps N] [--out DIR] [--resume | --overwrite]
+[--no-progress]
 It trains half the budget, then resumes the same run to the full budget, in DIR/hanging_cloth (default
 runs/hanging_cloth): the same as `redsim train-agent RedSim/HangingCloth-v0 --algo sac --steps 20000 --out
 runs/hanging_cloth`. Stopped by Ctrl-C, the run is saved; `--resume` goes on from it. A folder that holds a run
@@ -27,6 +28,7 @@ def main(
     episode_steps: int | None = 8,
     resume: bool = False,
     overwrite: bool = False,
+    progress: bool = False,
 ) -> dict[str, float]:
     limit = {} if episode_steps is None else {"max_episode_steps": episode_steps}
     tiny = steps < 1000
@@ -42,11 +44,14 @@ def main(
                 steps=steps // 2,
                 env_kwargs=limit,
                 video=False,
+                progress_bar=progress,
                 overwrite=overwrite,
                 **options,
             )
         # ... then the same call with resume=True goes on to `steps` (from model.zip and its replay buffer)
-        full = train_agent(ENV_ID, folder, algo="sac", steps=steps, env_kwargs=limit, resume=True, **options)
+        full = train_agent(
+            ENV_ID, folder, algo="sac", steps=steps, env_kwargs=limit, resume=True, progress_bar=progress, **options
+        )
         files = sorted(p.name for p in folder.iterdir())
         print(f"{ENV_ID}: {full.steps} env steps in {full.wall_s:.0f} s; files: {', '.join(files)}")
         model = load_agent(folder / "model.zip", ENV_ID)  # refuses a model trained on another env
@@ -85,6 +90,7 @@ if __name__ == "__main__":
     parser.add_argument(
         "--out", type=Path, default=Path("runs"), help="the run goes to OUT/hanging_cloth (default runs)"
     )
+    parser.add_argument("--no-progress", action="store_true", help="no progress bars while training")
     what = parser.add_mutually_exclusive_group()
     what.add_argument("--resume", action="store_true", help="continue the run in OUT/hanging_cloth to --steps")
     what.add_argument("--overwrite", action="store_true", help="replace the run in OUT/hanging_cloth")
@@ -100,7 +106,7 @@ if __name__ == "__main__":
     except ValueError as err:
         parser.error(str(err))
     try:
-        check(main(args.out, args.steps, args.episode_steps, args.resume, args.overwrite))
+        check(main(args.out, args.steps, args.episode_steps, args.resume, args.overwrite, not args.no_progress))
     except TrainingInterrupted as stop:  # the model, buffer and curve are saved
         print(f"{stop}; continue with the same command and --resume", file=sys.stderr)
         sys.exit(130)

@@ -1,7 +1,8 @@
 """SAC with hindsight experience replay on a reach env, against SAC alone with the same budget and settings.
 
 Run: python examples/her_agent.py [--env RedSim/MiniChain-v0] [--steps 10000] [--episodes 20] [--seed 0]
-[--num-envs 1] [--episode-steps N] [--out DIR] (main()'s defaults are the tiny budget the test suite runs).
+[--num-envs 1] [--episode-steps N] [--out DIR] [--no-progress] (main()'s defaults are the tiny budget the test suite
+runs).
 Both agents see the goal-conditioned env
 (:class:`redsim.envs.goal.GoalObservation`: dict observations, a reward from the goals alone); the only
 difference is the replay buffer. ``--num-envs N`` > 1 collects from N copies in the native vector env
@@ -39,7 +40,13 @@ SETTINGS: dict[str, Any] = {
 
 
 def train(
-    env_id: str, steps: int, her: bool, env_kwargs: dict[str, Any], seed: int = 0, num_envs: int = 1
+    env_id: str,
+    steps: int,
+    her: bool,
+    env_kwargs: dict[str, Any],
+    seed: int = 0,
+    num_envs: int = 1,
+    progress: bool = False,
 ) -> tuple[SAC, float]:
     """SAC (with HER, or with SB3's plain replay buffer) trained ``steps`` env steps over ``num_envs`` copies
     (module doc); and its wall time [s]."""
@@ -60,7 +67,7 @@ def train(
         **replay,
     )
     start = time.perf_counter()
-    model.learn(total_timesteps=steps)
+    model.learn(total_timesteps=steps, progress_bar=progress)
     return model, time.perf_counter() - start
 
 
@@ -106,12 +113,13 @@ def main(
     episode_steps: int | None = 20,
     seed: int = 0,
     num_envs: int = 1,
+    progress: bool = False,
 ) -> dict[str, Any]:
     env_kwargs = {} if episode_steps is None else {"max_episode_steps": episode_steps}
     result: dict[str, Any] = {"env": env_id, "steps": steps, "seed": seed, "num_envs": num_envs}
     episodes_ended(env_id, steps, env_kwargs, num_envs)  # before the plain agent trains, not after
     for name, her in (("sac", False), ("sac_her", True)):
-        model, wall = train(env_id, steps, her, env_kwargs, seed, num_envs)
+        model, wall = train(env_id, steps, her, env_kwargs, seed, num_envs, progress)
         scores = evaluate(model, env_id, episodes, env_kwargs)
         result[name] = {**scores, "wall_s": wall, "timesteps": model.num_timesteps}
         if out is not None:
@@ -144,6 +152,7 @@ if __name__ == "__main__":
     )
     parser.add_argument("--episode-steps", type=int, help="steps per episode (default: the env's limit)")
     parser.add_argument("--out", type=Path, help="folder for sac.zip and sac_her.zip (default: not saved)")
+    parser.add_argument("--no-progress", action="store_true", help="no SB3 progress bar while training")
     args = parser.parse_args()
     limit = {} if args.episode_steps is None else {"max_episode_steps": args.episode_steps}
     try:  # a budget that ends no episode, an env without a goal, nothing to evaluate
@@ -154,7 +163,16 @@ if __name__ == "__main__":
     except (ValueError, TypeError, gym.error.Error) as err:
         parser.error(str(err))
     try:
-        main(args.out, args.env, args.steps, args.episodes, args.episode_steps, seed=args.seed, num_envs=args.num_envs)
+        main(
+            args.out,
+            args.env,
+            args.steps,
+            args.episodes,
+            args.episode_steps,
+            seed=args.seed,
+            num_envs=args.num_envs,
+            progress=not args.no_progress,
+        )
     except KeyboardInterrupt:
         print("interrupted", file=sys.stderr)
         sys.exit(130)

@@ -1,7 +1,7 @@
 """From a mesh file to a trained agent: build a cloth scene, fit its subspace, wrap it in an env, train SAC.
 
 Run: python examples/mesh_to_agent.py [--fit-steps 3000] [--steps 20000] [--episode-steps 200] [--out DIR]
-[--resume | --overwrite]
+[--resume | --overwrite] [--no-progress]
 The mesh here is a small square sheet written to DIR/my_sheet/sheet.obj, standing in for your file; its top
 edge is pinned, and the agent pulls the sheet (handle "cloth") to targets the subspace can reach.
 Everything goes to DIR/my_sheet (default runs/my_sheet): the mesh, the fitted map (subspace.pt, .json; `redsim inspect
@@ -56,6 +56,7 @@ def main(
     resume: bool = False,
     overwrite: bool = False,
     episode_steps: int = 20,
+    progress: bool = False,
 ) -> dict[str, float]:
     with tempfile.TemporaryDirectory() as tmp:
         folder = Path(out or tmp) / "my_sheet"
@@ -69,7 +70,7 @@ def main(
         if resume and fitted.is_file():
             subspace = redsim.load_subspace(fitted, scene=scene)  # the map the agent has been trained in
         else:
-            fit = fit_subspace(scene, dim=3, sigma=0.05, lam=1.0, steps=fit_steps, progress=False)
+            fit = fit_subspace(scene, dim=3, sigma=0.05, lam=1.0, steps=fit_steps, progress=progress)
             print(f"{scene.name}: n = {scene.free_dof_count}, fitted d = 3 in {fit.fit_seconds:.1f} s")
             subspace, losses = fit.subspace, [h["loss"] for h in fit.history]
             subspace.save(folder / "subspace")
@@ -77,7 +78,7 @@ def main(
         env = redsim.envs.make(scene, subspace, task="reach", max_episode_steps=episode_steps)  # --resume: the same
         tiny = {"n_envs": 2, "eval_every": steps, "eval_episodes": 2, "final_episodes": 2} if steps < 1000 else {}
         settings = {"overrides": {"learning_starts": 50}, "resume": resume, "overwrite": overwrite, **tiny}
-        result = train_agent(env, folder, algo="sac", steps=steps, **settings)
+        result = train_agent(env, folder, algo="sac", steps=steps, progress_bar=progress, **settings)
         episodes = result.evaluation.returns.size  # the random policy on the agent's own evaluation episodes
         random = evaluate(env, "random", episodes=episodes, seed=result.evaluation.seed)
         print(
@@ -111,6 +112,7 @@ if __name__ == "__main__":
     parser.add_argument("--steps", type=int, default=20_000, help="SAC's env steps (default 20000)")
     parser.add_argument("--out", type=Path, default=Path("runs"), help="everything goes to OUT/my_sheet (default runs)")
     parser.add_argument("--episode-steps", type=int, default=200, help="steps per episode (default 200)")
+    parser.add_argument("--no-progress", action="store_true", help="no progress bars while fitting and training")
     what = parser.add_mutually_exclusive_group()
     what.add_argument("--resume", action="store_true", help="continue the run in OUT/my_sheet, in its map")
     what.add_argument("--overwrite", action="store_true", help="fit and train anew in OUT/my_sheet")
@@ -129,7 +131,17 @@ if __name__ == "__main__":
     except ValueError as err:
         parser.error(str(err))
     try:
-        check(main(args.out, args.fit_steps, args.steps, args.resume, args.overwrite, args.episode_steps))
+        check(
+            main(
+                args.out,
+                args.fit_steps,
+                args.steps,
+                args.resume,
+                args.overwrite,
+                args.episode_steps,
+                not args.no_progress,
+            )
+        )
     except TrainingInterrupted as stop:  # the model, buffer and curve are saved beside the map
         print(f"{stop}; continue with the same command and --resume", file=sys.stderr)
         sys.exit(130)
