@@ -95,6 +95,11 @@ class ConditionSpace:
     def dim(self) -> int:
         return len(self.names)
 
+    def describe(self) -> list[dict[str, Any]]:
+        """Each parameter's name, range and default, in order (`redsim scenes`)."""
+        rows = zip(self.names, self.low.tolist(), self.high.tolist(), self.default.tolist(), strict=True)
+        return [{"name": n, "low": lo, "high": hi, "default": d} for n, lo, hi, d in rows]
+
     def sample(self, count: int, generator: torch.Generator | None = None) -> Tensor:
         """Uniform samples, shape [count, m]."""
         u = torch.rand(count, self.dim, generator=generator, dtype=self.low.dtype, device=self.low.device)
@@ -499,7 +504,7 @@ class Scene:
         )
 
     def describe(self) -> dict[str, Any]:
-        """Summary for `redsim scenes`: n, effects, handles, conditions."""
+        """Summary for `redsim scenes`: n, effects, handles, conditions (names, and with their ranges and defaults)."""
         return {
             "name": self.name,
             "description": self.description,
@@ -509,6 +514,7 @@ class Scene:
             "effects": [e.describe() for e in self.effects],
             "handles": list(self.handle_names),
             "conditions": [] if self.condition_space is None else list(self.condition_space.names),
+            "condition_space": None if self.condition_space is None else self.condition_space.describe(),
             "drivers": [d.name for d in self.drivers],
             "mirror": self.mirror is not None,
             "params": self.params,

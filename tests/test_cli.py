@@ -137,6 +137,29 @@ def test_simulate_reports_steps_that_gained_energy(
     assert "1 of 3 step(s) raised K + E by more than the loads' work (first: step 2, 0.5 J)" in err
 
 
+def test_simulate_holds_the_conditions_given_and_reports_them(capsys: pytest.CaptureFixture[str]) -> None:
+    """simulate ran a conditional scene at its default condition, with no way to set it and no word of which it was
+    (a review's finding); `redsim scenes` names each condition's range and default."""
+    code, out, err = run(capsys, "simulate", "conditional_bar", "--steps", "1", "--cond", "stiffness_ratio=4", "--json")
+    assert code == 0, err
+    summary = json.loads(out)
+    assert summary["conditions"] == {"stiffness_ratio": 4.0, "pin_location": 0.65}
+    scene = redsim.scenes.build("conditional_bar")
+    from redsim.integrators import FullSpace, ImplicitEuler
+
+    sim = ImplicitEuler(FullSpace(scene), 0.01)
+    state, _ = sim.step(sim.initial_state(), None, torch.tensor([4.0, 0.65], dtype=torch.float64))
+    energy = float(scene.energy(state.q, None, torch.tensor([4.0, 0.65], dtype=torch.float64)))
+    assert summary["energy_end"] == pytest.approx(energy, rel=1e-9)
+    assert summary["energy_end"] != pytest.approx(float(scene.energy(state.q)), rel=1e-6)  # not the default's
+    assert run(capsys, "simulate", TOY, "--steps", "1", "--json")[1].count('"conditions": null') == 1
+    code, out, _ = run(capsys, "scenes")
+    assert code == 0
+    assert "  conditions: stiffness_ratio in [0.2, 5] (default 1), pin_location in [0.3, 1] (default 0.65)\n" in out
+    row = next(r for r in json.loads(run(capsys, "scenes", "--json")[1]) if r["name"] == "conditional_bar")
+    assert row["condition_space"][0] == {"name": "stiffness_ratio", "low": 0.2, "high": 5.0, "default": 1.0}
+
+
 def test_simulate_nan_exits_3(capsys: pytest.CaptureFixture[str], monkeypatch: pytest.MonkeyPatch) -> None:
     from redsim.integrators import ImplicitEuler
 
@@ -168,6 +191,10 @@ def test_simulate_nan_exits_3(capsys: pytest.CaptureFixture[str], monkeypatch: p
         (["simulate", TOY, "--param", "young=1e4", "--param", "young=2e4"], "--param young given twice"),
         (["simulate", TOY, "--dt", "fast"], "invalid float value"),
         (["simulate", TOY, "--max-iter", "0"], "max_iter"),
+        (["simulate", TOY, "--cond", "stiffness_ratio=2"], f"scene '{TOY}' has no conditions"),
+        (["simulate", "conditional_bar", "--cond", "stiffness=2"], "valid conditions: stiffness_ratio in [0.2, 5]"),
+        (["simulate", "conditional_bar", "--cond", "stiffness_ratio=-1"], "outside the range [0.2, 5]"),
+        (["simulate", "conditional_bar", "--cond", "stiffness_ratio"], "malformed --cond"),
         (["bench", "energy", "--scenes", "no_such_scene"], TOY),
         (["bench", "subspace", "--scenes", "mini_chain", "--samples", "0"], "--samples must be >= 1"),  # traceback
         (["bench", "subspace", "--scenes", "mini_chain", "--loads", "-3"], "--loads >= 0, got 256 and -3"),
@@ -184,6 +211,10 @@ def test_simulate_nan_exits_3(capsys: pytest.CaptureFixture[str], monkeypatch: p
         "param-twice",
         "dt-text",
         "max-iter",
+        "cond-none",
+        "cond-name",
+        "cond-range",
+        "cond-value",
         "bench-scene",
         "subspace-samples",
         "subspace-loads",

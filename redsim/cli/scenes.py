@@ -52,11 +52,57 @@ def cmd_scenes(args: argparse.Namespace) -> int:
             out(f"{row['name']}  ({row['dim']}D, n={row['n']})  {row['description']}")
             out("  effects:    " + ", ".join(f"{e['name']}:{e['kind']}" for e in row["effects"]))
             out("  handles:    " + (", ".join(row["handles"]) or "-"))
-            out("  conditions: " + (", ".join(row["conditions"]) or "-"))
+            out("  conditions: " + (", ".join(_condition_text(c) for c in row["condition_space"] or []) or "-"))
     if failed:
         warn(f"{len(failed)} scene(s) failed to build: {', '.join(failed)}")
         return EXIT_SCENE_FAILED
     return EXIT_OK
+
+
+def _condition_text(condition: dict[str, Any]) -> str:
+    """``name in [low, high] (default d)`` of one row of :meth:`redsim.scene.ConditionSpace.describe`."""
+    return f"{condition['name']} in [{condition['low']:g}, {condition['high']:g}] (default {condition['default']:g})"
+
+
+def _parse_conditions(items: list[str], scene: redsim.Scene) -> dict[str, float] | None:
+    """``NAME=VALUE`` conditions of a conditional scene, the others at their defaults (None: no condition space).
+
+    Raises:
+        CliError: ``--cond`` on a scene without conditions, a malformed or non-finite item, an unknown or repeated
+            name, or a value outside the range the scene declares.
+    """
+    space = scene.condition_space
+    if space is None:
+        if items:
+            raise CliError(f"scene {scene.name!r} has no conditions; --cond does not apply to it")
+        return None
+    rows = {c["name"]: c for c in space.describe()}
+    values = {name: row["default"] for name, row in rows.items()}
+    given: set[str] = set()
+    for item in items:
+        name, sep, text = (part.strip() for part in item.partition("="))
+        try:
+            value = float(text) if sep and name else math.nan
+        except ValueError:
+            value = math.nan
+        if not math.isfinite(value):
+            raise CliError(f"malformed --cond {item!r}: expected NAME=VALUE with a finite number")
+        if name not in rows:
+            raise CliError(
+                f"unknown condition {name!r} in --cond for scene {scene.name!r}; valid conditions: "
+                + ", ".join(_condition_text(row) for row in rows.values())
+            )
+        if name in given:
+            raise CliError(f"--cond gives condition {name!r} twice")
+        row = rows[name]
+        if not row["low"] <= value <= row["high"]:
+            raise CliError(
+                f"--cond {name}={value:g} lies outside the range [{row['low']:g}, {row['high']:g}] scene "
+                f"{scene.name!r} declares (a build parameter, --param, sets the range)"
+            )
+        given.add(name)
+        values[name] = value
+    return values
 
 
 def _step_line(rec: dict[str, Any], steps: int) -> str:
@@ -82,6 +128,8 @@ def cmd_simulate(args: argparse.Namespace) -> int:
         raise CliError("--meshes needs --out DIR")
     scene = scene_from_args(args)
     loads = parse_loads(args.load, scene)
+    conditions = _parse_conditions(args.cond, scene)
+    cond = None if conditions is None else torch.tensor(list(conditions.values()), dtype=scene.dtype)
 
     from redsim.integrators import FullSpace, ImplicitEuler
 
@@ -102,7 +150,7 @@ def cmd_simulate(args: argparse.Namespace) -> int:
 
     def potential(q: torch.Tensor) -> float:
         with torch.no_grad():
-            return float(scene.energy(q, loads))
+            return float(scene.energy(q, loads, cond))
 
     state = integ.initial_state()
     q_start = state.q.detach().clone()
@@ -116,6 +164,7 @@ def cmd_simulate(args: argparse.Namespace) -> int:
         out(
             f"simulating {scene.name} (n={scene.free_dof_count}, {args.steps} steps of dt={args.dt:g} s, "
             f"{args.minimizer}); E {energy_start:.6g} J at t=0"
+            + ("" if conditions is None else "; conditions " + ", ".join(f"{k}={v:g}" for k, v in conditions.items()))
         )
     records: list[dict[str, Any]] = []
     q_last = q_start
@@ -124,7 +173,7 @@ def cmd_simulate(args: argparse.Namespace) -> int:
     for step in range(1, args.steps + 1):
         q_inertial = 2.0 * state.q - state.q_prev
         start = time.perf_counter()
-        state, info = integ.step(state, loads=loads)
+        state, info = integ.step(state, loads=loads, cond=cond)
         wall += time.perf_counter() - start
         finite = bool(torch.isfinite(state.q).all())
         rec = {
@@ -184,6 +233,7 @@ def cmd_simulate(args: argparse.Namespace) -> int:
         "steps_run": len(records),
         "minimizer": args.minimizer,
         "loads": loads or {},
+        "conditions": conditions,
         "converged_steps": len(records) - len(not_converged),
         "not_converged_steps": not_converged,
         "energy_gain_steps": gained,
@@ -268,6 +318,14 @@ def add_commands(sub: Any) -> None:
         default=[],
         metavar="HANDLE=FX,FY[,FZ]",
         help="constant force [N] on a handle, repeatable",
+    )
+    p.add_argument(
+        "--cond",
+        action="append",
+        default=[],
+        metavar="NAME=VALUE",
+        help="a condition of a conditional scene, within its range (`redsim scenes` lists them, e.g. "
+        "conditional_bar's stiffness_ratio=2), held for every step; repeatable; the others keep their defaults",
     )
     p.add_argument("--minimizer", choices=("newton", "lbfgs"), default="newton", help="default newton")
     p.add_argument(
