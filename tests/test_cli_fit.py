@@ -389,7 +389,7 @@ def test_a_fit_ends_with_the_accuracy_check_to_run_and_that_command_runs(
     assert "note: the reference is not a trustworthy motion" not in out
     code, out, err = run(capsys, *argv, "--steps", "10", "--max-force", "1000")  # ~60x the scene's weight on 0.2 m
     note = re.search(r"note: the reference is not a trustworthy motion: (\d+) of its 10 steps moved", out)
-    assert code == 0 and note and int(note.group(1)) >= 1, (out, err)
+    assert code == 4 and note and int(note.group(1)) >= 1, (out, err)  # the command fails (bench accuracy)
 
 
 def test_a_fit_that_runs_away_is_warned_about(capsys: pytest.CaptureFixture[str], tmp_path) -> None:

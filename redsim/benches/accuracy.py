@@ -140,13 +140,14 @@ def replanned(scene: Scene, handle: str | None = None, max_force: float | None =
     """The :data:`PLANS` entry of ``scene`` with the ``handle`` and ``max_force`` [N] given (each kept where None).
 
     Raises:
-        ValueError: a scene outside :data:`PLANS`, an unknown handle, or a max_force that is not finite and > 0.
+        ValueError: a scene outside :data:`PLANS`, an unknown handle, or a max_force refused by
+            :func:`checked_force`.
     """
     p = plan(scene.name)
     if handle is not None and handle not in scene.handle_names:
         raise ValueError(f"scene {scene.name!r} has no handle {handle!r}; valid: {list(scene.handle_names)}")
-    if max_force is not None and not (math.isfinite(float(max_force)) and float(max_force) > 0.0):
-        raise ValueError(f"max_force must be finite and > 0 [N], got {max_force!r}")
+    if max_force is not None:
+        checked_force(max_force)
     given = [f"{key} {value!r} given" for key, value in (("handle", handle), ("max_force", max_force)) if value]
     return replace(
         p,
@@ -156,13 +157,29 @@ def replanned(scene: Scene, handle: str | None = None, max_force: float | None =
     )
 
 
+MAX_FORCE = float(torch.finfo(torch.float32).max)
+"""The largest ``max_force`` [N]: the runtime rows step in float32, where a larger load is not finite (the bench
+crashed on it after its reference had run)."""
+
+
+def checked_force(max_force: float) -> float:
+    """``max_force`` [N] as a float, finite, > 0 and at most :data:`MAX_FORCE` (ValueError otherwise)."""
+    force = float(max_force)
+    if not (math.isfinite(force) and 0.0 < force <= MAX_FORCE):
+        raise ValueError(
+            f"max_force must be finite and > 0 [N], at most {MAX_FORCE:.3g} (float32's largest: the runtime steps "
+            f"in float32), got {max_force!r}"
+        )
+    return force
+
+
 def reach_plan(scene: Scene, handle: str | None = None, max_force: float | None = None) -> Plan:
     """The plan of any scene as ``redsim.envs.make(scene, ..., task="reach")`` sets it up: ``handle`` (default
     the first) pushed with ``max_force`` [N] per unit action (default the reach task's: half the scene's weight),
     the reference at the scene's full-space tolerance.
 
     Raises:
-        ValueError: a scene without handles, an unknown handle, or a max_force that is not finite and > 0.
+        ValueError: a scene without handles, an unknown handle, or a max_force refused by :func:`checked_force`.
     """
     from redsim.envs.factory import default_force
 
@@ -171,9 +188,7 @@ def reach_plan(scene: Scene, handle: str | None = None, max_force: float | None 
     handle = scene.handle_names[0] if handle is None else handle
     if handle not in scene.handle_names:
         raise ValueError(f"scene {scene.name!r} has no handle {handle!r}; valid: {list(scene.handle_names)}")
-    force = default_force(scene) if max_force is None else float(max_force)
-    if not (math.isfinite(force) and force > 0.0):
-        raise ValueError(f"max_force must be finite and > 0 [N], got {max_force!r}")
+    force = default_force(scene) if max_force is None else checked_force(max_force)
     why = "the reach task's default (half the scene's weight; 1 N without gravity)" if max_force is None else "given"
     return Plan(handle, force, reference_tol=scenes.full_space_tol(scene.name), note=f"max_force {why}")
 
@@ -881,6 +896,28 @@ def report(result: dict[str, Any], machine: str) -> str:
     return "\n".join(lines)
 
 
+def failures(result: dict[str, Any]) -> tuple[list[str], list[str]]:
+    """What makes the command fail (its exit status), each as a line: the scenarios whose reference made steps the
+    scene cannot (:func:`redsim.plausibility.step_failure`, a non-finite state among them: every row is measured
+    against that motion), and the rows whose state was not finite (the column that must be 0).
+
+    Unconverged reference steps are not among them: the report's note says so (the bistable bar's reference stops
+    near its tolerance in most steps, docs/accuracy.md).
+    """
+    references = [
+        f"scenario {row['scenario']}: the reference made {row['implausible']} of its {row['steps_run']} steps "
+        "that the scene cannot (its note)"
+        for row in result["rows"]
+        if row["family"] == "reference" and row["config"] != NO_MOTION and row.get("implausible")
+    ]
+    nonfinite = [
+        f"scenario {row['scenario']}, {row['config']}: {row['nonfinite']} non-finite states"
+        for row in result["rows"]
+        if row.get("nonfinite")
+    ]
+    return references, nonfinite
+
+
 def _dims(result: dict[str, Any]) -> str:
     return ",".join(str(d) for d in result.get("dims", [result["d"]]))
 
@@ -912,12 +949,15 @@ __all__ = [
     "DT",
     "FULL_VARIANTS",
     "KINDS",
+    "MAX_FORCE",
     "NO_MOTION",
     "PLANS",
     "SCENARIOS",
     "Plan",
     "Run",
     "bench_accuracy",
+    "checked_force",
+    "failures",
     "handle_positions",
     "markdown_table",
     "pareto_png",

@@ -462,6 +462,10 @@ def cmd_bench_accuracy(args: argparse.Namespace) -> int:
         out(accuracy.report(result, line))
         if paths:
             out("wrote " + ", ".join(str(p) for p in paths))
+    references, nonfinite = accuracy.failures(result)
+    if references or nonfinite:  # the rows are printed and written, and the command fails, for scripts and CI
+        error("; ".join([*references, *nonfinite]))
+        return EXIT_NAN if nonfinite else EXIT_FAILED_STEP
     return EXIT_OK
 
 

@@ -344,3 +344,42 @@ def test_a_latent_rest_that_did_not_converge_is_said_in_the_report(mini_chain, m
     )
     assert result["latent_rests_unconverged"] and "neural" in result["latent_rests_unconverged"][0]
     assert "note: the latent rest solve did not converge for" in accuracy.report(result, "machine: test")
+
+
+def _only(monkeypatch, *configs: accuracy.Config) -> None:
+    """The bench's rows: the reference, no motion and ``configs`` (none of the subspaces' runs, for speed)."""
+    monkeypatch.setattr(accuracy, "configurations", lambda *args, **kwargs: list(configs))
+
+
+def test_a_reference_the_scene_cannot_make_or_a_non_finite_row_fails_the_command(cli, monkeypatch) -> None:
+    """Both were a note or a column under exit status 0 (a review's finding): a script or CI took the rows measured
+    against an impossible reference, or a run that went non-finite, for a good run. The rows are still printed."""
+    argv = ("bench", "accuracy", "mini_chain", "--steps", "10", "--scenarios", "push", "--full", "none", "--no-study")
+    _only(monkeypatch)
+    code, out, err = cli(*argv, "--max-force", "1e9")  # far beyond what the chain can take: every step implausible
+    assert code == 4 and "note: the reference is not a trustworthy motion" in out, (out, err)
+    assert "scenario push: the reference made 10 of its 10 steps that the scene cannot" in err
+    code, out, err = cli(*argv)  # the env's load: a good reference, exit 0
+    assert code == 0 and "error" not in err, err
+
+    def blown(loads: torch.Tensor) -> Run:
+        q0 = accuracy.rest_state(scenes.build("mini_chain"))[0]
+        q = q0.expand(loads.shape[0] + 1, -1).clone()
+        q[5:] = math.nan
+        return Run(q, torch.arange(q.shape[0]), [1e-3] * loads.shape[0], nonfinite=6)
+
+    _only(monkeypatch, accuracy.Config("full blown", "full space", blown))
+    code, out, err = cli(*argv, "--json")
+    assert code == 3 and json.loads(out)["rows"][-1]["nonfinite"] == 6
+    assert "scenario push, full blown: 6 non-finite states" in err
+    unconverged = {"rows": [{"scenario": "push", "config": "full reference", "family": "reference", "failed": 65}]}
+    assert accuracy.failures(unconverged) == ([], [])  # a note only (the bistable bar's reference: docs/accuracy.md)
+
+
+def test_a_max_force_beyond_float32_is_refused_before_any_work(cli, mini_chain) -> None:
+    """1e300 N passed the check, ran the reference, then crashed the float32 runtime with a traceback."""
+    code, out, err = cli("bench", "accuracy", "mini_chain", "--max-force", "1e300", "--steps", "10")
+    assert code == 2 and out == "" and "max_force must be finite and > 0 [N], at most 3.4e+38" in err, err
+    with pytest.raises(ValueError, match="at most"):
+        accuracy.reach_plan(mini_chain, max_force=1e39)
+    assert accuracy.replanned(mini_chain, max_force=1e38).max_force == 1e38
