@@ -90,6 +90,22 @@ def _warn_diverged(name: str, result: dict[str, Any]) -> None:
         )
 
 
+MAP_ARGS = ("subspace", "scene_params", "fit_options")
+"""Env arguments that choose the subspace map, whose latent coordinates the observations are."""
+
+
+def _warn_if_other_map(trained_on: dict[str, Any], given: dict[str, Any]) -> None:
+    """Warn (stderr) where eval-agent's ``--env-arg``s choose another map than the model's training env: the
+    observations keep their shape, but are another map's latent coordinates, which the policy never saw."""
+    changed = [key for key in MAP_ARGS if key in given and given[key] != trained_on.get(key)]
+    if changed:
+        warn(
+            f"--env-arg {', '.join(changed)} differs from the model's training env ({trained_on or 'the defaults'}): "
+            "the env may run another subspace map, whose latent coordinates (the observations) mean other states "
+            "than those the policy learnt on"
+        )
+
+
 def cmd_train_agent(args: argparse.Namespace) -> int:
     from redsim.envs.sharded import ShardError
     from redsim.trainers.agents import TrainingInterrupted, train_agent
@@ -191,6 +207,7 @@ def cmd_eval_agent(args: argparse.Namespace) -> int:
         raise CliError(str(err)) from err
     policies = {"agent": model, **({"random": "random", "scripted": "scripted"} if args.baselines else {})}
     env_kwargs = {**trained_on, **given}  # the env the model was trained on, with the arguments given on top
+    _warn_if_other_map(trained_on, given)
     try:
         runs = {
             name: evaluate(

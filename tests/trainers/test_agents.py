@@ -1360,3 +1360,19 @@ def test_a_user_envs_episode_limit_is_recorded_and_checked_on_resume(tmp_path: P
         train_agent(gym.make(MINI, max_episode_steps=50), tmp_path, steps=80, resume=True, **options)
     again = train_agent(gym.make(MINI, max_episode_steps=5), tmp_path, steps=80, resume=True, **options)
     assert again.steps == 80
+
+
+def test_eval_agent_warns_where_an_env_arg_chooses_another_map(
+    cli: Callable[..., tuple[int, str, str]], tmp_path: Path, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    """The shipped MiniChain policy on another map of the same latent dimension: the observations keep their shape
+    (no SpaceMismatchError) but are another map's coordinates; eval-agent evaluated it without a word."""
+    monkeypatch.setenv("REDSIM_CACHE", str(tmp_path))
+    short = ("--episodes", "1", "--episode-steps", "2")
+    code, _, err = cli("eval-agent", "shipped", MINI, *short, "--env-arg", "max_force=2.0")
+    assert code == 0 and "another subspace map" not in err
+    other = ("--env-arg", 'scene_params={"density": 8000.0}', "--env-arg", "fit_if_missing=true")
+    other += ("--env-arg", 'fit_options={"steps": 20, "hidden_width": 16}')
+    code, _, err = cli("eval-agent", "shipped", MINI, *short, *other)
+    assert code == 0 and "--env-arg scene_params, fit_options differs from the model's training env" in err
+    assert "another subspace map" in err
