@@ -106,6 +106,7 @@ class ImplicitEuler:
 
     Raises:
         ValueError: on a bad dt, tol, max_iter or an unknown minimizer.
+        TypeError: ``space`` is a :class:`Scene` (the full space is ``FullSpace(scene)``).
     """
 
     def __init__(
@@ -118,6 +119,11 @@ class ImplicitEuler:
         max_iter: int = 50,
         strict: bool = False,
     ) -> None:
+        if isinstance(space, Scene):
+            raise TypeError(
+                "ImplicitEuler takes a space, not a scene: ImplicitEuler(FullSpace(scene), dt) for the full space, "
+                "LatentSpace(scene, subspace) for a map's latent one (both in redsim.integrators)"
+            )
         dt = check_time_step(dt)
         tol, max_iter = check_settings(tol, max_iter)
         self.space = space
@@ -161,8 +167,14 @@ class ImplicitEuler:
 
         Raises:
             ValueError: on non-finite loads, condition or state.
+            TypeError: ``state`` is not a :class:`FullState` (make one with :meth:`initial_state`).
             ConvergenceError: with ``strict=True``, when the step did not converge.
         """
+        if not isinstance(state, FullState):
+            raise TypeError(
+                f"state must be a FullState (q and q_prev: sim.initial_state(q, velocity) makes one), got "
+                f"{type(state).__name__}"
+            )
         origin = self.space.origin
         u_t = checked_vector(state.q, self.space.size, "state.q", origin)
         u_prev = checked_vector(state.q_prev, self.space.size, "state.q_prev", origin)

@@ -19,7 +19,7 @@ import numpy as np
 import torch
 from torch import Tensor
 
-from redsim.scene import Scene
+from redsim.scene import Scene, check_scene_type
 from redsim.tensors import jvp
 
 HESSIAN_FLOOR = 1e-8
@@ -297,7 +297,9 @@ def map_condition_dim(subspace: Any) -> int:
 
 
 def as_float64(scene: Scene) -> Scene:
-    """The scene itself if it is float64, else a float64 copy (where reference solves run)."""
+    """The scene itself if it is float64, else a float64 copy (where reference solves run); a TypeError for what is
+    not a :class:`Scene` (a scene's name)."""
+    check_scene_type(scene)
     return scene if scene.dtype == torch.float64 else scene.to(dtype=torch.float64)
 
 

@@ -391,6 +391,21 @@ def test_bad_inputs_raise_value_error() -> None:
         static_equilibrium(space.scene, {"bottom": [0.0, float("nan"), 0.0]})
 
 
+def test_a_scene_name_a_scene_for_a_space_or_a_tensor_for_a_state_is_a_clear_type_error() -> None:
+    """These were AttributeErrors ("'str' object has no attribute 'dtype'", "'Scene' object has no attribute
+    'scene'", "'Tensor' object has no attribute 'q'"), a review's finding."""
+    scene = _cube(1e4, 0.3)
+    with pytest.raises(TypeError, match=r"scene must be a redsim Scene \(redsim.scenes.build\(name\)\), got 'cube'"):
+        FullSpace("cube")
+    with pytest.raises(TypeError, match="scene must be a redsim Scene"):
+        static_equilibrium("cube")
+    with pytest.raises(TypeError, match=r"not a scene: ImplicitEuler\(FullSpace\(scene\), dt\)"):
+        ImplicitEuler(scene, 0.01)
+    sim = ImplicitEuler(FullSpace(scene), 0.01)
+    with pytest.raises(TypeError, match=r"state must be a FullState .*, got Tensor"):
+        sim.step(scene.q_seed)
+
+
 def test_static_equilibrium_of_a_contact_held_chain_does_not_fall_through() -> None:
     """The links start out of contact: Newton's trust radius (half the contact tube) keeps the
     first steps from passing through the hook, where the bounded penalty would let them fall."""
