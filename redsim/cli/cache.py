@@ -86,7 +86,8 @@ def add_commands(sub: Any) -> None:
         "cache",
         help="show or clear redsim's user cache",
         description=(
-            f"redsim's user cache (${CACHE_ENV}, by default ~/.cache/redsim; {CACHE_ENV}=0 turns it off) keeps "
+            f"redsim's user cache (${CACHE_ENV}, by default $XDG_CACHE_HOME/redsim or ~/.cache/redsim; "
+            f"{CACHE_ENV}=0 turns it off) keeps "
             f"work that a later process would otherwise repeat, in three folders ({described}). Every entry is "
             "computed again when it is missing, so clearing loses time, never results."
         ),
