@@ -100,6 +100,16 @@ def test_stiff_body_weighs_and_measures_what_its_docstring_says() -> None:
     assert float(x[:, 0].max() - x[:, 0].min()) == pytest.approx(length, rel=0.02)
 
 
+def test_a_chain_links_mass_is_what_its_docstring_says() -> None:
+    """A link weighs what its mesh holds, not density times the smooth torus's volume: the docstring says so."""
+    from redsim.scenes import chains
+
+    mass, smooth = (float(v) for v in re.search(r"([\d.]+) kg, not ([\d.]+) kg", chains.chain.__doc__).groups())
+    link = float(built("mini_chain").effect("gravity").masses[0])
+    assert link == pytest.approx(mass, abs=5e-4)
+    assert smooth == pytest.approx(2.0 * math.pi**2 * 0.05 * 0.01**2 * 7800.0, abs=5e-4)
+
+
 def test_hetero_beam_alternates_materials() -> None:
     elastic = built("hetero_beam").effect("elastic")
     assert len(torch.unique(elastic.mu)) == 2
