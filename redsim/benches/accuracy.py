@@ -193,6 +193,15 @@ def reach_plan(scene: Scene, handle: str | None = None, max_force: float | None 
     return Plan(handle, force, reference_tol=scenes.full_space_tol(scene.name), note=f"max_force {why}")
 
 
+def checkpoint_plan(scene: Scene, handle: str | None = None, max_force: float | None = None) -> Plan:
+    """The plan of a checkpoint's scene: its :data:`PLANS` entry where the bench has one whose handle the scene has
+    (:func:`replanned`: the loads of the tables, so a user's map of a catalog scene is benched as the shipped one),
+    else :func:`reach_plan` (a mesh scene's, any other scene's)."""
+    if scene.name in PLANS and PLANS[scene.name].handle in scene.handle_names:
+        return replanned(scene, handle, max_force)
+    return reach_plan(scene, handle, max_force)
+
+
 def scenario_loads(scene: Scene, scenario: str, steps: int, *, seed: int = 0, load_plan: Plan | None = None) -> Tensor:
     """Loads [steps, H, D] [N] (float64) of a seeded scenario on the plan's handle (default: the scene's
     :data:`PLANS` entry)."""
@@ -957,6 +966,7 @@ __all__ = [
     "Run",
     "bench_accuracy",
     "checked_force",
+    "checkpoint_plan",
     "failures",
     "handle_positions",
     "markdown_table",

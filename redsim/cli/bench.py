@@ -417,18 +417,15 @@ def cmd_bench_accuracy(args: argparse.Namespace) -> int:
             raise CliError(f"{flag} must be from {', '.join(valid)}{extra}; got {', '.join(unknown)}")
     if args.steps < 10:
         raise CliError(f"--steps must be >= 10, got {args.steps}")
-    if checkpoint:  # a user's map (a mesh scene's too): the scene its .json records, pushed as the reach task is
+    if checkpoint:  # a user's map (a mesh scene's too): the scene its .json records, pushed as below
         scene, neural = load_checkpoint(args.scene)
         path = checkpoint_path(args.scene, ".pt")
     else:
         scene = redsim.scenes.build(args.scene)
         neural, path = pretrained.load(args.scene, scene), pretrained.path(args.scene)
     try:
-        load_plan = (
-            accuracy.reach_plan(scene, args.handle, args.max_force)
-            if checkpoint
-            else accuracy.replanned(scene, args.handle, args.max_force)
-        )
+        plan = accuracy.checkpoint_plan if checkpoint else accuracy.replanned
+        load_plan = plan(scene, args.handle, args.max_force)
     except ValueError as err:
         raise CliError(str(err)) from err
     dims = _accuracy_dims(args, scene.free_dof_count)
@@ -910,13 +907,15 @@ def add_commands(sub: Any) -> Any:
     )
     p.add_argument(
         "--handle",
-        help="the handle the loads push (default: the scene's env's, or a checkpoint scene's first handle)",
+        help="the handle the loads push (default: the scene's env's, also for a checkpoint of one of these scenes; "
+        "another checkpoint scene's first handle)",
     )
     p.add_argument(
         "--max-force",
         type=float,
         metavar="N",
-        help="force [N] of a unit action (default: the scene's env's, or the reach task's: half the scene's weight)",
+        help="force [N] of a unit action, at most float32's largest (default: the scene's env's, or, for another "
+        "checkpoint scene, the reach task's: half the scene's weight)",
     )
     p.add_argument("--steps", type=int, default=100, help="steps per scenario, >= 10 (default 100)")
     p.add_argument("--scenarios", default="push,actions", help="push and/or actions (default both)")

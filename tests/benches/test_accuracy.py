@@ -383,3 +383,20 @@ def test_a_max_force_beyond_float32_is_refused_before_any_work(cli, mini_chain) 
     with pytest.raises(ValueError, match="at most"):
         accuracy.reach_plan(mini_chain, max_force=1e39)
     assert accuracy.replanned(mini_chain, max_force=1e38).max_force == 1e38
+
+
+def test_a_checkpoint_of_a_catalog_scene_is_pushed_with_the_tables_loads(cli, tmp_path, monkeypatch) -> None:
+    """A user's refit of the mini chain was pushed as the reach task pushes any scene (6.7 N, half its weight), not
+    with the 15 N of the bench's plan, so its rows could not be set beside the README's tables (a review's finding);
+    the bistable bar's was pushed with 1 N (no gravity) against the tables' 200 N."""
+    stem = str(tmp_path / "mc")
+    small = ("--dim", "2", "--width", "8", "--layers", "1", "--steps", "3", "--json")
+    assert cli("fit", "mini_chain", *small, "--out", stem)[0] == 0
+    _only(monkeypatch)
+    argv = ("bench", "accuracy", stem + ".pt", "--steps", "10", "--scenarios", "push", "--full", "none", "--no-study")
+    code, out, err = cli(*argv, "--json")
+    assert code == 0, err
+    shipped = accuracy.plan("mini_chain")
+    assert json.loads(out)["plan"] == dataclasses.asdict(shipped)
+    code, out, err = cli(*argv, "--json", "--max-force", "7")
+    assert code == 0 and json.loads(out)["plan"]["max_force"] == 7.0, err
