@@ -1377,6 +1377,15 @@ class LatentSim:
                 return view
         return self.view(width, height, camera, rows)
 
+    def trimeshes(self, row: int) -> list[Any]:
+        """Copy ``row``'s surfaces as ``trimesh.Trimesh`` objects (:func:`redsim.render.surface_meshes`), decoded on
+        their own (as :meth:`draw_rows` decodes), so a vector copy's meshes are the single env's for the same state."""
+        from redsim.render import surface_meshes
+
+        cond = None if self.cond is None else self.cond[row : row + 1]
+        q = self.positions(self.z[row : row + 1], cond)[0].detach().to(self.scene.dtype)
+        return surface_meshes(self.scene, q)
+
     def draw(self, view: Any, row: int) -> np.ndarray:
         """RGB picture [H, W, 3] of copy ``row``."""
         return self.draw_rows(view, [row])[0]
@@ -1721,19 +1730,9 @@ class LatentEnv(gym.Env[np.ndarray, np.ndarray]):
 
     @on_env_threads
     def trimeshes(self) -> list[Any]:
-        """The scene's surfaces at the current state as ``trimesh.Trimesh`` objects (3D scenes)."""
-        import trimesh
-
-        from redsim.render import surface_vertices
-
-        q = self.sim.positions(self.sim.z)[0].detach().to(self.sim.scene.dtype)
-        verts = surface_vertices(self.sim.scene, q)
-        if self.sim.scene.dim != 3:
-            verts = [np.concatenate([v, np.zeros((len(v), 1))], axis=1) for v in verts]
-        return [
-            trimesh.Trimesh(v, s.faces.cpu().numpy(), process=False)
-            for v, s in zip(verts, self.sim.scene.surfaces, strict=True)
-        ]
+        """The scene's surfaces at the current state as ``trimesh.Trimesh`` objects (2D scenes at z = 0; a vector
+        env's ``call("trimeshes")`` gives each copy's: :meth:`LatentSim.trimeshes`)."""
+        return self.sim.trimeshes(0)
 
     def __getstate__(self) -> dict[str, Any]:
         """The constructor arguments (the copy is rebuilt from them), the state, the spec and the generator; and

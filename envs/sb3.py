@@ -36,8 +36,8 @@ class SB3VecEnv(VecEnv):
 
     The copies share one simulation: ``get_attr`` reads the env's (the same for every copy), ``set_attr`` is
     refused, and ``env_method`` answers the per-copy methods of the vector env's ``call``
-    (:data:`~redsim.envs.vector_api.PER_COPY_CALLS`: ``get_state``, ``configuration``, ``render``) and the
-    :data:`SHARED_METHODS` the vector env defines.
+    (:data:`~redsim.envs.vector_api.PER_COPY_CALLS`: ``get_state``, ``configuration``, ``render``, ``trimeshes``)
+    and the :data:`SHARED_METHODS` the vector env defines.
     An ended copy's info carries SB3 ``Monitor``'s ``"episode"`` (``r`` return, ``l`` length, ``t`` seconds since
     this env was made), so SB3 logs ``rollout/ep_rew_mean`` and its evaluations read returns as from a Monitor
     (``env_is_wrapped(Monitor)`` is True); an ``"episode"`` from a wrapper inside is kept.

@@ -278,10 +278,13 @@ class LatentVectorEnv(SharedCopies, VectorEnv):
         if self.template._camera.get("track", False):
             self._view = None
 
+    @on_env_threads
     def _per_copy(self, name: str) -> tuple[Any, ...]:
         if name == "render":
             frames = self.render()
             return frames if frames is not None else (None,) * self.num_envs
+        if name == "trimeshes":
+            return tuple(self.sim.trimeshes(i) for i in range(self.num_envs))
         if name == "get_state":
             check_started(self._unreset, "call('get_state')")
             state = self.sim.get_state()  # each copy's as a single env's: with its generator

@@ -29,7 +29,7 @@ class ClosedVectorEnvError(ClosedEnvironmentError, RuntimeError):
 SHARED_METHODS = ("compute_reward", "compute_terminated", "compute_truncated")
 """Methods answered for every copy by the template: pure functions of their arguments (a goal env's)."""
 
-PER_COPY_CALLS = ("get_state", "configuration", "render")
+PER_COPY_CALLS = ("get_state", "configuration", "render", "trimeshes")
 """Methods ``call`` answers copy by copy, from the batched simulation (no arguments)."""
 
 VECTOR_KWARGS = (
@@ -44,7 +44,7 @@ VECTOR_KWARGS = (
 """Keys of a vector env's ``spec.kwargs`` that are the vector env's, not its copies' (``gym.make_vec``'s and the
 vector entry point's)."""
 
-STATEFUL = ("sim", "np_random", "np_random_seed", "reset", "step", "set_state", "trimeshes", "close")
+STATEFUL = ("sim", "np_random", "np_random_seed", "reset", "step", "set_state", "close")
 """The template's attributes that are not its copies' (its never-stepped state and generator, its own calls)."""
 
 

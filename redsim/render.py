@@ -62,6 +62,22 @@ def surface_vertices(scene: Scene, q: Tensor) -> list[np.ndarray]:
     return [s.points.positions(x)[0].cpu().to(torch.float64).numpy() for s in scene.surfaces]
 
 
+def surface_meshes(scene: Scene, q: Tensor) -> list[Any]:
+    """The surfaces of ``scene`` at free configuration ``q`` ([n]) as ``trimesh.Trimesh`` objects, in
+    ``scene.surfaces`` order (2D surfaces at z = 0; a surface without faces has its vertices alone).
+
+    Raises:
+        DependencyNotInstalled: without trimesh.
+    """
+    trimesh = _require("trimesh")
+    meshes = []
+    for surface, v in zip(scene.surfaces, surface_vertices(scene, q), strict=True):
+        if v.shape[1] == 2:
+            v = np.concatenate([v, np.zeros((len(v), 1))], axis=1)
+        meshes.append(trimesh.Trimesh(v, surface.faces.cpu().numpy(), process=False))
+    return meshes
+
+
 def _to_plot_frame(v: np.ndarray) -> np.ndarray:
     """Scene (x, y, z) with y up -> matplotlib (x, -z, y) with z up (a proper rotation)."""
     return np.stack([v[:, 0], -v[:, 2], v[:, 1]], axis=1)
@@ -395,15 +411,12 @@ def export_meshes(scene: Scene, q: Tensor, directory: str | Path, frame: int) ->
     same = sorted({name for name in names if names.count(name) > 1})
     if same:  # one file would overwrite the other
         raise ValueError(f"surfaces of scene {scene.name!r} share file names {same}: give them distinct names")
-    vertices = surface_vertices(scene, q)  # a q of the wrong shape is refused before the folder is made
+    meshes = surface_meshes(scene, q)  # a q of the wrong shape is refused before the folder is made
     directory = Path(directory)
     directory.mkdir(parents=True, exist_ok=True)
     paths = []
-    for surface, name, v in zip(scene.surfaces, names, vertices, strict=True):
-        if v.shape[1] == 2:
-            v = np.concatenate([v, np.zeros((len(v), 1))], axis=1)
-        faces = surface.faces.cpu().numpy()
-        geometry = trimesh.Trimesh(v, faces, process=False) if len(faces) else trimesh.PointCloud(v)
+    for name, mesh in zip(names, meshes, strict=True):
+        geometry = mesh if len(mesh.faces) else trimesh.PointCloud(mesh.vertices)
         path = directory / f"frame_{frame:04d}_{name}.ply"
         geometry.export(path)
         paths.append(path)

@@ -356,7 +356,7 @@ def test_the_sb3_adapters_env_method_answers_the_per_copy_calls_copy_by_copy() -
         assert len(frames) == 1 and frames[0].shape == (32, 32, 3)
         with pytest.raises(TypeError, match="no arguments"):
             venv.env_method("configuration", 1)
-        with pytest.raises(AttributeError, match=r"get_state, configuration, render copy by copy.*not 'step'"):
+        with pytest.raises(AttributeError, match=r"configuration, render, trimeshes copy by copy.*not 'step'"):
             venv.env_method("step")
     finally:
         venv.close()
