@@ -83,6 +83,10 @@ def test_human_mode_where_pygame_reaches_no_display_is_a_clear_error(monkeypatch
     with pytest.raises(ValueError, match=r"DISPLAY=':4711'.*'offscreen' driver, which shows nothing.*rgb_array"):
         gym.make("RedSim/MiniChain-v0", render_mode="human")
     assert not pygame.display.get_init()
+    monkeypatch.delenv("DISPLAY")
+    monkeypatch.setenv("SDL_VIDEODRIVER", "x11")  # a driver that finds no display: pygame's error, said at the make
+    with pytest.raises(ValueError, match=r"pygame opened no display \(.+\); use render_mode='rgb_array'"):
+        gym.make("RedSim/MiniChain-v0", render_mode="human")
     monkeypatch.setenv("SDL_VIDEODRIVER", "offscreen")  # asked for: a window that shows nothing, as with "dummy"
     env = gym.make("RedSim/MiniChain-v0", render_mode="human", width=SIZE, height=SIZE)
     env.close()  # never rendered: the display it started is quit all the same
