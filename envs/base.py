@@ -132,8 +132,9 @@ RENDER_MODES = ["rgb_array", "human"]
 
 The class's ``metadata`` declares both, so ``gym.make(..., render_mode="human")`` reaches the env and
 its clear error where no window can open (Gymnasium would otherwise wrap the env in its own
-HumanRendering); an instance's ``metadata`` lists "human" only where it works, so
-``check_env`` renders every mode it lists."""
+HumanRendering); an instance's ``metadata`` lists "human" only where pygame and a display variable exist, so
+``check_env`` renders every mode it lists headless (a display variable that names no reachable display is found
+by :func:`open_display` when a "human" env is made, not probed for every env)."""
 
 VECTOR_RENDER_MODES = ["rgb_array"]
 """The vector envs (native and sharded) draw one RGB frame per copy; "human", a window, is a single env's."""
