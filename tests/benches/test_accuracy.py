@@ -400,3 +400,20 @@ def test_a_checkpoint_of_a_catalog_scene_is_pushed_with_the_tables_loads(cli, tm
     assert json.loads(out)["plan"] == dataclasses.asdict(shipped)
     code, out, err = cli(*argv, "--json", "--max-force", "7")
     assert code == 0 and json.loads(out)["plan"]["max_force"] == 7.0, err
+
+
+def test_the_start_studys_full_space_run_is_solved_as_the_reference(mini_chain, monkeypatch) -> None:
+    """The study's run from f(z*) took run_full's defaults (tol 1e-8, 50 iterations) whatever the reference's (1e-4
+    on the cloths, 100 iterations), so its ``full_fall`` came from another solve (a review's finding)."""
+    run_full, calls = accuracy.run_full, []
+
+    def spy(*args, **kwargs):
+        calls.append((kwargs.get("tol"), kwargs.get("max_iter")))
+        return run_full(*args, **kwargs)
+
+    monkeypatch.setattr(accuracy, "run_full", spy)
+    _only(monkeypatch)
+    loose = dataclasses.replace(accuracy.plan("mini_chain"), reference_tol=1e-6)
+    neural = pretrained.load("mini_chain")
+    accuracy.bench_accuracy(mini_chain, neural, steps=10, scenarios=("push",), study_steps=10, load_plan=loose)
+    assert calls == [(1e-6, accuracy.REFERENCE_MAX_ITER)] * 2  # the reference, then the study's run
