@@ -897,12 +897,18 @@ def report(result: dict[str, Any], machine: str) -> str:
             f"scenario {scenario}: the reference's handle moves up to {ref['handle_motion_cm']:.3g} cm; "
             f"errors relative to its largest displacement {ref['motion_scale']:.3g} kg^1/2 m",
         ]
-        if ref.get("implausible") or ref["failed"]:  # every row is measured against it: said, not hidden
+        if ref.get("implausible"):  # every row is measured against it: said, not hidden (and the command fails)
             lines.append(
-                f"note: the reference is not a trustworthy motion: {ref.get('implausible', 0)} of its "
+                f"note: the reference is not a trustworthy motion: {ref['implausible']} of its "
                 f"{ref['steps_run']} steps moved a coordinate more than {MAX_STEP_SIZES:g}x the scene's size and "
                 f"{ref['failed']} ended unconverged (the load, max_force {p['max_force']:g} N, may be far beyond "
                 "what the scene can take: a smaller --max-force)"
+            )
+        elif ref["failed"]:  # a Newton that stopped short of its tolerance (the bistable bar's, near it): said
+            lines.append(
+                f"note: {ref['failed']} of the reference's {ref['steps_run']} steps ended unconverged (Newton stopped "
+                f"short of tol {p['reference_tol']:g} within {REFERENCE_MAX_ITER} iterations): the rows are measured "
+                "against where those steps stopped"
             )
         lines += ["", markdown_table(result, scenario)]
     study = result.get("study")
