@@ -160,6 +160,13 @@ def test_simulate_holds_the_conditions_given_and_reports_them(capsys: pytest.Cap
     assert row["condition_space"][0] == {"name": "stiffness_ratio", "low": 0.2, "high": 5.0, "default": 1.0}
 
 
+def test_simulate_escape_saddles_reaches_the_lower_step(capsys: pytest.CaptureFixture[str]) -> None:
+    argv = ("simulate", "mini_chain", "--steps", "3", "--dt", "0.02", "--load", "bottom=2,0,0", "--json")
+    plain, escaped = (json.loads(run(capsys, *argv, *extra)[1]) for extra in ((), ("--escape-saddles",)))
+    assert escaped["converged_steps"] == plain["converged_steps"] == 3
+    assert escaped["per_step"][2]["objective"] < plain["per_step"][2]["objective"] - 1e-3  # the saddle left
+
+
 def test_simulate_nan_exits_3(capsys: pytest.CaptureFixture[str], monkeypatch: pytest.MonkeyPatch) -> None:
     from redsim.integrators import ImplicitEuler
 

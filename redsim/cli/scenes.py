@@ -141,6 +141,7 @@ def cmd_simulate(args: argparse.Namespace) -> int:
             tol=args.tol,
             max_iter=args.max_iter,
             strict=False,
+            escape_saddles=args.escape_saddles,
         )
     except ValueError as err:  # bad --tol or --max-iter
         raise CliError(f"bad solver setting (--tol, --max-iter): {err}") from err
@@ -337,6 +338,13 @@ def add_commands(sub: Any) -> None:
         "times the scene size; a huge load makes the bound huge too, so implausible steps are checked separately",
     )
     p.add_argument("--max-iter", type=int, default=100, help="solver iterations per step (default 100)")
+    p.add_argument(
+        "--escape-saddles",
+        action="store_true",
+        help="leave a converged step that ended at a saddle of the step's objective (negative curvature, which "
+        "Newton does not see: from a symmetric state, e.g. a chain's links) and solve again; one more Hessian "
+        "and factorization per step",
+    )
     add_out_folder(p, "folder for the picture and meshes (nothing is written without it)")
     p.add_argument("--meshes", action="store_true", help="write per-frame .ply meshes to OUT/frames")
     finish_command(p, cmd_simulate, "print one JSON summary (with per-step stats) on stdout")

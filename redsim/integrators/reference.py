@@ -185,11 +185,14 @@ def _descend(objective: PotentialObjective, start: Tensor, threshold: float) -> 
     return q, False, energy
 
 
-def _negative_curvature(scene: Scene, q: Tensor, loads: Tensor | None, cond: Tensor | None) -> Tensor | None:
+def _negative_curvature(
+    scene: Scene, q: Tensor, loads: Tensor | None, cond: Tensor | None, dt: float | None = None
+) -> Tensor | None:
     """A direction v [n] (largest entry 1) with v^T K v < -s v^T M v, or None if K + s M is positive definite.
 
     K is the unprojected energy Hessian at q and s = SHIFT_FLOOR * |diag K| / |diag M| (round-off
-    and exact null modes stay above -s). The test is the inertia of a symmetric sparse LU with
+    and exact null modes stay above -s); for an implicit-Euler step of ``dt`` [s], s = 1 / dt^2 (K + M / dt^2 is
+    the Hessian of the step's objective). The test is the inertia of a symmetric sparse LU with
     diagonal pivots (K + s M = P^T U^T D^-1 U P): a negative pivot d_i gives v = P^T U^-1 e_i
     with v^T (K + s M) v = 1 / d_i < 0. None also when the factorization is singular or not
     symmetric (no verdict).
@@ -197,7 +200,7 @@ def _negative_curvature(scene: Scene, q: Tensor, loads: Tensor | None, cond: Ten
     stiffness = energy_hessian(scene, q, loads, cond, project=False)
     mass = scene.mass_matrix_scipy()
     ratio = float(np.linalg.norm(stiffness.diagonal()) / np.linalg.norm(mass.diagonal()))
-    shift = SHIFT_FLOOR * (ratio if ratio > 0.0 else 1.0)
+    shift = SHIFT_FLOOR * (ratio if ratio > 0.0 else 1.0) if dt is None else 1.0 / dt**2
     matrix = scipy.sparse.csc_matrix(0.5 * (stiffness + stiffness.T) + shift * mass)
     try:
         factor = scipy.sparse.linalg.splu(

@@ -406,6 +406,57 @@ def test_a_scene_name_a_scene_for_a_space_or_a_tensor_for_a_state_is_a_clear_typ
         sim.step(scene.q_seed)
 
 
+def test_a_step_that_converged_at_a_saddle_is_left_with_escape_saddles() -> None:
+    """The two-link chain's third step under 2 N ends at a saddle of the step's objective (|g| within the
+    tolerance, Hessian eigenvalue -355): projected Newton sees no negative curvature (a review's finding).
+    ``escape_saddles=True`` leaves it to the minimum."""
+    import redsim
+
+    scene = redsim.scenes.build("mini_chain")
+    loads = {"bottom": [2.0, 0.0, 0.0]}
+
+    def third_step(**options: bool) -> tuple[FullState, FullState, object]:
+        sim = ImplicitEuler(FullSpace(scene), 0.02, **options)
+        state = sim.initial_state()
+        for _ in range(2):
+            state, _ = sim.step(state, loads)
+        return (state, *sim.step(state, loads))
+
+    def lowest_curvature_and_value(before: FullState, after: FullState) -> tuple[float, float]:
+        inertia = Inertia(2.0 * before.q - before.q_prev, 0.02)
+        objective = PotentialObjective(
+            FullSpace(scene),
+            loads=scene.pack_loads(loads, 1),
+            cond=None,
+            inertia=inertia,
+            force=None,
+            reference=before.q,
+        )
+        hessian = torch.autograd.functional.hessian(lambda q: objective._value(q[None])[0], after.q)
+        return float(torch.linalg.eigvalsh(0.5 * (hessian + hessian.T))[0]), objective.value_and_grad(after.q)[0]
+
+    before, plain, info = third_step()
+    assert info.converged
+    saddle, value = lowest_curvature_and_value(before, plain)
+    assert saddle < -100.0
+    before_escaped, escaped, info = third_step(escape_saddles=True)
+    assert info.converged and torch.equal(before_escaped.q, before.q)  # the first two steps are minima as they were
+    curvature, lower = lowest_curvature_and_value(before, escaped)
+    assert curvature > 0.0 and lower < value - 1e-3
+    with pytest.raises(ValueError, match="escape_saddles needs the full space"):
+        ImplicitEuler(_NotFull(FullSpace(scene)), 0.02, escape_saddles=True)
+
+
+class _NotFull:
+    """A space that is not :class:`FullSpace` (its attributes those of the one it wraps)."""
+
+    def __init__(self, space: FullSpace) -> None:
+        self._space = space
+
+    def __getattr__(self, name: str) -> object:
+        return getattr(self._space, name)
+
+
 def test_static_equilibrium_of_a_contact_held_chain_does_not_fall_through() -> None:
     """The links start out of contact: Newton's trust radius (half the contact tube) keeps the
     first steps from passing through the hook, where the bounded penalty would let them fall."""
