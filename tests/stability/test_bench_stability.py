@@ -257,3 +257,28 @@ def test_rows_count_inverted_elements_and_idle_steps_that_no_flag_shows() -> Non
     fuzz = stability.fuzz_env("RedSim/BistableBar-v0", 16, num_envs=8)
     assert isinstance(fuzz["inverted"], int) and fuzz["idle"] >= 0
     assert stability.fuzz_env("RedSim/MiniChain-v0", 16, num_envs=8)["inverted"] is None
+
+
+def test_the_fuzz_judges_a_cubature_env_on_the_energy_it_steps_and_counts_the_scenes_rises_apart() -> None:
+    """HangingCloth-v2 steps a lean cubature: its ``energy_gain`` flag judges the cubature energy, and so must the
+    ledger (stop 65's fuzz judged the scene's full energy and called two 0.2%-of-K + E rises of the cubature's
+    approximation unreported gains). The ledger's E is the env's ``info["energy"]`` (float32) to round-off; the
+    scene's own rises are counted apart (``cubature_rises``), and a map's every element has none to count."""
+    import gymnasium as gym
+
+    venv = gym.make_vec("RedSim/HangingCloth-v2", num_envs=3, vectorization_mode="vector_entry_point")
+    venv.reset(seed=0)
+    ledger = stability._EnvLedger(venv.unwrapped.sim)
+    assert ledger.cubature is not None
+    rng = np.random.default_rng(0)
+    for i in range(4):
+        info = venv.step(stability.fuzz_actions(rng, venv.action_space.shape, i))[-1]
+        ledger.step(torch.as_tensor(info["energy_gain"]), torch.as_tensor(info["energy_gain_tolerance"]))
+        stepped = ledger.mechanical(ledger.z, ledger.q, ledger.q)  # q_prev = q: E alone
+        full = ledger.mechanical(ledger.z, ledger.q, ledger.q, scene_energy=True)
+        np.testing.assert_allclose(stepped.numpy(), info["energy"], rtol=2e-5)
+        assert not np.allclose(full.numpy(), info["energy"], rtol=2e-5, atol=0)
+    venv.close()
+    cubature_row = stability.fuzz_env("RedSim/HangingCloth-v2", 64, num_envs=4, seed=0)
+    assert isinstance(cubature_row["cubature_rises"], int) and cubature_row["unreported"] == 0
+    assert stability.fuzz_env("RedSim/MiniChain-v0", 16, num_envs=4, seed=0)["cubature_rises"] is None
