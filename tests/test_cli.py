@@ -165,6 +165,8 @@ def test_simulate_escape_saddles_reaches_the_lower_step(capsys: pytest.CaptureFi
     plain, escaped = (json.loads(run(capsys, *argv, *extra)[1]) for extra in ((), ("--escape-saddles",)))
     assert escaped["converged_steps"] == plain["converged_steps"] == 3
     assert escaped["per_step"][2]["objective"] < plain["per_step"][2]["objective"] - 1e-3  # the saddle left
+    help_text = " ".join(run(capsys, "simulate", "--help")[1].split())  # --tol's bound held only where convex
+    assert "where the step's objective is convex (a converged step is stationary, and can be a saddle" in help_text
 
 
 def test_simulate_nan_exits_3(capsys: pytest.CaptureFixture[str], monkeypatch: pytest.MonkeyPatch) -> None:

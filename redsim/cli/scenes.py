@@ -335,7 +335,9 @@ def add_commands(sub: Any) -> None:
         default=1e-8,
         help="relative gradient tolerance (default 1e-8): a step has converged when |grad| <= tol times the "
         "forces acting (internal, inertial and applied loads), which bounds its position error by about tol "
-        "times the scene size; a huge load makes the bound huge too, so implausible steps are checked separately",
+        "times the scene size where the step's objective is convex (a converged step is stationary, and can be a "
+        "saddle: see --escape-saddles); a huge load makes the bound huge too, so implausible steps are checked "
+        "separately",
     )
     p.add_argument("--max-iter", type=int, default=100, help="solver iterations per step (default 100)")
     p.add_argument(
