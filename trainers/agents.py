@@ -1417,7 +1417,7 @@ def train_agent(
             another task or shards, a budget that ends no episode of every copy, a run already in ``out`` (neither
             ``resume`` nor ``overwrite``), ``resume`` with ``overwrite``, or (resume) a model of another env,
             algorithm, replay or ``env_kwargs``, a run started with another ``seed``, or other ``n_envs`` than its
-            replay buffer holds.
+            replay buffer holds, or a damaged replay buffer.
         FileNotFoundError: (resume) a model trained on normalized observations whose ``VecNormalize`` statistics
             (:func:`normalizer_path`) are missing.
         TrainingInterrupted: a KeyboardInterrupt in training or the final evaluation, raised once the run is saved
@@ -1539,7 +1539,16 @@ def train_agent(
         if "action_noise" in settings:  # TD3: the saved noise is vectorized over the saved run's copies
             model.action_noise = settings["action_noise"]
         if buffer:
-            model.load_replay_buffer(out / BUFFER)
+            try:
+                model.load_replay_buffer(out / BUFFER)
+            except Exception as err:  # whatever unpickling a damaged file raises (a raw traceback in the CLI)
+                for env_ in (venv, eval_env):
+                    _close_quietly(env_)
+                raise ValueError(
+                    f"cannot resume: the replay buffer {out / BUFFER} is damaged ({type(err).__name__}: {err}); delete "
+                    f"it to resume from {previous} without one (it acts at random for a while to refill it), or "
+                    "start again with --overwrite"
+                ) from None
         elif algo != "ppo":  # from a checkpoint (only model.zip keeps a replay buffer): refill before learning
             # HER samples only once every copy has ended an episode again; plain replay after the table's start
             ended = her_wait(copies, int(_episode_steps(env, env_kwargs) or 0))

@@ -1376,3 +1376,22 @@ def test_eval_agent_warns_where_an_env_arg_chooses_another_map(
     code, _, err = cli("eval-agent", "shipped", MINI, *short, *other)
     assert code == 0 and "--env-arg scene_params, fit_options differs from the model's training env" in err
     assert "another subspace map" in err
+
+
+def test_a_resume_over_a_damaged_replay_buffer_says_what_to_do(
+    cli: Callable[..., tuple[int, str, str]], tmp_path: Path
+) -> None:
+    """A truncated replay_buffer.pkl beside model.zip was a raw UnpicklingError traceback from SB3's loader; it is a
+    one-line error naming the file, and deleting it, as the error says, resumes from model.zip without one."""
+    from redsim.trainers.agents import train_agent
+
+    tiny = {"n_envs": 2, "eval_episodes": 1, "final_episodes": 1, "env_kwargs": SHORT, "video": False}
+    train_agent(MINI, tmp_path, algo="sac", steps=20, **tiny)
+    buffer = tmp_path / "replay_buffer.pkl"
+    buffer.write_bytes(buffer.read_bytes()[:5000])
+    args = ("train-agent", MINI, "--steps", "40", "--n-envs", "2", "--out", str(tmp_path), "--resume")
+    args += ("--eval-episodes", "1", "--final-episodes", "1", "--episode-steps", "20", "--no-video", "--no-progress")
+    code, _, err = cli(*args)
+    assert code == 2 and f"the replay buffer {buffer} is damaged" in err and "delete it to resume" in err
+    buffer.unlink()
+    assert cli(*args)[0] == 0 and model_record(tmp_path / "model.zip")["n_envs"] == 2
