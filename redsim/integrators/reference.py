@@ -20,8 +20,8 @@ from torch import Tensor
 
 from redsim.hessian import energy_hessian
 from redsim.integrators import cache
-from redsim.integrators.objective import Inertia, PotentialObjective
-from redsim.integrators.spaces import FullSpace
+from redsim.integrators.objective import Inertia, PotentialObjective, checked_vector
+from redsim.integrators.spaces import FullSpace, as_float64
 from redsim.scene import Scene
 from redsim.solvers import SHIFT_FLOOR, convergence_threshold, newton
 
@@ -54,7 +54,7 @@ def rest_state(scene: Scene, cond: Tensor | None = None) -> tuple[Tensor, bool]:
     Returns:
         q_rest [n] (float64) and whether the solve converged.
     """
-    q, converged, _ = full_equilibrium(scene.to(dtype=torch.float64), None, cond)
+    q, converged, _ = full_equilibrium(scene, None, cond)
     return q, converged
 
 
@@ -68,7 +68,7 @@ def full_equilibrium(
     solver settings for the disk cache (:func:`redsim.integrators.cache.cache_directory`).
 
     Args:
-        scene: A float64 scene.
+        scene: The scene (solved in float64: a float32 one is cast, as :func:`rest_state` does).
         load: Loads [N], shape [H, D], or None for the rest equilibrium.
         cond: Condition [m]; default: the scene's.
         start: Where the solve starts, shape [n] (None: the seed).
@@ -76,10 +76,10 @@ def full_equilibrium(
     Returns:
         q [n] (float64); converged (see :func:`_solve_full`); E(q; load) [J].
     """
+    scene = as_float64(scene)
+    start = scene.q_seed if start is None else checked_vector(start, scene.free_dof_count, "start", scene.q_seed)
     settings = (FULL_TOL, NEWTON_ITER, NEWTON_REUSE, RELAX_STEPS, RELAX_MOVE, ESCAPES)
-    return cache.lookup(
-        scene, load, cond, settings, lambda: _solve_full(scene, load, cond, scene.q_seed if start is None else start)
-    )
+    return cache.lookup(scene, load, cond, settings, lambda: _solve_full(scene, load, cond, start))
 
 
 def _solve_full(scene: Scene, load: Tensor | None, cond: Tensor | None, start: Tensor) -> tuple[Tensor, bool, float]:

@@ -90,3 +90,17 @@ def test_full_equilibria_leave_saddles() -> None:
     rest, converged, energy = reference.full_equilibrium(scene)
     assert converged and energy < info.energy - 1e-3
     assert reference._negative_curvature(scene, rest, None, None) is None
+
+
+def test_a_float32_scene_and_a_float32_start_are_solved_in_float64() -> None:
+    """full_equilibrium of a float32 scene was a RuntimeError ("expected scalar type Float but found Double"), a
+    review's finding; rest_state cast it, full_equilibrium did not."""
+    scene = scenes.build("toy_two_tets")
+    single = scene.to(dtype=torch.float32)
+    rest, converged, energy = reference.full_equilibrium(single, start=single.q_seed)
+    expected, _, expected_energy = reference.full_equilibrium(scene)
+    assert converged and rest.dtype == torch.float64
+    torch.testing.assert_close(rest, expected, rtol=0.0, atol=1e-7)
+    assert energy == pytest.approx(expected_energy, rel=1e-6)
+    with pytest.raises(ValueError, match="start must be finite"):
+        reference.full_equilibrium(scene, start=torch.full_like(scene.q_seed, float("nan")))
