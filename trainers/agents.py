@@ -1233,6 +1233,24 @@ def _write_curve(path: Path, curve: list[dict[str, float]]) -> None:
     write_atomically(path, write)
 
 
+def _read_record(path: Path) -> dict[str, Any]:
+    """A run's ``agent.json`` that a resume checks its seed and settings against.
+
+    Raises:
+        ValueError: the file is not a record (damaged, or edited), naming it and what to do.
+    """
+    try:
+        record = json.loads(path.read_text())
+    except ValueError as err:
+        record = err
+    if not isinstance(record, dict):
+        raise ValueError(
+            f"cannot resume: the run's record {path} is damaged ({record}); restore it, move it away to resume "
+            "without its checks (the run's seed, intervals and settings), or start again with --overwrite"
+        )
+    return record
+
+
 def _write_record(out: Path, summary: Mapping[str, Any]) -> None:
     """``agent.json``, replaced whole (as :func:`_write_curve`)."""
     text = json.dumps(summary, indent=2, default=str)
@@ -1506,7 +1524,7 @@ def train_agent(
                 f"(give {same}, or another --out)"
             )
     has_record = previous is not None and (out / "agent.json").is_file()
-    record = json.loads((out / "agent.json").read_text()) if has_record else {}
+    record = _read_record(out / "agent.json") if has_record else {}
     started_with = record.get("seed", seed)
     if started_with != seed:  # the copies' and the evaluations' episodes follow the seed
         raise ValueError(

@@ -5,6 +5,7 @@ from __future__ import annotations
 import csv
 import importlib.util
 import json
+import re
 import tempfile
 import zipfile
 from collections.abc import Callable
@@ -1395,3 +1396,16 @@ def test_a_resume_over_a_damaged_replay_buffer_says_what_to_do(
     assert code == 2 and f"the replay buffer {buffer} is damaged" in err and "delete it to resume" in err
     buffer.unlink()
     assert cli(*args)[0] == 0 and model_record(tmp_path / "model.zip")["n_envs"] == 2
+
+
+def test_a_resume_over_a_damaged_record_names_it(tmp_path: Path) -> None:
+    """A truncated agent.json was "redsim: error: Expecting ',' delimiter: line 5 column 31", naming no file."""
+    from redsim.trainers.agents import train_agent
+
+    tiny = {"n_envs": 2, "eval_episodes": 1, "final_episodes": 1, "env_kwargs": SHORT, "video": False}
+    train_agent(MINI, tmp_path, algo="sac", steps=20, **tiny)
+    record = tmp_path / "agent.json"
+    for damage in (record.read_text()[:100], "[]"):
+        record.write_text(damage)
+        with pytest.raises(ValueError, match=rf"the run's record {re.escape(str(record))} is damaged .* move it away"):
+            train_agent(MINI, tmp_path, algo="sac", steps=40, resume=True, **tiny)
