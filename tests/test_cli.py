@@ -154,7 +154,9 @@ def test_simulate_holds_the_conditions_given_and_reports_them(capsys: pytest.Cap
     assert summary["energy_end"] != pytest.approx(float(scene.energy(state.q)), rel=1e-6)  # not the default's
     assert run(capsys, "simulate", TOY, "--steps", "1", "--json")[1].count('"conditions": null') == 1
     code, out, _ = run(capsys, "scenes")
-    assert code == 0
+    assert code == 0 and "conditions (each with its range and default" in " ".join(
+        run(capsys, "scenes", "--help")[1].split()
+    )
     assert "  conditions: stiffness_ratio in [0.2, 5] (default 1), pin_location in [0.3, 1] (default 0.65)\n" in out
     row = next(r for r in json.loads(run(capsys, "scenes", "--json")[1]) if r["name"] == "conditional_bar")
     assert row["condition_space"][0] == {"name": "stiffness_ratio", "low": 0.2, "high": 5.0, "default": 1.0}

@@ -289,8 +289,8 @@ def add_commands(sub: Any) -> None:
         "scenes",
         help="list the scene catalog",
         description=(
-            "List every scene of the catalog with its size n, effects (name:kind), handles and condition "
-            "names. Test scenes (toy_*) are listed with --all."
+            "List every scene of the catalog with its size n, effects (name:kind), handles and conditions (each "
+            "with its range and default, what `simulate --cond` takes). Test scenes (toy_*) are listed with --all."
         ),
     )
     p.add_argument("--all", action="store_true", help="include the toy_* test scenes")
