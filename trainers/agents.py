@@ -1321,21 +1321,35 @@ def _continue_evaluations(callback: Any, path: Path, until: int, episodes: int) 
     to ``until`` steps), which it rewrites after each evaluation, and replaces ``best_model.zip`` only with a better
     mean return than any earlier evaluation's (those past ``until`` included: a run resumed from a checkpoint may
     have saved its best model later). Earlier evaluations of another episode count are not carried (one file, one
-    shape)."""
+    shape). A damaged file (SB3 writes it in place: a hard stop mid-write truncates it) is warned about and taken as
+    none, as a missing one is."""
     if not path.is_file():
         return
-    with np.load(path) as old:
-        if old["results"].size:
-            callback.best_mean_reward = float(old["results"].reshape(len(old["timesteps"]), -1).mean(axis=1).max())
-        keep = old["timesteps"] <= until
-        results = old["results"][keep]
-        if results.ndim != 2 or results.shape[1] != episodes:
-            return
-        callback.evaluations_timesteps = [int(t) for t in old["timesteps"][keep]]
-        callback.evaluations_results = [list(row) for row in results]
-        callback.evaluations_length = [list(row) for row in old["ep_lengths"][keep]]
-        if "successes" in old.files and len(old["successes"]) == len(keep):
-            callback.evaluations_successes = [list(row) for row in old["successes"][keep]]
+    try:
+        with np.load(path) as data:
+            old = {name: data[name] for name in data.files}
+        timesteps, results, lengths = old["timesteps"], old["results"], old["ep_lengths"]
+        means = results.reshape(len(timesteps), -1).mean(axis=1) if results.size else None
+    except Exception as err:  # whatever a truncated or foreign file raises (BadZipFile, KeyError, ValueError...)
+        log.warning(
+            "ignoring %s (%s: %s): this run's evaluations.npz starts anew, and its next evaluation's model replaces "
+            "best_model.zip",
+            path,
+            type(err).__name__,
+            err,
+        )
+        return
+    if means is not None:
+        callback.best_mean_reward = float(means.max())
+    keep = timesteps <= until
+    results = results[keep]
+    if results.ndim != 2 or results.shape[1] != episodes:
+        return
+    callback.evaluations_timesteps = [int(t) for t in timesteps[keep]]
+    callback.evaluations_results = [list(row) for row in results]
+    callback.evaluations_length = [list(row) for row in lengths[keep]]
+    if "successes" in old and len(old["successes"]) == len(keep):
+        callback.evaluations_successes = [list(row) for row in old["successes"][keep]]
 
 
 def _her_settings(

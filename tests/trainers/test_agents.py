@@ -1409,3 +1409,19 @@ def test_a_resume_over_a_damaged_record_names_it(tmp_path: Path) -> None:
         record.write_text(damage)
         with pytest.raises(ValueError, match=rf"the run's record {re.escape(str(record))} is damaged .* move it away"):
             train_agent(MINI, tmp_path, algo="sac", steps=40, resume=True, **tiny)
+
+
+def test_a_resume_over_a_damaged_evaluation_log_warns_and_goes_on(tmp_path: Path, caplog) -> None:
+    """SB3's EvalCallback writes evaluations.npz in place, so a hard stop mid-write truncates it; a resume then died
+    in a raw BadZipFile traceback. It is taken as no earlier evaluations (as a missing file is), with a warning."""
+    from redsim.trainers.agents import train_agent
+
+    tiny = {"n_envs": 2, "eval_episodes": 1, "final_episodes": 1, "env_kwargs": SHORT, "video": False}
+    train_agent(MINI, tmp_path, algo="sac", steps=20, eval_every=10, **tiny)
+    log = tmp_path / "evaluations.npz"
+    log.write_bytes(log.read_bytes()[:300])
+    with caplog.at_level("WARNING", logger="redsim.trainers.agents"):
+        result = train_agent(MINI, tmp_path, algo="sac", steps=40, eval_every=10, resume=True, **tiny)
+    assert result.steps == 40 and f"ignoring {log} (BadZipFile" in caplog.text
+    with np.load(log) as evaluations:
+        assert evaluations["timesteps"].tolist() == [30, 40]
