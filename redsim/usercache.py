@@ -172,6 +172,23 @@ def user_cache_usage(folders: Iterable[str] | None = None, older_than_days: floa
     return usage
 
 
+class ClearError(OSError):
+    """Files of the user cache that could not be deleted (permissions, a read-only folder); the others were.
+
+    Attributes:
+        deleted: What was deleted per folder (as :func:`clear_user_cache` returns it).
+        failed: Each file not deleted, with its error.
+    """
+
+    def __init__(self, deleted: list[FolderUsage], failed: list[tuple[Path, OSError]]) -> None:
+        path, first = failed[0]
+        others = f" and {len(failed) - 1} more file(s)" if len(failed) > 1 else ""
+        super().__init__(
+            first.errno, f"could not delete {path}{others} of redsim's user cache ({first.strerror or first})"
+        )
+        self.deleted, self.failed = deleted, failed
+
+
 def clear_user_cache(folders: Iterable[str] | None = None, older_than_days: float | None = None) -> list[FolderUsage]:
     """Delete the files in ``folders`` (default: all of :data:`FOLDERS`) of the user cache, only those last
     written more than ``older_than_days`` days ago when given; returns what was deleted per folder ([] with the
@@ -179,13 +196,13 @@ def clear_user_cache(folders: Iterable[str] | None = None, older_than_days: floa
     root itself, which ``$REDSIM_CACHE`` may point anywhere, a linked folder or file, or another process's write in
     flight). Every entry is computed again when next needed; deleting a fit's
     training state (``subspaces/*.fit.pt``) means an interrupted fit starts over. A file another process removed
-    meanwhile is skipped; one that cannot be deleted raises.
+    meanwhile is skipped; those that cannot be deleted are raised about once the others are.
 
     Raises:
         ValueError: as :func:`user_cache_usage`, before anything is deleted.
-        OSError: a file that exists but could not be deleted (permissions).
+        ClearError: an OSError; files that exist but could not be deleted (permissions), after the others were.
     """
-    deleted = []
+    deleted, failed = [], []
     for name, (folder, files) in _selected(folders, older_than_days).items():
         count = total = 0
         for path in files:
@@ -194,15 +211,21 @@ def clear_user_cache(folders: Iterable[str] | None = None, older_than_days: floa
                 path.unlink()
             except FileNotFoundError:
                 continue
+            except OSError as error:
+                failed.append((path, error))
+                continue
             count += 1
             total += size or 0
         deleted.append(FolderUsage(name, folder, count, total))
+    if failed:
+        raise ClearError(deleted, failed)
     return deleted
 
 
 __all__ = [
     "CACHE_ENV",
     "FOLDERS",
+    "ClearError",
     "FolderUsage",
     "cache_root",
     "clear_user_cache",

@@ -15,7 +15,7 @@ from redsim.cli import main
 from redsim.envs.base import cached
 from redsim.envs.fitted import cache_stem
 from redsim.integrators import cache as equilibria
-from redsim.usercache import FOLDERS, cache_root, clear_user_cache, user_cache_usage
+from redsim.usercache import FOLDERS, ClearError, cache_root, clear_user_cache, user_cache_usage
 
 WEEK = 7 * 86400.0
 STEM = "mini_chain-" + "a" * 16 + "-" + "b" * 12
@@ -181,3 +181,27 @@ def test_cli_info_says_where_the_cache_is_not_made_yet_or_cannot_be(tmp_path, mo
     assert "which is not a folder: nothing can be cached there" in capsys.readouterr().err
     assert main(["cache", "info", "--json"]) == 0
     assert json.loads(capsys.readouterr().out)["state"] == "not a folder"
+
+
+def test_files_that_cannot_be_deleted_are_reported_after_the_others_are(
+    root: Path, monkeypatch: pytest.MonkeyPatch, capsys: pytest.CaptureFixture[str]
+) -> None:
+    """A read-only entry (another user's file in a shared cache) stopped clear at the first such file, leaving the
+    rest, and `redsim cache clear` printed only the OS error: what it had deleted went unsaid."""
+    locked = root / "equilibria" / NAMES["equilibria"][0]
+    unlink = Path.unlink
+
+    def refuse(path: Path, missing_ok: bool = False) -> None:
+        if path == locked:
+            raise PermissionError(13, "Permission denied", str(path))
+        unlink(path, missing_ok=missing_ok)
+
+    monkeypatch.setattr(Path, "unlink", refuse)
+    with pytest.raises(ClearError, match=rf"could not delete {locked} of redsim's user cache \(Permission denied\)"):
+        clear_user_cache()
+    assert _counts(user_cache_usage()) == {"equilibria": (1, 10), "subspaces": (0, 0), "envs": (0, 0)}
+    assert main(["cache", "clear"]) == 1
+    out, err = capsys.readouterr()
+    assert out.count("deleted 0 files") == 3 and f"could not delete {locked}" in err
+    assert main(["cache", "clear", "--json"]) == 1
+    assert json.loads(capsys.readouterr().out)["failed"] == [str(locked)]

@@ -7,7 +7,15 @@ from pathlib import Path
 from typing import Any
 
 from redsim.cli.common import EXIT_OK, CliError, finish_command, json_out, out, shown_path, warn
-from redsim.usercache import CACHE_ENV, FOLDERS, FolderUsage, cache_root, clear_user_cache, user_cache_usage
+from redsim.usercache import (
+    CACHE_ENV,
+    FOLDERS,
+    ClearError,
+    FolderUsage,
+    cache_root,
+    clear_user_cache,
+    user_cache_usage,
+)
 
 
 def _megabytes(size: int) -> str:
@@ -69,13 +77,19 @@ def cmd_cache_clear(args: argparse.Namespace) -> int:
         else:
             out(_off())
         return EXIT_OK
-    done = (user_cache_usage if args.dry_run else clear_user_cache)(folders, days)
+    try:
+        done, failed = (user_cache_usage if args.dry_run else clear_user_cache)(folders, days), None
+    except ClearError as err:  # the others were deleted: say so, then which could not be
+        done, failed = err.deleted, err
     if args.json:
-        json_out({"root": str(root), "dry_run": args.dry_run, "deleted": _rows(done)})
-        return EXIT_OK
-    verb = "would delete" if args.dry_run else "deleted"
-    for u in done:
-        out(f"{verb} {u.files} files ({_megabytes(u.bytes)}) in {shown_path(u.path)}")
+        doc = {"root": str(root), "dry_run": args.dry_run, "deleted": _rows(done)}
+        json_out({**doc, **({} if failed is None else {"failed": [str(path) for path, _ in failed.failed]})})
+    else:
+        verb = "would delete" if args.dry_run else "deleted"
+        for u in done:
+            out(f"{verb} {u.files} files ({_megabytes(u.bytes)}) in {shown_path(u.path)}")
+    if failed is not None:
+        raise CliError(str(failed), code=1)  # as any file the command could not write (main)
     return EXIT_OK
 
 
