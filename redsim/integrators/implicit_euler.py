@@ -31,6 +31,7 @@ from redsim.integrators.objective import (
 )
 from redsim.integrators.reference import _lower_along, _negative_curvature
 from redsim.integrators.spaces import FullSpace, Space
+from redsim.integrators.tunneling import TunnelTest
 from redsim.scene import LoadsLike, Scene
 from redsim.solvers import ConvergenceError, SolveInfo, check_settings, get_minimizer
 
@@ -84,10 +85,14 @@ class StepInfo(SolveInfo):
             the state is finite and usable, and nothing is logged.
         mechanical_gain: K_{t+1} + E(q_{t+1}) - K_t - E(q_t) - W_t [J], with W_t the loads' work over
             the step; <= 0 on a dissipative step.
+        tunneled: The step's straight path passed through a contact that neither end shows (a move longer than
+            the contact is thick, which the penalty never felt: :mod:`redsim.integrators.tunneling`). Reported,
+            never acted on, as ``energy_gain``.
     """
 
     energy_gain: bool = False
     mechanical_gain: float = 0.0
+    tunneled: bool = False
 
 
 def _same(a: Tensor | None, b: Tensor | None) -> bool:
@@ -100,7 +105,7 @@ class ImplicitEuler:
     Args:
         space: The coordinates solved for (:class:`FullSpace` for the reference, :class:`LatentSpace`
             for a subspace; the state then holds z).
-        dt: Time step h [s], finite and > 0.
+        dt: Time step h [s], finite and >= :data:`redsim.integrators.objective.MIN_TIME_STEP` (1e-6 s).
         minimizer: A key of :data:`redsim.solvers.MINIMIZERS` ("newton" or "lbfgs").
         tol: Relative gradient tolerance (see :class:`PotentialObjective` for what it bounds).
         max_iter: Most iterations of the minimizer per step.
@@ -150,6 +155,7 @@ class ImplicitEuler:
             raise ValueError("escape_saddles needs the full space (FullSpace(scene)): the test reads the q Hessian")
         self.escape_saddles = bool(escape_saddles)
         self._constants = SceneConstants.of(space.scene)
+        self._tunnel_test = TunnelTest(space.scene)
         self._last_potential: tuple[Tensor, Tensor | None, Tensor] | None = None
 
     @property
@@ -267,7 +273,11 @@ class ImplicitEuler:
             mechanical[:1], mechanical[1:], work.reshape(1), torch.tensor([inexact], dtype=q.dtype), eps
         )
         change = float(mechanical[1] - mechanical[0] - work)
-        return StepInfo(**dataclasses.asdict(info), energy_gain=bool(gained[0]), mechanical_gain=change)
+        x = scene.full_positions(q[1:])  # x_t, x_{t+1}
+        tunneled = bool(self._tunnel_test(x[:1], x[1:])[0])
+        return StepInfo(
+            **dataclasses.asdict(info), energy_gain=bool(gained[0]), mechanical_gain=change, tunneled=tunneled
+        )
 
     def rollout(
         self,
