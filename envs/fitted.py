@@ -119,6 +119,12 @@ def cached_subspace(
         if not resume:
             raise
         raise _damaged(err, f"delete {state} to start its fit over") from None
+    except ValueError:
+        if not resume or state.is_file():
+            raise
+        # "nothing to resume": another process (a SubprocVecEnv worker fitting the same map) finished this fit, or
+        # started it over, between the check and the load; its map is there now, or this one fits from the start
+        return cached_subspace(scene_name, scene, fit_options, progress=progress)
     if state is not None:
         state.unlink(missing_ok=True)
     if stem is None:  # no file behind it: an env pickles it rather than fit it again

@@ -253,3 +253,27 @@ def test_an_interrupted_cache_fit_resumes_to_the_map_an_uninterrupted_one_makes(
     assert calls == [True] and not stem.with_name(stem.name + ".fit.pt").exists()
     resumed = env.unwrapped.sim.subspace.state_dict()
     assert all(torch.equal(value, resumed[key]) for key, value in whole.state_dict().items())
+
+
+def test_a_training_state_another_worker_removes_before_the_resume_loads_it_is_no_error(tmp_path, monkeypatch) -> None:
+    """SubprocVecEnv workers fit one map: a worker that saw STEM.fit.pt resumes it, but another one that finished
+    the fit (or started it over) may remove it first; that was a ValueError "nothing to resume" for the env."""
+    from redsim.trainers import fit
+
+    monkeypatch.setenv("REDSIM_CACHE", str(tmp_path))
+    scene = redsim.scenes.build("mini_chain", **PARAMS)
+    options = {**fitted._shipped_recipe("mini_chain"), **TINY}
+    stem = fitted.cache_stem("mini_chain", scene, options)
+    with pytest.raises(fit.FitStopped):
+        fit.fit_subspace(scene, out=stem, stop_at=7, progress=False, **options)
+    calls, real = [], fit.fit_subspace
+
+    def other_worker_first(*args, **kwargs):
+        calls.append(kwargs["resume"])
+        if kwargs["resume"]:
+            stem.with_name(stem.name + ".fit.pt").unlink()  # the other worker's overwrite=True start
+        return real(*args, **kwargs)
+
+    monkeypatch.setattr(fit, "fit_subspace", other_worker_first)
+    subspace = fitted.cached_subspace("mini_chain", scene, TINY, progress=False)
+    assert calls == [True, False] and subspace.metadata["scene_fingerprint"] == scene.fingerprint()
