@@ -166,6 +166,12 @@ def test_simulate_escape_saddles_reaches_the_lower_step(capsys: pytest.CaptureFi
     argv = ("simulate", "mini_chain", "--steps", "3", "--dt", "0.02", "--load", "bottom=2,0,0", "--json")
     plain, escaped = (json.loads(run(capsys, *argv, *extra)[1]) for extra in ((), ("--escape-saddles",)))
     assert escaped["converged_steps"] == plain["converged_steps"] == 3
+    assert (plain["escape_saddles"], escaped["escape_saddles"], plain["tol"], plain["max_iter"]) == (
+        False,
+        True,
+        1e-8,
+        100,
+    )
     assert escaped["per_step"][2]["objective"] < plain["per_step"][2]["objective"] - 1e-3  # the saddle left
     help_text = " ".join(run(capsys, "simulate", "--help")[1].split())  # --tol's bound held only where convex
     assert "where the step's objective is convex (a converged step is stationary, and can be a saddle" in help_text
