@@ -6,7 +6,8 @@ as the reach task of ``redsim.envs.make`` applies them, :func:`reach_plan`), the
 full-space implicit Euler (:class:`redsim.integrators.ImplicitEuler` over :class:`FullSpace`,
 Newton, converged to ``PLANS[scene].reference_tol``) started from the full-space rest
 equilibrium (:func:`redsim.integrators.reference.rest_state`). Every configuration runs the same
-loads side by side in one process:
+loads side by side in one process, all of a scenario's stepped in turn, step by step (:func:`lockstep`), so that a
+load on the machine that changes during the bench falls on every row's time alike:
 
 - full space, loosened: a looser tolerance, a fixed small number of Newton iterations, a larger
   time step (compared at the reference's times it lands on);
@@ -42,7 +43,7 @@ import csv
 import math
 import statistics
 import time
-from collections.abc import Callable, Mapping
+from collections.abc import Callable, Generator, Mapping, Sequence
 from dataclasses import dataclass, replace
 from pathlib import Path
 from typing import Any
@@ -259,7 +260,37 @@ class Run:
     implausible: int = 0
 
 
-def run_full(
+Steps = Generator[None, None, "Run"]
+"""A configuration's run as a generator: it yields once per reference step (dt of simulated time) it has advanced and
+returns its :class:`Run` (:func:`lockstep` steps several in turn)."""
+
+
+def lockstep(runs: Sequence[Steps]) -> list[Run]:
+    """Advance every run one reference step in turn (each run's step i, then each one's step i + 1, ...) until all
+    have ended, with the per-step convergence warnings silenced (the rows count them); their :class:`Run` in order.
+
+    Timed this way, a load on the machine that changes during the bench falls on every configuration alike (timed
+    one after another, a row's time ratio to the reference moved by up to ~2x: docs/accuracy.md).
+    """
+    results: list[Run | None] = [None] * len(runs)
+    live = list(range(len(runs)))
+    with quiet_steps():
+        while live:
+            for k in list(live):
+                try:
+                    next(runs[k])
+                except StopIteration as stop:
+                    results[k] = stop.value
+                    live.remove(k)
+    return results  # type: ignore[return-value]
+
+
+def run_full(scene: Scene, q0: Tensor, loads: Tensor, **options: Any) -> Run:
+    """:func:`full_steps` (``options``: its ``dt``, ``stride``, ``substeps``, ``tol``, ``max_iter``), run alone."""
+    return lockstep([full_steps(scene, q0, loads, **options)])[0]
+
+
+def full_steps(
     scene: Scene,
     q0: Tensor,
     loads: Tensor,
@@ -269,45 +300,52 @@ def run_full(
     substeps: int = 1,
     tol: float = 1e-8,
     max_iter: int = 50,
-) -> Run:
+) -> Steps:
     """Full-space float64 implicit Euler from rest q0 [n] through loads [T, H, D] every ``stride`` steps, each
-    step of ``dt * stride`` made of ``substeps`` steps of ``dt * stride / substeps`` (timed together)."""
+    step of ``dt * stride`` made of ``substeps`` steps of ``dt * stride / substeps`` (timed together), as
+    :data:`Steps` (a step of ``stride`` reference steps yields ``stride`` times)."""
     scene64 = scene.to(dtype=torch.float64)
     integrator = ImplicitEuler(FullSpace(scene64), dt * stride / substeps, tol=tol, max_iter=max_iter)
     state = FullState(q0.clone(), q0.clone(), 0.0)
     qs, times, failed, nonfinite, idle, implausible = [q0.clone()], [], 0, 0, 0, 0
-    with quiet_steps():
-        for i in range(0, loads.shape[0] - stride + 1, stride):
-            start = time.perf_counter()
-            infos, failures = [], []
-            for _ in range(substeps):
-                inertial = 2.0 * state.q - state.q_prev
-                state, info = integrator.step(state, loads[i])
-                infos.append(info)
-                failures.append(step_failure(scene64, inertial, state.q, info.grad_norm, info.energy))
-            times.append(time.perf_counter() - start)
-            failed += not all(info.converged for info in infos)  # per load step, as the other rows count
-            idle += all(info.iterations == 0 for info in infos) and bool(loads[i].any())
-            nonfinite += not bool(torch.isfinite(state.q).all())
-            implausible += any(failures)
-            qs.append(state.q.clone())
+    for i in range(0, loads.shape[0] - stride + 1, stride):
+        start = time.perf_counter()
+        infos, failures = [], []
+        for _ in range(substeps):
+            inertial = 2.0 * state.q - state.q_prev
+            state, info = integrator.step(state, loads[i])
+            infos.append(info)
+            failures.append(step_failure(scene64, inertial, state.q, info.grad_norm, info.energy))
+        times.append(time.perf_counter() - start)
+        failed += not all(info.converged for info in infos)  # per load step, as the other rows count
+        idle += all(info.iterations == 0 for info in infos) and bool(loads[i].any())
+        nonfinite += not bool(torch.isfinite(state.q).all())
+        implausible += any(failures)
+        qs.append(state.q.clone())
+        for _ in range(stride):
+            yield
     index = torch.arange(len(qs), dtype=torch.int64) * stride
     return Run(torch.stack(qs), index, times, stride, failed, 0, 0, nonfinite, idle, implausible)
 
 
 def run_latent_reference(scene: Scene, subspace: nn.Module, z0: Tensor, loads: Tensor, *, dt: float = DT) -> Run:
     """The converged latent solve: ``ImplicitEuler(LatentSpace(scene, f))`` (float64 Newton, tol 1e-8) from z0 [d]."""
+    return lockstep([latent_reference_steps(scene, subspace, z0, loads, dt=dt)])[0]
+
+
+def latent_reference_steps(scene: Scene, subspace: nn.Module, z0: Tensor, loads: Tensor, *, dt: float = DT) -> Steps:
+    """:func:`run_latent_reference` as :data:`Steps`."""
     space = LatentSpace(scene.to(dtype=torch.float64), subspace)
     integrator = ImplicitEuler(space, dt)
     state = FullState(z0.clone(), z0.clone(), 0.0)
     zs, times, failed = [z0.clone()], [], 0
-    with quiet_steps():
-        for i in range(loads.shape[0]):
-            start = time.perf_counter()
-            state, info = integrator.step(state, loads[i])
-            times.append(time.perf_counter() - start)
-            failed += not info.converged
-            zs.append(state.q.clone())
+    for i in range(loads.shape[0]):
+        start = time.perf_counter()
+        state, info = integrator.step(state, loads[i])
+        times.append(time.perf_counter() - start)
+        failed += not info.converged
+        zs.append(state.q.clone())
+        yield
     with torch.no_grad():
         q = space.configuration(torch.stack(zs))
     nonfinite = int((~torch.isfinite(q).all(-1)).sum())
@@ -316,6 +354,13 @@ def run_latent_reference(scene: Scene, subspace: nn.Module, z0: Tensor, loads: T
 
 def run_runtime(stepper: LatentStepper, z0: Tensor, loads: Tensor) -> Run:
     """The runtime (B = 1) from rest z0 [d] through loads [T, H, D]; q = f(z) in float64 afterwards."""
+    return lockstep([runtime_steps(stepper, z0, loads)])[0]
+
+
+def runtime_steps(stepper: LatentStepper | Callable[[], LatentStepper], z0: Tensor, loads: Tensor) -> Steps:
+    """:func:`run_runtime` as :data:`Steps` (``stepper`` may be a function that makes it, at the first step)."""
+    if not isinstance(stepper, LatentStepper):
+        stepper = stepper()
     z = z0.to(stepper.dtype).reshape(1, -1)
     stepper.step(z, z, loads[0:1].to(stepper.dtype))  # warm-up: first-call allocations stay out of the times
     z_prev = z.clone()
@@ -333,6 +378,7 @@ def run_runtime(stepper: LatentStepper, z0: Tensor, loads: Tensor) -> Run:
         out_of_range += int(stats.out_of_range.sum())
         z_prev, z = z, z_next
         zs.append(z.clone())
+        yield
     space = LatentSpace(stepper.source_scene.to(dtype=torch.float64), stepper.subspace)
     with torch.no_grad():
         q = space.configuration(torch.cat(zs).to(torch.float64))
@@ -427,11 +473,12 @@ dt, which differs from a finer solve by about as much as the mini chain's d = 4 
 
 @dataclass(frozen=True)
 class Config:
-    """One row of the bench: a label, its family (for the plot), how to run it, and its subspace's key and d."""
+    """One row of the bench: a label, its family (for the plot), how to run it (loads [T, H, D] -> :data:`Steps`,
+    stepped in turn with the others by :func:`lockstep`), and its subspace's key and d."""
 
     label: str
     family: str
-    run: Callable[[Tensor], Run]
+    run: Callable[[Tensor], Steps]
     subspace: str | None = None
     dim: int | None = None
 
@@ -492,7 +539,9 @@ def configurations(
         label, options = FULL_VARIANTS[key]
         if "stride" in options or "substeps" in options:
             options = {**options, "tol": reference_tol, "max_iter": REFERENCE_MAX_ITER}
-        configs.append(Config(label, "full space", lambda loads, o=options: run_full(scene, q_rest, loads, dt=dt, **o)))
+        configs.append(
+            Config(label, "full space", lambda loads, o=options: full_steps(scene, q_rest, loads, dt=dt, **o))
+        )
     base = f"runtime f32 {DEFAULT_HESSIAN} {DEFAULT_MAX_ITER} it"
     default = f"{base} (default)"
     all_options: list[tuple[str, dict[str, Any]]] = [
@@ -513,7 +562,7 @@ def configurations(
             Config(
                 f"{key}: latent reference f64 Newton",
                 family,
-                lambda loads, s=subspace, z=z0: run_latent_reference(scene, s, z, loads, dt=dt),
+                lambda loads, s=subspace, z=z0: latent_reference_steps(scene, s, z, loads, dt=dt),
                 key,
                 dim,
             )
@@ -523,7 +572,7 @@ def configurations(
                 Config(
                     f"{key}: {label}",
                     family,
-                    lambda loads, s=subspace, z=z0, o=o: run_runtime(_stepper(scene, s, dt, **o), z, loads),
+                    lambda loads, s=subspace, z=z0, o=o: runtime_steps(lambda: _stepper(scene, s, dt, **o), z, loads),
                     key,
                     dim,
                 )
@@ -685,14 +734,16 @@ def bench_accuracy(
     }
     for scenario in scenarios:
         loads = scenario_loads(scene, scenario, steps, seed=seed, load_plan=p)
-        reference = run_full(scene, q_rest, loads, dt=dt, tol=p.reference_tol, max_iter=REFERENCE_MAX_ITER)
+        if progress:
+            progress(f"{scenario}: {len(configs) + 1} configurations stepped in turn, {steps} steps")
+        reference_steps = full_steps(scene, q_rest, loads, dt=dt, tol=p.reference_tol, max_iter=REFERENCE_MAX_ITER)
+        reference, *runs = lockstep([reference_steps, *(config.run(loads) for config in configs)])
         ref_median = statistics.median(reference.step_s)
         rows.append(_row(scenario, "full reference", "reference", reference, reference, scene64, p.handle, ref_median))
         rows.append(_row(scenario, NO_MOTION, "reference", _still(reference), reference, scene64, p.handle, ref_median))
         if progress:
             progress(_progress_line(rows[-2]))
-        for config in configs:
-            run = config.run(loads)
+        for config, run in zip(configs, runs, strict=True):
             row = _row(scenario, config.label, config.family, run, reference, scene64, p.handle, ref_median)
             row["d"] = config.dim
             key = config.subspace
@@ -984,11 +1035,15 @@ __all__ = [
     "SCENARIOS",
     "Plan",
     "Run",
+    "Steps",
     "bench_accuracy",
     "checked_force",
     "checkpoint_plan",
     "failures",
+    "full_steps",
     "handle_positions",
+    "latent_reference_steps",
+    "lockstep",
     "markdown_table",
     "pareto_png",
     "plan",
@@ -998,6 +1053,7 @@ __all__ = [
     "run_full",
     "run_latent_reference",
     "run_runtime",
+    "runtime_steps",
     "scenario_loads",
     "start_study",
     "trajectory_errors",

@@ -362,10 +362,11 @@ def test_a_reference_the_scene_cannot_make_or_a_non_finite_row_fails_the_command
     code, out, err = cli(*argv)  # the env's load: a good reference, exit 0
     assert code == 0 and "error" not in err, err
 
-    def blown(loads: torch.Tensor) -> Run:
+    def blown(loads: torch.Tensor) -> accuracy.Steps:
         q0 = accuracy.rest_state(scenes.build("mini_chain"))[0]
         q = q0.expand(loads.shape[0] + 1, -1).clone()
         q[5:] = math.nan
+        yield
         return Run(q, torch.arange(q.shape[0]), [1e-3] * loads.shape[0], nonfinite=6)
 
     _only(monkeypatch, accuracy.Config("full blown", "full space", blown))
@@ -405,13 +406,13 @@ def test_a_checkpoint_of_a_catalog_scene_is_pushed_with_the_tables_loads(cli, tm
 def test_the_start_studys_full_space_run_is_solved_as_the_reference(mini_chain, monkeypatch) -> None:
     """The study's run from f(z*) took run_full's defaults (tol 1e-8, 50 iterations) whatever the reference's (1e-4
     on the cloths, 100 iterations), so its ``full_fall`` came from another solve (a review's finding)."""
-    run_full, calls = accuracy.run_full, []
+    full_steps, calls = accuracy.full_steps, []
 
     def spy(*args, **kwargs):
         calls.append((kwargs.get("tol"), kwargs.get("max_iter")))
-        return run_full(*args, **kwargs)
+        return full_steps(*args, **kwargs)
 
-    monkeypatch.setattr(accuracy, "run_full", spy)
+    monkeypatch.setattr(accuracy, "full_steps", spy)
     _only(monkeypatch)
     loose = dataclasses.replace(accuracy.plan("mini_chain"), reference_tol=1e-6)
     neural = pretrained.load("mini_chain")
@@ -433,3 +434,28 @@ def test_an_unconverged_reference_is_said_without_blaming_the_load(mini_chain, m
     assert "--max-force" not in text and "trustworthy" not in text
     result["rows"][0]["implausible"] = 2
     assert "note: the reference is not a trustworthy motion: 2 of its 10 steps moved" in accuracy.report(result, "m")
+
+
+def test_the_configurations_of_a_scenario_are_timed_step_by_step_in_turn(mini_chain) -> None:
+    """Each row was timed after the one before (the reference first), so a load that changed during the bench moved
+    the rows' time ratios by up to ~2x (a review's rerun, docs/accuracy.md); lockstep steps them in turn, a dt x 2
+    run once every 2 reference steps, and each run's result is the one it makes alone."""
+    q0 = accuracy.rest_state(mini_chain)[0]
+    loads = accuracy.scenario_loads(mini_chain, "push", 4)
+    order = []
+
+    def tagged(name: str, steps: accuracy.Steps) -> accuracy.Steps:
+        while True:
+            try:
+                next(steps)
+            except StopIteration as stop:
+                return stop.value
+            order.append(name)
+            yield
+
+    fine = accuracy.full_steps(mini_chain, q0, loads)
+    coarse = accuracy.full_steps(mini_chain, q0, loads, stride=2)
+    runs = accuracy.lockstep([tagged("fine", fine), tagged("coarse", coarse)])
+    assert order == ["fine", "coarse"] * 4  # the coarse run yields twice per step of 2 dt
+    assert torch.equal(runs[0].q, accuracy.run_full(mini_chain, q0, loads).q)
+    assert torch.equal(runs[1].times, torch.tensor([0, 2, 4])) and len(runs[1].step_s) == 2
