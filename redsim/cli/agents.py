@@ -59,7 +59,10 @@ def _model_file(given: str) -> Path:
     path = Path(given)
     if path.is_dir():
         if not (path / "model.zip").is_file():
-            raise CliError(f"{path} is a folder without a model.zip: give a model file, e.g. {path / 'model.zip'}")
+            # a run stopped hard before its first whole save keeps its best model and checkpoints
+            found = sorted(str(p) for p in [*path.glob("*.zip"), *path.glob("checkpoints/*.zip")])
+            hint = f"e.g. {', '.join(found[:3])}" if found else "it holds none"
+            raise CliError(f"{path} is a folder without a model.zip: give a model file ({hint})")
         return path / "model.zip"
     return path
 

@@ -200,7 +200,10 @@ def test_train_resume_and_evaluate_through_the_cli(
     assert stdout.startswith(f"{MINI} (max_force=3.0 max_episode_steps=20), ")
     (tmp_path / "no_run").mkdir()
     code, _, err = cli("eval-agent", str(tmp_path / "no_run"), MINI)
-    assert code == 2 and "is a folder without a model.zip: give a model file" in err
+    assert code == 2 and "is a folder without a model.zip: give a model file (it holds none)" in err
+    (tmp_path / "no_run" / "best_model.zip").write_bytes(b"")  # it suggested no_run/model.zip, which is not there
+    code, _, err = cli("eval-agent", str(tmp_path / "no_run"), MINI)
+    assert code == 2 and f"give a model file (e.g. {tmp_path / 'no_run' / 'best_model.zip'})" in err
 
     agent = load_agent(out / "model.zip", MINI)  # acts through the saved VecNormalize statistics
     obs = np.random.default_rng(0).normal(size=(3, 14)).astype(np.float32)
