@@ -764,10 +764,19 @@ class SceneBuilder:
         self._mirror = (partner, int(axis), float(plane))
 
     def add_condition(self, name: str, low: float, high: float, default: float | None = None) -> int:
-        """Declare a condition parameter; returns its index in c."""
-        if not low < high:
-            raise ValueError(f"condition {name!r} needs low < high, got [{low}, {high}]")
+        """Declare a condition parameter with finite bounds low < high and a default in [low, high] (None: the
+        middle); returns its index in c.
+
+        Raises:
+            ValueError: a name declared before, bounds that are not finite with low < high, or a default outside them.
+        """
+        if any(c[0] == name for c in self._conditions):
+            raise ValueError(f"condition {name!r} already exists")
+        if not (math.isfinite(low) and math.isfinite(high) and low < high):
+            raise ValueError(f"condition {name!r} needs finite low < high, got [{low}, {high}]")
         default = 0.5 * (low + high) if default is None else default
+        if not low <= default <= high:
+            raise ValueError(f"condition {name!r}: default {default} lies outside [{low}, {high}]")
         self._conditions.append((name, float(low), float(high), float(default)))
         return len(self._conditions) - 1
 

@@ -1033,6 +1033,20 @@ def test_builder_refuses_bad_pins_gravity_and_handle_weights_where_they_are_give
         b.finalize("square")
 
 
+def test_a_condition_is_declared_once_with_finite_bounds_and_a_default_inside_them() -> None:
+    """A default outside the range (what the latent stepper then flags out of range at every default step), an
+    infinite bound and a repeated name were accepted (a review's finding)."""
+    b = SceneBuilder(dim=2)
+    assert b.add_condition("ratio", 0.5, 2.0, default=1.0) == 0
+    with pytest.raises(ValueError, match=r"condition 'ratio' already exists"):
+        b.add_condition("ratio", 0.5, 2.0)
+    with pytest.raises(ValueError, match=r"condition 'stiff': default 5.0 lies outside \[0.5, 2.0\]"):
+        b.add_condition("stiff", 0.5, 2.0, default=5.0)
+    for low, high in ((0.0, math.inf), (math.nan, 1.0), (1.0, 1.0)):
+        with pytest.raises(ValueError, match=r"condition 'stiff' needs finite low < high"):
+            b.add_condition("stiff", low, high)
+
+
 @pytest.mark.parametrize("dtype", [torch.int64, torch.float16, torch.bfloat16])
 def test_scene_to_takes_only_float32_or_float64(dtype: torch.dtype) -> None:
     scene = redsim.scenes.build("toy_two_tets")
