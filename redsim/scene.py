@@ -713,8 +713,22 @@ class SceneBuilder:
         self._handles.append((name, points, w / w.sum()))
 
     def add_surface(self, name: str, points: PointSet, faces: Tensor) -> None:
-        """A triangle surface for rendering and mesh export: ``faces`` [F, 3] index ``points``."""
-        self._surfaces.append(Surface(name, points, torch.as_tensor(faces, dtype=torch.int64)))
+        """A triangle surface for rendering and mesh export: ``faces`` [F, 3] index ``points``.
+
+        Raises:
+            ValueError: a name used before, or faces not of shape [F, 3] or indexing past ``points``.
+        """
+        if any(surface.name == name for surface in self._surfaces):
+            raise ValueError(f"surface {name!r} already exists")
+        faces = torch.as_tensor(faces, dtype=torch.int64)
+        if faces.ndim != 2 or faces.shape[1] != 3:
+            raise ValueError(f"surface {name!r}: faces must have shape [F, 3], got {list(faces.shape)}")
+        if faces.numel() and (int(faces.min()) < 0 or int(faces.max()) >= points.count):
+            raise ValueError(
+                f"surface {name!r}: face indices must lie in [0, {points.count}) (its points), got "
+                f"{int(faces.min())}..{int(faces.max())}"
+            )
+        self._surfaces.append(Surface(name, points, faces))
 
     def add_driver(
         self, name: str, handle: str, center: Sequence[float], axes: Sequence[Sequence[float]], *, latent: int = 0

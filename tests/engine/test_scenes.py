@@ -1033,6 +1033,22 @@ def test_builder_refuses_bad_pins_gravity_and_handle_weights_where_they_are_give
         b.finalize("square")
 
 
+def test_a_surface_is_named_once_and_its_faces_index_its_points() -> None:
+    """Faces past the points, faces of the wrong shape and a repeated name were accepted, to fail when drawn or
+    exported (a review's finding)."""
+    b = SceneBuilder(dim=2)
+    points = b.particle_points(b.add_particles(torch.zeros(3, 2), torch.ones(3)))
+    b.add_surface("sheet", points, torch.tensor([[0, 1, 2]]))
+    for faces, expected in (
+        (torch.tensor([[0, 1, 7]]), r"surface 'other': face indices must lie in \[0, 3\) \(its points\), got 0..7"),
+        (torch.tensor([0, 1, 2]), r"surface 'other': faces must have shape \[F, 3\], got \[3\]"),
+    ):
+        with pytest.raises(ValueError, match=expected):
+            b.add_surface("other", points, faces)
+    with pytest.raises(ValueError, match="surface 'sheet' already exists"):
+        b.add_surface("sheet", points, torch.tensor([[0, 1, 2]]))
+
+
 def test_a_condition_is_declared_once_with_finite_bounds_and_a_default_inside_them() -> None:
     """A default outside the range (what the latent stepper then flags out of range at every default step), an
     infinite bound and a repeated name were accepted (a review's finding)."""
