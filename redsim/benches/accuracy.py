@@ -285,6 +285,21 @@ def lockstep(runs: Sequence[Steps]) -> list[Run]:
     return results  # type: ignore[return-value]
 
 
+def _counted(steps: Steps, total: int, progress: Callable[[str], None], scenario: str) -> Steps:
+    """``steps``, saying ``SCENARIO: step i of TOTAL`` after its step i every tenth of ``total`` (a long bench's
+    progress: the rows come when every configuration has ended)."""
+    every, done = max(1, total // 10), 0
+    while True:
+        try:
+            next(steps)
+        except StopIteration as stop:
+            return stop.value
+        done += 1
+        if done % every == 0 and done < total:
+            progress(f"{scenario}: step {done} of {total}")
+        yield
+
+
 def run_full(scene: Scene, q0: Tensor, loads: Tensor, **options: Any) -> Run:
     """:func:`full_steps` (``options``: its ``dt``, ``stride``, ``substeps``, ``tol``, ``max_iter``), run alone."""
     return lockstep([full_steps(scene, q0, loads, **options)])[0]
@@ -734,9 +749,10 @@ def bench_accuracy(
     }
     for scenario in scenarios:
         loads = scenario_loads(scene, scenario, steps, seed=seed, load_plan=p)
+        reference_steps = full_steps(scene, q_rest, loads, dt=dt, tol=p.reference_tol, max_iter=REFERENCE_MAX_ITER)
         if progress:
             progress(f"{scenario}: {len(configs) + 1} configurations stepped in turn, {steps} steps")
-        reference_steps = full_steps(scene, q_rest, loads, dt=dt, tol=p.reference_tol, max_iter=REFERENCE_MAX_ITER)
+            reference_steps = _counted(reference_steps, steps, progress, scenario)
         reference, *runs = lockstep([reference_steps, *(config.run(loads) for config in configs)])
         ref_median = statistics.median(reference.step_s)
         rows.append(_row(scenario, "full reference", "reference", reference, reference, scene64, p.handle, ref_median))

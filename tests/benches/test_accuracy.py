@@ -459,3 +459,8 @@ def test_the_configurations_of_a_scenario_are_timed_step_by_step_in_turn(mini_ch
     assert order == ["fine", "coarse"] * 4  # the coarse run yields twice per step of 2 dt
     assert torch.equal(runs[0].q, accuracy.run_full(mini_chain, q0, loads).q)
     assert torch.equal(runs[1].times, torch.tensor([0, 2, 4])) and len(runs[1].step_s) == 2
+    said = []  # the rows come when every configuration has ended; a long bench says how far it got meanwhile
+    accuracy.bench_accuracy(mini_chain, pretrained.load("mini_chain"), steps=10, scenarios=("push",), full=(),
+                            study=False, progress=said.append)  # fmt: skip
+    assert said[:3] == ["push: 12 configurations stepped in turn, 10 steps", "push: step 1 of 10", "push: step 2 of 10"]
+    assert "push: step 9 of 10" in said and "push: step 10 of 10" not in said and len(said) == 1 + 9 + 12
