@@ -75,6 +75,26 @@ def test_scenes_json(capsys: pytest.CaptureFixture[str], toy: redsim.Scene) -> N
     assert all(isinstance(row["n"], int) and row["n"] > 0 for row in rows.values())
 
 
+def test_scenes_exits_1_naming_a_scene_that_failed_to_build_and_says_so_in_its_help(
+    capsys: pytest.CaptureFixture[str], monkeypatch: pytest.MonkeyPatch
+) -> None:
+    build = redsim.scenes.build
+
+    def broken(name: str, **params: object) -> redsim.Scene:
+        if name == "mini_chain":
+            raise ValueError("broken on purpose")
+        return build(name, **params)
+
+    monkeypatch.setattr(redsim.scenes, "names", lambda tag=None: [] if tag else ["mini_chain", TOY])
+    monkeypatch.setattr(redsim.scenes, "build", broken)
+    code, out, err = run(capsys, "scenes")
+    assert code == 1 and "mini_chain  FAILED TO BUILD: ValueError: broken on purpose" in out and f"{TOY}  (3D" in out
+    assert "1 scene(s) failed to build: mini_chain" in err
+    assert "Exit status: 0 every scene built, 1 a scene failed to build" in " ".join(
+        run(capsys, "scenes", "--help")[1].split()
+    )
+
+
 def test_scenes_hides_toys_without_all(capsys: pytest.CaptureFixture[str], monkeypatch: pytest.MonkeyPatch) -> None:
     monkeypatch.setattr(redsim.scenes, "names", lambda tag=None: [TOY])
     code, out, _ = run(capsys, "scenes", "--json")
@@ -135,6 +155,26 @@ def test_simulate_reports_steps_that_gained_energy(
     assert [r["energy_gain"] for r in summary["per_step"]] == [False, True, False]
     assert summary["per_step"][1]["mechanical_gain"] == 0.5
     assert "1 of 3 step(s) raised K + E by more than the loads' work (first: step 2, 0.5 J)" in err
+
+
+def test_simulate_reports_steps_that_tunneled(
+    capsys: pytest.CaptureFixture[str], monkeypatch: pytest.MonkeyPatch
+) -> None:
+    """A step whose path passed through a contact (StepInfo.tunneled) is listed and warned about, never acted on."""
+    from redsim.integrators import ImplicitEuler
+
+    step = ImplicitEuler.step
+
+    def tunneling_step(self, state, loads=None, cond=None):  # type: ignore[no-untyped-def]
+        state, info = step(self, state, loads, cond)
+        return state, dataclasses.replace(info, tunneled=round(float(state.time) / 0.01) == 3)
+
+    monkeypatch.setattr(ImplicitEuler, "step", tunneling_step)
+    code, out, err = run(capsys, "simulate", TOY, "--steps", "3", "--dt", "0.01", "--json")
+    assert code == 0, err
+    summary = json.loads(out)
+    assert summary["tunneled_steps"] == [3] and [r["tunneled"] for r in summary["per_step"]] == [False, False, True]
+    assert "1 of 3 step(s) moved through a contact that neither end touches (first: step 3)" in err
 
 
 def test_simulate_holds_the_conditions_given_and_reports_them(capsys: pytest.CaptureFixture[str]) -> None:

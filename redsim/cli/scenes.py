@@ -187,6 +187,7 @@ def cmd_simulate(args: argparse.Namespace) -> int:
             "potential_energy": potential(state.q) if finite else math.nan,
             "energy_gain": bool(info.energy_gain),
             "mechanical_gain": float(info.mechanical_gain),
+            "tunneled": bool(info.tunneled),
             "message": info.message,
         }
         if not finite or not math.isfinite(rec["grad_norm"]):
@@ -225,6 +226,7 @@ def cmd_simulate(args: argparse.Namespace) -> int:
 
     not_converged = [r["step"] for r in records if not r["converged"]]
     gained = [r["step"] for r in records if r["energy_gain"]]
+    tunneled = [r["step"] for r in records if r["tunneled"]]
     summary = {
         "scene": scene.name,
         "params": scene.params,
@@ -241,6 +243,7 @@ def cmd_simulate(args: argparse.Namespace) -> int:
         "converged_steps": len(records) - len(not_converged),
         "not_converged_steps": not_converged,
         "energy_gain_steps": gained,
+        "tunneled_steps": tunneled,
         "max_iterations": max(r["iterations"] for r in records),
         "final_grad_norm": records[-1]["grad_norm"],
         "energy_start": energy_start,
@@ -277,6 +280,12 @@ def cmd_simulate(args: argparse.Namespace) -> int:
             f"{len(gained)} of {len(records)} step(s) raised K + E by more than the loads' work (first: step "
             f"{first['step']}, {first['mechanical_gain']:.3g} J): an artefact of the solve, reported, not acted on"
         )
+    if tunneled:
+        warn(
+            f"{len(tunneled)} of {len(records)} step(s) moved through a contact that neither end touches (first: "
+            f"step {tunneled[0]}): a move longer than the contact is thick, which the penalty never felt; reported, "
+            "not acted on (a smaller --dt resolves it)"
+        )
     if nan_step is not None:
         warn(f"step {nan_step} produced NaN or inf; stopped there")
         return EXIT_NAN
@@ -295,6 +304,7 @@ def add_commands(sub: Any) -> None:
             "List every scene of the catalog with its size n, effects (name:kind), handles and conditions (each "
             "with its range and default, what `simulate --cond` takes). Test scenes (toy_*) are listed with --all."
         ),
+        epilog="Exit status: 0 every scene built, 1 a scene failed to build (named, the others still listed).",
     )
     p.add_argument("--all", action="store_true", help="include the toy_* test scenes")
     finish_command(p, cmd_scenes, "print one JSON list on stdout", threads=False)
