@@ -896,7 +896,9 @@ def add_commands(sub: Any) -> Any:
             "Seeded load scenarios (env-style actions on the scene's handle) from the full-space rest; the "
             "float64 full-space trajectory is the reference. Per configuration (full space loosened; the shipped "
             "neural subspace, linear modes and modal derivatives of its d from their own rest; runtime options): "
-            "median wall time per step and the relative M-norm and handle (cm) trajectory errors. See "
+            "median wall time per step (the configurations stepped in turn, step by step with the reference) and "
+            "the relative M-norm and handle (cm) trajectory errors. Exits 4 where a reference made steps the scene "
+            "cannot, 3 where a row went non-finite (the tables printed all the same). See "
             "redsim.benches.accuracy."
         ),
     )
