@@ -110,7 +110,9 @@ def add_commands(sub: Any) -> None:
     p = cache.add_parser(
         "info", help="where the cache is and what it holds", description="Files and size of each cache folder."
     )
-    p.add_argument("--older-than", type=float, metavar="DAYS", help="count only files last written DAYS days ago")
+    p.add_argument(
+        "--older-than", type=float, metavar="DAYS", help="count only files last written more than DAYS days ago"
+    )
     finish_command(p, cmd_cache_info, "print one JSON object on stdout", threads=False)
     p = cache.add_parser(
         "clear",
