@@ -115,11 +115,13 @@ class ImplicitEuler:
         escape_saddles: Full space only. A converged step is a stationary point of the step's objective, and
             projected Newton does not see negative curvature, so from a symmetric state it can end at a saddle
             (the two-link chain's third step of 0.02 s under 2 N on ``bottom``: Hessian eigenvalue -355, 2.8 mJ
-            above the minimum the links turn 0.02 rad to). With True, a converged step whose Hessian K + M/h^2 has
-            negative curvature (:func:`redsim.integrators.reference._negative_curvature`) is left along it to lower
-            objective and solved again, at most :data:`SADDLE_ESCAPES` times, as
+            above the minimum the links turn 0.02 rad to; the 24-link chain falling from its seed at 0.02 s: steps
+            3 to 6, 3 mJ to 0.4 J above). With True, a converged step whose Hessian K + M/h^2 has negative
+            curvature (:func:`redsim.integrators.reference._negative_curvature`) is left along it to lower objective
+            and solved again, at most :data:`SADDLE_ESCAPES` times, as
             :func:`redsim.integrators.reference.full_equilibrium` does; at the cost of one more Hessian and
-            factorization per step (10-40% of a step's time on the catalog scenes).
+            factorization per step (10-40% of a step's time on the catalog scenes where no step ends at a saddle;
+            the chain above then took 5x the time, for the more iterations of the solves that leave them).
 
     Raises:
         ValueError: on a bad dt, tol, max_iter, an unknown minimizer, or ``escape_saddles`` outside the full space.
