@@ -43,6 +43,7 @@ from gymnasium.vector import AutoresetMode
 from torch import Tensor, nn
 
 from redsim.devices import DTYPES, check_device
+from redsim.integrators.tunneling import TunnelTest
 from redsim.scene import Scene
 from redsim.subspace import CheckpointError, map_fingerprint, periodic_latents
 from redsim.threads import check_threads, torch_threads
@@ -560,6 +561,7 @@ class LatentSim:
         self.torch_dtype = DTYPES[dtype]
         self.device = torch.device(device)
         self.scene = scene.to(self.device, self.torch_dtype)
+        self.tunnel_test = TunnelTest(self.scene)
         # nn.Module.to moves a module in place: the caller's map stays where it is
         self.subspace = subspace if _on_device(subspace, self.device) else copy.deepcopy(subspace).to(self.device)
         self.batch = int(batch)
@@ -1012,6 +1014,7 @@ class LatentSim:
         self.z, self.z_prev = self._first_turn(self.z, self.z_prev)
         out_of_range |= self._beyond_bound(self.z, self.z_prev)
         self.x_prev, self.x, self.z_before = self.x, self.full_positions(self.z), z_before
+        tunneled = self.tunnel_test(self.x_prev, self.x) & ~diverged
         reward, terms = self.task.reward(self.x, act, self.params)
         valid = moving & ~diverged
         _check_task_output("reward", reward, self.batch, valid=valid)
@@ -1034,6 +1037,7 @@ class LatentSim:
             "diverged": diverged,
             "energy_gain": energy_gain,
             "energy_gain_tolerance": gain_tolerance,
+            "tunneled": tunneled,
             **{f"reward_{k}": v for k, v in terms.items()},
         }
         out = {k: _info_array(v.detach().cpu().numpy()) for k, v in info.items()}
@@ -1492,7 +1496,9 @@ class LatentEnv(gym.Env[np.ndarray, np.ndarray]):
     more than the action's work: an artefact of the map or the solve, reported like MuJoCo's warnings and never
     ending the episode; see
     :func:`redsim.runtime.flags.energy_gain_states`), ``energy_gain_tolerance`` [J] (the rise that flag allows: what
-    the solve's leftover gradient can put in, plus round-off), ``reward_<term>`` for each reward term, the
+    the solve's leftover gradient can put in, plus round-off), ``tunneled`` (the step's straight path passed through
+    a contact that neither end shows: a move longer than the contact is thick, which the penalty never felt;
+    :mod:`redsim.integrators.tunneling`; reported, the episode goes on), ``reward_<term>`` for each reward term, the
     task's metrics (``distance``, ``is_success``), the scene's invariants (:mod:`redsim.envs.invariants`) and, with
     ``include_q=True``, ``q`` [n]. ``info`` after a reset: the same metrics, invariants and ``q`` of the new
     episode's start (:meth:`LatentSim.state_info`). A step the stepper cannot make finite ends the episode

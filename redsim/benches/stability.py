@@ -1,8 +1,9 @@
 """`redsim bench stability`: hard cases stay numerically stable, measured (tests call the same code, small).
 
 Each case drives one scene or env into a regime that breaks simulators and records, per run:
-steps run, failures detected (a step the solver reported: not converged or ``diverged``), failures
-recovered (a detected failure followed, later in the same run and copy, by a converged step),
+steps run, failures detected (a step the solver reported: not converged or ``diverged``; or ``tunneled``, a
+step whose path passed through a contact neither end shows, :mod:`redsim.integrators.tunneling`, also counted
+apart), failures recovered (a detected failure followed, later in the same run and copy, by a converged step),
 ``energy_gains`` (steps flagged ``energy_gain`` by the runtime's StepStats or the reference's
 StepInfo: K + E rose by more than the loads' work, :mod:`redsim.integrators.energy_gain`;
 information, not a failure), ``nan`` (non-finite states, energies or observations: must be 0),
@@ -47,6 +48,7 @@ from redsim.envs.conditional_bar import ConditionalBarEnv
 from redsim.envs.invariants import Invariants
 from redsim.integrators import FullSpace, ImplicitEuler
 from redsim.integrators.reference import rest_state
+from redsim.integrators.tunneling import TunnelTest
 from redsim.metrics.reach import nearest_latent
 from redsim.runtime import LatentStepper
 from redsim.scene import Scene
@@ -209,6 +211,7 @@ class Rollout:
             "max_energy_J": float((mechanical - mechanical[0]).max()),
             "input_work_J": float(work.max()),
             "out_of_range": self.flags.get("out_of_range", 0),
+            "tunneled": self.flags.get("tunneled", 0),
             "idle": self.flags.get("idle", 0),
             "inverted": inverted_elements(scene, self.q),
             "seconds": self.seconds,
@@ -263,8 +266,12 @@ def runtime_rollouts(
     ran = len(reported)
     q = stepper.positions(torch.cat(zs), None if c is None else c[:1].expand(len(zs) * batch, -1))
     q = q.to(torch.float64).reshape(len(zs), batch, -1)
+    x = scene.to(dtype=torch.float64).full_positions(q.reshape(len(zs) * batch, -1)).reshape(len(zs), batch, -1)
+    steps_from, steps_to = x[1:-1].flatten(0, 1), x[2:].flatten(0, 1)  # zs: z_prev, then the start and each step's end
+    tunneled = TunnelTest(scene.to(dtype=torch.float64))(steps_from, steps_to).reshape(ran, batch)
+    flags["tunneled"] = tunneled.sum(0)
     seconds_used = time.perf_counter() - start
-    reported_t, gains_t, tolerance_t = torch.stack(reported), torch.stack(gains), torch.stack(tolerances)
+    reported_t, gains_t, tolerance_t = torch.stack(reported) | tunneled, torch.stack(gains), torch.stack(tolerances)
     return [
         Rollout(
             q[1:, b],
@@ -302,15 +309,18 @@ def full_rollout(
     integrator = ImplicitEuler(FullSpace(scene.to(dtype=torch.float64)), dt, max_iter=max_iter)
     state = integrator.initial_state(q0, velocity)
     qs, reported, gains, nonfinite = [state.q_prev, state.q], [], [], 0
+    unconverged = tunneled = 0
     for i in range(loads.shape[0]):
         state, info = integrator.step(state, loads[i])
         if not bool(torch.isfinite(state.q).all()):
             nonfinite += 1
-        reported.append(not info.converged)
+        reported.append(not info.converged or info.tunneled)
         gains.append(info.energy_gain)
+        unconverged += not info.converged
+        tunneled += info.tunneled
         qs.append(state.q)
     seconds = time.perf_counter() - start
-    flags = {"unconverged": int(sum(reported))}
+    flags = {"unconverged": unconverged, "tunneled": tunneled}
     as_mask = lambda values: torch.tensor(values, dtype=torch.bool)  # noqa: E731
     return Rollout(
         torch.stack(qs[1:]), qs[0], loads, dt, as_mask(reported), nonfinite, flags, seconds, gains=as_mask(gains)
@@ -654,7 +664,7 @@ def fuzz_env(
     account = _EnvLedger(venv.unwrapped.sim)
     elapsed = np.zeros(copies, dtype=np.int64)
     pending = np.zeros(copies, dtype=np.int64)
-    kinds = "steps failures recovered gains nan unreported excused hidden out_of_range resets idle"
+    kinds = "steps failures recovered gains nan unreported excused hidden out_of_range tunneled resets idle"
     counts = dict.fromkeys(kinds.split(), 0)
     inverted: int | None = None
     vector_steps = max(1, math.ceil(steps / copies))
@@ -666,7 +676,9 @@ def fuzz_env(
         solids = [np.asarray(info[k]) for k in info if k.endswith("_inverted") and not k.startswith("_")]
         if solids:  # the envs' invariants (redsim.envs.invariants): elements with det F <= 0, per copy
             inverted = max(inverted or 0, int(np.sum(solids, axis=0).max()))
-        bad = ~np.asarray(info["converged"], dtype=bool) | np.asarray(info["diverged"], dtype=bool)
+        tunneled = np.asarray(info["tunneled"], dtype=bool)
+        bad = ~np.asarray(info["converged"], dtype=bool) | np.asarray(info["diverged"], dtype=bool) | tunneled
+        counts["tunneled"] += int(tunneled.sum())
         gain = np.asarray(info["energy_gain"], dtype=bool)
         tolerance = torch.as_tensor(np.asarray(info["energy_gain_tolerance"], dtype=np.float64))
         unreported, excused, nonfinite, hidden = account.step(torch.as_tensor(bad | gain), tolerance)
@@ -708,6 +720,7 @@ def fuzz_env(
         "max_energy_J": account.max_energy,
         "input_work_J": account.max_work,
         "out_of_range": counts["out_of_range"],
+        "tunneled": counts["tunneled"],
         "idle": counts["idle"],
         "inverted": inverted,
         "copies": copies,
@@ -914,6 +927,7 @@ ROW_COLUMNS = (
     ("max_energy_J", "max energy above start [J]"),
     ("input_work_J", "max load work [J]"),
     ("out_of_range", "out of range"),
+    ("tunneled", "tunneled"),
     ("idle", "idle steps"),
     ("inverted", "most inverted elements"),
 )

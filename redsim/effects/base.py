@@ -36,10 +36,12 @@ class Effect:
 
     kind: ClassVar[str] = "effect"
     feature_size: float = math.inf
+    """Thinnest feature [m] this term resolves (contact shapes): static full-space solves keep their Newton steps
+    below half of it, and a time step that moves farther is checked for tunneling
+    (:mod:`redsim.integrators.tunneling`)."""
     edge_dim: int | None = None
     """Coordinates per vertex of an effect whose elements' energies read only their edges x_j - x_0 and that offers
     them as :meth:`edge_energies` (a cubature then computes the edges straight from its features); None: not one."""
-    """Thinnest feature [m] this term resolves (contact shapes); solvers keep steps below it."""
     uses_loads: ClassVar[bool] = False
     uses_condition: ClassVar[bool] = False
 

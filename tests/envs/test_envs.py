@@ -614,7 +614,7 @@ def test_info_reports_solver_flags_invariants_rewards_and_q() -> None:
     assert info["contact_clearance"] == pytest.approx(-info["contact_penetration"]) or info["contact_clearance"] > 0
 
 
-SOLVER_INFO = ("converged", "iterations", "residual", "energy", "diverged", "energy_gain")
+SOLVER_INFO = ("converged", "iterations", "residual", "energy", "diverged", "energy_gain", "tunneled")
 """A step's info keys about the solve (and ``energy_gain_tolerance``), which a reset's info has not (it has
 ``out_of_range``, of the start)."""
 
