@@ -57,7 +57,7 @@ import gymnasium as gym
 import numpy as np
 import torch
 
-from redsim.subspace import write_atomically
+from redsim.subspace import map_fingerprint, write_atomically
 
 log = logging.getLogger(__name__)
 
@@ -375,6 +375,29 @@ def _warn_if_other_env(trained_on: str | None, env: str | gym.Env) -> None:
     )
 
 
+def _map_of(vector: Any) -> str | None:
+    """The fingerprint (:func:`redsim.subspace.map_fingerprint`) of the subspace map a vector env of redsim steps in
+    (through Gymnasium's vector wrappers); None where it has none to reach (a sharded env's lives in its workers)."""
+    sim = getattr(getattr(vector, "unwrapped", vector), "sim", None)
+    subspace = getattr(sim, "subspace", None)
+    return None if subspace is None else map_fingerprint(subspace)
+
+
+def _warn_if_other_map(trained_on: str | None, venv: Any) -> None:
+    """Warn where a model recorded as trained in the map ``trained_on`` (its fingerprint) is run in another: the
+    observations keep their shapes, but are another map's latent coordinates (a checkpoint refitted in place, a
+    user-cache fit of other options)."""
+    now = _map_of(venv)
+    if trained_on is None or now is None or trained_on == now:
+        return
+    warnings.warn(
+        f"this model was trained in the subspace map {trained_on}, and is evaluated in {now}: its observations are "
+        "another map's latent coordinates, which mean other states than those the policy learnt on",
+        UserWarning,
+        stacklevel=3,
+    )
+
+
 # -- evaluation -------------------------------------------------------------------------------
 @dataclass(frozen=True)
 class Evaluation:
@@ -535,6 +558,7 @@ def evaluate(
         if not isinstance(policy, str):
             _check_spaces(policy, venv)
             _warn_if_other_env(getattr(policy, "env_id", None), env)
+            _warn_if_other_map(getattr(policy, "map", None), venv)
         if venv.max_episode_steps is None:
             raise ValueError("evaluation needs an env with an episode limit (max_episode_steps)")
     except ValueError:
@@ -603,8 +627,9 @@ def _run_episodes(
 def model_record(path: str | Path, plain_algo: str | None = None) -> dict[str, Any]:
     """The env id and algorithm a model file of :func:`train_agent` was trained with, whether it acts
     through normalized observations, the observation blocks of a goal-conditioned (HER) model (else None), and
-    the copies it was trained on, and the env's keyword arguments (``"env_id"``, ``"algo"``, ``"normalized"``,
-    ``"goal"``, ``"n_envs"``, ``"env_kwargs"``: None for a model that does not record them).
+    the copies it was trained on, the env's keyword arguments and the fingerprint of its subspace map (``"env_id"``,
+    ``"algo"``, ``"normalized"``, ``"goal"``, ``"n_envs"``, ``"env_kwargs"``, ``"map"``: None for a model that does
+    not record them).
 
     ``plain_algo`` (one of :data:`ALGOS`) also takes an SB3 model that redsim did not write (an example's, your own
     script's): its record is that algorithm, env id None, and normalized where the statistics file beside it
@@ -647,6 +672,7 @@ def model_record(path: str | Path, plain_algo: str | None = None) -> dict[str, A
             "goal": None,
             "n_envs": None,
             "env_kwargs": None,
+            "map": None,
         }
     if plain_algo is not None and plain_algo != data["redsim_algo"]:
         raise ValueError(f"{path} was trained with {data['redsim_algo']}, not {plain_algo}")
@@ -657,6 +683,7 @@ def model_record(path: str | Path, plain_algo: str | None = None) -> dict[str, A
         "goal": data.get("redsim_goal"),
         "n_envs": data.get("n_envs"),
         "env_kwargs": data.get("redsim_env_kwargs"),
+        "map": data.get("redsim_map"),
     }
 
 
@@ -708,12 +735,15 @@ class Agent:
             into its dict observation first (:class:`redsim.envs.goal.GoalSplit`); None: the model takes them flat.
         env_id: The env the model records it was trained on (an id, or ``custom:SCENE`` for a user's env; None:
             not recorded): :func:`evaluate` warns on another.
+        map: The fingerprint of the subspace map it was trained in (:func:`redsim.subspace.map_fingerprint`; None:
+            not recorded, as by the shipped policies): :func:`evaluate` warns on another.
     """
 
     model: Any
     normalizer: Any = None
     goal: Mapping[str, int] | None = None
     env_id: str | None = None
+    map: str | None = None
 
     @property
     def num_timesteps(self) -> int:
@@ -762,7 +792,7 @@ def load_agent(path: str | Path, env_id: str | None = None, algo: str | None = N
     except Exception as err:  # SB3 raises what the policy's constructor raises on another algorithm's parameters
         raise ValueError(f"{path} does not load as a {record['algo'].upper()} model: {err!r}") from err
     normalizer = load_normalizer(normalizer_path(path)) if record["normalized"] else None
-    return Agent(model, normalizer, record["goal"], record["env_id"])
+    return Agent(model, normalizer, record["goal"], record["env_id"], record["map"])
 
 
 def _dict_buffer() -> Any:
@@ -1611,6 +1641,7 @@ def train_agent(
     model.redsim_normalized = isinstance(venv, VecNormalize)
     model.redsim_goal = goal
     model.redsim_env_kwargs = kwargs_now
+    model.redsim_map = _map_of((eval_env.venv if isinstance(eval_env, VecNormalize) else eval_env).venv)
 
     curve = _read_curve(out / "curve.csv") if previous is not None else []
     wall_offset = _wall_at(curve, record, int(model.num_timesteps)) if previous is not None else 0.0

@@ -97,9 +97,10 @@ MAP_ARGS = ("subspace", "scene_params", "fit_options")
 """Env arguments that choose the subspace map, whose latent coordinates the observations are."""
 
 
-def _warn_if_other_map(trained_on: dict[str, Any], given: dict[str, Any]) -> None:
-    """Warn (stderr) where eval-agent's ``--env-arg``s choose another map than the model's training env: the
-    observations keep their shape, but are another map's latent coordinates, which the policy never saw."""
+def _warn_if_map_args_differ(trained_on: dict[str, Any], given: dict[str, Any]) -> None:
+    """Warn (stderr) where eval-agent's ``--env-arg``s choose another map than the training env of a model that
+    does not record its map (the shipped policies): the observations keep their shape, but are another map's latent
+    coordinates, which the policy never saw."""
     changed = [key for key in MAP_ARGS if key in given and given[key] != trained_on.get(key)]
     if changed:
         warn(
@@ -210,7 +211,8 @@ def cmd_eval_agent(args: argparse.Namespace) -> int:
         raise CliError(str(err)) from err
     policies = {"agent": model, **({"random": "random", "scripted": "scripted"} if args.baselines else {})}
     env_kwargs = {**trained_on, **given}  # the env the model was trained on, with the arguments given on top
-    _warn_if_other_map(trained_on, given)
+    if model.map is None:  # a model that records its map is checked against the env's own (evaluate)
+        _warn_if_map_args_differ(trained_on, given)
     try:
         runs = {
             name: evaluate(

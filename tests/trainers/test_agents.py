@@ -7,6 +7,7 @@ import importlib.util
 import json
 import re
 import tempfile
+import warnings
 import zipfile
 from collections.abc import Callable
 from pathlib import Path
@@ -16,6 +17,7 @@ import gymnasium as gym
 import numpy as np
 import pytest
 
+import redsim
 from redsim.trainers.agents import (
     ALGOS,
     HYPERPARAMS,
@@ -140,6 +142,7 @@ def test_train_resume_and_evaluate_through_the_cli(
     assert not list((tmp_path / "tmp").glob("SB3-*"))
     record = {"env_id": MINI, "algo": "sac", "normalized": True, "goal": None, "n_envs": 4}
     record["env_kwargs"] = {"max_force": 3.0, "max_episode_steps": 20}
+    record["map"] = redsim.subspace.map_fingerprint(redsim.pretrained.load("mini_chain"))  # the shipped map's
     assert model_record(out / "model.zip") == record
     assert load_agent(out / "model.zip").model._n_updates > 0  # a 200-step run starts learning halfway, not never
     assert (out / "model.zip").stat().st_size < 1_000_000
@@ -1428,3 +1431,25 @@ def test_a_resume_over_a_damaged_evaluation_log_warns_and_goes_on(tmp_path: Path
     assert result.steps == 40 and f"ignoring {log} (BadZipFile" in caplog.text
     with np.load(log) as evaluations:
         assert evaluations["timesteps"].tolist() == [30, 40]
+
+
+def test_a_model_records_its_map_and_an_evaluation_in_another_warns(tmp_path: Path) -> None:
+    """A checkpoint refitted in place (the same --env-arg subspace=PATH) gives observations of the same shapes in
+    another map's latent coordinates: the policy was evaluated on them without a word."""
+    from redsim.subspace import map_fingerprint
+    from redsim.trainers import fit_subspace
+    from redsim.trainers.agents import train_agent
+
+    scene = redsim.scenes.build("mini_chain")
+    fit_subspace(scene, out=tmp_path / "map", steps=20, hidden_width=16, progress=False)
+    mine = {**SHORT, "subspace": str(tmp_path / "map.pt")}
+    tiny = {"n_envs": 2, "eval_episodes": 1, "final_episodes": 1, "video": False}
+    result = train_agent(MINI, tmp_path / "run", algo="sac", steps=20, env_kwargs=mine, **tiny)
+    agent = load_agent(result.model_path, MINI)
+    assert agent.map == map_fingerprint(redsim.load_subspace(tmp_path / "map.pt", scene=scene))
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")  # the map it was trained in: no warning
+        evaluate(MINI, agent, episodes=1, env_kwargs=mine)
+    fit_subspace(scene, out=tmp_path / "map", steps=20, hidden_width=16, seed=1, overwrite=True, progress=False)
+    with pytest.warns(UserWarning, match=rf"trained in the subspace map {agent.map}, and is evaluated in [0-9a-f]+"):
+        evaluate(MINI, agent, episodes=1, env_kwargs=mine)
