@@ -235,7 +235,9 @@ class LatentVectorEnv(SharedCopies, VectorEnv):
 
         Raises:
             gymnasium.error.ResetNeeded: a copy was never reset (nor restored by :meth:`set_state`).
+            ClosedVectorEnvError: after :meth:`close`, as the sharded env raises.
         """
+        self._check_open()
         check_started(self._unreset, "get_state()")
         clock = {"elapsed_steps": self._elapsed.copy(), "autoresetting": self._autoreset.copy()}
         return {**self.sim.get_state(), **clock, "rngs": [g.bit_generator.state for g in self._rngs]}
@@ -252,7 +254,9 @@ class LatentVectorEnv(SharedCopies, VectorEnv):
                 than True/False (:func:`~redsim.envs.vector_api.episode_clock`), or an ``rngs`` entry that is not a
                 NumPy generator state (each may be of any bit generator: PCG64, Philox, ...);
                 nothing changes then.
+            ClosedVectorEnvError: after :meth:`close`, as the sharded env raises.
         """
+        self._check_open()
         elapsed, pending = episode_clock(state, self.num_envs)
         rngs = state.get("rngs")
         if rngs is not None and len(rngs) != self.num_envs:
@@ -280,6 +284,7 @@ class LatentVectorEnv(SharedCopies, VectorEnv):
 
     @on_env_threads
     def _per_copy(self, name: str) -> tuple[Any, ...]:
+        self._check_open()  # every per-copy call (call("configuration"), ...) after close(), as the sharded env
         if name == "render":
             frames = self.render()
             return frames if frames is not None else (None,) * self.num_envs

@@ -577,4 +577,8 @@ def test_a_closed_native_vector_env_refuses_to_step_or_reset_as_the_sharded_one_
         venv.step(np.zeros((2, 3), np.float32))
     with pytest.raises(RuntimeError, match="this LatentVectorEnv is closed"):
         venv.reset(seed=0)
+    # its state and per-copy calls too (they answered from the closed env; helper-207)
+    for call in (venv.unwrapped.get_state, lambda: venv.call("configuration"), lambda: venv.call("get_state")):
+        with pytest.raises(gym.error.ClosedEnvironmentError, match="this LatentVectorEnv is closed"):
+            call()
     venv.close()  # closing again stays harmless
