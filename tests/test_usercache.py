@@ -140,12 +140,12 @@ def test_cli_info_and_clear(root: Path, capsys: pytest.CaptureFixture[str]) -> N
     assert info["root"] == str(root) and [f["files"] for f in info["folders"]] == [2, 2, 2]
     assert main(["cache", "info"]) == 0
     text = capsys.readouterr().out
-    assert str(root) in text and "6 files" in text
+    assert str(root) in text and "6 files      330 B" in text  # not 0.00033 MB
     assert main(["cache", "clear", "envs", "--dry-run", "--json"]) == 0
     assert json.loads(capsys.readouterr().out)["deleted"][0]["files"] == 2
     assert _counts(user_cache_usage(["envs"])) == {"envs": (2, 110)}
     assert main(["cache", "clear", "subspaces", "--older-than", "3"]) == 0
-    assert "deleted 1 files" in capsys.readouterr().out
+    assert "deleted 1 file (100 B)" in capsys.readouterr().out
     assert _counts(user_cache_usage(["subspaces"])) == {"subspaces": (1, 10)}
 
 

@@ -19,8 +19,14 @@ from redsim.usercache import (
 
 
 def _megabytes(size: int) -> str:
-    """``size`` [bytes] in MB, two significant digits below 1 MB."""
-    return f"{size / 1e6:.2g} MB" if size < 1e6 else f"{size / 1e6:.1f} MB"
+    """``size`` [bytes] as bytes below 1 kB, kB below 1 MB, else MB (it printed ``1e-05 MB`` for 10 bytes)."""
+    if size < 1000:
+        return f"{size} B"
+    return f"{size / 1e3:.3g} kB" if size < 1e6 else f"{size / 1e6:.1f} MB"
+
+
+def _files(count: int) -> str:
+    return f"{count} file" if count == 1 else f"{count} files"
 
 
 def _rows(usage: list[FolderUsage]) -> list[dict[str, Any]]:
@@ -59,8 +65,8 @@ def cmd_cache_info(args: argparse.Namespace) -> int:
         warn(f"${CACHE_ENV} names {shown_path(root)}, which is not a folder: nothing can be cached there")
     out(f"redsim user cache: {shown_path(root)}{older}{state or ''}")
     for u in usage:
-        out(f"  {u.name:<11} {u.files:>6} files {_megabytes(u.bytes):>10}   {FOLDERS[u.name]}")
-    out(f"  {'total':<11} {sum(u.files for u in usage):>6} files {_megabytes(sum(u.bytes for u in usage)):>10}")
+        out(f"  {u.name:<11} {_files(u.files):>12} {_megabytes(u.bytes):>10}   {FOLDERS[u.name]}")
+    out(f"  {'total':<11} {_files(sum(u.files for u in usage)):>12} {_megabytes(sum(u.bytes for u in usage)):>10}")
     return EXIT_OK
 
 
@@ -87,7 +93,7 @@ def cmd_cache_clear(args: argparse.Namespace) -> int:
     else:
         verb = "would delete" if args.dry_run else "deleted"
         for u in done:
-            out(f"{verb} {u.files} files ({_megabytes(u.bytes)}) in {shown_path(u.path)}")
+            out(f"{verb} {_files(u.files)} ({_megabytes(u.bytes)}) in {shown_path(u.path)}")
     if failed is not None:
         raise CliError(str(failed), code=1)  # as any file the command could not write (main)
     return EXIT_OK
