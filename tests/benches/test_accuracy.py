@@ -436,6 +436,35 @@ def test_an_unconverged_reference_is_said_without_blaming_the_load(mini_chain, m
     assert "note: the reference is not a trustworthy motion: 2 of its 10 steps moved" in accuracy.report(result, "m")
 
 
+def test_a_full_space_row_through_a_contact_is_said_and_a_reference_through_one_fails(mini_chain, monkeypatch) -> None:
+    """At 5x the time step the mini chain's links pass through the hook (docs/accuracy.md): the row's errors (those
+    of another motion) stood without a word. A reference through a contact fails the
+    command, as one the scene cannot make does."""
+    from redsim.integrators.reference import rest_state
+
+    q_rest, _ = rest_state(mini_chain)
+    dt5 = accuracy.Config(
+        "full dt x5", "full space", lambda loads: accuracy.full_steps(mini_chain, q_rest, loads, stride=5)
+    )
+    _only(monkeypatch, dt5)
+    result = accuracy.bench_accuracy(
+        mini_chain, pretrained.load("mini_chain"), steps=100, scenarios=("push",), full=(), study=False
+    )
+    row = next(r for r in result["rows"] if r["config"] == "full dt x5")
+    assert row["tunneled"] >= 1 and result["rows"][0]["tunneled"] == 0
+    assert f"note: full dt x5 passed through a contact in {row['tunneled']} of its 20 steps" in accuracy.report(
+        result, "m"
+    )
+    assert accuracy.failures(result) == ([], [])
+    result["rows"][0]["tunneled"] = 2
+    assert "note: the reference is not a trustworthy motion: 2 of its 100 steps passed through a contact" in (
+        accuracy.report(result, "m")
+    )
+    assert accuracy.failures(result)[0] == [
+        "scenario push: the reference made 2 of its 100 steps that the scene cannot (its note)"
+    ]
+
+
 def test_the_configurations_of_a_scenario_are_timed_step_by_step_in_turn(mini_chain) -> None:
     """Each row was timed after the one before (the reference first), so a load that changed during the bench moved
     the rows' time ratios by up to ~2x (a review's rerun, docs/accuracy.md); lockstep steps them in turn, a dt x 2
