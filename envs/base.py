@@ -1427,7 +1427,7 @@ def shipped(
         fit_options: FitConfig fields over the shipped map's fit options for that fit (e.g. ``{"steps": 2000}``).
 
     Raises:
-        ValueError: an unknown scene or parameter, or a bad fit option.
+        ValueError: an unknown scene or parameter, a bad fit option, or fit options beside a given ``subspace``.
         redsim.subspace.CheckpointError: no shipped subspace covers ``scene_params`` (and
             ``fit_if_missing`` is False), or the checkpoint is missing or corrupt.
     """
@@ -1440,6 +1440,11 @@ def shipped(
     scene = scenes.build(scene_name, **dict(scene_params or {}))
     if fit_options is not None and not fit_if_missing:
         raise ValueError("fit_options only apply with fit_if_missing=True")
+    if fit_options is not None and subspace is not None:  # no fit is made: the options would be dropped unsaid
+        raise ValueError(
+            "fit_options apply to a fit into the user cache (subspace=None); with subspace given that map is used "
+            "as it is and nothing is fitted"
+        )
     if subspace is None:
         if scene_params and scenes.build(scene_name).fingerprint() != scene.fingerprint():
             if fit_if_missing:
@@ -1455,6 +1460,12 @@ def shipped(
     if isinstance(subspace, nn.Module):
         return scene, subspace
     return scene, checkpoint_subspace(subspace, scene)
+
+
+def with_fitted_map(kwargs: Mapping[str, Any], subspace: nn.Module) -> dict[str, Any]:
+    """An env's constructor arguments ``kwargs`` to make it again with the map a fit made in memory: ``subspace`` given
+    and no ``fit_options`` (nothing is fitted beside a given map: :func:`shipped` refuses them)."""
+    return {**{k: v for k, v in kwargs.items() if k != "fit_options"}, "subspace": subspace}
 
 
 def checkpoint_subspace(path: str | os.PathLike[str], scene: Scene) -> nn.Module:
@@ -1755,7 +1766,7 @@ class LatentEnv(gym.Env[np.ndarray, np.ndarray]):
         args, kwargs = state["init"]
         self._init_args = (args, kwargs)
         carried = state.get("subspace")
-        self.__init__(*args, **(kwargs if carried is None else {**kwargs, "subspace": carried}))  # type: ignore[misc]
+        self.__init__(*args, **(kwargs if carried is None else with_fitted_map(kwargs, carried)))  # type: ignore[misc]
         self.spec = state["spec"]
         if state["rng"] is not None:
             self._np_random = restored_generator(None, state["rng"])

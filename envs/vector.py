@@ -43,6 +43,7 @@ from redsim.envs.base import (
     on_env_threads,
     restored_generator,
     state_row,
+    with_fitted_map,
 )
 from redsim.envs.sharded import ShardedVectorEnv, shard_sizes
 from redsim.envs.vector_api import ClosedVectorEnvError, SharedCopies, check_started, episode_clock, reset_mask
@@ -431,7 +432,7 @@ def vector_of(
     template = create()
     carried = template.unbacked_subspace()
     if carried is not None:  # fitted in memory here: the workers take the map instead of fitting it again
-        carrying = functools.partial(create.func, *create.args, **{**create.keywords, "subspace": carried})
+        carrying = functools.partial(create.func, *create.args, **with_fitted_map(create.keywords, carried))
         build = functools.partial(_native, carrying, max_episode_steps, autoreset_mode)
     return ShardedVectorEnv(build, template, num_envs, shards, autoreset_mode=mode, max_episode_steps=max_episode_steps)
 

@@ -37,6 +37,11 @@ def test_default_parameters_use_the_shipped_map_without_fitting(monkeypatch: pyt
 def test_fit_options_without_fit_if_missing_are_refused() -> None:
     with pytest.raises(ValueError, match="fit_if_missing=True"):
         gym.make("RedSim/MiniChain-v0", fit_options=TINY)
+    # beside a given map nothing is fitted: the options were dropped without a word (a review, helper-206)
+    from redsim import pretrained
+
+    with pytest.raises(ValueError, match="with subspace given that map is used as it is and nothing is fitted"):
+        gym.make("RedSim/MiniChain-v0", subspace=pretrained.load("mini_chain"), fit_if_missing=True, fit_options=TINY)
 
 
 def test_a_fit_on_another_device_is_another_cache_entry(tmp_path, monkeypatch: pytest.MonkeyPatch) -> None:
