@@ -1014,7 +1014,7 @@ class LatentSim:
         self.z, self.z_prev = self._first_turn(self.z, self.z_prev)
         out_of_range |= self._beyond_bound(self.z, self.z_prev)
         self.x_prev, self.x, self.z_before = self.x, self.full_positions(self.z), z_before
-        tunneled = self.tunnel_test(self.x_prev, self.x) & ~diverged
+        tunneled = self.tunnel_test(self.x_prev, self.x, ~diverged)  # over the env step (frame_skip stepper steps)
         reward, terms = self.task.reward(self.x, act, self.params)
         valid = moving & ~diverged
         _check_task_output("reward", reward, self.batch, valid=valid)

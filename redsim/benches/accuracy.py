@@ -1018,8 +1018,13 @@ def failures(result: dict[str, Any]) -> tuple[list[str], list[str]]:
     near its tolerance in most steps, docs/accuracy.md).
     """
     references = [
-        f"scenario {row['scenario']}: the reference made {row['implausible'] or row['tunneled']} of its "
-        f"{row['steps_run']} steps that the scene cannot (its note)"
+        f"scenario {row['scenario']}: the reference made "
+        + " and ".join(
+            f"{row[key]} of its {row['steps_run']} steps {what}"
+            for key, what in (("implausible", "that the scene cannot"), ("tunneled", "through a contact"))
+            if row.get(key)
+        )
+        + " (its note)"
         for row in result["rows"]
         if row["family"] == "reference"
         and row["config"] != NO_MOTION

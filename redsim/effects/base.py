@@ -37,8 +37,8 @@ class Effect:
     kind: ClassVar[str] = "effect"
     feature_size: float = math.inf
     """Thinnest feature [m] this term resolves (contact shapes): static full-space solves keep their Newton steps
-    below half of it, and a time step that moves farther is checked for tunneling
-    (:mod:`redsim.integrators.tunneling`)."""
+    below half of it, and an :class:`~redsim.effects.SDFContact` point that moves farther relative to its shape in a
+    time step is checked for tunneling (:mod:`redsim.integrators.tunneling`)."""
     edge_dim: int | None = None
     """Coordinates per vertex of an effect whose elements' energies read only their edges x_j - x_0 and that offers
     them as :meth:`edge_energies` (a cubature then computes the edges straight from its features); None: not one."""

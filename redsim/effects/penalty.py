@@ -274,11 +274,15 @@ class SDFContact(Effect):
 
     def signed_distance(self, xe: Tensor) -> Tensor:
         """Signed distance [m] of each point, shape [B, P], from element entries [B, P, k]."""
+        return self.shape.distance(self.local_points(xe))
+
+    def local_points(self, xe: Tensor) -> Tensor:
+        """Each point in its frame's coordinates [m], shape [B, P, 3], from element entries [B, P, k]: where the
+        shape sees it (:meth:`signed_distance` is the shape's distance of these)."""
         (p,) = split_points(xe, self.points)
         frame = xe[..., self.points.local_size :] * self.frames.weights + self.frames.offset
         frame = frame.reshape(*frame.shape[:-1], 3, 4)
-        local = (frame[..., :3].transpose(-1, -2) @ (p - frame[..., 3]).unsqueeze(-1)).squeeze(-1)
-        return self.shape.distance(local)
+        return (frame[..., :3].transpose(-1, -2) @ (p - frame[..., 3]).unsqueeze(-1)).squeeze(-1)
 
     def element_energy(self, xe: Tensor, cond: Tensor | None = None, loads: Tensor | None = None) -> Tensor:
         gap = (self.signed_distance(xe) - self.margin).clamp_max(0.0)

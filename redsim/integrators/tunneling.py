@@ -1,20 +1,24 @@
-"""The ``tunneled`` test: a step whose straight path passes through a contact that neither end shows.
+"""The ``tunneled`` test: a step whose path passes through a contact that neither end shows.
 
 A penalty contact acts only on the states a solve visits. A time step starts at the inertial target
-qbar = 2 q_t - q_{t-1}, so a state that moves farther in one step than a contact shape is thick lands
-beyond it, converged and without a contact force: the chain thrown at its hook at 10 m/s moves 0.2 m in
-a 0.02 s step against a wire 0.03 m thick (tube and margins), its full-space step ends above the hook and
+qbar = 2 q_t - q_{t-1}, so a state that moves farther in one step than a contact is thick lands beyond
+it, converged and without a contact force: the chain thrown at its hook at 10 m/s moves 0.2 m in a
+0.02 s step across a wire whose contact is 0.03 m deep from its surface to the far side of its centre
+line (``feature_size``: the tube radius and both margins), its full-space step ends above the hook and
 the chain flies off, every step converged and no energy gained. Continuous collision detection would
 stop such a step; this test reports it.
 
-It samples the straight path x_t + s (x_{t+1} - x_t), 0 < s < 1, at a spacing of at most a quarter of a
-contact's ``feature_size`` in any entry the contact reads, and flags a state whose path gets deeper
-into a contact (its ``clearance``: the smallest signed distance of a point beyond the margin) than both
-ends by more than half that feature size. A step that moves no entry a contact reads by half its feature
-size is not sampled (nothing that thick can be crossed), so ordinary steps cost one comparison per
-contact. Rotation entries are interpolated as entries (a chord, not an arc): the test is a detector, not
-a proof. Reported per step (:class:`redsim.integrators.StepInfo`, the envs' ``info["tunneled"]``), never
-acted on.
+For every point of an :class:`~redsim.effects.SDFContact` it takes the point's coordinates in the frame
+that carries the shape at both ends of the step (exact there: each end's rotation is a rotation) and
+samples the straight path between them, at most a quarter of the contact's ``feature_size`` apart
+(at most :data:`TUNNEL_SAMPLES` samples). A state is flagged where some point's path gets deeper into
+the contact (the shape's signed distance less the margin) than both of that point's ends by more than
+half the ``feature_size``, and inside the shape itself by more than half its thinnest part (a chord that
+only grazes the margin, as a point swept along an arc by a fast turn does, is not a crossing). Only
+points that moved that far relative to the shape are sampled, so ordinary steps cost one gather per
+contact. The relative path is a chord (a point swept along an arc by a fast turn of its frame is checked
+along the chord of that arc), so the test is a detector, not a proof.
+Reported per step (:class:`redsim.integrators.StepInfo`, the envs' ``info["tunneled"]``), never acted on.
 """
 
 from __future__ import annotations
@@ -24,39 +28,62 @@ import math
 import torch
 from torch import Tensor
 
+from redsim.effects import SDFContact
+from redsim.effects.base import gather_elements
 from redsim.scene import Scene
 
 TUNNEL_SAMPLES = 256
-"""Most states sampled on one step's path per contact (a faster step is sampled more coarsely)."""
+"""Most samples of one point's path in a step (a faster point is sampled more coarsely)."""
+SAMPLED_POINTS = 1 << 20
+"""Most sampled point positions evaluated at once (a blown-up batch is checked in chunks of this size)."""
 
 
 class TunnelTest:
-    """The test of the module doc for one scene: its contacts and the entries each reads, gathered once.
+    """The test of the module doc for one scene's :class:`SDFContact` effects (the contacts with a finite
+    ``feature_size``; the others have no thin part to cross).
 
-    Call it with full configurations ``x_from`` [B, N] and ``x_to`` [B, N] (one step apart) for the states [B]
-    (bool) whose step passed through a contact. Non-finite states are not flagged here (they are ``diverged``).
+    Call it with full configurations ``x_from`` [B, N] and ``x_to`` [B, N] (one step apart), and optionally
+    ``rows`` [B] (bool: the states to test, e.g. those not ``diverged``), for the states [B] (bool) whose step
+    passed through a contact. States that are not finite at either end are not tested (they are ``diverged``).
     """
 
     def __init__(self, scene: Scene) -> None:
-        self.contacts = [
-            (effect, effect.element_dofs.reshape(-1).unique(), float(effect.feature_size))
-            for effect in scene.effects
-            if math.isfinite(effect.feature_size) and hasattr(effect, "clearance")
-        ]
+        self.contacts = [e for e in scene.effects if isinstance(e, SDFContact) and math.isfinite(e.feature_size)]
 
-    def __call__(self, x_from: Tensor, x_to: Tensor) -> Tensor:
+    def __call__(self, x_from: Tensor, x_to: Tensor, rows: Tensor | None = None) -> Tensor:
         flagged = torch.zeros(x_from.shape[0], dtype=torch.bool, device=x_from.device)
+        tested = torch.isfinite(x_from).all(-1) & torch.isfinite(x_to).all(-1)
+        if rows is not None:
+            tested &= rows.to(tested.device)
+        if not self.contacts or not bool(tested.any()):
+            return flagged
         with torch.no_grad():
-            for effect, dofs, size in self.contacts:
-                dofs = dofs.to(x_from.device)
-                move = (x_to.index_select(1, dofs) - x_from.index_select(1, dofs)).abs().amax(-1)  # [B]
-                for row in torch.nonzero(move > 0.5 * size).flatten().tolist():
-                    samples = min(TUNNEL_SAMPLES, math.ceil(float(move[row]) / (0.25 * size)))
-                    s = torch.arange(1, samples + 1, dtype=x_from.dtype, device=x_from.device) / (samples + 1)
-                    path = x_from[row] + s[:, None] * (x_to[row] - x_from[row])  # [samples, N]
-                    ends = effect.clearance(torch.stack([x_from[row], x_to[row]])).amin()
-                    flagged[row] |= bool(effect.clearance(path).amin() < ends - 0.5 * size)
+            for effect in self.contacts:
+                flagged |= _crossed(effect, x_from, x_to, tested)
         return flagged
 
 
-__all__ = ["TUNNEL_SAMPLES", "TunnelTest"]
+def _crossed(effect: SDFContact, x_from: Tensor, x_to: Tensor, tested: Tensor) -> Tensor:
+    """States [B] of ``tested`` where a point of ``effect`` passed through its shape (module doc)."""
+    size, margin, core = float(effect.feature_size), float(effect.margin), 0.5 * float(effect.shape.feature_size)
+    a = effect.local_points(gather_elements(x_from, effect.element_dofs))  # [B, P, 3]
+    b = effect.local_points(gather_elements(x_to, effect.element_dofs))
+    move = torch.linalg.vector_norm(b - a, dim=-1)  # [B, P] [m], relative to the shape
+    state, point = torch.nonzero((move > 0.5 * size) & tested[:, None], as_tuple=True)
+    flagged = torch.zeros(x_from.shape[0], dtype=torch.bool, device=x_from.device)
+    if not state.numel():
+        return flagged
+    start, end = a[state, point], b[state, point]  # [M, 3]
+    samples = min(TUNNEL_SAMPLES, math.ceil(float(move[state, point].max()) / (0.25 * size)))
+    s = torch.arange(1, samples + 1, dtype=a.dtype, device=a.device)[:, None, None] / (samples + 1)
+    ends = torch.minimum(effect.shape.distance(start), effect.shape.distance(end)) - margin  # [M]
+    chunk = max(1, SAMPLED_POINTS // samples)
+    for i in range(0, start.shape[0], chunk):
+        path = start[i : i + chunk] + s * (end[i : i + chunk] - start[i : i + chunk])  # [samples, m, 3]
+        deepest = effect.shape.distance(path).amin(0)  # [m], the signed distance
+        through = (deepest < -core) & (deepest - margin < ends[i : i + chunk] - 0.5 * size)
+        flagged[state[i : i + chunk][through]] = True
+    return flagged
+
+
+__all__ = ["SAMPLED_POINTS", "TUNNEL_SAMPLES", "TunnelTest"]

@@ -461,7 +461,7 @@ def test_a_full_space_row_through_a_contact_is_said_and_a_reference_through_one_
         accuracy.report(result, "m")
     )
     assert accuracy.failures(result)[0] == [
-        "scenario push: the reference made 2 of its 100 steps that the scene cannot (its note)"
+        "scenario push: the reference made 2 of its 100 steps through a contact (its note)"
     ]
 
 

@@ -7,8 +7,11 @@ no energy is gained, and the chain flies off; at 1 m/s the hook catches it.
 
 from __future__ import annotations
 
+import math
+
 import gymnasium as gym
 import numpy as np
+import pytest
 import torch
 
 from redsim import scenes
@@ -48,15 +51,40 @@ def test_a_step_through_the_hook_is_flagged_and_one_the_hook_stops_is_not() -> N
 def test_the_test_needs_a_move_longer_than_half_the_contact_and_a_deeper_path() -> None:
     scene = scenes.build("mini_chain")
     test = TunnelTest(scene)
-    (contact, _, size), *_ = test.contacts
-    assert size == contact.feature_size == 0.03  # the wire: tube 0.01 m plus two margins of 0.01 m
+    (contact,) = test.contacts
+    assert contact.feature_size == pytest.approx(0.03)  # the wire's contact: tube 0.01 m plus two margins of 0.01 m
     x = scene.full_positions(scene.q_seed.to(torch.float64).unsqueeze(0))
     lifted = x.clone()
     lifted[:, 7::12] += 0.2  # every link 0.2 m up: link 0 across the hook
     nudged = x.clone()
-    nudged[:, 7::12] += 0.4 * size  # less than half the thickness: not sampled
-    flags = test(torch.cat([x, x, x]), torch.cat([lifted, nudged, x]))
-    assert flags.tolist() == [True, False, False]
+    nudged[:, 7::12] += 0.4 * contact.feature_size  # less than half the contact: not sampled
+    spun = x.clone()  # link 0 turned 0.6 rad in its own plane about its centre: the hook stays in its hole
+    c, s = math.cos(0.6), math.sin(0.6)
+    frame = x[0, :12].reshape(3, 4)
+    turn = torch.tensor([[c, -s, 0.0], [s, c, 0.0], [0.0, 0.0, 1.0]], dtype=torch.float64)
+    spun[0, :12] = torch.cat([turn @ frame[:, :3], frame[:, 3:]], 1).reshape(-1)
+    flags = test(torch.cat([x, x, x, x]), torch.cat([lifted, nudged, x, spun]))
+    assert flags.tolist() == [True, False, False, False]
+    infinite = lifted.clone()
+    infinite[:, 7] = math.inf  # not tested (diverged): no OverflowError from its infinite move (a review's finding)
+    assert test(torch.cat([x, x]), torch.cat([infinite, lifted]), torch.tensor([True, False])).tolist() == [False] * 2
+
+
+def test_each_point_is_judged_against_its_own_ends() -> None:
+    """A sheet particle whose path cuts through the ball is flagged although another rests inside the contact at both
+    ends (comparing the contact's smallest clearance at the ends hid it; a review's finding)."""
+    scene = scenes.build("cloth_ball")
+    (contact,) = TunnelTest(scene).contacts
+    x = scene.full_positions(scene.q_seed.to(torch.float64).unsqueeze(0))
+    centre = x[0, contact.frames.dofs[0]].reshape(3, 4)[:, 3]
+    reach = contact.shape.radius + contact.margin
+    ahead, side = torch.tensor([1.0, 0.0, 0.0], dtype=torch.float64), torch.tensor([0.0, 1.0, 0.0], dtype=torch.float64)
+    x_from, x_to = x.clone(), x.clone()
+    through = centre + (reach - 0.09) * ahead  # 0.09 m deep at the middle of its path
+    x_from[0, 3000:3003], x_to[0, 3000:3003] = through - 0.3 * side, through + 0.3 * side
+    x_from[0, 0:3] = x_to[0, 0:3] = centre - (reach - 0.05) * ahead  # resting 0.05 m inside the margin
+    assert contact.clearance(torch.cat([x_from, x_to])).max() < -0.04
+    assert TunnelTest(scene)(x_from, x_to).tolist() == [True]
 
 
 def test_env_info_says_tunneled_and_the_impact_rows_count_it() -> None:

@@ -281,4 +281,7 @@ def test_the_fuzz_judges_a_cubature_env_on_the_energy_it_steps_and_counts_the_sc
     venv.close()
     cubature_row = stability.fuzz_env("RedSim/HangingCloth-v2", 64, num_envs=4, seed=0)
     assert isinstance(cubature_row["cubature_rises"], int) and cubature_row["unreported"] == 0
+    assert cubature_row["cubature_rise_max_J"] >= 0.0  # their size is said too (a review: a count alone could hide one)
+    report = "\n".join(stability.report({"rows": [cubature_row], "fuzz_steps": 64}))
+    assert f"{cubature_row['cubature_rises']}, the largest {cubature_row['cubature_rise_max_J']:.3g} J" in report
     assert stability.fuzz_env("RedSim/MiniChain-v0", 16, num_envs=4, seed=0)["cubature_rises"] is None
