@@ -426,7 +426,23 @@ class SDFContact(Effect):
 
     def _pair_distances(self, x: Tensor) -> Tensor:
         """Signed distance [m] of every point, by (point source, frame) pair: [pairs, B, S] (see
-        :meth:`_build_pairs`; unused slots, ``pair_mask`` 0, hold the frame origin's distance).
+        :meth:`_build_pairs`; unused slots, ``pair_mask`` 0, hold the frame origin's distance)."""
+        return self.shape.distance(self._pair_local(x))
+
+    def frame_points(self, x: Tensor) -> tuple[Tensor, Tensor]:
+        """Every point in the coordinates of the frame that carries its shape [m], [B, M, 3], of full configurations
+        x [B, N], and which of the M rows are points ([M] bool; the pair tables' unused slots are not). The layout is
+        the cheapest one's (:meth:`near_points`' single frame, else the pair tables'), not the points' order."""
+        if self.single_frame:
+            p, frame = self._points_and_frame(x)
+            local = _to_local(frame, p)
+            return local, torch.ones(local.shape[1], dtype=torch.bool, device=local.device)
+        local = self._pair_local(x)  # [pairs, B, S, 3]
+        pairs, B, S = local.shape[:3]
+        return local.permute(1, 0, 2, 3).reshape(B, pairs * S, 3), (self.pair_mask > 0).reshape(-1)
+
+    def _pair_local(self, x: Tensor) -> Tensor:
+        """Every point in its pair's frame [m], [pairs, B, S, 3] (:meth:`_pair_distances`' layout).
 
         local = R_f^T (X_g w + o - t_f) for the points (weights w, offsets o) of source g in frame f:
         A = [R_f^T X_g | R_f^T | -R_f^T t_f] once per pair, then one contraction with the pair's
@@ -452,4 +468,4 @@ class SDFContact(Effect):
         lifted = torch.cat(parts, -1).permute(1, 2, 0, 3)
         local = torch.bmm(lifted.reshape(pairs, 3 * B, lifted.shape[-1]), self.pair_lift)  # [pairs, 3 * B, S]
         S = self.pair_lift.shape[-1]
-        return self.shape.distance(local.view(pairs, 3, B, S).permute(0, 2, 3, 1))  # local [pairs, B, S, 3]
+        return local.view(pairs, 3, B, S).permute(0, 2, 3, 1)
