@@ -448,20 +448,20 @@ def test_a_full_space_row_through_a_contact_is_said_and_a_reference_through_one_
     )
     _only(monkeypatch, dt5)
     result = accuracy.bench_accuracy(
-        mini_chain, pretrained.load("mini_chain"), steps=100, scenarios=("push",), full=(), study=False
+        mini_chain, pretrained.load("mini_chain"), steps=40, scenarios=("push",), full=(), study=False
     )
     row = next(r for r in result["rows"] if r["config"] == "full dt x5")
     assert row["tunneled"] >= 1 and result["rows"][0]["tunneled"] == 0
-    assert f"note: full dt x5 passed through a contact in {row['tunneled']} of its 20 steps" in accuracy.report(
+    assert f"note: full dt x5 passed through a contact in {row['tunneled']} of its 8 steps" in accuracy.report(
         result, "m"
     )
     assert accuracy.failures(result) == ([], [])
     result["rows"][0]["tunneled"] = 2
-    assert "note: the reference is not a trustworthy motion: 2 of its 100 steps passed through a contact" in (
+    assert "note: the reference is not a trustworthy motion: 2 of its 40 steps passed through a contact" in (
         accuracy.report(result, "m")
     )
     assert accuracy.failures(result)[0] == [
-        "scenario push: the reference made 2 of its 100 steps through a contact (its note)"
+        "scenario push: the reference made 2 of its 40 steps through a contact (its note)"
     ]
 
 
