@@ -911,6 +911,30 @@ def _save_after_interrupt(model: Any, venv: Any, model_path: Path) -> bool:
     return True
 
 
+def _load_for_resume(cls: Any, previous: Path, found: dict, venv: Any, eval_env: Any) -> tuple[Any, Any, Any]:
+    """The model saved at ``previous`` (its record ``found``, :func:`model_record`) loaded onto the training copies
+    ``venv``, with its ``VecNormalize`` statistics where it has them (and an evaluation normalizer): (venv, eval_env,
+    model).
+
+    Raises:
+        ValueError: the envs step in another subspace map than the one the model was trained in (its record's
+            fingerprint): its observations would be another map's latent coordinates.
+    """
+    from stable_baselines3.common.vec_env import VecNormalize
+
+    now = _map_of(eval_env.venv)  # the evaluation copies (in this process, where sharded training copies are not)
+    if found["map"] is not None and now is not None and found["map"] != now:
+        raise ValueError(
+            f"cannot resume: {previous} was trained in the subspace map {found['map']}, and this env steps in {now} "
+            "(a checkpoint refitted in place, or other fit options): its observations would be another map's latent "
+            "coordinates (give the subspace it was trained in, or another --out)"
+        )
+    if found["normalized"]:
+        venv = VecNormalize.load(str(normalizer_path(previous)), venv)
+        eval_env = VecNormalize(eval_env, training=False, norm_reward=False)
+    return venv, eval_env, cls.load(previous, env=venv, device="cpu")
+
+
 def _close_quietly(venv: Any) -> None:
     """Close an env after an interrupt (its workers may have been interrupted too)."""
     try:
@@ -1478,8 +1502,8 @@ def train_agent(
         ValueError: an unknown id or algorithm, bad counts, a seed outside [0, 2**32 - 1], ``her`` with PPO,
             another task or shards, a budget that ends no episode of every copy, a run already in ``out`` (neither
             ``resume`` nor ``overwrite``), ``resume`` with ``overwrite``, or (resume) a model of another env,
-            algorithm, replay or ``env_kwargs``, a run started with another ``seed``, or other ``n_envs`` than its
-            replay buffer holds, or a damaged replay buffer.
+            algorithm, replay, ``env_kwargs`` or subspace map, a run started with another ``seed``, or other
+            ``n_envs`` than its replay buffer holds, or a damaged replay buffer.
         FileNotFoundError: (resume) a model trained on normalized observations whose ``VecNormalize`` statistics
             (:func:`normalizer_path`) are missing.
         TrainingInterrupted: a KeyboardInterrupt in training or the final evaluation, raised once the run is saved
@@ -1592,10 +1616,12 @@ def train_agent(
         settings["action_noise"] = NormalActionNoise(np.zeros(shape), noise_std * np.ones(shape))
 
     if previous is not None:
-        if found["normalized"]:
-            venv = VecNormalize.load(str(normalizer_path(previous)), venv)
-            eval_env = VecNormalize(eval_env, training=False, norm_reward=False)
-        model = cls.load(previous, env=venv, device="cpu")
+        try:
+            venv, eval_env, model = _load_for_resume(cls, previous, found, venv, eval_env)
+        except BaseException:
+            for env_ in (venv, eval_env):
+                _close_quietly(env_)
+            raise
         # new episodes, not a replay of the first run's, nor of the evaluations' (seed + 10_000, seed + 20_000)
         venv.seed(training_seed(seed, int(model.num_timesteps)))
         if "action_noise" in settings:  # TD3: the saved noise is vectorized over the saved run's copies

@@ -1453,3 +1453,31 @@ def test_a_model_records_its_map_and_an_evaluation_in_another_warns(tmp_path: Pa
     fit_subspace(scene, out=tmp_path / "map", steps=20, hidden_width=16, seed=1, overwrite=True, progress=False)
     with pytest.warns(UserWarning, match=rf"trained in the subspace map {agent.map}, and is evaluated in [0-9a-f]+"):
         evaluate(MINI, agent, episodes=1, env_kwargs=mine)
+
+
+def test_a_resume_in_another_map_is_refused_and_closes_its_envs(
+    tmp_path: Path, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    """A run trained in one subspace map resumed in another (a checkpoint refitted in place): the observations keep
+    their shapes, so SB3 loaded the model and trained on another map's coordinates; and a resume refused after its
+    envs were built left them open."""
+    from redsim.envs.sb3 import SB3VecEnv
+    from redsim.trainers.agents import train_agent
+
+    tiny = {"n_envs": 2, "eval_episodes": 1, "final_episodes": 1, "env_kwargs": SHORT, "video": False}
+    train_agent(MINI, tmp_path, algo="sac", steps=20, **tiny)
+    model = tmp_path / "model.zip"
+    with zipfile.ZipFile(model) as archive:
+        members = {name: archive.read(name) for name in archive.namelist()}
+    data = json.loads(members["data"])
+    data["redsim_map"] = "0" * len(data["redsim_map"])  # as if trained in another map
+    members["data"] = json.dumps(data).encode()
+    with zipfile.ZipFile(model, "w") as archive:
+        for name, content in members.items():
+            archive.writestr(name, content)
+    closed = []
+    close = SB3VecEnv.close
+    monkeypatch.setattr(SB3VecEnv, "close", lambda self: (closed.append(self), close(self))[1])
+    with pytest.raises(ValueError, match=r"cannot resume: .*model.zip was trained in the subspace map 0000.* steps in"):
+        train_agent(MINI, tmp_path, algo="sac", steps=40, resume=True, **tiny)
+    assert len(closed) == 2  # the training copies and the evaluation env
