@@ -545,8 +545,9 @@ def test_a_fit_of_another_scene_at_the_stem_says_so_and_names_out(
         assert code == 2 and "a fit of another scene is at toy_two_tets_d2.pt (the default name" in err, err
         assert "young 10000.0 (this scene: 200000.0)" in err and "--out STEM" in err and "--overwrite" in err, err
     assert cli("fit", "toy_two_tets", *SMALL, "--steps", "4", "--stop-at", "2", "--out", "cut")[0] == 0
-    code, _, err = cli(*other, "--out", "cut", "--resume")  # only its training state there
-    assert code == 2 and "a fit of another scene is at cut.fit.pt: its training state is of scene fingerprint" in err
+    code, _, err = cli(*other, "--out", "cut", "--resume")  # only its training state there: it names what differs
+    assert code == 2 and "a fit of another scene is at cut.fit.pt: fitted to scene 'toy_two_tets'" in err, err
+    assert "young 10000.0 (this scene: 200000.0)" in err and err.count("\n") == 1, err  # said only fingerprints
     code, _, err = cli(*other, "--out", "cut")  # refused before the scene is built: it names all three ways out
     assert code == 2 and "a fit exists at cut.fit.pt: continue it with --resume" in err and "--out STEM" in err, err
     assert cli(*other, "--overwrite", "--steps", "4", "--stop-at", "2")[0] == 0  # replaced, interrupted

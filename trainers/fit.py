@@ -74,6 +74,7 @@ from __future__ import annotations
 import contextlib
 import dataclasses
 import functools
+import json
 import logging
 import math
 import numbers
@@ -104,6 +105,7 @@ from redsim.subspace import (
     sample_latents,
     write_atomically,
 )
+from redsim.subspace.checkpoint import scene_mismatch, scene_record
 from redsim.trainers.anchored import ANCHOR_MAP_CONDS, ANCHOR_MAPS, anchored_map
 from redsim.trainers.modal import ModalTargets, modal_gap, modal_targets, start_at_rest
 from redsim.trainers.presets import preset
@@ -774,6 +776,7 @@ def fit_subspace(
         bar = progress_bar(total=config.steps, initial=start_step, desc=f"fit {scene.name}", dynamic_ncols=True)
     completed, generator_state = start_step, generator.get_state()
     loss_fn = torch.compile(_loss_tensors, dynamic=False) if config.compile else _loss_tensors
+    record = scene_record(scene)  # names the parameters that differ when another scene would resume it
     clock = time.perf_counter()
 
     def save_state() -> None:
@@ -785,6 +788,7 @@ def fit_subspace(
                     "elapsed": elapsed + time.perf_counter() - clock,
                     "history": history,
                     "scene_fingerprint": scene.fingerprint(),
+                    "scene_record": record,
                     "config": dataclasses.asdict(recorded),
                     "model": model.state_dict(),
                     "optimizer": optimizer.state_dict(),
@@ -1059,11 +1063,10 @@ def _load_training_state(
             str(path),
         )
     if not scene.accepts(state["scene_fingerprint"]):
-        raise CheckpointError(
-            f"training state is for another scene (fingerprint {state['scene_fingerprint']}, "
-            f"this scene {scene.fingerprint()})",
-            str(path),
+        why = _state_scene_mismatch(state, scene) or (
+            f"fingerprint {state['scene_fingerprint']}, this scene's {scene.fingerprint()}"
         )
+        raise CheckpointError(f"training state is for another scene: {why}", str(path))
     free = (*_ROUND_OFF_ONLY, "steps", "checkpoint_every")  # checkpoint_every: how often it saves, not what
     mine = {k: v for k, v in dataclasses.asdict(config).items() if k not in free}
     saved = {k: v for k, v in state["config"].items() if k not in free}
@@ -1170,8 +1173,20 @@ def other_scene_fit(stem: str | Path, scene: Scene) -> str | None:
     if doc is not None and fingerprint in (None, doc.get("scene_fingerprint")):  # the record of that same fit
         return scene_mismatch(doc, scene)  # (names the parameters that differ)
     if fingerprint is not None:
-        return f"its training state is of scene fingerprint {fingerprint}, not this scene's {scene.fingerprint()}"
+        return _state_scene_mismatch(state, scene) or (
+            f"its training state is of scene fingerprint {fingerprint}, not this scene's {scene.fingerprint()}"
+        )
     return None
+
+
+def _state_scene_mismatch(state: dict[str, Any], scene: Scene) -> str | None:
+    """How the scene a training state was made for differs from ``scene``, which does not accept its fingerprint: the
+    name and the parameters that differ (:func:`redsim.subspace.checkpoint.scene_mismatch`); None for a state written
+    before it recorded them (the callers name the two fingerprints)."""
+    try:
+        return scene_mismatch(json.loads(state["scene_record"]), scene)
+    except (KeyError, TypeError, ValueError, AttributeError):  # an older state, or a record that does not read
+        return None
 
 
 def planned_steps(stem: str | Path) -> int | None:

@@ -144,6 +144,19 @@ def read_metadata(path: str | Path) -> dict[str, Any]:
     return doc
 
 
+def scene_record(scene: Scene) -> str:
+    """The scene as a checkpoint's metadata records it (name, fingerprint, parameters, n), as JSON text: what
+    :func:`scene_mismatch` reads back (``json.loads``), kept where a checkpoint's ``.json`` is not (a fit's training
+    state), so a refusal names the parameters that differ, not only two fingerprints."""
+    doc = {
+        "scene": scene.name,
+        "scene_fingerprint": scene.fingerprint(),
+        "scene_params": scene.params,
+        "config": {"output_dim": scene.free_dof_count},
+    }
+    return json.dumps(doc, sort_keys=True, default=_json_default)
+
+
 def scene_mismatch(doc: dict[str, Any], scene: Scene) -> str | None:
     """How the scene a checkpoint's metadata ``doc`` records differs from ``scene`` (name, fingerprint or n, and the
     parameters that differ), or None where it is this scene."""

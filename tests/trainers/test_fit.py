@@ -343,7 +343,13 @@ def test_resume_refuses_other_settings_and_missing_state(tmp_path) -> None:
     fit_subspace(scene, config, progress=False, out=tmp_path / "r")
     with pytest.raises(CheckpointError, match=r"different settings \(sigma: saved [0-9.]+, now 2\.0\)"):
         fit_subspace(scene, config, progress=False, out=tmp_path / "r", resume=True, sigma=2.0)
-    with pytest.raises(CheckpointError, match="another scene"):
+    # it names the parameter that differs (an interrupted fit has no .json to say it; it gave two fingerprints)
+    with pytest.raises(CheckpointError, match=r"another scene: fitted to scene 'tet' .*young 1000\.0 \(this scene: 2"):
+        fit_subspace(_tet_scene(young=2e3), config, progress=False, out=tmp_path / "r", resume=True)
+    state = torch.load(tmp_path / "r.fit.pt", weights_only=True)
+    del state["scene_record"]  # as a state written before it was recorded
+    torch.save(state, tmp_path / "r.fit.pt")
+    with pytest.raises(CheckpointError, match=r"another scene: fingerprint [0-9a-f]+, this scene's [0-9a-f]+$"):
         fit_subspace(_tet_scene(young=2e3), config, progress=False, out=tmp_path / "r", resume=True)
     with pytest.raises(CheckpointError, match="made with seed 0, not 5"):
         fit_subspace(scene, config, progress=False, out=tmp_path / "r", resume=True, seed=5)
