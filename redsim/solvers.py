@@ -84,7 +84,7 @@ class Objective(Protocol):
         gradient_noise: Gradient norm (>= 0) at which float64 round-off dominates.
         value_noise: Objective change [J] (>= 0) below which float64 round-off of the value dominates
             (the value is a sum of much larger terms, e.g. load work and elastic energy).
-        max_step: Largest entry of one Newton step (a trust radius; ``math.inf`` for none).
+        max_step: Largest entry of one step of either minimizer (a trust radius; ``math.inf`` for none).
     """
 
     force_scale: float
@@ -388,10 +388,10 @@ def lbfgs(
             return point.u, _result(
                 point, True, iteration, history, f"converged: |g| = {point.grad_norm:.3g} <= {threshold:.3g}"
             )
-        trial = _line_search(objective, point, _two_loop(point.grad, pairs, factor))
+        trial = _line_search(objective, point, _clipped(objective, _two_loop(point.grad, pairs, factor)))
         if trial is None and pairs:
             pairs.clear()
-            trial = _line_search(objective, point, _two_loop(point.grad, pairs, factor))
+            trial = _line_search(objective, point, _clipped(objective, _two_loop(point.grad, pairs, factor)))
         if trial is None:
             return point.u, _result(
                 point, False, iteration, history, f"line search failed (|g| = {point.grad_norm:.3g} > {threshold:.3g})"

@@ -167,14 +167,18 @@ def test_simulate_reports_steps_that_tunneled(
 
     def tunneling_step(self, state, loads=None, cond=None):  # type: ignore[no-untyped-def]
         state, info = step(self, state, loads, cond)
-        return state, dataclasses.replace(info, tunneled=round(float(state.time) / 0.01) == 3)
+        index = round(float(state.time) / 0.01)
+        return state, dataclasses.replace(info, tunneled=index == 3, tunnel_caught=index == 2)
 
     monkeypatch.setattr(ImplicitEuler, "step", tunneling_step)
     code, out, err = run(capsys, "simulate", TOY, "--steps", "3", "--dt", "0.01", "--json")
     assert code == 0, err
     summary = json.loads(out)
     assert summary["tunneled_steps"] == [3] and [r["tunneled"] for r in summary["per_step"]] == [False, False, True]
+    assert summary["tunnels_caught_steps"] == [2]
     assert "1 of 3 step(s) moved through a contact that neither end touches (first: step 3)" in err
+    code, out, err = run(capsys, "simulate", TOY, "--steps", "3", "--dt", "0.01")
+    assert "1 step(s) moved through a contact in their first solve and were solved again" in out
 
 
 def test_simulate_holds_the_conditions_given_and_reports_them(capsys: pytest.CaptureFixture[str]) -> None:

@@ -3,7 +3,9 @@
 Each case drives one scene or env into a regime that breaks simulators and records, per run:
 steps run, failures detected (a step the solver reported: not converged or ``diverged``; or ``tunneled``, a
 step whose path passed through a contact neither end shows, :mod:`redsim.integrators.tunneling`, also counted
-apart), failures recovered (a detected failure followed, later in the same run and copy, by a converged step),
+apart; a full-space step whose first solve did and whose solve again within a trust radius ended on the
+contact's near side is not a failure, counted as ``tunnels_caught``), failures recovered (a detected failure
+followed, later in the same run and copy, by a converged step),
 ``energy_gains`` (steps flagged ``energy_gain`` by the runtime's StepStats or the reference's
 StepInfo: K + E rose by more than the loads' work, :mod:`redsim.integrators.energy_gain`;
 information, not a failure), ``nan`` (non-finite states, energies or observations: must be 0),
@@ -161,7 +163,8 @@ class Rollout:
         dt: Time step [s].
         reported: [T] bool: the step said it failed (not converged or diverged).
         nonfinite: Non-finite states or energies met (never stepped on).
-        flags: Counts of ``unconverged``, ``diverged`` and ``out_of_range`` steps (latent runs also ``idle``: steps
+        flags: Counts of ``unconverged``, ``diverged``, ``out_of_range``, ``tunneled`` and (full space)
+            ``tunnels_caught`` steps (latent runs also ``idle``: steps
             that took no iteration and ended where they began, their start z_t already within the solver's
             tolerance; a step accepted at a start that moves, extrapolated or predicted, is not idle).
         seconds: Wall time [s].
@@ -217,6 +220,7 @@ class Rollout:
             "input_work_J": float(work.max()),
             "out_of_range": self.flags.get("out_of_range", 0),
             "tunneled": self.flags.get("tunneled", 0),
+            "tunnels_caught": self.flags.get("tunnels_caught", 0),
             "idle": self.flags.get("idle", 0),
             "inverted": inverted_elements(scene, self.q),
             "seconds": self.seconds,
@@ -315,7 +319,7 @@ def full_rollout(
     integrator = ImplicitEuler(FullSpace(scene.to(dtype=torch.float64)), dt, max_iter=max_iter)
     state = integrator.initial_state(q0, velocity)
     qs, reported, gains, nonfinite = [state.q_prev, state.q], [], [], 0
-    unconverged, through = 0, []
+    unconverged, through, caught = 0, [], 0
     for i in range(loads.shape[0]):
         state, info = integrator.step(state, loads[i])
         if not bool(torch.isfinite(state.q).all()):
@@ -324,9 +328,10 @@ def full_rollout(
         gains.append(info.energy_gain)
         unconverged += not info.converged
         through.append(info.tunneled)
+        caught += info.tunnel_caught
         qs.append(state.q)
     seconds = time.perf_counter() - start
-    flags = {"unconverged": unconverged, "tunneled": int(sum(through))}
+    flags = {"unconverged": unconverged, "tunneled": int(sum(through)), "tunnels_caught": caught}
     as_mask = lambda values: torch.tensor(values, dtype=torch.bool)  # noqa: E731
     return Rollout(
         torch.stack(qs[1:]),
@@ -948,6 +953,7 @@ ROW_COLUMNS = (
     ("input_work_J", "max load work [J]"),
     ("out_of_range", "out of range"),
     ("tunneled", "tunneled"),
+    ("tunnels_caught", "tunnels caught"),
     ("idle", "idle steps"),
     ("inverted", "most inverted elements"),
 )

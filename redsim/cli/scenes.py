@@ -188,6 +188,7 @@ def cmd_simulate(args: argparse.Namespace) -> int:
             "energy_gain": bool(info.energy_gain),
             "mechanical_gain": float(info.mechanical_gain),
             "tunneled": bool(info.tunneled),
+            "tunnel_caught": bool(info.tunnel_caught),
             "message": info.message,
         }
         if not finite or not math.isfinite(rec["grad_norm"]):
@@ -227,6 +228,7 @@ def cmd_simulate(args: argparse.Namespace) -> int:
     not_converged = [r["step"] for r in records if not r["converged"]]
     gained = [r["step"] for r in records if r["energy_gain"]]
     tunneled = [r["step"] for r in records if r["tunneled"]]
+    caught = [r["step"] for r in records if r["tunnel_caught"]]
     summary = {
         "scene": scene.name,
         "params": scene.params,
@@ -244,6 +246,7 @@ def cmd_simulate(args: argparse.Namespace) -> int:
         "not_converged_steps": not_converged,
         "energy_gain_steps": gained,
         "tunneled_steps": tunneled,
+        "tunnels_caught_steps": caught,
         "max_iterations": max(r["iterations"] for r in records),
         "final_grad_norm": records[-1]["grad_norm"],
         "energy_start": energy_start,
@@ -264,6 +267,11 @@ def cmd_simulate(args: argparse.Namespace) -> int:
             f"iterations, final |grad| {summary['final_grad_norm']:.2e}, {wall:.3g} s"
         )
         out(f"energy {energy_start:.6g} J -> {summary['energy_end']:.6g} J")
+        if caught:
+            out(
+                f"{len(caught)} step(s) moved through a contact in their first solve and were solved again within a "
+                f"trust radius, to the contact's near side (first: step {caught[0]})"
+            )
         if png is not None:
             out(f"wrote {png}")
         if mesh_paths:
@@ -283,8 +291,8 @@ def cmd_simulate(args: argparse.Namespace) -> int:
     if tunneled:
         warn(
             f"{len(tunneled)} of {len(records)} step(s) moved through a contact that neither end touches (first: "
-            f"step {tunneled[0]}): a move longer than the contact is thick, which the penalty never felt; reported, "
-            "not acted on (a smaller --dt resolves it)"
+            f"step {tunneled[0]}): a move longer than the contact is thick, which the penalty never felt, and "
+            "solving it again within a trust radius did not catch it; reported (a smaller --dt resolves it)"
         )
     if nan_step is not None:
         warn(f"step {nan_step} produced NaN or inf; stopped there")

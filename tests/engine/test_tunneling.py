@@ -20,13 +20,13 @@ from redsim.integrators import FullSpace, ImplicitEuler
 from redsim.integrators.tunneling import TunnelTest
 
 
-def _thrown_up(speed: float, steps: int = 4) -> tuple[torch.Tensor, list]:
+def _thrown_up(speed: float, steps: int = 4, **options) -> tuple[torch.Tensor, list]:
     """The mini chain's link centres' heights [steps + 1, 2] [m] and its steps' StepInfo, every link thrown up at
-    ``speed`` [m/s]."""
+    ``speed`` [m/s] (``options``: ImplicitEuler's)."""
     scene = scenes.build("mini_chain")
     x_dot = torch.zeros(scene.full_dof_count, dtype=torch.float64)
     x_dot[7::12] = speed  # t_y of every link
-    sim = ImplicitEuler(FullSpace(scene), 0.02)
+    sim = ImplicitEuler(FullSpace(scene), 0.02, **options)
     state = sim.initial_state(None, scene.dof_map.restrict(x_dot.unsqueeze(0))[0])
     q, infos = [state.q], []
     for _ in range(steps):
@@ -38,14 +38,36 @@ def _thrown_up(speed: float, steps: int = 4) -> tuple[torch.Tensor, list]:
 
 
 def test_a_step_through_the_hook_is_flagged_and_one_the_hook_stops_is_not() -> None:
-    heights, infos = _thrown_up(10.0)
+    heights, infos = _thrown_up(10.0, retry_tunneled=False)
     assert all(info.converged and not info.energy_gain for info in infos)  # nothing else says it
     assert float(heights[-1, 0]) > 0.5  # link 0 (hung at -0.075 m) is far above the hook: it passed through
-    assert infos[0].tunneled
+    assert infos[0].tunneled and not infos[0].tunnel_caught
 
     heights, infos = _thrown_up(1.0)
-    assert not any(info.tunneled for info in infos)
+    assert not any(info.tunneled or info.tunnel_caught for info in infos)
     assert float(heights[:, 0].max()) < 0.0  # the hook held it
+
+
+@pytest.mark.parametrize("speed", [10.0, 100.0])
+def test_a_step_through_the_hook_is_solved_again_and_caught_there(speed: float) -> None:
+    """By default a full-space step that tunneled is solved again from q_t within half the thinnest contact per
+    iteration: the hook holds the chain thrown at it (it flew off to +3.1 m at 10 m/s, +39 m at 100 m/s)."""
+    heights, infos = _thrown_up(speed, steps=3)
+    assert infos[0].tunnel_caught and not infos[0].tunneled and infos[0].converged
+    assert infos[0].iterations > 1  # both solves counted (the first took 1)
+    assert not any(info.tunneled or info.energy_gain for info in infos)
+    assert float(heights[:, 0].max()) < 0.1  # link 0 stays hooked (hung at -0.075 m)
+
+
+def test_a_retry_is_refused_in_a_latent_space_and_off_costs_nothing() -> None:
+    from redsim import pretrained
+    from redsim.integrators import LatentSpace
+
+    scene = scenes.build("mini_chain")
+    space = LatentSpace(scene, pretrained.load("mini_chain"))
+    with pytest.raises(ValueError, match="retry_tunneled needs the full space"):
+        ImplicitEuler(space, 0.02, retry_tunneled=True)
+    assert not ImplicitEuler(space, 0.02).retry_tunneled and ImplicitEuler(FullSpace(scene), 0.02).retry_tunneled
 
 
 def test_the_test_needs_a_move_longer_than_half_the_contact_and_a_deeper_path() -> None:
@@ -100,4 +122,5 @@ def test_env_info_says_tunneled_and_the_impact_rows_count_it() -> None:
     velocity = scene.dof_map.restrict(x_dot.unsqueeze(0))[0]
     full = stability.full_rollout(scene, stability._zero_loads(scene, 4), 0.02, velocity=velocity)
     row = full.row(scene, "mini_chain", "impact_10", "full", stability.FULL_SLACK)
-    assert row["tunneled"] >= 1 and row["failures_detected"] >= row["tunneled"] and row["unreported"] == 0
+    assert row["tunnels_caught"] >= 1 and row["tunneled"] == 0 and row["unreported"] == 0
+    assert "tunnels caught" in stability.markdown_rows([row])[0]
