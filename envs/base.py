@@ -461,7 +461,9 @@ class LatentSim:
         include_q: Put the full free configuration q [n] in ``info["q"]`` (steps and resets, :meth:`state_info`).
         reset_noise_scale: s >= 0: each episode starts at the task's start z0 + U(-s, s) with z_dot s N(0, 1)
             [latent units, per s], per latent, from the copy's generator (MuJoCo's convention; 0: exactly z0 at rest);
-            periodic latents then move by whole turns into [-pi, pi), z_prev with them, as after a step.
+            periodic latents then move by whole turns into [-pi, pi), z_prev with them, as after a step; x_prev (the
+            configuration one env step before, which a task's velocity extras read) is that of z - frame_skip (z -
+            z_prev), the start's velocity held one env step back.
         stepper_options: Extra keyword arguments of :class:`redsim.runtime.LatentStepper`.
         cubature: Step a cubature energy instead of every element (:func:`env_energy`): None (default)
             the shipped one where :data:`CUBATURE_DEFAULT` turns it on, True, False, or a checkpoint path.
@@ -777,15 +779,18 @@ class LatentSim:
                 self.z[row] = start + offset
                 self.z_prev[row] = self.z[row] - speed * self.stepper.dt
         self.z[rows], self.z_prev[rows] = self._first_turn(self.z[rows], self.z_prev[rows])  # as after a step
-        self.z_before[rows] = self.z[rows]
+        # x_prev's latent: one env step back at the start's velocity (z itself at rest), so that a task's extras that
+        # read x_prev (Klann-v0's crank speed, BistableBar's height speed) see the start's velocity as z_dot does
+        self.z_before[rows] = self.z[rows] - self.frame_skip * (self.z[rows] - self.z_prev[rows])
         self.loads[rows] = 0.0
         self.model[rows] = torch.nan
         self.carry[rows] = torch.nan
-        x = self.full_positions(self.z[rows], None if self.cond is None else self.cond[rows])
+        cond = None if self.cond is None else self.cond[rows]
+        x = self.full_positions(self.z[rows], cond)
         self.x = self.x.clone()
         self.x_prev = self.x_prev.clone()
         self.x[rows] = x
-        self.x_prev[rows] = x
+        self.x_prev[rows] = x if self.reset_noise_scale == 0.0 else self.full_positions(self.z_before[rows], cond)
         if self.action_resolution is None:
             self.action_resolution = self._action_resolution(rows[0])
 

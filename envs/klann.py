@@ -179,10 +179,11 @@ class CrankSpeed(Task):
         return loads
 
     def check_options(self, chosen: Mapping[str, Tensor]) -> None:
-        if "speed" in chosen and not 0.0 <= float(chosen["speed"].reshape(-1)[0]) <= self.speed_range[1]:
+        # above 0: the tolerance is relative (tol * omega*), so a command of 0 has no step within it, never a success
+        if "speed" in chosen and not 0.0 < float(chosen["speed"].reshape(-1)[0]) <= self.speed_range[1]:
             raise ValueError(
-                f"options['speed'] must lie in [0, {self.speed_range[1]:g}] rad/s (the observation's range), "
-                f"got {shown(chosen['speed'])}"
+                f"options['speed'] must lie in (0, {self.speed_range[1]:g}] rad/s (the observation's range; the "
+                f"success tolerance is a fraction of it), got {shown(chosen['speed'])}"
             )
 
     def extras_bounds(self) -> tuple[np.ndarray, np.ndarray]:
@@ -298,7 +299,8 @@ class KlannEnv(LatentEnv):
     ## Starting State
     At rest (z: the map's unloaded equilibrium, z_dot = 0, the crank hanging at theta = 2.33 rad). The commanded
     speed omega* is drawn uniformly from `speed_range` (4-12 rad/s, 0.6-1.9 turns/s) by `self.np_random`;
-    `reset(options={"speed": omega})` sets it [rad/s] instead.
+    `reset(options={"speed": omega})` sets it [rad/s] instead, in (0, 12] (the tolerance is 20% of it: a
+    command of 0 could never succeed).
 
     ## Episode End
     Termination: the stepper could not make a step finite (`info["diverged"]`). Truncation: 300 steps
@@ -321,6 +323,11 @@ class KlannEnv(LatentEnv):
     | `include_q` | False | put q [n] in `info["q"]` |
     | `reset_noise_scale` | 0.0 | s: start at z0 + U(-s, s) with z_dot s N(0, 1) per latent (MuJoCo's convention) |
     | `**kwargs` | | more :class:`LatentEnv` arguments (`dtype`, `device`, `width`, `height`, `camera`, `threads`...) |
+
+    omega is the wrapped turn of one env step over its dt x frame_skip, so a crank turning faster than
+    pi / (dt x frame_skip) reads as a slower or backward one. The env checks `speed_range` against that limit
+    when it is made, not the speeds `max_force` can reach: a held full push turns the crank more than twice in
+    0.8 s (tests), a mean above pi / 0.2 s, the limit at frame_skip 10.
 
     ## Version History
     - v0: first version. Later in v0 (dynamics, observation and reward unchanged): `is_success` is judged over

@@ -32,15 +32,21 @@ def test_klann_turns_full_turns_and_its_angle_latent_stays_wrapped() -> None:
 
 
 def test_klann_noisy_start_keeps_its_angle_latent_wrapped() -> None:
-    """reset_noise_scale may push z past pi: z and z_prev move back by whole turns at the reset (z_dot kept)."""
+    """reset_noise_scale may push z past pi: z and z_prev move back by whole turns at the reset (z_dot kept).
+
+    The crank speed of the start is that velocity too (it read 0, from x_prev = x, while z_dot was 3.2 rad/s): the
+    crank speed that set_state gives the same z and z_prev (x_prev from z_prev, frame_skip 1)."""
     env = gym.make("RedSim/Klann-v0", reset_noise_scale=5.0, dtype="float64").unwrapped
     for seed in range(4):
-        obs, _ = env.reset(seed=seed)
+        obs, info = env.reset(seed=seed)
         assert -math.pi <= obs[0] < math.pi, (seed, obs[0])
         rng = np.random.default_rng(seed)  # the draws of the reset: the task's speed, then the noise
         rng.random()
         rng.uniform(-5.0, 5.0, 1)
         assert obs[1] == pytest.approx(5.0 * rng.standard_normal(1)[0], rel=1e-6)
+        assert obs[4] != 0.0 and np.sign(obs[4]) == np.sign(obs[1]) and info["crank_speed"] == pytest.approx(obs[4])
+        env.set_state({**env.get_state(), "z_before": None})
+        assert env.sim.observe()[0][4] == pytest.approx(obs[4], rel=1e-6)
 
 
 def test_klann_success_is_the_fraction_of_the_last_steps_within_tolerance() -> None:
