@@ -62,8 +62,10 @@ class ConditionalBarEnv(ReachEnv):
     | 21 | support location c[1] | 0.3 | 1.0 | m |
 
     ## Rewards
-    Dense: -d / L_d with d the distance [m] from the tip to the target,
-    a control cost and a bonus within the success radius, each in `info["reward_<term>"]`
+    Dense: -d / L_d with d the distance [m] from the tip to the target (L_d and r are set once, from targets
+    under the default condition c = (1, 0.65), not per episode's c), a control cost and a bonus within the success
+    radius; `info` also holds `distance` [m], `is_success` (d < r) and the FEM invariants `elastic_min_det_f` and
+    `elastic_inverted`. Each term is in `info["reward_<term>"]`
     (formula: :class:`redsim.envs.reach.ReachEnv`).
 
     ## Starting State

@@ -289,7 +289,8 @@ class KlannEnv(LatentEnv):
     top of the command range), reported as `info["reward_speed"]`, `info["reward_control"]` and
     `info["reward_success"]`. `info` also holds `crank_angle` [rad], `crank_speed` [rad/s], `speed_error`
     [rad/s], `speed_within` (this step within the 20% tolerance), `held_fraction` (of the last 100 steps
-    within it) and `is_success`.
+    within it) and `is_success`, and the linkage's invariants: `rigid_orthogonality_error`, `joints_max_gap` [m]
+    and `joint_axes_max_gap` (:mod:`redsim.envs.invariants`).
 
     ## Success
     `info["is_success"]`: the crank speed was within the tolerance on at least half of the last 100 env steps

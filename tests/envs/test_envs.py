@@ -84,6 +84,22 @@ def test_each_env_s_own_docstring_states_its_reward_terms_and_arguments() -> Non
         )
 
 
+@pytest.mark.parametrize(
+    "env_id", ["RedSim/Klann-v0", "RedSim/Stewart-v0", "RedSim/BistableBar-v1", "RedSim/ConditionalBar-v1"]
+)
+def test_the_env_s_docstring_names_every_info_key_of_a_step(env_id: str) -> None:
+    """Each key of a step's info is named by the env's own docstring, or by LatentEnv's (the solver's flags).
+
+    A review (helper-213) found Klann-v0's docstring without its linkage invariants and ConditionalBar's without its
+    FEM invariants."""
+    env = gym.make(env_id)
+    env.reset(seed=0)
+    info = env.step(np.zeros(env.action_space.shape, np.float32))[-1]
+    doc, shared = type(env.unwrapped).__doc__, LatentEnv.__doc__
+    unnamed = [k for k in info if f"`{k}`" not in doc and f'info["{k}"]' not in doc and f"``{k}``" not in shared]
+    assert not unnamed, unnamed
+
+
 def test_frame_skip_reads_back_as_on_mujoco_envs() -> None:
     env = gym.make("RedSim/MiniChain-v0", frame_skip=2)
     assert env.unwrapped.frame_skip == 2 and env.unwrapped.dt == pytest.approx(0.04)
