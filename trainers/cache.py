@@ -15,6 +15,7 @@ from collections.abc import Callable, Sequence
 from pathlib import Path
 from typing import Any
 
+import torch
 from torch import nn
 
 from redsim.scene import Scene
@@ -43,7 +44,10 @@ def fitted_subspace(
     same name, or another fit, never overwrites a checkpoint it cannot use. A checkpoint qualifies if it loads for
     ``scene`` and records the config's fit (every field but :data:`RUNTIME_FIELDS`; a field recorded before it existed
     counts as its default) and ``seed``, and was not extended by a resumed fit (its schedules were planned for fewer
-    steps); one that exists but does not qualify is reported through ``warn`` and skipped.
+    steps); one that exists but does not qualify is reported through ``warn`` and skipped. Where none qualifies, this
+    fit stopped before it saved its map (Ctrl-C, a kill: a training state of this fit at STEM or STEM_KEY, and no map
+    there) is resumed, saying so through ``warn``: the same map as a fit from the start (it was fitted afresh into
+    STEM_KEY, and refused after a second interruption there).
 
     Args:
         scene: The scene.
@@ -52,7 +56,7 @@ def fitted_subspace(
         seed: Seed of a new fit.
         also: Further checkpoints tried after STEM's (e.g. the shipped map).
         refit: Fit even if a checkpoint qualifies (replacing the one at STEM or STEM_KEY, not one whose resumed
-            extension is under way: its STEM.fit.pt plans another length).
+            extension is under way: its STEM.fit.pt plans another length), and from the start, not resuming one.
         progress: Show the fit's progress bar.
         warn: Called with one line per checkpoint skipped, and where a fit goes to STEM_KEY.
 
@@ -68,6 +72,19 @@ def fitted_subspace(
             subspace = _qualified(path, scene, config, seed, warn)
             if subspace is not None:
                 return subspace, str(path)
+        for at in stems:  # this fit, interrupted (Ctrl-C, a kill) before it saved its map: continued, not redone
+            if (done := _interrupted(at, scene, config, seed)) is None:
+                continue
+            if warn:
+                state = checkpoint_path(at, ".fit.pt")
+                warn(f"resuming the interrupted fit at {state} ({done} of {config.steps} steps)")
+            try:
+                result = fit_subspace(scene, config, seed=seed, out=at, resume=True, progress=progress)
+            except CheckpointError as err:  # a state it cannot continue (another device): fitted afresh below
+                if warn:
+                    warn(f"not resuming it: {err}")
+                continue
+            return result.subspace, str(checkpoint_path(at, ".pt"))
     free = [s for s in stems if existing_fit(s) is None or (refit and _replaceable(s, scene, config, seed))]
     if not free:
         raise FileExistsError(
@@ -99,6 +116,23 @@ def fit_key(scene: Scene, config: FitConfig, seed: int) -> str:
     }
     doc = {"scene": scene.fingerprint(), "fit": fit, "seed": seed}
     return hashlib.sha256(json.dumps(doc, sort_keys=True, default=str).encode()).hexdigest()[:8]
+
+
+def _interrupted(stem: Path, scene: Scene, config: FitConfig, seed: int) -> int | None:
+    """The steps done where ``stem`` holds ``config``'s fit of ``scene`` with ``seed`` stopped before it saved its map:
+    its training state (``STEM.fit.pt``, planned for ``config.steps`` and never extended) and no ``STEM.pt`` or
+    ``STEM.json``; None otherwise (a fit there took the stem, and a fit of its own goes to STEM_KEY)."""
+    if checkpoint_path(stem, ".pt").exists() or checkpoint_path(stem, ".json").exists():
+        return None
+    try:
+        state = torch.load(checkpoint_path(stem, ".fit.pt"), map_location="cpu", weights_only=True)
+        recorded, done, fingerprint = dict(state["config"]), int(state["step"]), state["scene_fingerprint"]
+    except Exception:  # none, or unreadable: not continued (a fit of its own goes to STEM_KEY)
+        return None
+    ours = scene.accepts(fingerprint) and state.get("seed") == seed and not state.get("extensions")
+    if not ours or _comparable(recorded.get("steps")) != _comparable(config.steps) or _differences(recorded, config):
+        return None
+    return done
 
 
 def _replaceable(stem: Path, scene: Scene, config: FitConfig, seed: int) -> bool:

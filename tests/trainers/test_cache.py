@@ -91,6 +91,30 @@ def test_a_refit_keeps_an_extension_under_way(tmp_path) -> None:
     assert source == str(tmp_path / "done.pt") and (tmp_path / "done.pt").stat().st_mtime_ns != stamp  # its own: redone
 
 
+def test_an_interrupted_fit_is_resumed_not_redone(tmp_path) -> None:
+    """A bench's fit stopped by Ctrl-C (here stop_at, which saves as it does) left STEM.fit.pt; the next run fitted
+    afresh into STEM_KEY (the work lost, "keeping the other fit at STEM"), and after a second interruption there
+    refused both stems as "files of another fit". Now it continues the stopped fit: the map of an uninterrupted one."""
+    import torch
+
+    scene, said = build("toy_two_tets"), []
+    config = FitConfig(**{**TINY, "steps": 6})
+    straight = fit_subspace(scene, config, out=tmp_path / "straight", progress=False).subspace
+    stem, keyed = tmp_path / "two", tmp_path / f"two_{fit_key(scene, config, 0)}"
+    for at in (stem, keyed):  # two runs stopped, one in each stem
+        with pytest.raises(FitStopped):
+            fit_subspace(scene, config, out=at, stop_at=4, progress=False)
+    subspace, source = fitted_subspace(scene, config, stem, progress=False, warn=said.append)
+    assert source == str(stem) + ".pt" and said == [f"resuming the interrupted fit at {stem}.fit.pt (4 of 6 steps)"]
+    z = torch.randn(5, 2)
+    assert torch.equal(subspace(z), straight(z))
+    other = FitConfig(**{**TINY, "steps": 6, "lam": 2.0})  # another fit's stopped state is not continued
+    with pytest.raises(FitStopped):
+        fit_subspace(scene, other, out=tmp_path / "lam", stop_at=4, progress=False)
+    _, source = fitted_subspace(scene, config, tmp_path / "lam", progress=False, warn=said.append)
+    assert source == str(tmp_path / f"lam_{fit_key(scene, config, 0)}.pt") and "resuming" not in said[-1]
+
+
 def test_the_key_names_only_what_differs_from_the_defaults() -> None:
     import dataclasses
 
