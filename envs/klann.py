@@ -326,9 +326,12 @@ class KlannEnv(LatentEnv):
     | `**kwargs` | | more :class:`LatentEnv` arguments (`dtype`, `device`, `width`, `height`, `camera`, `threads`...) |
 
     omega is the wrapped turn of one env step over its dt x frame_skip, so a crank turning faster than
-    pi / (dt x frame_skip) reads as a slower or backward one. The env checks `speed_range` against that limit
-    when it is made, not the speeds `max_force` can reach: a held full push turns the crank more than twice in
-    0.8 s (tests), a mean above pi / 0.2 s, the limit at frame_skip 10.
+    pi / (dt x frame_skip) would read as a slower or backward one; the env checks `speed_range` against that limit
+    when it is made. The push cannot drive the crank that fast: its direction is set where each env step starts
+    (perpendicular to the crank there) and held through the step's frame_skip stepper steps while the crank turns,
+    so the longer the env step, the less a push drives it. A held full push turns the crank more than twice in
+    0.8 s at frame_skip 1, but stays below 12 rad/s, the top of the default `speed_range`, at frame_skip 8 (tests):
+    there the fastest commands are out of reach.
 
     ## Version History
     - v0: first version. Later in v0 (dynamics, observation and reward unchanged): `is_success` is judged over

@@ -98,6 +98,17 @@ def test_klann_refuses_commanded_speeds_one_env_step_cannot_measure() -> None:
     assert env.observation_space.high[4] == pytest.approx(math.pi / 0.4)
 
 
+def test_klann_longer_env_steps_drive_the_crank_less() -> None:
+    """The push's direction is set where each env step starts and held through its frame_skip stepper steps, so the
+    held full push that turns the crank more than twice in 0.8 s at frame_skip 1 (a mean above 15.7 rad/s; test
+    above) stays below the top command, 12 rad/s, at frame_skip 8, where omega could read up to pi / 0.16 s: the
+    docstring's warning that the fastest commands are out of reach there (a review, helper-213)."""
+    env = gym.make("RedSim/Klann-v0", frame_skip=8).unwrapped
+    env.reset(seed=0)
+    speeds = [env.step(np.ones(1, np.float32))[-1]["crank_speed"] for _ in range(10)]
+    assert 0.0 < min(speeds[4:]) and max(speeds) < env.task.speed_range[1] < env.observation_space.high[4], speeds
+
+
 @pytest.mark.slow
 def test_klann_pi_controller_tracks_the_commanded_speed_on_average() -> None:
     """Eight copies under the scripted PI: the mean speed over the last 1.5 s matches the command.
