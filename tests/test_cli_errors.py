@@ -121,6 +121,9 @@ def test_resume_continues_to_the_fits_own_length_and_refuses_one_ending_before_r
     code, out, err = cli(*argv, "--steps", "19")  # would stop at rho = 19/20 and save the MLP alone
     assert code == 2 and out == "" and "steps must be >= 20 to resume, got 19: rho, ramped for 20 steps" in err
     assert not (tmp_path / "cut.pt").exists()
+    code, out, err = cli(*argv, "--width", "16")  # named by its flag (it said hidden_width), with the saved command
+    assert code == 2 and "settings (--width: saved 8, now 16); resume with the saved ones" in err, err
+    assert "recorded command has them: redsim fit toy_two_tets " in err and " --width 8 " in err, err
     code, out, err = cli(*argv)  # no --steps: the interrupted fit's 20, not FitConfig's 10000
     assert code == 0, err
     meta = json.loads(out)

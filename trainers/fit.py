@@ -372,6 +372,29 @@ class FitStopped(Exception):
         self.state = state
 
 
+class ResumeSettingsError(CheckpointError):
+    """A resume with settings other than those the training state was made with.
+
+    Attributes:
+        differences: (field, saved value, value now) per FitConfig field that differs.
+        command: The fit's recorded command ("" in a state written before it was recorded).
+    """
+
+    def __init__(self, differences: list[tuple[str, Any, Any]], command: str, path: str) -> None:
+        self.differences, self.command = differences, command
+        super().__init__(self.describe(), path)
+
+    def describe(self, names: dict[str, str] | None = None) -> str:
+        """The message, naming each field by its alias in ``names`` (e.g. a CLI flag) where it has one."""
+        aliases = names or {}
+        values = ", ".join(f"{aliases.get(k, k)}: saved {was!r}, now {now!r}" for k, was, now in self.differences)
+        where = f": {self.command}" if self.command else ""
+        return (
+            f"training state was made with different settings ({values}); resume with the saved ones (the fit's "
+            f"recorded command has them{where})"
+        )
+
+
 LOW_STRETCH = 0.1  # a fit whose mean metric stretch ends below this is warned about (sigma too large, or collapsed)
 
 
@@ -1086,13 +1109,8 @@ def _load_training_state(
         saved.setdefault(key, getattr(FitConfig(), key))  # states written before the options existed
     saved["soften"] = tuple(saved["soften"])
     if saved != mine:
-        diff = sorted(k for k in mine if saved.get(k) != mine[k])
-        values = ", ".join(f"{k}: saved {saved.get(k)!r}, now {mine[k]!r}" for k in diff)
-        raise CheckpointError(
-            f"training state was made with different settings ({values}); resume with the saved ones "
-            "(the fit's recorded command has them)",
-            str(path),
-        )
+        diff = [(k, saved.get(k), mine[k]) for k in sorted(mine) if saved.get(k) != mine[k]]
+        raise ResumeSettingsError(diff, str(state.get("command") or ""), str(path))
     step, saved_steps = int(state["step"]), int(state["config"]["steps"])
     ramp_steps = int(state.get("ramp_steps", saved_steps))
     minimum = max(step, ramp_end(config, ramp_steps))

@@ -185,7 +185,14 @@ def _check_stem(stem: Path, args: argparse.Namespace, scene: Scene | None = None
 def cmd_fit(args: argparse.Namespace) -> int:
     from redsim.subspace import checkpoint_path
     from redsim.trainers import fit_subspace
-    from redsim.trainers.fit import FitStopped, fit_command, low_stretch_warning, planned_steps, quiet_low_stretch
+    from redsim.trainers.fit import (
+        FitStopped,
+        ResumeSettingsError,
+        fit_command,
+        low_stretch_warning,
+        planned_steps,
+        quiet_low_stretch,
+    )
 
     if args.resume and args.overwrite:
         raise CliError("give --resume (continue the fit at the stem) or --overwrite (replace it), not both")
@@ -234,6 +241,8 @@ def cmd_fit(args: argparse.Namespace) -> int:
     except FloatingPointError as err:
         error(str(err))
         return EXIT_NAN
+    except ResumeSettingsError as err:  # named by the flags that set them
+        raise CliError(f"{err.path}: {err.describe(FIELD_FLAGS)}") from err
     except ValueError as err:  # bad resume state, conditional fit without conditions, ...
         raise CliError(str(err)) from err
     meta = result.subspace.metadata

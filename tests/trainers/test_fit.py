@@ -341,8 +341,10 @@ def test_resume_refuses_other_settings_and_missing_state(tmp_path) -> None:
     scene = _tet_scene()
     config = FitConfig(latent_dim=2, steps=10, checkpoint_every=5, hidden_width=8)
     fit_subspace(scene, config, progress=False, out=tmp_path / "r")
-    with pytest.raises(CheckpointError, match=r"different settings \(sigma: saved [0-9.]+, now 2\.0\)"):
+    with pytest.raises(CheckpointError, match=r"different settings \(sigma: saved [0-9.]+, now 2\.0\)") as other:
         fit_subspace(scene, config, progress=False, out=tmp_path / "r", resume=True, sigma=2.0)
+    assert other.value.differences == [("sigma", config.sigma, 2.0)]  # type: ignore[attr-defined]
+    assert "the fit's recorded command has them: redsim fit " in str(other.value)  # the saved ones, not only "see it"
     # it names the parameter that differs (an interrupted fit has no .json to say it; it gave two fingerprints)
     with pytest.raises(CheckpointError, match=r"another scene: fitted to scene 'tet' .*young 1000\.0 \(this scene: 2"):
         fit_subspace(_tet_scene(young=2e3), config, progress=False, out=tmp_path / "r", resume=True)
