@@ -8,9 +8,11 @@ from pathlib import Path
 from typing import Any
 
 from redsim.cli.common import (
+    EXIT_FAILED_STEP,
     EXIT_OK,
     CliError,
     check_scene_name,
+    error,
     finish_command,
     json_out,
     load_checkpoint,
@@ -133,9 +135,11 @@ def cmd_cubature(args: argparse.Namespace) -> int:
         if sum(dropped.values())
         else ""
     )
+    whole = s["held_out_rollouts"]
     out(
         f"  {s['states']} states ({s['sampled_states']} sampled, {s['rollout_states']} from rollouts{dropped_note}), "
-        f"held-out force error {s['held_out_force_error']:.3g}, force+energy {s['held_out_error']:.3g}"
+        f"{s['held_out_states']} held out ({whole} whole rollout{'' if whole == 1 else 's'} among them): "
+        f"force error {s['held_out_force_error']:.3g}, force+energy {s['held_out_error']:.3g}"
     )
     return EXIT_OK
 
@@ -161,7 +165,7 @@ def cmd_bench_cubature(args: argparse.Namespace) -> int:
     import torch
 
     from redsim.bench import machine_info
-    from redsim.cubature import CubatureConfig, build_cubature, load_cubature
+    from redsim.cubature import AffineOutput, CubatureConfig, build_cubature, load_cubature
     from redsim.cubature.bench import WARMUP_STEPS, bench_cubature
     from redsim.cubature.energy import cubature_path
     from redsim.subspace import CheckpointError
@@ -209,6 +213,11 @@ def cmd_bench_cubature(args: argparse.Namespace) -> int:
             cub = load_cubature(path, scene, subspace) if path.is_file() else None
         except CheckpointError as err:
             raise CliError(str(err)) from err
+        if cub is None:  # the bench builds one: refuse a map it cannot build one for (an autoencoder's) now
+            try:
+                AffineOutput(subspace)
+            except ValueError as err:
+                raise CliError(f"{weights}: {err}") from err
         loaded[name] = (weights, scene, subspace, cub, path if cub is not None else None)
     machine = machine_info()
     results = []
@@ -250,14 +259,35 @@ def cmd_bench_cubature(args: argparse.Namespace) -> int:
                 for b, t in result["timing"].items()
             )
             made = shown_path(path) if path is not None else f"built here, --elements {args.elements}"
+            force = result["held_out_force_error"]  # a cubature made in Python may carry no summary
+            flags = result["flags"]
+            flagged = "".join(
+                f"; {key.replace('_', ' ')} steps {flags['all'][key]} -> {flags['cubature'][key]}"
+                for key in flags["all"]
+                if flags["all"][key] or flags["cubature"][key]
+            )
             out(
                 f"{name} ({shown_path(weights)}; {made}): n={result['n']}, kept {kept}; "
-                f"held-out force error {result['held_out_force_error']:.3g}; "
-                f"trajectory deviation {result['trajectory_deviation']:.3g}; penetration "
-                f"{result['penetration_all_m']:.2g} -> {result['penetration_cubature_m']:.2g} m; {times}"
+                f"held-out force error {'unknown' if force is None else format(force, '.3g')}; "
+                f"trajectory deviation {result['trajectory_deviation']:.3g}"
+                + (f" (of {args.states * args.steps} state-steps{flagged})" if flagged else "")
+                + f"; penetration {result['penetration_all_m']:.2g} -> {result['penetration_cubature_m']:.2g} m; "
+                f"{times}"
             )
     if args.json:
         json_out({"machine": machine, "results": results})
+    diverged = [
+        f"{r['scene']}: {r['flags']['all']['diverged']} (all elements) and {r['flags']['cubature']['diverged']} "
+        f"(cubature) of {args.states * args.steps} state-steps"
+        for r in results
+        if r["flags"]["all"]["diverged"] or r["flags"]["cubature"]["diverged"]
+    ]
+    if diverged:  # the rows are printed; the command fails, for scripts and CI
+        error(
+            "diverged accuracy steps (rejected: the state stays, so the deviation measures a stalled rollout) in "
+            + "; ".join(diverged)
+        )
+        return EXIT_FAILED_STEP
     return EXIT_OK
 
 
@@ -369,7 +399,8 @@ def add_bench_command(bench: Any) -> None:
             "For each scene's shipped subspace (or DIR/SCENE.pt) and the cubature beside it (or --cubature PATH; "
             "built with --elements if there is none): elements kept, held-out force error, trajectory deviation from "
             "the all-element step under the same seeded loads, contact penetration of both, and step time per batch "
-            "size side by side."
+            "size side by side. Steps of the accuracy rollouts the stepper flagged (unconverged, diverged, out of the "
+            "map's range) are counted in the row; a diverged one makes the command exit 4."
         ),
     )
     p.add_argument("scenes", nargs="?", help=f"comma-separated scene names (default: {BENCH_SCENES})")

@@ -46,17 +46,29 @@ def _state_loads(scene: Scene, steps: int, count: int, hold: int, scale: float, 
     return torch.cat([loads, _loads(scene, steps, count - ACCURACY_STATES, hold, scale, seed + 2)], 1)
 
 
+FLAGS = ("diverged", "unconverged", "out_of_range")
+"""The step flags the accuracy rollouts count per energy (:class:`redsim.runtime.StepStats`)."""
+
+
 def _rollout(
-    stepper: LatentStepper, z0: Tensor, loads: Tensor | None, steps: int, z_prev: Tensor | None = None
+    stepper: LatentStepper,
+    z0: Tensor,
+    loads: Tensor | None,
+    steps: int,
+    z_prev: Tensor | None = None,
+    flags: dict[str, int] | None = None,
 ) -> tuple[Tensor, list[float]]:
     """Latents [steps + 1, B, d] of a rollout from z0 (at rest, or moving from ``z_prev``) and each step's wall time
-    [s]."""
+    [s]; ``flags`` (:data:`FLAGS`), if given, gets each state-step the stepper flagged added."""
     z, z_prev, out, times, model, carry = z0, z0 if z_prev is None else z_prev, [z0], [], None, None
     for t in range(steps):
         start = time.perf_counter()
         z_next, stats = stepper.step(z, z_prev, None if loads is None else loads[t], warm=model, carry=carry)
         model, carry = stats.model, stats.carry
         times.append(time.perf_counter() - start)
+        if flags is not None:
+            for key, flagged in zip(FLAGS, (stats.diverged, ~stats.converged, stats.out_of_range), strict=True):
+                flags[key] += int(flagged.sum())
         z_prev, z = z, z_next
         out.append(z)
     return torch.stack(out), times
@@ -102,6 +114,8 @@ def bench_cubature(
     iterations), with each energy's value-and-gradient calls per step of its timed rollouts (their untimed first
     steps included). ``compiled``: the cubature step with ``compile="dynamic"`` timed beside them
     (``cubature_compiled_s``; a few steps at each batch size before, which compile its graphs, untimed).
+    ``flags``: per energy (``all``, ``cubature``), the accuracy rollouts' state-steps flagged diverged (rejected: the
+    state stays where it was), unconverged and out of the map's range (:data:`FLAGS`), of ``states * steps``.
     """
     if isinstance(warmup, bool) or not isinstance(warmup, int) or warmup < 0:
         raise ValueError(f"warmup must be an integer >= 0, got {warmup!r}")
@@ -121,8 +135,9 @@ def bench_cubature(
     rest = all_elements.rest_latent()
     count = states
     loads = _state_loads(scene, steps, count, hold, scale, seed) if scene.handles else None
-    z_all, _ = _rollout(all_elements, rest.expand(count, -1), loads, steps)
-    z_cub, _ = _rollout(reduced, rest.expand(count, -1), loads, steps)
+    flags = {"all": dict.fromkeys(FLAGS, 0), "cubature": dict.fromkeys(FLAGS, 0)}
+    z_all, _ = _rollout(all_elements, rest.expand(count, -1), loads, steps, flags=flags["all"])
+    z_cub, _ = _rollout(reduced, rest.expand(count, -1), loads, steps, flags=flags["cubature"])
     with torch.no_grad():
         q_all = all_elements.positions(z_all.reshape(-1, z_all.shape[-1])).reshape(steps + 1, count, -1)
         q_cub = all_elements.positions(z_cub.reshape(-1, z_cub.shape[-1])).reshape(steps + 1, count, -1)
@@ -174,6 +189,7 @@ def bench_cubature(
         "steps": steps,
         "warmup_steps": warmup,
         "load_scale": scale,
+        "flags": flags,
         "penetration_all_m": pen_all,
         "penetration_cubature_m": pen_cub,
         "timing": timing,
@@ -230,4 +246,4 @@ def mesh_sweep(
     return rows
 
 
-__all__ = ["bench_cubature", "mesh_sweep", "penetration"]
+__all__ = ["FLAGS", "bench_cubature", "mesh_sweep", "penetration"]

@@ -61,7 +61,8 @@ class CubatureConfig:
         hold: Steps each rollout load is held.
         load_scale: Std of each load component [N]; None: the scene's weight per handle (trace(M)/D * 9.81 / H).
         dt: Rollout time step [s].
-        held_out: Fraction of the states kept out of the fit for the reported error (0 < f < 1).
+        held_out: Fraction of the sampled states, and of the rollouts (whole ones: a rollout's neighbouring states are
+            near-copies of each other), kept out of the fit for the reported error (0 < f < 1; :func:`split_states`).
         full: Effects kept whole, in place of the default; None: those of :data:`RARE_KINDS` (and, without ``tol``,
             any with at most ``elements`` elements).
         subsample: Effects subsampled even if their kind is in :data:`RARE_KINDS`.
@@ -139,9 +140,10 @@ def default_load_scale(scene: Scene) -> float:
 
 def training_states(
     scene: Scene, subspace: nn.Module, config: CubatureConfig
-) -> tuple[Tensor, Tensor | None, dict[str, int]]:
-    """Latents [S, d] (float64) and conditions [S, m] (or None) of the training and held-out states, and how many
-    rollout steps were dropped: ``{"diverged": ..., "out_of_range": ...}`` (a copy keeps its last kept state).
+) -> tuple[Tensor, Tensor | None, dict[str, int], Tensor]:
+    """Latents [S, d] (float64) and conditions [S, m] (or None) of the training and held-out states, how many
+    rollout steps were dropped: ``{"diverged": ..., "out_of_range": ...}`` (a copy keeps its last kept state), and
+    the rollout each state comes from, [S] int64 (-1: a sampled state).
 
     ``config.samples`` draws of z ~ N(0, I) (conditions uniform in their ranges), then every state of
     ``config.episodes`` latent rollouts of ``config.steps`` steps from the rest latent under loads redrawn
@@ -156,8 +158,9 @@ def training_states(
     space = scene.condition_space
     cond = space.sample(config.samples, generator).to(torch.float64) if space is not None else None
     dropped = {"diverged": 0, "out_of_range": 0}
+    sampled = torch.full((config.samples,), -1, dtype=torch.int64)
     if not config.episodes or not scene.handles:
-        return z, cond, dropped
+        return z, cond, dropped, sampled
     scale = default_load_scale(scene) if config.load_scale is None else config.load_scale
     like = map_tensor(subspace)  # a float64 map's rollouts in float64 (float32 would not feel small loads)
     dtype = torch.float64 if like is not None and like.dtype == torch.float64 else torch.float32
@@ -167,7 +170,7 @@ def training_states(
     loads = scale * torch.randn(segments, B, len(scene.handles), scene.dim, generator=generator, dtype=torch.float32)
     current = stepper.rest_latent().expand(B, -1)
     previous = current
-    visited, model, carry = [], None, None
+    visited, episode, model, carry = [], [], None, None
     for step in range(int(config.steps)):
         held = loads[step // int(config.hold)].to(stepper.dtype)
         nxt, stats = stepper.step(current, previous, held, warm=model, carry=carry)  # warm and carried as the envs do
@@ -177,11 +180,36 @@ def training_states(
         dropped["out_of_range"] += int((stats.out_of_range & ~stats.diverged).sum())
         previous, current = current, torch.where(keep[:, None], nxt, current)
         visited.append(current[keep].to(torch.float64))
+        episode.append(torch.nonzero(keep.cpu()).reshape(-1))
     rollout = torch.cat(visited)
     z = torch.cat([z, rollout])
     if space is not None:
         cond = torch.cat([cond, space.default.to(torch.float64).expand(rollout.shape[0], -1)])
-    return z, cond, dropped
+    return z, cond, dropped, torch.cat([sampled, *episode])
+
+
+def split_states(episode: Tensor, config: CubatureConfig) -> tuple[Tensor, Tensor]:
+    """Held-out and training state indices for states from rollouts ``episode`` [S] (-1: sampled; see
+    :func:`training_states`).
+
+    ``config.held_out`` of the sampled states (at least one on each side), drawn one by one, and as large a share of
+    the rollouts, each whole (at least one on each side where there are two or more; a single rollout trains): the
+    states of one rollout lie a step apart, so a state held out beside its neighbours in training is not held out.
+    Seeded by ``config.seed + 1``; without rollouts it is the split of every state one by one.
+    """
+    generator = torch.Generator().manual_seed((config.seed + 1) % 2**64)
+    sampled = torch.nonzero(episode < 0).reshape(-1)
+    order = sampled[torch.randperm(sampled.numel(), generator=generator)]
+    n_test = min(sampled.numel() - 1, max(1, round(config.held_out * sampled.numel())))
+    test, train = [order[:n_test]], [order[n_test:]]
+    rollouts = torch.unique(episode[episode >= 0])
+    if rollouts.numel():
+        rollouts = rollouts[torch.randperm(rollouts.numel(), generator=generator)]
+        held = min(rollouts.numel() - 1, max(1, round(config.held_out * rollouts.numel())))
+        chosen = torch.isin(episode, rollouts[:held])
+        test.append(torch.nonzero(chosen).reshape(-1))
+        train.append(torch.nonzero((episode >= 0) & ~chosen).reshape(-1))
+    return torch.cat(test), torch.cat(train)
 
 
 def element_columns(
@@ -334,13 +362,11 @@ def fit_rules(
         progress: Show a tqdm bar per subsampled effect (kept elements and held-out error).
     """
     modes = effect_modes(scene, config)
-    z, cond, dropped = training_states(scene, subspace, config)
+    z, cond, dropped, episode = training_states(scene, subspace, config)
     scene64 = scene.to(dtype=torch.float64)
     output = AffineOutput(subspace).to(torch.float64)
-    generator = torch.Generator().manual_seed(config.seed + 1)
-    order = torch.randperm(z.shape[0], generator=generator)
-    n_test = min(z.shape[0] - 1, max(1, round(config.held_out * z.shape[0])))  # a state or more on each side
-    test_index, train_index = order[:n_test], order[n_test:]
+    test_index, train_index = split_states(episode, config)
+    n_test = int(test_index.numel())
     d1 = z.shape[1] + 1  # rows per state: d force components and the energy
     train_rows = (train_index[:, None] * d1 + torch.arange(d1)).reshape(-1)
     test_rows = (test_index[:, None] * d1 + torch.arange(d1)).reshape(-1)
@@ -404,6 +430,7 @@ def fit_rules(
         "rollout_states": int(z.shape[0] - config.samples),
         "rollout_states_dropped": dropped,
         "held_out_states": int(n_test),
+        "held_out_rollouts": int(torch.unique(episode[test_index][episode[test_index] >= 0]).numel()),
         "train_error": float(torch.linalg.vector_norm(train_residual)) / train_norm,
         "held_out_error": float(torch.linalg.vector_norm(test_residual)) / test_norm,
         "held_out_force_error": _force_error(test_residual, whole[test_index]),
@@ -427,5 +454,6 @@ __all__ = [
     "element_columns",
     "fit_rules",
     "greedy_nnls",
+    "split_states",
     "training_states",
 ]

@@ -484,6 +484,40 @@ def test_bench_takes_a_cubature_file_and_refuses_a_wrong_one(cli, tmp_path) -> N
         assert code == 2 and message in err and not out, (args, err)
 
 
+def test_bench_fails_on_diverged_steps_and_names_what_it_cannot_bench(cli, tmp_path, mini_chain) -> None:
+    """A cubature whose steps diverge (each rejected: the state stays) was benched with exit 0 and a plain deviation
+    (1.0, a stalled rollout) beside a fine speed-up; now the row counts the flagged steps and the command exits 4. A
+    cubature made in Python without a summary (no held-out error) and a map without an affine output layer (an
+    autoencoder's, where the bench builds the cubature) were tracebacks."""
+    from redsim.baselines import train_autoencoder
+
+    scene, f = mini_chain
+    quick = ("--steps", "3", "--batches", "1", "--timed-steps", "2", "--states", "2", "--warmup-steps", "0")
+    cub = build_cubature(scene, f, CubatureConfig(elements=4, samples=16, episodes=0, subsample=("contact",)))
+    wild = next(r for r in cub.rules if r.name == "contact")
+    wild.indices = torch.arange(wild.element_count)  # every contact point, at a weight whose energy overflows
+    wild.weights = torch.full((wild.element_count,), 3e38, dtype=torch.float64)
+    path = cub.save(tmp_path / "wild")
+    code, out, err = cli("bench", "cubature", "mini_chain", "--cubature", str(path), *quick, "--json")
+    assert code == 4 and "diverged accuracy steps" in err and "mini_chain: 0 (all elements) and 6 (cubature)" in err
+    flags = json.loads(out)["results"][0]["flags"]
+    assert flags["all"]["diverged"] == 0 and flags["cubature"]["diverged"] == 6, flags
+    code, out, _ = cli("bench", "cubature", "mini_chain", "--cubature", str(path), *quick)
+    assert code == 4 and "(of 6 state-steps; diverged steps 0 -> 6; unconverged steps 0 -> 6)" in out, out
+    bare = build_cubature(scene, f, CubatureConfig(elements=4, **QUICK))
+    path = Cubature(bare.scene, bare.scene_fingerprint, bare.map_fingerprint, bare.rules).save(tmp_path / "bare")
+    code, out, err = cli("bench", "cubature", "mini_chain", "--cubature", str(path), *quick)
+    assert code == 0 and "held-out force error unknown; trajectory deviation" in out and "state-steps" not in out, err
+    states = scene.q_seed[None] + 0.01 * torch.randn(
+        16, scene.free_dof_count, generator=torch.Generator().manual_seed(0)
+    )
+    train_autoencoder(scene, states, 2, steps=1, hidden_width=8, hidden_layers=1).save(tmp_path / "ae" / "mini_chain")
+    code, out, err = cli("bench", "cubature", "mini_chain", *quick, "--checkpoints", str(tmp_path / "ae"))
+    assert (
+        code == 2 and not out and f"{tmp_path / 'ae' / 'mini_chain.pt'}: a cubature needs a map with an affine" in err
+    )
+
+
 def test_bench_deviation_does_not_depend_on_the_timing_batches(mini_chain) -> None:
     """The deviation is the median over ACCURACY_STATES seeded rollouts, whatever batch sizes are timed."""
     from redsim.cubature.bench import ACCURACY_STATES, bench_cubature
@@ -531,9 +565,9 @@ def test_bench_times_both_energies_from_the_same_moving_state(cli, mini_chain) -
     calls = []
     rollout = bench._rollout
 
-    def spy(stepper, z0, loads, steps, z_prev=None):  # type: ignore[no-untyped-def]
+    def spy(stepper, z0, loads, steps, z_prev=None, flags=None):  # type: ignore[no-untyped-def]
         before = stepper.evaluations.calls
-        path, times = rollout(stepper, z0, loads, steps, z_prev)
+        path, times = rollout(stepper, z0, loads, steps, z_prev, flags)
         calls.append((stepper, z0.clone(), z_prev, loads, path, stepper.evaluations.calls - before))
         return path, times
 
@@ -571,8 +605,8 @@ def test_bench_cubature_times_exactly_the_timed_steps_asked(mini_chain) -> None:
     timed = []
     rollout = bench._rollout
 
-    def spy(stepper, z0, loads, steps, z_prev=None):  # type: ignore[no-untyped-def]
-        path, times = rollout(stepper, z0, loads, steps, z_prev)
+    def spy(stepper, z0, loads, steps, z_prev=None, flags=None):  # type: ignore[no-untyped-def]
+        path, times = rollout(stepper, z0, loads, steps, z_prev, flags)
         timed.append(len(times) - 1)
         return path, times
 
@@ -770,13 +804,39 @@ def test_rollout_states_dropped_are_counted_with_their_reason(mini_chain) -> Non
 
     scene, f = mini_chain
     config = CubatureConfig(elements=4, samples=8, episodes=4, steps=10, load_scale=1e5)  # loads far outside the map
-    z, _, dropped = training_states(scene, f, config)
+    z, _, dropped, episode = training_states(scene, f, config)
     rollout = z.shape[0] - 8
     assert dropped["out_of_range"] > 0 and rollout + sum(dropped.values()) == 4 * 10, dropped
-    assert training_states(scene, f, CubatureConfig(elements=4, samples=8, episodes=2, steps=3))[2] == {
-        "diverged": 0,
-        "out_of_range": 0,
-    }
+    assert int((episode >= 0).sum()) == rollout and bool((episode[:8] == -1).all())  # a dropped step has no rollout
+    _, _, dropped, episode = training_states(scene, f, CubatureConfig(elements=4, samples=8, episodes=2, steps=3))
+    assert dropped == {"diverged": 0, "out_of_range": 0}
+    assert episode.tolist() == [-1] * 8 + [0, 1] * 3  # step by step, each step's rollouts in order
+
+
+def test_held_out_rollouts_are_held_out_whole(mini_chain) -> None:
+    """A rollout's states lie a step apart: split one by one, most held-out rollout states had their neighbours in
+    training, and their error was the training error. The split keeps each rollout on one side (the sampled states
+    are split one by one as before); a fixed seed gives the same cubature, the largest one included."""
+    from redsim.cubature.fit import split_states
+
+    episode = torch.tensor([-1] * 8 + [0, 1, 2, 3] * 5)
+    test, train = split_states(episode, CubatureConfig(held_out=0.25, seed=3))
+    assert sorted(test.tolist() + train.tolist()) == list(range(episode.numel()))
+    sides = {int(e): {bool(i in test) for i in torch.nonzero(episode == e).reshape(-1).tolist()} for e in range(4)}
+    assert sorted(sides.values(), key=str) == [{False}] * 3 + [{True}]  # one rollout of four, whole
+    assert int((episode[test] < 0).sum()) == 2  # a quarter of the sampled states
+    test, _ = split_states(torch.tensor([-1] * 8 + [0] * 5), CubatureConfig(held_out=0.25))
+    assert bool((test < 8).all())  # a single rollout trains
+    only = split_states(torch.full((6,), -1), CubatureConfig(held_out=0.5, seed=2))[0]  # no rollouts: one by one
+    assert torch.equal(only, torch.randperm(6, generator=torch.Generator().manual_seed(3))[:3])
+    scene, f = mini_chain
+    config = CubatureConfig(elements=4, samples=12, episodes=4, steps=2, subsample=("contact",), seed=2**64 - 1)
+    runs = [build_cubature(scene, f, config) for _ in range(2)]  # the largest --seed (its split's seed overflowed)
+    assert runs[0].summary["held_out_rollouts"] == 1 and runs[0].summary["held_out_states"] == 3 + 2
+    assert runs[0].summary == runs[1].summary
+    assert [(r.indices.tolist(), r.weights.tolist()) for r in runs[0].rules] == [
+        (r.indices.tolist(), r.weights.tolist()) for r in runs[1].rules
+    ]
 
 
 def test_a_float64_maps_training_rollouts_run_in_float64() -> None:
@@ -796,5 +856,5 @@ def test_a_float64_maps_training_rollouts_run_in_float64() -> None:
         training_states(scene, copy.deepcopy(f).float(), rollouts)  # what a float32 stepper makes of this scene
     with warnings.catch_warnings():
         warnings.simplefilter("error")
-        z, _, dropped = training_states(scene, f, rollouts)
+        z, _, dropped, _ = training_states(scene, f, rollouts)
     assert z.dtype == torch.float64 and z.shape == (4 + 3, 3) and dropped == {"diverged": 0, "out_of_range": 0}
