@@ -526,6 +526,19 @@ def test_a_fit_whose_loss_becomes_nan_exits_3_with_one_line(
     assert code == 3 and out == "" and err.count("\n") == 1
     assert err.startswith("redsim: error: loss became nan at step 0")
     assert not [w for w in caught if "requires_grad" in str(w.message)]  # no torch warning before the error
+    assert "last state saved" not in err  # none was: nothing to name
+
+    def nan_from_step_3(*args: object, **kwargs: object) -> tuple[torch.Tensor, dict]:
+        value, terms = loss(*args, **kwargs)
+        return (value * float("nan") if args[6] >= 3 else value), terms  # args[6]: the step
+
+    monkeypatch.setattr(fit_module, "subspace_loss", nan_from_step_3)
+    stem = str(tmp_path / "m")
+    argv = ["fit", "toy_two_tets", *SMALL, "--steps", "6", "--checkpoint-every", "2", "--out", stem, "--json"]
+    code, _, err = cli(*argv)
+    assert code == 3 and err.count("\n") == 1 and "loss became nan at step 3" in err, err
+    assert f"the last state saved stays in {tmp_path / 'm.fit.pt'} (a rerun with other settings" in err, err
+    assert torch.load(tmp_path / "m.fit.pt", weights_only=True)["step"] == 2 and not (tmp_path / "m.pt").exists()
 
 
 def test_a_closed_pipe_gives_no_traceback() -> None:

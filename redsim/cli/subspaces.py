@@ -238,8 +238,10 @@ def cmd_fit(args: argparse.Namespace) -> int:
             when = "inside a step before any state was saved" if forced else "before the fit's first step"
             warn(f"interrupted {when}; nothing was saved, rerun: {command}")
         return EXIT_INTERRUPTED
-    except FloatingPointError as err:
-        error(str(err))
+    except FloatingPointError as err:  # the last state saved stays; rerunning it would meet the same NaN
+        state = checkpoint_path(stem, ".fit.pt")
+        kept = f"; the last state saved stays in {state} (a rerun with other settings replaces it with --overwrite)"
+        error(f"{err}{kept if state.is_file() else ''}")
         return EXIT_NAN
     except ResumeSettingsError as err:  # named by the flags that set them
         raise CliError(f"{err.path}: {err.describe(FIELD_FLAGS)}") from err
