@@ -66,9 +66,10 @@ def diverged_states(
       energy than the step's force scale F (>= |diag M| L / h^2, the force that crosses the scene
       in one step) does over the scene size L.
 
-    A non-finite Phi or K counts as diverged. All arguments are [B] tensors [J].
+    A non-finite Phi or K, at either end, counts as diverged (a step from a z_t without a finite energy cannot be
+    checked against it). All arguments are [B] tensors [J].
     """
-    finite = torch.isfinite(phi_next) & torch.isfinite(kinetic_next)
+    finite = torch.isfinite(torch.stack([phi_now, phi_next, kinetic_now, kinetic_next])).all(0)
     worse = phi_next > phi_now + noise
     released = ((phi_next - inertia_next) - (phi_now - kinetic_now)).abs() > DIVERGENCE_MARGIN * allowance
     faster = kinetic_next - kinetic_now > DIVERGENCE_MARGIN * allowance

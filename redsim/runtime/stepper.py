@@ -70,18 +70,24 @@ class StepStats(NamedTuple):
 
     Attributes:
         converged: The relative gradient norm met ``tol`` (bool).
-        iterations: Accepted solver iterations (int64).
+        iterations: Accepted solver iterations (int64), those of the solve again from z_t included (:meth:`step`).
         residual: |dPhi/dz| / (|J_0|_2 F_b), the relative gradient norm ``tol`` bounds (see :class:`LatentStepper`);
-            inf where the force scale F_b overflows the dtype (loads too large to square; the step is then diverged).
+            inf where the force scale F_b overflows the dtype (loads too large to square; the step is then diverged)
+            and where Phi or its gradient was not finite at the start (nothing was solved: z_next is z, diverged).
         energy: Potential energy E(f(z_next)) [J] (the load work not included); 0 where the start was not
             finite (z_next is then z, and ``diverged`` is set).
         out_of_range: z or z_next (or the condition) is outside the region the map was fitted on (bool).
-        diverged: The step is not trustworthy: non-finite, or it added more energy than it could have (bool).
+        diverged: The step is not trustworthy: non-finite (at its end, or Phi at z_t, whose energy balance it is
+            checked against), or it added more energy than it could have (bool).
         energy_gain: K + E rose by more than the loads' work, beyond round-off and the solve's
             tolerance (bool): an artefact of the map, reported as information
             (:func:`redsim.runtime.flags.energy_gain_states`).
         energy_gain_tolerance: The rise of K + E beyond the loads' work [J] that ``energy_gain`` allows: what the
-            solve's leftover gradient can put in, |dPhi/dz| |z_{t+1} - z_t|, plus round-off (inf where ``residual`` is).
+            solve's leftover gradient can put in, |dPhi/dz| |z_{t+1} - z_t|, plus round-off (inf where ``residual`` is,
+            and where K + E at either end is not finite).
+        stalled: The solver stopped unconverged before ``max_iter`` iterations: its line search found no step that
+            lowers Phi (a quasi-Newton model's, again from a model built afresh; :mod:`redsim.runtime.solver`) (bool).
+            A state neither converged nor stalled ran out of iterations (or its start was not finite: ``diverged``).
         model: The solver's final d x d Hessian model [B, d, d]: pass it as ``warm`` to the next step
             of the same states (NaN rows: none was built).
         carry: What the step knows at z_next, [B, :attr:`LatentStepper.carry_size`]: (z_next, cond) as its key, E,
@@ -98,6 +104,7 @@ class StepStats(NamedTuple):
     diverged: Tensor
     energy_gain: Tensor
     energy_gain_tolerance: Tensor
+    stalled: Tensor
     model: Tensor
     carry: Tensor
 
@@ -647,7 +654,7 @@ class LatentStepper:
             raise ValueError(f"{what} must have shape [B, {self.latent_dim}], got {tuple(z.shape)}")
         z = z.to(self.dtype)  # checked after the cast
         if not bool(torch.isfinite(z).all()):
-            raise ValueError(f"{what} must be finite in the stepper's {self.dtype}")
+            raise ValueError(f"{what} must be finite in the stepper's {self.dtype}{_bad_rows(z)}")
         return z
 
     def _cond(self, cond: Tensor | None, batch: int) -> Tensor | None:
@@ -664,7 +671,7 @@ class LatentStepper:
                 f"cond must have shape [{batch}, {space.dim}] ({list(space.names)}), got {tuple(cond.shape)}"
             )
         if not bool(torch.isfinite(cond).all()):
-            raise ValueError("cond must be finite")
+            raise ValueError(f"cond must be finite{_bad_rows(cond)}")
         return cond.to(self.dtype)
 
     def _loads(self, loads: LoadsLike, batch: int) -> Tensor | None:
@@ -683,7 +690,7 @@ class LatentStepper:
             )
         loads = loads.to(self.dtype)  # checked after the cast: 1e100 is inf in float32
         if not bool(torch.isfinite(loads).all()):
-            raise ValueError(f"loads must be finite in the stepper's {self.dtype} [N]")
+            raise ValueError(f"loads must be finite in the stepper's {self.dtype} [N]{_bad_rows(loads)}")
         return loads.reshape(batch, H * D)
 
     # -- public -----------------------------------------------------------------------------
@@ -839,10 +846,11 @@ class LatentStepper:
         # (its residual and energy-gain tolerance inf, not the 0 or NaN that dividing by an inf scale gives)
         unbounded = ~torch.isfinite(force)
         converged = result.converged & ~unbounded
+        unsolved = unbounded | ~result.finite  # no residual to report: inf, not the 0 of the zeroed gradient
         stats = StepStats(
             converged=converged,
             iterations=result.iterations,
-            residual=(result.grad_norm / (self.jacobian_norm * force)).masked_fill(unbounded, math.inf),
+            residual=(result.grad_norm / (self.jacobian_norm * force)).masked_fill(unsolved, math.inf),
             energy=result.energy,
             out_of_range=out_of_range_states(
                 torch.stack([z, z_next], 1), self.energy.periodic, cond_t, self.scene.condition_space
@@ -850,7 +858,8 @@ class LatentStepper:
             diverged=diverged | unbounded,
             energy_gain=energy_gain,
             model=result.model,
-            energy_gain_tolerance=gain_tolerance.masked_fill(unbounded, math.inf),
+            energy_gain_tolerance=gain_tolerance.masked_fill(unbounded | ~torch.isfinite(gain_tolerance), math.inf),
+            stalled=result.stalled & ~unbounded,
             carry=self._carry(
                 z_next, cond_t, result, self._inertia_loads(result.energy, q_next, qbar, loads_t)[1], converged
             ),
@@ -1039,6 +1048,15 @@ class LatentStepper:
             z, _ = latent_equilibrium(space, None, c, z0=start)
             out.append(z.to(device=self.device, dtype=self.dtype))
         return torch.stack(out) if out else torch.zeros(0, self.latent_dim, dtype=self.dtype, device=self.device)
+
+
+def _bad_rows(t: Tensor, shown: int = 8) -> str:
+    """``": rows [i, j, ...] are not"``: the states [B, ...] of ``t`` with a non-finite entry (the first ``shown``), for
+    an error message: a batch's whole step is refused for them, so name them."""
+    rows = (~torch.isfinite(t.reshape(t.shape[0], -1))).any(-1).nonzero().flatten().tolist()
+    more = f" and {len(rows) - shown} more" if len(rows) > shown else ""
+    plural = len(rows) > 1
+    return f": row{'s' if plural else ''} {rows[:shown]}{more} of {t.shape[0]} {'are' if plural else 'is'} not"
 
 
 _FRAMES = itertools.count()

@@ -8,6 +8,7 @@ the motion of a step; both start every step from the same state.
 from __future__ import annotations
 
 import copy
+import math
 import warnings
 
 import pytest
@@ -365,14 +366,18 @@ def test_non_finite_inputs_raise_before_stepping(mini_chain) -> None:
     z = stepper.rest_latent().expand(2, -1).clone()
     loads = torch.zeros(2, len(scene.handles), scene.dim)
     loads[1, 0, 2] = float("nan")
-    with pytest.raises(ValueError, match="loads must be finite"):
+    with pytest.raises(ValueError, match=r"loads must be finite in the stepper's torch.float32 .*: row \[1\] of 2 is"):
         stepper.step(z, z, loads)
     bad = z.clone()
     bad[0, 0] = float("inf")
-    with pytest.raises(ValueError, match="z must be finite"):
+    with pytest.raises(ValueError, match=r"z must be finite in the stepper's torch.float32: row \[0\] of 2 is not"):
         stepper.step(bad, z)
     with pytest.raises(ValueError, match="z_prev must be finite"):
         stepper.step(z, bad)
+    many = z.double().repeat(6, 1)
+    many[1:, 0] = 1e39  # past float32's range: inf after the cast
+    with pytest.raises(ValueError, match=r"z must be finite .*: rows \[1, 2, 3, 4, 5, 6, 7, 8\] and 3 more of 12 are"):
+        stepper.step(many, many)
     with pytest.raises(ValueError, match="shape"):
         stepper.step(z, z, torch.zeros(2, 5, scene.dim))
     with pytest.raises(ValueError, match="no condition space"):
@@ -599,6 +604,54 @@ def test_non_finite_trials_are_rejected(mini_chain, dense: bool, start: str) -> 
     # diverged and it moved (a non-finite start used to leave z_t in place, flagged diverged)
     assert not bool(stats.diverged.any()), stats
     assert float((z_next - z).abs().max()) > 1e-2
+
+
+class _Trap:
+    """The map's energy, NaN where z_0 > 2, plus k min(|z - p|, r) that its gradient does not see: every step from p
+    rises (a solve from p stalls), and from beyond r of p it is a constant."""
+
+    def __init__(self, inner: MapEnergy, p: torch.Tensor, k: float = 1e3, r: float = 0.1) -> None:
+        self.inner, self.p, self.k, self.r = inner, p, k, r
+        self.latent_dim, self.condition_dim, self.periodic = inner.latent_dim, inner.condition_dim, inner.periodic
+
+    def positions(self, z, cond):
+        return self.inner.positions(z, cond)
+
+    def energy(self, z, cond):
+        e, q = self.inner.energy(z, cond)
+        cone = self.k * torch.linalg.vector_norm(z.detach() - self.p, dim=-1).clamp_max(self.r)
+        return torch.where(z[:, 0] > 2.0, torch.nan, e + cone), q
+
+
+@pytest.mark.parametrize("dense", [False, True])
+def test_each_row_s_failure_is_reported_on_that_row_and_leaves_the_others_alone(mini_chain, dense: bool) -> None:
+    """Float64, one batch: a row that stalls (``stalled``, not converged, not diverged), a row whose start and z_t have
+    no finite energy (z_next = z_t, diverged, residual inf: it was 0, a perfect residual on a row that never
+    iterated), a row whose z_t has none but whose extrapolated start has (diverged: the step's energy balance cannot
+    be checked; it was unflagged with a NaN energy_gain_tolerance), and a healthy row that steps as it does alone."""
+    scene, f = mini_chain
+    rest = LatentStepper(scene, f, DT, dtype=torch.float64).rest_latent()
+    trap = _Trap(MapEnergy(scene, f, dtype=torch.float64), rest)
+    stepper = LatentStepper(scene, f, DT, dtype=torch.float64, energy=trap, dense=dense)
+    z = rest.repeat(4, 1)
+    z[1, 1] += 0.5  # healthy, beyond the cone
+    z[2, 0] = 3.0  # no finite energy at z_t nor at the extrapolated start
+    z[3, 0] = 2.05
+    z_prev = z.clone()
+    z_prev[3, 0] = 3.1  # extrapolated start at z_0 = 1: finite
+    loads = torch.zeros(4, len(scene.handles), scene.dim, dtype=torch.float64)
+    loads[:, 0, 0] = 5.0
+    z_next, stats = stepper.step(z, z_prev, loads)
+    assert stats.stalled.tolist() == [True, False, False, False]
+    assert stats.converged.tolist() == [False, True, False, True]  # row 3 from its finite start
+    assert stats.diverged.tolist() == [False, False, True, True]
+    assert bool(torch.equal(z_next[2], z[2])) and float(stats.residual[2]) == math.inf
+    assert bool(torch.isfinite(stats.residual[[0, 1, 3]]).all())
+    assert not bool(stats.energy_gain_tolerance.isnan().any())
+    assert stats.carry.isnan().all(-1).tolist() == [True, False, True, False]
+    alone, alone_stats = stepper.step(z[1:2], z_prev[1:2], loads[1:2])
+    torch.testing.assert_close(alone[0], z_next[1], rtol=0.0, atol=1e-12)  # batch round-off only (docs/runtime.md)
+    assert int(alone_stats.iterations[0]) == int(stats.iterations[1]) and bool(alone_stats.converged[0])
 
 
 @pytest.mark.slow
