@@ -1004,6 +1004,11 @@ class LatentStepper:
             self._latents(u, what) for u, what in ((candidate, "candidate"), (z, "z"), (z_prev, "z_prev"))
         )
         batch = z.shape[0]
+        if candidate.shape[0] != batch or z_prev.shape[0] != batch:  # a batch of 1 broadcast without a word
+            raise ValueError(
+                f"candidate, z and z_prev must have the same batch size, got {candidate.shape[0]}, {batch} and "
+                f"{z_prev.shape[0]}"
+            )
         loads_t, cond_t = self._loads(loads, batch), self._cond(cond, batch)
         with torch.no_grad():
             q_t = self._coords(z, cond_t)

@@ -820,6 +820,10 @@ def test_objective_is_what_the_step_minimizes(mini_chain) -> None:
     nearby = z_next + 1e-3 * torch.randn(8, stepper.latent_dim, generator=g, dtype=torch.float64)
     others = stepper.objective(nearby, z.expand(8, -1), z.expand(8, -1), loads.expand(8, -1, -1))
     assert float(best) < float(stepper.objective(z, z, z, loads)) and bool((best < others).all())
+    # one candidate or one z_prev for 8 states was broadcast to 8 values without a word (3 of 8: a torch error)
+    for args in ((z, z.expand(8, -1), z.expand(8, -1)), (nearby, nearby, z), (nearby[:3], nearby, nearby)):
+        with pytest.raises(ValueError, match="candidate, z and z_prev must have the same batch size"):
+            stepper.objective(*args)
 
 
 @pytest.mark.parametrize(("name", "cubature"), [("mini_chain", False), ("conditional_bar", True)])
