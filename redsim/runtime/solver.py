@@ -58,6 +58,8 @@ import numpy as np
 import torch
 from torch import Tensor
 
+from redsim.solvers import check_settings
+
 ARMIJO_C = 1e-4
 """Sufficient-decrease constant of the line search."""
 MAX_BACKTRACKS = 12
@@ -708,11 +710,13 @@ def minimize(
         The :class:`BatchResult`.
 
     Raises:
-        ValueError: an unknown ``hessian``, a ``sync_every`` that is not None or an integer >= 1, or a
-            ``max_step`` that is not None or a finite number > 0.
+        ValueError: an unknown ``hessian``, a ``tol`` that is not a finite number > 0 or a ``max_iter`` that is not
+            an integer >= 1 (a NaN tol stopped every state at once, neither converged nor stalled), a ``sync_every``
+            that is not None or an integer >= 1, or a ``max_step`` that is not None or a finite number > 0.
     """
     if hessian not in HESSIANS:
         raise ValueError(f"unknown hessian {hessian!r}; valid: {list(HESSIANS)}")
+    tol, max_iter = check_settings(tol, max_iter)
     check_sync_every(sync_every)
     check_max_step(max_step)
     it = _start(objective, z0, hessian, start, secant, warm)

@@ -207,6 +207,26 @@ def test_every_state_ends_converged_or_stalled_when_each_line_search_fails_twice
     assert bool(result.stalled.all()) and objective.builds == 1
 
 
+@pytest.mark.parametrize(
+    ("settings", "match"),
+    [
+        ({"tol": math.nan}, "tol must be finite and > 0"),
+        ({"tol": -1.0}, "tol must be finite and > 0"),
+        ({"max_iter": 0}, "max_iter must be an integer >= 1"),
+        ({"max_iter": 2.5}, "max_iter must be an integer >= 1"),
+    ],
+)
+def test_minimize_refuses_a_bad_tol_or_max_iter(settings: dict, match: str) -> None:
+    """A NaN tol returned every state at once, neither converged nor stalled; max_iter 2.5 was a TypeError."""
+    a = torch.diag(torch.tensor([2.0, 1.0, 10.0], dtype=torch.float64))
+    objective = _Quartic(a, torch.tensor([[1.0, -2.0, 0.5]], dtype=torch.float64), 0.5)
+    ones = torch.ones(1, dtype=torch.float64)
+    with pytest.raises(ValueError, match=match):
+        minimize(
+            objective, torch.zeros(1, 3, dtype=torch.float64), ones, ones, **{"tol": 1e-10, "max_iter": 5, **settings}
+        )
+
+
 @pytest.mark.parametrize("max_step", [0.0, -1.0, math.nan, math.inf, True, "2"])
 def test_bad_max_step_raises(max_step) -> None:
     with pytest.raises(ValueError, match="max_step"):
