@@ -139,7 +139,7 @@ def default_load_scale(scene: Scene) -> float:
 
 
 def training_states(
-    scene: Scene, subspace: nn.Module, config: CubatureConfig
+    scene: Scene, subspace: nn.Module, config: CubatureConfig, *, progress: Callable[[], None] | None = None
 ) -> tuple[Tensor, Tensor | None, dict[str, int], Tensor]:
     """Latents [S, d] (float64) and conditions [S, m] (or None) of the training and held-out states, how many
     rollout steps were dropped: ``{"diverged": ..., "out_of_range": ...}`` (a copy keeps its last kept state), and
@@ -148,7 +148,7 @@ def training_states(
     ``config.samples`` draws of z ~ N(0, I) (conditions uniform in their ranges), then every state of
     ``config.episodes`` latent rollouts of ``config.steps`` steps from the rest latent under loads redrawn
     from N(0, load_scale^2 I) every ``config.hold`` steps (the scene's default condition), in float64 for a float64
-    map and in float32 (the envs' default) otherwise.
+    map and in float32 (the envs' default) otherwise. ``progress`` is called after each rollout step.
     """
     from redsim.runtime import LatentStepper  # the runtime imports nothing of this package
 
@@ -181,6 +181,8 @@ def training_states(
         previous, current = current, torch.where(keep[:, None], nxt, current)
         visited.append(current[keep].to(torch.float64))
         episode.append(torch.nonzero(keep.cpu()).reshape(-1))
+        if progress is not None:
+            progress()
     rollout = torch.cat(visited)
     z = torch.cat([z, rollout])
     if space is not None:
@@ -213,11 +215,19 @@ def split_states(episode: Tensor, config: CubatureConfig) -> tuple[Tensor, Tenso
 
 
 def element_columns(
-    scene: Scene, output: AffineOutput, effect: Effect, z: Tensor, cond: Tensor | None, chunk: int = 16
+    scene: Scene,
+    output: AffineOutput,
+    effect: Effect,
+    z: Tensor,
+    cond: Tensor | None,
+    chunk: int = 16,
+    *,
+    progress: Callable[[int], None] | None = None,
 ) -> tuple[Tensor, Tensor]:
     """Per-element reduced forces and energies of states z [S, d] (float64 scene and output).
 
-    Returns g [S, T, d] = J^T grad_x E_e(f(z_s)) [J per unit z] and E [S, T] [J].
+    Returns g [S, T, d] = J^T grad_x E_e(f(z_s)) [J per unit z] and E [S, T] [J]. ``progress`` is called with the
+    number of states of each chunk done.
     """
     free = scene.dof_map.free_index
     forces, energies = [], []
@@ -240,6 +250,8 @@ def element_columns(
         je = gather_elements(jx, effect.element_dofs).reshape(d, k, *effect.element_dofs.shape)
         forces.append(torch.einsum("tek,jtek->tej", grad, je))
         energies.append(e.detach())
+        if progress is not None:
+            progress(k)
     return torch.cat(forces), torch.cat(energies)
 
 
@@ -359,10 +371,18 @@ def fit_rules(
         scene: The scene the map was fitted to.
         subspace: The map (neural, linear or quadratic).
         config: Sizes and options.
-        progress: Show a tqdm bar per subsampled effect (kept elements and held-out error).
+        progress: Show tqdm bars: the rollout steps, the states whose per-element forces are computed (per effect),
+            and per subsampled effect its kept elements and held-out error.
     """
     modes = effect_modes(scene, config)
-    z, cond, dropped, episode = training_states(scene, subspace, config)
+    bar = None
+    if progress and config.episodes and scene.handles:  # the rollouts and the columns come before the greedy's bars
+        bar = progress_bar(total=int(config.steps), desc="cubature rollouts", unit="step", dynamic_ncols=True)
+    z, cond, dropped, episode = training_states(
+        scene, subspace, config, progress=None if bar is None else lambda: bar.update(1)
+    )
+    if bar is not None:
+        bar.close()
     scene64 = scene.to(dtype=torch.float64)
     output = AffineOutput(subspace).to(torch.float64)
     test_index, train_index = split_states(episode, config)
@@ -374,11 +394,19 @@ def fit_rules(
     c0 = None if scene.condition_space is None else scene.condition_space.default.to(torch.float64)[None]
     # the total reduced force and energy per state (all non-load effects), for the per-state scale
     columns = {}
+    bar = None
+    if progress:
+        total = z.shape[0] * sum(e.name in modes for e in scene64.effects)
+        bar = progress_bar(total=total, desc="cubature element forces", unit="state", dynamic_ncols=True)
     for effect in scene64.effects:
         if effect.name in modes:
-            forces, energies = element_columns(scene64, output, effect, z, cond)
+            forces, energies = element_columns(
+                scene64, output, effect, z, cond, progress=None if bar is None else bar.update
+            )
             _, ref = element_columns(scene64, output, effect, z0, c0)
             columns[effect.name] = (forces, energies, ref[0])
+    if bar is not None:
+        bar.close()
     total_force = sum(f.sum(1) for f, _, _ in columns.values())
     total_energy = sum((e - r).sum(1) for _, e, r in columns.values())
     scale = torch.sqrt((total_force**2).sum(-1) + total_energy**2).clamp_min(1e-30)
@@ -404,7 +432,7 @@ def fit_rules(
         train, test = a[train_rows], a[test_rows]
         bar = None
         if progress:
-            bar = progress_bar(total=config.elements, desc=f"cubature {effect.name}", dynamic_ncols=True)
+            bar = progress_bar(total=min(config.elements, T), desc=f"cubature {effect.name}", dynamic_ncols=True)
 
         def report(kept: int, held: float, bar: object = bar) -> None:
             if bar is not None:

@@ -839,6 +839,19 @@ def test_held_out_rollouts_are_held_out_whole(mini_chain) -> None:
     ]
 
 
+def test_progress_covers_the_rollouts_and_the_element_forces(mini_chain, capsys) -> None:
+    """Only the greedy search had a bar: the rollouts and every effect's per-element forces before it (on the cloth,
+    nearly as long as the search) ran without a word."""
+    scene, f = mini_chain
+    config = CubatureConfig(elements=2, samples=8, episodes=1, steps=2, subsample=("contact",))
+    build_cubature(scene, f, config, progress=True)
+    bars = capsys.readouterr().err
+    states = 8 + 2  # per effect: rigid, contact, gravity
+    assert "cubature rollouts" in bars and "2/2" in bars, bars
+    assert "cubature element forces" in bars and f"{3 * states}/{3 * states}" in bars, bars
+    assert "cubature contact" in bars
+
+
 def test_a_float64_maps_training_rollouts_run_in_float64() -> None:
     """A float64 fit's rollouts ran in the stepper's float32, which could not feel the small cloth's loads (and
     said so, advising a dtype that ``redsim cubature`` cannot take); they run in the map's dtype now."""
