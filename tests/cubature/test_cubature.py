@@ -335,6 +335,36 @@ def test_cli_bad_input_exits_with_a_message(cli, tmp_path) -> None:
         Cubature.load(tmp_path / "m")
 
 
+def test_cli_interrupted_fit_leaves_the_file_whole_or_absent(cli, tmp_path, monkeypatch) -> None:
+    """Ctrl-C during the fit (exit 130): no cubature where there was none, the previous one unchanged under
+    --overwrite, and no temporary file beside them; with neither --elements nor --tol nothing runs."""
+    import shutil
+
+    from redsim.cubature import fit
+
+    for suffix in (".pt", ".json"):
+        shutil.copy(pretrained.path("mini_chain").with_suffix(suffix), tmp_path / f"m{suffix}")
+    argv = ("cubature", str(tmp_path / "m.pt"), "--elements", "4", "--samples", "8", "--episodes", "0")
+    code, _, err = cli(*argv[:2])
+    assert code == 2 and "one of the arguments --elements --tol is required" in err
+
+    def interrupted(*args, **kwargs):  # type: ignore[no-untyped-def]
+        raise KeyboardInterrupt
+
+    with monkeypatch.context() as patch:
+        patch.setattr(fit, "greedy_nnls", interrupted)
+        code, _, err = cli(*argv, "--subsample", "contact")
+    assert code == 130 and "interrupted" in err and sorted(p.name for p in tmp_path.iterdir()) == ["m.json", "m.pt"]
+    code, _, err = cli(*argv)
+    assert code == 0, err
+    before = (tmp_path / "m.cubature.json").read_text()
+    with monkeypatch.context() as patch:
+        patch.setattr(fit, "greedy_nnls", interrupted)
+        code, _, err = cli(*argv, "--subsample", "contact", "--overwrite")
+    assert code == 130 and (tmp_path / "m.cubature.json").read_text() == before
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["m.cubature.json", "m.json", "m.pt"]
+
+
 def test_cli_says_a_tol_not_reached_and_refuses_full_names_that_keep_nothing(cli, tmp_path, monkeypatch) -> None:
     """--tol stopped at its element cap without a word; --full gravity (linear, exact anyway) or external_load (the
     stepper's term) was taken, and, replacing the default, quietly subsampled the contact."""
