@@ -27,7 +27,7 @@ from typing import Any
 import torch
 from torch import Tensor, nn
 
-from redsim.cubature.fit import MODES, CubatureConfig, EffectRule, fit_rules
+from redsim.cubature.fit import LINEAR_KINDS, MODES, CubatureConfig, EffectRule, fit_rules
 from redsim.cubature.output import AffineOutput, column_major, sliced_layer
 from redsim.devices import check_device
 from redsim.effects.base import Effect
@@ -170,10 +170,19 @@ class Cubature:
                 "rebuild it with `redsim cubature` for this checkpoint",
                 where,
             )
-        names = {e.name: e.element_count for e in scene.load_free_effects("a cubature")}
+        effects = scene.load_free_effects("a cubature")
+        names = {e.name: e.element_count for e in effects}
         theirs = {r.name: r.element_count for r in self.rules}
         if names != theirs:
             raise CheckpointError(f"cubature effects {theirs} differ from the scene's {names}", where)
+        kinds = {e.name: e.kind for e in effects}
+        for rule in self.rules:  # "linear" reduces an effect to its value and gradient at r = 0: exact for these only
+            if rule.mode == "linear" and kinds[rule.name] not in LINEAR_KINDS:
+                raise CheckpointError(
+                    f"effect {rule.name!r} is reduced as linear, but its kind {kinds[rule.name]!r} is not one of "
+                    f"{list(LINEAR_KINDS)}: the cubature file was edited or damaged; rebuild it with `redsim cubature`",
+                    where,
+                )
 
 
 def _check_rule(name: str, count: int, index: Tensor, weights: Tensor, where: str) -> None:

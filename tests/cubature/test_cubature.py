@@ -201,6 +201,19 @@ def test_a_tampered_cubature_file_is_refused_at_load(tmp_path, field: str, value
         Cubature.load(tmp_path / "cloth")
 
 
+def test_a_cubature_file_that_reduces_a_nonlinear_effect_as_linear_is_refused(tmp_path) -> None:
+    """A rule's mode "linear" makes the energy r . c + e0 from the effect's value and gradient at r = 0: a membrane
+    marked so (a hand-edited file) loaded and stepped a wrong energy without a word."""
+    scene, f = _toy_cloth_map()
+    path = build_cubature(scene, f, CubatureConfig(elements=4, **QUICK)).save(tmp_path / "cloth")
+    doc = json.loads(path.read_text())
+    rule = next(r for r in doc["rules"] if r["name"] == "membrane")
+    rule.update(mode="linear", indices=None, weights=None)
+    path.write_text(json.dumps(doc))
+    with pytest.raises(CheckpointError, match=r"cloth.cubature.json: effect 'membrane' is reduced as linear, but its"):
+        load_cubature(tmp_path / "cloth", scene, f)
+
+
 @pytest.fixture(scope="module")
 def mini_chain():
     scene = scenes.build("mini_chain")
