@@ -301,7 +301,8 @@ def test_cli_writes_the_cubature_beside_the_checkpoint(cli, tmp_path) -> None:
     assert code == 0, err
     doc = json.loads(out)
     assert doc["path"].endswith("chain.cubature.json")
-    assert {e["effect"] for e in doc["effects"]} == {"rigid", "contact", "gravity"}
+    modes = {e["effect"]: e["mode"] for e in doc["effects"]}
+    assert modes == {"rigid": "full", "contact": "full", "gravity": "linear"}  # contact (96 > 8) whole by default
     scene = scenes.build("mini_chain")
     cub = load_cubature(tmp_path / "chain", scene, pretrained.load("mini_chain", scene))
     assert cub.command.startswith("redsim cubature ") and "--elements 8" in cub.command
