@@ -84,7 +84,8 @@ class Objective(Protocol):
         gradient_noise: Gradient norm (>= 0) at which float64 round-off dominates.
         value_noise: Objective change [J] (>= 0) below which float64 round-off of the value dominates
             (the value is a sum of much larger terms, e.g. load work and elastic energy).
-        max_step: Largest entry of one step of either minimizer (a trust radius; ``math.inf`` for none).
+        max_step: Largest move of one step of either minimizer (a trust radius; ``math.inf`` for none): of the
+            step's largest entry, or of the objective's ``largest_move(u, direction)`` where it has that method.
     """
 
     force_scale: float
@@ -221,7 +222,7 @@ class _Levenberg:
         for _ in range(MAX_SHIFTS):
             matrix = hessian if self.shift == 0.0 else hessian + self.shift * self.metric
             factor = _factorize(matrix)
-            direction = None if factor is None else _clipped(objective, _solve(factor, -point.grad))
+            direction = None if factor is None else _clipped(objective, _solve(factor, -point.grad), point.u)
             trial = None if direction is None else _line_search(objective, point, direction)
             if trial is not None:
                 self.shift = 0.0 if self.shift <= self.floor else max(self.shift / 10.0, self.floor)
@@ -324,10 +325,17 @@ def newton(
     )
 
 
-def _clipped(objective: Objective, direction: Tensor | None) -> Tensor | None:
-    """The direction scaled down so its largest entry is at most ``objective.max_step``."""
-    if direction is not None:
-        longest = float(direction.abs().max())
+def _largest_move(objective: Objective, u: Tensor, direction: Tensor) -> float:
+    """How far the step from u along ``direction`` moves, in the unit of ``objective.max_step``: the objective's own
+    measure where it has one (``largest_move(u, direction)``), else the direction's largest entry."""
+    measure = getattr(objective, "largest_move", None)
+    return float(direction.abs().max()) if measure is None else float(measure(u, direction))
+
+
+def _clipped(objective: Objective, direction: Tensor | None, u: Tensor) -> Tensor | None:
+    """The direction from u scaled down so it moves at most ``objective.max_step`` (:func:`_largest_move`)."""
+    if direction is not None and math.isfinite(objective.max_step):
+        longest = _largest_move(objective, u, direction)
         if longest > objective.max_step:
             direction = direction * (objective.max_step / longest)
     return direction
@@ -341,7 +349,9 @@ def _chord_step(objective: Objective, point: _Point, factor: scipy.sparse.linalg
     meets the Armijo condition.
     """
     direction = _solve(factor, -point.grad)
-    if direction is None or float(direction.abs().max()) > objective.max_step:
+    if direction is None:
+        return None
+    if math.isfinite(objective.max_step) and _largest_move(objective, point.u, direction) > objective.max_step:
         return None
     slope = float(point.grad @ direction)
     if not slope < 0.0:
@@ -388,10 +398,10 @@ def lbfgs(
             return point.u, _result(
                 point, True, iteration, history, f"converged: |g| = {point.grad_norm:.3g} <= {threshold:.3g}"
             )
-        trial = _line_search(objective, point, _clipped(objective, _two_loop(point.grad, pairs, factor)))
+        trial = _line_search(objective, point, _clipped(objective, _two_loop(point.grad, pairs, factor), point.u))
         if trial is None and pairs:
             pairs.clear()
-            trial = _line_search(objective, point, _clipped(objective, _two_loop(point.grad, pairs, factor)))
+            trial = _line_search(objective, point, _clipped(objective, _two_loop(point.grad, pairs, factor), point.u))
         if trial is None:
             return point.u, _result(
                 point, False, iteration, history, f"line search failed (|g| = {point.grad_norm:.3g} > {threshold:.3g})"

@@ -134,14 +134,15 @@ class ImplicitEuler:
             factorization per step (10-40% of a step's time on the catalog scenes where no step ends at a saddle;
             the chain above then took 5x the time, for the more iterations of the solves that leave them).
         retry_tunneled: Solve a step whose end passed through a contact again (``StepInfo.tunnel_caught``): from
-            q_t, each iteration's move within half the thinnest contact (``PotentialObjective.max_step`` of a
-            static solve), with ``max_iter`` plus the iterations that move needs to cover the first end's
-            distance (at most :data:`CATCH_ITERATIONS` x ``max_iter`` more). The first end is kept
-            (``tunneled``) where that solve does not converge or tunnels too (a false flag, e.g. a link spun fast
-            in its own plane, keeps it). None (the default): in the full space only; True in a latent space is
-            refused (its coordinates have no distance in metres to bound). Costs nothing on a step that did not
-            tunnel; the mini chain thrown at its hook at 10 m/s (its first solve: 1 iteration, 0.2 m up through
-            the hook) is caught 0.06 m up in 12 more.
+            q_t, each iteration moving no contact point more than half the thinnest contact relative to its shape
+            (``PotentialObjective.max_step`` and ``move_measure``; what the tunnel test samples), with ``max_iter``
+            plus the iterations the first end's largest such move needs (at most :data:`CATCH_ITERATIONS` x
+            ``max_iter`` more). The first end is kept (``tunneled``) where that solve does not converge or tunnels
+            too (a false flag, e.g. a link spun fast in its own plane, keeps it; and a penalty contact too soft to
+            stop the body before its middle has no minimum on the near side). None (the default): in the full space
+            only; True in a latent space is refused (its coordinates have no distance in metres to bound). Costs
+            nothing on a step that did not tunnel; the mini chain thrown at its hook at 10 m/s (its first solve: 1
+            iteration, 0.2 m up through the hook) is caught 0.06 m up in 12 more.
 
     Raises:
         ValueError: on a bad dt, tol, max_iter, an unknown minimizer, or ``escape_saddles`` or ``retry_tunneled``
@@ -272,18 +273,32 @@ class ImplicitEuler:
             x_next = self.scene.full_positions(self.space.configuration(u_next.unsqueeze(0)))
         return bool(self._tunnel_test(x_t, x_next)[0])
 
+    def _contact_move(self, u: Tensor, direction: Tensor) -> float:
+        """The largest move [m] of a contact point relative to its shape (in the frame that carries the shape) from u
+        to u + direction: what the tunnel test samples along."""
+        with torch.no_grad():
+            ends = self.space.configuration(torch.stack([u, u + direction]))
+            x = self.scene.full_positions(ends)
+            largest = 0.0
+            for contact in self._tunnel_test.contacts:
+                points, valid = contact.frame_points(x)
+                move = points[1, valid] - points[0, valid]
+                largest = max(largest, float((move * move).sum(-1).max()))
+        return math.sqrt(largest)
+
     def _catch(
         self, objective: PotentialObjective, x_t: Tensor, u_t: Tensor, u_first: Tensor, first: SolveInfo
     ) -> tuple[Tensor, SolveInfo, bool, bool]:
-        """The step solved again from u_t within the trust radius (``retry_tunneled``): (end, info, tunneled,
-        caught), the first end and info kept (tunneled) where the solve again does not converge or tunnels too."""
+        """The step solved again from u_t, each iteration's contact-point moves within the trust radius
+        (``retry_tunneled``): (end, info, tunneled, caught), the first end and info kept (tunneled) where the solve
+        again does not converge or tunnels too."""
         radius = 0.5 * self.scene.feature_size()
-        moves = min(math.ceil(float((u_first - u_t).abs().max()) / radius), CATCH_ITERATIONS * self.max_iter)
-        objective.max_step = radius
+        moves = min(math.ceil(self._contact_move(u_t, u_first - u_t) / radius), CATCH_ITERATIONS * self.max_iter)
+        objective.max_step, objective.move_measure = radius, self._contact_move
         try:
             u_again, again = self._solve(objective, u_t.clone(), self.max_iter + moves)
         finally:
-            objective.max_step = math.inf
+            objective.max_step, objective.move_measure = math.inf, None
         iterations = first.iterations + again.iterations
         if not again.converged or self._through_contact(x_t, u_again):
             return u_first, dataclasses.replace(first, iterations=iterations), True, False

@@ -10,6 +10,7 @@ convergence test reads (force scale, round-off, trust radius).
 from __future__ import annotations
 
 import math
+from collections.abc import Callable
 from dataclasses import dataclass
 from typing import Any
 
@@ -112,7 +113,10 @@ class PotentialObjective:
             shape). A start that feels little restoring force (a chain held only by contact, hanging
             out of contact) would otherwise take one long Levenberg step through its constraints,
             where penalty potentials are bounded. Time steps (the inertia term bounds the move)
-            and latent spaces have none.
+            and latent spaces have none (a full-space time step solved again after it tunneled sets one:
+            :class:`redsim.integrators.ImplicitEuler`'s ``retry_tunneled``).
+        move_measure: None (a step's move is its largest entry), or a function (u, direction) -> the move
+            [unit of ``max_step``] that :meth:`largest_move` returns and the minimizers bound by ``max_step``.
 
     Args:
         space: The coordinates to minimize over.
@@ -160,6 +164,7 @@ class PotentialObjective:
             self.gradient_noise += self._roundoff_noise(reference, q_ref)
         self.value_noise = (NOISE_FACTOR + space.roundoff) * q_force_scale * length
         self.max_step = math.inf
+        self.move_measure: Callable[[Tensor, Tensor], float] | None = None
         if inertia is None and isinstance(space, FullSpace):
             self.max_step = min(STATIC_MAX_STEP * self.scene.extent(), 0.5 * self.scene.feature_size())
 
@@ -204,6 +209,13 @@ class PotentialObjective:
         if self.force is not None:
             value = value - q @ self.force
         return value
+
+    def largest_move(self, u: Tensor, direction: Tensor) -> float:
+        """How far the step from u [m] along ``direction`` [m] moves, in the unit of ``max_step``: ``move_measure``'s
+        where set (e.g. contact points relative to their shapes [m]), else the direction's largest entry."""
+        if self.move_measure is None:
+            return float(direction.abs().max())
+        return self.move_measure(u, direction)
 
     def value_and_grad(self, u: Tensor) -> tuple[float, Tensor]:
         """Phi [J] and dPhi/du, shape [m], at u [m]."""

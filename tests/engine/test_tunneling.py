@@ -124,3 +124,29 @@ def test_env_info_says_tunneled_and_the_impact_rows_count_it() -> None:
     row = full.row(scene, "mini_chain", "impact_10", "full", stability.FULL_SLACK)
     assert row["tunnels_caught"] >= 1 and row["tunneled"] == 0 and row["unreported"] == 0
     assert "tunnels caught" in stability.markdown_rows([row])[0]
+
+
+def test_the_solve_again_bounds_each_iterations_contact_move_by_the_radius(monkeypatch) -> None:
+    """The retry's trust radius is on what the tunnel test samples: each iteration moves no contact point more than
+    half the thinnest contact relative to its shape (both minimizers clip by ``largest_move``), while a link may turn
+    further than the radius in its rotation entries (a per-entry radius of 0.015 held the 24-link chain's links to
+    ~0.015 rad per iteration)."""
+    from redsim import solvers
+
+    scene = scenes.build("mini_chain")
+    sim = ImplicitEuler(FullSpace(scene), 0.02)
+    radius = 0.5 * scene.feature_size()
+    seen = []
+    search = solvers._line_search
+
+    def watched(objective, point, direction):  # type: ignore[no-untyped-def]
+        if objective.move_measure is not None:  # the full step, the longest a line search tries
+            seen.append(objective.largest_move(point.u, direction))
+        return search(objective, point, direction)
+
+    monkeypatch.setattr(solvers, "_line_search", watched)
+    x_dot = torch.zeros(scene.full_dof_count, dtype=torch.float64)
+    x_dot[7::12] = 10.0
+    _, info = sim.step(sim.initial_state(None, scene.dof_map.restrict(x_dot.unsqueeze(0))[0]))
+    assert info.tunnel_caught and len(seen) > 5
+    assert max(seen) <= 1.01 * radius and max(seen) > 0.5 * radius  # bound, and reached (the map is bilinear)
