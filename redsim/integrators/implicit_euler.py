@@ -94,11 +94,13 @@ class StepInfo(SolveInfo):
         tunneled: The kept end's straight path from q_t passed through a contact that neither end shows (a move
             longer than the contact is thick, which the penalty never felt: :mod:`redsim.integrators.tunneling`):
             in the full space, a step whose first solve did and whose solve again within a trust radius
-            (``tunnel_caught``) did too or did not converge; in a latent space, any such step (reported only).
-        tunnel_caught: The first solve passed through a contact, and the step was solved again from q_t within the
-            static solves' trust radius (half the thinnest contact per entry and iteration), which met the contact
-            on the way and ended converged on its near side: the end kept (``retry_tunneled``, full space).
-            ``iterations`` counts both solves.
+            (``tunnel_caught``) did too or did not converge, or any such step with ``retry_tunneled=False``; in a
+            latent space, any such step (reported only).
+        tunnel_caught: The first solve passed through a contact, and the step was solved again from q_t, each
+            iteration moving no contact point more than half the thinnest contact relative to its shape, which met
+            the contact on the way and ended converged on its near side: the end kept (``retry_tunneled``, full
+            space). Converged as any step is (a stationary point of the same step objective, which may be a saddle
+            of it without ``escape_saddles``). ``iterations`` counts both solves, ``history`` the second's.
     """
 
     energy_gain: bool = False

@@ -108,7 +108,8 @@ class PotentialObjective:
             dPhi/du when q_ref is perturbed by r max(|q_i|, rms q) with seeded random signs: the
             sensitivity to the map's rounding, stiffness and inertia included.
         value_noise: (NOISE_FACTOR + r) * F * L: the round-off of Phi, a sum of terms of size up to F L [J].
-        max_step: Newton trust radius of a static full-space solve [m per entry]: the smaller of
+        max_step: Trust radius of either minimizer's steps [m per entry, or in ``move_measure``'s unit where set];
+            for a static full-space solve, the smaller of
             STATIC_MAX_STEP * scene.extent() and half of scene.feature_size() (the thinnest contact
             shape). A start that feels little restoring force (a chain held only by contact, hanging
             out of contact) would otherwise take one long Levenberg step through its constraints,

@@ -10,7 +10,8 @@ stop such a step; this test reports it.
 
 For every point of an :class:`~redsim.effects.SDFContact` it takes the point's coordinates in the frame
 that carries the shape at both ends of the step (exact there: each end's rotation is a rotation) and
-samples the straight path between them, at most a quarter of the contact's ``feature_size`` apart
+samples the straight path between them, at most a quarter of the contact's ``feature_size`` or of its shape's
+thinnest part apart, whichever is smaller
 (at most :data:`TUNNEL_SAMPLES` samples). A state is flagged where some point's path gets deeper into
 the contact (the shape's signed distance less the margin) than both of that point's ends by more than
 half the ``feature_size``, and inside the shape itself by more than half its thinnest part (a chord that
@@ -18,7 +19,8 @@ only grazes the margin, as a point swept along an arc by a fast turn does, is no
 points that moved that far relative to the shape are sampled, so ordinary steps cost one gather per
 contact. The relative path is a chord (a point swept along an arc by a fast turn of its frame is checked
 along the chord of that arc), so the test is a detector, not a proof.
-Reported per step (:class:`redsim.integrators.StepInfo`, the envs' ``info["tunneled"]``), never acted on.
+Reported per step (:class:`redsim.integrators.StepInfo`, the envs' ``info["tunneled"]``); a full-space
+ImplicitEuler step it flags is solved again within a trust radius (``retry_tunneled``), a latent one is not.
 """
 
 from __future__ import annotations
@@ -85,7 +87,8 @@ def _crossed(effect: SDFContact, a: Tensor, b: Tensor, valid: Tensor, tested: Te
     if not state.numel():
         return flagged
     start, end = a[state, point], b[state, point]  # [m, 3]
-    samples = min(TUNNEL_SAMPLES, math.ceil(math.sqrt(float(move[state, point].max())) / (0.25 * size)))
+    spacing = 0.25 * min(size, 2.0 * core)  # a chord through the core is at least its depth long: one sample lands
+    samples = min(TUNNEL_SAMPLES, math.ceil(math.sqrt(float(move[state, point].max())) / spacing))
     s = torch.arange(1, samples + 1, dtype=a.dtype, device=a.device)[:, None, None] / (samples + 1)
     ends = torch.minimum(effect.shape.distance(start), effect.shape.distance(end)) - margin  # [m]
     chunk = max(1, SAMPLED_POINTS // samples)

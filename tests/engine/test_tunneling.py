@@ -16,18 +16,25 @@ import torch
 
 from redsim import scenes
 from redsim.benches import stability
-from redsim.integrators import FullSpace, ImplicitEuler
+from redsim.integrators import FullSpace, FullState, ImplicitEuler
 from redsim.integrators.tunneling import TunnelTest
+from redsim.scene import Scene
+
+
+def _thrown(speed: float, **options) -> tuple[Scene, ImplicitEuler, FullState]:
+    """The mini chain, its 0.02 s full-space integrator (``options``: ImplicitEuler's) and its state with every link
+    thrown up at ``speed`` [m/s]."""
+    scene = scenes.build("mini_chain")
+    x_dot = torch.zeros(scene.full_dof_count, dtype=torch.float64)
+    x_dot[7::12] = speed  # t_y of every link
+    sim = ImplicitEuler(FullSpace(scene), 0.02, **options)
+    return scene, sim, sim.initial_state(None, scene.dof_map.restrict(x_dot.unsqueeze(0))[0])
 
 
 def _thrown_up(speed: float, steps: int = 4, **options) -> tuple[torch.Tensor, list]:
     """The mini chain's link centres' heights [steps + 1, 2] [m] and its steps' StepInfo, every link thrown up at
     ``speed`` [m/s] (``options``: ImplicitEuler's)."""
-    scene = scenes.build("mini_chain")
-    x_dot = torch.zeros(scene.full_dof_count, dtype=torch.float64)
-    x_dot[7::12] = speed  # t_y of every link
-    sim = ImplicitEuler(FullSpace(scene), 0.02, **options)
-    state = sim.initial_state(None, scene.dof_map.restrict(x_dot.unsqueeze(0))[0])
+    scene, sim, state = _thrown(speed, **options)
     q, infos = [state.q], []
     for _ in range(steps):
         state, info = sim.step(state)
@@ -48,15 +55,38 @@ def test_a_step_through_the_hook_is_flagged_and_one_the_hook_stops_is_not() -> N
     assert float(heights[:, 0].max()) < 0.0  # the hook held it
 
 
-@pytest.mark.parametrize("speed", [10.0, 100.0])
-def test_a_step_through_the_hook_is_solved_again_and_caught_there(speed: float) -> None:
+@pytest.mark.parametrize(("speed", "minimizer"), [(10.0, "newton"), (100.0, "newton"), (10.0, "lbfgs")])
+def test_a_step_through_the_hook_is_solved_again_and_caught_there(speed: float, minimizer: str) -> None:
     """By default a full-space step that tunneled is solved again from q_t within half the thinnest contact per
-    iteration: the hook holds the chain thrown at it (it flew off to +3.1 m at 10 m/s, +39 m at 100 m/s)."""
-    heights, infos = _thrown_up(speed, steps=3)
+    iteration: the hook holds the chain thrown at it (it flew off to +3.1 m at 10 m/s, +39 m at 100 m/s). L-BFGS
+    clips its steps too (unclipped, its solve again went through the hook as its first solve did)."""
+    heights, infos = _thrown_up(speed, steps=3, minimizer=minimizer)
     assert infos[0].tunnel_caught and not infos[0].tunneled and infos[0].converged
-    assert infos[0].iterations > 1  # both solves counted (the first took 1)
+    assert infos[0].iterations > 2  # both solves counted (the first took 1 or 2)
     assert not any(info.tunneled or info.energy_gain for info in infos)
     assert float(heights[:, 0].max()) < 0.1  # link 0 stays hooked (hung at -0.075 m)
+
+
+def test_a_solve_again_that_does_not_converge_keeps_the_first_end_flagged() -> None:
+    """Where the solve again ends unconverged, the step is the first solve's, flagged ``tunneled``, with the
+    iterations of both solves: L-BFGS (max_iter 50) thrown at 100 m/s spends the whole budget of the solve again;
+    with ``escape_saddles`` the 10 m/s catch ends on a saddle of the step (the link pressed on the round wire),
+    and the solve that leaves it does not converge."""
+    from redsim.integrators.implicit_euler import CATCH_ITERATIONS
+
+    first, plain = _thrown_up(100.0, steps=1, minimizer="lbfgs", retry_tunneled=False)
+    heights, infos = _thrown_up(100.0, steps=1, minimizer="lbfgs")
+    assert infos[0].tunneled and not infos[0].tunnel_caught and infos[0].converged
+    assert infos[0].iterations == plain[0].iterations + (1 + CATCH_ITERATIONS) * 50
+    assert torch.equal(heights, first) and float(heights[-1, 0]) > 1.0  # the first end: through the hook
+
+    from redsim.integrators.reference import _negative_curvature
+
+    scene, sim, state = _thrown(10.0)
+    state, info = sim.step(state)
+    assert info.tunnel_caught and _negative_curvature(scene, state.q, None, None, 0.02) is not None  # a saddle
+    heights, infos = _thrown_up(10.0, steps=1, escape_saddles=True)
+    assert infos[0].tunneled and not infos[0].tunnel_caught and float(heights[-1, 0]) > 0.05  # caught: -0.019 m
 
 
 def test_a_retry_is_refused_in_a_latent_space_and_off_costs_nothing() -> None:
@@ -133,8 +163,7 @@ def test_the_solve_again_bounds_each_iterations_contact_move_by_the_radius(monke
     ~0.015 rad per iteration)."""
     from redsim import solvers
 
-    scene = scenes.build("mini_chain")
-    sim = ImplicitEuler(FullSpace(scene), 0.02)
+    scene, sim, state = _thrown(10.0)
     radius = 0.5 * scene.feature_size()
     seen = []
     search = solvers._line_search
@@ -145,8 +174,6 @@ def test_the_solve_again_bounds_each_iterations_contact_move_by_the_radius(monke
         return search(objective, point, direction)
 
     monkeypatch.setattr(solvers, "_line_search", watched)
-    x_dot = torch.zeros(scene.full_dof_count, dtype=torch.float64)
-    x_dot[7::12] = 10.0
-    _, info = sim.step(sim.initial_state(None, scene.dof_map.restrict(x_dot.unsqueeze(0))[0]))
+    _, info = sim.step(state)
     assert info.tunnel_caught and len(seen) > 5
     assert max(seen) <= 1.01 * radius and max(seen) > 0.5 * radius  # bound, and reached (the map is bilinear)
