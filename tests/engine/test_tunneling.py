@@ -177,3 +177,22 @@ def test_the_solve_again_bounds_each_iterations_contact_move_by_the_radius(monke
     _, info = sim.step(state)
     assert info.tunnel_caught and len(seen) > 5
     assert max(seen) <= 1.01 * radius and max(seen) > 0.5 * radius  # bound, and reached (the map is bilinear)
+
+
+def test_a_path_across_the_wire_between_coarse_samples_is_flagged() -> None:
+    """A point crossing the mini chain's wire (a torus of tube radius 0.01 m) 4.5 mm from its centre circle, 0.053 m
+    in one step, goes 5.4 mm into the tube: past its core (5 mm). Sampled a quarter of the contact's 0.03 m apart, its
+    samples straddled the wire's middle, the deepest 4.6 mm in, and it was not flagged (the mini chain's bottom link
+    left the top one that way at 0.04 s steps under the accuracy bench's actions, no step flagged); sampled a quarter
+    of the wire's thinnest part apart, it is."""
+    from redsim.integrators.tunneling import _crossed
+
+    scene = scenes.build("mini_chain")
+    (contact,) = TunnelTest(scene).contacts
+    side = 0.05 + 0.0045  # the centre circle's radius plus the offset, in the circle's plane
+    a = torch.tensor([[[side, 0.0, -0.0263]]], dtype=torch.float64)
+    b = torch.tensor([[[side, 0.0, 0.0263]]], dtype=torch.float64)
+    assert float(contact.shape.distance(a).min()) > contact.margin  # both ends clear of the contact
+    assert float(contact.shape.distance((a + b) / 2)) < -0.005  # the middle past the core
+    flags = _crossed(contact, a, b, torch.tensor([True]), torch.tensor([True]))
+    assert flags.tolist() == [True]
