@@ -13,8 +13,9 @@ that carries the shape at both ends of the step (exact there: each end's rotatio
 samples the straight path between them, at most a quarter of the smaller of the contact's ``feature_size`` and
 its shape's thinnest part apart (at most :data:`TUNNEL_SAMPLES` samples). A state is flagged where some point's path
 gets deeper into the contact (the shape's signed distance less the margin) than both of that point's ends by more than
-half the ``feature_size``, and inside the shape itself by more than half its thinnest part (a chord that
-only grazes the margin, as a point swept along an arc by a fast turn does, is not a crossing). Only
+half the ``feature_size`` (or the margin and the core, where less), and inside the shape itself deeper than its core:
+half its thinnest part, less where the contact's points are sparse (:func:`core_depth`; a chord that only grazes the
+margin, as a point swept along an arc by a fast turn does, is not a crossing). Only
 points that moved that far relative to the shape are sampled, so ordinary steps cost one gather per
 contact. The relative path is a chord (a point swept along an arc by a fast turn of its frame is checked
 along the chord of that arc), so the test is a detector, not a proof.
@@ -26,6 +27,7 @@ from __future__ import annotations
 
 import math
 
+import scipy.spatial
 import torch
 from torch import Tensor
 
@@ -52,6 +54,9 @@ class TunnelTest:
     def __init__(self, scene: Scene) -> None:
         self.contacts = [e for e in scene.effects if isinstance(e, SDFContact) and math.isfinite(e.feature_size)]
         self._kept: tuple[Tensor, int, list[tuple[Tensor, Tensor]]] | None = None
+        seed = scene.full_positions(scene.q_seed.unsqueeze(0)) if self.contacts else None
+        self.cores = [core_depth(e, sample_gap(e, seed)) for e in self.contacts]
+        """Per contact, how deep [m] into its shape a path must go to be a crossing (:func:`core_depth`)."""
 
     def __call__(self, x_from: Tensor, x_to: Tensor, rows: Tensor | None = None) -> Tensor:
         flagged = torch.zeros(x_from.shape[0], dtype=torch.bool, device=x_from.device)
@@ -67,15 +72,49 @@ class TunnelTest:
             ends = [e.frame_points(x_to) for e in self.contacts]
             self._kept = (x_to, x_to._version, ends)
             if bool(tested.any()):
-                for effect, (a, valid), (b, _) in zip(self.contacts, starts, ends, strict=True):
-                    flagged |= _crossed(effect, a, b, valid, tested)
+                for effect, core, (a, valid), (b, _) in zip(self.contacts, self.cores, starts, ends, strict=True):
+                    flagged |= _crossed(effect, core, a, b, valid, tested)
         return flagged
 
 
-def _crossed(effect: SDFContact, a: Tensor, b: Tensor, valid: Tensor, tested: Tensor) -> Tensor:
-    """States [B] of ``tested`` where a point of ``effect`` passed through its shape (module doc), from its points in
-    their shapes' frames at the step's start ``a`` and end ``b`` [B, M, 3] (rows ``valid`` [M] are points)."""
-    size, margin, core = float(effect.feature_size), float(effect.margin), 0.5 * float(effect.shape.feature_size)
+def path_spacing(effect: SDFContact) -> float:
+    """Most distance [m] between two samples of a point's path: an eighth of the smaller of the contact's
+    ``feature_size`` and its shape's thinnest part."""
+    return 0.125 * min(float(effect.feature_size), float(effect.shape.feature_size))
+
+
+def sample_gap(effect: SDFContact, x: Tensor) -> float:
+    """The largest distance [m] from one of ``effect``'s points to its nearest neighbour among the points of its own
+    frame pair (a chain link's centre-line samples against its neighbour), in the full configuration x [1, N]: a
+    wire crossing another between two samples brings one within half of it of the other's centre line."""
+    points, valid = effect.frame_points(x)
+    groups = [points[0, valid]] if effect.single_frame else list(points[0].reshape(*effect.pair_mask.shape, 3))
+    masks = [None] if effect.single_frame else list(effect.pair_mask > 0)
+    gap = 0.0
+    for group, mask in zip(groups, masks, strict=True):
+        group = group if mask is None else group[mask]
+        if group.shape[0] > 1:
+            nearest, _ = scipy.spatial.cKDTree(group.detach().cpu().double().numpy()).query(
+                group.detach().cpu().double().numpy(), k=2
+            )
+            gap = max(gap, float(nearest[:, 1].max()))
+    return gap
+
+
+def core_depth(effect: SDFContact, gap: float) -> float:
+    """How deep [m] into its shape a point's sampled path must go to count as a crossing: half the shape's thinnest
+    part t, or less where the points are sparse, t - gap / 2 - :func:`path_spacing` / 2 (a wire crossing another
+    between two samples ``gap`` apart is only sure to bring one that deep), but at least t / 4 (a chord of a fast
+    turn that grazes the margin is not a crossing)."""
+    thin = float(effect.shape.feature_size)
+    return max(0.25 * thin, min(0.5 * thin, thin - 0.5 * gap - 0.5 * path_spacing(effect)))
+
+
+def _crossed(effect: SDFContact, core: float, a: Tensor, b: Tensor, valid: Tensor, tested: Tensor) -> Tensor:
+    """States [B] of ``tested`` where a point of ``effect`` passed through its shape deeper than ``core`` [m] (module
+    doc), from its points in their shapes' frames at the step's start ``a`` and end ``b`` [B, M, 3] (rows ``valid``
+    [M] are points)."""
+    size, margin = float(effect.feature_size), float(effect.margin)
     step = b - a
     move = (step * step).sum(
         -1
@@ -86,18 +125,18 @@ def _crossed(effect: SDFContact, a: Tensor, b: Tensor, valid: Tensor, tested: Te
     if not state.numel():
         return flagged
     start, end = a[state, point], b[state, point]  # [m, 3]
-    # the deepest sample lies within spacing / 2 of the chord's deepest point and the signed distance is 1-Lipschitz:
-    # a chord deeper than the core by an eighth of the shape's thinnest part is flagged (a quarter of the feature size
-    # apart, a 0.05 m move across the mini chain's 0.01 m wire went 5.1 mm deep with its deepest sample short of 5 mm)
-    spacing = 0.25 * min(size, 2.0 * core)
-    samples = min(TUNNEL_SAMPLES, math.ceil(math.sqrt(float(move[state, point].max())) / spacing))
+    # the deepest sample lies within spacing / 2 of the chord's deepest point and the signed distance is 1-Lipschitz
+    # (a quarter of the feature size apart, a 0.05 m move across the mini chain's 0.01 m wire went 5.1 mm deep with its
+    # deepest sample short of 5 mm)
+    samples = min(TUNNEL_SAMPLES, math.ceil(math.sqrt(float(move[state, point].max())) / path_spacing(effect)))
     s = torch.arange(1, samples + 1, dtype=a.dtype, device=a.device)[:, None, None] / (samples + 1)
     ends = torch.minimum(effect.shape.distance(start), effect.shape.distance(end)) - margin  # [m]
+    rise = min(0.5 * size, margin + core)  # from the margin's edge to the core at least
     chunk = max(1, SAMPLED_POINTS // samples)
     for i in range(0, start.shape[0], chunk):
         path = start[i : i + chunk] + s * (end[i : i + chunk] - start[i : i + chunk])  # [samples, m, 3]
         deepest = effect.shape.distance(path).amin(0)  # [m], the signed distance
-        through = (deepest < -core) & (deepest - margin < ends[i : i + chunk] - 0.5 * size)
+        through = (deepest < -core) & (deepest - margin < ends[i : i + chunk] - rise)
         flagged[state[i : i + chunk][through]] = True
     return flagged
 

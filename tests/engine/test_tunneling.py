@@ -194,5 +194,28 @@ def test_a_path_across_the_wire_between_coarse_samples_is_flagged() -> None:
     b = torch.tensor([[[side, 0.0, 0.0263]]], dtype=torch.float64)
     assert float(contact.shape.distance(a).min()) > contact.margin  # both ends clear of the contact
     assert float(contact.shape.distance((a + b) / 2)) < -0.005  # the middle past the core
-    flags = _crossed(contact, a, b, torch.tensor([True]), torch.tensor([True]))
+    flags = _crossed(contact, 0.005, a, b, torch.tensor([True]), torch.tensor([True]))  # half the wire's radius
     assert flags.tolist() == [True]
+
+
+def test_a_wire_crossing_another_between_two_samples_is_flagged() -> None:
+    """The chain's contact points are centre-line samples 13 mm apart, so a link's wire crossing its neighbour's 10 mm
+    tube between two samples is only sure to bring one within 6.5 mm of the other's centre line: 3.5 mm into the tube,
+    short of half its radius (the 24-link chain came apart at 0.1 s steps under the accuracy bench's actions, its
+    deepest sampled path 4.8 mm in, no step flagged). The depth a crossing needs follows the samples' spacing."""
+    from redsim.integrators.tunneling import _crossed, core_depth, path_spacing, sample_gap
+
+    scene = scenes.build("chain")
+    test = TunnelTest(scene)
+    (contact,) = test.contacts
+    gap = sample_gap(contact, scene.full_positions(scene.q_seed.unsqueeze(0)))
+    assert gap == pytest.approx(2 * 0.05 * math.sin(math.pi / 24), rel=1e-6)  # chords of 24 samples on 0.05 m
+    assert test.cores == [core_depth(contact, gap)]
+    assert core_depth(contact, gap) == pytest.approx(0.01 - gap / 2 - path_spacing(contact) / 2)
+    side = 0.05 + 0.0052  # 4.8 mm into the tube at the path's middle
+    a = torch.tensor([[[side, 0.0, -0.06]]], dtype=torch.float64)
+    b = torch.tensor([[[side, 0.0, 0.06]]], dtype=torch.float64)
+    valid, tested = torch.tensor([True]), torch.tensor([True])
+    assert _crossed(contact, test.cores[0], a, b, valid, tested).tolist() == [True]
+    assert _crossed(contact, 0.005, a, b, valid, tested).tolist() == [False]  # the core before
+    assert core_depth(contact, 0.0) == 0.005 and core_depth(contact, 1.0) == 0.0025  # dense points; the floor
