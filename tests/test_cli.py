@@ -181,6 +181,20 @@ def test_simulate_reports_steps_that_tunneled(
     assert "1 step(s) moved through a contact in their first solve and were solved again" in out
 
 
+def test_simulate_catches_a_tunnel_unless_told_not_to(capsys: pytest.CaptureFixture[str]) -> None:
+    """The mini chain pulled down hard at a long step passes through its hook in its first solve: simulate solves it
+    again and catches it there (tunnels_caught_steps); --no-retry-tunneled reports it (tunneled_steps) instead."""
+    argv = ("simulate", "mini_chain", "--steps", "1", "--dt", "0.1", "--load", "bottom=0,-1000,0", "--json")
+    code, out, err = run(capsys, *argv)
+    caught = json.loads(out)
+    code_off, out, err_off = run(capsys, *argv, "--no-retry-tunneled")
+    through = json.loads(out)
+    assert code == 0 and code_off != 0, err + err_off  # through the hook, the chain falls: a failed step too
+    assert (caught["retry_tunneled"], through["retry_tunneled"]) == (True, False)
+    assert caught["tunnels_caught_steps"] == [1] and caught["tunneled_steps"] == [], err
+    assert through["tunneled_steps"] == [1] and through["tunnels_caught_steps"] == [] and through["failed_step"] == 1
+
+
 def test_simulate_holds_the_conditions_given_and_reports_them(capsys: pytest.CaptureFixture[str]) -> None:
     """simulate ran a conditional scene at its default condition, with no way to set it and no word of which it was
     (a review's finding); `redsim scenes` names each condition's range and default."""

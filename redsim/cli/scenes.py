@@ -142,6 +142,7 @@ def cmd_simulate(args: argparse.Namespace) -> int:
             max_iter=args.max_iter,
             strict=False,
             escape_saddles=args.escape_saddles,
+            retry_tunneled=args.retry_tunneled,
         )
     except ValueError as err:  # bad --tol or --max-iter
         raise CliError(f"bad solver setting (--tol, --max-iter): {err}") from err
@@ -240,6 +241,7 @@ def cmd_simulate(args: argparse.Namespace) -> int:
         "tol": args.tol,
         "max_iter": args.max_iter,
         "escape_saddles": args.escape_saddles,
+        "retry_tunneled": args.retry_tunneled,
         "loads": loads or {},
         "conditions": conditions,
         "converged_steps": len(records) - len(not_converged),
@@ -367,6 +369,13 @@ def add_commands(sub: Any) -> None:
         help="leave a converged step that ended at a saddle of the step's objective (negative curvature, which "
         "Newton does not see: from a symmetric state, e.g. a chain's links) and solve again; one more Hessian "
         "and factorization per step",
+    )
+    p.add_argument(
+        "--no-retry-tunneled",
+        dest="retry_tunneled",
+        action="store_false",
+        help="report a step that moved through a contact (tunneled) without solving it again within a trust radius "
+        "(by default it is solved again and, where that converges on the contact's near side, caught)",
     )
     add_out_folder(p, "folder for the picture and meshes (nothing is written without it)")
     p.add_argument("--meshes", action="store_true", help="write per-frame .ply meshes to OUT/frames")
