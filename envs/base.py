@@ -1001,6 +1001,7 @@ class LatentSim:
         out_of_range = out_of_range_states(self.z_prev[:, None], tuple(self.periodic), None, None).to(self.device)
         out_of_range &= moving
         energy_gain = torch.zeros_like(diverged)
+        stalled = torch.zeros_like(diverged)
         gain_tolerance = torch.zeros(self.batch, dtype=self.torch_dtype, device=self.device)
         iterations = torch.zeros(self.batch, dtype=torch.int64, device=self.device)
         converged = moving.clone()
@@ -1011,6 +1012,7 @@ class LatentSim:
             diverged |= stats.diverged.to(self.device)
             out_of_range |= stats.out_of_range.to(self.device)
             energy_gain |= stats.energy_gain.to(self.device)
+            stalled |= stats.stalled.to(self.device)
             gain_tolerance += stats.energy_gain_tolerance.to(self.device, self.torch_dtype)
             converged &= stats.converged.to(self.device)
             iterations += stats.iterations.to(self.device).to(torch.int64)
@@ -1040,6 +1042,7 @@ class LatentSim:
             "energy": energy,
             "out_of_range": out_of_range,
             "diverged": diverged,
+            "stalled": stalled,
             "energy_gain": energy_gain,
             "energy_gain_tolerance": gain_tolerance,
             "tunneled": tunneled,
@@ -1508,7 +1511,9 @@ class LatentEnv(gym.Env[np.ndarray, np.ndarray]):
     ``info`` after each step: ``converged``, ``iterations``, ``residual`` (the stepper's solver
     statistics), ``energy`` [J] (the energy the stepper minimized: a cubature's estimate where the env steps one),
     ``out_of_range`` (z left the region the map was fitted on, or a latent of z lies beyond the observation's
-    :data:`LATENT_BOUND`, where the observation clips it), ``diverged``, ``energy_gain`` (a step raised K + E by
+    :data:`LATENT_BOUND`, where the observation clips it), ``diverged``, ``stalled`` (a solve, of any of the
+    ``frame_skip`` stepper steps, stopped unconverged before ``max_iter``: its line search found no step lowering the
+    objective; :class:`redsim.runtime.StepStats`), ``energy_gain`` (a step raised K + E by
     more than the action's work: an artefact of the map or the solve, reported like MuJoCo's warnings and never
     ending the episode; see
     :func:`redsim.runtime.flags.energy_gain_states`), ``energy_gain_tolerance`` [J] (the rise that flag allows: what

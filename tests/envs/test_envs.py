@@ -630,7 +630,32 @@ def test_info_reports_solver_flags_invariants_rewards_and_q() -> None:
     assert info["contact_clearance"] == pytest.approx(-info["contact_penetration"]) or info["contact_clearance"] > 0
 
 
-SOLVER_INFO = ("converged", "iterations", "residual", "energy", "diverged", "energy_gain", "tunneled")
+def test_a_step_s_info_reports_a_stalled_solve_in_every_env() -> None:
+    """The stepper's ``StepStats.stalled`` (the line search found no step lowering Phi before max_iter) was in no
+    env's info. Float32 asked for a 1e-12 relative residual, below its round-off: the second step's solve stalls
+    (measured: 183 of 200 iterations; the first one runs out of them), and the vector env and the SB3 adapter report
+    the flag per copy as they report ``diverged``."""
+    from redsim.envs.sb3 import SB3VecEnv
+
+    options = {"stepper_options": {"tol": 1e-12, "max_iter": 200}}
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore", UserWarning)  # tol below float32's round-off, which this test wants
+        env = gym.make("RedSim/MiniChain-v0", **options)
+        venv = gym.make_vec("RedSim/MiniChain-v0", 2, vectorization_mode="vector_entry_point", **options)
+        sb3 = SB3VecEnv.make("RedSim/MiniChain-v0", num_envs=2, **options)
+    env.reset(seed=0)
+    infos = [env.step(np.ones(3, np.float32))[-1] for _ in range(2)]
+    assert [info["stalled"] for info in infos] == [False, True]
+    assert not infos[1]["converged"] and infos[1]["iterations"] < 200 and not infos[1]["diverged"]
+    venv.reset(seed=0)
+    info = venv.step(np.ones((2, 3), np.float32))[-1]
+    assert info["stalled"].dtype == bool and info["stalled"].shape == (2,) and info["_stalled"].all()
+    sb3.reset()
+    rows = sb3.step(np.ones((2, 3), np.float32))[3]
+    assert all(row["stalled"].dtype == bool == row["diverged"].dtype for row in rows)
+
+
+SOLVER_INFO = ("converged", "iterations", "residual", "energy", "diverged", "stalled", "energy_gain", "tunneled")
 """A step's info keys about the solve (and ``energy_gain_tolerance``), which a reset's info has not (it has
 ``out_of_range``, of the start)."""
 
