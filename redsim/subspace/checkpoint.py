@@ -8,11 +8,14 @@ Nothing is pickled. Which class a checkpoint rebuilds is decided by :mod:`redsim
 
 from __future__ import annotations
 
+import contextlib
+import glob
 import hashlib
 import json
 import os
+import re
 import tempfile
-from collections.abc import Callable
+from collections.abc import Callable, Iterator
 from pathlib import Path
 from typing import Any
 
@@ -21,7 +24,14 @@ from torch import Tensor, nn
 
 from redsim.scene import Scene, check_scene_type
 
+try:
+    import fcntl
+except ImportError:  # Windows: no flock, so temporaries are neither locked nor removed as dead
+    fcntl = None  # type: ignore[assignment]
+
 FORMAT_VERSION = 1
+PAIR_KEY = "map_fingerprint"
+"""The key of a checkpoint's ``.json`` that records its ``.pt``'s :func:`map_fingerprint` (absent in older ones)."""
 
 
 class CheckpointError(ValueError):
@@ -71,49 +81,92 @@ def beside_checkpoint(path: str | Path) -> str | None:
 
 def write_atomically(path: Path, write: Callable[[Path], Any]) -> None:
     """Call ``write(tmp)`` on a temporary file beside ``path``, then move it onto ``path``: an interrupted write
-    leaves the previous file whole (and no partial one under its name)."""
-    tmp = _temporary(path)
-    try:
+    leaves the previous file whole (and no partial one under its name). A killed writer's temporaries of ``path`` go
+    first (:func:`remove_dead_temporaries`)."""
+    remove_dead_temporaries(path)
+    with _temporary(path) as tmp:
         write(tmp)
         os.replace(tmp, path)
+
+
+@contextlib.contextmanager
+def _temporary(path: Path) -> Iterator[Path]:
+    """A new empty file ``NAME.XXXXXXXXtmp`` beside ``path`` (``NAME``), this writer's own, locked (``flock``) until
+    the block ends and removed then if still there: two processes writing the same file (SubprocVecEnv workers
+    fitting one cached map) each replace it whole (one shared ``NAME.tmp`` made the second one's replace fail, or
+    moved a file the other was still writing), and a temporary no writer holds is a killed one's
+    (:func:`remove_dead_temporaries`). ``NAME`` whole before the last dot: ``torch.save`` names its archive after the
+    file without its last suffix, so a checkpoint's bytes stay those of the same weights written at any time;
+    ``redsim cache clear`` knows a stale one (:data:`TEMPORARY`)."""
+    while True:
+        handle, name = tempfile.mkstemp(dir=path.parent, prefix=f"{path.name}.", suffix="tmp")
+        if fcntl is not None:
+            fcntl.flock(handle, fcntl.LOCK_EX)
+        if os.fstat(handle).st_nlink:  # not removed as dead between its making and the lock
+            break
+        os.close(handle)
+    try:
+        umask = os.umask(0)  # mkstemp makes it 0600: the file it becomes gets the mode a plain write would give it
+        os.umask(umask)
+        os.chmod(name, 0o666 & ~umask)
+        yield Path(name)
     finally:
-        tmp.unlink(missing_ok=True)
+        Path(name).unlink(missing_ok=True)  # before the lock goes: no one takes a live write's file for dead
+        os.close(handle)
 
 
-def _temporary(path: Path) -> Path:
-    """A new empty file ``NAME.XXXXXXXXtmp`` beside ``path`` (``NAME``), this writer's own: two processes writing
-    the same file (SubprocVecEnv workers fitting one cached map) each replace it whole (one shared ``NAME.tmp`` made
-    the second one's replace fail, or moved a file the other was still writing). ``NAME`` whole before the last dot:
-    ``torch.save`` names its archive after the file without its last suffix, so a checkpoint's bytes stay those of
-    the same weights written at any time; ``redsim cache clear`` knows a stale one (:data:`TEMPORARY`)."""
-    handle, name = tempfile.mkstemp(dir=path.parent, prefix=f"{path.name}.", suffix="tmp")
-    os.close(handle)
-    umask = os.umask(0)  # mkstemp makes it 0600: the file it becomes gets the mode a plain write would give it
-    os.umask(umask)
-    os.chmod(name, 0o666 & ~umask)
-    return Path(name)
+TEMPORARY_PART = re.compile(r"\.[a-z0-9_]{8}tmp")
+"""What :func:`_temporary` appends to the name of the file it will replace: mkstemp's random part, ``tmp``."""
+
+
+def remove_dead_temporaries(path: Path) -> list[Path]:
+    """Remove the temporaries of ``path`` (:func:`_temporary`'s) that no writer holds: a killed writer's (SIGKILL,
+    a crash), left beside ``path`` for good; a writer's in flight holds its lock and is kept. Returns those removed
+    (none where ``flock`` is missing: Windows)."""
+    removed: list[Path] = []
+    if fcntl is None or not path.parent.is_dir():
+        return removed
+    for tmp in path.parent.glob(f"{glob.escape(path.name)}.*tmp"):
+        if not TEMPORARY_PART.fullmatch(tmp.name[len(path.name) :]):
+            continue
+        try:
+            handle = os.open(tmp, os.O_RDONLY | getattr(os, "O_NOFOLLOW", 0))
+        except OSError:  # removed meanwhile (its writer done), or a link
+            continue
+        try:
+            fcntl.flock(handle, fcntl.LOCK_EX | fcntl.LOCK_NB)
+            if os.path.samestat(os.fstat(handle), tmp.stat()):  # still the file that was opened
+                tmp.unlink()
+                removed.append(tmp)
+        except OSError:  # a live writer's (locked), or removed meanwhile
+            pass
+        finally:
+            os.close(handle)
+    return removed
 
 
 def write_checkpoint(module: nn.Module, stem: str | Path, config: dict[str, Any]) -> tuple[Path, Path]:
-    """Write ``stem.pt`` (the module's state dict) and ``stem.json`` (format version, ``config`` and the
-    module's ``metadata``); returns both paths. Shared by every kind of subspace."""
+    """Write ``stem.pt`` (the module's state dict) and ``stem.json`` (format version, ``config``, the module's
+    ``metadata`` and ``map_fingerprint``, the weights' :func:`map_fingerprint`, by which a load refuses a pair that
+    two saves wrote: one killed between its two replaces); returns both paths. Shared by every kind of subspace."""
     weights, meta = checkpoint_path(stem, ".pt"), checkpoint_path(stem, ".json")
     weights.parent.mkdir(parents=True, exist_ok=True)
-    doc = {**getattr(module, "metadata", {}), "format_version": FORMAT_VERSION, "config": config}
+    doc = {
+        **getattr(module, "metadata", {}),
+        "format_version": FORMAT_VERSION,
+        "config": config,
+        PAIR_KEY: map_fingerprint(module),
+    }
     text = json.dumps(doc, indent=2, sort_keys=True, default=_json_default)  # fails before any file is touched
-    # both written in full before either replaces its file (an interruption while writing keeps the old pair)
-    made: list[Path] = []  # those made before a failure (a name too long for the second) are removed too
-    try:
-        made.append(_temporary(weights))
-        made.append(_temporary(meta))
-        tmp_weights, tmp_meta = made
+    # both written in full before either replaces its file (an interruption while writing keeps the old pair); the
+    # first temporary is removed too where the second cannot be made (a name too long for it)
+    remove_dead_temporaries(weights)
+    remove_dead_temporaries(meta)
+    with _temporary(weights) as tmp_weights, _temporary(meta) as tmp_meta:
         torch.save(module.state_dict(), tmp_weights)
         tmp_meta.write_text(text)
         os.replace(tmp_weights, weights)
         os.replace(tmp_meta, meta)
-    finally:
-        for tmp in made:
-            tmp.unlink(missing_ok=True)
     return weights, meta
 
 
@@ -175,6 +228,19 @@ def scene_mismatch(doc: dict[str, Any], scene: Scene) -> str | None:
         f"fitted to scene {mine[0]!r} (fingerprint {mine[1]}, n={mine[2]}), not to scene {theirs[0]!r} "
         f"(fingerprint {theirs[1]}, n={theirs[2]}){where}"
     )
+
+
+def check_pair(doc: dict[str, Any], module: nn.Module, path: str) -> None:
+    """Refuse weights ``module`` (loaded from ``path``, ``STEM.pt``) other than those the metadata ``doc`` of its
+    ``.json`` records (:data:`PAIR_KEY`; a ``.json`` without it is not checked)."""
+    recorded = doc.get(PAIR_KEY)
+    if recorded is not None and recorded != (found := map_fingerprint(module)):
+        meta = checkpoint_path(path, ".json").name
+        raise CheckpointError(
+            f"the weights are not those {meta} describes (weights hash {found}, the .json records {recorded}): the "
+            "two files come from two saves (one interrupted between writing them?); save or fit the map again",
+            path,
+        )
 
 
 def check_scene(doc: dict[str, Any], scene: Scene, path: str) -> None:

@@ -14,7 +14,15 @@ from torch import Tensor, nn
 from redsim.scene import Scene
 from redsim.subspace.anchored import AnchoredSubspace
 from redsim.subspace.autoencoder import AutoencoderSubspace
-from redsim.subspace.checkpoint import CheckpointError, beside_checkpoint, check_scene, checkpoint_path, read_metadata
+from redsim.subspace.checkpoint import (
+    PAIR_KEY,
+    CheckpointError,
+    beside_checkpoint,
+    check_pair,
+    check_scene,
+    checkpoint_path,
+    read_metadata,
+)
 from redsim.subspace.linear import LinearSubspace, QuadraticSubspace
 from redsim.subspace.neural import SubspaceMap
 
@@ -46,8 +54,8 @@ def load_subspace(path: str | Path, scene: Scene | None = None, *, device: str |
         device: Where to put the weights.
 
     Raises:
-        CheckpointError: missing or corrupt files, an unknown kind, or a scene whose name,
-            fingerprint or n differ.
+        CheckpointError: missing or corrupt files, an unknown kind, weights other than the ones the .json records
+            (two saves wrote the pair), or a scene whose name, fingerprint or n differ.
     """
     if (why := beside_checkpoint(path)) is not None:
         raise CheckpointError(why)
@@ -63,7 +71,7 @@ def load_subspace(path: str | Path, scene: Scene | None = None, *, device: str |
     doc = read_metadata(path)
     if scene is not None:
         check_scene(doc, scene, str(weights))
-    metadata = {k: v for k, v in doc.items() if k not in ("format_version", "config")}
+    metadata = {k: v for k, v in doc.items() if k not in ("format_version", "config", PAIR_KEY)}
     kind = doc.get("kind", SubspaceMap.kind)
     if kind not in KINDS:
         valid = [SubspaceMap.kind, *sorted(k for k in KINDS if k != SubspaceMap.kind)]
@@ -87,6 +95,7 @@ def load_subspace(path: str | Path, scene: Scene | None = None, *, device: str |
         model.load_state_dict(state, assign=True)
     except (RuntimeError, KeyError) as err:
         raise CheckpointError(f"weights do not match the config ({err})", str(weights)) from None
+    check_pair(doc, model, str(weights))
     return model.to(device)
 
 
