@@ -232,7 +232,10 @@ def cmd_bench_cubature(args: argparse.Namespace) -> int:
     for name in names:
         weights, scene, subspace, cub, path = loaded[name]
         if cub is None:
-            cub = build_cubature(scene, subspace, CubatureConfig(elements=args.elements))
+            try:
+                cub = build_cubature(scene, subspace, CubatureConfig(elements=args.elements))
+            except ValueError as err:  # an NNLS out of iterations: fewer --elements
+                raise CliError(f"{weights}: {err}") from err
         result = {"checkpoint": str(weights), "cubature": None if path is None else str(path)} | bench_cubature(
             scene,
             subspace,

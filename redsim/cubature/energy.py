@@ -112,7 +112,8 @@ class Cubature:
         """Read ``STEM.cubature.json`` (given as the map's stem or path, or the file itself).
 
         Raises:
-            CheckpointError: a missing or corrupt file, or an unsupported format version.
+            CheckpointError: a missing or corrupt file (two rules for one effect among the ways), or an unsupported
+                format version.
         """
         src = cubature_path(path)
         if not src.is_file():
@@ -123,6 +124,13 @@ class Cubature:
                 raise CheckpointError(f"corrupt cubature file (not a JSON object: {type(doc).__name__})", str(src))
             if doc.get("format_version") != FORMAT_VERSION:
                 raise CheckpointError(f"unsupported format_version {doc.get('format_version')!r}", str(src))
+            names = [r["name"] for r in doc["rules"]]
+            if twice := sorted({n for n in names if names.count(n) > 1}):
+                counts = ", ".join(f"effect {n!r} has {names.count(n)} rules" for n in twice)
+                raise CheckpointError(
+                    f"{counts}, not one: the cubature file was edited or damaged; rebuild it with `redsim cubature`",
+                    str(src),
+                )
             rules = []
             for r in doc["rules"]:
                 if r["mode"] not in MODES:

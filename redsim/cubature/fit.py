@@ -282,6 +282,9 @@ def greedy_nnls(
     (max(1, kept/8) of them), then refits every kept weight by NNLS. Errors are |A w - A 1| / norm.
 
     Returns kept indices [K], weights [K] (>= 0) and the (kept, train, held-out error) history.
+
+    Raises:
+        ValueError: an NNLS refit ran out of iterations (saying how many elements it refitted).
     """
     target = train.sum(1, dtype=torch.float64)
     test_target = test.sum(1, dtype=torch.float64)
@@ -310,7 +313,14 @@ def greedy_nnls(
         kept += best.tolist()
         index = torch.tensor(kept)
         columns = train[:, index].numpy()
-        solution, _ = scipy.optimize.nnls(columns, target.numpy(), maxiter=50 * len(kept))
+        try:
+            solution, _ = scipy.optimize.nnls(columns, target.numpy(), maxiter=50 * len(kept))
+        except RuntimeError as err:  # scipy's "Maximum number of iterations reached."
+            raise ValueError(
+                f"NNLS ran out of iterations refitting the weights of {len(kept)} kept elements (maxiter "
+                f"{50 * len(kept)}; scipy: {err}): keep fewer elements (elements, --elements: below {len(kept)}) or "
+                "stop earlier (a larger tol, --tol)"
+            ) from err
         weights = torch.from_numpy(np.asarray(solution))
         nonzero = weights > 0.0
         banned[index[~nonzero]] = True  # dropped by NNLS: not proposed again
@@ -373,6 +383,9 @@ def fit_rules(
         config: Sizes and options.
         progress: Show tqdm bars: the rollout steps, the states whose per-element forces are computed (per effect),
             and per subsampled effect its kept elements and held-out error.
+
+    Raises:
+        ValueError: an effect's NNLS refit ran out of iterations (naming the effect, and what to change).
     """
     modes = effect_modes(scene, config)
     bar = None
@@ -439,11 +452,15 @@ def fit_rules(
                 bar.set_postfix(held_out_error=f"{held:.3g}", refresh=False)  # type: ignore[attr-defined]
                 bar.update(kept - bar.n)  # type: ignore[attr-defined]  # redraws as often as the bar allows
 
-        index, weights, history = greedy_nnls(
-            train, test, train_norm, test_norm, elements=config.elements, tol=per_tol, progress=report
-        )
-        if bar is not None:
-            bar.close()  # type: ignore[attr-defined]
+        try:
+            index, weights, history = greedy_nnls(
+                train, test, train_norm, test_norm, elements=config.elements, tol=per_tol, progress=report
+            )
+        except ValueError as err:
+            raise ValueError(f"effect {effect.name!r}: {err}") from err
+        finally:
+            if bar is not None:
+                bar.close()  # type: ignore[attr-defined]
         train_residual += (train[:, index] @ weights - train.sum(1, dtype=torch.float64)).reshape(-1, d1)
         test_residual += (test[:, index].to(torch.float64) @ weights - test.sum(1, dtype=torch.float64)).reshape(-1, d1)
         if history:

@@ -214,6 +214,19 @@ def test_a_cubature_file_that_reduces_a_nonlinear_effect_as_linear_is_refused(tm
         load_cubature(tmp_path / "cloth", scene, f)
 
 
+def test_a_cubature_file_with_two_rules_for_one_effect_is_refused(tmp_path) -> None:
+    """A file with a second rule for the membrane (a hand-merged file) loaded, passed the check against the scene's
+    effects (compared by name) and stepped with the last of the two, the other ignored without a word."""
+    scene, f = _toy_cloth_map()
+    path = build_cubature(scene, f, CubatureConfig(elements=4, **QUICK)).save(tmp_path / "cloth")
+    doc = json.loads(path.read_text())
+    rule = next(r for r in doc["rules"] if r["name"] == "membrane")
+    doc["rules"].append({**rule, "weights": [2.0 * w for w in rule["weights"]]})
+    path.write_text(json.dumps(doc))
+    with pytest.raises(CheckpointError, match=r"cloth.cubature.json: effect 'membrane' has 2 rules, not one: the"):
+        load_cubature(tmp_path / "cloth", scene, f)
+
+
 @pytest.fixture(scope="module")
 def mini_chain():
     scene = scenes.build("mini_chain")
@@ -401,6 +414,34 @@ def test_cli_says_a_tol_not_reached_and_refuses_full_names_that_keep_nothing(cli
     assert json.loads(out)["tol_reached"] is False
     code, out, err = cli("cubature", str(tmp_path / "m.pt"), "--tol", "0.9", *quick, "--json", "--overwrite")
     assert code == 0 and "not reached" not in err and json.loads(out)["tol_reached"] is True
+
+
+def test_an_nnls_that_runs_out_of_iterations_names_the_effect_and_what_to_do(cli, tmp_path, monkeypatch) -> None:
+    """scipy.optimize.nnls raises RuntimeError("Maximum number of iterations reached.") (scipy 1.17, its info 3) on
+    columns it cannot solve within maxiter: `redsim cubature` ended in that traceback, naming no effect."""
+    import shutil
+
+    import scipy.optimize
+
+    real = scipy.optimize.nnls
+
+    def stuck(a, b, maxiter=None):  # from the third kept element on
+        if a.shape[1] < 3:
+            return real(a, b, maxiter=maxiter)
+        raise RuntimeError("Maximum number of iterations reached.")
+
+    monkeypatch.setattr(scipy.optimize, "nnls", stuck)
+    for suffix in (".pt", ".json"):
+        shutil.copy(pretrained.path("mini_chain").with_suffix(suffix), tmp_path / f"m{suffix}")
+    argv = ("cubature", str(tmp_path / "m.pt"), "--elements", "4", "--samples", "16", "--episodes", "0")
+    code, _, err = cli(*argv, "--subsample", "contact")
+    expected = (
+        "effect 'contact': NNLS ran out of iterations refitting the weights of 3 kept elements (maxiter 150; scipy: "
+        "Maximum number of iterations reached.): keep fewer elements (elements, --elements: below 3) or stop "
+        "earlier (a larger tol, --tol)"
+    )
+    assert code == 2 and expected in err, err
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["m.json", "m.pt"]
 
 
 def test_a_tol_chooses_how_many_elements_of_a_small_effect_it_needs(mini_chain) -> None:
