@@ -86,6 +86,8 @@ class Objective(Protocol):
             (the value is a sum of much larger terms, e.g. load work and elastic energy).
         max_step: Largest move of one step of either minimizer (a trust radius; ``math.inf`` for none): of the
             step's largest entry, or of the objective's ``largest_move(u, direction)`` where it has that method.
+
+    An objective with a method ``visit(u)`` is shown each point the minimizer accepts, in order (not the start).
     """
 
     force_scale: float
@@ -175,6 +177,14 @@ def _solve(factor: scipy.sparse.linalg.SuperLU, rhs: Tensor) -> Tensor | None:
     if not np.all(np.isfinite(out)):
         return None
     return torch.from_numpy(out).to(dtype=rhs.dtype, device=rhs.device)
+
+
+def _accept(objective: Objective, point: _Point, history: list[float]) -> None:
+    """Record an accepted point: its value in ``history``; the point to the objective's ``visit(u)``, if it has one."""
+    history.append(point.value)
+    visit = getattr(objective, "visit", None)
+    if visit is not None:
+        visit(point.u)
 
 
 def _result(point: _Point, converged: bool, iterations: int, history: list[float], message: str) -> SolveInfo:
@@ -304,7 +314,7 @@ def newton(
                 ),
             )
         point = trial
-        history.append(point.value)
+        _accept(objective, point, history)
         for _ in range(int(reuse)):
             if point.grad_norm <= threshold or regularizer.factor is None:
                 break
@@ -313,7 +323,7 @@ def newton(
                 break
             point = chord
             chords += 1
-            history.append(point.value)
+            _accept(objective, point, history)
     converged = point.grad_norm <= threshold
     verdict = "converged" if converged else f"not converged after max_iter = {max_iter}"
     return point.u, _result(
@@ -411,7 +421,7 @@ def lbfgs(
         if sy > float(np.finfo(np.float64).eps) * float(torch.linalg.vector_norm(s) * torch.linalg.vector_norm(y)):
             pairs.append((s, y, 1.0 / sy))
         point = trial
-        history.append(point.value)
+        _accept(objective, point, history)
     converged = point.grad_norm <= threshold
     verdict = "converged" if converged else f"not converged after max_iter = {max_iter}"
     return point.u, _result(

@@ -118,6 +118,8 @@ class PotentialObjective:
             :class:`redsim.integrators.ImplicitEuler`'s ``retry_tunneled``).
         move_measure: None (a step's move is its largest entry), or a function (u, direction) -> the move
             [unit of ``max_step``] that :meth:`largest_move` returns and the minimizers bound by ``max_step``.
+        path: None, or a list that :meth:`visit` extends with each point [m] the minimizer accepts (the states a
+            step went through: :class:`redsim.integrators.ImplicitEuler`'s ``retry_tunneled`` tests them).
 
     Args:
         space: The coordinates to minimize over.
@@ -166,6 +168,7 @@ class PotentialObjective:
         self.value_noise = (NOISE_FACTOR + space.roundoff) * q_force_scale * length
         self.max_step = math.inf
         self.move_measure: Callable[[Tensor, Tensor], float] | None = None
+        self.path: list[Tensor] | None = None
         if inertia is None and isinstance(space, FullSpace):
             self.max_step = min(STATIC_MAX_STEP * self.scene.extent(), 0.5 * self.scene.feature_size())
 
@@ -217,6 +220,11 @@ class PotentialObjective:
         if self.move_measure is None:
             return float(direction.abs().max())
         return self.move_measure(u, direction)
+
+    def visit(self, u: Tensor) -> None:
+        """A point u [m] the minimizer accepted: kept in :attr:`path` where that is a list."""
+        if self.path is not None:
+            self.path.append(u.detach().clone())
 
     def value_and_grad(self, u: Tensor) -> tuple[float, Tensor]:
         """Phi [J] and dPhi/du, shape [m], at u [m]."""

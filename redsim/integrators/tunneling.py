@@ -76,6 +76,21 @@ class TunnelTest:
                     flagged |= _crossed(effect, core, a, b, valid, tested)
         return flagged
 
+    def along(self, x: Tensor) -> bool:
+        """Whether one state's path through the full configurations x [K, N] (K >= 2: the step's start, the states it
+        went through, its end) passed through a contact: the test of the module doc with the path through every
+        state in place of the chord between the ends (for the points that moved far enough between the ends)."""
+        flagged = False
+        with torch.no_grad():
+            for effect, core in zip(self.contacts, self.cores, strict=True):
+                points, valid = effect.frame_points(x)  # [K, M, 3]
+                (point,) = torch.nonzero(_far(effect, points[:1], points[-1:])[0] & valid, as_tuple=True)
+                if point.numel():
+                    path = points[:, point]
+                    deepest = _deepest(effect, path)
+                    flagged |= bool(_through(effect, core, path[0], path[-1], deepest).any())
+        return flagged
+
 
 def path_spacing(effect: SDFContact) -> float:
     """Most distance [m] between two samples of a point's path: an eighth of the smaller of the contact's
@@ -114,31 +129,54 @@ def _crossed(effect: SDFContact, core: float, a: Tensor, b: Tensor, valid: Tenso
     """States [B] of ``tested`` where a point of ``effect`` passed through its shape deeper than ``core`` [m] (module
     doc), from its points in their shapes' frames at the step's start ``a`` and end ``b`` [B, M, 3] (rows ``valid``
     [M] are points)."""
-    size, margin = float(effect.feature_size), float(effect.margin)
-    step = b - a
-    move = (step * step).sum(
-        -1
-    )  # [B, M] [m^2], relative to the shape (vector_norm on this strided layout: 100x slower)
-    far = (move > (0.5 * size) ** 2) & torch.isfinite(move)  # a non-finite state is not tested (it is diverged)
-    state, point = torch.nonzero(far & tested[:, None] & valid, as_tuple=True)
+    state, point = torch.nonzero(_far(effect, a, b) & tested[:, None] & valid, as_tuple=True)
     flagged = torch.zeros(a.shape[0], dtype=torch.bool, device=a.device)
     if not state.numel():
         return flagged
     start, end = a[state, point], b[state, point]  # [m, 3]
+    deepest = _deepest(effect, torch.stack([start, end]))
+    flagged[state[_through(effect, core, start, end, deepest)]] = True
+    return flagged
+
+
+def _far(effect: SDFContact, a: Tensor, b: Tensor) -> Tensor:
+    """Which points [B, M] moved from ``a`` to ``b`` [B, M, 3] (in their shapes' frames) by more than half the
+    contact's ``feature_size``: those whose path is sampled (a shorter one cannot cross)."""
+    step = b - a
+    move = (step * step).sum(-1)  # [B, M] [m^2] (vector_norm on this strided layout: 100x slower)
+    return (move > (0.5 * float(effect.feature_size)) ** 2) & torch.isfinite(move)  # a non-finite state is diverged
+
+
+def _deepest(effect: SDFContact, path: Tensor) -> Tensor:
+    """The least signed distance [m], [m], of ``effect``'s shape along each point's path through the positions
+    ``path`` [K, m, 3] (K >= 2, in the frame that carries the shape), each leg sampled straight at most
+    :func:`path_spacing` apart."""
+    legs = path[1:] - path[:-1]  # [K - 1, m, 3]
+    longest = float((legs * legs).sum(-1).max())
     # the deepest sample lies within spacing / 2 of the chord's deepest point and the signed distance is 1-Lipschitz
     # (a quarter of the feature size apart, a 0.05 m move across the mini chain's 0.01 m wire went 5.1 mm deep with its
     # deepest sample short of 5 mm)
-    samples = min(TUNNEL_SAMPLES, math.ceil(math.sqrt(float(move[state, point].max())) / path_spacing(effect)))
-    s = torch.arange(1, samples + 1, dtype=a.dtype, device=a.device)[:, None, None] / (samples + 1)
+    samples = min(TUNNEL_SAMPLES, math.ceil(math.sqrt(longest) / path_spacing(effect)))
+    s = torch.arange(1, samples + 1, dtype=path.dtype, device=path.device)[:, None, None, None] / (samples + 1)
+    chunk = max(1, SAMPLED_POINTS // (samples * legs.shape[0]))
+    deepest = []
+    for i in range(0, path.shape[1], chunk):
+        start, leg = path[:-1, i : i + chunk], legs[:, i : i + chunk]
+        samples_of = start + s * leg  # [samples, K - 1, m, 3]
+        deepest.append(effect.shape.distance(samples_of).flatten(0, 1).amin(0))
+    deepest = torch.cat(deepest)
+    if path.shape[0] > 2:  # the states between the ends
+        deepest = torch.minimum(deepest, effect.shape.distance(path[1:-1]).amin(0))
+    return deepest
+
+
+def _through(effect: SDFContact, core: float, start: Tensor, end: Tensor, deepest: Tensor) -> Tensor:
+    """Which paths [m] from ``start`` to ``end`` [m, 3], ``deepest`` [m] [m] at their deepest, crossed the shape:
+    deeper than ``core`` inside it, and deeper into the contact than both ends by the rise (module doc)."""
+    size, margin = float(effect.feature_size), float(effect.margin)
     ends = torch.minimum(effect.shape.distance(start), effect.shape.distance(end)) - margin  # [m]
     rise = min(0.5 * size, margin + core)  # from the margin's edge to the core at least
-    chunk = max(1, SAMPLED_POINTS // samples)
-    for i in range(0, start.shape[0], chunk):
-        path = start[i : i + chunk] + s * (end[i : i + chunk] - start[i : i + chunk])  # [samples, m, 3]
-        deepest = effect.shape.distance(path).amin(0)  # [m], the signed distance
-        through = (deepest < -core) & (deepest - margin < ends[i : i + chunk] - rise)
-        flagged[state[i : i + chunk][through]] = True
-    return flagged
+    return (deepest < -core) & (deepest - margin < ends - rise)
 
 
 __all__ = ["SAMPLED_POINTS", "TUNNEL_SAMPLES", "TunnelTest"]

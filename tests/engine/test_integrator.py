@@ -7,6 +7,7 @@ by the discretization error they name (O(h), O(strain), penalty compliance).
 
 from __future__ import annotations
 
+import functools
 import math
 
 import numpy as np
@@ -342,6 +343,27 @@ def test_newton_and_lbfgs_agree_on_a_step() -> None:
     displacement = float((results["newton"] - scene.q_seed).abs().max())
     assert displacement > 1e-3
     torch.testing.assert_close(results["lbfgs"], results["newton"], rtol=0.0, atol=1e-6 * displacement)
+
+
+@pytest.mark.parametrize(("name", "options"), [("newton", {}), ("newton", {"reuse": 2}), ("lbfgs", {})])
+def test_the_minimizers_show_each_accepted_point_to_the_objective(name: str, options: dict) -> None:
+    """``visit(u)`` sees every accepted point in order (chord steps too), the last the returned end, one per entry of
+    the history after the start's (what ImplicitEuler's ``retry_tunneled`` tests the path of a step through)."""
+    from redsim.solvers import get_minimizer
+
+    scene = _cube(1e4, 0.3, gravity=True)
+    space = FullSpace(scene)
+    q = scene.q_seed.to(torch.float64)
+    packed = scene.pack_loads({"bottom": [50.0, -200.0, 0.0]}, 1, q)
+    objective = PotentialObjective(
+        space, loads=packed, cond=None, inertia=Inertia(q + 0.005, 0.05), force=None, reference=q
+    )
+    objective.path = []
+    minimize = functools.partial(get_minimizer(name), **options)
+    end, info = minimize(objective, q.clone(), tol=1e-10, max_iter=200)
+    assert info.converged and len(objective.path) == len(info.history) - 1 >= 2
+    assert torch.equal(objective.path[-1], end)
+    assert [objective.value_and_grad(u)[0] for u in objective.path] == pytest.approx(info.history[1:], rel=1e-12)
 
 
 def test_steps_with_cached_scene_constants_match_fresh_objectives() -> None:
