@@ -21,7 +21,9 @@ each in its own process (so peak memory is that size's):
   free DOFs: past that one such step takes minutes);
 - full-space step: float64 Newton implicit Euler (tol 1e-6) from the seed under gravity, median of
   ``full_steps`` steps, up to ``full_max_n`` free DOFs;
-- peak resident memory of the process [MiB].
+- peak resident memory of the process [MiB];
+- ``unconverged``: per step curve measured, [timed steps (states at B = ``batch``) that did not converge, timed
+  steps (states)]: their times are in the medians, so a curve with any is shown beside them, not dropped.
 
 A value that was not measured (above its size limit) is None, shown as "not run". Each curve's
 growth exponent is the least-squares slope of log(value) against log(n) over the sizes where it
@@ -31,7 +33,6 @@ was measured.
 from __future__ import annotations
 
 import math
-import multiprocessing
 import resource
 import statistics
 import time
@@ -41,6 +42,8 @@ from typing import Any
 
 import numpy as np
 import torch
+
+from redsim import processes
 
 SIZES = (4, 6, 8, 11)
 """Cross-section cells k of the measured meshes (n = 1500, 4410, 9720, 23760)."""
@@ -62,8 +65,9 @@ CURVES = (
 DT = 0.02
 
 
-def _step_times(stepper: Any, batch: int, steps: int, load: float) -> tuple[float, float]:
-    """Median wall time [ms] of ``steps`` steps (after one untimed) from z = 0, and the mean iteration count.
+def _step_times(stepper: Any, batch: int, steps: int, load: float) -> tuple[float, float, int]:
+    """Median wall time [ms] of ``steps`` steps (after one untimed) from z = 0, the mean iteration count and the
+    states of the timed steps that did not converge (of ``steps * batch``).
 
     The tip is pushed sideways (+z) by ``load`` [N] and pulled back by it on alternate steps. A briefly
     fitted map barely moves the tip, so many steps still meet the tolerance at their start (no
@@ -73,14 +77,15 @@ def _step_times(stepper: Any, batch: int, steps: int, load: float) -> tuple[floa
     z = torch.zeros(batch, stepper.latent_dim)
     push = torch.zeros(batch, 1, 3)
     push[..., 2] = load
-    z_prev, model, carry, times, iterations = z.clone(), None, None, [], []
+    z_prev, model, carry, times, iterations, unconverged = z.clone(), None, None, [], [], 0
     for step in range(steps + 1):
         start = time.perf_counter()
         z_next, stats = stepper.step(z, z_prev, push if step % 2 == 0 else -push, warm=model, carry=carry)
         times.append(time.perf_counter() - start)
         iterations.append(float(stats.iterations.float().mean()))
+        unconverged += int((~stats.converged).sum()) if step else 0
         model, carry, z_prev, z = stats.model, stats.carry, z, z_next
-    return 1e3 * statistics.median(times[1:]), statistics.fmean(iterations[1:])
+    return 1e3 * statistics.median(times[1:]), statistics.fmean(iterations[1:]), unconverged
 
 
 def _eval_ms(energy: Any, latent_dim: int, repeats: int = 20) -> float:
@@ -117,6 +122,7 @@ def measure(
     from redsim.cubature import CubatureConfig, CubatureEnergy, build_cubature
     from redsim.cubature.fit import default_load_scale
     from redsim.integrators import FullSpace, ImplicitEuler
+    from redsim.integrators.implicit_euler import quiet_steps
     from redsim.runtime import LatentStepper
     from redsim.trainers import FitConfig, fit_subspace
     from redsim.trainers.fit import quiet_low_stretch
@@ -160,28 +166,49 @@ def measure(
     row["latent_eval_ms"] = _eval_ms(all_elements.energy, config.latent_dim)
     row["cubature_eval_ms"] = _eval_ms(reduced.energy, config.latent_dim)
     load = default_load_scale(scene)
-    row["latent_step_ms"], row["latent_iterations"] = _step_times(all_elements, 1, latent_steps, load)
-    row["cubature_step_ms"], row["cubature_iterations"] = _step_times(reduced, 1, latent_steps, load)
+    unconverged = {}
+    row["latent_step_ms"], row["latent_iterations"], unconverged["latent"] = _step_times(
+        all_elements, 1, latent_steps, load
+    )
+    row["cubature_step_ms"], row["cubature_iterations"], unconverged["cubature"] = _step_times(
+        reduced, 1, latent_steps, load
+    )
     row["batch"] = batch
     row["latent_batch_ms"] = row["cubature_batch_ms"] = None
     if batch:
-        row["cubature_batch_ms"] = _step_times(reduced, batch, latent_steps, load)[0]
+        row["cubature_batch_ms"], _, unconverged["cubature_batch"] = _step_times(reduced, batch, latent_steps, load)
         if batch_max_n is None or n <= batch_max_n:
-            row["latent_batch_ms"] = _step_times(all_elements, batch, latent_steps, load)[0]
+            row["latent_batch_ms"], _, unconverged["latent_batch"] = _step_times(
+                all_elements, batch, latent_steps, load
+            )
     row["full_step_ms"] = row["full_iterations"] = None
     if full_max_n is None or n <= full_max_n:
         integrator = ImplicitEuler(FullSpace(scene.to(dtype=torch.float64)), DT, tol=1e-6)
         state = integrator.initial_state()
-        times, iterations = [], []
-        for _ in range(full_steps):
-            start = time.perf_counter()
-            state, info = integrator.step(state)
-            times.append(time.perf_counter() - start)
-            iterations.append(info.iterations)
+        times, iterations, unconverged["full"] = [], [], 0
+        with quiet_steps():  # counted in the row
+            for _ in range(full_steps):
+                start = time.perf_counter()
+                state, info = integrator.step(state)
+                times.append(time.perf_counter() - start)
+                iterations.append(info.iterations)
+                unconverged["full"] += not info.converged
         row["full_step_ms"] = 1e3 * statistics.median(times)
         row["full_iterations"] = statistics.fmean(iterations)
+    timed = {"latent": latent_steps, "cubature": latent_steps, "full": full_steps}
+    timed |= {"latent_batch": latent_steps * batch, "cubature_batch": latent_steps * batch}
+    row["unconverged"] = {key: [count, timed[key]] for key, count in unconverged.items()}
     row["peak_mib"] = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024.0
     return row
+
+
+class SizeFailed(RuntimeError):
+    """A size's process died without a result (a signal or a hard exit; the kernel's out-of-memory killer is the
+    usual one at a large mesh); ``result`` holds the sizes measured before it (rows and exponents)."""
+
+    def __init__(self, message: str, result: dict[str, Any]) -> None:
+        super().__init__(message)
+        self.result = result
 
 
 def _child(args: tuple[int, dict[str, Any], int]) -> dict[str, Any]:
@@ -204,14 +231,21 @@ def bench_scaling(
 
     Raises:
         ValueError: a size below 1.
+        SizeFailed: a size's process died without a result (the sizes before it are in its ``result``); an
+            exception in a size's process is raised as it is.
     """
     if any(int(k) != k or k < 1 for k in sizes):
         raise ValueError(f"sizes must be integers >= 1, got {sizes}")
-    context = multiprocessing.get_context("spawn")
     rows: list[dict[str, Any]] = []
     for cells in sizes:
-        with context.Pool(1) as pool:
-            rows.append(pool.map(_child, [(int(cells), options, threads)])[0])
+        try:
+            rows.append(processes.alone(_child, (int(cells), options, threads)))
+        except ChildProcessError as err:
+            done = {"rows": rows, "exponents": growth_exponents(rows)}
+            raise SizeFailed(
+                f"size k = {cells}: {err}; killed for memory, most likely (each size's peak is its own process's)",
+                done,
+            ) from err
         if on_row is not None:
             on_row({"rows": rows, "exponents": growth_exponents(rows)})
     return {"rows": rows, "exponents": growth_exponents(rows)}
@@ -259,25 +293,34 @@ HEADERS = {
     "cubature_kept": "cubature elements",
     "cubature_force_error": "cubature force error",
     "peak_mib": "peak MiB",
+    "unconverged": "unconverged steps",
 }
 """Table columns (the B=64 headers name the default batch; the row's ``batch`` is the one run)."""
 
 
+def _batch(result: dict[str, Any]) -> int:
+    """The batch size the rows ran (64 where none ran one)."""
+    return next((r["batch"] for r in result["rows"] if r.get("batch")), 64)
+
+
 def _header(key: str, result: dict[str, Any]) -> str:
     """The column name of ``key``, with the batch size the rows ran."""
-    batch = next((r["batch"] for r in result["rows"] if r.get("batch")), 64)
-    return HEADERS[key].replace("B=64", f"B={batch}")
+    return HEADERS[key].replace("B=64", f"B={_batch(result)}")
 
 
 def markdown_table(result: dict[str, Any]) -> str:
     """The rows and, last, the growth exponents, as a markdown table."""
     keys = list(HEADERS)
     names = [_header(k, result) for k in keys]
+    batch = _batch(result)
     lines = ["| " + " | ".join(names) + " |", "|" + "---|" * len(keys)]
 
     def cell(value: Any) -> str:
         if value is None:
             return "not run"
+        if isinstance(value, dict):  # unconverged: the curves with any
+            bad = [f"{k.replace('_batch', f' B={batch}')} {n}/{of}" for k, (n, of) in value.items() if n]
+            return ", ".join(bad) or "0"
         if isinstance(value, float):
             return "–" if not math.isfinite(value) else f"{value:.3g}"
         return str(value)
@@ -323,4 +366,13 @@ def scaling_png(result: dict[str, Any], path: Path, machine: str) -> None:
     fig.savefig(path, dpi=120)
 
 
-__all__ = ["CURVES", "SIZES", "bench_scaling", "growth_exponents", "markdown_table", "measure", "scaling_png"]
+__all__ = [
+    "CURVES",
+    "SIZES",
+    "SizeFailed",
+    "bench_scaling",
+    "growth_exponents",
+    "markdown_table",
+    "measure",
+    "scaling_png",
+]

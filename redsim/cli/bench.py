@@ -14,6 +14,7 @@ from redsim.cli.common import (
     EXIT_FAILED_STEP,
     EXIT_NAN,
     EXIT_OK,
+    EXIT_SCENE_FAILED,
     CliError,
     add_bench_scene_args,
     add_out_folder,
@@ -564,27 +565,34 @@ def cmd_bench_scaling(args: argparse.Namespace) -> int:
             n = partial["rows"][-1]["n"]
             note(f"bench scaling: n = {n} done, wrote {folder}/scaling.md and {folder}/scaling.png")
 
-    result = scaling.bench_scaling(
-        sizes,
-        threads=threads,
-        on_row=write,
-        fit_steps=args.fit_steps,
-        warmup=args.fit_warmup,
-        latent_steps=args.latent_steps,
-        full_max_n=0 if args.no_full else args.full_max_n,
-        cubature_elements=args.cubature_elements,
-        batch=args.batch,
-        batch_max_n=args.batch_max_n,
-    )
+    failed = None
+    try:
+        result = scaling.bench_scaling(
+            sizes,
+            threads=threads,
+            on_row=write,
+            fit_steps=args.fit_steps,
+            warmup=args.fit_warmup,
+            latent_steps=args.latent_steps,
+            full_max_n=0 if args.no_full else args.full_max_n,
+            cubature_elements=args.cubature_elements,
+            batch=args.batch,
+            batch_max_n=args.batch_max_n,
+        )
+    except scaling.SizeFailed as err:  # the sizes measured before it are printed, then the error
+        result, failed = err.result, str(err)
     machine = machine_info()
     result["machine"] = machine
     line = _machine_line({**machine, "torch_threads": threads}, "cpu")
     if args.json:
-        json_out(result)
-    else:
+        json_out({**result, "failed": failed})
+    elif result["rows"]:
         out("bench scaling: cantilever beam (cells_x = 5k, cells_yz = k), 5 x 128 MLP, each size in its own process")
         out(line)
         out(scaling.markdown_table(result))
+    if failed is not None:
+        error(f"bench scaling: {failed}; the table has the sizes before it")
+        return EXIT_SCENE_FAILED
     return EXIT_OK
 
 

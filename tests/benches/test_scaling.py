@@ -2,10 +2,12 @@
 
 from __future__ import annotations
 
+import json
 import math
 
 import pytest
 
+from redsim import processes
 from redsim.benches import scaling
 
 
@@ -14,6 +16,7 @@ def _rows(exponent: float) -> list[dict]:
     for n in (1000, 4000, 16000):
         row = {"cells": 1, "n": n, "batch": 64, "latent_iterations": 3.0, "cubature_iterations": 3.0}
         row.update({"full_iterations": 2.0, "cubature_kept": 200, "cubature_force_error": 0.01})
+        row["unconverged"] = {"latent": [0, 5], "cubature_batch": [0, 320], "full": [0, 1]}
         row.update({key: 2.0 * n**exponent for key in scaling.CURVES})
         rows.append(row)
     return rows
@@ -34,6 +37,15 @@ def test_table_has_a_row_per_size_and_the_exponents() -> None:
     assert len(lines) == 2 + 3 + 1
     assert lines[-1].startswith("| growth exponent | 1 |")
     assert "–" in lines[2]
+
+
+def test_unconverged_steps_are_shown_beside_their_times() -> None:
+    rows = _rows(1.0)
+    rows[1]["unconverged"] = {"latent": [2, 5], "cubature_batch": [3, 320], "full": [1, 1]}
+    lines = scaling.markdown_table({"rows": rows, "exponents": scaling.growth_exponents(rows)}).splitlines()
+    assert lines[0].endswith("| peak MiB | unconverged steps |")
+    assert lines[3].endswith("| latent 2/5, cubature B=64 3/320, full 1/1 |")
+    assert lines[2].endswith("| 0 |") and lines[4].endswith("| 0 |")
 
 
 def test_a_step_not_run_is_shown_as_such_and_left_out_of_its_exponent() -> None:
@@ -61,6 +73,21 @@ def test_bad_sizes_are_refused(cli) -> None:
         scaling.bench_scaling((0,))
 
 
+def test_cli_prints_the_sizes_before_a_dead_one_and_fails(cli, monkeypatch: pytest.MonkeyPatch) -> None:
+    def alone(_function, args):  # k = 1 measured, k = 2's process killed
+        if args[0] == 2:
+            raise ChildProcessError("its process ended without a result (exit code -9)")
+        return _rows(1.0)[0]
+
+    monkeypatch.setattr(processes, "alone", alone)
+    code, out, err = cli("bench", "scaling", "--sizes", "1,2,3")
+    assert code == 1 and "| 1000 | 2e+03 |" in out and out.count("| 1000 |") == 1
+    assert "size k = 2: its process ended without a result (exit code -9)" in err
+    code, out, _ = cli("bench", "scaling", "--sizes", "1,2", "--json")
+    doc = json.loads(out)
+    assert code == 1 and len(doc["rows"]) == 1 and "k = 2" in doc["failed"]
+
+
 def test_the_smallest_mesh_has_a_finite_cubature_step_and_no_full_step_above_its_limit() -> None:
     row = scaling.measure(1, fit_steps=1, warmup=1, latent_steps=1, cubature_elements=8, batch=2, full_max_n=10)
     assert row["n"] > 10 and row["cubature_kept"] == 8  # of the beam's 30 tets
@@ -68,6 +95,9 @@ def test_the_smallest_mesh_has_a_finite_cubature_step_and_no_full_step_above_its
         assert math.isfinite(row[key]) and row[key] > 0, key
     assert 0.0 <= row["cubature_force_error"] < 1.0
     assert row["full_step_ms"] is None and row["full_iterations"] is None
+    timed = {key: of for key, (_, of) in row["unconverged"].items()}
+    assert timed == {"latent": 1, "cubature": 1, "cubature_batch": 2, "latent_batch": 2}  # no full step: not run
+    assert all(0 <= count <= of for count, of in row["unconverged"].values())
 
 
 @pytest.mark.slow
