@@ -94,13 +94,15 @@ class StepInfo(SolveInfo):
         tunneled: The kept end's straight path from q_t passed through a contact that neither end shows (a move
             longer than the contact is thick, which the penalty never felt: :mod:`redsim.integrators.tunneling`):
             in the full space, a step whose first solve did and whose solve again within a trust radius
-            (``tunnel_caught``) did too or did not converge, or any such step with ``retry_tunneled=False``; in a
-            latent space, any such step (reported only).
-        tunnel_caught: The first solve passed through a contact, and the step was solved again from q_t, each
-            iteration moving no contact point more than half the thinnest contact relative to its shape, which met
-            the contact on the way and ended converged on its near side: the end kept (``retry_tunneled``, full
-            space). Converged as any step is (a stationary point of the same step objective, which may be a saddle
-            of it without ``escape_saddles``). ``iterations`` counts both solves, ``history`` the second's.
+            (``tunnel_caught``) did not converge or went through a contact on its way (the path through the states
+            it accepted), or any such step with ``retry_tunneled=False``; in a latent space, any such step
+            (reported only).
+        tunnel_caught: The first solve's straight path passed through a contact, and the step was solved again from
+            q_t, each iteration moving no contact point more than half the thinnest contact relative to its shape,
+            along a path through no contact, ended converged: the end kept (``retry_tunneled``, full space). Converged
+            as any step is (a stationary point of the same step objective, which may be a saddle of it without
+            ``escape_saddles``). The end may be the first's where only the chord between q_t and it crossed (the
+            path went round a convex shape). ``iterations`` counts both solves, ``history`` the second's.
     """
 
     energy_gain: bool = False
@@ -141,12 +143,12 @@ class ImplicitEuler:
             q_t, each iteration moving no contact point more than half the thinnest contact relative to its shape
             (``PotentialObjective.max_step`` and ``move_measure``; what the tunnel test samples), with
             :data:`CATCH_ITERATIONS` x ``max_iter`` more iterations than a step. The first end is kept
-            (``tunneled``) where that solve does not converge or tunnels too (a false flag, e.g. a link spun fast
-            in its own plane, keeps it; and a penalty contact too soft to stop the body before its middle has no
-            minimum on the near side). None (the default): in the full space only; True in a latent space is
-            refused (its coordinates have no distance in metres to bound). Costs nothing on a step that did not
-            tunnel; the mini chain thrown at its hook at 10 m/s (its first solve: 1 iteration, 0.2 m up through
-            the hook) is caught 0.06 m up in 12 more.
+            (``tunneled``) where that solve does not converge or its path (q_t, each state it accepted, its end:
+            :meth:`TunnelTest.along`) passes through a contact (a penalty contact too soft to stop the body
+            before its middle has no minimum on the near side). None (the default): in the full space only; True in
+            a latent space is refused (its coordinates have no distance in metres to bound). Costs nothing on a
+            step that did not tunnel; the mini chain thrown at its hook at 10 m/s (its first solve: 1 iteration,
+            0.2 m up through the hook) is caught 0.06 m up in 12 more.
 
     Raises:
         ValueError: on a bad dt, tol, max_iter, an unknown minimizer, or ``escape_saddles`` or ``retry_tunneled``

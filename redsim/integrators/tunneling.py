@@ -20,7 +20,10 @@ points that moved that far relative to the shape are sampled, so ordinary steps 
 contact. The relative path is a chord (a point swept along an arc by a fast turn of its frame is checked
 along the chord of that arc), so the test is a detector, not a proof.
 Reported per step (:class:`redsim.integrators.StepInfo`, the envs' ``info["tunneled"]``); a full-space
-ImplicitEuler step it flags is solved again within a trust radius (``retry_tunneled``), a latent one is not.
+ImplicitEuler step it flags is solved again within a trust radius (``retry_tunneled``), a latent one is not. That
+solve's own path is known (the states it accepted, each a short move): :meth:`TunnelTest.along` applies the same
+test to it in place of the chord, which cuts through a convex shape that a point went round (cloth wrapped round
+its ball in one long step).
 """
 
 from __future__ import annotations
