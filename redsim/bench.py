@@ -21,32 +21,45 @@ from redsim.scene import Scene
 
 
 def machine_info() -> dict[str, Any]:
-    """The machine a benchmark ran on: CPU, core count, load, torch version and threads, GPU if any.
+    """The machine a benchmark ran on: CPU, core count, load, torch version, kernels and threads, GPU if any.
 
     ``load_average_1min`` (None where the OS has none) tells whether other processes were competing
-    for the cores while the benchmark ran.
+    for the cores while the benchmark ran. ``cpu_family_model`` (Linux's ``"family F model M"``, else
+    None) tells apart CPUs of one model name ("AMD EPYC" of two generations), and ``cpu_capability``
+    the vector kernels torch runs on it (``"AVX512"``, ``"AVX2"``, ``"DEFAULT"``; ``ATEN_CPU_CAPABILITY``
+    lowers it): float32 results that amplify round-off, as a chaotic rollout's deviation does, differ
+    between them.
     """
     return {
-        "processor": _cpu_model() or platform.processor() or platform.machine(),
+        "processor": _cpu_info("model name") or platform.processor() or platform.machine(),
+        "cpu_family_model": _cpu_family_model(),
         "machine": platform.machine(),
         "platform": platform.platform(),
         "python": platform.python_version(),
         "cpu_count": os.cpu_count(),
         "load_average_1min": os.getloadavg()[0] if hasattr(os, "getloadavg") else None,
         "torch": torch.__version__,
+        "cpu_capability": torch.backends.cpu.get_cpu_capability(),
         "torch_threads": torch.get_num_threads(),
         "cuda_device": torch.cuda.get_device_name(0) if torch.cuda.is_available() else None,
     }
 
 
-def _cpu_model() -> str | None:
-    """The CPU's model name where the OS tells it (Linux's /proc/cpuinfo; ``platform.processor()`` is empty there)."""
+def _cpu_info(field: str) -> str | None:
+    """The first CPU's ``field`` ("model name", "cpu family", ...) where the OS tells it (Linux's /proc/cpuinfo;
+    ``platform.processor()`` is empty there)."""
     try:
         with open("/proc/cpuinfo") as info:
-            names = [line.split(":", 1)[1].strip() for line in info if line.startswith("model name")]
+            values = [line.split(":", 1)[1].strip() for line in info if line.split(":", 1)[0].strip() == field]
     except OSError:
         return None
-    return names[0] if names else None
+    return values[0] if values else None
+
+
+def _cpu_family_model() -> str | None:
+    """``"family F model M"`` of the first CPU where /proc/cpuinfo has both, else None."""
+    family, model = _cpu_info("cpu family"), _cpu_info("model")
+    return f"family {family} model {model}" if family and model else None
 
 
 def _sync(device: torch.device) -> None:

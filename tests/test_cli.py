@@ -8,6 +8,7 @@ from __future__ import annotations
 
 import dataclasses
 import json
+import os
 import subprocess
 import sys
 
@@ -301,6 +302,26 @@ def test_bad_input_is_one_line_exit_2(capsys: pytest.CaptureFixture[str], argv: 
     assert out == ""
     assert err.count("\n") == 1 and err.startswith("redsim: error: ")
     assert expected in err
+
+
+def test_machine_line_names_the_cpu_generation_and_torchs_kernels() -> None:
+    # hanging_sheet's cubature deviation read 12.7% on an AVX-512 "AMD EPYC" and 8.9% with the AVX2 kernels (stop 68):
+    # a line saying only "AMD EPYC" could not tell such runs apart
+    code = (
+        "from redsim.bench import machine_info; from redsim.cli.common import machine_line; "
+        "m = machine_info(); print(m['cpu_capability']); print(machine_line(m, 'cpu'))"
+    )
+    env = {**os.environ, "ATEN_CPU_CAPABILITY": "default"}
+    capability, line = subprocess.run(
+        [sys.executable, "-c", code], env=env, capture_output=True, text=True, check=True
+    ).stdout.splitlines()
+    assert capability == "DEFAULT" and "torch " + torch.__version__ + " (DEFAULT kernels)," in line
+    from redsim.bench import machine_info
+
+    machine = machine_info()
+    assert machine["cpu_capability"] == torch.backends.cpu.get_cpu_capability()
+    if machine["cpu_family_model"] is not None:  # Linux on x86: the first CPU's "cpu family" and "model"
+        assert machine["cpu_family_model"].startswith("family ") and machine["cpu_family_model"] + ")," in line
 
 
 def test_bench_energy_json(capsys: pytest.CaptureFixture[str]) -> None:

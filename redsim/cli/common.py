@@ -352,14 +352,17 @@ def parse_list(text: str, what: str, item: Callable[[str], Any] | None = None) -
 
 # -- shared options -------------------------------------------------------------------------
 def machine_line(machine: dict[str, Any], device: str) -> str:
-    """One line on the machine a benchmark ran on (from :func:`redsim.bench.machine_info`)."""
+    """One line on the machine a benchmark ran on (from :func:`redsim.bench.machine_info`): the CPU with its family
+    and model, cores, load, torch with the vector kernels it runs, threads and device."""
     load = machine["load_average_1min"]
     cpu = machine["processor"]
-    cpu = cpu if cpu == machine["machine"] else f"{cpu} ({machine['machine']})"
+    extra = [a for a in (machine["machine"], machine["cpu_family_model"]) if a and a != cpu]
+    cpu = f"{cpu} ({', '.join(extra)})" if extra else cpu
+    kernels = f" ({machine['cpu_capability']} kernels)" if machine["cpu_capability"] else ""
     return (
         f"machine: {cpu}, {machine['cpu_count']} CPUs"
         + (f" (load {load:.2f})" if load is not None else "")
-        + f", torch {machine['torch']}, {machine['torch_threads']} threads, device {device}"
+        + f", torch {machine['torch']}{kernels}, {machine['torch_threads']} threads, device {device}"
         + (f" ({machine['cuda_device']})" if device.startswith("cuda") else "")
     )
 
