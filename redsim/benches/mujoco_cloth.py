@@ -379,6 +379,20 @@ def flex_sheet(
     return FlexSheet(spec.compile(), mesh)
 
 
+def whole_steps(seconds: float, timestep: float, what: str = "seconds") -> int:
+    """The steps of ``timestep`` [s] in ``seconds`` [s], a whole number >= 1 (float round-off aside).
+
+    Raises:
+        ValueError: naming ``what``, where ``seconds`` is not a whole multiple of ``timestep``: the run would last
+            another time than asked (``--seconds 0.04`` ran one 0.05 s step, printed as 0.04 s) and runs at other
+            time steps would be compared over other times.
+    """
+    steps = round(seconds / timestep)
+    if steps < 1 or not math.isclose(seconds / timestep, steps, rel_tol=1e-9):
+        raise ValueError(f"{what} must be a whole multiple of the time step {timestep:g} s, got {seconds:g}")
+    return steps
+
+
 def dropped_positions(mesh: SheetMesh) -> np.ndarray:
     """The seed [V, 3] turned 90 degrees about the line of the pinned vertices, to the side where it is level
     with the ground (normal to gravity) and its centre is higher: released, it falls and swings down."""
@@ -426,6 +440,10 @@ def drop_run(
     Returns:
         ``integrator``, ``timestep``, ``scenario``, ``blew_up``, ``reason`` (None, "nan", "warning",
         "strain", "energy"), ``at_s`` (when), ``max_strain``, ``cpu_s_per_step``.
+
+    Raises:
+        ValueError: an unknown scenario, a scene without gravity, or ``seconds`` not a whole multiple of
+            ``timestep`` (:func:`whole_steps`).
     """
     import mujoco
 
@@ -437,7 +455,7 @@ def drop_run(
     if g == 0.0:
         raise ValueError(f"scene {scene.name!r} has no gravity to hang or drop under")
     scene64 = scene.to(device="cpu", dtype=torch.float64)
-    steps = max(1, round(seconds / timestep))
+    steps = whole_steps(seconds, timestep)
     every = max(1, round(CHECK_EVERY / timestep))
     reason, at, max_strain, cpu = None, steps, 0.0, 0.0
     previous = mujoco.get_mju_user_warning()
@@ -591,12 +609,16 @@ def rest_sag(
     Returns:
         ``handles``: {name: {"mujoco_m": [3], "redsim_m": [3]}} (displacements from the seed),
         ``max_vertex_gap_m``, ``mujoco_speed_m_s`` (largest vertex speed at the end), ``redsim_converged``.
+
+    Raises:
+        ValueError: ``settle_s`` not a whole multiple of ``timestep`` (:func:`whole_steps`).
     """
     from redsim.integrators.reference import rest_state
 
     scene64 = scene.to(device="cpu", dtype=torch.float64)
+    settle_steps = whole_steps(settle_s, timestep, "settle_s")
     sheet = flex_sheet(scene64, integrator=integrator, timestep=timestep, match=match)
-    for _ in range(max(1, round(settle_s / timestep))):
+    for _ in range(settle_steps):
         sheet.step()
     mujoco_rest = sheet.positions()
     q, converged = rest_state(scene64)
@@ -697,6 +719,8 @@ SWING_RUNS: tuple[tuple[str, float], ...] = (
 )
 """MuJoCo runs of :func:`swing_check`: the anchor, ``discrete`` at the envs' dt and below, and explicit Euler at a
 small step (MuJoCo's most accurate run of the sweep)."""
+SWING_REDSIM_DT = 0.02
+"""Time step [s] of redsim's full-space reference in :func:`swing_check` (the envs' dt)."""
 SWING_HANDLE = "bottom_middle"
 """The handle whose path :func:`swing_check` compares (the middle of the free edge)."""
 
@@ -725,7 +749,7 @@ def swing_check(
     scene: Scene,
     *,
     seconds: float = SWEEP_SECONDS,
-    redsim_dt: float = 0.02,
+    redsim_dt: float = SWING_REDSIM_DT,
     runs: tuple[tuple[str, float], ...] = SWING_RUNS,
     match: ShellMatch | None = None,
 ) -> dict[str, Any]:
@@ -740,9 +764,15 @@ def swing_check(
     Returns:
         ``runs``: list of ``{"name", "timestep", "passes_s", "lowest_m", "far_side_m", "rms_gap_m", "cpu_s"}``
         (redsim's first).
+
+    Raises:
+        ValueError: ``seconds`` not a whole multiple of ``redsim_dt`` and of every run's time step
+            (:func:`whole_steps`): the paths would be compared over other times.
     """
     from redsim.integrators import FullSpace, ImplicitEuler
 
+    steps = whole_steps(seconds, redsim_dt)
+    counts = [whole_steps(seconds, dt) for _, dt in runs]
     scene64 = scene.to(device="cpu", dtype=torch.float64)
     mesh = sheet_mesh(scene64)
     start = dropped_positions(mesh)
@@ -756,7 +786,6 @@ def swing_check(
 
     integrator = ImplicitEuler(FullSpace(scene64), redsim_dt, minimizer="newton", tol=1e-8, max_iter=50)
     state = integrator.initial_state(scene64.dof_map.restrict(torch.as_tensor(start.reshape(1, -1)))[0])
-    steps = max(1, round(seconds / redsim_dt))
     clock = time.process_time()
     path = [point(start)]
     for _ in range(steps):
@@ -774,10 +803,9 @@ def swing_check(
         }
     ]
     match = matched_shell(scene64) if match is None else match
-    for name, dt in runs:
+    for (name, dt), count in zip(runs, counts, strict=True):
         sheet = flex_sheet(scene64, integrator=name, timestep=dt, match=match)
         sheet.set_positions(start)
-        count = max(1, round(seconds / dt))
         clock = time.process_time()
         path = [point(start)]
         for _ in range(count):
@@ -806,6 +834,7 @@ __all__ = [
     "CLOTH_TIMESTEP",
     "MAX_EDGE_STRAIN",
     "SWEEP_TIMESTEPS",
+    "SWING_REDSIM_DT",
     "FlexSheet",
     "SheetMesh",
     "ShellMatch",
@@ -826,4 +855,5 @@ __all__ = [
     "swing_check",
     "time_flex_cloth",
     "timestep_sweep",
+    "whole_steps",
 ]

@@ -354,6 +354,15 @@ def cmd_bench_mujoco_cloth(args: argparse.Namespace) -> int:
                 f"--timesteps: integrator {' or '.join(mujoco_cloth.SWEEP_TIMESTEPS)} (the two that integrate flex "
                 f"elasticity) and finite time steps > 0, got {args.timesteps!r}"
             )
+    timesteps = [] if args.no_sweep else [dt for steps in sweep.values() for dt in steps]
+    timesteps += [] if args.no_swing else [mujoco_cloth.SWING_REDSIM_DT, *(dt for _, dt in mujoco_cloth.SWING_RUNS)]
+    try:  # up front: each run lasts the time printed, and the runs compared last the same time
+        for dt in timesteps:
+            mujoco_cloth.whole_steps(args.seconds, dt, "--seconds")
+        if not args.no_sag:
+            mujoco_cloth.whole_steps(args.settle, mujoco_cloth.CLOTH_TIMESTEP, "--settle")
+    except ValueError as err:
+        raise CliError(str(err)) from None
     machine = machine_info()
     scene = redsim.scenes.build(mujoco_cloth.CLOTH_SCENE)
     mesh = mujoco_cloth.sheet_mesh(scene)
@@ -568,9 +577,19 @@ def add_commands(sub: Any, bench: Any) -> None:
             "swing against redsim's full-space implicit Euler."
         ),
     )
-    p.add_argument("--seconds", type=float, default=2.0, help="simulated seconds per sweep and swing run (default 2)")
+    p.add_argument(
+        "--seconds",
+        type=float,
+        default=2.0,
+        help="simulated seconds per sweep and swing run, a whole multiple of each time step run (default 2)",
+    )
     p.add_argument("--timesteps", metavar="INTEGRATOR:DT,...", help="sweep only these (e.g. discrete:0.02,0.01)")
-    p.add_argument("--settle", type=float, default=20.0, help="simulated seconds MuJoCo settles for (default 20)")
+    p.add_argument(
+        "--settle",
+        type=float,
+        default=20.0,
+        help="simulated seconds MuJoCo settles for, whole 0.05 s steps (default 20)",
+    )
     p.add_argument("--no-sweep", action="store_true", help="skip the time-step sweep")
     p.add_argument("--no-sag", action="store_true", help="skip the rest comparison")
     p.add_argument("--no-swing", action="store_true", help="skip the swing comparison (redsim's full space: minutes)")

@@ -166,6 +166,26 @@ def test_a_timesteps_without_its_time_steps_names_what_was_given(capsys: pytest.
         assert f"--timesteps must be INTEGRATOR:DT,DT,..., e.g. discrete:0.02,0.01, got {bad!r}" in err, err
 
 
+def test_a_run_length_that_is_not_whole_steps_is_refused(scene, match, capsys: pytest.CaptureFixture[str]) -> None:
+    """``--seconds 0.04`` ran one 0.05 s step and printed it as 0.04 s, beside redsim's two 0.02 s steps."""
+    from redsim.cli import main
+
+    assert mujoco_cloth.whole_steps(2.0, 5e-5) == 40000 and mujoco_cloth.whole_steps(0.06, 0.02) == 3
+    for seconds, dt in ((0.04, 0.05), (0.07, 0.02), (0.0, 0.01)):
+        with pytest.raises(ValueError, match=f"whole multiple of the time step {dt:g} s"):
+            mujoco_cloth.whole_steps(seconds, dt)
+    with pytest.raises(ValueError, match="whole multiple"):
+        mujoco_cloth.drop_run(scene, integrator="discrete", timestep=0.05, scenario="hang", seconds=0.04, match=match)
+    for bad, expected in (
+        (["--timesteps", "discrete:0.05", "--seconds", "0.04", "--no-sag", "--no-swing"], "--seconds"),
+        (["--no-sweep", "--seconds", "0.07", "--no-sag"], "--seconds"),  # the swing's redsim steps 0.02 s
+        (["--no-sweep", "--no-swing", "--settle", "0.01"], "--settle"),
+    ):
+        assert main(["bench", "mujoco-cloth", *bad]) == 2
+        captured = capsys.readouterr()
+        assert captured.out == "" and f"{expected} must be a whole multiple of the time step" in captured.err
+
+
 def test_an_old_mujoco_is_named_not_a_traceback(monkeypatch: pytest.MonkeyPatch) -> None:
     monkeypatch.delattr(mujoco.mjtIntegrator, "mjINT_DISCRETE")
     assert "needs mujoco >= 3.13" in mujoco_cloth.flex_cloth_unavailable()

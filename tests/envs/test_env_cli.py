@@ -122,6 +122,19 @@ def test_bench_envs_without_mujoco_skips_the_anchors_with_the_reason(
     assert json.loads(capsys.readouterr().out)["mujoco"] == {"available": False, "reason": bench.MUJOCO_MISSING}
 
 
+def test_bench_mujoco_cloth_without_mujoco_is_one_error_line(
+    monkeypatch: pytest.MonkeyPatch, capsys: pytest.CaptureFixture[str]
+) -> None:
+    import importlib.util
+
+    real = importlib.util.find_spec
+    monkeypatch.setattr(importlib.util, "find_spec", lambda name, *a: None if name == "mujoco" else real(name, *a))
+    assert main(["bench", "mujoco-cloth", "--no-sweep", "--no-sag", "--no-swing"]) == 2
+    captured = capsys.readouterr()
+    assert captured.out == ""
+    assert captured.err == "redsim: error: mujoco is not installed (pip install 'redsim[bench]')\n"
+
+
 @pytest.mark.parametrize("argv", [["demo", "RedSim/Nope-v0"], ["bench", "envs", "--envs", "Nope"]])
 def test_unknown_env_id_is_a_usage_error(argv: list[str], capsys: pytest.CaptureFixture[str]) -> None:
     assert main(argv) == 2
