@@ -51,6 +51,44 @@ def median_time(call: Callable[[], Any], repeats: int, budget: float) -> tuple[f
     return statistics.median(times), len(times)
 
 
+class SolveTally:
+    """What the solves of timed env steps said, from each step's ``info`` (a single env's, or a vector env's with a
+    value per copy): iterations per copy (a restarted copy counts 0) and of the slowest copy, and over the copies the
+    step solved (a copy restarted in it is not, and its flags, a reset's out_of_range for its start, are left out) the
+    converged fraction and the out_of_range and diverged counts (a diverged copy is then restarted, its step timed as
+    any other): a rate over steps whose solves failed is not that of a working env."""
+
+    def __init__(self) -> None:
+        self.iterations: list[float] = []
+        self.slowest: list[float] = []
+        self.converged: list[float] = []
+        self.out_of_range = 0
+        self.diverged = 0
+
+    def add(self, info: dict[str, Any]) -> None:
+        """Count one step's ``info``."""
+        if "iterations" not in info:  # every copy restarted (NEXT_STEP autoreset): no solve, no statistics
+            return
+        iterations = np.atleast_1d(info["iterations"])
+        stepped = np.broadcast_to(info.get("_converged", True), iterations.shape)  # a single env's step: it stepped
+        self.iterations.append(float(np.mean(iterations)))
+        self.slowest.append(float(np.max(iterations)))
+        self.converged.append(float(np.mean(np.atleast_1d(info["converged"])[stepped])))
+        self.out_of_range += int(np.sum(np.atleast_1d(info["out_of_range"])[stepped]))
+        self.diverged += int(np.sum(np.atleast_1d(info["diverged"])[stepped]))
+
+    def summary(self) -> dict[str, Any]:
+        """``iterations_per_step`` and ``slowest_iterations_per_step`` (means over steps), ``converged_fraction`` (the
+        mean over steps of the solved copies' fraction), ``out_of_range`` and ``diverged`` (copy-steps)."""
+        return {
+            "iterations_per_step": statistics.fmean(self.iterations),
+            "slowest_iterations_per_step": statistics.fmean(self.slowest),
+            "converged_fraction": statistics.fmean(self.converged),
+            "out_of_range": self.out_of_range,
+            "diverged": self.diverged,
+        }
+
+
 def _full_space_step(
     env: Any, repeats: int, budget: float, rng: np.random.Generator, warmup: int = 3
 ) -> dict[str, Any]:
@@ -131,11 +169,13 @@ def bench_env(
 
     Returns:
         ``id``, ``scene`` (its name), ``n``, ``d``, ``action_size``, ``observation_size``, ``dt`` [s], ``make_s``,
-        ``single`` and ``vector`` (per batch) with ``env_steps_per_s`` and ``sim_s_per_wall_s`` (and for
-        ``vector`` the solver's work per timed vector step: ``iterations_per_step``, the mean over copies of
+        ``single`` and ``vector`` (per batch) with ``env_steps_per_s`` and ``sim_s_per_wall_s``, what the timed
+        steps' solves said (:meth:`SolveTally.summary`: ``iterations_per_step``, the mean over copies of
         ``info["iterations"]``; ``slowest_iterations_per_step``, the mean over steps of the slowest copy's
-        iterations (a vector step makes at least that many objective calls); ``calls_per_step``, the stepper's
-        value-and-gradient calls; ``rows_per_copy_step``, the latent states those calls evaluated per copy),
+        iterations (a vector step makes at least that many objective calls); ``converged_fraction``,
+        ``out_of_range``, ``diverged``) and for ``vector`` the solver's calls per timed vector step
+        (``calls_per_step``, the stepper's value-and-gradient calls; ``rows_per_copy_step``, the latent states those
+        calls evaluated per copy),
         ``full_space`` (``step_s``, ``sim_s_per_wall_s``) or None, ``render`` (``frames_per_s`` of the single
         env's ``rgb_array`` frame at :data:`RENDER_SIZE`, the map's full configuration included).
     """
@@ -146,14 +186,18 @@ def bench_env(
     env.reset(seed=seed)
     dt = env.dt
 
+    solves = SolveTally()
+
     def single_step() -> None:
-        _, _, terminated, _, _ = env.step(env.action_space.sample())
-        if terminated:
+        _, _, terminated, _, info = env.step(env.action_space.sample())
+        solves.add(info)
+        if terminated:  # a diverged step too: counted, then the env restarts as a vector env's copy does
             env.reset()
 
     env.action_space.seed(seed)
     for _ in range(warmup):
         single_step()
+    solves = SolveTally()  # the timed steps' only
     seconds, count = median_time(single_step, steps, budget)
     row: dict[str, Any] = {
         "id": env_id,
@@ -164,7 +208,12 @@ def bench_env(
         "scene": env.sim.scene.name,
         "dt": dt,
         "make_s": make_s,
-        "single": {"env_steps_per_s": 1.0 / seconds, "sim_s_per_wall_s": dt / seconds, "repeats": count},
+        "single": {
+            "env_steps_per_s": 1.0 / seconds,
+            "sim_s_per_wall_s": dt / seconds,
+            "repeats": count,
+            **solves.summary(),
+        },
         "vector": {},
     }
     view = env.sim.fixed_view(*RENDER_SIZE, env._camera)  # the fixed camera render() draws with
@@ -181,21 +230,14 @@ def bench_env(
         rng = np.random.default_rng((seed, int(batch)))
         actions = rng.uniform(-1.0, 1.0, (max(steps, 1) + warmup, *venv.action_space.shape)).astype(np.float32)
         cursor = iter(actions)
-        iterations: list[float] = []
-        slowest: list[float] = []
+        tally = [SolveTally()]
 
-        def vector_step(
-            venv: Any = venv, cursor: Any = cursor, iterations: list[float] = iterations, slowest: list[float] = slowest
-        ) -> None:
-            _, _, _, _, info = venv.step(next(cursor))
-            if "iterations" in info:  # none where every copy restarted (NEXT_STEP autoreset)
-                iterations.append(float(np.mean(info["iterations"])))
-                slowest.append(float(np.max(info["iterations"])))
+        def vector_step(venv: Any = venv, cursor: Any = cursor, tally: list[SolveTally] = tally) -> None:
+            tally[0].add(venv.step(next(cursor))[4])
 
         for _ in range(warmup):
             vector_step()
-        iterations.clear()
-        slowest.clear()
+        tally[0] = SolveTally()  # the timed steps' only
         stepper = None if shards != 1 else venv.unwrapped.sim.stepper
         if stepper is not None:
             stepper.evaluations = Evaluations()
@@ -204,8 +246,7 @@ def bench_env(
             "env_steps_per_s": batch / seconds,
             "sim_s_per_wall_s": batch * dt / seconds,
             "repeats": count,
-            "iterations_per_step": statistics.fmean(iterations),
-            "slowest_iterations_per_step": statistics.fmean(slowest),
+            **tally[0].summary(),
             "calls_per_step": None if stepper is None else stepper.evaluations.calls / count,
             "rows_per_copy_step": None if stepper is None else stepper.evaluations.rows / (count * batch),
             "shards": shards,

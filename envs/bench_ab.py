@@ -27,6 +27,7 @@ import gymnasium as gym
 import numpy as np
 
 from redsim.envs.base import MAX_IMAGE_SIDE
+from redsim.envs.bench import SolveTally
 from redsim.runtime import Evaluations
 
 
@@ -134,11 +135,7 @@ class _Work:
         self.round_cpu_s: list[float] = []
         self.round_render_cpu_s: list[float] = []
         self.steps = 0  # timed vector steps
-        self.iterations: list[float] = []
-        self.slowest: list[float] = []
-        self.converged: list[float] = []
-        self.out_of_range = 0
-        self.diverged = 0
+        self.solves = SolveTally()
         self.observations: list[np.ndarray] = []  # per timed step [N, obs]
 
     def run_round(self, venv: Any, actions: np.ndarray, render: bool = False) -> None:
@@ -160,17 +157,7 @@ class _Work:
             self.round_render_cpu_s.append(drawing / len(actions))
         self.steps += len(infos)
         for info in infos:
-            # every copy restarted this step (NEXT_STEP autoreset): none was solved, so the step made no calls and
-            # has no solve statistics; restarted copies count 0 iterations, and their flags (a reset's out_of_range
-            # for its start) are left out of the converged fraction and the counts
-            if "iterations" not in info:
-                continue
-            stepped = info["_converged"]
-            self.iterations.append(float(np.mean(info["iterations"])))
-            self.slowest.append(float(np.max(info["iterations"])))
-            self.converged.append(float(np.mean(info["converged"][stepped])))
-            self.out_of_range += int(np.sum(info["out_of_range"][stepped]))
-            self.diverged += int(np.sum(info["diverged"][stepped]))
+            self.solves.add(info)
 
 
 def observation_gap(observations: list[np.ndarray], reference: list[np.ndarray]) -> float | None:
@@ -178,7 +165,8 @@ def observation_gap(observations: list[np.ndarray], reference: list[np.ndarray])
     either holds a NaN); None where their shapes differ (a map of another dimension: nothing to compare)."""
     if any(a.shape != b.shape for a, b in zip(observations, reference, strict=True)):
         return None
-    return float(max(np.max(np.abs(a.astype(np.float64) - b)) for a, b in zip(observations, reference, strict=True)))
+    gaps = [np.max(np.abs(a.astype(np.float64) - b)) for a, b in zip(observations, reference, strict=True)]
+    return float(np.max(gaps))  # not max(gaps): Python's max keeps a finite value seen before a NaN
 
 
 def _summary(
@@ -186,6 +174,7 @@ def _summary(
 ) -> dict[str, Any]:
     """One setting's row of :func:`bench_env_ab`."""
     steps = work.steps
+    solves = work.solves.summary()
     evaluations = venv.unwrapped.sim.stepper.evaluations
     median_s = statistics.median(work.round_cpu_s)
     ratios = [a / b for a, b in zip(first.round_cpu_s, work.round_cpu_s, strict=True)]
@@ -205,13 +194,13 @@ def _summary(
         **rendered,
         "cpu_ms_per_step": 1e3 * median_s,
         "env_steps_per_cpu_s": num_envs / median_s,
-        "iterations_per_step": statistics.fmean(work.iterations),
-        "slowest_iterations_per_step": statistics.fmean(work.slowest),
+        "iterations_per_step": solves["iterations_per_step"],
+        "slowest_iterations_per_step": solves["slowest_iterations_per_step"],
         "calls_per_step": evaluations.calls / steps,
         "rows_per_copy_step": evaluations.rows / (steps * num_envs),
-        "converged_fraction": statistics.fmean(work.converged),
-        "out_of_range": work.out_of_range,
-        "diverged": work.diverged,
+        "converged_fraction": solves["converged_fraction"],
+        "out_of_range": solves["out_of_range"],
+        "diverged": solves["diverged"],
         "observation_gap": gap,
         "ratio": {"rounds": ratios, "median": statistics.median(ratios), "min": min(ratios), "max": max(ratios)},
     }

@@ -71,12 +71,25 @@ def _gap(value: float | None) -> str:
     return "-" if value is None else f"{value:.2g}"
 
 
+def _failed_solves(row: dict[str, Any], batches: list[int]) -> list[str]:
+    """The single env and batches of a :func:`bench_env` row whose timed steps had a solve that did not converge,
+    diverged or left the map's range, each as printed: "N=16: 92.5% converged, 3 diverged, 0 out of range"."""
+    parts = [("single", row["single"]), *((f"N={b}", row["vector"][b]) for b in batches)]
+    return [
+        f"{name}: {100 * part['converged_fraction']:.1f}% converged, {part['diverged']} diverged, "
+        f"{part['out_of_range']} out of range"
+        for name, part in parts
+        if part["converged_fraction"] < 1 or part["diverged"] or part["out_of_range"]
+    ]
+
+
 def _row_line(row: dict[str, Any], batches: list[int]) -> str:
     cells = " ".join(f"{row['vector'][b]['env_steps_per_s']:>9.0f}" for b in batches)
     best = max((row["vector"][b]["sim_s_per_wall_s"] for b in batches), default=None)
     full = row["full_space"]
+    flag = "!" if _failed_solves(row, batches) else ""
     return (
-        f"{row['id']:<26} {row['n']:>6} {row['d']:>3} {row['action_size']:>4} {row['observation_size']:>4} "
+        f"{row['id'] + flag:<26} {row['n']:>6} {row['d']:>3} {row['action_size']:>4} {row['observation_size']:>4} "
         f"{row['single']['env_steps_per_s']:>8.0f} {cells} {row['single']['sim_s_per_wall_s']:>9.2f} "
         + (f"{best:>10.1f} " if best is not None else f"{'-':>10} ")
         + (f"{full['sim_s_per_wall_s']:.3g}{'' if full['converged'] else '*':1}" if full else "-").rjust(10)
@@ -166,6 +179,13 @@ def cmd_bench_envs(args: argparse.Namespace) -> int:
     if not args.json:
         if any(row["full_space"] is not None and not row["full_space"]["converged"] for row in rows):
             out("* a timed full-space step ended unconverged at Newton's iteration cap: a faster rate than converging")
+        failed = {row["id"]: _failed_solves(row, batches) for row in rows}
+        if any(failed.values()):
+            out("! timed env steps with a solve that did not converge, diverged (the copy then restarts) or left the")
+            out("map's range (info's converged, diverged, out_of_range of the copies solved): not a working env's rate")
+            for env_id, parts in failed.items():
+                if parts:
+                    out(f"  {env_id}: " + "; ".join(parts))
         out(
             "solver work per vector step: iterations per copy (of the slowest copy) / value-and-gradient calls "
             "/ rows per copy"

@@ -89,8 +89,9 @@ def test_a_restarted_copys_flags_are_not_counted_as_its_steps() -> None:
 
     work = _Work()
     work.run_round(Venv(), np.zeros((2, 3, 1), np.float32))
-    assert work.out_of_range == 2 and work.diverged == 2 and work.converged == [0.5, 0.5]
-    assert work.slowest == [5.0, 5.0]
+    solves = work.solves
+    assert solves.out_of_range == 2 and solves.diverged == 2 and solves.converged == [0.5, 0.5]
+    assert solves.slowest == [5.0, 5.0]
 
 
 def test_env_ab_prints_a_row_per_setting_and_the_ratios(capsys: pytest.CaptureFixture[str]) -> None:
@@ -190,6 +191,7 @@ def test_the_observation_gap_of_settings_whose_observations_differ_in_shape_is_n
     assert observation_gap(a, b) is None
     nan = [np.array([[np.nan, 0.0]], np.float32), np.zeros((1, 2), np.float32)]
     assert np.isnan(observation_gap(nan, [np.zeros((1, 2), np.float32)] * 2))
+    assert np.isnan(observation_gap(nan[::-1], [np.zeros((1, 2), np.float32)] * 2))  # Python's max kept the 0.0
     assert observation_gap([np.ones((1, 2), np.float32)], [np.zeros((1, 2), np.float32)]) == 1.0
     doc = bench_env_ab(
         "RedSim/ConditionalBar-v1",

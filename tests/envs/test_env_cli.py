@@ -272,10 +272,31 @@ def test_bench_envs_table_marks_an_unconverged_full_space_step() -> None:
     from redsim.cli.envs import _row_line
 
     row = {"id": "RedSim/X-v0", "n": 1, "d": 1, "action_size": 1, "observation_size": 1, "render": {"frames_per_s": 1}}
-    row |= {"single": {"env_steps_per_s": 1.0, "sim_s_per_wall_s": 0.02}, "vector": {}}
+    solved = {"converged_fraction": 1.0, "out_of_range": 0, "diverged": 0}
+    row |= {"single": {"env_steps_per_s": 1.0, "sim_s_per_wall_s": 0.02, **solved}, "vector": {}}
     converged = _row_line({**row, "full_space": {"sim_s_per_wall_s": 0.0322, "converged": True}}, [])
     capped = _row_line({**row, "full_space": {"sim_s_per_wall_s": 0.0322, "converged": False}}, [])
     assert "0.0322*" in capped and "*" not in converged and len(capped) == len(converged)
+
+
+def test_bench_envs_reports_timed_steps_whose_solves_failed(capsys: pytest.CaptureFixture[str]) -> None:
+    """One Newton iteration per stepper step leaves every solve unconverged, and such steps are ~3x faster: the
+    table gave their rate as any other's without a word (only `bench env-ab` counted the flags). Each part now
+    counts converged, diverged and out_of_range of its timed steps, and the text marks the id and names them."""
+    from redsim.envs.bench import bench_env
+
+    capped = {"stepper_options": {"max_iter": 1}}
+    row = bench_env("RedSim/MiniChain-v0", batches=(2,), steps=3, warmup=1, budget=100.0, full_space=False, **capped)
+    for part in (row["single"], row["vector"][2]):
+        assert part["converged_fraction"] == 0.0 and part["diverged"] == 0 and part["out_of_range"] == 0
+    fine = bench_env("RedSim/MiniChain-v0", batches=(2,), steps=3, warmup=1, budget=100.0, full_space=False)
+    assert fine["single"]["converged_fraction"] == fine["vector"][2]["converged_fraction"] == 1.0
+    args = ["bench", "envs", "--envs", "RedSim/MiniChain-v0", "--batches", "2", "--steps", "2", "--budget", "0.1"]
+    args += ["--no-full-space", "--anchor-steps", "20", "--env-arg", 'stepper_options={"max_iter": 1}']
+    assert main(args) == 0
+    text = capsys.readouterr().out
+    assert "RedSim/MiniChain-v0!" in text and "! timed env steps with a solve that did not converge" in text
+    assert "  RedSim/MiniChain-v0: single: 0.0% converged, 0 diverged, 0 out of range; N=2: 0.0% converged" in text
 
 
 def test_bench_envs_parts_do_not_depend_on_which_others_run() -> None:
