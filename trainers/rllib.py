@@ -31,6 +31,7 @@ so a bad id or keyword is a clear error there.
 
 from __future__ import annotations
 
+import importlib.util
 from collections.abc import Mapping
 from pathlib import Path
 from typing import Any
@@ -115,12 +116,17 @@ def register(name: str = DEFAULT_NAME) -> str:
     Raises:
         ImportError: Ray is not installed (``pip install "redsim[ray]"``).
     """
-    try:
-        from ray.tune.registry import register_env
-    except ImportError as err:
-        raise ImportError('Ray RLlib is not installed: pip install "redsim[ray]"') from err
+    _require_ray()
+    from ray.tune.registry import register_env
+
     register_env(name, env_creator)
     return name
+
+
+def _require_ray() -> None:
+    """Raise an ImportError naming the extra where Ray is not installed (a bare "No module named 'ray'" does not)."""
+    if importlib.util.find_spec("ray") is None:
+        raise ImportError('Ray RLlib is not installed: pip install "redsim[ray]"')
 
 
 def checkpoint_config(path: str | Path) -> dict[str, Any]:
@@ -158,8 +164,10 @@ def restore(path: str | Path) -> Any:
     (which ones changed from run to run). This waits for every runner.
 
     Raises:
+        ImportError: Ray is not installed (``pip install "redsim[ray]"``).
         RuntimeError: a runner did not answer within :data:`RESTORE_TIMEOUT` seconds (the algorithm is stopped).
     """
+    _require_ray()
     from ray.rllib.algorithms.algorithm import Algorithm
 
     config = checkpoint_config(path)

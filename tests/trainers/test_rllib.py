@@ -75,9 +75,14 @@ def test_the_config_is_checked_as_the_runners_build_it() -> None:
 
 
 @pytest.mark.skipif(importlib.util.find_spec("ray") is not None, reason="Ray is installed here")
-def test_register_without_ray_names_the_extra() -> None:
+def test_register_and_restore_without_ray_name_the_extra(tmp_path) -> None:
+    """restore() said only "No module named 'ray'" (it imported Ray first, without the extra's name)."""
+    from redsim.trainers.rllib import restore
+
     with pytest.raises(ImportError, match='pip install "redsim\\[ray\\]"'):
         register()
+    with pytest.raises(ImportError, match='pip install "redsim\\[ray\\]"'):
+        restore(tmp_path)
 
 
 def test_a_restored_algorithm_samples_with_the_checkpoints_weights_on_every_runner(tmp_path) -> None:
