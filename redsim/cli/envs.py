@@ -341,6 +341,12 @@ def cmd_bench_env_ab(args: argparse.Namespace) -> int:
     out(f"per-round CPU ratio vs {first} ({first}'s time over the setting's: > 1 is faster):")
     for row in rows[1:]:
         out(f"  {row['name']}: " + " ".join(f"{r:.2f}" for r in row["ratio"]["rounds"]))
+    threaded = [row["name"] for row in rows if row["env_args"].get("threads", args.threads) != 1]
+    if threaded:
+        out(
+            f"note: {', '.join(threaded)} ran on more than one torch thread (or the process's own setting): CPU time "
+            "adds up every thread's, spin-waits too, so its ratio is the CPU it costs, not its wall-clock speed"
+        )
     end = result["load_average_1min_end"]
     if end is not None:
         out(f"load at the end: {end:.2f}")

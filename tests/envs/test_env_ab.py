@@ -113,6 +113,16 @@ def test_env_ab_prints_a_row_per_setting_and_the_ratios(capsys: pytest.CaptureFi
     assert any(line.startswith("idle ") and "* " in line for line in text.splitlines()), text
 
 
+def test_env_ab_says_a_threaded_settings_ratio_is_its_cpu_cost(capsys: pytest.CaptureFixture[str]) -> None:
+    """CPU time adds up every thread's: a 2-thread Chain-v0 step took 2x the CPU of a 1-thread one in the same wall
+    time, and env-ab printed that as a 2x slower setting without a word."""
+    args = ["bench", "env-ab", "RedSim/MiniChain-v0", "--setting", "a", "--setting", "two:threads=2", *TINY]
+    assert main(args) == 0
+    assert "note: two ran on more than one torch thread" in capsys.readouterr().out
+    assert main([*args[:5], "--setting", "b", *TINY]) == 0
+    assert "torch thread" not in capsys.readouterr().out
+
+
 def test_env_ab_renders_every_copy_after_each_timed_step(capsys: pytest.CaptureFixture[str]) -> None:
     """--render PX: frames of that size for every setting (a setting's camera key reaches its env), the renders'
     CPU time reported apart and counted in the step's."""
