@@ -15,7 +15,8 @@ damper. How much, per scene, space and time step:
   space's own unloaded equilibrium (full: q_rest; latent: f(z*)), all in float64
   (:func:`redsim.benches.stability.energy_account`);
 - ``retained``: F_t / F_0 at 0.5 s, 1 s and ``seconds``; ``largest``: its maximum after the start (above
-  1: the run gained energy). A run that comes to rest at another equilibrium than E_rest's ends away from 0.
+  1: the run gained energy). A run that comes to rest at another equilibrium than E_rest's ends away from 0; one
+  whose F_0 is not > 0 (its rest, unconverged, not below the start) has no fraction: NaN, named under the table.
 
 Runs: the latent runtime (:class:`redsim.runtime.LatentStepper`, B = 1, in float32, what the envs run, and
 in float64, which separates the solver's tolerance from the integrator), and the float64 full-space reference
@@ -134,7 +135,13 @@ def retained(scene: Scene, q: Tensor, q_prev: Tensor, dt: float, rest_energy: fl
 def _row(
     name: str, space: str, dt: float, fractions: Tensor, free_J: float, seconds: float, **counts: Any
 ) -> dict[str, Any]:
-    """One table row of run ``name``: the retained fraction at each checkpoint and at the end, and its counts."""
+    """One table row of run ``name``: the retained fraction at each checkpoint and at the end, and its counts.
+
+    A start whose free energy ``free_J`` is not above the rest's has no fraction (NaN): F_t / F_0 then reads as
+    energy kept (cloth_ball's full space: its unconverged rest 203 J above the loaded start gave "retained 1").
+    """
+    if not free_J > 0.0:
+        fractions = torch.full_like(fractions, math.nan)
     values = {}
     for t in (*(c for c in CHECKPOINTS if c < seconds), seconds):
         index = round(t / dt)
@@ -390,6 +397,12 @@ def damping_table(result: dict[str, Any]) -> list[str]:
     unconverged = [k for k, ok in result["starts_converged"].items() if not ok]
     if unconverged:
         notes.append(f"a static solve of the start did not converge: {', '.join(unconverged)}")
+    below = sorted({f"{r['scene']} {r['space']}" for r in result["rows"] if not r["free_energy_J"] > 0.0})
+    if below:
+        notes.append(
+            f"no retained fraction (nan) where the start is not above the rest: {', '.join(below)} (its free energy "
+            "at the start is <= 0)"
+        )
     return lines + (["", *notes] if notes else [])
 
 

@@ -662,7 +662,7 @@ def cmd_bench_stability(args: argparse.Namespace) -> int:
         json_out(result)
     else:
         out(_machine_line(machine, "cpu"))
-        lines = stability.report(result) if rows or damping is None else []  # the damping regime alone: its table
+        lines = stability.report(result)  # none for the damping regime alone
         if damping is not None:
             from redsim.benches import damping as damping_bench
 

@@ -79,6 +79,35 @@ def test_cli_damping_regime(cli: Cli) -> None:
     assert code == 2 and "--damping-scenes: unknown scene(s) ['klann']" in err
 
 
+def test_cli_prints_the_chain_table_beside_the_damping_table(cli: Cli, monkeypatch: pytest.MonkeyPatch) -> None:
+    """``--regimes mujoco,damping`` ran the chain scenarios (a blow-up there fails the command) but printed only the
+    damping table."""
+    monkeypatch.setattr(stability, "mujoco_chain_cases", lambda _steps: None)
+    monkeypatch.setattr(stability, "redsim_chain_cases", lambda *_a, **_k: [])
+    argv = ["--damping-scenes", "mini_chain", "--damping-seconds", "0.02", "--damping-divisions", "1"]
+    code, out, err = cli("bench", "stability", "--regimes", "mujoco,damping", *argv, "--damping-full", "none")
+    assert code == 0, err
+    assert "| kick_1 |" in out and "the MuJoCo columns are skipped" in out and "| mini_chain | latent f64 |" in out
+
+
+def test_a_start_not_above_its_rest_has_no_retained_fraction() -> None:
+    """cloth_ball's full-space rest does not converge and lies 203 J above the loaded start: F_t / F_0 read 1."""
+    fractions = torch.tensor([1.0, 0.999, 0.998], dtype=torch.float64)
+    rows = [
+        damping._row("cloth_ball", "full f64", 0.02, fractions, -203.0, 0.04, unconverged=0, idle=0, nan=0),
+        damping._row("cloth_ball", "latent f64", 0.02, fractions, 0.5, 0.04, unconverged=0, idle=0, nan=0),
+    ]
+    assert math.isnan(rows[0]["retained"]["0.04"]) and math.isnan(rows[0]["largest"])
+    assert rows[1]["retained"]["0.04"] == pytest.approx(0.998) and rows[1]["largest"] == pytest.approx(0.999)
+    result = {"seconds": 0.04, "rows": rows, "mujoco": None, "starts_converged": {"cloth_ball": False}}
+    lines = damping.damping_table(result)
+    assert "| cloth_ball | full f64 | 0.02 | 2 | -203 | nan | nan |" in lines[2]
+    assert lines[-1] == (
+        "no retained fraction (nan) where the start is not above the rest: cloth_ball full f64 (its free energy at "
+        "the start is <= 0)"
+    )
+
+
 def test_the_float32_runtime_idles_when_its_tolerance_outgrows_the_forces(mini_chain: tuple) -> None:
     """At dt / 16 the float32 runtime's tolerance (1e-6 of a force scale that grows as 1/h²) holds at the released
     start, so every step ends without an iteration and the chain never moves; float64 (1e-9) moves it."""
