@@ -762,14 +762,16 @@ def swing_check(
     RMS distance [m] from redsim's path at redsim's sample times (linear interpolation).
 
     Returns:
-        ``runs``: list of ``{"name", "timestep", "passes_s", "lowest_m", "far_side_m", "rms_gap_m", "cpu_s"}``
-        (redsim's first).
+        ``runs``: list of ``{"name", "timestep", "passes_s", "lowest_m", "far_side_m", "rms_gap_m", "cpu_s",
+        "steps"}`` (redsim's first), with redsim's ``unconverged_steps`` (its Newton steps that did not converge)
+        and each MuJoCo run's ``warnings`` (:meth:`FlexSheet.warnings`).
 
     Raises:
         ValueError: ``seconds`` not a whole multiple of ``redsim_dt`` and of every run's time step
             (:func:`whole_steps`): the paths would be compared over other times.
     """
     from redsim.integrators import FullSpace, ImplicitEuler
+    from redsim.integrators.implicit_euler import quiet_steps
 
     steps = whole_steps(seconds, redsim_dt)
     counts = [whole_steps(seconds, dt) for _, dt in runs]
@@ -787,10 +789,12 @@ def swing_check(
     integrator = ImplicitEuler(FullSpace(scene64), redsim_dt, minimizer="newton", tol=1e-8, max_iter=50)
     state = integrator.initial_state(scene64.dof_map.restrict(torch.as_tensor(start.reshape(1, -1)))[0])
     clock = time.process_time()
-    path = [point(start)]
-    for _ in range(steps):
-        state, _ = integrator.step(state)
-        path.append(point(scene64.full_positions(state.q[None])[0].reshape(-1, 3).numpy()))
+    path, unconverged = [point(start)], 0
+    with quiet_steps():  # counted in the result
+        for _ in range(steps):
+            state, info = integrator.step(state)
+            unconverged += not info.converged
+            path.append(point(scene64.full_positions(state.q[None])[0].reshape(-1, 3).numpy()))
     reference_times = redsim_dt * np.arange(steps + 1)
     reference = np.array(path)
     results = [
@@ -800,6 +804,8 @@ def swing_check(
             **_swing_metrics(reference_times, reference, pivot, mesh.gravity),
             "rms_gap_m": 0.0,
             "cpu_s": time.process_time() - clock,
+            "steps": steps,
+            "unconverged_steps": unconverged,
         }
     ]
     match = matched_shell(scene64) if match is None else match
@@ -820,6 +826,8 @@ def swing_check(
                 **_swing_metrics(times, mine, pivot, mesh.gravity),
                 "rms_gap_m": float(np.sqrt(((sampled - reference) ** 2).sum(1).mean())),
                 "cpu_s": time.process_time() - clock,
+                "steps": count,
+                "warnings": sheet.warnings(),
             }
         )
     return {"handle": SWING_HANDLE, "seconds": seconds, "runs": results}

@@ -475,9 +475,13 @@ def cmd_bench_mujoco_cloth(args: argparse.Namespace) -> int:
         )
         for run in swing["runs"]:
             passes = ", ".join(f"{t:.3f}" for t in run["passes_s"]) or "none"
+            unconverged, warnings = run.get("unconverged_steps"), run.get("warnings")
+            failed = [f"{unconverged} of {run['steps']} steps unconverged"] if unconverged else []
+            failed += [f"{warnings} MuJoCo warnings"] if warnings else []
             out(
                 f"  {run['name']:<44} passes [s] {passes:<20} lowest {1e3 * run['lowest_m']:6.1f} mm  far side "
                 f"{1e3 * run['far_side_m']:6.1f} mm  RMS gap {1e3 * run['rms_gap_m']:5.1f} mm  CPU {run['cpu_s']:.1f} s"
+                + "".join(f"  ({f})" for f in failed)
             )
     return EXIT_OK
 

@@ -186,6 +186,23 @@ def test_a_run_length_that_is_not_whole_steps_is_refused(scene, match, capsys: p
         assert captured.out == "" and f"{expected} must be a whole multiple of the time step" in captured.err
 
 
+def test_the_swing_reports_unconverged_reference_steps_and_mujoco_warnings(
+    scene, match, monkeypatch: pytest.MonkeyPatch, capsys: pytest.CaptureFixture[str]
+) -> None:
+    """redsim's reference steps were taken unconverged without a word (a logged warning at most)."""
+    from redsim.cli import main
+
+    swing = mujoco_cloth.swing_check(scene, seconds=0.02, runs=(("discrete", 0.02),), match=match)
+    redsim_run, mujoco_run = swing["runs"]
+    assert (redsim_run["steps"], redsim_run["unconverged_steps"]) == (1, 0)
+    assert (mujoco_run["steps"], mujoco_run["warnings"]) == (1, 0)
+    redsim_run["unconverged_steps"], mujoco_run["warnings"] = 1, 2
+    monkeypatch.setattr(mujoco_cloth, "swing_check", lambda *_a, **_k: swing)
+    assert main(["bench", "mujoco-cloth", "--no-sweep", "--no-sag", "--seconds", "0.1"]) == 0
+    lines = [line for line in capsys.readouterr().out.splitlines() if "RMS gap" in line]
+    assert lines[0].endswith("(1 of 1 steps unconverged)") and lines[1].endswith("(2 MuJoCo warnings)")
+
+
 def test_an_old_mujoco_is_named_not_a_traceback(monkeypatch: pytest.MonkeyPatch) -> None:
     monkeypatch.delattr(mujoco.mjtIntegrator, "mjINT_DISCRETE")
     assert "needs mujoco >= 3.13" in mujoco_cloth.flex_cloth_unavailable()
