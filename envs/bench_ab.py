@@ -75,7 +75,8 @@ def bench_env_ab(
         of the round times, which include them).
 
     Raises:
-        ValueError: no setting, a count < 1 (``warmup`` < 0), or settings whose action spaces differ.
+        ValueError: no setting, a count < 1 (``warmup`` < 0), settings on different thread counts
+            (:func:`check_same_threads`), or settings whose action spaces differ.
     """
     if not settings:
         raise ValueError("give at least one setting")
@@ -86,6 +87,7 @@ def bench_env_ab(
         raise ValueError(f"warmup must be >= 0, got {warmup}")
     if render is not None and not 8 <= render <= MAX_IMAGE_SIDE:
         raise ValueError(f"render must be a frame size in [8, {MAX_IMAGE_SIDE}] [px], got {render}")
+    check_same_threads(settings, threads)
     frame = {} if render is None else {"render_mode": "rgb_array", "width": render, "height": render}
     frame["threads"] = threads
     venvs = {
@@ -126,6 +128,25 @@ def bench_env_ab(
         "render_size": render,
         "settings": results,
     }
+
+
+def check_same_threads(settings: Mapping[str, Mapping[str, Any]], threads: int | None) -> None:
+    """Refuse settings on different torch thread counts (a setting's ``threads``, else ``threads``).
+
+    Their steps alternate in one process, and switching the count between them is what gets timed: Chain-v0 at 64
+    envs, 21 wall ms per vector step on one thread and 21 on two when each ran alone, took 60 and 726 ms with the two
+    alternating (stop 68).
+
+    Raises:
+        ValueError: two settings' counts differ.
+    """
+    counts = {name: kwargs.get("threads", threads) for name, kwargs in settings.items()}
+    if len(set(counts.values())) > 1:
+        raise ValueError(
+            f"the settings run on different torch thread counts {counts}: switching the count between their steps in "
+            "one process is what env-ab would time (it slowed a Chain-v0 step 3-34x); time each with "
+            "`redsim bench envs --threads N`"
+        )
 
 
 class _Work:
@@ -206,4 +227,4 @@ def _summary(
     }
 
 
-__all__ = ["bench_env_ab"]
+__all__ = ["bench_env_ab", "check_same_threads"]

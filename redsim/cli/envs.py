@@ -263,7 +263,7 @@ def _parse_settings(items: list[str], env_id: str) -> dict[str, dict[str, Any]]:
 
 def cmd_bench_env_ab(args: argparse.Namespace) -> int:
     from redsim.bench import machine_info
-    from redsim.envs.bench_ab import bench_env_ab
+    from redsim.envs.bench_ab import bench_env_ab, check_same_threads
 
     args.env_id = parse_env_id(args.env_id)
     for flag, value, least in (
@@ -280,6 +280,10 @@ def cmd_bench_env_ab(args: argparse.Namespace) -> int:
     if args.render is not None and args.render > MAX_IMAGE_SIDE:
         raise CliError(f"--render must be an integer in [8, {MAX_IMAGE_SIDE}] [px], got {args.render}")
     settings = _parse_settings(args.setting, args.env_id)
+    try:
+        check_same_threads(settings, args.threads)
+    except ValueError as err:
+        raise CliError(str(err)) from None
     machine = machine_info()
     result = bench_env_ab(
         args.env_id,
@@ -341,11 +345,12 @@ def cmd_bench_env_ab(args: argparse.Namespace) -> int:
     out(f"per-round CPU ratio vs {first} ({first}'s time over the setting's: > 1 is faster):")
     for row in rows[1:]:
         out(f"  {row['name']}: " + " ".join(f"{r:.2f}" for r in row["ratio"]["rounds"]))
-    threaded = [row["name"] for row in rows if row["env_args"].get("threads", args.threads) != 1]
-    if threaded:
+    threads = rows[0]["env_args"].get("threads", args.threads)  # every setting's (check_same_threads)
+    if threads != 1:
+        count = threads or "the process's default number of"
         out(
-            f"note: {', '.join(threaded)} ran on more than one torch thread (or the process's own setting): CPU time "
-            "adds up every thread's, spin-waits too, so its ratio is the CPU it costs, not its wall-clock speed"
+            f"note: the settings ran on {count} torch threads: CPU time adds up every thread's, spin-waits too, so "
+            "a ratio is the CPU a setting costs, not its wall-clock speed"
         )
     end = result["load_average_1min_end"]
     if end is not None:

@@ -113,14 +113,19 @@ def test_env_ab_prints_a_row_per_setting_and_the_ratios(capsys: pytest.CaptureFi
     assert any(line.startswith("idle ") and "* " in line for line in text.splitlines()), text
 
 
-def test_env_ab_says_a_threaded_settings_ratio_is_its_cpu_cost(capsys: pytest.CaptureFixture[str]) -> None:
-    """CPU time adds up every thread's: a 2-thread Chain-v0 step took 2x the CPU of a 1-thread one in the same wall
-    time, and env-ab printed that as a 2x slower setting without a word."""
+def test_env_ab_refuses_settings_on_different_thread_counts(capsys: pytest.CaptureFixture[str]) -> None:
+    """Switching torch's thread count between the settings' alternating steps is what got timed (Chain-v0 at 64
+    envs: 21 wall ms per step on one thread or two alone, 60 and 726 alternating), printed as a 0.04x setting. The
+    same count everywhere runs; above one thread a note says the CPU ratio is a cost, not a speed."""
     args = ["bench", "env-ab", "RedSim/MiniChain-v0", "--setting", "a", "--setting", "two:threads=2", *TINY]
-    assert main(args) == 0
-    assert "note: two ran on more than one torch thread" in capsys.readouterr().out
+    assert main(args) == 2
+    assert "different torch thread counts {'a': 1, 'two': 2}" in capsys.readouterr().err
+    with pytest.raises(ValueError, match="different torch thread counts"):
+        bench_env_ab("RedSim/MiniChain-v0", {"a": {}, "b": {"threads": 2}}, threads=1)
+    assert main([*args[:5], "--setting", "b", *TINY, "--threads", "2"]) == 0
+    assert "note: the settings ran on 2 torch threads" in capsys.readouterr().out
     assert main([*args[:5], "--setting", "b", *TINY]) == 0
-    assert "torch thread" not in capsys.readouterr().out
+    assert "torch threads" not in capsys.readouterr().out
 
 
 def test_env_ab_renders_every_copy_after_each_timed_step(capsys: pytest.CaptureFixture[str]) -> None:
