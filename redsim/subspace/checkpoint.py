@@ -14,6 +14,7 @@ import hashlib
 import json
 import os
 import re
+import stat
 import tempfile
 from collections.abc import Callable, Iterator
 from pathlib import Path
@@ -100,8 +101,7 @@ def _temporary(path: Path) -> Iterator[Path]:
     ``redsim cache clear`` knows a stale one (:data:`TEMPORARY`)."""
     while True:
         handle, name = tempfile.mkstemp(dir=path.parent, prefix=f"{path.name}.", suffix="tmp")
-        if fcntl is not None:
-            fcntl.flock(handle, fcntl.LOCK_EX)
+        _lock(handle)
         if os.fstat(handle).st_nlink:  # not removed as dead between its making and the lock
             break
         os.close(handle)
@@ -113,6 +113,15 @@ def _temporary(path: Path) -> Iterator[Path]:
     finally:
         Path(name).unlink(missing_ok=True)  # before the lock goes: no one takes a live write's file for dead
         os.close(handle)
+
+
+def _lock(handle: int) -> None:
+    """Take an exclusive ``flock`` on the open file ``handle``, where the filesystem has one: where ``flock`` fails
+    (Lustre mounted ``-o noflock``: ENOSYS) the temporary goes unlocked and the write goes on, as before locks
+    were taken; :func:`remove_dead_temporaries` cannot lock it there either, so keeps it."""
+    if fcntl is not None:
+        with contextlib.suppress(OSError):
+            fcntl.flock(handle, fcntl.LOCK_EX)
 
 
 TEMPORARY_PART = re.compile(r"\.[a-z0-9_]{8}tmp")
@@ -129,13 +138,16 @@ def remove_dead_temporaries(path: Path) -> list[Path]:
     for tmp in path.parent.glob(f"{glob.escape(path.name)}.*tmp"):
         if not TEMPORARY_PART.fullmatch(tmp.name[len(path.name) :]):
             continue
-        try:
-            handle = os.open(tmp, os.O_RDONLY | getattr(os, "O_NOFOLLOW", 0))
+        try:  # without waiting for a writer where it is a FIFO (a plain open waited forever)
+            handle = os.open(tmp, os.O_RDONLY | os.O_NONBLOCK | getattr(os, "O_NOFOLLOW", 0))
         except OSError:  # removed meanwhile (its writer done), or a link
             continue
         try:
+            opened = os.fstat(handle)
+            if not stat.S_ISREG(opened.st_mode):  # not a file a writer made: a folder, a FIFO
+                continue
             fcntl.flock(handle, fcntl.LOCK_EX | fcntl.LOCK_NB)
-            if os.path.samestat(os.fstat(handle), tmp.stat()):  # still the file that was opened
+            if os.path.samestat(opened, tmp.stat()):  # still the file that was opened
                 tmp.unlink()
                 removed.append(tmp)
         except OSError:  # a live writer's (locked), or removed meanwhile
@@ -235,10 +247,16 @@ def check_pair(doc: dict[str, Any], module: nn.Module, path: str) -> None:
     ``.json`` records (:data:`PAIR_KEY`; a ``.json`` without it is not checked)."""
     recorded = doc.get(PAIR_KEY)
     if recorded is not None and recorded != (found := map_fingerprint(module)):
-        meta = checkpoint_path(path, ".json").name
+        meta, state = checkpoint_path(path, ".json").name, checkpoint_path(path, ".fit.pt")
+        resume = (
+            f" (a fit's: rerun the interrupted fit's command with --resume, which writes both again from {state.name} "
+            "without fitting anew)"
+            if state.is_file()
+            else ""
+        )
         raise CheckpointError(
             f"the weights are not those {meta} describes (weights hash {found}, the .json records {recorded}): the "
-            "two files come from two saves (one interrupted between writing them?); save or fit the map again",
+            f"two files come from two saves (one interrupted between writing them?); save or fit the map again{resume}",
             path,
         )
 

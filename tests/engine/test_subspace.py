@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import json
+import os
 
 import pytest
 import torch
@@ -162,3 +163,89 @@ def test_the_next_write_removes_a_killed_writer_s_temporary_and_keeps_a_live_one
 
     subspace.write_atomically(path, outer)
     assert path.read_text() == "outer" and sorted(p.name for p in tmp_path.iterdir()) == ["m.fit.pt", other.name]
+
+
+def test_a_filesystem_without_flock_saves_unlocked_and_removes_nothing(tmp_path, monkeypatch) -> None:
+    """Where ``flock`` fails (Lustre mounted ``-o noflock`` answers ENOSYS), a save failed and left its
+    temporary (``m.pt.XXXXXXXXtmp``) behind: every save, where saves had worked before temporaries were locked. It
+    writes unlocked there, and the next write keeps a temporary it cannot lock (it cannot tell a live one there)."""
+    import errno
+    import types
+
+    from redsim.subspace import checkpoint
+
+    def no_flock(handle: int, operation: int) -> None:
+        raise OSError(errno.ENOSYS, "Function not implemented")
+
+    monkeypatch.setattr(checkpoint, "fcntl", types.SimpleNamespace(flock=no_flock, LOCK_EX=2, LOCK_NB=4))
+    unknown = tmp_path / "m.pt.ui0_30udtmp"  # a killed writer's, or a live one's: not to be told apart here
+    unknown.touch()
+    new = SubspaceMap(subspace.SubspaceConfig(2, 6, hidden_width=4, hidden_layers=1))
+    new.save(tmp_path / "m")
+    subspace.write_atomically(tmp_path / "m.fit.pt", lambda tmp: tmp.write_text("state"))
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["m.fit.pt", "m.json", "m.pt", unknown.name]
+    assert subspace.map_fingerprint(subspace.load_subspace(tmp_path / "m")) == subspace.map_fingerprint(new)
+
+
+def test_without_fcntl_checkpoints_save_and_load(tmp_path) -> None:
+    """Windows has no ``fcntl``: the import is guarded, a save and a load work, and no temporary is removed."""
+    import subprocess
+    import sys
+
+    code = (
+        "import sys; sys.modules['fcntl'] = None\n"  # its import fails, as on Windows
+        "from pathlib import Path\n"
+        "from redsim import subspace\n"
+        "from redsim.subspace import checkpoint\n"
+        "assert checkpoint.fcntl is None\n"
+        "folder = Path(sys.argv[1]); (folder / 'm.pt.ui0_30udtmp').touch()\n"
+        "new = subspace.SubspaceMap(subspace.SubspaceConfig(2, 6, hidden_width=4, hidden_layers=1))\n"
+        "new.save(folder / 'm')\n"
+        "loaded = subspace.load_subspace(folder / 'm')\n"
+        "assert subspace.map_fingerprint(loaded) == subspace.map_fingerprint(new)\n"
+        "print(sorted(p.name for p in folder.iterdir()))\n"
+    )
+    done = subprocess.run([sys.executable, "-c", code, str(tmp_path)], capture_output=True, text=True, timeout=60)
+    assert done.returncode == 0, done.stderr
+    assert done.stdout.split() == ["['m.json',", "'m.pt',", "'m.pt.ui0_30udtmp']"]
+
+
+def test_a_mismatched_pair_beside_a_training_state_says_resume_writes_it_again(tmp_path) -> None:
+    """A fit killed between its two replaces keeps its training state (``STEM.fit.pt``): its command with
+    ``--resume`` writes the pair again without a step to run, where "fit the map again" alone redid the whole fit."""
+    import shutil
+
+    config = subspace.SubspaceConfig(2, 6, hidden_width=4, hidden_layers=1)
+    SubspaceMap(config).save(tmp_path / "map")
+    other = SubspaceMap(config)
+    with torch.no_grad():
+        for p in other.parameters():
+            p.add_(1.0)
+    other.save(tmp_path / "other")
+    shutil.copyfile(tmp_path / "other.pt", tmp_path / "map.pt")  # the new .pt beside the old .json
+    with pytest.raises(subspace.CheckpointError, match=r"fit the map again$"):
+        subspace.load_subspace(tmp_path / "map")
+    (tmp_path / "map.fit.pt").touch()
+    with pytest.raises(subspace.CheckpointError, match=r"command with --resume, which writes both again from map\.fit"):
+        subspace.load_subspace(tmp_path / "map")
+
+
+@pytest.mark.skipif(not hasattr(os, "mkfifo"), reason="no FIFOs (Windows)")
+def test_a_fifo_named_as_a_temporary_neither_hangs_a_save_nor_goes(tmp_path) -> None:
+    """The next write's look at a file named as a temporary opened it to lock it: a FIFO of that name (no writer's:
+    mkstemp makes plain files) made the open wait for a writer, and the save with it, forever. It is kept, unopened
+    for long."""
+    import threading
+
+    fifo = tmp_path / "m.pt.ui0_30udtmp"
+    os.mkfifo(fifo)
+    save = threading.Thread(
+        target=subspace.write_atomically, args=(tmp_path / "m.pt", lambda tmp: tmp.write_text("saved")), daemon=True
+    )
+    save.start()
+    save.join(3.0)
+    hung = save.is_alive()
+    if hung:  # let it go: a writer's open ends the reader's wait
+        os.close(os.open(fifo, os.O_WRONLY | os.O_NONBLOCK))
+        save.join(3.0)
+    assert not hung and fifo.exists() and (tmp_path / "m.pt").read_text() == "saved"
