@@ -280,3 +280,90 @@ def test_the_chain_thrown_at_its_hook_stays_linked() -> None:
         lines = [hook, *(circle @ f[:, :3].T + f[:, 3] for f in frames)]
         assert all(abs(_linking_number(a, b)) > 0.5 for a, b in itertools.pairwise(lines))
     assert float(frames[0, 1, 3]) > 0.07  # link 0 pressed up against the hook's top (it hangs at -0.075 m)
+
+
+def test_a_point_pushed_through_the_wire_in_short_legs_is_flagged_along_its_path() -> None:
+    """The mini chain lifted 0.2 m, link 0 up through the hook's wire, in 80 legs of 2.5 mm (each far shorter than a
+    solve again's iteration, 15 mm at most): the path through its states is flagged as the chord between its ends is.
+    Lifted so, then carried 0.2 m aside, down beside the hook and back to where it started, neither is: the end is
+    its start (the ends' net move, not the path's length, picks the points tested)."""
+    scene = scenes.build("mini_chain")
+    test = TunnelTest(scene)
+    x = scene.full_positions(scene.q_seed.to(torch.float64).unsqueeze(0))
+
+    def moved(d: tuple[float, float, float]) -> torch.Tensor:
+        y = x.clone()
+        for axis, by in enumerate(d):
+            y[0, 3 + 4 * axis :: 12] += by  # every link's t_x, t_y, t_z
+        return y
+
+    up = [(0.0, 0.2 * k / 80, 0.0) for k in range(81)]
+    lifted = torch.cat([moved(d) for d in up])
+    assert test(lifted[:1], lifted[-1:]).tolist() == [True] and test.along(lifted)
+    back = [(0.0, 0.2, 0.2 * k / 40) for k in range(1, 41)] + [(0.0, 0.2 - 0.2 * k / 40, 0.2) for k in range(1, 41)]
+    back += [(0.0, 0.0, 0.2 - 0.2 * k / 40) for k in range(1, 41)]
+    loop = torch.cat([lifted, *(moved(d) for d in back)])
+    assert torch.equal(loop[-1:], x) and not test.along(loop) and not test(loop[:1], loop[-1:])[0]
+
+
+def test_a_solve_again_is_judged_along_its_start_its_kept_states_and_its_end(monkeypatch) -> None:
+    """The path :meth:`TunnelTest.along` reads: q_t, each state the solve again accepted, its end; a saddle escape's
+    states where it is kept (here one from 1 cm above the caught saddle), not where it is dropped (the real escape
+    at 10 m/s stalls after 50 iterations); the objective's path and trust radius are reset where the solve raises."""
+    from redsim.integrators import implicit_euler
+
+    def judged(speed: float) -> tuple[list[torch.Tensor], FullState, FullState, list]:
+        _, sim, state = _thrown(speed, escape_saddles=True)
+        seen, solves = [], []
+        along, minimize = sim._through_contact_along, sim._minimize
+
+        def spied_along(path: list[torch.Tensor]) -> bool:
+            seen.append([u.clone() for u in path])
+            return along(path)
+
+        def spied_minimize(objective, start, **kw):  # type: ignore[no-untyped-def]
+            end, info = minimize(objective, start, **kw)
+            solves.append(info)
+            return end, info
+
+        sim._through_contact_along, sim._minimize = spied_along, spied_minimize
+        end, info = sim.step(state)
+        assert info.tunnel_caught and len(seen) == 1
+        return seen[0], state, end, solves
+
+    path, start, end, solves = judged(10.0)
+    assert [s.converged for s in solves] == [True, True, False]  # first solve, solve again, dropped escape
+    assert torch.equal(path[0], start.q) and torch.equal(path[-1], end.q) and len(path) == 1 + solves[1].iterations
+
+    scene = scenes.build("mini_chain")
+    lift = torch.zeros(scene.full_dof_count, dtype=torch.float64)
+    lift[7::12] = 0.01  # every link 1 cm up
+    lift, escapes = scene.dof_map.restrict(lift.unsqueeze(0))[0], []
+
+    def beside(objective, u, energy, direction):  # type: ignore[no-untyped-def]
+        if objective.path is None or escapes:
+            return None
+        escapes.append(u)  # the caught saddle
+        return u + lift
+
+    monkeypatch.setattr(implicit_euler, "_negative_curvature", lambda scene, u, *_: torch.ones_like(u))
+    monkeypatch.setattr(implicit_euler, "_lower_along", beside)
+    path, start, end, solves = judged(10.0)
+    assert [s.converged for s in solves] == [True, True, True] and solves[2].iterations >= 1  # escape kept
+    assert len(path) == 1 + solves[1].iterations + solves[2].iterations
+    assert torch.equal(path[solves[1].iterations], escapes[0]) and torch.equal(path[-1], end.q)  # the saddle, kept
+
+    _, sim, state = _thrown(10.0)
+    minimize, objectives = sim._minimize, []
+
+    def raising(objective, start, **kw):  # type: ignore[no-untyped-def]
+        objectives.append(objective)
+        if objective.path is not None:
+            minimize(objective, start, max_iter=3, tol=kw["tol"])
+            raise RuntimeError("solver failed")
+        return minimize(objective, start, **kw)
+
+    sim._minimize = raising
+    with pytest.raises(RuntimeError, match="solver failed"):
+        sim.step(state)
+    assert objectives[-1].path is None and objectives[-1].max_step == math.inf
