@@ -150,14 +150,20 @@ def test_the_next_write_removes_a_killed_writer_s_temporary_and_keeps_a_live_one
     (measured: 3 of 6 kills of ``redsim fit mini_chain --checkpoint-every 1``), there for good. A writer holds a lock
     on its temporary until it is done, which a kill releases: the next write of the file removes the unlocked ones
     and leaves a writer's in flight alone (SubprocVecEnv workers write one cached map at once)."""
+    import time
+
     path = tmp_path / "m.fit.pt"
     killed = tmp_path / "m.fit.pt.ui0_30udtmp"  # the name and empty file a kill left (no writer holds it)
     killed.touch()
     other = tmp_path / "n.fit.pt.ui0_30udtmp"  # another file's: not this write's to judge
     other.touch()
+    written = time.time() - 2 * subspace.checkpoint.DEAD_AFTER_S  # both left by a kill two minutes ago
+    for old in (killed, other):
+        os.utime(old, (written, written))
 
     def outer(tmp) -> None:
         tmp.write_text("outer")
+        os.utime(tmp, (written, written))  # as old: only its lock keeps it
         subspace.write_atomically(path, lambda inner: inner.write_text("inner"))
         assert tmp.is_file() and not killed.exists()  # the outer writer's temporary, locked, is kept
 
@@ -249,3 +255,19 @@ def test_a_fifo_named_as_a_temporary_neither_hangs_a_save_nor_goes(tmp_path) -> 
         os.close(os.open(fifo, os.O_WRONLY | os.O_NONBLOCK))
         save.join(3.0)
     assert not hung and fifo.exists() and (tmp_path / "m.pt").read_text() == "saved"
+
+
+def test_a_temporary_written_within_a_minute_is_kept_though_no_writer_locks_it(tmp_path) -> None:
+    """A writer that takes no lock (redsim before locks, or one on another host where flock is each host's own: NFS
+    mounted nolock) had its temporary removed mid-write by the next write of the file, and its own replace failed
+    (FileNotFoundError; reproduced with two processes). A temporary written within DEAD_AFTER_S is kept."""
+    import time
+
+    path = tmp_path / "m.fit.pt"
+    in_flight = tmp_path / "m.fit.pt.ui0_30udtmp"  # an unlocked writer's, just written
+    in_flight.write_text("half")
+    subspace.write_atomically(path, lambda tmp: tmp.write_text("saved"))
+    assert in_flight.read_text() == "half"
+    written = time.time() - 2 * subspace.checkpoint.DEAD_AFTER_S  # its writer killed two minutes ago
+    os.utime(in_flight, (written, written))
+    assert subspace.checkpoint.remove_dead_temporaries(path) == [in_flight] and not in_flight.exists()
