@@ -101,8 +101,9 @@ class StepInfo(SolveInfo):
             q_t, each iteration moving no contact point more than half the thinnest contact relative to its shape,
             along a path through no contact, ended converged: the end kept (``retry_tunneled``, full space). Converged
             as any step is (a stationary point of the same step objective, which may be a saddle of it without
-            ``escape_saddles``). The end may be the first's where only the chord between q_t and it crossed (the
-            path went round a convex shape). ``iterations`` counts both solves, ``history`` the second's.
+            ``escape_saddles``). The kept end can be the first solve's own: its chord from q_t crossed a contact
+            that the solve again's path went round (a convex shape). ``iterations`` counts both solves,
+            ``history`` the second's.
     """
 
     energy_gain: bool = False
