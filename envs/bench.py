@@ -16,6 +16,7 @@ from __future__ import annotations
 
 import contextlib
 import importlib.util
+import logging
 import statistics
 import sys
 import time
@@ -29,6 +30,8 @@ import torch
 
 from redsim import scenes
 from redsim.runtime import Evaluations
+
+logger = logging.getLogger(__name__)
 
 DEFAULT_BATCHES = (16, 64, 256)
 RENDER_SIZE = (480, 480)
@@ -125,6 +128,7 @@ def _full_space_step(
         seconds, count = median_time(call, repeats, budget)
     return {
         "step_s": seconds * sim.frame_skip,
+        "sim_s_per_wall_s": env.dt / (seconds * sim.frame_skip),
         "repeats": count,
         "converged": holder["converged"],
         "iterations_per_step": statistics.fmean(holder["iterations"]),
@@ -138,6 +142,28 @@ def old_versions_quiet() -> Iterator[None]:
     with warnings.catch_warnings():
         warnings.filterwarnings("ignore", message=".*is out of date", category=DeprecationWarning)
         yield
+
+
+def attempt(part: Callable[[], dict[str, Any]]) -> dict[str, Any]:
+    """``part()``, or ``{"failed": "TYPE: message"}`` where it raised an :class:`Exception` (its traceback logged at
+    INFO, ``redsim -v``): one part of a long run that fails is reported in its place and the others still run.
+    KeyboardInterrupt and SystemExit are not caught: Ctrl-C stops the run."""
+    try:
+        return part()
+    except Exception as err:
+        logger.info("a bench part failed", exc_info=True)
+        return {"failed": f"{type(err).__name__}: {err}"}
+
+
+def failed_parts(row: dict[str, Any]) -> dict[str, str]:
+    """The parts of a :func:`bench_env` row that failed (:func:`attempt`), each with its error: ``env`` where the
+    id as a whole did (its row holds only ``id`` and ``failed``), else ``single``, ``render``, ``N=B`` and
+    ``full space``."""
+    if "failed" in row:
+        return {"env": row["failed"]}
+    parts = {"single": row["single"], "render": row["render"], **{f"N={b}": v for b, v in row["vector"].items()}}
+    parts["full space"] = row["full_space"] or {}
+    return {name: part["failed"] for name, part in parts.items() if "failed" in part}
 
 
 def bench_env(
@@ -177,15 +203,48 @@ def bench_env(
         (``calls_per_step``, the stepper's value-and-gradient calls; ``rows_per_copy_step``, the latent states those
         calls evaluated per copy),
         ``full_space`` (``step_s``, ``sim_s_per_wall_s``) or None, ``render`` (``frames_per_s`` of the single
-        env's ``rgb_array`` frame at :data:`RENDER_SIZE`, the map's full configuration included).
+        env's ``rgb_array`` frame at :data:`RENDER_SIZE`, the map's full configuration included). A part that
+        raised is ``{"failed": "TYPE: message"}`` and the others are still timed (:func:`attempt`,
+        :func:`failed_parts`).
+
+    Raises:
+        Exception: what making the env or reading its sizes raised (no part can be timed without them).
     """
     start = time.perf_counter()
     with old_versions_quiet():
         env = gym.make(env_id, **env_kwargs).unwrapped
     make_s = time.perf_counter() - start
-    env.reset(seed=seed)
-    dt = env.dt
+    try:
+        row: dict[str, Any] = {
+            "id": env_id,
+            "n": env.sim.scene.free_dof_count,
+            "d": env.sim.latent_dim,
+            "action_size": int(env.action_space.shape[0]),
+            "observation_size": int(env.observation_space.shape[0]),
+            "scene": env.sim.scene.name,
+            "dt": env.dt,
+            "make_s": make_s,
+            "single": attempt(lambda: _single_env(env, steps, warmup, budget, seed)),
+            "render": attempt(lambda: _render(env, steps, budget)),
+        }
+        timings = {"steps": steps, "warmup": warmup, "budget": budget, "seed": seed, "shards": shards}
+        row["vector"] = {
+            int(b): attempt(lambda b=b: _vector_env(env_id, int(b), env.dt, **timings, env_kwargs=env_kwargs))
+            for b in batches
+        }
+        row["full_space"] = None
+        if full_space:
+            row["full_space"] = attempt(
+                lambda: _full_space_step(env, max(3, steps // 4), budget, np.random.default_rng((seed, 0)), warmup)
+            )
+    finally:
+        env.close()
+    return row
 
+
+def _single_env(env: Any, steps: int, warmup: int, budget: float, seed: int) -> dict[str, Any]:
+    """The single env's part of :func:`bench_env`: its median step over random actions, from a reset with ``seed``."""
+    env.reset(seed=seed)
     solves = SolveTally()
 
     def single_step() -> None:
@@ -199,41 +258,47 @@ def bench_env(
         single_step()
     solves = SolveTally()  # the timed steps' only
     seconds, count = median_time(single_step, steps, budget)
-    row: dict[str, Any] = {
-        "id": env_id,
-        "n": env.sim.scene.free_dof_count,
-        "d": env.sim.latent_dim,
-        "action_size": int(env.action_space.shape[0]),
-        "observation_size": int(env.observation_space.shape[0]),
-        "scene": env.sim.scene.name,
-        "dt": dt,
-        "make_s": make_s,
-        "single": {
-            "env_steps_per_s": 1.0 / seconds,
-            "sim_s_per_wall_s": dt / seconds,
-            "repeats": count,
-            **solves.summary(),
-        },
-        "vector": {},
+    return {
+        "env_steps_per_s": 1.0 / seconds,
+        "sim_s_per_wall_s": env.dt / seconds,
+        "repeats": count,
+        **solves.summary(),
     }
+
+
+def _render(env: Any, steps: int, budget: float) -> dict[str, Any]:
+    """The frame's part of :func:`bench_env`: the single env's picture at :data:`RENDER_SIZE`, per second."""
     view = env.sim.fixed_view(*RENDER_SIZE, env._camera)  # the fixed camera render() draws with
     env.sim.draw(view, 0)
     frame_s, frames = median_time(lambda: env.sim.draw(view, 0), steps, budget)
-    row["render"] = {"frames_per_s": 1.0 / frame_s, "size": list(RENDER_SIZE), "repeats": frames}
-    for batch in batches:
-        sharding = {"shards": shards} if shards != 1 else {}
-        with old_versions_quiet():
-            venv = gym.make_vec(
-                env_id, num_envs=int(batch), vectorization_mode="vector_entry_point", **sharding, **env_kwargs
-            )
+    return {"frames_per_s": 1.0 / frame_s, "size": list(RENDER_SIZE), "repeats": frames}
+
+
+def _vector_env(
+    env_id: str,
+    batch: int,
+    dt: float,
+    *,
+    steps: int,
+    warmup: int,
+    budget: float,
+    seed: int,
+    shards: int,
+    env_kwargs: dict[str, Any],
+) -> dict[str, Any]:
+    """One batch size's part of :func:`bench_env`: a fresh vector env of ``batch`` copies (env step ``dt`` [s]),
+    its median step over uniform random actions drawn from the stream ``(seed, batch)``."""
+    sharding = {"shards": shards} if shards != 1 else {}
+    with old_versions_quiet():
+        venv = gym.make_vec(env_id, num_envs=batch, vectorization_mode="vector_entry_point", **sharding, **env_kwargs)
+    try:
         venv.reset(seed=seed)
-        rng = np.random.default_rng((seed, int(batch)))
-        actions = rng.uniform(-1.0, 1.0, (max(steps, 1) + warmup, *venv.action_space.shape)).astype(np.float32)
-        cursor = iter(actions)
+        rng = np.random.default_rng((seed, batch))
+        actions = iter(rng.uniform(-1.0, 1.0, (max(steps, 1) + warmup, *venv.action_space.shape)).astype(np.float32))
         tally = [SolveTally()]
 
-        def vector_step(venv: Any = venv, cursor: Any = cursor, tally: list[SolveTally] = tally) -> None:
-            tally[0].add(venv.step(next(cursor))[4])
+        def vector_step() -> None:
+            tally[0].add(venv.step(next(actions))[4])
 
         for _ in range(warmup):
             vector_step()
@@ -242,7 +307,7 @@ def bench_env(
         if stepper is not None:
             stepper.evaluations = Evaluations()
         seconds, count = median_time(vector_step, steps, budget)
-        row["vector"][int(batch)] = {
+        return {
             "env_steps_per_s": batch / seconds,
             "sim_s_per_wall_s": batch * dt / seconds,
             "repeats": count,
@@ -251,14 +316,8 @@ def bench_env(
             "rows_per_copy_step": None if stepper is None else stepper.evaluations.rows / (count * batch),
             "shards": shards,
         }
+    finally:
         venv.close()
-    row["full_space"] = None
-    if full_space:
-        full = _full_space_step(env, max(3, steps // 4), budget, np.random.default_rng((seed, 0)), warmup)
-        full["sim_s_per_wall_s"] = dt / full["step_s"]
-        row["full_space"] = full
-    env.close()
-    return row
 
 
 RATES = ("env_steps_per_s", "sim_s_per_wall_s", "steps_per_s", "frames_per_s")
@@ -271,7 +330,8 @@ def median_rounds(rounds: Sequence[dict[str, Any]]) -> dict[str, Any]:
     first round's, with each rate (:data:`RATES`) in it, nested too, replaced by its median over the rounds and the
     rounds' values listed beside it under ``rounds_<key>``. Everything else is the first round's: the sizes, the
     solver's work (the same seeded steps in every round) and what only the first round measured (a part the others
-    hold as None or without the same keys: the full-space step).
+    hold as None or without the same keys: the full-space step). A part that failed in any round (:func:`attempt`)
+    is that round's failure: its other rounds' rates are not the median of all.
 
     Raises:
         ValueError: no rounds.
@@ -280,6 +340,9 @@ def median_rounds(rounds: Sequence[dict[str, Any]]) -> dict[str, Any]:
         raise ValueError("need at least one round")
 
     def merge(parts: Sequence[Any]) -> Any:
+        failed = [p for p in parts if isinstance(p, dict) and "failed" in p]
+        if failed:
+            return failed[0]
         head = parts[0]
         if not isinstance(head, dict) or any(not isinstance(p, dict) or p.keys() != head.keys() for p in parts):
             return head
@@ -317,11 +380,12 @@ def mujoco_anchors(steps: int = ANCHOR_STEPS) -> dict[str, Any]:
         ``{"available": False, "reason": ...}``, or ``available`` with ``chain`` (``steps_per_s``,
         ``sim_s_per_wall_s``, ``nv``, ``integrator``, ``timestep``) and ``HalfCheetah-v5``
         (``env_steps_per_s``, ``sim_s_per_wall_s``, ``dt``), the latter a ``reason`` where
-        Gymnasium's MuJoCo envs cannot be made.
+        Gymnasium's MuJoCo envs cannot be made; an anchor that raised is ``{"failed": ...}`` (:func:`attempt`).
     """
     if importlib.util.find_spec("mujoco") is None:
         return {"available": False, "reason": MUJOCO_MISSING}
-    return {"available": True, "chain": _chain_anchor(steps), "HalfCheetah-v5": _cheetah_anchor(steps)}
+    chain = attempt(lambda: _chain_anchor(steps))
+    return {"available": True, "chain": chain, "HalfCheetah-v5": attempt(lambda: _cheetah_anchor(steps))}
 
 
 def _chain_anchor(steps: int) -> dict[str, Any]:
@@ -394,10 +458,15 @@ def anchor_lines(anchors: dict[str, Any]) -> list[str]:
     if not anchors["available"]:
         return [f"MuJoCo anchors skipped: {anchors['reason']}"]
     chain, cheetah = anchors["chain"], anchors["HalfCheetah-v5"]
-    lines = [
-        f"MuJoCo chain (24 capsules, nv {chain['nv']}, {chain['integrator']} dt {chain['timestep']} s): "
-        f"{chain['steps_per_s']:.0f} steps/s, {chain['sim_s_per_wall_s']:.1f} sim s per wall s"
-    ]
+    if "failed" in chain:
+        lines = [f"MuJoCo chain failed: {chain['failed']}"]
+    else:
+        lines = [
+            f"MuJoCo chain (24 capsules, nv {chain['nv']}, {chain['integrator']} dt {chain['timestep']} s): "
+            f"{chain['steps_per_s']:.0f} steps/s, {chain['sim_s_per_wall_s']:.1f} sim s per wall s"
+        ]
+    if "failed" in cheetah:
+        return [*lines, f"MuJoCo HalfCheetah-v5 failed: {cheetah['failed']}"]
     if "reason" in cheetah:
         return [*lines, f"MuJoCo HalfCheetah-v5 skipped: {cheetah['reason']}"]
     return [
@@ -415,7 +484,9 @@ __all__ = [
     "RATES",
     "RENDER_SIZE",
     "anchor_lines",
+    "attempt",
     "bench_env",
+    "failed_parts",
     "median_rounds",
     "median_time",
     "mujoco_anchors",

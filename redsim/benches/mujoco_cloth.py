@@ -678,7 +678,9 @@ def _anchor_sheet() -> tuple[Scene, ShellMatch]:
 
 
 def cloth_anchor_line(cloth: dict[str, Any]) -> str:
-    """:func:`cloth_anchor` as one printed line."""
+    """:func:`cloth_anchor` as one printed line (``failed`` where it raised: :func:`redsim.envs.bench.attempt`)."""
+    if "failed" in cloth:
+        return f"MuJoCo flex cloth failed: {cloth['failed']}"
     if "reason" in cloth:
         return f"MuJoCo flex cloth skipped: {cloth['reason']}"
     return (
@@ -691,14 +693,16 @@ def cloth_anchor_line(cloth: dict[str, Any]) -> str:
 
 def cloth_ratios(rows: list[dict[str, Any]], cloth: dict[str, Any]) -> dict[str, float]:
     """Per cloth env row of :func:`redsim.envs.bench.bench_env` (with vector batches): its best batch's simulated
-    s per wall s over the flex cloth's (:func:`cloth_anchor`); empty where the flex cloth was not timed or its state
-    ended not finite (a blown-up run's speed is no anchor)."""
-    if "reason" in cloth or not cloth["finite"]:
+    s per wall s over the flex cloth's (:func:`cloth_anchor`), of the batches timed (a failed part, ``{"failed":
+    ...}``, is left out, an id that failed as a whole too); empty where the flex cloth was not timed, failed or its
+    state ended not finite (a blown-up run's speed is no anchor)."""
+    if "reason" in cloth or "failed" in cloth or not cloth["finite"]:
         return {}
+    timed = {row["id"]: [v for v in row["vector"].values() if "failed" not in v] for row in rows if "failed" not in row}
     return {
-        row["id"]: max(v["sim_s_per_wall_s"] for v in row["vector"].values()) / cloth["sim_s_per_wall_s"]
+        row["id"]: max(v["sim_s_per_wall_s"] for v in timed[row["id"]]) / cloth["sim_s_per_wall_s"]
         for row in rows
-        if row["scene"] in CLOTH_SCENES and row["vector"]
+        if row["id"] in timed and row["scene"] in CLOTH_SCENES and timed[row["id"]]
     }
 
 

@@ -11,9 +11,11 @@ from typing import Any
 from redsim.cli.bench import _machine_line
 from redsim.cli.common import (
     EXIT_OK,
+    EXIT_SCENE_FAILED,
     CliError,
     add_out_folder,
     check_device_option,
+    error,
     finish_command,
     json_out,
     non_negative_seed,
@@ -79,21 +81,34 @@ def _failed_solves(row: dict[str, Any], batches: list[int]) -> list[str]:
         f"{name}: {100 * part['converged_fraction']:.1f}% converged, {part['diverged']} diverged, "
         f"{part['out_of_range']} out of range"
         for name, part in parts
-        if part["converged_fraction"] < 1 or part["diverged"] or part["out_of_range"]
+        if "failed" not in part and (part["converged_fraction"] < 1 or part["diverged"] or part["out_of_range"])
     ]
 
 
+def _cell(part: dict[str, Any], key: str, spec: str) -> str:
+    """A part's value as a table cell, ``failed`` where the part raised (:func:`redsim.envs.bench.attempt`)."""
+    return "failed" if "failed" in part else format(part[key], spec)
+
+
 def _row_line(row: dict[str, Any], batches: list[int]) -> str:
-    cells = " ".join(f"{row['vector'][b]['env_steps_per_s']:>9.0f}" for b in batches)
-    best = max((row["vector"][b]["sim_s_per_wall_s"] for b in batches), default=None)
+    if "failed" in row:  # the id as a whole: no env, no sizes
+        return f"{row['id']:<26} failed (the env itself, named below)"
+    single = row["single"]
+    cells = " ".join(f"{_cell(row['vector'][b], 'env_steps_per_s', '.0f'):>9}" for b in batches)
+    timed = [row["vector"][b]["sim_s_per_wall_s"] for b in batches if "failed" not in row["vector"][b]]
     full = row["full_space"]
     flag = "!" if _failed_solves(row, batches) else ""
+    if full and "failed" not in full:
+        full_cell = f"{full['sim_s_per_wall_s']:.3g}{'' if full['converged'] else '*':1}"
+    else:
+        full_cell = "failed" if full else "-"
     return (
         f"{row['id'] + flag:<26} {row['n']:>6} {row['d']:>3} {row['action_size']:>4} {row['observation_size']:>4} "
-        f"{row['single']['env_steps_per_s']:>8.0f} {cells} {row['single']['sim_s_per_wall_s']:>9.2f} "
-        + (f"{best:>10.1f} " if best is not None else f"{'-':>10} ")
-        + (f"{full['sim_s_per_wall_s']:.3g}{'' if full['converged'] else '*':1}" if full else "-").rjust(10)
-        + f" {row['render']['frames_per_s']:>8.0f}"
+        f"{_cell(single, 'env_steps_per_s', '.0f'):>8} {cells} "
+        f"{'-' if 'failed' in single else format(single['sim_s_per_wall_s'], '.2f'):>9} "
+        + (f"{max(timed):>10.1f} " if timed else f"{'-':>10} ")
+        + full_cell.rjust(10)
+        + f" {_cell(row['render'], 'frames_per_s', '.0f'):>8}"
     )
 
 
@@ -101,15 +116,37 @@ def _spread_line(row: dict[str, Any], batches: list[int]) -> str:
     """The lowest and highest env steps/s over the rounds (``rounds_env_steps_per_s`` of :func:`median_rounds`) of the
     single env and each batch: how far the rounds of one cell moved (the table's value is their median)."""
     parts = [row["single"], *(row["vector"][b] for b in batches)]
-    cells = (f"{min(p['rounds_env_steps_per_s']):.0f}-{max(p['rounds_env_steps_per_s']):.0f}" for p in parts)
+    cells = (
+        "failed" if "failed" in p else f"{min(p['rounds_env_steps_per_s']):.0f}-{max(p['rounds_env_steps_per_s']):.0f}"
+        for p in parts
+    )
     return f"{row['id']:<26} " + " ".join(f"{c:>11}" for c in cells)
+
+
+def _work_cell(part: dict[str, Any]) -> str:
+    """A vector part's solver work as the second table's cell."""
+    if "failed" in part:
+        return "failed"
+    return f"{part['iterations_per_step']:.1f} ({part['slowest_iterations_per_step']:.1f}) / " + (
+        "- / -"  # a sharded env's workers keep their own counts
+        if part["calls_per_step"] is None
+        else f"{part['calls_per_step']:.1f} / {part['rows_per_copy_step']:.1f}"
+    )
 
 
 def cmd_bench_envs(args: argparse.Namespace) -> int:
     import redsim
     from redsim.bench import machine_info
     from redsim.benches.mujoco_cloth import cloth_anchor, cloth_anchor_line, cloth_ratio_lines, cloth_ratios
-    from redsim.envs.bench import anchor_lines, bench_env, median_rounds, mujoco_anchors, old_versions_quiet
+    from redsim.envs.bench import (
+        anchor_lines,
+        attempt,
+        bench_env,
+        failed_parts,
+        median_rounds,
+        mujoco_anchors,
+        old_versions_quiet,
+    )
 
     ids = redsim.envs.ids() if args.envs is None else parse_list(args.envs, "--envs", parse_env_id)
     try:
@@ -150,62 +187,72 @@ def cmd_bench_envs(args: argparse.Namespace) -> int:
         )
     measured: dict[str, list[dict[str, Any]]] = {env_id: [] for env_id in ids}
     anchor_rounds = []
+    failed: list[dict[str, Any]] = []  # each part that raised: the run goes on, and fails at its end
     for index in range(args.rounds):
         for env_id in ids if index % 2 == 0 else ids[::-1]:
             if args.json:  # the text prints each row as it is measured; a JSON run says where it is on stderr
                 note(f"timing {env_id}" + (f" (round {index + 1} of {args.rounds})" if args.rounds > 1 else ""))
-            row = bench_env(
-                env_id,
-                batches=batches,
-                steps=args.steps,
-                budget=args.budget,
-                device=args.device,
-                full_space=not args.no_full_space and index == 0,
-                shards=args.shards,
-                threads=args.threads,
-                **env_kwargs,
+            row = {"id": env_id} | attempt(
+                lambda env_id=env_id, index=index: bench_env(
+                    env_id,
+                    batches=batches,
+                    steps=args.steps,
+                    budget=args.budget,
+                    device=args.device,
+                    full_space=not args.no_full_space and index == 0,
+                    shards=args.shards,
+                    threads=args.threads,
+                    **env_kwargs,
+                )
             )
+            failed += [
+                {"id": env_id, "part": part, "round": index + 1, "error": text}
+                for part, text in failed_parts(row).items()
+            ]
             measured[env_id].append(row)
             if not args.json and args.rounds == 1:  # one round: each id's line as soon as it is measured
                 out(_row_line(row, batches))
         anchors = mujoco_anchors(args.anchor_steps)
         if anchors["available"]:
-            anchors["cloth"] = cloth_anchor(args.anchor_steps, args.budget)
+            anchors["cloth"] = attempt(lambda: cloth_anchor(args.anchor_steps, args.budget))
+        failed += [
+            {"id": "MuJoCo", "part": name, "round": index + 1, "error": anchors[name]["failed"]}
+            for name in ("chain", "HalfCheetah-v5", "cloth")
+            if "failed" in anchors.get(name, {})
+        ]
         anchor_rounds.append(anchors)
     rows = [median_rounds(measured[env_id]) for env_id in ids]
     if not args.json and args.rounds > 1:
         for row in rows:
             out(_row_line(row, batches))
+    timed = [row for row in rows if "failed" not in row]  # the ids made: their parts' tables
     if not args.json:
-        if any(row["full_space"] is not None and not row["full_space"]["converged"] for row in rows):
+        fulls = [row["full_space"] for row in timed if row["full_space"] and "failed" not in row["full_space"]]
+        if any(not full["converged"] for full in fulls):
             out("* a timed full-space step ended unconverged at Newton's iteration cap: a faster rate than converging")
-        failed = {row["id"]: _failed_solves(row, batches) for row in rows}
-        if any(failed.values()):
+        unsolved = {row["id"]: _failed_solves(row, batches) for row in timed}
+        if any(unsolved.values()):
             out("! timed env steps with a solve that did not converge, diverged (the copy then restarts) or left the")
             out("map's range (info's converged, diverged, out_of_range of the copies solved): not a working env's rate")
-            for env_id, parts in failed.items():
+            for env_id, parts in unsolved.items():
                 if parts:
                     out(f"  {env_id}: " + "; ".join(parts))
+        if failed:
+            out("failed: parts that raised (their cells read failed; the other parts ran):")
+            for item in failed:
+                shown = f" (round {item['round']})" if args.rounds > 1 else ""
+                out(f"  {item['id']} {item['part']}{shown}: {item['error']}")
         out(
             "solver work per vector step: iterations per copy (of the slowest copy) / value-and-gradient calls "
             "/ rows per copy"
         )
         out(f"{'env':<26} " + " ".join(f"{f'N={b}':>27}" for b in batches))
-        for row in rows:
-            cells = (
-                f"{r['iterations_per_step']:.1f} ({r['slowest_iterations_per_step']:.1f}) / "
-                + (
-                    "- / -"  # a sharded env's workers keep their own counts
-                    if r["calls_per_step"] is None
-                    else f"{r['calls_per_step']:.1f} / {r['rows_per_copy_step']:.1f}"
-                )
-                for r in (row["vector"][b] for b in batches)
-            )
-            out(f"{row['id']:<26} " + " ".join(f"{c:>27}" for c in cells))
+        for row in timed:
+            out(f"{row['id']:<26} " + " ".join(f"{_work_cell(row['vector'][b]):>27}" for b in batches))
         if args.rounds > 1:
             out(f"env steps/s, the lowest and highest of the {args.rounds} rounds (each value above is their median)")
             out(f"{'env':<26} {'single':>11} " + " ".join(f"{f'N={b}':>11}" for b in batches))
-            for row in rows:
+            for row in timed:
                 out(_spread_line(row, batches))
     anchors = median_rounds(anchor_rounds)
     lines = anchor_lines(anchors)
@@ -223,6 +270,7 @@ def cmd_bench_envs(args: argparse.Namespace) -> int:
                 "results": rows,
                 "mujoco": anchors,
                 "cloth_ratios": ratios,
+                "failed": failed,
             }
         )
     else:
@@ -230,6 +278,10 @@ def cmd_bench_envs(args: argparse.Namespace) -> int:
             out(line)
         if machine["load_average_1min_at_end"] is not None:
             out(f"load at the end: {machine['load_average_1min_at_end']:.2f} (1-minute average)")
+    if failed:  # the rows are printed, and the command fails, for scripts and CI (as bench scaling's failed size)
+        names = list(dict.fromkeys(f"{item['id']} {item['part']}" for item in failed))  # once each, in any round
+        error(f"bench envs: {len(names)} part(s) failed ({', '.join(names)}); the other parts ran and are printed")
+        return EXIT_SCENE_FAILED
     return EXIT_OK
 
 
@@ -519,7 +571,8 @@ def add_commands(sub: Any, bench: Any) -> None:
             "For each env id: n, d, action and observation sizes, env steps/s of the single env and of the native "
             "vector env per batch size, simulated seconds per wall second, and the same scene's float64 full-space "
             "implicit-Euler step; with mujoco installed, MuJoCo's 24-capsule chain, HalfCheetah-v5 and a flex cloth "
-            "of the hanging sheet in the same run, and the cloth envs' best batch against that cloth."
+            "of the hanging sheet in the same run, and the cloth envs' best batch against that cloth. A part that "
+            "raises reads failed and is named under the table; the others still run, and the command exits 1."
         ),
     )
     p.add_argument("--envs", metavar="A,B,...", help="comma-separated ids (default: all)")

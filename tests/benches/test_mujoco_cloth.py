@@ -125,6 +125,24 @@ def test_cloth_ratios_use_the_best_batch_of_the_cloth_envs_only() -> None:
     assert "(NOT FINITE at the end: no ratio is taken against it)" in mujoco_cloth.cloth_anchor_line(blown)
 
 
+def test_cloth_ratios_leave_out_what_failed() -> None:
+    """`bench envs` goes on past a part that raised (``{"failed": ...}``): its batch, an id that failed as a whole and
+    a failed flex cloth are no part of a ratio, and the flex cloth's line names its error."""
+    failed = {"failed": "RuntimeError: boom"}
+    rows = [
+        {
+            "id": "RedSim/HangingCloth-v1",
+            "scene": "hanging_sheet",
+            "vector": {16: {"sim_s_per_wall_s": 4.0}, 64: failed},
+        },
+        {"id": "RedSim/HangingCloth-v2", "scene": "hanging_sheet", "vector": {16: failed}},
+        {"id": "RedSim/ClothBall-v0", **failed},
+    ]
+    assert mujoco_cloth.cloth_ratios(rows, {"sim_s_per_wall_s": 0.5, "finite": True}) == {"RedSim/HangingCloth-v1": 8.0}
+    assert mujoco_cloth.cloth_ratios(rows, failed) == {}
+    assert mujoco_cloth.cloth_anchor_line(failed) == "MuJoCo flex cloth failed: RuntimeError: boom"
+
+
 def test_dropped_start_is_the_sheet_turned_level_about_its_pinned_edge(scene) -> None:
     mesh = mujoco_cloth.sheet_mesh(scene)
     start = mujoco_cloth.dropped_positions(mesh)

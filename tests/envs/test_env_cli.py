@@ -332,3 +332,95 @@ def test_bench_envs_checks_env_args_on_an_older_version_quietly(capfd: pytest.Ca
     assert main([*args, "--no-full-space", "--anchor-steps", "20", "--env-arg", 'dtype="float32"']) == 0
     text, err = capfd.readouterr()
     assert "RedSim/BistableBar-v0" in text and "out of date" not in err + text
+
+
+def test_bench_envs_runs_on_past_a_part_that_raises(
+    monkeypatch: pytest.MonkeyPatch, capsys: pytest.CaptureFixture[str]
+) -> None:
+    """One part that raised (MiniChain-v0's vector env at N=3, Klann-v0's full-space step, the MuJoCo chain) ended the
+    run with a traceback, the rows measured before it lost. Now its cell reads failed and a line under the table
+    names it, the other ids and parts run and print, `--json` lists them under `failed`, and the command exits 1."""
+    import importlib.util
+
+    import gymnasium as gym
+
+    from redsim.benches import mujoco_cloth
+    from redsim.envs import bench
+
+    real_make_vec, real_full, real_find_spec = gym.make_vec, bench._full_space_step, importlib.util.find_spec
+
+    def make_vec(env_id: str, num_envs: int, **kwargs: object) -> object:
+        if env_id == "RedSim/MiniChain-v0" and num_envs == 3:
+            raise RuntimeError("no N=3 here")
+        return real_make_vec(env_id, num_envs, **kwargs)
+
+    def full_space_step(env: object, *args: object) -> dict:
+        if env.sim.scene.name == "klann":
+            raise ValueError("no full space here")
+        return real_full(env, *args)
+
+    def chain_anchor(steps: int) -> dict:
+        raise RuntimeError("no chain here")
+
+    monkeypatch.setattr(bench.gym, "make_vec", make_vec)
+    monkeypatch.setattr(bench, "_full_space_step", full_space_step)
+    monkeypatch.setattr(bench.importlib.util, "find_spec", lambda name: real_find_spec(name) or name == "mujoco")
+    monkeypatch.setattr(bench, "_chain_anchor", chain_anchor)
+    monkeypatch.setattr(bench, "_cheetah_anchor", lambda steps: {"reason": "not timed in this test"})
+    monkeypatch.setattr(mujoco_cloth, "cloth_anchor", lambda steps, budget: {"reason": "not timed in this test"})
+    args = ["bench", "envs", "--envs", "RedSim/MiniChain-v0,RedSim/Klann-v0", "--batches", "2,3", "--steps", "2"]
+    args += ["--budget", "0.1", "--threads", "1"]
+    assert main(args) == 1
+    captured = capsys.readouterr()
+    lines = captured.out.splitlines()
+    mini = next(line for line in lines if line.startswith("RedSim/MiniChain-v0 "))
+    klann = next(line for line in lines if line.startswith("RedSim/Klann-v0 "))
+    assert mini.split()[7] == "failed" and float(mini.split()[6]) > 0 and float(mini.split()[10]) > 0  # N=3; N=2
+    assert klann.split()[10] == "failed" and all(float(cell) > 0 for cell in klann.split()[5:10])  # the full space
+    assert "  RedSim/MiniChain-v0 N=3: RuntimeError: no N=3 here" in lines
+    assert "  RedSim/Klann-v0 full space: ValueError: no full space here" in lines
+    assert "MuJoCo chain failed: RuntimeError: no chain here" in lines
+    assert captured.err.endswith(
+        "redsim: error: bench envs: 3 part(s) failed (RedSim/MiniChain-v0 N=3, RedSim/Klann-v0 full space, MuJoCo "
+        "chain); the other parts ran and are printed\n"
+    )
+    assert main([*args, "--json"]) == 1
+    doc = json.loads(capsys.readouterr().out)
+    assert doc["failed"] == [
+        {"id": "RedSim/MiniChain-v0", "part": "N=3", "round": 1, "error": "RuntimeError: no N=3 here"},
+        {"id": "RedSim/Klann-v0", "part": "full space", "round": 1, "error": "ValueError: no full space here"},
+        {"id": "MuJoCo", "part": "chain", "round": 1, "error": "RuntimeError: no chain here"},
+    ]
+    mini_row, klann_row = doc["results"]
+    assert mini_row["vector"]["3"] == {"failed": "RuntimeError: no N=3 here"}
+    assert mini_row["vector"]["2"]["env_steps_per_s"] > 0 and mini_row["full_space"]["step_s"] > 0
+    assert klann_row["full_space"] == {"failed": "ValueError: no full space here"}
+    assert klann_row["vector"]["3"]["env_steps_per_s"] > 0 and doc["mujoco"]["chain"]["failed"]
+
+
+def test_bench_envs_stops_on_ctrl_c(monkeypatch: pytest.MonkeyPatch, capsys: pytest.CaptureFixture[str]) -> None:
+    """A part's KeyboardInterrupt is not a failed part: the run stops (exit 130) and times no further id."""
+    from redsim.envs import bench
+
+    def make_vec(*args: object, **kwargs: object) -> object:
+        raise KeyboardInterrupt
+
+    monkeypatch.setattr(bench.gym, "make_vec", make_vec)
+    args = ["bench", "envs", "--envs", "RedSim/MiniChain-v0,RedSim/Klann-v0", "--batches", "2", "--steps", "1"]
+    assert main([*args, "--budget", "0.1", "--no-full-space", "--threads", "1"]) == 130
+    captured = capsys.readouterr()
+    assert "RedSim/Klann-v0" not in captured.out and "interrupted" in captured.err
+
+
+def test_bench_envs_a_failure_in_any_round_or_of_the_whole_id_is_what_the_table_shows() -> None:
+    """A part that failed in one round of several is that failure, not the median of the rounds it ran in; an id
+    that could not be made is one line."""
+    from redsim.cli.envs import _row_line
+    from redsim.envs.bench import failed_parts
+
+    rounds = [{"id": "x", "single": {"env_steps_per_s": v}} for v in (1.0, 2.0)]
+    rounds.append({"id": "x", "single": {"failed": "RuntimeError: third round"}})
+    assert median_rounds(rounds)["single"] == {"failed": "RuntimeError: third round"}
+    whole = {"id": "RedSim/X-v0", "failed": "OSError: no map"}
+    assert median_rounds([rounds[0], whole]) == whole and failed_parts(whole) == {"env": "OSError: no map"}
+    assert _row_line(whole, [2]) == f"{'RedSim/X-v0':<26} failed (the env itself, named below)"
