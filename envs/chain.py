@@ -42,6 +42,11 @@ class ChainEnv(ReachEnv):
     a control cost and a bonus within the success radius, each in `info["reward_<term>"]`
     (formula: :class:`redsim.envs.reach.ReachEnv`).
 
+    Besides the rewards and the solver's flags, `info` holds `distance` [m], `is_success` and the chain's invariants:
+    `rigid_orthogonality_error`, `contact_penetration` [m], `contact_clearance` [m] and `contact_unlinked`, how many
+    (link ring, neighbour's torus) pairs, the hook's included, lost the linking number they have at rest: links that
+    passed through each other (0 in an intact chain; one joint apart reads 2, once from each link's side).
+
     ## Starting State
     At rest (z: the map's unloaded equilibrium, z_dot = 0). The target is the end link's centre in the subspace
     state z_rest + `target_spread` * N(0, I), drawn from `self.np_random`. `reset(options={"target": [x, y, z]})`

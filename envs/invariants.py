@@ -12,7 +12,12 @@ prefixed by the effect's name:
 - ``<membrane>_max_strain``: max principal stretch - 1 over the cloth triangles (0: unstretched);
 - ``<contact>_penetration`` [m]: max depth of a contact point inside its shape's margin;
 - ``<contact>_clearance`` [m]: the smallest distance of a contact point beyond that margin, negative when one is
-  inside (the penetration, negated), positive when none touches: how far the nearest point is from contact.
+  inside (the penetration, negated), positive when none touches: how far the nearest point is from contact;
+- ``<contact>_unlinked`` (torus contacts whose point rings are interlocked with their tori at the seed: the chains'
+  links and hook): how many (ring, torus) pairs no longer have the seed's linking number, i.e. passed through each
+  other. Exact topology, where the tunnel test is a detector: it also counts a crossing whose end rests against the
+  wire's far side, which that test cannot tell from a point resting in contact. Each interlocked pair of links is held
+  from both sides (each link's ring against the other's torus), so one pair that came apart reads 2.
 
 The checks run over blocks of rows sized so that one block's per-element [rows, elements] tensors stay in the
 CPU's cache (:data:`BLOCK_ELEMENTS`; the values are the one pass's to round-off): at 256 copies the cloth envs'
@@ -28,6 +33,7 @@ from torch import Tensor
 
 from redsim.effects import NeoHookean, PointPairPenalty, RigidOrthogonality, SDFContact, StVKMembrane
 from redsim.effects.base import Effect, gather_elements, split_points
+from redsim.effects.sdf import Torus
 from redsim.scene import Scene
 
 
@@ -79,6 +85,39 @@ def _contact(effect: SDFContact, x: Tensor) -> dict[str, Tensor]:
     return {"penetration": (-clearance).clamp_min(0.0), "clearance": clearance}
 
 
+def linking_numbers(effect: SDFContact, ring: Tensor) -> Tensor:
+    """The linking number [pairs, B] of each (point source, frame) pair's points ``ring`` [pairs, B, S, 3] in its frame
+    (:meth:`SDFContact.pair_points`, every slot a point), taken in order as a closed polygon, with the centre circle of
+    the pair's :class:`~redsim.effects.sdf.Torus` (the frame's xy plane, radius ``major``): the signed count of the
+    polygon's edges that cross the circle's disk (+1 along the frame's z axis). Exact for a polygon that misses the
+    circle itself."""
+    start, end = ring, torch.roll(ring, -1, dims=2)
+    z0, z1 = start[..., 2], end[..., 2]
+    up, down = (z0 <= 0.0) & (z1 > 0.0), (z0 > 0.0) & (z1 <= 0.0)
+    t = (z0 / torch.where(up | down, z0 - z1, torch.ones_like(z0))).unsqueeze(-1)
+    at = start[..., :2] + t * (end[..., :2] - start[..., :2])  # where the edge meets the plane z = 0
+    inside = (at * at).sum(-1) < float(effect.shape.major) ** 2
+    return ((up & inside).to(ring.dtype) - (down & inside).to(ring.dtype)).sum(-1)
+
+
+def _ring_contact(effect: SDFContact, x: Tensor, interlocked: Tensor, seed: Tensor) -> dict[str, Tensor]:
+    """:func:`_contact`'s values and ``unlinked`` (module doc) of a ring contact, from one pass over its points: the
+    pairs ``interlocked`` [pairs, 1] at the seed whose linking number is no longer ``seed``'s [pairs, 1]."""
+    ring = effect.pair_points(x)  # [pairs, B, S, 3]
+    clearance = (effect.shape.distance(ring) - effect.margin).amin(-1).amin(0)  # [B], as SDFContact.clearance
+    changed = (linking_numbers(effect, ring) != seed) & interlocked  # [pairs, B]
+    return {
+        "penetration": (-clearance).clamp_min(0.0),
+        "clearance": clearance,
+        "unlinked": changed.sum(0).to(x.dtype),
+    }
+
+
+def _is_ring_contact(effect: Effect) -> bool:
+    """A torus contact whose pair tables hold every slot (each pair's points can be read as a closed polygon)."""
+    return isinstance(effect, SDFContact) and isinstance(effect.shape, Torus) and not effect.partial_slots
+
+
 BLOCK_ELEMENTS = 262144
 """Rows x elements of one block of :meth:`Invariants.__call__` (1 MiB per float32 [rows, elements] tensor; blocks
 of 33 rows were no faster on the cloth envs at 256 copies, and split 64 copies in two)."""
@@ -108,6 +147,14 @@ class Invariants:
         largest = max((effect.element_count for effect, _ in self._checks), default=1)
         self.block_rows = max(1, BLOCK_ELEMENTS // max(largest, 1))
         """Rows per block (module doc)."""
+        seed = scene.full_positions(scene.q_seed.unsqueeze(0))
+        self._links: dict[str, tuple[Tensor, Tensor]] = {}
+        """Per ring contact's name: which of its pairs are interlocked at the seed [pairs, 1], their linking numbers."""
+        for effect in scene.effects:
+            if _is_ring_contact(effect):
+                links = linking_numbers(effect, effect.pair_points(seed))  # [pairs, 1]
+                if bool((links != 0).any()):
+                    self._links[effect.name] = (links != 0, links)
 
     @torch.no_grad()
     def __call__(self, x: Tensor) -> dict[str, Tensor]:
@@ -120,9 +167,11 @@ class Invariants:
     def _block(self, x: Tensor) -> dict[str, Tensor]:
         out: dict[str, Tensor] = {}
         for effect, check in self._checks:
-            for key, value in check(effect, x).items():
+            links = self._links.get(effect.name)
+            values = check(effect, x) if links is None else _ring_contact(effect, x, *links)
+            for key, value in values.items():
                 out[f"{effect.name}_{key}"] = value
         return out
 
 
-__all__ = ["CHECKS", "Invariants"]
+__all__ = ["CHECKS", "Invariants", "linking_numbers"]

@@ -429,6 +429,11 @@ class SDFContact(Effect):
         :meth:`_build_pairs`; unused slots, ``pair_mask`` 0, hold the frame origin's distance)."""
         return self.shape.distance(self._pair_local(x))
 
+    def pair_points(self, x: Tensor) -> Tensor:
+        """Every point in its pair's frame [m], [pairs, B, S, 3], of full configurations x [B, N]: the pair tables'
+        layout (slots where ``pair_mask`` is 0 hold the frame origin), each pair's points in their order."""
+        return self._pair_local(x)
+
     def frame_points(self, x: Tensor) -> tuple[Tensor, Tensor]:
         """Every point in the coordinates of the frame that carries its shape [m], [B, M, 3], of full configurations
         x [B, N], and which of the M rows are points ([M] bool; the pair tables' unused slots are not). The layout is

@@ -1338,3 +1338,26 @@ def test_an_env_too_coarse_to_feel_its_actions_warns_at_its_first_reset() -> Non
     assert (default.unwrapped.sim.action_resolution < 0.01).all()
     with pytest.warns(UserWarning, match=r"cannot feel any value of an action \(the least it feels is .*x its range"):
         gym.make("RedSim/MiniChain-v0", dt=0.005, max_force=0.01).reset(seed=0)  # was "below 1234.5% of their range"
+
+
+def test_the_chains_info_counts_links_that_passed_through_each_other() -> None:
+    """``contact_unlinked`` (redsim.envs.invariants): 0 at rest and in a chain moved whole; 2 once link 0 is lifted
+    through the hook (its ring through the hook's torus and the hook's through its own); 4 where link 0 alone slid
+    5.5 cm sideways through the hook's wire and link 1's, its ends resting against the wires' far sides, which the
+    tunnel test cannot tell from points resting in contact (helper-219's case)."""
+    from redsim.envs.invariants import Invariants
+    from redsim.integrators.tunneling import TunnelTest
+
+    scene = scenes.build("mini_chain")
+    invariants = Invariants(scene)
+    x = scene.full_positions(scene.q_seed.unsqueeze(0))
+    moved, lifted, slid = x.clone(), x.clone(), x.clone()
+    moved[:, 7::12] -= 0.01  # the chain 1 cm down: still hooked
+    lifted[:, 7::12] += 0.2  # link 0 up through the hook (link 1 with it: their pair stays linked)
+    slid[:, 3] += 0.055  # link 0 alone slid along x: through the hook's wire and link 1's
+    unlinked = invariants(torch.cat([x, moved, lifted, slid]))["contact_unlinked"]
+    assert unlinked.tolist() == [0.0, 0.0, 2.0, 4.0]
+    assert not bool(TunnelTest(scene)(x, slid)[0])  # the detector misses the slide; the topology does not
+    env = gym.make("RedSim/MiniChain-v0").unwrapped
+    env.reset(seed=0)
+    assert env.step(np.zeros(env.action_space.shape, np.float32))[-1]["contact_unlinked"] == 0.0
