@@ -130,14 +130,21 @@ def unreported_rises(
     return [int(t) for t in torch.nonzero(bad & ~reported.to(torch.bool)).flatten()]
 
 
-def inverted_elements(scene: Scene, q: Tensor) -> int | None:
-    """The most elements with det F <= 0 at any state of q [T + 1, n] (float64), over the scene's neo-Hookean solids
-    (:class:`redsim.envs.invariants.Invariants`); None for a scene without one. The energy stays finite on an inverted
-    element (the stable neo-Hookean), so neither NaN nor a flag shows one: this count does."""
+def topology_counts(scene: Scene, q: Tensor) -> dict[str, int | None]:
+    """From the scene's invariants (:class:`redsim.envs.invariants.Invariants`) at every state of q [T + 1, n]
+    (float64), what neither NaN nor a flag shows: ``inverted``, the most elements with det F <= 0 (the stable
+    neo-Hookean's energy stays finite on one), and ``unlinked``, the most chain pairs that passed through each other
+    (``contact_unlinked``: exact, where the ``tunneled`` test is a detector); each None for a scene without it."""
     s = scene.to(dtype=torch.float64)
-    values = Invariants(s)(s.full_positions(q.to(torch.float64)))
-    counts = [v for key, v in values.items() if key.endswith("_inverted")]
-    return None if not counts else int(torch.stack(counts).sum(0).max())
+    values = {key: v.cpu() for key, v in Invariants(s)(s.full_positions(q.to(torch.float64))).items()}
+    return {kind: most(values, kind) for kind in ("inverted", "unlinked")}
+
+
+def most(values: dict[str, Any], kind: str) -> int | None:
+    """The largest per-state sum [B] of the invariants ``values`` named ``*_<kind>`` (tensors or arrays); None without
+    one."""
+    counts = [np.asarray(v) for key, v in values.items() if key.endswith(f"_{kind}") and not key.startswith("_")]
+    return None if not counts else int(np.sum(counts, axis=0).max())
 
 
 def recovered(reported: Sequence[bool]) -> int:
@@ -222,7 +229,7 @@ class Rollout:
             "tunneled": self.flags.get("tunneled", 0),
             "tunnels_caught": self.flags.get("tunnels_caught", 0),
             "idle": self.flags.get("idle", 0),
-            "inverted": inverted_elements(scene, self.q),
+            **topology_counts(scene, self.q),
             "seconds": self.seconds,
         }
 
@@ -690,16 +697,17 @@ def fuzz_env(
     pending = np.zeros(copies, dtype=np.int64)
     kinds = "steps failures recovered gains nan unreported excused hidden out_of_range tunneled resets idle"
     counts = dict.fromkeys(kinds.split(), 0)
-    inverted: int | None = None
+    worst: dict[str, int | None] = {"inverted": None, "unlinked": None}
     vector_steps = max(1, math.ceil(steps / copies))
     for i in range(vector_steps):
         z_before = venv.unwrapped.sim.z.clone()
         obs, reward, terminated, truncated, info = venv.step(fuzz_actions(rng, venv.action_space.shape, i))
         still = (venv.unwrapped.sim.z == z_before).all(-1).cpu().numpy()  # before any reset below
         counts["idle"] += int((still & (np.asarray(info["iterations"]) == 0)).sum())
-        solids = [np.asarray(info[k]) for k in info if k.endswith("_inverted") and not k.startswith("_")]
-        if solids:  # the envs' invariants (redsim.envs.invariants): elements with det F <= 0, per copy
-            inverted = max(inverted or 0, int(np.sum(solids, axis=0).max()))
+        for kind, value in worst.items():  # the envs' invariants (topology_counts), per copy
+            step_most = most(info, kind)
+            if step_most is not None:
+                worst[kind] = max(value or 0, step_most)
         tunneled = np.asarray(info["tunneled"], dtype=bool)
         bad = ~np.asarray(info["converged"], dtype=bool) | np.asarray(info["diverged"], dtype=bool) | tunneled
         counts["tunneled"] += int(tunneled.sum())
@@ -747,7 +755,7 @@ def fuzz_env(
         "out_of_range": counts["out_of_range"],
         "tunneled": counts["tunneled"],
         "idle": counts["idle"],
-        "inverted": inverted,
+        **worst,
         "copies": copies,
         "resets": counts["resets"],
         "seconds": time.perf_counter() - start,
@@ -956,6 +964,7 @@ ROW_COLUMNS = (
     ("tunnels_caught", "tunnels caught"),
     ("idle", "idle steps"),
     ("inverted", "most inverted elements"),
+    ("unlinked", "most unlinked pairs"),
 )
 """Columns of :func:`markdown_rows`: (row key, header)."""
 

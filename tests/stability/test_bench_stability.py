@@ -245,18 +245,33 @@ def test_rows_count_inverted_elements_and_idle_steps_that_no_flag_shows() -> Non
     run = stability.runtime_rollout(scene, f, loads, stability.DT)
     row = run.row(scene, "bistable_bar", "push", "latent", stability.RISE_SLACK)
     assert row["nan"] == 0 and row["failures_detected"] == 0 and row["inverted"] > 0
-    assert stability.inverted_elements(scene, scene.q_seed.to(torch.float64)[None]) == 0  # the seed: none
+    seed = stability.topology_counts(scene, scene.q_seed.to(torch.float64)[None])
+    assert seed == {"inverted": 0, "unlinked": None}  # the seed: none; no chain
     chain, g = stability._shipped("mini_chain")
     small = stability._zero_loads(chain, 4)
     small[:, 0, 0] = 1e-3
     row = stability.runtime_rollout(chain, g, small, 1e-4).row(chain, "mini_chain", "tiny_dt", "latent", 1e-3)
-    assert row["idle"] == 4 and row["failures_detected"] == 0 and row["inverted"] is None
-    assert "| idle steps | most inverted elements |" in stability.markdown_rows([row])[0]
-    assert stability.markdown_rows([row])[2].endswith("| 4 | - |")
-    # the fuzz rows count both from the envs' own info (the invariants' *_inverted per copy)
+    assert row["idle"] == 4 and row["failures_detected"] == 0 and row["inverted"] is None and row["unlinked"] == 0
+    assert "| idle steps | most inverted elements | most unlinked pairs |" in stability.markdown_rows([row])[0]
+    assert stability.markdown_rows([row])[2].endswith("| 4 | - | 0 |")
+    # the fuzz rows count them from the envs' own info (the invariants' *_inverted and *_unlinked per copy)
     fuzz = stability.fuzz_env("RedSim/BistableBar-v0", 16, num_envs=8)
-    assert isinstance(fuzz["inverted"], int) and fuzz["idle"] >= 0
-    assert stability.fuzz_env("RedSim/MiniChain-v0", 16, num_envs=8)["inverted"] is None
+    assert isinstance(fuzz["inverted"], int) and fuzz["idle"] >= 0 and fuzz["unlinked"] is None
+    chain_fuzz = stability.fuzz_env("RedSim/MiniChain-v0", 16, num_envs=8)
+    assert chain_fuzz["inverted"] is None and chain_fuzz["unlinked"] == 0
+
+
+def test_rows_count_chain_pairs_that_came_apart() -> None:
+    """``unlinked`` (``contact_unlinked``, exact topology) over a run's states: the mini chain lifted 0.2 m, link 0
+    through the hook, reads 2 (the hook and link 0, seen from both); moved 1 cm down, still hooked, 0."""
+    scene = scenes.build("mini_chain")
+    x = scene.full_positions(scene.q_seed.to(torch.float64).unsqueeze(0))
+    lifted, lowered = x.clone(), x.clone()
+    lifted[:, 7::12] += 0.2
+    lowered[:, 7::12] -= 0.01
+    q = scene.dof_map.restrict(torch.cat([x, lowered, lifted]))
+    assert stability.topology_counts(scene, q) == {"inverted": None, "unlinked": 2}
+    assert stability.topology_counts(scene, q[:2])["unlinked"] == 0
 
 
 def test_the_fuzz_judges_a_cubature_env_on_the_energy_it_steps_and_counts_the_scenes_rises_apart() -> None:
