@@ -121,6 +121,7 @@ def make_vec(
     max_episode_steps: int | None = 200,
     autoreset_mode: Any = None,
     shards: int = 1,
+    timeout: float | None = None,
     **kwargs: Any,
 ) -> Any:
     """``num_envs`` copies of ``make(scene, subspace, task, **kwargs)`` stepped in one batched solve: a
@@ -141,10 +142,13 @@ def make_vec(
         max_episode_steps: Each copy's episode length (None or -1: no limit).
         autoreset_mode: Gymnasium's ``AutoresetMode`` (None: ``NEXT_STEP``).
         shards: Worker processes (1: all copies in this process).
+        timeout: With ``shards`` > 1, seconds each request waits for the workers' answers before the env closes
+            and raises :class:`redsim.envs.sharded.ShardTimeoutError` (None: wait for ever).
         **kwargs: :class:`redsim.envs.base.LatentEnv` arguments, plus ``task_options`` (dict).
 
     Raises:
-        ValueError, TypeError, redsim.subspace.CheckpointError: as :func:`make`, and a bad N, mode or shard count.
+        ValueError, TypeError, redsim.subspace.CheckpointError: as :func:`make`, and a bad N, mode, shard count or
+            timeout.
     """
     from gymnasium.vector import AutoresetMode
 
@@ -159,6 +163,7 @@ def make_vec(
         max_episode_steps=max_episode_steps,
         autoreset_mode=mode,
         shards=shards,
+        timeout=timeout,
         **kwargs,
     )
 

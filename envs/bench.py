@@ -29,6 +29,7 @@ import numpy as np
 import torch
 
 from redsim import scenes
+from redsim.envs.sharded import check_timeout
 from redsim.runtime import Evaluations
 
 logger = logging.getLogger(__name__)
@@ -176,6 +177,7 @@ def bench_env(
     full_space: bool = True,
     seed: int = 0,
     shards: int = 1,
+    shard_timeout: float | None = None,
     **env_kwargs: Any,
 ) -> dict[str, Any]:
     """Timings of one env id (module doc).
@@ -191,6 +193,8 @@ def bench_env(
             streams (``(seed, batch)``, ``(seed, 0)``), so no part depends on which others run.
         shards: Worker processes of each vector env (1: the native vector env in this process; P > 1: a
             :class:`redsim.envs.sharded.ShardedVectorEnv`, whose solver calls and rows are not counted: None).
+        shard_timeout: With ``shards`` > 1, seconds each vector env call waits for its workers: past it, that
+            batch's part fails (:class:`redsim.envs.sharded.ShardTimeoutError`) and the others run (None: for ever).
         **env_kwargs: Passed to ``gym.make``/``gym.make_vec``.
 
     Returns:
@@ -208,8 +212,13 @@ def bench_env(
         :func:`failed_parts`).
 
     Raises:
+        ValueError: a ``shard_timeout`` with ``shards`` 1 (no worker to wait for), or not a number of seconds > 0.
         Exception: what making the env or reading its sizes raised (no part can be timed without them).
     """
+    if check_timeout(shard_timeout) is not None and shards == 1:
+        raise ValueError(
+            f"shard_timeout={shard_timeout!r} bounds the wait for a sharded env's workers: give shards > 1"
+        )
     start = time.perf_counter()
     with old_versions_quiet():
         env = gym.make(env_id, **env_kwargs).unwrapped
@@ -228,6 +237,7 @@ def bench_env(
             "render": attempt(lambda: _render(env, steps, budget)),
         }
         timings = {"steps": steps, "warmup": warmup, "budget": budget, "seed": seed, "shards": shards}
+        timings["shard_timeout"] = shard_timeout
         row["vector"] = {
             int(b): attempt(lambda b=b: _vector_env(env_id, int(b), env.dt, **timings, env_kwargs=env_kwargs))
             for b in batches
@@ -284,11 +294,12 @@ def _vector_env(
     budget: float,
     seed: int,
     shards: int,
+    shard_timeout: float | None,
     env_kwargs: dict[str, Any],
 ) -> dict[str, Any]:
     """One batch size's part of :func:`bench_env`: a fresh vector env of ``batch`` copies (env step ``dt`` [s]),
     its median step over uniform random actions drawn from the stream ``(seed, batch)``."""
-    sharding = {"shards": shards} if shards != 1 else {}
+    sharding = {"shards": shards, "timeout": shard_timeout} if shards != 1 else {}
     with old_versions_quiet():
         venv = gym.make_vec(env_id, num_envs=batch, vectorization_mode="vector_entry_point", **sharding, **env_kwargs)
     try:

@@ -138,6 +138,7 @@ def build_vector(
     max_episode_steps: int | None = 200,
     autoreset_mode: AutoresetMode | str = AutoresetMode.NEXT_STEP,
     shards: int = 1,
+    timeout: float | None = None,
     **kwargs: Any,
 ) -> LatentVectorEnv | ShardedVectorEnv:
     """See :func:`redsim.envs.make_vec`."""
@@ -145,7 +146,7 @@ def build_vector(
     if limit is not None and (isinstance(limit, bool) or not isinstance(limit, numbers.Integral) or limit < 1):
         raise ValueError(f"max_episode_steps must be None or -1 (no limit) or an integer >= 1, got {limit!r}")
     create = functools.partial(_bare, scene=scene, subspace=subspace, task=task, **kwargs)
-    return vector_of(create, num_envs, None if limit is None else int(limit), autoreset_mode, shards)
+    return vector_of(create, num_envs, None if limit is None else int(limit), autoreset_mode, shards, timeout)
 
 
 def default_force(scene: Scene) -> float:

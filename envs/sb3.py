@@ -72,7 +72,7 @@ class SB3VecEnv(VecEnv):
             goal: Wrap the vector env in :class:`GoalVectorObservation` (a reach env's dict observations, for HER);
                 a mapping: with those arguments (``goal={"control_cost": True}``).
             **kwargs: Passed to ``gymnasium.make_vec``: the env's arguments, ``max_episode_steps``, ``shards``
-                (worker processes, :class:`redsim.envs.sharded.ShardedVectorEnv`).
+                (worker processes, :class:`redsim.envs.sharded.ShardedVectorEnv`) and their ``timeout`` [s].
 
         Raises:
             TypeError: ``goal`` with an env that is not a reach env, or with ``shards`` > 1 (the vector env is

@@ -8,12 +8,17 @@ of the N copies (sizes differ by at most one), stepped in parallel. Copy i is se
 in the native vector env, so the two are the same env (equal step for step where the solve is tight
 enough that the batch composition does not move it; see ``tests/envs/test_sharded.py``). A worker
 that fails raises in the caller (its own exception, or :class:`ShardError`, with the worker's traceback), and
-the env is closed, as it is when the caller is interrupted in the middle of a request.
+the env is closed, as it is when the caller is interrupted in the middle of a request. With ``timeout=S``, a
+request that some shard does not answer within S seconds (a worker stuck in a solve, stopped, deadlocked) raises
+:class:`ShardTimeoutError` (a :class:`multiprocessing.TimeoutError`, as Gymnasium's ``AsyncVectorEnv.step_wait``
+raises), the workers stopped and the env closed; ``None`` (the default) waits for ever.
 """
 
 from __future__ import annotations
 
+import math
 import multiprocessing as mp
+import numbers
 import os
 import pickle
 import sys
@@ -21,7 +26,7 @@ import time
 import traceback
 from collections.abc import Callable, Mapping, Sequence
 from multiprocessing.connection import Connection
-from typing import TYPE_CHECKING, Any
+from typing import TYPE_CHECKING, Any, NoReturn
 
 import numpy as np
 import torch
@@ -37,6 +42,9 @@ if TYPE_CHECKING:
 
 JOIN_TIMEOUT_S = 10.0
 """Seconds :meth:`ShardedVectorEnv.close` waits for its workers to exit before terminating them."""
+KILL_AFTER_S = 1.0
+"""Seconds a terminated worker (SIGTERM) has to exit before it is killed (SIGKILL): a stopped process (SIGSTOP)
+keeps SIGTERM pending until it is continued, and would be left behind (and hold up this interpreter's exit)."""
 STARTUP_HINT = (
     '; its stderr says why. A script must make a sharded env under `if __name__ == "__main__":` (each worker'
     " re-imports the main module), and the env class and its arguments must be importable by the worker"
@@ -47,6 +55,27 @@ STARTUP_HINT = (
 
 class ShardError(RuntimeError):
     """A worker process of a :class:`ShardedVectorEnv` failed (its traceback is in the message)."""
+
+
+class ShardTimeoutError(ShardError, mp.TimeoutError):
+    """Some worker of a :class:`ShardedVectorEnv` did not answer a request within the env's ``timeout`` (the
+    message names the shards, their copies and worker ids, and the seconds waited); the env is closed.
+
+    Also a :class:`multiprocessing.TimeoutError`, what Gymnasium's ``AsyncVectorEnv.step_wait(timeout)`` raises.
+    """
+
+
+def check_timeout(timeout: float | None) -> float | None:
+    """``timeout`` as seconds (float), or None (wait for ever).
+
+    Raises:
+        ValueError: anything but None or a finite number > 0 (NaN, inf, 0, a negative number, a bool, a string).
+    """
+    if timeout is None:
+        return None
+    if isinstance(timeout, bool) or not isinstance(timeout, numbers.Real) or not math.isfinite(timeout) or timeout <= 0:
+        raise ValueError(f"timeout must be None (wait for ever) or a finite number of seconds > 0, got {timeout!r}")
+    return float(timeout)
 
 
 def shard_sizes(num_envs: int, shards: int) -> list[int]:
@@ -144,6 +173,10 @@ class ShardedVectorEnv(SharedCopies, VectorEnv):
             "fork" is refused: torch's thread pools do not survive it).
         autoreset_mode: The mode ``build`` makes the native envs with (for ``metadata``).
         max_episode_steps: The episode length ``build`` gives them (an attribute, as the native env's).
+        timeout: Seconds each request (``reset``, ``step``, ``render``, ``get_state``, ``set_state``, ``call``)
+            waits for every shard's answer, from when it is sent; past it, :class:`ShardTimeoutError` and the env
+            is closed (None: wait for ever). Starting the workers (which may fit a missing subspace) is not timed,
+            as Gymnasium's ``AsyncVectorEnv`` does not time its start.
     """
 
     def __init__(
@@ -157,7 +190,9 @@ class ShardedVectorEnv(SharedCopies, VectorEnv):
         context: str | None = None,
         autoreset_mode: AutoresetMode | str = AutoresetMode.NEXT_STEP,
         max_episode_steps: int | None = None,
+        timeout: float | None = None,
     ) -> None:
+        self.timeout = check_timeout(timeout)
         if int(num_envs) != num_envs or num_envs < 1:
             raise ValueError(f"num_envs must be an integer >= 1, got {num_envs!r}")
         self.sizes = shard_sizes(int(num_envs), shards)
@@ -440,16 +475,22 @@ class ShardedVectorEnv(SharedCopies, VectorEnv):
                     raise ShardError(
                         f"shard {shard}: the worker process exited (exit code {code}, {error!r}); the env is closed"
                     ) from error
-            return self._gather()
+            return self._gather(what=requests[0][0] if requests[0][0] != "call" else f"call({requests[0][1]!r})")
         except BaseException:
             self._abort()
             raise
 
-    def _gather(self, hint: str = "") -> list[Any]:
+    def _gather(self, hint: str = "", what: str | None = None) -> list[Any]:
         """Every shard's answer, in order. A worker's error is raised as itself (its traceback in a note; a
-        :class:`ShardError` where it does not unpickle), a worker gone as :class:`ShardError` (with ``hint``)."""
+        :class:`ShardError` where it does not unpickle), a worker gone as :class:`ShardError` (with ``hint``), a
+        request ``what`` (None: the start, never timed) not answered within :attr:`timeout` as
+        :class:`ShardTimeoutError`."""
         answers, failures, first = [], [], None
+        timeout = None if what is None else self.timeout
+        deadline = None if timeout is None else time.monotonic() + timeout
         for shard, pipe in enumerate(self._pipes):
+            if deadline is not None and not pipe.poll(max(0.0, deadline - time.monotonic())):
+                self._time_out(what, [i for i in range(shard, len(self._pipes)) if not self._pipes[i].poll(0)])
             try:
                 status, payload = pipe.recv()
             except (EOFError, OSError) as error:
@@ -477,6 +518,21 @@ class ShardedVectorEnv(SharedCopies, VectorEnv):
             raise ShardError(report)
         return answers
 
+    def _time_out(self, what: str | None, hung: Sequence[int]) -> NoReturn:
+        """Close the env and raise :class:`ShardTimeoutError`: the shards ``hung`` did not answer ``what``."""
+        copies = [
+            f"copy {start}" if size == 1 else f"copies {start}-{start + size - 1}"
+            for start, size in zip(self.starts, self.sizes, strict=True)
+        ]
+        names = ", ".join(f"shard {i} ({copies[i]}, worker pid {self._processes[i].pid})" for i in hung)
+        self._abort()
+        raise ShardTimeoutError(
+            f"the sharded env's {what} timed out after {self.timeout:g} s: {names} did not answer (a worker stuck in "
+            "a solve, stopped or deadlocked); the workers were stopped and the env is closed (its shards may be out "
+            "of step). Make the env again, with a longer timeout (None waits for ever) if a request can take this "
+            "long"
+        )
+
     def _abort(self) -> None:
         """Stop the workers now (answers may be unread) and mark the env closed."""
         self._stop(0.0)
@@ -484,17 +540,27 @@ class ShardedVectorEnv(SharedCopies, VectorEnv):
         self.template.close()
 
     def _stop(self, timeout: float) -> None:
-        """Join the workers within ``timeout`` seconds in all, terminate those still alive, close the pipes."""
-        deadline = time.monotonic() + timeout
-        for process in self._processes:
-            process.join(max(0.0, deadline - time.monotonic()))
-        for process in self._processes:
+        """Join the workers within ``timeout`` seconds in all, terminate those still alive, kill those a terminate
+        does not stop within :data:`KILL_AFTER_S` (a stopped process), close the pipes."""
+        _join(self._processes, timeout)
+        alive = [process for process in self._processes if process.is_alive()]
+        for process in alive:
+            process.terminate()
+        _join(alive, KILL_AFTER_S)
+        for process in alive:
             if process.is_alive():
-                process.terminate()
-                process.join(JOIN_TIMEOUT_S)
+                process.kill()
+        _join(alive, JOIN_TIMEOUT_S)
         for pipe in self._pipes:
             pipe.close()
         self._pipes, self._processes = [], []
+
+
+def _join(processes: Sequence[Any], timeout: float) -> None:
+    """Join ``processes`` within ``timeout`` seconds in all."""
+    deadline = time.monotonic() + timeout
+    for process in processes:
+        process.join(max(0.0, deadline - time.monotonic()))
 
 
 def _cpu_count() -> int:
@@ -574,4 +640,12 @@ def _hidden(info: Mapping[str, Any]) -> dict[str, Any]:
     return values | {f"_{k}": np.zeros(len(v), dtype=bool) for k, v in values.items()}
 
 
-__all__ = ["JOIN_TIMEOUT_S", "ShardError", "ShardedVectorEnv", "shard_sizes"]
+__all__ = [
+    "JOIN_TIMEOUT_S",
+    "KILL_AFTER_S",
+    "ShardError",
+    "ShardTimeoutError",
+    "ShardedVectorEnv",
+    "check_timeout",
+    "shard_sizes",
+]

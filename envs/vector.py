@@ -45,7 +45,7 @@ from redsim.envs.base import (
     state_row,
     with_fitted_map,
 )
-from redsim.envs.sharded import ShardedVectorEnv, shard_sizes
+from redsim.envs.sharded import ShardedVectorEnv, check_timeout, shard_sizes
 from redsim.envs.vector_api import ClosedVectorEnvError, SharedCopies, check_started, episode_clock, reset_mask
 from redsim.threads import torch_threads
 
@@ -412,10 +412,22 @@ def vector_of(
     max_episode_steps: int | None,
     autoreset_mode: AutoresetMode | str,
     shards: int,
+    timeout: float | None = None,
 ) -> LatentVectorEnv | ShardedVectorEnv:
     """``num_envs`` copies of the env ``create()`` makes (a partial with keyword arguments, ``render_mode`` among
     them if any), in one :class:`LatentVectorEnv` or, with ``shards`` P > 1, a
-    :class:`redsim.envs.sharded.ShardedVectorEnv` of P worker processes; ``max_episode_steps`` None: no limit."""
+    :class:`redsim.envs.sharded.ShardedVectorEnv` of P worker processes, each request waiting at most ``timeout``
+    seconds for them (None: for ever); ``max_episode_steps`` None: no limit.
+
+    Raises:
+        ValueError: a bad render mode, ``timeout`` (:func:`~redsim.envs.sharded.check_timeout`, or one with
+            ``shards`` 1: no worker to wait for), copy count, episode length, autoreset mode or shard count.
+    """
+    if check_timeout(timeout) is not None and shards == 1:
+        raise ValueError(
+            f"timeout={timeout!r} bounds the wait for a sharded env's worker processes, and shards=1 makes the native "
+            "vector env, which steps in this process: drop timeout, or give shards > 1"
+        )
     render = create.keywords.get("render_mode")
     if render == "human":  # before any env or worker is made (or a display is asked for)
         raise ValueError(NO_HUMAN)
@@ -434,7 +446,9 @@ def vector_of(
     if carried is not None:  # fitted in memory here: the workers take the map instead of fitting it again
         carrying = functools.partial(create.func, *create.args, **with_fitted_map(create.keywords, carried))
         build = functools.partial(_native, carrying, max_episode_steps, autoreset_mode)
-    return ShardedVectorEnv(build, template, num_envs, shards, autoreset_mode=mode, max_episode_steps=max_episode_steps)
+    return ShardedVectorEnv(
+        build, template, num_envs, shards, autoreset_mode=mode, max_episode_steps=max_episode_steps, timeout=timeout
+    )
 
 
 def episode_limit(max_episode_steps: int | None, default: int | None) -> int | None:
@@ -464,15 +478,17 @@ def vector_entry(env_class: type[LatentEnv]) -> Callable[..., LatentVectorEnv | 
         max_episode_steps: int | None = None,
         autoreset_mode: AutoresetMode | str = AutoresetMode.NEXT_STEP,
         shards: int = 1,
+        timeout: float | None = None,
         **kwargs: Any,
     ) -> LatentVectorEnv | ShardedVectorEnv:
         limit = episode_limit(max_episode_steps, registered_steps(env_class))
-        return vector_of(functools.partial(env_class, **kwargs), num_envs, limit, autoreset_mode, shards)
+        return vector_of(functools.partial(env_class, **kwargs), num_envs, limit, autoreset_mode, shards, timeout)
 
     make_vec.__doc__ = (
         f"A :class:`LatentVectorEnv` of ``num_envs`` copies of :class:`{env_class.__name__}`; with ``shards`` P > 1,"
-        " a :class:`redsim.envs.sharded.ShardedVectorEnv` of them in P worker processes. ``max_episode_steps`` as"
-        " in ``gym.make``: None is the registered id's episode length, -1 no limit."
+        " a :class:`redsim.envs.sharded.ShardedVectorEnv` of them in P worker processes, whose requests wait at most"
+        " ``timeout`` seconds for the workers (None: for ever). ``max_episode_steps`` as in ``gym.make``: None is the"
+        " registered id's episode length, -1 no limit."
     )
     return make_vec
 

@@ -40,6 +40,7 @@ VECTOR_KWARGS = (
     "max_episode_steps",
     "autoreset_mode",
     "shards",
+    "timeout",
 )
 """Keys of a vector env's ``spec.kwargs`` that are the vector env's, not its copies' (``gym.make_vec``'s and the
 vector entry point's)."""

@@ -157,6 +157,8 @@ def cmd_bench_envs(args: argparse.Namespace) -> int:
         raise CliError("--batches, --steps, --anchor-steps and --rounds must be >= 1")
     if args.shards < 1 or args.shards > min(batches):
         raise CliError(f"--shards must be in [1, the smallest batch {min(batches)}], got {args.shards}")
+    if args.shard_timeout is not None and args.shards == 1:
+        raise CliError("--shard-timeout bounds the wait for a sharded env's workers: give it with --shards P > 1")
     with old_versions_quiet():  # the env args are checked on every id, the older versions too
         env_kwargs = parse_env_args(args.env_arg, ids)
     if "device" in env_kwargs:
@@ -201,6 +203,7 @@ def cmd_bench_envs(args: argparse.Namespace) -> int:
                     device=args.device,
                     full_space=not args.no_full_space and index == 0,
                     shards=args.shards,
+                    shard_timeout=args.shard_timeout,
                     threads=args.threads,
                     **env_kwargs,
                 )
@@ -601,6 +604,14 @@ def add_commands(sub: Any, bench: Any) -> None:
         help="worker processes per vector env (default 1: the native vector env; P > 1: redsim.envs.sharded, "
         "each worker a block of the copies, its env on --threads; its solver calls are not "
         "counted)",
+    )
+    p.add_argument(
+        "--shard-timeout",
+        type=seconds,
+        default=None,
+        metavar="SECONDS",
+        help="with --shards P > 1: seconds each vector env call waits for its workers (default: for ever); a worker "
+        "that hangs past it fails that batch's part (the workers stopped, the env closed) and the run goes on",
     )
     p.add_argument(
         "--anchor-steps",

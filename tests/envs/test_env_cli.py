@@ -186,12 +186,20 @@ def test_bench_envs_bad_env_arg_is_a_usage_error(
 
 def test_bench_envs_sharded(capsys: pytest.CaptureFixture[str]) -> None:
     args = ["bench", "envs", "--envs", "RedSim/MiniChain-v0", "--batches", "2", "--steps", "2", "--no-full-space"]
-    assert main([*args, "--anchor-steps", "20", "--shards", "2", "--json"]) == 0
+    assert main([*args, "--anchor-steps", "20", "--shards", "2", "--shard-timeout", "120", "--json"]) == 0
     work = json.loads(capsys.readouterr().out)["results"][0]["vector"]["2"]
     assert work["shards"] == 2 and work["env_steps_per_s"] > 0 and work["iterations_per_step"] > 0
     assert work["calls_per_step"] is None and work["rows_per_copy_step"] is None  # the workers keep their counts
     assert main([*args, "--shards", "3"]) == 2
     assert "--shards must be in [1, the smallest batch 2]" in capsys.readouterr().err
+    assert main([*args, "--shard-timeout", "5"]) == 2  # no worker to wait for
+    assert "--shard-timeout bounds the wait for a sharded env's workers" in capsys.readouterr().err
+    assert main([*args, "--shards", "2", "--shard-timeout", "0"]) == 2
+    assert "must be a number of seconds > 0" in capsys.readouterr().err
+    # a worker past --shard-timeout (here: any, 1 us) fails its batch's part; the run goes on and fails at its end
+    assert main([*args, "--anchor-steps", "20", "--shards", "2", "--shard-timeout", "1e-6", "--json"]) == 1
+    part = json.loads(capsys.readouterr().out)["results"][0]["vector"]["2"]
+    assert part["failed"].startswith("ShardTimeoutError: the sharded env's reset timed out after 1e-06 s: shard")
 
 
 def test_an_out_of_date_id_is_one_warning_line_in_demo_and_eval_agent(

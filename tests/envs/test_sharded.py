@@ -2,15 +2,23 @@
 
 from __future__ import annotations
 
+import contextlib
+import math
+import multiprocessing
+import os
 import pickle
+import signal
+import time
+from collections.abc import Iterator
 
 import gymnasium as gym
 import numpy as np
 import pytest
 from gymnasium.vector import AutoresetMode
 
+from redsim.envs import sharded as sharded_module
 from redsim.envs.sb3 import SB3VecEnv
-from redsim.envs.sharded import ShardedVectorEnv, ShardError, shard_sizes
+from redsim.envs.sharded import KILL_AFTER_S, ShardedVectorEnv, ShardError, ShardTimeoutError, shard_sizes
 
 TIGHT = {"dtype": "float64", "stepper_options": {"tol": 1e-10, "max_iter": 60}}
 """Solved tightly, so that the batch composition does not move a copy's solve (see test_envs.py)."""
@@ -275,3 +283,84 @@ def test_a_condition_outside_its_space_is_refused_before_the_workers_and_the_env
         venv.step(np.zeros((2, *venv.single_action_space.shape), np.float32))
     finally:
         venv.close()
+
+
+@contextlib.contextmanager
+def _reaped(venv: ShardedVectorEnv) -> Iterator[list[multiprocessing.Process]]:
+    """The env's worker processes; on the way out, whatever the test did, the env closed and every worker killed
+    (SIGKILL ends a stopped one too), so a failing test leaves no process behind."""
+    processes = list(venv._processes)
+    try:
+        yield processes
+    finally:
+        for process in processes:
+            if process.is_alive():
+                process.kill()
+                process.join(5.0)
+        venv.close()
+
+
+def _make(**kwargs) -> ShardedVectorEnv:
+    return gym.make_vec("RedSim/MiniChain-v0", num_envs=2, vectorization_mode="vector_entry_point", shards=2, **kwargs)
+
+
+def test_a_stopped_worker_times_out_the_step_closes_the_env_and_is_killed() -> None:
+    """A worker that never answers (SIGSTOP: it also ignores SIGTERM until continued) blocked ``step`` for ever; with
+    ``timeout`` the step raises after about that many seconds, as Gymnasium's ``step_wait(timeout)`` raises
+    ``multiprocessing.TimeoutError``, the env is closed and no worker is left (the stopped one killed)."""
+    venv = _make(timeout=1.0)
+    with _reaped(venv) as processes:
+        assert venv.timeout == 1.0 and venv.spec.kwargs["timeout"] == 1.0
+        assert "timeout" not in venv.get_attr("spec")[0].kwargs  # the vector env's argument, not a copy's
+        venv.reset(seed=0)
+        venv.step(np.zeros((2, 3), np.float32))  # a step within the timeout is an ordinary step
+        os.kill(processes[1].pid, signal.SIGSTOP)
+        start = time.monotonic()
+        with pytest.raises(ShardTimeoutError) as raised:
+            venv.step(np.zeros((2, 3), np.float32))
+        elapsed = time.monotonic() - start
+        assert isinstance(raised.value, multiprocessing.TimeoutError) and isinstance(raised.value, ShardError)
+        message = str(raised.value)
+        assert f"step timed out after 1 s: shard 1 (copy 1, worker pid {processes[1].pid}) did not answer" in message
+        assert "shard 0" not in message and "the env is closed" in message and "Make the env again" in message
+        assert 0.9 < elapsed < 1.0 + KILL_AFTER_S + 3.0  # the timeout, then at most KILL_AFTER_S for the SIGKILL
+        assert venv.closed and not any(process.is_alive() for process in processes)
+        assert processes[1].exitcode == -signal.SIGKILL  # SIGTERM did not stop it: killed
+        with pytest.raises(gym.error.ClosedEnvironmentError, match="closed"):
+            venv.step(np.zeros((2, 3), np.float32))
+
+
+def test_a_busy_worker_times_out_the_reset_and_is_terminated() -> None:
+    """Every request is timed (here ``reset``, which no worker answers within a microsecond), the start is not."""
+    venv = _make(timeout=1e-6)
+    with _reaped(venv) as processes:
+        with pytest.raises(ShardTimeoutError, match=r"reset timed out after 1e-06 s: shard \d \(copy \d, worker pid"):
+            venv.reset(seed=0)
+        assert venv.closed and not any(process.is_alive() for process in processes)
+
+
+def test_close_kills_a_stopped_worker_instead_of_leaving_it(monkeypatch: pytest.MonkeyPatch) -> None:
+    """``close`` waited JOIN_TIMEOUT_S, terminated, waited again and left a stopped worker alive (which then held up
+    the interpreter's exit for ever); now it kills it, KILL_AFTER_S after the SIGTERM."""
+    monkeypatch.setattr(sharded_module, "JOIN_TIMEOUT_S", 0.5)
+    venv = _make()
+    with _reaped(venv) as processes:
+        assert venv.timeout is None  # the default: requests wait for ever, as before
+        venv.reset(seed=0)
+        os.kill(processes[0].pid, signal.SIGSTOP)
+        start = time.monotonic()
+        venv.close()
+        assert time.monotonic() - start < 0.5 + KILL_AFTER_S + 3.0
+        assert not any(process.is_alive() for process in processes)
+        assert processes[0].exitcode == -signal.SIGKILL and processes[1].exitcode == 0
+
+
+@pytest.mark.parametrize("timeout", [0, -1.0, math.nan, math.inf, True, "5"])
+def test_a_bad_timeout_is_refused_before_any_worker_starts(timeout: object) -> None:
+    with pytest.raises(ValueError, match=r"timeout must be None \(wait for ever\) or a finite number of seconds > 0"):
+        _make(timeout=timeout)
+
+
+def test_a_timeout_without_shards_is_refused() -> None:
+    with pytest.raises(ValueError, match="shards=1 makes the native vector env"):  # no worker to wait for
+        gym.make_vec("RedSim/MiniChain-v0", num_envs=2, vectorization_mode="vector_entry_point", timeout=5.0)
