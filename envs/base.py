@@ -144,6 +144,8 @@ NO_HUMAN = (
     "copy, venv.render()), which gymnasium.wrappers.vector.HumanRendering (it needs opencv-python) shows in a window"
 )
 """Why a vector env refuses ``render_mode="human"`` (it would draw nothing)."""
+NO_RENDER_MODE = "render() called without a render_mode; make the env with render_mode='rgb_array'"
+"""The warning of a ``render()`` that draws nothing (single and vector envs, as Gymnasium's and SB3's envs warn)."""
 
 
 def _unimplemented(task: Task, method: str) -> NotImplementedError:
@@ -1697,7 +1699,7 @@ class LatentEnv(gym.Env[np.ndarray, np.ndarray]):
     def render(self) -> np.ndarray | None:
         """The current picture: an RGB array [H, W, 3] ("rgb_array"), or a window update ("human")."""
         if self.render_mode is None:
-            gym.logger.warn("render() called without a render_mode; pass render_mode='rgb_array' to gym.make")
+            gym.logger.warn(NO_RENDER_MODE)
             return None
         self._view = self.sim.framed_view(self._view, *self._render_size, self._camera, (0,))
         frame = self.sim.draw(self._view, 0)

@@ -28,13 +28,21 @@ from collections.abc import Callable, Mapping, Sequence
 from multiprocessing.connection import Connection
 from typing import TYPE_CHECKING, Any, NoReturn
 
+import gymnasium as gym
 import numpy as np
 import torch
 from gymnasium.utils import seeding
 from gymnasium.vector import AutoresetMode, VectorEnv
 from gymnasium.vector.utils import batch_space
 
-from redsim.envs.base import NO_HUMAN, VECTOR_RENDER_MODES, check_action, copy_seeds, restored_generator
+from redsim.envs.base import (
+    NO_HUMAN,
+    NO_RENDER_MODE,
+    VECTOR_RENDER_MODES,
+    check_action,
+    copy_seeds,
+    restored_generator,
+)
 from redsim.envs.vector_api import ClosedVectorEnvError, SharedCopies, check_started, episode_clock, reset_mask
 
 if TYPE_CHECKING:
@@ -299,12 +307,13 @@ class ShardedVectorEnv(SharedCopies, VectorEnv):
         return obs, reward, terminated, truncated, _merge_infos([r[4] for r in results], self.sizes)
 
     def render(self) -> tuple[np.ndarray, ...] | None:
-        """One RGB frame [H, W, 3] per copy ("rgb_array"), else None.
+        """One RGB frame [H, W, 3] per copy ("rgb_array"), else None (with a warning, as a single env's).
 
         Raises:
             gymnasium.error.ResetNeeded: a copy was never reset (nor restored by :meth:`set_state`); the env stays open.
         """
         if self.render_mode != "rgb_array":
+            gym.logger.warn(NO_RENDER_MODE)
             return None
         check_started(self._unreset, "render()")  # here: a shard's error would close the env
         framing = self._framing() if self.template._camera.get("track", False) else None

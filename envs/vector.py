@@ -36,6 +36,7 @@ from torch import Tensor
 
 from redsim.envs.base import (
     NO_HUMAN,
+    NO_RENDER_MODE,
     VECTOR_RENDER_MODES,
     LatentEnv,
     check_action,
@@ -212,7 +213,7 @@ class LatentVectorEnv(SharedCopies, VectorEnv):
 
     @on_env_threads
     def render(self) -> tuple[np.ndarray, ...] | None:
-        """One RGB frame [H, W, 3] per copy ("rgb_array"), else None.
+        """One RGB frame [H, W, 3] per copy ("rgb_array"), else None (with a warning, as a single env's).
 
         Raises:
             gymnasium.error.ResetNeeded: a copy was never reset (nor restored by :meth:`set_state`), as Gymnasium's
@@ -221,6 +222,7 @@ class LatentVectorEnv(SharedCopies, VectorEnv):
         """
         self._check_open()
         if self.render_mode != "rgb_array":
+            gym.logger.warn(NO_RENDER_MODE)
             return None
         check_started(self._unreset, "render()")
         rows, camera = range(self.num_envs), self.template._camera

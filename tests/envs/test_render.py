@@ -127,6 +127,34 @@ def test_sb3_records_a_video_of_every_copy_of_a_vector_env(tmp_path) -> None:
     assert tuple(next(frames)["size"]) == (64, 64) and len(list(frames)) >= 6  # a 2 x 2 tile of 32 px frames
 
 
+@pytest.mark.parametrize(("mode", "frames"), [(AutoresetMode.NEXT_STEP, 4), (AutoresetMode.SAME_STEP, 3)])
+def test_gymnasiums_vector_record_video_tiles_the_native_env_copies(tmp_path, mode: AutoresetMode, frames: int) -> None:
+    """``gymnasium.wrappers.vector.RecordVideo`` reads the native env's ``autoreset_mode`` and its frames, one per copy
+    (README): one video per episode of copy 0, its copies tiled. A 3-step episode is 4 frames with NEXT_STEP (the
+    reset's and each step's; the next episode starts with the autoreset step's) and 3 with SAME_STEP (Gymnasium: the
+    last frame is the next episode's start)."""
+    pytest.importorskip("moviepy")
+    imageio_ffmpeg = pytest.importorskip("imageio_ffmpeg")
+    from gymnasium.wrappers.vector import RecordVideo
+
+    venv = gym.make_vec(
+        "RedSim/MiniChain-v0", 4, "vector_entry_point", render_mode="rgb_array", width=32, height=32,
+        max_episode_steps=3, autoreset_mode=mode,
+    )  # fmt: skip
+    recorder = RecordVideo(venv, str(tmp_path / "videos"), episode_trigger=lambda episode: episode < 2)
+    recorder.reset(seed=0)
+    for _ in range(2 * frames):
+        recorder.step(np.ones((4, 3), np.float32))
+    recorder.close()
+    videos = sorted((tmp_path / "videos").glob("*.mp4"))
+    assert [video.name for video in videos] == ["rl-video-episode-0.mp4", "rl-video-episode-1.mp4"]
+    for video in videos:
+        read = imageio_ffmpeg.read_frames(str(video))
+        meta = next(read)
+        assert tuple(meta["size"]) == (64, 64) and meta["fps"] == venv.metadata["render_fps"] == 50  # 2 x 2 tiles
+        assert len(list(read)) == frames
+
+
 def test_a_vector_env_refuses_human_mode_and_draws_a_frame_per_copy(monkeypatch: pytest.MonkeyPatch) -> None:
     """A vector env would open no window in "human" mode; it says so, before it makes an env or a worker."""
     for shards in (1, 2):

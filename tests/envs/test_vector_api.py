@@ -568,6 +568,21 @@ def test_render_before_every_copy_was_reset_is_refused_as_sync(shards: int) -> N
         venv.close()
 
 
+@pytest.mark.parametrize("shards", [1, 2])
+def test_render_without_a_render_mode_warns_as_a_single_env_and_the_sync_env_do(shards: int) -> None:
+    """Made without ``render_mode``, render() draws nothing: the single env, Gymnasium's sync env (through its copies)
+    and SB3's VecEnv say so with a warning; the vector envs returned None silently."""
+    venv = _vec(shards=shards)
+    try:
+        venv.reset(seed=0)
+        with pytest.warns(UserWarning, match="render_mode='rgb_array'"):
+            assert venv.render() is None
+        with pytest.warns(UserWarning, match="render_mode='rgb_array'"):
+            assert venv.call("render") == (None, None)
+    finally:
+        venv.close()
+
+
 def test_a_closed_native_vector_env_refuses_to_step_or_reset_as_the_sharded_one_does() -> None:
     """Closed, it went on stepping as if open (the sharded env raises: test_sharded.py)."""
     venv = gym.make_vec(ID, num_envs=2, vectorization_mode="vector_entry_point")
