@@ -10,7 +10,10 @@ a bare ``"RedSim/..."`` id fails on the runners, which never import redsim (``Na
 (the checkpoint names it, not the function; RLlib's ``from_checkpoint`` also leaves runners on their old weights);
 :func:`checkpoint_config` reads a checkpoint's settings (its runners, its env) without a Ray cluster. With
 ``gym_env_vectorize_mode="vector_entry_point"`` a runner's ``num_envs_per_env_runner`` copies are redsim's native
-vector env: one batched latent solve for all of them.
+vector env: one batched latent solve for all of them, seeded by :class:`RunnerSeeds`. With RLlib's default
+(``"sync"``) the creator makes one env per copy and RLlib's ``SyncVectorEnv`` seeds copy i with the runner's seed
++ i; :class:`RunnerCopySeed` mixes in the runner's index (``env_config.worker_index``), so that neighbouring
+runners do not replay each other's episodes there either.
 
 RLlib drops every runner whose creator raises and then fails with an ``IndexError`` in ``get_spaces``, the
 creator's own message only in the workers' logs: :func:`check_env_config` makes the env once in the driver,
@@ -73,7 +76,9 @@ def env_creator(env_config: Mapping[str, Any]) -> gym.Env | gym.vector.VectorEnv
     if "num_envs" in env_config:
         copies = int(env_config["num_envs"])
         return RunnerSeeds(gym.make_vec(env_id, num_envs=copies, vectorization_mode="vector_entry_point", **kwargs))
-    return gym.make(env_id, **kwargs)
+    env = gym.make(env_id, **kwargs)
+    worker_index = getattr(env_config, "worker_index", None)  # an EnvContext: RLlib's runners make one per copy
+    return env if worker_index is None else RunnerCopySeed(env, int(worker_index))
 
 
 class RunnerSeeds(gym.vector.VectorWrapper):
@@ -89,6 +94,28 @@ class RunnerSeeds(gym.vector.VectorWrapper):
         if isinstance(seed, (int, np.integer)) and not isinstance(seed, bool):
             base = int(np.random.SeedSequence([int(seed)]).generate_state(1)[0])
             seed = [base + i for i in range(self.num_envs)]
+        return self.env.reset(seed=seed, options=options)
+
+
+class RunnerCopySeed(gym.Wrapper, gym.utils.RecordConstructorArgs):
+    """One env copy of RLlib env runner ``worker_index`` in RLlib's own vector env (``gym_env_vectorize_mode``
+    ``"sync"``, its default, or ``"async"``): a reset with one seed s seeds it with a 32-bit number drawn from
+    ``SeedSequence([s, worker_index])``.
+
+    RLlib resets the ``SyncVectorEnv`` of the runner with ``worker_index`` w (1 for the first remote one) with
+    ``config.seed + w`` (Ray 2.60), which seeds copy i with ``config.seed + w + i``, and gives every copy the same
+    ``EnvContext`` (``vector_index`` 0): alone, copy i of runner w would replay copy i + 1 of runner w - 1, episode
+    for episode. A seed that is not an integer, or None, passes through.
+    """
+
+    def __init__(self, env: gym.Env, worker_index: int) -> None:
+        gym.utils.RecordConstructorArgs.__init__(self, worker_index=worker_index)
+        gym.Wrapper.__init__(self, env)
+        self.worker_index = worker_index
+
+    def reset(self, *, seed: Any = None, options: dict[str, Any] | None = None) -> Any:
+        if isinstance(seed, (int, np.integer)) and not isinstance(seed, bool):
+            seed = int(np.random.SeedSequence([int(seed), self.worker_index]).generate_state(1)[0])
         return self.env.reset(seed=seed, options=options)
 
 
@@ -194,6 +221,7 @@ def restore(path: str | Path) -> Any:
 __all__ = [
     "DEFAULT_NAME",
     "ENV_CONFIG_KEYS",
+    "RunnerCopySeed",
     "RunnerSeeds",
     "check_env_config",
     "checkpoint_config",

@@ -37,6 +37,66 @@ def test_neighbouring_env_runners_share_no_episode() -> None:
         venv.close()
 
 
+class _EnvContext(dict):
+    """What RLlib's runners hand the creator: the env_config dict with the runner's index as an attribute."""
+
+    def __init__(self, config: dict, worker_index: int) -> None:
+        super().__init__(config)
+        self.worker_index = worker_index
+        self.vector_index = 0  # every copy of a runner's SyncVectorEnv gets the same context (Ray 2.60)
+
+
+def _start_states(venvs: list, seeds: list[int]) -> set[tuple[float, ...]]:
+    import numpy as np
+
+    rows = np.vstack([venv.reset(seed=seed)[0] for venv, seed in zip(venvs, seeds, strict=True)])
+    return {tuple(np.round(row, 5)) for row in rows}
+
+
+def test_neighbouring_env_runners_share_no_episode_in_rllibs_own_vector_env() -> None:
+    """RLlib's default (sync) vectorize mode: the creator makes each copy, SyncVectorEnv seeds copy i of the runner
+    with worker_index w with seed + w + i, so copy i of runner w replayed copy i + 1 of runner w - 1."""
+    from gymnasium.vector import SyncVectorEnv
+
+    from redsim.trainers.rllib import RunnerCopySeed
+
+    config = {"id": MINI, "kwargs": {"max_episode_steps": 20}}
+
+    def runner(w: int) -> SyncVectorEnv:
+        return SyncVectorEnv([lambda: env_creator(_EnvContext(config, worker_index=w))] * 3)
+
+    runners = [runner(w) for w in (1, 2)]
+    first = _start_states(runners, [42 + 1, 42 + 2])
+    assert len(first) == 6  # without the runner's index: 4, two copies of runner 2 replaying runner 1's
+    assert _start_states([runner(1), runner(2)], [43, 44]) == first  # a seeded run repeats
+    assert isinstance(runners[0].envs[0], RunnerCopySeed) and runners[0].envs[0].spec.max_episode_steps == 20
+    assert not isinstance(env_creator(config), RunnerCopySeed)  # a plain dict (not a runner's): the env as made
+    for venv in runners:
+        venv.close()
+
+
+@pytest.mark.filterwarnings("ignore:.*Overriding environment rllib-single-agent-env-v0")  # two runners here
+def test_rllibs_env_runners_share_no_episode_in_the_default_vectorize_mode() -> None:
+    """The same on RLlib's own env runners (in this process, no cluster): their first episodes' start states."""
+    pytest.importorskip("ray", reason='Ray RLlib is not installed (pip install "redsim[ray]")')
+    import numpy as np
+    from ray.rllib.algorithms.ppo import PPOConfig
+    from ray.rllib.env.single_agent_env_runner import SingleAgentEnvRunner
+
+    config = (
+        PPOConfig()
+        .environment(register(), env_config={"id": MINI, "kwargs": {"max_episode_steps": 20}})
+        .env_runners(num_env_runners=2, num_envs_per_env_runner=3)  # gym_env_vectorize_mode: RLlib's default, sync
+        .debugging(seed=0)
+    )
+    starts = []
+    for w in (1, 2):
+        runner = SingleAgentEnvRunner(config=config, worker_index=w)
+        starts += [episode.get_observations(0) for episode in runner.sample(num_timesteps=3, random_actions=True)]
+        runner.stop()
+    assert len(starts) == 6 and len({tuple(np.round(row, 5)) for row in starts}) == 6
+
+
 @pytest.mark.parametrize(
     ("env_config", "message"),
     [
@@ -95,7 +155,7 @@ def test_a_restored_algorithm_samples_with_the_checkpoints_weights_on_every_runn
 
     from redsim.trainers.rllib import checkpoint_config, restore
 
-    ray.init(num_cpus=3, include_dashboard=False, object_store_memory=200 * 2**20)
+    ray.init(address="local", num_cpus=3, include_dashboard=False, object_store_memory=200 * 2**20)
     try:
         config = (
             PPOConfig()
