@@ -6,7 +6,8 @@ On a multi-machine cluster (redsim installed on every node, same versions):
     ray start --head --port=6379                    # on the head node
     ray start --address=HEAD_IP:6379                # on each other node
     python examples/rllib_agent.py --address auto --env-runners 16
-(or set RAY_ADDRESS=HEAD_IP:6379; each env runner takes one CPU of whichever node Ray places it on).
+(or set RAY_ADDRESS=HEAD_IP:6379; each env runner takes one CPU of whichever node Ray places it on). Without either,
+the script starts a local cluster of its own, also where `ray start` left one running on this machine.
 Each runner steps --envs-per-runner copies in redsim's native vector env (one batched solve for all of them).
 The env config is checked in this process first, as the runners build it, so a bad id or keyword is a clear error
 here rather than dead runners. --out DIR saves the algorithm to DIR/rllib_ppo (refused where one is, unless
@@ -62,8 +63,17 @@ def main(
         check_env_config(env_config, num_envs=envs_per_runner)  # before any runner starts, as the runners build it
     if restore is not None:  # the checkpoint's runners, whatever the command line says
         env_runners = int(checkpoint_config(restore)["num_env_runners"])
+    address = address or os.environ.get("RAY_ADDRESS") or None  # RAY_ADDRESS as --address, the CPU check included
     if address is not None:
-        ray.init(address=address)
+        try:
+            ray.init(address=address)
+        except ConnectionError as err:  # after about 25 s of retries; Ray's traceback ends in this one line
+            ray.shutdown()
+            raise RuntimeError(
+                f"could not connect to the Ray cluster at {address!r} ({err}): where its head has token "
+                "authentication on, set RAY_AUTH_MODE=token and the token (RAY_AUTH_TOKEN, or ~/.ray/auth_token copied "
+                "over) here; on the head node, --address auto finds it (the Ray log above names InvalidAuthToken)"
+            ) from None
         cpus = ray.available_resources().get("CPU", 0.0)  # free ones: another job's runners hold theirs
         if cpus < env_runners:  # RLlib would wait for them without a word
             ray.shutdown()
@@ -72,11 +82,10 @@ def main(
                 "one: start more nodes or ask for fewer runners (a node that did not join: see its log, e.g. "
                 "InvalidAuthToken where the head has token authentication on)"
             )
-    elif restore is not None:  # every CPU of the machine, and one per runner plus this driver at least
-        cpus = max(os.cpu_count() or 1, env_runners + 1)
-        ray.init(num_cpus=cpus, include_dashboard=False, object_store_memory=200 * 2**20)
-    else:  # a local cluster, sized to the runners plus this driver (which also learns)
-        ray.init(num_cpus=env_runners + 1, include_dashboard=False, object_store_memory=200 * 2**20)
+    else:  # a local cluster of its own: ray.init(num_cpus=...) joined one `ray start` left here and refused num_cpus
+        # a restore's: every CPU of the machine, and one per runner plus this driver at least; else the runners + driver
+        cpus = max(os.cpu_count() or 1, env_runners + 1) if restore is not None else env_runners + 1
+        ray.init(address="local", num_cpus=cpus, include_dashboard=False, object_store_memory=200 * 2**20)
     name = register()  # before from_checkpoint too: the checkpoint names the creator
     if restore is not None:
         algo = restore_algorithm(restore)  # every runner on the checkpoint's weights

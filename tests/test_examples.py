@@ -14,6 +14,15 @@ OPTIONAL = {"rllib_agent": ("ray", 'Ray RLlib is not installed (pip install "red
 """Examples that need an optional extra: example -> (module, why it is skipped without it)."""
 
 
+def _example(stem: str):
+    """The example module examples/STEM.py, loaded (its __main__ block not run)."""
+    path = next(p for p in EXAMPLES if p.stem == stem)
+    spec = importlib.util.spec_from_file_location(path.stem, path)
+    module = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(module)
+    return module
+
+
 @pytest.mark.parametrize("path", EXAMPLES, ids=[p.stem for p in EXAMPLES])
 def test_example_runs_and_checks(path: Path, tmp_path: Path) -> None:
     if path.stem in OPTIONAL:
@@ -45,3 +54,41 @@ def test_her_example_refuses_a_budget_or_episodes_it_cannot_train_on() -> None:
         ValueError, match="39 steps are not enough: every one of the 2 copies has ended an episode at 40"
     ):
         module.episodes_ended(env_id, 39, {"max_episode_steps": 20}, 2)
+
+
+def test_rllib_example_starts_its_own_local_cluster_or_joins_ray_address(tmp_path: Path, monkeypatch) -> None:
+    """Without --address it called ray.init(num_cpus=...), which joined a cluster `ray start` left on the machine (or
+    RAY_ADDRESS's) and failed: "When connecting to an existing cluster, num_cpus and num_gpus must not be provided"."""
+    ray = pytest.importorskip("ray", reason=OPTIONAL["rllib_agent"][1])
+    module = _example("rllib_agent")
+    addresses = []
+
+    class Joined(Exception):
+        pass
+
+    def init(*args, **kwargs):
+        addresses.append(kwargs.get("address"))
+        raise Joined
+
+    monkeypatch.setattr(ray, "init", init)
+    monkeypatch.delenv("RAY_ADDRESS", raising=False)
+    with pytest.raises(Joined):
+        module.main(tmp_path)
+    monkeypatch.setenv("RAY_ADDRESS", "10.0.0.1:6379")  # the docstring's alternative to --address
+    with pytest.raises(Joined):
+        module.main(tmp_path)
+    assert addresses == ["local", "10.0.0.1:6379"]
+
+
+def test_rllib_example_names_token_authentication_where_it_cannot_connect(tmp_path: Path, monkeypatch) -> None:
+    """A driver with an explicit address on a cluster with token authentication on (Ray 2.60: even on the head)
+    failed after about 25 s with Ray's traceback ending in "ConnectionError: Failed to connect to Ray cluster"."""
+    ray = pytest.importorskip("ray", reason=OPTIONAL["rllib_agent"][1])
+    module = _example("rllib_agent")
+
+    def init(*args, **kwargs):
+        raise ConnectionError("Failed to connect to Ray cluster at 10.0.0.1:6379")
+
+    monkeypatch.setattr(ray, "init", init)
+    with pytest.raises(RuntimeError, match=r"'10\.0\.0\.1:6379' \(Failed to connect.*RAY_AUTH_MODE=token"):
+        module.main(tmp_path, address="10.0.0.1:6379")
