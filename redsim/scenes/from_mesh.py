@@ -355,7 +355,12 @@ def fem_scene_from_mesh(
     if len(mesh.faces) == 0:
         raise ValueError(f"every face of mesh {source!r} has zero area: it encloses no volume")
     if not mesh.is_watertight:
-        raise ValueError(f"mesh {source!r} is not watertight; a solid needs a closed surface")
+        open_edges = int((np.unique(mesh.edges_sorted, axis=0, return_counts=True)[1] == 1).sum())
+        raise ValueError(
+            f"mesh {source!r} is not watertight ({open_edges} open edges); a solid needs a closed surface: close it "
+            "first (e.g. trimesh's fill_holes() or a mesh repair tool), or simulate it as a sheet with "
+            "cloth_scene_from_mesh (--kind cloth)"
+        )
     if _volume(mesh) <= 1e-9 * float(np.prod(np.maximum(mesh.extents, 1e-300))):
         raise ValueError(f"mesh {source!r} is closed but encloses no volume (its faces are flat)")
     if voxel_pitch is None:

@@ -281,8 +281,8 @@ def test_open_mesh_is_not_a_solid(tmp_path) -> None:
     vertices, triangles = meshes.cloth_grid(1.0, 1.0, (4, 4))
     path = tmp_path / "sheet.obj"
     trimesh.Trimesh(vertices, triangles).export(path)
-    with pytest.raises(ValueError, match="watertight"):
-        redsim.scenes.fem_scene_from_mesh(path)
+    with pytest.raises(ValueError, match=r"not watertight \(16 open edges\).*fill_holes.*--kind cloth"):
+        redsim.scenes.fem_scene_from_mesh(path)  # says what to do
 
 
 # -- from-mesh builders ------------------------------------------------------------------------
