@@ -236,6 +236,23 @@ def test_demo_runs_the_steps_asked_for_past_the_ids_time_limit(tmp_path: Path) -
     assert short["steps"] == 4  # steps sets the episode, over a max_episode_steps given with it
 
 
+def test_run_demo_takes_an_id_of_a_users_own_registered_as_the_readme_says(tmp_path: Path) -> None:
+    """README ("Your own task"): an id registered on redsim.envs:make (a user's scene and map) gets its demo from
+    run_demo, which the `redsim demo` command, on the shipped ids only, cannot give."""
+    import gymnasium as gym
+
+    from redsim.envs.demo import run_demo
+
+    gym.register("MyChainDemo-v0", entry_point="redsim.envs:make", kwargs={"scene": "mini_chain"}, max_episode_steps=9)
+    try:
+        result = run_demo("MyChainDemo-v0", tmp_path, steps=3, frame_every=10_000, width=64, height=64)
+        assert main(["demo", "MyChainDemo-v0", "--out", str(tmp_path)]) == 2  # the command: shipped ids only
+    finally:
+        del gym.registry["MyChainDemo-v0"]
+    assert result["steps"] == 3 and result["gif"] == str(tmp_path / "mychaindemo_scripted.gif")
+    assert (tmp_path / "mychaindemo_scripted.gif").is_file() and (tmp_path / "mychaindemo_scripted.png").is_file()
+
+
 def test_demo_draws_the_last_state_where_the_episode_ends_between_kept_frames(tmp_path: Path) -> None:
     """The picture's right half and the GIF's last frame were the last kept frame (every frame_every steps), not the
     state the episode ended in: with 5 steps and frames every 2, step 4's."""
