@@ -415,10 +415,28 @@ def low_stretch_warning(stretch: float, sigma: float, *, flags: bool = False) ->
     )
 
 
+HIGH_STRETCH = 10.0
+"""A fit whose mean metric stretch ends above this is warned about: its samples spread far beyond sigma (a runaway;
+the modal baselines reach ~1-7, a fit 0.5-0.95)."""
+
+
+def high_stretch_warning(stretch: float, sigma: float, energy: float, *, flags: bool = False) -> str | None:
+    """What to say of a fit whose mean metric ``stretch`` ended above :data:`HIGH_STRETCH` at ``sigma``, its final
+    ``energy`` [J] (None: nothing), naming the settings as FitConfig's fields or, with ``flags``, as ``redsim fit``'s
+    options."""
+    if not stretch > HIGH_STRETCH:
+        return None
+    lr, sigma_name = ("--lr", "--sigma") if flags else ("learning_rate", "sigma")
+    return (
+        f"the map spreads its samples {stretch:.3g}x as far as sigma ({sigma:g}) asks, at a final energy of "
+        f"{energy:.3g} J: the fit ran away from the low-energy set; try a smaller {lr} (or {sigma_name})"
+    )
+
+
 @contextlib.contextmanager
 def quiet_low_stretch() -> Iterator[None]:
-    """Silence :func:`fit_subspace`'s low-stretch warning inside: for the benches' timing fits, and the CLI, which
-    says it in its own words."""
+    """Silence :func:`fit_subspace`'s low- and high-stretch warnings inside: for the benches' timing fits, and the
+    CLI, which says them in its own words."""
     with warnings.catch_warnings():
         warnings.filterwarnings("ignore", message="the map spreads its samples", category=UserWarning)
         yield
@@ -905,7 +923,11 @@ def fit_subspace(
     if out is not None:
         model.save(out)
         _remove_stale_cubature(out, model)
-    if (message := low_stretch_warning(model.metadata["final"]["stretch"], config.sigma)) is not None:
+    final = model.metadata["final"]
+    message = low_stretch_warning(final["stretch"], config.sigma) or high_stretch_warning(
+        final["stretch"], config.sigma, final["energy"]
+    )
+    if message is not None:
         warnings.warn(message, UserWarning, stacklevel=2)
     return FitResult(model, history, fit_seconds)
 

@@ -151,10 +151,6 @@ def _drop_preset_anchor_map(args: argparse.Namespace, fields: dict[str, Any], sc
     fields["anchor_map"] = "none"
 
 
-HIGH_STRETCH = 10.0
-"""A fit whose mean metric stretch ends above this is warned about: its samples spread far beyond sigma (a runaway)."""
-
-
 def _check_stem(stem: Path, args: argparse.Namespace, scene: Scene | None = None) -> None:
     """Refuse a stem that names no file, or one that holds a fit, unless ``--resume`` or ``--overwrite`` (with
     ``scene``: a fit of another scene unless ``--overwrite``, whose ``--resume`` could not continue it)."""
@@ -189,6 +185,7 @@ def cmd_fit(args: argparse.Namespace) -> int:
         FitStopped,
         ResumeSettingsError,
         fit_command,
+        high_stretch_warning,
         low_stretch_warning,
         planned_steps,
         quiet_low_stretch,
@@ -268,14 +265,12 @@ def cmd_fit(args: argparse.Namespace) -> int:
                 f"before training on it, compare it with the full space: redsim bench accuracy {summary['checkpoint']}"
                 f"{handle} --scenarios push --full none --no-study{others}"
             )
-    if (message := low_stretch_warning(meta["final"]["stretch"], config.sigma, flags=True)) is not None:
+    final = meta["final"]
+    message = low_stretch_warning(final["stretch"], config.sigma, flags=True) or high_stretch_warning(
+        final["stretch"], config.sigma, final["energy"], flags=True
+    )
+    if message is not None:
         warn(message)
-    elif meta["final"]["stretch"] > HIGH_STRETCH:  # the baselines' reach ~1-7; a fit's 0.5-0.95
-        warn(
-            f"the map spreads its samples {meta['final']['stretch']:.3g}x as far as sigma ({config.sigma:g}) asks, "
-            f"at a final energy of {meta['final']['energy']:.3g} J: the fit ran away from the low-energy set; try a "
-            "smaller --lr (or --sigma)"
-        )
     if config.latent_dim > scene.free_dof_count:  # it fits, but no latent can add a motion the DOFs lack
         warn(
             f"d = {config.latent_dim} latents for {scene.name}'s n = {scene.free_dof_count} free DOFs: more latents "

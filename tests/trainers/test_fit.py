@@ -123,6 +123,15 @@ def test_short_fit_lowers_loss_saves_and_loads(tmp_path) -> None:
     assert torch.isfinite(loaded(10 * torch.randn(100, 2))).all()
 
 
+def test_a_fit_that_runs_away_is_warned_about_in_python_as_on_the_command_line() -> None:
+    """fit_subspace said nothing of a map whose samples spread ~1e4 sigma at ~1e31 J (only `redsim fit` did)."""
+    scene = scenes.build("toy_tiny_bar_2d")
+    match = r"as far as sigma \(100\) asks, at a final energy of .* smaller learning_rate"
+    with pytest.warns(UserWarning, match=match):
+        result = fit_subspace(scene, dim=2, sigma=100.0, learning_rate=1.0, steps=60, progress=False)
+    assert result.subspace.metadata["final"]["stretch"] > fit_module.HIGH_STRETCH
+
+
 def test_seed_bias_starts_the_map_at_the_seed_shape_and_is_recorded() -> None:
     scene = _tet_scene()
     kwargs = {"dim": 2, "steps": 1, "hidden_width": 8, "learning_rate": 1e-9, "progress": False}
