@@ -16,7 +16,11 @@ damper. How much, per scene, space and time step:
   (:func:`redsim.benches.stability.energy_account`);
 - ``retained``: F_t / F_0 at 0.5 s, 1 s and ``seconds``; ``largest``: its maximum after the start (above
   1: the run gained energy). A run that comes to rest at another equilibrium than E_rest's ends away from 0; one
-  whose F_0 is not > 0 (its rest, unconverged, not below the start) has no fraction: NaN, named under the table.
+  whose F_0 is not > 0 (its start not above its rest) has no fraction: NaN, named under the table. cloth_ball's
+  full space is one: from its rest (which converges: |g| 8.5e-5 N) the push (8 N along +x on the ball, under its
+  9.81 N weight) finds no static equilibrium, the ball leaves the cloth and falls (nothing is below it), so the
+  loaded solve stops unconverged (|g| = 12.7 N, the unbalanced load and weight) some 20 m below, 203 J under the
+  rest. The static solves that did not converge are named under the table (:attr:`Start.unconverged`).
 
 Runs: the latent runtime (:class:`redsim.runtime.LatentStepper`, B = 1, in float32, what the envs run, and
 in float64, which separates the solver's tolerance from the integrator), and the float64 full-space reference
@@ -25,6 +29,12 @@ that took no iteration (the start was already within its tolerance, which grows 
 not move). With mujoco installed and the chain among the scenes: MuJoCo's 24-capsule chain of
 ``redsim bench step`` (ball joints, no joint damping) lifted rigidly about the hook by the angle of the
 full-space chain's loaded tip, at rest, under :data:`MUJOCO_INTEGRATORS` at the same time steps.
+
+Exit status (``redsim bench stability``): a redsim row (not MuJoCo's: its ``implicit`` chain at 0.02 s gains 3x,
+a fact about MuJoCo) whose ``largest`` exceeds 1 + :data:`GAIN_TOL` gained free energy unforced, a defect of the
+integrator or the solver, and fails the command (exit 4, as an unreported gain in the other regimes; :func:`gains`);
+a NaN fails it with 3. A Ctrl-C during :func:`bench_damping` raises :class:`Interrupted`, which holds the rows finished
+before it; the command prints them and exits 130.
 """
 
 from __future__ import annotations
@@ -32,7 +42,7 @@ from __future__ import annotations
 import dataclasses
 import math
 import time
-from collections.abc import Callable, Sequence
+from collections.abc import Callable, Iterator, Sequence
 from typing import Any
 
 import numpy as np
@@ -58,6 +68,23 @@ RUNTIME_DTYPES = {"latent f32": torch.float32, "latent f64": torch.float64}
 """The latent runtime's rows: label and dtype."""
 MUJOCO_INTEGRATORS = ("RK4", "implicit")
 """MuJoCo's integrators measured beside the chain."""
+GAIN_TOL = 1e-3
+"""Largest rise of F_t / F_0 above 1 a redsim row may show before it counts as a gain (:func:`gains`): 0.1% of the
+start's free energy, the float32 ledger's slack (:data:`redsim.benches.stability.RISE_SLACK`).
+
+An unforced backward-Euler run only loses free energy; one that does not move reads 1 to round-off. Measured at
+0.5 s (dt 0.02, 0.005 and 0.00125 s; mini_chain, bistable_bar, conditional_bar, chain; AMD EPYC, at 9cf08bf): the
+float32 chain idle at 0.00125 s (400 of 400 steps) read 1 + 3.6e-15, the idle mini chain exactly 1, and every moving
+row at most 1 - 7.9e-5 (the chain's full space at 0.00125 s; its first step's loss)."""
+
+
+class Interrupted(KeyboardInterrupt):
+    """Ctrl-C (or a SIGTERM made to raise) during :func:`bench_damping`; ``result`` holds the rows finished before it
+    (the result's form, ``interrupted`` True). A KeyboardInterrupt, so a caller that does not look stops as before."""
+
+    def __init__(self, result: dict[str, Any]) -> None:
+        super().__init__("bench_damping interrupted")
+        self.result = result
 
 
 def check_seconds(seconds: float, divisions: Sequence[int], what: str = "seconds") -> None:
@@ -97,7 +124,7 @@ class Start:
         z_rest: The map's unloaded equilibrium z* [d].
         full_rest_J: E(q_rest) [J].
         latent_rest_J: E(f(z*)) [J].
-        converged: All four static solves converged.
+        unconverged: The static solves that did not converge, of :data:`START_SOLVES`.
     """
 
     q0: Tensor
@@ -106,7 +133,16 @@ class Start:
     z_rest: Tensor
     full_rest_J: float
     latent_rest_J: float
-    converged: bool
+    unconverged: tuple[str, ...] = ()
+
+    @property
+    def converged(self) -> bool:
+        """All four static solves converged."""
+        return not self.unconverged
+
+
+START_SOLVES = ("full rest", "full loaded", "latent rest", "latent loaded")
+"""The static solves of a :class:`Start`: q_rest, q0, z* and z0."""
 
 
 def release_start(scene: Scene, f: nn.Module) -> Start:
@@ -120,8 +156,9 @@ def release_start(scene: Scene, f: nn.Module) -> Start:
     z0, z0_info = latent_equilibrium(space, load, z0=z_rest)
     with torch.no_grad():
         energies = s64.energy(torch.stack([q_rest, space.configuration(z_rest.unsqueeze(0))[0]]))
-    converged = bool(rest_ok and loaded_ok and z_rest_info.converged and z0_info.converged)
-    return Start(q0, q_rest, z0, z_rest, float(energies[0]), float(energies[1]), converged)
+    oks = (rest_ok, loaded_ok, z_rest_info.converged, z0_info.converged)
+    unconverged = tuple(solve for solve, ok in zip(START_SOLVES, oks, strict=True) if not ok)
+    return Start(q0, q_rest, z0, z_rest, float(energies[0]), float(energies[1]), unconverged)
 
 
 def retained(scene: Scene, q: Tensor, q_prev: Tensor, dt: float, rest_energy: float) -> Tensor:
@@ -138,7 +175,7 @@ def _row(
     """One table row of run ``name``: the retained fraction at each checkpoint and at the end, and its counts.
 
     A start whose free energy ``free_J`` is not above the rest's has no fraction (NaN): F_t / F_0 then reads as
-    energy kept (cloth_ball's full space: its unconverged rest 203 J above the loaded start gave "retained 1").
+    energy kept (cloth_ball's full space: its loaded start, unconverged, 203 J below the rest gave "retained 1").
     """
     if not free_J > 0.0:
         fractions = torch.full_like(fractions, math.nan)
@@ -177,9 +214,21 @@ def scene_rows(
     """
     check_seconds(seconds, [*divisions, *full_divisions])
     start = release_start(scene, f) if start is None else start
+    return list(_scene_rows(scene, f, seconds, divisions, full_divisions, start, progress))
+
+
+def _scene_rows(
+    scene: Scene,
+    f: nn.Module,
+    seconds: float,
+    divisions: Sequence[int],
+    full_divisions: Sequence[int],
+    start: Start,
+    progress: Callable[[str], None] | None,
+) -> Iterator[dict[str, Any]]:
+    """:func:`scene_rows`, each row as soon as it is measured (an interrupted run keeps those before)."""
     s64 = scene.to(dtype=torch.float64)
     tol = scenes.full_space_tol(scene.name)
-    rows = []
     for k in divisions:
         dt = DT / k
         steps = round(seconds / dt)
@@ -190,19 +239,17 @@ def scene_rows(
             fractions = retained(s64, run.q, run.q_prev, dt, start.latent_rest_J)
             free = float(s64.energy(run.q[:1])[0]) - start.latent_rest_J
             nan = run.nonfinite + int((~torch.isfinite(run.q)).any(-1).sum())
-            rows.append(
-                _row(
-                    scene.name,
-                    label,
-                    dt,
-                    fractions,
-                    free,
-                    seconds,
-                    unconverged=run.flags["unconverged"],
-                    idle=run.flags["idle"],
-                    nan=nan,
-                    wall_s=time.perf_counter() - begin,
-                )
+            yield _row(
+                scene.name,
+                label,
+                dt,
+                fractions,
+                free,
+                seconds,
+                unconverged=run.flags["unconverged"],
+                idle=run.flags["idle"],
+                nan=nan,
+                wall_s=time.perf_counter() - begin,
             )
             if progress:
                 progress(f"damping {scene.name} {label} dt {dt:g}: {time.perf_counter() - begin:.1f} s")
@@ -214,23 +261,20 @@ def scene_rows(
         run = run_full(scene, start.q0, loads, dt=dt, tol=tol, max_iter=100)
         fractions = retained(s64, run.q, run.q[0], dt, start.full_rest_J)
         free = float(s64.energy(run.q[:1])[0]) - start.full_rest_J
-        rows.append(
-            _row(
-                scene.name,
-                "full f64",
-                dt,
-                fractions,
-                free,
-                seconds,
-                unconverged=run.failed,
-                idle=0,
-                nan=run.nonfinite,
-                wall_s=time.perf_counter() - begin,
-            )
+        yield _row(
+            scene.name,
+            "full f64",
+            dt,
+            fractions,
+            free,
+            seconds,
+            unconverged=run.failed,
+            idle=0,
+            nan=run.nonfinite,
+            wall_s=time.perf_counter() - begin,
         )
         if progress:
             progress(f"damping {scene.name} full dt {dt:g}: {time.perf_counter() - begin:.1f} s")
-    return rows
 
 
 def lift_angle(scene: Scene, start: Start) -> float:
@@ -311,6 +355,7 @@ def bench_damping(
     Raises:
         ValueError: a scene without a :data:`LOADS` plan or a shipped map, ``seconds`` not > 0 or not a whole
             multiple of every time step (:func:`check_seconds`), or a division < 1.
+        Interrupted: a KeyboardInterrupt (Ctrl-C) while it ran; its ``result`` holds the rows finished before.
     """
     unknown = [n for n in names if n not in LOADS or n not in pretrained.names()]
     if unknown:
@@ -323,35 +368,43 @@ def bench_damping(
     check_seconds(seconds, [*divisions, *full_divisions])
     rows: list[dict[str, Any]] = []
     mujoco: list[dict[str, Any]] | None = None
-    starts = {}
+    starts: dict[str, list[str]] = {}
     angle = None
-    for name in names:
-        scene = scenes.build(name)
-        f = pretrained.load(name, scene)
-        start = release_start(scene, f)
-        starts[name] = start.converged
-        rows += scene_rows(
-            scene,
-            f,
-            seconds=seconds,
-            divisions=divisions,
-            full_divisions=full_divisions,
-            start=start,
-            progress=progress,
-        )
-        if name == "chain":
-            angle = lift_angle(scene, start)
-            mujoco = mujoco_rows(angle, seconds=seconds, divisions=divisions)
-    return {
-        "dt": DT,
-        "seconds": seconds,
-        "divisions": list(divisions),
-        "full_divisions": list(full_divisions),
-        "starts_converged": starts,
-        "mujoco_lift_deg": None if angle is None else math.degrees(angle),
-        "rows": rows,
-        "mujoco": mujoco,
-    }
+
+    def result(interrupted: bool) -> dict[str, Any]:
+        return {
+            "dt": DT,
+            "seconds": seconds,
+            "divisions": list(divisions),
+            "full_divisions": list(full_divisions),
+            "starts_converged": {name: not failed for name, failed in starts.items()},
+            "starts_unconverged": starts,
+            "mujoco_lift_deg": None if angle is None else math.degrees(angle),
+            "rows": rows,
+            "mujoco": mujoco,
+            "interrupted": interrupted,
+        }
+
+    try:
+        for name in names:
+            scene = scenes.build(name)
+            f = pretrained.load(name, scene)
+            start = release_start(scene, f)
+            starts[name] = list(start.unconverged)
+            for row in _scene_rows(scene, f, seconds, divisions, full_divisions, start, progress):
+                rows.append(row)
+            if name == "chain":
+                angle = lift_angle(scene, start)
+                mujoco = mujoco_rows(angle, seconds=seconds, divisions=divisions)
+    except KeyboardInterrupt as stop:
+        raise Interrupted(result(True)) from stop
+    return result(False)
+
+
+def gains(result: dict[str, Any]) -> list[str]:
+    """The redsim rows of a :func:`bench_damping` result (not MuJoCo's) whose released run gained free energy:
+    ``largest`` > 1 + :data:`GAIN_TOL`, each as "scene space dt DT" (a NaN largest, no fraction, is not one)."""
+    return [f"{r['scene']} {r['space']} dt {r['dt']:g}" for r in result["rows"] if r["largest"] > 1.0 + GAIN_TOL]
 
 
 def report(result: dict[str, Any]) -> list[str]:
@@ -394,29 +447,41 @@ def damping_table(result: dict[str, Any]) -> list[str]:
                 f"mujoco_chain: MuJoCo's 24-capsule chain lifted rigidly by {result['mujoco_lift_deg']:.3g} deg (the "
                 "full-space chain's loaded tip about the hook), released at rest"
             )
-    unconverged = [k for k, ok in result["starts_converged"].items() if not ok]
+    unconverged = [f"{k} ({', '.join(v)})" for k, v in result["starts_unconverged"].items() if v]
     if unconverged:
-        notes.append(f"a static solve of the start did not converge: {', '.join(unconverged)}")
+        notes.append(f"a static solve of the start did not converge: {'; '.join(unconverged)}")
     below = sorted({f"{r['scene']} {r['space']}" for r in result["rows"] if not r["free_energy_J"] > 0.0})
     if below:
         notes.append(
             f"no retained fraction (nan) where the start is not above the rest: {', '.join(below)} (its free energy "
             "at the start is <= 0)"
         )
+    gained = gains(result)
+    if gained:
+        notes.append(
+            f"gained free energy unforced (largest > 1 + {GAIN_TOL:g}, a defect of the integrator or the solve): "
+            + ", ".join(gained)
+        )
+    if result.get("interrupted"):
+        notes.append("interrupted: the rows finished before it")
     return lines + (["", *notes] if notes else [])
 
 
 __all__ = [
     "CHECKPOINTS",
     "DIVISIONS",
+    "GAIN_TOL",
     "MUJOCO_INTEGRATORS",
     "RUNTIME_DTYPES",
     "SCENES",
     "SECONDS",
+    "START_SOLVES",
+    "Interrupted",
     "Start",
     "bench_damping",
     "check_seconds",
     "damping_table",
+    "gains",
     "lift_angle",
     "mujoco_rows",
     "release_load",

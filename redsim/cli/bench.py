@@ -12,6 +12,7 @@ import redsim
 from redsim.cli import cubature
 from redsim.cli.common import (
     EXIT_FAILED_STEP,
+    EXIT_INTERRUPTED,
     EXIT_NAN,
     EXIT_OK,
     EXIT_SCENE_FAILED,
@@ -598,6 +599,7 @@ def cmd_bench_scaling(args: argparse.Namespace) -> int:
 
 def cmd_bench_stability(args: argparse.Namespace) -> int:
     from redsim.bench import machine_info
+    from redsim.benches import damping as damping_bench
     from redsim.benches import stability
 
     extra = ("fuzz", "mujoco", "damping")
@@ -646,9 +648,10 @@ def cmd_bench_stability(args: argparse.Namespace) -> int:
         }
     damping = None
     if damping_options is not None:
-        from redsim.benches.damping import bench_damping
-
-        damping = bench_damping(**damping_options, progress=progress)
+        try:
+            damping = damping_bench.bench_damping(**damping_options, progress=progress)
+        except damping_bench.Interrupted as stop:  # Ctrl-C: the rows finished before it are printed, then exit 130
+            damping = stop.result
     result = {
         "machine": machine,
         "long_steps": args.long_steps,
@@ -664,21 +667,30 @@ def cmd_bench_stability(args: argparse.Namespace) -> int:
         out(_machine_line(machine, "cpu"))
         lines = stability.report(result)  # none for the damping regime alone
         if damping is not None:
-            from redsim.benches import damping as damping_bench
-
             lines += ([""] if lines else []) + damping_bench.report(damping)
         for line in lines:
             out(line)
     totals = stability.row_totals([*rows, *(chain["redsim"] if chain else [])])  # redsim's chains, not MuJoCo's
     totals["nan"] += sum(r["nan"] for r in damping["rows"]) if damping else 0  # redsim's released runs, not MuJoCo's
     blown = [f"{r['scenario']} ({r['space']})" for r in (chain["redsim"] if chain else []) if r["blew_up"]]
-    if totals["nan"] or totals["unreported"] or blown:  # the checks that must be 0 fail the command, for CI
+    gained = damping_bench.gains(damping) if damping else []  # redsim's released runs that gained, not MuJoCo's
+    limit = 1.0 + damping_bench.GAIN_TOL
+    status = EXIT_OK
+    if totals["nan"] or totals["unreported"] or blown or gained:  # the checks that must be 0 fail the command, for CI
         error(
             f"{totals['nan']} non-finite and {totals['unreported']} unreported energy gains (both must be 0)"
             + (f"; redsim's chain blew up in {', '.join(blown)}" if blown else "")
+            + (
+                f"; released unforced runs gained free energy (damping: largest > {limit:g}): {', '.join(gained)}"
+                if gained
+                else ""
+            )
         )
-        return EXIT_NAN if totals["nan"] else EXIT_FAILED_STEP
-    return EXIT_OK
+        status = EXIT_NAN if totals["nan"] else EXIT_FAILED_STEP
+    if damping and damping["interrupted"]:
+        warn("interrupted: the damping table has the rows finished before it")
+        return EXIT_INTERRUPTED
+    return status
 
 
 STEP_REFERENCE_STEPS = 10  # bench step's default --reference-steps

@@ -91,7 +91,8 @@ def test_cli_prints_the_chain_table_beside_the_damping_table(cli: Cli, monkeypat
 
 
 def test_a_start_not_above_its_rest_has_no_retained_fraction() -> None:
-    """cloth_ball's full-space rest does not converge and lies 203 J above the loaded start: F_t / F_0 read 1."""
+    """cloth_ball's full-space loaded start (the ball pushed off the cloth, falling: no equilibrium) ended 203 J below
+    its converged rest: F_t / F_0 read 1. The note names the static solve that did not converge."""
     fractions = torch.tensor([1.0, 0.999, 0.998], dtype=torch.float64)
     rows = [
         damping._row("cloth_ball", "full f64", 0.02, fractions, -203.0, 0.04, unconverged=0, idle=0, nan=0),
@@ -99,9 +100,16 @@ def test_a_start_not_above_its_rest_has_no_retained_fraction() -> None:
     ]
     assert math.isnan(rows[0]["retained"]["0.04"]) and math.isnan(rows[0]["largest"])
     assert rows[1]["retained"]["0.04"] == pytest.approx(0.998) and rows[1]["largest"] == pytest.approx(0.999)
-    result = {"seconds": 0.04, "rows": rows, "mujoco": None, "starts_converged": {"cloth_ball": False}}
+    result = {
+        "seconds": 0.04,
+        "rows": rows,
+        "mujoco": None,
+        "starts_converged": {"cloth_ball": False},
+        "starts_unconverged": {"cloth_ball": ["full loaded"]},
+    }
     lines = damping.damping_table(result)
     assert "| cloth_ball | full f64 | 0.02 | 2 | -203 | nan | nan |" in lines[2]
+    assert lines[-2] == "a static solve of the start did not converge: cloth_ball (full loaded)"
     assert lines[-1] == (
         "no retained fraction (nan) where the start is not above the rest: cloth_ball full f64 (its free energy at "
         "the start is <= 0)"
@@ -161,3 +169,82 @@ def test_check_seconds_takes_whole_multiples_of_every_step_up_to_round_off() -> 
             damping.check_seconds(seconds, divisions)
     with pytest.raises(ValueError, match="whole multiple"):
         damping.bench_damping(["mini_chain"], seconds=0.001, divisions=(1,), full_divisions=())
+
+
+@pytest.mark.parametrize(("gain", "code"), [(0.0, 0), (1e-7, 0), (5e-4, 0), (0.01, 4)])
+def test_cli_fails_where_a_released_run_gained_free_energy(
+    cli: Cli, monkeypatch: pytest.MonkeyPatch, gain: float, code: int
+) -> None:
+    """An unforced implicit-Euler run only loses free energy: a redsim row whose ``largest`` exceeds 1 + GAIN_TOL
+    exits 4 and is named; round-off at rest (1e-7) and an idle run (exactly 1) pass."""
+    real = damping.retained
+    monkeypatch.setattr(damping, "retained", lambda *a: real(*a) * 0.0 + torch.tensor([1.0, 1.0 + gain]))
+    argv = ("--damping-scenes", "mini_chain", "--damping-seconds", "0.02", "--damping-divisions", "1")
+    status, out, err = cli("bench", "stability", "--regimes", "damping", *argv, "--damping-full", "none")
+    assert status == code, err
+    if code:
+        assert (
+            "released unforced runs gained free energy (damping: largest > 1.001): mini_chain latent f32 dt 0.02, "
+            "mini_chain latent f64 dt 0.02"
+        ) in err
+        assert out.rstrip().endswith("mini_chain latent f32 dt 0.02, mini_chain latent f64 dt 0.02")
+    else:
+        assert err.count("redsim: error") == 0 and "gained" not in out
+
+
+def test_mujoco_rows_that_gain_do_not_fail() -> None:
+    """MuJoCo's implicit chain at 0.02 s gains 3x (docs/stability.md): a fact about MuJoCo, not a redsim defect."""
+    row = damping._row(
+        "mini_chain", "latent f64", 0.02, torch.tensor([1.0, 0.9]), 1.0, 0.02, unconverged=0, idle=0, nan=0
+    )
+    gain = damping._row("mujoco_chain", "MuJoCo implicit", 0.02, torch.tensor([1.0, 3.0]), 1.0, 0.02, nan=0)
+    assert damping.gains({"rows": [row], "mujoco": [gain]}) == []
+    assert damping.gains({"rows": [{**row, "largest": 1.0 + 2 * damping.GAIN_TOL}], "mujoco": None}) == [
+        "mini_chain latent f64 dt 0.02"
+    ]
+
+
+def _interrupt_full_space(*_args: object, **_kwargs: object) -> None:
+    raise KeyboardInterrupt
+
+
+def test_an_interrupted_damping_run_keeps_the_rows_finished_before_it(monkeypatch: pytest.MonkeyPatch) -> None:
+    monkeypatch.setattr(damping, "run_full", _interrupt_full_space)
+    with pytest.raises(damping.Interrupted) as stop:
+        damping.bench_damping(["mini_chain"], seconds=0.02, divisions=(1,), full_divisions=(1,))
+    assert isinstance(stop.value, KeyboardInterrupt)
+    result = stop.value.result
+    assert result["interrupted"] and result["starts_unconverged"] == {"mini_chain": []}
+    assert [r["space"] for r in result["rows"]] == list(damping.RUNTIME_DTYPES)
+    assert damping.damping_table(result)[-1] == "interrupted: the rows finished before it"
+
+
+def test_cli_prints_the_rows_finished_before_ctrl_c_and_exits_130(cli: Cli, monkeypatch: pytest.MonkeyPatch) -> None:
+    """Ctrl-C in the full-space run, after the two latent rows: the table has them, and the command exits 130."""
+    monkeypatch.setattr(damping, "run_full", _interrupt_full_space)
+    argv = ("--damping-scenes", "mini_chain", "--damping-seconds", "0.02", "--damping-divisions", "1")
+    code, out, err = cli("bench", "stability", "--regimes", "damping", *argv, "--damping-full", "1")
+    assert code == 130, err
+    assert "| mini_chain | latent f32 | 0.02 | 1 |" in out and "| mini_chain | latent f64 | 0.02 | 1 |" in out
+    assert "full f64" not in out and out.rstrip().endswith("interrupted: the rows finished before it")
+    assert "redsim: warning: interrupted: the damping table has the rows finished before it" in err
+    code, out, err = cli("bench", "stability", "--regimes", "damping", *argv, "--damping-full", "1", "--json")
+    assert code == 130, err
+    doc = json.loads(out)["damping"]
+    assert doc["interrupted"] and [r["space"] for r in doc["rows"]] == ["latent f32", "latent f64"]
+
+
+@pytest.mark.slow
+def test_cloth_ball_rest_converges_and_the_push_has_no_equilibrium() -> None:
+    """Why cloth_ball's damping row reads nan: its rest converges, but under the push (8 N along +x on the 1 kg ball)
+    the ball leaves the cloth and falls (nothing is below it), so the loaded solve stops unconverged far below."""
+    from redsim.integrators.reference import full_equilibrium, rest_state
+
+    scene = scenes.build("cloth_ball").to(dtype=torch.float64)
+    q_rest, rest_ok = rest_state(scene)
+    assert rest_ok
+    q0, loaded_ok, _ = full_equilibrium(scene, damping.release_load(scene), start=q_rest)
+    ball = scene.handle_positions(torch.stack([q_rest, q0]))[:, scene.handle_names.index("ball")]
+    assert not loaded_ok and float(ball[0, 1]) > -0.2 and float(ball[1, 1]) < -1.0, ball
+    energies = scene.energy(torch.stack([q_rest, q0]))
+    assert float(energies[1]) < float(energies[0]) - 10.0, energies
