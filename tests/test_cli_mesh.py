@@ -287,3 +287,21 @@ def test_the_default_stem_stays_in_the_working_folder_whatever_the_scene_name(
     argv = ["fit", "--mesh", str(box), *MESH_ARGS, "--param", 'name="../escape"', "--steps", "2", "--dim", "2"]
     assert main([*argv, "--width", "8", "--layers", "1", "--sigma", "0.01", "--json"]) == 0
     assert (tmp_path / ".._escape_d2.pt").is_file() and not (tmp_path.parent / "escape_d2.pt").exists()
+
+
+def test_a_resume_without_the_meshs_params_names_the_command_that_continues_it(
+    cli: Cli, box: Path, tmp_path: Path
+) -> None:
+    """An interrupted mesh fit resumed with --mesh but not its --param (the likely slip) was refused with only
+    "--out STEM or --overwrite", and --overwrite throws the interrupted fit away; it now gives the recorded command."""
+    stem = str(tmp_path / "cut")
+    small = ["--steps", "4", "--dim", "2", "--width", "8", "--layers", "1", "--sigma", "0.01", "--out", stem]
+    assert cli("fit", "--mesh", str(box), *MESH_ARGS, *small, "--stop-at", "2")[0] == 0
+    code, _, err = cli(
+        "fit", "--mesh", str(box), "--kind", "fem", "--param", "voxel_pitch=0.05", "--out", stem, "--resume"
+    )
+    assert code == 2 and "young 20000.0 (this scene: 100000.0)" in err and err.count("\n") == 1, err
+    command = err.split("to continue that fit, give its scene as it records: ", 1)[1].strip()
+    assert command.startswith("redsim fit --mesh") and command.endswith(f"--out {stem} --resume"), err
+    assert cli(*shlex.split(command)[1:])[0] == 0  # the command it names continues the fit
+    assert (tmp_path / "cut.pt").is_file()

@@ -1192,6 +1192,21 @@ def existing_fit(stem: str | Path) -> Path | None:
     return next((p for p in (checkpoint_path(stem, s) for s in (".pt", ".json", ".fit.pt")) if p.is_file()), None)
 
 
+def recorded_fit_command(stem: str | Path) -> str | None:
+    """The ``redsim fit ...`` command the fit at ``stem`` records (its training state's, else its ``.json``'s), which
+    ``--resume`` appended to continues it on its own scene; None where neither says."""
+    from redsim.subspace.checkpoint import read_metadata
+
+    try:
+        command = torch.load(checkpoint_path(stem, ".fit.pt"), map_location="cpu", weights_only=True)["command"]
+    except Exception:  # none, or unreadable: the record may say
+        try:
+            command = read_metadata(stem).get("command")
+        except CheckpointError:
+            return None
+    return command if isinstance(command, str) and command.startswith("redsim fit ") else None
+
+
 def other_scene_fit(stem: str | Path, scene: Scene) -> str | None:
     """Why the fit at ``stem`` is of another scene than ``scene``, or None: the same scene, no fit there, or files
     that do not say (resuming says why). Its training state ``STEM.fit.pt`` decides where there is a readable one

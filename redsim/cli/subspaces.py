@@ -156,7 +156,7 @@ def _check_stem(stem: Path, args: argparse.Namespace, scene: Scene | None = None
     ``scene``: a fit of another scene unless ``--overwrite``, whose ``--resume`` could not continue it)."""
     if stem.name in ("", ".", ".."):
         raise CliError(f"--out must name a checkpoint stem (e.g. DIR/NAME), got {args.out!r}")
-    from redsim.trainers.fit import check_fit_files, existing_fit, other_scene_fit
+    from redsim.trainers.fit import check_fit_files, existing_fit, other_scene_fit, recorded_fit_command
 
     try:
         check_fit_files(stem)
@@ -167,9 +167,11 @@ def _check_stem(stem: Path, args: argparse.Namespace, scene: Scene | None = None
         return
     if scene is not None and (why := other_scene_fit(stem, scene)) is not None:
         default = "" if args.out is not None else " (the default name for this scene and --dim, in this folder)"
+        command = recorded_fit_command(stem) if args.resume else None
+        resume = f"; to continue that fit, give its scene as it records: {command} --resume" if command else ""
         raise CliError(
             f"a fit of another scene is at {found}{default}: {why}. Write this fit elsewhere with --out STEM, or "
-            "replace that one with --overwrite"
+            f"replace that one with --overwrite{resume}"
         )
     if not args.resume:  # minutes to hours of work: not replaced silently
         raise CliError(
