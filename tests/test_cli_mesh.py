@@ -303,5 +303,10 @@ def test_a_resume_without_the_meshs_params_names_the_command_that_continues_it(
     assert code == 2 and "young 20000.0 (this scene: 100000.0)" in err and err.count("\n") == 1, err
     command = err.split("to continue that fit, give its scene as it records: ", 1)[1].strip()
     assert command.startswith("redsim fit --mesh") and command.endswith(f"--out {stem} --resume"), err
+    code, _, err = cli("fit", "--out", stem, "--resume")  # no scene at all: the same command
+    assert (
+        code == 2
+        and err == f"redsim: error: --resume needs the fit's scene and settings as it records them: {command}\n"
+    )
     assert cli(*shlex.split(command)[1:])[0] == 0  # the command it names continues the fit
     assert (tmp_path / "cut.pt").is_file()

@@ -191,12 +191,16 @@ def cmd_fit(args: argparse.Namespace) -> int:
         low_stretch_warning,
         planned_steps,
         quiet_low_stretch,
+        recorded_fit_command,
     )
 
     if args.resume and args.overwrite:
         raise CliError("give --resume (continue the fit at the stem) or --overwrite (replace it), not both")
     if args.out is not None:  # refused before the scene is built (a mesh's voxelization can take minutes)
         _check_stem(Path(args.out), args)
+    unnamed = all(getattr(args, what, None) is None for what in ("scene", "mesh", "spec"))
+    if args.resume and args.out is not None and unnamed and (command := recorded_fit_command(args.out)) is not None:
+        raise CliError(f"--resume needs the fit's scene and settings as it records them: {command} --resume")
     scene = scene_from_args(args)
     config = _fit_config(args, scene.name)
     stem = (
