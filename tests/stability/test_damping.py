@@ -244,7 +244,8 @@ def test_cloth_ball_rest_converges_and_the_push_has_no_equilibrium() -> None:
     q_rest, rest_ok = rest_state(scene)
     assert rest_ok
     q0, loaded_ok, _ = full_equilibrium(scene, damping.release_load(scene), start=q_rest)
-    ball = scene.handle_positions(torch.stack([q_rest, q0]))[:, scene.handle_names.index("ball")]
+    positions = scene.handle_positions(torch.stack([q_rest, q0])).reshape(2, len(scene.handles), scene.dim)
+    ball = positions[:, scene.handle_names.index("ball")]
     assert not loaded_ok and float(ball[0, 1]) > -0.2 and float(ball[1, 1]) < -1.0, ball
     energies = scene.energy(torch.stack([q_rest, q0]))
     assert float(energies[1]) < float(energies[0]) - 10.0, energies
