@@ -304,11 +304,12 @@ def compare_subspaces(
         ``{"neural": ..., "modes": ..., "modal_derivatives": ...}``, each an evaluate_subspace dict.
     """
     from redsim.baselines import modal_analysis, modal_derivatives
-    from redsim.metrics import evaluate_subspace, handle_winding, reach_error, rest_state
+    from redsim.integrators.reference import rest_or_warn
+    from redsim.metrics import evaluate_subspace, handle_winding, reach_error
     from redsim.subspace import periodic_latents
 
     dim = int(neural.latent_dim)
-    rest, _ = rest_state(scene)
+    rest = rest_or_warn(scene, "the linear-mode and modal-derivative baselines")
     start = time.perf_counter()
     modes = modal_analysis(scene, dim, sigma=sigma, rest=rest)
     modes_seconds = time.perf_counter() - start

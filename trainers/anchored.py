@@ -19,7 +19,7 @@ from typing import TYPE_CHECKING
 import torch
 
 from redsim.baselines import modal_analysis, modal_derivatives
-from redsim.integrators.reference import rest_state
+from redsim.integrators.reference import rest_or_warn
 from redsim.scene import Scene
 from redsim.subspace import AnchoredSubspace, QuadraticSubspace, SubspaceConfig
 
@@ -44,7 +44,7 @@ def anchor_polynomial(scene: Scene, latent_dim: int, sigma: float, kind: str) ->
     "md": :func:`redsim.baselines.modal_derivatives` of this sigma; "modes": :func:`redsim.baselines.modal_analysis`
     as a quadratic map with Q = 0.
     """
-    rest, _ = rest_state(scene)
+    rest = rest_or_warn(scene, f"the anchored map's {kind!r} polynomial")
     if kind == "md":
         return modal_derivatives(scene, latent_dim, sigma=sigma, rest=rest)
     if kind == "modes":

@@ -61,7 +61,7 @@ from redsim.envs.mini_chain import MiniChainEnv
 from redsim.envs.reach import ReachEnv
 from redsim.integrators import FullSpace, FullState, ImplicitEuler, LatentSpace, latent_equilibrium
 from redsim.integrators.implicit_euler import quiet_steps
-from redsim.integrators.reference import rest_state
+from redsim.integrators.reference import rest_or_warn, rest_state
 from redsim.metrics.reach import nearest_latent
 from redsim.plausibility import MAX_STEP_SIZES, step_failure
 from redsim.runtime import LatentStepper
@@ -520,7 +520,7 @@ def _subspaces(scene: Scene, maps: Mapping[int, nn.Module], *, with_dims: bool) 
     """
     from redsim.baselines import modal_analysis, modal_derivatives
 
-    rest, _ = rest_state(scene)
+    rest = rest_or_warn(scene, "the linear-mode and modal-derivative baselines")
     built: dict[str, dict[int, nn.Module]] = {kind: {} for kind in KINDS}
     for dim in sorted(maps):
         neural = maps[dim]

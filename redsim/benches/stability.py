@@ -49,7 +49,7 @@ from redsim.envs.cloth_ball import ClothBallEnv
 from redsim.envs.conditional_bar import ConditionalBarEnv
 from redsim.envs.invariants import Invariants
 from redsim.integrators import FullSpace, ImplicitEuler
-from redsim.integrators.reference import rest_state
+from redsim.integrators.reference import rest_or_warn
 from redsim.integrators.tunneling import TunnelTest
 from redsim.metrics.reach import nearest_latent
 from redsim.runtime import LatentStepper
@@ -921,7 +921,7 @@ def redsim_chain_cases(
     z_rest = stepper.rest_latent()
     s64 = scene.to(dtype=torch.float64)
     latent_rest = float(s64.energy(stepper.positions(z_rest).to(torch.float64))[0])
-    q_rest = rest_state(scene)[0]
+    q_rest = rest_or_warn(scene, "the chain scenarios' full-space start")
     full_rest = float(s64.energy(q_rest.unsqueeze(0))[0])
     rows = []
     for label, angle, speed in chain_scenarios():

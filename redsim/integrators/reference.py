@@ -11,6 +11,7 @@ from __future__ import annotations
 
 import logging
 import math
+import warnings
 
 import numpy as np
 import scipy.sparse
@@ -56,6 +57,21 @@ def rest_state(scene: Scene, cond: Tensor | None = None) -> tuple[Tensor, bool]:
     """
     q, converged, _ = full_equilibrium(scene, None, cond)
     return q, converged
+
+
+def rest_or_warn(scene: Scene, user: str, cond: Tensor | None = None) -> Tensor:
+    """q_rest [n] (float64) of :func:`rest_state`, with a :class:`RuntimeWarning` naming ``user`` (what is built
+    around it) where its solve did not converge: the state is then not an equilibrium, and modes or a polynomial
+    map taken there are taken about a state that would move."""
+    q, converged = rest_state(scene, cond)
+    if not converged:
+        warnings.warn(
+            f"the full-space rest of scene {scene.name!r} did not converge (Newton with relaxation and saddle "
+            f"escapes): {user} uses its last iterate, which is not an equilibrium",
+            RuntimeWarning,
+            stacklevel=2,
+        )
+    return q
 
 
 def full_equilibrium(

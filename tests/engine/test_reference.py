@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import logging
+import warnings
 from collections.abc import Callable
 from pathlib import Path
 
@@ -104,3 +105,21 @@ def test_a_float32_scene_and_a_float32_start_are_solved_in_float64() -> None:
     assert energy == pytest.approx(expected_energy, rel=1e-6)
     with pytest.raises(ValueError, match="start must be finite"):
         reference.full_equilibrium(scene, start=torch.full_like(scene.q_seed, float("nan")))
+
+
+def test_rest_or_warn_names_what_is_built_on_an_unconverged_rest(monkeypatch: pytest.MonkeyPatch) -> None:
+    """The modal baselines, an anchored map's polynomial and the chain scenarios take the full-space rest as an
+    equilibrium; where its solve did not converge they used the last iterate silently (helper-222's lead)."""
+    from redsim.trainers.anchored import anchor_polynomial
+
+    scene = scenes.build("mini_chain")
+    q, converged = reference.rest_state(scene)
+    assert converged
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")
+        assert torch.equal(reference.rest_or_warn(scene, "the modes"), q)  # converged: silent
+    monkeypatch.setattr(reference, "full_equilibrium", lambda *args, **kwargs: (q, False, 0.0))
+    with pytest.warns(RuntimeWarning, match="rest of scene 'mini_chain' did not converge.*the modes uses its last"):
+        assert torch.equal(reference.rest_or_warn(scene, "the modes"), q)
+    with pytest.warns(RuntimeWarning, match="the anchored map's 'modes' polynomial"):
+        anchor_polynomial(scene, 2, 1.0, "modes")
