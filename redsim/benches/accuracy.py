@@ -251,6 +251,8 @@ class Run:
         caught: Full-space steps whose first solve passed through a contact and whose solve again within a trust
             radius ended on its near side (``StepInfo.tunnel_caught``: the mini chain's links at the hook at 5x the
             time step); their times hold both solves.
+        error: ``TYPE: message`` of the exception that ended the run (:func:`guarded`); its q and times are then
+            empty.
     """
 
     q: Tensor
@@ -265,6 +267,7 @@ class Run:
     implausible: int = 0
     tunneled: int = 0
     caught: int = 0
+    error: str | None = None
 
 
 Steps = Generator[None, None, "Run"]
@@ -290,6 +293,25 @@ def lockstep(runs: Sequence[Steps]) -> list[Run]:
                     results[k] = stop.value
                     live.remove(k)
     return results  # type: ignore[return-value]
+
+
+def guarded(steps: Steps) -> Steps:
+    """``steps``, whose Exception (a solve that raised) ends it with a :class:`Run` that holds it in ``error``, so
+    that one configuration that fails does not take the other rows of its scenario with it."""
+    try:
+        return (yield from steps)
+    except Exception as err:
+        return Run(torch.empty(0), torch.empty(0, dtype=torch.int64), [], error=f"{type(err).__name__}: {err}")
+
+
+class Interrupted(KeyboardInterrupt):
+    """Ctrl-C (or a SIGTERM made to raise) during :func:`bench_accuracy`'s scenarios; ``result`` holds the rows
+    finished before it (the result's form, ``interrupted`` True). A KeyboardInterrupt, so a caller that does not
+    look stops as before."""
+
+    def __init__(self, result: dict[str, Any]) -> None:
+        super().__init__("bench_accuracy interrupted")
+        self.result = result
 
 
 def _counted(steps: Steps, total: int, progress: Callable[[str], None], scenario: str) -> Steps:
@@ -699,12 +721,14 @@ def bench_accuracy(
 
     Returns:
         ``scene``, ``n``, ``d``, ``dims``, ``maps`` (per neural map: d, fit steps, fit seconds, cubature
-        elements), ``plan``, ``rows`` (one dict per scenario and configuration, the reference included)
-        and ``study``.
+        elements), ``plan``, ``rows`` (one dict per scenario and configuration, the reference included; a
+        row's ``error`` is None, or what its run raised), ``study`` and ``interrupted`` (False).
 
     Raises:
         ValueError: an unknown scene, scenario or a bad count; ``maps`` holding another map at
             ``neural``'s d; a cubature for a d without a map, or for another map.
+        Interrupted: a KeyboardInterrupt (Ctrl-C) during the scenarios; its ``result`` holds the rows finished
+            before it. A configuration whose run raises an Exception gets a row with ``error`` set instead.
     """
     p = plan(scene.name) if load_plan is None else load_plan
     if int(steps) != steps or steps < 10:
@@ -756,20 +780,28 @@ def bench_accuracy(
         "rest_converged": bool(rest_converged),
         "latent_rests_unconverged": unsettled,
         "rows": rows,
+        "interrupted": False,
     }
-    for scenario in scenarios:
+
+    def run_scenario(scenario: str) -> None:
         loads = scenario_loads(scene, scenario, steps, seed=seed, load_plan=p)
         reference_steps = full_steps(scene, q_rest, loads, dt=dt, tol=p.reference_tol, max_iter=REFERENCE_MAX_ITER)
         if progress:
             progress(f"{scenario}: {len(configs) + 1} configurations stepped in turn, {steps} steps")
             reference_steps = _counted(reference_steps, steps, progress, scenario)
-        reference, *runs = lockstep([reference_steps, *(config.run(loads) for config in configs)])
+        reference, *runs = lockstep([guarded(reference_steps), *(guarded(config.run(loads)) for config in configs)])
+        if reference.error is not None:  # nothing to measure the other rows against: its row says why
+            rows.append(_failed_row(scenario, "full reference", "reference", None, reference.error))
+            return
         ref_median = statistics.median(reference.step_s)
         rows.append(_row(scenario, "full reference", "reference", reference, reference, scene64, p.handle, ref_median))
         rows.append(_row(scenario, NO_MOTION, "reference", _still(reference), reference, scene64, p.handle, ref_median))
         if progress:
             progress(_progress_line(rows[-2]))
         for config, run in zip(configs, runs, strict=True):
+            if run.error is not None:
+                rows.append(_failed_row(scenario, config.label, config.family, config.dim, run.error))
+                continue
             row = _row(scenario, config.label, config.family, run, reference, scene64, p.handle, ref_median)
             row["d"] = config.dim
             key = config.subspace
@@ -784,6 +816,12 @@ def bench_accuracy(
             out["study"] = start_study(
                 scene, neural, rests[key], loads[:study_steps], head, dt=dt, reference_tol=p.reference_tol
             )
+
+    try:
+        for scenario in scenarios:
+            run_scenario(scenario)
+    except KeyboardInterrupt as stop:  # the rows finished before it are kept
+        raise Interrupted({**out, "interrupted": True}) from stop
     return out
 
 
@@ -834,7 +872,23 @@ def _row(
         "implausible": run.implausible,
         "tunneled": run.tunneled,
         "tunnels_caught": run.caught,
+        "error": None,
     }
+
+
+def _failed_row(scenario: str, label: str, family: str, dim: int | None, error: str) -> dict[str, Any]:
+    """The row of a configuration whose run raised ``error``: every number NaN (nothing was measured)."""
+    row = dict.fromkeys(_ROW_NUMBERS, math.nan)
+    return {"scenario": scenario, "config": label, "family": family, "d": dim, **row, "error": error}
+
+
+_ROW_NUMBERS = (
+    *("ms_per_step", "speedup", "rel_error_mean", "rel_error_at_projection_steps", "rel_error_final"),
+    *("handle_cm_mean", "handle_cm_max", "raw_error_final", "rest_offset", "rest_offset_cm", "motion_scale"),
+    *("handle_motion_cm", "projection", "steps_run", "failed", "flagged_diverged", "out_of_range", "nonfinite"),
+    *("idle", "implausible", "tunneled", "tunnels_caught"),
+)
+"""The numeric keys of a row (:func:`_row`)."""
 
 
 def _progress_line(row: dict[str, Any]) -> str:
@@ -971,6 +1025,14 @@ def report(result: dict[str, Any], machine: str) -> str:
         )
     for scenario in dict.fromkeys(r["scenario"] for r in result["rows"]):
         ref = next(r for r in result["rows"] if r["scenario"] == scenario)
+        if ref.get("error"):  # its only row: nothing was measured against it
+            lines += [
+                "",
+                f"scenario {scenario}: the reference raised {ref['error']}: no row is measured",
+                "",
+                markdown_table(result, scenario),
+            ]
+            continue
         lines += [
             "",
             f"scenario {scenario}: the reference's handle moves up to {ref['handle_motion_cm']:.3g} cm; "
@@ -988,13 +1050,17 @@ def report(result: dict[str, Any], machine: str) -> str:
                 f"note: the reference is not a trustworthy motion: {ref['tunneled']} of its {ref['steps_run']} steps "
                 "passed through a contact (StepInfo.tunneled: a move longer than the contact is thick; a smaller dt)"
             )
-        through = [r for r in result["rows"] if r["scenario"] == scenario and r is not ref and r.get("tunneled")]
+        measured = [r for r in result["rows"] if r["scenario"] == scenario and not r.get("error")]
+        for row in result["rows"]:  # a configuration whose solve raised: the others ran
+            if row["scenario"] == scenario and row.get("error"):
+                lines.append(f"note: {row['config']} raised {row['error']}: its row reads nan (the command fails)")
+        through = [r for r in measured if r is not ref and r.get("tunneled")]
         for row in through:  # a loosened full-space run (dt x5 through the mini chain's hook): not the scene's motion
             lines.append(
                 f"note: {row['config']} passed through a contact in {row['tunneled']} of its {row['steps_run']} "
                 "steps (StepInfo.tunneled): its errors are those of another motion"
             )
-        caught = [r for r in result["rows"] if r["scenario"] == scenario and r.get("tunnels_caught")]
+        caught = [r for r in measured if r.get("tunnels_caught")]
         for row in caught:  # solved twice: its time is not that of one solve per step
             lines.append(
                 f"note: {row['config']} moved through a contact in the first solve of {row['tunnels_caught']} of its "
@@ -1008,6 +1074,8 @@ def report(result: dict[str, Any], machine: str) -> str:
                 "against where those steps stopped"
             )
         lines += ["", markdown_table(result, scenario)]
+    if result.get("interrupted"):
+        lines += ["", "interrupted: the rows finished before it"]
     study = result.get("study")
     if study:
         lines += [
@@ -1041,14 +1109,20 @@ def failures(result: dict[str, Any]) -> tuple[list[str], list[str]]:
         for row in result["rows"]
         if row["family"] == "reference"
         and row["config"] != NO_MOTION
+        and not row.get("error")
         and (row.get("implausible") or row.get("tunneled"))
     ]
     nonfinite = [
         f"scenario {row['scenario']}, {row['config']}: {row['nonfinite']} non-finite states"
         for row in result["rows"]
-        if row.get("nonfinite")
+        if row.get("nonfinite") and not row.get("error")
     ]
     return references, nonfinite
+
+
+def raised(result: dict[str, Any]) -> list[str]:
+    """The rows whose run raised (:func:`guarded`), each as ``scenario S, CONFIG: ERROR`` (they fail the command)."""
+    return [f"scenario {r['scenario']}, {r['config']}: {r['error']}" for r in result["rows"] if r.get("error")]
 
 
 def _dims(result: dict[str, Any]) -> str:
@@ -1087,6 +1161,7 @@ __all__ = [
     "PLANS",
     "REFERENCE_MAX_ITER",
     "SCENARIOS",
+    "Interrupted",
     "Plan",
     "Run",
     "Steps",
@@ -1095,6 +1170,7 @@ __all__ = [
     "checkpoint_plan",
     "failures",
     "full_steps",
+    "guarded",
     "handle_positions",
     "latent_reference_steps",
     "lockstep",
@@ -1103,6 +1179,7 @@ __all__ = [
     "plan",
     "project",
     "projection_floor",
+    "raised",
     "report",
     "run_full",
     "run_latent_reference",

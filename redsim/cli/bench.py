@@ -435,26 +435,29 @@ def cmd_bench_accuracy(args: argparse.Namespace) -> int:
     paths = {shipped_dim: path}
     maps = None if dims is None else _accuracy_maps(args, scene, neural, dims, paths)
     cubatures = _accuracy_cubatures(scene, {shipped_dim: neural, **(maps or {})}, paths)
-    result = accuracy.bench_accuracy(
-        scene,
-        neural,
-        steps=args.steps,
-        scenarios=scenarios,
-        seed=args.seed,
-        full=full,
-        study=not args.no_study,
-        maps=maps,
-        cubatures=cubatures,
-        progress=None if args.json else note,
-        load_plan=load_plan,
-    )
+    try:
+        result = accuracy.bench_accuracy(
+            scene,
+            neural,
+            steps=args.steps,
+            scenarios=scenarios,
+            seed=args.seed,
+            full=full,
+            study=not args.no_study,
+            maps=maps,
+            cubatures=cubatures,
+            progress=None if args.json else note,
+            load_plan=load_plan,
+        )
+    except accuracy.Interrupted as stop:  # Ctrl-C: the rows finished before it are printed, then exit 130
+        result = stop.result
     for info in result["maps"]:
         shipped = info["d"] == shipped_dim and not checkpoint
         info["source"] = ("shipped " if shipped else "") + shown_path(paths[info["d"]])
     machine = machine_info()
     result["machine"] = machine
     line = _machine_line(machine, "cpu")
-    paths = accuracy.write_outputs(result, Path(args.out), line) if args.out else []
+    paths = accuracy.write_outputs(result, Path(args.out), line) if args.out and result["rows"] else []
     if args.json:
         json_out(result)
     else:
@@ -462,10 +465,15 @@ def cmd_bench_accuracy(args: argparse.Namespace) -> int:
         if paths:
             out("wrote " + ", ".join(str(p) for p in paths))
     references, nonfinite = accuracy.failures(result)
-    if references or nonfinite:  # the rows are printed and written, and the command fails, for scripts and CI
-        error("; ".join([*references, *nonfinite]))
-        return EXIT_NAN if nonfinite else EXIT_FAILED_STEP
-    return EXIT_OK
+    raised = accuracy.raised(result)
+    status = EXIT_OK
+    if references or nonfinite or raised:  # the rows are printed and written, and the command fails, for scripts/CI
+        error("; ".join([*references, *nonfinite, *(f"{line} (raised)" for line in raised)]))
+        status = EXIT_NAN if nonfinite else EXIT_FAILED_STEP if references else EXIT_SCENE_FAILED
+    if result["interrupted"]:
+        warn("interrupted: the tables have the rows finished before it")
+        return EXIT_INTERRUPTED
+    return status
 
 
 def _accuracy_dims(args: argparse.Namespace, n: int) -> tuple[int, ...] | None:

@@ -377,6 +377,70 @@ def test_a_reference_the_scene_cannot_make_or_a_non_finite_row_fails_the_command
     assert accuracy.failures(unconverged) == ([], [])  # a note only (the bistable bar's reference: docs/accuracy.md)
 
 
+def _raising(error: BaseException, after: int = 1):
+    """A configuration's run that steps ``after`` times, then raises ``error``."""
+
+    def run(loads: torch.Tensor) -> accuracy.Steps:
+        for _ in range(after):
+            yield
+        raise error
+
+    return run
+
+
+def test_a_configuration_that_raises_is_a_row_that_fails_the_command(cli, monkeypatch) -> None:
+    """A solve that raised in one configuration ended the command in a traceback, and every finished row of the
+    scenario was lost; now its row reads nan with the error, the others are printed, and the command exits 1."""
+    argv = ("bench", "accuracy", "mini_chain", "--steps", "10", "--scenarios", "push,actions", "--full", "none")
+    good = accuracy.Config("full loose", "full space", lambda loads: accuracy.full_steps(*_rest(), loads, tol=1e-3))
+    bad = accuracy.Config("full raises", "full space", _raising(RuntimeError("singular Hessian"), after=3))
+    _only(monkeypatch, bad, good)
+    code, out, err = cli(*argv, "--no-study")
+    assert code == 1, err
+    assert out.count("| full raises | – | – | nan | nan | nan |") == 2 and out.count("| full loose | ") == 2
+    assert "note: full raises raised RuntimeError: singular Hessian: its row reads nan" in out
+    assert "scenario push, full raises: RuntimeError: singular Hessian (raised)" in err
+    code, out, err = cli(*argv, "--no-study", "--json")
+    rows = json.loads(out)["rows"]
+    assert (
+        code == 1
+        and [r["error"] for r in rows if r["config"] == "full raises"] == ["RuntimeError: singular Hessian"] * 2
+    )
+    assert all(r["error"] is None and r["rel_error_mean"] is not None for r in rows if r["config"] == "full loose")
+    monkeypatch.setattr(accuracy, "full_steps", lambda *args, **kwargs: _raising(ValueError("no rest"))(None))
+    _only(monkeypatch)
+    code, out, err = cli(*argv, "--no-study")  # the reference itself: nothing is measured against it
+    assert code == 1 and out.count("the reference raised ValueError: no rest: no row is measured") == 2, (out, err)
+
+
+def _rest() -> tuple:
+    scene = scenes.build("mini_chain")
+    return scene, accuracy.rest_state(scene)[0]
+
+
+def test_ctrl_c_keeps_the_finished_scenarios_rows_and_exits_130(cli, monkeypatch) -> None:
+    """Ctrl-C lost every row (the command printed only "interrupted"); the finished scenario's rows are now printed
+    (text and JSON, ``interrupted`` true), and the command exits 130 as bench stability's damping regime does."""
+    argv = ("bench", "accuracy", "mini_chain", "--steps", "10", "--scenarios", "push,actions", "--full", "none")
+    full_steps = accuracy.full_steps
+
+    def interrupted_in_actions(scene, q0, loads, **options):
+        if bool((loads[:, :, 1:] != 0).any()):  # the actions scenario's reference (push is along x only)
+            raise KeyboardInterrupt
+        return full_steps(scene, q0, loads, **options)
+
+    monkeypatch.setattr(accuracy, "full_steps", interrupted_in_actions)
+    _only(monkeypatch)
+    code, out, err = cli(*argv, "--no-study")
+    assert code == 130, err
+    assert "scenario push:" in out and "scenario actions" not in out and "| full reference | " in out
+    assert out.rstrip().endswith("interrupted: the rows finished before it")
+    assert "redsim: warning: interrupted: the tables have the rows finished before it" in err
+    code, out, err = cli(*argv, "--no-study", "--json")
+    doc = json.loads(out)
+    assert code == 130 and doc["interrupted"] and {r["scenario"] for r in doc["rows"]} == {"push"}
+
+
 def test_a_max_force_beyond_float32_is_refused_before_any_work(cli, mini_chain) -> None:
     """1e300 N passed the check, ran the reference, then crashed the float32 runtime with a traceback."""
     code, out, err = cli("bench", "accuracy", "mini_chain", "--max-force", "1e300", "--steps", "10")
