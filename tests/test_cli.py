@@ -342,6 +342,46 @@ def test_bench_energy_json(capsys: pytest.CaptureFixture[str]) -> None:
     assert bench_energy(scene, 1, 9, time_budget=1e-9)["repeats"] == 3  # but at least 3 of the asked
 
 
+def test_bench_energy_reports_a_scene_that_raises_and_keeps_rows_at_ctrl_c(
+    capsys: pytest.CaptureFixture[str], monkeypatch: pytest.MonkeyPatch
+) -> None:
+    """A scene whose energy raised ended the command in a traceback; Ctrl-C lost the JSON document's rows. Now the
+    failed scene is a row and exit 1, and Ctrl-C prints the scenes finished before it and exits 130."""
+    import redsim.bench
+
+    real = redsim.bench.bench_energy
+
+    def bench_energy(scene, batch, repeats, **kwargs):
+        if scene.free_dof_count == broken[0]:
+            raise broken[1]
+        return real(scene, batch, repeats, **kwargs)
+
+    monkeypatch.setattr(redsim.bench, "bench_energy", bench_energy)
+    argv = (
+        "bench",
+        "energy",
+        "--scenes",
+        f"mini_chain,{TOY}",
+        "--repeats",
+        "1",
+        "--batches",
+        "1",
+        "--dtypes",
+        "float64",
+    )
+    broken = (redsim.scenes.build("mini_chain").free_dof_count, RuntimeError("no energy"))
+    code, out, err = run(capsys, *argv)
+    assert code == 1 and "mini_chain               failed: RuntimeError: no energy" in out and f"\n{TOY} " in out, err
+    code, out, err = run(capsys, *argv, "--json")
+    report = json.loads(out)
+    assert code == 1 and report["failed"] == [{"scene": "mini_chain", "error": "RuntimeError: no energy"}]
+    assert [r["scene"] for r in report["results"]] == [TOY]
+    broken = (redsim.scenes.build(TOY).free_dof_count, KeyboardInterrupt())
+    code, out, err = run(capsys, *argv, "--json")
+    report = json.loads(out)
+    assert code == 130 and report["interrupted"] and [r["scene"] for r in report["results"]] == ["mini_chain"]
+
+
 def test_render_2d_scene(tmp_path) -> None:
     from redsim.effects import NeoHookean
     from redsim.render import draw_states, export_meshes

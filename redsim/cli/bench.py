@@ -196,19 +196,34 @@ def cmd_bench_energy(args: argparse.Namespace) -> int:
         header = f"{'scene':<24} {'n':>8} " + " ".join(f"{f'f{d[5:]} B={b}':>12}" for d, b in columns)
         out(header + "  repeats")
         out("-" * (len(header) + 9))
-    results = []
-    for name, make in scenes:
-        base = make()
-        row = []
-        for dtype, batch in columns:
-            scene = base.to(args.device, DTYPES[dtype])
-            row.append(
-                bench_energy(scene, batch, args.repeats, time_budget=args.budget, perturbation=args.perturbation)
-            )
-        results += row
-        if not args.json:
-            cells = " ".join(f"{1e3 * r['median_s']:>12.3g}" for r in row)
-            out(f"{name:<24} {base.free_dof_count:>8} {cells}  {min(r['repeats'] for r in row)}")
+    results: list[dict[str, Any]] = []
+    failed: list[dict[str, str]] = []  # the scenes that raised: the others run, and the command fails at the end
+    interrupted = False
+    try:
+        for name, make in scenes:
+            try:
+                base = make()
+                row = [
+                    bench_energy(
+                        base.to(args.device, DTYPES[dtype]),
+                        batch,
+                        args.repeats,
+                        time_budget=args.budget,
+                        perturbation=args.perturbation,
+                    )
+                    for dtype, batch in columns
+                ]
+            except Exception as err:  # reported in its row and the exit status, not a traceback
+                failed.append({"scene": name, "error": f"{type(err).__name__}: {err}"})
+                if not args.json:
+                    out(f"{name:<24} failed: {failed[-1]['error']}")
+                continue
+            results += row
+            if not args.json:
+                cells = " ".join(f"{1e3 * r['median_s']:>12.3g}" for r in row)
+                out(f"{name:<24} {base.free_dof_count:>8} {cells}  {min(r['repeats'] for r in row)}")
+    except KeyboardInterrupt:  # Ctrl-C: the scenes finished before it are printed (text: already), then exit 130
+        interrupted = True
     if args.json:
         json_out(
             {
@@ -217,8 +232,16 @@ def cmd_bench_energy(args: argparse.Namespace) -> int:
                 "repeats": args.repeats,
                 "perturbation": args.perturbation,
                 "results": results,
+                "failed": failed,
+                "interrupted": interrupted,
             }
         )
+    if interrupted:
+        warn("interrupted: the table has the scenes finished before it")
+        return EXIT_INTERRUPTED
+    if failed:
+        error(f"bench energy: {len(failed)} scene(s) failed ({', '.join(f['scene'] for f in failed)}); the others ran")
+        return EXIT_SCENE_FAILED
     return EXIT_OK
 
 
@@ -271,34 +294,54 @@ def cmd_bench_step(args: argparse.Namespace) -> int:
     machine = machine_info()
     if args.hessians is not None:
         return _bench_step_hessians(args, names, batches, machine)
-    rows = []
-    for name in names:
-        scene = build_scene(name)
-        rows.append(
-            bench_step(
-                scene,
-                pretrained.load(name, scene),
-                dt=args.dt,
-                batches=batches,
-                steps=args.steps,
-                reference_steps=min(args.reference_steps, args.steps),
-                compiled=not args.no_compile,
-                device=args.device,
-                seed=args.seed,
-                rounds=args.rounds,
-                dense=args.dense,
-                baseline=baseline,
-            )
-        )
-        if not args.json:
-            out(f"{name}: done")
-    mujoco = mujoco_rows()
+    rows: list[dict[str, Any]] = []
+    failed: list[dict[str, str]] = []  # the scenes that raised: the others run, and the command fails at the end
+    interrupted = False
+    try:
+        for name in names:
+            scene = build_scene(name)
+            try:
+                row = bench_step(
+                    scene,
+                    pretrained.load(name, scene),
+                    dt=args.dt,
+                    batches=batches,
+                    steps=args.steps,
+                    reference_steps=min(args.reference_steps, args.steps),
+                    compiled=not args.no_compile,
+                    device=args.device,
+                    seed=args.seed,
+                    rounds=args.rounds,
+                    dense=args.dense,
+                    baseline=baseline,
+                )
+            except Exception as err:  # reported below the table and in the exit status, not a traceback
+                failed.append({"scene": name, "error": f"{type(err).__name__}: {err}"})
+                warn(f"bench step: {name} failed: {failed[-1]['error']}")
+                continue
+            rows.append(row)
+            if not args.json:
+                out(f"{name}: done")
+    except KeyboardInterrupt:  # Ctrl-C: the scenes finished before it are printed (no MuJoCo rows), then exit 130
+        interrupted = True
+    mujoco = [] if interrupted else mujoco_rows()
     if args.json:
-        json_out({"machine": machine, "dt": args.dt, "rows": rows, "mujoco": mujoco})
+        doc = {"machine": machine, "dt": args.dt, "rows": rows, "mujoco": mujoco}
+        json_out({**doc, "failed": failed, "interrupted": interrupted})
     else:
         out(_machine_line(machine, args.device))
         for line in step_table(rows, mujoco, args.dt):
             out(line)
+        for item in failed:
+            out(f"failed: {item['scene']}: {item['error']}")
+        if interrupted:
+            out("interrupted: the scenes finished before it")
+    if interrupted:
+        warn("interrupted: the table has the scenes finished before it")
+        return EXIT_INTERRUPTED
+    if failed:
+        error(f"bench step: {len(failed)} scene(s) failed ({', '.join(f['scene'] for f in failed)}); the others ran")
+        return EXIT_SCENE_FAILED
     return EXIT_OK
 
 

@@ -130,3 +130,62 @@ def test_the_full_space_row_times_from_where_its_settling_steps_end() -> None:
     assert torch.allclose(settled["trajectory"][0], full["trajectory"][2], atol=1e-10)
     assert torch.allclose(settled["trajectory"][-1], full["trajectory"][-1], atol=1e-10)
     assert len(run_reference(scene, f, 0.02, z0, loads, space="full", warmup=0, settle=9)["trajectory"]) == 2
+
+
+def _failing_on(name: str, error: BaseException, monkeypatch: pytest.MonkeyPatch) -> None:
+    """Make bench_step raise ``error`` on scene ``name`` (the others run as they do)."""
+    import redsim.runtime.bench as bench
+
+    real = bench.bench_step
+
+    def bench_step(scene, subspace, **kwargs):
+        if scene.name == name:
+            raise error
+        return real(scene, subspace, **kwargs)
+
+    monkeypatch.setattr(bench, "bench_step", bench_step)
+
+
+STEP_ARGV = [
+    "bench",
+    "step",
+    "--scenes",
+    "mini_chain,klann",
+    "--batches",
+    "1",
+    "--steps",
+    "2",
+    "--reference-steps",
+    "2",
+]
+
+
+def test_a_scene_that_raises_is_reported_and_the_others_are_printed(
+    capsys: pytest.CaptureFixture[str], monkeypatch: pytest.MonkeyPatch
+) -> None:
+    """A scene whose bench raised ended the command in a traceback and lost the scenes measured before it."""
+    _failing_on("mini_chain", RuntimeError("singular Hessian"), monkeypatch)
+    code = main([*STEP_ARGV, "--no-compile"])
+    out, err = capsys.readouterr()
+    assert code == 1, err
+    assert "klann " in out and "failed: mini_chain: RuntimeError: singular Hessian" in out
+    assert "bench step: 1 scene(s) failed (mini_chain); the others ran" in err
+    code = main([*STEP_ARGV, "--no-compile", "--json"])
+    report = json.loads(capsys.readouterr().out)
+    assert code == 1 and [r["scene"] for r in report["rows"]] == ["klann"]
+    assert report["failed"] == [{"scene": "mini_chain", "error": "RuntimeError: singular Hessian"}]
+
+
+def test_ctrl_c_prints_the_scenes_finished_before_it_and_exits_130(
+    capsys: pytest.CaptureFixture[str], monkeypatch: pytest.MonkeyPatch
+) -> None:
+    """Ctrl-C lost every finished scene (the table is printed at the end); they are printed now, without MuJoCo's."""
+    _failing_on("klann", KeyboardInterrupt(), monkeypatch)
+    code = main([*STEP_ARGV, "--no-compile"])
+    out, err = capsys.readouterr()
+    assert code == 130, err
+    assert "mini_chain " in out and "klann" not in out and "MuJoCo" not in out and "mujoco" not in out
+    assert out.rstrip().endswith("interrupted: the scenes finished before it")
+    code = main([*STEP_ARGV, "--no-compile", "--json"])
+    report = json.loads(capsys.readouterr().out)
+    assert code == 130 and report["interrupted"] and [r["scene"] for r in report["rows"]] == ["mini_chain"]
