@@ -21,6 +21,7 @@ import torch
 from torch import Tensor
 
 from redsim.scene import Scene
+from redsim.subspace.checkpoint import write_atomically
 
 logger = logging.getLogger(__name__)
 
@@ -118,7 +119,8 @@ def draw_states(
         scene: The scene (must have at least one surface).
         qs: Free configurations, each of shape [n] (or a batch [k, n]).
         titles: One title per state (default: ``state 0``, ``state 1``, ...).
-        path: Output file; parent folders are created.
+        path: Output file; parent folders are created. Written whole or not at all (a temporary file, then a
+            rename): an interrupted write leaves the file there before.
         loads: Forces [N] by handle name (as for :meth:`Scene.pack_loads`), drawn on every panel.
         dpi: Resolution of the PNG.
 
@@ -154,7 +156,7 @@ def draw_states(
         _draw_loads(ax, scene, q, loads or {}, half)
     path = Path(path)
     path.parent.mkdir(parents=True, exist_ok=True)
-    fig.savefig(path, format="png", dpi=dpi, bbox_inches="tight", pad_inches=0.1)  # at ``path``, whatever its suffix
+    write_atomically(path, lambda tmp: fig.savefig(tmp, format="png", dpi=dpi, bbox_inches="tight", pad_inches=0.1))
     return path
 
 
@@ -194,7 +196,7 @@ def animate_states(
     Args:
         scene: The scene (must have surfaces).
         qs: Free configurations, each of shape [n], one per frame (or a batch [k, n]).
-        path: Output .gif file; parent folders are created.
+        path: Output .gif file; parent folders are created. Written whole or not at all, as in :func:`draw_states`.
         fps: Frames per second, in [:data:`MIN_GIF_FPS`, :data:`MAX_GIF_FPS`] (:func:`gif_frame_ms`).
         dpi: Resolution.
 
@@ -230,7 +232,12 @@ def animate_states(
         images.append(Image.fromarray(np.asarray(canvas.buffer_rgba())).convert("P", palette=Image.ADAPTIVE))
     path = Path(path)
     path.parent.mkdir(parents=True, exist_ok=True)
-    images[0].save(path, save_all=True, append_images=images[1:], duration=frame_ms, loop=0)
+    write_atomically(
+        path,
+        lambda tmp: images[0].save(
+            tmp, format="GIF", save_all=True, append_images=images[1:], duration=frame_ms, loop=0
+        ),
+    )
     return path
 
 

@@ -5,6 +5,7 @@ from __future__ import annotations
 import json
 import re
 from pathlib import Path
+from typing import Any
 
 import numpy as np
 import pytest
@@ -114,6 +115,56 @@ def test_animate_writes_gif(capsys: pytest.CaptureFixture[str], fitted: str, tmp
         code, _, _ = run(capsys, "animate", fitted, "--keys", "2", "--frames", "2", "--fps", fps, "--out", str(gif))
         with Image.open(gif) as image:
             assert code == 0 and image.info["duration"] == frame_ms, fps
+
+
+def _interrupted_write(*args: Any, **kwargs: Any) -> None:
+    """A writer (a function or method whose first path or file argument is its output) that leaves half a file and
+    is interrupted (Ctrl-C while the file is written)."""
+    out = next(a for a in args if isinstance(a, str | Path) or hasattr(a, "write"))
+    if hasattr(out, "write"):
+        out.write(b"PK\x03\x04 half")
+    else:
+        Path(out).write_bytes(b"half")
+    raise KeyboardInterrupt
+
+
+@pytest.mark.parametrize(
+    ("command", "name", "target"),
+    [
+        (("sample", "-n", "3"), "states.npz", "numpy.savez_compressed"),
+        (("animate", "--keys", "2", "--frames", "2"), "loop.gif", "PIL.Image.Image.save"),
+    ],
+    ids=["sample", "animate"],
+)
+def test_ctrl_c_while_writing_leaves_the_file_there_before(
+    capsys: pytest.CaptureFixture[str],
+    monkeypatch: pytest.MonkeyPatch,
+    fitted: str,
+    tmp_path: Path,
+    command: tuple[str, ...],
+    name: str,
+    target: str,
+) -> None:
+    """sample's .npz and animate's .gif were written in place: Ctrl-C while writing left a broken file (a .npz
+    whose arrays np.load could not read) over the good one; now a temporary file is renamed onto it."""
+    path = tmp_path / name
+    assert run(capsys, command[0], fitted, *command[1:], "--out", str(path))[0] == 0
+    before = path.read_bytes()
+    monkeypatch.setattr(target, _interrupted_write)
+    code, _, err = run(capsys, command[0], fitted, *command[1:], "--seed", "1", "--out", str(path))
+    assert code == 130 and "interrupted" in err
+    assert path.read_bytes() == before
+    assert sorted(p.name for p in tmp_path.iterdir()) == [name]  # no temporary left
+
+
+def test_simulate_picture_is_written_whole_or_not_at_all(
+    capsys: pytest.CaptureFixture[str], monkeypatch: pytest.MonkeyPatch, tmp_path: Path
+) -> None:
+    from matplotlib.figure import Figure
+
+    monkeypatch.setattr(Figure, "savefig", _interrupted_write)
+    code, _, _ = run(capsys, "simulate", "toy_three_link_chain", "--steps", "1", "--out", str(tmp_path))
+    assert code == 130 and list(tmp_path.iterdir()) == []
 
 
 def test_sample_and_animate_a_float64_fit(capsys: pytest.CaptureFixture[str], tmp_path) -> None:

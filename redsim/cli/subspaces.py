@@ -351,6 +351,8 @@ def cmd_sample(args: argparse.Namespace) -> int:
     import numpy as np
     import torch
 
+    from redsim.subspace import write_atomically
+
     if args.n < 1:
         raise CliError(f"-n must be an integer >= 1, got {args.n}")
     if args.meshes:  # before anything is written
@@ -372,7 +374,13 @@ def cmd_sample(args: argparse.Namespace) -> int:
         arrays = {"z": z.numpy(), "q": q.numpy(), "x": x.numpy()}
         if cond is not None:
             arrays["cond"] = cond.numpy()
-        np.savez_compressed(path, scene=scene.name, scene_fingerprint=scene.fingerprint(), **arrays)
+        fields = {"scene": scene.name, "scene_fingerprint": scene.fingerprint(), **arrays}
+
+        def save(tmp: Path) -> None:  # a file object: savez would add .npz to the temporary's name
+            with tmp.open("wb") as file:
+                np.savez_compressed(file, **fields)
+
+        write_atomically(path, save)  # Ctrl-C while writing leaves the states.npz there before, not a broken one
     meshes = []
     if args.meshes:
         from redsim.render import export_meshes
