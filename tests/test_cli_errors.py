@@ -726,6 +726,31 @@ def test_metadata_that_is_no_object_and_weights_that_are_no_zip_are_one_line_err
     )
 
 
+def test_a_checkpoint_of_another_format_version_says_what_wrote_it_and_what_to_do(cli: Cli, tmp_path: Path) -> None:
+    """Only "unsupported format_version 2 (this redsim reads 1)" was said: now which redsim wrote it and the way on."""
+    import shutil
+
+    from redsim import pretrained
+    from redsim.subspace.checkpoint import FORMAT_VERSION
+
+    shipped = pretrained.path("mini_chain")
+    doc = json.loads(shipped.with_suffix(".json").read_text())
+    for version, expected in (
+        (FORMAT_VERSION + 1, "written by a newer redsim; upgrade redsim"),
+        (
+            FORMAT_VERSION - 1,
+            f"written by an older redsim; fit it again with the command it records ({doc['command']})",
+        ),
+        (None, "not a redsim checkpoint's metadata"),
+    ):
+        shutil.copy(shipped, tmp_path / "v.pt")
+        (tmp_path / "v.json").write_text(json.dumps(doc | {"format_version": version}))
+        for command, out_file in (("inspect", None), ("sample", "s.npz"), ("animate", "a.gif")):
+            argv = [command, str(tmp_path / "v.pt")] + ([] if out_file is None else ["--out", str(tmp_path / out_file)])
+            code, out, err = cli(*argv)
+            assert code == 2 and out == "" and err.count("\n") == 1 and expected in err, (command, err)
+
+
 def test_simulate_refuses_a_time_step_whose_square_overflows(cli: Cli) -> None:
     code, out, err = cli("simulate", "mini_chain", "--steps", "1", "--dt", "1e200")  # an OverflowError traceback
     assert code == 2 and out == "" and "--dt must be a finite number" in err

@@ -211,11 +211,21 @@ def read_metadata(path: str | Path) -> dict[str, Any]:
     if not isinstance(doc, dict):  # valid JSON, but no checkpoint's (a list, null, a string)
         raise CheckpointError(f"metadata is not a JSON object (got {type(doc).__name__})", str(meta))
     if doc.get("format_version") != FORMAT_VERSION:
-        raise CheckpointError(
-            f"unsupported format_version {doc.get('format_version')!r} (this redsim reads {FORMAT_VERSION})",
-            str(meta),
-        )
+        raise CheckpointError(_format_version_error(doc), str(meta))
     return doc
+
+
+def _format_version_error(doc: dict[str, Any]) -> str:
+    """What a metadata document of another (or no) ``format_version`` is, and what to do about it."""
+    version = doc.get("format_version")
+    said = f"unsupported format_version {version!r} (this redsim reads {FORMAT_VERSION})"
+    if isinstance(version, int) and not isinstance(version, bool) and version > FORMAT_VERSION:
+        return f"{said}: written by a newer redsim; upgrade redsim to read it"
+    if isinstance(version, int) and not isinstance(version, bool):
+        command = doc.get("command")
+        again = f" ({command})" if isinstance(command, str) else ""
+        return f"{said}: written by an older redsim; fit it again with the command it records{again}"
+    return f"{said}: not a redsim checkpoint's metadata; give a fit's STEM.pt (STEM.json beside it)"
 
 
 def scene_record(scene: Scene) -> str:
