@@ -751,6 +751,34 @@ def test_a_checkpoint_of_another_format_version_says_what_wrote_it_and_what_to_d
             assert code == 2 and out == "" and err.count("\n") == 1 and expected in err, (command, err)
 
 
+def test_sample_and_animate_report_states_that_are_not_finite(
+    cli: Cli, tmp_path: Path, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    """A map whose output is NaN: sample exited 3 without a word (and --meshes ended in a ValueError traceback),
+    animate ended in animate_states' ValueError traceback. Now a stderr line each, exit 3, and no GIF."""
+    import redsim.cli.subspaces as commands
+    from redsim import pretrained
+
+    real = commands.load_checkpoint
+
+    def poisoned(path: str) -> tuple:
+        scene, sub = real(path)
+        with torch.no_grad():
+            for weights in sub.parameters():
+                weights.fill_(float("nan"))
+        return scene, sub
+
+    monkeypatch.setattr(commands, "load_checkpoint", poisoned)
+    shipped = str(pretrained.path("mini_chain"))
+    states, meshes = tmp_path / "s.npz", tmp_path / "m"
+    code, _, err = cli("sample", shipped, "-n", "2", "--out", str(states), "--meshes", str(meshes))
+    assert code == 3 and "2 of 2 sampled states are NaN or inf" in err and "Traceback" not in err, err
+    assert states.is_file() and not list(meshes.glob("*.ply"))
+    gif = tmp_path / "a.gif"
+    code, _, err = cli("animate", shipped, "--frames", "4", "--out", str(gif))
+    assert code == 3 and err.count("\n") == 1 and "4 of 4 frames are NaN or inf" in err and not gif.exists(), err
+
+
 def test_simulate_refuses_a_time_step_whose_square_overflows(cli: Cli) -> None:
     code, out, err = cli("simulate", "mini_chain", "--steps", "1", "--dt", "1e200")  # an OverflowError traceback
     assert code == 2 and out == "" and "--dt must be a finite number" in err

@@ -381,13 +381,15 @@ def cmd_sample(args: argparse.Namespace) -> int:
                 np.savez_compressed(file, **fields)
 
         write_atomically(path, save)  # Ctrl-C while writing leaves the states.npz there before, not a broken one
+    finite_rows = torch.isfinite(q).all(dim=1)
+    finite = bool(finite_rows.all())
     meshes = []
     if args.meshes:
         from redsim.render import export_meshes
 
         for i in range(args.n):
-            meshes += export_meshes(scene, q[i], args.meshes, i)
-    finite = bool(torch.isfinite(q).all())
+            if finite_rows[i]:  # a state that is not finite has no mesh (export_meshes raised, a traceback)
+                meshes += export_meshes(scene, q[i], args.meshes, i)
     summary = {"out": None if path is None else str(path), "count": args.n, "n": scene.free_dof_count, "finite": finite}
     summary["meshes"] = [str(m) for m in meshes]
     if args.json:
@@ -397,6 +399,13 @@ def cmd_sample(args: argparse.Namespace) -> int:
             out(f"wrote {args.n} states of {scene.name} (q: [{args.n}, {scene.free_dof_count}], full x too) to {path}")
         if meshes:
             out(f"wrote {len(meshes)} meshes (.ply, faces included) to {args.meshes}")
+    if not finite:
+        bad = (~finite_rows).nonzero().flatten().tolist()
+        warn(
+            f"{len(bad)} of {args.n} sampled states are NaN or inf (the map's output; first: sample {bad[0]})"
+            + ("; the .npz holds them as they are" if path is not None else "")
+            + ("; they have no meshes" if args.meshes else "")
+        )
     return EXIT_OK if finite else EXIT_NAN
 
 
@@ -420,6 +429,10 @@ def cmd_animate(args: argparse.Namespace) -> int:
     z = catmull_rom_loop(keys, args.frames)
     with torch.no_grad():
         q = sub(z, None if cond is None else cond[:1].expand(args.frames, -1)).double()
+    bad = (~torch.isfinite(q).all(dim=1)).nonzero().flatten().tolist()
+    if bad:  # animate_states refuses them (a ValueError traceback)
+        error(f"{len(bad)} of {args.frames} frames are NaN or inf (the map's output; first: frame {bad[0]}); no GIF")
+        return EXIT_NAN
     path = animate_states(scene, list(q), args.out, fps=args.fps)
     if args.json:
         json_out({"out": str(path), "frames": args.frames, "keys": keys.tolist()})
@@ -502,7 +515,12 @@ def add_commands(sub: Any) -> None:
     p.add_argument("checkpoint", help="path to X.pt (X.json beside it)")
     finish_command(p, cmd_inspect, "print one JSON document", threads=False)
 
-    p = sub.add_parser("sample", help="export states sampled from a subspace (z ~ N(0, I))")
+    p = sub.add_parser(
+        "sample",
+        help="export states sampled from a subspace (z ~ N(0, I))",
+        epilog="Exit status: 0 done, 2 bad input, 3 a sampled state is NaN or inf (warned; written to the .npz as it "
+        "is, no mesh for it).",
+    )
     p.add_argument("checkpoint", help="path to X.pt")
     p.add_argument("-n", type=int, default=1000, help="number of states (default 1000)")
     p.add_argument("--seed", type=non_negative_seed, default=0, help="sampling seed (default 0)")
@@ -518,7 +536,11 @@ def add_commands(sub: Any) -> None:
     )
     finish_command(p, cmd_sample, "print one JSON summary")
 
-    p = sub.add_parser("animate", help="GIF of a cyclic Catmull-Rom keyframe loop in latent space")
+    p = sub.add_parser(
+        "animate",
+        help="GIF of a cyclic Catmull-Rom keyframe loop in latent space",
+        epilog="Exit status: 0 done, 2 bad input, 3 a frame is NaN or inf (no GIF written).",
+    )
     p.add_argument("checkpoint", help="path to X.pt")
     p.add_argument("--keys", type=int, default=4, help="number of random latent keyframes (default 4)")
     p.add_argument("--frames", type=int, default=48, help="frames in the loop (default 48)")
