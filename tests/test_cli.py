@@ -371,7 +371,7 @@ def test_bench_energy_reports_a_scene_that_raises_and_keeps_rows_at_ctrl_c(
     )
     broken = (redsim.scenes.build("mini_chain").free_dof_count, RuntimeError("no energy"))
     code, out, err = run(capsys, *argv)
-    assert code == 1 and "mini_chain               failed: RuntimeError: no energy" in out and f"\n{TOY} " in out, err
+    assert code == 1 and "failed: mini_chain: RuntimeError: no energy" in out and f"\n{TOY} " in out, err
     code, out, err = run(capsys, *argv, "--json")
     report = json.loads(out)
     assert code == 1 and report["failed"] == [{"scene": "mini_chain", "error": "RuntimeError: no energy"}]

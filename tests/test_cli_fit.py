@@ -448,3 +448,45 @@ def test_a_fit_that_runs_away_is_warned_about(capsys: pytest.CaptureFixture[str]
     argv = ["fit", "toy_tiny_bar_2d", "--sigma", "100", "--lr", "1", "--steps", "60", "--out", str(tmp_path / "r")]
     code, _, err = run(capsys, *argv)
     assert code == 0 and "as far as sigma (100) asks, at a final energy of" in err and "smaller --lr" in err, err
+
+
+def test_bench_subspace_and_fit_report_a_scene_that_raises_and_keep_rows_at_ctrl_c(
+    capsys: pytest.CaptureFixture[str], monkeypatch: pytest.MonkeyPatch, tmp_path
+) -> None:
+    """A scene that raised ended bench subspace / bench fit in a traceback, losing the other scenes, and Ctrl-C lost
+    the JSON document: now the scene is a ``failed`` line (exit 1), and Ctrl-C prints the finished ones (exit 130)."""
+    import redsim.bench
+
+    def failing(real, error_on):
+        def bench(scene, *args, **kwargs):
+            if scene.name in error_on:
+                raise error_on[scene.name]
+            return real(scene, *args, **kwargs)
+
+        return bench
+
+    real = redsim.bench.compare_subspaces
+    argv = ["bench", "subspace", "--scenes", "mini_chain,klann", "--loads", "0", "--samples", "8"]
+    argv += ["--checkpoints", str(tmp_path)]
+    monkeypatch.setattr(redsim.bench, "compare_subspaces", failing(real, {"mini_chain": RuntimeError("boom")}))
+    code, out, err = run(capsys, *argv)
+    assert code == 1 and "failed: mini_chain: RuntimeError: boom" in out and "klann  n=60" in out, err
+    assert "bench subspace: 1 scene(s) failed (mini_chain); the others ran" in err
+    monkeypatch.setattr(redsim.bench, "compare_subspaces", failing(real, {"klann": KeyboardInterrupt()}))
+    code, out, err = run(capsys, *argv, "--json")
+    doc = json.loads(out)
+    assert code == 130 and doc["interrupted"] and [r["scene"] for r in doc["rows"]] == ["mini_chain"], err
+
+    timing = {"median_s": 1e-3, "startup_s": 0.5, "graphs_compiled_timed": 0}
+    fake = {variant: timing for variant in ("eager", "fused", "compiled_fused")}
+    argv = ["bench", "fit", "--scenes", "toy_two_tets,mini_chain", "--steps", "1", "--warmup", "1"]
+    errors = {"toy_two_tets": RuntimeError("no fit")}
+    monkeypatch.setattr(redsim.bench, "bench_fit_variants", failing(lambda *a, **k: fake, errors))
+    code, out, err = run(capsys, *argv, "--json")
+    doc = json.loads(out)
+    assert code == 1 and doc["failed"] == [{"scene": "toy_two_tets", "error": "RuntimeError: no fit"}], err
+    assert [r["scene"] for r in doc["rows"]] == ["mini_chain"] and not doc["interrupted"]
+    errors["mini_chain"] = KeyboardInterrupt()
+    code, out, err = run(capsys, *argv)
+    assert code == 130 and "failed: toy_two_tets: RuntimeError: no fit" in out, err
+    assert out.rstrip().endswith("interrupted: the scenes finished before it")

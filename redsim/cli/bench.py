@@ -41,6 +41,7 @@ from redsim.cli.common import (
 from redsim.cli.common import (
     machine_line as _machine_line,
 )
+from redsim.cli.scene_runs import run_scenes
 
 
 def cmd_bench_subspace(args: argparse.Namespace) -> int:
@@ -57,10 +58,8 @@ def cmd_bench_subspace(args: argparse.Namespace) -> int:
     if args.samples < 1 or args.loads < 0:
         raise CliError(f"--samples must be >= 1 and --loads >= 0, got {args.samples} and {args.loads}")
     folder = _checkpoint_folder(args)
-    rows = []
-    if not args.json:
-        out(_machine_line(machine_info(), "cpu"))  # the metrics are deterministic; the fits' times are not
-    for name, make in scenes:
+    planned = []
+    for name, make in scenes:  # every scene's fit settings refused, if they are, before any fit runs
         scene = make()
         overrides = {} if args.steps is None else {"steps": args.steps}
         try:
@@ -72,6 +71,13 @@ def cmd_bench_subspace(args: argparse.Namespace) -> int:
                 f"{name}: its fit has d = {config.latent_dim} latents (its preset's, or FitConfig's default) and the "
                 f"scene n = {scene.free_dof_count} free DOFs; the modal baselines need d <= n: bench a larger scene"
             )
+        planned.append((name, (scene, config)))
+    rows: list[dict[str, Any]] = []
+    if not args.json:
+        out(_machine_line(machine_info(), "cpu"))  # the metrics are deterministic; the fits' times are not
+
+    def run(name: str, item: tuple[Any, Any]) -> None:
+        scene, config = item
         stem = folder / (name if args.steps is None else f"{name}_s{args.steps}")
         shipped = [pretrained.path(name)] if args.steps is None and name in pretrained.names() else []
         with quiet_low_stretch():  # said below in one line, as redsim fit says it
@@ -107,9 +113,11 @@ def cmd_bench_subspace(args: argparse.Namespace) -> int:
         rows.append(row)
         if not args.json:
             out(_subspace_row(row))
+
+    runs = run_scenes("bench subspace", planned, run, text=not args.json)
     if args.json:
-        json_out({"machine": machine_info(), "rows": rows})
-    return EXIT_OK
+        json_out({"machine": machine_info(), "rows": rows, **runs.fields()})
+    return runs.status()
 
 
 def _metric(result: dict[str, Any], *path: str) -> float | None:
@@ -197,33 +205,25 @@ def cmd_bench_energy(args: argparse.Namespace) -> int:
         out(header + "  repeats")
         out("-" * (len(header) + 9))
     results: list[dict[str, Any]] = []
-    failed: list[dict[str, str]] = []  # the scenes that raised: the others run, and the command fails at the end
-    interrupted = False
-    try:
-        for name, make in scenes:
-            try:
-                base = make()
-                row = [
-                    bench_energy(
-                        base.to(args.device, DTYPES[dtype]),
-                        batch,
-                        args.repeats,
-                        time_budget=args.budget,
-                        perturbation=args.perturbation,
-                    )
-                    for dtype, batch in columns
-                ]
-            except Exception as err:  # reported in its row and the exit status, not a traceback
-                failed.append({"scene": name, "error": f"{type(err).__name__}: {err}"})
-                if not args.json:
-                    out(f"{name:<24} failed: {failed[-1]['error']}")
-                continue
-            results += row
-            if not args.json:
-                cells = " ".join(f"{1e3 * r['median_s']:>12.3g}" for r in row)
-                out(f"{name:<24} {base.free_dof_count:>8} {cells}  {min(r['repeats'] for r in row)}")
-    except KeyboardInterrupt:  # Ctrl-C: the scenes finished before it are printed (text: already), then exit 130
-        interrupted = True
+
+    def run(name: str, make: Any) -> None:
+        base = make()
+        row = [
+            bench_energy(
+                base.to(args.device, DTYPES[dtype]),
+                batch,
+                args.repeats,
+                time_budget=args.budget,
+                perturbation=args.perturbation,
+            )
+            for dtype, batch in columns
+        ]
+        results.extend(row)
+        if not args.json:
+            cells = " ".join(f"{1e3 * r['median_s']:>12.3g}" for r in row)
+            out(f"{name:<24} {base.free_dof_count:>8} {cells}  {min(r['repeats'] for r in row)}")
+
+    runs = run_scenes("bench energy", scenes, run, text=not args.json)
     if args.json:
         json_out(
             {
@@ -232,17 +232,10 @@ def cmd_bench_energy(args: argparse.Namespace) -> int:
                 "repeats": args.repeats,
                 "perturbation": args.perturbation,
                 "results": results,
-                "failed": failed,
-                "interrupted": interrupted,
+                **runs.fields(),
             }
         )
-    if interrupted:
-        warn("interrupted: the table has the scenes finished before it")
-        return EXIT_INTERRUPTED
-    if failed:
-        error(f"bench energy: {len(failed)} scene(s) failed ({', '.join(f['scene'] for f in failed)}); the others ran")
-        return EXIT_SCENE_FAILED
-    return EXIT_OK
+    return runs.status()
 
 
 def cmd_bench_step(args: argparse.Namespace) -> int:
@@ -295,54 +288,59 @@ def cmd_bench_step(args: argparse.Namespace) -> int:
     if args.hessians is not None:
         return _bench_step_hessians(args, names, batches, machine)
     rows: list[dict[str, Any]] = []
-    failed: list[dict[str, str]] = []  # the scenes that raised: the others run, and the command fails at the end
-    interrupted = False
-    try:
-        for name in names:
-            scene = build_scene(name)
-            try:
-                row = bench_step(
-                    scene,
-                    pretrained.load(name, scene),
-                    dt=args.dt,
-                    batches=batches,
-                    steps=args.steps,
-                    reference_steps=min(args.reference_steps, args.steps),
-                    compiled=not args.no_compile,
-                    device=args.device,
-                    seed=args.seed,
-                    rounds=args.rounds,
-                    dense=args.dense,
-                    baseline=baseline,
-                )
-            except Exception as err:  # reported below the table and in the exit status, not a traceback
-                failed.append({"scene": name, "error": f"{type(err).__name__}: {err}"})
-                warn(f"bench step: {name} failed: {failed[-1]['error']}")
-                continue
-            rows.append(row)
-            if not args.json:
-                out(f"{name}: done")
-    except KeyboardInterrupt:  # Ctrl-C: the scenes finished before it are printed (no MuJoCo rows), then exit 130
-        interrupted = True
-    mujoco = [] if interrupted else mujoco_rows()
+
+    def run(name: str, _: None) -> None:
+        scene = build_scene(name)
+        rows.append(
+            bench_step(
+                scene,
+                pretrained.load(name, scene),
+                dt=args.dt,
+                batches=batches,
+                steps=args.steps,
+                reference_steps=min(args.reference_steps, args.steps),
+                compiled=not args.no_compile,
+                device=args.device,
+                seed=args.seed,
+                rounds=args.rounds,
+                dense=args.dense,
+                baseline=baseline,
+            )
+        )
+        if not args.json:
+            out(f"{name}: done")
+
+    runs = run_scenes("bench step", [(name, None) for name in names], run, text=not args.json)
+    mujoco = [] if runs.interrupted else mujoco_rows()  # measured after the scenes: not after a Ctrl-C
+    nonfinite, diverged = _step_failures(rows)
     if args.json:
         doc = {"machine": machine, "dt": args.dt, "rows": rows, "mujoco": mujoco}
-        json_out({**doc, "failed": failed, "interrupted": interrupted})
+        json_out({**doc, **runs.fields(), "nonfinite": nonfinite, "diverged": diverged})
     else:
         out(_machine_line(machine, args.device))
         for line in step_table(rows, mujoco, args.dt):
             out(line)
-        for item in failed:
-            out(f"failed: {item['scene']}: {item['error']}")
-        if interrupted:
-            out("interrupted: the scenes finished before it")
-    if interrupted:
-        warn("interrupted: the table has the scenes finished before it")
-        return EXIT_INTERRUPTED
-    if failed:
-        error(f"bench step: {len(failed)} scene(s) failed ({', '.join(f['scene'] for f in failed)}); the others ran")
-        return EXIT_SCENE_FAILED
-    return EXIT_OK
+        for line in [*nonfinite, *diverged]:
+            out(f"failed: {line}")
+    if nonfinite or diverged:  # the table is printed; the command fails, for scripts and CI
+        error("; ".join([*nonfinite, *diverged]))
+    return runs.status(EXIT_NAN if nonfinite else EXIT_FAILED_STEP if diverged else EXIT_OK)
+
+
+def _step_failures(rows: list[dict[str, Any]]) -> tuple[list[str], list[str]]:
+    """What fails `bench step` in its finished ``rows``: a non-finite one-step or rollout error (exit 3), and the
+    paths and batch sizes whose solves diverged (rejected steps; exit 4), one line each."""
+    nonfinite, diverged = [], []
+    for row in rows:
+        for key in ("step_error", "trajectory_error"):
+            if key in row and not math.isfinite(row[key]):
+                nonfinite.append(f"{row['scene']}: {key.replace('_', ' ')} is {row[key]} (a non-finite state)")
+        for label in ("eager", "cold", "compiled", "dense", "dense-cmp"):
+            for b, result in row.get(label, {}).items():
+                if result.get("diverged_fraction", 0.0) > 0.0:
+                    share = 100 * result["diverged_fraction"]
+                    diverged.append(f"{row['scene']}: {label} B={b}: {share:.3g}% of the steps diverged (rejected)")
+    return nonfinite, diverged
 
 
 def _bench_step_hessians(
@@ -412,8 +410,9 @@ def cmd_bench_fit(args: argparse.Namespace) -> int:
         header += f" {'compile s':>10}"
         out(header)
         out("-" * len(header))
-    rows = []
-    for name, scene in built:
+    rows: list[dict[str, Any]] = []
+
+    def run(name: str, scene: Any) -> None:
         config = FitConfig(**{**preset(name), "batch_size": args.batch, "device": args.device})
         row = bench_fit_variants(scene, config, steps=args.steps, warmup=args.warmup, rounds=args.rounds)
         rows.append({"scene": name, "n": scene.free_dof_count, "variants": row})
@@ -426,14 +425,16 @@ def cmd_bench_fit(args: argparse.Namespace) -> int:
         recompiled = row["compiled_fused"]["graphs_compiled_timed"]
         if recompiled:
             warn(f"{name}: {recompiled} graph(s) were compiled during the timed steps (recompilation)")
+
+    runs = run_scenes("bench fit", built, run, text=not args.json)
     if args.json:
-        json_out({"machine": machine, "device": args.device, "rows": rows})
+        json_out({"machine": machine, "device": args.device, "rows": rows, **runs.fields()})
     else:
         out(
             "x: speed-up over eager (plain Adam); compile s: first compiled step minus a warm one "
             "(the first compiled scene also pays torch.compile's start-up)"
         )
-    return EXIT_OK
+    return runs.status()
 
 
 def cmd_bench_accuracy(args: argparse.Namespace) -> int:
@@ -462,6 +463,7 @@ def cmd_bench_accuracy(args: argparse.Namespace) -> int:
             raise CliError(f"{flag} must be from {', '.join(valid)}{extra}; got {', '.join(unknown)}")
     if args.steps < 10:
         raise CliError(f"--steps must be >= 10, got {args.steps}")
+    _accuracy_unused(args, scenarios)
     if checkpoint:  # a user's map (a mesh scene's too): the scene its .json records, pushed as below
         scene, neural = load_checkpoint(args.scene)
         path = checkpoint_path(args.scene, ".pt")
@@ -517,6 +519,24 @@ def cmd_bench_accuracy(args: argparse.Namespace) -> int:
         warn("interrupted: the tables have the rows finished before it")
         return EXIT_INTERRUPTED
     return status
+
+
+def _accuracy_unused(args: argparse.Namespace, scenarios: tuple[str, ...]) -> None:
+    """Refuse the options of ``bench accuracy`` that no chosen mode uses (they would be ignored); set the defaults of
+    ``--seed`` (0) and ``--checkpoints`` (subspaces), which are None on the command line so that a given one is seen."""
+    unused = [
+        f"{flag} ({why})"
+        for flag, given, why in (
+            ("--seed", args.seed is not None and "actions" not in scenarios, "it seeds the actions scenario"),
+            ("--no-study", args.no_study and "push" not in scenarios, "the start study runs on the push scenario"),
+            ("--checkpoints", args.checkpoints is not None and args.dims is None, "it keeps the --dims fits"),
+        )
+        if given
+    ]
+    if unused:
+        raise CliError(f"no chosen mode uses {', '.join(unused)}: drop it, or add what uses it")
+    args.seed = 0 if args.seed is None else args.seed
+    args.checkpoints = "subspaces" if args.checkpoints is None else args.checkpoints
 
 
 def _accuracy_dims(args: argparse.Namespace, n: int) -> tuple[int, ...] | None:
@@ -992,7 +1012,7 @@ def add_commands(sub: Any) -> Any:
     )
     p.add_argument("--steps", type=int, default=100, help="steps per scenario, >= 10 (default 100)")
     p.add_argument("--scenarios", default="push,actions", help="push and/or actions (default both)")
-    p.add_argument("--seed", type=non_negative_seed, default=0, help="seed of the actions scenario (default 0)")
+    p.add_argument("--seed", type=non_negative_seed, help="seed of the actions scenario (default 0)")
     p.add_argument(
         "--full",
         default="tol,newton1,newton3,dt2,dt5",
@@ -1007,9 +1027,7 @@ def add_commands(sub: Any) -> Any:
         "neural map at its d, else DIR/SCENE_dD.pt, fitted with the scene's preset into --checkpoints when missing "
         "(into DIR/SCENE_dD_KEY.pt where DIR/SCENE_dD.pt is another fit, as in bench subspace)",
     )
-    p.add_argument(
-        "--checkpoints", default="subspaces", metavar="DIR", help="where --dims fits are kept (default subspaces)"
-    )
+    p.add_argument("--checkpoints", metavar="DIR", help="where --dims fits are kept (default subspaces)")
     p.add_argument(
         "--fit-steps",
         type=int,

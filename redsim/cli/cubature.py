@@ -25,6 +25,7 @@ from redsim.cli.common import (
     warn,
     write_error,
 )
+from redsim.cli.scene_runs import run_scenes
 
 TOL_ELEMENTS = 1000
 """Most elements per effect with ``--tol``."""
@@ -184,7 +185,23 @@ def cmd_bench_cubature(args: argparse.Namespace) -> int:
             raise CliError("--compile times the benched scenes' cubature step; the --sweep has no compiled column")
         if args.cubature:
             raise CliError("--cubature benches one scene's cubature; the --sweep fits none (unfitted maps)")
+        unused = [
+            flag
+            for flag, given in (
+                ("SCENES", args.scenes is not None),
+                ("--checkpoints", args.checkpoints is not None),
+                ("--steps", args.steps != 100),
+                ("--states", args.states != 8),
+                ("--warmup-steps", args.warmup_steps is not None),
+                ("--dtype", args.dtype != "float32"),
+            )
+            if given
+        ]
+        if unused:  # the sweep times steps of unfitted hanging_sheet maps only: these would be ignored
+            raise CliError(f"--sweep times the step only (hanging_sheet, unfitted maps): drop {', '.join(unused)}")
         return _sweep(args)
+    if args.batch_max_n is not None:
+        raise CliError("--batch-max-n limits the --sweep's all-element step: add --sweep C1,C2 or drop it")
     if args.compile:
         from redsim.runtime.stepper import check_compiler
 
@@ -229,13 +246,14 @@ def cmd_bench_cubature(args: argparse.Namespace) -> int:
             + (f"after {warmup} all-element steps under the loads" if warmup else "from rest")
         )
         out(machine_line(machine, "cpu"))
-    for name in names:
-        weights, scene, subspace, cub, path = loaded[name]
+
+    def run(name: str, item: tuple[Any, ...]) -> None:
+        weights, scene, subspace, cub, path = item
         if cub is None:
             try:
                 cub = build_cubature(scene, subspace, CubatureConfig(elements=args.elements))
-            except ValueError as err:  # an NNLS out of iterations: fewer --elements
-                raise CliError(f"{weights}: {err}") from err
+            except ValueError as err:  # an NNLS out of iterations: fewer --elements (this scene's row fails)
+                raise ValueError(f"{shown_path(weights)}: {err}") from err
         result = {"checkpoint": str(weights), "cubature": None if path is None else str(path)} | bench_cubature(
             scene,
             subspace,
@@ -277,8 +295,10 @@ def cmd_bench_cubature(args: argparse.Namespace) -> int:
                 + f"; penetration {result['penetration_all_m']:.2g} -> {result['penetration_cubature_m']:.2g} m; "
                 f"{times}"
             )
+
+    runs = run_scenes("bench cubature", loaded.items(), run, text=not args.json)
     if args.json:
-        json_out({"machine": machine, "results": results})
+        json_out({"machine": machine, "results": results, **runs.fields()})
     diverged = [
         f"{r['scene']}: {r['flags']['all']['diverged']} (all elements) and {r['flags']['cubature']['diverged']} "
         f"(cubature) of {args.states * args.steps} state-steps"
@@ -290,8 +310,7 @@ def cmd_bench_cubature(args: argparse.Namespace) -> int:
             "diverged accuracy steps (rejected: the state stays, so the deviation measures a stalled rollout) in "
             + "; ".join(diverged)
         )
-        return EXIT_FAILED_STEP
-    return EXIT_OK
+    return runs.status(EXIT_FAILED_STEP if diverged else EXIT_OK)
 
 
 def _cubature_source(given: str | None, names: list[str], named: bool) -> Path | None:

@@ -114,6 +114,18 @@ def test_cli_refuses_bad_input(cli) -> None:
     assert code == 2 and "--scenarios must be from push, actions; got pull" in err, err
 
 
+def test_cli_refuses_options_no_chosen_mode_uses(cli, tmp_path) -> None:
+    """--seed without the actions scenario, --no-study without push and --checkpoints without --dims were ignored."""
+    argv = ("bench", "accuracy", "mini_chain", "--steps", "10", "--full", "none")
+    for given, named in (
+        (("--scenarios", "push", "--seed", "3"), "--seed (it seeds the actions scenario)"),
+        (("--scenarios", "actions", "--no-study"), "--no-study (the start study runs on the push scenario)"),
+        (("--scenarios", "push", "--checkpoints", str(tmp_path)), "--checkpoints (it keeps the --dims fits)"),
+    ):
+        code, out, err = cli(*argv, *given)
+        assert code == 2 and out == "" and f"no chosen mode uses {named}: drop it" in err, (given, err)
+
+
 @pytest.mark.filterwarnings("ignore:torch.float32 at dt")  # the toy cloth's loads are below float32's resolution
 def test_a_checkpoint_of_any_scene_is_benched_as_the_reach_task_pushes_it(cli, tmp_path) -> None:
     """A user's map (a mesh scene's too) against the full space of the scene its .json records: how a short fit

@@ -733,6 +733,43 @@ def test_bench_cubature_in_float64(cli, mini_chain) -> None:
     assert result["dtype"] == "float64" and result["trajectory_deviation"] >= 0.0
 
 
+def test_bench_cubature_reports_a_scene_that_raises_and_keeps_rows_at_ctrl_c(cli, monkeypatch) -> None:
+    """A scene whose bench raised ended the command in a traceback (the other scenes lost), and Ctrl-C lost the JSON
+    document: now the scene is a ``failed`` line (exit 1), and Ctrl-C prints the finished scenes (exit 130)."""
+    import json
+
+    from redsim.cubature import bench
+
+    real = bench.bench_cubature
+    errors: dict[str, BaseException] = {"mini_chain": RuntimeError("no step")}
+
+    def bench_cubature(scene, *args, **kwargs):
+        if scene.name in errors:
+            raise errors[scene.name]
+        return real(scene, *args, **kwargs)
+
+    monkeypatch.setattr(bench, "bench_cubature", bench_cubature)
+    argv = ("bench", "cubature", "mini_chain,klann", "--steps", "2", "--batches", "1", "--timed-steps", "2")
+    code, out, err = cli(*argv, "--elements", "4")
+    assert code == 1 and "failed: mini_chain: RuntimeError: no step" in out and "\nklann (" in out, err
+    assert "bench cubature: 1 scene(s) failed (mini_chain); the others ran" in err
+    errors.update(mini_chain=KeyboardInterrupt())
+    code, out, err = cli(*argv, "--elements", "4", "--json")
+    doc = json.loads(out)
+    assert code == 130 and doc["interrupted"] and doc["results"] == [] and doc["failed"] == [], err
+
+
+def test_bench_cubature_refuses_options_the_sweep_or_the_scenes_do_not_use(cli) -> None:
+    """--sweep ignored the scenes, --checkpoints, --steps, --states, --warmup-steps and --dtype, and the scenes' bench
+    ignored --batch-max-n; each exited 0 as if it had been used."""
+    code, out, err = cli("bench", "cubature", "--sweep", "4", "--warmup-steps", "3", "--states", "2")
+    assert code == 2 and out == "" and "--sweep times the step only" in err and "drop --states, --warmup-steps" in err
+    code, out, err = cli("bench", "cubature", "mini_chain", "--sweep", "4")
+    assert code == 2 and "drop SCENES" in err, err
+    code, out, err = cli("bench", "cubature", "mini_chain", "--batch-max-n", "3")
+    assert code == 2 and out == "" and "--batch-max-n limits the --sweep's all-element step" in err, err
+
+
 @pytest.mark.slow
 def test_bench_cubature_times_the_compiled_cubature_step_on_request(cli, mini_chain, monkeypatch) -> None:
     """``--compile`` adds the cubature step with compile="dynamic" (its compiling first steps untimed); the sweep

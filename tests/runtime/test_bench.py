@@ -189,3 +189,40 @@ def test_ctrl_c_prints_the_scenes_finished_before_it_and_exits_130(
     code = main([*STEP_ARGV, "--no-compile", "--json"])
     report = json.loads(capsys.readouterr().out)
     assert code == 130 and report["interrupted"] and [r["scene"] for r in report["rows"]] == ["mini_chain"]
+
+
+def test_a_non_finite_error_or_a_diverged_solve_fails_the_command(
+    capsys: pytest.CaptureFixture[str], monkeypatch: pytest.MonkeyPatch
+) -> None:
+    """A rollout whose error read nan, or whose solves diverged, exited 0 with the table: now 3 and 4 (as bench
+    stability and bench accuracy: non-finite 3, failed steps 4), each named under the table and in the JSON."""
+    import redsim.runtime.bench as bench
+
+    real = bench.bench_step
+
+    def broken(change):
+        def bench_step(scene, subspace, **kwargs):
+            row = real(scene, subspace, **kwargs)
+            if scene.name == "klann":
+                change(row)
+            return row
+
+        return bench_step
+
+    def nan_rollout(row):
+        row["trajectory_error"] = float("nan")
+
+    def diverged(row):
+        row["cold"]["1"]["diverged_fraction"] = 0.5
+
+    argv = [*STEP_ARGV, "--no-compile"]
+    monkeypatch.setattr(bench, "bench_step", broken(nan_rollout))
+    code = main(argv)
+    out, err = capsys.readouterr()
+    assert code == 3, err
+    assert "mini_chain " in out and "failed: klann: trajectory error is nan (a non-finite state)" in out
+    monkeypatch.setattr(bench, "bench_step", broken(diverged))
+    code = main([*argv, "--json"])
+    report = json.loads(capsys.readouterr().out)
+    assert code == 4 and [r["scene"] for r in report["rows"]] == ["mini_chain", "klann"]
+    assert report["nonfinite"] == [] and report["diverged"] == ["klann: cold B=1: 50% of the steps diverged (rejected)"]
