@@ -779,6 +779,20 @@ def test_sample_and_animate_report_states_that_are_not_finite(
     assert code == 3 and err.count("\n") == 1 and "4 of 4 frames are NaN or inf" in err and not gif.exists(), err
 
 
+def test_simulate_says_a_step_that_did_not_converge_once_not_also_in_the_log(
+    cli: Cli, caplog: pytest.LogCaptureFixture
+) -> None:
+    """Each such step was also a logged warning (one more stderr line per step, dated by the step's start time
+    where simulate numbers it by its end); -v keeps the log's lines."""
+    argv = ("simulate", "mini_chain", "--steps", "5", "--max-iter", "1", "--tol", "1e-14")
+    code, out, err = cli(*argv)
+    logged = [r for r in caplog.records if "did not converge" in r.getMessage()]
+    assert code == 0 and "NOT converged" in out and err.count("did not converge") == 1 and not logged, err
+    code, _, _ = cli("-v", *argv)
+    logged = [r for r in caplog.records if "did not converge" in r.getMessage()]
+    assert code == 0 and logged and all(r.name == "redsim.integrators.implicit_euler" for r in logged)
+
+
 def test_simulate_refuses_a_time_step_whose_square_overflows(cli: Cli) -> None:
     code, out, err = cli("simulate", "mini_chain", "--steps", "1", "--dt", "1e200")  # an OverflowError traceback
     assert code == 2 and out == "" and "--dt must be a finite number" in err

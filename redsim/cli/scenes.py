@@ -3,8 +3,11 @@
 from __future__ import annotations
 
 import argparse
+import contextlib
+import logging
 import math
 import time
+from collections.abc import Iterator
 from pathlib import Path
 from typing import Any
 
@@ -113,6 +116,27 @@ def _step_line(rec: dict[str, Any], steps: int) -> str:
     )
 
 
+class _NotConvergedFilter(logging.Filter):
+    def filter(self, record: logging.LogRecord) -> bool:
+        return "did not converge" not in record.getMessage()
+
+
+@contextlib.contextmanager
+def _said_here(*, verbose: bool) -> Iterator[None]:
+    """Drop the integrator's warning for a step that did not converge (unless ``-v``): simulate says it for every
+    step (its step line, ``--json``'s ``per_step``) and counts them in one warning; the log's line as well was one
+    more stderr line per step, dated by the step's start time where simulate numbers the step by its end."""
+    log = logging.getLogger("redsim.integrators.implicit_euler")
+    quiet = None if verbose else _NotConvergedFilter()
+    if quiet is not None:
+        log.addFilter(quiet)
+    try:
+        yield
+    finally:
+        if quiet is not None:
+            log.removeFilter(quiet)
+
+
 def cmd_simulate(args: argparse.Namespace) -> int:
     import torch
 
@@ -174,9 +198,10 @@ def cmd_simulate(args: argparse.Namespace) -> int:
     nan_step = failed_step = None
     for step in range(1, args.steps + 1):
         q_inertial = 2.0 * state.q - state.q_prev
-        start = time.perf_counter()
-        state, info = integ.step(state, loads=loads, cond=cond)
-        wall += time.perf_counter() - start
+        with _said_here(verbose=args.verbose):
+            start = time.perf_counter()
+            state, info = integ.step(state, loads=loads, cond=cond)
+            wall += time.perf_counter() - start
         finite = bool(torch.isfinite(state.q).all())
         rec = {
             "step": step,
