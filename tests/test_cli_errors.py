@@ -793,6 +793,29 @@ def test_simulate_says_a_step_that_did_not_converge_once_not_also_in_the_log(
     assert code == 0 and logged and all(r.name == "redsim.integrators.implicit_euler" for r in logged)
 
 
+def test_simulate_interrupted_sums_up_the_steps_done(cli: Cli, tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> None:
+    """Ctrl-C (or SIGTERM) in a long simulate lost every step's statistics and the picture; now the steps done are
+    summed up (--json: interrupted), drawn with --out, and the exit status is 130."""
+    from redsim.integrators import ImplicitEuler
+
+    real, calls = ImplicitEuler.step, []
+
+    def step(self, *args, **kwargs):
+        calls.append(1)
+        if len(calls) == 3:
+            raise KeyboardInterrupt
+        return real(self, *args, **kwargs)
+
+    monkeypatch.setattr(ImplicitEuler, "step", step)
+    code, out, err = cli("simulate", "mini_chain", "--steps", "10", "--out", str(tmp_path), "--json")
+    summary = json.loads(out)
+    assert code == 130 and summary["interrupted"] and summary["steps_run"] == 2 and len(summary["per_step"]) == 2
+    assert "interrupted after step 2 of 10" in err and (tmp_path / "mini_chain_start_end.png").is_file()
+    calls[:] = [1, 1]  # the first step interrupted: nothing to sum up
+    code, out, err = cli("simulate", "mini_chain", "--steps", "10")
+    assert code == 130 and err.strip() == "redsim: warning: interrupted", err
+
+
 def test_simulate_refuses_a_time_step_whose_square_overflows(cli: Cli) -> None:
     code, out, err = cli("simulate", "mini_chain", "--steps", "1", "--dt", "1e200")  # an OverflowError traceback
     assert code == 2 and out == "" and "--dt must be a finite number" in err

@@ -14,6 +14,7 @@ from typing import Any
 import redsim
 from redsim.cli.common import (
     EXIT_FAILED_STEP,
+    EXIT_INTERRUPTED,
     EXIT_NAN,
     EXIT_OK,
     EXIT_SCENE_FAILED,
@@ -196,12 +197,19 @@ def cmd_simulate(args: argparse.Namespace) -> int:
     q_last = q_start
     wall = 0.0
     nan_step = failed_step = None
+    interrupted = False
     for step in range(1, args.steps + 1):
         q_inertial = 2.0 * state.q - state.q_prev
-        with _said_here(verbose=args.verbose):
-            start = time.perf_counter()
-            state, info = integ.step(state, loads=loads, cond=cond)
-            wall += time.perf_counter() - start
+        try:
+            with _said_here(verbose=args.verbose):
+                start = time.perf_counter()
+                state, info = integ.step(state, loads=loads, cond=cond)
+                wall += time.perf_counter() - start
+        except KeyboardInterrupt:  # Ctrl-C or SIGTERM: the steps done are summed up, and drawn with --out
+            if not records:
+                raise
+            interrupted = True
+            break
         finite = bool(torch.isfinite(state.q).all())
         rec = {
             "step": step,
@@ -282,6 +290,7 @@ def cmd_simulate(args: argparse.Namespace) -> int:
         "nan_step": nan_step,
         "failed_step": failed_step,
         "failure": records[-1].get("failure"),
+        "interrupted": interrupted,
         "png": str(png) if png is not None else None,
         "meshes": [str(p) for p in mesh_paths],
         "per_step": records,
@@ -321,6 +330,9 @@ def cmd_simulate(args: argparse.Namespace) -> int:
             f"step {tunneled[0]}): a move longer than the contact is thick, which the penalty never felt, and "
             "solving it again within a trust radius did not catch it; reported (a smaller --dt resolves it)"
         )
+    if interrupted:
+        warn(f"interrupted after step {len(records)} of {args.steps}; the summary is of those steps")
+        return EXIT_INTERRUPTED
     if nan_step is not None:
         warn(f"step {nan_step} produced NaN or inf; stopped there")
         return EXIT_NAN
@@ -355,7 +367,8 @@ def add_commands(sub: Any) -> None:
         epilog=(
             "Exit status: 0 done (non-converged steps, and steps that gained energy, are warned about), 2 bad "
             "input, 3 NaN or inf, 4 a step failed (its forces moved a coordinate more than 10 scene sizes in one "
-            "step: loads or dt far beyond the scene)."
+            "step: loads or dt far beyond the scene), 130 interrupted (Ctrl-C or SIGTERM after the first step: "
+            "the steps done are summed up, and drawn with --out)."
         ),
     )
     add_scene_args(p)
