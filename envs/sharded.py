@@ -311,7 +311,10 @@ class ShardedVectorEnv(SharedCopies, VectorEnv):
 
         Raises:
             gymnasium.error.ResetNeeded: a copy was never reset (nor restored by :meth:`set_state`); the env stays open.
+            ClosedVectorEnvError: the env is closed (with or without a render mode, as the native env).
         """
+        if self.closed or not self._pipes:  # before the render mode's warning, which would not say why
+            raise ClosedVectorEnvError("this ShardedVectorEnv is closed")
         if self.render_mode != "rgb_array":
             gym.logger.warn(NO_RENDER_MODE)
             return None
@@ -499,7 +502,9 @@ class ShardedVectorEnv(SharedCopies, VectorEnv):
         deadline = None if timeout is None else time.monotonic() + timeout
         for shard, pipe in enumerate(self._pipes):
             if deadline is not None and not pipe.poll(max(0.0, deadline - time.monotonic())):
-                self._time_out(what, [i for i in range(shard, len(self._pipes)) if not self._pipes[i].poll(0)])
+                # this shard did not answer in time (an answer just past the deadline does not change that)
+                later = [i for i in range(shard + 1, len(self._pipes)) if not self._pipes[i].poll(0)]
+                self._time_out(what, [shard, *later], failures)
             try:
                 status, payload = pipe.recv()
             except (EOFError, OSError) as error:
@@ -527,8 +532,9 @@ class ShardedVectorEnv(SharedCopies, VectorEnv):
             raise ShardError(report)
         return answers
 
-    def _time_out(self, what: str | None, hung: Sequence[int]) -> NoReturn:
-        """Close the env and raise :class:`ShardTimeoutError`: the shards ``hung`` did not answer ``what``."""
+    def _time_out(self, what: str | None, hung: Sequence[int], failures: Sequence[str] = ()) -> NoReturn:
+        """Close the env and raise :class:`ShardTimeoutError`: the shards ``hung`` did not answer ``what``; the
+        ``failures`` of the shards that answered with an error before are kept in the message."""
         copies = [
             f"copy {start}" if size == 1 else f"copies {start}-{start + size - 1}"
             for start, size in zip(self.starts, self.sizes, strict=True)
@@ -539,7 +545,7 @@ class ShardedVectorEnv(SharedCopies, VectorEnv):
             f"the sharded env's {what} timed out after {self.timeout:g} s: {names} did not answer (a worker stuck in "
             "a solve, stopped or deadlocked); the workers were stopped and the env is closed (its shards may be out "
             "of step). Make the env again, with a longer timeout (None waits for ever) if a request can take this "
-            "long"
+            "long" + "".join(f"\nA worker failed before it: {failure}" for failure in failures)
         )
 
     def _abort(self) -> None:

@@ -364,3 +364,63 @@ def test_a_bad_timeout_is_refused_before_any_worker_starts(timeout: object) -> N
 def test_a_timeout_without_shards_is_refused() -> None:
     with pytest.raises(ValueError, match="shards=1 makes the native vector env"):  # no worker to wait for
         gym.make_vec("RedSim/MiniChain-v0", num_envs=2, vectorization_mode="vector_entry_point", timeout=5.0)
+
+
+class _Pipe:
+    """A worker's pipe as _gather sees it: ``polls`` answered in turn (the last one for ever), then ``answer``."""
+
+    def __init__(self, polls: list[bool], answer: object = ("ok", None)) -> None:
+        self.polls, self.answer = polls, answer
+
+    def poll(self, _timeout: float = 0.0) -> bool:
+        return self.polls.pop(0) if len(self.polls) > 1 else self.polls[0]
+
+    def recv(self) -> object:
+        return self.answer
+
+    def close(self) -> None:
+        pass
+
+
+class _Process:
+    pid, exitcode = 4321, None
+
+    def join(self, _timeout: float | None = None) -> None:
+        pass
+
+    def is_alive(self) -> bool:
+        return False
+
+
+class _Template:
+    def close(self) -> None:
+        pass
+
+
+def _gathering(pipes: list[_Pipe]) -> ShardedVectorEnv:
+    """A sharded env of one copy per pipe, its workers faked (no process starts), with timeout 1 s."""
+    venv = object.__new__(ShardedVectorEnv)
+    venv.sizes, venv.starts, venv.timeout = [1] * len(pipes), list(range(len(pipes))), 1.0
+    venv._pipes, venv._processes, venv.template, venv.closed = pipes, [_Process() for _ in pipes], _Template(), False
+    return venv
+
+
+def test_an_answer_just_past_the_deadline_still_names_its_shard() -> None:
+    """The shard whose poll ran out is named even where its answer lands before the hung shards are listed (it was
+    left out: "timed out after 1 s:  did not answer" named no shard)."""
+    venv = _gathering([_Pipe([True]), _Pipe([False, True])])  # shard 1: late by a hair, then readable
+    with pytest.raises(ShardTimeoutError, match=r"step timed out after 1 s: shard 1 \(copy 1, worker pid 4321\) did"):
+        venv._gather(what="step")
+    assert venv.closed
+
+
+def test_a_worker_error_before_a_timeout_is_kept_in_its_message() -> None:
+    """Shard 0 answered with its error, shard 1 never answered: the timeout's message kept shard 0's traceback (it
+    was dropped, and with it why the run went wrong)."""
+    failed = _Pipe([True], ("error", (None, "Traceback (most recent call last):\nValueError: boom")))
+    venv = _gathering([failed, _Pipe([False])])
+    with pytest.raises(ShardTimeoutError) as raised:
+        venv._gather(what="step")
+    message = str(raised.value)
+    assert "shard 1 (copy 1, worker pid 4321) did not answer" in message and "shard 0 (" not in message
+    assert message.endswith("A worker failed before it: shard 0:\nTraceback (most recent call last):\nValueError: boom")

@@ -579,6 +579,9 @@ def test_render_without_a_render_mode_warns_as_a_single_env_and_the_sync_env_do(
             assert venv.render() is None
         with pytest.warns(UserWarning, match="render_mode='rgb_array'"):
             assert venv.call("render") == (None, None)
+        venv.close()
+        with pytest.raises(gym.error.ClosedEnvironmentError, match="closed"):  # the sharded env warned, gave None
+            venv.render()
     finally:
         venv.close()
 
