@@ -355,10 +355,12 @@ def fem_scene_from_mesh(
     if len(mesh.faces) == 0:
         raise ValueError(f"every face of mesh {source!r} has zero area: it encloses no volume")
     if not mesh.is_watertight:
-        open_edges = int((np.unique(mesh.edges_sorted, axis=0, return_counts=True)[1] == 1).sum())
+        faces_per_edge = np.unique(mesh.edges_sorted, axis=0, return_counts=True)[1]  # 2 on a closed surface
+        open_edges, joints = int((faces_per_edge == 1).sum()), int((faces_per_edge > 2).sum())
+        joined = f" and {joints} edges shared by more than two faces, where parts meet: separate them" if joints else ""
         raise ValueError(
-            f"mesh {source!r} is not watertight ({open_edges} open edges); a solid needs a closed surface: close it "
-            "first (e.g. trimesh's fill_holes() or a mesh repair tool), or simulate it as a sheet with "
+            f"mesh {source!r} is not watertight ({open_edges} open edges{joined}); a solid needs a closed surface: "
+            "close it first (e.g. trimesh's fill_holes() or a mesh repair tool), or simulate it as a sheet with "
             "cloth_scene_from_mesh (--kind cloth)"
         )
     if _volume(mesh) <= 1e-9 * float(np.prod(np.maximum(mesh.extents, 1e-300))):

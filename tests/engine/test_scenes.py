@@ -285,6 +285,16 @@ def test_open_mesh_is_not_a_solid(tmp_path) -> None:
         redsim.scenes.fem_scene_from_mesh(path)  # says what to do
 
 
+def test_a_mesh_of_two_boxes_meeting_at_an_edge_is_not_a_solid_and_says_so(tmp_path) -> None:
+    """Every edge is some face's, none open: the shared edge belongs to four faces. It read "(0 open edges)" and
+    advised fill_holes(), which closes nothing here."""
+    boxes = trimesh.util.concatenate([trimesh.creation.box(), trimesh.creation.box().apply_translation([1, 1, 0])])
+    path = tmp_path / "two_boxes.obj"
+    boxes.export(path)
+    with pytest.raises(ValueError, match=r"not watertight \(0 open edges and 1 edges shared by more than two faces"):
+        redsim.scenes.fem_scene_from_mesh(path)
+
+
 # -- from-mesh builders ------------------------------------------------------------------------
 @pytest.mark.parametrize("suffix", [".obj", ".stl"])
 def test_fem_scene_from_mesh_file(tmp_path, suffix: str) -> None:
