@@ -1193,8 +1193,9 @@ def existing_fit(stem: str | Path) -> Path | None:
 
 
 def recorded_fit_command(stem: str | Path) -> str | None:
-    """The ``redsim fit ...`` command the fit at ``stem`` records (its training state's, else its ``.json``'s), which
-    ``--resume`` appended to continues it on its own scene; None where neither says."""
+    """The ``redsim fit ...`` command the fit at ``stem`` records (its training state's, else its ``.json``'s), its
+    ``--out`` made ``stem`` (the files may have moved, or the command was run from another folder), which ``--resume``
+    appended to continues it on its own scene; None where neither says."""
     from redsim.subspace.checkpoint import read_metadata
 
     try:
@@ -1204,7 +1205,14 @@ def recorded_fit_command(stem: str | Path) -> str | None:
             command = read_metadata(stem).get("command")
         except CheckpointError:
             return None
-    return command if isinstance(command, str) and command.startswith("redsim fit ") else None
+    try:
+        parts = shlex.split(command) if isinstance(command, str) and command.startswith("redsim fit ") else None
+    except ValueError:  # unbalanced quotes: not a command this module wrote
+        parts = None
+    if parts is None:
+        return None
+    out = parts.index("--out") if "--out" in parts[:-1] else len(parts)
+    return shlex.join([*parts[:out], "--out", os.fspath(stem), *parts[out + 2 :]])
 
 
 def other_scene_fit(stem: str | Path, scene: Scene) -> str | None:

@@ -132,6 +132,23 @@ def test_a_fit_that_runs_away_is_warned_about_in_python_as_on_the_command_line()
     assert result.subspace.metadata["final"]["stretch"] > fit_module.HIGH_STRETCH
 
 
+def test_the_recorded_command_to_resume_a_fit_names_the_stem_it_is_at_now(tmp_path) -> None:
+    """`redsim fit --resume` with no scene (or another one) names the command that continues the fit: its --out was
+    the recorded one, so for a fit moved (or started from another folder) the command pointed where it is not."""
+    from redsim.subspace.checkpoint import checkpoint_path
+    from redsim.trainers.fit import recorded_fit_command
+
+    stem = tmp_path / "moved" / "cut"
+    stem.parent.mkdir()
+    recorded = "redsim fit mini_chain --dim 2 --steps 4 --out runs/cut"
+    torch.save({"command": recorded}, checkpoint_path(stem, ".fit.pt"))
+    assert recorded_fit_command(stem) == f"redsim fit mini_chain --dim 2 --steps 4 --out {stem}"
+    torch.save({"command": "redsim fit mini_chain --dim 2 --steps 4"}, checkpoint_path(stem, ".fit.pt"))
+    assert recorded_fit_command(stem) == f"redsim fit mini_chain --dim 2 --steps 4 --out {stem}"  # none recorded
+    torch.save({"command": "python fit.py"}, checkpoint_path(stem, ".fit.pt"))
+    assert recorded_fit_command(stem) is None  # not a redsim fit command
+
+
 def test_seed_bias_starts_the_map_at_the_seed_shape_and_is_recorded() -> None:
     scene = _tet_scene()
     kwargs = {"dim": 2, "steps": 1, "hidden_width": 8, "learning_rate": 1e-9, "progress": False}
