@@ -393,9 +393,10 @@ def bench_damping(
             starts[name] = list(start.unconverged)
             for row in _scene_rows(scene, f, seconds, divisions, full_divisions, start, progress):
                 rows.append(row)
-            if name == "chain":
-                angle = lift_angle(scene, start)
-                mujoco = mujoco_rows(angle, seconds=seconds, divisions=divisions)
+            if name == "chain":  # the angle with the rows: alone, it would read as "mujoco is not installed"
+                lift = lift_angle(scene, start)
+                mujoco = mujoco_rows(lift, seconds=seconds, divisions=divisions)
+                angle = lift
     except KeyboardInterrupt as stop:
         raise Interrupted(result(True)) from stop
     return result(False)

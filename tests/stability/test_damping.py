@@ -219,6 +219,20 @@ def test_an_interrupted_damping_run_keeps_the_rows_finished_before_it(monkeypatc
     assert damping.damping_table(result)[-1] == "interrupted: the rows finished before it"
 
 
+def test_ctrl_c_in_the_mujoco_rows_does_not_read_as_mujoco_missing(monkeypatch: pytest.MonkeyPatch) -> None:
+    """Interrupted while MuJoCo's chain ran, the result held the lift angle without the rows, which the table reads as
+    "mujoco is not installed"; the angle now comes with the rows."""
+    monkeypatch.setattr(damping, "release_start", lambda *_: damping.Start(*[torch.zeros(1)] * 4, 0.0, 0.0))
+    monkeypatch.setattr(damping, "_scene_rows", lambda *_: iter(()))
+    monkeypatch.setattr(damping, "lift_angle", lambda *_: 0.1)
+    monkeypatch.setattr(damping, "mujoco_rows", _interrupt_full_space)
+    with pytest.raises(damping.Interrupted) as stop:
+        damping.bench_damping(["chain"], seconds=0.02, divisions=(1,), full_divisions=())
+    result = stop.value.result
+    assert result["interrupted"] and result["mujoco"] is None and result["mujoco_lift_deg"] is None
+    assert not any("mujoco" in line for line in damping.damping_table(result))
+
+
 def test_cli_prints_the_rows_finished_before_ctrl_c_and_exits_130(cli: Cli, monkeypatch: pytest.MonkeyPatch) -> None:
     """Ctrl-C in the full-space run, after the two latent rows: the table has them, and the command exits 130."""
     monkeypatch.setattr(damping, "run_full", _interrupt_full_space)
