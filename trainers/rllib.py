@@ -85,9 +85,10 @@ class RunnerSeeds(gym.vector.VectorWrapper):
     """A vector env whose reset with one seed s seeds copy i with ``b + i``, b a 32-bit number drawn from
     ``SeedSequence([s])``, not Gymnasium's ``s + i``.
 
-    RLlib resets env runner w with ``config.seed + w + 1`` (``config.debugging(seed=...)``; evaluation runners
-    10^6 further up, Ray 2.60): with ``s + i``, copy i of runner w would replay copy i + 1 of runner w - 1, episode
-    for episode, and the low seeds are ``eval-agent``'s episodes (0-19). A sequence of seeds, or None, passes through.
+    RLlib resets env runner w (``worker_index``, 1 for the first remote one) with ``config.seed + w``
+    (``config.debugging(seed=...)``; evaluation runners 10^6 further up, Ray 2.60): with ``s + i``, copy i of runner
+    w would replay copy i + 1 of runner w - 1, episode for episode, and the low seeds are ``eval-agent``'s episodes
+    (0-19). A sequence of seeds, or None, passes through.
     """
 
     def reset(self, *, seed: Any = None, options: dict[str, Any] | None = None) -> Any:
