@@ -49,7 +49,8 @@ if TYPE_CHECKING:
     from redsim.envs.base import LatentEnv
 
 JOIN_TIMEOUT_S = 10.0
-"""Seconds :meth:`ShardedVectorEnv.close` waits for its workers to exit before terminating them."""
+"""Seconds :meth:`ShardedVectorEnv.close` waits for its workers to exit before terminating them (the env's
+``timeout`` where that is shorter)."""
 KILL_AFTER_S = 1.0
 """Seconds a terminated worker (SIGTERM) has to exit before it is killed (SIGKILL): a stopped process (SIGSTOP)
 keeps SIGTERM pending until it is continued, and would be left behind (and hold up this interpreter's exit)."""
@@ -389,7 +390,7 @@ class ShardedVectorEnv(SharedCopies, VectorEnv):
                 pipe.send(("close", None))
             except (BrokenPipeError, OSError):
                 pass
-        self._stop(JOIN_TIMEOUT_S)
+        self._stop(JOIN_TIMEOUT_S if self.timeout is None else min(JOIN_TIMEOUT_S, self.timeout))
         self.template.close()
 
     # -- internals --------------------------------------------------------------------------------

@@ -18,7 +18,14 @@ from gymnasium.vector import AutoresetMode
 
 from redsim.envs import sharded as sharded_module
 from redsim.envs.sb3 import SB3VecEnv
-from redsim.envs.sharded import KILL_AFTER_S, ShardedVectorEnv, ShardError, ShardTimeoutError, shard_sizes
+from redsim.envs.sharded import (
+    JOIN_TIMEOUT_S,
+    KILL_AFTER_S,
+    ShardedVectorEnv,
+    ShardError,
+    ShardTimeoutError,
+    shard_sizes,
+)
 
 TIGHT = {"dtype": "float64", "stepper_options": {"tol": 1e-10, "max_iter": 60}}
 """Solved tightly, so that the batch composition does not move a copy's solve (see test_envs.py)."""
@@ -351,6 +358,20 @@ def test_close_kills_a_stopped_worker_instead_of_leaving_it(monkeypatch: pytest.
         start = time.monotonic()
         venv.close()
         assert time.monotonic() - start < 0.5 + KILL_AFTER_S + 3.0
+        assert not any(process.is_alive() for process in processes)
+        assert processes[0].exitcode == -signal.SIGKILL and processes[1].exitcode == 0
+
+
+def test_close_waits_no_longer_than_the_envs_timeout_for_a_stopped_worker() -> None:
+    """With ``timeout`` set, ``close`` waited the full JOIN_TIMEOUT_S (10 s) for a hung worker before the SIGTERM; it
+    now waits at most the timeout the user gave for every other request (review of 42e7b28)."""
+    venv = _make(timeout=0.5)
+    with _reaped(venv) as processes:
+        venv.reset(seed=0)
+        os.kill(processes[0].pid, signal.SIGSTOP)
+        start = time.monotonic()
+        venv.close()
+        assert time.monotonic() - start < 0.5 + KILL_AFTER_S + 3.0 < JOIN_TIMEOUT_S
         assert not any(process.is_alive() for process in processes)
         assert processes[0].exitcode == -signal.SIGKILL and processes[1].exitcode == 0
 
