@@ -15,6 +15,7 @@ import contextlib
 import dataclasses
 import logging
 import math
+import numbers
 from collections.abc import Callable, Iterator
 from dataclasses import dataclass
 
@@ -110,6 +111,14 @@ class StepInfo(SolveInfo):
     mechanical_gain: float = 0.0
     tunneled: bool = False
     tunnel_caught: bool = False
+
+
+def _check_state(state: object) -> None:
+    if not isinstance(state, FullState):
+        raise TypeError(
+            f"state must be a FullState (q and q_prev: sim.initial_state(q, velocity) makes one), got "
+            f"{type(state).__name__}"
+        )
 
 
 def _same(a: Tensor | None, b: Tensor | None) -> bool:
@@ -230,11 +239,7 @@ class ImplicitEuler:
             TypeError: ``state`` is not a :class:`FullState` (make one with :meth:`initial_state`).
             ConvergenceError: with ``strict=True``, when the step did not converge.
         """
-        if not isinstance(state, FullState):
-            raise TypeError(
-                f"state must be a FullState (q and q_prev: sim.initial_state(q, velocity) makes one), got "
-                f"{type(state).__name__}"
-            )
+        _check_state(state)
         origin = self.space.origin
         u_t = checked_vector(state.q, self.space.size, "state.q", origin)
         u_prev = checked_vector(state.q_prev, self.space.size, "state.q_prev", origin)
@@ -396,9 +401,16 @@ class ImplicitEuler:
         Returns:
             The coordinates at every time, shape [steps + 1, n] (the initial ones first), and
             one StepInfo per step.
+
+        Raises:
+            ValueError: ``steps`` not an integer >= 0; as :meth:`step`.
+            TypeError: ``state`` is not a :class:`FullState`.
         """
-        if int(steps) != steps or steps < 0:
+        if isinstance(steps, bool) or not isinstance(steps, numbers.Real):
             raise ValueError(f"steps must be an integer >= 0, got {steps!r}")
+        if not (math.isfinite(steps) and steps >= 0 and int(steps) == steps):
+            raise ValueError(f"steps must be an integer >= 0, got {steps!r}")
+        _check_state(state)  # before state.q: a tensor read "'Tensor' object has no attribute 'q'"
         schedule: LoadSchedule = loads if callable(loads) else (lambda _i, _s: loads)
         trajectory = [state.q.detach().clone()]
         infos = []

@@ -426,6 +426,11 @@ def test_a_scene_name_a_scene_for_a_space_or_a_tensor_for_a_state_is_a_clear_typ
     sim = ImplicitEuler(FullSpace(scene), 0.01)
     with pytest.raises(TypeError, match=r"state must be a FullState .*, got Tensor"):
         sim.step(scene.q_seed)
+    with pytest.raises(TypeError, match=r"state must be a FullState .*, got Tensor"):  # rollout read state.q first
+        sim.rollout(scene.q_seed, 3)
+    for steps in (2.5, -1, float("nan"), float("inf"), True, None, "3"):  # int(nan), int(None): torch-free crashes
+        with pytest.raises(ValueError, match="steps must be an integer >= 0"):
+            sim.rollout(sim.initial_state(), steps)
 
 
 def test_a_step_that_converged_at_a_saddle_is_left_with_escape_saddles() -> None:
