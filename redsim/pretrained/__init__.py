@@ -97,6 +97,7 @@ def load(scene_name: str, scene: Scene | None = None, *, device: str | torch.dev
     Raises:
         NotShipped: a KeyError; no subspace is shipped for this scene.
         redsim.subspace.CheckpointError: the scene differs from the one the subspace was fitted to.
+        ValueError: a device redsim cannot run on (:func:`redsim.devices.check_device`).
     """
     from redsim.scenes.spec import scene_from_spec
     from redsim.subspace import load_subspace, read_metadata

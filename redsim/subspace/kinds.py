@@ -11,6 +11,7 @@ from typing import Any, Protocol
 import torch
 from torch import Tensor, nn
 
+from redsim.devices import check_device
 from redsim.scene import Scene
 from redsim.subspace.anchored import AnchoredSubspace
 from redsim.subspace.autoencoder import AutoencoderSubspace
@@ -56,7 +57,9 @@ def load_subspace(path: str | Path, scene: Scene | None = None, *, device: str |
     Raises:
         CheckpointError: missing or corrupt files, an unknown kind, weights other than the ones the .json records
             (two saves wrote the pair), or a scene whose name, fingerprint or n differ.
+        ValueError: a device redsim cannot run on (:func:`redsim.devices.check_device`).
     """
+    device = check_device(device)  # torch.load's own error for it was reported as "weights are corrupt or truncated"
     if (why := beside_checkpoint(path)) is not None:
         raise CheckpointError(why)
     weights = checkpoint_path(path, ".pt")

@@ -5,6 +5,7 @@ from __future__ import annotations
 import pytest
 import torch
 
+from redsim import pretrained
 from redsim.devices import check_device
 from redsim.trainers.fit import FitConfig, FitConfigError
 
@@ -24,3 +25,12 @@ def test_cpu_passes_and_devices_redsim_cannot_use_are_refused() -> None:
 def test_bench_refuses_a_device_it_cannot_use(cli) -> None:
     code, _, err = cli("bench", "energy", "--scenes", "mini_chain", "--device", "meta")
     assert code == 2 and "--device: device must be 'cpu' or 'cuda[:N]'" in err
+
+
+def test_loading_a_map_onto_a_device_it_cannot_use_names_the_device() -> None:
+    """torch.load's error for it (map_location="cuda" on a CPU-only torch, or "bogus") was reported as a
+    CheckpointError "weights are corrupt or truncated", of shipped weights that are not."""
+    for bad in ("bogus", f"cuda:{torch.cuda.device_count()}"):
+        with pytest.raises(ValueError, match="device") as error:
+            pretrained.load("mini_chain", device=bad)
+        assert "corrupt" not in str(error.value)
