@@ -719,8 +719,11 @@ class LatentStepper:
     ) -> tuple[Tensor, StepStats]:
         """One implicit-Euler step of every state.
 
+        Every input may be a tensor of any real dtype on any device, a NumPy array or a nested list: it is read in the
+        stepper's dtype and device (float64 numbers rounded to float32 by a float32 stepper), and none is modified.
+
         Args:
-            z: Latents at time t, [B, d].
+            z: Latents at time t, [B, d] (a batch of one is [1, d]; an unbatched [d] is refused).
             z_prev: Latents at time t - h, [B, d].
             loads: Forces [N] on the scene's handles (held during the step): a tensor [B, H, D] in handle order (or
                 [H, D], the same loads for every state, as ``scene.energy`` broadcasts them), a mapping

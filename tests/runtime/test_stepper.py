@@ -92,7 +92,9 @@ def test_same_inputs_give_bitwise_equal_outputs(mini_chain, dense: bool) -> None
     z = 0.5 * torch.randn(5, stepper.latent_dim, generator=g)
     z_prev = z + 0.01 * torch.randn(5, stepper.latent_dim, generator=g)
     loads = _loads(scene, 5, 2, 20.0, torch.float32)
+    inputs = [u.clone() for u in (z, z_prev, loads)]
     z_next, stats = stepper.step(z, z_prev, loads)
+    assert all(torch.equal(u, v) for u, v in zip((z, z_prev, loads), inputs, strict=True))  # none modified (docstring)
     again, stats_again = LatentStepper(scene, f, DT, dense=dense).step(z.clone(), z_prev.clone(), loads.clone())
     assert torch.equal(z_next, again)
     assert all(torch.equal(a, b) for a, b in zip(stats, stats_again, strict=True))
