@@ -126,6 +126,21 @@ class FullSpace:
         return float(np.linalg.norm(matrix.diagonal()))
 
 
+def check_map_scene_name(subspace: object, scene: Scene) -> None:
+    """Refuse a map whose metadata (``subspace.metadata["scene"]``, written by the fit) names a scene other than
+    ``scene``: a map of another scene with the same n would be solved on this energy without a word.
+
+    Raises:
+        TypeError: ``scene`` is not a :class:`Scene`.
+        ValueError: the map was fitted to another scene.
+    """
+    check_scene_type(scene)
+    metadata = getattr(subspace, "metadata", None) or {}
+    name = metadata.get("scene") if isinstance(metadata, dict) else None
+    if name is not None and name != scene.name:
+        raise ValueError(f"the subspace was fitted to scene {name!r}, not to {scene.name!r}")
+
+
 class LatentSpace:
     """The latent coordinates z [d] of a subspace map q = f(z[, c]) (paper §3.4).
 
@@ -167,11 +182,13 @@ class LatentSpace:
             condition (:func:`latent_equilibrium` does so by default).
 
     Raises:
-        ValueError: a map without ``latent_dim``, whose output does not have n entries, a
-            condition for an unconditional map, or a conditional map without one.
+        ValueError: a map without ``latent_dim``, whose output does not have n entries, whose metadata names
+            another scene (:func:`check_map_scene_name`), a condition for an unconditional map, or a conditional
+            map without one.
     """
 
     def __init__(self, scene: Scene, subspace: Callable[..., Tensor], *, cond: Tensor | None = None) -> None:
+        check_map_scene_name(subspace, scene)
         self._scene = as_float64(scene)
         latent_dim = getattr(subspace, "latent_dim", None)
         if not isinstance(latent_dim, int) or latent_dim < 1:

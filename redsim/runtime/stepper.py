@@ -29,10 +29,11 @@ from torch import Tensor, nn
 from redsim import pretrained
 from redsim.devices import check_device, check_dtype
 from redsim.integrators import LatentSpace, check_time_step, latent_equilibrium, length_scale
+from redsim.integrators.spaces import check_map_scene_name
 from redsim.runtime.energy import LatentEnergy, MapEnergy, ReducedInertia
 from redsim.runtime.flags import diverged_states, energy_gain_states, energy_gain_tolerance, out_of_range_states
 from redsim.runtime.solver import HESSIANS, BatchResult, check_max_step, check_sync_every, minimize, newton_step
-from redsim.scene import LoadsLike, Scene, check_scene_type
+from redsim.scene import LoadsLike, Scene
 from redsim.solvers import check_settings
 from redsim.subspace import map_fingerprint
 from redsim.tensors import as_numbers, jvp
@@ -1153,11 +1154,9 @@ def check_compiler(device: torch.device) -> None:
 def _check_map_scene(subspace: nn.Module, scene: Scene) -> None:
     """Refuse a map whose metadata names another scene; warn where it names this scene with other parameters (a
     deliberate study, e.g. a soft material's map on a stiffer one, or a mistake the caller should see)."""
-    check_scene_type(scene)
+    check_map_scene_name(subspace, scene)
     metadata = getattr(subspace, "metadata", None) or {}
     name, fingerprint = metadata.get("scene"), metadata.get("scene_fingerprint")
-    if name is not None and name != scene.name:
-        raise ValueError(f"the subspace was fitted to scene {name!r}, not to {scene.name!r}")
     if fingerprint is not None and not scene.accepts(fingerprint):
         warnings.warn(
             f"the subspace was fitted to scene {name!r} with other parameters (fingerprint {fingerprint}; this one "

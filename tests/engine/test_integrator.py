@@ -496,3 +496,20 @@ def test_static_equilibrium_of_a_contact_held_chain_does_not_fall_through() -> N
     drop = float(scene.energy_terms(scene.q_seed)["gravity"] - terms["gravity"])
     assert 0.0 < drop < 0.5  # settles by millimetres into contact instead of falling away
     assert float(terms["contact"]) < 0.01
+
+
+def test_a_latent_space_refuses_a_map_fitted_to_another_scene() -> None:
+    """LatentStepper refused a map whose metadata names another scene, LatentSpace (ImplicitEuler's latent space, the
+    benches' converged latent solve) took it wherever n matched (helper-233's lead)."""
+    import copy
+
+    from redsim import pretrained, scenes
+    from redsim.integrators import LatentSpace
+
+    scene = scenes.build("mini_chain")
+    own = pretrained.load("mini_chain", scene)
+    LatentSpace(scene, own)  # its own scene: accepted
+    other = copy.deepcopy(own)
+    other.metadata = {**own.metadata, "scene": "klann"}
+    with pytest.raises(ValueError, match="fitted to scene 'klann', not to 'mini_chain'"):
+        LatentSpace(scene, other)
