@@ -407,9 +407,10 @@ def swing_velocity(scene: Scene, q: Tensor, tip_speed: float) -> Tensor:
 
 
 # -- the regimes --------------------------------------------------------------------------------
-Case = Callable[[int, float | None], list[dict[str, Any]]]
+Case = Callable[[int, float | None, list[dict[str, Any]] | None], list[dict[str, Any]]]
 """A case: run it with a step budget (``long``: the length of the long runs) and a wall-time budget [s] (None: none;
-only the long runs of ``action_bounds`` use it) and get its rows."""
+only the long runs of ``action_bounds`` use it) and get its rows; given a list ``rows``, it appends each row to it as
+the row finishes and returns it (a Ctrl-C then leaves the rows finished before it there)."""
 
 
 def _shipped(name: str, **params: Any) -> tuple[Scene, nn.Module]:
@@ -421,10 +422,12 @@ def _zero_loads(scene: Scene, steps: int) -> Tensor:
     return torch.zeros(steps, len(scene.handles), scene.dim, dtype=torch.float64)
 
 
-def stiff_cases(long: int, budget: float | None = None) -> list[dict[str, Any]]:
+def stiff_cases(
+    long: int, budget: float | None = None, rows: list[dict[str, Any]] | None = None
+) -> list[dict[str, Any]]:
     """Stiffness x1000 driven by the soft shipped map: bistable bar (Young's modulus), chain (contact), under
     bang-bang loads of 1000 x the env's largest force (the stiffer scene then moves about as much)."""
-    rows = []
+    rows = [] if rows is None else rows
     for name, params in (("bistable_bar", {"young": 1e8}), ("chain", {"contact_stiffness": 1e8})):
         stiff, f = _shipped(name, **params)
         loads = plan_loads(stiff, max(2, long // 10), 1, 1000.0)
@@ -435,9 +438,11 @@ def stiff_cases(long: int, budget: float | None = None) -> list[dict[str, Any]]:
     return rows
 
 
-def big_dt_cases(long: int, budget: float | None = None) -> list[dict[str, Any]]:
+def big_dt_cases(
+    long: int, budget: float | None = None, rows: list[dict[str, Any]] | None = None
+) -> list[dict[str, Any]]:
     """Time steps of 0.1 and 0.5 s under actions at their bounds flipping every step."""
-    rows = []
+    rows = [] if rows is None else rows
     for name in ("mini_chain", "chain", "bistable_bar"):
         scene, f = _shipped(name)
         for dt in (0.1, 0.5):
@@ -448,9 +453,11 @@ def big_dt_cases(long: int, budget: float | None = None) -> list[dict[str, Any]]
     return rows
 
 
-def far_latent_cases(long: int, budget: float | None = None) -> list[dict[str, Any]]:
+def far_latent_cases(
+    long: int, budget: float | None = None, rows: list[dict[str, Any]] | None = None
+) -> list[dict[str, Any]]:
     """Starts at |z| = 10 (far outside z ~ N(0, I) the maps were fitted on), released unloaded."""
-    rows = []
+    rows = [] if rows is None else rows
     for name in pretrained.names():
         scene, f = _shipped(name)
         d = int(f.latent_dim)
@@ -460,13 +467,15 @@ def far_latent_cases(long: int, budget: float | None = None) -> list[dict[str, A
     return rows
 
 
-def action_bound_cases(long: int, budget: float | None = None) -> list[dict[str, Any]]:
+def action_bound_cases(
+    long: int, budget: float | None = None, rows: list[dict[str, Any]] | None = None
+) -> list[dict[str, Any]]:
     """Actions at their bounds for ``long`` steps, held BANG_BANG_HOLD steps (``bang_bang``) or flipped each step.
 
     Both runs of a scene are one batch of the runtime (B = 2); ``budget`` [s] caps each scene's
     wall time (its rows then report the steps that ran).
     """
-    rows = []
+    rows = [] if rows is None else rows
     regimes = (("bang_bang", BANG_BANG_HOLD), ("alternating", 1))
     for name in ("mini_chain", "chain", "bistable_bar", "conditional_bar", "cloth_ball", "hanging_sheet"):
         scene, f = _shipped(name)
@@ -477,13 +486,15 @@ def action_bound_cases(long: int, budget: float | None = None) -> list[dict[str,
     return rows
 
 
-def impact_cases(long: int, budget: float | None = None) -> list[dict[str, Any]]:
+def impact_cases(
+    long: int, budget: float | None = None, rows: list[dict[str, Any]] | None = None
+) -> list[dict[str, Any]]:
     """High-speed impacts into contact: chains thrown up into their hook, the ball thrown down onto the cloth.
 
     Full space starts from the seed (contact-free), the runtime from its rest z* (a state the
     full-space energy need not be at rest in: its first converged step can drop into contact).
     """
-    rows = []
+    rows = [] if rows is None else rows
     steps = max(2, long // 100)
     for name in ("mini_chain", "chain", "cloth_ball"):
         scene, f = _shipped(name)
@@ -515,9 +526,11 @@ def squashed_column(scene: Scene, column: int = 10, ratio: float = 0.05) -> Tens
     return scene.dof_map.restrict(x.reshape(1, -1))[0]
 
 
-def near_inversion_cases(long: int, budget: float | None = None) -> list[dict[str, Any]]:
+def near_inversion_cases(
+    long: int, budget: float | None = None, rows: list[dict[str, Any]] | None = None
+) -> list[dict[str, Any]]:
     """FEM bars released from a state with one column of elements squashed to 5% of their width."""
-    rows = []
+    rows = [] if rows is None else rows
     for name in ("bistable_bar", "conditional_bar"):
         scene = scenes.build(name)
         loads = _zero_loads(scene, max(2, min(5, long // 100)))
@@ -529,14 +542,16 @@ def near_inversion_cases(long: int, budget: float | None = None) -> list[dict[st
     return rows
 
 
-def condition_edge_cases(long: int, budget: float | None = None) -> list[dict[str, Any]]:
+def condition_edge_cases(
+    long: int, budget: float | None = None, rows: list[dict[str, Any]] | None = None
+) -> list[dict[str, Any]]:
     """The conditional bar at the four corners of its condition range (and 20% beyond one), actions at the bounds."""
     scene, f = _shipped("conditional_bar")
     space = scene.condition_space
     low, high = space.low.to(torch.float64), space.high.to(torch.float64)
     corners = [torch.stack([a, b]) for a in (low[0], high[0]) for b in (low[1], high[1])]
     beyond = high + 0.2 * (high - low)
-    rows = []
+    rows = [] if rows is None else rows
     for cond, label in [*((c, "condition_edge") for c in corners), (beyond, "condition_beyond")]:
         run = runtime_rollout(scene, f, plan_loads(scene, max(2, long // 10), 1), DT, cond=cond)
         values = ", ".join(f"{float(v):.3g}" for v in cond)

@@ -690,39 +690,46 @@ def cmd_bench_stability(args: argparse.Namespace) -> int:
     damping_options = _damping_options(args, regimes)
     progress = None if args.json else note
     machine = machine_info()
-    rows = []
-    for name in regimes:
+    rows: list[dict[str, Any]] = []
+    chain = None
+    damping = None
+
+    def run(name: str, _: None) -> None:  # one regime; its rows are kept as they finish (a Ctrl-C keeps those)
+        nonlocal chain, damping
         if name in stability.REGIMES:
             if progress:
                 progress(f"regime {name}")
-            rows += stability.REGIMES[name](args.long_steps, args.budget)
-    if "fuzz" in regimes and env_ids:
-        rows += list(
-            stability.fuzz_envs(
+            stability.REGIMES[name](args.long_steps, args.budget, rows)  # appends each row as it finishes
+        elif name == "fuzz":
+            for row in stability.fuzz_envs(
                 env_ids, args.steps, seed=args.seed, copies=args.copies, seconds=args.budget, progress=progress
-            )
-        )
-    chain = None
-    if "mujoco" in regimes:
-        if progress:
-            progress("chain scenarios: MuJoCo and redsim")
-        mujoco = stability.mujoco_chain_cases(args.chain_steps)
-        broken = None if mujoco is None else sorted({r["scenario"] for r in mujoco if r["blew_up"]})
-        chain = {
-            "dt": 0.01,
-            "steps": args.chain_steps,
-            "full_steps": args.chain_full_steps,
-            "mujoco": mujoco,
-            "redsim": stability.redsim_chain_cases(
+            ):
+                rows.append(row)
+        elif name == "mujoco":
+            if progress:
+                progress("chain scenarios: MuJoCo and redsim")
+            mujoco = stability.mujoco_chain_cases(args.chain_steps)
+            broken = None if mujoco is None else sorted({r["scenario"] for r in mujoco if r["blew_up"]})
+            redsim_rows = stability.redsim_chain_cases(
                 args.chain_steps, full_steps=args.chain_full_steps, scenarios=broken
-            ),
-        }
-    damping = None
-    if damping_options is not None:
-        try:
-            damping = damping_bench.bench_damping(**damping_options, progress=progress)
-        except damping_bench.Interrupted as stop:  # Ctrl-C: the rows finished before it are printed, then exit 130
-            damping = stop.result
+            )
+            chain = {
+                "dt": 0.01,
+                "steps": args.chain_steps,
+                "full_steps": args.chain_full_steps,
+                "mujoco": mujoco,
+                "redsim": redsim_rows,
+            }
+        else:
+            try:
+                damping = damping_bench.bench_damping(**damping_options, progress=progress)
+            except damping_bench.Interrupted as stop:  # its rows finished before the Ctrl-C are printed
+                damping = stop.result
+                raise
+
+    order = [r for r in regimes if r in stability.REGIMES] + ["fuzz"] * bool("fuzz" in regimes and env_ids)
+    order += [r for r in ("mujoco", "damping") if r in regimes]
+    runs = run_scenes("bench stability", [(r, None) for r in order], run, text=not args.json, unit="regime")
     result = {
         "machine": machine,
         "long_steps": args.long_steps,
@@ -731,6 +738,7 @@ def cmd_bench_stability(args: argparse.Namespace) -> int:
         "rows": rows,
         "chain": chain,
         "damping": damping,
+        **runs.fields(),
     }
     if args.json:
         json_out(result)
@@ -758,10 +766,7 @@ def cmd_bench_stability(args: argparse.Namespace) -> int:
             )
         )
         status = EXIT_NAN if totals["nan"] else EXIT_FAILED_STEP
-    if damping and damping["interrupted"]:
-        warn("interrupted: the damping table has the rows finished before it")
-        return EXIT_INTERRUPTED
-    return status
+    return runs.status(status)  # interrupted: 130 even after a failure above (its error is printed)
 
 
 STEP_REFERENCE_STEPS = 10  # bench step's default --reference-steps

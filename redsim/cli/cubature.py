@@ -360,22 +360,30 @@ def _sweep(args: argparse.Namespace) -> int:
     batches = tuple(parse_ints(args.batches, "--batches"))
     if args.batch_max_n is not None and args.batch_max_n < 0:
         raise CliError(f"--batch-max-n must be >= 0, got {args.batch_max_n}")
-    rows = mesh_sweep(
-        cells, elements=args.elements, batches=batches, timed_steps=args.timed_steps, batch_max_n=args.batch_max_n
-    )
-    if args.json:
-        json_out({"machine": machine_info(), "sweep": rows})
-        return EXIT_OK
-    out("hanging_sheet meshed c x c, unfitted d=8 map near the seed: median step (ms), all elements -> cubature")
-    out(machine_line(machine_info(), "cpu"))
-    for row in rows:
-        times = "  ".join(
-            f"B={b}: {'not run' if t['all_s'] is None else format(1e3 * t['all_s'], '.3g')} -> "
-            f"{1e3 * t['cubature_s']:.3g}"
-            for b, t in row["timing"].items()
+    machine = machine_info()
+    if not args.json:
+        out("hanging_sheet meshed c x c, unfitted d=8 map near the seed: median step (ms), all elements -> cubature")
+        out(machine_line(machine, "cpu"))
+    rows: list[dict[str, Any]] = []
+
+    def run(name: str, c: int) -> None:
+        (row,) = mesh_sweep(
+            (c,), elements=args.elements, batches=batches, timed_steps=args.timed_steps, batch_max_n=args.batch_max_n
         )
-        out(f"cells {row['cells']:>4}  n {row['n']:>7}  kept {row['kept']:>5}  {times}")
-    return EXIT_OK
+        rows.append(row)
+        if not args.json:  # each size as it finishes: a Ctrl-C keeps those before it
+            times = "  ".join(
+                f"B={b}: {'not run' if t['all_s'] is None else format(1e3 * t['all_s'], '.3g')} -> "
+                f"{1e3 * t['cubature_s']:.3g}"
+                for b, t in row["timing"].items()
+            )
+            out(f"cells {row['cells']:>4}  n {row['n']:>7}  kept {row['kept']:>5}  {times}")
+
+    sizes = [(f"cells {c}", c) for c in cells]
+    runs = run_scenes("bench cubature --sweep", sizes, run, text=not args.json, unit="size")
+    if args.json:
+        json_out({"machine": machine, "sweep": rows, **runs.fields()})
+    return runs.status()
 
 
 def add_commands(sub: Any) -> None:

@@ -15,10 +15,11 @@ T = TypeVar("T")
 @dataclass
 class SceneRuns:
     """How a loop of :func:`run_scenes` ended: ``failed`` (``scene``, ``error``: 'TYPE: message') and
-    ``interrupted`` (Ctrl-C)."""
+    ``interrupted`` (Ctrl-C). ``unit`` names what the loop runs in the messages ('scene', 'regime', 'size')."""
 
     command: str
     text: bool
+    unit: str = "scene"
     failed: list[dict[str, str]] = field(default_factory=list)
     interrupted: bool = False
 
@@ -31,22 +32,23 @@ class SceneRuns:
         3 or 4) if not 0, else 1 if a scene raised; says which on stderr."""
         if self.failed:
             names = ", ".join(f["scene"] for f in self.failed)
-            error(f"{self.command}: {len(self.failed)} scene(s) failed ({names}); the others ran")
+            error(f"{self.command}: {len(self.failed)} {self.unit}(s) failed ({names}); the others ran")
         if self.interrupted:
             if self.text:
-                out("interrupted: the scenes finished before it")
-            warn("interrupted: the table has the scenes finished before it")
+                out(f"interrupted: the {self.unit}s finished before it")
+            warn(f"interrupted: the table has the {self.unit}s finished before it")
             return EXIT_INTERRUPTED
         return status if status != EXIT_OK or not self.failed else EXIT_SCENE_FAILED
 
 
 def run_scenes(
-    command: str, scenes: Iterable[tuple[str, T]], run: Callable[[str, T], None], *, text: bool
+    command: str, scenes: Iterable[tuple[str, T]], run: Callable[[str, T], None], *, text: bool, unit: str = "scene"
 ) -> SceneRuns:
     """Call ``run(name, item)`` for each scene of ``scenes``; an Exception (not a :class:`CliError`, bad input) is
     recorded, with a ``failed: NAME: TYPE: message`` line when ``text``, and the next scene runs; a
-    KeyboardInterrupt ends the loop. ``command`` (e.g. 'bench fit') names the command in the messages."""
-    runs = SceneRuns(command, text)
+    KeyboardInterrupt ends the loop. ``command`` (e.g. 'bench fit') and ``unit`` name the command and what it runs
+    in the messages."""
+    runs = SceneRuns(command, text, unit)
     try:
         for name, item in scenes:
             try:

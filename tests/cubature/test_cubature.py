@@ -993,3 +993,25 @@ def test_a_float64_maps_training_rollouts_run_in_float64() -> None:
         warnings.simplefilter("error")
         z, _, dropped, _ = training_states(scene, f, rollouts)
     assert z.dtype == torch.float64 and z.shape == (4 + 3, 3) and dropped == {"diverged": 0, "out_of_range": 0}
+
+
+def test_bench_cubature_sweep_prints_the_sizes_finished_before_ctrl_c(cli, monkeypatch) -> None:
+    """Ctrl-C while the --sweep ran its second size exited 130 with no size printed; the first is now printed (text
+    and JSON, ``interrupted``)."""
+    from redsim.cubature import bench
+
+    real = bench.mesh_sweep
+
+    def mesh_sweep(cells, **kwargs):  # type: ignore[no-untyped-def]
+        if 3 in cells:
+            raise KeyboardInterrupt
+        return real(cells, **kwargs)
+
+    monkeypatch.setattr(bench, "mesh_sweep", mesh_sweep)
+    argv = ("bench", "cubature", "--sweep", "2,3", "--elements", "4", "--timed-steps", "2", "--batches", "1")
+    code, out, err = cli(*argv, "--json")
+    doc = json.loads(out)
+    assert code == 130 and doc["interrupted"] and [r["cells"] for r in doc["sweep"]] == [2], err
+    code, out, err = cli(*argv)
+    assert code == 130 and "cells    2" in out and "cells    3" not in out, err
+    assert out.rstrip().endswith("interrupted: the sizes finished before it")

@@ -300,3 +300,48 @@ def test_the_fuzz_judges_a_cubature_env_on_the_energy_it_steps_and_counts_the_sc
     report = "\n".join(stability.report({"rows": [cubature_row], "fuzz_steps": 64}))
     assert f"{cubature_row['cubature_rises']}, the largest {cubature_row['cubature_rise_max_J']:.3g} J" in report
     assert stability.fuzz_env("RedSim/MiniChain-v0", 16, num_envs=4, seed=0)["cubature_rises"] is None
+
+
+def _stopped(*_args: object, **_kwargs: object) -> None:
+    raise KeyboardInterrupt
+
+
+def test_ctrl_c_prints_the_rows_finished_before_it_and_exits_130(cli: Cli, monkeypatch: pytest.MonkeyPatch) -> None:
+    """Ctrl-C in big_dt's first full-space run, after its first latent row and a stiff row: all rows were lost (exit
+    130, nothing printed); now both are printed (text and JSON, ``interrupted``) and the command exits 130, even with
+    the NaN the stiff row found (named on stderr)."""
+    row = {k: 0 for k, _ in stability.ROW_COLUMNS} | {
+        "target": "mini_chain",
+        "regime": "stiff_x1000",
+        "space": "latent",
+    }
+    row["nan"] = 1
+    monkeypatch.setitem(stability.REGIMES, "stiff", lambda _long, _budget, rows: rows.append(dict(row)))
+    monkeypatch.setattr(stability, "full_rollout", _stopped)
+    argv = ("bench", "stability", "--regimes", "stiff,big_dt", "--long-steps", "40")
+    code, out, err = cli(*argv, "--json")
+    doc = json.loads(out)
+    assert code == 130 and doc["interrupted"] and doc["failed"] == [], err
+    done = [("mini_chain", "stiff_x1000", "latent"), ("mini_chain", "dt_0.1", "latent")]
+    assert [(r["target"], r["regime"], r["space"]) for r in doc["rows"]] == done
+    assert "1 non-finite" in err and "interrupted" in err
+    code, out, err = cli(*argv)
+    assert code == 130 and "| mini_chain | stiff_x1000 |" in out and "| mini_chain | dt_0.1 | latent |" in out, err
+    assert "total nan: 1" in out and out.rstrip().endswith("interrupted: the regimes finished before it")
+
+
+def test_ctrl_c_in_the_fuzz_keeps_the_envs_finished_before_it(cli: Cli, monkeypatch: pytest.MonkeyPatch) -> None:
+    """Ctrl-C while the fuzz runs its second env id: the first id's row is printed and the command exits 130."""
+    real = stability.fuzz_env
+    ids = ("RedSim/MiniChain-v0", "RedSim/BistableBar-v0")
+    monkeypatch.setattr(stability, "env_speeds", lambda env_ids, **_: dict.fromkeys(env_ids, 1.0))
+    monkeypatch.setattr(
+        stability, "fuzz_env", lambda env_id, *a, **k: real(env_id, *a, **k) if env_id == ids[0] else _stopped()
+    )
+    argv = ("bench", "stability", "--regimes", "fuzz", "--envs", ",".join(ids), "--steps", "16", "--copies", "8")
+    code, out, err = cli(*argv, "--json")
+    doc = json.loads(out)
+    assert code == 130 and doc["interrupted"], err
+    assert [r["target"] for r in doc["rows"]] == [ids[0]] and doc["rows"][0]["steps"] == 8
+    code, out, err = cli(*argv)
+    assert code == 130 and f"| {ids[0]} | fuzz | latent | 8 |" in out and ids[1] not in out, err
