@@ -68,6 +68,7 @@ def run_demo(
     from PIL import Image
 
     from redsim.render import MAX_GIF_FPS, gif_frame_ms
+    from redsim.subspace import write_atomically
 
     if steps is not None and int(steps) < 1:
         raise ValueError(f"steps must be >= 1, got {steps}")
@@ -103,8 +104,15 @@ def run_demo(
     gif, png = (out / f"{stem}{suffix}" for suffix in (".gif", ".png"))
     images = [Image.fromarray(f) for f in frames]
     duration = gif_frame_ms(min(MAX_GIF_FPS, 1.0 / (core.dt * frame_every)))
-    images[0].save(gif, save_all=True, append_images=images[1:], duration=duration, loop=0)
-    Image.fromarray(np.concatenate([frames[0], frames[-1]], axis=1)).save(png)
+    # each to a temporary, then renamed: a Ctrl-C while writing leaves the previous demo's files whole
+    write_atomically(
+        gif,
+        lambda tmp: images[0].save(
+            tmp, format="GIF", save_all=True, append_images=images[1:], duration=duration, loop=0
+        ),
+    )
+    picture = Image.fromarray(np.concatenate([frames[0], frames[-1]], axis=1))
+    write_atomically(png, lambda tmp: picture.save(tmp, format="PNG"))
     env.close()
     return {
         "id": env_id,

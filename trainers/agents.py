@@ -1366,7 +1366,14 @@ def record_gif(
     if single is not env:
         single.close()
     images = [Image.fromarray(f) for f in frames]
-    images[0].save(path, save_all=True, append_images=images[1:], duration=round(1000 * dt * every), loop=0)
+    duration = round(1000 * dt * every)
+    # to a temporary, then renamed: a Ctrl-C while writing leaves no cut-short GIF (nor a resumed run's old one so)
+    write_atomically(
+        Path(path),
+        lambda tmp: images[0].save(
+            tmp, format="GIF", save_all=True, append_images=images[1:], duration=duration, loop=0
+        ),
+    )
     return len(images)
 
 

@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import json
 from pathlib import Path
+from typing import Any
 
 import numpy as np
 import pytest
@@ -449,3 +450,28 @@ def test_bench_envs_a_failure_in_any_round_or_of_the_whole_id_is_what_the_table_
     whole = {"id": "RedSim/X-v0", "failed": "OSError: no map"}
     assert median_rounds([rounds[0], whole]) == whole and failed_parts(whole) == {"env": "OSError: no map"}
     assert _row_line(whole, [2]) == f"{'RedSim/X-v0':<26} failed (the env itself, named below)"
+
+
+def test_ctrl_c_while_the_demo_gif_is_written_keeps_the_previous_one_whole(
+    tmp_path: Path, monkeypatch: pytest.MonkeyPatch, capsys: pytest.CaptureFixture[str]
+) -> None:
+    """The GIF was written in place: a Ctrl-C in PIL's save left a cut-short ``minichain_scripted.gif`` (over the
+    previous demo's); now it goes to a temporary beside it, moved onto the name once whole."""
+    from PIL import Image
+
+    argv = ["demo", "RedSim/MiniChain-v0", "--steps", "2", "--scripted", "--out", str(tmp_path)]
+    assert main(argv) == 0
+    capsys.readouterr()
+    gif = tmp_path / "minichain_scripted.gif"
+    before = gif.read_bytes()
+
+    def cut_short(self: Image.Image, fp: Any, *args: Any, **kwargs: Any) -> None:
+        Path(fp).write_bytes(b"GIF89a")  # the header, then the user's Ctrl-C
+        raise KeyboardInterrupt
+
+    monkeypatch.setattr(Image.Image, "save", cut_short)
+    assert main(argv) == 130
+    assert gif.read_bytes() == before and sorted(p.name for p in tmp_path.iterdir()) == [
+        "minichain_scripted.gif",
+        "minichain_scripted.png",
+    ]

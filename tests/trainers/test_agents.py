@@ -409,6 +409,21 @@ def test_the_gif_takes_the_env_args_width_and_height(tmp_path: Path) -> None:
     record_gif(MINI, Still(), tmp_path / "b.gif", size=40, env_kwargs={"max_episode_steps": 2})
     assert Image.open(tmp_path / "b.gif").size == (40, 40)
 
+    # a Ctrl-C in PIL's save cut the GIF short in place (a resumed run's previous policy.gif too); now it is whole
+    def cut_short(self: Image.Image, fp: Any, *args: Any, **kwargs: Any) -> None:
+        Path(fp).write_bytes(b"GIF89a")
+        raise KeyboardInterrupt
+
+    before = (tmp_path / "b.gif").read_bytes()
+    with pytest.MonkeyPatch.context() as patch:
+        patch.setattr(Image.Image, "save", cut_short)
+        with pytest.raises(KeyboardInterrupt):
+            record_gif(MINI, Still(), tmp_path / "b.gif", size=40, env_kwargs={"max_episode_steps": 2})
+    assert (tmp_path / "b.gif").read_bytes() == before and sorted(p.name for p in tmp_path.iterdir()) == [
+        "a.gif",
+        "b.gif",
+    ]
+
 
 def test_evaluation_reports_the_episodes_that_ended_diverged(cli: Callable[..., tuple[int, str, str]]) -> None:
     """An episode the stepper ends diverged (BistableBar-v1 at 2500x its force and 10x its dt) has a shorter, so
