@@ -490,3 +490,24 @@ def test_bench_subspace_and_fit_report_a_scene_that_raises_and_keep_rows_at_ctrl
     code, out, err = run(capsys, *argv)
     assert code == 130 and "failed: toy_two_tets: RuntimeError: no fit" in out, err
     assert out.rstrip().endswith("interrupted: the scenes finished before it")
+
+
+def test_compile_without_a_cpp_compiler_is_exit_2_and_writes_nothing(
+    capsys: pytest.CaptureFixture[str], monkeypatch: pytest.MonkeyPatch, tmp_path: Path
+) -> None:
+    """`redsim fit --compile` where no C++ compiler runs: one line naming the fix, exit 2, before any file is written
+    or an --overwrite removes the old state (it was an Inductor traceback, exit 1, from the first step)."""
+    from torch._inductor import cpp_builder, exc
+
+    def missing() -> str:
+        raise exc.InvalidCxxCompiler
+
+    monkeypatch.setattr(cpp_builder, "get_cpp_compiler", missing)
+    small = ["toy_two_tets", "--steps", "2", "--dim", "2", "--width", "8", "--layers", "1", "--batch", "4"]
+    code, _, err = run(capsys, "fit", *small, "--compile", "--out", str(tmp_path / "new"))
+    assert code == 2 and "compile needs a C++ compiler" in err and "fit without --compile" in err
+    assert "Traceback" not in err and not list(tmp_path.iterdir())
+    assert main(["fit", *small, "--out", str(tmp_path / "old"), "--json"]) == 0
+    state = (tmp_path / "old.fit.pt").read_bytes()
+    code, _, err = run(capsys, "fit", *small, "--compile", "--overwrite", "--out", str(tmp_path / "old"))
+    assert code == 2 and (tmp_path / "old.fit.pt").read_bytes() == state

@@ -703,6 +703,7 @@ def fit_subspace(
             with ``overwrite``, ``stop_at`` outside [steps done, ``config.steps``) or without ``out``, or a folder
             where one of the fit's files goes (:func:`check_fit_files`).
         FileExistsError: a fit at ``out`` and neither ``resume`` nor ``overwrite``.
+        RuntimeError: ``compile`` on the CPU where no C++ compiler runs (nothing is written).
         FitStopped: the fit stopped at ``stop_at``.
     """
     if stop_at is not None and out is None:
@@ -809,6 +810,10 @@ def fit_subspace(
         log.info("resuming %s at step %d of %d", state_path, start_step, config.steps)
     if stop_at is not None and not start_step <= stop_at < config.steps:
         raise ValueError(f"stop_at must be < steps ({config.steps}) and >= the {start_step} steps done, got {stop_at}")
+    if config.compile:  # Inductor builds its CPU kernels with a C++ compiler: refused here, not deep in torch later
+        from redsim.runtime.stepper import check_compiler
+
+        check_compiler(torch.device(config.device))
     if state_path is not None and overwrite:  # the old training state must not be taken for the new fit's; removed
         state_path.unlink(missing_ok=True)  # only here, after every refusal: a refused call keeps it
 

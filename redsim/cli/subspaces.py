@@ -250,6 +250,10 @@ def cmd_fit(args: argparse.Namespace) -> int:
         raise CliError(f"{err.path}: {err.describe(FIELD_FLAGS)}") from err
     except ValueError as err:  # bad resume state, conditional fit without conditions, ...
         raise CliError(str(err)) from err
+    except RuntimeError as err:  # --compile without a C++ compiler (check_compiler); other errors go on up
+        if "compile needs a C++ compiler" not in str(err):
+            raise
+        raise CliError(str(err).replace("or step without compile", "or fit without --compile")) from err
     meta = result.subspace.metadata
     summary = {"checkpoint": str(checkpoint_path(stem, ".pt")), "metadata": str(checkpoint_path(stem, ".json")), **meta}
     if args.json:
