@@ -185,7 +185,7 @@ def test_bench_stability_fails_when_a_must_be_zero_count_is_not(
     """A CI job running the bench must see a NaN or an unreported energy gain in its exit status."""
     from redsim.benches import stability
 
-    monkeypatch.setitem(stability.REGIMES, "canned", lambda steps, budget: [{"steps": 10, **row}])
+    monkeypatch.setitem(stability.REGIMES, "canned", lambda steps, budget, rows: rows.append({"steps": 10, **row}))
     monkeypatch.setattr(stability, "report", lambda result: [])
     got, _, err = cli("bench", "stability", "--regimes", "canned")
     assert got == code, err
