@@ -312,35 +312,44 @@ def cmd_bench_step(args: argparse.Namespace) -> int:
 
     runs = run_scenes("bench step", [(name, None) for name in names], run, text=not args.json)
     mujoco = [] if runs.interrupted else mujoco_rows()  # measured after the scenes: not after a Ctrl-C
-    nonfinite, diverged = _step_failures(rows)
+    nonfinite, undefined, diverged = _step_failures(rows)
+    failures = [*nonfinite, *diverged, *undefined]
     if args.json:
         doc = {"machine": machine, "dt": args.dt, "rows": rows, "mujoco": mujoco}
-        json_out({**doc, **runs.fields(), "nonfinite": nonfinite, "diverged": diverged})
+        json_out({**doc, **runs.fields(), "nonfinite": nonfinite, "diverged": diverged, "undefined": undefined})
     else:
         out(_machine_line(machine, args.device))
         for line in step_table(rows, mujoco, args.dt):
             out(line)
-        for line in [*nonfinite, *diverged]:
+        for line in failures:
             out(f"failed: {line}")
-    if nonfinite or diverged:  # the table is printed; the command fails, for scripts and CI
-        error("; ".join([*nonfinite, *diverged]))
-    return runs.status(EXIT_NAN if nonfinite else EXIT_FAILED_STEP if diverged else EXIT_OK)
+    if failures:  # the table is printed; the command fails, for scripts and CI
+        error("; ".join(failures))
+    status = EXIT_NAN if nonfinite else EXIT_FAILED_STEP if diverged else EXIT_SCENE_FAILED if undefined else EXIT_OK
+    return runs.status(status)
 
 
-def _step_failures(rows: list[dict[str, Any]]) -> tuple[list[str], list[str]]:
-    """What fails `bench step` in its finished ``rows``: a non-finite one-step or rollout error (exit 3), and the
-    paths and batch sizes whose solves diverged (rejected steps; exit 4), one line each."""
-    nonfinite, diverged = [], []
+def _step_failures(rows: list[dict[str, Any]]) -> tuple[list[str], list[str], list[str]]:
+    """What fails `bench step` in its finished ``rows``, one line each: a non-finite one-step or rollout error (exit
+    3), an undefined one (None: the reference did not move, so its accuracy was not measured; exit 1), and the paths
+    and batch sizes whose solves diverged (rejected steps; exit 4)."""
+    nonfinite, undefined, diverged = [], [], []
     for row in rows:
-        for key in ("step_error", "trajectory_error"):
-            if key in row and not math.isfinite(row[key]):
+        keys = [key for key in ("step_error", "trajectory_error") if key in row]
+        for key in keys:
+            if row[key] is not None and not math.isfinite(row[key]):
                 nonfinite.append(f"{row['scene']}: {key.replace('_', ' ')} is {row[key]} (a non-finite state)")
+        if idle := [key.replace("_", " ") for key in keys if row[key] is None]:
+            undefined.append(
+                f"{row['scene']}: the reference did not move (its motion is 0; loads too small to be felt at this "
+                f"--dt?): {' and '.join(idle)} undefined"
+            )
         for label in ("eager", "cold", "compiled", "dense", "dense-cmp"):
             for b, result in row.get(label, {}).items():
                 if result.get("diverged_fraction", 0.0) > 0.0:
                     share = 100 * result["diverged_fraction"]
                     diverged.append(f"{row['scene']}: {label} B={b}: {share:.3g}% of the steps diverged (rejected)")
-    return nonfinite, diverged
+    return nonfinite, undefined, diverged
 
 
 def _bench_step_hessians(

@@ -256,9 +256,18 @@ def _m_norm(scene: Scene, v: Tensor) -> Tensor:
     return (v * scene.to(dtype=torch.float64).mass_matvec(v)).sum(-1).clamp_min(0.0).sqrt()
 
 
-def one_step_error(stepper: LatentStepper, reference: Tensor, loads: Tensor) -> float:
+def _relative_error(error: Tensor, motion: Tensor) -> float | None:
+    """The largest ``error`` over the largest ``motion`` (M-norms); None where the reference did not move (its
+    largest motion is 0) and the error is finite: the relative error is undefined. NaN where either is not finite."""
+    err, move = float(error.max()), float(motion.max())
+    if move == 0.0 and math.isfinite(err):
+        return None
+    return err / move if move > 0.0 else math.nan
+
+
+def one_step_error(stepper: LatentStepper, reference: Tensor, loads: Tensor) -> float | None:
     """Largest |f(z_mine) - f(z_ref)|_M over the steps of a reference trajectory, relative to the largest
-    step |f(z_ref) - f(z_t)|_M.
+    step |f(z_ref) - f(z_t)|_M; None where no reference step moved (:func:`_relative_error`).
 
     Every reference step (z_t, z_{t-1}, loads_t) -> z_{t+1} is taken again by ``stepper`` from the
     same state, all steps as one batch, so the error is one solve's, not an accumulated drift.
@@ -269,17 +278,16 @@ def one_step_error(stepper: LatentStepper, reference: Tensor, loads: Tensor) -> 
     mine, _ = stepper.step(z_t.to(device, dtype), z_prev.to(device, dtype), loads.to(device, dtype))
     q_mine, q_ref, q_t = (_configurations(stepper, u) for u in (mine, reference[1:], z_t))
     scene = stepper.source_scene
-    motion = _m_norm(scene, q_ref - q_t)
-    return float(_m_norm(scene, q_mine - q_ref).max() / motion.max().clamp_min(1e-300))
+    return _relative_error(_m_norm(scene, q_mine - q_ref), _m_norm(scene, q_ref - q_t))
 
 
-def _rollout_error(stepper: LatentStepper, reference: Tensor, mine: Tensor) -> float:
-    """Largest |f(z_mine) - f(z_ref)|_M over a rollout relative to the largest |f(z_ref) - f(z_0)|_M."""
+def _rollout_error(stepper: LatentStepper, reference: Tensor, mine: Tensor) -> float | None:
+    """Largest |f(z_mine) - f(z_ref)|_M over a rollout relative to the largest |f(z_ref) - f(z_0)|_M; None where the
+    reference did not move (:func:`_relative_error`)."""
     count = reference.shape[0]
     q_mine, q_ref = _configurations(stepper, mine[:count]), _configurations(stepper, reference)
     scene = stepper.source_scene
-    motion = float(_m_norm(scene, q_ref - q_ref[:1]).max())
-    return float(_m_norm(scene, q_mine - q_ref).max()) / motion if motion > 0 else math.nan
+    return _relative_error(_m_norm(scene, q_mine - q_ref), _m_norm(scene, q_ref - q_ref[:1]))
 
 
 def compare_hessians(
@@ -345,7 +353,8 @@ def bench_step(
         env_steps_per_s, iterations_per_step, converged_fraction, ...), ``speedup`` of each over the
         reference per B, and ``trajectory_error``: the largest |f(z) - f(z_ref)|_M over the B = 1 eager run's
         first ``reference_steps`` steps relative to the largest motion |f(z_ref) - f(z0)|_M (z_ref: the
-        latent float64 reference, not the full space).
+        latent float64 reference, not the full space); ``step_error`` (:func:`one_step_error`). Either error
+        is None where the reference did not move (e.g. loads too small to be felt at this dt): it is undefined.
     """
     if rounds < 1:
         raise ValueError(f"rounds must be >= 1, got {rounds}")
@@ -444,6 +453,19 @@ def mujoco_rows(*, steps: int = 5000) -> list[dict[str, Any]] | None:
     return None if rows[0] is None else [r for r in rows if r is not None]
 
 
+def _error_text(row: dict[str, Any]) -> str:
+    """The ``error`` line's text of a :func:`bench_step` row: its one-step and rollout errors (None: undefined)."""
+    errors = [row["step_error"], row.get("trajectory_error", math.inf)]  # inf: the rollout did not run
+    step, rollout = ("undefined" if e is None else f"{e:.2g}" for e in errors)
+    if "trajectory_error" not in row:
+        rollout = "not run (B = 1 not in --batches)"
+    idle = "; undefined: the reference did not move" if None in errors else ""
+    return (
+        "eager (B = 1) against the reference row (the latent float64 solve, not full space): "
+        f"one step {step}, rollout {rollout} of the motion (M-norm of f(z)){idle}"
+    )
+
+
 def step_table(rows: list[dict[str, Any]], mujoco: list[dict[str, Any]] | None, dt: float) -> list[str]:
     """The human-readable lines of `redsim bench step` for ``rows`` of :func:`bench_step`."""
     lines = []
@@ -480,12 +502,7 @@ def step_table(rows: list[dict[str, Any]], mujoco: list[dict[str, Any]] | None, 
             f"{'':<23} {'full':<9} {full['env_steps_per_s']:>9.3g} (B = 1, {full['iterations_per_step']:.1f} its, "
             f"{100 * full['converged_fraction']:.0f}% converged; float64 full-space implicit Euler)"
         )
-        lines.append(
-            f"{'':<23} {'error':<9} eager (B = 1) against the reference row (the latent float64 solve, not full "
-            f"space): one step {row['step_error']:.2g}, rollout "
-            + (f"{row['trajectory_error']:.2g}" if "trajectory_error" in row else "not run (B = 1 not in --batches)")
-            + " of the motion (M-norm of f(z))"
-        )
+        lines.append(f"{'':<23} {'error':<9} {_error_text(row)}")
     sources = sorted({row["baseline"]["redsim_file"] for row in rows if "baseline" in row})
     lines.extend(f"baseline: the reference path (B = 1) of {source}; vs base: speedup over it" for source in sources)
     if mujoco is None:

@@ -226,3 +226,41 @@ def test_a_non_finite_error_or_a_diverged_solve_fails_the_command(
     report = json.loads(capsys.readouterr().out)
     assert code == 4 and [r["scene"] for r in report["rows"]] == ["mini_chain", "klann"]
     assert report["nonfinite"] == [] and report["diverged"] == ["klann: cold B=1: 50% of the steps diverged (rejected)"]
+
+
+def test_a_reference_that_does_not_move_is_reported_as_undefined_not_non_finite(
+    capsys: pytest.CaptureFixture[str],
+) -> None:
+    """At dt 1e-4 the mini chain's loads are too small to be felt (float32 and the float64 reference alike), so the
+    reference stays at rest: the rollout error was 0/0 = nan, reported as 'a non-finite state' with exit 3 (and the
+    one-step error read 0). Both are undefined now: None, named under the table and in the JSON, exit 1."""
+    argv = ["bench", "step", "--scenes", "mini_chain", "--batches", "1", "--steps", "3", "--reference-steps", "3"]
+    with pytest.warns(UserWarning, match="smaller forces are not felt"):
+        code = main([*argv, "--dt", "1e-4", "--no-compile"])
+    out, err = capsys.readouterr()
+    assert code == 1, err
+    assert (
+        "one step undefined, rollout undefined of the motion (M-norm of f(z)); undefined: the reference did not" in out
+    )
+    line = "mini_chain: the reference did not move (its motion is 0; loads too small to be felt at this --dt?)"
+    assert f"failed: {line}: step error and trajectory error undefined" in out and "non-finite" not in out + err
+    with pytest.warns(UserWarning, match="smaller forces are not felt"):
+        code = main([*argv, "--dt", "1e-4", "--no-compile", "--json"])
+    report = json.loads(capsys.readouterr().out)
+    assert code == 1 and report["nonfinite"] == [] and report["diverged"] == []
+    assert report["undefined"] == [f"{line}: step error and trajectory error undefined"]
+    assert report["rows"][0]["step_error"] is None and report["rows"][0]["trajectory_error"] is None
+
+
+def test_a_relative_error_is_undefined_only_where_a_finite_error_meets_no_motion() -> None:
+    """A still reference gave 0/0 = nan (rollout) or error / 1e-300 (one step: 0, or ~1e293 where the stepper moved);
+    it is None now, while a non-finite state or reference stays nan (the command's exit 3)."""
+    from redsim.runtime.bench import _relative_error
+
+    def norms(*values: float) -> torch.Tensor:
+        return torch.tensor(values, dtype=torch.float64)
+
+    assert _relative_error(norms(0.0, 2e-3), norms(0.0, 1e-2)) == pytest.approx(0.2)
+    assert _relative_error(norms(0.0, 1e-7), norms(0.0, 0.0)) is None
+    assert math.isnan(_relative_error(norms(0.0, math.nan), norms(0.0, 0.0)))
+    assert math.isnan(_relative_error(norms(0.0, 1e-3), norms(0.0, math.nan)))
