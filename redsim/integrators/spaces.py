@@ -12,6 +12,7 @@ from __future__ import annotations
 
 import itertools
 import math
+import warnings
 from collections.abc import Callable
 from typing import Any, Protocol
 
@@ -126,9 +127,17 @@ class FullSpace:
         return float(np.linalg.norm(matrix.diagonal()))
 
 
-def check_map_scene_name(subspace: object, scene: Scene) -> None:
+class SceneParametersWarning(UserWarning):
+    """A map fitted to a scene of this name with other parameters (another fingerprint) is used on this one: a
+    deliberate study (a soft material's map on a stiffer one) or a mistake the caller should see."""
+
+
+def check_map_scene(subspace: object, scene: Scene) -> None:
     """Refuse a map whose metadata (``subspace.metadata["scene"]``, written by the fit) names a scene other than
-    ``scene``: a map of another scene with the same n would be solved on this energy without a word.
+    ``scene``: a map of another scene with the same n would be solved on this energy without a word. Warn
+    (:class:`SceneParametersWarning`, at the line that called the constructor that calls this) where it names
+    this scene with other parameters (``metadata["scene_fingerprint"]`` that ``scene`` does not accept): it is
+    solved on this scene's energy. :class:`LatentSpace` and :class:`redsim.runtime.LatentStepper` both check here.
 
     Raises:
         TypeError: ``scene`` is not a :class:`Scene`.
@@ -136,9 +145,18 @@ def check_map_scene_name(subspace: object, scene: Scene) -> None:
     """
     check_scene_type(scene)
     metadata = getattr(subspace, "metadata", None) or {}
-    name = metadata.get("scene") if isinstance(metadata, dict) else None
+    if not isinstance(metadata, dict):
+        return
+    name, fingerprint = metadata.get("scene"), metadata.get("scene_fingerprint")
     if name is not None and name != scene.name:
         raise ValueError(f"the subspace was fitted to scene {name!r}, not to {scene.name!r}")
+    if fingerprint is not None and not scene.accepts(fingerprint):
+        warnings.warn(
+            f"the subspace was fitted to scene {name!r} with other parameters (fingerprint {fingerprint}; this one "
+            f"{scene.fingerprint()}): it is solved on this scene's energy",
+            SceneParametersWarning,
+            stacklevel=3,
+        )
 
 
 class LatentSpace:
@@ -183,12 +201,15 @@ class LatentSpace:
 
     Raises:
         ValueError: a map without ``latent_dim``, whose output does not have n entries, whose metadata names
-            another scene (:func:`check_map_scene_name`), a condition for an unconditional map, or a conditional
+            another scene (:func:`check_map_scene`), a condition for an unconditional map, or a conditional
             map without one.
+
+    Warns:
+        SceneParametersWarning: the map's metadata names this scene with other parameters (:func:`check_map_scene`).
     """
 
     def __init__(self, scene: Scene, subspace: Callable[..., Tensor], *, cond: Tensor | None = None) -> None:
-        check_map_scene_name(subspace, scene)
+        check_map_scene(subspace, scene)
         self._scene = as_float64(scene)
         latent_dim = getattr(subspace, "latent_dim", None)
         if not isinstance(latent_dim, int) or latent_dim < 1:

@@ -29,7 +29,7 @@ from torch import Tensor, nn
 from redsim import pretrained
 from redsim.devices import check_device, check_dtype
 from redsim.integrators import LatentSpace, check_time_step, latent_equilibrium, length_scale
-from redsim.integrators.spaces import check_map_scene_name
+from redsim.integrators.spaces import SceneParametersWarning, check_map_scene
 from redsim.runtime.energy import LatentEnergy, MapEnergy, ReducedInertia
 from redsim.runtime.flags import diverged_states, energy_gain_states, energy_gain_tolerance, out_of_range_states
 from redsim.runtime.solver import HESSIANS, BatchResult, check_max_step, check_sync_every, minimize, newton_step
@@ -426,7 +426,7 @@ class LatentStepper:
             raise ValueError(f"warm_start must be True or False, got {warm_start!r}")
         self.dense = self.device.type == "cuda" if dense is None else bool(dense)
         self.sync_every = sync_every
-        _check_map_scene(subspace, scene)
+        check_map_scene(subspace, scene)
         self.source_scene = scene
         # a snapshot: the rest solve reads the map the steps use, whatever the caller does to its own afterwards
         self.subspace = copy.deepcopy(subspace) if isinstance(subspace, nn.Module) else subspace
@@ -1051,9 +1051,11 @@ class LatentStepper:
             conds = list(self._cond(cond, shape[0] if len(shape) == 2 else 1).to(torch.float64))  # B = 0 gives none
         out = []
         for c in conds:
-            space = LatentSpace(
-                self.source_scene, self.subspace, cond=None if c is None or not self.energy.condition_dim else c
-            )
+            with warnings.catch_warnings():  # the constructor warned of a scene of other parameters already
+                warnings.simplefilter("ignore", SceneParametersWarning)
+                space = LatentSpace(
+                    self.source_scene, self.subspace, cond=None if c is None or not self.energy.condition_dim else c
+                )
             z, _ = latent_equilibrium(space, None, c, z0=start)
             out.append(z.to(device=self.device, dtype=self.dtype))
         return torch.stack(out) if out else torch.zeros(0, self.latent_dim, dtype=self.dtype, device=self.device)
@@ -1149,20 +1151,6 @@ def check_compiler(device: torch.device) -> None:
             f"compile needs a C++ compiler on the CPU (torch.compile builds its kernels with one), and none runs "
             f"({type(err).__name__}); install g++ (or set CXX to a C++ compiler), or step without compile"
         ) from None
-
-
-def _check_map_scene(subspace: nn.Module, scene: Scene) -> None:
-    """Refuse a map whose metadata names another scene; warn where it names this scene with other parameters (a
-    deliberate study, e.g. a soft material's map on a stiffer one, or a mistake the caller should see)."""
-    check_map_scene_name(subspace, scene)
-    metadata = getattr(subspace, "metadata", None) or {}
-    name, fingerprint = metadata.get("scene"), metadata.get("scene_fingerprint")
-    if fingerprint is not None and not scene.accepts(fingerprint):
-        warnings.warn(
-            f"the subspace was fitted to scene {name!r} with other parameters (fingerprint {fingerprint}; this one "
-            f"{scene.fingerprint()}): it is stepped on this scene's energy",
-            stacklevel=3,
-        )
 
 
 __all__ = [

@@ -513,3 +513,27 @@ def test_a_latent_space_refuses_a_map_fitted_to_another_scene() -> None:
     other.metadata = {**own.metadata, "scene": "klann"}
     with pytest.raises(ValueError, match="fitted to scene 'klann', not to 'mini_chain'"):
         LatentSpace(scene, other)
+
+
+def test_a_latent_space_warns_of_a_map_fitted_to_its_scene_with_other_parameters() -> None:
+    """LatentStepper warned where a map's metadata names this scene with other parameters (its fingerprint), LatentSpace
+    took it without a word; both check in check_map_scene now: one warning from the constructor the caller called
+    (a stepper's own rest solve, which builds a LatentSpace, adds none)."""
+    import warnings
+
+    from redsim import pretrained, scenes
+    from redsim.integrators import LatentSpace
+    from redsim.integrators.spaces import SceneParametersWarning
+    from redsim.runtime import LatentStepper
+
+    dense = scenes.build("mini_chain", density=2000.0)
+    match = "fitted to scene 'mini_chain' with other parameters"
+    with pytest.warns(SceneParametersWarning, match=match) as caught:
+        LatentSpace(dense, pretrained.load("mini_chain"))
+    assert [w.filename for w in caught] == [__file__]  # the caller's line, not the helper's
+    with warnings.catch_warnings():
+        warnings.simplefilter("error", SceneParametersWarning)
+        LatentSpace(scenes.build("mini_chain"), pretrained.load("mini_chain"))  # its own scene: no warning
+    with pytest.warns(SceneParametersWarning, match=match) as caught:
+        LatentStepper(dense, pretrained.load("mini_chain"), 0.02).rest_latent()
+    assert [w.filename for w in caught] == [__file__]
