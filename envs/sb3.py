@@ -10,7 +10,8 @@ SB3 resets a finished copy in the same step and expects its last observation in
 vector env with ``AutoresetMode.SAME_STEP`` and translates. ``SB3VecEnv.make(id, num_envs=64, shards=2)``
 steps the copies in 2 worker processes (:mod:`redsim.envs.sharded`). ``SB3VecEnv.make(id, num_envs=8, goal=True)``
 gives the goal-conditioned env (:class:`redsim.envs.goal.GoalVectorObservation`) that SB3's ``HerReplayBuffer``
-relabels through ``env_method("compute_reward", ...)``.
+relabels through ``env_method("compute_reward", ...)``, and ``SB3VecEnv.make(id, num_envs=8, pixels=True)`` observes
+each copy's picture (:class:`redsim.envs.pixels.PixelVectorObservation`, for ``CnnPolicy``).
 """
 
 from __future__ import annotations
@@ -25,6 +26,7 @@ from gymnasium.vector import AutoresetMode
 from stable_baselines3.common.vec_env import VecEnv
 
 from redsim.envs.goal import GoalVectorObservation
+from redsim.envs.pixels import PixelVectorObservation
 from redsim.envs.sharded import ShardedVectorEnv
 from redsim.envs.vector import LatentVectorEnv
 from redsim.envs.vector_api import PER_COPY_CALLS, SHARED_METHODS
@@ -63,7 +65,15 @@ class SB3VecEnv(VecEnv):
         self._start = time.time()
 
     @classmethod
-    def make(cls, env_id: str, num_envs: int, *, goal: bool | Mapping[str, Any] = False, **kwargs: Any) -> SB3VecEnv:
+    def make(
+        cls,
+        env_id: str,
+        num_envs: int,
+        *,
+        goal: bool | Mapping[str, Any] = False,
+        pixels: bool | Mapping[str, Any] = False,
+        **kwargs: Any,
+    ) -> SB3VecEnv:
         """``gymnasium.make_vec(env_id, num_envs, vectorization_mode="vector_entry_point", SAME_STEP)`` wrapped.
 
         Args:
@@ -71,20 +81,37 @@ class SB3VecEnv(VecEnv):
             num_envs: N, the copies stepped in one batched solve.
             goal: Wrap the vector env in :class:`GoalVectorObservation` (a reach env's dict observations, for HER);
                 a mapping: with those arguments (``goal={"control_cost": True}``).
+            pixels: Observe each copy's picture (:class:`redsim.envs.pixels.PixelVectorObservation`, uint8
+                [H, W, 3], ``render_mode="rgb_array"`` is set; ``width=``/``height=`` size it); a mapping: with those
+                arguments (``pixels={"grayscale": True}``: [H, W, 1], for SB3's ``VecFrameStack`` and ``CnnPolicy``).
             **kwargs: Passed to ``gymnasium.make_vec``: the env's arguments, ``max_episode_steps``, ``shards``
                 (worker processes, :class:`redsim.envs.sharded.ShardedVectorEnv`) and their ``timeout`` [s].
 
         Raises:
             TypeError: ``goal`` with an env that is not a reach env, or with ``shards`` > 1 (the vector env is
                 closed first, workers included).
+            ValueError: ``goal`` and ``pixels`` together, or ``pixels`` with a ``render_mode`` other than "rgb_array".
         """
+        if pixels:
+            if goal:
+                raise ValueError("SB3VecEnv.make: goal observations are vectors; pixels=True makes them pictures")
+            if kwargs.setdefault("render_mode", "rgb_array") != "rgb_array":
+                raise ValueError(f"pixels=True draws render_mode='rgb_array' frames, got {kwargs['render_mode']!r}")
         venv = gym.make_vec(
             env_id,
             num_envs=num_envs,
             vectorization_mode="vector_entry_point",
-            autoreset_mode=AutoresetMode.SAME_STEP,
+            # pixels: the wrapper autoresets, after drawing an ended copy's last picture
+            autoreset_mode=AutoresetMode.DISABLED if pixels else AutoresetMode.SAME_STEP,
             **kwargs,
         )
+        if pixels:
+            try:
+                options = pixels if isinstance(pixels, Mapping) else {}
+                return cls(PixelVectorObservation(venv, **options, autoreset_mode=AutoresetMode.SAME_STEP))
+            except (TypeError, ValueError):
+                venv.close()
+                raise
         if goal:
             try:
                 venv = GoalVectorObservation(venv, **(goal if isinstance(goal, Mapping) else {}))

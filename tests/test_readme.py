@@ -107,7 +107,7 @@ def test_the_pixels_recipe_trains_a_cnn_policy_on_frame_stacks(tmp_path: Path, m
     from stable_baselines3.common.env_checker import check_env as sb3_check_env
     from stable_baselines3.common.policies import ActorCriticCnnPolicy
 
-    (code,) = [block for block in blocks("python") if PIXELS in block]
+    (code,) = [block for block in blocks("python") if PIXELS in block and "AddRenderObservation" in block]
     monkeypatch.chdir(tmp_path)
     namespace = {"__name__": "__main__"}
     exec(compile(code, "README.md pixels block", "exec"), namespace)
@@ -124,6 +124,24 @@ def test_the_pixels_recipe_trains_a_cnn_policy_on_frame_stacks(tmp_path: Path, m
             env.spec.make()  # what check_env's close check does
         check_env(env, skip_render_check=True, skip_close_check=True)
     sb3_check_env(env, warn=False)
+
+
+def test_the_vector_pixels_recipe_trains_a_cnn_policy_on_every_copys_frames(
+    tmp_path: Path, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    """README's block of `SB3VecEnv.make(..., pixels=...)` runs as written and trains SB3's CNN policy on 8 copies'
+    stacks of 4 grey 84 px frames (SB3 transposes them to [4, 84, 84])."""
+    from stable_baselines3.common.policies import ActorCriticCnnPolicy
+
+    (code,) = [block for block in blocks("python") if PIXELS in block and "pixels=" in block]
+    monkeypatch.chdir(tmp_path)
+    namespace = {"__name__": "__main__"}
+    exec(compile(code, "README.md vector pixels block", "exec"), namespace)
+    model = namespace["model"]
+    assert isinstance(model.policy, ActorCriticCnnPolicy) and model.n_envs == 8
+    assert model.observation_space.shape == (4, 84, 84) and model.observation_space.dtype == np.uint8
+    assert model.num_timesteps >= 256
+    model.get_env().close()
 
 
 @pytest.mark.parametrize("argv", command_params())

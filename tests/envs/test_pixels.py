@@ -1,0 +1,110 @@
+"""Pixel observations of the vector envs (redsim.envs.pixels): the frames, the autoreset modes, SB3."""
+
+from __future__ import annotations
+
+import gymnasium as gym
+import numpy as np
+import pytest
+from gymnasium.vector import AutoresetMode
+from gymnasium.wrappers import AddRenderObservation, GrayscaleObservation
+
+import redsim  # noqa: F401  (registers the ids)
+from redsim.envs.pixels import PixelVectorObservation
+from redsim.envs.sb3 import SB3VecEnv
+
+ENV_ID = "RedSim/MiniChain-v0"
+SIZE = 32
+
+
+def _vec(mode: AutoresetMode, steps: int = 3, **kwargs) -> gym.vector.VectorEnv:
+    return gym.make_vec(
+        ENV_ID,
+        2,
+        "vector_entry_point",
+        render_mode="rgb_array",
+        width=SIZE,
+        height=SIZE,
+        max_episode_steps=steps,
+        autoreset_mode=mode,
+        **kwargs,
+    )
+
+
+def test_a_copys_frame_is_the_single_envs_pixel_observation() -> None:
+    venv = PixelVectorObservation(_vec(AutoresetMode.NEXT_STEP), grayscale=True)
+    obs, _ = venv.reset(seed=0)
+    assert obs.shape == (2, SIZE, SIZE, 1) and obs.dtype == np.uint8 and venv.observation_space.contains(obs)
+    for i in range(2):
+        single = gym.make(ENV_ID, render_mode="rgb_array", width=SIZE, height=SIZE)
+        single = GrayscaleObservation(AddRenderObservation(single, render_only=True), keep_dim=True)
+        assert single.observation_space == venv.single_observation_space
+        np.testing.assert_array_equal(obs[i], single.reset(seed=i)[0])
+
+
+def test_same_step_draws_the_last_picture_before_the_reset_and_steps_as_the_native_env() -> None:
+    """Over a DISABLED env the wrapper autoresets in the ending step: its frames and info are the native SAME_STEP
+    env's, and final_obs holds the picture a NEXT_STEP env shows at that step (the ended episode's last state)."""
+    same = PixelVectorObservation(_vec(AutoresetMode.DISABLED), autoreset_mode="SameStep")
+    assert same.metadata["autoreset_mode"] == AutoresetMode.SAME_STEP
+    native = _vec(AutoresetMode.SAME_STEP)
+    nxt = PixelVectorObservation(_vec(AutoresetMode.NEXT_STEP))
+    for env in (same, native, nxt):
+        env.reset(seed=0)
+    actions = np.random.default_rng(0).uniform(-1, 1, (3, 2, 3)).astype(np.float32)
+    for action in actions:
+        obs, reward, _, truncated, info = same.step(action)
+        _, native_reward, *_, native_info = native.step(action)
+        last, *_ = nxt.step(action)
+        np.testing.assert_array_equal(obs, np.stack(native.render()))
+        np.testing.assert_array_equal(reward, native_reward)
+    assert truncated.all() and sorted(info) == sorted(native_info)
+    for key in ("distance", "is_success"):  # the new episodes' reset info
+        np.testing.assert_array_equal(info[key], native_info[key])
+    assert sorted(info["final_info"]) == sorted(native_info["final_info"])
+    for key in ("distance", "reward_distance", "converged"):  # the ended step's
+        np.testing.assert_array_equal(info["final_info"][key], native_info["final_info"][key])
+    assert not np.array_equal(obs, last)  # the new episodes start elsewhere
+    np.testing.assert_array_equal(np.stack(info["final_obs"]), last)
+
+
+def test_sb3_trains_a_cnn_policy_on_the_vector_envs_frames() -> None:
+    from stable_baselines3 import PPO
+    from stable_baselines3.common.vec_env import VecFrameStack
+
+    size = 40  # SB3's NatureCNN needs 36 px
+    venv = SB3VecEnv.make(ENV_ID, 2, pixels={"grayscale": True}, width=size, height=size, max_episode_steps=4)
+    stacked = VecFrameStack(venv, 4)
+    assert stacked.observation_space.shape == (size, size, 4)
+    stacked.seed(0)
+    stacked.reset()
+    for _ in range(4):
+        obs, _, done, infos = stacked.step(np.zeros((2, 3), np.float32))
+    assert done.all() and obs.shape == (2, size, size, 4)
+    assert infos[0]["terminal_observation"].shape == (size, size, 4) and infos[0]["TimeLimit.truncated"]
+    PPO("CnnPolicy", stacked, n_steps=8, batch_size=16, n_epochs=1, seed=0).learn(16)  # the policy reads the frames
+    stacked.close()
+
+
+@pytest.mark.parametrize(
+    ("make", "expected"),
+    [
+        (lambda: PixelVectorObservation(_vec(AutoresetMode.SAME_STEP)), "autoreset_mode='Disabled'"),
+        (lambda: PixelVectorObservation(_vec(AutoresetMode.NEXT_STEP), autoreset_mode="SameStep"), "NextStep into"),
+        (
+            lambda: PixelVectorObservation(gym.make_vec(ENV_ID, 2, "vector_entry_point")),
+            "render_mode='rgb_array'",
+        ),
+        (lambda: SB3VecEnv.make(ENV_ID, 2, pixels=True, goal=True), "goal observations are vectors"),
+        (lambda: SB3VecEnv.make(ENV_ID, 2, pixels=True, render_mode=None), "pixels=True draws"),
+    ],
+)
+def test_a_pixel_env_that_cannot_draw_its_frames_is_refused(make, expected: str) -> None:
+    with pytest.raises(ValueError, match=expected):
+        make()
+
+
+def test_a_gymnasium_vector_env_is_refused() -> None:
+    sync = gym.make_vec(ENV_ID, 2, "sync", render_mode="rgb_array", width=SIZE, height=SIZE)
+    with pytest.raises(TypeError, match="needs a redsim vector env"):
+        PixelVectorObservation(sync)
+    sync.close()
