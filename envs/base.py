@@ -76,6 +76,20 @@ single ``step()`` run for minutes or, mistyped (``10**12``), forever; for a long
 MAX_IMAGE_SIDE = 4096
 """Largest rendered width or height [px]: a 4096 x 4096 RGB frame is 48 MiB (and a vector env draws one per copy), so a
 larger one is refused when the env is made, not found out as a memory error at the first render."""
+LATENT_ENV_ARGUMENTS = (
+    '| `dtype` | "float32" | stepper dtype, "float32" or "float64" |',
+    '| `device` | "cpu" | torch device |',
+    "| `randomize_condition` | False | draw the scene's condition per episode (a conditional map only) |",
+    f"| `width`, `height` | 480 | render size [px], 8 to {MAX_IMAGE_SIDE} (`MAX_IMAGE_SIDE`) |",
+    "| `camera` | None | `azimuth`, `elevation`, `margin`, `merge_px`, `track` over the env's own camera |",
+    "| `stepper_options` | None | :class:`redsim.runtime.LatentStepper` options over the env's `stepper_defaults` |",
+    "| `cubature` | None | None: the shipped one where it meets the bar; True: required; False: none; a path |",
+    "| `threads` | 1 | torch intra-op threads while the env computes (None: the caller's setting) |",
+)
+"""Arguments-table rows of the :class:`LatentEnv` arguments a registered env passes on through ``**kwargs``: a
+subclass's docstring row :data:`LATENT_ENV_ROW` is replaced by them (``LatentEnv.__init_subclass__``)."""
+LATENT_ENV_ROW = "| `**kwargs` | | the other :class:`LatentEnv` arguments (`LATENT_ENV_ARGUMENTS`) |"
+"""Where an env's docstring table takes :data:`LATENT_ENV_ARGUMENTS`."""
 
 ACTION_RESOLUTION_WARNING = 0.05
 """An env whose steps cannot feel actions below this fraction of their range (:attr:`LatentSim.action_resolution`)
@@ -1562,6 +1576,15 @@ class LatentEnv(gym.Env[np.ndarray, np.ndarray]):
     """The env's own camera (a user's ``camera`` overrides it key by key)."""
     _spec: EnvSpec | None = None
 
+    def __init_subclass__(cls, **kwargs: Any) -> None:
+        """Put :data:`LATENT_ENV_ARGUMENTS` in place of a :data:`LATENT_ENV_ROW` row of the subclass's docstring (at
+        that row's indent): ``help(env.unwrapped)`` shows every argument the env takes."""
+        super().__init_subclass__(**kwargs)
+        doc = cls.__doc__ or ""
+        if LATENT_ENV_ROW in doc:
+            indent = doc[: doc.index(LATENT_ENV_ROW)].rsplit("\n", 1)[-1]
+            cls.__doc__ = doc.replace(LATENT_ENV_ROW, f"\n{indent}".join(LATENT_ENV_ARGUMENTS))
+
     @property
     def spec(self) -> EnvSpec | None:
         """The spec ``gym.make`` gave the env, its kwargs in JSON form (:func:`json_spec`: ``spec.to_json()`` works)."""
@@ -2085,6 +2108,8 @@ def _batch(state: Mapping[str, Any]) -> dict[str, Any]:
 
 __all__ = [
     "LATENT_BOUND",
+    "LATENT_ENV_ARGUMENTS",
+    "LATENT_ENV_ROW",
     "MAX_FRAME_SKIP",
     "NO_HUMAN",
     "VECTOR_RENDER_MODES",

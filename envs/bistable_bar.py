@@ -288,7 +288,7 @@ class BistableBarEnv(LatentEnv):
     | `fit_options` | None | FitConfig fields over the shipped map's fit options for that fit |
     | `include_q` | False | put q [n] in `info["q"]` |
     | `reset_noise_scale` | 0.0 | s: start at z0 + U(-s, s) with z_dot s N(0, 1) per latent (MuJoCo's convention) |
-    | `**kwargs` | | more :class:`LatentEnv` arguments (`dtype`, `device`, `width`, `height`, `camera`, `threads`...) |
+    | `**kwargs` | | the other :class:`LatentEnv` arguments (`LATENT_ENV_ARGUMENTS`) |
 
     `stepper_options` (a :class:`LatentEnv` argument) defaults to `{"max_step": 2.0, "warm_refresh": False,
     "start": "lower"}`: no solver trial moves z by more than 2 latent units, the warm model is BFGS-updated from

@@ -42,6 +42,12 @@ class ClothBallEnv(ReachEnv):
     a control cost and a bonus within the success radius, each in `info["reward_<term>"]`
     (formula: :class:`redsim.envs.reach.ReachEnv`).
 
+    Besides the rewards and the solver's flags, `info` holds `distance` [m], `is_success` and the scene's invariants
+    (:mod:`redsim.envs.invariants`): `membrane_max_strain` (the largest principal stretch - 1 over the cloth's
+    triangles; 0.44 at rest in the shipped map, in the triangles at the pinned corners, where the median triangle's
+    is 0.035), `rigid_orthogonality_error` (the ball's |R^T R - I|_F), `contact_penetration` [m] and
+    `contact_clearance` [m] (Starting State).
+
     ## Starting State
     At rest (z: the map's unloaded equilibrium, the ball in the cloth's hollow; z_dot = 0). In the shipped d = 3 map
     the ball does not touch the cloth: its nearest cloth point stays ~2 cm beyond the contact margin

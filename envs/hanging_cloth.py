@@ -42,6 +42,10 @@ class HangingClothEnv(ReachEnv):
     a control cost and a bonus within the success radius, each in `info["reward_<term>"]`
     (formula: :class:`redsim.envs.reach.ReachEnv`).
 
+    Besides the rewards and the solver's flags, `info` holds `distance` [m], `is_success` and `membrane_max_strain`
+    (the largest principal stretch - 1 over the sheet's triangles, 0.11 at rest: Starting State;
+    :mod:`redsim.envs.invariants`).
+
     ## Starting State
     At rest (z: the map's unloaded equilibrium, z_dot = 0). That is the shipped map's rest, not the flat hanging
     sheet's: the d = 8 map (4000 fit steps) holds the sheet folded, its lowest point at y = -0.75 m, its top row

@@ -323,7 +323,7 @@ class KlannEnv(LatentEnv):
     | `fit_options` | None | FitConfig fields over the shipped map's fit options for that fit |
     | `include_q` | False | put q [n] in `info["q"]` |
     | `reset_noise_scale` | 0.0 | s: start at z0 + U(-s, s) with z_dot s N(0, 1) per latent (MuJoCo's convention) |
-    | `**kwargs` | | more :class:`LatentEnv` arguments (`dtype`, `device`, `width`, `height`, `camera`, `threads`...) |
+    | `**kwargs` | | the other :class:`LatentEnv` arguments (`LATENT_ENV_ARGUMENTS`) |
 
     omega is the wrapped turn of one env step over its dt x frame_skip, so a crank turning faster than
     pi / (dt x frame_skip) would read as a slower or backward one; the env checks `speed_range` against that limit

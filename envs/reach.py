@@ -423,8 +423,7 @@ class ReachEnv(LatentEnv):
     | `fit_options` | None | FitConfig fields over the shipped map's fit options for that fit |
     | `include_q` | False | put q [n] in `info["q"]` |
     | `reset_noise_scale` | 0.0 | s: start at z0 + U(-s, s) with z_dot s N(0, 1) per latent (MuJoCo's convention) |
-    | `cubature` | None | None: the shipped cubature where it meets the bar; True: required; False: none; a path |
-    | `**kwargs` | | more :class:`LatentEnv` arguments (`dtype`, `device`, `width`, `height`, `camera`, `threads`...) |
+    | `**kwargs` | | the other :class:`LatentEnv` arguments (`LATENT_ENV_ARGUMENTS`) |
     """
 
     scene_name: ClassVar[str]

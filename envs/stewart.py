@@ -354,14 +354,13 @@ class StewartEnv(LatentEnv):
     | `fit_options` | None | FitConfig fields over the shipped map's fit options for that fit |
     | `include_q` | False | put q [n] in `info["q"]` |
     | `reset_noise_scale` | 0.0 | s: start at z0 + U(-s, s) with z_dot s N(0, 1) per latent (MuJoCo's convention) |
-    | `stepper_options` | `{"max_step": 2.0, "warm_refresh": False, "start": "lower"}` | solver options over these |
-    | `**kwargs` | | more :class:`LatentEnv` arguments (`dtype`, `device`, `width`, `height`, `camera`, `threads`...) |
+    | `**kwargs` | | the other :class:`LatentEnv` arguments (`LATENT_ENV_ARGUMENTS`) |
 
-    `stepper_options` (a :class:`LatentEnv` argument): no solver trial moves z by more than 2 latent units, the
-    warm model is BFGS-updated from step to step and never rebuilt, and each solve starts at the lower of the
-    extrapolated state and the current one (1.14x faster at 64 envs: 11.8 instead of 13.9 value-and-gradient calls
-    per vector step; README "Env speed"). `{"max_step": None, "warm_refresh": True, "start": "extrapolated"}` gives
-    the solver's general defaults.
+    `stepper_options` defaults to `{"max_step": 2.0, "warm_refresh": False, "start": "lower"}`: no solver trial
+    moves z by more than 2 latent units, the warm model is BFGS-updated from step to step and never rebuilt, and
+    each solve starts at the lower of the extrapolated state and the current one (1.14x faster at 64 envs: 11.8
+    instead of 13.9 value-and-gradient calls per vector step; README "Env speed"). `{"max_step": None,
+    "warm_refresh": True, "start": "extrapolated"}` gives the solver's general defaults.
 
     ## Version History
     - v0: first version. Its solver defaults (`stepper_defaults`) later changed the path of each solve, not its

@@ -8,9 +8,13 @@ run the same checks under ``-m slow``. Float tolerances: the stepper runs in flo
 from __future__ import annotations
 
 import copy
+import importlib
+import inspect
 import json
 import logging
+import math
 import pickle
+import re
 import warnings
 from pathlib import Path
 
@@ -84,14 +88,123 @@ def test_each_env_s_own_docstring_states_its_reward_terms_and_arguments() -> Non
         )
 
 
+SECTIONS = (
+    "Description",
+    "Action Space",
+    "Observation Space",
+    "Rewards",
+    "Starting State",
+    "Episode End",
+    "Arguments",
+    "Version History",
+)
+"""Gymnasium's docstring sections, in its order (an env may add its own between them: Klann-v0's Success)."""
+
+
+def _env_class(env_id: str) -> type[LatentEnv]:
+    module, name = gym.spec(env_id).entry_point.split(":")
+    return getattr(importlib.import_module(module), name)
+
+
+def _section(doc: str, name: str) -> str:
+    return doc.split(f"\n    ## {name}\n", 1)[1].split("\n    ## ", 1)[0]
+
+
+def _rows(text: str) -> list[list[str]]:
+    """The body rows of the markdown tables in ``text``, as lists of cells (header and rule rows left out)."""
+    lines = [line.strip() for line in text.splitlines() if line.strip().startswith("|")]
+    rows = [[cell.strip() for cell in line.strip("|").split("|")] for line in lines if not line.startswith("|---")]
+    return [row for row in rows if row[0] not in ("Num", "Argument")]
+
+
+def _indices(num: str) -> list[int]:
+    """A table's Num cell (``3`` or ``0-7``) as the indices it covers."""
+    first, _, last = num.partition("-")
+    return list(range(int(first), int(last or first) + 1))
+
+
+def _parameters(cls: type[LatentEnv]) -> set[str]:
+    """Every keyword argument of an env class: its own ``__init__``'s and those of the LatentEnv classes it passes
+    ``**kwargs`` on to (scene, subspace and task are the env's own)."""
+    names = set()
+    for klass in cls.__mro__:
+        if issubclass(klass, LatentEnv) and "__init__" in vars(klass):
+            params = inspect.signature(vars(klass)["__init__"]).parameters.values()
+            names |= {p.name for p in params if p.kind == p.KEYWORD_ONLY or p.name == "render_mode"}
+    return names
+
+
+@pytest.mark.parametrize("env_id", redsim.envs.ids())
+def test_the_env_s_docstring_follows_gymnasium_s_template_and_its_registration(env_id: str) -> None:
+    """The docstring is the env's contract (Gymnasium's template): its tables cover every action and observation
+    entry its Box literals state, its truncation is the registered one, its Arguments table names every argument the
+    env takes and no other, and its Version History every registered version of the id. A review (helper-239) found
+    the LatentEnv arguments behind ``**kwargs`` (``randomize_condition``, ``stepper_options``, ``cubature``) missing
+    from the tables, ConditionalBar's default of True among them."""
+    spec, cls = gym.spec(env_id), _env_class(env_id)
+    doc = cls.__doc__
+    assert [s for s in re.findall(r"\n    ## (.+)\n", doc) if s in SECTIONS] == list(SECTIONS)
+    for name, literal in (
+        ("Action Space", r"`Box\(-1, 1, \((\d+),\), float32\)`"),
+        ("Observation Space", r"`Box\(low, high, \((\d+),\),\s+float32\)`"),
+    ):
+        text = _section(doc, name)
+        size = int(re.search(literal, text).group(1))
+        assert [i for row in _rows(text) for i in _indices(row[0])] == list(range(size)), name
+    steps, seconds = re.search(r"Truncation: (\d+) steps\s+\(([\d.]+) s at the default", doc).groups()
+    dt = inspect.signature(cls).parameters["dt"].default
+    assert int(steps) == spec.max_episode_steps and float(seconds) == pytest.approx(spec.max_episode_steps * dt)
+    named = {name for row in _rows(_section(doc, "Arguments")) for name in re.findall(r"`(\w+)`", row[0])}
+    assert named == _parameters(cls)
+    assert set(spec.kwargs) <= named
+    family = env_id.rsplit("-v", 1)[0]
+    versions = [i.rsplit("-v", 1)[1] for i in redsim.envs.ids() if i.rsplit("-v", 1)[0] == family]
+    history = _section(doc, "Version History")
+    assert [v for v in versions if not re.search(rf"^\s+- (v\d+, )*v{v}[:,]", history, re.M)] == []
+
+
+@pytest.mark.parametrize("env_id", CONTRACT_IDS)
+def test_the_env_s_space_tables_state_its_spaces(env_id: str) -> None:
+    """The Box literals are the env's spaces, each observation block (``observation_structure``) starts a table row,
+    and every bound the tables give as a number (or in pi and dt) is the space's bound."""
+    env = gym.make(env_id).unwrapped
+    doc = type(env).__doc__
+    actions, observations = _section(doc, "Action Space"), _section(doc, "Observation Space")
+    assert f"`Box(-1, 1, ({env.action_space.shape[0]},), float32)`" in actions
+    assert env.action_space.dtype == np.float32 and env.observation_space.dtype == np.float32
+    assert (env.action_space.low == -1.0).all() and (env.action_space.high == 1.0).all()
+    assert re.search(rf"`Box\(low, high, \({env.observation_space.shape[0]},\),\s+float32\)`", observations)
+    starts = {_indices(row[0])[0] for row in _rows(observations)}
+    assert set(np.cumsum([0, *env.observation_structure.values()])[:-1].tolist()) <= starts
+    checked = 0
+    for text, space in ((actions, env.action_space), (observations, env.observation_space)):
+        for row in _rows(text):
+            for cell, bound in ((row[2], space.low), (row[3], space.high)):
+                if number := re.fullmatch(r"(-?)(pi/dt|[\d.]+)", cell):
+                    value = math.pi / env.dt if number[2] == "pi/dt" else float(number[2])
+                    value = -value if number[1] else value
+                    assert bound[_indices(row[0])] == pytest.approx(value, rel=1e-6), (row, bound[_indices(row[0])])
+                    checked += 1
+    assert checked >= 2 * len(_rows(actions))
+
+
 @pytest.mark.parametrize(
-    "env_id", ["RedSim/Klann-v0", "RedSim/Stewart-v0", "RedSim/BistableBar-v1", "RedSim/ConditionalBar-v1"]
+    "env_id",
+    [
+        *(i for i in redsim.envs.ids() if i in (*FAST, *LINKAGES, "RedSim/BistableBar-v1", "RedSim/ConditionalBar-v1")),
+        *(
+            pytest.param(i, marks=pytest.mark.slow)
+            for i in redsim.envs.ids()
+            if i not in (*FAST, *LINKAGES, "RedSim/BistableBar-v1", "RedSim/ConditionalBar-v1")
+        ),
+    ],
 )
 def test_the_env_s_docstring_names_every_info_key_of_a_step(env_id: str) -> None:
     """Each key of a step's info is named by the env's own docstring, or by LatentEnv's (the solver's flags).
 
     A review (helper-213) found Klann-v0's docstring without its linkage invariants and ConditionalBar's without its
-    FEM invariants."""
+    FEM invariants; another (helper-239) ClothBall's without ``membrane_max_strain`` and
+    ``rigid_orthogonality_error``."""
     env = gym.make(env_id)
     env.reset(seed=0)
     info = env.step(np.zeros(env.action_space.shape, np.float32))[-1]
