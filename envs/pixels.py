@@ -43,7 +43,9 @@ class PixelVectorObservation(VectorWrapper):
             state: an ended copy's last picture, then its new episode's). ``SAME_STEP``: over an env made with
             ``DISABLED``, this wrapper resets each ended copy in the step that ends it, after drawing its last
             picture into ``info["final_obs"]`` (its step info in ``info["final_info"]``, its reset info in the
-            top-level keys, as the native env's ``SAME_STEP``).
+            top-level keys, as the native env's ``SAME_STEP``). Such a step is the env's step, a drawing and a
+            ``reset(options={"reset_mask": ended})``: an interrupt between them leaves the ended copies unreset
+            (the next step raises the env's DISABLED error): ``reset()`` the env then.
 
     Raises:
         TypeError: not a redsim vector env.
