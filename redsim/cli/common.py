@@ -132,6 +132,48 @@ def warn(text: str) -> None:
     print(f"redsim: warning: {text}", file=sys.stderr, flush=True)
 
 
+_COLOUR = re.compile(r"\x1b\[[0-9;]*m")
+"""A terminal colour code (Gymnasium's ``logger.warn`` colours its messages yellow)."""
+_RELAYS = ("warnings", "_py_warnings", "gymnasium.logger")
+"""Modules that issue a warning on behalf of their caller: the caller is its source (``gym.logger.warn`` called
+by redsim's envs says redsim's message)."""
+
+
+def show_warning(
+    message: Warning | str,
+    category: type[Warning],
+    filename: str,
+    lineno: int,
+    file: Any = None,
+    line: str | None = None,
+) -> None:
+    """:func:`warnings.showwarning` of the command line (:func:`redsim.cli.main`): a Python warning as one
+    ``redsim: warning: MESSAGE`` line on stderr, without the file, line number and source line of the ``warn`` call.
+
+    Python's filters run before this (``-W error`` still raises, ``-W ignore`` still silences, ``default`` still
+    shows each location once). The parenthesis names what the user needs to tell the warning apart: the package
+    whose code issued it, where that is not redsim (a torch, Gymnasium or SB3 warning is about their API or
+    defaults, not a redsim setting), and its category, except for redsim's own UserWarnings (what ``-W
+    ignore::CATEGORY`` filters): ``redsim: warning (stable_baselines3, UserWarning): ...``, ``redsim: warning
+    (RuntimeWarning): ...``. A message's further lines are indented under its first; colour codes are dropped.
+    """
+    text = _COLOUR.sub("", str(message)).strip().removeprefix("WARN: ")  # Gymnasium's logger: "WARN: " in colour
+    frame = sys._getframe(1)  # the warnings module's _showwarnmsg, then the code that called warnings.warn
+    while frame is not None and frame.f_globals.get("__name__") in _RELAYS:
+        frame = frame.f_back
+    module = Path(filename).stem if frame is None else str(frame.f_globals.get("__name__", Path(filename).stem))
+    package = module.partition(".")[0]
+    tags = [] if package == "redsim" else [package]
+    tags += [] if package == "redsim" and category is UserWarning else [category.__name__]
+    head = "redsim: warning" + (f" ({', '.join(tags)})" if tags else "")
+    first, *more = text.splitlines() or [""]
+    said = "\n".join([f"{head}: {first}", *(f"  {each}" if each else "" for each in more)])
+    try:
+        print(said, file=file or sys.stderr, flush=True)
+    except OSError:  # stderr went away: as Python's own display, the warning is lost, not the command
+        pass
+
+
 def warn_earlier_frames(folder: str | Path, flag: str) -> None:
     """Say on stderr that ``folder`` (given as ``flag``) holds mesh frames from an earlier run: they are not removed,
     and this run's frames replace only those of the same number."""

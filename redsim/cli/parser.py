@@ -22,6 +22,7 @@ from redsim.cli.common import (
     check_writable,
     command_threads,
     error,
+    show_warning,
     warn,
 )
 
@@ -54,7 +55,17 @@ def main(argv: Sequence[str] | None = None) -> int:
         The exit status (0 ok, 1 a scene failed to build, a file could not be read or written, or memory ran out,
         2 bad input, 3 NaN, 4 a failed simulation step, 130 interrupted: Ctrl-C, or SIGTERM as a batch scheduler or
         ``kill`` sends it, which takes the same path, so an interrupted fit or training run saves what it has).
+
+    Python warnings are shown as one ``redsim: warning: ...`` line each (:func:`redsim.cli.common.show_warning`)
+    while it runs; the caller's ``warnings.showwarning`` and filters are back when it returns.
     """
+    with warnings.catch_warnings():  # restores showwarning (and the filters) on return: tests call main in-process
+        warnings.showwarning = show_warning
+        return _run(argv)
+
+
+def _run(argv: Sequence[str] | None) -> int:
+    """:func:`main` under the command line's warning display."""
     parser = build_parser()
     try:
         args = parser.parse_args(argv)
