@@ -14,6 +14,7 @@ import numpy as np
 import pytest
 import torch
 from gymnasium.utils.env_checker import check_env
+from torch import Tensor
 
 import redsim
 from redsim.cubature import CubatureEnergy
@@ -166,6 +167,47 @@ def test_invariants_in_row_blocks_equal_one_pass(name: str) -> None:
     for key, value in one_pass.items():
         assert blocks[key].shape == (7,)
         torch.testing.assert_close(blocks[key], value, rtol=1e-12, atol=1e-14)
+
+
+def _triangle_strains(scene: redsim.Scene, x: Tensor) -> Tensor:
+    """The largest principal stretch - 1 of every membrane triangle [T] of one configuration x [1, N]."""
+    caa, cbb, cab = scene.effect("membrane").metric(x)
+    return ((0.5 * (caa + cbb) + torch.hypot(0.5 * (caa - cbb), cab)).sqrt() - 1.0)[0]
+
+
+def _pinned_triangles(scene: redsim.Scene) -> Tensor:
+    """Which membrane triangles [T] have a pinned vertex."""
+    vertices = scene.effect("membrane").element_dofs[:, ::3] // 3
+    return torch.isin(vertices, scene.dof_map.pinned_index // 3).any(-1)
+
+
+@pytest.mark.slow
+def test_cloth_ball_rest_strain_is_the_corner_pins_and_the_map_adds_to_it() -> None:
+    """ClothBall's docstring on `membrane_max_strain` (stop 70): the float64 full-space rest reads 0.30 (median
+    0.021) in the triangles at the pinned corners, which carry the ball's weight; on a coarser mesh (22 cells) 0.18: a
+    point pin's concentration, larger the finer the mesh. The shipped map's rest reads 0.44 (median 0.035), in the same
+    triangles. The measure is the invariant's (checked against eigvalsh above). ~20 s: two full-space solves."""
+    from redsim.envs.invariants import Invariants
+    from redsim.integrators.reference import rest_state
+
+    strains = {}
+    for cells in (44, 22):
+        scene = redsim.scenes.build("cloth_ball", cells=cells)
+        q, converged = rest_state(scene)
+        assert converged
+        x = scene.full_positions(q.unsqueeze(0))
+        strains[cells] = _triangle_strains(scene, x)
+        torch.testing.assert_close(Invariants(scene)(x)["membrane_max_strain"][0], strains[cells].max())
+        assert bool(_pinned_triangles(scene)[strains[cells].argmax()])
+    assert 0.28 < float(strains[44].max()) < 0.32 and 0.019 < float(strains[44].median()) < 0.023
+    assert 0.16 < float(strains[22].max()) < 0.20
+    env = gym.make(CLOTH_BALL).unwrapped
+    _, info = env.reset(seed=0)
+    scene = redsim.scenes.build("cloth_ball")
+    mapped = _triangle_strains(scene, scene.full_positions(env.sim.positions(env.sim.z[:1]).double()))
+    reported = float(info["membrane_max_strain"])
+    assert 0.42 < reported < 0.45 and abs(float(mapped.max()) - reported) < 1e-4
+    assert bool(_pinned_triangles(scene)[mapped.argmax()]) and 0.033 < float(mapped.median()) < 0.037
 
 
 @pytest.mark.slow
