@@ -3,6 +3,8 @@
 from __future__ import annotations
 
 import json
+import os
+import signal
 from pathlib import Path
 from typing import Any
 
@@ -11,6 +13,7 @@ import pytest
 
 from redsim.cli import main
 from redsim.envs.bench import median_rounds
+from redsim.envs.sharded import ShardedVectorEnv
 
 
 def test_demo_prints_return_and_speed_and_writes_gif_and_picture(
@@ -185,7 +188,7 @@ def test_bench_envs_bad_env_arg_is_a_usage_error(
     assert "--env-arg max_force given twice" in capsys.readouterr().err
 
 
-def test_bench_envs_sharded(capsys: pytest.CaptureFixture[str]) -> None:
+def test_bench_envs_sharded(capsys: pytest.CaptureFixture[str], monkeypatch: pytest.MonkeyPatch) -> None:
     args = ["bench", "envs", "--envs", "RedSim/MiniChain-v0", "--batches", "2", "--steps", "2", "--no-full-space"]
     assert main([*args, "--anchor-steps", "20", "--shards", "2", "--shard-timeout", "120", "--json"]) == 0
     work = json.loads(capsys.readouterr().out)["results"][0]["vector"]["2"]
@@ -197,10 +200,21 @@ def test_bench_envs_sharded(capsys: pytest.CaptureFixture[str]) -> None:
     assert "--shard-timeout bounds the wait for a sharded env's workers" in capsys.readouterr().err
     assert main([*args, "--shards", "2", "--shard-timeout", "0"]) == 2
     assert "must be a number of seconds > 0" in capsys.readouterr().err
-    # a worker past --shard-timeout (here: any, 1 us) fails its batch's part; the run goes on and fails at its end
-    assert main([*args, "--anchor-steps", "20", "--shards", "2", "--shard-timeout", "1e-6", "--json"]) == 1
-    part = json.loads(capsys.readouterr().out)["results"][0]["vector"]["2"]
-    assert part["failed"].startswith("ShardTimeoutError: the sharded env's reset timed out after 1e-06 s: shard")
+    # a worker past --shard-timeout fails its batch's part; the run goes on and fails at its end. The worker hangs
+    # for sure (stopped before the reset): a live worker under a 1 us timeout raced the caller, which, descheduled on a
+    # busy machine for the few ms of a reset between sending it and polling, found it answered and timed out a step
+    reset = ShardedVectorEnv.reset
+
+    def reset_with_a_hung_worker(self: ShardedVectorEnv, **kwargs: Any) -> Any:
+        os.kill(self._processes[1].pid, signal.SIGSTOP)  # it answers nothing until the timeout kills it
+        return reset(self, **kwargs)
+
+    monkeypatch.setattr(ShardedVectorEnv, "reset", reset_with_a_hung_worker)
+    assert main([*args, "--anchor-steps", "20", "--shards", "2", "--shard-timeout", "1", "--json"]) == 1
+    failed = json.loads(capsys.readouterr().out)["results"][0]["vector"]["2"]["failed"]
+    assert failed.startswith("ShardTimeoutError: the sharded env's reset timed out after 1 s: shard") and (
+        "shard 1 (copy 1, worker pid" in failed  # shard 0 too where it had not answered within the second
+    )
 
 
 def test_an_out_of_date_id_is_one_warning_line_in_demo_and_eval_agent(
