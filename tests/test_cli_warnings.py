@@ -32,6 +32,21 @@ def simulate(sheet: Path) -> list[str]:
     return ["simulate", "--mesh", str(sheet), "--kind", "cloth", "--steps", "1", "--json"]
 
 
+def warn_in_cache_info(warn: Callable[[], None], cache: Path, monkeypatch: pytest.MonkeyPatch) -> None:
+    """``redsim cache info`` (of the cache folder ``cache``) calls ``warn()`` first: a command that warns as a test
+    says."""
+    from redsim.cli import cache as command
+
+    usage = command.user_cache_usage
+
+    def warning_usage(*args: object, **kwargs: object) -> object:
+        warn()
+        return usage(*args, **kwargs)
+
+    monkeypatch.setattr(command, "user_cache_usage", warning_usage)
+    monkeypatch.setenv("REDSIM_CACHE", str(cache))
+
+
 def test_a_warning_in_a_command_is_one_line_and_the_callers_display_comes_back(cli: Cli, sheet_in_mm: Path) -> None:
     """It was Python's display: `/.../redsim/scenes/spec.py:100: UserWarning: mesh ...` and the source line of the
     call (`return MESH_BUILDERS[kind](path, **params)`), a path and code of ours that say nothing to the user."""
@@ -74,18 +89,12 @@ def test_a_third_party_warning_names_its_package_and_category(
     further lines are indented under its first."""
     import gymnasium
 
-    from redsim.cli import cache
-
-    usage = cache.user_cache_usage
-
-    def warning_usage(*args: object, **kwargs: object) -> object:
+    def warn() -> None:
         for _ in range(2):  # float64 bounds cast to float32: gymnasium warns for low and for high
             gymnasium.spaces.Box(low=np.array([0.1]), high=np.array([1.0]), dtype=np.float32)
         warnings.warn("first line\nsecond line\n\nfourth line", FutureWarning, stacklevel=1)
-        return usage(*args, **kwargs)
 
-    monkeypatch.setattr(cache, "user_cache_usage", warning_usage)
-    monkeypatch.setenv("REDSIM_CACHE", str(tmp_path))
+    warn_in_cache_info(warn, tmp_path, monkeypatch)
     with warnings.catch_warnings():
         warnings.simplefilter("default")
         code, _, err = cli("cache", "info", "--json")
@@ -101,3 +110,30 @@ def test_a_third_party_warning_names_its_package_and_category(
         "",
         "  fourth line",
     ]
+
+
+def test_a_warning_is_said_once_per_run_though_pythons_memory_of_it_is_reset(
+    cli: Cli, tmp_path: Path, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    """Python shows a location's warning once until any ``catch_warnings`` or filter change in the process resets its
+    memory (the standard library's ``subprocess`` does, Gymnasium's and our own): a command said the same line again
+    after each. Now each line once per run, and every time where an ``always`` filter asks for it."""
+
+    def warn() -> None:
+        for _ in range(3):
+            with warnings.catch_warnings():  # what resets Python's once-per-location memory
+                pass
+            warnings.warn("the same warning", UserWarning, stacklevel=1)
+        warnings.warn("another warning", UserWarning, stacklevel=1)
+
+    warn_in_cache_info(warn, tmp_path, monkeypatch)
+    with warnings.catch_warnings():
+        warnings.simplefilter("default")
+        code, _, err = cli("cache", "info", "--json")
+        said = f"redsim: warning ({__name__.partition('.')[0]}, UserWarning): "  # this test's module warns
+        assert code == 0 and err.splitlines() == [f"{said}the same warning", f"{said}another warning"]
+        code, _, err = cli("cache", "info", "--json")  # a run of its own: said again
+        assert code == 0 and err.count("the same warning") == 1
+        warnings.filterwarnings("always", message="the same")
+        code, _, err = cli("cache", "info", "--json")
+    assert code == 0 and err.count("the same warning") == 3 and err.count("another warning") == 1

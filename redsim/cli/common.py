@@ -13,6 +13,7 @@ import math
 import re
 import sys
 import tempfile
+import warnings
 from collections.abc import Callable, Iterator, Sequence
 from pathlib import Path
 from typing import TYPE_CHECKING, Any, NoReturn
@@ -146,6 +147,8 @@ def show_warning(
     lineno: int,
     file: Any = None,
     line: str | None = None,
+    *,
+    said: set[str] | None = None,
 ) -> None:
     """:func:`warnings.showwarning` of the command line (:func:`redsim.cli.main`): a Python warning as one
     ``redsim: warning: MESSAGE`` line on stderr, without the file, line number and source line of the ``warn`` call.
@@ -156,6 +159,12 @@ def show_warning(
     defaults, not a redsim setting), and its category, except for redsim's own UserWarnings (what ``-W
     ignore::CATEGORY`` filters): ``redsim: warning (stable_baselines3, UserWarning): ...``, ``redsim: warning
     (RuntimeWarning): ...``. A message's further lines are indented under its first; colour codes are dropped.
+
+    ``said``: the lines said so far in this run (:func:`redsim.cli.main` gives each run its own set). A line in it is
+    not said again, unless an ``always`` filter (``-W always``) could match the warning. Python's own once-per-location
+    memory is not enough: every ``warnings.catch_warnings`` or filter change anywhere in the process (the standard
+    library's ``subprocess``, Gymnasium, ours) resets it, and ``redsim bench envs`` said an env's warning once per env
+    it built.
     """
     text = _COLOUR.sub("", str(message)).strip().removeprefix("WARN: ")  # Gymnasium's logger: "WARN: " in colour
     frame = sys._getframe(1)  # the warnings module's _showwarnmsg, then the code that called warnings.warn
@@ -167,11 +176,24 @@ def show_warning(
     tags += [] if package == "redsim" and category is UserWarning else [category.__name__]
     head = "redsim: warning" + (f" ({', '.join(tags)})" if tags else "")
     first, *more = text.splitlines() or [""]
-    said = "\n".join([f"{head}: {first}", *(f"  {each}" if each else "" for each in more)])
+    shown = "\n".join([f"{head}: {first}", *(f"  {each}" if each else "" for each in more)])
+    if said is not None:
+        if shown in said and not _always_shown(str(message), category):
+            return
+        said.add(shown)
     try:
-        print(said, file=file or sys.stderr, flush=True)
+        print(shown, file=file or sys.stderr, flush=True)
     except OSError:  # stderr went away: as Python's own display, the warning is lost, not the command
         pass
+
+
+def _always_shown(text: str, category: type[Warning]) -> bool:
+    """Whether an ``always`` filter matches the warning's message and category (its module and line not checked: a
+    repeat that may have been asked for is said)."""
+    return any(
+        action == "always" and (message is None or message.match(text)) and issubclass(category, kind)
+        for action, message, kind, _, _ in warnings.filters
+    )
 
 
 def warn_earlier_frames(folder: str | Path, flag: str) -> None:

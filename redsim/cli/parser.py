@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import argparse
+import functools
 import logging
 import os
 import signal
@@ -56,11 +57,11 @@ def main(argv: Sequence[str] | None = None) -> int:
         2 bad input, 3 NaN, 4 a failed simulation step, 130 interrupted: Ctrl-C, or SIGTERM as a batch scheduler or
         ``kill`` sends it, which takes the same path, so an interrupted fit or training run saves what it has).
 
-    Python warnings are shown as one ``redsim: warning: ...`` line each (:func:`redsim.cli.common.show_warning`)
-    while it runs; the caller's ``warnings.showwarning`` and filters are back when it returns.
+    Python warnings are shown as one ``redsim: warning: ...`` line each (:func:`redsim.cli.common.show_warning`),
+    each line once per run, while it runs; the caller's ``warnings.showwarning`` and filters are back when it returns.
     """
     with warnings.catch_warnings():  # restores showwarning (and the filters) on return: tests call main in-process
-        warnings.showwarning = show_warning
+        warnings.showwarning = functools.partial(show_warning, said=set())  # a partial adds no frame to walk
         return _run(argv)
 
 

@@ -126,6 +126,23 @@ def test_bench_envs_without_mujoco_skips_the_anchors_with_the_reason(
     assert json.loads(capsys.readouterr().out)["mujoco"] == {"available": False, "reason": bench.MUJOCO_MISSING}
 
 
+def test_bench_envs_says_an_envs_warning_once_though_it_builds_the_env_again(
+    monkeypatch: pytest.MonkeyPatch, capsys: pytest.CaptureFixture[str]
+) -> None:
+    """Each env bench envs builds (to check --env-arg, then the single env and each batch's vector env) warned of the
+    float32 step at dt 1 ms, and Python's once-per-location memory, reset by the catch_warnings around each build
+    (old_versions_quiet) and by subprocess, said it again: 4 and 3 times here. Now once each per run."""
+    from redsim.envs import bench
+
+    real = bench.importlib.util.find_spec  # no MuJoCo anchors: not what this test is about
+    monkeypatch.setattr(bench.importlib.util, "find_spec", lambda name: None if name == "mujoco" else real(name))
+    args = ["bench", "envs", "--envs", "RedSim/MiniChain-v0", "--batches", "2,3", "--steps", "1", "--no-full-space"]
+    assert main([*args, "--budget", "0.1", "--env-arg", "dt=0.001", "--json"]) == 0
+    err = capsys.readouterr().err
+    assert err.count("redsim: warning: torch.float32 at dt=0.001 s resolves accelerations only to") == 1, err
+    assert err.count("redsim: warning: torch.float32 at dt=0.001 s cannot feel any value of an action") == 1, err
+
+
 def test_bench_mujoco_cloth_without_mujoco_is_one_error_line(
     monkeypatch: pytest.MonkeyPatch, capsys: pytest.CaptureFixture[str]
 ) -> None:
