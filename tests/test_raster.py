@@ -128,7 +128,12 @@ def test_the_numpy_fill_matches_pillows_on_real_scenes(name: str, size: int) -> 
     """fill_triangles on a scene's triangles (3D links and plates, the two-sided cloth, the 2D bars) equals the
     per-triangle Pillow fill it replaced on >= 98% of the pixels (measured 98.99-99.98% here) and on most of the
     pixels either fill draws (measured 0.3-8.9% differ at 84 px, Stewart's thin plates the most; 0.3-3.2% at 240), and
-    the pixels that differ all lie on a triangle's edge."""
+    the pixels that differ all lie on a triangle's edge. Pillow 9.1-11.0 put a polygon's edge pixels otherwise (9.0 and
+    11.1+ as measured here; 9.2's differ on 13-18% of the drawn pixels at 84 px): no reference for these shares."""
+    import PIL
+
+    if (9, 1) <= tuple(int(part) for part in PIL.__version__.split(".")[:2]) < (11, 1):
+        pytest.skip(f"Pillow {PIL.__version__} fills polygon edges otherwise than the Pillow these were measured on")
     scene = scenes.build(name)
     generator = torch.Generator().manual_seed(0)
     q = scene.q_seed + 0.02 * scene.extent() * torch.randn(scene.q_seed.shape, generator=generator)
