@@ -655,8 +655,9 @@ def flex_cloth_unavailable() -> str | None:
     major = int(str(mujoco.__version__).split(".")[0])
     if major < 4 or not hasattr(mujoco.mjtIntegrator, "mjINT_DISCRETE") or not hasattr(mujoco, "MjSpec"):
         return (
-            f"mujoco {mujoco.__version__}'s flex cloth is not redsim's StVK sheet (needs mujoco >= 4.0: "
-            "pip install -U 'redsim[bench]')"
+            f"mujoco {mujoco.__version__}'s flex cloth is not redsim's StVK sheet (needs mujoco >= 4.0; over a "
+            "mujoco 3, `pip uninstall -y mujoco` first: pip's upgrade to MuJoCo 4's split packages leaves `import "
+            "mujoco` broken)"
         )
     return None
 

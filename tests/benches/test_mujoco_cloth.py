@@ -232,6 +232,8 @@ def test_a_mujoco_3_is_refused_though_it_has_the_discrete_integrator(monkeypatch
     membrane test above failed on each (forces 60% apart at 3.13, 3.14 and 3.17), and passes from 4.0.0."""
     monkeypatch.setattr(mujoco, "__version__", "3.17.0")
     assert "needs mujoco >= 4.0" in mujoco_cloth.flex_cloth_unavailable()
+    # pip installing mujoco 4.0.0 over 3.13.0 left mujoco-core's files removed (MuJoCo's 4.0.0 notes: uninstall first)
+    assert "pip uninstall -y mujoco" in mujoco_cloth.flex_cloth_unavailable()
     assert "needs mujoco >= 4.0" in mujoco_cloth.cloth_anchor(steps=1)["reason"]
 
 
