@@ -34,6 +34,11 @@ def test_every_package_folder_is_listed_for_installation() -> None:
     found = {".".join(p.parent.relative_to(root).parts) for p in (root / "redsim").rglob("__init__.py")}
     found |= {mapped[p.parent.name] for p in root.glob("*/__init__.py") if p.parent.name in mapped}
     assert found <= listed, sorted(found - listed)
+    # a folder of data files (redsim/pretrained/policies) is a namespace package to Python: setuptools warns that
+    # it "would be ignored" unless listed, and its files then ship only while setuptools still reads them as data
+    folders = {".".join(d.relative_to(root).parts) for d in (root / "redsim").rglob("*") if d.is_dir()}
+    folders = {f for f in folders if "__pycache__" not in f.split(".")}
+    assert folders <= listed, sorted(folders - listed)
 
 
 @source_checkout
