@@ -364,7 +364,10 @@ def test_close_kills_a_stopped_worker_instead_of_leaving_it(monkeypatch: pytest.
         venv.close()
         assert time.monotonic() - start < 0.5 + KILL_AFTER_S + 3.0
         assert not any(process.is_alive() for process in processes)
-        assert processes[0].exitcode == -signal.SIGKILL and processes[1].exitcode == 0
+        assert processes[0].exitcode == -signal.SIGKILL
+        # the healthy worker exits on close's request, or is terminated where a loaded machine keeps its exit past
+        # the join window (0.5 s here): either way it is gone
+        assert processes[1].exitcode in (0, -signal.SIGTERM)
 
 
 def test_close_waits_no_longer_than_the_envs_timeout_for_a_stopped_worker() -> None:
@@ -378,7 +381,10 @@ def test_close_waits_no_longer_than_the_envs_timeout_for_a_stopped_worker() -> N
         venv.close()
         assert time.monotonic() - start < 0.5 + KILL_AFTER_S + 3.0 < JOIN_TIMEOUT_S
         assert not any(process.is_alive() for process in processes)
-        assert processes[0].exitcode == -signal.SIGKILL and processes[1].exitcode == 0
+        assert processes[0].exitcode == -signal.SIGKILL
+        # the healthy worker exits on close's request, or is terminated where a loaded machine keeps its exit past
+        # the join window (0.5 s here): either way it is gone
+        assert processes[1].exitcode in (0, -signal.SIGTERM)
 
 
 @pytest.mark.parametrize("timeout", [0, -1.0, math.nan, math.inf, True, "5"])
