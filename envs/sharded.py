@@ -24,6 +24,7 @@ import pickle
 import sys
 import time
 import traceback
+import warnings
 from collections.abc import Callable, Mapping, Sequence
 from multiprocessing.connection import Connection
 from typing import TYPE_CHECKING, Any, NoReturn
@@ -99,12 +100,27 @@ def shard_sizes(num_envs: int, shards: int) -> list[int]:
     return [base + (i < extra) for i in range(int(shards))]
 
 
-def _worker(pipe: Connection, build: bytes, num_envs: int, threads: int) -> None:
+def _warning_display() -> Callable[..., None] | None:
+    """The caller's ``warnings.showwarning`` where it pickles (the command line's one-line display,
+    ``redsim.cli.common.show_warning``: a spawned worker would print Python's ``file:line: UserWarning`` form
+    instead), else None (the worker keeps Python's). The worker's filters come from the interpreter's ``-W`` options,
+    which a spawned process inherits."""
+    try:
+        pickle.dumps(warnings.showwarning)
+    except Exception:
+        return None
+    return warnings.showwarning
+
+
+def _worker(pipe: Connection, build: bytes, num_envs: int, threads: int, display: Callable[..., None] | None) -> None:
     """Serve one shard: build its native vector env (``build``: a pickled ``build(n)``), then answer (command,
     payload) requests until "close". A request that raises is answered ("error", (the exception pickled, or None
-    where it does not pickle, and its traceback)), and the worker goes on serving."""
+    where it does not pickle, and its traceback)), and the worker goes on serving. ``display``: the caller's
+    ``warnings.showwarning`` (:func:`_warning_display`), so a worker's warnings read as the caller's do."""
     import torch
 
+    if display is not None:
+        warnings.showwarning = display
     torch.set_num_threads(threads)
     venv = None
     try:
@@ -237,10 +253,11 @@ class ShardedVectorEnv(SharedCopies, VectorEnv):
         self.closed = False
         ctx = mp.get_context(context)
         payload = pickle.dumps(build)  # here, so that a build that does not pickle fails in the caller
+        display = _warning_display()
         try:
             for size in self.sizes:
                 parent, child = ctx.Pipe()
-                process = ctx.Process(target=_worker, args=(child, payload, size, int(threads)), daemon=True)
+                process = ctx.Process(target=_worker, args=(child, payload, size, int(threads), display), daemon=True)
                 process.start()
                 child.close()
                 self._pipes.append(parent)

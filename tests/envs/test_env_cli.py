@@ -506,3 +506,21 @@ def test_ctrl_c_while_the_demo_gif_is_written_keeps_the_previous_one_whole(
         "minichain_scripted.gif",
         "minichain_scripted.png",
     ]
+
+
+def test_bench_envs_sharded_workers_say_their_warnings_in_the_command_line_s_form(
+    monkeypatch: pytest.MonkeyPatch, capfd: pytest.CaptureFixture[str]
+) -> None:
+    """A spawned shard worker printed its env's warnings in Python's raw form (``/.../envs/base.py:601: UserWarning:
+    ...`` and the source line) beside the command's one-line ``redsim: warning: ...``; the workers now take the
+    command line's display, with the record of what the command had said when they started: a line said before is
+    not said again by each worker."""
+    from redsim.envs import bench
+
+    real = bench.importlib.util.find_spec  # no MuJoCo anchors: not what this test is about
+    monkeypatch.setattr(bench.importlib.util, "find_spec", lambda name: None if name == "mujoco" else real(name))
+    args = ["bench", "envs", "--envs", "RedSim/MiniChain-v0", "--batches", "2", "--steps", "1", "--no-full-space"]
+    assert main([*args, "--shards", "2", "--budget", "0.1", "--env-arg", "dt=0.001", "--json"]) == 0
+    err = capfd.readouterr().err
+    assert "UserWarning" not in err and "envs/base.py" not in err, err
+    assert err.count("redsim: warning: torch.float32 at dt=0.001 s resolves accelerations only to") == 1, err
