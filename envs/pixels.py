@@ -107,7 +107,7 @@ class PixelVectorObservation(VectorWrapper):
         values = {key: value for key, value in info.items() if f"_{key}" in info}
         final_obs = np.full(self.num_envs, None, dtype=object)
         for i in np.nonzero(done)[0]:
-            final_obs[i] = frames[i]
+            final_obs[i] = frames[i].copy()  # its own array, as the native env's (a kept frame must not hold all N)
         final_info = _with_masks({key: value.copy() for key, value in values.items()}, done)
         _, reset_info = self.env.reset(options={"reset_mask": done})  # each copy draws from its own generator
         reset_values = {key: value for key, value in reset_info.items() if f"_{key}" in reset_info}

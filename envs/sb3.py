@@ -89,9 +89,14 @@ class SB3VecEnv(VecEnv):
 
         Raises:
             TypeError: ``goal`` with an env that is not a reach env, or with ``shards`` > 1 (the vector env is
-                closed first, workers included).
+                closed first, workers included); ``pixels`` neither a bool nor a mapping (nothing is built).
             ValueError: ``goal`` and ``pixels`` together, or ``pixels`` with a ``render_mode`` other than "rgb_array".
         """
+        if not isinstance(pixels, bool | np.bool_ | Mapping):
+            raise TypeError(
+                f"SB3VecEnv.make: pixels must be True, False or a mapping of PixelVectorObservation's arguments "
+                f"(pixels={{'grayscale': True}}), got {pixels!r}"
+            )
         if pixels:
             if goal:
                 raise ValueError("SB3VecEnv.make: goal observations are vectors; pixels=True makes them pictures")
