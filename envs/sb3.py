@@ -31,6 +31,11 @@ from redsim.envs.sharded import ShardedVectorEnv
 from redsim.envs.vector import LatentVectorEnv
 from redsim.envs.vector_api import PER_COPY_CALLS, SHARED_METHODS
 
+PIXEL_SIDE = 84
+"""Default width and height [px] of ``SB3VecEnv.make(..., pixels=True)``'s observations (Atari's 84 x 84, SB3's
+``CnnPolicy`` default input): at the envs' own 480 x 480 a PPO rollout buffer of 2048 steps x 8 copies holds
+2048 * 8 * 480 * 480 * 3 float32 values, 42 GiB."""
+
 
 class SB3VecEnv(VecEnv):
     """SB3's VecEnv interface over a :class:`LatentVectorEnv` or :class:`ShardedVectorEnv`, or a Gymnasium vector
@@ -82,8 +87,9 @@ class SB3VecEnv(VecEnv):
             goal: Wrap the vector env in :class:`GoalVectorObservation` (a reach env's dict observations, for HER);
                 a mapping: with those arguments (``goal={"control_cost": True}``).
             pixels: Observe each copy's picture (:class:`redsim.envs.pixels.PixelVectorObservation`, uint8
-                [H, W, 3], ``render_mode="rgb_array"`` is set; ``width=``/``height=`` size it); a mapping: with those
-                arguments (``pixels={"grayscale": True}``: [H, W, 1], for SB3's ``VecFrameStack`` and ``CnnPolicy``).
+                [H, W, 3], ``render_mode="rgb_array"`` is set; ``width=``/``height=`` size it, :data:`PIXEL_SIDE`
+                each by default, not the env's 480); a mapping (``{}`` included): with those arguments
+                (``pixels={"grayscale": True}``: [H, W, 1], for SB3's ``VecFrameStack`` and ``CnnPolicy``).
             **kwargs: Passed to ``gymnasium.make_vec``: the env's arguments, ``max_episode_steps``, ``shards``
                 (worker processes, :class:`redsim.envs.sharded.ShardedVectorEnv`) and their ``timeout`` [s].
 
@@ -97,20 +103,23 @@ class SB3VecEnv(VecEnv):
                 f"SB3VecEnv.make: pixels must be True, False or a mapping of PixelVectorObservation's arguments "
                 f"(pixels={{'grayscale': True}}), got {pixels!r}"
             )
-        if pixels:
+        pixels = pixels if isinstance(pixels, Mapping) else bool(pixels)  # {}: pixels with no arguments
+        if pixels is not False:
             if goal:
                 raise ValueError("SB3VecEnv.make: goal observations are vectors; pixels=True makes them pictures")
             if kwargs.setdefault("render_mode", "rgb_array") != "rgb_array":
                 raise ValueError(f"pixels=True draws render_mode='rgb_array' frames, got {kwargs['render_mode']!r}")
+            kwargs.setdefault("width", PIXEL_SIDE)
+            kwargs.setdefault("height", PIXEL_SIDE)
         venv = gym.make_vec(
             env_id,
             num_envs=num_envs,
             vectorization_mode="vector_entry_point",
             # pixels: the wrapper autoresets, after drawing an ended copy's last picture
-            autoreset_mode=AutoresetMode.DISABLED if pixels else AutoresetMode.SAME_STEP,
+            autoreset_mode=AutoresetMode.DISABLED if pixels is not False else AutoresetMode.SAME_STEP,
             **kwargs,
         )
-        if pixels:
+        if pixels is not False:
             try:
                 options = pixels if isinstance(pixels, Mapping) else {}
                 return cls(PixelVectorObservation(venv, **options, autoreset_mode=AutoresetMode.SAME_STEP))
@@ -246,4 +255,4 @@ def _info_row(info: Mapping[str, Any], i: int) -> dict[str, Any]:
     return row
 
 
-__all__ = ["SHARED_METHODS", "SB3VecEnv"]
+__all__ = ["PIXEL_SIDE", "SHARED_METHODS", "SB3VecEnv"]

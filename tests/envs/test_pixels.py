@@ -10,7 +10,7 @@ from gymnasium.wrappers import AddRenderObservation, GrayscaleObservation
 
 import redsim  # noqa: F401  (registers the ids)
 from redsim.envs.pixels import PixelVectorObservation
-from redsim.envs.sb3 import SB3VecEnv
+from redsim.envs.sb3 import PIXEL_SIDE, SB3VecEnv
 
 ENV_ID = "RedSim/MiniChain-v0"
 SIZE = 32
@@ -126,6 +126,18 @@ def test_pixels_other_than_a_flag_or_the_wrappers_arguments_are_refused(pixels) 
     """`pixels="grayscale"` used to build colour frames without a word (any truthy value meant True)."""
     with pytest.raises(TypeError, match="pixels must be True, False or a mapping"):
         SB3VecEnv.make(ENV_ID, 2, pixels=pixels)
+
+
+def test_pixel_observations_are_84_px_unless_sized_and_an_empty_mapping_means_pixels() -> None:
+    """``pixels=True`` observed the env's 480 x 480 frames (a PPO buffer of 2048 steps x 8 copies: 42 GiB), and
+    ``pixels={}`` (falsy) built a state-vector env without a word."""
+    for pixels in (True, {}):
+        venv = SB3VecEnv.make(ENV_ID, 2, pixels=pixels)
+        assert venv.observation_space.shape == (PIXEL_SIDE, PIXEL_SIDE, 3) == venv.reset().shape[1:]
+        venv.close()
+    venv = SB3VecEnv.make(ENV_ID, 2, pixels={"grayscale": True}, width=40, height=48)
+    assert venv.observation_space.shape == (48, 40, 1)
+    venv.close()
 
 
 def _masks(info: dict) -> dict:
