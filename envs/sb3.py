@@ -85,7 +85,7 @@ class SB3VecEnv(VecEnv):
             env_id: A registered id (``"RedSim/Chain-v0"``).
             num_envs: N, the copies stepped in one batched solve.
             goal: Wrap the vector env in :class:`GoalVectorObservation` (a reach env's dict observations, for HER);
-                a mapping: with those arguments (``goal={"control_cost": True}``).
+                a mapping ({} included): with those arguments (``goal={"control_cost": True}``).
             pixels: Observe each copy's picture (:class:`redsim.envs.pixels.PixelVectorObservation`, uint8
                 [H, W, 3], ``render_mode="rgb_array"`` is set; ``width=``/``height=`` size it, :data:`PIXEL_SIDE`
                 each by default, not the env's 480); a mapping (``{}`` included): with those arguments
@@ -95,17 +95,24 @@ class SB3VecEnv(VecEnv):
 
         Raises:
             TypeError: ``goal`` with an env that is not a reach env, or with ``shards`` > 1 (the vector env is
-                closed first, workers included); ``pixels`` neither a bool nor a mapping (nothing is built).
+                closed first, workers included); ``goal`` or ``pixels`` neither a bool nor a mapping (nothing is
+                built).
             ValueError: ``goal`` and ``pixels`` together, or ``pixels`` with a ``render_mode`` other than "rgb_array".
         """
-        if not isinstance(pixels, bool | np.bool_ | Mapping):
-            raise TypeError(
-                f"SB3VecEnv.make: pixels must be True, False or a mapping of PixelVectorObservation's arguments "
-                f"(pixels={{'grayscale': True}}), got {pixels!r}"
-            )
-        pixels = pixels if isinstance(pixels, Mapping) else bool(pixels)  # {}: pixels with no arguments
+        for name, value, wrapper, example in (
+            ("goal", goal, "GoalVectorObservation", "{'control_cost': True}"),
+            ("pixels", pixels, "PixelVectorObservation", "{'grayscale': True}"),
+        ):
+            if not isinstance(value, bool | np.bool_ | Mapping):
+                raise TypeError(
+                    f"SB3VecEnv.make: {name} must be True, False or a mapping of {wrapper}'s arguments "
+                    f"({name}={example}), got {value!r}"
+                )
+        # a mapping, {} included, asks for the wrapper (with those arguments)
+        goal = goal if isinstance(goal, Mapping) else bool(goal)
+        pixels = pixels if isinstance(pixels, Mapping) else bool(pixels)
         if pixels is not False:
-            if goal:
+            if goal is not False:
                 raise ValueError("SB3VecEnv.make: goal observations are vectors; pixels=True makes them pictures")
             if kwargs.setdefault("render_mode", "rgb_array") != "rgb_array":
                 raise ValueError(f"pixels=True draws render_mode='rgb_array' frames, got {kwargs['render_mode']!r}")
@@ -126,7 +133,7 @@ class SB3VecEnv(VecEnv):
             except (TypeError, ValueError):
                 venv.close()
                 raise
-        if goal:
+        if goal is not False:
             try:
                 venv = GoalVectorObservation(venv, **(goal if isinstance(goal, Mapping) else {}))
             except TypeError:

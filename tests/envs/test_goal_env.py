@@ -287,6 +287,16 @@ def test_a_goal_env_that_cannot_be_made_closes_its_vector_env_first() -> None:
         SB3VecEnv.make("RedSim/Klann-v0", 2, goal=True)
 
 
+def test_goal_other_than_a_flag_or_the_wrappers_arguments_is_refused_and_an_empty_mapping_means_goal() -> None:
+    """``goal="yes"`` was taken as True and ``goal={}`` (a mapping, but falsy) built a vector-observation env."""
+    for goal in ("yes", 1, [1]):
+        with pytest.raises(TypeError, match="goal must be True, False or a mapping of GoalVectorObservation"):
+            SB3VecEnv.make("RedSim/MiniChain-v0", 2, goal=goal)
+    venv = SB3VecEnv.make("RedSim/MiniChain-v0", 2, goal={})
+    assert isinstance(venv.observation_space, gym.spaces.Dict)
+    venv.close()
+
+
 def test_sb3_reads_the_goal_env_through_outer_vector_wrappers() -> None:
     """HER's env_method and get_attr find the goal env's methods under Gymnasium vector wrappers; a vector
     RecordEpisodeStatistics outside gives SB3 each copy's episode at its end only."""
