@@ -9,7 +9,7 @@ from gymnasium.vector import AutoresetMode
 from gymnasium.wrappers import AddRenderObservation, GrayscaleObservation
 
 import redsim  # noqa: F401  (registers the ids)
-from redsim.envs.pixels import PixelVectorObservation
+from redsim.envs.pixels import PixelVectorObservation, grey
 from redsim.envs.sb3 import PIXEL_SIDE, SB3VecEnv
 
 ENV_ID = "RedSim/MiniChain-v0"
@@ -138,6 +138,19 @@ def test_pixel_observations_are_84_px_unless_sized_and_an_empty_mapping_means_pi
     venv = SB3VecEnv.make(ENV_ID, 2, pixels={"grayscale": True}, width=40, height=48)
     assert venv.observation_space.shape == (48, 40, 1)
     venv.close()
+
+
+def test_grey_is_gymnasiums_grayscale_observation_for_every_colour() -> None:
+    """grey() replaced Gymnasium's formula (a [..., 3] float64 product, 7x slower) by its terms in the same order."""
+    wrapper = GrayscaleObservation(
+        AddRenderObservation(gym.make(ENV_ID, render_mode="rgb_array", width=8, height=8), render_only=True),
+        keep_dim=True,
+    )
+    colours = np.arange(2**24, dtype=np.uint32)
+    for chunk in np.split(colours, 16):
+        frames = np.stack([chunk >> 16, chunk >> 8, chunk], -1).astype(np.uint8)  # uint8 keeps the low byte
+        assert np.array_equal(grey(frames), wrapper.observation(frames))
+    wrapper.close()
 
 
 def _masks(info: dict) -> dict:
