@@ -100,27 +100,31 @@ def shard_sizes(num_envs: int, shards: int) -> list[int]:
     return [base + (i < extra) for i in range(int(shards))]
 
 
-def _warning_display() -> Callable[..., None] | None:
-    """The caller's ``warnings.showwarning`` where it pickles (the command line's one-line display,
+def _warning_display() -> bytes | None:
+    """The caller's ``warnings.showwarning`` pickled where it pickles (the command line's one-line display,
     ``redsim.cli.common.show_warning``: a spawned worker would print Python's ``file:line: UserWarning`` form
-    instead), else None (the worker keeps Python's). The worker's filters come from the interpreter's ``-W`` options,
-    which a spawned process inherits."""
+    instead), else None (the worker keeps Python's). Bytes, which the worker unpickles itself: a function pickled by
+    reference to a module the worker cannot import (a notebook's ``__main__``) must not kill it before it starts. The
+    worker's filters come from the interpreter's ``-W`` options, which a spawned process inherits."""
     try:
-        pickle.dumps(warnings.showwarning)
+        return pickle.dumps(warnings.showwarning)
     except Exception:
         return None
-    return warnings.showwarning
 
 
-def _worker(pipe: Connection, build: bytes, num_envs: int, threads: int, display: Callable[..., None] | None) -> None:
+def _worker(pipe: Connection, build: bytes, num_envs: int, threads: int, display: bytes | None) -> None:
     """Serve one shard: build its native vector env (``build``: a pickled ``build(n)``), then answer (command,
     payload) requests until "close". A request that raises is answered ("error", (the exception pickled, or None
     where it does not pickle, and its traceback)), and the worker goes on serving. ``display``: the caller's
-    ``warnings.showwarning`` (:func:`_warning_display`), so a worker's warnings read as the caller's do."""
+    ``warnings.showwarning`` pickled (:func:`_warning_display`), so a worker's warnings read as the caller's do where
+    the worker can unpickle it (else Python's display)."""
     import torch
 
     if display is not None:
-        warnings.showwarning = display
+        try:
+            warnings.showwarning = pickle.loads(display)
+        except Exception:  # the caller's display is not importable here: the worker keeps Python's
+            pass
     torch.set_num_threads(threads)
     venv = None
     try:

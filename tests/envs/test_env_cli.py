@@ -515,10 +515,13 @@ def test_bench_envs_sharded_workers_say_their_warnings_in_the_command_line_s_for
     ...`` and the source line) beside the command's one-line ``redsim: warning: ...``; the workers now take the
     command line's display, with the record of what the command had said when they started: a line said before is
     not said again by each worker."""
-    from redsim.envs import bench
+    from redsim.envs import bench, sharded
 
     real = bench.importlib.util.find_spec  # no MuJoCo anchors: not what this test is about
     monkeypatch.setattr(bench.importlib.util, "find_spec", lambda name: None if name == "mujoco" else real(name))
+    # spawn: the forkserver's workers write to the fd 2 it had when an earlier test started it, which capfd does not
+    # see, and this test passed in a run of the file with the workers' display removed
+    monkeypatch.setattr(sharded.mp, "get_all_start_methods", lambda: ["spawn"])
     args = ["bench", "envs", "--envs", "RedSim/MiniChain-v0", "--batches", "2", "--steps", "1", "--no-full-space"]
     assert main([*args, "--shards", "2", "--budget", "0.1", "--env-arg", "dt=0.001", "--json"]) == 0
     err = capfd.readouterr().err

@@ -8,7 +8,10 @@ import multiprocessing
 import os
 import pickle
 import signal
+import sys
 import time
+import types
+import warnings
 from collections.abc import Iterator
 
 import gymnasium as gym
@@ -456,3 +459,36 @@ def test_a_worker_error_before_a_timeout_is_kept_in_its_message() -> None:
     message = str(raised.value)
     assert "shard 1 (copy 1, worker pid 4321) did not answer" in message and "shard 0 (" not in message
     assert message.endswith("A worker failed before it: shard 0:\nTraceback (most recent call last):\nValueError: boom")
+
+
+def test_a_callers_warning_display_the_workers_cannot_import_leaves_them_pythons(
+    monkeypatch: pytest.MonkeyPatch, capfd: pytest.CaptureFixture[str]
+) -> None:
+    """A ``warnings.showwarning`` that pickles by reference but that a worker cannot import (one defined in a notebook
+    or a ``python -c`` script: its module is ``__main__``) went to each worker as a Process argument, and each died
+    unpickling it before building its env (ShardError "the worker process exited"). Now the worker keeps Python's
+    display, and its warnings still print."""
+    module = types.ModuleType("display_only_in_the_caller")  # what a spawned worker cannot import
+
+    def display(*args: object, **kwargs: object) -> None:
+        said.append(str(args[0]))
+
+    said: list[str] = []
+    display.__module__, display.__qualname__ = module.__name__, "display"
+    module.display = display  # type: ignore[attr-defined]
+    monkeypatch.setitem(sys.modules, module.__name__, module)
+    monkeypatch.setattr(warnings, "showwarning", display)
+    pickle.dumps(display)  # it pickles here, as a notebook's function does
+    # spawn, not the forkserver, whose workers write to the fd 2 it had when an earlier test started it, not capfd's
+    monkeypatch.setattr(sharded_module.mp, "get_all_start_methods", lambda: ["spawn"])
+    venv = gym.make_vec(
+        "RedSim/MiniChain-v0", num_envs=2, vectorization_mode="vector_entry_point", shards=2, dt=0.001, timeout=60.0
+    )
+    try:
+        obs, _ = venv.reset(seed=0)
+        assert obs.shape[0] == 2
+    finally:
+        venv.close()
+    err = capfd.readouterr().err
+    assert any("resolves accelerations only to" in line for line in said)  # the caller's display in the caller
+    assert "UserWarning: torch.float32 at dt=0.001 s resolves accelerations only to" in err, err  # Python's in workers
