@@ -3,6 +3,7 @@ Python's filters still deciding, and Python's own display back once :func:`redsi
 
 from __future__ import annotations
 
+import json
 import subprocess
 import sys
 import warnings
@@ -137,3 +138,15 @@ def test_a_warning_is_said_once_per_run_though_pythons_memory_of_it_is_reset(
         warnings.filterwarnings("always", message="the same")
         code, _, err = cli("cache", "info", "--json")
     assert code == 0 and err.count("the same warning") == 3 and err.count("another warning") == 1
+
+
+def test_without_stderr_a_warning_is_dropped_not_written_into_stdout(
+    sheet_in_mm: Path, capsys: pytest.CaptureFixture[str], monkeypatch: pytest.MonkeyPatch
+) -> None:
+    """With stderr closed (``redsim ... 2>&-``) Python's ``sys.stderr`` is None, and ``print(file=None)`` writes to
+    stdout: the warning line went into the ``--json`` document. As Python's own display, it is now dropped."""
+    monkeypatch.setattr(sys, "stderr", None)
+    code = main(simulate(sheet_in_mm))
+    out = capsys.readouterr().out
+    assert code == 0 and "warning" not in out, out
+    assert json.loads(out)["scene"] == "mesh_cloth"

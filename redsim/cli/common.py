@@ -181,8 +181,11 @@ def show_warning(
         if shown in said and not _always_shown(str(message), category):
             return
         said.add(shown)
+    file = file or sys.stderr
+    if file is None:  # no stderr (`2>&-`): print(file=None) would write into stdout; Python's display drops it
+        return
     try:
-        print(shown, file=file or sys.stderr, flush=True)
+        print(shown, file=file, flush=True)
     except OSError:  # stderr went away: as Python's own display, the warning is lost, not the command
         pass
 
