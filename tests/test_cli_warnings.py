@@ -150,3 +150,12 @@ def test_without_stderr_a_warning_is_dropped_not_written_into_stdout(
     out = capsys.readouterr().out
     assert code == 0 and "warning" not in out, out
     assert json.loads(out)["scene"] == "mesh_cloth"
+
+
+def test_without_stderr_an_error_is_dropped_not_written_into_stdout(
+    capsys: pytest.CaptureFixture[str], monkeypatch: pytest.MonkeyPatch
+) -> None:
+    """The CLI's own lines (``redsim: error: ...``, warnings and progress notes) went into stdout as well."""
+    monkeypatch.setattr(sys, "stderr", None)
+    code = main(["simulate", "no_such_scene", "--json"])
+    assert code == 2 and capsys.readouterr().out == ""

@@ -130,7 +130,14 @@ def json_out(obj: Any) -> None:
 
 
 def warn(text: str) -> None:
-    print(f"redsim: warning: {text}", file=sys.stderr, flush=True)
+    say(f"redsim: warning: {text}")
+
+
+def say(text: str) -> None:
+    """Print ``text`` on stderr; nothing where there is none (``2>&-``: Python sets ``sys.stderr`` to None, and
+    ``print(file=None)`` would write into stdout, the command's result)."""
+    if sys.stderr is not None:
+        print(text, file=sys.stderr, flush=True)
 
 
 _COLOUR = re.compile(r"\x1b\[[0-9;]*m")
@@ -213,11 +220,11 @@ def warn_earlier_frames(folder: str | Path, flag: str) -> None:
 
 def note(text: str) -> None:
     """A progress line on stderr (stdout stays the command's result)."""
-    print(text, file=sys.stderr, flush=True)
+    say(text)
 
 
 def error(text: str) -> None:
-    print(f"redsim: error: {text}", file=sys.stderr, flush=True)
+    say(f"redsim: error: {text}")
 
 
 def file_name(name: str) -> str:
