@@ -6,7 +6,8 @@
     >>> PPO("MlpPolicy", venv).learn(10_000)
 
 SB3 resets a finished copy in the same step and expects its last observation in
-``infos[i]["terminal_observation"]`` and ``infos[i]["TimeLimit.truncated"]``; the adapter runs the
+``infos[i]["terminal_observation"]``, and ``infos[i]["TimeLimit.truncated"]`` on every step (as its
+``DummyVecEnv`` gives them); the adapter runs the
 vector env with ``AutoresetMode.SAME_STEP`` and translates. ``SB3VecEnv.make(id, num_envs=64, shards=2)``
 steps the copies in 2 worker processes (:mod:`redsim.envs.sharded`). ``SB3VecEnv.make(id, num_envs=8, goal=True)``
 gives the goal-conditioned env (:class:`redsim.envs.goal.GoalVectorObservation`) that SB3's ``HerReplayBuffer``
@@ -173,10 +174,11 @@ class SB3VecEnv(VecEnv):
                 self.reset_infos[i] = {k: row.pop(k) for k in list(row) if k in final}
                 row = {**final, **row}
                 row["terminal_observation"] = info["final_obs"][i]
-                row["TimeLimit.truncated"] = bool(truncated[i] and not terminated[i])
                 episode = {"r": float(self._returns[i]), "l": int(self._lengths[i]), "t": time.time() - self._start}
                 row.setdefault("episode", episode)
                 self._returns[i], self._lengths[i] = 0.0, 0
+            # on every step, as SB3's DummyVecEnv and SubprocVecEnv put it (a callback reads it without a KeyError)
+            row["TimeLimit.truncated"] = bool(truncated[i] and not terminated[i])
             infos.append(row)
         return obs, reward.astype(np.float32), done, infos
 

@@ -279,6 +279,30 @@ def test_the_sb3_adapter_reports_monitor_episode_statistics() -> None:
         assert info["episode"]["r"] == pytest.approx(monitor_info["episode"]["r"], rel=1e-4, abs=1e-4)
 
 
+def test_the_sb3_adapters_infos_hold_the_keys_of_dummy_vec_envs_on_every_step() -> None:
+    """SB3's DummyVecEnv puts ``TimeLimit.truncated`` in every step's info, not only an ended copy's: a callback
+    reading it on any step got a KeyError from the adapter."""
+    from stable_baselines3.common.monitor import Monitor
+    from stable_baselines3.common.vec_env import DummyVecEnv
+
+    from redsim.envs.sb3 import SB3VecEnv
+
+    own = SB3VecEnv.make(ID, 2, max_episode_steps=3)
+    dummy = DummyVecEnv([lambda: Monitor(gym.make(ID, max_episode_steps=3)) for _ in range(2)])
+    for venv in (own, dummy):
+        venv.seed(0)
+        venv.reset()
+    for step in range(4):
+        _, _, done, infos = own.step(PUSH)
+        _, _, dummy_done, dummy_infos = dummy.step(PUSH)
+        assert done.tolist() == dummy_done.tolist() == [step == 2] * 2
+        for info, dummy_info in zip(infos, dummy_infos, strict=True):
+            assert set(info) == set(dummy_info), step
+            assert info["TimeLimit.truncated"] == dummy_info["TimeLimit.truncated"] == (step == 2)
+    own.close()
+    dummy.close()
+
+
 def test_the_sb3_adapter_passes_set_options_to_the_reset() -> None:
     from redsim.envs.sb3 import SB3VecEnv
 
