@@ -1970,11 +1970,12 @@ def json_spec(spec: EnvSpec | None) -> EnvSpec | None:
     """``spec`` with the env arguments given in a non-JSON form redsim accepts in their JSON one, so that
     ``spec.to_json()`` works and ``gym.make(spec)`` makes the same env: ``dtype`` by name (``torch.float64`` or
     ``np.float64`` as "float64"), a ``torch.device`` as its string, a path (``subspace``, ``cubature``) as a string,
-    a vector env's ``AutoresetMode`` as its value ("SameStep"). Other values are kept (a map given as ``subspace`` is
-    not JSON: its spec cannot be)."""
+    a vector env's ``AutoresetMode`` as its value ("SameStep"), a NumPy scalar (``frame_skip=np.int64(2)``,
+    ``camera={"azimuth": np.float32(30)}``) as the Python number or bool it holds. Other values are kept (a map given
+    as ``subspace`` is not JSON: its spec cannot be)."""
     if spec is None:
         return None
-    kwargs = dict(spec.kwargs)
+    kwargs = {key: _python_scalars(value) for key, value in spec.kwargs.items()}
     if "dtype" in kwargs and not isinstance(kwargs["dtype"], str):
         kwargs["dtype"] = _dtype_name(kwargs["dtype"])
     if isinstance(kwargs.get("device"), torch.device):
@@ -1985,6 +1986,17 @@ def json_spec(spec: EnvSpec | None) -> EnvSpec | None:
         if isinstance(kwargs.get(key), os.PathLike):
             kwargs[key] = os.fspath(kwargs[key])
     return dataclasses.replace(spec, kwargs=kwargs)
+
+
+def _python_scalars(value: Any) -> Any:
+    """``value`` with each NumPy scalar in it (itself, or in a dict, list or tuple) as the Python scalar it holds."""
+    if isinstance(value, np.generic):
+        return value.item()
+    if type(value) is dict:
+        return {key: _python_scalars(item) for key, item in value.items()}
+    if type(value) in (list, tuple):
+        return type(value)(_python_scalars(item) for item in value)
+    return value
 
 
 def _image_size(width: Any, height: Any) -> tuple[int, int]:

@@ -718,6 +718,27 @@ def test_a_spec_made_with_torch_or_numpy_dtypes_a_device_or_a_path_is_json_and_r
     assert gym.make_vec(spec, 2, "vector_entry_point").metadata["autoreset_mode"] == AutoresetMode.SAME_STEP
 
 
+def test_a_spec_made_with_numpy_scalars_is_json_and_remakes_the_env() -> None:
+    """NumPy scalars (a sweep's ``frame_skip=np.int64(2)``, a camera angle of float32) are recorded as the Python
+    numbers they hold: ``spec.to_json()`` raised "Object of type int64 is not JSON serializable"."""
+    given = {
+        "frame_skip": np.int64(2),
+        "reset_noise_scale": np.float32(0.1),
+        "include_q": np.bool_(True),
+        "camera": {"azimuth": np.float32(30.0)},
+    }
+    env = gym.make("RedSim/MiniChain-v0", **given)
+    spec = EnvSpec.from_json(env.spec.to_json())
+    assert spec.kwargs == {**given, "camera": {"azimuth": 30.0}} and type(spec.kwargs["frame_skip"]) is int
+    again = gym.make(spec)
+    np.testing.assert_array_equal(again.reset(seed=3)[0], env.reset(seed=3)[0])
+    action = np.full(3, 0.5, np.float32)
+    np.testing.assert_array_equal(again.step(action)[0], env.step(action)[0])
+    venv = gym.make_vec("RedSim/MiniChain-v0", 2, "vector_entry_point", frame_skip=np.int64(2))
+    assert json.loads(venv.spec.to_json())["kwargs"]["frame_skip"] == 2
+    venv.close()
+
+
 def test_info_reports_solver_flags_invariants_rewards_and_q() -> None:
     env = gym.make("RedSim/MiniChain-v0", include_q=True)
     env.reset(seed=0)
