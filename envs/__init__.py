@@ -13,20 +13,9 @@ checkpoint is loaded until an env is made), so these all work::
 
 from __future__ import annotations
 
-import importlib.util
-from pathlib import Path
 from typing import Any
 
 import gymnasium as gym
-
-
-def shipped_file(name: str) -> str:
-    """The path of a file shipped in :mod:`redsim.pretrained`, found without importing it (registering stays cheap)."""
-    spec = importlib.util.find_spec("redsim.pretrained")
-    if spec is None or not spec.submodule_search_locations:
-        raise ModuleNotFoundError("redsim.pretrained is not installed")
-    return str(Path(next(iter(spec.submodule_search_locations))) / name)
-
 
 ENVS: dict[str, tuple[str, str, int, dict[str, Any]]] = {
     "RedSim/Chain-v0": ("chain", "ChainEnv", 300, {}),
@@ -36,7 +25,7 @@ ENVS: dict[str, tuple[str, str, int, dict[str, Any]]] = {
         "cloth_ball",
         "ClothBallEnv",
         200,
-        {"cubature": shipped_file("cloth_ball.lean.cubature.json")},
+        {"cubature": "lean"},
     ),
     "RedSim/HangingCloth-v0": ("hanging_cloth", "HangingClothEnv", 200, {}),
     "RedSim/HangingCloth-v1": (
@@ -49,7 +38,7 @@ ENVS: dict[str, tuple[str, str, int, dict[str, Any]]] = {
         "hanging_cloth",
         "HangingClothEnv",
         200,
-        {"targets": "held", "target_spread": 0.8, "cubature": shipped_file("hanging_sheet.lean.cubature.json")},
+        {"targets": "held", "target_spread": 0.8, "cubature": "lean"},
     ),
     "RedSim/ConditionalBar-v0": ("conditional_bar", "ConditionalBarEnv", 200, {}),
     "RedSim/ConditionalBar-v1": ("conditional_bar", "ConditionalBarEnv", 200, {"cubature": True}),

@@ -83,7 +83,8 @@ LATENT_ENV_ARGUMENTS = (
     f"| `width`, `height` | 480 | render size [px], 8 to {MAX_IMAGE_SIDE} (`MAX_IMAGE_SIDE`) |",
     "| `camera` | None | `azimuth`, `elevation`, `margin`, `merge_px`, `track` over the env's own camera |",
     "| `stepper_options` | None | :class:`redsim.runtime.LatentStepper` options over the env's `stepper_defaults` |",
-    "| `cubature` | None | None: the shipped one where it meets the bar; True: required; False: none; a path |",
+    '| `cubature` | None | None: the shipped one where it meets the bar; True: required; False: none; "lean": the '
+    "shipped lean one; a path |",
     "| `threads` | 1 | torch intra-op threads while the env computes (None: the caller's setting) |",
 )
 """Arguments-table rows of the :class:`LatentEnv` arguments a registered env passes on through ``**kwargs``: a
@@ -394,6 +395,12 @@ those that meet the accuracy bar (held-out force error and 100-step trajectory d
 off. The others step every element unless ``cubature=True``."""
 
 
+SHIPPED_CUBATURES = ("lean",)
+"""Names ``cubature`` takes for another cubature shipped beside a scene's shipped map
+(``redsim/pretrained/SCENE.NAME.cubature.json``): a name, unlike a path, holds on every machine, so the registered
+ids that step one (ClothBall-v1, HangingCloth-v2) have specs and pickles that another install can make."""
+
+
 CHECKPOINT_ATTRIBUTE = "redsim_checkpoint"
 """Attribute :func:`shipped` sets on a map it loads from a path: that path, where ``cubature=True`` looks."""
 
@@ -421,8 +428,9 @@ def env_energy(
         cubature: None: the shipped cubature of the scene where :data:`CUBATURE_DEFAULT` turns it on and it
             belongs to this very map, else every element. True: the cubature beside the checkpoint the map was
             loaded from (:func:`shipped`), else the shipped one; either must belong to this map. False: every
-            element. A path: the cubature beside that checkpoint (or the
-            ``.cubature.json`` itself).
+            element. A name of :data:`SHIPPED_CUBATURES` ("lean"): that cubature shipped beside the scene's shipped
+            map, which must be this map. A path: the cubature beside that checkpoint (or the ``.cubature.json``
+            itself).
         dtype: The stepper's dtype.
         device: The stepper's device.
 
@@ -432,6 +440,7 @@ def env_energy(
     """
     from redsim import pretrained
     from redsim.cubature import CubatureEnergy, cubature_path, load_cubature
+    from redsim.cubature.energy import SUFFIX
 
     if cubature is False:
         return None
@@ -453,10 +462,23 @@ def env_energy(
                 "`redsim cubature CHECKPOINT --elements K` (a hand-built scene: redsim.cubature.build_cubature(scene, "
                 "map).save(STEM)) and pass cubature=CHECKPOINT"
             )
+    elif isinstance(cubature, str) and cubature in SHIPPED_CUBATURES:
+        source = pretrained.FOLDER / f"{scene.name}.{cubature}{SUFFIX}"
+        if not source.is_file():
+            shipped = sorted(path.name for path in pretrained.FOLDER.glob(f"{scene.name}*{SUFFIX}"))
+            instead = (
+                f"shipped for it: {', '.join(shipped)} (cubature=True takes {scene.name}{SUFFIX})"
+                if shipped
+                else "make one with `redsim cubature CHECKPOINT --elements K` and pass cubature=CHECKPOINT"
+            )
+            raise CheckpointError(f"no {cubature!r} cubature is shipped for scene {scene.name!r}; {instead}")
     elif isinstance(cubature, (str, os.PathLike)):
         source = cubature
     else:
-        raise ValueError(f"cubature must be None, True, False or a checkpoint path, got {cubature!r}")
+        raise ValueError(
+            f"cubature must be None, True, False, a shipped name {list(SHIPPED_CUBATURES)} or a checkpoint path, "
+            f"got {cubature!r}"
+        )
     return CubatureEnergy(scene, subspace, load_cubature(source, scene, subspace), dtype=dtype, device=device)
 
 
@@ -482,7 +504,8 @@ class LatentSim:
             z_prev), the start's velocity held one env step back.
         stepper_options: Extra keyword arguments of :class:`redsim.runtime.LatentStepper`.
         cubature: Step a cubature energy instead of every element (:func:`env_energy`): None (default)
-            the shipped one where :data:`CUBATURE_DEFAULT` turns it on, True, False, or a checkpoint path.
+            the shipped one where :data:`CUBATURE_DEFAULT` turns it on, True, False, "lean" (the lean one shipped
+            beside the shipped map: :data:`SHIPPED_CUBATURES`) or a checkpoint path.
 
     Raises:
         ValueError: a bad number or option, or both ``cubature`` and ``stepper_options["energy"]``.
@@ -1563,7 +1586,8 @@ class LatentEnv(gym.Env[np.ndarray, np.ndarray]):
             anew on its shape and markers instead.
         stepper_options: Extra keyword arguments of :class:`redsim.runtime.LatentStepper`.
         cubature: Step a cubature energy (:func:`env_energy`): None (the shipped one where
-            :data:`CUBATURE_DEFAULT` turns it on), True (required), False (every element) or a checkpoint path.
+            :data:`CUBATURE_DEFAULT` turns it on), True (required), False (every element), "lean" (the lean one
+            shipped beside the shipped map: :data:`SHIPPED_CUBATURES`) or a checkpoint path.
         threads: torch intra-op threads while the env computes (made, reset, stepped, rendered; default 1, what its
             small tensor ops run fastest on), the caller's own setting restored after each call; None: the caller's
             setting (:mod:`redsim.threads`).

@@ -18,7 +18,7 @@ from torch import Tensor
 
 import redsim
 from redsim.cubature import CubatureEnergy
-from redsim.envs.base import CUBATURE_DEFAULT
+from redsim.envs.base import CUBATURE_DEFAULT, SHIPPED_CUBATURES
 from redsim.subspace import CheckpointError
 
 CLOTH_BALL = "RedSim/ClothBall-v0"
@@ -68,6 +68,31 @@ def test_cubature_true_loads_the_shipped_one_and_refuses_where_none_exists() -> 
         gym.make(CLOTH_BALL, cubature=3)
     with pytest.raises(ValueError, match="not both"):
         gym.make(CLOTH_BALL, cubature=True, stepper_options={"energy": None})
+
+
+def test_the_lean_ids_name_their_cubature_so_their_specs_hold_on_another_install() -> None:
+    """ClothBall-v1 and HangingCloth-v2 register ``cubature="lean"`` (SHIPPED_CUBATURES), not this install's
+    absolute path of the file: their spec JSON names no path, and the name loads the lean file beside the map."""
+    for env_id, scene in (("RedSim/ClothBall-v1", "cloth_ball"), ("RedSim/HangingCloth-v2", "hanging_sheet")):
+        spec = gym.spec(env_id)
+        assert spec.kwargs["cubature"] == "lean" and "lean" in SHIPPED_CUBATURES
+        assert str(redsim.pretrained.FOLDER) not in spec.to_json()
+        energy = gym.make(env_id).unwrapped.sim.stepper.energy
+        lean = redsim.cubature.load_cubature(
+            redsim.pretrained.FOLDER / f"{scene}.lean.cubature.json",
+            redsim.scenes.build(scene),
+            redsim.pretrained.load(scene),
+        )
+        kept = {rule.name: int(rule.indices.numel()) for rule in lean.rules}
+        assert energy.describe()["kept_elements"] == kept
+    # the same name on the v0 id of that map: the lean cubature; on a scene with none shipped: an error naming the CLI
+    assert gym.make("RedSim/HangingCloth-v0", cubature="lean").unwrapped.sim.stepper.energy.describe()[
+        "kept_elements"
+    ] == {"membrane": 728, "bending": 76, "gravity": 0}
+    with pytest.raises(CheckpointError, match=r"no 'lean' cubature is shipped for scene 'klann'.*redsim cubature"):
+        gym.make("RedSim/Klann-v0", cubature="lean")
+    with pytest.raises(CheckpointError, match=r"no 'lean' cubature.*conditional_bar\.cubature\.json"):
+        gym.make("RedSim/ConditionalBar-v0", cubature="lean")
 
 
 def test_a_cubature_of_another_map_is_refused(tmp_path) -> None:
