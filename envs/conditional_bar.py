@@ -92,8 +92,8 @@ class ConditionalBarEnv(ReachEnv):
 
     ## Version History
     - v1: v0 on the shipped cubature (`cubature=True`; held-out force error 1.9%, 100-step trajectory deviation
-      1.6%, README "Cubature"): 1.40x faster at 64 envs by CPU time (`redsim bench env-ab`, README "Gymnasium
-      environments"); the same task, observation and reward.
+      1.6%, README "Cubature"): 1.40x faster at 64 envs by CPU time (`redsim bench env-ab`, docs/envs.md) and
+      1.6x by wall time (`redsim bench envs`, README "Env speed"); the same task, observation and reward.
     - v0: first version. Its solver defaults (`stepper_defaults`) later limited trial steps, kept the warm
       model and started from the lower of two points: the same steps to the solve's tolerance (its golden rollout
       passes either way), 1.6x faster.
