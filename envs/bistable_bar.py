@@ -293,15 +293,16 @@ class BistableBarEnv(LatentEnv):
     `stepper_options` (a :class:`LatentEnv` argument) defaults to `{"max_step": 2.0, "warm_refresh": False,
     "start": "lower"}`: no solver trial moves z by more than 2 latent units, the warm model is BFGS-updated from
     step to step and never rebuilt, and each solve starts at the lower of the extrapolated state and the current
-    one (1.36x less CPU time for v0 and 1.18x for v1 at 64 envs here; README "Env speed"). `{"max_step": None,
-    "warm_refresh": True, "start": "extrapolated"}` gives the solver's general defaults.
+    one (1.36x less CPU time for v0 and 1.18x for v1 at 64 envs here; docs/env-speed.md, "ConditionalBar-v0's solve
+    path"). `{"max_step": None, "warm_refresh": True, "start": "extrapolated"}` gives the solver's general defaults.
 
     ## Version History
     - v1: `max_force` 40 N (v0: 60 N), below the load a held push needs to snap the env's bar from its up arch
       (not from its down arch); nothing else changed.
     - v0: first version.
     - v0, v1: their solver defaults (`stepper_defaults`) later changed the path of each solve, not its minimum:
-      the golden rollouts pass either way and v1's shipped policy scores alike (README "Env speed").
+      the golden rollouts pass either way and v1's shipped policy scores alike (docs/env-speed.md, "ConditionalBar-v0's
+      solve path").
     """
 
     stepper_defaults: ClassVar[dict[str, Any]] = {"max_step": 2.0, "warm_refresh": False, "start": "lower"}

@@ -61,13 +61,14 @@ class ChainEnv(ReachEnv):
     `stepper_options` to `{"max_step": 1.0, "warm_refresh": False, "start": "lower"}`: no solver trial moves z by
     more than 1 latent unit, the warm model is BFGS-updated from step to step and never rebuilt, and each solve
     starts at the lower of the extrapolated state and the current one (1.37x faster at 64 envs here: 18 instead
-    of 27 value-and-gradient calls per vector step; README "Env speed"). `{"max_step": None, "warm_refresh":
-    True, "start": "extrapolated"}` gives the solver's general defaults.
+    of 27 value-and-gradient calls per vector step; docs/env-speed.md, "ConditionalBar-v0's solve path"). `{"max_step":
+    None, "warm_refresh": True, "start": "extrapolated"}` gives the solver's general defaults.
 
     ## Version History
     - v0: first version. Its solver defaults (`stepper_defaults`) later changed the path of each solve, not its
       minimum: one step from the same states moves by as much as a 10x tighter tolerance moves it, the golden
-      rollout passes either way, and the shipped policy scores alike (README "Env speed").
+      rollout passes either way, and the shipped policy scores alike (docs/env-speed.md, "ConditionalBar-v0's solve
+      path").
     """
 
     stepper_defaults: ClassVar[dict[str, Any]] = {"max_step": 1.0, "warm_refresh": False, "start": "lower"}

@@ -80,8 +80,8 @@ class ClothBallEnv(ReachEnv):
       366 membrane triangles and 1 bending hinge against the shipped 200 and 200, chosen by `--tol 0.015` on more
       training states): held-out force error 1.4% against 2.9%, trajectory deviation from the all-element step 3.1%
       against 6.3% (median of 32 rollouts, `redsim bench cubature --states 32`), as fast (1.01x at 64 envs, `redsim
-      bench env-ab`; README "Cubature", "Stop 56"). Its dynamics differ from v0's by what the two cubatures differ
-      by; the task, observation and reward are v0's.
+      bench env-ab`; docs/envs.md, "ClothBall-v1"; docs/cubature.md, "Stop 56"). Its dynamics differ from v0's by what
+      the two cubatures differ by; the task, observation and reward are v0's.
     - v0: first version; stepped with the shipped cubature by default since it was added (`cubature=False`
       gives the all-element step of the first release). Its solver default `row_block` came later: the same
       solves to float32 round-off.

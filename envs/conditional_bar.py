@@ -82,8 +82,8 @@ class ConditionalBarEnv(ReachEnv):
     `stepper_options` to `{"max_step": 2.0, "warm_refresh": False, "start": "lower"}`: no solver trial moves z by
     more than 2 latent units, the warm model is BFGS-updated from step to step and never rebuilt, and each solve
     starts at the lower of the extrapolated state and the current one (1.56x faster at 64 envs here: 23 instead
-    of 39 value-and-gradient calls per vector step; README "Env speed"). `{"max_step": None, "warm_refresh":
-    True, "start": "extrapolated"}` gives the solver's general defaults.
+    of 39 value-and-gradient calls per vector step; docs/env-speed.md, "ConditionalBar-v0's solve path"). `{"max_step":
+    None, "warm_refresh": True, "start": "extrapolated"}` gives the solver's general defaults.
 
     | Argument | Default | Meaning |
     |---|---|---|

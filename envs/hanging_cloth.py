@@ -50,7 +50,8 @@ class HangingClothEnv(ReachEnv):
     At rest (z: the map's unloaded equilibrium, z_dot = 0). That is the shipped map's rest, not the flat hanging
     sheet's: the d = 8 map (4000 fit steps) holds the sheet folded, its lowest point at y = -0.75 m, its top row
     ~6 cm above the pinned edge, 1.7 J above the full-space rest (`info["membrane_max_strain"]` 0.11 at rest; the
-    README's subspace table: rest offset, load error 36). v0: the target is the corner in the subspace state
+    shipped map's subspace row, docs/fitting.md, "From the README: the Table 1 runs' notes and what the
+    table says": rest offset, load error 36). v0: the target is the corner in the subspace state
     z_rest + `target_spread` * N(0, I), drawn from `self.np_random`. v1 (`targets="held"`): the target is drawn by
     `self.np_random` from 256 places the corner comes to rest at under a held action u ~ U[-0.8, 0.8]^3 (fixed
     seed; :class:`redsim.envs.reach.HandleReach`), each settled on the env's own energy at bind time (3-10 s,
@@ -73,8 +74,9 @@ class HangingClothEnv(ReachEnv):
     `stepper_options` (a :class:`LatentEnv` argument) defaults to `{"max_step": 2.0, "warm_refresh": False, "start":
     "lower"}`: no solver trial moves z by more than 2 latent units, the warm model is BFGS-updated from step to step
     and never rebuilt, and each solve starts at the lower of the extrapolated state and the current one (at 64
-    envs v1 1.15x faster, 19.4 instead of 22.8 calls per vector step, v0 1.05x; README "Env speed"). `{"max_step":
-    None, "warm_refresh": True, "start": "extrapolated"}` gives the solver's general defaults.
+    envs v1 1.15x faster, 19.4 instead of 22.8 calls per vector step, v0 1.05x; docs/env-speed.md, "ConditionalBar-v0's
+    solve path"). `{"max_step": None, "warm_refresh": True, "start": "extrapolated"}` gives the solver's general
+    defaults.
 
     ## Version History
     - v2: v1 on a leaner cubature (`redsim/pretrained/hanging_sheet.lean.cubature.json`: 728 membrane triangles and
@@ -87,10 +89,11 @@ class HangingClothEnv(ReachEnv):
       often out of reach: the corner settles within -0.10 to +0.14 m of its rest out of the sheet's plane (z) and
       within 0.02 m in it under v1's held actions (up to 1.6 N per axis; -0.26 to +0.15 m in z under 2 N), while v0
       draws targets up to 0.4 m out of plane and up to 0.09 m in it off that surface; v0's PI controller misses 21
-      of 40 targets on the cubature, v1's reaches all 40 within 2 mm (README, Agents).
+      of 40 targets on the cubature, v1's reaches all 40 within 2 mm (docs/agents.md).
     - v0: first version.
     - v0, v1: their solver defaults (`stepper_defaults`) later changed the path of each solve, not its minimum: the
-      golden rollouts pass either way and v1's shipped policy scores alike (README "Env speed").
+      golden rollouts pass either way and v1's shipped policy scores alike (docs/env-speed.md, "ConditionalBar-v0's
+      solve path").
     """
 
     stepper_defaults: ClassVar[dict[str, Any]] = {"max_step": 2.0, "warm_refresh": False, "start": "lower"}

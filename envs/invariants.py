@@ -22,7 +22,8 @@ prefixed by the effect's name:
 The checks run over blocks of rows sized so that one block's per-element [rows, elements] tensors stay in the
 CPU's cache (:data:`BLOCK_ELEMENTS`; the values are the one pass's to round-off): at 256 copies the cloth envs'
 checks took 3x less CPU time in blocks of 66-67 rows than in one pass, whose elementwise ops each stream
-megabytes through memory; at 64 copies (one block either way) they are unchanged (docs/env-speed.md, "Stop 28")."""
+megabytes through memory; at 64 copies (one block either way) they are unchanged (docs/env-speed.md, "Stop 28's
+measurements")."""
 
 from __future__ import annotations
 

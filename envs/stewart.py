@@ -359,12 +359,13 @@ class StewartEnv(LatentEnv):
     `stepper_options` defaults to `{"max_step": 2.0, "warm_refresh": False, "start": "lower"}`: no solver trial
     moves z by more than 2 latent units, the warm model is BFGS-updated from step to step and never rebuilt, and
     each solve starts at the lower of the extrapolated state and the current one (1.14x faster at 64 envs: 11.8
-    instead of 13.9 value-and-gradient calls per vector step; README "Env speed"). `{"max_step": None,
-    "warm_refresh": True, "start": "extrapolated"}` gives the solver's general defaults.
+    instead of 13.9 value-and-gradient calls per vector step; docs/env-speed.md, "ConditionalBar-v0's solve path").
+    `{"max_step": None, "warm_refresh": True, "start": "extrapolated"}` gives the solver's general defaults.
 
     ## Version History
     - v0: first version. Its solver defaults (`stepper_defaults`) later changed the path of each solve, not its
-      minimum: the golden rollout passes either way and the shipped policy scores alike (README "Env speed").
+      minimum: the golden rollout passes either way and the shipped policy scores alike (docs/env-speed.md,
+      "ConditionalBar-v0's solve path").
     """
 
     stepper_defaults: ClassVar[dict[str, Any]] = {"max_step": 2.0, "warm_refresh": False, "start": "lower"}

@@ -56,7 +56,8 @@ def main(
         print(f"{ENV_ID}: {full.steps} env steps in {full.wall_s:.0f} s; files: {', '.join(files)}")
         model = load_agent(folder / "model.zip", ENV_ID)  # refuses a model trained on another env
         # the final evaluation's episodes again: as many copies in one batch, so the float32 solves round alike
-        # (another batch size moves a return in the fourth digit, README "Gymnasium environments")
+        # (another batch size moves a return in the fourth digit: docs/agents.md, "From the README: eval-agent's
+        # digits")
         episodes = full.evaluation.returns.size
         again = evaluate(ENV_ID, model, episodes=episodes, seed=full.evaluation.seed, env_kwargs=limit)
         final = full.evaluation

@@ -154,7 +154,7 @@ of the returns; false: raw observations); every other key is a keyword argument 
 
 Normalization is what made the reach tasks learnable: their raw observations mix latent velocities
 of std ~7 1/s with target offsets of std ~0.04 m (MiniChain), and SAC without it stayed below the
-scripted controller after 45k steps; with it, 12k steps beat it (README, Agents). ConditionalBar-v0
+scripted controller after 45k steps; with it, 12k steps beat it (docs/agents.md). ConditionalBar-v0
 ships TD3: some of its targets need the full force, where SAC (tanh-squashed actions, an entropy term)
 tied the scripted controller and deterministic TD3 beat it.
 """

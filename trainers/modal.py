@@ -20,7 +20,7 @@ left f(0) 0.007 kg^1/2 m from b on the cantilever, yet 37 J above it); lambda_d 
 modes (and null modes) weighted at least as the d-th. In that norm a map that starts as MLPs do
 (output near 0, random Jacobian) begins 10^8 J off, so the fit starts from a flat map at b instead
 (:func:`start_at_rest`). It needs no simulation data: b_k, H and Phi_k come from the energy alone
-(its static equilibrium and Hessian, the inputs of linear modal analysis). Measured (README, "Small
+(its static equilibrium and Hessian, the inputs of linear modal analysis). Measured (docs/fitting.md, "Small
 responses"): the cantilever's response error falls from 0.98 to 0.30, the conditional bar's only to
 0.76-0.84.
 """

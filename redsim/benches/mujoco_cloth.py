@@ -47,9 +47,9 @@ CLOTH_INTEGRATOR = "discrete"
 CLOTH_TIMESTEP = 0.05
 """Time step [s] of the anchor: the largest of :data:`SWEEP_TIMESTEPS` at which every scenario of
 :func:`timestep_sweep` passed under :data:`CLOTH_INTEGRATOR` (at 0.1 s MuJoCo's implicit solve fails on the drop;
-README "Env speed"). It is 2.5x the envs' dt of 0.02 s: the anchor is MuJoCo as fast as it stays stable, not as
-accurate as redsim (:func:`swing_check`: at 0.05 s the dropped sheet reaches the vertical 80% late; 0.01 s is as
-close as redsim's full-space implicit Euler at 0.02 s)."""
+docs/env-speed.md, "MuJoCo's flex cloth anchor"). It is 2.5x the envs' dt of 0.02 s: the anchor is MuJoCo as fast as it
+stays stable, not as accurate as redsim (:func:`swing_check`: at 0.05 s the dropped sheet reaches the vertical 80% late;
+0.01 s is as close as redsim's full-space implicit Euler at 0.02 s)."""
 SWEEP_TIMESTEPS: dict[str, tuple[float, ...]] = {
     "discrete": (0.1, 0.05, 0.02, 0.01, 0.005),
     "Euler": (1e-3, 5e-4, 2e-4, 1e-4, 5e-5),

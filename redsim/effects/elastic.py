@@ -182,7 +182,8 @@ class NeoHookean(Effect):
         In 2D the six vertex coordinates are gathered as [B, T] tensors (:func:`gather_coordinates`; over a
         whole mesh each its own contiguous one: the elementwise kernel then reads no strided views). Against F from
         batched matmuls of xe [B, T, 6]: 2.6x less CPU time for the energy and its gradient at B = 64 and 3.3x
-        at B = 256, 0.95x at B = 1 (conditional_bar, float32; README "Env speed").
+        at B = 256, 0.95x at B = 1 (conditional_bar, float32; docs/env-speed.md, "ConditionalBar-v0: where its
+        iterations go").
         """
         if self.dim == 2:
             return _plane_invariants(gather_coordinates(x, self.element_dofs), self.shape_gradients)
@@ -417,7 +418,7 @@ class DiscreteShellBending(Effect):
         tensors (:func:`gather_coordinates`, as :meth:`StVKMembrane.metric`). Against the gathered [B, E, 12]
         and [..., 3] cross products: 2.6-3.3x less CPU time for the term's energy and gradient at B = 16 to 256
         and 1.5x at B = 1 (hanging_sheet and cloth_ball, float32, an interleaved development A/B; the scenes'
-        energies before and after in README "Cubature")."""
+        energies before and after in docs/cubature.md, "Before stop 36")."""
         return self._energies(gather_coordinates(x, self.element_dofs))
 
     def edge_energies(self, edges: Sequence[Tensor], cond: Tensor | None = None) -> Tensor:

@@ -151,7 +151,7 @@ NEAR_SLACK = 1e-5
 round-off guard: the selecting distances and the differentiated ones are computed in another order)."""
 SPARSE_FRACTION = 0.25
 """Above this fraction of near points, :meth:`SDFContact.energy` differentiates all points (the per-point
-gathers of the sparse form then cost more: measured on cloth_ball, README "Latent runtime")."""
+gathers of the sparse form then cost more: measured on cloth_ball, docs/runtime.md, "Contact where it acts")."""
 
 
 def _to_local(frame: Tensor, p: Tensor) -> Tensor:
@@ -453,7 +453,7 @@ class SDFContact(Effect):
         A = [R_f^T X_g | R_f^T | -R_f^T t_f] once per pair, then one contraction with the pair's
         ``pair_lift``, batched over pairs (each a [3*B, K+D+1] x [K+D+1, S] matmul), whose output
         keeps x, y and z contiguous for the distance (2-3x faster than per-(state, pair) 3x3
-        matmuls on the chain at B = 64; README "Latent runtime").
+        matmuls on the chain at B = 64; docs/runtime.md, "Where today's path spent its time").
         """
         B = x.shape[0]
         pairs, K = self.pair_weights.shape[:2]

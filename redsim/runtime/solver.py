@@ -21,7 +21,8 @@ state is still unconverged after :data:`WARM_ITERATIONS` iterations or backtrack
 recomputes its model at the current iterate once (``warm_refresh=False``: only where its line search fails,
 the restart below; otherwise the BFGS updates repair it).
 ``max_step`` caps the length |dz| of every step the solver tries (a trust radius in latent units): where the map
-barely moves along some latent direction a Newton-type step along it can be far too long (README "Env speed").
+barely moves along some latent direction a Newton-type step along it can be far too long (docs/env-speed.md,
+"ConditionalBar-v0's solve path").
 
 The line search is Armijo backtracking per state: a trial with a non-finite value or gradient is rejected like an
 uphill one; a trial whose value change is at round-off level is accepted if it lowers |g|. A quasi-Newton state's

@@ -48,7 +48,7 @@ DEFAULT_MAX_ITER = 50
 FD_STEP = {torch.float32: 1e-3, torch.float64: 1e-6}
 """Forward-difference step of the "lagged_fd" Hessian, relative to 1 + max|z| (about sqrt(eps) of each dtype)."""
 DEFAULT_HESSIAN = "lagged_fd"
-"""Default Hessian model of the solver (see the README's "Latent runtime" measurements)."""
+"""Default Hessian model of the solver (see the measurements in docs/runtime.md, "Solver: which Hessian model")."""
 RESOLUTION_WARNING = 0.01 * 9.81
 """[m/s^2] A stepper whose :attr:`LatentStepper.acceleration_resolution` exceeds this (1% of standard gravity)
 warns at construction: forces that small are not felt (README "Latent runtime", "Tolerance")."""
@@ -208,7 +208,8 @@ class _StepObjective:
                 (grad,) = torch.autograd.grad(value.sum(), z)
             return value.detach(), grad, energy.detach()
         # eager: autograd through E and q only; the inertia and load terms' gradient in q is closed form
-        # (fewer graph nodes per call: 1.06x at 64 envs on ConditionalBar-v1 and Chain-v0, README "Env speed")
+        # (fewer graph nodes per call: 1.03-1.12x per call on Klann, Chain, Stewart and ConditionalBar-v1,
+        # docs/env-speed.md, "Stop 24's per-call changes")
         with torch.enable_grad():
             energy, q = self.s._energy_coords(z, cond)
         value, force = self.s._inertia_loads(energy.detach(), q.detach(), qbar, loads)
@@ -321,33 +322,33 @@ class LatentStepper:
         warm_start: Use the ``warm`` model :meth:`step` is given (default). False ignores it: every
             step builds its own model, as the reference does. Where a step's objective has several
             nearby minima (the mini chain's folded map under full-range actions) the two can
-            converge to different ones, and a chaotic rollout then splits (README "Latent runtime").
+            converge to different ones, and a chaotic rollout then splits (docs/runtime.md, "Warm start across steps").
         dense: Solve with the dense masked iteration (:func:`redsim.runtime.solver.minimize`): every
             call evaluates all B states, and the solver's loop waits for the device only at the early
             exit every ``sync_every`` calls (the energy's own eager paths and the eigenvalue fix of the
             exact and difference Hessians still synchronise). None (default): dense exactly on a CUDA
             device; on the CPU the row-selected iteration, which evaluates only the active states, is
-            as fast or faster (README "Latent runtime").
+            as fast or faster (docs/runtime.md, "Two solver iterations").
         sync_every: With ``dense``, calls between early-exit checks (None: never, so every step runs the loop's
             whole bound of max_iter (2 MAX_BACKTRACKS + 1) calls however soon it converges: for a graph that must
             not read the device, not for speed; see ``minimize``).
         max_step: The longest latent step |dz| a solver trial takes (longer directions are scaled down to it);
             None (default): no limit. Guards against Newton-type steps along a direction the map barely
-            moves, which overshoot (README "Env speed", ConditionalBar-v0).
+            moves, which overshoot (docs/env-speed.md, "ConditionalBar-v0's solve path").
         warm_refresh: Rebuild a ``warm`` model when a step backtracks from it or is still unconverged after
             :data:`redsim.runtime.solver.WARM_ITERATIONS` iterations (default); False keeps BFGS-updating it
             (rebuilt only where a line search fails: the solver's restart).
         start: Where each solve starts (:data:`STARTS`): "extrapolated" (default), 2 z_t - z_{t-1}; "lower",
             whichever of that and z_t has the lower Phi (the step evaluates both anyway). The same minimum
-            where the step's objective has one (README "Env speed", ConditionalBar-v0). Either way a copy whose
-            extrapolated start has a non-finite Phi or gradient starts from z_t.
+            where the step's objective has one (docs/env-speed.md, "ConditionalBar-v0's solve path"). Either way a copy
+            whose extrapolated start has a non-finite Phi or gradient starts from z_t.
         row_block: Most rows one value-and-gradient pass evaluates (ignored with ``compile=True``, whose one graph
             evaluates the whole batch: ClothBall-v0's default stays harmless there); a call with more is
             evaluated in blocks of this many rows, the same values to round-off (counted as one call). None
             (default): one pass. Where one pass's per-element tensors outgrow the CPU's cache it pays: ClothBall-v0 at
             256 envs (its whole contact, 2025 points a row, in a step's first call of 512 rows and its d x k-row
             difference-Hessian calls) 1.16x by CPU time with 256; HangingCloth-v1 and Chain-v0 gain nothing
-            (docs/env-speed.md, "Stop 28"). The exact and Gauss-Newton Hessians' passes are not split.
+            (docs/env-speed.md, "Stop 28's measurements"). The exact and Gauss-Newton Hessians' passes are not split.
         predict: Where a step is given both a ``carry`` and a ``warm`` model of a state (the envs pass both), start
             its solve from the model's Newton step from z_t, z_t - H^-1 dPhi/dz(z_t) (at most ``max_step`` long;
             the carry gives dPhi/dz there without a call), instead of 2 z_t - z_{t-1}: the same minimum where the

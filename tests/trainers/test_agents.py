@@ -584,7 +584,7 @@ def test_each_shipped_policy_beats_random_and_scripted_over_20_episodes(env_id: 
     """On the same 20 episodes (seeds 0-19) the agent's returns are above each baseline's by a paired one-sided
     t-test at 5%, and it succeeds more often. Paired, because both run the same episodes: an unpaired margin of
     half the baseline's spread asked Stewart-v0 for 197.3 of at most 200 per episode, the scripted controller's
-    spread coming from 3 episodes it never settles in (README "Agents")."""
+    spread coming from 3 episodes it never settles in (docs/agents.md)."""
     agent = evaluate(env_id, load_agent(shipped_policy(env_id), env_id), episodes=20, seed=0)
     for baseline in ("random", "scripted"):
         other = evaluate(env_id, baseline, episodes=20, seed=0)
