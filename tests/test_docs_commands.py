@@ -14,11 +14,16 @@ where a renamed option, id or function would otherwise go stale without a test f
   of ``stepper_options={...}`` are LatentStepper's.
 
 Names the docs mention as tried and removed are listed in GONE, which must match what is found exactly.
+
+The other way round, the code's comments, docstrings and messages cite the docs' sections for their numbers
+(`README "Env speed"`, `docs/cubature.md, "Stop 56"`): each quoted part of such a citation begins a heading or a
+bold lead (`**Tolerance.** ...`) of that file, so a section moved out of the README cannot leave its citations behind.
 """
 
 from __future__ import annotations
 
 import argparse
+import functools
 import importlib
 import inspect
 import re
@@ -60,6 +65,13 @@ GONE = {
     ("docs/env-speed.md", "legacy_rows"): "a throwaway stepper option of a before/after run",
 }
 """Mentions of removed names, each in a sentence that says so: (file, name) -> why."""
+SOURCES = [
+    path for folder in ("envs", "redsim", "trainers", "examples") for path in sorted((ROOT / folder).rglob("*.py"))
+]
+"""The code whose comments, docstrings and messages cite README.md's and docs/*.md's sections."""
+QUOTED = r"""(?:"[^"\n]+"|'[^'\n]+')"""
+CITATION = re.compile(rf"(README|docs/[\w-]+\.md)(?:,\s*|\s+\(?|\s*\()({QUOTED}(?:,\s*{QUOTED})*)")
+"""`README "Section"` or `docs/X.md, "Heading"`, and the quoted parts after one (`README "Cubature", "Stop 56"`)."""
 
 
 def _name(path: Path) -> str:
@@ -214,6 +226,28 @@ def problems(text: str, commands: dict[tuple[str, ...], argparse.ArgumentParser]
     return found
 
 
+@functools.cache
+def _headings(name: str) -> tuple[str, ...]:
+    """The headings of a markdown file and the bold leads that open its paragraphs and list items; () if none."""
+    path = ROOT / name
+    if not path.is_file():
+        return ()
+    text = path.read_text()
+    return (*re.findall(r"^#+\s+(.+)$", text, re.M), *re.findall(r"^(?:[-*]\s+)?\*\*(.+?)\*\*", text, re.M))
+
+
+def citation_problems(source: str) -> list[str]:
+    """The parts of the README and docs citations in Python source that begin no heading or bold lead of their file."""
+    flat = re.sub(r"\s*\n\s*(?:#\s*)?", " ", source)  # a citation wraps over docstring and comment lines
+    stale = []
+    for found in CITATION.finditer(flat):
+        headings = _headings("README.md" if found.group(1) == "README" else found.group(1))
+        for part in re.findall(QUOTED, found.group(2)):
+            if not any(heading.startswith(part[1:-1]) for heading in headings):
+                stale.append(f"{found.group(1)} {part}")
+    return stale
+
+
 @pytest.fixture(scope="module")
 def commands() -> dict[tuple[str, ...], argparse.ArgumentParser]:
     with warnings.catch_warnings():
@@ -274,3 +308,30 @@ def test_a_stale_mention_is_found(
 )
 def test_a_real_mention_passes(text: str, commands: dict[tuple[str, ...], argparse.ArgumentParser]) -> None:
     assert problems(text, commands) == []
+
+
+def test_the_code_s_citations_name_sections_the_docs_have() -> None:
+    assert len(SOURCES) > 100
+    stale = [f"{_name(path)}: {part}" for path in SOURCES for part in citation_problems(path.read_text())]
+    assert not stale, "citations of no heading or bold lead (point them where the text went):\n" + "\n".join(stale)
+
+
+@pytest.mark.parametrize(
+    ("source", "stale"),
+    [
+        ('# 1.01x (README "Cubature", "Stop 56")', ['README "Stop 56"']),
+        ('"""Measured (README "No such section")."""', ['README "No such section"']),
+        (
+            '"""One pass (docs/env-speed.md, "Stop 28\'s\n    lost heading")."""',
+            ['docs/env-speed.md "Stop 28\'s lost heading"'],
+        ),
+        ("warn(\"use a longer dt (README 'Tolerances of old')\")", ["README 'Tolerances of old'"]),
+        ('# (docs/nothing.md "Stop 1")', ['docs/nothing.md "Stop 1"']),
+        ('# (README "Latent runtime", "Tolerance"; docs/env-speed.md, "Stop 28\'s\n# measurements")', []),
+        ("warn(\"use dtype='float64' or a longer dt (README 'Tolerance')\")", []),
+        ('"""The README\'s subspace table, and docs/agents.md (the whole file)."""', []),
+    ],
+)
+def test_a_citation_is_checked_against_its_file_s_headings(source: str, stale: list[str]) -> None:
+    """Each quoted part of a citation, over a line break too; a heading's prefix passes (`"Stop 28's measurements"`)."""
+    assert citation_problems(source) == stale
