@@ -1993,7 +1993,8 @@ def shown(value: Tensor) -> Any:
 def json_spec(spec: EnvSpec | None) -> EnvSpec | None:
     """``spec`` with the env arguments given in a non-JSON form redsim accepts in their JSON one, so that
     ``spec.to_json()`` works and ``gym.make(spec)`` makes the same env: ``dtype`` by name (``torch.float64`` or
-    ``np.float64`` as "float64"), a ``torch.device`` as its string, a path (``subspace``, ``cubature``) as a string,
+    ``np.float64`` as "float64"), a ``torch.device`` as its string, a path (``subspace``, ``cubature``) as a string
+    (``cubature=Path("lean")`` as "./lean": "lean" names the shipped one, :data:`SHIPPED_CUBATURES`),
     a vector env's ``AutoresetMode`` as its value ("SameStep"), a NumPy scalar (``frame_skip=np.int64(2)``,
     ``camera={"azimuth": np.float32(30)}``) as the Python number or bool it holds. Other values are kept (a map given
     as ``subspace`` is not JSON: its spec cannot be)."""
@@ -2008,7 +2009,8 @@ def json_spec(spec: EnvSpec | None) -> EnvSpec | None:
         kwargs["autoreset_mode"] = kwargs["autoreset_mode"].value
     for key in ("subspace", "cubature"):
         if isinstance(kwargs.get(key), os.PathLike):
-            kwargs[key] = os.fspath(kwargs[key])
+            path = os.fspath(kwargs[key])  # Path("lean") stays a path: "./lean"
+            kwargs[key] = os.path.join(os.curdir, path) if key == "cubature" and path in SHIPPED_CUBATURES else path
     return dataclasses.replace(spec, kwargs=kwargs)
 
 

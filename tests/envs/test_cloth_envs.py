@@ -1,4 +1,4 @@
-"""The cloth envs' cubature option (``cubature=None/True/False/PATH``) and their fast contract checks.
+"""The cloth envs' cubature option (``cubature=None/True/False/"lean"/PATH``) and their fast contract checks.
 
 The full contract (check_env, the PI controller) of the cloth ids also runs under ``-m slow`` in
 test_envs.py; here a few steps each, on the stepper the env chooses by default. Float tolerances:
@@ -7,12 +7,15 @@ the stepper runs in float32 unless a test says float64.
 
 from __future__ import annotations
 
+import shutil
 import warnings
+from pathlib import Path
 
 import gymnasium as gym
 import numpy as np
 import pytest
 import torch
+from gymnasium.envs.registration import EnvSpec
 from gymnasium.utils.env_checker import check_env
 from torch import Tensor
 
@@ -93,6 +96,18 @@ def test_the_lean_ids_name_their_cubature_so_their_specs_hold_on_another_install
         gym.make("RedSim/Klann-v0", cubature="lean")
     with pytest.raises(CheckpointError, match=r"no 'lean' cubature.*conditional_bar\.cubature\.json"):
         gym.make("RedSim/ConditionalBar-v0", cubature="lean")
+
+
+def test_a_cubature_path_that_reads_as_a_shipped_name_stays_a_path_in_the_spec(tmp_path, monkeypatch) -> None:
+    """``cubature=Path("lean")`` is the user's ``./lean.cubature.json``; its spec JSON recorded "lean", which
+    ``gym.make(spec)`` read as the shipped lean cubature: the remade env stepped another energy."""
+    shutil.copy(redsim.pretrained.FOLDER / "cloth_ball.cubature.json", tmp_path / "lean.cubature.json")  # v0's
+    monkeypatch.chdir(tmp_path)
+    kept = {"membrane": 200, "bending": 200, "rigid": 1, "contact": 2025, "gravity": 0}  # the lean one's: 366, 1
+    env = gym.make(CLOTH_BALL, cubature=Path("lean"))
+    assert env.unwrapped.sim.stepper.energy.describe()["kept_elements"] == kept
+    again = gym.make(EnvSpec.from_json(env.spec.to_json()))
+    assert again.unwrapped.sim.stepper.energy.describe()["kept_elements"] == kept
 
 
 def test_a_cubature_of_another_map_is_refused(tmp_path) -> None:
