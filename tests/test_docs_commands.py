@@ -69,9 +69,11 @@ SOURCES = [
     path for folder in ("envs", "redsim", "trainers", "examples") for path in sorted((ROOT / folder).rglob("*.py"))
 ]
 """The code whose comments, docstrings and messages cite README.md's and docs/*.md's sections."""
-QUOTED = r"""(?:"[^"\n]+"|'[^'\n]+')"""
-CITATION = re.compile(rf"(README|docs/[\w-]+\.md)(?:,\s*|\s+\(?|\s*\()({QUOTED}(?:,\s*{QUOTED})*)")
-"""`README "Section"` or `docs/X.md, "Heading"`, and the quoted parts after one (`README "Cubature", "Stop 56"`)."""
+QUOTED = r"""(?:"[^"\s][^"\n]*"|'[^'\s][^'\n]*')"""
+"""A quoted heading: it begins with no space (`" + str(x) + "`, `" "` are the gaps between two string literals)."""
+CITATION = re.compile(rf"(README|docs/[\w-]+\.md)(?:,\s*|\s+\(?|\s*\()(?:\" \"|' ')?({QUOTED}(?:,\s*{QUOTED})*)")
+"""`README "Section"` or `docs/X.md, "Heading"`, and the quoted parts after one (`README "Cubature", "Stop 56"`); a
+message split into two literals before the heading (`"... (README "` / `"'Tolerance')"`) as well."""
 
 
 def _name(path: Path) -> str:
@@ -330,6 +332,10 @@ def test_the_code_s_citations_name_sections_the_docs_have() -> None:
         ('# (README "Latent runtime", "Tolerance"; docs/env-speed.md, "Stop 28\'s\n# measurements")', []),
         ("warn(\"use dtype='float64' or a longer dt (README 'Tolerance')\")", []),
         ('"""The README\'s subspace table, and docs/agents.md (the whole file)."""', []),
+        # two string literals, not a citation; and a citation split over two literals (implicit concatenation)
+        ('log("see the README " + str(x) + " and docs/envs.md " + "x")', []),
+        ('raise ValueError(\n    "use a longer dt (README "\n    "\'Tolerance\')"\n)', []),
+        ('raise ValueError("(README "\n    "\'Tolerances of old\')")', ["README 'Tolerances of old'"]),
     ],
 )
 def test_a_citation_is_checked_against_its_file_s_headings(source: str, stale: list[str]) -> None:
