@@ -303,6 +303,30 @@ def test_the_sb3_adapters_infos_hold_the_keys_of_dummy_vec_envs_on_every_step() 
     dummy.close()
 
 
+def test_the_sb3_adapters_time_limit_flag_is_false_where_a_copy_terminates_at_its_limit_as_dummy_vec_envs() -> None:
+    """On the limit's step a copy that also terminates (diverged) reads ``TimeLimit.truncated`` False, one that
+    only runs out of time True, as SB3's DummyVecEnv gives them (``truncated and not terminated``)."""
+    from stable_baselines3.common.monitor import Monitor
+    from stable_baselines3.common.vec_env import DummyVecEnv
+
+    from redsim.envs.sb3 import SB3VecEnv
+
+    options = {"max_force": 1e15, "dtype": "float64", "max_episode_steps": 1}  # copy 0's push diverges at once
+    own = SB3VecEnv.make(ID, 2, **options)
+    dummy = DummyVecEnv([lambda: Monitor(gym.make(ID, **options)) for _ in range(2)])
+    push = np.zeros((2, 3), np.float32)
+    push[0] = 1.0
+    flags = []
+    for venv in (own, dummy):
+        venv.seed(0)
+        venv.reset()
+        _, _, done, infos = venv.step(push)
+        assert done.tolist() == [True, True] and [info["diverged"] for info in infos] == [True, False]
+        flags.append([info["TimeLimit.truncated"] for info in infos])
+        venv.close()
+    assert flags[0] == flags[1] == [False, True]
+
+
 def test_the_sb3_adapter_passes_set_options_to_the_reset() -> None:
     from redsim.envs.sb3 import SB3VecEnv
 
