@@ -68,7 +68,7 @@ class ClothBallEnv(ReachEnv):
 
     | Argument | Default | Meaning |
     |---|---|---|
-    | `cubature` | None: on (v1: a path) | the shipped cubature (force error 2.9%), or a path; `False`: every element |
+    | `cubature` | None: on (v1: "lean") | the shipped cubature (force error 2.9%); "lean": v1's leaner one; a path |
 
     `stepper_options` (a :class:`LatentEnv` argument) defaults to `{"row_block": 256}`: a solver call of more than
     256 rows (a step's first call above 128 envs, a difference Hessian's d x k rows above 85 copies to build) is

@@ -67,7 +67,7 @@ class HangingClothEnv(ReachEnv):
 
     | Argument | Default | Meaning |
     |---|---|---|
-    | `cubature` | None: off (v1: True; v2: a path) | `True`: the shipped cubature (3.1% force error), or a path |
+    | `cubature` | None: off (v1: True; v2: "lean") | `True`: the shipped one (3.1% force error); "lean": v2's; a path |
     | `targets` | "latent" (v1, v2: "held") | where targets come from (Starting State) |
     | `target_spread` | 0.5 (v1, v2: 0.8) | latent spread of v0's targets; v1, v2: largest entry of the held action |
 

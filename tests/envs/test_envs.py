@@ -157,6 +157,12 @@ def test_the_env_s_docstring_follows_gymnasium_s_template_and_its_registration(e
     named = {name for row in _rows(_section(doc, "Arguments")) for name in re.findall(r"`(\w+)`", row[0])}
     assert named == _parameters(cls)
     assert set(spec.kwargs) <= named
+    version = env_id.rsplit("-v", 1)[1]
+    for key, value in spec.kwargs.items():  # its row gives the id's value: `0.5 (v1, v2: 0.8)`, `(v1 registers 40.0)`
+        literal = json.dumps(value) if isinstance(value, str) else repr(value)
+        given = rf"\bv{version}\b(?:,\s*v\d+)*(?::| registers)\s*{re.escape(literal)}"
+        rows = [" | ".join(row) for row in _rows(_section(doc, "Arguments")) if f"`{key}`" in row[0]]
+        assert any(re.search(given, row) for row in rows), (key, value, rows)  # ClothBall-v1's read "v1: a path"
     family = env_id.rsplit("-v", 1)[0]
     versions = [i.rsplit("-v", 1)[1] for i in redsim.envs.ids() if i.rsplit("-v", 1)[0] == family]
     history = _section(doc, "Version History")
