@@ -90,7 +90,16 @@ LATENT_ENV_ARGUMENTS = (
 """Arguments-table rows of the :class:`LatentEnv` arguments a registered env passes on through ``**kwargs``: a
 subclass's docstring row :data:`LATENT_ENV_ROW` is replaced by them (``LatentEnv.__init_subclass__``)."""
 LATENT_ENV_ROW = "| `**kwargs` | | the other :class:`LatentEnv` arguments (`LATENT_ENV_ARGUMENTS`) |"
-"""Where an env's docstring table takes :data:`LATENT_ENV_ARGUMENTS`."""
+"""Where an env's docstring table takes :data:`LATENT_ENV_ARGUMENTS` (less the rows of those its own table lists)."""
+
+
+def row_arguments(line: str) -> list[str]:
+    """The argument names in the first cell of an Arguments-table row (``| `width`, `height` | ...``), else []."""
+    cells = line.strip().split("|")
+    if len(cells) < 3 or cells[0] or "`" not in cells[1] or cells[1].strip() == "`**kwargs`":
+        return []
+    return cells[1].replace(" ", "").replace("`", "").split(",")
+
 
 ACTION_RESOLUTION_WARNING = 0.05
 """An env whose steps cannot feel actions below this fraction of their range (:attr:`LatentSim.action_resolution`)
@@ -1607,7 +1616,9 @@ class LatentEnv(gym.Env[np.ndarray, np.ndarray]):
         doc = cls.__doc__ or ""
         if LATENT_ENV_ROW in doc:
             indent = doc[: doc.index(LATENT_ENV_ROW)].rsplit("\n", 1)[-1]
-            cls.__doc__ = doc.replace(LATENT_ENV_ROW, f"\n{indent}".join(LATENT_ENV_ARGUMENTS))
+            own = {name for line in doc.splitlines() for name in row_arguments(line)}
+            rows = [row for row in LATENT_ENV_ARGUMENTS if not own & set(row_arguments(row))]
+            cls.__doc__ = doc.replace(LATENT_ENV_ROW, f"\n{indent}".join(rows))
 
     @property
     def spec(self) -> EnvSpec | None:

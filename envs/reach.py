@@ -31,7 +31,17 @@ import numpy as np
 import torch
 from torch import Tensor, nn
 
-from redsim.envs.base import FRAME_SAMPLES, LatentEnv, Task, cached, check_numbers, map_key, shipped, shown
+from redsim.envs.base import (
+    FRAME_SAMPLES,
+    LatentEnv,
+    Task,
+    cached,
+    check_numbers,
+    map_key,
+    row_arguments,
+    shipped,
+    shown,
+)
 
 if TYPE_CHECKING:
     from redsim.envs.base import LatentSim
@@ -443,6 +453,8 @@ class ReachEnv(LatentEnv):
         super().__init_subclass__(**kwargs)
         doc, shared = cls.__doc__ or "", ReachEnv.__doc__ or ""
         formula, arguments = _doc_section(shared, "Rewards"), _doc_section(shared, "Arguments")
+        own = {name for line in doc.splitlines() for name in row_arguments(line)}  # rows the env's own table gives
+        arguments = "\n".join(line for line in arguments.splitlines() if not own & set(row_arguments(line)))
         doc = doc.replace(f"\n    (formula: {_HERE}).", f":\n{formula}")
         cls.__doc__ = doc.replace(f"As {_HERE}; ", f"{arguments.lstrip()}\n\n    In this env, ")
 

@@ -140,7 +140,8 @@ def test_the_env_s_docstring_follows_gymnasium_s_template_and_its_registration(e
     entry its Box literals state, its truncation is the registered one, its Arguments table names every argument the
     env takes and no other, and its Version History every registered version of the id. A review (helper-239) found
     the LatentEnv arguments behind ``**kwargs`` (``randomize_condition``, ``stepper_options``, ``cubature``) missing
-    from the tables, ConditionalBar's default of True among them."""
+    from the tables, ConditionalBar's default of True among them; another (helper-252) found ClothBall's, HangingCloth's
+    and ConditionalBar's own rows repeated by the shared ones, each argument is listed once."""
     spec, cls = gym.spec(env_id), _env_class(env_id)
     doc = cls.__doc__
     assert [s for s in re.findall(r"\n    ## (.+)\n", doc) if s in SECTIONS] == list(SECTIONS)
@@ -154,7 +155,9 @@ def test_the_env_s_docstring_follows_gymnasium_s_template_and_its_registration(e
     steps, seconds = re.search(r"Truncation: (\d+) steps\s+\(([\d.]+) s at the default", doc).groups()
     dt = inspect.signature(cls).parameters["dt"].default
     assert int(steps) == spec.max_episode_steps and float(seconds) == pytest.approx(spec.max_episode_steps * dt)
-    named = {name for row in _rows(_section(doc, "Arguments")) for name in re.findall(r"`(\w+)`", row[0])}
+    listed = [name for row in _rows(_section(doc, "Arguments")) for name in re.findall(r"`(\w+)`", row[0])]
+    assert sorted({name for name in listed if listed.count(name) > 1}) == []  # ClothBall's `cubature` twice (stop 71)
+    named = set(listed)
     assert named == _parameters(cls)
     assert set(spec.kwargs) <= named
     version = env_id.rsplit("-v", 1)[1]
