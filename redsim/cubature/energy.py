@@ -175,7 +175,7 @@ class Cubature:
         if mine != self.map_fingerprint:
             raise CheckpointError(
                 f"cubature built for another map (weights hash {self.map_fingerprint}, this map {mine}); "
-                "rebuild it with `redsim cubature` for this checkpoint",
+                "make one for this map with `redsim cubature CHECKPOINT --elements K` (CHECKPOINT: this map's STEM.pt)",
                 where,
             )
         effects = scene.load_free_effects("a cubature")
