@@ -749,8 +749,16 @@ class Agent:
     def num_timesteps(self) -> int:
         return int(self.model.num_timesteps)
 
-    def predict(self, obs: np.ndarray, deterministic: bool = True) -> tuple[np.ndarray, Any]:
-        """Actions [B, A] (or [A]) for raw observations [B, obs] (or [obs]), as SB3's ``predict``.
+    def predict(
+        self,
+        obs: np.ndarray,
+        state: tuple[np.ndarray, ...] | None = None,
+        episode_start: np.ndarray | None = None,
+        deterministic: bool = True,
+    ) -> tuple[np.ndarray, Any]:
+        """Actions [B, A] (or [A]) for raw observations [B, obs] (or [obs]), as SB3's ``predict`` (its signature, so
+        that SB3's ``evaluate_policy`` takes an agent; ``state`` and ``episode_start`` are passed on), but
+        deterministic by default.
 
         Raises:
             ValueError: a goal-conditioned model given observations of another size.
@@ -766,7 +774,7 @@ class Agent:
             obs = GoalSplit(self.goal)(obs)
         if self.normalizer is not None:
             obs = self.normalizer.normalize_obs(obs)
-        return self.model.predict(obs, deterministic=deterministic)
+        return self.model.predict(obs, state, episode_start, deterministic)
 
 
 def load_agent(path: str | Path, env_id: str | None = None, algo: str | None = None) -> Agent:

@@ -279,6 +279,31 @@ def test_evaluating_a_model_on_another_env_than_it_was_trained_on_is_warned_abou
         evaluate(user_env, dataclasses.replace(agent, env_id="RedSim/Gone-v9"), episodes=1)  # an id not known here
 
 
+def test_a_shipped_policy_scores_in_sb3_s_evaluate_policy_as_in_redsim_s_evaluation() -> None:
+    """SB3's way (``SAC.load`` of the zip, ``VecNormalize.load`` of the statistics beside it, ``evaluate_policy`` on
+    ``make_vec_env``) and ``load_agent``'s agent in ``evaluate_policy`` score redsim's returns of the same episodes.
+    The agent's ``predict`` lacked SB3's ``state`` and ``episode_start``: ``evaluate_policy(agent, ...)`` was a
+    TypeError."""
+    from stable_baselines3 import SAC
+    from stable_baselines3.common.env_util import make_vec_env
+    from stable_baselines3.common.evaluation import evaluate_policy
+    from stable_baselines3.common.vec_env import VecNormalize
+
+    path = shipped_policy(MINI)
+    exact = {**SHORT, "dtype": "float64"}  # in float64 a single env and a copy of the vector env agree
+    ours = evaluate(MINI, load_agent(path, MINI), episodes=2, seed=0, env_kwargs=exact).returns
+
+    def sb3_envs() -> Any:  # copy i's first episode has seed i, as redsim's episode i
+        return make_vec_env(MINI, n_envs=2, seed=0, env_kwargs=exact)
+
+    agent, _ = evaluate_policy(load_agent(path, MINI), sb3_envs(), n_eval_episodes=2, return_episode_rewards=True)
+    normalized = VecNormalize.load(str(normalizer_path(path)), sb3_envs())
+    normalized.training = False
+    sb3, _ = evaluate_policy(SAC.load(path, device="cpu"), normalized, n_eval_episodes=2, return_episode_rewards=True)
+    for returns in (agent, sb3):  # SB3's Monitor rounds a return to 6 decimals
+        np.testing.assert_allclose(returns, ours, rtol=1e-5)
+
+
 @pytest.mark.parametrize("shards", [1, 2])
 def test_ppo_trains_a_few_hundred_steps(tmp_path: Path, shards: int) -> None:
     from redsim.trainers.agents import train_agent
