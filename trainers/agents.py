@@ -15,7 +15,8 @@ progress bar, and resumable runs. :func:`train_agent` writes into its output fol
 - ``checkpoints/``: periodic models and their statistics (PPO's as a rollout starts: only learnt rollouts). A resumed
   run goes on from whichever of ``model.zip`` and the checkpoints was trained the most env steps (``model.zip`` on
   a tie), from a checkpoint with an empty replay buffer;
-- ``curve.csv`` and ``curve.png``: evaluation return vs env steps and vs wall time;
+- ``curve.csv`` and ``curve.png``: evaluation return vs env steps and vs wall time (a run's final evaluation, on
+  other episodes than the periodic ones, is a row marked ``final`` and a separate point: :data:`CURVE_FIELDS`);
 - ``evaluations.npz``: ``EvalCallback``'s log of every evaluation (steps, returns, episode lengths);
 - ``progress.csv``: SB3's own training log (losses, learning rate, fps, ``eval/mean_reward``; a resumed run
   writes ``progress-from-STEPS.csv`` beside it), where SB3 alone would make an empty ``/tmp/SB3-*`` folder;
@@ -1275,11 +1276,19 @@ def _wall_at(curve: list[dict[str, Any]], record: Mapping[str, Any], steps: int)
     return float(np.interp(steps, xs, ys))
 
 
+CURVE_FIELDS = ("env_steps", "wall_s", "mean_return", "std_return", "success_rate", "final")
+"""``curve.csv``'s columns. ``final`` is 1 on the row of a run's final evaluation (``final_episodes`` episodes from
+SEED + ``FINAL_EVAL_SEED``, made where no periodic evaluation fell on the run's last step) and 0 on the periodic
+evaluations' rows (the same ``eval_episodes`` episodes each, so only they compare policies)."""
+
+
 def _read_curve(path: Path) -> list[dict[str, Any]]:
+    """The rows of ``curve.csv`` (a file written before the ``final`` column reads 0 there)."""
     if not path.is_file():
         return []
     with path.open() as handle:
-        return [{k: int(v) if k == "env_steps" else float(v) for k, v in row.items()} for row in csv.DictReader(handle)]
+        rows = [{k: int(v) if k == "env_steps" else float(v) for k, v in row.items()} for row in csv.DictReader(handle)]
+    return [{"final": 0.0} | row for row in rows]
 
 
 def _write_curve(path: Path, curve: list[dict[str, float]]) -> None:
@@ -1287,8 +1296,7 @@ def _write_curve(path: Path, curve: list[dict[str, float]]) -> None:
 
     def write(tmp: Path) -> None:
         with tmp.open("w", newline="") as handle:
-            fields = ["env_steps", "wall_s", "mean_return", "std_return", "success_rate"]
-            writer = csv.DictWriter(handle, fieldnames=fields)
+            writer = csv.DictWriter(handle, fieldnames=CURVE_FIELDS, restval=0.0)
             writer.writeheader()
             writer.writerows(curve)
 
@@ -1320,21 +1328,28 @@ def _write_record(out: Path, summary: Mapping[str, Any]) -> None:
 
 
 def plot_curve(curve: list[dict[str, float]], path: Path, title: str) -> None:
-    """Evaluation return (mean ± std) vs env steps and vs wall time, side by side, as a PNG."""
+    """Evaluation return (mean ± std) vs env steps and vs wall time, side by side, as a PNG: the periodic
+    evaluations as a line, the final evaluations (``final`` rows: other episodes) as separate points."""
     import matplotlib
 
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
 
     fig, axes = plt.subplots(1, 2, figsize=(9, 3.4), sharey=True)
-    mean = np.array([r["mean_return"] for r in curve])
-    std = np.array([r["std_return"] for r in curve])
+    periodic = [r for r in curve if not r.get("final")]
+    finals = [r for r in curve if r.get("final")]
     for ax, key, label in ((axes[0], "env_steps", "env steps"), (axes[1], "wall_s", "wall time [s]")):
-        x = np.array([r[key] for r in curve])
-        ax.plot(x, mean, marker="o", ms=3)
-        ax.fill_between(x, mean - std, mean + std, alpha=0.25)
+        if periodic:
+            x, mean, std = (np.array([r[k] for r in periodic]) for k in (key, "mean_return", "std_return"))
+            ax.plot(x, mean, marker="o", ms=3, label="evaluations (the same episodes each)")
+            ax.fill_between(x, mean - std, mean + std, alpha=0.25)
+        if finals:
+            x, mean, std = (np.array([r[k] for r in finals]) for k in (key, "mean_return", "std_return"))
+            ax.errorbar(x, mean, yerr=std, fmt="D", ms=4, color="k", capsize=3, label="final (other episodes)")
         ax.set_xlabel(label)
         ax.grid(alpha=0.3)
+    if finals:
+        axes[0].legend(fontsize=7, loc="lower right")
     axes[0].set_ylabel("evaluation return")
     fig.suptitle(title)
     fig.tight_layout()
@@ -1811,6 +1826,7 @@ def train_agent(
                     "mean_return": final.mean,
                     "std_return": final.std,
                     "success_rate": final.success_rate,
+                    "final": 1.0,  # other episodes than the periodic evaluations': not a point of their line
                 }
             )
         _write_curve(out / "curve.csv", curve)
@@ -1830,6 +1846,7 @@ def train_agent(
 
 __all__ = [
     "ALGOS",
+    "CURVE_FIELDS",
     "FINAL_EVAL_SEED",
     "HYPERPARAMS",
     "Agent",

@@ -1264,6 +1264,51 @@ def test_a_resume_without_intervals_keeps_the_runs_own_and_refuses_other_setting
     assert record["hyperparams"]["learning_rate"] == 1e-3  # what the model trained with, not the table's
 
 
+def test_the_curve_marks_each_runs_final_evaluation_apart_from_the_periodic_ones(tmp_path: Path) -> None:
+    """A run that ends off the evaluation grid ends its curve with the final evaluation, on other episodes
+    (``final_episodes`` from SEED + FINAL_EVAL_SEED) than the periodic ones: its row is marked ``final`` (1), also once
+    a resume has gone past it, so the periodic rows alone compare policies. A user's curve.png jumped at that point
+    (a 3,008-step MiniChain run: -80 at the last periodic evaluation, +33 at the final one, -20 for the same model on
+    the periodic episodes): the episodes changed, not the policy."""
+    from redsim.trainers.agents import _read_curve, train_agent
+
+    tiny = {"n_envs": 2, "eval_episodes": 1, "final_episodes": 1, "env_kwargs": SHORT, "video": False}
+    train_agent(MINI, tmp_path, algo="sac", steps=50, eval_every=20, **tiny)
+    with (tmp_path / "curve.csv").open() as handle:
+        rows = list(csv.DictReader(handle))
+    assert [(int(r["env_steps"]), float(r["final"])) for r in rows] == [(20, 0.0), (40, 0.0), (50, 1.0)]
+    train_agent(MINI, tmp_path, algo="sac", steps=80, eval_every=20, resume=True, **tiny)  # ends on the grid
+    marked = [(r["env_steps"], r["final"]) for r in _read_curve(tmp_path / "curve.csv")]
+    assert marked == [(20, 0.0), (40, 0.0), (50, 1.0), (60, 0.0), (80, 0.0)]
+
+
+def test_plot_curve_draws_the_final_evaluations_apart_from_the_periodic_line(
+    tmp_path: Path, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    """The periodic evaluations are one line; a final evaluation (other episodes) is a point of its own, not the
+    line's next point. A curve.csv written before the ``final`` column reads as periodic rows."""
+    from matplotlib.axes import Axes
+
+    from redsim.trainers.agents import _read_curve, plot_curve
+
+    drawn: list[tuple[str, list[float]]] = []
+    for name in ("plot", "errorbar"):
+        original = getattr(Axes, name)
+
+        def record(self: Axes, x: Any, *args: Any, _name: str = name, _original: Any = original, **kw: Any) -> Any:
+            drawn.append((_name, [float(v) for v in x]))
+            return _original(self, x, *args, **kw)
+
+        monkeypatch.setattr(Axes, name, record)
+    row = {"wall_s": 1.0, "mean_return": 2.0, "std_return": 0.5, "success_rate": 0.0}
+    curve = [row | {"env_steps": 20}, row | {"env_steps": 40, "final": 0.0}, row | {"env_steps": 50, "final": 1.0}]
+    plot_curve(curve, tmp_path / "curve.png", "t")
+    assert ("plot", [20.0, 40.0]) in drawn and ("errorbar", [50.0]) in drawn
+    assert not [x for name, x in drawn if 50.0 in x and name == "plot"]
+    (tmp_path / "old.csv").write_text("env_steps,wall_s,mean_return,std_return,success_rate\n20,1.0,2.0,0.5,0.0\n")
+    assert _read_curve(tmp_path / "old.csv") == [{"final": 0.0, "env_steps": 20} | row]
+
+
 def test_run_files_are_replaced_whole(tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> None:
     """curve.csv and agent.json go through a temporary file: a write that stops half way leaves the previous file
     (they were written in place, and a cut curve.csv or empty agent.json stopped --resume: a review's finding)."""
@@ -1271,7 +1316,7 @@ def test_run_files_are_replaced_whole(tmp_path: Path, monkeypatch: pytest.Monkey
 
     from redsim.trainers.agents import _read_curve, _write_curve, _write_record
 
-    row = {"env_steps": 4, "wall_s": 1.0, "mean_return": 2.0, "std_return": 0.5, "success_rate": 0.0}
+    row = {"env_steps": 4, "wall_s": 1.0, "mean_return": 2.0, "std_return": 0.5, "success_rate": 0.0, "final": 0.0}
     _write_curve(tmp_path / "curve.csv", [row])
     _write_record(tmp_path, {"seed": 3})
 
