@@ -459,3 +459,43 @@ def test_shown_path_is_machine_independent(tmp_path, monkeypatch: pytest.MonkeyP
     assert shown_path(tmp_path / "subspaces" / "chain.pt") == "subspaces/chain.pt"
     elsewhere = tmp_path.parent / "other.pt"
     assert shown_path(elsewhere) == str(elsewhere)
+
+
+def test_every_path_argument_reads_a_leading_tilde() -> None:
+    """Each option or argument that names a file or folder is in the list :func:`expand_home` reads, so a new one
+    is not left out."""
+    import argparse
+
+    from redsim.cli import build_parser
+    from redsim.cli.common import PATH_ARGS, Parser
+
+    paths = []
+
+    def walk(parser: argparse.ArgumentParser) -> None:
+        if isinstance(parser, Parser):
+            parser.complete()
+        for action in parser._actions:
+            if isinstance(action, argparse._SubParsersAction):
+                for sub in action.choices.values():
+                    walk(sub)
+            elif action.metavar in ("DIR", "PATH", "FILE", "STEM") or action.dest in ("checkpoint", "model"):
+                paths.append(action.dest)
+
+    walk(build_parser())
+    assert {"out", "checkpoint", "spec", "mesh", "meshes", "checkpoints"} <= set(paths)
+    assert set(paths) <= set(PATH_ARGS), sorted(set(paths) - set(PATH_ARGS))
+
+
+def test_train_agent_draws_its_progress_bar_on_stderr(capsys: pytest.CaptureFixture[str], tmp_path) -> None:
+    """SB3 draws its bar with tqdm.rich on rich's global console, which writes to stdout: the bar's last frame was
+    in the command's result (``redsim train-agent ... > run.txt``)."""
+    import rich
+
+    argv = ["train-agent", "RedSim/MiniChain-v0", "--algo", "ppo", "--steps", "256", "--n-envs", "2"]
+    argv += ["--eval-episodes", "1", "--final-episodes", "1", "--no-video", "--out", str(tmp_path / "run")]
+    code, out, err = run(capsys, *argv, "--threads", "1")
+    assert code == 0, err
+    assert "256/256" in err  # the bar's last frame
+    assert "256/256" not in out and "it/s" not in out, out
+    assert out.startswith("RedSim/MiniChain-v0: PPO trained 256 env steps")
+    assert rich.get_console().stderr is False  # the global console is set back for the caller

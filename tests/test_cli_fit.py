@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import json
 import re
+import shlex
 from pathlib import Path
 from typing import Any
 
@@ -511,3 +512,35 @@ def test_compile_without_a_cpp_compiler_is_exit_2_and_writes_nothing(
     state = (tmp_path / "old.fit.pt").read_bytes()
     code, _, err = run(capsys, "fit", *small, "--compile", "--overwrite", "--out", str(tmp_path / "old"))
     assert code == 2 and (tmp_path / "old.fit.pt").read_bytes() == state
+
+
+def test_a_path_that_starts_with_a_tilde_is_in_the_home_folder(
+    capsys: pytest.CaptureFixture[str], tmp_path: Path, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    """``--out=~/runs/tt`` (the shell leaves it as typed) made a folder named ``~`` in the working folder, and a
+    quoted ``'~/runs/tt.pt'`` was not found."""
+    home, work = tmp_path / "home", tmp_path / "work"
+    home.mkdir()
+    work.mkdir()
+    monkeypatch.setenv("HOME", str(home))
+    monkeypatch.chdir(work)
+    small = ("--dim", "2", "--width", "8", "--layers", "1", "--steps", "5", "--threads", "1")
+    code, _, err = run(capsys, "fit", "toy_two_tets", *small, "--out=~/runs/tt")
+    assert code == 0, err
+    assert (home / "runs" / "tt.pt").is_file() and not (work / "~").exists()
+    code, out, err = run(capsys, "inspect", "~/runs/tt.pt", "--json")
+    assert code == 0, err
+    assert json.loads(out)["checkpoint"] == str(home / "runs" / "tt.pt")
+
+
+def test_the_bench_command_fit_suggests_quotes_a_path_with_spaces(
+    capsys: pytest.CaptureFixture[str], tmp_path: Path
+) -> None:
+    """The suggested ``redsim bench accuracy PATH ...`` split a stem with a space into two arguments."""
+    stem = tmp_path / "my runs" / "t t"
+    small = ("--dim", "2", "--width", "8", "--layers", "1", "--steps", "5", "--threads", "1")
+    code, out, err = run(capsys, "fit", "toy_two_tets", *small, "--out", str(stem))
+    assert code == 0, err
+    hint = next(line for line in out.splitlines() if "redsim bench accuracy" in line)
+    argv = shlex.split(hint.partition("full space: ")[2])
+    assert argv[:4] == ["redsim", "bench", "accuracy", f"{stem}.pt"], hint

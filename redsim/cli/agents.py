@@ -3,8 +3,10 @@
 from __future__ import annotations
 
 import argparse
+import contextlib
 import json
 import math
+from collections.abc import Iterator
 from pathlib import Path
 from typing import Any
 
@@ -110,6 +112,27 @@ def _warn_if_map_args_differ(trained_on: dict[str, Any], given: dict[str, Any]) 
         )
 
 
+@contextlib.contextmanager
+def _bar_on_stderr(shown: bool) -> Iterator[None]:
+    """Draw SB3's progress bar on stderr while the block runs (where ``shown``). SB3 draws it with ``tqdm.rich``, on
+    rich's global console, which writes to stdout, the command's result: ``redsim train-agent ... > run.txt`` held
+    the bar's last frame, and a terminal saw it among the result lines. The console is set back afterwards (an
+    in-process caller keeps its own); a new console also picks its colours for stderr (none in a file, none under
+    ``NO_COLOR``)."""
+    if not shown:
+        yield
+        return
+    import rich
+
+    console = rich.get_console()
+    kept = dict(console.__dict__)
+    rich.reconfigure(stderr=True)  # rich's way to replace its global console: the object stays, its settings change
+    try:
+        yield
+    finally:
+        console.__dict__ = kept
+
+
 def cmd_train_agent(args: argparse.Namespace) -> int:
     from redsim.envs.sharded import ShardError
     from redsim.trainers.agents import TrainingInterrupted, train_agent
@@ -124,25 +147,27 @@ def cmd_train_agent(args: argparse.Namespace) -> int:
         (args.eval_every, "--eval-every"),
     ):
         _positive(value, flag)
+    bar = not args.json and not args.no_progress
     try:
-        result = train_agent(
-            args.env_id,
-            args.out,
-            algo=args.algo,
-            steps=args.steps,
-            seed=args.seed,
-            n_envs=args.n_envs,
-            eval_every=args.eval_every,
-            eval_episodes=args.eval_episodes,
-            final_episodes=args.final_episodes,
-            resume=args.resume,
-            overwrite=args.overwrite,
-            progress_bar=not args.json and not args.no_progress,
-            video=not args.no_video,
-            env_kwargs=_env_kwargs(args),
-            shards=args.shards,
-            her=args.her,
-        )
+        with _bar_on_stderr(bar):
+            result = train_agent(
+                args.env_id,
+                args.out,
+                algo=args.algo,
+                steps=args.steps,
+                seed=args.seed,
+                n_envs=args.n_envs,
+                eval_every=args.eval_every,
+                eval_episodes=args.eval_episodes,
+                final_episodes=args.final_episodes,
+                resume=args.resume,
+                overwrite=args.overwrite,
+                progress_bar=bar,
+                video=not args.no_video,
+                env_kwargs=_env_kwargs(args),
+                shards=args.shards,
+                her=args.her,
+            )
     except (ValueError, FileNotFoundError, ShardError) as err:
         raise CliError(str(err)) from err
     except TrainingInterrupted as stop:

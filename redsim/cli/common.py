@@ -10,6 +10,7 @@ import argparse
 import contextlib
 import json
 import math
+import os
 import re
 import sys
 import tempfile
@@ -406,6 +407,20 @@ def write_error(folder: Path) -> str | None:
             return None
     except OSError as err:
         return err.strerror or str(err)
+
+
+PATH_ARGS = ("out", "meshes", "spec", "mesh", "checkpoint", "checkpoints", "baseline", "cubature", "model", "scene")
+"""The arguments (by ``dest``) that name a file or folder; :func:`expand_home` reads a leading ``~`` in them."""
+
+
+def expand_home(args: argparse.Namespace) -> None:
+    """Read a leading ``~`` or ``~user`` in the path arguments (:data:`PATH_ARGS`) as the shell does: the shell leaves
+    ``--out=~/runs`` and a quoted ``'~/runs'`` as typed, and the command made a folder named ``~`` in the working
+    folder. A name that does not start with ``~`` (a scene, an env id, ``shipped``) is left as it is."""
+    for dest in PATH_ARGS:
+        value = getattr(args, dest, None)
+        if isinstance(value, str) and value.startswith("~"):
+            setattr(args, dest, os.path.expanduser(value))
 
 
 def parse_list(text: str, what: str, item: Callable[[str], Any] | None = None) -> list[Any]:

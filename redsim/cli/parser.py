@@ -23,6 +23,7 @@ from redsim.cli.common import (
     check_writable,
     command_threads,
     error,
+    expand_home,
     show_warning,
     warn,
 )
@@ -85,6 +86,7 @@ def _run(argv: Sequence[str] | None) -> int:
     terminate = _interrupt_on_sigterm()
     try:
         with command_threads(args), warnings.catch_warnings():  # the CLI says it in one line (parse_env_id)
+            expand_home(args)
             _check_out(args)
             warnings.filterwarnings(
                 "ignore", message=".*The environment RedSim/.* is out of date", category=DeprecationWarning

@@ -5,6 +5,7 @@ from __future__ import annotations
 import argparse
 import dataclasses
 import math
+import shlex
 from pathlib import Path
 from typing import TYPE_CHECKING, Any
 
@@ -272,7 +273,8 @@ def cmd_fit(args: argparse.Namespace) -> int:
             handle = f" --handle {own[0]}" if own else ""
             others = f" (or --handle {' / '.join(own[1:])})" if len(own) > 1 else ""
             out(
-                f"before training on it, compare it with the full space: redsim bench accuracy {summary['checkpoint']}"
+                f"before training on it, compare it with the full space: redsim bench accuracy "
+                f"{shlex.quote(summary['checkpoint'])}"
                 f"{handle} --scenarios push --full none --no-study{others}"
             )
     final = meta["final"]
