@@ -625,6 +625,14 @@ def _run_episodes(
 
 
 # -- model files ------------------------------------------------------------------------------
+def _zip_path(path: str | Path) -> Path:
+    """``path``, or ``path`` + ``.zip`` where only that file exists: SB3's ``save("NAME")`` writes ``NAME.zip``, and
+    its ``load("NAME")`` reads it, so a model is named as SB3 users name it."""
+    path = Path(path)
+    zipped = path.with_name(path.name + ".zip")
+    return zipped if not path.exists() and path.suffix != ".zip" and zipped.is_file() else path
+
+
 def model_record(path: str | Path, plain_algo: str | None = None) -> dict[str, Any]:
     """The env id and algorithm a model file of :func:`train_agent` was trained with, whether it acts
     through normalized observations, the observation blocks of a goal-conditioned (HER) model (else None), and
@@ -643,7 +651,7 @@ def model_record(path: str | Path, plain_algo: str | None = None) -> dict[str, A
     """
     from stable_baselines3.common.save_util import load_from_zip_file
 
-    path = Path(path)
+    path = _zip_path(path)
     if not path.is_file():
         raise FileNotFoundError(f"no model file {path}")
     try:
@@ -783,7 +791,8 @@ def load_agent(path: str | Path, env_id: str | None = None, algo: str | None = N
 
     With ``env_id``, refuse a model trained on another env. ``algo`` ("ppo", "sac", "td3") also loads a plain SB3
     model that does not record its env (an example's), acting through the ``VecNormalize`` statistics beside it
-    where that file exists; :func:`evaluate` then checks its spaces against the env's.
+    where that file exists; :func:`evaluate` then checks its spaces against the env's. ``path`` may leave out
+    ``.zip``, as SB3's ``load`` does.
 
     Raises:
         FileNotFoundError: no such model file, or a model trained with normalization whose
@@ -791,6 +800,7 @@ def load_agent(path: str | Path, env_id: str | None = None, algo: str | None = N
         ValueError: not a redsim model (without ``algo``), a model of another env or algorithm, or a file that
             does not load as ``algo``.
     """
+    path = _zip_path(path)
     record = model_record(path, plain_algo=algo)
     if env_id is not None and record["env_id"] not in (env_id, None):
         raise ValueError(f"the model {path} was trained on {record['env_id']}, not on {env_id}")

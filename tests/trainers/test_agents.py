@@ -491,6 +491,10 @@ def test_eval_agent_takes_a_plain_sb3_model_with_its_algorithm(
     )
     assert code == 0 and json.loads(out)["agent"]["episodes"] == 2
     assert json.loads(out)["normalization"] == str(tmp_path / "mine_vecnormalize.pkl")
+    # named as SB3 names it (its save("mine") writes mine.zip, its load("mine") reads it): was "no model file"
+    assert load_agent(tmp_path / "mine", MINI, algo="ppo").normalizer is not None
+    code, out, _ = cli("eval-agent", str(tmp_path / "mine"), MINI, "--algo", "ppo", "--episodes", "2", *short, "--json")
+    assert code == 0 and json.loads(out)["normalization"] == str(tmp_path / "mine_vecnormalize.pkl")
     (tmp_path / "mine_vecnormalize.pkl").rename(tmp_path / "elsewhere.pkl")  # a plain model's file is optional
     code, out, _ = cli("eval-agent", str(tmp_path / "mine.zip"), MINI, "--algo", "ppo", "--episodes", "2", *short)
     assert code == 0 and "(raw observations):" in out.splitlines()[0]
