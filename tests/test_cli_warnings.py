@@ -159,3 +159,12 @@ def test_without_stderr_an_error_is_dropped_not_written_into_stdout(
     monkeypatch.setattr(sys, "stderr", None)
     code = main(["simulate", "no_such_scene", "--json"])
     assert code == 2 and capsys.readouterr().out == ""
+
+
+def test_a_warning_in_a_bench_s_spawned_process_is_one_line(cli: Cli) -> None:
+    """bench scaling measures each size in a spawned process, which showed its warnings in Python's display (the file,
+    line and source line), twice per size: the stepper's float32 warning, for its two steppers."""
+    small = ["--fit-steps", "1", "--fit-warmup", "1", "--latent-steps", "1", "--cubature-elements", "5", "--no-full"]
+    code, _, err = cli("bench", "scaling", "--sizes", "3", *small, "--json")
+    assert code == 0, err
+    assert err.count("\n") == 1 and err.startswith("redsim: warning: torch.float32 at dt=0.02 s resolves"), err
