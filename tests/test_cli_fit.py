@@ -544,3 +544,37 @@ def test_the_bench_command_fit_suggests_quotes_a_path_with_spaces(
     hint = next(line for line in out.splitlines() if "redsim bench accuracy" in line)
     argv = shlex.split(hint.partition("full space: ")[2])
     assert argv[:4] == ["redsim", "bench", "accuracy", f"{stem}.pt"], hint
+
+
+def test_an_interrupted_fit_says_so_in_one_line(
+    capsys: pytest.CaptureFixture[str],
+    tmp_path: Path,
+    monkeypatch: pytest.MonkeyPatch,
+    caplog: pytest.LogCaptureFixture,
+) -> None:
+    """The fitter's log warning ``redsim: WARNING: redsim.trainers.fit: interrupted after step N; rerun with --resume
+    to continue (STEM.fit.pt)`` came before the command's own line, which says it with the command to continue."""
+    import contextlib
+    import logging
+    from collections.abc import Callable, Iterator
+
+    from redsim.trainers import fit as fitter
+
+    @contextlib.contextmanager
+    def ctrl_c_in_step_3() -> Iterator[Callable[[], None]]:
+        steps = iter(range(1, 10**6))
+
+        def interrupt_point() -> None:
+            if next(steps) == 3:
+                raise KeyboardInterrupt
+
+        yield interrupt_point
+
+    monkeypatch.setattr(fitter, "deferred_interrupts", ctrl_c_in_step_3)
+    small = ("--dim", "2", "--width", "8", "--layers", "1", "--steps", "50", "--threads", "1", "--json")
+    with caplog.at_level(logging.WARNING):
+        code, out, err = run(capsys, "fit", "toy_two_tets", *small, "--out", str(tmp_path / "t"))
+    assert code == 130 and out == "", err
+    assert err.count("\n") == 1 and err.startswith(f"redsim: warning: interrupted; the state is in {tmp_path}"), err
+    assert [r.getMessage() for r in caplog.records] == []
+    assert not logging.getLogger(fitter.__name__).filters  # the command's filter is gone after it

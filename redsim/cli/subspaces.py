@@ -3,9 +3,12 @@
 from __future__ import annotations
 
 import argparse
+import contextlib
 import dataclasses
+import logging
 import math
 import shlex
+from collections.abc import Iterator
 from pathlib import Path
 from typing import TYPE_CHECKING, Any
 
@@ -181,6 +184,24 @@ def _check_stem(stem: Path, args: argparse.Namespace, scene: Scene | None = None
         )
 
 
+def _not_an_interrupt(record: logging.LogRecord) -> bool:
+    return not record.getMessage().startswith("interrupted")
+
+
+@contextlib.contextmanager
+def _interrupts_said_once() -> Iterator[None]:
+    """Drop the fitter's own "interrupted after step N; rerun with --resume ..." log warnings inside: :func:`cmd_fit`
+    says it in one line, with the whole command that continues the fit (a Ctrl-C printed both)."""
+    from redsim.trainers import fit_subspace
+
+    logger = logging.getLogger(fit_subspace.__module__)
+    logger.addFilter(_not_an_interrupt)
+    try:
+        yield
+    finally:
+        logger.removeFilter(_not_an_interrupt)
+
+
 def cmd_fit(args: argparse.Namespace) -> int:
     from redsim.subspace import checkpoint_path
     from redsim.trainers import fit_subspace
@@ -214,7 +235,7 @@ def cmd_fit(args: argparse.Namespace) -> int:
         raise CliError(f"--stop-at must be >= 0 and < the fit's --steps ({config.steps}), got {args.stop_at}")
     command = fit_command(scene, config, args.seed, stem)
     try:
-        with quiet_low_stretch():  # said below in one line, with the options' names
+        with quiet_low_stretch(), _interrupts_said_once():  # said below in one line, with the options' names
             result = fit_subspace(
                 scene,
                 config,
