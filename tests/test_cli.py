@@ -499,3 +499,32 @@ def test_train_agent_draws_its_progress_bar_on_stderr(capsys: pytest.CaptureFixt
     assert "256/256" not in out and "it/s" not in out, out
     assert out.startswith("RedSim/MiniChain-v0: PPO trained 256 env steps")
     assert rich.get_console().stderr is False  # the global console is set back for the caller
+
+
+@pytest.mark.parametrize(
+    ("argv", "picture"),
+    [
+        (["scaling", "--sizes", "1", "--fit-steps", "1", "--fit-warmup", "1", "--latent-steps", "1"], "scaling.png"),
+        (["accuracy", "mini_chain", "--scenarios", "push", "--full", "none", "--no-study", "--steps", "10"], None),
+    ],
+    ids=["scaling", "accuracy"],
+)
+def test_a_bench_s_picture_is_written_whole_or_not_at_all(
+    capsys: pytest.CaptureFixture[str], monkeypatch: pytest.MonkeyPatch, tmp_path, argv: list[str], picture: str | None
+) -> None:
+    """bench scaling (after each size) and bench accuracy drew their PNG in place: a Ctrl-C while matplotlib wrote
+    it left half a PNG over the one there before."""
+    from matplotlib.figure import Figure
+
+    def half_then_ctrl_c(self: Figure, path: object, **kwargs: object) -> None:
+        with open(path, "wb") as file:  # type: ignore[call-overload]
+            file.write(b"\x89PNG half")
+        raise KeyboardInterrupt
+
+    path = tmp_path / (picture or "accuracy_mini_chain.png")
+    path.write_bytes(b"the picture before")
+    monkeypatch.setattr(Figure, "savefig", half_then_ctrl_c)
+    code, _, err = run(capsys, "bench", *argv, "--out", str(tmp_path), "--threads", "1")
+    assert code == 130 and err.endswith("redsim: warning: interrupted\n"), err
+    assert path.read_bytes() == b"the picture before"
+    assert not [p.name for p in tmp_path.iterdir() if p.name.endswith("tmp")]  # no temporary left

@@ -67,6 +67,7 @@ from redsim.plausibility import MAX_STEP_SIZES, step_failure
 from redsim.runtime import LatentStepper
 from redsim.runtime.stepper import DEFAULT_HESSIAN, DEFAULT_MAX_ITER
 from redsim.scene import Scene
+from redsim.subspace import write_atomically
 
 SCENARIOS = ("push", "actions")
 """``push``: a constant unit action along +x (the issue's sideways load); ``actions``: seeded uniform
@@ -940,13 +941,17 @@ def markdown_table(result: dict[str, Any], scenario: str) -> str:
 
 
 def write_csv(result: dict[str, Any], path: Path) -> None:
-    """All rows to a CSV file (one row per scenario and configuration)."""
+    """All rows to a CSV file (one row per scenario and configuration), written whole or not at all."""
     rows = result["rows"]
-    with path.open("w", newline="") as handle:
-        writer = csv.DictWriter(handle, fieldnames=["scene", *rows[0].keys()])
-        writer.writeheader()
-        for row in rows:
-            writer.writerow({"scene": result["scene"], **row})
+
+    def write(tmp: Path) -> None:
+        with tmp.open("w", newline="") as handle:
+            writer = csv.DictWriter(handle, fieldnames=["scene", *rows[0].keys()])
+            writer.writeheader()
+            for row in rows:
+                writer.writerow({"scene": result["scene"], **row})
+
+    write_atomically(Path(path), write)
 
 
 FAMILY_STYLE = {
@@ -997,7 +1002,7 @@ def pareto_png(result: dict[str, Any], path: Path, machine: str) -> None:
         ax.legend(fontsize=7)
     fig.suptitle(machine, fontsize=7)
     fig.tight_layout()
-    fig.savefig(path, dpi=120)
+    write_atomically(Path(path), lambda tmp: fig.savefig(tmp, format="png", dpi=120))  # Ctrl-C: no half a PNG
 
 
 def report(result: dict[str, Any], machine: str) -> str:
@@ -1142,11 +1147,13 @@ def _map_line(info: dict[str, Any]) -> str:
 
 
 def write_outputs(result: dict[str, Any], folder: Path, machine: str) -> list[Path]:
-    """``accuracy_SCENE.md`` (the :func:`report`), ``.csv`` and ``.png`` (:func:`pareto_png`) in ``folder``."""
+    """``accuracy_SCENE.md`` (the :func:`report`), ``.csv`` and ``.png`` (:func:`pareto_png`) in ``folder``, each
+    written whole or not at all (a Ctrl-C while writing leaves the file there before, not half of one)."""
     folder.mkdir(parents=True, exist_ok=True)
     stem = folder / f"accuracy_{result['scene']}"
     paths = [stem.with_suffix(".md"), stem.with_suffix(".csv"), stem.with_suffix(".png")]
-    paths[0].write_text(report(result, machine) + "\n")
+    text = report(result, machine) + "\n"
+    write_atomically(paths[0], lambda tmp: tmp.write_text(text))
     write_csv(result, paths[1])
     pareto_png(result, paths[2], machine)
     return paths

@@ -44,6 +44,7 @@ import numpy as np
 import torch
 
 from redsim import processes
+from redsim.subspace import write_atomically
 
 SIZES = (4, 6, 8, 11)
 """Cross-section cells k of the measured meshes (n = 1500, 4410, 9720, 23760)."""
@@ -363,7 +364,7 @@ def scaling_png(result: dict[str, Any], path: Path, machine: str) -> None:
     ax.legend(fontsize=6, loc="upper left", ncol=2)
     fig.suptitle(machine, fontsize=7)
     fig.tight_layout()
-    fig.savefig(path, dpi=120)
+    write_atomically(Path(path), lambda tmp: fig.savefig(tmp, format="png", dpi=120))  # Ctrl-C: no half a PNG
 
 
 __all__ = [

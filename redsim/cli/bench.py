@@ -622,6 +622,7 @@ def _accuracy_cubatures(scene: Any, maps: dict[int, Any], paths: dict[int, Path]
 def cmd_bench_scaling(args: argparse.Namespace) -> int:
     from redsim.bench import machine_info
     from redsim.benches import scaling
+    from redsim.subspace import write_atomically
 
     try:
         sizes = tuple(parse_list(args.sizes, "--sizes", int))
@@ -640,7 +641,8 @@ def cmd_bench_scaling(args: argparse.Namespace) -> int:
             return
         folder.mkdir(parents=True, exist_ok=True)
         line = _machine_line({**machine_info(), "torch_threads": threads}, "cpu")
-        (folder / "scaling.md").write_text(f"{line}\n\n{scaling.markdown_table(partial)}\n")
+        table = f"{line}\n\n{scaling.markdown_table(partial)}\n"  # rewritten after each size: whole, or as it was
+        write_atomically(folder / "scaling.md", lambda tmp: tmp.write_text(table))
         scaling.scaling_png(partial, folder / "scaling.png", line)
         if not args.json:
             n = partial["rows"][-1]["n"]
