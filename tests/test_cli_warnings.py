@@ -4,6 +4,7 @@ Python's filters still deciding, and Python's own display back once :func:`redsi
 from __future__ import annotations
 
 import json
+import os
 import subprocess
 import sys
 import warnings
@@ -168,3 +169,28 @@ def test_a_warning_in_a_bench_s_spawned_process_is_one_line(cli: Cli) -> None:
     code, _, err = cli("bench", "scaling", "--sizes", "3", *small, "--json")
     assert code == 0, err
     assert err.count("\n") == 1 and err.startswith("redsim: warning: torch.float32 at dt=0.02 s resolves"), err
+
+
+def test_a_logged_warning_is_the_same_one_line_as_a_python_warning(tmp_path: Path) -> None:
+    """A library's log warning (SB3 rollout rounding, an unreadable cache file) read ``redsim: WARNING:
+    redsim.usercache: ...``, unlike every other warning line; ``-v`` progress keeps its logger's name."""
+    code = (
+        "import logging, sys\n"
+        "from redsim.cli import cache, main\n"
+        "usage = cache.user_cache_usage\n"
+        "def logging_usage(*args, **kwargs):\n"
+        "    logging.getLogger('redsim.usercache').warning('could not write the %s cache file', 'rest')\n"
+        "    logging.getLogger('redsim.usercache').info('looked')\n"
+        "    return usage(*args, **kwargs)\n"
+        "cache.user_cache_usage = logging_usage\n"
+        "sys.exit(main(sys.argv[1:]))\n"
+    )
+    env = {**os.environ, "REDSIM_CACHE": str(tmp_path)}
+    done = subprocess.run(
+        [sys.executable, "-c", code, "-v", "cache", "info"], capture_output=True, text=True, timeout=120, env=env
+    )
+    assert done.returncode == 0, done.stderr
+    assert done.stderr.splitlines() == [
+        "redsim: warning: could not write the rest cache file",
+        "redsim: INFO: redsim.usercache: looked",
+    ]

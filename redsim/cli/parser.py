@@ -79,10 +79,10 @@ def _run(argv: Sequence[str] | None) -> int:
     except KeyboardInterrupt:  # while a command's options load (Parser.add_later: fit's import torch)
         warn("interrupted")
         return EXIT_INTERRUPTED
-    logging.basicConfig(
-        level=logging.INFO if args.verbose else logging.WARNING,
-        format="redsim: %(levelname)s: %(name)s: %(message)s",
-    )
+    if not logging.root.handlers:  # as basicConfig: a caller's own logging setup (a notebook, pytest) stays
+        handler = logging.StreamHandler()
+        handler.setFormatter(LogFormat())
+        logging.basicConfig(level=logging.INFO if args.verbose else logging.WARNING, handlers=[handler])
     terminate = _interrupt_on_sigterm()
     try:
         with command_threads(args), warnings.catch_warnings():  # the CLI says it in one line (parse_env_id)
@@ -116,6 +116,20 @@ def _run(argv: Sequence[str] | None) -> int:
     finally:
         if terminate is not None:
             signal.signal(signal.SIGTERM, terminate)
+
+
+class LogFormat(logging.Formatter):
+    """The command line's log lines on stderr: a warning as ``redsim: warning: MESSAGE``, the line a Python warning and
+    the command's own warnings make (it was ``redsim: WARNING: redsim.trainers.agents: MESSAGE``); progress (``-v``)
+    and the other levels as ``redsim: INFO: LOGGER: MESSAGE``."""
+
+    def __init__(self) -> None:
+        super().__init__("redsim: %(levelname)s: %(name)s: %(message)s")
+
+    def formatMessage(self, record: logging.LogRecord) -> str:
+        if record.levelno == logging.WARNING:
+            return f"redsim: warning: {record.message}"
+        return super().formatMessage(record)
 
 
 def _out_of_memory(err: BaseException) -> bool:
