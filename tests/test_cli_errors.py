@@ -843,3 +843,12 @@ def test_running_out_of_memory_is_one_line_and_exit_1(
     monkeypatch.setattr("redsim.cli.scenes.cmd_scenes", lambda args: (_ for _ in ()).throw(RuntimeError("a bug")))
     with pytest.raises(RuntimeError, match="a bug"):  # any other error is not hidden
         cli("scenes")
+
+
+def test_a_file_given_for_a_checkpoints_folder_is_called_a_file(cli: Cli, tmp_path: Path) -> None:
+    """bench cubature said 'no such folder' of a file that is there (bench subspace and accuracy say it is a file)."""
+    (tmp_path / "fits").write_text("")
+    for argv in (["cubature"], ["subspace", "--scenes", "mini_chain"], ["accuracy", "mini_chain", "--dims", "2"]):
+        code, out, err = cli("bench", *argv, "--checkpoints", str(tmp_path / "fits"))
+        assert (code, out) == (2, "") and err.count("\n") == 1, (argv, err)
+        assert "a file, not a folder" in err and "no such folder" not in err, (argv, err)

@@ -218,7 +218,7 @@ def cmd_bench_cubature(args: argparse.Namespace) -> int:
         raise CliError(f"--warmup-steps must be >= 0, got {warmup}")
     folder = Path(args.checkpoints) if args.checkpoints else None
     if folder is not None and not folder.is_dir():
-        raise CliError(f"--checkpoints {folder}: no such folder")
+        raise CliError(f"--checkpoints {folder}: " + ("a file, not a folder" if folder.exists() else "no such folder"))
     source = _cubature_source(args.cubature, names, named=args.scenes is not None)
     checkpoints = {name: _checkpoint_of(name, folder) for name in names}
     loaded = {}
