@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import argparse
 import json
+import os
 import shlex
 import subprocess
 import sys
@@ -27,6 +28,16 @@ def test_version(cli: Cli) -> None:
     assert code == 0 and out.strip() == f"redsim {redsim.__version__}"
     done = subprocess.run([sys.executable, "-m", "redsim", "--version"], capture_output=True, text=True, timeout=120)
     assert done.returncode == 0 and done.stdout.strip() == f"redsim {redsim.__version__}"
+
+
+def test_a_stdout_that_is_not_utf8_gets_escapes_not_a_traceback() -> None:
+    """fit's help (σ, ρ) ended in a UnicodeEncodeError traceback where stdout's encoding lacks them: Windows when
+    stdout is a file or a pipe (cp1252), or PYTHONIOENCODING=ascii."""
+    env = {**os.environ, "PYTHONIOENCODING": "ascii"}
+    argv = [sys.executable, "-m", "redsim", "fit", "--help"]
+    done = subprocess.run(argv, capture_output=True, text=True, timeout=120, env=env)
+    assert done.returncode == 0 and done.stderr == "", done.stderr
+    assert "\\u03c1" in done.stdout and "\\u03c3" in done.stdout  # ρ and σ, escaped
 
 
 def test_weights_of_another_scene_are_one_line_naming_both_shapes(cli: Cli, tmp_path: Path) -> None:

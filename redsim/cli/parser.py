@@ -61,6 +61,8 @@ def main(argv: Sequence[str] | None = None) -> int:
     Python warnings are shown as one ``redsim: warning: ...`` line each (:func:`redsim.cli.common.show_warning`),
     each line once per run, while it runs; the caller's ``warnings.showwarning`` and filters are back when it returns.
     """
+    if argv is None:  # the command line's own stdout, not an in-process caller's
+        _stdout_writes_any_character()
     with warnings.catch_warnings():  # restores showwarning (and the filters) on return: tests call main in-process
         warnings.showwarning = functools.partial(show_warning, said=set())  # a partial adds no frame to walk
         return _run(argv)
@@ -172,6 +174,16 @@ def _check_out(args: argparse.Namespace) -> None:
     ):
         raise CliError(f"--out {out} is a folder; name a file in it (e.g. {Path(out) / 'NAME'})")
     check_writable(out, "--out", folder=getattr(args, "out_is_folder", False))
+
+
+def _stdout_writes_any_character() -> None:
+    """Write a character stdout's encoding lacks as a ``\\u`` escape: where it is not UTF-8 (Windows when stdout is a
+    file or a pipe: cp1252; ``PYTHONIOENCODING=ascii``), the σ and ρ of ``redsim fit --help`` and the ± of
+    ``eval-agent`` ended the command in a UnicodeEncodeError traceback. stderr does so already (Python's default)."""
+    stream = sys.stdout
+    encoding = (getattr(stream, "encoding", None) or "").lower().replace("-", "").replace("_", "")
+    if encoding != "utf8" and hasattr(stream, "reconfigure"):
+        stream.reconfigure(errors="backslashreplace")
 
 
 def _silence_stdout() -> None:
