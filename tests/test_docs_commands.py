@@ -71,7 +71,7 @@ SOURCES = [
 """The code whose comments, docstrings and messages cite README.md's and docs/*.md's sections."""
 QUOTED = r"""(?:"[^"\s][^"\n]*"|'[^'\s][^'\n]*')"""
 """A quoted heading: it begins with no space (`" + str(x) + "`, `" "` are the gaps between two string literals)."""
-CITATION = re.compile(rf"(README|docs/[\w-]+\.md)(?:,\s*|\s+\(?|\s*\()(?:\" \"|' ')?({QUOTED}(?:,\s*{QUOTED})*)")
+CITATION = re.compile(rf"(README|docs/[\w-]+\.md)\)?(?:,\s*|\s+\(?|\s*\()(?:\" \"|' ')?({QUOTED}(?:,\s*{QUOTED})*)")
 """`README "Section"` or `docs/X.md, "Heading"`, and the quoted parts after one (`README "Cubature", "Stop 56"`); a
 message split into two literals before the heading (`"... (README "` / `"'Tolerance')"`) as well."""
 
@@ -318,6 +318,21 @@ def test_the_code_s_citations_name_sections_the_docs_have() -> None:
     assert not stale, "citations of no heading or bold lead (point them where the text went):\n" + "\n".join(stale)
 
 
+def test_the_docs_citations_and_the_readme_s_links_name_sections_that_exist() -> None:
+    """README.md's and docs/*.md's own citations (`docs/envs.md, "Heading"`, `README "Section"`) each begin a heading
+    or bold lead of their file, and every in-page link of the README (`](#anchor)`) is a heading's anchor (GitHub's:
+    lower case, punctuation but - and _ dropped, spaces as -). A review (helper-256) found one that pointed at nothing
+    after the README's shortening (stop 71)."""
+    stale = [f"{_name(path)}: {part}" for path in FILES for part in citation_problems(FENCE.sub("", path.read_text()))]
+    assert not stale, "citations of no heading or bold lead:\n" + "\n".join(stale)
+    readme = FENCE.sub("", (ROOT / "README.md").read_text())
+    anchors = {
+        re.sub(r"[^\w\- ]", "", h.strip().lower()).replace(" ", "-") for h in re.findall(r"^#+\s+(.+)$", readme, re.M)
+    }
+    links = re.findall(r"\]\(#([^)]+)\)", readme)
+    assert len(links) > 10 and sorted(set(links) - anchors) == []
+
+
 @pytest.mark.parametrize(
     ("source", "stale"),
     [
@@ -329,6 +344,7 @@ def test_the_code_s_citations_name_sections_the_docs_have() -> None:
         ),
         ("warn(\"use a longer dt (README 'Tolerances of old')\")", ["README 'Tolerances of old'"]),
         ('# (docs/nothing.md "Stop 1")', ['docs/nothing.md "Stop 1"']),
+        ('in [docs/runtime.md](docs/runtime.md), "No such part")', ['docs/runtime.md "No such part"']),  # markdown
         ('# (README "Latent runtime", "Tolerance"; docs/env-speed.md, "Stop 28\'s\n# measurements")', []),
         ("warn(\"use dtype='float64' or a longer dt (README 'Tolerance')\")", []),
         ('"""The README\'s subspace table, and docs/agents.md (the whole file)."""', []),
