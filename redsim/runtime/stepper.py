@@ -13,6 +13,7 @@ here; a step only evaluates the energy.
 from __future__ import annotations
 
 import copy
+import functools
 import itertools
 import math
 import numbers
@@ -590,9 +591,11 @@ class LatentStepper:
         handle_offset = (handles @ bias).to(self.dtype) + self._handle_offset
         self._coords = energy.features
         self._coords_size = weight.shape[1]
-        self._mass = lambda y: y @ gram
-        self._mass_norm = lambda v, _mv: (v * (v @ gram_sq)).sum(-1).clamp_min(0.0).sqrt()
-        self._handles = lambda y: y @ handle_matrix.T + handle_offset
+        # partials of module functions, not lambdas: a stepper is pickled (an env's state, a vector env's worker),
+        # and a local lambda is not
+        self._mass = functools.partial(_times, matrix=gram)
+        self._mass_norm = functools.partial(_gram_norm, gram_sq=gram_sq)
+        self._handles = functools.partial(_affine, matrix=handle_matrix, offset=handle_offset)
         self._handle_rows = handle_matrix
 
     def _value_noise(self, moving: Tensor) -> Tensor:
@@ -654,7 +657,7 @@ class LatentStepper:
         z = as_numbers(z, what, f"[B, {self.latent_dim}]", device=self.device)
         if z.ndim != 2 or z.shape[1] != self.latent_dim:
             raise ValueError(f"{what} must have shape [B, {self.latent_dim}], got {tuple(z.shape)}")
-        z = z.to(self.dtype)  # checked after the cast
+        z = z.to(self.dtype).detach()  # checked after the cast; never part of the caller's autograd graph
         if not bool(torch.isfinite(z).all()):
             raise ValueError(f"{what} must be finite in the stepper's {self.dtype}{_bad_rows(z)}")
         return z
@@ -674,7 +677,7 @@ class LatentStepper:
             )
         if not bool(torch.isfinite(cond).all()):
             raise ValueError(f"cond must be finite{_bad_rows(cond)}")
-        return cond.to(self.dtype)
+        return cond.to(self.dtype).detach()
 
     def _loads(self, loads: LoadsLike, batch: int) -> Tensor | None:
         if loads is None:
@@ -690,7 +693,9 @@ class LatentStepper:
                 f"loads must have shape [{batch}, {H}, {D}] or [{H}, {D}] (handles {list(self.scene.handle_names)}), "
                 f"got {tuple(loads.shape)}"
             )
-        loads = loads.to(self.dtype)  # checked after the cast: 1e100 is inf in float32
+        # checked after the cast (1e100 is inf in float32); detached: a carry's force made from a loads tensor that
+        # requires grad kept the caller's autograd graph alive in every step's stats.carry
+        loads = loads.to(self.dtype).detach()
         if not bool(torch.isfinite(loads).all()):
             raise ValueError(f"loads must be finite in the stepper's {self.dtype} [N]{_bad_rows(loads)}")
         return loads.reshape(batch, H * D)
@@ -1060,6 +1065,21 @@ class LatentStepper:
             z, _ = latent_equilibrium(space, None, c, z0=start)
             out.append(z.to(device=self.device, dtype=self.dtype))
         return torch.stack(out) if out else torch.zeros(0, self.latent_dim, dtype=self.dtype, device=self.device)
+
+
+def _times(y: Tensor, matrix: Tensor) -> Tensor:
+    """y [k, w] @ matrix [w, w] (a reduced stepper's mass W^T M W)."""
+    return y @ matrix
+
+
+def _gram_norm(v: Tensor, _mv: Tensor, gram_sq: Tensor) -> Tensor:
+    """|M v| [k] of feature velocities v [k, w] from W^T M^2 W [w, w] (``_mv`` unused: the full-space form's)."""
+    return (v * (v @ gram_sq)).sum(-1).clamp_min(0.0).sqrt()
+
+
+def _affine(y: Tensor, matrix: Tensor, offset: Tensor) -> Tensor:
+    """Handle positions [k, H*D] of features y [k, w]: y (A W)^T + (A b + p0)."""
+    return y @ matrix.T + offset
 
 
 def _bad_rows(t: Tensor, shown: int = 8) -> str:

@@ -2,9 +2,11 @@
 
 from __future__ import annotations
 
+import copy
 import functools
 import json
 import math
+import pickle
 
 import pytest
 import torch
@@ -276,6 +278,23 @@ class _Repulsive:
 
     def energy(self, z, cond):
         return self.energy_features(z, cond)[0], None
+
+
+def test_a_stepper_of_a_cubature_pickles_and_copies_and_steps_alike(mini_chain) -> None:
+    """A vector env's worker and an env's saved state pickle the stepper: one with a cubature energy (its reduced
+    inertia) failed, "Can't pickle local object 'LatentStepper._reduce_inertia.<locals>.<lambda>'"."""
+    scene, f = mini_chain
+    energy = CubatureEnergy(scene, f, build_cubature(scene, f, CubatureConfig(elements=8, **QUICK)))
+    stepper = LatentStepper(scene, f, 0.02, energy=energy)
+    g = torch.Generator().manual_seed(0)
+    z = stepper.rest_latent() + 0.1 * torch.randn(3, f.latent_dim, generator=g)
+    loads = torch.randn(3, len(scene.handles), scene.dim, generator=g)
+    z_next, stats = stepper.step(z, z, loads)
+    for copied in (pickle.loads(pickle.dumps(stepper)), copy.deepcopy(stepper)):
+        again, again_stats = copied.step(z, z, loads)
+        assert torch.equal(again, z_next) and bool(stats.converged.all())
+        assert torch.equal(again_stats.carry, stats.carry)
+        assert torch.equal(copied.energy.energy(z, None)[0], energy.energy(z, None)[0])
 
 
 def test_cubature_in_the_runtime_stays_finite_and_flags_divergence(mini_chain) -> None:

@@ -101,6 +101,28 @@ def test_same_inputs_give_bitwise_equal_outputs(mini_chain, dense: bool) -> None
     assert bool(stats.converged.all())
 
 
+def test_inputs_that_require_grad_step_alike_and_leave_no_graph_in_the_results(mini_chain) -> None:
+    """A step is not differentiable: loads that require grad (an agent's action tensor) made stats.carry's force term
+    part of the caller's autograd graph (requires_grad, a grad_fn holding the loads), kept alive by every carry handed
+    on. Every result is detached, the same numbers, and autograd's mode is as the caller left it."""
+    scene, f = mini_chain
+    stepper = LatentStepper(scene, f, DT)
+    g = torch.Generator().manual_seed(2)
+    z = stepper.rest_latent() + 0.1 * torch.randn(3, stepper.latent_dim, generator=g)
+    z_prev = z + 0.01 * torch.randn(3, stepper.latent_dim, generator=g)
+    loads = _loads(scene, 3, 3, 5.0, torch.float32)
+    plain, plain_stats = stepper.step(z, z_prev, loads)
+    tracked = [u.clone().requires_grad_() for u in (z, z_prev, loads)]
+    z_next, stats = stepper.step(*tracked, warm=plain_stats.model.requires_grad_(), carry=plain_stats.carry)
+    assert torch.is_grad_enabled()
+    again, _ = stepper.step(*tracked)
+    assert torch.equal(again, plain)
+    for name, value in [("z_next", z_next), *stats._asdict().items()]:
+        assert not value.requires_grad and value.grad_fn is None, name
+    assert not stepper.objective(*tracked[:1], *tracked).requires_grad
+    assert not stepper.positions(tracked[0]).requires_grad
+
+
 def test_batched_equals_single_calls(mini_chain) -> None:
     """Float64, tol 1e-12: one batch and five single calls reach the same minimizers."""
     scene, f = mini_chain
