@@ -592,8 +592,17 @@ class SceneBuilder:
         return torch.arange(first, first + V)
 
     def particle_dofs(self, ids: Tensor) -> Tensor:
-        """Full-configuration index of each coordinate of particles ``ids`` (any shape S) -> [*S, D]."""
-        ids = torch.as_tensor(ids, dtype=torch.int64)
+        """Full-configuration index of each coordinate of particles ``ids`` (integers, any shape S) -> [*S, D].
+
+        Raises:
+            ValueError: ids that are not integers (a bool mask would otherwise index particles 0 and 1) or out of
+                range.
+        """
+        ids = torch.as_tensor(ids)
+        if ids.numel() and (ids.dtype == torch.bool or ids.is_floating_point() or ids.is_complex()):
+            hint = ": a mask? pass mask.nonzero().reshape(-1)" if ids.dtype == torch.bool else ""
+            raise ValueError(f"particle ids must be integers, got {ids.dtype}{hint}")
+        ids = ids.to(torch.int64)
         first = torch.cat(self._particle_first_dof) if self._particle_first_dof else torch.zeros(0, dtype=torch.int64)
         if ids.numel() and (int(ids.min()) < 0 or int(ids.max()) >= first.numel()):
             raise ValueError(f"particle id out of range [0, {first.numel()})")
@@ -652,7 +661,7 @@ class SceneBuilder:
     def pin_particles(self, ids: Tensor, positions: Tensor | None = None) -> None:
         """Remove particles ``ids`` (P of them) from q, holding them at ``positions`` [m], shape [P, D], finite
         (default: their seed)."""
-        dofs = self.particle_dofs(torch.as_tensor(ids, dtype=torch.int64).reshape(-1))
+        dofs = self.particle_dofs(torch.as_tensor(ids).reshape(-1))
         if positions is None:
             values = self.particle_positions(torch.as_tensor(ids).reshape(-1))
         else:

@@ -1043,6 +1043,24 @@ def test_builder_refuses_bad_pins_gravity_and_handle_weights_where_they_are_give
         b.finalize("square")
 
 
+def test_particle_ids_given_as_a_mask_or_as_floats_are_refused_not_read_as_particles_0_and_1() -> None:
+    square = torch.tensor([[0.0, 0.0], [0.1, 0.0], [0.0, 0.1], [0.1, 0.1]], dtype=torch.float64)
+    b = redsim.SceneBuilder(dim=2)
+    ids = b.add_particles(square, torch.full((4,), 0.1))
+    top = square[:, 1] > 0.05  # particles 2 and 3; as int64 it was [0, 0, 1, 1]: particles 0 and 1, silently
+    with pytest.raises(ValueError, match=r"ids must be integers, got torch\.bool: a mask\? pass mask\.nonzero"):
+        b.pin_particles(top)
+    with pytest.raises(ValueError, match=r"particle ids must be integers, got torch\.bool"):
+        b.particle_points(top)
+    with pytest.raises(ValueError, match=r"particle ids must be integers, got torch\.float32"):
+        b.particle_dofs(torch.tensor([1.7]))
+    b.pin_particles(ids[top])
+    b.pin_particles([])  # nothing: an empty list is no ids, whatever its dtype
+    b.add_handle("bottom", b.particle_points((~top).nonzero().reshape(-1)))
+    scene = b.finalize("square")
+    assert scene.free_dof_count == 4 and scene.handle_positions(scene.q_seed[None])[0].tolist() == [0.05, 0.0]
+
+
 def test_a_surface_is_named_once_and_its_faces_index_its_points() -> None:
     """Faces past the points, faces of the wrong shape and a repeated name were accepted, to fail when drawn or
     exported (a review's finding)."""
