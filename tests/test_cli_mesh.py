@@ -245,6 +245,24 @@ def test_specs_that_cannot_be_rebuilt() -> None:
             scene_from_spec({"scene": "toy_crank", "scene_params": params})
 
 
+def test_a_spec_with_a_misspelt_key_is_refused_naming_it(cli: Cli, box: Path, tmp_path: Path) -> None:
+    """A misspelt 'scene_params' was dropped (the scene built with its defaults), and a builder argument the mesh
+    builder does not take was a TypeError from the builder that named no valid one."""
+    with pytest.raises(SceneSpecError, match="has no 'scene_params' but has 'scene_param': a typo"):
+        scene_from_spec({"scene": "toy_crank", "scene_param": {"gravity": False}})
+    params = {"builder": "fem", "source": str(box), "voxel_pitch": 0.05}
+    assert scene_from_spec({"scene": "my_box", "scene_params": params}).name == "my_box"
+    for key in ("youngg", "name"):  # the spec's "scene" is the name
+        unknown = rf"unknown parameter\(s\) \['{key}'\] of a fem mesh scene; valid: voxel_pitch,.* young,"
+        with pytest.raises(ValueError, match=unknown):
+            scene_from_spec({"scene": "my_box", "scene_params": {**params, key: 1e5}})
+    spec = tmp_path / "spec.json"
+    spec.write_text(json.dumps({"scene": "my_box", "scene_params": {**params, "youngg": 1e5}}))
+    code, _, err = cli("simulate", "--spec", str(spec), "--steps", "1")
+    named = "unknown parameter(s) ['youngg'] of a fem mesh scene; valid: voxel_pitch, target_dofs, young,"
+    assert code == 2 and named in err, err
+
+
 def test_kind_with_a_spec_is_refused(cli: Cli, tmp_path: Path) -> None:
     spec = tmp_path / "spec.json"
     spec.write_text(json.dumps(scene_spec(redsim.scenes.build("toy_crank"))))

@@ -18,6 +18,7 @@ Example::
 
 from __future__ import annotations
 
+import difflib
 import inspect
 import json
 import os
@@ -94,10 +95,16 @@ def mesh_scene(kind: str, path: str | os.PathLike[str], **params: Any) -> Scene:
     """
     if kind not in MESH_BUILDERS:
         raise SceneSpecError(f"unknown mesh builder kind {kind!r}; valid: {', '.join(MESH_BUILDERS)}")
-    valid = list(inspect.signature(MESH_BUILDERS[kind]).parameters)[1:]  # after the mesh
+    _check_builder_params(kind, params)
+    return MESH_BUILDERS[kind](path, **params)
+
+
+def _check_builder_params(kind: str, params: Mapping[str, Any], *, leave_out: tuple[str, ...] = ()) -> None:
+    """Raise ValueError naming the valid ones where ``params`` holds one the ``kind`` builder does not take (or one
+    of ``leave_out``, which the caller gives itself)."""
+    valid = [key for key in list(inspect.signature(MESH_BUILDERS[kind]).parameters)[1:] if key not in leave_out]
     if unknown := [key for key in params if key not in valid]:
         raise ValueError(f"unknown parameter(s) {unknown} of a {kind} mesh scene; valid: {', '.join(valid)}")
-    return MESH_BUILDERS[kind](path, **params)
 
 
 def scene_from_spec(doc: Mapping[str, Any] | str | os.PathLike[str]) -> Scene:
@@ -112,7 +119,7 @@ def scene_from_spec(doc: Mapping[str, Any] | str | os.PathLike[str]) -> Scene:
             scene, a mesh scene built from an in-memory mesh or from a vertex selection that is not recorded (a
             Python function's), or a mesh file that is missing or whose SHA-256 differs from the recorded one (both
             hashes are named).
-        ValueError: parameters the builder rejects.
+        ValueError: parameters the builder rejects, or does not take (the valid ones are named).
     """
     from redsim import scenes
 
@@ -123,6 +130,8 @@ def scene_from_spec(doc: Mapping[str, Any] | str | os.PathLike[str]) -> Scene:
     name = doc.get("scene")
     if not isinstance(name, str):
         raise SceneSpecError("the spec names no scene (expected a 'scene' string)")
+    if "scene_params" not in doc and (typo := difflib.get_close_matches("scene_params", list(doc), 1, 0.8)):
+        raise SceneSpecError(f"scene {name!r}: the spec has no 'scene_params' but has {typo[0]!r}: a typo?")
     given = doc.get("scene_params") or {}
     if not isinstance(given, Mapping):  # a list of pairs was taken as one, other lists gave dict()'s own message
         raise SceneSpecError(f"scene {name!r}: scene_params must be a JSON object, got {type(given).__name__}")
@@ -156,7 +165,9 @@ def scene_from_spec(doc: Mapping[str, Any] | str | os.PathLike[str]) -> Scene:
             f"scene {name!r}: mesh file {source!r} changed since the scene was recorded "
             f"(sha256 {recorded} recorded, {now} now)"
         )
-    return MESH_BUILDERS[kind](source, name=name, **_builder_args(name, params))
+    args = _builder_args(name, params)
+    _check_builder_params(kind, args, leave_out=("name",))  # the spec's 'scene' names it
+    return MESH_BUILDERS[kind](source, name=name, **args)
 
 
 def _builder_args(name: str, params: Mapping[str, Any], *, strict: bool = True) -> dict[str, Any]:
