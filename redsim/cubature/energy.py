@@ -137,6 +137,13 @@ class Cubature:
                     raise CheckpointError(f"unknown mode {r['mode']!r}; valid: {list(MODES)}", str(src))
                 count = int(r["element_count"])
                 if r["mode"] == "cubature":
+                    # torch.tensor(..., dtype=int64) truncates 0.5 to element 0 and reads true as 1, without a word
+                    if odd := [(i, v) for i, v in enumerate(r["indices"]) if type(v) is not int]:
+                        i, v = odd[0]
+                        raise CheckpointError(
+                            f"effect {r['name']!r}: kept element indices must be integers, got {v!r} at position {i}",
+                            str(src),
+                        )
                     index = torch.tensor(r["indices"], dtype=torch.int64)
                     weights = torch.tensor(r["weights"], dtype=torch.float64)
                 else:

@@ -190,6 +190,8 @@ def test_an_effect_idle_on_every_state_reports_its_real_error_and_no_split_leave
         ("weights", -1.0, r"weights must be finite \(in float32\) and >= 0, got -1.0 at position 0"),
         ("indices", 999, r"indices must lie in \[0, \d+\) \(its element_count\), got 999 at position 0"),
         ("indices", -1, r"indices must lie in \[0, \d+\) \(its element_count\), got -1 at position 0"),
+        ("indices", 0.5, r"indices must be integers, got 0.5 at position 0"),  # read as element 0 before
+        ("indices", True, r"indices must be integers, got True at position 0"),  # read as element 1 before
     ],
 )
 def test_a_tampered_cubature_file_is_refused_at_load(tmp_path, field: str, value: float, expected: str) -> None:
