@@ -675,9 +675,10 @@ class LatentStepper:
             raise ValueError(
                 f"cond must have shape [{batch}, {space.dim}] ({list(space.names)}), got {tuple(cond.shape)}"
             )
+        cond = cond.to(self.dtype).detach()  # checked after the cast, as z and loads: 1e40 is inf in float32
         if not bool(torch.isfinite(cond).all()):
-            raise ValueError(f"cond must be finite{_bad_rows(cond)}")
-        return cond.to(self.dtype).detach()
+            raise ValueError(f"cond must be finite in the stepper's {self.dtype}{_bad_rows(cond)}")
+        return cond
 
     def _loads(self, loads: LoadsLike, batch: int) -> Tensor | None:
         if loads is None:

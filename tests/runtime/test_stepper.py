@@ -408,6 +408,25 @@ def test_non_finite_inputs_raise_before_stepping(mini_chain) -> None:
         stepper.step(z, z, cond=torch.zeros(2, 1))
 
 
+def test_a_condition_past_the_dtype_s_range_is_refused_like_z_and_loads() -> None:
+    """cond was checked before its cast to the stepper's dtype: 1e40 in float64 passed, became inf in float32, and
+    positions() returned non-finite q and objective() NaN without a word (README: a non-finite condition raises)."""
+    scene = scenes.build("conditional_bar")
+    stepper = LatentStepper(scene, pretrained.load("conditional_bar", scene), DT)
+    z = stepper.rest_latent().expand(2, -1).clone()
+    cond = scene.condition_space.default.reshape(1, -1).double().repeat(2, 1)
+    cond[1, 0] = 1e40
+    message = r"cond must be finite in the stepper's torch.float32: row \[1\] of 2 is not"
+    calls = (
+        lambda: stepper.step(z, z, cond=cond),
+        lambda: stepper.positions(z, cond),
+        lambda: stepper.objective(z, z, z, cond=cond),
+    )
+    for call in calls:
+        with pytest.raises(ValueError, match=message):
+            call()
+
+
 def test_inputs_that_are_not_numbers_are_named(mini_chain) -> None:
     """A string, None or a ragged list was torch's conversion error (TypeError "new(): invalid data type 'str'",
     RuntimeError "Could not infer dtype of NoneType"), naming neither the argument nor its shape; a complex z was
