@@ -321,6 +321,8 @@ class Scene:
     def energy_terms(self, q: Tensor, loads: LoadsLike = None, cond: Tensor | None = None) -> dict[str, Tensor]:
         """Energy [J] of each declared effect, by name; each shape [B] ([] for q of shape [n]); ``loads`` and
         ``cond`` as in :meth:`energy`."""
+        if not isinstance(q, Tensor):  # a numpy array's dtype read as the scene's in the message below
+            raise TypeError(f"q must be a torch tensor [B, n], got {type(q).__name__}: torch.as_tensor(q, scene.dtype)")
         single = q.ndim == 1
         if single:
             q = q.unsqueeze(0)

@@ -256,6 +256,8 @@ def test_a_spec_with_a_misspelt_key_is_refused_naming_it(cli: Cli, box: Path, tm
         unknown = rf"unknown parameter\(s\) \['{key}'\] of a fem mesh scene; valid: voxel_pitch,.* young,"
         with pytest.raises(ValueError, match=unknown):
             scene_from_spec({"scene": "my_box", "scene_params": {**params, key: 1e5}})
+    with pytest.raises(ValueError, match=r"handles must be a dict of name -> vertex selection .* got 'max_x'"):
+        scene_from_spec({"scene": "my_box", "scene_params": {**params, "handles": "max_x"}})  # was dict()'s message
     spec = tmp_path / "spec.json"
     spec.write_text(json.dumps({"scene": "my_box", "scene_params": {**params, "youngg": 1e5}}))
     code, _, err = cli("simulate", "--spec", str(spec), "--steps", "1")

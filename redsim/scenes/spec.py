@@ -185,7 +185,8 @@ def _builder_args(name: str, params: Mapping[str, Any], *, strict: bool = True) 
                 f"scene {name!r} pinned a vertex selection that is not recorded ({args['pin']}: a Python function's, "
                 "or a mask or index list recorded before redsim recorded them); rebuild it in Python"
             )
-    handles = dict(args.get("handles") or {})
+    given = args.get("handles")
+    handles = dict(given) if isinstance(given, Mapping) else {}  # not a dict: the builder refuses it, naming it
     for key, label in handles.items():
         if str(label).startswith("ids:"):
             if key in selections.get("handles", {}):

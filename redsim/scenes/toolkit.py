@@ -34,15 +34,21 @@ axis), ``"none"``/None, a boolean mask [V], an index list, or a callable mapping
 
 
 # -- argument checks ---------------------------------------------------------------------------
-def check_positive(name: str, value: Any, *, allow_zero: bool = False) -> float:
-    """``value`` as a float, > 0 (or >= 0 with ``allow_zero``); a ValueError names ``name`` otherwise (also for a
-    string or a bool, which ``float`` would take)."""
+def _number(name: str, value: Any) -> float:
+    """``value`` as a float; a ValueError names ``name`` otherwise (also for a string or a bool, which ``float``
+    would take: "0.3" in a spec file, or False, read as 0)."""
     if isinstance(value, (str, bytes, bool, np.bool_)):
         raise ValueError(f"{name} must be a number, got {value!r}")
     try:
-        out = float(value)
+        return float(value)
     except (TypeError, ValueError) as exc:
         raise ValueError(f"{name} must be a number, got {value!r}") from exc
+
+
+def check_positive(name: str, value: Any, *, allow_zero: bool = False) -> float:
+    """``value`` as a float, > 0 (or >= 0 with ``allow_zero``); a ValueError names ``name`` otherwise (also for a
+    string or a bool, which ``float`` would take)."""
+    out = _number(name, value)
     ok = out >= 0 if allow_zero else out > 0
     if not (ok and np.isfinite(out)):
         raise ValueError(f"{name} must be {'>= 0' if allow_zero else '> 0'} and finite, got {value!r}")
@@ -50,11 +56,8 @@ def check_positive(name: str, value: Any, *, allow_zero: bool = False) -> float:
 
 
 def check_poisson(value: Any, name: str = "poisson") -> float:
-    """A Poisson ratio in (-1, 0.5)."""
-    try:
-        out = float(value)
-    except (TypeError, ValueError) as exc:
-        raise ValueError(f"{name} must be a number, got {value!r}") from exc
+    """A Poisson ratio in (-1, 0.5) (not a string or a bool)."""
+    out = _number(name, value)
     if not -1.0 < out < 0.5:
         raise ValueError(f"{name} must lie in (-1, 0.5), got {value!r}")
     return out
@@ -70,11 +73,8 @@ def check_int(name: str, value: Any, minimum: int) -> int:
 
 
 def check_range(name: str, value: Any, low: float, high: float) -> float:
-    """A float in the closed interval [low, high]."""
-    try:
-        out = float(value)
-    except (TypeError, ValueError) as exc:
-        raise ValueError(f"{name} must be a number, got {value!r}") from exc
+    """A float in the closed interval [low, high] (not a string or a bool)."""
+    out = _number(name, value)
     if not low <= out <= high:
         raise ValueError(f"{name} must lie in [{low}, {high}], got {value!r}")
     return out

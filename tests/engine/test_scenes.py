@@ -429,6 +429,16 @@ def test_bad_cloth_and_solid_inputs_are_named() -> None:
         redsim.scenes.fem_scene_from_mesh(apart)
 
 
+@pytest.mark.parametrize("poisson", ["0.4", False])
+def test_a_mesh_builders_poisson_ratio_given_as_a_string_or_a_bool_is_refused(poisson: object) -> None:
+    """As young's and the catalog's: "0.4" (a spec file's quoted number) was read as 0.4 and False as 0."""
+    box = trimesh.creation.box(extents=(0.2, 0.1, 0.1))
+    with pytest.raises(ValueError, match=rf"poisson must be a number, got {poisson!r}"):
+        redsim.scenes.fem_scene_from_mesh(box, voxel_pitch=0.05, poisson=poisson)
+    with pytest.raises(ValueError, match=rf"poisson must be a number, got {poisson!r}"):
+        redsim.scenes.cloth_scene_from_mesh(trimesh.Trimesh(*meshes.cloth_grid(0.3, 0.3, (3, 3))), poisson=poisson)
+
+
 def test_a_mesh_split_at_uv_seams_or_per_face_normals_is_welded_back(tmp_path) -> None:
     """A flat-shaded or textured export repeats a vertex per face; the cloth and the solid are the welded mesh."""
     vertices, triangles = meshes.cloth_grid(0.5, 0.5, (6, 6), origin=(0.0, -0.5, 0.0))
@@ -1006,6 +1016,8 @@ def test_q_of_another_dtype_or_device_is_a_clear_error() -> None:
     scene = redsim.scenes.build("mini_chain")
     with pytest.raises(ValueError, match=r"'mini_chain' is torch.float64 on cpu, q is torch.float32 on cpu"):
         scene.energy(scene.q_seed.float())
+    with pytest.raises(TypeError, match=r"q must be a torch tensor \[B, n\], got ndarray"):  # "q is float64 on cpu"
+        scene.energy(scene.q_seed.numpy())
     single = scene.to(dtype=torch.float32).energy(scene.q_seed.float())
     assert single.dtype == torch.float32 and torch.isclose(single.double(), scene.energy(scene.q_seed), rtol=1e-5)
 
