@@ -591,8 +591,8 @@ class LatentStepper:
         handle_offset = (handles @ bias).to(self.dtype) + self._handle_offset
         self._coords = energy.features
         self._coords_size = weight.shape[1]
-        # partials of module functions, not lambdas: a stepper is pickled (an env's state, a vector env's worker),
-        # and a local lambda is not
+        # partials of module functions, not lambdas: a local lambda does not pickle (the envs rebuild their stepper
+        # from their arguments, but a user's pickle or multiprocessing of a stepper does not), and deepcopy shared it
         self._mass = functools.partial(_times, matrix=gram)
         self._mass_norm = functools.partial(_gram_norm, gram_sq=gram_sq)
         self._handles = functools.partial(_affine, matrix=handle_matrix, offset=handle_offset)

@@ -283,8 +283,9 @@ class _Repulsive:
 
 
 def test_a_stepper_of_a_cubature_pickles_and_copies_and_steps_alike(mini_chain) -> None:
-    """A vector env's worker and an env's saved state pickle the stepper: one with a cubature energy (its reduced
-    inertia) failed, "Can't pickle local object 'LatentStepper._reduce_inertia.<locals>.<lambda>'"."""
+    """A user's pickle of a stepper (multiprocessing, a saved object; the envs rebuild theirs from their arguments): one
+    with a cubature energy (its reduced inertia) failed, "Can't pickle local object
+    'LatentStepper._reduce_inertia.<locals>.<lambda>'"."""
     scene, f = mini_chain
     energy = CubatureEnergy(scene, f, build_cubature(scene, f, CubatureConfig(elements=8, **QUICK)))
     stepper = LatentStepper(scene, f, 0.02, energy=energy)
