@@ -85,6 +85,11 @@ class PixelVectorObservation(VectorWrapper):
         self.observation_space = batch_space(self.single_observation_space, self.num_envs)
         self.metadata = {**env.metadata, "autoreset_mode": mode}
 
+    def call(self, name: str, *args: Any, **kwargs: Any) -> tuple[Any, ...]:
+        """The vector env's ``call`` (``"get_state"``, ``"trimeshes"``, ...: each copy's answer), which Gymnasium's
+        ``VectorWrapper`` does not pass on; ``SB3VecEnv.make(..., pixels=True).env_method`` answers through it."""
+        return self.env.unwrapped.call(name, *args, **kwargs)
+
     def frames(self) -> np.ndarray:
         """Every copy's picture now, uint8 [N, H, W, C]."""
         frames = np.stack(self.env.render())

@@ -121,6 +121,24 @@ def test_a_final_frame_owns_its_pixels() -> None:
     venv.close()
 
 
+def test_a_pixel_env_answers_the_per_copy_calls() -> None:
+    """``env_method("get_state")`` (and "configuration", "render", "trimeshes") of ``SB3VecEnv.make(...,
+    pixels=True)`` was an AttributeError: Gymnasium's VectorWrapper has no ``call`` to pass on."""
+    venv = SB3VecEnv.make(ENV_ID, 2, pixels=True, width=SIZE, height=SIZE)
+    venv.reset()
+    venv.step(np.ones((2, 3), np.float32))
+    native = venv.venv.unwrapped
+    for name in ("get_state", "configuration"):
+        mine, theirs = venv.env_method(name), native.call(name)
+        assert len(mine) == 2 and repr(mine) == repr(list(theirs))
+    assert [m[0].vertices.tolist() for m in venv.env_method("trimeshes", indices=[1])] == [
+        native.call("trimeshes")[1][0].vertices.tolist()
+    ]
+    frames = venv.env_method("render")
+    np.testing.assert_array_equal(np.stack(frames), np.stack(native.render()))
+    venv.close()
+
+
 @pytest.mark.parametrize("pixels", ["grayscale", [1], 1])
 def test_pixels_other_than_a_flag_or_the_wrappers_arguments_are_refused(pixels) -> None:
     """`pixels="grayscale"` used to build colour frames without a word (any truthy value meant True)."""
