@@ -266,3 +266,15 @@ def test_a_relative_error_is_undefined_only_where_a_finite_error_meets_no_motion
     assert _relative_error(norms(0.0, 1e-7), norms(0.0, 0.0)) is None
     assert math.isnan(_relative_error(norms(0.0, math.nan), norms(0.0, 0.0)))
     assert math.isnan(_relative_error(norms(0.0, 1e-3), norms(0.0, math.nan)))
+
+
+def test_the_table_says_its_rates_are_medians_over_the_rounds(capsys: pytest.CaptureFixture[str]) -> None:
+    """With --rounds 2 every cell but its, conv% and the full row is a median over the rounds (a speedup the median
+    of per-round ratios, not the ratio of the printed rates): the table said nothing of it, as if one run's."""
+    argv = ["bench", "step", "--scenes", "mini_chain", "--batches", "1", "--steps", "2", "--reference-steps", "2"]
+    said = "each rate the median over 2 rounds (the reference and every path in turn, reversed every other round)"
+    assert main([*argv, "--no-compile", "--rounds", "2"]) == 0
+    text = capsys.readouterr().out
+    assert said in text and "speedup: the median of the per-round ratios to that round's reference" in text
+    assert main([*argv, "--no-compile"]) == 0
+    assert "median over" not in capsys.readouterr().out  # one round: one run's rates
