@@ -371,11 +371,12 @@ def cmd_bench_env_ab(args: argparse.Namespace) -> int:
     width = max(10, *(len(row["name"]) for row in rows))
     rendered = args.render is not None
     render_column = f"{'of it render':>12} " if rendered else ""
+    spread = args.rounds > 1  # one round's ratio has no range to show
     out(
         f"{'setting':<{width}} {'CPU ms/step':>11} {render_column}"
         f"{'steps/CPU s':>11} {'its (slowest)':>14} {'calls':>6} "
         f"{'rows/copy':>9} {'converged':>9} {'out_of_range':>12} {'diverged':>8} {'obs gap':>8}  "
-        f"vs {first}: median (range)"
+        + (f"vs {first}: median (range)" if spread else f"vs {first} (one round)")
     )
     for row in rows:
         ratio = row["ratio"]
@@ -386,7 +387,7 @@ def cmd_bench_env_ab(args: argparse.Namespace) -> int:
             f"{its:>14} {row['calls_per_step']:>6.1f} {row['rows_per_copy_step']:>9.1f} "
             f"{row['converged_fraction']:>9.3f} {row['out_of_range']:>12} {row['diverged']:>8} "
             f"{_gap(row['observation_gap']):>8}{'*' if row['iterations_per_step'] == 0 else ' '} "
-            f"{ratio['median']:.2f}x ({ratio['min']:.2f}-{ratio['max']:.2f})"
+            f"{ratio['median']:.2f}x" + (f" ({ratio['min']:.2f}-{ratio['max']:.2f})" if spread else "")
         )
     out(
         f"obs gap: the largest difference of a setting's observations from {first}'s over the timed steps (the same "

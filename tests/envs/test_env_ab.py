@@ -217,3 +217,14 @@ def test_the_observation_gap_of_settings_whose_observations_differ_in_shape_is_n
         warmup=0,
     )
     assert [row["observation_gap"] for row in doc["settings"]] == [0.0, None]
+
+
+def test_env_ab_of_one_round_prints_its_ratio_without_a_range(capsys: pytest.CaptureFixture[str]) -> None:
+    """--rounds 1 printed "0.63x (0.63-0.63)" under "median (range)": a spread of one value, as if measured."""
+    one = ["--num-envs", "2", "--rounds", "1", "--steps-per-round", "1", "--warmup", "0"]
+    assert main(["bench", "env-ab", "RedSim/MiniChain-v0", "--setting", "a", "--setting", "b", *one]) == 0
+    lines = capsys.readouterr().out.splitlines()
+    (header,) = [line for line in lines if line.startswith("setting ")]
+    assert header.endswith("vs a (one round)") and "median (range)" not in header
+    (row,) = [line for line in lines if line.startswith("b ")]
+    assert row.endswith("x") and "-" not in row.split()[-1], row
