@@ -17,6 +17,7 @@ from __future__ import annotations
 import contextlib
 import importlib.util
 import logging
+import math
 import statistics
 import sys
 import time
@@ -83,11 +84,16 @@ class SolveTally:
 
     def summary(self) -> dict[str, Any]:
         """``iterations_per_step`` and ``slowest_iterations_per_step`` (means over steps), ``converged_fraction`` (the
-        mean over steps of the solved copies' fraction), ``out_of_range`` and ``diverged`` (copy-steps)."""
+        mean over steps of the solved copies' fraction), ``out_of_range`` and ``diverged`` (copy-steps); the means are
+        NaN where no timed step solved a copy (every copy restarted in each)."""
+
+        def mean(values: list[float]) -> float:
+            return statistics.fmean(values) if values else math.nan
+
         return {
-            "iterations_per_step": statistics.fmean(self.iterations),
-            "slowest_iterations_per_step": statistics.fmean(self.slowest),
-            "converged_fraction": statistics.fmean(self.converged),
+            "iterations_per_step": mean(self.iterations),
+            "slowest_iterations_per_step": mean(self.slowest),
+            "converged_fraction": mean(self.converged),
             "out_of_range": self.out_of_range,
             "diverged": self.diverged,
         }

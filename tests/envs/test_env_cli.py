@@ -527,3 +527,19 @@ def test_bench_envs_sharded_workers_say_their_warnings_in_the_command_line_s_for
     err = capfd.readouterr().err
     assert "UserWarning" not in err and "envs/base.py" not in err, err
     assert err.count("redsim: warning: torch.float32 at dt=0.001 s resolves accelerations only to") == 1, err
+
+
+def test_a_solve_tally_of_steps_that_solved_nothing_reads_nan_not_a_crash() -> None:
+    """Every timed step restarted every copy (NEXT_STEP autoreset): no solve to average, so NaN (JSON null), where
+    ``statistics.fmean([])`` raised (helper-260's audit); the counts are 0. A step that solved is averaged as before."""
+    from redsim.envs.bench import SolveTally
+
+    tally = SolveTally()
+    tally.add({"reward": np.zeros(4)})  # a step with no solve: no "iterations"
+    summary = tally.summary()
+    means = ("iterations_per_step", "slowest_iterations_per_step", "converged_fraction")
+    assert all(np.isnan(summary[key]) for key in means)
+    assert summary["out_of_range"] == summary["diverged"] == 0
+    info = {"iterations": np.array([2, 4]), "converged": np.array([True, False])}
+    tally.add({**info, "out_of_range": np.array([False, True]), "diverged": np.array([False, False])})
+    assert tally.summary()["iterations_per_step"] == 3.0 and tally.summary()["converged_fraction"] == 0.5
