@@ -679,7 +679,8 @@ def fit_subspace(
     Args:
         scene: The system; its energy is evaluated in ``config.dtype`` on ``config.device``.
         config: Hyperparameters (defaults: :class:`FitConfig`).
-        seed: Seeds the MLP initialisation and every latent sample; the same seed reproduces a fit.
+        seed: Seeds the MLP initialisation and every latent sample; the same seed reproduces a fit. An integer in
+            [0, 2**64 - 1] (as `redsim fit --seed`; a NumPy integer too).
         out: Checkpoint stem. With it, ``STEM.fit.pt`` holds resumable training state (written
             every ``checkpoint_every`` steps and on Ctrl-C) and the final map is saved to
             ``STEM.pt`` + ``STEM.json``.
@@ -698,7 +699,7 @@ def fit_subspace(
             ``latent_dim``), e.g. ``fit_subspace(scene, dim=8, sigma=1.0, lam=1.0, steps=2000)``.
 
     Raises:
-        ValueError: bad config, an alias given with its field at another value (``dim=3, latent_dim=4``), a
+        ValueError: bad config or seed, an alias given with its field at another value (``dim=3, latent_dim=4``), a
             conditional fit on a scene without conditions, ``resume`` without ``out``, with no matching checkpoint or
             with ``overwrite``, ``stop_at`` outside [steps done, ``config.steps``) or without ``out``, or a folder
             where one of the fit's files goes (:func:`check_fit_files`).
@@ -706,6 +707,9 @@ def fit_subspace(
         RuntimeError: ``compile`` on the CPU where no C++ compiler runs (nothing is written).
         FitStopped: the fit stopped at ``stop_at``.
     """
+    seed = _fit_seed(seed)
+    if stop_at is not None and (isinstance(stop_at, bool) or not isinstance(stop_at, numbers.Integral)):
+        raise ValueError(f"stop_at must be an integer, got {stop_at!r}")
     if stop_at is not None and out is None:
         raise ValueError("stop_at needs out (the training state is saved there)")
     if resume and out is None:
@@ -935,6 +939,14 @@ def fit_subspace(
     if message is not None:
         warnings.warn(message, UserWarning, stacklevel=2)
     return FitResult(model, history, fit_seconds)
+
+
+def _fit_seed(seed: Any) -> int:
+    """``seed`` as a Python int: an integer (a NumPy one too) in [0, 2**64 - 1], what torch's generators and
+    ``redsim fit --seed`` take (a negative one fitted, but the recorded command did not run)."""
+    if isinstance(seed, bool) or not isinstance(seed, numbers.Integral) or not 0 <= seed < 2**64:
+        raise ValueError(f"seed must be an integer in [0, 2**64 - 1] (as redsim fit --seed), got {seed!r}")
+    return int(seed)
 
 
 def _remove_stale_cubature(stem: str | Path, model: torch.nn.Module) -> None:

@@ -414,6 +414,24 @@ def test_bad_fit_options_are_clear_errors() -> None:
         fit_subspace(scene, steps=1, conditional=True, progress=False)
 
 
+def test_a_seed_is_an_integer_redsim_fit_takes_and_a_numpy_one_is_taken() -> None:
+    """A NumPy seed (np.arange(5) in a sweep) failed with torch's "an integer is required", a float or 2**70 with
+    torch's own errors, and seed=-1 fitted but recorded `--seed -1`, a command `redsim fit` refuses."""
+    np = pytest.importorskip("numpy")
+    scene = _tet_scene()
+    for seed in (-1, 2**64, 1.5, "3", None, True):
+        with pytest.raises(ValueError, match=r"seed must be an integer in \[0, 2\*\*64 - 1\].*got "):
+            fit_subspace(scene, dim=2, steps=1, hidden_width=8, batch_size=4, progress=False, seed=seed)
+    with pytest.raises(ValueError, match=r"stop_at must be an integer, got 1\.5"):
+        fit_subspace(scene, dim=2, steps=2, progress=False, stop_at=1.5, out="unused")
+    kwargs = {"dim": 2, "steps": 2, "hidden_width": 8, "batch_size": 4, "progress": False}
+    numpy_seeded = fit_subspace(scene, seed=np.int64(3), **kwargs).subspace
+    plain = fit_subspace(scene, seed=3, **kwargs).subspace
+    assert type(numpy_seeded.metadata["seed"]) is int and numpy_seeded.metadata["command"].endswith("--seed 3")
+    z = torch.randn(4, 2)
+    assert torch.equal(numpy_seeded(z), plain(z))
+
+
 def test_an_alias_and_its_field_at_different_values_and_resume_without_out_are_refused() -> None:
     scene = _tet_scene()
     with pytest.raises(ValueError, match=r"dim is an alias of latent_dim, and they differ: dim=3, latent_dim=4"):
