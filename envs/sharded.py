@@ -16,6 +16,7 @@ raises), the workers stopped and the env closed; ``None`` (the default) waits fo
 
 from __future__ import annotations
 
+import contextlib
 import math
 import multiprocessing as mp
 import numbers
@@ -25,7 +26,7 @@ import sys
 import time
 import traceback
 import warnings
-from collections.abc import Callable, Mapping, Sequence
+from collections.abc import Callable, Iterator, Mapping, Sequence
 from multiprocessing.connection import Connection
 from typing import TYPE_CHECKING, Any, NoReturn
 
@@ -110,6 +111,29 @@ def _warning_display() -> bytes | None:
         return pickle.dumps(warnings.showwarning)
     except Exception:
         return None
+
+
+@contextlib.contextmanager
+def _unreadable_main_hidden() -> Iterator[None]:
+    """Hide the main module's ``__file__`` while the workers start where it names no file to read (a script read
+    from stdin, ``python - <<EOF``: ``'<stdin>'``): a spawned or forkserver worker runs the main module again from
+    that path, and each one died of ``FileNotFoundError: '<stdin>'`` before it started. Without it the worker does
+    not run the main module, as for ``python -c`` (whose main has no ``__file__``)."""
+    main = sys.modules.get("__main__")
+    path = getattr(main, "__file__", None)
+    named = getattr(getattr(main, "__spec__", None), "name", None)  # ``python -m``: the worker imports it by name
+    if (
+        not isinstance(path, str)
+        or named is not None
+        or os.path.isfile(os.path.join(mp.process.ORIGINAL_DIR or "", path))
+    ):
+        yield
+        return
+    del main.__file__
+    try:
+        yield
+    finally:
+        main.__file__ = path
 
 
 def _worker(pipe: Connection, build: bytes, num_envs: int, threads: int, display: bytes | None) -> None:
@@ -259,13 +283,16 @@ class ShardedVectorEnv(SharedCopies, VectorEnv):
         payload = pickle.dumps(build)  # here, so that a build that does not pickle fails in the caller
         display = _warning_display()
         try:
-            for size in self.sizes:
-                parent, child = ctx.Pipe()
-                process = ctx.Process(target=_worker, args=(child, payload, size, int(threads), display), daemon=True)
-                process.start()
-                child.close()
-                self._pipes.append(parent)
-                self._processes.append(process)
+            with _unreadable_main_hidden():
+                for size in self.sizes:
+                    parent, child = ctx.Pipe()
+                    process = ctx.Process(
+                        target=_worker, args=(child, payload, size, int(threads), display), daemon=True
+                    )
+                    process.start()
+                    child.close()
+                    self._pipes.append(parent)
+                    self._processes.append(process)
             self._gather(STARTUP_HINT)  # each worker's "ok" once its env is built
         except BaseException:
             self._abort()

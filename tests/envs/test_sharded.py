@@ -8,6 +8,7 @@ import multiprocessing
 import os
 import pickle
 import signal
+import subprocess
 import sys
 import time
 import types
@@ -492,3 +493,18 @@ def test_a_callers_warning_display_the_workers_cannot_import_leaves_them_pythons
     err = capfd.readouterr().err
     assert any("resolves accelerations only to" in line for line in said)  # the caller's display in the caller
     assert "UserWarning: torch.float32 at dt=0.001 s resolves accelerations only to" in err, err  # Python's in workers
+
+
+def test_a_script_read_from_stdin_makes_a_sharded_env() -> None:
+    """``python - <<EOF``: the main module's ``__file__`` is '<stdin>', which each worker tried to run again and died of
+    FileNotFoundError before it started (a ShardError whose hint blamed a missing ``__main__`` guard)."""
+    script = (
+        "import gymnasium as gym, redsim.envs\n"
+        "venv = gym.make_vec('RedSim/MiniChain-v0', num_envs=2, vectorization_mode='vector_entry_point', shards=2)\n"
+        "observation, _ = venv.reset(seed=0)\n"
+        "print('shape', observation.shape)\n"
+        "venv.close()\n"
+    )
+    done = subprocess.run([sys.executable, "-"], input=script, capture_output=True, text=True, timeout=120)
+    assert done.returncode == 0, done.stderr[-2000:]
+    assert "shape (2, " in done.stdout
