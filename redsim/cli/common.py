@@ -277,8 +277,10 @@ def parse_env_id(text: str) -> str:
     module, sep, name = text.partition(":")
     bare = name if sep and (module == "redsim" or module.startswith("redsim.")) else text
     if bare not in redsim.envs.ids():
+        meant = [i for i in redsim.envs.ids() if i.lower() == f"redsim/{bare}".lower()]  # MiniChain-v0, minichain-v0
+        hint = f" (did you mean {meant[0]}? ids start with RedSim/)" if meant else ""
         raise CliError(
-            f"unknown env {text!r}; valid: {', '.join(redsim.envs.ids())} (each may take the prefix redsim:)"
+            f"unknown env {text!r}{hint}; valid: {', '.join(redsim.envs.ids())} (each may take the prefix redsim:)"
         )
     return bare
 

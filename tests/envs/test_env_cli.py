@@ -162,6 +162,16 @@ def test_unknown_env_id_is_a_usage_error(argv: list[str], capsys: pytest.Capture
     assert "unknown env" in capsys.readouterr().err
 
 
+@pytest.mark.parametrize("name", ["MiniChain-v0", "minichain-v0", "redsim:MiniChain-v0"])
+def test_an_id_without_its_namespace_is_refused_naming_the_id_meant(
+    name: str, capsys: pytest.CaptureFixture[str]
+) -> None:
+    """A bare name (helper-261 typed `--envs MiniChain-v0`) was refused with the list alone; the error now names the
+    id it matches, case aside."""
+    assert main(["bench", "envs", "--envs", name]) == 2
+    assert "did you mean RedSim/MiniChain-v0? ids start with RedSim/" in capsys.readouterr().err
+
+
 def test_commands_take_an_id_with_the_redsim_prefix_as_gym_make_does(
     tmp_path: Path, capsys: pytest.CaptureFixture[str]
 ) -> None:
