@@ -73,9 +73,9 @@ if __name__ == "__main__":
     parser.add_argument("--out", type=Path, help="folder for the policy and its normalizer (default: not saved)")
     parser.add_argument("--no-progress", action="store_true", help="no SB3 progress bar while training")
     args = parser.parse_args()
-    counts = (("--steps", args.steps), ("--episodes", args.episodes), ("--episode-steps", args.episode_steps or 1))
+    counts = (("--steps", args.steps), ("--episodes", args.episodes), ("--episode-steps", args.episode_steps))
     for flag, value in counts:
-        if value < 1:  # before training, not in the evaluation after it
+        if value is not None and value < 1:  # before training, not in the evaluation after it (0 was a traceback)
             parser.error(f"{flag} must be an integer >= 1, got {value}")
     if args.out is not None and args.out.exists() and not args.out.is_dir():
         parser.error(f"--out {args.out} is a file, not a folder")

@@ -3,6 +3,8 @@
 from __future__ import annotations
 
 import importlib.util
+import subprocess
+import sys
 from pathlib import Path
 
 import pytest
@@ -92,3 +94,16 @@ def test_rllib_example_names_token_authentication_where_it_cannot_connect(tmp_pa
     monkeypatch.setattr(ray, "init", init)
     with pytest.raises(RuntimeError, match=r"'10\.0\.0\.1:6379' \(Failed to connect.*RAY_AUTH_MODE=token"):
         module.main(tmp_path, address="10.0.0.1:6379")
+
+
+def test_chain_example_refuses_episode_steps_0_before_training(tmp_path: Path) -> None:
+    """`--episode-steps 0` passed its check (`0 or 1`), trained, then died in the evaluation with a traceback."""
+    path = next(p for p in EXAMPLES if p.stem == "chain_agent")
+    run = subprocess.run(
+        [sys.executable, str(path), "--steps", "2", "--episodes", "1", "--episode-steps", "0", "--no-progress"],
+        capture_output=True,
+        text=True,
+        cwd=tmp_path,
+        timeout=300,
+    )
+    assert run.returncode == 2 and "--episode-steps must be an integer >= 1, got 0" in run.stderr, run.stderr
