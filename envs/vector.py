@@ -7,7 +7,7 @@ vector env equals N single envs step for step, to the solve's tolerance (a float
 relative force balance of 1e-6, and another batch composition lands elsewhere inside it: ~5e-4 in z
 after a step, which grows under random actions on MiniChain-v0 to 0.1 in z after 4 steps and saturates near 0.3
 (1.7 cm at the handle) by 8, every step converged; in float64 (``dtype="float64"``) they agree to
-~4e-8; docs/envs.md, "From the README: how far copies, batches and versions agree").
+~1e-6 over the steps the tests take; docs/envs.md, "From the README: how far copies, batches and versions agree").
 Autoreset follows Gymnasium: by default
 ``AutoresetMode.NEXT_STEP`` (the step after a copy ends resets it and ignores its action;
 reward 0, not terminated); ``AutoresetMode.SAME_STEP`` resets in the same step and puts the

@@ -150,8 +150,8 @@ NEAR_SLACK = 1e-5
 """[m] Points this far past the margin still get an energy graph in :meth:`SDFContact.energy` (a
 round-off guard: the selecting distances and the differentiated ones are computed in another order)."""
 SPARSE_FRACTION = 0.25
-"""Above this fraction of near points, :meth:`SDFContact.energy` differentiates all points (the per-point
-gathers of the sparse form then cost more: measured on cloth_ball, docs/runtime.md, "Contact where it acts")."""
+"""Above this fraction of near points, :meth:`SDFContact.energy` differentiates all points (where most points need
+the per-point gathers anyway; a chosen threshold, not a measured crossing: docs/runtime.md, "Contact where it acts")."""
 
 
 def _to_local(frame: Tensor, p: Tensor) -> Tensor:
@@ -452,8 +452,8 @@ class SDFContact(Effect):
         local = R_f^T (X_g w + o - t_f) for the points (weights w, offsets o) of source g in frame f:
         A = [R_f^T X_g | R_f^T | -R_f^T t_f] once per pair, then one contraction with the pair's
         ``pair_lift``, batched over pairs (each a [3*B, K+D+1] x [K+D+1, S] matmul), whose output
-        keeps x, y and z contiguous for the distance (2-3x faster than per-(state, pair) 3x3
-        matmuls on the chain at B = 64; docs/runtime.md, "Where today's path spent its time").
+        keeps x, y and z contiguous for the distance (it replaced per-(state, pair) 3x3
+        matmuls on the chain; docs/runtime.md, "Where today's path spent its time").
         """
         B = x.shape[0]
         pairs, K = self.pair_weights.shape[:2]
