@@ -18,7 +18,7 @@ each copy's picture (:class:`redsim.envs.pixels.PixelVectorObservation`, for ``C
 from __future__ import annotations
 
 import time
-from collections.abc import Mapping, Sequence
+from collections.abc import Iterator, Mapping, Sequence
 from typing import Any
 
 import gymnasium as gym
@@ -210,7 +210,8 @@ class SB3VecEnv(VecEnv):
     def env_method(self, method_name: str, *method_args: Any, indices: Any = None, **method_kwargs: Any) -> list[Any]:
         """Each listed copy's answer to ``method_name``: a per-copy method of the vector env's ``call``
         (:data:`~redsim.envs.vector_api.PER_COPY_CALLS`, e.g. ``env_method("get_state")``; it answers every copy
-        and the listed ones are kept), or a method of :data:`SHARED_METHODS`, called once for all.
+        and the listed ones are kept; asked of the outermost layer with a ``call``, :meth:`_layers`), or a method
+        of :data:`SHARED_METHODS`, called once for all.
 
         Raises:
             AttributeError: another name, or a shared method the vector env does not define (the copies share one
@@ -218,25 +219,33 @@ class SB3VecEnv(VecEnv):
             TypeError: arguments to a per-copy method (they take none).
         """
         if method_name in PER_COPY_CALLS:
-            answers = self.venv.call(method_name, *method_args, **method_kwargs)
+            call = next(layer.call for layer in self._layers() if hasattr(layer, "call"))
+            answers = call(method_name, *method_args, **method_kwargs)
             return [answers[i] for i in self._get_indices(indices)]
         result = self._shared(method_name)(*method_args, **method_kwargs)
         return [result for _ in self._get_indices(indices)]
 
+    def _layers(self) -> Iterator[Any]:
+        """The vector wrappers around the vector env, outermost first, then the vector env. Gymnasium's
+        ``VectorWrapper`` passes on neither ``call`` nor a goal env's ``compute_reward``: ``env_method`` asks the
+        outermost layer that defines the method, so a user's own wrapper outside works and an override in it wins."""
+        layer = self.venv
+        yield layer
+        while isinstance(layer, gym.vector.VectorWrapper):
+            layer = layer.env
+            yield layer
+
     def _shared(self, name: str) -> Any:
-        """The shared method ``name`` of the vector env or of a vector wrapper inside it (the outermost).
+        """The shared method ``name`` of the vector env or of a vector wrapper around it (the outermost).
 
         Raises:
             AttributeError: not one of :data:`SHARED_METHODS`, or none defines it.
         """
-        layer = self.venv
-        while name in SHARED_METHODS:
-            method = getattr(layer, name, None)
-            if method is not None:
-                return method
-            if not isinstance(layer, gym.vector.VectorWrapper):
-                break
-            layer = layer.env
+        if name in SHARED_METHODS:
+            for layer in self._layers():
+                method = getattr(layer, name, None)
+                if method is not None:
+                    return method
         raise AttributeError(
             f"SB3VecEnv.env_method answers {', '.join(PER_COPY_CALLS)} copy by copy and {', '.join(SHARED_METHODS)} "
             f"where the vector env or a wrapper in it defines them (the copies share one simulation and have no other "

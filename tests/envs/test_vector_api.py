@@ -410,6 +410,28 @@ def test_the_sb3_adapters_env_method_answers_the_per_copy_calls_copy_by_copy() -
         venv.close()
 
 
+def test_the_sb3_adapters_env_method_answers_through_vector_wrappers_without_call() -> None:
+    """Gymnasium's ``VectorWrapper`` does not pass ``call`` on: ``env_method("get_state")`` through a user's own
+    wrapper, or the goal wrapper, raised "'...' object has no attribute 'call'". The goal's ``compute_reward``
+    under the user's wrapper is still the one HER gets."""
+    from redsim.envs.sb3 import SB3VecEnv
+
+    class UserWrapper(gym.vector.VectorWrapper):
+        pass
+
+    for goal in (False, True):
+        inner = SB3VecEnv.make(ID, num_envs=2, goal=goal).venv
+        venv = SB3VecEnv(UserWrapper(inner))
+        try:
+            venv.reset()
+            states = venv.env_method("get_state", indices=[1])
+            assert len(states) == 1 and np.array_equal(states[0]["z"], inner.unwrapped.call("get_state")[1]["z"])
+            if goal:
+                assert venv.get_attr("compute_reward")[0] == inner.compute_reward
+        finally:
+            venv.close()
+
+
 @pytest.mark.parametrize("shards", [1, 2])
 def test_a_step_where_every_copy_restarts_reports_the_reset_infos_as_sync(shards: int) -> None:
     """No step keys (no copy stepped), every copy's new start (the reset's info), as Gymnasium's sync vector env."""
