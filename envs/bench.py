@@ -341,14 +341,20 @@ RATES = ("env_steps_per_s", "sim_s_per_wall_s", "steps_per_s", "frames_per_s")
 """The keys of the rates a round measures (in :func:`bench_env`'s rows and the anchors), which :func:`median_rounds`
 takes the median of."""
 
+HEALTH_FLAGS = ("finite", "converged")
+"""The keys of what a round's run says of its own health (the flex cloth's state ended ``finite``, a full-space step
+``converged``): :func:`median_rounds` holds one True only where every round's is (a blown-up round is not hidden
+behind the first one's True)."""
+
 
 def median_rounds(rounds: Sequence[dict[str, Any]]) -> dict[str, Any]:
     """One result of several rounds of the same measurement (:func:`bench_env`'s row of one id, or an anchor): the
     first round's, with each rate (:data:`RATES`) in it, nested too, replaced by its median over the rounds and the
-    rounds' values listed beside it under ``rounds_<key>``. Everything else is the first round's: the sizes, the
-    solver's work (the same seeded steps in every round) and what only the first round measured (a part the others
-    hold as None or without the same keys: the full-space step). A part that failed in any round (:func:`attempt`)
-    is that round's failure: its other rounds' rates are not the median of all.
+    rounds' values listed beside it under ``rounds_<key>``, and each health flag (:data:`HEALTH_FLAGS`) True only
+    where it is in every round. Everything else is the first round's: the sizes, the solver's work (the same seeded
+    steps in every round) and what only the first round measured (a part the others hold as None or without the same
+    keys: the full-space step). A part that failed in any round (:func:`attempt`) is that round's failure: its other
+    rounds' rates are not the median of all.
 
     Raises:
         ValueError: no rounds.
@@ -369,6 +375,8 @@ def median_rounds(rounds: Sequence[dict[str, Any]]) -> dict[str, Any]:
                 values = [float(part[key]) for part in parts]
                 out[key] = statistics.median(values)
                 out[f"rounds_{key}"] = values
+            elif key in HEALTH_FLAGS and isinstance(value, bool):
+                out[key] = all(part[key] for part in parts)
             else:
                 out[key] = merge([part[key] for part in parts])
         return out
@@ -497,6 +505,7 @@ __all__ = [
     "ANCHOR_STEPS",
     "ANCHOR_WARMUP",
     "DEFAULT_BATCHES",
+    "HEALTH_FLAGS",
     "MUJOCO_MISSING",
     "RATES",
     "RENDER_SIZE",
