@@ -147,12 +147,17 @@ def most(values: dict[str, Any], kind: str) -> int | None:
     return None if not counts else int(np.sum(counts, axis=0).max())
 
 
-def recovered(reported: Sequence[bool]) -> int:
-    """How many reported steps are followed, later in the run, by a step that was not reported."""
+def recovered(reported: Sequence[bool], unrecoverable: Sequence[bool] | None = None) -> int:
+    """How many reported steps are followed, later in the run, by a step that was not reported.
+
+    A reported step marked ``unrecoverable`` (a step through a contact: the motion after it is another one) is never
+    counted, and it does not recover the steps before it either: it is a failure, not a good step.
+    """
+    never = [False] * len(reported) if unrecoverable is None else list(unrecoverable)
     count, pending = 0, 0
-    for bad in reported:
+    for bad, lost in zip(reported, never, strict=True):
         if bad:
-            pending += 1
+            pending += not lost
         else:
             count, pending = count + pending, 0
     return count
@@ -215,9 +220,7 @@ class Rollout:
             "space": space,
             "steps": len(reported),
             "failures_detected": sum(reported),
-            "failures_recovered": recovered(
-                reported if self.tunneled is None else (self.reported & ~self.tunneled).tolist()
-            ),
+            "failures_recovered": recovered(reported, None if self.tunneled is None else self.tunneled.tolist()),
             "energy_gains": 0 if self.gains is None else int(self.gains.sum()),
             "nan": self.nonfinite + int((~torch.isfinite(self.q)).any(-1).sum()),
             "unreported": len(unreported := unreported_rises(h, self.flagged(), slack, self.tolerance, mechanical)),

@@ -34,6 +34,28 @@ def test_recovered_counts_failures_followed_by_a_good_step() -> None:
     assert stability.recovered([]) == 0 and stability.recovered([True]) == 0
 
 
+def test_a_step_through_a_contact_recovers_no_failure_before_it() -> None:
+    """A run's row read an unconverged step followed by a tunneled one as recovered: the tunneled step was passed on as
+    a good step. It is a failure (and never recovered itself); a good step after both recovers the first alone."""
+    assert stability.recovered([True, True], [False, True]) == 0
+    assert stability.recovered([True, True, False], [False, True, False]) == 1
+    scene = scenes.build("mini_chain")
+    q = scene.q_seed.to(torch.float64).expand(3, -1).clone()
+    run = stability.Rollout(
+        q,
+        q[0],
+        stability._zero_loads(scene, 2),
+        stability.DT,
+        torch.tensor([True, True]),
+        0,
+        {"unconverged": 1, "tunneled": 1},
+        0.0,
+        tunneled=torch.tensor([False, True]),
+    )
+    row = run.row(scene, "mini_chain", "made up", "full", stability.FULL_SLACK)
+    assert row["failures_detected"] == 2 and row["failures_recovered"] == 0
+
+
 def test_split_steps_follows_speed_and_rejects_bad_totals() -> None:
     shares = stability.split_steps(1000, {"fast": 900.0, "slow": 100.0, "cloth": 0.01})
     assert shares == {"fast": 900, "slow": 100, "cloth": 1}
