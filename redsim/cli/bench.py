@@ -366,7 +366,14 @@ def _bench_step_hessians(
     rows = []
     if not args.json:
         out(_machine_line(machine, args.device))
-        out(f"{'scene':<14} {'hessian':<13} {'B':>4} {'its/step':>9} {'ms/step':>9} {'env-steps/s':>12} {'conv%':>6}")
+        out("its/step: solver iterations per step (mean over copies and steps); conv%: the copy-steps that converged")
+        out(
+            "median ms: the median step's wall time; env-steps/s: B x steps / the steps' total wall time "
+            "(`bench envs`: B / its median step)"
+        )
+        out(
+            f"{'scene':<14} {'hessian':<13} {'B':>4} {'its/step':>9} {'median ms':>10} {'env-steps/s':>12} {'conv%':>6}"
+        )
     for name in names:
         scene = build_scene(name)
         for batch in batches:
@@ -384,7 +391,7 @@ def _bench_step_hessians(
                 if not args.json:
                     out(
                         f"{name:<14} {row['hessian']:<13} {batch:>4} {row['iterations_per_step']:>9.2f} "
-                        f"{1e3 * row['median_step_s']:>9.1f} {row['env_steps_per_s']:>12.3g} "
+                        f"{1e3 * row['median_step_s']:>10.1f} {row['env_steps_per_s']:>12.3g} "
                         f"{100 * row['converged_fraction']:>6.1f}"
                     )
     if args.json:
@@ -944,7 +951,8 @@ def add_commands(sub: Any) -> Any:
         "step",
         help="env-steps/s of the batched latent stepper vs today's reference path",
         description=(
-            "For each scene with a shipped subspace: env-steps/s of ImplicitEuler(LatentSpace) (one state at a time), "
+            "For each scene with a shipped subspace: env-steps/s (B x steps / their total wall time; `bench envs` "
+            "takes B / its median step) of ImplicitEuler(LatentSpace) (one state at a time), "
             "the batched LatentStepper eager and compiled at each batch size B, on the same seeded load sequences "
             "(changing every 5 steps, inside the subspace's range), iterations per step, converged fraction, the "
             "full-space step at B = 1, and with mujoco installed a MuJoCo chain of 24 capsules for scale."
