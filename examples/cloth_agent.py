@@ -53,7 +53,8 @@ def main(
             ENV_ID, folder, algo="sac", steps=steps, env_kwargs=limit, resume=True, progress_bar=progress, **options
         )
         files = sorted(p.name for p in folder.iterdir())
-        print(f"{ENV_ID}: {full.steps} env steps in {full.wall_s:.0f} s; files: {', '.join(files)}")
+        # wall_s counts every run into the folder: the first half's time is in it, also after --resume
+        print(f"{ENV_ID}: {full.steps} env steps in {full.wall_s:.0f} s in all; files: {', '.join(files)}")
         model = load_agent(folder / "model.zip", ENV_ID)  # refuses a model trained on another env
         # the final evaluation's episodes again: as many copies in one batch, so the float32 solves round alike
         # (another batch size moves a return in the fourth digit: docs/agents.md, "From the README: eval-agent's

@@ -8,7 +8,8 @@ Both agents see the goal-conditioned env
 difference is the replay buffer. ``--num-envs N`` > 1 collects from N copies in the native vector env
 (:class:`redsim.envs.goal.GoalVectorObservation` through :class:`redsim.envs.sb3.SB3VecEnv`: one batched
 solve for all N) with N gradient steps per vector step, so that the updates per transition stay those of one
-env. Each is then evaluated on the same seeded episodes: mean return (the wrapper's reward) and the success rate
+env. Each is then evaluated on the same seeded episodes, seeds ``seed + FINAL_EVAL_SEED + i`` (that no training copy
+started from, as ``redsim train-agent``'s final evaluation): mean return (the wrapper's reward) and the success rate
 (``info["is_success"]`` at the last step).
 """
 
@@ -28,7 +29,7 @@ from stable_baselines3.common.env_util import make_vec_env
 import redsim  # noqa: F401  (registers the ids)
 from redsim.envs.goal import GoalObservation
 from redsim.envs.sb3 import SB3VecEnv
-from redsim.trainers.agents import her_wait
+from redsim.trainers.agents import FINAL_EVAL_SEED, her_wait
 
 SETTINGS: dict[str, Any] = {
     "learning_rate": 1e-3,
@@ -88,11 +89,11 @@ def episodes_ended(env_id: str, steps: int, env_kwargs: dict[str, Any], num_envs
     return wait
 
 
-def evaluate(model: SAC, env_id: str, episodes: int, env_kwargs: dict[str, Any]) -> dict[str, float]:
-    """Mean and std of the return and the success rate over episodes seeded 0 .. episodes - 1 (deterministic)."""
+def evaluate(model: SAC, env_id: str, seeds: range, env_kwargs: dict[str, Any]) -> dict[str, float]:
+    """Mean and std of the return and the success rate over the episodes reset with ``seeds`` (deterministic)."""
     env = GoalObservation(gym.make(env_id, **env_kwargs))
     returns, successes = [], []
-    for seed in range(episodes):
+    for seed in seeds:
         obs, _ = env.reset(seed=seed)
         total, done = 0.0, False
         while not done:
@@ -116,18 +117,19 @@ def main(
     progress: bool = False,
 ) -> dict[str, Any]:
     env_kwargs = {} if episode_steps is None else {"max_episode_steps": episode_steps}
+    seeds = range(seed + FINAL_EVAL_SEED, seed + FINAL_EVAL_SEED + episodes)  # no training copy started from these
     result: dict[str, Any] = {"env": env_id, "steps": steps, "seed": seed, "num_envs": num_envs}
     episodes_ended(env_id, steps, env_kwargs, num_envs)  # before the plain agent trains, not after
     for name, her in (("sac", False), ("sac_her", True)):
         model, wall = train(env_id, steps, her, env_kwargs, seed, num_envs, progress)
-        scores = evaluate(model, env_id, episodes, env_kwargs)
+        scores = evaluate(model, env_id, seeds, env_kwargs)
         result[name] = {**scores, "wall_s": wall, "timesteps": model.num_timesteps}
         if out is not None:
             out.mkdir(parents=True, exist_ok=True)
             model.save(out / f"{name}.zip")
         print(
             f"{name:<8} {steps} steps in {wall:6.0f} s: return {scores['mean']:8.2f} ± {scores['std']:6.2f}   "
-            f"success {100 * scores['success']:.0f}% over {episodes} episodes"
+            f"success {100 * scores['success']:.0f}% over {episodes} episodes (seeds {seeds.start}-{seeds.stop - 1})"
         )
     return result
 

@@ -36,6 +36,33 @@ def test_example_runs_and_checks(path: Path, tmp_path: Path) -> None:
     module.check(module.main(tmp_path))
 
 
+def test_her_example_evaluates_on_seeds_no_training_copy_started_from(monkeypatch: pytest.MonkeyPatch) -> None:
+    """It evaluated on seeds 0 .. episodes - 1, and at ``--seed 0`` its first training episode was seed 0's; now
+    ``seed + FINAL_EVAL_SEED + i``, as the other examples and ``redsim train-agent``."""
+    import numpy as np
+
+    from redsim.trainers.agents import FINAL_EVAL_SEED
+
+    module = _example("her_agent")
+    seeds: list[int | None] = []
+
+    class RecordingGoalObservation(module.GoalObservation):
+        def reset(self, *, seed=None, options=None):
+            seeds.append(seed)
+            return super().reset(seed=seed, options=options)
+
+    class StillModel:  # training is not what this checks
+        num_timesteps = 50
+
+        def predict(self, obs, deterministic=False):
+            return np.zeros(3, np.float32), None
+
+    monkeypatch.setattr(module, "GoalObservation", RecordingGoalObservation)
+    monkeypatch.setattr(module, "train", lambda *args, **kwargs: (StillModel(), 0.0))
+    module.main(seed=3, episodes=2)
+    assert seeds == [3 + FINAL_EVAL_SEED, 4 + FINAL_EVAL_SEED] * 2  # each agent, the same episodes
+
+
 def test_her_example_refuses_a_budget_or_episodes_it_cannot_train_on() -> None:
     """--episode-steps -1 (no limit) trained and then evaluated an episode that never ends; 0 was a traceback."""
     path = next(p for p in EXAMPLES if p.stem == "her_agent")
