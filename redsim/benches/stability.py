@@ -175,8 +175,8 @@ class Rollout:
         dt: Time step [s].
         reported: [T] bool: the step said it failed (not converged or diverged).
         nonfinite: Non-finite states or energies met (never stepped on).
-        flags: Counts of ``unconverged``, ``diverged``, ``out_of_range``, ``tunneled`` and (full space)
-            ``tunnels_caught`` steps (latent runs also ``idle``: steps
+        flags: Counts of ``unconverged`` and ``tunneled`` steps; latent runs also ``diverged`` and ``out_of_range``,
+            full-space runs ``tunnels_caught`` (latent runs also ``idle``: steps
             that took no iteration and ended where they began, their start z_t already within the solver's
             tolerance; a step accepted at a start that moves, extrapolated or predicted, is not idle).
         seconds: Wall time [s].
@@ -228,10 +228,12 @@ class Rollout:
             "start_energy_J": float(mechanical[0]),
             "max_energy_J": float((mechanical - mechanical[0]).max()),
             "input_work_J": float(work.max()),
-            "out_of_range": self.flags.get("out_of_range", 0),
+            # None (printed -) where this space does not count it: out_of_range and idle are latent, tunnels_caught
+            # full-space counts (a 0 there read as measured)
+            "out_of_range": self.flags.get("out_of_range"),
             "tunneled": self.flags.get("tunneled", 0),
-            "tunnels_caught": self.flags.get("tunnels_caught", 0),
-            "idle": self.flags.get("idle", 0),
+            "tunnels_caught": self.flags.get("tunnels_caught"),
+            "idle": self.flags.get("idle"),
             **topology_counts(scene, self.q),
             "seconds": self.seconds,
         }
@@ -998,7 +1000,7 @@ def _cell(value: Any) -> str:
 def markdown_rows(rows: Sequence[dict[str, Any]]) -> list[str]:
     """The rows as a markdown table (:data:`ROW_COLUMNS`)."""
     lines = ["| " + " | ".join(h for _, h in ROW_COLUMNS) + " |", "|" + "---|" * len(ROW_COLUMNS)]
-    lines += ["| " + " | ".join(_cell(r.get(k, "")) for k, _ in ROW_COLUMNS) + " |" for r in rows]
+    lines += ["| " + " | ".join(_cell(r.get(k)) for k, _ in ROW_COLUMNS) + " |" for r in rows]
     return lines
 
 

@@ -367,3 +367,19 @@ def test_ctrl_c_in_the_fuzz_keeps_the_envs_finished_before_it(cli: Cli, monkeypa
     assert [r["target"] for r in doc["rows"]] == [ids[0]] and doc["rows"][0]["steps"] == 8
     code, out, err = cli(*argv)
     assert code == 130 and f"| {ids[0]} | fuzz | latent | 8 |" in out and ids[1] not in out, err
+
+
+def test_a_count_a_space_does_not_make_reads_dash_not_zero() -> None:
+    """The full-space rows printed ``idle steps`` and ``out of range`` 0 and the latent rows ``tunnels caught`` 0:
+    counts no such run makes (idle and out of range are the runtime's, a caught tunnel the full space's)."""
+    scene, f = stability._shipped("mini_chain")
+    loads = stability.plan_loads(scene, 2, 1)
+    latent = stability.runtime_rollout(scene, f, loads, stability.DT).row(scene, "m", "r", "latent", 1e-3)
+    full = stability.full_rollout(scene, loads, stability.DT).row(scene, "m", "r", "full", 1e-6)
+    assert latent["tunnels_caught"] is None and latent["idle"] == 0 and latent["out_of_range"] == 0
+    assert full["idle"] is None and full["out_of_range"] is None and full["tunnels_caught"] == 0
+    header, _, latent_line, full_line = stability.markdown_rows([latent, full])
+    cells = dict(zip(header.split(" | "), full_line.split(" | "), strict=True))
+    assert cells["idle steps"] == "-" and cells["out of range"] == "-" and cells["tunnels caught"] == "0"
+    cells = dict(zip(header.split(" | "), latent_line.split(" | "), strict=True))
+    assert cells["tunnels caught"] == "-" and cells["idle steps"] == "0"
