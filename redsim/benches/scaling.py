@@ -25,9 +25,9 @@ each in its own process (so peak memory is that size's):
 - ``unconverged``: per step curve measured, [timed steps (states at B = ``batch``) that did not converge, timed
   steps (states)]: their times are in the medians, so a curve with any is shown beside them, not dropped.
 
-A value that was not measured (above its size limit) is None, shown as "not run". Each curve's
-growth exponent is the least-squares slope of log(value) against log(n) over the sizes where it
-was measured.
+A value that was not measured (above its size limit) is None, shown as "not run"; a measured one that is not finite
+reads nan (or inf). Each curve's growth exponent is the least-squares slope of log(value) against log(n) over the
+sizes where it was measured and finite (–: fewer than 2).
 """
 
 from __future__ import annotations
@@ -323,17 +323,18 @@ def markdown_table(result: dict[str, Any]) -> str:
             bad = [f"{k.replace('_batch', f' B={batch}')} {n}/{of}" for k, (n, of) in value.items() if n]
             return ", ".join(bad) or "0"
         if isinstance(value, float):
-            return "–" if not math.isfinite(value) else f"{value:.3g}"
+            return f"{value:.3g}"  # a measured value that is not finite reads nan (inf), not hidden
         return str(value)
+
+    def exponent(key: str) -> str:
+        """The curve's growth exponent; – where fewer than 2 sizes measured it (nothing to fit)."""
+        value = exponents.get(key, math.nan)
+        return "–" if not math.isfinite(value) else f"{value:.3g}"
 
     for row in result["rows"]:
         lines.append("| " + " | ".join(cell(row.get(k)) for k in keys) + " |")
     exponents = result["exponents"]
-    lines.append(
-        "| growth exponent | "
-        + " | ".join(cell(exponents.get(k, math.nan)) if k in CURVES else "" for k in keys[1:])
-        + " |"
-    )
+    lines.append("| growth exponent | " + " | ".join(exponent(k) if k in CURVES else "" for k in keys[1:]) + " |")
     return "\n".join(lines)
 
 

@@ -31,12 +31,25 @@ def test_growth_exponents_recover_a_power_law() -> None:
 
 def test_table_has_a_row_per_size_and_the_exponents() -> None:
     rows = _rows(1.0)
-    rows[0]["full_step_ms"] = math.nan
     table = scaling.markdown_table({"rows": rows, "exponents": scaling.growth_exponents(rows)})
     lines = table.splitlines()
     assert len(lines) == 2 + 3 + 1
     assert lines[-1].startswith("| growth exponent | 1 |")
-    assert "–" in lines[2]
+    one = scaling.markdown_table({"rows": rows[:1], "exponents": scaling.growth_exponents(rows[:1])})
+    assert one.splitlines()[-1].startswith("| growth exponent | – | – |")  # one size: nothing to fit
+
+
+def test_a_measured_value_that_is_not_finite_reads_nan_not_a_dash() -> None:
+    """A NaN measurement (a cubature whose force error came out NaN) printed –, the mark of an exponent with nothing
+    to fit: the failure read as "does not apply". It reads nan, and its exponent uses the finite sizes."""
+    rows = _rows(1.0)
+    rows[0]["cubature_force_error"] = math.nan
+    rows[0]["full_step_ms"] = math.inf
+    exponents = scaling.growth_exponents(rows)
+    lines = scaling.markdown_table({"rows": rows, "exponents": exponents}).splitlines()
+    cells = dict(zip(lines[0].split(" | "), lines[2].split(" | "), strict=True))
+    assert cells["cubature force error"] == "nan" and cells["full step ms"] == "inf"
+    assert "–" not in lines[2] and exponents["full_step_ms"] == pytest.approx(1.0)
 
 
 def test_unconverged_steps_are_shown_beside_their_times() -> None:
