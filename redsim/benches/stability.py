@@ -932,8 +932,9 @@ def redsim_chain_cases(
 
     Each space starts from its own rest (kicks: the full-space equilibrium and the latent z*) or
     from the seed lifted by the scenario's angle (drops); latent runs take it as the map can show
-    it (:func:`project_latent`, :func:`latent_velocity`). A run survives when it has no NaN and no
-    unreported energy gain; ``blew_up`` is its opposite. ``full_steps`` (default ``steps``)
+    it (:func:`project_latent`, :func:`latent_velocity`). A run ``blew_up`` where it met a NaN or its energy rose
+    above the start by more than :data:`ENERGY_GROWTH` of its free energy (MuJoCo's test); an unreported energy gain
+    is counted apart (``unreported``: it fails the command too). ``full_steps`` (default ``steps``)
     shortens the full-space runs (0.3-1 s a step).
     """
     scene, f = _shipped("chain")
