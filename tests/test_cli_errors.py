@@ -476,17 +476,89 @@ def test_a_fit_interrupted_before_its_first_step_says_nothing_was_saved(
 
 
 def test_any_interrupted_command_exits_130_with_one_line_and_no_traceback(
-    cli: Cli, tmp_path: Path, monkeypatch: pytest.MonkeyPatch
+    cli: Cli, monkeypatch: pytest.MonkeyPatch
 ) -> None:
-    import redsim.cubature
+    from redsim.cli import subspaces
+
+    monkeypatch.setattr(subspaces, "load_checkpoint", _interrupted)
+    code, out, err = cli("inspect", "mini_chain.pt")
+    assert (code, out, err) == (130, "", "redsim: warning: interrupted\n")
+
+
+def _mini_chain_copy(folder: Path) -> Path:
+    """The shipped mini_chain map's .pt and .json copied into ``folder``; returns its .pt."""
     from redsim import pretrained
 
-    monkeypatch.setattr(redsim.cubature, "build_cubature", _interrupted)
-    stem = tmp_path / "mini_chain"
     for suffix in (".pt", ".json"):
-        (tmp_path / f"mini_chain{suffix}").write_bytes(pretrained.path("mini_chain").with_suffix(suffix).read_bytes())
-    code, out, err = cli("cubature", str(stem), "--elements", "2")
-    assert (code, out, err) == (130, "", "redsim: warning: interrupted\n")
+        (folder / f"mini_chain{suffix}").write_bytes(pretrained.path("mini_chain").with_suffix(suffix).read_bytes())
+    return folder / "mini_chain.pt"
+
+
+def test_an_interrupted_cubature_says_nothing_was_saved_and_what_to_rerun(
+    cli: Cli, tmp_path: Path, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    """It said only "interrupted": whether the cubature there before was replaced, and the command, were left to guess
+    (`redsim fit` says both)."""
+    import redsim.cubature
+
+    monkeypatch.setattr(redsim.cubature, "build_cubature", _interrupted)
+    checkpoint, target = _mini_chain_copy(tmp_path), tmp_path / "mini_chain.cubature.json"
+    code, out, err = cli("cubature", str(checkpoint), "--elements", "2")
+    rerun = f"redsim cubature {shlex.quote(str(checkpoint))} --elements 2"
+    assert (code, out) == (130, "") and not target.exists()
+    assert err == f"redsim: warning: interrupted before {target} was written; nothing was saved, rerun: {rerun}\n"
+    target.write_text("the cubature before")
+    code, out, err = cli("cubature", str(checkpoint), "--elements", "2", "--overwrite")
+    assert code == 130 and target.read_text() == "the cubature before"
+    assert err == (
+        f"redsim: warning: interrupted before {target} was written; the mini_chain.cubature.json there before is "
+        f"unchanged; nothing was saved, rerun: {rerun} --overwrite\n"
+    )
+
+
+def test_an_interrupted_sample_says_what_it_wrote_and_what_to_rerun(
+    cli: Cli, tmp_path: Path, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    import redsim.render
+
+    export = redsim.render.export_meshes
+    calls: list[int] = []
+
+    def third_interrupted(*args: object, **kwargs: object) -> object:
+        calls.append(1)
+        if len(calls) == 3:
+            raise KeyboardInterrupt
+        return export(*args, **kwargs)
+
+    monkeypatch.setattr(redsim.render, "export_meshes", third_interrupted)
+    checkpoint, npz, meshes = _mini_chain_copy(tmp_path), tmp_path / "s.npz", tmp_path / "meshes"
+    argv = ["sample", str(checkpoint), "-n", "4", "--out", str(npz), "--meshes", str(meshes)]
+    code, out, err = cli(*argv)
+    assert (code, out) == (130, "") and npz.is_file()
+    assert err == (
+        f"redsim: warning: interrupted after writing {npz} and the meshes of 2 of 4 samples in {meshes}; rerun: "
+        f"{shlex.join(['redsim', *argv])}\n"
+    )
+    monkeypatch.setattr(redsim.render, "export_meshes", _interrupted)
+    code, out, err = cli("sample", str(checkpoint), "-n", "4", "--meshes", str(tmp_path / "other"))
+    assert code == 130 and err.startswith("redsim: warning: interrupted before anything was written; rerun: "), err
+
+
+def test_an_interrupted_animate_says_no_gif_was_written_and_what_to_rerun(
+    cli: Cli, tmp_path: Path, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    import redsim.render
+
+    monkeypatch.setattr(redsim.render, "animate_states", _interrupted)
+    checkpoint, gif = _mini_chain_copy(tmp_path), tmp_path / "a.gif"
+    gif.write_bytes(b"the GIF before")
+    argv = ["animate", str(checkpoint), "--frames", "4", "--out", str(gif)]
+    code, out, err = cli(*argv)
+    assert (code, out) == (130, "") and gif.read_bytes() == b"the GIF before"
+    assert err == (
+        f"redsim: warning: interrupted before {gif} was written; the a.gif there before is unchanged; rerun: "
+        f"{shlex.join(['redsim', *argv])}\n"
+    )
 
 
 def test_a_resume_that_keeps_the_map_keeps_its_cubature(cli: Cli, tmp_path: Path) -> None:

@@ -9,6 +9,7 @@ from typing import Any
 
 from redsim.cli.common import (
     EXIT_FAILED_STEP,
+    EXIT_INTERRUPTED,
     EXIT_OK,
     CliError,
     check_scene_name,
@@ -77,24 +78,19 @@ def cmd_cubature(args: argparse.Namespace) -> int:
     from redsim.cubature import build_cubature
     from redsim.cubature.energy import cubature_path
 
-    scene, subspace = load_checkpoint(args.checkpoint)
     target = cubature_path(args.checkpoint)
-    if target.exists() and not target.is_file():  # found before the fit, not when it saves
-        raise CliError(f"{target} is a folder, not a file: remove it, or copy STEM.pt and STEM.json elsewhere")
-    if target.exists() and not args.overwrite:
-        raise CliError(
-            f"{target} exists (this map's cubature, which an env made with cubature=True uses); --overwrite replaces it"
-        )
-    if (why := write_error(target.absolute().parent)) is not None:
-        raise CliError(
-            f"cannot write {target}: its folder is not writable ({why}; copy STEM.pt and STEM.json elsewhere)"
-        )
-    command = _command(args)
     try:
+        scene, subspace = load_checkpoint(args.checkpoint)
+        _check_target(target, args.overwrite)
+        command = _command(args)
         cub = build_cubature(scene, subspace, _config(args), progress=not args.json, command=command)
+        path = cub.save(args.checkpoint)  # at once (write_atomically): a Ctrl-C leaves the file before, or this one
     except ValueError as err:
         raise CliError(str(err)) from err
-    path = cub.save(args.checkpoint)
+    except KeyboardInterrupt:
+        before = f"; the {target.name} there before is unchanged" if target.exists() else ""
+        warn(f"interrupted before {target} was written{before}; nothing was saved, rerun: {args.command_line}")
+        return EXIT_INTERRUPTED
     rows = [
         {
             "effect": r.name,
@@ -143,6 +139,21 @@ def cmd_cubature(args: argparse.Namespace) -> int:
         f"force error {s['held_out_force_error']:.3g}, force+energy {s['held_out_error']:.3g}"
     )
     return EXIT_OK
+
+
+def _check_target(target: Path, overwrite: bool) -> None:
+    """Refuse, before the build, a cubature file ``target`` that could not be written or, without ``overwrite``,
+    exists."""
+    if target.exists() and not target.is_file():  # found before the fit, not when it saves
+        raise CliError(f"{target} is a folder, not a file: remove it, or copy STEM.pt and STEM.json elsewhere")
+    if target.exists() and not overwrite:
+        raise CliError(
+            f"{target} exists (this map's cubature, which an env made with cubature=True uses); --overwrite replaces it"
+        )
+    if (why := write_error(target.absolute().parent)) is not None:
+        raise CliError(
+            f"cannot write {target}: its folder is not writable ({why}; copy STEM.pt and STEM.json elsewhere)"
+        )
 
 
 def _checkpoint_of(name: str, folder: Path | None) -> Path:

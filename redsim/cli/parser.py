@@ -6,6 +6,7 @@ import argparse
 import functools
 import logging
 import os
+import shlex
 import signal
 import sys
 import threading
@@ -81,6 +82,7 @@ def _run(argv: Sequence[str] | None) -> int:
     except KeyboardInterrupt:  # while a command's options load (Parser.add_later: fit's import torch)
         warn("interrupted")
         return EXIT_INTERRUPTED
+    args.command_line = shlex.join(["redsim", *(sys.argv[1:] if argv is None else argv)])  # said with "rerun: "
     if not logging.root.handlers:  # as basicConfig: a caller's own logging setup (a notebook, pytest) stays
         handler = logging.StreamHandler()
         handler.setFormatter(LogFormat())

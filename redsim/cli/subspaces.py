@@ -375,21 +375,11 @@ def _latent_samples(sub: Any, scene: Scene, count: int, seed: int) -> tuple[torc
 
 
 def cmd_sample(args: argparse.Namespace) -> int:
-    import numpy as np
-    import torch
-
-    from redsim.subspace import write_atomically
-
     if args.n < 1:
         raise CliError(f"-n must be an integer >= 1, got {args.n}")
     if args.meshes:  # before anything is written
         check_writable(args.meshes, "--meshes", folder=True)
         warn_earlier_frames(args.meshes, "--meshes")
-    scene, sub = load_checkpoint(args.checkpoint)
-    z, cond = _latent_samples(sub, scene, args.n, args.seed)
-    with torch.no_grad():
-        q = sub(z, cond).double()
-        x = scene.full_positions(q)
     path = None
     if args.out is not None or not args.meshes:  # --meshes alone does not replace a states.npz written before
         path = Path("states.npz" if args.out is None else args.out)
@@ -397,6 +387,31 @@ def cmd_sample(args: argparse.Namespace) -> int:
             raise CliError(f"--out must name a .npz file, got {args.out!r}")
         if path.suffix != ".npz":  # numpy's savez would add it
             path = path.with_name(path.name + ".npz")
+    done = {"npz": False, "meshed": 0}  # what a Ctrl-C leaves: the .npz written, the samples whose meshes are
+    try:
+        return _sample(args, path, done)
+    except KeyboardInterrupt:
+        kept = [str(path)] if done["npz"] else []
+        kept += [f"the meshes of {done['meshed']} of {args.n} samples in {args.meshes}"] if done["meshed"] else []
+        said = f"after writing {' and '.join(kept)}" if kept else "before anything was written"
+        warn(f"interrupted {said}; rerun: {args.command_line}")
+        return EXIT_INTERRUPTED
+
+
+def _sample(args: argparse.Namespace, path: Path | None, done: dict[str, Any]) -> int:
+    """:func:`cmd_sample` after its checks: the .npz at ``path`` (None: none) and the meshes, counted in ``done``
+    (``npz``: written, ``meshed``: the samples whose meshes are) for a Ctrl-C's message."""
+    import numpy as np
+    import torch
+
+    from redsim.subspace import write_atomically
+
+    scene, sub = load_checkpoint(args.checkpoint)
+    z, cond = _latent_samples(sub, scene, args.n, args.seed)
+    with torch.no_grad():
+        q = sub(z, cond).double()
+        x = scene.full_positions(q)
+    if path is not None:
         path.parent.mkdir(parents=True, exist_ok=True)
         arrays = {"z": z.numpy(), "q": q.numpy(), "x": x.numpy()}
         if cond is not None:
@@ -408,6 +423,7 @@ def cmd_sample(args: argparse.Namespace) -> int:
                 np.savez_compressed(file, **fields)
 
         write_atomically(path, save)  # Ctrl-C while writing leaves the states.npz there before, not a broken one
+        done["npz"] = True
     finite_rows = torch.isfinite(q).all(dim=1)
     finite = bool(finite_rows.all())
     meshes = []
@@ -417,6 +433,7 @@ def cmd_sample(args: argparse.Namespace) -> int:
         for i in range(args.n):
             if finite_rows[i]:  # a state that is not finite has no mesh (export_meshes raised, a traceback)
                 meshes += export_meshes(scene, q[i], args.meshes, i)
+            done["meshed"] = i + 1
     summary = {"out": None if path is None else str(path), "count": args.n, "n": scene.free_dof_count, "finite": finite}
     summary["meshes"] = [str(m) for m in meshes]
     if args.json:
@@ -449,18 +466,25 @@ def cmd_animate(args: argparse.Namespace) -> int:
         raise CliError(
             f"--fps must be a number of frames per second in [{MIN_GIF_FPS:.3g}, {MAX_GIF_FPS:g}], got {args.fps}"
         )
-    scene, sub = load_checkpoint(args.checkpoint)
-    if Path(args.out).suffix.lower() != ".gif":  # before the frames are drawn
-        raise CliError(f"--out must name a .gif file, got {args.out!r}")
-    keys, cond = _latent_samples(sub, scene, args.keys, args.seed)
-    z = catmull_rom_loop(keys, args.frames)
-    with torch.no_grad():
-        q = sub(z, None if cond is None else cond[:1].expand(args.frames, -1)).double()
-    bad = (~torch.isfinite(q).all(dim=1)).nonzero().flatten().tolist()
-    if bad:  # animate_states refuses them (a ValueError traceback)
-        error(f"{len(bad)} of {args.frames} frames are NaN or inf (the map's output; first: frame {bad[0]}); no GIF")
-        return EXIT_NAN
-    path = animate_states(scene, list(q), args.out, fps=args.fps)
+    try:  # the frames are drawn first, then the GIF written at once (write_atomically)
+        scene, sub = load_checkpoint(args.checkpoint)
+        if Path(args.out).suffix.lower() != ".gif":  # before the frames are drawn
+            raise CliError(f"--out must name a .gif file, got {args.out!r}")
+        keys, cond = _latent_samples(sub, scene, args.keys, args.seed)
+        z = catmull_rom_loop(keys, args.frames)
+        with torch.no_grad():
+            q = sub(z, None if cond is None else cond[:1].expand(args.frames, -1)).double()
+        bad = (~torch.isfinite(q).all(dim=1)).nonzero().flatten().tolist()
+        if bad:  # animate_states refuses them (a ValueError traceback)
+            error(
+                f"{len(bad)} of {args.frames} frames are NaN or inf (the map's output; first: frame {bad[0]}); no GIF"
+            )
+            return EXIT_NAN
+        path = animate_states(scene, list(q), args.out, fps=args.fps)
+    except KeyboardInterrupt:
+        before = f"; the {Path(args.out).name} there before is unchanged" if Path(args.out).exists() else ""
+        warn(f"interrupted before {args.out} was written{before}; rerun: {args.command_line}")
+        return EXIT_INTERRUPTED
     if args.json:
         json_out({"out": str(path), "frames": args.frames, "keys": keys.tolist()})
     else:
