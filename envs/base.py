@@ -103,7 +103,7 @@ def row_arguments(line: str) -> list[str]:
 
 ACTION_RESOLUTION_WARNING = 0.05
 """An env whose steps cannot feel actions below this fraction of their range (:attr:`LatentSim.action_resolution`)
-warns at its first reset (README "Tolerance")."""
+warns at its first reset (docs/runtime.md, "Tolerance")."""
 USE_RGB_ARRAY = "use render_mode='rgb_array'"
 """What a refused ``render_mode="human"`` advises instead."""
 DISPLAY_VARIABLES = ("DISPLAY", "WAYLAND_DISPLAY", "SDL_VIDEODRIVER")
@@ -876,7 +876,7 @@ class LatentSim:
             warnings.warn(
                 f"{self.torch_dtype} at dt={self.stepper.dt:g} s {felt} (action {int(fractions.argmax())}): such a "
                 "step ends where it started (at best: from the map's origin, along the direction it moves a handle "
-                "most); use dtype='float64' or a longer dt (README 'Tolerance')",
+                "most); use dtype='float64' or a longer dt (docs/runtime.md, 'Tolerance')",
                 stacklevel=2,
             )
         return fractions

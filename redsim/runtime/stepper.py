@@ -52,7 +52,7 @@ DEFAULT_HESSIAN = "lagged_fd"
 """Default Hessian model of the solver (see the measurements in docs/runtime.md, "Solver: which Hessian model")."""
 RESOLUTION_WARNING = 0.01 * 9.81
 """[m/s^2] A stepper whose :attr:`LatentStepper.acceleration_resolution` exceeds this (1% of standard gravity)
-warns at construction: forces that small are not felt (README "Latent runtime", "Tolerance")."""
+warns at construction: forces that small are not felt (README "Latent runtime"; docs/runtime.md, "Tolerance")."""
 ROUNDOFF_TOL = 1.0 / 16.0
 """A ``tol`` below this fraction of the dtype's machine epsilon (float32: 7.5e-9) warns at construction: round-off in
 the reduced force keeps many solves from reaching it within ``max_iter``. Development runs, float32, the envs'
@@ -553,7 +553,8 @@ class LatentStepper:
         self._eps = float(torch.finfo(dtype).eps)
         self.acceleration_resolution = self.tol * self.base_force / float(mass_diagonal)
         """[m/s^2] tol F / |diag M|_2: an acceleration the same at every node that is smaller is not felt (a step
-        ends at its start); one the map projects weakly needs more. Grows as 1 / dt^2 (README "Tolerance")."""
+        ends at its start); one the map projects weakly needs more. Grows as 1 / dt^2
+        (docs/runtime.md, "Tolerance")."""
         handle_jacobian = self._handle_matrix.to(torch.float64) @ columns.T  # dp/dz at z = 0 [H D, d]
         D, F = scene.dim, self.tol * self.jacobian_norm * self.base_force
         blocks = [handle_jacobian[h * D : (h + 1) * D] for h in range(len(scene.handles))]
@@ -566,7 +567,7 @@ class LatentStepper:
                 f"{self.dtype} at dt={self.dt:g} s resolves accelerations only to "
                 f"{self.acceleration_resolution:.3g} m/s^2 (tol {self.tol:g}) at best: smaller forces are not felt, a "
                 "step ends where it starts, and a load on one handle needs more; use dtype=torch.float64 (envs: "
-                "dtype='float64') or a longer dt (README 'Tolerance')",
+                "dtype='float64') or a longer dt (docs/runtime.md, 'Tolerance')",
                 stacklevel=3,
             )
         if self.tol < ROUNDOFF_TOL * self._eps:
@@ -574,7 +575,7 @@ class LatentStepper:
                 f"tol {self.tol:g} is below what {self.dtype}'s round-off lets a solve reach on some scenes "
                 f"(~{ROUNDOFF_TOL * self._eps:.2g}): steps may run max_iter={self.max_iter} iterations and end "
                 "unconverged (StepStats.converged, an env's info['converged'], False); use a larger tol or "
-                "dtype=torch.float64 (envs: dtype='float64') (README 'Tolerance')",
+                "dtype=torch.float64 (envs: dtype='float64') (docs/runtime.md, 'Tolerance')",
                 stacklevel=3,
             )
 

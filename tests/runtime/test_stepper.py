@@ -710,7 +710,7 @@ def test_compiled_step_equals_eager_within_float32_round_off(mini_chain) -> None
     q_want, q_got = eager.positions(want), eager.positions(got)
     motion = float((q_want - eager.positions(z)).abs().max())
     # two float32 solves stopped by tol 1e-6 at different round-off: they agree to the solve tolerance
-    # (one-step errors of 0.2-2.5% of the motion against the float64 reference, README "Tolerance")
+    # (one-step errors of 0.2-2.5% of the motion against the float64 reference, docs/runtime.md, "Tolerance")
     torch.testing.assert_close(q_got, q_want, rtol=0.0, atol=1e-2 * motion)
 
 
