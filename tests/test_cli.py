@@ -11,6 +11,7 @@ import json
 import os
 import subprocess
 import sys
+from pathlib import Path
 
 import pytest
 import torch
@@ -484,6 +485,24 @@ def test_every_path_argument_reads_a_leading_tilde() -> None:
     walk(build_parser())
     assert {"out", "checkpoint", "spec", "mesh", "meshes", "checkpoints"} <= set(paths)
     assert set(paths) <= set(PATH_ARGS), sorted(set(paths) - set(PATH_ARGS))
+
+
+def test_an_env_arg_path_that_starts_with_a_tilde_is_in_the_home_folder(
+    tmp_path: Path, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    """``--env-arg subspace='"~/x.pt"'`` (JSON's quotes keep the shell from the ``~``) was looked for in a folder named
+    ``~``: the env was not made ("the weights file is missing")."""
+    from redsim import pretrained
+    from redsim.cli.common import parse_env_args
+
+    for suffix in (".pt", ".json"):
+        (tmp_path / f"mine{suffix}").write_bytes(pretrained.path("mini_chain").with_suffix(suffix).read_bytes())
+    monkeypatch.setenv("HOME", str(tmp_path))
+    kwargs = parse_env_args(['subspace="~/mine.pt"', "cubature=false"], ["RedSim/MiniChain-v0"])
+    assert kwargs == {"subspace": str(tmp_path / "mine.pt"), "cubature": False}
+    kwargs = parse_env_args(['cubature="~/mine"'], [])  # not made: no env id
+    assert kwargs == {"cubature": str(tmp_path / "mine")}
+    assert parse_env_args(['cubature="lean"'], []) == {"cubature": "lean"}  # a shipped name stays one
 
 
 def test_train_agent_draws_its_progress_bar_on_stderr(capsys: pytest.CaptureFixture[str], tmp_path) -> None:

@@ -334,6 +334,10 @@ NOT_ENV_ARGS = {
 }
 """``gym.make`` keywords that :func:`parse_env_args` refuses, and why."""
 
+PATH_ENV_ARGS = ("subspace", "cubature")
+"""The env keywords that take a path (a checkpoint); :func:`parse_env_args` reads a leading ``~`` in them, as
+:func:`expand_home` does in the command's own path options."""
+
 
 def parse_env_args(
     items: Sequence[str], env_ids: Sequence[str], flag: str = "--env-arg", example: str = "cubature=true"
@@ -341,11 +345,16 @@ def parse_env_args(
     """Env keyword arguments from ``KEY=VALUE`` pairs (VALUE a JSON literal; given with ``flag``), checked by making
     each of ``env_ids`` once with them, so that a bad one is a one-line :class:`CliError` rather than a traceback.
     ``gym.make``'s own ``disable_env_checker`` (the commands make vector envs, which pass every key to the env) and
-    ``render_mode`` (the command picks it) are refused."""
+    ``render_mode`` (the command picks it) are refused. A path (:data:`PATH_ENV_ARGS`) that starts with ``~`` is read
+    as the shell reads one (the quotes JSON needs, ``subspace='"~/runs/x.pt"'``, keep the shell from it; the env takes
+    it as typed, as ``open`` does)."""
     kwargs = parse_params(items, flag, example)
     for key, why in NOT_ENV_ARGS.items():
         if key in kwargs:
             raise CliError(f"{flag} {key}: {why}; drop it")
+    for key in PATH_ENV_ARGS:
+        if isinstance(kwargs.get(key), str) and kwargs[key].startswith("~"):
+            kwargs[key] = os.path.expanduser(kwargs[key])
     if kwargs:
         import gymnasium as gym
 
