@@ -26,9 +26,10 @@ Runs: the latent runtime (:class:`redsim.runtime.LatentStepper`, B = 1, in float
 in float64, which separates the solver's tolerance from the integrator), and the float64 full-space reference
 (:func:`redsim.benches.accuracy.run_full`: Newton to the scene's tolerance). ``idle`` counts the runtime steps
 that took no iteration (the start was already within its tolerance, which grows as 1/h²: the state then does
-not move). With mujoco installed and the chain among the scenes: MuJoCo's 24-capsule chain of
-``redsim bench step`` (ball joints, no joint damping) lifted rigidly about the hook by the angle of the
-full-space chain's loaded tip, at rest, under :data:`MUJOCO_INTEGRATORS` at the same time steps.
+not move); it is None (printed -) on the full-space and MuJoCo rows, as ``unconverged`` is on MuJoCo's. With mujoco
+installed and the chain among the scenes: MuJoCo's 24-capsule chain of ``redsim bench step`` (ball joints, no joint
+damping) lifted rigidly about the hook by the angle of the full-space chain's loaded tip, at rest, under
+:data:`MUJOCO_INTEGRATORS` at the same time steps.
 
 Exit status (``redsim bench stability``): a redsim row (not MuJoCo's: its ``implicit`` chain at 0.02 s gains 3x,
 a fact about MuJoCo) whose ``largest`` exceeds 1 + :data:`GAIN_TOL` gained free energy unforced, a defect of the
@@ -269,7 +270,7 @@ def _scene_rows(
             free,
             seconds,
             unconverged=run.failed,
-            idle=0,
+            idle=None,  # the runtime's count (a full-space step at its start is not idle: it was solved there)
             nan=run.nonfinite,
             wall_s=time.perf_counter() - begin,
         )
@@ -331,8 +332,8 @@ def mujoco_rows(
                         fractions,
                         float(free[0]),
                         seconds,
-                        unconverged=0,
-                        idle=0,
+                        unconverged=None,  # no solve of redsim's to report on
+                        idle=None,
                         nan=nan,
                         wall_s=wall,
                     )
@@ -437,7 +438,8 @@ def damping_table(result: dict[str, Any]) -> list[str]:
     for row in [*result["rows"], *(result["mujoco"] or [])]:
         cells = [row["scene"], row["space"], f"{row['dt']:g}", str(row["steps"]), f"{row['free_energy_J']:.3g}"]
         cells += [f"{row['retained'].get(t, math.nan):.3g}" for t in times]
-        cells += [f"{row['largest']:.3g}", str(row["unconverged"]), str(row["idle"]), str(row["nan"])]
+        counts = (row["unconverged"], row["idle"], row["nan"])
+        cells += [f"{row['largest']:.3g}", *("-" if v is None else str(v) for v in counts)]
         lines.append("| " + " | ".join(cells) + " |")
     notes = []
     if result.get("mujoco_lift_deg") is not None:

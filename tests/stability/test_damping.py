@@ -263,3 +263,17 @@ def test_cloth_ball_rest_converges_and_the_push_has_no_equilibrium() -> None:
     assert not loaded_ok and float(ball[0, 1]) > -0.2 and float(ball[1, 1]) < -1.0, ball
     energies = scene.energy(torch.stack([q_rest, q0]))
     assert float(energies[1]) < float(energies[0]) - 10.0, energies
+
+
+def test_counts_a_row_does_not_make_print_dash(mini_chain: tuple) -> None:
+    """The full-space rows printed ``idle`` 0 and MuJoCo's ``unconverged`` and ``idle`` 0: counts never taken (idle is
+    the runtime's; MuJoCo has no solve of redsim's). They are None and read -."""
+    scene, f, start = mini_chain
+    rows = damping.scene_rows(scene, f, seconds=0.02, divisions=(1,), full_divisions=(1,), start=start)
+    full = next(r for r in rows if r["space"] == "full f64")
+    assert full["idle"] is None and full["unconverged"] == 0
+    mujoco = damping.mujoco_rows(0.5, seconds=0.02, divisions=(1,)) or []
+    assert all(r["unconverged"] is None and r["idle"] is None for r in mujoco)
+    lines = damping.damping_table({"rows": rows, "mujoco": mujoco, "seconds": 0.02, "starts_unconverged": {}})
+    assert next(line for line in lines if "| full f64 |" in line).endswith("| 0 | - | 0 |")
+    assert all(line.endswith("| - | - | 0 |") for line in lines if "| MuJoCo " in line)
