@@ -194,3 +194,35 @@ def test_a_logged_warning_is_the_same_one_line_as_a_python_warning(tmp_path: Pat
         "redsim: warning: could not write the rest cache file",
         "redsim: INFO: redsim.usercache: looked",
     ]
+
+
+def test_a_warning_logged_at_every_step_is_said_once_with_its_count_at_the_end(tmp_path: Path) -> None:
+    """A library's log warning repeated at every step printed one ``redsim: warning: ...`` line per step (Python's
+    warnings were said once, logged ones not); a different one is still said."""
+    code = (
+        "import logging, sys\n"
+        "from redsim.cli import cache, main\n"
+        "usage = cache.user_cache_usage\n"
+        "def logging_usage(*args, **kwargs):\n"
+        "    log = logging.getLogger('redsim.integrators.implicit_euler')\n"
+        "    for step in range(5):\n"
+        "        log.warning('the step did not converge')\n"
+        "    log.warning('another warning')\n"
+        "    log.info('step')\n"
+        "    log.info('step')\n"
+        "    return usage(*args, **kwargs)\n"
+        "cache.user_cache_usage = logging_usage\n"
+        "sys.exit(main(sys.argv[1:]))\n"
+    )
+    env = {**os.environ, "REDSIM_CACHE": str(tmp_path)}
+    done = subprocess.run(
+        [sys.executable, "-c", code, "-v", "cache", "info"], capture_output=True, text=True, timeout=120, env=env
+    )
+    assert done.returncode == 0, done.stderr
+    assert done.stderr.splitlines() == [
+        "redsim: warning: the step did not converge",
+        "redsim: warning: another warning",
+        "redsim: INFO: redsim.integrators.implicit_euler: step",
+        "redsim: INFO: redsim.integrators.implicit_euler: step",
+        "redsim: warning: the step did not converge (logged 5 times, shown once above)",
+    ]

@@ -87,6 +87,7 @@ def _run(argv: Sequence[str] | None) -> int:
         handler = logging.StreamHandler()
         handler.setFormatter(LogFormat())
         logging.basicConfig(level=logging.INFO if args.verbose else logging.WARNING, handlers=[handler])
+    said_once = WarnedOnce.install()
     terminate = _interrupt_on_sigterm()
     try:
         with command_threads(args), warnings.catch_warnings():  # the CLI says it in one line (parse_env_id)
@@ -120,6 +121,8 @@ def _run(argv: Sequence[str] | None) -> int:
     finally:
         if terminate is not None:
             signal.signal(signal.SIGTERM, terminate)
+        if said_once is not None:
+            said_once.uninstall()
 
 
 class LogFormat(logging.Formatter):
@@ -134,6 +137,43 @@ class LogFormat(logging.Formatter):
         if record.levelno == logging.WARNING:
             return f"redsim: warning: {record.message}"
         return super().formatMessage(record)
+
+
+class WarnedOnce(logging.Filter):
+    """Each logged warning line once per run on the command line's log handler (:class:`LogFormat`): one a library
+    logs at every step said it hundreds of times. A Python warning is said once already
+    (:func:`redsim.cli.common.show_warning`); the count of each repeated one is said at the end."""
+
+    def __init__(self, handler: logging.Handler) -> None:
+        super().__init__()
+        self.handler = handler
+        self.times: dict[str, int] = {}
+        """Each warning's message -> the times it was logged."""
+
+    @classmethod
+    def install(cls) -> WarnedOnce | None:
+        """Filter the command line's log handler for this run; None where the root logger has none (a caller's own
+        logging setup: a notebook, pytest)."""
+        handler = next((h for h in logging.root.handlers if isinstance(h.formatter, LogFormat)), None)
+        if handler is None:
+            return None
+        said = cls(handler)
+        handler.addFilter(said)
+        return said
+
+    def filter(self, record: logging.LogRecord) -> bool:
+        if record.levelno != logging.WARNING:
+            return True
+        text = record.getMessage()
+        self.times[text] = self.times.get(text, 0) + 1
+        return self.times[text] == 1
+
+    def uninstall(self) -> None:
+        """Say each repeated warning's count, and take the filter off."""
+        self.handler.removeFilter(self)
+        for text, times in self.times.items():
+            if times > 1:
+                warn(f"{text.splitlines()[0]} (logged {times} times, shown once above)")
 
 
 def _out_of_memory(err: BaseException) -> bool:
