@@ -171,26 +171,36 @@ def test_a_warning_in_a_bench_s_spawned_process_is_one_line(cli: Cli) -> None:
     assert err.count("\n") == 1 and err.startswith("redsim: warning: torch.float32 at dt=0.02 s resolves"), err
 
 
-def test_a_logged_warning_is_the_same_one_line_as_a_python_warning(tmp_path: Path) -> None:
-    """A library's log warning (SB3 rollout rounding, an unreadable cache file) read ``redsim: WARNING:
-    redsim.usercache: ...``, unlike every other warning line; ``-v`` progress keeps its logger's name."""
+def logged_in_cache_info(logging_lines: str, cache: Path) -> list[str]:
+    """The stderr lines of ``redsim -v cache info`` (of the cache folder ``cache``), run in a new process whose
+    command first runs ``logging_lines`` (Python lines, each indented by 4): the command line's own log handler,
+    which an in-process run (pytest's handlers) does not get."""
     code = (
         "import logging, sys\n"
         "from redsim.cli import cache, main\n"
         "usage = cache.user_cache_usage\n"
         "def logging_usage(*args, **kwargs):\n"
-        "    logging.getLogger('redsim.usercache').warning('could not write the %s cache file', 'rest')\n"
-        "    logging.getLogger('redsim.usercache').info('looked')\n"
+        f"{logging_lines}"
         "    return usage(*args, **kwargs)\n"
         "cache.user_cache_usage = logging_usage\n"
         "sys.exit(main(sys.argv[1:]))\n"
     )
-    env = {**os.environ, "REDSIM_CACHE": str(tmp_path)}
+    env = {**os.environ, "REDSIM_CACHE": str(cache)}
     done = subprocess.run(
         [sys.executable, "-c", code, "-v", "cache", "info"], capture_output=True, text=True, timeout=120, env=env
     )
     assert done.returncode == 0, done.stderr
-    assert done.stderr.splitlines() == [
+    return done.stderr.splitlines()
+
+
+def test_a_logged_warning_is_the_same_one_line_as_a_python_warning(tmp_path: Path) -> None:
+    """A library's log warning (SB3 rollout rounding, an unreadable cache file) read ``redsim: WARNING:
+    redsim.usercache: ...``, unlike every other warning line; ``-v`` progress keeps its logger's name."""
+    lines = (
+        "    logging.getLogger('redsim.usercache').warning('could not write the %s cache file', 'rest')\n"
+        "    logging.getLogger('redsim.usercache').info('looked')\n"
+    )
+    assert logged_in_cache_info(lines, tmp_path) == [
         "redsim: warning: could not write the rest cache file",
         "redsim: INFO: redsim.usercache: looked",
     ]
@@ -198,28 +208,16 @@ def test_a_logged_warning_is_the_same_one_line_as_a_python_warning(tmp_path: Pat
 
 def test_a_warning_logged_at_every_step_is_said_once_with_its_count_at_the_end(tmp_path: Path) -> None:
     """A library's log warning repeated at every step printed one ``redsim: warning: ...`` line per step (Python's
-    warnings were said once, logged ones not); a different one is still said."""
-    code = (
-        "import logging, sys\n"
-        "from redsim.cli import cache, main\n"
-        "usage = cache.user_cache_usage\n"
-        "def logging_usage(*args, **kwargs):\n"
+    warnings were said once, logged ones not); a different one is still said, and -v's progress lines each time."""
+    lines = (
         "    log = logging.getLogger('redsim.integrators.implicit_euler')\n"
         "    for step in range(5):\n"
         "        log.warning('the step did not converge')\n"
         "    log.warning('another warning')\n"
         "    log.info('step')\n"
         "    log.info('step')\n"
-        "    return usage(*args, **kwargs)\n"
-        "cache.user_cache_usage = logging_usage\n"
-        "sys.exit(main(sys.argv[1:]))\n"
     )
-    env = {**os.environ, "REDSIM_CACHE": str(tmp_path)}
-    done = subprocess.run(
-        [sys.executable, "-c", code, "-v", "cache", "info"], capture_output=True, text=True, timeout=120, env=env
-    )
-    assert done.returncode == 0, done.stderr
-    assert done.stderr.splitlines() == [
+    assert logged_in_cache_info(lines, tmp_path) == [
         "redsim: warning: the step did not converge",
         "redsim: warning: another warning",
         "redsim: INFO: redsim.integrators.implicit_euler: step",
