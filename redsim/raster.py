@@ -289,6 +289,21 @@ FILL_PIXELS = 2_000_000
 large batch of large frames keeps its per-pixel index arrays [F * H * W] small (8 frames at 480 x 480)."""
 
 
+DEFAULT_AZIMUTH = 30.0
+"""A 3D view's turn about +y [deg] where none is given (:class:`SceneView`)."""
+DEFAULT_ELEVATION = 20.0
+"""A 3D view's tilt down [deg] where none is given (:class:`SceneView`)."""
+
+
+def camera_rotation(azimuth: float, elevation: float) -> np.ndarray:
+    """World -> camera rotation [3, 3] of a 3D view (camera x right, y up, z towards the viewer): a turn of
+    ``azimuth`` [deg] about +y (0 looks along -z), then a tilt down by ``elevation`` [deg]."""
+    a, e = math.radians(azimuth), math.radians(elevation)
+    turn = np.array([[math.cos(a), 0.0, -math.sin(a)], [0.0, 1.0, 0.0], [math.sin(a), 0.0, math.cos(a)]])
+    tilt = np.array([[1.0, 0.0, 0.0], [0.0, math.cos(e), -math.sin(e)], [0.0, math.sin(e), math.cos(e)]])
+    return tilt @ turn
+
+
 class SceneView:
     """A fixed orthographic camera on one scene, framed on a reference state.
 
@@ -315,8 +330,8 @@ class SceneView:
         *,
         width: int = 480,
         height: int = 480,
-        azimuth: float = 30.0,
-        elevation: float = 20.0,
+        azimuth: float = DEFAULT_AZIMUTH,
+        elevation: float = DEFAULT_ELEVATION,
         margin: float = 0.25,
         extra_points: np.ndarray | None = None,
         merge_px: float = MERGE_PX,
@@ -339,13 +354,7 @@ class SceneView:
         self._colours = [
             np.array(SURFACE_COLOURS[i % len(SURFACE_COLOURS)], dtype=np.float64) for i in range(len(scene.surfaces))
         ]
-        if self.dim == 3:
-            a, e = math.radians(azimuth), math.radians(elevation)
-            turn = np.array([[math.cos(a), 0.0, -math.sin(a)], [0.0, 1.0, 0.0], [math.sin(a), 0.0, math.cos(a)]])
-            tilt = np.array([[1.0, 0.0, 0.0], [0.0, math.cos(e), -math.sin(e)], [0.0, math.sin(e), math.cos(e)]])
-            self._rotation = tilt @ turn  # world -> camera (x right, y up, z towards the viewer)
-        else:
-            self._rotation = np.eye(2)
+        self._rotation = camera_rotation(azimuth, elevation) if self.dim == 3 else np.eye(2)
         points = np.concatenate(self.surface_points(q_frame))
         if extra_points is not None and len(extra_points):
             points = np.concatenate([points, np.asarray(extra_points, dtype=np.float64).reshape(-1, self.dim)])
@@ -568,4 +577,15 @@ class SceneView:
         return float(x), float(y)
 
 
-__all__ = ["HANDLE_RGB", "MERGE_PX", "TARGET_RGB", "Arrow", "Marker", "SceneView", "merge_close_vertices"]
+__all__ = [
+    "DEFAULT_AZIMUTH",
+    "DEFAULT_ELEVATION",
+    "HANDLE_RGB",
+    "MERGE_PX",
+    "TARGET_RGB",
+    "Arrow",
+    "Marker",
+    "SceneView",
+    "camera_rotation",
+    "merge_close_vertices",
+]

@@ -315,6 +315,31 @@ def test_demo_draws_the_last_state_where_the_episode_ends_between_kept_frames(tm
     np.testing.assert_array_equal(picture[:, 64:], env.render())
 
 
+def test_the_chain_demo_at_the_readme_seed_sees_the_reach_side_on(tmp_path: Path) -> None:
+    """At seed 0 (the README's demo) Chain-v0's target lies along its camera's line of sight from the chain's rest
+    end, so chain.png's two frames looked alike: the demo turns the camera to see the goal handle's motion side-on,
+    and keeps an azimuth a user gives."""
+    import gymnasium as gym
+
+    from redsim.envs.demo import run_demo
+    from redsim.raster import camera_rotation
+
+    env = gym.make("RedSim/Chain-v0")
+    env.reset(seed=0)
+    handle, target = env.unwrapped.sim.marker_points((0,))
+    reach = target - handle  # where the goal handle goes
+
+    def seen(camera: dict[str, Any]) -> float:  # the fraction of the reach's length on screen
+        return float(np.linalg.norm((camera_rotation(camera["azimuth"], camera["elevation"]) @ reach)[:2]))
+
+    own = env.unwrapped.camera
+    assert seen(own) < 0.3 * np.linalg.norm(reach)
+    small = {"steps": 30, "frame_every": 30, "width": 48, "height": 48}
+    turned = run_demo("RedSim/Chain-v0", tmp_path, **small)["camera"]
+    assert seen(turned) > 0.9 * np.linalg.norm(reach) and turned["elevation"] == own["elevation"]
+    assert run_demo("RedSim/Chain-v0", tmp_path, camera={"azimuth": 30.0}, **small)["camera"]["azimuth"] == 30.0
+
+
 def test_demo_files_of_two_versions_do_not_overwrite_each_other() -> None:
     from redsim.envs.demo import demo_name
 
