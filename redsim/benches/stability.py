@@ -639,10 +639,11 @@ class _EnvLedger:
         slack = RISE_SLACK * torch.maximum(torch.maximum(before.abs(), after.abs()), torch.ones_like(after))
         return after - before - power, slack, after
 
-    def step(self, reported: Tensor, tolerance: Tensor) -> tuple[int, int, int, int]:
+    def step(self, reported: Tensor, tolerance: Tensor) -> tuple[int, int, np.ndarray, int]:
         """Account for one step of every copy, whose ``energy_gain`` tests allowed rises of ``tolerance`` [N] [J];
-        returns (unreported rises, rises above the slack within that tolerance, non-finite copies, unflagged rises
-        of the scene's energy that the cubature's does not show: 0 without a cubature)."""
+        returns (unreported rises, rises above the slack within that tolerance, the copies [N] (bool) whose state or
+        K + E is not finite, unflagged rises of the scene's energy that the cubature's does not show: 0 without a
+        cubature)."""
         z_next, q_next = self.state()
         loads = self.sim.loads.to(torch.float64).reshape(q_next.shape[0], -1)
         if self.scene.handles:
@@ -666,7 +667,7 @@ class _EnvLedger:
             self.max_energy = max(self.max_energy, float((after - self.start)[finite].max()))
             self.max_work = max(self.max_work, float(self.work[finite].max()))
         self.z, self.q_prev, self.q = z_next, self.q, q_next
-        return unreported, int(excused.sum()), int((~finite).sum()), hidden
+        return unreported, int(excused.sum()), (~finite).cpu().numpy(), hidden
 
     def reset(self, rows: np.ndarray) -> None:
         """Copies ``rows`` restarted at rest."""
@@ -736,8 +737,8 @@ def fuzz_env(
         unreported, excused, nonfinite, hidden = account.step(torch.as_tensor(bad | gain), tolerance)
         counts["hidden"] += hidden
         counts["gains"] += int(gain.sum())
-        counts["nan"] += nonfinite + int((~np.isfinite(obs)).any(-1).sum() + (~np.isfinite(reward)).sum())
-        counts["nan"] += int((~np.isfinite(info["energy"])).sum())
+        nonfinite |= ~np.isfinite(obs).all(-1) | ~np.isfinite(reward) | ~np.isfinite(info["energy"])
+        counts["nan"] += int(nonfinite.sum())  # copies, each once (a NaN state shows in its obs and energy too)
         counts["unreported"] += unreported
         counts["excused"] += excused
         counts["out_of_range"] += int(np.asarray(info["out_of_range"]).sum())

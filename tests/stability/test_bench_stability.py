@@ -383,3 +383,24 @@ def test_a_count_a_space_does_not_make_reads_dash_not_zero() -> None:
     assert cells["idle steps"] == "-" and cells["out of range"] == "-" and cells["tunnels caught"] == "0"
     cells = dict(zip(header.split(" | "), latent_line.split(" | "), strict=True))
     assert cells["tunnels caught"] == "-" and cells["idle steps"] == "0"
+
+
+def test_the_fuzz_counts_a_non_finite_copy_once(monkeypatch: pytest.MonkeyPatch) -> None:
+    """A copy whose observation, reward and energy were all NaN in one step counted 3 in ``nan`` (each source added
+    its own count); it is one copy-step."""
+    import gymnasium as gym
+
+    make_vec = gym.make_vec
+
+    class Poisoned(gym.vector.VectorWrapper):
+        def step(self, actions):  # copy 0's first step: NaN everywhere the fuzz looks but the state itself
+            obs, reward, terminated, truncated, info = self.env.step(actions)
+            if not getattr(self, "done", False):
+                self.done = True
+                obs, reward, info = obs.copy(), reward.copy(), dict(info, energy=np.array(info["energy"], copy=True))
+                obs[0, 0], reward[0], info["energy"][0] = np.nan, np.nan, np.nan
+            return obs, reward, terminated, truncated, info
+
+    monkeypatch.setattr(gym, "make_vec", lambda *a, **k: Poisoned(make_vec(*a, **k)))
+    row = stability.fuzz_env("RedSim/MiniChain-v0", 8, num_envs=4)
+    assert row["nan"] == 1 and row["steps"] == 8
