@@ -13,8 +13,10 @@ Everything here is plain numpy at build time (scenes convert to torch once). Con
 from __future__ import annotations
 
 import hashlib
+import io
 import math
 import os
+import re
 from collections.abc import Sequence
 from pathlib import Path
 from typing import TYPE_CHECKING
@@ -492,7 +494,13 @@ def load_mesh(path: str | os.PathLike[str]) -> trimesh.Trimesh:
     try:
         # as written: no vertex dropped (a NaN one, an unreferenced one) nor reordered, so the checks below see
         # the file's vertices and pin indices count in the file's numbering (the scene builders weld duplicates)
-        mesh = trimesh.load(p, force="mesh", process=False, maintain_order=True)
+        options = {"force": "mesh", "process": False, "maintain_order": True}
+        absolute = absolute_obj_indices(p.read_bytes()) if p.suffix.lower() == ".obj" else None
+        if absolute is None:
+            mesh = trimesh.load(p, **options)
+        else:  # its materials (mtllib) are still found beside it
+            resolver = trimesh.resolvers.FilePathResolver(p)
+            mesh = trimesh.load(io.BytesIO(absolute), file_type="obj", resolver=resolver, **options)
     except Exception as exc:
         hint = f"; {TET_FILE_HINT}" if p.suffix.lower() in TET_MESH_SUFFIXES else ""
         raise ValueError(f"could not read mesh file {str(p)!r}: {type(exc).__name__}: {exc}{hint}") from exc
@@ -503,6 +511,50 @@ def load_mesh(path: str | os.PathLike[str]) -> trimesh.Trimesh:
     if not bool(np.isfinite(mesh.vertices).all()):
         raise ValueError(f"{str(p)!r} has non-finite vertex coordinates")
     return mesh
+
+
+OBJ_ELEMENTS = (b"v", b"vt", b"vn")
+"""What a face's ``v/vt/vn`` references count, each in its own list."""
+
+
+def absolute_obj_indices(text: bytes) -> bytes | None:
+    """An OBJ file's ``text`` with its relative (negative) face indices made absolute, or None where it has none.
+
+    In the OBJ format ``-k`` is the k-th last ``v`` (``vt``, ``vn``) declared above the face line. trimesh resolves
+    it against the whole file's list instead (wrong where vertices and faces interleave: trimesh issue #2364), and
+    with texture or normal references and ``maintain_order=True`` it fails ("IndexError: index -4 is out of bounds
+    for axis 0 with size 0").
+    """
+    if re.search(rb"^[ \t]*f[ \t][^\n#]*-\d", text, re.MULTILINE) is None:
+        return None
+    counts = dict.fromkeys(OBJ_ELEMENTS, 0)
+    lines = text.split(b"\n")
+    for n, line in enumerate(lines):
+        words = line.split(b"#", 1)[0].split()
+        if words and words[0] in counts:
+            counts[words[0]] += 1
+        elif words and words[0] == b"f":
+            references = [
+                b"/".join(
+                    _absolute_reference(index, kind, counts[kind], n + 1) if index.startswith(b"-") else index
+                    for kind, index in zip(OBJ_ELEMENTS, word.split(b"/"), strict=False)
+                )
+                for word in words[1:]
+            ]
+            lines[n] = b" ".join([b"f", *references])
+    return b"\n".join(lines)
+
+
+def _absolute_reference(index: bytes, kind: bytes, declared: int, line: int) -> bytes:
+    """The 1-based index of the relative reference ``index`` (-1: the last) to the ``declared`` ``kind`` elements
+    above face line ``line``; a ValueError naming the line where it reaches past the first."""
+    absolute = declared + int(index) + 1
+    if absolute < 1:
+        raise ValueError(
+            f"line {line}: face index {index.decode()} refers past the first {kind.decode()} ({declared} declared "
+            "above it)"
+        )
+    return str(absolute).encode()
 
 
 TET_FILE_HINT = (

@@ -277,6 +277,26 @@ def test_garbage_mesh_file(tmp_path, suffix: str) -> None:
         redsim.scenes.fem_scene_from_mesh(empty)
 
 
+def test_an_obj_with_relative_face_indices_loads_its_faces_on_the_vertices_above_them(tmp_path) -> None:
+    """OBJ faces may count back from the last vertex declared above them (-1: the last). trimesh resolved them
+    against the whole file, so a second tet's corners declared after the first tet's faces took those faces, and
+    with texture and normal references it failed (IndexError) under the loader's maintain_order=True."""
+    faces = ["-4 -2 -3", "-4 -3 -1", "-4 -1 -2", "-3 -2 -1"]  # a tet on the 4 corners above
+    expected = [(0, 1, 2), (0, 1, 3), (0, 2, 3), (1, 2, 3), (4, 5, 6), (4, 5, 7), (4, 6, 7), (5, 6, 7)]
+    for name, extras, reference in (("plain", "", "{}"), ("uv_normals", "vt 0 0\nvn 0 0 1\n", "{}/-1/-1")):
+        text = ""
+        for x in (0, 2):  # two tets, each right after its own corners
+            text += f"v {x} 0 0\nv {x + 1} 0 0\nv {x} 1 0\nv {x} 0 1\n" + extras
+            text += "".join("f " + " ".join(reference.format(i) for i in face.split()) + "\n" for face in faces)
+        (tmp_path / f"{name}.obj").write_text(text)
+        mesh = meshes.load_mesh(tmp_path / f"{name}.obj")
+        assert mesh.vertices[:4, 0].max() <= 1.0 and mesh.vertices[4:, 0].min() >= 2.0, name
+        assert sorted(map(tuple, np.sort(mesh.faces, axis=1).tolist())) == expected, name
+    (tmp_path / "past.obj").write_text("v 0 0 0\nv 1 0 0\nv 0 1 0\nf -1 -2 -4\n")
+    with pytest.raises(ValueError, match=r"past\.obj.*line 4: face index -4 refers past the first v \(3 declared"):
+        meshes.load_mesh(tmp_path / "past.obj")
+
+
 def test_open_mesh_is_not_a_solid(tmp_path) -> None:
     vertices, triangles = meshes.cloth_grid(1.0, 1.0, (4, 4))
     path = tmp_path / "sheet.obj"
