@@ -1059,6 +1059,13 @@ def report(result: dict[str, Any], machine: str) -> str:
         for row in result["rows"]:  # a configuration whose solve raised: the others ran
             if row["scenario"] == scenario and row.get("error"):
                 lines.append(f"note: {row['config']} raised {row['error']}: its row reads nan (the command fails)")
+        wild = [r for r in measured if r is not ref and r.get("implausible")]
+        for row in wild:  # a loosened full-space run that left the scene (its table row has no column for it)
+            lines.append(
+                f"note: {row['config']} made {row['implausible']} of its {row['steps_run']} steps that moved a "
+                f"coordinate more than {MAX_STEP_SIZES:g}x the scene's size (redsim.plausibility.step_failure): its "
+                "errors are those of a motion the scene cannot make"
+            )
         through = [r for r in measured if r is not ref and r.get("tunneled")]
         for row in through:  # a loosened full-space run (dt x5 through the mini chain's hook): not the scene's motion
             lines.append(
