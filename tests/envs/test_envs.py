@@ -727,6 +727,19 @@ def test_a_spec_made_with_torch_or_numpy_dtypes_a_device_or_a_path_is_json_and_r
     assert gym.make_vec(spec, 2, "vector_entry_point").metadata["autoreset_mode"] == AutoresetMode.SAME_STEP
 
 
+def test_gymnasiums_sync_vector_env_records_a_json_spec_with_dtype_by_name() -> None:
+    """``gym.make_vec(id, N, "sync")`` (or ``"async"``) writes its spec in Gymnasium's own code from the kwargs as
+    given, where redsim cannot put them in JSON form: ``dtype=torch.float64`` there makes ``spec.to_json()`` a
+    TypeError (Gymnasium's), and ``dtype="float64"``, the form the env docs give, is JSON and remakes float64 copies."""
+    venv = gym.make_vec("RedSim/MiniChain-v0", 2, "sync", dtype="float64")
+    spec = EnvSpec.from_json(venv.spec.to_json())
+    assert spec.kwargs["dtype"] == "float64" and spec.kwargs["vectorization_mode"] == "sync"
+    again = gym.make_vec(spec)
+    assert [env.unwrapped.sim.torch_dtype for env in again.envs] == [torch.float64] * 2
+    venv.close()
+    again.close()
+
+
 def test_a_spec_made_with_numpy_scalars_is_json_and_remakes_the_env() -> None:
     """NumPy scalars (a sweep's ``frame_skip=np.int64(2)``, a camera angle of float32) are recorded as the Python
     numbers they hold: ``spec.to_json()`` raised "Object of type int64 is not JSON serializable"."""
