@@ -172,11 +172,13 @@ def run_demo(
 
 def _marker_motion(sim: Any, first: Any, last: Any) -> np.ndarray | None:
     """Displacements [P, D] [m] of the overlay markers from the state ``first`` to ``last``
-    (:meth:`LatentSim.snapshot`), or None without markers. The simulation is left at ``last``."""
+    (:meth:`LatentSim.snapshot`), or None without markers (or not the same ones in both). The simulation is left at
+    ``last``."""
     sim.restore(first)
     start = sim.marker_points((0,))
     sim.restore(last)
-    return None if start is None else sim.marker_points((0,)) - start
+    end = sim.marker_points((0,))
+    return None if start is None or end is None or start.shape != end.shape else end - start
 
 
 def _draw(sim: Any, kept: list[Any], width: int, height: int, camera: dict[str, Any]) -> list[np.ndarray]:
