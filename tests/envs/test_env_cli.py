@@ -340,6 +340,23 @@ def test_the_chain_demo_at_the_readme_seed_sees_the_reach_side_on(tmp_path: Path
     assert run_demo("RedSim/Chain-v0", tmp_path, camera={"azimuth": 30.0}, **small)["camera"]["azimuth"] == 30.0
 
 
+def test_the_demo_keeps_the_camera_where_the_markers_at_the_ends_differ() -> None:
+    """Markers that are not the same ones at the first and last state give no motion (it was a broadcast difference
+    or a shape-mismatch error)."""
+    from redsim.envs.demo import _marker_motion
+
+    class Sim:  # restore() sets the marker points marker_points() gives
+        def restore(self, points: np.ndarray | None) -> None:
+            self.points = points
+
+        def marker_points(self, rows: tuple[int, ...]) -> np.ndarray | None:
+            return self.points
+
+    two, one = np.zeros((2, 3)), np.ones((1, 3))
+    assert _marker_motion(Sim(), two, one) is None and _marker_motion(Sim(), None, one) is None
+    np.testing.assert_array_equal(_marker_motion(Sim(), two, two + 1.0), np.ones((2, 3)))
+
+
 def test_demo_files_of_two_versions_do_not_overwrite_each_other() -> None:
     from redsim.envs.demo import demo_name
 
