@@ -485,6 +485,40 @@ def test_any_interrupted_command_exits_130_with_one_line_and_no_traceback(
     assert (code, out, err) == (130, "", "redsim: warning: interrupted\n")
 
 
+INTERRUPTED_IMPORT = """
+import sys
+
+class CtrlC:
+    \"\"\"Ctrl-C as the module {name!r} is about to load.\"\"\"
+
+    def find_spec(self, name, path=None, target=None):
+        if name == {name!r}:
+            raise KeyboardInterrupt
+        return None
+
+sys.meta_path.insert(0, CtrlC())
+from redsim.cli import main
+sys.exit(main(["scenes"]))
+"""
+"""A ``redsim scenes`` run whose Ctrl-C comes as the module ``name`` loads: its ``import redsim.cli.bench``, say."""
+
+
+@pytest.mark.parametrize("module", ["redsim.cli.parser", "redsim.cli.common", "redsim.cli.bench"])
+def test_a_ctrl_c_while_the_command_line_loads_is_one_line_and_exit_130(module: str) -> None:
+    """The command line's modules loaded at ``from redsim.cli import main``, before main could catch anything: a Ctrl-C
+    in that first tenth of a second printed a traceback of the imports (the process died of SIGINT)."""
+    argv = [sys.executable, "-c", INTERRUPTED_IMPORT.format(name=module)]
+    done = subprocess.run(argv, capture_output=True, text=True, timeout=120)
+    assert (done.returncode, done.stdout, done.stderr) == (130, "", "redsim: warning: interrupted\n")
+
+
+def test_a_ctrl_c_while_the_parser_is_built_is_one_line_and_exit_130(cli: Cli, monkeypatch: pytest.MonkeyPatch) -> None:
+    from redsim.cli import parser
+
+    monkeypatch.setattr(parser, "build_parser", _interrupted)
+    assert cli("scenes") == (130, "", "redsim: warning: interrupted\n")
+
+
 def _mini_chain_copy(folder: Path) -> Path:
     """The shipped mini_chain map's .pt and .json copied into ``folder``; returns its .pt."""
     from redsim import pretrained

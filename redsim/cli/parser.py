@@ -62,11 +62,15 @@ def main(argv: Sequence[str] | None = None) -> int:
     Python warnings are shown as one ``redsim: warning: ...`` line each (:func:`redsim.cli.common.show_warning`),
     each line once per run, while it runs; the caller's ``warnings.showwarning`` and filters are back when it returns.
     """
-    if argv is None:  # the command line's own stdout, not an in-process caller's
-        _stdout_writes_any_character()
-    with warnings.catch_warnings():  # restores showwarning (and the filters) on return: tests call main in-process
-        warnings.showwarning = functools.partial(show_warning, said=set())  # a partial adds no frame to walk
-        return _run(argv)
+    try:
+        if argv is None:  # the command line's own stdout, not an in-process caller's
+            _stdout_writes_any_character()
+        with warnings.catch_warnings():  # restores showwarning (and the filters) on return: tests call main in-process
+            warnings.showwarning = functools.partial(show_warning, said=set())  # a partial adds no frame to walk
+            return _run(argv)
+    except KeyboardInterrupt:  # outside a command: while the parser is built or a command's options load (fit's torch)
+        warn("interrupted")
+        return EXIT_INTERRUPTED
 
 
 def _run(argv: Sequence[str] | None) -> int:
@@ -79,9 +83,6 @@ def _run(argv: Sequence[str] | None) -> int:
     except CliError as err:
         error(str(err))
         return err.code
-    except KeyboardInterrupt:  # while a command's options load (Parser.add_later: fit's import torch)
-        warn("interrupted")
-        return EXIT_INTERRUPTED
     args.command_line = shlex.join(["redsim", *(sys.argv[1:] if argv is None else argv)])  # said with "rerun: "
     if not logging.root.handlers:  # as basicConfig: a caller's own logging setup (a notebook, pytest) stays
         handler = logging.StreamHandler()
