@@ -238,13 +238,14 @@ class Run:
         times: Reference step index of each row of q, int64 [T + 1].
         step_s: Wall time of each step [s].
         stride: Reference steps per step (the dt multiple).
-        failed: Steps the solver reported as not converged.
-        flagged: Steps the runtime flagged ``diverged`` (latent runs).
-        out_of_range: Steps flagged ``out_of_range`` (latent runs).
+        failed: Steps the solver reported as not converged (None: a run that solves nothing, :data:`NO_MOTION`).
+        flagged: Steps the runtime flagged ``diverged`` (None: not a runtime run, which has no such flag).
+        out_of_range: Steps flagged ``out_of_range`` (None: not a runtime run).
         nonfinite: Steps whose state was not finite (must be 0).
         idle: Steps under a load that the solver accepted without an iteration where it began (a latent step: at
             z_t, not at a start that moves): the start was already within its tolerance, so a loose ``tol`` can
-            leave the scene where it was (the row is then not a faster solve of the same motion).
+            leave the scene where it was (the row is then not a faster solve of the same motion). None: not counted
+            (the converged latent reference, :data:`NO_MOTION`).
         implausible: Full-space steps that moved a coordinate further than the scene can
             (:func:`redsim.plausibility.step_failure`: loads far beyond what it takes).
         tunneled: Full-space steps that passed through a contact (``StepInfo.tunneled``: the solve again within a
@@ -260,11 +261,11 @@ class Run:
     times: Tensor
     step_s: list[float]
     stride: int = 1
-    failed: int = 0
-    flagged: int = 0
-    out_of_range: int = 0
+    failed: int | None = 0
+    flagged: int | None = None
+    out_of_range: int | None = None
     nonfinite: int = 0
-    idle: int = 0
+    idle: int | None = None
     implausible: int = 0
     tunneled: int = 0
     caught: int = 0
@@ -373,7 +374,18 @@ def full_steps(
         for _ in range(stride):
             yield
     index = torch.arange(len(qs), dtype=torch.int64) * stride
-    return Run(torch.stack(qs), index, times, stride, failed, 0, 0, nonfinite, idle, implausible, tunneled, caught)
+    return Run(
+        torch.stack(qs),
+        index,
+        times,
+        stride,
+        failed,
+        nonfinite=nonfinite,
+        idle=idle,
+        implausible=implausible,
+        tunneled=tunneled,
+        caught=caught,
+    )
 
 
 def run_latent_reference(scene: Scene, subspace: nn.Module, z0: Tensor, loads: Tensor, *, dt: float = DT) -> Run:
@@ -397,7 +409,7 @@ def latent_reference_steps(scene: Scene, subspace: nn.Module, z0: Tensor, loads:
     with torch.no_grad():
         q = space.configuration(torch.stack(zs))
     nonfinite = int((~torch.isfinite(q).all(-1)).sum())
-    return Run(q, torch.arange(q.shape[0]), times, 1, failed, 0, 0, nonfinite)
+    return Run(q, torch.arange(q.shape[0]), times, 1, failed, nonfinite=nonfinite)
 
 
 def run_runtime(stepper: LatentStepper, z0: Tensor, loads: Tensor) -> Run:
@@ -844,7 +856,7 @@ NO_MOTION = "no motion (stays at its start)"
 def _still(reference: Run) -> Run:
     """A run that stays at the reference's start, at its times (no time per step: NaN)."""
     q = reference.q[:1].expand_as(reference.q).clone()
-    return Run(q, reference.times, [math.nan] * len(reference.step_s), reference.stride)
+    return Run(q, reference.times, [math.nan] * len(reference.step_s), reference.stride, failed=None)
 
 
 def _prefix(run: Run, steps: int) -> Run:
@@ -924,7 +936,8 @@ A NaN anywhere else is a measured value that is not finite (a run that diverged)
 
 
 def markdown_table(result: dict[str, Any], scenario: str) -> str:
-    """The rows of one scenario as a markdown table (:data:`NOT_APPLICABLE` NaN cells print as –, others as nan)."""
+    """The rows of one scenario as a markdown table (:data:`NOT_APPLICABLE` NaN cells and counts the run does not make,
+    None, print as –; other NaN as nan)."""
     lines = ["| " + " | ".join(h for _k, h, _f in COLUMNS) + " |", "|" + "---|" * len(COLUMNS)]
     for row in result["rows"]:
         if row["scenario"] != scenario:
@@ -932,7 +945,9 @@ def markdown_table(result: dict[str, Any], scenario: str) -> str:
         cells = []
         for key, _header, fmt in COLUMNS:
             value = row[key]
-            if isinstance(value, float) and math.isnan(value):
+            if value is None:  # a runtime flag of a run that is not the runtime's, a solve count of no motion
+                cells.append("–")
+            elif isinstance(value, float) and math.isnan(value):
                 cells.append("–" if key in NOT_APPLICABLE else "nan")
             else:
                 cells.append(fmt.format(value))

@@ -595,3 +595,37 @@ def test_a_full_space_row_the_scene_cannot_make_is_said(mini_chain, monkeypatch)
         accuracy.report(result, "m")
     )
     assert accuracy.failures(result) == ([], [])  # a loosened row: a note, not a failure of the command
+
+
+def test_a_flag_a_run_does_not_have_reads_dash_not_zero(mini_chain, monkeypatch) -> None:
+    """Full-space rows printed ``diverged`` and ``out of range`` 0, the converged latent reference those and ``idle``
+    0, and the no-motion row every count 0: flags and counts those runs never make (diverged and out of range are the
+    runtime's; no motion solves nothing). They read –; the runtime's and full space's own counts stay numbers."""
+    q_rest, _ = accuracy.rest_state(mini_chain)
+    f = pretrained.load("mini_chain")
+    z = accuracy.latent_equilibrium(accuracy.LatentSpace(mini_chain.to(dtype=torch.float64), f), None)[0]
+    configs = [
+        accuracy.Config(
+            "full tol", "full space", lambda loads: accuracy.full_steps(mini_chain, q_rest, loads, tol=1e-3)
+        ),
+        accuracy.Config("latent ref", "neural", lambda loads: accuracy.latent_reference_steps(mini_chain, f, z, loads)),
+        accuracy.Config(
+            "runtime",
+            "neural",
+            lambda loads: accuracy.runtime_steps(accuracy.LatentStepper(mini_chain, f, 0.02), z, loads),
+        ),
+    ]
+    _only(monkeypatch, *configs)
+    result = accuracy.bench_accuracy(mini_chain, f, steps=10, scenarios=("push",), full=(), study=False)
+    headers = [h for _k, h, _f in accuracy.COLUMNS]
+    table = {
+        line.split(" | ")[0].strip("| "): dict(zip(headers, line.strip("| ").split(" | "), strict=True))
+        for line in accuracy.markdown_table(result, "push").splitlines()[2:]
+    }
+    counts = ("unconverged", "diverged", "out of range", "idle")
+    assert [table[accuracy.NO_MOTION][c] for c in counts] == ["–"] * 4
+    assert [table["full tol"][c] for c in counts] == ["0", "–", "–", "0"]
+    assert [table["full reference"][c] for c in counts] == ["0", "–", "–", "0"]
+    assert [table["latent ref"][c] for c in counts] == ["0", "–", "–", "–"]
+    assert all(table["runtime"][c].isdigit() for c in counts)
+    assert all(table[row]["non-finite"] == "0" for row in table)
