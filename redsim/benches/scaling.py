@@ -205,7 +205,7 @@ def measure(
 
 class SizeFailed(RuntimeError):
     """A size's process died without a result (a signal or a hard exit; the kernel's out-of-memory killer is the
-    usual one at a large mesh); ``result`` holds the sizes measured before it (rows and exponents)."""
+    usual one at a large mesh) or raised; ``result`` holds the sizes measured before it (rows and exponents)."""
 
     def __init__(self, message: str, result: dict[str, Any]) -> None:
         super().__init__(message)
@@ -232,8 +232,8 @@ def bench_scaling(
 
     Raises:
         ValueError: a size below 1.
-        SizeFailed: a size's process died without a result (the sizes before it are in its ``result``); an
-            exception in a size's process is raised as it is.
+        SizeFailed: a size's process died without a result or raised (the sizes before it are in its ``result``,
+            the exception it raised is its ``__cause__``).
     """
     if any(int(k) != k or k < 1 for k in sizes):
         raise ValueError(f"sizes must be integers >= 1, got {sizes}")
@@ -247,6 +247,9 @@ def bench_scaling(
                 f"size k = {cells}: {err}; killed for memory, most likely (each size's peak is its own process's)",
                 done,
             ) from err
+        except Exception as err:  # raised in the size's process: the sizes before it are kept all the same
+            done = {"rows": rows, "exponents": growth_exponents(rows)}
+            raise SizeFailed(f"size k = {cells}: {type(err).__name__}: {err}", done) from err
         if on_row is not None:
             on_row({"rows": rows, "exponents": growth_exponents(rows)})
     return {"rows": rows, "exponents": growth_exponents(rows)}

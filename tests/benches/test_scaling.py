@@ -119,3 +119,21 @@ def test_one_small_size_is_measured() -> None:
     assert row["n"] > 0 and row["d"] == 2
     for key in scaling.CURVES:
         assert math.isfinite(row[key]) and row[key] > 0, key
+
+
+def test_a_size_that_raises_keeps_the_sizes_before_it(cli, monkeypatch: pytest.MonkeyPatch) -> None:
+    """An exception in a size's process (a fit that went non-finite, say) was raised as it was: the sizes measured
+    before it were lost, where a killed process kept them. It ends the run as a dead one does: the table of the sizes
+    before it, the error named, exit 1."""
+
+    def alone(_function, args):  # k = 1 measured, k = 2's fit raises
+        if args[0] == 2:
+            raise FloatingPointError("loss became nan at step 1")
+        return _rows(1.0)[0]
+
+    monkeypatch.setattr(processes, "alone", alone)
+    code, out, err = cli("bench", "scaling", "--sizes", "1,2,3")
+    assert code == 1 and out.count("| 1000 |") == 1, (out, err)
+    assert "size k = 2: FloatingPointError: loss became nan at step 1" in err
+    code, out, _ = cli("bench", "scaling", "--sizes", "1,2", "--json")
+    assert code == 1 and len(json.loads(out)["rows"]) == 1
