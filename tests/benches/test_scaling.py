@@ -86,16 +86,28 @@ def test_bad_sizes_are_refused(cli) -> None:
         scaling.bench_scaling((0,))
 
 
-def test_cli_prints_the_sizes_before_a_dead_one_and_fails(cli, monkeypatch: pytest.MonkeyPatch) -> None:
-    def alone(_function, args):  # k = 1 measured, k = 2's process killed
+@pytest.mark.parametrize(
+    ("error", "said"),
+    [
+        (ChildProcessError("its process ended without a result (exit code -9)"), "its process ended without a result"),
+        (FloatingPointError("loss became nan at step 1"), "FloatingPointError: loss became nan at step 1"),
+    ],
+)
+def test_cli_prints_the_sizes_before_a_dead_or_raising_one_and_fails(
+    cli, monkeypatch: pytest.MonkeyPatch, error: Exception, said: str
+) -> None:
+    """A size's process killed, or raising (a fit that went non-finite, say: it was raised as it was, and the sizes
+    measured before it were lost), ends the run with the table of the sizes before it, the error named, exit 1."""
+
+    def alone(_function, args):  # k = 1 measured, k = 2's process killed or raising
         if args[0] == 2:
-            raise ChildProcessError("its process ended without a result (exit code -9)")
+            raise error
         return _rows(1.0)[0]
 
     monkeypatch.setattr(processes, "alone", alone)
     code, out, err = cli("bench", "scaling", "--sizes", "1,2,3")
-    assert code == 1 and "| 1000 | 2e+03 |" in out and out.count("| 1000 |") == 1
-    assert "size k = 2: its process ended without a result (exit code -9)" in err
+    assert code == 1 and "| 1000 | 2e+03 |" in out and out.count("| 1000 |") == 1, (out, err)
+    assert f"size k = 2: {said}" in err
     code, out, _ = cli("bench", "scaling", "--sizes", "1,2", "--json")
     doc = json.loads(out)
     assert code == 1 and len(doc["rows"]) == 1 and "k = 2" in doc["failed"]
@@ -119,21 +131,3 @@ def test_one_small_size_is_measured() -> None:
     assert row["n"] > 0 and row["d"] == 2
     for key in scaling.CURVES:
         assert math.isfinite(row[key]) and row[key] > 0, key
-
-
-def test_a_size_that_raises_keeps_the_sizes_before_it(cli, monkeypatch: pytest.MonkeyPatch) -> None:
-    """An exception in a size's process (a fit that went non-finite, say) was raised as it was: the sizes measured
-    before it were lost, where a killed process kept them. It ends the run as a dead one does: the table of the sizes
-    before it, the error named, exit 1."""
-
-    def alone(_function, args):  # k = 1 measured, k = 2's fit raises
-        if args[0] == 2:
-            raise FloatingPointError("loss became nan at step 1")
-        return _rows(1.0)[0]
-
-    monkeypatch.setattr(processes, "alone", alone)
-    code, out, err = cli("bench", "scaling", "--sizes", "1,2,3")
-    assert code == 1 and out.count("| 1000 |") == 1, (out, err)
-    assert "size k = 2: FloatingPointError: loss became nan at step 1" in err
-    code, out, _ = cli("bench", "scaling", "--sizes", "1,2", "--json")
-    assert code == 1 and len(json.loads(out)["rows"]) == 1
