@@ -107,7 +107,10 @@ class PotentialObjective:
             :attr:`Space.roundoff` r > 0 (a float32 map), ROUNDOFF_SAFETY times the change of
             dPhi/du when q_ref is perturbed by r max(|q_i|, rms q) with seeded random signs: the
             sensitivity to the map's rounding, stiffness and inertia included.
-        value_noise: (NOISE_FACTOR + r) * F * L: the round-off of Phi, a sum of terms of size up to F L [J].
+        value_noise: (NOISE_FACTOR + r) * F * L: the round-off of Phi, a sum of terms of size up to F L [J]; for a
+            static problem at least ROUNDOFF_SAFETY times the largest change of Phi when q_ref moves by a few
+            ulps (:meth:`_value_roundoff`): elastic energies are sums of terms of size mu V that cancel, so at rest
+            (F = the loads alone) F L underestimated their round-off and the line search refused the last Newton steps.
         max_step: Trust radius of either minimizer's steps [m per entry, or in ``move_measure``'s unit where set];
             for a static full-space solve, the smaller of
             STATIC_MAX_STEP * scene.extent() and half of scene.feature_size() (the thinnest contact
@@ -166,6 +169,8 @@ class PotentialObjective:
         if space.roundoff > 0.0:
             self.gradient_noise += self._roundoff_noise(reference, q_ref)
         self.value_noise = (NOISE_FACTOR + space.roundoff) * q_force_scale * length
+        if inertia is None:
+            self.value_noise = max(self.value_noise, self._value_roundoff(q_ref))
         self.max_step = math.inf
         self.move_measure: Callable[[Tensor, Tensor], float] | None = None
         self.path: list[Tensor] | None = None
@@ -200,6 +205,18 @@ class PotentialObjective:
             u = reference.detach().clone().requires_grad_(True)
             (change,) = torch.autograd.grad(self.space.configuration(u.unsqueeze(0))[0] @ (grads[1] - grads[0]), u)
         return ROUNDOFF_SAFETY * float(torch.linalg.vector_norm(change))
+
+    def _value_roundoff(self, q_ref: Tensor) -> float:
+        """ROUNDOFF_SAFETY max |Phi(q_ref + delta_k) - Phi(q_ref)| [J] over three perturbations delta_k of 4 ulps of
+        max(|q_i|, rms q) with seeded random signs: Phi's round-off where it is measured (the change its gradient
+        predicts, g . delta, is itself the size of q's rounding)."""
+        generator = torch.Generator().manual_seed(0)
+        q_ref = q_ref.detach()
+        size = 4.0 * torch.finfo(q_ref.dtype).eps * torch.maximum(q_ref.abs(), q_ref.square().mean().sqrt())
+        signs = torch.randint(0, 2, (3, *q_ref.shape), generator=generator).to(q_ref) * 2.0 - 1.0
+        with torch.no_grad():
+            values = self._value(torch.cat([q_ref.unsqueeze(0), q_ref + size * signs]))
+        return ROUNDOFF_SAFETY * float((values[1:] - values[0]).abs().max())
 
     def _value(self, q: Tensor) -> Tensor:
         """Phi [J], shape [B], of configurations q [B, n] (the loads and condition held for all B)."""
