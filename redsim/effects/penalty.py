@@ -25,7 +25,8 @@ class PointPairPenalty(Effect):
         name: Term name.
         a: First points, P of them.
         b: Second points, P of them.
-        stiffness: Penalty weight [N/m], scalar or [P], finite and >= 0.
+        stiffness: Penalty weight [N/m] between points, [J] between directions (unit vectors: |a - b| has no
+            unit), scalar or [P], finite and >= 0.
         kind: Label shown by `redsim scenes` (e.g. "joint", "hinge_axis", "pin").
 
     Raises:
