@@ -218,8 +218,7 @@ def hinge_energies(weight: Tensor, rest_angle: Tensor | None, length_eps: float,
 
 def angle_deviation(theta: Tensor, rest_angle: Tensor | None) -> Tensor:
     """theta - rest_angle [rad] wrapped into [-pi, pi), of signed dihedral angles theta in (-pi, pi] (derivative 1);
-    theta itself where ``rest_angle`` is None (flat rests: already in range, no wrap to pay for, 6% of the term's
-    time on a sheet).
+    theta itself where ``rest_angle`` is None (flat rests: already in range, no wrap to pay for).
 
     Unwrapped, a hinge with a bent rest (rest_angle != 0) folded flat onto itself had two energies: theta jumps from
     pi to -pi there, and (theta - rest_angle)^2 jumped by 4 pi |rest_angle|. Wrapped, the energy is continuous
