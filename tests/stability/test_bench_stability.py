@@ -404,3 +404,26 @@ def test_the_fuzz_counts_a_non_finite_copy_once(monkeypatch: pytest.MonkeyPatch)
     monkeypatch.setattr(gym, "make_vec", lambda *a, **k: Poisoned(make_vec(*a, **k)))
     row = stability.fuzz_env("RedSim/MiniChain-v0", 8, num_envs=4)
     assert row["nan"] == 1 and row["steps"] == 8
+
+
+def test_a_regime_that_raises_is_named_the_others_run_and_a_nan_comes_first(
+    cli: Cli, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    """README: exit 1 where a regime raised (``failed: REGIME: ...``), the other regimes run, 3 and 4 first."""
+    row = {k: 0 for k, _ in stability.ROW_COLUMNS} | {"target": "mini_chain", "regime": "dt_0.1", "space": "latent"}
+
+    def broken(_long, _budget, _rows):
+        raise RuntimeError("no stiff scene")
+
+    monkeypatch.setitem(stability.REGIMES, "stiff", broken)
+    monkeypatch.setitem(stability.REGIMES, "big_dt", lambda _long, _budget, rows: rows.append(dict(row)))
+    argv = ("bench", "stability", "--regimes", "stiff,big_dt", "--long-steps", "40")
+    code, out, err = cli(*argv)
+    assert code == 1 and "| mini_chain | dt_0.1 | latent |" in out, (out, err)
+    assert "failed: stiff: RuntimeError: no stiff scene" in out and "1 regime(s) failed (stiff)" in err, (out, err)
+    code, out, _ = cli(*argv, "--json")
+    doc = json.loads(out)
+    assert code == 1 and [r["regime"] for r in doc["rows"]] == ["dt_0.1"] and "stiff" in json.dumps(doc["failed"])
+    row["nan"] = 1
+    code, _, err = cli(*argv)
+    assert code == 3 and "1 non-finite" in err, err
