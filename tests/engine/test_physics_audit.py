@@ -316,6 +316,22 @@ def test_masses_are_density_times_measure_and_inertia_agrees_with_gravity(name: 
     assert lift / G == pytest.approx(inertial, rel=1e-10)
 
 
+def test_a_spinning_bar_s_kinetic_energy_is_half_omega_inertia_omega() -> None:
+    """A link of the toy chain (a 0.02 x 0.22 x 0.02 m box of 0.088 kg) spinning at omega about its centre: the
+    affine body's [R | t] moves at [[omega]_x R | 0], and |v|_M^2 / 2 is the rigid body's omega . I omega / 2 with
+    the box's inertia tensor m (b^2 + c^2) / 12, ... (the 4x4 mass block holds the second moments, not I)."""
+    scene = redsim.scenes.build("toy_three_link_chain")
+    mass, sides = 0.088, torch.tensor([0.02, 0.22, 0.02], dtype=torch.float64)
+    inertia = torch.diag(mass * (sides.square().sum() - sides.square()) / 12)
+    omega = torch.tensor([0.3, -1.2, 2.0], dtype=torch.float64)
+    cross = torch.tensor([[0, -omega[2], omega[1]], [omega[2], 0, -omega[0]], [-omega[1], omega[0], 0]])
+    velocity = torch.zeros(scene.free_dof_count, dtype=torch.float64)
+    frame = scene.q_seed[:12].reshape(3, 4)  # body 0, unrotated
+    velocity[:12] = torch.cat([cross @ frame[:, :3], torch.zeros(3, 1, dtype=torch.float64)], 1).reshape(-1)
+    kinetic = 0.5 * float(scene.mass_norm_sq(velocity[None])[0])
+    assert kinetic == pytest.approx(0.5 * float(omega @ inertia @ omega), rel=1e-12)
+
+
 # -- implicit Euler against its linear theory --------------------------------------------------------------
 def test_implicit_euler_damps_and_slows_a_pendulum_as_its_linear_theory_says() -> None:
     """The crank (a rigid bar hinged by penalties) swinging under gravity: implicit Euler's recursion
@@ -339,8 +355,8 @@ def test_implicit_euler_damps_and_slows_a_pendulum_as_its_linear_theory_says() -
     # x_{n+1} = a x_n + b x_{n-1} with a = 2 r cos(phase), b = -r^2, by least squares
     (a, b), *_ = np.linalg.lstsq(np.stack([swing[1:-1], swing[:-2]], 1), swing[2:], rcond=None)
     factor, phase = math.sqrt(-b), math.acos(a / (2 * math.sqrt(-b)))
-    assert 1 - factor == pytest.approx(1 - 1 / math.sqrt(1 + (omega * h) ** 2), rel=0.02)
-    assert phase == pytest.approx(math.atan(omega * h), rel=0.01)
+    assert 1 - factor == pytest.approx(1 - 1 / math.sqrt(1 + (omega * h) ** 2), rel=2e-3)  # 1e-4 measured
+    assert phase == pytest.approx(math.atan(omega * h), rel=2e-3)  # 3e-4 measured (the joints' give)
 
 
 def _floating_scene() -> redsim.Scene:
