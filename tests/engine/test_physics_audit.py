@@ -17,7 +17,7 @@ import pytest
 import torch
 
 import redsim
-from redsim import SceneBuilder, meshes
+from redsim import PointSet, SceneBuilder, meshes
 from redsim.effects import (
     DiscreteShellBending,
     Effect,
@@ -397,6 +397,33 @@ def test_implicit_euler_keeps_the_momentum_of_a_free_system_and_loses_its_energy
     torch.testing.assert_close(momentum, momentum[:1].expand_as(momentum), rtol=0.0, atol=1e-10)
     energy = 0.5 * scene.mass_norm_sq(velocities) + scene.energy(trajectory[1:])
     assert bool((energy[1:] < energy[:-1]).all())
+
+
+def test_a_step_s_energy_balance_is_implicit_euler_s_exact_dissipation_for_a_spring() -> None:
+    """Two particles on zero-length springs to world points, under gravity and a constant load: the energy is
+    quadratic (springs) plus linear (gravity), so each step's reported mechanical_gain, K + E after minus before
+    minus the load's work, is exactly -(|v_{t+1} - v_t|_M^2 + |q_{t+1} - q_t|_K^2) / 2 (the Bregman divergence of
+    a quadratic), never positive."""
+    b = SceneBuilder(dim=3)
+    ids = b.add_particles(torch.tensor([[0.0, 0, 0], [1.0, 0, 0]]), torch.tensor([2.0, 0.5]))
+    anchors = torch.tensor([[0.1, 0.2, -0.1], [1.0, 0.3, 0.2]], dtype=torch.float64)
+    stiffness = torch.tensor([50.0, 80.0], dtype=torch.float64)
+    b.add_effect(PointPairPenalty("springs", b.particle_points(ids), PointSet.world(anchors), stiffness))
+    b.add_gravity([0.0, -G, 0.0])
+    b.add_handle("end", b.particle_points(ids[1:]))
+    scene = b.finalize("springs")
+    h = 0.05
+    sim = ImplicitEuler(FullSpace(scene), h, tol=1e-12, strict=True)
+    velocity = torch.tensor([1.0, -2.0, 0.5, 0.0, 3.0, -1.0], dtype=torch.float64)
+    trajectory, infos = sim.rollout(sim.initial_state(velocity=velocity), 20, {"end": [4.0, -1.0, 2.0]})
+    q = torch.cat([(trajectory[:1] - h * velocity), trajectory])  # q_{-1} = q_0 - h v_0, as initial_state sets it
+    v = (q[1:] - q[:-1]) / h
+    dv, dq = (v[1:] - v[:-1]).reshape(-1, 2, 3), (q[2:] - q[1:-1]).reshape(-1, 2, 3)
+    masses = torch.tensor([2.0, 0.5], dtype=torch.float64)
+    dissipated = 0.5 * ((masses * dv.square().sum(-1)) + (stiffness * dq.square().sum(-1))).sum(-1)
+    gains = torch.tensor([info.mechanical_gain for info in infos], dtype=torch.float64)
+    torch.testing.assert_close(gains, -dissipated, rtol=1e-8, atol=1e-12)
+    assert not any(info.energy_gain for info in infos)
 
 
 # -- a static cantilever against beam theory -----------------------------------------------------------------
