@@ -512,6 +512,28 @@ def test_a_ctrl_c_while_the_command_line_loads_is_one_line_and_exit_130(module: 
     assert (done.returncode, done.stdout, done.stderr) == (130, "", "redsim: warning: interrupted\n")
 
 
+@pytest.mark.parametrize("command", [["scenes"], ["simulate", "toy_two_tets", "--steps", "1"]])
+def test_a_ctrl_c_while_torch_loads_waits_for_it_to_load(command: list[str]) -> None:
+    """A KeyboardInterrupt raised inside torch's C++ start-up aborted the process ("terminate called after throwing an
+    instance of 'pybind11::error_already_set'", exit 134): the command line loads torch with Ctrl-C held, and says
+    the one line once torch has loaded."""
+    code = (
+        "import os, signal, sys\n"
+        "class CtrlC:\n"
+        "    def find_spec(self, name, path=None, target=None):\n"
+        "        if name == 'torch':  # as torch starts to load\n"
+        "            os.kill(os.getpid(), signal.SIGINT)\n"
+        "        return None\n"
+        "sys.meta_path.insert(0, CtrlC())\n"
+        "from redsim.cli import main\n"
+        f"status = main({command!r})\n"
+        "print('torch loaded' if hasattr(sys.modules.get('torch'), 'nn') else 'torch not loaded')\n"
+        "sys.exit(status)\n"
+    )
+    done = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, timeout=120)
+    assert (done.returncode, done.stdout, done.stderr) == (130, "torch loaded\n", "redsim: warning: interrupted\n")
+
+
 def test_a_ctrl_c_while_the_parser_is_built_is_one_line_and_exit_130(cli: Cli, monkeypatch: pytest.MonkeyPatch) -> None:
     from redsim.cli import parser
 

@@ -28,6 +28,7 @@ from redsim.cli.common import (
     show_warning,
     warn,
 )
+from redsim.interrupts import deferred_interrupts
 
 
 def build_parser() -> argparse.ArgumentParser:
@@ -91,6 +92,7 @@ def _run(argv: Sequence[str] | None) -> int:
     said_once = WarnedOnce.install()
     terminate = _interrupt_on_sigterm()
     try:
+        _load_torch(args)
         with command_threads(args), warnings.catch_warnings():  # the CLI says it in one line (parse_env_id)
             expand_home(args)
             _check_out(args)
@@ -187,6 +189,17 @@ def _out_of_memory(err: BaseException) -> bool:
         or "can't allocate memory" in text
         or "out of memory" in text.lower()
     )
+
+
+def _load_torch(args: argparse.Namespace) -> None:
+    """Load torch for a command that runs it (all but ``cache``), with Ctrl-C held until it has loaded
+    (:func:`redsim.interrupts.deferred_interrupts`): a KeyboardInterrupt raised inside torch's C++ start-up
+    (``torch._C._c10d_init`` calls back into Python) escaped as a C++ exception, and the process aborted ("terminate
+    called after throwing an instance of 'pybind11::error_already_set'", exit 134)."""
+    if args.command == "cache":
+        return
+    with deferred_interrupts():  # a Ctrl-C is raised as the block ends
+        import torch  # noqa: F401
 
 
 def _raise_interrupt(signum: int, frame: object) -> None:
