@@ -38,7 +38,8 @@ def energy_gain_states(
         mechanical_now: K_t + E(q_t) [B] [J].
         mechanical_next: K_{t+1} + E(q_{t+1}) [B] [J].
         work: W_t [B] [J].
-        inexact: [B] [J], see above.
+        inexact: [B] [J], see above; a caller adds the round-off of E itself where its terms cancel (an elastic
+            solid near rest: :attr:`redsim.integrators.SceneConstants.energy_noise`), which eps |K + E| misses.
         eps: Machine epsilon of the dtype the energies were computed in.
     """
     gain = mechanical_next - mechanical_now - work

@@ -377,6 +377,7 @@ class ImplicitEuler:
                 work = (loads.reshape(-1) * (p[1] - p[0])).sum()
         inexact = info.grad_norm * float(torch.linalg.vector_norm(u_next - u_t))
         eps = max(float(torch.finfo(q.dtype).eps), self.space.roundoff)
+        inexact += self._constants.energy_noise  # E's own round-off: near rest far above eps |K + E|
         gained = energy_gain_states(
             mechanical[:1], mechanical[1:], work.reshape(1), torch.tensor([inexact], dtype=q.dtype), eps
         )

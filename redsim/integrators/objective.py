@@ -70,6 +70,22 @@ def _vector_norm(matrix_diagonal: np.ndarray) -> float:
     return float(np.linalg.norm(matrix_diagonal))
 
 
+def value_roundoff(value: Callable[[Tensor], Tensor], q: Tensor) -> float:
+    """ROUNDOFF_SAFETY max_k |value(q + delta_k) - value(q)| [J] over three perturbations delta_k of 4 ulps of
+    max(|q_i|, rms q) with seeded random signs: the round-off of an energy ``value`` ([B, n] -> [B]) at q [n].
+
+    Elastic energies are sums of terms of size mu V that cancel (a stable neo-Hookean solid's, at rest), so their
+    round-off lies far above eps |E| there; the change the gradient predicts, g . delta, is itself q's rounding.
+    """
+    generator = torch.Generator().manual_seed(0)
+    q = q.detach()
+    size = 4.0 * torch.finfo(q.dtype).eps * torch.maximum(q.abs(), q.square().mean().sqrt())
+    signs = torch.randint(0, 2, (3, *q.shape), generator=generator).to(q) * 2.0 - 1.0
+    with torch.no_grad():
+        values = value(torch.cat([q.unsqueeze(0), q + size * signs]))
+    return ROUNDOFF_SAFETY * float((values[1:] - values[0]).abs().max())
+
+
 @dataclass(frozen=True)
 class SceneConstants:
     """What :class:`PotentialObjective` reads from a scene that no state changes: built once per integrator.
@@ -78,17 +94,21 @@ class SceneConstants:
         mass: M [kg], scipy CSR [n, n].
         mass_diagonal_norm: |diag M|_2 [kg].
         length: L [m], :func:`length_scale`.
+        energy_noise: Round-off [J] of the scene's energy E (no loads), :func:`value_roundoff` at the seed: what
+            a step's energy balance cannot resolve (:mod:`redsim.integrators.energy_gain`).
     """
 
     mass: Any
     mass_diagonal_norm: float
     length: float
+    energy_noise: float = 0.0
 
     @classmethod
     def of(cls, scene: Scene) -> SceneConstants:
         """The constants of ``scene``."""
         mass = scene.mass_matrix_scipy().tocsr()
-        return cls(mass, _vector_norm(mass.diagonal()), length_scale(scene))
+        noise = value_roundoff(scene.energy, scene.q_seed)
+        return cls(mass, _vector_norm(mass.diagonal()), length_scale(scene), noise)
 
 
 class PotentialObjective:
@@ -109,7 +129,7 @@ class PotentialObjective:
             sensitivity to the map's rounding, stiffness and inertia included.
         value_noise: (NOISE_FACTOR + r) * F * L: the round-off of Phi, a sum of terms of size up to F L [J]; for a
             static problem at least ROUNDOFF_SAFETY times the largest change of Phi when q_ref moves by a few
-            ulps (:meth:`_value_roundoff`): elastic energies are sums of terms of size mu V that cancel, so at rest
+            ulps (:func:`value_roundoff`): elastic energies are sums of terms of size mu V that cancel, so at rest
             (F = the loads alone) F L underestimated their round-off and the line search refused the last Newton steps.
         max_step: Trust radius of either minimizer's steps [m per entry, or in ``move_measure``'s unit where set];
             for a static full-space solve, the smaller of
@@ -170,7 +190,7 @@ class PotentialObjective:
             self.gradient_noise += self._roundoff_noise(reference, q_ref)
         self.value_noise = (NOISE_FACTOR + space.roundoff) * q_force_scale * length
         if inertia is None:
-            self.value_noise = max(self.value_noise, self._value_roundoff(q_ref))
+            self.value_noise = max(self.value_noise, value_roundoff(self._value, q_ref))
         self.max_step = math.inf
         self.move_measure: Callable[[Tensor, Tensor], float] | None = None
         self.path: list[Tensor] | None = None
@@ -205,18 +225,6 @@ class PotentialObjective:
             u = reference.detach().clone().requires_grad_(True)
             (change,) = torch.autograd.grad(self.space.configuration(u.unsqueeze(0))[0] @ (grads[1] - grads[0]), u)
         return ROUNDOFF_SAFETY * float(torch.linalg.vector_norm(change))
-
-    def _value_roundoff(self, q_ref: Tensor) -> float:
-        """ROUNDOFF_SAFETY max |Phi(q_ref + delta_k) - Phi(q_ref)| [J] over three perturbations delta_k of 4 ulps of
-        max(|q_i|, rms q) with seeded random signs: Phi's round-off where it is measured (the change its gradient
-        predicts, g . delta, is itself the size of q's rounding)."""
-        generator = torch.Generator().manual_seed(0)
-        q_ref = q_ref.detach()
-        size = 4.0 * torch.finfo(q_ref.dtype).eps * torch.maximum(q_ref.abs(), q_ref.square().mean().sqrt())
-        signs = torch.randint(0, 2, (3, *q_ref.shape), generator=generator).to(q_ref) * 2.0 - 1.0
-        with torch.no_grad():
-            values = self._value(torch.cat([q_ref.unsqueeze(0), q_ref + size * signs]))
-        return ROUNDOFF_SAFETY * float((values[1:] - values[0]).abs().max())
 
     def _value(self, q: Tensor) -> Tensor:
         """Phi [J], shape [B], of configurations q [B, n] (the loads and condition held for all B)."""
