@@ -512,7 +512,9 @@ def test_a_ctrl_c_while_the_command_line_loads_is_one_line_and_exit_130(module: 
     assert (done.returncode, done.stdout, done.stderr) == (130, "", "redsim: warning: interrupted\n")
 
 
-@pytest.mark.parametrize("command", [["scenes"], ["simulate", "toy_two_tets", "--steps", "1"]])
+@pytest.mark.parametrize(
+    "command", [["scenes"], ["simulate", "toy_two_tets", "--steps", "1"], ["fit", "toy_two_tets", "--steps", "1"]]
+)
 def test_a_ctrl_c_while_torch_loads_waits_for_it_to_load(command: list[str]) -> None:
     """A KeyboardInterrupt raised inside torch's C++ start-up aborted the process ("terminate called after throwing an
     instance of 'pybind11::error_already_set'", exit 134): the command line loads torch with Ctrl-C held, and says

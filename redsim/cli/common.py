@@ -20,6 +20,7 @@ from pathlib import Path
 from typing import TYPE_CHECKING, Any, NoReturn
 
 import redsim
+from redsim.interrupts import deferred_interrupts
 
 if TYPE_CHECKING:
     from redsim.scene import Scene
@@ -72,7 +73,8 @@ class Parser(argparse.ArgumentParser):
         """This parser with every argument added (:meth:`add_later`)."""
         if self._pending is not None:
             add, self._pending = self._pending, None
-            add(self)
+            with deferred_interrupts():  # the options' module loads torch: why Ctrl-C waits (parser._load_torch)
+                add(self)
         return self
 
     def format_usage(self) -> str:
