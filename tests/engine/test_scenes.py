@@ -696,6 +696,26 @@ def test_a_hand_built_scene_is_fingerprinted_by_its_data() -> None:
     assert tagged.accepts(old) and old != tagged.fingerprint()
 
 
+@pytest.mark.parametrize(("bent", "before"), [(False, "26e0057184a0fa85"), (True, "41d1899b5d2ebffc")])
+def test_a_hand_built_cloth_keeps_the_fingerprint_it_had_before_bent_rest(bent: bool, before: str) -> None:
+    """04ae3ba gave DiscreteShellBending a ``bent_rest`` field (derived from its rest angles), which the data digest
+    hashed: a hand-built cloth's fingerprint changed and its checkpoints were refused. ``before`` is the fingerprint
+    the code at 04ae3ba^ gives these scenes (a flat sheet, and one whose rest is bent)."""
+    from redsim.scenes.toolkit import add_cloth, add_gravity
+
+    vertices, triangles = meshes.cloth_grid(0.5, 0.5, (3, 3), origin=(0.0, -0.5, 0.0))
+    if bent:
+        vertices = vertices.copy()
+        vertices[:, 2] = 0.1 * vertices[:, 0] ** 2
+    b = SceneBuilder(dim=3)
+    ids = add_cloth(b, vertices, triangles, young=1e5, poisson=0.3, thickness=1e-3, density=200.0, bending=1e-3)
+    b.pin_particles(ids[:2])
+    add_gravity(b)
+    scene = b.finalize("handmade")
+    assert scene.effect("bending").bent_rest == bent
+    assert scene.fingerprint() == before and scene.accepts(before)
+
+
 # -- mechanisms --------------------------------------------------------------------------------
 def _rotate_about_z(transform: torch.Tensor, pivot: torch.Tensor, angle: float) -> torch.Tensor:
     c, s = math.cos(angle), math.sin(angle)
