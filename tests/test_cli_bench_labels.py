@@ -22,3 +22,15 @@ def test_bench_step_hessians_says_which_time_is_a_median_and_which_rate_a_total(
     assert "median ms: the median step's wall time" in legend
     assert "env-steps/s: B x steps / the steps' total wall time" in legend
     assert lines[header + 1].split()[:3] == ["mini_chain", "exact", "2"]
+
+
+def test_bench_step_says_its_rates_are_totals_not_medians(cli: Cli) -> None:
+    """One round of `bench step` printed env-steps/s with no word of what it is: B x steps over their total wall time,
+    where `bench envs`' column of the same name is B over its median step."""
+    argv = "bench step --scenes mini_chain --batches 1 --steps 2 --reference-steps 2 --no-compile".split()
+    code, out, err = cli(*argv)
+    assert code == 0, err
+    lines = out.splitlines()
+    header = next(i for i, line in enumerate(lines) if line.startswith("scene"))
+    legend = " ".join(lines[:header])
+    assert "env-steps/s: B x steps / the steps' total wall time (`bench envs`: B / its median step)" in legend

@@ -472,6 +472,7 @@ def step_table(rows: list[dict[str, Any]], mujoco: list[dict[str, Any]] | None, 
     batches = list(rows[0]["eager"]) if rows else []
     head = f"{'scene':<14} {'n':>6} {'d':>2} {'path':<9} " + " ".join(f"{'B=' + b:>9}" for b in batches)
     lines.append("env-steps/s (iterations/step, converged %) per batch size B; reference and full space at B = 1")
+    lines.append("env-steps/s: B x steps / the steps' total wall time (`bench envs`: B / its median step)")
     rounds = max((row.get("rounds", 1) for row in rows), default=1)
     if rounds > 1:  # say what the cells are, as `bench envs` does: not one run's rates
         lines.append(
