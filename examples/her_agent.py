@@ -52,7 +52,8 @@ def train(
     """SAC (with HER, or with SB3's plain replay buffer) trained ``steps`` env steps over ``num_envs`` copies
     (module doc); and its wall time [s]."""
     if num_envs == 1:
-        venv = make_vec_env(env_id, n_envs=1, seed=seed, wrapper_class=GoalObservation, env_kwargs=env_kwargs)
+        # a function making the goal env, so SB3's Monitor goes outside it and logs the goal reward SAC trains on
+        venv = make_vec_env(lambda: GoalObservation(gym.make(env_id, **env_kwargs)), n_envs=1, seed=seed)
     else:
         venv = SB3VecEnv.make(env_id, num_envs, goal=True, **env_kwargs)
     replay = {"replay_buffer_class": HerReplayBuffer, "replay_buffer_kwargs": {"n_sampled_goal": 4}} if her else {}

@@ -63,6 +63,30 @@ def test_her_example_evaluates_on_seeds_no_training_copy_started_from(monkeypatc
     assert seeds == [3 + FINAL_EVAL_SEED, 4 + FINAL_EVAL_SEED] * 2  # each agent, the same episodes
 
 
+def test_her_example_monitors_the_goal_reward_it_trains_on(monkeypatch: pytest.MonkeyPatch) -> None:
+    """Its single-copy env is SB3's Monitor around the goal env, so the logged episode rewards (``ep_rew_mean``) are
+    the goal rewards SAC trains on; ``wrapper_class=GoalObservation`` had put the Monitor inside, logging the env's own
+    reward (control cost included)."""
+    from stable_baselines3.common.monitor import Monitor
+
+    module = _example("her_agent")
+    made = []
+
+    class Stop(Exception):
+        pass
+
+    def sac(policy, venv, **kwargs):
+        made.append(venv)
+        raise Stop
+
+    monkeypatch.setattr(module, "SAC", sac)
+    with pytest.raises(Stop):
+        module.train("RedSim/MiniChain-v0", 200, True, {"max_episode_steps": 50})
+    (env,) = made[0].envs
+    assert isinstance(env, Monitor) and isinstance(env.env, module.GoalObservation)
+    made[0].close()
+
+
 def test_her_example_refuses_a_budget_or_episodes_it_cannot_train_on() -> None:
     """--episode-steps -1 (no limit) trained and then evaluated an episode that never ends; 0 was a traceback."""
     path = next(p for p in EXAMPLES if p.stem == "her_agent")
