@@ -67,10 +67,10 @@ BUFFER = "replay_buffer.pkl"
 NORMALIZER = "_vecnormalize.pkl"
 """Suffix of the ``VecNormalize`` statistics beside a model (``model.zip`` -> ``model_vecnormalize.pkl``)."""
 ALGOS = ("ppo", "sac", "td3")
+"""The stable-baselines3 algorithms the table covers."""
 FINAL_EVAL_SEED = 20_000
 """The first reset seed of a run's final evaluation past its own seed (``seed + FINAL_EVAL_SEED + i``): seeds no
 training copy starts from (:func:`training_seed`; SB3's own envs start at 0, 1, ...)."""
-"""The stable-baselines3 algorithms the table covers."""
 
 _OFF_POLICY = {
     "learning_starts": 1000,
