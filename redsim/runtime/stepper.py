@@ -76,8 +76,9 @@ class StepStats(NamedTuple):
         residual: |dPhi/dz| / (|J_0|_2 F_b), the relative gradient norm ``tol`` bounds (see :class:`LatentStepper`);
             inf where the force scale F_b overflows the dtype (loads too large to square; the step is then diverged)
             and where Phi or its gradient was not finite at the start (nothing was solved: z_next is z, diverged).
-        energy: Potential energy E(f(z_next)) [J] (the load work not included); 0 where the start was not
-            finite (z_next is then z, and ``diverged`` is set).
+        energy: Potential energy E(f(z_next)) [J] (the load work not included). Where the start was not finite
+            (z_next is then z, and ``diverged`` is set) it is E at z: NaN or inf where E(f(z)) is not finite, never
+            a finite stand-in that reads as a state's energy.
         out_of_range: z or z_next (or the condition) is outside the region the map was fitted on (bool).
         diverged: The step is not trustworthy: non-finite (at its end, or Phi at z_t, whose energy balance it is
             checked against), or it added more energy than it could have (bool).
@@ -842,7 +843,8 @@ class LatentStepper:
             if loads_t is not None:
                 work = (loads_t * (self._handles(q_next) - self._handles(q_t))).sum(-1)
             mechanical_now = kinetic_now + at_z[2]
-            mechanical_next = kinetic_next + torch.where(result.finite, result.energy, at_z[2])
+            energy_next = torch.where(result.finite, result.energy, at_z[2])  # the solver zeroes a non-finite one
+            mechanical_next = kinetic_next + energy_next
             balance = (
                 mechanical_now,
                 mechanical_next,
@@ -863,7 +865,7 @@ class LatentStepper:
             converged=converged,
             iterations=result.iterations,
             residual=(result.grad_norm / (self.jacobian_norm * force)).masked_fill(unsolved, math.inf),
-            energy=result.energy,
+            energy=energy_next,
             out_of_range=out_of_range_states(
                 torch.stack([z, z_next], 1), self.energy.periodic, cond_t, self.scene.condition_space
             ),

@@ -666,6 +666,20 @@ class _Trap:
         return torch.where(z[:, 0] > 2.0, torch.nan, e + cone), q
 
 
+def test_a_step_with_no_finite_start_reports_the_energy_where_it_stays(mini_chain) -> None:
+    """Float32, z_{t-1} 1e30 from z_t: Phi overflows at both starts, so nothing is solved (z_next = z_t, diverged).
+    ``energy`` is E(f(z_t)), the state's own: it read 0.0 (the solver's zeroed value), a finite energy it never had."""
+    scene, f = mini_chain
+    stepper = LatentStepper(scene, f, DT)
+    rest = stepper.rest_latent()
+    z_prev = rest.clone()
+    z_prev[0, 0] -= 1e30
+    z_next, stats = stepper.step(rest, z_prev)
+    assert bool(stats.diverged[0]) and float(stats.residual[0]) == math.inf and bool(torch.equal(z_next, rest))
+    expected = float(scene.energy(stepper.positions(rest).to(torch.float64))[0])
+    assert float(stats.energy[0]) == pytest.approx(expected, rel=1e-5) and expected < -1.0
+
+
 @pytest.mark.parametrize("dense", [False, True])
 def test_each_row_s_failure_is_reported_on_that_row_and_leaves_the_others_alone(mini_chain, dense: bool) -> None:
     """Float64, one batch: a row that stalls (``stalled``, not converged, not diverged), a row whose start and z_t have
@@ -690,6 +704,7 @@ def test_each_row_s_failure_is_reported_on_that_row_and_leaves_the_others_alone(
     assert stats.diverged.tolist() == [False, False, True, True]
     assert bool(torch.equal(z_next[2], z[2])) and float(stats.residual[2]) == math.inf
     assert bool(torch.isfinite(stats.residual[[0, 1, 3]]).all())
+    assert math.isnan(float(stats.energy[2])) and bool(torch.isfinite(stats.energy[[0, 1, 3]]).all())  # it read 0
     assert not bool(stats.energy_gain_tolerance.isnan().any())
     assert stats.carry.isnan().all(-1).tolist() == [True, False, True, False]
     alone, alone_stats = stepper.step(z[1:2], z_prev[1:2], loads[1:2])
