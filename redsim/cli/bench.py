@@ -700,8 +700,8 @@ def cmd_bench_stability(args: argparse.Namespace) -> int:
         regimes += ["fuzz", "mujoco"]
     _regime_options(args, regimes)
     env_ids = list(redsim.envs.ids()) if args.envs is None else parse_list(args.envs, "--envs", parse_env_id)
-    for flag in ("steps", "long_steps", "chain_steps", "chain_full_steps"):
-        if getattr(args, flag) < 1:
+    for flag in ("steps", "long_steps", "chain_steps", "chain_full_steps"):  # None: no chosen regime uses it
+        if getattr(args, flag) is not None and getattr(args, flag) < 1:
             raise CliError(f"--{flag.replace('_', '-')} must be >= 1, got {getattr(args, flag)}")
     if args.copies is not None and args.copies < 1:
         raise CliError(f"--copies must be >= 1, got {args.copies}")
@@ -793,17 +793,19 @@ STABILITY_OPTIONS = {
     "envs": (("fuzz",), None),
     "copies": (("fuzz",), None),
     "seed": (("fuzz",), 0),
-    "budget": (("fuzz", "long runs"), None),
+    "budget": (("fuzz", "action_bounds"), None),
     "long_steps": (("long runs",), 2000),
     "chain_steps": (("mujoco",), 300),
     "chain_full_steps": (("mujoco",), 50),
 }
-"""bench stability's options that only some regimes use ("long runs": any of ``stability.REGIMES``) and their
-defaults; each is None unless given, so that one given without a regime that uses it is refused."""
+"""bench stability's options that only some regimes use ("long runs": any of ``stability.REGIMES``; ``--budget`` caps
+only action_bounds' runs among them) and their defaults; each is None unless given, so that one given without a regime
+that uses it is refused, and stays None (null in the JSON) where no chosen regime uses it."""
 
 
 def _regime_options(args: argparse.Namespace, regimes: list[str]) -> None:
-    """Refuse the options (:data:`STABILITY_OPTIONS`) that no chosen regime uses, then fill in the defaults."""
+    """Refuse the options (:data:`STABILITY_OPTIONS`) that no chosen regime uses, then fill in the defaults of those
+    that one does."""
     from redsim.benches import stability
 
     chosen = {*regimes, *(["long runs"] if any(r in stability.REGIMES for r in regimes) else [])}
@@ -815,11 +817,11 @@ def _regime_options(args: argparse.Namespace, regimes: list[str]) -> None:
     if unused:
         raise CliError(
             f"{', '.join(unused)} not used by --regimes {','.join(regimes)}: --steps, --envs, --copies and --seed are "
-            "the fuzz's, --long-steps the scene regimes' (stiff, ...), --budget both's, --chain-steps and "
-            "--chain-full-steps mujoco's"
+            "the fuzz's, --long-steps the scene regimes' (stiff, ...), --budget the fuzz's and action_bounds', "
+            "--chain-steps and --chain-full-steps mujoco's"
         )
-    for option, (_, default) in STABILITY_OPTIONS.items():
-        if getattr(args, option) is None:
+    for option, (users, default) in STABILITY_OPTIONS.items():
+        if getattr(args, option) is None and chosen.intersection(users):
             setattr(args, option, default)
 
 
@@ -1132,8 +1134,8 @@ def add_commands(sub: Any) -> Any:
         "--budget",
         type=seconds,
         metavar="SECONDS",
-        help="wall-time budget of each fuzzed env and of each scene's long runs: they stop there and report "
-        "the steps they ran (default none)",
+        help="wall-time budget of each fuzzed env and of each scene's action_bounds runs (the other scene regimes "
+        "run their fixed steps and refuse it): they stop there and report the steps they ran (default none)",
     )
     p.add_argument(
         "--damping-scenes",

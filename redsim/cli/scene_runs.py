@@ -29,10 +29,12 @@ class SceneRuns:
 
     def status(self, status: int = EXIT_OK) -> int:
         """The exit status, after the rows are printed: 130 if interrupted, else ``status`` (a bench's own failure,
-        3 or 4) if not 0, else 1 if a scene raised; says which on stderr."""
+        3 or 4) if not 0, else 1 if a scene raised; says which on stderr, each with its error (the text's
+        ``failed:`` lines are on stdout, in the report; a JSON run's are in its ``failed``)."""
         if self.failed:
             names = ", ".join(f["scene"] for f in self.failed)
-            error(f"{self.command}: {len(self.failed)} {self.unit}(s) failed ({names}); the others ran")
+            reasons = "".join(f"; {f['scene']} raised {f['error']}" for f in self.failed)
+            error(f"{self.command}: {len(self.failed)} {self.unit}(s) failed ({names}); the others ran{reasons}")
         if self.interrupted:
             if self.text:
                 out(f"interrupted: the {self.unit}s finished before it")

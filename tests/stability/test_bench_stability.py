@@ -210,6 +210,7 @@ def test_cli_bench_stability_json(cli: Cli) -> None:
     assert row["target"] == "RedSim/MiniChain-v0" and row["steps"] == 64 and row["nan"] == 0
     assert row["copies"] == 8 and doc["budget_s"] is None
     assert doc["chain"] is None and "machine" in doc
+    assert doc["fuzz_steps"] == 64 and doc["long_steps"] is None  # no scene regime ran: it read 2000
     code, out, err = cli(*fuzz, "--copies", "8")
     assert code == 0 and "| RedSim/MiniChain-v0 | fuzz | latent | 64 |" in out and "total nan: 0" in out
     assert "steps flagged energy_gain:" in out
@@ -420,10 +421,25 @@ def test_a_regime_that_raises_is_named_the_others_run_and_a_nan_comes_first(
     argv = ("bench", "stability", "--regimes", "stiff,big_dt", "--long-steps", "40")
     code, out, err = cli(*argv)
     assert code == 1 and "| mini_chain | dt_0.1 | latent |" in out, (out, err)
-    assert "failed: stiff: RuntimeError: no stiff scene" in out and "1 regime(s) failed (stiff)" in err, (out, err)
-    code, out, _ = cli(*argv, "--json")
+    assert "failed: stiff: RuntimeError: no stiff scene" in out, (out, err)
+    reason = "1 regime(s) failed (stiff); the others ran; stiff raised RuntimeError: no stiff scene"
+    assert reason in err, err  # the reason was only on stdout (a JSON run's only in its document)
+    code, out, err = cli(*argv, "--json")
     doc = json.loads(out)
     assert code == 1 and [r["regime"] for r in doc["rows"]] == ["dt_0.1"] and "stiff" in json.dumps(doc["failed"])
+    assert reason in err and doc["long_steps"] == 40 and doc["fuzz_steps"] is None, err
     row["nan"] = 1
     code, _, err = cli(*argv)
     assert code == 3 and "1 non-finite" in err, err
+
+
+@pytest.mark.parametrize("regimes", ["stiff", "big_dt,impact,near_inversion"])
+def test_budget_is_refused_where_no_chosen_regime_uses_it(
+    cli: Cli, monkeypatch: pytest.MonkeyPatch, regimes: str
+) -> None:
+    """--budget caps the fuzz's and action_bounds' runs only: the other scene regimes took it and ran their fixed
+    steps, as if it had no effect (stubbed here: they ran, exit 0, without the refusal)."""
+    for name in regimes.split(","):
+        monkeypatch.setitem(stability.REGIMES, name, lambda _long, _budget, rows: rows)
+    code, out, err = cli("bench", "stability", "--regimes", regimes, "--budget", "5")
+    assert code == 2 and out == "" and f"--budget not used by --regimes {regimes}" in err, err
