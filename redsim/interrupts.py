@@ -21,18 +21,20 @@ class ForcedInterrupt(KeyboardInterrupt):
 
 
 @contextlib.contextmanager
-def deferred_interrupts() -> Iterator[Callable[[], None]]:
+def deferred_interrupts(*, forced: bool = True) -> Iterator[Callable[[], None]]:
     """Within the block, SIGINT (and SIGTERM where a Python handler is set for it) only records the signal; the
     yielded ``check()`` then calls the handler the block replaced (Python's raises KeyboardInterrupt; a caller's own
-    does what it does), at a step boundary. A second signal before that raises :class:`ForcedInterrupt` at once. Off
-    the main thread (where signals cannot be handled) ``check`` does nothing and signals keep their handlers."""
+    does what it does), at a step boundary. A second signal before that raises :class:`ForcedInterrupt` at once;
+    with ``forced=False`` it waits too, for a block that always ends soon and must not be stopped inside (importing
+    torch: an exception raised in its C++ start-up aborts the process). Off the main thread (where signals cannot be
+    handled) ``check`` does nothing and signals keep their handlers."""
     if threading.current_thread() is not threading.main_thread():
         yield lambda: None
         return
     pending: list[int] = []
 
     def record(signum: int, frame: FrameType | None) -> None:
-        if pending:  # the second one: the step is not ending, stop now
+        if pending and forced:  # the second one: the step is not ending, stop now
             raise ForcedInterrupt(f"signal {signum}")
         pending.append(signum)
 

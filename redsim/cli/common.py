@@ -73,7 +73,7 @@ class Parser(argparse.ArgumentParser):
         """This parser with every argument added (:meth:`add_later`)."""
         if self._pending is not None:
             add, self._pending = self._pending, None
-            with deferred_interrupts():  # the options' module loads torch: why Ctrl-C waits (parser._load_torch)
+            with deferred_interrupts(forced=False):  # the options' module loads torch (parser._load_torch)
                 add(self)
         return self
 

@@ -192,13 +192,13 @@ def _out_of_memory(err: BaseException) -> bool:
 
 
 def _load_torch(args: argparse.Namespace) -> None:
-    """Load torch for a command that runs it (all but ``cache``), with Ctrl-C held until it has loaded
-    (:func:`redsim.interrupts.deferred_interrupts`): a KeyboardInterrupt raised inside torch's C++ start-up
-    (``torch._C._c10d_init`` calls back into Python) escaped as a C++ exception, and the process aborted ("terminate
-    called after throwing an instance of 'pybind11::error_already_set'", exit 134)."""
+    """Load torch for a command that runs it (all but ``cache``), with Ctrl-C held until it has loaded, a second
+    one too (:func:`redsim.interrupts.deferred_interrupts`, ``forced=False``): a KeyboardInterrupt raised inside
+    torch's C++ start-up (``torch._C._c10d_init`` calls back into Python) escaped as a C++ exception, and the process
+    aborted ("terminate called after throwing an instance of 'pybind11::error_already_set'", exit 134)."""
     if args.command == "cache":
         return
-    with deferred_interrupts():  # a Ctrl-C is raised as the block ends
+    with deferred_interrupts(forced=False):  # a Ctrl-C is raised as the block ends
         import torch  # noqa: F401
 
 
