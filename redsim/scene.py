@@ -39,10 +39,6 @@ SOURCE_PARAMS = ("source", "mesh_sha256", "selections")
 """Build parameters that record where a mesh scene was read from and the vertex indices its masks and index lists
 were given as, not what it is (left out of its fingerprint: the geometry is in ``mesh_digest``, what a selection
 chose in its ``ids:`` label)."""
-DERIVED_FIELDS = frozenset({"bent_rest"})
-"""Effect fields computed from others that the data digest already holds (``DiscreteShellBending.bent_rest``: whether
-any ``rest_angle`` is not 0), left out of a hand-built scene's fingerprint: they say nothing new, and hashing one added
-later changed the fingerprint of every scene that has it, so its checkpoints were refused."""
 
 
 @dataclass(frozen=True)
@@ -971,10 +967,9 @@ def _bytes(t: Tensor) -> bytes:
 
 def _digest_fields(h: Any, obj: Any, depth: int, containers: bool = True) -> None:
     """Feed ``h`` an object's tensors, numbers and strings, and those of the objects it holds (``depth`` levels);
-    with ``containers``, also those inside its lists, tuples, dicts and arrays. :data:`DERIVED_FIELDS` are left out."""
+    with ``containers``, also those inside its lists, tuples, dicts and arrays."""
     for key, value in sorted(vars(obj).items()):
-        if key not in DERIVED_FIELDS:
-            _digest_value(h, key, value, depth, containers)
+        _digest_value(h, key, value, depth, containers)
 
 
 def _digest_value(h: Any, key: str, value: Any, depth: int, containers: bool) -> None:

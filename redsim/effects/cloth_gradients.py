@@ -14,7 +14,6 @@ ops and the hinges' is autograd of their plain formula, so either can be differe
 
 from __future__ import annotations
 
-import math
 from collections.abc import Sequence
 from typing import Any
 
@@ -206,47 +205,34 @@ cubature's 500 hinges it took 0.79-0.89x from B = 1 to 256 and on the whole shee
 docs/env-speed.md, "Stop 49")."""
 
 
-def hinge_energies(weight: Tensor, rest_angle: Tensor | None, length_eps: float, coords: Sequence[Tensor]) -> Tensor:
-    """Discrete-shell bending energies [J], [B, E], weight * (theta - rest_angle)^2 per hinge (wrapped:
-    :func:`angle_deviation`; ``rest_angle`` None: every rest flat), of the twelve vertex coordinates or the nine edge
-    entries (each [B, E]; :func:`hinge_parts`): through :class:`HingeEnergy` up to
+def hinge_energies(weight: Tensor, rest_angle: Tensor, length_eps: float, coords: Sequence[Tensor]) -> Tensor:
+    """Discrete-shell bending energies [J], [B, E], weight * (theta - rest_angle)^2 per hinge, of the twelve vertex
+    coordinates or the nine edge entries (each [B, E]; :func:`hinge_parts`): through :class:`HingeEnergy` up to
     :data:`HINGE_CLOSED_FORM_ENTRIES` entries per coordinate, else by autograd of the same formula."""
     if coords[0].numel() > HINGE_CLOSED_FORM_ENTRIES:
-        return weight * angle_deviation(hinge_parts(coords, length_eps)[0], rest_angle) ** 2
+        return weight * (hinge_parts(coords, length_eps)[0] - rest_angle) ** 2
     return HingeEnergy.apply(weight, rest_angle, length_eps, *coords)
-
-
-def angle_deviation(theta: Tensor, rest_angle: Tensor | None) -> Tensor:
-    """theta - rest_angle [rad] wrapped into [-pi, pi), of signed dihedral angles theta in (-pi, pi] (derivative 1);
-    theta itself where ``rest_angle`` is None (flat rests: already in range, no wrap to pay for).
-
-    Unwrapped, a hinge with a bent rest (rest_angle != 0) folded flat onto itself had two energies: theta jumps from
-    pi to -pi there, and (theta - rest_angle)^2 jumped by 4 pi |rest_angle|. Wrapped, the energy is continuous
-    everywhere, with a kink where the hinge is opposite its rest (as a flat rest's hinge has at the full fold)."""
-    if rest_angle is None:
-        return theta
-    return torch.remainder(theta - rest_angle + math.pi, 2.0 * math.pi) - math.pi
 
 
 class HingeEnergy(torch.autograd.Function):
     """Discrete-shell bending energies [J], [B, E]: ``apply(weight, rest_angle, length_eps, *coords)``,
-    weight * (theta - rest_angle)^2 per hinge (:func:`angle_deviation`).
+    weight * (theta - rest_angle)^2 per hinge.
 
-    ``weight`` [J] and ``rest_angle`` [rad] (None: all flat), each [E], are constants (no gradient), ``length_eps``
-    [m^2] a float (:func:`hinge_parts`); ``coords`` = (x0, y0, z0, ..., x3, y3, z3) or the nine edge entries, each
-    [B, E] (the gradient is with respect to what was given). The backward is :func:`_hinge_gradient` (in place on
-    its own fresh tensors); under ``create_graph`` (Hessians) it is autograd of the plain formula through
-    :func:`hinge_parts` instead, differentiable to any order.
+    ``weight`` [J] and ``rest_angle`` [rad], each [E], are constants (no gradient), ``length_eps`` [m^2] a float
+    (:func:`hinge_parts`); ``coords`` = (x0, y0, z0, ..., x3, y3, z3) or the nine edge entries, each [B, E]
+    (the gradient is with respect to what was given). The backward is
+    :func:`_hinge_gradient` (in place on its own fresh tensors); under ``create_graph`` (Hessians) it is autograd
+    of the plain formula through :func:`hinge_parts` instead, differentiable to any order.
     """
 
     @staticmethod
-    def forward(ctx: Any, weight: Tensor, rest_angle: Tensor | None, length_eps: float, *coords: Tensor) -> Tensor:
+    def forward(ctx: Any, weight: Tensor, rest_angle: Tensor, length_eps: float, *coords: Tensor) -> Tensor:
         if any(ctx.needs_input_grad[:2]):
             raise ValueError("HingeEnergy has no gradient with respect to its weights and rest angles")
         if len(coords) not in (9, 12):
             raise ValueError(f"HingeEnergy takes 12 vertex coordinates or 9 edge entries, got {len(coords)}")
         parts = hinge_parts(coords, length_eps)
-        deviation = angle_deviation(parts[0], rest_angle)
+        deviation = parts[0] - rest_angle
         ctx.length_eps = length_eps
         ctx.save_for_backward(weight, rest_angle, deviation, *coords, *parts)
         return weight * deviation**2
@@ -257,7 +243,7 @@ class HingeEnergy(torch.autograd.Function):
         count = len(saved) - 22  # the entries given, then hinge_parts' 22 terms
         coords, parts = saved[:count], saved[count:]
         if torch.is_grad_enabled():  # create_graph: autograd through the plain formula, a graph of the inputs
-            energy = weight * angle_deviation(hinge_parts(coords, ctx.length_eps)[0], rest_angle) ** 2
+            energy = weight * (hinge_parts(coords, ctx.length_eps)[0] - rest_angle) ** 2
             needs = ctx.needs_input_grad[3:]  # a coordinate without a gradient gets None (autograd.grad refuses it)
             inputs = [c for c, need in zip(coords, needs, strict=True) if need]
             wanted = iter(torch.autograd.grad(energy, inputs, grad, create_graph=True))

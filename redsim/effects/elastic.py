@@ -372,8 +372,7 @@ class DiscreteShellBending(Effect):
     """Discrete-shell bending on interior edges [Grinspun et al. 2003].
 
     E = stiffness * 3 |e|^2 / (A_a + A_b) * (theta - theta_rest)^2 per hinge, with rest edge
-    length |e| and the rest areas of its two triangles; theta is the signed dihedral angle and
-    theta - theta_rest is taken in [-pi, pi), so a bent rest's hinge folded flat has one energy.
+    length |e| and the rest areas of its two triangles; theta is the signed dihedral angle.
     It is zero at rest and invariant under rigid motions.
 
     Args:
@@ -409,8 +408,6 @@ class DiscreteShellBending(Effect):
         self.element_dofs = element_dofs
         self.length_eps = float(edge_sq.min()) * 1e-12
         self.rest_angle = hinge_angles(rest.reshape(count, 12).unbind(-1), self.length_eps)
-        self.bent_rest = bool(self.rest_angle.any())
-        """False: every rest angle is 0 (a flat sheet), so theta - 0 needs no wrapping into [-pi, pi)."""
         self.weight = stiffness_t * 3.0 * edge_sq / (area_a + area_b)
 
     def element_energy(self, xe: Tensor, cond: Tensor | None = None, loads: Tensor | None = None) -> Tensor:
@@ -432,4 +429,4 @@ class DiscreteShellBending(Effect):
     def _energies(self, coords: Sequence[Tensor]) -> Tensor:
         """Hinge energies [J], [B, E], of the twelve vertex coordinates or the nine edge entries, each [B, E] (class
         doc), by :func:`redsim.effects.cloth_gradients.hinge_energies` (a closed-form gradient up to a size)."""
-        return hinge_energies(self.weight, self.rest_angle if self.bent_rest else None, self.length_eps, coords)
+        return hinge_energies(self.weight, self.rest_angle, self.length_eps, coords)

@@ -469,25 +469,24 @@ def _hinge(fold: float) -> torch.Tensor:
 
 
 @pytest.mark.parametrize("size", [1, 10**6])  # the closed-form gradient's path, and autograd's past its size
-def test_a_bent_rest_hinge_folded_flat_has_one_energy_from_either_side(size: int) -> None:
-    """A hinge whose rest is bent by 0.7 rad, folded flat onto itself (its dihedral angle reaching +-pi) from
-    either side: the same configuration, so the same energy. theta jumps from -pi to pi there, and the unwrapped
-    (theta - rest)^2 jumped from 17.9 J to 44.3 J (stiffness 1 J, weight 3); the wrapped one is continuous, and so
-    is its gradient there (the kink sits opposite the rest instead)."""
+def test_a_bent_rest_hinge_is_pushed_away_from_folding_flat_from_either_side(size: int) -> None:
+    """A hinge whose rest is bent by 0.7 rad: its energy k (theta - rest)^2 rises toward the flat fold (theta = +-pi,
+    the triangles through each other) from both sides, so no shape near the fold is pushed into it. The value jumps
+    at the fold itself (44.3 J from one side, 17.9 J from the other: stiffness 1 J, weight 3), where self-contact
+    must stop a cloth anyway; wrapping theta - rest into [-pi, pi) removed that jump but moved the kink to
+    theta = rest + pi, an ordinary shape, and from there the energy fell toward the fold (29.6 J at ``fold`` -2.44 rad,
+    18.5 J at -3.1): reverted."""
     bend = DiscreteShellBending("b", torch.arange(12).reshape(1, 4, 3), _hinge(0.7)[None], stiffness=1.0)
     rows = size // 12 + 1
 
-    def energy_and_gradient(fold: float) -> tuple[float, torch.Tensor]:
-        x = _hinge(fold).reshape(1, 12).repeat(rows, 1).requires_grad_(True)
-        xe = x.reshape(rows, 1, 12)
-        value = bend.element_energy(xe).sum()
-        return float(value.detach()) / rows, torch.autograd.grad(value, x)[0][0]
+    def energy(fold: float) -> float:
+        x = _hinge(fold).reshape(1, 12).repeat(rows, 1)
+        return float(bend.element_energy(x.reshape(rows, 1, 12)).sum()) / rows
 
-    before, grad_before = energy_and_gradient(math.pi - 1e-7)
-    after, grad_after = energy_and_gradient(-math.pi + 1e-7)
-    assert after == pytest.approx(before, rel=1e-6)
-    torch.testing.assert_close(grad_after, grad_before, rtol=1e-4, atol=1e-4)
-    assert before == pytest.approx(3.0 * (math.pi - 0.7) ** 2, rel=1e-6)
+    near = [energy(f) for f in (2.44, 2.6, 3.1, math.pi - 1e-7)]
+    assert near == sorted(near) and near[-1] == pytest.approx(3.0 * (math.pi - 0.7) ** 2, rel=1e-6)
+    other = [energy(f) for f in (-2.0, -2.6, -3.1, -math.pi + 1e-7)]
+    assert other == sorted(other) and other[-1] == pytest.approx(3.0 * (math.pi + 0.7) ** 2, rel=1e-6)
 
 
 def test_a_solid_barely_moving_near_rest_reports_no_energy_gain_from_the_round_off_of_its_energy() -> None:
