@@ -13,9 +13,9 @@ Modules: :mod:`~redsim.cli.parser` (the parser, and the ``main`` that :func:`mai
 :mod:`~redsim.cli.bench` (bench), :mod:`~redsim.cli.envs` (demo, bench envs, bench env-ab), :mod:`~redsim.cli.agents`
 (train-agent, eval-agent), :mod:`~redsim.cli.cache` (cache info, cache clear).
 
-Exit status: 0 success; 1 a scene failed to build (``scenes``), a size's process died (``bench scaling``) or a file
-could not be read or written; 2 bad input; 3 NaN or inf; 4 a simulation step failed (implausible for its scene); 130
-interrupted (Ctrl-C or SIGTERM).
+Exit status: 0 success; 1 a scene failed to build (``scenes``), a size's process died or raised (``bench scaling``) or
+a file could not be read or written; 2 bad input; 3 NaN or inf; 4 a simulation step failed (implausible for its scene);
+130 interrupted (Ctrl-C or SIGTERM).
 """
 
 from __future__ import annotations

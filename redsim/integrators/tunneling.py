@@ -10,8 +10,9 @@ stop such a step; this test reports it.
 
 For every point of an :class:`~redsim.effects.SDFContact` it takes the point's coordinates in the frame
 that carries the shape at both ends of the step (exact there: each end's rotation is a rotation) and
-samples the straight path between them, at most a quarter of the smaller of the contact's ``feature_size`` and
-its shape's thinnest part apart (at most :data:`TUNNEL_SAMPLES` samples). A state is flagged where some point's path
+samples the part of the straight path between them that lies inside the ball holding the shape (outside it the
+signed distance is positive), at most an eighth of the smaller of the contact's ``feature_size`` and its shape's
+thinnest part apart (at most :data:`TUNNEL_SAMPLES` samples). A state is flagged where some point's path
 gets deeper into the contact (the shape's signed distance less the margin) than both of that point's ends by more than
 half the ``feature_size`` (or the margin and the core, where less), and inside the shape itself deeper than its core:
 half its thinnest part, less where the contact's points are sparse (:func:`core_depth`; a chord that only grazes the
@@ -154,23 +155,43 @@ def _deepest(effect: SDFContact, path: Tensor) -> Tensor:
     """The least signed distance [m], [m], of ``effect``'s shape along each point's path through the positions
     ``path`` [K, m, 3] (K >= 2, in the frame that carries the shape), each leg sampled straight at most
     :func:`path_spacing` apart."""
-    legs = path[1:] - path[:-1]  # [K - 1, m, 3]
+    start, end = _inside_bounding_ball(effect.shape.bounding_radius, path[:-1], path[1:])
+    legs = end - start  # [K - 1, m, 3]
     longest = float((legs * legs).sum(-1).max())
     # the deepest sample lies within spacing / 2 of the chord's deepest point and the signed distance is 1-Lipschitz
     # (a quarter of the feature size apart, a 0.05 m move across the mini chain's 0.01 m wire went 5.1 mm deep with its
     # deepest sample short of 5 mm)
     samples = min(TUNNEL_SAMPLES, math.ceil(math.sqrt(longest) / path_spacing(effect)))
-    s = torch.arange(1, samples + 1, dtype=path.dtype, device=path.device)[:, None, None, None] / (samples + 1)
-    chunk = max(1, SAMPLED_POINTS // (samples * legs.shape[0]))
+    s = torch.arange(0, samples + 2, dtype=path.dtype, device=path.device)[:, None, None, None] / (samples + 1)
+    chunk = max(1, SAMPLED_POINTS // ((samples + 2) * legs.shape[0]))
     deepest = []
     for i in range(0, path.shape[1], chunk):
-        start, leg = path[:-1, i : i + chunk], legs[:, i : i + chunk]
-        samples_of = start + s * leg  # [samples, K - 1, m, 3]
+        samples_of = start[:, i : i + chunk] + s * legs[:, i : i + chunk]  # [samples + 2, K - 1, m, 3]
         deepest.append(effect.shape.distance(samples_of).flatten(0, 1).amin(0))
     deepest = torch.cat(deepest)
     if path.shape[0] > 2:  # the states between the ends
         deepest = torch.minimum(deepest, effect.shape.distance(path[1:-1]).amin(0))
     return deepest
+
+
+def _inside_bounding_ball(radius: float, start: Tensor, end: Tensor) -> tuple[Tensor, Tensor]:
+    """The part of each straight leg from ``start`` to ``end`` [..., 3] (in the shape's frame) inside the ball of
+    ``radius`` [m] about the origin that holds the shape, as its new ends [..., 3]; a leg that misses the ball keeps
+    only its start (outside it the signed distance is positive, so no crossing lies there). Only that part is
+    sampled, so a point thrown metres past a thin wire in one step is sampled as finely across the wire as a slow
+    one (sampling the whole leg at most :data:`TUNNEL_SAMPLES` times stepped over it)."""
+    if not math.isfinite(radius):
+        return start, end
+    leg = end - start
+    a = (leg * leg).sum(-1)  # |leg|^2 t^2 + 2 (start . leg) t + |start|^2 - r^2 = 0 at the ball's surface
+    b = (start * leg).sum(-1)
+    c = (start * start).sum(-1) - radius * radius
+    root = torch.sqrt(torch.clamp(b * b - a * c, min=0.0))
+    safe = torch.where(a > 0, a, torch.ones_like(a))
+    enter = torch.clamp((-b - root) / safe, 0.0, 1.0)
+    leave = torch.clamp((-b + root) / safe, 0.0, 1.0)
+    leave = torch.where((b * b - a * c > 0) & (a > 0), torch.maximum(leave, enter), enter)
+    return start + enter[..., None] * leg, start + leave[..., None] * leg
 
 
 def _through(effect: SDFContact, core: float, start: Tensor, end: Tensor, deepest: Tensor) -> Tensor:

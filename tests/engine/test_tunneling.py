@@ -203,6 +203,24 @@ def test_a_path_across_the_wire_between_coarse_samples_is_flagged() -> None:
     assert flags.tolist() == [True]
 
 
+@pytest.mark.parametrize("length", [0.053, 8.8, 1e4])
+def test_a_path_across_the_wire_is_flagged_however_long(length: float) -> None:
+    """The crossing above, the point thrown ``length`` [m] in one step: only the part of its path inside the ball that
+    holds the torus is sampled, so a long path is sampled there as finely as a short one (the stiff mini chain's first
+    full-space step under 15 kN moved a link 8.8 m through the other's wire: sampled along the whole path at most
+    TUNNEL_SAMPLES = 256 times, 3.4 cm apart, it stepped over the 1 cm wire, converged and unflagged, unlinked 2)."""
+    from redsim.integrators.tunneling import _crossed
+
+    (contact,) = TunnelTest(scenes.build("mini_chain")).contacts
+    side = 0.05 + 0.0045  # 5.4 mm into the tube at the wire, as above
+    a = torch.tensor([[[side, 0.0, -0.5 * length]]], dtype=torch.float64)
+    b = torch.tensor([[[side, 0.0, 0.5 * length]]], dtype=torch.float64)
+    valid = torch.tensor([True])
+    assert _crossed(contact, 0.005, a, b, valid, valid).tolist() == [True]
+    beside = torch.tensor([[[0.2, 0.0, 0.0]]], dtype=torch.float64)  # the same path 0.2 m off: it misses the ball
+    assert _crossed(contact, 0.005, a + beside, b + beside, valid, valid).tolist() == [False]
+
+
 def test_a_wire_crossing_another_between_two_samples_is_flagged() -> None:
     """The chain's contact points are centre-line samples 13 mm apart, so a link's wire crossing its neighbour's 10 mm
     tube between two samples is only sure to bring one within 6.5 mm of the other's centre line: 3.5 mm into the tube,
