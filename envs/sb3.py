@@ -214,12 +214,19 @@ class SB3VecEnv(VecEnv):
         of :data:`SHARED_METHODS`, called once for all.
 
         Raises:
-            AttributeError: another name, or a shared method the vector env does not define (the copies share one
-                simulation and have no other methods).
+            AttributeError: another name, a shared method the vector env does not define (the copies share one
+                simulation and have no other methods), or a per-copy method where no layer has a ``call``.
             TypeError: arguments to a per-copy method (they take none).
         """
         if method_name in PER_COPY_CALLS:
-            call = next(layer.call for layer in self._layers() if hasattr(layer, "call"))
+            layers = list(self._layers())
+            call = next((layer.call for layer in layers if hasattr(layer, "call")), None)
+            if call is None:  # a user's own vector env inside, without Gymnasium's SyncVectorEnv.call
+                chain = " around ".join(type(layer).__name__ for layer in layers)
+                raise AttributeError(
+                    f"SB3VecEnv.env_method({method_name!r}) asks the vector env's call(name), and no layer of "
+                    f"{chain} defines call"
+                )
             answers = call(method_name, *method_args, **method_kwargs)
             return [answers[i] for i in self._get_indices(indices)]
         result = self._shared(method_name)(*method_args, **method_kwargs)

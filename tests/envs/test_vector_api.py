@@ -432,6 +432,26 @@ def test_the_sb3_adapters_env_method_answers_through_vector_wrappers_without_cal
             venv.close()
 
 
+def test_the_sb3_adapters_env_method_names_the_method_and_env_where_no_layer_has_call(
+    monkeypatch: pytest.MonkeyPatch,
+) -> None:
+    """A user's own vector env inside (no ``call``, as Gymnasium's ``VectorEnv``): ``env_method("get_state")``
+    raised a bare StopIteration."""
+    from redsim.envs.sb3 import SB3VecEnv
+
+    class UserVectorEnv(gym.vector.VectorEnv):
+        pass
+
+    venv = SB3VecEnv.make(ID, num_envs=2)
+    try:
+        own = UserVectorEnv()
+        monkeypatch.setattr(venv, "_layers", lambda: iter([gym.vector.VectorWrapper(own), own]))
+        with pytest.raises(AttributeError, match=r"env_method\('get_state'\).*VectorWrapper around UserVectorEnv"):
+            venv.env_method("get_state")
+    finally:
+        venv.close()
+
+
 @pytest.mark.parametrize("shards", [1, 2])
 def test_a_step_where_every_copy_restarts_reports_the_reset_infos_as_sync(shards: int) -> None:
     """No step keys (no copy stepped), every copy's new start (the reset's info), as Gymnasium's sync vector env."""
