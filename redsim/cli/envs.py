@@ -11,11 +11,9 @@ from typing import Any
 from redsim.cli.bench import _machine_line
 from redsim.cli.common import (
     EXIT_OK,
-    EXIT_SCENE_FAILED,
     CliError,
     add_out_folder,
     check_device_option,
-    error,
     finish_command,
     json_out,
     non_negative_seed,
@@ -28,6 +26,7 @@ from redsim.cli.common import (
     warn,
     warn_if_out_of_date,
 )
+from redsim.cli.scene_runs import SceneRuns
 
 SCRIPTED = "scripted controller"
 
@@ -281,11 +280,13 @@ def cmd_bench_envs(args: argparse.Namespace) -> int:
             out(line)
         if machine["load_average_1min_at_end"] is not None:
             out(f"load at the end: {machine['load_average_1min_at_end']:.2f} (1-minute average)")
-    if failed:  # the rows are printed, and the command fails, for scripts and CI (as bench scaling's failed size)
-        names = list(dict.fromkeys(f"{item['id']} {item['part']}" for item in failed))  # once each, in any round
-        error(f"bench envs: {len(names)} part(s) failed ({', '.join(names)}); the other parts ran and are printed")
-        return EXIT_SCENE_FAILED
-    return EXIT_OK
+    # the rows are printed; a part that raised fails the command (exit 1, for scripts and CI), on the stderr line
+    # of every bench that loops over scenes
+    errors: dict[str, str] = {}  # each part once, with its first round's error (every round's is listed above)
+    for item in failed:
+        errors.setdefault(f"{item['id']} {item['part']}", item["error"])
+    runs = SceneRuns("bench envs", not args.json, "part", [{"scene": n, "error": e} for n, e in errors.items()])
+    return runs.status()
 
 
 def _parse_settings(items: list[str], env_id: str) -> dict[str, dict[str, Any]]:

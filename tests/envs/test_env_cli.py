@@ -491,7 +491,8 @@ def test_bench_envs_runs_on_past_a_part_that_raises(
     assert "MuJoCo chain failed: RuntimeError: no chain here" in lines
     assert captured.err.endswith(
         "redsim: error: bench envs: 3 part(s) failed (RedSim/MiniChain-v0 N=3, RedSim/Klann-v0 full space, MuJoCo "
-        "chain); the other parts ran and are printed\n"
+        "chain); the others ran; RedSim/MiniChain-v0 N=3 raised RuntimeError: no N=3 here; RedSim/Klann-v0 full "
+        "space raised ValueError: no full space here; MuJoCo chain raised RuntimeError: no chain here\n"
     )
     assert main([*args, "--json"]) == 1
     doc = json.loads(capsys.readouterr().out)
