@@ -23,6 +23,11 @@ from __future__ import annotations
 import importlib
 import sys
 from collections.abc import Sequence
+from typing import TYPE_CHECKING
+
+if TYPE_CHECKING:  # the lazy names (:data:`_LAZY`), for type checkers and IDEs; imported on first use at run time
+    from redsim.cli.common import CliError
+    from redsim.cli.parser import build_parser
 
 
 def main(argv: Sequence[str] | None = None) -> int:
