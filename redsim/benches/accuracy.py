@@ -978,6 +978,17 @@ FAMILY_STYLE = {
 }
 
 
+def undrawn_configs(rows: list[dict[str, Any]], scenario: str) -> list[str]:
+    """The configs of ``scenario``'s rows that the Pareto plot cannot place: a non-finite mean error (a run that
+    diverged) or no positive time."""
+    return [
+        row["config"]
+        for row in rows
+        if row["scenario"] == scenario
+        and not (math.isfinite(row.get("rel_error_mean", math.nan)) and row.get("ms_per_step", 0) > 0)
+    ]
+
+
 def pareto_png(result: dict[str, Any], path: Path, machine: str) -> None:
     """Log-log plot of ms/step against the mean relative M error, one panel per scenario."""
     from matplotlib.backends.backend_agg import FigureCanvasAgg
@@ -990,8 +1001,18 @@ def pareto_png(result: dict[str, Any], path: Path, machine: str) -> None:
     for i, scenario in enumerate(scenarios):
         ax = fig.add_subplot(1, len(scenarios), i + 1)
         seen = set()
+        undrawn = undrawn_configs(result["rows"], scenario)
+        if undrawn:  # a point a log-log plot cannot place is named, never silently left out
+            ax.text(
+                0.01,
+                0.01,
+                "not drawn (no finite error or time): " + ", ".join(undrawn),
+                fontsize=6,
+                transform=ax.transAxes,
+                wrap=True,
+            )
         for row in result["rows"]:
-            if row["scenario"] != scenario or not (math.isfinite(row["rel_error_mean"]) and row["ms_per_step"] > 0):
+            if row["scenario"] != scenario or row["config"] in undrawn:
                 continue
             color, marker = FAMILY_STYLE.get(row["family"], ("tab:purple", "x"))
             label = row["family"] if row["family"] not in seen else None
@@ -1217,6 +1238,7 @@ __all__ = [
     "scenario_loads",
     "start_study",
     "trajectory_errors",
+    "undrawn_configs",
     "write_csv",
     "write_outputs",
 ]

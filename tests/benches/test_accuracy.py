@@ -311,6 +311,29 @@ def test_the_table_tells_a_non_finite_error_from_a_column_that_does_not_apply() 
     assert cells[headers.index("rel. M error")] == "nan" and cells[headers.index("projection")] == "–"
 
 
+def test_the_pareto_plot_names_the_rows_it_cannot_place(tmp_path, monkeypatch: pytest.MonkeyPatch) -> None:
+    """A diverged row (no finite error) has no place on the log-log plot: the panel names it; it was left out
+    silently while the table showed it as nan."""
+    from matplotlib.axes import Axes
+
+    texts: list[str] = []
+    draw_text = Axes.text
+
+    def recording_text(self, x, y, s, *args, **kwargs):
+        texts.append(s)
+        return draw_text(self, x, y, s, *args, **kwargs)
+
+    monkeypatch.setattr(Axes, "text", recording_text)
+    good = {"scenario": "push", "config": "runtime d=2 (default)", "family": "neural", "d": 2}
+    good.update(rel_error_mean=0.01, ms_per_step=2.0)
+    lost = {**good, "config": "runtime tol 1e-2", "rel_error_mean": float("nan")}
+    result = {"rows": [good, lost], "scene": "mini_chain", "n": 24, "d": 2, "dims": [2]}
+    accuracy.pareto_png(result, tmp_path / "p.png", "machine")
+    assert (tmp_path / "p.png").stat().st_size > 0
+    assert accuracy.undrawn_configs(result["rows"], "push") == ["runtime tol 1e-2"]
+    assert any("runtime tol 1e-2" in t for t in texts)
+
+
 def test_substeps_are_finer_steps_of_the_same_load_and_each_scene_has_its_full_space_tolerance(mini_chain) -> None:
     """dt4th: a row step of 2 substeps is 2 reference steps of dt / 2 under the same load, counted once."""
     from redsim.integrators import FullSpace, FullState, ImplicitEuler
