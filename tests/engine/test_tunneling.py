@@ -221,6 +221,67 @@ def test_a_path_across_the_wire_is_flagged_however_long(length: float) -> None:
     assert _crossed(contact, 0.005, a + beside, b + beside, valid, valid).tolist() == [False]
 
 
+@pytest.mark.parametrize("dtype", [torch.float64, torch.float32])
+@pytest.mark.parametrize("length", [8.8, 1e3])
+def test_a_long_slanted_path_across_the_wire_is_flagged_in_either_dtype(dtype: torch.dtype, length: float) -> None:
+    """The crossing above at 45 degrees, ``length`` [m] long, in an env's float32 too: the part inside the torus's
+    ball is found from the line's point nearest the centre (the quadratic's discriminant b^2 - a c cancelled in
+    float32 past a few hundred metres and kept that point only, here outside the tube: unflagged)."""
+    from redsim.integrators.tunneling import _crossed
+
+    (contact,) = TunnelTest(scenes.build("mini_chain").to(dtype=dtype)).contacts
+    at = torch.tensor([0.05 + 0.0045, 0.0, 0.0], dtype=torch.float64)  # in the tube, as above
+    way = torch.tensor([1.0, 0.0, 1.0], dtype=torch.float64) / math.sqrt(2.0)
+    a, b = ((at + length * s * way).to(dtype)[None, None] for s in (-0.3, 0.7))
+    valid = torch.tensor([True])
+    assert _crossed(contact, 0.005, a, b, valid, valid).tolist() == [True]
+
+
+@pytest.mark.parametrize("dtype", [torch.float64, torch.float32])
+def test_the_part_of_a_leg_inside_the_ball_holds_every_point_of_it_there(dtype: torch.dtype) -> None:
+    """Random legs of 1 mm to 10 km near a ball of radius 0.06 m (the torus's), ending inside, outside, passing by or
+    through it, and of no length: every point of a leg sampled 2001 times that lies inside the ball (computed in
+    float64) lies on its clipped part (to the dtype's round-off of the leg's ends, and 1 um), and the clipped ends of
+    a leg that enters the ball lie in it."""
+    from redsim.integrators.tunneling import _inside_bounding_ball
+
+    radius, legs = 0.06, 400
+    g = torch.Generator().manual_seed(0)
+    start = torch.randn(legs, 3, generator=g, dtype=torch.float64)
+    start = start / start.norm(dim=-1, keepdim=True) * radius * 3 * torch.rand(legs, 1, generator=g).double()
+    way = torch.randn(legs, 3, generator=g, dtype=torch.float64)
+    way = way / way.norm(dim=-1, keepdim=True)
+    length = 10.0 ** (-3 + 7 * torch.rand(legs, 1, generator=g, dtype=torch.float64))
+    length[:20] = 0.0
+    start[20:100] = start[20:100] - 0.5 * length[20:100] * way[20:100]  # centred on the ball's neighbourhood
+    start, end = start.to(dtype), (start + length * way).to(dtype)
+    clipped_start, clipped_end = (p.double() for p in _inside_bounding_ball(radius, start, end))
+    start, end = start.double(), end.double()
+    t = torch.linspace(0.0, 1.0, 2001, dtype=torch.float64)[:, None, None]
+    points = start + t * (end - start)  # [2001, legs, 3]
+    inside = points.norm(dim=-1) < radius
+    tol = 4 * torch.finfo(dtype).eps * torch.maximum(start.norm(dim=-1), end.norm(dim=-1)) + 1e-6  # [legs] [m]
+    kept = clipped_end - clipped_start
+    along = ((points - clipped_start) * kept).sum(-1) / (kept * kept).sum(-1).clamp_min(1e-300)
+    off = (points - (clipped_start + along.clamp(0.0, 1.0)[..., None] * kept)).norm(dim=-1)  # from the clipped part
+    assert bool((off[inside] <= tol.expand_as(off)[inside]).all()), float((off - tol)[inside].max())
+    missed = ~inside.any(0)
+    ends = torch.stack([clipped_start, clipped_end]).norm(dim=-1)
+    assert bool((ends[:, ~missed] <= radius + tol[~missed]).all())
+
+
+def test_a_float32_path_far_out_is_tested_without_error() -> None:
+    """A float32 point 1e20 m out moved 1e19 m (finite, so tested): the product of its position and move overflows
+    the dtype, and the part inside the ball came out NaN, so sizing the samples raised ValueError (NaN to integer);
+    the whole leg is sampled instead, far from the wire: not flagged."""
+    from redsim.integrators.tunneling import _crossed
+
+    (contact,) = TunnelTest(scenes.build("mini_chain").to(dtype=torch.float32)).contacts
+    a = torch.tensor([[[1e20, 0.0, 1.0]]], dtype=torch.float32)
+    valid = torch.tensor([True])
+    assert _crossed(contact, 0.005, a, a + torch.tensor([1e19, 0.0, 0.0]), valid, valid).tolist() == [False]
+
+
 def test_a_wire_crossing_another_between_two_samples_is_flagged() -> None:
     """The chain's contact points are centre-line samples 13 mm apart, so a link's wire crossing its neighbour's 10 mm
     tube between two samples is only sure to bring one within 6.5 mm of the other's centre line: 3.5 mm into the tube,
