@@ -980,11 +980,12 @@ FAMILY_STYLE = {
 
 def undrawn_configs(rows: list[dict[str, Any]], scenario: str) -> list[str]:
     """The configs of ``scenario``'s rows that the Pareto plot cannot place: a non-finite mean error (a run that
-    diverged) or no positive time."""
+    diverged) or no positive time; not the :data:`NO_MOTION` row, which is no run and never has a time."""
     return [
         row["config"]
         for row in rows
         if row["scenario"] == scenario
+        and row["config"] != NO_MOTION
         and not (math.isfinite(row.get("rel_error_mean", math.nan)) and row.get("ms_per_step", 0) > 0)
     ]
 
@@ -1012,7 +1013,7 @@ def pareto_png(result: dict[str, Any], path: Path, machine: str) -> None:
                 wrap=True,
             )
         for row in result["rows"]:
-            if row["scenario"] != scenario or row["config"] in undrawn:
+            if row["scenario"] != scenario or row["config"] in undrawn or row["config"] == NO_MOTION:
                 continue
             color, marker = FAMILY_STYLE.get(row["family"], ("tab:purple", "x"))
             label = row["family"] if row["family"] not in seen else None
