@@ -33,7 +33,7 @@ class SceneRuns:
         ``failed:`` lines are on stdout, in the report; a JSON run's are in its ``failed``)."""
         if self.failed:
             names = ", ".join(f["scene"] for f in self.failed)
-            reasons = "".join(f"; {f['scene']} raised {f['error']}" for f in self.failed)
+            reasons = "".join(f"; {f['scene']} raised {' '.join(str(f['error']).split())}" for f in self.failed)
             error(f"{self.command}: {len(self.failed)} {self.unit}(s) failed ({names}); the others ran{reasons}")
         if self.interrupted:
             if self.text:

@@ -8,18 +8,18 @@ line (``feature_size``: the tube radius and both margins), its full-space step e
 the chain flies off, every step converged and no energy gained. Continuous collision detection would
 stop such a step; this test reports it.
 
-For every point of an :class:`~redsim.effects.SDFContact` it takes the point's coordinates in the frame
-that carries the shape at both ends of the step (exact there: each end's rotation is a rotation) and
-samples the part of the straight path between them that lies inside the ball holding the shape (outside it the
-signed distance is positive), at most an eighth of the smaller of the contact's ``feature_size`` and its shape's
-thinnest part apart (at most :data:`TUNNEL_SAMPLES` samples). A state is flagged where some point's path
+For every point of an :class:`~redsim.effects.SDFContact` it takes the point's coordinates in the frame that carries
+the shape at both ends of the step (exact there: each end's rotation is a rotation) and samples the part of the
+straight path between them that lies inside the ball holding the shape (outside it the signed distance is positive),
+at most an eighth of the smaller of the contact's ``feature_size`` and its shape's thinnest part apart
+(:func:`sample_limit` bounds the samples of a leg by the ball's diameter). A state is flagged where some point's path
 gets deeper into the contact (the shape's signed distance less the margin) than both of that point's ends by more than
 half the ``feature_size`` (or the margin and the core, where less), and inside the shape itself deeper than its core:
 half its thinnest part, less where the contact's points are sparse (:func:`core_depth`; a chord that only grazes the
-margin, as a point swept along an arc by a fast turn does, is not a crossing). Only
-points that moved that far relative to the shape are sampled, so ordinary steps cost one gather per
-contact. The relative path is a chord (a point swept along an arc by a fast turn of its frame is checked
-along the chord of that arc), so the test is a detector, not a proof.
+margin, as a point swept along an arc by a fast turn does, is not a crossing). Only points that moved that far
+relative to the shape are sampled, so ordinary steps cost one gather per contact. The relative path is a chord (a
+point swept along an arc by a fast turn of its frame is checked along the chord of that arc), so the test is a
+detector, not a proof.
 Reported per step (:class:`redsim.integrators.StepInfo`, the envs' ``info["tunneled"]``); a full-space
 ImplicitEuler step it flags is solved again within a trust radius (``retry_tunneled``), a latent one is not. That
 solve's own path is known (the states it accepted, each a short move): :meth:`TunnelTest.along` applies the same
@@ -39,7 +39,7 @@ from redsim.effects import SDFContact
 from redsim.scene import Scene
 
 TUNNEL_SAMPLES = 256
-"""Most samples of one point's path in a step (a faster point is sampled more coarsely)."""
+"""Fewest samples :func:`sample_limit` allows a leg of one point's path (the most for an unbounded shape)."""
 SAMPLED_POINTS = 1 << 20
 """Most sampled point positions evaluated at once (a blown-up batch is checked in chunks of this size)."""
 
@@ -161,7 +161,7 @@ def _deepest(effect: SDFContact, path: Tensor) -> Tensor:
     # the deepest sample lies within spacing / 2 of the chord's deepest point and the signed distance is 1-Lipschitz
     # (a quarter of the feature size apart, a 0.05 m move across the mini chain's 0.01 m wire went 5.1 mm deep with its
     # deepest sample short of 5 mm)
-    samples = min(TUNNEL_SAMPLES, math.ceil(math.sqrt(longest) / path_spacing(effect)))
+    samples = min(sample_limit(effect), math.ceil(math.sqrt(longest) / path_spacing(effect)))
     s = torch.arange(0, samples + 2, dtype=path.dtype, device=path.device)[:, None, None, None] / (samples + 1)
     chunk = max(1, SAMPLED_POINTS // ((samples + 2) * legs.shape[0]))
     deepest = []
@@ -172,6 +172,16 @@ def _deepest(effect: SDFContact, path: Tensor) -> Tensor:
     if path.shape[0] > 2:  # the states between the ends
         deepest = torch.minimum(deepest, effect.shape.distance(path[1:-1]).amin(0))
     return deepest
+
+
+def sample_limit(effect: SDFContact) -> int:
+    """Most samples of one leg of a point's path: enough to sample the shape's bounding ball's diameter
+    :func:`path_spacing` apart (a clipped leg is no longer: a 2 m plate 1 cm thick is sampled finely across), at least
+    :data:`TUNNEL_SAMPLES`, which alone bounds an unbounded shape's legs (a plane's distance is linear along a leg)."""
+    radius = float(effect.shape.bounding_radius)
+    if not math.isfinite(radius):
+        return TUNNEL_SAMPLES
+    return max(TUNNEL_SAMPLES, math.ceil(2.0 * radius / path_spacing(effect)))
 
 
 def _inside_bounding_ball(radius: float, start: Tensor, end: Tensor) -> tuple[Tensor, Tensor]:
@@ -205,4 +215,4 @@ def _through(effect: SDFContact, core: float, start: Tensor, end: Tensor, deepes
     return (deepest < -core) & (deepest - margin < ends - rise)
 
 
-__all__ = ["SAMPLED_POINTS", "TUNNEL_SAMPLES", "TunnelTest"]
+__all__ = ["SAMPLED_POINTS", "TUNNEL_SAMPLES", "TunnelTest", "sample_limit"]

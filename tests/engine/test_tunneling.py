@@ -282,6 +282,22 @@ def test_a_float32_path_far_out_is_tested_without_error() -> None:
     assert _crossed(contact, 0.005, a, a + torch.tensor([1e19, 0.0, 0.0]), valid, valid).tolist() == [False]
 
 
+def test_a_long_thin_plate_is_sampled_finely_across_however_long_the_path() -> None:
+    """A 2 x 2 m plate 1 cm thick crossed straight through by a 2.4 m path: its bounding ball's diameter holds ~4,500
+    samples an eighth of the plate's half thickness apart, so a sample lies near its middle plane; capped at
+    TUNNEL_SAMPLES = 256 (9.5 mm apart across the 10 mm plate) the deepest sample was 0.3 mm in (helper-275 saw a
+    plate missed whole on another path)."""
+    from types import SimpleNamespace
+
+    from redsim.effects.sdf import Box
+    from redsim.integrators.tunneling import _deepest, sample_limit
+
+    plate = SimpleNamespace(shape=Box((1.0, 1.0, 0.005)), feature_size=0.02, margin=0.005)
+    assert sample_limit(plate) > 4000
+    path = torch.tensor([[[0.5, 0.5, -1.2]], [[0.5, 0.5, 1.2]]], dtype=torch.float64)  # [2, 1, 3]
+    assert float(_deepest(plate, path)) < -0.004  # the plate's middle plane is crossed: deeper than 4 of its 5 mm
+
+
 def test_a_wire_crossing_another_between_two_samples_is_flagged() -> None:
     """The chain's contact points are centre-line samples 13 mm apart, so a link's wire crossing its neighbour's 10 mm
     tube between two samples is only sure to bring one within 6.5 mm of the other's centre line: 3.5 mm into the tube,
