@@ -1,0 +1,66 @@
+"""The ``diverged`` test of :func:`redsim.runtime.flags.diverged_states`, clause by clause.
+
+Its doc names three ways a finite step diverged: Phi ended above Phi(z_t) beyond the noise (``worse``), U' changed by
+more than DIVERGENCE_MARGIN F L (``released``), K rose by more than that (``faster``); and any non-finite Phi or K.
+The stepper's own tests reach the ``released`` clause only (a repulsive energy that blows the chain apart); each
+row below trips exactly one clause, so dropping any of them from the test fails here.
+"""
+
+from __future__ import annotations
+
+import torch
+
+from redsim.runtime.flags import DIVERGENCE_MARGIN, diverged_states
+
+ALLOWANCE = 10.0  # F L [J]
+NOISE = 1e-6  # [J]
+LIMIT = DIVERGENCE_MARGIN * ALLOWANCE
+
+
+def _flags(*rows: tuple[float, float, float, float, float]) -> list[bool]:
+    """diverged_states of rows (phi_now, phi_next, kinetic_now, kinetic_next, inertia_next) [J]."""
+    columns = torch.tensor(rows, dtype=torch.float64).T
+    allowance = torch.full((len(rows),), ALLOWANCE, dtype=torch.float64)
+    noise = torch.full((len(rows),), NOISE, dtype=torch.float64)
+    return diverged_states(*columns, allowance, noise).tolist()
+
+
+def test_a_step_that_trips_no_clause_is_not_diverged() -> None:
+    """Staying put, a rise within the noise, a fall within F L, and K falling far (the ``faster`` test is one-sided):
+    none diverged. Phi(z_t) = K_t + U'_t, Phi(z_{t+1}) = inertia + U'_{t+1}."""
+    assert _flags(
+        (1.0, 1.0, 0.0, 0.0, 0.0),
+        (1.0, 1.0 + 0.5 * NOISE, 0.0, 0.0, 0.0),
+        (1.0 + 0.5 * LIMIT, 1.0, 0.0, 0.0, 0.0),  # U' fell by half the limit
+        (1.0 + 3.0 * LIMIT, 1.0, 3.0 * LIMIT, 0.0, 0.0),  # K fell by 3 F L, U' stayed: a body brought to rest
+    ) == [False, False, False, False]
+
+
+def test_each_clause_alone_flags_the_step() -> None:
+    assert _flags(
+        (1.0, 1.0 + 2.0 * NOISE, 0.0, 0.0, 0.0),  # worse: Phi rose past the noise, U' and K within the limit
+        (1.0 + 1.5 * LIMIT, 1.0, 0.0, 0.0, 0.0),  # released: U' fell by 1.5 F L (Phi fell: not worse)
+        (1.0 + 1.5 * LIMIT, 1.0 + 1.5 * LIMIT, 0.0, 1.5 * LIMIT, 0.0),  # faster: K rose by 1.5 F L; Phi and U' stayed
+    ) == [True, True, True]
+
+
+def test_the_released_and_faster_clauses_are_measured_against_divergence_margin_f_l() -> None:
+    """Just inside DIVERGENCE_MARGIN F L is not diverged, just past it is (Phi falls or stays, so only the clause
+    under test can trip)."""
+    inside, past = 0.99 * LIMIT, 1.01 * LIMIT
+    assert _flags(
+        (1.0 + inside, 1.0, 0.0, 0.0, 0.0),
+        (1.0 + past, 1.0, 0.0, 0.0, 0.0),
+        (1.0 + inside, 1.0 + inside, 0.0, inside, 0.0),
+        (1.0 + past, 1.0 + past, 0.0, past, 0.0),
+    ) == [False, True, False, True]
+
+
+def test_a_non_finite_energy_at_either_end_is_diverged() -> None:
+    nan, inf = float("nan"), float("inf")
+    assert _flags(
+        (nan, 1.0, 0.0, 0.0, 0.0),
+        (1.0, nan, 0.0, 0.0, 0.0),
+        (1.0, 1.0, inf, 0.0, 0.0),
+        (1.0, 1.0, 0.0, inf, 0.0),
+    ) == [True, True, True, True]
