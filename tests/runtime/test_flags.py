@@ -1,5 +1,6 @@
 """The per-state flags a latent step reports: ``diverged`` (:func:`redsim.runtime.flags.diverged_states`, clause by
-clause) and ``converged`` (against the ``residual`` it reports).
+clause), ``out_of_range`` (:func:`redsim.runtime.flags.out_of_range_states`, periodic latents and the condition's
+bounds) and ``converged`` (against the ``residual`` it reports).
 
 Its doc names three ways a finite step diverged: Phi ended above Phi(z_t) beyond the noise (``worse``), U' changed by
 more than DIVERGENCE_MARGIN F L (``released``), K rose by more than that (``faster``); and any non-finite Phi or K.
@@ -9,6 +10,7 @@ row below trips exactly one clause, so dropping any of them from the test fails 
 
 from __future__ import annotations
 
+import math
 import warnings
 
 import pytest
@@ -16,7 +18,8 @@ import torch
 
 from redsim import pretrained, scenes
 from redsim.runtime import LatentStepper
-from redsim.runtime.flags import DIVERGENCE_MARGIN, diverged_states
+from redsim.runtime.flags import DIVERGENCE_MARGIN, LATENT_RANGE, diverged_states, out_of_range_states
+from redsim.scene import ConditionSpace
 
 ALLOWANCE = 10.0  # F L [J]
 NOISE = 1e-6  # [J]
@@ -70,6 +73,42 @@ def test_a_non_finite_energy_at_either_end_is_diverged() -> None:
         (1.0, 1.0, inf, 0.0, 0.0),
         (1.0, 1.0, 0.0, inf, 0.0),
     ) == [True, True, True, True]
+
+
+def test_out_of_range_leaves_periodic_latents_out_of_the_radius() -> None:
+    """d = 3 with latent 0 periodic (a crank angle, which grows by 2 pi a turn): the radius is LATENT_RANGE sqrt(2)
+    over latents 1 and 2 alone (sqrt(3) over all three let a free |z| of 6.9 pass), and any angle is in range."""
+    radius = LATENT_RANGE * math.sqrt(2.0)
+    z = torch.tensor(
+        [
+            [1e3, 0.0, 0.0],  # many turns of the crank
+            [0.0, 0.99 * radius, 0.0],
+            [0.0, 0.0, 1.01 * radius],
+            [0.0, 0.8 * radius, 0.8 * radius],  # |z_free| = 1.13 radius, each entry inside it
+            [float("nan"), 0.0, 0.0],  # not finite, periodic or not
+        ],
+        dtype=torch.float64,
+    )
+    assert out_of_range_states(z, (0,), None, None).tolist() == [False, False, True, True, True]
+    # [B, K, d]: out where any of the K latents is (a step's z and z_next)
+    pairs = torch.stack([torch.zeros_like(z[:2]), z[1:3]], 1)
+    assert out_of_range_states(pairs, (0,), None, None).tolist() == [False, True]
+    # without the periodic latent the radius is LATENT_RANGE sqrt(3) over all three, and the angle counts
+    assert out_of_range_states(z[:1], (), None, None).tolist() == [True]
+
+
+def test_out_of_range_reads_both_bounds_of_the_condition() -> None:
+    space = ConditionSpace(
+        ("stiffness_ratio", "pin"),
+        torch.tensor([0.2, -1.0], dtype=torch.float64),
+        torch.tensor([5.0, 1.0], dtype=torch.float64),
+        torch.tensor([1.0, 0.0], dtype=torch.float64),
+    )
+    cond = torch.tensor(
+        [[0.2, -1.0], [5.0, 1.0], [0.19, 0.0], [5.01, 0.0], [1.0, -1.01], [1.0, 1.01]], dtype=torch.float64
+    )
+    z = torch.zeros(cond.shape[0], 2, dtype=torch.float64)
+    assert out_of_range_states(z, (), cond, space).tolist() == [False, False, True, True, True, True]
 
 
 @pytest.mark.parametrize("hessian", ["exact", "bfgs"])
