@@ -124,6 +124,7 @@ class Cubature:
                 raise CheckpointError(f"corrupt cubature file (not a JSON object: {type(doc).__name__})", str(src))
             if doc.get("format_version") != FORMAT_VERSION:
                 raise CheckpointError(f"unsupported format_version {doc.get('format_version')!r}", str(src))
+            _check_header(doc, str(src))
             names = [r["name"] for r in doc["rules"]]
             if twice := sorted({n for n in names if names.count(n) > 1}):
                 counts = ", ".join(f"effect {n!r} has {names.count(n)} rules" for n in twice)
@@ -135,15 +136,21 @@ class Cubature:
             for r in doc["rules"]:
                 if r["mode"] not in MODES:
                     raise CheckpointError(f"unknown mode {r['mode']!r}; valid: {list(MODES)}", str(src))
-                count = int(r["element_count"])
+                count = r["element_count"]
+                if type(count) is not int or count < 0:  # int() read 18.7 as 18 and "18" as 18, without a word
+                    raise CheckpointError(
+                        f"effect {r['name']!r}: element_count must be an integer >= 0, got {count!r}", str(src)
+                    )
                 if r["mode"] == "cubature":
-                    # torch.tensor(..., dtype=int64) truncates 0.5 to element 0 and reads true as 1, without a word
-                    if odd := [(i, v) for i, v in enumerate(r["indices"]) if type(v) is not int]:
-                        i, v = odd[0]
-                        raise CheckpointError(
-                            f"effect {r['name']!r}: kept element indices must be integers, got {v!r} at position {i}",
-                            str(src),
-                        )
+                    # torch.tensor(..., dtype=int64) truncates 0.5 to element 0 and reads true as 1, and a weight
+                    # true as 1.0, without a word
+                    for what, values, kinds in (
+                        ("kept element indices must be integers", r["indices"], (int,)),
+                        ("weights must be numbers", r["weights"], (int, float)),
+                    ):
+                        if odd := [(i, v) for i, v in enumerate(values) if type(v) not in kinds]:
+                            i, v = odd[0]
+                            raise CheckpointError(f"effect {r['name']!r}: {what}, got {v!r} at position {i}", str(src))
                     index = torch.tensor(r["indices"], dtype=torch.int64)
                     weights = torch.tensor(r["weights"], dtype=torch.float64)
                 else:
@@ -198,6 +205,22 @@ class Cubature:
                     f"{list(LINEAR_KINDS)}: the cubature file was edited or damaged; rebuild it with `redsim cubature`",
                     where,
                 )
+
+
+def _check_header(doc: dict[str, Any], where: str) -> None:
+    """Refuse a cubature file whose summary, config or command cannot be a cubature's (:class:`CheckpointError`):
+    the bench reads and formats the summary's errors, and failed on a list, or an error given as text, after its
+    whole run."""
+    for key, kind in (("summary", dict), ("config", dict), ("command", str)):
+        if key in doc and not isinstance(doc[key], kind):
+            raise CheckpointError(
+                f"corrupt cubature file ({key} must be a JSON {'object' if kind is dict else 'string'}, got "
+                f"{type(doc[key]).__name__})",
+                where,
+            )
+    for key, value in doc.get("summary", {}).items():
+        if key.endswith("error") and (type(value) not in (int, float) or not value >= 0):
+            raise CheckpointError(f"corrupt cubature file (summary {key} must be a number >= 0, got {value!r})", where)
 
 
 def _check_rule(name: str, count: int, index: Tensor, weights: Tensor, where: str) -> None:

@@ -1037,3 +1037,35 @@ def test_bench_cubature_sweep_prints_the_sizes_finished_before_ctrl_c(cli, monke
     code, out, err = cli(*argv)
     assert code == 130 and "cells    2" in out and "cells    3" not in out, err
     assert out.rstrip().endswith("interrupted: the sizes finished before it")
+
+
+@pytest.mark.parametrize(
+    ("where", "value", "expected"),
+    [
+        ("element_count", 18.7, r"element_count must be an integer >= 0, got 18.7"),  # read as 18 before
+        ("element_count", "18", r"element_count must be an integer >= 0, got '18'"),  # read as 18 before
+        ("weights", True, r"weights must be numbers, got True at position 0"),  # read as 1.0 before
+        ("weights", [0.5], r"weights must be numbers, got \[0.5\] at position 0"),
+        ("summary", [1], r"corrupt cubature file \(summary must be a JSON object, got list\)"),
+        ("held_out_force_error", "2%", r"summary held_out_force_error must be a number >= 0, got '2%'"),
+    ],
+)
+def test_a_cubature_file_with_mistyped_counts_weights_or_summary_is_refused(tmp_path, where, value, expected) -> None:
+    """A hand-edited element_count of 18.7 or "18", or a weight true, loaded (int() and torch.tensor read them as 18
+    and 1.0); a summary that is not an object, or an error given as text, loaded, and `redsim bench cubature` failed
+    on it after its whole bench (AttributeError, ValueError) instead of refusing the file first."""
+    scene, f = _toy_cloth_map()
+    path = build_cubature(scene, f, CubatureConfig(elements=4, **QUICK)).save(tmp_path / "cloth")
+    doc = json.loads(path.read_text())
+    rule = next(r for r in doc["rules"] if r["name"] == "membrane")
+    if where == "element_count":
+        rule[where] = value
+    elif where == "weights":
+        rule[where][0] = value
+    elif where == "summary":
+        doc[where] = value
+    else:
+        doc["summary"][where] = value
+    path.write_text(json.dumps(doc))
+    with pytest.raises(CheckpointError, match=rf"cloth.cubature.json: .*{expected}"):
+        load_cubature(tmp_path / "cloth", scene, f)
