@@ -48,10 +48,10 @@ class HangingClothEnv(ReachEnv):
 
     ## Starting State
     At rest (z: the map's unloaded equilibrium, z_dot = 0). That is the shipped map's rest, not the flat hanging
-    sheet's: the d = 8 map (4000 fit steps) holds the sheet folded, its lowest point at y = -0.75 m, its top row
-    ~6 cm above the pinned edge, 1.7 J above the full-space rest (`info["membrane_max_strain"]` 0.11 at rest; the
-    shipped map's subspace row, docs/fitting.md, "From the README: the Table 1 runs' notes and what the
-    table says": rest offset, load error 36). v0: the target is the corner in the subspace state
+    sheet's: the d = 8 map (4000 fit steps) holds the sheet folded, its lowest point at y = -0.75 m, its upper left
+    corner folded up to 6 cm above the pinned edge, 1.7 J above the full-space rest (`info["membrane_max_strain"]`
+    0.11 at rest; the shipped map's subspace row, docs/fitting.md, "From the README: the Table 1 runs' notes and
+    what the table says": rest offset, load error 36). v0: the target is the corner in the subspace state
     z_rest + `target_spread` * N(0, I), drawn from `self.np_random`. v1 (`targets="held"`): the target is drawn by
     `self.np_random` from 256 places the corner comes to rest at under a held action u ~ U[-0.8, 0.8]^3 (fixed
     seed; :class:`redsim.envs.reach.HandleReach`), each settled on the env's own energy at bind time (3-10 s,
@@ -85,11 +85,11 @@ class HangingClothEnv(ReachEnv):
       envs (`redsim bench env-ab`, 19.7 -> 16.6 calls per vector step; docs/cubature.md, "Stop 49"). Its dynamics differ
       from v1's by what the two cubatures differ by; it has its own shipped policy.
     - v1: targets a held push reaches (`targets="held"`, `target_spread=0.8`), on the shipped cubature
-      (`cubature=True`, 545 against 118 env steps/s at 64 envs in the latest quiet run). v0's latent targets are
-      often out of reach: the corner settles within -0.10 to +0.14 m of its rest out of the sheet's plane (z) and
-      within 0.02 m in it under v1's held actions (up to 1.6 N per axis; -0.26 to +0.15 m in z under 2 N), while v0
-      draws targets up to 0.4 m out of plane and up to 0.09 m in it off that surface; v0's PI controller misses 21
-      of 40 targets on the cubature, v1's reaches all 40 within 2 mm (docs/agents.md).
+      (`cubature=True`; v1's 1,537 against v0's 388 env steps/s at 64 envs in README "Env speed"). v0's latent
+      targets are often out of reach: the corner settles within -0.10 to +0.14 m of its rest out of the sheet's plane
+      (z) and within 0.02 m in it under v1's held actions (up to 1.6 N per axis; -0.26 to +0.15 m in z under 2 N),
+      while v0 draws targets up to 0.4 m out of plane and up to 0.09 m in it off that surface; v0's PI controller
+      misses 21 of 40 targets on the cubature, v1's reaches all 40 within 2 mm (docs/agents.md).
     - v0: first version.
     - v0, v1: their solver defaults (`stepper_defaults`) later changed the path of each solve, not its minimum: the
       golden rollouts pass either way and v1's shipped policy scores alike (docs/env-speed.md, "ConditionalBar-v0's
