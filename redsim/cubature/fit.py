@@ -8,11 +8,18 @@ sum_e w_e g_e(z) ~ g(z), and sum_e w_e (E_e(z) - E_e(0)) ~ E(z) - E(0), on train
 - the states latent rollouts visit under random piecewise-constant handle loads (the all-element
   :class:`redsim.runtime.LatentStepper`).
 
-Selection is greedy: the element whose per-state-normalized columns correlate best with the residual
-joins, then non-negative least squares (``scipy.optimize.nnls``) refits all kept weights; it stops at
-``elements`` kept or when the training error is below ``tol``. The error reported is measured on
-held-out states. Linear effects (gravity) stay exact, effects that switch on rarely (contact) keep all
-their elements by default, and the load term belongs to the stepper (exact).
+Each state's d + 1 rows (its reduced force and its energy) are divided by that state's scale, the norm
+sqrt(|g(z)|^2 + (E(z) - E(0))^2) of the total (every effect but the load terms), so that states whose forces
+differ by orders of magnitude weigh alike, and the fitted effect's error is relative to the total.
+Selection is greedy: each round adds the max(1, K/8) candidates (K kept) whose columns, over their norms,
+correlate best (and positively) with the current residual, then non-negative least squares
+(``scipy.optimize.nnls``) refits all kept weights and an element it gives no weight leaves for good; it
+stops at ``elements`` kept, when the effect's training error is below ``tol`` / sqrt(subsampled effects),
+or when no candidate correlates positively. The errors reported are those of held-out states (a share of
+the sampled ones, and whole rollouts; :func:`split_states`), which choose no element and no weight,
+scaled per state alike: |residual| / |target| over them, ``held_out_force_error`` over the force rows alone.
+Linear effects (gravity) stay exact, effects that switch on rarely (contact) keep all their elements by
+default, and the load term belongs to the stepper (exact).
 """
 
 from __future__ import annotations
@@ -280,6 +287,7 @@ def greedy_nnls(
 
     Each round adds the candidates whose normalized columns correlate best with the residual
     (max(1, kept/8) of them), then refits every kept weight by NNLS. Errors are |A w - A 1| / norm.
+    ``test`` [R', T] (the held-out states' rows) enters only the held-out errors of the history.
 
     Returns kept indices [K], weights [K] (>= 0) and the (kept, train, held-out error) history.
 
@@ -484,7 +492,7 @@ def fit_rules(
 
 
 def _force_error(residual: Tensor, whole: Tensor) -> float:
-    """|force residual| / |force| over states (the energy row left out)."""
+    """|force residual| / |force| over states (the energy row left out), each state's rows over its scale."""
     return float(torch.linalg.vector_norm(residual[:, :-1]) / torch.linalg.vector_norm(whole[:, :-1]).clamp_min(1e-300))
 
 

@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import copy
 import functools
+import itertools
 import json
 import math
 import pickle
@@ -231,11 +232,15 @@ def test_a_cubature_file_with_two_rules_for_one_effect_is_refused(tmp_path) -> N
         load_cubature(tmp_path / "cloth", scene, f)
 
 
+def _shipped(name: str):
+    """The catalog scene ``name`` and its shipped map."""
+    scene = scenes.build(name)
+    return scene, pretrained.load(name, scene)
+
+
 @pytest.fixture(scope="module")
 def mini_chain():
-    scene = scenes.build("mini_chain")
-    f = pretrained.load("mini_chain", scene)
-    return scene, f
+    return _shipped("mini_chain")
 
 
 def test_all_element_cubature_steps_like_the_map_energy(mini_chain) -> None:
@@ -1069,3 +1074,133 @@ def test_a_cubature_file_with_mistyped_counts_weights_or_summary_is_refused(tmp_
     path.write_text(json.dumps(doc))
     with pytest.raises(CheckpointError, match=rf"cloth.cubature.json: .*{expected}"):
         load_cubature(tmp_path / "cloth", scene, f)
+
+
+@pytest.fixture(scope="module")
+def conditional_bar():
+    return _shipped("conditional_bar")
+
+
+def test_error_falls_as_elements_are_added_on_a_shipped_map(conditional_bar) -> None:
+    """The shipped conditional bar map (a fitted map, not a random one): each greedy round's training error is at most
+    the round's before (NNLS over a superset of the kept elements), and the held-out error falls with it."""
+    scene, f = conditional_bar
+    cub = build_cubature(scene, f, CubatureConfig(elements=40, samples=32, episodes=0))
+    rules = [r for r in cub.rules if r.mode == "cubature"]
+    assert {r.name for r in rules} == {"elastic", "pin"}
+    for rule in rules:
+        kept = [h[0] for h in rule.history]
+        train = [h[1] for h in rule.history]
+        held = [h[2] for h in rule.history]
+        assert kept == sorted(kept) and 30 <= kept[-1] <= 40, rule.history
+        assert all(b <= a * (1 + 1e-9) for a, b in itertools.pairwise(train)), rule.history
+        assert train[-1] < 0.1 * train[0] and held[-1] < 0.25 * held[0], rule.history
+
+
+def test_held_out_states_choose_no_element_and_no_weight(conditional_bar, monkeypatch) -> None:
+    """The held-out states (sampled ones and whole rollouts) enter the reported errors only: made nonsense, they change
+    those errors and leave every kept element and weight as it was."""
+    from redsim.cubature import fit
+
+    scene, f = conditional_bar
+    config = CubatureConfig(elements=12, samples=48, episodes=2, steps=4)
+    _, _, _, episode = fit.training_states(scene, f, config)
+    test, _ = fit.split_states(episode, config)
+    assert int((episode[test] >= 0).sum()) == 4  # one rollout of two, whole, among them
+    real = fit.element_columns
+
+    def scrambled(scene, output, effect, z, cond, *args, **kwargs):  # type: ignore[no-untyped-def]
+        forces, energies = real(scene, output, effect, z, cond, *args, **kwargs)
+        if z.shape[0] == episode.numel():  # the training and held-out states (not z = 0)
+            g = torch.Generator().manual_seed(0)
+            forces[test] = 1e3 * torch.randn(forces[test].shape, generator=g, dtype=forces.dtype)
+            energies[test] = 1e3 * torch.randn(energies[test].shape, generator=g, dtype=energies.dtype)
+        return forces, energies
+
+    before = build_cubature(scene, f, config)
+    monkeypatch.setattr(fit, "element_columns", scrambled)
+    after = build_cubature(scene, f, config)
+    for a, b in zip(before.rules, after.rules, strict=True):
+        assert a.indices.tolist() == b.indices.tolist() and torch.equal(a.weights, b.weights)
+        assert [h[:2] for h in a.history] == [h[:2] for h in b.history]
+    assert before.summary["train_error"] == after.summary["train_error"]
+    assert after.summary["held_out_force_error"] != before.summary["held_out_force_error"]
+    assert [r.held_out_error for r in after.rules if r.mode == "cubature"] != [
+        r.held_out_error for r in before.rules if r.mode == "cubature"
+    ]
+
+
+def test_the_reported_force_error_is_that_of_the_held_out_states_scaled_per_state(conditional_bar) -> None:
+    """``held_out_force_error``, recomputed from the two latent energies' gradients in z on the held-out states: each
+    state's residual and reduced force over that state's scale sqrt(|J^T grad E|^2 + (E - E(z=0))^2) of the total
+    energy (docs/cubature.md, "How a cubature weighs its states and reports its error"), so a large-force state does
+    not drown the others; unscaled the same residuals read otherwise."""
+    from redsim.cubature import fit
+    from redsim.runtime import MapEnergy
+
+    scene, f = conditional_bar
+    config = CubatureConfig(elements=20, samples=32, episodes=2, steps=6)
+    cub = build_cubature(scene, f, config)
+    z, cond, _, episode = fit.training_states(scene, f, config)
+    test, _ = fit.split_states(episode, config)
+    forces = []
+    for energy in (CubatureEnergy(scene, f, cub, dtype=torch.float64), MapEnergy(scene, f, dtype=torch.float64)):
+        zs = z[test].clone().requires_grad_(True)
+        value = energy.energy(zs, cond[test])[0]
+        forces.append(torch.autograd.grad(value.sum(), zs)[0])
+        if isinstance(energy, MapEnergy):
+            z0 = torch.zeros(1, z.shape[1], dtype=torch.float64)
+            e0 = energy.energy(z0, scene.condition_space.default.to(torch.float64)[None])[0]
+            scale = torch.sqrt(forces[-1].square().sum(-1) + (value.detach() - e0).square())
+    approx, exact = forces
+    scaled = ((approx - exact) / scale[:, None]).norm() / (exact / scale[:, None]).norm()
+    assert float(scaled) == pytest.approx(cub.summary["held_out_force_error"], rel=1e-9)
+    unscaled = float((approx - exact).norm() / exact.norm())
+    assert abs(unscaled - float(scaled)) > 0.1 * float(scaled)  # the scale matters on this map
+
+
+@pytest.mark.parametrize("name", ["mini_chain", "conditional_bar"])
+def test_the_cubature_energy_is_the_weighted_sum_of_its_kept_elements(name: str) -> None:
+    """E_cub(z) - E_cub(0) and its gradient in z (float64) against the scene's own per-element energies of f(z), kept
+    elements times their weights, whole effects' and linear effects' energies in full, and against central finite
+    differences of E_cub."""
+    from redsim.cubature.output import AffineOutput
+
+    scene, f = _shipped(name)
+    config = CubatureConfig(elements=8, samples=32, episodes=0, subsample=("contact",) if name == "mini_chain" else ())
+    cub = build_cubature(scene, f, config)
+    assert "cubature" in {r.mode for r in cub.rules} and "linear" in {r.mode for r in cub.rules}
+    energy = CubatureEnergy(scene, f, cub, dtype=torch.float64)
+    scene64, output = scene.to(dtype=torch.float64), AffineOutput(f).to(torch.float64)
+    rules = {r.name: r for r in cub.rules}
+    space = scene.condition_space
+    cond = None if space is None else space.default.to(torch.float64).expand(5, -1)
+
+    def weighted(z: torch.Tensor) -> torch.Tensor:
+        c = None if cond is None else cond[: z.shape[0]]
+        x = scene64.full_positions(output(z, c))
+        total = torch.zeros(z.shape[0], dtype=torch.float64)
+        for effect in scene64.effects:
+            rule = rules.get(effect.name)
+            if rule is not None and rule.mode == "cubature":
+                total = total + effect.element_energies(x, c)[:, rule.indices] @ rule.weights
+            elif rule is not None:
+                total = total + effect.energy(x, c)
+        return total
+
+    z = torch.randn(5, f.latent_dim, generator=torch.Generator().manual_seed(3), dtype=torch.float64)
+    z0 = torch.zeros(1, f.latent_dim, dtype=torch.float64)
+    values, grads = [], []
+    for fn in (lambda u: energy.energy(u, None if cond is None else cond[: u.shape[0]])[0], weighted):
+        zs = z.clone().requires_grad_(True)
+        value = fn(zs)
+        grads.append(torch.autograd.grad(value.sum(), zs)[0])
+        values.append(value.detach() - fn(z0).detach())
+    torch.testing.assert_close(values[0], values[1], rtol=1e-10, atol=1e-12)
+    torch.testing.assert_close(grads[0], grads[1], rtol=1e-10, atol=1e-12)
+    h = 1e-5
+    with torch.no_grad():
+        steps = h * torch.eye(f.latent_dim, dtype=torch.float64)
+        c = None if cond is None else cond[:5]
+        fd = torch.stack([(energy.energy(z + s, c)[0] - energy.energy(z - s, c)[0]) / (2 * h) for s in steps], -1)
+    torch.testing.assert_close(fd, grads[0], rtol=1e-6, atol=1e-6 * float(grads[0].abs().max()))
