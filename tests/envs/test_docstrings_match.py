@@ -575,3 +575,36 @@ def test_readme_s_env_table_states_each_torque_arm_as_the_docstring() -> None:
             assert f"F × {arm} m" in _text(type(_env(env_id).unwrapped).__doc__, "Action Space")
             checked += 1
     assert checked >= 1
+
+
+def test_readme_s_rates_and_cubature_envs_are_the_envs() -> None:
+    """README "Gymnasium environments": a task cell's ``N× at 64 envs in "Env speed": A against B env steps/s`` is
+    that table's (the row's id against its v0), and "**K envs step a cubature.** (ids) evaluate a cubature" names
+    exactly the ids whose env steps one (``env.unwrapped.sim.cubature``) and ``(ids) step every element`` some that
+    do not."""
+    table, checked = _speed_table(), 0
+    for row in _readme_rows():
+        env_id = row["id"].strip("`")
+        quoted = re.search(r"([\d.]+)× at 64 envs in \"Env speed\": ([\d,]+) against ([\d,]+) env steps/s", row["task"])
+        if quoted:
+            rate, base = (int(v.replace(",", "")) for v in quoted.groups()[1:])
+            assert (rate, base) == (int(table[env_id][7]), int(table[f"{env_id.rsplit('-v', 1)[0]}-v0"][7])), row
+            assert rate / base == pytest.approx(float(quoted[1]), abs=_digits(quoted[1]))
+            checked += 1
+    assert checked >= 1
+    section = README.read_text().split("\n## Gymnasium environments\n", 1)[1]
+    count, listed, exact = re.search(
+        r"\*\*(\w+) envs step a cubature\.\*\* (.+?) evaluate\s.*?; (.+?) step every element", section, re.S
+    ).groups()
+
+    def ids(text: str) -> set[str]:
+        out, family = set(), None
+        for name, version in re.findall(r"(?:(\w+)-)?v(\d+)\b", " ".join(text.split())):
+            family = name or family
+            out.add(f"RedSim/{family}-v{version}")
+        return out
+
+    stepping = {i for i in IDS if _env(i).unwrapped.sim.cubature}
+    numbers = {"Four": 4, "Five": 5, "Six": 6, "Seven": 7}
+    assert ids(listed) == stepping and numbers[count] == len(stepping), (listed, sorted(stepping))
+    assert ids(exact) and not ids(exact) & stepping, exact
