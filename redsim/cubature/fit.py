@@ -399,11 +399,13 @@ def fit_rules(
     bar = None
     if progress and config.episodes and scene.handles:  # the rollouts and the columns come before the greedy's bars
         bar = progress_bar(total=int(config.steps), desc="cubature rollouts", unit="step", dynamic_ncols=True)
-    z, cond, dropped, episode = training_states(
-        scene, subspace, config, progress=None if bar is None else lambda: bar.update(1)
-    )
-    if bar is not None:
-        bar.close()
+    try:  # closed on Ctrl-C too: a bar closed later draws its line below `redsim cubature`'s rerun command
+        z, cond, dropped, episode = training_states(
+            scene, subspace, config, progress=None if bar is None else lambda: bar.update(1)
+        )
+    finally:
+        if bar is not None:
+            bar.close()
     scene64 = scene.to(dtype=torch.float64)
     output = AffineOutput(subspace).to(torch.float64)
     test_index, train_index = split_states(episode, config)
@@ -419,15 +421,17 @@ def fit_rules(
     if progress:
         total = z.shape[0] * sum(e.name in modes for e in scene64.effects)
         bar = progress_bar(total=total, desc="cubature element forces", unit="state", dynamic_ncols=True)
-    for effect in scene64.effects:
-        if effect.name in modes:
-            forces, energies = element_columns(
-                scene64, output, effect, z, cond, progress=None if bar is None else bar.update
-            )
-            _, ref = element_columns(scene64, output, effect, z0, c0)
-            columns[effect.name] = (forces, energies, ref[0])
-    if bar is not None:
-        bar.close()
+    try:
+        for effect in scene64.effects:
+            if effect.name in modes:
+                forces, energies = element_columns(
+                    scene64, output, effect, z, cond, progress=None if bar is None else bar.update
+                )
+                _, ref = element_columns(scene64, output, effect, z0, c0)
+                columns[effect.name] = (forces, energies, ref[0])
+    finally:
+        if bar is not None:
+            bar.close()
     total_force = sum(f.sum(1) for f, _, _ in columns.values())
     total_energy = sum((e - r).sum(1) for _, e, r in columns.values())
     scale = torch.sqrt((total_force**2).sum(-1) + total_energy**2).clamp_min(1e-30)

@@ -1204,3 +1204,42 @@ def test_the_cubature_energy_is_the_weighted_sum_of_its_kept_elements(name: str)
         c = None if cond is None else cond[:5]
         fd = torch.stack([(energy.energy(z + s, c)[0] - energy.energy(z - s, c)[0]) / (2 * h) for s in steps], -1)
     torch.testing.assert_close(fd, grads[0], rtol=1e-6, atol=1e-6 * float(grads[0].abs().max()))
+
+
+@pytest.mark.parametrize("stage", ["training_states", "element_columns", "greedy_nnls"])
+def test_an_interrupted_cli_ends_on_its_rerun_command_not_on_a_bar(cli, tmp_path, monkeypatch, stage: str) -> None:
+    """Ctrl-C during the rollouts or the per-element forces left their progress bar open: it was closed (and drew its
+    line) after `redsim cubature` had said "interrupted ... rerun: ...", so the terminal's last line was a stale bar."""
+    import shutil
+
+    from redsim.cubature import fit
+
+    for suffix in (".pt", ".json"):
+        shutil.copy(pretrained.path("conditional_bar").with_suffix(suffix), tmp_path / f"m{suffix}")
+    real = getattr(fit, stage)
+    calls = []
+
+    def interrupted(*args, **kwargs):  # type: ignore[no-untyped-def]
+        if stage == "training_states":  # in the rollouts, after their first step
+            tick = kwargs["progress"]
+            kwargs["progress"] = lambda: (tick(), _raise(KeyboardInterrupt))
+            return real(*args, **kwargs)
+        if stage == "element_columns" and kwargs.get("progress") is not None:
+            calls.append(kwargs["progress"](1))
+            if len(calls) == 2:  # in the second effect's states
+                raise KeyboardInterrupt
+        if stage == "greedy_nnls":
+            kwargs["progress"](1, 0.5)
+            raise KeyboardInterrupt
+        return real(*args, **kwargs)
+
+    monkeypatch.setattr(fit, stage, interrupted)
+    argv = ("cubature", str(tmp_path / "m.pt"), "--elements", "4", "--samples", "16", "--episodes", "1")
+    code, out, err = cli(*argv, "--rollout-steps", "2")
+    last = err.rstrip("\n").replace("\r", "\n").split("\n")[-1]
+    assert code == 130 and not out and last.startswith("redsim: warning: interrupted before"), err
+    assert last.endswith("rerun: redsim cubature " + " ".join(argv[1:]) + " --rollout-steps 2"), err
+
+
+def _raise(error: type[BaseException]) -> None:
+    raise error
