@@ -1130,6 +1130,36 @@ def test_held_out_states_choose_no_element_and_no_weight(conditional_bar, monkey
     ]
 
 
+def test_a_state_with_a_million_times_the_forces_weighs_as_much_as_before(conditional_bar, monkeypatch) -> None:
+    """Each state's rows (every effect's forces and energy) are divided by that state's own scale, so a state whose
+    forces and energy are all 1e6 times larger does not drown the others: the same elements, weights and errors."""
+    from redsim.cubature import fit
+
+    scene, f = conditional_bar
+    config = CubatureConfig(elements=12, samples=48, episodes=0)
+    _, train = fit.split_states(torch.full((48,), -1), config)
+    real = fit.element_columns
+
+    def louder(scene, output, effect, z, cond, *args, **kwargs):  # type: ignore[no-untyped-def]
+        forces, energies = real(scene, output, effect, z, cond, *args, **kwargs)
+        if z.shape[0] == 48:  # the sampled states (not z = 0, the energies' reference)
+            forces[train[0]] *= 1e6
+            energies[train[0]] = 1e6 * (energies[train[0]] - ref[effect.name]) + ref[effect.name]
+        return forces, energies
+
+    z0 = torch.zeros(1, f.latent_dim, dtype=torch.float64)
+    c0 = scene.condition_space.default.to(torch.float64)[None]
+    scene64, output = scene.to(dtype=torch.float64), fit.AffineOutput(f).to(torch.float64)
+    ref = {e.name: real(scene64, output, e, z0, c0)[1][0] for e in scene64.effects if not e.uses_loads}
+    before = build_cubature(scene, f, config)
+    monkeypatch.setattr(fit, "element_columns", louder)
+    after = build_cubature(scene, f, config)
+    for a, b in zip(before.rules, after.rules, strict=True):
+        assert a.indices.tolist() == b.indices.tolist()
+        torch.testing.assert_close(a.weights, b.weights, rtol=1e-6, atol=0.0)
+    assert after.summary["train_error"] == pytest.approx(before.summary["train_error"], rel=1e-6)
+
+
 def test_the_reported_force_error_is_that_of_the_held_out_states_scaled_per_state(conditional_bar) -> None:
     """``held_out_force_error``, recomputed from the two latent energies' gradients in z on the held-out states: each
     state's residual and reduced force over that state's scale sqrt(|J^T grad E|^2 + (E - E(z=0))^2) of the total
