@@ -196,6 +196,8 @@ def cmd_bench_cubature(args: argparse.Namespace) -> int:
             raise CliError("--compile times the benched scenes' cubature step; the --sweep has no compiled column")
         if args.cubature:
             raise CliError("--cubature benches one scene's cubature; the --sweep fits none (unfitted maps)")
+        if args.held_out:
+            raise CliError("--held-out recomputes a fitted cubature's errors; the --sweep's maps are unfitted")
         unused = [
             flag
             for flag, given in (
@@ -276,6 +278,7 @@ def cmd_bench_cubature(args: argparse.Namespace) -> int:
             dtype=getattr(torch, args.dtype),
             compiled=args.compile,
             states=args.states,
+            held_out=args.held_out,
         )
         results.append(result)
         if not args.json:
@@ -292,6 +295,17 @@ def cmd_bench_cubature(args: argparse.Namespace) -> int:
             )
             made = shown_path(path) if path is not None else f"built here, --elements {args.elements}"
             force = result["held_out_force_error"]  # a cubature made in Python may carry no summary
+            plain = result["held_out_plain_force_error"]  # a build before 2026-12-07 recorded none
+            errors = result["held_out_errors"]
+            recomputed = (
+                ""
+                if errors is None
+                else f" (recomputed on the {errors['states']} states its config holds out: "
+                f"{errors['force_error']:.3g}, "
+                f"plain {errors['plain_force_error']:.3g}, per state median {errors['median_state_force_error']:.3g} "
+                f"and 90th percentile {errors['p90_state_force_error']:.3g}, energy {errors['energy_error']:.3g}, "
+                f"plain against the subsampled effects' force {errors['subsampled_force_error']:.3g})"
+            )
             flags = result["flags"]
             flagged = "".join(
                 f"; {key.replace('_', ' ')} steps {flags['all'][key]} -> {flags['cubature'][key]}"
@@ -300,7 +314,9 @@ def cmd_bench_cubature(args: argparse.Namespace) -> int:
             )
             out(
                 f"{name} ({shown_path(weights)}; {made}): n={result['n']}, kept {kept}; "
-                f"held-out force error {'unknown' if force is None else format(force, '.3g')}; "
+                f"held-out force error {'unknown' if force is None else format(force, '.3g')}"
+                + ("" if plain is None else f" (plain {plain:.3g})")
+                + f"{recomputed}; "
                 f"trajectory deviation {result['trajectory_deviation']:.3g}"
                 + (f" (of {args.states * args.steps} state-steps{flagged})" if flagged else "")
                 + f"; penetration {result['penetration_all_m']:.2g} -> {result['penetration_cubature_m']:.2g} m; "
@@ -489,6 +505,13 @@ def add_bench_command(bench: Any) -> None:
         action="store_true",
         help='also time the cubature step with LatentStepper(compile="dynamic") (its first steps, which compile, '
         "untimed; needs a C++ compiler)",
+    )
+    p.add_argument(
+        "--held-out",
+        action="store_true",
+        help="also recompute the cubature's errors on the states its recorded config holds out (it replays the "
+        "build's rollouts): the force error as the build reports it (each state over its force and energy), the plain "
+        "relative force error, its median and 90th percentile per state, and the energy error",
     )
     p.add_argument(
         "--sweep",

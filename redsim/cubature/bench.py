@@ -14,7 +14,7 @@ import torch
 from torch import Tensor, nn
 
 from redsim.cubature.energy import Cubature, CubatureEnergy
-from redsim.cubature.fit import default_load_scale
+from redsim.cubature.fit import CubatureConfig, default_load_scale, error_measures, split_states, training_states
 from redsim.effects.penalty import SDFContact
 from redsim.runtime import Evaluations, LatentStepper
 from redsim.scene import Scene
@@ -84,6 +84,65 @@ def penetration(scene: Scene, q: Tensor) -> float:
     return depth
 
 
+def held_out_errors(
+    scene: Scene,
+    subspace: nn.Module,
+    cubature: Cubature,
+    config: CubatureConfig | None = None,
+    *,
+    every_state: bool = False,
+) -> dict[str, Any]:
+    """The cubature's errors on its build's held-out states, in float64, each a relative error
+    (:func:`redsim.cubature.fit.error_measures`).
+
+    The states are those its build held out (:func:`~redsim.cubature.fit.training_states` and
+    :func:`~redsim.cubature.fit.split_states` of ``cubature.config``, which are seeded; a build made before whole
+    rollouts were held out, 2026-12-07, split otherwise), or those ``config`` draws and holds out (another seed: states
+    of the same distribution the build never saw), all of them with ``every_state``. F is J^T grad E of the all-element
+    energy (every effect but the load term, :class:`redsim.runtime.MapEnergy`), E - E(0) its energy (E(0): z = 0, the
+    default condition), the residuals the cubature energy's less those. Returns ``error_measures``' keys against the
+    total (``force_error`` is the build's ``held_out_force_error`` on its own states), ``subsampled_force_error``: the
+    plain force error against the reduced force of the subsampled effects alone (the exact ones, linear and kept whole,
+    left out of F; the residual is theirs alone), ``states`` and ``seed``.
+
+    Raises:
+        ValueError: a cubature without a recorded config, and no ``config`` given.
+    """
+    from redsim.runtime import MapEnergy
+
+    if config is None:
+        if not cubature.config:
+            raise ValueError("the cubature records no config (built in Python?): give the states' CubatureConfig")
+        config = CubatureConfig(**{k: tuple(v) if isinstance(v, list) else v for k, v in cubature.config.items()})
+    z, cond, _, episode = training_states(scene, subspace, config)
+    test = torch.arange(z.shape[0]) if every_state else split_states(episode, config)[0]
+    z, cond = z[test], None if cond is None else cond[test]
+    exact = MapEnergy(scene, subspace, dtype=torch.float64)
+    approx = CubatureEnergy(scene, subspace, cubature, dtype=torch.float64)
+    z0 = torch.zeros(1, z.shape[1], dtype=torch.float64)
+    c0 = None if scene.condition_space is None else scene.condition_space.default.to(torch.float64)[None]
+    zs = z.clone().requires_grad_(True)
+    with torch.enable_grad():
+        q = exact.positions(zs, cond)
+        x = exact.scene.full_positions(q)
+        energies = {effect.name: effect.energy(x, cond) for effect in exact.effects}
+        forces = {name: torch.autograd.grad(e.sum(), zs, retain_graph=True)[0] for name, e in energies.items()}
+        cub_energy = approx.energy(zs, cond)[0]
+        (cub_force,) = torch.autograd.grad(cub_energy.sum(), zs)
+    with torch.no_grad():
+        energy = sum(energies.values()).detach() - exact.energy(z0, c0)[0]
+        cub_delta = cub_energy.detach() - approx.energy(z0, c0)[0]
+    force = sum(forces.values())
+    residual = cub_force - force
+    out = error_measures(residual, force, cub_delta - energy, energy)
+    subsampled = [r.name for r in cubature.rules if r.mode == "cubature"]
+    part = sum((forces[name] for name in subsampled), torch.zeros_like(force))
+    out["subsampled_force_error"] = float(
+        torch.linalg.vector_norm(residual) / torch.linalg.vector_norm(part).clamp_min(1e-300)
+    )
+    return out | {"states": int(z.shape[0]), "seed": int(config.seed)}
+
+
 def bench_cubature(
     scene: Scene,
     subspace: nn.Module,
@@ -100,6 +159,7 @@ def bench_cubature(
     dtype: torch.dtype = torch.float32,
     compiled: bool = False,
     states: int = ACCURACY_STATES,
+    held_out: bool = False,
 ) -> dict[str, Any]:
     """Compare the cubature energy with the all-element step (``dtype``, CPU, the stepper's defaults).
 
@@ -116,6 +176,9 @@ def bench_cubature(
     (``cubature_compiled_s``; a few steps at each batch size before, which compile its graphs, untimed).
     ``flags``: per energy (``all``, ``cubature``), the accuracy rollouts' state-steps flagged diverged (rejected: the
     state stays where it was), unconverged and out of the map's range (:data:`FLAGS`), of ``states * steps``.
+    ``held_out_force_error`` and ``held_out_plain_force_error`` are the build's (None where its summary has none);
+    ``held_out``: :func:`held_out_errors` of the states its recorded config holds out, recomputed (``held_out_errors``;
+    it replays the build's rollouts).
     """
     if isinstance(warmup, bool) or not isinstance(warmup, int) or warmup < 0:
         raise ValueError(f"warmup must be an integer >= 0, got {warmup!r}")
@@ -182,6 +245,8 @@ def bench_cubature(
         "kept_dofs": int(energy.kept_dofs.numel()),
         "held_out_error": cubature.summary.get("held_out_error"),
         "held_out_force_error": cubature.summary.get("held_out_force_error"),
+        "held_out_plain_force_error": cubature.summary.get("held_out_plain_force_error"),
+        "held_out_errors": held_out_errors(scene, subspace, cubature) if held_out else None,
         "trajectory_deviation": float(deviation),
         "deviation_per_state": [float(v) for v in deviations],
         "motion_per_state": [float(v) for v in motion],
@@ -218,7 +283,6 @@ def mesh_sweep(
     """
     from redsim import scenes
     from redsim.cubature.energy import build_cubature
-    from redsim.cubature.fit import CubatureConfig
     from redsim.subspace import SubspaceConfig, SubspaceMap
 
     rows = []
@@ -246,4 +310,4 @@ def mesh_sweep(
     return rows
 
 
-__all__ = ["FLAGS", "bench_cubature", "mesh_sweep", "penetration"]
+__all__ = ["FLAGS", "bench_cubature", "held_out_errors", "mesh_sweep", "penetration"]

@@ -22,6 +22,7 @@ from redsim.cubature import (
     cubature_energy,
     load_cubature,
 )
+from redsim.cubature.bench import held_out_errors
 from redsim.cubature.fit import LINEAR_KINDS
 from redsim.effects.elastic import StVKMembrane
 from redsim.runtime import LatentStepper, MapEnergy, ReducedInertia
@@ -525,6 +526,25 @@ def test_bench_names_its_checkpoint_and_refuses_one_of_another_scene(cli, tmp_pa
     )
     code, out, err = cli("bench", "cubature", "mini_chain,klann", *quick[1:], "--checkpoints", str(wrong))
     assert code == 2 and "mini_chain (" not in out and "klann.cubature.json" in err, (out, err)
+
+
+def test_bench_held_out_recomputes_the_errors_beside_the_recorded_ones(cli) -> None:
+    """``--held-out`` replays the build's held-out states from its recorded config: the force error it reports again
+    is the build's, printed beside the plain one, per state and energy errors; the --sweep (unfitted maps) refuses
+    it."""
+    quick = ("mini_chain", "--steps", "2", "--batches", "1", "--timed-steps", "2", "--elements", "4")
+    code, out, err = cli("bench", "cubature", *quick, "--held-out", "--json")
+    assert code == 0, err
+    row = json.loads(out)["results"][0]
+    errors = row["held_out_errors"]
+    assert errors["force_error"] == pytest.approx(row["held_out_force_error"], rel=1e-9)
+    assert errors["plain_force_error"] == pytest.approx(row["held_out_plain_force_error"], rel=1e-9)
+    code, out, err = cli("bench", "cubature", *quick, "--held-out")
+    assert code == 0, err
+    force, plain = row["held_out_force_error"], row["held_out_plain_force_error"]
+    assert f"held-out force error {force:.3g} (plain {plain:.3g}) (recomputed on the {errors['states']} states" in out
+    code, _, err = cli("bench", "cubature", "--sweep", "2", "--held-out")
+    assert code == 2 and "--held-out recomputes a fitted cubature's errors" in err
 
 
 @pytest.mark.parametrize("name", ["hanging_sheet", "cloth_ball"])
@@ -1187,6 +1207,47 @@ def test_the_reported_force_error_is_that_of_the_held_out_states_scaled_per_stat
     assert float(scaled) == pytest.approx(cub.summary["held_out_force_error"], rel=1e-9)
     unscaled = float((approx - exact).norm() / exact.norm())
     assert abs(unscaled - float(scaled)) > 0.1 * float(scaled)  # the scale matters on this map
+    assert unscaled == pytest.approx(cub.summary["held_out_plain_force_error"], rel=1e-9)  # recorded beside it
+    per_state = ((approx - exact).norm(dim=-1) / exact.norm(dim=-1)).sort().values
+    assert cub.summary["held_out_median_state_force_error"] == pytest.approx(float(per_state.quantile(0.5)), rel=1e-9)
+    # the bench's recomputation, from the recorded config alone, finds the same states and the same errors
+    again = held_out_errors(scene, f, cub)
+    assert again["states"] == test.numel()
+    for key in (
+        "force_error",
+        "plain_force_error",
+        "median_state_force_error",
+        "p90_state_force_error",
+        "energy_error",
+    ):
+        assert again[key] == pytest.approx(cub.summary[f"held_out_{key}"], rel=1e-9), key
+
+
+def test_the_plain_force_error_and_the_others_by_hand() -> None:
+    """:func:`redsim.cubature.fit.error_measures` on two states worked by hand. State 1: F = (3, 4), residual
+    (0.3, 0.4), E - E(0) = 12 (scale 13), its energy off by 1.2; state 2: F = (0, 3), residual (0, 1.5), E - E(0) = 4
+    (scale 5), off by -0.4. Plain: sqrt((0.25 + 2.25) / (25 + 9)); per state 0.1 and 0.5; energy
+    sqrt((1.44 + 0.16) / (144 + 16)) = 0.1; the fit's own, each state over its scale:
+    sqrt((0.25/169 + 2.25/25) / (25/169 + 9/25))."""
+    from redsim.cubature.fit import error_measures
+
+    force = torch.tensor([[3.0, 4.0], [0.0, 3.0]], dtype=torch.float64)
+    residual = torch.tensor([[0.3, 0.4], [0.0, 1.5]], dtype=torch.float64)
+    energy = torch.tensor([12.0, 4.0], dtype=torch.float64)
+    measures = error_measures(residual, force, torch.tensor([1.2, -0.4], dtype=torch.float64), energy)
+    assert measures["plain_force_error"] == pytest.approx(math.sqrt(2.5 / 34), rel=1e-12)
+    assert measures["median_state_force_error"] == pytest.approx(0.3, rel=1e-12)  # halfway between 0.1 and 0.5
+    assert measures["p90_state_force_error"] == pytest.approx(0.1 + 0.9 * 0.4, rel=1e-12)
+    assert measures["energy_error"] == pytest.approx(0.1, rel=1e-12)
+    by_hand = math.sqrt((0.25 / 169 + 2.25 / 25) / (25 / 169 + 9 / 25))
+    assert measures["force_error"] == pytest.approx(by_hand, rel=1e-12)
+    assert by_hand > 1.5 * measures["plain_force_error"]  # the scale reweighs: the two differ
+    given = error_measures(residual, force, torch.zeros(2, dtype=torch.float64), energy, torch.ones(2))
+    assert given["force_error"] == pytest.approx(measures["plain_force_error"], rel=1e-12)  # a scale of 1: plain
+    with pytest.raises(ValueError, match=r"force residual and force must be \[S, d\] alike, got \[2, 2\] and \[2\]"):
+        error_measures(residual, force[:, 0], energy, energy)
+    with pytest.raises(ValueError, match=r"energy residual and energy must be \[S\] \(S = 2\), got \[3\]"):
+        error_measures(residual, force, torch.zeros(3), energy)
 
 
 @pytest.mark.parametrize("name", ["mini_chain", "conditional_bar"])
