@@ -2,7 +2,8 @@
 
 One elastic shape, the ``cantilever`` beam (neo-Hookean, clamped at one end, under gravity),
 meshed with ``cells_x = 5 k`` and ``cells_yz = k`` cells for each k of :data:`SIZES`, and the same
-5 x 128 MLP (the cantilever preset's d and σ, λ; the MLP alone, not its anchored map). Per size,
+5 x 128 MLP (the cantilever preset's d and σ, λ; the MLP alone, not its anchored map, but with f(0) at rest as
+the anchored map has it: :func:`rest_at_origin`). Per size,
 each in its own process (so peak memory is that size's):
 
 - fit time per 1000 steps: the median of ``fit_steps`` timed steps of the real fit loop (after
@@ -12,13 +13,19 @@ each in its own process (so peak memory is that size's):
   ``cubature_elements`` elastic elements, from ``cubature_samples`` states z ~ N(0, I) (no rollouts:
   they would need the all-element step); its build time and held-out force error;
 - latent energy: one evaluation of E(z) and dE/dz at B = 1 (the work of a solver iteration), with
-  all elements (the runtime's map energy) and with the cubature, median of 20;
-- latent step: the runtime (:class:`redsim.runtime.LatentStepper`, float32) on that map from z = 0
-  under gravity and a sideways tip load of ± the beam's weight, its sign flipped every step, with
-  all elements and with the cubature, median of ``latent_steps`` steps (the mean iteration count
-  too: many steps of a briefly fitted map converge at their start, so this is a per-step floor),
-  at B = 1 and at B = ``batch`` (the all-element step at B = ``batch`` only up to ``batch_max_n``
-  free DOFs: past that one such step takes minutes);
+  all elements (the runtime's map energy) and with the cubature, in ``dtype``, median of 20;
+- latent step: the runtime (:class:`redsim.runtime.LatentStepper` in ``dtype``, float64 by default, at its default
+  tolerance, 1e-9 in float64) on that map from z = 0 under gravity and a sideways tip load of ± the beam's weight,
+  its sign flipped every step, with all elements and with the cubature, median of ``latent_steps`` steps, the mean
+  solver iterations per step and (the JSON only: ``latent_calls``, ``cubature_calls``) the mean value-and-gradient
+  calls, at B = 1 and at B = ``batch`` (the all-element step at B = ``batch`` only up to ``batch_max_n`` free DOFs:
+  past that one such step takes minutes). The map is stepped with f(0) at the seed (:func:`rest_at_origin`), so the
+  stepper's force scale is the inertia term's at every size and the steps feel the loads
+  (``acceleration_resolution`` in the row [m/s^2]). The briefly fitted map is stiff along z: a step's response is
+  small and near-linear, and its predicted start (a Newton step of the carried gradient and model, as in the envs)
+  mostly meets the tolerance, so the iterations after it read 0-1 in float64. In float32 the tolerance is below what
+  round-off lets the cubature step reach on this map: at k = 6 and 8 most of its steps run to ``max_iter``
+  (``unconverged``);
 - full-space step: float64 Newton implicit Euler (tol 1e-6) from the seed under gravity, median of
   ``full_steps`` steps, up to ``full_max_n`` free DOFs;
 - peak resident memory of the process [MiB];
@@ -44,6 +51,7 @@ import numpy as np
 import torch
 
 from redsim import processes
+from redsim.devices import DTYPES
 from redsim.subspace import write_atomically
 
 SIZES = (4, 6, 8, 11)
@@ -64,34 +72,57 @@ CURVES = (
 )
 """The measured columns whose growth exponents are fitted."""
 DT = 0.02
+DTYPE = "float64"
+"""The latent steps' default dtype: float32's tolerance is below what its round-off lets the cubature step reach on
+the briefly fitted map (k = 8: all 6 timed steps at max_iter 50), so it would time max_iter, not a solve."""
 
 
-def _step_times(stepper: Any, batch: int, steps: int, load: float) -> tuple[float, float, int]:
-    """Median wall time [ms] of ``steps`` steps (after one untimed) from z = 0, the mean iteration count and the
-    states of the timed steps that did not converge (of ``steps * batch``).
+def _step_times(stepper: Any, batch: int, steps: int, load: float) -> tuple[float, float, int, float]:
+    """Median wall time [ms] of ``steps`` steps (after one untimed) from z = 0, the mean solver iterations per step,
+    the states of the timed steps that did not converge (of ``steps * batch``) and the mean value-and-gradient calls
+    per timed step (:attr:`redsim.runtime.LatentStepper.evaluations`).
 
-    The tip is pushed sideways (+z) by ``load`` [N] and pulled back by it on alternate steps. A briefly
-    fitted map barely moves the tip, so many steps still meet the tolerance at their start (no
-    iteration): their time is the step's first energy evaluation (at the extrapolated start; E at z_t is carried
-    from the step before, as the envs carry it) and the solver's overhead.
+    The tip is pushed sideways (+z) by ``load`` [N] and pulled back by it on alternate steps. The warm model and the
+    carried energy are passed on as the envs pass them, so a step starts from the model's Newton step from z_t and
+    its first energy evaluation is there; the iterations are those after it (0: that start met the tolerance).
     """
-    z = torch.zeros(batch, stepper.latent_dim)
-    push = torch.zeros(batch, 1, 3)
+    z = torch.zeros(batch, stepper.latent_dim, dtype=stepper.dtype)
+    push = torch.zeros(batch, 1, 3, dtype=stepper.dtype)
     push[..., 2] = load
     z_prev, model, carry, times, iterations, unconverged = z.clone(), None, None, [], [], 0
+    calls = 0
     for step in range(steps + 1):
+        calls -= stepper.evaluations.calls if step else 0
         start = time.perf_counter()
         z_next, stats = stepper.step(z, z_prev, push if step % 2 == 0 else -push, warm=model, carry=carry)
         times.append(time.perf_counter() - start)
         iterations.append(float(stats.iterations.float().mean()))
         unconverged += int((~stats.converged).sum()) if step else 0
+        calls += stepper.evaluations.calls if step else 0
         model, carry, z_prev, z = stats.model, stats.carry, z, z_next
-    return 1e3 * statistics.median(times[1:]), statistics.fmean(iterations[1:]), unconverged
+    return 1e3 * statistics.median(times[1:]), statistics.fmean(iterations[1:]), unconverged, calls / steps
 
 
-def _eval_ms(energy: Any, latent_dim: int, repeats: int = 20) -> float:
+def rest_at_origin(subspace: torch.nn.Module, scene: Any) -> torch.nn.Module:
+    """``subspace`` (a :class:`redsim.subspace.SubspaceMap`, changed in place and returned) with its output bias shifted
+    so that f(0) is the scene's seed, as the preset's anchored map has it (its b is the rest state).
+
+    The briefly fitted MLP's f(0) is far from rest: its elastic forces there set the runtime's force scale F_b, and
+    with it a float32 tolerance (:attr:`redsim.runtime.LatentStepper.acceleration_resolution`) of 3.8 m/s^2 at
+    n = 1500 up to 2.7e4 m/s^2 at n = 82620 (float64, whose tolerance is 1000 times smaller: 27 m/s^2 there), so that
+    the timed steps did not feel the tip load (0 iterations at all but one size). At rest, F_b is the inertia term's
+    and gravity's: 2.8e-3 m/s^2 in float32 at k = 1, 2 and 6 alike (float64: 2.8e-6). An evaluation costs the same
+    (one bias changed).
+    """
+    with torch.no_grad():
+        zero = torch.zeros(1, subspace.latent_dim, dtype=subspace.mlp[-1].bias.dtype)
+        subspace.mlp[-1].bias -= subspace(zero)[0] - scene.q_seed.to(zero.dtype)
+    return subspace
+
+
+def _eval_ms(energy: Any, latent_dim: int, dtype: torch.dtype, repeats: int = 20) -> float:
     """Median wall time [ms] of one latent energy and its gradient dE/dz at B = 1 (z ~ N(0, I), seeded)."""
-    z = torch.randn(1, latent_dim, generator=torch.Generator().manual_seed(0), dtype=torch.float32).requires_grad_(True)
+    z = torch.randn(1, latent_dim, generator=torch.Generator().manual_seed(0), dtype=dtype).requires_grad_(True)
     times = []
     for _ in range(repeats + 1):
         start = time.perf_counter()
@@ -113,12 +144,20 @@ def measure(
     cubature_samples: int = 64,
     batch: int = 64,
     batch_max_n: int | None = None,
+    dtype: str = DTYPE,
 ) -> dict[str, Any]:
     """One row (module doc) for cross-section cells k = ``cells``, in this process.
 
     ``full_max_n`` / ``batch_max_n``: the largest n at which the full-space step / the all-element
-    step at B = ``batch`` is run (None: every n); ``batch`` 0 skips the batched steps.
+    step at B = ``batch`` is run (None: every n); ``batch`` 0 skips the batched steps. ``dtype``: the name
+    (:data:`redsim.devices.DTYPES`) of the dtype of the latent energy evaluations and steps.
+
+    Raises:
+        ValueError: an unknown ``dtype``.
     """
+    if dtype not in DTYPES:
+        raise ValueError(f"dtype must be one of {', '.join(DTYPES)}, got {dtype!r}")
+    solve_dtype = DTYPES[dtype]
     from redsim import scenes
     from redsim.cubature import CubatureConfig, CubatureEnergy, build_cubature
     from redsim.cubature.fit import default_load_scale
@@ -142,7 +181,7 @@ def measure(
             scene, config, progress=False, callbacks=[lambda _s, _t: stamps.append(time.perf_counter())]
         )
     fit_step = statistics.median(b - a for a, b in zip(stamps[warmup - 1 : -1], stamps[warmup:], strict=True))
-    f = result.subspace
+    f = rest_at_origin(result.subspace, scene)
     row: dict[str, Any] = {"cells": cells, "n": n, "d": config.latent_dim}
     row["fit_s_per_1000"] = 1000.0 * fit_step
     for size in (1, 32):
@@ -162,24 +201,27 @@ def measure(
     row["cubature_build_s"] = time.perf_counter() - start
     row["cubature_kept"] = cubature.kept
     row["cubature_force_error"] = cubature.summary["held_out_force_error"]
-    all_elements = LatentStepper(scene, f, DT)
-    reduced = LatentStepper(scene, f, DT, energy=CubatureEnergy(scene, f, cubature))
-    row["latent_eval_ms"] = _eval_ms(all_elements.energy, config.latent_dim)
-    row["cubature_eval_ms"] = _eval_ms(reduced.energy, config.latent_dim)
+    all_elements = LatentStepper(scene, f, DT, dtype=solve_dtype)
+    cubature_energy = CubatureEnergy(scene, f, cubature, dtype=solve_dtype)
+    reduced = LatentStepper(scene, f, DT, dtype=solve_dtype, energy=cubature_energy)
+    row["dtype"] = dtype
+    row["acceleration_resolution"] = all_elements.acceleration_resolution
+    row["latent_eval_ms"] = _eval_ms(all_elements.energy, config.latent_dim, solve_dtype)
+    row["cubature_eval_ms"] = _eval_ms(reduced.energy, config.latent_dim, solve_dtype)
     load = default_load_scale(scene)
     unconverged = {}
-    row["latent_step_ms"], row["latent_iterations"], unconverged["latent"] = _step_times(
+    row["latent_step_ms"], row["latent_iterations"], unconverged["latent"], row["latent_calls"] = _step_times(
         all_elements, 1, latent_steps, load
     )
-    row["cubature_step_ms"], row["cubature_iterations"], unconverged["cubature"] = _step_times(
+    row["cubature_step_ms"], row["cubature_iterations"], unconverged["cubature"], row["cubature_calls"] = _step_times(
         reduced, 1, latent_steps, load
     )
     row["batch"] = batch
     row["latent_batch_ms"] = row["cubature_batch_ms"] = None
     if batch:
-        row["cubature_batch_ms"], _, unconverged["cubature_batch"] = _step_times(reduced, batch, latent_steps, load)
+        row["cubature_batch_ms"], _, unconverged["cubature_batch"], _ = _step_times(reduced, batch, latent_steps, load)
         if batch_max_n is None or n <= batch_max_n:
-            row["latent_batch_ms"], _, unconverged["latent_batch"] = _step_times(
+            row["latent_batch_ms"], _, unconverged["latent_batch"], _ = _step_times(
                 all_elements, batch, latent_steps, load
             )
     row["full_step_ms"] = row["full_iterations"] = None
@@ -373,11 +415,13 @@ def scaling_png(result: dict[str, Any], path: Path, machine: str) -> None:
 
 __all__ = [
     "CURVES",
+    "DTYPE",
     "SIZES",
     "SizeFailed",
     "bench_scaling",
     "growth_exponents",
     "markdown_table",
     "measure",
+    "rest_at_origin",
     "scaling_png",
 ]

@@ -668,6 +668,7 @@ def cmd_bench_scaling(args: argparse.Namespace) -> int:
             cubature_elements=args.cubature_elements,
             batch=args.batch,
             batch_max_n=args.batch_max_n,
+            dtype=args.dtype,
         )
     except scaling.SizeFailed as err:  # the sizes measured before it are printed, then the error
         result, failed = err.result, str(err)
@@ -677,7 +678,10 @@ def cmd_bench_scaling(args: argparse.Namespace) -> int:
     if args.json:
         json_out({**result, "failed": failed})
     elif result["rows"]:
-        out("bench scaling: cantilever beam (cells_x = 5k, cells_yz = k), 5 x 128 MLP, each size in its own process")
+        out(
+            "bench scaling: cantilever beam (cells_x = 5k, cells_yz = k), 5 x 128 MLP (f(0) at rest), each size in its "
+            f"own process; latent E+grad and steps in {args.dtype}"
+        )
         out(line)
         out(scaling.markdown_table(result))
     if failed is not None:
@@ -1070,8 +1074,9 @@ def add_commands(sub: Any) -> Any:
             "The cantilever beam meshed at several resolutions, the same 5 x 128 MLP: fit time per 1000 steps "
             "(a few timed steps, scaled), forward-pass time, a cubature of the briefly fitted map (build time, "
             "error), latent energy evaluation and step time with all elements and with the cubature (B = 1 and "
-            "batched), full-space step time and peak memory per size (each size in its own process), and the "
-            "growth exponent of each curve. See redsim.benches.scaling."
+            "batched; the map's f(0) shifted to rest so that the steps feel the loads; --dtype), full-space step "
+            "time and peak memory per size (each size in its own process), and the growth exponent of each curve. "
+            "See redsim.benches.scaling."
         ),
     )
     p.add_argument("--sizes", default="4,6,8,11", help="cross-section cells k per mesh (default 4,6,8,11)")
@@ -1091,6 +1096,15 @@ def add_commands(sub: Any) -> Any:
         "--full-max-n", type=int, help="run the full-space step only up to this many free DOFs (default: every size)"
     )
     p.add_argument("--no-full", action="store_true", help="skip the full-space step at every size")
+    p.add_argument(
+        "--dtype",
+        choices=("float32", "float64"),
+        default="float64",  # redsim.benches.scaling.DTYPE (the parser imports no torch)
+        help=(
+            "dtype of the latent E+grad and steps (default float64: at float32's tolerance the cubature step of the "
+            "briefly fitted map stalls in round-off and runs max_iter; the full step is float64 always)"
+        ),
+    )
     add_out_folder(p, "write DIR/scaling.md and DIR/scaling.png (rewritten after each size)")
     finish_command(p, cmd_bench_scaling, "print one JSON document on stdout", default_threads=1)
 
