@@ -196,7 +196,7 @@ def cmd_bench_cubature(args: argparse.Namespace) -> int:
             raise CliError("--compile times the benched scenes' cubature step; the --sweep has no compiled column")
         if args.cubature:
             raise CliError("--cubature benches one scene's cubature; the --sweep fits none (unfitted maps)")
-        if args.held_out:
+        if args.held_out or args.held_out_seed is not None:
             raise CliError("--held-out recomputes a fitted cubature's errors; the --sweep's maps are unfitted")
         unused = [
             flag
@@ -279,6 +279,7 @@ def cmd_bench_cubature(args: argparse.Namespace) -> int:
             compiled=args.compile,
             states=args.states,
             held_out=args.held_out,
+            held_out_seed=args.held_out_seed,
         )
         results.append(result)
         if not args.json:
@@ -300,8 +301,13 @@ def cmd_bench_cubature(args: argparse.Namespace) -> int:
             recomputed = (
                 ""
                 if errors is None
-                else f" (recomputed on the {errors['states']} states its config holds out: "
-                f"{errors['force_error']:.3g}, "
+                else f" (recomputed on the {errors['states']} states "
+                + (
+                    "its config holds out: "
+                    if args.held_out_seed is None
+                    else f"its config draws under seed {errors['seed']}, which no build saw: "
+                )
+                + f"{errors['force_error']:.3g}, "
                 f"plain {errors['plain_force_error']:.3g}, per state median {errors['median_state_force_error']:.3g} "
                 f"and 90th percentile {errors['p90_state_force_error']:.3g}, energy {errors['energy_error']:.3g}, "
                 f"plain against the subsampled effects' force {errors['subsampled_force_error']:.3g})"
@@ -512,6 +518,13 @@ def add_bench_command(bench: Any) -> None:
         help="also recompute the cubature's errors on the states its recorded config holds out (it replays the "
         "build's rollouts): the force error as the build reports it (each state over its force and energy), the plain "
         "relative force error, its median and 90th percentile per state, and the energy error",
+    )
+    p.add_argument(
+        "--held-out-seed",
+        metavar="S",
+        type=int,
+        help="as --held-out, on every state the recorded config draws under seed S instead: states no build saw (a "
+        "build before 2026-12-07 trained on some of the states its config holds out)",
     )
     p.add_argument(
         "--sweep",

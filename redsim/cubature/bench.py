@@ -6,6 +6,7 @@ step over seeded load sequences, contact penetration of both, and step time at e
 
 from __future__ import annotations
 
+import dataclasses
 import statistics
 import time
 from typing import Any
@@ -91,6 +92,7 @@ def held_out_errors(
     config: CubatureConfig | None = None,
     *,
     every_state: bool = False,
+    seed: int | None = None,
 ) -> dict[str, Any]:
     """The cubature's errors on its build's held-out states, in float64, each a relative error
     (:func:`redsim.cubature.fit.error_measures`).
@@ -98,7 +100,8 @@ def held_out_errors(
     The states are those its build held out (:func:`~redsim.cubature.fit.training_states` and
     :func:`~redsim.cubature.fit.split_states` of ``cubature.config``, which are seeded; a build made before whole
     rollouts were held out, 2026-12-07, split otherwise), or those ``config`` draws and holds out (another seed: states
-    of the same distribution the build never saw), all of them with ``every_state``. F is J^T grad E of the all-element
+    of the same distribution the build never saw), all of them with ``every_state``. ``seed``: every state the
+    recorded config draws under that seed instead (``every_state`` implied). F is J^T grad E of the all-element
     energy (every effect but the load term, :class:`redsim.runtime.MapEnergy`), E - E(0) its energy (E(0): z = 0, the
     default condition), the residuals the cubature energy's less those. Returns ``error_measures``' keys against the
     total (``force_error`` is the build's ``held_out_force_error`` on its own states), ``subsampled_force_error``: the
@@ -114,6 +117,8 @@ def held_out_errors(
         if not cubature.config:
             raise ValueError("the cubature records no config (built in Python?): give the states' CubatureConfig")
         config = CubatureConfig(**{k: tuple(v) if isinstance(v, list) else v for k, v in cubature.config.items()})
+    if seed is not None:
+        config, every_state = dataclasses.replace(config, seed=seed), True
     z, cond, _, episode = training_states(scene, subspace, config)
     test = torch.arange(z.shape[0]) if every_state else split_states(episode, config)[0]
     z, cond = z[test], None if cond is None else cond[test]
@@ -160,6 +165,7 @@ def bench_cubature(
     compiled: bool = False,
     states: int = ACCURACY_STATES,
     held_out: bool = False,
+    held_out_seed: int | None = None,
 ) -> dict[str, Any]:
     """Compare the cubature energy with the all-element step (``dtype``, CPU, the stepper's defaults).
 
@@ -178,7 +184,8 @@ def bench_cubature(
     state stays where it was), unconverged and out of the map's range (:data:`FLAGS`), of ``states * steps``.
     ``held_out_force_error`` and ``held_out_plain_force_error`` are the build's (None where its summary has none);
     ``held_out``: :func:`held_out_errors` of the states its recorded config holds out, recomputed (``held_out_errors``;
-    it replays the build's rollouts).
+    it replays the build's rollouts); ``held_out_seed``: instead every state its recorded config draws under that seed
+    (states no build saw; the builds before 2026-12-07 trained on some of the states their config holds out).
     """
     if isinstance(warmup, bool) or not isinstance(warmup, int) or warmup < 0:
         raise ValueError(f"warmup must be an integer >= 0, got {warmup!r}")
@@ -246,7 +253,11 @@ def bench_cubature(
         "held_out_error": cubature.summary.get("held_out_error"),
         "held_out_force_error": cubature.summary.get("held_out_force_error"),
         "held_out_plain_force_error": cubature.summary.get("held_out_plain_force_error"),
-        "held_out_errors": held_out_errors(scene, subspace, cubature) if held_out else None,
+        "held_out_errors": (
+            held_out_errors(scene, subspace, cubature, seed=held_out_seed)
+            if held_out or held_out_seed is not None
+            else None
+        ),
         "trajectory_deviation": float(deviation),
         "deviation_per_state": [float(v) for v in deviations],
         "motion_per_state": [float(v) for v in motion],

@@ -547,6 +547,25 @@ def test_bench_held_out_recomputes_the_errors_beside_the_recorded_ones(cli) -> N
     assert code == 2 and "--held-out recomputes a fitted cubature's errors" in err
 
 
+def test_bench_held_out_seed_recomputes_the_errors_on_every_state_of_another_seed(cli) -> None:
+    """``--held-out-seed S`` draws every state of the recorded config under seed S (states no build saw): their count
+    is the whole training set's, not the held-out part's; the --sweep refuses it too."""
+    quick = ("mini_chain", "--steps", "2", "--batches", "1", "--timed-steps", "2", "--elements", "4", "--json")
+    code, out, err = cli("bench", "cubature", *quick, "--held-out")
+    assert code == 0, err
+    own = json.loads(out)["results"][0]["held_out_errors"]
+    code, out, err = cli("bench", "cubature", *quick, "--held-out-seed", "7")
+    assert code == 0, err
+    other = json.loads(out)["results"][0]["held_out_errors"]
+    assert other["seed"] == 7 and own["seed"] != 7
+    assert other["states"] > own["states"]  # every state, not the held-out quarter
+    code, out, err = cli("bench", "cubature", *quick[:-1], "--held-out-seed", "7")
+    assert code == 0, err
+    assert f"recomputed on the {other['states']} states its config draws under seed 7, which no build saw: " in out
+    code, _, err = cli("bench", "cubature", "--sweep", "2", "--held-out-seed", "7")
+    assert code == 2 and "--held-out recomputes a fitted cubature's errors" in err
+
+
 @pytest.mark.parametrize("name", ["hanging_sheet", "cloth_ball"])
 def test_shipped_cubatures_are_chosen_with_one_option(name: str) -> None:
     scene = scenes.build(name)
