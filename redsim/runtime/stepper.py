@@ -60,6 +60,12 @@ the reduced force keeps many solves from reaching it within ``max_iter``. Develo
 none of BistableBar-v1's; 1e-9 35%, 55% and 0%; 1e-10 0%, 5% and 0% (each unconverged step runs ``max_iter``
 iterations); 1e-8 converged every step of all three. It is no hard floor: a review's mini chain step at 1e-12 reached
 8.2e-10 after 200 iterations."""
+ROUNDOFF_PROBE_ULPS = 64.0
+"""The latent step of the gradient round-off probe (:attr:`LatentStepper.roundoff_tol`), in units of the dtype's machine
+epsilon (float32: 7.6e-6): long enough that the map's layers round differently at each probe point, short enough that
+the gradient's curvature over it (of order step^2) stays below its round-off in float32 and float64."""
+ROUNDOFF_PROBE_DIRECTIONS = 8
+"""Seeded random directions of that probe; the median over them is reported."""
 COMPILES = (False, True, "dynamic")
 """The ``compile`` settings of :class:`LatentStepper`: eager, static shapes (every call pads to the batch), and one
 graph of value and gradient over any row count."""
@@ -203,24 +209,13 @@ class _StepObjective:
         """Phi, dPhi/dz and E of one block of rows (uncounted: :meth:`_value_and_grad` counts the call)."""
         if self.s._compiled_call is not None:  # compile="dynamic": value and gradient in one graph, these rows only
             return self.s._compiled_call(z, qbar, loads, cond)
-        z = z.detach().requires_grad_(True)
         if self.s.compiled:
+            z = z.detach().requires_grad_(True)
             with torch.enable_grad():
                 value, energy = self.s._phi_fast(z, qbar, loads, cond)
                 (grad,) = torch.autograd.grad(value.sum(), z)
             return value.detach(), grad, energy.detach()
-        # eager: autograd through E and q only; the inertia and load terms' gradient in q is closed form
-        # (fewer graph nodes per call: 1.03-1.12x per call on Klann, Chain, Stewart and ConditionalBar-v1,
-        # docs/env-speed.md, "Stop 24's per-call changes")
-        with torch.enable_grad():
-            energy, q = self.s._energy_coords(z, cond)
-        value, force = self.s._inertia_loads(energy.detach(), q.detach(), qbar, loads)
-        pairs = [(t, g) for t, g in ((energy, torch.ones_like(energy)), (q, force)) if t.requires_grad]
-        if not pairs:  # neither depends on z
-            return value, torch.zeros_like(z), energy.detach()
-        outputs, seeds = zip(*pairs, strict=True)
-        (grad,) = torch.autograd.grad(outputs, z, seeds, allow_unused=True)
-        return value, torch.zeros_like(z) if grad is None else grad, energy.detach()
+        return self.s._eager_value_and_grad(z, qbar, loads, cond)
 
     def exact_hessian(self, z: Tensor, index: Tensor) -> Tensor:
         k, d = z.shape
@@ -459,6 +454,20 @@ class LatentStepper:
         self.warm_start = bool(warm_start)
         self.evaluations = Evaluations()
         """Value-and-gradient calls and rows so far (:class:`Evaluations`; assign a new one to restart the count)."""
+        self.roundoff_tol = self._gradient_roundoff() / (self.jacobian_norm * self.base_force)
+        """The relative gradient norm |dPhi/dz| / (|J_0|_2 F_b) that the dtype's round-off alone gives at the map's
+        origin (measured, not estimated: :meth:`_gradient_roundoff`); a ``tol`` below it is met only where the
+        round-off happens to be small, and the stepper warns at construction. NaN where the probe was not finite."""
+        if self.tol < self.roundoff_tol:
+            warnings.warn(
+                f"{self.dtype}'s round-off in the reduced force, measured at the map's origin, is "
+                f"{self.roundoff_tol:.2g} of the force scale, above tol {self.tol:g}: solves cannot resolve their "
+                f"gradient to tol, so steps take many iterations and may end unconverged at max_iter={self.max_iter} "
+                "(StepStats.converged, an env's info['converged'], False); use dtype=torch.float64 (envs: "
+                "dtype='float64') or a tol a few times that "
+                "(docs/runtime.md, 'Tolerance')",
+                stacklevel=2,
+            )
 
     def __getstate__(self) -> dict[str, object]:
         """The attributes less the compiled callables: closures over this stepper's own ``_phi_eager``, so a
@@ -580,6 +589,40 @@ class LatentStepper:
                 stacklevel=3,
             )
 
+    def _gradient_roundoff(self) -> float:
+        """The round-off of dPhi/dz [unit of dPhi/dz] at z = 0 (qbar = the coordinates there, no loads, the default
+        condition), measured in the stepper's dtype by the eager gradient: the median over
+        :data:`ROUNDOFF_PROBE_DIRECTIONS` seeded unit directions u of |g(z + s u) + g(z - s u) - 2 g(z)| / sqrt(6),
+        s = :data:`ROUNDOFF_PROBE_ULPS` eps, in one call. The exact gradient's change is odd in s (cancels) up to a
+        term of order s^2; round-off at the three points is independent (the map's layers round differently), so
+        this is its size at one point (a batched call's: a one-row call may round worse). It is what limits a solve.
+        The barely fitted cantilever map of ``redsim bench scaling`` at k = 6 (float32, tol 1e-6) reads 2.6e-6 here,
+        6.5e-6 with its 144-element cubature; against the float64 gradient at the same z the error is 2-3 times tol
+        (cubature: 5-10 times in a batch, 21 in one-row calls), its float32 steps take 4-10 and 19-50 iterations
+        (2 of 6 cubature steps end unconverged at 50) where float64 takes 1. The shipped envs read 0.004-0.04 times
+        their tol in float32 (each id at gym.make; tests/runtime/test_gradient_roundoff.py). NaN where the gradient
+        there is not finite.
+
+        The elastic forces' round-off is not eps |forces| (at rest they are zero): f's rounding of q, felt through
+        the elements' stiffness, dominates it (the cantilever map at k = 6, all elements: 3.0 times tol of the 3.3),
+        then the energy's own evaluation at the same q (0.9 times tol); the float32 backward through the map adds
+        1e-4 times tol. Against the inertia scale |diag M|_2 L / h^2 of F_b it grows with mesh refinement and h^2.
+        """
+        d, count = self.latent_dim, ROUNDOFF_PROBE_DIRECTIONS
+        generator = torch.Generator().manual_seed(0)
+        u = torch.randn(count, d, generator=generator, dtype=torch.float64)
+        u = (u / torch.linalg.vector_norm(u, dim=-1, keepdim=True).clamp_min(1e-300)).to(self.dtype).to(self.device)
+        step = ROUNDOFF_PROBE_ULPS * self._eps
+        z = torch.cat([torch.zeros(1, d, dtype=self.dtype, device=self.device), step * u, -step * u])
+        cond = self._default_cond(z.shape[0])
+        with torch.no_grad():
+            qbar = self._coords(z[:1], None if cond is None else cond[:1]).expand(z.shape[0], -1)
+        _, grad, _ = self._eager_value_and_grad(z, qbar, None, cond)
+        grad = grad.detach().to(torch.float64)
+        second = grad[1 : 1 + count] + grad[1 + count :] - 2.0 * grad[:1]
+        noise = float(torch.linalg.vector_norm(second, dim=-1).median()) / math.sqrt(6.0)
+        return noise if math.isfinite(noise) else math.nan
+
     def _reduce_inertia(self) -> None:
         """Coordinates r with q = r W^T + b: mass W^T M W, |M v| by W^T M^2 W, handles A W r + (A b + p0)."""
         energy: ReducedInertia = self.energy  # type: ignore[assignment]
@@ -649,6 +692,23 @@ class LatentStepper:
         (differentiable in z to any order; :meth:`_StepObjective._value_and_grad` takes a shorter way)."""
         energy, q = self._energy_coords(z, cond)
         return self._inertia_loads(energy, q, qbar, loads)[0], energy
+
+    def _eager_value_and_grad(
+        self, z: Tensor, qbar: Tensor, loads: Tensor | None, cond: Tensor | None
+    ) -> tuple[Tensor, Tensor, Tensor]:
+        """Phi [k], dPhi/dz [k, d] and E [k] of z [k, d], eager: autograd through E and q only; the inertia and load
+        terms' gradient in q is closed form (fewer graph nodes per call: 1.03-1.12x per call on Klann, Chain, Stewart
+        and ConditionalBar-v1, docs/env-speed.md, "Stop 24's per-call changes")."""
+        z = z.detach().requires_grad_(True)
+        with torch.enable_grad():
+            energy, q = self._energy_coords(z, cond)
+        value, force = self._inertia_loads(energy.detach(), q.detach(), qbar, loads)
+        pairs = [(t, g) for t, g in ((energy, torch.ones_like(energy)), (q, force)) if t.requires_grad]
+        if not pairs:  # neither depends on z
+            return value, torch.zeros_like(z), energy.detach()
+        outputs, seeds = zip(*pairs, strict=True)
+        (grad,) = torch.autograd.grad(outputs, z, seeds, allow_unused=True)
+        return value, torch.zeros_like(z) if grad is None else grad, energy.detach()
 
     def handle_positions(self, q: Tensor) -> Tensor:
         """Handle positions [B, H*D] [m] of free configurations q [B, n] (linear in q)."""
