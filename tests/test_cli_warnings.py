@@ -162,17 +162,23 @@ def test_without_stderr_an_error_is_dropped_not_written_into_stdout(
     assert code == 2 and capsys.readouterr().out == ""
 
 
-@pytest.mark.parametrize("dtype", ["float64", "float32"])
-def test_bench_scaling_s_spawned_sizes_warn_nothing(cli: Cli, dtype: str) -> None:
+def test_bench_scaling_s_spawned_sizes_warn_of_float32_round_off_only(cli: Cli) -> None:
     """bench scaling measures each size in a spawned process, which showed its warnings in Python's display (the file,
     line and source line), twice per size: the stepper's float32 warning that it resolved accelerations only to more
     than 1% of g at k = 3 (3.8 m/s^2 at k = 4, 2.7e4 at k = 17), for its two steppers: a map whose f(0) was far from
     rest set the stepper's force scale, and no step felt the tip load. The bench steps the map with f(0) at rest now
-    (redsim.benches.scaling.rest_at_origin), in either dtype: nothing to warn of. The one-line display of a spawned
-    process's warning: tests/test_processes.py."""
+    (redsim.benches.scaling.rest_at_origin): in float64 nothing is left to warn of. In float32 the stepper's measured
+    gradient round-off (LatentStepper.roundoff_tol, cd1e79b) is above tol 1e-6 on this beam (its cubature step ends
+    unconverged): that warning is true, and each stepper that meets it says so on one line (the cubature's at 9.4x tol;
+    the all-element one's at 1.04x, so a CPU that rounds a little better may leave it out). The one-line display of a
+    spawned process's warning: tests/test_processes.py."""
     small = ["--fit-steps", "1", "--fit-warmup", "1", "--latent-steps", "1", "--cubature-elements", "5", "--no-full"]
-    code, _, err = cli("bench", "scaling", "--sizes", "3", *small, "--dtype", dtype, "--json")
+    code, _, err = cli("bench", "scaling", "--sizes", "3", *small, "--dtype", "float64", "--json")
     assert code == 0 and err == "", err
+    code, _, err = cli("bench", "scaling", "--sizes", "3", *small, "--dtype", "float32", "--json")
+    lines = err.splitlines()
+    assert code == 0 and 1 <= len(lines) <= 2, err
+    assert all(line.startswith("redsim: warning: torch.float32's round-off in the reduced force") for line in lines)
 
 
 def logged_in_cache_info(logging_lines: str, cache: Path) -> list[str]:

@@ -461,11 +461,10 @@ class LatentStepper:
         if self.tol < self.roundoff_tol:
             warnings.warn(
                 f"{self.dtype}'s round-off in the reduced force, measured at the map's origin, is "
-                f"{self.roundoff_tol:.2g} of the force scale, above tol {self.tol:g}: solves cannot resolve their "
-                f"gradient to tol, so steps take many iterations and may end unconverged at max_iter={self.max_iter} "
-                "(StepStats.converged, an env's info['converged'], False); use dtype=torch.float64 (envs: "
-                "dtype='float64') or a tol a few times that "
-                "(docs/runtime.md, 'Tolerance')",
+                f"{self.roundoff_tol:.3g} of the force scale, {self.roundoff_tol / self.tol:.3g}x tol {self.tol:g}: "
+                "solves cannot resolve their gradient to tol, so steps take many iterations and may end unconverged "
+                f"at max_iter={self.max_iter} (StepStats.converged, an env's info['converged'], False); use "
+                "dtype=torch.float64 (envs: dtype='float64') or a tol a few times that (docs/runtime.md, 'Tolerance')",
                 stacklevel=2,
             )
 
