@@ -4,7 +4,6 @@ two ends, and the invariants' worst state sums every effect's count (hand mutati
 from __future__ import annotations
 
 import numpy as np
-import pytest
 import torch
 
 from redsim.benches import stability
@@ -51,5 +50,3 @@ def test_the_worst_state_sums_every_effects_count() -> None:
     values = {"a_inverted": np.array([1, 1, 0]), "b_inverted": np.array([1, 0, 0]), "_x_inverted": np.array([9, 9, 9])}
     assert stability.most(values, "inverted") == 2  # state 0: one of each (a private key is not a count)
     assert stability.most(values, "unlinked") is None
-
-
