@@ -10,6 +10,7 @@ import pytest
 import torch
 
 from redsim import meshes, metrics, scenes
+from redsim.effects import NeoHookean
 from redsim.scene import SceneBuilder
 from redsim.scenes import toolkit
 from redsim.subspace import LinearSubspace
@@ -59,3 +60,28 @@ def test_generated_loads_take_the_handles_in_turn() -> None:
         pushed, torch.tensor([[2.0, 0.0], [0.0, 2.0], [2.0, 0.0], [0.0, 2.0]], dtype=pushed.dtype)
     )
     assert result["max_error"] < 1e-3  # the identity answers every load
+
+
+def test_the_response_error_leaves_out_a_fixed_offset_of_the_maps_rest() -> None:
+    """A free tet pulled apart at two corners (no net force): its energy and the loads' work do not change under a
+    translation, so a map shifted by one rests shifted and responds alike. The error counts the shift, the response
+    error (measured from the map's own unloaded equilibrium) does not."""
+    tet = torch.tensor([[0.0, 0, 0], [1, 0, 0], [0, 1, 0], [0, 0, 1]], dtype=torch.float64)
+    b = SceneBuilder(dim=3)
+    ids = b.add_particles(tet, torch.ones(4))
+    b.add_effect(NeoHookean("elastic", b.particle_dofs(torch.tensor([[0, 1, 2, 3]])), tet[None], 1e3, 0.3))
+    b.add_handle("a", b.particle_points(ids[:1]))
+    b.add_handle("b", b.particle_points(ids[1:2]))
+    scene = b.finalize("stretched_tet")
+    loads = [{"a": [-50.0, 0.0, 0.0], "b": [50.0, 0.0, 0.0]}]
+    shift = torch.tensor([0.3, 0.0, 0.0], dtype=torch.float64).repeat(4)
+    runs = [
+        metrics.load_response_error(
+            scene, LinearSubspace(torch.eye(12, dtype=torch.float64), scene.q_seed + offset), loads=loads, restarts=0
+        )
+        for offset in (torch.zeros_like(shift), shift)
+    ]
+    assert all(r["full_converged"] == [True] and r["latent_converged"] == [True] for r in runs)
+    assert runs[0]["rest_error"] == 0.0 and runs[1]["rest_error"] == pytest.approx(0.6)  # |0.3 e_x|_M over 4 kg
+    assert runs[1]["errors"][0] > runs[0]["errors"][0] + 0.1
+    assert runs[1]["response_errors"][0] == pytest.approx(runs[0]["response_errors"][0], rel=1e-9)
