@@ -51,6 +51,9 @@ class EndAtDrawnStep(Task):
     def terminated(self, x, params):
         return params["clock"] >= params["limit"]
 
+    def metrics(self, x, params):
+        return {"is_success": params["clock"] % 2 == 0}  # every second step
+
 
 def _env(**kwargs):
     return redsim.envs.make("mini_chain", task=EndAtDrawnStep(), max_episode_steps=20, **kwargs)
@@ -60,6 +63,9 @@ def test_each_episodes_return_counts_its_own_steps() -> None:
     result = evaluate(_env(), "random", episodes=4, seed=0)
     assert len(set(result.lengths.tolist())) > 1  # the episodes end at different steps
     np.testing.assert_array_equal(result.returns, result.lengths)
+    # the fraction of each episode's own steps in success: steps 2, 4, ... of its 1..L
+    np.testing.assert_allclose(result.success_steps, (result.lengths // 2) / result.lengths)
+    np.testing.assert_array_equal(result.successes, result.lengths % 2 == 0)  # at its last step
 
 
 def test_same_step_pixels_restart_only_the_copies_that_ended() -> None:
