@@ -1,0 +1,42 @@
+"""The command line's shared argument checks (redsim.cli.common) on the inputs the hand mutation audit (helper-283)
+found no test giving: each check below was loosened by a one-line mutation that every CLI test passed.
+
+- ``--load`` with fewer components than the scene's dimension (``!=`` loosened to ``>``), and a handle loaded twice
+  (the second would silently win);
+- a comma-separated count of 0 (``parse_ints``: ``--batches``, ``--sweep``, ``--damping-divisions``).
+"""
+
+from __future__ import annotations
+
+import pytest
+import torch
+
+from redsim import SceneBuilder
+from redsim.cli.common import CliError, parse_ints, parse_loads
+
+
+def _scene_3d():
+    builder = SceneBuilder(3)
+    ids = builder.add_particles(torch.zeros(2, 3), torch.ones(2))
+    builder.add_handle("tip", builder.particle_points(ids[1:]))
+    return builder.finalize("two_points")
+
+
+def test_a_load_with_too_few_or_too_many_components_is_refused() -> None:
+    scene = _scene_3d()
+    assert parse_loads(["tip=1,2,3"], scene) == {"tip": [1.0, 2.0, 3.0]}
+    for given in ("tip=1,2", "tip=1", "tip=1,2,3,4"):
+        with pytest.raises(CliError, match=r"component\(s\), but scene 'two_points' is 3D"):
+            parse_loads([given], scene)
+
+
+def test_a_handle_loaded_twice_is_refused() -> None:
+    with pytest.raises(CliError, match="--load gives handle 'tip' twice"):
+        parse_loads(["tip=1,2,3", "tip=0,0,1"], _scene_3d())
+
+
+@pytest.mark.parametrize("text", ["0", "2,0", "-1,4"])
+def test_a_count_below_one_is_refused(text: str) -> None:
+    with pytest.raises(CliError, match="--batches must be >= 1"):
+        parse_ints(text, "--batches")
+    assert parse_ints("1,4", "--batches") == [1, 4]
