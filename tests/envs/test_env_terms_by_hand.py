@@ -80,3 +80,19 @@ def test_each_copy_of_the_conditional_bar_marks_its_own_support() -> None:
             np.testing.assert_allclose(markers[0].position, [location, 0.0])
     finally:
         venv.close()
+
+
+def test_cloth_balls_goal_is_the_balls_horizontal_place() -> None:
+    """ClothBall-v0 observes and rewards the ball centre's (x, z), the plane the ball rolls in, as its docstring
+    states (its goal axes taken as (x, y) passed tests/envs/test_docstrings_match.py, test_cloth_envs.py and
+    test_goal_env.py)."""
+    env = gym.make("RedSim/ClothBall-v0")
+    try:
+        obs, info = env.reset(seed=0, options={"target": [0.1, -0.05]})
+        sim = env.unwrapped.sim
+        ball = sim.scene.handle("ball").position(sim.x)[0].double().numpy()
+        np.testing.assert_allclose(obs[6:8], ball[[0, 2]], atol=1e-6)
+        np.testing.assert_allclose(obs[8:10], np.array([0.1, -0.05]) - ball[[0, 2]], atol=1e-6)
+        assert info["distance"] == pytest.approx(float(np.hypot(*(np.array([0.1, -0.05]) - ball[[0, 2]]))), abs=1e-6)
+    finally:
+        env.close()
