@@ -3,10 +3,14 @@ found no test giving: each check below was loosened by a one-line mutation that 
 
 - ``--load`` with fewer components than the scene's dimension (``!=`` loosened to ``>``), and a handle loaded twice
   (the second would silently win);
-- a comma-separated count of 0 (``parse_ints``: ``--batches``, ``--sweep``, ``--damping-divisions``).
+- a comma-separated count of 0 (``parse_ints``: ``--batches``, ``--sweep``, ``--damping-divisions``);
+- a file a command cannot write (a full disk) exits with status 1 (redsim.cli's documented status), in one line: as
+  status 2 (bad input) it passed every CLI test.
 """
 
 from __future__ import annotations
+
+import errno
 
 import pytest
 import torch
@@ -40,3 +44,16 @@ def test_a_count_below_one_is_refused(text: str) -> None:
     with pytest.raises(CliError, match="--batches must be >= 1"):
         parse_ints(text, "--batches")
     assert parse_ints("1,4", "--batches") == [1, 4]
+
+
+def test_a_file_the_command_cannot_write_exits_with_status_1(monkeypatch, capsys) -> None:
+    import redsim.cli.scenes
+    from redsim.cli import main
+
+    def full_disk(args):
+        raise OSError(errno.ENOSPC, "No space left on device", "runs/out.json")
+
+    monkeypatch.setattr(redsim.cli.scenes, "cmd_scenes", full_disk)
+    assert main(["scenes"]) == 1
+    captured = capsys.readouterr()
+    assert captured.err == "redsim: error: No space left on device: runs/out.json\n" and captured.out == ""
