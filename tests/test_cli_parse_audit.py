@@ -5,7 +5,10 @@ found no test giving: each check below was loosened by a one-line mutation that 
   (the second would silently win);
 - a comma-separated count of 0 (``parse_ints``: ``--batches``, ``--sweep``, ``--damping-divisions``);
 - a file a command cannot write (a full disk) exits with status 1 (redsim.cli's documented status), in one line: as
-  status 2 (bad input) it passed every CLI test.
+  status 2 (bad input) it passed every CLI test;
+- ``redsim cache --older-than 0`` (every file) is taken: refused with the bound made strict, it passed;
+- ``redsim animate --keys 1`` and ``redsim sample -n 0`` are refused before the checkpoint is read (a loop needs two
+  keys, a sample one state; each bound loosened by one passed).
 """
 
 from __future__ import annotations
@@ -57,3 +60,27 @@ def test_a_file_the_command_cannot_write_exits_with_status_1(monkeypatch, capsys
     assert main(["scenes"]) == 1
     captured = capsys.readouterr()
     assert captured.err == "redsim: error: No space left on device: runs/out.json\n" and captured.out == ""
+
+
+def test_cache_older_than_zero_days_is_taken(tmp_path, monkeypatch, capsys) -> None:
+    from redsim.cli import main
+
+    monkeypatch.setenv("REDSIM_CACHE", str(tmp_path))
+    assert main(["cache", "info", "--older-than", "0", "--json"]) == 0
+    assert main(["cache", "clear", "--older-than", "0", "--dry-run", "--json"]) == 0
+    assert capsys.readouterr().err == ""
+
+
+def test_animate_needs_two_keys(tmp_path, capsys) -> None:
+    from redsim.cli import main
+
+    out = str(tmp_path / "loop.gif")
+    assert main(["animate", str(tmp_path / "none.pt"), "--keys", "1", "--frames", "4", "--out", out]) == 2
+    assert "need --keys >= 2 and --frames >= --keys, got 1 and 4" in capsys.readouterr().err
+
+
+def test_sample_needs_one_state(tmp_path, capsys) -> None:
+    from redsim.cli import main
+
+    assert main(["sample", str(tmp_path / "none.pt"), "-n", "0", "--out", str(tmp_path / "s.npz")]) == 2
+    assert "-n must be an integer >= 1, got 0" in capsys.readouterr().err
