@@ -12,6 +12,7 @@ from redsim import pretrained, scenes
 from redsim.runtime import LatentStepper
 from redsim.runtime import bench as runtime_bench
 from redsim.runtime.bench import load_magnitudes, load_sequence, run_stepper
+from redsim.runtime.flags import LATENT_RANGE
 
 
 class _Clock:
@@ -54,3 +55,11 @@ def test_warm_up_steps_are_left_out_of_the_per_step_counts(stepper_and_loads) ->
     assert warmed["calls_per_step"] == cold["calls_per_step"] > 0
     assert warmed["rows_per_step"] == cold["rows_per_step"] >= 3
     assert torch.equal(warmed["trajectory"], cold["trajectory"])
+
+
+def test_the_flag_fractions_are_each_flags_own(stepper_and_loads) -> None:
+    stepper, z0, loads = stepper_and_loads
+    far = z0 + 3.0 * LATENT_RANGE * torch.ones_like(z0)  # |z| far past LATENT_RANGE sqrt(d): its first step is out
+    result = run_stepper(stepper, far, loads, warmup=0)
+    # the chain pulls z back in range after one step (measured: 0.25 of 4 steps), none diverged
+    assert result["out_of_range_fraction"] >= 0.25 and result["diverged_fraction"] == 0.0
